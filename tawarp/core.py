@@ -1,0 +1,317 @@
+"""Description of a thermoacoustic core: gas, tube and segments (FORMATS.md, TOML).
+
+A core is an ordered list of segments from measurement plane x1 to plane x6. Every
+numeric quantity is addressable by a *parameter name* ``SEGMENT.FIELD`` (for example
+``stack.porosity``), or ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``. The batched
+API, the command line and every output use these names.
+
+All values are SI: lengths in m, temperatures in K, pressures in Pa, conductivities in
+W/(m K), heat-exchange coefficients in W/(m^2 K).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from .gas import GASES
+
+SEGMENT_KINDS = ("duct", "porous")
+PORE_MODELS = ("circular", "plates")
+
+#: Numeric segment fields that can be parameters (``SEGMENT.FIELD``).
+SEGMENT_FIELDS = ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h")
+#: Numeric global fields, addressed as ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
+GLOBAL_FIELDS = ("gas.T_cold", "gas.p_mean", "tube.radius")
+
+
+class CoreError(ValueError):
+    """A core description is invalid; the message names the file and key."""
+
+
+@dataclass(frozen=True)
+class Gas:
+    """Working gas: ``name`` one of :data:`tawarp.gas.GASES`, mean pressure [Pa], cold temperature [K]."""
+
+    name: str = "air"
+    p_mean: float = 101325.0
+    T_cold: float = 293.15
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One part of the core between two planes.
+
+    A ``duct`` is an empty tube section (porosity 1, pore radius = tube radius,
+    tortuosity 1). A ``porous`` segment has ``porosity`` [-], ``pore_radius`` [m]
+    (circular pores: radius; ``plates``: half the plate spacing), ``tortuosity`` q [-]
+    (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
+    heat exchange with the wall, used when ``thermal`` is true (the segment is part of
+    the steady heat model). Exactly one thermal segment is the ``heater``.
+    """
+
+    name: str
+    kind: str
+    length: float
+    pore_model: str = "circular"
+    porosity: float = 1.0
+    pore_radius: float = math.nan
+    tortuosity: float = 1.0
+    solid_conductivity: float = 0.0
+    h: float = 0.0
+    thermal: bool = False
+    heater: bool = False
+
+    @property
+    def is_porous(self) -> bool:
+        return self.kind == "porous"
+
+
+@dataclass(frozen=True)
+class Core:
+    """A thermoacoustic core: ``gas``, tube ``radius`` [m] and ``segments`` from x1 to x6."""
+
+    segments: tuple[Segment, ...]
+    gas: Gas = field(default_factory=Gas)
+    radius: float = 0.0167
+    source: str = "<core>"
+
+    def __post_init__(self):
+        object.__setattr__(self, "segments", tuple(self.segments))
+        validate(self)
+
+    # -- structure -------------------------------------------------------------------
+    @property
+    def area(self) -> float:
+        """Tube cross-section S = pi R^2 [m^2]."""
+        return math.pi * self.radius**2
+
+    @property
+    def thermal_indices(self) -> list[int]:
+        return [i for i, s in enumerate(self.segments) if s.thermal]
+
+    @property
+    def heater_index(self) -> int:
+        return next(i for i, s in enumerate(self.segments) if s.heater)
+
+    def segment(self, name: str) -> Segment:
+        for s in self.segments:
+            if s.name == name:
+                return s
+        raise KeyError(f"{self.source}: no segment named {name!r} (have {[s.name for s in self.segments]})")
+
+    def positions(self) -> list[float]:
+        """Plane positions [m]: x = 0 at the first plane, one more entry than segments."""
+        x = [0.0]
+        for s in self.segments:
+            x.append(x[-1] + s.length)
+        return x
+
+    # -- parameters ------------------------------------------------------------------
+    def parameter_names(self) -> list[str]:
+        """Every numeric parameter of this core, ``SEGMENT.FIELD`` or a global name."""
+        names = list(GLOBAL_FIELDS)
+        for s in self.segments:
+            names += [f"{s.name}.{f}" for f in SEGMENT_FIELDS]
+        return names
+
+    def get(self, name: str) -> float:
+        """Value of parameter ``name`` (``stack.porosity``, ``gas.T_cold``, ...)."""
+        owner, fld = _split(name, self.source)
+        if owner == "gas" and fld in ("T_cold", "p_mean"):
+            return getattr(self.gas, fld)
+        if owner == "tube" and fld == "radius":
+            return self.radius
+        if fld not in SEGMENT_FIELDS:
+            raise KeyError(f"{name!r}: unknown field {fld!r}; segment fields are {SEGMENT_FIELDS}")
+        seg = self.segment(owner)
+        value = getattr(seg, fld)
+        if fld == "pore_radius" and not seg.is_porous:
+            return self.radius
+        return value
+
+    def replace(self, **values: float) -> "Core":
+        """A copy with parameters changed, keyed by name: ``core.replace(**{"stack.h": 80})``."""
+        gas, radius, segs = self.gas, self.radius, {s.name: s for s in self.segments}
+        for name, value in values.items():
+            owner, fld = _split(name, self.source)
+            if owner == "gas":
+                gas = dataclasses.replace(gas, **{fld: float(value)})
+            elif owner == "tube" and fld == "radius":
+                radius = float(value)
+            else:
+                self.get(name)  # validates the name
+                segs[owner] = dataclasses.replace(segs[owner], **{fld: float(value)})
+        return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source)
+
+    def to_dict(self) -> dict:
+        """The TOML structure (FORMATS.md) of this core."""
+        out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
+        for s in self.segments:
+            d = {"name": s.name, "kind": s.kind, "length": s.length}
+            if s.is_porous:
+                d.update(pore_model=s.pore_model, porosity=s.porosity, pore_radius=s.pore_radius,
+                         tortuosity=s.tortuosity, solid_conductivity=s.solid_conductivity)
+            if s.thermal:
+                d.update(h=s.h, thermal=True)
+            if s.heater:
+                d["heater"] = True
+            out["segment"].append(d)
+        return out
+
+
+def _split(name: str, source: str) -> tuple[str, str]:
+    owner, dot, fld = name.partition(".")
+    if not dot or not owner or not fld:
+        raise KeyError(f"{source}: parameter {name!r} is not of the form SEGMENT.FIELD")
+    return owner, fld
+
+
+# -- validation ----------------------------------------------------------------------
+def _check_number(value, where: str, *, low=None, high=None, low_open=False, allow_nan=False):
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CoreError(f"{where}: expected a number, got {value!r}")
+    v = float(value)
+    if math.isnan(v) and allow_nan:
+        return
+    if not math.isfinite(v):
+        raise CoreError(f"{where}: expected a finite number, got {value!r}")
+    if low is not None and (v < low or (low_open and v == low)):
+        raise CoreError(f"{where}: must be {'>' if low_open else '>='} {low}, got {v}")
+    if high is not None and v > high:
+        raise CoreError(f"{where}: must be <= {high}, got {v}")
+
+
+def validate(core: Core) -> None:
+    """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
+    src = core.source
+    if core.gas.name not in GASES:
+        raise CoreError(f"{src}: gas.name = {core.gas.name!r}; expected one of {sorted(GASES)}")
+    _check_number(core.gas.p_mean, f"{src}: gas.p_mean [Pa]", low=0, low_open=True)
+    _check_number(core.gas.T_cold, f"{src}: gas.T_cold [K]", low=0, low_open=True)
+    _check_number(core.radius, f"{src}: tube.radius [m]", low=0, low_open=True)
+    if not core.segments:
+        raise CoreError(f"{src}: no [[segment]] entries")
+    names = [s.name for s in core.segments]
+    for s in core.segments:
+        w = f"{src}: segment {s.name!r}"
+        if not isinstance(s.name, str) or not s.name.isidentifier():
+            raise CoreError(f"{src}: segment name {s.name!r} must be an identifier (letters, digits, _)")
+        if names.count(s.name) > 1:
+            raise CoreError(f"{w}: name used twice")
+        if s.name in ("gas", "tube"):
+            raise CoreError(f"{w}: 'gas' and 'tube' are reserved names")
+        if s.kind not in SEGMENT_KINDS:
+            raise CoreError(f"{w}: kind = {s.kind!r}; expected one of {SEGMENT_KINDS}")
+        _check_number(s.length, f"{w}: length [m]", low=0, low_open=True)
+        _check_number(s.h, f"{w}: h [W/(m^2 K)]", low=0)
+        if s.is_porous:
+            if s.pore_model not in PORE_MODELS:
+                raise CoreError(f"{w}: pore_model = {s.pore_model!r}; expected one of {PORE_MODELS}")
+            _check_number(s.porosity, f"{w}: porosity", low=0, high=1, low_open=True)
+            _check_number(s.pore_radius, f"{w}: pore_radius [m]", low=0, low_open=True)
+            if s.pore_radius > core.radius:
+                raise CoreError(f"{w}: pore_radius {s.pore_radius} m exceeds the tube radius {core.radius} m")
+            _check_number(s.tortuosity, f"{w}: tortuosity", low=1)
+            _check_number(s.solid_conductivity, f"{w}: solid_conductivity [W/(m K)]", low=0)
+        if s.heater and not s.thermal:
+            raise CoreError(f"{w}: heater = true needs thermal = true")
+    thermal = core.thermal_indices
+    if thermal:
+        if thermal != list(range(thermal[0], thermal[-1] + 1)):
+            raise CoreError(f"{src}: the thermal = true segments must be contiguous, got {[names[i] for i in thermal]}")
+        heaters = [s.name for s in core.segments if s.heater]
+        if len(heaters) != 1:
+            raise CoreError(f"{src}: exactly one thermal segment must have heater = true, got {heaters or 'none'}")
+
+
+# -- TOML ----------------------------------------------------------------------------
+_SEGMENT_KEYS = {f.name for f in dataclasses.fields(Segment)}
+
+
+def core_from_dict(data: dict, source: str = "<core>") -> Core:
+    """Build a :class:`Core` from the TOML structure of FORMATS.md."""
+    unknown = set(data) - {"gas", "tube", "segment"}
+    if unknown:
+        raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, tube, segment")
+    gas_d = dict(data.get("gas", {}))
+    bad = set(gas_d) - {"name", "p_mean", "T_cold"}
+    if bad:
+        raise CoreError(f"{source}: unknown key(s) in [gas]: {sorted(bad)}")
+    gas = Gas(**gas_d)
+    tube = dict(data.get("tube", {}))
+    if set(tube) - {"radius"}:
+        raise CoreError(f"{source}: unknown key(s) in [tube]: {sorted(set(tube) - {'radius'})}")
+    segs = []
+    for k, sd in enumerate(data.get("segment", [])):
+        where = f"{source}: segment #{k + 1}"
+        for key in ("name", "kind", "length"):
+            if key not in sd:
+                raise CoreError(f"{where}: missing key {key!r}")
+        bad = set(sd) - _SEGMENT_KEYS
+        if bad:
+            raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
+        if sd["kind"] == "duct":
+            extra = {"porosity", "pore_radius", "tortuosity", "solid_conductivity", "pore_model"} & set(sd)
+            if extra:
+                raise CoreError(f"{where} ({sd['name']!r}): a duct takes no {sorted(extra)}; use kind = 'porous'")
+        elif "pore_radius" not in sd:
+            raise CoreError(f"{where} ({sd['name']!r}): a porous segment needs pore_radius")
+        for flag in ("thermal", "heater"):
+            if flag in sd and not isinstance(sd[flag], bool):
+                raise CoreError(f"{where} ({sd['name']!r}): {flag} must be true or false")
+        segs.append(Segment(**sd))
+    return Core(tuple(segs), gas, tube.get("radius", 0.0167), source)
+
+
+def load_core(path: str | Path) -> Core:
+    """Read and validate a core TOML file (FORMATS.md).
+
+    ``path`` may also name a bundled core: ``ceramic``, ``mesh``, ``nicr_foam``, ``rvc_foam``.
+    """
+    p = Path(path)
+    if not p.exists() and str(path) in bundled_cores():
+        p = Path(str(resources.files("tawarp") / "data" / "cores" / f"{path}.toml"))
+    if not p.exists():
+        raise FileNotFoundError(f"{path}: no such core file (bundled cores: {', '.join(bundled_cores())})")
+    try:
+        data = tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise CoreError(f"{p}: not valid TOML: {e}") from None
+    try:
+        return core_from_dict(data, str(p))
+    except TypeError as e:  # wrong value types reaching the dataclasses
+        raise CoreError(f"{p}: {e}") from None
+
+
+def bundled_cores() -> list[str]:
+    """Names of the paper-like cores shipped with tawarp (one per material of the paper)."""
+    folder = resources.files("tawarp") / "data" / "cores"
+    return sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml"))
+
+
+def dump_core(core: Core) -> str:
+    """The TOML text of ``core``."""
+    lines = []
+    d = core.to_dict()
+    for table in ("gas", "tube"):
+        lines.append(f"[{table}]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in d[table].items()]
+        lines.append("")
+    for seg in d["segment"]:
+        lines.append("[[segment]]")
+        lines += [f"{k} = {_toml_value(v)}" for k, v in seg.items()]
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(v) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, str):
+        return f'"{v}"'
+    return repr(float(v))
