@@ -27,6 +27,18 @@ PORE_MODELS = ("circular", "plates")
 SEGMENT_FIELDS = ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h")
 #: Numeric global fields, addressed as ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELDS = ("gas.T_cold", "gas.p_mean", "tube.radius")
+#: Physical range of each numeric field: (lowest, highest, lowest excluded), with units.
+FIELD_BOUNDS = {
+    "length": (0.0, math.inf, True, "m"),
+    "porosity": (0.0, 1.0, True, "-"),
+    "pore_radius": (0.0, math.inf, True, "m"),
+    "tortuosity": (1.0, math.inf, False, "-"),
+    "solid_conductivity": (0.0, math.inf, False, "W/(m K)"),
+    "h": (0.0, math.inf, False, "W/(m^2 K)"),
+    "T_cold": (0.0, math.inf, True, "K"),
+    "p_mean": (0.0, math.inf, True, "Pa"),
+    "radius": (0.0, math.inf, True, "m"),
+}
 
 
 class CoreError(ValueError):
@@ -113,10 +125,14 @@ class Core:
 
     # -- parameters ------------------------------------------------------------------
     def parameter_names(self) -> list[str]:
-        """Every numeric parameter of this core, ``SEGMENT.FIELD`` or a global name."""
+        """Every parameter the model uses, ``SEGMENT.FIELD`` or a global name: a duct
+        has a length (and ``h`` when thermal), a porous segment all its fields."""
         names = list(GLOBAL_FIELDS)
         for s in self.segments:
-            names += [f"{s.name}.{f}" for f in SEGMENT_FIELDS]
+            fields = SEGMENT_FIELDS if s.is_porous else ("length",)
+            names += [f"{s.name}.{f}" for f in fields if f != "h"]
+            if s.thermal:
+                names.append(f"{s.name}.h")
         return names
 
     def get(self, name: str) -> float:
@@ -172,18 +188,19 @@ def _split(name: str, source: str) -> tuple[str, str]:
 
 
 # -- validation ----------------------------------------------------------------------
-def _check_number(value, where: str, *, low=None, high=None, low_open=False, allow_nan=False):
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise CoreError(f"{where}: expected a number, got {value!r}")
-    v = float(value)
-    if math.isnan(v) and allow_nan:
-        return
-    if not math.isfinite(v):
-        raise CoreError(f"{where}: expected a finite number, got {value!r}")
-    if low is not None and (v < low or (low_open and v == low)):
-        raise CoreError(f"{where}: must be {'>' if low_open else '>='} {low}, got {v}")
-    if high is not None and v > high:
-        raise CoreError(f"{where}: must be <= {high}, got {v}")
+def check_values(field: str, values, where: str) -> None:
+    """Raise :class:`CoreError` unless every value of ``field`` is finite and within
+    :data:`FIELD_BOUNDS`; ``where`` names the file/key (or the parameter) in the message."""
+    low, high, low_open, unit = FIELD_BOUNDS[field]
+    for value in (values if hasattr(values, "__len__") else [values]):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
+            raise CoreError(f"{where} [{unit}]: expected a number, got {value!r}")
+        v = float(value)
+        if not math.isfinite(v):
+            raise CoreError(f"{where} [{unit}]: expected a finite number, got {value!r}")
+        if v < low or (low_open and v == low) or v > high:
+            rng = f"{'(' if low_open else '['}{low}, {high}{']' if math.isfinite(high) else ')'}"
+            raise CoreError(f"{where} [{unit}]: must lie in {rng}, got {v}")
 
 
 def validate(core: Core) -> None:
@@ -191,9 +208,9 @@ def validate(core: Core) -> None:
     src = core.source
     if core.gas.name not in GASES:
         raise CoreError(f"{src}: gas.name = {core.gas.name!r}; expected one of {sorted(GASES)}")
-    _check_number(core.gas.p_mean, f"{src}: gas.p_mean [Pa]", low=0, low_open=True)
-    _check_number(core.gas.T_cold, f"{src}: gas.T_cold [K]", low=0, low_open=True)
-    _check_number(core.radius, f"{src}: tube.radius [m]", low=0, low_open=True)
+    check_values("p_mean", core.gas.p_mean, f"{src}: gas.p_mean")
+    check_values("T_cold", core.gas.T_cold, f"{src}: gas.T_cold")
+    check_values("radius", core.radius, f"{src}: tube.radius")
     if not core.segments:
         raise CoreError(f"{src}: no [[segment]] entries")
     names = [s.name for s in core.segments]
@@ -207,17 +224,15 @@ def validate(core: Core) -> None:
             raise CoreError(f"{w}: 'gas' and 'tube' are reserved names")
         if s.kind not in SEGMENT_KINDS:
             raise CoreError(f"{w}: kind = {s.kind!r}; expected one of {SEGMENT_KINDS}")
-        _check_number(s.length, f"{w}: length [m]", low=0, low_open=True)
-        _check_number(s.h, f"{w}: h [W/(m^2 K)]", low=0)
+        check_values("length", s.length, f"{w}: length")
+        check_values("h", s.h, f"{w}: h")
         if s.is_porous:
             if s.pore_model not in PORE_MODELS:
                 raise CoreError(f"{w}: pore_model = {s.pore_model!r}; expected one of {PORE_MODELS}")
-            _check_number(s.porosity, f"{w}: porosity", low=0, high=1, low_open=True)
-            _check_number(s.pore_radius, f"{w}: pore_radius [m]", low=0, low_open=True)
+            for fld in ("porosity", "pore_radius", "tortuosity", "solid_conductivity"):
+                check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if s.pore_radius > core.radius:
                 raise CoreError(f"{w}: pore_radius {s.pore_radius} m exceeds the tube radius {core.radius} m")
-            _check_number(s.tortuosity, f"{w}: tortuosity", low=1)
-            _check_number(s.solid_conductivity, f"{w}: solid_conductivity [W/(m K)]", low=0)
         if s.heater and not s.thermal:
             raise CoreError(f"{w}: heater = true needs thermal = true")
     thermal = core.thermal_indices

@@ -1,0 +1,132 @@
+"""The forward kernels: parameter expansion, heat solve, T-matrix cascade, profiles.
+
+Launch order for a batch of n parameter sets and m frequencies:
+
+1. :func:`expand_parameters` (n threads) fills the (rows, n) table from the core's base
+   values and the rows that vary.
+2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
+   profile is shared by all m frequencies (measured faster than solving it in every
+   (set, frequency) thread, see bench/forward.py).
+3. :func:`transfer_kernel` ((n, m) threads): one thread per (set, frequency) cascades
+   the segment matrices from x1 to x6.
+"""
+
+import warp as wp
+
+from .acoustics import expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
+from .heat import cell_profile, segment_heat_coeffs, solve_heat, temperature_at
+from .layout import F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD, TORTUOSITY, seg_value
+
+TWO_PI = wp.constant(wp.float64(6.283185307179586))
+PI = wp.constant(wp.float64(3.141592653589793))
+# Gauss-Legendre points of [0, 1] for the three-point rule: 1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10
+GAUSS_1 = wp.constant(wp.float64(0.1127016653792583))
+GAUSS_2 = wp.constant(wp.float64(0.5))
+GAUSS_3 = wp.constant(wp.float64(0.8872983346207417))
+
+
+@wp.kernel
+def expand_parameters(base: wp.array(dtype=wp.float64), varying: wp.array2d(dtype=wp.float64),
+                      rows: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.float64)):
+    """params[:, i] = base, then params[rows[v], i] = varying[v, i]."""
+    i = wp.tid()
+    for r in range(base.shape[0]):
+        params[r, i] = base[r]
+    for v in range(rows.shape[0]):
+        params[rows[v], i] = varying[v, i]
+
+
+@wp.kernel
+def heat_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                gas: wp.array(dtype=wp.float64), first: int, count: int, heat_cells: int, fitted: int,
+                theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+    i = wp.tid()
+    solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, theta, scratch)
+
+
+@wp.func
+def pore_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """(porosity, pore radius [m], tortuosity) of segment s; a duct is one circular pore
+    of the tube's radius."""
+    if flags[s, F_POROUS] == 0:
+        return wp.float64(1.0), params[RADIUS, i], wp.float64(1.0)
+    return seg_value(params, i, s, POROSITY), seg_value(params, i, s, PORE_RADIUS), seg_value(params, i, s, TORTUOSITY)
+
+
+@wp.func
+def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, node0: int,
+                    heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64, xi: wp.float64,
+                    p_mean: wp.float64, omega: wp.float64, T_cold: wp.float64, phi: wp.float64, r: wp.float64,
+                    q: wp.float64, model: int, area: wp.float64):
+    """A(x) at local position xi [m] of a thermal segment whose heat cells start at node0."""
+    c = wp.min(int(xi / dh), heat_cells - 1)
+    th, dth = cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, dh, xi - wp.float64(c) * dh)
+    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area)
+
+
+@wp.kernel
+def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                    freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
+                    first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
+    """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
+    frequency freqs[j] [Hz]."""
+    i, j = wp.tid()
+    omega = TWO_PI * freqs[j]
+    p_mean = params[P_MEAN, i]
+    radius = params[RADIUS, i]
+    area = PI * radius * radius
+    T_cold = params[T_COLD, i]
+    m = identity2()
+    for s in range(flags.shape[0]):
+        length = seg_value(params, i, s, LENGTH)
+        phi, r, q = pore_geometry(params, flags, i, s)
+        model = flags[s, F_PORE_MODEL]
+        if flags[s, F_THERMAL] == 0:
+            a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area)
+            m = matmul2(expm2(scale2(a, length)), m)
+        else:
+            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+            dh = length / wp.float64(heat_cells)
+            node0 = (s - first) * heat_cells
+            n_cells = seg_cells[s]
+            h = length / wp.float64(n_cells)
+            for c in range(n_cells):
+                x0 = wp.float64(c) * h
+                a1 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area)
+                a2 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area)
+                a3 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area)
+                m = matmul2(magnus6_step(a1, a2, a3, h), m)
+    out[i, j, 0] = m.a[0]
+    out[i, j, 1] = m.a[1]
+    out[i, j, 2] = m.b[0]
+    out[i, j, 3] = m.b[1]
+    out[i, j, 4] = m.c[0]
+    out[i, j, 5] = m.c[1]
+    out[i, j, 6] = m.d[0]
+    out[i, j, 7] = m.d[1]
+
+
+@wp.kernel
+def profile_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                   first: int, heat_cells: int, x: wp.array(dtype=wp.float64),
+                   T: wp.array2d(dtype=wp.float64), dTdx: wp.array2d(dtype=wp.float64)):
+    """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
+    cold temperature outside the thermal segments)."""
+    i, j = wp.tid()
+    start = wp.float64(0.0)
+    T[i, j] = params[T_COLD, i]
+    dTdx[i, j] = wp.float64(0.0)
+    for s in range(flags.shape[0]):
+        length = seg_value(params, i, s, LENGTH)
+        xi = x[j] - start
+        if flags[s, F_THERMAL] != 0 and xi >= wp.float64(0.0) and xi <= length:
+            t, dt = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, xi)
+            T[i, j] = t
+            dTdx[i, j] = dt
+        start = start + length

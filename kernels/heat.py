@@ -1,0 +1,179 @@
+"""Steady heat model (PHYSICS.md, paper Eqs. 10-12) as Warp functions.
+
+In each thermal segment ``lam theta'' - lam k^2 theta = -lam sigma`` with
+``k^2 = 2 h / (R lam)`` and ``sigma = Q / (l_heater S lam)`` in the heater, 0 elsewhere;
+``theta' = 0`` at both ends, ``theta`` and ``lam theta'`` continuous.
+
+Discretisation: nodes on a uniform grid in each segment, interfaces on nodes. Each cell
+couples its two nodes through the *exact* two-point relation of a constant-coefficient
+cell (cosh/sinh), giving a symmetric tridiagonal system (Thomas algorithm). For
+piecewise-constant coefficients this "exponentially fitted" scheme is exact at the nodes
+for any number of cells; between nodes the profile is the exact cell solution, so the
+acoustic integration sees the exact temperature. ``fitted = 0`` selects the plain
+second-order finite-volume scheme (lumped sink), kept to show the order and as the
+baseline; coefficients that vary inside a cell (a nonlinear heat model) make both
+schemes second order.
+"""
+
+import warp as wp
+
+from .layout import F_HEATER, F_POROUS, F_THERMAL, H, HEAT_INPUT, LENGTH, POROSITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, seg_value
+from .gas import conductivity
+
+PI = wp.constant(wp.float64(3.141592653589793))
+
+
+@wp.func
+def shx(x: wp.float64):
+    """sinh(x)/x, accurate at small x."""
+    if wp.abs(x) < wp.float64(1.0e-3):
+        x2 = x * x
+        return wp.float64(1.0) + x2 / wp.float64(6.0) * (wp.float64(1.0) + x2 / wp.float64(20.0))
+    return wp.sinh(x) / x
+
+
+@wp.func
+def x_coth(x: wp.float64):
+    """x / tanh(x) (-> 1 at 0)."""
+    if wp.abs(x) < wp.float64(1.0e-3):
+        x2 = x * x
+        return wp.float64(1.0) + x2 / wp.float64(3.0) * (wp.float64(1.0) - x2 / wp.float64(15.0))
+    return x / wp.tanh(x)
+
+
+@wp.func
+def tanhx_x(x: wp.float64):
+    """tanh(x) / x (-> 1 at 0)."""
+    if wp.abs(x) < wp.float64(1.0e-3):
+        x2 = x * x
+        return wp.float64(1.0) - x2 / wp.float64(3.0) * (wp.float64(1.0) - wp.float64(0.4) * x2)
+    return wp.tanh(x) / x
+
+
+@wp.func
+def cell_coupling(lam: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float64, fitted: int):
+    """Coefficients (a, b, e) of one cell of length d [m]: the flux into the cell at its
+    left node is ``a theta_r - b theta_l + e`` (and symmetrically at the right node)."""
+    x = k * d
+    if fitted == 0:
+        return lam / d, lam / d * (wp.float64(1.0) + wp.float64(0.5) * x * x), wp.float64(0.5) * lam * sigma * d
+    return lam / (d * shx(x)), lam / d * x_coth(x), wp.float64(0.5) * lam * sigma * d * tanhx_x(wp.float64(0.5) * x)
+
+
+@wp.func
+def cosh_ratio(u: wp.float64, v: wp.float64):
+    """cosh(u)/cosh(v) for |u| <= v, without overflow."""
+    au = wp.abs(u)
+    return wp.exp(au - v) * (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * au)) / (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * v))
+
+
+@wp.func
+def sinh_cosh_ratio(u: wp.float64, v: wp.float64):
+    """sinh(u)/cosh(v) for |u| <= v, without overflow."""
+    au = wp.abs(u)
+    r = wp.exp(au - v) * (wp.float64(1.0) - wp.exp(wp.float64(-2.0) * au)) / (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * v))
+    if u < wp.float64(0.0):
+        r = -r
+    return r
+
+
+@wp.func
+def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float64, xi: wp.float64):
+    """Exact solution (theta, dtheta/dx) inside a constant-coefficient cell [0, d] at xi,
+    given its end values. Written about the cell centre (m = xi - d/2) so that every
+    ratio stays bounded for large k d and every small-k limit is taken analytically."""
+    m = xi - wp.float64(0.5) * d
+    v = wp.float64(0.5) * k * d
+    u = k * m
+    mean = wp.float64(0.5) * (theta_l + theta_r)
+    half = wp.float64(0.5) * (theta_r - theta_l)
+    if v < wp.float64(0.5):
+        # small k d: series-safe forms of the same expressions
+        ch = wp.cosh(v)
+        theta = mean * wp.cosh(u) / ch + half * (m * shx(u)) / (wp.float64(0.5) * d * shx(v))
+        dtheta = mean * k * k * m * shx(u) / ch + half * wp.cosh(u) / (wp.float64(0.5) * d * shx(v))
+        # particular part w = (cosh v - cosh u)/(k^2 cosh v), w' = -sinh(u)/(k cosh v)
+        w = wp.float64(0.5) * (wp.float64(0.25) * d * d - m * m) * shx(wp.float64(0.5) * (v + u)) * shx(wp.float64(0.5) * (v - u)) / ch
+        theta = theta + sigma * w
+        dtheta = dtheta - sigma * m * shx(u) / ch
+        return theta, dtheta
+    cr = cosh_ratio(u, v)
+    sr = sinh_cosh_ratio(u, v)
+    th = wp.tanh(v)
+    # sinh(u)/sinh(v) = (sinh(u)/cosh(v)) / tanh(v), cosh(u)/sinh(v) likewise
+    theta = mean * cr + half * sr / th + sigma * (wp.float64(1.0) - cr) / (k * k)
+    dtheta = k * (mean * sr + half * cr / th) - sigma * sr / k
+    return theta, dtheta
+
+
+@wp.func
+def segment_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                   gas: wp.array(dtype=wp.float64), i: int, s: int):
+    """Axial conductivity [W/(m K)]: phi lam_gas + (1 - phi) lam_solid, gas at T_cold."""
+    lam_gas = conductivity(gas, params[T_COLD, i])
+    if flags[s, F_POROUS] == 0:
+        return lam_gas
+    phi = seg_value(params, i, s, POROSITY)
+    return phi * lam_gas + (wp.float64(1.0) - phi) * seg_value(params, i, s, SOLID_CONDUCTIVITY)
+
+
+@wp.func
+def segment_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                        gas: wp.array(dtype=wp.float64), i: int, s: int):
+    """(lam, k, sigma) of thermal segment s: k = sqrt(2 h/(R lam)) [1/m], sigma [K/m^2]."""
+    lam = segment_lambda(params, flags, gas, i, s)
+    R = params[RADIUS, i]
+    k = wp.sqrt(wp.float64(2.0) * seg_value(params, i, s, H) / (R * lam))
+    sigma = wp.float64(0.0)
+    if flags[s, F_HEATER] != 0:
+        sigma = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R * lam)
+    return lam, k, sigma
+
+
+@wp.func
+def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+               gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
+               theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+    """Nodal temperature excess theta [K] of set i on the thermal segments
+    first..first+count-1 (``cells`` per segment), written to theta[i, :]; ``scratch[i, :]``
+    holds the Thomas algorithm's modified super-diagonal."""
+    n_nodes = count * cells + 1
+    # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
+    a_l = wp.float64(0.0)
+    b_l = wp.float64(0.0)
+    e_l = wp.float64(0.0)
+    c_prev = wp.float64(0.0)
+    d_prev = wp.float64(0.0)
+    for r in range(n_nodes):
+        a_r = wp.float64(0.0)
+        b_r = wp.float64(0.0)
+        e_r = wp.float64(0.0)
+        if r < n_nodes - 1:
+            s = first + r // cells
+            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+            d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+            a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
+        diag = -(b_l + b_r) - a_l * c_prev
+        c_prev = a_r / diag
+        d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
+        scratch[i, r] = c_prev
+        theta[i, r] = d_prev
+        a_l = a_r
+        b_l = b_r
+        e_l = e_r
+    for rr in range(n_nodes - 1):
+        r = n_nodes - 2 - rr
+        theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+
+
+@wp.func
+def temperature_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                   i: int, s: int, first: int, cells: int, xi: wp.float64):
+    """(T [K], dT/dx [K/m]) at local position xi [m] in thermal segment s of set i."""
+    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+    c = wp.min(int(xi / d), cells - 1)
+    node = (s - first) * cells + c
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    th, dth = cell_profile(theta[i, node], theta[i, node + 1], k, sigma, d, xi - wp.float64(c) * d)
+    return params[T_COLD, i] + th, dth

@@ -1,0 +1,29 @@
+"""Layout of the per-parameter-set table the kernels read.
+
+``params`` is a float64 array of shape (N_GLOBAL + n_segments * N_FIELDS, n_sets): one
+column per parameter set, so that neighbouring threads read neighbouring addresses.
+Rows: the globals below, then for each segment its fields in the order of
+``tawarp.core.SEGMENT_FIELDS``. ``flags`` is an int32 array (n_segments, N_FLAGS) of
+what is fixed for a whole batch: the structure of the core.
+"""
+
+import warp as wp
+
+# global rows
+T_COLD, P_MEAN, RADIUS, HEAT_INPUT = range(4)
+N_GLOBAL = 4
+# segment fields (same order as tawarp.core.SEGMENT_FIELDS)
+LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
+N_FIELDS = 6
+# structure flags per segment
+F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER = range(4)
+N_FLAGS = 4
+
+_NG = wp.constant(N_GLOBAL)
+_NF = wp.constant(N_FIELDS)
+
+
+@wp.func
+def seg_value(params: wp.array2d(dtype=wp.float64), i: int, s: int, field: int):
+    """Field ``field`` of segment ``s`` for parameter set ``i``."""
+    return params[_NG + s * _NF + field, i]

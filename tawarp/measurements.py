@@ -1,0 +1,611 @@
+"""Measured data: loaders and writers for the file formats of FORMATS.md (pure NumPy).
+
+Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of PHYSICS.md
+(data in the other convention are complex-conjugated on load):
+
+- core T-matrices ``(p, U)(x6) = T (p, U)(x1)``: :func:`read_tmatrix_csv`,
+  :func:`write_tmatrix_csv`, held in :class:`TMatrixData`;
+- surface impedance of a rigid-backed layer: :func:`read_impedance_csv`, and the real
+  Atalla & Panneton (2005) data set (:func:`load_atalla_panneton`,
+  :func:`atalla_panneton_samples`), held in :class:`ImpedanceData`;
+- two-port scattering matrices of a four-microphone tube, converted to core T-matrices
+  on load: :func:`read_scattering_csv`, with the pure conversions
+  :func:`scattering_to_transfer` and :func:`transfer_to_scattering`.
+
+Every reader raises :class:`MeasurementError` whose message names the file, the line
+(or the metadata key) and what was expected. Writers validate everything before they
+touch the disk and replace the target atomically.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .gas import GASES
+
+#: The four raw coefficients and their (row, column) in the 2x2 T-matrix.
+COEFFICIENTS = {"Tpp": (0, 0), "Tpu": (0, 1), "Tup": (1, 0), "Tuu": (1, 1)}
+TMATRIX_COLUMNS = ("Q_W", "freq_Hz") + tuple(f"{c}_{p}" for c in COEFFICIENTS for p in ("re", "im"))
+IMPEDANCE_COLUMNS = ("freq_Hz", "Zs_re", "Zs_im")
+SCATTERING_COLUMNS = ("freq_Hz",) + tuple(f"S{ij}_{p}" for ij in ("11", "12", "21", "22") for p in ("re", "im"))
+
+CONVENTION = "exp(-iwt)"
+# Accepted spellings (after removing blanks, lower case); i and j both name sqrt(-1).
+_MINUS = {"exp(-iwt)", "exp(-jwt)"}
+_PLUS = {"exp(+iwt)", "exp(iwt)", "exp(+jwt)", "exp(jwt)"}
+
+
+class MeasurementError(ValueError):
+    """A measurement file or data set is invalid; the message names the file and line or key."""
+
+
+# -- data containers -------------------------------------------------------------------
+@dataclass
+class TMatrixData:
+    """Measured (or simulated) core T-matrices, one row per (heat input, frequency).
+
+    ``heat_input`` (rows,) [W]; ``freq`` (rows,) [Hz]; ``T`` (rows, 2, 2) complex raw
+    coefficients of ``(p, U)(x6) = T (p, U)(x1)`` with p [Pa], U [m^3/s] (so ``Tpu`` in
+    Pa s/m^3, ``Tup`` in m^3/(Pa s)), always in the ``exp(-iwt)`` convention.
+    ``sigma`` is None or (rows, 2, 2, 2) float: ``sigma[..., 0]`` is the standard deviation
+    of ``T.real`` and ``sigma[..., 1]`` that of ``T.imag``, same units as ``T``; a
+    (rows, 2, 2) array is accepted and used for both parts. ``metadata`` holds the file's
+    ``# key = value`` lines, ``source`` where the data came from.
+
+    Construction checks shapes only; :meth:`check` checks values (the writer calls it).
+    """
+
+    heat_input: np.ndarray
+    freq: np.ndarray
+    T: np.ndarray
+    sigma: np.ndarray | None = None
+    metadata: dict[str, str] = field(default_factory=dict)
+    source: str = "<data>"
+
+    def __post_init__(self):
+        self.heat_input = np.asarray(self.heat_input, dtype=float).reshape(-1)
+        self.freq = np.asarray(self.freq, dtype=float).reshape(-1)
+        self.T = np.asarray(self.T, dtype=np.complex128)
+        n = self.freq.size
+        if self.heat_input.shape != (n,) or self.T.shape != (n, 2, 2):
+            raise MeasurementError(
+                f"{self.source}: shapes heat_input {self.heat_input.shape}, freq {self.freq.shape}, "
+                f"T {self.T.shape}; expected (n,), (n,), (n, 2, 2)")
+        if self.sigma is not None:
+            s = np.asarray(self.sigma, dtype=float)
+            if s.shape == (n, 2, 2):
+                s = np.stack([s, s], axis=-1)
+            if s.shape != (n, 2, 2, 2):
+                raise MeasurementError(f"{self.source}: sigma shape {s.shape}; expected ({n}, 2, 2, 2) or ({n}, 2, 2)")
+            self.sigma = s
+        self.metadata = {str(k): str(v) for k, v in self.metadata.items()}
+
+    def __len__(self) -> int:
+        return self.freq.size
+
+    @property
+    def heat_inputs(self) -> np.ndarray:
+        """Distinct heat inputs [W], sorted."""
+        return np.unique(self.heat_input)
+
+    @property
+    def frequencies(self) -> np.ndarray:
+        """Distinct frequencies [Hz], sorted."""
+        return np.unique(self.freq)
+
+    def select(self, heat_input: float) -> "TMatrixData":
+        """The rows at heat input ``heat_input`` [W] (matched to 1e-9 relative), in file order."""
+        mask = np.isclose(self.heat_input, heat_input, rtol=1e-9, atol=1e-12)
+        if not mask.any():
+            raise KeyError(f"{self.source}: no rows at Q = {heat_input} W; have {self.heat_inputs.tolist()}")
+        return TMatrixData(self.heat_input[mask], self.freq[mask], self.T[mask],
+                           None if self.sigma is None else self.sigma[mask], dict(self.metadata), self.source)
+
+    def check(self) -> None:
+        """Raise :class:`MeasurementError` naming the row if any value is not usable."""
+        def fail(i, what):
+            raise MeasurementError(f"{self.source}: row {i} (Q = {self.heat_input[i]!r} W, "
+                                   f"freq = {self.freq[i]!r} Hz): {what}")
+        for i in range(len(self)):
+            if not (np.isfinite(self.heat_input[i]) and self.heat_input[i] >= 0):
+                fail(i, "heat input must be a finite number >= 0 W")
+            if not (np.isfinite(self.freq[i]) and self.freq[i] > 0):
+                fail(i, "frequency must be a finite number > 0 Hz")
+            if not np.all(np.isfinite(self.T[i])):
+                fail(i, "T has a NaN or infinite entry")
+            if self.sigma is not None and not np.all(np.isfinite(self.sigma[i]) & (self.sigma[i] > 0)):
+                fail(i, "sigma must be finite and > 0")
+        seen = {}
+        for i, key in enumerate(zip(self.heat_input.tolist(), self.freq.tolist())):
+            if key in seen:
+                fail(i, f"duplicate of row {seen[key]} (same heat input and frequency)")
+            seen[key] = i
+
+
+@dataclass
+class ImpedanceData:
+    """Surface impedance of a rigid-backed layer.
+
+    ``freq`` (m,) [Hz]; ``Zs`` (m,) complex specific surface impedance normalized by
+    ``rho0 c0`` (dimensionless), ``exp(-iwt)`` convention; ``thickness`` [m] of the layer
+    (None when unknown); ``T_ambient`` [K] and ``p_ambient`` [Pa] of the measurement, or
+    None; ``metadata`` and ``source`` as in :class:`TMatrixData`.
+    """
+
+    freq: np.ndarray
+    Zs: np.ndarray
+    thickness: float | None
+    T_ambient: float | None = None
+    p_ambient: float | None = None
+    metadata: dict[str, str] = field(default_factory=dict)
+    source: str = "<data>"
+
+    def __post_init__(self):
+        self.freq = np.asarray(self.freq, dtype=float).reshape(-1)
+        self.Zs = np.asarray(self.Zs, dtype=np.complex128).reshape(-1)
+        if self.Zs.shape != self.freq.shape:
+            raise MeasurementError(f"{self.source}: freq {self.freq.shape} and Zs {self.Zs.shape} differ in length")
+
+    def __len__(self) -> int:
+        return self.freq.size
+
+
+# -- generic CSV reading ---------------------------------------------------------------
+@dataclass
+class _Table:
+    source: str
+    meta: dict[str, str]
+    meta_line: dict[str, int]   # line of each metadata key
+    header_line: int
+    columns: list[str]
+    values: dict[str, np.ndarray]   # column name -> floats
+    lines: np.ndarray           # file line of each data row
+
+
+def _fail(source, line, what) -> MeasurementError:
+    return MeasurementError(f"{source}, line {line}: {what}")
+
+
+def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) -> _Table:
+    """Parse ``# key = value`` lines, a header naming ``required`` columns (any order;
+    others must satisfy ``allowed`` unless ``ignore_extra``) and numeric, finite rows."""
+    src = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")  # -sig: tolerate a spreadsheet's BOM
+    except UnicodeDecodeError as e:
+        raise MeasurementError(f"{src}: not a UTF-8 text file ({e})") from None
+    meta, meta_line = {}, {}
+    header, header_line, used, rows, lines = None, 0, {}, [], []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        if line.startswith("#"):
+            if header is not None:
+                raise _fail(src, n, "comment or metadata line after the header; put '# key = value' lines first")
+            key, eq, value = line[1:].partition("=")
+            if eq:  # '# key = value'; a comment without '=' is free text
+                key = key.strip()
+                if not key:
+                    raise _fail(src, n, "metadata line without a key; expected '# key = value'")
+                if key in meta:
+                    raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
+                meta[key], meta_line[key] = value.strip(), n
+            continue
+        fields = [f.strip() for f in next(csv.reader([line]))]
+        if header is None:
+            header, header_line = fields, n
+            used = _check_header(src, n, header, required, allowed, ignore_extra)
+            continue
+        width = max(used.values()) + 1 if ignore_extra else len(header)
+        if len(fields) < width or (not ignore_extra and len(fields) != width):
+            raise _fail(src, n, f"{len(fields)} fields; expected {width} as in the header (line {header_line})")
+        row = []
+        for name, j in used.items():
+            try:
+                v = float(fields[j])
+            except ValueError:
+                raise _fail(src, n, f"column {name!r}: expected a number, got {fields[j]!r}") from None
+            if not math.isfinite(v):
+                raise _fail(src, n, f"column {name!r}: expected a finite number, got {fields[j]!r}")
+            row.append(v)
+        rows.append(row)
+        lines.append(n)
+    if header is None:
+        raise _fail(src, 1, f"empty file (no header line); expected a header with columns {','.join(required)}")
+    if not rows:
+        raise _fail(src, header_line, "header but no data rows after it")
+    arr = np.array(rows, dtype=float)
+    values = {name: arr[:, k] for k, name in enumerate(used)}
+    return _Table(src, meta, meta_line, header_line, list(used), values, np.array(lines))
+
+
+def _check_header(src, n, header, required, allowed, ignore_extra) -> dict[str, int]:
+    """Map each used column name to its field index, or raise naming what is wrong."""
+    expected = f"expected a header with columns {','.join(required)}"
+    numeric = 0
+    for f in header:
+        with contextlib.suppress(ValueError):
+            float(f)
+            numeric += 1
+    if numeric == len(header):
+        raise _fail(src, n, f"missing header line (got numbers); {expected}")
+    named = [f for f in header if f]
+    dup = sorted({f for f in named if named.count(f) > 1})
+    if dup:
+        raise _fail(src, n, f"column(s) {dup} appear twice in the header")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise _fail(src, n, f"missing column(s) {missing}; {expected}")
+    unknown = [f for f in header if f not in required and not allowed(f)]
+    if unknown and not ignore_extra:
+        raise _fail(src, n, f"unknown column(s) {unknown}; {expected} (and optional sigma_* columns where allowed)")
+    return {f: j for j, f in enumerate(header) if f in required or (f and allowed(f))}
+
+
+def _needs_conjugate(t: _Table) -> bool:
+    """True if the file says ``convention = exp(+iwt)`` (default ``exp(-iwt)``)."""
+    value = t.meta.get("convention", CONVENTION)
+    key = "".join(value.split()).lower().replace("ω", "w")
+    if key in _MINUS:
+        return False
+    if key in _PLUS:
+        return True
+    raise _fail(t.source, t.meta_line["convention"],
+                f"convention = {value!r}; expected 'exp(-iwt)' (default) or 'exp(+iwt)'")
+
+
+def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False, default=None):
+    """Metadata ``key`` as a finite number > 0 (>= 0 with ``allow_zero``) [unit]."""
+    if key not in t.meta:
+        if required:
+            raise MeasurementError(f"{t.source}: metadata key {key!r} [{unit}] is missing; "
+                                   f"add a line '# {key} = ...' before the header")
+        return default
+    text = t.meta[key]
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        raise _fail(t.source, t.meta_line[key],
+                    f"metadata {key} = {text!r}: expected a number {'>=' if allow_zero else '>'} 0 [{unit}]")
+    return v
+
+
+def _check_positive_unique(t: _Table, col: str, others=()) -> None:
+    """Column ``col`` > 0; rows unique in (others..., col). Errors name the line."""
+    for v, n in zip(t.values[col], t.lines):
+        if v <= 0:
+            raise _fail(t.source, n, f"{col} = {v!r}: expected a number > 0")
+    seen = {}
+    keys = zip(*(t.values[c].tolist() for c in (*others, col)))
+    for key, n in zip(keys, t.lines.tolist()):
+        if key in seen:
+            names = ", ".join(f"{c} = {k!r}" for c, k in zip((*others, col), key))
+            raise _fail(t.source, n, f"duplicate row ({names}), first on line {seen[key]}")
+        seen[key] = n
+
+
+def _complex(t: _Table, name: str) -> np.ndarray:
+    return t.values[f"{name}_re"] + 1j * t.values[f"{name}_im"]
+
+
+def _converted_metadata(t: _Table, conjugated: bool) -> dict[str, str]:
+    """File metadata, with ``convention`` describing the data as stored (exp(-iwt))."""
+    meta = dict(t.meta)
+    if conjugated:
+        meta["original_convention"] = meta["convention"]
+    meta["convention"] = CONVENTION
+    return meta
+
+
+# -- core T-matrices -------------------------------------------------------------------
+def _sigma_allowed(name: str) -> bool:
+    return name in {f"sigma_{c}{p}" for c in COEFFICIENTS for p in ("", "_re", "_im")}
+
+
+def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
+    """Read a measured core T-matrix CSV (FORMATS.md "Measured core T-matrices").
+
+    Columns ``Q_W`` [W], ``freq_Hz`` [Hz], ``Tpp_re, Tpp_im, Tpu_re, ..., Tuu_im`` (raw SI
+    coefficients) in any order; optional standard deviations ``sigma_Tpp`` (both parts)
+    or ``sigma_Tpp_re`` and ``sigma_Tpp_im``, for all four coefficients or none.
+    ``# convention = exp(+iwt)`` data are conjugated (sigma unchanged).
+    """
+    t = _read_table(path, TMATRIX_COLUMNS, allowed=_sigma_allowed)
+    conj = _needs_conjugate(t)
+    for v, n in zip(t.values["Q_W"], t.lines):
+        if v < 0:
+            raise _fail(t.source, n, f"Q_W = {v!r}: expected a heat input >= 0 W")
+    _check_positive_unique(t, "freq_Hz", others=("Q_W",))
+    rows = len(t.lines)
+    T = np.empty((rows, 2, 2), dtype=np.complex128)
+    for c, (i, j) in COEFFICIENTS.items():
+        T[:, i, j] = _complex(t, c)
+    sigma = _read_sigma(t) if any(c.startswith("sigma_") for c in t.columns) else None
+    return TMatrixData(t.values["Q_W"], t.values["freq_Hz"], T.conj() if conj else T, sigma,
+                       _converted_metadata(t, conj), t.source)
+
+
+def _read_sigma(t: _Table) -> np.ndarray:
+    sigma = np.empty((len(t.lines), 2, 2, 2))
+    for c, (i, j) in COEFFICIENTS.items():
+        one, re, im = (f"sigma_{c}{p}" in t.columns for p in ("", "_re", "_im"))
+        if one and (re or im):
+            raise _fail(t.source, t.header_line, f"give either sigma_{c} or sigma_{c}_re/_im, not both")
+        if not one and not (re and im):
+            raise _fail(t.source, t.header_line,
+                        f"sigma for {c} incomplete; expected sigma_{c} or both sigma_{c}_re and sigma_{c}_im "
+                        "(sigma columns cover all four coefficients or none)")
+        for k, p in enumerate(("_re", "_im")):
+            name = f"sigma_{c}" if one else f"sigma_{c}{p}"
+            sigma[:, i, j, k] = t.values[name]
+            bad = np.flatnonzero(t.values[name] <= 0)
+            if bad.size:
+                raise _fail(t.source, t.lines[bad[0]],
+                            f"{name} = {t.values[name][bad[0]]!r}: expected a standard deviation > 0")
+    return sigma
+
+
+def write_tmatrix_csv(path: str | os.PathLike, data: TMatrixData, metadata: dict | None = None) -> None:
+    """Write ``data`` in the format read by :func:`read_tmatrix_csv`.
+
+    Metadata lines are ``data.metadata`` updated by ``metadata``, with
+    ``convention = exp(-iwt)`` (how the data are stored). Numbers are written with
+    Python's shortest exact repr (at most 17 significant digits), so reading the file
+    back gives bit-identical arrays. Values are checked before anything is written; the
+    file is written to a temporary file in the same folder and moved into place, so the
+    target is either the old file or the complete new one.
+    """
+    data.check()
+    meta = {"convention": CONVENTION}
+    meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k != "convention"})
+    out = [_metadata_line(path, k, v) for k, v in meta.items()]
+    columns = list(TMATRIX_COLUMNS)
+    if data.sigma is not None:
+        columns += [f"sigma_{c}_{p}" for c in COEFFICIENTS for p in ("re", "im")]
+    out.append(",".join(columns))
+    for r in range(len(data)):
+        row = [data.heat_input[r], data.freq[r]]
+        row += [part for (i, j) in COEFFICIENTS.values() for part in (data.T[r, i, j].real, data.T[r, i, j].imag)]
+        if data.sigma is not None:
+            row += [data.sigma[r, i, j, k] for (i, j) in COEFFICIENTS.values() for k in (0, 1)]
+        out.append(",".join(repr(float(v)) for v in row))
+    _atomic_write(path, "\n".join(out) + "\n")
+
+
+def _metadata_line(path, key, value) -> str:
+    key, value = str(key).strip(), str(value).strip()
+    if not key or "=" in key or any(ch in key + value for ch in "\r\n"):
+        raise MeasurementError(f"{path}: metadata {key!r} = {value!r}: keys need no '=' and neither may span lines")
+    return f"# {key} = {value}"
+
+
+def _atomic_write(path, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and ``os.replace``
+    (atomic on POSIX and Windows for one filesystem)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp makes the file 0600; give it the mode a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+
+
+# -- surface impedance -----------------------------------------------------------------
+def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
+    """Read the surface impedance of a rigid-backed layer (FORMATS.md "Other measurement kinds").
+
+    Columns ``freq_Hz`` [Hz], ``Zs_re``, ``Zs_im`` (normalized by rho0 c0). Metadata:
+    ``thickness`` [m] (required), ``convention`` (default exp(-iwt); exp(+iwt) is
+    conjugated), optional ``T_ambient`` [K] and ``p_ambient`` [Pa].
+    """
+    t = _read_table(path, IMPEDANCE_COLUMNS)
+    conj = _needs_conjugate(t)
+    thickness = _meta_float(t, "thickness", "m")
+    T_amb = _meta_float(t, "T_ambient", "K", required=False)
+    p_amb = _meta_float(t, "p_ambient", "Pa", required=False)
+    _check_positive_unique(t, "freq_Hz")
+    Zs = _complex(t, "Zs")
+    return ImpedanceData(t.values["freq_Hz"], Zs.conj() if conj else Zs, thickness, T_amb, p_amb,
+                         _converted_metadata(t, conj), t.source)
+
+
+# Atalla & Panneton (2005) sample table, transcribed from the data set's README in SI:
+# thickness mm -> e-3 m, Lambda um -> e-6 m, T C -> + 273.15 K, P0 bar -> e5 Pa.
+_ATALLA_PANNETON = {
+    # name: thin, thick, sigma [N s m^-4], phi, alpha_inf, Lambda, Lambda', T, P0, frame
+    "foam1": (49.92e-3, 98.7e-3, 4971.0, 0.97, 1.31, 123.19e-6, 289.54e-6, 21.5 + 273.15, 0.992e5, "rigid"),
+    "foam2": (34.35e-3, 68.77e-3, 8197.0, 0.95, 1.42, 133.10e-6, 212.65e-6, 24.6 + 273.15, 0.997e5, "rigid"),
+    "fibrous1": (23.37e-3, 46.83e-3, 21235.0, 0.94, 1.00, 48.62e-6, 114.39e-6, 22.6 + 273.15, 1.002e5, "limp"),
+    # README: the fibrous2 "thick" file behaves like a thinner sample; its thickness is unknown
+    "fibrous2": (37.38e-3, None, 50470.0, 0.89, 1.00, 41.51e-6, 114.27e-6, 24.6 + 273.15, 0.977e5, "limp"),
+}
+_AP_KEYS = ("thickness_thin", "thickness_thick", "sigma", "phi", "alpha_inf", "Lambda", "Lambda_prime",
+            "T", "P0", "frame")
+ATALLA_PANNETON_DIR = Path("data") / "measured" / "atalla_panneton_2005"
+
+
+def atalla_panneton_samples() -> dict[str, dict]:
+    """Sample properties of the Atalla & Panneton (2005) data set, from its README.
+
+    ``{name: {thickness_thin [m], thickness_thick [m] (None for fibrous2: unreliable),
+    sigma [N s/m^4], phi [-], alpha_inf [-], Lambda [m], Lambda_prime [m], T [K],
+    P0 [Pa], frame ("rigid" | "limp"), files (thin, thick)}}`` for foam1, foam2,
+    fibrous1, fibrous2. A fresh dict on every call.
+    """
+    return {name: {**dict(zip(_AP_KEYS, row)), "files": (f"{name}.csv", f"{name}thick.csv")}
+            for name, row in _ATALLA_PANNETON.items()}
+
+
+def read_atalla_panneton(path: str | os.PathLike, thickness: float | None,
+                         T_ambient: float | None = None, p_ambient: float | None = None) -> ImpedanceData:
+    """Read one file of the Atalla & Panneton data set (header ``f,Re,Im,,,``).
+
+    ``f`` [Hz], ``Re``, ``Im`` of ``Zs / (rho0 c0)`` in the paper's ``exp(+jwt)``
+    convention; later columns are digitizing leftovers and are ignored. The result is
+    conjugated to ``exp(-iwt)``. ``thickness`` [m], ``T_ambient`` [K], ``p_ambient`` [Pa]
+    come from :func:`atalla_panneton_samples`, not from the file.
+    """
+    t = _read_table(path, ("f", "Re", "Im"), ignore_extra=True)
+    _check_positive_unique(t, "f")
+    Zs = (t.values["Re"] + 1j * t.values["Im"]).conj()  # exp(+jwt) -> exp(-iwt)
+    meta = {"convention": CONVENTION, "original_convention": "exp(+jwt)",
+            "origin": "Atalla & Panneton, Canadian Acoustics 33(1) 2005, Fig. 7 (digitized by pyva)"}
+    return ImpedanceData(t.values["f"], Zs, thickness, T_ambient, p_ambient, meta, t.source)
+
+
+def _atalla_panneton_folder() -> Path:
+    """``$TAWARP_SHARED/data/measured/atalla_panneton_2005`` if the variable is set, else
+    the first ``shared/data/measured/atalla_panneton_2005`` found walking up from this file
+    (the repository's ``../shared``, or a ``shared/`` inside the checkout)."""
+    env = os.environ.get("TAWARP_SHARED")
+    if env:
+        return Path(env) / ATALLA_PANNETON_DIR
+    tried = []
+    for parent in Path(__file__).resolve().parents:
+        candidate = parent / "shared" / ATALLA_PANNETON_DIR
+        if candidate.is_dir():
+            return candidate
+        tried.append(str(candidate))
+    raise FileNotFoundError("Atalla & Panneton data set not found; looked in " + ", ".join(tried)
+                            + "; set TAWARP_SHARED to the shared folder or pass folder=")
+
+
+def load_atalla_panneton(name: str, folder: str | os.PathLike | None = None) -> list[ImpedanceData]:
+    """``[thin, thick]`` surface impedances of sample ``name`` (foam1, foam2, fibrous1,
+    fibrous2), with thickness [m], T_ambient [K], p_ambient [Pa] from the README table.
+
+    ``folder`` defaults to the shared data folder (see ``TAWARP_SHARED``). For fibrous2
+    the thick layer's ``thickness`` is None (the README calls that pairing unreliable).
+    """
+    samples = atalla_panneton_samples()
+    if name not in samples:
+        raise KeyError(f"unknown Atalla & Panneton sample {name!r}; expected one of {sorted(samples)}")
+    folder = Path(folder) if folder is not None else _atalla_panneton_folder()
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{folder}: Atalla & Panneton data folder does not exist")
+    s = samples[name]
+    out = []
+    for fname, thickness in zip(s["files"], (s["thickness_thin"], s["thickness_thick"])):
+        path = folder / fname
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: file of sample {name!r} does not exist")
+        d = read_atalla_panneton(path, thickness, s["T"], s["P0"])
+        d.metadata["sample"] = name
+        if thickness is None:
+            d.metadata["note"] = "thickness unknown: the README calls this thick-layer pairing unreliable"
+        out.append(d)
+    return out
+
+
+# -- two-port scattering matrix --------------------------------------------------------
+def _entries(M):
+    return M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
+
+
+def _matrix(m11, m12, m21, m22) -> np.ndarray:
+    m11, m12, m21, m22 = np.broadcast_arrays(m11, m12, m21, m22)
+    return np.stack([np.stack([m11, m12], -1), np.stack([m21, m22], -1)], -2)
+
+
+def scattering_to_transfer(S, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
+    """Core T-matrix of ``(p, U)`` between the sample faces from a scattering matrix.
+
+    Convention (``exp(-iwt)``): on each side of the sample, plane waves
+    ``p = A e^{ikx} + B e^{-ikx}``, ``U = (A e^{ikx} - B e^{-ikx}) / Zc`` (A travels
+    downstream, +x), with x measured from that side's reference plane. ``S`` (..., 2, 2)
+    maps incoming to outgoing amplitudes at the reference planes,
+    ``[B1, A2] = S [A1, B2]`` (side 1 upstream, side 2 downstream). ``k`` [1/m]
+    wavenumber, ``Zc = rho0 c0 / S_tube`` [Pa s/m^3], ``d1``, ``d2`` [m] distances from the
+    upstream reference plane to face x1 and from face x6 to the downstream reference
+    plane (reference planes outside the sample). All broadcast over the leading axes.
+    Returns ``T`` (..., 2, 2) with ``(p, U)(x6) = T (p, U)(x1)``. Needs ``S12 != 0``.
+    """
+    S = np.asarray(S, dtype=np.complex128)
+    k, Zc = np.asarray(k), np.asarray(Zc)
+    # amplitudes at the faces: a1 = A1 e^{ik d1}, b1 = B1 e^{-ik d1}, a2 = A2 e^{-ik d2}, b2 = B2 e^{ik d2}
+    e1, e2 = np.exp(-1j * k * d1), np.exp(-1j * k * d2)
+    s11, s12, s21, s22 = _entries(S)
+    s11, s12, s21, s22 = s11 * e1 * e1, s12 * e1 * e2, s21 * e1 * e2, s22 * e2 * e2
+    # wave transfer [a2, b2] = W [a1, b1], then T = M W M^-1 with [p, U] = M [a, b]
+    w11, w12, w21, w22 = -(s11 * s22 - s12 * s21) / s12, s22 / s12, -s11 / s12, 1 / s12
+    return _matrix(0.5 * (w11 + w21 + w12 + w22), 0.5 * Zc * (w11 + w21 - w12 - w22),
+                   0.5 / Zc * (w11 - w21 + w12 - w22), 0.5 * (w11 - w21 - w12 + w22))
+
+
+def transfer_to_scattering(T, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
+    """Inverse of :func:`scattering_to_transfer` (same conventions and arguments)."""
+    T = np.asarray(T, dtype=np.complex128)
+    k, Zc = np.asarray(k), np.asarray(Zc)
+    t11, t12, t21, t22 = _entries(T)
+    # W = M^-1 T M
+    w11 = 0.5 * (t11 + t12 / Zc + Zc * t21 + t22)
+    w12 = 0.5 * (t11 - t12 / Zc + Zc * t21 - t22)
+    w21 = 0.5 * (t11 + t12 / Zc - Zc * t21 - t22)
+    w22 = 0.5 * (t11 - t12 / Zc - Zc * t21 + t22)
+    s11, s12, s21, s22 = -w21 / w22, 1 / w22, (w11 * w22 - w12 * w21) / w22, w12 / w22
+    # faces -> reference planes
+    e1, e2 = np.exp(1j * k * d1), np.exp(1j * k * d2)
+    return _matrix(s11 * e1 * e1, s12 * e1 * e2, s21 * e1 * e2, s22 * e2 * e2)
+
+
+def read_scattering_csv(path: str | os.PathLike) -> TMatrixData:
+    """Read a four-microphone scattering matrix and convert it to core T-matrices.
+
+    Columns ``freq_Hz`` [Hz], ``S11_re, S11_im, ..., S22_im`` with the convention of
+    :func:`scattering_to_transfer`. Metadata: ``tube_radius`` [m], ``T_ambient`` [K],
+    ``p_ambient`` [Pa], ``ref_upstream`` and ``ref_downstream`` [m] (distances from the
+    reference planes to faces x1 and x6; >= 0), all required; ``gas`` (default air, one of
+    :data:`tawarp.gas.GASES`), ``convention`` (default exp(-iwt); exp(+iwt) S is
+    conjugated), ``Q_W`` [W] (default 0). The waves are lossless plane waves,
+    ``k = w / c0``, with ``c0 = sqrt(gamma R T_ambient)``, ``rho0 = p_ambient / (R T_ambient)``
+    and ``Zc = rho0 c0 / (pi tube_radius^2)``.
+    """
+    t = _read_table(path, SCATTERING_COLUMNS)
+    conj = _needs_conjugate(t)
+    radius = _meta_float(t, "tube_radius", "m")
+    T_amb = _meta_float(t, "T_ambient", "K")
+    p_amb = _meta_float(t, "p_ambient", "Pa")
+    d1 = _meta_float(t, "ref_upstream", "m", allow_zero=True)
+    d2 = _meta_float(t, "ref_downstream", "m", allow_zero=True)
+    Q = _meta_float(t, "Q_W", "W", required=False, allow_zero=True, default=0.0)
+    gas = t.meta.get("gas", "air")
+    if gas not in GASES:
+        raise _fail(t.source, t.meta_line["gas"], f"gas = {gas!r}; expected one of {sorted(GASES)}")
+    _check_positive_unique(t, "freq_Hz")
+    S = _matrix(*(_complex(t, f"S{ij}") for ij in ("11", "12", "21", "22")))
+    if conj:
+        S = S.conj()
+    zero = np.flatnonzero(S[:, 0, 1] == 0)
+    if zero.size:
+        raise _fail(t.source, t.lines[zero[0]], "S12 = 0: no transmission, the T-matrix is undefined")
+    g = GASES[gas]
+    rho0, c0 = p_amb / (g.R_gas * T_amb), math.sqrt(g.gamma * g.R_gas * T_amb)
+    Zc = rho0 * c0 / (math.pi * radius**2)
+    freq = t.values["freq_Hz"]
+    T = scattering_to_transfer(S, 2 * np.pi * freq / c0, Zc, d1, d2)
+    meta = _converted_metadata(t, conj)
+    meta["converted_from"] = "scattering matrix"
+    return TMatrixData(np.full(freq.size, Q), freq, T, None, meta, t.source)

@@ -1,0 +1,582 @@
+"""Independent NumPy/SciPy reference forward model of the thermoacoustic core T-matrix.
+
+This module is the *oracle* for the Warp kernels' tests and the CPU peer for the
+benchmarks. It shares no physics code with the kernels (``kernels/``): it only reads
+the gas constants (:data:`tawarp.gas.GASES`) and the core description
+(:class:`tawarp.core.Core`). Everything is float64 / complex128; accuracy comes first,
+speed second.
+
+Conventions (PHYSICS.md):
+
+* time dependence ``exp(-i w t)``;
+* state ``(p, U)``: complex pressure amplitude [Pa] and complex volume velocity
+  [m^3/s] through the whole tube section, positive towards +x;
+* ``(p, U)(x6) = T (p, U)(x1)`` and ``T = T_last ... T_first``;
+* ``x`` [m] is measured from plane x1 (``core.positions()``).
+
+Physics:
+
+* gas: ideal gas, ``rho = p_m/(R_gas T)``, ``c^2 = gamma R_gas T``, transport law
+  ``X(T) = X0 (T/T0)^a (1 + S/T0)/(1 + S/T)``, ``T0 = 273.15 K`` (:mod:`tawarp.gas`);
+* steady heat model (paper Eqs. 10-12) on the contiguous ``thermal`` segments, solved
+  exactly (:func:`heat_profile_exact`);
+* acoustics: Rott's two-port ODE ``d(p,U)/dx = A(x) (p,U)``, closed form where the
+  temperature is uniform, DOP853 on the 2x2 fundamental matrix where it is not
+  (:func:`transfer_matrix`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import namedtuple
+from typing import Sequence
+
+import numpy as np
+import scipy.special as sp
+from scipy.integrate import solve_ivp
+
+from .coefficients import duct_impedance, normalize
+from .core import Core, Segment
+from .gas import GASES, T_REF
+
+__all__ = [
+    "GasProperties",
+    "gas_properties",
+    "segment_conductivity",
+    "HeatSolution",
+    "heat_profile_exact",
+    "energy_balance",
+    "thermoviscous_function",
+    "segment_transfer_matrices",
+    "transfer_matrix",
+    "dimensionless_transfer",
+]
+
+# ======================================================================================
+# Gas properties
+# ======================================================================================
+
+GasProperties = namedtuple("GasProperties", "rho c mu k cp gamma Pr R_gas")
+GasProperties.__doc__ = """Gas properties at temperature T (arrays broadcast like T).
+
+rho [kg/m^3], c sound speed [m/s], mu dynamic viscosity [Pa s], k thermal conductivity
+[W/(m K)], cp [J/(kg K)], gamma [-], Pr = mu cp / k [-], R_gas [J/(kg K)]."""
+
+
+def _transport(X0: float, a: float, S: float, T):
+    """``X0 (T/T0)^a (1 + S/T0)/(1 + S/T)``; S = 0 is a plain power law."""
+    return X0 * (T / T_REF) ** a * (1.0 + S / T_REF) / (1.0 + S / T)
+
+
+def gas_properties(gas_name: str, T, p_mean: float) -> GasProperties:
+    """Properties of gas ``gas_name`` at temperature ``T`` [K] (scalar or array) and
+    mean pressure ``p_mean`` [Pa].
+
+    Returns a :data:`GasProperties` namedtuple: ``rho`` [kg/m^3] = p/(R_gas T),
+    ``c`` [m/s] = sqrt(gamma R_gas T), ``mu`` [Pa s], ``k`` [W/(m K)], ``cp`` [J/(kg K)],
+    ``gamma`` [-], ``Pr`` [-], ``R_gas`` [J/(kg K)].
+    """
+    g = GASES[gas_name]
+    T = np.asarray(T, dtype=float)
+    if np.any(T <= 0):
+        raise ValueError(f"gas_properties: temperature must be > 0 K, got min {T.min()}")
+    rho = p_mean / (g.R_gas * T)
+    c = np.sqrt(g.gamma * g.R_gas * T)
+    mu = _transport(g.mu0, g.mu_exponent, g.mu_sutherland, T)
+    k = _transport(g.k0, g.k_exponent, g.k_sutherland, T)
+    Pr = mu * g.cp / k
+    return GasProperties(rho, c, mu, k, g.cp, g.gamma, Pr, g.R_gas)
+
+
+def _segment_of(core: Core, seg) -> Segment:
+    if isinstance(seg, Segment):
+        return seg
+    if isinstance(seg, (int, np.integer)):
+        return core.segments[int(seg)]
+    return core.segment(seg)
+
+
+def segment_conductivity(core: Core, seg) -> float:
+    """Axial conductivity ``lam`` [W/(m K)] of the heat model for segment ``seg``
+    (a :class:`Segment`, its index or its name).
+
+    Porous: ``phi k_gas(T_cold) + (1 - phi) solid_conductivity``; duct: ``k_gas(T_cold)``.
+    The gas conductivity is taken at the cold temperature and held constant (the heat
+    model is linear).
+    """
+    s = _segment_of(core, seg)
+    k_gas = float(gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean).k)
+    if s.is_porous:
+        return s.porosity * k_gas + (1.0 - s.porosity) * s.solid_conductivity
+    return k_gas
+
+
+# ======================================================================================
+# Exact steady heat solution
+# ======================================================================================
+#
+# In one thermal segment of length L, centre c, with s = x - c in [-L/2, L/2],
+#     lam theta'' - (2h/R) theta = -q          (q = Q/(l_h S) in the heater, else 0)
+# i.e. theta'' - m^2 theta = -q/lam with m^2 = 2h/(R lam). We write
+#     theta = (q/lam) P(s) + alpha E(s) + beta O(s)
+# with the bounded basis (all stable for any m >= 0, including m = 0 and m L >> 700):
+#     E(s) = cosh(m s)/cosh(m L/2)                      (E = 1 at both ends, E -> 1 as m -> 0)
+#     O(s) = sinh(m s)/(m cosh(m L/2))                  (O -> s as m -> 0)
+#     P(s) = (1 - E(s))/m^2                             (P = 0 at both ends, -> (L^2/4 - s^2)/2)
+# and E' = m^2 O, O' = E, P' = -O. Each is evaluated from decaying exponentials and
+# expm1 only, so nothing overflows and nothing cancels:
+#     with G(a) = -expm1(-2 m a)/(2 m)  (= sinh(m a) e^{-m a}/m, G(a) -> a as m -> 0):
+#     E(s) = e^{m(|s| - L/2)} (1 + e^{-2m|s|}) / (1 + e^{-mL})
+#     O(s) = sign(s) e^{m(|s| - L/2)} 2 G(|s|) / (1 + e^{-mL})
+#     P(s) = 4 G((L/2 + s)/2) G((L/2 - s)/2) / (1 + e^{-mL})
+# At the ends s = +-L/2: theta = alpha +- beta ell, theta' = +-(m^2 alpha - q/lam) ell + beta,
+# with ell = O(L/2) = tanh(mL/2)/m (-> L/2 as m -> 0).
+
+
+def _G(m: float, a):
+    """``-expm1(-2 m a)/(2 m)`` for a >= 0, with the limit ``a`` at m = 0."""
+    a = np.maximum(a, 0.0)
+    if m == 0.0:
+        return a
+    return -np.expm1(-2.0 * m * a) / (2.0 * m)
+
+
+def _basis(m: float, L: float, s):
+    """E(s), O(s), P(s) of the comment block above (arrays like s)."""
+    s = np.clip(s, -L / 2, L / 2)
+    a = np.abs(s)
+    den = 1.0 + math.exp(-m * L)
+    grow = np.exp(m * (a - L / 2))
+    E = grow * (1.0 + np.exp(-2.0 * m * a)) / den
+    O = np.sign(s) * grow * 2.0 * _G(m, a) / den
+    P = 4.0 * _G(m, (L / 2 + s) / 2) * _G(m, (L / 2 - s) / 2) / den
+    return E, O, P
+
+
+def _ell(m: float, L: float) -> float:
+    """O(L/2) = tanh(mL/2)/m, limit L/2 at m = 0."""
+    if m == 0.0:
+        return L / 2
+    return math.tanh(m * L / 2) / m
+
+
+class HeatSolution:
+    """Exact piecewise solution of the steady heat model (PHYSICS.md, Eqs. 10-12).
+
+    On every thermal segment ``lam theta'' - (2 h / R) theta = -Q/(l_h S)`` (source only
+    in the heater), ``theta = T - T_cold`` [K], ``theta' = 0`` at both ends of the thermal
+    domain, ``theta`` and ``lam theta'`` continuous at the interfaces. Built by
+    :func:`heat_profile_exact`.
+
+    Positions ``x`` [m] are measured from plane x1. Outside the thermal domain
+    ``theta = 0`` (``T = T_cold``). At an interface ``theta`` is continuous but its
+    derivative jumps; the global functions take the segment on the right there (the
+    last segment at the right end). Use the ``*_in(index, x)`` forms to evaluate one
+    segment's formula on its closed interval (e.g. at its end planes).
+
+    Attributes: ``core``, ``heat_input`` [W], ``T_cold`` [K], ``indices`` (core segment
+    indices of the thermal segments), ``x_left``/``x_right`` [m] (their end planes),
+    ``lam`` [W/(m K)], ``h`` [W/(m^2 K)], ``m`` [1/m] (= sqrt(2h/(R lam))), ``q`` [W/m^3]
+    (volumetric source), ``alpha`` [K], ``beta`` [K/m] (coefficients of E and O).
+    """
+
+    def __init__(self, core: Core, heat_input: float):
+        self.core = core
+        self.heat_input = float(heat_input)
+        self.T_cold = float(core.gas.T_cold)
+        pos = core.positions()
+        self.indices = list(core.thermal_indices)
+        n = len(self.indices)
+        self.x_left = np.array([pos[i] for i in self.indices], dtype=float)
+        self.x_right = np.array([pos[i + 1] for i in self.indices], dtype=float)
+        self.length = self.x_right - self.x_left
+        self.center = 0.5 * (self.x_left + self.x_right)
+        R, S = core.radius, core.area
+        self.lam = np.array([segment_conductivity(core, i) for i in self.indices], dtype=float)
+        self.h = np.array([core.segments[i].h for i in self.indices], dtype=float)
+        self.m = np.sqrt(2.0 * self.h / (R * self.lam))
+        self.q = np.zeros(n)
+        if n:
+            j = self.indices.index(core.heater_index)
+            self.q[j] = self.heat_input / (self.length[j] * S)
+        self.alpha = np.zeros(n)
+        self.beta = np.zeros(n)
+        if n and self.heat_input != 0.0:
+            if not np.any(self.h > 0):
+                raise ValueError(
+                    f"{core.source}: heat input {self.heat_input} W but every thermal segment has "
+                    "h = 0: the heat cannot leave, the steady heat model has no solution")
+            self._solve()
+
+    # -- the 2N linear system --------------------------------------------------------
+    def _solve(self) -> None:
+        n = len(self.indices)
+        src = self.q / self.lam  # K/m^2
+        ell = np.array([_ell(m, L) for m, L in zip(self.m, self.length)])
+        m2 = self.m**2
+        A = np.zeros((2 * n, 2 * n))
+        b = np.zeros(2 * n)
+        # unknowns: alpha_j at 2j, beta_j at 2j + 1
+        # left end: theta'(-L/2) = -(m^2 alpha - src) ell + beta = 0
+        A[0, 0], A[0, 1], b[0] = -m2[0] * ell[0], 1.0, -src[0] * ell[0]
+        row = 1
+        for j in range(n - 1):
+            # theta continuous: alpha_j + beta_j ell_j - alpha_{j+1} + beta_{j+1} ell_{j+1} = 0
+            A[row, 2 * j], A[row, 2 * j + 1] = 1.0, ell[j]
+            A[row, 2 * j + 2], A[row, 2 * j + 3] = -1.0, ell[j + 1]
+            row += 1
+            # lam theta' continuous:
+            # lam_j[(m_j^2 alpha_j - src_j) ell_j + beta_j] = lam_{j+1}[-(m^2 alpha - src) ell + beta]_{j+1}
+            lj, lk = self.lam[j], self.lam[j + 1]
+            A[row, 2 * j], A[row, 2 * j + 1] = lj * m2[j] * ell[j], lj
+            A[row, 2 * j + 2], A[row, 2 * j + 3] = lk * m2[j + 1] * ell[j + 1], -lk
+            b[row] = lj * src[j] * ell[j] + lk * src[j + 1] * ell[j + 1]
+            row += 1
+        # right end: (m^2 alpha - src) ell + beta = 0
+        A[row, 2 * n - 2], A[row, 2 * n - 1], b[row] = m2[-1] * ell[-1], 1.0, src[-1] * ell[-1]
+        # Equilibrate rows and columns (units differ: K, K/m, W/m^2), then one step of
+        # iterative refinement: the system is tiny, so this costs nothing.
+        cs = 1.0 / np.maximum(np.abs(A).max(axis=0), 1e-300)
+        As = A * cs
+        rs = 1.0 / np.maximum(np.abs(As).max(axis=1), 1e-300)
+        As = As * rs[:, None]
+        bs = b * rs
+        y = np.linalg.solve(As, bs)
+        y = y + np.linalg.solve(As, bs - As @ y)
+        sol = y * cs
+        self.alpha = sol[0::2].copy()
+        self.beta = sol[1::2].copy()
+
+    # -- one segment's formula -------------------------------------------------------
+    def _local(self, j: int, x):
+        return _basis(self.m[j], self.length[j], np.asarray(x, dtype=float) - self.center[j])
+
+    def _j(self, index: int) -> int:
+        try:
+            return self.indices.index(index)
+        except ValueError:
+            raise ValueError(f"segment #{index} is not a thermal segment (thermal: {self.indices})") from None
+
+    def theta_in(self, index: int, x):
+        """theta [K] from the formula of thermal segment ``index`` (core index) at ``x`` [m]."""
+        j = self._j(index)
+        E, O, P = self._local(j, x)
+        return (self.q[j] / self.lam[j]) * P + self.alpha[j] * E + self.beta[j] * O
+
+    def dtheta_in(self, index: int, x):
+        """dtheta/dx [K/m] from the formula of thermal segment ``index`` at ``x`` [m]."""
+        j = self._j(index)
+        E, O, _ = self._local(j, x)
+        return (self.alpha[j] * self.m[j] ** 2 - self.q[j] / self.lam[j]) * O + self.beta[j] * E
+
+    def d2theta_in(self, index: int, x):
+        """d2theta/dx2 [K/m^2] from the formula of thermal segment ``index`` at ``x`` [m]."""
+        j = self._j(index)
+        E, O, _ = self._local(j, x)
+        m2 = self.m[j] ** 2
+        return (self.alpha[j] * m2 - self.q[j] / self.lam[j]) * E + self.beta[j] * m2 * O
+
+    # -- global functions ------------------------------------------------------------
+    def _dispatch(self, fn, x):
+        x = np.asarray(x, dtype=float)
+        out = np.zeros_like(x)
+        if not self.indices or self.heat_input == 0.0:
+            return out
+        seg = np.searchsorted(self.x_left, x, side="right") - 1
+        inside = (x >= self.x_left[0]) & (x <= self.x_right[-1])
+        seg = np.clip(seg, 0, len(self.indices) - 1)
+        for j, idx in enumerate(self.indices):
+            sel = inside & (seg == j)
+            if np.any(sel):
+                out[sel] = fn(idx, x[sel])
+        return out
+
+    def theta(self, x):
+        """Temperature excess theta = T - T_cold [K] at ``x`` [m] (0 outside the thermal domain)."""
+        return self._dispatch(self.theta_in, x)
+
+    def dtheta(self, x):
+        """dtheta/dx [K/m] at ``x`` [m] (right-hand segment at interfaces; 0 outside)."""
+        return self._dispatch(self.dtheta_in, x)
+
+    def d2theta(self, x):
+        """d2theta/dx2 [K/m^2] at ``x`` [m] (right-hand segment at interfaces; 0 outside)."""
+        return self._dispatch(self.d2theta_in, x)
+
+    def temperature(self, x):
+        """Mean temperature T = T_cold + theta [K] at ``x`` [m], anywhere in the core."""
+        return self.T_cold + self.theta(x)
+
+    def dtemperature(self, x):
+        """dT/dx [K/m] at ``x`` [m] (= dtheta/dx)."""
+        return self.dtheta(x)
+
+    def segment_profile(self, index: int):
+        """``(T(x), dT/dx(x))`` callables [K], [K/m] of core segment ``index``, valid on its
+        closed interval (uniform ``T_cold`` for a non-thermal segment)."""
+        if index not in self.indices or self.heat_input == 0.0:
+            Tc = self.T_cold
+            return (lambda x: Tc + 0.0 * np.asarray(x, dtype=float)), (lambda x: 0.0 * np.asarray(x, dtype=float))
+        return (lambda x: self.T_cold + self.theta_in(index, x)), (lambda x: self.dtheta_in(index, x))
+
+    def theta_max(self) -> tuple[float, float]:
+        """``(x_max [m], theta_max [K])``: location and value of the largest theta.
+
+        Candidates: every segment end and every root of theta' inside a segment (found by
+        sign changes on a fine grid refined with Brent's method)."""
+        from scipy.optimize import brentq
+
+        if not self.indices or self.heat_input == 0.0:
+            return 0.0, 0.0
+        best = (-math.inf, 0.0)
+        for j, idx in enumerate(self.indices):
+            a, b = self.x_left[j], self.x_right[j]
+            xs = np.linspace(a, b, 2001)
+            th = self.theta_in(idx, xs)
+            dth = self.dtheta_in(idx, xs)
+            cand = [(float(th[0]), a), (float(th[-1]), b)]
+            for k in np.nonzero(np.sign(dth[:-1]) * np.sign(dth[1:]) < 0)[0]:
+                xr = brentq(lambda t: float(self.dtheta_in(idx, t)), xs[k], xs[k + 1], xtol=1e-15, rtol=1e-15)
+                cand.append((float(self.theta_in(idx, xr)), xr))
+            best = max(best, max(cand))
+        return best[1], best[0]
+
+
+def heat_profile_exact(core: Core, heat_input: float) -> HeatSolution:
+    """Exact steady temperature profile for heat input ``heat_input`` [W] in the heater.
+
+    Any number of contiguous thermal segments; a core with none gives ``T = T_cold``
+    everywhere. See :class:`HeatSolution` for the model and the evaluators."""
+    return HeatSolution(core, heat_input)
+
+
+def energy_balance(core: Core, heat_input: float) -> float:
+    """Heat lost to the wall, ``sum over thermal segments of integral (2h/R) theta S dx`` [W].
+
+    In steady state it equals the heat input Q. Analytic: with ``ell = tanh(mL/2)/m``,
+    ``integral E = 2 ell``, ``integral O = 0``, ``integral P = (L - 2 ell)/m^2``, so
+    segment j gives ``S [q_j (L_j - 2 ell_j) + lam_j m_j^2 alpha_j 2 ell_j]``.
+    """
+    hs = heat_profile_exact(core, heat_input)
+    S = core.area
+    total = 0.0
+    for j in range(len(hs.indices)):
+        m, L = hs.m[j], hs.length[j]
+        ell = _ell(m, L)
+        total += S * (hs.q[j] * (L - 2.0 * ell) + hs.lam[j] * m**2 * hs.alpha[j] * 2.0 * ell)
+    return float(total)
+
+
+# ======================================================================================
+# Thermoviscous functions
+# ======================================================================================
+
+def _bernoulli_even(nmax: int) -> list:
+    """Exact B_0 .. B_(nmax) (fractions; Akiyama-Tanigawa). scipy's float version loses
+    ~1e-12 already in the first coefficients, which would show in 1 - tanh(w)/w."""
+    from fractions import Fraction
+
+    a, out = [], []
+    for m in range(nmax + 1):
+        a.append(Fraction(1, m + 1))
+        for j in range(m, 0, -1):
+            a[j - 1] = j * (a[j - 1] - a[j])
+        out.append(a[0])  # B_1 = +1/2 here; only even indices are used
+    return out
+
+
+_B = _bernoulli_even(50)
+# Series of tanh(w)/w = sum_n c_n w^(2n-2), c_n = 2^(2n) (2^(2n) - 1) B_(2n) / (2n)!
+_TANH_COEF = np.array([
+    float(2 ** (2 * n) * (2 ** (2 * n) - 1) * _B[2 * n] / math.factorial(2 * n)) for n in range(1, 26)
+])
+# 1 - 2 J1(z)/(z J0(z)) = [sum_{k>=1} (-1)^k k t^(2k) / ((k+1) (k!)^2)] / J0(z), t = z/2
+_BESSEL_COEF = np.array([(-1.0) ** k * k / ((k + 1) * math.factorial(k) ** 2) for k in range(1, 26)])
+
+
+def thermoviscous_function(pore_model: str, r, delta):
+    """Rott's function f and 1 - f for pores of radius ``r`` [m] (``plates``: half
+    spacing) and penetration depth ``delta`` [m], convention exp(-i w t).
+
+    * circular: ``f = 2 J1(z)/(z J0(z))``, ``z = (1 + i) r/delta``;
+    * plates: ``f = tanh(w)/w``, ``w = (1 - i) r/delta``.
+
+    Returns ``(f, one_minus_f)`` (complex arrays). ``1 - f`` is computed from a series
+    for small arguments (no cancellation when f -> 1) and from the exponentially scaled
+    Bessel ratio ``jve(1, z)/jve(0, z)`` (no overflow up to r/delta ~ 1e4) otherwise.
+    """
+    x = np.asarray(r / np.asarray(delta, dtype=float), dtype=float)
+    if pore_model == "circular":
+        z = (1.0 + 1.0j) * x
+        small = np.abs(z) < 2.0
+        f = np.empty(z.shape, dtype=complex)
+        one_minus = np.empty(z.shape, dtype=complex)
+        if np.any(small):
+            zs = z[small]
+            t2 = (zs / 2) ** 2
+            acc = np.zeros_like(zs)
+            for c in _BESSEL_COEF[::-1]:  # Horner in t^2
+                acc = acc * t2 + c
+            one_minus[small] = acc * t2 / sp.jv(0, zs)
+            f[small] = 1.0 - one_minus[small]
+        if np.any(~small):
+            zl = z[~small]
+            # f -> 0 like 1/z: computed directly so it keeps its relative accuracy
+            f[~small] = 2.0 * (sp.jve(1, zl) / sp.jve(0, zl)) / zl
+            one_minus[~small] = 1.0 - f[~small]
+    elif pore_model == "plates":
+        w = (1.0 - 1.0j) * x
+        small = np.abs(w) < 0.5
+        f = np.empty(w.shape, dtype=complex)
+        one_minus = np.empty(w.shape, dtype=complex)
+        if np.any(small):
+            w2 = w[small] ** 2
+            acc = np.zeros_like(w2)
+            for c in _TANH_COEF[:0:-1]:  # c_25 ... c_2: 1 - tanh(w)/w = -sum_{n>=2} c_n w^(2n-2)
+                acc = acc * w2 + c
+            one_minus[small] = -acc * w2
+            f[small] = 1.0 - one_minus[small]
+        if np.any(~small):
+            wl = w[~small]
+            e = np.exp(-2.0 * wl)  # Re w > 0: tanh(w) = (1 - e^{-2w})/(1 + e^{-2w}) never overflows
+            f[~small] = (1.0 - e) / (1.0 + e) / wl
+            one_minus[~small] = 1.0 - f[~small]
+    else:
+        raise ValueError(f"unknown pore_model {pore_model!r}; expected 'circular' or 'plates'")
+    return f, one_minus
+
+
+# ======================================================================================
+# Acoustics
+# ======================================================================================
+
+
+def _pore(core: Core, seg: Segment):
+    """(phi, r, q, pore_model) of a segment: ducts are one circular pore of the tube radius."""
+    if seg.is_porous:
+        return seg.porosity, seg.pore_radius, seg.tortuosity, seg.pore_model
+    return 1.0, core.radius, 1.0, "circular"
+
+
+def _coefficients(core: Core, seg: Segment, w, T, dTdx):
+    """Rott's ODE coefficients a12 [Pa s/m^4], a21 [m^3/(Pa s m)], a22 [1/m] at angular
+    frequency ``w`` [rad/s], temperature ``T`` [K] and gradient ``dTdx`` [K/m]
+    (all broadcast together):
+
+        dp/dx = a12 U,  dU/dx = a21 p + a22 U
+        a12 = i q^2 rho w / (phi S (1 - f_nu))
+        a21 = i phi S w (1 + (gamma - 1) f_k) / (rho c^2)
+        a22 = (dT/dx / T) (f_k - f_nu) / ((1 - f_nu)(1 - Pr))
+    """
+    phi, r, q, model = _pore(core, seg)
+    S = core.area
+    g = gas_properties(core.gas.name, T, core.gas.p_mean)
+    d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
+    d_k = np.sqrt(2.0 * g.k / (g.rho * g.cp * w))
+    f_nu, omf_nu = thermoviscous_function(model, r, d_nu)
+    f_k, omf_k = thermoviscous_function(model, r, d_k)
+    a12 = 1j * q**2 * g.rho * w / (phi * S * omf_nu)
+    a21 = 1j * phi * S * w * (1.0 + (g.gamma - 1.0) * f_k) / (g.rho * g.c**2)
+    # f_k - f_nu from whichever pair is accurate: near f = 1 (narrow pores) the 1 - f
+    # values carry the information, near f = 0 (wide ducts) the f values do.
+    diff = np.where(np.abs(omf_nu) < np.abs(f_nu), omf_nu - omf_k, f_k - f_nu)
+    a22 = (dTdx / T) * diff / (omf_nu * (1.0 - g.Pr))
+    return a12, a21, a22
+
+
+def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:
+    """Closed-form T-matrix (m, 2, 2) of a segment at uniform T_cold.
+
+    k^2 = -a12 a21 (Im k > 0), Zc = a12/(i k) (this keeps the branches of k and Zc
+    consistent whatever sqrt returns); T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]].
+    """
+    a12, a21, _ = _coefficients(core, seg, w, core.gas.T_cold, 0.0)
+    k = np.sqrt(-a12 * a21)
+    k = np.where(k.imag < 0, -k, k)
+    Zc = a12 / (1j * k)
+    kL = k * seg.length
+    cs, sn = np.cos(kL), np.sin(kL)
+    out = np.empty(w.shape + (2, 2), dtype=complex)
+    out[:, 0, 0] = cs
+    out[:, 0, 1] = 1j * Zc * sn
+    out[:, 1, 0] = 1j * sn / Zc
+    out[:, 1, 1] = cs
+    return out
+
+
+def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, Tfun, dTfun, rtol: float) -> np.ndarray:
+    """T-matrix (2, 2) of one segment by DOP853 on dM/dx = A(x) M, M(x0) = I.
+
+    Integrated on the scaled state (p, Z0 U), Z0 = rho0 c0/S at T_cold, so the four
+    entries are O(1) and one absolute tolerance fits all; as a real 8-vector.
+    """
+    g0 = gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean)
+    Z0 = float(g0.rho * g0.c) / core.area
+
+    def rhs(x, y):
+        M = (y[:4] + 1j * y[4:]).reshape(2, 2)
+        T = float(Tfun(x))
+        a12, a21, a22 = _coefficients(core, seg, w, T, float(dTfun(x)))
+        A = np.array([[0.0, a12 / Z0], [a21 * Z0, a22]], dtype=complex)
+        dM = (A @ M).ravel()
+        return np.concatenate([dM.real, dM.imag])
+
+    y0 = np.array([1.0, 0, 0, 1.0, 0, 0, 0, 0])
+    sol = solve_ivp(rhs, (x0, x0 + seg.length), y0, method="DOP853", rtol=rtol, atol=rtol * 1e-2)
+    if not sol.success:
+        raise RuntimeError(f"segment {seg.name!r}, f = {w / (2 * math.pi)} Hz: {sol.message}")
+    yf = sol.y[:, -1]
+    Ms = (yf[:4] + 1j * yf[4:]).reshape(2, 2)
+    # back to (p, U): M = D^-1 Ms D with D = diag(1, Z0)
+    return np.array([[Ms[0, 0], Ms[0, 1] * Z0], [Ms[1, 0] / Z0, Ms[1, 1]]])
+
+
+def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
+                              *, _force_ode: bool = False) -> list[np.ndarray]:
+    """T-matrix of every segment, a list of complex arrays (m, 2, 2), raw SI units.
+
+    ``freqs`` [Hz] (scalar or 1-D), ``heat_input`` Q [W]. A segment at uniform T_cold
+    (not thermal, or Q = 0) uses the closed form; a heated thermal segment is integrated
+    by DOP853 with relative tolerance ``rtol`` using the exact heat profile.
+    ``_force_ode`` (private, for tests): integrate every segment numerically.
+    """
+    f = np.atleast_1d(np.asarray(freqs, dtype=float))
+    if f.ndim != 1 or np.any(f <= 0):
+        raise ValueError("freqs must be positive frequencies [Hz], scalar or 1-D")
+    w = 2.0 * np.pi * f
+    hs = heat_profile_exact(core, heat_input)
+    heated = set(hs.indices) if heat_input != 0.0 else set()
+    pos = core.positions()
+    out = []
+    for i, seg in enumerate(core.segments):
+        if i not in heated and not _force_ode:
+            out.append(_uniform_matrix(core, seg, w))
+            continue
+        Tfun, dTfun = hs.segment_profile(i)
+        Tends = Tfun(np.array([pos[i], pos[i + 1]]))
+        if np.any(Tends <= 0):
+            raise ValueError(f"segment {seg.name!r}: temperature {Tends.min()} K <= 0 (heat input {heat_input} W)")
+        out.append(np.stack([_ode_matrix(core, seg, pos[i], wk, Tfun, dTfun, rtol) for wk in w]))
+    return out
+
+
+def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
+                    *, _force_ode: bool = False) -> np.ndarray:
+    """Core T-matrix, complex array (m, 2, 2), with ``(p, U)(x6) = T (p, U)(x1)``.
+
+    ``freqs`` [Hz] (scalar or 1-D, m values), ``heat_input`` Q [W] dissipated in the
+    heater, ``rtol`` the DOP853 relative tolerance for heated segments. Units: T_pp [-],
+    T_pU [Pa s/m^3], T_Up [m^3/(Pa s)], T_UU [-]; convention exp(-i w t).
+    ``T = T_last ... T_first`` (see :func:`segment_transfer_matrices`).
+    """
+    mats = segment_transfer_matrices(core, freqs, heat_input, rtol, _force_ode=_force_ode)
+    T = mats[0]
+    for M in mats[1:]:
+        T = M @ T
+    return T
+
+
+def dimensionless_transfer(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12) -> np.ndarray:
+    """Dimensionless coefficients (m, 4): ``Tpp, Tpu/Zc, Tup*Zc, Tuu`` with
+    ``Zc = rho0 c0/S`` at T_cold (:func:`tawarp.coefficients.normalize`)."""
+    return normalize(transfer_matrix(core, freqs, heat_input, rtol), duct_impedance(core))

@@ -1,0 +1,158 @@
+"""Pore functions f, g of tawarp.kernels.pore against mpmath (40 digits)."""
+
+import mpmath
+import numpy as np
+import pytest
+import warp as wp
+
+from tawarp.kernels.pore import (
+    CIRCULAR_ASYMPTOTIC_S,
+    PLATES_EXPONENTIAL_S,
+    PORE_CIRCULAR,
+    PORE_PLATES,
+    pore_circular,
+    pore_functions,
+    pore_plates,
+)
+
+DEVICE = "cpu"
+TOL = 1e-13
+
+# 300 log-spaced points over the working range plus spot values beyond it.
+S_GRID = np.concatenate([np.geomspace(1e-3, 1e3, 300), [1e-4, 3e-4, 3e3, 1e4]])
+
+
+@wp.kernel
+def _eval_model(
+    model: int,
+    s: wp.array(dtype=wp.float64),
+    f: wp.array(dtype=wp.vec2d),
+    g: wp.array(dtype=wp.vec2d),
+):
+    i = wp.tid()
+    fi, gi = pore_functions(model, s[i])
+    f[i] = fi
+    g[i] = gi
+
+
+@wp.kernel
+def _eval_direct(
+    s: wp.array(dtype=wp.float64),
+    fc: wp.array(dtype=wp.vec2d),
+    fp: wp.array(dtype=wp.vec2d),
+):
+    i = wp.tid()
+    fi, gi = pore_circular(s[i])
+    fc[i] = fi
+    fi, gi = pore_plates(s[i])
+    fp[i] = fi
+
+
+def _to_complex(a):
+    v = a.numpy()
+    return v[:, 0] + 1j * v[:, 1]
+
+
+def evaluate(model, s):
+    """f, g of ``model`` at the values ``s``, as complex numpy arrays."""
+    s_wp = wp.array(np.asarray(s, dtype=np.float64), dtype=wp.float64, device=DEVICE)
+    f = wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE)
+    g = wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE)
+    wp.launch(_eval_model, dim=len(s), inputs=[model, s_wp, f, g], device=DEVICE)
+    return _to_complex(f), _to_complex(g)
+
+
+def reference(model, s):
+    """f, g at 40 digits, exp(-i w t) convention, as mpmath numbers."""
+    with mpmath.workdps(40):
+        s = mpmath.mpf(float(s))
+        if model == PORE_CIRCULAR:
+            z = mpmath.mpc(1, 1) * s
+            j0 = mpmath.besselj(0, z)
+            return 2 * mpmath.besselj(1, z) / (z * j0), -mpmath.besselj(2, z) / j0
+        w = mpmath.mpc(1, -1) * s
+        f = mpmath.tanh(w) / w
+        return f, 1 - f
+
+
+def rel_err(x, ref):
+    return float(abs(mpmath.mpc(x) - ref) / abs(ref))
+
+
+@pytest.fixture(scope="module", params=[PORE_CIRCULAR, PORE_PLATES], ids=["circular", "plates"])
+def model(request):
+    return request.param
+
+
+def test_accuracy_against_mpmath(model):
+    f, g = evaluate(model, S_GRID)
+    err_f = err_g = 0.0
+    for si, fi, gi in zip(S_GRID, f, g):
+        rf, rg = reference(model, si)
+        err_f = max(err_f, rel_err(fi, rf))
+        err_g = max(err_g, rel_err(gi, rg))
+    print(f"model {model}: max relative error f {err_f:.2e}, g {err_g:.2e}")
+    assert err_f <= TOL
+    assert err_g <= TOL
+
+
+def test_direct_funcs_match_dispatch():
+    s_wp = wp.array(S_GRID, dtype=wp.float64, device=DEVICE)
+    fc = wp.zeros(len(S_GRID), dtype=wp.vec2d, device=DEVICE)
+    fp = wp.zeros(len(S_GRID), dtype=wp.vec2d, device=DEVICE)
+    wp.launch(_eval_direct, dim=len(S_GRID), inputs=[s_wp, fc, fp], device=DEVICE)
+    np.testing.assert_array_equal(_to_complex(fc), evaluate(PORE_CIRCULAR, S_GRID)[0])
+    np.testing.assert_array_equal(_to_complex(fp), evaluate(PORE_PLATES, S_GRID)[0])
+
+
+@pytest.mark.parametrize(
+    "model_id, threshold",
+    [(PORE_CIRCULAR, CIRCULAR_ASYMPTOTIC_S), (PORE_PLATES, PLATES_EXPONENTIAL_S)],
+    ids=["circular", "plates"],
+)
+def test_continuous_across_threshold(model_id, threshold):
+    t = float(threshold)
+    below, at = np.nextafter(t, 0.0), t
+    f, g = evaluate(model_id, [below, at])
+    assert abs(f[1] - f[0]) <= TOL * abs(f[1])
+    assert abs(g[1] - g[0]) <= TOL * abs(g[1])
+
+
+def test_sign_convention_exp_minus_iwt(model):
+    # exp(-i w t): f is the mpmath value at (1 + i) s (plates (1 - i) s), not its
+    # conjugate, which is Swift's exp(+i w t) function; Im f > 0 throughout.
+    f, g = evaluate(model, S_GRID)
+    assert np.all(f.imag > 0)
+    assert np.all(g.imag < 0)
+    s = 1.0
+    rf, _ = reference(model, s)
+    fi = evaluate(model, [s])[0][0]
+    assert rel_err(fi, rf) <= TOL
+    assert rel_err(fi, mpmath.conj(rf)) > 0.1
+
+
+def test_large_s_limit_circular():
+    # f = 2i/z (1 + 4v + O(1/s^2)) with 4v = -(1 + i) / (4 s): the 1/s trend.
+    s = np.array([1e2, 1e3, 1e4])
+    f, _ = evaluate(PORE_CIRCULAR, s)
+    z = (1 + 1j) * s
+    correction = s * (f * z / 2j - 1)
+    assert np.all(np.abs(correction + (1 + 1j) / 4) <= 1.0 / s)
+
+
+def test_large_s_limit_plates():
+    # tanh(w) = 1 up to exp(-2s), so f = 1/w to rounding.
+    s = np.array([30.0, 1e2, 1e4])
+    f, _ = evaluate(PORE_PLATES, s)
+    np.testing.assert_allclose(f * (1 - 1j) * s, 1.0, rtol=TOL, atol=0)
+
+
+def test_circular_and_plates_agree_for_equal_hydraulic_radius():
+    # r_h = r/2 for the tube, y0 for the plates: with y0 = r/2 both tend to
+    # (1 + i) delta / (2 r_h) = (1 + i) / s_r, the tube with a 1/s correction.
+    s_r = np.array([50.0, 1e2, 1e3, 1e4])
+    fc, _ = evaluate(PORE_CIRCULAR, s_r)
+    fp, _ = evaluate(PORE_PLATES, s_r / 2)
+    limit = (1 + 1j) / s_r
+    assert np.all(np.abs(fc - fp) <= np.abs(limit) / s_r)
+    np.testing.assert_allclose(fp, limit, rtol=TOL, atol=0)
