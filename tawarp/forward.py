@@ -24,6 +24,7 @@ import warp as wp
 from .coefficients import duct_impedance, normalize
 from .core import GLOBAL_FIELDS, SEGMENT_FIELDS, Core, CoreError, check_values
 from .gas import GASES
+from .progress import progress_bar
 from .kernels import forward as kf
 from .kernels import layout
 
@@ -106,21 +107,12 @@ class ForwardResult:
         """(n, m, 4): ``Tpp, Tpu/Zc, Tup*Zc, Tuu`` with the core's cold duct impedance."""
         return normalize(self.T, duct_impedance(self.core))
 
-    def temperature(self, x: np.ndarray, device: str | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def temperature(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
-        device = resolve_device(device or self.settings.device)
-        x = np.ascontiguousarray(x, dtype=np.float64)
-        n = self.params.shape[1]
-        T = wp.zeros((n, len(x)), dtype=wp.float64, device=device)
-        dT = wp.zeros((n, len(x)), dtype=wp.float64, device=device)
-        first, _ = _thermal_range(self.core)
-        wp.launch(kf.profile_kernel, dim=(n, len(x)), device=device,
-                  inputs=[wp.array(self.params, dtype=wp.float64, device=device),
-                          wp.array(structure_flags(self.core), dtype=wp.int32, device=device),
-                          wp.array(GASES[self.core.gas.name].as_tuple(), dtype=wp.float64, device=device),
-                          wp.array(self.theta, dtype=wp.float64, device=device),
-                          first, self.settings.heat_cells, wp.array(x, dtype=wp.float64, device=device), T, dT])
-        return T.numpy(), dT.numpy()
+        engine = Engine(self.core, self.freqs, (), self.settings)
+        dev = engine.device
+        return engine.temperature(wp.array(self.params, dtype=wp.float64, device=dev),
+                                  wp.array(self.theta, dtype=wp.float64, device=dev), x)
 
 
 @dataclass(frozen=True)
@@ -179,8 +171,86 @@ def broadcast_batch(core: Core, heat_input, params: dict | None) -> tuple[int, n
     return n, q, out
 
 
+class Engine:
+    """A compiled batch layout: one core structure, one frequency grid, a fixed list of
+    varying parameters; evaluates device-resident batches with no host round trip.
+
+    ``names`` are the parameters that vary across the batch (``heat_input`` is always
+    the first varying row). :meth:`evaluate` takes a (1 + len(names), n) float64 array
+    (NumPy or a Warp array on the engine's device) and returns Warp arrays on the device:
+    ``out`` (n, m, 8) float64 = (Tpp, Tpu, Tup, Tuu) as (re, im), and ``theta`` (n, nodes).
+    ``out.numpy().view(complex).reshape(n, m, 2, 2)`` gives the T-matrices; Warp arrays
+    share memory with PyTorch/CuPy through ``__cuda_array_interface__``.
+    """
+
+    def __init__(self, core: Core, freqs, names=(), settings: ForwardSettings | None = None):
+        self.settings = settings or ForwardSettings()
+        self.device = resolve_device(self.settings.device)
+        self.core = core
+        self.freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
+        if self.freqs.ndim != 1 or not np.all(np.isfinite(self.freqs)) or np.any(self.freqs <= 0):
+            raise ValueError("freqs [Hz] must be a 1-D array of positive finite values")
+        self.names = list(names)
+        self.rows = np.array([layout.HEAT_INPUT] + [parameter_row(core, k) for k in self.names], dtype=np.int32)
+        self.first, self.count = _thermal_range(core)
+        self.heat_cells = int(self.settings.heat_cells)
+        if self.heat_cells < 1:
+            raise ValueError(f"heat_cells must be >= 1, got {self.heat_cells}")
+        self.nodes = self.count * self.heat_cells + 1
+        dev = self.device
+        self.base = wp.array(base_table(core), dtype=wp.float64, device=dev)
+        self.flags = wp.array(structure_flags(core), dtype=wp.int32, device=dev)
+        self.gas = wp.array(GASES[core.gas.name].as_tuple(), dtype=wp.float64, device=dev)
+        self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
+        self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
+        self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
+
+    def heat(self, varying) -> tuple[wp.array, wp.array]:
+        """Expand the parameter table and solve the heat model: (params, theta) on the device."""
+        if not isinstance(varying, wp.array):
+            varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
+        n = varying.shape[1]
+        params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
+        theta = wp.zeros((n, self.nodes), dtype=wp.float64, device=self.device)
+        wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
+        if self.count:
+            scratch = wp.empty((n, self.nodes), dtype=wp.float64, device=self.device)
+            wp.launch(kf.heat_kernel, dim=n, inputs=[params, self.flags, self.gas, self.first, self.count,
+                                                     self.heat_cells, int(self.settings.fitted), theta, scratch],
+                      device=self.device)
+        return params, theta
+
+    def evaluate(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
+        """T-matrices of one device batch: returns (out, params, theta), see the class doc."""
+        params, theta = self.heat(varying)
+        n = params.shape[1]
+        if out is None:
+            out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
+        wp.launch(kf.transfer_kernel, dim=(n, len(self.freqs)),
+                  inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells, self.first,
+                          self.heat_cells, out], device=self.device)
+        return out, params, theta
+
+    def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
+        """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
+        x = wp.array(np.ascontiguousarray(x, dtype=np.float64), dtype=wp.float64, device=self.device)
+        n = params.shape[1]
+        T = wp.zeros((n, x.shape[0]), dtype=wp.float64, device=self.device)
+        dT = wp.zeros((n, x.shape[0]), dtype=wp.float64, device=self.device)
+        wp.launch(kf.profile_kernel, dim=(n, x.shape[0]), device=self.device,
+                  inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT])
+        return T.numpy(), dT.numpy()
+
+
+def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:
+    """Validated varying-parameter names and their (1 + len(names), n) table."""
+    n, q, arrays = broadcast_batch(core, heat_input, params)
+    names = list(arrays)
+    return names, np.stack([q] + [arrays[k] for k in names]) if n else np.zeros((1 + len(names), 0))
+
+
 def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = None,
-                      settings: ForwardSettings | None = None, **kw) -> ForwardResult:
+                      settings: ForwardSettings | None = None, progress: bool = False, **kw) -> ForwardResult:
     """Core T-matrices for a batch of parameter sets and frequencies.
 
     Parameters
@@ -191,48 +261,41 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
     params : ``{"SEGMENT.FIELD": scalar or (n,) array}`` values replacing the core's.
     settings : :class:`ForwardSettings`; keyword arguments (``cells=``, ``device=``, ...)
         are a shortcut for it.
+    progress : show a progress bar over the launch chunks (on a terminal only).
 
     Returns a :class:`ForwardResult` with ``T`` of shape (n, m, 2, 2), complex128.
     """
     settings = dataclasses.replace(settings or ForwardSettings(), **kw)
-    device = resolve_device(settings.device)
-    settings = dataclasses.replace(settings, device=device)
-    freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
-    if freqs.ndim != 1 or not np.all(np.isfinite(freqs)) or np.any(freqs <= 0):
-        raise ValueError("freqs [Hz] must be a 1-D array of positive finite values")
-    n, q, arrays = broadcast_batch(core, heat_input, params)
-    names = list(arrays)
-    varying = np.stack([q] + [arrays[k] for k in names]) if n else np.zeros((1, 0))
-    rows = np.array([layout.HEAT_INPUT] + [parameter_row(core, k) for k in names], dtype=np.int32)
-    first, count = _thermal_range(core)
-    hc = int(settings.heat_cells)
-    if hc < 1:
-        raise ValueError(f"heat_cells must be >= 1, got {hc}")
-    nodes = count * hc + 1
-    base = wp.array(base_table(core), dtype=wp.float64, device=device)
-    flags = wp.array(structure_flags(core), dtype=wp.int32, device=device)
-    gas = wp.array(GASES[core.gas.name].as_tuple(), dtype=wp.float64, device=device)
-    seg_cells = wp.array(settings.cells_per_segment(core), dtype=wp.int32, device=device)
-    w_rows = wp.array(rows, dtype=wp.int32, device=device)
-    w_freqs = wp.array(freqs, dtype=wp.float64, device=device)
-    T = np.empty((n, len(freqs), 2, 2), dtype=np.complex128)
-    theta = np.empty((n, nodes))
-    table = np.empty((len(base_table(core)), n))
+    names, varying = batch_table(core, heat_input, params)
+    engine = Engine(core, freqs, names, settings)
+    n, m = varying.shape[1], len(engine.freqs)
+    T = np.empty((n, m, 2, 2), dtype=np.complex128)
+    theta = np.empty((n, engine.nodes))
+    table = np.empty((engine.base.shape[0], n))
+    bar = progress_bar(n, "forward models", progress, unit="set")
     for lo in range(0, n, settings.chunk):
         hi = min(n, lo + settings.chunk)
-        k = hi - lo
-        w_var = wp.array(np.ascontiguousarray(varying[:, lo:hi]), dtype=wp.float64, device=device)
-        w_params = wp.empty((base.shape[0], k), dtype=wp.float64, device=device)
-        w_theta = wp.zeros((k, nodes), dtype=wp.float64, device=device)
-        w_scratch = wp.empty((k, nodes), dtype=wp.float64, device=device)
-        w_out = wp.empty((k, len(freqs), 8), dtype=wp.float64, device=device)
-        wp.launch(kf.expand_parameters, dim=k, inputs=[base, w_var, w_rows, w_params], device=device)
-        if count:
-            wp.launch(kf.heat_kernel, dim=k, inputs=[w_params, flags, gas, first, count, hc, int(settings.fitted),
-                                                     w_theta, w_scratch], device=device)
-        wp.launch(kf.transfer_kernel, dim=(k, len(freqs)),
-                  inputs=[w_params, flags, gas, w_theta, w_freqs, seg_cells, first, hc, w_out], device=device)
-        T[lo:hi] = w_out.numpy().view(np.complex128).reshape(k, len(freqs), 2, 2)
+        out, w_params, w_theta = engine.evaluate(varying[:, lo:hi])
+        T[lo:hi] = out.numpy().view(np.complex128).reshape(hi - lo, m, 2, 2)
         theta[lo:hi] = w_theta.numpy()
         table[:, lo:hi] = w_params.numpy()
-    return ForwardResult(core, freqs, q.copy(), T, theta, table, settings)
+        bar.update(hi - lo)
+    bar.close()
+    return ForwardResult(core, engine.freqs, varying[0].copy(), T, theta, table,
+                         dataclasses.replace(settings, device=engine.device))
+
+
+def steady_temperature(core: Core, x, heat_input=0.0, params: dict | None = None,
+                       settings: ForwardSettings | None = None, **kw) -> tuple[np.ndarray, np.ndarray]:
+    """Steady temperature T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m]
+    from plane x1, for a batch (heat solve only, no acoustics). Arguments as
+    :func:`transfer_matrices`."""
+    settings = dataclasses.replace(settings or ForwardSettings(), **kw)
+    names, varying = batch_table(core, heat_input, params)
+    engine = Engine(core, [1.0], names, settings)
+    T = np.empty((varying.shape[1], len(np.atleast_1d(x))))
+    dT = np.empty_like(T)
+    for lo in range(0, varying.shape[1], settings.chunk):
+        hi = min(varying.shape[1], lo + settings.chunk)
+        T[lo:hi], dT[lo:hi] = engine.temperature(*engine.heat(varying[:, lo:hi]), np.atleast_1d(x))
+    return T, dT

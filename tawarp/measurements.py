@@ -190,7 +190,7 @@ def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) 
             continue
         if line.startswith("#"):
             if header is not None:
-                raise _fail(src, n, "comment or metadata line after the header; put '# key = value' lines first")
+                raise _fail(src, n, "comment or metadata line after the header; '# key = value' lines must come before it")
             key, eq, value = line[1:].partition("=")
             if eq:  # '# key = value'; a comment without '=' is free text
                 key = key.strip()

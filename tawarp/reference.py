@@ -312,12 +312,21 @@ class HeatSolution:
         return self.dtheta(x)
 
     def segment_profile(self, index: int):
-        """``(T(x), dT/dx(x))`` callables [K], [K/m] of core segment ``index``, valid on its
-        closed interval (uniform ``T_cold`` for a non-thermal segment)."""
+        """Callable ``x -> (T(x), dT/dx(x))`` [K], [K/m] of core segment ``index``, valid on
+        its closed interval (uniform ``T_cold`` for a non-thermal segment)."""
+        Tc = self.T_cold
         if index not in self.indices or self.heat_input == 0.0:
-            Tc = self.T_cold
-            return (lambda x: Tc + 0.0 * np.asarray(x, dtype=float)), (lambda x: 0.0 * np.asarray(x, dtype=float))
-        return (lambda x: self.T_cold + self.theta_in(index, x)), (lambda x: self.dtheta_in(index, x))
+            def uniform(x):
+                z = 0.0 * np.asarray(x, dtype=float)
+                return Tc + z, z
+            return uniform
+        j = self._j(index)
+        m2, src, al, be = self.m[j] ** 2, self.q[j] / self.lam[j], self.alpha[j], self.beta[j]
+
+        def profile(x):
+            E, O, P = self._local(j, x)
+            return Tc + src * P + al * E + be * O, (al * m2 - src) * O + be * E
+        return profile
 
     def theta_max(self) -> tuple[float, float]:
         """``(x_max [m], theta_max [K])``: location and value of the largest theta.
@@ -339,7 +348,7 @@ class HeatSolution:
                 xr = brentq(lambda t: float(self.dtheta_in(idx, t)), xs[k], xs[k + 1], xtol=1e-15, rtol=1e-15)
                 cand.append((float(self.theta_in(idx, xr)), xr))
             best = max(best, max(cand))
-        return best[1], best[0]
+        return float(best[1]), float(best[0])
 
 
 def heat_profile_exact(core: Core, heat_input: float) -> HeatSolution:
@@ -401,9 +410,12 @@ def thermoviscous_function(pore_model: str, r, delta):
     * circular: ``f = 2 J1(z)/(z J0(z))``, ``z = (1 + i) r/delta``;
     * plates: ``f = tanh(w)/w``, ``w = (1 - i) r/delta``.
 
-    Returns ``(f, one_minus_f)`` (complex arrays). ``1 - f`` is computed from a series
-    for small arguments (no cancellation when f -> 1) and from the exponentially scaled
-    Bessel ratio ``jve(1, z)/jve(0, z)`` (no overflow up to r/delta ~ 1e4) otherwise.
+    Returns ``(f, one_minus_f)`` (complex arrays, shape of ``r/delta``), each to full
+    relative precision (checked against mpmath): for small arguments (|z| < 2, |w| < 0.5)
+    ``1 - f`` comes from its power series (no cancellation as f -> 1) and f = 1 - (1 - f);
+    otherwise f comes directly from the exponentially scaled Bessel ratio
+    ``jve(1, z)/jve(0, z)`` (no overflow up to r/delta ~ 1e4 and beyond; keeps the relative
+    precision of f ~ 1/z) or from ``tanh`` written with ``exp(-2w)``, and 1 - f = 1 - f.
     """
     x = np.asarray(r / np.asarray(delta, dtype=float), dtype=float)
     if pore_model == "circular":
@@ -473,8 +485,10 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
     g = gas_properties(core.gas.name, T, core.gas.p_mean)
     d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
     d_k = np.sqrt(2.0 * g.k / (g.rho * g.cp * w))
-    f_nu, omf_nu = thermoviscous_function(model, r, d_nu)
-    f_k, omf_k = thermoviscous_function(model, r, d_k)
+    # one call for both depths (halves the per-call overhead inside the ODE right-hand side)
+    d_nu, d_k = np.broadcast_arrays(d_nu, d_k)
+    f, omf = thermoviscous_function(model, r, np.stack([d_nu, d_k]))
+    f_nu, f_k, omf_nu, omf_k = f[0], f[1], omf[0], omf[1]
     a12 = 1j * q**2 * g.rho * w / (phi * S * omf_nu)
     a21 = 1j * phi * S * w * (1.0 + (g.gamma - 1.0) * f_k) / (g.rho * g.c**2)
     # f_k - f_nu from whichever pair is accurate: near f = 1 (narrow pores) the 1 - f
@@ -504,7 +518,7 @@ def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, Tfun, dTfun, rtol: float) -> np.ndarray:
+def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: float) -> np.ndarray:
     """T-matrix (2, 2) of one segment by DOP853 on dM/dx = A(x) M, M(x0) = I.
 
     Integrated on the scaled state (p, Z0 U), Z0 = rho0 c0/S at T_cold, so the four
@@ -515,8 +529,8 @@ def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, Tfun, dTfun, rtol
 
     def rhs(x, y):
         M = (y[:4] + 1j * y[4:]).reshape(2, 2)
-        T = float(Tfun(x))
-        a12, a21, a22 = _coefficients(core, seg, w, T, float(dTfun(x)))
+        T, dT = profile(x)
+        a12, a21, a22 = _coefficients(core, seg, w, float(T), float(dT))
         A = np.array([[0.0, a12 / Z0], [a21 * Z0, a22]], dtype=complex)
         dM = (A @ M).ravel()
         return np.concatenate([dM.real, dM.imag])
@@ -552,11 +566,11 @@ def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: 
         if i not in heated and not _force_ode:
             out.append(_uniform_matrix(core, seg, w))
             continue
-        Tfun, dTfun = hs.segment_profile(i)
-        Tends = Tfun(np.array([pos[i], pos[i + 1]]))
-        if np.any(Tends <= 0):
-            raise ValueError(f"segment {seg.name!r}: temperature {Tends.min()} K <= 0 (heat input {heat_input} W)")
-        out.append(np.stack([_ode_matrix(core, seg, pos[i], wk, Tfun, dTfun, rtol) for wk in w]))
+        profile = hs.segment_profile(i)
+        Tmin = profile(np.linspace(pos[i], pos[i + 1], 201))[0].min()
+        if Tmin <= 0:
+            raise ValueError(f"segment {seg.name!r}: temperature {Tmin} K <= 0 (heat input {heat_input} W)")
+        out.append(np.stack([_ode_matrix(core, seg, pos[i], wk, profile, rtol) for wk in w]))
     return out
 
 

@@ -1,0 +1,151 @@
+"""The ``tawarp`` command line (FORMATS.md, "Command line").
+
+Every subcommand has ``--help``, ``--device cpu|cuda|cuda:N`` (default: a GPU if there
+is one) and ``--quiet``; outputs are machine readable (CSV/JSON/netCDF) with figures
+beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def parse_list(text: str) -> np.ndarray:
+    """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear)."""
+    try:
+        if ":" in text:
+            parts = text.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if count < 1:
+                raise ValueError
+            return np.linspace(start, stop, count)
+        return np.array([float(v) for v in text.split(",") if v.strip()])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)")
+
+
+def write_json(path: str | Path, obj) -> Path:
+    """Write ``obj`` as JSON atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
+    try:
+        with os.fdopen(fd, "w") as f:
+            json.dump(obj, f, indent=2, default=_json_default)
+            f.write("\n")
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def _json_default(o):
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, (np.floating, np.integer)):
+        return o.item()
+    if isinstance(o, np.bool_):
+        return bool(o)
+    raise TypeError(f"not JSON serializable: {type(o)}")
+
+
+def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or chatter")
+    return p
+
+
+def _say(args, *text):
+    if not args.quiet:
+        print(*text, flush=True)
+
+
+# -- forward -----------------------------------------------------------------------------
+def cmd_forward(args) -> int:
+    from .core import load_core
+    from .forward import transfer_matrices
+    from .measurements import TMatrixData, write_tmatrix_csv
+    from .plots import plot_coefficients, plot_temperature
+
+    core = load_core(args.core)
+    Q = args.Q
+    res = transfer_matrices(core, args.freqs, heat_input=Q, cells=args.cells, device=args.device,
+                            progress=not args.quiet)
+    m = len(args.freqs)
+    data = TMatrixData(np.repeat(Q, m), np.tile(args.freqs, len(Q)), res.T.reshape(-1, 2, 2),
+                       metadata={"core": str(core.source), "generator": "tawarp forward", "cells": str(args.cells)},
+                       source=str(args.output))
+    Path(args.output).parent.mkdir(parents=True, exist_ok=True)
+    write_tmatrix_csv(args.output, data)
+    stem = Path(args.output).with_suffix("")
+    Y = res.dimensionless()
+    if not args.no_plots:
+        plot_coefficients(args.freqs, {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)}, f"{stem}_coefficients.png",
+                          title=f"{Path(core.source).name}: dimensionless T-matrix")
+        x = np.linspace(0, core.positions()[-1], 400)
+        T, _ = res.temperature(x)
+        plot_temperature(x, {f"Q = {q:g} W": T[k] for k, q in enumerate(Q)}, f"{stem}_temperature.png",
+                         planes=core.positions(), title=f"{Path(core.source).name}: temperature")
+    _say(args, f"wrote {args.output} ({len(Q)} heat inputs x {m} frequencies)")
+    return 0
+
+
+# -- demo --------------------------------------------------------------------------------
+def cmd_demo(args) -> int:
+    from .demo import run_demo
+
+    return run_demo(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tawarp", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    p = _common(sub.add_parser("demo", help="the main job on the bundled paper-like data, end to end"))
+    p.add_argument("-o", "--output", default="tawarp-demo", help="output folder (default: %(default)s)")
+    p.set_defaults(func=cmd_demo)
+
+    p = _common(sub.add_parser("forward", help="T-matrices of a core (CSV as the measurement format) and plots"))
+    p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
+    p.add_argument("--freqs", type=parse_list, default=parse_list("30:500:100"), help="Hz, list or start:stop:count")
+    p.add_argument("--Q", type=parse_list, default=parse_list("0"), help="heat inputs [W], list or start:stop:count")
+    p.add_argument("--cells", type=int, default=None, help="Magnus cells per thermal segment (default: tawarp.forward.DEFAULT_CELLS)")
+    p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.set_defaults(func=cmd_forward)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "cells", 0) is None:
+        from .forward import DEFAULT_CELLS
+
+        args.cells = DEFAULT_CELLS
+    from .core import CoreError
+    from .measurements import MeasurementError
+
+    t0 = time.perf_counter()
+    try:
+        rc = args.func(args)
+    except (CoreError, MeasurementError, FileNotFoundError, KeyError, ValueError) as e:
+        print(f"tawarp {args.command}: error: {e}", file=sys.stderr)
+        return 2
+    _say(args, f"done in {time.perf_counter() - t0:.1f} s")
+    return rc
+
+
+if __name__ == "__main__":
+    sys.exit(main())

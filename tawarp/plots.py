@@ -1,0 +1,77 @@
+"""Figures: T-matrix coefficients against frequency, temperature profiles.
+
+Every function takes an output path, draws with the non-interactive Agg backend and
+writes atomically (a temporary file renamed into place).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+
+from .coefficients import COEFFICIENTS  # noqa: E402
+
+
+def save(fig, path: str | Path) -> Path:
+    """Write ``fig`` to ``path`` atomically and close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=path.suffix)
+    os.close(fd)
+    try:
+        fig.savefig(tmp, dpi=120, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    return path
+
+
+def plot_coefficients(freqs, curves: dict[str, np.ndarray], path, *, markers: dict[str, np.ndarray] | None = None,
+                      title: str = ""):
+    """|Y| and arg Y of the four dimensionless coefficients against frequency.
+
+    ``curves``: label -> (m, 4) complex, drawn as lines; ``markers``: label -> (m, 4)
+    complex drawn as points (measured data).
+    """
+    fig, axes = plt.subplots(2, 4, figsize=(14, 5.5), sharex=True)
+    for label, Y in (markers or {}).items():
+        for c in range(4):
+            axes[0, c].plot(freqs, np.abs(Y[:, c]), "o", ms=3, mfc="none", label=label)
+            axes[1, c].plot(freqs, np.angle(Y[:, c]), "o", ms=3, mfc="none")
+    for label, Y in curves.items():
+        for c in range(4):
+            axes[0, c].plot(freqs, np.abs(Y[:, c]), "-", lw=1.2, label=label)
+            axes[1, c].plot(freqs, np.angle(Y[:, c]), "-", lw=1.2)
+    for c, name in enumerate(COEFFICIENTS):
+        axes[0, c].set_title(name)
+        axes[1, c].set_xlabel("frequency [Hz]")
+    axes[0, 0].set_ylabel("modulus")
+    axes[1, 0].set_ylabel("phase [rad]")
+    axes[0, 0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    return save(fig, path)
+
+
+def plot_temperature(x, profiles: dict[str, np.ndarray], path, *, planes=None, title: str = ""):
+    """Temperature profiles T(x) [K] (label -> (len(x),)) with the segment planes."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for label, T in profiles.items():
+        ax.plot(np.asarray(x) * 100, T, label=label)
+    for xp in planes or []:
+        ax.axvline(xp * 100, color="0.8", lw=0.8, zorder=0)
+    ax.set_xlabel("x [cm]")
+    ax.set_ylabel("T [K]")
+    ax.legend(fontsize=8)
+    if title:
+        ax.set_title(title)
+    return save(fig, path)
