@@ -14,6 +14,7 @@ Launch order for a batch of n parameter sets and m frequencies:
 import warp as wp
 
 from .acoustics import expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
+from .gas import sound_speed_squared
 from .heat import cell_profile, segment_heat_coeffs, solve_heat, temperature_at
 from .layout import F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD, TORTUOSITY, seg_value
 
@@ -69,9 +70,12 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
 def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                     gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
                     freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
-                    first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
+                    cell_density: wp.float64, first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
     """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
-    frequency freqs[j] [Hz]."""
+    frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
+    that is 0, ceil(cell_density (1 + k L + w L / c_cold)) cells: the profile varies
+    on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
+    cell scales with the sixth power of its length over those scales."""
     i, j = wp.tid()
     omega = TWO_PI * freqs[j]
     p_mean = params[P_MEAN, i]
@@ -91,6 +95,9 @@ def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
             dh = length / wp.float64(heat_cells)
             node0 = (s - first) * heat_cells
             n_cells = seg_cells[s]
+            if n_cells == 0:
+                c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
+                n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 x0 = wp.float64(c) * h

@@ -17,8 +17,9 @@ Parallel plates, half-spacing y0, s = y0 / delta, w = (1 - i) s::
 Methods by region (thresholds and term counts chosen by comparison with
 mpmath at 40 digits, see tests/test_pore.py):
 
-* circular, s < 20: ratios r_k = J_k / J_{k-1} = 1 / (2k/z - r_{k+1}) by
-  backward recurrence from r_{N+1} = 0 with N = floor(|z|) + 16 (the
+* circular, s < 20: ratios r_k = J_k / J_{k-1} = 1 / (2k/z - r_{k+1}), taken from
+  Miller's unnormalised backward recurrence (no division per term) from J_{N+1} = 0
+  with N = floor(|z|) + 16 (the
   truncation error drops below 1e-17 by N = |z| + 13.2 at worst).  Then
   f = 2 r_1 / z and g = -r_1 r_2, which has no cancellation as f -> 1.
 * circular, s >= 20: J_n = (H1_n + H2_n) / 2 with |H1_n / H2_n| ~ exp(-2s)
@@ -58,15 +59,30 @@ RECURRENCE_MARGIN = wp.constant(16)
 
 @wp.func
 def _circular_recurrence(s: wp.float64):
-    # 2k / z = k (1 - i) / s, so no complex division is needed for it.
+    # Miller's algorithm: unnormalised J_{k-1} = (2k/z) J_k - J_{k+1} from J_{n+1} = 0,
+    # J_n = 1. Its ratios are exactly those of the continued fraction
+    # J_k/J_{k-1} = 1/(2k/z - J_{k+1}/J_k), without a complex division per term (a
+    # division costs several multiplications on the GPU). 2k/z = k (1 - i)/s.
     n = int(wp.sqrt(wp.float64(2.0)) * s) + RECURRENCE_MARGIN
-    r = cplx(wp.float64(0.0), wp.float64(0.0))
-    for k in range(n, 1, -1):
-        kf = wp.float64(k) / s
-        r = cinv(cplx(kf, -kf) - r)
-    r2 = r
     inv_s = wp.float64(1.0) / s
-    r1 = cinv(cplx(inv_s, -inv_s) - r2)
+    j_next = cplx(wp.float64(0.0), wp.float64(0.0))
+    j = cplx(wp.float64(1.0), wp.float64(0.0))
+    j2 = j
+    for k in range(n, 0, -1):
+        a = wp.float64(k) * inv_s
+        j_prev = cplx(a * (j[0] + j[1]), a * (j[1] - j[0])) - j_next
+        if wp.abs(j_prev[0]) + wp.abs(j_prev[1]) > wp.float64(1.0e200):
+            # rescaling keeps the ratios: only reached for s far below 1e-6
+            j_prev = cscale(j_prev, wp.float64(1.0e-200))
+            j = cscale(j, wp.float64(1.0e-200))
+            j2 = cscale(j2, wp.float64(1.0e-200))
+        if k == 2:
+            j2 = j
+        j_next = j
+        j = j_prev
+    j1 = j_next
+    r1 = cdiv(j1, j)
+    r2 = cdiv(j2, j1)
     f = cscale(cplx(r1[0] + r1[1], r1[1] - r1[0]), inv_s)  # 2 r1 / z = r1 (1 - i) / s
     g = -cmul(r1, r2)
     return f, g

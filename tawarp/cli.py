@@ -120,7 +120,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
     p.add_argument("--freqs", type=parse_list, default=parse_list("30:500:100"), help="Hz, list or start:stop:count")
     p.add_argument("--Q", type=parse_list, default=parse_list("0"), help="heat inputs [W], list or start:stop:count")
-    p.add_argument("--cells", type=int, default=None, help="Magnus cells per thermal segment (default: tawarp.forward.DEFAULT_CELLS)")
+    p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default: adaptive)")
     p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
@@ -130,10 +130,6 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    if getattr(args, "cells", 0) is None:
-        from .forward import DEFAULT_CELLS
-
-        args.cells = DEFAULT_CELLS
     from .core import CoreError
     from .measurements import MeasurementError
 

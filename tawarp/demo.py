@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from .core import bundled_cores, load_core
-from .forward import DEFAULT_CELLS, transfer_matrices
+from .forward import DEFAULT_CELL_DENSITY, transfer_matrices
 from .measurements import TMatrixData, write_tmatrix_csv
 from .plots import plot_coefficients, plot_temperature
 
@@ -43,7 +43,7 @@ def run_demo(args) -> int:
                          "det_T_minus_1_max": np.abs(det - 1).max(axis=1)}
         for k, q in enumerate(Q):
             rows.append((name, q, T[k].max(), np.abs(det[k] - 1).max()))
-    write_json(out / "summary.json", {"cells": DEFAULT_CELLS, "freqs_Hz": freqs, "cores": summary})
+    write_json(out / "summary.json", {"cell_density": DEFAULT_CELL_DENSITY, "freqs_Hz": freqs, "cores": summary})
     if not args.quiet:
         print(f"{'core':<10} {'Q [W]':>6} {'T_max [K]':>10} {'max|det T - 1|':>15}")
         for name, q, tmax, d in rows:

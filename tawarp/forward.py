@@ -30,9 +30,9 @@ from .kernels import layout
 
 assert SEGMENT_FIELDS == ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h")
 
-#: Default Magnus cells per thermal segment. bench/forward.py measures the accuracy of
-#: each setting against a converged reference (README, "Accuracy of the cells setting").
-DEFAULT_CELLS = 16
+#: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
+#: accuracy of each setting against the converged NumPy reference.
+DEFAULT_CELL_DENSITY = 1.5
 _GLOBAL_ROWS = {"gas.T_cold": layout.T_COLD, "gas.p_mean": layout.P_MEAN, "tube.radius": layout.RADIUS}
 
 
@@ -117,23 +117,38 @@ class ForwardResult:
 
 @dataclass(frozen=True)
 class ForwardSettings:
-    """Numerical settings. ``cells``: Magnus cells per thermal segment (an int, or a
-    dict segment name -> int); ``heat_cells``: heat-grid cells per thermal segment;
+    """Numerical settings.
+
+    ``cells = None`` (default): the Magnus cells of a thermal segment are
+    ``ceil(cell_density (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the
+    cold wavenumber), adapted per parameter set and frequency; the default density meets
+    1e-6 relative error on the paper-like cores (README, "Accuracy"). ``cells`` = an int,
+    or a dict segment name -> int, fixes the count per thermal segment instead, as
+    convergence studies need. ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``device``."""
 
-    cells: int | dict = DEFAULT_CELLS
+    cells: int | dict | None = None
+    cell_density: float = DEFAULT_CELL_DENSITY
     heat_cells: int = 1
     fitted: bool = True
     chunk: int = 1 << 16
     device: str | None = None
 
     def cells_per_segment(self, core: Core) -> np.ndarray:
+        """Fixed Magnus cells per segment, 0 where the count adapts (``cells = None``)."""
+        if self.cells is None:
+            if not self.cell_density > 0:
+                raise ValueError(f"cell_density must be > 0, got {self.cell_density}")
+            return np.zeros(len(core.segments), dtype=np.int32)
         if isinstance(self.cells, dict):
             unknown = set(self.cells) - {s.name for s in core.segments}
             if unknown:
                 raise KeyError(f"cells given for unknown segment(s) {sorted(unknown)}")
-            counts = [self.cells.get(s.name, DEFAULT_CELLS) for s in core.segments]
+            missing = [s.name for s in core.segments if s.thermal and s.name not in self.cells]
+            if missing:
+                raise KeyError(f"cells missing for thermal segment(s) {missing}")
+            counts = [self.cells.get(s.name, 1) for s in core.segments]
         else:
             counts = [self.cells] * len(core.segments)
         if any(int(c) < 1 for c in counts):
@@ -227,8 +242,8 @@ class Engine:
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         wp.launch(kf.transfer_kernel, dim=(n, len(self.freqs)),
-                  inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells, self.first,
-                          self.heat_cells, out], device=self.device)
+                  inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells,
+                          float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device)
         return out, params, theta
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:

@@ -1,0 +1,174 @@
+"""Forward-model benchmark: throughput against batch size, accuracy of each cells
+setting, and the CPU peers (the NumPy reference and openthermoacoustics) measured in
+the same run on the same machine. Writes JSON.
+
+    python bench/forward.py --device cuda --out bench/results/forward_cuda.json
+    python bench/forward.py --device cpu --sizes 1e2,1e3,1e4 --out bench/results/forward_cpu.json
+
+Accuracy: the max relative error (row-wise, on the four dimensionless coefficients)
+of each ``cell_density`` against the adaptive NumPy reference at 80 W (RVC 18 W).
+
+A *forward model* is one (parameter set, frequency) pair: the heat solve of the set
+(shared by its frequencies) and the T-matrix cascade at that frequency. Batches are m =
+100 frequencies (30-500 Hz) times n parameter sets drawn around the paper-like ceramic
+core (heat input 0-80 W, stack h, porosity and pore radius varied), kept on the device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+import warp as wp
+
+from tawarp import reference
+from tawarp.core import bundled_cores, load_core
+from tawarp.forward import Engine, ForwardSettings, transfer_matrices
+
+FREQS = np.linspace(30.0, 500.0, 100)
+ACC_FREQS = np.array([30.0, 90.0, 170.0, 260.0, 380.0, 500.0])
+ACC_HEAT = {"rvc_foam": 18.0}
+
+
+def random_batch(n: int, rng) -> tuple[list[str], np.ndarray]:
+    names = ["stack.h", "stack.porosity", "stack.pore_radius"]
+    table = np.stack([rng.uniform(0, 80, n), rng.uniform(50, 250, n), rng.uniform(0.85, 0.95, n),
+                      rng.uniform(0.3e-3, 0.6e-3, n)])
+    return names, table
+
+
+def time_engine(engine: Engine, varying: wp.array, min_time: float) -> float:
+    """Seconds per evaluate() of a device-resident batch (median of repeats)."""
+    out, _, _ = engine.evaluate(varying)  # warm-up (compilation, allocation)
+    wp.synchronize_device(engine.device)
+    times = []
+    t_total = time.perf_counter()
+    while time.perf_counter() - t_total < min_time or len(times) < 3:
+        t0 = time.perf_counter()
+        engine.evaluate(varying, out=out)
+        wp.synchronize_device(engine.device)
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def relative_error(Y, Yref) -> float:
+    return float((np.abs(Y - Yref).max(-1) / np.abs(Yref).max(-1)).max())
+
+
+def accuracy_table(device: str, densities) -> dict:
+    """Max relative error of each cell density against the adaptive NumPy reference,
+    over the four bundled cores at their largest heat input (80 W, RVC 18 W)."""
+    refs = {name: reference.dimensionless_transfer(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0))
+            for name in bundled_cores()}
+    out = {}
+    for d in densities:
+        errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
+                                                       device=device, cell_density=d).dimensionless()[0], refs[name])
+                for name in bundled_cores()}
+        out[str(d)] = {"max_relative_error": max(errs.values()), "per_core": errs}
+    return out
+
+
+def numpy_reference_rate(n_freqs: int = 8) -> float:
+    """Forward models per second of the NumPy/SciPy reference (ceramic core, 40 W)."""
+    core = load_core("ceramic")
+    f = np.linspace(30, 500, n_freqs)
+    t0 = time.perf_counter()
+    reference.transfer_matrix(core, f, 40.0)
+    return n_freqs / (time.perf_counter() - t0)
+
+
+def openthermoacoustics_rate(n_freqs: int = 8) -> dict:
+    """Per-frequency T-matrix of an equivalent duct-stack-duct (ceramic stack geometry,
+    linear 293 -> 600 K profile) with openthermoacoustics: two propagations per frequency
+    (unit p, unit U) give the two columns."""
+    try:
+        import openthermoacoustics as ota
+        from openthermoacoustics.gas.air import Air
+        from openthermoacoustics.geometry.circular import CircularPore
+        from openthermoacoustics.segments.duct import Duct
+        from openthermoacoustics.segments.stack import Stack
+    except ImportError as e:
+        return {"available": False, "reason": str(e)}
+    R = 0.0167
+    gas = Air(mean_pressure=101325.0)
+    segs = [Duct(0.03, R), Stack(0.048, 0.9, 0.47e-3 / 2, area=np.pi * R**2, geometry=CircularPore(),
+                                 solid_thermal_conductivity=3.0, T_hot=600.0, T_cold=293.15), Duct(0.03, R)]
+    f = np.linspace(30, 500, n_freqs)
+    t0 = time.perf_counter()
+    for fr in f:
+        for p, U in ((1.0 + 0j, 0j), (0j, 1e-4 + 0j)):
+            T_m = 293.15
+            for s in segs:
+                p, U, T_m = s.propagate(p, U, T_m, 2 * np.pi * fr, gas)
+    dt = time.perf_counter() - t0
+    return {"available": True, "version": getattr(ota, "__version__", "?"), "models_per_s": n_freqs / dt,
+            "note": "duct-stack-duct, linear stack temperature, RK45 rtol 1e-8 (its default)"}
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--sizes", default=None, help="comma list of batch sizes in forward models (n * 100)")
+    ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
+    ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    wp.init()
+    device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")
+    gpu = device.startswith("cuda")
+    sizes = [int(float(s)) for s in (args.sizes or ("1e3,1e4,1e5,1e6,1e7" if gpu else "1e2,1e3,1e4")).split(",")]
+    densities = [float(c) for c in args.densities.split(",")]
+    rng = np.random.default_rng(0)
+    core = load_core("ceramic")
+    result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version,
+              "host": platform.processor() or platform.machine(), "python": sys.version.split()[0],
+              "frequencies_per_set": len(FREQS), "core": "ceramic (paper-like), heated 0-80 W"}
+
+    t0 = time.perf_counter()
+    result["accuracy"] = accuracy_table(device, densities)
+    result["accuracy_seconds"] = time.perf_counter() - t0
+
+    throughput = {}
+    for d in densities:
+        rows = []
+        for size in sizes if d == 1.5 else sizes[-1:]:
+            n = max(1, size // len(FREQS))
+            names, table = random_batch(n, rng)
+            engine = Engine(core, FREQS, names, ForwardSettings(cell_density=d, device=device))
+            varying = wp.array(table, dtype=wp.float64, device=device)
+            dt = time_engine(engine, varying, args.min_time)
+            rows.append({"models": n * len(FREQS), "sets": n, "seconds": dt, "models_per_s": n * len(FREQS) / dt})
+            print(f"density={d:4.2f} models={n * len(FREQS):>10d}  {n * len(FREQS) / dt:.3e} models/s", flush=True)
+        throughput[str(d)] = rows
+    result["throughput"] = throughput
+
+    peers = {"numpy_reference_models_per_s": numpy_reference_rate(), "openthermoacoustics": openthermoacoustics_rate()}
+    best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}
+    peers["speedup_vs_numpy_reference"] = {c: v / peers["numpy_reference_models_per_s"] for c, v in best.items()}
+    if peers["openthermoacoustics"].get("available"):
+        peers["speedup_vs_openthermoacoustics"] = {c: v / peers["openthermoacoustics"]["models_per_s"]
+                                                   for c, v in best.items()}
+    result["peers"] = peers
+    ok = [d for d in densities if result["accuracy"][str(d)]["max_relative_error"] <= 1e-6]
+    if ok:
+        d = min(ok)
+        result["operating_point"] = {"cell_density": d, "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
+                                     "models_per_s": best[str(d)]}
+    text = json.dumps(result, indent=2)
+    print(text)
+    if args.out:
+        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
+        tmp = args.out + ".tmp"
+        with open(tmp, "w") as f:
+            f.write(text + "\n")
+        os.replace(tmp, args.out)
+
+
+if __name__ == "__main__":
+    main()

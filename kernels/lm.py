@@ -1,0 +1,119 @@
+"""Kernels of the batched Levenberg-Marquardt estimator (:mod:`tawarp.estimate`).
+
+One LM iteration of a batch of independent least-squares problems is one forward
+launch (:class:`tawarp.forward.Engine`) over ``1 + p`` parameter sets per active
+problem (the trial point and its ``p`` forward-difference neighbours), framed by two
+kernels of this module:
+
+1. :func:`build_sets` (one thread per parameter set) writes the Engine's varying table
+   from the scaled variables ``z`` of the active problems: set ``slot * (1 + p) + j`` is
+   problem ``ids[slot]`` at ``z`` (j = 0) or at ``z + step[a] e_a`` (j = 1 + a).
+2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem)
+   reads the ``1 + p`` T-matrices of its problem at every frequency, normalizes them
+   with the problem's ``Zc``, and accumulates over the ``8 m`` real residuals
+   ``r = w (Y_model - Y_meas)`` (re and im of Tpp, Tpu/Zc, Tup*Zc, Tuu):
+   ``cost = r.r``, ``g = J^T r``, ``H = J^T J`` (p x p) and the unweighted
+   ``sum |Y_model - Y_meas|^2`` of the error measure; the Jacobian column ``a`` is the
+   forward difference ``w (Y(z + step_a e_a) - Y(z)) / step_a``.
+
+The kernels of step 2 are specialised per ``p`` (a closure with compile-time loop
+bounds), so the Jacobian row and ``H`` live in registers. Everything is float64.
+"""
+
+import warp as wp
+
+#: kinds of parameter transform: natural value v from the scaled variable z and the scale s
+KIND_LINEAR = wp.constant(0)  # v = s z
+KIND_LOG = wp.constant(1)     # v = s exp(z)
+
+
+@wp.kernel(enable_backward=False)
+def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float64),
+               ids: wp.array(dtype=wp.int32), scale: wp.array2d(dtype=wp.float64),
+               kind: wp.array(dtype=wp.int32), fixed: wp.array2d(dtype=wp.float64),
+               row_src: wp.array(dtype=wp.int32), varying: wp.array2d(dtype=wp.float64)):
+    """varying[r, col] for col = slot (1 + p) + j: row_src[r] >= 0 names the free
+    parameter a = row_src[r] (value from z, perturbed by step when j = 1 + a),
+    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]."""
+    col = wp.tid()
+    p = z.shape[1]
+    slot = col // (p + 1)
+    j = col - slot * (p + 1)
+    pid = ids[slot]
+    for r in range(row_src.shape[0]):
+        a = row_src[r]
+        if a < 0:
+            varying[r, col] = fixed[-1 - a, pid]
+        else:
+            zz = z[slot, a]
+            if j == a + 1:
+                zz = zz + step[slot, a]
+            if kind[a] == KIND_LOG:
+                varying[r, col] = scale[pid, a] * wp.exp(zz)
+            else:
+                varying[r, col] = scale[pid, a] * zz
+
+
+_NORMAL_KERNELS = {}
+
+
+def normal_kernel(p: int):
+    """The normal-equations kernel for ``p`` free parameters (cached per p).
+
+    Inputs: ``out`` (sets, m, 8) raw T-matrices from the Engine, ``Y`` and ``W`` (N, m, 8)
+    measured dimensionless values and weights (re, im of the four coefficients),
+    ``zc`` (N,) the duct impedance of each problem, ``ids`` (slots,) problem of each
+    slot, ``step`` (slots, p). Outputs per slot: ``cost``, ``raw`` (unweighted squared
+    misfit), ``g`` (slots, p), ``H`` (slots, p, p).
+    """
+    if p in _NORMAL_KERNELS:
+        return _NORMAL_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def normal_equations(out: wp.array3d(dtype=wp.float64), Y: wp.array3d(dtype=wp.float64),
+                         W: wp.array3d(dtype=wp.float64), zc: wp.array(dtype=wp.float64),
+                         ids: wp.array(dtype=wp.int32), step: wp.array2d(dtype=wp.float64),
+                         cost: wp.array(dtype=wp.float64), raw: wp.array(dtype=wp.float64),
+                         g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64)):
+        s = wp.tid()
+        pid = ids[s]
+        base = s * (P + 1)
+        inv_step = vecp()
+        for a in range(P):
+            inv_step[a] = wp.float64(1.0) / step[s, a]
+        gv = vecp()
+        Hm = matp()
+        c2 = wp.float64(0.0)
+        u2 = wp.float64(0.0)
+        for f in range(out.shape[1]):
+            for k in range(8):
+                fac = wp.float64(1.0)
+                if k == 2 or k == 3:
+                    fac = wp.float64(1.0) / zc[pid]
+                if k == 4 or k == 5:
+                    fac = zc[pid]
+                w = W[pid, f, k]
+                y0 = out[base, f, k] * fac
+                d = y0 - Y[pid, f, k]
+                r = w * d
+                c2 += r * r
+                u2 += d * d
+                jr = vecp()
+                for a in range(P):
+                    jr[a] = w * (out[base + 1 + a, f, k] * fac - y0) * inv_step[a]
+                for a in range(P):
+                    gv[a] += jr[a] * r
+                    for b in range(P):
+                        Hm[a, b] += jr[a] * jr[b]
+        cost[s] = c2
+        raw[s] = u2
+        for a in range(P):
+            g[s, a] = gv[a]
+            for b in range(P):
+                H[s, a, b] = Hm[a, b]
+
+    _NORMAL_KERNELS[p] = normal_equations
+    return normal_equations
