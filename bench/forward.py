@@ -116,6 +116,7 @@ def main(argv=None):
     ap.add_argument("--device", default=None)
     ap.add_argument("--sizes", default=None, help="comma list of batch sizes in forward models (n * 100)")
     ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
+    ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -147,6 +148,15 @@ def main(argv=None):
             print(f"density={d:4.2f} models={n * len(FREQS):>10d}  {n * len(FREQS) / dt:.3e} models/s", flush=True)
         throughput[str(d)] = rows
     result["throughput"] = throughput
+    n = max(1, sizes[-1] // len(FREQS))
+    names, table = random_batch(n, rng)
+    varying = wp.array(table, dtype=wp.float64, device=device)
+    blocks = {}
+    for b in (int(v) for v in args.block_dims.split(",")):
+        engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, device=device))
+        blocks[str(b)] = n * len(FREQS) / time_engine(engine, varying, args.min_time)
+        print(f"block_dim={b:4d} models={n * len(FREQS):>10d}  {blocks[str(b)]:.3e} models/s", flush=True)
+    result["block_dim_models_per_s"] = blocks
 
     peers = {"numpy_reference_models_per_s": numpy_reference_rate(), "openthermoacoustics": openthermoacoustics_rate()}
     best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}

@@ -126,13 +126,15 @@ class ForwardSettings:
     or a dict segment name -> int, fixes the count per thermal segment instead, as
     convergence studies need. ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
-    ``chunk``: parameter sets per launch (bounds device memory); ``device``."""
+    ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
+    threads per block of the cascade kernel (bench/forward.py compares values); ``device``."""
 
     cells: int | dict | None = None
     cell_density: float = DEFAULT_CELL_DENSITY
     heat_cells: int = 1
     fitted: bool = True
     chunk: int = 1 << 16
+    block_dim: int = 256
     device: str | None = None
 
     def cells_per_segment(self, core: Core) -> np.ndarray:
@@ -243,7 +245,8 @@ class Engine:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         wp.launch(kf.transfer_kernel, dim=(n, len(self.freqs)),
                   inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells,
-                          float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device)
+                          float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device,
+                  block_dim=self.settings.block_dim)
         return out, params, theta
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
