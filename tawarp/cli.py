@@ -124,6 +124,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
+
+    from .characterize import add_fit_parser
+    from .synthetic import add_synth_parser
+
+    add_fit_parser(sub)
+    add_synth_parser(sub)
     return parser
 
 

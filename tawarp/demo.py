@@ -48,5 +48,9 @@ def run_demo(args) -> int:
         print(f"{'core':<10} {'Q [W]':>6} {'T_max [K]':>10} {'max|det T - 1|':>15}")
         for name, q, tmax, d in rows:
             print(f"{name:<10} {q:6.1f} {tmax:10.1f} {d:15.3e}")
+    from .characterize import demo_fit
+
+    demo_fit(out / "fit", device=args.device, quiet=args.quiet)
+    if not args.quiet:
         print(f"outputs in {out}/")
     return 0

@@ -1,0 +1,166 @@
+"""Fit benchmark: complete Levenberg-Marquardt fits per second against batch size, and
+scipy.optimize.least_squares on the NumPy reference model in the same run. Writes JSON.
+
+    python bench/fit.py --device cuda                       # sizes 1 ... 1e5
+    python bench/fit.py --device cpu --sizes 1,4,16,64
+
+A *fit* is one complete problem solved to the paper's stopping rule (relative step
+below 0.1 %): 3 parameters, m = 100 frequencies (30-500 Hz), 4 complex coefficients
+(800 real residuals), the mesh core of the paper. Two workloads:
+
+* ``heat``: h_s, h_h, h_a at Q = 40 W (step 2 of the paper; heat solve + gradient
+  cascade), starts 30 % off the truth;
+* ``geometry``: porosity, pore radius, tortuosity at Q = 0 (step 1), starts 10-30 % off.
+
+Every problem has its own noise draw (0.5 % complex, the synthetic generator's model,
+data made with 48 Magnus cells), weights 1/sigma. The time of a batch is the whole
+``tawarp.estimate.fit`` call (upload, every launch, host-side LM logic, covariance),
+after a warm-up fit that compiles the kernels; fits/s = batch size / time.
+
+SciPy peer: ``least_squares(method="lm")`` (MINPACK) with ``xtol = 1e-3`` on the same
+scaled variables (log h, log r; porosity and tortuosity divided by their start), 2-point
+finite differences, the residual from ``tawarp.reference.dimensionless_transfer``
+(closed form at Q = 0; DOP853 with ``rtol = 1e-8`` for the heated segments), the same
+data and weights; time per fit is the mean over ``--scipy-fits`` problems.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+import warnings
+
+import numpy as np
+import warp as wp
+
+from tawarp import reference
+from tawarp.core import load_core
+from tawarp.estimate import FitWarning, fit, is_log
+from tawarp.forward import ForwardSettings, transfer_matrices
+
+FREQS = np.linspace(30.0, 500.0, 100)
+WORKLOADS = {
+    "heat": {"names": ["stack.h", "hot_hx.h", "tbt.h"], "Q": 40.0, "start": [1.3, 0.7, 1.3]},
+    "geometry": {"names": ["stack.porosity", "stack.pore_radius", "stack.tortuosity"], "Q": 0.0,
+                 "start": [0.9, 1.3, 1.1]},
+}
+
+
+def make_data(core, names, Q, n, seed=0, noise=0.005):
+    Y0 = transfer_matrices(core, FREQS, Q, cells=48, device="cpu").dimensionless()[0]
+    sd = noise * np.abs(Y0) / np.sqrt(2)
+    rng = np.random.default_rng(seed)
+    Y = Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape))
+    return Y, sd
+
+
+def time_fits(core, wl, Y, sd, n, device, settings) -> dict:
+    names = wl["names"]
+    start = np.array([core.get(k) for k in names]) * wl["start"]
+    w = np.broadcast_to(1.0 / sd, (n,) + sd.shape)
+    wp.synchronize_device(device)
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FitWarning)
+        r = fit(core, FREQS, Y[:n], names, start, heat_input=wl["Q"], weights=w, settings=settings, device=device,
+                warn=False)
+    wp.synchronize_device(device)
+    dt = time.perf_counter() - t0
+    truth = np.array([core.get(k) for k in names])
+    z = (r.values - truth) / r.std
+    return {"n": n, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
+            "iterations_mean": float(r.iterations.mean()), "iterations_max": int(r.iterations.max()),
+            "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2)))}
+
+
+def scipy_fit(core, names, Q, Y, sd, start, rtol=1e-8) -> dict:
+    from scipy.optimize import least_squares
+
+    log = np.array([is_log(k) for k in names])
+    s = np.asarray(start, dtype=float)
+
+    def to_v(z):
+        return np.where(log, s * np.exp(np.where(log, z, 0)), s * z)
+
+    def resid(z):
+        v = to_v(z)
+        vals = {k: float(x) for k, x in zip(names, v)}
+        if "stack.porosity" in vals:
+            vals["stack.porosity"] = min(max(vals["stack.porosity"], 1e-3), 1.0)
+        if "stack.tortuosity" in vals:
+            vals["stack.tortuosity"] = max(vals["stack.tortuosity"], 1.0)
+        Ym = reference.dimensionless_transfer(core.replace(**vals), FREQS, Q, rtol=rtol)
+        d = (Ym - Y) / sd
+        return np.concatenate([d.real.ravel(), d.imag.ravel()])
+
+    z0 = np.where(log, 0.0, 1.0)
+    t0 = time.perf_counter()
+    res = least_squares(resid, z0, method="lm", xtol=1e-3)
+    dt = time.perf_counter() - t0
+    return {"seconds": dt, "nfev": int(res.nfev), "status": int(res.status), "values": to_v(res.x).tolist()}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda if present)")
+    ap.add_argument("--sizes", default=None, help="comma list of batch sizes (default: 1..1e5 on a GPU, 1,4,16,64 on the CPU)")
+    ap.add_argument("--workloads", default="heat,geometry", help="comma list of %s" % ",".join(WORKLOADS))
+    ap.add_argument("--scipy-fits", type=int, default=None,
+                    help="SciPy fits per workload (default: 1 heat, 3 geometry; 0 skips)")
+    ap.add_argument("--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)")
+    ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
+    args = ap.parse_args(argv)
+    wp.config.quiet = True
+    wp.init()
+    device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")
+    gpu = device.startswith("cuda")
+    sizes = [int(float(s)) for s in (args.sizes or ("1,10,100,1000,10000,100000" if gpu else "1,4,16,64")).split(",")]
+    settings = ForwardSettings(cells=args.cells, device=device)
+    core = load_core("mesh")
+    dev_name = wp.get_device(device).name
+    result = {"device": device, "device_name": dev_name, "cpu": platform.processor() or platform.machine(),
+              "cpu_count": os.cpu_count(), "warp": wp.config.version, "python": sys.version.split()[0],
+              "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size}, "xtol": 1e-3,
+              "cells": args.cells, "workloads": {}}
+    for wname in args.workloads.split(","):
+        wl = WORKLOADS[wname]
+        Y, sd = make_data(core, wl["names"], wl["Q"], max(sizes))
+        time_fits(core, wl, Y, sd, 1, device, settings)  # warm-up: compile the kernels
+        rows = []
+        for n in sizes:
+            row = time_fits(core, wl, Y, sd, n, device, settings)
+            rows.append(row)
+            print(f"{wname:9s} {device:5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
+                  f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
+                  flush=True)
+        nsp = args.scipy_fits if args.scipy_fits is not None else (1 if wname == "heat" else 3)
+        sp = []
+        start = np.array([core.get(k) for k in wl["names"]]) * wl["start"]
+        for i in range(nsp):
+            sp.append(scipy_fit(core, wl["names"], wl["Q"], Y[i], sd, start))
+            print(f"{wname:9s} scipy fit {i}: {sp[-1]['seconds']:.2f} s ({sp[-1]['nfev']} evaluations)", flush=True)
+        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows}
+        if sp:
+            per = float(np.mean([s["seconds"] for s in sp]))
+            best = max(r["fits_per_s"] for r in rows)
+            entry["scipy"] = {"fits": sp, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
+                              "method": "least_squares(method='lm', xtol=1e-3) on reference.dimensionless_transfer"}
+            entry["speedup_best_batch_vs_scipy"] = best * per
+            print(f"{wname:9s} best {best:.1f} fits/s = {best * per:.0f} x SciPy ({per:.3f} s per fit)", flush=True)
+        result["workloads"][wname] = entry
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
+                                   f"fit_{device.replace(':', '')}.json")
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    with open(out, "w") as f:
+        json.dump(result, f, indent=2)
+        f.write("\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

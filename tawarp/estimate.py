@@ -1,0 +1,827 @@
+"""Batched Levenberg-Marquardt estimation on the device (paper Sect. 4, issue #3).
+
+>>> from tawarp import load_core
+>>> from tawarp.estimate import fit
+>>> core = load_core("mesh")
+>>> res = fit(core, freqs, Y, ["stack.porosity", "stack.pore_radius", "stack.tortuosity"],
+...           start={"stack.porosity": 0.7, "stack.pore_radius": 5e-5, "stack.tortuosity": 1.1})
+>>> res.values, res.std, res.correlation, res.converged
+
+A *batch* is one core structure (same segments), one frequency grid ``freqs`` (m,) and
+N independent problems. Each problem has its own measured dimensionless coefficients
+``Y`` (N, m, 4) complex (``Tpp, Tpu/Zc, Tup*Zc, Tuu``, :func:`tawarp.coefficients.normalize`
+with :func:`tawarp.coefficients.duct_impedance` of the core), weights, heat input, fixed
+parameter values (``fixed={"hot_hx.length": (N,)}``) and start values for the p free
+parameters ``names`` (``SEGMENT.FIELD``).
+
+Method
+------
+*Cost.* ``F = sum over frequencies, coefficients, re/im of (w (Y_model - Y_meas))^2`` with
+``w`` = 1 / sigma of the dimensionless value (or 1).
+
+*Scaled variables.* LM works on z: ``v = s exp(z)`` for positive parameters
+(:data:`LOG_FIELDS`: radii, lengths, conductivities, heat-exchange coefficients, T_cold,
+p_mean), ``v = s z`` for porosity, tortuosity and any other field, with s the start
+value (per problem; 1 for a linear parameter starting at 0). After each step z is
+projected onto the bounds (porosity in [1e-3, 1], tortuosity >= 1; h in [1e-4, 1e5],
+pore radius in [1e-7, 0.1] m, solid conductivity in [1e-4, 1e4] keep runs from a poor start
+from drifting to 0 or infinity; ``bounds=`` for more).
+Both choices make a unit step mean "a relative change of order one", so the damped
+update ``(H + mu I) dz = -g`` treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
+
+*Q = 0 batches* (every heat input 0, no h free or fixed) evaluate the core with its
+thermal segments at uniform temperature in closed form (:func:`cold_batch`): the same
+model to rounding, without the Magnus cascade.
+
+*One iteration = one forward launch* of ``1 + p`` parameter sets per active problem: the
+trial point and its forward-difference neighbours (step 1e-6 in z, taken towards the
+interior at a bound). If the trial is accepted its Jacobian is already there; a rejected
+trial wastes p sets but no launch. :mod:`tawarp.kernels.lm` builds the sets from z on
+the device and reduces the (sets, m, 8) T-matrices to ``F``, ``g = J^T r`` and
+``H = J^T J`` per problem, so only (N, p, p)-sized arrays reach the host, where the tiny
+damped solves (vectorised Cholesky), acceptance and damping updates run in NumPy.
+
+*Damping.* ``damping="nielsen"`` (default): mu *= max(1/3, 1 - (2 rho - 1)^3) on success,
+mu *= nu, nu *= 2 on failure (Nielsen 1999; Madsen, Nielsen & Tingleff 2004).
+``damping="paper"``: mu halved on success, doubled on failure (the paper's rule). Both
+start at ``mu = 1e-3 max diag H``.
+
+*Stopping* (per problem, paper's rule first): an accepted step changes every parameter
+by less than ``xtol`` = 0.1 % (relative, natural units) -> ``"xtol"``; the gradient test
+``max_a |g_a| / sqrt(H_aa F) <= gtol`` (cosine between the residual and each Jacobian
+column, MINPACK's test) -> ``"gtol"``; all components at a bound pushing outward ->
+``"bound"``; ``max_iter`` iterations -> ``"max_iterations"`` (not converged); the damping
+grows past 1e16 without a decrease -> ``"stalled"`` (converged only if the gradient
+cosine is below 1e-4). Converged problems leave the active set: later launches contain
+only the problems still iterating.
+
+*Uncertainty.* ``cov_z = s^2 H^-1`` at the solution with ``s^2 = F / (8 m - p)`` (the
+residual variance; ``absolute_sigma=True`` takes s^2 = 1, for weights that are true
+1/sigma), transformed to natural units by the delta method, ``cov_v = D cov_z D`` with
+``D = diag(dv/dz)`` (= v for log parameters, s for linear ones). ``std`` is its diagonal's
+root, ``correlation`` the normalised matrix, ``condition`` the 2-norm condition number of H
+in the scaled variables. A warning names the parameter pairs with |correlation| above
+``corr_limit`` (0.95) and the dominant parameters of the least determined direction when
+the condition number exceeds ``cond_limit`` (1e8).
+
+*Restarts* (``restarts=k``): k extra problems per problem start from the solution with
+every parameter moved by ±``restart_spread`` (20 %) and run as one more batch; with no
+start (``start=None``) a spread of ``n_starts`` Sobol points inside :data:`PRIOR_RANGES`
+is run first. The lowest-cost solution is reported; ``distinct_minima`` flags problems
+where a converged restart (±20 %) ended more than ``max(1 std, 10 xtol |v|)`` away from it,
+or a converged run from the spread did so at a cost the data cannot tell apart from the
+best (``(cost - best) / s^2 < 25``); spread runs stuck in clearly worse local minima are
+only counted (``local_minima``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+import warnings as _warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .coefficients import duct_impedance
+from .core import GLOBAL_FIELDS, Core
+from .forward import Engine, ForwardSettings, parameter_row
+from .kernels import lm as klm
+from .progress import progress_bar
+
+#: Positive parameter fields fitted in log scale; every other field (porosity, tortuosity,
+#: exponents, ...) in natural units scaled by |start| (1 when the start is 0).
+LOG_FIELDS = ("length", "pore_radius", "solid_conductivity", "h", "T_cold", "p_mean", "radius",
+              "thermal_radius_ratio", "radiative_conductivity", "h_convection", "wall_conductance")
+#: Natural-unit bounds applied by projection (inclusive).
+DEFAULT_BOUNDS = {"porosity": (1e-3, 1.0), "tortuosity": (1.0, math.inf), "h": (1e-4, 1e5),
+                  "pore_radius": (1e-7, 0.1), "solid_conductivity": (1e-4, 1e4)}
+#: Ranges (natural units) of the spread of starts used when no start is given; a
+#: ``None`` entry means "the core's value ± 20 %".
+PRIOR_RANGES = {"porosity": (0.3, 0.99), "pore_radius": (1e-5, 2e-3), "tortuosity": (1.0, 2.0),
+                "h": (0.05, 500.0), "solid_conductivity": (0.3, 50.0), "length": None,
+                "T_cold": None, "p_mean": None, "radius": None}
+#: Forward-difference step in the scaled variable z.
+FD_STEP = 1e-6
+REASONS = ("xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
+
+
+class FitWarning(UserWarning):
+    """A fit is ill-conditioned, has inseparable parameters, did not converge, or its
+    restarts found different minima."""
+
+
+def field_of(name: str) -> str:
+    return name.partition(".")[2]
+
+
+def is_log(name: str) -> bool:
+    """True if ``name`` is fitted in log scale (:data:`LOG_FIELDS`)."""
+    return field_of(name) in LOG_FIELDS
+
+
+# ----------------------------------------------------------------------------------------
+@dataclass
+class FitResult:
+    """Result of a batched fit; arrays have the problem axis first (N problems, p params).
+
+    ``values``, ``std`` (N, p) natural units; ``covariance``, ``correlation`` (N, p, p);
+    ``condition`` (N,) of J^T J in the scaled variables; ``iterations`` (N,);
+    ``converged`` (N,) bool; ``reason`` (N,) str (:data:`REASONS`); ``cost`` (N,) weighted
+    sum of squares; ``rms_error`` (N,) the error measure of FORMATS.md; ``s2`` (N,) the
+    residual variance used in the covariance; ``dof`` = 8 m - p; ``start`` (N, p);
+    ``warnings`` (batch summary) and ``problem_warnings`` (one list per problem);
+    ``distinct_minima`` (N,) bool; ``restart_values`` (N, k, p), ``restart_cost`` (N, k)
+    and ``restart_converged`` (N, k) when restarts ran (else None); ``evaluations``:
+    forward parameter sets evaluated; ``launches``: forward launches; ``seconds``.
+    """
+
+    names: list[str]
+    values: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    correlation: np.ndarray
+    condition: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    reason: np.ndarray
+    cost: np.ndarray
+    rms_error: np.ndarray
+    s2: np.ndarray
+    dof: int
+    start: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    problem_warnings: list[list[str]] = field(default_factory=list)
+    distinct_minima: np.ndarray | None = None
+    restart_values: np.ndarray | None = None
+    restart_cost: np.ndarray | None = None
+    restart_converged: np.ndarray | None = None
+    local_minima: np.ndarray | None = None
+    evaluations: int = 0
+    launches: int = 0
+    seconds: float = 0.0
+    std_statistical: np.ndarray | None = None
+
+    def add_covariance(self, extra: np.ndarray) -> None:
+        """Add ``extra`` (N, p, p) natural units (e.g. propagated uncertainty of fixed
+        parameters) to the covariance; ``std``, ``correlation`` follow and the former std is
+        kept as ``std_statistical``."""
+        if self.std_statistical is None:
+            self.std_statistical = self.std.copy()
+        self.covariance = self.covariance + extra
+        self.std = np.sqrt(np.abs(np.einsum("nii->ni", self.covariance)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.correlation = self.covariance / (self.std[:, :, None] * self.std[:, None, :])
+        p = self.std.shape[1]
+        self.correlation[:, np.arange(p), np.arange(p)] = 1.0
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    def value_dict(self, i: int = 0) -> dict[str, float]:
+        """``{name: value}`` of problem ``i``."""
+        return {k: float(v) for k, v in zip(self.names, self.values[i])}
+
+    def problem(self, i: int = 0) -> dict:
+        """Problem ``i`` as a JSON-ready dict (the fit.json entry of FORMATS.md)."""
+        d = {"parameters": {k: {"value": float(self.values[i, a]), "std": _json_float(self.std[i, a]),
+                                "start": float(self.start[i, a])} for a, k in enumerate(self.names)},
+             "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},
+             "converged": bool(self.converged[i]), "reason": str(self.reason[i]),
+             "iterations": int(self.iterations[i]), "cost": _json_float(self.cost[i]),
+             "rms_error": _json_float(self.rms_error[i]), "s2": _json_float(self.s2[i]), "dof": int(self.dof),
+             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i])}
+        if self.std_statistical is not None:
+            for a, k in enumerate(self.names):
+                d["parameters"][k]["std_statistical"] = _json_float(self.std_statistical[i, a])
+        if self.distinct_minima is not None:
+            d["distinct_minima"] = bool(self.distinct_minima[i])
+        if self.local_minima is not None:
+            d["local_minima"] = int(self.local_minima[i])
+        if self.restart_values is not None:
+            d["restarts"] = [{"values": dict(zip(self.names, map(float, v))), "cost": float(c), "converged": bool(ok)}
+                             for v, c, ok in zip(self.restart_values[i], self.restart_cost[i],
+                                                 self.restart_converged[i])]
+        return d
+
+
+def _json_float(x):
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _finite(a):
+    a = np.array(a, dtype=float)
+    a[~np.isfinite(a)] = np.nan
+    return np.where(np.isnan(a), None, a).astype(object) if np.isnan(a).any() else a
+
+
+# ----------------------------------------------------------------------------------------
+def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None) -> ForwardSettings:
+    """Forward settings whose model is smooth in the parameters, as finite-difference
+    Jacobians need.
+
+    The adaptive cell count (``cells = None``) changes with h and the conductivities
+    (``ceil(cell_density (1 + k L + w L / c))``, k = sqrt(2 h / (R lam))): a step across an
+    integer boundary makes the model jump by its discretisation error (~1e-6), which a
+    difference quotient with step 1e-6 turns into an O(1) Jacobian error. So a fit fixes
+    one count per thermal segment for the whole batch: the adaptive rule at the highest
+    frequency with ``2 k L`` (room for the fit to move h up to 4x); ``values``
+    {name: scalar or array} are the parameter values to size for (their maxima; the
+    core's values for the rest). Settings with fixed ``cells`` are returned unchanged.
+    """
+    settings = settings or ForwardSettings()
+    if settings.cells is not None:
+        return settings
+    from .gas import GASES
+    from .reference import gas_properties
+
+    values = {k: float(np.max(v)) for k, v in (values or {}).items()}
+    get = lambda k: values.get(k, core.get(k))  # noqa: E731
+    T_cold = get("gas.T_cold")
+    k_gas = float(gas_properties(core.gas.name, T_cold, get("gas.p_mean")).k)
+    g = GASES[core.gas.name]
+    c = math.sqrt(g.gamma * g.R_gas * T_cold)
+    omega = 2 * math.pi * float(np.max(freqs))
+    R = get("tube.radius")
+    counts = {}
+    for s in core.segments:
+        if not s.thermal:
+            continue
+        L = get(f"{s.name}.length")
+        lam = k_gas
+        if s.is_porous:
+            phi = min(get(f"{s.name}.porosity"), 1.0)
+            lam = phi * k_gas + (1 - phi) * get(f"{s.name}.solid_conductivity")
+        k = math.sqrt(2 * max(get(f"{s.name}.h"), 0.0) / (R * lam))
+        counts[s.name] = int(math.ceil(settings.cell_density * (1 + 2 * k * L + omega * L / c)))
+    return dataclasses.replace(settings, cells=counts)
+
+
+def cold_batch(heat_input, names) -> bool:
+    """True when every problem is unheated and no h is involved: the temperature is then
+    T_cold everywhere and the thermal segments can use the closed form."""
+    return bool(np.all(np.asarray(heat_input) == 0)) and not any(field_of(k) == "h" for k in names)
+
+
+def _cold_core(core: Core) -> Core:
+    """The same core with no thermal segment: at Q = 0 the temperature is uniform, so
+    every segment's matrix is the exact exp(A L) instead of a Magnus cascade (identical to
+    rounding; the parameter table keeps its layout)."""
+    return Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
+                core.radius, core.source)
+
+
+_ENGINES: dict = {}
+
+
+def get_engine(core: Core, freqs, names, settings: ForwardSettings) -> Engine:
+    """A cached :class:`Engine` per (core, frequencies, varying names, settings)."""
+    key = (core, tuple(np.asarray(freqs, dtype=float).tolist()), tuple(names), repr(settings))
+    eng = _ENGINES.get(key)
+    if eng is None:
+        if len(_ENGINES) > 32:
+            _ENGINES.clear()
+        eng = _ENGINES[key] = Engine(core, freqs, names, settings)
+    return eng
+
+
+class Problems:
+    """Everything that fixes a batch of least-squares problems, on the device.
+
+    ``core``, ``freqs`` (m,), ``Y`` (N, m, 4) complex, ``names`` (p free parameters),
+    ``heat_input`` (N,), ``fixed`` {name: (N,)}, ``weights`` None, (N, m, 4) or
+    (N, m, 4, 2) (re, im), ``ties`` {free name: [other names set to the same value]},
+    ``bounds`` {name: (lo, hi)} natural units, ``scale`` (N, p) start scale of z.
+    """
+
+    def __init__(self, core: Core, freqs, Y, names, *, heat_input=0.0, fixed=None, weights=None, ties=None,
+                 bounds=None, settings: ForwardSettings | None = None, device=None, scale=None):
+        self.core = core
+        self.freqs = np.atleast_1d(np.asarray(freqs, dtype=float))
+        m = self.freqs.size
+        Y = np.asarray(Y, dtype=np.complex128)
+        if Y.ndim == 2:
+            Y = Y[None]
+        if Y.ndim != 3 or Y.shape[1:] != (m, 4):
+            raise ValueError(f"Y: shape {Y.shape}; expected (N, {m}, 4) dimensionless coefficients")
+        if not np.all(np.isfinite(Y)):
+            raise ValueError("Y: NaN or infinite values")
+        self.N = N = Y.shape[0]
+        self.Y = Y
+        self.names = list(names)
+        if not self.names or len(set(self.names)) != len(self.names):
+            raise ValueError(f"names: expected distinct parameter names, got {self.names}")
+        if len(self.names) > 8:
+            raise ValueError(f"at most 8 free parameters per problem, got {len(self.names)}")
+        self.p = len(self.names)
+        for k in self.names:
+            parameter_row(core, k)
+        self.ties = {k: list(v) for k, v in (ties or {}).items()}
+        for k, others in self.ties.items():
+            if k not in self.names:
+                raise KeyError(f"ties: {k!r} is not a free parameter ({self.names})")
+            for o in others:
+                parameter_row(core, o)
+                if field_of(o) != field_of(k):
+                    raise ValueError(f"ties: {k!r} and {o!r} are different fields")
+        tied = [o for v in self.ties.values() for o in v]
+        fixed = {k: np.broadcast_to(np.asarray(v, dtype=float), (N,)).copy() for k, v in (fixed or {}).items()}
+        clash = (set(fixed) & (set(self.names) | set(tied))) | (set(self.names) & set(tied))
+        if clash or len(tied) != len(set(tied)):
+            raise ValueError(f"parameters both free/tied/fixed: {sorted(clash) or tied}")
+        for k in fixed:
+            parameter_row(core, k)
+        self.fixed = fixed
+        q = np.broadcast_to(np.asarray(heat_input, dtype=float), (N,)).copy()
+        if not np.all(np.isfinite(q)) or np.any(q < 0):
+            raise ValueError("heat_input [W]: must be finite and >= 0")
+        self.heat_input = q
+        # Engine rows: free, tied, fixed; the fixed table has heat input first
+        engine_names = self.names + tied + list(fixed)
+        row_src = [-1] + list(range(self.p)) + [self.names.index(k) for k, v in self.ties.items() for _ in v]
+        row_src += [-2 - j for j in range(len(fixed))]
+        self.settings = dataclasses.replace(settings or ForwardSettings(), device=device) if device is not None \
+            else (settings or ForwardSettings())
+        self.engine = get_engine(_cold_core(core) if cold_batch(q, engine_names) else core, self.freqs,
+                                 engine_names, self.settings)
+        self.device = self.engine.device
+        dev = self.device
+        fixed_table = np.stack([q] + [fixed[k] for k in fixed])
+        # weights -> (N, m, 8)
+        if weights is None:
+            W = np.ones((N, m, 8))
+        else:
+            w = np.asarray(weights, dtype=float)
+            if not (w.ndim >= 3 and w.shape[-2:] == (4, 2)):      # (.., m, 4): the same for re and im
+                w = np.broadcast_to(w, (N, m, 4))[..., None].repeat(2, axis=-1)
+            w = np.broadcast_to(w, (N, m, 4, 2))
+            if not np.all(np.isfinite(w)) or np.any(w < 0):
+                raise ValueError("weights: must be finite and >= 0")
+            W = np.ascontiguousarray(w).reshape(N, m, 8)
+        self.W = W
+        # duct impedance per problem (fixed globals change it)
+        glob = [k for k in fixed if k in GLOBAL_FIELDS]
+        if glob:
+            zc = np.array([duct_impedance(core.replace(**{k: fixed[k][i] for k in glob})) for i in range(N)])
+        else:
+            zc = np.full(N, duct_impedance(core))
+        self.zc = zc
+        self.kind = np.array([1 if is_log(k) else 0 for k in self.names], dtype=np.int32)
+        lo, hi = np.full(self.p, -np.inf), np.full(self.p, np.inf)
+        bounds = dict(bounds or {})
+        for a, k in enumerate(self.names):
+            b = bounds.get(k, DEFAULT_BOUNDS.get(field_of(k)))
+            if b is not None:
+                lo[a], hi[a] = b
+            if is_log(k):
+                lo[a] = max(lo[a], 0.0)
+        self.lo, self.hi = lo, hi
+        self.set_scale(scale if scale is not None else np.array([[core.get(k) for k in self.names]] * N))
+        self.w_Y = wp.array(np.ascontiguousarray(Y).view(np.float64).reshape(N, m, 8), dtype=wp.float64, device=dev)
+        self.w_W = wp.array(W, dtype=wp.float64, device=dev)
+        self.w_zc = wp.array(zc, dtype=wp.float64, device=dev)
+        self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
+        self.w_row_src = wp.array(np.array(row_src, dtype=np.int32), dtype=wp.int32, device=dev)
+        self.w_kind = wp.array(self.kind, dtype=wp.int32, device=dev)
+        self.normal = klm.normal_kernel(self.p)
+        self.evaluations = 0
+        self.launches = 0
+        # error-measure denominator per problem
+        self.y2 = np.sum(np.abs(Y) ** 2, axis=(1, 2))
+
+    def set_scale(self, scale):
+        scale = np.abs(np.broadcast_to(np.asarray(scale, dtype=float), (self.N, self.p))).copy()
+        scale = np.where((self.kind == 0) & (scale == 0), 1.0, scale)
+        if not np.all(np.isfinite(scale) & (scale > 0)):
+            raise ValueError(f"start values of {self.names} must be finite, and > 0 for the log-scaled ones "
+                             f"({[k for k in self.names if is_log(k)]}); they set the scale of each parameter")
+        self.scale = scale
+        self.w_scale = wp.array(scale, dtype=wp.float64, device=self.engine.device)
+        with np.errstate(divide="ignore"):
+            self.zlo = np.where(self.kind == 1, np.log(self.lo / scale), self.lo / scale)
+            self.zhi = np.where(self.kind == 1, np.log(self.hi / scale), self.hi / scale)
+
+    # -- transforms ----------------------------------------------------------------------
+    def to_z(self, v, pid):
+        v = np.asarray(v, dtype=float)
+        s = self.scale[pid]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.kind == 1, np.log(v / s), v / s)
+
+    def to_v(self, z, pid):
+        s = self.scale[pid]
+        return np.where(self.kind == 1, s * np.exp(np.where(self.kind == 1, z, 0.0)), s * z)
+
+    def dv_dz(self, z, pid):
+        return np.where(self.kind == 1, self.to_v(z, pid), self.scale[pid])
+
+    def project(self, z, pid):
+        return np.clip(z, self.zlo[pid], self.zhi[pid])
+
+    # -- one launch ----------------------------------------------------------------------
+    def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
+        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``."""
+        p, dev = self.p, self.device
+        n = len(pid)
+        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        cost, raw = np.empty(n), np.empty(n)
+        g, H = np.empty((n, p)), np.empty((n, p, p))
+        per = max(1, max_sets // (p + 1))
+        rows = self.w_row_src.shape[0]
+        for lo in range(0, n, per):
+            hi = min(n, lo + per)
+            k = hi - lo
+            w_z = wp.array(np.ascontiguousarray(z[lo:hi]), dtype=wp.float64, device=dev)
+            w_step = wp.array(np.ascontiguousarray(step[lo:hi]), dtype=wp.float64, device=dev)
+            w_ids = wp.array(pid[lo:hi].astype(np.int32), dtype=wp.int32, device=dev)
+            varying = wp.empty((rows, k * (p + 1)), dtype=wp.float64, device=dev)
+            wp.launch(klm.build_sets, dim=k * (p + 1), device=dev,
+                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_kind, self.w_fixed, self.w_row_src, varying])
+            out, _, _ = self.engine.evaluate(varying)
+            w_cost = wp.empty(k, dtype=wp.float64, device=dev)
+            w_raw = wp.empty(k, dtype=wp.float64, device=dev)
+            w_g = wp.empty((k, p), dtype=wp.float64, device=dev)
+            w_H = wp.empty((k, p, p), dtype=wp.float64, device=dev)
+            wp.launch(self.normal, dim=k, device=dev,
+                      inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step, w_cost, w_raw, w_g, w_H])
+            cost[lo:hi], raw[lo:hi] = w_cost.numpy(), w_raw.numpy()
+            g[lo:hi], H[lo:hi] = w_g.numpy(), w_H.numpy()
+            self.launches += 1
+        self.evaluations += n * (p + 1)
+        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
+        cost[bad] = np.inf
+        return cost, raw, g, H
+
+
+# ----------------------------------------------------------------------------------------
+def chol_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Solve A x = b for a batch of small symmetric positive definite A (n, p, p) by a
+    vectorised Cholesky factorisation; returns (x, ok) with ok False where A is not
+    positive definite (x is then 0)."""
+    n, p = b.shape
+    L = np.zeros_like(A)
+    ok = np.ones(n, dtype=bool)
+    for j in range(p):
+        d = A[:, j, j] - np.sum(L[:, j, :j] ** 2, axis=1)
+        ok &= d > 0
+        L[:, j, j] = np.sqrt(np.where(d > 0, d, 1.0))
+        for i in range(j + 1, p):
+            L[:, i, j] = (A[:, i, j] - np.sum(L[:, i, :j] * L[:, j, :j], axis=1)) / L[:, j, j]
+    y = np.zeros_like(b)
+    for i in range(p):
+        y[:, i] = (b[:, i] - np.sum(L[:, i, :i] * y[:, :i], axis=1)) / L[:, i, i]
+    x = np.zeros_like(b)
+    for i in reversed(range(p)):
+        x[:, i] = (y[:, i] - np.sum(L[:, i + 1:, i] * x[:, i + 1:], axis=1)) / L[:, i, i]
+    x[~ok] = 0.0
+    return x, ok
+
+
+def _free_mask(z, g, zlo, zhi):
+    """Components not held at a bound by a gradient pushing outward."""
+    at_lo = (z <= zlo) & (g > 0)
+    at_hi = (z >= zhi) & (g < 0)
+    return ~(at_lo | at_hi)
+
+
+def _grad_cosine(g, H, cost, free):
+    den = np.sqrt(np.maximum(np.einsum("nii->ni", H), 1e-300) * np.maximum(cost, 1e-300)[:, None])
+    c = np.where(free, np.abs(g) / den, 0.0)
+    return c.max(axis=1) if c.shape[1] else np.zeros(len(c))
+
+
+@dataclass
+class _State:
+    z: np.ndarray
+    cost: np.ndarray
+    raw: np.ndarray
+    g: np.ndarray
+    H: np.ndarray
+    iterations: np.ndarray
+    reason: np.ndarray
+    converged: np.ndarray
+
+
+def levenberg_marquardt(prob: Problems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
+                        xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100, tau: float = 1e-3,
+                        progress: bool = False, max_sets: int = 1 << 20) -> _State:
+    """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
+    (Q, p). Converged problems drop out of later launches (active-set compaction)."""
+    if damping not in ("nielsen", "paper"):
+        raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
+    Q, p = z0.shape
+    z = prob.project(np.array(z0, dtype=float), pid)
+    cost, raw, g, H = prob.evaluate(pid, z, max_sets)
+    iterations = np.zeros(Q, dtype=int)
+    reason = np.array([""] * Q, dtype=object)
+    converged = np.zeros(Q, dtype=bool)
+    bad = ~np.isfinite(cost)
+    reason[bad] = "invalid"
+    mu = tau * np.max(np.einsum("nii->ni", H), axis=1)
+    mu = np.where(np.isfinite(mu) & (mu > 0), mu, 1e-3)
+    nu = np.full(Q, 2.0)
+    free = _free_mask(z, g, prob.zlo[pid], prob.zhi[pid])
+    done0 = (_grad_cosine(g, H, cost, free) <= gtol) | (cost == 0)
+    reason[done0 & ~bad] = "gtol"
+    converged[done0 & ~bad] = True
+    active = np.flatnonzero(~(bad | done0))
+    bar = progress_bar(Q, "fits", progress, unit="fit")
+    bar.update(Q - active.size)
+    eye = np.eye(p)
+    while active.size:
+        a = active
+        pa = pid[a]
+        A = H[a] + mu[a, None, None] * eye
+        d, ok_chol = chol_solve(A, -g[a])
+        zt = prob.project(z[a] + d, pa)
+        dz = zt - z[a]
+        pred = -(2.0 * np.einsum("ni,ni->n", g[a], dz) + np.einsum("ni,nij,nj->n", dz, H[a], dz))
+        ct, rt, gt, Ht = prob.evaluate(pa, zt, max_sets)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            rho = np.where(pred > 0, (cost[a] - ct) / pred, -1.0)
+        acc = ok_chol & np.isfinite(ct) & (rho > 0) & (ct < cost[a])
+        iterations[a] += 1
+        # accepted: move, take the trial's Jacobian
+        ia = a[acc]
+        z[ia], cost[ia], raw[ia], g[ia], H[ia] = zt[acc], ct[acc], rt[acc], gt[acc], Ht[acc]
+        if damping == "nielsen":
+            mu[ia] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho[acc] - 1.0) ** 3)
+            nu[ia] = 2.0
+            ir = a[~acc]
+            mu[ir] *= nu[ir]
+            nu[ir] *= 2.0
+        else:
+            mu[ia] *= 0.5
+            mu[a[~acc]] *= 2.0
+        # convergence tests
+        with np.errstate(divide="ignore", invalid="ignore"):
+            rel = np.where(prob.kind == 1, np.abs(np.expm1(dz)), np.abs(dz) / np.maximum(np.abs(zt), 1e-300))
+        rel = rel.max(axis=1) if p else np.zeros(len(a))
+        free = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
+        gcos = _grad_cosine(g[a], H[a], cost[a], free)
+        zero_step = ~np.any(free, axis=1)
+        conv_x = acc & (rel < xtol)
+        conv_g = (gcos <= gtol) | (cost[a] == 0)
+        stalled = ~acc & (mu[a] > 1e16)
+        capped = iterations[a] >= max_iter
+        r = reason[a]
+        done = np.zeros(len(a), dtype=bool)
+        for mask, why, good in ((conv_x, "xtol", True), (conv_g, "gtol", True), (zero_step, "bound", True),
+                                (stalled, "stalled", None), (capped, "max_iterations", False)):
+            new = mask & ~done
+            r[new] = why
+            ok = (gcos[new] <= 1e-4) if good is None else np.full(new.sum(), good)
+            converged[a[new]] = ok
+            done |= new
+        reason[a] = r
+        active = a[~done]
+        bar.update(int(done.sum()))
+    bar.close()
+    return _State(z, cost, raw, g, H, iterations, reason, converged)
+
+
+# ----------------------------------------------------------------------------------------
+def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
+    """(cov_v, std, corr, cond, s2) at the solution, natural units (delta method)."""
+    n, p = z.shape
+    dof = max(8 * prob.freqs.size - p, 1)
+    s2 = np.ones(n) if absolute_sigma else cost / dof
+    w, V = np.linalg.eigh(H)
+    wmax = np.max(np.abs(w), axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cond = np.where(w[:, 0] > 0, wmax / w[:, 0], np.inf)
+        inv_w = np.where(w > 1e-14 * wmax[:, None], 1.0 / w, np.inf)
+    # cov_z = V diag(1/w) V^T; singular directions give infinite variance
+    with np.errstate(invalid="ignore"):
+        cov_z = np.einsum("nij,nj,nkj->nik", V, np.where(np.isfinite(inv_w), inv_w, 0.0), V)
+        sing = ~np.isfinite(inv_w)
+        if sing.any():
+            infl = np.einsum("nij,nj,nkj->nik", np.abs(V), sing.astype(float), np.abs(V)) > 1e-8
+            cov_z = np.where(infl, np.inf, cov_z)
+    D = prob.dv_dz(z, pid) if n else np.zeros((0, p))
+    unit = cov_z * D[:, :, None] * D[:, None, :]          # H^-1 in natural units
+    cov = unit * s2[:, None, None]
+    std = np.sqrt(np.abs(np.einsum("nii->ni", cov)))
+    su = np.sqrt(np.abs(np.einsum("nii->ni", unit)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = unit / (su[:, :, None] * su[:, None, :])   # independent of s^2 (defined for exact data)
+    corr[:, np.arange(p), np.arange(p)] = 1.0
+    return cov, std, corr, cond, s2, V, w
+
+
+def _problem_warnings(names, corr, cond, V, w, converged, reason, corr_limit, cond_limit):
+    out = []  # (key, message)
+    p = len(names)
+    for a in range(p):
+        for b in range(a + 1, p):
+            c = corr[a, b]
+            if np.isfinite(c) and abs(c) > corr_limit:
+                out.append((("corr", a, b), f"{names[a]} and {names[b]} are too correlated to separate "
+                                            f"(correlation {c:+.4f}); fix one of them"))
+    if not np.isfinite(cond) or cond > cond_limit:
+        v = np.abs(V[:, 0])
+        dom = [names[k] for k in np.argsort(-v) if v[k] > 0.3 * v.max()]
+        out.append((("cond",), f"ill-conditioned (condition number {cond:.3g} of J^T J in scaled variables > "
+                               f"{cond_limit:g}): the direction mostly along {', '.join(dom)} is not determined"))
+    if not converged:
+        out.append((("conv", reason), f"did not converge ({reason})"))
+    return out
+
+
+def _aggregate(per_problem: list[list[tuple]], N: int) -> list[str]:
+    groups: dict = {}
+    for i, items in enumerate(per_problem):
+        for key, msg in items:
+            groups.setdefault(key, [msg, []])[1].append(i)
+    out = []
+    for msg, idx in groups.values():
+        head = f"problem {idx[0]}" if len(idx) == 1 else f"{len(idx)} of {N} problems (e.g. problem {idx[0]})"
+        out.append(f"{head}: {msg}")
+    return out
+
+
+def _sign_patterns(k: int, p: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    pats = [np.ones(p), -np.ones(p)] + [rng.choice([-1.0, 1.0], size=p) for _ in range(max(0, k - 2))]
+    return np.array(pats[:k])
+
+
+def spread_starts(core: Core, names, n: int, seed: int = 0, ranges: dict | None = None) -> np.ndarray:
+    """``n`` Sobol starts (n, p) inside :data:`PRIOR_RANGES` (log-uniform for log parameters)."""
+    from scipy.stats import qmc
+
+    ranges = {**PRIOR_RANGES, **(ranges or {})}
+    p = len(names)
+    u = qmc.Sobol(d=p, scramble=True, seed=seed).random(n) if n > 1 else np.full((1, p), 0.5)
+    out = np.empty((n, p))
+    for a, k in enumerate(names):
+        rng = ranges.get(k, ranges.get(field_of(k)))
+        if rng is None:
+            v = core.get(k)
+            rng = (0.8 * v, 1.2 * v)
+        lo, hi = rng
+        out[:, a] = np.exp(np.log(lo) + u[:, a] * np.log(hi / lo)) if is_log(k) else lo + u[:, a] * (hi - lo)
+    return out
+
+
+def _as_start(start, names, N) -> np.ndarray:
+    if isinstance(start, dict):
+        missing = set(names) - set(start)
+        if missing:
+            raise KeyError(f"start: no value for {sorted(missing)}")
+        return np.stack([np.broadcast_to(np.asarray(start[k], dtype=float), (N,)) for k in names], axis=1)
+    s = np.asarray(start, dtype=float)
+    return np.broadcast_to(s, (N, len(names))).copy()
+
+
+def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, weights=None, ties=None,
+        bounds=None, settings: ForwardSettings | None = None, device: str | None = None,
+        damping: str = "nielsen", xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100,
+        restarts: int = 0, restart_spread: float = 0.2, n_starts: int = 8, seed: int = 0,
+        absolute_sigma: bool = False, corr_limit: float = 0.95, cond_limit: float = 1e8,
+        progress: bool = False, warn: bool = True, max_sets: int = 1 << 20) -> FitResult:
+    """Fit the free parameters ``names`` of N independent problems at once.
+
+    Parameters
+    ----------
+    core : the core; its values are the defaults of every parameter not free or fixed.
+    freqs : (m,) [Hz]; ``Y`` (N, m, 4) or (m, 4) complex measured dimensionless coefficients.
+    names : p <= 8 free parameters ``SEGMENT.FIELD``.
+    start : (N, p), (p,) or {name: scalar or (N,)} start values (natural units); None runs
+        a spread of ``n_starts`` Sobol starts per problem (:func:`spread_starts`).
+    heat_input : scalar or (N,) [W]; ``fixed`` {name: scalar or (N,)} per-problem values.
+    weights : None, (N, m, 4) or (N, m, 4, 2) (re, im): 1/sigma of the dimensionless values.
+    ties : {free name: [names given the same value]} (ceramic: stack and hot exchanger).
+    bounds : {name: (lo, hi)} natural units, added to :data:`DEFAULT_BOUNDS`.
+    settings, device : forward settings (cells, ...) and device; adaptive cells are
+        replaced by fixed counts (:func:`smooth_settings`).
+    damping : "nielsen" (default) or "paper" (halve on success, double on failure).
+    xtol, gtol, max_iter : stopping rule (module doc).
+    restarts : extra problems per problem from the solution ± ``restart_spread``.
+    absolute_sigma : covariance H^-1 instead of s^2 H^-1.
+    warn : also issue the batch warnings as :class:`FitWarning`.
+
+    Returns a :class:`FitResult`.
+    """
+    t0 = time.perf_counter()
+    names = list(names)
+    Yarr = np.asarray(Y)
+    N = 1 if Yarr.ndim == 2 else Yarr.shape[0]
+    if start is None:
+        sized = dict(zip(names, spread_starts(core, names, n_starts, seed).T))
+    else:
+        sized = dict(zip(names, _as_start(start, names, N).T))
+    for k, others in (ties or {}).items():
+        for o in others:
+            sized[o] = sized[k]
+    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})})
+    prob = Problems(core, freqs, Y, names, heat_input=heat_input, fixed=fixed, weights=weights, ties=ties,
+                    bounds=bounds, settings=settings, device=device)
+    p = prob.p
+    lm_kw = dict(damping=damping, xtol=xtol, gtol=gtol, max_iter=max_iter, progress=progress, max_sets=max_sets)
+    data = np.arange(N)
+    alt_v, alt_cost, alt_conv, alt_spread = [], [], [], []   # other runs per problem, for distinct minima
+    if start is None:
+        starts = spread_starts(core, names, n_starts, seed)  # (n_starts, p)
+        pid = np.repeat(data, n_starts)
+        v0 = np.tile(starts, (N, 1))
+        prob.set_scale(np.exp(np.mean(np.log(starts), axis=0))[None].repeat(N, 0))
+        st = levenberg_marquardt(prob, pid, prob.to_z(v0, pid), **lm_kw)
+        cost_rank = np.where(st.converged, st.cost, np.inf)
+        cost_rank = np.where(np.isfinite(cost_rank), cost_rank, np.where(np.isfinite(st.cost), st.cost * 1e30, np.inf))
+        best = np.argmin(cost_rank.reshape(N, n_starts), axis=1) + data * n_starts
+        start_v = v0[best]
+        spread_v = prob.to_v(st.z, pid).reshape(N, n_starts, p)
+        alt_v.append(spread_v)
+        alt_cost.append(st.cost.reshape(N, n_starts))
+        alt_conv.append(st.converged.reshape(N, n_starts))
+        alt_spread.append(np.ones((N, n_starts), dtype=bool))
+        sel = best
+    else:
+        start_v = _as_start(start, names, N)
+        prob.set_scale(start_v)
+        pid = data
+        st = levenberg_marquardt(prob, pid, prob.to_z(start_v, pid), **lm_kw)
+        sel = data
+    z = st.z[sel]
+    cost, raw, H = st.cost[sel], st.raw[sel], st.H[sel]
+    its, reason, conv = st.iterations[sel], st.reason[sel].astype(str), st.converged[sel]
+    restart_values = restart_cost = restart_conv = None
+    if restarts > 0:
+        v_sol = prob.to_v(z, data)
+        pats = _sign_patterns(restarts, p, seed)
+        v0 = (v_sol[:, None, :] * (1.0 + restart_spread * pats[None])).reshape(-1, p)
+        rpid = np.repeat(data, restarts)
+        rz0 = prob.project(prob.to_z(v0, rpid), rpid)
+        rs = levenberg_marquardt(prob, rpid, rz0, **lm_kw)
+        restart_values = prob.to_v(rs.z, rpid).reshape(N, restarts, p)
+        restart_cost = rs.cost.reshape(N, restarts)
+        restart_conv = rs.converged.reshape(N, restarts)
+        alt_v.append(restart_values)
+        alt_cost.append(restart_cost)
+        alt_conv.append(restart_conv)
+        alt_spread.append(np.zeros((N, restarts), dtype=bool))
+        # keep the best converged solution
+        rc = np.where(restart_conv, restart_cost, np.inf)
+        j = np.argmin(rc, axis=1)
+        i = np.flatnonzero(rc[data, j] < cost * (1 - 1e-12))
+        q = i * restarts + j[i]
+        z[i], cost[i], raw[i], H[i] = rs.z[q], rs.cost[q], rs.raw[q], rs.H[q]
+        its[i], reason[i], conv[i] = rs.iterations[q], rs.reason[q], True
+    cov, std, corr, cond, s2, V, w = covariance(prob, data, z, H, cost, absolute_sigma)
+    values = prob.to_v(z, data)
+    distinct = local = None
+    per = [_problem_warnings(names, corr[i], cond[i], V[i], w[i], conv[i], reason[i], corr_limit, cond_limit)
+           for i in range(N)]
+    if alt_v:
+        av = np.concatenate(alt_v, axis=1)
+        ac = np.concatenate(alt_cost, axis=1)
+        aok = np.concatenate(alt_conv, axis=1)
+        asp = np.concatenate(alt_spread, axis=1)
+        tol = np.maximum(np.where(np.isfinite(std), std, 0.0), 10 * xtol * np.abs(values))
+        away = aok & np.any(np.abs(av - values[:, None, :]) > tol[:, None, :], axis=2)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            close_cost = (ac - cost[:, None]) / np.maximum(s2, 1e-300)[:, None] < 25.0
+        far_all = away & (~asp | close_cost)
+        local = np.sum(away & asp & ~close_cost, axis=1)
+        distinct = far_all.any(axis=1)
+        for i in np.flatnonzero(distinct):
+            far = far_all[i]
+            if far.any():
+                j = int(np.flatnonzero(far)[np.argmin(ac[i][far])])
+                per[i].append((("minima",), "restarts landed in different minima: best cost "
+                                            f"{cost[i]:.4g} at {_fmt(names, values[i])}, another at cost "
+                                            f"{ac[i, j]:.4g}, {_fmt(names, av[i, j])}"))
+    warn_list = _aggregate(per, N)
+    if warn:
+        for msg in warn_list:
+            _warnings.warn(msg, FitWarning, stacklevel=2)
+    rms = np.sqrt(raw / np.maximum(prob.y2, 1e-300))
+    return FitResult(names=names, values=values, std=std, covariance=cov, correlation=corr, condition=cond,
+                     iterations=its, converged=conv, reason=np.asarray(reason, dtype=str), cost=cost,
+                     rms_error=rms, s2=s2, dof=max(8 * prob.freqs.size - p, 1), start=start_v,
+                     warnings=warn_list, problem_warnings=[[m for _, m in x] for x in per],
+                     distinct_minima=distinct, restart_values=restart_values, restart_cost=restart_cost,
+                     restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations, launches=prob.launches,
+                     seconds=time.perf_counter() - t0)
+
+
+def _fmt(names, v) -> str:
+    return ", ".join(f"{k} = {x:.4g}" for k, x in zip(names, v))
+
+
+def predict(core: Core, freqs, values: dict | None = None, heat_input=0.0, ties=None,
+            settings: ForwardSettings | None = None, **kw) -> np.ndarray:
+    """Dimensionless coefficients (n, m, 4) of ``core`` with ``values`` {name: scalar or (n,)}
+    (tied names follow their free parameter), normalised with the core's duct impedance."""
+    from .forward import transfer_matrices
+
+    values = dict(values or {})
+    for k, others in (ties or {}).items():
+        for o in others:
+            values[o] = values[k]
+    res = transfer_matrices(core, freqs, heat_input=heat_input, params=values, settings=settings, **kw)
+    return res.dimensionless()

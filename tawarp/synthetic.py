@@ -1,0 +1,154 @@
+"""Paper-like synthetic measurements for the four materials of Guedra et al. (2015).
+
+>>> from tawarp.synthetic import make_paper_data
+>>> data = make_paper_data("mesh", noise=0.005, seed=0)      # a TMatrixData
+>>> data.heat_inputs, data.frequencies.size
+(array([ 0., 10., 20., 40., 60., 80.]), 60)
+
+The truth is the bundled core of the material (``load_core(material)``): paper Table 1
+geometry (porosity, pore radius, tortuosity), heat-exchange coefficients of Sect. 5.2
+(``h_s`` = 150 ceramic, 50 mesh, 30 NiCr foam, 8 RVC foam; ``h_h`` = 100, ``h_a`` = 0.2
+W/(m^2 K)), the hot exchanger's length of each run. ``truth=`` overrides any value.
+
+* Frequencies: 50-200 Hz for the ceramic, 30-500 Hz otherwise (``n_freqs`` = 60 points).
+* Heat inputs: 0, 10, 20, 40, 60, 80 W (RVC foam: 0, 4.5, 9, 13.5, 18 W).
+* Model: :func:`tawarp.forward.transfer_matrices` with ``cells`` = 48 Magnus cells per
+  thermal segment, more than a fit uses (default 16), so fitting is not an inverse crime.
+* Noise (``noise`` = relative size, default 0.5 %): on each dimensionless coefficient
+  ``Y`` (Tpp, Tpu/Zc, Tup*Zc, Tuu) at each row, complex Gaussian with independent real
+  and imaginary parts of standard deviation ``noise |Y| / sqrt(2)`` each, so that
+  ``E|dY|^2 = (noise |Y|)^2``. The file carries these standard deviations (raw units) as
+  ``sigma_*_re/_im`` columns unless ``write_sigma=False``.
+* Bias (optional, systematic): a multiplicative complex factor per coefficient, the same
+  on every row (as a calibration error of the rig): ``bias`` is four complex factors, or a
+  float ``b`` giving ``1 + b exp(i phase_c)`` with fixed phases (0, pi/2, pi, 3 pi/2)
+  for the four coefficients. The two-step procedure (Eqs. 22-23) divides such a bias out.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .coefficients import denormalize, duct_impedance
+from .core import load_core
+from .forward import transfer_matrices
+from .measurements import TMatrixData
+
+MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
+#: Paper Table 1 (value, uncertainty) in SI, and the h's of Sect. 5.2 used as the truth.
+PAPER_TABLE1 = {
+    "ceramic": {"stack.porosity": (0.90, 0.01), "stack.pore_radius": (0.47e-3, 0.05e-3), "stack.tortuosity": (1.0, None)},
+    "mesh": {"stack.porosity": (0.68, 0.01), "stack.pore_radius": (40e-6, 4e-6), "stack.tortuosity": (1.06, 0.03)},
+    "nicr_foam": {"stack.porosity": (0.92, 0.01), "stack.pore_radius": (0.31e-3, 0.04e-3), "stack.tortuosity": (1.30, 0.04)},
+    "rvc_foam": {"stack.porosity": (0.97, 0.01), "stack.pore_radius": (0.17e-3, 0.02e-3), "stack.tortuosity": (1.13, 0.03)},
+}
+MATERIAL_NAMES = {"ceramic": "ceramic catalyst 600 CPSI", "mesh": "stainless-steel wire mesh",
+                  "nicr_foam": "NiCr foam", "rvc_foam": "RVC foam"}
+DEFAULT_HEAT = (0.0, 10.0, 20.0, 40.0, 60.0, 80.0)
+RVC_HEAT = (0.0, 4.5, 9.0, 13.5, 18.0)
+BIAS_PHASES = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
+
+
+def paper_frequencies(material: str, n_freqs: int = 60) -> np.ndarray:
+    """Frequencies [Hz] of the paper's measurements: 50-200 Hz (ceramic), else 30-500 Hz."""
+    lo, hi = (50.0, 200.0) if material == "ceramic" else (30.0, 500.0)
+    return np.linspace(lo, hi, n_freqs)
+
+
+def paper_heat_inputs(material: str) -> np.ndarray:
+    """Heat inputs [W]: 0-80 W, the RVC foam up to 18 W (combustion risk)."""
+    return np.array(RVC_HEAT if material == "rvc_foam" else DEFAULT_HEAT)
+
+
+def bias_factors(bias) -> np.ndarray:
+    """Four complex multiplicative factors from ``bias`` (None, a float, or 4 complex)."""
+    if bias is None:
+        return np.ones(4, dtype=complex)
+    b = np.asarray(bias, dtype=complex)
+    if b.ndim == 0:
+        return 1.0 + b.real * np.exp(1j * np.array(BIAS_PHASES))
+    if b.shape != (4,):
+        raise ValueError(f"bias: expected a float or 4 complex factors, got shape {b.shape}")
+    return b
+
+
+def make_paper_data(material: str, noise: float = 0.005, bias=None, seed: int = 0, *, freqs=None,
+                    heat_inputs=None, n_freqs: int = 60, cells: int = 48, truth: dict | None = None,
+                    write_sigma: bool = True, device: str | None = None) -> TMatrixData:
+    """Paper-like T-matrix measurements of ``material`` (module doc): a :class:`TMatrixData`
+    with rows ordered by heat input then frequency, ``sigma`` (raw units) unless
+    ``write_sigma=False``, and metadata naming the material, noise, bias, seed, cells and
+    every true parameter value (``true.stack.porosity = 0.68``, ...)."""
+    if material not in MATERIALS:
+        raise KeyError(f"unknown material {material!r}; expected one of {MATERIALS}")
+    if not (noise >= 0 and math.isfinite(noise)):
+        raise ValueError(f"noise must be a finite number >= 0, got {noise}")
+    core = load_core(material)
+    if truth:
+        core = core.replace(**truth)
+    f = paper_frequencies(material, n_freqs) if freqs is None else np.asarray(freqs, dtype=float)
+    Q = paper_heat_inputs(material) if heat_inputs is None else np.asarray(heat_inputs, dtype=float)
+    res = transfer_matrices(core, f, heat_input=Q, cells=cells, device=device)
+    Y = res.dimensionless()                                  # (nQ, m, 4)
+    Y = Y * bias_factors(bias)
+    rng = np.random.default_rng(seed)
+    sd = noise * np.abs(Y) / math.sqrt(2.0)
+    Yn = Y + sd * (rng.standard_normal(Y.shape) + 1j * rng.standard_normal(Y.shape))
+    zc = duct_impedance(core)
+    T = denormalize(Yn, zc).reshape(-1, 2, 2)
+    sigma = None
+    if write_sigma and noise > 0:
+        s = np.abs(denormalize(sd.astype(complex), zc)).reshape(-1, 2, 2)
+        sigma = np.stack([s, s], axis=-1)
+    meta = {"generator": "tawarp.synthetic.make_paper_data", "material": material, "noise": repr(noise),
+            "noise_model": "complex Gaussian, std noise*|Y|/sqrt(2) per part of each dimensionless coefficient",
+            "bias": "none" if bias is None else " ".join(repr(complex(x)) for x in bias_factors(bias)),
+            "seed": str(seed), "cells": str(cells), "core": material}
+    for k in ("stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.solid_conductivity",
+              "stack.h", "hot_hx.porosity", "hot_hx.pore_radius", "hot_hx.length", "hot_hx.h", "tbt.h"):
+        meta[f"true.{k}"] = repr(core.get(k))
+    return TMatrixData(np.repeat(Q, f.size), np.tile(f, Q.size), T, sigma, meta, f"synthetic:{material}")
+
+
+def true_values(data: TMatrixData) -> dict[str, float]:
+    """The ``true.*`` metadata of a synthetic data set as {name: value}."""
+    return {k[5:]: float(v) for k, v in data.metadata.items() if k.startswith("true.")}
+
+
+# -- command line -----------------------------------------------------------------------
+def add_synth_parser(subparsers):
+    """Register ``tawarp synth MATERIAL -o data.csv --noise 0.005 --seed 0``."""
+    from .cli import _common, parse_list
+
+    p = _common(subparsers.add_parser(
+        "synth", help="paper-like synthetic T-matrix measurements of one of the four materials"))
+    p.add_argument("material", choices=MATERIALS, help="which material of the paper")
+    p.add_argument("-o", "--output", default=None, help="output CSV (default: MATERIAL_synthetic.csv)")
+    p.add_argument("--noise", type=float, default=0.005, help="relative complex noise (default: %(default)s)")
+    p.add_argument("--bias", type=float, default=None,
+                   help="systematic bias size b: factors 1 + b exp(i phase) per coefficient (default: none)")
+    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
+    p.add_argument("--freqs", type=parse_list, default=None, help="Hz, list or start:stop:count (default: the paper's)")
+    p.add_argument("--Q", type=parse_list, default=None, help="heat inputs [W] (default: the paper's)")
+    p.add_argument("--cells", type=int, default=48, help="Magnus cells of the generating model (default: %(default)s)")
+    p.add_argument("--no-sigma", action="store_true", help="do not write sigma_* columns")
+    p.set_defaults(func=cmd_synth)
+    return p
+
+
+def cmd_synth(args) -> int:
+    from pathlib import Path
+
+    from .measurements import write_tmatrix_csv
+
+    data = make_paper_data(args.material, noise=args.noise, bias=args.bias, seed=args.seed, freqs=args.freqs,
+                           heat_inputs=args.Q, cells=args.cells, write_sigma=not args.no_sigma, device=args.device)
+    out = Path(args.output or f"{args.material}_synthetic.csv")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_tmatrix_csv(out, data)
+    if not args.quiet:
+        print(f"wrote {out} ({data.heat_inputs.size} heat inputs x {data.frequencies.size} frequencies, "
+              f"noise {args.noise:g}, seed {args.seed})")
+    return 0

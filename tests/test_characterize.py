@@ -1,0 +1,133 @@
+"""Two-step characterization, synthetic data and the `fit`/`synth` commands, on the CPU.
+
+Round trips use paper-like synthetic data (0.5 % complex noise, 12 Magnus cells) fitted
+with 8 cells on 16 frequencies and three heat inputs to keep the run short.
+"""
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tawarp.characterize import add_fit_parser, characterize, default_geometry
+from tawarp.coefficients import duct_impedance, normalize
+from tawarp.core import load_core
+from tawarp.forward import ForwardSettings, transfer_matrices
+from tawarp.measurements import read_tmatrix_csv
+from tawarp.synthetic import MATERIALS, add_synth_parser, make_paper_data, true_values
+
+FIT = ForwardSettings(cells=8, device="cpu")
+HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}
+
+
+def small_data(material, seed=0, **kw):
+    return make_paper_data(material, n_freqs=16, cells=12, seed=seed, heat_inputs=HEAT.get(material, [0.0, 40.0, 80.0]),
+                           device="cpu", **kw)
+
+
+@pytest.mark.parametrize("material", MATERIALS)
+def test_round_trip_within_two_std(material):
+    """Geometry (step 1) and h_s, h_h, h_a at every Q > 0 (step 2) come back within 2
+    reported std of the truth. Starts are 10 % (geometry) and 50 % (h) off the truth.
+    The step-2 std includes the propagated step-1 uncertainty: without it the h's of the
+    foams at 80 W scatter twice as wide as the purely statistical std (measured, 30 seeds)."""
+    data = small_data(material)
+    truth = true_values(data)
+    geom, ties = default_geometry(load_core(material))
+    ch = characterize(data, material, settings=FIT, warn=False, start1={k: truth[k] * 0.9 for k in geom},
+                      start2={k: truth[k] * 1.5 for k in ("stack.h", "hot_hx.h", "tbt.h")})
+    assert (material == "ceramic") == bool(ties)   # the ceramic's stack and hot exchanger are one material
+    r1, r2 = ch.step1, ch.step2
+    assert r1.converged.all() and r2.converged.all()
+    z1 = (r1.values[0] - [truth[k] for k in r1.names]) / r1.std[0]
+    z2 = (r2.values - [truth[k] for k in r2.names]) / r2.std
+    assert np.all(np.abs(z1) < 2), dict(zip(r1.names, z1))
+    assert np.all(np.abs(z2) < 2), z2
+    assert not r1.distinct_minima.any() and not r2.distinct_minima.any()
+    # the fitted model explains the data to the noise level (0.5 % relative complex noise)
+    assert r1.rms_error[0] < 0.0075 and np.all(r2.rms_error < 0.0075 * np.sqrt(2))
+
+
+def test_bias_correction_removes_a_systematic_bias():
+    """A 3 % multiplicative bias per coefficient (the same on every row) is divided out by
+    Eqs. 22-23: the h's come back within 2 std with the correction, and more than 2.5 std
+    off without it. (The correction is first order: a 10 % bias shifts the step-1
+    geometry enough to leave ~2.6 std in h_s at 80 W, which the std does not cover.)"""
+    data = small_data("mesh", seed=1, bias=0.03)
+    truth = true_values(data)
+    kw = dict(settings=FIT, warn=False, restarts=0, start2={k: truth[k] for k in ("stack.h", "hot_hx.h", "tbt.h")})
+    with_corr = characterize(data, "mesh", **kw)
+    without = characterize(data, "mesh", bias_correction=False, **kw)
+    t = np.array([truth[k] for k in with_corr.heat_names])
+    z_with = (with_corr.step2.values - t) / with_corr.step2.std
+    z_without = (without.step2.values - t) / without.step2.std
+    assert np.all(np.abs(z_with) < 2), z_with
+    assert np.max(np.abs(z_without)) > 2.5, z_without
+
+
+def test_synthetic_data_are_paper_like():
+    d = make_paper_data("rvc_foam", noise=0.01, seed=3, n_freqs=20, cells=12, device="cpu")
+    assert d.heat_inputs.tolist() == [0.0, 4.5, 9.0, 13.5, 18.0]
+    assert d.frequencies.min() == 30 and d.frequencies.max() == 500
+    assert make_paper_data("ceramic", noise=0, n_freqs=5, cells=12, device="cpu").frequencies.tolist() == \
+        [50.0, 87.5, 125.0, 162.5, 200.0]
+    core = load_core("rvc_foam")
+    clean = transfer_matrices(core, d.frequencies, d.heat_inputs, cells=12, device="cpu").dimensionless()
+    Y = normalize(d.T, duct_impedance(core)).reshape(clean.shape)
+    rel = np.sqrt(np.mean(np.abs(Y - clean) ** 2 / np.abs(clean) ** 2))
+    # E|dY|^2 = (noise |Y|)^2 by construction: 400 complex values, rms within 10 %
+    assert rel == pytest.approx(0.01, rel=0.1)
+    assert true_values(d)["stack.h"] == 8.0 and d.sigma is not None
+
+
+def test_fit_and_synth_commands(tmp_path):
+    """`tawarp synth` then `tawarp fit`: fit.json has, per fitted parameter, value, std and
+    the correlation matrix, plus converged, iterations, cost and rms_error; figures exist."""
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers(dest="command")
+    add_synth_parser(sub)
+    add_fit_parser(sub)
+    csv = tmp_path / "mesh.csv"
+    args = parser.parse_args(["synth", "mesh", "-o", str(csv), "--freqs", "30:500:12", "--Q", "0,40", "--cells", "12",
+                              "--device", "cpu", "--quiet"])
+    assert args.func(args) == 0
+    assert read_tmatrix_csv(csv).heat_inputs.tolist() == [0.0, 40.0]
+    out = tmp_path / "fit.json"
+    args = parser.parse_args(["fit", str(csv), "--core", "mesh", "-o", str(out), "--cells", "8", "--device", "cpu",
+                              "--quiet"])
+    assert args.func(args) == 0
+    obj = json.loads(out.read_text())
+    for key in ("parameters", "correlation", "converged", "iterations", "cost", "rms_error", "step1", "step2"):
+        assert key in obj
+    assert set(obj["parameters"]) == {"stack.porosity", "stack.pore_radius", "stack.tortuosity"}
+    assert {"value", "std"} <= set(obj["parameters"]["stack.porosity"])
+    assert np.array(obj["correlation"]["matrix"]).shape == (3, 3)
+    assert [e["heat_input_W"] for e in obj["step2"]] == [40.0]
+    assert set(obj["step2"][0]["parameters"]) == {"stack.h", "hot_hx.h", "tbt.h"}
+    for f in obj["figures"]:
+        assert Path(f).exists()
+    # --fit: the named parameters at every heat input (no two-step procedure)
+    out2 = tmp_path / "fit2.json"
+    args = parser.parse_args(["fit", str(csv), "--core", "mesh", "--fit", "stack.porosity,stack.pore_radius",
+                              "-o", str(out2), "--cells", "8", "--device", "cpu", "--quiet", "--restarts", "0"])
+    assert args.func(args) == 0
+    obj2 = json.loads(out2.read_text())
+    assert [e["heat_input_W"] for e in obj2["fits"]] == [0.0, 40.0]
+
+
+def test_demo_fit_writes_every_material(tmp_path):
+    """`tawarp demo`'s fitting part (fast settings): every bundled material converges and
+    its fit.json, data and figures are written."""
+    from tawarp.characterize import demo_fit
+
+    summary = demo_fit(tmp_path, device="cpu", quiet=True, n_freqs=16, spread=False)
+    assert set(summary["materials"]) == set(MATERIALS)
+    for mat, entry in summary["materials"].items():
+        assert entry["converged"]
+        # 0.5 % relative complex noise: the rms error measure sits at the noise level
+        assert entry["rms_error"] < 0.0075
+        for suffix in (".csv", ".json", "_step1.png", "_step2.png", "_h.png", "_temperature.png"):
+            assert (tmp_path / f"fit_{mat}{suffix}").exists()
+    assert (tmp_path / "fit_summary.json").exists()

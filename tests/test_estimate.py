@@ -1,0 +1,179 @@
+"""Batched Levenberg-Marquardt (tawarp.estimate, kernels/lm.py) on the CPU.
+
+Sizes are small (16 frequencies, 8 Magnus cells in the fits, 12 in the data so that the
+fit is not an inverse crime at Q > 0) so the file runs in well under a minute.
+"""
+
+
+import numpy as np
+import pytest
+
+from tawarp.core import load_core
+from tawarp.estimate import FitWarning, Problems, chol_solve, fit
+from tawarp.forward import ForwardSettings, transfer_matrices
+from tawarp.synthetic import paper_frequencies
+
+FIT = ForwardSettings(cells=8, device="cpu")
+GEOM = ["stack.porosity", "stack.pore_radius", "stack.tortuosity"]
+HEAT = ["stack.h", "hot_hx.h", "tbt.h"]
+
+
+def noisy(core, freqs, Q, n, seed, noise=0.005, cells=12):
+    """n noise draws (n, m, 4) of the model at heat input Q and their sigma (m, 4)."""
+    Y0 = transfer_matrices(core, freqs, Q, cells=cells, device="cpu").dimensionless()[0]
+    sd = noise * np.abs(Y0) / np.sqrt(2)
+    rng = np.random.default_rng(seed)
+    return Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape)), sd
+
+
+def test_normal_equations_match_central_differences():
+    """The kernels' forward-difference Jacobian, reduced to H = J^T J and g = J^T r, against
+    central differences of the forward model (transfer_matrices) in the same scaled variables."""
+    core = load_core("mesh")
+    freqs = paper_frequencies("mesh", 12)
+    names = GEOM + ["stack.h"]
+    Y, sd = noisy(core, freqs, 40.0, 1, seed=3)
+    rng = np.random.default_rng(0)
+    w = rng.uniform(0.5, 2.0, (1, 12, 4, 2)) / sd[None, ..., None]
+    start = np.array([0.7, 4.4e-5, 1.1, 40.0])
+    prob = Problems(core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None])
+    z = prob.to_z(start * np.array([1.02, 0.97, 1.01, 1.1]), 0)
+    cost, raw, g, H = prob.evaluate(np.array([0]), z[None])
+    # host reference: central differences, step 1e-4 in z (truncation ~1e-8 relative)
+    h = 1e-4
+    zs = [z] + [z + s * h * e for e in np.eye(4) for s in (1, -1)]
+    vs = np.array([prob.to_v(zz, 0) for zz in zs])
+    Ym = transfer_matrices(core, freqs, 40.0, params={k: vs[:, a] for a, k in enumerate(names)},
+                           settings=FIT).dimensionless()
+    def real(Yc):
+        d = np.stack([Yc.real, Yc.imag], axis=-1) * w[0]
+        return d.reshape(-1)
+    r = real(Ym[0] - Y[0])
+    J = np.stack([(real(Ym[1 + 2 * a]) - real(Ym[2 + 2 * a])) / (2 * h) for a in range(4)], axis=1)
+    # rel 1e-5: the kernel's forward difference (step 1e-6) has truncation error ~1e-6
+    # relative; central differences with step 1e-4 are accurate to ~1e-8
+    assert cost[0] == pytest.approx(r @ r, rel=1e-12)
+    scale = np.sqrt(np.outer(np.diag(J.T @ J), np.diag(J.T @ J)))
+    assert np.max(np.abs(H[0] - J.T @ J) / scale) < 1e-5
+    gscale = np.sqrt(np.diag(J.T @ J) * (r @ r))
+    assert np.max(np.abs(g[0] - J.T @ r) / gscale) < 1e-5
+    # the unweighted sum of squares of the error measure
+    assert raw[0] == pytest.approx(np.sum(np.abs(Ym[0] - Y[0]) ** 2), rel=1e-12)
+
+
+def test_chol_solve_matches_numpy():
+    rng = np.random.default_rng(1)
+    A = rng.standard_normal((50, 5, 5))
+    A = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(5)
+    b = rng.standard_normal((50, 5))
+    x, ok = chol_solve(A, b)
+    assert ok.all()
+    # 1e-10: well-conditioned SPD systems, double precision
+    assert np.allclose(x, np.linalg.solve(A, b[..., None])[..., 0], rtol=1e-10, atol=1e-12)
+    x, ok = chol_solve(-A, b)
+    assert not ok.any() and np.all(x == 0)
+
+
+def test_std_matches_scatter_over_noise_draws():
+    """30 noise draws fitted as ONE batch: the reported std (mean over draws) agrees with
+    the scatter of the estimates within a factor 1.5 (the sample std of 30 draws is
+    uncertain by ~13 %, so 1.5 is a > 3 sigma bound), for geometry at Q = 0 and for the
+    heat-exchange coefficients at Q = 9 W."""
+    n = 30
+    core = load_core("mesh")
+    freqs = paper_frequencies("mesh", 16)
+    Y, sd = noisy(core, freqs, 0.0, n, seed=11)
+    r = fit(core, freqs, Y, GEOM, {"stack.porosity": 0.6, "stack.pore_radius": 6e-5, "stack.tortuosity": 1.2},
+            weights=1 / sd, settings=FIT, warn=False)
+    assert r.converged.all()
+    ratio = r.values.std(axis=0, ddof=1) / r.std.mean(axis=0)
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
+    core = load_core("rvc_foam")
+    Y, sd = noisy(core, freqs, 9.0, n, seed=12)
+    r = fit(core, freqs, Y, HEAT, [12.0, 60.0, 0.5], heat_input=9.0, weights=1 / sd, settings=FIT, warn=False)
+    assert r.converged.all()
+    ratio = r.values.std(axis=0, ddof=1) / r.std.mean(axis=0)
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
+    # s^2 estimates the variance of the weighted residual: ~1 with the true sigmas (8 m - p = 125
+    # degrees of freedom per fit: mean over 30 fits within 5 %)
+    assert abs(r.s2.mean() - 1) < 0.05
+
+
+def test_lam_s_with_h_s_gives_the_warning():
+    """The paper: the conductivities are too correlated with the h's to be fitted together.
+    Fitting lam_s (stack.solid_conductivity) with h_s names that pair; a parameter with no
+    sensitivity (stack.h at Q = 0) makes the problem ill-conditioned and is named."""
+    core = load_core("nicr_foam")
+    freqs = paper_frequencies("nicr_foam", 16)
+    Y, sd = noisy(core, freqs, 40.0, 1, seed=5)
+    names = ["stack.h", "stack.solid_conductivity", "hot_hx.h", "hot_hx.solid_conductivity", "tbt.h"]
+    with pytest.warns(FitWarning, match="stack.h and stack.solid_conductivity are too correlated"):
+        r = fit(core, freqs, Y, names, [core.get(k) * 1.2 for k in names], heat_input=40.0, weights=1 / sd,
+                settings=FIT)
+    assert abs(r.correlation[0, 0, 1]) > 0.95
+    Y0, sd0 = noisy(core, freqs, 0.0, 1, seed=6)
+    with pytest.warns(FitWarning, match="ill-conditioned.*mostly along stack.h"):
+        r = fit(core, freqs, Y0, ["stack.porosity", "stack.h"], [0.9, 30.0], weights=1 / sd0, settings=FIT,
+                restarts=2)
+    assert not np.isfinite(r.std[0, 1])   # h has no effect at Q = 0: infinite std, not a number
+    # a flat direction is a continuum of minima: the ±20 % restarts stay where they start
+    assert r.distinct_minima[0]
+    assert any("restarts landed in different minima" in w for w in r.warnings)
+
+
+def test_restarts_agree_and_bounds_hold():
+    """Restarts from the solution ±20 % come back (no distinct minima) and the bounds hold:
+    a ceramic fitted with a free tortuosity, whose true value 1 is the lower bound."""
+    core = load_core("ceramic")
+    freqs = paper_frequencies("ceramic", 16)
+    Y, sd = noisy(core, freqs, 0.0, 6, seed=7)
+    ties = {"stack.porosity": ["hot_hx.porosity"], "stack.pore_radius": ["hot_hx.pore_radius"]}
+    r = fit(core, freqs, Y, ["stack.porosity", "stack.pore_radius", "stack.tortuosity"], [0.8, 0.6e-3, 1.3],
+            ties=ties, weights=1 / sd, settings=FIT, restarts=3, warn=False)
+    assert r.restart_values.shape == (6, 3, 3)
+    assert not r.distinct_minima.any()
+    assert r.restart_converged.all()
+    assert np.all(r.values[:, 2] >= 1.0) and np.all(r.values[:, 0] <= 1.0)
+    # restarts land within their stopping tolerance: 0.1 % steps leave < 1 % differences
+    assert np.allclose(r.restart_values, r.values[:, None, :], rtol=1e-2)
+
+
+def test_spread_of_starts_without_prior():
+    """No start: a Sobol spread of 8 starts per problem; the best lands on the truth
+    (within 2 std: 0.5 % noise, one draw) and the result says whether runs disagree."""
+    core = load_core("rvc_foam")
+    freqs = paper_frequencies("rvc_foam", 16)
+    Y, sd = noisy(core, freqs, 0.0, 1, seed=8)
+    r = fit(core, freqs, Y, GEOM, None, weights=1 / sd, settings=FIT, n_starts=8, warn=False)
+    truth = np.array([core.get(k) for k in GEOM])
+    assert np.all(np.abs(r.values[0] - truth) < 2 * r.std[0])
+    assert r.distinct_minima is not None and r.distinct_minima.shape == (1,)
+
+
+def test_early_converged_problem_keeps_its_answer():
+    """Active-set compaction: a problem that converges early keeps exactly the answer it
+    gets alone, while a slow problem in the same batch keeps iterating."""
+    core = load_core("mesh")
+    freqs = paper_frequencies("mesh", 12)
+    Y, sd = noisy(core, freqs, 0.0, 2, seed=9)
+    starts = np.array([[0.68, 4.0e-5, 1.06], [0.5, 1.2e-4, 1.6]])
+    both = fit(core, freqs, Y, GEOM, starts, weights=1 / sd, settings=FIT, warn=False)
+    alone = fit(core, freqs, Y[:1], GEOM, starts[:1], weights=1 / sd, settings=FIT, warn=False)
+    assert both.converged.all()
+    assert both.iterations[0] < both.iterations[1]
+    # bitwise: the same launches (sets are independent threads) give the same numbers
+    assert np.array_equal(both.values[0], alone.values[0])
+    assert both.iterations[0] == alone.iterations[0]
+
+
+def test_paper_damping_converges_to_the_same_answer():
+    """Both damping rules reach the same minimum (to well inside the 0.1 % stopping rule's
+    reach: 0.3 std)."""
+    core = load_core("nicr_foam")
+    freqs = paper_frequencies("nicr_foam", 12)
+    Y, sd = noisy(core, freqs, 0.0, 4, seed=10)
+    kw = dict(weights=1 / sd, settings=FIT, warn=False)
+    a = fit(core, freqs, Y, GEOM, [0.8, 4e-4, 1.5], damping="nielsen", **kw)
+    b = fit(core, freqs, Y, GEOM, [0.8, 4e-4, 1.5], damping="paper", **kw)
+    assert a.converged.all() and b.converged.all()
+    assert np.all(np.abs(a.values - b.values) < 0.3 * a.std)
