@@ -126,10 +126,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_forward)
 
     from .characterize import add_fit_parser
+    from .design_cli import add_design_parser, add_rank_parser, add_sweep_parser
     from .synthetic import add_synth_parser
 
     add_fit_parser(sub)
     add_synth_parser(sub)
+    add_design_parser(sub)
+    add_rank_parser(sub)
+    add_sweep_parser(sub)
     return parser
 
 

@@ -1,0 +1,182 @@
+"""Benchmark of design search and sweeps (issue #5): writes bench/results/design_<device>.json (cuda: design_cuda_<gpu>.json).
+
+Search: a batched CMA-ES study (and an NSGA-II one) over material x stack length x
+porosity x hot-exchanger length x heat input, stored in a journal file as the command
+line does; reported: design evaluations per minute end to end (sampler, storage and
+evaluation included), the share of wall time in the sampler, the storage and the
+evaluation (device launches plus transfers), and the share of wall time the device is
+busy with kernels (kernel time of one batch, measured on a device-resident batch, times
+the number of batches, over the wall time). Optuna's own samplers (one ask per trial)
+are timed on a smaller run for comparison.
+
+Sweep: a Sobol sweep streamed to netCDF at two sizes, each in its own process so that
+its peak resident memory is its own: forward evaluations per hour and peak RSS (flat
+memory: the two peaks should match).
+
+    python bench/design.py --device cuda          # < 3 min on one H100
+    python bench/design.py --device cpu --small   # < 2 min on a laptop CPU
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+VARS = ["material=ceramic,mesh,nicr_foam,rvc_foam", "stack.length=0.005:0.1", "stack.porosity=0.6:0.98",
+        "hot_hx.length=0.005:0.03", "heat_input=1:30"]
+
+
+def _space():
+    from tawarp.core import load_core
+    from tawarp.design import DesignSpace
+
+    return DesignSpace(load_core("rvc_foam"), VARS)
+
+
+def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None):
+    import warp as wp
+
+    from tawarp.design import Evaluator, search
+    from tawarp.forward import ForwardSettings
+
+    space = _space()
+    settings = ForwardSettings(device=device)
+    storage = os.path.join(tmp, f"{engine}_{len(objectives)}.journal")
+    # warm-up: kernels compiled and modules imported before timing
+    search(space, objectives, n_trials=2 * min(batch, 64), batch=min(batch, 64), storage=None, settings=settings,
+           engine=engine)
+    t = time.perf_counter()
+    res = search(space, objectives, n_trials=n_trials, batch=batch, storage=storage, settings=settings, engine=engine)
+    wall = time.perf_counter() - t
+    # kernel time of one batch on a device-resident table
+    ev = Evaluator(space, settings=settings)
+    import numpy as np
+
+    from tawarp.design import sobol_unit
+
+    u = sobol_unit(batch, len(space.continuous), 1)
+    vals = space.from_unit(u)
+    vals["material"] = np.arange(batch) % 4
+    table = wp.array(space.varying_table(vals), dtype=wp.float64, device=ev.device)
+    ev.evaluate_device(table)
+    wp.synchronize_device(ev.device)
+    reps = 20
+    t0 = time.perf_counter()
+    for _ in range(reps):
+        ev.evaluate_device(table)
+    wp.synchronize_device(ev.device)
+    kernel = (time.perf_counter() - t0) / reps
+    n_batches = res.timing["evaluations"] / batch
+    tm = res.timing
+    return {"engine": engine, "objectives": list(objectives), "trials": tm["evaluations"], "batch": batch,
+            "storage": "journal file", "wall_s": wall,
+            "evaluations_per_minute": 60.0 * tm["evaluations"] / wall,
+            "sampler_s": tm["sampler"], "storage_s": tm["storage"], "evaluation_s": tm["evaluation"],
+            "sampler_share": tm["sampler"] / wall, "storage_share": tm["storage"] / wall,
+            "evaluation_share": tm["evaluation"] / wall,
+            "kernel_s_per_batch": kernel, "device_busy_share": kernel * n_batches / wall,
+            "best": res.best[0]["values"] if res.best else None}
+
+
+def sweep_child(device, n, chunk, path):
+    """Run one sweep in this process and print its numbers (peak RSS of this process)."""
+    from tawarp.forward import ForwardSettings
+    from tawarp.sweep import sweep
+
+    space = _space()
+    sweep(space, path, mode="sobol", n_samples=min(n, 4 * chunk), chunk=chunk, settings=ForwardSettings(device=device))
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    info = sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, settings=ForwardSettings(device=device))
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"points": n, "chunk": chunk, "seconds": info.seconds,
+                      "evaluations_per_hour": info.evaluations_per_hour, "evaluation_s": info.evaluation_seconds,
+                      "write_s": info.write_seconds, "peak_rss_MiB": rss / 1024.0,
+                      "peak_rss_after_warmup_MiB": rss0 / 1024.0,
+                      "file_MiB": os.path.getsize(path) / 2**20}))
+
+
+def bench_sweep(device, n, chunk, tmp):
+    path = os.path.join(tmp, f"sweep_{n}.nc")
+    out = subprocess.run([sys.executable, __file__, "--device", device, "--sweep-child", str(n), str(chunk), path],
+                         capture_output=True, text=True, check=True)
+    os.remove(path)
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default=None)
+    ap.add_argument("--small", action="store_true", help="CPU-sized run (< 2 min)")
+    ap.add_argument("--sweep-child", nargs=3, metavar=("N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
+    ap.add_argument("-o", "--output", default=None)
+    args = ap.parse_args(argv)
+    from tawarp.forward import resolve_device
+
+    device = resolve_device(args.device)
+    if args.sweep_child:
+        n, chunk, path = args.sweep_child
+        sweep_child(device, int(n), int(chunk), path)
+        return 0
+    import warp as wp
+
+    if args.small:
+        cfg = dict(trials=16384, batch=1024, mo_trials=4096, mo_batch=512, opt_trials=512, opt_batch=64,
+                   sweep=(1 << 16, 1 << 18), chunk=1 << 14)
+    else:
+        cfg = dict(trials=262144, batch=8192, mo_trials=32768, mo_batch=2048, opt_trials=2048, opt_batch=256,
+                   sweep=(1 << 24, 1 << 26), chunk=1 << 22)
+    t_all = time.perf_counter()
+    out = {"device": device, "device_name": str(wp.get_device(device).name), "host": platform.node(),
+           "python": platform.python_version(), "warp": wp.__version__, "config": cfg, "design_space": VARS}
+    with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
+        out["search_cmaes"] = bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp)
+        print(json.dumps(out["search_cmaes"]), flush=True)
+        out["search_nsga2"] = bench_search(device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp)
+        print(json.dumps(out["search_nsga2"]), flush=True)
+        out["search_optuna_cmaes"] = bench_search(device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",),
+                                                  engine="optuna", tmp=tmp)
+        print(json.dumps(out["search_optuna_cmaes"]), flush=True)
+        out["sweep"] = [bench_sweep(device, n, cfg["chunk"], tmp) for n in cfg["sweep"]]
+        print(json.dumps(out["sweep"]), flush=True)
+    s = out["sweep"]
+    out["summary"] = {
+        "search_evaluations_per_minute": out["search_cmaes"]["evaluations_per_minute"],
+        "search_sampler_share": out["search_cmaes"]["sampler_share"],
+        "search_storage_share": out["search_cmaes"]["storage_share"],
+        "search_evaluation_share": out["search_cmaes"]["evaluation_share"],
+        "search_device_busy_share": out["search_cmaes"]["device_busy_share"],
+        "nsga2_evaluations_per_minute": out["search_nsga2"]["evaluations_per_minute"],
+        "optuna_samplers_evaluations_per_minute": out["search_optuna_cmaes"]["evaluations_per_minute"],
+        "sweep_evaluations_per_hour": s[-1]["evaluations_per_hour"],
+        "sweep_peak_rss_MiB": [x["peak_rss_MiB"] for x in s],
+        "sweep_points": [x["points"] for x in s],
+        "targets": {"search_per_minute": 1e5, "sweep_per_hour": 1e9},
+        "bench_seconds": time.perf_counter() - t_all,
+    }
+    tag = device.split(":")[0]
+    if tag == "cuda":  # as the other benches: design_cuda_h100.json, design_cuda_h200.json
+        import re
+
+        m = re.search(r"\b([A-Z]\d{2,3}[A-Z]?)\b", out["device_name"])
+        tag = f"cuda_{m.group(1).lower()}" if m else tag
+    path = Path(args.output or ROOT / "bench" / "results" / f"design_{tag}.json")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(out, indent=2) + "\n")
+    print(json.dumps(out["summary"], indent=2))
+    print(f"wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

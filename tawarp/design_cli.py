@@ -1,0 +1,239 @@
+"""Command-line subcommands ``tawarp design``, ``tawarp rank``, ``tawarp sweep``.
+
+Wired into :mod:`tawarp.cli` by::
+
+    from .design_cli import add_design_parser, add_rank_parser, add_sweep_parser
+    add_design_parser(sub); add_rank_parser(sub); add_sweep_parser(sub)
+
+Each registers its subcommand with ``--device``, ``--quiet``, ``-o``; figures go beside
+the JSON output.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
+            "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
+            "material=NAME,NAME,... (catalogue materials in the stack)")
+
+
+def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    from .cli import _common as common
+
+    return common(p)
+
+
+def _floats(text: str) -> np.ndarray:
+    from .cli import parse_list
+
+    return parse_list(text)
+
+
+def _space(args, grid: bool = False):
+    from .catalogue import load_catalogue
+    from .core import load_core
+    from .design import DesignSpace, parse_variable
+
+    core = load_core(args.core)
+    cat = load_catalogue(args.catalogue or [])
+    variables = [parse_variable(v, grid=grid) for v in (args.var or [])]
+    if not variables:
+        raise ValueError("give at least one --var")
+    fixed = [v for v in variables if not v.categorical and v.low == v.high and len(v.values) <= 1]
+    q = args.heat_input
+    changes = {}
+    for v in fixed:
+        if v.name == "heat_input":
+            q = v.low
+        else:
+            changes[v.name] = v.low
+    variables = [v for v in variables if v not in fixed]
+    if changes:
+        core = core.replace(**changes)
+    return DesignSpace(core, variables, catalogue=cat, segment=args.segment, heat_input=q)
+
+
+def _settings(args):
+    from .forward import ForwardSettings
+
+    return ForwardSettings(device=args.device)
+
+
+def _add_space_args(p):
+    p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
+    p.add_argument("--var", action="append", help=VAR_HELP)
+    p.add_argument("--heat-input", "--Q", dest="heat_input", type=float, default=9.0,
+                   help="heat input [W] when it is not a --var (default: %(default)s)")
+    p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
+    p.add_argument("--segment", default="stack", help="the segment the design is about (default: %(default)s)")
+
+
+# -- design ------------------------------------------------------------------------------
+def cmd_design(args) -> int:
+    from .cli import _say, write_json
+    from .design import OBJECTIVES, search, study_summary
+    from .design_plots import plot_best_profiles, plot_history, plot_pareto
+
+    space = _space(args)
+    objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    storage = args.storage or str(out / "study.journal")
+    T_limit = None if args.no_T_limit else args.T_limit
+    res = search(space, objectives, n_trials=args.trials, batch=args.batch, storage=storage, study_name=args.study,
+                 worker=args.worker, seed=args.seed, T_limit=T_limit, engine=args.engine,
+                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet)
+    report = {"core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
+              "objective_definitions": {o: {"direction": OBJECTIVES[o][0], "units": OBJECTIVES[o][1],
+                                            "definition": OBJECTIVES[o][2]} for o in objectives},
+              "T_limit_K": T_limit, "storage": storage, "study": args.study, "worker": args.worker,
+              "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
+              "summary": study_summary(res.study, objectives), "timing": res.timing,
+              "best": res.best[: args.keep]}
+    write_json(out / "design.json", report)
+    if not args.no_plots:
+        plot_history(res.study, objectives, out / "history.png", T_limit)
+        if len(objectives) > 1:
+            plot_pareto(res.study, objectives, res.best, out / "pareto.png")
+        shown = _profile_designs(res.study, objectives, res.best, space, T_limit)
+        if shown:
+            plot_best_profiles(space, shown, out / "best_profiles.png", device=args.device)
+    if res.best:
+        b = res.best[0]
+        _say(args, f"best: {b['values']} at {b['params']}")
+    _say(args, f"{res.timing['evaluations']} evaluations, {res.timing['evaluations_per_minute']:.3g}/min; "
+               f"wrote {out / 'design.json'}")
+    return 0
+
+
+def _profile_designs(study, objectives, best, space, T_limit, n=5):
+    """Designs whose profiles are drawn: the best of each material (one objective), or
+    up to n points spread along the Pareto front."""
+    from .design import best_designs
+
+    if len(objectives) > 1:
+        if len(best) <= n:
+            return best
+        idx = np.unique(np.linspace(0, len(best) - 1, n).round().astype(int))
+        return [best[i] for i in idx]
+    if space.material is None:
+        return best[:1]
+    ranked = best_designs(study, objectives, T_limit, k=10**9)
+    out, seen = [], set()
+    for b in ranked:
+        m = b["params"].get("material")
+        if m not in seen:
+            seen.add(m)
+            out.append(b)
+    return out
+
+
+def add_design_parser(sub) -> argparse.ArgumentParser:
+    from .design import DEFAULT_FREQS, DEFAULT_T_LIMIT
+
+    p = _common(sub.add_parser("design", help="design search (CMA-ES / NSGA-II, batched on the device, Optuna study)",
+                               description="Batched design search. Objectives: gradient = (T(x3)-T(x2))/l_s [K/m] "
+                                           "(maximized), heat_leak [W], acoustic_loss [-], T_max [K] (minimized)."))
+    _add_space_args(p)
+    p.add_argument("--objectives", default="gradient",
+                   help="comma list: gradient, heat_leak, acoustic_loss, T_max (two or more: NSGA-II)")
+    p.add_argument("--trials", type=int, default=4096, help="trials of this worker (default: %(default)s)")
+    p.add_argument("--batch", type=int, default=256, help="population = trials per launch (default: %(default)s)")
+    p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT,
+                   help="constraint T_max <= T_LIMIT [K] (default: %(default)s)")
+    p.add_argument("--no-T-limit", action="store_true", help="no temperature constraint")
+    p.add_argument("--storage", default=None,
+                   help="journal file path or database URL (sqlite:///x.db, postgresql://...); "
+                        "default: OUTPUT/study.journal")
+    p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
+    p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--engine", choices=("batched", "optuna"), default="batched",
+                   help="batched population samplers (default) or Optuna's own samplers, one ask per trial")
+    p.add_argument("--freqs", type=_floats, default=np.array(DEFAULT_FREQS),
+                   help="frequencies [Hz] of acoustic_loss, list or start:stop:count")
+    p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
+    p.add_argument("-o", "--output", default="tawarp-design", help="output folder (default: %(default)s)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures")
+    p.set_defaults(func=cmd_design)
+    return p
+
+
+# -- rank --------------------------------------------------------------------------------
+def cmd_rank(args) -> int:
+    from .catalogue import load_catalogue
+    from .cli import _say, write_json
+    from .design_plots import plot_ranking
+    from .rank import rank_materials
+
+    cat = load_catalogue(args.catalogue or [])
+    mats = [m.strip() for m in args.materials.split(",")] if args.materials else None
+    if mats:
+        missing = [m for m in mats if m not in cat]
+        if missing:
+            raise KeyError(f"materials {missing} not in the catalogue ({', '.join(cat)})")
+    res = rank_materials(mats, args.Q, core=args.core, segment=args.segment, n_samples=args.samples, seed=args.seed,
+                         T_limit=args.T_limit, catalogue=cat, settings=_settings(args))
+    out = Path(args.output)
+    d = res.to_dict()
+    d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
+    write_json(out, d)
+    if not args.no_plots:
+        plot_ranking(res, out.with_suffix(".png"))
+    for q in res.heat_inputs:
+        _say(args, f"Q = {q:g} W: " + " > ".join(res.ordering(q)))
+    _say(args, f"wrote {out}")
+    return 0
+
+
+def add_rank_parser(sub) -> argparse.ArgumentParser:
+    from .design import DEFAULT_T_LIMIT
+
+    p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach, with uncertainty"))
+    p.add_argument("--materials", default=None, help="comma list of catalogue names (default: all)")
+    p.add_argument("--Q", type=_floats, default=_floats("9"), help="heat inputs [W], list or start:stop:count")
+    p.add_argument("--core", default="rvc_foam", help="reference core whose stack takes each material (default: %(default)s)")
+    p.add_argument("--segment", default="stack")
+    p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
+    p.add_argument("--samples", type=int, default=4000, help="draws per material (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
+    p.add_argument("-o", "--output", default="rank.json", help="output JSON; figure beside it (default: %(default)s)")
+    p.add_argument("--no-plots", action="store_true")
+    p.set_defaults(func=cmd_rank)
+    return p
+
+
+# -- sweep -------------------------------------------------------------------------------
+def cmd_sweep(args) -> int:
+    from .cli import _say, write_json
+    from .sweep import sweep
+
+    space = _space(args, grid=args.samples is None)
+    mode = "grid" if args.samples is None else "sobol"
+    info = sweep(space, args.output, mode=mode, n_samples=args.samples, chunk=args.chunk, seed=args.seed,
+                 settings=_settings(args), progress=not args.quiet)
+    meta = {"output": str(info.path), "mode": mode, "points": info.n_points, "seconds": info.seconds,
+            "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
+            "evaluation_seconds": info.evaluation_seconds, "write_seconds": info.write_seconds,
+            "variables": space.describe()}
+    write_json(Path(args.output).with_suffix(".json"), meta)
+    _say(args, f"{info.n_points} points in {info.seconds:.1f} s ({info.evaluations_per_hour:.3g}/h); wrote {info.path}")
+    return 0
+
+
+def add_sweep_parser(sub) -> argparse.ArgumentParser:
+    p = _common(sub.add_parser("sweep", help="grid or quasi-random sweep streamed to a netCDF file",
+                               description="Grid: every --var NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2 is a dimension. "
+                                           "With --samples N: N scrambled Sobol points over --var NAME=LOW:HIGH ranges."))
+    _add_space_args(p)
+    p.add_argument("--samples", type=int, default=None, help="quasi-random (Sobol) sweep of this many points")
+    p.add_argument("--chunk", type=int, default=1 << 20, help="points per launch and write (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("-o", "--output", default="sweep.nc", help="output netCDF (default: %(default)s); JSON summary beside it")
+    p.set_defaults(func=cmd_sweep)
+    return p

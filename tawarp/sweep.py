@@ -1,0 +1,218 @@
+"""Large sweeps over a design space, streamed to a labelled netCDF file.
+
+Two layouts (read back with ``xarray.open_dataset(path, engine="h5netcdf")``):
+
+- ``grid``: one dimension per design variable, its grid as coordinate (``material`` as
+  string labels); the outputs have shape (n_1, ..., n_k).
+- ``sobol``: a ``sample`` dimension; the design variables are variables along it
+  (``material`` as an int8 index with CF ``flag_values``/``flag_meanings``), points of a
+  scrambled Sobol sequence (seeded, reproducible) scaled to the variable ranges.
+
+Outputs (float32, CF ``units``): ``gradient`` [K/m] = (T(x3) - T(x2)) / l_s,
+``T_max`` [K], ``heat_leak`` [W] (stack, to the wall), ``T_hot`` [K] = T(x3); see
+:mod:`tawarp.design`. The work is done in chunks of ``chunk`` points: one heat-solve and
+one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab) before the
+next, so memory stays flat whatever the size. The file is written to a temporary name
+beside the target and renamed at the end (nothing half-written on failure).
+"""
+
+from __future__ import annotations
+
+import gc
+import os
+import tempfile
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .design import METRICS, DesignSpace, Evaluator
+from .forward import ForwardSettings
+
+UNITS = {"gradient": "K/m", "T_max": "K", "heat_leak": "W", "T_hot": "K", "heat_input": "W"}
+LONG_NAMES = {"gradient": "temperature gradient across the stack (T(x3) - T(x2)) / l_s",
+              "T_max": "maximum temperature of the core",
+              "heat_leak": "heat leaked to the wall in the stack",
+              "T_hot": "temperature at the hot end of the stack, T(x3)"}
+
+
+@dataclass
+class SweepInfo:
+    """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
+    ``evaluation_seconds`` (device work incl. transfers), ``write_seconds``."""
+
+    path: Path
+    n_points: int
+    seconds: float
+    evaluations_per_hour: float
+    chunks: int
+    evaluation_seconds: float
+    write_seconds: float
+
+
+def _units(space: DesignSpace, name: str) -> str:
+    from .core import FIELD_BOUNDS
+
+    if name == "heat_input":
+        return "W"
+    fld = space.core_name(name).partition(".")[2]
+    return FIELD_BOUNDS[fld][3] if fld in FIELD_BOUNDS else ""
+
+
+def _blocks(shape: tuple, chunk: int):
+    """Contiguous C-order blocks of at most ~chunk points that are hyperslabs:
+    yields (lo, hi, index tuple of slices)."""
+    k = len(shape)
+    trailing = [int(np.prod(shape[j + 1:])) for j in range(k)]
+    a = next((j for j in range(k) if trailing[j] <= chunk), k - 1)
+    step = max(1, chunk // trailing[a])
+    lead_shape = shape[:a]
+    for lead in np.ndindex(*lead_shape) if lead_shape else [()]:
+        base = int(np.ravel_multi_index(lead, lead_shape)) * shape[a] * trailing[a] if lead_shape else 0
+        for i0 in range(0, shape[a], step):
+            i1 = min(shape[a], i0 + step)
+            lo = base + i0 * trailing[a]
+            hi = base + i1 * trailing[a]
+            yield lo, hi, tuple(lead) + (slice(i0, i1),)
+
+
+def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: int | None = None,
+          chunk: int = 1 << 20, seed: int = 0, settings: ForwardSettings | None = None,
+          progress: bool = False, attrs: dict | None = None) -> SweepInfo:
+    """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
+    or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
+    results to the netCDF file ``path``. See the module docstring."""
+    import h5netcdf
+    import h5py
+
+    from .progress import progress_bar
+
+    if mode not in ("grid", "sobol"):
+        raise ValueError(f"mode must be 'grid' or 'sobol', got {mode!r}")
+    if chunk < 1:
+        raise ValueError("chunk must be >= 1")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    settings = settings or ForwardSettings()
+    ev = Evaluator(space, settings=settings)
+    cont = space.continuous
+    if mode == "grid":
+        for v in cont:
+            if not v.values:
+                raise ValueError(f"grid sweep: variable {v.name!r} needs grid values (NAME=LOW:HIGH:COUNT or a list)")
+        dims = [v.name for v in space.variables]
+        grids = {v.name: (list(v.choices) if v.categorical else np.asarray(v.values, float)) for v in space.variables}
+        shape = tuple(len(grids[d]) for d in dims)
+        n = int(np.prod(shape))
+    else:
+        if not n_samples or n_samples < 1:
+            raise ValueError("sobol sweep: give n_samples >= 1")
+        n = int(n_samples)
+        shape = (n,)
+        dims = ["sample"]
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    os.close(fd)
+    t0 = time.perf_counter()
+    t_eval = t_write = 0.0
+    nchunks = 0
+    bar = progress_bar(n, "sweep", progress, unit="pt")
+    try:
+        with h5netcdf.File(tmp, "w") as f:
+            f.attrs["title"] = "tawarp sweep"
+            f.attrs["core"] = str(space.core.source)
+            f.attrs["mode"] = mode
+            f.attrs["heat_input_W_default"] = space.heat_input
+            f.attrs["gradient_definition"] = "(T(x3) - T(x2)) / l_s, steady heat model"
+            for k, v in (attrs or {}).items():
+                f.attrs[k] = v
+            if mode == "grid":
+                f.dimensions = {d: len(grids[d]) for d in dims}
+                for d in dims:
+                    if d == "material":
+                        var = f.create_variable(d, (d,), dtype=h5py.string_dtype())
+                        var[:] = np.array(grids[d], dtype=object)
+                    else:
+                        var = f.create_variable(d, (d,), dtype="f8")
+                        var[:] = grids[d]
+                        var.attrs["units"] = _units(space, d)
+                cshape = tuple(max(1, min(s, c)) for s, c in zip(shape, _chunk_shape(shape, chunk)))
+            else:
+                f.dimensions = {"sample": n}
+                cshape = (min(n, max(1, min(chunk, 1 << 20))),)
+                for v in cont:
+                    var = f.create_variable(v.name, ("sample",), dtype="f8", chunks=cshape)
+                    var.attrs["units"] = _units(space, v.name)
+                if space.material is not None:
+                    var = f.create_variable("material", ("sample",), dtype="i1", chunks=cshape)
+                    var.attrs["flag_values"] = np.arange(len(space.material.choices), dtype=np.int8)
+                    var.attrs["flag_meanings"] = " ".join(space.material.choices)
+            outs = {}
+            for k in METRICS:
+                var = f.create_variable(k, tuple(dims), dtype="f4", chunks=cshape)
+                var.attrs["units"] = UNITS[k]
+                var.attrs["long_name"] = LONG_NAMES[k]
+                outs[k] = var
+            if mode == "grid":
+                it = ((lo, hi, sl) for lo, hi, sl in _blocks(shape, chunk))
+            else:
+                it = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
+            for lo, hi, sl in it:
+                m = hi - lo
+                if mode == "grid":
+                    idx = np.unravel_index(np.arange(lo, hi, dtype=np.int64), shape)
+                    values = {}
+                    for j, d in enumerate(dims):
+                        if d == "material":
+                            values[d] = idx[j].astype(np.int64)
+                        else:
+                            values[d] = grids[d][idx[j]]
+                else:
+                    from .design import sobol_unit
+
+                    d_all = len(cont) + (1 if space.material is not None else 0)
+                    u = sobol_unit(m, d_all, seed, skip=lo)
+                    values = space.from_unit(u[:, : len(cont)])
+                    if space.material is not None:
+                        values["material"] = np.minimum((u[:, -1] * len(space.material.choices)).astype(np.int64),
+                                                        len(space.material.choices) - 1)
+                t = time.perf_counter()
+                table = space.varying_table(values)
+                res = ev.evaluate_device(table).numpy()
+                t_eval += time.perf_counter() - t
+                t = time.perf_counter()
+                block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
+                full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
+                sub_shape = tuple(b for b in block) + tuple(shape[len(sl):])
+                for j, k in enumerate(METRICS):
+                    outs[k][full] = res[:, j].astype(np.float32).reshape(sub_shape)
+                if mode == "sobol":
+                    for v in cont:
+                        f.variables[v.name][lo:hi] = values[v.name]
+                    if space.material is not None:
+                        f.variables["material"][lo:hi] = values["material"].astype(np.int8)
+                t_write += time.perf_counter() - t
+                nchunks += 1
+                bar.update(m)
+                del values, table, res
+                if nchunks % 16 == 0:
+                    gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
+        os.replace(tmp, path)
+    finally:
+        bar.close()
+        if os.path.exists(tmp):
+            os.remove(tmp)
+    wall = time.perf_counter() - t0
+    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
+
+
+def _chunk_shape(shape: tuple, chunk: int) -> tuple:
+    """HDF5 chunk shape of about min(chunk, 2^20) points, trailing dimensions first."""
+    target = max(1, min(chunk, 1 << 20))
+    out = []
+    rem = target
+    for s in reversed(shape):
+        c = max(1, min(s, rem))
+        out.append(c)
+        rem = max(1, rem // c)
+    return tuple(reversed(out))
