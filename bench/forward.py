@@ -117,6 +117,7 @@ def main(argv=None):
     ap.add_argument("--sizes", default=None, help="comma list of batch sizes in forward models (n * 100)")
     ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
     ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
+    ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -153,10 +154,16 @@ def main(argv=None):
     varying = wp.array(table, dtype=wp.float64, device=device)
     blocks = {}
     for b in (int(v) for v in args.block_dims.split(",")):
-        engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, device=device))
-        blocks[str(b)] = n * len(FREQS) / time_engine(engine, varying, args.min_time)
-        print(f"block_dim={b:4d} models={n * len(FREQS):>10d}  {blocks[str(b)]:.3e} models/s", flush=True)
-    result["block_dim_models_per_s"] = blocks
+        for r in [None] + [int(v) for v in args.max_registers.split(",") if v]:
+            engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, max_registers=r, device=device))
+            try:
+                rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
+            except Exception as e:  # a block too large for the register file fails to launch
+                print(f"block_dim={b} max_registers={r}: {e}", flush=True)
+                continue
+            blocks[f"{b}/{r}"] = rate
+            print(f"block_dim={b:4d} max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
+    result["block_dim/max_registers_models_per_s"] = blocks
 
     peers = {"numpy_reference_models_per_s": numpy_reference_rate(), "openthermoacoustics": openthermoacoustics_rate()}
     best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}

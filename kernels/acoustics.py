@@ -15,7 +15,7 @@ integrator.
 
 import warp as wp
 
-from .cmath import cdiv, cexp, cmul, cmuli, creal, cscale, csqrt
+from .cmath import cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
 from .pore import pore_functions
 
@@ -87,9 +87,15 @@ def expm2(m: CMat2):
 @wp.func
 def propagation_matrix(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.float64,
                        T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
-                       tortuosity: wp.float64, pore_model: int, area: wp.float64):
+                       tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
+                       frame_mobility: wp.float64, shape_factor: wp.float64):
     """A(x) of the two-port ODE at local temperature T [K], gradient dTdx [K/m],
-    angular frequency omega [rad/s], tube section area [m^2]."""
+    angular frequency omega [rad/s], tube section area [m^2]. ``pore_radius`` sets f_nu
+    and ``thermal_radius`` f_k (the same for the one-radius model; a separate thermal
+    radius is the Johnson-Champoux-Allard Lambda'/Lambda effect). ``frame_mobility`` =
+    1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame limp: 0 = rigid.
+    ``shape_factor`` s != 1 (circular pores only) gives the viscous function its own
+    high-frequency length Lambda = r/s at the same flow resistivity (:func:`shape_correction`)."""
     rho = density(gas, T, p_mean)
     c2 = sound_speed_squared(gas, T)
     mu = viscosity(gas, T)
@@ -99,15 +105,56 @@ def propagation_matrix(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omeg
     prandtl = mu * cp / kappa
     # r/delta with delta_nu = sqrt(2 mu/(rho w)), delta_k = sqrt(2 k/(rho cp w))
     s_nu = pore_radius * wp.sqrt(rho * omega / (wp.float64(2.0) * mu))
-    s_k = pore_radius * wp.sqrt(rho * cp * omega / (wp.float64(2.0) * kappa))
+    s_k = thermal_radius * wp.sqrt(rho * cp * omega / (wp.float64(2.0) * kappa))
     f_nu, g_nu = pore_functions(pore_model, s_nu)
     f_k, g_k = pore_functions(pore_model, s_k)
+    if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
+        g_nu = cdiv(g_nu, shape_correction(s_nu, shape_factor))
     a12 = cmuli(cdiv(creal(tortuosity * tortuosity * rho * omega / (porosity * area)), g_nu))
+    if frame_mobility > wp.float64(0.0):
+        a12 = cmuli(cscale(limp_density(rho, porosity, tortuosity, g_nu, frame_mobility), omega / area))
     a21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), porosity * area * omega / (rho * c2)))
     # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
     a22 = cscale(cdiv(g_nu - g_k, g_nu), dTdx / (T * (wp.float64(1.0) - prandtl)))
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
     return cmat2(zero, a12, a21, a22)
+
+
+@wp.func
+def johnson_factor(x: wp.float64, s: wp.float64):
+    """Johnson's dynamic tortuosity over alpha_inf for circular-pore resistivity
+    (sigma = 8 mu alpha_inf/(phi r^2)) and viscous length Lambda = r/s, exp(-iwt):
+    J = 1 + (4 i / x^2) sqrt(1 - i s^2 x^2 / 8), x = r/delta_nu."""
+    x2 = x * x
+    root = csqrt(cplx(wp.float64(1.0), -s * s * x2 / wp.float64(8.0)))
+    return creal(wp.float64(1.0)) + cscale(cmuli(root), wp.float64(4.0) / x2)
+
+
+@wp.func
+def shape_correction(x: wp.float64, s: wp.float64):
+    """J(s)/J(1): multiplies the exact circular-pore density q^2 rho/(1 - f_nu). Tends to 1
+    at low frequency (the flow resistivity of radius r is kept) and to
+    (1 + (1+i) s/x)/(1 + (1+i)/x) at high frequency: the viscous boundary layer then sees
+    Lambda = r/s (a Johnson-Champoux-Allard shape factor; s = 1 is the circular pore)."""
+    return cdiv(johnson_factor(x, s), johnson_factor(x, wp.float64(1.0)))
+
+
+@wp.func
+def limp_density(rho: wp.float64, phi: wp.float64, q: wp.float64, g_nu: wp.vec2d, m: wp.float64):
+    """Effective density [kg/m^3] per total volume flux of a porous layer whose frame is
+    limp (no stiffness) with bulk density 1/m: from the fluid and frame momentum balances
+    with the rigid-frame coupling A = phi (rho_e - rho), rho_e = q^2 rho / (1 - f_nu),
+
+        rho_w = (phi rho + A (phi rho m + 1)) / (phi^2 + phi (1 - phi)^2 rho m + A m),
+
+    which is rho_e / phi (rigid) at m = 0 and phi rho + 1/m (frame moving with the air)
+    as A grows."""
+    rho_e = cdiv(creal(q * q * rho), g_nu)
+    A = cscale(rho_e - creal(rho), phi)
+    one_m = wp.float64(1.0) - phi
+    num = creal(phi * rho) + cscale(A, phi * rho * m + wp.float64(1.0))
+    den = creal(phi * phi + phi * one_m * one_m * rho * m) + cscale(A, m)
+    return cdiv(num, den)
 
 
 @wp.func

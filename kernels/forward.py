@@ -15,8 +15,9 @@ import warp as wp
 
 from .acoustics import expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
 from .gas import sound_speed_squared
-from .heat import cell_profile, segment_heat_coeffs, solve_heat, temperature_at
-from .layout import F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD, TORTUOSITY, seg_value
+from .heat import cell_coeffs_at, cell_profile, segment_heat_coeffs, segment_nonlinear, solve_heat, temperature_at
+from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
+                     FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
 
 TWO_PI = wp.constant(wp.float64(6.283185307179586))
 PI = wp.constant(wp.float64(3.141592653589793))
@@ -40,9 +41,10 @@ def expand_parameters(base: wp.array(dtype=wp.float64), varying: wp.array2d(dtyp
 @wp.kernel
 def heat_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                 gas: wp.array(dtype=wp.float64), first: int, count: int, heat_cells: int, fitted: int,
+                max_iter: int, tol: wp.float64,
                 theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
     i = wp.tid()
-    solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, theta, scratch)
+    solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch)
 
 
 @wp.func
@@ -55,15 +57,50 @@ def pore_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
 
 
 @wp.func
+def thermal_radius(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int,
+                   r: wp.float64):
+    """Radius [m] of the thermal function f_k: r times ``thermal_radius_ratio`` in a porous
+    segment (a ratio <= 0 counts as 1), r in a duct."""
+    if flags[s, F_POROUS] == 0:
+        return r
+    ratio = seg_value(params, i, s, THERMAL_RADIUS_RATIO)
+    if ratio <= wp.float64(0.0):
+        return r
+    return r * ratio
+
+
+@wp.func
+def shape_factor(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """Viscous shape factor r/Lambda of a porous segment (1 = circular pore; a duct: 1)."""
+    if flags[s, F_POROUS] == 0:
+        return wp.float64(1.0)
+    return seg_value(params, i, s, VISCOUS_SHAPE_FACTOR)
+
+
+@wp.func
+def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """1/rho_frame [m^3/kg] of a limp-frame porous segment; 0 (rigid) for a duct."""
+    if flags[s, F_POROUS] == 0:
+        return wp.float64(0.0)
+    return seg_value(params, i, s, FRAME_MOBILITY)
+
+
+@wp.func
 def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, node0: int,
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node0: int,
                     heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64, xi: wp.float64,
                     p_mean: wp.float64, omega: wp.float64, T_cold: wp.float64, phi: wp.float64, r: wp.float64,
-                    q: wp.float64, model: int, area: wp.float64):
-    """A(x) at local position xi [m] of a thermal segment whose heat cells start at node0."""
+                    q: wp.float64, model: int, area: wp.float64, r_k: wp.float64, mob: wp.float64, sf: wp.float64,
+                    nonlin: int):
+    """A(x) at local position xi [m] of thermal segment s whose heat cells start at node0;
+    (k, sigma) are the segment's, replaced by the cell's when ``nonlin``."""
     c = wp.min(int(xi / dh), heat_cells - 1)
-    th, dth = cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, dh, xi - wp.float64(c) * dh)
-    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area)
+    kc = k
+    sc = sigma
+    if nonlin != 0:
+        lam_c, kc, sc = cell_coeffs_at(params, flags, gas, theta, i, s, node0 + c, nonlin)
+    th, dth = cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], kc, sc, dh, xi - wp.float64(c) * dh)
+    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
 
 
 @wp.kernel
@@ -86,14 +123,18 @@ def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
     for s in range(flags.shape[0]):
         length = seg_value(params, i, s, LENGTH)
         phi, r, q = pore_geometry(params, flags, i, s)
+        r_k = thermal_radius(params, flags, i, s, r)
+        mob = frame_mobility(params, flags, i, s)
+        sf = shape_factor(params, flags, i, s)
         model = flags[s, F_PORE_MODEL]
         if flags[s, F_THERMAL] == 0:
-            a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area)
+            a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf)
             m = matmul2(expm2(scale2(a, length)), m)
         else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             dh = length / wp.float64(heat_cells)
             node0 = (s - first) * heat_cells
+            nonlin = segment_nonlinear(params, i, s)
             n_cells = seg_cells[s]
             if n_cells == 0:
                 c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
@@ -101,12 +142,12 @@ def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 x0 = wp.float64(c) * h
-                a1 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area)
-                a2 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area)
-                a3 = gradient_matrix(params, flags, gas, theta, i, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area)
+                a1 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                a2 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
+                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
                 m = matmul2(magnus6_step(a1, a2, a3, h), m)
     out[i, j, 0] = m.a[0]
     out[i, j, 1] = m.a[1]

@@ -13,11 +13,19 @@ acoustic integration sees the exact temperature. ``fitted = 0`` selects the plai
 second-order finite-volume scheme (lumped sink), kept to show the order and as the
 baseline; coefficients that vary inside a cell (a nonlinear heat model) make both
 schemes second order.
+
+Temperature-dependent effects (``conductivity_exponent``, ``radiative_conductivity``,
+``h_convection``; :func:`cell_heat_coeffs`) make the model nonlinear: each heat cell then
+has its own constant coefficients, evaluated at its mean temperature, and
+:func:`solve_heat` iterates (Picard) to a fixed point. The cell-constant coefficients make
+the scheme second order in the heat cells (the Engine raises their number); the energy
+balance holds exactly for the discrete model. With every effect off nothing changes.
 """
 
 import warp as wp
 
-from .layout import F_HEATER, F_POROUS, F_THERMAL, H, HEAT_INPUT, LENGTH, POROSITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, seg_value
+from .layout import (CONDUCTIVITY_EXPONENT, F_HEATER, F_POROUS, F_THERMAL, H, H_CONVECTION, HEAT_INPUT, LENGTH, POROSITY,
+                     RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE, seg_value)
 from .gas import conductivity
 
 PI = wp.constant(wp.float64(3.141592653589793))
@@ -109,7 +117,19 @@ def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma:
 @wp.func
 def segment_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                    gas: wp.array(dtype=wp.float64), i: int, s: int):
-    """Axial conductivity [W/(m K)]: phi lam_gas + (1 - phi) lam_solid, gas at T_cold."""
+    """Axial conductivity [W/(m K)]: phi lam_gas + (1 - phi) lam_solid, gas at T_cold,
+    plus the wall's axial conductance (``wall_conductance`` = lam_wall A_wall / S, 0 = off)."""
+    lam = material_lambda(params, flags, gas, i, s)
+    wall = seg_value(params, i, s, WALL_CONDUCTANCE)
+    if wall != wp.float64(0.0):
+        lam = lam + wall
+    return lam
+
+
+@wp.func
+def material_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), i: int, s: int):
+    """Conductivity of the gas and solid of segment s at T_cold [W/(m K)]."""
     lam_gas = conductivity(gas, params[T_COLD, i])
     if flags[s, F_POROUS] == 0:
         return lam_gas
@@ -118,12 +138,11 @@ def segment_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
-def segment_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                        gas: wp.array(dtype=wp.float64), i: int, s: int):
-    """(lam, k, sigma) of thermal segment s: k = sqrt(2 h/(R lam)) [1/m], sigma [K/m^2]."""
-    lam = segment_lambda(params, flags, gas, i, s)
+def heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int,
+                lam: wp.float64, h: wp.float64):
+    """(lam, k, sigma) from a conductivity lam and an exchange coefficient h."""
     R = params[RADIUS, i]
-    k = wp.sqrt(wp.float64(2.0) * seg_value(params, i, s, H) / (R * lam))
+    k = wp.sqrt(wp.float64(2.0) * h / (R * lam))
     sigma = wp.float64(0.0)
     if flags[s, F_HEATER] != 0:
         sigma = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R * lam)
@@ -131,39 +150,136 @@ def segment_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(
 
 
 @wp.func
+def segment_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                        gas: wp.array(dtype=wp.float64), i: int, s: int):
+    """(lam, k, sigma) of thermal segment s: k = sqrt(2 h/(R lam)) [1/m], sigma [K/m^2]
+    (the linear model: temperature-dependent effects off)."""
+    return heat_coeffs(params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H))
+
+
+@wp.func
+def segment_nonlinear(params: wp.array2d(dtype=wp.float64), i: int, s: int):
+    """1 when a temperature-dependent effect is on in segment s (the heat solve iterates)."""
+    if seg_value(params, i, s, CONDUCTIVITY_EXPONENT) != wp.float64(0.0):
+        return 1
+    if seg_value(params, i, s, RADIATIVE_CONDUCTIVITY) != wp.float64(0.0):
+        return 1
+    if seg_value(params, i, s, H_CONVECTION) != wp.float64(0.0):
+        return 1
+    return 0
+
+
+@wp.func
+def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                     gas: wp.array(dtype=wp.float64), i: int, s: int, theta_mean: wp.float64):
+    """(lam, k, sigma) of a heat cell of segment s whose mean temperature excess is
+    theta_mean [K]. With the temperature-dependent effects off this is exactly
+    :func:`segment_heat_coeffs`; on, with T = T_cold + theta_mean:
+
+        lam = lam_material (T/T_cold)^conductivity_exponent
+              + radiative_conductivity (T/T_cold)^3 + wall_conductance
+        h   = h + h_convection max(theta_mean, 0)^(1/4)
+    """
+    if segment_nonlinear(params, i, s) == 0:
+        return segment_heat_coeffs(params, flags, gas, i, s)
+    Tc = params[T_COLD, i]
+    t = (Tc + wp.max(theta_mean, wp.float64(0.0))) / Tc
+    lam = material_lambda(params, flags, gas, i, s)
+    b = seg_value(params, i, s, CONDUCTIVITY_EXPONENT)
+    if b != wp.float64(0.0):
+        lam = lam * wp.pow(t, b)
+    lam = lam + seg_value(params, i, s, RADIATIVE_CONDUCTIVITY) * t * t * t + seg_value(params, i, s, WALL_CONDUCTANCE)
+    h = seg_value(params, i, s, H)
+    hc = seg_value(params, i, s, H_CONVECTION)
+    if hc != wp.float64(0.0):
+        h = h + hc * wp.sqrt(wp.sqrt(wp.max(theta_mean, wp.float64(0.0))))
+    return heat_coeffs(params, flags, i, s, lam, h)
+
+
+@wp.func
 def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
+               max_iter: int, tol: wp.float64,
                theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
     """Nodal temperature excess theta [K] of set i on the thermal segments
     first..first+count-1 (``cells`` per segment), written to theta[i, :]; ``scratch[i, :]``
-    holds the Thomas algorithm's modified super-diagonal."""
+    (2 x nodes columns) holds the Thomas algorithm's modified super-diagonal and the
+    previous iterate.
+
+    With a temperature-dependent effect on (:func:`segment_nonlinear`), Picard
+    iterations: each cell's coefficients are evaluated at its mean temperature of the
+    previous iterate (theta = 0 to start) and the linear system re-solved, until the
+    largest nodal change is below ``tol`` times the largest theta (or ``max_iter``
+    solves). With every effect off, one solve, as before."""
     n_nodes = count * cells + 1
-    # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
-    a_l = wp.float64(0.0)
-    b_l = wp.float64(0.0)
-    e_l = wp.float64(0.0)
-    c_prev = wp.float64(0.0)
-    d_prev = wp.float64(0.0)
-    for r in range(n_nodes):
-        a_r = wp.float64(0.0)
-        b_r = wp.float64(0.0)
-        e_r = wp.float64(0.0)
-        if r < n_nodes - 1:
-            s = first + r // cells
-            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-            d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-            a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
-        diag = -(b_l + b_r) - a_l * c_prev
-        c_prev = a_r / diag
-        d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
-        scratch[i, r] = c_prev
-        theta[i, r] = d_prev
-        a_l = a_r
-        b_l = b_r
-        e_l = e_r
-    for rr in range(n_nodes - 1):
-        r = n_nodes - 2 - rr
-        theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+    nonlin = int(0)
+    for s in range(first, first + count):
+        if segment_nonlinear(params, i, s) != 0:
+            nonlin = 1
+    n_iter = int(1)
+    if nonlin != 0:
+        n_iter = max_iter
+        for r in range(n_nodes):
+            theta[i, r] = wp.float64(0.0)
+    done = int(0)
+    for it in range(n_iter):
+        if done == 0:
+            if nonlin != 0:
+                for r in range(n_nodes):
+                    scratch[i, n_nodes + r] = theta[i, r]
+            # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
+            a_l = wp.float64(0.0)
+            b_l = wp.float64(0.0)
+            e_l = wp.float64(0.0)
+            c_prev = wp.float64(0.0)
+            d_prev = wp.float64(0.0)
+            for r in range(n_nodes):
+                a_r = wp.float64(0.0)
+                b_r = wp.float64(0.0)
+                e_r = wp.float64(0.0)
+                if r < n_nodes - 1:
+                    s = first + r // cells
+                    lam = wp.float64(0.0)
+                    k = wp.float64(0.0)
+                    sigma = wp.float64(0.0)
+                    if nonlin != 0:
+                        lam, k, sigma = cell_heat_coeffs(params, flags, gas, i, s,
+                                                         wp.float64(0.5) * (scratch[i, n_nodes + r] + scratch[i, n_nodes + r + 1]))
+                    else:
+                        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+                    a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
+                diag = -(b_l + b_r) - a_l * c_prev
+                c_prev = a_r / diag
+                d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
+                scratch[i, r] = c_prev
+                theta[i, r] = d_prev
+                a_l = a_r
+                b_l = b_r
+                e_l = e_r
+            for rr in range(n_nodes - 1):
+                r = n_nodes - 2 - rr
+                theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+            if nonlin != 0:
+                change = wp.float64(0.0)
+                size = wp.float64(0.0)
+                for r in range(n_nodes):
+                    change = wp.max(change, wp.abs(theta[i, r] - scratch[i, n_nodes + r]))
+                    size = wp.max(size, wp.abs(theta[i, r]))
+                if change <= tol * size:
+                    done = 1
+
+
+@wp.func
+def cell_coeffs_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                   i: int, s: int, node: int, nonlin: int):
+    """(lam, k, sigma) of the heat cell of segment s starting at node ``node``: the
+    segment's constants, or with a temperature-dependent effect on, those at the cell's
+    mean temperature (as the converged Picard solve used them)."""
+    if nonlin != 0:
+        return cell_heat_coeffs(params, flags, gas, i, s, wp.float64(0.5) * (theta[i, node] + theta[i, node + 1]))
+    return segment_heat_coeffs(params, flags, gas, i, s)
 
 
 @wp.func
@@ -174,6 +290,6 @@ def temperature_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
     c = wp.min(int(xi / d), cells - 1)
     node = (s - first) * cells + c
-    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    lam, k, sigma = cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
     th, dth = cell_profile(theta[i, node], theta[i, node + 1], k, sigma, d, xi - wp.float64(c) * d)
     return params[T_COLD, i] + th, dth

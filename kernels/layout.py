@@ -14,7 +14,12 @@ T_COLD, P_MEAN, RADIUS, HEAT_INPUT = range(4)
 N_GLOBAL = 4
 # segment fields (same order as tawarp.core.SEGMENT_FIELDS)
 LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
-N_FIELDS = 6
+# optional effects (tawarp.effects), each "off" at its default value:
+# thermal_radius_ratio (1: r_k = r), conductivity_exponent (0), radiative_conductivity (0),
+# h_convection (0), wall_conductance (0), frame_mobility (0: rigid frame), viscous_shape_factor (1)
+(THERMAL_RADIUS_RATIO, CONDUCTIVITY_EXPONENT, RADIATIVE_CONDUCTIVITY, H_CONVECTION, WALL_CONDUCTANCE, FRAME_MOBILITY,
+ VISCOUS_SHAPE_FACTOR) = range(6, 13)
+N_FIELDS = 13
 # structure flags per segment
 F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER = range(4)
 N_FLAGS = 4

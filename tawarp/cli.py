@@ -127,6 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     from .characterize import add_fit_parser
     from .design_cli import add_design_parser, add_rank_parser, add_sweep_parser
+    from .loop import add_loop_parser
     from .synthetic import add_synth_parser
 
     add_fit_parser(sub)
@@ -134,6 +135,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_design_parser(sub)
     add_rank_parser(sub)
     add_sweep_parser(sub)
+    add_loop_parser(sub)
     return parser
 
 

@@ -24,7 +24,32 @@ SEGMENT_KINDS = ("duct", "porous")
 PORE_MODELS = ("circular", "plates")
 
 #: Numeric segment fields that can be parameters (``SEGMENT.FIELD``).
-SEGMENT_FIELDS = ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h")
+SEGMENT_FIELDS = ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h",
+                  "thermal_radius_ratio", "conductivity_exponent", "radiative_conductivity", "h_convection",
+                  "wall_conductance", "frame_mobility", "viscous_shape_factor")
+#: Optional effects of the model (issue #4): each field is off at this value and then
+#: reproduces the base model bit for bit.
+#:
+#: - ``thermal_radius_ratio`` (porous): f_k uses the radius ``ratio * pore_radius``
+#:   (Lambda'/Lambda of the Johnson-Champoux-Allard model; 1 = one radius).
+#: - ``conductivity_exponent`` (thermal porous or duct): the material conductivity of the
+#:   heat model is ``lam (T/T_cold)^b`` (a nonlinear heat solve).
+#: - ``radiative_conductivity`` (thermal porous): Rosseland radiative conductivity at
+#:   T_cold [W/(m K)], added as ``c (T/T_cold)^3``.
+#: - ``h_convection`` (thermal): natural convection, ``h_eff = h + h_conv theta^(1/4)``
+#:   [W/(m^2 K^(5/4))], theta the local temperature excess.
+#: - ``wall_conductance`` (thermal): axial conduction of the tube wall as a conductivity
+#:   added to lam [W/(m K)]: ``lam_wall A_wall / S``, A_wall the wall's cross-section.
+#: - ``frame_mobility`` (porous): 1 / (bulk density of the frame) [m^3/kg]; > 0 makes the
+#:   frame limp (it moves with the air, no stiffness; kernels/acoustics.py limp_density).
+#: - ``viscous_shape_factor`` (porous, circular pores): s = r / Lambda, the viscous
+#:   characteristic length Lambda = r/s at the flow resistivity of radius r (Johnson's
+#:   interpolation as a correction of the exact circular function; 1 = circular pore).
+EFFECT_OFF = {"thermal_radius_ratio": 1.0, "conductivity_exponent": 0.0, "radiative_conductivity": 0.0,
+              "h_convection": 0.0, "wall_conductance": 0.0, "frame_mobility": 0.0, "viscous_shape_factor": 1.0}
+_POROUS_EFFECTS = ("thermal_radius_ratio", "radiative_conductivity", "frame_mobility", "viscous_shape_factor")
+#: Effects evaluated at the local temperature: they make the heat solve iterate.
+NONLINEAR_FIELDS = ("conductivity_exponent", "radiative_conductivity", "h_convection")
 #: Numeric global fields, addressed as ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELDS = ("gas.T_cold", "gas.p_mean", "tube.radius")
 #: Physical range of each numeric field: (lowest, highest, lowest excluded), with units.
@@ -35,6 +60,13 @@ FIELD_BOUNDS = {
     "tortuosity": (1.0, math.inf, False, "-"),
     "solid_conductivity": (0.0, math.inf, False, "W/(m K)"),
     "h": (0.0, math.inf, False, "W/(m^2 K)"),
+    "thermal_radius_ratio": (0.0, math.inf, True, "-"),
+    "conductivity_exponent": (-10.0, 10.0, False, "-"),
+    "radiative_conductivity": (0.0, math.inf, False, "W/(m K)"),
+    "h_convection": (0.0, math.inf, False, "W/(m^2 K^1.25)"),
+    "wall_conductance": (0.0, math.inf, False, "W/(m K)"),
+    "frame_mobility": (0.0, math.inf, False, "m^3/kg"),
+    "viscous_shape_factor": (0.0, math.inf, True, "-"),
     "T_cold": (0.0, math.inf, True, "K"),
     "p_mean": (0.0, math.inf, True, "Pa"),
     "radius": (0.0, math.inf, True, "m"),
@@ -63,7 +95,8 @@ class Segment:
     (circular pores: radius; ``plates``: half the plate spacing), ``tortuosity`` q [-]
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
-    the steady heat model). Exactly one thermal segment is the ``heater``.
+    the steady heat model). Exactly one thermal segment is the ``heater``. The effect
+    fields (:data:`EFFECT_OFF`) are off by default.
     """
 
     name: str
@@ -77,6 +110,13 @@ class Segment:
     h: float = 0.0
     thermal: bool = False
     heater: bool = False
+    thermal_radius_ratio: float = 1.0
+    conductivity_exponent: float = 0.0
+    radiative_conductivity: float = 0.0
+    h_convection: float = 0.0
+    wall_conductance: float = 0.0
+    frame_mobility: float = 0.0
+    viscous_shape_factor: float = 1.0
 
     @property
     def is_porous(self) -> bool:
@@ -129,10 +169,7 @@ class Core:
         has a length (and ``h`` when thermal), a porous segment all its fields."""
         names = list(GLOBAL_FIELDS)
         for s in self.segments:
-            fields = SEGMENT_FIELDS if s.is_porous else ("length",)
-            names += [f"{s.name}.{f}" for f in fields if f != "h"]
-            if s.thermal:
-                names.append(f"{s.name}.h")
+            names += [f"{s.name}.{f}" for f in segment_parameter_fields(s)]
         return names
 
     def get(self, name: str) -> float:
@@ -176,8 +213,27 @@ class Core:
                 d.update(h=s.h, thermal=True)
             if s.heater:
                 d["heater"] = True
+            d.update({f: getattr(s, f) for f, off in EFFECT_OFF.items() if getattr(s, f) != off})
             out["segment"].append(d)
         return out
+
+
+def segment_parameter_fields(s: Segment) -> tuple[str, ...]:
+    """Fields of segment ``s`` that are parameters: the base ones (a duct: its length;
+    porous: geometry and solid conductivity; thermal: ``h``), then its effects."""
+    fields = ["length"]
+    if s.is_porous:
+        fields += ["porosity", "pore_radius", "tortuosity", "solid_conductivity"]
+    if s.thermal:
+        fields.append("h")
+    if s.is_porous:
+        fields += ["thermal_radius_ratio", "frame_mobility", "viscous_shape_factor"]
+    if s.thermal:
+        fields.append("conductivity_exponent")
+        if s.is_porous:
+            fields.append("radiative_conductivity")
+        fields += ["h_convection", "wall_conductance"]
+    return tuple(fields)
 
 
 def _split(name: str, source: str) -> tuple[str, str]:
@@ -235,6 +291,12 @@ def validate(core: Core) -> None:
                 raise CoreError(f"{w}: pore_radius {s.pore_radius} m exceeds the tube radius {core.radius} m")
         if s.heater and not s.thermal:
             raise CoreError(f"{w}: heater = true needs thermal = true")
+        allowed = segment_parameter_fields(s)
+        for fld, off in EFFECT_OFF.items():
+            check_values(fld, getattr(s, fld), f"{w}: {fld}")
+            if getattr(s, fld) != off and fld not in allowed:
+                raise CoreError(f"{w}: {fld} = {getattr(s, fld)} applies only to "
+                                f"{'porous' if fld in _POROUS_EFFECTS else 'thermal'} segments")
     thermal = core.thermal_indices
     if thermal:
         if thermal != list(range(thermal[0], thermal[-1] + 1)):
@@ -271,7 +333,8 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         if bad:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
         if sd["kind"] == "duct":
-            extra = {"porosity", "pore_radius", "tortuosity", "solid_conductivity", "pore_model"} & set(sd)
+            extra = {"porosity", "pore_radius", "tortuosity", "solid_conductivity", "pore_model",
+                     *_POROUS_EFFECTS} & set(sd)
             if extra:
                 raise CoreError(f"{where} ({sd['name']!r}): a duct takes no {sorted(extra)}; use kind = 'porous'")
         elif "pore_radius" not in sd:

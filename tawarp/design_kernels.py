@@ -15,21 +15,17 @@ Per parameter set i (one thread), from the nodal temperatures of
 
 import warp as wp
 
-from .kernels.heat import cell_profile, segment_heat_coeffs, tanhx_x
+from .kernels.heat import cell_coeffs_at, cell_profile, segment_nonlinear, tanhx_x
 from .kernels.layout import LENGTH, RADIUS, T_COLD, seg_value
 
-try:  # temperature-dependent heat model: per-cell coefficients at the converged solution
-    from .kernels.heat import cell_coeffs_at, segment_nonlinear
 
-    @wp.func
-    def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node: int):
-        return cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
-except ImportError:  # linear model only
-    @wp.func
-    def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node: int):
-        return segment_heat_coeffs(params, flags, gas, i, s)
+@wp.func
+def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node: int):
+    """Heat coefficients (lam, k, sigma) of the cell starting at ``node``: the segment's
+    own, or, with a temperature-dependent model, those at the converged profile."""
+    return cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
+
 
 N_METRICS = 4
 PI = wp.constant(wp.float64(3.141592653589793))

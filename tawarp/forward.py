@@ -15,6 +15,7 @@ thread of the cascade kernel. The same code runs on ``device="cpu"`` and ``"cuda
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass
 
@@ -22,13 +23,16 @@ import numpy as np
 import warp as wp
 
 from .coefficients import duct_impedance, normalize
-from .core import GLOBAL_FIELDS, SEGMENT_FIELDS, Core, CoreError, check_values
+from .core import GLOBAL_FIELDS, NONLINEAR_FIELDS, SEGMENT_FIELDS, Core, CoreError, check_values
 from .gas import GASES
 from .progress import progress_bar
 from .kernels import forward as kf
 from .kernels import layout
 
-assert SEGMENT_FIELDS == ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h")
+assert SEGMENT_FIELDS == ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h",
+                          "thermal_radius_ratio", "conductivity_exponent", "radiative_conductivity", "h_convection",
+                          "wall_conductance", "frame_mobility", "viscous_shape_factor")
+assert layout.N_FIELDS == len(SEGMENT_FIELDS)
 
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
 #: accuracy of each setting against the converged NumPy reference.
@@ -127,14 +131,22 @@ class ForwardSettings:
     convergence studies need. ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
-    threads per block of the cascade kernel (bench/forward.py compares values); ``device``."""
+    threads per block of the cascade kernel (bench/forward.py compares values); ``device``.
+    When a temperature-dependent effect (``core.NONLINEAR_FIELDS``) is on in the core or
+    varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
+    segment and the heat solve iterates (Picard, at most ``picard_iterations`` solves,
+    until the largest nodal change is below ``picard_tol`` of the largest theta)."""
 
     cells: int | dict | None = None
     cell_density: float = DEFAULT_CELL_DENSITY
     heat_cells: int = 1
+    nonlinear_heat_cells: int = 32
+    picard_iterations: int = 100
+    picard_tol: float = 1e-12
     fitted: bool = True
     chunk: int = 1 << 16
     block_dim: int = 256
+    max_registers: int | None = 64
     device: str | None = None
 
     def cells_per_segment(self, core: Core) -> np.ndarray:
@@ -188,6 +200,14 @@ def broadcast_batch(core: Core, heat_input, params: dict | None) -> tuple[int, n
     return n, q, out
 
 
+def nonlinear_heat(core: Core, names=()) -> bool:
+    """True when a temperature-dependent effect is on in a thermal segment of ``core``
+    or among the varying parameter ``names``."""
+    if any(n.partition(".")[2] in NONLINEAR_FIELDS for n in names):
+        return True
+    return any(getattr(core.segments[i], f) != 0.0 for i in core.thermal_indices for f in NONLINEAR_FIELDS)
+
+
 class Engine:
     """A compiled batch layout: one core structure, one frequency grid, a fixed list of
     varying parameters; evaluates device-resident batches with no host round trip.
@@ -213,6 +233,9 @@ class Engine:
         self.heat_cells = int(self.settings.heat_cells)
         if self.heat_cells < 1:
             raise ValueError(f"heat_cells must be >= 1, got {self.heat_cells}")
+        self.nonlinear = nonlinear_heat(core, self.names)
+        if self.nonlinear:
+            self.heat_cells = max(self.heat_cells, int(self.settings.nonlinear_heat_cells))
         self.nodes = self.count * self.heat_cells + 1
         dev = self.device
         self.base = wp.array(base_table(core), dtype=wp.float64, device=dev)
@@ -221,6 +244,7 @@ class Engine:
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
+        self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
@@ -231,9 +255,11 @@ class Engine:
         theta = wp.zeros((n, self.nodes), dtype=wp.float64, device=self.device)
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
-            scratch = wp.empty((n, self.nodes), dtype=wp.float64, device=self.device)
+            scratch = wp.empty((n, 2 * self.nodes), dtype=wp.float64, device=self.device)
             wp.launch(kf.heat_kernel, dim=n, inputs=[params, self.flags, self.gas, self.first, self.count,
-                                                     self.heat_cells, int(self.settings.fitted), theta, scratch],
+                                                     self.heat_cells, int(self.settings.fitted),
+                                                     int(self.settings.picard_iterations), float(self.settings.picard_tol),
+                                                     theta, scratch],
                       device=self.device)
         return params, theta
 
@@ -243,7 +269,7 @@ class Engine:
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
-        wp.launch(kf.transfer_kernel, dim=(n, len(self.freqs)),
+        wp.launch(self.transfer_kernel, dim=(n, len(self.freqs)),
                   inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells,
                           float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device,
                   block_dim=self.settings.block_dim)
@@ -258,6 +284,14 @@ class Engine:
         wp.launch(kf.profile_kernel, dim=(n, x.shape[0]), device=self.device,
                   inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT])
         return T.numpy(), dT.numpy()
+
+
+@functools.cache
+def _transfer_kernel(max_registers: int | None):
+    """The cascade kernel, or a copy compiled with a register cap (CUDA ``__maxnreg__``)."""
+    if max_registers is None:
+        return kf.transfer_kernel
+    return wp.kernel(kf.transfer_kernel.func, cuda_max_registers=int(max_registers), module="unique")
 
 
 def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:
