@@ -840,7 +840,9 @@ def write_report(problem: Problem, report: dict, outdir: str | Path) -> dict:
     figs = [residual_figure(problem, report, outdir / "residuals.png"), drift_figure(report, outdir / "drift.png")]
     js["figures"] = [f.name for f in figs if f is not None]
     write_json(outdir / "report.json", js)
-    (outdir / "report.md").write_text(report_markdown(js) + "".join(f"\n![{f[:-4]}]({f})\n" for f in js["figures"]))
+    tmp = outdir / "report.md.tmp"
+    tmp.write_text(report_markdown(js) + "".join(f"\n![{f[:-4]}]({f})\n" for f in js["figures"]))
+    tmp.replace(outdir / "report.md")  # atomic: no half-written report
     return js
 
 
