@@ -128,7 +128,10 @@ class ForwardSettings:
     cold wavenumber), adapted per parameter set and frequency; the default density meets
     1e-6 relative error on the paper-like cores (README, "Accuracy"). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
-    convergence studies need. ``heat_cells``: heat-grid cells per thermal segment;
+    convergence studies need. The adaptive count jumps by whole cells as k (h, the
+    conductivities) or w change, so the model is piecewise smooth in those parameters at
+    the 1e-7 level: finite-difference Jacobians must use fixed cells
+    (:func:`tawarp.estimate.smooth_settings` picks them). ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values); ``device``.
