@@ -46,16 +46,16 @@ def plot_coefficients(freqs, curves: dict[str, np.ndarray], path, *, markers: di
     for label, Y in (markers or {}).items():
         for c in range(4):
             axes[0, c].plot(freqs, np.abs(Y[:, c]), "o", ms=3, mfc="none", label=label)
-            axes[1, c].plot(freqs, np.angle(Y[:, c]), "o", ms=3, mfc="none")
+            axes[1, c].plot(freqs, np.unwrap(np.angle(Y[:, c])), "o", ms=3, mfc="none")
     for label, Y in curves.items():
         for c in range(4):
             axes[0, c].plot(freqs, np.abs(Y[:, c]), "-", lw=1.2, label=label)
-            axes[1, c].plot(freqs, np.angle(Y[:, c]), "-", lw=1.2)
+            axes[1, c].plot(freqs, np.unwrap(np.angle(Y[:, c])), "-", lw=1.2)
     for c, name in enumerate(COEFFICIENTS):
         axes[0, c].set_title(name)
         axes[1, c].set_xlabel("frequency [Hz]")
     axes[0, 0].set_ylabel("modulus")
-    axes[1, 0].set_ylabel("phase [rad]")
+    axes[1, 0].set_ylabel("phase [rad, unwrapped]")
     axes[0, 0].legend(fontsize=7)
     if title:
         fig.suptitle(title)
