@@ -81,6 +81,7 @@ import math
 import time
 import warnings as _warnings
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 import warp as wp
@@ -421,6 +422,11 @@ class Problems:
     def project(self, z, pid):
         return np.clip(z, self.zlo[pid], self.zhi[pid])
 
+    def relative_change(self, dz, z):
+        """Relative change (natural units) of each parameter of a step ``dz`` that ended at ``z``."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.kind == 1, np.abs(np.expm1(dz)), np.abs(dz) / np.maximum(np.abs(z), 1e-300))
+
     # -- one launch ----------------------------------------------------------------------
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
         """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``."""
@@ -505,11 +511,35 @@ class _State:
     converged: np.ndarray
 
 
-def levenberg_marquardt(prob: Problems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
+class LMProblems(Protocol):
+    """What :func:`levenberg_marquardt` needs of a batch of least-squares problems in scaled
+    variables z (:class:`Problems`; :class:`tawarp.loop.LoopProblems` for the loop's fits).
+
+    ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none);
+    ``project(z, pid)``: z (n, p) of problems ``pid`` (n,) moved onto the bounds;
+    ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` at z, cost (n,) the weighted sum of
+    squared residuals ``r^T r`` (inf where the model fails), raw (n,) its unweighted
+    counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
+    Jacobian in z; ``relative_change(dz, z)``: (n, p) the size of a step dz that ended at z
+    compared with ``xtol``.
+    """
+
+    zlo: np.ndarray
+    zhi: np.ndarray
+
+    def project(self, z: np.ndarray, pid: np.ndarray) -> np.ndarray: ...
+
+    def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = ...) -> tuple: ...
+
+    def relative_change(self, dz: np.ndarray, z: np.ndarray) -> np.ndarray: ...
+
+
+def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
                         xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100, tau: float = 1e-3,
                         progress: bool = False, max_sets: int = 1 << 20) -> _State:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
-    (Q, p). Converged problems drop out of later launches (active-set compaction)."""
+    (Q, p). Converged problems drop out of later launches (active-set compaction).
+    ``prob``: any :class:`LMProblems`."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
@@ -557,8 +587,7 @@ def levenberg_marquardt(prob: Problems, pid: np.ndarray, z0: np.ndarray, *, damp
             mu[ia] *= 0.5
             mu[a[~acc]] *= 2.0
         # convergence tests
-        with np.errstate(divide="ignore", invalid="ignore"):
-            rel = np.where(prob.kind == 1, np.abs(np.expm1(dz)), np.abs(dz) / np.maximum(np.abs(zt), 1e-300))
+        rel = prob.relative_change(dz, zt)
         rel = rel.max(axis=1) if p else np.zeros(len(a))
         free = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
         gcos = _grad_cosine(g[a], H[a], cost[a], free)

@@ -18,8 +18,9 @@ Steps of :func:`run_loop`:
    gives about ``k / (N - p)`` for k columns; the linearized F statistic gives a p-value.
 4. **Augmented fits** of the promising candidates (linearized p < 0.01, best ``top`` by
    score), two starts each with the effect off (the base solution, the core's values), all
-   in one batch (:func:`fit_batch`: Levenberg-Marquardt in lockstep, one forward launch per
-   iteration for every candidate's trial point and Jacobian); when none of them is
+   in one batch (:func:`fit_batch`: :func:`tawarp.estimate.levenberg_marquardt` on all of
+   them at once, one forward launch per iteration for every candidate's trial point and
+   Jacobian); when none of them is
    accepted, the other candidates too (the screening is only linear).
 5. **Choice.** An effect is accepted when all of:
    a. ``Delta BIC < -10`` (BIC = chi^2 + p ln N with known sigma, else N ln(RSS/N) + p ln N;
@@ -57,6 +58,7 @@ from scipy.optimize import least_squares
 from .coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
 from .core import FIELD_BOUNDS, Core, load_core
 from .effects import Effect, Param, impedance_library, tmatrix_library
+from .estimate import levenberg_marquardt
 from .forward import Engine, ForwardSettings
 from .measurements import ImpedanceData, TMatrixData
 
@@ -295,125 +297,151 @@ def _finish(problem, params, x, J, Y, rows, effect, converged, nfev) -> Fit:
     return Fit(list(params), np.array(x, dtype=float), values, std, rss, N, err, J, r, Y, converged, nfev, effect)
 
 
-def fit_batch(problem: Problem, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
-              max_iter: int = 100) -> list[Fit]:
-    """Several fits in lockstep, each launch evaluating every active fit's trial point and
-    its forward-difference neighbours together: ``specs`` = [(params, effect, x0), ...].
-    Fits whose effects change no structure share one Engine (the union of their parameters,
-    each fit's others at their "off" start values): one launch per iteration for all of
-    them (one more per structural effect).
+class LoopProblems:
+    """The loop's fits ``specs`` = [(params, effect, x0), ...] as one batch for
+    :func:`tawarp.estimate.levenberg_marquardt` (its :class:`~tawarp.estimate.LMProblems`).
 
-    Levenberg-Marquardt on the scaled variables of :class:`Param`, steps projected onto the
-    bounds, damping ``mu I`` (the variables are scaled), Nielsen's update; stops when the
-    step is below 1e-10 (scaled units), the cost falls by less than 1e-13 relative, or the
-    damping passes 1e16."""
-    fixed = dict(fixed or {})
-    rows = np.arange(problem.y.size) if rows is None else np.asarray(rows)
-    K = len(specs)
-    groups: dict = {}
-    for c, (params, effect, _) in enumerate(specs):
-        key = effect.name if effect is not None and effect.transform else None
-        groups.setdefault(key, []).append(c)
-    base_vals = {}
-    for key, members in groups.items():
-        v = dict(fixed)
-        for c in members:
-            for par in specs[c][0]:
-                par.assign(par.start, v)
-        base_vals[key] = v
+    Problem c has the scaled variables x of its ``params`` (:class:`Param`: a unit step is
+    a relative change of order one for log parameters, one ``scale`` for the others); z is
+    x padded with zeros to the largest p of the batch, the padding pinned by the bounds
+    ``zlo = zhi = 0`` (zero Jacobian columns: it never moves and adds nothing to the step
+    and gradient tests; it does keep a fit whose own variables are all held at bounds from
+    stopping as "bound", so such a fit ends as "stalled"). The residuals are :meth:`Problem.predict`'s on ``rows``,
+    weighted by ``problem.w`` (dimensionless). :meth:`evaluate` forms the trial point and
+    its forward-difference neighbours (step ``FD_STEP`` in x, towards the interior at an
+    upper bound) of every problem asked for in one :meth:`Problem.predict` call per
+    group: fits whose effects change no structure share one Engine (the union of their
+    parameters, each fit's others at their "off" start values), a structural effect has
+    its own.
+    """
 
-    def evaluate(requests: dict) -> dict:
-        """requests {c: X (n_c, p_c)} -> {c: Y (n_c, N)}, one launch per group."""
-        out = {}
-        for key, members in groups.items():
-            todo = [c for c in members if c in requests]
+    def __init__(self, problem: Problem, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None):
+        self.problem, self.specs = problem, list(specs)
+        self.rows = np.arange(problem.y.size) if rows is None else np.asarray(rows)
+        fixed = dict(fixed or {})
+        self.groups: dict = {}
+        for c, (_, effect, _) in enumerate(self.specs):
+            self.groups.setdefault(effect.name if effect is not None and effect.transform else None, []).append(c)
+        self.base_vals = {}
+        for key, members in self.groups.items():
+            v = dict(fixed)
+            for c in members:
+                for par in self.specs[c][0]:
+                    par.assign(par.start, v)
+            self.base_vals[key] = v
+        #: free parameters per fit; z is padded to the largest
+        self.p = np.array([len(sp[0]) for sp in self.specs], dtype=int)
+        P = int(self.p.max(initial=0))
+        self.zlo, self.zhi = np.zeros((len(self.specs), P)), np.zeros((len(self.specs), P))
+        for c, (params, _, _) in enumerate(self.specs):
+            for j, par in enumerate(params):
+                self.zlo[c, j], self.zhi[c, j] = par.bounds_x()
+        #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
+        self.last: list = []
+
+    def start(self) -> np.ndarray:
+        """The specs' x0, padded (K, P)."""
+        z = np.zeros_like(self.zlo)
+        for c, (_, _, x0) in enumerate(self.specs):
+            z[c, :self.p[c]] = np.asarray(x0, dtype=float)
+        return z
+
+    def project(self, z, pid):
+        return np.clip(z, self.zlo[pid], self.zhi[pid])
+
+    def relative_change(self, dz, z):
+        """|dz|: the scaled variables already measure relative change (:class:`Param`)."""
+        return np.abs(dz)
+
+    def predict(self, requests: list) -> list:
+        """[(c, X (n, p_c)), ...] -> [model values (n, N_rows)], one launch per group."""
+        out = [None] * len(requests)
+        for key, members in self.groups.items():
+            todo = [i for i, (c, _) in enumerate(requests) if c in members]
             if not todo:
                 continue
             blocks = []
-            for c in todo:
-                X = requests[c]
+            for i in todo:
+                c, X = requests[i]
                 n = X.shape[0]
-                arr = {k: np.full(n, float(v)) for k, v in base_vals[key].items()}
-                for j, par in enumerate(specs[c][0]):
+                arr = {k: np.full(n, float(v)) for k, v in self.base_vals[key].items()}
+                for j, par in enumerate(self.specs[c][0]):
                     par.assign(par.value(X[:, j]), arr)
-                blocks.append((c, n, arr))
-            names = list(blocks[0][2])
-            values = {k: np.concatenate([b[2][k] for b in blocks]) for k in names}
-            effect = specs[todo[0]][1] if key is not None else None
-            Y = problem.predict(values, sum(b[1] for b in blocks), effect)
+                blocks.append((i, n, arr))
+            values = {k: np.concatenate([b[2][k] for b in blocks]) for k in blocks[0][2]}
+            effect = self.specs[requests[todo[0]][0]][1] if key is not None else None
+            Y = self.problem.predict(values, sum(b[1] for b in blocks), effect)
             k0 = 0
-            for c, n, _ in blocks:
-                out[c] = Y[k0:k0 + n]
+            for i, n, _ in blocks:
+                out[i] = Y[k0:k0 + n]
                 k0 += n
         return out
 
-    lo = [np.array([par.bounds_x()[0] for par in sp[0]]) for sp in specs]
-    hi = [np.array([par.bounds_x()[1] for par in sp[0]]) for sp in specs]
+    def evaluate(self, pid, z, max_sets: int = 0):
+        """(cost, raw, g, H) of problems ``pid`` at padded z (n, P): cost = r^T r of the
+        weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
+        H = J^T J with the forward-difference J. All in one launch per group (``max_sets``
+        is not used: the loop's batches are small)."""
+        n, P = z.shape
+        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        requests = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
+            x, h = z[i, :p], step[i, :p]
+            requests.append((c, np.vstack([x[None], x[None] + np.diag(h)])))
+        got = self.predict(requests)
+        cost, raw = np.empty(n), np.empty(n)
+        g, H = np.zeros((n, P)), np.zeros((n, P, P))
+        self.last = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
+            R = _residual(self.problem, got[i], self.rows)
+            r = R[0]
+            J = ((R[1:] - r) / step[i, :p, None]).T
+            cost[i] = r @ r
+            raw[i] = np.sum(np.abs(got[i][0, self.rows] - self.problem.y[self.rows]) ** 2)
+            g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
+            self.last.append((J, got[i][0]))
+        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
+        cost[bad] = np.inf
+        return cost, raw, g, H
 
-    def points(c, x):
-        h = np.full(x.size, FD_STEP)
-        h[x + h > hi[c]] *= -1.0
-        return np.vstack([x[None], x[None] + np.diag(h)]), h
 
-    def unpack(c, Y, h):
-        R = _residual(problem, Y, rows)
-        return R[0], ((R[1:] - R[0]) / h[:, None]).T, Y[0]
+#: Stopping rule of the loop's fits (:func:`fit_batch`, tawarp.estimate's tests): an accepted
+#: step below XTOL in the scaled variables, or the gradient cosine max |g_a| / sqrt(H_aa F)
+#: below GTOL. Tighter than estimate's defaults: the fits' costs enter the F-test and BIC
+#: comparisons, so they must sit at the minimum; GTOL is about what forward differences with
+#: step 1e-6 resolve (below it the fits only stall, spending launches).
+XTOL = 1e-10
+GTOL = 1e-6
 
-    x = [np.clip(np.asarray(sp[2], dtype=float), lo[c], hi[c]) for c, sp in enumerate(specs)]
-    req, hs = {}, {}
-    for c in range(K):
-        req[c], hs[c] = points(c, x[c])
-    got = evaluate(req)
-    r, J, Yc = {}, {}, {}
-    for c in range(K):
-        r[c], J[c], Yc[c] = unpack(c, got[c], hs[c])
-    cost = {c: float(r[c] @ r[c]) for c in range(K)}
-    mu = {c: 1e-3 * max(float(np.max(np.sum(J[c] ** 2, axis=0), initial=0.0)), 1e-30) for c in range(K)}
-    nu = {c: 2.0 for c in range(K)}
-    active = {c for c in range(K) if x[c].size}
-    done = {c: x[c].size == 0 for c in range(K)}
-    nfev = {c: 1 for c in range(K)}
-    for _ in range(max_iter):
-        if not active:
-            break
-        trial, req, hs, pred = {}, {}, {}, {}
-        for c in active:
-            H = J[c].T @ J[c]
-            g = J[c].T @ r[c]
-            # Levenberg's damping (D = I): the variables are already scaled (Param), and
-            # Marquardt's diag(J^T J) lets weakly determined parameters take huge steps
-            D = np.ones(x[c].size)
-            try:
-                dx = np.linalg.solve(H + mu[c] * np.diag(D), -g)
-            except np.linalg.LinAlgError:
-                dx = -g / (mu[c] * D)
-            xt = np.clip(x[c] + dx, lo[c], hi[c])
-            step = xt - x[c]
-            trial[c] = xt
-            pred[c] = -(step @ g + 0.5 * step @ H @ step)
-            req[c], hs[c] = points(c, xt)
-        got = evaluate(req)
-        for c in list(active):
-            nfev[c] += 1
-            rt, Jt, Yt = unpack(c, got[c], hs[c])
-            ct = float(rt @ rt)
-            step = trial[c] - x[c]
-            if ct < cost[c]:
-                rho = (cost[c] - ct) / pred[c] if pred[c] > 0 else 1.0
-                rel = (cost[c] - ct) / max(cost[c], 1e-300)
-                x[c], r[c], J[c], Yc[c], cost[c] = trial[c], rt, Jt, Yt, ct
-                mu[c] *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu[c] = 2.0
-                if np.max(np.abs(step)) < 1e-10 or rel < 1e-13:
-                    done[c] = True
-                    active.discard(c)
-            else:
-                mu[c] *= nu[c]
-                nu[c] *= 2.0
-                if mu[c] > 1e16 or np.max(np.abs(step)) < 1e-12:
-                    done[c] = True
-                    active.discard(c)
-    return [_finish(problem, sp[0], x[c], J[c], Yc[c], rows, sp[1], done[c], nfev[c]) for c, sp in enumerate(specs)]
+
+def fit_batch(problem: Problem, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
+              max_iter: int = 100) -> list[Fit]:
+    """Several fits in lockstep, ``specs`` = [(params, effect, x0), ...]: every iteration
+    evaluates every active fit's trial point and its forward-difference neighbours in one
+    launch (one more per structural effect; :class:`LoopProblems`).
+
+    The optimizer is :func:`tawarp.estimate.levenberg_marquardt` (Nielsen's damping
+    ``mu I``: the variables are scaled by :class:`Param`, and Marquardt's diag(J^T J)
+    would let weakly determined parameters take huge steps; steps projected onto the
+    bounds) with the stopping rule :data:`XTOL`, :data:`GTOL`, ``max_iter``; the
+    Jacobians and model values at the solutions take one more launch."""
+    lm = LoopProblems(problem, specs, fixed, rows)
+    K = len(lm.specs)
+    if K == 0:
+        return []
+    pid = np.arange(K)
+    if lm.zlo.shape[1]:
+        st = levenberg_marquardt(lm, pid, lm.start(), xtol=XTOL, gtol=GTOL, max_iter=max_iter)
+        z, converged, its = st.z, st.converged, st.iterations
+    else:  # nothing free: the model at the fixed values
+        z, converged, its = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int)
+    lm.evaluate(pid, z)
+    # nfev: the start, one per iteration, the final launch
+    return [_finish(problem, params, z[c, :lm.p[c]], lm.last[c][0], lm.last[c][1], lm.rows, effect,
+                    bool(converged[c]), int(its[c]) + 2)
+            for c, (params, effect, _) in enumerate(lm.specs)]
 
 
 # ======================================================================================
