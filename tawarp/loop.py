@@ -58,7 +58,7 @@ from scipy.optimize import least_squares
 from .coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
 from .core import FIELD_BOUNDS, Core, load_core
 from .effects import Effect, Param, impedance_library, tmatrix_library
-from .estimate import levenberg_marquardt
+from .estimate import levenberg_marquardt, smooth_settings
 from .forward import Engine, ForwardSettings
 from .measurements import ImpedanceData, TMatrixData
 
@@ -109,7 +109,8 @@ class TMatrixProblem(Problem):
 
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
         self.data, self.core = data, core
-        self.settings = settings or ForwardSettings()
+        # fixed cells: finite-difference Jacobians need a model smooth in the parameters
+        self.settings = smooth_settings(core, data.frequencies, settings)
         self.Zc = duct_impedance(core)
         self.freqs = data.frequencies
         self.Qs = data.heat_inputs

@@ -40,13 +40,15 @@ def test_bad_core_exit_code_names_key(tmp_path, capsys):
 
 
 def test_demo_loop_finds_the_bundled_hidden_effect(tmp_path):
-    # The bundled measurement hides lam(T) = lam (T/T_cold)^1 in the stack (studies/make_demo_data.py):
-    # the loop must choose it, reach the noise floor (<= 1.5 x), and bring h_s back to the
-    # true 150 W/(m^2 K) within 2 std, with less drift of h_s over Q than before.
+    # The bundled measurement hides natural convection in the buffer tube, tbt.h_convection = 3
+    # (studies/make_demo_data.py): the loop must choose it, reach the noise floor (<= 1.5 x),
+    # and bring h_s back to the true 150 W/(m^2 K) within 2 std, with less drift of h_s over Q.
     from tawarp.demo import demo_loop
 
     rep = demo_loop(tmp_path / "loop", device="cpu", quiet=True)
-    assert rep["chosen_effect"] == "conductivity_T"
+    assert rep["chosen_effect"] == "convection"
+    c = rep["parameters_after"]["tbt.h_convection"]
+    assert abs(c["value"] - 3.0) < 2 * c["std"]
     assert rep["error_after"] <= 1.5 * rep["noise_floor"] < rep["error_before"] * 1.5
     h = rep["parameters_after"]["stack.h"]
     assert abs(h["value"] - 150.0) < 2 * h["std"]
