@@ -15,7 +15,7 @@ import warp as wp
 
 from .acoustics import expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
 from .gas import sound_speed_squared
-from .heat import cell_coeffs_at, cell_profile, segment_heat_coeffs, segment_nonlinear, solve_heat, temperature_at
+from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
                      FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
 
@@ -94,12 +94,7 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
                     nonlin: int):
     """A(x) at local position xi [m] of thermal segment s whose heat cells start at node0;
     (k, sigma) are the segment's, replaced by the cell's when ``nonlin``."""
-    c = wp.min(int(xi / dh), heat_cells - 1)
-    kc = k
-    sc = sigma
-    if nonlin != 0:
-        lam_c, kc, sc = cell_coeffs_at(params, flags, gas, theta, i, s, node0 + c, nonlin)
-    th, dth = cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], kc, sc, dh, xi - wp.float64(c) * dh)
+    th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
     return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
 
 

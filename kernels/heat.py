@@ -283,13 +283,28 @@ def cell_coeffs_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
+def segment_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int,
+                    node0: int, cells: int, k: wp.float64, sigma: wp.float64, d: wp.float64, nonlin: int,
+                    xi: wp.float64):
+    """(theta [K], dtheta/dx [K/m]) at local position xi [m] of thermal segment s, whose
+    heat cells (length d) start at node0; (k, sigma) are the segment's, replaced by the
+    cell's own when ``nonlin`` (a temperature-dependent effect is on)."""
+    c = wp.min(int(xi / d), cells - 1)
+    kc = k
+    sc = sigma
+    if nonlin != 0:
+        lam_c, kc, sc = cell_coeffs_at(params, flags, gas, theta, i, s, node0 + c, nonlin)
+    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], kc, sc, d, xi - wp.float64(c) * d)
+
+
+@wp.func
 def temperature_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
                    i: int, s: int, first: int, cells: int, xi: wp.float64):
     """(T [K], dT/dx [K/m]) at local position xi [m] in thermal segment s of set i."""
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-    c = wp.min(int(xi / d), cells - 1)
-    node = (s - first) * cells + c
-    lam, k, sigma = cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
-    th, dth = cell_profile(theta[i, node], theta[i, node + 1], k, sigma, d, xi - wp.float64(c) * d)
+    th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * cells, cells, k, sigma, d,
+                              segment_nonlinear(params, i, s), xi)
     return params[T_COLD, i] + th, dth

@@ -775,6 +775,15 @@ class SearchCrash(RuntimeError):
     """Raised by the ``_stop_after`` test hook (a simulated interruption)."""
 
 
+def _interruption_hooks(asked: int, stop_after: int | None, crash_after: int | None) -> None:
+    """Test hooks simulating an interruption once ``asked`` batches are asked but not told:
+    ``crash_after`` kills the process, ``stop_after`` raises :class:`SearchCrash`."""
+    if crash_after is not None and asked >= crash_after:
+        os._exit(3)
+    if stop_after is not None and asked >= stop_after:
+        raise SearchCrash(f"stopped after asking {asked} batches (test hook)")
+
+
 def _owner_alive(owner: str, run_id: str, stale_after: float, started) -> bool:
     """Is the process that asked a RUNNING trial still working on it?"""
     host, _, rest = (owner or "").partition(":")
@@ -960,10 +969,7 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
             ids = create_trials(study, points, dists, attrs)
             timing["storage"] += time.perf_counter() - t
             asked += 1
-            if _crash_after is not None and asked >= _crash_after:
-                os._exit(3)
-            if _stop_after is not None and asked >= _stop_after:
-                raise SearchCrash(f"stopped after asking {asked} batches (test hook)")
+            _interruption_hooks(asked, _stop_after, _crash_after)
             values, user, cons, F, viol, failed = evaluate(points)
             tell(ids, values, user, cons, failed)
             t = time.perf_counter()
@@ -1043,10 +1049,7 @@ def _search_optuna(study, space, objectives, dirs, n_target, batch, worker, seed
             trials.append(tr)
         timing["sampler"] += time.perf_counter() - t
         asked += 1
-        if crash_after is not None and asked >= crash_after:
-            os._exit(3)
-        if stop_after is not None and asked >= stop_after:
-            raise SearchCrash(f"stopped after asking {asked} batches (test hook)")
+        _interruption_hooks(asked, stop_after, crash_after)
         values, user, cons, F, viol, failed = evaluate([tr.params for tr in trials])
         t = time.perf_counter()
         for j, tr in enumerate(trials):
