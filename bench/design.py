@@ -38,8 +38,8 @@ VARS = ["material=ceramic,mesh,nicr_foam,rvc_foam", "stack.length=0.005:0.1", "s
 
 
 def _space():
-    from tawarp.core import load_core
-    from tawarp.design import DesignSpace
+    from tawarp.model.core import load_core
+    from tawarp.design.search import DesignSpace
 
     return DesignSpace(load_core("rvc_foam"), VARS)
 
@@ -47,8 +47,8 @@ def _space():
 def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None):
     import warp as wp
 
-    from tawarp.design import Evaluator, search
-    from tawarp.forward import ForwardSettings
+    from tawarp.design.search import Evaluator, search
+    from tawarp.model.forward import ForwardSettings
 
     space = _space()
     settings = ForwardSettings(device=device)
@@ -63,7 +63,7 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
     ev = Evaluator(space, settings=settings)
     import numpy as np
 
-    from tawarp.design import sobol_unit
+    from tawarp.design.search import sobol_unit
 
     u = sobol_unit(batch, len(space.continuous), 1)
     vals = space.from_unit(u)
@@ -91,8 +91,8 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
 
 def sweep_child(device, n, chunk, path):
     """Run one sweep in this process and print its numbers (peak RSS of this process)."""
-    from tawarp.forward import ForwardSettings
-    from tawarp.sweep import sweep
+    from tawarp.model.forward import ForwardSettings
+    from tawarp.design.sweep import sweep
 
     space = _space()
     sweep(space, path, mode="sobol", n_samples=min(n, 4 * chunk), chunk=chunk, settings=ForwardSettings(device=device))
@@ -121,7 +121,7 @@ def main(argv=None):
     ap.add_argument("--sweep-child", nargs=3, metavar=("N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
-    from tawarp.forward import resolve_device
+    from tawarp.model.forward import resolve_device
 
     device = resolve_device(args.device)
     if args.sweep_child:

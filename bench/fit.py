@@ -38,9 +38,9 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
-from tawarp.core import load_core
-from tawarp.estimate import FitWarning, fit, is_log
-from tawarp.forward import ForwardSettings, transfer_matrices
+from tawarp.model.core import load_core
+from tawarp.fit.estimate import FitWarning, fit, is_log
+from tawarp.model.forward import ForwardSettings, transfer_matrices
 
 FREQS = np.linspace(30.0, 500.0, 100)
 WORKLOADS = {

@@ -27,8 +27,8 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
-from tawarp.core import bundled_cores, load_core
-from tawarp.forward import Engine, ForwardSettings, transfer_matrices
+from tawarp.model.core import bundled_cores, load_core
+from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 
 FREQS = np.linspace(30.0, 500.0, 100)
 ACC_FREQS = np.array([30.0, 90.0, 170.0, 260.0, 380.0, 500.0])

@@ -7,8 +7,8 @@
 import numpy as np
 import warp as wp
 
-from tawarp.core import load_core
-from tawarp.forward import Engine, ForwardSettings
+from tawarp.model.core import load_core
+from tawarp.model.forward import Engine, ForwardSettings
 
 wp.init()
 rng = np.random.default_rng(0)

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
-from tawarp.core import bundled_cores, load_core
-from tawarp.forward import transfer_matrices, steady_temperature
+from tawarp.model.core import bundled_cores, load_core
+from tawarp.model.forward import transfer_matrices, steady_temperature
 from tawarp.plots import plt, save
 
 FREQS = np.array([30.0, 90.0, 170.0, 260.0, 380.0, 500.0])

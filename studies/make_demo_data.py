@@ -16,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 
-from tawarp.core import load_core
-from tawarp.forward import ForwardSettings
-from tawarp.loop import synthetic_tmatrix
-from tawarp.measurements import write_tmatrix_csv
+from tawarp.model.core import load_core
+from tawarp.model.forward import ForwardSettings
+from tawarp.loop.diagnose import synthetic_tmatrix
+from tawarp.measure.files import write_tmatrix_csv
 
 TRUTH = {"tbt.h_convection": 3.0}
 

@@ -26,13 +26,13 @@ from pathlib import Path
 
 import numpy as np
 
-from tawarp.characterize import (characterize, default_geometry, plot_h_vs_Q, plot_normalized_temperature,
+from tawarp.fit.characterize import (characterize, default_geometry, plot_h_vs_Q, plot_normalized_temperature,
                                  temperature_profile)
-from tawarp.core import load_core
-from tawarp.estimate import FitWarning, fit
-from tawarp.forward import ForwardSettings, transfer_matrices
+from tawarp.model.core import load_core
+from tawarp.fit.estimate import FitWarning, fit
+from tawarp.model.forward import ForwardSettings, transfer_matrices
 from tawarp.plots import plot_coefficients
-from tawarp.synthetic import (MATERIAL_NAMES, MATERIALS, PAPER_TABLE1, make_paper_data, paper_frequencies,
+from tawarp.measure.synthetic import (MATERIAL_NAMES, MATERIALS, PAPER_TABLE1, make_paper_data, paper_frequencies,
                               true_values)
 
 HERE = Path(__file__).resolve().parent

@@ -1,7 +1,7 @@
 """tawarp: thermoacoustic core T-matrices, batched parameter estimation and design on NVIDIA Warp."""
 
-from .core import Core, CoreError, Gas, Segment, bundled_cores, load_core
-from .forward import Engine, ForwardResult, ForwardSettings, steady_temperature, transfer_matrices
+from .model.core import Core, CoreError, Gas, Segment, bundled_cores, load_core
+from .model.forward import Engine, ForwardResult, ForwardSettings, steady_temperature, transfer_matrices
 
 __all__ = ["Core", "CoreError", "Gas", "Segment", "bundled_cores", "load_core", "Engine", "ForwardResult",
            "ForwardSettings", "steady_temperature", "transfer_matrices"]

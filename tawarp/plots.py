@@ -16,7 +16,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .coefficients import COEFFICIENTS  # noqa: E402
+from .model.coefficients import COEFFICIENTS  # noqa: E402
 
 
 def save(fig, path: str | Path) -> Path:

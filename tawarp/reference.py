@@ -35,9 +35,9 @@ import numpy as np
 import scipy.special as sp
 from scipy.integrate import solve_ivp
 
-from .coefficients import duct_impedance, normalize
-from .core import Core, Segment
-from .gas import GASES, T_REF
+from .model.coefficients import duct_impedance, normalize
+from .model.core import Core, Segment
+from .model.gas import GASES, T_REF
 
 __all__ = [
     "GasProperties",

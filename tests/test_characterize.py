@@ -11,12 +11,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tawarp.characterize import add_fit_parser, characterize, default_geometry
-from tawarp.coefficients import duct_impedance, normalize
-from tawarp.core import load_core
-from tawarp.forward import ForwardSettings, transfer_matrices
-from tawarp.measurements import read_tmatrix_csv
-from tawarp.synthetic import MATERIALS, add_synth_parser, make_paper_data, true_values
+from tawarp.cli.fit import add_fit_parser
+from tawarp.cli.synth import add_synth_parser
+from tawarp.fit.characterize import characterize, default_geometry
+from tawarp.model.coefficients import duct_impedance, normalize
+from tawarp.model.core import load_core
+from tawarp.model.forward import ForwardSettings, transfer_matrices
+from tawarp.measure.files import read_tmatrix_csv
+from tawarp.measure.synthetic import MATERIALS, make_paper_data, true_values
 
 FIT = ForwardSettings(cells=8, device="cpu")
 HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}
@@ -120,7 +122,7 @@ def test_fit_and_synth_commands(tmp_path):
 def test_demo_fit_writes_every_material(tmp_path):
     """`tawarp demo`'s fitting part (fast settings): every bundled material converges and
     its fit.json, data and figures are written."""
-    from tawarp.characterize import demo_fit
+    from tawarp.cli.demo import demo_fit
 
     summary = demo_fit(tmp_path, device="cpu", quiet=True, n_freqs=16, spread=False)
     assert set(summary["materials"]) == set(MATERIALS)

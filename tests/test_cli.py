@@ -3,10 +3,10 @@
 import numpy as np
 import pytest
 
-from tawarp.cli import main, parse_list
-from tawarp.core import load_core
-from tawarp.forward import transfer_matrices
-from tawarp.measurements import read_tmatrix_csv
+from tawarp.cli.main import main, parse_list
+from tawarp.model.core import load_core
+from tawarp.model.forward import transfer_matrices
+from tawarp.measure.files import read_tmatrix_csv
 
 
 def test_list_options():
@@ -43,7 +43,7 @@ def test_demo_loop_finds_the_bundled_hidden_effect(tmp_path):
     # The bundled measurement hides natural convection in the buffer tube, tbt.h_convection = 3
     # (studies/make_demo_data.py): the loop must choose it, reach the noise floor (<= 1.5 x),
     # and bring h_s back to the true 150 W/(m^2 K) within 2 std, with less drift of h_s over Q.
-    from tawarp.demo import demo_loop
+    from tawarp.cli.demo import demo_loop
 
     rep = demo_loop(tmp_path / "loop", device="cpu", quiet=True)
     assert rep["chosen_effect"] == "convection"

@@ -13,12 +13,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tawarp.coefficients import duct_impedance
-from tawarp.catalogue import PARAMS, Catalogue, CatalogueError, Material, default_catalogue, load_catalogue
-from tawarp.core import load_core
-from tawarp.design import (DesignSpace, Evaluator, SearchCrash, absorbed_fraction, nondominated_ranks, parse_variable,
+from tawarp.model.coefficients import duct_impedance
+from tawarp.design.catalogue import PARAMS, Catalogue, CatalogueError, Material, default_catalogue, load_catalogue
+from tawarp.model.core import load_core
+from tawarp.design.search import (DesignSpace, Evaluator, SearchCrash, absorbed_fraction, nondominated_ranks, parse_variable,
                            search, study_summary)
-from tawarp.forward import steady_temperature, transfer_matrices
+from tawarp.model.forward import steady_temperature, transfer_matrices
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
@@ -182,8 +182,8 @@ def test_multi_objective_front_is_feasible_and_nondominated():
 # -- persistence -----------------------------------------------------------------------------
 _SCRIPT = """
 import sys
-from tawarp.core import load_core
-from tawarp.design import DesignSpace, search
+from tawarp.model.core import load_core
+from tawarp.design.search import DesignSpace, search
 core = load_core("rvc_foam")
 space = DesignSpace(core, ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03"])
 kw = dict(n_trials=int(sys.argv[3]), batch=8, storage=sys.argv[1], worker=sys.argv[2], seed=int(sys.argv[4]))
@@ -211,7 +211,7 @@ def test_resume_after_a_killed_run(tmp_path):
     p = _run([journal, "w0", 32, 5, 2])
     out, _ = p.communicate(timeout=120)
     assert p.returncode == 3, out
-    from tawarp.design import open_study
+    from tawarp.design.search import open_study
 
     st = study_summary(open_study(str(journal), "tawarp-design", ["gradient"]), ["gradient"])
     assert st["trials"] == 16 and st["states"] == {"COMPLETE": 8, "RUNNING": 8}
@@ -248,7 +248,7 @@ def test_two_processes_share_one_study(tmp_path, kind):
     for p in procs:
         out, _ = p.communicate(timeout=180)
         assert p.returncode == 0, out
-    from tawarp.design import open_study
+    from tawarp.design.search import open_study
 
     study = open_study(url, "tawarp-design", ["gradient"])
     st = study_summary(study, ["gradient"])
@@ -260,7 +260,7 @@ def test_two_processes_share_one_study(tmp_path, kind):
 def test_grid_and_sobol_sweeps_match_direct_evaluation(tmp_path):
     import xarray as xr
 
-    from tawarp.sweep import sweep
+    from tawarp.design.sweep import sweep
 
     core = load_core("rvc_foam")
     space = DesignSpace(core, [parse_variable(s, grid=True) for s in
@@ -294,7 +294,7 @@ def test_grid_and_sobol_sweeps_match_direct_evaluation(tmp_path):
 
 
 def test_sweep_memory_is_flat(tmp_path):
-    from tawarp.sweep import sweep
+    from tawarp.design.sweep import sweep
 
     space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "heat_input=1:18"])
     sweep(space, tmp_path / "warm.nc", mode="sobol", n_samples=100, chunk=1024)
@@ -316,7 +316,7 @@ def test_rank_the_paper_materials_at_9_W():
     is 1 - sech(k L). RVC has the smallest h_s lam_s (8 x 0.21); the mesh the largest
     (50 x 4.3: steel at porosity 0.68) and the shortest k L (1.5). Ceramic (150 x 0.32,
     kL 9.4) comes before NiCr (30 x 0.98, kL 2.4; its h_s = 30 is tawarp's choice)."""
-    from tawarp.rank import rank_materials
+    from tawarp.design.rank import rank_materials
 
     res = rank_materials(PAPER, [9.0], n_samples=400, seed=1)
     assert res.ordering(9.0) == ["rvc_foam", "ceramic", "nicr_foam", "mesh"]
@@ -332,7 +332,7 @@ def test_rank_the_paper_materials_at_9_W():
 def _cli(argv):
     import argparse
 
-    from tawarp.design_cli import add_design_parser, add_rank_parser, add_sweep_parser
+    from tawarp.cli.design import add_design_parser, add_rank_parser, add_sweep_parser
 
     parser = argparse.ArgumentParser(prog="tawarp")
     sub = parser.add_subparsers(dest="command", required=True)
@@ -372,7 +372,7 @@ def test_resume_a_generation_cut_short(tmp_path):
     missing members are asked again (the sampler is deterministic) and nothing is lost."""
     import socket
 
-    from tawarp.design import create_trials, open_study
+    from tawarp.design.search import create_trials, open_study
 
     url = f"sqlite:///{tmp_path / 'cut.db'}"
     ref = search(_space(), n_trials=24, batch=8, storage=str(tmp_path / "ref.journal"), seed=2)

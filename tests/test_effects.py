@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.coefficients import duct_impedance, normalize
-from tawarp.core import EFFECT_OFF, Core, CoreError, core_from_dict, dump_core, load_core
-from tawarp.forward import steady_temperature, transfer_matrices
+from tawarp.model.coefficients import duct_impedance, normalize
+from tawarp.model.core import EFFECT_OFF, Core, CoreError, core_from_dict, dump_core, load_core
+from tawarp.model.forward import steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
 NONLINEAR = [("stack.conductivity_exponent", 1.0), ("stack.radiative_conductivity", 0.5),

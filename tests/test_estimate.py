@@ -8,10 +8,10 @@ fit is not an inverse crime at Q > 0) so the file runs in well under a minute.
 import numpy as np
 import pytest
 
-from tawarp.core import load_core
-from tawarp.estimate import FitWarning, Problems, chol_solve, fit
-from tawarp.forward import ForwardSettings, transfer_matrices
-from tawarp.synthetic import paper_frequencies
+from tawarp.model.core import load_core
+from tawarp.fit.estimate import FitWarning, Problems, chol_solve, fit
+from tawarp.model.forward import ForwardSettings, transfer_matrices
+from tawarp.measure.synthetic import paper_frequencies
 
 FIT = ForwardSettings(cells=8, device="cpu")
 GEOM = ["stack.porosity", "stack.pore_radius", "stack.tortuosity"]

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.coefficients import duct_impedance, normalize
-from tawarp.core import Core, CoreError, core_from_dict, load_core
-from tawarp.forward import steady_temperature, transfer_matrices
+from tawarp.model.coefficients import duct_impedance, normalize
+from tawarp.model.core import Core, CoreError, core_from_dict, load_core
+from tawarp.model.forward import steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
 HEAT = {"ceramic": [0.0, 40.0, 80.0], "mesh": [0.0, 40.0, 80.0], "nicr_foam": [0.0, 40.0, 80.0],

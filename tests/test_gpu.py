@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from tawarp.core import load_core
-from tawarp.forward import steady_temperature, transfer_matrices
+from tawarp.model.core import load_core
+from tawarp.model.forward import steady_temperature, transfer_matrices
 
 wp.init()
 pytestmark = pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device: GPU tests skipped")

@@ -8,11 +8,11 @@ import json
 import numpy as np
 import pytest
 
-from tawarp.core import load_core
-from tawarp.forward import ForwardSettings
-from tawarp.loop import (NOISE_FACTOR, TMatrixProblem, add_loop_parser, impedance_loop, run_loop, synthetic_tmatrix,
+from tawarp.model.core import load_core
+from tawarp.model.forward import ForwardSettings
+from tawarp.loop.diagnose import (NOISE_FACTOR, TMatrixProblem, impedance_loop, run_loop, synthetic_tmatrix,
                          write_report)
-from tawarp.measurements import atalla_panneton_samples, load_atalla_panneton, write_tmatrix_csv
+from tawarp.measure.files import atalla_panneton_samples, load_atalla_panneton, write_tmatrix_csv
 
 CORE = load_core("ceramic")
 BASE = ("stack.porosity", "stack.pore_radius", "stack.h", "hot_hx.h")
@@ -81,6 +81,8 @@ def test_effect_outside_library_no_false_claim(truth):
 def test_loop_cli_writes_report(tmp_path):
     import argparse
 
+    from tawarp.cli.loop import add_loop_parser
+
     data = synthetic_tmatrix(CORE, {"gas.T_cold": 297.15}, seed=SEED)
     csv = tmp_path / "data.csv"
     write_tmatrix_csv(csv, data)
@@ -126,11 +128,11 @@ def test_loop_lowers_error_on_measured_foams(name, tmp_path):
 def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
     # four-microphone data (Q = 0) whose upstream reference plane is 2 mm further than
     # declared: the converted T-matrices carry 2 mm of extra duct, a plane offset
-    from tawarp.coefficients import duct_impedance
-    from tawarp.forward import transfer_matrices
-    from tawarp.gas import GASES
-    from tawarp.loop import default_base_params
-    from tawarp.measurements import read_scattering_csv, transfer_to_scattering
+    from tawarp.model.coefficients import duct_impedance
+    from tawarp.model.forward import transfer_matrices
+    from tawarp.model.gas import GASES
+    from tawarp.loop.diagnose import default_base_params
+    from tawarp.measure.files import read_scattering_csv, transfer_to_scattering
 
     f = np.linspace(50.0, 500.0, 24)
     T = transfer_matrices(CORE, f, 0.0, params={"duct_left.length": 0.032}, device="cpu", cells=8).T[0]
@@ -160,8 +162,8 @@ def test_batched_fits_agree_with_scipy():
     # the lockstep Levenberg-Marquardt of the augmented fits reaches SciPy's optimum for
     # the right model; for wrong ones (flat valleys, neither converges tightly) its cost is
     # within 1 % of SciPy's
-    from tawarp.effects import tmatrix_library
-    from tawarp.loop import default_base_params, fit, fit_batch
+    from tawarp.model.effects import tmatrix_library
+    from tawarp.loop.diagnose import default_base_params, fit, fit_batch
 
     data = synthetic_tmatrix(CORE, {"tbt.h_convection": 3.0}, seed=SEED)
     prob = TMatrixProblem(data, CORE, ForwardSettings(device="cpu", cells=8))

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from tawarp import measurements as m
-from tawarp.gas import GASES
+from tawarp.measure import files as m
+from tawarp.model.gas import GASES
 
 HEADER = "Q_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im"
 ROW = "0,50,0.9121,-0.0177,-5.02e4,2.07e5,1e-6,2e-7,0.95,0.01"

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from tawarp.coefficients import duct_impedance, normalize
-from tawarp.core import Core, Segment, load_core
+from tawarp.model.coefficients import duct_impedance, normalize
+from tawarp.model.core import Core, Segment, load_core
 from tawarp.reference import (
     _coefficients,
     dimensionless_transfer,

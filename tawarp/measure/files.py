@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .gas import GASES
+from ..model.gas import GASES
 
 #: The four raw coefficients and their (row, column) in the 2x2 T-matrix.
 COEFFICIENTS = {"Tpp": (0, 0), "Tpu": (0, 1), "Tup": (1, 0), "Tuu": (1, 1)}

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .plots import plt, save
+from ..plots import plt, save
 
 
 def plot_history(study, objectives, path, T_limit=None, title: str = ""):
@@ -13,7 +13,7 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
     (first objective for several)."""
     from optuna.trial import TrialState
 
-    from .design import OBJECTIVES
+    from .search import OBJECTIVES
 
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -43,7 +43,7 @@ def plot_pareto(study, objectives, front: list[dict], path, title: str = ""):
     """All complete trials in the plane of the first two objectives, the front highlighted."""
     from optuna.trial import TrialState
 
-    from .design import OBJECTIVES
+    from .search import OBJECTIVES
 
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     fig, ax = plt.subplots(figsize=(6, 4.5))
@@ -64,7 +64,7 @@ def plot_pareto(study, objectives, front: list[dict], path, title: str = ""):
 def plot_best_profiles(space, designs: list[dict], path, n: int = 5, device=None, title: str = ""):
     """Temperature along the core T(x) of up to ``n`` designs (paper Fig. 6), with the
     stack planes of each marked."""
-    from .forward import steady_temperature
+    from ..model.forward import steady_temperature
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for j, d in enumerate(designs[:n]):

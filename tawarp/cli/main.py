@@ -8,75 +8,26 @@ beside them.
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-
-def parse_list(text: str) -> np.ndarray:
-    """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear)."""
-    try:
-        if ":" in text:
-            parts = text.split(":")
-            if len(parts) != 3:
-                raise ValueError
-            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
-            if count < 1:
-                raise ValueError
-            return np.linspace(start, stop, count)
-        return np.array([float(v) for v in text.split(",") if v.strip()])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)")
-
-
-def write_json(path: str | Path, obj) -> Path:
-    """Write ``obj`` as JSON atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".json")
-    try:
-        with os.fdopen(fd, "w") as f:
-            json.dump(obj, f, indent=2, default=_json_default)
-            f.write("\n")
-        os.replace(tmp, path)
-    finally:
-        if os.path.exists(tmp):
-            os.remove(tmp)
-    return path
-
-
-def _json_default(o):
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, (np.floating, np.integer)):
-        return o.item()
-    if isinstance(o, np.bool_):
-        return bool(o)
-    raise TypeError(f"not JSON serializable: {type(o)}")
-
-
-def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or chatter")
-    return p
-
-
-def _say(args, *text):
-    if not args.quiet:
-        print(*text, flush=True)
+from ..io import write_json
+from .common import _common, _say, parse_list
+from .design import add_design_parser, add_rank_parser, add_sweep_parser
+from .fit import add_fit_parser
+from .loop import add_loop_parser
+from .synth import add_synth_parser
 
 
 # -- forward -----------------------------------------------------------------------------
 def cmd_forward(args) -> int:
-    from .core import load_core
-    from .forward import transfer_matrices
-    from .measurements import TMatrixData, write_tmatrix_csv
-    from .plots import plot_coefficients, plot_temperature
+    from ..model.core import load_core
+    from ..model.forward import transfer_matrices
+    from ..measure.files import TMatrixData, write_tmatrix_csv
+    from ..plots import plot_coefficients, plot_temperature
 
     core = load_core(args.core)
     Q = args.Q
@@ -125,11 +76,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
 
-    from .characterize import add_fit_parser
-    from .design_cli import add_design_parser, add_rank_parser, add_sweep_parser
-    from .loop import add_loop_parser
-    from .synthetic import add_synth_parser
-
     add_fit_parser(sub)
     add_synth_parser(sub)
     add_design_parser(sub)
@@ -142,8 +88,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from .core import CoreError
-    from .measurements import MeasurementError
+    from ..model.core import CoreError
+    from ..measure.files import MeasurementError
 
     t0 = time.perf_counter()
     try:

@@ -1,6 +1,6 @@
 """Paper-like synthetic measurements for the four materials of Guedra et al. (2015).
 
->>> from tawarp.synthetic import make_paper_data
+>>> from tawarp.measure.synthetic import make_paper_data
 >>> data = make_paper_data("mesh", noise=0.005, seed=0)      # a TMatrixData
 >>> data.heat_inputs, data.frequencies.size
 (array([ 0., 10., 20., 40., 60., 80.]), 60)
@@ -31,10 +31,10 @@ import math
 
 import numpy as np
 
-from .coefficients import denormalize, duct_impedance
-from .core import load_core
-from .forward import transfer_matrices
-from .measurements import TMatrixData
+from ..model.coefficients import denormalize, duct_impedance
+from ..model.core import load_core
+from ..model.forward import transfer_matrices
+from .files import TMatrixData
 
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
 #: Paper Table 1 (value, uncertainty) in SI, and the h's of Sect. 5.2 used as the truth.
@@ -117,38 +117,3 @@ def true_values(data: TMatrixData) -> dict[str, float]:
     return {k[5:]: float(v) for k, v in data.metadata.items() if k.startswith("true.")}
 
 
-# -- command line -----------------------------------------------------------------------
-def add_synth_parser(subparsers):
-    """Register ``tawarp synth MATERIAL -o data.csv --noise 0.005 --seed 0``."""
-    from .cli import _common, parse_list
-
-    p = _common(subparsers.add_parser(
-        "synth", help="paper-like synthetic T-matrix measurements of one of the four materials"))
-    p.add_argument("material", choices=MATERIALS, help="which material of the paper")
-    p.add_argument("-o", "--output", default=None, help="output CSV (default: MATERIAL_synthetic.csv)")
-    p.add_argument("--noise", type=float, default=0.005, help="relative complex noise (default: %(default)s)")
-    p.add_argument("--bias", type=float, default=None,
-                   help="systematic bias size b: factors 1 + b exp(i phase) per coefficient (default: none)")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default: %(default)s)")
-    p.add_argument("--freqs", type=parse_list, default=None, help="Hz, list or start:stop:count (default: the paper's)")
-    p.add_argument("--Q", type=parse_list, default=None, help="heat inputs [W] (default: the paper's)")
-    p.add_argument("--cells", type=int, default=48, help="Magnus cells of the generating model (default: %(default)s)")
-    p.add_argument("--no-sigma", action="store_true", help="do not write sigma_* columns")
-    p.set_defaults(func=cmd_synth)
-    return p
-
-
-def cmd_synth(args) -> int:
-    from pathlib import Path
-
-    from .measurements import write_tmatrix_csv
-
-    data = make_paper_data(args.material, noise=args.noise, bias=args.bias, seed=args.seed, freqs=args.freqs,
-                           heat_inputs=args.Q, cells=args.cells, write_sigma=not args.no_sigma, device=args.device)
-    out = Path(args.output or f"{args.material}_synthetic.csv")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_tmatrix_csv(out, data)
-    if not args.quiet:
-        print(f"wrote {out} ({data.heat_inputs.size} heat inputs x {data.frequencies.size} frequencies, "
-              f"noise {args.noise:g}, seed {args.seed})")
-    return 0

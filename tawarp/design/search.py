@@ -63,9 +63,9 @@ import numpy as np
 import warp as wp
 
 from .catalogue import PARAMS as MATERIAL_PARAMS, CORE_FIELD, Catalogue, default_catalogue
-from .coefficients import normalize, duct_impedance
-from .core import Core, CoreError, check_values
-from .forward import Engine, ForwardSettings
+from ..model.coefficients import normalize, duct_impedance
+from ..model.core import Core, CoreError, check_values
+from ..model.forward import Engine, ForwardSettings
 
 #: name -> (direction, unit, description)
 OBJECTIVES = {
@@ -324,7 +324,7 @@ class Evaluator:
     def __init__(self, space: DesignSpace | None, acoustic: bool = False, freqs=DEFAULT_FREQS,
                  settings: ForwardSettings | None = None, *, core: Core | None = None, names=None,
                  stack_index: int | None = None):
-        from .design_kernels import N_METRICS
+        from ..kernels.design import N_METRICS
 
         self.space = space
         self.settings = settings or ForwardSettings()
@@ -353,7 +353,7 @@ class Evaluator:
 
     def evaluate_device(self, varying, out: wp.array | None = None) -> wp.array:
         """Metrics (n, N_METRICS) on the device, no host copy."""
-        from .design_kernels import design_metrics
+        from ..kernels.design import design_metrics
 
         eng = self.engine
         params, theta = eng.heat(varying)
@@ -846,7 +846,7 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     :class:`SearchCrash` / ``os._exit``)."""
     from optuna.trial import TrialState
 
-    from .progress import progress_bar
+    from ..progress import progress_bar
 
     objectives = tuple(objectives)
     dirs = _directions(objectives)

@@ -24,7 +24,7 @@ import numpy as np
 from .core import Core, Gas, Segment
 from .forward import Engine, ForwardSettings
 from .gas import GASES
-from .measurements import ImpedanceData
+from ..measure.files import ImpedanceData
 
 #: Radius [m] of the one-segment core of a layer (any value: S cancels in Zs).
 LAYER_TUBE_RADIUS = 0.05
@@ -98,7 +98,7 @@ def jca_equivalent(values: dict, core: Core) -> dict:
     """The circular-pore parameters in Johnson-Champoux-Allard terms: phi, alpha_inf = q^2,
     Lambda = r / s (s the viscous shape factor, 1 for circular pores), Lambda' = ratio r,
     sigma = 8 mu q^2 / (phi r^2) [N s/m^4] (mu at T_cold)."""
-    from .reference import gas_properties
+    from ..reference import gas_properties
 
     phi = values.get("layer.porosity", core.segments[0].porosity)
     r = values.get("layer.pore_radius", core.segments[0].pore_radius)

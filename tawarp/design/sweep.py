@@ -27,8 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .design import METRICS, DesignSpace, Evaluator
-from .forward import ForwardSettings
+from .search import METRICS, DesignSpace, Evaluator
+from ..model.forward import ForwardSettings
 
 UNITS = {"gradient": "K/m", "T_max": "K", "heat_leak": "W", "T_hot": "K", "heat_input": "W"}
 LONG_NAMES = {"gradient": "temperature gradient across the stack (T(x3) - T(x2)) / l_s",
@@ -52,7 +52,7 @@ class SweepInfo:
 
 
 def _units(space: DesignSpace, name: str) -> str:
-    from .core import FIELD_BOUNDS
+    from ..model.core import FIELD_BOUNDS
 
     if name == "heat_input":
         return "W"
@@ -86,7 +86,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     import h5netcdf
     import h5py
 
-    from .progress import progress_bar
+    from ..progress import progress_bar
 
     if mode not in ("grid", "sobol"):
         raise ValueError(f"mode must be 'grid' or 'sobol', got {mode!r}")
@@ -168,7 +168,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                         else:
                             values[d] = grids[d][idx[j]]
                 else:
-                    from .design import sobol_unit
+                    from .search import sobol_unit
 
                     d_all = len(cont) + (1 if space.material is not None else 0)
                     u = sobol_unit(m, d_all, seed, skip=lo)

@@ -22,9 +22,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from .catalogue import CORE_FIELD, PARAMS, Catalogue, Material, default_catalogue
-from .core import Core, load_core
-from .design import DEFAULT_T_LIMIT, Evaluator
-from .forward import ForwardSettings
+from ..model.core import Core, load_core
+from .search import DEFAULT_T_LIMIT, Evaluator
+from ..model.forward import ForwardSettings
 
 
 @dataclass

@@ -1,10 +1,5 @@
 """Command-line subcommands ``tawarp design``, ``tawarp rank``, ``tawarp sweep``.
 
-Wired into :mod:`tawarp.cli` by::
-
-    from .design_cli import add_design_parser, add_rank_parser, add_sweep_parser
-    add_design_parser(sub); add_rank_parser(sub); add_sweep_parser(sub)
-
 Each registers its subcommand with ``--device``, ``--quiet``, ``-o``; figures go beside
 the JSON output.
 """
@@ -16,27 +11,21 @@ from pathlib import Path
 
 import numpy as np
 
+from .common import _common, _say, parse_list
+
 VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
             "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
             "material=NAME,NAME,... (catalogue materials in the stack)")
 
 
-def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
-    from .cli import _common as common
-
-    return common(p)
-
-
 def _floats(text: str) -> np.ndarray:
-    from .cli import parse_list
-
     return parse_list(text)
 
 
 def _space(args, grid: bool = False):
-    from .catalogue import load_catalogue
-    from .core import load_core
-    from .design import DesignSpace, parse_variable
+    from ..design.catalogue import load_catalogue
+    from ..model.core import load_core
+    from ..design.search import DesignSpace, parse_variable
 
     core = load_core(args.core)
     cat = load_catalogue(args.catalogue or [])
@@ -58,7 +47,7 @@ def _space(args, grid: bool = False):
 
 
 def _settings(args):
-    from .forward import ForwardSettings
+    from ..model.forward import ForwardSettings
 
     return ForwardSettings(device=args.device)
 
@@ -74,9 +63,9 @@ def _add_space_args(p):
 
 # -- design ------------------------------------------------------------------------------
 def cmd_design(args) -> int:
-    from .cli import _say, write_json
-    from .design import OBJECTIVES, search, study_summary
-    from .design_plots import plot_best_profiles, plot_history, plot_pareto
+    from ..io import write_json
+    from ..design.search import OBJECTIVES, search, study_summary
+    from ..design.plots import plot_best_profiles, plot_history, plot_pareto
 
     space = _space(args)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
@@ -113,7 +102,7 @@ def cmd_design(args) -> int:
 def _profile_designs(study, objectives, best, space, T_limit, n=5):
     """Designs whose profiles are drawn: the best of each material (one objective), or
     up to n points spread along the Pareto front."""
-    from .design import best_designs
+    from ..design.search import best_designs
 
     if len(objectives) > 1:
         if len(best) <= n:
@@ -133,7 +122,7 @@ def _profile_designs(study, objectives, best, space, T_limit, n=5):
 
 
 def add_design_parser(sub) -> argparse.ArgumentParser:
-    from .design import DEFAULT_FREQS, DEFAULT_T_LIMIT
+    from ..design.search import DEFAULT_FREQS, DEFAULT_T_LIMIT
 
     p = _common(sub.add_parser("design", help="design search (CMA-ES / NSGA-II, batched on the device, Optuna study)",
                                description="Batched design search. Objectives: gradient = (T(x3)-T(x2))/l_s [K/m] "
@@ -165,10 +154,10 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
 
 # -- rank --------------------------------------------------------------------------------
 def cmd_rank(args) -> int:
-    from .catalogue import load_catalogue
-    from .cli import _say, write_json
-    from .design_plots import plot_ranking
-    from .rank import rank_materials
+    from ..design.catalogue import load_catalogue
+    from ..io import write_json
+    from ..design.plots import plot_ranking
+    from ..design.rank import rank_materials
 
     cat = load_catalogue(args.catalogue or [])
     mats = [m.strip() for m in args.materials.split(",")] if args.materials else None
@@ -191,7 +180,7 @@ def cmd_rank(args) -> int:
 
 
 def add_rank_parser(sub) -> argparse.ArgumentParser:
-    from .design import DEFAULT_T_LIMIT
+    from ..design.search import DEFAULT_T_LIMIT
 
     p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach, with uncertainty"))
     p.add_argument("--materials", default=None, help="comma list of catalogue names (default: all)")
@@ -210,8 +199,8 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
 
 # -- sweep -------------------------------------------------------------------------------
 def cmd_sweep(args) -> int:
-    from .cli import _say, write_json
-    from .sweep import sweep
+    from ..io import write_json
+    from ..design.sweep import sweep
 
     space = _space(args, grid=args.samples is None)
     mode = "grid" if args.samples is None else "sobol"

@@ -55,12 +55,12 @@ import numpy as np
 from scipy import stats
 from scipy.optimize import least_squares
 
-from .coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
-from .core import FIELD_BOUNDS, Core, load_core
-from .effects import Effect, Param, impedance_library, tmatrix_library
-from .estimate import levenberg_marquardt, smooth_settings
-from .forward import Engine, ForwardSettings
-from .measurements import ImpedanceData, TMatrixData
+from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
+from ..model.core import FIELD_BOUNDS, Core, load_core
+from ..model.effects import Effect, Param, impedance_library, tmatrix_library
+from ..fit.estimate import levenberg_marquardt, smooth_settings
+from ..model.forward import Engine, ForwardSettings
+from ..measure.files import ImpedanceData, TMatrixData
 
 #: Acceptance thresholds (module docstring, step 5).
 DELTA_BIC = -10.0
@@ -162,7 +162,7 @@ class ImpedanceProblem(Problem):
     coef_names = ("Zs",)
 
     def __init__(self, data: list[ImpedanceData], settings: ForwardSettings | None = None, start: dict | None = None):
-        from .impedance import layer_core
+        from ..model.layer import layer_core
 
         self.data = list(data)
         self.settings = settings or ForwardSettings()
@@ -178,7 +178,7 @@ class ImpedanceProblem(Problem):
         self._models = {}
 
     def predict(self, values: dict, n: int, effect: Effect | None = None) -> np.ndarray:
-        from .impedance import LayerModel
+        from ..model.layer import LayerModel
 
         names = tuple(sorted(k for k in values if k != "layer.length_offset"))
         if names not in self._models:
@@ -604,7 +604,7 @@ def default_base_params(problem: Problem, names=None) -> list[Param]:
         if problem.kind == "impedance":
             names = ["layer.porosity", "layer.pore_radius", "layer.tortuosity"]
         else:
-            from .effects import _stack_and_heater
+            from ..model.effects import _stack_and_heater
 
             stack, heater = _stack_and_heater(core)
             names = [f"{stack}.porosity", f"{stack}.pore_radius"] if stack else []
@@ -861,7 +861,7 @@ def report_markdown(report: dict) -> str:
 
 def write_report(problem: Problem, report: dict, outdir: str | Path) -> dict:
     """OUTDIR/report.json, report.md, residuals.png (and drift.png); returns the JSON dict."""
-    from .cli import write_json
+    from ..io import write_json
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -883,7 +883,7 @@ def impedance_loop(data: list[ImpedanceData], reference: dict | None = None, set
     material together, then let the loop find what it lacks. ``reference``: the paper's
     values (``phi``, ``alpha_inf``, ``Lambda``, ``Lambda_prime``, ``sigma``) for the
     comparison table."""
-    from .impedance import jca_equivalent
+    from ..model.layer import jca_equivalent
 
     start = {"layer.porosity": 0.95, "layer.pore_radius": 1.5e-4, "layer.tortuosity": 1.1}
     prob = ImpedanceProblem(data, settings or ForwardSettings(device="cpu"), start=start)
@@ -902,57 +902,6 @@ def impedance_loop(data: list[ImpedanceData], reference: dict | None = None, set
 
 
 # ======================================================================================
-# Command line
-# ======================================================================================
-def add_loop_parser(sub) -> None:
-    """Register ``tawarp loop`` on an argparse sub-parsers object."""
-    p = sub.add_parser("loop", help="close the loop: fit, diagnose the residual, choose an effect, report")
-    p.add_argument("data", help="T-matrix CSV (FORMATS.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
-                                "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
-                                "or atalla:NAME (foam1, foam2, fibrous1) for the shared Atalla & Panneton data")
-    p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix data")
-    p.add_argument("--fit", default=None, help="comma list of base parameters (default: stack porosity, pore radius, "
-                                               "the thermal h's; a layer's porosity, pore radius, tortuosity)")
-    p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
-    p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
-    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no chatter")
-    p.set_defaults(func=cmd_loop)
-
-
-def cmd_loop(args) -> int:
-    from .measurements import (atalla_panneton_samples, load_atalla_panneton, read_impedance_csv, read_scattering_csv,
-                               read_tmatrix_csv)
-
-    settings = ForwardSettings(device=args.device, cells=args.cells)
-    if args.data.startswith("atalla:"):
-        name = args.data.split(":", 1)[1]
-        data = load_atalla_panneton(name)
-        ref = atalla_panneton_samples()[name]
-        ref = {"phi": ref["phi"], "alpha_inf": ref["alpha_inf"], "Lambda": ref["Lambda"],
-               "Lambda_prime": ref["Lambda_prime"], "sigma": ref["sigma"]}
-        data = [d for d in data if d.thickness is not None]
-        prob, rep = impedance_loop(data, ref, settings)
-    else:
-        header = next((ln for ln in Path(args.data).read_text().splitlines() if ln.strip() and not ln.startswith("#")), "")
-        if "Zs_re" in header:
-            prob, rep = impedance_loop([read_impedance_csv(args.data)], None, settings)
-        else:
-            if not args.core:
-                raise ValueError("tawarp loop: T-matrix data need --core CORE.toml")
-            core = load_core(args.core)
-            data = read_scattering_csv(args.data) if "S11_re" in header else read_tmatrix_csv(args.data)
-            prob = TMatrixProblem(data, core, settings)
-            names = [s.strip() for s in args.fit.split(",")] if args.fit else None
-            rep = run_loop(prob, default_base_params(prob, names))
-    js = write_report(prob, rep, args.output)
-    if not args.quiet:
-        print(f"error before {js['error_before']:.4g}, after {js['error_after']:.4g}; chosen effect: "
-              f"{js['chosen_effect']}; wrote {Path(args.output) / 'report.json'}")
-    return 0
-
-
-# ======================================================================================
 # Synthetic data with an undeclared effect (tests, demos)
 # ======================================================================================
 def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_inputs=(0.0, 40.0, 80.0),
@@ -962,8 +911,8 @@ def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_in
     effects included) plus complex Gaussian noise of standard deviation ``noise`` times
     the rms of the dimensionless coefficients (per re/im part); sigma columns carry it.
     ``ambient_presence`` in (0, 1]: made with the ambient exchangers of the library."""
-    from .effects import ambient_presence as presence, with_ambient_exchangers, AMBIENT_HX
-    from .forward import transfer_matrices
+    from ..model.effects import ambient_presence as presence, with_ambient_exchangers, AMBIENT_HX
+    from ..model.forward import transfer_matrices
 
     freqs = np.linspace(50.0, 500.0, 12) if freqs is None else np.asarray(freqs, dtype=float)
     truth = dict(truth or {})

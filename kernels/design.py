@@ -15,8 +15,8 @@ Per parameter set i (one thread), from the nodal temperatures of
 
 import warp as wp
 
-from .kernels.heat import cell_coeffs_at, cell_profile, segment_nonlinear, tanhx_x
-from .kernels.layout import LENGTH, RADIUS, T_COLD, seg_value
+from .heat import cell_coeffs_at, cell_profile, segment_nonlinear, tanhx_x
+from .layout import LENGTH, RADIUS, T_COLD, seg_value
 
 
 @wp.func

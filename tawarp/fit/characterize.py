@@ -1,7 +1,7 @@
 """The paper's two-step characterization (PHYSICS.md "Inverse problem", paper Sect. 4-5).
 
->>> from tawarp.characterize import characterize
->>> from tawarp.synthetic import make_paper_data
+>>> from tawarp.fit.characterize import characterize
+>>> from tawarp.measure.synthetic import make_paper_data
 >>> ch = characterize(make_paper_data("mesh"), "mesh")
 >>> ch.step1.value_dict(), ch.step2.values          # geometry; (h_s, h_h, h_a) per Q > 0
 
@@ -33,11 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
-from .core import Core, load_core
+from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
+from ..model.core import Core, load_core
 from .estimate import FitResult, fit, predict
-from .forward import ForwardSettings
-from .measurements import TMatrixData
+from ..model.forward import ForwardSettings
+from ..measure.files import TMatrixData
 
 GEOMETRY_FIELDS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity")
 
@@ -285,7 +285,7 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
 def plot_h_vs_Q(curves: dict[str, tuple], path, title: str = ""):
     """Fig. 5: fitted heat-exchange coefficients against Q with ±1 std error bars.
     ``curves``: label -> (Q (n,), values (n, 3), std (n, 3), names (3,))."""
-    from .plots import plt, save
+    from ..plots import plt, save
 
     first = next(iter(curves.values()))
     k = len(first[3])
@@ -308,7 +308,7 @@ def plot_h_vs_Q(curves: dict[str, tuple], path, title: str = ""):
 
 def plot_normalized_temperature(profiles: dict[str, tuple], path, title: str = ""):
     """Fig. 6: (T - T_cold)/(T_max - T_cold) along the core; ``profiles``: label -> (x, T)."""
-    from .plots import plt, save
+    from ..plots import plt, save
 
     fig, ax = plt.subplots(figsize=(7, 4))
     for label, (x, T) in profiles.items():
@@ -324,7 +324,7 @@ def plot_normalized_temperature(profiles: dict[str, tuple], path, title: str = "
 
 def temperature_profile(ch: Characterization, Q: float, n: int = 400):
     """(x [m], T(x) [K]) of the fitted core at heat input Q [W] (h interpolated in Q)."""
-    from .forward import steady_temperature
+    from ..model.forward import steady_temperature
 
     x = np.linspace(0, ch.core.positions()[-1], n)
     T, _ = steady_temperature(ch.core, x, heat_input=Q, params=ch.h_at(Q), settings=ch.settings)
@@ -334,7 +334,7 @@ def temperature_profile(ch: Characterization, Q: float, n: int = 400):
 def write_figures(ch: Characterization, stem: str | Path, label: str = "", Q_profile: float = 9.0) -> list[Path]:
     """Figures of one characterization: ``STEM_step1.png`` (Fig. 3), ``STEM_step2.png``
     (Fig. 4), ``STEM_h.png`` (Fig. 5), ``STEM_temperature.png`` (Fig. 6, Q = 9 W)."""
-    from .plots import plot_coefficients, plot_temperature
+    from ..plots import plot_coefficients, plot_temperature
 
     stem = Path(stem)
     label = label or Path(str(ch.core.source)).stem
@@ -358,69 +358,6 @@ def _fmt1(ch):
     return ", ".join(f"{k.split('.')[-1]} = {v:.4g} ± {s:.2g}" for k, v, s in zip(r.names, r.values[0], r.std[0]))
 
 
-# -- command line ------------------------------------------------------------------------
-def add_fit_parser(subparsers):
-    """Register ``tawarp fit DATA.csv --core CORE.toml [--fit a,b,c] -o fit.json``."""
-    from .cli import _common
-
-    p = _common(subparsers.add_parser(
-        "fit", help="estimate parameters from measured T-matrices (the paper's two-step procedure by default)"))
-    p.add_argument("data", help="measured T-matrix CSV (FORMATS.md)")
-    p.add_argument("--core", default=None,
-                   help="core TOML or bundled core name (default: the data's '# core = ...' metadata)")
-    p.add_argument("--fit", default=None,
-                   help="comma list of parameters to fit at every heat input instead of the two-step procedure")
-    p.add_argument("-o", "--output", default="fit.json", help="output JSON (default: %(default)s); figures beside it")
-    p.add_argument("--start", default="core", choices=("core", "spread"),
-                   help="start values: the core's ('core', default) or a Sobol spread of starts ('spread')")
-    p.add_argument("--restarts", type=int, default=2, help="restarts from the solution ±20%% (default: %(default)s)")
-    p.add_argument("--damping", default="nielsen", choices=("nielsen", "paper"), help="LM damping rule")
-    p.add_argument("--cells", type=int, default=None,
-                   help="fixed Magnus cells per thermal segment (default: sized by the adaptive rule, fixed per fit)")
-    p.add_argument("--no-bias-correction", action="store_true", help="step 2 on the raw data (skip Eqs. 22-23)")
-    p.add_argument("--no-sigma", action="store_true", help="ignore sigma_* columns (unit weights)")
-    p.add_argument("--no-plots", action="store_true", help="skip the figures")
-    p.set_defaults(func=cmd_fit)
-    return p
-
-
-def cmd_fit(args) -> int:
-    import warnings
-
-    from .cli import write_json
-    from .estimate import FitWarning
-    from .measurements import read_tmatrix_csv
-
-    data = read_tmatrix_csv(args.data)
-    core_name = args.core or data.metadata.get("core")
-    if core_name is None:
-        raise ValueError(f"{args.data}: no --core given and no '# core = ...' metadata line")
-    core = load_core(core_name)
-    settings = ForwardSettings(cells=args.cells, device=args.device)
-    start = "spread" if args.start == "spread" else None
-    out = Path(args.output)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
-        if args.fit:
-            names = [s.strip() for s in args.fit.split(",") if s.strip()]
-            obj = fit_each_heat_input(data, core, names, settings=settings, start=start, restarts=args.restarts,
-                                      damping=args.damping, use_sigma=not args.no_sigma, progress=not args.quiet)
-        else:
-            ch = characterize(data, core, start1=start, start2=start, restarts=args.restarts, damping=args.damping,
-                              bias_correction=not args.no_bias_correction, use_sigma=not args.no_sigma,
-                              settings=settings, progress=not args.quiet)
-            obj = ch.to_json()
-            if not args.no_plots:
-                obj["figures"] = [str(p) for p in write_figures(ch, out.with_suffix(""))]
-    write_json(out, obj)
-    if not args.quiet:
-        print(summary_text(obj))
-        for w in obj.get("warnings", []):
-            print(f"warning: {w}")
-        print(f"wrote {out}")
-    return 0
-
-
 def fit_each_heat_input(data: TMatrixData, core: Core, names, *, settings=None, start=None, restarts=2,
                         damping="nielsen", use_sigma=True, progress=False) -> dict:
     """Fit ``names`` at every heat input of ``data`` (one problem per Q, one batch, no
@@ -437,76 +374,3 @@ def fit_each_heat_input(data: TMatrixData, core: Core, names, *, settings=None, 
             "warnings": r.warnings}
 
 
-def summary_text(obj: dict) -> str:
-    """A short table of a fit.json structure."""
-    lines = []
-    entries = [("Q = 0", obj["step1"])] if "step1" in obj else []
-    entries += [(f"Q = {e['heat_input_W']:g}", e) for e in obj.get("step2", [])]
-    entries += [(f"Q = {e['heat_input_W']:g}", e) for e in obj.get("fits", [])]
-    for label, e in entries:
-        pars = "  ".join(f"{k} = {v['value']:.4g} ± {v['std']:.2g}" for k, v in e["parameters"].items())
-        lines.append(f"{label:>9} W  {pars}  (rms {e['rms_error']:.2e}, {e['iterations']} it, "
-                     f"{'ok' if e['converged'] else e['reason']})")
-    return "\n".join(lines)
-
-
-# -- demo ----------------------------------------------------------------------------------
-def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: int = 40, noise: float = 0.005,
-             seed: int = 0, cells: int | None = None, spread: bool = True) -> dict:
-    """Fit every bundled core's synthetic data end to end (``tawarp demo``): writes
-    ``OUT/fit_MATERIAL.csv`` (data), ``OUT/fit_MATERIAL.json`` and figures, and
-    ``OUT/fit_summary.json``; returns the summary dict and prints a table (unless quiet).
-
-    Starts: a Sobol spread (no prior) in both steps (``spread=True``), else 20 % off the
-    truth (geometry) and 50 % off (h); 2 restarts at ±20 % either way. On the 2-core CPU
-    the default takes about 110 s, ``n_freqs=16, spread=False`` about 8 s (mostly figures)."""
-    from .cli import write_json
-    from .measurements import write_tmatrix_csv
-    from .synthetic import MATERIALS, make_paper_data, true_values
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    settings = ForwardSettings(cells=cells, device=device)
-    summary = {"noise": noise, "seed": seed, "n_freqs": n_freqs, "cells": settings.cells,
-               "starts": "spread" if spread else "offset from the truth", "materials": {}}
-    rows = []
-    import warnings
-
-    from .estimate import FitWarning
-
-    for mat in MATERIALS:
-        data = make_paper_data(mat, noise=noise, seed=seed, n_freqs=n_freqs, device=device)
-        write_tmatrix_csv(out / f"fit_{mat}.csv", data)
-        truth = true_values(data)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FitWarning)
-            if spread:
-                s1 = s2 = "spread"
-            else:
-                s1 = {k: truth[k] * f for k, f in zip(default_geometry(load_core(mat))[0], (0.8, 1.2, 1.1))}
-                s2 = {k: truth[k] * 1.5 for k in default_heat_names(load_core(mat))}
-            ch = characterize(data, mat, start1=s1, start2=s2, settings=settings)
-        obj = ch.to_json()
-        obj["figures"] = [str(p) for p in write_figures(ch, out / f"fit_{mat}", label=mat)]
-        write_json(out / f"fit_{mat}.json", obj)
-        ent = {"rms_error": obj["rms_error"], "converged": obj["converged"], "step1": {}, "step2": {}}
-        for k, v in obj["parameters"].items():
-            ent["step1"][k] = {"value": v["value"], "std": v["std"], "true": truth.get(k)}
-            rows.append((mat, "0", k, v["value"], v["std"], truth.get(k)))
-        for e in obj["step2"]:
-            for k, v in e["parameters"].items():
-                ent["step2"].setdefault(k, []).append({"Q_W": e["heat_input_W"], "value": v["value"], "std": v["std"],
-                                                       "true": truth.get(k)})
-        for k in ch.heat_names:
-            # one row per h: the fit at the largest Q (best determined)
-            e = obj["step2"][-1]
-            rows.append((mat, f"{e['heat_input_W']:g}", k, e["parameters"][k]["value"], e["parameters"][k]["std"],
-                         truth.get(k)))
-        summary["materials"][mat] = ent
-    write_json(out / "fit_summary.json", summary)
-    if not quiet:
-        print(f"{'material':<10} {'Q [W]':>6} {'parameter':<20} {'fitted':>11} {'std':>9} {'true':>11} {'z':>6}")
-        for mat, q, k, v, s, t in rows:
-            z = (v - t) / s if (t is not None and s and math.isfinite(s)) else float("nan")
-            print(f"{mat:<10} {q:>6} {k:<20} {v:11.4g} {s:9.2g} {t if t is not None else float('nan'):11.4g} {z:6.2f}")
-    return summary

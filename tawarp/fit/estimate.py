@@ -1,7 +1,7 @@
 """Batched Levenberg-Marquardt estimation on the device (paper Sect. 4, issue #3).
 
 >>> from tawarp import load_core
->>> from tawarp.estimate import fit
+>>> from tawarp.fit.estimate import fit
 >>> core = load_core("mesh")
 >>> res = fit(core, freqs, Y, ["stack.porosity", "stack.pore_radius", "stack.tortuosity"],
 ...           start={"stack.porosity": 0.7, "stack.pore_radius": 5e-5, "stack.tortuosity": 1.1})
@@ -86,11 +86,11 @@ from typing import Protocol
 import numpy as np
 import warp as wp
 
-from .coefficients import duct_impedance
-from .core import GLOBAL_FIELDS, Core
-from .forward import Engine, ForwardSettings, parameter_row
-from .kernels import lm as klm
-from .progress import progress_bar
+from ..model.coefficients import duct_impedance
+from ..model.core import GLOBAL_FIELDS, Core
+from ..model.forward import Engine, ForwardSettings, parameter_row
+from ..kernels import lm as klm
+from ..progress import progress_bar
 
 #: Positive parameter fields fitted in log scale; every other field (porosity, tortuosity,
 #: exponents, ...) in natural units scaled by |start| (1 when the start is 0).
@@ -236,8 +236,8 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     settings = settings or ForwardSettings()
     if settings.cells is not None:
         return settings
-    from .gas import GASES
-    from .reference import gas_properties
+    from ..model.gas import GASES
+    from ..reference import gas_properties
 
     values = {k: float(np.max(v)) for k, v in (values or {}).items()}
     get = lambda k: values.get(k, core.get(k))  # noqa: E731
@@ -846,7 +846,7 @@ def predict(core: Core, freqs, values: dict | None = None, heat_input=0.0, ties=
             settings: ForwardSettings | None = None, **kw) -> np.ndarray:
     """Dimensionless coefficients (n, m, 4) of ``core`` with ``values`` {name: scalar or (n,)}
     (tied names follow their free parameter), normalised with the core's duct impedance."""
-    from .forward import transfer_matrices
+    from ..model.forward import transfer_matrices
 
     values = dict(values or {})
     for k, others in (ties or {}).items():

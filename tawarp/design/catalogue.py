@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core import Core, CoreError, check_values
+from ..model.core import Core, CoreError, check_values
 
 #: Uncertain parameters of a material, in the order of :attr:`Material.covariance`.
 PARAMS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity", "h_s")
@@ -202,7 +202,7 @@ class Material:
         if base is None:
             if "core" not in data:
                 raise CatalogueError(f"{path}: give base= (a material) or a 'core' key naming the core that was fitted")
-            from .core import load_core
+            from ..model.core import load_core
 
             core_path = Path(data["core"])
             if not core_path.is_absolute() and (path.parent / core_path).exists():

@@ -25,9 +25,9 @@ import warp as wp
 from .coefficients import duct_impedance, normalize
 from .core import GLOBAL_FIELDS, NONLINEAR_FIELDS, SEGMENT_FIELDS, Core, CoreError, check_values
 from .gas import GASES
-from .progress import progress_bar
-from .kernels import forward as kf
-from .kernels import layout
+from ..progress import progress_bar
+from ..kernels import forward as kf
+from ..kernels import layout
 
 assert SEGMENT_FIELDS == ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h",
                           "thermal_radius_ratio", "conductivity_exponent", "radiative_conductivity", "h_convection",
@@ -83,7 +83,7 @@ def base_table(core: Core) -> np.ndarray:
 
 def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
-    from .kernels.pore import PORE_CIRCULAR, PORE_PLATES
+    from ..kernels.pore import PORE_CIRCULAR, PORE_PLATES
 
     model = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES}
     return np.array([[s.is_porous, model[s.pore_model] if s.is_porous else PORE_CIRCULAR, s.thermal, s.heater]

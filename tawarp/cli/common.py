@@ -1,0 +1,34 @@
+"""Helpers shared by the subcommands: list options, the common options, printing."""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+
+def parse_list(text: str) -> np.ndarray:
+    """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear)."""
+    try:
+        if ":" in text:
+            parts = text.split(":")
+            if len(parts) != 3:
+                raise ValueError
+            start, stop, count = float(parts[0]), float(parts[1]), int(parts[2])
+            if count < 1:
+                raise ValueError
+            return np.linspace(start, stop, count)
+        return np.array([float(v) for v in text.split(",") if v.strip()])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)")
+
+
+def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars or chatter")
+    return p
+
+
+def _say(args, *text):
+    if not args.quiet:
+        print(*text, flush=True)

@@ -1,0 +1,57 @@
+"""``tawarp loop``: close the loop on measured data."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from ..loop.diagnose import TMatrixProblem, default_base_params, impedance_loop, run_loop, write_report
+from ..measure.files import (atalla_panneton_samples, load_atalla_panneton, read_impedance_csv, read_scattering_csv,
+                            read_tmatrix_csv)
+from ..model.core import load_core
+from ..model.forward import ForwardSettings
+from .common import _common
+
+
+def add_loop_parser(sub) -> None:
+    """Register ``tawarp loop`` on an argparse sub-parsers object."""
+    p = sub.add_parser("loop", help="close the loop: fit, diagnose the residual, choose an effect, report")
+    p.add_argument("data", help="T-matrix CSV (FORMATS.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
+                                "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
+                                "or atalla:NAME (foam1, foam2, fibrous1) for the shared Atalla & Panneton data")
+    p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix data")
+    p.add_argument("--fit", default=None, help="comma list of base parameters (default: stack porosity, pore radius, "
+                                               "the thermal h's; a layer's porosity, pore radius, tortuosity)")
+    p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
+    p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
+    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
+    p.add_argument("--quiet", action="store_true", help="no chatter")
+    p.set_defaults(func=cmd_loop)
+
+
+def cmd_loop(args) -> int:
+    settings = ForwardSettings(device=args.device, cells=args.cells)
+    if args.data.startswith("atalla:"):
+        name = args.data.split(":", 1)[1]
+        data = load_atalla_panneton(name)
+        ref = atalla_panneton_samples()[name]
+        ref = {"phi": ref["phi"], "alpha_inf": ref["alpha_inf"], "Lambda": ref["Lambda"],
+               "Lambda_prime": ref["Lambda_prime"], "sigma": ref["sigma"]}
+        data = [d for d in data if d.thickness is not None]
+        prob, rep = impedance_loop(data, ref, settings)
+    else:
+        header = next((ln for ln in Path(args.data).read_text().splitlines() if ln.strip() and not ln.startswith("#")), "")
+        if "Zs_re" in header:
+            prob, rep = impedance_loop([read_impedance_csv(args.data)], None, settings)
+        else:
+            if not args.core:
+                raise ValueError("tawarp loop: T-matrix data need --core CORE.toml")
+            core = load_core(args.core)
+            data = read_scattering_csv(args.data) if "S11_re" in header else read_tmatrix_csv(args.data)
+            prob = TMatrixProblem(data, core, settings)
+            names = [s.strip() for s in args.fit.split(",")] if args.fit else None
+            rep = run_loop(prob, default_base_params(prob, names))
+    js = write_report(prob, rep, args.output)
+    if not args.quiet:
+        print(f"error before {js['error_before']:.4g}, after {js['error_after']:.4g}; chosen effect: "
+              f"{js['chosen_effect']}; wrote {Path(args.output) / 'report.json'}")
+    return 0
