@@ -2,8 +2,8 @@
 
 ``params`` is a float64 array of shape (N_GLOBAL + n_segments * N_FIELDS, n_sets): one
 column per parameter set, so that neighbouring threads read neighbouring addresses.
-Rows: the globals below, then for each segment its fields in the order of
-``tawarp.core.SEGMENT_FIELDS``. ``flags`` is an int32 array (n_segments, N_FLAGS) of
+Rows: the globals below, then for each segment its fields at the rows below;
+``tawarp.model.fields`` binds each field name to its row. ``flags`` is an int32 array (n_segments, N_FLAGS) of
 what is fixed for a whole batch: the structure of the core.
 """
 
@@ -12,9 +12,9 @@ import warp as wp
 # global rows
 T_COLD, P_MEAN, RADIUS, HEAT_INPUT = range(4)
 N_GLOBAL = 4
-# segment fields (same order as tawarp.core.SEGMENT_FIELDS)
+# segment fields (tawarp.model.fields binds names, bounds and scaling to these rows)
 LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
-# optional effects (tawarp.effects), each "off" at its default value:
+# optional effects, each "off" at its neutral value (tawarp.model.fields):
 # thermal_radius_ratio (1: r_k = r), conductivity_exponent (0), radiative_conductivity (0),
 # h_convection (0), wall_conductance (0), frame_mobility (0: rigid frame), viscous_shape_factor (1)
 (THERMAL_RADIUS_RATIO, CONDUCTIVITY_EXPONENT, RADIATIVE_CONDUCTIVITY, H_CONVECTION, WALL_CONDUCTANCE, FRAME_MOBILITY,

@@ -9,7 +9,8 @@ import pytest
 
 from tawarp import reference
 from tawarp.model.coefficients import duct_impedance, normalize
-from tawarp.model.core import EFFECT_OFF, Core, CoreError, core_from_dict, dump_core, load_core
+from tawarp.model.fields import EFFECT_OFF
+from tawarp.model.core import Core, CoreError, core_from_dict, dump_core, load_core
 from tawarp.model.forward import steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])

@@ -52,12 +52,14 @@ class SweepInfo:
 
 
 def _units(space: DesignSpace, name: str) -> str:
-    from ..model.core import FIELD_BOUNDS
+    from ..model.fields import field
 
     if name == "heat_input":
         return "W"
-    fld = space.core_name(name).partition(".")[2]
-    return FIELD_BOUNDS[fld][3] if fld in FIELD_BOUNDS else ""
+    try:
+        return field(space.core_name(name)).unit
+    except KeyError:
+        return ""
 
 
 def _blocks(shape: tuple, chunk: int):

@@ -20,12 +20,12 @@ Method
 ``w`` = 1 / sigma of the dimensionless value (or 1).
 
 *Scaled variables.* LM works on z: ``v = s exp(z)`` for positive parameters
-(:data:`LOG_FIELDS`: radii, lengths, conductivities, heat-exchange coefficients, T_cold,
-p_mean), ``v = s z`` for porosity, tortuosity and any other field, with s the start
-value (per problem; 1 for a linear parameter starting at 0). After each step z is
-projected onto the bounds (porosity in [1e-3, 1], tortuosity >= 1; h in [1e-4, 1e5],
-pore radius in [1e-7, 0.1] m, solid conductivity in [1e-4, 1e4] keep runs from a poor start
-from drifting to 0 or infinity; ``bounds=`` for more).
+(radii, lengths, conductivities, heat-exchange coefficients, T_cold, p_mean: the
+``log`` column of :mod:`tawarp.model.fields`), ``v = s z`` for porosity, tortuosity and
+any other field, with s the start value (per problem; 1 for a linear parameter starting
+at 0). After each step z is projected onto each field's ``fit_range`` (porosity in
+[0.01, 1], tortuosity in [1, 10], h in [1e-4, 1e5], pore radius in [1e-7, 0.1] m, ...:
+they keep runs from a poor start from drifting to 0 or infinity; ``bounds=`` for others).
 Both choices make a unit step mean "a relative change of order one", so the damped
 update ``(H + mu I) dz = -g`` treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
 
@@ -66,7 +66,7 @@ the condition number exceeds ``cond_limit`` (1e8).
 
 *Restarts* (``restarts=k``): k extra problems per problem start from the solution with
 every parameter moved by ±``restart_spread`` (20 %) and run as one more batch; with no
-start (``start=None``) a spread of ``n_starts`` Sobol points inside :data:`PRIOR_RANGES`
+start (``start=None``) a spread of ``n_starts`` Sobol points inside each field's ``prior`` range (:mod:`tawarp.model.fields`)
 is run first. The lowest-cost solution is reported; ``distinct_minima`` flags problems
 where a converged restart (±20 %) ended more than ``max(1 std, 10 xtol |v|)`` away from it,
 or a converged run from the spread did so at a cost the data cannot tell apart from the
@@ -88,22 +88,11 @@ import warp as wp
 
 from ..model.coefficients import duct_impedance
 from ..model.core import GLOBAL_FIELDS, Core
+from ..model.fields import field as field_spec
 from ..model.forward import Engine, ForwardSettings, parameter_row
 from ..kernels import lm as klm
 from ..progress import progress_bar
 
-#: Positive parameter fields fitted in log scale; every other field (porosity, tortuosity,
-#: exponents, ...) in natural units scaled by |start| (1 when the start is 0).
-LOG_FIELDS = ("length", "pore_radius", "solid_conductivity", "h", "T_cold", "p_mean", "radius",
-              "thermal_radius_ratio", "radiative_conductivity", "h_convection", "wall_conductance")
-#: Natural-unit bounds applied by projection (inclusive).
-DEFAULT_BOUNDS = {"porosity": (1e-3, 1.0), "tortuosity": (1.0, math.inf), "h": (1e-4, 1e5),
-                  "pore_radius": (1e-7, 0.1), "solid_conductivity": (1e-4, 1e4)}
-#: Ranges (natural units) of the spread of starts used when no start is given; a
-#: ``None`` entry means "the core's value ± 20 %".
-PRIOR_RANGES = {"porosity": (0.3, 0.99), "pore_radius": (1e-5, 2e-3), "tortuosity": (1.0, 2.0),
-                "h": (0.05, 500.0), "solid_conductivity": (0.3, 50.0), "length": None,
-                "T_cold": None, "p_mean": None, "radius": None}
 #: Forward-difference step in the scaled variable z.
 FD_STEP = 1e-6
 REASONS = ("xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
@@ -119,8 +108,8 @@ def field_of(name: str) -> str:
 
 
 def is_log(name: str) -> bool:
-    """True if ``name`` is fitted in log scale (:data:`LOG_FIELDS`)."""
-    return field_of(name) in LOG_FIELDS
+    """True if ``name`` is fitted in log scale (:mod:`tawarp.model.fields`)."""
+    return field_spec(name).log
 
 
 # ----------------------------------------------------------------------------------------
@@ -374,7 +363,7 @@ class Problems:
         lo, hi = np.full(self.p, -np.inf), np.full(self.p, np.inf)
         bounds = dict(bounds or {})
         for a, k in enumerate(self.names):
-            b = bounds.get(k, DEFAULT_BOUNDS.get(field_of(k)))
+            b = bounds.get(k, field_spec(k).fit_range)
             if b is not None:
                 lo[a], hi[a] = b
             if is_log(k):
@@ -679,15 +668,15 @@ def _sign_patterns(k: int, p: int, seed: int) -> np.ndarray:
 
 
 def spread_starts(core: Core, names, n: int, seed: int = 0, ranges: dict | None = None) -> np.ndarray:
-    """``n`` Sobol starts (n, p) inside :data:`PRIOR_RANGES` (log-uniform for log parameters)."""
+    """``n`` Sobol starts (n, p) inside each field's ``prior`` range (:mod:`tawarp.model.fields`) (log-uniform for log parameters)."""
     from scipy.stats import qmc
 
-    ranges = {**PRIOR_RANGES, **(ranges or {})}
+    ranges = dict(ranges or {})
     p = len(names)
     u = qmc.Sobol(d=p, scramble=True, seed=seed).random(n) if n > 1 else np.full((1, p), 0.5)
     out = np.empty((n, p))
     for a, k in enumerate(names):
-        rng = ranges.get(k, ranges.get(field_of(k)))
+        rng = ranges.get(k, ranges.get(field_of(k), field_spec(k).prior))
         if rng is None:
             v = core.get(k)
             rng = (0.8 * v, 1.2 * v)
@@ -724,7 +713,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     heat_input : scalar or (N,) [W]; ``fixed`` {name: scalar or (N,)} per-problem values.
     weights : None, (N, m, 4) or (N, m, 4, 2) (re, im): 1/sigma of the dimensionless values.
     ties : {free name: [names given the same value]} (ceramic: stack and hot exchanger).
-    bounds : {name: (lo, hi)} natural units, added to :data:`DEFAULT_BOUNDS`.
+    bounds : {name: (lo, hi)} natural units, replacing each field's ``fit_range`` (:mod:`tawarp.model.fields`).
     settings, device : forward settings (cells, ...) and device; adaptive cells are
         replaced by fixed counts (:func:`smooth_settings`).
     damping : "nielsen" (default) or "paper" (halve on success, double on failure).

@@ -56,7 +56,8 @@ from scipy import stats
 from scipy.optimize import least_squares
 
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
-from ..model.core import FIELD_BOUNDS, Core, load_core
+from ..model.core import Core, load_core
+from ..model.fields import field as field_spec
 from ..model.effects import Effect, Param, impedance_library, tmatrix_library
 from ..fit.estimate import levenberg_marquardt, smooth_settings
 from ..model.forward import Engine, ForwardSettings
@@ -612,16 +613,12 @@ def default_base_params(problem: Problem, names=None) -> list[Param]:
     out = []
     for name in names:
         v = core.get(name)
-        fld = name.partition(".")[2]
-        lo, hi, _, _ = FIELD_BOUNDS.get(fld, (-math.inf, math.inf, False, ""))
-        if fld == "porosity":
-            out.append(Param(name, (name,), v, 0.05, 0.05, 0.9999))
-        elif fld == "tortuosity":
-            out.append(Param(name, (name,), v, 0.1, 1.0, 10.0))
-        elif v > 0 and lo >= 0:
+        f = field_spec(name)
+        lo, hi = f.fit_range
+        if f.log and v > 0:
             out.append(Param(name, (name,), v, 1.0, max(lo, v * 1e-3), min(hi, v * 1e3), log=True))
         else:
-            out.append(Param(name, (name,), v, max(abs(v), 1.0) * 0.1, lo, hi))
+            out.append(Param(name, (name,), v, f.scale, lo, hi))
     return out
 
 

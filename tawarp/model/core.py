@@ -18,59 +18,14 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, takes
+from .fields import field as field_spec
 from .gas import GASES
 
 SEGMENT_KINDS = ("duct", "porous")
 PORE_MODELS = ("circular", "plates")
-
-#: Numeric segment fields that can be parameters (``SEGMENT.FIELD``).
-SEGMENT_FIELDS = ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h",
-                  "thermal_radius_ratio", "conductivity_exponent", "radiative_conductivity", "h_convection",
-                  "wall_conductance", "frame_mobility", "viscous_shape_factor")
-#: Optional effects of the model (issue #4): each field is off at this value and then
-#: reproduces the base model bit for bit.
-#:
-#: - ``thermal_radius_ratio`` (porous): f_k uses the radius ``ratio * pore_radius``
-#:   (Lambda'/Lambda of the Johnson-Champoux-Allard model; 1 = one radius).
-#: - ``conductivity_exponent`` (thermal porous or duct): the material conductivity of the
-#:   heat model is ``lam (T/T_cold)^b`` (a nonlinear heat solve).
-#: - ``radiative_conductivity`` (thermal porous): Rosseland radiative conductivity at
-#:   T_cold [W/(m K)], added as ``c (T/T_cold)^3``.
-#: - ``h_convection`` (thermal): natural convection, ``h_eff = h + h_conv theta^(1/4)``
-#:   [W/(m^2 K^(5/4))], theta the local temperature excess.
-#: - ``wall_conductance`` (thermal): axial conduction of the tube wall as a conductivity
-#:   added to lam [W/(m K)]: ``lam_wall A_wall / S``, A_wall the wall's cross-section.
-#: - ``frame_mobility`` (porous): 1 / (bulk density of the frame) [m^3/kg]; > 0 makes the
-#:   frame limp (it moves with the air, no stiffness; kernels/acoustics.py limp_density).
-#: - ``viscous_shape_factor`` (porous, circular pores): s = r / Lambda, the viscous
-#:   characteristic length Lambda = r/s at the flow resistivity of radius r (Johnson's
-#:   interpolation as a correction of the exact circular function; 1 = circular pore).
-EFFECT_OFF = {"thermal_radius_ratio": 1.0, "conductivity_exponent": 0.0, "radiative_conductivity": 0.0,
-              "h_convection": 0.0, "wall_conductance": 0.0, "frame_mobility": 0.0, "viscous_shape_factor": 1.0}
-_POROUS_EFFECTS = ("thermal_radius_ratio", "radiative_conductivity", "frame_mobility", "viscous_shape_factor")
-#: Effects evaluated at the local temperature: they make the heat solve iterate.
-NONLINEAR_FIELDS = ("conductivity_exponent", "radiative_conductivity", "h_convection")
 #: Numeric global fields, addressed as ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
-GLOBAL_FIELDS = ("gas.T_cold", "gas.p_mean", "tube.radius")
-#: Physical range of each numeric field: (lowest, highest, lowest excluded), with units.
-FIELD_BOUNDS = {
-    "length": (0.0, math.inf, True, "m"),
-    "porosity": (0.0, 1.0, True, "-"),
-    "pore_radius": (0.0, math.inf, True, "m"),
-    "tortuosity": (1.0, math.inf, False, "-"),
-    "solid_conductivity": (0.0, math.inf, False, "W/(m K)"),
-    "h": (0.0, math.inf, False, "W/(m^2 K)"),
-    "thermal_radius_ratio": (0.0, math.inf, True, "-"),
-    "conductivity_exponent": (-10.0, 10.0, False, "-"),
-    "radiative_conductivity": (0.0, math.inf, False, "W/(m K)"),
-    "h_convection": (0.0, math.inf, False, "W/(m^2 K^1.25)"),
-    "wall_conductance": (0.0, math.inf, False, "W/(m K)"),
-    "frame_mobility": (0.0, math.inf, False, "m^3/kg"),
-    "viscous_shape_factor": (0.0, math.inf, True, "-"),
-    "T_cold": (0.0, math.inf, True, "K"),
-    "p_mean": (0.0, math.inf, True, "Pa"),
-    "radius": (0.0, math.inf, True, "m"),
-}
+GLOBAL_FIELDS = tuple(GLOBAL_FIELD_TABLE)
 
 
 class CoreError(ValueError):
@@ -96,7 +51,7 @@ class Segment:
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
     the steady heat model). Exactly one thermal segment is the ``heater``. The effect
-    fields (:data:`EFFECT_OFF`) are off by default.
+    fields (:data:`tawarp.model.fields.EFFECT_OFF`) are off by default.
     """
 
     name: str
@@ -180,7 +135,7 @@ class Core:
         if owner == "tube" and fld == "radius":
             return self.radius
         if fld not in SEGMENT_FIELDS:
-            raise KeyError(f"{name!r}: unknown field {fld!r}; segment fields are {SEGMENT_FIELDS}")
+            raise KeyError(f"{name!r}: unknown field {fld!r}; segment fields are {tuple(SEGMENT_FIELDS)}")
         seg = self.segment(owner)
         value = getattr(seg, fld)
         if fld == "pore_radius" and not seg.is_porous:
@@ -219,21 +174,10 @@ class Core:
 
 
 def segment_parameter_fields(s: Segment) -> tuple[str, ...]:
-    """Fields of segment ``s`` that are parameters: the base ones (a duct: its length;
-    porous: geometry and solid conductivity; thermal: ``h``), then its effects."""
-    fields = ["length"]
-    if s.is_porous:
-        fields += ["porosity", "pore_radius", "tortuosity", "solid_conductivity"]
-    if s.thermal:
-        fields.append("h")
-    if s.is_porous:
-        fields += ["thermal_radius_ratio", "frame_mobility", "viscous_shape_factor"]
-    if s.thermal:
-        fields.append("conductivity_exponent")
-        if s.is_porous:
-            fields.append("radiative_conductivity")
-        fields += ["h_convection", "wall_conductance"]
-    return tuple(fields)
+    """Fields of segment ``s`` that are parameters, in the table's order
+    (:data:`tawarp.model.fields.SEGMENT_FIELD_TABLE`): a duct has its length (and ``h``
+    and the thermal effects when thermal), a porous segment its geometry too."""
+    return tuple(f.name for f in SEGMENT_FIELD_TABLE if takes(f, s.is_porous, s.thermal))
 
 
 def _split(name: str, source: str) -> tuple[str, str]:
@@ -244,19 +188,19 @@ def _split(name: str, source: str) -> tuple[str, str]:
 
 
 # -- validation ----------------------------------------------------------------------
-def check_values(field: str, values, where: str) -> None:
-    """Raise :class:`CoreError` unless every value of ``field`` is finite and within
-    :data:`FIELD_BOUNDS`; ``where`` names the file/key (or the parameter) in the message."""
-    low, high, low_open, unit = FIELD_BOUNDS[field]
+def check_values(name: str, values, where: str) -> None:
+    """Raise :class:`CoreError` unless every value of field ``name`` (a field or a
+    parameter name) is finite and within its physical range
+    (:mod:`tawarp.model.fields`); ``where`` names the file/key (or the parameter)."""
+    f = field_spec(name)
     for value in (values if hasattr(values, "__len__") else [values]):
         if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
-            raise CoreError(f"{where} [{unit}]: expected a number, got {value!r}")
+            raise CoreError(f"{where} [{f.unit}]: expected a number, got {value!r}")
         v = float(value)
         if not math.isfinite(v):
-            raise CoreError(f"{where} [{unit}]: expected a finite number, got {value!r}")
-        if v < low or (low_open and v == low) or v > high:
-            rng = f"{'(' if low_open else '['}{low}, {high}{']' if math.isfinite(high) else ')'}"
-            raise CoreError(f"{where} [{unit}]: must lie in {rng}, got {v}")
+            raise CoreError(f"{where} [{f.unit}]: expected a finite number, got {value!r}")
+        if not f.check(v):
+            raise CoreError(f"{where} [{f.unit}]: must lie in {f.range_text()}, got {v}")
 
 
 def validate(core: Core) -> None:
@@ -296,7 +240,7 @@ def validate(core: Core) -> None:
             check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if getattr(s, fld) != off and fld not in allowed:
                 raise CoreError(f"{w}: {fld} = {getattr(s, fld)} applies only to "
-                                f"{'porous' if fld in _POROUS_EFFECTS else 'thermal'} segments")
+                                f"{SEGMENT_FIELDS[fld].applies.replace('_', ' ')} segments")
     thermal = core.thermal_indices
     if thermal:
         if thermal != list(range(thermal[0], thermal[-1] + 1)):
@@ -333,8 +277,7 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         if bad:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
         if sd["kind"] == "duct":
-            extra = {"porosity", "pore_radius", "tortuosity", "solid_conductivity", "pore_model",
-                     *_POROUS_EFFECTS} & set(sd)
+            extra = ({"pore_model"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}) & set(sd)
             if extra:
                 raise CoreError(f"{where} ({sd['name']!r}): a duct takes no {sorted(extra)}; use kind = 'porous'")
         elif "pore_radius" not in sd:

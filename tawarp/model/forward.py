@@ -23,21 +23,16 @@ import numpy as np
 import warp as wp
 
 from .coefficients import duct_impedance, normalize
-from .core import GLOBAL_FIELDS, NONLINEAR_FIELDS, SEGMENT_FIELDS, Core, CoreError, check_values
+from .core import Core, CoreError, check_values
+from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
 
-assert SEGMENT_FIELDS == ("length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h",
-                          "thermal_radius_ratio", "conductivity_exponent", "radiative_conductivity", "h_convection",
-                          "wall_conductance", "frame_mobility", "viscous_shape_factor")
-assert layout.N_FIELDS == len(SEGMENT_FIELDS)
-
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
 #: accuracy of each setting against the converged NumPy reference.
 DEFAULT_CELL_DENSITY = 1.5
-_GLOBAL_ROWS = {"gas.T_cold": layout.T_COLD, "gas.p_mean": layout.P_MEAN, "tube.radius": layout.RADIUS}
 
 
 def default_device() -> str:
@@ -59,25 +54,25 @@ def resolve_device(device: str | None) -> str:
 
 def parameter_row(core: Core, name: str) -> int:
     """Row of parameter ``name`` in the kernels' parameter table."""
-    if name in _GLOBAL_ROWS:
-        return _GLOBAL_ROWS[name]
+    if name in GLOBAL_FIELD_TABLE:
+        return GLOBAL_FIELD_TABLE[name].row
     if name not in core.parameter_names():
         raise KeyError(f"{name!r} is not a parameter of core {core.source}; "
                        f"parameters are {', '.join(core.parameter_names())}")
     seg, _, fld = name.partition(".")
     s = [x.name for x in core.segments].index(seg)
-    return layout.N_GLOBAL + s * layout.N_FIELDS + SEGMENT_FIELDS.index(fld)
+    return layout.N_GLOBAL + s * layout.N_FIELDS + SEGMENT_FIELDS[fld].row
 
 
 def base_table(core: Core) -> np.ndarray:
     """The core's own values as one column of the parameter table, shape (rows,)."""
     base = np.zeros(layout.N_GLOBAL + len(core.segments) * layout.N_FIELDS)
-    for name in GLOBAL_FIELDS:
-        base[_GLOBAL_ROWS[name]] = core.get(name)
+    for name, f in GLOBAL_FIELD_TABLE.items():
+        base[f.row] = core.get(name)
     for s, seg in enumerate(core.segments):
-        for f, fld in enumerate(SEGMENT_FIELDS):
-            v = core.get(f"{seg.name}.{fld}")
-            base[layout.N_GLOBAL + s * layout.N_FIELDS + f] = v if math.isfinite(v) else 0.0
+        for f in SEGMENT_FIELD_TABLE:
+            v = core.get(f"{seg.name}.{f.name}")
+            base[layout.N_GLOBAL + s * layout.N_FIELDS + f.row] = v if math.isfinite(v) else 0.0
     return base
 
 
@@ -135,7 +130,7 @@ class ForwardSettings:
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values); ``device``.
-    When a temperature-dependent effect (``core.NONLINEAR_FIELDS``) is on in the core or
+    When a temperature-dependent effect (``fields.NONLINEAR_FIELDS``) is on in the core or
     varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
     segment and the heat solve iterates (Picard, at most ``picard_iterations`` solves,
     until the largest nodal change is below ``picard_tol`` of the largest theta)."""

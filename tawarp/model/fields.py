@@ -1,0 +1,133 @@
+"""The one table of model parameters: every numeric field a segment or the core has.
+
+Each row says, for one field: its row in the kernels' parameter table
+(:mod:`tawarp.kernels.layout`), unit, physical range (validation of cores and batches),
+which segments take it, its neutral value (an effect is off there and the model is
+then the base model bit for bit), whether it makes the heat model nonlinear, and how a
+fit treats it: log or linear scale, the typical size of a linear step, the bounds a
+fit is projected onto, and the range a spread of starts is drawn from.
+
+Adding a segment field: one row here and one row constant in ``kernels/layout.py``
+(the kernels read it by that constant). Everything else (validation, the TOML keys,
+parameter names, bounds, scaling, starts) reads this table.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from ..kernels import layout
+
+#: Which segments take a field: every segment, porous ones, thermal ones, thermal porous ones.
+APPLIES = ("all", "porous", "thermal", "thermal_porous")
+
+
+@dataclass(frozen=True)
+class Field:
+    """One numeric model parameter (see the module doc).
+
+    ``lower``/``upper``/``lower_open``: physical range; ``neutral``: value at which an
+    optional effect is off (None for a field of the paper's base model); ``log``: fitted
+    as ln(v/start) (positive quantities that can start away from 0), else linearly in
+    units of ``scale``; ``fit_range``: bounds a fit is projected onto (natural units);
+    ``prior``: range of a spread of starts (None: the core's value +-20 %).
+    """
+
+    name: str
+    row: int
+    unit: str
+    lower: float
+    upper: float
+    lower_open: bool
+    applies: str = "all"
+    neutral: float | None = None
+    nonlinear: bool = False
+    log: bool = True
+    scale: float = 1.0
+    fit_range: tuple[float, float] = (-math.inf, math.inf)
+    prior: tuple[float, float] | None = None
+    description: str = ""
+
+    @property
+    def is_effect(self) -> bool:
+        return self.neutral is not None
+
+    def check(self, value: float) -> bool:
+        """True when ``value`` lies in the physical range."""
+        return not (value < self.lower or (self.lower_open and value == self.lower) or value > self.upper)
+
+    def range_text(self) -> str:
+        hi = f"{self.upper}]" if math.isfinite(self.upper) else f"{self.upper})"
+        return f"{'(' if self.lower_open else '['}{self.lower}, {hi}"
+
+
+_INF = math.inf
+#: Segment fields in the order they are listed as parameters (``Core.parameter_names``).
+SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
+    Field("length", layout.LENGTH, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0),
+          description="segment length"),
+    Field("porosity", layout.POROSITY, "-", 0.0, 1.0, True, "porous", log=False, scale=0.05,
+          fit_range=(1e-2, 1.0), prior=(0.3, 0.99), description="open fraction of the cross-section"),
+    Field("pore_radius", layout.PORE_RADIUS, "m", 0.0, _INF, True, "porous", fit_range=(1e-7, 0.1),
+          prior=(1e-5, 2e-3), description="pore radius (plates: half the spacing)"),
+    Field("tortuosity", layout.TORTUOSITY, "-", 1.0, _INF, False, "porous", log=False, scale=0.1,
+          fit_range=(1.0, 10.0), prior=(1.0, 2.0), description="q, with q^2 = alpha_inf"),
+    Field("solid_conductivity", layout.SOLID_CONDUCTIVITY, "W/(m K)", 0.0, _INF, False, "porous",
+          fit_range=(1e-4, 1e4), prior=(0.3, 50.0), description="conductivity of the solid matrix"),
+    Field("h", layout.H, "W/(m^2 K)", 0.0, _INF, False, "thermal", fit_range=(1e-4, 1e5), prior=(0.05, 500.0),
+          description="lateral heat exchange with the wall"),
+    Field("thermal_radius_ratio", layout.THERMAL_RADIUS_RATIO, "-", 0.0, _INF, True, "porous", neutral=1.0,
+          log=False, scale=0.2, fit_range=(0.1, 10.0), description="Lambda'/Lambda: f_k uses ratio * pore_radius"),
+    Field("frame_mobility", layout.FRAME_MOBILITY, "m^3/kg", 0.0, _INF, False, "porous", neutral=0.0, log=False,
+          scale=0.01, fit_range=(0.0, 10.0), description="1/(frame bulk density): > 0 makes the frame limp"),
+    Field("viscous_shape_factor", layout.VISCOUS_SHAPE_FACTOR, "-", 0.0, _INF, True, "porous", neutral=1.0,
+          log=False, scale=0.2, fit_range=(0.2, 5.0), description="s = r/Lambda (circular pores: 1)"),
+    Field("conductivity_exponent", layout.CONDUCTIVITY_EXPONENT, "-", -10.0, 10.0, False, "thermal", neutral=0.0,
+          nonlinear=True, log=False, scale=0.5, fit_range=(-3.0, 3.0),
+          description="b in lam (T/T_cold)^b (heat model)"),
+    Field("radiative_conductivity", layout.RADIATIVE_CONDUCTIVITY, "W/(m K)", 0.0, _INF, False, "thermal_porous",
+          neutral=0.0, nonlinear=True, log=False, scale=0.1, fit_range=(0.0, 100.0),
+          description="Rosseland conductivity at T_cold, added as c (T/T_cold)^3"),
+    Field("h_convection", layout.H_CONVECTION, "W/(m^2 K^1.25)", 0.0, _INF, False, "thermal", neutral=0.0,
+          nonlinear=True, log=False, scale=1.0, fit_range=(0.0, 1e3),
+          description="natural convection: h_eff = h + h_conv theta^(1/4)"),
+    Field("wall_conductance", layout.WALL_CONDUCTANCE, "W/(m K)", 0.0, _INF, False, "thermal", neutral=0.0,
+          log=False, scale=0.1, fit_range=(0.0, 1e3), description="axial conduction of the tube wall, lam_wall A_wall/S"),
+)
+#: Core-wide fields, addressed ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
+GLOBAL_FIELD_TABLE: dict[str, Field] = {
+    "gas.T_cold": Field("T_cold", layout.T_COLD, "K", 0.0, _INF, True, fit_range=(150.0, 500.0),
+                        description="cold-end (ambient) temperature"),
+    "gas.p_mean": Field("p_mean", layout.P_MEAN, "Pa", 0.0, _INF, True, fit_range=(1e3, 1e8),
+                        description="mean pressure"),
+    "tube.radius": Field("radius", layout.RADIUS, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0),
+                         description="tube radius"),
+}
+
+SEGMENT_FIELDS: dict[str, Field] = {f.name: f for f in SEGMENT_FIELD_TABLE}
+assert sorted(f.row for f in SEGMENT_FIELD_TABLE) == list(range(layout.N_FIELDS)), "kernels/layout.py rows"
+#: Effect fields and their neutral ("off") values.
+EFFECT_OFF = {f.name: f.neutral for f in SEGMENT_FIELD_TABLE if f.is_effect}
+#: Fields evaluated at the local temperature: they make the heat solve iterate.
+NONLINEAR_FIELDS = tuple(f.name for f in SEGMENT_FIELD_TABLE if f.nonlinear)
+
+
+def field(name: str) -> Field:
+    """The table row of a parameter name: ``SEGMENT.FIELD``, a bare field name, or a
+    global (``gas.T_cold``, ``gas.p_mean``, ``tube.radius``)."""
+    if name in GLOBAL_FIELD_TABLE:
+        return GLOBAL_FIELD_TABLE[name]
+    fld = name.rpartition(".")[2]
+    if fld in SEGMENT_FIELDS:
+        return SEGMENT_FIELDS[fld]
+    for f in GLOBAL_FIELD_TABLE.values():
+        if f.name == fld:
+            return f
+    raise KeyError(f"{name!r}: unknown field {fld!r}; segment fields are {tuple(SEGMENT_FIELDS)}, globals "
+                   f"{tuple(GLOBAL_FIELD_TABLE)}")
+
+
+def takes(f: Field, porous: bool, thermal: bool) -> bool:
+    """True when a segment of that structure has field ``f``."""
+    return {"all": True, "porous": porous, "thermal": thermal, "thermal_porous": porous and thermal}[f.applies]
