@@ -18,9 +18,46 @@ kernels of this module:
 
 The kernels of step 2 are specialised per ``p`` (a closure with compile-time loop
 bounds), so the Jacobian row and ``H`` live in registers. Everything is float64.
+
+Two small kernels give the host side of the fits what the forward kernels compute,
+from the same Warp functions (no host copy of the physics to drift):
+:func:`magnus_cells` (the cascade's adaptive cell count of each thermal segment) and
+:func:`gas_transport` (viscosity and conductivity of the gas laws).
 """
 
 import warp as wp
+
+from .gas import conductivity, sound_speed_squared, viscosity
+from .heat import segment_heat_coeffs
+from .layout import F_THERMAL, LENGTH, T_COLD, seg_value
+
+
+@wp.kernel(enable_backward=False)
+def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                 gas: wp.array(dtype=wp.float64), omega: wp.float64, cell_density: wp.float64,
+                 k_factor: wp.float64, cells: wp.array2d(dtype=wp.int32)):
+    """cells[i, s]: the Magnus cells the cascade kernel (``kernels.forward.transfer_kernel``)
+    gives thermal segment s of parameter set i at angular frequency ``omega`` [rad/s],
+    ``ceil(cell_density (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
+    rate k of :func:`segment_heat_coeffs` (wall conductance and every other term included);
+    ``k_factor = 1`` is the kernel's own count, > 1 leaves room for k to grow. 0 for
+    non-thermal segments."""
+    i, s = wp.tid()
+    cells[i, s] = 0
+    if flags[s, F_THERMAL] != 0:
+        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+        length = seg_value(params, i, s, LENGTH)
+        c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
+        cells[i, s] = int(wp.ceil(cell_density * (wp.float64(1.0) + k_factor * k * length + omega * length / c_cold)))
+
+
+@wp.kernel(enable_backward=False)
+def gas_transport(gas: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64),
+                  mu: wp.array(dtype=wp.float64), k: wp.array(dtype=wp.float64)):
+    """Dynamic viscosity mu [Pa s] and conductivity k [W/(m K)] at temperatures T [K]."""
+    i = wp.tid()
+    mu[i] = viscosity(gas, T[i])
+    k[i] = conductivity(gas, T[i])
 
 #: kinds of parameter transform: natural value v from the scaled variable z and the scale s
 KIND_LINEAR = wp.constant(0)  # v = s z

@@ -18,13 +18,18 @@ at the same sigma.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
+import warp as wp
 
+from ..kernels import lm as klm
 from .core import Core, Gas, Segment
-from .forward import Engine, ForwardSettings
+from .forward import Engine, ForwardSettings, resolve_device
 from .gas import GASES
-from ..measure.files import ImpedanceData
+
+if TYPE_CHECKING:  # the data class only; tawarp.measure builds on this module
+    from ..measure.files import ImpedanceData
 
 #: Radius [m] of the one-segment core of a layer (any value: S cancels in Zs).
 LAYER_TUBE_RADIUS = 0.05
@@ -57,7 +62,7 @@ class LayerModel:
     thicknesses: one Engine over the union of the data's frequencies, parameter sets x
     layers in one launch."""
 
-    def __init__(self, data: list[ImpedanceData], names, settings: ForwardSettings | None = None,
+    def __init__(self, data: list["ImpedanceData"], names, settings: ForwardSettings | None = None,
                  gas: str = "air", start: dict | None = None):
         if not data:
             raise ValueError("LayerModel: no data sets")
@@ -98,13 +103,24 @@ def jca_equivalent(values: dict, core: Core) -> dict:
     """The circular-pore parameters in Johnson-Champoux-Allard terms: phi, alpha_inf = q^2,
     Lambda = r / s (s the viscous shape factor, 1 for circular pores), Lambda' = ratio r,
     sigma = 8 mu q^2 / (phi r^2) [N s/m^4] (mu at T_cold)."""
-    from ..reference import gas_properties
-
     phi = values.get("layer.porosity", core.segments[0].porosity)
     r = values.get("layer.pore_radius", core.segments[0].pore_radius)
     q = values.get("layer.tortuosity", core.segments[0].tortuosity)
     ratio = values.get("layer.thermal_radius_ratio", 1.0)
     shape = values.get("layer.viscous_shape_factor", 1.0)
-    mu = float(gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean).mu)
+    mu = float(gas_transport(core.gas.name, core.gas.T_cold)[0])
     return {"phi": phi, "alpha_inf": q * q, "Lambda": r / shape, "Lambda_prime": ratio * r,
             "sigma": 8 * mu * q * q / (phi * r * r)}
+
+
+def gas_transport(gas: str, T) -> tuple[np.ndarray, np.ndarray]:
+    """Viscosity mu [Pa s] and conductivity k [W/(m K)] of ``gas`` at temperatures ``T``
+    [K], from the kernels' gas laws (:mod:`tawarp.kernels.gas`)."""
+    T = np.atleast_1d(np.asarray(T, dtype=float))
+    dev = resolve_device("cpu")
+    mu = wp.empty(T.size, dtype=wp.float64, device=dev)
+    k = wp.empty(T.size, dtype=wp.float64, device=dev)
+    wp.launch(klm.gas_transport, dim=T.size, device=dev,
+              inputs=[wp.array(GASES[gas].as_tuple(), dtype=wp.float64, device=dev),
+                      wp.array(T.ravel(), dtype=wp.float64, device=dev), mu, k])
+    return mu.numpy().reshape(T.shape), k.numpy().reshape(T.shape)
