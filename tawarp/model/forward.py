@@ -26,6 +26,7 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
+from .validity import check_results, check_sets
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
@@ -314,10 +315,14 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
     progress : show a progress bar over the launch chunks (on a terminal only).
 
     Returns a :class:`ForwardResult` with ``T`` of shape (n, m, 2, 2), complex128.
+    Sets outside the model raise :class:`~tawarp.model.validity.ModelValidityError` or
+    warn (:class:`~tawarp.model.validity.ValidityWarning`) naming the set: never a silent NaN.
     """
     settings = dataclasses.replace(settings or ForwardSettings(), **kw)
     names, varying = batch_table(core, heat_input, params)
     engine = Engine(core, freqs, names, settings)
+    values = dict(zip(names, varying[1:]))
+    check_sets(core, varying[0], values, engine.freqs, settings.cell_density if settings.cells is None else None)
     n, m = varying.shape[1], len(engine.freqs)
     T = np.empty((n, m, 2, 2), dtype=np.complex128)
     theta = np.empty((n, engine.nodes))
@@ -328,6 +333,7 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
         out, w_params, w_theta = engine.evaluate(varying[:, lo:hi])
         T[lo:hi] = out.numpy().view(np.complex128).reshape(hi - lo, m, 2, 2)
         theta[lo:hi] = w_theta.numpy()
+        check_results(core, varying[0], values, T[lo:hi], theta[lo:hi], lo, engine.freqs)
         table[:, lo:hi] = w_params.numpy()
         bar.update(hi - lo)
     bar.close()
@@ -343,9 +349,13 @@ def steady_temperature(core: Core, x, heat_input=0.0, params: dict | None = None
     settings = dataclasses.replace(settings or ForwardSettings(), **kw)
     names, varying = batch_table(core, heat_input, params)
     engine = Engine(core, [1.0], names, settings)
+    values = dict(zip(names, varying[1:]))
+    check_sets(core, varying[0], values)
     T = np.empty((varying.shape[1], len(np.atleast_1d(x))))
     dT = np.empty_like(T)
     for lo in range(0, varying.shape[1], settings.chunk):
         hi = min(varying.shape[1], lo + settings.chunk)
-        T[lo:hi], dT[lo:hi] = engine.temperature(*engine.heat(varying[:, lo:hi]), np.atleast_1d(x))
+        params, theta = engine.heat(varying[:, lo:hi])
+        check_results(core, varying[0], values, None, theta.numpy(), lo)
+        T[lo:hi], dT[lo:hi] = engine.temperature(params, theta, np.atleast_1d(x))
     return T, dT

@@ -1,0 +1,148 @@
+"""Where the model holds, and what the engine says when a parameter set leaves it.
+
+The forward model of PHYSICS.md is a plane-wave, linear, steady-heat model with
+tabulated gas laws. Each check names the parameter set (its index in the batch and its
+varying values) so that a sweep or a fit over thousands of sets says which one failed:
+
+- **Refused before solving** (:class:`ModelValidityError`, a :class:`~tawarp.model.core.CoreError`):
+  a pore radius wider than the tube; heat put in with no heat sink (every thermal ``h``
+  and ``h_convection`` zero: the heat model's ends are adiabatic, so no steady state
+  exists); an adaptive Magnus cascade that would need more than :data:`MAX_CELLS` cells
+  in a segment (a segment thousands of wavelengths long: the run would not end).
+- **Refused after solving** (:class:`NonFiniteError`): a T-matrix or temperature that is
+  not finite. The usual cause is overflow: a stack so lossy (pore radius far below the
+  viscous penetration depth, a huge tortuosity or length) that its matrix entries exceed
+  the float64 range. Such a core transmits nothing measurable.
+- **Warned** (:class:`ValidityWarning`): a temperature above :data:`T_LIMIT` (the gas
+  laws are Sutherland fits to about 1000-1500 K, and the paper's linear heat model
+  ignores radiation and convection that dominate long before); a frequency above the
+  plane-wave cut-on of the tube, ``f_c = 1.8412 c / (2 pi R)`` at the cold temperature
+  (the first non-planar mode propagates above it).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import numpy as np
+
+from .core import Core, CoreError
+from .gas import GASES
+
+#: Highest temperature [K] the model is trusted at (module doc).
+T_LIMIT = 1500.0
+#: Most Magnus cells the adaptive rule may ask for in one segment and frequency.
+MAX_CELLS = 100_000
+#: First zero of J1': the (1,1) mode of a circular duct cuts on at k R = 1.8412.
+CUT_ON_KR = 1.8412
+
+
+class ModelValidityError(CoreError):
+    """A parameter set lies outside what the model can describe (module doc)."""
+
+
+class NonFiniteError(ModelValidityError):
+    """The engine produced a non-finite result for some parameter sets."""
+
+
+class ValidityWarning(UserWarning):
+    """A parameter set is at the edge of the model's validity (module doc)."""
+
+
+def describe_set(i: int, heat_input: np.ndarray, values: dict[str, np.ndarray]) -> str:
+    """``set i (heat_input = .. W, stack.porosity = .., ...)`` for messages."""
+    parts = [f"heat_input = {heat_input[i]:g} W"] + [f"{k} = {v[i]:.6g}" for k, v in values.items()]
+    return f"set {i} ({', '.join(parts)})"
+
+
+def _value(core: Core, values: dict, name: str, n: int) -> np.ndarray:
+    v = values.get(name)
+    return np.broadcast_to(np.asarray(core.get(name) if v is None else v, dtype=float), (n,))
+
+
+def check_sets(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], freqs=None,
+               cell_density: float | None = None) -> None:
+    """Refuse parameter sets outside the model before solving (module doc).
+
+    ``values`` {name: (n,)} are the varying parameters, ``heat_input`` (n,) [W]; ``freqs``
+    [Hz] and ``cell_density`` (adaptive cells; None when the cells are fixed) size the
+    cascade check."""
+    n = heat_input.shape[0]
+    if n == 0:
+        return
+    R = _value(core, values, "tube.radius", n)
+    for s in core.segments:
+        if s.is_porous:
+            r = _value(core, values, f"{s.name}.pore_radius", n)
+            bad = np.flatnonzero(r > R)
+            if bad.size:
+                i = int(bad[0])
+                raise ModelValidityError(
+                    f"{core.source}: {describe_set(i, heat_input, values)}: {s.name}.pore_radius = {r[i]:.4g} m is "
+                    f"wider than the tube (radius {R[i]:.4g} m); {bad.size} of {n} sets")
+    thermal = [core.segments[k] for k in core.thermal_indices]
+    if thermal:
+        sink = sum(_value(core, values, f"{s.name}.h", n) + _value(core, values, f"{s.name}.h_convection", n)
+                   for s in thermal)
+        bad = np.flatnonzero((heat_input > 0) & (sink <= 0))
+        if bad.size:
+            raise ModelValidityError(
+                f"{core.source}: {describe_set(int(bad[0]), heat_input, values)}: heat is put in but every thermal "
+                f"segment has h = 0 and h_convection = 0; with adiabatic ends no steady temperature exists "
+                f"(give some segment h > 0); {bad.size} of {n} sets")
+    if freqs is not None and cell_density is not None and thermal:
+        c = cold_sound_speed(core, values, n)
+        w = 2 * math.pi * float(np.max(freqs))
+        for s in thermal:
+            cells = cell_density * w * _value(core, values, f"{s.name}.length", n) / c
+            bad = np.flatnonzero(cells > MAX_CELLS)
+            if bad.size:
+                i = int(bad[0])
+                raise ModelValidityError(
+                    f"{core.source}: {describe_set(i, heat_input, values)}: {s.name} is {cells[i] / cell_density:.3g} "
+                    f"radians of acoustic phase long at {np.max(freqs):g} Hz: the adaptive cascade would need "
+                    f"more than {MAX_CELLS} cells (pass ForwardSettings(cells=...) to force a count)")
+
+
+def cold_sound_speed(core: Core, values: dict, n: int) -> np.ndarray:
+    """Adiabatic sound speed [m/s] at the cold temperature, per set."""
+    g = GASES[core.gas.name]
+    return np.sqrt(g.gamma * g.R_gas * _value(core, values, "gas.T_cold", n))
+
+
+def check_results(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], T: np.ndarray | None,
+                  theta: np.ndarray, offset: int = 0, freqs=None) -> None:
+    """Raise :class:`NonFiniteError` for non-finite T-matrices ``T`` (k, m, 2, 2) or nodal
+    temperatures ``theta`` (k, nodes) of the sets ``offset .. offset + k``; warn
+    (:class:`ValidityWarning`) above :data:`T_LIMIT` and above the cut-on frequency."""
+    k = theta.shape[0]
+    rows = slice(offset, offset + k)
+    finite = np.all(np.isfinite(theta), axis=1)
+    if T is not None:
+        finite &= np.all(np.isfinite(T.reshape(k, -1)), axis=1)
+    if not finite.all():
+        bad = np.flatnonzero(~finite)
+        i = offset + int(bad[0])
+        raise NonFiniteError(
+            f"{core.source}: {describe_set(i, heat_input, values)} gives a non-finite "
+            f"{'T-matrix' if T is not None else 'temperature'} ({bad.size} of {k} sets in this chunk); usually an "
+            f"overflow: the core attenuates by more than e^700 (a pore radius far below the viscous penetration "
+            f"depth, a huge tortuosity or length), so it transmits nothing measurable")
+    T_cold = _value(core, values, "gas.T_cold", heat_input.shape[0])[rows]
+    T_max = T_cold + (theta.max(axis=1) if theta.shape[1] else 0.0)
+    hot = np.flatnonzero(T_max > T_LIMIT)
+    if hot.size:
+        i = offset + int(hot[0])
+        warnings.warn(f"{core.source}: {describe_set(i, heat_input, values)}: T_max = {T_max[hot[0]]:.0f} K is above "
+                      f"the model's limit of {T_LIMIT:g} K ({hot.size} of {k} sets); the gas laws and the linear heat "
+                      f"model are not trusted there", ValidityWarning, stacklevel=3)
+    if freqs is not None and offset == 0:
+        R = _value(core, values, "tube.radius", heat_input.shape[0])
+        f_c = CUT_ON_KR * cold_sound_speed(core, values, heat_input.shape[0]) / (2 * math.pi * R)
+        above = np.flatnonzero(float(np.max(freqs)) > f_c)
+        if above.size:
+            i = int(above[0])
+            warnings.warn(f"{core.source}: {describe_set(i, heat_input, values)}: frequencies up to "
+                          f"{np.max(freqs):g} Hz exceed the plane-wave cut-on {f_c[i]:.0f} Hz of the tube; the "
+                          f"plane-wave model does not hold there", ValidityWarning, stacklevel=3)
