@@ -18,7 +18,7 @@ import numpy as np
 
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings
-from tawarp.loop.diagnose import synthetic_tmatrix
+from tawarp.measure.synthetic import synthetic_tmatrix
 from tawarp.measure.files import write_tmatrix_csv
 
 TRUTH = {"tbt.h_convection": 3.0}

@@ -13,7 +13,8 @@ from importlib import resources
 from ..fit.characterize import characterize, default_geometry, default_heat_names, write_figures
 from ..fit.estimate import FitWarning
 from ..io import write_json
-from ..loop.diagnose import TMatrixProblem, default_base_params, run_loop, write_report
+from ..loop import default_base_params, run_loop, write_report
+from ..measure.tmatrix import TMatrixKind
 from ..measure.files import TMatrixData, read_tmatrix_csv, write_tmatrix_csv
 from ..measure.synthetic import MATERIALS, make_paper_data, true_values
 from ..model.core import bundled_cores, load_core
@@ -71,7 +72,7 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
     """Close the loop on the bundled measurement: fit, diagnose, choose an effect, and
     print the error and the parameters before and after, with the drift of h with Q."""
     data = read_tmatrix_csv(resources.files("tawarp") / "data" / "measured" / DEMO_MEASUREMENT)
-    problem = TMatrixProblem(data, load_core("ceramic"), ForwardSettings(device=device))
+    problem = TMatrixKind(data, load_core("ceramic"), ForwardSettings(device=device))
     report = write_report(problem, run_loop(problem, default_base_params(problem)), out)
     if not quiet:
         print(f"\nclosing the loop on {DEMO_MEASUREMENT} (ceramic core, Q = {data.heat_inputs.tolist()} W):")

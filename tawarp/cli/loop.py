@@ -4,10 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..loop.diagnose import TMatrixProblem, default_base_params, impedance_loop, run_loop, write_report
-from ..measure.files import (atalla_panneton_samples, load_atalla_panneton, read_impedance_csv, read_scattering_csv,
-                            read_tmatrix_csv)
-from ..model.core import load_core
+from ..loop import default_base_params, impedance_loop, run_loop, write_report
+from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton, load_measurement
 from ..model.forward import ForwardSettings
 from .common import _common
 
@@ -18,7 +16,8 @@ def add_loop_parser(sub) -> None:
     p.add_argument("data", help="T-matrix CSV (FORMATS.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
                                 "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
                                 "or atalla:NAME (foam1, foam2, fibrous1) for the shared Atalla & Panneton data")
-    p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix data")
+    p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix and scattering data "
+                                                "(default: the file's '# core = ...' metadata)")
     p.add_argument("--fit", default=None, help="comma list of base parameters (default: stack porosity, pore radius, "
                                                "the thermal h's; a layer's porosity, pore radius, tortuosity)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
@@ -39,15 +38,10 @@ def cmd_loop(args) -> int:
         data = [d for d in data if d.thickness is not None]
         prob, rep = impedance_loop(data, ref, settings)
     else:
-        header = next((ln for ln in Path(args.data).read_text().splitlines() if ln.strip() and not ln.startswith("#")), "")
-        if "Zs_re" in header:
-            prob, rep = impedance_loop([read_impedance_csv(args.data)], None, settings)
+        prob = load_measurement(args.data, args.core, settings)
+        if isinstance(prob, ImpedanceKind):
+            prob, rep = impedance_loop(prob.data, None, settings)
         else:
-            if not args.core:
-                raise ValueError("tawarp loop: T-matrix data need --core CORE.toml")
-            core = load_core(args.core)
-            data = read_scattering_csv(args.data) if "S11_re" in header else read_tmatrix_csv(args.data)
-            prob = TMatrixProblem(data, core, settings)
             names = [s.strip() for s in args.fit.split(",")] if args.fit else None
             rep = run_loop(prob, default_base_params(prob, names))
     js = write_report(prob, rep, args.output)

@@ -90,6 +90,8 @@ from ..model.core import GLOBAL_FIELDS, Core
 from ..model.fields import field as field_spec
 from ..model.forward import Engine, ForwardSettings, parameter_row
 from ..kernels import lm as klm
+from ..measure.kind import fit_cells, get_engine, smooth_settings  # noqa: F401 (public API)
+from .result import FitResult, _json_float  # noqa: F401 (public API)
 from .lm import LMProblems, LMState, chol_solve, levenberg_marquardt  # noqa: F401 (public API)
 
 #: Forward-difference step in the scaled variable z.
@@ -111,142 +113,6 @@ def is_log(name: str) -> bool:
     return field_spec(name).log
 
 
-# ----------------------------------------------------------------------------------------
-@dataclass
-class FitResult:
-    """Result of a batched fit; arrays have the problem axis first (N problems, p params).
-
-    ``values``, ``std`` (N, p) natural units; ``covariance``, ``correlation`` (N, p, p);
-    ``condition`` (N,) of J^T J in the scaled variables; ``iterations`` (N,);
-    ``converged`` (N,) bool; ``reason`` (N,) str (:data:`REASONS`); ``cost`` (N,) weighted
-    sum of squares; ``rms_error`` (N,) the error measure of FORMATS.md; ``s2`` (N,) the
-    residual variance used in the covariance; ``dof`` = 8 m - p; ``start`` (N, p);
-    ``warnings`` (batch summary) and ``problem_warnings`` (one list per problem);
-    ``distinct_minima`` (N,) bool; ``restart_values`` (N, k, p), ``restart_cost`` (N, k)
-    and ``restart_converged`` (N, k) when restarts ran (else None); ``evaluations``:
-    forward parameter sets evaluated; ``launches``: forward launches; ``seconds``.
-    """
-
-    names: list[str]
-    values: np.ndarray
-    std: np.ndarray
-    covariance: np.ndarray
-    correlation: np.ndarray
-    condition: np.ndarray
-    iterations: np.ndarray
-    converged: np.ndarray
-    reason: np.ndarray
-    cost: np.ndarray
-    rms_error: np.ndarray
-    s2: np.ndarray
-    dof: int
-    start: np.ndarray
-    warnings: list[str] = field(default_factory=list)
-    problem_warnings: list[list[str]] = field(default_factory=list)
-    distinct_minima: np.ndarray | None = None
-    restart_values: np.ndarray | None = None
-    restart_cost: np.ndarray | None = None
-    restart_converged: np.ndarray | None = None
-    local_minima: np.ndarray | None = None
-    evaluations: int = 0
-    launches: int = 0
-    seconds: float = 0.0
-    std_statistical: np.ndarray | None = None
-
-    def add_covariance(self, extra: np.ndarray) -> None:
-        """Add ``extra`` (N, p, p) natural units (e.g. propagated uncertainty of fixed
-        parameters) to the covariance; ``std``, ``correlation`` follow and the former std is
-        kept as ``std_statistical``."""
-        if self.std_statistical is None:
-            self.std_statistical = self.std.copy()
-        self.covariance = self.covariance + extra
-        self.std = np.sqrt(np.abs(np.einsum("nii->ni", self.covariance)))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            self.correlation = self.covariance / (self.std[:, :, None] * self.std[:, None, :])
-        p = self.std.shape[1]
-        self.correlation[:, np.arange(p), np.arange(p)] = 1.0
-
-    def __len__(self) -> int:
-        return self.values.shape[0]
-
-    def value_dict(self, i: int = 0) -> dict[str, float]:
-        """``{name: value}`` of problem ``i``."""
-        return {k: float(v) for k, v in zip(self.names, self.values[i])}
-
-    def problem(self, i: int = 0) -> dict:
-        """Problem ``i`` as a JSON-ready dict (the fit.json entry of FORMATS.md)."""
-        d = {"parameters": {k: {"value": float(self.values[i, a]), "std": _json_float(self.std[i, a]),
-                                "start": float(self.start[i, a])} for a, k in enumerate(self.names)},
-             "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},
-             "converged": bool(self.converged[i]), "reason": str(self.reason[i]),
-             "iterations": int(self.iterations[i]), "cost": _json_float(self.cost[i]),
-             "rms_error": _json_float(self.rms_error[i]), "s2": _json_float(self.s2[i]), "dof": int(self.dof),
-             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i])}
-        if self.std_statistical is not None:
-            for a, k in enumerate(self.names):
-                d["parameters"][k]["std_statistical"] = _json_float(self.std_statistical[i, a])
-        if self.distinct_minima is not None:
-            d["distinct_minima"] = bool(self.distinct_minima[i])
-        if self.local_minima is not None:
-            d["local_minima"] = int(self.local_minima[i])
-        if self.restart_values is not None:
-            d["restarts"] = [{"values": dict(zip(self.names, map(float, v))), "cost": float(c), "converged": bool(ok)}
-                             for v, c, ok in zip(self.restart_values[i], self.restart_cost[i],
-                                                 self.restart_converged[i])]
-        return d
-
-
-def _json_float(x):
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
-def _finite(a):
-    a = np.array(a, dtype=float)
-    a[~np.isfinite(a)] = np.nan
-    return np.where(np.isnan(a), None, a).astype(object) if np.isnan(a).any() else a
-
-
-# ----------------------------------------------------------------------------------------
-def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None) -> ForwardSettings:
-    """Forward settings whose model is smooth in the parameters, as finite-difference
-    Jacobians need.
-
-    The adaptive cell count (``cells = None``) changes with h and the conductivities
-    (``ceil(cell_density (1 + k L + w L / c))``, k = sqrt(2 h / (R lam))): a step across an
-    integer boundary makes the model jump by its discretisation error (~1e-6), which a
-    difference quotient with step 1e-6 turns into an O(1) Jacobian error. So a fit fixes
-    one count per thermal segment for the whole batch: the adaptive rule at the highest
-    frequency with ``2 k L`` (room for the fit to move h up to 4x), evaluated by the
-    kernels' own functions (:func:`fit_cells`); ``values`` {name: scalar or array} are the
-    parameter values to size for (their maxima; the core's values for the rest). Settings
-    with fixed ``cells`` are returned unchanged.
-    """
-    settings = settings or ForwardSettings()
-    if settings.cells is not None:
-        return settings
-    values = {k: float(np.max(v)) for k, v in (values or {}).items()}
-    counts = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0)
-    return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
-
-
-def fit_cells(core: Core, freq: float, values: dict | None = None, settings: ForwardSettings | None = None,
-              k_factor: float = 1.0) -> np.ndarray:
-    """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
-    segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
-    non-thermal segments); ``k_factor`` > 1 sizes for a heat decay rate k that many times
-    larger (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
-    settings = settings or ForwardSettings()
-    names = list(values or {})
-    eng = Engine(core, [freq], names, dataclasses.replace(settings, cells=None))
-    params, _ = eng.heat(np.array([[0.0]] + [[float(values[k])] for k in names]))
-    cells = wp.empty((1, len(core.segments)), dtype=wp.int32, device=eng.device)
-    wp.launch(klm.magnus_cells, dim=(1, len(core.segments)), device=eng.device,
-              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), float(settings.cell_density),
-                      float(k_factor), cells])
-    return cells.numpy()[0]
-
-
 def cold_batch(heat_input, names) -> bool:
     """True when every problem is unheated and no h is involved: the temperature is then
     T_cold everywhere and the thermal segments can use the closed form."""
@@ -259,20 +125,6 @@ def _cold_core(core: Core) -> Core:
     rounding; the parameter table keeps its layout)."""
     return Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
                 core.radius, core.source)
-
-
-_ENGINES: dict = {}
-
-
-def get_engine(core: Core, freqs, names, settings: ForwardSettings) -> Engine:
-    """A cached :class:`Engine` per (core, frequencies, varying names, settings)."""
-    key = (core, tuple(np.asarray(freqs, dtype=float).tolist()), tuple(names), repr(settings))
-    eng = _ENGINES.get(key)
-    if eng is None:
-        if len(_ENGINES) > 32:
-            _ENGINES.clear()
-        eng = _ENGINES[key] = Engine(core, freqs, names, settings)
-    return eng
 
 
 class Problems:

@@ -31,9 +31,9 @@ import math
 
 import numpy as np
 
-from ..model.coefficients import denormalize, duct_impedance
-from ..model.core import load_core
-from ..model.forward import transfer_matrices
+from ..model.coefficients import denormalize, duct_impedance, normalize
+from ..model.core import Core, load_core
+from ..model.forward import ForwardSettings, transfer_matrices
 from .files import TMatrixData
 
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
@@ -117,3 +117,31 @@ def true_values(data: TMatrixData) -> dict[str, float]:
     return {k[5:]: float(v) for k, v in data.metadata.items() if k.startswith("true.")}
 
 
+def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_inputs=(0.0, 40.0, 80.0),
+                      noise: float = 0.002, seed: int = 0, ambient_presence: float | None = None,
+                      settings: ForwardSettings | None = None) -> TMatrixData:
+    """Core T-matrices made by the forward model with parameters ``truth`` (any names,
+    effects included) plus complex Gaussian noise of standard deviation ``noise`` times
+    the rms of the dimensionless coefficients (per re/im part); sigma columns carry it.
+    ``ambient_presence`` in (0, 1]: made with the ambient exchangers of the library."""
+    from ..model.effects import ambient_presence as presence, with_ambient_exchangers, AMBIENT_HX
+
+    freqs = np.linspace(50.0, 500.0, 12) if freqs is None else np.asarray(freqs, dtype=float)
+    truth = dict(truth or {})
+    model = core
+    if ambient_presence:
+        model = with_ambient_exchangers(core, AMBIENT_HX["length"], 1.0, core.radius)
+        truth.update({k: float(v) for k, v in presence(core, ambient_presence).items()})
+    nq = len(heat_inputs)
+    settings = settings or ForwardSettings(device="cpu", cells=8)
+    res = transfer_matrices(model, freqs, list(heat_inputs), params={k: np.full(nq, v) for k, v in truth.items()},
+                            settings=settings)
+    T = res.T.reshape(-1, 2, 2)
+    Zc = duct_impedance(core)
+    s = noise * np.sqrt(np.mean(np.abs(normalize(T, Zc)) ** 2))
+    scale = np.array([[1.0, Zc], [1.0 / Zc, 1.0]])
+    rng = np.random.default_rng(seed)
+    Tn = T + s * scale * (rng.standard_normal(T.shape) + 1j * rng.standard_normal(T.shape))
+    sigma = np.broadcast_to(s * scale, T.shape).copy()
+    meta = {"generator": "tawarp.measure.synthetic.synthetic_tmatrix", "noise": str(noise), "seed": str(seed)}
+    return TMatrixData(np.repeat(heat_inputs, len(freqs)), np.tile(freqs, nq), Tn, sigma, meta, "<synthetic>")

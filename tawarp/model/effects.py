@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from .core import Core, Segment
+from .fields import field as field_spec
 
 
 @dataclass(frozen=True)
@@ -74,6 +75,23 @@ class Param:
         return dataclasses.replace(self, start=float(v))
 
 
+def base_params(core: Core, names) -> list[Param]:
+    """:class:`Param` of each model parameter ``names`` starting at the core's value, its
+    scaling and bounds from :mod:`tawarp.model.fields`: log fields fitted as ln(v/start)
+    within their ``fit_range`` and 1e-3..1e3 times the start, the others as
+    (v - start)/``scale`` within ``fit_range``."""
+    out = []
+    for name in names:
+        v = core.get(name)
+        f = field_spec(name)
+        lo, hi = f.fit_range
+        if f.log and v > 0:
+            out.append(Param(name, (name,), v, 1.0, max(lo, v * 1e-3), min(hi, v * 1e3), log=True))
+        else:
+            out.append(Param(name, (name,), v, f.scale, lo, hi))
+    return out
+
+
 @dataclass(frozen=True)
 class Effect:
     """A candidate effect: ``params`` added to the base fit; ``transform`` changes the core's
@@ -102,7 +120,7 @@ def with_ambient_exchangers(core: Core, length: float = 0.005, porosity: float =
     return Core(tuple(out), core.gas, core.radius, core.source)
 
 
-def _stack_and_heater(core: Core) -> tuple[str | None, str | None]:
+def stack_and_heater(core: Core) -> tuple[str | None, str | None]:
     thermal = [core.segments[i] for i in core.thermal_indices]
     heater = next((s.name for s in thermal if s.heater), None)
     stack = next((s.name for s in thermal if s.is_porous and not s.heater), None)
@@ -112,7 +130,7 @@ def _stack_and_heater(core: Core) -> tuple[str | None, str | None]:
 def tmatrix_library(core: Core) -> list[Effect]:
     """Candidate effects for core T-matrix data (PHYSICS.md's list)."""
     segs = core.segments
-    stack, heater = _stack_and_heater(core)
+    stack, heater = stack_and_heater(core)
     thermal = [core.segments[i] for i in core.thermal_indices]
     buffer = next((s.name for s in thermal if not s.is_porous), None)
     lib = []

@@ -18,18 +18,15 @@ at the same sigma.
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 import warp as wp
 
 from ..kernels import lm as klm
 from .core import Core, Gas, Segment
-from .forward import Engine, ForwardSettings, resolve_device
+from .forward import resolve_device
 from .gas import GASES
 
-if TYPE_CHECKING:  # the data class only; tawarp.measure builds on this module
-    from ..measure.files import ImpedanceData
 
 #: Radius [m] of the one-segment core of a layer (any value: S cancels in Zs).
 LAYER_TUBE_RADIUS = 0.05
@@ -55,48 +52,6 @@ def characteristic_impedance(core: Core) -> float:
 def surface_impedance_from_T(T: np.ndarray, core: Core) -> np.ndarray:
     """``Zs / (rho0 c0) = -Tuu/Tup S / (rho0 c0)`` of T-matrices (..., 2, 2)."""
     return -T[..., 1, 1] / T[..., 1, 0] * core.area / characteristic_impedance(core)
-
-
-class LayerModel:
-    """Batched surface impedance of layers of one material measured at several
-    thicknesses: one Engine over the union of the data's frequencies, parameter sets x
-    layers in one launch."""
-
-    def __init__(self, data: list["ImpedanceData"], names, settings: ForwardSettings | None = None,
-                 gas: str = "air", start: dict | None = None):
-        if not data:
-            raise ValueError("LayerModel: no data sets")
-        for d in data:
-            if d.thickness is None:
-                raise ValueError(f"{d.source}: layer thickness unknown")
-        T_amb = data[0].T_ambient or 293.15
-        p_amb = data[0].p_ambient or 101325.0
-        self.data = data
-        start = dict(start or {})
-        self.core = layer_core(data[0].thickness, T_ambient=T_amb, p_ambient=p_amb, gas=gas).replace(**start)
-        self.freqs = np.unique(np.concatenate([d.freq for d in data]))
-        self.index = [np.searchsorted(self.freqs, d.freq) for d in data]
-        self.names = [n for n in names if n != "layer.length"]
-        self.engine = Engine(self.core, self.freqs, self.names + ["layer.length"],
-                             settings or ForwardSettings(device="cpu"))
-        self.thickness = np.array([d.thickness for d in data])
-
-    def predict(self, values: dict[str, np.ndarray], n: int) -> list[np.ndarray]:
-        """Zs (normalized, exp(-iwt)) of every data set for n parameter sets: a list of
-        (n, rows of set k) complex arrays. ``values``: name -> (n,) array (missing names
-        take the core's values); ``layer.length`` offsets (if given) add to each thickness."""
-        L = len(self.data)
-        table = np.empty((2 + len(self.names), n * L))
-        table[0] = 0.0
-        for j, name in enumerate(self.names):
-            v = np.broadcast_to(np.asarray(values.get(name, self.core.get(name)), dtype=float), (n,))
-            table[1 + j] = np.repeat(v, L)
-        dL = np.broadcast_to(np.asarray(values.get("layer.length_offset", 0.0), dtype=float), (n,))
-        table[-1] = (self.thickness[None, :] + dL[:, None]).reshape(-1)
-        out, _, _ = self.engine.evaluate(table)
-        T = out.numpy().view(np.complex128).reshape(n, L, len(self.freqs), 2, 2)
-        Z = surface_impedance_from_T(T, self.core)
-        return [Z[:, k, self.index[k]] for k in range(L)]
 
 
 def jca_equivalent(values: dict, core: Core) -> dict:

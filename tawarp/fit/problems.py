@@ -1,0 +1,233 @@
+"""Fits of any measurement kind on the one LM (:func:`tawarp.fit.lm.levenberg_marquardt`).
+
+A fit is ``(params, effect, x0)``: the :class:`tawarp.model.effects.Param` list it frees
+(scaled variables ``x = ln(v/start)`` for log fields, ``(v - start)/scale`` otherwise:
+a unit step is a relative change of order one, or one ``scale`` of
+:mod:`tawarp.model.fields`), the effect whose structure it needs (None: the kind's core)
+and the start x0. :func:`fit_batch` runs several fits of one kind in lockstep
+(:class:`KindProblems`: every iteration is one :meth:`MeasurementKind.predict` call per
+structure for every active fit's trial point and its forward-difference neighbours).
+Residuals: ``w (Y_model - y)`` (re, im) on the fitted rows, w the kind's weights.
+:func:`fit_kind` is the estimator's entry point for a kind (``tawarp fit``): parameter
+names, bounds and scaling from :mod:`tawarp.model.fields`.
+
+The T-matrix estimator (:func:`tawarp.fit.estimate.fit`) reduces its residuals on the
+device instead (many problems, long frequency grids); both return :class:`FitResult`.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..measure.kind import MeasurementKind
+from ..model.effects import Effect, Param, base_params
+from .lm import levenberg_marquardt
+from .result import FitResult
+
+#: Forward-difference step in the scaled variables x.
+FD_STEP = 1e-6
+#: Stopping rule of the kind fits: an accepted step below XTOL in x, or the gradient
+#: cosine max |g_a| / sqrt(H_aa F) below GTOL. Tight: the loop compares the fits' costs
+#: (F-test, BIC), so they must sit at the minimum; GTOL is about what forward differences
+#: with step 1e-6 resolve (below it the fits only stall, spending launches).
+XTOL = 1e-10
+GTOL = 1e-6
+
+
+def param_values(params: list[Param], X: np.ndarray, fixed: dict) -> dict:
+    """Model parameter values {name: (n,)} of parameter sets X (n, p) of ``params``."""
+    n = X.shape[0]
+    out = {k: np.full(n, v) for k, v in fixed.items()}
+    for j, par in enumerate(params):
+        par.assign(par.value(X[:, j]), out)
+    return out
+
+
+def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """Weighted real residuals (..., 2 len(rows)): re parts, then im parts."""
+    d = (Y - kind.y)[..., rows]
+    w = kind.w[rows]
+    return np.concatenate([d.real * w[:, 0], d.imag * w[:, 1]], axis=-1)
+
+
+class KindProblems:
+    """The fits ``specs`` = [(params, effect, x0), ...] of one kind as one batch of
+    :class:`tawarp.fit.lm.LMProblems`.
+
+    z is x padded with zeros to the largest p of the batch, the padding pinned by the bounds
+    ``zlo = zhi = 0`` (zero Jacobian columns: it never moves and adds nothing to the step
+    and gradient tests). :meth:`evaluate` forms the trial point and its forward-difference
+    neighbours (step ``FD_STEP`` in x, towards the interior at an upper bound) of every
+    fit asked for in one :meth:`MeasurementKind.predict` call per structure: fits whose
+    effects change no structure share one launch (the union of their parameters, each
+    fit's others at their start values), a structural effect has its own.
+    """
+
+    def __init__(self, kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None):
+        self.kind, self.specs = kind, list(specs)
+        self.rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
+        fixed = dict(fixed or {})
+        self.groups: dict = {}
+        for c, (_, effect, _) in enumerate(self.specs):
+            self.groups.setdefault(effect.name if effect is not None and effect.transform else None, []).append(c)
+        self.base_vals = {}
+        for key, members in self.groups.items():
+            v = dict(fixed)
+            for c in members:
+                for par in self.specs[c][0]:
+                    par.assign(par.start, v)
+            self.base_vals[key] = v
+        #: free parameters per fit; z is padded to the largest
+        self.p = np.array([len(sp[0]) for sp in self.specs], dtype=int)
+        P = int(self.p.max(initial=0))
+        self.zlo, self.zhi = np.zeros((len(self.specs), P)), np.zeros((len(self.specs), P))
+        for c, (params, _, _) in enumerate(self.specs):
+            for j, par in enumerate(params):
+                self.zlo[c, j], self.zhi[c, j] = par.bounds_x()
+        #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
+        self.last: list = []
+
+    def start(self) -> np.ndarray:
+        """The specs' x0, padded (K, P)."""
+        z = np.zeros_like(self.zlo)
+        for c, (_, _, x0) in enumerate(self.specs):
+            z[c, :self.p[c]] = np.asarray(x0, dtype=float)
+        return z
+
+    def project(self, z, pid):
+        return np.clip(z, self.zlo[pid], self.zhi[pid])
+
+    def relative_change(self, dz, z):
+        """|dz|: the scaled variables already measure relative change (:class:`Param`)."""
+        return np.abs(dz)
+
+    def predict(self, requests: list) -> list:
+        """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure."""
+        out = [None] * len(requests)
+        for key, members in self.groups.items():
+            todo = [i for i, (c, _) in enumerate(requests) if c in members]
+            if not todo:
+                continue
+            blocks = []
+            for i in todo:
+                c, X = requests[i]
+                n = X.shape[0]
+                arr = {k: np.full(n, float(v)) for k, v in self.base_vals[key].items()}
+                for j, par in enumerate(self.specs[c][0]):
+                    par.assign(par.value(X[:, j]), arr)
+                blocks.append((i, n, arr))
+            values = {k: np.concatenate([b[2][k] for b in blocks]) for k in blocks[0][2]}
+            effect = self.specs[requests[todo[0]][0]][1] if key is not None else None
+            Y = self.kind.predict(values, sum(b[1] for b in blocks), effect)
+            k0 = 0
+            for i, n, _ in blocks:
+                out[i] = Y[k0:k0 + n]
+                k0 += n
+        return out
+
+    def evaluate(self, pid, z, max_sets: int = 0):
+        """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
+        weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
+        H = J^T J with the forward-difference J (``max_sets`` is not used: the batches
+        are small)."""
+        n, P = z.shape
+        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        requests = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
+            x, h = z[i, :p], step[i, :p]
+            requests.append((c, np.vstack([x[None], x[None] + np.diag(h)])))
+        got = self.predict(requests)
+        cost, raw = np.empty(n), np.empty(n)
+        g, H = np.zeros((n, P)), np.zeros((n, P, P))
+        self.last = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
+            R = residual(self.kind, got[i], self.rows)
+            r = R[0]
+            J = ((R[1:] - r) / step[i, :p, None]).T
+            cost[i] = r @ r
+            raw[i] = np.sum(np.abs(got[i][0, self.rows] - self.kind.y[self.rows]) ** 2)
+            g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
+            self.last.append((J, got[i][0]))
+        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
+        cost[bad] = np.inf
+        return cost, raw, g, H
+
+
+def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effect, converged: bool,
+                reason: str, iterations: int, evaluations: int = 0, seconds: float = 0.0) -> FitResult:
+    """:class:`FitResult` (one problem) of a kind fit at x with Jacobian J (n, p) in x and
+    model values Y: covariance ``s^2 (J^T J)^-1`` (s^2 = 1 with the kind's sigma, else
+    cost / (n - p)) carried to natural units by the delta method (dv/dx = v for log
+    parameters, ``scale`` otherwise)."""
+    r = residual(kind, Y, rows)
+    cost = float(r @ r)
+    n, p = r.size, len(params)
+    dof = max(n - p, 1)
+    s2 = 1.0 if kind.has_sigma else cost / dof
+    JtJ = J.T @ J
+    cov_x = np.linalg.pinv(JtJ) if p else np.zeros((0, 0))
+    values = np.array([float(par.value(x[j])) for j, par in enumerate(params)])
+    D = np.array([abs(v) if par.log else par.scale for v, par in zip(values, params)])
+    unit = cov_x * D[:, None] * D[None, :]
+    cov = s2 * unit
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    su = np.sqrt(np.maximum(np.diag(unit), 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = unit / (su[:, None] * su[None, :])
+    corr[np.arange(p), np.arange(p)] = 1.0
+    w = np.linalg.eigvalsh(JtJ) if p else np.ones(1)
+    cond = float(w[-1] / w[0]) if w[0] > 0 else math.inf
+    one = lambda a, dt=float: np.array([a], dtype=dt)  # noqa: E731
+    return FitResult(names=[par.label for par in params], values=values[None], std=std[None], covariance=cov[None],
+                     correlation=corr[None], condition=one(cond), iterations=one(iterations, int),
+                     converged=one(converged, bool), reason=one(reason, object).astype(str), cost=one(cost),
+                     rms_error=one(kind.error(Y, rows)), s2=one(s2), dof=dof,
+                     start=np.array([[par.start for par in params]]), problem_warnings=[[]],
+                     evaluations=evaluations, seconds=seconds, params=list(params), x=np.asarray(x, dtype=float)[None],
+                     residuals=r[None], jacobian=J[None], model=Y[None], effect=effect, n=n)
+
+
+def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
+              max_iter: int = 100, xtol: float = XTOL, gtol: float = GTOL) -> list[FitResult]:
+    """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
+    None: every parameter at its start), the others at ``fixed`` {name: value} or the
+    core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
+    damping ``mu I``, steps projected onto the bounds) on :class:`KindProblems`; the
+    Jacobians and model values at the solutions take one more evaluation."""
+    t0 = time.perf_counter()
+    specs = [(list(pars), eff, np.zeros(len(pars)) if x0 is None else x0) for pars, eff, x0 in specs]
+    lm = KindProblems(kind, specs, fixed, rows)
+    K = len(lm.specs)
+    if K == 0:
+        return []
+    pid = np.arange(K)
+    if lm.zlo.shape[1]:
+        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter)
+        z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
+    else:  # nothing free: the model at the fixed values
+        z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
+    lm.evaluate(pid, z)
+    dt = time.perf_counter() - t0
+    return [kind_result(kind, params, z[c, :lm.p[c]], lm.last[c][0], lm.last[c][1], lm.rows, effect,
+                        bool(converged[c]), str(reason[c]), int(its[c]), seconds=dt)
+            for c, (params, effect, _) in enumerate(lm.specs)]
+
+
+def fit_one(kind: MeasurementKind, params: list[Param], fixed: dict | None = None, effect: Effect | None = None,
+            rows: np.ndarray | None = None, x0=None, **kw) -> FitResult:
+    """One fit of ``kind`` (:func:`fit_batch` of one spec)."""
+    return fit_batch(kind, [(params, effect, x0)], fixed, rows, **kw)[0]
+
+
+def fit_kind(kind: MeasurementKind, names=None, start: dict | None = None, **kw) -> FitResult:
+    """Fit the parameters ``names`` (default ``kind.default_names()``) of any measurement
+    kind from ``start`` {name: value} (default the kind's core), scaling and bounds from
+    :mod:`tawarp.model.fields` (:func:`tawarp.model.effects.base_params`)."""
+    names = list(names or kind.default_names())
+    core = kind.core.replace(**start) if start else kind.core
+    return fit_one(kind, base_params(core, names), **kw)

@@ -1,0 +1,128 @@
+"""The one result type of every fit: :class:`FitResult` (the T-matrix estimator,
+the two-step characterization, fits of any measurement kind and the loop's fits)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class FitResult:
+    """Result of a batched fit; arrays have the problem axis first (N problems, p params).
+
+    ``values``, ``std`` (N, p) natural units; ``covariance``, ``correlation`` (N, p, p);
+    ``condition`` (N,) of J^T J in the scaled variables; ``iterations`` (N,);
+    ``converged`` (N,) bool; ``reason`` (N,) str (:data:`REASONS`); ``cost`` (N,) weighted
+    sum of squares; ``rms_error`` (N,) the error measure of FORMATS.md; ``s2`` (N,) the
+    residual variance used in the covariance; ``dof`` = 8 m - p; ``start`` (N, p);
+    ``warnings`` (batch summary) and ``problem_warnings`` (one list per problem);
+    ``distinct_minima`` (N,) bool; ``restart_values`` (N, k, p), ``restart_cost`` (N, k)
+    and ``restart_converged`` (N, k) when restarts ran (else None); ``evaluations``:
+    forward parameter sets evaluated; ``launches``: forward launches; ``seconds``.
+    """
+
+    names: list[str]
+    values: np.ndarray
+    std: np.ndarray
+    covariance: np.ndarray
+    correlation: np.ndarray
+    condition: np.ndarray
+    iterations: np.ndarray
+    converged: np.ndarray
+    reason: np.ndarray
+    cost: np.ndarray
+    rms_error: np.ndarray
+    s2: np.ndarray
+    dof: int
+    start: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    problem_warnings: list[list[str]] = field(default_factory=list)
+    distinct_minima: np.ndarray | None = None
+    restart_values: np.ndarray | None = None
+    restart_cost: np.ndarray | None = None
+    restart_converged: np.ndarray | None = None
+    local_minima: np.ndarray | None = None
+    evaluations: int = 0
+    launches: int = 0
+    seconds: float = 0.0
+    std_statistical: np.ndarray | None = None
+    #: when asked for (fits of a measurement kind): the scaled variables x (N, p) of
+    #: :class:`tawarp.model.effects.Param` ``params``, the weighted residuals (N, n) and
+    #: their Jacobian in x (N, n, p) at the solution, the model values (N, rows) complex,
+    #: the fitted ``effect`` (None: the base model) and the number of real residuals ``n``
+    params: list | None = None
+    x: np.ndarray | None = None
+    residuals: np.ndarray | None = None
+    jacobian: np.ndarray | None = None
+    model: np.ndarray | None = None
+    effect: object = None
+    n: int = 0
+
+    def add_covariance(self, extra: np.ndarray) -> None:
+        """Add ``extra`` (N, p, p) natural units (e.g. propagated uncertainty of fixed
+        parameters) to the covariance; ``std``, ``correlation`` follow and the former std is
+        kept as ``std_statistical``."""
+        if self.std_statistical is None:
+            self.std_statistical = self.std.copy()
+        self.covariance = self.covariance + extra
+        self.std = np.sqrt(np.abs(np.einsum("nii->ni", self.covariance)))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            self.correlation = self.covariance / (self.std[:, :, None] * self.std[:, None, :])
+        p = self.std.shape[1]
+        self.correlation[:, np.arange(p), np.arange(p)] = 1.0
+
+    def __len__(self) -> int:
+        return self.values.shape[0]
+
+    def value_dict(self, i: int = 0) -> dict[str, float]:
+        """``{name: value}`` of problem ``i``."""
+        return {k: float(v) for k, v in zip(self.names, self.values[i])}
+
+    def std_dict(self, i: int = 0) -> dict[str, float]:
+        """``{name: std}`` of problem ``i``."""
+        return {k: float(v) for k, v in zip(self.names, self.std[i])}
+
+    def bic(self, has_sigma: bool, i: int = 0) -> float:
+        """Bayesian information criterion of problem ``i`` over its ``n`` real residuals:
+        ``chi^2 + p ln n`` with known sigma, else ``n ln(cost/n) + p ln n``."""
+        p, n, c = len(self.names), self.n, float(self.cost[i])
+        return c + p * math.log(n) if has_sigma else n * math.log(c / n) + p * math.log(n)
+
+    def problem(self, i: int = 0) -> dict:
+        """Problem ``i`` as a JSON-ready dict (the fit.json entry of FORMATS.md)."""
+        d = {"parameters": {k: {"value": float(self.values[i, a]), "std": _json_float(self.std[i, a]),
+                                "start": float(self.start[i, a])} for a, k in enumerate(self.names)},
+             "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},
+             "converged": bool(self.converged[i]), "reason": str(self.reason[i]),
+             "iterations": int(self.iterations[i]), "cost": _json_float(self.cost[i]),
+             "rms_error": _json_float(self.rms_error[i]), "s2": _json_float(self.s2[i]), "dof": int(self.dof),
+             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i])}
+        if self.std_statistical is not None:
+            for a, k in enumerate(self.names):
+                d["parameters"][k]["std_statistical"] = _json_float(self.std_statistical[i, a])
+        if self.distinct_minima is not None:
+            d["distinct_minima"] = bool(self.distinct_minima[i])
+        if self.local_minima is not None:
+            d["local_minima"] = int(self.local_minima[i])
+        if self.restart_values is not None:
+            d["restarts"] = [{"values": dict(zip(self.names, map(float, v))), "cost": float(c), "converged": bool(ok)}
+                             for v, c, ok in zip(self.restart_values[i], self.restart_cost[i],
+                                                 self.restart_converged[i])]
+        return d
+
+
+def _json_float(x):
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _finite(a):
+    a = np.array(a, dtype=float)
+    a[~np.isfinite(a)] = np.nan
+    return np.where(np.isnan(a), None, a).astype(object) if np.isnan(a).any() else a
+
+
+# ----------------------------------------------------------------------------------------

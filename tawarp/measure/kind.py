@@ -1,0 +1,180 @@
+"""What a measurement kind is, the registry of kinds, and the one cache of forward engines.
+
+A *measurement kind* (:class:`MeasurementKind`) holds measured complex observables ``y``
+(rows,) with weights ``w`` (rows, 2) for (re, im) and row labels (``freq`` [Hz], ``group``
+= heat input [W] or layer thickness [m], ``coef`` = index into ``coef_names``), and
+predicts the same observables for a batch of parameter sets (:meth:`MeasurementKind.predict`).
+The estimator (:mod:`tawarp.fit`) and the loop (:mod:`tawarp.loop`) need nothing else.
+
+Adding a kind: subclass :class:`MeasurementKind` (set ``name``, ``group_name``,
+``coef_names``, the row arrays, and :meth:`predict`), and register it with
+:func:`register_kind` (``detect`` tells its CSV header, ``load`` builds it from a file), so
+that :func:`load_measurement`, ``tawarp fit`` and ``tawarp loop`` take its files.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import warp as wp
+
+from ..kernels import lm as klm
+from ..model.coefficients import rms_error
+from ..model.core import Core
+from ..model.forward import Engine, ForwardSettings
+from .files import MeasurementError
+
+
+class MeasurementKind:
+    """Measured observables and their model (see the module doc).
+
+    ``y`` (rows,) complex measured values; ``w`` (rows, 2) weights of (re, im) residuals:
+    1/sigma with sigma columns (``has_sigma``), else 1/rms|y| (the FORMATS.md error
+    measure); ``freq``, ``group``, ``coef`` (rows,) labels; ``core`` the model the
+    parameter names refer to.
+    """
+
+    name = "kind"
+    group_name = "group"
+    coef_names: tuple[str, ...] = ()
+    y: np.ndarray
+    w: np.ndarray
+    freq: np.ndarray
+    group: np.ndarray
+    coef: np.ndarray
+    has_sigma: bool = False
+    core: Core
+
+    def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
+        """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}
+        (missing names take the core's values); ``effect`` an
+        :class:`tawarp.model.effects.Effect` whose ``transform`` changes the structure."""
+        raise NotImplementedError
+
+    def default_names(self) -> list[str]:
+        """Parameters fitted when none are named."""
+        raise NotImplementedError
+
+    def unit_weights(self) -> np.ndarray:
+        """(rows, 2) weights 1/rms|y|: the cost is then the FORMATS.md error squared times rows."""
+        return np.full((self.y.size, 2), 1.0 / np.sqrt(np.mean(np.abs(self.y) ** 2)))
+
+    def error(self, Y: np.ndarray, rows=None) -> float:
+        """The FORMATS.md error measure of model values ``Y`` (rows,) on ``rows``."""
+        rows = slice(None) if rows is None else rows
+        return float(rms_error(self.y[rows], np.asarray(Y)[..., rows]))
+
+    def noise_floor(self) -> float | None:
+        """The FORMATS.md error of data that differ from the model by noise alone."""
+        if not self.has_sigma:
+            return None
+        return float(np.sqrt(np.mean((1.0 / self.w ** 2).sum(-1)) / np.mean(np.abs(self.y) ** 2)))
+
+
+# -- forward engines for fits -------------------------------------------------------------
+def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None) -> ForwardSettings:
+    """Forward settings whose model is smooth in the parameters, as finite-difference
+    Jacobians need.
+
+    The adaptive cell count (``cells = None``) changes with h and the conductivities
+    (``ceil(cell_density (1 + k L + w L / c))``, k = sqrt(2 h / (R lam))): a step across an
+    integer boundary makes the model jump by its discretisation error (~1e-6), which a
+    difference quotient with step 1e-6 turns into an O(1) Jacobian error. So a fit fixes
+    one count per thermal segment for the whole batch: the adaptive rule at the highest
+    frequency with ``2 k L`` (room for the fit to move h up to 4x), evaluated by the
+    kernels' own functions (:func:`fit_cells`); ``values`` {name: scalar or array} are the
+    parameter values to size for (their maxima; the core's values for the rest). Settings
+    with fixed ``cells`` are returned unchanged.
+    """
+    settings = settings or ForwardSettings()
+    if settings.cells is not None:
+        return settings
+    values = {k: float(np.max(v)) for k, v in (values or {}).items()}
+    counts = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0)
+    return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
+
+
+def fit_cells(core: Core, freq: float, values: dict | None = None, settings: ForwardSettings | None = None,
+              k_factor: float = 1.0) -> np.ndarray:
+    """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
+    segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
+    non-thermal segments); ``k_factor`` > 1 sizes for a heat decay rate k that many times
+    larger (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
+    settings = settings or ForwardSettings()
+    names = list(values or {})
+    eng = Engine(core, [freq], names, dataclasses.replace(settings, cells=None))
+    params, _ = eng.heat(np.array([[0.0]] + [[float(values[k])] for k in names]))
+    cells = wp.empty((1, len(core.segments)), dtype=wp.int32, device=eng.device)
+    wp.launch(klm.magnus_cells, dim=(1, len(core.segments)), device=eng.device,
+              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), float(settings.cell_density),
+                      float(k_factor), cells])
+    return cells.numpy()[0]
+
+
+_ENGINES: dict = {}
+
+
+def get_engine(core: Core, freqs, names, settings: ForwardSettings) -> Engine:
+    """A cached :class:`Engine` per (core, frequencies, varying names, settings): the
+    package's one cache (estimator, kinds, loop)."""
+    key = (core, tuple(np.asarray(freqs, dtype=float).tolist()), tuple(names), repr(settings))
+    eng = _ENGINES.get(key)
+    if eng is None:
+        if len(_ENGINES) > 32:
+            _ENGINES.clear()
+        eng = _ENGINES[key] = Engine(core, freqs, names, settings)
+    return eng
+
+
+# -- registry ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class KindEntry:
+    """A registered kind: ``detect(columns)`` is True for its CSV header's column names;
+    ``load(path, core, settings)`` builds the kind from a file."""
+
+    name: str
+    cls: type
+    detect: Callable[[list[str]], bool]
+    load: Callable
+
+
+KINDS: dict[str, KindEntry] = {}
+
+
+def register_kind(name: str, cls: type, detect: Callable[[list[str]], bool], load: Callable | None = None) -> None:
+    """Register a measurement kind: ``cls`` a :class:`MeasurementKind` subclass, ``detect``
+    a test on the CSV header's column names, ``load(path, core, settings)`` (default
+    ``cls.from_file``). A later registration of the same name replaces the earlier one."""
+    KINDS[name] = KindEntry(name, cls, detect, load or cls.from_file)
+
+
+def header_columns(path) -> list[str]:
+    """Column names of a CSV measurement file (its first line that is not a comment)."""
+    path = Path(path)
+    try:
+        with path.open() as fh:
+            for ln in fh:
+                if ln.strip() and not ln.lstrip().startswith("#"):
+                    return [c.strip() for c in ln.split(",")]
+    except OSError as e:
+        raise MeasurementError(f"{path}: cannot read ({e.strerror})") from e
+    raise MeasurementError(f"{path}: no header line")
+
+
+def kind_of(path) -> KindEntry:
+    """The registered kind whose ``detect`` takes the file's header (latest registration first)."""
+    cols = header_columns(path)
+    for entry in reversed(list(KINDS.values())):
+        if entry.detect(cols):
+            return entry
+    raise MeasurementError(f"{path}: header {','.join(cols)} matches no measurement kind ({sorted(KINDS)})")
+
+
+def load_measurement(path, core: Core | None = None, settings: ForwardSettings | None = None) -> MeasurementKind:
+    """A measurement kind built from the CSV file ``path``, the kind picked by its header."""
+    return kind_of(path).load(path, core, settings)
