@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from tawarp.cli.main import main, parse_list
+from tawarp.cli import main
+from tawarp.cli.common import parse_list
 from tawarp.model.core import load_core
 from tawarp.model.forward import transfer_matrices
 from tawarp.measure.files import read_tmatrix_csv
@@ -54,3 +55,55 @@ def test_demo_loop_finds_the_bundled_hidden_effect(tmp_path):
     assert abs(h["value"] - 150.0) < 2 * h["std"]
     assert rep["drift_after"]["relative_spread"]["stack.h"] < rep["drift_before"]["relative_spread"]["stack.h"]
     assert (tmp_path / "loop" / "report.json").exists() and (tmp_path / "loop" / "report.md").exists()
+
+
+@pytest.mark.parametrize("bad", ["", ",", "30:nan:3", "inf"])
+def test_empty_or_non_finite_lists_are_refused(bad):
+    with pytest.raises(Exception, match="at least one finite value"):
+        parse_list(bad)
+
+
+def test_forward_help_shows_defaults(capsys):
+    with pytest.raises(SystemExit):
+        main(["forward", "--help"])
+    out = " ".join(capsys.readouterr().out.split())
+    assert "(default: 30:500:100)" in out and "(default: 0)" in out
+
+
+@pytest.mark.parametrize("args, say", [
+    (["forward", "mesh", "--device", "cuda:7"], "cuda:7"),           # no GPU here, or no 8th GPU
+    (["forward", "{tmp}", "--freqs", "50"], "{tmp}"),                  # a directory as the core
+    (["forward", "mesh", "--freqs", "50", "-o", "{tmp}/afile/T.csv"], "afile"),   # output parent is a file
+])
+def test_bad_paths_and_devices_give_a_message_not_a_traceback(args, say, tmp_path, capsys):
+    (tmp_path / "afile").write_text("x")
+    args = [a.replace("{tmp}", str(tmp_path)) for a in args]
+    assert main(args + ["--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("tawarp forward: error:") and say.replace("{tmp}", str(tmp_path)) in err
+    assert "Traceback" not in err
+
+
+def test_interrupt_exits_130_with_a_message(monkeypatch, capsys):
+    import tawarp.cli.app as cli
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli, "cmd_forward", interrupted)
+    assert cli.main(["forward", "mesh", "--quiet"]) == 130
+    assert "interrupted" in capsys.readouterr().err
+
+
+def test_quiet_prints_nothing_on_stdout(tmp_path):
+    """--quiet silences Warp's banner and module-load lines too (a fresh process: Warp
+    prints them at its first initialisation)."""
+    import subprocess
+    import sys
+
+    code = (f"from tawarp.cli import main; raise SystemExit(main(['forward', 'mesh', '--freqs', '50', '--no-plots', "
+            f"'-o', {str(tmp_path / 'T.csv')!r}, '--device', 'cpu', '--quiet']))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout == ""
+    assert "initialized" not in run.stderr

@@ -69,8 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = _common(sub.add_parser("forward", help="T-matrices of a core (CSV as the measurement format) and plots"))
     p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
-    p.add_argument("--freqs", type=parse_list, default=parse_list("30:500:100"), help="Hz, list or start:stop:count")
-    p.add_argument("--Q", type=parse_list, default=parse_list("0"), help="heat inputs [W], list or start:stop:count")
+    p.add_argument("--freqs", type=parse_list, default="30:500:100",
+                   help="Hz, list or start:stop:count (default: %(default)s)")
+    p.add_argument("--Q", type=parse_list, default="0", help="heat inputs [W], list or start:stop:count (default: %(default)s)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default: adaptive)")
     p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
@@ -86,17 +87,30 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run one subcommand; bad input, a missing device or an interruption end with a
+    one-line message on stderr and exit code 2 (130 when interrupted), never a traceback."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    from ..model.core import CoreError
-    from ..measure.files import MeasurementError
+    import warp as wp
 
+    from ..measure.files import MeasurementError
+    from ..model.core import CoreError
+    from ..model.forward import resolve_device
+
+    if getattr(args, "quiet", False):   # before Warp's first init prints its banner and module loads
+        wp.config.log_level = wp.LOG_ERROR
     t0 = time.perf_counter()
     try:
+        if getattr(args, "device", None) is not None:
+            resolve_device(args.device)
         rc = args.func(args)
-    except (CoreError, MeasurementError, FileNotFoundError, KeyError, ValueError) as e:
+    except (CoreError, MeasurementError, OSError, KeyError, ValueError) as e:
         print(f"tawarp {args.command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        print(f"tawarp {args.command}: interrupted; finished outputs are complete, none is half-written",
+              file=sys.stderr)
+        return 130
     _say(args, f"done in {time.perf_counter() - t0:.1f} s")
     return rc
 

@@ -8,7 +8,15 @@ import numpy as np
 
 
 def parse_list(text: str) -> np.ndarray:
-    """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear)."""
+    """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear); at least
+    one value, all finite."""
+    values = _parse_list(text)
+    if values.size == 0 or not np.all(np.isfinite(values)):
+        raise argparse.ArgumentTypeError(f"{text!r}: expected at least one finite value, e.g. 30,100,250 or 30:500:100")
+    return values
+
+
+def _parse_list(text: str) -> np.ndarray:
     try:
         if ":" in text:
             parts = text.split(":")
@@ -25,7 +33,7 @@ def parse_list(text: str) -> np.ndarray:
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no progress bars or chatter")
+    p.add_argument("--quiet", action="store_true", help="no progress bars, banners or chatter")
     return p
 
 

@@ -48,8 +48,11 @@ def resolve_device(device: str | None) -> str:
         return default_device()
     wp.init()
     if device.startswith("cuda") and not wp.is_cuda_available():
-        raise RuntimeError(f"device {device!r} requested but Warp finds no CUDA GPU; use device='cpu'")
-    wp.get_device(device)  # raises for an unknown name
+        raise ValueError(f"device {device!r} requested but Warp finds no CUDA GPU; use device 'cpu'")
+    try:
+        wp.get_device(device)
+    except (RuntimeError, ValueError):
+        raise ValueError(f"device {device!r}: unknown; expected cpu, cuda or cuda:N") from None
     return device
 
 
