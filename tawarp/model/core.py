@@ -193,7 +193,9 @@ def check_values(name: str, values, where: str) -> None:
     parameter name) is finite and within its physical range
     (:mod:`tawarp.model.fields`); ``where`` names the file/key (or the parameter)."""
     f = field_spec(name)
-    for value in (values if hasattr(values, "__len__") else [values]):
+    # a batch is a NumPy array; anything else is one value (a string or a list from a
+    # TOML file is a wrong value, not a sequence of values)
+    for value in (values if getattr(values, "ndim", 0) > 0 else [values]):
         if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
             raise CoreError(f"{where} [{f.unit}]: expected a number, got {value!r}")
         v = float(value)
@@ -206,7 +208,7 @@ def check_values(name: str, values, where: str) -> None:
 def validate(core: Core) -> None:
     """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
     src = core.source
-    if core.gas.name not in GASES:
+    if not isinstance(core.gas.name, str) or core.gas.name not in GASES:
         raise CoreError(f"{src}: gas.name = {core.gas.name!r}; expected one of {sorted(GASES)}")
     check_values("p_mean", core.gas.p_mean, f"{src}: gas.p_mean")
     check_values("T_cold", core.gas.T_cold, f"{src}: gas.T_cold")
@@ -256,6 +258,11 @@ _SEGMENT_KEYS = {f.name for f in dataclasses.fields(Segment)}
 
 def core_from_dict(data: dict, source: str = "<core>") -> Core:
     """Build a :class:`Core` from the TOML structure of FORMATS.md."""
+    for key, kind, example in (("gas", dict, "[gas]"), ("tube", dict, "[tube]"), ("segment", list, "[[segment]]")):
+        if key in data and not isinstance(data[key], kind):
+            raise CoreError(f"{source}: {key!r} must be a table written {example}, got {data[key]!r}")
+    if any(not isinstance(sd, dict) for sd in data.get("segment", [])):
+        raise CoreError(f"{source}: every 'segment' entry must be a [[segment]] table")
     unknown = set(data) - {"gas", "tube", "segment"}
     if unknown:
         raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, tube, segment")
