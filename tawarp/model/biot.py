@@ -1,0 +1,374 @@
+"""Porous layer with an elastic frame: the Biot-Allard model at normal incidence.
+
+Vectorised NumPy (complex128), batched over parameter sets and frequencies: every
+function takes the frequencies ``freq`` (1-D, [Hz], > 0) and the material parameters as
+keyword arrays that broadcast against each other to a batch shape ``B``; results have
+shape ``B + (m,)`` (``B + (m, 2, 2)`` for a transfer matrix). A loop calls them with a
+dict of (n,) arrays: ``surface_impedance(freq, **values)``.
+
+Parameters (:data:`BIOT_PARAMETERS`, SI units; names as in
+:func:`tawarp.measure.files.atalla_panneton_samples` where both have them):
+
+=============  =========  =====================================================================
+name           unit       meaning
+=============  =========  =====================================================================
+phi            -          porosity, 0 < phi <= 1
+sigma          N s/m^4    static air-flow resistivity (:func:`flow_resistivity` from a pore radius)
+alpha_inf      -          tortuosity (high-frequency limit of the dynamic tortuosity), >= 1
+Lambda         m          viscous characteristic length
+Lambda_prime   m          thermal characteristic length
+E              Pa         frame Young's modulus in vacuo (real part)
+eta            -          frame loss factor: the modulus is ``E (1 - i eta)``, >= 0
+nu             -          frame Poisson ratio, -1 < nu < 0.5
+rho_1          kg/m^3     frame bulk density (frame mass per volume of *layer*, Allard's rho_1)
+thickness      m          layer thickness d
+T, P0          K, Pa      air temperature and static pressure (default 293.15 K, 101325 Pa)
+=============  =========  =====================================================================
+
+Convention. Time dependence ``exp(-i w t)`` (PHYSICS.md). Allard & Atalla (*Propagation
+of Sound in Porous Media*, 2nd ed., 2009) write ``exp(+j w t)``; for real ``w`` every
+complex quantity here is the complex conjugate of theirs, i.e. their formulas with
+``j -> -i``: the frame modulus ``E (1 + j eta)`` becomes ``E (1 - i eta)``, the JCA
+dynamic tortuosity ``alpha = alpha_inf (1 + sigma phi / (j w rho0 alpha_inf) G)`` becomes
+``alpha_inf (1 + i sigma phi / (w rho0 alpha_inf) G)``, and a rigid-backed equivalent
+fluid layer's ``Z = -j Zc cot(k d)`` becomes ``Z = +i Zc cot(k d)`` (stiffness-like at low
+frequency: ``Im Z > 0``).
+
+Physics (Allard & Atalla ch. 5-6):
+
+* Fluid: JCA equivalent density ``rho_eq = rho0 alpha(w) / phi`` and bulk modulus
+  ``K_eq = K_f(w) / phi`` (:func:`jca_fluid`).
+* Biot densities ``rho22 = phi^2 rho_eq``, ``rho12 = phi rho0 - rho22``,
+  ``rho11 = rho_1 - rho12`` (viscous coupling included); incompressible solid
+  (``K_s >> K_b, K_f``): ``R = phi K_f``, ``Q = (1 - phi) K_f``,
+  ``P = P_hat + Q^2/R`` with the in-vacuo frame P-wave modulus
+  ``P_hat = K_b + 4N/3 = E (1 - i eta)(1 - nu)/((1 + nu)(1 - 2 nu))``.
+* Two compressional waves ``delta_1, delta_2`` (Allard's labels: ``delta_1^2`` takes the
+  minus sign of the discriminant) with fluid/frame displacement ratios ``mu_1, mu_2``,
+  and the shear wave ``delta_3`` (``mu_3 = -rho12/rho22``), which normal incidence does
+  not excite (:func:`biot_waves`).
+
+Boundary-value problem (both geometries are solved numerically as a 4x4 linear system per
+frequency and parameter set, the normal-incidence reduction of Allard & Atalla's
+ch. 11 transfer-matrix method). The layer occupies ``0 <= x <= d``; the air is at
+``x < 0`` (front); the state is (frame velocity v^s, fluid velocity v^f, frame stress
+sigma^s, fluid stress sigma^f), the field a sum of the four waves ``+-delta_1,
++-delta_2``, each written as decaying from the face it starts at (``exp(i delta x)`` and
+``exp(i delta (d - x))``, ``Im delta >= 0``), so nothing overflows in thick or soft
+layers. Interface with air (pressure p, normal velocity v): ``sigma^s = -(1 - phi) p``,
+``sigma^f = -phi p``, ``v = (1 - phi) v^s + phi v^f`` (continuity of pressure, of total
+normal stress and of volume velocity).
+
+* :func:`surface_impedance`: rigid backing with the frame bonded to it
+  (``v^s = v^f = 0`` at ``x = d``); ``Zs = p / v`` at ``x = 0`` normalized by ``rho0 c0``.
+* :func:`transfer_matrix`: the layer in a tube between two air spaces, a 2-port
+  ``(p, U)(d) = T (p, U)(0)`` (``U = S v``, the tube area ``S``; the same front-to-back
+  direction as :mod:`tawarp.model.layer`). **Edge condition: the frame slides freely at
+  the tube wall**, so the problem is exactly 1-D (Biot at normal incidence). A frame
+  clamped or glued at its edge bends and is not 1-D: it is not modelled. With free edges
+  the frame can move as a rigid body, so an infinitely stiff frame of finite mass is
+  *not* the rigid-frame equivalent fluid in a 2-port (it is when also infinitely heavy);
+  with a rigid backing the bonded frame cannot move and ``E -> inf`` gives the rigid
+  model. ``E -> 0`` gives the limp-frame model in both geometries.
+
+At normal incidence only ``P_hat`` enters: ``E`` and ``nu`` are not separately
+identifiable from such data (fix ``nu`` when fitting).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from .gas import GASES
+from .layer import gas_transport
+
+#: name -> (unit, meaning) of the material parameters of the Biot layer.
+BIOT_PARAMETERS: dict[str, tuple[str, str]] = {
+    "phi": ("-", "porosity"),
+    "sigma": ("N s/m^4", "static air-flow resistivity"),
+    "alpha_inf": ("-", "tortuosity"),
+    "Lambda": ("m", "viscous characteristic length"),
+    "Lambda_prime": ("m", "thermal characteristic length"),
+    "E": ("Pa", "frame Young's modulus (real part; complex E (1 - i eta))"),
+    "eta": ("-", "frame loss factor"),
+    "nu": ("-", "frame Poisson ratio"),
+    "rho_1": ("kg/m^3", "frame bulk density"),
+    "thickness": ("m", "layer thickness"),
+}
+#: Parameters of the fluid (JCA) part alone.
+JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
+
+# (name, lower, lower inclusive, upper, upper inclusive) of the physical range
+_RANGES = {
+    "phi": (0.0, False, 1.0, True),
+    "sigma": (0.0, False, np.inf, False),
+    "alpha_inf": (1.0, True, np.inf, False),
+    "Lambda": (0.0, False, np.inf, False),
+    "Lambda_prime": (0.0, False, np.inf, False),
+    "E": (0.0, False, np.inf, False),
+    "eta": (0.0, True, np.inf, False),
+    "nu": (-1.0, False, 0.5, False),
+    "rho_1": (0.0, False, np.inf, False),
+    "thickness": (0.0, False, np.inf, False),
+    "T": (0.0, False, np.inf, False),
+    "P0": (0.0, False, np.inf, False),
+    "area": (0.0, False, np.inf, False),
+}
+
+
+class JCAFluid(NamedTuple):
+    """Johnson-Champoux-Allard equivalent fluid, shape ``B + (m,)`` (rho0, c0: ``B + (1,)``).
+
+    ``rho_eq`` [kg/m^3] = rho0 alpha(w) / phi, ``K_eq`` [Pa] = K_f(w) / phi (exp(-iwt));
+    ``rho0`` [kg/m^3], ``c0`` [m/s] of the air."""
+
+    rho_eq: np.ndarray
+    K_eq: np.ndarray
+    rho0: np.ndarray
+    c0: np.ndarray
+
+
+class BiotWaves(NamedTuple):
+    """Biot coefficients and waves at normal incidence, shape ``B + (m,)``.
+
+    ``P, Q, R`` [Pa]; ``rho11, rho12, rho22`` [kg/m^3] (viscous coupling included);
+    ``delta1, delta2`` [1/m] the compressional wavenumbers (``Im >= 0``: ``exp(i delta x)``
+    decays along +x), ``mu1, mu2`` the fluid/frame displacement ratios of those waves
+    (``inf`` where the frame does not move); ``delta3`` [1/m] the shear wavenumber and
+    ``mu3 = -rho12/rho22`` (not excited at normal incidence); ``P_hat`` [Pa] the in-vacuo
+    frame P-wave modulus; ``modes`` (..., 2 waves, 2) unit (frame, fluid) displacement
+    vectors of waves 1 and 2 (finite where ``mu`` is not)."""
+
+    P: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    rho11: np.ndarray
+    rho12: np.ndarray
+    rho22: np.ndarray
+    delta1: np.ndarray
+    delta2: np.ndarray
+    mu1: np.ndarray
+    mu2: np.ndarray
+    delta3: np.ndarray
+    mu3: np.ndarray
+    P_hat: np.ndarray
+    modes: np.ndarray
+
+
+def _check(name: str, value) -> np.ndarray:
+    """``value`` as a float array, or ValueError naming ``name`` and the first bad value."""
+    a = np.asarray(value, dtype=float)
+    lo, lo_in, hi, hi_in = _RANGES[name]
+    ok = np.isfinite(a) & ((a >= lo) if lo_in else (a > lo)) & ((a <= hi) if hi_in else (a < hi))
+    if not ok.all():
+        bad = a.reshape(-1)[np.flatnonzero(~ok.reshape(-1))[0]]
+        rng = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
+        raise ValueError(f"biot: parameter {name!r} = {bad!r} outside its physical range {rng} "
+                         f"({BIOT_PARAMETERS.get(name, ('', name))[1]})")
+    return a
+
+
+def _frequencies(freq) -> np.ndarray:
+    f = np.asarray(freq, dtype=float)
+    if f.ndim != 1 or f.size == 0 or not np.all(np.isfinite(f) & (f > 0)):
+        raise ValueError(f"biot: freq must be a non-empty 1-D array of frequencies > 0 Hz, got {f!r}")
+    return f
+
+
+def _batch(**params) -> dict[str, np.ndarray]:
+    """Checked parameters broadcast to one batch shape, with a trailing axis for frequency."""
+    arrays = {k: _check(k, v) for k, v in params.items()}
+    shape = np.broadcast_shapes(*(a.shape for a in arrays.values()))
+    return {k: np.broadcast_to(a, shape)[..., None] for k, a in arrays.items()}
+
+
+def flow_resistivity(pore_radius, phi, alpha_inf, T=293.15, gas: str = "air") -> np.ndarray:
+    """Flow resistivity [N s/m^4] of circular pores of radius ``pore_radius`` [m]:
+    ``sigma = 8 mu alpha_inf / (phi r^2)`` (mu of ``gas`` at ``T`` [K]); the same relation
+    as :func:`tawarp.model.layer.jca_equivalent` (``alpha_inf = q^2``)."""
+    r = _check("Lambda", pore_radius)
+    phi, alpha_inf, T = _check("phi", phi), _check("alpha_inf", alpha_inf), _check("T", T)
+    mu = gas_transport(gas, T)[0].reshape(np.shape(T))
+    return 8.0 * mu * alpha_inf / (phi * r * r)
+
+
+def _jca(w, b, gas) -> JCAFluid:
+    g = GASES[gas]
+    mu, k = gas_transport(gas, b["T"].reshape(-1))
+    mu, k = mu.reshape(b["T"].shape), k.reshape(b["T"].shape)
+    rho0 = b["P0"] / (g.R_gas * b["T"])
+    c0 = np.sqrt(g.gamma * g.R_gas * b["T"])
+    Pr = mu * g.cp / k
+    phi, sigma, a_inf = b["phi"], b["sigma"], b["alpha_inf"]
+    L, Lp = b["Lambda"], b["Lambda_prime"]
+    # Allard & Atalla Eqs. 5.50 and 5.52 with j -> -i (principal square roots: the
+    # conjugate of theirs, since the roots commute with conjugation off the negative axis)
+    G = np.sqrt(1.0 - 4j * a_inf**2 * mu * rho0 * w / (sigma**2 * L**2 * phi**2))
+    alpha = a_inf * (1.0 + 1j * sigma * phi / (w * rho0 * a_inf) * G)
+    Gp = np.sqrt(1.0 - 1j * rho0 * w * Pr * Lp**2 / (16.0 * mu))
+    K_f = g.gamma * b["P0"] / (g.gamma - (g.gamma - 1.0) / (1.0 + 8j * mu / (Lp**2 * Pr * w * rho0) * Gp))
+    return JCAFluid(rho0 * alpha / phi, K_f / phi, rho0, c0)
+
+
+def jca_fluid(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15, P0=101325.0,
+              gas: str = "air") -> JCAFluid:
+    """JCA equivalent fluid of a rigid frame (exp(-iwt)); see :class:`JCAFluid`."""
+    f = _frequencies(freq)
+    b = _batch(phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, T=T, P0=P0)
+    return _jca(2 * np.pi * f, b, gas)
+
+
+def rigid_surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15,
+                            P0=101325.0, gas: str = "air") -> np.ndarray:
+    """``Zs / (rho0 c0)`` of a rigid-backed JCA layer with a rigid frame:
+    ``i Zc cot(k d)`` with ``k = w sqrt(rho_eq/K_eq)``, ``Zc = sqrt(rho_eq K_eq)`` (exp(-iwt))."""
+    fl = jca_fluid(freq, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime,
+                   T=T, P0=P0, gas=gas)
+    d = np.asarray(_check("thickness", thickness))[..., None]
+    k = 2 * np.pi * _frequencies(freq) * np.sqrt(fl.rho_eq / fl.K_eq)
+    Zc = np.sqrt(fl.rho_eq * fl.K_eq)
+    return 1j * Zc / np.tan(k * d) / (fl.rho0 * fl.c0)
+
+
+def _waves(w, b, gas) -> tuple[BiotWaves, JCAFluid]:
+    fl = _jca(w, b, gas)
+    phi = b["phi"]
+    rho22 = phi * phi * fl.rho_eq
+    rho12 = phi * fl.rho0 - rho22
+    rho11 = b["rho_1"] - rho12
+    R = phi * phi * fl.K_eq
+    Q = (1.0 - phi) * phi * fl.K_eq
+    Em = b["E"] * (1.0 - 1j * b["eta"])
+    nu = b["nu"]
+    P_hat = Em * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    P = P_hat + (1.0 - phi) ** 2 * fl.K_eq  # P_hat + Q^2/R
+    # dispersion (P R - Q^2) d^4 - w^2 B d^2 + w^4 C = 0, written without the cancellations
+    # of its textbook form: P R - Q^2 = P_hat R, rho11 rho22 - rho12^2 = rho_1 rho22 - phi rho0 rho12
+    A = P_hat * R
+    beta = (1.0 - phi) / phi  # Q / R
+    Bc = P_hat * rho22 + R * (beta * beta * rho22 + rho11 - 2.0 * beta * rho12)
+    C = b["rho_1"] * rho22 - phi * fl.rho0 * rho12
+    s = np.sqrt(Bc * Bc - 4.0 * A * C)
+    plus = np.abs(Bc + s) >= np.abs(Bc - s)
+    big = np.where(plus, Bc + s, Bc - s) / (2.0 * A)  # the root without cancellation
+    small = C / (A * big)
+    x1, x2 = np.where(plus, small, big), np.where(plus, big, small)  # x1 = (B - s)/(2A): Allard's delta_1^2
+    deltas = [w * np.sqrt(x) for x in (x1, x2)]
+    deltas = [np.where(d.imag < 0, -d, d) for d in deltas]
+    modes = []
+    for x in (x1, x2):
+        # null vector (u^s, u^f) of [[P x - rho11, Q x - rho12], [Q x - rho12, R x - rho22]] (x = d^2/w^2)
+        # from its larger row: accurate when the frame or the fluid barely moves
+        r1 = (P * x - rho11, Q * x - rho12)
+        r2 = (Q * x - rho12, R * x - rho22)
+        use1 = np.abs(r1[0]) + np.abs(r1[1]) >= np.abs(r2[0]) + np.abs(r2[1])
+        us = np.where(use1, -r1[1], r2[1])
+        uf = np.where(use1, r1[0], -r2[0])
+        n = np.sqrt(np.abs(us) ** 2 + np.abs(uf) ** 2)
+        modes.append(np.stack([us / n, uf / n], axis=-1))
+    modes = np.stack(modes, axis=-2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu12 = [np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (modes[..., 0, :], modes[..., 1, :])]
+    N = Em / (2.0 * (1.0 + nu))
+    delta3 = w * np.sqrt(C / (N * rho22))
+    delta3 = np.where(delta3.imag < 0, -delta3, delta3)
+    return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], mu12[0], mu12[1], delta3,
+                     -rho12 / rho22, P_hat, modes), fl
+
+
+def biot_waves(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1, T=293.15,
+               P0=101325.0, gas: str = "air") -> BiotWaves:
+    """Biot coefficients and the three waves (see :class:`BiotWaves`)."""
+    f = _frequencies(freq)
+    b = _batch(phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, E=E,
+               eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
+    return _waves(2 * np.pi * f, b, gas)[0]
+
+
+def _face_states(w, b, gas):
+    """State matrices at both faces: ``V(x) = M(x) a`` for x = 0 and d, with V = (v^s,
+    v^f, sigma^s/(rho0 c0), sigma^f/(rho0 c0)) and a the amplitudes of the waves
+    (+delta1, -delta1, +delta2, -delta2), each column scaled to unit size.
+    Returns (M0, Md, fluid), M of shape B + (m, 4, 4)."""
+    wv, fl = _waves(w, b, gas)
+    z0 = fl.rho0 * fl.c0
+    d = b["thickness"]
+    cols0, colsd = [], []
+    for i, delta in enumerate((wv.delta1, wv.delta2)):
+        us, uf = wv.modes[..., i, 0], wv.modes[..., i, 1]
+        # stresses from the equations of motion, d sigma/dx = -w^2 (rho u): sigma = i s w^2/delta (rho u)
+        # for exp(i s delta x); exact given the dispersion relation, and free of the
+        # cancellation in P u^s + Q u^f when the frame is soft (u^f ~ -(Q/R) u^s)
+        ss = w * w / delta * (wv.rho11 * us + wv.rho12 * uf) / z0
+        sf = w * w / delta * (wv.rho12 * us + wv.rho22 * uf) / z0
+        decay = np.exp(1j * delta * d)  # |decay| <= 1
+        for sign in (1.0, -1.0):
+            col = np.stack([-1j * w * us, -1j * w * uf, 1j * sign * ss, 1j * sign * sf], axis=-1)
+            col = col / np.max(np.abs(col), axis=-1, keepdims=True)
+            # forward wave starts at x = 0, backward wave at x = d
+            cols0.append(col if sign > 0 else col * decay[..., None])
+            colsd.append(col * decay[..., None] if sign > 0 else col)
+    return np.stack(cols0, axis=-1), np.stack(colsd, axis=-1), fl
+
+
+def _split_row(M, phi):
+    """Row of the air interface's stress split: phi sigma^s - (1 - phi) sigma^f = 0."""
+    return phi[..., None] * M[..., 2, :] - (1.0 - phi[..., None]) * M[..., 3, :]
+
+
+def _pv_rows(M, phi):
+    """Rows giving (p / (rho0 c0), v) at a face: p = -sigma^f / phi, v = (1-phi) v^s + phi v^f."""
+    p = -M[..., 3, :] / phi[..., None]
+    v = (1.0 - phi[..., None]) * M[..., 0, :] + phi[..., None] * M[..., 1, :]
+    return p, v
+
+
+def _params(freq, kw, extra=()):
+    f = _frequencies(freq)
+    names = ("thickness",) + JCA_PARAMETERS + ("E", "eta", "nu", "rho_1", "T", "P0") + tuple(extra)
+    b = _batch(**{k: kw[k] for k in names})
+    return 2 * np.pi * f, b
+
+
+def surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1,
+                      T=293.15, P0=101325.0, gas: str = "air") -> np.ndarray:
+    """Normalized surface impedance ``Zs / (rho0 c0)`` (exp(-iwt)) of a rigid-backed Biot
+    layer, frame bonded to the backing; shape ``B + (m,)``. Comparable directly with
+    :attr:`tawarp.measure.files.ImpedanceData.Zs`."""
+    w, b = _params(freq, locals())
+    M0, Md, _ = _face_states(w, b, gas)
+    phi_ = b["phi"]
+    p0, v0 = _pv_rows(M0, phi_)
+    # rows: v^s(d) = 0, v^f(d) = 0, stress split at x = 0, p(0) = rho0 c0
+    A = np.stack([Md[..., 0, :], Md[..., 1, :], _split_row(M0, phi_), p0], axis=-2)
+    rhs = np.zeros(A.shape[:-1], dtype=complex)
+    rhs[..., 3] = 1.0
+    a = np.linalg.solve(A, rhs[..., None])[..., 0]
+    return 1.0 / np.sum(v0 * a, axis=-1)
+
+
+def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1,
+                    area=1.0, T=293.15, P0=101325.0, gas: str = "air") -> np.ndarray:
+    """2-port ``(p, U)(d) = T (p, U)(0)`` of a Biot layer in a tube of cross-section ``area``
+    [m^2] (``U = area v`` [m^3/s]; the default 1 m^2 gives the specific (p, v) matrix),
+    air on both faces, frame sliding freely at the wall (1-D); shape ``B + (m, 2, 2)``,
+    exp(-iwt). Passive and reciprocal: ``det T = 1``."""
+    w, b = _params(freq, locals(), extra=("area",))
+    M0, Md, fl = _face_states(w, b, gas)
+    phi_ = b["phi"]
+    p0, v0 = _pv_rows(M0, phi_)
+    pd, vd = _pv_rows(Md, phi_)
+    # rows: stress split at both faces, then (p, v) at x = 0 for the two unit inputs
+    A = np.stack([_split_row(M0, phi_), _split_row(Md, phi_), p0, v0], axis=-2)
+    rhs = np.zeros(A.shape[:-1] + (2,), dtype=complex)
+    rhs[..., 2, 0] = 1.0
+    rhs[..., 3, 1] = 1.0
+    a = np.linalg.solve(A, rhs)  # (..., 4 amplitudes, 2 inputs)
+    Tn = np.stack([np.einsum("...k,...kj->...j", pd, a), np.einsum("...k,...kj->...j", vd, a)], axis=-2)
+    # (p/(rho0 c0), v) -> (p, U)
+    z = (fl.rho0 * fl.c0)
+    S = b["area"]
+    scale = np.stack([np.stack([np.ones_like(z * S), z / S], -1), np.stack([S / z, np.ones_like(z * S)], -1)], -2)
+    return Tn * scale
