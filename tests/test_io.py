@@ -1,0 +1,48 @@
+"""Atomic outputs (issue 10 item 12): nothing half-written, no stray temporary files,
+normal permissions."""
+
+import json
+import os
+import stat
+
+import numpy as np
+import pytest
+
+from tawarp.io import atomic_path, write_json, write_text
+
+
+def test_write_json_is_complete_and_has_umask_permissions(tmp_path):
+    old = os.umask(0o022)
+    try:
+        p = write_json(tmp_path / "a" / "out.json", {"x": np.arange(3), "y": np.float64(2.5), "ok": np.bool_(True)})
+    finally:
+        os.umask(old)
+    assert json.loads(p.read_text()) == {"x": [0, 1, 2], "y": 2.5, "ok": True}
+    assert stat.S_IMODE(p.stat().st_mode) == 0o644
+    assert sorted(x.name for x in p.parent.iterdir()) == ["out.json"]
+
+
+def test_failure_or_interrupt_leaves_the_old_file_and_no_debris(tmp_path):
+    p = write_text(tmp_path / "r.md", "old\n")
+    for exc in (ValueError("boom"), KeyboardInterrupt()):
+        with pytest.raises(type(exc)):
+            with atomic_path(p) as tmp:
+                assert tmp.name.startswith(".r.md.") and tmp.suffix == ".tmp" and tmp.parent == p.parent
+                tmp.write_text("half")
+                raise exc
+        assert p.read_text() == "old\n"
+        assert sorted(x.name for x in tmp_path.iterdir()) == ["r.md"]
+
+
+def test_a_directory_as_output_is_refused(tmp_path):
+    with pytest.raises(IsADirectoryError, match="is a directory"):
+        write_json(tmp_path, {})
+
+
+def test_figures_are_written_atomically(tmp_path):
+    from tawarp.plots import plot_temperature
+
+    x = np.linspace(0, 1, 5)
+    p = plot_temperature(x, {"a": 300 + x}, tmp_path / "t.png")
+    assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(x.name for x in tmp_path.iterdir()) == ["t.png"]
