@@ -196,6 +196,202 @@ def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
     return heat_coeffs(params, flags, i, s, lam, h)
 
 
+# --- temperature-dependent conductivity: Kirchhoff transform on fitted cells -------------
+#
+# With lam = lam(theta) the heat equation (lam theta')' = a theta - q (a = 2 h/R) becomes,
+# for the Kirchhoff variable U = int_0^theta lam(T_cold + t) dt [W/m],
+#     U'' = a theta(U) - q,
+# linear in its conduction term. In each heat cell the sink is expanded about the cell's
+# mid temperature theta* = (theta_l + theta_r)/2: a theta(U) = a theta* + k^2 (U - U*) + r(U)
+# with k^2 = a / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in U - U*. The
+# cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear model, in U)
+# with sigma = q - mean_cell(a theta(U) - k^2 U): the remainder enters through its cell
+# mean (3-point Gauss on the cell's own profile, 2 fixed-point passes), so the zero-mean
+# rest of r is the only local error (fourth order at the nodes) and the heat the model
+# leaks, int a theta(U(x)) dx, equals Q up to the Gauss error of the remainder (~1e-13).
+# U' = lam theta' is the flux, continuous at every node by the nodal equations, so T(x) and
+# dT/dx = U'/lam(T) are continuous (no jumps at the nodes for the acoustic Gauss points).
+# h_convection keeps a per-cell h at theta* (h + h_c theta*^(1/4)).
+
+HEAT_GAUSS_1 = wp.constant(wp.float64(0.1127016653792583))
+HEAT_GAUSS_3 = wp.constant(wp.float64(0.8872983346207417))
+HEAT_FIXED_POINT = 2  # passes of the remainder's cell mean (each contracts by ~1e-5)
+
+
+@wp.func
+def kirchhoff(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+              gas: wp.array(dtype=wp.float64), i: int, s: int, theta: wp.float64):
+    """(U [W/m], lam [W/(m K)]) at temperature excess theta [K] of segment s: the Kirchhoff
+    variable U = int_0^theta lam(T_cold + t) dt and the conductivity
+
+        lam(T) = lam_material t^b + radiative_conductivity t^3 + wall_conductance,  t = T/T_cold."""
+    Tc = params[T_COLD, i]
+    t = (Tc + theta) / Tc
+    lam_m = material_lambda(params, flags, gas, i, s)
+    b = seg_value(params, i, s, CONDUCTIVITY_EXPONENT)
+    c = seg_value(params, i, s, RADIATIVE_CONDUCTIVITY)
+    wall = seg_value(params, i, s, WALL_CONDUCTANCE)
+    lt = wp.log(t)
+    tb = wp.exp(b * lt)
+    # int_1^t u^b du = (t^(b+1) - 1)/(b+1), and its limit ln t at b = -1
+    p = b + wp.float64(1.0)
+    y = p * lt
+    e = wp.float64(0.0)
+    if wp.abs(y) < wp.float64(1.0e-3):
+        e = lt * (wp.float64(1.0) + y / wp.float64(2.0) * (wp.float64(1.0) + y / wp.float64(3.0) * (wp.float64(1.0) + y / wp.float64(4.0))))
+    else:
+        e = (tb * t - wp.float64(1.0)) / p
+    # (t^4 - 1)/4 = (t - 1)(t + 1)(t^2 + 1)/4 with t - 1 = theta/T_cold: no cancellation
+    U = lam_m * Tc * e + c * theta * (t + wp.float64(1.0)) * (t * t + wp.float64(1.0)) / wp.float64(4.0) + wall * theta
+    lam = lam_m * tb + c * t * t * t + wall
+    return U, lam
+
+
+@wp.func
+def kirchhoff_inverse(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                      gas: wp.array(dtype=wp.float64), i: int, s: int, U: wp.float64, guess: wp.float64):
+    """(theta [K], lam [W/(m K)]) with kirchhoff(theta) = U [W/m]: Newton from ``guess``
+    (lam > 0, so U is increasing), to the last bits of T."""
+    th = guess
+    lam = wp.float64(1.0)
+    done = int(0)
+    for _it in range(20):
+        if done == 0:
+            Ug, lam_g = kirchhoff(params, flags, gas, i, s, th)
+            lam = lam_g
+            step = (Ug - U) / lam_g
+            th = th - step
+            if wp.abs(step) <= wp.float64(1.0e-15) * (params[T_COLD, i] + wp.abs(th)):
+                done = 1
+    return th, lam
+
+
+@wp.func
+def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                   gas: wp.array(dtype=wp.float64), i: int, s: int, theta_l: wp.float64, theta_r: wp.float64,
+                   d: wp.float64):
+    """Kirchhoff form of a heat cell of length d [m] of segment s with nodal excesses
+    theta_l, theta_r [K] (see the comment block above): returns (U_l, U_r [W/m], lam_l,
+    lam_r [W/(m K)], k [1/m], sigma [W/m^3]), the cell solving U'' - k^2 U = -sigma."""
+    U_l, lam_l = kirchhoff(params, flags, gas, i, s, theta_l)
+    U_r, lam_r = kirchhoff(params, flags, gas, i, s, theta_r)
+    th_c = wp.float64(0.5) * (theta_l + theta_r)
+    U_c, lam_c = kirchhoff(params, flags, gas, i, s, th_c)
+    R = params[RADIUS, i]
+    h = seg_value(params, i, s, H)
+    hc = seg_value(params, i, s, H_CONVECTION)
+    if hc != wp.float64(0.0):
+        h = h + hc * wp.sqrt(wp.sqrt(wp.max(th_c, wp.float64(0.0))))
+    a = wp.float64(2.0) * h / R
+    k = wp.sqrt(a / lam_c)
+    q = wp.float64(0.0)
+    if flags[s, F_HEATER] != 0:
+        q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
+    sigma = q - (a * th_c - k * k * U_c)
+    for _p in range(HEAT_FIXED_POINT):
+        m = wp.float64(0.0)
+        for g in range(3):
+            xg = HEAT_GAUSS_1
+            wg = wp.float64(5.0 / 18.0)
+            if g == 1:
+                xg = wp.float64(0.5)
+                wg = wp.float64(8.0 / 18.0)
+            if g == 2:
+                xg = HEAT_GAUSS_3
+                wg = wp.float64(5.0 / 18.0)
+            Ug, dUg = cell_profile(U_l, U_r, k, sigma, d, xg * d)
+            thg, lam_g = kirchhoff_inverse(params, flags, gas, i, s, Ug, th_c + (Ug - U_c) / lam_c)
+            m = m + wg * (a * thg - k * k * Ug)
+        sigma = q - m
+    return U_l, U_r, lam_l, lam_r, k, sigma
+
+
+@wp.func
+def nonlinear_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                      gas: wp.array(dtype=wp.float64), i: int, s: int, theta_l: wp.float64, theta_r: wp.float64,
+                      d: wp.float64, xi: wp.float64):
+    """(theta [K], dtheta/dx [K/m]) at xi [m] in a heat cell [0, d] of segment s with a
+    temperature-dependent conductivity: the cell's exact U(xi), U'(xi), then theta(U) and
+    U'/lam."""
+    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, theta_l, theta_r, d)
+    U, dU = cell_profile(U_l, U_r, k, sigma, d, xi)
+    # first guess: the secant of theta(U) through the cell's nodes
+    guess = theta_l
+    if U_r != U_l:
+        guess = theta_l + (theta_r - theta_l) * (U - U_l) / (U_r - U_l)
+    th, lam = kirchhoff_inverse(params, flags, gas, i, s, U, guess)
+    return th, dU / lam
+
+
+@wp.func
+def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                         gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
+                         max_iter: int, tol: wp.float64,
+                         theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+    """Nodal theta [K] of the nonlinear model (Kirchhoff cells, :func:`nonlinear_cell`):
+    iterations that re-solve the tridiagonal flux balance with each cell's (k, sigma) and
+    U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the previous iterate
+    theta_p (Newton for the conduction term, k and sigma lagged), from theta = 0, until
+    the largest nodal change is below ``tol`` times the largest theta (or ``max_iter``)."""
+    n_nodes = count * cells + 1
+    for r in range(n_nodes):
+        theta[i, r] = wp.float64(0.0)
+    done = int(0)
+    for it in range(max_iter):
+        if done == 0:
+            for r in range(n_nodes):
+                scratch[i, n_nodes + r] = theta[i, r]
+            # row r: sub theta_{r-1} + diag theta_r + sup theta_{r+1} = rhs; the left cell's
+            # terms are carried from the previous row
+            sub = wp.float64(0.0)
+            diag_l = wp.float64(0.0)
+            rhs_l = wp.float64(0.0)
+            c_prev = wp.float64(0.0)
+            d_prev = wp.float64(0.0)
+            for r in range(n_nodes):
+                diag_r = wp.float64(0.0)
+                sup = wp.float64(0.0)
+                rhs_r = wp.float64(0.0)
+                sub_next = wp.float64(0.0)
+                diag_next = wp.float64(0.0)
+                rhs_next = wp.float64(0.0)
+                if r < n_nodes - 1:
+                    s = first + r // cells
+                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+                    tl = scratch[i, n_nodes + r]
+                    tr = scratch[i, n_nodes + r + 1]
+                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, tl, tr, d)
+                    a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
+                    c_l = U_l - lam_l * tl
+                    c_r = U_r - lam_r * tr
+                    # flux into the cell at its left node: a U_r - b U_l + e (row r)
+                    diag_r = -b * lam_l
+                    sup = a * lam_r
+                    rhs_r = -(e + a * c_r - b * c_l)
+                    # at its right node: a U_l - b U_r + e (row r + 1)
+                    sub_next = a * lam_l
+                    diag_next = -b * lam_r
+                    rhs_next = -(e + a * c_l - b * c_r)
+                diag = diag_l + diag_r - sub * c_prev
+                c_prev = sup / diag
+                d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
+                scratch[i, r] = c_prev
+                theta[i, r] = d_prev
+                sub = sub_next
+                diag_l = diag_next
+                rhs_l = rhs_next
+            for rr in range(n_nodes - 1):
+                r = n_nodes - 2 - rr
+                theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+            change = wp.float64(0.0)
+            size = wp.float64(0.0)
+            for r in range(n_nodes):
+                change = wp.max(change, wp.abs(theta[i, r] - scratch[i, n_nodes + r]))
+                size = wp.max(size, wp.abs(theta[i, r]))
+            if change <= tol * size:
+                done = 1
+
+
 @wp.func
 def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
@@ -206,68 +402,43 @@ def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.
     (2 x nodes columns) holds the Thomas algorithm's modified super-diagonal and the
     previous iterate.
 
-    With a temperature-dependent effect on (:func:`segment_nonlinear`), Picard
-    iterations: each cell's coefficients are evaluated at its mean temperature of the
-    previous iterate (theta = 0 to start) and the linear system re-solved, until the
-    largest nodal change is below ``tol`` times the largest theta (or ``max_iter``
-    solves). With every effect off, one solve, as before."""
+    With a temperature-dependent effect on (:func:`segment_nonlinear`), the iterations
+    of :func:`solve_heat_nonlinear` (at most ``max_iter`` solves, relative nodal change
+    ``tol``); with every effect off, one linear solve."""
     n_nodes = count * cells + 1
     nonlin = int(0)
     for s in range(first, first + count):
         if segment_nonlinear(params, i, s) != 0:
             nonlin = 1
-    n_iter = int(1)
     if nonlin != 0:
-        n_iter = max_iter
+        solve_heat_nonlinear(params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch)
+    else:
+        # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
+        a_l = wp.float64(0.0)
+        b_l = wp.float64(0.0)
+        e_l = wp.float64(0.0)
+        c_prev = wp.float64(0.0)
+        d_prev = wp.float64(0.0)
         for r in range(n_nodes):
-            theta[i, r] = wp.float64(0.0)
-    done = int(0)
-    for it in range(n_iter):
-        if done == 0:
-            if nonlin != 0:
-                for r in range(n_nodes):
-                    scratch[i, n_nodes + r] = theta[i, r]
-            # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
-            a_l = wp.float64(0.0)
-            b_l = wp.float64(0.0)
-            e_l = wp.float64(0.0)
-            c_prev = wp.float64(0.0)
-            d_prev = wp.float64(0.0)
-            for r in range(n_nodes):
-                a_r = wp.float64(0.0)
-                b_r = wp.float64(0.0)
-                e_r = wp.float64(0.0)
-                if r < n_nodes - 1:
-                    s = first + r // cells
-                    lam = wp.float64(0.0)
-                    k = wp.float64(0.0)
-                    sigma = wp.float64(0.0)
-                    if nonlin != 0:
-                        lam, k, sigma = cell_heat_coeffs(params, flags, gas, i, s,
-                                                         wp.float64(0.5) * (scratch[i, n_nodes + r] + scratch[i, n_nodes + r + 1]))
-                    else:
-                        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                    a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
-                diag = -(b_l + b_r) - a_l * c_prev
-                c_prev = a_r / diag
-                d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
-                scratch[i, r] = c_prev
-                theta[i, r] = d_prev
-                a_l = a_r
-                b_l = b_r
-                e_l = e_r
-            for rr in range(n_nodes - 1):
-                r = n_nodes - 2 - rr
-                theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
-            if nonlin != 0:
-                change = wp.float64(0.0)
-                size = wp.float64(0.0)
-                for r in range(n_nodes):
-                    change = wp.max(change, wp.abs(theta[i, r] - scratch[i, n_nodes + r]))
-                    size = wp.max(size, wp.abs(theta[i, r]))
-                if change <= tol * size:
-                    done = 1
+            a_r = wp.float64(0.0)
+            b_r = wp.float64(0.0)
+            e_r = wp.float64(0.0)
+            if r < n_nodes - 1:
+                s = first + r // cells
+                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+                d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+                a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
+            diag = -(b_l + b_r) - a_l * c_prev
+            c_prev = a_r / diag
+            d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
+            scratch[i, r] = c_prev
+            theta[i, r] = d_prev
+            a_l = a_r
+            b_l = b_r
+            e_l = e_r
+        for rr in range(n_nodes - 1):
+            r = n_nodes - 2 - rr
+            theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
 
 
 @wp.func
@@ -291,11 +462,10 @@ def segment_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
     heat cells (length d) start at node0; (k, sigma) are the segment's, replaced by the
     cell's own when ``nonlin`` (a temperature-dependent effect is on)."""
     c = wp.min(int(xi / d), cells - 1)
-    kc = k
-    sc = sigma
     if nonlin != 0:
-        lam_c, kc, sc = cell_coeffs_at(params, flags, gas, theta, i, s, node0 + c, nonlin)
-    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], kc, sc, d, xi - wp.float64(c) * d)
+        return nonlinear_profile(params, flags, gas, i, s, theta[i, node0 + c], theta[i, node0 + c + 1], d,
+                                 xi - wp.float64(c) * d)
+    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
 
 
 @wp.func

@@ -46,6 +46,8 @@ __all__ = [
     "HeatSolution",
     "heat_profile_exact",
     "energy_balance",
+    "NonlinearHeatSolution",
+    "heat_profile",
     "thermoviscous_function",
     "segment_transfer_matrices",
     "transfer_matrix",
@@ -100,11 +102,17 @@ def segment_conductivity(core: Core, seg) -> float:
     """Axial conductivity ``lam`` [W/(m K)] of the heat model for segment ``seg``
     (a :class:`Segment`, its index or its name).
 
-    Porous: ``phi k_gas(T_cold) + (1 - phi) solid_conductivity``; duct: ``k_gas(T_cold)``.
-    The gas conductivity is taken at the cold temperature and held constant (the heat
-    model is linear).
+    Porous: ``phi k_gas(T_cold) + (1 - phi) solid_conductivity``; duct: ``k_gas(T_cold)``;
+    plus the wall's ``wall_conductance`` (0 = off). The gas conductivity is taken at the
+    cold temperature and held constant (the heat model is linear; the temperature-dependent
+    effects are :class:`NonlinearHeatSolution`'s).
     """
     s = _segment_of(core, seg)
+    return _material_conductivity(core, s) + s.wall_conductance
+
+
+def _material_conductivity(core: Core, s: Segment) -> float:
+    """Gas and solid conductivity of segment ``s`` at T_cold [W/(m K)] (no wall)."""
     k_gas = float(gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean).k)
     if s.is_porous:
         return s.porosity * k_gas + (1.0 - s.porosity) * s.solid_conductivity
@@ -377,6 +385,146 @@ def energy_balance(core: Core, heat_input: float) -> float:
 
 
 # ======================================================================================
+# Temperature-dependent (nonlinear) heat model, solved as a BVP
+# ======================================================================================
+#
+# With the temperature-dependent effects on (PHYSICS.md "Effects"; core fields
+# conductivity_exponent b, radiative_conductivity c, h_convection h_c), on every thermal segment
+#     (lam(T) theta')' - (2 h(theta)/R) theta + q = 0,   T = T_cold + theta,
+#     lam(T) = lam_m (T/T_cold)^b + c (T/T_cold)^3 + wall_conductance,
+#     h(theta) = h + h_c max(theta, 0)^(1/4),
+# theta' = 0 at both ends, theta and lam theta' continuous at the interfaces. Solved on the
+# state (theta_j, F_j = lam theta'_j) of every segment j mapped to s in [0, 1] with
+# scipy.integrate.solve_bvp (collocation, residual tolerance ``tol``); nothing is shared
+# with the kernels' discretisation (they use a Kirchhoff transform on fitted cells).
+
+
+class NonlinearHeatSolution:
+    """Steady temperature of the nonlinear heat model above (built by :func:`heat_profile`).
+
+    Same evaluators as :class:`HeatSolution` (``theta``, ``dtheta``, ``temperature``,
+    ``theta_in``, ``dtheta_in``, ``segment_profile``); dtheta/dx comes from the solution's
+    own flux state, ``F / lam(T)``, not from differentiating an interpolant. ``lost()``
+    [W] is the heat leaked to the walls, ``∫ (2 h(theta)/R) theta S dx`` (= Q).
+    Attributes as :class:`HeatSolution` (``lam`` the conductivities at T_cold) plus
+    ``exponent``, ``radiative``, ``wall``, ``h_conv``, the BVP result ``bvp`` and ``tol``.
+    """
+
+    def __init__(self, core: Core, heat_input: float, tol: float = 1e-8):
+        from scipy.integrate import solve_bvp
+
+        lin = HeatSolution(core, heat_input)
+        for k in ("core", "heat_input", "T_cold", "indices", "x_left", "x_right", "length", "h", "q"):
+            setattr(self, k, getattr(lin, k))
+        segs = [core.segments[i] for i in self.indices]
+        self.lam_m = np.array([_material_conductivity(core, s) for s in segs])
+        self.lam = self.lam_m + np.array([s.wall_conductance for s in segs])
+        self.exponent = np.array([s.conductivity_exponent for s in segs])
+        self.radiative = np.array([s.radiative_conductivity for s in segs])
+        self.wall = np.array([s.wall_conductance for s in segs])
+        self.h_conv = np.array([s.h_convection for s in segs])
+        self.R, self.S, self.tol = core.radius, core.area, tol
+        n = len(self.indices)
+        L = self.length[:, None]
+
+        def fun(s, y):
+            th, F = y[0::2], y[1::2]
+            out = np.empty_like(y)
+            out[0::2] = L * F / self._conductivity(th)
+            out[1::2] = L * (2.0 * self._h(th) / self.R * th - self.q[:, None])
+            return out
+
+        def bc(ya, yb):
+            r = [ya[1]]
+            for j in range(n - 1):
+                r += [yb[2 * j] - ya[2 * j + 2], yb[2 * j + 1] - ya[2 * j + 3]]
+            return np.array(r + [yb[2 * n - 1]])
+
+        s = np.linspace(0.0, 1.0, 201)
+        y0 = np.empty((2 * n, s.size))
+        for j, idx in enumerate(self.indices):
+            x = self.x_left[j] + s * self.length[j]
+            y0[2 * j] = lin.theta_in(idx, x)
+            y0[2 * j + 1] = lin.lam[j] * lin.dtheta_in(idx, x)
+        self.bvp = solve_bvp(fun, bc, s, y0, tol=tol, bc_tol=tol, max_nodes=200000)
+        if not self.bvp.success:
+            raise RuntimeError(f"{core.source}: nonlinear heat BVP (Q = {heat_input} W): {self.bvp.message}")
+
+    def _conductivity(self, theta, j=None):
+        """lam(T) [W/(m K)] per segment (rows) or of segment j."""
+        sl = slice(None) if j is None else j
+        ex = lambda a: a[sl] if j is not None else a[:, None]
+        t = 1.0 + np.asarray(theta) / self.T_cold
+        return ex(self.lam_m) * t ** ex(self.exponent) + ex(self.radiative) * t**3 + ex(self.wall)
+
+    def _h(self, theta, j=None):
+        sl = slice(None) if j is None else j
+        ex = lambda a: a[sl] if j is not None else a[:, None]
+        return ex(self.h) + ex(self.h_conv) * np.maximum(theta, 0.0) ** 0.25
+
+    def _state(self, j: int, x):
+        s = (np.asarray(x, dtype=float) - self.x_left[j]) / self.length[j]
+        y = self.bvp.sol(np.clip(s, 0.0, 1.0))
+        return y[2 * j], y[2 * j + 1]
+
+    def _j(self, index: int) -> int:
+        return HeatSolution._j(self, index)
+
+    def theta_in(self, index: int, x):
+        """theta [K] of thermal segment ``index`` (core index) at ``x`` [m] on its closed interval."""
+        return self._state(self._j(index), x)[0]
+
+    def dtheta_in(self, index: int, x):
+        """dtheta/dx [K/m] of thermal segment ``index`` at ``x`` [m]: F / lam(T)."""
+        j = self._j(index)
+        th, F = self._state(j, x)
+        return F / self._conductivity(th, j)
+
+    def _dispatch(self, fn, x):
+        return HeatSolution._dispatch(self, fn, x)
+
+    theta = HeatSolution.theta
+    dtheta = HeatSolution.dtheta
+    temperature = HeatSolution.temperature
+    dtemperature = HeatSolution.dtemperature
+
+    def segment_profile(self, index: int):
+        """Callable ``x -> (T(x), dT/dx(x))`` of core segment ``index`` on its closed interval."""
+        Tc = self.T_cold
+        if index not in self.indices or self.heat_input == 0.0:
+            return HeatSolution.segment_profile(self, index)
+        return lambda x: (Tc + self.theta_in(index, x), self.dtheta_in(index, x))
+
+    def lost(self) -> float:
+        """Heat leaked to the walls ``sum_j ∫ (2 h(theta)/R) theta S dx`` [W] (Gauss-Legendre
+        on 400 panels per segment)."""
+        g, w = np.polynomial.legendre.leggauss(8)
+        total = 0.0
+        for j, idx in enumerate(self.indices):
+            e = np.linspace(self.x_left[j], self.x_right[j], 401)
+            x = (0.5 * (e[1:] - e[:-1])[:, None] * g + 0.5 * (e[1:] + e[:-1])[:, None]).ravel()
+            wx = (0.5 * (e[1:] - e[:-1])[:, None] * w).ravel()
+            th = self.theta_in(idx, x)
+            total += np.sum(wx * 2.0 * self._h(th, j) / self.R * th) * self.S
+        return float(total)
+
+
+def nonlinear_effects_on(core: Core) -> bool:
+    """True when a temperature-dependent effect is on in a thermal segment of ``core``."""
+    return any(core.segments[i].conductivity_exponent != 0.0 or core.segments[i].radiative_conductivity != 0.0
+               or core.segments[i].h_convection != 0.0 for i in core.thermal_indices)
+
+
+def heat_profile(core: Core, heat_input: float, tol: float = 1e-8):
+    """Steady temperature for heat input ``heat_input`` [W]: the exact linear solution
+    (:func:`heat_profile_exact`) or, with a temperature-dependent effect on, the BVP
+    solution :class:`NonlinearHeatSolution` (residual tolerance ``tol``)."""
+    if heat_input != 0.0 and nonlinear_effects_on(core):
+        return NonlinearHeatSolution(core, heat_input, tol)
+    return heat_profile_exact(core, heat_input)
+
+
+# ======================================================================================
 # Thermoviscous functions
 # ======================================================================================
 
@@ -546,19 +694,21 @@ def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: fl
 
 
 def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                              *, _force_ode: bool = False) -> list[np.ndarray]:
+                              heat_tol: float = 1e-8, *, _force_ode: bool = False) -> list[np.ndarray]:
     """T-matrix of every segment, a list of complex arrays (m, 2, 2), raw SI units.
 
     ``freqs`` [Hz] (scalar or 1-D), ``heat_input`` Q [W]. A segment at uniform T_cold
     (not thermal, or Q = 0) uses the closed form; a heated thermal segment is integrated
-    by DOP853 with relative tolerance ``rtol`` using the exact heat profile.
+    by DOP853 with relative tolerance ``rtol`` using the exact heat profile, or with a
+    temperature-dependent effect on, the BVP solution of tolerance ``heat_tol``
+    (:func:`heat_profile`).
     ``_force_ode`` (private, for tests): integrate every segment numerically.
     """
     f = np.atleast_1d(np.asarray(freqs, dtype=float))
     if f.ndim != 1 or np.any(f <= 0):
         raise ValueError("freqs must be positive frequencies [Hz], scalar or 1-D")
     w = 2.0 * np.pi * f
-    hs = heat_profile_exact(core, heat_input)
+    hs = heat_profile(core, heat_input, heat_tol)
     heated = set(hs.indices) if heat_input != 0.0 else set()
     pos = core.positions()
     out = []
@@ -575,7 +725,7 @@ def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: 
 
 
 def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                    *, _force_ode: bool = False) -> np.ndarray:
+                    heat_tol: float = 1e-8, *, _force_ode: bool = False) -> np.ndarray:
     """Core T-matrix, complex array (m, 2, 2), with ``(p, U)(x6) = T (p, U)(x1)``.
 
     ``freqs`` [Hz] (scalar or 1-D, m values), ``heat_input`` Q [W] dissipated in the
@@ -583,7 +733,7 @@ def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e
     T_pU [Pa s/m^3], T_Up [m^3/(Pa s)], T_UU [-]; convention exp(-i w t).
     ``T = T_last ... T_first`` (see :func:`segment_transfer_matrices`).
     """
-    mats = segment_transfer_matrices(core, freqs, heat_input, rtol, _force_ode=_force_ode)
+    mats = segment_transfer_matrices(core, freqs, heat_input, rtol, heat_tol, _force_ode=_force_ode)
     T = mats[0]
     for M in mats[1:]:
         T = M @ T
