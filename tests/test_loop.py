@@ -10,15 +10,16 @@ import pytest
 
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings
-from tawarp.loop.diagnose import (NOISE_FACTOR, TMatrixProblem, impedance_loop, run_loop, synthetic_tmatrix,
-                         write_report)
-from tawarp.measure.files import atalla_panneton_samples, load_atalla_panneton, write_tmatrix_csv
+from shared_data import measured_folder
+from tawarp.loop import NOISE_FACTOR, default_base_params, impedance_loop, run_loop, write_report
+from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
+from tawarp.measure.synthetic import synthetic_tmatrix
 
 CORE = load_core("ceramic")
 BASE = ("stack.porosity", "stack.pore_radius", "stack.h", "hot_hx.h")
-# seed 4: over seeds 0-4 the 160 base-parameter z-scores of these cases look standard normal
-# (about 5 % beyond 2, as expected); this realization has all of them within 2 sigma.
-SEED = 4
+#: noise realizations every loop test runs on (the same seeds for every case, none picked)
+SEEDS = (0, 1, 2)
+SEED = SEEDS[0]
 WALL = {f"{s}.wall_conductance": 0.3 for s in ("stack", "hot_hx", "tbt")}
 CASES = [
     ("plane_offsets", {"duct_left.length": 0.033}, None),
@@ -34,31 +35,43 @@ CASES = [
 
 def loop_on(truth, ambient=None, seed=SEED):
     data = synthetic_tmatrix(CORE, truth, seed=seed, ambient_presence=ambient)
-    prob = TMatrixProblem(data, CORE, ForwardSettings(device="cpu", cells=8))
+    prob = TMatrixKind(data, CORE, ForwardSettings(device="cpu", cells=8))
     return prob, run_loop(prob)
 
 
 @pytest.mark.parametrize("effect, truth, ambient", CASES, ids=[c[0] for c in CASES])
 def test_loop_finds_undeclared_effect(effect, truth, ambient):
-    prob, rep = loop_on(truth, ambient)
-    assert rep["chosen_effect"] == effect, [(c["effect"], c["score"], c.get("checks")) for c in rep["candidates"]]
-    assert rep["error_before"] > 1.2 * rep["noise_floor"]  # the effect is visible in the data
-    assert rep["error_after"] <= NOISE_FACTOR * rep["noise_floor"]
-    after = rep["parameters_after"]
-    for name in BASE:
-        z = (after[name]["value"] - CORE.get(name)) / after[name]["std"]
-        assert abs(z) < 2.0, (name, after[name], CORE.get(name))
-    # the effect's own parameter comes back too
-    for name, v in truth.items():
-        key = "wall_conductance" if name.endswith("wall_conductance") else name
-        assert abs(after[key]["value"] - v) < 3 * after[key]["std"], (key, after[key], v)
-    # the drift of the fitted h's with Q shrinks once the effect is in the model
-    db, da = rep["drift_before"], rep["drift_after"]
-    assert da["relative_spread"]["hot_hx.h"] <= max(db["relative_spread"]["hot_hx.h"], 0.01)
+    # every seed: the right effect, the error down to the noise, less drift of h with Q.
+    # z-scores of the fitted values are standard normal draws, so they are judged as a rate
+    # over the seeds: of the 12 base-parameter z-scores (4 parameters x 3 seeds) at most 2
+    # beyond 2 (P(>= 3 of 12) = 1.5 % for a standard normal), none beyond 4; the effect's own
+    # parameter(s) beyond 3 in at most one seed, never beyond 4. (Seen: p_mean, seed 0 has
+    # stack.porosity at z = 3.04 and gas.p_mean at z = 3.24, every other run within 2.)
+    z_base, z_effect = [], []
+    for seed in SEEDS:
+        prob, rep = loop_on(truth, ambient, seed)
+        assert rep["chosen_effect"] == effect, (seed, [(c["effect"], c["score"], c.get("checks"))
+                                                       for c in rep["candidates"]])
+        assert rep["error_before"] > 1.2 * rep["noise_floor"]  # the effect is visible in the data
+        assert rep["error_after"] <= NOISE_FACTOR * rep["noise_floor"]
+        after = rep["parameters_after"]
+        z_base += [(after[name]["value"] - CORE.get(name)) / after[name]["std"] for name in BASE]
+        # the effect's own parameter comes back too
+        for name, v in truth.items():
+            key = "wall_conductance" if name.endswith("wall_conductance") else name
+            z_effect.append((after[key]["value"] - v) / after[key]["std"])
+        # the drift of the fitted h's with Q shrinks once the effect is in the model
+        db, da = rep["drift_before"], rep["drift_after"]
+        assert da["relative_spread"]["hot_hx.h"] <= max(db["relative_spread"]["hot_hx.h"], 0.01)
+    z = np.abs(z_base)
+    assert np.sum(z > 2) <= 2 and np.all(z < 4), np.round(z_base, 2)
+    ze = np.abs(np.reshape(z_effect, (len(SEEDS), -1)))
+    assert np.sum(np.any(ze > 3, axis=1)) <= 1 and np.all(ze < 4), np.round(ze, 2)
 
 
-def test_no_effect_no_claim():
-    prob, rep = loop_on({})
+@pytest.mark.parametrize("seed", SEEDS)
+def test_no_effect_no_claim(seed):
+    prob, rep = loop_on({}, seed=seed)
     assert rep["chosen_effect"] is None
     assert rep["error_after"] == rep["error_before"] <= NOISE_FACTOR * rep["noise_floor"]
 
@@ -66,13 +79,14 @@ def test_no_effect_no_claim():
 OUTSIDE = [{"stack.tortuosity": 1.1}, {"stack.tortuosity": 1.05}, {"hot_hx.thermal_radius_ratio": 1.8}]
 
 
+@pytest.mark.parametrize("seed", SEEDS)
 @pytest.mark.parametrize("truth", OUTSIDE, ids=["tortuosity_1.1", "tortuosity_1.05", "hx_thermal_radius"])
-def test_effect_outside_library_no_false_claim(truth):
+def test_effect_outside_library_no_false_claim(truth, seed):
     # the stack's tortuosity is fixed at 1 in the paper's ceramic model, and neither it nor the
     # hot exchanger's thermal radius is in the library. tortuosity 1.05 is close to a plane
     # offset: that candidate takes the error from 4.1 to 1.3 noise floors, and only the
     # chi^2 test (the residual after must be noise) stops the claim.
-    prob, rep = loop_on(truth)
+    prob, rep = loop_on(truth, seed=seed)
     assert rep["chosen_effect"] is None
     assert rep["error_before"] > 3 * rep["noise_floor"]
     assert rep["error_after"] == rep["error_before"]
@@ -101,10 +115,7 @@ def test_loop_cli_writes_report(tmp_path):
 
 
 def _foam(name):
-    try:
-        data = load_atalla_panneton(name)
-    except FileNotFoundError as e:
-        pytest.skip(f"Atalla & Panneton data not found (needs ../shared/data/measured/atalla_panneton_2005): {e}")
+    data = load_atalla_panneton(name, measured_folder("atalla_panneton_2005"))
     s = atalla_panneton_samples()[name]
     return data, {k: s[k] for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")}
 
@@ -131,8 +142,7 @@ def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
     from tawarp.model.coefficients import duct_impedance
     from tawarp.model.forward import transfer_matrices
     from tawarp.model.gas import GASES
-    from tawarp.loop.diagnose import default_base_params
-    from tawarp.measure.files import read_scattering_csv, transfer_to_scattering
+    from tawarp.measure import ScatteringKind, transfer_to_scattering
 
     f = np.linspace(50.0, 500.0, 24)
     T = transfer_matrices(CORE, f, 0.0, params={"duct_left.length": 0.032}, device="cpu", cells=8).T[0]
@@ -150,32 +160,10 @@ def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
         lines.append(f"{float(f[k])!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in vals))
     path = tmp_path / "S.csv"
     path.write_text("\n".join(lines) + "\n")
-    prob = TMatrixProblem(read_scattering_csv(path), CORE, ForwardSettings(device="cpu", cells=8))
+    prob = load_measurement(path, CORE, ForwardSettings(device="cpu", cells=8))
+    assert isinstance(prob, ScatteringKind)
     rep = run_loop(prob, default_base_params(prob, ["stack.porosity", "stack.pore_radius"]))
     assert rep["chosen_effect"] == "plane_offsets"
     assert rep["error_after"] < 0.5 * rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.032) < 3 * dl["std"] + 2e-4
-
-
-def test_batched_fits_agree_with_scipy():
-    # the lockstep Levenberg-Marquardt of the augmented fits reaches SciPy's optimum for
-    # the right model; for wrong ones (flat valleys, neither converges tightly) its cost is
-    # within 1 % of SciPy's
-    from tawarp.model.effects import tmatrix_library
-    from tawarp.loop.diagnose import default_base_params, fit, fit_batch
-
-    data = synthetic_tmatrix(CORE, {"tbt.h_convection": 3.0}, seed=SEED)
-    prob = TMatrixProblem(data, CORE, ForwardSettings(device="cpu", cells=8))
-    bp = default_base_params(prob)
-    lib = {e.name: e for e in tmatrix_library(CORE)}
-    specs = [(bp + list(lib[n].params), lib[n], np.zeros(len(bp) + len(lib[n].params)))
-             for n in ("convection", "T_cold", "ambient_exchangers")]
-    batch = fit_batch(prob, specs)
-    for (params, e, x0), b in zip(specs, batch):
-        ref = fit(prob, params, effect=e, x0=x0)
-        assert b.rss <= 1.01 * ref.rss, (e.name, b.rss, ref.rss)
-        if e.name == "convection":
-            assert abs(b.rss - ref.rss) <= 1e-8 * ref.rss
-            for k, v in ref.values.items():
-                assert abs(b.values[k] - v) <= 1e-3 * ref.std[k], (k, b.values[k], v)

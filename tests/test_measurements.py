@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shared_data import measured_folder
 from tawarp.measure import files as m
 from tawarp.model.gas import GASES
 
@@ -189,19 +190,11 @@ def test_atalla_panneton_table():
     assert m.atalla_panneton_samples()["foam1"]["phi"] == 0.97
 
 
-def _shared_folder():
-    try:
-        return m._atalla_panneton_folder()
-    except FileNotFoundError:
-        return None
-
-
-@pytest.mark.skipif(_shared_folder() is None or not _shared_folder().is_dir(),
-                    reason="shared data folder shared/data/measured/atalla_panneton_2005 not present")
 @pytest.mark.parametrize("name", ["foam1", "foam2", "fibrous1", "fibrous2"])
 def test_atalla_panneton_files_load(name):
+    folder = measured_folder("atalla_panneton_2005")
     table = m.atalla_panneton_samples()[name]
-    thin, thick = m.load_atalla_panneton(name)
+    thin, thick = m.load_atalla_panneton(name, folder)
     for d, thickness in ((thin, table["thickness_thin"]), (thick, table["thickness_thick"])):
         assert len(d) == 71
         assert d.freq[0] == 200 and d.freq[-1] == 1600 and np.allclose(np.diff(d.freq), 20)

@@ -1,4 +1,5 @@
-"""``tawarp fit``: estimate parameters from measured T-matrices."""
+"""``tawarp fit``: estimate parameters from a measurement of any registered kind
+(T-matrix, scattering, surface impedance: :mod:`tawarp.measure`)."""
 
 from __future__ import annotations
 
@@ -7,9 +8,9 @@ from pathlib import Path
 
 from ..fit.characterize import characterize, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
+from ..fit.problems import fit_kind
 from ..io import write_json
-from ..measure.files import read_tmatrix_csv
-from ..model.core import load_core
+from ..measure import TMatrixKind, load_measurement
 from ..model.forward import ForwardSettings
 from .common import _common
 
@@ -18,12 +19,15 @@ def add_fit_parser(subparsers):
     """Register ``tawarp fit DATA.csv --core CORE.toml [--fit a,b,c] -o fit.json``."""
 
     p = _common(subparsers.add_parser(
-        "fit", help="estimate parameters from measured T-matrices (the paper's two-step procedure by default)"))
-    p.add_argument("data", help="measured T-matrix CSV (FORMATS.md)")
+        "fit", help="estimate parameters from a measurement: T-matrices (the paper's two-step procedure by default), "
+                    "a scattering matrix or a surface impedance"))
+    p.add_argument("data", help="measured T-matrix, scattering-matrix or surface-impedance CSV (FORMATS.md)")
     p.add_argument("--core", default=None,
-                   help="core TOML or bundled core name (default: the data's '# core = ...' metadata)")
+                   help="core TOML or bundled core name for T-matrix and scattering data (default: the data's "
+                        "'# core = ...' metadata); surface impedance uses the layer model")
     p.add_argument("--fit", default=None,
-                   help="comma list of parameters to fit at every heat input instead of the two-step procedure")
+                   help="comma list of parameters: fitted at every heat input instead of the two-step procedure "
+                        "(T-matrices), or the layer's parameters (default porosity, pore radius, tortuosity)")
     p.add_argument("-o", "--output", default="fit.json", help="output JSON (default: %(default)s); figures beside it")
     p.add_argument("--start", default="core", choices=("core", "spread"),
                    help="start values: the core's ('core', default) or a Sobol spread of starts ('spread')")
@@ -39,20 +43,18 @@ def add_fit_parser(subparsers):
 
 
 def cmd_fit(args) -> int:
-    from ..measure.files import read_tmatrix_csv
-
-    data = read_tmatrix_csv(args.data)
-    core_name = args.core or data.metadata.get("core")
-    if core_name is None:
-        raise ValueError(f"{args.data}: no --core given and no '# core = ...' metadata line")
-    core = load_core(core_name)
     settings = ForwardSettings(cells=args.cells, device=args.device)
+    kind = load_measurement(args.data, args.core, settings)
+    data, core = getattr(kind, "data", None), kind.core
     start = "spread" if args.start == "spread" else None
+    names = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
     out = Path(args.output)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
-        if args.fit:
-            names = [s.strip() for s in args.fit.split(",") if s.strip()]
+        if not isinstance(kind, TMatrixKind):
+            res = fit_kind(kind, names)
+            obj = {"kind": kind.name, "source": str(args.data), "fits": [{**res.problem(0), "heat_input_W": None}]}
+        elif names:
             obj = fit_each_heat_input(data, core, names, settings=settings, start=start, restarts=args.restarts,
                                       damping=args.damping, use_sigma=not args.no_sigma, progress=not args.quiet)
         else:
@@ -74,11 +76,12 @@ def cmd_fit(args) -> int:
 def summary_text(obj: dict) -> str:
     """A short table of a fit.json structure."""
     lines = []
-    entries = [("Q = 0", obj["step1"])] if "step1" in obj else []
-    entries += [(f"Q = {e['heat_input_W']:g}", e) for e in obj.get("step2", [])]
-    entries += [(f"Q = {e['heat_input_W']:g}", e) for e in obj.get("fits", [])]
+    entries = [("Q = 0 W", obj["step1"])] if "step1" in obj else []
+    entries += [(f"Q = {e['heat_input_W']:g} W", e) for e in obj.get("step2", [])]
+    entries += [(f"Q = {e['heat_input_W']:g} W" if e["heat_input_W"] is not None else obj.get("kind", ""), e)
+                for e in obj.get("fits", [])]
     for label, e in entries:
         pars = "  ".join(f"{k} = {v['value']:.4g} ± {v['std']:.2g}" for k, v in e["parameters"].items())
-        lines.append(f"{label:>9} W  {pars}  (rms {e['rms_error']:.2e}, {e['iterations']} it, "
+        lines.append(f"{label:>11}  {pars}  (rms {e['rms_error']:.2e}, {e['iterations']} it, "
                      f"{'ok' if e['converged'] else e['reason']})")
     return "\n".join(lines)

@@ -63,7 +63,7 @@ def jca_equivalent(values: dict, core: Core) -> dict:
     q = values.get("layer.tortuosity", core.segments[0].tortuosity)
     ratio = values.get("layer.thermal_radius_ratio", 1.0)
     shape = values.get("layer.viscous_shape_factor", 1.0)
-    mu = float(gas_transport(core.gas.name, core.gas.T_cold)[0])
+    mu = float(gas_transport(core.gas.name, core.gas.T_cold)[0][0])
     return {"phi": phi, "alpha_inf": q * q, "Lambda": r / shape, "Lambda_prime": ratio * r,
             "sigma": 8 * mu * q * q / (phi * r * r)}
 
