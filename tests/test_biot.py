@@ -230,3 +230,27 @@ def test_batch_shape_and_waves():
         scale = np.abs(a11 * a22) + np.abs(a12) ** 2
         assert np.max(np.abs(a11 * a22 - a12 * a12) / scale) < 1e-10
         assert np.all(delta.imag >= 0)
+
+
+def test_normal_incidence_sees_only_the_p_wave_modulus():
+    """(E, nu) = (1e5 Pa, 0.3) and (E', 0.1) with the same P-wave modulus
+    E (1-nu)/((1+nu)(1-2nu)) give the same Zs and 2-port to 1e-12 (E, nu not separable)."""
+    def p_mod(E, nu):
+        return E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
+
+    E2 = 1e5 * p_mod(1.0, 0.3) / p_mod(1.0, 0.1)
+    runs = [dict(E=1e5, nu=0.3), dict(E=E2, nu=0.1)]
+    common = dict(thickness=THICKNESS, eta=0.1, rho_1=30.0, **FLUID)
+    Z = [biot.surface_impedance(FREQ, **common, **r) for r in runs]
+    T = [biot.transfer_matrix(FREQ, **common, **r) for r in runs]
+    assert _relmax(Z[1], Z[0]) < 1e-12
+    assert _relmax(T[1], T[0]) < 1e-12
+
+
+def test_flow_resistivity_of_circular_pores():
+    """sigma = 8 mu alpha_inf / (phi r^2) with mu of air at T (reference Sutherland law), to 1e-12."""
+    r, phi, a = np.array([50e-6, 2e-4]), 0.9, 1.2
+    g = gas_properties("air", 300.0, P_AIR)
+    assert _relmax(biot.flow_resistivity(r, phi, a, T=300.0), 8 * g.mu * a / (phi * r**2)) < 1e-12
+    with pytest.raises(ValueError, match="'pore_radius'"):
+        biot.flow_resistivity(-1e-4, phi, a)

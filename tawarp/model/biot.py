@@ -100,7 +100,7 @@ BIOT_PARAMETERS: dict[str, tuple[str, str]] = {
 #: Parameters of the fluid (JCA) part alone.
 JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 
-# (name, lower, lower inclusive, upper, upper inclusive) of the physical range
+# name -> (lower bound, lower inclusive, upper bound, upper inclusive): the physical range
 _RANGES = {
     "phi": (0.0, False, 1.0, True),
     "sigma": (0.0, False, np.inf, False),
@@ -115,6 +115,7 @@ _RANGES = {
     "T": (0.0, False, np.inf, False),
     "P0": (0.0, False, np.inf, False),
     "area": (0.0, False, np.inf, False),
+    "pore_radius": (0.0, False, np.inf, False),
 }
 
 
@@ -188,7 +189,7 @@ def flow_resistivity(pore_radius, phi, alpha_inf, T=293.15, gas: str = "air") ->
     """Flow resistivity [N s/m^4] of circular pores of radius ``pore_radius`` [m]:
     ``sigma = 8 mu alpha_inf / (phi r^2)`` (mu of ``gas`` at ``T`` [K]); the same relation
     as :func:`tawarp.model.layer.jca_equivalent` (``alpha_inf = q^2``)."""
-    r = _check("Lambda", pore_radius)
+    r = _check("pore_radius", pore_radius)
     phi, alpha_inf, T = _check("phi", phi), _check("alpha_inf", alpha_inf), _check("T", T)
     mu = gas_transport(gas, T)[0].reshape(np.shape(T))
     return 8.0 * mu * alpha_inf / (phi * r * r)
@@ -325,11 +326,9 @@ def _pv_rows(M, phi):
     return p, v
 
 
-def _params(freq, kw, extra=()):
-    f = _frequencies(freq)
-    names = ("thickness",) + JCA_PARAMETERS + ("E", "eta", "nu", "rho_1", "T", "P0") + tuple(extra)
-    b = _batch(**{k: kw[k] for k in names})
-    return 2 * np.pi * f, b
+def _params(freq, **params):
+    """Angular frequencies (m,) and the checked, broadcast parameters."""
+    return 2 * np.pi * _frequencies(freq), _batch(**params)
 
 
 def surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1,
@@ -337,7 +336,8 @@ def surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_
     """Normalized surface impedance ``Zs / (rho0 c0)`` (exp(-iwt)) of a rigid-backed Biot
     layer, frame bonded to the backing; shape ``B + (m,)``. Comparable directly with
     :attr:`tawarp.measure.files.ImpedanceData.Zs`."""
-    w, b = _params(freq, locals())
+    w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
+                   Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
     M0, Md, _ = _face_states(w, b, gas)
     phi_ = b["phi"]
     p0, v0 = _pv_rows(M0, phi_)
@@ -355,7 +355,8 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     [m^2] (``U = area v`` [m^3/s]; the default 1 m^2 gives the specific (p, v) matrix),
     air on both faces, frame sliding freely at the wall (1-D); shape ``B + (m, 2, 2)``,
     exp(-iwt). Passive and reciprocal: ``det T = 1``."""
-    w, b = _params(freq, locals(), extra=("area",))
+    w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
+                   Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area, T=T, P0=P0)
     M0, Md, fl = _face_states(w, b, gas)
     phi_ = b["phi"]
     p0, v0 = _pv_rows(M0, phi_)
@@ -367,8 +368,8 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     rhs[..., 3, 1] = 1.0
     a = np.linalg.solve(A, rhs)  # (..., 4 amplitudes, 2 inputs)
     Tn = np.stack([np.einsum("...k,...kj->...j", pd, a), np.einsum("...k,...kj->...j", vd, a)], axis=-2)
-    # (p/(rho0 c0), v) -> (p, U)
-    z = (fl.rho0 * fl.c0)
-    S = b["area"]
-    scale = np.stack([np.stack([np.ones_like(z * S), z / S], -1), np.stack([S / z, np.ones_like(z * S)], -1)], -2)
-    return Tn * scale
+    # (p/(rho0 c0), v) -> (p, U = S v)
+    z_per_S = fl.rho0 * fl.c0 / b["area"]
+    Tn[..., 0, 1] *= z_per_S
+    Tn[..., 1, 0] /= z_per_S
+    return Tn
