@@ -15,11 +15,16 @@ baseline; coefficients that vary inside a cell (a nonlinear heat model) make bot
 schemes second order.
 
 Temperature-dependent effects (``conductivity_exponent``, ``radiative_conductivity``,
-``h_convection``; :func:`cell_heat_coeffs`) make the model nonlinear: each heat cell then
-has its own constant coefficients, evaluated at its mean temperature, and
-:func:`solve_heat` iterates (Picard) to a fixed point. The cell-constant coefficients make
-the scheme second order in the heat cells (the Engine raises their number); the energy
-balance holds exactly for the discrete model. With every effect off nothing changes.
+``h_convection``) make the model nonlinear. The conductivity is then handled exactly by a
+Kirchhoff transform (U = int lam dtheta; :func:`nonlinear_cell`): each heat cell is the
+fitted cell of the linear model written in U, with the sink linearised about the cell's
+mid temperature and its remainder's cell mean added to the source, so the nodal error
+is fourth order, T(x) and dT/dx are continuous at the nodes, and the heat leaked equals
+Q to ~1e-13; :func:`solve_heat_nonlinear` iterates to the fixed point. ``h_convection``
+is taken per cell at the cell's mid temperature (second order). With every effect off
+nothing changes (one linear solve, the same code as before).
+:func:`cell_heat_coeffs` / :func:`cell_coeffs_at` give the older cell-constant
+approximation (lam at the cell's mean temperature) that the design metrics use.
 """
 
 import warp as wp
@@ -206,15 +211,19 @@ def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
 # with k^2 = a / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in U - U*. The
 # cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear model, in U)
 # with sigma = q - mean_cell(a theta(U) - k^2 U): the remainder enters through its cell
-# mean (3-point Gauss on the cell's own profile, 2 fixed-point passes), so the zero-mean
+# mean (4-point Gauss on the cell's own profile, 2 fixed-point passes), so the zero-mean
 # rest of r is the only local error (fourth order at the nodes) and the heat the model
 # leaks, int a theta(U(x)) dx, equals Q up to the Gauss error of the remainder (~1e-13).
 # U' = lam theta' is the flux, continuous at every node by the nodal equations, so T(x) and
 # dT/dx = U'/lam(T) are continuous (no jumps at the nodes for the acoustic Gauss points).
 # h_convection keeps a per-cell h at theta* (h + h_c theta*^(1/4)).
 
-HEAT_GAUSS_1 = wp.constant(wp.float64(0.1127016653792583))
-HEAT_GAUSS_3 = wp.constant(wp.float64(0.8872983346207417))
+# 4-point Gauss-Legendre on [0, 1]: points 1/2 -+ XI_A/2, 1/2 -+ XI_B/2 with weights W_A, W_B
+# (3 points leave ~1e-9 of Q: the remainder holds exp(+-2 k x))
+HEAT_XI_A = wp.constant(wp.float64(0.3399810435848563))
+HEAT_XI_B = wp.constant(wp.float64(0.8611363115940526))
+HEAT_W_A = wp.constant(wp.float64(0.32607257743127305))
+HEAT_W_B = wp.constant(wp.float64(0.17392742256872692))
 HEAT_FIXED_POINT = 2  # passes of the remainder's cell mean (each contracts by ~1e-5)
 
 
@@ -290,15 +299,15 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     sigma = q - (a * th_c - k * k * U_c)
     for _p in range(HEAT_FIXED_POINT):
         m = wp.float64(0.0)
-        for g in range(3):
-            xg = HEAT_GAUSS_1
-            wg = wp.float64(5.0 / 18.0)
-            if g == 1:
-                xg = wp.float64(0.5)
-                wg = wp.float64(8.0 / 18.0)
-            if g == 2:
-                xg = HEAT_GAUSS_3
-                wg = wp.float64(5.0 / 18.0)
+        for g in range(4):
+            xg = HEAT_XI_A
+            wg = HEAT_W_A
+            if g >= 2:
+                xg = HEAT_XI_B
+                wg = HEAT_W_B
+            if g % 2 == 0:
+                xg = -xg
+            xg = wp.float64(0.5) * (wp.float64(1.0) + xg)
             Ug, dUg = cell_profile(U_l, U_r, k, sigma, d, xg * d)
             thg, lam_g = kirchhoff_inverse(params, flags, gas, i, s, Ug, th_c + (Ug - U_c) / lam_c)
             m = m + wg * (a * thg - k * k * Ug)
@@ -446,8 +455,9 @@ def cell_coeffs_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
                    i: int, s: int, node: int, nonlin: int):
     """(lam, k, sigma) of the heat cell of segment s starting at node ``node``: the
-    segment's constants, or with a temperature-dependent effect on, those at the cell's
-    mean temperature (as the converged Picard solve used them)."""
+    segment's constants, or with a temperature-dependent effect on, the cell-constant
+    approximation at the cell's mean temperature (second order; the heat solve and the
+    cascade use the Kirchhoff cell, :func:`nonlinear_cell`)."""
     if nonlin != 0:
         return cell_heat_coeffs(params, flags, gas, i, s, wp.float64(0.5) * (theta[i, node] + theta[i, node + 1]))
     return segment_heat_coeffs(params, flags, gas, i, s)
@@ -459,8 +469,9 @@ def segment_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
                     node0: int, cells: int, k: wp.float64, sigma: wp.float64, d: wp.float64, nonlin: int,
                     xi: wp.float64):
     """(theta [K], dtheta/dx [K/m]) at local position xi [m] of thermal segment s, whose
-    heat cells (length d) start at node0; (k, sigma) are the segment's, replaced by the
-    cell's own when ``nonlin`` (a temperature-dependent effect is on)."""
+    heat cells (length d) start at node0; (k, sigma) are the segment's, unused when
+    ``nonlin`` (a temperature-dependent effect is on: the Kirchhoff cell,
+    :func:`nonlinear_profile`)."""
     c = wp.min(int(xi / d), cells - 1)
     if nonlin != 0:
         return nonlinear_profile(params, flags, gas, i, s, theta[i, node0 + c], theta[i, node0 + c + 1], d,
