@@ -12,8 +12,8 @@ rebuilt):
   separately identifiable) (:func:`tawarp.model.biot.surface_impedance`).
 
 Starts: the README's values (sigma, phi measured; alpha_inf, Lambda, Lambda' identified by
-the paper) and 8 starts 30 % off them for the rigid fit; the Biot fit starts from the rigid fit and a grid of frame moduli and
-densities and keeps the best. Parameters are fitted in log scale within physical bounds.
+the paper) and 8 starts 30 % off them for the rigid fit; the Biot fit starts from the README
+and the rigid fit, each with a grid of frame moduli and densities, and keeps the best. Parameters are fitted in log scale within physical bounds.
 Error: FORMATS.md's measure, rms|Z_meas - Z_model| / rms|Z_meas| over the rows compared.
 Writes ``DOCS/elastic_frame.md`` and ``DOCS/elastic_frame.png``.
 """

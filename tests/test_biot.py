@@ -254,3 +254,26 @@ def test_flow_resistivity_of_circular_pores():
     assert _relmax(biot.flow_resistivity(r, phi, a, T=300.0), 8 * g.mu * a / (phi * r**2)) < 1e-12
     with pytest.raises(ValueError, match="'pore_radius'"):
         biot.flow_resistivity(-1e-4, phi, a)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wide_parameter_ranges_stay_passive_and_reciprocal(seed):
+    """100 random layers (E 1e-6..1e12 Pa, rho_1 1..300 kg/m^3, d 3 mm..30 cm, sigma 1e3..3e5,
+    20 Hz..10 kHz): all finite; Re Zs > 0 (a passive rigid-backed layer absorbs); det T = 1
+    relative to |T11 T22| + |T12 T21| to 1e-12 (T of a thick lossy layer reaches 1e20, so an
+    absolute det test would only measure the rounding of its products)."""
+    rng = np.random.default_rng(seed)
+    n = 100
+    p = dict(phi=rng.uniform(0.7, 1.0, n), sigma=10 ** rng.uniform(3, 5.5, n), alpha_inf=rng.uniform(1, 3, n),
+             Lambda=10 ** rng.uniform(-5, -3, n), E=10 ** rng.uniform(-6, 12, n), eta=rng.uniform(0, 0.5, n),
+             nu=rng.uniform(-0.5, 0.49, n), rho_1=10 ** rng.uniform(0, 2.5, n),
+             thickness=10 ** rng.uniform(-2.5, -0.5, n))
+    p["Lambda_prime"] = p["Lambda"] * rng.uniform(1, 4, n)
+    f = np.geomspace(20, 1e4, 30)
+    Z = biot.surface_impedance(f, **p)
+    T = biot.transfer_matrix(f, **p)  # area 1 m^2: specific, entries O(rho0 c0) apart
+    assert np.isfinite(Z).all() and np.isfinite(T).all()
+    assert Z.real.min() > 0
+    z0 = 413.0  # rho0 c0 scale, only to balance the entries
+    a, b, c, d = T[..., 0, 0], T[..., 0, 1] / z0, T[..., 1, 0] * z0, T[..., 1, 1]
+    assert np.max(np.abs(a * d - b * c - 1) / (np.abs(a * d) + np.abs(b * c))) < 1e-12
