@@ -39,7 +39,7 @@ VARS = ["material=ceramic,mesh,nicr_foam,rvc_foam", "stack.length=0.005:0.1", "s
 
 def _space():
     from tawarp.model.core import load_core
-    from tawarp.design.search import DesignSpace
+    from tawarp.design.space import DesignSpace
 
     return DesignSpace(load_core("rvc_foam"), VARS)
 
@@ -47,7 +47,8 @@ def _space():
 def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None):
     import warp as wp
 
-    from tawarp.design.search import Evaluator, search
+    from tawarp.design.evaluate import Evaluator
+    from tawarp.design.search import search
     from tawarp.model.forward import ForwardSettings
 
     space = _space()
@@ -63,7 +64,7 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
     ev = Evaluator(space, settings=settings)
     import numpy as np
 
-    from tawarp.design.search import sobol_unit
+    from tawarp.design.samplers import sobol_unit
 
     u = sobol_unit(batch, len(space.continuous), 1)
     vals = space.from_unit(u)

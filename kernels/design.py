@@ -3,14 +3,14 @@
 Per parameter set i (one thread), from the nodal temperatures of
 :meth:`tawarp.forward.Engine.heat` (exact at the nodes: exponentially fitted scheme):
 
-- ``out[i, 0]`` gradient across the stack ``(T(x3) - T(x2)) / l_s`` [K/m];
-- ``out[i, 1]`` maximum temperature over the thermal domain [K]: the nodes, and inside
+- ``out[i, GRADIENT]`` gradient across the stack ``(T(x3) - T(x2)) / l_s`` [K/m];
+- ``out[i, T_MAX]`` maximum temperature over the thermal domain [K]: the nodes, and inside
   each cell with a source (the heater) the zero of dtheta/dx, found by bisection on the
   exact cell profile (theta' has at most one zero in a constant-coefficient cell);
-- ``out[i, 2]`` heat leaked to the wall in the stack ``∫ (2 h_s/R) theta S dx`` [W],
+- ``out[i, HEAT_LEAK]`` heat leaked to the wall in the stack ``∫ (2 h_s/R) theta S dx`` [W],
   exact per cell: ``∫ theta = d [mean tanh(v)/v + sigma (1 - tanh(v)/v) / k^2]``,
   ``v = k d / 2``, mean of the two nodal values, ``2 h/R = lam k^2`` of the cell;
-- ``out[i, 3]`` temperature at the hot end of the stack T(x3) [K].
+- ``out[i, T_HOT]`` temperature at the hot end of the stack T(x3) [K].
 """
 
 import warp as wp
@@ -27,6 +27,11 @@ def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
     return cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
 
 
+#: Output columns (named in the objectives table, tawarp.design.objectives).
+GRADIENT = wp.constant(0)
+T_MAX = wp.constant(1)
+HEAT_LEAK = wp.constant(2)
+T_HOT = wp.constant(3)
 N_METRICS = 4
 PI = wp.constant(wp.float64(3.141592653589793))
 
@@ -62,8 +67,8 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     n0 = (stack - first) * cells
     n1 = n0 + cells
     L = seg_value(params, i, stack, LENGTH)
-    out[i, 0] = (theta[i, n1] - theta[i, n0]) / L
-    out[i, 3] = Tc + theta[i, n1]
+    out[i, GRADIENT] = (theta[i, n1] - theta[i, n0]) / L
+    out[i, T_HOT] = Tc + theta[i, n1]
     # heat leak in the stack: per cell (2 h/R) S ∫theta = lam k^2 S ∫theta (h from k, lam of the cell)
     d = L / wp.float64(cells)
     integral = wp.float64(0.0)
@@ -79,7 +84,7 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
                 part = sigma * (wp.float64(1.0) - tx) / (k * k)
         mean = wp.float64(0.5) * (theta[i, n0 + c] + theta[i, n0 + c + 1])
         integral = integral + lam * k * k * d * (mean * tx + part)
-    out[i, 2] = PI * R * R * integral
+    out[i, HEAT_LEAK] = PI * R * R * integral
     # maximum temperature
     best = theta[i, 0]
     for s in range(first, first + count):
@@ -91,4 +96,4 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
                 best = wp.max(best, cell_max(theta[i, node], theta[i, node + 1], k_s, sigma_s, d_s))
             else:
                 best = wp.max(best, wp.max(theta[i, node], theta[i, node + 1]))
-    out[i, 1] = Tc + best
+    out[i, T_MAX] = Tc + best

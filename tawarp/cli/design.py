@@ -25,7 +25,7 @@ def _floats(text: str) -> np.ndarray:
 def _space(args, grid: bool = False):
     from ..design.catalogue import load_catalogue
     from ..model.core import load_core
-    from ..design.search import DesignSpace, parse_variable
+    from ..design.space import DesignSpace, parse_variable
 
     core = load_core(args.core)
     cat = load_catalogue(args.catalogue or [])
@@ -64,7 +64,8 @@ def _add_space_args(p):
 # -- design ------------------------------------------------------------------------------
 def cmd_design(args) -> int:
     from ..io import write_json
-    from ..design.search import OBJECTIVES, search, study_summary
+    from ..design.search import objective_definitions, search
+    from ..design.storage import study_summary
     from ..design.plots import plot_best_profiles, plot_history, plot_pareto
 
     space = _space(args)
@@ -77,11 +78,10 @@ def cmd_design(args) -> int:
                  worker=args.worker, seed=args.seed, T_limit=T_limit, engine=args.engine,
                  settings=_settings(args), freqs=args.freqs, progress=not args.quiet)
     report = {"core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
-              "objective_definitions": {o: {"direction": OBJECTIVES[o][0], "units": OBJECTIVES[o][1],
-                                            "definition": OBJECTIVES[o][2]} for o in objectives},
+              "objective_definitions": objective_definitions(objectives),
               "T_limit_K": T_limit, "storage": storage, "study": args.study, "worker": args.worker,
               "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
-              "summary": study_summary(res.study, objectives), "timing": res.timing,
+              "summary": study_summary(res.study), "timing": res.timing,
               "best": res.best[: args.keep]}
     write_json(out / "design.json", report)
     if not args.no_plots:
@@ -102,7 +102,7 @@ def cmd_design(args) -> int:
 def _profile_designs(study, objectives, best, space, T_limit, n=5):
     """Designs whose profiles are drawn: the best of each material (one objective), or
     up to n points spread along the Pareto front."""
-    from ..design.search import best_designs
+    from ..design.storage import best_designs
 
     if len(objectives) > 1:
         if len(best) <= n:
@@ -122,14 +122,15 @@ def _profile_designs(study, objectives, best, space, T_limit, n=5):
 
 
 def add_design_parser(sub) -> argparse.ArgumentParser:
-    from ..design.search import DEFAULT_FREQS, DEFAULT_T_LIMIT
+    from ..design.evaluate import DEFAULT_FREQS
+    from ..design.objectives import DEFAULT_T_LIMIT, OBJECTIVES
 
     p = _common(sub.add_parser("design", help="design search (CMA-ES / NSGA-II, batched on the device, Optuna study)",
-                               description="Batched design search. Objectives: gradient = (T(x3)-T(x2))/l_s [K/m] "
-                                           "(maximized), heat_leak [W], acoustic_loss [-], T_max [K] (minimized)."))
+                               description="Batched design search. Objectives: " + "; ".join(
+                                   f"{o.name} [{o.unit}] ({o.direction}d): {o.long_name}" for o in OBJECTIVES.values())))
     _add_space_args(p)
     p.add_argument("--objectives", default="gradient",
-                   help="comma list: gradient, heat_leak, acoustic_loss, T_max (two or more: NSGA-II)")
+                   help=f"comma list of {', '.join(OBJECTIVES)} (two or more: NSGA-II; default: %(default)s)")
     p.add_argument("--trials", type=int, default=4096, help="trials of this worker (default: %(default)s)")
     p.add_argument("--batch", type=int, default=256, help="population = trials per launch (default: %(default)s)")
     p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT,
@@ -180,7 +181,7 @@ def cmd_rank(args) -> int:
 
 
 def add_rank_parser(sub) -> argparse.ArgumentParser:
-    from ..design.search import DEFAULT_T_LIMIT
+    from ..design.objectives import DEFAULT_T_LIMIT
 
     p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach, with uncertainty"))
     p.add_argument("--materials", default=None, help="comma list of catalogue names (default: all)")

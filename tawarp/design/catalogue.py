@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.core import Core, CoreError, check_values
+from ..model.fields import field as parameter_field
 
 #: Uncertain parameters of a material, in the order of :attr:`Material.covariance`.
 PARAMS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity", "h_s")
@@ -50,9 +51,6 @@ PARAMS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity", "h_s")
 CORE_FIELD = {"porosity": "porosity", "pore_radius": "pore_radius", "tortuosity": "tortuosity",
               "solid_conductivity": "solid_conductivity", "h_s": "h"}
 _FIELD_TO_PARAM = {v: k for k, v in CORE_FIELD.items()}
-#: Bounds used to clip sampled values (physical ranges of tawarp.core.FIELD_BOUNDS, kept open).
-_CLIP = {"porosity": (1e-3, 0.999), "pore_radius": (1e-7, math.inf), "tortuosity": (1.0, math.inf),
-         "solid_conductivity": (0.0, math.inf), "h_s": (1e-3, math.inf)}
 
 
 class CatalogueError(ValueError):
@@ -120,7 +118,8 @@ class Material:
         return core.replace(**self.core_params(segment))
 
     def sample(self, n: int, rng: np.random.Generator | int | None = None) -> dict[str, np.ndarray]:
-        """n draws from N(mean, covariance), clipped to the physical ranges: {param: (n,)}."""
+        """n draws from N(mean, covariance), clipped to the ranges a fit may reach (the
+        parameter table's ``fit_range``, :mod:`tawarp.model.fields`): {param: (n,)}."""
         rng = np.random.default_rng(rng)
         cov = self.covariance()
         mean = self.values()
@@ -134,7 +133,7 @@ class Material:
             x[:, active] += rng.standard_normal((n, active.size)) @ L.T
         out = {}
         for j, p in enumerate(PARAMS):
-            lo, hi = _CLIP[p]
+            lo, hi = parameter_field(CORE_FIELD[p]).fit_range
             out[p] = np.clip(x[:, j], lo, hi)
         return out
 

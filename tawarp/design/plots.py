@@ -13,7 +13,7 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
     (first objective for several)."""
     from optuna.trial import TrialState
 
-    from .search import OBJECTIVES
+    from .objectives import objective
 
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     fig, ax = plt.subplots(figsize=(7, 4))
@@ -27,11 +27,11 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
         ax.plot(num[feas], val[feas], ".", ms=2, alpha=0.4, label="feasible trials")
         if np.any(~feas):
             ax.plot(num[~feas], val[~feas], "x", ms=2, alpha=0.4, color="0.6", label="T_max above limit")
-        maximize = OBJECTIVES[objectives[0]][0] == "maximize"
+        maximize = objective(objectives[0]).direction == "maximize"
         v = np.where(feas, val, -np.inf if maximize else np.inf)
         best = np.maximum.accumulate(v) if maximize else np.minimum.accumulate(v)
         ax.plot(num, best, "-", color="C3", lw=1.5, label="best so far")
-    unit = OBJECTIVES[objectives[0]][1]
+    unit = objective(objectives[0]).unit
     ax.set_xlabel("trial")
     ax.set_ylabel(f"{objectives[0]} [{unit}]")
     ax.legend(fontsize=8)
@@ -43,7 +43,7 @@ def plot_pareto(study, objectives, front: list[dict], path, title: str = ""):
     """All complete trials in the plane of the first two objectives, the front highlighted."""
     from optuna.trial import TrialState
 
-    from .search import OBJECTIVES
+    from .objectives import objective
 
     trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
     fig, ax = plt.subplots(figsize=(6, 4.5))
@@ -54,8 +54,8 @@ def plot_pareto(study, objectives, front: list[dict], path, title: str = ""):
         P = np.array([[b["values"][objectives[0]], b["values"][objectives[1]]] for b in front])
         o = np.argsort(P[:, 0])
         ax.plot(P[o, 0], P[o, 1], "o-", ms=3, color="C3", label="Pareto front (feasible)")
-    ax.set_xlabel(f"{objectives[0]} [{OBJECTIVES[objectives[0]][1]}]")
-    ax.set_ylabel(f"{objectives[1]} [{OBJECTIVES[objectives[1]][1]}]")
+    ax.set_xlabel(f"{objectives[0]} [{objective(objectives[0]).unit}]")
+    ax.set_ylabel(f"{objectives[1]} [{objective(objectives[1]).unit}]")
     ax.legend(fontsize=8)
     ax.set_title(title or "Pareto front")
     return save(fig, path)

@@ -23,7 +23,8 @@ import numpy as np
 
 from .catalogue import CORE_FIELD, PARAMS, Catalogue, Material, default_catalogue
 from ..model.core import Core, load_core
-from .search import DEFAULT_T_LIMIT, Evaluator
+from .evaluate import Evaluator
+from .objectives import DEFAULT_T_LIMIT
 from ..model.forward import ForwardSettings
 
 

@@ -8,9 +8,11 @@ Two layouts (read back with ``xarray.open_dataset(path, engine="h5netcdf")``):
   (``material`` as an int8 index with CF ``flag_values``/``flag_meanings``), points of a
   scrambled Sobol sequence (seeded, reproducible) scaled to the variable ranges.
 
-Outputs (float32, CF ``units``): ``gradient`` [K/m] = (T(x3) - T(x2)) / l_s,
-``T_max`` [K], ``heat_leak`` [W] (stack, to the wall), ``T_hot`` [K] = T(x3); see
-:mod:`tawarp.design`. The work is done in chunks of ``chunk`` points: one heat-solve and
+Outputs (float32, CF ``units`` and ``long_name`` from the objectives table,
+:mod:`tawarp.design.objectives`): by default the metrics kernel's columns
+(``gradient`` [K/m] = (T(x3) - T(x2)) / l_s, ``T_max`` [K], ``heat_leak`` [W] (stack, to
+the wall), ``T_hot`` [K] = T(x3)); ``outputs`` adds or selects any registered objective.
+The work is done in chunks of ``chunk`` points: one heat-solve and
 one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab) before the
 next, so memory stays flat whatever the size. The file is written to a temporary name
 beside the target and renamed at the end (nothing half-written on failure).
@@ -27,14 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .search import METRICS, DesignSpace, Evaluator
+from .evaluate import DEFAULT_FREQS, Evaluator
+from .objectives import kernel_metrics, objective
+from .samplers import sobol_unit
+from .space import DesignSpace
 from ..model.forward import ForwardSettings
-
-UNITS = {"gradient": "K/m", "T_max": "K", "heat_leak": "W", "T_hot": "K", "heat_input": "W"}
-LONG_NAMES = {"gradient": "temperature gradient across the stack (T(x3) - T(x2)) / l_s",
-              "T_max": "maximum temperature of the core",
-              "heat_leak": "heat leaked to the wall in the stack",
-              "T_hot": "temperature at the hot end of the stack, T(x3)"}
 
 
 @dataclass
@@ -81,10 +80,11 @@ def _blocks(shape: tuple, chunk: int):
 
 def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: int | None = None,
           chunk: int = 1 << 20, seed: int = 0, settings: ForwardSettings | None = None,
-          progress: bool = False, attrs: dict | None = None) -> SweepInfo:
+          progress: bool = False, attrs: dict | None = None, outputs=None, freqs=DEFAULT_FREQS) -> SweepInfo:
     """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
-    results to the netCDF file ``path``. See the module docstring."""
+    results to the netCDF file ``path``. ``outputs``: objective names written (default: the
+    kernel's metrics); ``freqs`` [Hz] for ``acoustic_loss``. See the module docstring."""
     import h5netcdf
     import h5py
 
@@ -97,7 +97,9 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     settings = settings or ForwardSettings()
-    ev = Evaluator(space, settings=settings)
+    outputs = list(outputs) if outputs is not None else kernel_metrics()
+    rows = [objective(k) for k in outputs]
+    ev = Evaluator(space, extra=outputs, freqs=freqs, settings=settings)
     cont = space.continuous
     if mode == "grid":
         for v in cont:
@@ -150,11 +152,11 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                     var.attrs["flag_values"] = np.arange(len(space.material.choices), dtype=np.int8)
                     var.attrs["flag_meanings"] = " ".join(space.material.choices)
             outs = {}
-            for k in METRICS:
-                var = f.create_variable(k, tuple(dims), dtype="f4", chunks=cshape)
-                var.attrs["units"] = UNITS[k]
-                var.attrs["long_name"] = LONG_NAMES[k]
-                outs[k] = var
+            for o in rows:
+                var = f.create_variable(o.name, tuple(dims), dtype="f4", chunks=cshape)
+                var.attrs["units"] = o.unit
+                var.attrs["long_name"] = o.long_name
+                outs[o.name] = var
             if mode == "grid":
                 it = ((lo, hi, sl) for lo, hi, sl in _blocks(shape, chunk))
             else:
@@ -170,8 +172,6 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                         else:
                             values[d] = grids[d][idx[j]]
                 else:
-                    from .search import sobol_unit
-
                     d_all = len(cont) + (1 if space.material is not None else 0)
                     u = sobol_unit(m, d_all, seed, skip=lo)
                     values = space.from_unit(u[:, : len(cont)])
@@ -180,14 +180,14 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                                                         len(space.material.choices) - 1)
                 t = time.perf_counter()
                 table = space.varying_table(values)
-                res = ev.evaluate_device(table).numpy()
+                res = ev.evaluate_table(table)
                 t_eval += time.perf_counter() - t
                 t = time.perf_counter()
                 block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
                 full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
                 sub_shape = tuple(b for b in block) + tuple(shape[len(sl):])
-                for j, k in enumerate(METRICS):
-                    outs[k][full] = res[:, j].astype(np.float32).reshape(sub_shape)
+                for k in outputs:
+                    outs[k][full] = res[k].astype(np.float32).reshape(sub_shape)
                 if mode == "sobol":
                     for v in cont:
                         f.variables[v.name][lo:hi] = values[v.name]

@@ -1,0 +1,82 @@
+"""Batched evaluation of design objectives: one heat-solve launch and one metrics launch
+per batch (plus a T-matrix launch when a host objective such as ``acoustic_loss`` asks
+for it). What is computed, and in which kernel column, is read from the objectives
+table (:mod:`tawarp.design.objectives`)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .objectives import kernel_metrics, objective
+from .space import DesignSpace
+from ..model.core import Core
+from ..model.forward import Engine, ForwardSettings
+
+DEFAULT_FREQS = (50.0, 100.0, 200.0, 400.0)
+
+
+class Evaluator:
+    """Objectives of a :class:`DesignSpace` (or of ``core`` with varying rows ``names`` and
+    the stack at segment ``stack_index``) on the device of ``settings``.
+
+    :meth:`evaluate` returns ``{name: (n,) array}``: every kernel column, plus the host
+    objectives named in ``extra`` (e.g. ``acoustic_loss``, at ``freqs`` [Hz]).
+    ``settings.heat_cells`` sets the heat grid (1 is exact for piecewise-constant
+    coefficients)."""
+
+    def __init__(self, space: DesignSpace | None, extra=(), freqs=DEFAULT_FREQS,
+                 settings: ForwardSettings | None = None, *, core: Core | None = None, names=None,
+                 stack_index: int | None = None):
+        from ..kernels.design import N_METRICS
+
+        self.space = space
+        self.settings = settings or ForwardSettings()
+        self.core = space.core if space is not None else core
+        self.names = space.param_names if space is not None else list(names)
+        self.stack_index = space.stack_index if space is not None else int(stack_index)
+        self.engine = Engine(self.core, [1.0], self.names, self.settings)
+        self.device = self.engine.device
+        self.n_metrics = N_METRICS
+        self.columns = kernel_metrics()
+        self.extra = [objective(n) for n in extra if objective(n).column is None]
+        self.freqs = tuple(float(f) for f in freqs)
+        self._acoustic = None
+
+    def acoustic_engine(self) -> Engine:
+        """T-matrix engine at ``freqs`` over the same varying rows (built on first use)."""
+        if self._acoustic is None:
+            self._acoustic = Engine(self.core, self.freqs, self.names, self.settings)
+        return self._acoustic
+
+    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
+        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on the device)."""
+        res = self.evaluate_device(varying).numpy()
+        metrics = {k: res[:, j] for j, k in enumerate(self.columns)}
+        if self.extra:
+            table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
+            for o in self.extra:
+                metrics[o.name] = np.asarray(o.compute(self, table, dict(metrics)), dtype=np.float64)
+        return metrics
+
+    def evaluate_device(self, varying, out: wp.array | None = None) -> wp.array:
+        """Kernel metrics (n, N_METRICS) on the device, no host copy."""
+        from ..kernels.design import design_metrics
+
+        eng = self.engine
+        params, theta = eng.heat(varying)
+        n = params.shape[1]
+        if out is None:
+            out = wp.empty((n, self.n_metrics), dtype=wp.float64, device=self.device)
+        wp.launch(design_metrics, dim=n, device=self.device,
+                  inputs=[params, eng.flags, eng.gas, theta, eng.first, eng.count, eng.heat_cells,
+                          self.stack_index, out])
+        return out
+
+    def evaluate(self, values: dict) -> dict[str, np.ndarray]:
+        """Objectives of design points ``{variable: (n,) array}``, in chunks of ``settings.chunk``."""
+        table = self.space.varying_table(values)
+        n = table.shape[1]
+        parts = [self.evaluate_table(table[:, lo:lo + self.settings.chunk])
+                 for lo in range(0, max(n, 1), self.settings.chunk)]
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

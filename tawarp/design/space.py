@@ -1,0 +1,281 @@
+"""Design space: the variables of a design search or sweep over a thermoacoustic core.
+
+A :class:`DesignSpace` holds continuous variables (any ``SEGMENT.FIELD`` of the core,
+``heat_input`` [W], ``stack.position`` = length of the segment before the stack) and
+optionally the categorical ``material`` (a :mod:`tawarp.design.catalogue` entry put in the
+stack; explicit ``stack.*`` variables then override the material's values, which makes
+a material parametric). It maps design points to the parameter table of
+:class:`tawarp.model.forward.Engine` and to/from the unit cube the samplers work in.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .catalogue import PARAMS as MATERIAL_PARAMS, CORE_FIELD, Catalogue, default_catalogue
+from ..model.core import Core, CoreError, check_values
+
+
+@dataclass(frozen=True)
+class Variable:
+    """A design variable: continuous ``[low, high]`` (``log`` scale optional) or
+    categorical (``choices``, only ``material``). ``values`` fixes a grid for sweeps."""
+
+    name: str
+    low: float = math.nan
+    high: float = math.nan
+    log: bool = False
+    choices: tuple = ()
+    values: tuple = ()
+
+    @property
+    def categorical(self) -> bool:
+        return bool(self.choices)
+
+    def grid(self) -> np.ndarray | tuple:
+        if self.categorical:
+            return self.choices
+        return np.asarray(self.values, dtype=float)
+
+
+def parse_variable(text: str, grid: bool = False) -> Variable:
+    """``NAME=LOW:HIGH[:log]`` (range), ``NAME=LOW:HIGH:COUNT[:log]`` (grid),
+    ``NAME=v1,v2,...`` (list; materials for ``material``), ``NAME=v`` (fixed)."""
+    name, eq, spec = text.partition("=")
+    name, spec = name.strip(), spec.strip()
+    if not eq or not name or not spec:
+        raise ValueError(f"{text!r}: expected NAME=LOW:HIGH[:log], NAME=LOW:HIGH:COUNT or NAME=v1,v2")
+    if name in ("Q", "Q_W"):
+        name = "heat_input"
+    if name == "material":
+        return Variable(name, choices=tuple(s.strip() for s in spec.split(",") if s.strip()))
+    try:
+        if ":" in spec:
+            parts = spec.split(":")
+            log = parts[-1] == "log"
+            if log:
+                parts = parts[:-1]
+            lo, hi = float(parts[0]), float(parts[1])
+            if len(parts) == 3:
+                n = int(parts[2])
+                vals = np.geomspace(lo, hi, n) if log else np.linspace(lo, hi, n)
+                return Variable(name, min(lo, hi), max(lo, hi), log, values=tuple(vals.tolist()))
+            if len(parts) != 2:
+                raise ValueError
+            if grid:
+                raise ValueError(f"{text!r}: a sweep grid needs LOW:HIGH:COUNT")
+            return Variable(name, min(lo, hi), max(lo, hi), log)
+        vals = [float(v) for v in spec.split(",") if v.strip()]
+        return Variable(name, min(vals), max(vals), values=tuple(vals))
+    except ValueError as e:
+        if str(e).startswith(repr(text)):
+            raise
+        raise ValueError(f"{text!r}: expected NAME=LOW:HIGH[:log], NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,...") from None
+
+
+class DesignSpace:
+    """Design variables over ``core``.
+
+    ``variables``: :class:`Variable` list or ``parse_variable`` strings. Continuous names:
+    ``heat_input`` [W] (alias ``Q``), any ``SEGMENT.FIELD`` of the core, and
+    ``stack.position`` (the length of the segment before the stack, i.e. x2 - x1 when
+    the stack is second). ``material``: categorical over ``catalogue`` names, put in the
+    ``segment`` (default ``stack``). ``heat_input``: its value when not a variable.
+    """
+
+    def __init__(self, core: Core, variables, catalogue: Catalogue | None = None, segment: str = "stack",
+                 heat_input: float = 0.0):
+        self.core = core
+        self.segment = segment
+        self.catalogue = catalogue if catalogue is not None else default_catalogue()
+        seg_names = [s.name for s in core.segments]
+        if segment not in seg_names:
+            raise CoreError(f"{core.source}: no segment {segment!r} for the design (have {seg_names})")
+        self.stack_index = seg_names.index(segment)
+        seg = core.segments[self.stack_index]
+        if not seg.thermal:
+            raise CoreError(f"{core.source}: segment {segment!r} is not thermal; the objectives need the heat model")
+        vs = [parse_variable(v) if isinstance(v, str) else v for v in variables]
+        self.variables: list[Variable] = []
+        seen = set()
+        for v in vs:
+            if v.name in seen:
+                raise ValueError(f"design variable {v.name!r} given twice")
+            seen.add(v.name)
+            self.variables.append(self._check(v))
+        self.heat_input = float(heat_input)
+        if not (math.isfinite(self.heat_input) and self.heat_input >= 0):
+            raise ValueError(f"heat_input [W]: must be finite and >= 0, got {heat_input}")
+        cats = [v for v in self.variables if v.categorical]
+        self.material: Variable | None = cats[0] if cats else None
+        self.continuous: list[Variable] = [v for v in self.variables if not v.categorical]
+
+    def _check(self, v: Variable) -> Variable:
+        if v.name == "material":
+            if not v.choices:
+                raise ValueError("material: give at least one material name")
+            missing = [c for c in v.choices if c not in self.catalogue]
+            if missing:
+                raise KeyError(f"material: {missing} not in the catalogue ({', '.join(self.catalogue)})")
+            if not self.core.segments[self.stack_index].is_porous:
+                raise CoreError(f"{self.core.source}: segment {self.segment!r} is not porous; no material can go there")
+            return v
+        if v.categorical:
+            raise ValueError(f"{v.name!r}: only 'material' can be categorical")
+        if not (math.isfinite(v.low) and math.isfinite(v.high)) or v.low > v.high:
+            raise ValueError(f"{v.name!r}: need finite low <= high, got [{v.low}, {v.high}]")
+        name = self.core_name(v.name)
+        if name == "heat_input":
+            if v.low < 0:
+                raise ValueError(f"heat_input [W]: must be >= 0, got low = {v.low}")
+        else:
+            if name not in self.core.parameter_names():
+                raise KeyError(f"{v.name!r} is not a parameter of {self.core.source}; "
+                               f"parameters are {', '.join(self.core.parameter_names())}")
+            fld = name.partition(".")[2]
+            check_values(fld, np.array([v.low, v.high]), f"design variable {v.name}")
+        if v.log and v.low <= 0:
+            raise ValueError(f"{v.name!r}: a log scale needs low > 0")
+        return v
+
+    def core_name(self, name: str) -> str:
+        """The core parameter behind variable ``name`` (``stack.position`` -> preceding length)."""
+        if name == f"{self.segment}.position":
+            if self.stack_index == 0:
+                raise CoreError(f"{self.core.source}: {self.segment} is the first segment; it has no position variable")
+            return f"{self.core.segments[self.stack_index - 1].name}.length"
+        return name
+
+    # -- tables ------------------------------------------------------------------------
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.variables]
+
+    @property
+    def param_names(self) -> list[str]:
+        """Core parameters that vary over the space (the Engine's varying rows after Q)."""
+        out = []
+        if self.material is not None:
+            out += [f"{self.segment}.{CORE_FIELD[p]}" for p in MATERIAL_PARAMS]
+        for v in self.continuous:
+            n = self.core_name(v.name)
+            if n != "heat_input" and n not in out:
+                out.append(n)
+        return out
+
+    def varying_table(self, values: dict) -> np.ndarray:
+        """(1 + len(param_names), n) table for :class:`tawarp.forward.Engine`: row 0 the heat
+        input. ``values``: variable name -> (n,) array; ``material`` as names or indices."""
+        n = max(len(np.atleast_1d(a)) for a in values.values()) if values else 1
+        rows = {}
+        if self.material is not None:
+            mat = np.atleast_1d(values["material"])
+            if mat.dtype.kind in "iu":
+                idx = mat
+            else:
+                lookup = {c: i for i, c in enumerate(self.material.choices)}
+                idx = np.array([lookup[str(m)] for m in mat])
+            for p in MATERIAL_PARAMS:
+                table = np.array([getattr(self.catalogue[c], p) for c in self.material.choices])
+                rows[f"{self.segment}.{CORE_FIELD[p]}"] = np.broadcast_to(table[idx], (n,))
+        q = np.full(n, self.heat_input)
+        for v in self.continuous:
+            a = np.broadcast_to(np.asarray(values[v.name], dtype=float), (n,))
+            name = self.core_name(v.name)
+            if name == "heat_input":
+                q = a
+            else:
+                rows[name] = a
+        return np.stack([q] + [rows[k] for k in self.param_names]).astype(np.float64, copy=False)
+
+    def core_for(self, point: dict) -> tuple[Core, float]:
+        """(core, heat input [W]) of one design point ``{name: value}``."""
+        core, q = self.core, self.heat_input
+        if self.material is not None and "material" in point:
+            core = self.catalogue[point["material"]].apply(core, self.segment)
+        changes = {}
+        for v in self.continuous:
+            name = self.core_name(v.name)
+            if name == "heat_input":
+                q = float(point[v.name])
+            else:
+                changes[name] = float(point[v.name])
+        return (core.replace(**changes) if changes else core), q
+
+    # -- unit cube -----------------------------------------------------------------------
+    def from_unit(self, u: np.ndarray) -> dict[str, np.ndarray]:
+        """Continuous variables from the unit cube (n, len(continuous)); log scale where asked."""
+        out = {}
+        for j, v in enumerate(self.continuous):
+            x = np.clip(u[:, j], 0.0, 1.0)
+            if v.log:
+                out[v.name] = np.exp(np.log(v.low) + x * (np.log(v.high) - np.log(v.low)))
+            else:
+                out[v.name] = v.low + x * (v.high - v.low)
+        return out
+
+    def to_unit(self, values: dict) -> np.ndarray:
+        cols = []
+        for v in self.continuous:
+            a = np.asarray(values[v.name], dtype=float)
+            if v.high == v.low:
+                cols.append(np.zeros_like(a))
+            elif v.log:
+                cols.append((np.log(a) - np.log(v.low)) / (np.log(v.high) - np.log(v.low)))
+            else:
+                cols.append((a - v.low) / (v.high - v.low))
+        return np.stack(cols, axis=-1) if cols else np.zeros((len(next(iter(values.values()), [])), 0))
+
+    def distributions(self) -> dict:
+        """Optuna distributions of the variables."""
+        import optuna
+
+        out = {}
+        for v in self.variables:
+            if v.categorical:
+                out[v.name] = optuna.distributions.CategoricalDistribution(list(v.choices))
+            else:
+                out[v.name] = optuna.distributions.FloatDistribution(v.low, v.high, log=v.log)
+        return out
+
+    def describe(self) -> list[dict]:
+        return [({"name": v.name, "choices": list(v.choices)} if v.categorical else
+                 {"name": v.name, "low": v.low, "high": v.high, "log": v.log}) for v in self.variables]
+
+    # -- sampler coordinates --------------------------------------------------------------
+    @property
+    def n_categories(self) -> int:
+        """Number of materials (1 without a ``material`` variable)."""
+        return len(self.material.choices) if self.material is not None else 1
+
+    def points_from_unit(self, X: np.ndarray) -> list[dict]:
+        """Design points ``{name: value}`` of sampler coordinates ``X`` (n, len(continuous)
+        [+ 1]): unit-cube columns of the continuous variables, then, with a ``material``
+        variable, the material index."""
+        nc = len(self.continuous)
+        vals = self.from_unit(X[:, :nc])
+        points = []
+        for j in range(X.shape[0]):
+            p = {k: float(vals[k][j]) for k in vals}
+            if self.material is not None:
+                p["material"] = self.material.choices[int(X[j, nc])]
+            points.append(p)
+        return points
+
+    def unit_from_points(self, points: list[dict]) -> np.ndarray:
+        """Inverse of :meth:`points_from_unit` (the coordinates a sampler is told)."""
+        u = self.to_unit({v.name: np.array([p[v.name] for p in points], dtype=float) for v in self.continuous})
+        if self.material is not None:
+            idx = np.array([self.material.choices.index(p["material"]) for p in points], dtype=float)
+            u = np.concatenate([u, idx[:, None]], axis=1)
+        return u
+
+    def values_of(self, points: list[dict]) -> dict:
+        """``{variable: (n,) array}`` of design points (input of :meth:`varying_table`)."""
+        vals = {v.name: np.array([p[v.name] for p in points], dtype=float) for v in self.continuous}
+        if self.material is not None:
+            vals["material"] = np.array([p["material"] for p in points])
+        return vals

@@ -1,0 +1,97 @@
+"""The objectives table (tawarp.design.objectives) and the evaluator that reads it, on the CPU."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tawarp.design.evaluate import Evaluator
+from tawarp.design.objectives import OBJECTIVES, Objective, absorbed_fraction, kernel_metrics, register_objective
+from tawarp.design.space import DesignSpace
+from tawarp.kernels.design import N_METRICS
+from tawarp.model.coefficients import duct_impedance
+from tawarp.model.core import load_core
+from tawarp.model.forward import steady_temperature, transfer_matrices
+
+
+def test_every_kernel_column_has_exactly_one_row():
+    cols = sorted(o.column for o in OBJECTIVES.values() if o.column is not None)
+    assert cols == list(range(N_METRICS))
+    assert kernel_metrics() == ["gradient", "T_max", "heat_leak", "T_hot"]
+    with pytest.raises(ValueError, match="exactly one of column"):
+        Objective("x", "minimize", "-", "neither")
+    with pytest.raises(ValueError, match="direction"):
+        Objective("x", "up", "-", "bad direction", column=0)
+    with pytest.raises(ValueError, match="already registered"):
+        register_objective(Objective("gradient", "maximize", "K/m", "again", column=0))
+
+
+def test_metrics_match_the_heat_model():
+    """gradient, T_max and heat leak of the batched kernel against steady_temperature and
+    the exact NumPy solution (tawarp.reference)."""
+    from tawarp.reference import heat_profile_exact
+
+    core = load_core("rvc_foam")
+    space = DesignSpace(core, ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08", "heat_input=1:18"])
+    pts = {"material": np.array(["ceramic", "mesh", "rvc_foam", "rvc_foam"]),
+           "stack.length": np.array([0.02, 0.05, 0.01, 0.08]), "heat_input": np.array([9.0, 18.0, 3.0, 12.0])}
+    m = Evaluator(space, settings=None).evaluate(pts)
+    for j in range(4):
+        c, q = space.core_for({k: v[j] for k, v in pts.items()})
+        pos = c.positions()
+        T, _ = steady_temperature(c, [pos[1], pos[2]], heat_input=q)
+        assert m["gradient"][j] == pytest.approx((T[0, 1] - T[0, 0]) / (pos[2] - pos[1]), rel=1e-10)
+        hs = heat_profile_exact(c, q)
+        exact = (hs.theta_in(1, pos[2]) - hs.theta_in(1, pos[1])) / (pos[2] - pos[1])
+        assert m["gradient"][j] == pytest.approx(float(exact), rel=1e-9)
+        assert m["T_max"][j] == pytest.approx(c.gas.T_cold + hs.theta_max()[1], rel=1e-9)
+        x = np.linspace(pos[1], pos[2], 20001)
+        th = hs.theta_in(1, x)
+        leak = 2 * c.segments[1].h / c.radius * c.area * np.sum(0.5 * (th[1:] + th[:-1]) * np.diff(x))
+        assert m["heat_leak"][j] == pytest.approx(leak, rel=1e-7)
+
+
+def test_acoustic_loss_is_a_passive_absorbed_fraction():
+    core = load_core("ceramic")
+    res = transfer_matrices(core, [50, 200, 500], heat_input=0.0)
+    a = absorbed_fraction(res.T, duct_impedance(core))
+    assert np.all(a > 0) and np.all(a < 1)
+    k = 2 * np.pi * 100 / 343.0
+    T = np.array([[[np.cos(k), 1j * np.sin(k)], [1j * np.sin(k), np.cos(k)]]])[None]
+    assert absorbed_fraction(T, 1.0) == pytest.approx(0.0, abs=1e-14)  # lossless duct
+    # the evaluator's acoustic_loss is the mean over its frequencies, at Q = 0 whatever the heat input
+    space = DesignSpace(core, ["heat_input=0:18"])
+    ev = Evaluator(space, extra=["acoustic_loss"], freqs=[50, 200, 500])
+    m = ev.evaluate({"heat_input": np.array([0.0, 9.0, 18.0])})
+    np.testing.assert_allclose(m["acoustic_loss"], a.mean(axis=-1).ravel()[0], rtol=1e-10)
+
+
+@pytest.fixture
+def toy_objective():
+    """A user objective registered from outside the package: minus the gradient [K/m]."""
+    row = register_objective(Objective("minus_gradient", "minimize", "K/m", "minus the stack gradient",
+                                       compute=lambda evaluator, table, metrics: -metrics["gradient"]))
+    yield row.name
+    OBJECTIVES.pop(row.name)
+
+
+def test_objective_registered_from_outside_is_searched_and_swept(toy_objective, tmp_path):
+    import xarray as xr
+
+    from tawarp.design.search import search
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9"])
+    res = search(space, (toy_objective,), n_trials=64, batch=16, seed=2)
+    trials = [t for t in res.study.get_trials() if t.state.name == "COMPLETE"]
+    best = res.best[0]
+    # the search minimized the toy objective: its best is minus the largest gradient of all trials
+    assert best["values"][toy_objective] == pytest.approx(-best["metrics"]["gradient"], rel=0, abs=1e-12)
+    assert best["values"][toy_objective] == pytest.approx(-max(t.user_attrs["gradient"] for t in trials), rel=0, abs=1e-12)
+    assert res.study.directions[0].name == "MINIMIZE"
+    space_g = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "heat_input=1:9:3"])
+    sweep(space_g, tmp_path / "toy.nc", outputs=["gradient", toy_objective], chunk=5)
+    ds = xr.open_dataset(tmp_path / "toy.nc", engine="h5netcdf")
+    np.testing.assert_array_equal(ds[toy_objective].values, -ds.gradient.values)  # float32 negation is exact
+    assert ds[toy_objective].attrs["units"] == "K/m" and ds[toy_objective].attrs["long_name"] == "minus the stack gradient"
+    ds.close()
