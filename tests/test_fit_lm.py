@@ -1,0 +1,109 @@
+"""The one least-squares engine (tawarp.fit.lm) and the kind fits on it (tawarp.fit.problems)
+against the closed form of a linear model: y = A v + noise with known sigma, whose
+weighted least-squares solution and covariance are the normal equations'
+v = (A^T W A)^-1 A^T W y and C = (A^T W A)^-1."""
+
+import numpy as np
+import pytest
+
+from tawarp.fit.lm import chol_solve, levenberg_marquardt
+from tawarp.fit.problems import fit_batch
+from tawarp.measure import MeasurementKind
+from tawarp.model.effects import Param
+
+
+def linear_case(seed, m=40, p=3):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((m, p))
+    sigma = rng.uniform(0.5, 2.0, m)
+    v_true = rng.uniform(-2.0, 2.0, p)
+    y = A @ v_true + sigma * rng.standard_normal(m)
+    W = np.diag(1 / sigma**2)
+    C = np.linalg.inv(A.T @ W @ A)
+    return A, sigma, y, C @ A.T @ W @ y, C
+
+
+class LinearProblems:
+    """LMProblems of r = (A z - y) / sigma with the exact Jacobian (N problems)."""
+
+    def __init__(self, A, sigma, Y):
+        self.A, self.sigma, self.Y = A, sigma, Y
+        p = A.shape[1]
+        self.zlo, self.zhi = np.full((len(Y), p), -np.inf), np.full((len(Y), p), np.inf)
+
+    def project(self, z, pid):
+        return z
+
+    def relative_change(self, dz, z):
+        return np.abs(dz) / np.maximum(np.abs(z), 1e-300)
+
+    def evaluate(self, pid, z, max_sets=0):
+        J = self.A / self.sigma[:, None]
+        r = (z @ self.A.T - self.Y[pid]) / self.sigma
+        return np.sum(r**2, 1), np.sum(r**2, 1), r @ J, np.repeat((J.T @ J)[None], len(pid), axis=0)
+
+
+@pytest.mark.parametrize("damping", ["nielsen", "paper"])
+def test_lm_equals_normal_equations(damping):
+    # one batch of three problems sharing A and sigma, different data
+    A, sigma, y, _, _ = linear_case(0)
+    Y = np.stack([y + k for k in range(3)])
+    W = np.diag(1 / sigma**2)
+    C = np.linalg.inv(A.T @ W @ A)
+    prob = LinearProblems(A, sigma, Y)
+    st = levenberg_marquardt(prob, np.arange(3), np.zeros((3, A.shape[1])), damping=damping, xtol=1e-15,
+                             gtol=1e-15, max_iter=200)
+    # values to 1e-8: a step is accepted on a lower cost, and at 1e-9 from the minimum the
+    # cost differs from it by ~1e-18 of itself, below rounding (seen: 4e-10 Nielsen, 1.3e-9
+    # the paper's rule); the covariance from J^T J at the solution to 1e-10
+    for i in range(3):
+        v = C @ A.T @ W @ Y[i]
+        assert np.max(np.abs(st.z[i] - v)) <= 1e-8 * np.max(np.abs(v))
+        assert np.max(np.abs(np.linalg.inv(st.H[i]) - C)) <= 1e-10 * np.max(np.abs(C))
+
+
+def test_chol_solve_rejects_indefinite():
+    A = np.array([[[4.0, 1.0], [1.0, 3.0]], [[1.0, 2.0], [2.0, 1.0]]])
+    x, ok = chol_solve(A, np.ones((2, 2)))
+    assert ok.tolist() == [True, False]
+    assert np.allclose(x[0], np.linalg.solve(A[0], np.ones(2)), rtol=1e-14) and np.all(x[1] == 0)
+
+
+class LinearKind(MeasurementKind):
+    """A measurement kind whose observable is linear in three named parameters: y = A v
+    (real part; the imaginary part is an exact 0 with unit weight)."""
+
+    name = "linear"
+    coef_names = ("y",)
+
+    def __init__(self, A, sigma, y):
+        self.A = A
+        self.y = y.astype(complex)
+        self.w = np.stack([1 / sigma, np.ones_like(sigma)], axis=1)
+        self.freq = np.arange(1.0, y.size + 1)
+        self.group = np.zeros(y.size)
+        self.coef = np.zeros(y.size, dtype=int)
+        self.has_sigma = True
+
+    def predict(self, values, n, effect=None):
+        V = np.stack([np.broadcast_to(values[f"v{j}"], (n,)) for j in range(self.A.shape[1])], axis=1)
+        return (V @ self.A.T).astype(complex)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_kind_fit_equals_normal_equations(seed):
+    # forward-difference Jacobian (step 1e-6) of a linear model: exact up to rounding of
+    # |y| eps / 1e-6 ~ 1e-10 relative, so values and covariance agree to 1e-8
+    A, sigma, y, v, C = linear_case(seed)
+    kind = LinearKind(A, sigma, y)
+    params = [Param(f"v{j}", (f"v{j}",), 0.5, 1.0) for j in range(3)]
+    # the stopping rule tightened below what the loop uses (GTOL 1e-6 leaves ~1e-6 std)
+    res = fit_batch(kind, [(params, None, None)], xtol=1e-14, gtol=1e-12)[0]
+    assert res.converged[0]
+    assert np.max(np.abs(res.values[0] - v)) <= 1e-8 * np.max(np.abs(v))
+    assert np.max(np.abs(res.covariance[0] - C)) <= 1e-8 * np.max(np.abs(C))
+    assert np.allclose(res.std[0], np.sqrt(np.diag(C)), rtol=1e-8)
+    # chi^2 at the solution and the FORMATS.md error
+    r = (A @ v - y) / sigma
+    assert abs(res.cost[0] - r @ r) <= 1e-10 * (r @ r)
+    assert abs(res.rms_error[0] - np.sqrt(np.mean((A @ v - y) ** 2) / np.mean(y**2))) <= 1e-8
