@@ -211,7 +211,7 @@ def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
 # with k^2 = a / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in U - U*. The
 # cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear model, in U)
 # with sigma = q - mean_cell(a theta(U) - k^2 U): the remainder enters through its cell
-# mean (4-point Gauss on the cell's own profile, 2 fixed-point passes), so the zero-mean
+# mean (4-point Gauss on the cell's own profile, two fixed-point passes), so the zero-mean
 # rest of r is the only local error (fourth order at the nodes) and the heat the model
 # leaks, int a theta(U(x)) dx, equals Q up to the Gauss error of the remainder (~1e-13).
 # U' = lam theta' is the flux, continuous at every node by the nodal equations, so T(x) and
@@ -224,7 +224,7 @@ HEAT_XI_A = wp.constant(wp.float64(0.3399810435848563))
 HEAT_XI_B = wp.constant(wp.float64(0.8611363115940526))
 HEAT_W_A = wp.constant(wp.float64(0.32607257743127305))
 HEAT_W_B = wp.constant(wp.float64(0.17392742256872692))
-HEAT_FIXED_POINT = 2  # passes of the remainder's cell mean (each contracts by ~1e-5)
+HEAT_FIXED_POINT = 2  # Gauss passes for the remainder's cell mean (each contracts by ~1e-5)
 
 
 @wp.func
@@ -296,7 +296,11 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     q = wp.float64(0.0)
     if flags[s, F_HEATER] != 0:
         q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
-    sigma = q - (a * th_c - k * k * U_c)
+    # start: the remainder's mean from its nodal values, Simpson with r(U*) = 0 (r quadratic
+    # in U - U*), so that one Gauss pass leaves ~1e-14 of Q
+    r_l = a * (theta_l - th_c) - k * k * (U_l - U_c)
+    r_r = a * (theta_r - th_c) - k * k * (U_r - U_c)
+    sigma = q - (a * th_c - k * k * U_c) - (r_l + r_r) / wp.float64(6.0)
     for _p in range(HEAT_FIXED_POINT):
         m = wp.float64(0.0)
         for g in range(4):
