@@ -15,7 +15,7 @@ import pytest
 from tawarp.design.samplers import nondominated_ranks
 from tawarp.design.search import SearchCrash, search
 from tawarp.design.space import DesignSpace
-from tawarp.design.storage import open_study, study_summary
+from tawarp.design.storage import StudyConflict, open_study, study_summary
 from tawarp.model.core import load_core
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -223,3 +223,70 @@ def test_resume_a_generation_cut_short(tmp_path):
     assert sorted(map(key, trials)) == sorted(map(key, ref.study.get_trials()))
     for a, b in zip(sorted(trials, key=key), sorted(ref.study.get_trials(), key=key)):
         assert a.params == pytest.approx(b.params, rel=1e-12)
+
+
+# -- study integrity (issue 10) ----------------------------------------------------------------
+def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
+    """Two processes start the same worker on one journal at once: the storage orders their
+    claims, the later one is refused while the earlier lives, and the lineage is whole:
+    every (generation, index) once, nothing duplicated."""
+    journal = tmp_path / "race.journal"
+    procs = [_run([journal, "same", 1600, 0]) for _ in range(2)]
+    outs = [p.communicate(timeout=300)[0] for p in procs]
+    codes = sorted(p.returncode for p in procs)
+    assert codes[0] == 0 and codes[1] != 0, outs
+    refused = outs[[p.returncode for p in procs].index(codes[1])]
+    assert "StudyConflict" in refused and "is running in another live process" in refused
+    study = open_study(str(journal), "tawarp-design", ["gradient"])
+    trials = study.get_trials()
+    keys = {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
+    assert len(trials) == 1600 and len(keys) == 1600
+    # the claim ends with its process: the same name may run again (nothing left to do)
+    res = search(_space(), n_trials=1600, batch=8, storage=str(journal), worker="same")
+    assert len(res.study.get_trials()) == 1600 and res.timing["evaluations"] == 0
+
+
+def test_a_study_is_bound_to_its_design_space(tmp_path):
+    journal = str(tmp_path / "s.journal")
+    core = load_core("rvc_foam")
+    search(DesignSpace(core, ["stack.length=0.004:0.1", "Q=1:9"]), n_trials=8, batch=8, storage=journal)
+    with pytest.raises(StudyConflict, match=r"design space .*'high': 9\.0.*not .*'high': 18\.0"):
+        search(DesignSpace(core, ["stack.length=0.004:0.1", "Q=1:18"]), n_trials=8, batch=8, storage=journal)
+    assert len(open_study(journal, "tawarp-design", ["gradient"]).get_trials()) == 8
+
+
+def test_workers_of_different_names_sample_different_points():
+    """Default seed, two worker names: no design point is shared (each has its own stream);
+    one name twice: the same points."""
+    space = _space()
+    a = search(space, n_trials=16, batch=8, worker="a").study.get_trials()
+    b = search(space, n_trials=16, batch=8, worker="b").study.get_trials()
+    a2 = search(space, n_trials=16, batch=8, worker="a").study.get_trials()
+    pa = {tuple(sorted(t.params.items())) for t in a}
+    pb = {tuple(sorted(t.params.items())) for t in b}
+    assert len(pa) == 16 and not pa & pb
+    assert pa == {tuple(sorted(t.params.items())) for t in a2}
+
+
+def test_outputs_are_never_overwritten_by_their_companions(tmp_path):
+    """sweep -o x.json would have replaced the netCDF with its JSON summary, rank -o x.png
+    the ranking with its figure: both are refused, with a message, before any work."""
+    (tmp_path / "out.json").write_text("{}")
+    with pytest.raises(ValueError, match="give a .nc file name"):
+        _cli(["sweep", "rvc_foam", "--var", "Q=1:18:3", "--quiet", "-o", str(tmp_path / "out.json")])
+    with pytest.raises(ValueError, match="give a .json file name"):
+        _cli(["rank", "--samples", "10", "--quiet", "-o", str(tmp_path / "rank.png")])
+    assert (tmp_path / "out.json").read_text() == "{}" and not (tmp_path / "rank.png").exists()
+    assert "COUNT" in _help("sweep")
+
+
+def _help(command):
+    import argparse
+
+    from tawarp.cli.design import add_design_parser, add_rank_parser, add_sweep_parser
+
+    parser = argparse.ArgumentParser(prog="tawarp")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for add in (add_design_parser, add_rank_parser, add_sweep_parser):
+        add(sub)
+    return sub.choices[command].format_help()

@@ -61,3 +61,22 @@ def test_sweep_memory_is_flat(tmp_path):
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
     assert peaks[1] < 1.25 * peaks[0], peaks
+
+
+def test_sweep_file_has_normal_permissions_and_no_debris(tmp_path):
+    """The netCDF gets 0666 less the umask (0644 under 022), not mkstemp's 0600; a failed
+    sweep leaves neither a file nor a temporary one."""
+    import os
+
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "heat_input=1:18"])
+    old = os.umask(0o022)
+    try:
+        sweep(space, tmp_path / "p.nc", mode="sobol", n_samples=16)
+    finally:
+        os.umask(old)
+    assert (tmp_path / "p.nc").stat().st_mode & 0o777 == 0o644
+    with pytest.raises(ValueError, match="n_samples"):
+        sweep(space, tmp_path / "q.nc", mode="sobol", n_samples=0)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.nc"]

@@ -15,7 +15,8 @@ from .common import _common, _say, parse_list
 
 VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
             "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
-            "material=NAME,NAME,... (catalogue materials in the stack)")
+            "material=NAME,NAME,... (catalogue materials in the stack), NAME=VALUE (fixed); sweeps: "
+            "NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,... (a grid axis of COUNT points)")
 
 
 def _floats(text: str) -> np.ndarray:
@@ -160,6 +161,10 @@ def cmd_rank(args) -> int:
     from ..design.plots import plot_ranking
     from ..design.rank import rank_materials
 
+    out = Path(args.output)
+    if out.suffix.lower() != ".json":
+        raise ValueError(f"-o {out}: the ranking is written as JSON and its figure beside it as .png; "
+                         f"give a .json file name")
     cat = load_catalogue(args.catalogue or [])
     mats = [m.strip() for m in args.materials.split(",")] if args.materials else None
     if mats:
@@ -168,7 +173,6 @@ def cmd_rank(args) -> int:
             raise KeyError(f"materials {missing} not in the catalogue ({', '.join(cat)})")
     res = rank_materials(mats, args.Q, core=args.core, segment=args.segment, n_samples=args.samples, seed=args.seed,
                          T_limit=args.T_limit, catalogue=cat, settings=_settings(args))
-    out = Path(args.output)
     d = res.to_dict()
     d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
     write_json(out, d)
@@ -203,6 +207,9 @@ def cmd_sweep(args) -> int:
     from ..io import write_json
     from ..design.sweep import sweep
 
+    if Path(args.output).suffix.lower() != ".nc":
+        raise ValueError(f"-o {args.output}: the sweep is written as netCDF and its JSON summary beside it; "
+                         f"give a .nc file name")
     space = _space(args, grid=args.samples is None)
     mode = "grid" if args.samples is None else "sobol"
     info = sweep(space, args.output, mode=mode, n_samples=args.samples, chunk=args.chunk, seed=args.seed,

@@ -78,7 +78,8 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     """Run (or resume) a batched design search; see the module docstring.
 
     ``n_trials``: trials of this worker's lineage in the study when done (rounded up to
-    whole batches). ``T_limit`` [K]: constraint ``T_max <= T_limit`` (None: none).
+    whole batches). ``seed``: with ``worker``, the seed of the worker's sampler stream
+    (:func:`worker_seed`: workers of different names never share a stream). ``T_limit`` [K]: constraint ``T_max <= T_limit`` (None: none).
     ``stale_after`` [s]: a same-name worker on another host counts as gone once its
     heartbeat is this old. ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
@@ -94,7 +95,7 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
         raise ValueError("the design space needs at least one continuous variable")
     t_wall = time.perf_counter()
     st = make_storage(storage)
-    study = open_study(st, study_name, objectives)
+    study = open_study(st, study_name, objectives, space.binding())
     claim = WorkerClaim(st, study_name, worker, stale_after)
     try:
         run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings)
@@ -102,9 +103,9 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
         bar = progress_bar(n_target, f"design ({worker})", progress, unit="trial")
         try:
             if engine == "optuna":
-                _search_optuna(run, n_target, batch, seed, bar, claim, _stop_after, _crash_after)
+                _search_optuna(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after, _crash_after)
             else:
-                _search_batched(run, n_target, batch, seed, bar, claim, _stop_after, _crash_after)
+                _search_batched(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after, _crash_after)
         finally:
             bar.close()
     finally:
@@ -115,6 +116,14 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     for k in ("sampler", "evaluation", "storage"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
     return SearchResult(study, objectives, best_designs(study, objectives, T_limit), timing, run.resumed, worker)
+
+
+def worker_seed(seed: int, worker: str) -> int:
+    """Seed of ``worker``'s sampler stream: ``seed`` and the worker name mixed by NumPy's
+    SeedSequence, so that workers of different names sample different points whatever
+    ``seed``, and a rerun of one worker samples the same."""
+    name = np.frombuffer(worker.encode("utf-8"), dtype=np.uint8).astype(np.uint32)
+    return int(np.random.SeedSequence([int(seed), *name.tolist()]).generate_state(1)[0] % (2**31 - 2))
 
 
 class _Run:

@@ -241,6 +241,12 @@ class DesignSpace:
                 out[v.name] = optuna.distributions.FloatDistribution(v.low, v.high, log=v.log)
         return out
 
+    def binding(self) -> dict:
+        """What a study is bound to: the core, the designed segment, the fixed heat input
+        [W] and the variables (JSON types, so that a stored copy compares equal)."""
+        return {"core": str(self.core.source), "segment": self.segment, "heat_input_W": self.heat_input,
+                "variables": self.describe()}
+
     def describe(self) -> list[dict]:
         return [({"name": v.name, "choices": list(v.choices)} if v.categorical else
                  {"name": v.name, "low": v.low, "high": v.high, "log": v.log}) for v in self.variables]

@@ -15,14 +15,13 @@ the wall), ``T_hot`` [K] = T(x3)); ``outputs`` adds or selects any registered ob
 The work is done in chunks of ``chunk`` points: one heat-solve and
 one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab) before the
 next, so memory stays flat whatever the size. The file is written to a temporary name
-beside the target and renamed at the end (nothing half-written on failure).
+beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
+half-written on failure or interruption, normal permissions).
 """
 
 from __future__ import annotations
 
 import gc
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
 from .samplers import sobol_unit
 from .space import DesignSpace
+from ..io import atomic_path
 from ..model.forward import ForwardSettings
 
 
@@ -115,14 +115,12 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    os.close(fd)
     t0 = time.perf_counter()
     t_eval = t_write = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     try:
-        with h5netcdf.File(tmp, "w") as f:
+        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f:
             f.attrs["title"] = "tawarp sweep"
             f.attrs["core"] = str(space.core.source)
             f.attrs["mode"] = mode
@@ -199,11 +197,8 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 del values, table, res
                 if nchunks % 16 == 0:
                     gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
-        os.replace(tmp, path)
     finally:
         bar.close()
-        if os.path.exists(tmp):
-            os.remove(tmp)
     wall = time.perf_counter() - t0
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
 
