@@ -211,8 +211,8 @@ def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
 # with k^2 = a / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in U - U*. The
 # cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear model, in U)
 # with sigma = q - mean_cell(a theta(U) - k^2 U): the remainder enters through its cell
-# mean (4-point Gauss on the cell's own profile, two fixed-point passes), so the zero-mean
-# rest of r is the only local error (fourth order at the nodes) and the heat the model
+# mean (4-point Gauss on the cell's own profile; sigma appears on both sides, solved
+# linearised), so the zero-mean rest of r is the only local error (fourth order at the nodes) and the heat the model
 # leaks, int a theta(U(x)) dx, equals Q up to the Gauss error of the remainder (~1e-13).
 # U' = lam theta' is the flux, continuous at every node by the nodal equations, so T(x) and
 # dT/dx = U'/lam(T) are continuous (no jumps at the nodes for the acoustic Gauss points).
@@ -224,32 +224,57 @@ HEAT_XI_A = wp.constant(wp.float64(0.3399810435848563))
 HEAT_XI_B = wp.constant(wp.float64(0.8611363115940526))
 HEAT_W_A = wp.constant(wp.float64(0.32607257743127305))
 HEAT_W_B = wp.constant(wp.float64(0.17392742256872692))
-HEAT_FIXED_POINT = 2  # Gauss passes for the remainder's cell mean (each contracts by ~1e-5)
+
+
+@wp.struct
+class ConductivityLaw:
+    """lam(T) = lam_m t^b + c t^3 + wall, t = T/T_cold, of one segment (see :func:`kirchhoff`)."""
+
+    T_cold: wp.float64
+    lam_m: wp.float64
+    b: wp.float64
+    c: wp.float64
+    wall: wp.float64
 
 
 @wp.func
-def kirchhoff(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-              gas: wp.array(dtype=wp.float64), i: int, s: int, theta: wp.float64):
-    """(U [W/m], lam [W/(m K)]) at temperature excess theta [K] of segment s: the Kirchhoff
-    variable U = int_0^theta lam(T_cold + t) dt and the conductivity
+def conductivity_law(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                     gas: wp.array(dtype=wp.float64), i: int, s: int):
+    """The conductivity law of segment s of set i (evaluated once per cell: the gas
+    conductivity at T_cold costs a pow)."""
+    law = ConductivityLaw()
+    law.T_cold = params[T_COLD, i]
+    law.lam_m = material_lambda(params, flags, gas, i, s)
+    law.b = seg_value(params, i, s, CONDUCTIVITY_EXPONENT)
+    law.c = seg_value(params, i, s, RADIATIVE_CONDUCTIVITY)
+    law.wall = seg_value(params, i, s, WALL_CONDUCTANCE)
+    return law
+
+
+@wp.func
+def kirchhoff(law: ConductivityLaw, theta: wp.float64):
+    """(U [W/m], lam [W/(m K)]) at temperature excess theta [K]: the Kirchhoff variable
+    U = int_0^theta lam(T_cold + t) dt and the conductivity
 
         lam(T) = lam_material t^b + radiative_conductivity t^3 + wall_conductance,  t = T/T_cold."""
-    Tc = params[T_COLD, i]
+    Tc = law.T_cold
     t = (Tc + theta) / Tc
-    lam_m = material_lambda(params, flags, gas, i, s)
-    b = seg_value(params, i, s, CONDUCTIVITY_EXPONENT)
-    c = seg_value(params, i, s, RADIATIVE_CONDUCTIVITY)
-    wall = seg_value(params, i, s, WALL_CONDUCTANCE)
-    lt = wp.log(t)
-    tb = wp.exp(b * lt)
-    # int_1^t u^b du = (t^(b+1) - 1)/(b+1), and its limit ln t at b = -1
-    p = b + wp.float64(1.0)
-    y = p * lt
-    e = wp.float64(0.0)
-    if wp.abs(y) < wp.float64(1.0e-3):
-        e = lt * (wp.float64(1.0) + y / wp.float64(2.0) * (wp.float64(1.0) + y / wp.float64(3.0) * (wp.float64(1.0) + y / wp.float64(4.0))))
-    else:
-        e = (tb * t - wp.float64(1.0)) / p
+    lam_m = law.lam_m
+    b = law.b
+    c = law.c
+    wall = law.wall
+    # e = int_1^t u^b du = (t^(b+1) - 1)/(b+1), its limit ln t at b = -1; t - 1 at b = 0
+    tb = wp.float64(1.0)
+    e = theta / Tc
+    if b != wp.float64(0.0):
+        lt = wp.log(t)
+        tb = wp.exp(b * lt)
+        p = b + wp.float64(1.0)
+        y = p * lt
+        if wp.abs(y) < wp.float64(1.0e-3):
+            e = lt * (wp.float64(1.0) + y / wp.float64(2.0) * (wp.float64(1.0) + y / wp.float64(3.0) * (wp.float64(1.0) + y / wp.float64(4.0))))
+        else:
+            e = (tb * t - wp.float64(1.0)) / p
     # (t^4 - 1)/4 = (t - 1)(t + 1)(t^2 + 1)/4 with t - 1 = theta/T_cold: no cancellation
     U = lam_m * Tc * e + c * theta * (t + wp.float64(1.0)) * (t * t + wp.float64(1.0)) / wp.float64(4.0) + wall * theta
     lam = lam_m * tb + c * t * t * t + wall
@@ -257,35 +282,37 @@ def kirchhoff(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.i
 
 
 @wp.func
-def kirchhoff_inverse(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                      gas: wp.array(dtype=wp.float64), i: int, s: int, U: wp.float64, guess: wp.float64):
+def kirchhoff_inverse(law: ConductivityLaw, U: wp.float64, guess: wp.float64):
     """(theta [K], lam [W/(m K)]) with kirchhoff(theta) = U [W/m]: Newton from ``guess``
-    (lam > 0, so U is increasing), to the last bits of T."""
+    (lam > 0, so U is increasing), to the last bits of T. Newton's next error is
+    (lam'/2 lam) step^2 with |lam'/lam| ~ |b|/T or 3/T, so it stops after a step below
+    1e-8 T (error then <~ 1e-15 |b| T); lam is that of the last iterate but one."""
     th = guess
     lam = wp.float64(1.0)
     done = int(0)
-    for _it in range(20):
+    for _it in range(30):
         if done == 0:
-            Ug, lam_g = kirchhoff(params, flags, gas, i, s, th)
+            Ug, lam_g = kirchhoff(law, th)
             lam = lam_g
             step = (Ug - U) / lam_g
             th = th - step
-            if wp.abs(step) <= wp.float64(1.0e-15) * (params[T_COLD, i] + wp.abs(th)):
+            if wp.abs(step) <= wp.float64(1.0e-8) * (law.T_cold + wp.abs(th)):
                 done = 1
     return th, lam
 
 
 @wp.func
 def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), i: int, s: int, theta_l: wp.float64, theta_r: wp.float64,
-                   d: wp.float64):
-    """Kirchhoff form of a heat cell of length d [m] of segment s with nodal excesses
-    theta_l, theta_r [K] (see the comment block above): returns (U_l, U_r [W/m], lam_l,
+                   gas: wp.array(dtype=wp.float64), i: int, s: int, law: ConductivityLaw, theta_l: wp.float64,
+                   theta_r: wp.float64, d: wp.float64):
+    """Kirchhoff form of a heat cell of length d [m] of segment s (conductivity ``law``,
+    :func:`conductivity_law`) with nodal excesses theta_l, theta_r [K] (see the comment
+    block above): returns (U_l, U_r [W/m], lam_l,
     lam_r [W/(m K)], k [1/m], sigma [W/m^3]), the cell solving U'' - k^2 U = -sigma."""
-    U_l, lam_l = kirchhoff(params, flags, gas, i, s, theta_l)
-    U_r, lam_r = kirchhoff(params, flags, gas, i, s, theta_r)
+    U_l, lam_l = kirchhoff(law, theta_l)
+    U_r, lam_r = kirchhoff(law, theta_r)
     th_c = wp.float64(0.5) * (theta_l + theta_r)
-    U_c, lam_c = kirchhoff(params, flags, gas, i, s, th_c)
+    U_c, lam_c = kirchhoff(law, th_c)
     R = params[RADIUS, i]
     h = seg_value(params, i, s, H)
     hc = seg_value(params, i, s, H_CONVECTION)
@@ -297,25 +324,32 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     if flags[s, F_HEATER] != 0:
         q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
     # start: the remainder's mean from its nodal values, Simpson with r(U*) = 0 (r quadratic
-    # in U - U*), so that one Gauss pass leaves ~1e-14 of Q
+    # in U - U*)
     r_l = a * (theta_l - th_c) - k * k * (U_l - U_c)
     r_r = a * (theta_r - th_c) - k * k * (U_r - U_c)
-    sigma = q - (a * th_c - k * k * U_c) - (r_l + r_r) / wp.float64(6.0)
-    for _p in range(HEAT_FIXED_POINT):
-        m = wp.float64(0.0)
-        for g in range(4):
-            xg = HEAT_XI_A
-            wg = HEAT_W_A
-            if g >= 2:
-                xg = HEAT_XI_B
-                wg = HEAT_W_B
-            if g % 2 == 0:
-                xg = -xg
-            xg = wp.float64(0.5) * (wp.float64(1.0) + xg)
-            Ug, dUg = cell_profile(U_l, U_r, k, sigma, d, xg * d)
-            thg, lam_g = kirchhoff_inverse(params, flags, gas, i, s, Ug, th_c + (Ug - U_c) / lam_c)
-            m = m + wg * (a * thg - k * k * Ug)
-        sigma = q - m
+    sigma0 = q - (a * th_c - k * k * U_c) - (r_l + r_r) / wp.float64(6.0)
+    # sigma = q - m(sigma), m the 4-point Gauss mean of a theta(U) - k^2 U on the cell's
+    # profile U = U_hom + sigma w (w: U'' - k^2 U = -1, zero ends). One set of inversions at
+    # sigma0, then m(sigma) = m0 + (sigma - sigma0) D with D = mean (a/lam - k^2) w
+    # (theta' = U'/lam): sigma = (q - m0 + sigma0 D) / (1 + D); what it leaves is second
+    # order in sigma - sigma0 (~1e-5 relative) times the curvature of theta(U) (~1e-3 / K).
+    m0 = wp.float64(0.0)
+    D = wp.float64(0.0)
+    for g in range(4):
+        xg = HEAT_XI_A
+        wg = HEAT_W_A
+        if g >= 2:
+            xg = HEAT_XI_B
+            wg = HEAT_W_B
+        if g % 2 == 0:
+            xg = -xg
+        xg = wp.float64(0.5) * (wp.float64(1.0) + xg) * d
+        Ug, dUg = cell_profile(U_l, U_r, k, sigma0, d, xg)
+        w, dw = cell_profile(wp.float64(0.0), wp.float64(0.0), k, wp.float64(1.0), d, xg)
+        thg, lam_g = kirchhoff_inverse(law, Ug, th_c + (Ug - U_c) / lam_c)
+        m0 = m0 + wg * (a * thg - k * k * Ug)
+        D = D + wg * (a / lam_g - k * k) * w
+    sigma = (q - m0 + sigma0 * D) / (wp.float64(1.0) + D)
     return U_l, U_r, lam_l, lam_r, k, sigma
 
 
@@ -326,13 +360,14 @@ def nonlinear_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dt
     """(theta [K], dtheta/dx [K/m]) at xi [m] in a heat cell [0, d] of segment s with a
     temperature-dependent conductivity: the cell's exact U(xi), U'(xi), then theta(U) and
     U'/lam."""
-    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, theta_l, theta_r, d)
+    law = conductivity_law(params, flags, gas, i, s)
+    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, law, theta_l, theta_r, d)
     U, dU = cell_profile(U_l, U_r, k, sigma, d, xi)
     # first guess: the secant of theta(U) through the cell's nodes
     guess = theta_l
     if U_r != U_l:
         guess = theta_l + (theta_r - theta_l) * (U - U_l) / (U_r - U_l)
-    th, lam = kirchhoff_inverse(params, flags, gas, i, s, U, guess)
+    th, lam = kirchhoff_inverse(law, U, guess)
     return th, dU / lam
 
 
@@ -373,7 +408,9 @@ def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d
                     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
                     tl = scratch[i, n_nodes + r]
                     tr = scratch[i, n_nodes + r + 1]
-                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, tl, tr, d)
+                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s,
+                                                                      conductivity_law(params, flags, gas, i, s),
+                                                                      tl, tr, d)
                     a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
                     c_l = U_l - lam_l * tl
                     c_r = U_r - lam_r * tr
