@@ -227,23 +227,38 @@ def test_resume_a_generation_cut_short(tmp_path):
 
 # -- study integrity (issue 10) ----------------------------------------------------------------
 def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
-    """Two processes start the same worker on one journal at once: the storage orders their
-    claims, the later one is refused while the earlier lives, and the lineage is whole:
-    every (generation, index) once, nothing duplicated."""
+    """Two processes start the same worker on one journal at once (long runs): the storage
+    orders their claims and the later one is refused while the earlier lives. Once the
+    winner is interrupted (Ctrl-C), its claim ends: the name runs again and resumes the
+    lineage, every (generation, index) stored once. (A claim also dies with its process:
+    test_resume_after_a_killed_run.)"""
+    import signal
+    import time
+
     journal = tmp_path / "race.journal"
-    procs = [_run([journal, "same", 1600, 0]) for _ in range(2)]
-    outs = [p.communicate(timeout=300)[0] for p in procs]
-    codes = sorted(p.returncode for p in procs)
-    assert codes[0] == 0 and codes[1] != 0, outs
-    refused = outs[[p.returncode for p in procs].index(codes[1])]
-    assert "StudyConflict" in refused and "is running in another live process" in refused
-    study = open_study(str(journal), "tawarp-design", ["gradient"])
-    trials = study.get_trials()
-    keys = {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
-    assert len(trials) == 1600 and len(keys) == 1600
-    # the claim ends with its process: the same name may run again (nothing left to do)
-    res = search(_space(), n_trials=1600, batch=8, storage=str(journal), worker="same")
-    assert len(res.study.get_trials()) == 1600 and res.timing["evaluations"] == 0
+    procs = [_run([journal, "same", 10**6, 0]) for _ in range(2)]
+    t0 = time.monotonic()
+    while all(p.poll() is None for p in procs) and time.monotonic() - t0 < 120:
+        time.sleep(0.05)
+    done = [p for p in procs if p.poll() is not None]
+    assert len(done) == 1, "one of the two must be refused while the other runs"
+    winner = next(p for p in procs if p is not done[0])
+    time.sleep(0.5)  # let it store some generations
+    winner.send_signal(signal.SIGINT)
+    winner.communicate(timeout=60)
+    out = done[0].communicate(timeout=60)[0]
+    assert done[0].returncode != 0 and "StudyConflict" in out and "is running in another live process" in out, out
+
+    def keys():
+        trials = open_study(str(journal), "tawarp-design", ["gradient"]).get_trials()
+        return trials, {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
+    trials, k = keys()
+    assert len(trials) == len(k)
+    n = (len(trials) // 8 + 2) * 8
+    res = search(_space(), n_trials=n, batch=8, storage=str(journal), worker="same")
+    trials, k = keys()
+    assert len(trials) == len(k) == n and {t.state.name for t in trials} == {"COMPLETE"}
+    assert res.study.directions[0].name == "MAXIMIZE"
 
 
 def test_a_study_is_bound_to_its_design_space(tmp_path):
