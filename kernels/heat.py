@@ -331,8 +331,10 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     # sigma = q - m(sigma), m the 4-point Gauss mean of a theta(U) - k^2 U on the cell's
     # profile U = U_hom + sigma w (w: U'' - k^2 U = -1, zero ends). One set of inversions at
     # sigma0, then m(sigma) = m0 + (sigma - sigma0) D with D = mean (a/lam - k^2) w
-    # (theta' = U'/lam): sigma = (q - m0 + sigma0 D) / (1 + D); what it leaves is second
+    # (dtheta/dU = 1/lam): sigma = (q - m0 + sigma0 D) / (1 + D); what it leaves is second
     # order in sigma - sigma0 (~1e-5 relative) times the curvature of theta(U) (~1e-3 / K).
+    # D is itself a small correction (a/lam - k^2 vanishes at theta*), so w is taken at
+    # k -> 0, x (d - x)/2 (relative error (k d)^2/12 in D).
     m0 = wp.float64(0.0)
     D = wp.float64(0.0)
     for g in range(4):
@@ -345,7 +347,7 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
             xg = -xg
         xg = wp.float64(0.5) * (wp.float64(1.0) + xg) * d
         Ug, dUg = cell_profile(U_l, U_r, k, sigma0, d, xg)
-        w, dw = cell_profile(wp.float64(0.0), wp.float64(0.0), k, wp.float64(1.0), d, xg)
+        w = wp.float64(0.5) * xg * (d - xg)
         thg, lam_g = kirchhoff_inverse(law, Ug, th_c + (Ug - U_c) / lam_c)
         m0 = m0 + wg * (a * thg - k * k * Ug)
         D = D + wg * (a / lam_g - k * k) * w
