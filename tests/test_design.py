@@ -192,6 +192,12 @@ def test_cli_design_rank_sweep(tmp_path):
                  "gradient,acoustic_loss", "--freqs", "100,300", "--trials", "32", "--batch", "16", "--quiet",
                  "-o", str(tmp_path / "mo")]) == 0
     assert (tmp_path / "mo" / "pareto.png").exists()
+    # the same output folder with other ranges: refused, design.json untouched
+    with pytest.raises(StudyConflict, match="design space"):
+        _cli(["design", "rvc_foam", "--var", "stack.length=0.005:0.2", "--var", "Q=1:18", "--objectives",
+              "gradient,acoustic_loss", "--freqs", "100,300", "--trials", "16",
+              "--batch", "16", "--device", "cpu", "--quiet", "--no-plots", "-o", str(tmp_path / "mo")])
+    assert json.loads((tmp_path / "mo" / "design.json").read_text())["summary"]["trials"] == 32
     assert _cli(["rank", "--Q", "9,18", "--samples", "100", "--quiet", "-o", str(tmp_path / "rank.json")]) == 0
     rank = json.loads((tmp_path / "rank.json").read_text())
     assert {r["material"] for r in rank["ranking"]} == set(PAPER) and (tmp_path / "rank.png").exists()
