@@ -21,7 +21,8 @@ fitted cell of the linear model written in U, with the sink linearised about the
 mid temperature and its remainder's cell mean added to the source, so the nodal error
 is fourth order, T(x) and dT/dx are continuous at the nodes, and the heat leaked equals
 Q to ~1e-13; :func:`solve_heat_nonlinear` iterates to the fixed point. ``h_convection``
-is taken per cell at the cell's mid temperature (second order). With every effect off
+enters the same way (the sink (2/R)(h + h_c theta^(1/4)) theta, :func:`wall_sink`, is
+expanded like the conductivity's). With every effect off
 nothing changes (one linear solve, the same code as before).
 :func:`cell_heat_coeffs` / :func:`cell_coeffs_at` give the older cell-constant
 approximation (lam at the cell's mean temperature) that the design metrics use.
@@ -203,20 +204,20 @@ def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
 
 # --- temperature-dependent conductivity: Kirchhoff transform on fitted cells -------------
 #
-# With lam = lam(theta) the heat equation (lam theta')' = a theta - q (a = 2 h/R) becomes,
-# for the Kirchhoff variable U = int_0^theta lam(T_cold + t) dt [W/m],
-#     U'' = a theta(U) - q,
+# With lam = lam(theta) the heat equation (lam theta')' = sink(theta) - q (sink = a theta,
+# a = 2 h(theta)/R, :func:`wall_sink`) becomes, for the Kirchhoff variable
+# U = int_0^theta lam(T_cold + t) dt [W/m],
+#     U'' = sink(theta(U)) - q,
 # linear in its conduction term. In each heat cell the sink is expanded about the cell's
-# mid temperature theta* = (theta_l + theta_r)/2: a theta(U) = a theta* + k^2 (U - U*) + r(U)
-# with k^2 = a / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in U - U*. The
-# cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear model, in U)
-# with sigma = q - mean_cell(a theta(U) - k^2 U): the remainder enters through its cell
+# mid temperature theta* = (theta_l + theta_r)/2: sink(theta(U)) = sink* + k^2 (U - U*) + r(U)
+# with k^2 = sink'(theta*) / lam(theta*) (d theta/dU = 1/lam) and a remainder r quadratic in
+# U - U*. The cell then solves U'' - k^2 U = -sigma exactly (the fitted cell of the linear
+# model, in U) with sigma = q - mean_cell(sink(theta(U)) - k^2 U): the remainder enters through its cell
 # mean (4-point Gauss on the cell's own profile; sigma appears on both sides, solved
 # linearised), so the zero-mean rest of r is the only local error (fourth order at the nodes) and the heat the model
-# leaks, int a theta(U(x)) dx, equals Q up to the Gauss error of the remainder (~1e-13).
+# leaks, int sink(theta(U(x))) dx, equals Q up to the Gauss error of the remainder (~1e-13).
 # U' = lam theta' is the flux, continuous at every node by the nodal equations, so T(x) and
 # dT/dx = U'/lam(T) are continuous (no jumps at the nodes for the acoustic Gauss points).
-# h_convection keeps a per-cell h at theta* (h + h_c theta*^(1/4)).
 
 # 4-point Gauss-Legendre on [0, 1]: points 1/2 -+ XI_A/2, 1/2 -+ XI_B/2 with weights W_A, W_B
 # (3 points leave ~1e-9 of Q: the remainder holds exp(+-2 k x))
@@ -302,6 +303,18 @@ def kirchhoff_inverse(law: ConductivityLaw, U: wp.float64, guess: wp.float64):
 
 
 @wp.func
+def wall_sink(h: wp.float64, hc: wp.float64, R: wp.float64, theta: wp.float64):
+    """Heat leaked to the wall per unit volume (2/R) (h + h_c theta^(1/4)) theta [W/m^3] at
+    temperature excess theta [K] (theta^(1/4) of max(theta, 0)), and its derivative in
+    theta [W/(m^3 K)]."""
+    a = wp.float64(2.0) * h / R
+    if hc == wp.float64(0.0) or theta <= wp.float64(0.0):
+        return a * theta, a
+    f = hc * wp.sqrt(wp.sqrt(theta)) * wp.float64(2.0) / R
+    return (a + f) * theta, a + wp.float64(1.25) * f
+
+
+@wp.func
 def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                    gas: wp.array(dtype=wp.float64), i: int, s: int, law: ConductivityLaw, theta_l: wp.float64,
                    theta_r: wp.float64, d: wp.float64):
@@ -316,24 +329,24 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     R = params[RADIUS, i]
     h = seg_value(params, i, s, H)
     hc = seg_value(params, i, s, H_CONVECTION)
-    if hc != wp.float64(0.0):
-        h = h + hc * wp.sqrt(wp.sqrt(wp.max(th_c, wp.float64(0.0))))
-    a = wp.float64(2.0) * h / R
+    sink_c, a = wall_sink(h, hc, R, th_c)
     k = wp.sqrt(a / lam_c)
     q = wp.float64(0.0)
     if flags[s, F_HEATER] != 0:
         q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
     # start: the remainder's mean from its nodal values, Simpson with r(U*) = 0 (r quadratic
     # in U - U*)
-    r_l = a * (theta_l - th_c) - k * k * (U_l - U_c)
-    r_r = a * (theta_r - th_c) - k * k * (U_r - U_c)
-    sigma0 = q - (a * th_c - k * k * U_c) - (r_l + r_r) / wp.float64(6.0)
-    # sigma = q - m(sigma), m the 4-point Gauss mean of a theta(U) - k^2 U on the cell's
+    sink_l, a_l = wall_sink(h, hc, R, theta_l)
+    sink_r, a_r = wall_sink(h, hc, R, theta_r)
+    r_l = sink_l - sink_c - k * k * (U_l - U_c)
+    r_r = sink_r - sink_c - k * k * (U_r - U_c)
+    sigma0 = q - (sink_c - k * k * U_c) - (r_l + r_r) / wp.float64(6.0)
+    # sigma = q - m(sigma), m the 4-point Gauss mean of sink(theta(U)) - k^2 U on the cell's
     # profile U = U_hom + sigma w (w: U'' - k^2 U = -1, zero ends). One set of inversions at
-    # sigma0, then m(sigma) = m0 + (sigma - sigma0) D with D = mean (a/lam - k^2) w
+    # sigma0, then m(sigma) = m0 + (sigma - sigma0) D with D = mean (sink'/lam - k^2) w
     # (dtheta/dU = 1/lam): sigma = (q - m0 + sigma0 D) / (1 + D); what it leaves is second
     # order in sigma - sigma0 (~1e-5 relative) times the curvature of theta(U) (~1e-3 / K).
-    # D is itself a small correction (a/lam - k^2 vanishes at theta*), so w is taken at
+    # D is itself a small correction (sink'/lam - k^2 vanishes at theta*), so w is taken at
     # k -> 0, x (d - x)/2 (relative error (k d)^2/12 in D).
     m0 = wp.float64(0.0)
     D = wp.float64(0.0)
@@ -349,8 +362,9 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
         Ug, dUg = cell_profile(U_l, U_r, k, sigma0, d, xg)
         w = wp.float64(0.5) * xg * (d - xg)
         thg, lam_g = kirchhoff_inverse(law, Ug, th_c + (Ug - U_c) / lam_c)
-        m0 = m0 + wg * (a * thg - k * k * Ug)
-        D = D + wg * (a / lam_g - k * k) * w
+        sink_g, a_g = wall_sink(h, hc, R, thg)
+        m0 = m0 + wg * (sink_g - k * k * Ug)
+        D = D + wg * (a_g / lam_g - k * k) * w
     sigma = (q - m0 + sigma0 * D) / (wp.float64(1.0) + D)
     return U_l, U_r, lam_l, lam_r, k, sigma
 

@@ -161,42 +161,34 @@ def test_wall_conductance_equals_a_raised_solid_conductivity():
     np.testing.assert_allclose(a.T, b.T, rtol=1e-10, atol=1e-12 * np.abs(b.T).max())
 
 
-def _cell_h(core, name, value, theta_nodes, cells):
-    """Per-heat-cell exchange coefficient h_eff of each thermal segment (as the kernel uses it)."""
-    out = []
-    for k, i in enumerate(core.thermal_indices):
-        s = core.segments[i]
-        mean = 0.5 * (theta_nodes[k * cells:(k + 1) * cells] + theta_nodes[k * cells + 1:(k + 1) * cells + 1])
-        h = np.full(cells, s.h)
-        if name == f"{s.name}.h_convection":
-            h = h + value * np.maximum(mean, 0) ** 0.25
-        out.append(h)
-    return out
+def _local_h(core, name, value, seg, theta):
+    """Exchange coefficient h(theta) of segment ``seg`` at temperature excess theta (as the
+    kernels' Kirchhoff cells take it, point by point)."""
+    s = core.segments[seg]
+    h = np.full_like(theta, s.h)
+    if name == f"{s.name}.h_convection":
+        h = h + value * np.maximum(theta, 0) ** 0.25
+    return h
 
 
 @pytest.mark.parametrize("name, value", NONLINEAR)
 def test_nonlinear_heat_energy_balance(name, value):
-    # All of Q leaves through the walls: Q = sum over heat cells of int (2 h_eff / R) theta S dx,
+    # All of Q leaves through the walls: Q = sum over heat cells of int (2 h(theta) / R) theta S dx,
     # integrated on the kernel's own profile (Gauss-Legendre per cell), to the Picard tolerance.
     core = load_core("ceramic")
     Q, cells = 60.0, 32
     res = transfer_matrices(core, [100.0], Q, params={name: value}, device="cpu", cells=4)
     assert res.theta.shape[1] == 3 * cells + 1  # the heat grid was raised for the nonlinear solve
-    hs = _cell_h(core, name, value, res.theta[0], cells)
     nodes, weights = np.polynomial.legendre.leggauss(12)
     pos = core.positions()
-    xs, ws, hw = [], [], []
-    for k, i in enumerate(core.thermal_indices):
+    lost = 0.0
+    for i in core.thermal_indices:
         edges = np.linspace(pos[i], pos[i + 1], cells + 1)
-        for c in range(cells):
-            lo, hi = edges[c], edges[c + 1]
-            xs.append(0.5 * (hi - lo) * nodes + 0.5 * (hi + lo))
-            ws.append(0.5 * (hi - lo) * weights)
-            hw.append(np.full(len(nodes), hs[k][c]))
-    x = np.concatenate(xs)
-    # evaluate inside cells only (a node is shared by two cells)
-    theta = steady_temperature(core, x, Q, params={name: value}, device="cpu")[0][0] - core.gas.T_cold
-    lost = np.sum(np.concatenate(ws) * theta * 2 * np.concatenate(hw) / core.radius * core.area)
+        x = (0.5 * (edges[1:] - edges[:-1])[:, None] * nodes + 0.5 * (edges[1:] + edges[:-1])[:, None]).ravel()
+        w = (0.5 * (edges[1:] - edges[:-1])[:, None] * weights).ravel()
+        # evaluate inside cells only (a node is shared by two cells)
+        theta = steady_temperature(core, x, Q, params={name: value}, device="cpu")[0][0] - core.gas.T_cold
+        lost += np.sum(w * theta * 2 * _local_h(core, name, value, i, theta) / core.radius * core.area)
     assert abs(lost - Q) < 1e-9 * Q
     base = transfer_matrices(core, [100.0], Q, device="cpu", cells=4)
     assert abs(res.theta.max() - base.theta.max()) > 1.0  # the effect changes the profile

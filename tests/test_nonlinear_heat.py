@@ -89,12 +89,12 @@ def test_tmatrix_matches_reference_and_converges(field, value):
     assert effect > 100 * err[0]
 
 
-@pytest.mark.parametrize("field, value", EFFECTS + [("conductivity_exponent", -1.0)])
-def test_energy_balance(field, value):
-    # (d) Q = heat leaked to the walls int (2 h/R) theta S dx (12-point Gauss per heat cell
-    # on the kernel's profile) + heat conducted out at the ends (0: theta' = 0 there).
+@pytest.mark.parametrize("name, value", [(f"stack.{f}", v) for f, v in EFFECTS]
+                         + [("stack.conductivity_exponent", -1.0), ("tbt.h_convection", 3.0)])
+def test_energy_balance(name, value):
+    # (d) Q = heat leaked to the walls int (2 h(theta)/R) theta S dx (12-point Gauss per heat
+    # cell on the kernel's profile) + heat conducted out at the ends (0: theta' = 0 there).
     cells = ForwardSettings().nonlinear_heat_cells
-    name = f"stack.{field}"
     g, w = np.polynomial.legendre.leggauss(12)
     pos = CORE.positions()
     lost = 0.0
@@ -103,7 +103,9 @@ def test_energy_balance(field, value):
         x = (0.5 * (e[1:] - e[:-1])[:, None] * g + 0.5 * (e[1:] + e[:-1])[:, None]).ravel()
         wx = (0.5 * (e[1:] - e[:-1])[:, None] * w).ravel()
         theta = steady_temperature(CORE, x, Q, params={name: value}, device="cpu")[0][0] - CORE.gas.T_cold
-        lost += np.sum(wx * theta) * 2 * CORE.segments[i].h / CORE.radius * CORE.area
+        h = CORE.segments[i].h + (value * np.maximum(theta, 0) ** 0.25 if name == f"{CORE.segments[i].name}.h_convection"
+                                  else 0.0)
+        lost += np.sum(wx * theta * 2 * h) / CORE.radius * CORE.area
     ends = steady_temperature(CORE, [pos[1], pos[4]], Q, params={name: value}, device="cpu")[1][0]
     assert np.abs(ends).max() < 1e-9 * Q
     assert abs(lost - Q) < 1e-9 * Q
