@@ -60,18 +60,19 @@ def gas_transport(gas: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64)
     k[i] = conductivity(gas, T[i])
 
 #: kinds of parameter transform: natural value v from the scaled variable z and the scale s
-KIND_LINEAR = wp.constant(0)  # v = s z
+KIND_LINEAR = wp.constant(0)  # v = o + s z
 KIND_LOG = wp.constant(1)     # v = s exp(z)
 
 
 @wp.kernel(enable_backward=False)
 def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float64),
                ids: wp.array(dtype=wp.int32), scale: wp.array2d(dtype=wp.float64),
-               kind: wp.array(dtype=wp.int32), fixed: wp.array2d(dtype=wp.float64),
+               offset: wp.array2d(dtype=wp.float64), kind: wp.array(dtype=wp.int32), fixed: wp.array2d(dtype=wp.float64),
                row_src: wp.array(dtype=wp.int32), varying: wp.array2d(dtype=wp.float64)):
     """varying[r, col] for col = slot (1 + p) + j: row_src[r] >= 0 names the free
     parameter a = row_src[r] (value from z, perturbed by step when j = 1 + a),
-    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]."""
+    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]. Log parameters:
+    v = scale exp(z); linear ones: v = offset + scale z."""
     col = wp.tid()
     p = z.shape[1]
     slot = col // (p + 1)
@@ -88,7 +89,7 @@ def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float6
             if kind[a] == KIND_LOG:
                 varying[r, col] = scale[pid, a] * wp.exp(zz)
             else:
-                varying[r, col] = scale[pid, a] * zz
+                varying[r, col] = offset[pid, a] + scale[pid, a] * zz
 
 
 _NORMAL_KERNELS = {}

@@ -34,7 +34,7 @@ class LinearProblems:
     def project(self, z, pid):
         return z
 
-    def relative_change(self, dz, z):
+    def relative_change(self, dz, z, pid):
         return np.abs(dz) / np.maximum(np.abs(z), 1e-300)
 
     def evaluate(self, pid, z, max_sets=0):

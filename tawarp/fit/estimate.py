@@ -19,15 +19,17 @@ Method
 *Cost.* ``F = sum over frequencies, coefficients, re/im of (w (Y_model - Y_meas))^2`` with
 ``w`` = 1 / sigma of the dimensionless value (or 1).
 
-*Scaled variables.* LM works on z: ``v = s exp(z)`` for positive parameters
-(radii, lengths, conductivities, heat-exchange coefficients, T_cold, p_mean: the
-``log`` column of :mod:`tawarp.model.fields`), ``v = s z`` for porosity, tortuosity and
-any other field, with s the start value (per problem; 1 for a linear parameter starting
-at 0). After each step z is projected onto each field's ``fit_range`` (porosity in
-[0.01, 1], tortuosity in [1, 10], h in [1e-4, 1e5], pore radius in [1e-7, 0.1] m, ...:
-they keep runs from a poor start from drifting to 0 or infinity; ``bounds=`` for others).
-Both choices make a unit step mean "a relative change of order one", so the damped
-update ``(H + mu I) dz = -g`` treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
+*Scaled variables* (the one scheme of the package, :class:`tawarp.model.effects.Param`
+likewise). LM works on z: ``v = s exp(z)`` for positive parameters (radii, lengths,
+conductivities, heat-exchange coefficients, T_cold, p_mean: the ``log`` column of
+:mod:`tawarp.model.fields`) with s the start value, ``v = v0 + scale z`` for porosity,
+tortuosity and the other linear fields, v0 the start value and ``scale`` the field's (0.05
+for porosity, 0.1 for tortuosity). After each step z is projected onto each field's
+``fit_range`` (porosity in [0.01, 1], tortuosity in [1, 10], h in [1e-4, 1e5], pore radius
+in [1e-7, 0.1] m, ...: they keep runs from a poor start from drifting to 0 or infinity;
+``bounds=`` for others). Both choices make a unit step mean "a relative change of order
+one" or "one typical step of the field", so the damped update ``(H + mu I) dz = -g``
+treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
 
 *Q = 0 batches* (every heat input 0, no h free or fixed) evaluate the core with its
 thermal segments at uniform temperature in closed form (:func:`cold_batch`): the same
@@ -58,7 +60,7 @@ only the problems still iterating.
 *Uncertainty.* ``cov_z = s^2 H^-1`` at the solution with ``s^2 = F / (8 m - p)`` (the
 residual variance; ``absolute_sigma=True`` takes s^2 = 1, for weights that are true
 1/sigma), transformed to natural units by the delta method, ``cov_v = D cov_z D`` with
-``D = diag(dv/dz)`` (= v for log parameters, s for linear ones). ``std`` is its diagonal's
+``D = diag(dv/dz)`` (= v for log parameters, the field's scale for linear ones). ``std`` is its diagonal's
 root, ``correlation`` the normalised matrix, ``condition`` the 2-norm condition number of H
 in the scaled variables. A warning names the parameter pairs with |correlation| above
 ``corr_limit`` (0.95) and the dominant parameters of the least determined direction when
@@ -133,7 +135,8 @@ class Problems:
     ``core``, ``freqs`` (m,), ``Y`` (N, m, 4) complex, ``names`` (p free parameters),
     ``heat_input`` (N,), ``fixed`` {name: (N,)}, ``weights`` None, (N, m, 4) or
     (N, m, 4, 2) (re, im), ``ties`` {free name: [other names set to the same value]},
-    ``bounds`` {name: (lo, hi)} natural units, ``scale`` (N, p) start scale of z.
+    ``bounds`` {name: (lo, hi)} natural units, ``scale`` (N, p) reference (start) values of z
+    (:meth:`set_scale`).
     """
 
     def __init__(self, core: Core, freqs, Y, names, *, heat_input=0.0, fixed=None, weights=None, ties=None,
@@ -209,6 +212,8 @@ class Problems:
             zc = np.full(N, duct_impedance(core))
         self.zc = zc
         self.kind = np.array([1 if is_log(k) else 0 for k in self.names], dtype=np.int32)
+        #: step of a linear parameter per unit z (:mod:`tawarp.model.fields`)
+        self.step = np.array([field_spec(k).scale for k in self.names])
         lo, hi = np.full(self.p, -np.inf), np.full(self.p, np.inf)
         bounds = dict(bounds or {})
         for a, k in enumerate(self.names):
@@ -231,28 +236,33 @@ class Problems:
         # error-measure denominator per problem
         self.y2 = np.sum(np.abs(Y) ** 2, axis=(1, 2))
 
-    def set_scale(self, scale):
-        scale = np.abs(np.broadcast_to(np.asarray(scale, dtype=float), (self.N, self.p))).copy()
-        scale = np.where((self.kind == 0) & (scale == 0), 1.0, scale)
-        if not np.all(np.isfinite(scale) & (scale > 0)):
+    def set_scale(self, ref):
+        """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
+        them (v = ref exp(z)), linear ones step from them by their field's ``scale``
+        (v = ref + scale z)."""
+        ref = np.broadcast_to(np.asarray(ref, dtype=float), (self.N, self.p))
+        log = self.kind == 1
+        if not np.all(np.isfinite(ref) & (~log | (ref > 0))):
             raise ValueError(f"start values of {self.names} must be finite, and > 0 for the log-scaled ones "
                              f"({[k for k in self.names if is_log(k)]}); they set the scale of each parameter")
-        self.scale = scale
-        self.w_scale = wp.array(scale, dtype=wp.float64, device=self.engine.device)
+        self.scale = np.where(log, ref, self.step)
+        self.offset = np.where(log, 0.0, ref)
+        self.w_scale = wp.array(self.scale, dtype=wp.float64, device=self.engine.device)
+        self.w_offset = wp.array(self.offset, dtype=wp.float64, device=self.engine.device)
         with np.errstate(divide="ignore"):
-            self.zlo = np.where(self.kind == 1, np.log(self.lo / scale), self.lo / scale)
-            self.zhi = np.where(self.kind == 1, np.log(self.hi / scale), self.hi / scale)
+            self.zlo = np.where(log, np.log(self.lo / self.scale), (self.lo - self.offset) / self.scale)
+            self.zhi = np.where(log, np.log(self.hi / self.scale), (self.hi - self.offset) / self.scale)
 
     # -- transforms ----------------------------------------------------------------------
     def to_z(self, v, pid):
         v = np.asarray(v, dtype=float)
-        s = self.scale[pid]
+        s, o = self.scale[pid], self.offset[pid]
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(self.kind == 1, np.log(v / s), v / s)
+            return np.where(self.kind == 1, np.log(v / s), (v - o) / s)
 
     def to_v(self, z, pid):
-        s = self.scale[pid]
-        return np.where(self.kind == 1, s * np.exp(np.where(self.kind == 1, z, 0.0)), s * z)
+        s, o = self.scale[pid], self.offset[pid]
+        return np.where(self.kind == 1, s * np.exp(np.where(self.kind == 1, z, 0.0)), o + s * z)
 
     def dv_dz(self, z, pid):
         return np.where(self.kind == 1, self.to_v(z, pid), self.scale[pid])
@@ -260,10 +270,12 @@ class Problems:
     def project(self, z, pid):
         return np.clip(z, self.zlo[pid], self.zhi[pid])
 
-    def relative_change(self, dz, z):
-        """Relative change (natural units) of each parameter of a step ``dz`` that ended at ``z``."""
+    def relative_change(self, dz, z, pid):
+        """Relative change (natural units) of each parameter of a step ``dz`` that ended at
+        ``z`` (problems ``pid``)."""
         with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(self.kind == 1, np.abs(np.expm1(dz)), np.abs(dz) / np.maximum(np.abs(z), 1e-300))
+            lin = self.scale[pid] * np.abs(dz) / np.maximum(np.abs(self.to_v(z, pid)), 1e-300)
+            return np.where(self.kind == 1, np.abs(np.expm1(dz)), lin)
 
     # -- one launch ----------------------------------------------------------------------
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
@@ -283,7 +295,7 @@ class Problems:
             w_ids = wp.array(pid[lo:hi].astype(np.int32), dtype=wp.int32, device=dev)
             varying = wp.empty((rows, k * (p + 1)), dtype=wp.float64, device=dev)
             wp.launch(klm.build_sets, dim=k * (p + 1), device=dev,
-                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_kind, self.w_fixed, self.w_row_src, varying])
+                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_offset, self.w_kind, self.w_fixed, self.w_row_src, varying])
             out, _, _ = self.engine.evaluate(varying)
             w_cost = wp.empty(k, dtype=wp.float64, device=dev)
             w_raw = wp.empty(k, dtype=wp.float64, device=dev)

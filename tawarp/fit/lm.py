@@ -80,8 +80,8 @@ class LMProblems(Protocol):
     ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` at z, cost (n,) the weighted sum of
     squared residuals ``r^T r`` (inf where the model fails), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
-    Jacobian in z; ``relative_change(dz, z)``: (n, p) the size of a step dz that ended at z
-    compared with ``xtol``.
+    Jacobian in z; ``relative_change(dz, z, pid)``: (n, p) the size of a step dz that ended
+    at z compared with ``xtol``.
     """
 
     zlo: np.ndarray
@@ -91,7 +91,7 @@ class LMProblems(Protocol):
 
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = ...) -> tuple: ...
 
-    def relative_change(self, dz: np.ndarray, z: np.ndarray) -> np.ndarray: ...
+    def relative_change(self, dz: np.ndarray, z: np.ndarray, pid: np.ndarray) -> np.ndarray: ...
 
 
 def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
@@ -147,7 +147,7 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
             mu[ia] *= 0.5
             mu[a[~acc]] *= 2.0
         # convergence tests
-        rel = prob.relative_change(dz, zt)
+        rel = prob.relative_change(dz, zt, pa)
         rel = rel.max(axis=1) if p else np.zeros(len(a))
         free = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
         gcos = _grad_cosine(g[a], H[a], cost[a], free)

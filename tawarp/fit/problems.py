@@ -100,7 +100,7 @@ class KindProblems:
     def project(self, z, pid):
         return np.clip(z, self.zlo[pid], self.zhi[pid])
 
-    def relative_change(self, dz, z):
+    def relative_change(self, dz, z, pid):
         """|dz|: the scaled variables already measure relative change (:class:`Param`)."""
         return np.abs(dz)
 
