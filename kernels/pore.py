@@ -46,6 +46,8 @@ from .cmath import cdiv, cexp, cinv, cmul, cplx, cscale
 
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
+#: Pore geometries by their name in a core file (``pore_model``) -> the kernels' constant.
+PORE_MODELS = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES}
 
 # Above this s the Hankel expansion replaces the Bessel-ratio recurrence.
 CIRCULAR_ASYMPTOTIC_S = wp.constant(wp.float64(20.0))

@@ -20,10 +20,11 @@ from pathlib import Path
 
 from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, takes
 from .fields import field as field_spec
+from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES
 
 SEGMENT_KINDS = ("duct", "porous")
-PORE_MODELS = ("circular", "plates")
+PORE_MODELS = tuple(KERNEL_PORE_MODELS)
 #: Numeric global fields, addressed as ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELDS = tuple(GLOBAL_FIELD_TABLE)
 

@@ -82,10 +82,9 @@ def base_table(core: Core) -> np.ndarray:
 
 def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
-    from ..kernels.pore import PORE_CIRCULAR, PORE_PLATES
+    from ..kernels.pore import PORE_MODELS
 
-    model = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES}
-    return np.array([[s.is_porous, model[s.pore_model] if s.is_porous else PORE_CIRCULAR, s.thermal, s.heater]
+    return np.array([[s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater]
                      for s in core.segments], dtype=np.int32)
 
 
