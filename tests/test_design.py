@@ -311,3 +311,33 @@ def _help(command):
     for add in (add_design_parser, add_rank_parser, add_sweep_parser):
         add(sub)
     return sub.choices[command].format_help()
+
+
+def test_journal_file_is_optunas_format(tmp_path):
+    """The search's journal backend writes Optuna's own journal format: a study stored
+    through it (trials added concurrently with another writer) reads back identically
+    through Optuna's JournalFileBackend, numbers consecutive."""
+    import optuna
+    from optuna.distributions import FloatDistribution
+    from optuna.storages import JournalStorage
+    from optuna.storages.journal import JournalFileBackend
+    from optuna.trial import create_trial
+
+    from tawarp.design.storage import add_evaluated, make_storage
+
+    path = str(tmp_path / "b.journal")
+    st = make_storage(path)
+    study = open_study(st, "s", ["gradient"])
+    d = {"x": FloatDistribution(0.0, 1.0)}
+    add_evaluated(study, st, [{"x": 0.1 * j} for j in range(5)], d, np.arange(5.0)[:, None],
+                  [{"T_max": 300.0 + j} for j in range(5)], np.array([-1.0, 0, 1, 2, 3]), np.array([0, 0, 0, 1, 0], bool),
+                  [{"tawarp:index": j} for j in range(5)])
+    other = optuna.load_study(study_name="s", storage=JournalStorage(JournalFileBackend(path)))
+    other.add_trial(create_trial(params={"x": 0.9}, distributions=d, value=9.0))
+    add_evaluated(study, st, [{"x": 0.5}], d, np.array([[5.0]]), [{}], None, np.zeros(1, bool), [{}])
+    trials = optuna.load_study(study_name="s", storage=JournalStorage(JournalFileBackend(path))).get_trials()
+    assert [t.number for t in trials] == list(range(7))
+    assert [t.state.name for t in trials] == ["COMPLETE"] * 3 + ["FAIL"] + ["COMPLETE"] * 3
+    assert [t.value for t in trials] == [0.0, 1.0, 2.0, None, 4.0, 9.0, 5.0]
+    assert trials[2].user_attrs == {"T_max": 302.0} and trials[2].system_attrs["constraints"] == [1.0]
+    assert trials[4].system_attrs["tawarp:index"] == 4

@@ -153,7 +153,7 @@ class _Run:
 
     def store(self, points, values, metrics, viol, failed, attrs) -> None:
         t = time.perf_counter()
-        add_evaluated(self.study, points, self.dists, values, metrics, viol, failed, attrs)
+        add_evaluated(self.study, self.storage, points, self.dists, values, metrics, viol, failed, attrs)
         self.timing["storage"] += time.perf_counter() - t
 
 
