@@ -93,7 +93,8 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
                     q: wp.float64, model: int, area: wp.float64, r_k: wp.float64, mob: wp.float64, sf: wp.float64,
                     nonlin: int):
     """A(x) at local position xi [m] of thermal segment s whose heat cells start at node0;
-    (k, sigma) are the segment's, replaced by the cell's when ``nonlin``."""
+    (k, sigma) are the segment's (unused when ``nonlin``: the Kirchhoff cell's profile,
+    :func:`tawarp.kernels.heat.nonlinear_profile`)."""
     th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
     return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
 
