@@ -341,3 +341,14 @@ def test_journal_file_is_optunas_format(tmp_path):
     assert [t.value for t in trials] == [0.0, 1.0, 2.0, None, 4.0, 9.0, 5.0]
     assert trials[2].user_attrs == {"T_max": 302.0} and trials[2].system_attrs["constraints"] == [1.0]
     assert trials[4].system_attrs["tawarp:index"] == 4
+
+
+def test_resume_with_another_seed_is_refused(tmp_path):
+    """A lineage is the stream of its seed: resuming it with another seed would tell the
+    sampler points it never asked; refused, naming the member that differs."""
+    journal = str(tmp_path / "s.journal")
+    search(_space(), n_trials=8, batch=8, storage=journal, seed=1)
+    with pytest.raises(StudyConflict, match="generation 0 member 0 was stored as"):
+        search(_space(), n_trials=16, batch=8, storage=journal, seed=2)
+    res = search(_space(), n_trials=16, batch=8, storage=journal, seed=1)
+    assert len(res.study.get_trials()) == 16

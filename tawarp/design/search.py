@@ -183,6 +183,10 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if stored:
             ok = [j for j in stored if stored[j].state.name == "COMPLETE"]
             for j, tr in stored.items():
+                if not _same_point(points[j], tr.params):
+                    raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} "
+                                        f"member {j} was stored as {tr.params}, the sampler now asks {points[j]}; "
+                                        f"resume with the seed and batch of the first run")
                 points[j] = dict(tr.params)
                 F[j] = np.array(tr.values) * run.sign if j in ok else np.inf
                 viol[j] = tr.system_attrs.get("constraints", [0.0])[0] if j in ok else np.inf
@@ -204,6 +208,12 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
+
+
+def _same_point(a: dict, b: dict) -> bool:
+    """Same design point, up to the rounding of a unit-cube round trip (1e-9 relative)."""
+    return a.keys() == b.keys() and all(
+        a[k] == b[k] if isinstance(a[k], str) else abs(a[k] - b[k]) <= 1e-9 * max(abs(a[k]), abs(b[k])) for k in a)
 
 
 def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):
