@@ -142,7 +142,8 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
                         "default: OUTPUT/study.journal")
     p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
     p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=int, default=0,
+                   help="with the worker name, seeds this worker's sampler stream (default: %(default)s)")
     p.add_argument("--engine", choices=("batched", "optuna"), default="batched",
                    help="batched population samplers (default) or Optuna's own samplers, one ask per trial")
     p.add_argument("--freqs", type=_floats, default=np.array(DEFAULT_FREQS),
