@@ -175,3 +175,27 @@ def test_bad_batch_values():
     no_heater = cold(core)
     with pytest.raises(CoreError, match="heater"):
         transfer_matrices(no_heater, FREQS, 10.0, device="cpu")
+
+
+def test_cpu_threads_split_the_batch_bit_for_bit():
+    """On the CPU a large batch runs split over threads (issue 11): the same numbers as
+    one thread, to the bit, whether the table comes as NumPy or as a Warp array."""
+    import warp as wp
+
+    from tawarp.model.forward import Engine, ForwardSettings
+
+    core = load_core("ceramic")
+    freqs = np.linspace(30.0, 500.0, 50)
+    rng = np.random.default_rng(3)
+    table = np.stack([rng.uniform(0, 80, 120), rng.uniform(50, 250, 120)])      # 6000 models: 3 threads
+    one = Engine(core, freqs, ["stack.h"], ForwardSettings(device="cpu", cpu_threads=1))
+    three = Engine(core, freqs, ["stack.h"], ForwardSettings(device="cpu", cpu_threads=3))
+    assert three._cpu_parts(120) == 3 and one._cpu_parts(120) == 1
+    ref = [a.numpy() for a in one.evaluate(table)]
+    for varying in (table, wp.array(table, dtype=wp.float64, device="cpu")):
+        got = [a.numpy() for a in three.evaluate(varying)]
+        for a, b in zip(got, ref):
+            np.testing.assert_array_equal(a, b)
+    out = wp.zeros((120, 50, 8), dtype=wp.float64, device="cpu")
+    three.evaluate(table, out=out)
+    np.testing.assert_array_equal(out.numpy(), ref[0])

@@ -17,6 +17,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -132,7 +134,10 @@ class ForwardSettings:
     (:func:`tawarp.estimate.smooth_settings` picks them). ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
-    threads per block of the cascade kernel (bench/forward.py compares values); ``device``.
+    threads per block of the cascade kernel (bench/forward.py compares values);
+    ``cpu_threads``: on the CPU, Warp runs a kernel serially, so a batch is split into
+    this many parts run in parallel threads (Warp's CPU launches release the GIL; None:
+    every core this process may use; results are bit-for-bit those of one thread); ``device``.
     When a temperature-dependent effect (``fields.NONLINEAR_FIELDS``) is on in the core or
     varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
     segment and the heat solve iterates (Picard, at most ``picard_iterations`` solves,
@@ -148,6 +153,7 @@ class ForwardSettings:
     chunk: int = 1 << 16
     block_dim: int = 256
     max_registers: int | None = 64
+    cpu_threads: int | None = None
     device: str | None = None
 
     def cells_per_segment(self, core: Core) -> np.ndarray:
@@ -265,7 +271,39 @@ class Engine:
         return params, theta
 
     def evaluate(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
-        """T-matrices of one device batch: returns (out, params, theta), see the class doc."""
+        """T-matrices of one device batch: returns (out, params, theta), see the class doc.
+        A large batch on the CPU runs split over ``settings.cpu_threads`` threads."""
+        parts = self._cpu_parts(varying.shape[1])
+        if parts > 1:
+            return self._evaluate_threaded(varying, parts, out)
+        return self.evaluate_serial(varying, out)
+
+    def _cpu_parts(self, n: int) -> int:
+        """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
+        batches, where a thread's start costs more than it saves)."""
+        if not wp.get_device(self.device).is_cpu:
+            return 1
+        threads = self.settings.cpu_threads or len(os.sched_getaffinity(0))
+        return max(1, min(threads, n * len(self.freqs) // MIN_MODELS_PER_THREAD))
+
+    def _evaluate_threaded(self, varying, parts: int, out):
+        table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
+        chunks = [np.ascontiguousarray(c) for c in np.array_split(table, parts, axis=1)]
+        one = lambda c: tuple(a.numpy() for a in self.evaluate_serial(c))  # noqa: E731
+        first = one(chunks[0])          # in this thread: compiles and loads the modules once
+        rest = list(_thread_pool(parts).map(one, chunks[1:]))
+        T = np.concatenate([first[0]] + [r[0] for r in rest])
+        params = np.concatenate([first[1]] + [r[1] for r in rest], axis=1)
+        theta = np.concatenate([first[2]] + [r[2] for r in rest])
+        if out is None:
+            out = wp.array(T, dtype=wp.float64, device=self.device)
+        else:
+            out.assign(T)
+        return (out, wp.array(params, dtype=wp.float64, device=self.device),
+                wp.array(theta, dtype=wp.float64, device=self.device))
+
+    def evaluate_serial(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
+        """:meth:`evaluate` in the calling thread alone."""
         params, theta = self.heat(varying)
         n = params.shape[1]
         if out is None:
@@ -285,6 +323,16 @@ class Engine:
         wp.launch(kf.profile_kernel, dim=(n, x.shape[0]), device=self.device,
                   inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT])
         return T.numpy(), dT.numpy()
+
+
+#: Fewest forward models (set x frequency) worth a CPU thread of their own.
+MIN_MODELS_PER_THREAD = 2000
+
+
+@functools.cache
+def _thread_pool(workers: int) -> ThreadPoolExecutor:
+    """One pool per size for the CPU batches (threads live as long as the process)."""
+    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tawarp-cpu")
 
 
 @functools.cache
