@@ -7,7 +7,6 @@ from pathlib import Path
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
 from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton, load_measurement
 from ..model.forward import ForwardSettings
-from .common import _common
 
 
 def add_loop_parser(sub) -> None:

@@ -79,10 +79,8 @@ only counted (``local_minima``).
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 import warnings as _warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 import warp as wp
@@ -90,11 +88,11 @@ import warp as wp
 from ..model.coefficients import duct_impedance
 from ..model.core import GLOBAL_FIELDS, Core
 from ..model.fields import field as field_spec
-from ..model.forward import Engine, ForwardSettings, parameter_row
+from ..model.forward import ForwardSettings, parameter_row
 from ..kernels import lm as klm
-from ..measure.kind import fit_cells, get_engine, smooth_settings  # noqa: F401 (public API)
-from .result import FitResult, _json_float  # noqa: F401 (public API)
-from .lm import LMProblems, LMState, chol_solve, levenberg_marquardt  # noqa: F401 (public API)
+from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
+from .lm import chol_solve, levenberg_marquardt  # noqa: F401 (chol_solve: public API)
+from .result import FitResult
 
 #: Forward-difference step in the scaled variable z.
 FD_STEP = 1e-6
