@@ -1,0 +1,205 @@
+"""The CSV tables of every measurement file (FORMATS.md): ``# key = value`` metadata
+lines, one header, numeric rows; the time convention; errors that name the file, the line
+or the metadata key; atomic writes. The kinds' readers (:mod:`.files`) build on it."""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import math
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+CONVENTION = "exp(-iwt)"
+# Accepted spellings (after removing blanks, lower case); i and j both name sqrt(-1).
+_MINUS = {"exp(-iwt)", "exp(-jwt)"}
+_PLUS = {"exp(+iwt)", "exp(iwt)", "exp(+jwt)", "exp(jwt)"}
+
+
+class MeasurementError(ValueError):
+    """A measurement file or data set is invalid; the message names the file and line or key."""
+
+
+
+# -- generic CSV reading ---------------------------------------------------------------
+@dataclass
+class _Table:
+    source: str
+    meta: dict[str, str]
+    meta_line: dict[str, int]   # line of each metadata key
+    header_line: int
+    columns: list[str]
+    values: dict[str, np.ndarray]   # column name -> floats
+    lines: np.ndarray           # file line of each data row
+
+
+def _fail(source, line, what) -> MeasurementError:
+    return MeasurementError(f"{source}, line {line}: {what}")
+
+
+def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) -> _Table:
+    """Parse ``# key = value`` lines, a header naming ``required`` columns (any order;
+    others must satisfy ``allowed`` unless ``ignore_extra``) and numeric, finite rows."""
+    src = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8-sig")  # -sig: tolerate a spreadsheet's BOM
+    except UnicodeDecodeError as e:
+        raise MeasurementError(f"{src}: not a UTF-8 text file ({e})") from None
+    meta, meta_line = {}, {}
+    header, header_line, used, rows, lines = None, 0, {}, [], []
+    for n, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line:
+            continue
+        if line.startswith("#"):
+            if header is not None:
+                raise _fail(src, n, "comment or metadata line after the header; '# key = value' lines must come before it")
+            key, eq, value = line[1:].partition("=")
+            if eq:  # '# key = value'; a comment without '=' is free text
+                key = key.strip()
+                if not key:
+                    raise _fail(src, n, "metadata line without a key; expected '# key = value'")
+                if key in meta:
+                    raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
+                meta[key], meta_line[key] = value.strip(), n
+            continue
+        fields = [f.strip() for f in next(csv.reader([line]))]
+        if header is None:
+            header, header_line = fields, n
+            used = _check_header(src, n, header, required, allowed, ignore_extra)
+            continue
+        width = max(used.values()) + 1 if ignore_extra else len(header)
+        if len(fields) < width or (not ignore_extra and len(fields) != width):
+            raise _fail(src, n, f"{len(fields)} fields; expected {width} as in the header (line {header_line})")
+        row = []
+        for name, j in used.items():
+            try:
+                v = float(fields[j])
+            except ValueError:
+                raise _fail(src, n, f"column {name!r}: expected a number, got {fields[j]!r}") from None
+            if not math.isfinite(v):
+                raise _fail(src, n, f"column {name!r}: expected a finite number, got {fields[j]!r}")
+            row.append(v)
+        rows.append(row)
+        lines.append(n)
+    if header is None:
+        raise _fail(src, 1, f"empty file (no header line); expected a header with columns {','.join(required)}")
+    if not rows:
+        raise _fail(src, header_line, "header but no data rows after it")
+    arr = np.array(rows, dtype=float)
+    values = {name: arr[:, k] for k, name in enumerate(used)}
+    return _Table(src, meta, meta_line, header_line, list(used), values, np.array(lines))
+
+
+def _check_header(src, n, header, required, allowed, ignore_extra) -> dict[str, int]:
+    """Map each used column name to its field index, or raise naming what is wrong."""
+    expected = f"expected a header with columns {','.join(required)}"
+    numeric = 0
+    for f in header:
+        with contextlib.suppress(ValueError):
+            float(f)
+            numeric += 1
+    if numeric == len(header):
+        raise _fail(src, n, f"missing header line (got numbers); {expected}")
+    named = [f for f in header if f]
+    dup = sorted({f for f in named if named.count(f) > 1})
+    if dup:
+        raise _fail(src, n, f"column(s) {dup} appear twice in the header")
+    missing = [c for c in required if c not in header]
+    if missing:
+        raise _fail(src, n, f"missing column(s) {missing}; {expected}")
+    unknown = [f for f in header if f not in required and not allowed(f)]
+    if unknown and not ignore_extra:
+        raise _fail(src, n, f"unknown column(s) {unknown}; {expected} (and optional sigma_* columns where allowed)")
+    return {f: j for j, f in enumerate(header) if f in required or (f and allowed(f))}
+
+
+def _needs_conjugate(t: _Table) -> bool:
+    """True if the file says ``convention = exp(+iwt)`` (default ``exp(-iwt)``)."""
+    value = t.meta.get("convention", CONVENTION)
+    key = "".join(value.split()).lower().replace("ω", "w")
+    if key in _MINUS:
+        return False
+    if key in _PLUS:
+        return True
+    raise _fail(t.source, t.meta_line["convention"],
+                f"convention = {value!r}; expected 'exp(-iwt)' (default) or 'exp(+iwt)'")
+
+
+def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False, default=None):
+    """Metadata ``key`` as a finite number > 0 (>= 0 with ``allow_zero``) [unit]."""
+    if key not in t.meta:
+        if required:
+            raise MeasurementError(f"{t.source}: metadata key {key!r} [{unit}] is missing; "
+                                   f"add a line '# {key} = ...' before the header")
+        return default
+    text = t.meta[key]
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not (math.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
+        raise _fail(t.source, t.meta_line[key],
+                    f"metadata {key} = {text!r}: expected a number {'>=' if allow_zero else '>'} 0 [{unit}]")
+    return v
+
+
+def _check_positive_unique(t: _Table, col: str, others=()) -> None:
+    """Column ``col`` > 0; rows unique in (others..., col). Errors name the line."""
+    for v, n in zip(t.values[col], t.lines):
+        if v <= 0:
+            raise _fail(t.source, n, f"{col} = {v!r}: expected a number > 0")
+    seen = {}
+    keys = zip(*(t.values[c].tolist() for c in (*others, col)))
+    for key, n in zip(keys, t.lines.tolist()):
+        if key in seen:
+            names = ", ".join(f"{c} = {k!r}" for c, k in zip((*others, col), key))
+            raise _fail(t.source, n, f"duplicate row ({names}), first on line {seen[key]}")
+        seen[key] = n
+
+
+def _complex(t: _Table, name: str) -> np.ndarray:
+    return t.values[f"{name}_re"] + 1j * t.values[f"{name}_im"]
+
+
+def _converted_metadata(t: _Table, conjugated: bool) -> dict[str, str]:
+    """File metadata, with ``convention`` describing the data as stored (exp(-iwt))."""
+    meta = dict(t.meta)
+    if conjugated:
+        meta["original_convention"] = meta["convention"]
+    meta["convention"] = CONVENTION
+    return meta
+
+
+def _metadata_line(path, key, value) -> str:
+    key, value = str(key).strip(), str(value).strip()
+    if not key or "=" in key or any(ch in key + value for ch in "\r\n"):
+        raise MeasurementError(f"{path}: metadata {key!r} = {value!r}: keys need no '=' and neither may span lines")
+    return f"# {key} = {value}"
+
+
+def _atomic_write(path, text: str) -> None:
+    """Write ``text`` to ``path`` via a temporary file in the same folder and ``os.replace``
+    (atomic on POSIX and Windows for one filesystem)."""
+    path = Path(path)
+    if not path.parent.is_dir():
+        raise FileNotFoundError(f"{path}: folder {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        # mkstemp makes the file 0600; give it the mode a plain open() would
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
