@@ -14,10 +14,10 @@ below 0.1 %): 3 parameters, m = 100 frequencies (30-500 Hz), 4 complex coefficie
 
 Every problem has its own noise draw (0.5 % complex, the synthetic generator's model,
 data made with 48 Magnus cells), weights 1/sigma. The time of a batch is the whole
-``tawarp.estimate.fit`` call (upload, every launch, host-side LM logic, covariance),
+``tawarp.fit.estimate.fit`` call (upload, every launch, host-side LM logic, covariance),
 after a warm-up fit that compiles the kernels; fits/s = batch size / time.
 
-SciPy peer: ``least_squares(method="lm")`` (MINPACK) with ``xtol = 1e-3`` on the same
+SciPy peer: ``least_squares(method="lm")`` (MINPACK) with ``xtol = 1e-3`` on similar
 scaled variables (log h, log r; porosity and tortuosity divided by their start), 2-point
 finite differences, the residual from ``tawarp.reference.dimensionless_transfer``
 (closed form at Q = 0; DOP853 with ``rtol = 1e-8`` for the heated segments), the same
