@@ -17,7 +17,7 @@ import warp as wp
 
 from .cmath import cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
-from .pore import pore_functions
+from .pore import pore_functions, pore_functions_complex
 
 
 @wp.struct
@@ -189,3 +189,49 @@ def magnus6_step(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
 @wp.func
 def scale2(m: CMat2, s: wp.float64):
     return cmat2(cscale(m.a, s), cscale(m.b, s), cscale(m.c, s), cscale(m.d, s))
+
+
+# -- complex angular frequency (tawarp.model.onset) ------------------------------------------
+# Every coefficient of A is analytic in omega: omega enters through s = r/delta ~ sqrt(omega)
+# (principal root) and as a factor of a12, a21. These are propagation_matrix and its
+# helpers with omega complex; at real omega they agree with them to rounding.
+
+
+@wp.func
+def johnson_factor_complex(x: wp.vec2d, s: wp.float64):
+    """:func:`johnson_factor` at complex x = r/delta_nu."""
+    x2 = cmul(x, x)
+    root = csqrt(creal(wp.float64(1.0)) - cmuli(cscale(x2, s * s / wp.float64(8.0))))
+    return creal(wp.float64(1.0)) + cscale(cdiv(cmuli(root), x2), wp.float64(4.0))
+
+
+@wp.func
+def propagation_matrix_complex(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.vec2d,
+                               T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
+                               tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
+                               frame_mobility: wp.float64, shape_factor: wp.float64):
+    """:func:`propagation_matrix` at complex angular frequency omega [rad/s] (re, im)."""
+    rho = density(gas, T, p_mean)
+    c2 = sound_speed_squared(gas, T)
+    mu = viscosity(gas, T)
+    kappa = conductivity(gas, T)
+    cp = gas[G_CP]
+    gamma = gas[G_GAMMA]
+    prandtl = mu * cp / kappa
+    root_w = csqrt(omega)
+    s_nu = cscale(root_w, pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
+    s_k = cscale(root_w, thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    f_nu, g_nu = pore_functions_complex(pore_model, s_nu)
+    f_k, g_k = pore_functions_complex(pore_model, s_k)
+    if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
+        g_nu = cdiv(g_nu, cdiv(johnson_factor_complex(s_nu, shape_factor),
+                               johnson_factor_complex(s_nu, wp.float64(1.0))))
+    a12 = cmuli(cdiv(cscale(omega, tortuosity * tortuosity * rho / (porosity * area)), g_nu))
+    if frame_mobility > wp.float64(0.0):
+        a12 = cmuli(cscale(cmul(limp_density(rho, porosity, tortuosity, g_nu, frame_mobility), omega),
+                           wp.float64(1.0) / area))
+    a21 = cmuli(cscale(cmul(omega, creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0))),
+                       porosity * area / (rho * c2)))
+    a22 = cscale(cdiv(g_nu - g_k, g_nu), dTdx / (T * (wp.float64(1.0) - prandtl)))
+    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    return cmat2(zero, a12, a21, a22)

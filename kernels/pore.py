@@ -42,7 +42,7 @@ assert 1e-13.
 
 import warp as wp
 
-from .cmath import cdiv, cexp, cinv, cmul, cplx, cscale
+from .cmath import cabs, cdiv, cexp, cinv, cmul, cplx, cscale
 
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
@@ -156,3 +156,91 @@ def pore_functions(model: int, s: wp.float64):
     if model == PORE_PLATES:
         return pore_plates(s)
     return pore_circular(s)
+
+
+# -- complex argument (complex frequency, tawarp.model.onset) ---------------------------------
+# At complex omega, s = r / delta = r sqrt(rho omega / (2 mu)) is complex too (principal
+# root, so Re s > 0 for Re omega > 0). The same four methods hold with s complex; the
+# thresholds move from s to the quantity that sets their error: the Hankel expansion's
+# neglected H1/H2 ~ exp(-2 Im z), Im z = Re s + Im s, and the exponential tanh's
+# |q| = exp(-2 Re w), Re w = Re s + Im s. At real s these are the real-s functions above
+# up to rounding.
+
+
+@wp.func
+def _circular_recurrence_c(s: wp.vec2d):
+    # as _circular_recurrence with 2k/z = k (1 - i)/s complex
+    n = int(wp.sqrt(wp.float64(2.0)) * cabs(s)) + RECURRENCE_MARGIN
+    two_over_z = cmul(cplx(wp.float64(1.0), wp.float64(-1.0)), cinv(s))
+    j_next = cplx(wp.float64(0.0), wp.float64(0.0))
+    j = cplx(wp.float64(1.0), wp.float64(0.0))
+    j2 = j
+    for k in range(n, 0, -1):
+        j_prev = cscale(cmul(two_over_z, j), wp.float64(k)) - j_next
+        if wp.abs(j_prev[0]) + wp.abs(j_prev[1]) > wp.float64(1.0e200):
+            j_prev = cscale(j_prev, wp.float64(1.0e-200))
+            j = cscale(j, wp.float64(1.0e-200))
+            j2 = cscale(j2, wp.float64(1.0e-200))
+        if k == 2:
+            j2 = j
+        j_next = j
+        j = j_prev
+    j1 = j_next
+    r1 = cdiv(j1, j)
+    r2 = cdiv(j2, j1)
+    return cmul(r1, two_over_z), -cmul(r1, r2)
+
+
+@wp.func
+def _circular_hankel_c(s: wp.vec2d):
+    # as _circular_hankel: v = -i/(8 z) = -(1 + i)/(16 s), f = (1 + i)/s S_1/S_0
+    inv_s = cinv(s)
+    v = cscale(cmul(cplx(wp.float64(-1.0), wp.float64(-1.0)), inv_s), wp.float64(1.0 / 16.0))
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    t0 = one
+    t1 = one
+    s0 = one
+    s1 = one
+    for k in range(1, HANKEL_TERMS + 1):
+        m = wp.float64(2 * k - 1)
+        kf = wp.float64(k)
+        t0 = cscale(cmul(t0, v), -m * m / kf)
+        t1 = cscale(cmul(t1, v), (wp.float64(4.0) - m * m) / kf)
+        s0 = s0 + t0
+        s1 = s1 + t1
+    f = cmul(cmul(cplx(wp.float64(1.0), wp.float64(1.0)), inv_s), cdiv(s1, s0))
+    return f, one - f
+
+
+@wp.func
+def _plates_continued_fraction_c(s: wp.vec2d):
+    # w^2 = -2 i s^2
+    w2 = cscale(cmul(cplx(wp.float64(0.0), wp.float64(-1.0)), cmul(s, s)), wp.float64(2.0))
+    n = int(wp.sqrt(wp.float64(2.0)) * cabs(s)) + RECURRENCE_MARGIN
+    t = cplx(wp.float64(2 * n + 1), wp.float64(0.0))
+    for k in range(n - 1, 0, -1):
+        t = cplx(wp.float64(2 * k + 1), wp.float64(0.0)) + cdiv(w2, t)
+    d = t + w2
+    return cdiv(t, d), cdiv(w2, d)
+
+
+@wp.func
+def _plates_exponential_c(s: wp.vec2d):
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    w = cmul(cplx(wp.float64(1.0), wp.float64(-1.0)), s)
+    q = cexp(cscale(w, wp.float64(-2.0)))
+    f = cdiv(one - q, cmul(one + q, w))
+    return f, one - f
+
+
+@wp.func
+def pore_functions_complex(model: int, s: wp.vec2d):
+    """f, g of the pore ``model`` at complex s = r / delta (complex frequency)."""
+    reach = s[0] + s[1]   # Im z of the tube, Re w of the plates
+    if model == PORE_PLATES:
+        if reach < PLATES_EXPONENTIAL_S:
+            return _plates_continued_fraction_c(s)
+        return _plates_exponential_c(s)
+    if reach < CIRCULAR_ASYMPTOTIC_S:
+        return _circular_recurrence_c(s)
+    return _circular_hankel_c(s)

@@ -51,6 +51,8 @@ __all__ = [
     "thermoviscous_function",
     "segment_transfer_matrices",
     "transfer_matrix",
+    "transfer_matrix_omega",
+    "duct_matrix_omega",
     "dimensionless_transfer",
 ]
 
@@ -565,7 +567,9 @@ def thermoviscous_function(pore_model: str, r, delta):
     ``jve(1, z)/jve(0, z)`` (no overflow up to r/delta ~ 1e4 and beyond; keeps the relative
     precision of f ~ 1/z) or from ``tanh`` written with ``exp(-2w)``, and 1 - f = 1 - f.
     """
-    x = np.asarray(r / np.asarray(delta, dtype=float), dtype=float)
+    x = np.asarray(r / np.asarray(delta))
+    # complex r/delta: a complex frequency (delta ~ omega^-1/2), for :func:`transfer_matrix_omega`
+    x = x.astype(complex if np.iscomplexobj(x) else float)
     if pore_model == "circular":
         z = (1.0 + 1.0j) * x
         small = np.abs(z) < 2.0
@@ -707,7 +711,12 @@ def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: 
     f = np.atleast_1d(np.asarray(freqs, dtype=float))
     if f.ndim != 1 or np.any(f <= 0):
         raise ValueError("freqs must be positive frequencies [Hz], scalar or 1-D")
-    w = 2.0 * np.pi * f
+    return _segment_matrices(core, 2.0 * np.pi * f, heat_input, rtol, heat_tol, _force_ode)
+
+
+def _segment_matrices(core: Core, w: np.ndarray, heat_input: float, rtol: float, heat_tol: float,
+                      _force_ode: bool) -> list[np.ndarray]:
+    """:func:`segment_transfer_matrices` at angular frequencies ``w`` [rad/s], real or complex."""
     hs = heat_profile(core, heat_input, heat_tol)
     heated = set(hs.indices) if heat_input != 0.0 else set()
     pos = core.positions()
@@ -738,6 +747,44 @@ def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e
     for M in mats[1:]:
         T = M @ T
     return T
+
+
+def transfer_matrix_omega(core: Core, omega, heat_input: float = 0.0, rtol: float = 1e-12,
+                          heat_tol: float = 1e-8) -> np.ndarray:
+    """Core T-matrix (m, 2, 2) at complex angular frequencies ``omega`` [rad/s] (scalar or
+    1-D): every model function is analytic in omega (PHYSICS.md, "Onset"), so the closed
+    forms and the ODE of :func:`transfer_matrix` hold as written with omega complex
+    (Bessel functions of complex argument, DOP853 on the complex system). Im omega > 0 is
+    a growing oscillation in exp(-i omega t)."""
+    w = np.atleast_1d(np.asarray(omega, dtype=complex))
+    if w.ndim != 1 or np.any(w.real <= 0):
+        raise ValueError("omega must have a positive real part [rad/s], scalar or 1-D")
+    mats = _segment_matrices(core, w, heat_input, rtol, heat_tol, False)
+    T = mats[0]
+    for M in mats[1:]:
+        T = M @ T
+    return T
+
+
+def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, length: float, omega) -> np.ndarray:
+    """Closed-form T-matrix (m, 2, 2) of an empty duct of ``radius`` [m] and ``length`` [m]
+    at uniform temperature ``T`` [K], at complex angular frequencies ``omega`` [rad/s]:
+    k = (w/c) sqrt((1 + (gamma-1) f_k)/(1 - f_nu)), Zc = rho c/(S sqrt((1 - f_nu)(1 + (gamma-1) f_k))),
+    T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]] (PHYSICS.md, "Acoustics")."""
+    w = np.atleast_1d(np.asarray(omega, dtype=complex))
+    g = gas_properties(gas_name, T, p_mean)
+    f_nu, omf_nu = thermoviscous_function("circular", radius, np.sqrt(2.0 * g.mu / (g.rho * w)))
+    f_k, _ = thermoviscous_function("circular", radius, np.sqrt(2.0 * g.k / (g.rho * g.cp * w)))
+    bulk = 1.0 + (g.gamma - 1.0) * f_k
+    k = w / g.c * np.sqrt(bulk / omf_nu)
+    Zc = g.rho * g.c / (math.pi * radius**2) / np.sqrt(omf_nu * bulk)
+    kL = k * length
+    out = np.empty(w.shape + (2, 2), dtype=complex)
+    out[:, 0, 0] = np.cos(kL)
+    out[:, 0, 1] = 1j * Zc * np.sin(kL)
+    out[:, 1, 0] = 1j * np.sin(kL) / Zc
+    out[:, 1, 1] = np.cos(kL)
+    return out
 
 
 def dimensionless_transfer(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12) -> np.ndarray:

@@ -1,0 +1,228 @@
+"""Complex-frequency eigenvalues of an engine: core between resonator ducts and end conditions.
+
+With exp(-i omega t), a mode grows when Im omega > 0 (PHYSICS.md, "Onset"). One thread per
+parameter set finds omega where the end condition holds:
+
+* each end is a row ``(a, b)`` with ``a p + b U = 0`` there (U positive towards +x):
+  closed ``(0, 1)``, open ``(1, 0)``, an impedance Z of the termination (U into the
+  termination): right end ``(1, -Z)``, left end ``(1, Z)``;
+* the state starts at the left end as ``(p, U) = (b_L, -a_L)`` and is carried through the
+  left duct, the core (:func:`core_vector`, the cascade of :func:`tawarp.kernels.forward.transfer_kernel`
+  at complex omega) and the right duct; the residual is ``a_R p + b_R U`` at the right end
+  (closed-closed: the Tup entry of the whole resonator's matrix);
+* Muller's method from three points around the start value finds its zero.
+
+A thermal segment's Magnus cell count comes from a real reference frequency per set
+(``omega_ref``), not from the iterate: the residual is then one analytic function of omega
+during the search and across a batch of heat inputs (no jump of a whole cell).
+"""
+
+import warp as wp
+
+from .acoustics import CMat2, expm2, magnus6_step, propagation_matrix_complex, scale2
+from .cmath import cabs, cdiv, cmul, cplx, csqrt
+from .forward import (GAUSS_1, GAUSS_2, GAUSS_3, PI, TWO_PI, frame_mobility, pore_geometry, shape_factor,
+                      thermal_radius)
+from .gas import sound_speed_squared
+from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile
+from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
+
+END_CLOSED = wp.constant(0)
+END_OPEN = wp.constant(1)
+END_IMPEDANCE = wp.constant(2)
+#: End kinds by their name in an engine file -> the kernels' constant.
+END_KINDS = {"closed": END_CLOSED, "open": END_OPEN, "impedance": END_IMPEDANCE}
+
+# resonator table columns: left duct (length [m], radius [m], temperature [K]), right duct
+R_LEFT_LENGTH, R_LEFT_RADIUS, R_LEFT_T, R_RIGHT_LENGTH, R_RIGHT_RADIUS, R_RIGHT_T = range(6)
+N_RESONATOR = 6
+
+
+@wp.func
+def mat_vec(m: CMat2, p: wp.vec2d, u: wp.vec2d):
+    """m (p, U)."""
+    return cmul(m.a, p) + cmul(m.b, u), cmul(m.c, p) + cmul(m.d, u)
+
+
+@wp.func
+def duct_step(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.vec2d, T: wp.float64,
+              radius: wp.float64, length: wp.float64, p: wp.vec2d, u: wp.vec2d):
+    """(p, U) carried through an empty duct of ``length`` [m], ``radius`` [m] at uniform T [K]:
+    exp(A L), the closed form of PHYSICS.md."""
+    area = PI * radius * radius
+    a = propagation_matrix_complex(gas, p_mean, omega, T, wp.float64(0.0), wp.float64(1.0), radius, wp.float64(1.0),
+                                   0, area, radius, wp.float64(0.0), wp.float64(1.0))
+    return mat_vec(expm2(scale2(a, length)), p, u)
+
+
+@wp.func
+def gradient_matrix_complex(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                            gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int,
+                            node0: int, heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64,
+                            xi: wp.float64, p_mean: wp.float64, omega: wp.vec2d, T_cold: wp.float64, phi: wp.float64,
+                            r: wp.float64, q: wp.float64, model: int, area: wp.float64, r_k: wp.float64,
+                            mob: wp.float64, sf: wp.float64, nonlin: int):
+    """:func:`tawarp.kernels.forward.gradient_matrix` at complex omega."""
+    th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
+    return propagation_matrix_complex(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
+
+
+@wp.func
+def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
+                i: int, omega: wp.vec2d, omega_ref: wp.float64, p_in: wp.vec2d, u_in: wp.vec2d):
+    """(p, U) at x6 from (p, U) at x1 through the core of set i at complex omega: the
+    segment walk of ``transfer_kernel`` (same cells, same Magnus scheme), applied to a vector.
+    Adaptive cell counts use the real ``omega_ref`` [rad/s]."""
+    p_mean = params[P_MEAN, i]
+    radius = params[RADIUS, i]
+    area = PI * radius * radius
+    T_cold = params[T_COLD, i]
+    # loop-carried state as fresh locals (Warp carries reassigned variables through dynamic loops)
+    p = wp.vec2d(p_in[0], p_in[1])
+    u = wp.vec2d(u_in[0], u_in[1])
+    for s in range(flags.shape[0]):
+        length = seg_value(params, i, s, LENGTH)
+        phi, r, q = pore_geometry(params, flags, i, s)
+        r_k = thermal_radius(params, flags, i, s, r)
+        mob = frame_mobility(params, flags, i, s)
+        sf = shape_factor(params, flags, i, s)
+        model = flags[s, F_PORE_MODEL]
+        if flags[s, F_THERMAL] == 0:
+            a = propagation_matrix_complex(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k,
+                                           mob, sf)
+            p, u = mat_vec(expm2(scale2(a, length)), p, u)
+        else:
+            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+            dh = length / wp.float64(heat_cells)
+            node0 = (s - first) * heat_cells
+            nonlin = segment_nonlinear(params, i, s)
+            n_cells = seg_cells[s]
+            if n_cells == 0:
+                c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
+                n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega_ref * length / c_cold)))
+            h = length / wp.float64(n_cells)
+            for c in range(n_cells):
+                x0 = wp.float64(c) * h
+                a1 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
+                                             x0 + GAUSS_1 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             mob, sf, nonlin)
+                a2 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
+                                             x0 + GAUSS_2 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             mob, sf, nonlin)
+                a3 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
+                                             x0 + GAUSS_3 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             mob, sf, nonlin)
+                m = magnus6_step(a1, a2, a3, h)
+                p, u = mat_vec(m, p, u)
+    return p, u
+
+
+@wp.func
+def table_impedance(table: wp.array2d(dtype=wp.float64), omega: wp.vec2d):
+    """Z [Pa s/m^3] from rows (freq [Hz], Z_re, Z_im): linear in frequency on the interval
+    holding Re omega / 2 pi (the end intervals extend beyond the table); a linear function is
+    analytic, so it continues to complex omega as it stands. One row: a constant."""
+    n = table.shape[0]
+    z0 = cplx(table[0, 1], table[0, 2])
+    if n == 1:
+        return z0
+    f_re = omega[0] / TWO_PI
+    j = int(0)
+    while j < n - 2 and table[j + 1, 0] <= f_re:
+        j = j + 1
+    za = cplx(table[j, 1], table[j, 2])
+    zb = cplx(table[j + 1, 1], table[j + 1, 2])
+    t = cplx((omega[0] / TWO_PI - table[j, 0]) / (table[j + 1, 0] - table[j, 0]),
+             omega[1] / TWO_PI / (table[j + 1, 0] - table[j, 0]))
+    return za + cmul(zb - za, t)
+
+
+@wp.func
+def end_row(kind: int, table: wp.array2d(dtype=wp.float64), omega: wp.vec2d, sign: wp.float64):
+    """(a, b) of ``a p + b U = 0`` at an end; ``sign`` = +1 at the left end, -1 at the right
+    (Z relates p to the volume velocity flowing out of the resonator)."""
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    zero = cplx(wp.float64(0.0), wp.float64(0.0))
+    if kind == END_CLOSED:
+        return zero, one
+    if kind == END_OPEN:
+        return one, zero
+    z = table_impedance(table, omega)
+    return one, cplx(sign * z[0], sign * z[1])
+
+
+@wp.func
+def engine_residual(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                    seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
+                    resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
+                    z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
+                    i: int, omega: wp.vec2d, omega_ref: wp.float64):
+    """a_R p + b_R U at the right end for the state that meets the left end condition."""
+    p_mean = params[P_MEAN, i]
+    a_l, b_l = end_row(ends[0], z_left, omega, wp.float64(1.0))
+    p = b_l
+    u = -a_l
+    p, u = duct_step(gas, p_mean, omega, resonator[i, R_LEFT_T], resonator[i, R_LEFT_RADIUS],
+                     resonator[i, R_LEFT_LENGTH], p, u)
+    p, u = core_vector(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, i, omega, omega_ref, p, u)
+    p, u = duct_step(gas, p_mean, omega, resonator[i, R_RIGHT_T], resonator[i, R_RIGHT_RADIUS],
+                     resonator[i, R_RIGHT_LENGTH], p, u)
+    a_r, b_r = end_row(ends[1], z_right, omega, wp.float64(-1.0))
+    return cmul(a_r, p) + cmul(b_r, u)
+
+
+@wp.kernel
+def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                 gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                 seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
+                 resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
+                 z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
+                 guess: wp.array(dtype=wp.vec2d), omega_ref: wp.array(dtype=wp.float64), spread: wp.float64,
+                 tol: wp.float64, max_iter: int,
+                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32)):
+    """omega_out[i]: the zero of :func:`engine_residual` nearest ``guess[i]`` [rad/s] by
+    Muller's method from guess (1 -+ spread) and guess; stops when a step is below
+    ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge."""
+    i = wp.tid()
+    w_ref = omega_ref[i]
+    x2 = guess[i]
+    x0 = x2 - wp.vec2d(spread * x2[0], spread * x2[1])
+    x1 = x2 + wp.vec2d(spread * x2[0], spread * x2[1] + spread * x2[0])
+    f0 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
+                         z_left, z_right, i, x0, w_ref)
+    f1 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
+                         z_left, z_right, i, x1, w_ref)
+    f2 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
+                         z_left, z_right, i, x2, w_ref)
+    done = int(-1)
+    for it in range(max_iter):
+        if done < 0:
+            h1 = x1 - x0
+            h2 = x2 - x1
+            d1 = cdiv(f1 - f0, h1)
+            d2 = cdiv(f2 - f1, h2)
+            a = cdiv(d2 - d1, h2 + h1)
+            b = cmul(a, h2) + d2
+            root = csqrt(cmul(b, b) - wp.float64(4.0) * cmul(f2, a))
+            e = b + root
+            if cabs(b - root) > cabs(e):
+                e = b - root
+            step = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+            if cabs(e) > wp.float64(0.0):
+                step = cdiv(wp.float64(-2.0) * f2, e)
+            x3 = x2 + step
+            x0 = x1
+            f0 = f1
+            x1 = x2
+            f1 = f2
+            x2 = x3
+            if cabs(step) <= tol * cabs(x3):
+                done = it + 1
+            else:
+                f2 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator,
+                                     ends, z_left, z_right, i, x2, w_ref)
+    omega_out[i] = x2
+    iterations[i] = done
