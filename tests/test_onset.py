@@ -262,3 +262,26 @@ def test_impedance_csv(tmp_path):
     (tmp_path / "bad.csv").write_text("freq_Hz,Z_re,Z_im\n100,1.0\n")
     with pytest.raises(CoreError, match="bad.csv:2"):
         engine_from_dict(_engine_dict(right="impedance", right_impedance_csv="bad.csv"), "e.toml", tmp_path)
+
+
+def test_cli_onset(tmp_path, capsys):
+    """``tawarp onset`` writes JSON whose Q_onset, f_onset, T_hot are the API's (exact
+    float round trip) for each --var value, and the growth-rate figure; a bad --var name
+    exits 2 naming it."""
+    import json
+
+    from tawarp.cli import main
+
+    out = tmp_path / "o"
+    assert main(["onset", "standing_wave", "--Q-max", "80", "--bracket", "9", "--var", "engine.left_duct=0.6,0.8",
+                 "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    js = json.loads((out / "onset.json").read_text())
+    api = onset(load_engine("standing_wave"), Q_max=80.0, n_bracket=9, params={"engine.left_duct": [0.6, 0.8]},
+                device=DEVICE)
+    for k, s in enumerate(js["sets"]):
+        assert s["params"] == {"engine.left_duct": [0.6, 0.8][k]}
+        assert (s["Q_onset_W"], s["f_onset_Hz"], s["T_hot_K"]) == (api.Q_onset[k], api.f_onset[k], api.T_hot[k])
+    assert (out / "growth_rate.png").stat().st_size > 0
+    assert main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu",
+                 "--quiet"]) == 2
+    assert "engine.middle" in capsys.readouterr().err

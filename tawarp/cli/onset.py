@@ -1,0 +1,96 @@
+"""``tawarp onset ENGINE.toml``: onset heat input, frequency and hot temperature of engines."""
+
+from __future__ import annotations
+
+import itertools
+import math
+from pathlib import Path
+
+import numpy as np
+
+from ..io import write_json
+from .common import _common, _say, parse_list
+
+
+def add_onset_parser(sub) -> None:
+    """Register ``tawarp onset`` on an argparse sub-parsers object."""
+    p = _common(sub.add_parser("onset", help="onset heat input, frequency and hot temperature of an engine "
+                                             "(complex eigenfrequency against heat input)"))
+    p.add_argument("engine", help="engine TOML (a core file with an [engine] table), or a bundled engine: standing_wave")
+    p.add_argument("--Q-max", type=float, default=100.0, help="largest heat input searched [W] (default: %(default)s)")
+    p.add_argument("--mode", type=int, default=1, help="mode number, 1 = fundamental (default: %(default)s)")
+    p.add_argument("--bracket", type=int, default=21,
+                   help="heat inputs on [0, Q-max] for the bracket and the growth-rate curve (default: %(default)s)")
+    p.add_argument("--var", action="append", default=[],
+                   help="NAME=LIST: a parameter varied over a batch (SEGMENT.FIELD or engine.left_duct, "
+                        "engine.right_duct, ...); LIST is v1,v2 or start:stop:count; several --var form a grid")
+    p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
+    p.add_argument("-o", "--output", default="tawarp-onset", help="output folder (default: %(default)s)")
+    p.add_argument("--no-plots", action="store_true", help="skip the figure")
+    p.set_defaults(func=cmd_onset)
+
+
+def _parse_vars(texts: list[str]) -> dict[str, np.ndarray]:
+    out = {}
+    for t in texts:
+        name, sep, values = t.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--var {t!r}: expected NAME=LIST, e.g. engine.left_duct=0.5:0.9:5")
+        out[name.strip()] = parse_list(values)
+    return out
+
+
+def _finite(x: float):
+    return float(x) if math.isfinite(x) else None
+
+
+def cmd_onset(args) -> int:
+    from ..model.onset import onset
+    from ..model.resonator import load_engine
+
+    engine = load_engine(args.engine)
+    axes = _parse_vars(args.var)
+    names = list(axes)
+    combos = list(itertools.product(*axes.values())) if names else [()]
+    params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}
+    res = onset(engine, Q_max=args.Q_max, mode=args.mode, params=params, n_bracket=args.bracket, cells=args.cells,
+                device=args.device)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    sets = []
+    head = "".join(f"{k:>22s}" for k in names) + f"{'Q_onset [W]':>14s}{'f_onset [Hz]':>14s}{'T_hot [K]':>12s}"
+    _say(args, head)
+    for i, c in enumerate(combos):
+        row = {"params": dict(zip(names, map(float, c))), "Q_onset_W": _finite(res.Q_onset[i]),
+               "f_onset_Hz": _finite(res.f_onset[i]), "T_hot_K": _finite(res.T_hot[i]),
+               "growth_rate_1_per_s": res.omega_grid[i].imag, "frequency_Hz": res.omega_grid[i].real / (2 * math.pi)}
+        sets.append(row)
+        _say(args, "".join(f"{v:22.6g}" for v in c) + f"{res.Q_onset[i]:14.6g}{res.f_onset[i]:14.6g}{res.T_hot[i]:12.6g}")
+    write_json(out / "onset.json", {
+        "engine": str(engine.source), "mode": args.mode, "Q_max_W": args.Q_max, "Q_grid_W": res.Q_grid,
+        "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; Q_onset null: no onset on [0, Q_max]",
+        "sets": sets})
+    if not args.no_plots:
+        _plot_growth(res, combos, names, out / "growth_rate.png", Path(str(engine.source)).name)
+    _say(args, f"wrote {out / 'onset.json'}")
+    return 0
+
+
+def _plot_growth(res, combos, names, path, title):
+    import matplotlib.pyplot as plt
+
+    from ..plots import save
+
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, c in enumerate(combos):
+        label = ", ".join(f"{k} = {v:g}" for k, v in zip(names, c)) or None
+        ax.plot(res.Q_grid, res.omega_grid[i].imag, "-o", ms=3, label=label)
+        if math.isfinite(res.Q_onset[i]):
+            ax.plot([res.Q_onset[i]], [0.0], "kx")
+    ax.axhline(0.0, color="k", lw=0.6)
+    ax.set_xlabel("heat input Q [W]")
+    ax.set_ylabel("growth rate Im omega [1/s]")
+    ax.set_title(f"{title}: growth rate (x: onset)")
+    if names and len(combos) <= 12:
+        ax.legend(fontsize=7)
+    save(fig, path)
