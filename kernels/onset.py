@@ -24,7 +24,7 @@ from .cmath import cabs, cdiv, cmul, cplx, csqrt
 from .forward import (GAUSS_1, GAUSS_2, GAUSS_3, PI, TWO_PI, frame_mobility, pore_geometry, shape_factor,
                       thermal_radius)
 from .gas import sound_speed_squared
-from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile
+from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
 from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
 
 END_CLOSED = wp.constant(0)
@@ -226,3 +226,35 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                                      ends, z_left, z_right, i, x2, w_ref)
     omega_out[i] = x2
     iterations[i] = done
+
+
+@wp.kernel
+def hot_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+               gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), first: int, heat_cells: int,
+               out: wp.array(dtype=wp.float64)):
+    """out[i]: the largest steady temperature [K] of set i. In each heat cell the profile
+    has at most one interior maximum (a cosh plus a constant, or the Kirchhoff cell's
+    smooth profile): the cell's ends, and where dT/dx goes from > 0 to < 0 across the cell,
+    the zero of dT/dx by bisection (60 halvings: the cell length times 1e-18)."""
+    i = wp.tid()
+    best = params[T_COLD, i]
+    for s in range(flags.shape[0]):
+        if flags[s, F_THERMAL] != 0:
+            dh = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
+            for c in range(heat_cells):
+                a = wp.float64(c) * dh
+                b = a + dh
+                ta, da = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, a)
+                tb, db = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, b)
+                best = wp.max(best, wp.max(ta, tb))
+                if da > wp.float64(0.0) and db < wp.float64(0.0):
+                    for it in range(60):
+                        mid = wp.float64(0.5) * (a + b)
+                        tm, dm = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, mid)
+                        if dm > wp.float64(0.0):
+                            a = mid
+                        else:
+                            b = mid
+                    tm, dm = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, wp.float64(0.5) * (a + b))
+                    best = wp.max(best, tm)
+    out[i] = best

@@ -185,7 +185,7 @@ def test_heated_engine_against_reference():
     cells per thermal segment) equals the root of Tup = 0 of the reference (closed-form
     ducts, DOP853 at complex omega with the exact heat profile) found by SciPy's secant
     from an independent start, within 1e-6 |omega|; T_hot equals the exact heat profile's
-    largest temperature within 1e-6 relative."""
+    largest temperature (HeatSolution.theta_max) within 1e-9 relative."""
     eng = load_engine("standing_wave")
     Q = 40.0
     res = eigenfrequencies(eng, Q, cells=16, device=DEVICE)
@@ -193,10 +193,8 @@ def test_heated_engine_against_reference():
                       maxiter=50)
     assert abs(res.omega[0] - exact) < 1e-6 * abs(exact)
     assert exact.imag > 0      # 40 W is above onset for this engine (growth)
-    hs = ref.heat_profile_exact(eng.core, Q)
-    x = np.linspace(0, eng.core.positions()[-1], 20001)
-    T_max = float(np.max(hs.temperature(x)))
-    assert abs(res.T_hot[0] - T_max) < 1e-6 * T_max
+    T_max = eng.core.gas.T_cold + ref.heat_profile_exact(eng.core, Q).theta_max()[1]
+    assert abs(res.T_hot[0] - T_max) < 1e-9 * T_max
 
 
 def test_onset_against_bisection():

@@ -39,8 +39,6 @@ from ..kernels import onset as ko
 
 #: Relative spread of Muller's three start points around the guess.
 MULLER_SPREAD = 1e-3
-#: Points of the T_hot search grid over the core.
-T_HOT_POINTS = 4001
 
 
 @dataclass
@@ -125,10 +123,11 @@ class EigenSolver:
         return (mode - 0.5 * (open_ends == 1)) * math.pi / tau
 
     def solve(self, varying: np.ndarray, resonator: np.ndarray, guess: np.ndarray | None, omega_ref: np.ndarray | None,
-              mode: int = 1, tol: float = 1e-13, max_iter: int = 60) -> EigenResult:
+              mode: int = 1, tol: float = 1e-13, max_iter: int = 60, hot: bool = True) -> EigenResult:
         """Eigenfrequencies of the (1 + names, n) batch ``varying`` (row 0 heat input [W])
         with resonator rows (n, 6). ``guess`` (n,) complex start [rad/s] and ``omega_ref``
-        (n,) [rad/s] for the adaptive cells: None takes the lossless mode ``mode``."""
+        (n,) [rad/s] for the adaptive cells: None takes the lossless mode ``mode``.
+        ``hot``: also the largest temperature (else T_hot is NaN)."""
         fe = self.forward
         dev = fe.device
         params, theta = fe.heat(np.ascontiguousarray(varying, dtype=np.float64))
@@ -149,23 +148,15 @@ class EigenSolver:
                           fe.heat_cells, w_res, self.ends, self.z_left, self.z_right, w_guess, w_ref,
                           MULLER_SPREAD, float(tol), int(max_iter), omega, its])
         return EigenResult(omega.numpy().view(np.complex128).reshape(n), np.asarray(varying[0]).copy(),
-                           self.hot_temperature(params, theta), its.numpy())
+                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy())
 
     def hot_temperature(self, params: wp.array, theta: wp.array) -> np.ndarray:
-        """Largest steady temperature [K] in the core per set, on a grid of
-        :data:`T_HOT_POINTS` over the thermal segments (spacing ~ 4e-5 m for the bundled
-        cores: the parabolic error at a peak inside the heater is ~1e-7 relative)."""
-        core = self.engine.core
-        if not core.thermal_indices:
-            return params.numpy()[layout.T_COLD].copy()
-        table = params.numpy()
-        rows = [layout.N_GLOBAL + s * layout.N_FIELDS + layout.LENGTH for s in range(len(core.segments))]
-        ends = np.cumsum(table[rows], axis=0)
-        first, last = core.thermal_indices[0], core.thermal_indices[-1]
-        start = float(np.min(ends[first - 1])) if first > 0 else 0.0
-        x = np.linspace(start, float(np.max(ends[last])), T_HOT_POINTS)
-        T, _ = self.forward.temperature(params, theta, x)
-        return T.max(axis=1)
+        """Largest steady temperature [K] in the core per set (:func:`tawarp.kernels.onset.hot_kernel`)."""
+        fe = self.forward
+        out = wp.empty(params.shape[1], dtype=wp.float64, device=fe.device)
+        wp.launch(ko.hot_kernel, dim=params.shape[1], device=fe.device,
+                  inputs=[params, fe.flags, fe.gas, theta, fe.first, fe.heat_cells, out])
+        return out.numpy()
 
 
 def prepare(engine: ThermoacousticEngine, heat_input, params: dict | None, settings: ForwardSettings | None, **kw):
@@ -241,7 +232,7 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
     def at(idx: np.ndarray, Q: np.ndarray, guess: np.ndarray) -> EigenResult:
         v = varying[:, idx].copy()
         v[0] = Q
-        r = solver.solve(v, resonator[idx], guess, w_ref[idx])
+        r = solver.solve(v, resonator[idx], guess, w_ref[idx], hot=False)
         _warn_unconverged(r.iterations, Q)
         return r
 
@@ -272,7 +263,6 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         gn = r.omega.imag
         Q_on[idx[a]] = q_new
         w_on[idx[a]] = r.omega
-        T_on[idx[a]] = r.T_hot
         lo = gn < 0
         for k, ai in enumerate(a):
             if lo[k]:
@@ -288,6 +278,10 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         # converged: the bracket, or the secant's own step, below rtol Q
         active[a] = ~((q_hi[a] - q_lo[a] <= rtol * q_new) | (np.abs(q_new - q_prev[a]) <= rtol * q_new) | (gn == 0))
         q_prev[a] = q_new
+    if idx.size:
+        v = varying[:, idx].copy()
+        v[0] = Q_on[idx]
+        T_on[idx] = solver.hot_temperature(*solver.forward.heat(v))
     if active.any():
         warnings.warn(f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
                       RuntimeWarning, stacklevel=2)
