@@ -89,6 +89,8 @@ def report_markdown(report: dict) -> str:
              f"- error before: {r['error_before']:.4g}; after: {r['error_after']:.4g}"
              + (f"; noise floor: {r['noise_floor']:.4g}" if r["noise_floor"] else ""),
              f"- chosen effect: **{r['chosen_effect']}**" + (f" ({r['chosen_description']})" if r["chosen_effect"] else ""),
+             *([f"- indistinguishable on these data: **{', '.join(r['indistinguishable'])}** (BIC within "
+                f"{r['indistinguishable_bic']:g}); 'after' shows {r['best_effect']}"] if r.get("indistinguishable") else []),
              f"- acceptance: {r['acceptance_test']}",
              f"- residual structure before: {r['residual_structure_before']['structured_fraction']:.3f} of the residual "
              f"is smooth in frequency (white noise: {r['residual_structure_before']['structured_fraction_if_white']:.3f})",

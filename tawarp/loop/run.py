@@ -22,6 +22,9 @@ DELTA_BIC = -10.0
 F_TEST_P = 0.01
 NOISE_FACTOR = 1.5
 CHI2_P = 1e-3
+#: Two effects whose BIC differ by less than this are indistinguishable ("not worth more
+#: than a bare mention" on Kass & Raftery's scale).
+INDISTINGUISHABLE_BIC = 2.0
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
@@ -143,9 +146,16 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         rest = [s["effect"] for s in sorted(scores, key=lambda s: -s["score"]) if s["effect"] not in candidates]
         if rest:
             refit(rest)
+    bic = {name: c["fit"].bic(has_sigma) for name, c in candidates.items()}
     accepted = [name for name, c in candidates.items() if c["accepted"]]
-    chosen = min(accepted, key=lambda n: candidates[n]["fit"].bic(has_sigma)) if accepted else None
-    after = candidates[chosen]["fit"] if chosen else base
+    best = min(accepted, key=bic.get) if accepted else None
+    # a rival that the data support as strongly (Delta BIC and F-test passed, BIC within
+    # INDISTINGUISHABLE_BIC of the best) cannot be told apart from it: name both, choose neither
+    rivals = [name for name, c in candidates.items() if best and name != best and c["checks"]["delta_bic"]
+              and c["checks"]["f_test"] and abs(bic[name] - bic[best]) < INDISTINGUISHABLE_BIC]
+    chosen = None if rivals else best
+    indistinguishable = sorted([best] + rivals) if rivals else []
+    after = candidates[best]["fit"] if best else base
     report = {
         "kind": problem.name,
         "n_residuals": N,
@@ -154,11 +164,15 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         "error_after": float(after.rms_error[0]),
         "chosen_effect": chosen,
         "chosen_description": next((e.description for e in library if e.name == chosen), None),
+        "indistinguishable": indistinguishable,
+        "indistinguishable_bic": INDISTINGUISHABLE_BIC,
+        "best_effect": best,
         "acceptance_test": (f"accepted when Delta BIC < {DELTA_BIC:g}, F-test p < {F_TEST_P:g} (the cost drop exceeds "
                             f"what noise gives), the held-out rows ({held}) are predicted better than by the base "
                             f"model" + (f", and the residual after is noise (chi^2 p > {CHI2_P:g}, error after <= "
                                         f"{NOISE_FACTOR:g} x noise floor)" if floor else "")
-                            + "; lowest BIC among accepted"),
+                            + f"; lowest BIC among accepted; candidates within {INDISTINGUISHABLE_BIC:g} of it in BIC that "
+                              "also pass the BIC and F tests are reported as indistinguishable, none chosen"),
         "held_out": held,
         "second_pass": second_pass,
         "note": (None if floor is not None else
@@ -186,7 +200,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     if drift_h:
         report["drift_before"] = drift(problem, base_params, base, fixed, None)
         report["drift_after"] = (drift(problem, base_params, after, _effect_fixed(after, base_params), after.effect)
-                                 if chosen else report["drift_before"])
+                                 if best else report["drift_before"])
     report["_fits"] = {"before": base, "after": after}
     return report
 
