@@ -62,13 +62,28 @@ def postgres(tmp_path_factory):
     srv.cleanup()
 
 
+_STARTED: list[subprocess.Popen] = []
+
+
+@pytest.fixture(autouse=True)
+def _no_worker_outlives_its_test():
+    """A failing test leaves no worker running (some are asked for 10**6 trials)."""
+    yield
+    while _STARTED:
+        p = _STARTED.pop()
+        if p.poll() is None:
+            p.kill()
+            p.communicate()
+
+
 def _design(url: str, worker: str, trials: int, out, seed: int = 0) -> subprocess.Popen:
     """``tawarp design`` over :func:`_space` as a process of its own, storing into ``url``."""
     argv = ["design", "rvc_foam", *(a for v in VARS for a in ("--var", v)), "--trials", trials, "--batch", BATCH,
             "--storage", url, "--worker", worker, "--seed", seed, "--device", "cpu", "--quiet", "--no-plots",
             "-o", out]
-    return subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
-                             *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    _STARTED.append(subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
+                                      *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    return _STARTED[-1]
 
 
 def _study(storage):
