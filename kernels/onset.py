@@ -188,42 +188,53 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
     ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge."""
     i = wp.tid()
     w_ref = omega_ref[i]
-    x2 = guess[i]
-    x0 = x2 - wp.vec2d(spread * x2[0], spread * x2[1])
-    x1 = x2 + wp.vec2d(spread * x2[0], spread * x2[1] + spread * x2[0])
-    f0 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
-                         z_left, z_right, i, x0, w_ref)
-    f1 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
-                         z_left, z_right, i, x1, w_ref)
-    f2 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
-                         z_left, z_right, i, x2, w_ref)
+    g = guess[i]
+    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    x0 = g - wp.vec2d(spread * g[0], spread * g[1])
+    x1 = g + wp.vec2d(spread * g[0], spread * g[1] + spread * g[0])
+    x2 = g
+    f0 = zero
+    f1 = zero
+    f2 = zero
+    # one call site of the residual (it is large: inlined once, the kernel compiles fast);
+    # evaluations 0 and 1 only fill f0 and f1 at the start points, then each further one
+    # is at Muller's new point x2
     done = int(-1)
-    for it in range(max_iter):
+    for it in range(max_iter + 2):
         if done < 0:
-            h1 = x1 - x0
-            h2 = x2 - x1
-            d1 = cdiv(f1 - f0, h1)
-            d2 = cdiv(f2 - f1, h2)
-            a = cdiv(d2 - d1, h2 + h1)
-            b = cmul(a, h2) + d2
-            root = csqrt(cmul(b, b) - wp.float64(4.0) * cmul(f2, a))
-            e = b + root
-            if cabs(b - root) > cabs(e):
-                e = b - root
-            step = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-            if cabs(e) > wp.float64(0.0):
-                step = cdiv(wp.float64(-2.0) * f2, e)
-            x3 = x2 + step
-            x0 = x1
-            f0 = f1
-            x1 = x2
-            f1 = f2
-            x2 = x3
-            if cabs(step) <= tol * cabs(x3):
-                done = it + 1
+            x = x2
+            if it == 0:
+                x = x0
+            elif it == 1:
+                x = x1
+            fx = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator,
+                                 ends, z_left, z_right, i, x, w_ref)
+            if it == 0:
+                f0 = fx
+            elif it == 1:
+                f1 = fx
             else:
-                f2 = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator,
-                                     ends, z_left, z_right, i, x2, w_ref)
+                f2 = fx
+                h1 = x1 - x0
+                h2 = x2 - x1
+                d1 = cdiv(f1 - f0, h1)
+                d2 = cdiv(f2 - f1, h2)
+                a = cdiv(d2 - d1, h2 + h1)
+                b = cmul(a, h2) + d2
+                root = csqrt(cmul(b, b) - wp.float64(4.0) * cmul(f2, a))
+                e = b + root
+                if cabs(b - root) > cabs(e):
+                    e = b - root
+                step = zero
+                if cabs(e) > wp.float64(0.0):
+                    step = cdiv(wp.float64(-2.0) * f2, e)
+                x0 = x1
+                f0 = f1
+                x1 = x2
+                f1 = f2
+                x2 = x2 + step
+                if cabs(step) <= tol * cabs(x2):
+                    done = it - 1
     omega_out[i] = x2
     iterations[i] = done
 
