@@ -264,17 +264,13 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         Q_on[idx[a]] = q_new
         w_on[idx[a]] = r.omega
         lo = gn < 0
-        for k, ai in enumerate(a):
-            if lo[k]:
-                q_lo[ai], g_lo[ai], w_lo[ai] = q_new[k], gn[k], r.omega[k]
-                if side[ai] == -1:
-                    g_hi[ai] *= 0.5
-                side[ai] = -1
-            else:
-                q_hi[ai], g_hi[ai], w_hi[ai] = q_new[k], gn[k], r.omega[k]
-                if side[ai] == 1:
-                    g_lo[ai] *= 0.5
-                side[ai] = 1
+        al, ah = a[lo], a[~lo]          # the new point replaces the bracket end of its sign
+        q_lo[al], g_lo[al], w_lo[al] = q_new[lo], gn[lo], r.omega[lo]
+        q_hi[ah], g_hi[ah], w_hi[ah] = q_new[~lo], gn[~lo], r.omega[~lo]
+        # Illinois: the end kept twice in a row has its value halved
+        g_hi[al[side[al] == -1]] *= 0.5
+        g_lo[ah[side[ah] == 1]] *= 0.5
+        side[al], side[ah] = -1, 1
         # converged: the bracket, or the secant's own step, below rtol Q
         active[a] = ~((q_hi[a] - q_lo[a] <= rtol * q_new) | (np.abs(q_new - q_prev[a]) <= rtol * q_new) | (gn == 0))
         q_prev[a] = q_new
