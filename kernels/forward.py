@@ -7,7 +7,7 @@ Launch order for a batch of n parameter sets and m frequencies:
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
-3. :func:`transfer_kernel` ((n, m) threads): one thread per (set, frequency) cascades
+3. :func:`make_transfer_kernel` ((n, m) threads): one thread per (set, frequency) cascades
    the segment matrices from x1 to x6.
 """
 
@@ -99,60 +99,70 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
     return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
 
 
-@wp.kernel
-def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                    freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
-                    cell_density: wp.float64, first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
-    """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
-    frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
-    that is 0, ceil(cell_density (1 + k L + w L / c_cold)) cells: the profile varies
-    on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
-    cell scales with the sixth power of its length over those scales."""
-    i, j = wp.tid()
-    omega = TWO_PI * freqs[j]
-    p_mean = params[P_MEAN, i]
-    radius = params[RADIUS, i]
-    area = PI * radius * radius
-    T_cold = params[T_COLD, i]
-    m = identity2()
-    for s in range(flags.shape[0]):
-        length = seg_value(params, i, s, LENGTH)
-        phi, r, q = pore_geometry(params, flags, i, s)
-        r_k = thermal_radius(params, flags, i, s, r)
-        mob = frame_mobility(params, flags, i, s)
-        sf = shape_factor(params, flags, i, s)
-        model = flags[s, F_PORE_MODEL]
-        if flags[s, F_THERMAL] == 0:
-            a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf)
-            m = matmul2(expm2(scale2(a, length)), m)
-        else:
-            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-            dh = length / wp.float64(heat_cells)
-            node0 = (s - first) * heat_cells
-            nonlin = segment_nonlinear(params, i, s)
-            n_cells = seg_cells[s]
-            if n_cells == 0:
-                c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
-            h = length / wp.float64(n_cells)
-            for c in range(n_cells):
-                x0 = wp.float64(c) * h
-                a1 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
-                a2 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
-                a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
-                                     p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
-                m = matmul2(magnus6_step(a1, a2, a3, h), m)
-    out[i, j, 0] = m.a[0]
-    out[i, j, 1] = m.a[1]
-    out[i, j, 2] = m.b[0]
-    out[i, j, 3] = m.b[1]
-    out[i, j, 4] = m.c[0]
-    out[i, j, 5] = m.c[1]
-    out[i, j, 6] = m.d[0]
-    out[i, j, 7] = m.d[1]
+def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
+    """The cascade kernel (below), compiled for a linear heat model only (``nonlinear``
+    False: the Kirchhoff profile of the temperature-dependent effects is left out, which
+    frees registers on the GPU) or for both; ``max_registers`` caps the registers of a
+    CUDA thread (``__maxnreg__``)."""
+
+    def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                        gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                        freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
+                        cell_density: wp.float64, first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
+        """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
+        frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
+        that is 0, ceil(cell_density (1 + k L + w L / c_cold)) cells: the profile varies
+        on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
+        cell scales with the sixth power of its length over those scales."""
+        i, j = wp.tid()
+        omega = TWO_PI * freqs[j]
+        p_mean = params[P_MEAN, i]
+        radius = params[RADIUS, i]
+        area = PI * radius * radius
+        T_cold = params[T_COLD, i]
+        m = identity2()
+        for s in range(flags.shape[0]):
+            length = seg_value(params, i, s, LENGTH)
+            phi, r, q = pore_geometry(params, flags, i, s)
+            r_k = thermal_radius(params, flags, i, s, r)
+            mob = frame_mobility(params, flags, i, s)
+            sf = shape_factor(params, flags, i, s)
+            model = flags[s, F_PORE_MODEL]
+            if flags[s, F_THERMAL] == 0:
+                a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf)
+                m = matmul2(expm2(scale2(a, length)), m)
+            else:
+                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+                dh = length / wp.float64(heat_cells)
+                node0 = (s - first) * heat_cells
+                nonlin = 0
+                if wp.static(nonlinear):   # compiled out of the linear kernel: fewer registers on the GPU
+                    nonlin = segment_nonlinear(params, i, s)
+                n_cells = seg_cells[s]
+                if n_cells == 0:
+                    c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
+                    n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+                h = length / wp.float64(n_cells)
+                for c in range(n_cells):
+                    x0 = wp.float64(c) * h
+                    a1 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                    a2 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                    a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                    m = matmul2(magnus6_step(a1, a2, a3, h), m)
+        out[i, j, 0] = m.a[0]
+        out[i, j, 1] = m.a[1]
+        out[i, j, 2] = m.b[0]
+        out[i, j, 3] = m.b[1]
+        out[i, j, 4] = m.c[0]
+        out[i, j, 5] = m.c[1]
+        out[i, j, 6] = m.d[0]
+        out[i, j, 7] = m.d[1]
+
+    kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
+    return wp.kernel(transfer_kernel, module="unique", **kw)
 
 
 @wp.kernel

@@ -251,7 +251,7 @@ class Engine:
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
-        self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
+        self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
@@ -336,11 +336,9 @@ def _thread_pool(workers: int) -> ThreadPoolExecutor:
 
 
 @functools.cache
-def _transfer_kernel(max_registers: int | None):
-    """The cascade kernel, or a copy compiled with a register cap (CUDA ``__maxnreg__``)."""
-    if max_registers is None:
-        return kf.transfer_kernel
-    return wp.kernel(kf.transfer_kernel.func, cuda_max_registers=int(max_registers), module="unique")
+def _transfer_kernel(nonlinear: bool, max_registers: int | None):
+    """The cascade kernel for this heat model and register cap, compiled once per process."""
+    return kf.make_transfer_kernel(nonlinear, max_registers)
 
 
 def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:
