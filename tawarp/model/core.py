@@ -302,25 +302,36 @@ def load_core(path: str | Path) -> Core:
 
     ``path`` may also name a bundled core: ``ceramic``, ``mesh``, ``nicr_foam``, ``rvc_foam``.
     """
-    p = Path(path)
-    if not p.exists() and str(path) in bundled_cores():
-        p = Path(str(resources.files("tawarp") / "data" / "cores" / f"{path}.toml"))
-    if not p.exists():
-        raise FileNotFoundError(f"{path}: no such core file (bundled cores: {', '.join(bundled_cores())})")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise CoreError(f"{p}: not valid TOML: {e}") from None
+    p, data = read_toml(path, "cores")
     try:
         return core_from_dict(data, str(p))
     except TypeError as e:  # wrong value types reaching the dataclasses
         raise CoreError(f"{p}: {e}") from None
 
 
+def read_toml(path: str | Path, folder: str) -> tuple[Path, dict]:
+    """The path and parsed TOML of a description file; ``path`` may name a file bundled
+    in ``tawarp/data/FOLDER`` (without ``.toml``). Errors name the file."""
+    p = Path(path)
+    if not p.exists() and str(path) in bundled(folder):
+        p = Path(str(resources.files("tawarp") / "data" / folder / f"{path}.toml"))
+    if not p.exists():
+        raise FileNotFoundError(f"{path}: no such file (bundled {folder}: {', '.join(bundled(folder))})")
+    try:
+        return p, tomllib.loads(p.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise CoreError(f"{p}: not valid TOML: {e}") from None
+
+
+def bundled(folder: str) -> list[str]:
+    """Names of the TOML files shipped in ``tawarp/data/FOLDER``."""
+    return sorted(f.name[:-5] for f in (resources.files("tawarp") / "data" / folder).iterdir()
+                  if f.name.endswith(".toml"))
+
+
 def bundled_cores() -> list[str]:
     """Names of the paper-like cores shipped with tawarp (one per material of the paper)."""
-    folder = resources.files("tawarp") / "data" / "cores"
-    return sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml"))
+    return bundled("cores")
 
 
 def dump_core(core: Core) -> str:

@@ -21,14 +21,12 @@ from __future__ import annotations
 
 import csv
 import math
-import tomllib
 from dataclasses import dataclass, field
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
-from .core import Core, CoreError, core_from_dict
+from .core import Core, CoreError, bundled, core_from_dict, read_toml
 
 END_KINDS = ("closed", "open", "impedance")
 _SIDE_KEYS = ("", "_duct", "_duct_radius", "_duct_T", "_impedance", "_impedance_csv")
@@ -165,22 +163,13 @@ def engine_from_dict(data: dict, source: str = "<engine>", folder: Path | None =
 
 def bundled_engines() -> list[str]:
     """Names of the engines shipped with tawarp."""
-    folder = resources.files("tawarp") / "data" / "engines"
-    return sorted(f.name[:-5] for f in folder.iterdir() if f.name.endswith(".toml"))
+    return bundled("engines")
 
 
 def load_engine(path: str | Path) -> ThermoacousticEngine:
     """Read and validate an engine TOML file; ``path`` may name a bundled engine
     (``standing_wave``)."""
-    p = Path(path)
-    if not p.exists() and str(path) in bundled_engines():
-        p = Path(str(resources.files("tawarp") / "data" / "engines" / f"{path}.toml"))
-    if not p.exists():
-        raise FileNotFoundError(f"{path}: no such engine file (bundled engines: {', '.join(bundled_engines())})")
-    try:
-        data = tomllib.loads(p.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise CoreError(f"{p}: not valid TOML: {e}") from None
+    p, data = read_toml(path, "engines")
     try:
         return engine_from_dict(data, str(p), p.parent)
     except TypeError as e:
