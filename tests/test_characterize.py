@@ -133,3 +133,24 @@ def test_demo_fit_writes_every_material(tmp_path):
         for suffix in (".csv", ".json", "_step1.png", "_step2.png", "_h.png", "_temperature.png"):
             assert (tmp_path / f"fit_{mat}{suffix}").exists()
     assert (tmp_path / "fit_summary.json").exists()
+
+
+def test_uncertainty_propagation_steps_inside_the_bounds():
+    """A porosity fitted at its bound 1 (noisy data: issue 10 item 8) is differenced
+    towards the interior: the propagated covariance is finite and positive semi-definite
+    instead of 'porosity must lie in (0, 1], got 1.000001'."""
+    from tawarp.fit.characterize import default_heat_names, geometry_propagation
+    from tawarp.fit.estimate import predict
+
+    core = load_core("mesh").replace(**{"stack.porosity": 1.0})
+    freqs = np.linspace(50.0, 400.0, 6)
+    geometry, ties = default_geometry(core)
+    heat = default_heat_names(core)
+    hvals = np.array([[core.get(k) for k in heat]])
+    settings = ForwardSettings(device="cpu", cells=8)
+    Yh = predict(core, freqs, heat_input=40.0, settings=settings)
+    Y0 = predict(core, freqs, heat_input=0.0, settings=settings)[0]
+    Cg = np.diag([core.get(k) * 1e-3 for k in geometry]) ** 2
+    C = geometry_propagation(core, freqs, np.array([40.0]), heat, hvals, geometry, ties, Cg, Yh, Y0, None, settings)
+    assert C.shape == (1, len(heat), len(heat)) and np.all(np.isfinite(C))
+    assert np.linalg.eigvalsh(C[0]).min() >= -1e-12 * np.abs(C[0]).max()

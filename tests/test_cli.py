@@ -107,3 +107,15 @@ def test_quiet_prints_nothing_on_stdout(tmp_path):
     assert run.returncode == 0, run.stderr
     assert run.stdout == ""
     assert "initialized" not in run.stderr
+
+
+def test_fit_with_an_undetermined_std_prints_it(tmp_path, capsys):
+    """`tawarp fit DATA --fit stack.h` on data that do not determine h: fit.json is written
+    and the summary says 'undetermined' (a traceback before, issue 10 item 8)."""
+    from importlib import resources
+
+    data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
+    out = tmp_path / "f.json"
+    assert main(["fit", str(data), "--core", "ceramic", "--fit", "stack.h", "--device", "cpu", "--no-plots",
+                 "-o", str(out)]) == 0
+    assert "undetermined" in capsys.readouterr().out and out.exists()

@@ -81,7 +81,8 @@ def summary_text(obj: dict) -> str:
     entries += [(f"Q = {e['heat_input_W']:g} W" if e["heat_input_W"] is not None else obj.get("kind", ""), e)
                 for e in obj.get("fits", [])]
     for label, e in entries:
-        pars = "  ".join(f"{k} = {v['value']:.4g} ± {v['std']:.2g}" for k, v in e["parameters"].items())
+        pars = "  ".join(f"{k} = {v['value']:.4g} ± " + (f"{v['std']:.2g}" if v["std"] is not None else "undetermined")
+                         for k, v in e["parameters"].items())
         lines.append(f"{label:>11}  {pars}  (rms {e['rms_error']:.2e}, {e['iterations']} it, "
                      f"{'ok' if e['converged'] else e['reason']})")
     return "\n".join(lines)

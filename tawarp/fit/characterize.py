@@ -34,6 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
+from ..model.fields import field as field_spec
 from ..model.core import Core, load_core
 from .estimate import FitResult, fit, predict
 from ..model.forward import ForwardSettings
@@ -255,7 +256,9 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
     k_sets = 1 + ph + pg
     params = {k: np.repeat(hvals[:, a], k_sets).reshape(nQ, k_sets).copy() for a, k in enumerate(heat_names)}
     params.update({k: np.full((nQ, k_sets), g0[b]) for b, k in enumerate(geometry)})
-    steps = np.concatenate([hvals * rel, np.broadcast_to(g0 * rel, (nQ, pg))], axis=1)   # (nQ, ph + pg)
+    # steps towards the interior: a porosity fitted at 1 must not be stepped past it
+    g_step = np.array([-rel * g if g * (1 + rel) > field_spec(k).upper else rel * g for k, g in zip(geometry, g0)])
+    steps = np.concatenate([hvals * rel, np.broadcast_to(g_step, (nQ, pg))], axis=1)     # (nQ, ph + pg)
     for a, k in enumerate(heat_names + geometry):
         params[k][:, 1 + a] += steps[:, a]
     flat = {k: v.reshape(-1) for k, v in params.items()}
@@ -266,9 +269,9 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
     if bias_correction:
         p0 = {k: np.full(1 + pg, g0[b]) for b, k in enumerate(geometry)}
         for b, k in enumerate(geometry):
-            p0[k][1 + b] += g0[b] * rel
+            p0[k][1 + b] += g_step[b]
         Y0m = predict(core1, freqs, p0, heat_input=0.0, ties=ties, settings=settings)        # (1 + pg, m, 4)
-        dY0 = (Y0m[1:] - Y0m[:1]) / (g0 * rel)[:, None, None]
+        dY0 = (Y0m[1:] - Y0m[:1]) / g_step[:, None, None]
         Jg = Jg - (Yh / Y0[None])[:, None] * dY0[None]
     w = np.ones((nQ, m, 4, 2)) if w2 is None else np.broadcast_to(w2, (nQ, m, 4, 2))
     out = np.zeros((nQ, ph, ph))
