@@ -119,3 +119,31 @@ def test_fit_with_an_undetermined_std_prints_it(tmp_path, capsys):
     assert main(["fit", str(data), "--core", "ceramic", "--fit", "stack.h", "--device", "cpu", "--no-plots",
                  "-o", str(out)]) == 0
     assert "undetermined" in capsys.readouterr().out and out.exists()
+
+
+def test_fit_of_a_passive_core_recovers_the_layer(tmp_path, capsys):
+    """A passive core (no heater) takes the kind fit of every porous segment's geometry
+    (a StopIteration traceback before, issue 10 item 8). Data from the independent
+    reference; the core file starts 15 % off on every parameter."""
+    from tawarp import reference
+    from tawarp.measure.files import TMatrixData, write_tmatrix_csv
+    from tawarp.model.core import Core, Segment, dump_core
+
+    truth = {"layer.porosity": 0.95, "layer.pore_radius": 2e-4, "layer.tortuosity": 1.1}
+    segs = (Segment("duct_left", "duct", 0.05), Segment("layer", "porous", 0.03, porosity=0.95, pore_radius=2e-4,
+                                                        tortuosity=1.1), Segment("duct_right", "duct", 0.05))
+    core = Core(segs, radius=0.05, source="passive")
+    freqs = np.linspace(100.0, 1000.0, 12)
+    T = reference.transfer_matrix(core, freqs)
+    write_tmatrix_csv(tmp_path / "p.csv", TMatrixData(np.zeros(12), freqs, T, source="p.csv"))
+    start = core.replace(**{"layer.porosity": 0.95 * 0.85, "layer.pore_radius": 2e-4 * 1.15,
+                            "layer.tortuosity": 1.1 * 1.15})
+    (tmp_path / "start.toml").write_text(dump_core(start))
+    out = tmp_path / "f.json"
+    assert main(["fit", str(tmp_path / "p.csv"), "--core", str(tmp_path / "start.toml"), "--device", "cpu",
+                 "--no-plots", "--quiet", "-o", str(out)]) == 0
+    import json
+
+    got = json.loads(out.read_text())["fits"][0]["parameters"]
+    for name, v in truth.items():
+        assert got[name]["value"] == pytest.approx(v, rel=1e-4), name

@@ -51,7 +51,7 @@ def cmd_fit(args) -> int:
     out = Path(args.output)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
-        if not isinstance(kind, TMatrixKind):
+        if not isinstance(kind, TMatrixKind) or not core.thermal_indices:   # other kinds, passive cores
             res = fit_kind(kind, names)
             obj = {"kind": kind.name, "source": str(args.data), "fits": [{**res.problem(0), "heat_input_W": None}]}
         elif names:

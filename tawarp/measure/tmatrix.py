@@ -63,11 +63,16 @@ class TMatrixKind(MeasurementKind):
         return cls(data, core_for(data, core, path), settings)
 
     def default_names(self) -> list[str]:
-        """The stack's porosity and pore radius and the h of thermal segments with h > 1."""
+        """The stack's porosity and pore radius and the h of thermal segments with h > 1;
+        for a passive core (no stack) every porous segment's porosity, pore radius and
+        tortuosity."""
         from ..model.effects import stack_and_heater
 
         stack, _ = stack_and_heater(self.core)
-        names = [f"{stack}.porosity", f"{stack}.pore_radius"] if stack else []
+        if stack is None:
+            return [f"{s.name}.{f}" for s in self.core.segments if s.is_porous
+                    for f in ("porosity", "pore_radius", "tortuosity")]
+        names = [f"{stack}.porosity", f"{stack}.pore_radius"]
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:

@@ -104,7 +104,10 @@ class Core:
 
     @property
     def heater_index(self) -> int:
-        return next(i for i, s in enumerate(self.segments) if s.heater)
+        for i, s in enumerate(self.segments):
+            if s.heater:
+                return i
+        raise CoreError(f"{self.source}: no segment has heater = true (a passive core has no heat input)")
 
     def segment(self, name: str) -> Segment:
         for s in self.segments:
