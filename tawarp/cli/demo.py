@@ -94,14 +94,15 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
 
 
 def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: int = 40, noise: float = 0.005,
-             seed: int = 0, cells: int | None = None, spread: bool = True) -> dict:
+             seed: int = 0, cells: int | None = None, spread: bool = False) -> dict:
     """Fit every bundled core's synthetic data end to end (``tawarp demo``): writes
     ``OUT/fit_MATERIAL.csv`` (data), ``OUT/fit_MATERIAL.json`` and figures, and
     ``OUT/fit_summary.json``; returns the summary dict and prints a table (unless quiet).
 
-    Starts: a Sobol spread (no prior) in both steps (``spread=True``), else 20 % off the
-    truth (geometry) and 50 % off (h); 2 restarts at ±20 % either way. On the 2-core CPU
-    the default takes about 110 s, ``n_freqs=16, spread=False`` about 8 s (mostly figures)."""
+    Starts: 20 % off the truth (geometry) and 50 % off (h), as a user's prior would be
+    (default), or a Sobol spread with no prior in both steps (``spread=True``); 2 restarts
+    at ±20 % either way. On the 2-core CPU the default takes about 10 s, ``spread=True``
+    about 120 s (8 starts per problem)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = ForwardSettings(cells=cells, device=device)
