@@ -131,7 +131,7 @@ class ForwardSettings:
     convergence studies need. The adaptive count jumps by whole cells as k (h, the
     conductivities) or w change, so the model is piecewise smooth in those parameters at
     the 1e-7 level: finite-difference Jacobians must use fixed cells
-    (:func:`tawarp.estimate.smooth_settings` picks them). ``heat_cells``: heat-grid cells per thermal segment;
+    (:func:`tawarp.measure.kind.smooth_settings` picks them). ``heat_cells``: heat-grid cells per thermal segment;
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values);
@@ -140,7 +140,7 @@ class ForwardSettings:
     every core this process may use; results are bit-for-bit those of one thread); ``device``.
     When a temperature-dependent effect (``fields.NONLINEAR_FIELDS``) is on in the core or
     varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
-    segment and the heat solve iterates (Picard, at most ``picard_iterations`` solves,
+    segment and the heat solve iterates (Kirchhoff cells, kernels/heat.py: at most ``picard_iterations`` solves,
     until the largest nodal change is below ``picard_tol`` of the largest theta)."""
 
     cells: int | dict | None = None
