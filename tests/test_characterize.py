@@ -154,3 +154,20 @@ def test_uncertainty_propagation_steps_inside_the_bounds():
     C = geometry_propagation(core, freqs, np.array([40.0]), heat, hvals, geometry, ties, Cg, Yh, Y0, None, settings)
     assert C.shape == (1, len(heat), len(heat)) and np.all(np.isfinite(C))
     assert np.linalg.eigvalsh(C[0]).min() >= -1e-12 * np.abs(C[0]).max()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_fit_json_gives_an_honest_verdict(seed):
+    """goodness_of_fit in every step (issue 10 item 5): data of the mesh fitted with the
+    mesh core are adequate (chi^2 p-value >= 1e-3: reduced chi^2 near 1); the same data
+    fitted with the ceramic core are not (reduced chi^2 >> 1)."""
+    data = make_paper_data("mesh", noise=0.005, seed=seed, freqs=np.linspace(30, 500, 12), heat_inputs=[0.0, 40.0],
+                           cells=8, device="cpu")
+    st = ForwardSettings(device="cpu", cells=8)
+    right = characterize(data, "mesh", settings=st).to_json()
+    wrong = characterize(data, "ceramic", settings=st).to_json()
+    for step in [right["step1"]] + right["step2"]:
+        gof = step["goodness_of_fit"]
+        assert gof["adequate"] is True and 0.5 < gof["reduced_chi2"] < 1.6, gof
+    gof = wrong["step1"]["goodness_of_fit"]
+    assert gof["adequate"] is False and gof["reduced_chi2"] > 10, gof

@@ -147,3 +147,15 @@ def test_fit_of_a_passive_core_recovers_the_layer(tmp_path, capsys):
     got = json.loads(out.read_text())["fits"][0]["parameters"]
     for name, v in truth.items():
         assert got[name]["value"] == pytest.approx(v, rel=1e-4), name
+
+
+def test_an_inadequate_fit_says_so(tmp_path, capsys):
+    """`tawarp synth mesh; tawarp fit --core ceramic` reported 'ok' on every line at a
+    reduced chi^2 of ~2000 (issue 10 item 5); now the summary flags it."""
+    csv = tmp_path / "m.csv"
+    assert main(["synth", "mesh", "-o", str(csv), "--freqs", "30:500:12", "--Q", "0,40", "--cells", "8",
+                 "--device", "cpu", "--quiet"]) == 0
+    assert main(["fit", str(csv), "--core", "ceramic", "--cells", "8", "--device", "cpu", "--no-plots",
+                 "-o", str(tmp_path / "f.json")]) == 0
+    out = capsys.readouterr().out
+    assert "INADEQUATE FIT: reduced chi^2 = " in out

@@ -85,4 +85,11 @@ def summary_text(obj: dict) -> str:
                          for k, v in e["parameters"].items())
         lines.append(f"{label:>11}  {pars}  (rms {e['rms_error']:.2e}, {e['iterations']} it, "
                      f"{'ok' if e['converged'] else e['reason']})")
+        gof = e.get("goodness_of_fit") or {}
+        if gof.get("adequate") is False:
+            why = [f"reduced chi^2 = {gof['reduced_chi2']:.3g} (p = {gof['chi2_p_value']:.2g})"
+                   if gof.get("reduced_chi2") is not None else "",
+                   f"at a bound: {', '.join(gof['parameters_at_bounds'])}" if gof["parameters_at_bounds"] else ""]
+            lines.append(f"{'':>11}  INADEQUATE FIT: {'; '.join(w for w in why if w)}: the model does not describe "
+                         f"these data within their noise")
     return "\n".join(lines)

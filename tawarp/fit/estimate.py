@@ -533,7 +533,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
                      warnings=warn_list, problem_warnings=[[m for _, m in x] for x in per],
                      distinct_minima=distinct, restart_values=restart_values, restart_cost=restart_cost,
                      restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations, launches=prob.launches,
-                     seconds=time.perf_counter() - t0)
+                     seconds=time.perf_counter() - t0, weighted=weights is not None, lower=prob.lo, upper=prob.hi)
 
 
 def _fmt(names, v) -> str:

@@ -189,7 +189,8 @@ def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effec
                      rms_error=one(kind.error(Y, rows)), s2=one(s2), dof=dof,
                      start=np.array([[par.start for par in params]]), problem_warnings=[[]],
                      evaluations=evaluations, seconds=seconds, params=list(params), x=np.asarray(x, dtype=float)[None],
-                     residuals=r[None], jacobian=J[None], model=Y[None], effect=effect, n=n)
+                     residuals=r[None], jacobian=J[None], model=Y[None], effect=effect, n=n, weighted=kind.has_sigma,
+                     lower=np.array([par.lower for par in params]), upper=np.array([par.upper for par in params]))
 
 
 def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,

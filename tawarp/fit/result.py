@@ -7,6 +7,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import stats
+
+#: A fit is adequate when its chi^2 (weights 1/sigma) has a p-value of at least this for
+#: its degrees of freedom, and no parameter sits at a bound of its fit range.
+ADEQUATE_P = 1e-3
 
 
 @dataclass
@@ -60,6 +65,37 @@ class FitResult:
     model: np.ndarray | None = None
     effect: object = None
     n: int = 0
+    #: the weights were 1/sigma (so the cost is a chi^2); the fit range of each parameter (p,)
+    weighted: bool = False
+    lower: np.ndarray | None = None
+    upper: np.ndarray | None = None
+
+    def at_bounds(self, i: int = 0) -> list[str]:
+        """Parameters of problem ``i`` that ended on a bound of their fit range (to 1e-9
+        relative)."""
+        if self.lower is None:
+            return []
+        return [k for k, v, lo, hi in zip(self.names, self.values[i], self.lower, self.upper)
+                if min(v - lo, hi - v) <= 1e-9 * max(abs(v), 1e-300)]
+
+    def goodness_of_fit(self, i: int = 0) -> dict:
+        """The verdict on problem ``i`` (fit.json's ``goodness_of_fit``): reduced chi^2 and
+        its p-value when the weights were 1/sigma, the parameters at bounds, and
+        ``adequate`` by the rule of :data:`ADEQUATE_P` (None when there is no sigma and no
+        parameter at a bound: the noise level is then unknown)."""
+        at = self.at_bounds(i)
+        out = {"reduced_chi2": None, "chi2_p_value": None, "adequate": False if at else None,
+               "parameters_at_bounds": at,
+               "rule": f"adequate when the weights are 1/sigma and chi^2 has p-value >= {ADEQUATE_P:g} for "
+                       f"{self.dof} degrees of freedom, and no parameter sits at a bound of its fit range"}
+        if self.weighted:
+            chi2 = float(self.cost[i])
+            out["reduced_chi2"] = _json_float(chi2 / self.dof)
+            out["chi2_p_value"] = _json_float(stats.chi2.sf(chi2, self.dof))
+            out["adequate"] = bool(out["chi2_p_value"] is not None and out["chi2_p_value"] >= ADEQUATE_P and not at)
+        else:
+            out["note"] = "no sigma in the data: chi^2 needs sigma columns, the noise level is unknown"
+        return out
 
     def add_covariance(self, extra: np.ndarray) -> None:
         """Add ``extra`` (N, p, p) natural units (e.g. propagated uncertainty of fixed
@@ -99,7 +135,8 @@ class FitResult:
              "converged": bool(self.converged[i]), "reason": str(self.reason[i]),
              "iterations": int(self.iterations[i]), "cost": _json_float(self.cost[i]),
              "rms_error": _json_float(self.rms_error[i]), "s2": _json_float(self.s2[i]), "dof": int(self.dof),
-             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i])}
+             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i]),
+             "goodness_of_fit": self.goodness_of_fit(i)}
         if self.std_statistical is not None:
             for a, k in enumerate(self.names):
                 d["parameters"][k]["std_statistical"] = _json_float(self.std_statistical[i, a])
