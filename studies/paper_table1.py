@@ -2,7 +2,7 @@
 
     python studies/paper_table1.py [--device cpu] [--out studies/out]
 
-For each of the four materials, paper-like data (tawarp.synthetic: Table 1 geometry,
+For each of the four materials, paper-like data (tawarp.measure.synthetic: Table 1 geometry,
 h's of Sect. 5.2, heat inputs 0-80 W (RVC 0-18 W), 60 frequencies in the paper's
 ranges, 0.5 % complex noise, 48 Magnus cells) go through the two-step procedure with no
 prior (a Sobol spread of 8 starts in each step, then 2 restarts at ±20 %):
@@ -120,7 +120,7 @@ def main(argv=None) -> int:
     zmax = max(max(abs(z) for z in r["z_step1"].values()) for r in results.values())
     zmax2 = max(max(abs(z) for e in r["z_step2"] for z in e.values()) for r in results.values())
     md = ["# Table 1 from synthetic data", "",
-          f"Synthetic data: tawarp.synthetic, {args.noise * 100:g} % complex noise, seed {args.seed}, 60 frequencies, "
+          f"Synthetic data: tawarp.measure.synthetic, {args.noise * 100:g} % complex noise, seed {args.seed}, 60 frequencies, "
           "48 Magnus cells; fits: two-step procedure, Sobol spread of 8 starts and 2 restarts at ±20 % in each step, "
           "cells sized by the adaptive rule and fixed per fit. Values ± 1 std (step 2 std include the propagated "
           "step-1 uncertainty); h's at the largest heat input (80 W, RVC 18 W) in W/(m^2 K). The truth is the "

@@ -2,8 +2,8 @@
 
 This module is the *oracle* for the Warp kernels' tests and the CPU peer for the
 benchmarks. It shares no physics code with the kernels (``kernels/``): it only reads
-the gas constants (:data:`tawarp.gas.GASES`) and the core description
-(:class:`tawarp.core.Core`). Everything is float64 / complex128; accuracy comes first,
+the gas constants (:data:`tawarp.model.gas.GASES`) and the core description
+(:class:`tawarp.model.core.Core`). Everything is float64 / complex128; accuracy comes first,
 speed second.
 
 Conventions (PHYSICS.md):
@@ -17,7 +17,7 @@ Conventions (PHYSICS.md):
 Physics:
 
 * gas: ideal gas, ``rho = p_m/(R_gas T)``, ``c^2 = gamma R_gas T``, transport law
-  ``X(T) = X0 (T/T0)^a (1 + S/T0)/(1 + S/T)``, ``T0 = 273.15 K`` (:mod:`tawarp.gas`);
+  ``X(T) = X0 (T/T0)^a (1 + S/T0)/(1 + S/T)``, ``T0 = 273.15 K`` (:mod:`tawarp.model.gas`);
 * steady heat model (paper Eqs. 10-12) on the contiguous ``thermal`` segments, solved
   exactly (:func:`heat_profile_exact`);
 * acoustics: Rott's two-port ODE ``d(p,U)/dx = A(x) (p,U)``, closed form where the
@@ -789,5 +789,5 @@ def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, len
 
 def dimensionless_transfer(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12) -> np.ndarray:
     """Dimensionless coefficients (m, 4): ``Tpp, Tpu/Zc, Tup*Zc, Tuu`` with
-    ``Zc = rho0 c0/S`` at T_cold (:func:`tawarp.coefficients.normalize`)."""
+    ``Zc = rho0 c0/S`` at T_cold (:func:`tawarp.model.coefficients.normalize`)."""
     return normalize(transfer_matrix(core, freqs, heat_input, rtol), duct_impedance(core))

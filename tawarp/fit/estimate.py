@@ -9,8 +9,8 @@
 
 A *batch* is one core structure (same segments), one frequency grid ``freqs`` (m,) and
 N independent problems. Each problem has its own measured dimensionless coefficients
-``Y`` (N, m, 4) complex (``Tpp, Tpu/Zc, Tup*Zc, Tuu``, :func:`tawarp.coefficients.normalize`
-with :func:`tawarp.coefficients.duct_impedance` of the core), weights, heat input, fixed
+``Y`` (N, m, 4) complex (``Tpp, Tpu/Zc, Tup*Zc, Tuu``, :func:`tawarp.model.coefficients.normalize`
+with :func:`tawarp.model.coefficients.duct_impedance` of the core), weights, heat input, fixed
 parameter values (``fixed={"hot_hx.length": (N,)}``) and start values for the p free
 parameters ``names`` (``SEGMENT.FIELD``).
 

@@ -387,7 +387,7 @@ def read_scattering_csv(path: str | os.PathLike) -> TMatrixData:
     :func:`scattering_to_transfer`. Metadata: ``tube_radius`` [m], ``T_ambient`` [K],
     ``p_ambient`` [Pa], ``ref_upstream`` and ``ref_downstream`` [m] (distances from the
     reference planes to faces x1 and x6; >= 0), all required; ``gas`` (default air, one of
-    :data:`tawarp.gas.GASES`), ``convention`` (default exp(-iwt); exp(+iwt) S is
+    :data:`tawarp.model.gas.GASES`), ``convention`` (default exp(-iwt); exp(+iwt) S is
     conjugated), ``Q_W`` [W] (default 0). The waves are lossless plane waves,
     ``k = w / c0``, with ``c0 = sqrt(gamma R T_ambient)``, ``rho0 = p_ambient / (R T_ambient)``
     and ``Zc = rho0 c0 / (pi tube_radius^2)``.

@@ -102,7 +102,7 @@ def make_paper_data(material: str, noise: float = 0.005, bias=None, seed: int = 
     if write_sigma and noise > 0:
         s = np.abs(denormalize(sd.astype(complex), zc)).reshape(-1, 2, 2)
         sigma = np.stack([s, s], axis=-1)
-    meta = {"generator": "tawarp.synthetic.make_paper_data", "material": material, "noise": repr(noise),
+    meta = {"generator": "tawarp.measure.synthetic.make_paper_data", "material": material, "noise": repr(noise),
             "noise_model": "complex Gaussian, std noise*|Y|/sqrt(2) per part of each dimensionless coefficient",
             "bias": "none" if bias is None else " ".join(repr(complex(x)) for x in bias_factors(bias)),
             "seed": str(seed), "cells": str(cells), "core": material}

@@ -35,7 +35,7 @@ class CoreError(ValueError):
 
 @dataclass(frozen=True)
 class Gas:
-    """Working gas: ``name`` one of :data:`tawarp.gas.GASES`, mean pressure [Pa], cold temperature [K]."""
+    """Working gas: ``name`` one of :data:`tawarp.model.gas.GASES`, mean pressure [Pa], cold temperature [K]."""
 
     name: str = "air"
     p_mean: float = 101325.0

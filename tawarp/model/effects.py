@@ -16,7 +16,7 @@ T-dependent conductivity, radiation, convection in the buffer tube, wall conduct
 ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
 factor, thickness offset, limp frame, T_cold, p_mean).
 
-The kernel-level fields are documented at :data:`tawarp.core.EFFECT_OFF`.
+The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
 """
 
 from __future__ import annotations
