@@ -26,18 +26,3 @@ def test_rank_the_paper_materials_at_9_W():
         assert r["gradient_p025_K_per_m"] < r["gradient_mean_K_per_m"] < r["gradient_p975_K_per_m"]
     assert rows["rvc_foam"]["p_best"] > 0.9
     assert sum(r["p_best"] for r in rows.values()) == pytest.approx(1.0)
-
-
-# -- command line ----------------------------------------------------------------------------
-def _cli(argv):
-    import argparse
-
-    from tawarp.cli.design import add_design_parser, add_rank_parser, add_sweep_parser
-
-    parser = argparse.ArgumentParser(prog="tawarp")
-    sub = parser.add_subparsers(dest="command", required=True)
-    add_design_parser(sub)
-    add_rank_parser(sub)
-    add_sweep_parser(sub)
-    args = parser.parse_args(argv)
-    return args.func(args)
