@@ -1,0 +1,44 @@
+"""Property-based tests of the measurement readers (issue 10): whatever a CSV holds, each
+reader returns data or raises MeasurementError naming the file; never another exception."""
+
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from tawarp.measure import MeasurementError, read_impedance_csv, read_scattering_csv, read_tmatrix_csv
+
+TMATRIX = ("# convention = exp(-iwt)\nQ_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im\n"
+           "0,100,1,0,0,1,0,1e-6,1,0\n0,200,0.9,0,0,2,0,2e-6,0.9,0\n")
+IMPEDANCE = "# thickness = 0.02\nfreq_Hz,Zs_re,Zs_im\n100,1,2\n200,1.5,-1\n"
+SCATTERING = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_upstream = 0.1\n"
+              "# ref_downstream = 0.1\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
+              "100,0.1,0,0.9,0,0.9,0,0.1,0\n200,0.1,0,0.9,0,0.9,0,0.1,0\n")
+TOKENS = ["nan", "inf", "", "abc", "-1", "0", "1e400", ",", "\n", "# x = 1\n", "Q_W", '"', "\t", "\x00", ",,,"]
+edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS) | st.text(max_size=3))
+
+
+def _apply(text, edits):
+    for at, width, token in edits:
+        at = at % (len(text) + 1)
+        text = text[:at] + token + text[at + width:]
+    return text
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.sampled_from([TMATRIX, IMPEDANCE, SCATTERING]), st.lists(edit, min_size=1, max_size=4))
+def test_any_corruption_reads_or_is_named(tmp_path, base, edits):
+    p = tmp_path / "fuzz.csv"
+    p.write_text(_apply(base, edits))
+    for reader in (read_tmatrix_csv, read_impedance_csv, read_scattering_csv):
+        try:
+            reader(p)
+        except MeasurementError as e:
+            assert "fuzz.csv" in str(e)
+
+
+@pytest.mark.parametrize("base, reader", [(TMATRIX, read_tmatrix_csv), (IMPEDANCE, read_impedance_csv),
+                                          (SCATTERING, read_scattering_csv)])
+def test_the_uncorrupted_files_read(tmp_path, base, reader):
+    p = tmp_path / "ok.csv"
+    p.write_text(base)
+    assert len(reader(p)) == 2
