@@ -180,3 +180,24 @@ def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
     assert rep["error_after"] < 0.5 * rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.032) < 3 * dl["std"] + 2e-4
+
+
+def test_loop_reports_its_progress(monkeypatch):
+    """tawarp loop ran up to 400 s silent (issue 10 item 13): its bar passes every stage in order."""
+    import tawarp.loop.run as run
+
+    seen = []
+
+    class Bar:
+        def set_postfix_str(self, name):
+            seen.append(name)
+
+        def update(self, k):
+            pass
+
+        def close(self):
+            seen.append("closed")
+
+    monkeypatch.setattr(run, "progress_bar", lambda total, desc, enabled, unit: Bar())
+    loop_on({}, seed=SEED)
+    assert seen == list(run.STAGES) + ["closed"]

@@ -22,7 +22,7 @@ def add_loop_parser(sub) -> None:
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no chatter")
+    p.add_argument("--quiet", action="store_true", help="no progress bar or chatter")
     p.set_defaults(func=cmd_loop)
 
 
@@ -42,7 +42,7 @@ def cmd_loop(args) -> int:
             prob, rep = impedance_loop(prob.data, None, settings)
         else:
             names = [s.strip() for s in args.fit.split(",")] if args.fit else None
-            rep = run_loop(prob, default_base_params(prob, names))
+            rep = run_loop(prob, default_base_params(prob, names), progress=not args.quiet)
     js = write_report(prob, rep, args.output)
     if not args.quiet:
         print(f"error before {js['error_before']:.4g}, after {js['error_after']:.4g}; chosen effect: "

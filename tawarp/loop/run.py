@@ -15,6 +15,7 @@ from ..model.coefficients import rms_error
 from ..model.effects import Effect, Param, base_params, impedance_library, tmatrix_library
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
+from ..progress import progress_bar
 from .screen import residual_structure, screen
 
 #: Acceptance thresholds (package docstring, step 5).
@@ -87,26 +88,40 @@ def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
     return base_params(problem.core, names if names is not None else problem.default_names())
 
 
+#: The loop's stages, in order, as its progress bar names them.
+STAGES = ("base fit", "screening", "held-out base fit", "refits", "second pass", "drift")
+
+
 def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, library: list[Effect] | None = None,
-             top: int = 3, drift_h: bool = True) -> dict:
+             top: int = 3, drift_h: bool = True, progress: bool = False) -> dict:
     """The loop of the module docstring; returns the report dict (report.json).
-    ``library``: candidate effects (default :func:`library_for` the kind).
+    ``library``: candidate effects (default :func:`library_for` the kind); ``progress``: a
+    bar over the :data:`STAGES` (on a terminal only).
     """
+    bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
+
+    def stage(name: str) -> None:
+        bar.set_postfix_str(name)
+        bar.update(1)
+
     base_params = base_params or default_base_params(problem)
     if library is None:
         library = library_for(problem)
     fixed = {}
     base = fit_one(problem, base_params)
+    stage("base fit")
     N, p = base.n, len(base_params)
     rss0 = float(base.cost[0])
     floor = problem.noise_floor()
     has_sigma = problem.has_sigma
     structure_before = residual_structure(problem, base.model[0])
     scores = screen(problem, base, fixed, library)
+    stage("screening")
     promising = sorted([s for s in scores if s["linearized_p"] < F_TEST_P], key=lambda s: -s["score"])[:top]
     train, test, held = holdout_rows(problem)
     base_train = fit_one(problem, base_params, rows=train, x0=base.x[0])
     base_held_err = float(rms_error(problem.y[test], base_train.model[0, test]))
+    stage("held-out base fit")
     candidates = {}
 
     def refit(names: list[str]):
@@ -139,6 +154,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
                                   "held_out_error": held_err, "checks": checks, "accepted": all(checks.values())}
 
     refit([s["effect"] for s in promising])
+    stage("refits")
     second_pass = False
     if not any(c["accepted"] for c in candidates.values()):
         # the screening is linear: when no promising candidate is accepted, refit the rest too
@@ -146,6 +162,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         rest = [s["effect"] for s in sorted(scores, key=lambda s: -s["score"]) if s["effect"] not in candidates]
         if rest:
             refit(rest)
+    stage("second pass")
     bic = {name: c["fit"].bic(has_sigma) for name, c in candidates.items()}
     accepted = [name for name, c in candidates.items() if c["accepted"]]
     best = min(accepted, key=bic.get) if accepted else None
@@ -201,6 +218,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         report["drift_before"] = drift(problem, base_params, base, fixed, None)
         report["drift_after"] = (drift(problem, base_params, after, _effect_fixed(after, base_params), after.effect)
                                  if best else report["drift_before"])
+    stage("drift")
+    bar.close()
     report["_fits"] = {"before": base, "after": after}
     return report
 
