@@ -171,3 +171,22 @@ def test_fit_json_gives_an_honest_verdict(seed):
         assert gof["adequate"] is True and 0.5 < gof["reduced_chi2"] < 1.6, gof
     gof = wrong["step1"]["goodness_of_fit"]
     assert gof["adequate"] is False and gof["reduced_chi2"] > 10, gof
+
+
+def test_fit_mode_error_is_formats_error_over_all_rows(tmp_path):
+    """`tawarp fit --fit a,b` reported the mean of the per-Q errors (0.0704 against 0.0799
+    recomputed, issue 10 item 9): now FORMATS.md's rms|Y_meas - Y_model| / rms|Y_meas|
+    over every row, recomputed here from the fitted values."""
+    from tawarp.fit.characterize import fit_each_heat_input, grid
+    from tawarp.fit.estimate import predict
+
+    core = load_core("mesh")
+    data = make_paper_data("mesh", noise=0.02, seed=2, freqs=np.linspace(30, 500, 10), heat_inputs=[20.0, 80.0],
+                           cells=8, device="cpu")
+    st = ForwardSettings(device="cpu", cells=8)
+    obj = fit_each_heat_input(data, core, ["stack.h"], settings=st, restarts=0)
+    Qs, freqs, Y, _ = grid(data, core)
+    h = [f["parameters"]["stack.h"]["value"] for f in obj["fits"]]
+    model = predict(core, freqs, {"stack.h": np.array(h)}, heat_input=Qs, settings=st)
+    direct = np.sqrt(np.mean(np.abs(Y - model) ** 2) / np.mean(np.abs(Y) ** 2))
+    assert obj["rms_error"] == pytest.approx(direct, rel=1e-6)

@@ -373,7 +373,14 @@ def fit_each_heat_input(data: TMatrixData, core: Core, names, *, settings=None, 
     return {"data": data.source, "core": str(core.source), "freqs_Hz": freqs.tolist(), "fits": fits,
             "parameters": fits[0]["parameters"], "correlation": fits[0]["correlation"],
             "converged": bool(r.converged.all()), "iterations": int(r.iterations.sum()),
-            "cost": float(r.cost.sum()), "rms_error": float(np.sqrt(np.mean(r.rms_error ** 2))),
-            "warnings": r.warnings}
+            "cost": float(r.cost.sum()), "rms_error": pooled_error(r.rms_error, Y), "warnings": r.warnings}
+
+
+def pooled_error(errors: np.ndarray, Y: np.ndarray) -> float:
+    """FORMATS.md's error over all rows of N problems from each problem's own error
+    ``errors`` (N,) and measured values ``Y`` (N, ...): rms|dY| / rms|Y| pooled over the
+    rows, ``sqrt(sum e_i^2 |Y_i|^2 / sum |Y_i|^2)`` (not the mean of the per-problem ratios)."""
+    y2 = np.sum(np.abs(Y.reshape(len(errors), -1)) ** 2, axis=1)
+    return float(np.sqrt(np.sum(np.asarray(errors) ** 2 * y2) / np.sum(y2)))
 
 
