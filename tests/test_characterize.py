@@ -190,3 +190,32 @@ def test_fit_mode_error_is_formats_error_over_all_rows(tmp_path):
     model = predict(core, freqs, {"stack.h": np.array(h)}, heat_input=Qs, settings=st)
     direct = np.sqrt(np.mean(np.abs(Y - model) ** 2) / np.mean(np.abs(Y) ** 2))
     assert obj["rms_error"] == pytest.approx(direct, rel=1e-6)
+
+
+def test_grid_of_many_heat_inputs_equals_the_per_q_selection():
+    """grid() sorts once (it selected the rows of each Q in turn: quadratic in the number of
+    heat inputs, a hang at 19k, issue 10 item 10); same arrays as the per-Q selection, and a
+    heat input with other frequencies is named."""
+    from tawarp.fit.characterize import grid
+    from tawarp.measure.files import TMatrixData
+
+    rng = np.random.default_rng(0)
+    Qs, freqs = np.arange(0.0, 50.0, 0.5), np.array([40.0, 90.0, 300.0])
+    q, f = np.repeat(Qs, 3), np.tile(freqs, len(Qs))
+    perm = rng.permutation(q.size)                      # rows in any order
+    T = rng.standard_normal((q.size, 2, 2)) + 1j * rng.standard_normal((q.size, 2, 2))
+    sigma = rng.uniform(0.1, 1.0, (q.size, 2, 2, 2))
+    data = TMatrixData(q[perm], f[perm], T[perm], sigma[perm], source="many.csv")
+    core = load_core("mesh")
+    zc = duct_impedance(core)
+    got_Q, got_f, Y, sig = grid(data, core)
+    np.testing.assert_array_equal(got_Q, Qs)
+    np.testing.assert_array_equal(got_f, freqs)
+    for k, qk in enumerate(Qs):
+        d = data.select(qk)
+        o = np.argsort(d.freq)
+        np.testing.assert_array_equal(Y[k], normalize(d.T[o], zc))
+        np.testing.assert_array_equal(sig[k, :, 1], d.sigma[o][:, 0, 1] / zc)
+    data.freq[0] *= 1.5
+    with pytest.raises(ValueError, match="other frequencies"):
+        grid(data, core)

@@ -70,27 +70,25 @@ def default_heat_names(core: Core) -> list[str]:
 
 def grid(data: TMatrixData, core: Core):
     """Heat inputs (nQ,), shared frequencies (m,), dimensionless Y (nQ, m, 4) and
-    weights (nQ, m, 4, 2) or None, with rows sorted by frequency."""
+    weights (nQ, m, 4, 2) or None, with rows sorted by frequency. One sort of all rows
+    (linear in the file, whatever the number of heat inputs)."""
     Qs = data.heat_inputs
-    freqs = None
-    Ys, Ws = [], []
+    order = np.lexsort((data.freq, data.heat_input))
+    counts = np.unique(data.heat_input, return_counts=True)[1]
+    nQ, m = len(Qs), int(counts[0])
+    F = data.freq[order].reshape(nQ, m) if np.all(counts == m) else None
+    bad = (np.flatnonzero(counts != m) if F is None else
+           np.flatnonzero(~np.all(np.isclose(F, F[0], rtol=1e-9, atol=0.0), axis=1)))
+    if bad.size:
+        raise ValueError(f"{data.source}: the rows at Q = {Qs[bad[0]]:g} W have other frequencies than at "
+                         f"Q = {Qs[0]:g} W; every heat input must share one frequency grid")
     zc = duct_impedance(core)
-    for q in Qs:
-        d = data.select(q)
-        order = np.argsort(d.freq)
-        f = d.freq[order]
-        if freqs is None:
-            freqs = f
-        elif f.shape != freqs.shape or not np.allclose(f, freqs, rtol=1e-9):
-            raise ValueError(f"{data.source}: the rows at Q = {q:g} W have other frequencies than at Q = {Qs[0]:g} W; "
-                             "every heat input must share one frequency grid")
-        Ys.append(normalize(d.T[order], zc))
-        if d.sigma is not None:
-            s = d.sigma[order]                        # (m, 2, 2, 2) raw
-            sd = np.stack([s[:, 0, 0], s[:, 0, 1] / zc, s[:, 1, 0] * zc, s[:, 1, 1]], axis=1)  # (m, 4, 2)
-            Ws.append(sd)
-    sig = np.stack(Ws) if len(Ws) == len(Qs) else None
-    return Qs, freqs, np.stack(Ys), sig
+    Y = normalize(data.T[order], zc).reshape(nQ, m, 4)
+    sig = None
+    if data.sigma is not None:
+        s = data.sigma[order]                         # (rows, 2, 2, 2) raw
+        sig = np.stack([s[:, 0, 0], s[:, 0, 1] / zc, s[:, 1, 0] * zc, s[:, 1, 1]], axis=1).reshape(nQ, m, 4, 2)
+    return Qs, F[0], Y, sig
 
 
 @dataclass
