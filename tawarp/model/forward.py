@@ -283,7 +283,7 @@ class Engine:
         batches, where a thread's start costs more than it saves)."""
         if not wp.get_device(self.device).is_cpu:
             return 1
-        threads = self.settings.cpu_threads or len(os.sched_getaffinity(0))
+        threads = self.settings.cpu_threads or _usable_cores()
         return max(1, min(threads, n * len(self.freqs) // MIN_MODELS_PER_THREAD))
 
     def _evaluate_threaded(self, varying, parts: int, out):
@@ -323,6 +323,11 @@ class Engine:
         wp.launch(kf.profile_kernel, dim=(n, x.shape[0]), device=self.device,
                   inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT])
         return T.numpy(), dT.numpy()
+
+
+def _usable_cores() -> int:
+    """Cores this process may run on (the affinity mask where the OS has one)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 #: Fewest forward models (set x frequency) worth a CPU thread of their own.
