@@ -6,6 +6,8 @@ import argparse
 
 import numpy as np
 
+from ..measure import load_measurement
+
 
 def parse_list(text: str) -> np.ndarray:
     """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear); at least
@@ -35,6 +37,21 @@ def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars, banners or chatter")
     return p
+
+
+def add_measurement_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a measurement file shared by ``tawarp fit`` and ``tawarp loop``."""
+    p.add_argument("--empty-tube", default=None, metavar="EMPTY.csv",
+                   help="empty-tube scattering CSV (same tube, reference planes and frequencies, no sample) that "
+                        "calibrates scattering data: microphone gain/phase and the tube's own wavenumber "
+                        "(docs/formats.md)")
+    return p
+
+
+def load_data(args, settings):
+    """The measurement kind of ``args.data`` with ``args.core`` and, when given,
+    ``args.empty_tube`` (refused by kinds that take none)."""
+    return load_measurement(args.data, args.core, settings, empty_tube=getattr(args, "empty_tube", None))
 
 
 def _say(args, *text):
