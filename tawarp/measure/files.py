@@ -510,7 +510,9 @@ class ScatteringData:
             sigma = propagated_sigma(self.transfer, [self.S], [self.sigma])
         meta = dict(self.metadata)
         meta["converted_from"] = "scattering matrix"
-        return TMatrixData(np.full(len(self), self.heat_input), self.freq, self.transfer(), sigma, meta, self.source)
+        data = TMatrixData(np.full(len(self), self.heat_input), self.freq, self.transfer(), sigma, meta, self.source)
+        data.check()   # an overflow of extreme S: named, not NaN data
+        return data
 
 
 def _meta_signed(t: _Table, key: str, unit: str) -> float:

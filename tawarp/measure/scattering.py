@@ -80,6 +80,9 @@ def _check_pair(sample: ScatteringData, empty: ScatteringData, length: float) ->
     if D < 0:
         raise MeasurementError(f"{src}: the downstream reference plane lies {-D!r} m upstream of the upstream one "
                                f"(sample length {length!r} m); check ref_plane_upstream and ref_plane_downstream")
+    zero = np.flatnonzero(empty.S[:, 1, 0] == 0)
+    if zero.size:
+        raise MeasurementError(f"{src}: S21 = 0 at {empty.freq[zero[0]]!r} Hz: an empty tube transmits")
     refl = float(np.max(np.abs(empty.S[:, [0, 1], [0, 1]])))
     if refl > MAX_EMPTY_REFLECTION:
         raise MeasurementError(f"{src}: |S11| or |S22| reaches {refl:.3g} (> {MAX_EMPTY_REFLECTION}); an empty tube "
@@ -109,7 +112,9 @@ def calibrate_empty_tube(sample: ScatteringData, empty: ScatteringData, length: 
                  "empty_tube.gain_phase_deg": f"{np.degrees(np.min(np.angle(g))):.6g}.."
                                               f"{np.degrees(np.max(np.angle(g))):.6g}",
                  "empty_tube.sound_speed": f"{np.mean(2 * np.pi * sample.freq / k.real):.6g}"})
-    return TMatrixData(np.full(len(sample), sample.heat_input), sample.freq, T, sigma, meta, sample.source)
+    data = TMatrixData(np.full(len(sample), sample.heat_input), sample.freq, T, sigma, meta, sample.source)
+    data.check()
+    return data
 
 
 def sample_length(core: Core) -> float:
