@@ -184,9 +184,8 @@ def load_measurement(path, core: Core | None = None, settings: ForwardSettings |
     naming the option."""
     entry = kind_of(path)
     options = {k: v for k, v in options.items() if v is not None}
-    accepted = inspect.signature(entry.load).parameters
     for key in options:
-        if key not in accepted:
+        if key not in inspect.signature(entry.load).parameters:
             takers = [n for n, e in KINDS.items() if key in inspect.signature(e.load).parameters]
             raise MeasurementError(f"{path}: {entry.name} data take no {key} option (it applies to "
                                    f"{', '.join(takers) or 'no kind of'} data)")
