@@ -229,16 +229,24 @@ def write_tmatrix_csv(path: str | os.PathLike, data: TMatrixData, metadata: dict
     data.check()
     meta = {"convention": CONVENTION}
     meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k != "convention"})
+    _write_matrix_csv(path, meta, {"Q_W": data.heat_input, "freq_Hz": data.freq}, COEFFICIENTS, data.T, data.sigma)
+
+
+def _write_matrix_csv(path, meta: dict, leading: dict, entries: dict, M: np.ndarray, sigma) -> None:
+    """Metadata lines ``meta``, a header of the ``leading`` {column: (rows,)} columns, the
+    (re, im) columns of the 2x2 matrices ``M`` (rows, 2, 2) named by ``entries`` {name:
+    (i, j)} and, when ``sigma`` (rows, 2, 2, 2) is given, their ``sigma_*_re/_im``; numbers
+    in Python's shortest exact repr; written atomically."""
     out = [_metadata_line(path, k, v) for k, v in meta.items()]
-    columns = list(TMATRIX_COLUMNS)
-    if data.sigma is not None:
-        columns += [f"sigma_{c}_{p}" for c in COEFFICIENTS for p in ("re", "im")]
+    columns = list(leading) + [f"{e}_{p}" for e in entries for p in ("re", "im")]
+    if sigma is not None:
+        columns += [f"sigma_{e}_{p}" for e in entries for p in ("re", "im")]
     out.append(",".join(columns))
-    for r in range(len(data)):
-        row = [data.heat_input[r], data.freq[r]]
-        row += [part for (i, j) in COEFFICIENTS.values() for part in (data.T[r, i, j].real, data.T[r, i, j].imag)]
-        if data.sigma is not None:
-            row += [data.sigma[r, i, j, k] for (i, j) in COEFFICIENTS.values() for k in (0, 1)]
+    for r in range(M.shape[0]):
+        row = [v[r] for v in leading.values()]
+        row += [part for (i, j) in entries.values() for part in (M[r, i, j].real, M[r, i, j].imag)]
+        if sigma is not None:
+            row += [sigma[r, i, j, k] for (i, j) in entries.values() for k in (0, 1)]
         out.append(",".join(repr(float(v)) for v in row))
     _atomic_write(path, "\n".join(out) + "\n")
 
@@ -602,15 +610,4 @@ def write_scattering_csv(path: str | os.PathLike, data: ScatteringData, metadata
     replaced = set(own) | {"ref_upstream", "ref_downstream", "original_convention", "converted_from"}
     meta = {k: repr(float(v)) if isinstance(v, float) else v for k, v in own.items()}
     meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k not in replaced})
-    out = [_metadata_line(path, k, v) for k, v in meta.items()]
-    columns = list(SCATTERING_COLUMNS)
-    if data.sigma is not None:
-        columns += [f"sigma_{e}_{p}" for e in S_ENTRIES for p in ("re", "im")]
-    out.append(",".join(columns))
-    for r in range(len(data)):
-        row = [data.freq[r]] + [part for (i, j) in S_ENTRIES.values() for part in (data.S[r, i, j].real,
-                                                                                  data.S[r, i, j].imag)]
-        if data.sigma is not None:
-            row += [data.sigma[r, i, j, k] for (i, j) in S_ENTRIES.values() for k in (0, 1)]
-        out.append(",".join(repr(float(v)) for v in row))
-    _atomic_write(path, "\n".join(out) + "\n")
+    _write_matrix_csv(path, meta, {"freq_Hz": data.freq}, S_ENTRIES, data.S, data.sigma)
