@@ -216,3 +216,23 @@ def test_loop_takes_the_empty_tube(tmp_path):
                      "-o", str(tmp_path / name)] + extra) == 0
         errors[name] = json.loads((tmp_path / name / "report.json").read_text())["error_before"]
     assert errors["calibrated"] < errors["raw"] / 5
+
+
+def test_synth_writes_a_scattering_pair(tmp_path, capsys):
+    # tawarp synth CORE --scattering: the sample's and the empty tube's files, which the
+    # calibration turns back into the generating model's T-matrices (no noise) whatever
+    # the microphone gain
+    from tawarp.measure import load_measurement
+    from tawarp.model.forward import transfer_matrices
+
+    out = tmp_path / "S.csv"
+    assert main(["synth", "foam_sample", "--scattering=-0.05,0.04", "--freqs", "100:1600:5", "--noise", "0",
+                 "--mic-gain", "1.04,3", "--cells", "8", "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    data = read_scattering(out)
+    assert (data.plane_upstream, data.plane_downstream, data.metadata["core"]) == (-0.05, 0.04, "foam_sample")
+    kind = load_measurement(out, settings=None, empty_tube=tmp_path / "S_empty.csv")
+    T = transfer_matrices(FOAM, data.freq, 0.0, device="cpu").T[0]
+    assert np.max(np.abs(kind.data.T - T) / np.abs(T).max(axis=(1, 2), keepdims=True)) < 1e-12
+    assert np.max(np.abs(read_scattering_csv(out).T - T) / np.abs(T).max(axis=(1, 2), keepdims=True)) > 1e-2
+    assert main(["synth", "foam_sample", "--scattering=0,0", "--Q", "0,20", "-o", str(tmp_path / "x.csv")]) == 2
+    assert "--Q: a scattering file holds one heat input" in capsys.readouterr().err
