@@ -51,7 +51,7 @@ SIGNED = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# r
           "100,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n200,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n")
 EMPTY = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
          "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
-         "100,0.001,0,0.5,0.8,0.5,0.8,0,0.002\n200,0,0.001,-0.4,0.9,-0.4,0.9,0.001,0\n")
+         "100,0.001,0,0.97499,0.21769,0.97499,0.21769,0,0.002\n200,0,0.001,0.90322,0.42449,0.90322,0.42449,0.001,0\n")
 PLANE_TOKENS = ["ref_upstream", "ref_plane_upstream", "ref_plane_downstream", "-", "-0", "1e-320", "sigma_S12",
                 "sigma_S11_re", "S12_re"]
 plane_edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS + PLANE_TOKENS) | st.text(max_size=3))

@@ -12,7 +12,7 @@ from tawarp import reference
 from tawarp.cli import main
 from tawarp.measure import (MeasurementError, calibrate_empty_tube, read_scattering, read_scattering_csv,
                             scattering_to_transfer, transfer_to_scattering, write_scattering_csv)
-from tawarp.measure.scattering import empty_tube_terms
+from tawarp.measure.scattering import microphone_gain, tube_waves
 from tawarp.measure.synthetic import scattering_measurement
 from tawarp.model.core import dump_core, load_core
 from tawarp.model.gas import GASES
@@ -144,28 +144,42 @@ def test_impedance_sigma_columns_are_weights(tmp_path):
         load_measurement(p)
 
 
+def lossy_tube(T_gas=298.15):
+    """Wavenumber and characteristic impedance (F,) of the 100 mm tube from the reference's
+    lossy duct (full thermoviscous solution) at T_gas [K]: for a 1 cm section,
+    cos(k l) = T11 and Zc = T12 / (i sin k l)."""
+    D = reference.duct_matrix_omega("air", 101325.0, T_gas, 0.05, 0.01, 2 * np.pi * F)
+    k = np.arccos(D[:, 0, 0]) / 0.01
+    return k, D[:, 0, 1] / (1j * np.sin(k * 0.01))
+
+
 def rig(seed, noise=0.003, planes=(-0.05, 0.04)):
     """Foam data with a calibration error: gain and phase of the downstream microphones
-    (4 %, 2.9 degrees, growing with frequency), and, for planes 5 cm before and 4 cm after
-    the sample, a tube 5 K warmer than T_ambient says and with wall losses. With
-    coinciding planes (on the front face) the empty tube measures no propagation, and the
-    tube is as the metadata say."""
-    g = GASES["air"]
-    k = 2 * np.pi * F / math.sqrt(g.gamma * g.R_gas * 298.15) * (1 + (1 + 1j) * 2e-3 * np.sqrt(100.0 / F))
+    (4 %, 2.9 degrees, growing with frequency) and, for planes 5 cm before and 4 cm after
+    the sample, a tube 5 K warmer than T_ambient says, with wall losses (the reference's
+    lossy duct). With coinciding planes the empty tube measures no propagation: the tube
+    is then as the metadata say (lossless, at T_ambient)."""
+    k, Zc = lossy_tube() if planes == (-0.05, 0.04) else (None, None)
     gain = 1.04 * np.exp(0.05j) * (1 + 0.02 * F / 1000.0)
     return scattering_measurement(foam_T(), F, tube_radius=0.05, plane_upstream=planes[0], plane_downstream=planes[1],
-                                  length=0.03, gain=gain, tube_wavenumber=k if planes == (-0.05, 0.04) else None,
-                                  noise=noise, seed=seed)
+                                  length=0.03, gain=gain, tube_wavenumber=k, tube_impedance=Zc, noise=noise,
+                                  seed=seed)
 
 
 def test_empty_tube_calibration_removes_gain_and_tube():
+    # noiseless: the gain exactly; the tube's sound speed (298.15 K) and losses to the
+    # wide-tube law's order eps^2; the T-matrices to 2e-5 (uncalibrated: 5e-2 off)
     sample, empty = rig(0, noise=0.0)
-    gain, k = empty_tube_terms(empty, 0.03)
-    assert np.allclose(gain, 1.04 * np.exp(0.05j) * (1 + 0.02 * F / 1000.0), rtol=1e-13)
+    assert np.allclose(microphone_gain(empty.S), 1.04 * np.exp(0.05j) * (1 + 0.02 * F / 1000.0), rtol=1e-13)
+    k, Zc, tube = tube_waves(empty, 0.03)
+    k_ref, Zc_ref = lossy_tube()
+    g = GASES["air"]
+    assert tube["sound_speed"] == pytest.approx(math.sqrt(g.gamma * g.R_gas * 298.15), rel=1e-5)
+    assert np.max(np.abs(k / k_ref - 1)) < 3e-5 and np.max(np.abs(Zc / Zc_ref - 1)) < 3e-5   # 3 eps^2 at 100 Hz
     T = foam_T()
     scale = np.abs(T).max(axis=(1, 2), keepdims=True)
-    assert np.max(np.abs(calibrate_empty_tube(sample, empty, 0.03).T - T) / scale) < 1e-11
-    assert np.max(np.abs(sample.to_tmatrix().T - T) / scale) > 3e-2     # uncalibrated
+    assert np.max(np.abs(calibrate_empty_tube(sample, empty, 0.03).T - T) / scale) < 2e-5
+    assert np.max(np.abs(sample.to_tmatrix().T - T) / scale) > 5e-2
     moved = type(empty)(**{**empty.__dict__, "plane_upstream": -0.06})
     with pytest.raises(MeasurementError, match="ref_plane_upstream = -0.06 differs"):
         calibrate_empty_tube(sample, moved, 0.03)

@@ -455,7 +455,8 @@ class ScatteringData:
     ``plane_upstream <= 0 <= plane_downstream``; coinciding planes, e.g. both on the front
     face of a sample of length L: ``0`` and ``-L``); ``tube_radius`` [m], ``T_ambient``
     [K], ``p_ambient`` [Pa], ``gas`` name; ``heat_input`` [W]; ``wavenumber`` None (the
-    lossless ``w / c0``) or (m,) complex [1/m], the tube's own (set by an empty-tube
+    lossless ``w / c0``) or (m,) complex [1/m] and ``impedance`` None (the lossless
+    ``rho0 c0 / S``) or (m,) complex [Pa s/m^3], the tube's own (set by an empty-tube
     calibration, :func:`tawarp.measure.scattering.calibrate_empty_tube`).
     """
 
@@ -472,6 +473,7 @@ class ScatteringData:
     wavenumber: np.ndarray | None = None
     metadata: dict[str, str] = field(default_factory=dict)
     source: str = "<data>"
+    impedance: np.ndarray | None = None
 
     def __post_init__(self):
         self.freq = np.asarray(self.freq, dtype=float).reshape(-1)
@@ -496,8 +498,11 @@ class ScatteringData:
         return math.sqrt(g.gamma * g.R_gas * self.T_ambient)
 
     @property
-    def Zc(self) -> float:
-        """Characteristic impedance of the tube rho0 c0 / (pi radius^2) [Pa s/m^3] (lossless)."""
+    def Zc(self):
+        """Characteristic impedance of the tube [Pa s/m^3]: ``impedance`` (m,) if calibrated,
+        else the lossless rho0 c0 / (pi radius^2) of the metadata."""
+        if self.impedance is not None:
+            return self.impedance
         rho0 = self.p_ambient / (GASES[self.gas].R_gas * self.T_ambient)
         return rho0 * self.sound_speed / (math.pi * self.tube_radius**2)
 
@@ -600,7 +605,7 @@ def write_scattering_csv(path: str | os.PathLike, data: ScatteringData, metadata
     """Write ``data`` in the format read by :func:`read_scattering` (signed plane keys,
     shortest exact floats, atomically as :func:`write_tmatrix_csv`). Calibrated data
     (``wavenumber`` set) have no file form and are refused."""
-    if data.wavenumber is not None:
+    if data.wavenumber is not None or data.impedance is not None:
         raise MeasurementError(f"{path}: calibrated scattering data (a fitted tube wavenumber) have no CSV form")
     if not (np.all(np.isfinite(data.S)) and np.all(np.isfinite(data.freq)) and np.all(data.freq > 0)):
         raise MeasurementError(f"{path}: S and freq must be finite, freq > 0")

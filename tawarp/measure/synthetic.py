@@ -154,7 +154,7 @@ def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_in
 
 def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: float, plane_downstream: float,
                            length: float, T_ambient: float = 293.15, p_ambient: float = 101325.0, gas: str = "air",
-                           gain=None, tube_wavenumber=None, noise: float = 0.0, seed: int = 0,
+                           gain=None, tube_wavenumber=None, tube_impedance=None, noise: float = 0.0, seed: int = 0,
                            write_sigma: bool = True, heat_input: float = 0.0,
                            source: str = "<synthetic>") -> tuple[ScatteringData, ScatteringData]:
     """Scattering matrices of a sample with core T-matrices ``T`` (m, 2, 2) [SI] at
@@ -163,10 +163,11 @@ def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: floa
     Planes: signed ``plane_upstream`` from face x1 and ``plane_downstream`` from face x6
     [m] (:class:`ScatteringData`); ``length`` [m] the sample's (x1 to x6), so the empty
     tube spans ``D = length + plane_downstream - plane_upstream``. The metadata's
-    ``T_ambient`` [K], ``p_ambient`` [Pa], ``gas`` and ``tube_radius`` [m] give the lossless
-    ``Zc`` of both sides. Calibration errors: ``gain`` (m,) or scalar complex gain of the
-    downstream microphone pair (``S12 / g``, ``S21 g``; default 1); ``tube_wavenumber``
-    (m,) complex [1/m] of the actual tube (default ``w / c0`` from the metadata). Noise:
+    ``T_ambient`` [K], ``p_ambient`` [Pa], ``gas`` and ``tube_radius`` [m] are written as
+    metadata. Calibration errors: ``gain`` (m,) or scalar complex gain of the downstream
+    microphone pair (``S12 / g``, ``S21 g``; default 1); ``tube_wavenumber`` (m,) complex
+    [1/m] and ``tube_impedance`` (m,) complex [Pa s/m^3] of the actual tube (default the
+    metadata's lossless ``w / c0`` and ``rho0 c0 / S``). Noise:
     complex Gaussian of standard deviation ``noise / sqrt(2)`` per part on every entry
     of both matrices (independent streams from ``seed``), written as sigma columns unless
     ``write_sigma=False``. Returns ``(sample, empty)``.
@@ -177,7 +178,8 @@ def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: floa
                           p_ambient, gas, heat_input, None, None, meta, source)
     k = base.k if tube_wavenumber is None else np.asarray(tube_wavenumber, dtype=complex)
     g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=complex), f.shape)
-    S = transfer_to_scattering(T, k, base.Zc, -plane_upstream, plane_downstream)
+    Zc = base.Zc if tube_impedance is None else np.asarray(tube_impedance, dtype=complex)
+    S = transfer_to_scattering(T, k, Zc, -plane_upstream, plane_downstream)
     e = np.exp(1j * k * (length + plane_downstream - plane_upstream))
     SE = np.zeros_like(S)
     SE[:, 0, 1], SE[:, 1, 0] = e, e
