@@ -76,8 +76,8 @@ def _impedance_file(path, seed=0):
 
 
 def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
-    # the core's one porous segment gives the layer's start (10-30 % off the truth) and
-    # --fit may name it; with sigma columns the reduced chi^2 is that of the noise
+    # the core's one porous segment gives the layer's start (10-30 % off the truth); with
+    # sigma columns the reduced chi^2 is that of the noise
     from tawarp.cli import main
     from tawarp.model.core import Core, Segment, dump_core
 
@@ -85,7 +85,7 @@ def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
     (tmp_path / "c.toml").write_text(dump_core(Core((seg,), radius=0.05, source="c")))
     out = tmp_path / "f.json"
     assert main(["fit", str(_impedance_file(tmp_path / "z.csv")), "--core", str(tmp_path / "c.toml"),
-                 "--fit", "foam.porosity,foam.pore_radius,layer.tortuosity", "--device", "cpu", "--quiet",
+                 "--fit", "layer.porosity,layer.pore_radius,layer.tortuosity", "--device", "cpu", "--quiet",
                  "-o", str(out)]) == 0
     e = json.loads(out.read_text())["fits"][0]
     assert e["parameters"]["layer.porosity"]["start"] == pytest.approx(0.72)
@@ -96,7 +96,7 @@ def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
 
 @pytest.mark.parametrize("argv, message", [
     (["--core", "ceramic"], "--core ceramic: a thermoacoustic core (thermal segments stack, hot_hx, tbt)"),
-    (["--core", "foam_sample", "--fit", "foam.porosity,foam.nope"], "--fit layer.nope: unknown parameter"),
+    (["--core", "foam_sample", "--fit", "layer.porosity,foam.porosity"], "--fit foam.porosity: unknown parameter"),
     (["--fit", "layer.length"], "--fit layer.length: the layer thickness is the file's"),
     (["--empty-tube", "E.csv"], "impedance data take no empty_tube option (it applies to scattering data)"),
 ])
@@ -142,3 +142,11 @@ def test_scattering_on_a_thermoacoustic_core(tmp_path):
     e = json.loads(out.read_text())["fits"][0]
     h = e["parameters"]["stack.h"]
     assert e["heat_input_W"] == 20.0 and abs(h["value"] - 150.0) < 3 * h["std"], h
+
+
+def test_loop_refuses_impedance_on_a_thermoacoustic_core(tmp_path, capsys):
+    from tawarp.cli import main
+
+    z = _impedance_file(tmp_path / "z.csv")
+    assert main(["loop", str(z), "--core", "ceramic", "--device", "cpu", "--quiet", "-o", str(tmp_path / "o")]) == 2
+    assert "--core ceramic: a thermoacoustic core" in capsys.readouterr().err

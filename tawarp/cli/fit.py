@@ -11,7 +11,7 @@ from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
 from ..io import write_json
 from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
-from ..model.core import CoreError, load_core
+from ..model.core import CoreError
 from ..model.forward import ForwardSettings
 from ..model.layer import LAYER_BASE
 from .common import _common, add_measurement_options, load_data
@@ -27,7 +27,7 @@ def add_fit_parser(subparsers):
     p.add_argument("--core", default=None,
                    help="core TOML or bundled core name for T-matrix and scattering data (default: the data's "
                         "'# core = ...' metadata); for surface impedance a passive core of one porous segment "
-                        "gives the layer's start values (default: a typical foam)")
+                        "gives the layer's start values (default: a typical foam), its parameters named layer.*")
     p.add_argument("--fit", default=None,
                    help="comma list of parameters: fitted at every heat input instead of the two-step procedure "
                         "(T-matrices), or the layer's parameters (default porosity, pore radius, tortuosity)")
@@ -50,8 +50,6 @@ def cmd_fit(args) -> int:
     settings = ForwardSettings(cells=args.cells, device=args.device)
     kind = load_data(args, settings)
     names = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
-    if isinstance(kind, ImpedanceKind):
-        kind, names = impedance_on_core(kind, args.core, names, settings)
     check_fit_names(kind, names)
     if args.no_sigma and kind.has_sigma:
         kind.w, kind.has_sigma = kind.unit_weights(), False
@@ -84,32 +82,6 @@ def cmd_fit(args) -> int:
             print(f"warning: {w}")
         print(f"wrote {out}")
     return 0
-
-
-def impedance_on_core(kind: ImpedanceKind, core_arg, names, settings) -> tuple[ImpedanceKind, list | None]:
-    """Surface-impedance data with ``--core``: a passive core of one porous segment gives
-    the layer's start values (porosity, pore radius, tortuosity) and gas, and ``--fit``
-    may name that segment's fields (``foam.porosity`` for ``layer.porosity``); the
-    thickness stays the file's. A core with thermal segments, or not exactly one porous
-    segment, is refused naming ``--core``."""
-    if core_arg is None:
-        return kind, names
-    core = load_core(core_arg)
-    thermal = [core.segments[i].name for i in core.thermal_indices]
-    if thermal:
-        raise CoreError(f"--core {core_arg}: a thermoacoustic core (thermal segments {', '.join(thermal)}) cannot "
-                        "model surface-impedance data of a rigid-backed layer; give a passive core of one porous "
-                        "segment, or no --core")
-    porous = [s for s in core.segments if s.is_porous]
-    if len(porous) != 1:
-        raise CoreError(f"--core {core_arg}: surface-impedance data need a core of one porous segment (the layer); "
-                        f"it has {len(porous)}")
-    seg = porous[0]
-    start = {f"layer.{f}": getattr(seg, f) for f in ("porosity", "pore_radius", "tortuosity")}
-    kind = ImpedanceKind(kind.data, settings, start=start, gas=core.gas.name)
-    if names is not None:
-        names = ["layer." + n.partition(".")[2] if n.partition(".")[0] == seg.name else n for n in names]
-    return kind, names
 
 
 def check_fit_names(kind: MeasurementKind, names) -> None:
