@@ -44,7 +44,7 @@ def add_measurement_options(p: argparse.ArgumentParser) -> argparse.ArgumentPars
     """The options of a measurement file shared by ``tawarp fit`` and ``tawarp loop``."""
     p.add_argument("--empty-tube", default=None, metavar="EMPTY.csv",
                    help="empty-tube scattering CSV (same tube, reference planes and frequencies, no sample) that "
-                        "calibrates scattering data: microphone gain/phase and the tube's own wavenumber "
+                        "calibrates scattering data: microphone gain/phase, the tube's sound speed and wall losses "
                         "(docs/formats.md)")
     return p
 

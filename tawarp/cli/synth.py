@@ -38,8 +38,8 @@ def add_synth_parser(subparsers):
     p.add_argument("--no-sigma", action="store_true", help="do not write sigma_* columns")
     p.add_argument("--scattering", type=parse_list, default=None, metavar="X_UP,X_DOWN",
                    help="write a four-microphone scattering CSV with reference planes at these signed positions "
-                        "[m] (from faces x1 and x6, positive downstream) and the empty tube's, OUTPUT_empty.csv "
-                        "(docs/formats.md; write --scattering=-0.05,0.04 when X_UP is negative)")
+                        "[m] (from faces x1 and x6, positive downstream) and the empty tube's beside it "
+                        "(S.csv: S_empty.csv; docs/formats.md; write --scattering=-0.05,0.04 when X_UP is negative)")
     p.add_argument("--mic-gain", type=parse_list, default=None, metavar="ABS,PHASE_DEG",
                    help="with --scattering: a calibration error, the downstream microphones' gain and phase "
                         "(default: none)")
