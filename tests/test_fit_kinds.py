@@ -99,6 +99,7 @@ def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
     (["--core", "foam_sample", "--fit", "layer.porosity,foam.porosity"], "--fit foam.porosity: unknown parameter"),
     (["--fit", "layer.length"], "--fit layer.length: the layer thickness is the file's"),
     (["--empty-tube", "E.csv"], "impedance data take no empty_tube option (it applies to scattering data)"),
+    (["--start", "spread"], "--start spread: applies to T-matrix data of a thermoacoustic core"),
 ])
 def test_impossible_combinations_are_one_line_errors(tmp_path, capsys, argv, message):
     from tawarp.cli import main

@@ -59,6 +59,10 @@ def cmd_fit(args) -> int:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
         if not isinstance(kind, TMatrixKind) or not core.thermal_indices:   # other kinds, passive cores
+            for option, value, default in (("--start", args.start, "core"), ("--damping", args.damping, "nielsen")):
+                if value != default:
+                    raise CoreError(f"{option} {value}: applies to T-matrix data of a thermoacoustic core; "
+                                    f"{kind.name} data on core {core.source} take the kind fit from the core's values")
             res = fit_kind(kind, names)
             obj = {"kind": kind.name, "source": str(args.data), "core": str(core.source),
                    "fits": [{**res.problem(0), "heat_input_W": None}]}
