@@ -10,6 +10,7 @@ import pytest
 
 from tawarp import reference
 from tawarp.fit.result import FitResult
+from tawarp.model.core import load_core
 from tawarp.model.layer import layer_core, surface_impedance_from_T
 
 TRUTH = {"layer.porosity": 0.9, "layer.pore_radius": 1.2e-4, "layer.tortuosity": 1.3}  # start 0.95, 1.5e-4, 1.1
@@ -60,3 +61,93 @@ def test_add_covariance_and_bic():
     assert np.isclose(r.bic(False), 50 * np.log(1.0) + 2 * np.log(50), rtol=1e-15)
     d = r.problem(0)
     assert d["parameters"]["b"] == {"value": 2.0, "std": 4.0, "start": 2.0, "std_statistical": 3.0}
+
+
+# -- tawarp fit takes every kind on every core kind; --core and --fit are never ignored ----
+def _impedance_file(path, seed=0):
+    f = np.linspace(200.0, 1600.0, 36)
+    core = layer_core(0.05, TRUTH["layer.porosity"], TRUTH["layer.pore_radius"], TRUTH["layer.tortuosity"])
+    Zs = surface_impedance_from_T(reference.transfer_matrix(core, f), core)
+    rng = np.random.default_rng(seed)
+    Zs = Zs + NOISE * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
+    path.write_text("# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im,sigma_Zs\n"
+                    + "".join(f"{float(a)!r},{float(z.real)!r},{float(z.imag)!r},{NOISE!r}\n" for a, z in zip(f, Zs)))
+    return path
+
+
+def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
+    # the core's one porous segment gives the layer's start (10-30 % off the truth); with
+    # sigma columns the reduced chi^2 is that of the noise
+    from tawarp.cli import main
+    from tawarp.model.core import Core, Segment, dump_core
+
+    seg = Segment("foam", "porous", 0.05, porosity=0.9 * 0.8, pore_radius=1.2e-4 * 1.25, tortuosity=1.3 * 1.15)
+    (tmp_path / "c.toml").write_text(dump_core(Core((seg,), radius=0.05, source="c")))
+    out = tmp_path / "f.json"
+    assert main(["fit", str(_impedance_file(tmp_path / "z.csv")), "--core", str(tmp_path / "c.toml"),
+                 "--fit", "layer.porosity,layer.pore_radius,layer.tortuosity", "--device", "cpu", "--quiet",
+                 "-o", str(out)]) == 0
+    e = json.loads(out.read_text())["fits"][0]
+    assert e["parameters"]["layer.porosity"]["start"] == pytest.approx(0.72)
+    for k, v in TRUTH.items():
+        assert abs(e["parameters"][k]["value"] - v) < 3 * e["parameters"][k]["std"], k
+    assert 0.5 < e["goodness_of_fit"]["reduced_chi2"] < 1.6
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--core", "ceramic"], "--core ceramic: a thermoacoustic core (thermal segments stack, hot_hx, tbt)"),
+    (["--core", "foam_sample", "--fit", "layer.porosity,foam.porosity"], "--fit foam.porosity: unknown parameter"),
+    (["--fit", "layer.length"], "--fit layer.length: the layer thickness is the file's"),
+    (["--empty-tube", "E.csv"], "impedance data take no empty_tube option (it applies to scattering data)"),
+    (["--start", "spread"], "--start spread: applies to T-matrix data of a thermoacoustic core"),
+])
+def test_impossible_combinations_are_one_line_errors(tmp_path, capsys, argv, message):
+    from tawarp.cli import main
+
+    z = _impedance_file(tmp_path / "z.csv")
+    assert main(["fit", str(z), "--device", "cpu", "--quiet", "-o", str(tmp_path / "f.json")] + argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and "\n" not in err and not (tmp_path / "f.json").exists()
+
+
+def test_tmatrix_fit_names_are_checked(tmp_path, capsys):
+    from tawarp.cli import main
+    from tawarp.measure import TMatrixData, write_tmatrix_csv
+
+    f = np.array([100.0, 300.0])
+    write_tmatrix_csv(tmp_path / "t.csv", TMatrixData(np.zeros(2), f, reference.transfer_matrix(load_core("foam_sample"), f)))
+    assert main(["fit", str(tmp_path / "t.csv"), "--core", "foam_sample", "--fit", "stack.porosity", "--device",
+                 "cpu", "--quiet", "-o", str(tmp_path / "f.json")]) == 2
+    err = capsys.readouterr().err
+    assert "--fit stack.porosity: unknown parameter for tmatrix data" in err and "foam.porosity" in err
+
+
+def test_scattering_on_a_thermoacoustic_core(tmp_path):
+    # scattering data of a heated core (reference, 0.1 % noise) fitted like its T-matrices,
+    # from a core whose stack.h is 27 % off
+    from tawarp.cli import main
+    from tawarp.measure import write_scattering_csv
+    from tawarp.measure.synthetic import scattering_measurement
+    from tawarp.model.core import dump_core
+
+    core = load_core("ceramic")
+    f = np.linspace(50.0, 200.0, 8)
+    s, _ = scattering_measurement(reference.transfer_matrix(core, f, 20.0), f, tube_radius=core.radius,
+                                  plane_upstream=-0.05, plane_downstream=0.05, length=core.positions()[-1],
+                                  heat_input=20.0, noise=1e-3, seed=1)
+    write_scattering_csv(tmp_path / "s.csv", s)
+    (tmp_path / "c.toml").write_text(dump_core(core.replace(**{"stack.h": 110.0})))
+    out = tmp_path / "f.json"
+    assert main(["fit", str(tmp_path / "s.csv"), "--core", str(tmp_path / "c.toml"), "--fit", "stack.h",
+                 "--device", "cpu", "--quiet", "--cells", "8", "-o", str(out)]) == 0
+    e = json.loads(out.read_text())["fits"][0]
+    h = e["parameters"]["stack.h"]
+    assert e["heat_input_W"] == 20.0 and abs(h["value"] - 150.0) < 3 * h["std"], h
+
+
+def test_loop_refuses_impedance_on_a_thermoacoustic_core(tmp_path, capsys):
+    from tawarp.cli import main
+
+    z = _impedance_file(tmp_path / "z.csv")
+    assert main(["loop", str(z), "--core", "ceramic", "--device", "cpu", "--quiet", "-o", str(tmp_path / "o")]) == 2
+    assert "--core ceramic: a thermoacoustic core" in capsys.readouterr().err

@@ -42,3 +42,44 @@ def test_the_uncorrupted_files_read(tmp_path, base, reader):
     p = tmp_path / "ok.csv"
     p.write_text(base)
     assert len(reader(p)) == 2
+
+
+# -- signed reference planes, sigma columns and the empty-tube reader (issue 9) -----------
+SIGNED = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
+          "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im,"
+          "sigma_S11,sigma_S12,sigma_S21,sigma_S22\n"
+          "100,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n200,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n")
+EMPTY = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
+         "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
+         "100,0.001,0,0.97499,0.21769,0.97499,0.21769,0,0.002\n200,0,0.001,0.90322,0.42449,0.90322,0.42449,0.001,0\n")
+PLANE_TOKENS = ["ref_upstream", "ref_plane_upstream", "ref_plane_downstream", "-", "-0", "1e-320", "sigma_S12",
+                "sigma_S11_re", "S12_re"]
+plane_edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS + PLANE_TOKENS) | st.text(max_size=3))
+
+
+def _load_pair(sample, empty):
+    from tawarp.measure import load_measurement
+
+    return load_measurement(sample, "foam_sample", empty_tube=empty)
+
+
+@settings(max_examples=100, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.lists(plane_edit, min_size=1, max_size=4), st.booleans())
+def test_signed_planes_and_empty_tube_corruptions_are_named(tmp_path, edits, corrupt_empty):
+    # a corrupted sample (signed planes, sigma columns) or empty-tube file: read and
+    # calibrated, or a MeasurementError naming the corrupted file
+    s, e = tmp_path / "sample.csv", tmp_path / "empty.csv"
+    s.write_text(SIGNED if corrupt_empty else _apply(SIGNED, edits))
+    e.write_text(_apply(EMPTY, edits) if corrupt_empty else EMPTY)
+    try:
+        _load_pair(s, e)
+    except MeasurementError as err:
+        assert ("empty.csv" if corrupt_empty else "sample.csv") in str(err)
+
+
+def test_the_uncorrupted_pair_reads(tmp_path):
+    s, e = tmp_path / "sample.csv", tmp_path / "empty.csv"
+    s.write_text(SIGNED)
+    e.write_text(EMPTY)
+    kind = _load_pair(s, e)
+    assert kind.name == "scattering" and kind.has_sigma and kind.data.metadata["empty_tube"] == str(e)

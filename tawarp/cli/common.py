@@ -6,6 +6,9 @@ import argparse
 
 import numpy as np
 
+from ..measure import ImpedanceKind, load_measurement
+from ..model.core import CoreError, load_core
+
 
 def parse_list(text: str) -> np.ndarray:
     """A list option: ``30,100,250`` or ``start:stop:count`` (inclusive, linear); at least
@@ -35,6 +38,44 @@ def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars, banners or chatter")
     return p
+
+
+def add_measurement_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of a measurement file shared by ``tawarp fit`` and ``tawarp loop``."""
+    p.add_argument("--empty-tube", default=None, metavar="EMPTY.csv",
+                   help="empty-tube scattering CSV (same tube, reference planes and frequencies, no sample) that "
+                        "calibrates scattering data: microphone gain/phase, the tube's sound speed and wall losses "
+                        "(docs/formats.md)")
+    return p
+
+
+def load_data(args, settings):
+    """The measurement kind of ``args.data`` with ``args.core`` (:func:`impedance_on_core`
+    for surface impedance) and, when given, ``args.empty_tube`` (refused by kinds that
+    take none)."""
+    kind = load_measurement(args.data, args.core, settings, empty_tube=getattr(args, "empty_tube", None))
+    if isinstance(kind, ImpedanceKind) and args.core is not None:
+        kind = impedance_on_core(kind, args.core, settings)
+    return kind
+
+
+def impedance_on_core(kind: ImpedanceKind, core_arg, settings) -> ImpedanceKind:
+    """Surface-impedance data with ``--core``: a passive core of one porous segment gives
+    the layer's start values (porosity, pore radius, tortuosity) and gas; the thickness
+    stays the file's and the parameters are named ``layer.*``. A core with thermal
+    segments, or not exactly one porous segment, is refused naming ``--core``."""
+    core = load_core(core_arg)
+    thermal = [core.segments[i].name for i in core.thermal_indices]
+    if thermal:
+        raise CoreError(f"--core {core_arg}: a thermoacoustic core (thermal segments {', '.join(thermal)}) cannot "
+                        "model surface-impedance data of a rigid-backed layer; give a passive core of one porous "
+                        "segment, or no --core")
+    porous = [s for s in core.segments if s.is_porous]
+    if len(porous) != 1:
+        raise CoreError(f"--core {core_arg}: surface-impedance data need a core of one porous segment (the layer); "
+                        f"it has {len(porous)}")
+    start = {f"layer.{f}": getattr(porous[0], f) for f in ("porosity", "pore_radius", "tortuosity")}
+    return ImpedanceKind(kind.data, settings, start=start, gas=core.gas.name)
 
 
 def _say(args, *text):

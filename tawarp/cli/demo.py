@@ -35,6 +35,8 @@ def run_demo(args) -> int:
     rows = []
     for name in bundled_cores():
         core = load_core(name)
+        if not core.thermal_indices:   # a passive sample (foam_sample): no heat input to show
+            continue
         Q = DEMO_HEAT.get(name, DEFAULT_HEAT)
         res = transfer_matrices(core, freqs, heat_input=Q, device=args.device, progress=not args.quiet)
         write_tmatrix_csv(out / f"{name}_T.csv", TMatrixData(np.repeat(Q, len(freqs)), np.tile(freqs, len(Q)),

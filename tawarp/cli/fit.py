@@ -10,9 +10,11 @@ from ..fit.characterize import characterize, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
 from ..io import write_json
-from ..measure import TMatrixKind, load_measurement
+from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
+from ..model.core import CoreError
 from ..model.forward import ForwardSettings
-from .common import _common
+from ..model.layer import LAYER_BASE
+from .common import _common, add_measurement_options, load_data
 
 
 def add_fit_parser(subparsers):
@@ -24,10 +26,12 @@ def add_fit_parser(subparsers):
     p.add_argument("data", help="measured T-matrix, scattering-matrix or surface-impedance CSV (FORMATS.md)")
     p.add_argument("--core", default=None,
                    help="core TOML or bundled core name for T-matrix and scattering data (default: the data's "
-                        "'# core = ...' metadata); surface impedance uses the layer model")
+                        "'# core = ...' metadata); for surface impedance a passive core of one porous segment "
+                        "gives the layer's start values (default: a typical foam), its parameters named layer.*")
     p.add_argument("--fit", default=None,
                    help="comma list of parameters: fitted at every heat input instead of the two-step procedure "
                         "(T-matrices), or the layer's parameters (default porosity, pore radius, tortuosity)")
+    add_measurement_options(p)
     p.add_argument("-o", "--output", default="fit.json", help="output JSON (default: %(default)s); figures beside it")
     p.add_argument("--start", default="core", choices=("core", "spread"),
                    help="start values: the core's ('core', default) or a Sobol spread of starts ('spread')")
@@ -44,16 +48,24 @@ def add_fit_parser(subparsers):
 
 def cmd_fit(args) -> int:
     settings = ForwardSettings(cells=args.cells, device=args.device)
-    kind = load_measurement(args.data, args.core, settings)
+    kind = load_data(args, settings)
+    names = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
+    check_fit_names(kind, names)
+    if args.no_sigma and kind.has_sigma:
+        kind.w, kind.has_sigma = kind.unit_weights(), False
     data, core = getattr(kind, "data", None), kind.core
     start = "spread" if args.start == "spread" else None
-    names = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None
     out = Path(args.output)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
         if not isinstance(kind, TMatrixKind) or not core.thermal_indices:   # other kinds, passive cores
+            for option, value, default in (("--start", args.start, "core"), ("--damping", args.damping, "nielsen")):
+                if value != default:
+                    raise CoreError(f"{option} {value}: applies to T-matrix data of a thermoacoustic core; "
+                                    f"{kind.name} data on core {core.source} take the kind fit from the core's values")
             res = fit_kind(kind, names)
-            obj = {"kind": kind.name, "source": str(args.data), "fits": [{**res.problem(0), "heat_input_W": None}]}
+            obj = {"kind": kind.name, "source": str(args.data), "core": str(core.source),
+                   "fits": [{**res.problem(0), "heat_input_W": None}]}
         elif names:
             obj = fit_each_heat_input(data, core, names, settings=settings, start=start, restarts=args.restarts,
                                       damping=args.damping, use_sigma=not args.no_sigma, progress=not args.quiet)
@@ -64,6 +76,9 @@ def cmd_fit(args) -> int:
             obj = ch.to_json()
             if not args.no_plots:
                 obj["figures"] = [str(p) for p in write_figures(ch, out.with_suffix(""))]
+    calibration = {k: v for k, v in getattr(data, "metadata", {}).items() if k.startswith("empty_tube")}
+    if calibration:
+        obj["empty_tube"] = calibration
     write_json(out, obj)
     if not args.quiet:
         print(summary_text(obj))
@@ -71,6 +86,20 @@ def cmd_fit(args) -> int:
             print(f"warning: {w}")
         print(f"wrote {out}")
     return 0
+
+
+def check_fit_names(kind: MeasurementKind, names) -> None:
+    """Refuse a ``--fit`` name the kind's model does not have, naming it and the choices."""
+    if names is None:
+        return
+    fixed = {"layer.length"} if isinstance(kind, ImpedanceKind) else set()   # the file's thickness
+    allowed = [n for n in kind.core.parameter_names() if n not in fixed]
+    for name in names:
+        if name not in allowed:
+            why = "the layer thickness is the file's" if name in fixed else "unknown parameter"
+            hint = f"e.g. {', '.join(LAYER_BASE)}" if isinstance(kind, ImpedanceKind) else \
+                f"one of {', '.join(allowed)}"
+            raise CoreError(f"--fit {name}: {why} for {kind.name} data on core {kind.core.source}; {hint}")
 
 
 def summary_text(obj: dict) -> str:

@@ -5,8 +5,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
-from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton, load_measurement
+from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
+from .common import add_measurement_options, load_data
 
 
 def add_loop_parser(sub) -> None:
@@ -23,6 +24,7 @@ def add_loop_parser(sub) -> None:
     p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bar or chatter")
+    add_measurement_options(p)
     p.set_defaults(func=cmd_loop)
 
 
@@ -37,7 +39,7 @@ def cmd_loop(args) -> int:
         data = [d for d in data if d.thickness is not None]
         prob, rep = impedance_loop(data, ref, settings)
     else:
-        prob = load_measurement(args.data, args.core, settings)
+        prob = load_data(args, settings)
         if isinstance(prob, ImpedanceKind):
             prob, rep = impedance_loop(prob.data, None, settings)
         else:

@@ -8,9 +8,11 @@ Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of PH
 - surface impedance of a rigid-backed layer: :func:`read_impedance_csv`, and the real
   Atalla & Panneton (2005) data set (:func:`load_atalla_panneton`,
   :func:`atalla_panneton_samples`), held in :class:`ImpedanceData`;
-- two-port scattering matrices of a four-microphone tube, converted to core T-matrices
-  on load: :func:`read_scattering_csv`, with the pure conversions
-  :func:`scattering_to_transfer` and :func:`transfer_to_scattering`.
+- two-port scattering matrices of a four-microphone tube at signed reference planes:
+  :func:`read_scattering` and :func:`write_scattering_csv` (held in
+  :class:`ScatteringData`), converted to core T-matrices by :func:`read_scattering_csv`,
+  with the pure conversions :func:`scattering_to_transfer` and
+  :func:`transfer_to_scattering`.
 
 Every reader raises :class:`MeasurementError` whose message names the file, the line
 (or the metadata key) and what was expected (the shared CSV machinery: :mod:`.table`).
@@ -126,7 +128,8 @@ class ImpedanceData:
     ``freq`` (m,) [Hz]; ``Zs`` (m,) complex specific surface impedance normalized by
     ``rho0 c0`` (dimensionless), ``exp(-iwt)`` convention; ``thickness`` [m] of the layer
     (None when unknown); ``T_ambient`` [K] and ``p_ambient`` [Pa] of the measurement, or
-    None; ``metadata`` and ``source`` as in :class:`TMatrixData`.
+    None; ``metadata`` and ``source`` as in :class:`TMatrixData`; ``sigma`` None or (m, 2)
+    standard deviations of ``Zs.real`` and ``Zs.imag``.
     """
 
     freq: np.ndarray
@@ -136,20 +139,31 @@ class ImpedanceData:
     p_ambient: float | None = None
     metadata: dict[str, str] = field(default_factory=dict)
     source: str = "<data>"
+    sigma: np.ndarray | None = None
 
     def __post_init__(self):
         self.freq = np.asarray(self.freq, dtype=float).reshape(-1)
         self.Zs = np.asarray(self.Zs, dtype=np.complex128).reshape(-1)
         if self.Zs.shape != self.freq.shape:
             raise MeasurementError(f"{self.source}: freq {self.freq.shape} and Zs {self.Zs.shape} differ in length")
+        if self.sigma is not None:
+            self.sigma = np.asarray(self.sigma, dtype=float)
+            if self.sigma.shape != (self.freq.size, 2):
+                raise MeasurementError(f"{self.source}: sigma shape {self.sigma.shape}; expected ({self.freq.size}, 2)")
 
     def __len__(self) -> int:
         return self.freq.size
 
 
 # -- core T-matrices -------------------------------------------------------------------
+def _sigma_columns(entries) -> set[str]:
+    """Names of the optional standard-deviation columns of complex columns ``entries``:
+    ``sigma_E`` (both parts) or ``sigma_E_re`` and ``sigma_E_im``."""
+    return {f"sigma_{c}{p}" for c in entries for p in ("", "_re", "_im")}
+
+
 def _sigma_allowed(name: str) -> bool:
-    return name in {f"sigma_{c}{p}" for c in COEFFICIENTS for p in ("", "_re", "_im")}
+    return name in _sigma_columns(COEFFICIENTS)
 
 
 def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
@@ -170,24 +184,31 @@ def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
     T = np.empty((rows, 2, 2), dtype=np.complex128)
     for c, (i, j) in COEFFICIENTS.items():
         T[:, i, j] = _complex(t, c)
-    sigma = _read_sigma(t) if any(c.startswith("sigma_") for c in t.columns) else None
+    sigma = _read_sigma(t, COEFFICIENTS).reshape(rows, 2, 2, 2) if _has_sigma(t) else None
     return TMatrixData(t.values["Q_W"], t.values["freq_Hz"], T.conj() if conj else T, sigma,
                        _converted_metadata(t, conj), t.source)
 
 
-def _read_sigma(t: _Table) -> np.ndarray:
-    sigma = np.empty((len(t.lines), 2, 2, 2))
-    for c, (i, j) in COEFFICIENTS.items():
+def _has_sigma(t: _Table) -> bool:
+    return any(c.startswith("sigma_") for c in t.columns)
+
+
+def _read_sigma(t: _Table, entries) -> np.ndarray:
+    """Standard deviations (rows, len(entries), 2) of the (re, im) parts of the complex
+    columns ``entries``, from ``sigma_E`` (both parts) or ``sigma_E_re``/``sigma_E_im``
+    columns that cover every entry; errors name the header line or the data line."""
+    sigma = np.empty((len(t.lines), len(entries), 2))
+    for e, c in enumerate(entries):
         one, re, im = (f"sigma_{c}{p}" in t.columns for p in ("", "_re", "_im"))
         if one and (re or im):
             raise _fail(t.source, t.header_line, f"give either sigma_{c} or sigma_{c}_re/_im, not both")
         if not one and not (re and im):
             raise _fail(t.source, t.header_line,
                         f"sigma for {c} incomplete; expected sigma_{c} or both sigma_{c}_re and sigma_{c}_im "
-                        "(sigma columns cover all four coefficients or none)")
+                        f"(sigma columns cover all of {', '.join(entries)} or none)")
         for k, p in enumerate(("_re", "_im")):
             name = f"sigma_{c}" if one else f"sigma_{c}{p}"
-            sigma[:, i, j, k] = t.values[name]
+            sigma[:, e, k] = t.values[name]
             bad = np.flatnonzero(t.values[name] <= 0)
             if bad.size:
                 raise _fail(t.source, t.lines[bad[0]],
@@ -208,16 +229,24 @@ def write_tmatrix_csv(path: str | os.PathLike, data: TMatrixData, metadata: dict
     data.check()
     meta = {"convention": CONVENTION}
     meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k != "convention"})
+    _write_matrix_csv(path, meta, {"Q_W": data.heat_input, "freq_Hz": data.freq}, COEFFICIENTS, data.T, data.sigma)
+
+
+def _write_matrix_csv(path, meta: dict, leading: dict, entries: dict, M: np.ndarray, sigma) -> None:
+    """Metadata lines ``meta``, a header of the ``leading`` {column: (rows,)} columns, the
+    (re, im) columns of the 2x2 matrices ``M`` (rows, 2, 2) named by ``entries`` {name:
+    (i, j)} and, when ``sigma`` (rows, 2, 2, 2) is given, their ``sigma_*_re/_im``; numbers
+    in Python's shortest exact repr; written atomically."""
     out = [_metadata_line(path, k, v) for k, v in meta.items()]
-    columns = list(TMATRIX_COLUMNS)
-    if data.sigma is not None:
-        columns += [f"sigma_{c}_{p}" for c in COEFFICIENTS for p in ("re", "im")]
+    columns = list(leading) + [f"{e}_{p}" for e in entries for p in ("re", "im")]
+    if sigma is not None:
+        columns += [f"sigma_{e}_{p}" for e in entries for p in ("re", "im")]
     out.append(",".join(columns))
-    for r in range(len(data)):
-        row = [data.heat_input[r], data.freq[r]]
-        row += [part for (i, j) in COEFFICIENTS.values() for part in (data.T[r, i, j].real, data.T[r, i, j].imag)]
-        if data.sigma is not None:
-            row += [data.sigma[r, i, j, k] for (i, j) in COEFFICIENTS.values() for k in (0, 1)]
+    for r in range(M.shape[0]):
+        row = [v[r] for v in leading.values()]
+        row += [part for (i, j) in entries.values() for part in (M[r, i, j].real, M[r, i, j].imag)]
+        if sigma is not None:
+            row += [sigma[r, i, j, k] for (i, j) in entries.values() for k in (0, 1)]
         out.append(",".join(repr(float(v)) for v in row))
     _atomic_write(path, "\n".join(out) + "\n")
 
@@ -228,17 +257,19 @@ def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
 
     Columns ``freq_Hz`` [Hz], ``Zs_re``, ``Zs_im`` (normalized by rho0 c0). Metadata:
     ``thickness`` [m] (required), ``convention`` (default exp(-iwt); exp(+iwt) is
-    conjugated), optional ``T_ambient`` [K] and ``p_ambient`` [Pa].
+    conjugated), optional ``T_ambient`` [K] and ``p_ambient`` [Pa]. Optional standard
+    deviations ``sigma_Zs`` (both parts) or ``sigma_Zs_re`` and ``sigma_Zs_im``.
     """
-    t = _read_table(path, IMPEDANCE_COLUMNS)
+    t = _read_table(path, IMPEDANCE_COLUMNS, allowed=lambda c: c in _sigma_columns(("Zs",)))
     conj = _needs_conjugate(t)
     thickness = _meta_float(t, "thickness", "m")
     T_amb = _meta_float(t, "T_ambient", "K", required=False)
     p_amb = _meta_float(t, "p_ambient", "Pa", required=False)
     _check_positive_unique(t, "freq_Hz")
     Zs = _complex(t, "Zs")
+    sigma = _read_sigma(t, ("Zs",))[:, 0] if _has_sigma(t) else None
     return ImpedanceData(t.values["freq_Hz"], Zs.conj() if conj else Zs, thickness, T_amb, p_amb,
-                         _converted_metadata(t, conj), t.source)
+                         _converted_metadata(t, conj), t.source, sigma)
 
 
 # Atalla & Panneton (2005) sample table, transcribed from the data set's README in SI:
@@ -330,6 +361,12 @@ def load_atalla_panneton(name: str, folder: str | os.PathLike | None = None) -> 
 
 
 # -- two-port scattering matrix --------------------------------------------------------
+#: The four scattering entries and their (row, column) in the 2x2 matrix.
+S_ENTRIES = {"S11": (0, 0), "S12": (0, 1), "S21": (1, 0), "S22": (1, 1)}
+#: Signed reference-plane keys and the distance keys of the first format (upstream, downstream).
+PLANE_KEYS = (("ref_plane_upstream", "ref_upstream", -1.0), ("ref_plane_downstream", "ref_downstream", 1.0))
+
+
 def _entries(M):
     return M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
 
@@ -347,10 +384,14 @@ def scattering_to_transfer(S, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
     downstream, +x), with x measured from that side's reference plane. ``S`` (..., 2, 2)
     maps incoming to outgoing amplitudes at the reference planes,
     ``[B1, A2] = S [A1, B2]`` (side 1 upstream, side 2 downstream). ``k`` [1/m]
-    wavenumber, ``Zc = rho0 c0 / S_tube`` [Pa s/m^3], ``d1``, ``d2`` [m] distances from the
-    upstream reference plane to face x1 and from face x6 to the downstream reference
-    plane (reference planes outside the sample). All broadcast over the leading axes.
-    Returns ``T`` (..., 2, 2) with ``(p, U)(x6) = T (p, U)(x1)``. Needs ``S12 != 0``.
+    wavenumber (complex for a lossy tube), ``Zc = rho0 c0 / S_tube`` [Pa s/m^3];
+    ``d1 = -x_up`` and ``d2 = x_down`` [m], where ``x_up`` is the signed position of the
+    upstream reference plane from face x1 and ``x_down`` that of the downstream plane from
+    face x6, both positive downstream: ``d1``, ``d2`` >= 0 are the distances of planes
+    outside the sample, and any sign is exact (a plane inside the sample's span is a
+    place where each side's waves are evaluated, continued as tube waves: planes may
+    coincide). All broadcast over the leading axes. Returns ``T`` (..., 2, 2) with
+    ``(p, U)(x6) = T (p, U)(x1)``. Needs ``S12 != 0``.
     """
     S = np.asarray(S, dtype=np.complex128)
     k, Zc = np.asarray(k), np.asarray(Zc)
@@ -380,41 +421,198 @@ def transfer_to_scattering(T, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
     return _matrix(s11 * e1 * e1, s12 * e1 * e2, s21 * e1 * e2, s22 * e2 * e2)
 
 
-def read_scattering_csv(path: str | os.PathLike) -> TMatrixData:
-    """Read a four-microphone scattering matrix and convert it to core T-matrices.
+def propagated_sigma(f, args, sigmas, step: float = 1e-6) -> np.ndarray:
+    """Standard deviations (..., 2) of the (re, im) parts of ``f(*args)`` (complex, rows
+    first) to first order, from independent errors of the (re, im) parts of each complex
+    argument: ``args`` [(rows, ...) complex], ``sigmas`` [(rows, ..., 2) or None: exact].
+    ``f`` works row by row; its derivatives are central differences of step ``step`` in
+    the arguments (made for dimensionless values of order one, such as S)."""
+    var = 0.0
+    for a, (x, sx) in enumerate(zip(args, sigmas)):
+        if sx is None:
+            continue
+        for idx in np.ndindex(x.shape[1:]):
+            for part, h in ((0, step), (1, 1j * step)):
+                lo, hi = [list(args) for _ in range(2)]
+                lo[a], hi[a] = x.copy(), x.copy()
+                lo[a][(slice(None),) + idx] -= h
+                hi[a][(slice(None),) + idx] += h
+                d = (f(*hi) - f(*lo)) / (2 * step)
+                s = sx[(slice(None),) + idx + (part,)].reshape((-1,) + (1,) * (d.ndim - 1))
+                var = var + np.stack([d.real, d.imag], -1) ** 2 * s[..., None] ** 2
+    return np.sqrt(var)
+
+
+@dataclass
+class ScatteringData:
+    """A four-microphone scattering matrix at its reference planes (before conversion).
+
+    ``freq`` (m,) [Hz]; ``S`` (m, 2, 2) complex in the convention of
+    :func:`scattering_to_transfer`, ``exp(-iwt)``; ``sigma`` None or (m, 2, 2, 2) standard
+    deviations of the (re, im) parts; ``plane_upstream`` [m] the signed position of the
+    upstream reference plane from face x1, ``plane_downstream`` [m] that of the downstream
+    plane from face x6, both positive downstream (planes outside the sample:
+    ``plane_upstream <= 0 <= plane_downstream``; coinciding planes, e.g. both on the front
+    face of a sample of length L: ``0`` and ``-L``); ``tube_radius`` [m], ``T_ambient``
+    [K], ``p_ambient`` [Pa], ``gas`` name; ``heat_input`` [W]; ``wavenumber`` None (the
+    lossless ``w / c0``) or (m,) complex [1/m] and ``impedance`` None (the lossless
+    ``rho0 c0 / S``) or (m,) complex [Pa s/m^3], the tube's own (set by an empty-tube
+    calibration, :func:`tawarp.measure.scattering.calibrate_empty_tube`).
+    """
+
+    freq: np.ndarray
+    S: np.ndarray
+    plane_upstream: float
+    plane_downstream: float
+    tube_radius: float
+    T_ambient: float
+    p_ambient: float
+    gas: str = "air"
+    heat_input: float = 0.0
+    sigma: np.ndarray | None = None
+    wavenumber: np.ndarray | None = None
+    metadata: dict[str, str] = field(default_factory=dict)
+    source: str = "<data>"
+    impedance: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.freq = np.asarray(self.freq, dtype=float).reshape(-1)
+        self.S = np.asarray(self.S, dtype=np.complex128)
+        n = self.freq.size
+        if self.S.shape != (n, 2, 2):
+            raise MeasurementError(f"{self.source}: S shape {self.S.shape}; expected ({n}, 2, 2)")
+        if self.sigma is not None:
+            self.sigma = np.asarray(self.sigma, dtype=float)
+            if self.sigma.shape != (n, 2, 2, 2):
+                raise MeasurementError(f"{self.source}: sigma shape {self.sigma.shape}; expected ({n}, 2, 2, 2)")
+        if self.gas not in GASES:
+            raise MeasurementError(f"{self.source}: gas = {self.gas!r}; expected one of {sorted(GASES)}")
+
+    def __len__(self) -> int:
+        return self.freq.size
+
+    @property
+    def sound_speed(self) -> float:
+        """c0 = sqrt(gamma R T_ambient) [m/s]."""
+        g = GASES[self.gas]
+        return math.sqrt(g.gamma * g.R_gas * self.T_ambient)
+
+    @property
+    def Zc(self):
+        """Characteristic impedance of the tube [Pa s/m^3]: ``impedance`` (m,) if calibrated,
+        else the lossless rho0 c0 / (pi radius^2) of the metadata."""
+        if self.impedance is not None:
+            return self.impedance
+        rho0 = self.p_ambient / (GASES[self.gas].R_gas * self.T_ambient)
+        return rho0 * self.sound_speed / (math.pi * self.tube_radius**2)
+
+    @property
+    def k(self) -> np.ndarray:
+        """Wavenumber (m,) [1/m]: ``wavenumber`` if calibrated, else w / c0."""
+        return 2 * np.pi * self.freq / self.sound_speed if self.wavenumber is None else self.wavenumber
+
+    def transfer(self, S=None) -> np.ndarray:
+        """Core T-matrices (m, 2, 2) [SI] of ``S`` (default the data's) at these planes."""
+        return scattering_to_transfer(self.S if S is None else S, self.k, self.Zc, -self.plane_upstream,
+                                      self.plane_downstream)
+
+    def to_tmatrix(self) -> TMatrixData:
+        """The core T-matrices, sigma propagated to first order (:func:`propagated_sigma`)."""
+        sigma = None
+        if self.sigma is not None:
+            sigma = propagated_sigma(self.transfer, [self.S], [self.sigma])
+        meta = dict(self.metadata)
+        meta["converted_from"] = "scattering matrix"
+        data = TMatrixData(np.full(len(self), self.heat_input), self.freq, self.transfer(), sigma, meta, self.source)
+        data.check()   # an overflow of extreme S: named, not NaN data
+        return data
+
+
+def _meta_signed(t: _Table, key: str, unit: str) -> float:
+    """Metadata ``key`` as a finite number of any sign [unit]."""
+    text = t.meta[key]
+    try:
+        v = float(text)
+    except ValueError:
+        v = math.nan
+    if not math.isfinite(v):
+        raise _fail(t.source, t.meta_line[key], f"metadata {key} = {text!r}: expected a finite number [{unit}]")
+    return v
+
+
+def _reference_plane(t: _Table, signed: str, distance: str, sign: float) -> float:
+    """Signed position of one reference plane from ``signed`` or the first format's ``distance``."""
+    if signed in t.meta and distance in t.meta:
+        raise _fail(t.source, t.meta_line[distance],
+                    f"metadata {distance} and {signed} (line {t.meta_line[signed]}) both place the same "
+                    f"reference plane; give one of them")
+    if signed in t.meta:
+        return _meta_signed(t, signed, "m")
+    if distance in t.meta:
+        return sign * _meta_float(t, distance, "m", allow_zero=True)
+    raise MeasurementError(f"{t.source}: metadata key {signed!r} [m] is missing; add a line '# {signed} = ...' "
+                           f"(signed position of the reference plane from the sample face, positive downstream) "
+                           f"or '# {distance} = ...' (its distance from the face, >= 0) before the header")
+
+
+def read_scattering(path: str | os.PathLike) -> ScatteringData:
+    """Read a four-microphone scattering-matrix CSV as it is (no conversion).
 
     Columns ``freq_Hz`` [Hz], ``S11_re, S11_im, ..., S22_im`` with the convention of
-    :func:`scattering_to_transfer`. Metadata: ``tube_radius`` [m], ``T_ambient`` [K],
-    ``p_ambient`` [Pa], ``ref_upstream`` and ``ref_downstream`` [m] (distances from the
-    reference planes to faces x1 and x6; >= 0), all required; ``gas`` (default air, one of
+    :func:`scattering_to_transfer`; optional standard deviations ``sigma_S11`` (both parts)
+    or ``sigma_S11_re`` and ``sigma_S11_im``, for all four entries or none. Metadata:
+    ``tube_radius`` [m], ``T_ambient`` [K], ``p_ambient`` [Pa], required; each reference
+    plane either as a signed position, ``ref_plane_upstream`` from face x1 and
+    ``ref_plane_downstream`` from face x6 [m], positive downstream (any sign; planes may
+    coincide), or as the first format's distance ``ref_upstream`` / ``ref_downstream``
+    [m] >= 0 from the face, outside the sample (``ref_plane_upstream = -ref_upstream``,
+    ``ref_plane_downstream = ref_downstream``); ``gas`` (default air, one of
     :data:`tawarp.model.gas.GASES`), ``convention`` (default exp(-iwt); exp(+iwt) S is
-    conjugated), ``Q_W`` [W] (default 0). The waves are lossless plane waves,
-    ``k = w / c0``, with ``c0 = sqrt(gamma R T_ambient)``, ``rho0 = p_ambient / (R T_ambient)``
-    and ``Zc = rho0 c0 / (pi tube_radius^2)``.
+    conjugated), ``Q_W`` [W] (default 0).
     """
-    t = _read_table(path, SCATTERING_COLUMNS)
+    t = _read_table(path, SCATTERING_COLUMNS, allowed=lambda c: c in _sigma_columns(S_ENTRIES))
     conj = _needs_conjugate(t)
     radius = _meta_float(t, "tube_radius", "m")
     T_amb = _meta_float(t, "T_ambient", "K")
     p_amb = _meta_float(t, "p_ambient", "Pa")
-    d1 = _meta_float(t, "ref_upstream", "m", allow_zero=True)
-    d2 = _meta_float(t, "ref_downstream", "m", allow_zero=True)
+    x_up, x_down = (_reference_plane(t, *keys) for keys in PLANE_KEYS)
     Q = _meta_float(t, "Q_W", "W", required=False, allow_zero=True, default=0.0)
     gas = t.meta.get("gas", "air")
     if gas not in GASES:
         raise _fail(t.source, t.meta_line["gas"], f"gas = {gas!r}; expected one of {sorted(GASES)}")
     _check_positive_unique(t, "freq_Hz")
-    S = _matrix(*(_complex(t, f"S{ij}") for ij in ("11", "12", "21", "22")))
+    S = _matrix(*(_complex(t, e) for e in S_ENTRIES))
     if conj:
         S = S.conj()
     zero = np.flatnonzero(S[:, 0, 1] == 0)
     if zero.size:
         raise _fail(t.source, t.lines[zero[0]], "S12 = 0: no transmission, the T-matrix is undefined")
-    g = GASES[gas]
-    rho0, c0 = p_amb / (g.R_gas * T_amb), math.sqrt(g.gamma * g.R_gas * T_amb)
-    Zc = rho0 * c0 / (math.pi * radius**2)
-    freq = t.values["freq_Hz"]
-    T = scattering_to_transfer(S, 2 * np.pi * freq / c0, Zc, d1, d2)
-    meta = _converted_metadata(t, conj)
-    meta["converted_from"] = "scattering matrix"
-    return TMatrixData(np.full(freq.size, Q), freq, T, None, meta, t.source)
+    sigma = _read_sigma(t, S_ENTRIES).reshape(-1, 2, 2, 2) if _has_sigma(t) else None
+    return ScatteringData(t.values["freq_Hz"], S, x_up, x_down, radius, T_amb, p_amb, gas, Q, sigma, None,
+                          _converted_metadata(t, conj), t.source)
+
+
+def read_scattering_csv(path: str | os.PathLike) -> TMatrixData:
+    """Read a four-microphone scattering matrix (:func:`read_scattering`) and convert it to
+    core T-matrices: lossless plane waves ``k = w / c0``, ``c0 = sqrt(gamma R T_ambient)``,
+    ``rho0 = p_ambient / (R T_ambient)``, ``Zc = rho0 c0 / (pi tube_radius^2)``; sigma
+    propagated to first order. An empty-tube calibration:
+    :func:`tawarp.measure.scattering.calibrate_empty_tube`."""
+    return read_scattering(path).to_tmatrix()
+
+
+def write_scattering_csv(path: str | os.PathLike, data: ScatteringData, metadata: dict | None = None) -> None:
+    """Write ``data`` in the format read by :func:`read_scattering` (signed plane keys,
+    shortest exact floats, atomically as :func:`write_tmatrix_csv`). Calibrated data
+    (``wavenumber`` set) have no file form and are refused."""
+    if data.wavenumber is not None or data.impedance is not None:
+        raise MeasurementError(f"{path}: calibrated scattering data (a fitted tube wavenumber) have no CSV form")
+    if not (np.all(np.isfinite(data.S)) and np.all(np.isfinite(data.freq)) and np.all(data.freq > 0)):
+        raise MeasurementError(f"{path}: S and freq must be finite, freq > 0")
+    own = {"convention": CONVENTION, "tube_radius": data.tube_radius, "T_ambient": data.T_ambient,
+           "p_ambient": data.p_ambient, "gas": data.gas, "Q_W": data.heat_input,
+           "ref_plane_upstream": data.plane_upstream, "ref_plane_downstream": data.plane_downstream}
+    replaced = set(own) | {"ref_upstream", "ref_downstream", "original_convention", "converted_from"}
+    meta = {k: repr(float(v)) if isinstance(v, float) else v for k, v in own.items()}
+    meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k not in replaced})
+    _write_matrix_csv(path, meta, {"freq_Hz": data.freq}, S_ENTRIES, data.S, data.sigma)

@@ -48,7 +48,8 @@ class ImpedanceKind(MeasurementKind):
         self.freq = np.concatenate([d.freq for d in self.data])
         self.group = np.concatenate([np.full(len(d), d.thickness) for d in self.data])
         self.coef = np.zeros(self.y.size, dtype=int)
-        self.w = self.unit_weights()
+        self.has_sigma = all(d.sigma is not None for d in self.data)
+        self.w = 1.0 / np.concatenate([d.sigma for d in self.data]) if self.has_sigma else self.unit_weights()
 
     @classmethod
     def from_file(cls, path, core=None, settings=None) -> "ImpedanceKind":

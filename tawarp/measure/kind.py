@@ -15,6 +15,7 @@ that :func:`load_measurement`, ``tawarp fit`` and ``tawarp loop`` take its files
 from __future__ import annotations
 
 import dataclasses
+import inspect
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -175,6 +176,17 @@ def kind_of(path) -> KindEntry:
     raise MeasurementError(f"{path}: header {','.join(cols)} matches no measurement kind ({sorted(KINDS)})")
 
 
-def load_measurement(path, core: Core | None = None, settings: ForwardSettings | None = None) -> MeasurementKind:
-    """A measurement kind built from the CSV file ``path``, the kind picked by its header."""
-    return kind_of(path).load(path, core, settings)
+def load_measurement(path, core: Core | None = None, settings: ForwardSettings | None = None,
+                     **options) -> MeasurementKind:
+    """A measurement kind built from the CSV file ``path``, the kind picked by its header.
+    ``options`` {name: value} (e.g. ``empty_tube`` for scattering data; None values are
+    dropped) go to the kind's loader; a kind whose loader does not take one is refused,
+    naming the option."""
+    entry = kind_of(path)
+    options = {k: v for k, v in options.items() if v is not None}
+    for key in options:
+        if key not in inspect.signature(entry.load).parameters:
+            takers = [n for n, e in KINDS.items() if key in inspect.signature(e.load).parameters]
+            raise MeasurementError(f"{path}: {entry.name} data take no {key} option (it applies to "
+                                   f"{', '.join(takers) or 'no kind of'} data)")
+    return entry.load(path, core, settings, **options)

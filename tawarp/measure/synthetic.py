@@ -23,10 +23,15 @@ W/(m^2 K)), the hot exchanger's length of each run. ``truth=`` overrides any val
   on every row (as a calibration error of the rig): ``bias`` is four complex factors, or a
   float ``b`` giving ``1 + b exp(i phase_c)`` with fixed phases (0, pi/2, pi, 3 pi/2)
   for the four coefficients. The two-step procedure (Eqs. 22-23) divides such a bias out.
+
+:func:`scattering_measurement` turns core T-matrices (from any model) into the
+four-microphone scattering matrices of a sample and of the empty tube, with the
+calibration errors that :func:`tawarp.measure.scattering.calibrate_empty_tube` removes.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -34,7 +39,7 @@ import numpy as np
 from ..model.coefficients import denormalize, duct_impedance, normalize
 from ..model.core import Core, load_core
 from ..model.forward import ForwardSettings, transfer_matrices
-from .files import TMatrixData
+from .files import ScatteringData, TMatrixData, transfer_to_scattering
 
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
 #: Paper Table 1 (value, uncertainty) in SI, and the h's of Sect. 5.2 used as the truth.
@@ -145,3 +150,46 @@ def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_in
     sigma = np.broadcast_to(s * scale, T.shape).copy()
     meta = {"generator": "tawarp.measure.synthetic.synthetic_tmatrix", "noise": str(noise), "seed": str(seed)}
     return TMatrixData(np.repeat(heat_inputs, len(freqs)), np.tile(freqs, nq), Tn, sigma, meta, "<synthetic>")
+
+
+def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: float, plane_downstream: float,
+                           length: float, T_ambient: float = 293.15, p_ambient: float = 101325.0, gas: str = "air",
+                           gain=None, tube_wavenumber=None, tube_impedance=None, noise: float = 0.0, seed: int = 0,
+                           write_sigma: bool = True, heat_input: float = 0.0,
+                           source: str = "<synthetic>") -> tuple[ScatteringData, ScatteringData]:
+    """Scattering matrices of a sample with core T-matrices ``T`` (m, 2, 2) [SI] at
+    ``freqs`` (m,) [Hz], and of the empty tube, as a four-microphone rig would measure them.
+
+    Planes: signed ``plane_upstream`` from face x1 and ``plane_downstream`` from face x6
+    [m] (:class:`ScatteringData`); ``length`` [m] the sample's (x1 to x6), so the empty
+    tube spans ``D = length + plane_downstream - plane_upstream``. The metadata's
+    ``T_ambient`` [K], ``p_ambient`` [Pa], ``gas`` and ``tube_radius`` [m] are written as
+    metadata. Calibration errors: ``gain`` (m,) or scalar complex gain of the downstream
+    microphone pair (``S12 / g``, ``S21 g``; default 1); ``tube_wavenumber`` (m,) complex
+    [1/m] and ``tube_impedance`` (m,) complex [Pa s/m^3] of the actual tube (default the
+    metadata's lossless ``w / c0`` and ``rho0 c0 / S``). Noise:
+    complex Gaussian of standard deviation ``noise / sqrt(2)`` per part on every entry
+    of both matrices (independent streams from ``seed``), written as sigma columns unless
+    ``write_sigma=False``. Returns ``(sample, empty)``.
+    """
+    f = np.asarray(freqs, dtype=float)
+    meta = {"generator": "tawarp.measure.synthetic.scattering_measurement", "noise": repr(noise), "seed": str(seed)}
+    base = ScatteringData(f, np.zeros((f.size, 2, 2)), plane_upstream, plane_downstream, tube_radius, T_ambient,
+                          p_ambient, gas, heat_input, None, None, meta, source)
+    k = base.k if tube_wavenumber is None else np.asarray(tube_wavenumber, dtype=complex)
+    g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=complex), f.shape)
+    Zc = base.Zc if tube_impedance is None else np.asarray(tube_impedance, dtype=complex)
+    S = transfer_to_scattering(T, k, Zc, -plane_upstream, plane_downstream)
+    e = np.exp(1j * k * (length + plane_downstream - plane_upstream))
+    SE = np.zeros_like(S)
+    SE[:, 0, 1], SE[:, 1, 0] = e, e
+    rng = np.random.default_rng(seed)
+    out = []
+    for M, name in ((S, source), (SE, f"{source}:empty")):
+        M = M.copy()
+        M[:, 0, 1] /= g
+        M[:, 1, 0] *= g
+        M = M + noise / math.sqrt(2.0) * (rng.standard_normal(M.shape) + 1j * rng.standard_normal(M.shape))
+        sigma = np.full(M.shape + (2,), noise / math.sqrt(2.0)) if write_sigma and noise > 0 else None
+        out.append(dataclasses.replace(base, S=M, sigma=sigma, metadata=dict(meta), source=name))
+    return out[0], out[1]
