@@ -21,13 +21,14 @@ class Evaluator:
     the stack at segment ``stack_index``) on the device of ``settings``.
 
     :meth:`evaluate` returns ``{name: (n,) array}``: every kernel column, plus the host
-    objectives named in ``extra`` (e.g. ``acoustic_loss``, at ``freqs`` [Hz]).
+    objectives named in ``extra`` (e.g. ``acoustic_loss``, at ``freqs`` [Hz]; the onset
+    objectives, closed as ``onset`` says: :class:`tawarp.design.objectives.OnsetSpec`).
     ``settings.heat_cells`` sets the heat grid (1 is exact for piecewise-constant
     coefficients)."""
 
     def __init__(self, space: DesignSpace | None, extra=(), freqs=DEFAULT_FREQS,
                  settings: ForwardSettings | None = None, *, core: Core | None = None, names=None,
-                 stack_index: int | None = None):
+                 stack_index: int | None = None, onset=None):
         from ..kernels.design import N_METRICS
 
         self.space = space
@@ -42,6 +43,7 @@ class Evaluator:
         self.extra = [objective(n) for n in extra if objective(n).column is None]
         self.freqs = tuple(float(f) for f in freqs)
         self._acoustic = None
+        self.onset_spec = onset
 
     def acoustic_engine(self) -> Engine:
         """T-matrix engine at ``freqs`` over the same varying rows (built on first use)."""
