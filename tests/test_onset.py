@@ -279,7 +279,7 @@ def test_cli_onset(tmp_path, capsys):
     for k, s in enumerate(js["sets"]):
         assert s["params"] == {"engine.left_duct": [0.6, 0.8][k]}
         assert (s["Q_onset_W"], s["f_onset_Hz"], s["T_hot_K"]) == (api.Q_onset[k], api.f_onset[k], api.T_hot[k])
-    assert (out / "growth_rate.png").stat().st_size > 0
+    assert (out / "growth_rate.png").stat().st_size > 0 and (out / "root_locus.png").stat().st_size > 0
     assert main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu",
                  "--quiet"]) == 2
     assert "engine.middle" in capsys.readouterr().err
