@@ -283,3 +283,17 @@ def test_cli_onset(tmp_path, capsys):
     assert main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu",
                  "--quiet"]) == 2
     assert "engine.middle" in capsys.readouterr().err
+
+
+def test_demo_onset(tmp_path, capsys):
+    """The demo's onset step writes the onset of the bundled engine (as onset() gives it,
+    exact round trip) and prints it in one line."""
+    import json
+
+    from tawarp.cli.demo import demo_onset
+
+    demo_onset(tmp_path / "onset.json", device=DEVICE)
+    js = json.loads((tmp_path / "onset.json").read_text())
+    api = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, device=DEVICE)
+    assert (js["Q_onset_W"], js["f_onset_Hz"], js["T_hot_K"]) == (api.Q_onset[0], api.f_onset[0], api.T_hot[0])
+    assert f"Q_onset {api.Q_onset[0]:.2f} W" in capsys.readouterr().out
