@@ -39,7 +39,6 @@ Extension: ``register_objective(Objective(...))`` from anywhere; :func:`search` 
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Callable
 
@@ -119,62 +118,19 @@ class OnsetSpec:
     segment: str = "stack"
 
 
-def _onset_of(evaluator, table: np.ndarray, draws: bool):
-    """Onset of every design column of ``table``, or of every (design, draw) pair
-    ((n, n_draws) arrays) with ``draws``; one :func:`tawarp.model.onset.onset` call, kept
-    for the other onset objectives of the same table."""
-    from ..model.onset import onset
-    from ..model.resonator import load_engine
-    from .catalogue import CORE_FIELD, PARAMS
-
-    key = (id(table), draws)
-    cache = evaluator.__dict__.setdefault("_onset_cache", {})
-    if key in cache and cache[key][0] is table:
-        return cache[key][1]
-    spec = evaluator.onset_spec or OnsetSpec()
-    ref = load_engine(spec.engine) if isinstance(spec.engine, str) else spec.engine
-    engine = dataclasses.replace(ref, core=evaluator.core)
-    params = {k: table[1 + j] for j, k in enumerate(evaluator.names)}
-    n = table.shape[1]
-    if draws:
-        if spec.uncertainty is None:
-            raise ValueError("objective Q_onset_p90 needs the stack material's uncertainty: OnsetSpec.uncertainty "
-                             "(tawarp design --uncertainty MATERIAL|fit.json)")
-        from ..model.fields import field as parameter_field
-
-        m = spec.uncertainty
-        dev = m.sample(spec.n_draws, spec.seed)
-        seg = evaluator.core.segment(spec.segment)
-        for p in PARAMS:
-            name = f"{spec.segment}.{CORE_FIELD[p]}"
-            base = params.get(name, np.full(n, getattr(seg, CORE_FIELD[p])))
-            lo, hi = parameter_field(CORE_FIELD[p]).fit_range
-            params[name] = np.clip(base[:, None] + (dev[p] - getattr(m, p))[None, :], lo, hi).ravel()
-        for k in evaluator.names:
-            if params[k].size == n:       # not a stack parameter: the same for every draw
-                params[k] = np.repeat(params[k], spec.n_draws)
-    res = onset(engine, Q_max=spec.Q_max, params=params, n_bracket=spec.n_bracket, settings=evaluator.settings)
-    shape = (n, spec.n_draws) if draws else (n,)
-    out = (np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(shape),
-           np.where(np.isfinite(res.T_hot), res.T_hot, np.inf).reshape(shape))
-    cache.clear()
-    cache[key] = (table, out)
-    return out
-
-
 def _Q_onset(evaluator, table, metrics):
-    return _onset_of(evaluator, table, False)[0]
+    return evaluator.onset_metrics(table)[0]
 
 
 def _onset_T_ratio(evaluator, table, metrics):
     T_cold = table[1 + evaluator.names.index("gas.T_cold")] if "gas.T_cold" in evaluator.names \
         else evaluator.core.gas.T_cold
-    return _onset_of(evaluator, table, False)[1] / T_cold
+    return evaluator.onset_metrics(table)[1] / T_cold
 
 
 def _Q_onset_p90(evaluator, table, metrics):
     with np.errstate(invalid="ignore"):    # inf - inf between draws without onset: the point is inf
-        return np.percentile(_onset_of(evaluator, table, True)[0], 90, axis=1)
+        return np.percentile(evaluator.onset_metrics(table, draws=True)[0], 90, axis=1)
 
 
 #: Default constraint T_max <= T_limit [K] (673 K: a typical limit for carbon in air).
