@@ -232,25 +232,30 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
 
     from ..io import write_json
     from ..design.rank import rank_by_onset
+    from ..model.forward import parameter_row
     from ..model.resonator import load_engine
 
     engine = load_engine(args.engine)
-    if args.set:
-        changes = {}
-        for t in args.set:
-            name, sep, value = t.partition("=")
-            if not sep:
-                raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
-            changes[name.strip()] = float(value)
+    changes = {}
+    for t in args.set:
+        name, sep, value = t.partition("=")
+        if not sep:
+            raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
+        parameter_row(engine.core, name.strip())     # a KeyError listing the engine's parameters
+        changes[name.strip()] = float(value)
+    if changes:
         engine = dataclasses.replace(engine, core=engine.core.replace(**changes))
     res = rank_by_onset(mats, engine, segment=args.segment, n_samples=args.samples, seed=args.seed, Q_max=args.Q_max,
                         n_bracket=args.bracket, catalogue=cat, settings=_settings(args))
     d = res.to_dict()
-    d["engine_changes"] = dict(t.partition("=")[::2] for t in args.set or [])
+    d["engine_changes"] = changes
     d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
     write_json(out, d)
     _say(args, f"{'material':<12}{'Q_onset [W]: nominal':>22}{'median':>9}{'5-95 %':>17}{'p90':>9}{'P(best)':>9}")
-    fmt = lambda v: f"{v:.3g}" if v is not None else f">{args.Q_max:g}"
+
+    def fmt(v):
+        return f"{v:.3g}" if v is not None else f">{args.Q_max:g}"
+
     for r in res.table:
         _say(args, f"{r['material']:<12}{fmt(r['Q_onset_nominal_W']):>22}{fmt(r['Q_onset_median_W']):>9}"
                    f"{fmt(r['Q_onset_p05_W']) + '-' + fmt(r['Q_onset_p95_W']):>17}{fmt(r['Q_onset_p90_W']):>9}"
