@@ -27,6 +27,10 @@ from .gas import sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
 from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
 
+# no adjoint code: nothing differentiates through the eigenvalue search (it has runtime-count
+# loops), and generating it roughly doubles this large module's compile time
+wp.set_module_options({"enable_backward": False})
+
 END_CLOSED = wp.constant(0)
 END_OPEN = wp.constant(1)
 END_IMPEDANCE = wp.constant(2)

@@ -279,7 +279,21 @@ def test_cli_onset(tmp_path, capsys):
     for k, s in enumerate(js["sets"]):
         assert s["params"] == {"engine.left_duct": [0.6, 0.8][k]}
         assert (s["Q_onset_W"], s["f_onset_Hz"], s["T_hot_K"]) == (api.Q_onset[k], api.f_onset[k], api.T_hot[k])
-    assert (out / "growth_rate.png").stat().st_size > 0
+    assert (out / "growth_rate.png").stat().st_size > 0 and (out / "root_locus.png").stat().st_size > 0
     assert main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu",
                  "--quiet"]) == 2
     assert "engine.middle" in capsys.readouterr().err
+
+
+def test_demo_onset(tmp_path, capsys):
+    """The demo's onset step writes the onset of the bundled engine (as onset() gives it,
+    exact round trip) and prints it in one line."""
+    import json
+
+    from tawarp.cli.demo import demo_onset
+
+    demo_onset(tmp_path / "onset.json", device=DEVICE)
+    js = json.loads((tmp_path / "onset.json").read_text())
+    api = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, device=DEVICE)
+    assert (js["Q_onset_W"], js["f_onset_Hz"], js["T_hot_K"]) == (api.Q_onset[0], api.f_onset[0], api.T_hot[0])
+    assert f"Q_onset {api.Q_onset[0]:.2f} W" in capsys.readouterr().out

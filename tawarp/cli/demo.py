@@ -61,6 +61,7 @@ def run_demo(args) -> int:
             print(f"{name:<10} {q:6.1f} {tmax:10.1f} {d:15.3e}")
     demo_fit(out / "fit", device=args.device, quiet=args.quiet)
     demo_loop(out / "loop", device=args.device, quiet=args.quiet)
+    demo_onset(out / "onset.json", device=args.device, quiet=args.quiet)
     if not args.quiet:
         print(f"outputs in {out}/")
     return 0
@@ -146,4 +147,20 @@ def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: i
         for mat, q, k, v, s, t in rows:
             z = (v - t) / s if (t is not None and s and math.isfinite(s)) else float("nan")
             print(f"{mat:<10} {q:>6} {k:<20} {v:11.4g} {s:9.2g} {t if t is not None else float('nan'):11.4g} {z:6.2f}")
+    return summary
+
+
+def demo_onset(path: Path, device=None, quiet=False) -> dict:
+    """One onset prediction: the bundled ``standing_wave`` engine (the ceramic core in a
+    closed-closed resonator); writes the JSON ``path`` and prints Q_onset, f_onset, T_hot."""
+    from ..model.onset import onset
+    from ..model.resonator import load_engine
+
+    res = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, device=device)
+    summary = {"engine": "standing_wave", "Q_onset_W": res.Q_onset[0], "f_onset_Hz": res.f_onset[0],
+               "T_hot_K": res.T_hot[0], "Q_grid_W": res.Q_grid, "growth_rate_1_per_s": res.omega_grid[0].imag}
+    write_json(path, summary)
+    if not quiet:
+        print(f"\nonset of the standing-wave engine (ceramic core, closed-closed resonator): Q_onset "
+              f"{res.Q_onset[0]:.2f} W, f_onset {res.f_onset[0]:.1f} Hz, T_hot {res.T_hot[0]:.0f} K")
     return summary

@@ -63,6 +63,42 @@ def _add_space_args(p):
 
 
 # -- design ------------------------------------------------------------------------------
+def _uncertain_material(text: str | None, catalogue):
+    """A catalogue material by name, or the material of a ``tawarp fit`` result (fit.json)."""
+    from ..design.catalogue import Material
+
+    if text is None:
+        return None
+    if text in catalogue:
+        return catalogue[text]
+    if not Path(text).exists():
+        raise KeyError(f"--uncertainty {text!r}: neither a catalogue material ({', '.join(catalogue)}) nor a file")
+    return Material.from_fit_json(text)
+
+
+def _onset_spec(args):
+    from ..design.catalogue import load_catalogue
+    from ..design.objectives import OnsetSpec
+
+    return OnsetSpec(engine=args.onset_engine, Q_max=args.Q_max, n_bracket=args.bracket,
+                     uncertainty=_uncertain_material(args.uncertainty, load_catalogue(args.catalogue or [])),
+                     n_draws=args.draws, seed=args.seed, segment=args.segment)
+
+
+def _add_onset_args(p):
+    p.add_argument("--onset-engine", default="standing_wave",
+                   help="onset objectives: the engine (TOML or bundled name) whose resonator closes the core "
+                        "(default: %(default)s)")
+    p.add_argument("--Q-max", dest="Q_max", type=float, default=200.0,
+                   help="onset: largest heat input searched [W]; no onset below it counts as inf (default: %(default)s)")
+    p.add_argument("--bracket", type=int, default=9,
+                   help="onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)")
+    p.add_argument("--uncertainty", default=None,
+                   help="Q_onset_p90: the stack material's uncertainty, a catalogue name or a fit.json")
+    p.add_argument("--draws", type=int, default=64,
+                   help="Q_onset_p90 / rank --by onset: parameter sets drawn per design (default: %(default)s)")
+
+
 def cmd_design(args) -> int:
     from ..io import write_json
     from ..design.search import objective_definitions, search
@@ -77,7 +113,7 @@ def cmd_design(args) -> int:
     T_limit = None if args.no_T_limit else args.T_limit
     res = search(space, objectives, n_trials=args.trials, batch=args.batch, storage=storage, study_name=args.study,
                  worker=args.worker, seed=args.seed, T_limit=T_limit, engine=args.engine,
-                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet)
+                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args))
     report = {"core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
               "objective_definitions": objective_definitions(objectives),
               "T_limit_K": T_limit, "storage": storage, "study": args.study, "worker": args.worker,
@@ -148,6 +184,7 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
                    help="batched population samplers (default) or Optuna's own samplers, one ask per trial")
     p.add_argument("--freqs", type=_floats, default=np.array(DEFAULT_FREQS),
                    help="frequencies [Hz] of acoustic_loss, list or start:stop:count")
+    _add_onset_args(p)
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
     p.add_argument("-o", "--output", default="tawarp-design", help="output folder (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
@@ -172,6 +209,10 @@ def cmd_rank(args) -> int:
         missing = [m for m in mats if m not in cat]
         if missing:
             raise KeyError(f"materials {missing} not in the catalogue ({', '.join(cat)})")
+    if args.samples is None:
+        args.samples = 400 if args.by == "onset" else 4000
+    if args.by == "onset":
+        return _rank_onset(args, cat, mats, out)
     res = rank_materials(mats, args.Q, core=args.core, segment=args.segment, n_samples=args.samples, seed=args.seed,
                          T_limit=args.T_limit, catalogue=cat, settings=_settings(args))
     d = res.to_dict()
@@ -185,16 +226,68 @@ def cmd_rank(args) -> int:
     return 0
 
 
+def _rank_onset(args, cat, mats, out: Path) -> int:
+    """``tawarp rank --by onset``: materials by the onset heat input of a reference engine."""
+    import dataclasses
+
+    from ..io import write_json
+    from ..design.rank import rank_by_onset
+    from ..model.forward import parameter_row
+    from ..model.resonator import load_engine
+
+    engine = load_engine(args.engine)
+    changes = {}
+    for t in args.set:
+        name, sep, value = t.partition("=")
+        if not sep:
+            raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
+        parameter_row(engine.core, name.strip())     # a KeyError listing the engine's parameters
+        changes[name.strip()] = float(value)
+    if changes:
+        engine = dataclasses.replace(engine, core=engine.core.replace(**changes))
+    res = rank_by_onset(mats, engine, segment=args.segment, n_samples=args.samples, seed=args.seed, Q_max=args.Q_max,
+                        n_bracket=args.bracket, catalogue=cat, settings=_settings(args))
+    d = res.to_dict()
+    d["engine_changes"] = changes
+    d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
+    write_json(out, d)
+    _say(args, f"{'material':<12}{'Q_onset [W]: nominal':>22}{'median':>9}{'5-95 %':>17}{'p90':>9}{'P(best)':>9}")
+
+    def fmt(v):
+        return f"{v:.3g}" if v is not None else f">{args.Q_max:g}"
+
+    for r in res.table:
+        _say(args, f"{r['material']:<12}{fmt(r['Q_onset_nominal_W']):>22}{fmt(r['Q_onset_median_W']):>9}"
+                   f"{fmt(r['Q_onset_p05_W']) + '-' + fmt(r['Q_onset_p95_W']):>17}{fmt(r['Q_onset_p90_W']):>9}"
+                   f"{r['p_best']:9.2f}")
+    _say(args, f"wrote {out}")
+    return 0
+
+
 def add_rank_parser(sub) -> argparse.ArgumentParser:
     from ..design.objectives import DEFAULT_T_LIMIT
 
-    p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach, with uncertainty"))
+    p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach or by the onset heat "
+                                            "input of an engine, with uncertainty"))
+    p.add_argument("--by", choices=("gradient", "onset"), default="gradient",
+                   help="gradient: stack gradient at --Q in --core; onset: onset heat input of --engine "
+                        "(default: %(default)s)")
+    p.add_argument("--engine", default="standing_wave",
+                   help="--by onset: reference engine (TOML or bundled name) whose stack takes each material "
+                        "(default: %(default)s)")
+    p.add_argument("--set", action="append", default=[],
+                   help="--by onset: NAME=VALUE changes the engine's core, e.g. gas.p_mean=1e6 (repeatable)")
+    p.add_argument("--Q-max", dest="Q_max", type=float, default=200.0,
+                   help="--by onset: largest heat input searched [W] (default: %(default)s)")
+    p.add_argument("--bracket", type=int, default=9,
+                   help="--by onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)")
     p.add_argument("--materials", default=None, help="comma list of catalogue names (default: all)")
     p.add_argument("--Q", type=_floats, default=_floats("9"), help="heat inputs [W], list or start:stop:count")
     p.add_argument("--core", default="rvc_foam", help="reference core whose stack takes each material (default: %(default)s)")
     p.add_argument("--segment", default="stack")
     p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
-    p.add_argument("--samples", type=int, default=4000, help="draws per material (default: %(default)s)")
+    p.add_argument("--samples", type=int, default=None,
+                   help="draws per material (default: 4000 by gradient, 400 by onset)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
     p.add_argument("-o", "--output", default="rank.json", help="output JSON; figure beside it (default: %(default)s)")

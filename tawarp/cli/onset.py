@@ -26,7 +26,7 @@ def add_onset_parser(sub) -> None:
                         "engine.right_duct, ...); LIST is v1,v2 or start:stop:count; several --var form a grid")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-onset", help="output folder (default: %(default)s)")
-    p.add_argument("--no-plots", action="store_true", help="skip the figure")
+    p.add_argument("--no-plots", action="store_true", help="skip the figures (growth_rate.png, root_locus.png)")
     p.set_defaults(func=cmd_onset)
 
 
@@ -71,7 +71,9 @@ def cmd_onset(args) -> int:
         "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; Q_onset null: no onset on [0, Q_max]",
         "sets": sets})
     if not args.no_plots:
-        _plot_growth(res, combos, names, out / "growth_rate.png", Path(str(engine.source)).name)
+        title = Path(str(engine.source)).stem
+        _plot_growth(res, combos, names, out / "growth_rate.png", title)
+        _plot_root_locus(res, combos, names, out / "root_locus.png", title)
     _say(args, f"wrote {out / 'onset.json'}")
     return 0
 
@@ -91,6 +93,33 @@ def _plot_growth(res, combos, names, path, title):
     ax.set_xlabel("heat input Q [W]")
     ax.set_ylabel("growth rate Im omega [1/s]")
     ax.set_title(f"{title}: growth rate (x: onset)")
+    if names and len(combos) <= 12:
+        ax.legend(fontsize=7)
+    save(fig, path)
+
+
+def _plot_root_locus(res, combos, names, path, title):
+    """Eigenfrequency in the complex plane (Re f [Hz], growth rate Im omega [1/s]) as the
+    heat input goes from 0 to Q_max, points coloured by Q; the onset where a locus crosses
+    the real axis."""
+    import matplotlib.pyplot as plt
+
+    from ..plots import save
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    f = res.omega_grid.real / (2 * math.pi)
+    sc = None
+    for i, c in enumerate(combos):
+        label = ", ".join(f"{k} = {v:g}" for k, v in zip(names, c)) or None
+        ax.plot(f[i], res.omega_grid[i].imag, "-", color=f"C{i % 10}", lw=1.0, label=label, zorder=1)
+        sc = ax.scatter(f[i], res.omega_grid[i].imag, c=res.Q_grid, cmap="viridis", s=14, zorder=2)
+        if math.isfinite(res.Q_onset[i]):
+            ax.plot([res.f_onset[i]], [0.0], "kx", ms=8, zorder=3)
+    ax.axhline(0.0, color="k", lw=0.6)
+    fig.colorbar(sc, ax=ax, label="heat input Q [W]")
+    ax.set_xlabel("frequency Re omega / 2 pi [Hz]")
+    ax.set_ylabel("growth rate Im omega [1/s] (> 0 grows)")
+    ax.set_title(f"{title}: root locus as Q rises (x: onset)")
     if names and len(combos) <= 12:
         ax.legend(fontsize=7)
     save(fig, path)

@@ -5,10 +5,12 @@ table (:mod:`tawarp.design.objectives`)."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import warp as wp
 
-from .objectives import kernel_metrics, objective
+from .objectives import OnsetSpec, kernel_metrics, objective
 from .space import DesignSpace
 from ..model.core import Core
 from ..model.forward import Engine, ForwardSettings
@@ -21,13 +23,14 @@ class Evaluator:
     the stack at segment ``stack_index``) on the device of ``settings``.
 
     :meth:`evaluate` returns ``{name: (n,) array}``: every kernel column, plus the host
-    objectives named in ``extra`` (e.g. ``acoustic_loss``, at ``freqs`` [Hz]).
+    objectives named in ``extra`` (e.g. ``acoustic_loss``, at ``freqs`` [Hz]; the onset
+    objectives, closed as ``onset`` says: :class:`tawarp.design.objectives.OnsetSpec`).
     ``settings.heat_cells`` sets the heat grid (1 is exact for piecewise-constant
     coefficients)."""
 
     def __init__(self, space: DesignSpace | None, extra=(), freqs=DEFAULT_FREQS,
                  settings: ForwardSettings | None = None, *, core: Core | None = None, names=None,
-                 stack_index: int | None = None):
+                 stack_index: int | None = None, onset=None):
         from ..kernels.design import N_METRICS
 
         self.space = space
@@ -42,12 +45,55 @@ class Evaluator:
         self.extra = [objective(n) for n in extra if objective(n).column is None]
         self.freqs = tuple(float(f) for f in freqs)
         self._acoustic = None
+        self.onset_spec = onset or OnsetSpec()
+        self._onset_cache = (None, None, None)
 
     def acoustic_engine(self) -> Engine:
         """T-matrix engine at ``freqs`` over the same varying rows (built on first use)."""
         if self._acoustic is None:
             self._acoustic = Engine(self.core, self.freqs, self.names, self.settings)
         return self._acoustic
+
+    def onset_metrics(self, table: np.ndarray, draws: bool = False) -> tuple[np.ndarray, np.ndarray]:
+        """(Q_onset [W], T_hot [K] at onset) of every design column of ``table``, inf where
+        there is no onset by ``onset_spec.Q_max``; with ``draws``, (n, n_draws) arrays over
+        the stack parameter sets drawn from ``onset_spec.uncertainty``'s covariance and added
+        to each design's stack values (clipped to the fit ranges). One batched
+        :func:`tawarp.model.onset.onset` call, kept for the other onset objectives of the
+        same table."""
+        from ..model.fields import field as parameter_field
+        from ..model.onset import onset
+        from ..model.resonator import load_engine
+        from .catalogue import CORE_FIELD, PARAMS
+
+        if self._onset_cache[0] is table and self._onset_cache[1] == draws:
+            return self._onset_cache[2]
+        spec = self.onset_spec
+        ref = load_engine(spec.engine) if isinstance(spec.engine, str) else spec.engine
+        engine = dataclasses.replace(ref, core=self.core)
+        params = {k: table[1 + j] for j, k in enumerate(self.names)}
+        n = table.shape[1]
+        if draws:
+            if spec.uncertainty is None:
+                raise ValueError("objective Q_onset_p90 needs the stack material's uncertainty: OnsetSpec.uncertainty "
+                                 "(tawarp design --uncertainty MATERIAL|fit.json)")
+            m = spec.uncertainty
+            dev = m.sample(spec.n_draws, spec.seed)
+            seg = self.core.segment(spec.segment)
+            for p in PARAMS:
+                name = f"{spec.segment}.{CORE_FIELD[p]}"
+                base = params.get(name, np.full(n, getattr(seg, CORE_FIELD[p])))
+                lo, hi = parameter_field(CORE_FIELD[p]).fit_range
+                params[name] = np.clip(base[:, None] + (dev[p] - getattr(m, p))[None, :], lo, hi).ravel()
+            for k in self.names:
+                if params[k].size == n:       # not a stack parameter: the same for every draw
+                    params[k] = np.repeat(params[k], spec.n_draws)
+        res = onset(engine, Q_max=spec.Q_max, params=params, n_bracket=spec.n_bracket, settings=self.settings)
+        shape = (n, spec.n_draws) if draws else (n,)
+        out = (np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(shape),
+               np.where(np.isfinite(res.T_hot), res.T_hot, np.inf).reshape(shape))
+        self._onset_cache = (table, draws, out)
+        return out
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on the device)."""

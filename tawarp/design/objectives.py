@@ -20,6 +20,19 @@ Built-in rows (all from the steady heat model of PHYSICS.md):
   ``Q = 0`` with anechoic cold ducts on both sides, ``1 - |r|^2 - |t|^2``, mean of
   incidence from x1 and x6 and over the evaluator's frequencies.
 
+Onset rows (:mod:`tawarp.model.onset`): the designed core closed by the resonator of a
+reference engine (the evaluator's :class:`OnsetSpec`, default the bundled
+``standing_wave``), one batched onset search for all designs of a batch:
+
+- ``Q_onset`` [W], minimized: the heat input where the fundamental starts to grow
+  (Im omega crosses 0); inf where it does not start by ``Q_max`` (no onset is the worst).
+- ``onset_T_ratio`` [-], minimized: T_hot / T_cold at onset (T_hot the largest steady
+  temperature of the core); inf without onset.
+- ``Q_onset_p90`` [W], minimized: the robust objective, the 90th percentile of Q_onset
+  over ``OnsetSpec.n_draws`` stack parameter sets drawn from the covariance of
+  ``OnsetSpec.uncertainty`` (a material, e.g. from a fit.json) added to each design's
+  stack values; the same draws for every design (common random numbers).
+
 Extension: ``register_objective(Objective(...))`` from anywhere; :func:`search` and
 :func:`sweep` then accept the new name.
 """
@@ -88,6 +101,38 @@ def absorbed_fraction(T: np.ndarray, Zc: float) -> np.ndarray:
     return 0.5 * (left + right)
 
 
+@dataclass(frozen=True)
+class OnsetSpec:
+    """How the onset objectives close a designed core: the resonator and ends of
+    ``engine`` (an engine name or file; its core is replaced by the design's), heat inputs
+    searched up to ``Q_max`` [W] on ``n_bracket`` points, and for ``Q_onset_p90`` the
+    material ``uncertainty`` (a :class:`tawarp.design.catalogue.Material`: its covariance
+    over the stack parameters) drawn ``n_draws`` times with ``seed``."""
+
+    engine: str = "standing_wave"
+    Q_max: float = 200.0
+    n_bracket: int = 9
+    uncertainty: object = None
+    n_draws: int = 64
+    seed: int = 0
+    segment: str = "stack"
+
+
+def _Q_onset(evaluator, table, metrics):
+    return evaluator.onset_metrics(table)[0]
+
+
+def _onset_T_ratio(evaluator, table, metrics):
+    T_cold = table[1 + evaluator.names.index("gas.T_cold")] if "gas.T_cold" in evaluator.names \
+        else evaluator.core.gas.T_cold
+    return evaluator.onset_metrics(table)[1] / T_cold
+
+
+def _Q_onset_p90(evaluator, table, metrics):
+    with np.errstate(invalid="ignore"):    # inf - inf between draws without onset: the point is inf
+        return np.percentile(evaluator.onset_metrics(table, draws=True)[0], 90, axis=1)
+
+
 #: Default constraint T_max <= T_limit [K] (673 K: a typical limit for carbon in air).
 DEFAULT_T_LIMIT = 673.0
 
@@ -111,6 +156,13 @@ for _row in (
     Objective("T_hot", "minimize", "K", "temperature at the hot end of the stack, T(x3)", column=_kernel.T_HOT),
     Objective("acoustic_loss", "minimize", "-",
               "absorbed fraction of incident plane-wave power at Q = 0, mean over freqs", compute=_acoustic_loss),
+    Objective("Q_onset", "minimize", "W", "onset heat input of the core in the reference engine's resonator",
+              compute=_Q_onset),
+    Objective("onset_T_ratio", "minimize", "-", "T_hot / T_cold at onset in the reference engine's resonator",
+              compute=_onset_T_ratio),
+    Objective("Q_onset_p90", "minimize", "W",
+              "90th percentile of the onset heat input over draws from the material's covariance",
+              compute=_Q_onset_p90),
 ):
     register_objective(_row)
 

@@ -1,4 +1,5 @@
-"""Rank stack materials by the temperature gradient they reach, with uncertainty.
+"""Rank stack materials by the temperature gradient they reach, or by the heat input at
+which they start an engine, with uncertainty.
 
 Each material of a :class:`tawarp.catalogue.Catalogue` is put in the stack of one
 reference core (default: the bundled ``rvc_foam`` layout: 4 cm stack, 1.3 cm hot
@@ -13,6 +14,16 @@ material and heat input: the nominal gradient (at the mean values), the mean, st
 deviation and 2.5-97.5 % interval over the draws, the probability of being the best
 material (draws paired by index across materials, which are independent), the mean
 maximum temperature and the probability that it exceeds ``T_limit``.
+
+:func:`rank_by_onset` puts each material in the stack of a reference engine (default the
+bundled ``standing_wave``: the ceramic core in a closed-closed resonator) and draws its
+parameters the same way; the onset of every (material, draw) is found in one batched
+:func:`tawarp.model.onset.onset` call (each bracketing and secant step is one launch for
+all draws). Reported per material: the nominal onset heat input Q_onset [W], its median,
+5, 90 (the robust value) and 95 % points over the draws, the onset frequency and the
+onset temperature ratio T_hot / T_cold (medians), the fraction of draws that do not start
+by ``Q_max``, and the probability that it starts at a lower heat input than each other
+material (draws paired by index; a draw that does not start counts as Q_onset = inf).
 """
 
 from __future__ import annotations
@@ -26,6 +37,7 @@ from ..model.core import Core, load_core
 from .evaluate import Evaluator
 from .objectives import DEFAULT_T_LIMIT
 from ..model.forward import ForwardSettings
+from ..model.resonator import ThermoacousticEngine, load_engine
 
 
 @dataclass
@@ -51,17 +63,36 @@ class RankResult:
                 "ranking": self.table}
 
 
+def _materials(materials, catalogue: Catalogue | None) -> list[Material]:
+    cat = catalogue if catalogue is not None else default_catalogue()
+    if materials is None:
+        materials = list(cat.values())
+    mats = [cat[m] if isinstance(m, str) else m for m in materials]
+    if not mats:
+        raise ValueError("no material to rank")
+    return mats
+
+
+def draw_parameter_sets(materials, n_samples: int, seed: int | np.random.Generator | None = 0,
+                        segment: str = "stack") -> dict[str, np.ndarray]:
+    """``{"SEGMENT.FIELD": (M, n_samples + 1)}``: per material, column 0 its nominal values
+    and columns 1.. ``n_samples`` draws from N(mean, covariance) (:meth:`Material.sample`:
+    a fit.json's covariance, clipped to the fit ranges), one generator for all materials."""
+    rng = np.random.default_rng(seed)
+    out = {f"{segment}.{CORE_FIELD[p]}": np.empty((len(materials), n_samples + 1)) for p in PARAMS}
+    for i, m in enumerate(materials):
+        draws = m.sample(n_samples, rng)
+        for p in PARAMS:
+            out[f"{segment}.{CORE_FIELD[p]}"][i] = np.concatenate([[getattr(m, p)], draws[p]])
+    return out
+
+
 def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_foam", segment: str = "stack",
                    n_samples: int = 2000, seed: int = 0, T_limit: float = DEFAULT_T_LIMIT,
                    catalogue: Catalogue | None = None, settings: ForwardSettings | None = None) -> RankResult:
     """Rank ``materials`` (Material objects or catalogue names; default: the whole catalogue)
     at each heat input [W]; see the module docstring."""
-    cat = catalogue if catalogue is not None else default_catalogue()
-    if materials is None:
-        materials = list(cat.values())
-    mats: list[Material] = [cat[m] if isinstance(m, str) else m for m in materials]
-    if not mats:
-        raise ValueError("no material to rank")
+    mats = _materials(materials, catalogue)
     if isinstance(core, str):
         core = load_core(core)
     qs = np.atleast_1d(np.asarray(heat_inputs, dtype=float))
@@ -71,18 +102,12 @@ def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_f
         raise ValueError("n_samples must be >= 2")
     seg_names = [s.name for s in core.segments]
     stack_index = seg_names.index(segment)
-    names = [f"{segment}.{CORE_FIELD[p]}" for p in PARAMS]
-    rng = np.random.default_rng(seed)
     M, Nq, N = len(mats), len(qs), n_samples
     # one batch: material-major, then heat input, then draw; draw 0 is the nominal material
-    cols = {n: np.empty((M, Nq, N + 1)) for n in names}
-    for i, m in enumerate(mats):
-        draws = m.sample(N, rng)
-        for p in PARAMS:
-            col = np.concatenate([[getattr(m, p)], draws[p]])
-            cols[f"{segment}.{CORE_FIELD[p]}"][i] = col[None, :]
+    sets = draw_parameter_sets(mats, N, seed, segment)
+    names = list(sets)
     Q = np.broadcast_to(qs[None, :, None], (M, Nq, N + 1))
-    table = np.stack([Q.ravel()] + [cols[n].ravel() for n in names])
+    table = np.stack([Q.ravel()] + [np.broadcast_to(sets[n][:, None, :], (M, Nq, N + 1)).ravel() for n in names])
     ev = Evaluator(None, core=core, names=names, stack_index=stack_index, settings=settings)
     out = {}
     chunk = ev.settings.chunk
@@ -114,3 +139,79 @@ def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_f
             samples[(m.name, float(q))] = draws[i]
     rows.sort(key=lambda r: (r["Q_W"], r["rank"]))
     return RankResult(str(core.source), [float(q) for q in qs], [m.name for m in mats], N, rows, samples)
+
+
+def _none_if_inf(x: float):
+    return float(x) if np.isfinite(x) else None
+
+
+@dataclass
+class OnsetRankResult:
+    """``table``: rows per material (rank by median Q_onset, nominal / median / p05 / p90 /
+    p95 Q_onset [W] (None: above Q_max), median f_onset [Hz] and T_hot / T_cold,
+    ``p_no_onset``, ``p_best``, ``p_beats`` {other: P(Q_onset < other's)});
+    ``samples``: {material: (n_samples,) Q_onset draws [W], inf where no onset}."""
+
+    engine: str
+    Q_max: float
+    materials: list
+    n_samples: int
+    table: list
+    samples: dict
+
+    def ordering(self) -> list[str]:
+        """Materials from the lowest median onset heat input to the highest."""
+        return [r["material"] for r in sorted(self.table, key=lambda r: r["rank"])]
+
+    def to_dict(self) -> dict:
+        return {"engine": self.engine, "Q_max_W": self.Q_max, "materials": self.materials,
+                "n_samples": self.n_samples, "ranked_by": "median onset heat input Q_onset [W] (lower first)",
+                "ranking": self.table}
+
+
+def rank_by_onset(materials=None, engine: ThermoacousticEngine | str = "standing_wave", segment: str = "stack",
+                  n_samples: int = 200, seed: int = 0, Q_max: float = 200.0, n_bracket: int = 9,
+                  catalogue: Catalogue | None = None, settings: ForwardSettings | None = None) -> OnsetRankResult:
+    """Rank ``materials`` by the onset heat input of ``engine`` with each in ``segment``;
+    see the module docstring. ``Q_max`` [W] and ``n_bracket``: :func:`tawarp.model.onset.onset`."""
+    from ..model.onset import onset
+
+    mats = _materials(materials, catalogue)
+    eng = load_engine(engine) if isinstance(engine, str) else engine
+    if not eng.core.segment(segment).is_porous:
+        raise ValueError(f"{eng.source}: segment {segment!r} is not porous; a material needs a porous segment")
+    if n_samples < 2:
+        raise ValueError("n_samples must be >= 2")
+    M, N = len(mats), n_samples
+    sets = draw_parameter_sets(mats, N, seed, segment)
+    res = onset(eng, Q_max=Q_max, params={k: v.ravel() for k, v in sets.items()}, n_bracket=n_bracket,
+                settings=settings)
+    Q = np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(M, N + 1)
+    f = res.f_onset.reshape(M, N + 1)
+    ratio = (res.T_hot / eng.core.gas.T_cold).reshape(M, N + 1)
+    draws = Q[:, 1:]
+    with np.errstate(invalid="ignore"):    # inf - inf between two draws without onset: the point is inf
+        p05, p90, p95 = np.percentile(draws, [5, 90, 95], axis=1)
+    median = np.median(draws, axis=1)
+    order = np.argsort(median, kind="stable")
+    rank = np.empty(M, int)
+    rank[order] = np.arange(1, M + 1)
+    best = np.argmin(draws, axis=0)
+    all_inf = ~np.isfinite(draws).any(axis=0)
+    rows, samples = [], {}
+    for i, m in enumerate(mats):
+        ok = np.isfinite(draws[i])
+        rows.append({"material": m.name, "rank": int(rank[i]),
+                     "Q_onset_nominal_W": _none_if_inf(Q[i, 0]),
+                     "Q_onset_median_W": _none_if_inf(median[i]),
+                     "Q_onset_p05_W": _none_if_inf(p05[i]),
+                     "Q_onset_p90_W": _none_if_inf(p90[i]),
+                     "Q_onset_p95_W": _none_if_inf(p95[i]),
+                     "f_onset_median_Hz": float(np.median(f[i, 1:][ok])) if ok.any() else None,
+                     "T_ratio_median": float(np.median(ratio[i, 1:][ok])) if ok.any() else None,
+                     "p_no_onset": float(np.mean(~ok)),
+                     "p_best": float(np.mean((best == i) & ~all_inf)),
+                     "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i}})
+        samples[m.name] = draws[i]
+    rows.sort(key=lambda r: r["rank"])
+    return OnsetRankResult(str(eng.source), float(Q_max), [m.name for m in mats], N, rows, samples)
