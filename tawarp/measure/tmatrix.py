@@ -12,6 +12,7 @@ import numpy as np
 
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
 from ..model.core import Core, load_core
+from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, stack_and_heater
 from ..model.forward import ForwardSettings
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
 from .kind import MeasurementKind, get_engine, smooth_settings
@@ -66,8 +67,6 @@ class TMatrixKind(MeasurementKind):
         """The stack's porosity and pore radius and the h of thermal segments with h > 1;
         for a passive core (no stack) every porous segment's porosity, pore radius and
         tortuosity."""
-        from ..model.effects import stack_and_heater
-
         stack, _ = stack_and_heater(self.core)
         if stack is None:
             return [f"{s.name}.{f}" for s in self.core.segments if s.is_porous
@@ -76,6 +75,13 @@ class TMatrixKind(MeasurementKind):
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
+        """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
+        effect's gain g (``calibration.gain`` exp(i ``calibration.phase``), see
+        :func:`tawarp.model.effects.calibration_effect`) multiplies all four (g = 1 + 0i:
+        exactly the uncalibrated values)."""
+        values = dict(values)
+        gain = values.pop(CALIBRATION_GAIN, None)
+        phase = values.pop(CALIBRATION_PHASE, None)
         names = tuple(sorted(values))
         core = effect.transform(self.core) if effect is not None and effect.transform else self.core
         eng = get_engine(core, self.freqs, list(names), self.settings)
@@ -86,4 +92,9 @@ class TMatrixKind(MeasurementKind):
             table[1 + j] = np.repeat(np.broadcast_to(np.asarray(values[k], dtype=float), (n,)), nq)
         out, _, _ = eng.evaluate(table)
         T = out.numpy().view(np.complex128).reshape(n, nq, len(self.freqs), 2, 2)
-        return normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+        Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+        if gain is not None or phase is not None:
+            g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
+            ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
+            Y = Y * (g * np.exp(1j * ph))[:, None]
+        return Y
