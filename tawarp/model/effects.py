@@ -97,13 +97,17 @@ class Effect:
     """A candidate effect: ``params`` added to the base fit; ``transform`` changes the core's
     structure (None for a field of the existing segments); ``typical`` {param label: value}
     a physically typical size of the effect (the validation study injects it there; the
-    params' ``start`` values are the effect's "off")."""
+    params' ``start`` values are the effect's "off"); ``starts`` further {param label:
+    value} points a refit should also start from, for an effect whose fit from "off" stays
+    in a local minimum at its bound (the elastic frame: a frame resonance inside the band
+    is not reached by descending from an infinitely stiff frame)."""
 
     name: str
     description: str
     params: tuple[Param, ...]
     transform: Callable[[Core], Core] | None = field(default=None, compare=False)
     typical: dict = field(default_factory=dict, compare=False)
+    starts: tuple = field(default=(), compare=False)
 
     def model_values(self, values: dict | None = None) -> dict:
         """Model parameters {name: value} of the effect at ``values`` {param label: value}
@@ -310,7 +314,10 @@ def elastic_frame_effect() -> Effect:
                    Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], e.scale, *e.fit_range),
                    Param(FRAME_DENSITY, (FRAME_DENSITY,), TYPICAL_FRAME["rho_1"], 1.0, *d.fit_range, log=True)),
                   typical={FRAME_COMPLIANCE: 1.0 / TYPICAL_FRAME["E"], FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
-                           FRAME_DENSITY: TYPICAL_FRAME["rho_1"]})
+                           FRAME_DENSITY: TYPICAL_FRAME["rho_1"]},
+                  # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
+                  starts=tuple({FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
+                                FRAME_DENSITY: TYPICAL_FRAME["rho_1"]} for E in (1e4, 1e5, 1e6, 1e7)))
 
 
 def impedance_library(core: Core) -> list[Effect]:
