@@ -18,7 +18,7 @@ from tawarp.model.effects import (AMBIENT_HX, Param, ambient_exchanger_effect, b
 from tawarp.model.forward import ForwardSettings
 from tawarp.model.fields import field
 from tawarp.model.coefficients import normalize
-from tawarp.model.forward import transfer_matrices
+from tawarp.model.forward import steady_temperature, transfer_matrices
 
 CORE = load_core("ceramic")
 
@@ -56,7 +56,7 @@ PASSIVE = Core((Segment("duct_left", "duct", 0.05), Segment("sample", "porous", 
                radius=0.05, source="passive")
 STABLE_NAMES = {"plane_offsets", "T_cold", "p_mean", "thermal_radius_ratio", "conductivity_T", "radiation", "convection",
                 "wall_conduction", "ambient_exchangers", "viscous_shape_factor", "thickness_offset", "limp_frame",
-                "elastic_frame", "calibration"}
+                "elastic_frame", "calibration", "ambient_exchanger_thermal"}
 
 
 def _tmatrix_kind(core, freqs, Qs=(0.0,)):
@@ -82,7 +82,7 @@ def _start_values(kind, effects):
 def test_library_for_core_names_typical_sizes_and_passive_cores():
     heated = {e.name for e in library_for_core(CORE, "tmatrix")}
     assert heated == {"plane_offsets", "T_cold", "p_mean", "calibration", "thermal_radius_ratio", "conductivity_T",
-                      "radiation", "convection", "wall_conduction", "ambient_exchangers"}
+                      "radiation", "convection", "wall_conduction", "ambient_exchangers", "ambient_exchanger_thermal"}
     passive = {e.name for e in library_for_core(PASSIVE, "scattering")}
     assert passive == {"plane_offsets", "T_cold", "p_mean", "calibration", "thermal_radius_ratio",
                        "viscous_shape_factor", "limp_frame"}
@@ -249,3 +249,78 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     assert 25 < v["layer.frame_density"] < 45
     full = fit(["thermal_radius_ratio", "viscous_shape_factor", "elastic_frame"])
     assert float(full.rms_error[0]) < 0.036   # rigid JCA: 0.0581
+
+
+def _exact_profile_with_exchangers(core, Q, H):
+    """theta(x) of the paper's heat model on the thermal segments with exchangers drawing
+    H theta at both ends (lam theta' = H theta at x2, -lam theta' = H theta at x5):
+    cosh/sinh per part plus the heater's particular solution, 2 unknowns per part from
+    the two end conditions and the continuity of theta and lam theta' (NumPy solve)."""
+    idx = core.thermal_indices
+    segs = [core.segments[i] for i in idx]
+    lam = np.array([reference.segment_conductivity(core, s) for s in segs])
+    m = np.sqrt(2 * np.array([s.h for s in segs]) / (core.radius * lam))
+    part = np.array([Q / (s.length * core.area) / (2 * s.h / core.radius) if s.heater else 0.0 for s in segs])
+    L = np.array([s.length for s in segs])
+    n = len(segs)
+    A, b = np.zeros((2 * n, 2 * n)), np.zeros(2 * n)
+    # theta_j = a_j cosh(m x) + b_j sinh(m x) + part_j; theta_j'(x) = m (a_j sinh + b_j cosh)
+    A[0, 0], A[0, 1] = -H, lam[0] * m[0]
+    b[0] = H * part[0]
+    for j in range(n - 1):
+        c, sh = np.cosh(m[j] * L[j]), np.sinh(m[j] * L[j])
+        A[1 + 2 * j, 2 * j:2 * j + 2] = c, sh
+        A[1 + 2 * j, 2 * j + 2] = -1.0
+        b[1 + 2 * j] = part[j + 1] - part[j]
+        A[2 + 2 * j, 2 * j:2 * j + 2] = lam[j] * m[j] * sh, lam[j] * m[j] * c
+        A[2 + 2 * j, 2 * j + 3] = -lam[j + 1] * m[j + 1]
+    c, sh = np.cosh(m[-1] * L[-1]), np.sinh(m[-1] * L[-1])
+    A[-1, -2:] = lam[-1] * m[-1] * sh + H * c, lam[-1] * m[-1] * c + H * sh
+    b[-1] = -H * part[-1]
+    coef = np.linalg.solve(A, b)
+    starts = np.array(core.positions())[list(idx)]
+
+    def theta(x):
+        j = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, n - 1)
+        xi = x - starts[j]
+        return coef[2 * j] * np.cosh(m[j] * xi) + coef[2 * j + 1] * np.sinh(m[j] * xi) + part[j]
+    return theta
+
+
+@pytest.mark.parametrize("H", [30.0, 1e3, 1e6])
+def test_ambient_exchanger_thermal_matches_the_closed_form(H):
+    """The exchangers' thermal role (end_conductance H at both ends of the heat model)
+    against the exact piecewise solution: 1e-9 of the peak at the planes and inside; the
+    end temperatures fall as 1/H towards T_cold."""
+    core = load_core("ceramic")
+    Q = 40.0
+    e = next(x for x in tmatrix_library(core) if x.name == "ambient_exchanger_thermal")
+    params = e.model_values({"ambient_hx.end_conductance": H})
+    pos = np.array(core.positions())
+    x = np.concatenate([pos[1:5], np.linspace(pos[1], pos[4], 23)[1:-1]])
+    T, _ = steady_temperature(core, x, Q, params=params, device="cpu")
+    exact = _exact_profile_with_exchangers(core, Q, H)(x)
+    assert np.abs(T[0] - core.gas.T_cold - exact).max() < 1e-9 * exact.max()
+    if H == 1e6:
+        assert exact[0] < 1e-3 * exact.max()   # nearly held at T_cold
+
+
+def test_ambient_exchanger_thermal_energy_balance_with_a_nonlinear_conductivity():
+    """Q = int (2 h / R) theta S dx + H S (theta(x2) + theta(x5)) with the Kirchhoff cells
+    (conductivity_exponent on), on the kernel's own profile."""
+    core = load_core("ceramic")
+    Q, H, cells = 60.0, 500.0, 32
+    params = {"stack.end_conductance": H, "tbt.end_conductance": H, "stack.conductivity_exponent": 0.5}
+    pos = core.positions()
+    nodes, weights = np.polynomial.legendre.leggauss(12)
+    lost = 0.0
+    for i in core.thermal_indices:
+        edges = np.linspace(pos[i], pos[i + 1], cells + 1)
+        x = (0.5 * np.diff(edges)[:, None] * nodes + 0.5 * (edges[1:] + edges[:-1])[:, None]).ravel()
+        w = (0.5 * np.diff(edges)[:, None] * weights).ravel()
+        theta = steady_temperature(core, x, Q, params=params, device="cpu")[0][0] - core.gas.T_cold
+        lost += np.sum(w * theta * 2 * core.segments[i].h / core.radius * core.area)
+    ends = steady_temperature(core, np.array([pos[1], pos[4]]), Q, params=params, device="cpu")[0][0] - core.gas.T_cold
+    lost += H * core.area * ends.sum()
+    assert abs(lost - Q) < 1e-9 * Q
+    assert ends.min() > 0

@@ -152,6 +152,10 @@ TYPICAL_RADIATIVE_CONDUCTIVITY = 0.0134
 #: Laminar natural convection about a horizontal cylinder, h = 1.32 (dT/D)^(1/4) W/(m^2 K)
 #: (D the tube diameter): h_convection = 1.32 D^(-1/4) [W/(m^2 K^1.25)].
 CONVECTION_COEFFICIENT = 1.32
+#: Typical thermal contact of an ambient exchanger [W/(m^2 K)]: gas-side h ~ Nu k/(2 r) ~ 50 W/(m^2 K)
+#: in 1 mm pores over the wetted area 2 phi l / r ~ 16 per section area (10 mm, porosity 0.8):
+#: about 1e3, tenfold the conductance lam_s / L of a stack, so the end is nearly held at T_cold.
+TYPICAL_END_CONDUCTANCE = 1e3
 #: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
 CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
 
@@ -254,6 +258,12 @@ def tmatrix_library(core: Core) -> list[Effect]:
                                  [f"{s.name}.wall_conductance" for s in thermal], wall, label="wall_conductance"))
     if ducts and stack and min(segs[0].length, segs[-1].length) > AMBIENT_HX_MIN_DUCT:
         lib.append(ambient_exchanger_effect(core))
+    if stack:
+        ends = dict.fromkeys((thermal[0].name, thermal[-1].name))   # the heat model's two ends
+        lib.append(_field_effect("ambient_exchanger_thermal", "ambient exchangers drawing heat H theta at both ends "
+                                                               "of the heat model toward T_cold (H = 0: adiabatic)",
+                                 [f"{n}.end_conductance" for n in ends], TYPICAL_END_CONDUCTANCE,
+                                 label="ambient_hx.end_conductance"))
     return lib
 
 

@@ -110,6 +110,10 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
           description="natural convection: h_eff = h + h_conv theta^(1/4)"),
     Field("wall_conductance", layout.WALL_CONDUCTANCE, "W/(m K)", 0.0, _INF, False, "thermal", neutral=0.0,
           log=False, scale=0.1, fit_range=(0.0, 1e3), description="axial conduction of the tube wall, lam_wall A_wall/S"),
+    Field("end_conductance", layout.END_CONDUCTANCE, "W/(m^2 K)", 0.0, _INF, False, "thermal", neutral=0.0,
+          log=False, scale=100.0, fit_range=(0.0, 1e5),
+          description="heat flux H theta per section area drawn to T_cold at the heat model's end that lies in this "
+                      "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)"),
 )
 #: Core-wide fields, addressed ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELD_TABLE: dict[str, Field] = {
