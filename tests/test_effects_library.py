@@ -9,7 +9,8 @@ import pytest
 from tawarp.model.core import load_core
 from tawarp import reference
 from tawarp.measure.files import ImpedanceData, TMatrixData, scattering_to_transfer, transfer_to_scattering
-from tawarp.measure.impedance import FLUID_SLICE, FRAME_POISSON_RATIO, ImpedanceKind, equivalent_fluid
+from tawarp.measure.impedance import ImpedanceKind
+from tawarp.model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, equivalent_fluid
 from tawarp.measure.tmatrix import TMatrixKind
 from tawarp.model import biot
 from tawarp.model.core import Core, Segment
@@ -85,7 +86,7 @@ def test_library_for_core_names_typical_sizes_and_passive_cores():
                       "radiation", "convection", "wall_conduction", "ambient_exchangers", "ambient_exchanger_thermal"}
     passive = {e.name for e in library_for_core(PASSIVE, "scattering")}
     assert passive == {"plane_offsets", "T_cold", "p_mean", "calibration", "thermal_radius_ratio",
-                       "viscous_shape_factor", "limp_frame"}
+                       "viscous_shape_factor", "limp_frame", "elastic_frame"}
     layer = {e.name for e in library_for_core(CORE, "impedance")}
     assert layer == {"thermal_radius_ratio", "viscous_shape_factor", "limp_frame", "elastic_frame", "thickness_offset",
                      "T_cold", "p_mean"}
@@ -324,3 +325,35 @@ def test_ambient_exchanger_thermal_energy_balance_with_a_nonlinear_conductivity(
     lost += H * core.area * ends.sum()
     assert abs(lost - Q) < 1e-9 * Q
     assert ends.min() > 0
+
+
+def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
+    """A passive sample's elastic frame (2-port, frame sliding at the wall): frame mobility
+    0 is the rigid model bit for bit; E -> 0 the kernels' limp frame; the typical foam frame
+    (E = 2e5 Pa, eta = 0.1, 30 kg/m^3) equals Biot on the closed-form circular-pore fluid
+    between the independent reference's ducts; det T = 1."""
+    f = np.array([150.0, 400.0, 900.0, 1500.0])
+    kind = _tmatrix_kind(PASSIVE, f)
+    e = next(x for x in tmatrix_library(PASSIVE) if x.name == "elastic_frame")
+    base = _start_values(kind, [])
+    Y0 = kind.predict(base, 1)
+    np.testing.assert_array_equal(kind.predict(dict(base, **_start_values(kind, [e])), 1), Y0)
+    limp = kind.predict(dict(base, **{"sample.frame_mobility": np.array([1 / 30.0])}), 1)
+    soft = {k: np.array([v]) for k, v in e.model_values({"sample.frame_mobility": 1 / 30.0, "sample.frame_modulus": 1e-3, "sample.frame_loss_factor": 0.0}).items()}
+    assert np.abs(kind.predict(dict(base, **soft), 1) - limp).max() < 1e-8 * np.abs(limp).max()
+    Y = kind.predict(dict(base, **{k: np.array([v]) for k, v in e.model_values().items()}), 1)
+    seg = PASSIVE.segments[1]
+    w = 2 * np.pi * f
+    g = reference.gas_properties("air", PASSIVE.gas.T_cold, PASSIVE.gas.p_mean)
+    _, omf_nu = reference.thermoviscous_function("circular", seg.pore_radius, np.sqrt(2 * g.mu / (g.rho * w)))
+    f_k, _ = reference.thermoviscous_function("circular", seg.pore_radius, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
+    fl = biot.JCAFluid(seg.tortuosity ** 2 * g.rho / (seg.porosity * omf_nu),
+                       g.rho * g.c ** 2 / (seg.porosity * (1 + (g.gamma - 1) * f_k)), np.array(g.rho), np.array(g.c))
+    Tb = biot.fluid_transfer_matrix(f, fl, thickness=seg.length, phi=seg.porosity, E=2e5, eta=0.1,
+                                    nu=FRAME_POISSON_RATIO, rho_1=30.0, area=PASSIVE.area)
+    duct = lambda s: reference.transfer_matrix(Core((s,), PASSIVE.gas, PASSIVE.radius, "duct"), f)  # noqa: E731
+    Tref = duct(PASSIVE.segments[2]) @ Tb @ duct(PASSIVE.segments[0])
+    Yref = normalize(Tref, kind.Zc).reshape(-1)
+    assert np.abs(Y[0] - Yref).max() < 1e-8 * np.abs(Yref).max()
+    assert np.abs(Y[0] - Y0[0]).max() > 1e-3 * np.abs(Y0).max()
+    np.testing.assert_allclose(np.linalg.det(Tref), 1.0, atol=1e-10)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model.biot import JCAFluid, fluid_surface_impedance
+from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_surface_impedance
 from ..model.effects import FRAME_COMPLIANCE, FRAME_DENSITY, FRAME_LOSS_FACTOR
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
@@ -106,23 +106,3 @@ class ImpedanceKind(MeasurementKind):
                                      rho_1=rho_1[:, None])
         # biot normalizes by the set's rho0 c0; the rigid path (and the data) by the core's
         return Zs * (rho0 * c0)[:, None] / characteristic_impedance(self.core)
-
-
-#: Thickness [m] of the slice whose 2-port gives the layer's equivalent fluid: |k d| << 1
-#: at the layers' frequencies, so arcsin takes its principal branch.
-FLUID_SLICE = 1e-4
-#: Poisson ratio of the elastic frame (normal incidence sees only E (1 - nu)/((1 + nu)(1 - 2 nu))).
-FRAME_POISSON_RATIO = 0.3
-
-
-def equivalent_fluid(T: np.ndarray, thickness: float, omega: np.ndarray, area: float) -> tuple[np.ndarray, np.ndarray]:
-    """(rho_eq, K_eq) [kg/m^3, Pa] of a uniform layer from its 2-port T (..., m, 2, 2) over
-    ``thickness`` [m] (``(p, U)``, tube ``area`` [m^2]): with T = [[cos kd, i Zc sin kd],
-    [i sin kd / Zc, cos kd]], the specific impedance ``z = Zc area = sqrt(Tpu/Tup) area``
-    and ``k d = arcsin(-i Tup Zc)`` (principal branch: a thin slice), then
-    ``rho_eq = k z / w`` and ``K_eq = w z / k`` (Darcy velocity U/area, exp(-iwt))."""
-    Zc = np.sqrt(T[..., 0, 1] / T[..., 1, 0])
-    Zc = np.where(Zc.real < 0, -Zc, Zc)
-    k = np.arcsin(-1j * T[..., 1, 0] * Zc) / thickness
-    z = Zc * area
-    return k * z / omega, omega * z / k

@@ -106,8 +106,8 @@ JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 #: [1, inf); the moduli, the resistivity and the tube area are only positive.
 _FIELD_OF = {"phi": "porosity", "alpha_inf": "tortuosity", "Lambda": "pore_radius", "Lambda_prime": "pore_radius",
              "pore_radius": "pore_radius", "thickness": "length", "eta": "frame_loss_factor", "nu": "poisson_ratio",
-             "rho_1": "frame_density", "T": "gas.T_cold", "P0": "gas.p_mean"}
-_POSITIVE = ("sigma", "E", "area")
+             "rho_1": "frame_density", "E": "frame_modulus", "T": "gas.T_cold", "P0": "gas.p_mean"}
+_POSITIVE = ("sigma", "area")
 
 
 class JCAFluid(NamedTuple):
@@ -361,7 +361,17 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     exp(-iwt). Passive and reciprocal: ``det T = 1``."""
     w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
                    Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area, T=T, P0=P0)
-    fl = _jca(w, b, gas)
+    return _transfer_matrix(w, b, _jca(w, b, gas))
+
+
+def fluid_transfer_matrix(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, rho_1, area=1.0) -> np.ndarray:
+    """:func:`transfer_matrix` of a frame in any equivalent fluid ``fluid`` (as
+    :func:`fluid_surface_impedance`)."""
+    w, b = _params(freq, thickness=thickness, phi=phi, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area)
+    return _transfer_matrix(w, b, fluid)
+
+
+def _transfer_matrix(w, b, fl: JCAFluid) -> np.ndarray:
     M0, Md = _face_states(w, b, fl)
     phi_ = b["phi"]
     p0, v0 = _pv_rows(M0, phi_)
@@ -378,3 +388,23 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     Tn[..., 0, 1] *= z_per_S
     Tn[..., 1, 0] /= z_per_S
     return Tn
+
+
+#: Thickness [m] of the slice whose 2-port gives the layer's equivalent fluid: |k d| << 1
+#: at the frequencies of use, so arcsin takes its principal branch.
+FLUID_SLICE = 1e-4
+#: Poisson ratio of the elastic frame (normal incidence sees only E (1 - nu)/((1 + nu)(1 - 2 nu))).
+FRAME_POISSON_RATIO = 0.3
+
+
+def equivalent_fluid(T: np.ndarray, thickness: float, omega: np.ndarray, area: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rho_eq, K_eq) [kg/m^3, Pa] of a uniform layer from its 2-port T (..., m, 2, 2) over
+    ``thickness`` [m] (``(p, U)``, tube ``area`` [m^2]): with T = [[cos kd, i Zc sin kd],
+    [i sin kd / Zc, cos kd]], the specific impedance ``z = Zc area = sqrt(Tpu/Tup) area``
+    and ``k d = arcsin(-i Tup Zc)`` (principal branch: a thin slice), then
+    ``rho_eq = k z / w`` and ``K_eq = w z / k`` (Darcy velocity U/area, exp(-iwt))."""
+    Zc = np.sqrt(T[..., 0, 1] / T[..., 1, 0])
+    Zc = np.where(Zc.real < 0, -Zc, Zc)
+    k = np.arcsin(-1j * T[..., 1, 0] * Zc) / thickness
+    z = Zc * area
+    return k * z / omega, omega * z / k

@@ -248,6 +248,8 @@ def tmatrix_library(core: Core) -> list[Effect]:
         porous = [s.name for s in segs if s.is_porous]
         if porous:
             lib += porous_layer_effects(porous)
+        if len(porous) == 1:
+            lib.append(two_port_frame_effect(porous[0]))
     if buffer:
         lib.append(_field_effect("convection", "natural convection in the buffer tube, h = h_a + h_c theta^(1/4)",
                                  [f"{buffer}.h_convection"], CONVECTION_COEFFICIENT * (2 * core.radius) ** -0.25))
@@ -328,6 +330,25 @@ def elastic_frame_effect() -> Effect:
                   # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
                   starts=tuple({FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
                                 FRAME_DENSITY: TYPICAL_FRAME["rho_1"]} for E in (1e4, 1e5, 1e6, 1e7)))
+
+
+def two_port_frame_effect(sample: str) -> Effect:
+    """An elastic frame (Biot-Allard) of the porous segment ``sample`` of a passive core
+    measured as a 2-port, the frame sliding freely at the tube wall (1-D; a frame clamped or
+    glued at its edge bends and is not modelled). A free frame of infinite stiffness still
+    moves as a rigid body, so "off" is infinite frame density: ``SAMPLE.frame_mobility``
+    1/rho_1 [m^3/kg] = 0 (the kernels' field, exact), with ``SAMPLE.frame_modulus`` E [Pa]
+    and ``SAMPLE.frame_loss_factor`` eta; E -> 0 is the kernels' limp frame of the same
+    mobility (:class:`tawarp.measure.tmatrix.TMatrixKind` evaluates the Biot 2-port)."""
+    m, E, eta = (f"{sample}.{f}" for f in ("frame_mobility", "frame_modulus", "frame_loss_factor"))
+    fm, fE, fe = field_spec(m), field_spec(E), field_spec(eta)
+    typical = {m: 1.0 / TYPICAL_FRAME["rho_1"], E: TYPICAL_FRAME["E"], eta: TYPICAL_FRAME["eta"]}
+    return Effect("elastic_frame", "elastic frame (Biot-Allard, frame sliding at the wall): 1/frame density, "
+                                   "Young's modulus, loss factor",
+                  (Param(m, (m,), fm.neutral, fm.scale, *fm.fit_range),
+                   Param(E, (E,), TYPICAL_FRAME["E"], 1.0, *fE.fit_range, log=True),
+                   Param(eta, (eta,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range)),
+                  typical=typical, starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)))
 
 
 def impedance_library(core: Core) -> list[Effect]:
