@@ -329,7 +329,8 @@ def test_ambient_exchanger_thermal_energy_balance_with_a_nonlinear_conductivity(
 
 def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
     """A passive sample's elastic frame (2-port, frame sliding at the wall): frame mobility
-    0 is the rigid model bit for bit; E -> 0 the kernels' limp frame; the typical foam frame
+    0 is the rigid model bit for bit; E = 0 the kernels' limp frame bit for bit, E -> 0
+    converges to it; the typical foam frame
     (E = 2e5 Pa, eta = 0.1, 30 kg/m^3) equals Biot on the closed-form circular-pore fluid
     between the independent reference's ducts; det T = 1."""
     f = np.array([150.0, 400.0, 900.0, 1500.0])
@@ -339,6 +340,8 @@ def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
     Y0 = kind.predict(base, 1)
     np.testing.assert_array_equal(kind.predict(dict(base, **_start_values(kind, [e])), 1), Y0)
     limp = kind.predict(dict(base, **{"sample.frame_mobility": np.array([1 / 30.0])}), 1)
+    at_zero = {k: np.array([v]) for k, v in e.model_values({"sample.frame_mobility": 1 / 30.0}).items()}
+    np.testing.assert_array_equal(kind.predict(dict(base, **at_zero), 1), limp)   # E = 0: the limp frame itself
     soft = {k: np.array([v]) for k, v in e.model_values({"sample.frame_mobility": 1 / 30.0, "sample.frame_modulus": 1e-3, "sample.frame_loss_factor": 0.0}).items()}
     assert np.abs(kind.predict(dict(base, **soft), 1) - limp).max() < 1e-8 * np.abs(limp).max()
     Y = kind.predict(dict(base, **{k: np.array([v]) for k, v in e.model_values().items()}), 1)

@@ -80,6 +80,8 @@ class ImpedanceKind(MeasurementKind):
         table[0] = 0.0
         for j, name in enumerate(names):
             table[1 + j] = np.repeat(per_set(name, None), cols)
+            if name == "layer.frame_mobility" and cols > L:   # the fluid slice is of the rigid frame
+                table[1 + j].reshape(n, cols)[:, L:] = 0.0
         d = self.thickness[None, :] + per_set("layer.length_offset", 0.0)[:, None]
         table[-1] = np.concatenate([d, np.full((n, cols - L), FLUID_SLICE)], axis=1).reshape(-1)
         out, _, _ = eng.evaluate(table)

@@ -109,14 +109,15 @@ class TMatrixKind(MeasurementKind):
     def _with_elastic_frame(self, T: np.ndarray, values: dict, frame: dict, n: int) -> np.ndarray:
         """``T`` (n, nq, m, 2, 2) with the sample's 2-port replaced by the Biot 2-port
         (:func:`tawarp.model.biot.fluid_transfer_matrix`, frame sliding at the wall) in the
-        sets whose ``SAMPLE.frame_mobility`` is > 0: ``T_after T_biot T_before``, the parts
+        sets whose ``SAMPLE.frame_mobility`` and ``SAMPLE.frame_modulus`` are > 0 (modulus 0:
+        the kernels' limp frame as it stands): ``T_after T_biot T_before``, the parts
         before and after the sample and the sample's equivalent fluid (a thin slice,
         :func:`tawarp.model.biot.equivalent_fluid`) from the kernels, in one launch each."""
         sample = next(k for k in frame if k.endswith(".frame_modulus")).rpartition(".")[0]
         every = {**values, **frame}
         per_set = lambda k, default: np.broadcast_to(np.asarray(every.get(k, default), dtype=float), (n,))  # noqa: E731
         mob = per_set(f"{sample}.frame_mobility", self.core.get(f"{sample}.frame_mobility"))
-        sets = np.flatnonzero(mob > 0)
+        sets = np.flatnonzero((mob > 0) & (per_set(f"{sample}.frame_modulus", 0.0) > 0))
         if not sets.size:
             return T
         segs = self.core.segments

@@ -106,8 +106,8 @@ JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 #: [1, inf); the moduli, the resistivity and the tube area are only positive.
 _FIELD_OF = {"phi": "porosity", "alpha_inf": "tortuosity", "Lambda": "pore_radius", "Lambda_prime": "pore_radius",
              "pore_radius": "pore_radius", "thickness": "length", "eta": "frame_loss_factor", "nu": "poisson_ratio",
-             "rho_1": "frame_density", "E": "frame_modulus", "T": "gas.T_cold", "P0": "gas.p_mean"}
-_POSITIVE = ("sigma", "area")
+             "rho_1": "frame_density", "T": "gas.T_cold", "P0": "gas.p_mean"}
+_POSITIVE = ("sigma", "E", "area")
 
 
 class JCAFluid(NamedTuple):

@@ -335,18 +335,20 @@ def elastic_frame_effect() -> Effect:
 def two_port_frame_effect(sample: str) -> Effect:
     """An elastic frame (Biot-Allard) of the porous segment ``sample`` of a passive core
     measured as a 2-port, the frame sliding freely at the tube wall (1-D; a frame clamped or
-    glued at its edge bends and is not modelled). A free frame of infinite stiffness still
-    moves as a rigid body, so "off" is infinite frame density: ``SAMPLE.frame_mobility``
-    1/rho_1 [m^3/kg] = 0 (the kernels' field, exact), with ``SAMPLE.frame_modulus`` E [Pa]
-    and ``SAMPLE.frame_loss_factor`` eta; E -> 0 is the kernels' limp frame of the same
-    mobility (:class:`tawarp.measure.tmatrix.TMatrixKind` evaluates the Biot 2-port)."""
+    glued at its edge bends and is not modelled): the limp frame (``SAMPLE.frame_mobility``
+    1/rho_1 [m^3/kg], the kernels' field) given a Young's modulus ``SAMPLE.frame_modulus``
+    E [Pa] and loss factor ``SAMPLE.frame_loss_factor``. A free frame of infinite stiffness
+    still moves as a rigid body, so "off" is infinite frame density, mobility 0 (exact);
+    E = 0 is exactly the limp frame, so :func:`porous_layer_effects`' ``limp_frame`` is
+    nested in it and the two share fits without interfering (E at its start 0).
+    :class:`tawarp.measure.tmatrix.TMatrixKind` evaluates the Biot 2-port where both are > 0."""
     m, E, eta = (f"{sample}.{f}" for f in ("frame_mobility", "frame_modulus", "frame_loss_factor"))
     fm, fE, fe = field_spec(m), field_spec(E), field_spec(eta)
     typical = {m: 1.0 / TYPICAL_FRAME["rho_1"], E: TYPICAL_FRAME["E"], eta: TYPICAL_FRAME["eta"]}
     return Effect("elastic_frame", "elastic frame (Biot-Allard, frame sliding at the wall): 1/frame density, "
                                    "Young's modulus, loss factor",
                   (Param(m, (m,), fm.neutral, fm.scale, *fm.fit_range),
-                   Param(E, (E,), TYPICAL_FRAME["E"], 1.0, *fE.fit_range, log=True),
+                   Param(E, (E,), 0.0, fE.scale, *fE.fit_range),
                    Param(eta, (eta,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range)),
                   typical=typical, starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)))
 

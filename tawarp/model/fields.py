@@ -133,8 +133,9 @@ HOST_FIELD_TABLE: dict[str, Field] = {
     "frame_compliance": Field("frame_compliance", -1, "1/Pa", 0.0, _INF, False, "porous", neutral=0.0, log=False,
                               scale=1e-6, fit_range=(0.0, 1e-3),
                               description="1/E of the elastic frame (Biot): 0 is a rigid frame"),
-    "frame_modulus": Field("frame_modulus", -1, "Pa", 0.0, _INF, True, "porous", fit_range=(1e3, 1e8),
-                           description="Young's modulus E of the elastic frame (real part of E (1 - i eta))"),
+    "frame_modulus": Field("frame_modulus", -1, "Pa", 0.0, _INF, False, "porous", log=False, scale=1e5,
+                           fit_range=(0.0, 1e8), description="Young's modulus E of the elastic frame (real part of "
+                                                             "E (1 - i eta)); 0: a limp frame"),
     "frame_loss_factor": Field("frame_loss_factor", -1, "-", 0.0, _INF, False, "porous", log=False, scale=0.05,
                                fit_range=(0.0, 1.0), description="eta of the frame modulus E (1 - i eta)"),
     "frame_density": Field("frame_density", -1, "kg/m^3", 0.0, _INF, True, "porous", fit_range=(1.0, 1e3),
