@@ -227,15 +227,20 @@ def tmatrix_library(core: Core) -> list[Effect]:
     """Candidate effects for 2-port (T-matrix or scattering) data of ``core``: plane
     offsets, T_cold, p_mean, the calibration gain; for a heated core (PHYSICS.md's list)
     the stack's thermal radius ratio, T-dependent conductivity, radiation, convection in
-    the buffer tube, wall conduction and the ambient exchangers; for a passive core
-    (no thermal stack) the porous-layer effects of its porous segments."""
+    the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
+    role; for a passive core (no thermal stack) the porous-layer effects of its porous
+    segments, an elastic frame when it has one porous segment, and T_cold and p_mean
+    within room conditions (+-15 K, +-5 %)."""
     segs = core.segments
     stack, heater = stack_and_heater(core)
     thermal = [core.segments[i] for i in core.thermal_indices]
     buffer = next((s.name for s in thermal if not s.is_porous), None)
     ducts = segs[0].kind == "duct" and segs[-1].kind == "duct" and len(segs) >= 2
     lib = [plane_offsets_effect(core)] if ducts else []
-    lib += ambient_effects(core) + [calibration_effect()]
+    T0, p0 = core.gas.T_cold, core.gas.p_mean
+    # a passive sample is measured at room conditions, known to +-15 K and +-5 % (as a layer's)
+    lib += (ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0)))
+    lib.append(calibration_effect())
     if stack:
         lib.append(_field_effect("thermal_radius_ratio", "separate thermal and viscous pore radii in the stack "
                                                           "(Lambda'/Lambda)", [f"{stack}.thermal_radius_ratio"], 1.8))
