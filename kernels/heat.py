@@ -2,7 +2,11 @@
 
 In each thermal segment ``lam theta'' - lam k^2 theta = -lam sigma`` with
 ``k^2 = 2 h / (R lam)`` and ``sigma = Q / (l_heater S lam)`` in the heater, 0 elsewhere;
-``theta' = 0`` at both ends, ``theta`` and ``lam theta'`` continuous.
+``theta' = 0`` at both ends, ``theta`` and ``lam theta'`` continuous. With the effect
+``end_conductance`` H [W/(m^2 K)] of the first (last) thermal segment, its outer end loses
+``H theta`` per section area to an exchanger at T_cold (``lam theta' = H theta`` at the left
+end, ``-lam theta' = H theta`` at the right): the ambient exchangers' thermal role,
+adiabatic at H = 0 (the paper's model), T_cold held there as H -> inf.
 
 Discretisation: nodes on a uniform grid in each segment, interfaces on nodes. Each cell
 couples its two nodes through the *exact* two-point relation of a constant-coefficient
@@ -30,8 +34,9 @@ approximation (lam at the cell's mean temperature) that the design metrics use.
 
 import warp as wp
 
-from .layout import (CONDUCTIVITY_EXPONENT, F_HEATER, F_POROUS, F_THERMAL, H, H_CONVECTION, HEAT_INPUT, LENGTH, POROSITY,
-                     RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE, seg_value)
+from .layout import (CONDUCTIVITY_EXPONENT, END_CONDUCTANCE, F_HEATER, F_POROUS, F_THERMAL, H, H_CONVECTION, HEAT_INPUT,
+                     LENGTH, POROSITY, RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE,
+                     seg_value)
 from .gas import conductivity
 
 PI = wp.constant(wp.float64(3.141592653589793))
@@ -388,6 +393,18 @@ def nonlinear_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dt
 
 
 @wp.func
+def end_sink(params: wp.array2d(dtype=wp.float64), i: int, first: int, count: int, r: int, n_nodes: int):
+    """H [W/(m^2 K)] drawn at node r: the first thermal segment's end conductance at the
+    first node, the last one's at the last node, 0 inside (a heat flux H theta leaves there)."""
+    H_end = wp.float64(0.0)
+    if r == 0:
+        H_end = seg_value(params, i, first, END_CONDUCTANCE)
+    if r == n_nodes - 1:
+        H_end = H_end + seg_value(params, i, first + count - 1, END_CONDUCTANCE)
+    return H_end
+
+
+@wp.func
 def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                          gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
                          max_iter: int, tol: wp.float64,
@@ -438,7 +455,8 @@ def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d
                     sub_next = a * lam_l
                     diag_next = -b * lam_r
                     rhs_next = -(e + a * c_l - b * c_r)
-                diag = diag_l + diag_r - sub * c_prev
+                # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
+                diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
                 c_prev = sup / diag
                 d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
                 scratch[i, r] = c_prev
@@ -494,7 +512,7 @@ def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.
                 lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
                 d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
                 a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
-            diag = -(b_l + b_r) - a_l * c_prev
+            diag = -(b_l + b_r) - end_sink(params, i, first, count, r, n_nodes) - a_l * c_prev
             c_prev = a_r / diag
             d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
             scratch[i, r] = c_prev

@@ -66,7 +66,7 @@ def test_parameter_names_follow_the_table():
     stack = Segment("s", "porous", 0.04, porosity=0.8, pore_radius=1e-4, thermal=True, h=50.0)
     assert segment_parameter_fields(duct) == ("length",)
     assert segment_parameter_fields(hot_duct) == ("length", "h", "conductivity_exponent", "h_convection",
-                                                  "wall_conductance")
+                                                  "wall_conductance", "end_conductance")
     assert segment_parameter_fields(stack) == tuple(f.name for f in SEGMENT_FIELD_TABLE)
     passive = Segment("p", "porous", 0.04, porosity=0.8, pore_radius=1e-4)
     assert "radiative_conductivity" not in segment_parameter_fields(passive)

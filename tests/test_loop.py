@@ -29,7 +29,7 @@ CASES = [
     ("conductivity_T", {"stack.conductivity_exponent": 1.0}, None),
     ("convection", {"tbt.h_convection": 3.0}, None),
     ("wall_conduction", WALL, None),
-    ("ambient_exchangers", {}, 0.8),
+    ("ambient_exchangers", {}, {}),   # the effect's typical exchangers
 ]
 
 
@@ -43,7 +43,7 @@ NOISE = {"conductivity_T": 5e-4}
 
 
 def loop_on(truth, ambient=None, seed=SEED, noise=0.002):
-    data = synthetic_tmatrix(CORE, truth, seed=seed, ambient_presence=ambient, noise=noise)
+    data = synthetic_tmatrix(CORE, truth, seed=seed, ambient_exchangers=ambient, noise=noise)
     prob = TMatrixKind(data, CORE, ForwardSettings(device="cpu", cells=8))
     return prob, run_loop(prob)
 

@@ -12,8 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_surface_impedance
+from ..model.effects import FRAME_COMPLIANCE, FRAME_DENSITY, FRAME_LOSS_FACTOR
 from ..model.forward import ForwardSettings
-from ..model.layer import LAYER_BASE, layer_core, surface_impedance_from_T
+from ..model.gas import GASES
+from ..model.layer import LAYER_BASE, characteristic_impedance, layer_core, surface_impedance_from_T
 from .files import ImpedanceData, MeasurementError, read_impedance_csv
 from .kind import MeasurementKind, get_engine
 
@@ -60,16 +63,49 @@ class ImpedanceKind(MeasurementKind):
         return list(LAYER_BASE)
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
-        names = sorted(k for k in values if k not in ("layer.length_offset", "layer.length"))
+        """Zs (n, rows) of ``n`` parameter sets. The rigid-frame layer is the kernels' porous
+        segment; a set with an elastic frame (``layer.frame_compliance`` > 0) takes the
+        kernels' equivalent fluid of the same parameters (:func:`equivalent_fluid`, from a
+        thin slice in the same launch) under the Biot frame of
+        :func:`tawarp.model.biot.fluid_surface_impedance`. At compliance 0 the set is the
+        rigid model bit for bit (the frame fields are then not read)."""
+        host = (FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY, "layer.length_offset", "layer.length")
+        names = sorted(k for k in values if k not in host)
         eng = get_engine(self.core, self.freqs, names + ["layer.length"], self.settings)
+        per_set = lambda k, default: np.broadcast_to(np.asarray(values.get(k, default), dtype=float), (n,))  # noqa: E731
+        C = per_set(FRAME_COMPLIANCE, 0.0)
+        elastic = np.flatnonzero(C > 0)
         L = len(self.data)
-        table = np.empty((2 + len(names), n * L))
+        cols = L + (1 if elastic.size else 0)   # the layers, then a thin slice for the fluid
+        table = np.empty((2 + len(names), n * cols))
         table[0] = 0.0
         for j, name in enumerate(names):
-            table[1 + j] = np.repeat(np.broadcast_to(np.asarray(values[name], dtype=float), (n,)), L)
-        dL = np.broadcast_to(np.asarray(values.get("layer.length_offset", 0.0), dtype=float), (n,))
-        table[-1] = (self.thickness[None, :] + dL[:, None]).reshape(-1)
+            table[1 + j] = np.repeat(per_set(name, None), cols)
+            if name == "layer.frame_mobility" and cols > L:   # the fluid slice is of the rigid frame
+                table[1 + j].reshape(n, cols)[:, L:] = 0.0
+        d = self.thickness[None, :] + per_set("layer.length_offset", 0.0)[:, None]
+        table[-1] = np.concatenate([d, np.full((n, cols - L), FLUID_SLICE)], axis=1).reshape(-1)
         out, _, _ = eng.evaluate(table)
-        T = out.numpy().view(np.complex128).reshape(n, L, len(self.freqs), 2, 2)
-        Z = surface_impedance_from_T(T, self.core)
+        T = out.numpy().view(np.complex128).reshape(n, cols, len(self.freqs), 2, 2)
+        Z = surface_impedance_from_T(T[:, :L], self.core)
+        if elastic.size:
+            Z[elastic] = self._elastic(T[elastic, L], d[elastic], {k: per_set(k, None)[elastic] for k in names},
+                                       C[elastic], per_set(FRAME_LOSS_FACTOR, 0.0)[elastic],
+                                       per_set(FRAME_DENSITY, 30.0)[elastic])
         return np.concatenate([Z[:, k, self._index[k]] for k in range(L)], axis=1)
+
+    def _elastic(self, T_slice, d, vals, C, eta, rho_1) -> np.ndarray:
+        """Zs (k, L, freqs) of an elastic frame (compliance C, loss factor eta, density rho_1,
+        Poisson ratio :data:`FRAME_POISSON_RATIO`) in the fluid of the thin slices ``T_slice``."""
+        g = GASES[self.core.gas.name]
+        T0 = vals.get("gas.T_cold", np.full(C.size, self.core.gas.T_cold))[:, None]
+        p0 = vals.get("gas.p_mean", np.full(C.size, self.core.gas.p_mean))[:, None]
+        rho0, c0 = p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0)
+        rho_eq, K_eq = equivalent_fluid(T_slice, FLUID_SLICE, 2 * np.pi * self.freqs, self.core.area)
+        fl = JCAFluid(rho_eq, K_eq, rho0, c0)
+        phi = vals.get("layer.porosity", np.full(C.size, self.core.segments[0].porosity))
+        Zs = fluid_surface_impedance(self.freqs, JCAFluid(*(a[:, None] for a in fl)), thickness=d, phi=phi[:, None],
+                                     E=1.0 / C[:, None], eta=eta[:, None], nu=FRAME_POISSON_RATIO,
+                                     rho_1=rho_1[:, None])
+        # biot normalizes by the set's rho0 c0; the rigid path (and the data) by the core's
+        return Zs * (rho0 * c0)[:, None] / characteristic_impedance(self.core)

@@ -123,20 +123,22 @@ def true_values(data: TMatrixData) -> dict[str, float]:
 
 
 def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_inputs=(0.0, 40.0, 80.0),
-                      noise: float = 0.002, seed: int = 0, ambient_presence: float | None = None,
+                      noise: float = 0.002, seed: int = 0, ambient_exchangers: dict | None = None,
                       settings: ForwardSettings | None = None) -> TMatrixData:
     """Core T-matrices made by the forward model with parameters ``truth`` (any names,
     effects included) plus complex Gaussian noise of standard deviation ``noise`` times
     the rms of the dimensionless coefficients (per re/im part); sigma columns carry it.
-    ``ambient_presence`` in (0, 1]: made with the ambient exchangers of the library."""
-    from ..model.effects import ambient_presence as presence, with_ambient_exchangers, AMBIENT_HX
+    ``ambient_exchangers`` {label: value} of the library's ambient-exchanger effect
+    (``ambient_hx.length``, ``.porosity``, ``.pore_radius``; {} its typical size): made with them."""
+    from ..model.effects import ambient_exchanger_effect
 
     freqs = np.linspace(50.0, 500.0, 12) if freqs is None else np.asarray(freqs, dtype=float)
     truth = dict(truth or {})
     model = core
-    if ambient_presence:
-        model = with_ambient_exchangers(core, AMBIENT_HX["length"], 1.0, core.radius)
-        truth.update({k: float(v) for k, v in presence(core, ambient_presence).items()})
+    if ambient_exchangers is not None:
+        effect = ambient_exchanger_effect(core)
+        model = effect.transform(core)
+        truth.update({k: float(v) for k, v in effect.model_values({**effect.typical, **ambient_exchangers}).items()})
     nq = len(heat_inputs)
     settings = settings or ForwardSettings(device="cpu", cells=8)
     res = transfer_matrices(model, freqs, list(heat_inputs), params={k: np.full(nq, v) for k, v in truth.items()},

@@ -8,11 +8,16 @@ T-matrices for every (parameter set, heat input). Files: :func:`read_tmatrix_csv
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
+from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
 from ..model.core import Core, load_core
+from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, stack_and_heater
 from ..model.forward import ForwardSettings
+from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
 from .kind import MeasurementKind, get_engine, smooth_settings
 
@@ -66,8 +71,6 @@ class TMatrixKind(MeasurementKind):
         """The stack's porosity and pore radius and the h of thermal segments with h > 1;
         for a passive core (no stack) every porous segment's porosity, pore radius and
         tortuosity."""
-        from ..model.effects import stack_and_heater
-
         stack, _ = stack_and_heater(self.core)
         if stack is None:
             return [f"{s.name}.{f}" for s in self.core.segments if s.is_porous
@@ -76,6 +79,14 @@ class TMatrixKind(MeasurementKind):
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
+        """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
+        effect's gain g (``calibration.gain`` exp(i ``calibration.phase``), see
+        :func:`tawarp.model.effects.calibration_effect`) multiplies all four (g = 1 + 0i:
+        exactly the uncalibrated values)."""
+        values = dict(values)
+        gain = values.pop(CALIBRATION_GAIN, None)
+        phase = values.pop(CALIBRATION_PHASE, None)
+        frame = {k: values.pop(k) for k in list(values) if k.endswith((".frame_modulus", ".frame_loss_factor"))}
         names = tuple(sorted(values))
         core = effect.transform(self.core) if effect is not None and effect.transform else self.core
         eng = get_engine(core, self.freqs, list(names), self.settings)
@@ -86,4 +97,63 @@ class TMatrixKind(MeasurementKind):
             table[1 + j] = np.repeat(np.broadcast_to(np.asarray(values[k], dtype=float), (n,)), nq)
         out, _, _ = eng.evaluate(table)
         T = out.numpy().view(np.complex128).reshape(n, nq, len(self.freqs), 2, 2)
-        return normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+        if frame:
+            T = self._with_elastic_frame(T, values, frame, n)
+        Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+        if gain is not None or phase is not None:
+            g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
+            ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
+            Y = Y * (g * np.exp(1j * ph))[:, None]
+        return Y
+
+    def _with_elastic_frame(self, T: np.ndarray, values: dict, frame: dict, n: int) -> np.ndarray:
+        """``T`` (n, nq, m, 2, 2) with the sample's 2-port replaced by the Biot 2-port
+        (:func:`tawarp.model.biot.fluid_transfer_matrix`, frame sliding at the wall) in the
+        sets whose ``SAMPLE.frame_mobility`` and ``SAMPLE.frame_modulus`` are > 0 (modulus 0:
+        the kernels' limp frame as it stands): ``T_after T_biot T_before``, the parts
+        before and after the sample and the sample's equivalent fluid (a thin slice,
+        :func:`tawarp.model.biot.equivalent_fluid`) from the kernels, in one launch each."""
+        sample = next(k for k in frame if k.endswith(".frame_modulus")).rpartition(".")[0]
+        every = {**values, **frame}
+        per_set = lambda k, default: np.broadcast_to(np.asarray(every.get(k, default), dtype=float), (n,))  # noqa: E731
+        mob = per_set(f"{sample}.frame_mobility", self.core.get(f"{sample}.frame_mobility"))
+        sets = np.flatnonzero((mob > 0) & (per_set(f"{sample}.frame_modulus", 0.0) > 0))
+        if not sets.size:
+            return T
+        segs = self.core.segments
+        k = next(i for i, s in enumerate(segs) if s.name == sample)
+        seg = segs[k]
+        glob = {g: per_set(g, None)[sets] for g in values if g.startswith(("gas.", "tube."))}
+        freqs = self.freqs
+
+        def part(sub: tuple, extra: dict | None = None) -> np.ndarray:
+            """T (len(sets), m, 2, 2) of the segments ``sub`` at the sets' values."""
+            if not sub:
+                return np.broadcast_to(np.eye(2, dtype=complex), (sets.size, len(freqs), 2, 2))
+            core = Core(sub, self.core.gas, self.core.radius, self.core.source)
+            own = {nm: per_set(nm, None)[sets] for nm in values if nm.partition(".")[0] in {s.name for s in sub}}
+            vals = {**glob, **own, **(extra or {})}
+            names = sorted(vals)
+            eng = get_engine(core, freqs, names, self.settings)
+            table = np.vstack([np.zeros(sets.size)] + [np.broadcast_to(vals[nm], (sets.size,)) for nm in names])
+            out, _, _ = eng.evaluate(table)
+            return out.numpy().view(np.complex128).reshape(sets.size, len(freqs), 2, 2)
+
+        rigid = dataclasses.replace(seg, frame_mobility=0.0)
+        slab = part((rigid,), {f"{sample}.length": np.full(sets.size, FLUID_SLICE),
+                               f"{sample}.frame_mobility": np.zeros(sets.size)})
+        g = GASES[self.core.gas.name]
+        T0 = glob.get("gas.T_cold", np.full(sets.size, self.core.gas.T_cold))[:, None]
+        p0 = glob.get("gas.p_mean", np.full(sets.size, self.core.gas.p_mean))[:, None]
+        radius = glob.get("tube.radius", np.full(sets.size, self.core.radius))[:, None]
+        area = np.pi * radius ** 2
+        rho_eq, K_eq = equivalent_fluid(slab, FLUID_SLICE, 2 * np.pi * freqs, area)
+        fluid = JCAFluid(rho_eq, K_eq, p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0))
+        Tb = fluid_transfer_matrix(freqs, fluid, thickness=per_set(f"{sample}.length", seg.length)[sets, None],
+                                   phi=per_set(f"{sample}.porosity", seg.porosity)[sets, None],
+                                   E=per_set(f"{sample}.frame_modulus", None)[sets, None],
+                                   eta=per_set(f"{sample}.frame_loss_factor", None)[sets, None],
+                                   nu=FRAME_POISSON_RATIO, rho_1=1.0 / mob[sets, None], area=area)
+        T = T.copy()
+        T[sets] = (part(segs[k + 1:]) @ Tb @ part(segs[:k]))[:, None]
+        return T

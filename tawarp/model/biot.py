@@ -81,6 +81,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .fields import field as field_spec
 from .gas import GASES
 from .layer import gas_transport
 
@@ -100,23 +101,13 @@ BIOT_PARAMETERS: dict[str, tuple[str, str]] = {
 #: Parameters of the fluid (JCA) part alone.
 JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 
-# name -> (lower bound, lower inclusive, upper bound, upper inclusive): the physical range
-_RANGES = {
-    "phi": (0.0, False, 1.0, True),
-    "sigma": (0.0, False, np.inf, False),
-    "alpha_inf": (1.0, True, np.inf, False),
-    "Lambda": (0.0, False, np.inf, False),
-    "Lambda_prime": (0.0, False, np.inf, False),
-    "E": (0.0, False, np.inf, False),
-    "eta": (0.0, True, np.inf, False),
-    "nu": (-1.0, False, 0.5, False),
-    "rho_1": (0.0, False, np.inf, False),
-    "thickness": (0.0, False, np.inf, False),
-    "T": (0.0, False, np.inf, False),
-    "P0": (0.0, False, np.inf, False),
-    "area": (0.0, False, np.inf, False),
-    "pore_radius": (0.0, False, np.inf, False),
-}
+#: Each parameter's physical range is that of its row in :mod:`tawarp.model.fields` (one
+#: table): the JCA lengths and the pore radius are radii, ``alpha_inf = q^2`` has q's range
+#: [1, inf); the moduli, the resistivity and the tube area are only positive.
+_FIELD_OF = {"phi": "porosity", "alpha_inf": "tortuosity", "Lambda": "pore_radius", "Lambda_prime": "pore_radius",
+             "pore_radius": "pore_radius", "thickness": "length", "eta": "frame_loss_factor", "nu": "poisson_ratio",
+             "rho_1": "frame_density", "T": "gas.T_cold", "P0": "gas.p_mean"}
+_POSITIVE = ("sigma", "E", "area")
 
 
 class JCAFluid(NamedTuple):
@@ -161,11 +152,11 @@ class BiotWaves(NamedTuple):
 def _check(name: str, value) -> np.ndarray:
     """``value`` as a float array, or ValueError naming ``name`` and the first bad value."""
     a = np.asarray(value, dtype=float)
-    lo, lo_in, hi, hi_in = _RANGES[name]
-    ok = np.isfinite(a) & ((a >= lo) if lo_in else (a > lo)) & ((a <= hi) if hi_in else (a < hi))
+    f = field_spec(_FIELD_OF[name]) if name in _FIELD_OF else None
+    ok = f.check_array(a) if f is not None else np.isfinite(a) & (a > 0)
     if not ok.all():
         bad = a.reshape(-1)[np.flatnonzero(~ok.reshape(-1))[0]]
-        rng = f"{'[' if lo_in else '('}{lo:g}, {hi:g}{']' if hi_in else ')'}"
+        rng = f.range_text() if f is not None else "(0, inf)"
         raise ValueError(f"biot: parameter {name!r} = {bad!r} outside its physical range {rng} "
                          f"({BIOT_PARAMETERS.get(name, ('', name))[1]})")
     return a
@@ -233,8 +224,7 @@ def rigid_surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, L
     return 1j * Zc / np.tan(k * d) / (fl.rho0 * fl.c0)
 
 
-def _waves(w, b, gas) -> tuple[BiotWaves, JCAFluid]:
-    fl = _jca(w, b, gas)
+def _waves(w, b, fl: JCAFluid) -> BiotWaves:
     phi = b["phi"]
     rho22 = phi * phi * fl.rho_eq
     rho12 = phi * fl.rho0 - rho22
@@ -276,7 +266,7 @@ def _waves(w, b, gas) -> tuple[BiotWaves, JCAFluid]:
     delta3 = w * np.sqrt(C / (N * rho22))
     delta3 = np.where(delta3.imag < 0, -delta3, delta3)
     return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], mu12[0], mu12[1], delta3,
-                     -rho12 / rho22, P_hat, modes), fl
+                     -rho12 / rho22, P_hat, modes)
 
 
 def biot_waves(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1, T=293.15,
@@ -285,15 +275,16 @@ def biot_waves(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu,
     f = _frequencies(freq)
     b = _batch(phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, E=E,
                eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
-    return _waves(2 * np.pi * f, b, gas)[0]
+    w = 2 * np.pi * f
+    return _waves(w, b, _jca(w, b, gas))
 
 
-def _face_states(w, b, gas):
+def _face_states(w, b, fl: JCAFluid):
     """State matrices at both faces: ``V(x) = M(x) a`` for x = 0 and d, with V = (v^s,
     v^f, sigma^s/(rho0 c0), sigma^f/(rho0 c0)) and a the amplitudes of the waves
     (+delta1, -delta1, +delta2, -delta2), each column scaled to unit size.
-    Returns (M0, Md, fluid), M of shape B + (m, 4, 4)."""
-    wv, fl = _waves(w, b, gas)
+    Returns (M0, Md), M of shape B + (m, 4, 4)."""
+    wv = _waves(w, b, fl)
     z0 = fl.rho0 * fl.c0
     d = b["thickness"]
     cols0, colsd = [], []
@@ -311,7 +302,7 @@ def _face_states(w, b, gas):
             # forward wave starts at x = 0, backward wave at x = d
             cols0.append(col if sign > 0 else col * decay[..., None])
             colsd.append(col * decay[..., None] if sign > 0 else col)
-    return np.stack(cols0, axis=-1), np.stack(colsd, axis=-1), fl
+    return np.stack(cols0, axis=-1), np.stack(colsd, axis=-1)
 
 
 def _split_row(M, phi):
@@ -338,7 +329,20 @@ def surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_
     :attr:`tawarp.measure.files.ImpedanceData.Zs`."""
     w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
                    Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
-    M0, Md, _ = _face_states(w, b, gas)
+    return _surface_impedance(w, b, _jca(w, b, gas))
+
+
+def fluid_surface_impedance(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, rho_1) -> np.ndarray:
+    """:func:`surface_impedance` of a frame in any equivalent fluid ``fluid`` (its
+    ``rho_eq``, ``K_eq`` of shape ``B + (m,)``, ``rho0``, ``c0`` broadcasting to it): the
+    elastic frame on top of another rigid-frame model, e.g. the kernels' pore functions
+    (:func:`tawarp.measure.impedance.ImpedanceKind.predict`)."""
+    w, b = _params(freq, thickness=thickness, phi=phi, E=E, eta=eta, nu=nu, rho_1=rho_1)
+    return _surface_impedance(w, b, fluid)
+
+
+def _surface_impedance(w, b, fl: JCAFluid) -> np.ndarray:
+    M0, Md = _face_states(w, b, fl)
     phi_ = b["phi"]
     p0, v0 = _pv_rows(M0, phi_)
     # rows: v^s(d) = 0, v^f(d) = 0, stress split at x = 0, p(0) = rho0 c0
@@ -357,7 +361,18 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     exp(-iwt). Passive and reciprocal: ``det T = 1``."""
     w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
                    Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area, T=T, P0=P0)
-    M0, Md, fl = _face_states(w, b, gas)
+    return _transfer_matrix(w, b, _jca(w, b, gas))
+
+
+def fluid_transfer_matrix(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, rho_1, area=1.0) -> np.ndarray:
+    """:func:`transfer_matrix` of a frame in any equivalent fluid ``fluid`` (as
+    :func:`fluid_surface_impedance`)."""
+    w, b = _params(freq, thickness=thickness, phi=phi, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area)
+    return _transfer_matrix(w, b, fluid)
+
+
+def _transfer_matrix(w, b, fl: JCAFluid) -> np.ndarray:
+    M0, Md = _face_states(w, b, fl)
     phi_ = b["phi"]
     p0, v0 = _pv_rows(M0, phi_)
     pd, vd = _pv_rows(Md, phi_)
@@ -373,3 +388,23 @@ def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_pr
     Tn[..., 0, 1] *= z_per_S
     Tn[..., 1, 0] /= z_per_S
     return Tn
+
+
+#: Thickness [m] of the slice whose 2-port gives the layer's equivalent fluid: |k d| << 1
+#: at the frequencies of use, so arcsin takes its principal branch.
+FLUID_SLICE = 1e-4
+#: Poisson ratio of the elastic frame (normal incidence sees only E (1 - nu)/((1 + nu)(1 - 2 nu))).
+FRAME_POISSON_RATIO = 0.3
+
+
+def equivalent_fluid(T: np.ndarray, thickness: float, omega: np.ndarray, area: float) -> tuple[np.ndarray, np.ndarray]:
+    """(rho_eq, K_eq) [kg/m^3, Pa] of a uniform layer from its 2-port T (..., m, 2, 2) over
+    ``thickness`` [m] (``(p, U)``, tube ``area`` [m^2]): with T = [[cos kd, i Zc sin kd],
+    [i sin kd / Zc, cos kd]], the specific impedance ``z = Zc area = sqrt(Tpu/Tup) area``
+    and ``k d = arcsin(-i Tup Zc)`` (principal branch: a thin slice), then
+    ``rho_eq = k z / w`` and ``K_eq = w z / k`` (Darcy velocity U/area, exp(-iwt))."""
+    Zc = np.sqrt(T[..., 0, 1] / T[..., 1, 0])
+    Zc = np.where(Zc.real < 0, -Zc, Zc)
+    k = np.arcsin(-1j * T[..., 1, 0] * Zc) / thickness
+    z = Zc * area
+    return k * z / omega, omega * z / k

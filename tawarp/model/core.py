@@ -73,6 +73,7 @@ class Segment:
     wall_conductance: float = 0.0
     frame_mobility: float = 0.0
     viscous_shape_factor: float = 1.0
+    end_conductance: float = 0.0
 
     @property
     def is_porous(self) -> bool:

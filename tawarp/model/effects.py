@@ -95,15 +95,31 @@ def base_params(core: Core, names) -> list[Param]:
 @dataclass(frozen=True)
 class Effect:
     """A candidate effect: ``params`` added to the base fit; ``transform`` changes the core's
-    structure (None for a field of the existing segments)."""
+    structure (None for a field of the existing segments); ``typical`` {param label: value}
+    a physically typical size of the effect (the validation study injects it there; the
+    params' ``start`` values are the effect's "off"); ``starts`` further {param label:
+    value} points a refit should also start from, for an effect whose fit from "off" stays
+    in a local minimum at its bound (the elastic frame: a frame resonance inside the band
+    is not reached by descending from an infinitely stiff frame)."""
 
     name: str
     description: str
     params: tuple[Param, ...]
     transform: Callable[[Core], Core] | None = field(default=None, compare=False)
+    typical: dict = field(default_factory=dict, compare=False)
+    starts: tuple = field(default=(), compare=False)
+
+    def model_values(self, values: dict | None = None) -> dict:
+        """Model parameters {name: value} of the effect at ``values`` {param label: value}
+        (labels left out: their start, i.e. off; default: :attr:`typical`)."""
+        values = self.typical if values is None else values
+        out: dict = {}
+        for par in self.params:
+            par.assign(values.get(par.label, par.start), out)
+        return out
 
 
-def with_ambient_exchangers(core: Core, length: float = 0.005, porosity: float = 0.7, pore_radius: float = 0.5e-3,
+def with_ambient_exchangers(core: Core, length: float = 1e-3, porosity: float = 0.8, pore_radius: float = 1e-3,
                             tortuosity: float = 1.0) -> Core:
     """``core`` with two ambient heat exchangers: non-thermal porous segments
     ``ambient_hx_left`` (after the first segment, a duct) and ``ambient_hx_right`` (before
@@ -127,79 +143,240 @@ def stack_and_heater(core: Core) -> tuple[str | None, str | None]:
     return stack, heater
 
 
+#: Wall of the typical wall-conduction effect: 1 mm of stainless steel, 15 W/(m K).
+WALL_THICKNESS, WALL_CONDUCTIVITY = 1e-3, 15.0
+#: Typical open-cell foam: Rosseland conductivity at T_cold [W/(m K)] that gives 0.11 W/(m K)
+#: at 600 K (16 sigma_SB T^3 / (3 beta), extinction beta = 4.4 (1 - phi)/d_p ~ 570 1/m for a
+#: NiCr foam of porosity 0.92 and pore diameter 0.62 mm, scaled by (293/600)^3).
+TYPICAL_RADIATIVE_CONDUCTIVITY = 0.0134
+#: Laminar natural convection about a horizontal cylinder, h = 1.32 (dT/D)^(1/4) W/(m^2 K)
+#: (D the tube diameter): h_convection = 1.32 D^(-1/4) [W/(m^2 K^1.25)].
+CONVECTION_COEFFICIENT = 1.32
+#: Typical thermal contact of an ambient exchanger [W/(m^2 K)]: gas-side h ~ Nu k/(2 r) ~ 50 W/(m^2 K)
+#: in 1 mm pores over the wetted area 2 phi l / r ~ 16 per section area (10 mm, porosity 0.8):
+#: about 1e3, tenfold the conductance lam_s / L of a stack, so the end is nearly held at T_cold.
+TYPICAL_END_CONDUCTANCE = 1e3
+#: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
+CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
+
+
+def _field_effect(name: str, description: str, targets, typical: float, label: str | None = None) -> Effect:
+    """An effect of one table field set to one value in all ``targets`` (start: its neutral
+    value; scale and bounds: the fields table)."""
+    targets = tuple(targets)
+    f = field_spec(targets[0])
+    label = label or targets[0]
+    lo, hi = f.fit_range
+    return Effect(name, description, (Param(label, targets, f.neutral, f.scale, lo, hi),), typical={label: typical})
+
+
+def plane_offsets_effect(core: Core) -> Effect:
+    """Both end ducts' lengths free: the measurement planes off by millimetres (typical: 2 mm
+    further out on each side)."""
+    a, b = core.segments[0], core.segments[-1]
+    return Effect("plane_offsets", "measurement planes off by millimetres (end duct lengths)",
+                  (Param(f"{a.name}.length", (f"{a.name}.length",), a.length, 1e-3, 1e-4, 10.0),
+                   Param(f"{b.name}.length", (f"{b.name}.length",), b.length, 1e-3, 1e-4, 10.0)),
+                  typical={f"{a.name}.length": a.length + 2e-3, f"{b.name}.length": b.length + 2e-3})
+
+
+def ambient_effects(core: Core, T_bounds: tuple[float, float] | None = None,
+                    p_bounds: tuple[float, float] | None = None) -> list[Effect]:
+    """T_cold and p_mean not as assumed (typical: +5 K, -2 %); bounds default to the fields
+    table's fit range."""
+    T0, p0 = core.gas.T_cold, core.gas.p_mean
+    Tlo, Thi = T_bounds or field_spec("gas.T_cold").fit_range
+    plo, phi = p_bounds or field_spec("gas.p_mean").fit_range
+    return [Effect("T_cold", "cold-end (room) temperature not as assumed",
+                   (Param("gas.T_cold", ("gas.T_cold",), T0, 1.0, Tlo, Thi),), typical={"gas.T_cold": T0 + 5.0}),
+            Effect("p_mean", "static pressure not as assumed",
+                   (Param("gas.p_mean", ("gas.p_mean",), p0, 1e3, plo, phi),), typical={"gas.p_mean": 0.98 * p0})]
+
+
+def calibration_effect() -> Effect:
+    """A 4-microphone calibration error: a constant complex gain ``g = gain exp(i phase)``
+    of the downstream microphone pair relative to the upstream one. It multiplies the
+    downstream wave amplitudes (A2, B2) by g, so the scattering matrix ``[B1, A2] = S [A1, B2]``
+    becomes ``S11, S12/g, g S21, S22`` (the transmissions), and the T-matrix
+    ``(p, U)(x6) = T (p, U)(x1)``, whose left side is measured downstream, becomes
+    ``g T``: all four coefficients (:func:`tawarp.measure.files.scattering_to_transfer`:
+    T = M W M^-1 with the wave transfer W scaled by g). Off at gain 1, phase 0; typical
+    1.02 at 2 degrees."""
+    return Effect("calibration", "downstream/upstream microphone calibration off by a constant gain and phase "
+                                 "(measured T = g T)",
+                  (Param(CALIBRATION_GAIN, (CALIBRATION_GAIN,), 1.0, 0.01, 0.5, 2.0),
+                   Param(CALIBRATION_PHASE, (CALIBRATION_PHASE,), 0.0, 0.01, -0.5, 0.5)),
+                  typical={CALIBRATION_GAIN: 1.02, CALIBRATION_PHASE: math.radians(2.0)})
+
+
+def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
+    """Effects of the porous segments ``names`` (all together): a separate thermal length
+    (typical Lambda'/Lambda = 1.8), a viscous shape factor (typical 1.5), a limp frame
+    (typical frame bulk density 30 kg/m^3)."""
+    out = [_field_effect("thermal_radius_ratio", "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
+                         [f"{n}.thermal_radius_ratio" for n in names], 1.8),
+           _field_effect("viscous_shape_factor", "viscous length Lambda = r/s apart from the resistivity radius r "
+                                                  "(shape factor)", [f"{n}.viscous_shape_factor" for n in names], 1.5)]
+    if frame:
+        out.append(_field_effect("limp_frame", "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk "
+                                               "density)", [f"{n}.frame_mobility" for n in names], 1.0 / 30.0))
+    return out
+
+
 def tmatrix_library(core: Core) -> list[Effect]:
-    """Candidate effects for core T-matrix data (PHYSICS.md's list)."""
+    """Candidate effects for 2-port (T-matrix or scattering) data of ``core``: plane
+    offsets, T_cold, p_mean, the calibration gain; for a heated core (PHYSICS.md's list)
+    the stack's thermal radius ratio, T-dependent conductivity, radiation, convection in
+    the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
+    role; for a passive core (no thermal stack) the porous-layer effects of its porous
+    segments, an elastic frame when it has one porous segment, and T_cold and p_mean
+    within room conditions (+-15 K, +-5 %)."""
     segs = core.segments
     stack, heater = stack_and_heater(core)
     thermal = [core.segments[i] for i in core.thermal_indices]
     buffer = next((s.name for s in thermal if not s.is_porous), None)
-    lib = []
-    if segs[0].kind == "duct" and segs[-1].kind == "duct":
-        lib.append(Effect("plane_offsets", "measurement planes off by millimetres (end duct lengths)",
-                          (Param(f"{segs[0].name}.length", (f"{segs[0].name}.length",), segs[0].length, 1e-3, 1e-4, 10.0),
-                           Param(f"{segs[-1].name}.length", (f"{segs[-1].name}.length",), segs[-1].length, 1e-3, 1e-4, 10.0))))
-    lib.append(Effect("T_cold", "cold-end (room) temperature not as assumed",
-                      (Param("gas.T_cold", ("gas.T_cold",), core.gas.T_cold, 1.0, 150.0, 500.0),)))
-    lib.append(Effect("p_mean", "static pressure not as assumed",
-                      (Param("gas.p_mean", ("gas.p_mean",), core.gas.p_mean, 1e3, 1e3, 1e8),)))
+    ducts = segs[0].kind == "duct" and segs[-1].kind == "duct" and len(segs) >= 2
+    lib = [plane_offsets_effect(core)] if ducts else []
+    T0, p0 = core.gas.T_cold, core.gas.p_mean
+    # a passive sample is measured at room conditions, known to +-15 K and +-5 % (as a layer's)
+    lib += (ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0)))
+    lib.append(calibration_effect())
     if stack:
-        lib.append(Effect("thermal_radius_ratio", "separate thermal and viscous pore radii in the stack (Lambda'/Lambda)",
-                          (Param(f"{stack}.thermal_radius_ratio", (f"{stack}.thermal_radius_ratio",), 1.0, 0.2, 0.1, 10.0),)))
-        lib.append(Effect("conductivity_T", "temperature-dependent stack conductivity lam (T/T_cold)^b",
-                          (Param(f"{stack}.conductivity_exponent", (f"{stack}.conductivity_exponent",), 0.0, 0.5, -3.0, 3.0),)))
-        lib.append(Effect("radiation", "radiative conductivity in the porous stack (prop. T^3)",
-                          (Param(f"{stack}.radiative_conductivity", (f"{stack}.radiative_conductivity",), 0.0, 0.1, 0.0, 100.0),)))
+        lib.append(_field_effect("thermal_radius_ratio", "separate thermal and viscous pore radii in the stack "
+                                                          "(Lambda'/Lambda)", [f"{stack}.thermal_radius_ratio"], 1.8))
+        # stainless steel: 14.9 W/(m K) at 300 K, 19 at 600 K: b = ln(19/14.9)/ln 2 = 0.35
+        lib.append(_field_effect("conductivity_T", "temperature-dependent stack conductivity lam (T/T_cold)^b",
+                                 [f"{stack}.conductivity_exponent"], 0.35))
+        lib.append(_field_effect("radiation", "radiative conductivity in the porous stack (prop. T^3)",
+                                 [f"{stack}.radiative_conductivity"], TYPICAL_RADIATIVE_CONDUCTIVITY))
+    else:
+        porous = [s.name for s in segs if s.is_porous]
+        if porous:
+            lib += porous_layer_effects(porous)
+        if len(porous) == 1:
+            lib.append(two_port_frame_effect(porous[0]))
     if buffer:
-        lib.append(Effect("convection", "natural convection in the buffer tube, h = h_a + h_c theta^(1/4)",
-                          (Param(f"{buffer}.h_convection", (f"{buffer}.h_convection",), 0.0, 1.0, 0.0, 1e3),)))
+        lib.append(_field_effect("convection", "natural convection in the buffer tube, h = h_a + h_c theta^(1/4)",
+                                 [f"{buffer}.h_convection"], CONVECTION_COEFFICIENT * (2 * core.radius) ** -0.25))
     if thermal:
-        lib.append(Effect("wall_conduction", "axial heat conduction in the tube wall (all thermal parts)",
-                          (Param("wall_conductance", tuple(f"{s.name}.wall_conductance" for s in thermal), 0.0, 0.1, 0.0, 1e3),)))
-    if segs[0].kind == "duct" and segs[-1].kind == "duct" and min(segs[0].length, segs[-1].length) > AMBIENT_HX["length"]:
+        R = core.radius
+        wall = WALL_CONDUCTIVITY * ((R + WALL_THICKNESS) ** 2 - R * R) / (R * R)
+        lib.append(_field_effect("wall_conduction", "axial heat conduction in the tube wall (all thermal parts)",
+                                 [f"{s.name}.wall_conductance" for s in thermal], wall, label="wall_conductance"))
+    if ducts and stack and min(segs[0].length, segs[-1].length) > AMBIENT_HX_MIN_DUCT:
         lib.append(ambient_exchanger_effect(core))
+    if stack:
+        ends = dict.fromkeys((thermal[0].name, thermal[-1].name))   # the heat model's two ends
+        lib.append(_field_effect("ambient_exchanger_thermal", "ambient exchangers drawing heat H theta at both ends "
+                                                               "of the heat model toward T_cold (H = 0: adiabatic)",
+                                 [f"{n}.end_conductance" for n in ends], TYPICAL_END_CONDUCTANCE,
+                                 label="ambient_hx.end_conductance"))
     return lib
 
 
-#: Ambient exchangers of the library: 5 mm of porosity 0.7, pore radius 0.5 mm at full presence.
-AMBIENT_HX = {"length": 0.005, "porosity": 0.7, "pore_radius": 0.5e-3}
+#: Typical ambient exchangers: 10 mm long, porosity 0.8, pore radius 1 mm (a copper fin
+#: or screen exchanger); end ducts must be longer than this to hold one.
+AMBIENT_HX = {"length": 0.010, "porosity": 0.8, "pore_radius": 1e-3}
+AMBIENT_HX_MIN_DUCT = 2e-3
 
 
-def ambient_presence(core: Core, s, hx: dict = AMBIENT_HX) -> dict:
-    """Parameters of both ambient exchangers at presence ``s`` in [0, 1]: porosity
-    ``1 - s (1 - phi_hx)``, pore radius ``R (r_hx/R)^s``. At s = 0 the exchangers are exactly
-    empty duct (porosity 1, pore radius = tube radius R, tortuosity 1): the effect is nested."""
-    s = np.asarray(s, dtype=float)
-    phi = 1.0 - s * (1.0 - hx["porosity"])
-    r = core.radius * (hx["pore_radius"] / core.radius) ** s
-    return {f"ambient_hx_{side}.{f}": v for side in ("left", "right") for f, v in (("porosity", phi), ("pore_radius", r))}
+def ambient_exchanger_effect(core: Core) -> Effect:
+    """The ambient exchangers' acoustics as an effect, their geometry free: two non-thermal
+    porous segments (:func:`with_ambient_exchangers`) of length ``ambient_hx.length`` taken
+    from the end ducts (the planes stay), porosity ``ambient_hx.porosity`` and pore radius
+    ``ambient_hx.pore_radius``, the same on both sides. Off at length 0, exactly: a segment
+    of zero length is the identity matrix (its propagation exponential is exp(0)) and the
+    ducts keep their lengths, so the T-matrix is the base model's bit for bit whatever the
+    porosity and pore radius (which the data then do not determine)."""
+    a, b = core.segments[0], core.segments[-1]
+    La, Lb = a.length, b.length
 
+    def lengths(v):
+        return {"ambient_hx_left.length": v, "ambient_hx_right.length": v,
+                f"{a.name}.length": La - v, f"{b.name}.length": Lb - v}
 
-def ambient_exchanger_effect(core: Core, hx: dict = AMBIENT_HX) -> Effect:
-    """The ambient exchangers as an effect: the structure of :func:`with_ambient_exchangers`
-    with their presence s (0 = absent) as the one parameter."""
+    upper = min(La, Lb) - 1e-4
     return Effect("ambient_exchangers",
-                  f"acoustic presence of the two ambient heat exchangers ({hx['length'] * 1e3:g} mm, porosity "
-                  f"{hx['porosity']:g}, pore radius {hx['pore_radius'] * 1e3:g} mm at presence 1)",
-                  (Param("ambient_hx.presence", ("ambient_hx_left.porosity", "ambient_hx_right.porosity",
-                                                 "ambient_hx_left.pore_radius", "ambient_hx_right.pore_radius"),
-                         0.0, 0.2, 0.0, 1.0, expand=lambda s: ambient_presence(core, s, hx)),),
-                  transform=lambda c: with_ambient_exchangers(c, hx["length"], 1.0, c.radius))
+                  "acoustics of the two ambient heat exchangers (length, porosity, pore radius free; off at length 0)",
+                  (Param("ambient_hx.length", ("ambient_hx_left.length", "ambient_hx_right.length", f"{a.name}.length",
+                                               f"{b.name}.length"), 0.0, 1e-3, 0.0, upper, expand=lengths),
+                   Param("ambient_hx.porosity", ("ambient_hx_left.porosity", "ambient_hx_right.porosity"),
+                         AMBIENT_HX["porosity"], 0.5, 0.05, 1.0),
+                   Param("ambient_hx.pore_radius", ("ambient_hx_left.pore_radius", "ambient_hx_right.pore_radius"),
+                         AMBIENT_HX["pore_radius"], 1.0, 1e-5, core.radius, log=True)),
+                  transform=lambda c: with_ambient_exchangers(c, AMBIENT_HX_MIN_DUCT / 2, AMBIENT_HX["porosity"],
+                                                              AMBIENT_HX["pore_radius"]),
+                  typical={"ambient_hx.length": AMBIENT_HX["length"], "ambient_hx.porosity": AMBIENT_HX["porosity"],
+                           "ambient_hx.pore_radius": AMBIENT_HX["pore_radius"]})
+
+
+#: Names of the elastic-frame effect of a layer (host-side fields, :data:`tawarp.model.fields.HOST_FIELD_TABLE`).
+FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY = "layer.frame_compliance", "layer.frame_loss_factor", "layer.frame_density"
+#: Typical foam frame: E = 2e5 Pa, loss factor 0.1, bulk density 30 kg/m^3.
+TYPICAL_FRAME = {"E": 2e5, "eta": 0.1, "rho_1": 30.0}
+
+
+def elastic_frame_effect() -> Effect:
+    """An elastic frame (Biot-Allard, :mod:`tawarp.model.biot`) of a rigid-backed layer:
+    frame compliance ``1/E`` [1/Pa] (off at 0: an infinitely stiff frame bonded to the
+    backing does not move, which is exactly the rigid model), loss factor ``eta`` and bulk
+    density ``rho_1`` [kg/m^3] fitted; Poisson ratio fixed (only ``E (1 - nu)/((1 + nu)(1 - 2 nu))``
+    enters at normal incidence: ``E`` is then the modulus at that ``nu``)."""
+    c = field_spec(FRAME_COMPLIANCE)
+    e = field_spec(FRAME_LOSS_FACTOR)
+    d = field_spec(FRAME_DENSITY)
+    return Effect("elastic_frame", "elastic frame (Biot-Allard): frame resonance; compliance 1/E, loss factor, "
+                                   "frame density",
+                  (Param(FRAME_COMPLIANCE, (FRAME_COMPLIANCE,), c.neutral, c.scale, *c.fit_range),
+                   Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], e.scale, *e.fit_range),
+                   Param(FRAME_DENSITY, (FRAME_DENSITY,), TYPICAL_FRAME["rho_1"], 1.0, *d.fit_range, log=True)),
+                  typical={FRAME_COMPLIANCE: 1.0 / TYPICAL_FRAME["E"], FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
+                           FRAME_DENSITY: TYPICAL_FRAME["rho_1"]},
+                  # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
+                  starts=tuple({FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
+                                FRAME_DENSITY: TYPICAL_FRAME["rho_1"]} for E in (1e4, 1e5, 1e6, 1e7)))
+
+
+def two_port_frame_effect(sample: str) -> Effect:
+    """An elastic frame (Biot-Allard) of the porous segment ``sample`` of a passive core
+    measured as a 2-port, the frame sliding freely at the tube wall (1-D; a frame clamped or
+    glued at its edge bends and is not modelled): the limp frame (``SAMPLE.frame_mobility``
+    1/rho_1 [m^3/kg], the kernels' field) given a Young's modulus ``SAMPLE.frame_modulus``
+    E [Pa] and loss factor ``SAMPLE.frame_loss_factor``. A free frame of infinite stiffness
+    still moves as a rigid body, so "off" is infinite frame density, mobility 0 (exact);
+    E = 0 is exactly the limp frame, so :func:`porous_layer_effects`' ``limp_frame`` is
+    nested in it and the two share fits without interfering (E at its start 0).
+    :class:`tawarp.measure.tmatrix.TMatrixKind` evaluates the Biot 2-port where both are > 0."""
+    m, E, eta = (f"{sample}.{f}" for f in ("frame_mobility", "frame_modulus", "frame_loss_factor"))
+    fm, fE, fe = field_spec(m), field_spec(E), field_spec(eta)
+    typical = {m: 1.0 / TYPICAL_FRAME["rho_1"], E: TYPICAL_FRAME["E"], eta: TYPICAL_FRAME["eta"]}
+    return Effect("elastic_frame", "elastic frame (Biot-Allard, frame sliding at the wall): 1/frame density, "
+                                   "Young's modulus, loss factor",
+                  (Param(m, (m,), fm.neutral, fm.scale, *fm.fit_range),
+                   Param(E, (E,), 0.0, fE.scale, *fE.fit_range),
+                   Param(eta, (eta,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range)),
+                  typical=typical, starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)))
 
 
 def impedance_library(core: Core) -> list[Effect]:
-    """Candidate effects for the surface impedance of a rigid-backed layer."""
-    return [
-        Effect("thermal_radius_ratio", "separate thermal radius Lambda' = ratio Lambda (JCA)",
-               (Param("layer.thermal_radius_ratio", ("layer.thermal_radius_ratio",), 1.0, 0.2, 0.1, 10.0),)),
-        Effect("viscous_shape_factor", "viscous length Lambda = r/s apart from the resistivity radius r (shape factor)",
-               (Param("layer.viscous_shape_factor", ("layer.viscous_shape_factor",), 1.0, 0.2, 0.2, 5.0),)),
-        Effect("thickness_offset", "layer thicknesses off by a common offset (measurement plane)",
-               (Param("layer.length_offset", ("layer.length_offset",), 0.0, 1e-3, -0.01, 0.01),)),
-        Effect("limp_frame", "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk density)",
-               (Param("layer.frame_mobility", ("layer.frame_mobility",), 0.0, 0.01, 0.0, 10.0),)),
-        # a room's temperature and pressure are known to +-15 K and +-5 %
-        Effect("T_cold", "ambient temperature not as assumed (within 15 K)",
-               (Param("gas.T_cold", ("gas.T_cold",), core.gas.T_cold, 1.0, core.gas.T_cold - 15, core.gas.T_cold + 15),)),
-        Effect("p_mean", "static pressure not as assumed (within 5 %)",
-               (Param("gas.p_mean", ("gas.p_mean",), core.gas.p_mean, 1e3, 0.95 * core.gas.p_mean, 1.05 * core.gas.p_mean),)),
-    ]
+    """Candidate effects for the surface impedance of a rigid-backed layer: the porous-layer
+    effects, an elastic frame, a thickness offset (typical 0.5 mm), and T_cold and p_mean
+    within what a room's are known to (+-15 K, +-5 %)."""
+    off = field_spec("layer.length_offset")
+    T0, p0 = core.gas.T_cold, core.gas.p_mean
+    return (porous_layer_effects(["layer"]) + [elastic_frame_effect()]
+            + [Effect("thickness_offset", "layer thicknesses off by a common offset (measurement plane)",
+                      (Param("layer.length_offset", ("layer.length_offset",), off.neutral, off.scale, *off.fit_range),),
+                      typical={"layer.length_offset": 5e-4})]
+            + ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0)))
+
+
+def library_for_core(core: Core, kind_name: str) -> list[Effect]:
+    """The candidate effects for data of kind ``kind_name`` on ``core``: 2-port data
+    (``tmatrix``, ``scattering``) :func:`tmatrix_library`, a rigid-backed layer's surface
+    impedance (``impedance``) :func:`impedance_library`; none for other kinds."""
+    if kind_name in ("tmatrix", "scattering"):
+        return tmatrix_library(core)
+    if kind_name == "impedance":
+        return impedance_library(core)
+    return []

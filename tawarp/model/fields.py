@@ -50,6 +50,7 @@ class Field:
     fit_range: tuple[float, float] = (-math.inf, math.inf)
     prior: tuple[float, float] | None = None
     description: str = ""
+    upper_open: bool = False
 
     @property
     def is_effect(self) -> bool:
@@ -57,10 +58,23 @@ class Field:
 
     def check(self, value: float) -> bool:
         """True when ``value`` lies in the physical range."""
-        return not (value < self.lower or (self.lower_open and value == self.lower) or value > self.upper)
+        return not (value < self.lower or (self.lower_open and value == self.lower) or value > self.upper
+                    or (self.upper_open and value == self.upper))
+
+    def check_array(self, values) -> "np.ndarray":
+        """Element-wise :meth:`check` of an array (non-finite values fail)."""
+        import numpy as np
+
+        a = np.asarray(values, dtype=float)
+        ok = np.isfinite(a) & (a >= self.lower) & (a <= self.upper)
+        if self.lower_open:
+            ok &= a != self.lower
+        if self.upper_open:
+            ok &= a != self.upper
+        return ok
 
     def range_text(self) -> str:
-        hi = f"{self.upper}]" if math.isfinite(self.upper) else f"{self.upper})"
+        hi = f"{self.upper}]" if math.isfinite(self.upper) and not self.upper_open else f"{self.upper})"
         return f"{'(' if self.lower_open else '['}{self.lower}, {hi}"
 
 
@@ -96,6 +110,10 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
           description="natural convection: h_eff = h + h_conv theta^(1/4)"),
     Field("wall_conductance", layout.WALL_CONDUCTANCE, "W/(m K)", 0.0, _INF, False, "thermal", neutral=0.0,
           log=False, scale=0.1, fit_range=(0.0, 1e3), description="axial conduction of the tube wall, lam_wall A_wall/S"),
+    Field("end_conductance", layout.END_CONDUCTANCE, "W/(m^2 K)", 0.0, _INF, False, "thermal", neutral=0.0,
+          log=False, scale=100.0, fit_range=(0.0, 1e5),
+          description="heat flux H theta per section area drawn to T_cold at the heat model's end that lies in this "
+                      "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)"),
 )
 #: Core-wide fields, addressed ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELD_TABLE: dict[str, Field] = {
@@ -107,6 +125,31 @@ GLOBAL_FIELD_TABLE: dict[str, Field] = {
                          description="tube radius"),
 }
 
+#: Fields the kernels do not read (``row`` -1): effects a measurement kind applies on the
+#: host, addressed ``layer.FIELD`` (the elastic frame of :mod:`tawarp.model.biot`, the
+#: thickness offset of :mod:`tawarp.measure.impedance`) or by their full name (the 2-port
+#: calibration of :mod:`tawarp.measure.tmatrix`).
+HOST_FIELD_TABLE: dict[str, Field] = {
+    "frame_compliance": Field("frame_compliance", -1, "1/Pa", 0.0, _INF, False, "porous", neutral=0.0, log=False,
+                              scale=1e-6, fit_range=(0.0, 1e-3),
+                              description="1/E of the elastic frame (Biot): 0 is a rigid frame"),
+    "frame_modulus": Field("frame_modulus", -1, "Pa", 0.0, _INF, False, "porous", log=False, scale=1e5,
+                           fit_range=(0.0, 1e8), description="Young's modulus E of the elastic frame (real part of "
+                                                             "E (1 - i eta)); 0: a limp frame"),
+    "frame_loss_factor": Field("frame_loss_factor", -1, "-", 0.0, _INF, False, "porous", log=False, scale=0.05,
+                               fit_range=(0.0, 1.0), description="eta of the frame modulus E (1 - i eta)"),
+    "frame_density": Field("frame_density", -1, "kg/m^3", 0.0, _INF, True, "porous", fit_range=(1.0, 1e3),
+                           description="frame bulk density rho_1 (frame mass per layer volume)"),
+    "poisson_ratio": Field("poisson_ratio", -1, "-", -1.0, 0.5, True, "porous", log=False, scale=0.1,
+                           fit_range=(0.0, 0.49), upper_open=True, description="Poisson ratio nu of the frame"),
+    "length_offset": Field("length_offset", -1, "m", -_INF, _INF, False, "porous", neutral=0.0, log=False,
+                           scale=1e-3, fit_range=(-0.01, 0.01), description="offset added to every layer thickness"),
+    "calibration.gain": Field("gain", -1, "-", 0.0, _INF, True, neutral=1.0, log=False, scale=0.01,
+                              fit_range=(0.5, 2.0), description="|g| of the 2-port calibration gain g (measured T = g T)"),
+    "calibration.phase": Field("phase", -1, "rad", -math.pi, math.pi, False, neutral=0.0, log=False, scale=0.01,
+                               fit_range=(-0.5, 0.5), description="arg g of the 2-port calibration gain"),
+}
+
 SEGMENT_FIELDS: dict[str, Field] = {f.name: f for f in SEGMENT_FIELD_TABLE}
 assert sorted(f.row for f in SEGMENT_FIELD_TABLE) == list(range(layout.N_FIELDS)), "kernels/layout.py rows"
 #: Effect fields and their neutral ("off") values.
@@ -116,13 +159,18 @@ NONLINEAR_FIELDS = tuple(f.name for f in SEGMENT_FIELD_TABLE if f.nonlinear)
 
 
 def field(name: str) -> Field:
-    """The table row of a parameter name: ``SEGMENT.FIELD``, a bare field name, or a
-    global (``gas.T_cold``, ``gas.p_mean``, ``tube.radius``)."""
+    """The table row of a parameter name: ``SEGMENT.FIELD``, a bare field name, a
+    global (``gas.T_cold``, ``gas.p_mean``, ``tube.radius``) or a host field
+    (:data:`HOST_FIELD_TABLE`)."""
     if name in GLOBAL_FIELD_TABLE:
         return GLOBAL_FIELD_TABLE[name]
+    if name in HOST_FIELD_TABLE:
+        return HOST_FIELD_TABLE[name]
     fld = name.rpartition(".")[2]
     if fld in SEGMENT_FIELDS:
         return SEGMENT_FIELDS[fld]
+    if fld in HOST_FIELD_TABLE and "." not in fld:
+        return HOST_FIELD_TABLE[fld]
     for f in GLOBAL_FIELD_TABLE.values():
         if f.name == fld:
             return f
