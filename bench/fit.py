@@ -83,6 +83,7 @@ def time_fits(core, wl, Y, sd, n, device, settings) -> dict:
     truth = np.array([core.get(k) for k in names])
     z = (r.values - truth) / r.std
     return {"n": n, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
+            "max_relative_error_vs_truth": float(np.max(np.abs(r.values / truth - 1))),
             "iterations_mean": float(r.iterations.mean()), "iterations_max": int(r.iterations.max()),
             "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2)))}
 
@@ -154,6 +155,7 @@ def main(argv=None) -> int:
     core = load_core("mesh")
     dev_name = wp.get_device(device).name
     result = {"device": device, "device_name": dev_name, "cpu": platform.processor() or platform.machine(),
+              "load_average_at_start": list(os.getloadavg()),
               "cpu_count": os.cpu_count(), "warp": wp.config.version, "python": sys.version.split()[0],
               "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size}, "xtol": 1e-3,
               "cells": args.cells, "workloads": {}}
@@ -183,12 +185,19 @@ def main(argv=None) -> int:
             model({k: float(v) for k, v in zip(wl["names"], start)})  # warm-up
             kf = [scipy_fit(model, wl["names"], Y[i], sd, start) for i in range(args.kernel_fits)]
             per = float(np.mean([s["seconds"] for s in kf]))
+            truth = np.array([core.get(k) for k in wl["names"]])
+            batched = fit(core, FREQS, Y[:args.kernel_fits], wl["names"], start, heat_input=wl["Q"], device="cpu",
+                          weights=np.broadcast_to(1.0 / sd, (args.kernel_fits,) + sd.shape), warn=False,
+                          settings=ForwardSettings(cells=args.cells, device="cpu"))
+            sv = np.array([s["values"] for s in kf])
             cpu_best = max(r["fits_per_s"] for r in entry.get("cpu_batches", rows if not gpu else []))
             entry["scipy_kernel"] = {
                 "fits": kf, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
                 "method": "least_squares(method='lm', xtol=1e-3) on the project's CPU kernel (Engine.evaluate, "
                           "one set x 100 frequencies, the batched fit's fixed cells), one fit at a time",
-                "speedup_best_batch": best * per, "speedup_best_cpu_batch": cpu_best * per}
+                "speedup_best_batch": best * per, "speedup_best_cpu_batch": cpu_best * per,
+                "max_relative_error_vs_truth": float(np.max(np.abs(sv / truth - 1))),
+                "max_difference_to_batched_fit_in_std": float(np.max(np.abs(sv - batched.values) / batched.std))}
             print(f"{wname:9s} scipy on the CPU kernel: {per * 1e3:.1f} ms per fit "
                   f"({np.mean([s['nfev'] for s in kf]):.1f} evaluations); best batch {best * per:.1f} x, "
                   f"best CPU batch {cpu_best * per:.1f} x", flush=True)
@@ -204,6 +213,7 @@ def main(argv=None) -> int:
             entry["speedup_best_batch_vs_scipy"] = best * per
             print(f"{wname:9s} best {best:.1f} fits/s = {best * per:.0f} x SciPy ({per:.3f} s per fit)", flush=True)
         result["workloads"][wname] = entry
+    result["load_average_at_end"] = list(os.getloadavg())
     out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
                                    f"fit_{device.replace(':', '')}.json")
     os.makedirs(os.path.dirname(out), exist_ok=True)
