@@ -5,6 +5,7 @@ the documented ranges of the parameter table (``fields.Field.prior``)."""
 import warnings
 
 import numpy as np
+import pytest
 
 from tawarp import reference
 from tawarp.model.core import load_core
@@ -80,3 +81,13 @@ def test_estimate_only_raises_cells():
     a = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", tolerance=1e-2).T
     b = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", tolerance=None).T
     assert np.array_equal(a, b)
+
+
+def test_estimate_that_cannot_be_met_warns(monkeypatch):
+    # A tolerance below rounding is never met: after the last round the sets are named in a
+    # ValidityWarning instead of a silent miss (two rounds here, to keep the cells few).
+    import tawarp.model.forward as fwd
+
+    monkeypatch.setattr(fwd, "MAX_ESTIMATE_ROUNDS", 2)
+    with pytest.warns(ValidityWarning, match=r"error estimate of 1 of 1 sets is still"):
+        transfer_matrices(load_core("ceramic"), FREQS, 40.0, device="cpu", tolerance=1e-20)

@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -28,7 +29,7 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import check_results, check_sets
+from .validity import ValidityWarning, check_results, check_sets
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
@@ -334,7 +335,8 @@ class Engine:
         raised where the step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers
         the frequencies between the three sampled). Each round evaluates the sets still
         above target at d and 2d, and raises d by (estimate / target)^(1/6) (the scheme's
-        order) times 1.1, clipped to [1.25, 4]; a set is accepted only on a measured estimate."""
+        order) times 1.1, clipped to [1.25, 4]; a set is accepted only on a measured estimate
+        (after :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
         n = params.shape[1]
         d = np.full(n, float(self.settings.cell_density))
         tol = self.settings.tolerance
@@ -349,7 +351,7 @@ class Engine:
         Zc = table[layout.P_MEAN] / np.sqrt(g.R_gas * T_cold / g.gamma) / (math.pi * radius ** 2)
         active = np.arange(n)
         target = 0.5 * tol
-        for _ in range(MAX_ESTIMATE_ROUNDS):
+        for rounds in range(MAX_ESTIMATE_ROUNDS):
             p = wp.array(np.ascontiguousarray(table[:, active]), dtype=wp.float64, device=self.device)
             t = wp.array(np.ascontiguousarray(th[active]), dtype=wp.float64, device=self.device)
             Y = []
@@ -361,6 +363,12 @@ class Engine:
             err = (np.abs(Y[0] - Y[1]).max(-1) / np.abs(Y[1]).max(-1)).max(-1)
             above = err > target
             if not above.any():
+                break
+            if rounds == MAX_ESTIMATE_ROUNDS - 1:
+                warnings.warn(f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
+                              f"still {err[above].max():.2g} > {target:.2g} at {d[active[above]].max():.3g} times "
+                              f"the rule's cells; pass ForwardSettings(cells=...) for a fixed count",
+                              ValidityWarning, stacklevel=4)
                 break
             raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
             active = active[above]
