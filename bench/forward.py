@@ -86,20 +86,27 @@ def accuracy_table(device: str, densities) -> dict:
     return out
 
 
-def estimate_cost(device: str, n: int, min_time: float) -> dict:
+def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dict:
     """Forward models/s of the default settings (error estimate) and of the bare rule on
-    the same batch, and the densities the estimate chose."""
+    the same batch, timed alternately (best of ``repeats``: a shared machine's load
+    drifts), the time of the estimate alone, and the densities it chose."""
     core = load_core("ceramic")
     names, table = random_batch(n, np.random.default_rng(1))
     varying = wp.array(table, dtype=wp.float64, device=device)
-    rates = {}
-    for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance)):
-        engine = Engine(core, FREQS, names, ForwardSettings(tolerance=tol, device=device))
-        rates[label] = n * len(FREQS) / time_engine(engine, varying, min_time)
-    params, theta = engine.heat(varying)
-    d = engine.cell_densities(params, theta).numpy()
-    return {"models_per_s": rates, "cost_fraction": rates["rule"] / rates["estimate"] - 1.0,
-            "density_mean": float(d.mean()), "density_max": float(d.max()),
+    engines = {label: Engine(core, FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
+               for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))}
+    params, theta = engines["estimate"].heat(varying)
+    best = {"rule": np.inf, "estimate": np.inf, "estimate_alone": np.inf}
+    for _ in range(repeats):
+        for label, engine in engines.items():
+            best[label] = min(best[label], time_engine(engine, varying, 0.0))
+        t0 = time.perf_counter()
+        d = engines["estimate"].cell_densities(params, theta).numpy()
+        wp.synchronize_device(device)
+        best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
+    return {"models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
+            "seconds_best": best, "cost_fraction": best["estimate_alone"] / best["rule"],
+            "cpu_threads": 1, "density_mean": float(d.mean()), "density_max": float(d.max()),
             "sets_raised": float(np.mean(d > ForwardSettings().cell_density)), "sets": n}
 
 
