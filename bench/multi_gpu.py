@@ -126,7 +126,7 @@ def main(argv=None) -> int:
               "rows": []}
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(1, len(devices) + 1):
-            client = local_cluster(devices[:k])
+            client = local_cluster(devices[:k], cpu_threads=1)  # CPU workers: one core each
             try:
                 result["rows"].append(measure(client, k, args, data, table, tmp))
             finally:

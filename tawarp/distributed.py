@@ -59,10 +59,11 @@ class DevicePlugin:
         worker.tawarp_cpu_threads = self.cpu_threads
 
 
-def local_cluster(devices=None, processes: bool = True):
+def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None = None):
     """A :class:`distributed.Client` on a local cluster of one single-threaded worker per
     entry of ``devices`` (``"cuda:0"``, ``"cpu"``, ...; default: every GPU Warp sees,
-    else two CPU workers). CPU workers share the cores this process may use."""
+    else two CPU workers). CPU workers split their batches over ``cpu_threads`` threads
+    (default: an equal share of the cores this process may use)."""
     import warp as wp
 
     distributed = _distributed()
@@ -78,7 +79,7 @@ def local_cluster(devices=None, processes: bool = True):
     cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=processes,
                                        dashboard_address=None)
     client = distributed.Client(cluster)
-    client.register_plugin(_as_worker_plugin(DevicePlugin(devices, max(1, cores // max(1, n_cpu)))))
+    client.register_plugin(_as_worker_plugin(DevicePlugin(devices, cpu_threads or max(1, cores // max(1, n_cpu)))))
     return client
 
 
