@@ -345,15 +345,16 @@ class Engine:
         f = self.freqs
         sample = np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
         w_f = wp.array(f[sample], dtype=wp.float64, device=self.device)
-        table, th = params.numpy(), theta.numpy()
         g = GASES[self.core.gas.name]
-        T_cold, radius = table[layout.T_COLD], table[layout.RADIUS]
-        Zc = table[layout.P_MEAN] / np.sqrt(g.R_gas * T_cold / g.gamma) / (math.pi * radius ** 2)
+        T_cold, radius = params[layout.T_COLD].numpy(), params[layout.RADIUS].numpy()
+        Zc = params[layout.P_MEAN].numpy() / np.sqrt(g.R_gas * T_cold / g.gamma) / (math.pi * radius ** 2)
         active = np.arange(n)
         target = 0.5 * tol
+        p, t = params, theta   # every set in the first round: no copy
         for rounds in range(MAX_ESTIMATE_ROUNDS):
-            p = wp.array(np.ascontiguousarray(table[:, active]), dtype=wp.float64, device=self.device)
-            t = wp.array(np.ascontiguousarray(th[active]), dtype=wp.float64, device=self.device)
+            if rounds:         # the sets still above target only
+                p = wp.array(np.ascontiguousarray(params.numpy()[:, active]), dtype=wp.float64, device=self.device)
+                t = wp.array(np.ascontiguousarray(theta.numpy()[active]), dtype=wp.float64, device=self.device)
             Y = []
             for factor in (1.0, 2.0):
                 out = wp.empty((active.size, sample.size, 8), dtype=wp.float64, device=self.device)
