@@ -31,12 +31,13 @@ import warnings
 
 import numpy as np
 
+from tawarp.design.evaluate import Evaluator
 from tawarp.design.space import DesignSpace
 from tawarp.design.sweep import sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
-from tawarp.model.forward import transfer_matrices
+from tawarp.model.forward import ForwardSettings, transfer_matrices
 
 FREQS = np.linspace(30.0, 500.0, 100)
 FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
@@ -124,6 +125,11 @@ def main(argv=None) -> int:
               "host": platform.node(), "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
               "warp": wp.config.version, "python": sys.version.split()[0], "load_average_at_start": list(os.getloadavg()),
               "rows": []}
+    # compile the kernels once here, so the workers only load them from Warp's cache
+    core, Y, w, start = data
+    fit_on_cluster(None, core, FREQS, Y[:2], FIT_NAMES, start, heat_input=40.0, weights=w[:2], warn=False,
+                   settings=ForwardSettings(device=devices[0]))
+    Evaluator(space, settings=ForwardSettings(device=devices[0])).evaluate_table(table[:, :64])
     with tempfile.TemporaryDirectory() as tmp:
         for k in range(1, len(devices) + 1):
             client = local_cluster(devices[:k], cpu_threads=1)  # CPU workers: one core each

@@ -100,10 +100,7 @@ def worker_settings(settings: ForwardSettings | None) -> ForwardSettings:
     """``settings`` on this worker's device (:class:`DevicePlugin`); unchanged outside a
     worker or on a worker without an assigned device."""
     settings = settings or ForwardSettings()
-    try:
-        worker = _distributed().get_worker()
-    except ValueError:
-        return settings
+    worker = _worker()
     device = getattr(worker, "tawarp_device", None)
     if device is None:
         return settings
@@ -111,6 +108,14 @@ def worker_settings(settings: ForwardSettings | None) -> ForwardSettings:
     if device == "cpu":
         kw["cpu_threads"] = getattr(worker, "tawarp_cpu_threads", 1)
     return dataclasses.replace(settings, **kw)
+
+
+def _worker():
+    """The Dask worker running this task, or None outside one."""
+    try:
+        return _distributed().get_worker()
+    except ValueError:
+        return None
 
 
 def ordered_map(client, func, items, *args, window: int | None = None):
@@ -140,7 +145,9 @@ def _is_large(a) -> bool:
 def _fit_chunk(chunk: dict, core, freqs, names, kw: dict):
     from .fit.estimate import fit
 
-    kw = dict(kw, settings=worker_settings(kw.get("settings")), device=None)
+    kw = dict(kw, settings=worker_settings(kw.get("settings")))
+    if getattr(_worker(), "tawarp_device", None) is not None:
+        kw["device"] = None   # the worker's device, in its settings
     return fit(core, freqs, chunk["Y"], names, chunk["start"], heat_input=chunk["heat_input"],
                fixed=chunk["fixed"], weights=chunk["weights"], **kw)
 
@@ -247,7 +254,8 @@ class ClusterEvaluator:
         self.key = uuid.uuid4().hex
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
-        table = np.asarray(varying, dtype=np.float64)
+        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
+        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
         n = table.shape[1]
         workers = max(1, len(self.client.scheduler_info()["workers"]))
         step = self.chunk or max(1, -(-n // workers))
