@@ -266,6 +266,7 @@ class Engine:
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
         self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
+        self._modules_loaded = False
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
@@ -304,11 +305,14 @@ class Engine:
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         chunks = [np.ascontiguousarray(c) for c in np.array_split(table, parts, axis=1)]
         one = lambda c: tuple(a.numpy() for a in self.evaluate_serial(c))  # noqa: E731
-        first = one(chunks[0])          # in this thread: compiles and loads the modules once
-        rest = list(_thread_pool(parts).map(one, chunks[1:]))
-        T = np.concatenate([first[0]] + [r[0] for r in rest])
-        params = np.concatenate([first[1]] + [r[1] for r in rest], axis=1)
-        theta = np.concatenate([first[2]] + [r[2] for r in rest])
+        if not self._modules_loaded:    # compile and load the modules once, in this thread alone
+            self.evaluate_serial(chunks[0][:, :1])
+            self._modules_loaded = True
+        rest = [_thread_pool(parts).submit(one, c) for c in chunks[1:]]
+        done = [one(chunks[0])] + [f.result() for f in rest]   # the first part in this thread, meanwhile
+        T = np.concatenate([r[0] for r in done])
+        params = np.concatenate([r[1] for r in done], axis=1)
+        theta = np.concatenate([r[2] for r in done])
         if out is None:
             out = wp.array(T, dtype=wp.float64, device=self.device)
         else:
