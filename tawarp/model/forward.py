@@ -43,6 +43,8 @@ DEFAULT_TOLERANCE = 1e-6
 MAGNUS_ORDER = 6
 #: Most rounds of the step-doubling estimate (each raises a set's density by 1.25x to 4x).
 MAX_ESTIMATE_ROUNDS = 8
+#: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
+MAX_DENSITY_FACTOR = 64.0
 
 
 def default_device() -> str:
@@ -339,7 +341,8 @@ class Engine:
         raised where the step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers
         the frequencies between the three sampled). Each round evaluates the sets still
         above target at d and 2d, and raises d by (estimate / target)^(1/6) (the scheme's
-        order) times 1.1, clipped to [1.25, 4]; a set is accepted only on a measured estimate
+        order) times 1.1, clipped to [1.25, 4] (and to :data:`MAX_DENSITY_FACTOR` times
+        ``cell_density`` in all); a set is accepted only on a measured estimate
         (after :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
         n = params.shape[1]
         d = np.full(n, float(self.settings.cell_density))
@@ -377,7 +380,7 @@ class Engine:
                 break
             raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
             active = active[above]
-            d[active] *= raise_by
+            d[active] = np.minimum(d[active] * raise_by, MAX_DENSITY_FACTOR * self.settings.cell_density)
         return wp.array(d, dtype=wp.float64, device=self.device)
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
