@@ -374,8 +374,9 @@ class Engine:
                 break
             if rounds == MAX_ESTIMATE_ROUNDS - 1:
                 warnings.warn(f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
-                              f"still {err[above].max():.2g} > {target:.2g} at {d[active[above]].max():.3g} times "
-                              f"the rule's cells; pass ForwardSettings(cells=...) for a fixed count",
+                              f"still {err[above].max():.2g} > {target:.2g} at cell density {d[active[above]].max():.3g} "
+                              f"(cell_density {self.settings.cell_density:g}); pass ForwardSettings(cells=...) "
+                              f"for a fixed count",
                               ValidityWarning, stacklevel=4)
                 break
             raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
