@@ -65,6 +65,13 @@ def test_fit_on_cluster_equals_one_process(client):
     for f in ("values", "std", "cost", "covariance", "rms_error"):
         np.testing.assert_allclose(getattr(many, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
     assert np.array_equal(many.iterations, one.iterations) and many.evaluations == one.evaluations
+    # a spread of starts (no start given) with restarts: the per-problem extras join in order too
+    kw.update(weights=kw["weights"][:3], n_starts=4, restarts=2)
+    one = fit(core, FREQS, Y[:3], names, device="cpu", **kw)
+    many = fit_on_cluster(client, core, FREQS, Y[:3], names, chunk=2, **kw)
+    for f in ("values", "std", "restart_values", "restart_cost", "distinct_minima"):
+        np.testing.assert_allclose(getattr(many, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
+    assert many.problem_warnings == one.problem_warnings
 
 
 def test_design_evaluations_on_cluster_equal_one_process(client):
