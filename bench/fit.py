@@ -1,7 +1,9 @@
 """Fit benchmark: complete Levenberg-Marquardt fits per second against batch size, and
-scipy.optimize.least_squares on the NumPy reference model in the same run. Writes JSON.
+its peers in the same run: scipy.optimize.least_squares on the project's own CPU kernel
+(the fair peer: what a user would write), on the NumPy reference model, and the batched
+fit on the CPU. Writes JSON.
 
-    python bench/fit.py --device cuda                       # sizes 1 ... 1e5
+    python bench/fit.py --device cuda                       # sizes 1 ... 1e5, CPU batches 1,16,64
     python bench/fit.py --device cpu --sizes 1,4,16,64
 
 A *fit* is one complete problem solved to the paper's stopping rule (relative step
@@ -17,11 +19,17 @@ data made with 48 Magnus cells), weights 1/sigma. The time of a batch is the who
 ``tawarp.fit.estimate.fit`` call (upload, every launch, host-side LM logic, covariance),
 after a warm-up fit that compiles the kernels; fits/s = batch size / time.
 
-SciPy peer: ``least_squares(method="lm")`` (MINPACK) with ``xtol = 1e-3`` on similar
+SciPy peers: ``least_squares(method="lm")`` (MINPACK) with ``xtol = 1e-3`` on similar
 scaled variables (log h, log r; porosity and tortuosity divided by their start), 2-point
-finite differences, the residual from ``tawarp.reference.dimensionless_transfer``
-(closed form at Q = 0; DOP853 with ``rtol = 1e-8`` for the heated segments), the same
-data and weights; time per fit is the mean over ``--scipy-fits`` problems.
+finite differences, the same data and weights, one fit at a time; the residual from
+
+* ``scipy_kernel``: the project's Warp kernel on the CPU (``Engine.evaluate`` of one set
+  at the 100 frequencies, the fixed cells the batched fit uses, ``smooth_settings``);
+  time per fit is the mean over ``--kernel-fits`` problems;
+* ``scipy``: ``tawarp.reference.dimensionless_transfer`` (closed form at Q = 0; DOP853 with
+  ``rtol = 1e-8`` for the heated segments); mean over ``--scipy-fits`` problems.
+
+``cpu_batches``: on a GPU run, the batched fit on the CPU too (``--cpu-sizes``).
 """
 
 from __future__ import annotations
@@ -38,9 +46,11 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
-from tawarp.model.core import load_core
 from tawarp.fit.estimate import FitWarning, fit, is_log
-from tawarp.model.forward import ForwardSettings, transfer_matrices
+from tawarp.measure.kind import smooth_settings
+from tawarp.model.coefficients import duct_impedance, normalize
+from tawarp.model.core import load_core
+from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 
 FREQS = np.linspace(30.0, 500.0, 100)
 WORKLOADS = {
@@ -73,11 +83,31 @@ def time_fits(core, wl, Y, sd, n, device, settings) -> dict:
     truth = np.array([core.get(k) for k in names])
     z = (r.values - truth) / r.std
     return {"n": n, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
+            "max_relative_error_vs_truth": float(np.max(np.abs(r.values / truth - 1))),
             "iterations_mean": float(r.iterations.mean()), "iterations_max": int(r.iterations.max()),
             "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2)))}
 
 
-def scipy_fit(core, names, Q, Y, sd, start, rtol=1e-8) -> dict:
+def reference_model(core, Q, rtol=1e-8):
+    """Dimensionless coefficients (m, 4) of the NumPy reference at parameter ``values``."""
+    return lambda vals: reference.dimensionless_transfer(core.replace(**vals), FREQS, Q, rtol=rtol)
+
+
+def kernel_model(core, names, Q, start):
+    """Dimensionless coefficients (m, 4) of one set on the project's CPU kernel, with the
+    fixed cells the batched fit would use from ``start``."""
+    settings = smooth_settings(core, FREQS, ForwardSettings(device="cpu"), dict(zip(names, start)), Q)
+    engine = Engine(core, FREQS, names, settings)
+    Zc = duct_impedance(core)
+
+    def model(vals):
+        out, _, _ = engine.evaluate(np.array([[Q]] + [[vals[k]] for k in names]))
+        return normalize(out.numpy().view(np.complex128).reshape(len(FREQS), 2, 2), Zc)
+    return model
+
+
+def scipy_fit(model, names, Y, sd, start) -> dict:
+    """least_squares(method="lm") on ``model(values) -> (m, 4)`` from ``start`` (module doc)."""
     from scipy.optimize import least_squares
 
     log = np.array([is_log(k) for k in names])
@@ -93,8 +123,7 @@ def scipy_fit(core, names, Q, Y, sd, start, rtol=1e-8) -> dict:
             vals["stack.porosity"] = min(max(vals["stack.porosity"], 1e-3), 1.0)
         if "stack.tortuosity" in vals:
             vals["stack.tortuosity"] = max(vals["stack.tortuosity"], 1.0)
-        Ym = reference.dimensionless_transfer(core.replace(**vals), FREQS, Q, rtol=rtol)
-        d = (Ym - Y) / sd
+        d = (model(vals) - Y) / sd
         return np.concatenate([d.real.ravel(), d.imag.ravel()])
 
     z0 = np.where(log, 0.0, 1.0)
@@ -111,6 +140,9 @@ def main(argv=None) -> int:
     ap.add_argument("--workloads", default="heat,geometry", help="comma list of %s" % ",".join(WORKLOADS))
     ap.add_argument("--scipy-fits", type=int, default=None,
                     help="SciPy fits per workload (default: 1 heat, 3 geometry; 0 skips)")
+    ap.add_argument("--kernel-fits", type=int, default=16,
+                    help="SciPy fits on the project's CPU kernel per workload (0 skips)")
+    ap.add_argument("--cpu-sizes", default="1,16,64", help="batched CPU fits on a GPU run (empty: none)")
     ap.add_argument("--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
@@ -123,6 +155,7 @@ def main(argv=None) -> int:
     core = load_core("mesh")
     dev_name = wp.get_device(device).name
     result = {"device": device, "device_name": dev_name, "cpu": platform.processor() or platform.machine(),
+              "load_average_at_start": list(os.getloadavg()),
               "cpu_count": os.cpu_count(), "warp": wp.config.version, "python": sys.version.split()[0],
               "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size}, "xtol": 1e-3,
               "cells": args.cells, "workloads": {}}
@@ -137,21 +170,50 @@ def main(argv=None) -> int:
             print(f"{wname:9s} {device:5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
                   f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
                   flush=True)
+        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows}
+        best = max(r["fits_per_s"] for r in rows)
+        if gpu and args.cpu_sizes:
+            cpu = ForwardSettings(cells=args.cells, device="cpu")
+            time_fits(core, wl, Y, sd, 1, "cpu", cpu)  # warm-up
+            entry["cpu_batches"] = [time_fits(core, wl, Y, sd, int(float(n)), "cpu", cpu)
+                                    for n in args.cpu_sizes.split(",")]
+            for row in entry["cpu_batches"]:
+                print(f"{wname:9s} cpu   n = {row['n']:7d}: {row['fits_per_s']:10.1f} fits/s", flush=True)
+        start = np.array([core.get(k) for k in wl["names"]]) * wl["start"]
+        if args.kernel_fits:
+            model = kernel_model(core, wl["names"], wl["Q"], start)
+            model({k: float(v) for k, v in zip(wl["names"], start)})  # warm-up
+            kf = [scipy_fit(model, wl["names"], Y[i], sd, start) for i in range(args.kernel_fits)]
+            per = float(np.mean([s["seconds"] for s in kf]))
+            truth = np.array([core.get(k) for k in wl["names"]])
+            batched = fit(core, FREQS, Y[:args.kernel_fits], wl["names"], start, heat_input=wl["Q"], device="cpu",
+                          weights=np.broadcast_to(1.0 / sd, (args.kernel_fits,) + sd.shape), warn=False,
+                          settings=ForwardSettings(cells=args.cells, device="cpu"))
+            sv = np.array([s["values"] for s in kf])
+            cpu_best = max(r["fits_per_s"] for r in entry.get("cpu_batches", rows if not gpu else []))
+            entry["scipy_kernel"] = {
+                "fits": kf, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
+                "method": "least_squares(method='lm', xtol=1e-3) on the project's CPU kernel (Engine.evaluate, "
+                          "one set x 100 frequencies, the batched fit's fixed cells), one fit at a time",
+                "speedup_best_batch": best * per, "speedup_best_cpu_batch": cpu_best * per,
+                "max_relative_error_vs_truth": float(np.max(np.abs(sv / truth - 1))),
+                "max_difference_to_batched_fit_in_std": float(np.max(np.abs(sv - batched.values) / batched.std))}
+            print(f"{wname:9s} scipy on the CPU kernel: {per * 1e3:.1f} ms per fit "
+                  f"({np.mean([s['nfev'] for s in kf]):.1f} evaluations); best batch {best * per:.1f} x, "
+                  f"best CPU batch {cpu_best * per:.1f} x", flush=True)
         nsp = args.scipy_fits if args.scipy_fits is not None else (1 if wname == "heat" else 3)
         sp = []
-        start = np.array([core.get(k) for k in wl["names"]]) * wl["start"]
         for i in range(nsp):
-            sp.append(scipy_fit(core, wl["names"], wl["Q"], Y[i], sd, start))
+            sp.append(scipy_fit(reference_model(core, wl["Q"]), wl["names"], Y[i], sd, start))
             print(f"{wname:9s} scipy fit {i}: {sp[-1]['seconds']:.2f} s ({sp[-1]['nfev']} evaluations)", flush=True)
-        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows}
         if sp:
             per = float(np.mean([s["seconds"] for s in sp]))
-            best = max(r["fits_per_s"] for r in rows)
             entry["scipy"] = {"fits": sp, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
                               "method": "least_squares(method='lm', xtol=1e-3) on reference.dimensionless_transfer"}
             entry["speedup_best_batch_vs_scipy"] = best * per
             print(f"{wname:9s} best {best:.1f} fits/s = {best * per:.0f} x SciPy ({per:.3f} s per fit)", flush=True)
         result["workloads"][wname] = entry
+    result["load_average_at_end"] = list(os.getloadavg())
     out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
                                    f"fit_{device.replace(':', '')}.json")
     os.makedirs(os.path.dirname(out), exist_ok=True)

@@ -4,9 +4,15 @@ the same run on the same machine. Writes JSON.
 
     python bench/forward.py --device cuda --out bench/results/forward_cuda.json
     python bench/forward.py --device cpu --sizes 1e2,1e3,1e4 --out bench/results/forward_cpu.json
+    python bench/forward.py --device cpu --sections threads --threads 1,2,4,8,16 --out bench/results/cpu_scaling.json
 
 Accuracy: the max relative error (row-wise, on the four dimensionless coefficients)
-of each ``cell_density`` against the adaptive NumPy reference at 80 W (RVC 18 W).
+of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default settings
+(cells from the step-doubling error estimate) against the adaptive NumPy reference at
+80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
+same batch, and the mean cell density it chose. ``threads``: CPU forward models/s
+against ``ForwardSettings.cpu_threads``, with the machine's load average (a shared
+machine's numbers are only as good as its idle cores).
 
 A *forward model* is one (parameter set, frequency) pair: the heat solve of the set
 (shared by its frequencies) and the T-matrix cascade at that frequency. Batches are m =
@@ -68,10 +74,91 @@ def accuracy_table(device: str, densities) -> dict:
     out = {}
     for d in densities:
         errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
-                                                       device=device, cell_density=d).dimensionless()[0], refs[name])
+                                                       device=device, cell_density=d, tolerance=None
+                                                       ).dimensionless()[0], refs[name])
                 for name in bundled_cores()}
         out[str(d)] = {"max_relative_error": max(errs.values()), "per_core": errs}
+    errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
+                                                   device=device).dimensionless()[0], refs[name])
+            for name in bundled_cores()}
+    out["estimate"] = {"max_relative_error": max(errs.values()), "per_core": errs,
+                       "settings": "default: cell_density 1.5, tolerance 1e-6"}
     return out
+
+
+def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dict:
+    """Forward models/s of the default settings (error estimate) and of the bare rule on
+    the same batch, timed alternately (best of ``repeats``: a shared machine's load
+    drifts), the time of the estimate alone, and the densities it chose."""
+    core = load_core("ceramic")
+    names, table = random_batch(n, np.random.default_rng(1))
+    varying = wp.array(table, dtype=wp.float64, device=device)
+    engines = {label: Engine(core, FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
+               for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))}
+    params, theta = engines["estimate"].heat(varying)
+    best = {"rule": np.inf, "estimate": np.inf, "estimate_alone": np.inf}
+    for _ in range(repeats):
+        for label, engine in engines.items():
+            best[label] = min(best[label], time_engine(engine, varying, 0.0))
+        t0 = time.perf_counter()
+        d = engines["estimate"].cell_densities(params, theta).numpy()
+        wp.synchronize_device(device)
+        best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
+    return {"models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
+            "seconds_best": best, "cost_fraction": best["estimate_alone"] / best["rule"],
+            "cpu_threads": 1, "density_mean": float(d.mean()), "density_max": float(d.max()),
+            "sets_raised": float(np.mean(d > ForwardSettings().cell_density)), "sets": n}
+
+
+def cpu_scaling(threads, n: int, min_time: float) -> dict:
+    """CPU forward models/s of one batch against ``cpu_threads`` (bit-identical results):
+    per wall second, and per CPU second of this process (``time.process_time``). On a
+    shared machine the wall rate only scales with the idle cores; the rate per CPU second
+    staying flat shows the threads add no work, so on idle cores the speed-up is the
+    thread count times the ratio of the two."""
+    core = load_core("ceramic")
+    names, table = random_batch(n, np.random.default_rng(2))
+    rows = []
+    for t in threads:
+        engine = Engine(core, FREQS, names, ForwardSettings(cpu_threads=t, device="cpu"))
+        engine.evaluate(table)  # warm-up
+        load = os.getloadavg()[0]
+        calls, wall0, cpu0 = 0, time.perf_counter(), time.process_time()
+        while time.perf_counter() - wall0 < min_time or calls < 3:
+            engine.evaluate(table)
+            calls += 1
+        wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+        rows.append({"threads": t, "models_per_s": calls * n * len(FREQS) / wall,
+                     "models_per_cpu_s": calls * n * len(FREQS) / cpu, "cpu_s_per_wall_s": cpu / wall,
+                     "load_average_1min_before": load})
+        print(f"threads={t:3d} models={n * len(FREQS):>9d}  {rows[-1]['models_per_s']:.3e} models/s, "
+              f"{rows[-1]['models_per_cpu_s']:.3e} per CPU s, {cpu / wall:.2f} cores busy (load {load:.2f})", flush=True)
+    for r in rows:
+        r["speedup"] = r["models_per_s"] / rows[0]["models_per_s"]
+        r["work_efficiency"] = r["models_per_cpu_s"] / rows[0]["models_per_cpu_s"]
+    return {"sets": n, "models": n * len(FREQS), "usable_cores": len(os.sched_getaffinity(0)), "rows": rows,
+            "control_speedup": control_scaling(threads), "load_average_after": list(os.getloadavg())}
+
+
+def control_scaling(threads) -> dict:
+    """Speed-up of a workload that is parallel by construction (SHA-256 of 64 MiB per
+    thread; hashlib releases the GIL) at the same thread counts: what this machine grants
+    a process now (a shared machine with autogroup scheduling grants a session its share
+    of the cores whatever its thread count)."""
+    import hashlib
+    import threading
+
+    data = b"\0" * (64 << 20)
+    rates = {}
+    for t in threads:
+        t0 = time.perf_counter()
+        workers = [threading.Thread(target=lambda: [hashlib.sha256(data).digest() for _ in range(3)]) for _ in range(t)]
+        for w in workers:
+            w.start()
+        for w in workers:
+            w.join()
+        rates[t] = t / (time.perf_counter() - t0)
+    return {str(t): rates[t] / rates[threads[0]] for t in threads}
 
 
 def numpy_reference_rate(n_freqs: int = 8) -> float:
@@ -119,6 +206,9 @@ def main(argv=None):
     ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
     ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
+    ap.add_argument("--sections", default="accuracy,throughput,blocks,peers,estimate",
+                    help="comma list of accuracy, throughput, blocks, peers, estimate, threads")
+    ap.add_argument("--threads", default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     wp.init()
@@ -132,51 +222,66 @@ def main(argv=None):
               "host": platform.processor() or platform.machine(), "python": sys.version.split()[0],
               "frequencies_per_set": len(FREQS), "core": "ceramic (paper-like), heated 0-80 W"}
 
-    t0 = time.perf_counter()
-    result["accuracy"] = accuracy_table(device, densities)
-    result["accuracy_seconds"] = time.perf_counter() - t0
+    sections = set(args.sections.split(","))
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads"}
+    if unknown:
+        ap.error(f"--sections: unknown {sorted(unknown)}")
+    n = max(1, sizes[-1] // len(FREQS))
+    if "accuracy" in sections:
+        t0 = time.perf_counter()
+        result["accuracy"] = accuracy_table(device, densities)
+        result["accuracy_seconds"] = time.perf_counter() - t0
 
     throughput = {}
-    for d in densities:
-        rows = []
-        for size in sizes if d == 1.5 else sizes[-1:]:
-            n = max(1, size // len(FREQS))
-            names, table = random_batch(n, rng)
-            engine = Engine(core, FREQS, names, ForwardSettings(cell_density=d, device=device))
-            varying = wp.array(table, dtype=wp.float64, device=device)
-            dt = time_engine(engine, varying, args.min_time)
-            rows.append({"models": n * len(FREQS), "sets": n, "seconds": dt, "models_per_s": n * len(FREQS) / dt})
-            print(f"density={d:4.2f} models={n * len(FREQS):>10d}  {n * len(FREQS) / dt:.3e} models/s", flush=True)
-        throughput[str(d)] = rows
-    result["throughput"] = throughput
-    n = max(1, sizes[-1] // len(FREQS))
-    names, table = random_batch(n, rng)
-    varying = wp.array(table, dtype=wp.float64, device=device)
-    blocks = {}
-    for b in (int(v) for v in args.block_dims.split(",")):
-        for r in [None] + [int(v) for v in args.max_registers.split(",") if v]:
-            engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, max_registers=r, device=device))
-            try:
-                rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
-            except Exception as e:  # a block too large for the register file fails to launch
-                print(f"block_dim={b} max_registers={r}: {e}", flush=True)
-                continue
-            blocks[f"{b}/{r}"] = rate
-            print(f"block_dim={b:4d} max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
-    result["block_dim/max_registers_models_per_s"] = blocks
+    if "throughput" in sections:
+        for d in densities:
+            rows = []
+            for size in sizes if d == 1.5 else sizes[-1:]:
+                m = max(1, size // len(FREQS))
+                names, table = random_batch(m, rng)
+                engine = Engine(core, FREQS, names, ForwardSettings(cell_density=d, tolerance=None, device=device))
+                varying = wp.array(table, dtype=wp.float64, device=device)
+                dt = time_engine(engine, varying, args.min_time)
+                rows.append({"models": m * len(FREQS), "sets": m, "seconds": dt, "models_per_s": m * len(FREQS) / dt})
+                print(f"density={d:4.2f} models={m * len(FREQS):>10d}  {m * len(FREQS) / dt:.3e} models/s", flush=True)
+            throughput[str(d)] = rows
+        result["throughput"] = throughput
+    if "estimate" in sections:
+        result["estimate"] = estimate_cost(device, n, args.min_time)
+        print(f"error estimate: {result['estimate']}", flush=True)
+    if "threads" in sections:
+        result["cpu_scaling"] = cpu_scaling([int(t) for t in args.threads.split(",")], n, args.min_time)
+    if "blocks" in sections:
+        names, table = random_batch(n, rng)
+        varying = wp.array(table, dtype=wp.float64, device=device)
+        blocks = {}
+        for b in (int(v) for v in args.block_dims.split(",")):
+            for r in [None] + [int(v) for v in args.max_registers.split(",") if v]:
+                engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, max_registers=r, device=device))
+                try:
+                    rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
+                except Exception as e:  # a block too large for the register file fails to launch
+                    print(f"block_dim={b} max_registers={r}: {e}", flush=True)
+                    continue
+                blocks[f"{b}/{r}"] = rate
+                print(f"block_dim={b:4d} max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
+        result["block_dim/max_registers_models_per_s"] = blocks
 
-    peers = {"numpy_reference_models_per_s": numpy_reference_rate(), "openthermoacoustics": openthermoacoustics_rate()}
-    best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}
-    peers["speedup_vs_numpy_reference"] = {c: v / peers["numpy_reference_models_per_s"] for c, v in best.items()}
-    if peers["openthermoacoustics"].get("available"):
-        peers["speedup_vs_openthermoacoustics"] = {c: v / peers["openthermoacoustics"]["models_per_s"]
-                                                   for c, v in best.items()}
-    result["peers"] = peers
-    ok = [d for d in densities if result["accuracy"][str(d)]["max_relative_error"] <= 1e-6]
-    if ok:
-        d = min(ok)
-        result["operating_point"] = {"cell_density": d, "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
-                                     "models_per_s": best[str(d)]}
+    if "peers" in sections and throughput:
+        peers = {"numpy_reference_models_per_s": numpy_reference_rate(),
+                 "openthermoacoustics": openthermoacoustics_rate()}
+        best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}
+        peers["speedup_vs_numpy_reference"] = {c: v / peers["numpy_reference_models_per_s"] for c, v in best.items()}
+        if peers["openthermoacoustics"].get("available"):
+            peers["speedup_vs_openthermoacoustics"] = {c: v / peers["openthermoacoustics"]["models_per_s"]
+                                                       for c, v in best.items()}
+        result["peers"] = peers
+        ok = [d for d in densities if result.get("accuracy", {}).get(str(d), {}).get("max_relative_error", 1) <= 1e-6]
+        if ok:
+            d = min(ok)
+            result["operating_point"] = {"cell_density": d,
+                                         "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
+                                         "models_per_s": best[str(d)]}
     text = json.dumps(result, indent=2)
     print(text)
     if args.out:

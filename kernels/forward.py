@@ -108,10 +108,11 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
     def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                         gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
                         freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
-                        cell_density: wp.float64, first: int, heat_cells: int, out: wp.array3d(dtype=wp.float64)):
+                        cell_density: wp.array(dtype=wp.float64), first: int, heat_cells: int,
+                        out: wp.array3d(dtype=wp.float64)):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
         frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
-        that is 0, ceil(cell_density (1 + k L + w L / c_cold)) cells: the profile varies
+        that is 0, ceil(cell_density[i] (1 + k L + w L / c_cold)) cells: the profile varies
         on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
         cell scales with the sixth power of its length over those scales."""
         i, j = wp.tid()
@@ -141,7 +142,7 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                 n_cells = seg_cells[s]
                 if n_cells == 0:
                     c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                    n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+                    n_cells = int(wp.ceil(cell_density[i] * (wp.float64(1.0) + k * length + omega * length / c_cold)))
                 h = length / wp.float64(n_cells)
                 for c in range(n_cells):
                     x0 = wp.float64(c) * h

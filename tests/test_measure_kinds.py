@@ -97,7 +97,7 @@ def test_fit_cells_are_the_kernels_adaptive_counts(values):
     # with k_factor = 1 the counts are the cascade's own adaptive ones (wall conductance
     # included): fixing them gives the adaptive model's T-matrices bit for bit
     f = np.array([480.0])
-    cells = fit_cells(CORE, 480.0, values, CPU)
+    cells = fit_cells(CORE, 480.0, values, CPU, heat_input=40.0)
     fixed = {s.name: int(n) for s, n in zip(CORE.segments, cells) if s.thermal}
     params = {k: np.array([v]) for k, v in values.items()}
     T_adaptive = transfer_matrices(CORE, f, 40.0, params=params, device="cpu").T
@@ -107,4 +107,4 @@ def test_fit_cells_are_the_kernels_adaptive_counts(values):
     fixed["stack"] -= 1
     assert not np.array_equal(transfer_matrices(CORE, f, 40.0, params=params, device="cpu", cells=fixed).T, T_adaptive)
     # the fit's counts leave room for k twice as large
-    assert np.all(fit_cells(CORE, 480.0, values, CPU, k_factor=2.0) >= cells)
+    assert np.all(fit_cells(CORE, 480.0, values, CPU, k_factor=2.0, heat_input=40.0) >= cells)

@@ -73,7 +73,7 @@ def _interruption_hooks(asked: int, stop_after: int | None, crash_after: int | N
 def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, batch: int = 256, storage=None,
            study_name: str = "tawarp-design", worker: str = "w0", seed: int = 0, T_limit: float | None = DEFAULT_T_LIMIT,
            engine: str = "batched", settings: ForwardSettings | None = None, freqs=DEFAULT_FREQS,
-           progress: bool = False, stale_after: float = 3600.0, onset=None, _stop_after: int | None = None,
+           progress: bool = False, stale_after: float = 3600.0, onset=None, client=None, _stop_after: int | None = None,
            _crash_after: int | None = None) -> SearchResult:
     """Run (or resume) a batched design search; see the module docstring.
 
@@ -82,7 +82,9 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     (:func:`worker_seed`: workers of different names never share a stream). ``T_limit`` [K]: constraint ``T_max <= T_limit`` (None: none).
     ``onset``: how the onset objectives close the core (:class:`tawarp.design.objectives.OnsetSpec`;
     default the bundled ``standing_wave`` resonator). ``stale_after`` [s]: a same-name worker on another host counts as gone once its
-    heartbeat is this old. ``_stop_after`` / ``_crash_after``: test hooks that interrupt
+    heartbeat is this old. ``client``: a Dask ``distributed.Client`` whose workers (one per
+    device) evaluate each batch in equal shares (:class:`tawarp.distributed.ClusterEvaluator`).
+    ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
     from ..progress import progress_bar
 
@@ -99,7 +101,7 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     study = open_study(st, study_name, objectives, space.binding())
     claim = WorkerClaim(st, study_name, worker, stale_after)
     try:
-        run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings, onset)
+        run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings, onset, client)
         n_target = -(-n_trials // batch) * batch
         bar = progress_bar(n_target, f"design ({worker})", progress, unit="trial")
         try:
@@ -130,10 +132,16 @@ def worker_seed(seed: int, worker: str) -> int:
 class _Run:
     """What one search run shares between its engines: evaluation, timing, storage."""
 
-    def __init__(self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None):
+    def __init__(self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None):
         self.space, self.objectives, self.study, self.storage = space, objectives, study, storage
         self.worker, self.T_limit = worker, T_limit
-        self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
+        if client is None:
+            self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
+        else:
+            from ..distributed import ClusterEvaluator
+
+            self.evaluator = ClusterEvaluator(client, space, extra=objectives, freqs=freqs, settings=settings,
+                                              onset=onset)
         self.dists = space.distributions()
         self.sign = signs(objectives)
         self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, evaluations=0)

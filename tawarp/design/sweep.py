@@ -80,11 +80,14 @@ def _blocks(shape: tuple, chunk: int):
 
 def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: int | None = None,
           chunk: int = 1 << 20, seed: int = 0, settings: ForwardSettings | None = None,
-          progress: bool = False, attrs: dict | None = None, outputs=None, freqs=DEFAULT_FREQS) -> SweepInfo:
+          progress: bool = False, attrs: dict | None = None, outputs=None, freqs=DEFAULT_FREQS,
+          client=None) -> SweepInfo:
     """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
     results to the netCDF file ``path``. ``outputs``: objective names written (default: the
-    kernel's metrics); ``freqs`` [Hz] for ``acoustic_loss``. See the module docstring."""
+    kernel's metrics); ``freqs`` [Hz] for ``acoustic_loss``; ``client``: a Dask
+    ``distributed.Client`` whose workers evaluate each chunk in equal shares, one per
+    device (:mod:`tawarp.distributed`; the file is the same). See the module docstring."""
     import h5netcdf
     import h5py
 
@@ -99,7 +102,12 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     settings = settings or ForwardSettings()
     outputs = list(outputs) if outputs is not None else kernel_metrics()
     rows = [objective(k) for k in outputs]
-    ev = Evaluator(space, extra=outputs, freqs=freqs, settings=settings)
+    if client is None:
+        ev = Evaluator(space, extra=outputs, freqs=freqs, settings=settings)
+    else:
+        from ..distributed import ClusterEvaluator
+
+        ev = ClusterEvaluator(client, space, extra=outputs, freqs=freqs, settings=settings)
     cont = space.continuous
     if mode == "grid":
         for v in cont:

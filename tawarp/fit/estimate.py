@@ -444,7 +444,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     for k, others in (ties or {}).items():
         for o in others:
             sized[o] = sized[k]
-    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})})
+    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
     prob = Problems(core, freqs, Y, names, heat_input=heat_input, fixed=fixed, weights=weights, ties=ties,
                     bounds=bounds, settings=settings, device=device)
     p = prob.p

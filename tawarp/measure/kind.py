@@ -78,7 +78,8 @@ class MeasurementKind:
 
 
 # -- forward engines for fits -------------------------------------------------------------
-def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None) -> ForwardSettings:
+def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None,
+                    heat_input=0.0) -> ForwardSettings:
     """Forward settings whose model is smooth in the parameters, as finite-difference
     Jacobians need.
 
@@ -88,32 +89,38 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     difference quotient with step 1e-6 turns into an O(1) Jacobian error. So a fit fixes
     one count per thermal segment for the whole batch: the adaptive rule at the highest
     frequency with ``2 k L`` (room for the fit to move h up to 4x), evaluated by the
-    kernels' own functions (:func:`fit_cells`); ``values`` {name: scalar or array} are the
-    parameter values to size for (their maxima; the core's values for the rest). Settings
+    kernels' own functions (:func:`fit_cells`, with the cell density the error estimate of
+    ``settings.tolerance`` asks for over ``freqs``); ``values`` {name: scalar or array} are the
+    parameter values to size for (their maxima; the core's values for the rest), at the
+    largest of ``heat_input`` [W] (scalar or array). Settings
     with fixed ``cells`` are returned unchanged.
     """
     settings = settings or ForwardSettings()
     if settings.cells is not None:
         return settings
     values = {k: float(np.max(v)) for k, v in (values or {}).items()}
-    counts = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0)
+    counts = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0, freqs=freqs,
+                       heat_input=float(np.max(heat_input, initial=0.0)))
     return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
 
 
 def fit_cells(core: Core, freq: float, values: dict | None = None, settings: ForwardSettings | None = None,
-              k_factor: float = 1.0) -> np.ndarray:
+              k_factor: float = 1.0, freqs=None, heat_input: float = 0.0) -> np.ndarray:
     """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
     segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
-    non-thermal segments); ``k_factor`` > 1 sizes for a heat decay rate k that many times
-    larger (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
+    non-thermal segments), at the cell density the error estimate of ``settings.tolerance``
+    asks for over the frequencies ``freqs`` (default ``[freq]``: then the counts are the
+    cascade's own at ``freq`` and ``heat_input`` [W], which only the estimate sees);
+    ``k_factor`` > 1 sizes for a heat decay rate k that many times larger
+    (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
     settings = settings or ForwardSettings()
     names = list(values or {})
-    eng = Engine(core, [freq], names, dataclasses.replace(settings, cells=None))
-    params, _ = eng.heat(np.array([[0.0]] + [[float(values[k])] for k in names]))
+    eng = Engine(core, [freq] if freqs is None else freqs, names, dataclasses.replace(settings, cells=None))
+    params, theta = eng.heat(np.array([[float(heat_input)]] + [[float(values[k])] for k in names]))
+    density = float(eng.cell_densities(params, theta).numpy()[0])
     cells = wp.empty((1, len(core.segments)), dtype=wp.int32, device=eng.device)
     wp.launch(klm.magnus_cells, dim=(1, len(core.segments)), device=eng.device,
-              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), float(settings.cell_density),
-                      float(k_factor), cells])
+              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), density, float(k_factor), cells])
     return cells.numpy()[0]
 
 

@@ -43,7 +43,7 @@ class TMatrixKind(MeasurementKind):
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
         self.data, self.core = data, core
         # fixed cells: finite-difference Jacobians need a model smooth in the parameters
-        self.settings = smooth_settings(core, data.frequencies, settings)
+        self.settings = smooth_settings(core, data.frequencies, settings, heat_input=data.heat_inputs)
         self.Zc = duct_impedance(core)
         self.freqs = data.frequencies
         self.Qs = data.heat_inputs

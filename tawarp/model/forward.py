@@ -18,6 +18,7 @@ import dataclasses
 import functools
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -28,7 +29,7 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import check_results, check_sets
+from .validity import ValidityWarning, check_results, check_sets
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
@@ -36,6 +37,14 @@ from ..kernels import layout
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
 #: accuracy of each setting against the converged NumPy reference.
 DEFAULT_CELL_DENSITY = 1.5
+#: Default relative error target of the adaptive cells (ForwardSettings.tolerance).
+DEFAULT_TOLERANCE = 1e-6
+#: Order of the Magnus scheme: a cell's error falls as (its length)^6 (tests/test_forward.py).
+MAGNUS_ORDER = 6
+#: Most rounds of the step-doubling estimate (each raises a set's density by 1.25x to 4x).
+MAX_ESTIMATE_ROUNDS = 8
+#: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
+MAX_DENSITY_FACTOR = 64.0
 
 
 def default_device() -> str:
@@ -124,9 +133,15 @@ class ForwardSettings:
     """Numerical settings.
 
     ``cells = None`` (default): the Magnus cells of a thermal segment are
-    ``ceil(cell_density (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the
-    cold wavenumber), adapted per parameter set and frequency; the default density meets
-    1e-6 relative error on the paper-like cores (README, "Accuracy"). ``cells`` = an int,
+    ``ceil(d (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
+    wavenumber), adapted per parameter set and frequency. The density d of each set
+    starts at ``cell_density`` and is raised until an error estimate is below
+    ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
+    the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
+    middle and highest frequency of the batch, on the row-relative dimensionless error
+    (:meth:`Engine.cell_densities`); ``tolerance = None`` keeps d = ``cell_density`` (the
+    rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
+    core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
     convergence studies need. The adaptive count jumps by whole cells as k (h, the
     conductivities) or w change, so the model is piecewise smooth in those parameters at
@@ -145,6 +160,7 @@ class ForwardSettings:
 
     cells: int | dict | None = None
     cell_density: float = DEFAULT_CELL_DENSITY
+    tolerance: float | None = DEFAULT_TOLERANCE
     heat_cells: int = 1
     nonlinear_heat_cells: int = 32
     picard_iterations: int = 100
@@ -252,6 +268,7 @@ class Engine:
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
         self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
+        self._modules_loaded = False
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
@@ -290,11 +307,14 @@ class Engine:
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         chunks = [np.ascontiguousarray(c) for c in np.array_split(table, parts, axis=1)]
         one = lambda c: tuple(a.numpy() for a in self.evaluate_serial(c))  # noqa: E731
-        first = one(chunks[0])          # in this thread: compiles and loads the modules once
-        rest = list(_thread_pool(parts).map(one, chunks[1:]))
-        T = np.concatenate([first[0]] + [r[0] for r in rest])
-        params = np.concatenate([first[1]] + [r[1] for r in rest], axis=1)
-        theta = np.concatenate([first[2]] + [r[2] for r in rest])
+        if not self._modules_loaded:    # compile and load the modules once, in this thread alone
+            self.evaluate_serial(chunks[0][:, :1])
+            self._modules_loaded = True
+        rest = [_thread_pool(parts).submit(one, c) for c in chunks[1:]]
+        done = [one(chunks[0])] + [f.result() for f in rest]   # the first part in this thread, meanwhile
+        T = np.concatenate([r[0] for r in done])
+        params = np.concatenate([r[1] for r in done], axis=1)
+        theta = np.concatenate([r[2] for r in done])
         if out is None:
             out = wp.array(T, dtype=wp.float64, device=self.device)
         else:
@@ -308,11 +328,61 @@ class Engine:
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
-        wp.launch(self.transfer_kernel, dim=(n, len(self.freqs)),
-                  inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells,
-                          float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device,
-                  block_dim=self.settings.block_dim)
+        self._cascade(params, theta, self.w_freqs, self.cell_densities(params, theta), out)
         return out, params, theta
+
+    def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array):
+        wp.launch(self.transfer_kernel, dim=(params.shape[1], freqs.shape[0]),
+                  inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
+                          self.heat_cells, out], device=self.device, block_dim=self.settings.block_dim)
+
+    def cell_densities(self, params: wp.array, theta: wp.array) -> wp.array:
+        """Adaptive cell density (n,) of each set (:class:`ForwardSettings`): ``cell_density``,
+        raised where the step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers
+        the frequencies between the three sampled). Each round evaluates the sets still
+        above target at d and 2d, and raises d by (estimate / target)^(1/6) (the scheme's
+        order) times 1.1, clipped to [1.25, 4] (and to :data:`MAX_DENSITY_FACTOR` times
+        ``cell_density`` in all); a set is accepted only on a measured estimate
+        (after :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
+        n = params.shape[1]
+        d = np.full(n, float(self.settings.cell_density))
+        tol = self.settings.tolerance
+        if self.settings.cells is not None or tol is None or not self.count or n == 0:
+            return wp.array(d, dtype=wp.float64, device=self.device)
+        f = self.freqs
+        sample = np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
+        w_f = wp.array(f[sample], dtype=wp.float64, device=self.device)
+        g = GASES[self.core.gas.name]
+        T_cold, radius = params[layout.T_COLD].numpy(), params[layout.RADIUS].numpy()
+        Zc = params[layout.P_MEAN].numpy() / np.sqrt(g.R_gas * T_cold / g.gamma) / (math.pi * radius ** 2)
+        active = np.arange(n)
+        target = 0.5 * tol
+        p, t = params, theta   # every set in the first round: no copy
+        for rounds in range(MAX_ESTIMATE_ROUNDS):
+            if rounds:         # the sets still above target only
+                p = wp.array(np.ascontiguousarray(params.numpy()[:, active]), dtype=wp.float64, device=self.device)
+                t = wp.array(np.ascontiguousarray(theta.numpy()[active]), dtype=wp.float64, device=self.device)
+            Y = []
+            for factor in (1.0, 2.0):
+                out = wp.empty((active.size, sample.size, 8), dtype=wp.float64, device=self.device)
+                self._cascade(p, t, w_f, wp.array(factor * d[active], dtype=wp.float64, device=self.device), out)
+                Y.append(normalize(out.numpy().view(np.complex128).reshape(active.size, sample.size, 2, 2),
+                                   Zc[active]))
+            err = (np.abs(Y[0] - Y[1]).max(-1) / np.abs(Y[1]).max(-1)).max(-1)
+            above = err > target
+            if not above.any():
+                break
+            if rounds == MAX_ESTIMATE_ROUNDS - 1:
+                warnings.warn(f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
+                              f"still {err[above].max():.2g} > {target:.2g} at cell density {d[active[above]].max():.3g} "
+                              f"(cell_density {self.settings.cell_density:g}); pass ForwardSettings(cells=...) "
+                              f"for a fixed count",
+                              ValidityWarning, stacklevel=4)
+                break
+            raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
+            active = active[above]
+            d[active] = np.minimum(d[active] * raise_by, MAX_DENSITY_FACTOR * self.settings.cell_density)
+        return wp.array(d, dtype=wp.float64, device=self.device)
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""

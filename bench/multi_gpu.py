@@ -1,0 +1,160 @@
+"""Scaling over several devices through Dask distributed (tawarp.distributed): batched
+fits, design evaluations and a sweep on 1, 2, ... workers (one per device). Writes JSON.
+
+    python bench/multi_gpu.py --devices cuda:0,cuda:1 --out bench/results/multi_gpu_h200x2.json
+    python bench/multi_gpu.py --devices cpu,cpu --fits 32 --points 16384 --sweep-points 65536   # CPU workers
+
+For k = 1 .. len(devices), a local cluster of the first k devices (one single-threaded
+worker process each) runs, after a warm-up that compiles and loads the kernels on every
+worker:
+
+* ``fits``: :func:`tawarp.distributed.fit_on_cluster`, the heat workload of bench/fit.py
+  (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits`` problems;
+* ``evaluations``: :class:`tawarp.distributed.ClusterEvaluator` on ``--points`` design
+  points of the rvc_foam space of bench/design.py (kernel metrics);
+* ``sweep``: :func:`tawarp.design.sweep.sweep` of ``--sweep-points`` Sobol points to
+  netCDF with ``client=``.
+
+Speed-up = rate on k workers / rate on 1 worker (the target of issue 11: >= 1.8 on 2 GPUs).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+import warnings
+
+import numpy as np
+
+from tawarp.design.evaluate import Evaluator
+from tawarp.design.space import DesignSpace
+from tawarp.design.sweep import sweep
+from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
+from tawarp.fit.estimate import FitWarning
+from tawarp.model.core import load_core
+from tawarp.model.forward import ForwardSettings, transfer_matrices
+
+FREQS = np.linspace(30.0, 500.0, 100)
+FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
+
+
+def fit_data(n: int, seed: int = 0):
+    """Noisy data (0.5 %) of the mesh core at 40 W from 48 fixed cells, starts 30 % off."""
+    core = load_core("mesh")
+    Y0 = transfer_matrices(core, FREQS, 40.0, cells=48, device="cpu").dimensionless()[0]
+    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
+    rng = np.random.default_rng(seed)
+    Y = Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape))
+    start = np.array([core.get(k) for k in FIT_NAMES]) * [1.3, 0.7, 1.3]
+    return core, Y, np.broadcast_to(1.0 / sd, Y.shape), start
+
+
+def design_space() -> DesignSpace:
+    return DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03",
+                                               "stack.porosity=0.6:0.98"])
+
+
+def timed(fn, repeats: int = 2) -> float:
+    """Best wall time of ``repeats`` calls [s]."""
+    best = np.inf
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def measure(client, k: int, args, data, table, tmp) -> dict:
+    core, Y, w, start = data
+    space = design_space()
+    ev = ClusterEvaluator(client, space)
+
+    def fits():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FitWarning)
+            return fit_on_cluster(client, core, FREQS, Y, FIT_NAMES, start, heat_input=40.0, weights=w, warn=False,
+                                  chunk=-(-len(Y) // (2 * k)))
+
+    def sweep_once():
+        return sweep(space, os.path.join(tmp, f"sweep{k}.nc"), mode="sobol", n_samples=args.sweep_points,
+                     chunk=args.sweep_chunk, client=client)
+
+    # warm-up on every worker: compile/load the kernels (one small chunk per worker)
+    fit_on_cluster(client, core, FREQS, Y[: 2 * k], FIT_NAMES, start, heat_input=40.0, weights=w[: 2 * k], warn=False,
+                   chunk=1)
+    ev.evaluate_table(table[:, : 64 * k])
+    res = fits()
+    t_fit = timed(fits, args.repeats)
+    t_ev = timed(lambda: ev.evaluate_table(table), args.repeats)
+    t_sw = timed(sweep_once, 1)
+    row = {"workers": k, "fits": len(Y), "fit_seconds": t_fit, "fits_per_s": len(Y) / t_fit,
+           "fits_converged": float(res.converged.mean()),
+           "evaluation_points": table.shape[1], "evaluation_seconds": t_ev, "evaluations_per_s": table.shape[1] / t_ev,
+           "sweep_points": args.sweep_points, "sweep_seconds": t_sw,
+           "sweep_points_per_hour": 3600.0 * args.sweep_points / t_sw}
+    print(f"{k} workers: {row['fits_per_s']:.3e} fits/s, {row['evaluations_per_s']:.3e} evaluations/s, "
+          f"{row['sweep_points_per_hour']:.3e} sweep points/h", flush=True)
+    return row
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--devices", default="cuda:0,cuda:1", help="comma list, one worker each (cuda:N or cpu)")
+    ap.add_argument("--fits", type=int, default=20000, help="fit problems per timing")
+    ap.add_argument("--points", type=int, default=1 << 22, help="design points per evaluation timing")
+    ap.add_argument("--sweep-points", type=int, default=1 << 24, help="Sobol points of the sweep")
+    ap.add_argument("--sweep-chunk", type=int, default=1 << 21, help="sweep chunk (split over the workers)")
+    ap.add_argument("--repeats", type=int, default=2)
+    ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
+    args = ap.parse_args(argv)
+    devices = args.devices.split(",")
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    data = fit_data(args.fits)
+    space = design_space()
+    rng = np.random.default_rng(0)
+    table = space.varying_table(space.from_unit(rng.random((args.points, len(space.continuous)))))
+    result = {"devices": devices, "device_names": [wp.get_device(d).name for d in devices],
+              "host": platform.node(), "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+              "warp": wp.config.version, "python": sys.version.split()[0], "load_average_at_start": list(os.getloadavg()),
+              "rows": []}
+    # compile the kernels once here, so the workers only load them from Warp's cache
+    core, Y, w, start = data
+    fit_on_cluster(None, core, FREQS, Y[:2], FIT_NAMES, start, heat_input=40.0, weights=w[:2], warn=False,
+                   settings=ForwardSettings(device=devices[0]))
+    Evaluator(space, settings=ForwardSettings(device=devices[0])).evaluate_table(table[:, :64])
+    with tempfile.TemporaryDirectory() as tmp:
+        for k in range(1, len(devices) + 1):
+            client = local_cluster(devices[:k], cpu_threads=1)  # CPU workers: one core each
+            try:
+                result["rows"].append(measure(client, k, args, data, table, tmp))
+            finally:
+                cluster = client.cluster
+                client.close()
+                cluster.close()
+    base = result["rows"][0]
+    for r in result["rows"]:
+        for key in ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour"):
+            r[f"speedup_{key}"] = r[key] / base[key]
+    result["load_average_at_end"] = list(os.getloadavg())
+    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "multi_gpu.json")
+    os.makedirs(os.path.dirname(out), exist_ok=True)
+    tmp_out = out + ".tmp"
+    with open(tmp_out, "w") as f:
+        json.dump(result, f, indent=2)
+        f.write("\n")
+    os.replace(tmp_out, out)
+    print(json.dumps(result["rows"], indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,268 @@
+"""Batched work spread over several workers (GPUs, machines, or CPU processes) with Dask
+distributed.
+
+One Dask worker per device, one thread each: a worker runs one chunk at a time on its
+device, so each GPU holds one batch and a CPU worker one core's share. The client splits
+the work into chunks, keeps a window of chunks in flight, and gathers the results in
+order; every chunk is the same batched code a single process runs, so the results are
+those of one process (the tests check 1e-12 on a local CPU cluster).
+
+>>> from tawarp.distributed import local_cluster, fit_on_cluster
+>>> client = local_cluster(["cuda:0", "cuda:1"])          # or ["cpu", "cpu"]
+>>> res = fit_on_cluster(client, core, freqs, Y, names, start)  # doctest: +SKIP
+
+Other clusters (several machines): start one ``dask worker --nthreads 1`` per GPU with
+``CUDA_VISIBLE_DEVICES`` set (each then sees its GPU as ``cuda``), connect a
+``distributed.Client`` to the scheduler and pass it to :func:`fit_on_cluster`,
+:class:`ClusterEvaluator` (design search) or :func:`tawarp.design.sweep.sweep` (``client=``).
+
+``dask[distributed]`` is an optional dependency (``pip install tawarp[distributed]``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import uuid
+from collections import deque
+
+import numpy as np
+
+from .model.forward import ForwardSettings
+
+#: Chunks in flight per worker: one running, one queued, so a worker never waits on the client.
+CHUNKS_IN_FLIGHT = 2
+
+
+def _distributed():
+    try:
+        import distributed
+    except ImportError:  # pragma: no cover - the message is the point
+        raise ImportError("tawarp.distributed needs Dask distributed: pip install 'dask[distributed]'") from None
+    return distributed
+
+
+class DevicePlugin:
+    """Worker plugin giving worker ``name`` (an int, as LocalCluster names them) the device
+    ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU batches. Workers
+    without an integer name keep the default device."""
+
+    def __init__(self, devices, cpu_threads: int = 1):
+        self.devices = list(devices)
+        self.cpu_threads = int(cpu_threads)
+
+    def setup(self, worker):
+        try:
+            worker.tawarp_device = self.devices[int(worker.name) % len(self.devices)]
+        except (TypeError, ValueError):
+            worker.tawarp_device = None
+        worker.tawarp_cpu_threads = self.cpu_threads
+
+
+def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None = None):
+    """A :class:`distributed.Client` on a local cluster of one single-threaded worker per
+    entry of ``devices`` (``"cuda:0"``, ``"cpu"``, ...; default: every GPU Warp sees,
+    else two CPU workers). CPU workers split their batches over ``cpu_threads`` threads
+    (default: an equal share of the cores this process may use)."""
+    import warp as wp
+
+    distributed = _distributed()
+    if devices is None:
+        wp.init()
+        n_gpu = wp.get_cuda_device_count()
+        devices = [f"cuda:{i}" for i in range(n_gpu)] if n_gpu else ["cpu", "cpu"]
+    devices = list(devices)
+    if not devices:
+        raise ValueError("local_cluster: give at least one device")
+    n_cpu = sum(d == "cpu" for d in devices)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=processes,
+                                       dashboard_address=None)
+    client = distributed.Client(cluster)
+    client.register_plugin(_as_worker_plugin(DevicePlugin(devices, cpu_threads or max(1, cores // max(1, n_cpu)))))
+    return client
+
+
+def _as_worker_plugin(plugin: DevicePlugin):
+    """``plugin`` as a :class:`distributed.WorkerPlugin` (built here: Dask is optional)."""
+    distributed = _distributed()
+
+    class _Plugin(distributed.WorkerPlugin):
+        name = "tawarp-devices"
+
+        def setup(self, worker):
+            plugin.setup(worker)
+
+    return _Plugin()
+
+
+def worker_settings(settings: ForwardSettings | None) -> ForwardSettings:
+    """``settings`` on this worker's device (:class:`DevicePlugin`); unchanged outside a
+    worker or on a worker without an assigned device."""
+    settings = settings or ForwardSettings()
+    worker = _worker()
+    device = getattr(worker, "tawarp_device", None)
+    if device is None:
+        return settings
+    kw = {"device": device}
+    if device == "cpu":
+        kw["cpu_threads"] = getattr(worker, "tawarp_cpu_threads", 1)
+    return dataclasses.replace(settings, **kw)
+
+
+def _worker():
+    """The Dask worker running this task, or None outside one."""
+    try:
+        return _distributed().get_worker()
+    except ValueError:
+        return None
+
+
+def ordered_map(client, func, items, *args, window: int | None = None):
+    """``func(item, *args)`` for each item on the cluster, yielded in the items' order,
+    with at most ``window`` (default: workers x :data:`CHUNKS_IN_FLIGHT`) in flight;
+    ``client=None`` runs them here, one after the other."""
+    if client is None:
+        for item in items:
+            yield func(item, *args)
+        return
+    window = window or CHUNKS_IN_FLIGHT * max(1, len(client.scheduler_info()["workers"]))
+    shared = [client.scatter(a, broadcast=True) if _is_large(a) else a for a in args]
+    pending = deque()
+    for item in items:
+        pending.append(client.submit(func, item, *shared, pure=False))
+        if len(pending) >= window:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
+
+
+def _is_large(a) -> bool:
+    return isinstance(a, np.ndarray) and a.nbytes > 1 << 20
+
+
+# -- batched fits ---------------------------------------------------------------------
+def _fit_chunk(chunk: dict, core, freqs, names, kw: dict):
+    from .fit.estimate import fit
+
+    kw = dict(kw, settings=worker_settings(kw.get("settings")))
+    if getattr(_worker(), "tawarp_device", None) is not None:
+        kw["device"] = None   # the worker's device, in its settings
+    return fit(core, freqs, chunk["Y"], names, chunk["start"], heat_input=chunk["heat_input"],
+               fixed=chunk["fixed"], weights=chunk["weights"], **kw)
+
+
+def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 4096, heat_input=0.0, fixed=None,
+                   weights=None, settings: ForwardSettings | None = None, **kw):
+    """:func:`tawarp.fit.estimate.fit` of N problems split into chunks of ``chunk``
+    problems over the cluster's workers; the same :class:`~tawarp.fit.result.FitResult`
+    as one call (per-problem arrays concatenated in order; counts summed; ``seconds`` the
+    wall time here). The adaptive cells are fixed once for the whole batch
+    (:func:`tawarp.measure.kind.smooth_settings` on every problem's start), as one call
+    fixes them, so no chunk fits a different model. Other keywords go to ``fit``."""
+    import time
+
+    from .fit.estimate import spread_starts
+    from .measure.kind import smooth_settings
+
+    t0 = time.perf_counter()
+    names = list(names)
+    freqs = np.asarray(freqs, dtype=float)
+    Y = np.asarray(Y)
+    N = 1 if Y.ndim == 2 else Y.shape[0]
+    if isinstance(start, dict):
+        sized = {k: np.asarray(v, dtype=float) for k, v in start.items()}
+    elif start is not None:
+        sized = dict(zip(names, np.asarray(start, dtype=float).reshape(-1, len(names)).T))
+    else:
+        sized = dict(zip(names, spread_starts(core, names, kw.get("n_starts", 8), kw.get("seed", 0)).T))
+    for k, others in (kw.get("ties") or {}).items():
+        for o in others:
+            sized[o] = sized[k]
+    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
+
+    def take(a, sl, ndim):
+        """Problems ``sl`` of ``a`` where it has a problem axis (``ndim`` dimensions)."""
+        if isinstance(a, dict):
+            return {k: take(v, sl, 1) for k, v in a.items()}
+        return np.asarray(a)[sl] if a is not None and np.ndim(a) >= ndim else a
+
+    chunks = [{"Y": take(Y, sl, 3), "start": take(start, sl, 2), "heat_input": take(heat_input, sl, 1),
+               "fixed": take(fixed, sl, 1), "weights": take(weights, sl, 3)}
+              for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))]
+    parts = list(ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings)))
+    res = concatenate_results(parts)
+    res.seconds = time.perf_counter() - t0
+    return res
+
+
+def concatenate_results(parts):
+    """One :class:`~tawarp.fit.result.FitResult` from results of consecutive problem chunks:
+    arrays with the problem axis first and per-problem lists are joined in order,
+    ``evaluations`` and ``launches`` summed, batch ``warnings`` joined without repeats,
+    everything else (names, dof, bounds, ...) taken from the first part."""
+    first = parts[0]
+    out = {}
+    for f in dataclasses.fields(first):
+        vals = [getattr(p, f.name) for p in parts]
+        if f.name in ("evaluations", "launches"):
+            out[f.name] = sum(vals)
+        elif f.name == "seconds":
+            out[f.name] = max(vals)
+        elif f.name == "warnings":
+            out[f.name] = list(dict.fromkeys(w for v in vals for w in v))
+        elif f.name == "problem_warnings":
+            out[f.name] = [w for v in vals for w in v]
+        elif isinstance(vals[0], np.ndarray) and vals[0].ndim >= 1 and f.name not in ("lower", "upper") \
+                and all(isinstance(v, np.ndarray) for v in vals) and len(parts) > 1:
+            out[f.name] = np.concatenate(vals)
+        else:
+            out[f.name] = vals[0]
+    return type(first)(**out)
+
+
+# -- design evaluations -----------------------------------------------------------------
+_EVALUATORS: dict = {}
+
+
+def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
+    """Objectives of one chunk of a design table, on this worker's Evaluator for ``key``."""
+    from .design.evaluate import Evaluator
+
+    ev = _EVALUATORS.get(key)
+    if ev is None:
+        if len(_EVALUATORS) > 8:
+            _EVALUATORS.clear()
+        ev = _EVALUATORS[key] = Evaluator(spec["space"], extra=spec["extra"], freqs=spec["freqs"],
+                                          settings=worker_settings(spec["settings"]), onset=spec["onset"])
+    return ev.evaluate_table(table)
+
+
+class ClusterEvaluator:
+    """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
+    cluster's workers: a table is cut into chunks of ``chunk`` points (default: an equal
+    share per worker), each evaluated by the worker's own Evaluator on its device."""
+
+    def __init__(self, client, space, extra=(), freqs=None, settings: ForwardSettings | None = None,
+                 chunk: int | None = None, onset=None):
+        from .design.evaluate import DEFAULT_FREQS
+
+        self.client, self.space, self.chunk = client, space, chunk
+        self.settings = settings or ForwardSettings()
+        self.spec = {"space": space, "extra": list(extra), "settings": self.settings,
+                     "freqs": DEFAULT_FREQS if freqs is None else freqs, "onset": onset}
+        self.key = uuid.uuid4().hex
+
+    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
+        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
+        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
+        n = table.shape[1]
+        workers = max(1, len(self.client.scheduler_info()["workers"]))
+        step = self.chunk or max(1, -(-n // workers))
+        chunks = [np.ascontiguousarray(table[:, lo:lo + step]) for lo in range(0, max(n, 1), step)]
+        parts = list(ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec))
+        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+
+    def evaluate(self, values: dict) -> dict[str, np.ndarray]:
+        """Objectives of design points ``{variable: (n,) array}``."""
+        return self.evaluate_table(self.space.varying_table(values))
