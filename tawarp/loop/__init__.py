@@ -46,10 +46,12 @@ held-out rows and the drift need T-matrix data). Modules: :mod:`.screen` (residu
 structure, screening), :mod:`.run` (the loop), :mod:`.report` (report.json/md, figures).
 """
 
+from .goodness import goodness_of_fit, noise_sigma, residual_location
 from .report import write_report
-from .run import (CHI2_P, DELTA_BIC, F_TEST_P, NOISE_FACTOR, default_base_params, drift, holdout_rows, impedance_loop,
-                  library_for, run_loop)
+from .run import (DELTA_BIC, F_TEST_P, STABILITY, WRONG_MODEL_CHI2, base_names, default_base_params, drift, fit_base,
+                  holdout_blocks, holm, impedance_loop, library_for, resamplings, run_loop)
 from .screen import residual_structure, screen
 
-__all__ = ["write_report", "CHI2_P", "DELTA_BIC", "F_TEST_P", "NOISE_FACTOR", "default_base_params", "drift",
-           "holdout_rows", "impedance_loop", "library_for", "run_loop", "residual_structure", "screen"]
+__all__ = ["goodness_of_fit", "noise_sigma", "residual_location", "write_report", "DELTA_BIC", "F_TEST_P",
+           "STABILITY", "WRONG_MODEL_CHI2", "base_names", "default_base_params", "drift", "fit_base", "holdout_blocks",
+           "holm", "impedance_loop", "library_for", "resamplings", "run_loop", "residual_structure", "screen"]
