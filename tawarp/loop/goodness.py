@@ -58,8 +58,9 @@ def noise_floor_of(problem: MeasurementKind, sigma: np.ndarray) -> float:
 def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray | None, source: str) -> dict:
     """Reduced chi^2 and p-value of ``fit`` (all rows) against noise ``sigma`` per real
     residual (None: the data's own sigma, weights 1/sigma), its noise floor, the parameters
-    at a bound, and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced chi^2
-    <= :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise, and no parameter at a bound."""
+    at a bound (flagged, not a failure: a tortuosity of 1 is a physical value on its bound),
+    and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced chi^2 <=
+    :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise."""
     r = fit.residuals[0]
     chi2 = float(np.sum(r ** 2)) if sigma is None else float(np.sum((r / sigma) ** 2))
     dof = max(r.size - len(fit.names), 1)
@@ -68,7 +69,7 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
     floor = problem.noise_floor() if sigma is None else noise_floor_of(problem, sigma)
     return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
-            "error": float(fit.rms_error[0]), "adequate": bool(fits and not at), "at_bounds": at}
+            "error": float(fit.rms_error[0]), "adequate": bool(fits), "at_bounds": at}
 
 
 def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> dict:

@@ -9,7 +9,7 @@ import numpy as np
 from scipy import stats
 
 from ..fit.problems import fit_batch, fit_one
-from ..fit.result import FitResult
+from ..fit.result import FitResult, bic_of
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
 from ..measure.tmatrix import TMatrixKind
@@ -29,9 +29,10 @@ F_TEST_P = 0.01
 #: An effect is accepted only when at least this fraction of the resamplings choose it.
 STABILITY = 0.7
 #: Resamplings: every DECIMATION-th frequency at each of its offsets, and BOOTSTRAPS
-#: bootstraps of contiguous frequency blocks (seeded: the report is reproducible).
+#: bootstraps of contiguous frequency blocks (seeded: the report is reproducible). The
+#: refits on resamplings and held-out blocks are linearized (:func:`linear_refit`).
 DECIMATION = 3
-BOOTSTRAPS = 4
+BOOTSTRAPS = 20
 #: Held-out blocks: this many contiguous frequency bands (and every group when there are several).
 BANDS = 4
 #: A model whose reduced chi^2 stays above this after every accepted effect is the wrong
@@ -42,6 +43,10 @@ WRONG_MODEL_CHI2 = 25.0
 INDISTINGUISHABLE_BIC = 2.0
 #: At most this many effects are accepted.
 MAX_STEPS = 3
+#: Iteration cap and step tolerance of the loop's LM fits (a misfitting model crawls along
+#: a valley: 1e-8 in the scaled variables is far below any parameter's uncertainty).
+MAX_ITER = 40
+XTOL = 1e-8
 #: Geometry fields of porous segments in the paper's base fit.
 GEOMETRY = ("porosity", "pore_radius", "tortuosity")
 
@@ -84,13 +89,13 @@ def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None =
     Q0 = np.flatnonzero(problem.group == 0) if isinstance(problem, TMatrixKind) else np.zeros(0, int)
     if any(hs) and not all(hs) and 0 < Q0.size < problem.y.size:
         geo = [par for par, h in zip(params, hs) if not h]
-        step1 = fit_one(problem, geo, fixed, rows=Q0)
+        step1 = fit_one(problem, geo, fixed, rows=Q0, max_iter=MAX_ITER, xtol=XTOL)
         x0, it = np.zeros(len(params)), iter(step1.x[0])
         for j, h in enumerate(hs):
             if not h:
                 x0[j] = next(it)
-        return fit_one(problem, params, fixed, x0=x0)
-    return fit_one(problem, params, fixed)
+        return fit_one(problem, params, fixed, x0=x0, max_iter=MAX_ITER, xtol=XTOL)
+    return fit_one(problem, params, fixed, max_iter=MAX_ITER, xtol=XTOL)
 
 
 def holdout_blocks(problem: MeasurementKind) -> list[tuple[str, np.ndarray]]:
@@ -136,6 +141,22 @@ def holm(p: list[float], alpha: float) -> list[bool]:
     return ok.tolist()
 
 
+def linear_refit(fit: FitResult, rows: np.ndarray, test: np.ndarray | None = None) -> tuple[float, float]:
+    """The fit ``fit`` (made on all rows) refitted on ``rows`` (may repeat) by one
+    Gauss-Newton step from its solution with its Jacobian: resampled and held-out fits start
+    so close to the full fit that the model is linear over the step (no forward launch).
+    Returns (cost on ``rows``, weighted squared prediction error on ``test`` or 0)."""
+    n = fit.model.shape[1]
+    idx = np.concatenate([rows, rows + n])
+    J, r = fit.jacobian[0], fit.residuals[0]
+    d, *_ = np.linalg.lstsq(J[idx], -r[idx], rcond=1e-10)
+    cost = float(np.sum((r[idx] + J[idx] @ d) ** 2))
+    if test is None:
+        return cost, 0.0
+    it = np.concatenate([test, test + n])
+    return cost, float(np.sum((r[it] + J[it] @ d) ** 2))
+
+
 def _param_report(f: FitResult) -> dict:
     return {k: {"value": v, "std": float(s) if np.isfinite(s) else None}
             for (k, v), s in zip(f.value_dict().items(), f.std[0])}
@@ -155,7 +176,8 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
         if par not in hp:
             par.assign(float(sol.value_dict()[par.label]), fx)
     hp_start = [par.with_start(sol.value_dict()[par.label]) for par in hp]
-    fits = fit_batch(problem, [(hp_start, effect, None, np.flatnonzero(problem.group == q)) for q in Qs], fx)
+    fits = fit_batch(problem, [(hp_start, effect, None, np.flatnonzero(problem.group == q)) for q in Qs], fx,
+                     max_iter=MAX_ITER, xtol=XTOL)
     out = {par.label: [f.value_dict()[par.label] for f in fits] for par in hp}
     res = {"Q_W": [float(q) for q in Qs], "values": out}
     res["relative_spread"] = {k: float(np.ptp(v) / np.mean(v)) if np.mean(v) else None for k, v in out.items()}
@@ -261,7 +283,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
             f"Delta BIC < {DELTA_BIC:g}, its F-test passes Holm-Bonferroni over the candidates refitted at that step at "
             f"family-wise level {F_TEST_P:g}/2^t, its pooled prediction of the held-out blocks ({len(blocks)}: "
             f"{BANDS} frequency bands and each group) beats the current model's, none of its parameters ends at a "
-            f"bound, its sensitivity is not within multiple correlation {DEGENERATE_CORR:g} of the base parameters'; "
+            f"bound, its sensitivity does not correlate > {DEGENERATE_CORR:g} with a base parameter's; "
             f"the lowest BIC among those is accepted when no other passing candidate lies within "
             f"{INDISTINGUISHABLE_BIC:g} in BIC or correlates > {DEGENERATE_CORR:g} with it (else: indistinguishable, "
             f"none chosen) and it is chosen in >= {STABILITY:.0%} of {len(samples)} resamplings (every "
@@ -306,27 +328,16 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
         return (cur_params + list(e.params), e if e.transform is not None else cur.effect, x0, rows)
 
     def refit(names: list[str]) -> None:
-        """Augmented fits of ``names`` (two starts each, effect off: the current solution
-        and the core's values), then every held-out block of the current model and of
-        each candidate, all in one batch each."""
+        """Augmented fits of ``names`` in one batch from the effect off at the current
+        solution; the held-out blocks by :func:`linear_refit`."""
         effects = [next(x for x in lib if x.name == n) for n in names]
-        specs = []
-        for e in effects:
-            k = len(e.params)
-            specs += [spec(e, np.concatenate([cur.x[0], np.zeros(k)])), spec(e, np.zeros(p + k))]
-        got = fit_batch(problem, specs, fixed)
-        augs = [min(got[2 * i:2 * i + 2], key=lambda f: float(f.cost[0])) for i in range(len(effects))]
+        augs = fit_batch(problem, [spec(e, np.concatenate([cur.x[0], np.zeros(len(e.params))])) for e in effects],
+                         fixed, max_iter=MAX_ITER, xtol=XTOL)
         train = [np.setdiff1d(np.arange(problem.y.size), test) for _, test in blocks]
-        hspecs = [(cur_params, cur.effect, cur.x[0], tr) for tr in train]
-        hspecs += [spec(e, a.x[0], tr) for e, a in zip(effects, augs) for tr in train]
-        held = fit_batch(problem, hspecs, fixed)
-        nb = len(blocks)
-        base_err = np.array([np.sum(np.abs(h.model[0][test] - problem.y[test]) ** 2)
-                             for h, (_, test) in zip(held[:nb], blocks)])
-        for i, (e, aug) in enumerate(zip(effects, augs)):
+        base_err = np.array([linear_refit(cur, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
+        for e, aug in zip(effects, augs):
             k = len(e.params)
-            err = np.array([np.sum(np.abs(h.model[0][test] - problem.y[test]) ** 2)
-                            for h, (_, test) in zip(held[nb * (i + 1):nb * (i + 2)], blocks)])
+            err = np.array([linear_refit(aug, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
             F = ((rss0 - float(aug.cost[0])) / k) / max(float(aug.cost[0]) / max(N - p - k, 1), 1e-300)
             own = {par.label for par in e.params}
             fits[e.name] = aug
@@ -358,7 +369,8 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
     passing = judge()
     if not passing:
         second_pass = True
-        rest = [s["effect"] for s in order if s["effect"] not in rows_out]
+        # the screening is linear: refit the others with something to gain too (one start)
+        rest = [s["effect"] for s in order if s["effect"] not in rows_out and s["linearized_p"] < 0.5]
         if rest:
             refit(rest)
             passing = judge()
@@ -385,7 +397,7 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
             groups.append(sorted([best] + rivals))
         else:
             contenders = [n for n in rows_out if rows_out[n]["checks"]["delta_bic"]][:top]
-            stability = _stability(problem, cur, cur_params, lib, contenders, fits, fixed, samples, spec)
+            stability = _stability(problem, cur, contenders, fits, samples)
             for n, v in stability.items():
                 rows_out[n]["stability"] = v
             if stability.get(best, 0.0) >= STABILITY:
@@ -404,28 +416,22 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
             "indistinguishable": groups, "tie": tie, "_fits": fits}
 
 
-def _stability(problem, cur, cur_params, lib, contenders, fits, fixed, samples, spec) -> dict:
+def _stability(problem, cur: FitResult, contenders: list[str], fits: dict, samples) -> dict:
     """Fraction of the resamplings in which each contender is chosen: the current model and
-    every contender refitted on each resampling (one batch), the choice there being the
-    lowest BIC among the contenders with Delta BIC < DELTA_BIC."""
+    every contender refitted on each resampling (:func:`linear_refit`), the choice there
+    being the lowest BIC among the contenders with Delta BIC < DELTA_BIC."""
     if not contenders or not samples:
         return {}
     has_sigma = problem.has_sigma
-    effects = [next(x for x in lib if x.name == n) for n in contenders]
-    specs = []
-    for _, rows in samples:
-        specs.append((cur_params, cur.effect, cur.x[0], rows))
-        specs += [spec(e, fits[e.name].x[0], rows) for e in effects]
-    got = fit_batch(problem, specs, fixed)
     wins = dict.fromkeys(contenders, 0)
-    k = len(effects) + 1
-    for i in range(len(samples)):
-        b = got[i * k].bic(has_sigma)
-        bics = {n: got[i * k + 1 + j].bic(has_sigma) for j, n in enumerate(contenders)}
-        ok = [n for n in contenders if bics[n] - b < DELTA_BIC]
+    for _, rows in samples:
+        n = 2 * len(rows)
+        b = bic_of(linear_refit(cur, rows)[0], n, len(cur.names), has_sigma)
+        bics = {c: bic_of(linear_refit(fits[c], rows)[0], n, len(fits[c].names), has_sigma) for c in contenders}
+        ok = [c for c in contenders if bics[c] - b < DELTA_BIC]
         if ok:
             wins[min(ok, key=bics.get)] += 1
-    return {n: wins[n] / len(samples) for n in contenders}
+    return {c: wins[c] / len(samples) for c in contenders}
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:

@@ -46,9 +46,9 @@ def residual_structure(problem: MeasurementKind, Y: np.ndarray) -> dict:
             "groups": [float(g) for g in groups], "group_name": problem.group_name}
 
 
-#: A candidate whose sensitivity columns lie in the span of the base model's to this
-#: multiple correlation (or two candidates whose linearized changes correlate so) cannot be
-#: told apart from it on these data.
+#: A candidate with a sensitivity column correlated with a base parameter's beyond this
+#: (|cos| of the two columns; or two candidates whose linearized changes correlate so)
+#: cannot be told apart from it on these data.
 DEGENERATE_CORR = 0.99
 
 
@@ -59,8 +59,8 @@ def _linearized(r: np.ndarray, B: np.ndarray, C: np.ndarray, lo: np.ndarray, hi:
     effect, e.g. a radiative conductivity >= 0, may only move one way: a gradient pointing
     outside its range explains nothing): ``score`` = ``(||r||^2 - min ||r + C_perp d||^2) /
     ||r||^2``, ``direction`` the change ``C_perp d`` (for candidate-candidate correlation),
-    ``degenerate_with`` the base parameter (``names``) nearest a column that lies in span B
-    to :data:`DEGENERATE_CORR`, else None."""
+    ``degenerate_with`` the base parameter (``names``) whose column correlates with one of
+    C beyond :data:`DEGENERATE_CORR`, else None."""
     rr = float(r @ r)
     out = {"score": 0.0, "direction": np.zeros_like(r), "degenerate_with": None}
     if rr == 0 or C.shape[1] == 0:
@@ -73,11 +73,9 @@ def _linearized(r: np.ndarray, B: np.ndarray, C: np.ndarray, lo: np.ndarray, hi:
         U, sv, _ = np.linalg.svd(B / s, full_matrices=False)
         U = U[:, sv > 1e-6 * sv.max()]
         Cp = C - U @ (U.T @ C)
-        corr = 1.0 - (np.linalg.norm(Cp, axis=0) / cn) ** 2
-        if np.any(corr > DEGENERATE_CORR ** 2):
-            j = int(np.argmax(corr))
-            cos = np.abs((B / s).T @ (C[:, j] / cn[j]))
-            out["degenerate_with"] = f"base:{names[int(np.argmax(cos))]}"
+        cos = np.abs((B / s).T @ (C / cn))  # (p, k) correlations of base and candidate columns
+        if cos.size and cos.max() > DEGENERATE_CORR:
+            out["degenerate_with"] = f"base:{names[int(np.unravel_index(np.argmax(cos), cos.shape)[0])]}"
             return out
     change = _sign_constrained_step(Cp, r, lo >= 0, hi <= 0)
     out["score"] = float(max(rr - np.sum((r + change) ** 2), 0.0) / rr)
