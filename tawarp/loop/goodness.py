@@ -15,9 +15,9 @@ from ..measure.kind import MeasurementKind
 #: uncertain by a few per cent and picks up some curvature, so a p-value would be too strict.
 ADEQUATE_REDUCED_CHI2_ESTIMATED = 1.5
 #: The noise estimate's rule, as the report states it.
-NOISE_ESTIMATE = ("estimated: robust scatter of second differences along frequency of the base fit's weighted "
-                  "residual, per coefficient (sigma = 1.4826 median|d2| / sqrt(6); a residual smooth over three "
-                  "frequencies cancels in d2, white noise gives var d2 = 6 sigma^2)")
+NOISE_ESTIMATE = ("estimated: rms of the second differences d2 along frequency of the base fit's weighted "
+                  "residual, per coefficient (sigma = rms(d2) / sqrt(6): white noise gives var d2 = 6 sigma^2, a "
+                  "residual smooth over three frequencies cancels in d2)")
 
 
 def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
@@ -37,11 +37,10 @@ def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
                 d2_all.setdefault(c, []).append(s[:-2] - 2 * s[1:-1] + s[2:])
     out = np.empty(2 * n)
     pooled = np.concatenate([np.concatenate(v) for v in d2_all.values()]) if d2_all else np.zeros(0)
-    fallback = (1.4826 * np.median(np.abs(pooled)) / np.sqrt(6.0) if pooled.size
-                else float(np.sqrt(np.mean(residual ** 2))))
+    fallback = (np.sqrt(np.mean(pooled ** 2) / 6.0) if pooled.size else float(np.sqrt(np.mean(residual ** 2))))
     for c in range(len(problem.coef_names)):
         d2 = np.concatenate(d2_all[c]) if c in d2_all else np.zeros(0)
-        s = 1.4826 * np.median(np.abs(d2)) / np.sqrt(6.0) if d2.size >= 5 else fallback
+        s = np.sqrt(np.mean(d2 ** 2) / 6.0) if d2.size >= 5 else fallback
         m = problem.coef == c
         out[:n][m] = out[n:][m] = max(s, 1e-300)
     return out

@@ -367,6 +367,8 @@ def dump_core(core: Core) -> str:
         lines.append("[[segment]]")
         lines += [f"{k} = {_toml_value(v)}" for k, v in seg.items()]
         lines.append("")
+    if "fit" in d:
+        lines += ["[fit]", "pinned = [" + ", ".join(f'"{n}"' for n in d["fit"]["pinned"]) + "]", ""]
     return "\n".join(lines)
 
 
