@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.loop import base_names, holm, impedance_loop, noise_sigma, run_loop, write_report
+from tawarp.loop import base_names, default_base_params, holm, impedance_loop, noise_sigma, run_loop, write_report
 from tawarp.loop.screen import _linearized
 from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
 from tawarp.measure.files import TMatrixData
@@ -202,19 +202,31 @@ def _foam(name):
 
 
 @pytest.mark.parametrize("name", ["foam1", "foam2"])
-def test_loop_lowers_error_on_measured_foams(name, tmp_path):
+def test_loop_on_measured_foams(name, tmp_path):
+    # the rigid circular-pore model does not fit measured foams to their noise (estimated
+    # from the data): the loop says so and says where the misfit lives.
     data, ref = _foam(name)
     prob, rep = impedance_loop(data, ref)
-    assert rep["chosen_effect"] is not None
-    assert rep["error_after"] < 0.95 * rep["error_before"]
+    assert not rep["goodness_of_fit_before"]["adequate"]
+    assert rep["goodness_of_fit_before"]["noise_source"].startswith("estimated")
+    u = rep["unexplained_residual"]
+    assert u is not None and u["error"] > 3 * u["noise_floor"]
     js = write_report(prob, rep, tmp_path)
     assert js["comparison"]["phi"]["reference"] == ref["phi"]
-    if name == "foam2":
-        # what the circular-pore model lacks here is the separate thermal radius
-        assert rep["chosen_effect"] == "thermal_radius_ratio"
+    if name == "foam1":
+        # thickness offset and viscous shape factor trade places over resamplings (issue 9
+        # item 2): neither is stable, nothing is claimed
+        assert rep["accepted_effects"] == []
+        assert all(c["stability"] is None or c["stability"] < 0.7 for c in rep["candidates"])
+    else:
+        # what the circular-pore model lacks first is the separate thermal radius; what is
+        # left lives in the thickest sample above 1 kHz (the frame resonance of issue 9)
+        assert rep["accepted_effects"][:1] == ["thermal_radius_ratio"]
+        assert rep["error_after"] < 0.95 * rep["error_before"]
         c = js["comparison"]
         assert 1.2 < c["Lambda_prime"]["after"] / c["Lambda"]["after"] < 2.4
         assert abs(c["phi"]["after"] - ref["phi"]) < abs(c["phi"]["before"] - ref["phi"])
+        assert u["group"] == max(d.thickness for d in data) and u["band_Hz"][1] > 1000.0
 
 
 def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from ..fit.problems import fit_batch, fit_one
+from ..fit.problems import NULL_RCOND, fit_batch, fit_one
 from ..fit.result import FitResult, bic_of
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
@@ -149,7 +149,10 @@ def linear_refit(fit: FitResult, rows: np.ndarray, test: np.ndarray | None = Non
     n = fit.model.shape[1]
     idx = np.concatenate([rows, rows + n])
     J, r = fit.jacobian[0], fit.residuals[0]
-    d, *_ = np.linalg.lstsq(J[idx], -r[idx], rcond=1e-10)
+    norm = np.linalg.norm(J[idx], axis=0)
+    norm[norm == 0] = 1.0
+    # directions the rows do not determine (NULL_RCOND) are not stepped along
+    d = np.linalg.lstsq(J[idx] / norm, -r[idx], rcond=NULL_RCOND)[0] / norm
     cost = float(np.sum((r[idx] + J[idx] @ d) ** 2))
     if test is None:
         return cost, 0.0
@@ -396,7 +399,7 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
             tie = True
             groups.append(sorted([best] + rivals))
         else:
-            contenders = [n for n in rows_out if rows_out[n]["checks"]["delta_bic"]][:top]
+            contenders = [n for n in rows_out if rows_out[n]["checks"]["delta_bic"] and not rows_out[n]["at_bounds"]]
             stability = _stability(problem, cur, contenders, fits, samples)
             for n, v in stability.items():
                 rows_out[n]["stability"] = v
