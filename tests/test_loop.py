@@ -77,6 +77,20 @@ def test_base_model_is_the_papers_full_method():
     assert "stack.tortuosity" not in base_names(pinned)
 
 
+def test_passive_core_fits_its_porous_geometry():
+    # issue 9 item 3: a passive core (no heat input) without --fit fits every porous
+    # segment's porosity, pore radius, tortuosity, not nothing
+    d = {"gas": {"name": "air"}, "tube": {"radius": 0.05},
+         "segment": [{"name": "up", "kind": "duct", "length": 0.05},
+                     {"name": "foam", "kind": "porous", "length": 0.03, "porosity": 0.95, "pore_radius": 2e-4,
+                      "tortuosity": 1.2},
+                     {"name": "down", "kind": "duct", "length": 0.05}]}
+    core = core_from_dict(d, "passive.toml")
+    f = np.linspace(200.0, 1000.0, 5)
+    data = TMatrixData(np.zeros(f.size), f, np.tile(np.eye(2, dtype=complex), (f.size, 1, 1)))
+    assert base_names(TMatrixKind(data, core)) == ["foam.porosity", "foam.pore_radius", "foam.tortuosity"]
+
+
 def test_pinned_key_in_core_files():
     d = MESH.to_dict()
     d["fit"] = {"pinned": ["stack.tortuosity", "tbt.h"]}
