@@ -155,9 +155,10 @@ class KindProblems:
             R = residual(self.kind, got[i], rows)
             r = R[0]
             J = ((R[1:] - r) / step[i, :p, None]).T
-            cost[i] = r @ r
-            raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
-            g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
+                cost[i] = r @ r
+                raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
+                g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
             self.last.append((J, got[i][0]))
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf

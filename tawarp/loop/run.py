@@ -35,8 +35,9 @@ DECIMATION = 3
 BOOTSTRAPS = 20
 #: Held-out blocks: this many contiguous frequency bands (and every group when there are several).
 BANDS = 4
-#: A model whose reduced chi^2 stays above this after every accepted effect is the wrong
-#: model (its error more than 5 noise floors).
+#: A base fit whose reduced chi^2 exceeds this (its error more than 5 noise floors) and
+#: that no set of library effects brings to the noise is the wrong model (another core,
+#: another material, a geometry the core file does not describe).
 WRONG_MODEL_CHI2 = 25.0
 #: Two effects whose BIC differ by less than this are indistinguishable ("not worth more
 #: than a bare mention" on Kass & Raftery's scale).
@@ -253,7 +254,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     after = cur
     if gof["adequate"]:
         verdict = "explained" if accepted else "adequate"
-    elif gof["reduced_chi2"] > WRONG_MODEL_CHI2:
+    elif gof_before["reduced_chi2"] > WRONG_MODEL_CHI2:
+        # grossly inadequate and the library does not bring it to the noise
         verdict = "wrong_model"
     elif accepted:
         verdict = "partly_explained"
