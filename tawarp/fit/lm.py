@@ -73,7 +73,7 @@ class LMState:
 
 class LMProblems(Protocol):
     """What :func:`levenberg_marquardt` needs of a batch of least-squares problems in scaled
-    variables z (:class:`Problems`; :class:`tawarp.loop.LoopProblems` for the loop's fits).
+    variables z (:class:`Problems`; :class:`tawarp.fit.problems.KindProblems` for fits of any kind).
 
     ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none);
     ``project(z, pid)``: z (n, p) of problems ``pid`` (n,) moved onto the bounds;
