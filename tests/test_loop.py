@@ -1,128 +1,222 @@
-"""Closing the loop (issue #4): data made with an undeclared effect are given to the loop,
-which must name that effect, bring the error to the noise floor and the base parameters
-back; no effect and an effect outside the library give no claim; on the measured foams
-(Atalla & Panneton) the loop lowers the error of the circular-pore model."""
+"""Closing the loop (issues #4, #9) on data the fitted model did not make: core T-matrices
+from the independent reference (:mod:`tawarp.reference`, converged resolution) with noise,
+the core file's prior 10-30 % off on every base parameter, several seeds. Clean data give
+"adequate" and no claim; a plane offset (the reference implements it as a core value) is
+explained by the plane-offset effect. Unit checks of the loop's pieces: the noise estimate,
+Holm-Bonferroni, the one-sided screen, undetermined std, the ``[fit] pinned`` key.
+On the measured foams (Atalla & Panneton) the loop lowers the error of the circular-pore model."""
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from tawarp.model.core import load_core
+from tawarp import reference
+from tawarp.loop import base_names, default_base_params, holm, impedance_loop, noise_sigma, run_loop, write_report
+from tawarp.loop.screen import _linearized
+from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
+from tawarp.measure.files import TMatrixData
+from tawarp.model.coefficients import duct_impedance
+from tawarp.model.core import CoreError, core_from_dict, load_core
 from tawarp.model.forward import ForwardSettings
 from shared_data import measured_folder
-from tawarp.loop import NOISE_FACTOR, default_base_params, impedance_loop, run_loop, write_report
-from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
-from tawarp.measure.synthetic import synthetic_tmatrix
 
 CORE = load_core("ceramic")
-BASE = ("stack.porosity", "stack.pore_radius", "stack.h", "hot_hx.h")
-#: noise realizations every loop test runs on (the same seeds for every case, none picked)
+MESH = load_core("mesh")
 SEEDS = (0, 1, 2)
 SEED = SEEDS[0]
-WALL = {f"{s}.wall_conductance": 0.3 for s in ("stack", "hot_hx", "tbt")}
-CASES = [
-    ("plane_offsets", {"duct_left.length": 0.033}, None),
-    ("T_cold", {"gas.T_cold": 297.15}, None),
-    ("p_mean", {"gas.p_mean": 99000.0}, None),
-    ("thermal_radius_ratio", {"stack.thermal_radius_ratio": 1.6}, None),
-    ("conductivity_T", {"stack.conductivity_exponent": 1.0}, None),
-    ("convection", {"tbt.h_convection": 3.0}, None),
-    ("wall_conduction", WALL, None),
-    ("ambient_exchangers", {}, {}),   # the effect's typical exchangers
-]
+FREQS = np.linspace(40.0, 400.0, 13)
+QS = (0.0, 20.0, 40.0)
+NOISE = 0.003
+_REF = {}
 
 
-#: Effects that the loop may report as indistinguishable from another library effect.
-TIES = {"conductivity_T"}
+def reference_data(truth: dict, seed: int, sigma: bool = True) -> TMatrixData:
+    """Reference T-matrices of the mesh core with ``truth`` plus complex noise NOISE x rms|Y|."""
+    key = tuple(sorted(truth.items()))
+    if key not in _REF:
+        core = MESH.replace(**truth) if truth else MESH
+        _REF[key] = np.stack([reference.dimensionless_transfer(core, FREQS, Q) for Q in QS])
+    Y = _REF[key]
+    Zc = duct_impedance(MESH)
+    scale = np.array([[1.0, Zc], [1.0 / Zc, 1.0]])
+    rng = np.random.default_rng(seed)
+    s = NOISE * np.sqrt(np.mean(np.abs(Y) ** 2))
+    T = Y.reshape(-1, 2, 2) * scale
+    T = T + s * scale * (rng.standard_normal(T.shape) + 1j * rng.standard_normal(T.shape))
+    return TMatrixData(np.repeat(QS, FREQS.size), np.tile(FREQS, len(QS)), T,
+                       np.broadcast_to(s * scale, T.shape).copy() if sigma else None)
 
 
-#: Noise per case (default 0.2 %): T-dependent conductivity at b = 1 moves the T-matrices by
-#: about 3e-3 relative, so it is measured at 0.05 % noise to be visible above it.
-NOISE = {"conductivity_T": 5e-4}
+def prior(seed: int):
+    """The mesh core with every base parameter 10-30 % off (tortuosity only up: it is >= 1;
+    porosities near 1 only down)."""
+    rng = np.random.default_rng(100 + seed)
+    names = base_names(TMatrixKind(reference_data({}, seed), MESH))
+
+    def off(n):
+        v = MESH.get(n)
+        sign = 1 if n.endswith("tortuosity") else (-1 if n.endswith("porosity") and v > 0.75 else rng.choice([-1, 1]))
+        return v * (1 + sign * rng.uniform(0.1, 0.3))
+    return MESH.replace(**{n: off(n) for n in names})
 
 
-def loop_on(truth, ambient=None, seed=SEED, noise=0.002):
-    data = synthetic_tmatrix(CORE, truth, seed=seed, ambient_exchangers=ambient, noise=noise)
-    prob = TMatrixKind(data, CORE, ForwardSettings(device="cpu", cells=8))
+def loop_on(truth, seed, sigma=True):
+    prob = TMatrixKind(reference_data(truth, seed, sigma), prior(seed), ForwardSettings(device="cpu"))
     return prob, run_loop(prob)
 
 
-@pytest.mark.parametrize("effect, truth, ambient", CASES, ids=[c[0] for c in CASES])
-def test_loop_finds_undeclared_effect(effect, truth, ambient):
-    # every seed: the right effect, the error down to the noise, less drift of h with Q.
-    # z-scores of the fitted values are standard normal draws, so they are judged as a rate
-    # over the seeds: of the 12 base-parameter z-scores (4 parameters x 3 seeds) at most 2
-    # beyond 2 (P(>= 3 of 12) = 1.5 % for a standard normal), none beyond 4; the effect's own
-    # parameter(s) beyond 3 in at most one seed, never beyond 4. (Seen: p_mean, seed 0 has
-    # stack.porosity at z = 3.04 and gas.p_mean at z = 3.24, every other run within 2.)
-    z_base, z_effect = [], []
-    for seed in SEEDS:
-        prob, rep = loop_on(truth, ambient, seed, NOISE.get(effect, 0.002))
-        # the right effect, or (T^b conductivity against T^3 radiation: BIC within 0.1 at 0.2 %
-        # noise) a tie reported as indistinguishable, the right effect among the named
-        assert rep["chosen_effect"] == effect or (effect in rep["indistinguishable"] and effect in TIES), (
-            seed, [(c["effect"], c["score"], c.get("checks")) for c in rep["candidates"]])
-        assert rep["error_before"] > 1.2 * rep["noise_floor"]  # the effect is visible in the data
-        assert rep["error_after"] <= NOISE_FACTOR * rep["noise_floor"]
-        # on a tie the right effect's own refit carries its values
-        after = (rep["parameters_after"] if rep["chosen_effect"] == effect else
-                 next(c["fitted"] for c in rep["candidates"] if c["effect"] == effect))
-        z_base += [(after[name]["value"] - CORE.get(name)) / after[name]["std"] for name in BASE]
-        # the effect's own parameter comes back too
-        for name, v in truth.items():
-            key = "wall_conductance" if name.endswith("wall_conductance") else name
-            z_effect.append((after[key]["value"] - v) / after[key]["std"])
-        # the drift of the fitted h's with Q shrinks once the effect is in the model
-        db, da = rep["drift_before"], rep["drift_after"]
-        assert da["relative_spread"]["hot_hx.h"] <= max(db["relative_spread"]["hot_hx.h"], 0.01)
-    z = np.abs(z_base)
-    assert np.sum(z > 2) <= 2 and np.all(z < 4), np.round(z_base, 2)
-    ze = np.abs(np.reshape(z_effect, (len(SEEDS), -1)))
-    assert np.sum(np.any(ze > 3, axis=1)) <= 1 and np.all(ze < 4), np.round(ze, 2)
+def test_base_model_is_the_papers_full_method():
+    prob = TMatrixKind(reference_data({}, SEED), MESH)
+    names = base_names(prob)
+    for seg in ("stack", "hot_hx"):
+        assert {f"{seg}.porosity", f"{seg}.pore_radius", f"{seg}.tortuosity", f"{seg}.h"} <= set(names)
+    assert "tbt.h" in names  # h = 0.2 W/(m^2 K): fitted whatever its size
+    pinned = TMatrixKind(reference_data({}, SEED), dataclasses.replace(MESH, pinned=("stack.tortuosity",)))
+    assert "stack.tortuosity" not in base_names(pinned)
+
+
+def test_passive_core_fits_its_porous_geometry():
+    # issue 9 item 3: a passive core (no heat input) without --fit fits every porous
+    # segment's porosity, pore radius, tortuosity, not nothing
+    d = {"gas": {"name": "air"}, "tube": {"radius": 0.05},
+         "segment": [{"name": "up", "kind": "duct", "length": 0.05},
+                     {"name": "foam", "kind": "porous", "length": 0.03, "porosity": 0.95, "pore_radius": 2e-4,
+                      "tortuosity": 1.2},
+                     {"name": "down", "kind": "duct", "length": 0.05}]}
+    core = core_from_dict(d, "passive.toml")
+    f = np.linspace(200.0, 1000.0, 5)
+    data = TMatrixData(np.zeros(f.size), f, np.tile(np.eye(2, dtype=complex), (f.size, 1, 1)))
+    assert base_names(TMatrixKind(data, core)) == ["foam.porosity", "foam.pore_radius", "foam.tortuosity"]
+
+
+def test_pinned_key_in_core_files():
+    d = MESH.to_dict()
+    d["fit"] = {"pinned": ["stack.tortuosity", "tbt.h"]}
+    assert core_from_dict(d, "x.toml").pinned == ("stack.tortuosity", "tbt.h")
+    d["fit"] = {"pinned": ["stack.tortuosty"]}
+    with pytest.raises(CoreError, match=r"x.toml: \[fit\] pinned: .*tortuosty"):
+        core_from_dict(d, "x.toml")
+    d["fit"] = {"pined": []}
+    with pytest.raises(CoreError, match="x.toml"):
+        core_from_dict(d, "x.toml")
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_no_effect_no_claim(seed):
-    prob, rep = loop_on({}, seed=seed)
-    assert rep["chosen_effect"] is None
-    assert rep["error_after"] == rep["error_before"] <= NOISE_FACTOR * rep["noise_floor"]
-
-
-OUTSIDE = [{"stack.tortuosity": 1.1}, {"stack.tortuosity": 1.05}, {"hot_hx.thermal_radius_ratio": 1.8}]
+def test_clean_reference_data_adequate_no_claim(seed):
+    # sigma given: reduced chi^2 near 1 (dof ~ 300: 1 +- 0.08), no effect, error at the floor
+    prob, rep = loop_on({}, seed)
+    assert rep["verdict"] == "adequate" and rep["accepted_effects"] == [] and rep["chosen_effect"] is None
+    g = rep["goodness_of_fit_before"]
+    assert g["noise_source"] == "sigma" and 0.75 < g["reduced_chi2"] < 1.3, g
+    assert rep["error_after"] <= 1.3 * rep["noise_floor"]
+    assert rep["unexplained_residual"] is None
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-@pytest.mark.parametrize("truth", OUTSIDE, ids=["tortuosity_1.1", "tortuosity_1.05", "hx_thermal_radius"])
-def test_effect_outside_library_no_false_claim(truth, seed):
-    # the stack's tortuosity is fixed at 1 in the paper's ceramic model, and neither it nor the
-    # hot exchanger's thermal radius is in the library. tortuosity 1.05 is close to a plane
-    # offset: that candidate takes the error from 4.1 to 1.3 noise floors, and only the
-    # chi^2 test (the residual after must be noise) stops the claim.
-    prob, rep = loop_on(truth, seed=seed)
-    assert rep["chosen_effect"] is None
-    assert rep["error_before"] > 3 * rep["noise_floor"]
-    assert rep["error_after"] == rep["error_before"]
+def test_clean_reference_data_without_sigma_estimates_the_noise(seed):
+    # no sigma columns: the noise floor estimated from second differences is the true one
+    # (0.3 % x sqrt 2 relative) to 20 % (about 300 correlated second differences per
+    # coefficient: a few per cent of sampling error), and the verdict is the same
+    prob, rep = loop_on({}, seed, sigma=False)
+    true_floor = NOISE * np.sqrt(2)
+    assert rep["goodness_of_fit_before"]["noise_source"].startswith("estimated")
+    assert abs(rep["noise_floor"] / true_floor - 1) < 0.2, rep["noise_floor"]
+    assert rep["verdict"] == "adequate" and rep["accepted_effects"] == []
+
+
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_plane_offset_in_reference_data_is_explained(seed):
+    # the upstream plane 3 mm off (reference core value): the base fit cannot absorb it
+    prob, rep = loop_on({"duct_left.length": 0.033}, seed)
+    assert not rep["goodness_of_fit_before"]["adequate"]
+    assert rep["verdict"] == "explained" and rep["accepted_effects"] == ["plane_offsets"], (
+        rep["verdict"], [(c["effect"], c.get("checks"), c.get("stability")) for c in rep["candidates"]])
+    st = rep["steps"][0]
+    assert st["stability"] >= 0.7 and st["error_after"] < st["error_before"]
+    assert rep["error_after"] <= 1.3 * rep["noise_floor"]
+    dl = rep["parameters_after"]["duct_left.length"]
+    assert abs(dl["value"] - 0.033) < 4 * dl["std"]
+
+
+@pytest.mark.parametrize("seed", SEEDS[:1])
+def test_wrong_core_is_flagged(seed):
+    # mesh-regenerator data given the ceramic core: whatever the library adds, the fit does
+    # not reach the noise (one seed here, about 20 s: seed 1 gives the same verdict; the
+    # validation study runs many)
+    prob = TMatrixKind(reference_data({}, seed), CORE, ForwardSettings(device="cpu"))
+    rep = run_loop(prob, drift_h=False)
+    assert rep["verdict"] == "wrong_model"
+    assert rep["goodness_of_fit_before"]["reduced_chi2"] > 25 and not rep["goodness_of_fit_after"]["adequate"]
+    assert rep["unexplained_residual"] is not None
+
+
+def test_noise_estimate_from_second_differences():
+    # a smooth residual plus white noise of known sigma per coefficient: recovered to 10 %
+    prob = TMatrixKind(reference_data({}, SEED), MESH)
+    rng = np.random.default_rng(5)
+    n = prob.y.size
+    sig = np.array([1e-3, 2e-3, 3e-3, 4e-3])[prob.coef]
+    smooth = 0.01 * np.sin(prob.freq / 100.0)
+    r = np.concatenate([smooth + sig * rng.standard_normal(n), -smooth + sig * rng.standard_normal(n)])
+    est = noise_sigma(prob, r)
+    assert np.allclose(est[:n] / sig, 1.0, atol=0.2)
+
+
+def test_holm_bonferroni():
+    assert holm([0.001, 0.04, 0.03], 0.05) == [True, False, False]   # 0.03 > 0.05/2
+    assert holm([0.01, 0.02, 0.03], 0.1) == [True, True, True]
+    assert holm([0.2], 0.05) == [False]
+
+
+def test_one_sided_screen():
+    # an effect that may only grow (radiation >= 0) whose column points the wrong way
+    # explains nothing; two-sided, it would explain everything
+    rng = np.random.default_rng(0)
+    c = rng.standard_normal((50, 1))
+    r = 0.5 * c[:, 0]                      # the step that removes r is d = -0.5 < 0
+    B = np.zeros((50, 0))
+    assert _linearized(r, B, c, np.array([0.0]), np.array([np.inf]), [])["score"] < 1e-12
+    assert _linearized(r, B, c, np.array([-np.inf]), np.array([np.inf]), [])["score"] > 0.999
+    # a column that is a base column: degenerate, named
+    out = _linearized(r, c, c, np.array([-np.inf]), np.array([np.inf]), ["stack.h"])
+    assert out["degenerate_with"] == "base:stack.h" and out["score"] == 0.0
+
+
+def test_rank_deficient_jacobian_gives_undetermined_std():
+    from tawarp.fit.problems import _covariance_x
+
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal(40)
+    J = np.stack([a, 2 * a, rng.standard_normal(40)], 1)   # the first two columns are one direction
+    cov, und = _covariance_x(J)
+    assert und.tolist() == [True, True, False]
+    assert np.isclose(cov[2, 2], 1 / (J[:, 2] @ J[:, 2] - (J[:, 2] @ a) ** 2 / (a @ a)))
 
 
 def test_loop_cli_writes_report(tmp_path):
+    # the CLI honours --core (a prior 10-30 % off) and writes the report contract
     import argparse
 
     from tawarp.cli.loop import add_loop_parser
+    from tawarp.model.core import dump_core
 
-    data = synthetic_tmatrix(CORE, {"gas.T_cold": 297.15}, seed=SEED)
-    csv = tmp_path / "data.csv"
-    write_tmatrix_csv(csv, data)
+    csv, core = tmp_path / "data.csv", tmp_path / "prior.toml"
+    write_tmatrix_csv(csv, reference_data({}, SEED))
+    core.write_text(dump_core(prior(SEED)))
     parser = argparse.ArgumentParser()
     add_loop_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["loop", str(csv), "--core", "ceramic", "-o", str(tmp_path / "out"), "--device", "cpu",
-                              "--cells", "8", "--quiet"])
+    args = parser.parse_args(["loop", str(csv), "--core", str(core), "-o", str(tmp_path / "out"), "--device", "cpu",
+                              "--quiet"])
     assert args.func(args) == 0
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
     for key in ("error_before", "error_after", "chosen_effect", "candidates", "parameters_before", "parameters_after",
-                "drift_before", "drift_after"):
+                "noise_floor", "indistinguishable", "steps", "accepted_effects", "goodness_of_fit_before",
+                "goodness_of_fit_after", "unexplained_residual", "verdict", "drift_before", "drift_after"):
         assert key in rep
-    assert rep["chosen_effect"] == "T_cold"
+    assert rep["verdict"] == "adequate"
+    assert set(rep["base_parameters"]) == set(base_names(TMatrixKind(reference_data({}, SEED), MESH)))
     assert (tmp_path / "out" / "report.md").read_text().startswith("# tawarp loop report")
     assert (tmp_path / "out" / "residuals.png").stat().st_size > 1000
 
@@ -134,19 +228,31 @@ def _foam(name):
 
 
 @pytest.mark.parametrize("name", ["foam1", "foam2"])
-def test_loop_lowers_error_on_measured_foams(name, tmp_path):
+def test_loop_on_measured_foams(name, tmp_path):
+    # the rigid circular-pore model does not fit measured foams to their noise (estimated
+    # from the data): the loop says so and says where the misfit lives.
     data, ref = _foam(name)
     prob, rep = impedance_loop(data, ref)
-    assert rep["chosen_effect"] is not None
-    assert rep["error_after"] < 0.95 * rep["error_before"]
+    assert not rep["goodness_of_fit_before"]["adequate"]
+    assert rep["goodness_of_fit_before"]["noise_source"].startswith("estimated")
+    u = rep["unexplained_residual"]
+    assert u is not None and u["error"] > 3 * u["noise_floor"]
     js = write_report(prob, rep, tmp_path)
     assert js["comparison"]["phi"]["reference"] == ref["phi"]
-    if name == "foam2":
-        # what the circular-pore model lacks here is the separate thermal radius
-        assert rep["chosen_effect"] == "thermal_radius_ratio"
+    if name == "foam1":
+        # thickness offset and viscous shape factor trade places over resamplings (issue 9
+        # item 2): neither is stable, nothing is claimed
+        assert rep["accepted_effects"] == []
+        assert all(c["stability"] is None or c["stability"] < 0.7 for c in rep["candidates"])
+    else:
+        # what the circular-pore model lacks first is the separate thermal radius; what is
+        # left lives in the thickest sample above 1 kHz (the frame resonance of issue 9)
+        assert rep["accepted_effects"][:1] == ["thermal_radius_ratio"]
+        assert rep["error_after"] < 0.95 * rep["error_before"]
         c = js["comparison"]
         assert 1.2 < c["Lambda_prime"]["after"] / c["Lambda"]["after"] < 2.4
         assert abs(c["phi"]["after"] - ref["phi"]) < abs(c["phi"]["before"] - ref["phi"])
+        assert u["group"] == max(d.thickness for d in data) and u["band_Hz"][1] > 1000.0
 
 
 def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):

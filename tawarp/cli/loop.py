@@ -18,8 +18,10 @@ def add_loop_parser(sub) -> None:
                                 "or atalla:NAME (foam1, foam2, fibrous1) for the shared Atalla & Panneton data")
     p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix and scattering data "
                                                 "(default: the file's '# core = ...' metadata)")
-    p.add_argument("--fit", default=None, help="comma list of base parameters (default: stack porosity, pore radius, "
-                                               "the thermal h's; a layer's porosity, pore radius, tortuosity)")
+    p.add_argument("--fit", default=None, help="comma list of base parameters (default: the paper's full method: every "
+                                               "porous segment's porosity, pore radius, tortuosity and every thermal "
+                                               "segment's h, less the core file's [fit] pinned list; a layer's "
+                                               "porosity, pore radius, tortuosity)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
@@ -30,23 +32,29 @@ def add_loop_parser(sub) -> None:
 
 def cmd_loop(args) -> int:
     settings = ForwardSettings(device=args.device, cells=args.cells)
+    names = [s.strip() for s in args.fit.split(",")] if args.fit else None
     if args.data.startswith("atalla:"):
+        if args.core:
+            raise ValueError("--core does not apply to atalla:NAME (layers use the circular-pore layer model)")
         name = args.data.split(":", 1)[1]
         data = load_atalla_panneton(name)
         ref = atalla_panneton_samples()[name]
         ref = {"phi": ref["phi"], "alpha_inf": ref["alpha_inf"], "Lambda": ref["Lambda"],
                "Lambda_prime": ref["Lambda_prime"], "sigma": ref["sigma"]}
         data = [d for d in data if d.thickness is not None]
-        prob, rep = impedance_loop(data, ref, settings)
+        prob, rep = impedance_loop(data, ref, settings, names)
     else:
         prob = load_data(args, settings)
         if isinstance(prob, ImpedanceKind):
-            prob, rep = impedance_loop(prob.data, None, settings)
+            if args.core:
+                raise ValueError(f"--core does not apply to the surface impedance file {args.data} "
+                                 "(layers use the circular-pore layer model)")
+            prob, rep = impedance_loop(prob.data, None, settings, names)
         else:
-            names = [s.strip() for s in args.fit.split(",")] if args.fit else None
             rep = run_loop(prob, default_base_params(prob, names), progress=not args.quiet)
     js = write_report(prob, rep, args.output)
     if not args.quiet:
-        print(f"error before {js['error_before']:.4g}, after {js['error_after']:.4g}; chosen effect: "
-              f"{js['chosen_effect']}; wrote {Path(args.output) / 'report.json'}")
+        print(f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
+              f"(noise floor {js['noise_floor']:.4g}); accepted effects: {', '.join(js['accepted_effects']) or 'none'}; "
+              f"wrote {Path(args.output) / 'report.json'}")
     return 0

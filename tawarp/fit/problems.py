@@ -55,7 +55,9 @@ def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarr
 
 class KindProblems:
     """The fits ``specs`` = [(params, effect, x0), ...] of one kind as one batch of
-    :class:`tawarp.fit.lm.LMProblems`.
+    :class:`tawarp.fit.lm.LMProblems`; a spec may carry its own rows as a fourth item
+    ((params, effect, x0, rows): held-out and resampled refits in the same batch; rows may
+    repeat, a bootstrap's weights), the others fit ``rows``.
 
     z is x padded with zeros to the largest p of the batch, the padding pinned by the bounds
     ``zlo = zhi = 0`` (zero Jacobian columns: it never moves and adds nothing to the step
@@ -67,8 +69,11 @@ class KindProblems:
     """
 
     def __init__(self, kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None):
-        self.kind, self.specs = kind, list(specs)
-        self.rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
+        self.kind = kind
+        rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
+        #: the rows each fit sees
+        self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
+        self.specs = [tuple(sp[:3]) for sp in specs]
         fixed = dict(fixed or {})
         self.groups: dict = {}
         for c, (_, effect, _) in enumerate(self.specs):
@@ -146,16 +151,41 @@ class KindProblems:
         self.last = []
         for i, c in enumerate(pid):
             p = self.p[c]
-            R = residual(self.kind, got[i], self.rows)
+            rows = self.rows[c]
+            R = residual(self.kind, got[i], rows)
             r = R[0]
             J = ((R[1:] - r) / step[i, :p, None]).T
-            cost[i] = r @ r
-            raw[i] = np.sum(np.abs(got[i][0, self.rows] - self.kind.y[self.rows]) ** 2)
-            g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
+            with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
+                cost[i] = r @ r
+                raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
+                g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
             self.last.append((J, got[i][0]))
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf
         return cost, raw, g, H
+
+
+#: Singular values of the column-normalized Jacobian below this fraction of the largest
+#: are null directions: forward differences with step FD_STEP resolve J to about 1e-6
+#: relative, so such directions are set by the differencing error, not by the data.
+NULL_RCOND = 1e-6
+
+
+def _covariance_x(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(J^T J)^+ in x on the determined directions, and which parameters are undetermined
+    (a null direction of J, :data:`NULL_RCOND`, has a component > 0.1 on them)."""
+    p = J.shape[1]
+    if p == 0:
+        return np.zeros((0, 0)), np.zeros(0, dtype=bool)
+    norm = np.linalg.norm(J, axis=0)
+    norm[norm == 0] = 1.0
+    _, sv, Vt = np.linalg.svd(J / norm, full_matrices=True)
+    sv = np.concatenate([sv, np.zeros(p - sv.size)])
+    null = sv <= NULL_RCOND * sv.max() if sv.max() > 0 else np.ones(p, dtype=bool)
+    keep = ~null
+    inv = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
+    undetermined = np.any(np.abs(Vt[null]) > 0.1, axis=0) if null.any() else np.zeros(p, dtype=bool)
+    return inv / norm[:, None] / norm[None, :], undetermined
 
 
 def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effect, converged: bool,
@@ -170,12 +200,13 @@ def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effec
     dof = max(n - p, 1)
     s2 = 1.0 if kind.has_sigma else cost / dof
     JtJ = J.T @ J
-    cov_x = np.linalg.pinv(JtJ) if p else np.zeros((0, 0))
+    cov_x, undetermined = _covariance_x(J)
     values = np.array([float(par.value(x[j])) for j, par in enumerate(params)])
     D = np.array([abs(v) if par.log else par.scale for v, par in zip(values, params)])
     unit = cov_x * D[:, None] * D[None, :]
     cov = s2 * unit
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    std[undetermined] = np.nan  # undetermined: None in JSON, never +-tiny
     su = np.sqrt(np.maximum(np.diag(unit), 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = unit / (su[:, None] * su[None, :])
@@ -196,12 +227,12 @@ def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effec
 def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
               max_iter: int = 100, xtol: float = XTOL, gtol: float = GTOL) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
-    None: every parameter at its start), the others at ``fixed`` {name: value} or the
-    core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
+    None: every parameter at its start; an optional fourth item: that fit's own rows), the
+    others at ``fixed`` {name: value} or the core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
     damping ``mu I``, steps projected onto the bounds) on :class:`KindProblems`; the
     Jacobians and model values at the solutions take one more evaluation."""
     t0 = time.perf_counter()
-    specs = [(list(pars), eff, np.zeros(len(pars)) if x0 is None else x0) for pars, eff, x0 in specs]
+    specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     lm = KindProblems(kind, specs, fixed, rows)
     K = len(lm.specs)
     if K == 0:
@@ -214,7 +245,7 @@ def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, row
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
     lm.evaluate(pid, z)
     dt = time.perf_counter() - t0
-    return [kind_result(kind, params, z[c, :lm.p[c]], lm.last[c][0], lm.last[c][1], lm.rows, effect,
+    return [kind_result(kind, params, z[c, :lm.p[c]], lm.last[c][0], lm.last[c][1], lm.rows[c], effect,
                         bool(converged[c]), str(reason[c]), int(its[c]), seconds=dt)
             for c, (params, effect, _) in enumerate(lm.specs)]
 

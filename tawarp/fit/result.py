@@ -124,8 +124,7 @@ class FitResult:
     def bic(self, has_sigma: bool, i: int = 0) -> float:
         """Bayesian information criterion of problem ``i`` over its ``n`` real residuals:
         ``chi^2 + p ln n`` with known sigma, else ``n ln(cost/n) + p ln n``."""
-        p, n, c = len(self.names), self.n, float(self.cost[i])
-        return c + p * math.log(n) if has_sigma else n * math.log(c / n) + p * math.log(n)
+        return bic_of(float(self.cost[i]), self.n, len(self.names), has_sigma)
 
     def problem(self, i: int = 0) -> dict:
         """Problem ``i`` as a JSON-ready dict (the fit.json entry of FORMATS.md)."""
@@ -149,6 +148,12 @@ class FitResult:
                              for v, c, ok in zip(self.restart_values[i], self.restart_cost[i],
                                                  self.restart_converged[i])]
         return d
+
+
+def bic_of(cost: float, n: int, p: int, has_sigma: bool) -> float:
+    """BIC of a least-squares fit of ``p`` parameters to ``n`` real residuals with weighted
+    cost ``cost``: ``chi^2 + p ln n`` with known sigma, else ``n ln(cost/n) + p ln n``."""
+    return cost + p * math.log(n) if has_sigma else n * math.log(max(cost, 1e-300) / n) + p * math.log(n)
 
 
 def _json_float(x):

@@ -1,55 +1,37 @@
-"""Closing the loop with measured data (issue #4): residual diagnosis, a library of
-effects, the error before and after.
+"""Closing the loop with measured data (issues #4, #9): the paper's base fit, its goodness
+of fit, then effects from a library one at a time, each step reported.
 
-Steps of :func:`run_loop`:
+Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
 
-1. **Base fit** of the given free parameters on the package's one LM
-   (:func:`tawarp.fit.problems.fit_one`; the Jacobian is one batched forward launch of
-   1 + p parameter sets: forward differences, step 1e-6 in the scaled variables of
-   :class:`tawarp.model.effects.Param`, bounds and scaling from :mod:`tawarp.model.fields`).
-   Data with ``sigma`` are weighted by it (chi^2); without, by 1/rms|Y| (the error measure).
-2. **Residual structure**: the weighted residual per coefficient against frequency and
-   heat input (or layer); ``structured_fraction`` is the part of it that a cubic in
-   frequency per (coefficient, group, re/im) explains (white noise gives about
-   ``n_poly / N``).
-3. **Screening**: every candidate effect's sensitivity columns at the base solution, all
-   in one batched launch (structural candidates: one launch each); its *score* is the
-   fraction of the residual that a linearized step along those columns, orthogonalized
-   against the base columns, explains: ``||P_(C perp B) r||^2 / ||r||^2``. Pure noise
-   gives about ``k / (N - p)`` for k columns; the linearized F statistic gives a p-value.
-4. **Augmented fits** of the promising candidates (linearized p < 0.01, best ``top`` by
-   score), two starts each with the effect off (the base solution, the core's values), all
-   in one batch (:func:`tawarp.fit.problems.fit_batch`: :func:`tawarp.fit.lm.levenberg_marquardt` on all of
-   them at once, one forward launch per iteration for every candidate's trial point and
-   Jacobian); when none of them is
-   accepted, the other candidates too (the screening is only linear).
-5. **Choice.** An effect is accepted when all of:
-   a. ``Delta BIC < -10`` (BIC = chi^2 + p ln N with known sigma, else N ln(RSS/N) + p ln N;
-      "very strong" on Kass & Raftery's scale);
-   b. F-test ``F = ((RSS0 - RSS1)/k) / (RSS1/(N - p - k))`` beyond the 99 % quantile of
-      F(k, N - p - k): the cost drop exceeds what noise would give (p < 0.01);
-   c. prediction: refitted without the held-out rows (the highest heat input, or every
-      third frequency when there is one group), the augmented model predicts them better
-      than the base model;
-   d. with known sigma: the residual after is noise: its chi^2 lies below the 99.9 %
-      quantile of chi^2(N - p - k), and the error after is within 1.5 times the noise floor
-      (otherwise the effect explains only part of a structure it does not describe: no
-      claim).
-   Among accepted candidates the lowest BIC wins; none accepted: ``chosen_effect = None``.
-6. **Drift**: with several heat inputs, the heat-exchange coefficients ``*.h`` are refitted
-   at each heat input alone (everything else fixed) before and after; the paper's model
-   says they should not drift with Q.
+1. **Base fit**: the paper's full method (:func:`base_names`: every porous segment's
+   porosity, pore radius, tortuosity and every thermal segment's h, less the core file's
+   ``[fit] pinned``), with the paper's two steps when Q = 0 and Q > 0 rows exist
+   (:func:`fit_base`), on the package's one LM (:func:`tawarp.fit.problems.fit_batch`).
+2. **Goodness of fit** (:mod:`.goodness`): reduced chi^2 and p-value against the data's
+   sigma, or against noise estimated from the second differences along frequency of the
+   residual; parameters at bounds flagged.
+3. **One effect at a time** while the fit is not adequate (:func:`run_loop`, ``_step``):
+   screening of every candidate at the current solution in one batched launch
+   (:mod:`.screen`: sign-constrained for one-sided effects, candidates degenerate with a
+   current parameter named), augmented fits of the promising ones in one lockstep batch,
+   acceptance by Delta BIC, Holm-Bonferroni F-tests at a level halving with each step,
+   held-out blocks (frequency bands, groups), no parameter at a bound, no rival within the
+   BIC margin, and stability over resamplings (decimations, block bootstraps); held-out and
+   resampled refits are linearized (:func:`linear_refit`).
+4. **Verdict** (adequate, explained, partly_explained, indistinguishable,
+   unexplained_residual with where it lives, wrong_model) and, with several heat inputs,
+   the drift of the h's refitted per heat input before and after.
 
-Measurement kinds: any :class:`tawarp.measure.MeasurementKind` (core T-matrices, also
-from a scattering matrix, and the surface impedance of rigid-backed layers built in; the
-held-out rows and the drift need T-matrix data). Modules: :mod:`.screen` (residual
-structure, screening), :mod:`.run` (the loop), :mod:`.report` (report.json/md, figures).
+Modules: :mod:`.goodness`, :mod:`.screen`, :mod:`.run`, :mod:`.report` (report.json/md,
+residual and drift figures).
 """
 
+from .goodness import goodness_of_fit, noise_sigma, residual_location
 from .report import write_report
-from .run import (CHI2_P, DELTA_BIC, F_TEST_P, NOISE_FACTOR, default_base_params, drift, holdout_rows, impedance_loop,
-                  library_for, run_loop)
+from .run import (DELTA_BIC, F_TEST_P, STABILITY, WRONG_MODEL_CHI2, base_names, default_base_params, drift, fit_base,
+                  holdout_blocks, holm, impedance_loop, library_for, linear_refit, resamplings, run_loop)
 from .screen import residual_structure, screen
 
-__all__ = ["write_report", "CHI2_P", "DELTA_BIC", "F_TEST_P", "NOISE_FACTOR", "default_base_params", "drift",
-           "holdout_rows", "impedance_loop", "library_for", "run_loop", "residual_structure", "screen"]
+__all__ = ["goodness_of_fit", "noise_sigma", "residual_location", "write_report", "DELTA_BIC", "F_TEST_P",
+           "STABILITY", "WRONG_MODEL_CHI2", "base_names", "default_base_params", "drift", "fit_base", "holdout_blocks",
+           "holm", "impedance_loop", "library_for", "linear_refit", "resamplings", "run_loop", "residual_structure", "screen"]

@@ -17,7 +17,9 @@ def _jsonable(report: dict) -> dict:
 
 
 def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
-    """Residual maps (frequency x group, one column per coefficient) before and after."""
+    """The residual per coefficient against frequency, one line per group (real part solid,
+    imaginary part dashed), before (top row) and after (bottom row), in units of rms|y|
+    with the noise floor shaded: a narrow feature such as a resonance dip stays visible."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -26,30 +28,35 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     fits = report["_fits"]
     nc = len(problem.coef_names)
     groups = np.unique(problem.group)
-    freqs = np.unique(problem.freq)
-    fig, axes = plt.subplots(2, nc, figsize=(max(3.2 * nc, 5.0) + 1.5, 6.0), squeeze=False, layout="constrained")
-    vmax = 0.0
-    maps = []
+    scale = np.sqrt(np.mean(np.abs(problem.y) ** 2))
+    floor = report.get("noise_floor")
+    fig, axes = plt.subplots(2, nc, figsize=(max(3.2 * nc, 5.0), 5.6), squeeze=False, sharex=True, sharey="row",
+                             layout="constrained")
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row, key in enumerate(("before", "after")):
-        d = np.abs(fits[key].model[0] - problem.y) * np.sqrt((problem.w ** 2).mean(-1))
+        d = (fits[key].model[0] - problem.y) / scale
         for c in range(nc):
-            M = np.full((len(groups), len(freqs)), np.nan)
-            m = problem.coef == c
-            M[np.searchsorted(groups, problem.group[m]), np.searchsorted(freqs, problem.freq[m])] = d[m]
-            maps.append((row, c, M))
-            vmax = max(vmax, np.nanmax(M))
-    for row, c, M in maps:
-        ax = axes[row, c]
-        im = ax.imshow(M, aspect="auto", origin="lower", vmin=0, vmax=vmax, cmap="magma",
-                       extent=[freqs[0], freqs[-1], -0.5, len(groups) - 0.5])
-        ax.set_yticks(range(len(groups)), [f"{g:.3g}" for g in groups])
-        ax.set_title(f"{problem.coef_names[c]} ({'before' if row == 0 else 'after'})", fontsize=9)
-        ax.set_xlabel("frequency [Hz]")
-        if c == 0:
-            ax.set_ylabel(problem.group_name)
-    fig.colorbar(im, ax=axes, label="|weighted residual|")
-    fig.suptitle(f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; "
-                 f"chosen: {report['chosen_effect']}", fontsize=10)
+            ax = axes[row, c]
+            if floor:
+                ax.axhspan(-floor / np.sqrt(2), floor / np.sqrt(2), color="0.88", lw=0)
+            for k, g in enumerate(groups):
+                m = np.flatnonzero((problem.coef == c) & (problem.group == g))
+                m = m[np.argsort(problem.freq[m])]
+                col = colors[k % len(colors)]
+                ax.plot(problem.freq[m], d[m].real, "-", color=col, lw=1.0,
+                        label=f"{problem.group_name} = {g:.3g}" if len(groups) > 1 else None)
+                ax.plot(problem.freq[m], d[m].imag, "--", color=col, lw=1.0)
+            ax.axhline(0.0, color="k", lw=0.5)
+            ax.set_title(f"{problem.coef_names[c]} ({key})", fontsize=9)
+            if row == 1:
+                ax.set_xlabel("frequency [Hz]")
+            if c == 0:
+                ax.set_ylabel("(model - data) / rms|y|")
+    if len(groups) > 1:
+        axes[0, -1].legend(fontsize=7)
+    fig.suptitle(f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; verdict {report['verdict']}; "
+                 f"accepted: {', '.join(report['accepted_effects']) or 'none'} (re solid, im dashed; grey: noise)",
+                 fontsize=9)
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -71,7 +78,7 @@ def drift_figure(report: dict, path: Path) -> Path | None:
     for ax, k in zip(axes[0], names):
         ax.plot(db["Q_W"], db["values"][k], "o-", label="before")
         if da:
-            ax.plot(da["Q_W"], da["values"][k], "s--", label=f"after ({report['chosen_effect']})")
+            ax.plot(da["Q_W"], da["values"][k], "s--", label=f"after ({', '.join(report['accepted_effects'])})")
         ax.set_xlabel("Q [W]")
         ax.set_ylabel(f"{k} [W/(m^2 K)]")
         ax.legend(fontsize=8)
@@ -84,32 +91,58 @@ def drift_figure(report: dict, path: Path) -> Path | None:
 
 def report_markdown(report: dict) -> str:
     r = report
+    g0, g1 = r["goodness_of_fit_before"], r["goodness_of_fit_after"]
+
+    def gof(g):
+        return (f"reduced chi^2 {g['reduced_chi2']:.3g} (p = {g['p_value']:.2g}), error {g['error']:.4g}, "
+                f"adequate: {g['adequate']}" + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
+
     lines = ["# tawarp loop report", "",
+             f"- verdict: **{r['verdict']}**",
              f"- measurement kind: {r['kind']}, {r['n_residuals']} real residuals",
-             f"- error before: {r['error_before']:.4g}; after: {r['error_after']:.4g}"
-             + (f"; noise floor: {r['noise_floor']:.4g}" if r["noise_floor"] else ""),
-             f"- chosen effect: **{r['chosen_effect']}**" + (f" ({r['chosen_description']})" if r["chosen_effect"] else ""),
-             *([f"- indistinguishable on these data: **{', '.join(r['indistinguishable'])}** (BIC within "
-                f"{r['indistinguishable_bic']:g}); 'after' shows {r['best_effect']}"] if r.get("indistinguishable") else []),
+             f"- base parameters: {', '.join(r['base_parameters'])}" + (f"; pinned: {', '.join(r['pinned'])}"
+                                                                         if r["pinned"] else ""),
+             f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
+             f"- base fit: {gof(g0)}",
+             f"- final fit: {gof(g1)}",
+             f"- accepted effects: **{', '.join(r['accepted_effects']) or 'none'}**",
+             *([f"- indistinguishable on these data: " + "; ".join(", ".join(g) for g in r["indistinguishable"])]
+               if r.get("indistinguishable") else []),
+             *([f"- unexplained residual: {u['coefficient']}" + (f" at {u['group']:g}" if u["group"] is not None else "")
+                + f", {u['band_Hz'][0]:g}-{u['band_Hz'][1]:g} Hz, error {u['error']:.4g} (noise floor "
+                  f"{u['noise_floor']:.4g})"] if (u := r.get("unexplained_residual")) else []),
              f"- acceptance: {r['acceptance_test']}",
              f"- residual structure before: {r['residual_structure_before']['structured_fraction']:.3f} of the residual "
              f"is smooth in frequency (white noise: {r['residual_structure_before']['structured_fraction_if_white']:.3f})",
-             "", "## Candidates", "",
-             "| effect | score | if noise | lin. p | refit | error after | dBIC | p | held-out | accepted |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
-    for c in r["candidates"]:
-        if c["refit"]:
-            extra = f"yes | {c['error_after']:.4g} | {c['delta_bic']:.1f} | {c['p_value']:.2g} | {c['held_out_error']:.4g}"
-        else:
-            extra = "no | | | | "
-        lines.append(f"| {c['effect']} | {c['score']:.3g} | {c['score_if_noise']:.2g} | {c['linearized_p']:.2g} | "
-                     f"{extra} | {c['accepted']} |")
-    lines += ["", f"held-out rows: {r['held_out']}; base model's held-out error {r['held_out_error_base']:.4g}", "",
+             "", "## Steps", "", "| step | effect | error before | error after | dBIC | p | stability |",
+             "|---|---|---|---|---|---|---|"]
+    for k, st in enumerate(r["steps"]):
+        lines.append(f"| {k + 1} | {st['effect']} | {st['error_before']:.4g} | {st['error_after']:.4g} | "
+                     f"{st['delta_bic']:.1f} | {st['p_value']:.2g} | {st['stability']:.0%} |")
+    for k, rnd in enumerate(r.get("rounds") or []):
+        lines += ["", f"## Candidates at step {k + 1} (family-wise alpha {rnd['alpha']:.3g})", "",
+                  "| effect | score | if noise | lin. p | refit | error after | dBIC | p | held-out | stability | accepted | note |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        for c in rnd["candidates"]:
+            if c["refit"]:
+                extra = (f"yes | {c['error_after']:.4g} | {c['delta_bic']:.1f} | {c['p_value']:.2g} | "
+                         f"{c['held_out_error']:.3g}")
+            else:
+                extra = "no | | | | "
+            stab = "" if c.get("stability") is None else f"{c['stability']:.0%}"
+            note = c.get("rejected_because") or (f"degenerate with {c['degenerate_with']}" if c["degenerate_with"] else "")
+            lines.append(f"| {c['effect']} | {c['score']:.3g} | {c['score_if_noise']:.2g} | {c['linearized_p']:.2g} | "
+                         f"{extra} | {stab} | {c['accepted']} | {note} |")
+    lines += ["", f"held-out blocks: {', '.join(r['held_out_blocks'])} (held-out error: the candidate's pooled "
+                  "prediction error over the blocks relative to the current model's)", "",
               "## Parameters", "", "| parameter | before | after |", "|---|---|---|"]
     keys = list(dict.fromkeys(list(r["parameters_before"]) + list(r["parameters_after"])))
     for k in keys:
         def fmt(d):
-            return f"{d[k]['value']:.5g} ± {d[k]['std']:.2g}" if k in d else ""
+            if k not in d:
+                return ""
+            std = d[k]["std"]
+            return f"{d[k]['value']:.5g} ± " + (f"{std:.2g}" if std is not None else "undetermined")
         lines.append(f"| {k} | {fmt(r['parameters_before'])} | {fmt(r['parameters_after'])} |")
     for key in ("drift_before", "drift_after"):
         d = r.get(key)

@@ -1,31 +1,55 @@
-"""The loop (steps of the package doc :mod:`tawarp.loop`): base fit, screening,
-augmented fits in lockstep, the acceptance tests, held-out rows and the drift of h."""
+"""The loop (steps of the package doc :mod:`tawarp.loop`): the paper's base fit, its
+goodness of fit, then one effect at a time: screening, augmented fits in lockstep, the
+acceptance tests (false discoveries controlled over candidates and steps), held-out
+blocks, stability over resamplings; the verdict and the drift of h."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import stats
 
-from ..fit.problems import fit_batch, fit_one
-from ..fit.result import FitResult
+from ..fit.problems import NULL_RCOND, fit_batch, fit_one
+from ..fit.result import FitResult, bic_of
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
 from ..measure.tmatrix import TMatrixKind
-from ..model.coefficients import rms_error
 from ..model.effects import Effect, Param, base_params, impedance_library, tmatrix_library
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
-from .screen import residual_structure, screen
+from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location
+from .screen import DEGENERATE_CORR, residual_structure, screen
 
 #: Acceptance thresholds (package docstring, step 5).
 DELTA_BIC = -10.0
+#: Family-wise level of the F-tests at the first step; step t (0, 1, ...) uses
+#: ``F_TEST_P / 2**t`` (so at most ``2 F_TEST_P`` over all steps), Holm-Bonferroni over the
+#: candidates refitted at that step.
 F_TEST_P = 0.01
-NOISE_FACTOR = 1.5
-CHI2_P = 1e-3
+#: An effect is accepted only when at least this fraction of the resamplings choose it.
+STABILITY = 0.7
+#: Resamplings: every DECIMATION-th frequency at each of its offsets, and BOOTSTRAPS
+#: bootstraps of contiguous frequency blocks (seeded: the report is reproducible). The
+#: refits on resamplings and held-out blocks are linearized (:func:`linear_refit`).
+DECIMATION = 3
+BOOTSTRAPS = 20
+#: Held-out blocks: this many contiguous frequency bands (and every group when there are several).
+BANDS = 4
+#: A base fit whose reduced chi^2 exceeds this (its error more than 5 noise floors) and
+#: that no set of library effects brings to the noise is the wrong model (another core,
+#: another material, a geometry the core file does not describe).
+WRONG_MODEL_CHI2 = 25.0
 #: Two effects whose BIC differ by less than this are indistinguishable ("not worth more
 #: than a bare mention" on Kass & Raftery's scale).
 INDISTINGUISHABLE_BIC = 2.0
+#: At most this many effects are accepted.
+MAX_STEPS = 3
+#: Iteration cap and step tolerance of the loop's LM fits (a misfitting model crawls along
+#: a valley: 1e-8 in the scaled variables is far below any parameter's uncertainty).
+MAX_ITER = 40
+XTOL = 1e-8
+#: Geometry fields of porous segments in the paper's base fit.
+GEOMETRY = ("porosity", "pore_radius", "tortuosity")
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
@@ -38,27 +62,113 @@ def library_for(problem: MeasurementKind) -> list[Effect]:
     return []
 
 
-def holdout_rows(problem: MeasurementKind) -> tuple[np.ndarray, np.ndarray, str]:
-    """(train, test) row indices: the highest group (heat input / thickness) when there are
-    three or more groups, else every third frequency."""
-    groups = np.unique(problem.group)
-    if isinstance(problem, TMatrixKind) and len(groups) >= 3:
-        test = problem.group == groups[-1]
-        what = f"{problem.group_name} = {groups[-1]:g}"
+def base_names(problem: MeasurementKind) -> list[str]:
+    """The paper's full base fit: for core T-matrices every porous segment's porosity, pore
+    radius and tortuosity and (with heat input in the data) every thermal segment's h,
+    whatever its size; for other kinds their ``default_names()``. Names in the core's
+    ``[fit] pinned`` list stay at their core values."""
+    core = problem.core
+    if isinstance(problem, TMatrixKind):
+        names = [f"{s.name}.{f}" for s in core.segments if s.is_porous for f in GEOMETRY]
+        if np.any(problem.group > 0):
+            names += [f"{s.name}.h" for s in core.segments if s.thermal]
     else:
-        f = np.unique(problem.freq)
-        held = f[1::3]
-        test = np.isin(problem.freq, held)
-        what = "every third frequency"
-    return np.flatnonzero(~test), np.flatnonzero(test), what
+        names = problem.default_names()
+    return [n for n in names if n not in getattr(core, "pinned", ())]
+
+
+def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
+    """Fit parameters for ``names`` (default :func:`base_names`), scaling and bounds from
+    :mod:`tawarp.model.fields`."""
+    return base_params(problem.core, names if names is not None else base_names(problem))
+
+
+def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None = None) -> FitResult:
+    """The base fit; with Q = 0 and Q > 0 rows the paper's two steps: the geometry on the
+    Q = 0 rows first (the h's do not act there), then everything together from there."""
+    hs = [par.label.endswith(".h") for par in params]
+    Q0 = np.flatnonzero(problem.group == 0) if isinstance(problem, TMatrixKind) else np.zeros(0, int)
+    if any(hs) and not all(hs) and 0 < Q0.size < problem.y.size:
+        geo = [par for par, h in zip(params, hs) if not h]
+        step1 = fit_one(problem, geo, fixed, rows=Q0, max_iter=MAX_ITER, xtol=XTOL)
+        x0, it = np.zeros(len(params)), iter(step1.x[0])
+        for j, h in enumerate(hs):
+            if not h:
+                x0[j] = next(it)
+        return fit_one(problem, params, fixed, x0=x0, max_iter=MAX_ITER, xtol=XTOL)
+    return fit_one(problem, params, fixed, max_iter=MAX_ITER, xtol=XTOL)
+
+
+def holdout_blocks(problem: MeasurementKind) -> list[tuple[str, np.ndarray]]:
+    """Held-out blocks (name, test rows): :data:`BANDS` contiguous frequency bands, and
+    each group (heat input / layer) when there are several."""
+    f = np.unique(problem.freq)
+    out = []
+    for band in np.array_split(f, min(BANDS, max(len(f) // 3, 1))):
+        if len(band) and len(band) < len(f):
+            out.append((f"{band[0]:g}-{band[-1]:g} Hz", np.flatnonzero(np.isin(problem.freq, band))))
+    groups = np.unique(problem.group)
+    if len(groups) > 1:
+        out += [(f"{problem.group_name} = {g:g}", np.flatnonzero(problem.group == g)) for g in groups]
+    return out
+
+
+def resamplings(problem: MeasurementKind) -> list[tuple[str, np.ndarray]]:
+    """(name, rows) of the stability check: every :data:`DECIMATION`-th frequency at each
+    offset, and :data:`BOOTSTRAPS` bootstraps of contiguous blocks of frequencies (block
+    length ~ m^(1/3), all groups and coefficients of a frequency together; rows repeat)."""
+    f = np.unique(problem.freq)
+    fi = np.searchsorted(f, problem.freq)
+    out = [(f"every {DECIMATION}rd frequency from #{k}", np.flatnonzero(fi % DECIMATION == k))
+           for k in range(DECIMATION) if len(f) >= 3 * DECIMATION]
+    L = max(2, int(round(len(f) ** (1 / 3))))
+    blocks = [np.arange(s, min(s + L, len(f))) for s in range(0, len(f), L)]
+    rng = np.random.default_rng(0)
+    by_f = [np.flatnonzero(fi == k) for k in range(len(f))]
+    for b in range(BOOTSTRAPS):
+        pick = rng.integers(0, len(blocks), len(blocks))
+        out.append((f"block bootstrap #{b}", np.concatenate([by_f[k] for j in pick for k in blocks[j]])))
+    return out
+
+
+def holm(p: list[float], alpha: float) -> list[bool]:
+    """Holm-Bonferroni: which of the p-values are rejections at family-wise level ``alpha``."""
+    order = np.argsort(p)
+    ok = np.zeros(len(p), dtype=bool)
+    for rank, i in enumerate(order):
+        if p[i] > alpha / (len(p) - rank):
+            break
+        ok[i] = True
+    return ok.tolist()
+
+
+def linear_refit(fit: FitResult, rows: np.ndarray, test: np.ndarray | None = None) -> tuple[float, float]:
+    """The fit ``fit`` (made on all rows) refitted on ``rows`` (may repeat) by one
+    Gauss-Newton step from its solution with its Jacobian: resampled and held-out fits start
+    so close to the full fit that the model is linear over the step (no forward launch).
+    Returns (cost on ``rows``, weighted squared prediction error on ``test`` or 0)."""
+    n = fit.model.shape[1]
+    idx = np.concatenate([rows, rows + n])
+    J, r = fit.jacobian[0], fit.residuals[0]
+    norm = np.linalg.norm(J[idx], axis=0)
+    norm[norm == 0] = 1.0
+    # directions the rows do not determine (NULL_RCOND) are not stepped along
+    d = np.linalg.lstsq(J[idx] / norm, -r[idx], rcond=NULL_RCOND)[0] / norm
+    cost = float(np.sum((r[idx] + J[idx] @ d) ** 2))
+    if test is None:
+        return cost, 0.0
+    it = np.concatenate([test, test + n])
+    return cost, float(np.sum((r[it] + J[it] @ d) ** 2))
 
 
 def _param_report(f: FitResult) -> dict:
-    return {k: {"value": v, "std": s} for (k, v), s in zip(f.value_dict().items(), f.std[0])}
+    return {k: {"value": v, "std": float(s) if np.isfinite(s) else None}
+            for (k, v), s in zip(f.value_dict().items(), f.std[0])}
 
 
 def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fixed: dict, effect: Effect | None) -> dict | None:
-    """h's refitted at each heat input > 0 alone, the rest fixed at ``sol``."""
+    """h's refitted at each heat input > 0 alone (all heat inputs in one batch), the rest
+    fixed at ``sol``."""
     if not isinstance(problem, TMatrixKind):
         return None
     hp = [par for par in base_params if par.label.endswith(".h")]
@@ -70,158 +180,263 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
         if par not in hp:
             par.assign(float(sol.value_dict()[par.label]), fx)
     hp_start = [par.with_start(sol.value_dict()[par.label]) for par in hp]
-    out = {par.label: [] for par in hp}
-    for q in Qs:
-        rows = np.flatnonzero(problem.group == q)
-        f = fit_one(problem, hp_start, fx, effect, rows)
-        for par in hp:
-            out[par.label].append(f.value_dict()[par.label])
+    fits = fit_batch(problem, [(hp_start, effect, None, np.flatnonzero(problem.group == q)) for q in Qs], fx,
+                     max_iter=MAX_ITER, xtol=XTOL)
+    out = {par.label: [f.value_dict()[par.label] for f in fits] for par in hp}
     res = {"Q_W": [float(q) for q in Qs], "values": out}
     res["relative_spread"] = {k: float(np.ptp(v) / np.mean(v)) if np.mean(v) else None for k, v in out.items()}
     return res
 
 
-def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
-    """Fit parameters for ``names`` (default: the kind's ``default_names()``: the stack's
-    porosity and pore radius and the thermal segments' h for T-matrix data; porosity, pore
-    radius, tortuosity of a layer), scaling and bounds from :mod:`tawarp.model.fields`."""
-    return base_params(problem.core, names if names is not None else problem.default_names())
-
-
 #: The loop's stages, in order, as its progress bar names them.
-STAGES = ("base fit", "screening", "held-out base fit", "refits", "second pass", "drift")
+STAGES = ("base fit", "effects", "drift")
+
+
+def _error_on(problem: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.abs(Y[rows] - problem.y[rows]) ** 2) / np.mean(np.abs(problem.y) ** 2)))
 
 
 def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, library: list[Effect] | None = None,
              top: int = 3, drift_h: bool = True, progress: bool = False) -> dict:
-    """The loop of the module docstring; returns the report dict (report.json).
-    ``library``: candidate effects (default :func:`library_for` the kind); ``progress``: a
-    bar over the :data:`STAGES` (on a terminal only).
-    """
+    """The loop of the package docstring; returns the report dict (report.json).
+    ``base_params``: default :func:`default_base_params`; ``library``: candidate effects
+    (default :func:`library_for` the kind); ``top``: candidates refitted first at each
+    step; ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
     bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
 
     def stage(name: str) -> None:
         bar.set_postfix_str(name)
         bar.update(1)
 
-    base_params = base_params or default_base_params(problem)
-    if library is None:
-        library = library_for(problem)
-    fixed = {}
-    base = fit_one(problem, base_params)
+    base_params = list(base_params or default_base_params(problem))
+    library = library_for(problem) if library is None else library
+    fixed: dict = {}
+    base = fit_base(problem, base_params, fixed)
     stage("base fit")
-    N, p = base.n, len(base_params)
-    rss0 = float(base.cost[0])
-    floor = problem.noise_floor()
-    has_sigma = problem.has_sigma
-    structure_before = residual_structure(problem, base.model[0])
-    scores = screen(problem, base, fixed, library)
-    stage("screening")
-    promising = sorted([s for s in scores if s["linearized_p"] < F_TEST_P], key=lambda s: -s["score"])[:top]
-    train, test, held = holdout_rows(problem)
-    base_train = fit_one(problem, base_params, rows=train, x0=base.x[0])
-    base_held_err = float(rms_error(problem.y[test], base_train.model[0, test]))
-    stage("held-out base fit")
-    candidates = {}
+    if problem.has_sigma:
+        sigma, source = None, "sigma"
+    else:
+        sigma, source = noise_sigma(problem, base.residuals[0]), NOISE_ESTIMATE
+    gof_before = goodness_of_fit(problem, base, sigma, source)
+    floor = gof_before["noise_floor"]
+    blocks = holdout_blocks(problem)
+    samples = resamplings(problem)
 
-    def refit(names: list[str]):
-        """Augmented fits of the candidates ``names``, all in one batched fit: two starts
-        each, effect off (the base solution and the core's own values: a strong effect can
-        pull the base fit far from where the augmented optimum lies), then the held-out
-        refits, again in one batch."""
-        effects = [next(x for x in library if x.name == name) for name in names]
-        specs = []
-        for e in effects:
-            k = len(e.params)
-            for x0 in (np.concatenate([base.x[0], np.zeros(k)]), np.zeros(p + k)):
-                specs.append((base_params + list(e.params), e, x0))
-        fits = fit_batch(problem, specs, fixed)
-        augs = [min(fits[2 * i:2 * i + 2], key=lambda f: float(f.cost[0])) for i in range(len(effects))]
-        specs_t = [(base_params + list(e.params), e, a.x[0]) for e, a in zip(effects, augs)]
-        trains = fit_batch(problem, specs_t, fixed, rows=train)
-        for e, aug, aug_train in zip(effects, augs, trains):
-            k = len(e.params)
-            F = ((rss0 - float(aug.cost[0])) / k) / max(float(aug.cost[0]) / max(N - p - k, 1), 1e-300)
-            pval = float(stats.f.sf(F, k, max(N - p - k, 1)))
-            dbic = aug.bic(has_sigma) - base.bic(has_sigma)
-            held_err = float(rms_error(problem.y[test], aug_train.model[0, test]))
-            checks = {"delta_bic": dbic < DELTA_BIC, "f_test": pval < F_TEST_P, "held_out": held_err < base_held_err}
-            if floor is not None:
-                checks["noise_floor"] = float(aug.rms_error[0]) <= NOISE_FACTOR * floor
-                checks["chi2"] = float(stats.chi2.sf(float(aug.cost[0]), max(N - p - k, 1))) > CHI2_P
-            candidates[e.name] = {"fit": aug, "error_after": float(aug.rms_error[0]), "delta_bic": dbic, "F": F, "p_value": pval,
-                                  "explained_fraction": (rss0 - float(aug.cost[0])) / rss0 if rss0 > 0 else 0.0,
-                                  "held_out_error": held_err, "checks": checks, "accepted": all(checks.values())}
+    cur, cur_params, accepted, steps, rounds, indistinguishable = base, list(base_params), [], [], [], []
+    gof, tie = gof_before, False
+    for t in range(MAX_STEPS):
+        if gof["adequate"]:
+            break
+        structural = cur.effect is not None and cur.effect.transform is not None
+        lib = [e for e in library if e.name not in accepted and not (structural and e.transform is not None)]
+        if not lib:
+            break
+        rnd = _step(problem, cur, cur_params, lib, fixed, sigma, blocks, samples, top, F_TEST_P / 2 ** t)
+        rounds.append(rnd)
+        indistinguishable += [g for g in rnd["indistinguishable"] if g not in indistinguishable]
+        tie = tie or rnd["tie"]
+        best = rnd["accepted"]
+        if best is None:
+            break
+        c = rnd["_fits"][best]
+        e = next(x for x in lib if x.name == best)
+        gof_new = goodness_of_fit(problem, c, sigma, source)
+        row = next(r for r in rnd["candidates"] if r["effect"] == best)
+        steps.append({"effect": best, "error_before": float(cur.rms_error[0]), "error_after": float(c.rms_error[0]),
+                      "delta_bic": row["delta_bic"], "p_value": row["p_value"], "stability": row["stability"],
+                      "parameters": {k: v for k, v in _param_report(c).items()
+                                     if k in {par.label for par in e.params}},
+                      "reduced_chi2_after": gof_new["reduced_chi2"]})
+        accepted.append(best)
+        cur, cur_params, gof = c, cur_params + list(e.params), gof_new
+    stage("effects")
 
-    refit([s["effect"] for s in promising])
-    stage("refits")
-    second_pass = False
-    if not any(c["accepted"] for c in candidates.values()):
-        # the screening is linear: when no promising candidate is accepted, refit the rest too
-        second_pass = True
-        rest = [s["effect"] for s in sorted(scores, key=lambda s: -s["score"]) if s["effect"] not in candidates]
-        if rest:
-            refit(rest)
-    stage("second pass")
-    bic = {name: c["fit"].bic(has_sigma) for name, c in candidates.items()}
-    accepted = [name for name, c in candidates.items() if c["accepted"]]
-    best = min(accepted, key=bic.get) if accepted else None
-    # a rival that the data support as strongly (Delta BIC and F-test passed, BIC within
-    # INDISTINGUISHABLE_BIC of the best) cannot be told apart from it: name both, choose neither
-    rivals = [name for name, c in candidates.items() if best and name != best and c["checks"]["delta_bic"]
-              and c["checks"]["f_test"] and abs(bic[name] - bic[best]) < INDISTINGUISHABLE_BIC]
-    chosen = None if rivals else best
-    indistinguishable = sorted([best] + rivals) if rivals else []
-    after = candidates[best]["fit"] if best else base
+    after = cur
+    if gof["adequate"]:
+        verdict = "explained" if accepted else "adequate"
+    elif gof_before["reduced_chi2"] > WRONG_MODEL_CHI2:
+        # grossly inadequate and the library does not bring it to the noise
+        verdict = "wrong_model"
+    elif accepted:
+        verdict = "partly_explained"
+    elif tie:
+        verdict = "indistinguishable"
+    else:
+        verdict = "unexplained_residual"
+    first = rounds[0]["candidates"] if rounds else []
     report = {
         "kind": problem.name,
-        "n_residuals": N,
+        "n_residuals": base.n,
+        "verdict": verdict,
         "noise_floor": floor,
+        "noise_source": source,
         "error_before": float(base.rms_error[0]),
         "error_after": float(after.rms_error[0]),
-        "chosen_effect": chosen,
-        "chosen_description": next((e.description for e in library if e.name == chosen), None),
+        "accepted_effects": accepted,
+        "chosen_effect": accepted[0] if accepted else None,
+        "chosen_description": next((e.description for e in library if accepted and e.name == accepted[0]), None),
+        "steps": steps,
+        "goodness_of_fit_before": gof_before,
+        "goodness_of_fit_after": gof,
+        "unexplained_residual": None if gof["adequate"] else residual_location(problem, after.model[0], floor),
         "indistinguishable": indistinguishable,
         "indistinguishable_bic": INDISTINGUISHABLE_BIC,
-        "best_effect": best,
-        "acceptance_test": (f"accepted when Delta BIC < {DELTA_BIC:g}, F-test p < {F_TEST_P:g} (the cost drop exceeds "
-                            f"what noise gives), the held-out rows ({held}) are predicted better than by the base "
-                            f"model" + (f", and the residual after is noise (chi^2 p > {CHI2_P:g}, error after <= "
-                                        f"{NOISE_FACTOR:g} x noise floor)" if floor else "")
-                            + f"; lowest BIC among accepted; candidates within {INDISTINGUISHABLE_BIC:g} of it in BIC that "
-                              "also pass the BIC and F tests are reported as indistinguishable, none chosen"),
-        "held_out": held,
-        "second_pass": second_pass,
-        "note": (None if floor is not None else
-                 "no sigma in the data: the noise floor is unknown, so an accepted effect may explain only part of the "
-                 "residual (see explained_fraction and residual_structure_after)"),
-        "held_out_error_base": base_held_err,
+        "base_parameters": [par.label for par in base_params],
+        "pinned": list(getattr(problem.core, "pinned", ())),
+        "acceptance_test": (
+            f"one effect at a time while the fit is not adequate; at step t (0, 1, ...) a candidate is accepted when "
+            f"Delta BIC < {DELTA_BIC:g}, its F-test passes Holm-Bonferroni over the candidates refitted at that step at "
+            f"family-wise level {F_TEST_P:g}/2^t, its pooled prediction of the held-out blocks ({len(blocks)}: "
+            f"{BANDS} frequency bands and each group) beats the current model's, none of its parameters ends at a "
+            f"bound, its sensitivity does not correlate > {DEGENERATE_CORR:g} with a base parameter's; "
+            f"the lowest BIC among those is accepted when no other passing candidate lies within "
+            f"{INDISTINGUISHABLE_BIC:g} in BIC or correlates > {DEGENERATE_CORR:g} with it (else: indistinguishable, "
+            f"none chosen) and it is chosen in >= {STABILITY:.0%} of {len(samples)} resamplings (every "
+            f"{DECIMATION}rd frequency at each offset, {BOOTSTRAPS} block bootstraps)"),
+        "held_out_blocks": [name for name, _ in blocks],
+        "resamplings": [name for name, _ in samples],
+        "rounds": rounds and [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
         "parameters_before": _param_report(base),
         "parameters_after": _param_report(after),
         "base_converged": bool(base.converged[0]),
-        "candidates": [],
-        "residual_structure_before": structure_before,
+        "candidates": first,
+        "residual_structure_before": residual_structure(problem, base.model[0]),
         "residual_structure_after": residual_structure(problem, after.model[0]),
     }
-    for s in scores:
-        c = candidates.get(s["effect"])
-        row = dict(s)
-        if c is not None:
-            row.update({"refit": True, "error_after": c["error_after"], "explained_fraction": c["explained_fraction"],
-                        "delta_bic": c["delta_bic"], "F": c["F"],
-                        "p_value": c["p_value"], "held_out_error": c["held_out_error"], "checks": c["checks"],
-                        "accepted": c["accepted"], "fitted": _param_report(c["fit"])})
-        else:
-            row.update({"refit": False, "accepted": False})
-        report["candidates"].append(row)
     if drift_h:
         report["drift_before"] = drift(problem, base_params, base, fixed, None)
         report["drift_after"] = (drift(problem, base_params, after, _effect_fixed(after, base_params), after.effect)
-                                 if best else report["drift_before"])
+                                 if accepted else report["drift_before"])
     stage("drift")
     bar.close()
     report["_fits"] = {"before": base, "after": after}
     return report
+
+
+def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib: list[Effect], fixed: dict,
+          sigma, blocks, samples, top: int, alpha: float) -> dict:
+    """One step of the loop on the current model ``cur``: screen, refit (the promising
+    candidates first, the rest when none passes), test, check stability; returns the
+    round's report (``accepted``: the effect's name or None)."""
+    has_sigma = problem.has_sigma
+    N, p = cur.n, len(cur_params)
+    rss0 = float(cur.cost[0])
+    scores = screen(problem, cur, fixed, lib)
+    directions = {s["effect"]: s.pop("_direction") for s in scores}
+    usable = [s for s in scores if s["degenerate_with"] is None]
+    order = sorted(usable, key=lambda s: -s["score"])
+    promising = [s["effect"] for s in order if s["linearized_p"] < alpha][:top]
+    fits: dict = {}
+    rows_out: dict = {}
+
+    def spec(e: Effect, x0, rows=None):
+        return (cur_params + list(e.params), e if e.transform is not None else cur.effect, x0, rows)
+
+    def refit(names: list[str]) -> None:
+        """Augmented fits of ``names`` in one batch from the effect off at the current
+        solution; the held-out blocks by :func:`linear_refit`."""
+        effects = [next(x for x in lib if x.name == n) for n in names]
+        augs = fit_batch(problem, [spec(e, np.concatenate([cur.x[0], np.zeros(len(e.params))])) for e in effects],
+                         fixed, max_iter=MAX_ITER, xtol=XTOL)
+        train = [np.setdiff1d(np.arange(problem.y.size), test) for _, test in blocks]
+        base_err = np.array([linear_refit(cur, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
+        for e, aug in zip(effects, augs):
+            k = len(e.params)
+            err = np.array([linear_refit(aug, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
+            F = ((rss0 - float(aug.cost[0])) / k) / max(float(aug.cost[0]) / max(N - p - k, 1), 1e-300)
+            own = {par.label for par in e.params}
+            fits[e.name] = aug
+            rows_out[e.name] = {
+                "refit": True, "error_after": float(aug.rms_error[0]), "delta_bic": aug.bic(has_sigma) - cur.bic(has_sigma),
+                "F": F, "p_value": float(stats.f.sf(F, k, max(N - p - k, 1))),
+                "explained_fraction": (rss0 - float(aug.cost[0])) / rss0 if rss0 > 0 else 0.0,
+                "held_out_error": float(np.sqrt(err.sum() / base_err.sum())) if base_err.sum() > 0 else 0.0,
+                "held_out_blocks_better": int(np.sum(err < base_err)),
+                "at_bounds": [n for n in aug.at_bounds() if n in own], "fitted": _param_report(aug)}
+
+    refit(promising)
+    second_pass = False
+
+    def judge() -> list[str]:
+        names = list(rows_out)
+        holm_ok = holm([rows_out[n]["p_value"] for n in names], alpha)
+        passing = []
+        for n, ok in zip(names, holm_ok):
+            r = rows_out[n]
+            r["checks"] = {"delta_bic": r["delta_bic"] < DELTA_BIC, "f_test_holm": ok,
+                           "held_out": r["held_out_error"] < 1.0, "not_at_bound": not r["at_bounds"]}
+            if r["at_bounds"]:
+                r["rejected_because"] = f"fitted at a bound: {', '.join(r['at_bounds'])}"
+            if all(r["checks"].values()):
+                passing.append(n)
+        return passing
+
+    passing = judge()
+    if not passing:
+        second_pass = True
+        # the screening is linear: refit the others with something to gain too (one start)
+        rest = [s["effect"] for s in order if s["effect"] not in rows_out and s["linearized_p"] < 0.5]
+        if rest:
+            refit(rest)
+            passing = judge()
+    bic = {n: fits[n].bic(has_sigma) for n in rows_out}
+    chosen, groups, stability = None, [], {}
+    # a candidate degenerate with a base parameter that the data support is named with it
+    for s in scores:
+        if s["degenerate_with"] is not None:
+            groups.append(sorted([s["effect"], s["degenerate_with"]]))
+    tie = False
+    if passing:
+        best = min(passing, key=bic.get)
+
+        def corr(a, b):
+            da, db = directions[a], directions[b]
+            nn = np.linalg.norm(da) * np.linalg.norm(db)
+            return abs(float(da @ db)) / nn if nn > 0 else 0.0
+
+        rivals = [n for n in rows_out if n != best and rows_out[n]["checks"]["delta_bic"]
+                  and rows_out[n]["checks"]["f_test_holm"]
+                  and (abs(bic[n] - bic[best]) < INDISTINGUISHABLE_BIC or corr(n, best) > DEGENERATE_CORR)]
+        if rivals:
+            tie = True
+            groups.append(sorted([best] + rivals))
+        else:
+            contenders = [n for n in rows_out if rows_out[n]["checks"]["delta_bic"] and not rows_out[n]["at_bounds"]]
+            stability = _stability(problem, cur, contenders, fits, samples)
+            for n, v in stability.items():
+                rows_out[n]["stability"] = v
+            if stability.get(best, 0.0) >= STABILITY:
+                chosen = best
+            else:
+                rows_out[best]["rejected_because"] = (f"unstable: chosen in {stability.get(best, 0.0):.0%} of the "
+                                                      f"resamplings (< {STABILITY:.0%})")
+    rows = []
+    for s in scores:
+        row = dict(s)
+        row.update(rows_out.get(s["effect"], {"refit": False}))
+        row["accepted"] = s["effect"] == chosen
+        row.setdefault("stability", None)
+        rows.append(row)
+    return {"alpha": alpha, "second_pass": second_pass, "candidates": rows, "accepted": chosen,
+            "indistinguishable": groups, "tie": tie, "_fits": fits}
+
+
+def _stability(problem, cur: FitResult, contenders: list[str], fits: dict, samples) -> dict:
+    """Fraction of the resamplings in which each contender is chosen: the current model and
+    every contender refitted on each resampling (:func:`linear_refit`), the choice there
+    being the lowest BIC among the contenders with Delta BIC < DELTA_BIC."""
+    if not contenders or not samples:
+        return {}
+    has_sigma = problem.has_sigma
+    wins = dict.fromkeys(contenders, 0)
+    for _, rows in samples:
+        n = 2 * len(rows)
+        b = bic_of(linear_refit(cur, rows)[0], n, len(cur.names), has_sigma)
+        bics = {c: bic_of(linear_refit(fits[c], rows)[0], n, len(fits[c].names), has_sigma) for c in contenders}
+        ok = [c for c in contenders if bics[c] - b < DELTA_BIC]
+        if ok:
+            wins[min(ok, key=bics.get)] += 1
+    return {c: wins[c] / len(samples) for c in contenders}
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
@@ -232,15 +447,13 @@ def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
     return out
 
 
-
-
-def impedance_loop(data: list, reference: dict | None = None, settings=None) -> tuple[MeasurementKind, dict]:
-    """Fit the circular-pore model (porosity, pore radius, tortuosity) to all layers of one
-    material together, then let the loop find what it lacks. ``reference``: the paper's
-    values (``phi``, ``alpha_inf``, ``Lambda``, ``Lambda_prime``, ``sigma``) for the
-    comparison table."""
+def impedance_loop(data: list, reference: dict | None = None, settings=None, names=None) -> tuple[MeasurementKind, dict]:
+    """Fit the circular-pore model (porosity, pore radius, tortuosity, or ``names``) to all
+    layers of one material together, then let the loop find what it lacks. ``reference``:
+    the paper's values (``phi``, ``alpha_inf``, ``Lambda``, ``Lambda_prime``, ``sigma``)
+    for the comparison table."""
     prob = ImpedanceKind(data, settings or ForwardSettings(device="cpu"))
-    rep = run_loop(prob, default_base_params(prob), drift_h=False)
+    rep = run_loop(prob, default_base_params(prob, names), drift_h=False)
     if reference:
         before = jca_equivalent(rep["_fits"]["before"].value_dict(), prob.core)
         after = jca_equivalent(rep["_fits"]["after"].value_dict(), prob.core)

@@ -88,9 +88,13 @@ class Core:
     gas: Gas = field(default_factory=Gas)
     radius: float = 0.0167
     source: str = "<core>"
+    #: parameters the loop's base fit leaves at their core values (the ``[fit] pinned``
+    #: list of a core file, FORMATS.md)
+    pinned: tuple[str, ...] = ()
 
     def __post_init__(self):
         object.__setattr__(self, "segments", tuple(self.segments))
+        object.__setattr__(self, "pinned", tuple(self.pinned))
         validate(self)
 
     # -- structure -------------------------------------------------------------------
@@ -159,7 +163,7 @@ class Core:
             else:
                 self.get(name)  # validates the name
                 segs[owner] = dataclasses.replace(segs[owner], **{fld: float(value)})
-        return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source)
+        return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source, self.pinned)
 
     def to_dict(self) -> dict:
         """The TOML structure (FORMATS.md) of this core."""
@@ -175,6 +179,8 @@ class Core:
                 d["heater"] = True
             d.update({f: getattr(s, f) for f, off in EFFECT_OFF.items() if getattr(s, f) != off})
             out["segment"].append(d)
+        if self.pinned:
+            out["fit"] = {"pinned": list(self.pinned)}
         return out
 
 
@@ -268,9 +274,15 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             raise CoreError(f"{source}: {key!r} must be a table written {example}, got {data[key]!r}")
     if any(not isinstance(sd, dict) for sd in data.get("segment", [])):
         raise CoreError(f"{source}: every 'segment' entry must be a [[segment]] table")
-    unknown = set(data) - {"gas", "tube", "segment"}
+    unknown = set(data) - {"gas", "tube", "segment", "fit"}
     if unknown:
-        raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, tube, segment")
+        raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, tube, segment, fit")
+    fit = data.get("fit", {})
+    if not isinstance(fit, dict) or set(fit) - {"pinned"}:
+        raise CoreError(f"{source}: [fit] takes only pinned = [\"SEGMENT.FIELD\", ...], got {fit!r}")
+    pinned = fit.get("pinned", [])
+    if not isinstance(pinned, list) or not all(isinstance(n, str) for n in pinned):
+        raise CoreError(f"{source}: [fit] pinned must be a list of parameter names, got {pinned!r}")
     gas_d = dict(data.get("gas", {}))
     bad = set(gas_d) - {"name", "p_mean", "T_cold"}
     if bad:
@@ -298,7 +310,13 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             if flag in sd and not isinstance(sd[flag], bool):
                 raise CoreError(f"{where} ({sd['name']!r}): {flag} must be true or false")
         segs.append(Segment(**sd))
-    return Core(tuple(segs), gas, tube.get("radius", 0.0167), source)
+    core = Core(tuple(segs), gas, tube.get("radius", 0.0167), source, tuple(pinned))
+    for name in pinned:
+        try:
+            core.get(name)
+        except KeyError as e:
+            raise CoreError(f"{source}: [fit] pinned: {e.args[0]}") from None
+    return core
 
 
 def load_core(path: str | Path) -> Core:
@@ -350,6 +368,8 @@ def dump_core(core: Core) -> str:
         lines.append("[[segment]]")
         lines += [f"{k} = {_toml_value(v)}" for k, v in seg.items()]
         lines.append("")
+    if "fit" in d:
+        lines += ["[fit]", "pinned = [" + ", ".join(f'"{n}"' for n in d["fit"]["pinned"]) + "]", ""]
     return "\n".join(lines)
 
 

@@ -1,0 +1,101 @@
+"""Goodness of fit before effects: the noise level (given by sigma columns or estimated
+from the data), reduced chi^2 and its p-value, parameters at bounds, and where a residual
+that is not noise lives."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+from ..fit.result import ADEQUATE_P, FitResult
+from ..measure.kind import MeasurementKind
+
+#: Without sigma, the fit is adequate when its reduced chi^2 against the estimated noise is
+#: at most this (the error within sqrt(1.5) = 1.22 noise floors): the estimate itself is
+#: uncertain by a few per cent and picks up some curvature, so a p-value would be too strict.
+ADEQUATE_REDUCED_CHI2_ESTIMATED = 1.5
+#: The noise estimate's rule, as the report states it.
+NOISE_ESTIMATE = ("estimated: rms of the second differences d2 along frequency of the base fit's weighted "
+                  "residual, per coefficient (sigma = rms(d2) / sqrt(6): white noise gives var d2 = 6 sigma^2, a "
+                  "residual smooth over three frequencies cancels in d2)")
+
+
+def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
+    """Per real residual (the ``residual`` layout of :func:`tawarp.fit.problems.residual`,
+    all rows: re parts, then im parts): the estimated noise sigma in weighted units, one
+    value per coefficient (:data:`NOISE_ESTIMATE`) pooled over groups and re/im."""
+    n = problem.y.size
+    d2_all = {}
+    for part in range(2):
+        r = residual[part * n:(part + 1) * n]
+        for c in range(len(problem.coef_names)):
+            for g in np.unique(problem.group):
+                m = np.flatnonzero((problem.coef == c) & (problem.group == g))
+                if m.size < 3:
+                    continue
+                s = r[m[np.argsort(problem.freq[m])]]
+                d2_all.setdefault(c, []).append(s[:-2] - 2 * s[1:-1] + s[2:])
+    out = np.empty(2 * n)
+    pooled = np.concatenate([np.concatenate(v) for v in d2_all.values()]) if d2_all else np.zeros(0)
+    fallback = (np.sqrt(np.mean(pooled ** 2) / 6.0) if pooled.size else float(np.sqrt(np.mean(residual ** 2))))
+    for c in range(len(problem.coef_names)):
+        d2 = np.concatenate(d2_all[c]) if c in d2_all else np.zeros(0)
+        s = np.sqrt(np.mean(d2 ** 2) / 6.0) if d2.size >= 5 else fallback
+        m = problem.coef == c
+        out[:n][m] = out[n:][m] = max(s, 1e-300)
+    return out
+
+
+def noise_floor_of(problem: MeasurementKind, sigma: np.ndarray) -> float:
+    """The FORMATS.md error of data that differ from the model by noise of ``sigma``
+    (weighted units, per real residual): the weights are 1/rms|y| without sigma columns."""
+    n = problem.y.size
+    w = np.concatenate([problem.w[:, 0], problem.w[:, 1]])
+    return float(np.sqrt(np.sum((sigma / w) ** 2) / n / np.mean(np.abs(problem.y) ** 2)))
+
+
+def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray | None, source: str) -> dict:
+    """Reduced chi^2 and p-value of ``fit`` (all rows) against noise ``sigma`` per real
+    residual (None: the data's own sigma, weights 1/sigma), its noise floor, the parameters
+    at a bound (flagged, not a failure: a tortuosity of 1 is a physical value on its bound),
+    and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced chi^2 <=
+    :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise."""
+    r = fit.residuals[0]
+    chi2 = float(np.sum(r ** 2)) if sigma is None else float(np.sum((r / sigma) ** 2))
+    dof = max(r.size - len(fit.names), 1)
+    p = float(stats.chi2.sf(chi2, dof))
+    at = fit.at_bounds()
+    fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
+    floor = problem.noise_floor() if sigma is None else noise_floor_of(problem, sigma)
+    return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
+            "error": float(fit.rms_error[0]), "adequate": bool(fits), "at_bounds": at}
+
+
+def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> dict:
+    """Where the misfit of model values ``Y`` lives: the (coefficient, group) series with
+    the largest rms residual, and in it the contiguous frequency band around its largest
+    (3-point smoothed) |residual|^2 where that stays above half its peak. ``error``: the
+    FORMATS.md error on those rows (the denominator rms|y| of all rows, so it compares
+    with the noise floor)."""
+    d2 = np.abs(Y - problem.y) ** 2
+    norm = np.mean(np.abs(problem.y) ** 2)
+    groups = np.unique(problem.group)
+    best = None
+    for c in range(len(problem.coef_names)):
+        for g in groups:
+            m = np.flatnonzero((problem.coef == c) & (problem.group == g))
+            if m.size and (best is None or d2[m].mean() > best[0]):
+                best = (d2[m].mean(), c, g, m[np.argsort(problem.freq[m])])
+    _, c, g, m = best
+    s = np.convolve(d2[m], np.ones(3) / 3, mode="same") if m.size >= 3 else d2[m]
+    k = int(np.argmax(s))
+    lo = k
+    while lo > 0 and s[lo - 1] >= 0.5 * s[k]:
+        lo -= 1
+    hi = k
+    while hi < m.size - 1 and s[hi + 1] >= 0.5 * s[k]:
+        hi += 1
+    band = m[lo:hi + 1]
+    return {"band_Hz": [float(problem.freq[band].min()), float(problem.freq[band].max())],
+            "group": float(g) if len(groups) > 1 else None, "coefficient": problem.coef_names[c],
+            "error": float(np.sqrt(d2[band].mean() / norm)), "noise_floor": floor}
