@@ -245,14 +245,18 @@ def test_loop_on_measured_foams(name, tmp_path):
         assert rep["accepted_effects"] == []
         assert all(c["stability"] is None or c["stability"] < 0.7 for c in rep["candidates"])
     else:
-        # what the circular-pore model lacks first is the separate thermal radius; what is
-        # left lives in the thickest sample above 1 kHz (the frame resonance of issue 9)
-        assert rep["accepted_effects"][:1] == ["thermal_radius_ratio"]
-        assert rep["error_after"] < 0.95 * rep["error_before"]
+        # foam2's thick layer has a frame resonance near 1.3 kHz (issue 9): the elastic frame
+        # comes first, stable over the resamplings, then the separate thermal radius; the
+        # error ends below a rigid JCA model's best fit (0.057-0.059 on these data, issue 9)
+        assert rep["accepted_effects"][:2] == ["elastic_frame", "thermal_radius_ratio"]
+        assert rep["steps"][0]["stability"] >= 0.9
+        assert rep["error_after"] < 0.05 < 0.7 * rep["error_before"]
+        fitted = {k: v["value"] for k, v in rep["parameters_after"].items()}
+        # a soft polymer foam: E of order MPa, loss factor of order 0.1 (Allard & Atalla)
+        assert 5e5 < 1.0 / fitted["layer.frame_compliance"] < 2e7
+        assert 0.03 < fitted["layer.frame_loss_factor"] < 0.5
         c = js["comparison"]
         assert 1.2 < c["Lambda_prime"]["after"] / c["Lambda"]["after"] < 2.4
-        assert abs(c["phi"]["after"] - ref["phi"]) < abs(c["phi"]["before"] - ref["phi"])
-        assert u["group"] == max(d.thickness for d in data) and u["band_Hz"][1] > 1000.0
 
 
 def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
