@@ -184,7 +184,7 @@ def openthermoacoustics_rate(n_freqs: int = 8) -> dict:
         return {"available": False, "reason": str(e)}
     R = 0.0167
     gas = Air(mean_pressure=101325.0)
-    segs = [Duct(0.03, R), Stack(0.048, 0.9, 0.47e-3 / 2, area=np.pi * R**2, geometry=CircularPore(),
+    segs = [Duct(0.03, R), Stack(0.048, 0.9, 0.47e-3, area=np.pi * R**2, geometry=CircularPore(),
                                  solid_thermal_conductivity=3.0, T_hot=600.0, T_cold=293.15), Duct(0.03, R)]
     f = np.linspace(30, 500, n_freqs)
     t0 = time.perf_counter()

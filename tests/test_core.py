@@ -90,3 +90,13 @@ def test_get_and_replace_by_parameter_name():
     np.testing.assert_allclose(c2.positions(), core.positions(), rtol=0, atol=0)
     with pytest.raises(KeyError, match="no segment named 'nope'"):
         core.get("nope.length")
+
+
+def test_replace_refuses_unknown_names_by_name():
+    # a misspelt parameter is a KeyError that names it, for gas fields too (was a TypeError
+    # from the Gas dataclass)
+    core = load_core("ceramic")
+    for name in ("gas.T_hot", "stack.porosty", "tube.length"):
+        with pytest.raises(KeyError, match=name.partition(".")[2] if name != "tube.length" else "tube"):
+            core.replace(**{name: 1.0})
+    assert core.replace(**{"gas.T_cold": 300.0}).gas.T_cold == 300.0

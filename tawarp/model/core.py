@@ -156,12 +156,12 @@ class Core:
         gas, radius, segs = self.gas, self.radius, {s.name: s for s in self.segments}
         for name, value in values.items():
             owner, fld = _split(name, self.source)
+            self.get(name)  # validates the name: an unknown one is a KeyError that names it
             if owner == "gas":
                 gas = dataclasses.replace(gas, **{fld: float(value)})
             elif owner == "tube" and fld == "radius":
                 radius = float(value)
             else:
-                self.get(name)  # validates the name
                 segs[owner] = dataclasses.replace(segs[owner], **{fld: float(value)})
         return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source, self.pinned)
 
