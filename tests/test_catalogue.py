@@ -81,3 +81,20 @@ def test_draws_are_clipped_to_the_fit_ranges_of_the_parameter_table():
     # porosity upper bound 1.0: P(x > 1) = 1 - Phi(0.5) = 0.3085; tortuosity lower 1.0: Phi(-1) = 0.1587
     assert np.mean(d["porosity"] == 1.0) == pytest.approx(1 - norm.cdf(0.5), abs=0.01)
     assert np.mean(d["tortuosity"] == 1.0) == pytest.approx(norm.cdf(-1.0), abs=0.01)
+
+
+def test_fit_json_of_a_two_step_fit_carries_h_from_every_heat_input(tmp_path):
+    # tawarp fit's two-step output holds the stack's h per heat input (step2): the material's
+    # h_s is their inverse-variance mean, its std the larger of the standard error and the
+    # spread over the heat inputs (closed form below)
+    hs, sd = np.array([48.0, 50.0, 55.0]), np.array([1.0, 2.0, 2.0])
+    fit = {"core": "mesh", "parameters": {"stack.porosity": {"value": 0.7, "std": 0.01}},
+           "correlation": {"names": ["stack.porosity"], "matrix": [[1.0]]},
+           "step2": [{"heat_input_W": q, "parameters": {"stack.h": {"value": h, "std": s}, "tbt.h": {"value": 0.2, "std": 0.01}}}
+                     for q, h, s in zip((10.0, 20.0, 40.0), hs, sd)]}
+    (tmp_path / "fit.json").write_text(json.dumps(fit))
+    m = Material.from_fit_json(tmp_path / "fit.json")
+    w = 1 / sd**2
+    assert m.h_s == pytest.approx(np.sum(w * hs) / np.sum(w), rel=1e-12)
+    assert m.std["h_s"] == pytest.approx(max(1 / np.sqrt(w.sum()), np.std(hs, ddof=1)), rel=1e-12)
+    assert m.porosity == 0.7

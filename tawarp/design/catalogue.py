@@ -165,7 +165,8 @@ class Material:
         also as a list of ``{"name", "value", "std"}``. Fitted parameters of ``segment``
         (``stack.porosity``, ``stack.pore_radius``, ``stack.tortuosity``,
         ``stack.solid_conductivity``, ``stack.h``) set the material; others (``hot_hx.h``)
-        are ignored. Unfitted values come from ``base`` (a Material, a catalogue name, or,
+        are ignored. A two-step fit's h (one per heat input in ``step2``) gives ``h_s`` by
+        :func:`_h_over_heat_inputs`. Unfitted values come from ``base`` (a Material, a catalogue name, or,
         when None, the core named by the file's ``core`` key)."""
         path = Path(path)
         try:
@@ -221,6 +222,11 @@ class Material:
             s = params[k].get("std")
             std[p] = float(s) if s is not None and math.isfinite(float(s)) else 0.0
             order.append((p, k))
+        h_key = f"{segment}.h"
+        if h_key not in params:
+            hv, hs = _h_over_heat_inputs(data.get("step2"), h_key)
+            if hv is not None:
+                values["h_s"], std["h_s"] = hv, hs
         full = None
         if C is not None and order:
             full = np.eye(len(PARAMS))
@@ -229,6 +235,28 @@ class Material:
                     if k1 in cnames and k2 in cnames:
                         full[PARAMS.index(p1), PARAMS.index(p2)] = C[cnames.index(k1), cnames.index(k2)]
         return cls(name or path.stem, std=std, correlation=full, source=str(path), **values)
+
+
+def _h_over_heat_inputs(step2, h_key: str) -> tuple[float | None, float]:
+    """h of a two-step fit's step 2 (one fit per heat input) as one material value: the
+    inverse-variance mean over the heat inputs, with the larger of its standard error and
+    the spread over the heat inputs (the paper's h drifts with Q, so the spread is part of
+    what is not known about the material). (None, 0) when no step-2 entry fitted it."""
+    vals, stds = [], []
+    for entry in step2 or ():
+        par = (entry.get("parameters") or {}).get(h_key) if isinstance(entry, dict) else None
+        if isinstance(par, dict) and par.get("value") is not None and math.isfinite(float(par["value"])):
+            vals.append(float(par["value"]))
+            s = par.get("std")
+            stds.append(float(s) if s is not None and math.isfinite(float(s)) and float(s) > 0 else math.inf)
+    if not vals:
+        return None, 0.0
+    v, s = np.array(vals), np.array(stds)
+    w = np.where(np.isfinite(s), 1.0 / s**2, 0.0)
+    mean = float(np.sum(w * v) / np.sum(w)) if np.sum(w) > 0 else float(np.mean(v))
+    se = float(1.0 / np.sqrt(np.sum(w))) if np.sum(w) > 0 else 0.0
+    spread = float(np.std(v, ddof=1)) if len(v) > 1 else 0.0
+    return mean, max(se, spread)
 
 
 #: Where the paper's standard deviations come from, and tawarp's choices where it gives none.
