@@ -19,6 +19,8 @@ from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
                      FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 TWO_PI = wp.constant(wp.float64(6.283185307179586))
 PI = wp.constant(wp.float64(3.141592653589793))
 # Gauss-Legendre points of [0, 1] for the three-point rule: 1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10
@@ -162,7 +164,8 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
         out[i, j, 7] = m.d[1]
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
-    return wp.kernel(transfer_kernel, module="unique", **kw)
+    # a unique module does not inherit this file's module options
+    return wp.kernel(transfer_kernel, module="unique", enable_backward=False, **kw)
 
 
 @wp.kernel

@@ -34,6 +34,8 @@ from .layout import (CONDUCTIVITY_EXPONENT, F_HEATER, F_POROUS, F_THERMAL, H, H_
                      RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE, seg_value)
 from .gas import conductivity
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 PI = wp.constant(wp.float64(3.141592653589793))
 
 

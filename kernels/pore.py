@@ -44,6 +44,8 @@ import warp as wp
 
 from .cmath import cabs, cdiv, cexp, cinv, cmul, cplx, cscale
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
 #: Pore geometries by their name in a core file (``pore_model``) -> the kernels' constant.
