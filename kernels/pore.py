@@ -152,14 +152,6 @@ def pore_plates(s: wp.float64):
     return _plates_exponential(s)
 
 
-@wp.func
-def pore_functions(model: int, s: wp.float64):
-    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES)."""
-    if model == PORE_PLATES:
-        return pore_plates(s)
-    return pore_circular(s)
-
-
 # -- complex argument (complex frequency, tawarp.model.onset) ---------------------------------
 # At complex omega, s = r / delta = r sqrt(rho omega / (2 mu)) is complex too (principal
 # root, so Re s > 0 for Re omega > 0). The same four methods hold with s complex; the

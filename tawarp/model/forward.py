@@ -32,6 +32,7 @@ from .validity import check_results, check_sets
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
+from ..kernels.pore_table import circular_table
 
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
 #: accuracy of each setting against the converged NumPy reference.
@@ -251,6 +252,7 @@ class Engine:
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
+        self.pore_table = circular_table(dev)
         self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
@@ -310,7 +312,8 @@ class Engine:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         wp.launch(self.transfer_kernel, dim=(n, len(self.freqs)),
                   inputs=[params, self.flags, self.gas, theta, self.w_freqs, self.seg_cells,
-                          float(self.settings.cell_density), self.first, self.heat_cells, out], device=self.device,
+                          float(self.settings.cell_density), self.first, self.heat_cells, self.pore_table, out],
+                  device=self.device,
                   block_dim=self.settings.block_dim)
         return out, params, theta
 
