@@ -17,8 +17,7 @@ import warp as wp
 
 from .cmath import cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
-from .pore import pore_functions_complex
-from .pore_table import pore_functions
+from .pore import pore_functions, pore_functions_complex
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 

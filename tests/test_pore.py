@@ -11,10 +11,15 @@ from tawarp.kernels.pore import (
     PLATES_EXPONENTIAL_S,
     PORE_CIRCULAR,
     PORE_PLATES,
+    PIECES,
+    PIECES_PER_OCTAVE,
+    S_MAX,
+    S_MIN,
     pore_circular,
+    pore_functions,
     pore_plates,
 )
-from tawarp.kernels.pore_table import PIECES, S_MAX, S_MIN, circular_table, pore_functions
+from tawarp.kernels.pore_table import circular_table
 
 DEVICE = "cpu"
 TOL = 1e-13
@@ -127,7 +132,7 @@ def test_circular_recurrence_and_hankel_against_mpmath():
 def test_table_at_piece_boundaries_and_random_points():
     # both sides of every piece boundary (where a Chebyshev series is least accurate)
     # and 1500 random log-spaced points, 5 seeds' worth of the range
-    edges = S_MIN * 2.0 ** (np.arange(PIECES + 1) / 4.0)
+    edges = S_MIN * 2.0 ** (np.arange(PIECES + 1) / PIECES_PER_OCTAVE)
     edges = edges[(edges > S_MIN) & (edges < S_MAX)]
     rng = np.random.default_rng(11)
     s = np.concatenate([np.nextafter(edges, 0.0), edges, np.nextafter(edges, np.inf),
