@@ -19,6 +19,8 @@ from .cmath import cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
 from .pore import pore_functions, pore_functions_complex
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 
 @wp.struct
 class CMat2:
@@ -88,14 +90,15 @@ def expm2(m: CMat2):
 def propagation_matrix(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.float64,
                        T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
                        tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
-                       frame_mobility: wp.float64, shape_factor: wp.float64):
+                       frame_mobility: wp.float64, shape_factor: wp.float64, pore_table: wp.array(dtype=wp.float64)):
     """A(x) of the two-port ODE at local temperature T [K], gradient dTdx [K/m],
     angular frequency omega [rad/s], tube section area [m^2]. ``pore_radius`` sets f_nu
     and ``thermal_radius`` f_k (the same for the one-radius model; a separate thermal
     radius is the Johnson-Champoux-Allard Lambda'/Lambda effect). ``frame_mobility`` =
     1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame limp: 0 = rigid.
     ``shape_factor`` s != 1 (circular pores only) gives the viscous function its own
-    high-frequency length Lambda = r/s at the same flow resistivity (:func:`shape_correction`)."""
+    high-frequency length Lambda = r/s at the same flow resistivity (:func:`shape_correction`).
+    ``pore_table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
     rho = density(gas, T, p_mean)
     c2 = sound_speed_squared(gas, T)
     mu = viscosity(gas, T)
@@ -106,8 +109,8 @@ def propagation_matrix(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omeg
     # r/delta with delta_nu = sqrt(2 mu/(rho w)), delta_k = sqrt(2 k/(rho cp w))
     s_nu = pore_radius * wp.sqrt(rho * omega / (wp.float64(2.0) * mu))
     s_k = thermal_radius * wp.sqrt(rho * cp * omega / (wp.float64(2.0) * kappa))
-    f_nu, g_nu = pore_functions(pore_model, s_nu)
-    f_k, g_k = pore_functions(pore_model, s_k)
+    f_nu, g_nu = pore_functions(pore_model, s_nu, pore_table)
+    f_k, g_k = pore_functions(pore_model, s_k, pore_table)
     if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
         g_nu = cdiv(g_nu, shape_correction(s_nu, shape_factor))
     a12 = cmuli(cdiv(creal(tortuosity * tortuosity * rho * omega / (porosity * area)), g_nu))

@@ -2,6 +2,8 @@
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 complex128 = wp.vec2d
 
 

@@ -18,6 +18,8 @@ import warp as wp
 from .heat import cell_coeffs_at, cell_profile, segment_nonlinear, tanhx_x
 from .layout import LENGTH, RADIUS, T_COLD, seg_value
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 
 @wp.func
 def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),

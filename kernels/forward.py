@@ -19,6 +19,8 @@ from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
                      FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 TWO_PI = wp.constant(wp.float64(6.283185307179586))
 PI = wp.constant(wp.float64(3.141592653589793))
 # Gauss-Legendre points of [0, 1] for the three-point rule: 1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10
@@ -91,12 +93,12 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
                     heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64, xi: wp.float64,
                     p_mean: wp.float64, omega: wp.float64, T_cold: wp.float64, phi: wp.float64, r: wp.float64,
                     q: wp.float64, model: int, area: wp.float64, r_k: wp.float64, mob: wp.float64, sf: wp.float64,
-                    nonlin: int):
+                    nonlin: int, pore_table: wp.array(dtype=wp.float64)):
     """A(x) at local position xi [m] of thermal segment s whose heat cells start at node0;
     (k, sigma) are the segment's (unused when ``nonlin``: the Kirchhoff cell's profile,
     :func:`tawarp.kernels.heat.nonlinear_profile`)."""
     th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
-    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
+    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf, pore_table)
 
 
 def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
@@ -109,12 +111,14 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                         gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
                         freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
                         cell_density: wp.array(dtype=wp.float64), first: int, heat_cells: int,
+                        pore_table: wp.array(dtype=wp.float64),
                         out: wp.array3d(dtype=wp.float64)):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
         frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
         that is 0, ceil(cell_density[i] (1 + k L + w L / c_cold)) cells: the profile varies
         on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
-        cell scales with the sixth power of its length over those scales."""
+        cell scales with the sixth power of its length over those scales. ``pore_table``:
+        :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
         i, j = wp.tid()
         omega = TWO_PI * freqs[j]
         p_mean = params[P_MEAN, i]
@@ -130,7 +134,8 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
             sf = shape_factor(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
             if flags[s, F_THERMAL] == 0:
-                a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf)
+                a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf,
+                                       pore_table)
                 m = matmul2(expm2(scale2(a, length)), m)
             else:
                 lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
@@ -147,11 +152,11 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                 for c in range(n_cells):
                     x0 = wp.float64(c) * h
                     a1 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
                     a2 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
                     a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin)
+                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
                     m = matmul2(magnus6_step(a1, a2, a3, h), m)
         out[i, j, 0] = m.a[0]
         out[i, j, 1] = m.a[1]
@@ -163,7 +168,8 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
         out[i, j, 7] = m.d[1]
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
-    return wp.kernel(transfer_kernel, module="unique", **kw)
+    # a unique module does not inherit this file's module options
+    return wp.kernel(transfer_kernel, module="unique", enable_backward=False, **kw)
 
 
 @wp.kernel

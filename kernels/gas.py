@@ -8,6 +8,8 @@ mu_sutherland, k0, k_exponent, k_sutherland. Transport laws:
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 G_R, G_CP, G_GAMMA, G_MU0, G_MUA, G_MUS, G_K0, G_KA, G_KS = range(9)
 T_REF = wp.constant(wp.float64(273.15))
 

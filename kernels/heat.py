@@ -39,6 +39,8 @@ from .layout import (CONDUCTIVITY_EXPONENT, END_CONDUCTANCE, F_HEATER, F_POROUS,
                      seg_value)
 from .gas import conductivity
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 PI = wp.constant(wp.float64(3.141592653589793))
 
 

@@ -9,6 +9,8 @@ what is fixed for a whole batch: the structure of the core.
 
 import warp as wp
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 # global rows
 T_COLD, P_MEAN, RADIUS, HEAT_INPUT = range(4)
 N_GLOBAL = 4

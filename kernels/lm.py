@@ -31,6 +31,8 @@ from .gas import conductivity, sound_speed_squared, viscosity
 from .heat import segment_heat_coeffs
 from .layout import F_THERMAL, LENGTH, T_COLD, seg_value
 
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
 
 @wp.kernel(enable_backward=False)
 def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),

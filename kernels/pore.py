@@ -34,15 +34,23 @@ mpmath at 40 digits, see tests/test_pore.py):
 * plates, s >= 1: tanh(w) = (1 - q) / (1 + q) with q = exp(-2w), |q| = exp(-2s)
   <= exp(-2), so nothing overflows or cancels, and g = 1 - f with |f| <= 0.8.
 
+The kernels take circular f, g at real s from a Chebyshev table instead
+(:func:`pore_circular_tabulated`, built by :mod:`.pore_table` from :func:`pore_circular`):
+one short series instead of the recurrence, accurate to ~5e-15.
+
 Accuracy, relative to |f| and to |g| separately, for s in [1e-4, 1e4] on the
 CPU: below 1e-15 (largest of 20000 random log-spaced s: 8.0e-16 for f and
 7.4e-16 for g of the tube, 4.1e-16 and 4.6e-16 for the plates); the tests
 assert 1e-13.
 """
 
+import math
+
 import warp as wp
 
 from .cmath import cabs, cdiv, cexp, cinv, cmul, cplx, cscale
+
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
@@ -150,12 +158,66 @@ def pore_plates(s: wp.float64):
     return _plates_exponential(s)
 
 
+# -- circular pores from a table (the kernels' path at real s) -----------------------------------
+# Pieces of a quarter octave in u = ln s over [S_MIN, S_MAX], TERMS Chebyshev terms each;
+# the host builds the table (tawarp.kernels.pore_table, which says why these sizes).
+
+S_MIN = 1.0e-3
+S_MAX = 1.0e4
+PIECES_PER_OCTAVE = 4
+TERMS = 12
+
+TABLE_PIECE_WIDTH = math.log(2.0) / PIECES_PER_OCTAVE
+PIECES = math.ceil(math.log(S_MAX / S_MIN) / TABLE_PIECE_WIDTH - 1e-9)
+
+TABLE_S_MIN = wp.constant(wp.float64(S_MIN))
+TABLE_S_MAX = wp.constant(wp.float64(S_MAX))
+TABLE_LOG_S_MIN = wp.constant(wp.float64(math.log(S_MIN)))
+TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
+TABLE_PIECES = wp.constant(PIECES)
+TABLE_TERMS = wp.constant(TERMS)
+
+
 @wp.func
-def pore_functions(model: int, s: wp.float64):
-    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES)."""
+def pore_circular_tabulated(table: wp.array(dtype=wp.float64), s: wp.float64):
+    """f, g of a circular pore, s = r / delta > 0, from ``table``
+    (:func:`tawarp.kernels.pore_table.circular_table`).
+    Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
+    Chebyshev coefficients."""
+    if not (s >= TABLE_S_MIN and s < TABLE_S_MAX):   # also NaN: never an index from it
+        return pore_circular(s)
+    u = (wp.log(s) - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
+    k = wp.min(int(u), TABLE_PIECES - 1)
+    t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
+    base = k * (2 * TABLE_TERMS + 1)
+    # Clenshaw's recurrence for sum c_j T_j(t), real and imaginary parts together
+    two_t = t + t
+    b1r = wp.float64(0.0)
+    b1i = wp.float64(0.0)
+    b2r = wp.float64(0.0)
+    b2i = wp.float64(0.0)
+    for jj in range(TABLE_TERMS - 1):
+        j = base + 1 + 2 * (TABLE_TERMS - 1 - jj)
+        br = table[j] + two_t * b1r - b2r
+        bi = table[j + 1] + two_t * b1i - b2i
+        b2r = b1r
+        b2i = b1i
+        b1r = br
+        b1i = bi
+    p = wp.vec2d(table[base + 1] + t * b1r - b2r, table[base + 2] + t * b1i - b2i)
+    q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
+    if table[base] != wp.float64(0.0):
+        return q, p
+    return p, q
+
+
+@wp.func
+def pore_functions(model: int, s: wp.float64, table: wp.array(dtype=wp.float64)):
+    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES) at s = r / delta > 0;
+    ``table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
     if model == PORE_PLATES:
         return pore_plates(s)
-    return pore_circular(s)
+    return pore_circular_tabulated(table, s)
 
 
 # -- complex argument (complex frequency, tawarp.model.onset) ---------------------------------

@@ -1,4 +1,5 @@
-"""Pore functions f, g of tawarp.kernels.pore against mpmath (40 digits)."""
+"""Pore functions f, g of tawarp.kernels.pore and of the circular-pore table
+(tawarp.kernels.pore_table, the kernels' path at real s) against mpmath (40 digits)."""
 
 import mpmath
 import numpy as np
@@ -10,10 +11,15 @@ from tawarp.kernels.pore import (
     PLATES_EXPONENTIAL_S,
     PORE_CIRCULAR,
     PORE_PLATES,
+    PIECES,
+    PIECES_PER_OCTAVE,
+    S_MAX,
+    S_MIN,
     pore_circular,
     pore_functions,
     pore_plates,
 )
+from tawarp.kernels.pore_table import circular_table
 
 DEVICE = "cpu"
 TOL = 1e-13
@@ -26,11 +32,12 @@ S_GRID = np.concatenate([np.geomspace(1e-3, 1e3, 300), [1e-4, 3e-4, 3e3, 1e4]])
 def _eval_model(
     model: int,
     s: wp.array(dtype=wp.float64),
+    table: wp.array(dtype=wp.float64),
     f: wp.array(dtype=wp.vec2d),
     g: wp.array(dtype=wp.vec2d),
 ):
     i = wp.tid()
-    fi, gi = pore_functions(model, s[i])
+    fi, gi = pore_functions(model, s[i], table)
     f[i] = fi
     g[i] = gi
 
@@ -39,11 +46,13 @@ def _eval_model(
 def _eval_direct(
     s: wp.array(dtype=wp.float64),
     fc: wp.array(dtype=wp.vec2d),
+    gc: wp.array(dtype=wp.vec2d),
     fp: wp.array(dtype=wp.vec2d),
 ):
     i = wp.tid()
     fi, gi = pore_circular(s[i])
     fc[i] = fi
+    gc[i] = gi
     fi, gi = pore_plates(s[i])
     fp[i] = fi
 
@@ -54,12 +63,32 @@ def _to_complex(a):
 
 
 def evaluate(model, s):
-    """f, g of ``model`` at the values ``s``, as complex numpy arrays."""
+    """f, g of ``model`` at the values ``s`` as the kernels compute them (circular pores
+    from the table), as complex numpy arrays."""
     s_wp = wp.array(np.asarray(s, dtype=np.float64), dtype=wp.float64, device=DEVICE)
     f = wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE)
     g = wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE)
-    wp.launch(_eval_model, dim=len(s), inputs=[model, s_wp, f, g], device=DEVICE)
+    wp.launch(_eval_model, dim=len(s), inputs=[model, s_wp, circular_table(DEVICE), f, g], device=DEVICE)
     return _to_complex(f), _to_complex(g)
+
+
+def evaluate_direct(s):
+    """f, g of :func:`pore_circular` (recurrence and Hankel series) and f of
+    :func:`pore_plates` at ``s``."""
+    s_wp = wp.array(np.asarray(s, dtype=np.float64), dtype=wp.float64, device=DEVICE)
+    fc, gc, fp = (wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE) for _ in range(3))
+    wp.launch(_eval_direct, dim=len(s), inputs=[s_wp, fc, gc, fp], device=DEVICE)
+    return _to_complex(fc), _to_complex(gc), _to_complex(fp)
+
+
+def max_rel_err(model, s, f, g):
+    """Largest relative error of f and of g against mpmath at the points s."""
+    err_f = err_g = 0.0
+    for si, fi, gi in zip(s, f, g):
+        rf, rg = reference(model, si)
+        err_f = max(err_f, rel_err(fi, rf))
+        err_g = max(err_g, rel_err(gi, rg))
+    return err_f, err_g
 
 
 def reference(model, s):
@@ -86,23 +115,55 @@ def model(request):
 
 def test_accuracy_against_mpmath(model):
     f, g = evaluate(model, S_GRID)
-    err_f = err_g = 0.0
-    for si, fi, gi in zip(S_GRID, f, g):
-        rf, rg = reference(model, si)
-        err_f = max(err_f, rel_err(fi, rf))
-        err_g = max(err_g, rel_err(gi, rg))
+    err_f, err_g = max_rel_err(model, S_GRID, f, g)
     print(f"model {model}: max relative error f {err_f:.2e}, g {err_g:.2e}")
     assert err_f <= TOL
     assert err_g <= TOL
 
 
-def test_direct_funcs_match_dispatch():
-    s_wp = wp.array(S_GRID, dtype=wp.float64, device=DEVICE)
-    fc = wp.zeros(len(S_GRID), dtype=wp.vec2d, device=DEVICE)
-    fp = wp.zeros(len(S_GRID), dtype=wp.vec2d, device=DEVICE)
-    wp.launch(_eval_direct, dim=len(S_GRID), inputs=[s_wp, fc, fp], device=DEVICE)
-    np.testing.assert_array_equal(_to_complex(fc), evaluate(PORE_CIRCULAR, S_GRID)[0])
-    np.testing.assert_array_equal(_to_complex(fp), evaluate(PORE_PLATES, S_GRID)[0])
+def test_circular_recurrence_and_hankel_against_mpmath():
+    # the functions the table is built from, and used outside it
+    fc, gc, _ = evaluate_direct(S_GRID)
+    err_f, err_g = max_rel_err(PORE_CIRCULAR, S_GRID, fc, gc)
+    assert err_f <= TOL
+    assert err_g <= TOL
+
+
+def test_table_at_piece_boundaries_and_random_points():
+    # both sides of every piece boundary (where a Chebyshev series is least accurate)
+    # and 1500 random log-spaced points, 5 seeds' worth of the range
+    edges = S_MIN * 2.0 ** (np.arange(PIECES + 1) / PIECES_PER_OCTAVE)
+    edges = edges[(edges > S_MIN) & (edges < S_MAX)]
+    rng = np.random.default_rng(11)
+    s = np.concatenate([np.nextafter(edges, 0.0), edges, np.nextafter(edges, np.inf),
+                        [S_MIN, np.nextafter(S_MAX, 0.0)],
+                        np.exp(rng.uniform(np.log(S_MIN), np.log(S_MAX), 1500))])
+    f, g = evaluate(PORE_CIRCULAR, s)
+    err_f, err_g = max_rel_err(PORE_CIRCULAR, s, f, g)
+    print(f"table: max relative error f {err_f:.2e}, g {err_g:.2e} at {len(s)} points")
+    assert err_f <= TOL
+    assert err_g <= TOL
+
+
+@pytest.mark.parametrize("edge", [S_MIN, S_MAX], ids=["s_min", "s_max"])
+def test_table_continuous_at_its_ends(edge):
+    s = [np.nextafter(edge, 0.0), edge]
+    f, g = evaluate(PORE_CIRCULAR, s)
+    assert abs(f[1] - f[0]) <= TOL * abs(f[1])
+    assert abs(g[1] - g[0]) <= TOL * abs(g[1])
+
+
+def test_table_matches_direct_functions_and_plates_dispatch():
+    fc, gc, fp = evaluate_direct(S_GRID)
+    ft, gt = evaluate(PORE_CIRCULAR, S_GRID)
+    np.testing.assert_allclose(ft, fc, rtol=TOL, atol=0)
+    np.testing.assert_allclose(gt, gc, rtol=TOL, atol=0)
+    np.testing.assert_array_equal(fp, evaluate(PORE_PLATES, S_GRID)[0])
+
+
+def test_nan_argument_does_not_index_the_table():
+    f, g = evaluate(PORE_CIRCULAR, [np.nan])
+    assert np.isnan(f[0]) or np.isnan(g[0])
 
 
 @pytest.mark.parametrize(

@@ -33,6 +33,7 @@ from .validity import ValidityWarning, check_results, check_sets
 from ..progress import progress_bar
 from ..kernels import forward as kf
 from ..kernels import layout
+from ..kernels.pore_table import circular_table
 
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
 #: accuracy of each setting against the converged NumPy reference.
@@ -267,6 +268,7 @@ class Engine:
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
+        self.pore_table = circular_table(dev)
         self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
         self._modules_loaded = False
 
@@ -334,7 +336,7 @@ class Engine:
     def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array):
         wp.launch(self.transfer_kernel, dim=(params.shape[1], freqs.shape[0]),
                   inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
-                          self.heat_cells, out], device=self.device, block_dim=self.settings.block_dim)
+                          self.heat_cells, self.pore_table, out], device=self.device, block_dim=self.settings.block_dim)
 
     def cell_densities(self, params: wp.array, theta: wp.array) -> wp.array:
         """Adaptive cell density (n,) of each set (:class:`ForwardSettings`): ``cell_density``,
