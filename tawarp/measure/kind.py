@@ -104,16 +104,19 @@ def fit_cells(core: Core, freq: float, values: dict | None = None, settings: For
     """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
     segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
     non-thermal segments); ``k_factor`` > 1 sizes for a heat decay rate k that many times
-    larger (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
+    larger (:mod:`tawarp.kernels.lm`'s ``magnus_cells``). With (n,) arrays among the
+    values: (n, n_segments), one row per parameter set, from one launch."""
     settings = settings or ForwardSettings()
     names = list(values or {})
+    cols = [np.asarray(values[k], dtype=float) for k in names]
+    n = max([c.size for c in cols if c.ndim], default=1)
     eng = Engine(core, [freq], names, dataclasses.replace(settings, cells=None))
-    params, _ = eng.heat(np.array([[0.0]] + [[float(values[k])] for k in names]))
-    cells = wp.empty((1, len(core.segments)), dtype=wp.int32, device=eng.device)
-    wp.launch(klm.magnus_cells, dim=(1, len(core.segments)), device=eng.device,
+    params, _ = eng.heat(np.stack([np.zeros(n)] + [np.broadcast_to(c, (n,)) for c in cols]))
+    cells = wp.empty((n, len(core.segments)), dtype=wp.int32, device=eng.device)
+    wp.launch(klm.magnus_cells, dim=(n, len(core.segments)), device=eng.device,
               inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), float(settings.cell_density),
                       float(k_factor), cells])
-    return cells.numpy()[0]
+    return cells.numpy() if any(c.ndim for c in cols) else cells.numpy()[0]
 
 
 _ENGINES: dict = {}
