@@ -33,21 +33,21 @@ import time
 import numpy as np
 
 READ_SCRIPT = """
-import resource, sys, time, tracemalloc
+import sys, time, tracemalloc
 from tawarp.measure.files import read_tmatrix_csv
 
-def rss():
-    with open("/proc/self/statm") as f:
-        return int(f.read().split()[1]) * resource.getpagesize()
+def status(key):  # this process's own memory [bytes]: VmRSS now, VmHWM its peak
+    with open("/proc/self/status") as f:
+        return next(int(line.split()[1]) * 1024 for line in f if line.startswith(key + ":"))
 
-before = rss()
+before = status("VmRSS")
 tracemalloc.start()
 t0 = time.perf_counter()
 data = read_tmatrix_csv(sys.argv[1])
 dt = time.perf_counter() - t0
 traced = tracemalloc.get_traced_memory()[1]
 tracemalloc.stop()
-print(before, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024, traced, dt, len(data))
+print(before, status("VmHWM"), traced, dt, len(data))
 """
 
 
@@ -72,8 +72,9 @@ def write_big_csv(path: str, megabytes: float) -> dict:
 
 
 def read_memory(path: str) -> dict:
-    """Peak memory of reading ``path`` in a fresh process: ``peak_rss`` (``ru_maxrss``, the
-    whole process), ``rss_before_read`` (resident memory once tawarp is imported; the
+    """Peak memory of reading ``path`` in a fresh process (Linux): ``peak_rss`` (``VmHWM``,
+    the process's own peak; ``ru_maxrss`` would carry over the parent's from before the
+    exec), ``rss_before_read`` (resident memory once tawarp is imported; the
     imports' own transient peak can exceed it) and ``peak_allocated`` (tracemalloc's peak
     of what the read itself allocated, Python objects and NumPy arrays; timed separately,
     as tracing slows Python down)."""
