@@ -36,11 +36,11 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 @wp.kernel(enable_backward=False)
 def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                 gas: wp.array(dtype=wp.float64), omega: wp.float64, cell_density: wp.float64,
+                 gas: wp.array(dtype=wp.float64), omega: wp.float64, cell_density: wp.array(dtype=wp.float64),
                  k_factor: wp.float64, cells: wp.array2d(dtype=wp.int32)):
     """cells[i, s]: the Magnus cells the cascade kernel (``kernels.forward.transfer_kernel``)
     gives thermal segment s of parameter set i at angular frequency ``omega`` [rad/s],
-    ``ceil(cell_density (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
+    ``ceil(cell_density[i] (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
     rate k of :func:`segment_heat_coeffs` (wall conductance and every other term included);
     ``k_factor = 1`` is the kernel's own count, > 1 leaves room for k to grow. 0 for
     non-thermal segments."""
@@ -50,7 +50,7 @@ def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
         lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
         length = seg_value(params, i, s, LENGTH)
         c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
-        cells[i, s] = int(wp.ceil(cell_density * (wp.float64(1.0) + k_factor * k * length + omega * length / c_cold)))
+        cells[i, s] = int(wp.ceil(cell_density[i] * (wp.float64(1.0) + k_factor * k * length + omega * length / c_cold)))
 
 
 @wp.kernel(enable_backward=False)

@@ -219,3 +219,35 @@ def test_grid_of_many_heat_inputs_equals_the_per_q_selection():
     data.freq[0] *= 1.5
     with pytest.raises(ValueError, match="other frequencies"):
         grid(data, core)
+
+
+def test_cell_groups_size_each_problem_for_its_own_h():
+    """The geometry propagation of thousands of heat inputs (issue 10 item 10): a problem
+    whose h ran to its bound gets its own cell count instead of sizing every problem's
+    cascade. Each problem is in one group, whose fixed count per thermal segment is at
+    least what the fit's rule asks for its own h and at most sqrt(2) times that."""
+    from tawarp.fit.characterize import cell_groups
+    from tawarp.measure.kind import fit_cells
+
+    core = load_core("ceramic")
+    freqs = np.array([50.0, 200.0])
+    n = 200
+    h = {k: np.full(n, core.get(k)) * np.linspace(0.5, 2.0, n) for k in ("stack.h", "hot_hx.h", "tbt.h")}
+    h["stack.h"][17] = 1e5                                  # the fit's upper bound
+    groups = list(cell_groups(core, freqs, ForwardSettings(device="cpu"), h))
+    seen = np.concatenate([idx for idx, _ in groups])
+    assert np.array_equal(np.sort(seen), np.arange(n))
+    thermal = [s.name for s in core.segments if s.thermal]
+    for idx, settings in groups:
+        for i in idx[[0, -1]]:
+            need = fit_cells(core, 200.0, {k: v[i] for k, v in h.items()}, k_factor=2.0)
+            need = dict(zip([s.name for s in core.segments], need))
+            for name in thermal:
+                assert need[name] <= settings.cells[name] <= np.sqrt(2) * need[name] + 1
+    outlier = next(s for idx, s in groups if 17 in idx)
+    rest = max(s.cells["stack"] for idx, s in groups if 17 not in idx)
+    assert outlier.cells["stack"] > 5 * rest                # one outlier no longer sizes them all
+    assert len(groups) <= 12
+    # fixed cells: one group, unchanged settings
+    fixed = ForwardSettings(cells=8, device="cpu")
+    assert [(len(i), s) for i, s in cell_groups(core, freqs, fixed, h)] == [(n, fixed)]

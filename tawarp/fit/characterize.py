@@ -243,12 +243,13 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
     ``dh/dg = -(J_h^T J_h)^-1 J_h^T J_g`` with ``J_g`` the derivative of the step-2
     residual ``w (Y_Q(h, g) - Ybar_Q Y_0(g) / Ybar_0)`` (the bias correction depends on g
     too), so ``C_add = (dh/dg) Cg (dh/dg)^T``. Derivatives by forward differences of the
-    forward model (relative step ``rel``); the geometry is held at its step-1 values."""
+    forward model (relative step ``rel``); the geometry is held at its step-1 values.
+    Problems share a cell count only with problems that need about as many
+    (:func:`cell_groups`), so one outlying h does not size the whole batch."""
     from .estimate import smooth_settings
 
     nQ, ph = hvals.shape
     pg = len(geometry)
-    settings = smooth_settings(core1, freqs, settings, {k: hvals[:, a] for a, k in enumerate(heat_names)})
     m = len(freqs)
     g0 = np.array([core1.get(k) for k in geometry])
     k_sets = 1 + ph + pg
@@ -259,16 +260,18 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
     steps = np.concatenate([hvals * rel, np.broadcast_to(g_step, (nQ, pg))], axis=1)     # (nQ, ph + pg)
     for a, k in enumerate(heat_names + geometry):
         params[k][:, 1 + a] += steps[:, a]
-    flat = {k: v.reshape(-1) for k, v in params.items()}
-    Y = predict(core1, freqs, flat, heat_input=np.repeat(Qh, k_sets), ties=ties, settings=settings)
-    Y = Y.reshape(nQ, k_sets, m, 4)
+    Y = np.empty((nQ, k_sets, m, 4), dtype=complex)
+    for idx, cells in cell_groups(core1, freqs, settings, {k: hvals[:, a] for a, k in enumerate(heat_names)}):
+        Y[idx] = predict(core1, freqs, {k: v[idx].reshape(-1) for k, v in params.items()},
+                         heat_input=np.repeat(Qh[idx], k_sets), ties=ties, settings=cells).reshape(-1, k_sets, m, 4)
     dY = (Y[:, 1:] - Y[:, :1]) / steps[:, :, None, None]                                  # (nQ, ph+pg, m, 4)
     Jh, Jg = dY[:, :ph], dY[:, ph:]
     if bias_correction:
         p0 = {k: np.full(1 + pg, g0[b]) for b, k in enumerate(geometry)}
         for b, k in enumerate(geometry):
             p0[k][1 + b] += g_step[b]
-        Y0m = predict(core1, freqs, p0, heat_input=0.0, ties=ties, settings=settings)        # (1 + pg, m, 4)
+        Y0m = predict(core1, freqs, p0, heat_input=0.0, ties=ties,
+                      settings=smooth_settings(core1, freqs, settings))                         # (1 + pg, m, 4)
         dY0 = (Y0m[1:] - Y0m[:1]) / g_step[:, None, None]
         Jg = Jg - (Yh / Y0[None])[:, None] * dY0[None]
     w = np.ones((nQ, m, 4, 2)) if w2 is None else np.broadcast_to(w2, (nQ, m, 4, 2))
@@ -280,6 +283,28 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
         A = -np.linalg.lstsq(real(Jh[i]), real(Jg[i]), rcond=None)[0]                     # (ph, pg)
         out[i] = A @ Cg @ A.T
     return out
+
+
+def cell_groups(core: Core, freqs, settings: ForwardSettings, values: dict):
+    """Problems grouped by the Magnus cells a smooth model of each needs: yields
+    (indices, settings with fixed cells). A problem's count per thermal segment is the
+    fit's rule at its own ``values`` {name: (n,)} (:func:`tawarp.measure.kind.fit_cells`,
+    room for k twice as large), rounded up to a power of sqrt(2): a handful of groups
+    covers any spread of h, at most 42 % more cells than a problem needs, and every
+    problem keeps one count across its difference steps. Fixed ``settings.cells``: one group."""
+    from ..measure.kind import fit_cells
+
+    n = len(next(iter(values.values())))
+    if settings.cells is not None:
+        yield np.arange(n), settings
+        return
+    thermal = [i for i, s in enumerate(core.segments) if s.thermal]
+    need = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0).reshape(n, -1)[:, thermal]
+    cells = np.ceil(np.sqrt(2.0) ** np.ceil(2 * np.log2(np.maximum(need, 1)) - 1e-9) - 1e-9).astype(int)
+    keys, inverse = np.unique(cells, axis=0, return_inverse=True)
+    for g, key in enumerate(keys):
+        yield (np.flatnonzero(inverse.reshape(-1) == g),
+               dataclasses.replace(settings, cells={core.segments[i].name: int(c) for i, c in zip(thermal, key)}))
 
 
 # -- figures -----------------------------------------------------------------------------
@@ -332,9 +357,14 @@ def temperature_profile(ch: Characterization, Q: float, n: int = 400):
     return x, T[0]
 
 
+#: Most heat inputs drawn in the step-2 figure (evenly spread, first and last included):
+#: more curves make neither a readable figure nor a legend.
+MAX_CURVES = 8
+
+
 def write_figures(ch: Characterization, stem: str | Path, label: str = "", Q_profile: float = 9.0) -> list[Path]:
     """Figures of one characterization: ``STEM_step1.png`` (Fig. 3), ``STEM_step2.png``
-    (Fig. 4), ``STEM_h.png`` (Fig. 5), ``STEM_temperature.png`` (Fig. 6, Q = 9 W)."""
+    (Fig. 4; at most :data:`MAX_CURVES` heat inputs), ``STEM_h.png`` (Fig. 5), ``STEM_temperature.png`` (Fig. 6, Q = 9 W)."""
     from ..plots import plot_coefficients, plot_temperature
 
     stem = Path(stem)
@@ -342,10 +372,13 @@ def write_figures(ch: Characterization, stem: str | Path, label: str = "", Q_pro
     paths = [plot_coefficients(ch.freqs, {"fitted": ch.Y0_fit}, f"{stem}_step1.png", markers={"measured": ch.Y0},
                                title=f"{label}: Q = 0, measured vs fitted ({_fmt1(ch)})")]
     if ch.step2 is not None:
-        paths.append(plot_coefficients(ch.freqs, {f"fit Q = {q:g} W": ch.Y_fit[i] for i, q in enumerate(ch.heat_inputs)},
+        nQ = len(ch.heat_inputs)
+        shown = np.unique(np.linspace(0, nQ - 1, min(nQ, MAX_CURVES)).round().astype(int))
+        some = f" ({shown.size} of {nQ} heat inputs)" if shown.size < nQ else ""
+        paths.append(plot_coefficients(ch.freqs, {f"fit Q = {ch.heat_inputs[i]:g} W": ch.Y_fit[i] for i in shown},
                                        f"{stem}_step2.png",
-                                       markers={f"Q = {q:g} W": ch.Y_corr[i] for i, q in enumerate(ch.heat_inputs)},
-                                       title=f"{label}: heated, bias-corrected measured vs fitted"))
+                                       markers={f"Q = {ch.heat_inputs[i]:g} W": ch.Y_corr[i] for i in shown},
+                                       title=f"{label}: heated, bias-corrected measured vs fitted{some}"))
         paths.append(plot_h_vs_Q({label: (ch.heat_inputs, ch.step2.values, ch.step2.std, ch.heat_names)},
                                  f"{stem}_h.png", title=f"{label}: fitted heat-exchange coefficients"))
         x, T = temperature_profile(ch, Q_profile)

@@ -112,16 +112,20 @@ def fit_cells(core: Core, freq: float, values: dict | None = None, settings: For
     asks for over the frequencies ``freqs`` (default ``[freq]``: then the counts are the
     cascade's own at ``freq`` and ``heat_input`` [W], which only the estimate sees);
     ``k_factor`` > 1 sizes for a heat decay rate k that many times larger
-    (:mod:`tawarp.kernels.lm`'s ``magnus_cells``)."""
+    (:mod:`tawarp.kernels.lm`'s ``magnus_cells``). With (n,) arrays among the values:
+    (n, n_segments), one row per parameter set (each at its own estimated density), from
+    one launch."""
     settings = settings or ForwardSettings()
     names = list(values or {})
+    cols = [np.asarray(values[k], dtype=float) for k in names]
+    n = max([c.size for c in cols if c.ndim], default=1)
     eng = Engine(core, [freq] if freqs is None else freqs, names, dataclasses.replace(settings, cells=None))
-    params, theta = eng.heat(np.array([[float(heat_input)]] + [[float(values[k])] for k in names]))
-    density = float(eng.cell_densities(params, theta).numpy()[0])
-    cells = wp.empty((1, len(core.segments)), dtype=wp.int32, device=eng.device)
-    wp.launch(klm.magnus_cells, dim=(1, len(core.segments)), device=eng.device,
-              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), density, float(k_factor), cells])
-    return cells.numpy()[0]
+    params, theta = eng.heat(np.stack([np.full(n, float(heat_input))] + [np.broadcast_to(c, (n,)) for c in cols]))
+    cells = wp.empty((n, len(core.segments)), dtype=wp.int32, device=eng.device)
+    wp.launch(klm.magnus_cells, dim=(n, len(core.segments)), device=eng.device,
+              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), eng.cell_densities(params, theta),
+                      float(k_factor), cells])
+    return cells.numpy() if any(c.ndim for c in cols) else cells.numpy()[0]
 
 
 _ENGINES: dict = {}

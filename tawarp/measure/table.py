@@ -43,56 +43,101 @@ def _fail(source, line, what) -> MeasurementError:
 
 def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) -> _Table:
     """Parse ``# key = value`` lines, a header naming ``required`` columns (any order;
-    others must satisfy ``allowed`` unless ``ignore_extra``) and numeric, finite rows."""
+    others must satisfy ``allowed`` unless ``ignore_extra``) and numeric, finite rows.
+
+    The file is streamed: data lines are parsed in blocks of :data:`_BLOCK` lines into
+    float arrays, so memory stays near the size of the numbers (8 bytes each), not of the
+    text; a block that the fast parser refuses is parsed line by line to name the line."""
     src = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8-sig")  # -sig: tolerate a spreadsheet's BOM
-    except UnicodeDecodeError as e:
-        raise MeasurementError(f"{src}: not a UTF-8 text file ({e})") from None
     meta, meta_line = {}, {}
-    header, header_line, used, rows, lines = None, 0, {}, [], []
-    for n, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line:
-            continue
-        if line.startswith("#"):
-            if header is not None:
-                raise _fail(src, n, "comment or metadata line after the header; '# key = value' lines must come before it")
-            key, eq, value = line[1:].partition("=")
-            if eq:  # '# key = value'; a comment without '=' is free text
-                key = key.strip()
-                if not key:
-                    raise _fail(src, n, "metadata line without a key; expected '# key = value'")
-                if key in meta:
-                    raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
-                meta[key], meta_line[key] = value.strip(), n
-            continue
-        fields = [f.strip() for f in next(csv.reader([line]))]
-        if header is None:
-            header, header_line = fields, n
-            used = _check_header(src, n, header, required, allowed, ignore_extra)
-            continue
-        width = max(used.values()) + 1 if ignore_extra else len(header)
+    header, header_line, used, width = None, 0, {}, 0
+    blocks, line_blocks, lines, numbers = [], [], [], []
+    n = 0
+    try:
+        with open(path, encoding="utf-8-sig", newline=None) as f:  # -sig: tolerate a spreadsheet's BOM
+            for n, raw in enumerate(f, start=1):
+                line = raw.strip()
+                if not line:
+                    continue
+                if header is not None and not line.startswith("#"):
+                    lines.append(line)
+                    numbers.append(n)
+                    if len(lines) == _BLOCK:
+                        blocks.append(_parse_rows(src, lines, numbers, used, width, header_line, ignore_extra))
+                        line_blocks.append(np.array(numbers, dtype=np.int64))
+                        lines, numbers = [], []
+                    continue
+                if line.startswith("#"):
+                    if header is not None:
+                        raise _fail(src, n, "comment or metadata line after the header; "
+                                            "'# key = value' lines must come before it")
+                    key, eq, value = line[1:].partition("=")
+                    if eq:  # '# key = value'; a comment without '=' is free text
+                        key = key.strip()
+                        if not key:
+                            raise _fail(src, n, "metadata line without a key; expected '# key = value'")
+                        if key in meta:
+                            raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
+                        meta[key], meta_line[key] = value.strip(), n
+                    continue
+                header, header_line = _split(line), n
+                used = _check_header(src, n, header, required, allowed, ignore_extra)
+                width = max(used.values()) + 1 if ignore_extra else len(header)
+    except UnicodeDecodeError as e:
+        raise MeasurementError(f"{src}: not a UTF-8 text file (after line {n}: {e})") from None
+    if lines:
+        blocks.append(_parse_rows(src, lines, numbers, used, width, header_line, ignore_extra))
+        line_blocks.append(np.array(numbers, dtype=np.int64))
+    del lines, numbers
+    if header is None:
+        raise _fail(src, 1, f"empty file (no header line); expected a header with columns {','.join(required)}")
+    if not blocks:
+        raise _fail(src, header_line, "header but no data rows after it")
+    arr = np.concatenate(blocks) if len(blocks) > 1 else blocks[0]
+    del blocks
+    values = {name: arr[:, k] for k, name in enumerate(used)}
+    return _Table(src, meta, meta_line, header_line, list(used), values, np.concatenate(line_blocks))
+
+
+#: Data lines parsed at once (a few MB of text at most).
+_BLOCK = 8192
+
+
+def _split(line: str) -> list[str]:
+    """The stripped fields of one CSV line (quotes as the csv module reads them)."""
+    return [f.strip() for f in next(csv.reader([line]))]
+
+
+def _parse_rows(src, lines, numbers, used, width, header_line, ignore_extra) -> np.ndarray:
+    """Floats (len(lines), len(used)) of the data ``lines`` (file lines ``numbers``): NumPy's
+    parser when every line is plain (no quotes, ``width`` fields), else, or when it
+    refuses a value, line by line with an error naming the line and column."""
+    cols = list(used.values())
+    commas = width - 1
+    plain = not any('"' in s for s in lines) and all(
+        (s.count(",") >= commas) if ignore_extra else (s.count(",") == commas) for s in lines)
+    if plain:
+        try:
+            arr = np.loadtxt(lines, delimiter=",", usecols=cols, dtype=np.float64, comments=None, ndmin=2,
+                             quotechar=None)
+        except ValueError:
+            arr = None
+        if arr is not None and arr.shape == (len(lines), len(cols)) and np.isfinite(arr).all():
+            return arr
+    out = np.empty((len(lines), len(cols)))
+    for r, (line, n) in enumerate(zip(lines, numbers)):
+        fields = _split(line)
         if len(fields) < width or (not ignore_extra and len(fields) != width):
             raise _fail(src, n, f"{len(fields)} fields; expected {width} as in the header (line {header_line})")
-        row = []
-        for name, j in used.items():
+        for k, (name, j) in enumerate(used.items()):
             try:
                 v = float(fields[j])
             except ValueError:
                 raise _fail(src, n, f"column {name!r}: expected a number, got {fields[j]!r}") from None
             if not math.isfinite(v):
                 raise _fail(src, n, f"column {name!r}: expected a finite number, got {fields[j]!r}")
-            row.append(v)
-        rows.append(row)
-        lines.append(n)
-    if header is None:
-        raise _fail(src, 1, f"empty file (no header line); expected a header with columns {','.join(required)}")
-    if not rows:
-        raise _fail(src, header_line, "header but no data rows after it")
-    arr = np.array(rows, dtype=float)
-    values = {name: arr[:, k] for k, name in enumerate(used)}
-    return _Table(src, meta, meta_line, header_line, list(used), values, np.array(lines))
+            out[r, k] = v
+    return out
 
 
 def _check_header(src, n, header, required, allowed, ignore_extra) -> dict[str, int]:
@@ -149,17 +194,25 @@ def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False,
 
 
 def _check_positive_unique(t: _Table, col: str, others=()) -> None:
-    """Column ``col`` > 0; rows unique in (others..., col). Errors name the line."""
-    for v, n in zip(t.values[col], t.lines):
-        if v <= 0:
-            raise _fail(t.source, n, f"{col} = {v!r}: expected a number > 0")
-    seen = {}
-    keys = zip(*(t.values[c].tolist() for c in (*others, col)))
-    for key, n in zip(keys, t.lines.tolist()):
-        if key in seen:
-            names = ", ".join(f"{c} = {k!r}" for c, k in zip((*others, col), key))
-            raise _fail(t.source, n, f"duplicate row ({names}), first on line {seen[key]}")
-        seen[key] = n
+    """Column ``col`` > 0; rows unique in (others..., col). Errors name the line: the
+    first row (in file order) that repeats an earlier one, and that earlier row. One
+    stable sort of the keys, so linear-logarithmic in the rows and no per-row objects."""
+    bad = np.flatnonzero(t.values[col] <= 0)
+    if bad.size:
+        raise _fail(t.source, t.lines[bad[0]], f"{col} = {t.values[col][bad[0]]!r}: expected a number > 0")
+    keys = [t.values[c] for c in (*others, col)]
+    order = np.lexsort(keys[::-1])                     # stable: equal keys stay in file order
+    same = np.ones(order.size - 1, dtype=bool)
+    for k in keys:
+        same &= k[order[1:]] == k[order[:-1]]
+    if same.any():
+        first = order[np.r_[0, np.flatnonzero(~same) + 1]]       # first row of each run of equal keys
+        run = np.cumsum(np.r_[True, ~same]) - 1                  # run of each sorted position
+        dup = order[1:][same]
+        i = int(dup.min())                                       # earliest repeat in the file
+        j = int(first[run[1:][same][np.argmin(dup)]])
+        names = ", ".join(f"{c} = {float(t.values[c][i])!r}" for c in (*others, col))
+        raise _fail(t.source, t.lines[i], f"duplicate row ({names}), first on line {t.lines[j]}")
 
 
 def _complex(t: _Table, name: str) -> np.ndarray:

@@ -303,7 +303,8 @@ class Engine:
         if not wp.get_device(self.device).is_cpu:
             return 1
         threads = self.settings.cpu_threads or _usable_cores()
-        return max(1, min(threads, n * len(self.freqs) // MIN_MODELS_PER_THREAD))
+        least = MIN_HEATED_MODELS_PER_THREAD if self.count else MIN_MODELS_PER_THREAD
+        return max(1, min(threads, n, n * len(self.freqs) // least))
 
     def _evaluate_threaded(self, varying, parts: int, out):
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
@@ -402,8 +403,11 @@ def _usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
-#: Fewest forward models (set x frequency) worth a CPU thread of their own.
+#: Fewest forward models (set x frequency) worth a CPU thread of their own: a thread's
+#: hand-off and copies cost about as much as 2000 unheated models (~3 us each, closed
+#: form) or a few dozen heated ones (a Magnus cascade, 50-150 us each).
 MIN_MODELS_PER_THREAD = 2000
+MIN_HEATED_MODELS_PER_THREAD = 64
 
 
 @functools.cache
