@@ -362,6 +362,21 @@ def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
     np.testing.assert_allclose(np.linalg.det(Tref), 1.0, atol=1e-10)
 
 
+def test_two_port_elastic_frame_batch_equals_each_set_alone():
+    """Several parameter sets in one prediction (as a fit's finite differences are) give each
+    set's own 2-port to round-off: a batch of 3 frames against 3 single predictions."""
+    f = np.array([150.0, 400.0, 900.0, 1500.0])
+    kind = _tmatrix_kind(PASSIVE, f)
+    e = next(x for x in tmatrix_library(PASSIVE) if x.name == "elastic_frame")
+    base = _start_values(kind, [])
+    sets = [e.model_values({**e.typical, "sample.frame_modulus": E}) for E in (1e5, 3e5, 1e6)]
+    batch = {k: np.array([s[k] for s in sets]) for k in sets[0]}
+    Y = kind.predict(dict({k: np.repeat(v, 3) for k, v in base.items()}, **batch), 3)
+    for i, one in enumerate(sets):
+        Yi = kind.predict(dict(base, **{k: np.array([v]) for k, v in one.items()}), 1)
+        assert np.abs(Y[i] - Yi[0]).max() <= 1e-12 * np.abs(Yi).max()
+
+
 @pytest.mark.parametrize("seed", [1, 2, 3])
 def test_loop_finds_a_calibration_gain_on_reference_data_of_a_passive_sample(seed):
     """2-port data of the passive sample from the independent reference, measured with the

@@ -149,11 +149,12 @@ class TMatrixKind(MeasurementKind):
         area = np.pi * radius ** 2
         rho_eq, K_eq = equivalent_fluid(slab, FLUID_SLICE, 2 * np.pi * freqs, area)
         fluid = JCAFluid(rho_eq, K_eq, p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0))
-        Tb = fluid_transfer_matrix(freqs, fluid, thickness=per_set(f"{sample}.length", seg.length)[sets, None],
-                                   phi=per_set(f"{sample}.porosity", seg.porosity)[sets, None],
-                                   E=per_set(f"{sample}.frame_modulus", None)[sets, None],
-                                   eta=per_set(f"{sample}.frame_loss_factor", None)[sets, None],
-                                   nu=FRAME_POISSON_RATIO, rho_1=1.0 / mob[sets, None], area=area)
+        # Biot's parameters per set (its batch shape; it adds the frequency axis itself)
+        Tb = fluid_transfer_matrix(freqs, fluid, thickness=per_set(f"{sample}.length", seg.length)[sets],
+                                   phi=per_set(f"{sample}.porosity", seg.porosity)[sets],
+                                   E=per_set(f"{sample}.frame_modulus", None)[sets],
+                                   eta=per_set(f"{sample}.frame_loss_factor", None)[sets],
+                                   nu=FRAME_POISSON_RATIO, rho_1=1.0 / mob[sets], area=area[:, 0])
         T = T.copy()
         T[sets] = (part(segs[k + 1:]) @ Tb @ part(segs[:k]))[:, None]
         return T
