@@ -32,6 +32,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from _results import write_result  # noqa: E402 (bench/ is the script's own folder)
 
 VARS = ["material=ceramic,mesh,nicr_foam,rvc_foam", "stack.length=0.005:0.1", "stack.porosity=0.6:0.98",
         "hot_hx.length=0.005:0.03", "heat_input=1:30"]
@@ -171,11 +172,8 @@ def main(argv=None):
 
         m = re.search(r"\b([A-Z]\d{2,3}[A-Z]?)\b", out["device_name"])
         tag = f"cuda_{m.group(1).lower()}" if m else tag
-    path = Path(args.output or ROOT / "bench" / "results" / f"design_{tag}.json")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(out, indent=2) + "\n")
     print(json.dumps(out["summary"], indent=2))
-    print(f"wrote {path}")
+    write_result(out, f"design_{tag}.json", args.output)
     return 0
 
 

@@ -35,7 +35,6 @@ finite differences, the same data and weights, one fit at a time; the residual f
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -51,6 +50,7 @@ from tawarp.measure.kind import smooth_settings
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
+from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 WORKLOADS = {
@@ -214,13 +214,7 @@ def main(argv=None) -> int:
             print(f"{wname:9s} best {best:.1f} fits/s = {best * per:.0f} x SciPy ({per:.3f} s per fit)", flush=True)
         result["workloads"][wname] = entry
     result["load_average_at_end"] = list(os.getloadavg())
-    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results",
-                                   f"fit_{device.replace(':', '')}.json")
-    os.makedirs(os.path.dirname(out), exist_ok=True)
-    with open(out, "w") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    print(f"wrote {out}")
+    write_result(result, f"fit_{device.replace(':', '')}.json", args.out)
     return 0
 
 

@@ -35,6 +35,7 @@ import warp as wp
 from tawarp import reference
 from tawarp.model.core import bundled_cores, load_core
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
+from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 ACC_FREQS = np.array([30.0, 90.0, 170.0, 260.0, 380.0, 500.0])
@@ -282,14 +283,9 @@ def main(argv=None):
             result["operating_point"] = {"cell_density": d,
                                          "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
                                          "models_per_s": best[str(d)]}
-    text = json.dumps(result, indent=2)
-    print(text)
+    print(json.dumps(result, indent=2))
     if args.out:
-        os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
-        tmp = args.out + ".tmp"
-        with open(tmp, "w") as f:
-            f.write(text + "\n")
-        os.replace(tmp, args.out)
+        write_result(result, "", args.out)
 
 
 if __name__ == "__main__":

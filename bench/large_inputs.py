@@ -21,7 +21,6 @@ the time is linear in N.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import resource
@@ -31,6 +30,7 @@ import tempfile
 import time
 
 import numpy as np
+from _results import write_result
 
 READ_SCRIPT = """
 import sys, time, tracemalloc
@@ -138,12 +138,7 @@ def main(argv=None) -> int:
             print(f"tawarp fit: {n:6d} heat inputs x {args.n_freqs} frequencies: {row['seconds']:.1f} s "
                   f"({1e3 * row['seconds_per_heat_input']:.2f} ms per heat input)", flush=True)
     result["load_average_after"] = os.getloadavg()
-    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "large_inputs_cpu.json")
-    os.makedirs(os.path.dirname(out), exist_ok=True)
-    with open(out, "w") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    print(f"wrote {out}")
+    write_result(result, "large_inputs_cpu.json", args.out)
     return 0
 
 

@@ -38,6 +38,7 @@ from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, transfer_matrices
+from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
@@ -144,15 +145,8 @@ def main(argv=None) -> int:
         for key in ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour"):
             r[f"speedup_{key}"] = r[key] / base[key]
     result["load_average_at_end"] = list(os.getloadavg())
-    out = args.out or os.path.join(os.path.dirname(os.path.abspath(__file__)), "results", "multi_gpu.json")
-    os.makedirs(os.path.dirname(out), exist_ok=True)
-    tmp_out = out + ".tmp"
-    with open(tmp_out, "w") as f:
-        json.dump(result, f, indent=2)
-        f.write("\n")
-    os.replace(tmp_out, out)
     print(json.dumps(result["rows"], indent=1))
-    print(f"wrote {out}")
+    write_result(result, "multi_gpu.json", args.out)
     return 0
 
 

@@ -31,6 +31,7 @@ import warp as wp
 from tawarp import reference
 from tawarp.model.onset import onset
 from tawarp.model.resonator import load_engine
+from _results import write_result
 
 Q_MAX = 100.0
 
@@ -127,11 +128,9 @@ def main(argv=None):
             if "seconds_one_prediction" in v:
                 v["speedup_of_tawarp"] = best / 60.0 * v["seconds_one_prediction"]
         result["peers"] = peers
-    text = json.dumps(result, indent=2, default=float) + "\n"
+    print(json.dumps(result, indent=2, default=float))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(text)
-    print(text)
+        write_result(result, "", args.out)
 
 
 if __name__ == "__main__":

@@ -13,7 +13,6 @@ device, at s spread over [0.1, 30] (the stacks' range).
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tawarp.model.core import (Core, CoreError, Segment, bundled_cores, core_from_dict, dump_core, load_core,
+from tawarp.model.core import (CoreError, Segment, bundled_cores, core_from_dict, dump_core, load_core,
                                segment_parameter_fields)
 from tawarp.model.fields import SEGMENT_FIELD_TABLE, takes
 

@@ -1,8 +1,6 @@
 """Measurement loaders and writers (tawarp.measurements): formats, errors, conversions."""
 
 import math
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -256,7 +254,7 @@ def test_uniform_duct_scattering():
 
 
 def scattering_text(S, freq, convention="exp(-iwt)", extra=""):
-    lines = [f"# tube_radius = 0.0167", "# T_ambient = 293.15", "# p_ambient = 101325",
+    lines = ["# tube_radius = 0.0167", "# T_ambient = 293.15", "# p_ambient = 101325",
              "# ref_upstream = 0.05", "# ref_downstream = 0.08", f"# convention = {convention}", *extra.splitlines(),
              ",".join(m.SCATTERING_COLUMNS)]
     for f, s in zip(freq, S):

@@ -14,7 +14,6 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import write_json
 from .common import _common, _say, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser

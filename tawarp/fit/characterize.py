@@ -27,7 +27,6 @@ of both ``Ybar(Q)`` and ``Ybar(0)``: ``|b| sqrt(s_Q^2 + |Ybar(Q)/Ybar(0)|^2 s_0^
 from __future__ import annotations
 
 import dataclasses
-import math
 from dataclasses import dataclass
 from pathlib import Path
 

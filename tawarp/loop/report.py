@@ -106,7 +106,7 @@ def report_markdown(report: dict) -> str:
              f"- base fit: {gof(g0)}",
              f"- final fit: {gof(g1)}",
              f"- accepted effects: **{', '.join(r['accepted_effects']) or 'none'}**",
-             *([f"- indistinguishable on these data: " + "; ".join(", ".join(g) for g in r["indistinguishable"])]
+             *(["- indistinguishable on these data: " + "; ".join(", ".join(g) for g in r["indistinguishable"])]
                if r.get("indistinguishable") else []),
              *([f"- unexplained residual: {u['coefficient']}" + (f" at {u['group']:g}" if u["group"] is not None else "")
                 + f", {u['band_Hz'][0]:g}-{u['band_Hz'][1]:g} Hz, error {u['error']:.4g} (noise floor "
