@@ -125,7 +125,13 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         a = active
         pa = pid[a]
         A = H[a] + mu[a, None, None] * eye
-        d, ok_chol = chol_solve(A, -g[a])
+        # the step on the free components only: a component held at its bound would otherwise
+        # take part in the solve, and projecting the full step back onto the bound leaves a
+        # direction that need not descend (the fit then stalls at the bound: issue 9 validation)
+        fr = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
+        both = fr[:, :, None] & fr[:, None, :]
+        A = np.where(both, A, eye)
+        d, ok_chol = chol_solve(A, np.where(fr, -g[a], 0.0))
         zt = prob.project(z[a] + d, pa)
         dz = zt - z[a]
         pred = -(2.0 * np.einsum("ni,ni->n", g[a], dz) + np.einsum("ni,nij,nj->n", dz, H[a], dz))
