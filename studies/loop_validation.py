@@ -505,6 +505,8 @@ def main(argv=None) -> int:
         records.append(run_case(case, arrays[case.seed], a.device, a.base))
         bar.set_postfix_str(f"{case.category}: {outcome_label(records[-1])}")
         bar.update(1)
+        # the cases so far, so that an interrupted run keeps them
+        write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": records})
     bar.close()
     t_loop = time.perf_counter() - t1
     meta = {"command": " ".join(["python studies/loop_validation.py"] + (sys.argv[1:] if argv is None else list(argv))),
