@@ -480,7 +480,8 @@ def figures(summary: dict, records: list[dict], out: Path) -> None:
     for i in range(len(rows)):
         for j in range(len(cols)):
             if M[i, j]:
-                ax.text(j, i, f"{M[i, j]:.0f}", ha="center", va="center", fontsize=8)
+                frac = M[i, j] / max(M[i].sum(), 1)
+                ax.text(j, i, f"{M[i, j]:.0f}", ha="center", va="center", fontsize=8, color="w" if frac > 0.5 else "k")
     ax.set_xticks(range(len(cols)), cols, rotation=60, ha="right", fontsize=8)
     ax.set_yticks(range(len(rows)), rows, fontsize=8)
     ax.set_xlabel("loop: accepted effects (or verdict)")
