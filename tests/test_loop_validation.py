@@ -5,7 +5,7 @@ Data: :mod:`tawarp.reference` (independent NumPy oracle, DOP853 at rtol 1e-12), 
 file 10-30 % off the truth on every parameter of the paper's estimation, noise from the
 study's draw. Reduced: the mesh core, 12 frequencies instead of 37, 3 clean cases and 3
 cases of plane offsets (1-3 mm at each plane, the library's strongest effect at a typical
-size: 3-10 noise floors in these cases), fixed fit cells.
+size: 2.3-5.9 noise floors in these cases), fixed fit cells (8).
 
 Thresholds: the issue's targets scaled to the sample by the rule "allowed failures =
 floor((1 - target) n)": no claim on clean data in <= 5 % -> 0 of 3; the right effect with
