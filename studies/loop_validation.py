@@ -1,7 +1,7 @@
 """Validation of the loop on data the model did not make (issue 9).
 
     python studies/loop_validation.py --cases 14 --device cpu --out studies/out/loop_validation
-    python studies/loop_validation.py --cases 400 --device cuda --workers 16 --out bench/results/loop_validation
+    python studies/loop_validation.py --cases 70 --seed0 70 --append --device cuda --workers 16 --out DIR   # in chunks
 
 Every case is a core T-matrix data set made by the independent NumPy oracle
 (:mod:`tawarp.reference`: exact heat solution, DOP853 at rtol 1e-12, i.e. converged
@@ -437,8 +437,9 @@ def _fmt_rate(d: dict) -> str:
 
 def markdown(summary: dict, records: list[dict], meta: dict) -> str:
     s = summary
+    seeds = [r["seed"] for r in records]
     lines = [f"Validation of the loop on data made by `tawarp.reference` ({s['n_cases']} cases, seeds "
-             f"{meta['seed0']}-{meta['seed0'] + s['n_cases'] - 1}, base `{meta['base']}`, device {meta['device']}; "
+             f"{min(seeds)}-{max(seeds)}, base `{meta['base']}`, device {meta['device']}; last run "
              f"`{meta['command']}`).", "",
              "| measure | result | target |", "| --- | --- | --- |",
              f"| right effect(s), error after <= 1.3 x noise floor (visible effects) | {_fmt_rate(s['right_effect'])} | >= 95 % |",
@@ -453,7 +454,8 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
              f"| wrong core flagged | {_fmt_rate(s['wrong_core_flagged'])} | all |",
              f"| median error after / noise floor (visible effects) | {s['ratio_after_visible_median'] or float('nan'):.2f} | <= 1.3 |",
              f"| loop wall time per case (mean / max) | {s['loop_wall_s']['mean']:.1f} / {s['loop_wall_s']['max']:.1f} s | |",
-             f"| cases per second (loop only; generation {meta['generation_s']:.0f} s, cached) | {meta['cases_per_s']:.3g} | |",
+             f"| cases per second (last run, loop only; its generation {meta['generation_s']:.0f} s, cached) | "
+             f"{meta['cases_per_s']:.3g} | |",
              "", "Confusion matrix (rows: truth; columns: accepted effects, or the verdict when none):", ""]
     cols = sorted({c for row in s["confusion"].values() for c in row})
     lines += ["| truth \\ loop | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
@@ -515,6 +517,9 @@ def main(argv=None) -> int:
                     help="base parameters: the loop's default, or the paper's full set passed explicitly")
     ap.add_argument("--rescore", action="store_true",
                     help="no new runs: score OUT/loop_validation.json's cases again and rewrite the tables and figures")
+    ap.add_argument("--append", action="store_true",
+                    help="keep the cases of other seeds already in OUT/loop_validation.json (a study run in chunks "
+                         "of seeds, e.g. one GPU job per --seed0) and summarize them all")
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -533,6 +538,10 @@ def main(argv=None) -> int:
             bar.update(1)
     bar.close()
     t_gen = time.perf_counter() - t0
+    seeds = {c.seed for c in cases}
+    earlier = []
+    if a.append and (out / "loop_validation.json").exists():
+        earlier = [r for r in json.loads((out / "loop_validation.json").read_text())["cases"] if r["seed"] not in seeds]
     records = []
     bar = progress_bar(len(cases), "closing the loop", not a.quiet, unit="case")
     t1 = time.perf_counter()
@@ -541,13 +550,13 @@ def main(argv=None) -> int:
         bar.set_postfix_str(f"{case.category}: {outcome_label(records[-1])}")
         bar.update(1)
         # the cases so far, so that an interrupted run keeps them
-        write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": records})
+        write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
     bar.close()
     t_loop = time.perf_counter() - t1
     meta = {"command": " ".join(["python studies/loop_validation.py"] + (sys.argv[1:] if argv is None else list(argv))),
             "seed0": a.seed0, "device": a.device, "base": a.base, "workers": a.workers, "generation_s": t_gen,
-            "loop_s": t_loop, "cases_per_s": len(cases) / t_loop}
-    report(out, records, meta, a.quiet)
+            "loop_s": t_loop, "cases_per_s": len(cases) / t_loop, "cases_this_run": len(cases)}
+    report(out, sorted(earlier + records, key=lambda r: r["seed"]), meta, a.quiet)
     return 0
 
 
