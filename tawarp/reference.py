@@ -616,10 +616,12 @@ def thermoviscous_function(pore_model: str, r, delta):
 
 
 def _pore(core: Core, seg: Segment):
-    """(phi, r, q, pore_model) of a segment: ducts are one circular pore of the tube radius."""
+    """(phi, r, q, pore_model, r_k) of a segment: ducts are one circular pore of the tube
+    radius; ``r_k`` is the radius of the thermal function, ``thermal_radius_ratio * r``
+    in a porous segment (JCA's Lambda'/Lambda; 1 = the paper's single radius)."""
     if seg.is_porous:
-        return seg.porosity, seg.pore_radius, seg.tortuosity, seg.pore_model
-    return 1.0, core.radius, 1.0, "circular"
+        return seg.porosity, seg.pore_radius, seg.tortuosity, seg.pore_model, seg.thermal_radius_ratio * seg.pore_radius
+    return 1.0, core.radius, 1.0, "circular", core.radius
 
 
 def _coefficients(core: Core, seg: Segment, w, T, dTdx):
@@ -631,14 +633,17 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
         a12 = i q^2 rho w / (phi S (1 - f_nu))
         a21 = i phi S w (1 + (gamma - 1) f_k) / (rho c^2)
         a22 = (dT/dx / T) (f_k - f_nu) / ((1 - f_nu)(1 - Pr))
+
+    f_nu at the pore radius r, f_k at the thermal radius r_k (:func:`_pore`).
     """
-    phi, r, q, model = _pore(core, seg)
+    phi, r, q, model, r_k = _pore(core, seg)
     S = core.area
     g = gas_properties(core.gas.name, T, core.gas.p_mean)
     d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
     d_k = np.sqrt(2.0 * g.k / (g.rho * g.cp * w))
-    # one call for both depths (halves the per-call overhead inside the ODE right-hand side)
-    d_nu, d_k = np.broadcast_arrays(d_nu, d_k)
+    # one call for both depths (halves the per-call overhead inside the ODE right-hand side);
+    # the thermal depth is scaled by r/r_k so that the one radius r serves both functions
+    d_nu, d_k = np.broadcast_arrays(d_nu, d_k * (r / r_k))
     f, omf = thermoviscous_function(model, r, np.stack([d_nu, d_k]))
     f_nu, f_k, omf_nu, omf_k = f[0], f[1], omf[0], omf[1]
     a12 = 1j * q**2 * g.rho * w / (phi * S * omf_nu)

@@ -291,3 +291,48 @@ def test_ode_converged():
     for M in mats[-2::-1]:
         prod = prod @ M
     np.testing.assert_allclose(_Y(core, prod), Y12, rtol=1e-14, atol=1e-14)
+
+
+# -- effects the validation study needs (studies/loop_validation.py) ------------------------
+@pytest.mark.parametrize("ratio", [0.5, 1.6, 1e4])
+def test_thermal_radius_ratio_closed_form(ratio):
+    """A uniform circular-pore segment whose thermal function is taken at radius ratio * r:
+    k = (w q / c) sqrt((1 + (gamma - 1) f(ratio r)) / (1 - f(r))), Zc = rho c q / (phi S) /
+    sqrt((1 - f(r)) (1 + (gamma - 1) f(ratio r))), f(a) = 2 J1(z)/(z J0(z)), z = (1 + i) a/delta,
+    written here from scipy's Bessel functions; ratio 1e4 is the adiabatic limit f_k -> 0.
+    Both the closed-form path and the ODE path of the reference must agree to 1e-10."""
+    import scipy.special as sps
+
+    phi, r, q, L = 0.8, 2e-4, 1.1, 0.04
+    core = Core((Segment("s", "porous", L, porosity=phi, pore_radius=r, tortuosity=q, thermal_radius_ratio=ratio),))
+    f = np.array([40.0, 150.0, 400.0])
+    w = 2 * np.pi * f
+    g = gas_properties("air", core.gas.T_cold, core.gas.p_mean)
+
+    def fr(a, delta):
+        z = (1 + 1j) * a / delta
+        return 2 * sps.jve(1, z) / (z * sps.jve(0, z))   # scaled: no overflow at large z
+
+    f_nu = fr(r, np.sqrt(2 * g.mu / (g.rho * w)))
+    f_k = fr(ratio * r, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
+    bulk = 1 + (g.gamma - 1) * f_k
+    k = w * q / g.c * np.sqrt(bulk / (1 - f_nu))
+    Zc = g.rho * g.c * q / (phi * core.area) / np.sqrt((1 - f_nu) * bulk)
+    T = np.empty((3, 2, 2), dtype=complex)
+    T[:, 0, 0] = T[:, 1, 1] = np.cos(k * L)
+    T[:, 0, 1] = 1j * Zc * np.sin(k * L)
+    T[:, 1, 0] = 1j * np.sin(k * L) / Zc
+    Yx = _Y(core, T)
+    for force in (False, True):
+        Y = _Y(core, transfer_matrix(core, f, _force_ode=force))
+        assert np.max(np.abs(Y - Yx)) < 1e-10 * np.max(np.abs(Yx))
+    if ratio == 1e4:
+        assert np.max(np.abs(f_k)) < 1e-3   # the adiabatic limit is reached
+
+
+def test_thermal_radius_ratio_one_is_the_paper_model_bit_for_bit():
+    core = load_core("mesh")
+    f = np.array([40.0, 400.0])
+    a = transfer_matrix(core, f, 20.0)
+    b = transfer_matrix(core.replace(**{"stack.thermal_radius_ratio": 1.0}), f, 20.0)
+    assert np.array_equal(a, b)

@@ -73,7 +73,7 @@ class LMState:
 
 class LMProblems(Protocol):
     """What :func:`levenberg_marquardt` needs of a batch of least-squares problems in scaled
-    variables z (:class:`Problems`; :class:`tawarp.fit.problems.KindProblems` for fits of any kind).
+    variables z (:class:`Problems`; :class:`tawarp.loop.LoopProblems` for the loop's fits).
 
     ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none);
     ``project(z, pid)``: z (n, p) of problems ``pid`` (n,) moved onto the bounds;
@@ -124,12 +124,14 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
     while active.size:
         a = active
         pa = pid[a]
-        # components held at a bound by an outward gradient stay there: solving for them and
-        # clipping afterwards spoils the other components' step (projected LM then crawls)
-        held = ~_free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
-        keep = ~(held[:, :, None] | held[:, None, :])
-        A = np.where(keep, H[a], 0.0) + (mu[a, None, None] + held[:, :, None] * 1.0) * eye
-        d, ok_chol = chol_solve(A, -np.where(held, 0.0, g[a]))
+        A = H[a] + mu[a, None, None] * eye
+        # the step on the free components only: a component held at its bound would otherwise
+        # take part in the solve, and projecting the full step back onto the bound leaves a
+        # direction that need not descend (the fit then stalls at the bound: issue 9 validation)
+        fr = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
+        both = fr[:, :, None] & fr[:, None, :]
+        A = np.where(both, A, eye)
+        d, ok_chol = chol_solve(A, np.where(fr, -g[a], 0.0))
         zt = prob.project(z[a] + d, pa)
         dz = zt - z[a]
         pred = -(2.0 * np.einsum("ni,ni->n", g[a], dz) + np.einsum("ni,nij,nj->n", dz, H[a], dz))

@@ -1,0 +1,102 @@
+"""The loop on data the model did not make (issue 9): a reduced version of
+``studies/loop_validation.py`` (same cases, same adapter, same scoring), over several seeds.
+
+Data: :mod:`tawarp.reference` (independent NumPy oracle, DOP853 at rtol 1e-12), the core
+file 10-30 % off the truth on every parameter of the paper's estimation, noise from the
+study's draw. Reduced: the mesh core, 12 frequencies instead of 37, 3 clean cases and 3
+cases of plane offsets (1-3 mm at each plane, the library's strongest effect at a typical
+size: 2.3-5.9 noise floors in these cases), fixed fit cells (8).
+
+Thresholds: the issue's targets scaled to the sample by the rule "allowed failures =
+floor((1 - target) n)": no claim on clean data in <= 5 % -> 0 of 3; the right effect with
+the error after <= 1.3 x the noise floor in >= 95 % -> 3 of 3.
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+import loop_validation as lv  # noqa: E402
+
+SEEDS = (100, 101, 102)
+N_FREQS = 12
+CELLS = 8
+
+
+def allowed_failures(target: float, n: int) -> int:
+    """The issue's rate target scaled to n cases: floor((1 - target) n) failures."""
+    return math.floor((1.0 - target) * n + 1e-9)
+
+
+def _run(category: str, seed: int, tmp_path: Path) -> dict:
+    case = lv.make_case(seed, category=category, material="mesh", n_freqs=N_FREQS)
+    return lv.run_case(case, lv.load_or_generate(case, tmp_path), "cpu", base="paper", cells=CELLS)
+
+
+def test_clean_and_plane_offsets_over_seeds(tmp_path):
+    clean = [_run("clean", s, tmp_path) for s in SEEDS]
+    claims = [r["outcome"]["accepted_effects"] for r in clean if r["outcome"]["accepted_effects"]]
+    assert len(claims) <= allowed_failures(1 - lv.TARGETS["clean_claims"], 3), claims
+    for r in clean:   # nothing to explain: the base fit reaches the noise floor (1.3 x, the study's yardstick)
+        assert r["ratio_after"] <= lv.TARGETS["residual_ratio"], (r["seed"], r["ratio_before"], r["ratio_after"])
+
+    effect = [_run("effect:plane_offsets", s, tmp_path) for s in SEEDS]
+    for r in effect:
+        assert r["visibility"] >= lv.VISIBLE, r["visibility"]      # the cases test a visible effect
+    wrong = [(r["seed"], lv.outcome_label(r), round(r["ratio_after"], 2)) for r in effect if not r["right"]]
+    assert len(wrong) <= allowed_failures(lv.TARGETS["right_effect"], 3), wrong
+
+
+def test_cache_returns_the_generated_case(tmp_path):
+    # the npz cache is keyed by seed and the case description: a second call reads the same arrays
+    case = lv.make_case(7, category="clean", material="ceramic", n_freqs=3)
+    a = lv.load_or_generate(case, tmp_path)
+    b = lv.load_or_generate(case, tmp_path)
+    assert len(list(tmp_path.glob(f"case_7_{case.key()}.npz"))) == 1
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k])
+    # the noise is what the case says: its rms over the noise-free data, per coefficient
+    Y = lv.normalize(a["T"], lv.duct_impedance(lv.load_core("ceramic"))).reshape(a["Y_clean"].shape)
+    rel = np.sqrt(np.mean(np.abs(Y - a["Y_clean"]) ** 2, axis=(0, 1)) / np.mean(np.abs(a["Y_clean"]) ** 2, axis=(0, 1)))
+    assert np.all(np.abs(rel / case.noise - 1) < 0.6)      # 9 complex draws per coefficient: chi with 18 dof (std 0.17)
+
+
+def test_prior_is_10_to_30_percent_off_every_parameter():
+    for seed in range(20):
+        case = lv.make_case(seed)
+        truth = case.truth if case.core_material == case.material else None
+        assert set(case.prior) == set(lv.paper_names(case.core_material))
+        if truth:
+            off = [abs(case.prior[k] / truth[k] - 1) for k in case.prior]
+            assert min(off) >= 0.1 - 1e-12 and max(off) <= 0.3 + 1e-12, off
+        assert 1e-3 <= case.noise <= 1e-2
+
+
+def test_adapter_reads_both_report_forms():
+    today = {"chosen_effect": None, "indistinguishable": [], "error_before": 0.05, "error_after": 0.05, "noise_floor": 0.002}
+    assert lv.loop_outcome(today)["verdict"] == "wrong_model"
+    assert lv.loop_outcome(dict(today, error_before=0.0021, error_after=0.0021))["verdict"] == "adequate"
+    got = lv.loop_outcome(dict(today, chosen_effect="T_cold"))
+    assert got["accepted_effects"] == ["T_cold"] and got["verdict"] == "explained"
+    contract = dict(today, verdict="unexplained_residual", accepted_effects=[], indistinguishable=[["a", "b"]])
+    got = lv.loop_outcome(contract)
+    assert got["verdict"] == "unexplained_residual" and got["indistinguishable"] == [["a", "b"]]
+
+
+def test_categories_cycle_covers_every_library_effect():
+    cats = {lv.make_case(s).category for s in range(len(lv.CATEGORIES))}
+    assert cats == set(lv.CATEGORIES)
+    assert {f"effect:{e}" for e in lv.EFFECTS} <= cats
+
+
+@pytest.mark.parametrize("a, b", [(0.04, -0.03)])
+def test_calibration_drift_has_zero_mean_over_the_band(a, b):
+    f = np.linspace(40.0, 400.0, 37)
+    g = lv.calibration_drift(f, a, b)
+    assert abs(np.mean(g) - 1) < 1e-15 and np.isclose(g[-1] - g[0], a + 1j * b)
