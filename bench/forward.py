@@ -33,7 +33,7 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
-from tawarp.model.core import bundled_cores, load_core
+from tawarp.model.core import load_core, paper_cores
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from _results import write_result
 
@@ -71,17 +71,17 @@ def accuracy_table(device: str, densities) -> dict:
     """Max relative error of each cell density against the adaptive NumPy reference,
     over the four bundled cores at their largest heat input (80 W, RVC 18 W)."""
     refs = {name: reference.dimensionless_transfer(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0))
-            for name in bundled_cores()}
+            for name in paper_cores()}
     out = {}
     for d in densities:
         errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
                                                        device=device, cell_density=d, tolerance=None
                                                        ).dimensionless()[0], refs[name])
-                for name in bundled_cores()}
+                for name in paper_cores()}
         out[str(d)] = {"max_relative_error": max(errs.values()), "per_core": errs}
     errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
                                                    device=device).dimensionless()[0], refs[name])
-            for name in bundled_cores()}
+            for name in paper_cores()}
     out["estimate"] = {"max_relative_error": max(errs.values()), "per_core": errs,
                        "settings": "default: cell_density 1.5, tolerance 1e-6"}
     return out

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
-from tawarp.model.core import bundled_cores, load_core
+from tawarp.model.core import load_core, paper_cores
 from tawarp.model.forward import transfer_matrices, steady_temperature
 from tawarp.plots import plt, save
 
@@ -40,7 +40,7 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     result = {"fixed_cells": {}, "density": {}, "estimate": {}, "heat_plain": {}}
     fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4))
-    for name in bundled_cores():
+    for name in paper_cores():
         core, Q = load_core(name), HEAT.get(name, 80.0)
         ref = reference.dimensionless_transfer(core, FREQS, Q)
         cells = [2, 4, 8, 16, 32, 64]

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tawarp.model.core import (CoreError, Segment, bundled_cores, core_from_dict, dump_core, load_core,
+from tawarp.model.core import (CoreError, Segment, bundled_cores, core_from_dict, dump_core, load_core, paper_cores,
                                segment_parameter_fields)
 from tawarp.model.fields import SEGMENT_FIELD_TABLE, takes
 
@@ -100,3 +100,11 @@ def test_replace_refuses_unknown_names_by_name():
         with pytest.raises(KeyError, match=name.partition(".")[2] if name != "tube.length" else "tube"):
             core.replace(**{name: 1.0})
     assert core.replace(**{"gas.T_cold": 300.0}).gas.T_cold == 300.0
+
+
+def test_paper_cores_are_the_papers_four_materials():
+    # the thermoacoustic bundled cores are the paper's four materials; passive samples are
+    # bundled too but take no heat input
+    assert sorted(paper_cores()) == ["ceramic", "mesh", "nicr_foam", "rvc_foam"]
+    assert set(paper_cores()) < set(bundled_cores())
+    assert all(not load_core(n).thermal_indices for n in set(bundled_cores()) - set(paper_cores()))

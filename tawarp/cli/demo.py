@@ -18,7 +18,7 @@ from ..loop import default_base_params, run_loop, write_report
 from ..measure.tmatrix import TMatrixKind
 from ..measure.files import TMatrixData, read_tmatrix_csv, write_tmatrix_csv
 from ..measure.synthetic import MATERIALS, make_paper_data, true_values
-from ..model.core import bundled_cores, load_core
+from ..model.core import load_core, paper_cores
 from ..model.forward import DEFAULT_CELL_DENSITY, ForwardSettings, transfer_matrices
 from ..plots import plot_coefficients, plot_temperature
 
@@ -34,10 +34,8 @@ def run_demo(args) -> int:
     freqs = np.linspace(30.0, 500.0, 48)
     summary = {}
     rows = []
-    for name in bundled_cores():
+    for name in paper_cores():
         core = load_core(name)
-        if not core.thermal_indices:   # a passive sample (foam_sample): no heat input to show
-            continue
         Q = DEMO_HEAT.get(name, DEFAULT_HEAT)
         res = transfer_matrices(core, freqs, heat_input=Q, device=args.device, progress=not args.quiet)
         write_tmatrix_csv(out / f"{name}_T.csv", TMatrixData(np.repeat(Q, len(freqs)), np.tile(freqs, len(Q)),

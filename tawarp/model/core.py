@@ -352,8 +352,15 @@ def bundled(folder: str) -> list[str]:
 
 
 def bundled_cores() -> list[str]:
-    """Names of the paper-like cores shipped with tawarp (one per material of the paper)."""
+    """Names of every core shipped with tawarp: the paper-like thermoacoustic cores
+    (:func:`paper_cores`) and passive samples (``foam_sample``)."""
     return bundled("cores")
+
+
+def paper_cores() -> list[str]:
+    """Names of the bundled thermoacoustic cores, one per material of the paper (those with
+    thermal segments: a heat input means something for them)."""
+    return [name for name in bundled_cores() if load_core(name).thermal_indices]
 
 
 def dump_core(core: Core) -> str:
