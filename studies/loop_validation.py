@@ -291,38 +291,15 @@ def measurement(case: Case, arrays: dict) -> TMatrixData:
 
 
 def loop_outcome(report: dict) -> dict:
-    """THE adapter from the loop's report to what the study scores (the report contract of
-    issue 9): ``accepted_effects``, ``verdict``, ``indistinguishable`` (groups),
-    ``error_before``, ``error_after``, ``noise_floor``.
-
-    Until the loop writes ``verdict`` and ``accepted_effects``, they are derived from today's
-    keys: accepted = [chosen_effect] or []; verdict "indistinguishable" when a group is named,
-    "explained" when an effect is chosen, else from error_before / noise_floor: <= 1.5
-    "adequate", >= 10 "wrong_model", between "unexplained_residual"; without a noise floor
-    (no sigma) today's loop cannot tell, and "adequate" is assumed."""
-    out = {k: report.get(k) for k in ("error_before", "error_after", "noise_floor")}
-    if "verdict" in report:
-        out["accepted_effects"] = list(report.get("accepted_effects") or [])
-        out["verdict"] = report["verdict"]
-        groups = report.get("indistinguishable") or []
-        out["indistinguishable"] = [list(g) for g in groups] if groups and isinstance(groups[0], list) else (
-            [list(groups)] if groups else [])
-        gof = report.get("goodness_of_fit_before") or {}
-        out["noise_floor"] = out["noise_floor"] or gof.get("noise_floor")
-        return out
-    chosen, group = report.get("chosen_effect"), list(report.get("indistinguishable") or [])
-    out["accepted_effects"] = [chosen] if chosen else []
-    out["indistinguishable"] = [group] if group else []
-    floor = report.get("noise_floor")
-    if group:
-        out["verdict"] = "indistinguishable"
-    elif chosen:
-        out["verdict"] = "explained"
-    elif floor is None or report["error_before"] <= 1.5 * floor:
-        out["verdict"] = "adequate"
-    else:
-        out["verdict"] = "wrong_model" if report["error_before"] >= 10 * floor else "unexplained_residual"
-    return out
+    """THE adapter from the loop's report (the report contract of issue 9) to what the study
+    scores: ``accepted_effects``, ``verdict``, ``indistinguishable`` (groups),
+    ``error_before``, ``error_after``, ``noise_floor`` (from the goodness of fit where the
+    data carry no sigma and the floor is estimated)."""
+    gof = report.get("goodness_of_fit_before") or {}
+    return {"error_before": report["error_before"], "error_after": report["error_after"],
+            "noise_floor": report.get("noise_floor") or gof.get("noise_floor"),
+            "accepted_effects": list(report.get("accepted_effects") or []), "verdict": report["verdict"],
+            "indistinguishable": [list(g) for g in report.get("indistinguishable") or []]}
 
 
 def expected(case: Case, visibility: float | None) -> dict:

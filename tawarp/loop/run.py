@@ -236,7 +236,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         lib = [e for e in library if e.name not in accepted and not (structural and e.transform is not None)]
         if not lib:
             break
-        rnd = _step(problem, cur, cur_params, lib, fixed, sigma, blocks, samples, top, F_TEST_P / 2 ** t)
+        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, blocks, samples, top,
+                    F_TEST_P / 2 ** t)
         rounds.append(rnd)
         indistinguishable += [g for g in rnd["indistinguishable"] if g not in indistinguishable]
         tie = tie or rnd["tie"]
@@ -318,8 +319,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     return report
 
 
-def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib: list[Effect], fixed: dict,
-          sigma, blocks, samples, top: int, alpha: float) -> dict:
+def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_base: int, lib: list[Effect],
+          fixed: dict, sigma, blocks, samples, top: int, alpha: float) -> dict:
     """One step of the loop on the current model ``cur``: screen, refit (the promising
     candidates first, the rest when none passes), test, check stability; returns the
     round's report (``accepted``: the effect's name or None)."""
@@ -345,9 +346,15 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], lib
         """Augmented fits of ``names`` in one batch from the effect off at the current
         solution; the held-out blocks by :func:`linear_refit`."""
         effects = [next(x for x in lib if x.name == n) for n in names]
-        starts = [(e, start) for e in effects for start in refit_starts(e)]
-        runs = fit_batch(problem, [spec(e, np.concatenate([cur.x[0], start])) for e, start in starts],
-                         fixed, max_iter=MAX_ITER, xtol=XTOL)
+        # the base parameters from the current solution and from the core file's values: a
+        # strong effect pulls the base fit away from where the augmented optimum lies (a
+        # plane offset bends the free hot-exchanger geometry), and the descent from there can
+        # stay in that valley
+        at_core = cur.x[0].copy()
+        at_core[:n_base] = 0.0
+        starts = [(e, np.concatenate([x, start])) for e in effects for start in refit_starts(e)
+                  for x in (cur.x[0], at_core)]
+        runs = fit_batch(problem, [spec(e, x0) for e, x0 in starts], fixed, max_iter=MAX_ITER, xtol=XTOL)
         augs = [min((f for (o, _), f in zip(starts, runs) if o is e), key=lambda f: float(f.cost[0])) for e in effects]
         train = [np.setdiff1d(np.arange(problem.y.size), test) for _, test in blocks]
         base_err = np.array([linear_refit(cur, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
