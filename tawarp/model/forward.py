@@ -31,6 +31,7 @@ from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, S
 from .gas import GASES
 from .validity import ValidityWarning, check_results, check_sets
 from ..progress import progress_bar
+from ..kernels import batch as kbatch
 from ..kernels import forward as kf
 from ..kernels import layout
 from ..kernels.pore_table import circular_table
@@ -362,9 +363,12 @@ class Engine:
         target = 0.5 * tol
         p, t = params, theta   # every set in the first round: no copy
         for rounds in range(MAX_ESTIMATE_ROUNDS):
-            if rounds:         # the sets still above target only
-                p = wp.array(np.ascontiguousarray(params.numpy()[:, active]), dtype=wp.float64, device=self.device)
-                t = wp.array(np.ascontiguousarray(theta.numpy()[active]), dtype=wp.float64, device=self.device)
+            if rounds:         # the sets still above target only, gathered on the device
+                p = wp.empty((params.shape[0], active.size), dtype=wp.float64, device=self.device)
+                t = wp.empty((active.size, theta.shape[1]), dtype=wp.float64, device=self.device)
+                wp.launch(kbatch.gather_sets, dim=active.size, device=self.device,
+                          inputs=[params, theta, wp.array(active.astype(np.int32), dtype=wp.int32, device=self.device),
+                                  p, t])
             Y = []
             for factor in (1.0, 2.0):
                 out = wp.empty((active.size, sample.size, 8), dtype=wp.float64, device=self.device)
