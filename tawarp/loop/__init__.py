@@ -3,8 +3,8 @@ of fit, then effects from a library one at a time, each step reported.
 
 Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
 
-1. **Base fit**: the paper's full method (:func:`base_names`: every porous segment's
-   porosity, pore radius, tortuosity and every thermal segment's h, less the core file's
+1. **Base fit**: the paper's full method (:func:`base_names`: the porosity, pore
+   radius, tortuosity of every porous segment but the heater and every thermal segment's h, less the core file's
    ``[fit] pinned``), with the paper's two steps when Q = 0 and Q > 0 rows exist
    (:func:`fit_base`), on the package's one LM (:func:`tawarp.fit.problems.fit_batch`).
 2. **Goodness of fit** (:mod:`.goodness`): reduced chi^2 and p-value against the data's

@@ -68,13 +68,16 @@ def refit_starts(e: Effect) -> list[np.ndarray]:
 
 
 def base_names(problem: MeasurementKind) -> list[str]:
-    """The paper's full base fit: for core T-matrices every porous segment's porosity, pore
-    radius and tortuosity and (with heat input in the data) every thermal segment's h,
-    whatever its size; for other kinds their ``default_names()``. Names in the core's
-    ``[fit] pinned`` list stay at their core values."""
+    """The paper's full base fit (PHYSICS.md, "Inverse problem"): for core T-matrices the
+    porosity, pore radius and tortuosity of every porous segment that is not the heater (the
+    stack, a passive sample: the material under test) and, with heat input in the data,
+    every thermal segment's h, whatever its size; for other kinds their
+    ``default_names()``. The hot exchanger's geometry is part of the rig, as in the paper:
+    freeing it lets it bend towards the bounds to take up an effect's misfit (add it with
+    ``--fit``). Names in the core's ``[fit] pinned`` list stay at their core values."""
     core = problem.core
     if isinstance(problem, TMatrixKind):
-        names = [f"{s.name}.{f}" for s in core.segments if s.is_porous for f in GEOMETRY]
+        names = [f"{s.name}.{f}" for s in core.segments if s.is_porous and not s.heater for f in GEOMETRY]
         if np.any(problem.group > 0):
             names += [f"{s.name}.h" for s in core.segments if s.thermal]
     else:
@@ -236,8 +239,10 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         lib = [e for e in library if e.name not in accepted and not (structural and e.transform is not None)]
         if not lib:
             break
-        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, blocks, samples, top,
-                    F_TEST_P / 2 ** t)
+        # far from a fit (reduced chi^2 above WRONG_MODEL_CHI2) the linear screen ranks badly:
+        # every candidate is refitted
+        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, blocks, samples,
+                    len(lib) if gof["reduced_chi2"] > WRONG_MODEL_CHI2 else top, F_TEST_P / 2 ** t)
         rounds.append(rnd)
         indistinguishable += [g for g in rnd["indistinguishable"] if g not in indistinguishable]
         tie = tie or rnd["tie"]
@@ -331,7 +336,7 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_b
     directions = {s["effect"]: s.pop("_direction") for s in scores}
     usable = [s for s in scores if s["degenerate_with"] is None]
     order = sorted(usable, key=lambda s: -s["score"])
-    promising = [s["effect"] for s in order if s["linearized_p"] < alpha][:top]
+    promising = [s["effect"] for s in order if s["linearized_p"] < alpha or top >= len(lib)][:top]
     # the linear screen sees an effect only near its "off" value: one whose fit must start
     # elsewhere (``Effect.starts``: a frame resonance inside the band) is always refitted
     promising += [s["effect"] for s in usable if s["effect"] not in promising
