@@ -42,6 +42,11 @@ WRONG_MODEL_CHI2 = 25.0
 #: Two effects whose BIC differ by less than this are indistinguishable ("not worth more
 #: than a bare mention" on Kass & Raftery's scale).
 INDISTINGUISHABLE_BIC = 2.0
+#: An accepted effect removes at least this share of the misfit above the noise floor
+#: (error^2 - floor^2): a significant but small gain from a candidate that only leans
+#: into a residual of another cause (a frequency-dependent calibration drift fitted by a
+#: constant gain: 5 %) is not an explanation.
+MIN_EXCESS_EXPLAINED = 1.0 / 3.0
 #: At most this many effects are accepted.
 MAX_STEPS = 3
 #: Iteration cap and step tolerance of the loop's LM fits (a misfitting model crawls along
@@ -241,7 +246,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
             break
         # far from a fit (reduced chi^2 above WRONG_MODEL_CHI2) the linear screen ranks badly:
         # every candidate is refitted
-        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, blocks, samples,
+        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, floor, blocks, samples,
                     len(lib) if gof["reduced_chi2"] > WRONG_MODEL_CHI2 else top, F_TEST_P / 2 ** t)
         rounds.append(rnd)
         indistinguishable += [g for g in rnd["indistinguishable"] if g not in indistinguishable]
@@ -299,7 +304,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
             f"Delta BIC < {DELTA_BIC:g}, its F-test passes Holm-Bonferroni over the candidates refitted at that step at "
             f"family-wise level {F_TEST_P:g}/2^t, it predicts a majority of the held-out blocks ({len(blocks)}: "
             f"{BANDS} frequency bands and each group) better than the current model, none of its parameters ends at a "
-            f"bound, its sensitivity does not correlate > {DEGENERATE_CORR:g} with a base parameter's; "
+            f"bound, it removes at least {MIN_EXCESS_EXPLAINED:.2g} of the misfit above the noise floor "
+            f"(error^2 - floor^2), its sensitivity does not correlate > {DEGENERATE_CORR:g} with a base parameter's; "
             f"the lowest BIC among those is accepted when no other passing candidate lies within "
             f"{INDISTINGUISHABLE_BIC:g} in BIC or correlates > {DEGENERATE_CORR:g} with it (else: indistinguishable, "
             f"none chosen) and it is chosen in >= {STABILITY:.0%} of {len(samples)} resamplings (every "
@@ -325,7 +331,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
 
 
 def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_base: int, lib: list[Effect],
-          fixed: dict, sigma, blocks, samples, top: int, alpha: float) -> dict:
+          fixed: dict, sigma, floor: float, blocks, samples, top: int, alpha: float) -> dict:
     """One step of the loop on the current model ``cur``: screen, refit (the promising
     candidates first, the rest when none passes), test, check stability; returns the
     round's report (``accepted``: the effect's name or None)."""
@@ -386,8 +392,13 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_b
         passing = []
         for n, ok in zip(names, holm_ok):
             r = rows_out[n]
+            # the share of the misfit above the noise floor (FORMATS.md error, in floors^2) it removes
+            excess = (float(cur.rms_error[0]) / floor) ** 2 - 1.0
+            r["excess_explained"] = ((float(cur.rms_error[0]) ** 2 - r["error_after"] ** 2) / floor ** 2 / excess
+                                     if excess > 0 else 0.0)
             r["checks"] = {"delta_bic": r["delta_bic"] < DELTA_BIC, "f_test_holm": ok,
-                           "held_out": 2 * r["held_out_blocks_better"] > len(blocks), "not_at_bound": not r["at_bounds"]}
+                           "held_out": 2 * r["held_out_blocks_better"] > len(blocks), "not_at_bound": not r["at_bounds"],
+                           "explains_excess": r["excess_explained"] >= MIN_EXCESS_EXPLAINED}
             if r["at_bounds"]:
                 r["rejected_because"] = f"fitted at a bound: {', '.join(r['at_bounds'])}"
             if all(r["checks"].values()):
