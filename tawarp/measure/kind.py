@@ -99,8 +99,11 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     if settings.cells is not None:
         return settings
     values = {k: float(np.max(v)) for k, v in (values or {}).items()}
-    counts = fit_cells(core, float(np.max(freqs)), values, settings, k_factor=2.0, freqs=freqs,
-                       heat_input=float(np.max(heat_input, initial=0.0)))
+    # one parameter set: sized on the CPU, where its few cascades take microseconds (on a
+    # GPU each estimate round costs a whole thread's latency and a synchronization); the
+    # count does not depend on the device
+    counts = fit_cells(core, float(np.max(freqs)), values, dataclasses.replace(settings, device="cpu"), k_factor=2.0,
+                       freqs=freqs, heat_input=float(np.max(heat_input, initial=0.0)))
     return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
 
 
