@@ -249,15 +249,22 @@ def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
     done = [p for p in procs if p.poll() is not None]
     assert len(done) == 1, "one of the two must be refused while the other runs"
     winner = next(p for p in procs if p is not done[0])
-    time.sleep(0.5)  # let it store some generations
+
+    def keys():
+        trials = open_study(str(journal), "tawarp-design", ["gradient"]).get_trials()
+        return trials, {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
+
+    # let it store a generation first: SIGINT is handled between Python bytecodes, and a
+    # winner still loading (or, in a fresh clone, compiling) its kernels would take that
+    # long to see it
+    t0 = time.monotonic()
+    while winner.poll() is None and not keys()[0] and time.monotonic() - t0 < 300:
+        time.sleep(0.1)
     winner.send_signal(signal.SIGINT)
     winner.communicate(timeout=60)
     out = done[0].communicate(timeout=60)[0]
     assert done[0].returncode != 0 and "StudyConflict" in out and "is running in another live process" in out, out
 
-    def keys():
-        trials = open_study(str(journal), "tawarp-design", ["gradient"]).get_trials()
-        return trials, {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
     trials, k = keys()
     assert len(trials) == len(k)
     n = (len(trials) // 8 + 2) * 8
