@@ -501,8 +501,13 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     cov, std, corr, cond, s2, V, w = covariance(prob, data, z, H, cost, absolute_sigma)
     values = prob.to_v(z, data)
     distinct = local = None
+    # the messages are built per problem (a Python loop): only for the problems with one
+    iu = np.triu_indices(len(names), 1)
+    pair = np.abs(corr[:, iu[0], iu[1]])
+    flagged = (np.any(np.isfinite(pair) & (pair > corr_limit), axis=1) | ~np.isfinite(cond) | (cond > cond_limit)
+               | ~np.asarray(conv, dtype=bool))
     per = [_problem_warnings(names, corr[i], cond[i], V[i], w[i], conv[i], reason[i], corr_limit, cond_limit)
-           for i in range(N)]
+           if flagged[i] else [] for i in range(N)]
     if alt_v:
         av = np.concatenate(alt_v, axis=1)
         ac = np.concatenate(alt_cost, axis=1)
