@@ -354,13 +354,12 @@ def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_b
         return (cur_params + list(e.params), e if e.transform is not None else cur.effect, x0, rows)
 
     def refit(names: list[str]) -> None:
-        """Augmented fits of ``names`` in one batch from the effect off at the current
-        solution; the held-out blocks by :func:`linear_refit`."""
+        """Augmented fits of ``names`` in one batch, from each of the effect's
+        :func:`refit_starts` with the base parameters at the current solution and at the core
+        file's values (the lowest cost kept); the held-out blocks by :func:`linear_refit`."""
         effects = [next(x for x in lib if x.name == n) for n in names]
-        # the base parameters from the current solution and from the core file's values: a
-        # strong effect pulls the base fit away from where the augmented optimum lies (a
-        # plane offset bends the free hot-exchanger geometry), and the descent from there can
-        # stay in that valley
+        # a strong effect pulls the base fit away from where the augmented optimum lies, and
+        # the descent from there can stay in that valley (validation seed 101)
         at_core = cur.x[0].copy()
         at_core[:n_base] = 0.0
         starts = [(e, np.concatenate([x, start])) for e in effects for start in refit_starts(e)
