@@ -205,10 +205,6 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
 STAGES = ("base fit", "effects", "drift")
 
 
-def _error_on(problem: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.abs(Y[rows] - problem.y[rows]) ** 2) / np.mean(np.abs(problem.y) ** 2)))
-
-
 def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, library: list[Effect] | None = None,
              top: int = 3, drift_h: bool = True, progress: bool = False) -> dict:
     """The loop of the package docstring; returns the report dict (report.json).

@@ -103,11 +103,11 @@ JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 
 #: Each parameter's physical range is that of its row in :mod:`tawarp.model.fields` (one
 #: table): the JCA lengths and the pore radius are radii, ``alpha_inf = q^2`` has q's range
-#: [1, inf); the moduli, the resistivity and the tube area are only positive.
+#: [1, inf); the others (the moduli, the resistivity, the tube area) are only positive
+#: (:func:`_check`).
 _FIELD_OF = {"phi": "porosity", "alpha_inf": "tortuosity", "Lambda": "pore_radius", "Lambda_prime": "pore_radius",
              "pore_radius": "pore_radius", "thickness": "length", "eta": "frame_loss_factor", "nu": "poisson_ratio",
              "rho_1": "frame_density", "T": "gas.T_cold", "P0": "gas.p_mean"}
-_POSITIVE = ("sigma", "E", "area")
 
 
 class JCAFluid(NamedTuple):
