@@ -186,10 +186,12 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                  z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
                  guess: wp.array(dtype=wp.vec2d), omega_ref: wp.array(dtype=wp.float64), spread: wp.float64,
                  tol: wp.float64, max_iter: int,
-                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32)):
+                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32),
+                 evaluations: wp.array(dtype=wp.int32)):
     """omega_out[i]: the zero of :func:`engine_residual` nearest ``guess[i]`` [rad/s] by
     Muller's method from guess (1 -+ spread) and guess; stops when a step is below
-    ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge."""
+    ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge;
+    evaluations[i]: residual (cascade) evaluations made."""
     i = wp.tid()
     w_ref = omega_ref[i]
     g = guess[i]
@@ -204,8 +206,10 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
     # evaluations 0 and 1 only fill f0 and f1 at the start points, then each further one
     # is at Muller's new point x2
     done = int(-1)
+    count = int(0)
     for it in range(max_iter + 2):
         if done < 0:
+            count = count + 1
             x = x2
             if it == 0:
                 x = x0
@@ -241,6 +245,7 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                     done = it - 1
     omega_out[i] = x2
     iterations[i] = done
+    evaluations[i] = count
 
 
 @wp.kernel

@@ -45,12 +45,14 @@ MULLER_SPREAD = 1e-3
 class EigenResult:
     """Eigenfrequencies of a batch: ``omega`` (n,) complex [rad/s]; ``heat_input`` (n,)
     [W]; ``T_hot`` (n,) largest steady temperature in the core [K]; ``iterations`` (n,)
-    Muller steps (-1: not converged, omega is then the last iterate)."""
+    Muller steps (-1: not converged, omega is then the last iterate); ``evaluations`` (n,)
+    residual (cascade) evaluations made."""
 
     omega: np.ndarray
     heat_input: np.ndarray
     T_hot: np.ndarray
     iterations: np.ndarray
+    evaluations: np.ndarray
 
     @property
     def frequency(self) -> np.ndarray:
@@ -68,7 +70,8 @@ class OnsetResult:
     """Onset of a batch of n engines: ``Q_onset`` (n,) [W] (NaN where Im omega does not
     cross 0 from below on [0, Q_max]), ``f_onset`` [Hz], ``T_hot`` [K] at onset,
     ``omega_onset`` complex [rad/s]; the bracketing grid ``Q_grid`` (k,) [W] and
-    ``omega_grid`` (n, k) complex; ``secant_steps`` the refinement launches."""
+    ``omega_grid`` (n, k) complex; ``secant_steps`` the refinement launches; ``evaluations``
+    (n,) residual (cascade) evaluations spent on each set."""
 
     Q_onset: np.ndarray
     f_onset: np.ndarray
@@ -77,6 +80,7 @@ class OnsetResult:
     Q_grid: np.ndarray
     omega_grid: np.ndarray
     secant_steps: int
+    evaluations: np.ndarray
 
 
 def _split_names(params: dict | None) -> tuple[dict, dict]:
@@ -143,12 +147,14 @@ class EigenSolver:
         w_res = wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev)
         omega = wp.empty(n, dtype=wp.vec2d, device=dev)
         its = wp.empty(n, dtype=wp.int32, device=dev)
+        evals = wp.empty(n, dtype=wp.int32, device=dev)
         wp.launch(ko.eigen_kernel, dim=n, device=dev,
                   inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, float(fe.settings.cell_density), fe.first,
                           fe.heat_cells, w_res, self.ends, self.z_left, self.z_right, w_guess, w_ref,
-                          MULLER_SPREAD, float(tol), int(max_iter), omega, its])
+                          MULLER_SPREAD, float(tol), int(max_iter), omega, its, evals])
         return EigenResult(omega.numpy().view(np.complex128).reshape(n), np.asarray(varying[0]).copy(),
-                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy())
+                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy(),
+                           evals.numpy())
 
     def hot_temperature(self, params: wp.array, theta: wp.array) -> np.ndarray:
         """Largest steady temperature [K] in the core per set (:func:`tawarp.kernels.onset.hot_kernel`)."""
@@ -239,6 +245,7 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
     rep = np.repeat(np.arange(n), n_bracket)
     grid = at(rep, np.tile(Qg, n), guess0[rep])
     wg = grid.omega.reshape(n, n_bracket)
+    evals = base.evaluations + grid.evaluations.reshape(n, n_bracket).sum(axis=1)
     g = wg.imag
     up = (g[:, :-1] < 0) & (g[:, 1:] >= 0)
     has = up.any(axis=1)
@@ -260,6 +267,7 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         q_new = q_lo[a] + t * (q_hi[a] - q_lo[a])
         r = at(idx[a], q_new, w_lo[a] + t * (w_hi[a] - w_lo[a]))
         steps += 1
+        evals[idx[a]] += r.evaluations
         gn = r.omega.imag
         Q_on[idx[a]] = q_new
         w_on[idx[a]] = r.omega
@@ -281,4 +289,4 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
     if active.any():
         warnings.warn(f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
                       RuntimeWarning, stacklevel=2)
-    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps)
+    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps, evals)
