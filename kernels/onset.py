@@ -249,6 +249,23 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
 
 
 @wp.kernel
+def residual_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                    seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
+                    resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
+                    z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
+                    column: wp.array(dtype=wp.int32), omega: wp.array(dtype=wp.vec2d),
+                    omega_ref: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec2d)):
+    """out[j]: :func:`engine_residual` of parameter set ``column[j]`` (its params, theta,
+    resonator row and ``omega_ref`` [rad/s]) at complex ``omega[j]`` [rad/s]: one evaluation
+    per thread, for the onset's Newton refinement (finite differences in omega and Q)."""
+    j = wp.tid()
+    i = column[j]
+    out[j] = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
+                             z_left, z_right, i, omega[j], omega_ref[i])
+
+
+@wp.kernel
 def hot_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), first: int, heat_cells: int,
                out: wp.array(dtype=wp.float64)):
