@@ -281,7 +281,7 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         v = varying[:, idx].copy()
         v[0] = Q
         r = solver.solve(v, resonator[idx], guess, w_ref[idx], tol=tol, hot=False)
-        _warn_unconverged(r.iterations, np.broadcast_to(Q, idx.shape))
+        _warn_unconverged(r.iterations, Q)
         evals[idx] += r.evaluations
         return r
 
@@ -333,11 +333,11 @@ class _Bracket:
     def subset(self, k: np.ndarray) -> "_Bracket":
         return _Bracket(self.q_lo[k].copy(), self.q_hi[k].copy(), self.w_lo[k].copy(), self.w_hi[k].copy())
 
-    def interpolate(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Linear interpolation where Im omega crosses 0: (t in (0, 1], Q [W], omega [rad/s])."""
+    def interpolate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Linear interpolation where Im omega crosses 0: (Q [W], omega [rad/s])."""
         g_lo, g_hi = self.w_lo.imag, self.w_hi.imag
         t = g_lo / (g_lo - g_hi)
-        return t, self.q_lo + t * (self.q_hi - self.q_lo), self.w_lo + t * (self.w_hi - self.w_lo)
+        return self.q_lo + t * (self.q_hi - self.q_lo), self.w_lo + t * (self.w_hi - self.w_lo)
 
 
 #: Relative finite-difference steps of the Newton Jacobian, in omega and in Q (of the
@@ -368,7 +368,7 @@ def _newton_onset(solver: EigenSolver, varying: np.ndarray, resonator: np.ndarra
     close to onset. ``evals[idx]`` counts the evaluations.
     Returns (Q [W], omega [rad/s], converged mask, launches)."""
     m = idx.size
-    _, Q, w0 = br.interpolate()
+    Q, w0 = br.interpolate()
     w = w0.real.copy()
     slope = (br.w_hi.imag - br.w_lo.imag) / (br.q_hi - br.q_lo)
     margin = 10 * grid_tol * np.abs(br.w_lo) / slope
