@@ -11,8 +11,9 @@
 Convention exp(-i omega t): a mode grows when Im omega > 0 (PHYSICS.md, "Onset"). One
 kernel thread per (parameter set, heat input) finds omega by Muller's method
 (:mod:`tawarp.kernels.onset`); :func:`onset` brackets the heat input where Im omega
-changes sign on a grid of Q (one batched launch) and refines it by a bracketed secant
-(Illinois) on Q, one batched launch per step for all sets still refining.
+changes sign on a grid of Q (one batched launch per grid point for the sets still
+marching) and refines it by Newton's method on (Re omega, Q), with the bracketed Illinois
+secant on Q as fallback: one batched launch per step for all sets still refining.
 
 Batches: ``params`` as :func:`tawarp.model.forward.transfer_matrices` (``SEGMENT.FIELD``)
 plus the resonator's ``engine.left_duct``, ``engine.right_duct`` (lengths [m]),
