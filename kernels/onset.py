@@ -10,7 +10,9 @@ parameter set finds omega where the end condition holds:
   left duct, the core (:func:`core_vector`, the cascade of :func:`tawarp.kernels.forward.transfer_kernel`
   at complex omega) and the right duct; the residual is ``a_R p + b_R U`` at the right end
   (closed-closed: the Tup entry of the whole resonator's matrix);
-* Muller's method from three points around the start value finds its zero.
+* Muller's method from three points around the start value finds its zero
+  (:func:`eigen_kernel`); :func:`residual_kernel` evaluates the residual at given points,
+  for the onset's Newton refinement on (Re omega, Q) (:func:`tawarp.model.onset.onset`).
 
 A thermal segment's Magnus cell count comes from a real reference frequency per set
 (``omega_ref``), not from the iterate: the residual is then one analytic function of omega
