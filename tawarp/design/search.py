@@ -45,7 +45,7 @@ from .samplers import make_sampler
 from .space import DesignSpace
 from .samplers import pareto_mask
 from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, copies_in_study,
-                      lineage, make_storage, open_study)
+                      journal_batch, lineage, make_storage, open_study)
 from ..model.forward import ForwardSettings
 
 @dataclass
@@ -287,14 +287,15 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
             put(missing, m)
             if stored is not None:
                 run.resumed += len(missing)
-            claim.heartbeat()
-        if run.store is not None:  # copies of the generation's kept members not in the study yet
-            keep = [j for j in run.kept(F, viol) if (g, int(j)) not in copied]
-            if keep:
+        keep = [j for j in run.kept(F, viol) if (g, int(j)) not in copied] if run.store is not None else []
+        with journal_batch(run.storage):  # the copies and the heartbeat: one lock and one sync
+            if keep:  # copies of the generation's kept members that the study lacks
                 keep = np.array(keep)
                 c = viol[keep] if run.T_limit is not None else None
                 run.copy_to_study(g, keep, {k: v[keep] for k, v in values.items()},
                                   {k: v[keep] for k, v in metrics.items()}, c, np.zeros(len(keep), bool))
+            if missing.size:
+                claim.heartbeat()
         t = time.perf_counter()
         sampler.tell(space.unit_from_values(values), F, viol)
         run.timing["sampler"] += time.perf_counter() - t

@@ -457,9 +457,15 @@ def add_evaluated(study, storage, points: list[dict], distributions: dict, value
                                    values=[float(x) for x in values[j]] if ok else None,
                                    params=p, distributions={k: distributions[k] for k in p},
                                    user_attrs=metrics[j], system_attrs=sa))
-    journal = _JOURNALS.get(storage)
-    with journal.batch() if journal is not None else contextlib.nullcontext():
+    with journal_batch(storage):
         study.add_trials(trials)
+
+
+def journal_batch(storage):
+    """A context in which a journal made by :func:`make_storage` is locked and synced to
+    disk once for all appends (a no-op for other storages)."""
+    journal = _JOURNALS.get(storage)
+    return journal.batch() if journal is not None else contextlib.nullcontext()
 
 
 def best_designs(study, objectives, T_limit, k: int = 1, store=None, per: str | None = None) -> list[dict]:
