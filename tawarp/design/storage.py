@@ -239,13 +239,11 @@ class StoreWriter:
         """Rows of one generation: ``index`` (k,) members, ``params`` {name: (k,)} (a
         categorical one as indices into its choices), ``metrics`` {name: (k,)},
         ``violation`` (k,) or None, ``failed`` (k,)."""
-        import time as _time
-
         k = len(index)
         cols = {"generation": np.full(k, generation, dtype=np.int64), "index": np.asarray(index, dtype=np.int64),
                 "failed": np.asarray(failed, dtype=bool),
                 "constraint": np.full(k, np.nan) if violation is None else np.asarray(violation, dtype=np.float64),
-                "time": np.full(k, _time.time())}
+                "time": np.full(k, time.time())}
         cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
         cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
         if self._f is None:
@@ -351,8 +349,7 @@ def _study_rows(study) -> tuple[dict, dict]:
             "generation": np.array([k[1] for k, _ in rows], dtype=np.int64),
             "index": np.array([k[2] for k, _ in rows], dtype=np.int64),
             "failed": np.array([t.state == TrialState.FAIL for t in ts]),
-            "constraint": np.array([sa["constraints"][0] if "constraints" in (sa := t.system_attrs) else np.nan
-                                    for t in ts], dtype=np.float64),
+            "constraint": np.array([t.system_attrs.get("constraints", [np.nan])[0] for t in ts], dtype=np.float64),
             "time": np.array([t.datetime_complete.timestamp() if t.datetime_complete else np.nan for t in ts]),
             "number": np.array([t.number for t in ts], dtype=np.int64)}
     for name in dict.fromkeys(k for t in ts for k in t.params):
@@ -401,16 +398,19 @@ def trials_table(study, store=None):
     import xarray as xr
 
     cols = _rows(study, store)
+    ts = store_of(study, store)
     ds = xr.Dataset(attrs={"study": study.study_name, "objectives": list(study.user_attrs.get("tawarp_objectives", [])),
-                           "store": str(store_of(study, store).path) if store_of(study, store) else ""})
-    n = len(cols.get("generation", ()))
-    base = {"worker": np.array(cols["worker"], dtype=str) if n else np.zeros(0, dtype=str),
-            "generation": cols.get("generation", np.zeros(0, np.int64)), "index": cols.get("index", np.zeros(0, np.int64)),
-            "number": cols.get("number", np.zeros(0, np.int64)),
-            "state": np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE") if n else np.zeros(0, dtype=str),
-            "constraint": cols.get("constraint", np.zeros(0)), "time": cols.get("time", np.zeros(0))}
-    for k, v in base.items():
-        ds[k] = ("trial", v)
+                           "store": str(ts.path) if ts is not None else ""})
+    if not cols:
+        cols = {"worker": np.zeros(0, object), "generation": np.zeros(0, np.int64), "index": np.zeros(0, np.int64),
+                "number": np.zeros(0, np.int64), "failed": np.zeros(0, bool), "constraint": np.zeros(0),
+                "time": np.zeros(0)}
+    ds["worker"] = ("trial", np.array(cols["worker"], dtype=str))
+    for k in ("generation", "index", "number"):
+        ds[k] = ("trial", cols[k])
+    ds["state"] = ("trial", np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE"))
+    for k in ("constraint", "time"):
+        ds[k] = ("trial", cols[k].astype(np.float64))
     params, metrics = [], []
     for k, v in cols.items():
         role, _, name = k.partition(":")
