@@ -100,8 +100,9 @@ _NORMAL_KERNELS = {}
 def normal_kernel(p: int):
     """The normal-equations kernel for ``p`` free parameters (cached per p).
 
-    Inputs: ``out`` (sets, m, 8) raw T-matrices from the Engine, ``Y`` and ``W`` (N, m, 8)
-    measured dimensionless values and weights (re, im of the four coefficients),
+    Inputs: ``out`` (sets, m, 8) raw T-matrices from the Engine, ``Y`` (N, m, 8) and ``W``
+    (N or 1, m, 8) measured dimensionless values and weights (re, im of the four coefficients;
+    one row of W serves every problem),
     ``zc`` (N,) the duct impedance of each problem, ``ids`` (slots,) problem of each
     slot, ``step`` (slots, p). Outputs per slot: ``cost``, ``raw`` (unweighted squared
     misfit), ``g`` (slots, p), ``H`` (slots, p, p).
@@ -128,6 +129,9 @@ def normal_kernel(p: int):
         Hm = matp()
         c2 = wp.float64(0.0)
         u2 = wp.float64(0.0)
+        wrow = pid
+        if W.shape[0] == 1:    # one weight row shared by every problem
+            wrow = 0
         for f in range(out.shape[1]):
             for k in range(8):
                 fac = wp.float64(1.0)
@@ -135,7 +139,7 @@ def normal_kernel(p: int):
                     fac = wp.float64(1.0) / zc[pid]
                 if k == 4 or k == 5:
                     fac = zc[pid]
-                w = W[pid, f, k]
+                w = W[wrow, f, k]
                 y0 = out[base, f, k] * fac
                 d = y0 - Y[pid, f, k]
                 r = w * d

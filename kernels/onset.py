@@ -10,7 +10,9 @@ parameter set finds omega where the end condition holds:
   left duct, the core (:func:`core_vector`, the cascade of :func:`tawarp.kernels.forward.transfer_kernel`
   at complex omega) and the right duct; the residual is ``a_R p + b_R U`` at the right end
   (closed-closed: the Tup entry of the whole resonator's matrix);
-* Muller's method from three points around the start value finds its zero.
+* Muller's method from three points around the start value finds its zero
+  (:func:`eigen_kernel`); :func:`residual_kernel` evaluates the residual at given points,
+  for the onset's Newton refinement on (Re omega, Q) (:func:`tawarp.model.onset.onset`).
 
 A thermal segment's Magnus cell count comes from a real reference frequency per set
 (``omega_ref``), not from the iterate: the residual is then one analytic function of omega
@@ -186,10 +188,12 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                  z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
                  guess: wp.array(dtype=wp.vec2d), omega_ref: wp.array(dtype=wp.float64), spread: wp.float64,
                  tol: wp.float64, max_iter: int,
-                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32)):
+                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32),
+                 evaluations: wp.array(dtype=wp.int32)):
     """omega_out[i]: the zero of :func:`engine_residual` nearest ``guess[i]`` [rad/s] by
     Muller's method from guess (1 -+ spread) and guess; stops when a step is below
-    ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge."""
+    ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge;
+    evaluations[i]: residual (cascade) evaluations made."""
     i = wp.tid()
     w_ref = omega_ref[i]
     g = guess[i]
@@ -204,8 +208,10 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
     # evaluations 0 and 1 only fill f0 and f1 at the start points, then each further one
     # is at Muller's new point x2
     done = int(-1)
+    count = int(0)
     for it in range(max_iter + 2):
         if done < 0:
+            count = count + 1
             x = x2
             if it == 0:
                 x = x0
@@ -241,6 +247,24 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                     done = it - 1
     omega_out[i] = x2
     iterations[i] = done
+    evaluations[i] = count
+
+
+@wp.kernel
+def residual_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                    seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
+                    resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
+                    z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
+                    column: wp.array(dtype=wp.int32), omega: wp.array(dtype=wp.vec2d),
+                    omega_ref: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec2d)):
+    """out[j]: :func:`engine_residual` of parameter set ``column[j]`` (its params, theta,
+    resonator row and ``omega_ref`` [rad/s]) at complex ``omega[j]`` [rad/s]: one evaluation
+    per thread, for the onset's Newton refinement (finite differences in omega and Q)."""
+    j = wp.tid()
+    i = column[j]
+    out[j] = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
+                             z_left, z_right, i, omega[j], omega_ref[i])
 
 
 @wp.kernel

@@ -162,7 +162,7 @@ def demo_onset(path: Path, device=None, quiet=False) -> dict:
     from ..model.onset import onset
     from ..model.resonator import load_engine
 
-    res = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, device=device)
+    res = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, curve=True, device=device)
     summary = {"engine": "standing_wave", "Q_onset_W": res.Q_onset[0], "f_onset_Hz": res.f_onset[0],
                "T_hot_K": res.T_hot[0], "Q_grid_W": res.Q_grid, "growth_rate_1_per_s": res.omega_grid[0].imag}
     write_json(path, summary)

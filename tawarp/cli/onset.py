@@ -53,7 +53,7 @@ def cmd_onset(args) -> int:
     names = list(axes)
     combos = list(itertools.product(*axes.values())) if names else [()]
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}
-    res = onset(engine, Q_max=args.Q_max, mode=args.mode, params=params, n_bracket=args.bracket, cells=args.cells,
+    res = onset(engine, Q_max=args.Q_max, mode=args.mode, params=params, n_bracket=args.bracket, curve=True, cells=args.cells,
                 device=args.device)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

@@ -190,17 +190,21 @@ class Problems:
         self.device = self.engine.device
         dev = self.device
         fixed_table = np.stack([q] + [fixed[k] for k in fixed])
-        # weights -> (N, m, 8)
+        # weights -> (N, m, 8), or (1, m, 8) when every problem has the same: a batch of
+        # 1e4 problems then uploads one row instead of 64 MB (the kernel reads row 0)
         if weights is None:
-            W = np.ones((N, m, 8))
+            W = np.ones((1, m, 8))
         else:
             w = np.asarray(weights, dtype=float)
-            if not (w.ndim >= 3 and w.shape[-2:] == (4, 2)):      # (.., m, 4): the same for re and im
-                w = np.broadcast_to(w, (N, m, 4))[..., None].repeat(2, axis=-1)
-            w = np.broadcast_to(w, (N, m, 4, 2))
+            pair = w.ndim >= 3 and w.shape[-2:] == (4, 2)     # else (.., m, 4): the same for re and im
+            w = np.broadcast_to(w, (N, m, 4, 2) if pair else (N, m, 4))
+            if w.strides[0] == 0:                             # a broadcast: one row for all problems
+                w = w[:1]
             if not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise ValueError("weights: must be finite and >= 0")
-            W = np.ascontiguousarray(w).reshape(N, m, 8)
+            W = np.empty(w.shape[:3] + (2,))
+            W[...] = w if pair else w[..., None]
+            W = W.reshape(-1, m, 8)
         self.W = W
         # duct impedance per problem (fixed globals change it)
         glob = [k for k in fixed if k in GLOBAL_FIELDS]
@@ -339,22 +343,36 @@ def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
     return cov, std, corr, cond, s2, V, w
 
 
-def _problem_warnings(names, corr, cond, V, w, converged, reason, corr_limit, cond_limit):
-    out = []  # (key, message)
-    p = len(names)
-    for a in range(p):
-        for b in range(a + 1, p):
-            c = corr[a, b]
-            if np.isfinite(c) and abs(c) > corr_limit:
-                out.append((("corr", a, b), f"{names[a]} and {names[b]} are too correlated to separate "
-                                            f"(correlation {c:+.4f}); fix one of them"))
-    if not np.isfinite(cond) or cond > cond_limit:
-        v = np.abs(V[:, 0])
-        dom = [names[k] for k in np.argsort(-v) if v[k] > 0.3 * v.max()]
-        out.append((("cond",), f"ill-conditioned (condition number {cond:.3g} of J^T J in scaled variables > "
-                               f"{cond_limit:g}): the direction mostly along {', '.join(dom)} is not determined"))
-    if not converged:
-        out.append((("conv", reason), f"did not converge ({reason})"))
+def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_limit) -> list[list[tuple]]:
+    """Per problem, the (key, message) pairs of its warnings: pairs of parameters correlated
+    beyond ``corr_limit``, a condition number beyond ``cond_limit`` (naming the directions of
+    the weakest eigenvector ``V[:, :, 0]``), no convergence. The tests are vectorised and the
+    numbers converted to Python floats once: a 1e4-problem batch where every problem warns
+    took a third of the fit's time with per-problem NumPy scalars."""
+    N, p = len(cond), len(names)
+    iu = np.triu_indices(p, 1)
+    pair = corr[:, iu[0], iu[1]]
+    with np.errstate(invalid="ignore"):
+        hit = np.isfinite(pair) & (np.abs(pair) > corr_limit)
+        ill = ~np.isfinite(cond) | (cond > cond_limit)
+    bad = ~np.asarray(converged, dtype=bool)
+    out = [[] for _ in range(N)]
+    for k, (a, b) in enumerate(zip(*iu)):
+        rows = np.flatnonzero(hit[:, k])
+        for i, c in zip(rows.tolist(), pair[rows, k].tolist()):
+            out[i].append((("corr", int(a), int(b)), f"{names[a]} and {names[b]} are too correlated to separate "
+                                                     f"(correlation {c:+.4f}); fix one of them"))
+    rows = np.flatnonzero(ill)
+    if rows.size:
+        v = np.abs(V[rows, :, 0])
+        strong = v > 0.3 * v.max(axis=1, keepdims=True)
+        order = np.argsort(-v, axis=1)
+        for i, c, o, st in zip(rows.tolist(), cond[rows].tolist(), order.tolist(), strong.tolist()):
+            dom = ", ".join(names[k] for k in o if st[k])
+            out[i].append((("cond",), f"ill-conditioned (condition number {c:.3g} of J^T J in scaled variables > "
+                                      f"{cond_limit:g}): the direction mostly along {dom} is not determined"))
+    for i in np.flatnonzero(bad).tolist():
+        out[i].append((("conv", str(reason[i])), f"did not converge ({reason[i]})"))
     return out
 
 
@@ -498,16 +516,10 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         q = i * restarts + j[i]
         z[i], cost[i], raw[i], H[i] = rs.z[q], rs.cost[q], rs.raw[q], rs.H[q]
         its[i], reason[i], conv[i] = rs.iterations[q], rs.reason[q], True
-    cov, std, corr, cond, s2, V, w = covariance(prob, data, z, H, cost, absolute_sigma)
+    cov, std, corr, cond, s2, V, _ = covariance(prob, data, z, H, cost, absolute_sigma)
     values = prob.to_v(z, data)
     distinct = local = None
-    # the messages are built per problem (a Python loop): only for the problems with one
-    iu = np.triu_indices(len(names), 1)
-    pair = np.abs(corr[:, iu[0], iu[1]])
-    flagged = (np.any(np.isfinite(pair) & (pair > corr_limit), axis=1) | ~np.isfinite(cond) | (cond > cond_limit)
-               | ~np.asarray(conv, dtype=bool))
-    per = [_problem_warnings(names, corr[i], cond[i], V[i], w[i], conv[i], reason[i], corr_limit, cond_limit)
-           if flagged[i] else [] for i in range(N)]
+    per = _problem_warnings(names, corr, cond, V, conv, reason, corr_limit, cond_limit)
     if alt_v:
         av = np.concatenate(alt_v, axis=1)
         ac = np.concatenate(alt_cost, axis=1)

@@ -11,8 +11,9 @@
 Convention exp(-i omega t): a mode grows when Im omega > 0 (PHYSICS.md, "Onset"). One
 kernel thread per (parameter set, heat input) finds omega by Muller's method
 (:mod:`tawarp.kernels.onset`); :func:`onset` brackets the heat input where Im omega
-changes sign on a grid of Q (one batched launch) and refines it by a bracketed secant
-(Illinois) on Q, one batched launch per step for all sets still refining.
+changes sign on a grid of Q (one batched launch per grid point for the sets still
+marching) and refines it by Newton's method on (Re omega, Q), with the bracketed Illinois
+secant on Q as fallback: one batched launch per step for all sets still refining.
 
 Batches: ``params`` as :func:`tawarp.model.forward.transfer_matrices` (``SEGMENT.FIELD``)
 plus the resonator's ``engine.left_duct``, ``engine.right_duct`` (lengths [m]),
@@ -45,12 +46,14 @@ MULLER_SPREAD = 1e-3
 class EigenResult:
     """Eigenfrequencies of a batch: ``omega`` (n,) complex [rad/s]; ``heat_input`` (n,)
     [W]; ``T_hot`` (n,) largest steady temperature in the core [K]; ``iterations`` (n,)
-    Muller steps (-1: not converged, omega is then the last iterate)."""
+    Muller steps (-1: not converged, omega is then the last iterate); ``evaluations`` (n,)
+    residual (cascade) evaluations made."""
 
     omega: np.ndarray
     heat_input: np.ndarray
     T_hot: np.ndarray
     iterations: np.ndarray
+    evaluations: np.ndarray
 
     @property
     def frequency(self) -> np.ndarray:
@@ -68,7 +71,10 @@ class OnsetResult:
     """Onset of a batch of n engines: ``Q_onset`` (n,) [W] (NaN where Im omega does not
     cross 0 from below on [0, Q_max]), ``f_onset`` [Hz], ``T_hot`` [K] at onset,
     ``omega_onset`` complex [rad/s]; the bracketing grid ``Q_grid`` (k,) [W] and
-    ``omega_grid`` (n, k) complex; ``secant_steps`` the refinement launches."""
+    ``omega_grid`` (n, k) complex (NaN where not computed, see :func:`onset`);
+    ``refine_steps`` the refinement launches (Newton and fallback secant steps);
+    ``evaluations`` (n,) residual (cascade) evaluations spent on each set; ``fallback`` the
+    sets refined by the secant fallback instead of Newton."""
 
     Q_onset: np.ndarray
     f_onset: np.ndarray
@@ -76,7 +82,14 @@ class OnsetResult:
     omega_onset: np.ndarray
     Q_grid: np.ndarray
     omega_grid: np.ndarray
-    secant_steps: int
+    refine_steps: int
+    evaluations: np.ndarray
+    fallback: np.ndarray
+
+    @property
+    def mean_evaluations(self) -> float:
+        """Residual (cascade) evaluations per onset, mean over the batch."""
+        return float(np.mean(self.evaluations))
 
 
 def _split_names(params: dict | None) -> tuple[dict, dict]:
@@ -143,12 +156,36 @@ class EigenSolver:
         w_res = wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev)
         omega = wp.empty(n, dtype=wp.vec2d, device=dev)
         its = wp.empty(n, dtype=wp.int32, device=dev)
+        evals = wp.empty(n, dtype=wp.int32, device=dev)
         wp.launch(ko.eigen_kernel, dim=n, device=dev,
                   inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, float(fe.settings.cell_density), fe.first,
                           fe.heat_cells, w_res, self.ends, self.z_left, self.z_right, w_guess, w_ref,
-                          MULLER_SPREAD, float(tol), int(max_iter), omega, its])
+                          MULLER_SPREAD, float(tol), int(max_iter), omega, its, evals])
         return EigenResult(omega.numpy().view(np.complex128).reshape(n), np.asarray(varying[0]).copy(),
-                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy())
+                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy(),
+                           evals.numpy())
+
+    def residuals(self, varying: np.ndarray, resonator: np.ndarray, omega_ref: np.ndarray, column: np.ndarray,
+                  omega: np.ndarray) -> np.ndarray:
+        """Residuals (complex, n_points) of the end condition: point j at complex ``omega[j]``
+        [rad/s] for set ``column[j]`` of the (1 + names, n) batch ``varying`` (row 0 heat input
+        [W]), its resonator row (n, 6) and reference frequency ``omega_ref`` (n,) [rad/s]."""
+        fe = self.forward
+        dev = fe.device
+        params, theta = fe.heat(np.ascontiguousarray(varying, dtype=np.float64))
+        k = omega.size
+        out = wp.empty(k, dtype=wp.vec2d, device=dev)
+        wp.launch(ko.residual_kernel, dim=k, device=dev,
+                  inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, float(fe.settings.cell_density), fe.first,
+                          fe.heat_cells, wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64,
+                                                  device=dev),
+                          self.ends, self.z_left, self.z_right,
+                          wp.array(np.asarray(column, dtype=np.int32), dtype=wp.int32, device=dev),
+                          wp.array(np.ascontiguousarray(omega, dtype=np.complex128).view(np.float64).reshape(k, 2),
+                                   dtype=wp.vec2d, device=dev),
+                          wp.array(np.ascontiguousarray(omega_ref, dtype=np.float64), dtype=wp.float64, device=dev),
+                          out])
+        return out.numpy().view(np.complex128).reshape(k)
 
     def hot_temperature(self, params: wp.array, theta: wp.array) -> np.ndarray:
         """Largest steady temperature [K] in the core per set (:func:`tawarp.kernels.onset.hot_kernel`)."""
@@ -208,48 +245,186 @@ def _warn_unconverged(its: np.ndarray, q: np.ndarray) -> None:
 
 def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dict | None = None,
           n_bracket: int = 9, rtol: float = 1e-10, max_steps: int = 100, settings: ForwardSettings | None = None,
-          **kw) -> OnsetResult:
+          grid_tol: float = 1e-6, newton_steps: int = 12, curve: bool = False, **kw) -> OnsetResult:
     """Onset heat input of mode ``mode`` for a batch of engines (``params`` as
     :func:`eigenfrequencies`).
 
-    Im omega is evaluated on ``n_bracket`` heat inputs evenly spaced on [0, Q_max] [W]
-    (each started from the set's unheated eigenfrequency); the first interval where it goes
-    from < 0 to >= 0 is refined by the Illinois secant on Q until the bracket is below
-    ``rtol`` Q. Returns :class:`OnsetResult`; Q_onset is NaN where there is no such interval
-    (already growing at Q = 0, or stable up to Q_max)."""
+    1. Bracket: Im omega on ``n_bracket`` heat inputs evenly spaced on [0, Q_max] [W],
+       marched from Q = 0 (the unheated mode), each point a Muller search to ``grid_tol``
+       started from the linear extrapolation of the two before; a set stops at its first
+       interval where Im omega goes from < 0 to >= 0 (``curve``: every set runs the whole
+       grid, for the growth-rate curve).
+    2. Refinement: at onset omega is real, so the complex residual R(omega, Q) = 0 is solved
+       for (Re omega, Q) by Newton's method (:func:`_newton_onset`) from the linear
+       interpolation of the bracket, until a step is below ``rtol`` in Q and in omega.
+    3. Fallback: a set whose Newton step leaves the bracket, whose |R| does not decrease, or
+       that is not converged in ``newton_steps`` steps (0: every set) is refined by the
+       Illinois secant on Q (a Muller search to 1e-13 per step, at most ``max_steps``).
+
+    Returns :class:`OnsetResult`; Q_onset is NaN where there is no such interval (already
+    growing at Q = 0, or stable up to Q_max). ``omega_grid`` holds the grid's eigenfrequencies
+    to ``grid_tol`` |omega|; NaN past a set's bracket unless ``curve``."""
     if not (Q_max > 0 and math.isfinite(Q_max)):
         raise ValueError(f"Q_max [W] must be finite and > 0, got {Q_max}")
     if n_bracket < 2:
         raise ValueError(f"n_bracket must be >= 2, got {n_bracket}")
     solver, varying, resonator = prepare(engine, 0.0, params, settings, **kw)
     n = varying.shape[1]
-    base = solver.solve(varying, resonator, None, None, mode)
+    base = solver.solve(varying, resonator, None, None, mode, tol=grid_tol, hot=False)
     _warn_unconverged(base.iterations, base.heat_input)
+    # one real reference frequency per set fixes its adaptive cell counts: every residual of
+    # the set (grid, Newton, secant) is then one analytic function of (omega, Q)
     w_ref = base.omega.real.copy()
-    guess0 = base.omega
+    evals = base.evaluations.astype(np.int64)
     Qg = np.linspace(0.0, Q_max, n_bracket)
 
-    def at(idx: np.ndarray, Q: np.ndarray, guess: np.ndarray) -> EigenResult:
+    def at(idx: np.ndarray, Q: np.ndarray, guess: np.ndarray, tol: float) -> EigenResult:
         v = varying[:, idx].copy()
         v[0] = Q
-        r = solver.solve(v, resonator[idx], guess, w_ref[idx], hot=False)
+        r = solver.solve(v, resonator[idx], guess, w_ref[idx], tol=tol, hot=False)
         _warn_unconverged(r.iterations, Q)
+        evals[idx] += r.evaluations
         return r
 
-    rep = np.repeat(np.arange(n), n_bracket)
-    grid = at(rep, np.tile(Qg, n), guess0[rep])
-    wg = grid.omega.reshape(n, n_bracket)
-    g = wg.imag
-    up = (g[:, :-1] < 0) & (g[:, 1:] >= 0)
-    has = up.any(axis=1)
-    j = np.argmax(up, axis=1)
-    idx = np.flatnonzero(has)
-    q_lo, q_hi = Qg[j[idx]], Qg[j[idx] + 1]
-    g_lo, g_hi = g[idx, j[idx]], g[idx, j[idx] + 1]
-    w_lo, w_hi = wg[idx, j[idx]], wg[idx, j[idx] + 1]
+    wg = np.full((n, n_bracket), np.nan + 0j)
+    wg[:, 0] = base.omega
+    j = np.full(n, -1)                  # the first crossing lies in (Qg[j], Qg[j + 1])
+    march = np.arange(n)
+    for k in range(1, n_bracket):
+        if not curve:
+            march = march[j[march] < 0]
+        if not march.size:
+            break
+        guess = wg[march, 0] if k == 1 else 2 * wg[march, k - 1] - wg[march, k - 2]
+        wg[march, k] = at(march, np.full(march.size, Qg[k]), guess, grid_tol).omega
+        up = (j[march] < 0) & (wg[march, k - 1].imag < 0) & (wg[march, k].imag >= 0)
+        j[march[up]] = k - 1
+    idx = np.flatnonzero(j >= 0)
+    br = _Bracket(Qg[j[idx]], Qg[j[idx] + 1], wg[idx, j[idx]], wg[idx, j[idx] + 1])
     Q_on = np.full(n, np.nan)
     w_on = np.full(n, np.nan + 0j)
     T_on = np.full(n, np.nan)
+    q, w, ok, steps = _newton_onset(solver, varying, resonator, w_ref, idx, br, rtol, newton_steps, grid_tol, evals)
+    Q_on[idx[ok]], w_on[idx[ok]] = q[ok], w[ok]
+    fb = np.flatnonzero(~ok)
+    if fb.size:
+        q, w, active, secant = _illinois(at, idx[fb], br.subset(fb), rtol, max_steps)
+        Q_on[idx[fb]], w_on[idx[fb]] = q, w
+        steps += secant
+        if active.any():
+            warnings.warn(f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
+                          RuntimeWarning, stacklevel=2)
+    if idx.size:
+        v = varying[:, idx].copy()
+        v[0] = Q_on[idx]
+        T_on[idx] = solver.hot_temperature(*solver.forward.heat(v))
+    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps, evals, idx[fb])
+
+
+@dataclass
+class _Bracket:
+    """Per set: heat inputs q_lo < q_hi [W] with Im omega < 0 at q_lo and >= 0 at q_hi, and
+    the eigenfrequencies w_lo, w_hi [rad/s] there."""
+
+    q_lo: np.ndarray
+    q_hi: np.ndarray
+    w_lo: np.ndarray
+    w_hi: np.ndarray
+
+    def subset(self, k: np.ndarray) -> "_Bracket":
+        return _Bracket(self.q_lo[k].copy(), self.q_hi[k].copy(), self.w_lo[k].copy(), self.w_hi[k].copy())
+
+    def interpolate(self) -> tuple[np.ndarray, np.ndarray]:
+        """Linear interpolation where Im omega crosses 0: (Q [W], omega [rad/s])."""
+        g_lo, g_hi = self.w_lo.imag, self.w_hi.imag
+        t = g_lo / (g_lo - g_hi)
+        return self.q_lo + t * (self.q_hi - self.q_lo), self.w_lo + t * (self.w_hi - self.w_lo)
+
+
+#: Relative finite-difference steps of the Newton Jacobian, in omega and in Q (of the
+#: bracket's upper end): the truncation error (~ step) and the rounding of the residual
+#: (~ 1e-14 / step) are both ~1e-7 relative, which only slows Newton's last step by that factor.
+FD_STEP = 1e-7
+#: Newton keeps its Jacobian (one evaluation per step instead of three) once a step is below
+#: this relative size: the Jacobian is then off by about that much, and each step contracts
+#: the error by that factor (chord method).
+CHORD_STEP = 1e-4
+
+
+def _newton_onset(solver: EigenSolver, varying: np.ndarray, resonator: np.ndarray, w_ref: np.ndarray,
+                  idx: np.ndarray, br: _Bracket, rtol: float, max_steps: int, grid_tol: float,
+                  evals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Onset of sets ``idx`` by Newton's method on the real unknowns (w = Re omega, Q): the
+    complex residual R of :func:`tawarp.kernels.onset.engine_residual` is zero at real omega
+    exactly at onset, two real equations. Jacobian: dR/dw (R is analytic in omega, a real
+    step gives the complex derivative) and dR/dQ (a heat solve at Q + dQ) by forward
+    differences (:data:`FD_STEP`), kept once steps are small (:data:`CHORD_STEP`).
+
+    Start: the bracket's linear interpolation. A set converges when its step is below
+    ``rtol`` in Q and in w; the returned point is one step beyond, so its error is that of
+    the next step (quadratic, or contracted by CHORD_STEP), far below rtol. It fails (for the
+    secant fallback) when a step leaves the bracket, |R| does not decrease, the Jacobian is
+    singular, or ``max_steps`` steps do not converge. The bracket is widened by 10 times the
+    heat input in which Im omega moves by the grid's tolerance: a grid sign is uncertain that
+    close to onset. ``evals[idx]`` counts the evaluations.
+    Returns (Q [W], omega [rad/s], converged mask, launches)."""
+    m = idx.size
+    Q, w0 = br.interpolate()
+    w = w0.real.copy()
+    slope = (br.w_hi.imag - br.w_lo.imag) / (br.q_hi - br.q_lo)
+    margin = 10 * grid_tol * np.abs(br.w_lo) / slope
+    J = np.full((m, 2, 2), np.nan)
+    R_prev = np.full(m, np.inf)
+    last = np.full(m, np.inf)            # relative size of the last step
+    Q_out, w_out = np.full(m, np.nan), np.full(m, np.nan)
+    done = np.zeros(m, dtype=bool)
+    failed = np.zeros(m, dtype=bool)
+    launches = 0
+    for _ in range(max_steps):
+        a = np.flatnonzero(~done & ~failed)
+        if not a.size:
+            break
+        launches += 1
+        need = last[a] > CHORD_STEP
+        an = a[need]
+        dQ = FD_STEP * br.q_hi[an]
+        dw = FD_STEP * w[an]
+        # heat solves at Q (all) and Q + dQ (new Jacobians); points: R(w, Q), R(w + dw, Q), R(w, Q + dQ)
+        cols = np.concatenate([idx[a], idx[an]])
+        v = varying[:, cols].copy()
+        v[0] = np.concatenate([Q[a], Q[an] + dQ])
+        col = np.concatenate([np.arange(a.size), np.flatnonzero(need), a.size + np.arange(an.size)])
+        pts = np.concatenate([w[a], w[an] + dw, w[an]]).astype(complex)
+        out = solver.residuals(v, resonator[cols], w_ref[cols], col, pts)
+        evals[idx[a]] += 1 + 2 * need
+        R = out[:a.size]
+        dR_dw = (out[a.size:a.size + an.size] - R[need]) / dw
+        dR_dQ = (out[a.size + an.size:] - R[need]) / dQ
+        J[an] = np.stack([np.stack([dR_dw.real, dR_dQ.real], -1), np.stack([dR_dw.imag, dR_dQ.imag], -1)], -2)
+        Ja = J[a]
+        det = Ja[:, 0, 0] * Ja[:, 1, 1] - Ja[:, 0, 1] * Ja[:, 1, 0]
+        sw = -(Ja[:, 1, 1] * R.real - Ja[:, 0, 1] * R.imag) / det
+        sq = -(Ja[:, 0, 0] * R.imag - Ja[:, 1, 0] * R.real) / det
+        q_new, w_new = Q[a] + sq, w[a] + sw
+        bad = ~(np.abs(R) < R_prev[a]) | ~np.isfinite(sw) | ~np.isfinite(sq)
+        bad |= ~((q_new >= br.q_lo[a] - margin[a]) & (q_new <= br.q_hi[a] + margin[a]))
+        conv = ~bad & (np.abs(sq) <= rtol * np.abs(q_new)) & (np.abs(sw) <= rtol * np.abs(w_new))
+        failed[a[bad]] = True
+        done[a[conv]] = True
+        Q_out[a[conv]], w_out[a[conv]] = q_new[conv], w_new[conv]
+        R_prev[a], Q[a], w[a] = np.abs(R), q_new, w_new
+        last[a] = np.maximum(np.abs(sq) / np.abs(q_new), np.abs(sw) / np.abs(w_new))
+    return Q_out, w_out + 0j, done, launches
+
+
+def _illinois(at, idx: np.ndarray, br: _Bracket, rtol: float, max_steps: int):
+    """Onset of sets ``idx`` by the Illinois secant on Q in their brackets: each step a Muller
+    search to 1e-13 at the secant's Q (``at(idx, Q, guess, tol)``), started from the omega
+    interpolated alongside. Returns (Q [W], omega [rad/s], still active mask, steps)."""
+    q_lo, q_hi, w_lo, w_hi = br.q_lo, br.q_hi, br.w_lo, br.w_hi
+    g_lo, g_hi = w_lo.imag.copy(), w_hi.imag.copy()
+    Q_on = np.full(idx.size, np.nan)
+    w_on = np.full(idx.size, np.nan + 0j)
     side = np.zeros(idx.size, dtype=int)       # Illinois: which end was kept last (-1 lo, +1 hi)
     active = np.ones(idx.size, dtype=bool)
     q_prev = np.full(idx.size, np.inf)
@@ -258,11 +433,11 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         a = np.flatnonzero(active)
         t = g_lo[a] / (g_lo[a] - g_hi[a])
         q_new = q_lo[a] + t * (q_hi[a] - q_lo[a])
-        r = at(idx[a], q_new, w_lo[a] + t * (w_hi[a] - w_lo[a]))
+        r = at(idx[a], q_new, w_lo[a] + t * (w_hi[a] - w_lo[a]), 1e-13)
         steps += 1
         gn = r.omega.imag
-        Q_on[idx[a]] = q_new
-        w_on[idx[a]] = r.omega
+        Q_on[a] = q_new
+        w_on[a] = r.omega
         lo = gn < 0
         al, ah = a[lo], a[~lo]          # the new point replaces the bracket end of its sign
         q_lo[al], g_lo[al], w_lo[al] = q_new[lo], gn[lo], r.omega[lo]
@@ -274,11 +449,4 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         # converged: the bracket, or the secant's own step, below rtol Q
         active[a] = ~((q_hi[a] - q_lo[a] <= rtol * q_new) | (np.abs(q_new - q_prev[a]) <= rtol * q_new) | (gn == 0))
         q_prev[a] = q_new
-    if idx.size:
-        v = varying[:, idx].copy()
-        v[0] = Q_on[idx]
-        T_on[idx] = solver.hot_temperature(*solver.forward.heat(v))
-    if active.any():
-        warnings.warn(f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
-                      RuntimeWarning, stacklevel=2)
-    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps)
+    return Q_on, w_on, active, steps
