@@ -41,9 +41,8 @@ import numpy as np
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import make_sampler
+from .samplers import make_sampler, pareto_mask
 from .space import DesignSpace
-from .samplers import pareto_mask
 from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, copies_in_study,
                       journal_batch, lineage, make_storage, open_study)
 from ..model.forward import ForwardSettings
@@ -52,10 +51,11 @@ from ..model.forward import ForwardSettings
 class SearchResult:
     """``study`` (Optuna), ``best`` (list of dicts: the best feasible trial, or the
     feasible Pareto front for several objectives), ``timing`` (seconds: ``sampler``,
-    ``evaluation``, ``storage``, ``wall``; ``trial_store`` (the part of ``storage`` appending to the trial store);
-    ``evaluations``, ``evaluations_per_minute``, ``trials_in_study`` (trials this run
-    added to the Optuna study, copies included), ``*_share``: each over ``wall``), ``resumed``: trials of a generation cut
-    short (or asked and never told, Optuna engine) evaluated at start."""
+    ``evaluation``, ``storage`` (reads, the trial store, the study, the heartbeat),
+    ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
+    ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
+    study, copies included), ``*_share``: each over ``wall``), ``resumed``: trials of a
+    generation cut short (or asked and never told, Optuna engine) evaluated at start."""
 
     study: object
     objectives: tuple
@@ -200,7 +200,6 @@ class _Run:
     def copy_to_study(self, g, index, values, metrics, viol, failed, copies=True) -> None:
         """Members ``index`` of generation ``g`` as trials of the study (``copies``: of
         trial-store rows, marked so)."""
-        t = time.perf_counter()
         rows = range(len(index))
         vals = np.stack([np.asarray(metrics[o], dtype=np.float64) for o in self.objectives], axis=1)
         metric_dicts = [{k: float(v[j]) for k, v in metrics.items()} for j in rows]
@@ -209,8 +208,6 @@ class _Run:
         add_evaluated(self.study, self.storage, self.space.points_of(values), self.dists, vals, metric_dicts,
                       viol, failed, attrs)
         self.timing["trials_in_study"] += len(index)
-        if copies:
-            self.timing["storage"] += time.perf_counter() - t
 
     def kept(self, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
         """Members of a whole generation (minimized F (batch, m), violations) whose copies
@@ -287,6 +284,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
             put(missing, m)
             if stored is not None:
                 run.resumed += len(missing)
+        t = time.perf_counter()
         keep = [j for j in run.kept(F, viol) if (g, int(j)) not in copied] if run.store is not None else []
         with journal_batch(run.storage):  # the copies and the heartbeat: one lock and one sync
             if keep:  # copies of the generation's kept members that the study lacks
@@ -296,6 +294,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
                                   {k: v[keep] for k, v in metrics.items()}, c, np.zeros(len(keep), bool))
             if missing.size:
                 claim.heartbeat()
+        run.timing["storage"] += time.perf_counter() - t
         t = time.perf_counter()
         sampler.tell(space.unit_from_values(values), F, viol)
         run.timing["sampler"] += time.perf_counter() - t
