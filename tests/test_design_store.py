@@ -177,9 +177,9 @@ for g in range(start, start + 10**6):
 @pytest.mark.parametrize("delay", [0.3, 0.7, 1.3])
 def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     """SIGKILL at an arbitrary moment of a writer appending generations of known content
-    as fast as it can (most of its time inside HDF5 writes): what readers see is whole
-    generations 0..G-1, every value exact; a second run of the worker continues in a new
-    file from G; the union has each (generation, index) once."""
+    as fast as it can (most of its time inside HDF5 writes): what readers see, while it
+    writes and after, is whole generations 0..G-1, every value exact; a second run of the
+    worker continues in a new file from G; the union has each (generation, index) once."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
     def run(start, wait):
@@ -188,8 +188,10 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
         first = p.stdout.readline()  # the first generation is stored: the writer is under way
         assert first.strip() == str(start), first + p.stdout.read()
         time.sleep(wait)
+        while_writing = check()  # a reader beside the live writer
         p.send_signal(signal.SIGKILL)
         p.communicate()
+        assert while_writing >= start + 1
 
     def check():
         cols = TrialStore(tmp_path, "s").read()
