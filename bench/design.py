@@ -1,12 +1,13 @@
 """Benchmark of design search and sweeps (issue #5): writes bench/results/design_<device>.json (cuda: design_cuda_<gpu>.json).
 
 Search: a batched CMA-ES study (and an NSGA-II one) over material x stack length x
-porosity x hot-exchanger length x heat input, stored in a journal file as the command
-line does; reported: design evaluations per minute end to end (sampler, storage and
+porosity x hot-exchanger length x heat input, stored as the command line does (a journal
+file; every trial in its HDF5 trial store, the best copied into the study); reported: design evaluations per minute end to end (sampler, storage and
 evaluation included), the share of wall time in the sampler, the storage and the
 evaluation (device launches plus transfers), and the share of wall time the device is
 busy with kernels (kernel time of one batch, measured on a device-resident batch, times
-the number of batches, over the wall time). Optuna's own samplers (one ask per trial)
+the number of batches, over the wall time), the trial store's share (part of the
+storage's) and the trials the Optuna study holds. Optuna's own samplers (one ask per trial)
 are timed on a smaller run for comparison.
 
 Sweep: a Sobol sweep streamed to netCDF at two sizes, each in its own process so that
@@ -50,14 +51,15 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
 
     from tawarp.design.evaluate import Evaluator
     from tawarp.design.search import search
+    from tawarp.design.storage import study_summary
     from tawarp.model.forward import ForwardSettings
 
     space = _space()
     settings = ForwardSettings(device=device)
     storage = os.path.join(tmp, f"{engine}_{len(objectives)}.journal")
-    # warm-up: kernels compiled and modules imported before timing
-    search(space, objectives, n_trials=2 * min(batch, 64), batch=min(batch, 64), storage=None, settings=settings,
-           engine=engine)
+    # warm-up: kernels compiled and modules (h5py too) imported before timing
+    search(space, objectives, n_trials=2 * min(batch, 64), batch=min(batch, 64), settings=settings, engine=engine,
+           storage=os.path.join(tmp, f"warmup_{engine}_{len(objectives)}.journal"))
     t = time.perf_counter()
     res = search(space, objectives, n_trials=n_trials, batch=batch, storage=storage, settings=settings, engine=engine)
     wall = time.perf_counter() - t
@@ -81,12 +83,15 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
     kernel = (time.perf_counter() - t0) / reps
     n_batches = res.timing["evaluations"] / batch
     tm = res.timing
+    summary = study_summary(res.study)
     return {"engine": engine, "objectives": list(objectives), "trials": tm["evaluations"], "batch": batch,
-            "storage": "journal file", "wall_s": wall,
+            "storage": "journal file" + (" + HDF5 trial store" if summary["store"] else ""), "wall_s": wall,
             "evaluations_per_minute": 60.0 * tm["evaluations"] / wall,
             "sampler_s": tm["sampler"], "storage_s": tm["storage"], "evaluation_s": tm["evaluation"],
             "sampler_share": tm["sampler"] / wall, "storage_share": tm["storage"] / wall,
             "evaluation_share": tm["evaluation"] / wall,
+            "trial_store_s": tm["trial_store"], "trial_store_share": tm["trial_store"] / wall,
+            "trials_in_study": summary["in_study"], "trials_queryable": summary["trials"],
             "kernel_s_per_batch": kernel, "device_busy_share": kernel * n_batches / wall,
             "best": res.best[0]["values"] if res.best else None}
 
@@ -120,6 +125,9 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
     ap.add_argument("--small", action="store_true", help="CPU-sized run (< 2 min)")
+    ap.add_argument("--trials", type=int, default=None, help="trials of the CMA-ES search (default: 16384 --small, "
+                                                              "else 262144)")
+    ap.add_argument("--batch", type=int, default=None, help="its population (default: 1024 --small, else 8192)")
     ap.add_argument("--sweep-child", nargs=3, metavar=("N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
@@ -138,6 +146,7 @@ def main(argv=None):
     else:
         cfg = dict(trials=262144, batch=8192, mo_trials=32768, mo_batch=2048, opt_trials=2048, opt_batch=256,
                    sweep=(1 << 24, 1 << 26), chunk=1 << 22)
+    cfg.update({k: v for k, v in (("trials", args.trials), ("batch", args.batch)) if v is not None})
     t_all = time.perf_counter()
     out = {"device": device, "device_name": str(wp.get_device(device).name), "host": platform.node(),
            "python": platform.python_version(), "warp": wp.__version__, "config": cfg, "design_space": VARS}
@@ -156,6 +165,8 @@ def main(argv=None):
         "search_evaluations_per_minute": out["search_cmaes"]["evaluations_per_minute"],
         "search_sampler_share": out["search_cmaes"]["sampler_share"],
         "search_storage_share": out["search_cmaes"]["storage_share"],
+        "search_trial_store_share": out["search_cmaes"]["trial_store_share"],
+        "search_trials_in_study": out["search_cmaes"]["trials_in_study"],
         "search_evaluation_share": out["search_cmaes"]["evaluation_share"],
         "search_device_busy_share": out["search_cmaes"]["device_busy_share"],
         "nsga2_evaluations_per_minute": out["search_nsga2"]["evaluations_per_minute"],

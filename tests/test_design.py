@@ -15,7 +15,7 @@ import pytest
 from tawarp.design.samplers import nondominated_ranks
 from tawarp.design.search import SearchCrash, search
 from tawarp.design.space import DesignSpace
-from tawarp.design.storage import StudyConflict, open_study, study_summary
+from tawarp.design.storage import StudyConflict, open_study, study_summary, trials_table
 from tawarp.model.core import load_core
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -114,6 +114,38 @@ def _space():
     return DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03"])
 
 
+def _keys(ds) -> list[tuple]:
+    return list(zip(ds.worker.values.tolist(), ds.generation.values.tolist(), ds["index"].values.tolist()))
+
+
+def _same_rows(got, want, names) -> None:
+    """Two trials tables hold the same trials (by worker, generation, index): the same
+    points and metrics to 1e-12 relative."""
+    kg, kw = _keys(got), _keys(want)
+    assert len(set(kg)) == len(kg) and set(kg) == set(kw)
+    og, ow = np.argsort([str(k) for k in kg]), np.argsort([str(k) for k in kw])
+    for n in names:
+        a, b = got[n].values[og], want[n].values[ow]
+        if a.dtype.kind in "US":
+            assert (a == b).all(), n
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-12, atol=0, err_msg=n)
+
+
+def _copies_are_the_generation_bests(study, ds) -> None:
+    """One objective: the study holds exactly one copy per (worker, generation), its
+    best feasible trial (a row of the table, values to the last bit)."""
+    copies = study.get_trials()
+    keys = [(t.system_attrs["tawarp:worker"], t.system_attrs["tawarp:generation"]) for t in copies]
+    assert len(keys) == len(set(keys)) == len(set(zip(ds.worker.values.tolist(), ds.generation.values.tolist())))
+    for t in copies:
+        sa = t.system_attrs
+        gen = (ds.worker.values == sa["tawarp:worker"]) & (ds.generation.values == sa["tawarp:generation"])
+        best = np.flatnonzero(gen)[np.argmax(np.where(ds.constraint.values[gen] <= 0, ds.gradient.values[gen], -np.inf))]
+        assert sa["tawarp:copy"] and int(ds["index"].values[best]) == sa["tawarp:index"]
+        assert t.values[0] == ds.gradient.values[best] and int(ds.number.values[best]) == t.number
+
+
 def test_resume_after_a_killed_run(tmp_path):
     """A process dies (os._exit) after asking its 2nd batch: the first is stored, the asked
     one is not; on resume the study becomes the one an uninterrupted run makes (the sampler
@@ -123,21 +155,18 @@ def test_resume_after_a_killed_run(tmp_path):
     out, _ = p.communicate(timeout=120)
     assert p.returncode == 3, out
     st = study_summary(open_study(str(journal), "tawarp-design", ["gradient"]))
-    assert st["trials"] == 8 and st["states"] == {"COMPLETE": 8}
+    assert st["trials"] == 8 and st["states"] == {"COMPLETE": 8} and st["in_study"] == 1
     res = search(_space(), n_trials=32, batch=8, storage=str(journal), seed=5)
     assert res.resumed == 0
-    trials = res.study.get_trials()
-    assert len(trials) == 32 and sorted(t.number for t in trials) == list(range(32))
-    assert {t.state.name for t in trials} == {"COMPLETE"}
-    gens = [t.system_attrs["tawarp:generation"] for t in trials]
-    assert sorted(gens) == sorted([g for g in range(4) for _ in range(8)])
-    ref = search(_space(), n_trials=32, batch=8, storage=str(tmp_path / "ref.journal"), seed=5)
-    key = lambda t: (t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"])  # noqa: E731
-    for a, b in zip(sorted(trials, key=key), sorted(ref.study.get_trials(), key=key)):
-        assert a.params == b.params and a.values == pytest.approx(b.values, rel=1e-12)
+    ds = trials_table(res.study)
+    assert ds.sizes["trial"] == 32 and set(ds.state.values) == {"COMPLETE"}
+    assert sorted(ds.generation.values.tolist()) == sorted([g for g in range(4) for _ in range(8)])
+    ref = search(_space(), n_trials=32, batch=8, seed=5)  # in memory: every trial in the study
+    _same_rows(ds, trials_table(ref.study), ["stack.length", "heat_input", "hot_hx.length", "gradient", "T_max"])
+    _copies_are_the_generation_bests(res.study, ds)
     # running it again adds nothing: the lineage is complete
     again = search(_space(), n_trials=32, batch=8, storage=str(journal), seed=5)
-    assert len(again.study.get_trials()) == 32 and again.resumed == 0
+    assert trials_table(again.study).sizes["trial"] == 32 and again.resumed == 0 and len(again.study.trials) == 4
 
 
 def test_resume_in_process_optuna_engine(tmp_path):
@@ -159,8 +188,20 @@ def test_two_processes_share_one_study(tmp_path, kind):
         assert p.returncode == 0, out
     study = open_study(url, "tawarp-design", ["gradient"])
     st = study_summary(study)
-    assert st["trials"] == 48 + 40 and st["states"] == {"COMPLETE": 88} and st["unique_numbers"]
+    assert st["trials"] == 48 + 40 and st["states"] == {"COMPLETE": 88} and st["unique"]
     assert st["workers"] == {"a": 48, "b": 40}
+    # every trial of each worker is the one a lone run of that worker makes
+    ds = trials_table(study)
+    for w, n, seed in (("a", 48, 1), ("b", 40, 2)):
+        ref = trials_table(search(_space(), n_trials=n, batch=8, worker=w, seed=seed).study)
+        _same_rows(ds.isel(trial=ds.worker.values == w), ref, ["stack.length", "heat_input", "hot_hx.length",
+                                                                 "gradient", "T_max"])
+    if kind == "journal":  # one trial-store file per worker run, the study holds a copy per generation
+        assert st["in_study"] == (48 + 40) // 8
+        assert sorted(p.name.split("-")[0] for p in (tmp_path / "study.trials" / "tawarp-design").glob("*.h5")) \
+            == ["a", "b"]
+    else:
+        assert st["in_study"] == 88 and st["store"] is None
 
 
 # -- command line ----------------------------------------------------------------------------
@@ -188,6 +229,8 @@ def test_cli_design_rank_sweep(tmp_path):
     rep = json.loads((out / "design.json").read_text())
     assert rep["summary"]["trials"] == 64 and rep["best"] and (out / "history.png").exists()
     assert (out / "best_profiles.png").exists() and (out / "study.journal").exists()
+    assert rep["trial_store"] == str((out / "study.trials" / "tawarp-design").resolve())
+    assert rep["summary"]["in_study"] == 64 // 16
     assert _cli(["design", "rvc_foam", "--var", "stack.length=0.005:0.1", "--var", "Q=1:18", "--objectives",
                  "gradient,acoustic_loss", "--freqs", "100,300", "--trials", "32", "--batch", "16", "--quiet",
                  "-o", str(tmp_path / "mo")]) == 0
@@ -214,7 +257,7 @@ def test_resume_a_generation_cut_short(tmp_path):
     from optuna.trial import create_trial
 
     url = f"sqlite:///{tmp_path / 'cut.db'}"
-    ref = search(_space(), n_trials=24, batch=8, storage=str(tmp_path / "ref.journal"), seed=2)
+    ref = search(_space(), n_trials=24, batch=8, seed=2)
     search(_space(), n_trials=8, batch=8, storage=url, seed=2)
     study = open_study(url, "tawarp-design", ["gradient"])
     # three members of generation 1, as a process that died would have left them
@@ -251,8 +294,8 @@ def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
     winner = next(p for p in procs if p is not done[0])
 
     def keys():
-        trials = open_study(str(journal), "tawarp-design", ["gradient"]).get_trials()
-        return trials, {(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in trials}
+        k = _keys(trials_table(open_study(str(journal), "tawarp-design", ["gradient"])))
+        return k, set(k)
 
     # let it store a generation first: SIGINT is handled between Python bytecodes, and a
     # winner still loading (or, in a fresh clone, compiling) its kernels would take that
@@ -270,7 +313,7 @@ def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
     n = (len(trials) // 8 + 2) * 8
     res = search(_space(), n_trials=n, batch=8, storage=str(journal), worker="same")
     trials, k = keys()
-    assert len(trials) == len(k) == n and {t.state.name for t in trials} == {"COMPLETE"}
+    assert len(trials) == len(k) == n and study_summary(res.study)["states"] == {"COMPLETE": n}
     assert res.study.directions[0].name == "MAXIMIZE"
 
 
@@ -280,7 +323,7 @@ def test_a_study_is_bound_to_its_design_space(tmp_path):
     search(DesignSpace(core, ["stack.length=0.004:0.1", "Q=1:9"]), n_trials=8, batch=8, storage=journal)
     with pytest.raises(StudyConflict, match=r"design space .*'high': 9\.0.*not .*'high': 18\.0"):
         search(DesignSpace(core, ["stack.length=0.004:0.1", "Q=1:18"]), n_trials=8, batch=8, storage=journal)
-    assert len(open_study(journal, "tawarp-design", ["gradient"]).get_trials()) == 8
+    assert study_summary(open_study(journal, "tawarp-design", ["gradient"]))["trials"] == 8
 
 
 def test_workers_of_different_names_sample_different_points():
@@ -358,4 +401,4 @@ def test_resume_with_another_seed_is_refused(tmp_path):
     with pytest.raises(StudyConflict, match="generation 0 member 0 was stored as"):
         search(_space(), n_trials=16, batch=8, storage=journal, seed=2)
     res = search(_space(), n_trials=16, batch=8, storage=journal, seed=1)
-    assert len(res.study.get_trials()) == 16
+    assert study_summary(res.study)["trials"] == 16

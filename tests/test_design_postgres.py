@@ -18,11 +18,12 @@ import time
 from collections import Counter
 from urllib.parse import urlsplit, urlunsplit
 
+import numpy as np
 import pytest
 
 from tawarp.design.search import search
 from tawarp.design.space import DesignSpace
-from tawarp.design.storage import StudyConflict, lineage, make_storage
+from tawarp.design.storage import StudyConflict, lineage, make_storage, trials_table
 from tawarp.model.core import load_core
 
 BATCH = 16
@@ -76,11 +77,12 @@ def _no_worker_outlives_its_test():
             p.communicate()
 
 
-def _design(url: str, worker: str, trials: int, out, seed: int = 0) -> subprocess.Popen:
-    """``tawarp design`` over :func:`_space` as a process of its own, storing into ``url``."""
+def _design(url: str, worker: str, trials: int, out, seed: int = 0, store=None) -> subprocess.Popen:
+    """``tawarp design`` over :func:`_space` as a process of its own, storing into ``url``
+    (every trial into the trial store ``store`` when given)."""
     argv = ["design", "rvc_foam", *(a for v in VARS for a in ("--var", v)), "--trials", trials, "--batch", BATCH,
             "--storage", url, "--worker", worker, "--seed", seed, "--device", "cpu", "--quiet", "--no-plots",
-            "-o", out]
+            "-o", out, *(["--trial-store", store] if store else [])]
     _STARTED.append(subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
                                       *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
     return _STARTED[-1]
@@ -98,7 +100,7 @@ def _study(storage):
 
 def _stored(storage, worker: str) -> int:
     study = _study(storage)
-    return 0 if study is None else sum(len(g) for g in lineage(study, worker).values())
+    return 0 if study is None else sum(len(g["index"]) for g in lineage(study, worker).values())
 
 
 def _wait_until_stored(storage, worker: str, n: int, proc: subprocess.Popen, timeout: float = 60.0) -> None:
@@ -117,36 +119,49 @@ def _kill(proc: subprocess.Popen) -> None:
 
 
 def _check_counted_once(study, asked: dict[str, int]) -> None:
-    """Every trial counted once: numbers 0..N-1; each worker's lineage holds generations
-    0..G-1 of members 0..BATCH-1, each (worker, generation, index) stored exactly once;
-    COMPLETE = what the workers were asked for; nothing RUNNING."""
+    """Every trial counted once (:func:`trials_table`: the study's trials, or its trial
+    store's rows and their copies in the study): Optuna numbers 0..N-1; each worker's
+    lineage holds generations 0..G-1 of members 0..BATCH-1, each (worker, generation,
+    index) stored exactly once; COMPLETE = what the workers were asked for; nothing
+    RUNNING."""
     trials = study.get_trials(deepcopy=False)
     assert sorted(t.number for t in trials) == list(range(len(trials)))
-    assert Counter(t.state.name for t in trials) == {"COMPLETE": sum(asked.values())}
-    keys = Counter((t.system_attrs["tawarp:worker"], t.system_attrs["tawarp:generation"],
-                    t.system_attrs["tawarp:index"]) for t in trials)
+    assert {t.state.name for t in trials} == {"COMPLETE"}
+    ds = trials_table(study)
+    assert Counter(ds.state.values.tolist()) == {"COMPLETE": sum(asked.values())}
+    keys = Counter(zip(ds.worker.values.tolist(), ds.generation.values.tolist(), ds["index"].values.tolist()))
     assert set(keys.values()) == {1}, [k for k, c in keys.items() if c > 1]
     assert set(keys) == {(w, g, j) for w, n in asked.items() for g in range(n // BATCH) for j in range(BATCH)}
+    copies = Counter((t.system_attrs["tawarp:worker"], t.system_attrs["tawarp:generation"]) for t in trials
+                     if t.system_attrs.get("tawarp:copy"))
+    if ds.attrs["store"]:  # one copy per generation (one objective: its best)
+        assert copies == {(w, g): 1 for w, n in asked.items() for g in range(n // BATCH)}
+    else:
+        assert not copies
 
 
-def test_two_workers_one_killed_and_resumed_count_every_trial_once(postgres, tmp_path):
+@pytest.mark.parametrize("with_store", [False, True], ids=["all-in-database", "trial-store"])
+def test_two_workers_one_killed_and_resumed_count_every_trial_once(postgres, tmp_path, with_store):
     """Workers a and b search one study at once; b is killed (SIGKILL) after storing at
     least two generations, before it is done, and started again while a still runs. At
     the end every trial is counted once, and b's lineage is, point for point (rel 1e-12),
     the one an uninterrupted run of b stores: the sampler state is replayed from the
     stored generations, the members missing from the generation cut short are asked
     again (storing dominates a generation's time on PostgreSQL, one transaction per
-    trial, so the kill mostly lands inside a generation)."""
-    url = postgres("islands")
+    trial, so the kill mostly lands inside a generation). With a trial store (a folder
+    both workers see) the store commits whole generations: the one cut short is asked
+    again whole, and the study holds one copy of each generation's best."""
+    url = postgres("islands_store" if with_store else "islands")
+    store = tmp_path / "trials" if with_store else None
     asked = {"a": 10 * BATCH, "b": 12 * BATCH}
-    a = _design(url, "a", asked["a"], tmp_path / "a", seed=1)
-    b = _design(url, "b", asked["b"], tmp_path / "b", seed=2)
+    a = _design(url, "a", asked["a"], tmp_path / "a", seed=1, store=store)
+    b = _design(url, "b", asked["b"], tmp_path / "b", seed=2, store=store)
     storage = make_storage(url)
     _wait_until_stored(storage, "b", 2 * BATCH, b)
     _kill(b)
     at_kill = _stored(storage, "b")
     assert 2 * BATCH <= at_kill < asked["b"], "b must be killed mid-run"
-    b = _design(url, "b", asked["b"], tmp_path / "b", seed=2)
+    b = _design(url, "b", asked["b"], tmp_path / "b", seed=2, store=store)
     for p in (a, b):
         out = p.communicate(timeout=180)[0]
         assert p.returncode == 0, out
@@ -158,9 +173,10 @@ def test_two_workers_one_killed_and_resumed_count_every_trial_once(postgres, tmp
     got, want = lineage(study, "b"), lineage(ref.study, "b")
     assert sorted(got) == sorted(want)
     for g in want:
-        for j, t in want[g].items():
-            assert got[g][j].params == pytest.approx(t.params, rel=1e-12)
-            assert got[g][j].values == pytest.approx(t.values, rel=1e-12)
+        assert got[g]["index"].tolist() == want[g]["index"].tolist()
+        for k in ["param:" + v.partition("=")[0] for v in VARS] + ["metric:gradient", "metric:T_max"]:
+            np.testing.assert_allclose(got[g][k].astype(float), want[g][k].astype(float), rtol=1e-12, atol=0,
+                                       err_msg=k)
 
 
 def test_same_name_worker_is_refused_while_the_first_lives(postgres, tmp_path):

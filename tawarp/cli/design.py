@@ -113,13 +113,14 @@ def cmd_design(args) -> int:
     T_limit = None if args.no_T_limit else args.T_limit
     res = search(space, objectives, n_trials=args.trials, batch=args.batch, storage=storage, study_name=args.study,
                  worker=args.worker, seed=args.seed, T_limit=T_limit, engine=args.engine,
-                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args))
+                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args),
+                 store=args.trial_store)
+    summary = study_summary(res.study)
     report = {"core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
               "objective_definitions": objective_definitions(objectives),
-              "T_limit_K": T_limit, "storage": storage, "study": args.study, "worker": args.worker,
-              "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
-              "summary": study_summary(res.study), "timing": res.timing,
-              "best": res.best[: args.keep]}
+              "T_limit_K": T_limit, "storage": storage, "trial_store": summary["store"], "study": args.study,
+              "worker": args.worker, "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
+              "summary": summary, "timing": res.timing, "best": res.best[: args.keep]}
     write_json(out / "design.json", report)
     if not args.no_plots:
         plot_history(res.study, objectives, out / "history.png", T_limit)
@@ -133,6 +134,12 @@ def cmd_design(args) -> int:
         _say(args, f"best: {b['values']} at {b['params']}")
     _say(args, f"{res.timing['evaluations']} evaluations, {res.timing['evaluations_per_minute']:.3g}/min; "
                f"wrote {out / 'design.json'}")
+    if summary["store"]:
+        _say(args, f"all {summary['trials']} trials in the trial store {summary['store']}; the study in {storage} "
+                   f"holds {summary['in_study']} (the best); read all with "
+                   f"tawarp.design.storage.trials_table(optuna.load_study(...))")
+    else:
+        _say(args, f"all {summary['trials']} trials in the study in {storage}")
     return 0
 
 
@@ -148,14 +155,7 @@ def _profile_designs(study, objectives, best, space, T_limit, n=5):
         return [best[i] for i in idx]
     if space.material is None:
         return best[:1]
-    ranked = best_designs(study, objectives, T_limit, k=10**9)
-    out, seen = [], set()
-    for b in ranked:
-        m = b["params"].get("material")
-        if m not in seen:
-            seen.add(m)
-            out.append(b)
-    return out
+    return best_designs(study, objectives, T_limit, k=len(space.material.choices), per="material")
 
 
 def add_design_parser(sub) -> argparse.ArgumentParser:
@@ -176,6 +176,11 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--storage", default=None,
                    help="journal file path or database URL (sqlite:///x.db, postgresql://...); "
                         "default: OUTPUT/study.journal")
+    p.add_argument("--trial-store", default=None,
+                   help="folder of the columnar trial store that keeps every evaluated trial (HDF5, one file per "
+                        "worker run; the study keeps the best); default: beside a journal file "
+                        "(OUTPUT/study.trials/STUDY), none with a database URL (every trial in the database); "
+                        "with several machines give a folder they all see")
     p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
     p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
     p.add_argument("--seed", type=int, default=0,

@@ -9,21 +9,20 @@ from ..plots import plt, save
 
 
 def plot_history(study, objectives, path, T_limit=None, title: str = ""):
-    """Objective value of every complete trial against its number, with the running best
-    (first objective for several)."""
-    from optuna.trial import TrialState
-
+    """Objective value of every complete trial (:func:`tawarp.design.storage.trials_table`)
+    against its place in evaluation order, with the running best (first objective for
+    several)."""
     from .objectives import objective
+    from .storage import trials_table
 
-    trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    ds = trials_table(study)
+    ok = ds.state.values == "COMPLETE"
     fig, ax = plt.subplots(figsize=(7, 4))
-    if trials:
-        num = np.array([t.number for t in trials])
-        val = np.array([t.values[0] for t in trials])
-        feas = np.array([t.system_attrs.get("constraints", [0.0])[0] <= 0 for t in trials]) if T_limit is not None \
-            else np.ones(len(trials), bool)
-        order = np.argsort(num)
-        num, val, feas = num[order], val[order], feas[order]
+    if ok.any():
+        num = np.flatnonzero(ok)
+        val = ds[objectives[0]].values[ok]
+        feas = np.nan_to_num(ds.constraint.values[ok], nan=0.0) <= 0 if T_limit is not None \
+            else np.ones(len(num), bool)
         ax.plot(num[feas], val[feas], ".", ms=2, alpha=0.4, label="feasible trials")
         if np.any(~feas):
             ax.plot(num[~feas], val[~feas], "x", ms=2, alpha=0.4, color="0.6", label="T_max above limit")
@@ -32,7 +31,7 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
         best = np.maximum.accumulate(v) if maximize else np.minimum.accumulate(v)
         ax.plot(num, best, "-", color="C3", lw=1.5, label="best so far")
     unit = objective(objectives[0]).unit
-    ax.set_xlabel("trial")
+    ax.set_xlabel("trial (evaluation order)")
     ax.set_ylabel(f"{objectives[0]} [{unit}]")
     ax.legend(fontsize=8)
     ax.set_title(title or "optimization history")
@@ -40,16 +39,16 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
 
 
 def plot_pareto(study, objectives, front: list[dict], path, title: str = ""):
-    """All complete trials in the plane of the first two objectives, the front highlighted."""
-    from optuna.trial import TrialState
-
+    """All complete trials (:func:`tawarp.design.storage.trials_table`) in the plane of
+    the first two objectives, the front highlighted."""
     from .objectives import objective
+    from .storage import trials_table
 
-    trials = study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,))
+    ds = trials_table(study)
+    ok = ds.state.values == "COMPLETE"
     fig, ax = plt.subplots(figsize=(6, 4.5))
-    if trials:
-        V = np.array([t.values[:2] for t in trials])
-        ax.plot(V[:, 0], V[:, 1], ".", ms=2, color="0.7", label="trials")
+    if ok.any():
+        ax.plot(ds[objectives[0]].values[ok], ds[objectives[1]].values[ok], ".", ms=2, color="0.7", label="trials")
     if front:
         P = np.array([[b["values"][objectives[0]], b["values"][objectives[1]]] for b in front])
         o = np.argsort(P[:, 0])

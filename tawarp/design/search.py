@@ -10,7 +10,9 @@ carbon in air).
 Two engines:
 
 - ``engine="batched"`` (default): the batched CMA-ES (one objective) or NSGA-II
-  (several), populations of ``batch``; trials stored with ``study.add_trials``.
+  (several), populations of ``batch``; each generation appended in bulk to the study's
+  columnar trial store (a journal study's default), the study keeping copies of the best
+  (``study.add_trials``); without a store every trial goes into the study.
 - ``engine="optuna"``: Optuna's own ``CmaEsSampler(popsize=batch)`` (QMC startup batch) or
   ``NSGAIISampler(population_size=batch)`` through ``study.ask()``/``study.tell()``; the
   reference for small runs, and the measure of what per-trial sampling costs.
@@ -20,8 +22,11 @@ RDB URL (``sqlite:///...``, ``postgresql://...``) for several workers, or None (
 Each worker owns a *lineage* (``worker`` name) of generations, claimed for the run
 (:class:`tawarp.design.storage.WorkerClaim`: a second live process of the same name is
 refused). The sampler state is not stored but replayed from the lineage's stored
-generations, so a run killed at any point resumes exactly: members of a generation
-missing from the storage are asked again and evaluated, none is lost or stored twice.
+generations (:func:`tawarp.design.storage.lineage`: the trial store and the study), so
+a run killed at any point resumes exactly: members of a generation missing from the
+storage are asked again and evaluated (the trial store commits whole generations), none
+is lost or stored twice; copies the study misses (a run killed between the store and
+the study) are added.
 Several workers with different names share one study (an island model); ``n_trials``
 counts the worker's own trials.
 """
@@ -36,18 +41,21 @@ import numpy as np
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import make_sampler
+from .samplers import make_sampler, pareto_mask
 from .space import DesignSpace
-from .storage import ATTR, StudyConflict, WorkerClaim, add_evaluated, best_designs, lineage, make_storage, open_study
+from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, copies_in_study,
+                      journal_batch, lineage, make_storage, open_study)
 from ..model.forward import ForwardSettings
 
 @dataclass
 class SearchResult:
     """``study`` (Optuna), ``best`` (list of dicts: the best feasible trial, or the
     feasible Pareto front for several objectives), ``timing`` (seconds: ``sampler``,
-    ``evaluation``, ``storage``, ``wall``; ``evaluations``, ``evaluations_per_minute``,
-    ``sampler_share``, ``evaluation_share``), ``resumed``: trials of a generation cut
-    short (or asked and never told, Optuna engine) evaluated at start."""
+    ``evaluation``, ``storage`` (reads, the trial store, the study, the heartbeat),
+    ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
+    ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
+    study, copies included), ``*_share``: each over ``wall``), ``resumed``: trials of a
+    generation cut short (or asked and never told, Optuna engine) evaluated at start."""
 
     study: object
     objectives: tuple
@@ -73,8 +81,8 @@ def _interruption_hooks(asked: int, stop_after: int | None, crash_after: int | N
 def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, batch: int = 256, storage=None,
            study_name: str = "tawarp-design", worker: str = "w0", seed: int = 0, T_limit: float | None = DEFAULT_T_LIMIT,
            engine: str = "batched", settings: ForwardSettings | None = None, freqs=DEFAULT_FREQS,
-           progress: bool = False, stale_after: float = 3600.0, onset=None, client=None, _stop_after: int | None = None,
-           _crash_after: int | None = None) -> SearchResult:
+           progress: bool = False, stale_after: float = 3600.0, onset=None, client=None, store=None,
+           _stop_after: int | None = None, _crash_after: int | None = None) -> SearchResult:
     """Run (or resume) a batched design search; see the module docstring.
 
     ``n_trials``: trials of this worker's lineage in the study when done (rounded up to
@@ -84,7 +92,11 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     default the bundled ``standing_wave`` resonator). ``stale_after`` [s]: a same-name worker on another host counts as gone once its
     heartbeat is this old. ``client``: a Dask ``distributed.Client`` whose workers (one per
     device) evaluate each batch in equal shares (:class:`tawarp.distributed.ClusterEvaluator`).
-    ``_stop_after`` / ``_crash_after``: test hooks that interrupt
+    ``store``: where every evaluated trial goes (:mod:`tawarp.design.storage`): a folder
+    for the columnar trial store; None: the study's own store, else the default beside a
+    journal file, else none (a database URL or memory: every trial in the study); False:
+    every trial in the study. The batched engine only: Optuna's own samplers keep every
+    trial in the study. ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
     from ..progress import progress_bar
 
@@ -99,9 +111,11 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
     t_wall = time.perf_counter()
     st = make_storage(storage)
     study = open_study(st, study_name, objectives, space.binding())
+    trial_store = bind_store(study, storage, store) if engine == "batched" else None
     claim = WorkerClaim(st, study_name, worker, stale_after)
+    run = None
     try:
-        run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings, onset, client)
+        run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings, onset, client, trial_store)
         n_target = -(-n_trials // batch) * batch
         bar = progress_bar(n_target, f"design ({worker})", progress, unit="trial")
         try:
@@ -112,11 +126,13 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
         finally:
             bar.close()
     finally:
+        if run is not None:
+            run.close()
         claim.release()
     timing = run.timing
     timing["wall"] = time.perf_counter() - t_wall
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
-    for k in ("sampler", "evaluation", "storage"):
+    for k in ("sampler", "evaluation", "storage", "trial_store"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
     return SearchResult(study, objectives, best_designs(study, objectives, T_limit), timing, run.resumed, worker)
 
@@ -132,9 +148,10 @@ def worker_seed(seed: int, worker: str) -> int:
 class _Run:
     """What one search run shares between its engines: evaluation, timing, storage."""
 
-    def __init__(self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None):
+    def __init__(self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None,
+                 store=None):
         self.space, self.objectives, self.study, self.storage = space, objectives, study, storage
-        self.worker, self.T_limit = worker, T_limit
+        self.worker, self.T_limit, self.store = worker, T_limit, store
         if client is None:
             self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
         else:
@@ -144,85 +161,164 @@ class _Run:
                                               onset=onset)
         self.dists = space.distributions()
         self.sign = signs(objectives)
-        self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, evaluations=0)
+        self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0,
+                           trials_in_study=0)
         self.resumed = 0
+        self.writer = None
+        self.front = np.zeros((0, len(objectives)))  # the lineage's feasible front so far (minimized)
 
-    def evaluate(self, points: list[dict]):
-        """(values (n, m) as objectives, metrics per point, minimized F (n, m), violation (n,)
-        or None, failed (n,))."""
+    def evaluate(self, values: dict):
+        """(metrics {name: (n,)}, values (n, m) as objectives, minimized F (n, m),
+        violation (n,) or None, failed (n,)) of design points ``values`` {variable: (n,)}."""
         t = time.perf_counter()
-        m = self.evaluator.evaluate(self.space.values_of(points))
+        m = self.evaluator.evaluate(values)
         self.timing["evaluation"] += time.perf_counter() - t
-        self.timing["evaluations"] += len(points)
-        values = np.stack([m[o] for o in self.objectives], axis=1)
-        failed = ~np.all(np.isfinite(values), axis=1)
+        n = len(next(iter(m.values())))
+        self.timing["evaluations"] += n
+        vals = np.stack([m[o] for o in self.objectives], axis=1)
+        failed = ~np.all(np.isfinite(vals), axis=1)
         viol = (m["T_max"] - self.T_limit) if self.T_limit is not None else None
-        metrics = [{k: float(m[k][j]) for k in m} for j in range(len(points))]
-        return values, metrics, values * self.sign, viol, failed
+        return m, vals, vals * self.sign, viol, failed
 
-    def store(self, points, values, metrics, viol, failed, attrs) -> None:
+    def store_rows(self, g: int, index: np.ndarray, values: dict, metrics: dict, viol, failed) -> None:
+        """Evaluated members ``index`` of generation ``g``: into the trial store when the
+        run has one, else each into the study."""
         t = time.perf_counter()
-        add_evaluated(self.study, self.storage, points, self.dists, values, metrics, viol, failed, attrs)
+        if self.store is not None:
+            if self.writer is None:
+                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
+                self.writer = self.store.writer(self.worker, g, choices, len(index))
+            params = dict(values)
+            if self.space.material is not None:
+                params["material"] = self.space.material_index(values["material"])
+            self.writer.append(g, index, params, metrics, viol, failed)
+            self.timing["trial_store"] += time.perf_counter() - t
+        else:
+            self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
         self.timing["storage"] += time.perf_counter() - t
+
+    def copy_to_study(self, g, index, values, metrics, viol, failed, copies=True) -> None:
+        """Members ``index`` of generation ``g`` as trials of the study (``copies``: of
+        trial-store rows, marked so)."""
+        rows = range(len(index))
+        vals = np.stack([np.asarray(metrics[o], dtype=np.float64) for o in self.objectives], axis=1)
+        metric_dicts = [{k: float(v[j]) for k, v in metrics.items()} for j in rows]
+        attrs = [{ATTR + "worker": self.worker, ATTR + "generation": g, ATTR + "index": int(index[j]),
+                  **({COPY: True} if copies else {})} for j in rows]
+        add_evaluated(self.study, self.storage, self.space.points_of(values), self.dists, vals, metric_dicts,
+                      viol, failed, attrs)
+        self.timing["trials_in_study"] += len(index)
+
+    def kept(self, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
+        """Members of a whole generation (minimized F (batch, m), violations) whose copies
+        the study keeps: one objective, the best feasible; several, those that join the
+        lineage's feasible Pareto front (which this updates)."""
+        feas = np.flatnonzero((viol <= 0) & np.all(np.isfinite(F), axis=1))
+        if not feas.size:
+            return feas
+        if F.shape[1] == 1:
+            return feas[[int(np.argmin(F[feas, 0]))]]
+        G = np.concatenate([self.front, F[feas]])
+        on = pareto_mask(G)
+        self.front = G[on]
+        return feas[on[len(G) - len(feas):]]
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
 
 
 def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):
-    """Ask / evaluate / store / tell generations; stored generations are told again."""
+    """Ask / evaluate / store / tell generations; stored generations are told again (and
+    their copies in the study completed: a run may die between the two writes)."""
     space = run.space
     t = time.perf_counter()
     gens = lineage(run.study, run.worker)
+    copied = ({(g, j) for (w, g, j) in copies_in_study(run.study) if w == run.worker}
+              if run.store is not None else set())
     run.timing["storage"] += time.perf_counter() - t
-    for g, trs in gens.items():
-        if max(trs) >= batch:
+    for g, rows in gens.items():
+        if rows["index"].max() >= batch:
             raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} has members "
-                                f"up to index {max(trs)}; resume with the same batch (> {max(trs)}), not {batch}")
+                                f"up to index {rows['index'].max()}; resume with the same batch "
+                                f"(> {rows['index'].max()}), not {batch}")
     categories = len(space.material.choices) if space.material is not None else 0
     sampler = make_sampler(len(space.continuous), categories, batch, seed, len(run.objectives))
+    names = [v.name for v in space.variables]
     done, asked = 0, 0
     while done < n_target:
         t = time.perf_counter()
         g = sampler.generation
-        X = sampler.ask(batch)
-        points = space.points_from_unit(X)
-        stored = gens.get(g, {})
-        missing = [j for j in range(batch) if j not in stored]
+        values = space.values_from_unit(sampler.ask(batch))
+        stored = gens.get(g)
+        idx = stored["index"] if stored is not None else np.zeros(0, dtype=np.int64)
+        missing = np.setdiff1d(np.arange(batch), idx)
         run.timing["sampler"] += time.perf_counter() - t
         F = np.empty((batch, len(run.objectives)))
         viol = np.zeros(batch)
-        if stored:
-            ok = [j for j in stored if stored[j].state.name == "COMPLETE"]
-            for j, tr in stored.items():
-                if not _same_point(points[j], tr.params):
-                    raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} "
-                                        f"member {j} was stored as {tr.params}, the sampler now asks {points[j]}; "
-                                        f"resume with the seed and batch of the first run")
-                points[j] = dict(tr.params)
-                F[j] = np.array(tr.values) * run.sign if j in ok else np.inf
-                viol[j] = tr.system_attrs.get("constraints", [0.0])[0] if j in ok else np.inf
-        if missing:
-            if not stored:
+        metrics: dict[str, np.ndarray] = {}  # of the whole generation, by member
+
+        def put(rows, cols):
+            for k, v in cols.items():
+                metrics.setdefault(k, np.full(batch, np.nan))[rows] = v
+        if stored is not None:
+            _check_same_points(run, g, values, stored, idx)
+            for k in names:
+                values[k][idx] = space.material_index(stored["param:material"]) if k == "material" \
+                    else stored["param:" + k].astype(np.float64)
+            bad = stored["failed"].astype(bool)
+            F[idx] = np.where(bad[:, None], np.inf,
+                              np.stack([stored["metric:" + o].astype(np.float64) for o in run.objectives], 1) * run.sign)
+            c = np.nan_to_num(stored["constraint"].astype(np.float64), nan=0.0)
+            viol[idx] = np.where(bad, np.inf, c)
+            put(idx, {k[7:]: v.astype(np.float64) for k, v in stored.items() if k.startswith("metric:")})
+        if missing.size:
+            if stored is None:
                 asked += 1
                 _interruption_hooks(asked, stop_after, crash_after)
-            new = [points[j] for j in missing]
-            values, metrics, Fm, vm, failed = run.evaluate(new)
-            attrs = [{ATTR + "worker": run.worker, ATTR + "generation": g, ATTR + "index": j} for j in missing]
-            run.store(new, values, metrics, vm, failed, attrs)
+            new = {k: v[missing] for k, v in values.items()}
+            m, _, Fm, vm, failed = run.evaluate(new)
+            run.store_rows(g, missing, new, m, vm, failed)
             F[missing] = np.where(failed[:, None], np.inf, Fm)
             viol[missing] = np.where(failed, np.inf, vm if vm is not None else 0.0)
-            if stored:
+            put(missing, m)
+            if stored is not None:
                 run.resumed += len(missing)
-            claim.heartbeat()
         t = time.perf_counter()
-        sampler.tell(space.unit_from_points(points), F, viol)
+        keep = [j for j in run.kept(F, viol) if (g, int(j)) not in copied] if run.store is not None else []
+        with journal_batch(run.storage):  # the copies and the heartbeat: one lock and one sync
+            if keep:  # copies of the generation's kept members that the study lacks
+                keep = np.array(keep)
+                c = viol[keep] if run.T_limit is not None else None
+                run.copy_to_study(g, keep, {k: v[keep] for k, v in values.items()},
+                                  {k: v[keep] for k, v in metrics.items()}, c, np.zeros(len(keep), bool))
+            if missing.size:
+                claim.heartbeat()
+        run.timing["storage"] += time.perf_counter() - t
+        t = time.perf_counter()
+        sampler.tell(space.unit_from_values(values), F, viol)
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
 
 
-def _same_point(a: dict, b: dict) -> bool:
-    """Same design point, up to the rounding of a unit-cube round trip (1e-9 relative)."""
-    return a.keys() == b.keys() and all(
-        a[k] == b[k] if isinstance(a[k], str) else abs(a[k] - b[k]) <= 1e-9 * max(abs(a[k]), abs(b[k])) for k in a)
+def _check_same_points(run, g, values, stored, idx) -> None:
+    """Stored members of generation ``g`` must be the points the sampler asks again, up to
+    the rounding of a unit-cube round trip (1e-9 relative)."""
+    space = run.space
+    for k in (v.name for v in space.variables):
+        if k == "material":
+            same = space.material_index(stored["param:material"]) == values[k][idx]
+        else:
+            a, b = stored["param:" + k].astype(np.float64), values[k][idx]
+            same = np.abs(a - b) <= 1e-9 * np.maximum(np.abs(a), np.abs(b))
+        if not np.all(same):
+            j = int(np.flatnonzero(~same)[0])
+            was = {n: stored["param:" + n][j] for n in (v.name for v in space.variables)}
+            now = space.points_of(values, [int(idx[j])])[0]
+            raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} "
+                                f"member {int(idx[j])} was stored as {was}, the sampler now asks {now}; "
+                                f"resume with the seed and batch of the first run")
 
 
 def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):
@@ -250,12 +346,12 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
     study_id = storage.get_study_id_from_name(study.study_name)
 
     def tell(numbers, points):
-        values, metrics, _, viol, failed = run.evaluate(points)
+        metrics, values, _, viol, failed = run.evaluate(run.space.values_of(points))
         t = time.perf_counter()
         for j, num in enumerate(numbers):
             tid = storage.get_trial_id_from_study_id_trial_number(study_id, num)
-            for k, v in metrics[j].items():
-                storage.set_trial_user_attr(tid, k, v)
+            for k, v in metrics.items():
+                storage.set_trial_user_attr(tid, k, float(v[j]))
             if viol is not None:  # Optuna's own key: NSGA-II reads it, best_designs too
                 storage.set_trial_system_attr(tid, "constraints", [float(viol[j])])
             if failed[j]:

@@ -172,12 +172,7 @@ class DesignSpace:
         n = max(len(np.atleast_1d(a)) for a in values.values()) if values else 1
         rows = {}
         if self.material is not None:
-            mat = np.atleast_1d(values["material"])
-            if mat.dtype.kind in "iu":
-                idx = mat
-            else:
-                lookup = {c: i for i, c in enumerate(self.material.choices)}
-                idx = np.array([lookup[str(m)] for m in mat])
+            idx = self.material_index(values["material"])
             for p in MATERIAL_PARAMS:
                 table = np.array([getattr(self.catalogue[c], p) for c in self.material.choices])
                 rows[f"{self.segment}.{CORE_FIELD[p]}"] = np.broadcast_to(table[idx], (n,))
@@ -257,27 +252,53 @@ class DesignSpace:
         """Number of materials (1 without a ``material`` variable)."""
         return len(self.material.choices) if self.material is not None else 1
 
-    def points_from_unit(self, X: np.ndarray) -> list[dict]:
-        """Design points ``{name: value}`` of sampler coordinates ``X`` (n, len(continuous)
+    def values_from_unit(self, X: np.ndarray) -> dict[str, np.ndarray]:
+        """``{variable: (n,) array}`` of sampler coordinates ``X`` (n, len(continuous)
         [+ 1]): unit-cube columns of the continuous variables, then, with a ``material``
-        variable, the material index."""
+        variable, the material index (kept as an integer array)."""
         nc = len(self.continuous)
         vals = self.from_unit(X[:, :nc])
+        if self.material is not None:
+            vals["material"] = X[:, nc].astype(np.int64)
+        return vals
+
+    def unit_from_values(self, values: dict) -> np.ndarray:
+        """Inverse of :meth:`values_from_unit` (the coordinates a sampler is told);
+        materials as indices or names."""
+        u = self.to_unit({v.name: values[v.name] for v in self.continuous})
+        if self.material is not None:
+            u = np.concatenate([u, self.material_index(values["material"])[:, None].astype(float)], axis=1)
+        return u
+
+    def material_index(self, materials) -> np.ndarray:
+        """Indices into ``material.choices`` of materials given as names or indices."""
+        m = np.atleast_1d(materials)
+        if m.dtype.kind in "iu":
+            return m.astype(np.int64)
+        lookup = {c: i for i, c in enumerate(self.material.choices)}
+        return np.array([lookup[str(x)] for x in m], dtype=np.int64)
+
+    def points_of(self, values: dict, rows=None) -> list[dict]:
+        """Design points ``{name: value}`` (material by name) of ``values`` (as
+        :meth:`values_from_unit` gives them), at ``rows`` (default all)."""
+        rows = range(len(next(iter(values.values())))) if rows is None else rows
+        mats = self.material_index(values["material"]) if self.material is not None else None
         points = []
-        for j in range(X.shape[0]):
-            p = {k: float(vals[k][j]) for k in vals}
-            if self.material is not None:
-                p["material"] = self.material.choices[int(X[j, nc])]
+        for j in rows:
+            p = {v.name: float(values[v.name][j]) for v in self.continuous}
+            if mats is not None:
+                p["material"] = self.material.choices[int(mats[j])]
             points.append(p)
         return points
 
+    def points_from_unit(self, X: np.ndarray) -> list[dict]:
+        """Design points ``{name: value}`` of sampler coordinates ``X`` (see
+        :meth:`values_from_unit`)."""
+        return self.points_of(self.values_from_unit(X))
+
     def unit_from_points(self, points: list[dict]) -> np.ndarray:
         """Inverse of :meth:`points_from_unit` (the coordinates a sampler is told)."""
-        u = self.to_unit({v.name: np.array([p[v.name] for p in points], dtype=float) for v in self.continuous})
-        if self.material is not None:
-            idx = np.array([self.material.choices.index(p["material"]) for p in points], dtype=float)
-            u = np.concatenate([u, idx[:, None]], axis=1)
-        return u
+        return self.unit_from_values(self.values_of(points))
 
     def values_of(self, points: list[dict]) -> dict:
         """``{variable: (n,) array}`` of design points (input of :meth:`varying_table`)."""

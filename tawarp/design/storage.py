@@ -1,20 +1,32 @@
 """Study storage of the design search: open/create Optuna studies, store evaluated
-generations, find a worker's lineage. Optuna's public API only.
+generations, query every trial, claim a worker's lineage. Optuna's public API only.
 
-A trial is stored once, evaluated (``study.add_trials`` of
-``optuna.trial.create_trial``: one journal append per trial), with the system attributes
-``tawarp:worker`` (its lineage), ``tawarp:generation``, ``tawarp:index`` (its place in
-the generation as asked) and ``constraints`` (``[T_max - T_limit]``, feasible when
-<= 0, as Optuna's constrained samplers store it). The metrics are user attributes.
-Asked but unevaluated generations are not stored: the samplers are deterministic, so a
-resumed run asks them again.
+Where trials live. A study with a *trial store* (the default beside a journal file:
+``study.journal`` -> ``study.trials/<study name>/``; any folder with ``store=``/
+``--trial-store``) keeps every evaluated trial there, in bulk, one HDF5 file per run of
+a worker (:class:`TrialStore`); the study's user attribute ``tawarp_trials`` names the
+folder. The study itself keeps, through ``study.add_trials``, copies of the trials
+people ask Optuna for (system attribute ``tawarp:copy``): with one objective each
+generation's best feasible trial (so ``study.best_trial`` is the best of all), with
+several each trial that joins its lineage's feasible Pareto front when evaluated (so
+``study.best_trials`` is the front of all). A study without a store (a database URL or
+memory, unless a store folder is given: with several machines it must be a folder they
+all see) keeps every trial itself, as before. Either way :func:`trials_table` returns
+every trial, and the search, :func:`best_designs`, the summary and the figures read it.
+
+A trial in the study is stored evaluated (``optuna.trial.create_trial``), with the
+system attributes ``tawarp:worker`` (its lineage), ``tawarp:generation``,
+``tawarp:index`` (its place in the generation as asked) and ``constraints``
+(``[T_max - T_limit]``, feasible when <= 0, as Optuna's constrained samplers store it).
+The metrics are user attributes. Asked but unevaluated generations are not stored: the
+samplers are deterministic, so a resumed run asks them again.
 
 Measured on the 2-core development machine (2000 trials, journal file, Optuna 5.0):
 ``add_trials`` 4.0e3 trials/s on an idle disk (2.7e3 with the open lock), ``study.ask``
-+ 5 ``set_user_attr`` + ``study.tell`` 82 trials/s. ``add_trials`` appends (and fsyncs)
-once per trial, which a busy disk slows to ~300 trials/s; so a journal path is opened
-on a :class:`JournalFile` (Optuna's public backend protocol, same file format and lock)
-that takes the lock and syncs once per generation, as the search did before.
++ 5 ``set_user_attr`` + ``study.tell`` 82 trials/s; so every trial in Optuna caps a
+search at ~4e5 evaluations/min whatever the device does, and the trial store exists. A
+journal path is opened on a :class:`JournalFile` (Optuna's public backend protocol, same
+file format and lock) that takes the lock and syncs once per generation.
 """
 
 from __future__ import annotations
@@ -24,6 +36,8 @@ import json
 import os
 import time
 import weakref
+from pathlib import Path
+from urllib.parse import quote
 
 import numpy as np
 from optuna.storages.journal import BaseJournalBackend
@@ -31,6 +45,8 @@ from optuna.storages.journal import BaseJournalBackend
 from .objectives import directions
 
 ATTR = "tawarp:"
+COPY = ATTR + "copy"  # system attribute: the trial is a copy of a trial-store row
+STORE_ATTR = "tawarp_trials"  # study user attribute: the trial store's folder
 
 
 class StudyConflict(ValueError):
@@ -145,13 +161,282 @@ def _bind(study, key: str, value, what: str) -> None:
                             f"a study is bound to its {what}: give another study name or output")
 
 
-def lineage(study, worker: str) -> dict[int, dict[int, object]]:
-    """The worker's stored trials: ``{generation: {index: FrozenTrial}}``."""
-    gens: dict[int, dict[int, object]] = {}
-    for tr in study.get_trials(deepcopy=False):
-        if tr.system_attrs.get(ATTR + "worker") == worker and ATTR + "generation" in tr.system_attrs:
-            gens.setdefault(int(tr.system_attrs[ATTR + "generation"]), {})[int(tr.system_attrs[ATTR + "index"])] = tr
-    return gens
+# -- the columnar trial store ------------------------------------------------------------------
+class TrialStore:
+    """The columnar trial store of one study: a folder of HDF5 files, each written by one
+    run of one worker (a *segment*), every evaluated generation appended to it in bulk.
+
+    A segment has one dataset per column (``generation``, ``index``, ``failed``,
+    ``constraint``, ``time`` [s since the epoch], ``params/NAME``, ``metrics/NAME``; the
+    material as an index into the ``choices`` attribute) and ``committed``, the number of
+    rows of complete generations. A generation is appended as: columns resized and
+    written, file flushed, then ``committed`` advanced, flushed and synced to disk.
+    Readers read ``committed`` rows only, so they never see a generation in part.
+
+    Why HDF5 (h5py) and not netCDF: HDF5's single-writer/multiple-reader mode (SWMR)
+    orders the file's metadata writes so that the file is consistent at every moment;
+    a writer killed at any point leaves every committed generation readable, and readers
+    may read while it writes. A segment is never reopened for writing (HDF5 refuses to
+    reopen a file whose SWMR writer died without closing it), so each run of a worker
+    starts a segment of its own; the reader unions them. Two workers never write one
+    file, and a worker name is held by one live process at a time
+    (:class:`WorkerClaim`), so no lock is needed."""
+
+    def __init__(self, path, study_name: str):
+        self.path = Path(path)
+        self.study_name = study_name
+
+    def writer(self, worker: str, first_generation: int, choices: dict, rows_per_chunk: int) -> "StoreWriter":
+        """A new segment of ``worker``, starting at ``first_generation``; ``choices``:
+        ``{parameter: [category names]}`` of the categorical parameters."""
+        return StoreWriter(self, worker, first_generation, choices, rows_per_chunk)
+
+    def segments(self) -> list[Path]:
+        return sorted(self.path.glob("*.h5")) if self.path.is_dir() else []
+
+    def read(self) -> dict[str, np.ndarray]:
+        """Every committed row of this study's segments: ``{column: (n,) array}`` with
+        ``worker``, ``generation``, ``index``, ``failed``, ``constraint``, ``time``,
+        ``param:NAME`` (material names as strings) and ``metric:NAME``."""
+        import h5py
+
+        parts = []
+        for seg in self.segments():
+            with h5py.File(seg, "r", libver="latest", swmr=True, locking=False) as f:
+                if f.attrs["study"] != self.study_name:
+                    continue
+                n = int(f["committed"][0])
+                cols = {k: f[k][:n] for k in _BASE}
+                cols["worker"] = np.full(n, str(f.attrs["worker"]), dtype=object)
+                for k, ds in f["params"].items():
+                    v = ds[:n]
+                    if "choices" in ds.attrs:
+                        v = np.array([str(c) for c in ds.attrs["choices"]], dtype=object)[v]
+                    cols["param:" + k] = v
+                for k, ds in f["metrics"].items():
+                    cols["metric:" + k] = ds[:n]
+            parts.append(cols)
+        return _concat(parts)
+
+
+_BASE = ("generation", "index", "failed", "constraint", "time")
+
+
+class StoreWriter:
+    """Appends one worker's generations to a new segment of a :class:`TrialStore` (see
+    there). The file is made on the first append, when the columns are known."""
+
+    def __init__(self, store: TrialStore, worker: str, first_generation: int, choices: dict, rows_per_chunk: int):
+        import uuid
+
+        self.store, self.worker, self.choices = store, worker, choices
+        self.chunk = int(min(max(rows_per_chunk, 64), 1 << 16))
+        self.name = f"{quote(worker, safe='')}-g{first_generation:07d}-{uuid.uuid4().hex[:8]}.h5"
+        self._f = None
+        self.rows = 0
+
+    def append(self, generation: int, index: np.ndarray, params: dict, metrics: dict, violation, failed) -> None:
+        """Rows of one generation: ``index`` (k,) members, ``params`` {name: (k,)} (a
+        categorical one as indices into its choices), ``metrics`` {name: (k,)},
+        ``violation`` (k,) or None, ``failed`` (k,)."""
+        k = len(index)
+        cols = {"generation": np.full(k, generation, dtype=np.int64), "index": np.asarray(index, dtype=np.int64),
+                "failed": np.asarray(failed, dtype=bool),
+                "constraint": np.full(k, np.nan) if violation is None else np.asarray(violation, dtype=np.float64),
+                "time": np.full(k, time.time())}
+        cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
+        cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
+        if self._f is None:
+            self._open(cols)
+        f, n0 = self._f, self.rows
+        for name, v in cols.items():
+            ds = f[name]
+            ds.resize((n0 + k,))
+            ds[n0:] = v
+        f.flush()  # the rows reach the file before the count that makes them visible
+        f["committed"][0] = n0 + k
+        f.flush()
+        os.fsync(f.id.get_vfd_handle())
+        self.rows = n0 + k
+
+    def _open(self, cols: dict) -> None:
+        """Create the segment under a temporary name, then rename it and open it for SWMR
+        writing: a crash before leaves no half-made segment for readers."""
+        import h5py
+
+        self.store.path.mkdir(parents=True, exist_ok=True)
+        for stale in self.store.path.glob(f"{quote(self.worker, safe='')}-*.h5.tmp"):
+            stale.unlink()  # left by an earlier run of this worker, which the claim says is gone
+        path = self.store.path / self.name
+        tmp = path.with_name(path.name + ".tmp")
+        with h5py.File(tmp, "w", libver="latest") as f:
+            f.attrs["study"], f.attrs["worker"] = self.store.study_name, self.worker
+            for name, v in cols.items():
+                ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(self.chunk,), dtype=v.dtype)
+                base = name.partition("/")[2]
+                if name.startswith("params/") and base in self.choices:
+                    ds.attrs["choices"] = list(self.choices[base])
+            f.create_dataset("committed", data=np.zeros(1, dtype=np.int64))
+        os.replace(tmp, path)
+        self._f = h5py.File(path, "a", libver="latest", locking=False)
+        self._f.swmr_mode = True
+
+    def close(self) -> None:
+        if self._f is not None:
+            self._f.close()
+            self._f = None
+
+
+def _concat(parts: list[dict]) -> dict[str, np.ndarray]:
+    """Columns of several parts joined; a column missing from a part is NaN (or None) there."""
+    parts = [p for p in parts if p and len(p["generation"])]
+    if not parts:
+        return {}
+    keys = list(dict.fromkeys(k for p in parts for k in p))
+    out = {}
+    for k in keys:
+        out[k] = np.concatenate([p[k] if k in p else np.full(len(p["generation"]), np.nan if k.startswith("metric:")
+                                                             else None) for p in parts])
+    return out
+
+
+def bind_store(study, storage, store=None) -> TrialStore | None:
+    """The trial store a search run of ``study`` writes to, the study bound to it (user
+    attribute ``tawarp_trials``; another folder later is refused). ``store``: a folder;
+    None: the study's own, else ``<journal>.trials/<study name>`` beside a journal file
+    ``storage``, else none; False: none, every trial in the study (refused for a study
+    that has a store)."""
+    if store is False:
+        if study.user_attrs.get(STORE_ATTR):
+            raise StudyConflict(f"study {study.study_name!r} keeps its trials in the trial store "
+                                f"{study.user_attrs[STORE_ATTR]}; it cannot go without one")
+        return None
+    if store is None:
+        store = study.user_attrs.get(STORE_ATTR)
+        if store is None and isinstance(storage, (str, os.PathLike)) and "://" not in str(storage):
+            store = Path(storage).with_suffix(".trials") / quote(study.study_name, safe="")
+    if store is None:
+        return None
+    path = str(Path(store).resolve())
+    _bind(study, STORE_ATTR, path, "trial store")
+    return TrialStore(path, study.study_name)
+
+
+def store_of(study, store=None) -> TrialStore | None:
+    """The trial store ``study`` points to (user attribute ``tawarp_trials``), or the one
+    at ``store`` (a folder; for a study copied elsewhere), or None."""
+    path = store if store is not None else study.user_attrs.get(STORE_ATTR)
+    return TrialStore(path, study.study_name) if path else None
+
+
+def _study_rows(study) -> tuple[dict, dict]:
+    """(rows of the study's own finished trials, {(worker, generation, index): number} of
+    its copies of store rows)."""
+    from optuna.trial import TrialState
+
+    rows, copies = [], {}
+    for t in study.get_trials(deepcopy=False, states=(TrialState.COMPLETE, TrialState.FAIL)):
+        sa = t.system_attrs
+        key = (sa.get(ATTR + "worker"), int(sa.get(ATTR + "generation", -1)), int(sa.get(ATTR + "index", -1)))
+        if sa.get(COPY):
+            copies[key] = t.number
+        else:
+            rows.append((key, t))
+    if not rows:
+        return {}, copies
+    ts = [t for _, t in rows]
+    cols = {"worker": np.array([k[0] for k, _ in rows], dtype=object),
+            "generation": np.array([k[1] for k, _ in rows], dtype=np.int64),
+            "index": np.array([k[2] for k, _ in rows], dtype=np.int64),
+            "failed": np.array([t.state == TrialState.FAIL for t in ts]),
+            "constraint": np.array([t.system_attrs.get("constraints", [np.nan])[0] for t in ts], dtype=np.float64),
+            "time": np.array([t.datetime_complete.timestamp() if t.datetime_complete else np.nan for t in ts]),
+            "number": np.array([t.number for t in ts], dtype=np.int64)}
+    for name in dict.fromkeys(k for t in ts for k in t.params):
+        vals = [t.params.get(name) for t in ts]
+        cols["param:" + name] = np.array(vals, dtype=object if any(isinstance(v, str) for v in vals) else np.float64)
+    for name in dict.fromkeys(k for t in ts for k in t.user_attrs):
+        cols["metric:" + name] = np.array([t.user_attrs.get(name, np.nan) for t in ts], dtype=np.float64)
+    return cols, copies
+
+
+def copies_in_study(study) -> dict[tuple, int]:
+    """``{(worker, generation, index): Optuna number}`` of the study's copies of store rows."""
+    return _study_rows(study)[1]
+
+
+def _rows(study, store=None) -> dict[str, np.ndarray]:
+    """Every evaluated trial of ``study`` as columns (see :func:`trials_table`)."""
+    own, copies = _study_rows(study)
+    ts = store_of(study, store)
+    stored = ts.read() if ts is not None else {}
+    if stored:
+        stored["number"] = np.array([copies.get(k, -1) for k in zip(stored["worker"], stored["generation"].tolist(),
+                                                                      stored["index"].tolist())], dtype=np.int64)
+    cols = _concat([stored, own])
+    if cols:  # evaluation order: generations by time, members in order
+        order = np.lexsort((cols["index"], cols["generation"], cols["worker"].astype(str), cols["time"]))
+        cols = {k: v[order] for k, v in cols.items()}
+    return cols
+
+
+def trials_table(study, store=None):
+    """Every evaluated (COMPLETE or FAIL) trial of a design study, as an
+    ``xarray.Dataset`` along the dimension ``trial`` in evaluation order: the rows of its
+    trial store (:class:`TrialStore`, the folder the study's user attribute
+    ``tawarp_trials`` names, or ``store``) and the trials the study holds itself (those
+    of a study without a store: a database URL or memory, or Optuna's own samplers).
+
+    Variables: ``worker``, ``generation``, ``index`` (place in the generation as asked;
+    -1 for Optuna's samplers), ``number`` (the Optuna trial number of the trial, or of
+    its copy in the study; -1 for a row without one), ``state`` (COMPLETE or FAIL),
+    ``constraint`` (``T_max - T_limit`` [K], feasible when <= 0; NaN without a limit),
+    ``time`` [s since the epoch, UTC], one variable per design parameter (attribute
+    ``role = "parameter"``) and per metric (``role = "metric"``, objective values
+    included: the objective's name is a metric). ``attrs``: ``objectives``,
+    ``parameters``, ``metrics``, ``store``."""
+    import xarray as xr
+
+    cols = _rows(study, store)
+    ts = store_of(study, store)
+    ds = xr.Dataset(attrs={"study": study.study_name, "objectives": list(study.user_attrs.get("tawarp_objectives", [])),
+                           "store": str(ts.path) if ts is not None else ""})
+    if not cols:
+        cols = {"worker": np.zeros(0, object), "generation": np.zeros(0, np.int64), "index": np.zeros(0, np.int64),
+                "number": np.zeros(0, np.int64), "failed": np.zeros(0, bool), "constraint": np.zeros(0),
+                "time": np.zeros(0)}
+    ds["worker"] = ("trial", np.array(cols["worker"], dtype=str))
+    for k in ("generation", "index", "number"):
+        ds[k] = ("trial", cols[k])
+    ds["state"] = ("trial", np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE"))
+    for k in ("constraint", "time"):
+        ds[k] = ("trial", cols[k].astype(np.float64))
+    params, metrics = [], []
+    for k, v in cols.items():
+        role, _, name = k.partition(":")
+        if role not in ("param", "metric"):
+            continue
+        if name in ds:
+            raise ValueError(f"trials_table: {role} {name!r} has the name of another column")
+        ds[name] = ("trial", np.array(v, dtype=str) if v.dtype == object else v)
+        ds[name].attrs["role"] = "parameter" if role == "param" else "metric"
+        (params if role == "param" else metrics).append(name)
+    ds.attrs["parameters"], ds.attrs["metrics"] = params, metrics
+    return ds
+
+
+def lineage(study, worker: str, store=None) -> dict[int, dict[str, np.ndarray]]:
+    """The worker's evaluated trials by generation: ``{generation: {column: (k,) array}}``
+    (the columns of :func:`trials_table`'s internal rows: ``index``, ``failed``,
+    ``constraint``, ``param:NAME``, ``metric:NAME``, ...), members in index order."""
+    cols = _rows(study, store)
+    if not cols:
+        return {}
+    sel = np.flatnonzero((cols["worker"] == worker) & (cols["generation"] >= 0))
+    sel = sel[np.lexsort((cols["index"][sel], cols["generation"][sel]))]
+    gens, starts = np.unique(cols["generation"][sel], return_index=True)
+    bounds = list(starts) + [len(sel)]
+    return {int(g): {k: v[sel[bounds[i]:bounds[i + 1]]] for k, v in cols.items()} for i, g in enumerate(gens)}
 
 
 def add_evaluated(study, storage, points: list[dict], distributions: dict, values: np.ndarray, metrics: list[dict],
@@ -172,52 +457,79 @@ def add_evaluated(study, storage, points: list[dict], distributions: dict, value
                                    values=[float(x) for x in values[j]] if ok else None,
                                    params=p, distributions={k: distributions[k] for k in p},
                                    user_attrs=metrics[j], system_attrs=sa))
-    journal = _JOURNALS.get(storage)
-    with journal.batch() if journal is not None else contextlib.nullcontext():
+    with journal_batch(storage):
         study.add_trials(trials)
 
 
-def best_designs(study, objectives, T_limit, k: int = 1) -> list[dict]:
-    """Best feasible trials: the ``k`` best for one objective, the Pareto front for several.
-    Each: ``number``, ``params``, ``values`` {objective: value}, ``metrics`` (user attrs),
-    ``worker``."""
-    from optuna.trial import TrialState
+def journal_batch(storage):
+    """A context in which a journal made by :func:`make_storage` is locked and synced to
+    disk once for all appends (a no-op for other storages)."""
+    journal = _JOURNALS.get(storage)
+    return journal.batch() if journal is not None else contextlib.nullcontext()
 
+
+def best_designs(study, objectives, T_limit, k: int = 1, store=None, per: str | None = None) -> list[dict]:
+    """Best feasible trials of all (:func:`trials_table`): the ``k`` best for one
+    objective (``per``: the best of each value of that parameter, e.g. ``"material"``),
+    the Pareto front for several. Each: ``number`` (Optuna's, None for a trial with no
+    copy in the study), ``params``, ``values`` {objective: value}, ``metrics``,
+    ``worker``, ``generation``, ``index``."""
     from .objectives import signs
     from .samplers import pareto_mask
 
-    trials = list(study.get_trials(deepcopy=False, states=(TrialState.COMPLETE,)))
-    if T_limit is not None:
-        trials = [t for t in trials if t.system_attrs.get("constraints", [0.0])[0] <= 0]
-    if not trials:
+    cols = _rows(study, store)
+    if not cols:
         return []
-    F = np.array([t.values for t in trials]) * signs(objectives)
+    ok = ~cols["failed"].astype(bool)
+    if T_limit is not None:
+        ok &= np.nan_to_num(cols["constraint"].astype(np.float64), nan=0.0) <= 0
+    sel = np.flatnonzero(ok)
+    if not sel.size:
+        return []
+    F = np.stack([cols["metric:" + o][sel].astype(np.float64) for o in objectives], axis=1) * signs(objectives)
     if len(objectives) == 1:
-        order = np.argsort(F[:, 0], kind="stable")[:k]
+        order = np.argsort(F[:, 0], kind="stable")
+        if per is not None:
+            first = np.unique(cols["param:" + per][sel][order].astype(str), return_index=True)[1]
+            order = order[np.sort(first)]
     else:
         order = np.flatnonzero(pareto_mask(F))
         order = order[np.argsort(F[order, 0], kind="stable")]
+    pnames = [c for c in cols if c.startswith("param:")]
+    mnames = [c for c in cols if c.startswith("metric:")]
     out, seen = [], set()
-    for i in order:
-        t = trials[i]
-        key = tuple(sorted((k2, str(v)) for k2, v in t.params.items()))
+    for i in sel[order]:
+        params = {c[6:]: (v if isinstance(v, str) else float(v)) for c in pnames if (v := cols[c][i]) is not None}
+        key = tuple(sorted((k2, str(v)) for k2, v in params.items()))
         if key in seen:
             continue
         seen.add(key)
-        out.append({"number": t.number, "params": dict(t.params),
-                    "values": {o: float(v) for o, v in zip(objectives, t.values)},
-                    "metrics": dict(t.user_attrs), "worker": t.system_attrs.get(ATTR + "worker")})
+        num = int(cols["number"][i])
+        out.append({"number": num if num >= 0 else None, "params": params,
+                    "values": {o: float(cols["metric:" + o][i]) for o in objectives},
+                    "metrics": {c[7:]: float(cols[c][i]) for c in mnames},
+                    "worker": cols["worker"][i], "generation": int(cols["generation"][i]),
+                    "index": int(cols["index"][i])})
+        if len(objectives) == 1 and len(out) >= k:
+            break
     return out
 
 
-def study_summary(study) -> dict:
-    """Counts of trials by state and by worker, numbers unique (for checks and reports)."""
+def study_summary(study, store=None) -> dict:
+    """Counts of all evaluated trials (:func:`trials_table`) by state and by worker;
+    ``unique``: no (worker, generation, index) twice; ``in_study``: trials Optuna holds
+    (copies included); ``store``: the trial store's folder or None."""
     from collections import Counter
 
-    trials = study.get_trials(deepcopy=False)
-    return {"trials": len(trials), "states": dict(Counter(t.state.name for t in trials)),
-            "workers": dict(Counter(t.system_attrs.get(ATTR + "worker") for t in trials)),
-            "unique_numbers": len({t.number for t in trials}) == len(trials)}
+    cols = _rows(study, store)
+    n = len(cols.get("generation", ()))
+    keys = list(zip(cols["worker"], cols["generation"].tolist(), cols["index"].tolist())) if n else []
+    lineage_keys = [k for k in keys if k[1] >= 0]
+    ts = store_of(study, store)
+    return {"trials": n, "states": dict(Counter(np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE").tolist()))
+            if n else {}, "workers": dict(Counter(cols["worker"].tolist())) if n else {},
+            "unique": len(set(lineage_keys)) == len(lineage_keys), "in_study": len(study.get_trials(deepcopy=False)),
+            "store": str(ts.path) if ts is not None else None}
 
 
 class WorkerClaim:

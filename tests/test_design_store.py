@@ -1,0 +1,214 @@
+"""The columnar trial store of design studies (tawarp.design.storage.TrialStore,
+trials_table): every evaluated trial queryable with the values a direct evaluation
+gives, crash safety of the appends, resume without duplicates."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tawarp.design.evaluate import Evaluator
+from tawarp.design.search import search
+from tawarp.design.space import DesignSpace
+from tawarp.design.storage import TrialStore, open_study, study_summary, trials_table
+from tawarp.model.core import load_core
+
+ROOT = Path(__file__).resolve().parents[1]
+VARS = ["material=ceramic,rvc_foam", "stack.length=0.005:0.1", "heat_input=1:30", "hot_hx.length=0.005:0.03"]
+
+
+def _space():
+    return DesignSpace(load_core("rvc_foam"), VARS)
+
+
+def _keys(ds) -> list[tuple]:
+    return list(zip(ds.worker.values.tolist(), ds.generation.values.tolist(), ds["index"].values.tolist()))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_every_trial_is_queryable_with_the_values_of_a_direct_evaluation(tmp_path, seed):
+    """N trials of a search with the temperature limit active: the table returns N rows,
+    each (worker, generation, index) once, and every metric equals a fresh evaluation
+    of the table's design points to 1e-12 (relative); the gradient and T_hot of a few
+    rows equal the exact piecewise heat solution of the reference (1e-9). The study
+    holds one copy per generation, its best feasible trial, so Optuna's best trial is
+    the best of all."""
+    from tawarp.reference import heat_profile_exact
+
+    space = _space()
+    res = search(space, n_trials=96, batch=16, storage=str(tmp_path / "s.journal"), seed=seed, T_limit=420.0)
+    ds = trials_table(res.study)
+    assert ds.sizes["trial"] == 96 and len(set(_keys(ds))) == 96
+    assert sorted(ds.attrs["parameters"]) == sorted(["material", "stack.length", "heat_input", "hot_hx.length"])
+    assert np.any(ds.constraint.values > 0) and np.any(ds.constraint.values <= 0)  # the limit is active
+    values = {k: ds[k].values for k in ds.attrs["parameters"]}
+    direct = Evaluator(space, extra=("gradient",)).evaluate(values)
+    for k in ds.attrs["metrics"]:
+        np.testing.assert_allclose(ds[k].values, direct[k], rtol=1e-12, atol=0, err_msg=k)
+    np.testing.assert_allclose(ds.constraint.values, direct["T_max"] - 420.0, rtol=1e-12, atol=1e-12)
+    i = space.stack_index
+    for j in np.random.default_rng(seed).choice(96, 3, replace=False):
+        core, q = space.core_for({k: ds[k].values[j].item() for k in ds.attrs["parameters"]})
+        x = core.positions()
+        sol = heat_profile_exact(core, q)
+        g = (sol.theta_in(i, x[i + 1]) - sol.theta_in(i, x[i])) / (x[i + 1] - x[i])
+        assert ds.gradient.values[j] == pytest.approx(float(g), rel=1e-9)
+        assert ds.T_hot.values[j] - core.gas.T_cold == pytest.approx(float(sol.theta_in(i, x[i + 1])), rel=1e-9)
+    feasible = ds.constraint.values <= 0
+    best = np.max(ds.gradient.values[feasible])
+    assert res.study.best_trial.values[0] == best == res.best[0]["values"]["gradient"]
+    assert study_summary(res.study)["in_study"] == len(res.study.trials) == 96 // 16
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_several_objectives_the_study_holds_the_pareto_front(tmp_path, seed):
+    """Two objectives: every trial of the table is in the store, and the study's copies
+    contain the feasible Pareto front of all trials (Optuna's best_trials is that
+    front), while holding fewer trials than were evaluated."""
+    from tawarp.design.samplers import pareto_mask
+
+    res = search(_space(), ("gradient", "heat_leak"), n_trials=256, batch=32,
+                 storage=str(tmp_path / "m.journal"), seed=seed, T_limit=450.0)
+    ds = trials_table(res.study)
+    assert ds.sizes["trial"] == 256 and len(set(_keys(ds))) == 256
+    ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
+    F = np.stack([-ds.gradient.values[ok], ds.heat_leak.values[ok]], axis=1)
+    front = {tuple(f) for f in F[pareto_mask(F)]}
+    held = {(-t.values[0], t.values[1]) for t in res.study.best_trials}
+    assert held == front
+    assert len(front) <= len(res.study.trials) < 256
+    assert {(-b["values"]["gradient"], b["values"]["heat_leak"]) for b in res.best} == front
+
+
+_CRASH = """
+import os, sys
+import h5py
+from tawarp.model.core import load_core
+from tawarp.design.space import DesignSpace
+from tawarp.design import search as S
+from tawarp.design.storage import StoreWriter
+journal, where, gen = sys.argv[1], sys.argv[2], int(sys.argv[3])
+if where == "store":  # die (no close, no flush) after the first column of generation `gen` is written
+    append = StoreWriter.append
+    def dying_append(self, g, *a, **k):
+        if g == gen:
+            setitem = h5py.Dataset.__setitem__
+            def die(ds, key, value):
+                setitem(ds, key, value)
+                os._exit(3)
+            h5py.Dataset.__setitem__ = die
+        return append(self, g, *a, **k)
+    StoreWriter.append = dying_append
+else:  # die after generation `gen` is committed to the store, before its copy reaches the study
+    copy = S._Run.copy_to_study
+    def dying_copy(self, g, *a, **k):
+        if g == gen:
+            os._exit(3)
+        return copy(self, g, *a, **k)
+    S._Run.copy_to_study = dying_copy
+space = DesignSpace(load_core("rvc_foam"), %r)
+S.search(space, n_trials=64, batch=8, storage=journal, seed=7)
+""" % (VARS,)
+
+
+@pytest.mark.parametrize("where,gen", [("store", 1), ("store", 3), ("study", 2)])
+def test_a_crash_mid_generation_loses_only_that_generation(tmp_path, where, gen):
+    """A process dies inside the write of generation ``gen`` (after its first column
+    reached the file, the file never closed) or between the store and the study: the
+    generations before are readable, exactly as an uninterrupted run makes them, the one
+    being written is invisible; the resumed run completes the lineage with every
+    (generation, index) once and the study with one copy per generation."""
+    journal = str(tmp_path / "c.journal")
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-c", _CRASH, journal, where, str(gen)], env=env, capture_output=True,
+                       text=True, timeout=180)
+    assert p.returncode == 3, p.stdout + p.stderr
+    ref = trials_table(search(_space(), n_trials=64, batch=8, seed=7).study)  # in memory, never interrupted
+    names = ["material", "stack.length", "heat_input", "hot_hx.length", "gradient", "T_max", "heat_leak"]
+
+    def same_as_ref(ds):
+        k, kr = _keys(ds), _keys(ref)
+        assert len(set(k)) == len(k) and set(k) <= set(kr)
+        at = {key: j for j, key in enumerate(kr)}
+        rows = [at[key] for key in k]
+        for n in names:
+            if ds[n].dtype.kind in "US":
+                assert (ds[n].values == ref[n].values[rows]).all()
+            else:
+                np.testing.assert_allclose(ds[n].values, ref[n].values[rows], rtol=1e-12, atol=0, err_msg=n)
+
+    study = open_study(journal, "tawarp-design", ["gradient"])
+    after = trials_table(study)
+    committed = gen if where == "store" else gen + 1
+    assert sorted(set(after.generation.values.tolist())) == list(range(committed))
+    assert after.sizes["trial"] == 8 * committed
+    same_as_ref(after)
+    assert len(study.trials) == gen  # copies of the generations before
+    res = search(_space(), n_trials=64, batch=8, storage=journal, seed=7)
+    assert res.resumed == 0
+    ds = trials_table(res.study)
+    assert ds.sizes["trial"] == 64 and len(set(_keys(ds))) == 64
+    same_as_ref(ds)
+    copies = [(t.system_attrs["tawarp:generation"], t.system_attrs["tawarp:index"]) for t in res.study.trials]
+    assert sorted(g for g, _ in copies) == list(range(8))
+    assert len(list((tmp_path / "c.trials" / "tawarp-design").glob("*.h5"))) == 2  # one file per run
+
+
+_WRITER = """
+import sys
+import numpy as np
+from tawarp.design.storage import TrialStore
+store, start = TrialStore(sys.argv[1], "s"), int(sys.argv[2])
+w = store.writer("w", start, {"material": ["a", "b"]}, 512)
+for g in range(start, start + 10**6):
+    k = np.arange(512)
+    w.append(g, k, {"x": g + k / 512.0, "material": k % 2}, {"y": np.full(512, float(g))}, -k / 1.0, k == 7)
+    print(g, flush=True)
+"""
+
+
+@pytest.mark.parametrize("delay", [0.3, 0.7, 1.3])
+def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
+    """SIGKILL at an arbitrary moment of a writer appending generations of known content
+    as fast as it can (most of its time inside HDF5 writes): what readers see, while it
+    writes and after, is whole generations 0..G-1, every value exact; a second run of the
+    worker continues in a new file from G; the union has each (generation, index) once."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+    def run(start, wait):
+        p = subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
+                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        first = p.stdout.readline()  # the first generation is stored: the writer is under way
+        assert first.strip() == str(start), first + p.stdout.read()
+        time.sleep(wait)
+        while_writing = check()  # a reader beside the live writer
+        p.send_signal(signal.SIGKILL)
+        p.communicate()
+        assert while_writing >= start + 1
+
+    def check():
+        cols = TrialStore(tmp_path, "s").read()
+        g = cols["generation"]
+        gens = np.unique(g)
+        assert np.array_equal(gens, np.arange(len(gens))) and len(g) == 512 * len(gens)
+        k = cols["index"]
+        assert len(set(zip(g.tolist(), k.tolist()))) == len(g)
+        np.testing.assert_array_equal(cols["param:x"], g + k / 512.0)
+        np.testing.assert_array_equal(cols["param:material"], np.where(k % 2, "b", "a"))
+        np.testing.assert_array_equal(cols["metric:y"], g.astype(float))
+        np.testing.assert_array_equal(cols["constraint"], -k / 1.0)
+        np.testing.assert_array_equal(cols["failed"], k == 7)
+        return len(gens)
+
+    run(0, delay)
+    n1 = check()
+    run(n1, delay / 2)
+    n2 = check()
+    assert n2 > n1 >= 1
