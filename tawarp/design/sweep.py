@@ -13,10 +13,8 @@ Outputs (float32, CF ``units`` and ``long_name`` from the objectives table,
 (``gradient`` [K/m] = (T(x3) - T(x2)) / l_s, ``T_max`` [K], ``heat_leak`` [W] (stack, to
 the wall), ``T_hot`` [K] = T(x3)); ``outputs`` adds or selects any registered objective.
 The work is done in chunks of ``chunk`` points: one heat-solve and
-one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab). The host
-work overlaps the device's: the points of the next chunks are made in threads while a
-chunk is evaluated, and one writer thread writes the previous chunk; at most
-:data:`LOOKAHEAD` chunks wait on either side, so memory stays flat whatever the size. The file is written to a temporary name
+one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab) before the
+next, so memory stays flat whatever the size. The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
 """
@@ -25,29 +23,23 @@ from __future__ import annotations
 
 import gc
 import time
-from collections import deque
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..io import atomic_path
-from ..model.forward import ForwardSettings
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
 from .samplers import sobol_unit
 from .space import DesignSpace
-
-#: chunks prepared ahead of the device, and written behind it
-LOOKAHEAD = 2
+from ..io import atomic_path
+from ..model.forward import ForwardSettings
 
 
 @dataclass
 class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
-    ``evaluation_seconds`` (device work incl. transfers, on the calling thread),
-    ``write_seconds`` (the writer thread's busy time; it overlaps the evaluation)."""
+    ``evaluation_seconds`` (device work incl. transfers), ``write_seconds``."""
 
     path: Path
     n_points: int
@@ -172,32 +164,34 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 var.attrs["long_name"] = o.long_name
                 outs[o.name] = var
             if mode == "grid":
-                blocks = list(_blocks(shape, chunk))
+                it = ((lo, hi, sl) for lo, hi, sl in _blocks(shape, chunk))
             else:
-                blocks = [(lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk)]
-
-            def points(lo, hi):
-                """({variable: (hi - lo,) values}, the engine's varying table) of points
-                lo..hi: host work, run ahead in a thread."""
+                it = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
+            for lo, hi, sl in it:
+                m = hi - lo
                 if mode == "grid":
                     idx = np.unravel_index(np.arange(lo, hi, dtype=np.int64), shape)
-                    values = {d: idx[j].astype(np.int64) if d == "material" else grids[d][idx[j]]
-                              for j, d in enumerate(dims)}
-                    return values, space.varying_table(values)
-                d_all = len(cont) + (1 if space.material is not None else 0)
-                u = sobol_unit(hi - lo, d_all, seed, skip=lo)
-                values = space.from_unit(u[:, : len(cont)])
-                if space.material is not None:
-                    values["material"] = np.minimum((u[:, -1] * len(space.material.choices)).astype(np.int64),
-                                                    len(space.material.choices) - 1)
-                return values, space.varying_table(values)
-
-            def write(lo, hi, sl, values, res) -> float:
-                """Write one block in place (an HDF5 hyperslab); returns the seconds it took."""
+                    values = {}
+                    for j, d in enumerate(dims):
+                        if d == "material":
+                            values[d] = idx[j].astype(np.int64)
+                        else:
+                            values[d] = grids[d][idx[j]]
+                else:
+                    d_all = len(cont) + (1 if space.material is not None else 0)
+                    u = sobol_unit(m, d_all, seed, skip=lo)
+                    values = space.from_unit(u[:, : len(cont)])
+                    if space.material is not None:
+                        values["material"] = np.minimum((u[:, -1] * len(space.material.choices)).astype(np.int64),
+                                                        len(space.material.choices) - 1)
+                t = time.perf_counter()
+                table = space.varying_table(values)
+                res = ev.evaluate_table(table)
+                t_eval += time.perf_counter() - t
                 t = time.perf_counter()
                 block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
                 full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
-                sub_shape = block + tuple(shape[len(sl):])
+                sub_shape = tuple(b for b in block) + tuple(shape[len(sl):])
                 for k in outputs:
                     outs[k][full] = res[k].astype(np.float32).reshape(sub_shape)
                 if mode == "sobol":
@@ -205,38 +199,12 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                         f.variables[v.name][lo:hi] = values[v.name]
                     if space.material is not None:
                         f.variables["material"][lo:hi] = values["material"].astype(np.int8)
-                return time.perf_counter() - t
-
-            # Three stages overlap: the next chunks' points (host threads), this chunk's
-            # evaluation (the device), the previous chunk's write (one writer thread, so the
-            # file is touched by one thread at a time). At most LOOKAHEAD chunks wait in each
-            # stage, so memory stays flat.
-            prep = ThreadPoolExecutor(max_workers=LOOKAHEAD, thread_name_prefix="sweep-points")
-            writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="sweep-write")
-            try:
-                ahead = deque(prep.submit(points, lo, hi) for lo, hi, _ in blocks[:LOOKAHEAD])
-                writes = deque()
-                for b, (lo, hi, sl) in enumerate(blocks):
-                    values, table = ahead.popleft().result()
-                    if b + LOOKAHEAD < len(blocks):
-                        nlo, nhi, _ = blocks[b + LOOKAHEAD]
-                        ahead.append(prep.submit(points, nlo, nhi))
-                    t = time.perf_counter()
-                    res = ev.evaluate_table(table)
-                    t_eval += time.perf_counter() - t
-                    while len(writes) >= LOOKAHEAD:
-                        t_write += writes.popleft().result()
-                    writes.append(writer.submit(write, lo, hi, sl, values, res))
-                    nchunks += 1
-                    bar.update(hi - lo)
-                    del values, table, res
-                    if nchunks % 16 == 0:
-                        gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
-                while writes:
-                    t_write += writes.popleft().result()
-            finally:
-                prep.shutdown(cancel_futures=True)
-                writer.shutdown(wait=True)       # nothing touches the file after it closes
+                t_write += time.perf_counter() - t
+                nchunks += 1
+                bar.update(m)
+                del values, table, res
+                if nchunks % 16 == 0:
+                    gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
     finally:
         bar.close()
     wall = time.perf_counter() - t0
