@@ -156,3 +156,30 @@ def test_pair_cases_cache_each_effect_alone(tmp_path):
     b = lv.load_or_generate(case, tmp_path)
     np.testing.assert_array_equal(a["T"], b["T"])
     assert set(b) == set(lv.array_keys(case))
+
+
+@pytest.mark.parametrize("seed", [5, 103])
+def test_indistinguishable_effects_are_one_step(seed, tmp_path):
+    # the study's cases of a T-dependent solid conductivity lam (T/T_cold)^b (b 0.57, 0.48) on
+    # the NiCr foam, 37 frequencies: on these data its change and a radiative conductivity's
+    # (T^3) correlate > 0.99, so the loop accepts the pair as one step, names both, claims
+    # neither, and the fit reaches the noise floor (1.3 x, the study's yardstick)
+    from tawarp.loop import run_loop, write_report
+    from tawarp.model.forward import ForwardSettings
+
+    case = lv.make_case(seed)
+    assert case.effects == ["conductivity_T"] and case.material == "nicr_foam"
+    arrays = lv.load_or_generate(case, tmp_path)
+    prob = lv.TMatrixKind(lv.measurement(case, arrays), lv.load_core(case.core_material).replace(**case.prior),
+                          ForwardSettings(device="cpu"))
+    rep = run_loop(prob, drift_h=False)
+    assert rep["accepted_groups"] == [["conductivity_T", "radiation"]], (rep["accepted_groups"], rep["verdict"])
+    assert rep["accepted_effects"] == [] and rep["chosen_effect"] is None
+    st = rep["steps"][0]
+    assert st["members"] == ["conductivity_T", "radiation"] and st["representative"] in st["members"]
+    assert st["effect"] == "one of {conductivity_T, radiation} (indistinguishable in these data)"
+    assert st["error_after"] < st["error_before"] and st["stability"] >= 0.7
+    assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)
+    js = write_report(prob, rep, tmp_path)
+    assert js["accepted_steps"] == [st["effect"]]
+    assert st["effect"] in (tmp_path / "report.md").read_text()
