@@ -336,10 +336,7 @@ def loop_outcome(report: dict) -> dict:
             "noise_floor": report.get("noise_floor") or gof.get("noise_floor"),
             "accepted_effects": list(report.get("accepted_effects") or []),
             "accepted_groups": [list(g) for g in report.get("accepted_groups") or []], "verdict": report["verdict"],
-            "indistinguishable": [list(g) for g in report.get("indistinguishable") or []],
-            "structure_after": {k: report["residual_structure_after"][k]
-                                for k in ("structured_fraction", "structured_fraction_if_white")},
-            "parameters_after": {k: v["value"] for k, v in report["parameters_after"].items()}}
+            "indistinguishable": [list(g) for g in report.get("indistinguishable") or []]}
 
 
 #: Verdicts that flag a residual nothing in the library explains.

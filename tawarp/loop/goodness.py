@@ -20,6 +20,42 @@ NOISE_ESTIMATE = ("estimated: rms of the second differences d2 along frequency o
                   "residual smooth over three frequencies cancels in d2)")
 
 
+#: The residual of an adequate fit has no structure along frequency: the share of it that
+#: cubics in frequency explain (per coefficient, group and re/im part) is what white noise
+#: gives, tested by an F-test at this level (the chi^2 test's level, ADEQUATE_P). A residual
+#: at the noise level in size can still be a smooth misfit spread thin (validation: a
+#: calibration drift or another core's data fitted at 1.1-1.2 noise floors).
+STRUCTURE_P = ADEQUATE_P
+
+
+def smooth_fraction(problem: MeasurementKind, wr: np.ndarray) -> dict:
+    """The share of the residual ``wr`` (n rows x (re, im), in units of its noise: white
+    noise of equal variance) that a cubic in frequency explains, fitted per (coefficient,
+    group, part): ``fraction``; what white noise gives on average, k / N (k coefficients of
+    the cubics, N residuals): ``if_white``; the F statistic ``(S_smooth / k) / (S_rest / (N -
+    k))`` and its p-value (F(k, N - k) under white noise; the fitted parameters take a few
+    degrees of freedom, which makes the test slightly conservative)."""
+    smooth = total = 0.0
+    k = 0
+    for c in range(len(problem.coef_names)):
+        for g in np.unique(problem.group):
+            m = (problem.coef == c) & (problem.group == g)
+            if not m.any():
+                continue
+            f = problem.freq[m]
+            t = (f - f.min()) / max(np.ptp(f), 1e-30) * 2 - 1
+            V = np.polynomial.legendre.legvander(t, min(3, m.sum() - 1))
+            for part in range(2):
+                coef, *_ = np.linalg.lstsq(V, wr[m, part], rcond=None)
+                smooth += float(((V @ coef) ** 2).sum())
+                total += float((wr[m, part] ** 2).sum())
+                k += V.shape[1]
+    N = wr.size
+    F = (smooth / k) / max((total - smooth) / max(N - k, 1), 1e-300) if total > 0 else 0.0
+    return {"fraction": smooth / total if total > 0 else 0.0, "if_white": k / N, "F": F,
+            "p_value": float(stats.f.sf(F, k, max(N - k, 1)))}
+
+
 def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
     """Per real residual (the ``residual`` layout of :func:`tawarp.fit.problems.residual`,
     all rows: re parts, then im parts): the estimated noise sigma in weighted units, one
@@ -58,17 +94,23 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     """Reduced chi^2 and p-value of ``fit`` (all rows) against noise ``sigma`` per real
     residual (None: the data's own sigma, weights 1/sigma), its noise floor, the parameters
     at a bound (flagged, not a failure: a tortuosity of 1 is a physical value on its bound),
-    and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced chi^2 <=
-    :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise."""
+    the structure test of the residual in units of the noise (:func:`smooth_fraction`:
+    ``structure``), and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced
+    chi^2 <= :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise; and in both cases
+    the structure test's p-value >= :data:`STRUCTURE_P`."""
     r = fit.residuals[0]
-    chi2 = float(np.sum(r ** 2)) if sigma is None else float(np.sum((r / sigma) ** 2))
+    rs = r if sigma is None else r / sigma
+    chi2 = float(np.sum(rs ** 2))
     dof = max(r.size - len(fit.names), 1)
     p = float(stats.chi2.sf(chi2, dof))
     at = fit.at_bounds()
-    fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
+    n = problem.y.size
+    structure = smooth_fraction(problem, np.stack([rs[:n], rs[n:]], -1))
+    fits = (p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED) \
+        and structure["p_value"] >= STRUCTURE_P
     floor = problem.noise_floor() if sigma is None else noise_floor_of(problem, sigma)
     return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
-            "error": float(fit.rms_error[0]), "adequate": bool(fits), "at_bounds": at}
+            "error": float(fit.rms_error[0]), "structure": structure, "adequate": bool(fits), "at_bounds": at}
 
 
 def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> dict:

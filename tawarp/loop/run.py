@@ -281,11 +281,12 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     elif gof_before["reduced_chi2"] > WRONG_MODEL_CHI2:
         # grossly inadequate and the library does not bring it to the noise
         verdict = "wrong_model"
-    elif groups:
-        verdict = "partly_explained"
-    elif tie:
+    elif tie and not groups:
         verdict = "indistinguishable"
     else:
+        # steps that reduce the misfit without bringing it to the noise are listed, not taken as
+        # its explanation: they may only lean into a residual of another cause (validation: a
+        # calibration gain and plane offsets on a calibration drift)
         verdict = "unexplained_residual"
     first = rounds[0]["candidates"] if rounds else []
     report = {
