@@ -9,8 +9,8 @@ Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
    (:func:`fit_base`), on the package's one LM (:func:`tawarp.fit.problems.fit_batch`).
 2. **Goodness of fit** (:mod:`.goodness`): reduced chi^2 and p-value against the data's
    sigma, or against noise estimated from the second differences along frequency of the
-   residual, and an F-test of the residual's smooth structure along frequency (adequate
-   only when both pass); parameters at bounds flagged.
+   residual; parameters at bounds flagged; an F-test of the residual's smooth structure
+   along frequency (a fit explains the data only when its residual is also white).
 3. **One effect at a time** while the fit is not adequate (:func:`run_loop`, ``_step``):
    screening of every candidate at the current solution in one batched launch
    (:mod:`.screen`: sign-constrained for one-sided effects, candidates degenerate with a

@@ -20,11 +20,11 @@ NOISE_ESTIMATE = ("estimated: rms of the second differences d2 along frequency o
                   "residual smooth over three frequencies cancels in d2)")
 
 
-#: The residual of an adequate fit has no structure along frequency: the share of it that
-#: cubics in frequency explain (per coefficient, group and re/im part) is what white noise
-#: gives, tested by an F-test at this level (the chi^2 test's level, ADEQUATE_P). A residual
-#: at the noise level in size can still be a smooth misfit spread thin (validation: a
-#: calibration drift or another core's data fitted at 1.1-1.2 noise floors).
+#: A fit that explains the data leaves a white residual: the share of it that cubics in
+#: frequency explain (per coefficient, group and re/im part) is what white noise gives,
+#: tested by an F-test at this level (the chi^2 test's level, ADEQUATE_P). A residual of the
+#: noise's size can still be a smooth misfit spread thin (validation: another core's data
+#: fitted at 1.04 noise floors, a calibration drift).
 STRUCTURE_P = ADEQUATE_P
 
 
@@ -94,10 +94,10 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     """Reduced chi^2 and p-value of ``fit`` (all rows) against noise ``sigma`` per real
     residual (None: the data's own sigma, weights 1/sigma), its noise floor, the parameters
     at a bound (flagged, not a failure: a tortuosity of 1 is a physical value on its bound),
-    the structure test of the residual in units of the noise (:func:`smooth_fraction`:
-    ``structure``), and ``adequate``: chi^2 p-value >= ADEQUATE_P with sigma given, reduced
-    chi^2 <= :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise; and in both cases
-    the structure test's p-value >= :data:`STRUCTURE_P`."""
+    ``adequate`` (the misfit is of the noise's size): chi^2 p-value >= ADEQUATE_P with sigma
+    given, reduced chi^2 <= :data:`ADEQUATE_REDUCED_CHI2_ESTIMATED` with estimated noise; the
+    structure test of the residual in units of the noise (:func:`smooth_fraction`:
+    ``structure``) and ``white``: its p-value >= :data:`STRUCTURE_P`."""
     r = fit.residuals[0]
     rs = r if sigma is None else r / sigma
     chi2 = float(np.sum(rs ** 2))
@@ -106,11 +106,11 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     at = fit.at_bounds()
     n = problem.y.size
     structure = smooth_fraction(problem, np.stack([rs[:n], rs[n:]], -1))
-    fits = (p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED) \
-        and structure["p_value"] >= STRUCTURE_P
+    fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
     floor = problem.noise_floor() if sigma is None else noise_floor_of(problem, sigma)
     return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
-            "error": float(fit.rms_error[0]), "structure": structure, "adequate": bool(fits), "at_bounds": at}
+            "error": float(fit.rms_error[0]), "adequate": bool(fits), "structure": structure,
+            "white": structure["p_value"] >= STRUCTURE_P, "at_bounds": at}
 
 
 def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> dict:

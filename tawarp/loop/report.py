@@ -100,7 +100,10 @@ def report_markdown(report: dict) -> str:
 
     def gof(g):
         return (f"reduced chi^2 {g['reduced_chi2']:.3g} (p = {g['p_value']:.2g}), error {g['error']:.4g}, "
-                f"adequate: {g['adequate']}" + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
+                f"adequate: {g['adequate']}, residual white: {g['white']} (smooth share "
+                f"{g['structure']['fraction']:.3f}, white noise {g['structure']['if_white']:.3f}, "
+                f"p = {g['structure']['p_value']:.2g})"
+                + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
 
     lines = ["# tawarp loop report", "",
              f"- verdict: **{r['verdict']}**",
