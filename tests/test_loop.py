@@ -33,14 +33,14 @@ NOISE = 0.003
 _REF = {}
 
 
-def reference_data(truth: dict, seed: int, sigma: bool = True, core=MESH) -> TMatrixData:
-    """Reference T-matrices of ``core`` (default the mesh's) with ``truth`` plus complex noise
-    NOISE x rms|Y|."""
-    key = (core.source, tuple(sorted(truth.items())))
+def reference_data(truth: dict, seed: int, sigma: bool = True) -> TMatrixData:
+    """Reference T-matrices of the mesh core with ``truth`` plus complex noise NOISE x rms|Y|."""
+    key = tuple(sorted(truth.items()))
     if key not in _REF:
-        _REF[key] = np.stack([reference.dimensionless_transfer(core.replace(**truth), FREQS, Q) for Q in QS])
+        core = MESH.replace(**truth) if truth else MESH
+        _REF[key] = np.stack([reference.dimensionless_transfer(core, FREQS, Q) for Q in QS])
     Y = _REF[key]
-    Zc = duct_impedance(core)
+    Zc = duct_impedance(MESH)
     scale = np.array([[1.0, Zc], [1.0 / Zc, 1.0]])
     rng = np.random.default_rng(seed)
     s = NOISE * np.sqrt(np.mean(np.abs(Y) ** 2))
@@ -112,6 +112,7 @@ def test_clean_reference_data_adequate_no_claim(seed):
     assert rep["verdict"] == "adequate" and rep["accepted_effects"] == [] and rep["chosen_effect"] is None
     g = rep["goodness_of_fit_before"]
     assert g["noise_source"] == "sigma" and 0.75 < g["reduced_chi2"] < 1.3, g
+    assert g["white"], g["structure"]      # the base model leaves no smooth misfit along frequency
     assert rep["error_after"] <= 1.3 * rep["noise_floor"]
     assert rep["unexplained_residual"] is None
 
@@ -140,27 +141,6 @@ def test_plane_offset_in_reference_data_is_explained(seed):
     assert rep["error_after"] <= 1.3 * rep["noise_floor"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.033) < 4 * dl["std"]
-
-
-def test_indistinguishable_effects_are_one_step(tmp_path):
-    # NiCr foam data (reference) with a T-dependent solid conductivity, lam (T/T_cold)^1: on
-    # these data its change and a radiative conductivity's (T^3) correlate > 0.99 (validation
-    # seeds 5, 20, 90, 103), so the loop accepts the pair as one step, names both, claims
-    # neither, and the fit reaches the noise floor (1.3 x, the study's yardstick)
-    nicr = load_core("nicr_foam")
-    prob = TMatrixKind(reference_data({"stack.conductivity_exponent": 1.0}, SEED, core=nicr), nicr,
-                       ForwardSettings(device="cpu"))
-    rep = run_loop(prob, drift_h=False)
-    assert rep["accepted_groups"] == [["conductivity_T", "radiation"]], (rep["accepted_groups"], rep["verdict"])
-    assert rep["accepted_effects"] == [] and rep["chosen_effect"] is None
-    st = rep["steps"][0]
-    assert st["members"] == ["conductivity_T", "radiation"] and st["representative"] in st["members"]
-    assert st["effect"] == "one of {conductivity_T, radiation} (indistinguishable in these data)"
-    assert st["error_after"] < st["error_before"] and st["stability"] >= 0.7
-    assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * rep["noise_floor"]
-    js = write_report(prob, rep, tmp_path)
-    assert js["accepted_steps"] == [st["effect"]]
-    assert "one of {conductivity_T, radiation} (indistinguishable in these data)" in (tmp_path / "report.md").read_text()
 
 
 @pytest.mark.parametrize("seed", SEEDS[:1])
