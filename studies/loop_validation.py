@@ -545,13 +545,14 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
               "groups):", "", "| seed | category | material / core | noise | sigma | visibility | before/floor | "
               "after/floor | loop | right | s |", "| --- |" + " --- |" * 10]
     yes = lambda ok: "yes" if ok else "**no**"
+    right = lambda r: f"{yes(r['right'])} / {yes(r['right_group'])}" if r["expected"]["scored"] else "not scored"
     for r in records:
         vis = "-" if r["visibility"] is None else f"{r['visibility']:.1f}"
         if len(r["per_effect"]) > 1:
             vis += " (" + ", ".join(f"{v['visibility']:.1f}" for v in r["per_effect"].values()) + ")"
         lines.append(f"| {r['seed']} | {r['category']} | {r['material']} / {r['core']} | {100 * r['noise']:.2f} % | "
                      f"{'yes' if r['with_sigma'] else 'no'} | {vis} | {r['ratio_before']:.2f} | {r['ratio_after']:.2f} | "
-                     f"{outcome_label(r)} | {yes(r['right'])} / {yes(r['right_group'])} | {r['wall_s']:.0f} |")
+                     f"{outcome_label(r)} | {right(r)} | {r['wall_s']:.0f} |")
     return "\n".join(lines) + "\n"
 
 
@@ -581,12 +582,14 @@ def figures(summary: dict, records: list[dict], out: Path) -> None:
         x = i + np.linspace(-0.2, 0.2, len(sel)) if len(sel) > 1 else np.array([i])
         ax.scatter(x, [r["ratio_before"] for r in sel], marker="v", color="0.6", s=14)
         ax.scatter(x, [r["ratio_after"] for r in sel], s=16,
-                   c=["tab:green" if r["right"] else "tab:orange" if r["right_group"] else "tab:red" for r in sel])
+                   c=["0.6" if not r["expected"]["scored"] else "tab:green" if r["right"] else
+                      "tab:orange" if r["right_group"] else "tab:red" for r in sel])
     ax.axhline(TARGETS["residual_ratio"], color="k", lw=0.8, ls="--")
     ax.set_yscale("log")
     ax.set_xticks(range(len(cats)), cats, rotation=45, ha="right", fontsize=8)
     ax.set_ylabel("error / noise floor")
-    ax.set_title("grey: before; dot: after (green right, orange right as a group, red wrong); dashed: 1.3", fontsize=9)
+    ax.set_title("triangle: before; dot: after (green right, orange right as a group, red wrong, grey not scored); "
+                 "dashed: 1.3", fontsize=8)
     save(fig, out / "residual_ratio.png")
 
 
