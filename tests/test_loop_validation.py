@@ -10,6 +10,10 @@ size: 2.3-5.9 noise floors in these cases), fixed fit cells (8).
 Thresholds: the issue's targets scaled to the sample by the rule "allowed failures =
 floor((1 - target) n)": no claim on clean data in <= 5 % -> 0 of 3; the right effect with
 the error after <= 1.3 x the noise floor in >= 95 % -> 3 of 3.
+
+Also: the study's full cases of a T-dependent conductivity on the NiCr foam (seeds 5, 103),
+where the loop must accept "one of {conductivity_T, radiation}" as one step; the per-effect
+scoring of pair cases; the cache of each effect's data alone.
 """
 
 from __future__ import annotations
