@@ -14,6 +14,7 @@ import pytest
 
 from tawarp import reference
 from tawarp.loop import base_names, default_base_params, holm, impedance_loop, noise_sigma, run_loop, write_report
+from tawarp.loop.goodness import STRUCTURE_P, smooth_fraction
 from tawarp.loop.screen import _linearized
 from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
 from tawarp.measure.files import TMatrixData
@@ -111,6 +112,7 @@ def test_clean_reference_data_adequate_no_claim(seed):
     assert rep["verdict"] == "adequate" and rep["accepted_effects"] == [] and rep["chosen_effect"] is None
     g = rep["goodness_of_fit_before"]
     assert g["noise_source"] == "sigma" and 0.75 < g["reduced_chi2"] < 1.3, g
+    assert g["white"], g["structure"]      # the base model leaves no smooth misfit along frequency
     assert rep["error_after"] <= 1.3 * rep["noise_floor"]
     assert rep["unexplained_residual"] is None
 
@@ -163,6 +165,24 @@ def test_noise_estimate_from_second_differences():
     r = np.concatenate([smooth + sig * rng.standard_normal(n), -smooth + sig * rng.standard_normal(n)])
     est = noise_sigma(prob, r)
     assert np.allclose(est[:n] / sig, 1.0, atol=0.2)
+
+
+def test_residual_structure_test():
+    # white noise in units of its sigma: the share that cubics in frequency explain is k/N on
+    # average (k = 4 per series of 13 frequencies) and the F-test passes at 0.001 (5 seeds: a
+    # false alarm has probability 0.5 %); a smooth misfit of the noise's size is found (p < 1e-6)
+    prob = TMatrixKind(reference_data({}, SEED), MESH)
+    n = prob.y.size
+    fractions = []
+    for seed in range(5):
+        w = np.random.default_rng(seed).standard_normal((n, 2))
+        st = smooth_fraction(prob, w)
+        fractions.append(st["fraction"])
+        assert st["p_value"] >= STRUCTURE_P and np.isclose(st["if_white"], 4 / 13)
+    assert abs(np.mean(fractions) / (4 / 13) - 1) < 0.1     # std of one fraction ~ 0.026 / 0.31
+    smooth = np.cos(2 * np.pi * prob.freq / 400.0)[:, None] * np.ones(2)
+    w = np.random.default_rng(9).standard_normal((n, 2)) + smooth
+    assert smooth_fraction(prob, w)["p_value"] < 1e-6
 
 
 def test_holm_bonferroni():

@@ -55,6 +55,6 @@ def cmd_loop(args) -> int:
     js = write_report(prob, rep, args.output)
     if not args.quiet:
         print(f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
-              f"(noise floor {js['noise_floor']:.4g}); accepted effects: {', '.join(js['accepted_effects']) or 'none'}; "
+              f"(noise floor {js['noise_floor']:.4g}); accepted: {'; '.join(js['accepted_steps']) or 'none'}; "
               f"wrote {Path(args.output) / 'report.json'}")
     return 0

@@ -9,16 +9,18 @@ Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
    (:func:`fit_base`), on the package's one LM (:func:`tawarp.fit.problems.fit_batch`).
 2. **Goodness of fit** (:mod:`.goodness`): reduced chi^2 and p-value against the data's
    sigma, or against noise estimated from the second differences along frequency of the
-   residual; parameters at bounds flagged.
+   residual; parameters at bounds flagged; an F-test of the residual's smooth structure
+   along frequency (a fit explains the data only when its residual is also white).
 3. **One effect at a time** while the fit is not adequate (:func:`run_loop`, ``_step``):
    screening of every candidate at the current solution in one batched launch
    (:mod:`.screen`: sign-constrained for one-sided effects, candidates degenerate with a
    current parameter named), augmented fits of the promising ones in one lockstep batch,
    acceptance by Delta BIC, Holm-Bonferroni F-tests at a level halving with each step,
-   held-out blocks (frequency bands, groups), no parameter at a bound, no rival within the
-   BIC margin, and stability over resamplings (decimations, block bootstraps); held-out and
+   held-out blocks (frequency bands, groups), no parameter at a bound, and stability over
+   resamplings (decimations, block bootstraps); candidates within the BIC margin or with
+   correlated changes are a group, accepted as one step and never claimed alone; held-out and
    resampled refits are linearized (:func:`linear_refit`).
-4. **Verdict** (adequate, explained, partly_explained, indistinguishable,
+4. **Verdict** (adequate, explained, indistinguishable,
    unexplained_residual with where it lives, wrong_model) and, with several heat inputs,
    the drift of the h's refitted per heat input before and after.
 

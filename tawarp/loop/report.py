@@ -16,6 +16,11 @@ def _jsonable(report: dict) -> dict:
                                  (o.item() if isinstance(o, np.generic) else str(o))))
 
 
+def _steps(report: dict) -> list[str]:
+    """The accepted steps' names (an effect, or "one of {A, B} (indistinguishable in these data)")."""
+    return report["accepted_steps"]
+
+
 def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     """The residual per coefficient against frequency, one line per group (real part solid,
     imaginary part dashed), before (top row) and after (bottom row), in units of rms|y|
@@ -55,7 +60,7 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     if len(groups) > 1:
         axes[0, -1].legend(fontsize=7)
     fig.suptitle(f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; verdict {report['verdict']}; "
-                 f"accepted: {', '.join(report['accepted_effects']) or 'none'} (re solid, im dashed; grey: noise)",
+                 f"accepted: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
                  fontsize=9)
     path = Path(path)
     fig.savefig(path, dpi=110)
@@ -78,7 +83,7 @@ def drift_figure(report: dict, path: Path) -> Path | None:
     for ax, k in zip(axes[0], names):
         ax.plot(db["Q_W"], db["values"][k], "o-", label="before")
         if da:
-            ax.plot(da["Q_W"], da["values"][k], "s--", label=f"after ({', '.join(report['accepted_effects'])})")
+            ax.plot(da["Q_W"], da["values"][k], "s--", label=f"after ({'; '.join(_steps(report))})")
         ax.set_xlabel("Q [W]")
         ax.set_ylabel(f"{k} [W/(m^2 K)]")
         ax.legend(fontsize=8)
@@ -95,7 +100,10 @@ def report_markdown(report: dict) -> str:
 
     def gof(g):
         return (f"reduced chi^2 {g['reduced_chi2']:.3g} (p = {g['p_value']:.2g}), error {g['error']:.4g}, "
-                f"adequate: {g['adequate']}" + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
+                f"adequate: {g['adequate']}, residual white: {g['white']} (smooth share "
+                f"{g['structure']['fraction']:.3f}, white noise {g['structure']['if_white']:.3f}, "
+                f"p = {g['structure']['p_value']:.2g})"
+                + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
 
     lines = ["# tawarp loop report", "",
              f"- verdict: **{r['verdict']}**",
@@ -105,7 +113,7 @@ def report_markdown(report: dict) -> str:
              f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
              f"- base fit: {gof(g0)}",
              f"- final fit: {gof(g1)}",
-             f"- accepted effects: **{', '.join(r['accepted_effects']) or 'none'}**",
+             f"- accepted effects: **{'; '.join(_steps(r)) or 'none'}**",
              *(["- indistinguishable on these data: " + "; ".join(", ".join(g) for g in r["indistinguishable"])]
                if r.get("indistinguishable") else []),
              *([f"- unexplained residual: {u['coefficient']}" + (f" at {u['group']:g}" if u["group"] is not None else "")

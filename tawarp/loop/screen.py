@@ -11,38 +11,23 @@ from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect
+from .goodness import smooth_fraction
 
 
 def residual_structure(problem: MeasurementKind, Y: np.ndarray) -> dict:
     """Per coefficient: rms weighted residual against frequency and group; the fraction
-    explained by a cubic in frequency per (coefficient, group, re/im)."""
+    explained by a cubic in frequency per (coefficient, group, re/im)
+    (:func:`tawarp.loop.goodness.smooth_fraction`)."""
     d = Y - problem.y
     wr = np.stack([d.real * problem.w[:, 0], d.imag * problem.w[:, 1]], -1)
-    total = float((wr ** 2).sum())
-    smooth = 0.0
-    n_poly = 0
+    smooth = smooth_fraction(problem, wr)
     per_coef = {}
     groups = np.unique(problem.group)
     for c, cname in enumerate(problem.coef_names):
-        per_group = {}
-        for g in groups:
-            m = (problem.coef == c) & (problem.group == g)
-            if not m.any():
-                continue
-            f = problem.freq[m]
-            t = (f - f.min()) / max(np.ptp(f), 1e-30) * 2 - 1
-            deg = min(3, m.sum() - 1)
-            V = np.polynomial.legendre.legvander(t, deg)
-            for k in range(2):
-                coef, *_ = np.linalg.lstsq(V, wr[m, k], rcond=None)
-                smooth += float(((V @ coef) ** 2).sum())
-                n_poly += deg + 1
-            per_group[f"{g:g}"] = float(np.sqrt(np.mean((wr[m] ** 2).sum(-1))))
-        per_coef[cname] = per_group
-    N = wr.size
+        per_coef[cname] = {f"{g:g}": float(np.sqrt(np.mean((wr[m] ** 2).sum(-1))))
+                           for g in groups if (m := (problem.coef == c) & (problem.group == g)).any()}
     return {"rms_weighted_residual": {"per_coefficient_and_group": per_coef},
-            "structured_fraction": smooth / total if total > 0 else 0.0,
-            "structured_fraction_if_white": n_poly / N,
+            "structured_fraction": smooth["fraction"], "structured_fraction_if_white": smooth["if_white"],
             "groups": [float(g) for g in groups], "group_name": problem.group_name}
 
 
