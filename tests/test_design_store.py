@@ -212,3 +212,29 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     run(n1, delay / 2)
     n2 = check()
     assert n2 > n1 >= 1
+
+
+def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
+    """A SIGINT that arrives while a journal batch holds the lock is held back until the
+    batch has written, synced and released the lock: the journal stays whole and unlocked,
+    and the KeyboardInterrupt comes right after the block."""
+    import os
+    import signal
+
+    import pytest
+
+    from tawarp.design.storage import JournalFile
+
+    path = str(tmp_path / "j.journal")
+    journal = JournalFile(path)
+    with pytest.raises(KeyboardInterrupt):
+        with journal.batch():
+            journal.append_logs([{"op_code": 0, "a": 1}])
+            os.kill(os.getpid(), signal.SIGINT)      # Ctrl-C in the middle of the batch
+            journal.append_logs([{"op_code": 0, "a": 2}])
+        raise AssertionError("the interrupt must arrive as soon as the batch ends")
+    assert [log["a"] for log in journal.read_logs(0)] == [1, 2]
+    assert not os.path.lexists(path + ".lock")        # lock released
+    with journal.batch():                              # and can be taken again at once
+        journal.append_logs([{"op_code": 0, "a": 3}])
+    assert [log["a"] for log in journal.read_logs(0)] == [1, 2, 3]

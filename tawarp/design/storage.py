@@ -34,6 +34,8 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
+import threading
 import time
 import weakref
 from pathlib import Path
@@ -86,18 +88,35 @@ class JournalFile(BaseJournalBackend):
         if self._file is not None:  # already in one
             yield
             return
-        self.lock.acquire()
-        try:
-            with open(self.path, "ab") as f:
-                self._file = f
-                try:
-                    yield
-                finally:
-                    self._file = None
-                    f.flush()
-                    os.fsync(f.fileno())
-        finally:
-            self.lock.release()
+        with _interrupts_deferred():
+            self.lock.acquire()
+            try:
+                with open(self.path, "ab") as f:
+                    self._file = f
+                    try:
+                        yield
+                    finally:
+                        self._file = None
+                        f.flush()
+                        os.fsync(f.fileno())
+            finally:
+                self.lock.release()
+
+
+@contextlib.contextmanager
+def _interrupts_deferred():
+    """Hold SIGINT and SIGTERM back until the block ends (they are delivered then): a
+    Ctrl-C inside a journal append could leave the lock taken or a half-written line,
+    which every later reader of the study would trip over. Only the main thread receives
+    signals; elsewhere this does nothing."""
+    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+        yield
+        return
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
 
 
 #: storage -> its JournalFile (storages made by make_storage from a path)
