@@ -18,7 +18,7 @@ maximum temperature and the probability that it exceeds ``T_limit``.
 :func:`rank_by_onset` puts each material in the stack of a reference engine (default the
 bundled ``standing_wave``: the ceramic core in a closed-closed resonator) and draws its
 parameters the same way; the onset of every (material, draw) is found in one batched
-:func:`tawarp.model.onset.onset` call (each bracketing and secant step is one launch for
+:func:`tawarp.model.onset.onset` call (each grid point and Newton step is one launch for
 all draws). Reported per material: the nominal onset heat input Q_onset [W], its median,
 5, 90 (the robust value) and 95 % points over the draws, the onset frequency and the
 onset temperature ratio T_hot / T_cold (medians), the fraction of draws that do not start
