@@ -105,18 +105,27 @@ class JournalFile(BaseJournalBackend):
 
 @contextlib.contextmanager
 def _interrupts_deferred():
-    """Hold SIGINT and SIGTERM back until the block ends (they are delivered then): a
-    Ctrl-C inside a journal append could leave the lock taken or a half-written line,
-    which every later reader of the study would trip over. Only the main thread receives
-    signals; elsewhere this does nothing."""
-    if threading.current_thread() is not threading.main_thread() or not hasattr(signal, "pthread_sigmask"):
+    """Hold SIGINT and SIGTERM back until the block ends, then deliver them to the handlers
+    in place before: a Ctrl-C inside a journal append could leave the lock taken or a
+    half-written line, which every later reader of the study would trip over. The handlers
+    are swapped rather than the signals masked: a process-directed signal that one thread
+    masks goes to another thread (Warp's CPU threads, tqdm's monitor), and Python would still
+    raise it in the main thread at once. Only the main thread may set handlers; elsewhere
+    this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT, signal.SIGTERM})
+    held = []
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        if held:
+            signal.raise_signal(held[0])
 
 
 #: storage -> its JournalFile (storages made by make_storage from a path)
