@@ -1,5 +1,7 @@
-"""Output files written atomically: a temporary file in the target folder, then renamed,
-so a reader never sees a half-written file and an interrupted run leaves no debris.
+"""Output files written atomically (a temporary file in the target folder, then renamed,
+so a reader never sees a half-written file and an interrupted run leaves no debris), and
+Ctrl-C handled so that long runs stop cleanly (:func:`interrupts_deferred`,
+:func:`interrupt_guard`).
 
 The temporary file is named after its target (``.NAME.XXXXXXXX.tmp`` beside ``NAME``),
 gets the permissions a plain ``open()`` would give (``0666`` less the umask, not
@@ -11,10 +13,70 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import signal
 import tempfile
+import threading
 from pathlib import Path
 
 import numpy as np
+
+
+@contextlib.contextmanager
+def interrupts_deferred():
+    """Hold SIGINT and SIGTERM back until the block ends, then deliver them to the handlers
+    in place before: a Ctrl-C inside a journal append could leave the lock taken or a
+    half-written line, which every later reader of the study would trip over. The handlers
+    are swapped rather than the signals masked: a process-directed signal that one thread
+    masks goes to another thread (Warp's CPU threads, tqdm's monitor), and Python would still
+    raise it in the main thread at once. Only the main thread may set handlers; elsewhere
+    this does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = []
+    previous = {}
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        if held:
+            signal.raise_signal(held[0])
+
+
+@contextlib.contextmanager
+def interrupt_guard():
+    """``with interrupt_guard() as interrupted:`` in a long loop, call ``interrupted()`` at
+    safe points (between generations): it raises KeyboardInterrupt once Ctrl-C was pressed.
+    Ctrl-C still raises at once as usual; the guard remembers it because Python swallows an
+    exception raised inside a weakref callback or ``__del__`` ("Exception ignored in ..."),
+    and a Ctrl-C that lands there (Warp frees arrays through such callbacks) was lost: a
+    design search went on running (seen under load in tests/test_design.py). Main thread
+    only, and not when SIGINT is ignored (a background job); elsewhere a no-op."""
+    hit = []
+
+    def interrupted() -> None:
+        if hit:
+            raise KeyboardInterrupt
+
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous in (signal.SIG_IGN, None):
+        yield interrupted
+        return
+
+    def handler(signum, frame):
+        hit.append(signum)
+        if callable(previous):
+            previous(signum, frame)
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGINT, handler)
+    try:
+        yield interrupted
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 def _umask() -> int:

@@ -46,3 +46,33 @@ def test_figures_are_written_atomically(tmp_path):
     p = plot_temperature(x, {"a": 300 + x}, tmp_path / "t.png")
     assert p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert sorted(x.name for x in tmp_path.iterdir()) == ["t.png"]
+
+
+def test_interrupt_guard_remembers_a_ctrl_c_that_a_callback_swallowed():
+    """Python drops an exception raised inside a weakref callback ("Exception ignored in"):
+    a Ctrl-C landing there was lost and a design search went on. The guard remembers it and
+    raises it at the next safe point; Ctrl-C elsewhere still raises at once."""
+    import gc
+    import os
+    import signal
+    import weakref
+
+    from tawarp.io import interrupt_guard
+
+    class Thing:
+        pass
+
+    before = signal.getsignal(signal.SIGINT)
+    with interrupt_guard() as interrupted:
+        interrupted()                                   # nothing pressed: no-op
+        t = Thing()
+        weakref.finalize(t, lambda: os.kill(os.getpid(), signal.SIGINT))   # Ctrl-C inside a callback
+        del t
+        gc.collect()
+        with pytest.raises(KeyboardInterrupt):
+            interrupted()                               # remembered
+        with pytest.raises(KeyboardInterrupt):
+            os.kill(os.getpid(), signal.SIGINT)         # and raised at once as usual
+            for _ in range(1000):
+                pass
+    assert signal.getsignal(signal.SIGINT) is before    # handler restored

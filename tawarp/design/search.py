@@ -45,6 +45,7 @@ from .samplers import make_sampler, pareto_mask
 from .space import DesignSpace
 from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, copies_in_study,
                       journal_batch, lineage, make_storage, open_study)
+from ..io import interrupt_guard
 from ..model.forward import ForwardSettings
 
 @dataclass
@@ -119,10 +120,13 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
         n_target = -(-n_trials // batch) * batch
         bar = progress_bar(n_target, f"design ({worker})", progress, unit="trial")
         try:
-            if engine == "optuna":
-                _search_optuna(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after, _crash_after)
-            else:
-                _search_batched(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after, _crash_after)
+            with interrupt_guard() as run.interrupted:
+                if engine == "optuna":
+                    _search_optuna(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after,
+                                   _crash_after)
+                else:
+                    _search_batched(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after,
+                                    _crash_after)
         finally:
             bar.close()
     finally:
@@ -152,6 +156,8 @@ class _Run:
                  store=None):
         self.space, self.objectives, self.study, self.storage = space, objectives, study, storage
         self.worker, self.T_limit, self.store = worker, T_limit, store
+        #: raises KeyboardInterrupt once Ctrl-C was pressed (:func:`tawarp.io.interrupt_guard`)
+        self.interrupted = lambda: None
         if client is None:
             self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
         else:
@@ -247,6 +253,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
     names = [v.name for v in space.variables]
     done, asked = 0, 0
     while done < n_target:
+        run.interrupted()
         t = time.perf_counter()
         g = sampler.generation
         values = space.values_from_unit(sampler.ask(batch))
@@ -371,6 +378,7 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
     bar.update(min(done, n_target))
     asked = 0
     while done < n_target:
+        run.interrupted()
         t = time.perf_counter()
         trials = []
         for _ in range(batch):

@@ -34,8 +34,6 @@ from __future__ import annotations
 import contextlib
 import json
 import os
-import signal
-import threading
 import time
 import weakref
 from pathlib import Path
@@ -44,6 +42,7 @@ from urllib.parse import quote
 import numpy as np
 from optuna.storages.journal import BaseJournalBackend
 
+from ..io import interrupts_deferred
 from .objectives import directions
 
 ATTR = "tawarp:"
@@ -88,7 +87,7 @@ class JournalFile(BaseJournalBackend):
         if self._file is not None:  # already in one
             yield
             return
-        with _interrupts_deferred():
+        with interrupts_deferred():
             self.lock.acquire()
             try:
                 with open(self.path, "ab") as f:
@@ -101,31 +100,6 @@ class JournalFile(BaseJournalBackend):
                         os.fsync(f.fileno())
             finally:
                 self.lock.release()
-
-
-@contextlib.contextmanager
-def _interrupts_deferred():
-    """Hold SIGINT and SIGTERM back until the block ends, then deliver them to the handlers
-    in place before: a Ctrl-C inside a journal append could leave the lock taken or a
-    half-written line, which every later reader of the study would trip over. The handlers
-    are swapped rather than the signals masked: a process-directed signal that one thread
-    masks goes to another thread (Warp's CPU threads, tqdm's monitor), and Python would still
-    raise it in the main thread at once. Only the main thread may set handlers; elsewhere
-    this does nothing."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    held = []
-    previous = {}
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        previous[sig] = signal.signal(sig, lambda signum, frame: held.append(signum))
-    try:
-        yield
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
-        if held:
-            signal.raise_signal(held[0])
 
 
 #: storage -> its JournalFile (storages made by make_storage from a path)
