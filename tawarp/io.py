@@ -68,9 +68,9 @@ def interrupt_guard():
 
     def handler(signum, frame):
         hit.append(signum)
-        if callable(previous):
-            previous(signum, frame)
-        raise KeyboardInterrupt
+        if callable(previous):      # Python's default raises KeyboardInterrupt; a custom one runs first
+            return previous(signum, frame)
+        raise KeyboardInterrupt     # SIG_DFL would end the process: the nearest Python equivalent
 
     signal.signal(signal.SIGINT, handler)
     try:

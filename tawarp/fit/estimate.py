@@ -316,7 +316,8 @@ class Problems:
 
 # ----------------------------------------------------------------------------------------
 def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
-    """(cov_v, std, corr, cond, s2) at the solution, natural units (delta method)."""
+    """(cov_v, std, corr, cond, s2, V) at the solution, natural units (delta method); V
+    (n, p, p) the eigenvectors of J^T J in scaled variables, weakest first."""
     n, p = z.shape
     dof = max(8 * prob.freqs.size - p, 1)
     s2 = np.ones(n) if absolute_sigma else cost / dof
@@ -340,7 +341,7 @@ def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
     with np.errstate(divide="ignore", invalid="ignore"):
         corr = unit / (su[:, :, None] * su[:, None, :])   # independent of s^2 (defined for exact data)
     corr[:, np.arange(p), np.arange(p)] = 1.0
-    return cov, std, corr, cond, s2, V, w
+    return cov, std, corr, cond, s2, V
 
 
 def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_limit) -> list[list[tuple]]:
@@ -516,7 +517,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         q = i * restarts + j[i]
         z[i], cost[i], raw[i], H[i] = rs.z[q], rs.cost[q], rs.raw[q], rs.H[q]
         its[i], reason[i], conv[i] = rs.iterations[q], rs.reason[q], True
-    cov, std, corr, cond, s2, V, _ = covariance(prob, data, z, H, cost, absolute_sigma)
+    cov, std, corr, cond, s2, V = covariance(prob, data, z, H, cost, absolute_sigma)
     values = prob.to_v(z, data)
     distinct = local = None
     per = _problem_warnings(names, corr, cond, V, conv, reason, corr_limit, cond_limit)
