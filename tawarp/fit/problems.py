@@ -152,10 +152,10 @@ class KindProblems:
         for i, c in enumerate(pid):
             p = self.p[c]
             rows = self.rows[c]
-            R = residual(self.kind, got[i], rows)
-            r = R[0]
-            J = ((R[1:] - r) / step[i, :p, None]).T
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
+                R = residual(self.kind, got[i], rows)
+                r = R[0]
+                J = ((R[1:] - r) / step[i, :p, None]).T
                 cost[i] = r @ r
                 raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
                 g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
