@@ -141,7 +141,9 @@ class ForwardSettings:
     ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
     the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
     middle and highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine.cell_densities`); ``tolerance = None`` keeps d = ``cell_density`` (the
+    (:meth:`Engine._adaptive_cascade`: the 2d cascades run in the main launch, whose d
+    values at the sampled frequencies they are compared with on the device, and only the
+    sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
     core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
@@ -347,7 +349,8 @@ class Engine:
         cascade at the sampled frequencies alone (for callers that need the density, not
         the T-matrices); ``cell_density`` for every set where the estimate is off."""
         out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
-        return self._adaptive_cascade(params, theta, self.sample_columns, out)
+        return wp.array(self._adaptive_cascade(params, theta, self.sample_columns, out), dtype=wp.float64,
+                        device=self.device)
 
     def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
         """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
@@ -381,9 +384,9 @@ class Engine:
                   device=self.device)
         return err.numpy()
 
-    def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> wp.array:
+    def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
-        returned (n,) (:class:`ForwardSettings`): ``cell_density``, raised where the
+        returned (n,) on the host (:class:`ForwardSettings`): ``cell_density``, raised where the
         step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
         between the three sampled). The first launch runs every set at d on all m columns and
         at 2d on the sampled ones (whose d values are the main cascade's own); each later
@@ -394,10 +397,11 @@ class Engine:
         :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
         n = params.shape[1]
         d = np.full(n, float(self.settings.cell_density))
-        density = wp.array(d, dtype=wp.float64, device=self.device)
+        # filled on the device: no host copy before the main launch
+        density = wp.full(n, d[0] if n else 0.0, dtype=wp.float64, device=self.device)
         err = self._estimated_cascade(params, theta, columns, density, out)
         if err is None:
-            return density
+            return d
         active = np.arange(n)
         target = 0.5 * self.settings.tolerance
         for rounds in range(MAX_ESTIMATE_ROUNDS):
@@ -424,8 +428,7 @@ class Engine:
                                           part)
             wp.launch(kbatch.scatter_sets, dim=(active.size, out.shape[1]), inputs=[part, index, out],
                       device=self.device)
-        # d changes only in a round that does not end the loop
-        return density if rounds == 0 else wp.array(d, dtype=wp.float64, device=self.device)
+        return d
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
