@@ -97,6 +97,11 @@ def test_estimate_that_cannot_be_met_warns(monkeypatch):
 
 
 # -- the estimate fused into the main cascade against the two-phase procedure --------------
+wp.init()
+#: the fused path's device comparison runs on both; the GPU's skipped without one
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device"))]
+
+
 def cascade(engine, params, theta, freqs, d):
     """T-matrices (n, len(freqs), 2, 2) of a plain cascade launch at densities d (n,)."""
     dev = engine.device
@@ -144,8 +149,9 @@ def fused(engine, table):
     return params, theta, d, T, engine.cell_densities(params, theta).numpy()
 
 
+@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("name, seed", [("ceramic", 4), ("mesh", 5), ("ceramic", 6), ("mesh", 7)])
-def test_fused_estimate_equals_two_phase(name, seed):
+def test_fused_estimate_equals_two_phase(name, seed, device):
     # The estimate fused into the main launch (2d threads beside the d ones, compared on the
     # device, only the sets above target rerun) picks the densities of the two-phase
     # procedure (to rounding of the compared estimate: 1e-12) and so the same T-matrices
@@ -155,7 +161,7 @@ def test_fused_estimate_equals_two_phase(name, seed):
     sets = random_sets(core, 6, seed)
     names = list(sets[0][1])
     table = np.array([[q] + [v[k] for k in names] for q, v in sets]).T
-    engine = Engine(core, np.linspace(30.0, 500.0, 12), names, ForwardSettings(device="cpu", cpu_threads=1))
+    engine = Engine(core, np.linspace(30.0, 500.0, 12), names, ForwardSettings(device=device, cpu_threads=1))
     params, theta, d, T, d_alone = fused(engine, table)
     d_ref, T_ref = two_phase(engine, params, theta)
     raised = d_ref > engine.settings.cell_density
@@ -166,7 +172,8 @@ def test_fused_estimate_equals_two_phase(name, seed):
     assert relative_error(normalize(T, Zc), normalize(T_ref, Zc)) <= 1e-12
 
 
-def test_set_above_target_is_raised_and_scattered_back():
+@pytest.mark.parametrize("device", DEVICES)
+def test_set_above_target_is_raised_and_scattered_back(device):
     # Heated sets interleaved with unheated ones at a tight tolerance: at uniform temperature
     # the Magnus cells are exact (estimate ~ rounding), so Q = 0 keeps cell_density, while
     # every heated set is measured above target at the rule's density, raised until its
@@ -174,7 +181,7 @@ def test_set_above_target_is_raised_and_scattered_back():
     # raised density (the gathered rerun lands in its own row).
     core = load_core("ceramic")
     Q = np.array([0.0, 80.0, 0.0, 40.0, 0.0, 20.0])
-    engine = Engine(core, FREQS, [], ForwardSettings(device="cpu", cpu_threads=1, tolerance=1e-9))
+    engine = Engine(core, FREQS, [], ForwardSettings(device=device, cpu_threads=1, tolerance=1e-9))
     params, theta, d, T, _ = fused(engine, Q[None])
     cd = engine.settings.cell_density
     heated = Q > 0
