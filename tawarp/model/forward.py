@@ -362,7 +362,11 @@ class Engine:
                  doubled: wp.array):
         """One launch of the cascade kernel: ``out`` (n, m, 8) at ``freqs[:m]`` and density
         ``density`` (n,), ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density."""
-        wp.launch(self.transfer_kernel, dim=params.shape[1] * (out.shape[1] + doubled.shape[1]),
+        threads = params.shape[1] * (out.shape[1] + doubled.shape[1])
+        if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
+            raise ValueError(f"{params.shape[1]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
+                             f"threads in one launch: split the batch (ForwardSettings.chunk)")
+        wp.launch(self.transfer_kernel, dim=threads,
                   inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
                           self.heat_cells, self.pore_table, out, doubled],
                   device=self.device, block_dim=self.settings.block_dim)
