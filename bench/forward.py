@@ -10,9 +10,9 @@ Accuracy: the max relative error (row-wise, on the four dimensionless coefficien
 of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default settings
 (cells from the step-doubling error estimate) against the adaptive NumPy reference at
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
-same batch, its cost fraction, and the mean cell density it chose. ``threads``: CPU forward models/s
-against ``ForwardSettings.cpu_threads``, with the machine's load average (a shared
-machine's numbers are only as good as its idle cores).
+same batch, its cost fraction, and the mean cell density it chose. ``threads``: CPU
+forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
+(a shared machine's numbers are only as good as its idle cores).
 
 A *forward model* is one (parameter set, frequency) pair: the heat solve of the set
 (shared by its frequencies) and the T-matrix cascade at that frequency. Batches are m =

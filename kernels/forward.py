@@ -178,11 +178,11 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
         freqs[m + k] and twice the cell density (the step-doubling error estimate,
         k < doubled.shape[1]). Launched on n (m + doubled.shape[1]) threads, the doubled ones
         first: they run longest, and in warps of their own they hold up no short thread.
-        A thermal segment gets seg_cells[s] Magnus cells, or, where
-        that is 0, ceil(cell_density[i] (1 + k L + w L / c_cold)) cells (twice the density
-        for ``doubled``): the profile varies
-        on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
-        cell scales with the sixth power of its length over those scales. ``pore_table``:
+        A thermal segment gets seg_cells[s] Magnus cells, or, where that is 0,
+        ceil(cell_density[i] (1 + k L + w L / c_cold)) cells (twice that density for
+        ``doubled``): the profile varies on the scale 1/k of the heat model and the wave on
+        c/w, and the sixth-order error of a cell scales with the sixth power of its length
+        over those scales. ``pore_table``:
         :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
         t = wp.tid()
         n_freqs = out.shape[1]
