@@ -1,5 +1,6 @@
-"""Batch utilities on the device: a subset of parameter sets gathered without a host round
-trip (the cell-count estimate refines only the sets still above its target)."""
+"""Batch utilities on the device: a subset of parameter sets gathered, and its results
+scattered back, without a host round trip (the cell-count estimate refines only the sets
+still above its target)."""
 
 import warp as wp
 
@@ -18,3 +19,12 @@ def gather_sets(params: wp.array2d(dtype=wp.float64), theta: wp.array2d(dtype=wp
         params_out[r, k] = params[r, i]
     for c in range(theta.shape[1]):
         theta_out[k, c] = theta[i, c]
+
+
+@wp.kernel
+def scatter_sets(part: wp.array3d(dtype=wp.float64), index: wp.array(dtype=wp.int32),
+                 out: wp.array3d(dtype=wp.float64)):
+    """Row k of ``part`` (k, m, c) as row ``index[k]`` of ``out`` (n, m, c); launched on (k, m)."""
+    k, j = wp.tid()
+    for c in range(part.shape[2]):
+        out[index[k], j, c] = part[k, j, c]

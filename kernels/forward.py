@@ -7,14 +7,18 @@ Launch order for a batch of n parameter sets and m frequencies:
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
-3. :func:`make_transfer_kernel` ((n, m) threads): one thread per (set, frequency) cascades
-   the segment matrices from x1 to x6.
+3. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
+   thread per (set, frequency) cascades the segment matrices from x1 to x6.
+4. :func:`step_doubling_error` (n threads) compares the s sampled frequencies at the
+   chosen and at twice the cell density; only the sets above the target are gathered
+   (``kernels/batch.py``) and run again, at a raised density.
 """
 
 import warp as wp
 
-from .acoustics import expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
-from .gas import sound_speed_squared
+from .acoustics import CMat2, expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
+from .cmath import cabs
+from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
                      FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
@@ -101,6 +105,62 @@ def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
     return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf, pore_table)
 
 
+@wp.func
+def store_matrix(out: wp.array3d(dtype=wp.float64), i: int, j: int, m: CMat2):
+    """out[i, j] = (Tpp, Tpu, Tup, Tuu) of m as (re, im) pairs."""
+    out[i, j, 0] = m.a[0]
+    out[i, j, 1] = m.a[1]
+    out[i, j, 2] = m.b[0]
+    out[i, j, 3] = m.b[1]
+    out[i, j, 4] = m.c[0]
+    out[i, j, 5] = m.c[1]
+    out[i, j, 6] = m.d[0]
+    out[i, j, 7] = m.d[1]
+
+
+@wp.func
+def dimensionless(out: wp.array3d(dtype=wp.float64), i: int, j: int, c: int, zc: wp.float64):
+    """Coefficient c of (Tpp, Tpu / Zc, Tup Zc, Tuu) of out[i, j], as
+    :func:`tawarp.model.coefficients.normalize` rounds it (a division for Tpu)."""
+    y = wp.vec2d(out[i, j, 2 * c], out[i, j, 2 * c + 1])
+    if c == 1:
+        y = wp.vec2d(y[0] / zc, y[1] / zc)
+    elif c == 2:
+        y = wp.vec2d(y[0] * zc, y[1] * zc)
+    return y
+
+
+@wp.kernel
+def step_doubling_error(params: wp.array2d(dtype=wp.float64), gas: wp.array(dtype=wp.float64),
+                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64),
+                        sample: wp.array(dtype=wp.int32), err: wp.array(dtype=wp.float64)):
+    """err[i] = max over k of max_c |Y_c - Y2_c| / max_c |Y2_c| (dimensionless), Y the
+    coefficients (Tpp, Tpu/Zc, Tup Zc, Tuu) of out[i, sample[k]] (cell density d) and Y2
+    those of doubled[i, k] (2d), Zc = p_mean / (c_cold S) [Pa s/m^3] the cold duct's
+    impedance of set i. NaN where a coefficient is not finite (as NumPy's max): such a set
+    is not refined, the validity checks name it."""
+    i = wp.tid()
+    radius = params[RADIUS, i]
+    zc = params[P_MEAN, i] / wp.sqrt(gas[G_R] * params[T_COLD, i] / gas[G_GAMMA]) / (PI * radius * radius)
+    worst = wp.float64(0.0)
+    finite = int(1)
+    for k in range(sample.shape[0]):
+        gap = wp.float64(0.0)
+        size = wp.float64(0.0)
+        for c in range(4):
+            y2 = dimensionless(doubled, i, k, c, zc)
+            dy = cabs(dimensionless(out, i, sample[k], c, zc) - y2)
+            a2 = cabs(y2)
+            if wp.isnan(dy) or wp.isnan(a2):
+                finite = 0
+            gap = wp.max(gap, dy)
+            size = wp.max(size, a2)
+        worst = wp.max(worst, gap / size)
+    if finite == 0:
+        worst = wp.float64(wp.nan)
+    err[i] = worst
+
+
 def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
     """The cascade kernel (below), compiled for a linear heat model only (``nonlinear``
     False: the Kirchhoff profile of the temperature-dependent effects is left out, which
@@ -112,14 +172,28 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                         freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
                         cell_density: wp.array(dtype=wp.float64), first: int, heat_cells: int,
                         pore_table: wp.array(dtype=wp.float64),
-                        out: wp.array3d(dtype=wp.float64)):
+                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64)):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
-        frequency freqs[j] [Hz]. A thermal segment gets seg_cells[s] Magnus cells, or, where
-        that is 0, ceil(cell_density[i] (1 + k L + w L / c_cold)) cells: the profile varies
-        on the scale 1/k of the heat model and the wave on c/w, and the sixth-order error of a
-        cell scales with the sixth power of its length over those scales. ``pore_table``:
+        frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
+        freqs[m + k] and twice the cell density (the step-doubling error estimate,
+        k < doubled.shape[1]). Launched on n (m + doubled.shape[1]) threads, the doubled ones
+        first: they run longest, and in warps of their own they hold up no short thread.
+        A thermal segment gets seg_cells[s] Magnus cells, or, where that is 0,
+        ceil(cell_density[i] (1 + k L + w L / c_cold)) cells (twice that density for
+        ``doubled``): the profile varies on the scale 1/k of the heat model and the wave on
+        c/w, and the sixth-order error of a cell scales with the sixth power of its length
+        over those scales. ``pore_table``:
         :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
-        i, j = wp.tid()
+        t = wp.tid()
+        n_freqs = out.shape[1]
+        n_doubled = out.shape[0] * doubled.shape[1]
+        i = (t - n_doubled) // n_freqs
+        j = (t - n_doubled) % n_freqs
+        density_factor = wp.float64(1.0)
+        if t < n_doubled:
+            i = t // doubled.shape[1]
+            j = n_freqs + t % doubled.shape[1]
+            density_factor = wp.float64(2.0)
         omega = TWO_PI * freqs[j]
         p_mean = params[P_MEAN, i]
         radius = params[RADIUS, i]
@@ -147,7 +221,8 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                 n_cells = seg_cells[s]
                 if n_cells == 0:
                     c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                    n_cells = int(wp.ceil(cell_density[i] * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+                    n_cells = int(wp.ceil(density_factor * cell_density[i]
+                                          * (wp.float64(1.0) + k * length + omega * length / c_cold)))
                 h = length / wp.float64(n_cells)
                 for c in range(n_cells):
                     x0 = wp.float64(c) * h
@@ -158,14 +233,10 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                     a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
                                          p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
                     m = matmul2(magnus6_step(a1, a2, a3, h), m)
-        out[i, j, 0] = m.a[0]
-        out[i, j, 1] = m.a[1]
-        out[i, j, 2] = m.b[0]
-        out[i, j, 3] = m.b[1]
-        out[i, j, 4] = m.c[0]
-        out[i, j, 5] = m.c[1]
-        out[i, j, 6] = m.d[0]
-        out[i, j, 7] = m.d[1]
+        if j < n_freqs:
+            store_matrix(out, i, j, m)
+        else:
+            store_matrix(doubled, i, j - n_freqs, m)
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
     # a unique module does not inherit this file's module options

@@ -6,11 +6,14 @@ import warnings
 
 import numpy as np
 import pytest
+import warp as wp
 
 from tawarp import reference
+from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core
 from tawarp.fit.estimate import spread_starts
-from tawarp.model.forward import transfer_matrices
+from tawarp.model import forward
+from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from tawarp.model.validity import ValidityWarning
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
@@ -91,3 +94,98 @@ def test_estimate_that_cannot_be_met_warns(monkeypatch):
     monkeypatch.setattr(fwd, "MAX_ESTIMATE_ROUNDS", 2)
     with pytest.warns(ValidityWarning, match=r"error estimate of 1 of 1 sets is still"):
         transfer_matrices(load_core("ceramic"), FREQS, 40.0, device="cpu", tolerance=1e-20)
+
+
+# -- the estimate fused into the main cascade against the two-phase procedure --------------
+wp.init()
+#: the fused path's device comparison runs on both; the GPU's skipped without one
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device"))]
+
+
+def cascade(engine, params, theta, freqs, d):
+    """T-matrices (n, len(freqs), 2, 2) of a plain cascade launch at densities d (n,)."""
+    dev = engine.device
+    n = params.shape[1]
+    out = wp.empty((n, len(freqs), 8), dtype=wp.float64, device=dev)
+    engine._cascade(params, theta, wp.array(freqs, dtype=wp.float64, device=dev),
+                    wp.array(d, dtype=wp.float64, device=dev), out, wp.empty((n, 0, 8), dtype=wp.float64, device=dev))
+    return out.numpy().view(np.complex128).reshape(n, len(freqs), 2, 2)
+
+
+def doubling_estimate(engine, params, theta, d):
+    """Step-doubling estimate (n,) at densities d: separate launches at d and 2d on the
+    sampled frequencies, compared on the host on NumPy's dimensionless coefficients."""
+    f = engine.freqs[engine.sample]
+    Zc = duct_impedance(engine.core)
+    Y, Y2 = (normalize(cascade(engine, params, theta, f, k * d), Zc) for k in (1.0, 2.0))
+    return (np.abs(Y - Y2).max(-1) / np.abs(Y2).max(-1)).max(-1)
+
+
+def two_phase(engine, params, theta):
+    """The densities of the documented procedure (ForwardSettings: rounds of the estimate on
+    the sets above tolerance/2, each raising d by 1.1 (err/target)^(1/6) clipped to
+    [1.25, 4]), then the main cascade at them: (d (n,), T (n, m, 2, 2))."""
+    cd = engine.settings.cell_density
+    d = np.full(params.shape[1], cd)
+    target = 0.5 * engine.settings.tolerance
+    active = np.arange(d.size)
+    for _ in range(forward.MAX_ESTIMATE_ROUNDS - 1):
+        err = doubling_estimate(engine, params, theta, d)[active]
+        if not (err > target).any():
+            break
+        active = active[err > target]
+        raise_by = np.clip(1.1 * (err[err > target] / target) ** (1 / forward.MAGNUS_ORDER), 1.25, 4.0)
+        d[active] = np.minimum(d[active] * raise_by, forward.MAX_DENSITY_FACTOR * cd)
+    return d, cascade(engine, params, theta, engine.freqs, d)
+
+
+def fused(engine, table):
+    """(params, theta, densities, T) of :meth:`Engine.evaluate`'s fused path, and the
+    densities of :meth:`Engine.cell_densities` (the sampled frequencies alone) on the same sets."""
+    params, theta = engine.heat(table)
+    out = wp.empty((table.shape[1], len(engine.freqs), 8), dtype=wp.float64, device=engine.device)
+    d = engine._adaptive_cascade(params, theta, engine.columns, out)
+    T = out.numpy().view(np.complex128).reshape(table.shape[1], len(engine.freqs), 2, 2)
+    return params, theta, d, T, engine.cell_densities(params, theta).numpy()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("name, seed", [("ceramic", 4), ("mesh", 5), ("ceramic", 6), ("mesh", 7)])
+def test_fused_estimate_equals_two_phase(name, seed, device):
+    # The estimate fused into the main launch (2d threads beside the d ones, compared on the
+    # device, only the sets above target rerun) picks the densities of the two-phase
+    # procedure (to rounding of the compared estimate: 1e-12) and so the same T-matrices
+    # (<= 1e-12 relative, row-wise on the dimensionless coefficients), on random cores whose
+    # batch mixes sets the rule meets with sets it must raise (checked: both kinds present).
+    core = load_core(name)
+    sets = random_sets(core, 6, seed)
+    names = list(sets[0][1])
+    table = np.array([[q] + [v[k] for k in names] for q, v in sets]).T
+    engine = Engine(core, np.linspace(30.0, 500.0, 12), names, ForwardSettings(device=device, cpu_threads=1))
+    params, theta, d, T, d_alone = fused(engine, table)
+    d_ref, T_ref = two_phase(engine, params, theta)
+    raised = d_ref > engine.settings.cell_density
+    assert raised.any() and not raised.all(), d_ref
+    np.testing.assert_allclose(d, d_ref, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(d_alone, d_ref, rtol=1e-12, atol=0)
+    Zc = duct_impedance(core)
+    assert relative_error(normalize(T, Zc), normalize(T_ref, Zc)) <= 1e-12
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_set_above_target_is_raised_and_scattered_back(device):
+    # Heated sets interleaved with unheated ones at a tight tolerance: at uniform temperature
+    # the Magnus cells are exact (estimate ~ rounding), so Q = 0 keeps cell_density, while
+    # every heated set is measured above target at the rule's density, raised until its
+    # measured estimate is <= tolerance/2, and its row of the result is the cascade at the
+    # raised density (the gathered rerun lands in its own row).
+    core = load_core("ceramic")
+    Q = np.array([0.0, 80.0, 0.0, 40.0, 0.0, 20.0])
+    engine = Engine(core, FREQS, [], ForwardSettings(device=device, cpu_threads=1, tolerance=1e-9))
+    params, theta, d, T, _ = fused(engine, Q[None])
+    cd = engine.settings.cell_density
+    heated = Q > 0
+    assert np.all(doubling_estimate(engine, params, theta, np.full(Q.size, cd))[heated] > 0.5e-9)
+    assert np.all(d[~heated] == cd) and np.all(d[heated] > cd), d
+    assert np.all(doubling_estimate(engine, params, theta, d) <= 0.5e-9)
+    np.testing.assert_array_equal(T, cascade(engine, params, theta, engine.freqs, d))

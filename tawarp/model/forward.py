@@ -141,7 +141,9 @@ class ForwardSettings:
     ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
     the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
     middle and highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine.cell_densities`); ``tolerance = None`` keeps d = ``cell_density`` (the
+    (:meth:`Engine._adaptive_cascade`: the 2d cascades run in the main launch, whose d
+    values at the sampled frequencies they are compared with on the device, and only the
+    sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
     core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
@@ -268,7 +270,14 @@ class Engine:
         self.gas = wp.array(GASES[core.gas.name].as_tuple(), dtype=wp.float64, device=dev)
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
-        self.w_freqs = wp.array(self.freqs, dtype=wp.float64, device=dev)
+        s = self.settings
+        self.estimating = s.cells is None and s.tolerance is not None and self.count > 0
+        # the error estimate's frequencies: the grid's lowest, geometric middle and highest
+        f = self.freqs
+        self.sample = (np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
+                       if self.estimating else np.zeros(0, dtype=np.int64))
+        self.columns = self._columns(f, self.sample)                                   # evaluate
+        self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev)
         self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
         self._modules_loaded = False
@@ -332,50 +341,74 @@ class Engine:
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
-        self._cascade(params, theta, self.w_freqs, self.cell_densities(params, theta), out)
+        self._adaptive_cascade(params, theta, self.columns, out)
         return out, params, theta
 
-    def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array):
-        wp.launch(self.transfer_kernel, dim=(params.shape[1], freqs.shape[0]),
-                  inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
-                          self.heat_cells, self.pore_table, out], device=self.device, block_dim=self.settings.block_dim)
-
     def cell_densities(self, params: wp.array, theta: wp.array) -> wp.array:
-        """Adaptive cell density (n,) of each set (:class:`ForwardSettings`): ``cell_density``,
-        raised where the step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers
-        the frequencies between the three sampled). Each round evaluates the sets still
-        above target at d and 2d, and raises d by (estimate / target)^(1/6) (the scheme's
-        order) times 1.1, clipped to [1.25, 4] (and to :data:`MAX_DENSITY_FACTOR` times
-        ``cell_density`` in all); a set is accepted only on a measured estimate
-        (after :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
+        """Adaptive cell density (n,) of each set (:meth:`_adaptive_cascade`), from the
+        cascade at the sampled frequencies alone (for callers that need the density, not
+        the T-matrices); ``cell_density`` for every set where the estimate is off."""
+        out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
+        return wp.array(self._adaptive_cascade(params, theta, self.sample_columns, out), dtype=wp.float64,
+                        device=self.device)
+
+    def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
+        """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
+        again (run at twice the density: the error estimate), and ``sample`` as int32."""
+        return (wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
+                wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device))
+
+    def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array,
+                 doubled: wp.array):
+        """One launch of the cascade kernel: ``out`` (n, m, 8) at ``freqs[:m]`` and density
+        ``density`` (n,), ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density."""
+        threads = params.shape[1] * (out.shape[1] + doubled.shape[1])
+        if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
+            raise ValueError(f"{params.shape[1]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
+                             f"threads in one launch: split the batch (ForwardSettings.chunk)")
+        wp.launch(self.transfer_kernel, dim=threads,
+                  inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
+                          self.heat_cells, self.pore_table, out, doubled],
+                  device=self.device, block_dim=self.settings.block_dim)
+
+    def _estimated_cascade(self, params: wp.array, theta: wp.array, columns, density: wp.array,
+                           out: wp.array) -> np.ndarray | None:
+        """The cascade into ``out`` at ``density`` and, in the same launch, at twice it on the
+        sampled columns; the step-doubling estimate (n,) of each set, compared on the device
+        (:func:`tawarp.kernels.forward.step_doubling_error`) and read back, the one host round
+        trip of a round (None where the estimate is off)."""
+        freqs, sample = columns
+        n = params.shape[1]
+        doubled = wp.empty((n, sample.shape[0], 8), dtype=wp.float64, device=self.device)
+        self._cascade(params, theta, freqs, density, out, doubled)
+        if not self.estimating or n == 0:
+            return None
+        err = wp.empty(n, dtype=wp.float64, device=self.device)
+        wp.launch(kf.step_doubling_error, dim=n, inputs=[params, self.gas, out, doubled, sample, err],
+                  device=self.device)
+        return err.numpy()
+
+    def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
+        """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
+        returned (n,) on the host (:class:`ForwardSettings`): ``cell_density``, raised where the
+        step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
+        between the three sampled). The first launch runs every set at d on all m columns and
+        at 2d on the sampled ones (whose d values are the main cascade's own); each later
+        round gathers the sets still above target, raises their d by (estimate / target)^(1/6)
+        (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
+        :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), runs them the same way and
+        scatters their rows into ``out``. A set is accepted only on a measured estimate (after
+        :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
         n = params.shape[1]
         d = np.full(n, float(self.settings.cell_density))
-        tol = self.settings.tolerance
-        if self.settings.cells is not None or tol is None or not self.count or n == 0:
-            return wp.array(d, dtype=wp.float64, device=self.device)
-        f = self.freqs
-        sample = np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
-        w_f = wp.array(f[sample], dtype=wp.float64, device=self.device)
-        g = GASES[self.core.gas.name]
-        T_cold, radius = params[layout.T_COLD].numpy(), params[layout.RADIUS].numpy()
-        Zc = params[layout.P_MEAN].numpy() / np.sqrt(g.R_gas * T_cold / g.gamma) / (math.pi * radius ** 2)
+        # filled on the device: no host copy before the main launch
+        density = wp.full(n, d[0] if n else 0.0, dtype=wp.float64, device=self.device)
+        err = self._estimated_cascade(params, theta, columns, density, out)
+        if err is None:
+            return d
         active = np.arange(n)
-        target = 0.5 * tol
-        p, t = params, theta   # every set in the first round: no copy
+        target = 0.5 * self.settings.tolerance
         for rounds in range(MAX_ESTIMATE_ROUNDS):
-            if rounds:         # the sets still above target only, gathered on the device
-                p = wp.empty((params.shape[0], active.size), dtype=wp.float64, device=self.device)
-                t = wp.empty((active.size, theta.shape[1]), dtype=wp.float64, device=self.device)
-                wp.launch(kbatch.gather_sets, dim=active.size, device=self.device,
-                          inputs=[params, theta, wp.array(active.astype(np.int32), dtype=wp.int32, device=self.device),
-                                  p, t])
-            Y = []
-            for factor in (1.0, 2.0):
-                out = wp.empty((active.size, sample.size, 8), dtype=wp.float64, device=self.device)
-                self._cascade(p, t, w_f, wp.array(factor * d[active], dtype=wp.float64, device=self.device), out)
-                Y.append(normalize(out.numpy().view(np.complex128).reshape(active.size, sample.size, 2, 2),
-                                   Zc[active]))
-            err = (np.abs(Y[0] - Y[1]).max(-1) / np.abs(Y[1]).max(-1)).max(-1)
             above = err > target
             if not above.any():
                 break
@@ -389,7 +422,17 @@ class Engine:
             raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
             active = active[above]
             d[active] = np.minimum(d[active] * raise_by, MAX_DENSITY_FACTOR * self.settings.cell_density)
-        return wp.array(d, dtype=wp.float64, device=self.device)
+            # the sets still above target only, gathered on the device, their rows scattered back
+            index = wp.array(active.astype(np.int32), dtype=wp.int32, device=self.device)
+            p = wp.empty((params.shape[0], active.size), dtype=wp.float64, device=self.device)
+            t = wp.empty((active.size, theta.shape[1]), dtype=wp.float64, device=self.device)
+            wp.launch(kbatch.gather_sets, dim=active.size, inputs=[params, theta, index, p, t], device=self.device)
+            part = wp.empty((active.size, out.shape[1], 8), dtype=wp.float64, device=self.device)
+            err = self._estimated_cascade(p, t, columns, wp.array(d[active], dtype=wp.float64, device=self.device),
+                                          part)
+            wp.launch(kbatch.scatter_sets, dim=(active.size, out.shape[1]), inputs=[part, index, out],
+                      device=self.device)
+        return d
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
