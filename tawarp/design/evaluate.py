@@ -97,7 +97,14 @@ class Evaluator:
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on the device)."""
-        res = self.evaluate_device(varying).numpy()
+        return self.objectives_of(self.evaluate_device(varying), varying)
+
+    def objectives_of(self, out: wp.array, varying) -> dict[str, np.ndarray]:
+        """:meth:`evaluate_table`'s objectives from the kernel metrics ``out`` that
+        :meth:`evaluate_device` launched on ``varying``: waits for the device, copies them
+        to the host and computes the host objectives. Launch, other host work, then this:
+        the device works meanwhile (a sweep writes the previous chunk)."""
+        res = out.numpy()
         metrics = {k: res[:, j] for j, k in enumerate(self.columns)}
         if self.extra:
             table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
