@@ -101,6 +101,15 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     out[i, T_MAX] = Tc + best
 
 
+@wp.kernel
+def metric_columns_float32(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32),
+                           out: wp.array2d(dtype=wp.float32)):
+    """out[c, i] = metrics[i, columns[c]] rounded to float32 (to nearest, as NumPy's cast):
+    the columns a sweep file stores, contiguous, at half the copy to the host."""
+    c, i = wp.tid()
+    out[c, i] = wp.float32(metrics[i, columns[c]])
+
+
 #: Kinds of a design variable in :func:`design_table`.
 LINEAR = wp.constant(0)
 LOG = wp.constant(1)

@@ -126,6 +126,17 @@ class Evaluator:
                           self.stack_index, out])
         return out
 
+    def columns_float32(self, out: wp.array, names) -> wp.array:
+        """Kernel columns ``names`` of the metrics ``out`` (n, N_METRICS) of
+        :meth:`evaluate_device` as a (len(names), n) float32 array on the device, rounded
+        as NumPy rounds a float64 to float32 (what a sweep file stores)."""
+        from ..kernels.design import metric_columns_float32
+
+        cols = wp.array([self.columns.index(k) for k in names], dtype=wp.int32, device=self.device)
+        res = wp.empty((len(names), out.shape[0]), dtype=wp.float32, device=self.device)
+        wp.launch(metric_columns_float32, dim=(len(names), out.shape[0]), inputs=[out, cols, res], device=self.device)
+        return res
+
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``, in chunks of ``settings.chunk``."""
         table = self.space.varying_table(values)

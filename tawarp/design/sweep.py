@@ -190,7 +190,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
                 sub_shape = block + tuple(shape[len(sl):])
                 for k in outputs:
-                    outs[k][full] = res[k].astype(np.float32).reshape(sub_shape)
+                    outs[k][full] = np.asarray(res[k], dtype=np.float32).reshape(sub_shape)
                 if values is not None:
                     for j, name in enumerate(tables.names):
                         v = values[j].astype(np.int8) if name == "material" else values[j]
@@ -210,7 +210,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 lo, hi, sl = block
                 t = time.perf_counter()
                 table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
-                finish = _launch(ev, table)
+                finish = _launch(ev, table, outputs)
                 t_eval += time.perf_counter() - t
                 if pending is not None:
                     write(*pending)
@@ -233,14 +233,18 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, t_points)
 
 
-def _launch(ev, table):
+def _launch(ev, table, outputs: list):
     """Start the evaluation of a chunk's device ``table``; returns the call that waits
-    for its objectives. An :class:`Evaluator` launches and returns at once (on CUDA); a
-    cluster evaluator works in that call."""
-    if isinstance(ev, Evaluator):
-        out = ev.evaluate_device(table)
+    for its ``outputs``. An :class:`Evaluator` launches and returns at once (on CUDA), and
+    when every output is a kernel column rounds them to float32 on the device (half the
+    copy, no cast on the host); a cluster evaluator works in that call."""
+    if not isinstance(ev, Evaluator):
+        return lambda: ev.evaluate_table(table)
+    out = ev.evaluate_device(table)
+    if ev.extra:
         return lambda: ev.objectives_of(out, table)
-    return lambda: ev.evaluate_table(table)
+    f32 = ev.columns_float32(out, outputs)
+    return lambda: dict(zip(outputs, f32.numpy()))
 
 
 def _chunk_shape(shape: tuple, chunk: int) -> tuple:
