@@ -25,6 +25,8 @@ from __future__ import annotations
 
 import gc
 import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +34,6 @@ import numpy as np
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
-from .samplers import sobol_unit
 from .space import DesignSpace, DeviceTable
 from ..io import atomic_path
 from ..model.forward import ForwardSettings, resolve_device
@@ -43,7 +44,7 @@ class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
     ``evaluation_seconds`` (launches, transfers and waiting for the device: the device
     time that the writing and the points did not hide), ``write_seconds``,
-    ``points_seconds`` (the Sobol points, on the host)."""
+    ``points_seconds`` (waiting for the Sobol points, drawn on the host in a thread)."""
 
     path: Path
     n_points: int
@@ -135,7 +136,8 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     try:
-        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f:
+        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f, \
+                ThreadPoolExecutor(1) as pool:
             f.attrs["title"] = "tawarp sweep"
             f.attrs["core"] = str(space.core.source)
             f.attrs["mode"] = mode
@@ -175,14 +177,6 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
             else:
                 blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
 
-            def unit_points(block):
-                """Sobol points of ``block`` (None for a grid or past the end): host work,
-                done while the device evaluates the block before."""
-                if mode == "grid" or block is None:
-                    return None
-                lo, hi, _ = block
-                return sobol_unit(hi - lo, len(tables.names), seed, skip=lo)
-
             def write(lo, hi, sl, res, values):
                 nonlocal t_write
                 t = time.perf_counter()
@@ -198,12 +192,13 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 t_write += time.perf_counter() - t
                 bar.update(hi - lo)
 
-            # chunk k is launched, chunk k - 1 written and chunk k + 1's points made while the
-            # device works (Warp launches return at once on CUDA), then chunk k is fetched:
-            # two chunks at most on the host, one table on the device
-            t = time.perf_counter()
+            # chunk k is launched; while the device works (Warp launches return at once on
+            # CUDA) chunk k - 1 is written and a thread draws chunk k + 1's Sobol points;
+            # then chunk k is fetched: two chunks at most on the host, one on the device
+            draw = _sobol_draws(len(tables.names), seed) if mode == "sobol" else None
             block = next(blocks, None)
-            u = unit_points(block)
+            t = time.perf_counter()
+            u = draw(block[1] - block[0]) if draw and block else None
             t_points += time.perf_counter() - t
             pending = None
             while block is not None:
@@ -212,15 +207,16 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
                 finish = _launch(ev, table, outputs)
                 t_eval += time.perf_counter() - t
+                block = next(blocks, None)
+                ahead = pool.submit(draw, block[1] - block[0]) if draw and block else None
                 if pending is not None:
                     write(*pending)
                 t = time.perf_counter()
-                block = next(blocks, None)
-                u = unit_points(block)
-                t_points += time.perf_counter() - t
-                t = time.perf_counter()
                 pending = (lo, hi, sl, finish(), None if values is None else values.numpy())
                 t_eval += time.perf_counter() - t
+                t = time.perf_counter()
+                u = ahead.result() if ahead else None
+                t_points += time.perf_counter() - t
                 nchunks += 1
                 del table, values, finish
                 if nchunks % 16 == 0:
@@ -231,6 +227,27 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         bar.close()
     wall = time.perf_counter() - t0
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, t_points)
+
+
+def _sobol_draws(d: int, seed: int):
+    """``draw(m)``: the next m points of :func:`tawarp.design.samplers.sobol_unit`'s
+    sequence for (d, seed), from one engine drawn on chunk after chunk: the points of
+    ``sobol_unit(m, d, seed, skip=lo)`` without its fast-forward through the lo points
+    before, which costs O(lo) (0.4 s per chunk at 64M points on the 2-core machine)."""
+    from scipy.stats import qmc
+
+    if d == 0:
+        return lambda m: np.zeros((m, 0))
+    eng = qmc.Sobol(d, scramble=True, seed=seed)
+
+    def draw(m: int) -> np.ndarray:
+        if eng.num_generated:
+            return eng.random(m)
+        with warnings.catch_warnings():   # only the first draw warns, in the sweep's thread
+            warnings.simplefilter("ignore", UserWarning)  # balance needs powers of 2; any m is fine here
+            return eng.random(m)
+
+    return draw
 
 
 def _launch(ev, table, outputs: list):
