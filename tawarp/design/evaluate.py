@@ -47,6 +47,7 @@ class Evaluator:
         self._acoustic = None
         self.onset_spec = onset or OnsetSpec()
         self._onset_cache = (None, None, None)
+        self._column_index: dict = {}
 
     def acoustic_engine(self) -> Engine:
         """T-matrix engine at ``freqs`` over the same varying rows (built on first use)."""
@@ -132,7 +133,11 @@ class Evaluator:
         as NumPy rounds a float64 to float32 (what a sweep file stores)."""
         from ..kernels.design import metric_columns_float32
 
-        cols = wp.array([self.columns.index(k) for k in names], dtype=wp.int32, device=self.device)
+        key = tuple(names)
+        if key not in self._column_index:   # once: no small copy to the device in a sweep's loop
+            self._column_index[key] = wp.array([self.columns.index(k) for k in names], dtype=wp.int32,
+                                               device=self.device)
+        cols = self._column_index[key]
         res = wp.empty((len(names), out.shape[0]), dtype=wp.float32, device=self.device)
         wp.launch(metric_columns_float32, dim=(len(names), out.shape[0]), inputs=[out, cols, res], device=self.device)
         return res
