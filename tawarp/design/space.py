@@ -322,6 +322,8 @@ class DeviceTable:
     def __init__(self, space: DesignSpace, device):
         import warp as wp
 
+        from ..kernels.design import LINEAR, LOG, MATERIAL
+
         self.space, self.device = space, device
         self.variables = space.continuous + ([space.material] if space.material is not None else [])
         self.names = [v.name for v in self.variables]
@@ -331,7 +333,7 @@ class DeviceTable:
         for v in self.variables:
             starts.append(sum(len(g) for g in grids))
             if v.categorical:
-                kinds.append(2)
+                kinds.append(MATERIAL)
                 rows.append(-1)
                 lows.append(0.0)
                 spans.append(0.0)
@@ -339,7 +341,7 @@ class DeviceTable:
                 continue
             name = space.core_name(v.name)
             rows.append(0 if name == "heat_input" else row[name])
-            kinds.append(1 if v.log else 0)
+            kinds.append(LOG if v.log else LINEAR)
             # the same float64 operands as from_unit: low + x (high - low), or in logs
             lo, hi = (np.log(v.low), np.log(v.high)) if v.log else (v.low, v.high)
             lows.append(lo)
