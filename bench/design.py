@@ -12,10 +12,16 @@ are timed on a smaller run for comparison.
 
 Sweep: a Sobol sweep streamed to netCDF at two sizes, each in its own process so that
 its peak resident memory is its own: forward evaluations per hour and peak RSS (flat
-memory: the two peaks should match).
+memory: the two peaks should match). ``--sweep-only`` runs grid and Sobol sweeps (the
+grid: the 4 materials times 2^k values of each continuous variable) at both sizes and
+writes bench/results/design_sweep_<device>.json: per sweep the evaluations per hour, the
+seconds waiting on the device (evaluation_s), writing (write_s) and making Sobol points
+(points_s), and the engine's own rate on one chunk (table, heat solve, metrics, to the
+device's completion) for comparison.
 
-    python bench/design.py --device cuda          # < 3 min on one H100
-    python bench/design.py --device cpu --small   # < 2 min on a laptop CPU
+    python bench/design.py --device cuda                # < 3 min on one H100
+    python bench/design.py --device cuda --sweep-only   # sweeps alone
+    python bench/design.py --device cpu --small         # < 2 min on a laptop CPU
 """
 
 from __future__ import annotations
@@ -30,6 +36,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -96,29 +104,80 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
             "best": res.best[0]["values"] if res.best else None}
 
 
-def sweep_child(device, n, chunk, path):
+def _grid_space(n):
+    """VARS as a grid of about n points: the 4 materials times 2^k values per continuous
+    variable (k split as evenly as the power of two allows)."""
+    from tawarp.model.core import load_core
+    from tawarp.design.space import DesignSpace
+
+    bits = max(0, int(n // 4).bit_length() - 1)
+    counts = [2 ** (bits // 4 + (j < bits % 4)) for j in range(4)]
+    spec = [VARS[0]] + [f"{v}:{c}" for v, c in zip(VARS[1:], counts)]
+    return DesignSpace(load_core("rvc_foam"), spec)
+
+
+def _engine_rate(space, device, chunk):
+    """Points per second of the engine alone on one chunk: the table built on the device,
+    the heat solve and the metrics kernel, timed to the device's completion (no transfers,
+    no file): the rate a sweep would reach if nothing else cost."""
+    import warp as wp
+
+    from tawarp.design.evaluate import Evaluator
+    from tawarp.design.space import DeviceTable
+    from tawarp.model.forward import ForwardSettings
+
+    ev = Evaluator(space, settings=ForwardSettings(device=device))
+    tables = DeviceTable(space, ev.device)
+    chunk = min(chunk, int(np.prod([len(v.grid()) for v in space.variables])))
+    ev.columns_float32(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+    wp.synchronize_device(ev.device)
+    reps = 5
+    t = time.perf_counter()
+    for _ in range(reps):
+        ev.columns_float32(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+    wp.synchronize_device(ev.device)
+    return reps * chunk / (time.perf_counter() - t)
+
+
+def sweep_child(device, mode, n, chunk, path):
     """Run one sweep in this process and print its numbers (peak RSS of this process)."""
     from tawarp.model.forward import ForwardSettings
     from tawarp.design.sweep import sweep
 
-    space = _space()
-    sweep(space, path, mode="sobol", n_samples=min(n, 4 * chunk), chunk=chunk, settings=ForwardSettings(device=device))
+    space = _grid_space(n) if mode == "grid" else _space()
+    settings = ForwardSettings(device=device)
+    warm = _grid_space(min(n, 4 * chunk)) if mode == "grid" else space
+    sweep(warm, path, mode=mode, n_samples=min(n, 4 * chunk), chunk=chunk, settings=settings)
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    info = sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, settings=ForwardSettings(device=device))
+    info = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    print(json.dumps({"points": n, "chunk": chunk, "seconds": info.seconds,
-                      "evaluations_per_hour": info.evaluations_per_hour, "evaluation_s": info.evaluation_seconds,
-                      "write_s": info.write_seconds, "peak_rss_MiB": rss / 1024.0,
-                      "peak_rss_after_warmup_MiB": rss0 / 1024.0,
+    engine = _engine_rate(_grid_space(n), device, chunk)
+    print(json.dumps({"mode": mode, "points": info.n_points, "chunk": chunk, "chunks": info.chunks,
+                      "seconds": info.seconds, "evaluations_per_hour": info.evaluations_per_hour,
+                      "evaluation_s": info.evaluation_seconds, "write_s": info.write_seconds,
+                      "points_s": info.points_seconds, "engine_evaluations_per_hour": 3600.0 * engine,
+                      "share_of_engine_rate": info.evaluations_per_hour / (3600.0 * engine),
+                      "peak_rss_MiB": rss / 1024.0, "peak_rss_after_warmup_MiB": rss0 / 1024.0,
                       "file_MiB": os.path.getsize(path) / 2**20}))
 
 
-def bench_sweep(device, n, chunk, tmp):
-    path = os.path.join(tmp, f"sweep_{n}.nc")
-    out = subprocess.run([sys.executable, __file__, "--device", device, "--sweep-child", str(n), str(chunk), path],
+def bench_sweep(device, mode, n, chunk, tmp):
+    path = os.path.join(tmp, f"sweep_{mode}_{n}.nc")
+    out = subprocess.run([sys.executable, __file__, "--device", device, "--sweep-child", mode, str(n), str(chunk), path],
                          capture_output=True, text=True, check=True)
     os.remove(path)
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _tag(device, name):
+    """Result-file tag: cpu, or cuda_h100 / cuda_h200 as the other benches."""
+    import re
+
+    tag = device.split(":")[0]
+    if tag == "cuda":
+        m = re.search(r"\b([A-Z]\d{2,3}[A-Z]?)\b", name)
+        tag = f"cuda_{m.group(1).lower()}" if m else tag
+    return tag
 
 
 def main(argv=None):
@@ -128,15 +187,18 @@ def main(argv=None):
     ap.add_argument("--trials", type=int, default=None, help="trials of the CMA-ES search (default: 16384 --small, "
                                                               "else 262144)")
     ap.add_argument("--batch", type=int, default=None, help="its population (default: 1024 --small, else 8192)")
-    ap.add_argument("--sweep-child", nargs=3, metavar=("N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
+    ap.add_argument("--sweep-only", action="store_true",
+                    help="only the sweeps (grid and Sobol, two sizes each): design_sweep_<device>.json")
+    ap.add_argument("--chunk", type=int, default=None, help="sweep chunk in points (default: 2^14 --small, else 2^22)")
+    ap.add_argument("--sweep-child", nargs=4, metavar=("MODE", "N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
     from tawarp.model.forward import resolve_device
 
     device = resolve_device(args.device)
     if args.sweep_child:
-        n, chunk, path = args.sweep_child
-        sweep_child(device, int(n), int(chunk), path)
+        mode, n, chunk, path = args.sweep_child
+        sweep_child(device, mode, int(n), int(chunk), path)
         return 0
     import warp as wp
 
@@ -146,10 +208,24 @@ def main(argv=None):
     else:
         cfg = dict(trials=262144, batch=8192, mo_trials=32768, mo_batch=2048, opt_trials=2048, opt_batch=256,
                    sweep=(1 << 24, 1 << 26), chunk=1 << 22)
-    cfg.update({k: v for k, v in (("trials", args.trials), ("batch", args.batch)) if v is not None})
+    cfg.update({k: v for k, v in (("trials", args.trials), ("batch", args.batch), ("chunk", args.chunk))
+                if v is not None})
     t_all = time.perf_counter()
     out = {"device": device, "device_name": str(wp.get_device(device).name), "host": platform.node(),
            "python": platform.python_version(), "warp": wp.__version__, "config": cfg, "design_space": VARS}
+    tag = _tag(device, out["device_name"])
+    if args.sweep_only:
+        with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
+            for mode in ("grid", "sobol"):
+                out[f"sweep_{mode}"] = [bench_sweep(device, mode, n, cfg["chunk"], tmp) for n in cfg["sweep"]]
+                print(json.dumps(out[f"sweep_{mode}"]), flush=True)
+        out["summary"] = {f"{mode}_evaluations_per_hour": out[f"sweep_{mode}"][-1]["evaluations_per_hour"]
+                          for mode in ("grid", "sobol")}
+        out["summary"].update(engine_evaluations_per_hour=out["sweep_grid"][-1]["engine_evaluations_per_hour"],
+                              target_per_hour=1e11, bench_seconds=time.perf_counter() - t_all)
+        print(json.dumps(out["summary"], indent=2))
+        write_result(out, f"design_sweep_{tag}.json", args.output)
+        return 0
     with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
         out["search_cmaes"] = bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp)
         print(json.dumps(out["search_cmaes"]), flush=True)
@@ -158,7 +234,7 @@ def main(argv=None):
         out["search_optuna_cmaes"] = bench_search(device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",),
                                                   engine="optuna", tmp=tmp)
         print(json.dumps(out["search_optuna_cmaes"]), flush=True)
-        out["sweep"] = [bench_sweep(device, n, cfg["chunk"], tmp) for n in cfg["sweep"]]
+        out["sweep"] = [bench_sweep(device, "sobol", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
         print(json.dumps(out["sweep"]), flush=True)
     s = out["sweep"]
     out["summary"] = {
@@ -177,12 +253,6 @@ def main(argv=None):
         "targets": {"search_per_minute": 1e5, "sweep_per_hour": 1e9},
         "bench_seconds": time.perf_counter() - t_all,
     }
-    tag = device.split(":")[0]
-    if tag == "cuda":  # as the other benches: design_cuda_h100.json, design_cuda_h200.json
-        import re
-
-        m = re.search(r"\b([A-Z]\d{2,3}[A-Z]?)\b", out["device_name"])
-        tag = f"cuda_{m.group(1).lower()}" if m else tag
     print(json.dumps(out["summary"], indent=2))
     write_result(out, f"design_{tag}.json", args.output)
     return 0

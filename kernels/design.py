@@ -99,3 +99,74 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
             else:
                 best = wp.max(best, wp.max(theta[i, node], theta[i, node + 1]))
     out[i, T_MAX] = Tc + best
+
+
+@wp.kernel
+def metric_columns_float32(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32),
+                           out: wp.array2d(dtype=wp.float32)):
+    """out[c, i] = metrics[i, columns[c]] rounded to float32 (to nearest, as NumPy's cast):
+    the columns a sweep file stores, contiguous, at half the copy to the host."""
+    c, i = wp.tid()
+    out[c, i] = wp.float32(metrics[i, columns[c]])
+
+
+#: Kinds of a design variable in :func:`design_table`.
+LINEAR = wp.constant(0)
+LOG = wp.constant(1)
+MATERIAL = wp.constant(2)
+
+
+@wp.func
+def design_coordinate(lo: wp.int64, i: int, v: int, unit: wp.array2d(dtype=wp.float64),
+                      grid: wp.array(dtype=wp.float64), kind: wp.array(dtype=wp.int32),
+                      stride: wp.array(dtype=wp.int64), size: wp.array(dtype=wp.int32),
+                      start: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64),
+                      span: wp.array(dtype=wp.float64)):
+    """(value, material index) of variable v at point lo + i: on the grid when ``unit`` is
+    empty (C-order index ((lo + i) // stride) % size into the variable's grid values at
+    ``start``), else from the unit-cube coordinate unit[i, v] as DesignSpace.from_unit
+    scales it (clipped to [0, 1]; low + u span, for LOG the exp of the log-scale values)
+    and, for the material, min(floor(u size), size - 1) as the sweep's Sobol points."""
+    if unit.shape[0] == 0:
+        k = int(((lo + wp.int64(i)) // stride[v]) % wp.int64(size[v]))
+        if kind[v] == MATERIAL:
+            return wp.float64(k), k
+        return grid[start[v] + k], k
+    u = unit[i, v]
+    if kind[v] == MATERIAL:
+        k = wp.min(int(u * wp.float64(size[v])), size[v] - 1)
+        return wp.float64(k), k
+    x = low[v] + wp.clamp(u, wp.float64(0.0), wp.float64(1.0)) * span[v]
+    if kind[v] == LOG:
+        x = wp.exp(x)
+    return x, 0
+
+
+@wp.kernel
+def design_table(lo: wp.int64, unit: wp.array2d(dtype=wp.float64), grid: wp.array(dtype=wp.float64),
+                 kind: wp.array(dtype=wp.int32), stride: wp.array(dtype=wp.int64), size: wp.array(dtype=wp.int32),
+                 start: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64), span: wp.array(dtype=wp.float64),
+                 row: wp.array(dtype=wp.int32), materials: wp.array2d(dtype=wp.float64),
+                 material_rows: wp.array(dtype=wp.int32), heat_input: wp.float64,
+                 table: wp.array2d(dtype=wp.float64), values: wp.array2d(dtype=wp.float64)):
+    """Column i of DesignSpace.varying_table for design point lo + i (one thread), on the
+    device: row 0 the heat input, a material's rows (``material_rows``) the row of
+    ``materials`` (one per choice) it picks, then each continuous variable's value in its
+    ``row`` (after the material: an explicit stack variable overrides the material's
+    value, as on the host). With a non-empty ``values``, values[v, i] keeps each
+    variable's value (the material as its index)."""
+    i = wp.tid()
+    table[0, i] = heat_input
+    for v in range(kind.shape[0]):
+        if kind[v] == MATERIAL:
+            x, k = design_coordinate(lo, i, v, unit, grid, kind, stride, size, start, low, span)
+            for p in range(material_rows.shape[0]):
+                table[material_rows[p], i] = materials[k, p]
+            if values.shape[0] > 0:
+                values[v, i] = x
+    for v in range(kind.shape[0]):
+        if kind[v] != MATERIAL:
+            x, k = design_coordinate(lo, i, v, unit, grid, kind, stride, size, start, low, span)
+            table[row[v], i] = x
+            if values.shape[0] > 0:
+                values[v, i] = x

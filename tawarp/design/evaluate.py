@@ -47,6 +47,7 @@ class Evaluator:
         self._acoustic = None
         self.onset_spec = onset or OnsetSpec()
         self._onset_cache = (None, None, None)
+        self._column_index: dict = {}
 
     def acoustic_engine(self) -> Engine:
         """T-matrix engine at ``freqs`` over the same varying rows (built on first use)."""
@@ -97,7 +98,14 @@ class Evaluator:
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on the device)."""
-        res = self.evaluate_device(varying).numpy()
+        return self.objectives_of(self.evaluate_device(varying), varying)
+
+    def objectives_of(self, out: wp.array, varying) -> dict[str, np.ndarray]:
+        """:meth:`evaluate_table`'s objectives from the kernel metrics ``out`` that
+        :meth:`evaluate_device` launched on ``varying``: waits for the device, copies them
+        to the host and computes the host objectives. Launch, other host work, then this:
+        the device works meanwhile (a sweep writes the previous chunk)."""
+        res = out.numpy()
         metrics = {k: res[:, j] for j, k in enumerate(self.columns)}
         if self.extra:
             table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
@@ -118,6 +126,21 @@ class Evaluator:
                   inputs=[params, eng.flags, eng.gas, theta, eng.first, eng.count, eng.heat_cells,
                           self.stack_index, out])
         return out
+
+    def columns_float32(self, out: wp.array, names) -> wp.array:
+        """Kernel columns ``names`` of the metrics ``out`` (n, N_METRICS) of
+        :meth:`evaluate_device` as a (len(names), n) float32 array on the device, rounded
+        as NumPy rounds a float64 to float32 (what a sweep file stores)."""
+        from ..kernels.design import metric_columns_float32
+
+        key = tuple(names)
+        if key not in self._column_index:   # once: no small copy to the device in a sweep's loop
+            self._column_index[key] = wp.array([self.columns.index(k) for k in names], dtype=wp.int32,
+                                               device=self.device)
+        cols = self._column_index[key]
+        res = wp.empty((len(names), out.shape[0]), dtype=wp.float32, device=self.device)
+        wp.launch(metric_columns_float32, dim=(len(names), out.shape[0]), inputs=[out, cols, res], device=self.device)
+        return res
 
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``, in chunks of ``settings.chunk``."""

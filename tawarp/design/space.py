@@ -306,3 +306,90 @@ class DesignSpace:
         if self.material is not None:
             vals["material"] = np.array([p["material"] for p in points])
         return vals
+
+
+class DeviceTable:
+    """:meth:`DesignSpace.varying_table` built on a Warp ``device`` by one kernel launch
+    (:func:`tawarp.kernels.design.design_table`), from point indices of the space's grid
+    or from unit-cube points, so that a sweep uploads no table: only the variables' grids
+    (once) or the (m, d) unit points. The tables are those of the host, value for value:
+    grid values and material rows are copied, unit points scaled as :meth:`DesignSpace.from_unit`
+    scales them (to rounding, the device may fuse the multiply-add).
+
+    Variables are in the order of the unit cube's columns: ``space.continuous``, then the
+    material (:attr:`names`)."""
+
+    def __init__(self, space: DesignSpace, device):
+        import warp as wp
+
+        from ..kernels.design import LINEAR, LOG, MATERIAL
+
+        self.space, self.device = space, device
+        self.variables = space.continuous + ([space.material] if space.material is not None else [])
+        self.names = [v.name for v in self.variables]
+        params = space.param_names
+        row = {k: 1 + j for j, k in enumerate(params)}
+        grids, starts, rows, kinds, lows, spans = [], [], [], [], [], []
+        for v in self.variables:
+            starts.append(sum(len(g) for g in grids))
+            if v.categorical:
+                kinds.append(MATERIAL)
+                rows.append(-1)
+                lows.append(0.0)
+                spans.append(0.0)
+                grids.append(np.zeros(0))
+                continue
+            name = space.core_name(v.name)
+            rows.append(0 if name == "heat_input" else row[name])
+            kinds.append(LOG if v.log else LINEAR)
+            # the same float64 operands as from_unit: low + x (high - low), or in logs
+            lo, hi = (np.log(v.low), np.log(v.high)) if v.log else (v.low, v.high)
+            lows.append(lo)
+            spans.append(hi - lo)
+            grids.append(np.asarray(v.values, dtype=np.float64))
+        # C-order strides of the grid over space.variables (the sweep file's dimensions)
+        shape = [len(v.grid()) for v in space.variables]
+        strides = {v.name: int(np.prod(shape[j + 1:], dtype=np.int64)) for j, v in enumerate(space.variables)}
+        sizes = [len(v.choices) if v.categorical else len(v.values) for v in self.variables]
+        mats = space.material.choices if space.material is not None else ()
+        materials = np.array([[getattr(space.catalogue[c], p) for p in MATERIAL_PARAMS] for c in mats],
+                             dtype=np.float64).reshape(len(mats), len(MATERIAL_PARAMS))
+        material_rows = [row[f"{space.segment}.{CORE_FIELD[p]}"] for p in MATERIAL_PARAMS] if mats else []
+
+        def up(a, dtype):
+            return wp.array(np.asarray(a), dtype=dtype, device=device)
+
+        self._inputs = dict(
+            grid=up(np.concatenate(grids) if grids else np.zeros(0), wp.float64), kind=up(kinds, wp.int32),
+            stride=up([strides[v.name] for v in self.variables], wp.int64), size=up(sizes, wp.int32),
+            start=up(starts, wp.int32), low=up(lows, wp.float64), span=up(spans, wp.float64), row=up(rows, wp.int32),
+            materials=wp.array2d(materials, dtype=wp.float64, device=device),
+            material_rows=up(np.asarray(material_rows, dtype=np.int32), wp.int32))
+        self.rows = 1 + len(params)
+
+    def _launch(self, lo: int, m: int, unit, values):
+        import warp as wp
+
+        from ..kernels.design import design_table
+
+        table = wp.empty((self.rows, m), dtype=wp.float64, device=self.device)
+        p = self._inputs
+        wp.launch(design_table, dim=m, device=self.device,
+                  inputs=[wp.int64(lo), unit, p["grid"], p["kind"], p["stride"], p["size"], p["start"], p["low"],
+                          p["span"], p["row"], p["materials"], p["material_rows"], float(self.space.heat_input),
+                          table, values])
+        return table
+
+    def grid(self, lo: int, hi: int):
+        """Varying table (Warp, on the device) of the grid points lo..hi-1, numbered in C
+        order over ``space.variables`` (each variable's ``values``, the material's choices)."""
+        return self._launch(lo, hi - lo, None, None)
+
+    def unit(self, u: np.ndarray):
+        """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)):
+        ``values`` (len(names), m) the variables' values (the material as its index)."""
+        import warp as wp
+
+        u = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.float64, device=self.device)
+        values = wp.empty((len(self.names), u.shape[0]), dtype=wp.float64, device=self.device)
+        return self._launch(0, u.shape[0], u, values), values

@@ -12,9 +12,11 @@ Outputs (float32, CF ``units`` and ``long_name`` from the objectives table,
 :mod:`tawarp.design.objectives`): by default the metrics kernel's columns
 (``gradient`` [K/m] = (T(x3) - T(x2)) / l_s, ``T_max`` [K], ``heat_leak`` [W] (stack, to
 the wall), ``T_hot`` [K] = T(x3)); ``outputs`` adds or selects any registered objective.
-The work is done in chunks of ``chunk`` points: one heat-solve and
-one metrics launch per chunk, each chunk written in place (an HDF5 hyperslab) before the
-next, so memory stays flat whatever the size. The file is written to a temporary name
+The work is done in chunks of ``chunk`` points: per chunk one launch builds its
+parameter table on the device (:class:`tawarp.design.space.DeviceTable`: from the grid
+index, or from the Sobol points made on the host), then one heat-solve and one metrics
+launch; each chunk is written in place (an HDF5 hyperslab) while the device evaluates the
+next, so memory stays flat whatever the size (two chunks on the host at most). The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
 """
@@ -23,6 +25,8 @@ from __future__ import annotations
 
 import gc
 import time
+import warnings
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,16 +34,17 @@ import numpy as np
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
-from .samplers import sobol_unit
-from .space import DesignSpace
+from .space import DesignSpace, DeviceTable
 from ..io import atomic_path
-from ..model.forward import ForwardSettings
+from ..model.forward import ForwardSettings, resolve_device
 
 
 @dataclass
 class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
-    ``evaluation_seconds`` (device work incl. transfers), ``write_seconds``."""
+    ``evaluation_seconds`` (launches, transfers and waiting for the device: the device
+    time that the writing and the points did not hide), ``write_seconds``,
+    ``points_seconds`` (waiting for the Sobol points, drawn on the host in a thread)."""
 
     path: Path
     n_points: int
@@ -48,6 +53,7 @@ class SweepInfo:
     chunks: int
     evaluation_seconds: float
     write_seconds: float
+    points_seconds: float = 0.0
 
 
 def _units(space: DesignSpace, name: str) -> str:
@@ -123,12 +129,15 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
+    # each chunk's table is built where it is evaluated (for a cluster, here, then sent)
+    tables = DeviceTable(space, ev.device if client is None else resolve_device(settings.device))
     t0 = time.perf_counter()
-    t_eval = t_write = 0.0
+    t_eval = t_write = t_points = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     try:
-        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f:
+        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f, \
+                ThreadPoolExecutor(1) as pool:
             f.attrs["title"] = "tawarp sweep"
             f.attrs["core"] = str(space.core.source)
             f.attrs["mode"] = mode
@@ -164,51 +173,95 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 var.attrs["long_name"] = o.long_name
                 outs[o.name] = var
             if mode == "grid":
-                it = ((lo, hi, sl) for lo, hi, sl in _blocks(shape, chunk))
+                blocks = _blocks(shape, chunk)
             else:
-                it = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
-            for lo, hi, sl in it:
-                m = hi - lo
-                if mode == "grid":
-                    idx = np.unravel_index(np.arange(lo, hi, dtype=np.int64), shape)
-                    values = {}
-                    for j, d in enumerate(dims):
-                        if d == "material":
-                            values[d] = idx[j].astype(np.int64)
-                        else:
-                            values[d] = grids[d][idx[j]]
-                else:
-                    d_all = len(cont) + (1 if space.material is not None else 0)
-                    u = sobol_unit(m, d_all, seed, skip=lo)
-                    values = space.from_unit(u[:, : len(cont)])
-                    if space.material is not None:
-                        values["material"] = np.minimum((u[:, -1] * len(space.material.choices)).astype(np.int64),
-                                                        len(space.material.choices) - 1)
-                t = time.perf_counter()
-                table = space.varying_table(values)
-                res = ev.evaluate_table(table)
-                t_eval += time.perf_counter() - t
+                blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
+
+            def write(lo, hi, sl, res, values):
+                nonlocal t_write
                 t = time.perf_counter()
                 block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
                 full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
-                sub_shape = tuple(b for b in block) + tuple(shape[len(sl):])
+                sub_shape = block + tuple(shape[len(sl):])
                 for k in outputs:
-                    outs[k][full] = res[k].astype(np.float32).reshape(sub_shape)
-                if mode == "sobol":
-                    for v in cont:
-                        f.variables[v.name][lo:hi] = values[v.name]
-                    if space.material is not None:
-                        f.variables["material"][lo:hi] = values["material"].astype(np.int8)
+                    outs[k][full] = np.asarray(res[k], dtype=np.float32).reshape(sub_shape)
+                if values is not None:
+                    for j, name in enumerate(tables.names):
+                        v = values[j].astype(np.int8) if name == "material" else values[j]
+                        f.variables[name][lo:hi] = v
                 t_write += time.perf_counter() - t
+                bar.update(hi - lo)
+
+            # chunk k is launched; while the device works (Warp launches return at once on
+            # CUDA) chunk k - 1 is written and a thread draws chunk k + 1's Sobol points;
+            # then chunk k is fetched: two chunks at most on the host, one on the device
+            draw = _sobol_draws(len(tables.names), seed) if mode == "sobol" else None
+            block = next(blocks, None)
+            t = time.perf_counter()
+            u = draw(block[1] - block[0]) if draw and block else None
+            t_points += time.perf_counter() - t
+            pending = None
+            while block is not None:
+                lo, hi, sl = block
+                t = time.perf_counter()
+                table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
+                finish = _launch(ev, table, outputs)
+                t_eval += time.perf_counter() - t
+                block = next(blocks, None)
+                ahead = pool.submit(draw, block[1] - block[0]) if draw and block else None
+                if pending is not None:
+                    write(*pending)
+                t = time.perf_counter()
+                pending = (lo, hi, sl, finish(), None if values is None else values.numpy())
+                t_eval += time.perf_counter() - t
+                t = time.perf_counter()
+                u = ahead.result() if ahead else None
+                t_points += time.perf_counter() - t
                 nchunks += 1
-                bar.update(m)
-                del values, table, res
+                del table, values, finish
                 if nchunks % 16 == 0:
                     gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
+            if pending is not None:
+                write(*pending)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
+    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, t_points)
+
+
+def _sobol_draws(d: int, seed: int):
+    """``draw(m)``: the next m points of :func:`tawarp.design.samplers.sobol_unit`'s
+    sequence for (d, seed), from one engine drawn on chunk after chunk: the points of
+    ``sobol_unit(m, d, seed, skip=lo)`` without its fast-forward through the lo points
+    before, which costs O(lo) (0.4 s per chunk at 64M points on the 2-core machine)."""
+    from scipy.stats import qmc
+
+    if d == 0:
+        return lambda m: np.zeros((m, 0))
+    eng = qmc.Sobol(d, scramble=True, seed=seed)
+
+    def draw(m: int) -> np.ndarray:
+        if eng.num_generated:
+            return eng.random(m)
+        with warnings.catch_warnings():   # only the first draw warns, in the sweep's thread
+            warnings.simplefilter("ignore", UserWarning)  # balance needs powers of 2; any m is fine here
+            return eng.random(m)
+
+    return draw
+
+
+def _launch(ev, table, outputs: list):
+    """Start the evaluation of a chunk's device ``table``; returns the call that waits
+    for its ``outputs``. An :class:`Evaluator` launches and returns at once (on CUDA), and
+    when every output is a kernel column rounds them to float32 on the device (half the
+    copy, no cast on the host); a cluster evaluator works in that call."""
+    if not isinstance(ev, Evaluator):
+        return lambda: ev.evaluate_table(table)
+    out = ev.evaluate_device(table)
+    if ev.extra:
+        return lambda: ev.objectives_of(out, table)
+    f32 = ev.columns_float32(out, outputs)
+    return lambda: dict(zip(outputs, f32.numpy()))
 
 
 def _chunk_shape(shape: tuple, chunk: int) -> tuple:
