@@ -31,6 +31,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
@@ -131,6 +132,14 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         dims = ["sample"]
     # each chunk's table is built where it is evaluated (for a cluster, here, then sent)
     tables = DeviceTable(space, ev.device if client is None else resolve_device(settings.device))
+    # two host buffers of the float32 columns, alternated: chunk k lands in one while chunk
+    # k - 1 is written from the other; page-locked on CUDA, so the copy is one DMA that
+    # overlaps the writing and no fresh host array is paged in per chunk
+    host = None
+    if isinstance(ev, Evaluator) and not ev.extra:
+        pinned = wp.get_device(ev.device).is_cuda
+        host = [wp.empty((len(outputs), min(chunk, n)), dtype=wp.float32, device="cpu", pinned=pinned)
+                for _ in range(2)]
     t0 = time.perf_counter()
     t_eval = t_write = t_points = 0.0
     nchunks = 0
@@ -155,20 +164,18 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                         var = f.create_variable(d, (d,), dtype="f8")
                         var[:] = grids[d]
                         var.attrs["units"] = _units(space, d)
-                cshape = tuple(max(1, min(s, c)) for s, c in zip(shape, _chunk_shape(shape, chunk)))
             else:
                 f.dimensions = {"sample": n}
-                cshape = (min(n, max(1, min(chunk, 1 << 20))),)
                 for v in cont:
-                    var = f.create_variable(v.name, ("sample",), dtype="f8", chunks=cshape)
+                    var = f.create_variable(v.name, ("sample",), dtype="f8")
                     var.attrs["units"] = _units(space, v.name)
                 if space.material is not None:
-                    var = f.create_variable("material", ("sample",), dtype="i1", chunks=cshape)
+                    var = f.create_variable("material", ("sample",), dtype="i1")
                     var.attrs["flag_values"] = np.arange(len(space.material.choices), dtype=np.int8)
                     var.attrs["flag_meanings"] = " ".join(space.material.choices)
             outs = {}
             for o in rows:
-                var = f.create_variable(o.name, tuple(dims), dtype="f4", chunks=cshape)
+                var = f.create_variable(o.name, tuple(dims), dtype="f4")
                 var.attrs["units"] = o.unit
                 var.attrs["long_name"] = o.long_name
                 outs[o.name] = var
@@ -205,7 +212,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 lo, hi, sl = block
                 t = time.perf_counter()
                 table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
-                finish = _launch(ev, table, outputs)
+                finish = _launch(ev, table, outputs, host[nchunks % 2] if host else None)
                 t_eval += time.perf_counter() - t
                 block = next(blocks, None)
                 ahead = pool.submit(draw, block[1] - block[0]) if draw and block else None
@@ -250,27 +257,26 @@ def _sobol_draws(d: int, seed: int):
     return draw
 
 
-def _launch(ev, table, outputs: list):
+def _launch(ev, table, outputs: list, host: wp.array | None):
     """Start the evaluation of a chunk's device ``table``; returns the call that waits
     for its ``outputs``. An :class:`Evaluator` launches and returns at once (on CUDA), and
     when every output is a kernel column rounds them to float32 on the device (half the
-    copy, no cast on the host); a cluster evaluator works in that call."""
+    copy, no cast on the host) and copies them into the host buffer ``host`` (len(outputs),
+    >= chunk) in the same stream; the call waits for that copy and returns views of it,
+    valid until the buffer's next use. A cluster evaluator works in that call."""
     if not isinstance(ev, Evaluator):
         return lambda: ev.evaluate_table(table)
     out = ev.evaluate_device(table)
     if ev.extra:
         return lambda: ev.objectives_of(out, table)
     f32 = ev.columns_float32(out, outputs)
-    return lambda: dict(zip(outputs, f32.numpy()))
+    m = f32.shape[1]
+    for j in range(len(outputs)):
+        wp.copy(host[j], f32[j], count=m)
 
+    def finish():
+        wp.synchronize_device(ev.device)
+        arr = host.numpy()
+        return {k: arr[j, :m] for j, k in enumerate(outputs)}
 
-def _chunk_shape(shape: tuple, chunk: int) -> tuple:
-    """HDF5 chunk shape of about min(chunk, 2^20) points, trailing dimensions first."""
-    target = max(1, min(chunk, 1 << 20))
-    out = []
-    rem = target
-    for s in reversed(shape):
-        c = max(1, min(s, rem))
-        out.append(c)
-        rem = max(1, rem // c)
-    return tuple(reversed(out))
+    return finish
