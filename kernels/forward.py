@@ -161,6 +161,18 @@ def step_doubling_error(params: wp.array2d(dtype=wp.float64), gas: wp.array(dtyp
     err[i] = worst
 
 
+@wp.func
+def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, omega: wp.float64,
+                      c_cold: wp.float64):
+    """Magnus cells of a thermal segment of length ``length`` [m] at cell density ``density``:
+    ceil(density (1 + k L + omega L / c_cold)), k [1/m] the heat model's decay rate, omega
+    [rad/s], c_cold [m/s]: the profile varies on the scale 1/k and the wave on c/omega, and a
+    sixth-order cell's error scales with the sixth power of its length over those scales.
+    The one rule of the cascade, the onset's walk (:mod:`tawarp.kernels.onset`) and the
+    fits' fixed counts (:func:`tawarp.kernels.lm.magnus_cells`)."""
+    return int(wp.ceil(density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+
+
 def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
     """The cascade kernel (below), compiled for a linear heat model only (``nonlinear``
     False: the Kirchhoff profile of the temperature-dependent effects is left out, which
@@ -221,8 +233,7 @@ def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
                 n_cells = seg_cells[s]
                 if n_cells == 0:
                     c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                    n_cells = int(wp.ceil(density_factor * cell_density[i]
-                                          * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+                    n_cells = magnus_cell_count(density_factor * cell_density[i], k, length, omega, c_cold)
                 h = length / wp.float64(n_cells)
                 for c in range(n_cells):
                     x0 = wp.float64(c) * h

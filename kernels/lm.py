@@ -27,6 +27,7 @@ from the same Warp functions (no host copy of the physics to drift):
 
 import warp as wp
 
+from .forward import magnus_cell_count
 from .gas import conductivity, sound_speed_squared, viscosity
 from .heat import segment_heat_coeffs
 from .layout import F_THERMAL, LENGTH, T_COLD, seg_value
@@ -50,7 +51,7 @@ def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
         lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
         length = seg_value(params, i, s, LENGTH)
         c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
-        cells[i, s] = int(wp.ceil(cell_density[i] * (wp.float64(1.0) + k_factor * k * length + omega * length / c_cold)))
+        cells[i, s] = magnus_cell_count(cell_density[i], k_factor * k, length, omega, c_cold)
 
 
 @wp.kernel(enable_backward=False)

@@ -23,8 +23,8 @@ import warp as wp
 
 from .acoustics import CMat2, expm2, magnus6_step, propagation_matrix_complex, scale2
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
-from .forward import (GAUSS_1, GAUSS_2, GAUSS_3, PI, TWO_PI, frame_mobility, pore_geometry, shape_factor,
-                      thermal_radius)
+from .forward import (GAUSS_1, GAUSS_2, GAUSS_3, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry,
+                      shape_factor, thermal_radius)
 from .gas import sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
 from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
@@ -107,7 +107,7 @@ def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
             n_cells = seg_cells[s]
             if n_cells == 0:
                 c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                n_cells = int(wp.ceil(cell_density * (wp.float64(1.0) + k * length + omega_ref * length / c_cold)))
+                n_cells = magnus_cell_count(cell_density, k, length, omega_ref, c_cold)
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 x0 = wp.float64(c) * h
