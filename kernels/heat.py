@@ -34,7 +34,7 @@ approximation (lam at the cell's mean temperature) that the design metrics use.
 
 import warp as wp
 
-from .layout import (CONDUCTIVITY_EXPONENT, END_CONDUCTANCE, F_HEATER, F_POROUS, F_THERMAL, H, H_CONVECTION, HEAT_INPUT,
+from .layout import (CONDUCTIVITY_EXPONENT, END_CONDUCTANCE, F_HEATER, F_POROUS, H, H_CONVECTION, HEAT_INPUT,
                      LENGTH, POROSITY, RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE,
                      seg_value)
 from .gas import conductivity

@@ -29,7 +29,6 @@ from __future__ import annotations
 
 import math
 from collections import namedtuple
-from typing import Sequence
 
 import numpy as np
 import scipy.special as sp
