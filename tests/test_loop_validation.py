@@ -212,3 +212,26 @@ def test_indistinguishable_effects_are_one_step(tmp_path):
     js = write_report(prob, rep, tmp_path)
     assert js["accepted_steps"] == [st["effect"]]
     assert st["effect"] in (tmp_path / "report.md").read_text()
+
+
+def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path):
+    # the study's seed 69: the ceramic's data (stack 48 mm, hot exchanger 10 mm) fitted with
+    # the NiCr foam's core (40 mm, 13 mm). At its drawn noise (0.8 %) the NiCr core with plane
+    # offsets makes the noise-free data to within 0.15 noise floors (stack geometry
+    # (L, q, phi) -> (qL, q/phi) leaves a uniform-temperature segment's 2-port unchanged): no
+    # method can flag it, and the study does not score it. The same case at 0.1 % noise (the
+    # study's lowest) lies >= 0.5 floors from everything the loop can make of the core: the
+    # loop flags it
+    case = lv.make_case(69)
+    assert (case.category, case.material, case.core_material) == ("wrong_core", "ceramic", "nicr_foam")
+    assert case.noise > 0.007
+    arrays = lv.load_or_generate(case, tmp_path)
+    core = lv.load_core(case.core_material).replace(**case.prior)
+    settings = lv.ForwardSettings(device="cpu")
+    assert lv.wrong_core_visibility(case, arrays, core, settings, None) < lv.INVISIBLE
+
+    lower = lv.make_case(69, noise=0.001)
+    assert lower.prior == case.prior and lower.truth == case.truth
+    rec = lv.run_case(lower, lv.load_or_generate(lower, tmp_path))
+    assert rec["visibility"] >= lv.INVISIBLE and rec["expected"]["scored"]
+    assert rec["outcome"]["verdict"] in lv.FLAGGED and rec["right"], (rec["outcome"]["verdict"], rec["visibility"])
