@@ -385,11 +385,17 @@ class DeviceTable:
         order over ``space.variables`` (each variable's ``values``, the material's choices)."""
         return self._launch(lo, hi - lo, None, None)
 
-    def unit(self, u: np.ndarray):
-        """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)):
-        ``values`` (len(names), m) the variables' values (the material as its index)."""
+    def unit(self, u):
+        """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)),
+        a NumPy array or a float64 Warp array on the host (page-locked: its copy to the
+        device is queued, not waited for): ``values`` (len(names), m) the variables'
+        values (the material as its index)."""
         import warp as wp
 
-        u = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.float64, device=self.device)
+        if isinstance(u, wp.array):
+            host, u = u, wp.empty(u.shape, dtype=wp.float64, device=self.device)
+            wp.copy(u, host)
+        else:
+            u = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.float64, device=self.device)
         values = wp.empty((len(self.names), u.shape[0]), dtype=wp.float64, device=self.device)
         return self._launch(0, u.shape[0], u, values), values

@@ -140,6 +140,15 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         pinned = wp.get_device(ev.device).is_cuda
         host = [wp.empty((len(outputs), min(chunk, n)), dtype=wp.float32, device="cpu", pinned=pinned)
                 for _ in range(2)]
+    # the same for a Sobol sweep's points (drawn into one while the other goes to the device)
+    # and design values (back from the device into one while the other is written)
+    staged = isinstance(ev, Evaluator) and mode == "sobol" and bool(tables.names)
+    if staged:
+        pinned = wp.get_device(ev.device).is_cuda
+        points = [wp.empty((min(chunk, n), len(tables.names)), dtype=wp.float64, device="cpu", pinned=pinned)
+                  for _ in range(2)]
+        values_host = [wp.empty((len(tables.names), min(chunk, n)), dtype=wp.float64, device="cpu", pinned=pinned)
+                       for _ in range(2)]
     t0 = time.perf_counter()
     t_eval = t_write = t_points = 0.0
     nchunks = 0
@@ -202,10 +211,19 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
             # chunk k is launched; while the device works (Warp launches return at once on
             # CUDA) chunk k - 1 is written and a thread draws chunk k + 1's Sobol points;
             # then chunk k is fetched: two chunks at most on the host, one on the device
-            draw = _sobol_draws(len(tables.names), seed) if mode == "sobol" else None
+            sobol = _sobol_draws(len(tables.names), seed) if mode == "sobol" else None
+
+            def draw(m: int, k: int):
+                """Chunk k's m Sobol points, in its page-locked buffer when staged."""
+                if not staged:
+                    return sobol(m)
+                view = points[k % 2][:m]
+                view.numpy()[:] = sobol(m)
+                return view
+
             block = next(blocks, None)
             t = time.perf_counter()
-            u = draw(block[1] - block[0]) if draw and block else None
+            u = draw(block[1] - block[0], 0) if sobol and block else None
             t_points += time.perf_counter() - t
             pending = None
             while block is not None:
@@ -213,13 +231,22 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 t = time.perf_counter()
                 table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
                 finish = _launch(ev, table, outputs, host[nchunks % 2] if host else None)
+                if staged:   # queued behind the chunk's evaluation; finish() waits for both
+                    for j in range(len(tables.names)):
+                        wp.copy(values_host[nchunks % 2][j], values[j], count=hi - lo)
                 t_eval += time.perf_counter() - t
                 block = next(blocks, None)
-                ahead = pool.submit(draw, block[1] - block[0]) if draw and block else None
+                ahead = pool.submit(draw, block[1] - block[0], nchunks + 1) if sobol and block else None
                 if pending is not None:
                     write(*pending)
                 t = time.perf_counter()
-                pending = (lo, hi, sl, finish(), None if values is None else values.numpy())
+                done = finish()
+                if staged:   # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
+                    wp.synchronize_device(ev.device)
+                    values = values_host[nchunks % 2].numpy()[:, :hi - lo]
+                elif values is not None:
+                    values = values.numpy()
+                pending = (lo, hi, sl, done, values)
                 t_eval += time.perf_counter() - t
                 t = time.perf_counter()
                 u = ahead.result() if ahead else None
