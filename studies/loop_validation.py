@@ -636,11 +636,19 @@ def figures(summary: dict, records: list[dict], out: Path) -> None:
     save(fig, out / "residual_ratio.png")
 
 
+def seed_list(text: str) -> list[int]:
+    """``--seeds``: comma-separated integers ("13,27,41")."""
+    try:
+        return [int(x) for x in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"comma-separated integer seeds expected, got {text!r}") from None
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     ap.add_argument("--cases", type=int, default=14, help="number of cases (seeds SEED0 .. SEED0 + CASES - 1)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
-    ap.add_argument("--seeds", type=lambda v: [int(x) for x in v.split(",")], default=None,
+    ap.add_argument("--seeds", type=seed_list, default=None,
                     help="comma-separated seeds instead of SEED0 .. SEED0 + CASES - 1 (with --append: run again)")
     ap.add_argument("--category", choices=CATEGORIES, default=None,
                     help="every case of this category (default: cycled by seed, so the study mixes them all)")
