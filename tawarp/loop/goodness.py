@@ -84,14 +84,6 @@ def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
     return out
 
 
-def noise_floor_of(problem: MeasurementKind, sigma: np.ndarray) -> float:
-    """The FORMATS.md error of data that differ from the model by noise of ``sigma``
-    (weighted units, per real residual): the weights are 1/rms|y| without sigma columns."""
-    n = problem.y.size
-    w = np.concatenate([problem.w[:, 0], problem.w[:, 1]])
-    return float(np.sqrt(np.sum((sigma / w) ** 2) / n / np.mean(np.abs(problem.y) ** 2)))
-
-
 def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray | None, source: str) -> dict:
     """Reduced chi^2 and p-value of ``fit`` (all rows) against noise ``sigma`` per real
     residual (None: the data's own sigma, weights 1/sigma), its noise floor, the parameters
@@ -112,7 +104,7 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     # effect, p = 0.0009 so weighted, 0.6 with the fit's weights)
     structure = smooth_fraction(problem, np.stack([r[:n], r[n:]], -1))
     fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
-    floor = problem.noise_floor() if sigma is None else noise_floor_of(problem, sigma)
+    floor = problem.noise_floor(sigma)
     return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
             "error": float(fit.rms_error[0]), "adequate": bool(fits), "structure": structure,
             "white": structure["p_value"] >= STRUCTURE_P, "at_bounds": at}

@@ -70,11 +70,17 @@ class MeasurementKind:
         rows = slice(None) if rows is None else rows
         return float(rms_error(self.y[rows], np.asarray(Y)[..., rows]))
 
-    def noise_floor(self) -> float | None:
-        """The FORMATS.md error of data that differ from the model by noise alone."""
-        if not self.has_sigma:
-            return None
-        return float(np.sqrt(np.mean((1.0 / self.w ** 2).sum(-1)) / np.mean(np.abs(self.y) ** 2)))
+    def noise_floor(self, sigma: np.ndarray | None = None) -> float | None:
+        """The FORMATS.md error of data that differ from the model by noise alone: of
+        standard deviation ``sigma`` per real residual in weighted units (the fit's residual
+        order: the rows' real parts, then their imaginary parts), or by default the data's
+        own sigma columns (weights 1/sigma: 1 each; None without them)."""
+        if sigma is None:
+            if not self.has_sigma:
+                return None
+            sigma = np.ones(2 * self.y.size)
+        w = np.concatenate([self.w[:, 0], self.w[:, 1]])
+        return float(np.sqrt(np.sum((sigma / w) ** 2) / self.y.size / np.mean(np.abs(self.y) ** 2)))
 
 
 # -- forward engines for fits -------------------------------------------------------------
