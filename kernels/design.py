@@ -143,6 +143,25 @@ def design_coordinate(lo: wp.int64, i: int, v: int, unit: wp.array2d(dtype=wp.fl
 
 
 @wp.kernel
+def sobol_points(first: wp.int64, directions: wp.array2d(dtype=wp.int64), shift: wp.array(dtype=wp.int64),
+                 scale: wp.float64, unit: wp.array2d(dtype=wp.float64)):
+    """unit[k, d] = coordinate d of point first + k of a scrambled Sobol sequence (one thread
+    per coordinate): the digital ``shift`` XOR the direction numbers ``directions[d, j]`` of
+    the set bits j of the point's Gray code i ^ (i >> 1), times ``scale`` = 2^-bits. This is
+    the construction of scipy.stats.qmc.Sobol, whose points it gives bit for bit from that
+    engine's numbers (:func:`tawarp.design.samplers.sobol_directions`): any point is made
+    where it is used, without the sequence's recurrence."""
+    k, d = wp.tid()
+    i = first + wp.int64(k)
+    gray = i ^ (i >> wp.int64(1))
+    q = shift[d]
+    for j in range(directions.shape[1]):
+        if ((gray >> wp.int64(j)) & wp.int64(1)) != wp.int64(0):
+            q = q ^ directions[d, j]
+    unit[k, d] = wp.float64(q) * scale
+
+
+@wp.kernel
 def design_table(lo: wp.int64, unit: wp.array2d(dtype=wp.float64), grid: wp.array(dtype=wp.float64),
                  kind: wp.array(dtype=wp.int32), stride: wp.array(dtype=wp.int64), size: wp.array(dtype=wp.int32),
                  start: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64), span: wp.array(dtype=wp.float64),

@@ -95,6 +95,11 @@ def atomic_path(path: str | Path):
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     os.close(fd)
+    # mkstemp only picks a free name; the writer creates the file: opening an existing one
+    # with O_TRUNC (mode "w") makes ext4 write all its data out when it is closed
+    # (auto_da_alloc): 1.6 s of a 3.1 GB sweep on the H200; a new file's data are written
+    # back in the background
+    os.remove(tmp)
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())

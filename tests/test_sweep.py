@@ -79,4 +79,6 @@ def test_sweep_file_has_normal_permissions_and_no_debris(tmp_path):
     assert (tmp_path / "p.nc").stat().st_mode & 0o777 == 0o644
     with pytest.raises(ValueError, match="n_samples"):
         sweep(space, tmp_path / "q.nc", mode="sobol", n_samples=0)
+    with pytest.raises(ValueError, match="at most 1073741824 points"):   # the Sobol sequence's 2^30
+        sweep(space, tmp_path / "q.nc", mode="sobol", n_samples=2**30 + 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.nc"]

@@ -3,6 +3,7 @@ DesignSpace.varying_table, and whole sweeps against the host path, on the CPU.
 
 Reference: the host path the sweep used before (NumPy grid indices or scipy Sobol points
 scaled by DesignSpace.from_unit, DesignSpace.varying_table, Evaluator.evaluate_table).
+Sobol points made on the device are scipy's bit for bit (integers times a power of 2).
 Grid tables are copies of grid values and material rows: equal bit for bit. Unit points
 are scaled by the same float64 operations; the device's exp (log-scale variables) and a
 fused multiply-add on a GPU may round differently: 1e-12 relative."""
@@ -14,7 +15,7 @@ import pytest
 import warp as wp
 
 from tawarp.design.evaluate import Evaluator
-from tawarp.design.samplers import sobol_unit
+from tawarp.design.samplers import sobol_directions, sobol_unit
 from tawarp.design.space import DesignSpace, DeviceTable, Variable
 from tawarp.model.core import load_core
 
@@ -61,6 +62,20 @@ def _unit_values(space: DesignSpace, u: np.ndarray) -> dict:
 
 
 @pytest.mark.parametrize("device", ["cpu", CUDA])
+@pytest.mark.parametrize(("d", "seed", "first"), [(1, 0, 0), (5, 3, 12345), (7, 11, 2**27 + 5)])
+def test_device_sobol_points_are_scipys(d, seed, first, device):
+    # from the first point (the scrambled shift alone) to past 2^27 (Gray-code bits up to 27)
+    from tawarp.kernels.design import sobol_points
+
+    directions, shift, scale = sobol_directions(d, seed)
+    u = wp.empty((300, d), dtype=wp.float64, device=device)
+    wp.launch(sobol_points, dim=u.shape, device=device,
+              inputs=[wp.int64(first), wp.array(directions, dtype=wp.int64, device=device),
+                      wp.array(shift, dtype=wp.int64, device=device), wp.float64(scale), u])
+    np.testing.assert_array_equal(u.numpy(), sobol_unit(300, d, seed, skip=first))
+
+
+@pytest.mark.parametrize("device", ["cpu", CUDA])
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_device_tables_equal_the_host_tables(seed, device):
     rng = np.random.default_rng(seed)
@@ -70,8 +85,9 @@ def test_device_tables_equal_the_host_tables(seed, device):
     lo = int(rng.integers(0, n // 2))
     hi = int(rng.integers(lo + 1, n + 1))
     np.testing.assert_array_equal(tables.grid(lo, hi).numpy(), space.varying_table(_grid_values(space, lo, hi)))
-    u = sobol_unit(257, len(tables.names), seed, skip=int(rng.integers(0, 1000)))
-    table, values = tables.unit(u)
+    skip = int(rng.integers(0, 1000))
+    u = sobol_unit(257, len(tables.names), seed, skip=skip)
+    table, values = tables.sobol(skip, skip + 257, seed)    # the points made on the device: scipy's, bit for bit
     host = _unit_values(space, u)
     np.testing.assert_allclose(table.numpy(), space.varying_table(host), rtol=1e-12, atol=0)
     for j, name in enumerate(tables.names):

@@ -61,6 +61,23 @@ def sobol_unit(n: int, d: int, seed: int, skip: int = 0) -> np.ndarray:
         return eng.random(n)
 
 
+#: Points of a scrambled Sobol sequence of :func:`sobol_unit` (scipy's default 30 bits).
+SOBOL_MAX_POINTS = 2 ** 30
+
+
+def sobol_directions(d: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """(directions (d, bits), shift (d,), scale) of the scrambled Sobol sequence of
+    :func:`sobol_unit` for (d, seed): its point i is ``scale`` times ``shift`` XOR the
+    ``directions[:, j]`` of the set bits j of i ^ (i >> 1) (the Gray-code construction of
+    scipy.stats.qmc.Sobol; the numbers are its engine's, after scrambling, and
+    tests/test_sweep_tables.py checks the points made from them against :func:`sobol_unit`).
+    At most ``1 / scale`` = :data:`SOBOL_MAX_POINTS` points."""
+    from scipy.stats import qmc
+
+    eng = qmc.Sobol(d, scramble=True, seed=seed)
+    return eng._sv.astype(np.int64), eng._shift.astype(np.int64), float(eng._scale)
+
+
 def _penalized(f: np.ndarray, violation: np.ndarray) -> np.ndarray:
     """Deb's rule for a minimized scalar: infeasible points rank after every feasible one,
     by their violation."""

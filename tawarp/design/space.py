@@ -366,6 +366,7 @@ class DeviceTable:
             materials=wp.array2d(materials, dtype=wp.float64, device=device),
             material_rows=up(np.asarray(material_rows, dtype=np.int32), wp.int32))
         self.rows = 1 + len(params)
+        self._sobol = None   # (seed, directions, shift, scale) on the device, made by the first sobol()
 
     def _launch(self, lo: int, m: int, unit, values):
         import warp as wp
@@ -385,17 +386,32 @@ class DeviceTable:
         order over ``space.variables`` (each variable's ``values``, the material's choices)."""
         return self._launch(lo, hi - lo, None, None)
 
-    def unit(self, u):
-        """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)),
-        a NumPy array or a float64 Warp array on the host (page-locked: its copy to the
-        device is queued, not waited for): ``values`` (len(names), m) the variables'
-        values (the material as its index)."""
+    def sobol(self, lo: int, hi: int, seed: int):
+        """:meth:`unit` of the points lo..hi-1 of :func:`tawarp.design.samplers.sobol_unit`'s
+        sequence for (len(names), seed), made on the device (:func:`tawarp.kernels.design.sobol_points`)."""
         import warp as wp
 
-        if isinstance(u, wp.array):
-            host, u = u, wp.empty(u.shape, dtype=wp.float64, device=self.device)
-            wp.copy(u, host)
-        else:
+        from ..kernels.design import sobol_points
+        from .samplers import sobol_directions
+
+        u = wp.empty((hi - lo, len(self.names)), dtype=wp.float64, device=self.device)
+        if self.names:
+            if self._sobol is None or self._sobol[0] != seed:
+                directions, shift, scale = sobol_directions(len(self.names), seed)
+                self._sobol = (seed, wp.array(directions, dtype=wp.int64, device=self.device),
+                               wp.array(shift, dtype=wp.int64, device=self.device), scale)
+            _, directions, shift, scale = self._sobol
+            wp.launch(sobol_points, dim=u.shape, device=self.device,
+                      inputs=[wp.int64(lo), directions, shift, wp.float64(scale), u])
+        return self.unit(u)
+
+    def unit(self, u):
+        """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)),
+        a NumPy array or a float64 Warp array on the device: ``values`` (len(names), m) the
+        variables' values (the material as its index)."""
+        import warp as wp
+
+        if not isinstance(u, wp.array):
             u = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.float64, device=self.device)
         values = wp.empty((len(self.names), u.shape[0]), dtype=wp.float64, device=self.device)
         return self._launch(0, u.shape[0], u, values), values

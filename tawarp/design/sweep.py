@@ -12,10 +12,10 @@ Outputs (float32, CF ``units`` and ``long_name`` from the objectives table,
 :mod:`tawarp.design.objectives`): by default the metrics kernel's columns
 (``gradient`` [K/m] = (T(x3) - T(x2)) / l_s, ``T_max`` [K], ``heat_leak`` [W] (stack, to
 the wall), ``T_hot`` [K] = T(x3)); ``outputs`` adds or selects any registered objective.
-The work is done in chunks of ``chunk`` points: per chunk one launch builds its
-parameter table on the device (:class:`tawarp.design.space.DeviceTable`: from the grid
-index, or from the Sobol points made on the host), then one heat-solve and one metrics
-launch; each chunk is written in place (an HDF5 hyperslab) while the device evaluates the
+The work is done in chunks of ``chunk`` points: per chunk the device builds its
+parameter table (:class:`tawarp.design.space.DeviceTable`: from the grid index, or from
+the chunk's Sobol points, which it makes too: scipy's sequence, bit for bit), then one
+heat-solve and one metrics launch; each chunk is written in place (an HDF5 hyperslab) while the device evaluates the
 next, so memory stays flat whatever the size (two chunks on the host at most). The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
@@ -25,8 +25,6 @@ from __future__ import annotations
 
 import gc
 import time
-import warnings
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -35,6 +33,7 @@ import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
+from .samplers import SOBOL_MAX_POINTS
 from .space import DesignSpace, DeviceTable
 from ..io import atomic_path
 from ..model.forward import ForwardSettings, resolve_device
@@ -44,8 +43,7 @@ from ..model.forward import ForwardSettings, resolve_device
 class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
     ``evaluation_seconds`` (launches, transfers and waiting for the device: the device
-    time that the writing and the points did not hide), ``write_seconds``,
-    ``points_seconds`` (waiting for the Sobol points, drawn on the host in a thread)."""
+    time that the writing did not hide), ``write_seconds``."""
 
     path: Path
     n_points: int
@@ -54,7 +52,6 @@ class SweepInfo:
     chunks: int
     evaluation_seconds: float
     write_seconds: float
-    points_seconds: float = 0.0
 
 
 def _units(space: DesignSpace, name: str) -> str:
@@ -127,6 +124,9 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     else:
         if not n_samples or n_samples < 1:
             raise ValueError("sobol sweep: give n_samples >= 1")
+        if n_samples > SOBOL_MAX_POINTS:
+            raise ValueError(f"sobol sweep: at most {SOBOL_MAX_POINTS} points (2^30, the sequence's), "
+                             f"got {n_samples}")
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
@@ -140,22 +140,18 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         pinned = wp.get_device(ev.device).is_cuda
         host = [wp.empty((len(outputs), min(chunk, n)), dtype=wp.float32, device="cpu", pinned=pinned)
                 for _ in range(2)]
-    # the same for a Sobol sweep's points (drawn into one while the other goes to the device)
-    # and design values (back from the device into one while the other is written)
+    # the same for a Sobol sweep's design values (made on the device with its points)
     staged = isinstance(ev, Evaluator) and mode == "sobol" and bool(tables.names)
     if staged:
         pinned = wp.get_device(ev.device).is_cuda
-        points = [wp.empty((min(chunk, n), len(tables.names)), dtype=wp.float64, device="cpu", pinned=pinned)
-                  for _ in range(2)]
         values_host = [wp.empty((len(tables.names), min(chunk, n)), dtype=wp.float64, device="cpu", pinned=pinned)
                        for _ in range(2)]
     t0 = time.perf_counter()
-    t_eval = t_write = t_points = 0.0
+    t_eval = t_write = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     try:
-        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f, \
-                ThreadPoolExecutor(1) as pool:
+        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f:
             f.attrs["title"] = "tawarp sweep"
             f.attrs["core"] = str(space.core.source)
             f.attrs["mode"] = mode
@@ -209,34 +205,17 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 bar.update(hi - lo)
 
             # chunk k is launched; while the device works (Warp launches return at once on
-            # CUDA) chunk k - 1 is written and a thread draws chunk k + 1's Sobol points;
-            # then chunk k is fetched: two chunks at most on the host, one on the device
-            sobol = _sobol_draws(len(tables.names), seed) if mode == "sobol" else None
-
-            def draw(m: int, k: int):
-                """Chunk k's m Sobol points, in its page-locked buffer when staged."""
-                if not staged:
-                    return sobol(m)
-                view = points[k % 2][:m]
-                view.numpy()[:] = sobol(m)
-                return view
-
-            block = next(blocks, None)
-            t = time.perf_counter()
-            u = draw(block[1] - block[0], 0) if sobol and block else None
-            t_points += time.perf_counter() - t
+            # CUDA) chunk k - 1 is written; then chunk k is fetched: two chunks at most on the
+            # host, one on the device
             pending = None
-            while block is not None:
-                lo, hi, sl = block
+            for lo, hi, sl in blocks:
                 t = time.perf_counter()
-                table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.unit(u)
+                table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.sobol(lo, hi, seed)
                 finish = _launch(ev, table, outputs, host[nchunks % 2] if host else None)
-                if staged:   # queued behind the chunk's evaluation; finish() waits for both
+                if staged:   # queued behind the chunk's evaluation
                     for j in range(len(tables.names)):
                         wp.copy(values_host[nchunks % 2][j], values[j], count=hi - lo)
                 t_eval += time.perf_counter() - t
-                block = next(blocks, None)
-                ahead = pool.submit(draw, block[1] - block[0], nchunks + 1) if sobol and block else None
                 if pending is not None:
                     write(*pending)
                 t = time.perf_counter()
@@ -248,9 +227,6 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                     values = values.numpy()
                 pending = (lo, hi, sl, done, values)
                 t_eval += time.perf_counter() - t
-                t = time.perf_counter()
-                u = ahead.result() if ahead else None
-                t_points += time.perf_counter() - t
                 nchunks += 1
                 del table, values, finish
                 if nchunks % 16 == 0:
@@ -260,28 +236,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, t_points)
-
-
-def _sobol_draws(d: int, seed: int):
-    """``draw(m)``: the next m points of :func:`tawarp.design.samplers.sobol_unit`'s
-    sequence for (d, seed), from one engine drawn on chunk after chunk: the points of
-    ``sobol_unit(m, d, seed, skip=lo)`` without its fast-forward through the lo points
-    before, which costs O(lo) (0.4 s per chunk at 64M points on the 2-core machine)."""
-    from scipy.stats import qmc
-
-    if d == 0:
-        return lambda m: np.zeros((m, 0))
-    eng = qmc.Sobol(d, scramble=True, seed=seed)
-
-    def draw(m: int) -> np.ndarray:
-        if eng.num_generated:
-            return eng.random(m)
-        with warnings.catch_warnings():   # only the first draw warns, in the sweep's thread
-            warnings.simplefilter("ignore", UserWarning)  # balance needs powers of 2; any m is fine here
-            return eng.random(m)
-
-    return draw
+    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
 
 
 def _launch(ev, table, outputs: list, host: wp.array | None):
