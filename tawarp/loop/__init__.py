@@ -11,10 +11,12 @@ Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
    sigma, or against noise estimated from the second differences along frequency of the
    residual; parameters at bounds flagged; an F-test of the residual's smooth structure
    along frequency (a fit explains the data only when its residual is also white).
-3. **One effect at a time** while the fit is not adequate (:func:`run_loop`, ``_step``):
+3. **One effect at a time** while the fit is not adequate, or adequate but not white (a
+   step then must leave it white) (:func:`run_loop`, ``_step``):
    screening of every candidate at the current solution in one batched launch
    (:mod:`.screen`: sign-constrained for one-sided effects, candidates degenerate with a
-   current parameter named), augmented fits of the promising ones in one lockstep batch,
+   current parameter to first order named, and refitted all the same), augmented fits of
+   the promising ones in one lockstep batch,
    acceptance by Delta BIC, Holm-Bonferroni F-tests at a level halving with each step,
    held-out blocks (frequency bands, groups), no parameter at a bound, and stability over
    resamplings (decimations, block bootstraps); candidates within the BIC margin or with
