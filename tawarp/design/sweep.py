@@ -135,17 +135,14 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     # two host buffers of the float32 columns, alternated: chunk k lands in one while chunk
     # k - 1 is written from the other; page-locked on CUDA, so the copy is one DMA that
     # overlaps the writing and no fresh host array is paged in per chunk
-    host = None
-    if isinstance(ev, Evaluator) and not ev.extra:
+    def host_buffers(rows: int, dtype):
         pinned = wp.get_device(ev.device).is_cuda
-        host = [wp.empty((len(outputs), min(chunk, n)), dtype=wp.float32, device="cpu", pinned=pinned)
-                for _ in range(2)]
+        return [wp.empty((rows, min(chunk, n)), dtype=dtype, device="cpu", pinned=pinned) for _ in range(2)]
+
+    host = host_buffers(len(outputs), wp.float32) if isinstance(ev, Evaluator) and not ev.extra else None
     # the same for a Sobol sweep's design values (made on the device with its points)
     staged = isinstance(ev, Evaluator) and mode == "sobol" and bool(tables.names)
-    if staged:
-        pinned = wp.get_device(ev.device).is_cuda
-        values_host = [wp.empty((len(tables.names), min(chunk, n)), dtype=wp.float64, device="cpu", pinned=pinned)
-                       for _ in range(2)]
+    values_host = host_buffers(len(tables.names), wp.float64) if staged else None
     t0 = time.perf_counter()
     t_eval = t_write = 0.0
     nchunks = 0
