@@ -15,9 +15,9 @@ integrator.
 
 import warp as wp
 
-from .cmath import cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
+from .cmath import cdiv, cexp, cinv, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
-from .pore import pore_functions, pore_functions_complex
+from .pore import pore_functions_complex, pore_functions_log
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -56,6 +56,26 @@ def matmul2(x: CMat2, y: CMat2):
 
 
 @wp.func
+def taylor_terms(size: wp.float64):
+    """Terms of :func:`expm2`'s series at |delta|^2 = ``size`` < 1: the fewest j such that
+    |delta|^(j+1)/(2j+2)! < 1e-17: 3 below |delta| = 7.9e-4, then 4, 5, 6, 7, 8 below
+    8.1e-3, 4.1e-2, 0.136, 0.346, 0.736, and 9 up to 1 (1/20! ~ 4e-19)."""
+    if size < wp.float64(6.3e-7):
+        return 3
+    if size < wp.float64(6.6e-5):
+        return 4
+    if size < wp.float64(1.68e-3):
+        return 5
+    if size < wp.float64(0.0185):
+        return 6
+    if size < wp.float64(0.120):
+        return 7
+    if size < wp.float64(0.54):
+        return 8
+    return 9
+
+
+@wp.func
 def expm2(m: CMat2):
     """exp(m) of a 2x2 complex matrix: with tau = tr/2, N = m - tau I and N^2 = delta I,
     exp(m) = e^tau (cosh(sqrt delta) I + sinh(sqrt delta)/sqrt(delta) N). Both functions
@@ -66,14 +86,19 @@ def expm2(m: CMat2):
     delta = cmul(na, na) + cmul(m.b, m.c)
     ch = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
     sh = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    if delta[0] * delta[0] + delta[1] * delta[1] < wp.float64(1.0):
-        # Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, 11 terms: error < 1/22! ~ 1e-21
+    size = delta[0] * delta[0] + delta[1] * delta[1]
+    if size < wp.float64(1.0):
+        # Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= terms: the first
+        # omitted term |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 (a Magnus cell's
+        # |delta| is mostly far below 1: few of the 9 terms |delta| near 1 needs)
+        terms = taylor_terms(size)
         ch = creal(wp.float64(1.0))
         sh = creal(wp.float64(1.0))
-        for jj in range(10):
-            j = wp.float64(10 - jj)
-            ch = creal(wp.float64(1.0)) + cscale(cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0))))
-            sh = creal(wp.float64(1.0)) + cscale(cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0))))
+        for jj in range(9):   # a fixed count: unrolled, its divisions folded to constants
+            if 9 - jj <= terms:
+                j = wp.float64(9 - jj)
+                ch = creal(wp.float64(1.0)) + cscale(cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0))))
+                sh = creal(wp.float64(1.0)) + cscale(cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0))))
     else:
         r = csqrt(delta)
         ep = cexp(r)
@@ -86,39 +111,72 @@ def expm2(m: CMat2):
     return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na))
 
 
+@wp.struct
+class PointCoefficients:
+    """The frequency-independent factors of A at one point of a part (SI units): A at
+    angular frequency w follows from them and the pore functions alone
+    (:func:`propagation_at`), so a parameter set's points are computed once for all of its
+    frequencies (:func:`tawarp.kernels.forward.point_kernel`).
+
+    ``log_nu`` = ln(r sqrt(rho/(2 mu))) and ``log_k`` = ln(r_k sqrt(rho cp/(2 kappa))):
+    ln(s/sqrt(w)) of the viscous and thermal s = r/delta; ``c12`` = q^2 rho/(phi S)
+    [kg/m^5]; ``c21`` = phi S/(rho c^2) [m^4 s^2/kg]; ``c22`` = (dT/dx)/(T (1 - Pr))
+    [1/m]; ``rho`` [kg/m^3] (the limp frame's density)."""
+
+    log_nu: wp.float64
+    log_k: wp.float64
+    c12: wp.float64
+    c21: wp.float64
+    c22: wp.float64
+    rho: wp.float64
+
+
 @wp.func
-def propagation_matrix(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.float64,
-                       T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
-                       tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
-                       frame_mobility: wp.float64, shape_factor: wp.float64, pore_table: wp.array(dtype=wp.float64)):
-    """A(x) of the two-port ODE at local temperature T [K], gradient dTdx [K/m],
-    angular frequency omega [rad/s], tube section area [m^2]. ``pore_radius`` sets f_nu
-    and ``thermal_radius`` f_k (the same for the one-radius model; a separate thermal
-    radius is the Johnson-Champoux-Allard Lambda'/Lambda effect). ``frame_mobility`` =
-    1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame limp: 0 = rigid.
-    ``shape_factor`` s != 1 (circular pores only) gives the viscous function its own
-    high-frequency length Lambda = r/s at the same flow resistivity (:func:`shape_correction`).
-    ``pore_table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
+def point_coefficients(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, T: wp.float64, dTdx: wp.float64,
+                       porosity: wp.float64, pore_radius: wp.float64, tortuosity: wp.float64, area: wp.float64,
+                       thermal_radius: wp.float64):
+    """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
+    part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
+    for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
+    effect), ``tortuosity``, tube section ``area`` [m^2]."""
     rho = density(gas, T, p_mean)
-    c2 = sound_speed_squared(gas, T)
     mu = viscosity(gas, T)
     kappa = conductivity(gas, T)
     cp = gas[G_CP]
-    gamma = gas[G_GAMMA]
-    prandtl = mu * cp / kappa
-    # r/delta with delta_nu = sqrt(2 mu/(rho w)), delta_k = sqrt(2 k/(rho cp w))
-    s_nu = pore_radius * wp.sqrt(rho * omega / (wp.float64(2.0) * mu))
-    s_k = thermal_radius * wp.sqrt(rho * cp * omega / (wp.float64(2.0) * kappa))
-    f_nu, g_nu = pore_functions(pore_model, s_nu, pore_table)
-    f_k, g_k = pore_functions(pore_model, s_k, pore_table)
+    pc = PointCoefficients()
+    pc.log_nu = wp.log(pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
+    pc.log_k = wp.log(thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    pc.c12 = tortuosity * tortuosity * rho / (porosity * area)
+    pc.c21 = porosity * area / (rho * sound_speed_squared(gas, T))
+    pc.c22 = dTdx / (T * (wp.float64(1.0) - mu * cp / kappa))
+    pc.rho = rho
+    return pc
+
+
+@wp.func
+def propagation_at(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.float64, gamma: wp.float64,
+                   porosity: wp.float64, tortuosity: wp.float64, pore_model: int, area: wp.float64,
+                   frame_mobility: wp.float64, shape_factor: wp.float64, pore_table: wp.array(dtype=wp.float64)):
+    """A(x) of the two-port ODE at angular frequency omega [rad/s] (``half_log_omega`` =
+    ln(omega)/2, shared by a cascade's points) from the point's :class:`PointCoefficients`.
+    ``frame_mobility`` = 1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame
+    limp: 0 = rigid. ``shape_factor`` s != 1 (circular pores only) gives the viscous
+    function its own high-frequency length Lambda = r/s at the same flow resistivity
+    (:func:`shape_correction`). ``pore_table`` is
+    :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
+    log_s_nu = pc.log_nu + half_log_omega
+    f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
+    f_k, g_k = pore_functions_log(pore_model, pc.log_k + half_log_omega, pore_table)
     if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
-        g_nu = cdiv(g_nu, shape_correction(s_nu, shape_factor))
-    a12 = cmuli(cdiv(creal(tortuosity * tortuosity * rho * omega / (porosity * area)), g_nu))
+        g_nu = cdiv(g_nu, shape_correction(wp.exp(log_s_nu), shape_factor))
+    # one complex division per point: a12 and a22 both divide by g_nu
+    inv_g_nu = cinv(g_nu)
+    a12 = cmuli(cscale(inv_g_nu, pc.c12 * omega))
     if frame_mobility > wp.float64(0.0):
-        a12 = cmuli(cscale(limp_density(rho, porosity, tortuosity, g_nu, frame_mobility), omega / area))
-    a21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), porosity * area * omega / (rho * c2)))
+        a12 = cmuli(cscale(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega / area))
+    a21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), pc.c21 * omega))
     # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
-    a22 = cscale(cdiv(g_nu - g_k, g_nu), dTdx / (T * (wp.float64(1.0) - prandtl)))
+    a22 = cscale(cmul(g_nu - g_k, inv_g_nu), pc.c22)
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
     return cmat2(zero, a12, a21, a22)
 
@@ -168,8 +226,12 @@ def axpy2(s: wp.float64, x: CMat2, y: CMat2):
 
 @wp.func
 def commutator2(x: CMat2, y: CMat2):
-    """[x, y] = x y - y x."""
-    return axpy2(wp.float64(-1.0), matmul2(y, x), matmul2(x, y))
+    """[x, y] = x y - y x, from its three free entries: a commutator is traceless and its
+    diagonal products x11 y11, x22 y22 cancel, so 6 complex products instead of 16."""
+    e = cmul(x.b, y.c) - cmul(y.b, x.c)
+    dx = x.d - x.a
+    dy = y.d - y.a
+    return cmat2(e, cmul(x.b, dy) - cmul(y.b, dx), cmul(y.c, dx) - cmul(x.c, dy), -e)
 
 
 @wp.func

@@ -7,16 +7,22 @@ Launch order for a batch of n parameter sets and m frequencies:
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
-3. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
-   thread per (set, frequency) cascades the segment matrices from x1 to x6.
-4. :func:`step_doubling_error` (n threads) compares the s sampled frequencies at the
+3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and
+   :func:`point_kernel` (n P threads) computes the frequency-independent factors of A
+   (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
+   properties, pore scales) at every Gauss point of the set once, for all its frequencies.
+4. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
+   thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
+   points, adding only what depends on the frequency (pore functions, Magnus steps).
+5. :func:`step_doubling_error` (n threads) compares the s sampled frequencies at the
    chosen and at twice the cell density; only the sets above the target are gathered
    (``kernels/batch.py``) and run again, at a raised density.
 """
 
 import warp as wp
 
-from .acoustics import CMat2, expm2, identity2, magnus6_step, matmul2, propagation_matrix, scale2
+from .acoustics import (CMat2, PointCoefficients, expm2, identity2, magnus6_step, matmul2, point_coefficients,
+                        propagation_at, scale2)
 from .cmath import cabs
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
@@ -92,20 +98,6 @@ def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
-def gradient_matrix(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node0: int,
-                    heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64, xi: wp.float64,
-                    p_mean: wp.float64, omega: wp.float64, T_cold: wp.float64, phi: wp.float64, r: wp.float64,
-                    q: wp.float64, model: int, area: wp.float64, r_k: wp.float64, mob: wp.float64, sf: wp.float64,
-                    nonlin: int, pore_table: wp.array(dtype=wp.float64)):
-    """A(x) at local position xi [m] of thermal segment s whose heat cells start at node0;
-    (k, sigma) are the segment's (unused when ``nonlin``: the Kirchhoff cell's profile,
-    :func:`tawarp.kernels.heat.nonlinear_profile`)."""
-    th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
-    return propagation_matrix(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf, pore_table)
-
-
-@wp.func
 def store_matrix(out: wp.array3d(dtype=wp.float64), i: int, j: int, m: CMat2):
     """out[i, j] = (Tpp, Tpu, Tup, Tuu) of m as (re, im) pairs."""
     out[i, j, 0] = m.a[0]
@@ -173,77 +165,159 @@ def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, om
     return int(wp.ceil(density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
 
 
-def make_transfer_kernel(nonlinear: bool, max_registers: int | None = None):
-    """The cascade kernel (below), compiled for a linear heat model only (``nonlinear``
-    False: the Kirchhoff profile of the temperature-dependent effects is left out, which
-    frees registers on the GPU) or for both; ``max_registers`` caps the registers of a
-    CUDA thread (``__maxnreg__``)."""
+@wp.func
+def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                  gas: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32), density: wp.float64,
+                  omega_max: wp.float64, i: int, s: int):
+    """Magnus cells of thermal segment s of set i: ``seg_cells[s]``, or where that is 0
+    :func:`magnus_cell_count` at ``density`` and the batch's highest angular frequency
+    ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
+    points (:func:`point_kernel`); the count's omega term is small beside its k term in a
+    stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
+    n_cells = seg_cells[s]
+    if n_cells == 0:
+        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+        c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
+        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c_cold)
+    return n_cells
+
+
+@wp.func
+def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
+                   s: int):
+    """Points of segment s in set i's point list: 3 Gauss points per Magnus cell of a
+    thermal segment (``cells[i, column]``), one for a part at uniform temperature."""
+    if flags[s, F_THERMAL] == 0:
+        return 1
+    return 3 * cells[i, column]
+
+
+@wp.kernel
+def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                gas: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
+                cell_density: wp.array(dtype=wp.float64), omega_max: wp.float64,
+                cells: wp.array2d(dtype=wp.int32), most: wp.array(dtype=wp.int32)):
+    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
+    cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
+    ``cells`` has its columns); most[0] = the largest point count of a set over the grids."""
+    i = wp.tid()
+    n_seg = flags.shape[0]
+    points = int(0)
+    for column in range(cells.shape[1]):
+        s = column % n_seg
+        cells[i, column] = 0
+        if flags[s, F_THERMAL] != 0:
+            density = cell_density[i] * wp.float64(1 + column // n_seg)
+            cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
+        points = points + segment_points(flags, cells, i, column, s)
+    wp.atomic_max(most, 0, points)
+
+
+@wp.kernel
+def point_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                 gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                 cells: wp.array2d(dtype=wp.int32), first: int, heat_cells: int, set0: int,
+                 points: wp.array2d(dtype=PointCoefficients)):
+    """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i. A set's points
+    run over its grids (``cells``' column blocks), and in each over the segments in order:
+    one point (the cold temperature) for a part at uniform temperature, the three Gauss
+    points x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
+    (length h) for a thermal segment."""
+    li, p = wp.tid()
+    i = set0 + li
+    n_seg = flags.shape[0]
+    p_mean = params[P_MEAN, i]
+    radius = params[RADIUS, i]
+    area = PI * radius * radius
+    T_cold = params[T_COLD, i]
+    rest = p
+    for column in range(cells.shape[1]):
+        s = column % n_seg
+        count = segment_points(flags, cells, i, column, s)
+        if rest >= 0 and rest < count:
+            phi, r, q = pore_geometry(params, flags, i, s)
+            r_k = thermal_radius(params, flags, i, s, r)
+            T = T_cold
+            dTdx = wp.float64(0.0)
+            if flags[s, F_THERMAL] != 0:
+                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+                length = seg_value(params, i, s, LENGTH)
+                h = length / wp.float64(cells[i, column])
+                gauss = GAUSS_1
+                if rest % 3 == 1:
+                    gauss = GAUSS_2
+                elif rest % 3 == 2:
+                    gauss = GAUSS_3
+                th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells, k,
+                                          sigma, length / wp.float64(heat_cells), segment_nonlinear(params, i, s),
+                                          (wp.float64(rest // 3) + gauss) * h)
+                T = T_cold + th
+                dTdx = dth
+            points[li, p] = point_coefficients(gas, p_mean, T, dTdx, phi, r, q, area, r_k)
+        rest = rest - count
+
+
+def make_transfer_kernel(max_registers: int | None = None):
+    """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
+    (``__maxnreg__``)."""
 
     def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                        gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                        freqs: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
-                        cell_density: wp.array(dtype=wp.float64), first: int, heat_cells: int,
-                        pore_table: wp.array(dtype=wp.float64),
+                        gas: wp.array(dtype=wp.float64), freqs: wp.array(dtype=wp.float64),
+                        cells: wp.array2d(dtype=wp.int32), points: wp.array2d(dtype=PointCoefficients),
+                        set0: int, pore_table: wp.array(dtype=wp.float64),
                         out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64)):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
         frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
-        freqs[m + k] and twice the cell density (the step-doubling error estimate,
-        k < doubled.shape[1]). Launched on n (m + doubled.shape[1]) threads, the doubled ones
-        first: they run longest, and in warps of their own they hold up no short thread.
-        A thermal segment gets seg_cells[s] Magnus cells, or, where that is 0,
-        ceil(cell_density[i] (1 + k L + w L / c_cold)) cells (twice that density for
-        ``doubled``): the profile varies on the scale 1/k of the heat model and the wave on
-        c/w, and the sixth-order error of a cell scales with the sixth power of its length
-        over those scales. ``pore_table``:
-        :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
+        freqs[m + k] on the grid of twice the cell density (the step-doubling error estimate,
+        k < doubled.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
+        :func:`point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
+        Launched on points.shape[0] (m + doubled.shape[1]) threads, the doubled ones first:
+        they run longest, and in warps of their own they hold up no short thread.
+        ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
+        device."""
         t = wp.tid()
         n_freqs = out.shape[1]
-        n_doubled = out.shape[0] * doubled.shape[1]
-        i = (t - n_doubled) // n_freqs
+        n_doubled = points.shape[0] * doubled.shape[1]
+        li = (t - n_doubled) // n_freqs
         j = (t - n_doubled) % n_freqs
-        density_factor = wp.float64(1.0)
+        grid = 0
         if t < n_doubled:
-            i = t // doubled.shape[1]
+            li = t // doubled.shape[1]
             j = n_freqs + t % doubled.shape[1]
-            density_factor = wp.float64(2.0)
+            grid = 1
+        i = set0 + li
         omega = TWO_PI * freqs[j]
-        p_mean = params[P_MEAN, i]
+        half_log_omega = wp.float64(0.5) * wp.log(omega)
+        gamma = gas[G_GAMMA]
         radius = params[RADIUS, i]
         area = PI * radius * radius
-        T_cold = params[T_COLD, i]
+        n_seg = flags.shape[0]
+        p = int(0)
+        for column in range(grid * n_seg):   # the doubled grid's points follow the main grid's
+            p = p + segment_points(flags, cells, i, column, column % n_seg)
         m = identity2()
-        for s in range(flags.shape[0]):
+        for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
             phi, r, q = pore_geometry(params, flags, i, s)
-            r_k = thermal_radius(params, flags, i, s, r)
             mob = frame_mobility(params, flags, i, s)
             sf = shape_factor(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
             if flags[s, F_THERMAL] == 0:
-                a = propagation_matrix(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf,
-                                       pore_table)
+                a = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table)
                 m = matmul2(expm2(scale2(a, length)), m)
+                p = p + 1
             else:
-                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-                dh = length / wp.float64(heat_cells)
-                node0 = (s - first) * heat_cells
-                nonlin = 0
-                if wp.static(nonlinear):   # compiled out of the linear kernel: fewer registers on the GPU
-                    nonlin = segment_nonlinear(params, i, s)
-                n_cells = seg_cells[s]
-                if n_cells == 0:
-                    c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                    n_cells = magnus_cell_count(density_factor * cell_density[i], k, length, omega, c_cold)
+                n_cells = cells[i, grid * n_seg + s]
                 h = length / wp.float64(n_cells)
                 for c in range(n_cells):
-                    x0 = wp.float64(c) * h
-                    a1 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_1 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
-                    a2 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_2 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
-                    a3 = gradient_matrix(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, x0 + GAUSS_3 * h,
-                                         p_mean, omega, T_cold, phi, r, q, model, area, r_k, mob, sf, nonlin, pore_table)
+                    a1 = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
+                                        pore_table)
+                    a2 = propagation_at(points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
+                                        pore_table)
+                    a3 = propagation_at(points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
+                                        pore_table)
                     m = matmul2(magnus6_step(a1, a2, a3, h), m)
+                    p = p + 3
         if j < n_freqs:
             store_matrix(out, i, j, m)
         else:

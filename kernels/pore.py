@@ -34,7 +34,7 @@ mpmath at 40 digits, see tests/test_pore.py):
 * plates, s >= 1: tanh(w) = (1 - q) / (1 + q) with q = exp(-2w), |q| = exp(-2s)
   <= exp(-2), so nothing overflows or cancels, and g = 1 - f with |f| <= 0.8.
 
-The kernels take circular f, g at real s from a Chebyshev table instead
+The kernels take circular f, g at real s from a Chebyshev table in ln s instead
 (:func:`pore_circular_tabulated`, built by :mod:`.pore_table` from :func:`pore_circular`):
 one short series instead of the recurrence, accurate to ~5e-15.
 
@@ -170,23 +170,23 @@ TERMS = 12
 TABLE_PIECE_WIDTH = math.log(2.0) / PIECES_PER_OCTAVE
 PIECES = math.ceil(math.log(S_MAX / S_MIN) / TABLE_PIECE_WIDTH - 1e-9)
 
-TABLE_S_MIN = wp.constant(wp.float64(S_MIN))
-TABLE_S_MAX = wp.constant(wp.float64(S_MAX))
 TABLE_LOG_S_MIN = wp.constant(wp.float64(math.log(S_MIN)))
+TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
 
 
 @wp.func
-def pore_circular_tabulated(table: wp.array(dtype=wp.float64), s: wp.float64):
-    """f, g of a circular pore, s = r / delta > 0, from ``table``
-    (:func:`tawarp.kernels.pore_table.circular_table`).
+def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
+    (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
+    that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
     Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
     Chebyshev coefficients."""
-    if not (s >= TABLE_S_MIN and s < TABLE_S_MAX):   # also NaN: never an index from it
-        return pore_circular(s)
-    u = (wp.log(s) - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
+    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):   # also NaN: never an index from it
+        return pore_circular(wp.exp(log_s))
+    u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
     base = k * (2 * TABLE_TERMS + 1)
@@ -212,12 +212,12 @@ def pore_circular_tabulated(table: wp.array(dtype=wp.float64), s: wp.float64):
 
 
 @wp.func
-def pore_functions(model: int, s: wp.float64, table: wp.array(dtype=wp.float64)):
-    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES) at s = r / delta > 0;
+def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES) at ``log_s`` = ln(r / delta);
     ``table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
     if model == PORE_PLATES:
-        return pore_plates(s)
-    return pore_circular_tabulated(table, s)
+        return pore_plates(wp.exp(log_s))
+    return pore_circular_tabulated(table, log_s)
 
 
 # -- complex argument (complex frequency, tawarp.model.onset) ---------------------------------

@@ -30,7 +30,7 @@ def _evaluate(s: wp.array(dtype=wp.float64), table: wp.array(dtype=wp.float64), 
               f: wp.array(dtype=wp.vec2d), g: wp.array(dtype=wp.vec2d)):
     i = wp.tid()
     if tabulated != 0:
-        fi, gi = pore_circular_tabulated(table, s[i])
+        fi, gi = pore_circular_tabulated(table, wp.log(s[i]))
     else:
         fi, gi = pore_circular(s[i])
     f[i] = fi

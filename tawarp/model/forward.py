@@ -34,6 +34,7 @@ from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
 from ..kernels import layout
+from ..kernels.acoustics import PointCoefficients
 from ..kernels.pore_table import circular_table
 
 #: Default adaptive cell density (ForwardSettings). bench/forward.py measures the
@@ -47,6 +48,11 @@ MAGNUS_ORDER = 6
 MAX_ESTIMATE_ROUNDS = 8
 #: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
 MAX_DENSITY_FACTOR = 64.0
+#: Device memory [bytes] for the Gauss points of a cascade launch: a larger batch runs in
+#: blocks of sets (:meth:`Engine._cascade`), so a fit's 1e5 parameter sets need no more.
+POINT_BUFFER_BYTES = 1 << 28
+#: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
+POINT_BYTES = 48
 
 
 def default_device() -> str:
@@ -136,7 +142,9 @@ class ForwardSettings:
 
     ``cells = None`` (default): the Magnus cells of a thermal segment are
     ``ceil(d (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
-    wavenumber), adapted per parameter set and frequency. The density d of each set
+    wavenumber at the batch's highest frequency), adapted per parameter set: one grid
+    serves all of a set's frequencies, whose Gauss-point factors are computed once
+    (:func:`tawarp.kernels.forward.point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
     ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
     the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
@@ -279,7 +287,8 @@ class Engine:
         self.columns = self._columns(f, self.sample)                                   # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev)
-        self.transfer_kernel = _transfer_kernel(self.nonlinear, self.settings.max_registers)
+        self.omega_max = 2.0 * math.pi * float(self.freqs.max())
+        self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
         self._modules_loaded = False
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
@@ -360,16 +369,33 @@ class Engine:
 
     def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array,
                  doubled: wp.array):
-        """One launch of the cascade kernel: ``out`` (n, m, 8) at ``freqs[:m]`` and density
-        ``density`` (n,), ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density."""
-        threads = params.shape[1] * (out.shape[1] + doubled.shape[1])
-        if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
-            raise ValueError(f"{params.shape[1]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
-                             f"threads in one launch: split the batch (ForwardSettings.chunk)")
-        wp.launch(self.transfer_kernel, dim=threads,
-                  inputs=[params, self.flags, self.gas, theta, freqs, self.seg_cells, density, self.first,
-                          self.heat_cells, self.pore_table, out, doubled],
-                  device=self.device, block_dim=self.settings.block_dim)
+        """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
+        ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
+        counted first and the largest point count read back (the one host round trip); then
+        blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
+        (:func:`tawarp.kernels.forward.point_kernel`) and their cascade launch."""
+        n = params.shape[1]
+        if n == 0:
+            return
+        columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
+        cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
+        most = wp.zeros(1, dtype=wp.int32, device=self.device)
+        wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
+                                                 cells, most], device=self.device)
+        n_points = int(most.numpy()[0])
+        block = max(1, min(n, POINT_BUFFER_BYTES // (n_points * POINT_BYTES)))
+        points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
+        for lo in range(0, n, block):
+            part = points if lo + block <= n else points[:n - lo]
+            wp.launch(kf.point_kernel, dim=part.shape, device=self.device,
+                      inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part])
+            threads = part.shape[0] * (out.shape[1] + doubled.shape[1])
+            if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
+                raise ValueError(f"{part.shape[0]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
+                                 f"threads in one launch: split the batch (ForwardSettings.chunk)")
+            wp.launch(self.transfer_kernel, dim=threads,
+                      inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, out, doubled],
+                      device=self.device, block_dim=self.settings.block_dim)
 
     def _estimated_cascade(self, params: wp.array, theta: wp.array, columns, density: wp.array,
                            out: wp.array) -> np.ndarray | None:
@@ -464,9 +490,9 @@ def _thread_pool(workers: int) -> ThreadPoolExecutor:
 
 
 @functools.cache
-def _transfer_kernel(nonlinear: bool, max_registers: int | None):
-    """The cascade kernel for this heat model and register cap, compiled once per process."""
-    return kf.make_transfer_kernel(nonlinear, max_registers)
+def _transfer_kernel(max_registers: int | None):
+    """The cascade kernel for this register cap, compiled once per process."""
+    return kf.make_transfer_kernel(max_registers)
 
 
 def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:
