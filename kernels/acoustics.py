@@ -15,7 +15,7 @@ integrator.
 
 import warp as wp
 
-from .cmath import cdiv, cexp, cinv, cmul, cmuli, cplx, creal, cscale, csqrt
+from .cmath import cabs2, cconj, cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
 from .pore import pore_functions_complex, pore_functions_log
 
@@ -76,11 +76,13 @@ def taylor_terms(size: wp.float64):
 
 
 @wp.func
-def expm2(m: CMat2):
-    """exp(m) of a 2x2 complex matrix: with tau = tr/2, N = m - tau I and N^2 = delta I,
-    exp(m) = e^tau (cosh(sqrt delta) I + sinh(sqrt delta)/sqrt(delta) N). Both functions
-    are entire in delta: a Taylor series for |delta| < 1 (no square root, no cancellation,
-    the usual case of a Magnus cell), exponentials beyond."""
+def expm2_traceless(m: CMat2):
+    """exp(m) of a 2x2 complex matrix as (E, tau) with exp(m) = e^tau E: tau = tr/2,
+    N = m - tau I, N^2 = delta I and E = exp(N) = cosh(sqrt delta) I + sinh(sqrt delta)/sqrt(delta) N.
+    Both functions are entire in delta: a Taylor series for |delta| < 1 (no square root,
+    no cancellation, the usual case of a Magnus cell), exponentials beyond. The scalar
+    e^tau commutes with every matrix, so a cascade of cells can sum their tau and take one
+    exponential (:func:`tawarp.kernels.forward.make_transfer_kernel`)."""
     tau = cscale(m.a + m.d, wp.float64(0.5))
     na = m.a - tau
     delta = cmul(na, na) + cmul(m.b, m.c)
@@ -105,10 +107,20 @@ def expm2(m: CMat2):
         em = cexp(-r)
         ch = cscale(ep + em, wp.float64(0.5))
         sh = cdiv(cscale(ep - em, wp.float64(0.5)), r)
-    et = cexp(tau)
-    ch = cmul(et, ch)
-    sh = cmul(et, sh)
-    return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na))
+    return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na)), tau
+
+
+@wp.func
+def cscale2(m: CMat2, z: wp.vec2d):
+    """z m for a complex scalar z."""
+    return cmat2(cmul(z, m.a), cmul(z, m.b), cmul(z, m.c), cmul(z, m.d))
+
+
+@wp.func
+def expm2(m: CMat2):
+    """exp(m) of a 2x2 complex matrix (:func:`expm2_traceless`)."""
+    e, tau = expm2_traceless(m)
+    return cscale2(e, cexp(tau))
 
 
 @wp.struct
@@ -169,8 +181,9 @@ def propagation_at(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.
     f_k, g_k = pore_functions_log(pore_model, pc.log_k + half_log_omega, pore_table)
     if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
         g_nu = cdiv(g_nu, shape_correction(wp.exp(log_s_nu), shape_factor))
-    # one complex division per point: a12 and a22 both divide by g_nu
-    inv_g_nu = cinv(g_nu)
+    # one real division per point: a12 and a22 both divide by g_nu, and 1/g = conj(g)/|g|^2
+    # (|g_nu| ~ s^2/4 > 1e-9 at s > 1e-4: |g|^2 is far from underflow, Smith's scaling not needed)
+    inv_g_nu = cscale(cconj(g_nu), wp.float64(1.0) / cabs2(g_nu))
     a12 = cmuli(cscale(inv_g_nu, pc.c12 * omega))
     if frame_mobility > wp.float64(0.0):
         a12 = cmuli(cscale(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega / area))
@@ -235,20 +248,25 @@ def commutator2(x: CMat2, y: CMat2):
 
 
 @wp.func
-def magnus6_step(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
-    """exp(Omega) of one cell of length h, sixth order, from A at the three Gauss points
+def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
+    """Omega of one cell of length h, sixth order, from A at the three Gauss points
     x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h (Blanes, Casas & Ros, BIT 40, 2000,
     eq. 4.13): with b1 = h A2, b2 = sqrt(15) h/3 (A3 - A1), b3 = 10 h/3 (A3 - 2 A2 + A1),
     C1 = [b1, b2], C2 = -1/60 [b1, 2 b3 + C1],
-    Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2]."""
+    Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2]; the cell's matrix is exp(Omega)."""
     b1 = scale2(a2, h)
     b2 = scale2(axpy2(wp.float64(-1.0), a1, a3), wp.float64(1.2909944487358056) * h)
     b3 = scale2(axpy2(wp.float64(-2.0), a2, axpy2(wp.float64(1.0), a3, a1)), wp.float64(3.3333333333333333) * h)
     c1 = commutator2(b1, b2)
     c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
-    om = axpy2(wp.float64(1.0 / 240.0), commutator2(left, axpy2(wp.float64(1.0), b2, c2)), axpy2(wp.float64(1.0 / 12.0), b3, b1))
-    return expm2(om)
+    return axpy2(wp.float64(1.0 / 240.0), commutator2(left, axpy2(wp.float64(1.0), b2, c2)), axpy2(wp.float64(1.0 / 12.0), b3, b1))
+
+
+@wp.func
+def magnus6_step(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
+    """exp(Omega) of one cell (:func:`magnus6_exponent`)."""
+    return expm2(magnus6_exponent(a1, a2, a3, h))
 
 
 @wp.func

@@ -21,9 +21,9 @@ Launch order for a batch of n parameter sets and m frequencies:
 
 import warp as wp
 
-from .acoustics import (CMat2, PointCoefficients, expm2, identity2, magnus6_step, matmul2, point_coefficients,
-                        propagation_at, scale2)
-from .cmath import cabs
+from .acoustics import (CMat2, PointCoefficients, cscale2, expm2, expm2_traceless, identity2, magnus6_exponent, matmul2,
+                        point_coefficients, propagation_at, scale2)
+from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
@@ -296,6 +296,7 @@ def make_transfer_kernel(max_registers: int | None = None):
         for column in range(grid * n_seg):   # the doubled grid's points follow the main grid's
             p = p + segment_points(flags, cells, i, column, column % n_seg)
         m = identity2()
+        log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))   # sum of the cells' tau (expm2_traceless)
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
             phi, r, q = pore_geometry(params, flags, i, s)
@@ -316,8 +317,11 @@ def make_transfer_kernel(max_registers: int | None = None):
                                         pore_table)
                     a3 = propagation_at(points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
                                         pore_table)
-                    m = matmul2(magnus6_step(a1, a2, a3, h), m)
+                    e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
+                    m = matmul2(e, m)
+                    log_scale = log_scale + tau
                     p = p + 3
+        m = cscale2(m, cexp(log_scale))
         if j < n_freqs:
             store_matrix(out, i, j, m)
         else:

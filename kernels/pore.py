@@ -36,7 +36,7 @@ mpmath at 40 digits, see tests/test_pore.py):
 
 The kernels take circular f, g at real s from a Chebyshev table in ln s instead
 (:func:`pore_circular_tabulated`, built by :mod:`.pore_table` from :func:`pore_circular`):
-one short series instead of the recurrence, accurate to ~5e-15.
+one short series instead of the recurrence, accurate to ~6e-15.
 
 Accuracy, relative to |f| and to |g| separately, for s in [1e-4, 1e4] on the
 CPU: below 1e-15 (largest of 20000 random log-spaced s: 8.0e-16 for f and
@@ -159,13 +159,13 @@ def pore_plates(s: wp.float64):
 
 
 # -- circular pores from a table (the kernels' path at real s) -----------------------------------
-# Pieces of a quarter octave in u = ln s over [S_MIN, S_MAX], TERMS Chebyshev terms each;
+# Pieces of a sixteenth of an octave in u = ln s over [S_MIN, S_MAX], TERMS Chebyshev terms each;
 # the host builds the table (tawarp.kernels.pore_table, which says why these sizes).
 
 S_MIN = 1.0e-3
 S_MAX = 1.0e4
-PIECES_PER_OCTAVE = 4
-TERMS = 12
+PIECES_PER_OCTAVE = 16
+TERMS = 8
 
 TABLE_PIECE_WIDTH = math.log(2.0) / PIECES_PER_OCTAVE
 PIECES = math.ceil(math.log(S_MAX / S_MIN) / TABLE_PIECE_WIDTH - 1e-9)

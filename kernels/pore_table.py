@@ -5,17 +5,20 @@ cascade kernel reads them from a table built once per process
 (:func:`.pore.pore_circular_tabulated`) instead of running the Bessel-ratio recurrence
 (sqrt(2) s + 16 complex steps) at every Gauss point.
 
-Table: the pieces split u = ln s over [ln S_MIN, ln S_MAX] into equal widths of a quarter
-octave; on each piece the stored function is a Chebyshev series of TERMS terms in
+Table: the pieces split u = ln s over [ln S_MIN, ln S_MAX] into equal widths of a
+sixteenth of an octave; on each piece the stored function is a Chebyshev series of TERMS terms in
 t = 2 (u - u_k) / width - 1. In u the poles of f and g (the zeros of J0((1 + i) s)) lie
 at distance pi/4 from the real axis at every s, so the same piece width and term count
-hold over the whole range: a quarter octave gives a Bernstein ellipse of rho ~ 18 and
-12 terms reach ~1e-15. Each piece stores the smaller of the pair (g for small s, where
-f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
+hold over the whole range: a sixteenth of an octave gives a Bernstein ellipse of rho ~ 73
+and 8 terms reach ~6e-15. A quarter octave needed 12 terms for the same; the cascade
+reads two series per Gauss point, and the shorter one made the CPU cascade 27 % faster
+(bench/forward.py, one thread) for a table of 51 kB instead of 13 kB (both measured with
+studies/pore_table_accuracy.py). Each piece stores the smaller of the pair (g for small
+s, where f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
 digits to cancellation. Outside [S_MIN, S_MAX] the functions of :mod:`.pore` are used.
 
 The node values come from :func:`.pore.pore_circular` (below 1e-15 relative, checked
-against mpmath in tests/test_pore.py); the table is exact to ~5e-15 relative to |f| and
+against mpmath in tests/test_pore.py); the table is exact to ~6e-15 relative to |f| and
 to |g| (tests/test_pore.py asserts 1e-13; studies/pore_table_accuracy.py measures it).
 The complex-frequency path (:func:`.pore.pore_functions_complex`) is not tabulated.
 """
