@@ -11,6 +11,15 @@ those of one process (the tests check 1e-12 on a local CPU cluster).
 >>> client = local_cluster(["cuda:0", "cuda:1"])          # or ["cpu", "cpu"]
 >>> res = fit_on_cluster(client, core, freqs, Y, names, start)  # doctest: +SKIP
 
+Workers are processes by default (``processes=True``): a chunk's arrays are pickled and
+sent over TCP, which costs more than the device time of a design point. With
+``local_cluster(devices, processes=False)`` the workers are threads of this process, each
+driving its own device: Dask hands them the arrays by reference, nothing is pickled or
+copied between processes (Warp's launches and copies release the GIL; the first launches
+of a worker, which load Warp modules, run one worker at a time: :func:`worker_state`).
+A sweep sends no table either way (each worker makes its chunks' tables on its device,
+:func:`tawarp.design.sweep.sweep`).
+
 Other clusters (several machines): start one ``dask worker --nthreads 1`` per GPU with
 ``CUDA_VISIBLE_DEVICES`` set (each then sees its GPU as ``cuda``), connect a
 ``distributed.Client`` to the scheduler and pass it to :func:`fit_on_cluster`,
@@ -23,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import threading
 import uuid
 from collections import deque
 
@@ -62,8 +72,10 @@ class DevicePlugin:
 def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None = None):
     """A :class:`distributed.Client` on a local cluster of one single-threaded worker per
     entry of ``devices`` (``"cuda:0"``, ``"cpu"``, ...; default: every GPU Warp sees,
-    else two CPU workers). CPU workers split their batches over ``cpu_threads`` threads
-    (default: an equal share of the cores this process may use)."""
+    else two CPU workers). ``processes``: each worker a process (arrays pickled and sent
+    over TCP), else a thread of this process (arrays passed by reference: what design
+    evaluations need, see the module docstring). CPU workers split their batches over
+    ``cpu_threads`` threads (default: an equal share of the cores this process may use)."""
     import warp as wp
 
     distributed = _distributed()
@@ -116,6 +128,39 @@ def _worker():
         return _distributed().get_worker()
     except ValueError:
         return None
+
+
+#: Objects a worker keeps between the chunks of one job, per key (:func:`worker_state`);
+#: those built outside a worker (``client=None``) are kept here.
+_STATE: dict = {}
+#: At most this many jobs' objects kept per worker (a job's key is new per job).
+STATE_KEYS = 8
+_BUILD = threading.Lock()
+
+
+def worker_state(key: str, build):
+    """The object ``build()`` made for ``key`` on this worker: built by the worker's first
+    task of the job ``key`` and kept for its next tasks (an Evaluator, a device table).
+    Kept per worker, not per process: worker threads of one process (``processes=False``)
+    each have their own, on their own device. ``build`` runs under a process-wide lock and
+    should end with a first launch: Warp modules then load one worker at a time (concurrent
+    first loads of a CPU module can lose it: NVIDIA/warp#1705), and each worker compiles
+    nothing another is compiling."""
+    worker = _worker()
+    if worker is None:
+        cache = _STATE
+    elif (cache := getattr(worker, "tawarp_state", None)) is None:
+        cache = worker.tawarp_state = {}
+    obj = cache.get(key)
+    if obj is None:
+        with _BUILD:
+            obj = cache.get(key)   # (a worker of several threads may have built it meanwhile)
+            if obj is None:
+                obj = build()
+                if len(cache) >= STATE_KEYS:
+                    cache.clear()
+                cache[key] = obj
+    return obj
 
 
 def ordered_map(client, func, items, *args, window: int | None = None):
@@ -222,26 +267,26 @@ def concatenate_results(parts):
 
 
 # -- design evaluations -----------------------------------------------------------------
-_EVALUATORS: dict = {}
-
-
 def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
     """Objectives of one chunk of a design table, on this worker's Evaluator for ``key``."""
     from .design.evaluate import Evaluator
 
-    ev = _EVALUATORS.get(key)
-    if ev is None:
-        if len(_EVALUATORS) > 8:
-            _EVALUATORS.clear()
-        ev = _EVALUATORS[key] = Evaluator(spec["space"], extra=spec["extra"], freqs=spec["freqs"],
-                                          settings=worker_settings(spec["settings"]), onset=spec["onset"])
-    return ev.evaluate_table(table)
+    def build():
+        ev = Evaluator(spec["space"], extra=spec["extra"], freqs=spec["freqs"],
+                       settings=worker_settings(spec["settings"]), onset=spec["onset"])
+        ev.evaluate_table(table[:, :1])   # loads the modules of every objective asked for
+        return ev
+
+    return worker_state(key, build).evaluate_table(table)
 
 
 class ClusterEvaluator:
     """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
-    cluster's workers: a table is cut into chunks of ``chunk`` points (default: an equal
-    share per worker), each evaluated by the worker's own Evaluator on its device."""
+    cluster's workers: a table is cut into chunks of ``chunk`` points (default: the table
+    in :data:`CHUNKS_IN_FLIGHT` chunks per worker), each evaluated by the worker's own
+    Evaluator on its device. The chunks and the results (float64) travel through Dask:
+    pickled between worker processes, by reference to worker threads
+    (``local_cluster(..., processes=False)``)."""
 
     def __init__(self, client, space, extra=(), freqs=None, settings: ForwardSettings | None = None,
                  chunk: int | None = None, onset=None):
@@ -258,10 +303,19 @@ class ClusterEvaluator:
         table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
         n = table.shape[1]
         workers = max(1, len(self.client.scheduler_info()["workers"]))
-        step = self.chunk or max(1, -(-n // workers))
-        chunks = [np.ascontiguousarray(table[:, lo:lo + step]) for lo in range(0, max(n, 1), step)]
-        parts = list(ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec))
-        return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+        starts = range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
+        # the client thread copies each chunk out of the table (Dask pickles a column block,
+        # which is not contiguous, element by element: seconds for 1e7 points) and each result
+        # into place while the workers evaluate the others: only the first copy and the last
+        # result's are not hidden
+        chunks = (np.ascontiguousarray(table[:, lo:lo + starts.step]) for lo in starts)
+        out = {}
+        for lo, part in zip(starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec)):
+            for k, v in part.items():
+                if k not in out:
+                    out[k] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
+                out[k][lo:lo + len(v)] = v
+        return out
 
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""

@@ -22,9 +22,9 @@ FREQS = np.linspace(30.0, 500.0, 8)
 
 @pytest.fixture(scope="module")
 def client():
-    # in-process workers (threads): the same scheduling and code as worker processes
-    # (processes=True, as on GPUs: measured to pass too, but 30 s slower to start and stop
-    # on the 2-core CI machine); test_task_arguments_pickle covers what processes add
+    # in-process workers (threads): the same scheduling and code as worker processes;
+    # test_worker_processes_sweep_and_evaluate_as_one_process and test_task_arguments_pickle
+    # cover what processes add (pickling)
     c = local_cluster(["cpu", "cpu"], processes=False)
     yield c
     cluster = c.cluster
@@ -85,21 +85,100 @@ def test_design_evaluations_on_cluster_equal_one_process(client):
         np.testing.assert_allclose(many[k], one[k], rtol=1e-12, atol=0, err_msg=k)
 
 
-def test_search_and_sweep_on_cluster_equal_one_process(client, tmp_path):
-    import xarray as xr
-
-    from tawarp.design.sweep import sweep
-
+def test_search_on_cluster_equals_one_process(client):
     one = search(_space(), n_trials=32, batch=16, seed=4)
     many = search(_space(), n_trials=32, batch=16, seed=4, client=client)
     a = [(t.params, t.values) for t in one.study.trials]
     b = [(t.params, t.values) for t in many.study.trials]
     assert a == b
-    sweep(_space(), tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=32, seed=2)
-    sweep(_space(), tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=32, seed=2, client=client)
+
+
+@pytest.mark.parametrize("mode, outputs", [("sobol", None), ("grid", None), ("sobol", ["gradient", "acoustic_loss"])])
+def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs):
+    # the workers make the chunks' tables (grid indices, Sobol points) on their devices and
+    # send back the float32 outputs and a Sobol chunk's design values: the same file, bit
+    # for bit; a material variable (int8 in a Sobol file, labels in a grid) and objectives
+    # outside the kernel (acoustic_loss: float64 on the host, rounded by the worker) too
+    import xarray as xr
+
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "material=ceramic,mesh,rvc_foam",
+                                                "heat_input=1:9:3"])
+    kw = dict(mode=mode, n_samples=96, seed=2, outputs=outputs,
+              chunk=8 if mode == "grid" else 20)   # grid: hyperslabs of 2 x 3 points
+    one = sweep(space, tmp_path / "one.nc", **kw)
+    many = sweep(space, tmp_path / "many.nc", client=client, **kw)
+    assert many.chunks == one.chunks > 2
     with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
             xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf") as y:
         xr.testing.assert_identical(x, y)
+        assert x["gradient"].size == one.n_points and np.isfinite(x["gradient"].values).all()
+
+
+def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
+    # the path of GPU workers: tasks and results pickled between processes (the job, the
+    # int8 material of a Sobol file, float32 outputs, float64 objectives); ~5 s here
+    import xarray as xr
+
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "material=ceramic,mesh,rvc_foam",
+                                                "heat_input=1:9"])
+    values = space.from_unit(np.random.default_rng(3).random((40, 2)))
+    values["material"] = np.arange(40) % 3
+    procs = local_cluster(["cpu", "cpu"], processes=True)
+    try:
+        many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
+        sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
+    finally:
+        cluster = procs.cluster
+        procs.close()
+        cluster.close()
+    one = Evaluator(space).evaluate(values)
+    assert set(many) == set(one) and all(np.array_equal(many[k], one[k]) for k in one)
+    sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
+    with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
+            xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf") as y:
+        xr.testing.assert_identical(x, y)
+
+
+def test_cluster_sweep_sends_no_table(client, tmp_path, monkeypatch):
+    # a sweep task's arguments are its point range and the job (space, outputs, settings: a
+    # few kB), whatever the chunk: a table of 2048 points (3 rows, float64) would be 48 kB
+    import pickle
+
+    from tawarp.design.sweep import sweep
+
+    sizes = []
+    submit = client.submit
+
+    def spy(func, *args, **kw):
+        sizes.append(len(pickle.dumps(args)))
+        return submit(func, *args, **kw)
+
+    monkeypatch.setattr(client, "submit", spy)
+    space = _space()
+    sweep(space, tmp_path / "s.nc", mode="sobol", n_samples=4096, chunk=2048, client=client)
+    assert max(sizes) < 8 * 1024 and len(sizes) == 2, sizes
+    assert space.varying_table(space.from_unit(np.zeros((2048, 3)))).nbytes == 48 * 1024
+
+
+def test_worker_threads_keep_their_own_state(client):
+    # worker threads of one process (processes=False) each build their own Evaluator on
+    # their own device: the state of a job is per worker, not per process
+    import threading
+
+    from tawarp.distributed import worker_settings, worker_state
+
+    def state(key):
+        return worker_state(key, lambda: (worker_settings(None).device, threading.get_ident(), object()))
+
+    workers = list(client.scheduler_info()["workers"])
+    built = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
+    again = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
+    assert built[0][1] != built[1][1] and built[0][2] is not built[1][2]  # two threads, two objects
+    assert all(a[2] is b[2] for a, b in zip(built, again))                # kept between tasks
 
 
 def test_task_arguments_pickle():
@@ -109,7 +188,14 @@ def test_task_arguments_pickle():
     from tawarp.measure.kind import smooth_settings
 
     core = load_core("ceramic")
+    from tawarp.design.sweep import _Job
+    from tawarp.model.forward import ForwardSettings
+
     spec = {"space": _space(), "extra": ["acoustic_loss"], "settings": smooth_settings(core, FREQS, None)}
     back = pickle.loads(pickle.dumps((core, spec)))
     assert repr(back[0]) == repr(core) and back[1]["settings"] == spec["settings"]  # repr: NaN fields
     assert back[1]["space"].param_names == spec["space"].param_names
+    job = _Job(_space(), "sobol", 3, ["gradient"], (50.0,), ForwardSettings(chunk=64))
+    back = pickle.loads(pickle.dumps(job))
+    assert (back.mode, back.seed, back.outputs, back.settings) == (job.mode, job.seed, job.outputs, job.settings)
+    assert back.space.param_names == job.space.param_names

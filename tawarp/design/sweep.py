@@ -16,7 +16,10 @@ The work is done in chunks of ``chunk`` points: per chunk the device builds its
 parameter table (:class:`tawarp.design.space.DeviceTable`: from the grid index, or from
 the chunk's Sobol points, which it makes too: scipy's sequence, bit for bit), then one
 heat-solve and one metrics launch; each chunk is written in place (an HDF5 hyperslab) while the device evaluates the
-next, so memory stays flat whatever the size (two chunks on the host at most). The file is written to a temporary name
+next, so memory stays flat whatever the size (two chunks on the host at most). Through a
+Dask cluster (``client=``) each worker does the same for whole chunks on its device: a
+task is a chunk's point range, and only what the file stores comes back (a few chunks in
+flight per worker), so no table crosses between processes. The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
 """
@@ -24,7 +27,9 @@ half-written on failure or interruption, normal permissions).
 from __future__ import annotations
 
 import gc
+import itertools
 import time
+import uuid
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -36,7 +41,12 @@ from .objectives import kernel_metrics, objective
 from .samplers import SOBOL_MAX_POINTS
 from .space import DesignSpace, DeviceTable
 from ..io import atomic_path
-from ..model.forward import ForwardSettings, resolve_device
+from ..model.forward import ForwardSettings
+
+
+#: Chunks between two collections of reference cycles (launches leave some, holding
+#: device arrays).
+GC_CHUNKS = 16
 
 
 @dataclass
@@ -90,8 +100,11 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
     results to the netCDF file ``path``. ``outputs``: objective names written (default: the
     kernel's metrics); ``freqs`` [Hz] for ``acoustic_loss``; ``client``: a Dask
-    ``distributed.Client`` whose workers evaluate each chunk in equal shares, one per
-    device (:mod:`tawarp.distributed`; the file is the same). See the module docstring."""
+    ``distributed.Client`` whose workers (one per device, :mod:`tawarp.distributed`) each
+    evaluate whole chunks: a task is the chunk's point range, the worker makes the chunk's
+    table on its device as one process does, and sends back only what the file stores (the
+    float32 outputs, a Sobol chunk's design values); the file is the same. See the module
+    docstring."""
     import h5netcdf
     import h5py
 
@@ -106,12 +119,6 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     settings = settings or ForwardSettings()
     outputs = list(outputs) if outputs is not None else kernel_metrics()
     rows = [objective(k) for k in outputs]
-    if client is None:
-        ev = Evaluator(space, extra=outputs, freqs=freqs, settings=settings)
-    else:
-        from ..distributed import ClusterEvaluator
-
-        ev = ClusterEvaluator(client, space, extra=outputs, freqs=freqs, settings=settings)
     cont = space.continuous
     if mode == "grid":
         for v in cont:
@@ -130,19 +137,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
-    # each chunk's table is built where it is evaluated (for a cluster, here, then sent)
-    tables = DeviceTable(space, ev.device if client is None else resolve_device(settings.device))
-    # two host buffers of the float32 columns, alternated: chunk k lands in one while chunk
-    # k - 1 is written from the other; page-locked on CUDA, so the copy is one DMA that
-    # overlaps the writing and no fresh host array is paged in per chunk
-    def host_buffers(rows: int, dtype):
-        pinned = wp.get_device(ev.device).is_cuda
-        return [wp.empty((rows, min(chunk, n)), dtype=dtype, device="cpu", pinned=pinned) for _ in range(2)]
-
-    host = host_buffers(len(outputs), wp.float32) if isinstance(ev, Evaluator) and not ev.extra else None
-    # the same for a Sobol sweep's design values (made on the device with its points)
-    staged = isinstance(ev, Evaluator) and mode == "sobol" and bool(tables.names)
-    values_host = host_buffers(len(tables.names), wp.float64) if staged else None
+    job = _Job(space, mode, seed, outputs, tuple(freqs), settings)
     t0 = time.perf_counter()
     t_eval = t_write = 0.0
     nchunks = 0
@@ -185,70 +180,151 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 blocks = _blocks(shape, chunk)
             else:
                 blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
-
-            def write(lo, hi, sl, res, values):
-                nonlocal t_write
+            chunks = _evaluated_here(job, blocks, chunk, n) if client is None else _evaluated_on(client, job, blocks)
+            while True:
+                t = time.perf_counter()
+                done = next(chunks, None)
+                t_eval += time.perf_counter() - t
+                if done is None:
+                    break
+                lo, hi, sl, res, values = done
                 t = time.perf_counter()
                 block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
                 full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
                 sub_shape = block + tuple(shape[len(sl):])
                 for k in outputs:
-                    outs[k][full] = np.asarray(res[k], dtype=np.float32).reshape(sub_shape)
-                if values is not None:
-                    for j, name in enumerate(tables.names):
-                        v = values[j].astype(np.int8) if name == "material" else values[j]
-                        f.variables[name][lo:hi] = v
+                    outs[k][full] = res[k].reshape(sub_shape)
+                for name, v in (values or {}).items():
+                    f.variables[name][lo:hi] = v
                 t_write += time.perf_counter() - t
-                bar.update(hi - lo)
-
-            # chunk k is launched; while the device works (Warp launches return at once on
-            # CUDA) chunk k - 1 is written; then chunk k is fetched: two chunks at most on the
-            # host, one on the device
-            pending = None
-            for lo, hi, sl in blocks:
-                t = time.perf_counter()
-                table, values = (tables.grid(lo, hi), None) if mode == "grid" else tables.sobol(lo, hi, seed)
-                finish = _launch(ev, table, outputs, host[nchunks % 2] if host else None)
-                if staged:   # queued behind the chunk's evaluation
-                    for j in range(len(tables.names)):
-                        wp.copy(values_host[nchunks % 2][j], values[j], count=hi - lo)
-                t_eval += time.perf_counter() - t
-                if pending is not None:
-                    write(*pending)
-                t = time.perf_counter()
-                done = finish()
-                if staged:   # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
-                    wp.synchronize_device(ev.device)
-                    values = values_host[nchunks % 2].numpy()[:, :hi - lo]
-                elif values is not None:
-                    values = values.numpy()
-                pending = (lo, hi, sl, done, values)
-                t_eval += time.perf_counter() - t
                 nchunks += 1
-                del table, values, finish
-                if nchunks % 16 == 0:
-                    gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
-            if pending is not None:
-                write(*pending)
+                bar.update(hi - lo)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
 
 
-def _launch(ev, table, outputs: list, host: wp.array | None):
+@dataclass(frozen=True)
+class _Job:
+    """What a sweep's chunks are evaluated with (sent once per task to cluster workers:
+    a few kB, no array)."""
+
+    space: DesignSpace
+    mode: str
+    seed: int
+    outputs: list
+    freqs: tuple
+    settings: ForwardSettings
+
+    def evaluator(self, settings: ForwardSettings) -> Evaluator:
+        """The job's Evaluator on the device of ``settings``."""
+        return Evaluator(self.space, extra=self.outputs, freqs=self.freqs, settings=settings)
+
+    def table(self, tables: DeviceTable, lo: int, hi: int):
+        """(device table, design values on the device or None) of points lo..hi-1."""
+        return (tables.grid(lo, hi), None) if self.mode == "grid" else tables.sobol(lo, hi, self.seed)
+
+    def stored_values(self, tables: DeviceTable, values: np.ndarray | None) -> dict | None:
+        """A Sobol chunk's design values (len(names), m) as the file stores them:
+        ``{name: array}``, the material index as int8; None for a grid (its coordinates say it)."""
+        if values is None:
+            return None
+        return {name: v.astype(np.int8) if name == "material" else v for name, v in zip(tables.names, values)}
+
+
+def _evaluated_here(job: _Job, blocks, chunk: int, n: int):
+    """Yield (lo, hi, index, outputs, values) of each block, evaluated in this process on
+    ``job.settings``'s device. Chunk k is launched; while the device works (Warp launches
+    return at once on CUDA) the caller writes chunk k - 1; then chunk k is fetched: two
+    chunks at most on the host, one on the device."""
+    ev = job.evaluator(job.settings)
+    tables = DeviceTable(job.space, ev.device)
+
+    # two host buffers of the float32 columns, alternated: chunk k lands in one while chunk
+    # k - 1 is written from the other; page-locked on CUDA, so the copy is one DMA that
+    # overlaps the writing and no fresh host array is paged in per chunk
+    def host_buffers(rows: int, dtype):
+        pinned = wp.get_device(ev.device).is_cuda
+        return [wp.empty((rows, min(chunk, n)), dtype=dtype, device="cpu", pinned=pinned) for _ in range(2)]
+
+    host = host_buffers(len(job.outputs), wp.float32) if not ev.extra else None
+    # the same for a Sobol sweep's design values (made on the device with its points)
+    staged = job.mode == "sobol" and bool(tables.names)
+    values_host = host_buffers(len(tables.names), wp.float64) if staged else None
+    pending = None
+    for k, (lo, hi, sl) in enumerate(blocks):
+        table, values = job.table(tables, lo, hi)
+        finish = _launch(ev, table, job.outputs, host[k % 2] if host else None)
+        if staged:   # queued behind the chunk's evaluation
+            for j in range(len(tables.names)):
+                wp.copy(values_host[k % 2][j], values[j], count=hi - lo)
+        if pending is not None:
+            yield pending
+        done = finish()
+        if staged:   # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
+            wp.synchronize_device(ev.device)
+            values = values_host[k % 2].numpy()[:, :hi - lo]
+        elif values is not None:
+            values = values.numpy()
+        pending = (lo, hi, sl, done, job.stored_values(tables, values))
+        del table, values, finish
+        if k % GC_CHUNKS == GC_CHUNKS - 1:
+            gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
+    if pending is not None:
+        yield pending
+
+
+def _evaluated_on(client, job: _Job, blocks):
+    """:func:`_evaluated_here` on the workers of a Dask ``client``: one task per block,
+    whose arguments are its point range and the job (:func:`_cluster_chunk`), in order,
+    a few blocks in flight per worker (:func:`tawarp.distributed.ordered_map`)."""
+    from ..distributed import ordered_map
+
+    blocks, mine = itertools.tee(blocks)
+    results = ordered_map(client, _cluster_chunk, ((lo, hi) for lo, hi, _ in blocks), uuid.uuid4().hex, job)
+    for (lo, hi, sl), (res, values) in zip(mine, results):
+        yield lo, hi, sl, res, values
+
+
+def _cluster_chunk(block: tuple, key: str, job: _Job):
+    """(outputs, stored values) of the points ``block`` = (lo, hi) on this Dask worker: the
+    chunk's table made on the worker's device (:class:`DeviceTable`, kept with the
+    worker's Evaluator for the sweep ``key``) and evaluated there, as one process does."""
+    from ..distributed import worker_settings, worker_state
+
+    def build():
+        ev = job.evaluator(worker_settings(job.settings))
+        tables = DeviceTable(job.space, ev.device)
+        _launch(ev, job.table(tables, 0, 1)[0], job.outputs)()   # loads the modules (worker_state)
+        return ev, tables, itertools.count()
+
+    ev, tables, done = worker_state(key, build)
+    lo, hi = block
+    table, values = job.table(tables, lo, hi)
+    res = _launch(ev, table, job.outputs)()
+    values = job.stored_values(tables, None if values is None else values.numpy())
+    del table
+    if next(done) % GC_CHUNKS == GC_CHUNKS - 1:
+        gc.collect()   # as _evaluated_here does
+    return res, values
+
+
+def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None):
     """Start the evaluation of a chunk's device ``table``; returns the call that waits
-    for its ``outputs``. An :class:`Evaluator` launches and returns at once (on CUDA), and
-    when every output is a kernel column rounds them to float32 on the device (half the
-    copy, no cast on the host) and copies them into the host buffer ``host`` (len(outputs),
-    >= chunk) in the same stream; the call waits for that copy and returns views of it,
-    valid until the buffer's next use. A cluster evaluator works in that call."""
-    if not isinstance(ev, Evaluator):
-        return lambda: ev.evaluate_table(table)
+    for its ``outputs`` and returns them as float32 arrays (what the file stores, rounded
+    as NumPy rounds). When every output is a kernel column, the device rounds them (half
+    the copy, no cast on the host) and copies them into the host buffer ``host``
+    (len(outputs), >= chunk) in the same stream: the launches return at once (on CUDA) and
+    the call waits for that copy and returns views of it, valid until the buffer's next
+    use; without ``host``, new arrays (a cluster worker's, handed to Dask)."""
     out = ev.evaluate_device(table)
     if ev.extra:
-        return lambda: ev.objectives_of(out, table)
+        return lambda: {k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items()
+                        if k in outputs}
     f32 = ev.columns_float32(out, outputs)
+    if host is None:
+        return lambda: dict(zip(outputs, f32.numpy()))
     m = f32.shape[1]
     for j in range(len(outputs)):
         wp.copy(host[j], f32[j], count=m)
