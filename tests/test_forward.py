@@ -199,3 +199,50 @@ def test_cpu_threads_split_the_batch_bit_for_bit():
     out = wp.zeros((120, 50, 8), dtype=wp.float64, device="cpu")
     three.evaluate(table, out=out)
     np.testing.assert_array_equal(out.numpy(), ref[0])
+
+
+def test_point_blocks_equal_one_launch(monkeypatch):
+    """A batch whose Gauss points exceed the point buffer runs in blocks of sets (each its
+    points and its cascade launch): the same numbers, to the bit, as one block; and a
+    doubled (error-estimate) grid's points follow the main grid's in each set's row."""
+    from tawarp.model import forward
+
+    core = load_core("mesh")
+    rng = np.random.default_rng(5)
+    params = {"stack.h": rng.uniform(50, 250, 7), "stack.porosity": rng.uniform(0.6, 0.8, 7)}
+    whole = transfer_matrices(core, FREQS, rng.uniform(0, 80, 7), params, device="cpu", cpu_threads=1)
+    # the smallest buffer: one set per block
+    monkeypatch.setattr(forward, "POINT_BUFFER_BYTES", 1)
+    blocks = transfer_matrices(core, FREQS, whole.heat_input, params, device="cpu", cpu_threads=1)
+    np.testing.assert_array_equal(blocks.T, whole.T)
+
+
+@pytest.mark.parametrize("scale", [1e-6, 1e-3, 3e-2, 0.2, 0.5, 0.9, 3.0])
+def test_matrix_exponential_against_scipy(scale):
+    """expm2 (a series whose length follows |delta|, exponentials beyond |delta| = 1)
+    against scipy.linalg.expm on random complex 2x2 matrices of each size, to 1e-14 of the
+    largest entry."""
+    import scipy.linalg
+    import warp as wp
+
+    from tawarp.kernels.acoustics import cmat2, expm2
+
+    @wp.kernel
+    def run(m: wp.array2d(dtype=wp.vec2d), e: wp.array2d(dtype=wp.vec2d)):
+        i = wp.tid()
+        r = expm2(cmat2(m[i, 0], m[i, 1], m[i, 2], m[i, 3]))
+        e[i, 0] = r.a
+        e[i, 1] = r.b
+        e[i, 2] = r.c
+        e[i, 3] = r.d
+
+    rng = np.random.default_rng(int(scale * 1e6))
+    a = scale * (rng.normal(size=(200, 2, 2)) + 1j * rng.normal(size=(200, 2, 2)))
+    m = wp.array(np.ascontiguousarray(a.reshape(200, 4)).view(np.float64).reshape(200, 4, 2), dtype=wp.vec2d,
+                 device="cpu")
+    e = wp.empty((200, 4), dtype=wp.vec2d, device="cpu")
+    wp.launch(run, dim=200, inputs=[m, e], device="cpu")
+    got = e.numpy().reshape(200, 8).view(np.complex128).reshape(200, 2, 2)
+    want = np.array([scipy.linalg.expm(x) for x in a])
+    err = np.abs(got - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
+    assert err.max() < 1e-14, err.max()
