@@ -26,7 +26,7 @@ from .acoustics import (CMat2, PointCoefficients, cscale2, expm2, expm2_traceles
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
-from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
+from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, HEAT_INPUT, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
                      FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
@@ -186,8 +186,9 @@ def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
 def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
                    s: int):
     """Points of segment s in set i's point list: 3 Gauss points per Magnus cell of a
-    thermal segment (``cells[i, column]``), one for a part at uniform temperature."""
-    if flags[s, F_THERMAL] == 0:
+    thermal segment (``cells[i, column]``), one for a part at uniform temperature (a
+    segment that is not thermal, or a thermal one without cells: no heat input)."""
+    if flags[s, F_THERMAL] == 0 or cells[i, column] == 0:
         return 1
     return 3 * cells[i, column]
 
@@ -199,14 +200,19 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
                 cells: wp.array2d(dtype=wp.int32), most: wp.array(dtype=wp.int32)):
     """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
     cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
-    ``cells`` has its columns); most[0] = the largest point count of a set over the grids."""
+    ``cells`` has its columns); most[0] = the largest point count of a set over the grids.
+    0 for a segment at uniform temperature: one that is not thermal, and every segment of a
+    set without heat input (its heat model has no source, so theta = 0 exactly and exp(A L)
+    is the segment's exact matrix: a two-step characterization's first fits, at Q = 0,
+    need no Magnus cell)."""
     i = wp.tid()
     n_seg = flags.shape[0]
+    heated = params[HEAT_INPUT, i] != wp.float64(0.0)
     points = int(0)
     for column in range(cells.shape[1]):
         s = column % n_seg
         cells[i, column] = 0
-        if flags[s, F_THERMAL] != 0:
+        if flags[s, F_THERMAL] != 0 and heated:
             density = cell_density[i] * wp.float64(1 + column // n_seg)
             cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
         points = points + segment_points(flags, cells, i, column, s)
@@ -239,7 +245,7 @@ def point_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
             r_k = thermal_radius(params, flags, i, s, r)
             T = T_cold
             dTdx = wp.float64(0.0)
-            if flags[s, F_THERMAL] != 0:
+            if flags[s, F_THERMAL] != 0 and cells[i, column] != 0:
                 lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
                 length = seg_value(params, i, s, LENGTH)
                 h = length / wp.float64(cells[i, column])
@@ -303,12 +309,12 @@ def make_transfer_kernel(max_registers: int | None = None):
             mob = frame_mobility(params, flags, i, s)
             sf = shape_factor(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
-            if flags[s, F_THERMAL] == 0:
+            n_cells = cells[i, grid * n_seg + s]
+            if flags[s, F_THERMAL] == 0 or n_cells == 0:
                 a = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table)
                 m = matmul2(expm2(scale2(a, length)), m)
                 p = p + 1
             else:
-                n_cells = cells[i, grid * n_seg + s]
                 h = length / wp.float64(n_cells)
                 for c in range(n_cells):
                     a1 = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,

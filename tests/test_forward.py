@@ -246,3 +246,14 @@ def test_matrix_exponential_against_scipy(scale):
     want = np.array([scipy.linalg.expm(x) for x in a])
     err = np.abs(got - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
     assert err.max() < 1e-14, err.max()
+
+
+def test_unheated_sets_take_the_closed_form():
+    """A set without heat input has theta = 0 exactly, so its thermal segments take the
+    closed form exp(A L) (no Magnus cell): the numbers of the same core with no heat model,
+    to the bit, whatever the cells setting; a heated set of the same batch does not."""
+    core = load_core("ceramic")
+    for kw in ({}, {"cells": 7}):
+        T = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", **kw).T
+        np.testing.assert_array_equal(T[0], transfer_matrices(cold(core), FREQS, 0.0, device="cpu").T[0])
+        assert np.abs(T[1] - T[0]).max() > 1e-3 * np.abs(T[0]).max()

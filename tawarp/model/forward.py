@@ -48,9 +48,12 @@ MAGNUS_ORDER = 6
 MAX_ESTIMATE_ROUNDS = 8
 #: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
 MAX_DENSITY_FACTOR = 64.0
-#: Device memory [bytes] for the Gauss points of a cascade launch: a larger batch runs in
-#: blocks of sets (:meth:`Engine._cascade`), so a fit's 1e5 parameter sets need no more.
+#: Memory [bytes] for the Gauss points of a cascade launch on the CPU, and the most on a
+#: GPU (there at most a quarter of its free memory): a larger batch runs in blocks of sets
+#: (:meth:`Engine._cascade`). On the GPU each block's last wave of threads leaves the
+#: device part idle, so blocks are made large.
 POINT_BUFFER_BYTES = 1 << 28
+POINT_BUFFER_BYTES_GPU = 1 << 32
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = 48
 
@@ -155,7 +158,8 @@ class ForwardSettings:
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
     core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
-    convergence studies need. The adaptive count jumps by whole cells as k (h, the
+    convergence studies need (a set without heat input takes none: its parts are at the
+    cold temperature, and exp(A L) is exact). The adaptive count jumps by whole cells as k (h, the
     conductivities) or w change, so the model is piecewise smooth in those parameters at
     the 1e-7 level: finite-difference Jacobians must use fixed cells
     (:func:`tawarp.measure.kind.smooth_settings` picks them). ``heat_cells``: heat-grid cells per thermal segment;
@@ -383,7 +387,7 @@ class Engine:
         wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
                                                  cells, most], device=self.device)
         n_points = int(most.numpy()[0])
-        block = max(1, min(n, POINT_BUFFER_BYTES // (n_points * POINT_BYTES)))
+        block = max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)))
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
             part = points if lo + block <= n else points[:n - lo]
@@ -396,6 +400,13 @@ class Engine:
             wp.launch(self.transfer_kernel, dim=threads,
                       inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, out, doubled],
                       device=self.device, block_dim=self.settings.block_dim)
+
+    def _point_buffer_bytes(self) -> int:
+        """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
+        device = wp.get_device(self.device)
+        if device.is_cpu:
+            return POINT_BUFFER_BYTES
+        return int(min(POINT_BUFFER_BYTES_GPU, device.free_memory // 4))
 
     def _estimated_cascade(self, params: wp.array, theta: wp.array, columns, density: wp.array,
                            out: wp.array) -> np.ndarray | None:
