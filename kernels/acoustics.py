@@ -128,7 +128,7 @@ class PointCoefficients:
     """The frequency-independent factors of A at one point of a part (SI units): A at
     angular frequency w follows from them and the pore functions alone
     (:func:`propagation_at`), so a parameter set's points are computed once for all of its
-    frequencies (:func:`tawarp.kernels.forward.point_kernel`).
+    frequencies (:func:`tawarp.kernels.forward.make_point_kernel`).
 
     ``log_nu`` = ln(r sqrt(rho/(2 mu))) and ``log_k`` = ln(r_k sqrt(rho cp/(2 kappa))):
     ln(s/sqrt(w)) of the viscous and thermal s = r/delta; ``c12`` = q^2 rho/(phi S)

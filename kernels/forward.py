@@ -8,7 +8,7 @@ Launch order for a batch of n parameter sets and m frequencies:
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
 3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and
-   :func:`point_kernel` (n P threads) computes the frequency-independent factors of A
+   :func:`make_point_kernel` (n C threads, C a set's cells) computes the frequency-independent factors of A
    (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
    properties, pore scales) at every Gauss point of the set once, for all its frequencies.
 4. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
@@ -34,9 +34,7 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 TWO_PI = wp.constant(wp.float64(6.283185307179586))
 PI = wp.constant(wp.float64(3.141592653589793))
 # Gauss-Legendre points of [0, 1] for the three-point rule: 1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10
-GAUSS_1 = wp.constant(wp.float64(0.1127016653792583))
-GAUSS_2 = wp.constant(wp.float64(0.5))
-GAUSS_3 = wp.constant(wp.float64(0.8872983346207417))
+GAUSS = wp.constant(wp.vec3d(0.1127016653792583, 0.5, 0.8872983346207417))
 
 
 @wp.kernel
@@ -172,7 +170,7 @@ def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
     """Magnus cells of thermal segment s of set i: ``seg_cells[s]``, or where that is 0
     :func:`magnus_cell_count` at ``density`` and the batch's highest angular frequency
     ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
-    points (:func:`point_kernel`); the count's omega term is small beside its k term in a
+    points (:func:`make_point_kernel`); the count's omega term is small beside its k term in a
     stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
     n_cells = seg_cells[s]
     if n_cells == 0:
@@ -200,7 +198,8 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
                 cells: wp.array2d(dtype=wp.int32), most: wp.array(dtype=wp.int32)):
     """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
     cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
-    ``cells`` has its columns); most[0] = the largest point count of a set over the grids.
+    ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
+    most[1] its largest count of point-kernel slots (:func:`segment_slots`).
     0 for a segment at uniform temperature: one that is not thermal, and every segment of a
     set without heat input (its heat model has no source, so theta = 0 exactly and exp(A L)
     is the segment's exact matrix: a two-step characterization's first fits, at Q = 0,
@@ -209,6 +208,7 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
     points = int(0)
+    slots = int(0)
     for column in range(cells.shape[1]):
         s = column % n_seg
         cells[i, column] = 0
@@ -216,51 +216,72 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
             density = cell_density[i] * wp.float64(1 + column // n_seg)
             cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
         points = points + segment_points(flags, cells, i, column, s)
+        slots = slots + segment_slots(flags, cells, i, column, s)
     wp.atomic_max(most, 0, points)
+    wp.atomic_max(most, 1, slots)
 
 
-@wp.kernel
-def point_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                 gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                 cells: wp.array2d(dtype=wp.int32), first: int, heat_cells: int, set0: int,
-                 points: wp.array2d(dtype=PointCoefficients)):
-    """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i. A set's points
-    run over its grids (``cells``' column blocks), and in each over the segments in order:
-    one point (the cold temperature) for a part at uniform temperature, the three Gauss
-    points x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
-    (length h) for a thermal segment."""
-    li, p = wp.tid()
-    i = set0 + li
-    n_seg = flags.shape[0]
-    p_mean = params[P_MEAN, i]
-    radius = params[RADIUS, i]
-    area = PI * radius * radius
-    T_cold = params[T_COLD, i]
-    rest = p
-    for column in range(cells.shape[1]):
-        s = column % n_seg
-        count = segment_points(flags, cells, i, column, s)
-        if rest >= 0 and rest < count:
-            phi, r, q = pore_geometry(params, flags, i, s)
-            r_k = thermal_radius(params, flags, i, s, r)
-            T = T_cold
-            dTdx = wp.float64(0.0)
-            if flags[s, F_THERMAL] != 0 and cells[i, column] != 0:
-                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-                length = seg_value(params, i, s, LENGTH)
-                h = length / wp.float64(cells[i, column])
-                gauss = GAUSS_1
-                if rest % 3 == 1:
-                    gauss = GAUSS_2
-                elif rest % 3 == 2:
-                    gauss = GAUSS_3
-                th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells, k,
-                                          sigma, length / wp.float64(heat_cells), segment_nonlinear(params, i, s),
-                                          (wp.float64(rest // 3) + gauss) * h)
-                T = T_cold + th
-                dTdx = dth
-            points[li, p] = point_coefficients(gas, p_mean, T, dTdx, phi, r, q, area, r_k)
-        rest = rest - count
+@wp.func
+def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
+                  s: int):
+    """Threads of the point kernel for segment s of set i: one per Magnus cell (its three
+    Gauss points), one for a part at uniform temperature (its one point)."""
+    if flags[s, F_THERMAL] == 0 or cells[i, column] == 0:
+        return 1
+    return cells[i, column]
+
+
+def make_point_kernel(nonlinear: bool):
+    """The point kernel (below), compiled for a linear heat model only (``nonlinear``
+    False: the Kirchhoff profile of the temperature-dependent effects is left out, which
+    frees registers on the GPU) or for both."""
+
+    def point_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
+                     gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
+                     cells: wp.array2d(dtype=wp.int32), first: int, heat_cells: int, set0: int,
+                     points: wp.array2d(dtype=PointCoefficients)):
+        """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
+        (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
+        grids (``cells``' column blocks), and in each over the segments in order: one point
+        (the cold temperature) for a part at uniform temperature, the three Gauss points
+        x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
+        (length h) for a thermal segment, a thread per cell (they share its heat cell's
+        coefficients)."""
+        li, slot = wp.tid()
+        i = set0 + li
+        n_seg = flags.shape[0]
+        p_mean = params[P_MEAN, i]
+        radius = params[RADIUS, i]
+        area = PI * radius * radius
+        T_cold = params[T_COLD, i]
+        rest = slot
+        p = int(0)
+        for column in range(cells.shape[1]):
+            s = column % n_seg
+            slots = segment_slots(flags, cells, i, column, s)
+            if rest >= 0 and rest < slots:
+                phi, r, q = pore_geometry(params, flags, i, s)
+                r_k = thermal_radius(params, flags, i, s, r)
+                if flags[s, F_THERMAL] != 0 and cells[i, column] != 0:
+                    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+                    length = seg_value(params, i, s, LENGTH)
+                    h = length / wp.float64(cells[i, column])
+                    nonlin = 0
+                    if wp.static(nonlinear):   # compiled out of the linear kernel: fewer registers on the GPU
+                        nonlin = segment_nonlinear(params, i, s)
+                    for g in range(3):
+                        th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells,
+                                                  k, sigma, length / wp.float64(heat_cells), nonlin,
+                                                  (wp.float64(rest) + GAUSS[g]) * h)
+                        points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q,
+                                                                          area, r_k)
+                else:
+                    points[li, p] = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, area, r_k)
+            rest = rest - slots
+            p = p + segment_points(flags, cells, i, column, s)
+
+    # a unique module does not inherit this file's module options
+    return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
 def make_transfer_kernel(max_registers: int | None = None):
@@ -276,7 +297,7 @@ def make_transfer_kernel(max_registers: int | None = None):
         frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
         freqs[m + k] on the grid of twice the cell density (the step-doubling error estimate,
         k < doubled.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
-        :func:`point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
+        :func:`make_point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
         Launched on points.shape[0] (m + doubled.shape[1]) threads, the doubled ones first:
         they run longest, and in warps of their own they hold up no short thread.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's

@@ -23,7 +23,7 @@ import warp as wp
 
 from .acoustics import CMat2, expm2, magnus6_step, propagation_matrix_complex, scale2
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
-from .forward import (GAUSS_1, GAUSS_2, GAUSS_3, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry,
+from .forward import (GAUSS, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry,
                       shape_factor, thermal_radius)
 from .gas import sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
@@ -112,13 +112,13 @@ def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
             for c in range(n_cells):
                 x0 = wp.float64(c) * h
                 a1 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS_1 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             x0 + GAUSS[0] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
                                              mob, sf, nonlin)
                 a2 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS_2 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             x0 + GAUSS[1] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
                                              mob, sf, nonlin)
                 a3 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS_3 * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
+                                             x0 + GAUSS[2] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
                                              mob, sf, nonlin)
                 m = magnus6_step(a1, a2, a3, h)
                 p, u = mat_vec(m, p, u)

@@ -147,7 +147,7 @@ class ForwardSettings:
     ``ceil(d (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
     wavenumber at the batch's highest frequency), adapted per parameter set: one grid
     serves all of a set's frequencies, whose Gauss-point factors are computed once
-    (:func:`tawarp.kernels.forward.point_kernel`). The density d of each set
+    (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
     ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
     the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
@@ -293,6 +293,7 @@ class Engine:
         self.pore_table = circular_table(dev)
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
         self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
+        self.point_kernel = _point_kernel(self.nonlinear)
         self._modules_loaded = False
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
@@ -377,21 +378,21 @@ class Engine:
         ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
         counted first and the largest point count read back (the one host round trip); then
         blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
-        (:func:`tawarp.kernels.forward.point_kernel`) and their cascade launch."""
+        (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch."""
         n = params.shape[1]
         if n == 0:
             return
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
-        most = wp.zeros(1, dtype=wp.int32, device=self.device)
+        most = wp.zeros(2, dtype=wp.int32, device=self.device)
         wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
                                                  cells, most], device=self.device)
-        n_points = int(most.numpy()[0])
+        n_points, n_slots = (int(v) for v in most.numpy())
         block = max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)))
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
             part = points if lo + block <= n else points[:n - lo]
-            wp.launch(kf.point_kernel, dim=part.shape, device=self.device,
+            wp.launch(self.point_kernel, dim=(part.shape[0], n_slots), device=self.device,
                       inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part])
             threads = part.shape[0] * (out.shape[1] + doubled.shape[1])
             if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
@@ -498,6 +499,12 @@ MIN_HEATED_MODELS_PER_THREAD = 64
 def _thread_pool(workers: int) -> ThreadPoolExecutor:
     """One pool per size for the CPU batches (threads live as long as the process)."""
     return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tawarp-cpu")
+
+
+@functools.cache
+def _point_kernel(nonlinear: bool):
+    """The point kernel for this heat model, compiled once per process."""
+    return kf.make_point_kernel(nonlinear)
 
 
 @functools.cache
