@@ -177,3 +177,35 @@ def test_paper_damping_converges_to_the_same_answer():
     b = fit(core, freqs, Y, GEOM, [0.8, 4e-4, 1.5], damping="paper", **kw)
     assert a.converged.all() and b.converged.all()
     assert np.all(np.abs(a.values - b.values) < 0.3 * a.std)
+
+
+def test_problem_warnings_formatted_when_read():
+    """Per-problem warnings are groups formatted on reading (a 1e5-problem batch no longer
+    formats 1e5 messages per fit): each problem gets exactly its groups' messages in order,
+    the summary counts the problems of each, and a pickled copy (a Dask result) is the
+    plain lists."""
+    import pickle
+
+    from tawarp.fit.estimate import _problem_warnings
+    from tawarp.fit.result import ProblemWarnings
+
+    N, names = 10, ["a", "b", "c"]
+    corr = np.tile(np.eye(3), (N, 1, 1))
+    corr[[2, 5, 7], 0, 2] = corr[[2, 5, 7], 2, 0] = 0.99
+    cond = np.full(N, 10.0)
+    cond[5] = 1e12
+    V = np.tile(np.eye(3), (N, 1, 1))
+    converged = np.ones(N, dtype=bool)
+    converged[[1, 5]] = False
+    reason = np.array(["xtol"] * N, dtype=object)
+    reason[1], reason[5] = "max_iterations", "stalled"
+    pw = ProblemWarnings(N, _problem_warnings(names, corr, cond, V, converged, reason, 0.95, 1e8))
+    assert len(pw) == N and pw[0] == [] and pw[3] == []
+    assert pw[2] == ["a and c are too correlated to separate (correlation +0.9900); fix one of them"]
+    assert [m.split(" ")[0] for m in pw[5]] == ["a", "ill-conditioned", "did"] and "stalled" in pw[5][2]
+    assert pw[1] == ["did not converge (max_iterations)"]
+    summary = pw.summary()
+    assert summary[0].startswith("3 of 10 problems (e.g. problem 2): a and c are too correlated")
+    assert any(s.startswith("problem 5: ill-conditioned") for s in summary)
+    copy = pickle.loads(pickle.dumps(pw))
+    assert isinstance(copy, list) and copy == [pw[i] for i in range(N)] and pw == copy

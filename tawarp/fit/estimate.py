@@ -92,7 +92,7 @@ from ..model.forward import ForwardSettings, parameter_row
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
 from .lm import chol_solve, levenberg_marquardt  # noqa: F401 (chol_solve: public API)
-from .result import FitResult
+from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z.
 FD_STEP = 1e-6
@@ -147,9 +147,13 @@ class Problems:
             Y = Y[None]
         if Y.ndim != 3 or Y.shape[1:] != (m, 4):
             raise ValueError(f"Y: shape {Y.shape}; expected (N, {m}, 4) dimensionless coefficients")
-        if not np.all(np.isfinite(Y)):
-            raise ValueError("Y: NaN or infinite values")
         self.N = N = Y.shape[0]
+        # error-measure denominator per problem; one pass over the data that also finds a
+        # NaN or infinity (it makes its problem's sum so)
+        flat = np.ascontiguousarray(Y).view(np.float64).reshape(N, -1)
+        self.y2 = np.einsum("ij,ij->i", flat, flat)
+        if not np.all(np.isfinite(self.y2)) and not np.all(np.isfinite(Y)):
+            raise ValueError("Y: NaN or infinite values")
         self.Y = Y
         self.names = list(names)
         if not self.names or len(set(self.names)) != len(self.names):
@@ -225,7 +229,7 @@ class Problems:
             if is_log(k):
                 lo[a] = max(lo[a], 0.0)
         self.lo, self.hi = lo, hi
-        self.set_scale(scale if scale is not None else np.array([[core.get(k) for k in self.names]] * N))
+        self.set_scale(scale if scale is not None else np.broadcast_to([core.get(k) for k in self.names], (N, self.p)))
         self.w_Y = wp.array(np.ascontiguousarray(Y).view(np.float64).reshape(N, m, 8), dtype=wp.float64, device=dev)
         self.w_W = wp.array(W, dtype=wp.float64, device=dev)
         self.w_zc = wp.array(zc, dtype=wp.float64, device=dev)
@@ -235,8 +239,6 @@ class Problems:
         self.normal = klm.normal_kernel(self.p)
         self.evaluations = 0
         self.launches = 0
-        # error-measure denominator per problem
-        self.y2 = np.sum(np.abs(Y) ** 2, axis=(1, 2))
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
@@ -344,49 +346,36 @@ def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
     return cov, std, corr, cond, s2, V
 
 
-def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_limit) -> list[list[tuple]]:
-    """Per problem, the (key, message) pairs of its warnings: pairs of parameters correlated
-    beyond ``corr_limit``, a condition number beyond ``cond_limit`` (naming the directions of
-    the weakest eigenvector ``V[:, :, 0]``), no convergence. The tests are vectorised and the
-    numbers converted to Python floats once: a 1e4-problem batch where every problem warns
-    took a third of the fit's time with per-problem NumPy scalars."""
-    N, p = len(cond), len(names)
+def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_limit) -> list[tuple]:
+    """The groups (key, problem rows, message(i)) of :class:`~tawarp.fit.result.ProblemWarnings`:
+    pairs of parameters correlated beyond ``corr_limit``, a condition number beyond
+    ``cond_limit`` (naming the directions of the weakest eigenvector ``V[:, :, 0]``), no
+    convergence (one group per reason). The tests are vectorised; a message is formatted
+    only when read."""
+    p = len(names)
     iu = np.triu_indices(p, 1)
     pair = corr[:, iu[0], iu[1]]
     with np.errstate(invalid="ignore"):
         hit = np.isfinite(pair) & (np.abs(pair) > corr_limit)
         ill = ~np.isfinite(cond) | (cond > cond_limit)
-    bad = ~np.asarray(converged, dtype=bool)
-    out = [[] for _ in range(N)]
+    groups = []
     for k, (a, b) in enumerate(zip(*iu)):
-        rows = np.flatnonzero(hit[:, k])
-        for i, c in zip(rows.tolist(), pair[rows, k].tolist()):
-            out[i].append((("corr", int(a), int(b)), f"{names[a]} and {names[b]} are too correlated to separate "
-                                                     f"(correlation {c:+.4f}); fix one of them"))
-    rows = np.flatnonzero(ill)
-    if rows.size:
-        v = np.abs(V[rows, :, 0])
-        strong = v > 0.3 * v.max(axis=1, keepdims=True)
-        order = np.argsort(-v, axis=1)
-        for i, c, o, st in zip(rows.tolist(), cond[rows].tolist(), order.tolist(), strong.tolist()):
-            dom = ", ".join(names[k] for k in o if st[k])
-            out[i].append((("cond",), f"ill-conditioned (condition number {c:.3g} of J^T J in scaled variables > "
-                                      f"{cond_limit:g}): the direction mostly along {dom} is not determined"))
-    for i in np.flatnonzero(bad).tolist():
-        out[i].append((("conv", str(reason[i])), f"did not converge ({reason[i]})"))
-    return out
+        def correlated(i, k=k, a=a, b=b):
+            return (f"{names[a]} and {names[b]} are too correlated to separate "
+                    f"(correlation {pair[i, k]:+.4f}); fix one of them")
+        groups.append((("corr", int(a), int(b)), np.flatnonzero(hit[:, k]), correlated))
 
-
-def _aggregate(per_problem: list[list[tuple]], N: int) -> list[str]:
-    groups: dict = {}
-    for i, items in enumerate(per_problem):
-        for key, msg in items:
-            groups.setdefault(key, [msg, []])[1].append(i)
-    out = []
-    for msg, idx in groups.values():
-        head = f"problem {idx[0]}" if len(idx) == 1 else f"{len(idx)} of {N} problems (e.g. problem {idx[0]})"
-        out.append(f"{head}: {msg}")
-    return out
+    def conditioned(i):
+        v = np.abs(V[i, :, 0])
+        dom = ", ".join(names[k] for k in np.argsort(-v) if v[k] > 0.3 * v.max())
+        return (f"ill-conditioned (condition number {cond[i]:.3g} of J^T J in scaled variables > "
+                f"{cond_limit:g}): the direction mostly along {dom} is not determined")
+    groups.append((("cond",), np.flatnonzero(ill), conditioned))
+    bad = ~np.asarray(converged, dtype=bool)
+    reason = np.asarray(reason, dtype=str)
+    for why in dict.fromkeys(reason[bad].tolist()):
+        groups.append((("conv", why), np.flatnonzero(bad & (reason == why)), lambda i: f"did not converge ({reason[i]})"))
+    return groups
 
 
 def _sign_patterns(k: int, p: int, seed: int) -> np.ndarray:
@@ -533,14 +522,14 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         far_all = away & (~asp | close_cost)
         local = np.sum(away & asp & ~close_cost, axis=1)
         distinct = far_all.any(axis=1)
-        for i in np.flatnonzero(distinct):
+        def other_minimum(i):
             far = far_all[i]
-            if far.any():
-                j = int(np.flatnonzero(far)[np.argmin(ac[i][far])])
-                per[i].append((("minima",), "restarts landed in different minima: best cost "
-                                            f"{cost[i]:.4g} at {_fmt(names, values[i])}, another at cost "
-                                            f"{ac[i, j]:.4g}, {_fmt(names, av[i, j])}"))
-    warn_list = _aggregate(per, N)
+            j = int(np.flatnonzero(far)[np.argmin(ac[i][far])])
+            return (f"restarts landed in different minima: best cost {cost[i]:.4g} at {_fmt(names, values[i])}, "
+                    f"another at cost {ac[i, j]:.4g}, {_fmt(names, av[i, j])}")
+        per.append((("minima",), np.flatnonzero(distinct & far_all.any(axis=1)), other_minimum))
+    problem_warnings = ProblemWarnings(N, per)
+    warn_list = problem_warnings.summary()
     if warn:
         for msg in warn_list:
             _warnings.warn(msg, FitWarning, stacklevel=2)
@@ -548,7 +537,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     return FitResult(names=names, values=values, std=std, covariance=cov, correlation=corr, condition=cond,
                      iterations=its, converged=conv, reason=np.asarray(reason, dtype=str), cost=cost,
                      rms_error=rms, s2=s2, dof=max(8 * prob.freqs.size - p, 1), start=start_v,
-                     warnings=warn_list, problem_warnings=[[m for _, m in x] for x in per],
+                     warnings=warn_list, problem_warnings=problem_warnings,
                      distinct_minima=distinct, restart_values=restart_values, restart_cost=restart_cost,
                      restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations, launches=prob.launches,
                      seconds=time.perf_counter() - t0, weighted=weights is not None, lower=prob.lo, upper=prob.hi)
