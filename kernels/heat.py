@@ -82,20 +82,19 @@ def cell_coupling(lam: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float
 
 
 @wp.func
-def cosh_ratio(u: wp.float64, v: wp.float64):
-    """cosh(u)/cosh(v) for |u| <= v, without overflow."""
+def hyperbolic_ratios(u: wp.float64, v: wp.float64):
+    """(cosh(u)/cosh(v), sinh(u)/cosh(v), tanh(v)) for |u| <= v, without overflow, from
+    the three exponentials they share (the cell profile needs all three at each point)."""
     au = wp.abs(u)
-    return wp.exp(au - v) * (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * au)) / (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * v))
-
-
-@wp.func
-def sinh_cosh_ratio(u: wp.float64, v: wp.float64):
-    """sinh(u)/cosh(v) for |u| <= v, without overflow."""
-    au = wp.abs(u)
-    r = wp.exp(au - v) * (wp.float64(1.0) - wp.exp(wp.float64(-2.0) * au)) / (wp.float64(1.0) + wp.exp(wp.float64(-2.0) * v))
+    e = wp.exp(au - v)
+    eu = wp.exp(wp.float64(-2.0) * au)
+    ev = wp.exp(wp.float64(-2.0) * v)
+    inv = wp.float64(1.0) / (wp.float64(1.0) + ev)
+    cr = e * (wp.float64(1.0) + eu) * inv
+    sr = e * (wp.float64(1.0) - eu) * inv
     if u < wp.float64(0.0):
-        r = -r
-    return r
+        sr = -sr
+    return cr, sr, (wp.float64(1.0) - ev) * inv
 
 
 @wp.func
@@ -118,9 +117,7 @@ def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma:
         theta = theta + sigma * w
         dtheta = dtheta - sigma * m * shx(u) / ch
         return theta, dtheta
-    cr = cosh_ratio(u, v)
-    sr = sinh_cosh_ratio(u, v)
-    th = wp.tanh(v)
+    cr, sr, th = hyperbolic_ratios(u, v)
     # sinh(u)/sinh(v) = (sinh(u)/cosh(v)) / tanh(v), cosh(u)/sinh(v) likewise
     theta = mean * cr + half * sr / th + sigma * (wp.float64(1.0) - cr) / (k * k)
     dtheta = k * (mean * sr + half * cr / th) - sigma * sr / k
