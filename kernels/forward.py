@@ -181,14 +181,31 @@ def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
 
 
 @wp.func
+def segment_uniform(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
+                    s: int):
+    """True when segment s of set i is at uniform temperature on the grid of ``column``: it
+    is not thermal, or it has no Magnus cells (no heat input); its matrix is exp(A L)."""
+    return flags[s, F_THERMAL] == 0 or cells[i, column] == 0
+
+
+@wp.func
 def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
                    s: int):
     """Points of segment s in set i's point list: 3 Gauss points per Magnus cell of a
-    thermal segment (``cells[i, column]``), one for a part at uniform temperature (a
-    segment that is not thermal, or a thermal one without cells: no heat input)."""
-    if flags[s, F_THERMAL] == 0 or cells[i, column] == 0:
+    thermal segment (``cells[i, column]``), one for a part at uniform temperature."""
+    if segment_uniform(flags, cells, i, column, s):
         return 1
     return 3 * cells[i, column]
+
+
+@wp.func
+def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
+                  s: int):
+    """Threads of the point kernel for segment s of set i: one per Magnus cell (its three
+    Gauss points), one for a part at uniform temperature (its one point)."""
+    if segment_uniform(flags, cells, i, column, s):
+        return 1
+    return cells[i, column]
 
 
 @wp.kernel
@@ -219,16 +236,6 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
         slots = slots + segment_slots(flags, cells, i, column, s)
     wp.atomic_max(most, 0, points)
     wp.atomic_max(most, 1, slots)
-
-
-@wp.func
-def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
-                  s: int):
-    """Threads of the point kernel for segment s of set i: one per Magnus cell (its three
-    Gauss points), one for a part at uniform temperature (its one point)."""
-    if flags[s, F_THERMAL] == 0 or cells[i, column] == 0:
-        return 1
-    return cells[i, column]
 
 
 def make_point_kernel(nonlinear: bool):
@@ -274,7 +281,7 @@ def make_point_kernel(nonlinear: bool):
         phi, r, q = pore_geometry(params, flags, i, s)
         r_k = thermal_radius(params, flags, i, s, r)
         n_cells = cells[i, column]
-        if flags[s, F_THERMAL] != 0 and n_cells != 0:
+        if not segment_uniform(flags, cells, i, column, s):
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             length = seg_value(params, i, s, LENGTH)
             h = length / wp.float64(n_cells)
@@ -340,7 +347,7 @@ def make_transfer_kernel(max_registers: int | None = None):
             sf = shape_factor(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
             n_cells = cells[i, grid * n_seg + s]
-            if flags[s, F_THERMAL] == 0 or n_cells == 0:
+            if segment_uniform(flags, cells, i, grid * n_seg + s, s):
                 a = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table)
                 m = matmul2(expm2(scale2(a, length)), m)
                 p = p + 1

@@ -55,7 +55,7 @@ MAX_DENSITY_FACTOR = 64.0
 POINT_BUFFER_BYTES = 1 << 28
 POINT_BUFFER_BYTES_GPU = 1 << 32
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
-POINT_BYTES = 48
+POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
 
 
 def default_device() -> str:
