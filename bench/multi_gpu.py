@@ -44,7 +44,7 @@ from tawarp.design.sweep import sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
-from tawarp.model.forward import ForwardSettings, transfer_matrices
+from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices
 from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
@@ -147,6 +147,11 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
     args = ap.parse_args(argv)
     devices = args.devices.split(",")
+    for d in devices:
+        try:
+            resolve_device(d)
+        except ValueError as e:
+            ap.error(f"--devices: {e}")
     kinds = ("processes", "threads") if args.cluster == "both" else (args.cluster,)
     import warp as wp
 
