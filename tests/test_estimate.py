@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from tawarp.model.core import load_core
-from tawarp.fit.estimate import FitWarning, Problems, chol_solve, fit
+from tawarp.fit.estimate import FitWarning, Problems, fit
 from tawarp.model.forward import ForwardSettings, transfer_matrices
 from tawarp.measure.synthetic import paper_frequencies
 
@@ -59,19 +59,6 @@ def test_normal_equations_match_central_differences():
     assert np.max(np.abs(g[0] - J.T @ r) / gscale) < 1e-5
     # the unweighted sum of squares of the error measure
     assert raw[0] == pytest.approx(np.sum(np.abs(Ym[0] - Y[0]) ** 2), rel=1e-12)
-
-
-def test_chol_solve_matches_numpy():
-    rng = np.random.default_rng(1)
-    A = rng.standard_normal((50, 5, 5))
-    A = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(5)
-    b = rng.standard_normal((50, 5))
-    x, ok = chol_solve(A, b)
-    assert ok.all()
-    # 1e-10: well-conditioned SPD systems, double precision
-    assert np.allclose(x, np.linalg.solve(A, b[..., None])[..., 0], rtol=1e-10, atol=1e-12)
-    x, ok = chol_solve(-A, b)
-    assert not ok.any() and np.all(x == 0)
 
 
 def test_std_matches_scatter_over_noise_draws():

@@ -91,7 +91,7 @@ from ..model.fields import field as field_spec
 from ..model.forward import ForwardSettings, parameter_row
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
-from .lm import chol_solve, levenberg_marquardt  # noqa: F401 (chol_solve: public API)
+from .lm import levenberg_marquardt
 from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z.
@@ -274,12 +274,11 @@ class Problems:
     def project(self, z, pid):
         return np.clip(z, self.zlo[pid], self.zhi[pid])
 
-    def relative_change(self, dz, z, pid):
-        """Relative change (natural units) of each parameter of a step ``dz`` that ended at
-        ``z`` (problems ``pid``)."""
-        with np.errstate(divide="ignore", invalid="ignore"):
-            lin = self.scale[pid] * np.abs(dz) / np.maximum(np.abs(self.to_v(z, pid)), 1e-300)
-            return np.where(self.kind == 1, np.abs(np.expm1(dz)), lin)
+    def change_rule(self):
+        """How :func:`levenberg_marquardt` measures a step against ``xtol``: the relative
+        change in natural units, ``|expm1(dz)|`` for log parameters, ``scale |dz| / |v|``
+        for linear ones (:mod:`tawarp.kernels.lm_step`)."""
+        return self.kind, self.scale, self.offset
 
     # -- one launch ----------------------------------------------------------------------
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):

@@ -9,6 +9,12 @@ module doc. Two implementations of :class:`LMProblems` exist: the T-matrix probl
 :class:`tawarp.fit.estimate.Problems` reduce residuals to (cost, g, H) on the device
 (:mod:`tawarp.kernels.lm`); :class:`tawarp.fit.problems.KindProblems` does it on the host
 for any measurement kind (:mod:`tawarp.measure`).
+
+The iteration's arithmetic (damped Cholesky step, projection onto the bounds, acceptance,
+damping, stopping tests) runs on the problems' device in the kernels of
+:mod:`tawarp.kernels.lm_step`, one thread per problem: with 1e5 problems the NumPy
+bookkeeping of (n, p, p) arrays cost the host more than the device's evaluations (issue
+#11). The host launches, calls ``evaluate`` and compacts the active set from the done flags.
 """
 
 from __future__ import annotations
@@ -17,44 +23,13 @@ from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
+import warp as wp
 
+from ..kernels import lm_step
 from ..progress import progress_bar
 
-
-def chol_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Solve A x = b for a batch of small symmetric positive definite A (n, p, p) by a
-    vectorised Cholesky factorisation; returns (x, ok) with ok False where A is not
-    positive definite (x is then 0)."""
-    n, p = b.shape
-    L = np.zeros_like(A)
-    ok = np.ones(n, dtype=bool)
-    for j in range(p):
-        d = A[:, j, j] - np.sum(L[:, j, :j] ** 2, axis=1)
-        ok &= d > 0
-        L[:, j, j] = np.sqrt(np.where(d > 0, d, 1.0))
-        for i in range(j + 1, p):
-            L[:, i, j] = (A[:, i, j] - np.sum(L[:, i, :j] * L[:, j, :j], axis=1)) / L[:, j, j]
-    y = np.zeros_like(b)
-    for i in range(p):
-        y[:, i] = (b[:, i] - np.sum(L[:, i, :i] * y[:, :i], axis=1)) / L[:, i, i]
-    x = np.zeros_like(b)
-    for i in reversed(range(p)):
-        x[:, i] = (y[:, i] - np.sum(L[:, i + 1:, i] * x[:, i + 1:], axis=1)) / L[:, i, i]
-    x[~ok] = 0.0
-    return x, ok
-
-
-def _free_mask(z, g, zlo, zhi):
-    """Components not held at a bound by a gradient pushing outward."""
-    at_lo = (z <= zlo) & (g > 0)
-    at_hi = (z >= zhi) & (g < 0)
-    return ~(at_lo | at_hi)
-
-
-def _grad_cosine(g, H, cost, free):
-    den = np.sqrt(np.maximum(np.einsum("nii->ni", H), 1e-300) * np.maximum(cost, 1e-300)[:, None])
-    c = np.where(free, np.abs(g) / den, 0.0)
-    return c.max(axis=1) if c.shape[1] else np.zeros(len(c))
+#: names of the reason codes of :mod:`tawarp.kernels.lm_step` (code 0: still iterating)
+REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 
 
 @dataclass
@@ -71,27 +46,38 @@ class LMState:
     converged: np.ndarray
 
 
+
+
 class LMProblems(Protocol):
     """What :func:`levenberg_marquardt` needs of a batch of least-squares problems in scaled
-    variables z (:class:`Problems`; :class:`tawarp.loop.LoopProblems` for the loop's fits).
+    variables z (:class:`tawarp.fit.estimate.Problems`, :class:`tawarp.fit.problems.KindProblems`).
 
-    ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none);
-    ``project(z, pid)``: z (n, p) of problems ``pid`` (n,) moved onto the bounds;
-    ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` at z, cost (n,) the weighted sum of
-    squared residuals ``r^T r`` (inf where the model fails), raw (n,) its unweighted
+    ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none); every z the LM tries
+    is clipped onto them. ``device`` (optional, default the CPU): where the iteration runs.
+    ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` of problems ``pid`` (n,) at z
+    (n, p) (NumPy), cost (n,) the weighted sum of squared residuals ``r^T r`` (inf where the
+    model fails; a non-finite cost, g or H makes it so), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
-    Jacobian in z; ``relative_change(dz, z, pid)``: (n, p) the size of a step dz that ended
-    at z compared with ``xtol``.
+    Jacobian in z; NumPy arrays or Warp arrays on ``device``.
+    ``change_rule()``: ``(kind (p,), scale (N, p), offset (N, p))``, how the size of a step
+    dz that ended at z is measured against ``xtol`` (:mod:`tawarp.kernels.lm_step`:
+    ``CHANGE_LINEAR`` ``s |dz| / |o + s z|``, ``CHANGE_LOG`` ``|expm1(dz)|``,
+    ``CHANGE_ABSOLUTE`` ``|dz|``).
     """
 
     zlo: np.ndarray
     zhi: np.ndarray
 
-    def project(self, z: np.ndarray, pid: np.ndarray) -> np.ndarray: ...
-
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = ...) -> tuple: ...
 
-    def relative_change(self, dz: np.ndarray, z: np.ndarray, pid: np.ndarray) -> np.ndarray: ...
+    def change_rule(self) -> tuple: ...
+
+
+def _on_device(arrays, device, own=False):
+    """The evaluation's arrays as float64 Warp arrays on ``device`` (NumPy ones copied there;
+    ``own``: Warp ones too, for the state the kernels overwrite)."""
+    return [(wp.clone(a) if own else a) if isinstance(a, wp.array)
+            else wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device) for a in arrays]
 
 
 def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
@@ -103,76 +89,48 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
-    z = prob.project(np.array(z0, dtype=float), pid)
-    cost, raw, g, H = prob.evaluate(pid, z, max_sets)
-    iterations = np.zeros(Q, dtype=int)
-    reason = np.array([""] * Q, dtype=object)
-    converged = np.zeros(Q, dtype=bool)
-    bad = ~np.isfinite(cost)
-    reason[bad] = "invalid"
-    mu = tau * np.max(np.einsum("nii->ni", H), axis=1)
-    mu = np.where(np.isfinite(mu) & (mu > 0), mu, 1e-3)
-    nu = np.full(Q, 2.0)
-    free = _free_mask(z, g, prob.zlo[pid], prob.zhi[pid])
-    done0 = (_grad_cosine(g, H, cost, free) <= gtol) | (cost == 0)
-    reason[done0 & ~bad] = "gtol"
-    converged[done0 & ~bad] = True
-    active = np.flatnonzero(~(bad | done0))
+    if p == 0:
+        raise ValueError("levenberg_marquardt: no free parameters")
+    dev = wp.get_device(getattr(prob, "device", "cpu"))
+    init, propose, update = lm_step.step_kernels(p)
+    pid = np.asarray(pid)
+
+    def put(a, dtype=wp.float64):
+        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
+
+    kind, scale, offset = prob.change_rule()
+    w_pid = put(pid.astype(np.int32), wp.int32)
+    w_zlo, w_zhi = put(np.asarray(prob.zlo, dtype=float)), put(np.asarray(prob.zhi, dtype=float))
+    w_kind, w_scale, w_offset = put(np.asarray(kind, dtype=np.int32), wp.int32), put(scale), put(offset)
+    z = np.clip(np.array(z0, dtype=float), prob.zlo[pid], prob.zhi[pid])
+    w_z = put(z)
+    w_cost, w_raw, w_g, w_H = _on_device(prob.evaluate(pid, z, max_sets), dev, own=True)
+    w_mu, w_nu = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
+    w_it = wp.zeros(Q, dtype=wp.int32, device=dev)
+    w_reason, w_conv = wp.empty(Q, dtype=wp.int32, device=dev), wp.empty(Q, dtype=wp.int32, device=dev)
+    w_done = wp.empty(Q, dtype=wp.int32, device=dev)
+    wp.launch(init, dim=Q, device=dev, inputs=[w_pid, w_zlo, w_zhi, float(tau), float(gtol), w_z, w_cost, w_g, w_H,
+                                               w_mu, w_nu, w_reason, w_conv, w_done])
+    active = np.flatnonzero(w_done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
-    eye = np.eye(p)
+    damp = lm_step.DAMP_NIELSEN if damping == "nielsen" else lm_step.DAMP_PAPER
     while active.size:
-        a = active
-        pa = pid[a]
-        A = H[a] + mu[a, None, None] * eye
-        # the step on the free components only: a component held at its bound would otherwise
-        # take part in the solve, and projecting the full step back onto the bound leaves a
-        # direction that need not descend (the fit then stalls at the bound: issue 9 validation)
-        fr = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
-        both = fr[:, :, None] & fr[:, None, :]
-        A = np.where(both, A, eye)
-        d, ok_chol = chol_solve(A, np.where(fr, -g[a], 0.0))
-        zt = prob.project(z[a] + d, pa)
-        dz = zt - z[a]
-        pred = -(2.0 * np.einsum("ni,ni->n", g[a], dz) + np.einsum("ni,nij,nj->n", dz, H[a], dz))
-        ct, rt, gt, Ht = prob.evaluate(pa, zt, max_sets)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            rho = np.where(pred > 0, (cost[a] - ct) / pred, -1.0)
-        acc = ok_chol & np.isfinite(ct) & (rho > 0) & (ct < cost[a])
-        iterations[a] += 1
-        # accepted: move, take the trial's Jacobian
-        ia = a[acc]
-        z[ia], cost[ia], raw[ia], g[ia], H[ia] = zt[acc], ct[acc], rt[acc], gt[acc], Ht[acc]
-        if damping == "nielsen":
-            mu[ia] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho[acc] - 1.0) ** 3)
-            nu[ia] = 2.0
-            ir = a[~acc]
-            mu[ir] *= nu[ir]
-            nu[ir] *= 2.0
-        else:
-            mu[ia] *= 0.5
-            mu[a[~acc]] *= 2.0
-        # convergence tests
-        rel = prob.relative_change(dz, zt, pa)
-        rel = rel.max(axis=1) if p else np.zeros(len(a))
-        free = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
-        gcos = _grad_cosine(g[a], H[a], cost[a], free)
-        zero_step = ~np.any(free, axis=1)
-        conv_x = acc & (rel < xtol)
-        conv_g = (gcos <= gtol) | (cost[a] == 0)
-        stalled = ~acc & (mu[a] > 1e16)
-        capped = iterations[a] >= max_iter
-        r = reason[a]
-        done = np.zeros(len(a), dtype=bool)
-        for mask, why, good in ((conv_x, "xtol", True), (conv_g, "gtol", True), (zero_step, "bound", True),
-                                (stalled, "stalled", None), (capped, "max_iterations", False)):
-            new = mask & ~done
-            r[new] = why
-            ok = (gcos[new] <= 1e-4) if good is None else np.full(new.sum(), good)
-            converged[a[new]] = ok
-            done |= new
-        reason[a] = r
-        active = a[~done]
-        bar.update(int(done.sum()))
+        n = active.size
+        w_act = put(active.astype(np.int32), wp.int32)
+        w_zt, w_dz = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p), dtype=wp.float64, device=dev)
+        w_pred, w_ok = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev)
+        wp.launch(propose, dim=n, device=dev, inputs=[w_act, w_pid, w_zlo, w_zhi, w_z, w_g, w_H, w_mu,
+                                                      w_zt, w_dz, w_pred, w_ok])
+        ct, rt, gt, Ht = _on_device(prob.evaluate(pid[active], w_zt.numpy(), max_sets), dev)
+        done = wp.empty(n, dtype=wp.int32, device=dev)
+        wp.launch(update, dim=n, device=dev,
+                  inputs=[w_act, w_pid, w_zlo, w_zhi, w_kind, w_scale, w_offset, w_zt, w_dz, w_pred, w_ok,
+                          ct, rt, gt, Ht, damp, float(xtol), float(gtol), int(max_iter), w_z, w_cost, w_raw, w_g,
+                          w_H, w_mu, w_nu, w_it, w_reason, w_conv, done])
+        finished = done.numpy() != 0
+        active = active[~finished]
+        bar.update(int(finished.sum()))
     bar.close()
-    return LMState(z, cost, raw, g, H, iterations, reason, converged)
+    return LMState(w_z.numpy(), w_cost.numpy(), w_raw.numpy(), w_g.numpy(), w_H.numpy(), w_it.numpy().astype(int),
+                   np.array(REASONS, dtype=object)[w_reason.numpy()], w_conv.numpy() != 0)

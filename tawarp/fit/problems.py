@@ -22,6 +22,7 @@ import time
 
 import numpy as np
 
+from ..kernels import lm_step
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
 from .lm import levenberg_marquardt
@@ -102,12 +103,11 @@ class KindProblems:
             z[c, :self.p[c]] = np.asarray(x0, dtype=float)
         return z
 
-    def project(self, z, pid):
-        return np.clip(z, self.zlo[pid], self.zhi[pid])
-
-    def relative_change(self, dz, z, pid):
-        """|dz|: the scaled variables already measure relative change (:class:`Param`)."""
-        return np.abs(dz)
+    def change_rule(self):
+        """|dz| against ``xtol``: the scaled variables already measure relative change
+        (:class:`Param`)."""
+        P = self.zlo.shape[1]
+        return np.full(P, lm_step.CHANGE_ABSOLUTE, dtype=np.int32), np.ones_like(self.zlo), np.zeros_like(self.zlo)
 
     def predict(self, requests: list) -> list:
         """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure."""

@@ -1,0 +1,319 @@
+"""Kernels of one batched Levenberg-Marquardt iteration (:func:`tawarp.fit.lm.levenberg_marquardt`).
+
+The LM bookkeeping of every problem runs on the problems' device, one thread per
+problem, so the host only launches, evaluates and compacts the active set. The state
+lives in arrays indexed by the problem's slot ``q`` of the batch (Q slots; ``pid[q]`` its
+data index, which selects the rows of the bounds and of the change rule):
+
+``z`` (Q, p) scaled variables, ``cost`` (Q,) ``F = r^T r``, ``raw`` (Q,) unweighted misfit,
+``g`` (Q, p) ``J^T r``, ``H`` (Q, p, p) ``J^T J``, ``mu`` ``nu`` (Q,) damping, ``iterations``
+``reason`` ``converged`` (Q,) int32.
+
+Three kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
+p x p matrices in registers):
+
+1. ``init`` (one thread per slot): invalid evaluations (a non-finite cost, g or H) become
+   ``cost = inf`` / ``"invalid"``; ``mu = tau max diag H`` (1e-3 if that is not > 0);
+   the initial gradient test (``"gtol"``); ``done`` marks slots that do not iterate.
+2. ``propose`` (one thread per active slot ``act[s]``): the damped step
+   ``(H + mu I) d = -g`` on the free components (a component held at its bound by a gradient
+   pushing outward takes no part), by Cholesky; the trial ``zt = clip(z + d, zlo, zhi)``,
+   ``dz = zt - z`` and the predicted decrease ``pred = -(2 g.dz + dz.H.dz)``.
+3. ``update`` (one thread per active slot, after the problems evaluated the trials):
+   acceptance, damping (Nielsen's or the paper's), the stopping tests and reasons in the
+   order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
+
+The relative change of a step compared with ``xtol`` is the problem's own notion, given as
+data per parameter (``change_kind`` (p,), ``scale`` ``offset`` (N, p)):
+:data:`CHANGE_LINEAR` ``s |dz| / |o + s zt|`` (v = o + s z), :data:`CHANGE_LOG`
+``|expm1(dz)|`` (v = s exp(z)), :data:`CHANGE_ABSOLUTE` ``|dz|`` (z already measures
+relative change). Everything is float64.
+"""
+
+import warp as wp
+
+from .lm import KIND_LINEAR, KIND_LOG
+
+wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
+
+#: relative-change rules (the first two are the parameter transforms of :mod:`.lm`)
+CHANGE_LINEAR = KIND_LINEAR
+CHANGE_LOG = KIND_LOG
+CHANGE_ABSOLUTE = wp.constant(2)
+
+#: reason codes; 0 while iterating (:data:`tawarp.fit.lm.REASONS` names them)
+R_XTOL = wp.constant(1)
+R_GTOL = wp.constant(2)
+R_BOUND = wp.constant(3)
+R_STALLED = wp.constant(4)
+R_MAX_ITERATIONS = wp.constant(5)
+R_INVALID = wp.constant(6)
+
+#: damping rules
+DAMP_NIELSEN = wp.constant(0)
+DAMP_PAPER = wp.constant(1)
+
+
+@wp.func
+def is_free(z: wp.float64, g: wp.float64, lo: wp.float64, hi: wp.float64):
+    """1 unless the component sits at a bound with the gradient pushing outward."""
+    if z <= lo and g > wp.float64(0.0):
+        return 0
+    if z >= hi and g < wp.float64(0.0):
+        return 0
+    return 1
+
+
+@wp.func
+def nan_max(m: wp.float64, x: wp.float64):
+    """max(m, x) that keeps a NaN once met, as NumPy's max reduction."""
+    if wp.isnan(m) or x <= m:
+        return m
+    return x
+
+
+@wp.func
+def expm1(x: wp.float64):
+    """exp(x) - 1 without cancellation for small |x| (Kahan's correction; Warp has none)."""
+    u = wp.exp(x)
+    if u == wp.float64(1.0):
+        return x
+    um1 = u - wp.float64(1.0)
+    if um1 == wp.float64(-1.0):
+        return um1
+    return um1 * x / wp.log(u)
+
+
+_STEP_KERNELS = {}
+
+
+def step_kernels(p: int):
+    """(init, propose, update) kernels for ``p`` parameters per problem (cached per p)."""
+    if p in _STEP_KERNELS:
+        return _STEP_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+    veci = wp.types.vector(length=p, dtype=wp.int32)
+
+    @wp.func
+    def grad_cosine(q: int, b: int, z: wp.array2d(dtype=wp.float64), g: wp.array2d(dtype=wp.float64),
+                    H: wp.array3d(dtype=wp.float64), cost: wp.float64, zlo: wp.array2d(dtype=wp.float64),
+                    zhi: wp.array2d(dtype=wp.float64)):
+        """max over free a of |g_a| / sqrt(H_aa F) of slot q (data row b), and the number
+        of free components."""
+        tiny = wp.float64(1e-300)
+        c = wp.float64(0.0)
+        nfree = int(0)
+        for a in range(P):
+            if is_free(z[q, a], g[q, a], zlo[b, a], zhi[b, a]) == 1:
+                nfree += 1
+                ca = wp.abs(g[q, a]) / wp.sqrt(wp.max(H[q, a, a], tiny) * wp.max(cost, tiny))
+                c = nan_max(c, ca)
+        return c, nfree
+
+    @wp.func
+    def valid(c: wp.float64, q: int, g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64)):
+        """cost, or inf where the evaluation is not finite (cost, g or H)."""
+        ok = wp.isfinite(c)
+        for a in range(P):
+            ok = ok and wp.isfinite(g[q, a])
+            for b in range(P):
+                ok = ok and wp.isfinite(H[q, a, b])
+        if ok:
+            return c
+        return wp.float64(wp.inf)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def init(pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64), zhi: wp.array2d(dtype=wp.float64),
+             tau: wp.float64, gtol: wp.float64, z: wp.array2d(dtype=wp.float64), cost: wp.array(dtype=wp.float64),
+             g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64), mu: wp.array(dtype=wp.float64),
+             nu: wp.array(dtype=wp.float64), reason: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
+             done: wp.array(dtype=wp.int32)):
+        q = wp.tid()
+        b = int(pid[q])
+        c = valid(cost[q], q, g, H)
+        cost[q] = c
+        m = H[q, 0, 0]
+        for a in range(1, P):
+            m = nan_max(m, H[q, a, a])
+        m = tau * m
+        if not (wp.isfinite(m) and m > wp.float64(0.0)):
+            m = wp.float64(1e-3)
+        mu[q] = m
+        nu[q] = wp.float64(2.0)
+        reason[q] = 0
+        converged[q] = 0
+        done[q] = 0
+        gcos, nfree = grad_cosine(q, b, z, g, H, c, zlo, zhi)
+        if not wp.isfinite(c):
+            reason[q] = R_INVALID
+            done[q] = 1
+        elif gcos <= gtol or c == wp.float64(0.0):
+            reason[q] = R_GTOL
+            converged[q] = 1
+            done[q] = 1
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def propose(act: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64),
+                zhi: wp.array2d(dtype=wp.float64), z: wp.array2d(dtype=wp.float64), g: wp.array2d(dtype=wp.float64),
+                H: wp.array3d(dtype=wp.float64), mu: wp.array(dtype=wp.float64), zt: wp.array2d(dtype=wp.float64),
+                dz: wp.array2d(dtype=wp.float64), pred: wp.array(dtype=wp.float64), chol_ok: wp.array(dtype=wp.int32)):
+        s = wp.tid()
+        q = int(act[s])
+        b = int(pid[q])
+        # A = H + mu I on the free components, identity rows/columns elsewhere, rhs -g
+        fr = veci()
+        for a in range(P):
+            fr[a] = is_free(z[q, a], g[q, a], zlo[b, a], zhi[b, a])
+        A = matp()
+        rhs = vecp()
+        for i in range(P):
+            if fr[i] == 1:
+                rhs[i] = -g[q, i]
+            for j in range(P):
+                if fr[i] == 1 and fr[j] == 1:
+                    A[i, j] = H[q, i, j]
+                    if i == j:
+                        A[i, j] = H[q, i, j] + mu[q]
+                elif i == j:
+                    A[i, j] = wp.float64(1.0)
+        # Cholesky A = L L^T, sums in index order (the host's reductions); a pivot <= 0
+        # (or NaN) marks A as not positive definite and the step as 0
+        L = matp()
+        ok = int(1)
+        for j in range(P):
+            acc = wp.float64(0.0)
+            for k in range(j):
+                acc += L[j, k] * L[j, k]
+            d = A[j, j] - acc
+            if not (d > wp.float64(0.0)):
+                ok = 0
+                d = wp.float64(1.0)
+            L[j, j] = wp.sqrt(d)
+            for i in range(j + 1, P):
+                acc2 = wp.float64(0.0)
+                for k in range(j):
+                    acc2 += L[i, k] * L[j, k]
+                L[i, j] = (A[i, j] - acc2) / L[j, j]
+        y = vecp()
+        for i in range(P):
+            acc = wp.float64(0.0)
+            for k in range(i):
+                acc += L[i, k] * y[k]
+            y[i] = (rhs[i] - acc) / L[i, i]
+        x = vecp()
+        for ii in range(P):
+            i = P - 1 - ii
+            acc = wp.float64(0.0)
+            for k in range(i + 1, P):
+                acc += L[k, i] * x[k]
+            x[i] = (y[i] - acc) / L[i, i]
+        gd = wp.float64(0.0)
+        dHd = wp.float64(0.0)
+        for a in range(P):
+            step = x[a]
+            if ok == 0:
+                step = wp.float64(0.0)
+            t = wp.min(wp.max(z[q, a] + step, zlo[b, a]), zhi[b, a])
+            zt[s, a] = t
+            dz[s, a] = t - z[q, a]
+        # g.dz in two interleaved partial sums, even and odd components (NumPy einsum's
+        # order: the device takes the same decisions as the host LM it replaced, to the bit
+        # on the CPU for p < 8)
+        gd_odd = wp.float64(0.0)
+        for a in range(P):
+            if a % 2 == 0:
+                gd += g[q, a] * dz[s, a]
+            else:
+                gd_odd += g[q, a] * dz[s, a]
+        gd = gd + gd_odd
+        for a in range(P):
+            for c in range(P):
+                dHd += dz[s, a] * H[q, a, c] * dz[s, c]
+        pred[s] = -(wp.float64(2.0) * gd + dHd)
+        chol_ok[s] = ok
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def update(act: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64),
+               zhi: wp.array2d(dtype=wp.float64), change_kind: wp.array(dtype=wp.int32),
+               scale: wp.array2d(dtype=wp.float64), offset: wp.array2d(dtype=wp.float64),
+               zt: wp.array2d(dtype=wp.float64), dz: wp.array2d(dtype=wp.float64), pred: wp.array(dtype=wp.float64),
+               chol_ok: wp.array(dtype=wp.int32), ct: wp.array(dtype=wp.float64), rt: wp.array(dtype=wp.float64),
+               gt: wp.array2d(dtype=wp.float64), Ht: wp.array3d(dtype=wp.float64), damping: int, xtol: wp.float64,
+               gtol: wp.float64, max_iter: int, z: wp.array2d(dtype=wp.float64), cost: wp.array(dtype=wp.float64),
+               raw: wp.array(dtype=wp.float64), g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64),
+               mu: wp.array(dtype=wp.float64), nu: wp.array(dtype=wp.float64), iterations: wp.array(dtype=wp.int32),
+               reason: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), done: wp.array(dtype=wp.int32)):
+        s = wp.tid()
+        q = int(act[s])
+        b = int(pid[q])
+        c_new = valid(ct[s], s, gt, Ht)
+        c_old = cost[q]
+        rho = wp.float64(-1.0)
+        if pred[s] > wp.float64(0.0):
+            rho = (c_old - c_new) / pred[s]
+        acc = chol_ok[s] == 1 and wp.isfinite(c_new) and rho > wp.float64(0.0) and c_new < c_old
+        it = iterations[q] + 1
+        iterations[q] = it
+        # accepted: move, take the trial's Jacobian
+        if acc:
+            for a in range(P):
+                z[q, a] = zt[s, a]
+                g[q, a] = gt[s, a]
+                for e in range(P):
+                    H[q, a, e] = Ht[s, a, e]
+            cost[q] = c_new
+            raw[q] = rt[s]
+        m = mu[q]
+        if damping == DAMP_NIELSEN:
+            if acc:
+                t = wp.float64(2.0) * rho - wp.float64(1.0)
+                m = m * wp.max(wp.float64(1.0) / wp.float64(3.0), wp.float64(1.0) - wp.pow(t, wp.float64(3.0)))
+                nu[q] = wp.float64(2.0)
+            else:
+                m = m * nu[q]
+                nu[q] = nu[q] * wp.float64(2.0)
+        else:
+            if acc:
+                m = m * wp.float64(0.5)
+            else:
+                m = m * wp.float64(2.0)
+        mu[q] = m
+        # convergence tests
+        rel = wp.float64(0.0)
+        for a in range(P):
+            k = change_kind[a]
+            r = wp.abs(dz[s, a])
+            if k == CHANGE_LOG:
+                r = wp.abs(expm1(dz[s, a]))
+            elif k == CHANGE_LINEAR:
+                r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * zt[s, a]), wp.float64(1e-300))
+            rel = nan_max(rel, r)
+        cq = cost[q]
+        gcos, nfree = grad_cosine(q, b, z, g, H, cq, zlo, zhi)
+        why = int(0)
+        good = int(0)
+        if acc and rel < xtol:
+            why = R_XTOL
+            good = 1
+        elif gcos <= gtol or cq == wp.float64(0.0):
+            why = R_GTOL
+            good = 1
+        elif nfree == 0:
+            why = R_BOUND
+            good = 1
+        elif (not acc) and m > wp.float64(1e16):
+            why = R_STALLED
+            if gcos <= wp.float64(1e-4):
+                good = 1
+        elif it >= max_iter:
+            why = R_MAX_ITERATIONS
+        done[s] = 0
+        if why != 0:
+            reason[q] = why
+            converged[q] = good
+            done[s] = 1
+
+    _STEP_KERNELS[p] = (init, propose, update)
+    return _STEP_KERNELS[p]

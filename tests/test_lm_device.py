@@ -1,0 +1,132 @@
+"""The device LM (:func:`tawarp.fit.lm.levenberg_marquardt`, kernels of
+:mod:`tawarp.kernels.lm_step`) takes the same decisions as the host NumPy LM it replaced
+(:mod:`lm_host_oracle`): same accepted steps, reasons, converged flags and iteration counts,
+values equal to rounding, on a family of nonlinear problems with active bounds, invalid
+evaluations, stalls and iteration caps."""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from lm_host_oracle import chol_solve, levenberg_marquardt as host_lm
+from tawarp.fit.lm import levenberg_marquardt
+from tawarp.kernels import lm_step
+
+
+class CurveProblems:
+    """N problems y(t) = exp(z0) exp(-z1 t) + sum_{j>=2} z_j t^j on m points, exact Jacobian.
+    Problems with ``fail`` set return an invalid (NaN) cost where z1 > 1.5 (a model that
+    fails), some start there; random box bounds, tight for a third of the problems."""
+
+    def __init__(self, N, p, seed=0, m=12):
+        rng = np.random.default_rng(seed)
+        self.t = np.linspace(0.0, 1.0, m)
+        self.p = p
+        ztrue = rng.normal(0.0, 0.7, (N, p))
+        self.y = np.stack([self.model(ztrue[i]) for i in range(N)]) + 0.05 * rng.standard_normal((N, m))
+        self.w = rng.uniform(0.5, 2.0, (N, m))
+        half = rng.uniform(0.2, 3.0, (N, p))
+        half[rng.random(N) < 0.33] *= 0.1          # tight boxes: bounds active at the solution
+        centre = rng.normal(0.0, 0.3, (N, p))
+        self.zlo, self.zhi = centre - half, centre + half
+        self.zlo[rng.random((N, p)) < 0.1] = -np.inf
+        self.fail = rng.random(N) < 0.1
+        kind = np.array([lm_step.CHANGE_LOG, lm_step.CHANGE_LINEAR, lm_step.CHANGE_ABSOLUTE] * p)[:p]
+        self.rule = (kind.astype(np.int32), rng.uniform(0.1, 2.0, (N, p)), rng.normal(0.0, 1.0, (N, p)))
+
+    def model(self, z):
+        z = np.atleast_2d(z)
+        f = np.exp(z[:, :1]) * (np.exp(-z[:, 1:2] * self.t) if self.p > 1 else 1.0)
+        for j in range(2, self.p):
+            f = f + z[:, j:j + 1] * self.t ** j
+        return f[0] if f.shape[0] == 1 else f
+
+    def jacobian(self, z):
+        n, m = z.shape[0], self.t.size
+        J = np.empty((n, m, self.p))
+        e = np.exp(z[:, :1]) * (np.exp(-z[:, 1:2] * self.t) if self.p > 1 else np.ones(m))
+        J[:, :, 0] = e
+        if self.p > 1:
+            J[:, :, 1] = -self.t * e
+        for j in range(2, self.p):
+            J[:, :, j] = self.t ** j
+        return J
+
+    def change_rule(self):
+        return self.rule
+
+    def evaluate(self, pid, z, max_sets=0):
+        w = self.w[pid]
+        r = w * (self.model(z).reshape(len(pid), -1) - self.y[pid])
+        J = w[:, :, None] * self.jacobian(z)
+        cost = np.einsum("ni,ni->n", r, r)
+        raw = np.einsum("ni,ni->n", r / w, r / w)
+        if self.p > 1:
+            cost[self.fail[pid] & (z[:, 1] > 1.5)] = np.nan
+        bad = ~np.isfinite(cost)
+        cost[bad] = np.inf
+        return cost, raw, np.einsum("nij,ni->nj", J, r), np.einsum("nij,nik->njk", J, J)
+
+
+SETTINGS = [dict(), dict(damping="paper"), dict(xtol=1e-14, gtol=1e-15, max_iter=200), dict(max_iter=3),
+            dict(xtol=1e-6, gtol=1e-10, damping="paper", max_iter=50)]
+
+
+@pytest.mark.parametrize("p", [1, 3, 5])
+@pytest.mark.parametrize("kw", SETTINGS)
+def test_device_lm_equals_host_lm(p, kw):
+    N = 300
+    prob = CurveProblems(N, p, seed=p)
+    rng = np.random.default_rng(10 + p)
+    z0 = rng.normal(0.0, 0.8, (N, p))
+    pid = np.arange(N)
+    ref = host_lm(prob, pid, z0, **kw)
+    got = levenberg_marquardt(prob, pid, z0, **kw)
+    assert got.reason.tolist() == ref.reason.tolist()
+    assert np.array_equal(got.iterations, ref.iterations)
+    assert np.array_equal(got.converged, ref.converged)
+    # values: the same accepted steps, so equal to rounding (the kernels' sums run in
+    # index order as NumPy's; expm1 and the einsums may differ in the last bits)
+    for name in ("z", "cost", "raw", "g", "H"):
+        a, b = getattr(got, name), getattr(ref, name)
+        fin = np.isfinite(b)
+        assert np.array_equal(np.isfinite(a), fin), name
+        assert np.allclose(a[fin], b[fin], rtol=1e-12, atol=1e-12 * max(1.0, np.abs(b[fin]).max(initial=0))), name
+
+
+def test_reasons_exercised():
+    """The family above reaches every reason (else the comparison proves less)."""
+    seen = set()
+    for p in (1, 3, 5):
+        prob = CurveProblems(300, p, seed=p)
+        z0 = np.random.default_rng(10 + p).normal(0.0, 0.8, (300, p))
+        for kw in SETTINGS:
+            seen |= set(levenberg_marquardt(prob, np.arange(300), z0, **kw).reason.tolist())
+    assert seen == {"xtol", "gtol", "bound", "stalled", "max_iterations", "invalid"}
+
+
+def test_propose_is_the_cholesky_step():
+    """With mu = 0 and no bounds the proposed step solves H d = -g (the host's vectorised
+    Cholesky and NumPy agree); an indefinite H gives no step and chol_ok = 0."""
+    rng = np.random.default_rng(1)
+    n, p = 50, 5
+    A = rng.standard_normal((n, p, p))
+    A = A @ A.transpose(0, 2, 1) + 0.1 * np.eye(p)
+    b = rng.standard_normal((n, p))
+    dev = "cpu"
+    _, propose, _ = lm_step.step_kernels(p)
+    for H, ok_expected in ((A, 1), (-A, 0)):
+        arr = lambda x, dt=wp.float64: wp.array(np.ascontiguousarray(x), dtype=dt, device=dev)  # noqa: E731
+        zt, dz = wp.empty((n, p), dtype=wp.float64), wp.empty((n, p), dtype=wp.float64)
+        pred, ok = wp.empty(n, dtype=wp.float64), wp.empty(n, dtype=wp.int32)
+        wp.launch(propose, dim=n, device=dev,
+                  inputs=[arr(np.arange(n, dtype=np.int32), wp.int32), arr(np.arange(n, dtype=np.int32), wp.int32),
+                          arr(np.full((n, p), -np.inf)), arr(np.full((n, p), np.inf)), arr(np.zeros((n, p))),
+                          arr(-b), arr(H), arr(np.zeros(n)), zt, dz, pred, ok])
+        assert np.all(ok.numpy() == ok_expected)
+        if ok_expected:
+            # 1e-10: well-conditioned SPD systems, double precision
+            assert np.allclose(zt.numpy(), np.linalg.solve(A, b[..., None])[..., 0], rtol=1e-10, atol=1e-12)
+            assert np.array_equal(zt.numpy(), chol_solve(A, b)[0])
+        else:
+            assert np.all(zt.numpy() == 0)
