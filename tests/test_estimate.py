@@ -38,7 +38,7 @@ def test_normal_equations_match_central_differences():
     start = np.array([0.7, 4.4e-5, 1.1, 40.0])
     prob = Problems(core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None])
     z = prob.to_z(start * np.array([1.02, 0.97, 1.01, 1.1]), 0)
-    cost, raw, g, H = prob.evaluate(np.array([0]), z[None])
+    cost, raw, g, H = [a.numpy() for a in prob.evaluate(np.array([0]), z[None])]
     # host reference: central differences, step 1e-4 in z (truncation ~1e-8 relative)
     h = 1e-4
     zs = [z] + [z + s * h * e for e in np.eye(4) for s in (1, -1)]

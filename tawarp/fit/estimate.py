@@ -40,8 +40,8 @@ trial point and its forward-difference neighbours (step 1e-6 in z, taken towards
 interior at a bound). If the trial is accepted its Jacobian is already there; a rejected
 trial wastes p sets but no launch. :mod:`tawarp.kernels.lm` builds the sets from z on
 the device and reduces the (sets, m, 8) T-matrices to ``F``, ``g = J^T r`` and
-``H = J^T J`` per problem, so only (N, p, p)-sized arrays reach the host, where the tiny
-damped solves (vectorised Cholesky), acceptance and damping updates run in NumPy.
+``H = J^T J`` per problem, which stay there: the damped solves (Cholesky), acceptance,
+damping updates and stopping tests run on the device too (:mod:`tawarp.kernels.lm_step`).
 
 *Damping.* ``damping="nielsen"`` (default): mu *= max(1/3, 1 - (2 rho - 1)^3) on success,
 mu *= nu, nu *= 2 on failure (Nielsen 1999; Madsen, Nielsen & Tingleff 2004).
@@ -282,12 +282,14 @@ class Problems:
 
     # -- one launch ----------------------------------------------------------------------
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
-        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``."""
+        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``, as
+        Warp arrays on the device: :func:`levenberg_marquardt` keeps them there (a
+        non-finite cost, g or H counts as an invalid evaluation there)."""
         p, dev = self.p, self.device
         n = len(pid)
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
-        cost, raw = np.empty(n), np.empty(n)
-        g, H = np.empty((n, p)), np.empty((n, p, p))
+        w_cost, w_raw = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
+        w_g, w_H = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
         per = max(1, max_sets // (p + 1))
         rows = self.w_row_src.shape[0]
         for lo in range(0, n, per):
@@ -300,19 +302,11 @@ class Problems:
             wp.launch(klm.build_sets, dim=k * (p + 1), device=dev,
                       inputs=[w_z, w_step, w_ids, self.w_scale, self.w_offset, self.w_kind, self.w_fixed, self.w_row_src, varying])
             out, _, _ = self.engine.evaluate(varying)
-            w_cost = wp.empty(k, dtype=wp.float64, device=dev)
-            w_raw = wp.empty(k, dtype=wp.float64, device=dev)
-            w_g = wp.empty((k, p), dtype=wp.float64, device=dev)
-            w_H = wp.empty((k, p, p), dtype=wp.float64, device=dev)
-            wp.launch(self.normal, dim=k, device=dev,
-                      inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step, w_cost, w_raw, w_g, w_H])
-            cost[lo:hi], raw[lo:hi] = w_cost.numpy(), w_raw.numpy()
-            g[lo:hi], H[lo:hi] = w_g.numpy(), w_H.numpy()
+            wp.launch(self.normal, dim=k, device=dev, inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step,
+                                                              w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]])
             self.launches += 1
         self.evaluations += n * (p + 1)
-        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
-        cost[bad] = np.inf
-        return cost, raw, g, H
+        return w_cost, w_raw, w_g, w_H
 
 
 # ----------------------------------------------------------------------------------------
