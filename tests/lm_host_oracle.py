@@ -12,6 +12,14 @@ def _project(prob, z, pid):
     return np.clip(z, prob.zlo[pid], prob.zhi[pid])
 
 
+def _evaluate(prob, pid, z, max_sets):
+    """The evaluation in NumPy (Warp arrays copied back), an invalid one's cost inf."""
+    cost, raw, g, H = [a.numpy() if hasattr(a, "numpy") else np.asarray(a) for a in prob.evaluate(pid, z, max_sets)]
+    bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
+    cost = np.where(bad, np.inf, cost)
+    return cost, raw, g, H
+
+
 def _relative_change(prob, dz, z, pid):
     """The problem's change rule (:meth:`LMProblems.change_rule`) on the host."""
     kind, scale, offset = prob.change_rule()
@@ -68,7 +76,7 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
     z = _project(prob, np.array(z0, dtype=float), pid)
-    cost, raw, g, H = prob.evaluate(pid, z, max_sets)
+    cost, raw, g, H = _evaluate(prob, pid, z, max_sets)
     iterations = np.zeros(Q, dtype=int)
     reason = np.array([""] * Q, dtype=object)
     converged = np.zeros(Q, dtype=bool)
@@ -97,7 +105,7 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         zt = _project(prob, z[a] + d, pa)
         dz = zt - z[a]
         pred = -(2.0 * np.einsum("ni,ni->n", g[a], dz) + np.einsum("ni,nij,nj->n", dz, H[a], dz))
-        ct, rt, gt, Ht = prob.evaluate(pa, zt, max_sets)
+        ct, rt, gt, Ht = _evaluate(prob, pa, zt, max_sets)
         with np.errstate(invalid="ignore", divide="ignore"):
             rho = np.where(pred > 0, (cost[a] - ct) / pred, -1.0)
         acc = ok_chol & np.isfinite(ct) & (rho > 0) & (ct < cost[a])

@@ -8,6 +8,11 @@ import numpy as np
 import pytest
 import warp as wp
 
+from test_estimate import FIT, GEOM, noisy
+from tawarp.fit.estimate import Problems
+from tawarp.measure.synthetic import paper_frequencies
+from tawarp.model.core import load_core
+
 from lm_host_oracle import chol_solve, levenberg_marquardt as host_lm
 from tawarp.fit.lm import levenberg_marquardt
 from tawarp.kernels import lm_step
@@ -100,6 +105,27 @@ def test_device_lm_equals_host_lm(p, kw):
         fin = np.isfinite(b)
         assert np.array_equal(np.isfinite(a), fin), name
         assert np.allclose(a[fin], b[fin], rtol=1e-12, atol=1e-12 * max(1.0, np.abs(b[fin]).max(initial=0))), name
+
+
+@pytest.mark.parametrize("heat", [0.0, 40.0])
+def test_device_lm_equals_host_lm_on_tmatrix_problems(heat):
+    """The T-matrix problems (:class:`Problems`: log and linear parameters, Warp arrays from
+    evaluate) from starts spread around the truth, some at the porosity bound."""
+    core = load_core("mesh")
+    freqs = paper_frequencies("mesh", 12)
+    Y, sd = noisy(core, freqs, heat, 12, seed=5)
+    prob = Problems(core, freqs, Y, GEOM, heat_input=heat, weights=1 / sd, settings=FIT)
+    rng = np.random.default_rng(6)
+    v0 = np.array([core.get(k) for k in GEOM]) * rng.uniform(0.6, 1.5, (12, 3))
+    v0[:3, 0] = 1.0                                  # porosity at its upper bound
+    pid = np.arange(12)
+    z0 = prob.to_z(v0, pid)
+    ref = host_lm(prob, pid, z0, xtol=1e-6, gtol=1e-10)
+    got = levenberg_marquardt(prob, pid, z0, xtol=1e-6, gtol=1e-10)
+    assert got.reason.tolist() == ref.reason.tolist()
+    assert np.array_equal(got.iterations, ref.iterations) and np.array_equal(got.converged, ref.converged)
+    for name in ("z", "cost", "raw", "g", "H"):
+        assert np.allclose(getattr(got, name), getattr(ref, name), rtol=1e-12, atol=0), name
 
 
 def test_reasons_exercised():
