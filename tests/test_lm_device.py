@@ -164,3 +164,26 @@ def test_propose_is_the_cholesky_step():
             assert np.array_equal(zt.numpy(), chol_solve(A, b)[0])
         else:
             assert np.all(zt.numpy() == 0)
+
+
+def test_device_lm_equals_host_lm_on_kind_problems():
+    """:class:`KindProblems` (host evaluate, NumPy arrays, |dz| rule, padded z): several fits
+    of a linear kind with different parameter counts, bounds on some."""
+    from test_fit_lm import LinearKind, linear_case
+    from tawarp.fit.problems import KindProblems
+    from tawarp.model.effects import Param
+
+    A, sigma, y, _, _ = linear_case(4)
+    kind = LinearKind(A, sigma, y)
+    params = [Param(f"v{j}", (f"v{j}",), 0.5, 1.0) for j in range(3)]
+    bounded = [Param("v0", ("v0",), 0.5, 1.0, lower=0.0, upper=0.6)] + params[1:]
+    specs = [(params, None, np.zeros(3)), (params[:2], None, np.ones(2)), (bounded, None, np.zeros(3)),
+             (params[1:], None, np.full(2, 0.3))]
+    lm = KindProblems(kind, specs)
+    pid = np.arange(len(specs))
+    ref = host_lm(lm, pid, lm.start(), xtol=1e-10, gtol=1e-6)
+    got = levenberg_marquardt(lm, pid, lm.start(), xtol=1e-10, gtol=1e-6)
+    assert got.reason.tolist() == ref.reason.tolist()
+    assert np.array_equal(got.iterations, ref.iterations) and np.array_equal(got.converged, ref.converged)
+    for name in ("z", "cost", "raw", "g", "H"):
+        assert np.allclose(getattr(got, name), getattr(ref, name), rtol=1e-12, atol=1e-14), name
