@@ -46,8 +46,6 @@ class LMState:
     converged: np.ndarray
 
 
-
-
 class LMProblems(Protocol):
     """What :func:`levenberg_marquardt` needs of a batch of least-squares problems in scaled
     variables z (:class:`tawarp.fit.estimate.Problems`, :class:`tawarp.fit.problems.KindProblems`).
