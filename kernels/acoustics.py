@@ -276,8 +276,8 @@ def scale2(m: CMat2, s: wp.float64):
 
 # -- complex angular frequency (tawarp.model.onset) ------------------------------------------
 # Every coefficient of A is analytic in omega: omega enters through s = r/delta ~ sqrt(omega)
-# (principal root) and as a factor of a12, a21. These are propagation_matrix and its
-# helpers with omega complex; at real omega they agree with them to rounding.
+# (principal root) and as a factor of a12, a21. These are propagation_at and its helpers
+# with omega complex; at real omega they agree with them to rounding.
 
 
 @wp.func
@@ -293,28 +293,23 @@ def propagation_matrix_complex(gas: wp.array(dtype=wp.float64), p_mean: wp.float
                                T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
                                tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
                                frame_mobility: wp.float64, shape_factor: wp.float64):
-    """:func:`propagation_matrix` at complex angular frequency omega [rad/s] (re, im)."""
-    rho = density(gas, T, p_mean)
-    c2 = sound_speed_squared(gas, T)
-    mu = viscosity(gas, T)
-    kappa = conductivity(gas, T)
-    cp = gas[G_CP]
-    gamma = gas[G_GAMMA]
-    prandtl = mu * cp / kappa
+    """A(x) at complex angular frequency omega [rad/s] (re, im): :func:`propagation_at`'s
+    matrix from the same :class:`PointCoefficients` (arguments as :func:`point_coefficients`),
+    with s = r/delta = exp(log_nu) sqrt(omega) complex."""
+    pc = point_coefficients(gas, p_mean, T, dTdx, porosity, pore_radius, tortuosity, area, thermal_radius)
     root_w = csqrt(omega)
-    s_nu = cscale(root_w, pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
-    s_k = cscale(root_w, thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    s_nu = cscale(root_w, wp.exp(pc.log_nu))
+    s_k = cscale(root_w, wp.exp(pc.log_k))
     f_nu, g_nu = pore_functions_complex(pore_model, s_nu)
     f_k, g_k = pore_functions_complex(pore_model, s_k)
     if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
         g_nu = cdiv(g_nu, cdiv(johnson_factor_complex(s_nu, shape_factor),
                                johnson_factor_complex(s_nu, wp.float64(1.0))))
-    a12 = cmuli(cdiv(cscale(omega, tortuosity * tortuosity * rho / (porosity * area)), g_nu))
+    a12 = cmuli(cscale(cdiv(omega, g_nu), pc.c12))
     if frame_mobility > wp.float64(0.0):
-        a12 = cmuli(cscale(cmul(limp_density(rho, porosity, tortuosity, g_nu, frame_mobility), omega),
+        a12 = cmuli(cscale(cmul(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega),
                            wp.float64(1.0) / area))
-    a21 = cmuli(cscale(cmul(omega, creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0))),
-                       porosity * area / (rho * c2)))
-    a22 = cscale(cdiv(g_nu - g_k, g_nu), dTdx / (T * (wp.float64(1.0) - prandtl)))
+    a21 = cmuli(cscale(cmul(omega, creal(wp.float64(1.0)) + cscale(f_k, gas[G_GAMMA] - wp.float64(1.0))), pc.c21))
+    a22 = cscale(cdiv(g_nu - g_k, g_nu), pc.c22)
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
     return cmat2(zero, a12, a21, a22)

@@ -68,7 +68,9 @@ def gradient_matrix_complex(params: wp.array2d(dtype=wp.float64), flags: wp.arra
                             xi: wp.float64, p_mean: wp.float64, omega: wp.vec2d, T_cold: wp.float64, phi: wp.float64,
                             r: wp.float64, q: wp.float64, model: int, area: wp.float64, r_k: wp.float64,
                             mob: wp.float64, sf: wp.float64, nonlin: int):
-    """:func:`tawarp.kernels.forward.gradient_matrix` at complex omega."""
+    """A(x) at complex omega and local position xi [m] of thermal segment s whose heat cells
+    start at node0 (:func:`tawarp.kernels.acoustics.propagation_matrix_complex` at the
+    segment's profile)."""
     th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
     return propagation_matrix_complex(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
 
