@@ -68,7 +68,7 @@ def make_data(core, names, Q, n, seed=0, noise=0.005):
     return Y, sd
 
 
-def time_fits(core, wl, Y, sd, n, device, settings) -> dict:
+def time_fits(core, wl, Y, sd, n, device, settings, jacobian="auto") -> dict:
     names = wl["names"]
     start = np.array([core.get(k) for k in names]) * wl["start"]
     w = np.broadcast_to(1.0 / sd, (n,) + sd.shape)
@@ -77,15 +77,16 @@ def time_fits(core, wl, Y, sd, n, device, settings) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)
         r = fit(core, FREQS, Y[:n], names, start, heat_input=wl["Q"], weights=w, settings=settings, device=device,
-                warn=False)
+                warn=False, jacobian=jacobian)
     wp.synchronize_device(device)
     dt = time.perf_counter() - t0
     truth = np.array([core.get(k) for k in names])
     z = (r.values - truth) / r.std
-    return {"n": n, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
+    return {"n": n, "jacobian": jacobian, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
             "max_relative_error_vs_truth": float(np.max(np.abs(r.values / truth - 1))),
             "iterations_mean": float(r.iterations.mean()), "iterations_max": int(r.iterations.max()),
-            "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2)))}
+            "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2))),
+            "values": r.values, "std": r.std}
 
 
 def reference_model(core, Q, rtol=1e-8):
@@ -144,6 +145,9 @@ def main(argv=None) -> int:
                     help="SciPy fits on the project's CPU kernel per workload (0 skips)")
     ap.add_argument("--cpu-sizes", default="1,16,64", help="batched CPU fits on a GPU run (empty: none)")
     ap.add_argument("--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)")
+    ap.add_argument("--jacobians", default="auto,difference",
+                    help="Jacobians of the batched fits, the first the headline (auto = tangent cascade here; "
+                         "difference = forward differences); the others are timed on the same batches")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
     wp.config.quiet = True
@@ -162,21 +166,33 @@ def main(argv=None) -> int:
     for wname in args.workloads.split(","):
         wl = WORKLOADS[wname]
         Y, sd = make_data(core, wl["names"], wl["Q"], max(sizes))
-        time_fits(core, wl, Y, sd, 1, device, settings)  # warm-up: compile the kernels
-        rows = []
-        for n in sizes:
-            row = time_fits(core, wl, Y, sd, n, device, settings)
-            rows.append(row)
-            print(f"{wname:9s} {device:5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
-                  f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
-                  flush=True)
-        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows}
+        jacobians = args.jacobians.split(",")
+        rows, others = [], []
+        for k, jac in enumerate(jacobians):
+            time_fits(core, wl, Y, sd, 1, device, settings, jac)  # warm-up: compile the kernels
+            for n in sizes:
+                row = time_fits(core, wl, Y, sd, n, device, settings, jac)
+                (rows if k == 0 else others).append(row)
+                print(f"{wname:9s} {device:5s} {jac:10s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
+                      f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
+                      flush=True)
+        for row in others:   # the same problems as the headline's: how far apart their results are
+            head = next(r for r in rows if r["n"] == row["n"])
+            with np.errstate(divide="ignore", invalid="ignore"):
+                row["max_values_difference_in_std"] = float(np.nanmax(np.abs(row["values"] - head["values"]) / head["std"]))
+                row["max_std_relative_difference"] = float(np.nanmax(np.abs(row["std"] / head["std"] - 1)))
+        for row in rows + others:
+            del row["values"], row["std"]
+        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows,
+                 "other_jacobians": others}
         best = max(r["fits_per_s"] for r in rows)
         if gpu and args.cpu_sizes:
             cpu = ForwardSettings(cells=args.cells, device="cpu")
             time_fits(core, wl, Y, sd, 1, "cpu", cpu)  # warm-up
             entry["cpu_batches"] = [time_fits(core, wl, Y, sd, int(float(n)), "cpu", cpu)
                                     for n in args.cpu_sizes.split(",")]
+            for row in entry["cpu_batches"]:
+                del row["values"], row["std"]
             for row in entry["cpu_batches"]:
                 print(f"{wname:9s} cpu   n = {row['n']:7d}: {row['fits_per_s']:10.1f} fits/s", flush=True)
         start = np.array([core.get(k) for k in wl["names"]]) * wl["start"]

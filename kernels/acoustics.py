@@ -17,7 +17,7 @@ import warp as wp
 
 from .cmath import cabs2, cconj, cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
 from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
-from .pore import pore_functions_complex, pore_functions_log
+from .pore import pore_functions_complex, pore_functions_log, pore_log_derivative
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -76,19 +76,11 @@ def taylor_terms(size: wp.float64):
 
 
 @wp.func
-def expm2_traceless(m: CMat2):
-    """exp(m) of a 2x2 complex matrix as (E, tau) with exp(m) = e^tau E: tau = tr/2,
-    N = m - tau I, N^2 = delta I and E = exp(N) = cosh(sqrt delta) I + sinh(sqrt delta)/sqrt(delta) N.
-    Both functions are entire in delta: a Taylor series for |delta| < 1 (no square root,
-    no cancellation, the usual case of a Magnus cell), exponentials beyond. The scalar
-    e^tau commutes with every matrix, so a cascade of cells can sum their tau and take one
-    exponential (:func:`tawarp.kernels.forward.make_transfer_kernel`)."""
-    tau = cscale(m.a + m.d, wp.float64(0.5))
-    na = m.a - tau
-    delta = cmul(na, na) + cmul(m.b, m.c)
-    ch = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    sh = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    size = delta[0] * delta[0] + delta[1] * delta[1]
+def cosh_sinhc(delta: wp.vec2d):
+    """(cosh(sqrt delta), sinh(sqrt delta)/sqrt(delta)) of a complex delta: both entire in
+    delta, a Taylor series for |delta| < 1 (no square root, no cancellation, the usual case
+    of a Magnus cell), exponentials beyond."""
+    size = cabs2(delta)
     if size < wp.float64(1.0):
         # Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= terms: the first
         # omitted term |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 (a Magnus cell's
@@ -101,13 +93,66 @@ def expm2_traceless(m: CMat2):
                 j = wp.float64(9 - jj)
                 ch = creal(wp.float64(1.0)) + cscale(cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0))))
                 sh = creal(wp.float64(1.0)) + cscale(cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0))))
-    else:
-        r = csqrt(delta)
-        ep = cexp(r)
-        em = cexp(-r)
-        ch = cscale(ep + em, wp.float64(0.5))
-        sh = cdiv(cscale(ep - em, wp.float64(0.5)), r)
+        return ch, sh
+    r = csqrt(delta)
+    ep = cexp(r)
+    em = cexp(-r)
+    return cscale(ep + em, wp.float64(0.5)), cdiv(cscale(ep - em, wp.float64(0.5)), r)
+
+
+@wp.func
+def sinhc_derivative(delta: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d):
+    """d/d(delta) of sh = sinh(sqrt delta)/sqrt(delta), given ch and sh at delta
+    (:func:`cosh_sinhc`): sum (k+1) delta^k/(2k+3)! for |delta| < 1 (the closed form
+    (ch - sh)/(2 delta) cancels there), the closed form beyond. (d ch/d delta = sh/2.)"""
+    size = cabs2(delta)
+    if size < wp.float64(1.0):
+        # terms k <= terms + 1 of sum c_k delta^k, c_k/c_{k-1} = 1/(2k (2k + 3)), c_0 = 1/6:
+        # the omitted terms are below 1e-17 where :func:`taylor_terms` says so for sh
+        terms = taylor_terms(size) + 1
+        d = creal(wp.float64(1.0))
+        for jj in range(10):
+            if 10 - jj <= terms:
+                k = wp.float64(10 - jj)
+                d = creal(wp.float64(1.0)) + cscale(cmul(delta, d), wp.float64(1.0) / ((wp.float64(2.0) * k) * (wp.float64(2.0) * k + wp.float64(3.0))))
+        return cscale(d, wp.float64(1.0) / wp.float64(6.0))
+    return cdiv(cscale(ch - sh, wp.float64(0.5)), delta)
+
+
+@wp.func
+def traceless_parts(m: CMat2):
+    """(tau, na, delta) of m: tau = tr/2, N = m - tau I = [[na, b], [c, -na]], N^2 = delta I."""
+    tau = cscale(m.a + m.d, wp.float64(0.5))
+    na = m.a - tau
+    return tau, na, cmul(na, na) + cmul(m.b, m.c)
+
+
+@wp.func
+def expm2_traceless(m: CMat2):
+    """exp(m) of a 2x2 complex matrix as (E, tau) with exp(m) = e^tau E: tau = tr/2,
+    N = m - tau I, N^2 = delta I and E = exp(N) = cosh(sqrt delta) I + sinh(sqrt delta)/sqrt(delta) N
+    (:func:`cosh_sinhc`). The scalar e^tau commutes with every matrix, so a cascade of
+    cells can sum their tau and take one exponential
+    (:func:`tawarp.kernels.forward.make_transfer_kernel`)."""
+    tau, na, delta = traceless_parts(m)
+    ch, sh = cosh_sinhc(delta)
     return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na)), tau
+
+
+@wp.func
+def expm2_tangent(m: CMat2, ch: wp.vec2d, sh: wp.vec2d, dsh: wp.vec2d, dm: CMat2):
+    """(dE, dtau): the derivative of :func:`expm2_traceless`'s (E, tau) at m in the
+    direction dm, given ch, sh of m (:func:`cosh_sinhc`) and dsh = d sh/d delta
+    (:func:`sinhc_derivative`). From E = ch I + sh N: dE = dch I + dsh N + sh dN with
+    d delta = 2 na dna + db c + b dc, dch = sh/2 d delta, dsh d delta."""
+    tau, na, delta = traceless_parts(m)
+    dtau = cscale(dm.a + dm.d, wp.float64(0.5))
+    dna = dm.a - dtau
+    ddelta = cscale(cmul(na, dna), wp.float64(2.0)) + cmul(dm.b, m.c) + cmul(m.b, dm.c)
+    dch = cmul(cscale(sh, wp.float64(0.5)), ddelta)
+    dshd = cmul(dsh, ddelta)
+    diag = cmul(dshd, na) + cmul(sh, dna)
+    return cmat2(dch + diag, cmul(dshd, m.b) + cmul(sh, dm.b), cmul(dshd, m.c) + cmul(sh, dm.c), dch - diag), dtau
 
 
 @wp.func
@@ -194,6 +239,80 @@ def propagation_at(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.
     return cmat2(zero, a12, a21, a22)
 
 
+@wp.struct
+class PropagationPartials:
+    """A at a point of a rigid-frame part with circular (shape factor 1) or slit pores, as
+    its partial derivatives in the :class:`PointCoefficients` (complex, SI units): A is
+    linear in c12, c21 and c22, so ``a12 = a12_c12 c12``, ``a21 = a21_c21 c21``,
+    ``a22 = a22_c22 c22``; ``a12_nu`` = d a12/d log_nu, ``a21_k`` = d a21/d log_k,
+    ``a22_nu``, ``a22_k`` likewise (:func:`propagation_partials`)."""
+
+    a12_c12: wp.vec2d
+    a12_nu: wp.vec2d
+    a21_c21: wp.vec2d
+    a21_k: wp.vec2d
+    a22_c22: wp.vec2d
+    a22_nu: wp.vec2d
+    a22_k: wp.vec2d
+
+
+@wp.func
+def propagation_partials(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.float64, gamma: wp.float64,
+                         pore_model: int, pore_table: wp.array(dtype=wp.float64)):
+    """:class:`PropagationPartials` at angular frequency omega [rad/s] (arguments as
+    :func:`propagation_at`, whose A they give for a rigid frame and shape factor 1): with
+    f' = df/d ln s (:func:`tawarp.kernels.pore.pore_log_derivative`) and dg = -df,
+    d(1/g_nu) = f_nu'/g_nu^2 d log_nu and d((g_nu - g_k)/g_nu) = (f_k' g_nu d log_k - g_k f_nu' d log_nu)/g_nu^2."""
+    log_s_nu = pc.log_nu + half_log_omega
+    log_s_k = pc.log_k + half_log_omega
+    f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
+    f_k, g_k = pore_functions_log(pore_model, log_s_k, pore_table)
+    df_nu = pore_log_derivative(pore_model, log_s_nu, f_nu, g_nu)
+    df_k = pore_log_derivative(pore_model, log_s_k, f_k, g_k)
+    inv_g_nu = cscale(cconj(g_nu), wp.float64(1.0) / cabs2(g_nu))
+    inv_g2 = cmul(inv_g_nu, inv_g_nu)
+    out = PropagationPartials()
+    out.a12_c12 = cmuli(cscale(inv_g_nu, omega))
+    out.a12_nu = cmuli(cscale(cmul(inv_g2, df_nu), pc.c12 * omega))
+    out.a21_c21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), omega))
+    out.a21_k = cmuli(cscale(df_k, pc.c21 * omega * (gamma - wp.float64(1.0))))
+    out.a22_c22 = cmul(g_nu - g_k, inv_g_nu)
+    out.a22_nu = cscale(cmul(cmul(g_k, inv_g2), df_nu), -pc.c22)
+    out.a22_k = cscale(cmul(df_k, inv_g_nu), pc.c22)
+    return out
+
+
+@wp.func
+def propagation_value(d: PropagationPartials, pc: PointCoefficients):
+    """A from its :class:`PropagationPartials` at the point ``pc``."""
+    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    return cmat2(zero, cscale(d.a12_c12, pc.c12), cscale(d.a21_c21, pc.c21), cscale(d.a22_c22, pc.c22))
+
+
+@wp.func
+def propagation_tangent(d: PropagationPartials, dpc: PointCoefficients):
+    """dA in the direction ``dpc`` of the point coefficients (their derivatives along one
+    parameter; ``rho`` is not used)."""
+    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    return cmat2(zero, cscale(d.a12_c12, dpc.c12) + cscale(d.a12_nu, dpc.log_nu),
+                 cscale(d.a21_c21, dpc.c21) + cscale(d.a21_k, dpc.log_k),
+                 cscale(d.a22_c22, dpc.c22) + cscale(d.a22_nu, dpc.log_nu) + cscale(d.a22_k, dpc.log_k))
+
+
+@wp.func
+def point_difference(plus: PointCoefficients, minus: PointCoefficients, inv_two_step: wp.float64):
+    """(plus - minus) / (2 step) of every field: the central difference of a point's
+    coefficients along one parameter, ``inv_two_step`` = 1/(2 step)."""
+    d = PointCoefficients()
+    d.log_nu = (plus.log_nu - minus.log_nu) * inv_two_step
+    d.log_k = (plus.log_k - minus.log_k) * inv_two_step
+    d.c12 = (plus.c12 - minus.c12) * inv_two_step
+    d.c21 = (plus.c21 - minus.c21) * inv_two_step
+    d.c22 = (plus.c22 - minus.c22) * inv_two_step
+    d.rho = (plus.rho - minus.rho) * inv_two_step
+    return d
+
+
 @wp.func
 def johnson_factor(x: wp.float64, s: wp.float64):
     """Johnson's dynamic tortuosity over alpha_inf for circular-pore resistivity
@@ -248,19 +367,54 @@ def commutator2(x: CMat2, y: CMat2):
 
 
 @wp.func
-def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
-    """Omega of one cell of length h, sixth order, from A at the three Gauss points
-    x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h (Blanes, Casas & Ros, BIT 40, 2000,
-    eq. 4.13): with b1 = h A2, b2 = sqrt(15) h/3 (A3 - A1), b3 = 10 h/3 (A3 - 2 A2 + A1),
-    C1 = [b1, b2], C2 = -1/60 [b1, 2 b3 + C1],
-    Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2]; the cell's matrix is exp(Omega)."""
+def magnus6_b(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
+    """b1 = h A2, b2 = sqrt(15) h/3 (A3 - A1), b3 = 10 h/3 (A3 - 2 A2 + A1) of
+    :func:`magnus6_exponent`: linear in the A's and in h separately."""
     b1 = scale2(a2, h)
     b2 = scale2(axpy2(wp.float64(-1.0), a1, a3), wp.float64(1.2909944487358056) * h)
     b3 = scale2(axpy2(wp.float64(-2.0), a2, axpy2(wp.float64(1.0), a3, a1)), wp.float64(3.3333333333333333) * h)
+    return b1, b2, b3
+
+
+@wp.func
+def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
+    """Omega of one cell of length h, sixth order, from A at the three Gauss points
+    x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h (Blanes, Casas & Ros, BIT 40, 2000,
+    eq. 4.13): with b1, b2, b3 of :func:`magnus6_b`, C1 = [b1, b2], C2 = -1/60 [b1, 2 b3 + C1],
+    Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2]; the cell's matrix is exp(Omega)."""
+    b1, b2, b3 = magnus6_b(a1, a2, a3, h)
     c1 = commutator2(b1, b2)
     c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
     return axpy2(wp.float64(1.0 / 240.0), commutator2(left, axpy2(wp.float64(1.0), b2, c2)), axpy2(wp.float64(1.0 / 12.0), b3, b1))
+
+
+@wp.func
+def magnus6_tangent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64, d1: CMat2, d2: CMat2, d3: CMat2,
+                    dh: wp.float64):
+    """The derivative of :func:`magnus6_exponent`'s Omega along a direction in which A at
+    the three Gauss points moves by d1, d2, d3 and the cell length by dh: the b's are
+    linear in A and in h separately (db = b(d, h) + b(A, dh)), the commutators follow the
+    product rule. The value's commutators are recomputed here rather than carried: on
+    the GPU registers are the scarcer resource."""
+    b1, b2, b3 = magnus6_b(a1, a2, a3, h)
+    e1, e2, e3 = magnus6_b(d1, d2, d3, h)
+    f1, f2, f3 = magnus6_b(a1, a2, a3, dh)
+    db1 = axpy2(wp.float64(1.0), e1, f1)
+    db2 = axpy2(wp.float64(1.0), e2, f2)
+    db3 = axpy2(wp.float64(1.0), e3, f3)
+    c1 = commutator2(b1, b2)
+    dc1 = axpy2(wp.float64(1.0), commutator2(db1, b2), commutator2(b1, db2))
+    w = axpy2(wp.float64(2.0), b3, c1)
+    dw = axpy2(wp.float64(2.0), db3, dc1)
+    c2 = scale2(commutator2(b1, w), wp.float64(-1.0 / 60.0))
+    dc2 = scale2(axpy2(wp.float64(1.0), commutator2(db1, w), commutator2(b1, dw)), wp.float64(-1.0 / 60.0))
+    left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
+    dleft = axpy2(wp.float64(-20.0), db1, axpy2(wp.float64(-1.0), db3, dc1))
+    right = axpy2(wp.float64(1.0), b2, c2)
+    dright = axpy2(wp.float64(1.0), db2, dc2)
+    bracket = axpy2(wp.float64(1.0), commutator2(dleft, right), commutator2(left, dright))
+    return axpy2(wp.float64(1.0 / 240.0), bracket, axpy2(wp.float64(1.0 / 12.0), db3, db1))
 
 
 @wp.func

@@ -19,11 +19,15 @@ Launch order for a batch of n parameter sets and m frequencies:
    (``kernels/batch.py``) and run again, at a raised density.
 """
 
+from typing import Any
+
 import warp as wp
 
-from .acoustics import (CMat2, PointCoefficients, cscale2, expm2, expm2_traceless, identity2, magnus6_exponent, matmul2,
-                        point_coefficients, propagation_at, scale2)
-from .cmath import cabs, cexp
+from .acoustics import (CMat2, PointCoefficients, axpy2, cmat2, cosh_sinhc, cscale2, expm2_tangent, expm2_traceless,
+                        identity2, magnus6_exponent, magnus6_tangent, matmul2, point_coefficients, point_difference,
+                        propagation_at, propagation_partials, propagation_tangent, propagation_value, scale2,
+                        sinhc_derivative, traceless_parts)
+from .cmath import cabs, cexp, cmul
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, HEAT_INPUT, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
@@ -106,6 +110,13 @@ def store_matrix(out: wp.array3d(dtype=wp.float64), i: int, j: int, m: CMat2):
     out[i, j, 5] = m.c[1]
     out[i, j, 6] = m.d[0]
     out[i, j, 7] = m.d[1]
+
+
+@wp.func
+def tangent_row(rows: Any, a: int):
+    """Row a of a (P, 8) matrix of tangents as a :class:`CMat2`."""
+    return cmat2(wp.vec2d(rows[a, 0], rows[a, 1]), wp.vec2d(rows[a, 2], rows[a, 3]),
+                 wp.vec2d(rows[a, 4], rows[a, 5]), wp.vec2d(rows[a, 6], rows[a, 7]))
 
 
 @wp.func
@@ -300,15 +311,22 @@ def make_point_kernel(nonlinear: bool):
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
-def make_transfer_kernel(max_registers: int | None = None):
+def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
-    (``__maxnreg__``)."""
+    (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
+    of each T-matrix along P parameters, carried through the cascade with the value."""
+    P = wp.constant(tangents)
+    Q = max(tangents, 1)   # local sizes must be > 0; the P = 0 kernel never touches them
+    stride = wp.constant(1 + 2 * tangents)
+    tangent_rows = wp.types.matrix(shape=(Q, 8), dtype=wp.float64)
+    scale_rows = wp.types.matrix(shape=(Q, 2), dtype=wp.float64)
 
     def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
                         gas: wp.array(dtype=wp.float64), freqs: wp.array(dtype=wp.float64),
                         cells: wp.array2d(dtype=wp.int32), points: wp.array2d(dtype=PointCoefficients),
                         set0: int, pore_table: wp.array(dtype=wp.float64),
-                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64)):
+                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64),
+                        step: wp.array2d(dtype=wp.float64), tangent: wp.array4d(dtype=wp.float64)):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
         frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
         freqs[m + k] on the grid of twice the cell density (the step-doubling error estimate,
@@ -317,7 +335,19 @@ def make_transfer_kernel(max_registers: int | None = None):
         Launched on points.shape[0] (m + doubled.shape[1]) threads, the doubled ones first:
         they run longest, and in warps of their own they hold up no short thread.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
-        device."""
+        device.
+
+        Tangent kernel (P > 0): the sets come in groups of 1 + 2P, a point z and z +- step[g, a] e_a
+        of its P scaled parameters (group g = set i / (1 + 2P), local to the launch: ``out`` and
+        ``tangent`` are indexed by it, ``params`` by set0 + i). Launched on
+        points.shape[0] / (1 + 2P) m threads (no doubled grid: fixed cells), it writes the
+        value at z to out[g, j] and dT/dz_a to tangent[g, a, j]. Only the cascade is
+        differentiated (:func:`tawarp.kernels.acoustics.magnus6_tangent`,
+        :func:`tawarp.kernels.acoustics.expm2_tangent`, the pore functions'
+        :func:`tawarp.kernels.acoustics.propagation_partials`); the frequency-independent
+        point coefficients' derivatives are the central differences of the neighbours'
+        points (the heat solve and the point kernel, a few per cent of a set's cost). A limp
+        frame or a shape factor is not differentiated: their tangents are NaN."""
         t = wp.tid()
         n_freqs = out.shape[1]
         n_doubled = points.shape[0] * doubled.shape[1]
@@ -328,6 +358,8 @@ def make_transfer_kernel(max_registers: int | None = None):
             li = t // doubled.shape[1]
             j = n_freqs + t % doubled.shape[1]
             grid = 1
+        group = li
+        li = li * stride
         i = set0 + li
         omega = TWO_PI * freqs[j]
         half_log_omega = wp.float64(0.5) * wp.log(omega)
@@ -340,35 +372,102 @@ def make_transfer_kernel(max_registers: int | None = None):
             p = p + segment_points(flags, cells, i, column, column % n_seg)
         m = identity2()
         log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))   # sum of the cells' tau (expm2_traceless)
+        dm = tangent_rows()
+        dlog = scale_rows()
+        undifferentiated = wp.float64(0.0)   # NaN where a part's A is not differentiated
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
             phi, r, q = pore_geometry(params, flags, i, s)
             mob = frame_mobility(params, flags, i, s)
             sf = shape_factor(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
-            n_cells = cells[i, grid * n_seg + s]
-            if segment_uniform(flags, cells, i, grid * n_seg + s, s):
-                a = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table)
-                m = matmul2(expm2(scale2(a, length)), m)
-                p = p + 1
-            else:
-                h = length / wp.float64(n_cells)
-                for c in range(n_cells):
+            uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
+            n_cells = 1
+            if not uniform:
+                n_cells = cells[i, grid * n_seg + s]
+            h = length / wp.float64(n_cells)
+            for c in range(n_cells):
+                if wp.static(tangents == 0):
                     a1 = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
                                         pore_table)
-                    a2 = propagation_at(points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
-                                        pore_table)
-                    a3 = propagation_at(points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
-                                        pore_table)
-                    e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
-                    m = matmul2(e, m)
-                    log_scale = log_scale + tau
+                    if uniform:   # exp(A L) of a part at uniform temperature
+                        e, tau = expm2_traceless(scale2(a1, length))
+                    else:
+                        a2 = propagation_at(points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area,
+                                            mob, sf, pore_table)
+                        a3 = propagation_at(points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area,
+                                            mob, sf, pore_table)
+                        e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
+                else:
+                    s1 = propagation_partials(points[li, p], omega, half_log_omega, gamma, model, pore_table)
+                    a1 = propagation_value(s1, points[li, p])
+                    s2 = s1
+                    s3 = s1
+                    a2 = a1
+                    a3 = a1
+                    om = scale2(a1, length)
+                    if not uniform:
+                        s2 = propagation_partials(points[li, p + 1], omega, half_log_omega, gamma, model, pore_table)
+                        s3 = propagation_partials(points[li, p + 2], omega, half_log_omega, gamma, model, pore_table)
+                        a2 = propagation_value(s2, points[li, p + 1])
+                        a3 = propagation_value(s3, points[li, p + 2])
+                        om = magnus6_exponent(a1, a2, a3, h)
+                    tau, na, delta = traceless_parts(om)
+                    ch, sh = cosh_sinhc(delta)
+                    dsh = sinhc_derivative(delta, ch, sh)
+                    e = cmat2(ch + cmul(sh, na), cmul(sh, om.b), cmul(sh, om.c), ch - cmul(sh, na))
+                    if mob > wp.float64(0.0) or (sf != wp.float64(1.0) and model == 0):
+                        undifferentiated = wp.float64(wp.nan)
+                    for a in range(P):
+                        plus = li + 1 + 2 * a
+                        inv_two_step = wp.float64(0.5) / step[group, a]
+                        dlength = (seg_value(params, i + 1 + 2 * a, s, LENGTH)
+                                   - seg_value(params, i + 2 + 2 * a, s, LENGTH)) * inv_two_step
+                        d1 = propagation_tangent(s1, point_difference(points[plus, p], points[plus + 1, p],
+                                                                      inv_two_step))
+                        dom = axpy2(dlength, a1, scale2(d1, length))
+                        if not uniform:
+                            d2 = propagation_tangent(s2, point_difference(points[plus, p + 1], points[plus + 1, p + 1],
+                                                                          inv_two_step))
+                            d3 = propagation_tangent(s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2],
+                                                                          inv_two_step))
+                            dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
+                        de, dtau = expm2_tangent(om, ch, sh, dsh, dom)
+                        # d(E M) = dE M + E dM; the cells' tau are summed like the value's
+                        dma = axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
+                        dm[a, 0] = dma.a[0]
+                        dm[a, 1] = dma.a[1]
+                        dm[a, 2] = dma.b[0]
+                        dm[a, 3] = dma.b[1]
+                        dm[a, 4] = dma.c[0]
+                        dm[a, 5] = dma.c[1]
+                        dm[a, 6] = dma.d[0]
+                        dm[a, 7] = dma.d[1]
+                        dlog[a, 0] = dlog[a, 0] + dtau[0]
+                        dlog[a, 1] = dlog[a, 1] + dtau[1]
+                m = matmul2(e, m)
+                log_scale = log_scale + tau
+                if uniform:
+                    p = p + 1
+                else:
                     p = p + 3
-        m = cscale2(m, cexp(log_scale))
+        scale = cexp(log_scale)
         if j < n_freqs:
-            store_matrix(out, i, j, m)
+            store_matrix(out, group, j, cscale2(m, scale))
         else:
-            store_matrix(doubled, i, j - n_freqs, m)
+            store_matrix(doubled, group, j - n_freqs, cscale2(m, scale))
+        for a in range(P):
+            # T = e^S M: dT = e^S (dS M + dM)
+            da = axpy2(wp.float64(1.0), cscale2(m, wp.vec2d(dlog[a, 0], dlog[a, 1])), tangent_row(dm, a))
+            da = cscale2(da, scale)
+            tangent[group, a, j, 0] = da.a[0] + undifferentiated
+            tangent[group, a, j, 1] = da.a[1] + undifferentiated
+            tangent[group, a, j, 2] = da.b[0] + undifferentiated
+            tangent[group, a, j, 3] = da.b[1] + undifferentiated
+            tangent[group, a, j, 4] = da.c[0] + undifferentiated
+            tangent[group, a, j, 5] = da.c[1] + undifferentiated
+            tangent[group, a, j, 6] = da.d[0] + undifferentiated
+            tangent[group, a, j, 7] = da.d[1] + undifferentiated
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
     # a unique module does not inherit this file's module options

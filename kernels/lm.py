@@ -1,20 +1,23 @@
 """Kernels of the batched Levenberg-Marquardt estimator (:mod:`tawarp.estimate`).
 
 One LM iteration of a batch of independent least-squares problems is one forward
-launch (:class:`tawarp.forward.Engine`) over ``1 + p`` parameter sets per active
-problem (the trial point and its ``p`` forward-difference neighbours), framed by two
-kernels of this module:
+launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
 
 1. :func:`build_sets` (one thread per parameter set) writes the Engine's varying table
-   from the scaled variables ``z`` of the active problems: set ``slot * (1 + p) + j`` is
-   problem ``ids[slot]`` at ``z`` (j = 0) or at ``z + step[a] e_a`` (j = 1 + a).
+   from the scaled variables ``z`` of the active problems: per problem its point and
+   either its ``p`` forward-difference neighbours ``z + step[a] e_a`` (``1 + p`` sets,
+   each cascaded) or its ``2p`` neighbours ``z +- step[a] e_a`` of the tangent pass
+   (``1 + 2p`` sets, of which only the point is cascaded: the neighbours give the
+   central differences of its Gauss points' coefficients,
+   :meth:`tawarp.model.forward.Engine.evaluate_tangents`).
 2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem)
-   reads the ``1 + p`` T-matrices of its problem at every frequency, normalizes them
+   reads its problem's T-matrices and Jacobian at every frequency, normalizes them
    with the problem's ``Zc``, and accumulates over the ``8 m`` real residuals
    ``r = w (Y_model - Y_meas)`` (re and im of Tpp, Tpu/Zc, Tup*Zc, Tuu):
    ``cost = r.r``, ``g = J^T r``, ``H = J^T J`` (p x p) and the unweighted
-   ``sum |Y_model - Y_meas|^2`` of the error measure; the Jacobian column ``a`` is the
-   forward difference ``w (Y(z + step_a e_a) - Y(z)) / step_a``.
+   ``sum |Y_model - Y_meas|^2`` of the error measure; the Jacobian column ``a`` is
+   ``w dY/dz_a`` from the tangent cascade or the forward difference
+   ``w (Y(z + step_a e_a) - Y(z)) / step_a``.
 
 The kernels of step 2 are specialised per ``p`` (a closure with compile-time loop
 bounds), so the Jacobian row and ``H`` live in registers. Everything is float64.
@@ -71,15 +74,19 @@ KIND_LOG = wp.constant(1)     # v = s exp(z)
 def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float64),
                ids: wp.array(dtype=wp.int32), scale: wp.array2d(dtype=wp.float64),
                offset: wp.array2d(dtype=wp.float64), kind: wp.array(dtype=wp.int32), fixed: wp.array2d(dtype=wp.float64),
-               row_src: wp.array(dtype=wp.int32), varying: wp.array2d(dtype=wp.float64)):
-    """varying[r, col] for col = slot (1 + p) + j: row_src[r] >= 0 names the free
-    parameter a = row_src[r] (value from z, perturbed by step when j = 1 + a),
-    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]. Log parameters:
-    v = scale exp(z); linear ones: v = offset + scale z."""
+               row_src: wp.array(dtype=wp.int32), central: int, varying: wp.array2d(dtype=wp.float64)):
+    """varying[r, col]: slot = col // (1 + p) and j = col % (1 + p) (forward differences:
+    set j = 1 + a is z + step e_a), or with ``central`` = 1 slot = col // (1 + 2p) and set
+    j = 1 + 2a, 2 + 2a is z +- step e_a (the tangent pass's neighbours,
+    :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r] >= 0 names the free
+    parameter a = row_src[r] (value from z, perturbed in its sets), row_src[r] < 0 the
+    per-problem fixed row -1 - row_src[r]. Log parameters: v = scale exp(z); linear ones:
+    v = offset + scale z."""
     col = wp.tid()
     p = z.shape[1]
-    slot = col // (p + 1)
-    j = col - slot * (p + 1)
+    sets = (1 + central) * p + 1
+    slot = col // sets
+    j = col - slot * sets
     pid = ids[slot]
     for r in range(row_src.shape[0]):
         a = row_src[r]
@@ -87,8 +94,12 @@ def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float6
             varying[r, col] = fixed[-1 - a, pid]
         else:
             zz = z[slot, a]
-            if j == a + 1:
+            if central == 0 and j == a + 1:
                 zz = zz + step[slot, a]
+            if central != 0 and j == 1 + 2 * a:
+                zz = zz + step[slot, a]
+            if central != 0 and j == 2 + 2 * a:
+                zz = zz - step[slot, a]
             if kind[a] == KIND_LOG:
                 varying[r, col] = scale[pid, a] * wp.exp(zz)
             else:
@@ -98,19 +109,26 @@ def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float6
 _NORMAL_KERNELS = {}
 
 
-def normal_kernel(p: int):
-    """The normal-equations kernel for ``p`` free parameters (cached per p).
+def normal_kernel(p: int, tangents: bool = False):
+    """The normal-equations kernel for ``p`` free parameters (cached per p and Jacobian).
 
-    Inputs: ``out`` (sets, m, 8) raw T-matrices from the Engine, ``Y`` (N, m, 8) and ``W``
+    Inputs: ``out`` the Engine's raw T-matrices, ``Y`` (N, m, 8) and ``W``
     (N or 1, m, 8) measured dimensionless values and weights (re, im of the four coefficients;
     one row of W serves every problem),
     ``zc`` (N,) the duct impedance of each problem, ``ids`` (slots,) problem of each
-    slot, ``step`` (slots, p). Outputs per slot: ``cost``, ``raw`` (unweighted squared
-    misfit), ``g`` (slots, p), ``H`` (slots, p, p).
+    slot, ``step`` (slots, p), ``tangent``. Forward differences (``tangents`` False):
+    ``out`` (slots (1 + p), m, 8) holds a slot's point and its p neighbours, the Jacobian
+    column a is ``w (Y(z + step_a e_a) - Y(z)) / step_a``, ``tangent`` is not read. Tangents:
+    ``out`` (slots, m, 8) the points and ``tangent`` (slots, p, m, 8) their derivatives
+    (:meth:`tawarp.model.forward.Engine.evaluate_tangents`), the column is ``w dY/dz_a``.
+    Outputs per slot: ``cost``, ``raw`` (unweighted squared misfit), ``g`` (slots, p),
+    ``H`` (slots, p, p).
     """
-    if p in _NORMAL_KERNELS:
-        return _NORMAL_KERNELS[p]
+    key = (p, bool(tangents))
+    if key in _NORMAL_KERNELS:
+        return _NORMAL_KERNELS[key]
     P = wp.constant(p)
+    TANGENTS = wp.constant(bool(tangents))
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
 
@@ -118,11 +136,14 @@ def normal_kernel(p: int):
     def normal_equations(out: wp.array3d(dtype=wp.float64), Y: wp.array3d(dtype=wp.float64),
                          W: wp.array3d(dtype=wp.float64), zc: wp.array(dtype=wp.float64),
                          ids: wp.array(dtype=wp.int32), step: wp.array2d(dtype=wp.float64),
+                         tangent: wp.array4d(dtype=wp.float64),
                          cost: wp.array(dtype=wp.float64), raw: wp.array(dtype=wp.float64),
                          g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64)):
         s = wp.tid()
         pid = ids[s]
-        base = s * (P + 1)
+        base = s
+        if wp.static(not TANGENTS):
+            base = s * (P + 1)
         inv_step = vecp()
         for a in range(P):
             inv_step[a] = wp.float64(1.0) / step[s, a]
@@ -148,7 +169,10 @@ def normal_kernel(p: int):
                 u2 += d * d
                 jr = vecp()
                 for a in range(P):
-                    jr[a] = w * (out[base + 1 + a, f, k] * fac - y0) * inv_step[a]
+                    if wp.static(TANGENTS):
+                        jr[a] = w * tangent[s, a, f, k] * fac
+                    else:
+                        jr[a] = w * (out[base + 1 + a, f, k] * fac - y0) * inv_step[a]
                 for a in range(P):
                     gv[a] += jr[a] * r
                     for b in range(P):
@@ -160,5 +184,5 @@ def normal_kernel(p: int):
             for b in range(P):
                 H[s, a, b] = Hm[a, b]
 
-    _NORMAL_KERNELS[p] = normal_equations
+    _NORMAL_KERNELS[key] = normal_equations
     return normal_equations

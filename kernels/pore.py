@@ -220,6 +220,27 @@ def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.f
     return pore_circular_tabulated(table, log_s)
 
 
+@wp.func
+def pore_log_derivative(model: int, log_s: wp.float64, f: wp.vec2d, g: wp.vec2d):
+    """df/d ln s of the pore ``model`` at ``log_s`` = ln(r / delta) from f, g there (dg = -df).
+    Circular: f = 2 J1(z)/(z J0(z)) with z = (1 + i) s and J1' = J0 - J1/z,
+    J0' = -J1 give z df/dz = 2 (1 - f) + f^2 z^2/2, and z^2 = 2 i s^2::
+
+        df/d ln s = 2 g + i s^2 f^2
+
+    Plates: f = tanh(w)/w, w = (1 - i) s, w df/dw = 1 - f - f^2 w^2, w^2 = -2 i s^2::
+
+        df/d ln s = g + 2 i s^2 f^2
+
+    The two terms cancel to O(f) at large s (f ~ 1/s): about s ulps are lost, 1e-12 at
+    s = 1e4 (tests/test_pore.py compares central differences)."""
+    s2 = wp.exp(wp.float64(2.0) * log_s)
+    f2 = cmul(f, f)
+    if model == PORE_PLATES:
+        return g + cplx(wp.float64(-2.0) * s2 * f2[1], wp.float64(2.0) * s2 * f2[0])
+    return cscale(g, wp.float64(2.0)) + cplx(-s2 * f2[1], s2 * f2[0])
+
+
 # -- complex argument (complex frequency, tawarp.model.onset) ---------------------------------
 # At complex omega, s = r / delta = r sqrt(rho omega / (2 mu)) is complex too (principal
 # root, so Re s > 0 for Re omega > 0). The same four methods hold with s complex; the

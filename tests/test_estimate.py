@@ -26,9 +26,11 @@ def noisy(core, freqs, Q, n, seed, noise=0.005, cells=12):
     return Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape)), sd
 
 
-def test_normal_equations_match_central_differences():
-    """The kernels' forward-difference Jacobian, reduced to H = J^T J and g = J^T r, against
-    central differences of the forward model (transfer_matrices) in the same scaled variables."""
+@pytest.mark.parametrize("jacobian, tol", [("difference", 1e-5), ("tangent", 1e-8)])
+def test_normal_equations_match_central_differences(jacobian, tol):
+    """The kernels' Jacobian (forward differences, or the tangent cascade), reduced to
+    H = J^T J and g = J^T r, against Richardson-extrapolated central differences of the
+    forward model (transfer_matrices) in the same scaled variables."""
     core = load_core("mesh")
     freqs = paper_frequencies("mesh", 12)
     names = GEOM + ["stack.h"]
@@ -36,12 +38,14 @@ def test_normal_equations_match_central_differences():
     rng = np.random.default_rng(0)
     w = rng.uniform(0.5, 2.0, (1, 12, 4, 2)) / sd[None, ..., None]
     start = np.array([0.7, 4.4e-5, 1.1, 40.0])
-    prob = Problems(core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None])
+    prob = Problems(core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None],
+                    jacobian=jacobian)
     z = prob.to_z(start * np.array([1.02, 0.97, 1.01, 1.1]), 0)
     cost, raw, g, H = [a.numpy() for a in prob.evaluate(np.array([0]), z[None])]
-    # host reference: central differences, step 1e-4 in z (truncation ~1e-8 relative)
+    # host reference: central differences at steps 2h and h in z, extrapolated (the h^2
+    # terms cancel: ~1e-11 relative, rounding included)
     h = 1e-4
-    zs = [z] + [z + s * h * e for e in np.eye(4) for s in (1, -1)]
+    zs = [z] + [z + s * k * h * e for e in np.eye(4) for k in (2, 1) for s in (1, -1)]
     vs = np.array([prob.to_v(zz, 0) for zz in zs])
     Ym = transfer_matrices(core, freqs, 40.0, params={k: vs[:, a] for a, k in enumerate(names)},
                            settings=FIT).dimensionless()
@@ -49,14 +53,16 @@ def test_normal_equations_match_central_differences():
         d = np.stack([Yc.real, Yc.imag], axis=-1) * w[0]
         return d.reshape(-1)
     r = real(Ym[0] - Y[0])
-    J = np.stack([(real(Ym[1 + 2 * a]) - real(Ym[2 + 2 * a])) / (2 * h) for a in range(4)], axis=1)
-    # rel 1e-5: the kernel's forward difference (step 1e-6) has truncation error ~1e-6
-    # relative; central differences with step 1e-4 are accurate to ~1e-8
+    d2 = [(real(Ym[1 + 4 * a]) - real(Ym[2 + 4 * a])) / (4 * h) for a in range(4)]
+    d1 = [(real(Ym[3 + 4 * a]) - real(Ym[4 + 4 * a])) / (2 * h) for a in range(4)]
+    J = np.stack([(4 * d1[a] - d2[a]) / 3 for a in range(4)], axis=1)
+    # forward differences (step 1e-6) have a truncation error ~1e-6 relative; the tangent
+    # cascade's point coefficients come from central differences with step 1e-5: ~1e-10
     assert cost[0] == pytest.approx(r @ r, rel=1e-12)
     scale = np.sqrt(np.outer(np.diag(J.T @ J), np.diag(J.T @ J)))
-    assert np.max(np.abs(H[0] - J.T @ J) / scale) < 1e-5
+    assert np.max(np.abs(H[0] - J.T @ J) / scale) < tol
     gscale = np.sqrt(np.diag(J.T @ J) * (r @ r))
-    assert np.max(np.abs(g[0] - J.T @ r) / gscale) < 1e-5
+    assert np.max(np.abs(g[0] - J.T @ r) / gscale) < tol
     # the unweighted sum of squares of the error measure
     assert raw[0] == pytest.approx(np.sum(np.abs(Ym[0] - Y[0]) ** 2), rel=1e-12)
 

@@ -108,13 +108,19 @@ def test_device_lm_equals_host_lm(p, kw):
 
 
 @pytest.mark.parametrize("heat", [0.0, 40.0])
-def test_device_lm_equals_host_lm_on_tmatrix_problems(heat):
+@pytest.mark.parametrize("jacobian", ["difference", "tangent"])
+def test_device_lm_equals_host_lm_on_tmatrix_problems(heat, jacobian):
     """The T-matrix problems (:class:`Problems`: log and linear parameters, Warp arrays from
-    evaluate) from starts spread around the truth, some at the porosity bound."""
+    evaluate) from starts spread around the truth, some at the porosity bound. Both loops
+    see the same evaluations; their steps agree to the last bit on these forward-difference
+    runs. With the tangent Jacobians one step of one problem came out one ulp apart
+    (LAPACK's solve against the device's Cholesky, iteration 7 of problem 3 at 40 W), and
+    the later iterations spread that to 1e-11 relative: the same iterations, reasons and
+    results to 1e-9 (the gradients to 1e-9 of sqrt(F H_aa), the gradient test's scale)."""
     core = load_core("mesh")
     freqs = paper_frequencies("mesh", 12)
     Y, sd = noisy(core, freqs, heat, 12, seed=5)
-    prob = Problems(core, freqs, Y, GEOM, heat_input=heat, weights=1 / sd, settings=FIT)
+    prob = Problems(core, freqs, Y, GEOM, heat_input=heat, weights=1 / sd, settings=FIT, jacobian=jacobian)
     rng = np.random.default_rng(6)
     v0 = np.array([core.get(k) for k in GEOM]) * rng.uniform(0.6, 1.5, (12, 3))
     v0[:3, 0] = 1.0                                  # porosity at its upper bound
@@ -124,8 +130,12 @@ def test_device_lm_equals_host_lm_on_tmatrix_problems(heat):
     got = levenberg_marquardt(prob, pid, z0, xtol=1e-6, gtol=1e-10)
     assert got.reason.tolist() == ref.reason.tolist()
     assert np.array_equal(got.iterations, ref.iterations) and np.array_equal(got.converged, ref.converged)
+    rtol = 1e-12 if jacobian == "difference" else 1e-9
     for name in ("z", "cost", "raw", "g", "H"):
-        assert np.allclose(getattr(got, name), getattr(ref, name), rtol=1e-12, atol=0), name
+        a, b = getattr(got, name), getattr(ref, name)
+        # g -> 0 at the solution: compared on the scale of the gradient test, sqrt(F H_aa)
+        atol = 0 if name != "g" else rtol * np.sqrt(ref.cost.max() * np.einsum("nii->ni", ref.H).max())
+        assert np.allclose(a, b, rtol=rtol, atol=atol), name
 
 
 def test_reasons_exercised():

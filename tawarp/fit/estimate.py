@@ -35,13 +35,20 @@ treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
 thermal segments at uniform temperature in closed form (:func:`cold_batch`): the same
 model to rounding, without the Magnus cascade.
 
-*One iteration = one forward launch* of ``1 + p`` parameter sets per active problem: the
-trial point and its forward-difference neighbours (step 1e-6 in z, taken towards the
-interior at a bound). If the trial is accepted its Jacobian is already there; a rejected
-trial wastes p sets but no launch. :mod:`tawarp.kernels.lm` builds the sets from z on
-the device and reduces the (sets, m, 8) T-matrices to ``F``, ``g = J^T r`` and
-``H = J^T J`` per problem, which stay there: the damped solves (Cholesky), acceptance,
-damping updates and stopping tests run on the device too (:mod:`tawarp.kernels.lm_step`).
+*One iteration = one forward launch* per active problem: the trial point and its
+Jacobian. By default (``jacobian="tangent"``) the Jacobian is carried through the cascade
+with the value (:meth:`tawarp.model.forward.Engine.evaluate_tangents`): each problem's
+point and its 2p neighbours z +- 1e-5 e_a get their heat solve and Gauss-point
+coefficients, whose central differences seed the tangents of one cascade per frequency
+(the pore functions are shared; exact to ~1e-10 against a converged central difference
+of the whole model). A limp frame or a shape factor is not differentiated: such batches,
+and ``jacobian="difference"``, take forward differences, ``1 + p`` cascades per problem
+(step 1e-6 in z, towards the interior at a bound; ~1e-6). If the trial is accepted its
+Jacobian is already there; a rejected trial wastes its Jacobian but no launch.
+:mod:`tawarp.kernels.lm` builds the sets from z on the device and reduces the T-matrices
+to ``F``, ``g = J^T r`` and ``H = J^T J`` per problem, which stay there: the damped
+solves (Cholesky), acceptance, damping updates and stopping tests run on the device too
+(:mod:`tawarp.kernels.lm_step`).
 
 *Damping.* ``damping="nielsen"`` (default): mu *= max(1/3, 1 - (2 rho - 1)^3) on success,
 mu *= nu, nu *= 2 on failure (Nielsen 1999; Madsen, Nielsen & Tingleff 2004).
@@ -94,8 +101,10 @@ from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_set
 from .lm import levenberg_marquardt
 from .result import FitResult, ProblemWarnings
 
-#: Forward-difference step in the scaled variable z.
+#: Forward-difference step in the scaled variable z (``jacobian="difference"``).
 FD_STEP = 1e-6
+#: Fields whose effect on A the tangent cascade does not differentiate (limp frame, shape factor).
+UNDIFFERENTIATED_FIELDS = {"frame_mobility": 0.0, "viscous_shape_factor": 1.0}
 REASONS = ("xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 
 
@@ -138,7 +147,8 @@ class Problems:
     """
 
     def __init__(self, core: Core, freqs, Y, names, *, heat_input=0.0, fixed=None, weights=None, ties=None,
-                 bounds=None, settings: ForwardSettings | None = None, device=None, scale=None):
+                 bounds=None, settings: ForwardSettings | None = None, device=None, scale=None,
+                 jacobian: str = "auto"):
         self.core = core
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=float))
         m = self.freqs.size
@@ -236,9 +246,37 @@ class Problems:
         self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
         self.w_row_src = wp.array(np.array(row_src, dtype=np.int32), dtype=wp.int32, device=dev)
         self.w_kind = wp.array(self.kind, dtype=wp.int32, device=dev)
-        self.normal = klm.normal_kernel(self.p)
+        self.tangents = self._use_tangents(jacobian, engine_names)
+        self.normal = klm.normal_kernel(self.p, self.tangents)
+        self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self.evaluations = 0
         self.launches = 0
+
+    def _use_tangents(self, jacobian: str, engine_names) -> bool:
+        """Whether the Jacobians come from the tangent cascade (``jacobian`` "tangent", or
+        "auto" where it applies) or from forward differences ("difference"). The tangent
+        cascade needs fixed cells and a rigid frame with circular-pore shape factor 1 (or
+        plates) everywhere: the effects it does not differentiate."""
+        if jacobian not in ("auto", "tangent", "difference"):
+            raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent' or 'difference'")
+        if jacobian == "difference":
+            return False
+        why = None
+        if self.engine.estimating:
+            why = "the cell count adapts per set (pass fixed cells or let fit() pick them)"
+        for seg in self.core.segments:
+            for f, neutral in UNDIFFERENTIATED_FIELDS.items():
+                values = [getattr(seg, f, neutral)] + [self.fixed[k] for k in self.fixed if k == f"{seg.name}.{f}"]
+                if any(np.any(np.asarray(v) != neutral) for v in values) and not (f == "viscous_shape_factor" and
+                                                                                 seg.pore_model == "plates"):
+                    why = f"{seg.name}.{f} is on"
+        varied = [k for k in engine_names if field_of(k) in UNDIFFERENTIATED_FIELDS and k not in self.fixed]
+        if varied:
+            why = f"{varied[0]} is fitted"
+        if why is not None and jacobian == "tangent":
+            raise ValueError(f"jacobian='tangent': {why}; the tangent cascade does not differentiate "
+                             f"{sorted(UNDIFFERENTIATED_FIELDS)} (use 'difference' or 'auto')")
+        return why is None
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
@@ -284,13 +322,19 @@ class Problems:
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
         """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``, as
         Warp arrays on the device: :func:`levenberg_marquardt` keeps them there (a
-        non-finite cost, g or H counts as an invalid evaluation there)."""
+        non-finite cost, g or H counts as an invalid evaluation there). The Jacobian comes
+        from the tangent cascade (each problem's point and its 2p neighbours z +- Engine.tangent_step
+        give the point coefficients' derivatives, one cascade carries the T-matrix's) or from
+        forward differences (1 + p cascades, step FD_STEP towards the interior at a bound)."""
         p, dev = self.p, self.device
         n = len(pid)
-        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        if self.tangents:
+            sets, step = 1 + 2 * p, np.full(z.shape, self.engine.tangent_step)
+        else:
+            sets, step = 1 + p, np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
         w_cost, w_raw = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
         w_g, w_H = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
-        per = max(1, max_sets // (p + 1))
+        per = max(1, max_sets // sets)
         rows = self.w_row_src.shape[0]
         for lo in range(0, n, per):
             hi = min(n, lo + per)
@@ -298,14 +342,18 @@ class Problems:
             w_z = wp.array(np.ascontiguousarray(z[lo:hi]), dtype=wp.float64, device=dev)
             w_step = wp.array(np.ascontiguousarray(step[lo:hi]), dtype=wp.float64, device=dev)
             w_ids = wp.array(pid[lo:hi].astype(np.int32), dtype=wp.int32, device=dev)
-            varying = wp.empty((rows, k * (p + 1)), dtype=wp.float64, device=dev)
-            wp.launch(klm.build_sets, dim=k * (p + 1), device=dev,
-                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_offset, self.w_kind, self.w_fixed, self.w_row_src, varying])
-            out, _, _ = self.engine.evaluate(varying)
-            wp.launch(self.normal, dim=k, device=dev, inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step,
+            varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
+            wp.launch(klm.build_sets, dim=k * sets, device=dev,
+                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_offset, self.w_kind, self.w_fixed, self.w_row_src,
+                              int(self.tangents), varying])
+            if self.tangents:
+                out, tangent = self.engine.evaluate_tangents(varying, w_step, p)
+            else:
+                (out, _, _), tangent = self.engine.evaluate(varying), self._no_tangent
+            wp.launch(self.normal, dim=k, device=dev, inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step, tangent,
                                                               w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]])
             self.launches += 1
-        self.evaluations += n * (p + 1)
+        self.evaluations += n * sets
         return w_cost, w_raw, w_g, w_H
 
 
@@ -410,7 +458,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         damping: str = "nielsen", xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100,
         restarts: int = 0, restart_spread: float = 0.2, n_starts: int = 8, seed: int = 0,
         absolute_sigma: bool = False, corr_limit: float = 0.95, cond_limit: float = 1e8,
-        progress: bool = False, warn: bool = True, max_sets: int = 1 << 20) -> FitResult:
+        progress: bool = False, warn: bool = True, max_sets: int = 1 << 20, jacobian: str = "auto") -> FitResult:
     """Fit the free parameters ``names`` of N independent problems at once.
 
     Parameters
@@ -431,6 +479,9 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     restarts : extra problems per problem from the solution ± ``restart_spread``.
     absolute_sigma : covariance H^-1 instead of s^2 H^-1.
     warn : also issue the batch warnings as :class:`FitWarning`.
+    jacobian : "auto" (default: "tangent" unless a limp frame or a shape factor is on or
+        fitted), "tangent" (derivatives carried through the cascade, ~1e-10 relative) or
+        "difference" (forward differences, step 1e-6 in z, ~1e-6 relative).
 
     Returns a :class:`FitResult`.
     """
@@ -447,7 +498,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
             sized[o] = sized[k]
     settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
     prob = Problems(core, freqs, Y, names, heat_input=heat_input, fixed=fixed, weights=weights, ties=ties,
-                    bounds=bounds, settings=settings, device=device)
+                    bounds=bounds, settings=settings, device=device, jacobian=jacobian)
     p = prob.p
     lm_kw = dict(damping=damping, xtol=xtol, gtol=gtol, max_iter=max_iter, progress=progress, max_sets=max_sets)
     data = np.arange(N)

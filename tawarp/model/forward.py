@@ -54,6 +54,13 @@ MAX_DENSITY_FACTOR = 64.0
 #: device part idle, so blocks are made large.
 POINT_BUFFER_BYTES = 1 << 28
 POINT_BUFFER_BYTES_GPU = 1 << 32
+#: Step of the central differences of the Gauss points' coefficients that seed the tangent
+#: cascade (:meth:`Engine.evaluate_tangents`), in scaled parameters: truncation ~ step^2,
+#: rounding ~ 1e-16/step, both ~1e-10 relative at 1e-5 (tests/test_tangents.py). When the
+#: heat solve iterates (a temperature-dependent effect) it stops at a change of
+#: ``picard_tol`` = 1e-12, which a difference divides by the step: 1e-4 there (~1e-8).
+TANGENT_STEP = 1e-5
+TANGENT_STEP_NONLINEAR = 1e-4
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
 
@@ -294,7 +301,10 @@ class Engine:
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
         self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
         self.point_kernel = _point_kernel(self.nonlinear)
-        self._modules_loaded = False
+        # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
+        self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
+        self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
+        self._modules_loaded = set()   # strides whose modules a thread of _threaded has loaded
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
@@ -330,15 +340,24 @@ class Engine:
         least = MIN_HEATED_MODELS_PER_THREAD if self.count else MIN_MODELS_PER_THREAD
         return max(1, min(threads, n, n * len(self.freqs) // least))
 
+    def _threaded(self, one, table: np.ndarray, parts: int, stride: int = 1) -> list:
+        """[one(columns) for each of ``parts`` column blocks of ``table``] (whole groups of
+        ``stride`` sets each), run in threads: the first block in this thread. ``one`` is
+        run once on the first group alone before, so that its modules are compiled and
+        loaded in one thread."""
+        groups = table.shape[1] // stride
+        bounds = np.linspace(0, groups, parts + 1).astype(int) * stride
+        blocks = [slice(a, b) for a, b in zip(bounds[:-1], bounds[1:])]
+        if stride not in self._modules_loaded:
+            one(slice(0, stride))
+            self._modules_loaded.add(stride)
+        rest = [_thread_pool(parts).submit(one, b) for b in blocks[1:]]
+        return [one(blocks[0])] + [f.result() for f in rest]
+
     def _evaluate_threaded(self, varying, parts: int, out):
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
-        chunks = [np.ascontiguousarray(c) for c in np.array_split(table, parts, axis=1)]
-        one = lambda c: tuple(a.numpy() for a in self.evaluate_serial(c))  # noqa: E731
-        if not self._modules_loaded:    # compile and load the modules once, in this thread alone
-            self.evaluate_serial(chunks[0][:, :1])
-            self._modules_loaded = True
-        rest = [_thread_pool(parts).submit(one, c) for c in chunks[1:]]
-        done = [one(chunks[0])] + [f.result() for f in rest]   # the first part in this thread, meanwhile
+        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, b])))  # noqa: E731
+        done = self._threaded(one, table, parts)
         T = np.concatenate([r[0] for r in done])
         params = np.concatenate([r[1] for r in done], axis=1)
         theta = np.concatenate([r[2] for r in done])
@@ -372,34 +391,95 @@ class Engine:
         return (wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
                 wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device))
 
+    @property
+    def tangent_step(self) -> float:
+        """The step in a scaled parameter (a relative change, or a field's ``scale``) of
+        the central differences that seed :meth:`evaluate_tangents` (:data:`TANGENT_STEP`,
+        :data:`TANGENT_STEP_NONLINEAR` when the heat solve iterates)."""
+        return TANGENT_STEP_NONLINEAR if self.nonlinear else TANGENT_STEP
+
+    def evaluate_tangents(self, varying, step, tangents: int) -> tuple[wp.array, wp.array]:
+        """T-matrices and their derivatives along ``tangents`` = P parameters, in one pass.
+
+        ``varying`` (rows, g (1 + 2P)): g groups of 1 + 2P sets, a point and its neighbours
+        z +- step[k, a] e_a in P parameters (set k (1 + 2P) + 1 + 2a is the + neighbour of
+        parameter a, the next one the - neighbour); ``step`` (g, P). Returns
+        ``out`` (g, m, 8) the T-matrices at the points and ``tangent`` (g, P, m, 8) their
+        derivatives dT/dz_a: the cascade carries them with the value
+        (:func:`tawarp.kernels.forward.make_transfer_kernel`), the neighbours only get
+        their heat solve and points. Needs fixed cells (``ForwardSettings.cells``, or
+        :func:`tawarp.measure.kind.smooth_settings`): a neighbour's points must lie where
+        its point's do. A large CPU batch runs split over threads, as :meth:`evaluate`."""
+        if self.estimating:
+            raise ValueError("evaluate_tangents: the cell count must be fixed (ForwardSettings(cells=...) or "
+                             "smooth_settings), not adapted per set")
+        stride = 1 + 2 * tangents
+        if varying.shape[1] % stride:
+            raise ValueError(f"evaluate_tangents: {varying.shape[1]} sets is not a multiple of 1 + 2 P = {stride}")
+        parts = min(self._cpu_parts(varying.shape[1]), varying.shape[1] // stride)
+        if parts <= 1:
+            return self._tangents_serial(varying, step, tangents)
+        table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
+        steps = step.numpy() if isinstance(step, wp.array) else np.asarray(step, dtype=np.float64)
+        one = lambda b: tuple(a.numpy() for a in self._tangents_serial(  # noqa: E731
+            np.ascontiguousarray(table[:, b]), np.ascontiguousarray(steps[b.start // stride:b.stop // stride]), tangents))
+        done = self._threaded(one, table, parts, stride)
+        return tuple(wp.array(np.concatenate([r[k] for r in done]), dtype=wp.float64, device=self.device)
+                     for k in range(2))
+
+    def _tangents_serial(self, varying, step, tangents: int) -> tuple[wp.array, wp.array]:
+        """:meth:`evaluate_tangents` in the calling thread alone."""
+        params, theta = self.heat(varying)
+        stride = 1 + 2 * tangents
+        n = params.shape[1]
+        groups = n // stride
+        if not isinstance(step, wp.array):
+            step = wp.array(np.ascontiguousarray(step, dtype=np.float64), dtype=wp.float64, device=self.device)
+        out = wp.empty((groups, len(self.freqs), 8), dtype=wp.float64, device=self.device)
+        tangent = wp.empty((groups, tangents, len(self.freqs), 8), dtype=wp.float64, device=self.device)
+        density = wp.full(n, float(self.settings.cell_density), dtype=wp.float64, device=self.device)
+        doubled = wp.empty((groups, 0, 8), dtype=wp.float64, device=self.device)
+        self._cascade(params, theta, self.columns[0], density, out, doubled, step, tangent)
+        return out, tangent
+
     def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array,
-                 doubled: wp.array):
+                 doubled: wp.array, step: wp.array | None = None, tangent: wp.array | None = None):
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
         ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
         counted first and the largest point count read back (the one host round trip); then
         blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
-        (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch."""
+        (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch.
+        With ``tangent`` (g, P, m, 8) the sets are g groups of 1 + 2P (:meth:`evaluate_tangents`),
+        ``out`` and ``doubled`` have a row per group, and a block holds whole groups."""
         n = params.shape[1]
         if n == 0:
             return
+        tangents = 0 if tangent is None else tangent.shape[1]
+        stride = 1 + 2 * tangents
+        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(self.settings.max_registers, tangents)
+        step = self._no_step if step is None else step
+        tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
         most = wp.zeros(2, dtype=wp.int32, device=self.device)
         wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
                                                  cells, most], device=self.device)
         n_points, n_slots = (int(v) for v in most.numpy())
-        block = max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)))
+        block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
             part = points if lo + block <= n else points[:n - lo]
             wp.launch(self.point_kernel, dim=(part.shape[0], n_slots), device=self.device,
                       inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part])
-            threads = part.shape[0] * (out.shape[1] + doubled.shape[1])
+            g0, g1 = lo // stride, (lo + part.shape[0]) // stride
+            threads = (g1 - g0) * (out.shape[1] + doubled.shape[1])
             if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
                 raise ValueError(f"{part.shape[0]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
                                  f"threads in one launch: split the batch (ForwardSettings.chunk)")
-            wp.launch(self.transfer_kernel, dim=threads,
-                      inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, out, doubled],
+            rows = lambda a: a[g0:g1] if a.size else a   # noqa: E731 (Warp will not slice an empty array)
+            wp.launch(kernel, dim=threads,
+                      inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, rows(out),
+                              rows(doubled), rows(step) if tangents else step, rows(tangent) if tangents else tangent],
                       device=self.device, block_dim=self.settings.block_dim)
 
     def _point_buffer_bytes(self) -> int:
@@ -508,9 +588,9 @@ def _point_kernel(nonlinear: bool):
 
 
 @functools.cache
-def _transfer_kernel(max_registers: int | None):
-    """The cascade kernel for this register cap, compiled once per process."""
-    return kf.make_transfer_kernel(max_registers)
+def _transfer_kernel(max_registers: int | None, tangents: int = 0):
+    """The cascade kernel for this register cap (and number of tangents), compiled once per process."""
+    return kf.make_transfer_kernel(max_registers, tangents)
 
 
 def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:

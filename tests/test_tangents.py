@@ -1,0 +1,246 @@
+"""The tangent cascade (Engine.evaluate_tangents) and its building blocks, against
+derivatives computed another way: scipy's Frechet derivative of expm, Richardson-extrapolated
+central differences of the Warp functions and of the whole forward model."""
+
+import numpy as np
+import pytest
+import scipy.linalg
+import warp as wp
+
+from tawarp.fit.estimate import Problems
+from tawarp.kernels.acoustics import CMat2, cmat2, expm2_tangent, expm2_traceless, magnus6_exponent, magnus6_tangent
+from tawarp.kernels.acoustics import cosh_sinhc, sinhc_derivative, traceless_parts
+from tawarp.kernels.pore import PORE_CIRCULAR, PORE_PLATES, pore_circular, pore_log_derivative, pore_plates
+from tawarp.model.core import load_core
+from tawarp.model.forward import Engine, ForwardSettings
+
+wp.config.quiet = True
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def _mat(a: wp.array2d(dtype=wp.vec2d), i: int):
+    return cmat2(a[i, 0], a[i, 1], a[i, 2], a[i, 3])
+
+
+@wp.func
+def _put(out: wp.array2d(dtype=wp.vec2d), i: int, m: CMat2):
+    out[i, 0] = m.a
+    out[i, 1] = m.b
+    out[i, 2] = m.c
+    out[i, 3] = m.d
+
+
+@wp.kernel
+def _exp_and_tangent(m: wp.array2d(dtype=wp.vec2d), dm: wp.array2d(dtype=wp.vec2d), e: wp.array2d(dtype=wp.vec2d),
+                     de: wp.array2d(dtype=wp.vec2d), tau: wp.array(dtype=wp.vec2d), dtau: wp.array(dtype=wp.vec2d)):
+    i = wp.tid()
+    x = _mat(m, i)
+    t, na, delta = traceless_parts(x)
+    ch, sh = cosh_sinhc(delta)
+    ei, ti = expm2_traceless(x)
+    dei, dti = expm2_tangent(x, ch, sh, sinhc_derivative(delta, ch, sh), _mat(dm, i))
+    _put(e, i, ei)
+    _put(de, i, dei)
+    tau[i] = ti
+    dtau[i] = dti
+
+
+def _complex(a):
+    return a.numpy().reshape(a.shape[0], -1).view(np.complex128)
+
+
+def _vec2(z):
+    return wp.array(np.ascontiguousarray(z).view(np.float64).reshape(z.shape + (2,)), dtype=wp.vec2d, device="cpu")
+
+
+@pytest.mark.parametrize("scale", [1e-5, 1e-2, 0.2, 0.6, 0.95, 3.0])
+def test_exponential_tangent_against_frechet(scale):
+    """d exp(m)[dm] = e^tau (dtau E + dE) against scipy.linalg.expm_frechet on random
+    complex 2x2 matrices of each size (the series branch up to |delta| = 1, the closed form
+    beyond), to 1e-13 of the largest entry."""
+    rng = np.random.default_rng(int(scale * 1e5) + 1)
+    n = 100
+    a = scale * (rng.normal(size=(n, 2, 2)) + 1j * rng.normal(size=(n, 2, 2)))
+    d = rng.normal(size=(n, 2, 2)) + 1j * rng.normal(size=(n, 2, 2))
+    e, de = wp.empty((n, 4), dtype=wp.vec2d, device="cpu"), wp.empty((n, 4), dtype=wp.vec2d, device="cpu")
+    tau, dtau = wp.empty(n, dtype=wp.vec2d, device="cpu"), wp.empty(n, dtype=wp.vec2d, device="cpu")
+    wp.launch(_exp_and_tangent, dim=n, inputs=[_vec2(a.reshape(n, 4)), _vec2(d.reshape(n, 4)), e, de, tau, dtau],
+              device="cpu")
+    E, dE = _complex(e).reshape(n, 2, 2), _complex(de).reshape(n, 2, 2)
+    t, dt = _complex(tau)[:, 0], _complex(dtau)[:, 0]
+    got = np.exp(t)[:, None, None] * (dt[:, None, None] * E + dE)
+    want = np.array([scipy.linalg.expm_frechet(x, y, compute_expm=False) for x, y in zip(a, d)])
+    err = np.abs(got - want).max(axis=(1, 2)) / np.abs(want).max(axis=(1, 2))
+    assert err.max() < 1e-13, err.max()
+
+
+@wp.kernel
+def _magnus(a: wp.array2d(dtype=wp.vec2d), d: wp.array2d(dtype=wp.vec2d), h: wp.array(dtype=wp.float64),
+            dh: wp.array(dtype=wp.float64), om: wp.array2d(dtype=wp.vec2d), dom: wp.array2d(dtype=wp.vec2d)):
+    i = wp.tid()
+    a1 = cmat2(a[i, 0], a[i, 1], a[i, 2], a[i, 3])
+    a2 = cmat2(a[i, 4], a[i, 5], a[i, 6], a[i, 7])
+    a3 = cmat2(a[i, 8], a[i, 9], a[i, 10], a[i, 11])
+    d1 = cmat2(d[i, 0], d[i, 1], d[i, 2], d[i, 3])
+    d2 = cmat2(d[i, 4], d[i, 5], d[i, 6], d[i, 7])
+    d3 = cmat2(d[i, 8], d[i, 9], d[i, 10], d[i, 11])
+    _put(om, i, magnus6_exponent(a1, a2, a3, h[i]))
+    _put(dom, i, magnus6_tangent(a1, a2, a3, h[i], d1, d2, d3, dh[i]))
+
+
+def test_magnus_tangent_against_central_differences():
+    """Omega is a polynomial of degree 5 in (A1, A2, A3, h) jointly along a line, so
+    central differences at steps 2k and k extrapolated (the k^2 terms cancel) leave only
+    the k^4 term: magnus6_tangent agrees to 1e-10 of |dOmega| on random cells whose |h A|
+    ranges over 1e-2 ... 1."""
+    rng = np.random.default_rng(11)
+    n = 60
+    A = (rng.normal(size=(n, 12)) + 1j * rng.normal(size=(n, 12))) * np.geomspace(1e-2, 1.0, n)[:, None]
+    D = rng.normal(size=(n, 12)) + 1j * rng.normal(size=(n, 12))
+    h = rng.uniform(0.5, 2.0, n)
+    dh = rng.normal(size=n)
+
+    def run(k):
+        om, dom = wp.empty((n, 4), dtype=wp.vec2d, device="cpu"), wp.empty((n, 4), dtype=wp.vec2d, device="cpu")
+        wp.launch(_magnus, dim=n, inputs=[_vec2(A + k * D), _vec2(D), wp.array(h + k * dh, dtype=wp.float64),
+                                          wp.array(dh, dtype=wp.float64), om, dom], device="cpu")
+        return _complex(om), _complex(dom)
+
+    k = 1e-3
+    cd = lambda s: (run(s)[0] - run(-s)[0]) / (2 * s)   # noqa: E731
+    want = (4 * cd(k) - cd(2 * k)) / 3
+    got = run(0.0)[1]
+    err = np.abs(got - want).max(axis=1) / np.abs(want).max(axis=1)
+    assert err.max() < 1e-10, err.max()
+
+
+@wp.kernel
+def _pore(model: int, log_s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d), g: wp.array(dtype=wp.vec2d),
+          df: wp.array(dtype=wp.vec2d)):
+    i = wp.tid()
+    s = wp.exp(log_s[i])
+    fi = wp.vec2d()
+    gi = wp.vec2d()
+    if model == PORE_PLATES:
+        fi, gi = pore_plates(s)
+    else:
+        fi, gi = pore_circular(s)
+    f[i] = fi
+    g[i] = gi
+    df[i] = pore_log_derivative(model, log_s[i], fi, gi)
+
+
+@pytest.mark.parametrize("model", [PORE_CIRCULAR, PORE_PLATES])
+def test_pore_log_derivative_against_central_differences(model):
+    """df/d ln s from f, g alone (pore_log_derivative) against extrapolated central
+    differences in ln s of the smaller of f and -g (both accurate to ~1e-15 relative: g at
+    small s, where f -> 1), s = 1e-3 ... 1e4, to 1e-9 of |df|: the differences' own error
+    (rounding / step 1e-3, the step^4 term), and the formula's cancellation at large s
+    (about s ulps)."""
+    log_s = np.linspace(np.log(1e-3), np.log(1e4), 400)
+    n = log_s.size
+
+    def run(k):
+        f, g, df = (wp.empty(n, dtype=wp.vec2d, device="cpu") for _ in range(3))
+        wp.launch(_pore, dim=n, inputs=[int(model), wp.array(log_s + k, dtype=wp.float64), f, g, df], device="cpu")
+        return _complex(f)[:, 0], _complex(g)[:, 0], _complex(df)[:, 0]
+
+    f0, g0, got = run(0.0)
+    small_g = np.abs(g0) < np.abs(f0)   # which one each s differentiates, fixed for all steps
+    k = 1e-3
+
+    def cd(s):
+        (fp, gp, _), (fm, gm, _) = run(s), run(-s)
+        return np.where(small_g, gm - gp, fp - fm) / (2 * s)
+
+    want = (4 * cd(k) - cd(2 * k)) / 3
+    err = np.abs(got - want) / np.abs(want)
+    assert err.max() < 1e-9, err.max()
+
+
+# -- the whole cascade -------------------------------------------------------------------------
+CASES = [
+    ("mesh", 40.0, ["stack.porosity", "stack.pore_radius", "stack.h", "stack.length", "hot_hx.tortuosity",
+                    "gas.T_cold", "tube.radius", "tbt.h"]),
+    ("ceramic", 0.0, ["stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.length", "gas.p_mean"]),
+    ("rvc_foam", 25.0, ["stack.thermal_radius_ratio", "stack.solid_conductivity", "hot_hx.h", "stack.h_convection",
+                        "stack.wall_conductance"]),
+    # a temperature-dependent effect: the heat solve iterates (Picard)
+    ("nicr_foam", 40.0, ["stack.conductivity_exponent", "stack.h", "stack.porosity", "tbt.length"]),
+]
+
+
+def _log(name, core):
+    from tawarp.fit.estimate import is_log
+    return is_log(name)
+
+
+@pytest.mark.parametrize("name, heat, names", CASES)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_cascade_tangents_against_extrapolated_differences(name, heat, names, seed):
+    """dT/dz from the tangent cascade against central differences of the plain cascade at
+    steps 2k and k (k = 1e-3 in z), extrapolated: at a point 10-30 % off the core's values in
+    every parameter (random signs), to 1e-8 of max |dT/dz| per parameter, plus 1e-11 of
+    max |T| for parameters of so small an effect that rounding over the differences' steps
+    (eps |T| / step) shows; 1e-7 when the heat solve iterates to its 1e-12 tolerance (step
+    1e-4). Forward differences with step 1e-6, the estimator's other Jacobian, reach ~1e-6."""
+    core = load_core(name)
+    if name == "nicr_foam":
+        core = core.replace(**{"stack.conductivity_exponent": 0.5})
+    rng = np.random.default_rng(seed)
+    v0 = np.array([core.get(k) for k in names])
+    v0 = v0 * (1 + rng.uniform(0.1, 0.3, v0.size) * rng.choice([-1, 1], v0.size))
+    for a, k in enumerate(names):
+        if k.endswith(("porosity", "thermal_radius_ratio")):
+            v0[a] = min(v0[a], 0.97)
+        if k.endswith("tortuosity"):
+            v0[a] = max(v0[a], 1.05)
+    log = np.array([_log(k, core) for k in names])
+    freqs = np.array([35.0, 160.0, 450.0])
+    P = len(names)
+    eng = Engine(core, freqs, names, ForwardSettings(cells=6, device="cpu", cpu_threads=1))
+
+    def values(z):
+        return np.where(log, v0 * np.exp(z), v0 + 0.05 * z)
+
+    def table(zs):
+        return np.stack([np.r_[heat, values(z)] for z in zs], axis=1)
+
+    step = eng.tangent_step
+    tol = 1e-8 if not eng.nonlinear else 1e-7
+    zs = [np.zeros(P)] + [s * step * e for e in np.eye(P) for s in (1, -1)]
+    out, tangent = (a.numpy() for a in eng.evaluate_tangents(table(zs), np.full((1, P), step), P))
+    k = 1e-3
+    ref = [np.zeros(P)] + [s * c * k * e for e in np.eye(P) for c in (2, 1) for s in (1, -1)]
+    T = eng.evaluate(table(ref))[0].numpy()
+    np.testing.assert_allclose(out[0], T[0], rtol=0, atol=1e-13 * np.abs(T[0]).max())
+    for a in range(P):
+        d2 = (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)
+        d1 = (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k)
+        want = (4 * d1 - d2) / 3
+        err = np.abs(tangent[0, a] - want).max()
+        assert err < tol * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err / np.abs(want).max())
+
+
+def test_undifferentiated_effects_refuse_or_fall_back():
+    """A limp frame or a shape factor is not differentiated: the cascade's tangents are NaN
+    there, jacobian='tangent' names the field, 'auto' takes forward differences."""
+    core = load_core("rvc_foam").replace(**{"stack.frame_mobility": 1e-3})
+    freqs = np.array([50.0, 200.0])
+    names = ["stack.porosity"]
+    eng = Engine(core, freqs, names, ForwardSettings(cells=4, device="cpu"))
+    v = core.get("stack.porosity")
+    tab = np.array([[0.0, 0.0, 0.0], [v, v + 1e-6, v - 1e-6]])
+    out, tangent = (a.numpy() for a in eng.evaluate_tangents(tab, np.full((1, 1), 1e-6), 1))
+    assert np.all(np.isfinite(out)) and np.all(np.isnan(tangent))
+    Y = np.ones((1, 2, 4), dtype=complex)
+    with pytest.raises(ValueError, match="stack.frame_mobility is on"):
+        Problems(core, freqs, Y, names, settings=ForwardSettings(cells=4, device="cpu"), jacobian="tangent")
+    assert not Problems(core, freqs, Y, names, settings=ForwardSettings(cells=4, device="cpu")).tangents
+    with pytest.raises(ValueError, match="stack.viscous_shape_factor is fitted"):
+        Problems(load_core("rvc_foam"), freqs, Y, ["stack.viscous_shape_factor"],
+                 settings=ForwardSettings(cells=4, device="cpu"), jacobian="tangent")
+    with pytest.raises(ValueError, match="cell count must be fixed"):
+        Engine(load_core("mesh"), freqs, names, ForwardSettings(device="cpu")).evaluate_tangents(
+            np.zeros((2, 3)), np.ones((1, 1)), 1)
