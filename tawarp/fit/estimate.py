@@ -360,31 +360,27 @@ class Problems:
 # ----------------------------------------------------------------------------------------
 def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
     """(cov_v, std, corr, cond, s2, V) at the solution, natural units (delta method); V
-    (n, p, p) the eigenvectors of J^T J in scaled variables, weakest first."""
+    (n, p, p) the eigenvectors of J^T J in scaled variables, weakest first. The
+    eigendecomposition (Jacobi, :mod:`tawarp.kernels.eigen`) and the rest
+    (:mod:`tawarp.kernels.covariance`) run on ``prob.device``, one thread per problem."""
+    from ..kernels import covariance as kcov
+    from ..kernels import eigen as keigen
+
     n, p = z.shape
+    dev = prob.device
     dof = max(8 * prob.freqs.size - p, 1)
     s2 = np.ones(n) if absolute_sigma else cost / dof
-    w, V = np.linalg.eigh(H)
-    wmax = np.max(np.abs(w), axis=1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cond = np.where(w[:, 0] > 0, wmax / w[:, 0], np.inf)
-        inv_w = np.where(w > 1e-14 * wmax[:, None], 1.0 / w, np.inf)
-    # cov_z = V diag(1/w) V^T; singular directions give infinite variance
-    with np.errstate(invalid="ignore"):
-        cov_z = np.einsum("nij,nj,nkj->nik", V, np.where(np.isfinite(inv_w), inv_w, 0.0), V)
-        sing = ~np.isfinite(inv_w)
-        if sing.any():
-            infl = np.einsum("nij,nj,nkj->nik", np.abs(V), sing.astype(float), np.abs(V)) > 1e-8
-            cov_z = np.where(infl, np.inf, cov_z)
     D = prob.dv_dz(z, pid) if n else np.zeros((0, p))
-    unit = cov_z * D[:, :, None] * D[:, None, :]          # H^-1 in natural units
-    cov = unit * s2[:, None, None]
-    std = np.sqrt(np.abs(np.einsum("nii->ni", cov)))
-    su = np.sqrt(np.abs(np.einsum("nii->ni", unit)))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = unit / (su[:, :, None] * su[:, None, :])   # independent of s^2 (defined for exact data)
-    corr[:, np.arange(p), np.arange(p)] = 1.0
-    return cov, std, corr, cond, s2, V
+
+    def put(a):
+        return wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=dev)
+
+    w, V = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
+    wp.launch(keigen.eigh_kernel(p), dim=n, device=dev, inputs=[put(H), w, V])
+    cov, corr = wp.empty((n, p, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
+    std, cond = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
+    wp.launch(kcov.covariance_kernel(p), dim=n, device=dev, inputs=[w, V, put(D), put(s2), cov, std, corr, cond])
+    return cov.numpy(), std.numpy(), corr.numpy(), cond.numpy(), s2, V.numpy()
 
 
 def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_limit) -> list[tuple]:
