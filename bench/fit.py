@@ -30,6 +30,8 @@ finite differences, the same data and weights, one fit at a time; the residual f
   ``rtol = 1e-8`` for the heated segments); mean over ``--scipy-fits`` problems.
 
 ``cpu_batches``: on a GPU run, the batched fit on the CPU too (``--cpu-sizes``).
+``other_jacobians``: the same batches with the other Jacobian (tangent cascade or forward
+differences, ``--jacobians``), with how far their values and std are from the headline's.
 """
 
 from __future__ import annotations
@@ -69,6 +71,7 @@ def make_data(core, names, Q, n, seed=0, noise=0.005):
 
 
 def time_fits(core, wl, Y, sd, n, device, settings, jacobian="auto") -> dict:
+    """One timed batch of n fits (``jacobian`` as :func:`tawarp.fit.estimate.fit`'s)."""
     names = wl["names"]
     start = np.array([core.get(k) for k in names]) * wl["start"]
     w = np.broadcast_to(1.0 / sd, (n,) + sd.shape)
@@ -145,9 +148,10 @@ def main(argv=None) -> int:
                     help="SciPy fits on the project's CPU kernel per workload (0 skips)")
     ap.add_argument("--cpu-sizes", default="1,16,64", help="batched CPU fits on a GPU run (empty: none)")
     ap.add_argument("--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)")
-    ap.add_argument("--jacobians", default="auto,difference",
-                    help="Jacobians of the batched fits, the first the headline (auto = tangent cascade here; "
-                         "difference = forward differences); the others are timed on the same batches")
+    ap.add_argument("--jacobians", default=None,
+                    help="comma list of the batched fits' Jacobians (tangent, difference), the first the headline; "
+                         "the others are timed on the same batches (default: the one fit()'s jacobian='auto' takes "
+                         "on the device first: tangent on the CPU, difference on a GPU)")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
     wp.config.quiet = True
@@ -166,7 +170,7 @@ def main(argv=None) -> int:
     for wname in args.workloads.split(","):
         wl = WORKLOADS[wname]
         Y, sd = make_data(core, wl["names"], wl["Q"], max(sizes))
-        jacobians = args.jacobians.split(",")
+        jacobians = (args.jacobians or ("difference,tangent" if gpu else "tangent,difference")).split(",")
         rows, others = [], []
         for k, jac in enumerate(jacobians):
             time_fits(core, wl, Y, sd, 1, device, settings, jac)  # warm-up: compile the kernels

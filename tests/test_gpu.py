@@ -54,7 +54,10 @@ def test_cuda_onset_matches_cpu(seed):
 @pytest.mark.parametrize("heat", [0.0, 40.0])
 def test_cuda_tangents_match_cpu(heat):
     # The tangent cascade (Engine.evaluate_tangents) is the same float64 code on both
-    # devices: values and derivatives agree to 1e-12 of their largest entry.
+    # devices: values agree to 1e-12 of their largest entry; the derivatives' seeds are
+    # central differences with step 1e-5 of the neighbours' points, which divide the
+    # devices' last-bit libm differences (exp, log, pow in the heat solve and gas laws)
+    # by 2e-5: 1e-9.
     from tawarp.model.forward import Engine, ForwardSettings
 
     core = load_core("mesh")
@@ -72,5 +75,5 @@ def test_cuda_tangents_match_cpu(heat):
     for dev in ("cpu", "cuda"):
         eng = Engine(core, np.linspace(30, 500, 9), names, ForwardSettings(cells=6, device=dev))
         got[dev] = [a.numpy() for a in eng.evaluate_tangents(table, wp.array(step, dtype=wp.float64, device=dev), 3)]
-    for c, g in zip(got["cpu"], got["cuda"]):
-        assert np.abs(g - c).max() < 1e-12 * np.abs(c).max()
+    for (c, g), tol in zip(zip(got["cpu"], got["cuda"]), (1e-12, 1e-9)):
+        assert np.abs(g - c).max() < tol * np.abs(c).max()

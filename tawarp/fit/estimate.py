@@ -96,6 +96,8 @@ from ..model.coefficients import duct_impedance
 from ..model.core import GLOBAL_FIELDS, Core
 from ..model.fields import field as field_spec
 from ..model.forward import ForwardSettings, parameter_row
+from ..kernels import covariance as kcov
+from ..kernels import eigen as keigen
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
 from .lm import levenberg_marquardt
@@ -254,12 +256,20 @@ class Problems:
 
     def _use_tangents(self, jacobian: str, engine_names) -> bool:
         """Whether the Jacobians come from the tangent cascade (``jacobian`` "tangent", or
-        "auto" where it applies) or from forward differences ("difference"). The tangent
-        cascade needs fixed cells and a rigid frame with circular-pore shape factor 1 (or
-        plates) everywhere: the effects it does not differentiate."""
+        "auto" on the CPU where it applies: the faster one there, forward differences on a
+        GPU) or from forward differences ("difference"). The tangent cascade needs fixed
+        cells and a rigid frame with circular-pore shape factor 1 (or plates) everywhere:
+        the effects it does not differentiate."""
         if jacobian not in ("auto", "tangent", "difference"):
             raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent' or 'difference'")
         if jacobian == "difference":
+            return False
+        if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
+            # measured (bench/results/fit_cuda_h100.json, fit_cuda_h200.json, 1e4-1e5
+            # problems): the tangent cascade, which carries p more matrices per thread, is
+            # register-bound on a GPU; its heat fits ran at 0.71-0.83x of forward
+            # differences, its geometry fits at 0.97-1.08x. On the CPU they run 1.4x and
+            # 1.5-1.7x faster (bench/fit.py --device cpu)
             return False
         why = None
         if self.engine.estimating:
@@ -363,9 +373,6 @@ def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
     (n, p, p) the eigenvectors of J^T J in scaled variables, weakest first. The
     eigendecomposition (Jacobi, :mod:`tawarp.kernels.eigen`) and the rest
     (:mod:`tawarp.kernels.covariance`) run on ``prob.device``, one thread per problem."""
-    from ..kernels import covariance as kcov
-    from ..kernels import eigen as keigen
-
     n, p = z.shape
     dev = prob.device
     dof = max(8 * prob.freqs.size - p, 1)
@@ -475,8 +482,9 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     restarts : extra problems per problem from the solution ± ``restart_spread``.
     absolute_sigma : covariance H^-1 instead of s^2 H^-1.
     warn : also issue the batch warnings as :class:`FitWarning`.
-    jacobian : "auto" (default: "tangent" unless a limp frame or a shape factor is on or
-        fitted), "tangent" (derivatives carried through the cascade, ~1e-10 relative) or
+    jacobian : "auto" (default: "tangent" on the CPU unless a limp frame or a shape factor
+        is on or fitted, "difference" on a GPU: the faster of the two on each, measured),
+        "tangent" (derivatives carried through the cascade, ~1e-10 relative) or
         "difference" (forward differences, step 1e-6 in z, ~1e-6 relative).
 
     Returns a :class:`FitResult`.

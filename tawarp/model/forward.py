@@ -456,7 +456,10 @@ class Engine:
             return
         tangents = 0 if tangent is None else tangent.shape[1]
         stride = 1 + 2 * tangents
-        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(self.settings.max_registers, tangents)
+        # the tangent kernel runs uncapped: it carries P more matrices, and on the H100 a cap
+        # of 64 (128) registers made 3-parameter fits 4.5x (2.2x) slower than none
+        # (.aot/tangent_speed.py, bench/results/tangent_speed_h100.txt)
+        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(None, tangents)
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
