@@ -203,8 +203,11 @@ def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 40
     problems over the cluster's workers; the same :class:`~tawarp.fit.result.FitResult`
     as one call (per-problem arrays concatenated in order; counts summed; ``seconds`` the
     wall time here). The adaptive cells are fixed once for the whole batch
-    (:func:`tawarp.measure.kind.smooth_settings` on every problem's start), as one call
-    fixes them, so no chunk fits a different model. Other keywords go to ``fit``."""
+    (:func:`tawarp.measure.kind.smooth_settings` on every problem's start), so no chunk
+    fits a different model; with the margin of 2 on the heat model's k (h up to 4x), as
+    the chunks cannot re-size at their solutions together the way one call does
+    (:data:`tawarp.fit.estimate.FIT_K_FACTOR`): where cells are sized the results equal
+    one call's with ``settings`` of these cells. Other keywords go to ``fit``."""
     import time
 
     from .fit.estimate import spread_starts

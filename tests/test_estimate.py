@@ -202,3 +202,33 @@ def test_problem_warnings_formatted_when_read():
     assert any(s.startswith("problem 5: ill-conditioned") for s in summary)
     copy = pickle.loads(pickle.dumps(pw))
     assert isinstance(copy, list) and copy == [pw[i] for i in range(N)] and pw == copy
+
+
+def test_cells_sized_at_the_starts_are_checked_at_the_solutions(monkeypatch):
+    """fit() sizes its fixed cells at the starts with a margin of 1.25 on k; a start far
+    below the truth (tbt.h at 0.3x) ends where the rule asks for more cells: the problems
+    are re-run from their solutions with cells sized there, which cover the rule at the
+    solutions, and the values agree with fits on 40 cells per segment (a converged model)
+    to 2e-3 standard deviations. A start near the truth needs no re-run."""
+    from tawarp.fit import estimate
+    from tawarp.measure.kind import smooth_settings
+
+    core = load_core("mesh")
+    freqs = paper_frequencies("mesh", 16)
+    Y, sd = noisy(core, freqs, 40.0, 4, seed=11, cells=48)
+    truth = np.array([core.get(k) for k in HEAT])
+    runs = []
+    original = estimate._cells_at_solutions
+    monkeypatch.setattr(estimate, "_cells_at_solutions", lambda *a: runs.append(original(*a)) or runs[-1])
+    for factor, rerun in (([1.0, 1.0, 0.3], True), ([1.2, 0.8, 1.2], False)):
+        r = fit(core, freqs, Y, HEAT, truth * np.array(factor), heat_input=40.0, weights=1 / sd, device="cpu",
+                warn=False)
+        ref = fit(core, freqs, Y, HEAT, truth, heat_input=40.0, weights=1 / sd, settings=ForwardSettings(cells=40),
+                  warn=False)
+        assert (runs[-1] is not None) == rerun
+        assert r.converged.all()
+        assert np.max(np.abs(r.values - ref.values) / ref.std) < 2e-3
+        if rerun:
+            need = smooth_settings(core, freqs, None, {k: r.values[:, a] for a, k in enumerate(HEAT)}, 40.0, 1.0).cells
+            used = runs[-1][0].settings.cells
+            assert all(used[s] >= need[s] for s in need)

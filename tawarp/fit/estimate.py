@@ -107,6 +107,12 @@ from .result import FitResult, ProblemWarnings
 FD_STEP = 1e-6
 #: Fields whose effect on A the tangent cascade does not differentiate (limp frame, shape factor).
 UNDIFFERENTIATED_FIELDS = {"frame_mobility": 0.0, "viscous_shape_factor": 1.0}
+#: Margin on the heat model's decay rate k of the fixed cells :func:`fit` sizes at the
+#: starts (:func:`smooth_settings`): 1.25 leaves room for h to grow 1.56x; the counts are
+#: checked at the solutions, and problems re-run from them where the solutions need more
+#: (:func:`_cells_at_solutions`). The margin of 2 that covered h up to 4x instead cost the
+#: heat workload of bench/fit.py 35 cells for 25 (1.4x the cascades).
+FIT_K_FACTOR = 1.25
 REASONS = ("xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 
 
@@ -476,7 +482,9 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     ties : {free name: [names given the same value]} (ceramic: stack and hot exchanger).
     bounds : {name: (lo, hi)} natural units, replacing each field's ``fit_range`` (:mod:`tawarp.model.fields`).
     settings, device : forward settings (cells, ...) and device; adaptive cells are
-        replaced by fixed counts (:func:`smooth_settings`).
+        replaced by fixed counts (:func:`smooth_settings`), sized at the starts with room
+        for h to grow 1.56x (:data:`FIT_K_FACTOR`) and checked at the solutions: where the
+        rule asks for more there, every problem runs again from its solution with them.
     damping : "nielsen" (default) or "paper" (halve on success, double on failure).
     xtol, gtol, max_iter : stopping rule (module doc).
     restarts : extra problems per problem from the solution ± ``restart_spread``.
@@ -500,9 +508,11 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     for k, others in (ties or {}).items():
         for o in others:
             sized[o] = sized[k]
-    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
-    prob = Problems(core, freqs, Y, names, heat_input=heat_input, fixed=fixed, weights=weights, ties=ties,
-                    bounds=bounds, settings=settings, device=device, jacobian=jacobian)
+    chosen = settings
+    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input, FIT_K_FACTOR)
+    problem_kw = dict(heat_input=heat_input, fixed=fixed, weights=weights, ties=ties, bounds=bounds, device=device,
+                      jacobian=jacobian)
+    prob = Problems(core, freqs, Y, names, settings=settings, **problem_kw)
     p = prob.p
     lm_kw = dict(damping=damping, xtol=xtol, gtol=gtol, max_iter=max_iter, progress=progress, max_sets=max_sets)
     data = np.arange(N)
@@ -554,6 +564,12 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         q = i * restarts + j[i]
         z[i], cost[i], raw[i], H[i] = rs.z[q], rs.cost[q], rs.raw[q], rs.H[q]
         its[i], reason[i], conv[i] = rs.iterations[q], rs.reason[q], True
+    if chosen is None or chosen.cells is None:   # fit() sized the cells: check them where the fits ended
+        rerun = _cells_at_solutions(prob, z, data, chosen, lm_kw, problem_kw)
+        if rerun is not None:
+            prob, st = rerun
+            z, cost, raw, H, reason = st.z, st.cost, st.raw, st.H, st.reason.astype(str)
+            its, conv = its + st.iterations, st.converged
     cov, std, corr, cond, s2, V = covariance(prob, data, z, H, cost, absolute_sigma)
     values = prob.to_v(z, data)
     distinct = local = None
@@ -587,8 +603,33 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
                      rms_error=rms, s2=s2, dof=max(8 * prob.freqs.size - p, 1), start=start_v,
                      warnings=warn_list, problem_warnings=problem_warnings,
                      distinct_minima=distinct, restart_values=restart_values, restart_cost=restart_cost,
-                     restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations, launches=prob.launches,
+                     restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations,
+                     launches=prob.launches,
                      seconds=time.perf_counter() - t0, weighted=weights is not None, lower=prob.lo, upper=prob.hi)
+
+
+def _cells_at_solutions(prob: Problems, z, pid, settings: ForwardSettings | None, lm_kw: dict, problem_kw: dict):
+    """The fixed cells sized at the starts (:data:`FIT_K_FACTOR`) against those the
+    adaptive rule asks for at the solutions z (their largest values, the tied and fixed
+    parameters with them): None where none exceeds its count, else (problems, state) of
+    every problem re-run from its solution with the cells sized there (the same scaled
+    variables, so the solutions are the new starts; ``problem_kw`` the arguments
+    :class:`Problems` had)."""
+    v = prob.to_v(z, pid)
+    values = {k: v[:, a] for a, k in enumerate(prob.names)}
+    for k, others in prob.ties.items():
+        for o in others:
+            values[o] = values[k]
+    values.update(prob.fixed)
+    core, freqs, q = prob.core, prob.freqs, prob.heat_input
+    need = smooth_settings(core, freqs, settings, values, q, 1.0).cells
+    if all(need[s] <= prob.settings.cells.get(s, 0) for s in need):
+        return None
+    resized = smooth_settings(core, freqs, settings, values, q, FIT_K_FACTOR)
+    again = Problems(core, freqs, prob.Y, prob.names, settings=resized, scale=np.where(prob.kind == 1, prob.scale, prob.offset),
+                     **problem_kw)
+    again.evaluations, again.launches = prob.evaluations, prob.launches
+    return again, levenberg_marquardt(again, pid, z, **lm_kw)
 
 
 def _fmt(names, v) -> str:

@@ -85,7 +85,7 @@ class MeasurementKind:
 
 # -- forward engines for fits -------------------------------------------------------------
 def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None,
-                    heat_input=0.0) -> ForwardSettings:
+                    heat_input=0.0, k_factor: float = 2.0) -> ForwardSettings:
     """Forward settings whose model is smooth in the parameters, as finite-difference
     Jacobians need.
 
@@ -94,7 +94,7 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     integer boundary makes the model jump by its discretisation error (~1e-6), which a
     difference quotient with step 1e-6 turns into an O(1) Jacobian error. So a fit fixes
     one count per thermal segment for the whole batch: the adaptive rule at the highest
-    frequency with ``2 k L`` (room for the fit to move h up to 4x), evaluated by the
+    frequency with ``2 k L`` (``k_factor`` = 2: room for the fit to move h up to 4x), evaluated by the
     kernels' own functions (:func:`fit_cells`, with the cell density the error estimate of
     ``settings.tolerance`` asks for over ``freqs``); ``values`` {name: scalar or array} are the
     parameter values to size for (their maxima; the core's values for the rest), at the
@@ -108,7 +108,7 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     # one parameter set: sized on the CPU, where its few cascades take microseconds (on a
     # GPU each estimate round costs a whole thread's latency and a synchronization); the
     # count does not depend on the device
-    counts = fit_cells(core, float(np.max(freqs)), values, dataclasses.replace(settings, device="cpu"), k_factor=2.0,
+    counts = fit_cells(core, float(np.max(freqs)), values, dataclasses.replace(settings, device="cpu"), k_factor=k_factor,
                        freqs=freqs, heat_input=float(np.max(heat_input, initial=0.0)))
     return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
 
