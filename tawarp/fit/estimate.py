@@ -273,8 +273,8 @@ class Problems:
         if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
             # measured (bench/results/fit_cuda_h100.json, fit_cuda_h200.json, 1e4-1e5
             # problems): the tangent cascade, which carries p more matrices per thread, is
-            # register-bound on a GPU; its heat fits ran at 0.71-0.83x of forward
-            # differences, its geometry fits at 0.97-1.08x. On the CPU they run 1.4x and
+            # register-bound on a GPU; its heat fits ran at 0.71-0.84x of forward
+            # differences, its geometry fits at 0.94-1.10x. On the CPU they run 1.3x and
             # 1.5-1.7x faster (bench/fit.py --device cpu)
             return False
         why = None

@@ -61,6 +61,11 @@ POINT_BUFFER_BYTES_GPU = 1 << 32
 #: ``picard_tol`` = 1e-12, which a difference divides by the step: 1e-4 there (~1e-8).
 TANGENT_STEP = 1e-5
 TANGENT_STEP_NONLINEAR = 1e-4
+#: Register cap of the tangent cascade's CUDA threads (None: none). It carries P more
+#: matrices than the plain cascade: on the H100 3-parameter heat fits ran 3.8x (cap 64)
+#: and 2.0x (cap 128) slower than uncapped, geometry fits 1.7x and 1.3x
+#: (bench/tangent_registers.py, bench/results/tangent_registers_h100.json).
+TANGENT_MAX_REGISTERS = None
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
 
@@ -456,10 +461,7 @@ class Engine:
             return
         tangents = 0 if tangent is None else tangent.shape[1]
         stride = 1 + 2 * tangents
-        # the tangent kernel runs uncapped: it carries P more matrices, and on the H100 a cap
-        # of 64 (128) registers made 3-parameter fits 4.5x (2.2x) slower than none
-        # (.aot/tangent_speed.py, bench/results/tangent_speed_h100.txt)
-        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(None, tangents)
+        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(TANGENT_MAX_REGISTERS, tangents)
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
