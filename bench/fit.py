@@ -154,6 +154,9 @@ def main(argv=None) -> int:
                          "on the device first: tangent on the CPU, difference on a GPU)")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
+    bad = [j for j in (args.jacobians or "tangent").split(",") if j not in ("auto", "tangent", "difference")]
+    if bad:
+        ap.error(f"--jacobians: {bad[0]!r} is not one of auto, tangent, difference")
     wp.config.quiet = True
     wp.init()
     device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")

@@ -53,7 +53,10 @@ def main(argv=None) -> int:
     wp.init()
     device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")
     sizes = [int(float(s)) for s in args.sizes.split(",")]
-    caps = [None if c.strip().lower() == "none" else int(c) for c in args.caps.split(",")]
+    try:
+        caps = [None if c.strip().lower() == "none" else int(c) for c in args.caps.split(",")]
+    except ValueError:
+        ap.error(f"--caps: {args.caps!r}; expected a comma list of register counts or none")
     core = load_core("mesh")
     result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version,
               "workloads": {}}
