@@ -36,13 +36,15 @@ thermal segments at uniform temperature in closed form (:func:`cold_batch`): the
 model to rounding, without the Magnus cascade.
 
 *One iteration = one forward launch* per active problem: the trial point and its
-Jacobian. By default (``jacobian="tangent"``) the Jacobian is carried through the cascade
-with the value (:meth:`tawarp.model.forward.Engine.evaluate_tangents`): each problem's
-point and its 2p neighbours z +- 1e-5 e_a get their heat solve and Gauss-point
+Jacobian. With ``jacobian="tangent"`` (the default on the CPU, where it is also the faster
+one) the Jacobian is carried through the cascade with the value
+(:meth:`tawarp.model.forward.Engine.evaluate_tangents`): each problem's point and its 2p
+neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates) get their heat solve and Gauss-point
 coefficients, whose central differences seed the tangents of one cascade per frequency
 (the pore functions are shared; exact to ~1e-10 against a converged central difference
 of the whole model). A limp frame or a shape factor is not differentiated: such batches,
-and ``jacobian="difference"``, take forward differences, ``1 + p`` cascades per problem
+``jacobian="difference"`` and the default on a GPU (where the tangent cascade is
+register-bound and slower) take forward differences, ``1 + p`` cascades per problem
 (step 1e-6 in z, towards the interior at a bound; ~1e-6). If the trial is accepted its
 Jacobian is already there; a rejected trial wastes its Jacobian but no launch.
 :mod:`tawarp.kernels.lm` builds the sets from z on the device and reduces the T-matrices
