@@ -62,9 +62,9 @@ POINT_BUFFER_BYTES_GPU = 1 << 32
 TANGENT_STEP = 1e-5
 TANGENT_STEP_NONLINEAR = 1e-4
 #: Register cap of the tangent cascade's CUDA threads (None: none). It carries P more
-#: matrices than the plain cascade: on the H100 3-parameter heat fits ran 3.8x (cap 64)
-#: and 2.0x (cap 128) slower than uncapped, geometry fits 1.7x and 1.3x
-#: (bench/tangent_registers.py, bench/results/tangent_registers_h100.json).
+#: matrices than the plain cascade: on the H100 3-parameter heat fits ran 3.9x (cap 64)
+#: and 2.0x (cap 128) slower than uncapped, geometry fits 1.8x and 1.4x
+#: (bench/fit_registers.py, bench/results/fit_registers_h100.json).
 TANGENT_MAX_REGISTERS = None
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
@@ -196,7 +196,7 @@ class ForwardSettings:
     fitted: bool = True
     chunk: int = 1 << 16
     block_dim: int = 256
-    max_registers: int | None = 64
+    max_registers: int | None = 128
     cpu_threads: int | None = None
     device: str | None = None
 
