@@ -178,6 +178,9 @@ class ForwardSettings:
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values);
+    ``max_registers``: register cap of a CUDA thread of the plain cascade (None: none; 128
+    measured fastest on the H100 and H200, bench/forward.py ``--max-registers``, and in fits,
+    bench/fit_registers.py; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
     ``cpu_threads``: on the CPU, Warp runs a kernel serially, so a batch is split into
     this many parts run in parallel threads (Warp's CPU launches release the GIL; None:
     every core this process may use; results are bit-for-bit those of one thread); ``device``.
