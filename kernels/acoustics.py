@@ -136,16 +136,22 @@ def expm2_traceless(m: CMat2):
     (:func:`tawarp.kernels.forward.make_transfer_kernel`)."""
     tau, na, delta = traceless_parts(m)
     ch, sh = cosh_sinhc(delta)
-    return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na)), tau
+    return traceless_exp(m, na, ch, sh), tau
 
 
 @wp.func
-def expm2_tangent(m: CMat2, ch: wp.vec2d, sh: wp.vec2d, dsh: wp.vec2d, dm: CMat2):
+def traceless_exp(m: CMat2, na: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d):
+    """E = exp(N) = ch I + sh N of :func:`expm2_traceless`, N = m - tau I = [[na, b], [c, -na]]."""
+    return cmat2(ch + cmul(sh, na), cmul(sh, m.b), cmul(sh, m.c), ch - cmul(sh, na))
+
+
+@wp.func
+def expm2_tangent(m: CMat2, na: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d, dsh: wp.vec2d, dm: CMat2):
     """(dE, dtau): the derivative of :func:`expm2_traceless`'s (E, tau) at m in the
-    direction dm, given ch, sh of m (:func:`cosh_sinhc`) and dsh = d sh/d delta
-    (:func:`sinhc_derivative`). From E = ch I + sh N: dE = dch I + dsh N + sh dN with
+    direction dm, given na of m (:func:`traceless_parts`), ch, sh (:func:`cosh_sinhc`) and
+    dsh = d sh/d delta (:func:`sinhc_derivative`), which a cascade computes once for all
+    its directions. From E = ch I + sh N: dE = dch I + dsh N + sh dN with
     d delta = 2 na dna + db c + b dc, dch = sh/2 d delta, dsh d delta."""
-    tau, na, delta = traceless_parts(m)
     dtau = cscale(dm.a + dm.d, wp.float64(0.5))
     dna = dm.a - dtau
     ddelta = cscale(cmul(na, dna), wp.float64(2.0)) + cmul(dm.b, m.c) + cmul(m.b, dm.c)

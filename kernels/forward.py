@@ -26,8 +26,8 @@ import warp as wp
 from .acoustics import (CMat2, PointCoefficients, axpy2, cmat2, cosh_sinhc, cscale2, expm2_tangent, expm2_traceless,
                         identity2, magnus6_exponent, magnus6_tangent, matmul2, point_coefficients, point_difference,
                         propagation_at, propagation_partials, propagation_tangent, propagation_value, scale2,
-                        sinhc_derivative, traceless_parts)
-from .cmath import cabs, cexp, cmul
+                        sinhc_derivative, traceless_exp, traceless_parts)
+from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, HEAT_INPUT, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
@@ -415,7 +415,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                     tau, na, delta = traceless_parts(om)
                     ch, sh = cosh_sinhc(delta)
                     dsh = sinhc_derivative(delta, ch, sh)
-                    e = cmat2(ch + cmul(sh, na), cmul(sh, om.b), cmul(sh, om.c), ch - cmul(sh, na))
+                    e = traceless_exp(om, na, ch, sh)
                     if mob > wp.float64(0.0) or (sf != wp.float64(1.0) and model == 0):
                         undifferentiated = wp.float64(wp.nan)
                     for a in range(P):
@@ -432,7 +432,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                             d3 = propagation_tangent(s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2],
                                                                           inv_two_step))
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
-                        de, dtau = expm2_tangent(om, ch, sh, dsh, dom)
+                        de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
                         # d(E M) = dE M + E dM; the cells' tau are summed like the value's
                         dma = axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
                         dm[a, 0] = dma.a[0]

@@ -39,7 +39,7 @@ def _exp_and_tangent(m: wp.array2d(dtype=wp.vec2d), dm: wp.array2d(dtype=wp.vec2
     t, na, delta = traceless_parts(x)
     ch, sh = cosh_sinhc(delta)
     ei, ti = expm2_traceless(x)
-    dei, dti = expm2_tangent(x, ch, sh, sinhc_derivative(delta, ch, sh), _mat(dm, i))
+    dei, dti = expm2_tangent(x, na, ch, sh, sinhc_derivative(delta, ch, sh), _mat(dm, i))
     _put(e, i, ei)
     _put(de, i, dei)
     tau[i] = ti
