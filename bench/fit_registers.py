@@ -11,14 +11,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
-import warnings
 
-import numpy as np
 import warp as wp
 
-from fit import FREQS, WORKLOADS, make_data
-from tawarp.fit.estimate import FitWarning, fit
+from fit import WORKLOADS, make_data, time_fits
 from tawarp.model import forward
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings
@@ -26,20 +22,12 @@ from _results import write_result
 
 
 def timed_fit(core, wl, Y, sd, n, device, jacobian, settings) -> dict:
-    """fits/s of one batch of n problems (after a warm-up batch of one)."""
-    start = np.array([core.get(k) for k in wl["names"]]) * wl["start"]
-    rows = {}
-    for size in (1, n):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FitWarning)
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            r = fit(core, FREQS, Y[:size], wl["names"], start, heat_input=wl["Q"], weights=1 / sd, device=device,
-                    warn=False, jacobian=jacobian, settings=settings)
-            wp.synchronize_device(device)
-            rows = {"n": size, "seconds": time.perf_counter() - t0, "converged": float(r.converged.mean())}
-    rows["fits_per_s"] = rows["n"] / rows["seconds"]
-    return rows
+    """:func:`fit.time_fits` of a batch of n problems after a warm-up batch of one, without
+    the per-problem values."""
+    time_fits(core, wl, Y, sd, 1, device, settings, jacobian)
+    row = time_fits(core, wl, Y, sd, n, device, settings, jacobian)
+    del row["values"], row["std"]
+    return row
 
 
 def main(argv=None) -> int:
@@ -73,8 +61,7 @@ def main(argv=None) -> int:
             forward.TANGENT_MAX_REGISTERS = cap if jacobian == "tangent" else None
             settings = ForwardSettings(max_registers=cap) if jacobian == "difference" else ForwardSettings()
             for n in sizes:
-                row = dict(timed_fit(core, wl, Y, sd, n, device, jacobian, settings), jacobian=jacobian,
-                           max_registers=cap)
+                row = dict(timed_fit(core, wl, Y, sd, n, device, jacobian, settings), max_registers=cap)
                 rows.append(row)
                 print(f"{wname:9s} {jacobian:10s} cap {str(cap):5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s",
                       flush=True)

@@ -210,7 +210,7 @@ def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 40
     one call's with ``settings`` of these cells. Other keywords go to ``fit``."""
     import time
 
-    from .fit.estimate import spread_starts
+    from .fit.estimate import spread_starts, with_ties
     from .measure.kind import smooth_settings
 
     t0 = time.perf_counter()
@@ -224,9 +224,7 @@ def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 40
         sized = dict(zip(names, np.asarray(start, dtype=float).reshape(-1, len(names)).T))
     else:
         sized = dict(zip(names, spread_starts(core, names, kw.get("n_starts", 8), kw.get("seed", 0)).T))
-    for k, others in (kw.get("ties") or {}).items():
-        for o in others:
-            sized[o] = sized[k]
+    sized = with_ties(sized, kw.get("ties"))
     settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
 
     def take(a, sl, ndim):

@@ -456,6 +456,16 @@ def spread_starts(core: Core, names, n: int, seed: int = 0, ranges: dict | None 
     return out
 
 
+def with_ties(values: dict, ties: dict | None) -> dict:
+    """``values`` {name: value} with every tied name given its free parameter's value
+    (``ties`` {free name: [tied names]})."""
+    out = dict(values)
+    for k, others in (ties or {}).items():
+        for o in others:
+            out[o] = out[k]
+    return out
+
+
 def _as_start(start, names, N) -> np.ndarray:
     if isinstance(start, dict):
         missing = set(names) - set(start)
@@ -509,9 +519,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         sized = dict(zip(names, spread_starts(core, names, n_starts, seed).T))
     else:
         sized = dict(zip(names, _as_start(start, names, N).T))
-    for k, others in (ties or {}).items():
-        for o in others:
-            sized[o] = sized[k]
+    sized = with_ties(sized, ties)
     chosen = settings
     settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input, FIT_K_FACTOR)
     problem_kw = dict(heat_input=heat_input, fixed=fixed, weights=weights, ties=ties, bounds=bounds, device=device,
@@ -620,11 +628,7 @@ def _cells_at_solutions(prob: Problems, z, pid, settings: ForwardSettings | None
     variables, so the solutions are the new starts; ``problem_kw`` the arguments
     :class:`Problems` had)."""
     v = prob.to_v(z, pid)
-    values = {k: v[:, a] for a, k in enumerate(prob.names)}
-    for k, others in prob.ties.items():
-        for o in others:
-            values[o] = values[k]
-    values.update(prob.fixed)
+    values = {**with_ties({k: v[:, a] for a, k in enumerate(prob.names)}, prob.ties), **prob.fixed}
     core, freqs, q = prob.core, prob.freqs, prob.heat_input
     need = smooth_settings(core, freqs, settings, values, q, 1.0).cells
     if all(need[s] <= prob.settings.cells.get(s, 0) for s in need):
@@ -646,9 +650,6 @@ def predict(core: Core, freqs, values: dict | None = None, heat_input=0.0, ties=
     (tied names follow their free parameter), normalised with the core's duct impedance."""
     from ..model.forward import transfer_matrices
 
-    values = dict(values or {})
-    for k, others in (ties or {}).items():
-        for o in others:
-            values[o] = values[k]
+    values = with_ties(values or {}, ties)
     res = transfer_matrices(core, freqs, heat_input=heat_input, params=values, settings=settings, **kw)
     return res.dimensionless()
