@@ -129,12 +129,12 @@ def _engine_rate(space, device, chunk):
     ev = Evaluator(space, settings=ForwardSettings(device=device))
     tables = DeviceTable(space, ev.device)
     chunk = min(chunk, int(np.prod([len(v.grid()) for v in space.variables])))
-    ev.columns_float32(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+    ev.metric_columns(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
     wp.synchronize_device(ev.device)
     reps = 5
     t = time.perf_counter()
     for _ in range(reps):
-        ev.columns_float32(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+        ev.metric_columns(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
     wp.synchronize_device(ev.device)
     return reps * chunk / (time.perf_counter() - t)
 

@@ -11,11 +11,14 @@ single-threaded worker each) runs, after a warm-up that compiles and loads the k
 on every worker:
 
 * ``fits``: :func:`tawarp.distributed.fit_on_cluster`, the heat workload of bench/fit.py
-  (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits`` problems;
+  (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits`` problems
+  in ``--fit-chunks`` chunks per worker;
 * ``evaluations``: :class:`tawarp.distributed.ClusterEvaluator` on ``--points`` design
   points of the rvc_foam space of bench/design.py (kernel metrics);
 * ``sweep``: :func:`tawarp.design.sweep.sweep` of ``--sweep-points`` Sobol points to
-  netCDF with ``client=``, tasks of ``--sweep-chunk`` points.
+  netCDF with ``client=``, tasks of ``--sweep-chunk`` points: the outputs sent back and
+  written by this process (one file), then written by the workers to part files that the
+  file maps (``parts=True``: ``sweep_parts_*``).
 
 Speed-up = rate on k workers / rate on 1 worker of the same kind of cluster (the target
 of issue 11: >= 1.8 on 2 GPUs). Each row also says whether its evaluations and its sweep
@@ -30,6 +33,7 @@ import argparse
 import json
 import os
 import platform
+import shutil
 import sys
 import tempfile
 import time
@@ -40,7 +44,7 @@ import numpy as np
 
 from tawarp.design.evaluate import Evaluator
 from tawarp.design.space import DesignSpace
-from tawarp.design.sweep import sweep
+from tawarp.design.sweep import parts_path, sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
@@ -91,34 +95,42 @@ def measure(client, k: int, args, data, table, reference: dict, tmp) -> dict:
     ev = ClusterEvaluator(client, space)
     path = os.path.join(tmp, f"sweep{k}.nc")
 
-    def fits():
+    def fits(per_worker=args.fit_chunks[0]):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FitWarning)
             return fit_on_cluster(client, core, FREQS, Y, FIT_NAMES, start, heat_input=40.0, weights=w, warn=False,
-                                  chunk=-(-len(Y) // (2 * k)))
+                                  chunk=-(-len(Y) // (per_worker * k)))
 
-    def sweep_once(n=args.sweep_points, chunk=args.sweep_chunk):
-        return sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, client=client)
+    def sweep_once(n=args.sweep_points, chunk=args.sweep_chunk, parts=False):
+        return sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, client=client, parts=parts)
 
     # warm-up on every worker: compile/load the kernels (one small chunk per worker)
     fit_on_cluster(client, core, FREQS, Y[: 2 * k], FIT_NAMES, start, heat_input=40.0, weights=w[: 2 * k], warn=False,
                    chunk=1)
     ev.evaluate_table(table[:, : 64 * k])
     sweep_once(64 * k, 64)
+    sweep_once(64 * k, 64, parts=True)
     res = fits()
-    t_fit = timed(fits, args.repeats)
+    t_fits = {c: timed(lambda: fits(c), args.repeats) for c in args.fit_chunks}
+    t_fit = t_fits[args.fit_chunks[0]]
     t_ev = timed(lambda: ev.evaluate_table(table), args.repeats)
     values = ev.evaluate_table(table)
     t_sw = timed(sweep_once, 1)
+    sweep_same = same_file(path, reference["sweep_path"])
+    t_parts = timed(lambda: sweep_once(parts=True), 1)
     row = {"workers": k, "fits": len(Y), "fit_seconds": t_fit, "fits_per_s": len(Y) / t_fit,
            "fits_converged": float(res.converged.mean()),
+           "fits_per_s_by_chunks_per_worker": {c: len(Y) / t for c, t in t_fits.items()},
            "evaluation_points": table.shape[1], "evaluation_seconds": t_ev, "evaluations_per_s": table.shape[1] / t_ev,
            "evaluations_equal_one_process": all(np.array_equal(values[key], v, equal_nan=True)
                                                 for key, v in reference["evaluations"].items()),
            "sweep_points": args.sweep_points, "sweep_seconds": t_sw,
            "sweep_points_per_hour": 3600.0 * args.sweep_points / t_sw,
-           "sweep_equals_one_process": same_file(path, reference["sweep_path"])}
+           "sweep_equals_one_process": sweep_same,
+           "sweep_parts_seconds": t_parts, "sweep_parts_points_per_hour": 3600.0 * args.sweep_points / t_parts,
+           "sweep_parts_equals_one_process": same_file(path, reference["sweep_path"])}
     os.remove(path)
+    shutil.rmtree(parts_path(path))
     return row
 
 
@@ -141,11 +153,20 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=1 << 22, help="design points per evaluation timing")
     ap.add_argument("--sweep-points", type=int, default=1 << 24, help="Sobol points of the sweep")
     ap.add_argument("--sweep-chunk", type=int, default=1 << 21, help="sweep points per task")
+    ap.add_argument("--fit-chunks", default="2", help="fit chunks per worker (comma list: each timed; the first "
+                    "is the row's fits_per_s)")
     ap.add_argument("--repeats", type=int, default=2)
     ap.add_argument("--cluster", choices=("processes", "threads", "both"), default="both",
                     help="workers as processes, as threads of this process (local_cluster(processes=False)), or both")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
     args = ap.parse_args(argv)
+    try:
+        fit_chunks = [int(c) for c in args.fit_chunks.split(",")]
+    except ValueError:
+        fit_chunks = []
+    if not fit_chunks or min(fit_chunks) < 1:
+        ap.error(f"--fit-chunks: {args.fit_chunks!r}; expected positive integers, comma separated")
+    args.fit_chunks = fit_chunks
     devices = args.devices.split(",")
     for d in devices:
         try:
@@ -184,13 +205,14 @@ def main(argv=None) -> int:
                     client.close()
                     cluster.close()
                 print(f"{kind}, {k} workers: {row['fits_per_s']:.3e} fits/s, {row['evaluations_per_s']:.3e} "
-                      f"evaluations/s, {row['sweep_points_per_hour']:.3e} sweep points/h; equal to one process: "
-                      f"evaluations {row['evaluations_equal_one_process']}, sweep {row['sweep_equals_one_process']}",
+                      f"evaluations/s, {row['sweep_points_per_hour']:.3e} sweep points/h ({row['sweep_parts_points_per_hour']:.3e} "
+                      f"with parts); equal to one process: evaluations {row['evaluations_equal_one_process']}, "
+                      f"sweep {row['sweep_equals_one_process']}, parts {row['sweep_parts_equals_one_process']}",
                       flush=True)
                 result["rows"].append(row)
     for r in result["rows"]:
         base = next(b for b in result["rows"] if b["cluster"] == r["cluster"])
-        for key in ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour"):
+        for key in ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "sweep_parts_points_per_hour"):
             r[f"speedup_{key}"] = r[key] / base[key]
     result["load_average_at_end"] = list(os.getloadavg())
     print(json.dumps(result["rows"], indent=1))

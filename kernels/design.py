@@ -13,6 +13,8 @@ Per parameter set i (one thread), from the nodal temperatures of
 - ``out[i, T_HOT]`` temperature at the hot end of the stack T(x3) [K].
 """
 
+from typing import Any
+
 import warp as wp
 
 from .heat import cell_coeffs_at, cell_profile, segment_nonlinear, tanhx_x
@@ -102,12 +104,18 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.kernel
-def metric_columns_float32(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32),
-                           out: wp.array2d(dtype=wp.float32)):
-    """out[c, i] = metrics[i, columns[c]] rounded to float32 (to nearest, as NumPy's cast):
-    the columns a sweep file stores, contiguous, at half the copy to the host."""
+def metric_columns(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32),
+                   out: wp.array2d(dtype=Any)):
+    """out[c, i] = metrics[i, columns[c]] in out's precision (float32: to nearest, as
+    NumPy's cast): chosen columns, each contiguous. A sweep file stores float32 (half the
+    copy to the host); a table's objectives come back as float64 columns, which Dask
+    passes between workers without the copy a strided column costs."""
     c, i = wp.tid()
-    out[c, i] = wp.float32(metrics[i, columns[c]])
+    out[c, i] = out.dtype(metrics[i, columns[c]])
+
+
+for _dtype in (wp.float32, wp.float64):   # instantiated here: the module holds both (and AOT builds them)
+    wp.overload(metric_columns, {"out": wp.array2d(dtype=_dtype)})
 
 
 #: Kinds of a design variable in :func:`design_table`.

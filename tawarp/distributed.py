@@ -14,8 +14,10 @@ those of one process (the tests check 1e-12 on a local CPU cluster).
 Workers are processes by default (``processes=True``): a chunk's arrays are pickled and
 sent over TCP, which costs more than the device time of a design point. With
 ``local_cluster(devices, processes=False)`` the workers are threads of this process, each
-driving its own device: Dask hands them the arrays by reference, nothing is pickled or
-copied between processes (Warp's launches and copies release the GIL; the first launches
+driving its own device: Dask hands them contiguous arrays by reference (pickle protocol
+5 passes their buffers; a strided view is copied, under the GIL, so what travels here is
+contiguous) and nothing crosses between processes (Warp's launches and copies release the
+GIL; the first launches
 of a worker, which load Warp modules, run one worker at a time: :func:`worker_state`).
 A sweep sends no table either way (each worker makes its chunks' tables on its device,
 :func:`tawarp.design.sweep.sweep`).
@@ -233,8 +235,15 @@ def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 40
             return {k: take(v, sl, 1) for k, v in a.items()}
         return np.asarray(a)[sl] if a is not None and np.ndim(a) >= ndim else a
 
+    def take_weights(sl):
+        # weights broadcast along the problems (np.broadcast_to: the same for all) travel as
+        # their one row, which fit() broadcasts again: a slice of the broadcast would be sent
+        # whole (Dask copies a strided array) and fitted as per-problem weights
+        w = np.asarray(weights) if weights is not None and np.ndim(weights) >= 3 else None
+        return w[:1] if w is not None and w.strides[0] == 0 else take(weights, sl, 3)
+
     chunks = [{"Y": take(Y, sl, 3), "start": take(start, sl, 2), "heat_input": take(heat_input, sl, 1),
-               "fixed": take(fixed, sl, 1), "weights": take(weights, sl, 3)}
+               "fixed": take(fixed, sl, 1), "weights": take_weights(sl)}
               for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))]
     parts = list(ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings)))
     res = concatenate_results(parts)
@@ -247,6 +256,8 @@ def concatenate_results(parts):
     arrays with the problem axis first and per-problem lists are joined in order,
     ``evaluations`` and ``launches`` summed, batch ``warnings`` joined without repeats,
     everything else (names, dof, bounds, ...) taken from the first part."""
+    from .fit.result import ProblemWarnings
+
     first = parts[0]
     out = {}
     for f in dataclasses.fields(first):
@@ -258,7 +269,7 @@ def concatenate_results(parts):
         elif f.name == "warnings":
             out[f.name] = list(dict.fromkeys(w for v in vals for w in v))
         elif f.name == "problem_warnings":
-            out[f.name] = [w for v in vals for w in v]
+            out[f.name] = ProblemWarnings.concatenate(vals)
         elif isinstance(vals[0], np.ndarray) and vals[0].ndim >= 1 and f.name not in ("lower", "upper") \
                 and all(isinstance(v, np.ndarray) for v in vals) and len(parts) > 1:
             out[f.name] = np.concatenate(vals)

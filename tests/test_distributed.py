@@ -93,25 +93,38 @@ def test_search_on_cluster_equals_one_process(client):
     assert a == b
 
 
-@pytest.mark.parametrize("mode, outputs", [("sobol", None), ("grid", None), ("sobol", ["gradient", "acoustic_loss"])])
-def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs):
+@pytest.mark.parametrize("mode, outputs, parts", [("sobol", None, False), ("grid", None, False),
+                                                  ("sobol", ["gradient", "acoustic_loss"], False),
+                                                  ("sobol", None, True), ("grid", ["gradient", "acoustic_loss"], True)])
+def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs, parts):
     # the workers make the chunks' tables (grid indices, Sobol points) on their devices and
-    # send back the float32 outputs and a Sobol chunk's design values: the same file, bit
-    # for bit; a material variable (int8 in a Sobol file, labels in a grid) and objectives
-    # outside the kernel (acoustic_loss: float64 on the host, rounded by the worker) too
+    # send back the float32 outputs and a Sobol chunk's design values, or write them to part
+    # files that the file maps (parts=True): the same file, bit for bit; a material variable
+    # (int8 in a Sobol file, labels in a grid) and objectives outside the kernel
+    # (acoustic_loss: float64 on the host, rounded by the worker) too
+    import shutil
+
     import xarray as xr
 
-    from tawarp.design.sweep import sweep
+    from tawarp.design.sweep import parts_path, sweep
 
     space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "material=ceramic,mesh,rvc_foam",
                                                 "heat_input=1:9:3"])
     kw = dict(mode=mode, n_samples=96, seed=2, outputs=outputs,
               chunk=8 if mode == "grid" else 20)   # grid: hyperslabs of 2 x 3 points
     one = sweep(space, tmp_path / "one.nc", **kw)
-    many = sweep(space, tmp_path / "many.nc", client=client, **kw)
+    if parts:   # over an older sweep of other chunks, whose parts go
+        sweep(space, tmp_path / "many.nc", client=client, parts=True, **{**kw, "seed": 5, "chunk": 3})
+    many = sweep(space, tmp_path / "many.nc", client=client, parts=parts, **kw)
     assert many.chunks == one.chunks > 2
+    assert parts_path(many.path).is_dir() == parts
+    if parts:   # the file and its folder moved together (the file names its parts relative to itself)
+        assert len(list(parts_path(many.path).iterdir())) == many.chunks
+        (tmp_path / "moved").mkdir()
+        for p in (many.path, parts_path(many.path)):
+            shutil.move(p, tmp_path / "moved" / p.name)
     with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
-            xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf") as y:
+            xr.open_dataset(tmp_path / ("moved" if parts else ".") / "many.nc", engine="h5netcdf") as y:
         xr.testing.assert_identical(x, y)
         assert x["gradient"].size == one.n_points and np.isfinite(x["gradient"].values).all()
 
@@ -131,6 +144,7 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     try:
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
+        sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
     finally:
         cluster = procs.cluster
         procs.close()
@@ -138,9 +152,13 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     one = Evaluator(space).evaluate(values)
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k]) for k in one)
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
-    with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
-            xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf") as y:
-        xr.testing.assert_identical(x, y)
+    for name in ("many.nc", "parts.nc"):   # parts: written by the worker processes
+        with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
+                xr.open_dataset(tmp_path / name, engine="h5netcdf") as y:
+            xr.testing.assert_identical(x, y)
+    with pytest.raises(ValueError, match="parts=True.*client="):
+        sweep(space, tmp_path / "no.nc", mode="sobol", n_samples=8, parts=True)
+    assert not (tmp_path / "no.nc").exists()
 
 
 def test_cluster_sweep_sends_no_table(client, tmp_path, monkeypatch):

@@ -201,7 +201,29 @@ def test_problem_warnings_formatted_when_read():
     assert summary[0].startswith("3 of 10 problems (e.g. problem 2): a and c are too correlated")
     assert any(s.startswith("problem 5: ill-conditioned") for s in summary)
     copy = pickle.loads(pickle.dumps(pw))
-    assert isinstance(copy, list) and copy == [pw[i] for i in range(N)] and pw == copy
+    assert isinstance(copy, ProblemWarnings) and list(copy) == [pw[i] for i in range(N)] and pw == copy
+    assert copy.summary() == summary
+
+
+def test_problem_warnings_concatenate():
+    """Joined batches (a cluster's chunks: some pickled, some plain lists) read as the
+    concatenation of their lists, and the summary counts each warning over all of them."""
+    import pickle
+
+    from tawarp.fit.result import ProblemWarnings
+
+    def batch(n, hits, key="cond"):
+        return ProblemWarnings(n, [((key,), np.array(hits), lambda i: f"{key} {i}")])
+
+    a, b = batch(4, [1, 3]), batch(3, [0, 2])
+    lists = [[], ["x", "y"], []]
+    parts = [a, pickle.loads(pickle.dumps(b)), lists, batch(2, [1], "other")]
+    joined = ProblemWarnings.concatenate(parts)
+    expected = [m for p in parts for m in (list(p) if not isinstance(p, list) else p)]
+    assert len(joined) == 12 and list(joined) == expected
+    assert joined[4] == ["cond 0"] and joined[6] == ["cond 2"] and joined[8] == ["x", "y"] and joined[11] == ["other 1"]
+    assert joined.summary()[0] == "4 of 12 problems (e.g. problem 1): cond 1"
+    assert list(pickle.loads(pickle.dumps(joined))) == expected
 
 
 def test_cells_sized_at_the_starts_are_checked_at_the_solutions(monkeypatch):

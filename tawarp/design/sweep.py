@@ -19,13 +19,16 @@ heat-solve and one metrics launch; each chunk is written in place (an HDF5 hyper
 next, so memory stays flat whatever the size (two chunks on the host at most). Through a
 Dask cluster (``client=``) each worker does the same for whole chunks on its device: a
 task is a chunk's point range, and only what the file stores comes back (a few chunks in
-flight per worker), so no table crosses between processes. The file is written to a temporary name
+flight per worker), so no table crosses between processes; with ``parts=True`` nothing
+comes back: the workers write their chunks to part files that the file maps as HDF5
+virtual datasets (:func:`parts_path`), so the writing runs on every worker. The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
 """
 
 from __future__ import annotations
 
+import contextlib
 import gc
 import itertools
 import time
@@ -40,7 +43,7 @@ from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
 from .samplers import SOBOL_MAX_POINTS
 from .space import DesignSpace, DeviceTable
-from ..io import atomic_path
+from ..io import atomic_dir, atomic_path
 from ..model.forward import ForwardSettings
 
 
@@ -95,7 +98,7 @@ def _blocks(shape: tuple, chunk: int):
 def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: int | None = None,
           chunk: int = 1 << 20, seed: int = 0, settings: ForwardSettings | None = None,
           progress: bool = False, attrs: dict | None = None, outputs=None, freqs=DEFAULT_FREQS,
-          client=None) -> SweepInfo:
+          client=None, parts: bool = False) -> SweepInfo:
     """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
     results to the netCDF file ``path``. ``outputs``: objective names written (default: the
@@ -103,7 +106,12 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     ``distributed.Client`` whose workers (one per device, :mod:`tawarp.distributed`) each
     evaluate whole chunks: a task is the chunk's point range, the worker makes the chunk's
     table on its device as one process does, and sends back only what the file stores (the
-    float32 outputs, a Sobol chunk's design values); the file is the same. See the module
+    float32 outputs, a Sobol chunk's design values); the file is the same. ``parts``
+    (with ``client``): nothing comes back either; each worker writes its chunks to part
+    files in the folder :func:`parts_path` (``<file name>.parts``) and the file maps them
+    as HDF5 virtual datasets, read as one file (xarray, h5netcdf, netCDF-C) while the folder
+    stays beside it: the writing, which bounds a one-file sweep on one GPU, runs on every
+    worker at once. The workers must see the client's file system. See the module
     docstring."""
     import h5netcdf
     import h5py
@@ -137,72 +145,125 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
+    if parts and client is None:
+        raise ValueError("parts=True: the cluster's workers write the parts; give client=")
     job = _Job(space, mode, seed, outputs, tuple(freqs), settings)
     t0 = time.perf_counter()
     t_eval = t_write = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
+    mapped = []   # parts=True: (chunk, index in the file, block shape) of each part written
     try:
-        with atomic_path(path) as tmp, h5netcdf.File(tmp, "w") as f:
-            f.attrs["title"] = "tawarp sweep"
-            f.attrs["core"] = str(space.core.source)
-            f.attrs["mode"] = mode
-            f.attrs["heat_input_W_default"] = space.heat_input
-            f.attrs["gradient_definition"] = "(T(x3) - T(x2)) / l_s, steady heat model"
-            for k, v in (attrs or {}).items():
-                f.attrs[k] = v
-            if mode == "grid":
-                f.dimensions = {d: len(grids[d]) for d in dims}
-                for d in dims:
-                    if d == "material":
-                        var = f.create_variable(d, (d,), dtype=h5py.string_dtype())
-                        var[:] = np.array(grids[d], dtype=object)
+        with atomic_path(path) as tmp, (atomic_dir(parts_path(path)) if parts else contextlib.nullcontext()) as pdir:
+            with h5netcdf.File(tmp, "w") as f:
+                f.attrs["title"] = "tawarp sweep"
+                f.attrs["core"] = str(space.core.source)
+                f.attrs["mode"] = mode
+                f.attrs["heat_input_W_default"] = space.heat_input
+                f.attrs["gradient_definition"] = "(T(x3) - T(x2)) / l_s, steady heat model"
+                for k, v in (attrs or {}).items():
+                    f.attrs[k] = v
+                if mode == "grid":
+                    f.dimensions = {d: len(grids[d]) for d in dims}
+                    for d in dims:
+                        if d == "material":
+                            var = f.create_variable(d, (d,), dtype=h5py.string_dtype())
+                            var[:] = np.array(grids[d], dtype=object)
+                        else:
+                            var = f.create_variable(d, (d,), dtype="f8")
+                            var[:] = grids[d]
+                            var.attrs["units"] = _units(space, d)
+                else:
+                    f.dimensions = {"sample": n}
+                if not parts:   # (parts=True: virtual variables over the parts, made below)
+                    for name, (dtype, var_attrs) in _stored_variables(space, mode, rows).items():
+                        var = f.create_variable(name, tuple(dims) if name in outputs else ("sample",), dtype=dtype)
+                        var.attrs.update(var_attrs)
+                if mode == "grid":
+                    blocks = _blocks(shape, chunk)
+                else:
+                    blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
+                chunks = _evaluated_here(job, blocks, chunk, n) if client is None else \
+                    _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
+                while True:
+                    t = time.perf_counter()
+                    done = next(chunks, None)
+                    t_eval += time.perf_counter() - t
+                    if done is None:
+                        break
+                    lo, hi, sl, res, values = done
+                    t = time.perf_counter()
+                    block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
+                    full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
+                    sub_shape = block + tuple(shape[len(sl):])
+                    if parts:
+                        mapped.append((nchunks, full, sub_shape))
                     else:
-                        var = f.create_variable(d, (d,), dtype="f8")
-                        var[:] = grids[d]
-                        var.attrs["units"] = _units(space, d)
-            else:
-                f.dimensions = {"sample": n}
-                for v in cont:
-                    var = f.create_variable(v.name, ("sample",), dtype="f8")
-                    var.attrs["units"] = _units(space, v.name)
-                if space.material is not None:
-                    var = f.create_variable("material", ("sample",), dtype="i1")
-                    var.attrs["flag_values"] = np.arange(len(space.material.choices), dtype=np.int8)
-                    var.attrs["flag_meanings"] = " ".join(space.material.choices)
-            outs = {}
-            for o in rows:
-                var = f.create_variable(o.name, tuple(dims), dtype="f4")
-                var.attrs["units"] = o.unit
-                var.attrs["long_name"] = o.long_name
-                outs[o.name] = var
-            if mode == "grid":
-                blocks = _blocks(shape, chunk)
-            else:
-                blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
-            chunks = _evaluated_here(job, blocks, chunk, n) if client is None else _evaluated_on(client, job, blocks)
-            while True:
+                        for k in outputs:
+                            f.variables[k][full] = res[k].reshape(sub_shape)
+                        for name, v in (values or {}).items():
+                            f.variables[name][lo:hi] = v
+                    t_write += time.perf_counter() - t
+                    nchunks += 1
+                    bar.update(hi - lo)
+            if parts:
                 t = time.perf_counter()
-                done = next(chunks, None)
-                t_eval += time.perf_counter() - t
-                if done is None:
-                    break
-                lo, hi, sl, res, values = done
-                t = time.perf_counter()
-                block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
-                full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
-                sub_shape = block + tuple(shape[len(sl):])
-                for k in outputs:
-                    outs[k][full] = res[k].reshape(sub_shape)
-                for name, v in (values or {}).items():
-                    f.variables[name][lo:hi] = v
+                _map_parts(tmp, parts_path(path).name, mapped, _stored_variables(space, mode, rows), dims, shape,
+                           outputs)
                 t_write += time.perf_counter() - t
-                nchunks += 1
-                bar.update(hi - lo)
     finally:
         bar.close()
     wall = time.perf_counter() - t0
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
+
+
+def parts_path(path: str | Path) -> Path:
+    """The folder of a sweep's part files (``sweep(..., parts=True)``): ``<file name>.parts``
+    beside the file, which names its parts relative to its own folder."""
+    path = Path(path)
+    return path.with_name(path.name + ".parts")
+
+
+def _part_name(k: int) -> str:
+    return f"chunk_{k:07d}.h5"
+
+
+def _stored_variables(space: DesignSpace, mode: str, rows) -> dict:
+    """{name: (dtype, attributes)} of the variables a sweep's chunks fill: a Sobol sweep's
+    design values (the material as an int8 index with CF flags), then the outputs."""
+    out = {}
+    if mode == "sobol":
+        for v in space.continuous:
+            out[v.name] = ("f8", {"units": _units(space, v.name)})
+        if space.material is not None:
+            out["material"] = ("i1", {"flag_values": np.arange(len(space.material.choices), dtype=np.int8),
+                                      "flag_meanings": " ".join(space.material.choices)})
+    for o in rows:
+        out[o.name] = ("f4", {"units": o.unit, "long_name": o.long_name})
+    return out
+
+
+def _map_parts(file, folder: str, mapped, variables: dict, dims: list, shape: tuple, outputs: list):
+    """Add to the netCDF ``file`` each stored variable as an HDF5 virtual dataset over the
+    part files ``folder/chunk_*.h5`` (``mapped``: (chunk, index, block shape) of each),
+    with its dimensions attached as netCDF does (read back by h5netcdf, xarray, netCDF-C);
+    a missing part reads as the fill value (NaN, -1 for the material index)."""
+    import h5py
+
+    with h5py.File(file, "r+") as h5:
+        for name, (dtype, var_attrs) in variables.items():
+            is_output = name in outputs
+            layout = h5py.VirtualLayout(shape=shape if is_output else (shape[0],), dtype=dtype)
+            for k, full, sub_shape in mapped:
+                source = f"{folder}/{_part_name(k)}"
+                if is_output:
+                    layout[full] = h5py.VirtualSource(source, name, shape=sub_shape)
+                else:
+                    layout[full[0]] = h5py.VirtualSource(source, name, shape=sub_shape[:1])
+            ds = h5.create_virtual_dataset(name, layout, fillvalue=-1 if dtype == "i1" else np.nan)
+            ds.attrs.update(var_attrs)
+            for i, d in enumerate(dims if is_output else ["sample"]):
+                ds.dims[i].attach_scale(h5[d])
 
 
 @dataclass(frozen=True)
@@ -275,22 +336,28 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int):
         yield pending
 
 
-def _evaluated_on(client, job: _Job, blocks):
+def _evaluated_on(client, job: _Job, blocks, shape: tuple, parts: str | None = None):
     """:func:`_evaluated_here` on the workers of a Dask ``client``: one task per block,
     whose arguments are its point range and the job (:func:`_cluster_chunk`), in order,
-    a few blocks in flight per worker (:func:`tawarp.distributed.ordered_map`)."""
+    a few blocks in flight per worker (:func:`tawarp.distributed.ordered_map`). With
+    ``parts`` (a folder) the workers write the blocks there (as hyperslabs of the file's
+    ``shape``) and send back nothing: the outputs and values yielded are None."""
     from ..distributed import ordered_map
 
     blocks, mine = itertools.tee(blocks)
-    results = ordered_map(client, _cluster_chunk, ((lo, hi) for lo, hi, _ in blocks), uuid.uuid4().hex, job)
+    tasks = ((k, lo, hi, tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl) + shape[len(sl):])
+             for k, (lo, hi, sl) in enumerate(blocks))
+    results = ordered_map(client, _cluster_chunk, tasks, uuid.uuid4().hex, job, parts)
     for (lo, hi, sl), (res, values) in zip(mine, results):
         yield lo, hi, sl, res, values
 
 
-def _cluster_chunk(block: tuple, key: str, job: _Job):
-    """(outputs, stored values) of the points ``block`` = (lo, hi) on this Dask worker: the
-    chunk's table made on the worker's device (:class:`DeviceTable`, kept with the
-    worker's Evaluator for the sweep ``key``) and evaluated there, as one process does."""
+def _cluster_chunk(task: tuple, key: str, job: _Job, parts: str | None):
+    """(outputs, stored values) of the points ``task`` = (chunk k, lo, hi, its block's
+    shape in the file) on this Dask worker: the chunk's table made on
+    the worker's device (:class:`DeviceTable`, kept with the worker's Evaluator for the
+    sweep ``key``) and evaluated there, as one process does. With ``parts`` (a folder) they
+    are written to its part file instead, and (None, None) comes back."""
     from ..distributed import worker_settings, worker_state
 
     def build():
@@ -300,14 +367,30 @@ def _cluster_chunk(block: tuple, key: str, job: _Job):
         return ev, tables, itertools.count()
 
     ev, tables, done = worker_state(key, build)
-    lo, hi = block
+    k, lo, hi, block = task
     table, values = job.table(tables, lo, hi)
     res = _launch(ev, table, job.outputs)()
     values = job.stored_values(tables, None if values is None else values.numpy())
     del table
     if next(done) % GC_CHUNKS == GC_CHUNKS - 1:
         gc.collect()   # as _evaluated_here does
-    return res, values
+    if parts is None:
+        return res, values
+    _write_part(Path(parts) / _part_name(k), res, values, block)
+    return None, None
+
+
+def _write_part(path: Path, res: dict, values: dict | None, block: tuple):
+    """One chunk's part file: the outputs shaped as its ``block`` of the file's variables,
+    a Sobol chunk's design values. Written under a temporary name and renamed (a task run
+    again replaces it whole)."""
+    import h5py
+
+    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+        for name, v in res.items():
+            h5.create_dataset(name, data=v.reshape(block))
+        for name, v in (values or {}).items():
+            h5.create_dataset(name, data=v)
 
 
 def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None):
@@ -322,7 +405,7 @@ def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None):
     if ev.extra:
         return lambda: {k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items()
                         if k in outputs}
-    f32 = ev.columns_float32(out, outputs)
+    f32 = ev.metric_columns(out, outputs)
     if host is None:
         return lambda: dict(zip(outputs, f32.numpy()))
     m = f32.shape[1]

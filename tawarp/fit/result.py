@@ -196,9 +196,39 @@ class ProblemWarnings(Sequence):
         return out
 
     def __reduce__(self):
-        # pickled (a Dask worker's result) as the plain lists: the messages' closures stay here
-        return list, ([list(x) for x in self],)
+        # pickled (a Dask worker's result) with the messages of the problems that have them
+        # formatted: the closures, which hold the batch's arrays, stay here
+        return ProblemWarnings, (self.n, [(key, rows, _Formatted(rows, [message(int(i)) for i in rows]))
+                                          for key, rows, message in self.groups])
 
+    @classmethod
+    def from_lists(cls, lists) -> "ProblemWarnings":
+        """The warnings ``lists`` (a list of messages per problem) as groups: group j holds
+        the j-th message of the problems that have one."""
+        lists = [list(m) for m in lists]
+        groups = []
+        for j in range(max(map(len, lists), default=0)):
+            rows = np.array([i for i, m in enumerate(lists) if len(m) > j], dtype=np.int64)
+            groups.append((("message", j), rows, _Formatted(rows, [lists[i][j] for i in rows])))
+        return cls(len(lists), groups)
+
+    @classmethod
+    def concatenate(cls, parts) -> "ProblemWarnings":
+        """The warnings of consecutive batches ``parts`` (ProblemWarnings or lists of
+        messages) as one, without formatting any message (joining 1e5 problems' lists took
+        a second): groups of the same key are joined, in the order the keys first appear."""
+        parts = [p if isinstance(p, ProblemWarnings) else cls.from_lists(p) for p in parts]
+        starts = np.cumsum([0] + [p.n for p in parts])
+        joined: dict = {}
+        for k, part in enumerate(parts):
+            for key, rows, message in part.groups:
+                joined.setdefault(key, []).append((k, rows, message))
+        groups = []
+        for key, pieces in joined.items():
+            rows = np.concatenate([r + starts[k] for k, r, _ in pieces])
+            first = np.array([starts[k] for k, _, _ in pieces], dtype=np.int64)
+            groups.append((key, rows, _Joined(first, [m for _, _, m in pieces])))
+        return cls(int(starts[-1]), groups)
     def __eq__(self, other) -> bool:
         return isinstance(other, Sequence) and len(other) == self.n and all(
             list(a) == list(b) for a, b in zip(self, other))
@@ -213,6 +243,29 @@ class ProblemWarnings(Sequence):
                     f"{rows.size} of {self.n} problems (e.g. problem {rows[0]})"
                 out.append(f"{head}: {message(int(rows[0]))}")
         return out
+
+
+class _Formatted:
+    """``message(i)`` of a group whose messages are formatted: ``texts[k]`` of problem
+    ``rows[k]`` (rows sorted). Picklable, unlike the groups' closures."""
+
+    def __init__(self, rows, texts):
+        self.rows, self.texts = np.asarray(rows, dtype=np.int64), list(texts)
+
+    def __call__(self, i) -> str:
+        return self.texts[int(np.searchsorted(self.rows, i))]
+
+
+class _Joined:
+    """``message(i)`` of a group joined from consecutive batches: batch k starts at problem
+    ``starts[k]`` and formats its messages with ``messages[k]`` (its own problem index)."""
+
+    def __init__(self, starts, messages):
+        self.starts, self.messages = np.asarray(starts, dtype=np.int64), list(messages)
+
+    def __call__(self, i) -> str:
+        k = int(np.searchsorted(self.starts, i, side="right")) - 1
+        return self.messages[k](i - int(self.starts[k]))
 
 
 # ----------------------------------------------------------------------------------------
