@@ -17,8 +17,8 @@ sent over TCP, which costs more than the device time of a design point. With
 driving its own device: Dask hands them contiguous arrays by reference (pickle protocol
 5 passes their buffers; a strided view is copied, under the GIL, so what travels here is
 contiguous) and nothing crosses between processes (Warp's launches and copies release the
-GIL; the first launches
-of a worker, which load Warp modules, run one worker at a time: :func:`worker_state`).
+GIL; the first launches of a worker, which load Warp modules, run one worker at a time:
+:func:`worker_state`).
 A sweep sends no table either way (each worker makes its chunks' tables on its device,
 :func:`tawarp.design.sweep.sweep`).
 
