@@ -77,3 +77,23 @@ def test_cuda_tangents_match_cpu(heat):
         got[dev] = [a.numpy() for a in eng.evaluate_tangents(table, wp.array(step, dtype=wp.float64, device=dev), 3)]
     for (c, g), tol in zip(zip(got["cpu"], got["cuda"]), (1e-12, 1e-9)):
         assert np.abs(g - c).max() < tol * np.abs(c).max()
+
+
+@pytest.mark.gpu
+def test_cuda_design_evaluations_match_cpu():
+    # the design kernels (heat solve, metrics) and the device's column copies: float64
+    # columns to 1e-12 of the CPU's, float32 columns the float64 ones rounded as NumPy does
+    from tawarp.design.evaluate import Evaluator
+    from tawarp.design.space import DesignSpace
+    from tawarp.model.forward import ForwardSettings
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9",
+                                                "stack.porosity=0.6:0.98"])
+    table = space.varying_table(space.from_unit(np.random.default_rng(4).random((257, 3))))
+    cpu, gpu = (Evaluator(space, settings=ForwardSettings(device=d)) for d in ("cpu", "cuda"))
+    a, b = cpu.evaluate_table(table), gpu.evaluate_table(table)
+    assert set(a) == set(b) and all(b[k].flags.c_contiguous for k in b)
+    for k in a:
+        np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=1e-12 * np.abs(a[k]).max())
+    f32 = gpu.metric_columns(gpu.evaluate_device(table), gpu.columns).numpy()
+    assert np.array_equal(f32, np.array([b[k] for k in gpu.columns], dtype=np.float32))
