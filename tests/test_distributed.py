@@ -217,3 +217,28 @@ def test_task_arguments_pickle():
     back = pickle.loads(pickle.dumps(job))
     assert (back.mode, back.seed, back.outputs, back.settings) == (job.mode, job.seed, job.outputs, job.settings)
     assert back.space.param_names == job.space.param_names
+
+
+def test_interrupted_parts_sweep_keeps_the_older_one(client, tmp_path, monkeypatch):
+    # a sweep that fails before its end (here: while mapping its parts) leaves the older
+    # file and its parts as they were, and no temporary file or folder behind
+    import xarray as xr
+
+    from tawarp.design import sweep as sweep_module
+
+    space = _space()
+    kw = dict(mode="sobol", n_samples=64, chunk=16, client=client, parts=True)
+    sweep_module.sweep(space, tmp_path / "s.nc", seed=1, **kw)
+    with xr.open_dataset(tmp_path / "s.nc", engine="h5netcdf") as ds:
+        before = ds.load()
+
+    def fail(*args, **kw):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(sweep_module, "_map_parts", fail)
+    with pytest.raises(KeyboardInterrupt):
+        sweep_module.sweep(space, tmp_path / "s.nc", seed=2, **kw)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["s.nc", "s.nc.parts"]
+    assert len(list((tmp_path / "s.nc.parts").iterdir())) == 4
+    with xr.open_dataset(tmp_path / "s.nc", engine="h5netcdf") as ds:
+        xr.testing.assert_identical(ds.load(), before)
