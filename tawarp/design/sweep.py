@@ -152,6 +152,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     t_eval = t_write = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
+    variables = _stored_variables(space, mode, rows)
     mapped = []   # parts=True: (chunk, index in the file, block shape) of each part written
     try:
         with atomic_path(path) as tmp, (atomic_dir(parts_path(path)) if parts else contextlib.nullcontext()) as pdir:
@@ -176,8 +177,8 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                 else:
                     f.dimensions = {"sample": n}
                 if not parts:   # (parts=True: virtual variables over the parts, made below)
-                    for name, (dtype, var_attrs) in _stored_variables(space, mode, rows).items():
-                        var = f.create_variable(name, tuple(dims) if name in outputs else ("sample",), dtype=dtype)
+                    for name, (dtype, var_attrs) in variables.items():
+                        var = f.create_variable(name, tuple(dims), dtype=dtype)
                         var.attrs.update(var_attrs)
                 if mode == "grid":
                     blocks = _blocks(shape, chunk)
@@ -193,9 +194,8 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                         break
                     lo, hi, sl, res, values = done
                     t = time.perf_counter()
-                    block = tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl)
                     full = sl + tuple(slice(None) for _ in range(len(dims) - len(sl)))
-                    sub_shape = block + tuple(shape[len(sl):])
+                    sub_shape = _block_shape(sl, shape)
                     if parts:
                         mapped.append((nchunks, full, sub_shape))
                     else:
@@ -208,8 +208,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                     bar.update(hi - lo)
             if parts:
                 t = time.perf_counter()
-                _map_parts(tmp, parts_path(path).name, mapped, _stored_variables(space, mode, rows), dims, shape,
-                           outputs)
+                _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
                 t_write += time.perf_counter() - t
     finally:
         bar.close()
@@ -228,9 +227,16 @@ def _part_name(k: int) -> str:
     return f"chunk_{k:07d}.h5"
 
 
+def _block_shape(sl: tuple, shape: tuple) -> tuple:
+    """The shape of a block (:func:`_blocks`) in the file: its index ``sl`` over the leading
+    dimensions, the whole of the trailing ones of ``shape``."""
+    return tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl) + tuple(shape[len(sl):])
+
+
 def _stored_variables(space: DesignSpace, mode: str, rows) -> dict:
-    """{name: (dtype, attributes)} of the variables a sweep's chunks fill: a Sobol sweep's
-    design values (the material as an int8 index with CF flags), then the outputs."""
+    """{name: (dtype, attributes)} of the variables a sweep's chunks fill, each over all of
+    the file's dimensions: a Sobol sweep's design values (the material as an int8 index
+    with CF flags; a Sobol file has the one dimension ``sample``), then the outputs."""
     out = {}
     if mode == "sobol":
         for v in space.continuous:
@@ -243,7 +249,7 @@ def _stored_variables(space: DesignSpace, mode: str, rows) -> dict:
     return out
 
 
-def _map_parts(file, folder: str, mapped, variables: dict, dims: list, shape: tuple, outputs: list):
+def _map_parts(file, folder: str, mapped, variables: dict, dims: list, shape: tuple):
     """Add to the netCDF ``file`` each stored variable as an HDF5 virtual dataset over the
     part files ``folder/chunk_*.h5`` (``mapped``: (chunk, index, block shape) of each),
     with its dimensions attached as netCDF does (read back by h5netcdf, xarray, netCDF-C);
@@ -252,17 +258,12 @@ def _map_parts(file, folder: str, mapped, variables: dict, dims: list, shape: tu
 
     with h5py.File(file, "r+") as h5:
         for name, (dtype, var_attrs) in variables.items():
-            is_output = name in outputs
-            layout = h5py.VirtualLayout(shape=shape if is_output else (shape[0],), dtype=dtype)
+            layout = h5py.VirtualLayout(shape=shape, dtype=dtype)
             for k, full, sub_shape in mapped:
-                source = f"{folder}/{_part_name(k)}"
-                if is_output:
-                    layout[full] = h5py.VirtualSource(source, name, shape=sub_shape)
-                else:
-                    layout[full[0]] = h5py.VirtualSource(source, name, shape=sub_shape[:1])
+                layout[full] = h5py.VirtualSource(f"{folder}/{_part_name(k)}", name, shape=sub_shape)
             ds = h5.create_virtual_dataset(name, layout, fillvalue=-1 if dtype == "i1" else np.nan)
             ds.attrs.update(var_attrs)
-            for i, d in enumerate(dims if is_output else ["sample"]):
+            for i, d in enumerate(dims):
                 ds.dims[i].attach_scale(h5[d])
 
 
@@ -345,8 +346,7 @@ def _evaluated_on(client, job: _Job, blocks, shape: tuple, parts: str | None = N
     from ..distributed import ordered_map
 
     blocks, mine = itertools.tee(blocks)
-    tasks = ((k, lo, hi, tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl) + shape[len(sl):])
-             for k, (lo, hi, sl) in enumerate(blocks))
+    tasks = ((k, lo, hi, _block_shape(sl, shape)) for k, (lo, hi, sl) in enumerate(blocks))
     results = ordered_map(client, _cluster_chunk, tasks, uuid.uuid4().hex, job, parts)
     for (lo, hi, sl), (res, values) in zip(mine, results):
         yield lo, hi, sl, res, values
