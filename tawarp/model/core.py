@@ -17,6 +17,7 @@ import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,6 +25,9 @@ from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT
 from .fields import field as field_spec
 from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES
+
+if TYPE_CHECKING:
+    from .priors import Prior
 
 SEGMENT_KINDS = ("duct", "porous")
 PORE_MODELS = tuple(KERNEL_PORE_MODELS)
@@ -84,7 +88,9 @@ class Segment:
 
 @dataclass(frozen=True)
 class Core:
-    """A thermoacoustic core: ``gas``, tube ``radius`` [m] and ``segments`` from x1 to x6."""
+    """A thermoacoustic core: ``gas``, tube ``radius`` [m] and ``segments`` from x1 to x6;
+    ``priors`` {parameter name: :class:`~tawarp.model.priors.Prior`} the uncertainties its
+    file declares (docs/priors.md), kept by :meth:`replace` and written back."""
 
     segments: tuple[Segment, ...]
     gas: Gas = field(default_factory=Gas)
@@ -93,10 +99,14 @@ class Core:
     #: parameters the loop's base fit leaves at their core values (the ``[fit] pinned``
     #: list of a core file, FORMATS.md)
     pinned: tuple[str, ...] = ()
+    #: declared priors, keyed ``SEGMENT.FIELD``, ``gas.FIELD``, ``tube.radius`` (a dict:
+    #: compared, not hashed)
+    priors: dict[str, Prior] = field(default_factory=dict, hash=False)
 
     def __post_init__(self):
         object.__setattr__(self, "segments", tuple(self.segments))
         object.__setattr__(self, "pinned", tuple(self.pinned))
+        object.__setattr__(self, "priors", dict(self.priors))
         validate(self)
 
     # -- structure -------------------------------------------------------------------
@@ -165,10 +175,11 @@ class Core:
                 radius = float(value)
             else:
                 segs[owner] = dataclasses.replace(segs[owner], **{fld: float(value)})
-        return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source, self.pinned)
+        return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source, self.pinned, self.priors)
 
     def to_dict(self) -> dict:
-        """The TOML structure (FORMATS.md) of this core."""
+        """The TOML structure (FORMATS.md) of this core; a field with a declared prior as
+        its inline table (:meth:`~tawarp.model.priors.Prior.toml_entry`)."""
         out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
@@ -181,6 +192,10 @@ class Core:
                 d["heater"] = True
             d.update({f: getattr(s, f) for f, off in EFFECT_OFF.items() if getattr(s, f) != off})
             out["segment"].append(d)
+        tables = {"gas": out["gas"], "tube": out["tube"]} | {s["name"]: s for s in out["segment"]}
+        for name, prior in self.priors.items():
+            owner, fld = _split(name, self.source)
+            tables[owner][fld] = prior.toml_entry(self.get(name))
         if self.pinned:
             out["fit"] = {"pinned": list(self.pinned)}
         return out
@@ -291,12 +306,13 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
     pinned = fit.get("pinned", [])
     if not isinstance(pinned, list) or not all(isinstance(n, str) for n in pinned):
         raise CoreError(f"{source}: [fit] pinned must be a list of parameter names, got {pinned!r}")
-    gas_d = dict(data.get("gas", {}))
+    priors: dict = {}
+    gas_d = _declared(dict(data.get("gas", {})), "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
     bad = set(gas_d) - {"name", "p_mean", "T_cold"}
     if bad:
         raise CoreError(f"{source}: unknown key(s) in [gas]: {sorted(bad)}")
     gas = Gas(**gas_d)
-    tube = dict(data.get("tube", {}))
+    tube = _declared(dict(data.get("tube", {})), "tube", ("radius",), f"{source}: tube", priors)
     if set(tube) - {"radius"}:
         raise CoreError(f"{source}: unknown key(s) in [tube]: {sorted(set(tube) - {'radius'})}")
     segs = []
@@ -308,6 +324,7 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         bad = set(sd) - _SEGMENT_KEYS
         if bad:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
+        sd = _declared(sd, sd["name"], SEGMENT_FIELDS, f"{where} ({sd['name']!r})", priors)
         if sd["kind"] == "duct":
             extra = ({"pore_model"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}) & set(sd)
             if extra:
@@ -318,13 +335,36 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             if flag in sd and not isinstance(sd[flag], bool):
                 raise CoreError(f"{where} ({sd['name']!r}): {flag} must be true or false")
         segs.append(Segment(**sd))
-    core = Core(tuple(segs), gas, tube.get("radius", 0.0167), source, tuple(pinned))
+    core = Core(tuple(segs), gas, tube.get("radius", 0.0167), source, tuple(pinned), priors)
     for name in pinned:
         try:
             core.get(name)
         except KeyError as e:
             raise CoreError(f"{source}: [fit] pinned: {e.args[0]}") from None
+    unused = sorted(set(priors) - set(core.parameter_names()))
+    if unused:
+        raise CoreError(f"{source}: {unused} declare a prior but are not parameters of their segment "
+                        f"(Core.parameter_names); write a plain value")
     return core
+
+
+def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dict:
+    """``table`` (a [gas], [tube] or [[segment]] table) with every inline table
+    ``{value = v, sd | rel | range = ...}`` of a ``numeric`` field replaced by its value
+    ``v``, its prior stored in ``priors`` under ``OWNER.FIELD`` (docs/priors.md)."""
+    # priors.py builds on effects.py, which builds on this module: imported when used
+    from .priors import declared_prior
+
+    out = dict(table)
+    for key, entry in table.items():
+        if not isinstance(entry, dict):
+            continue
+        if key not in numeric:
+            raise CoreError(f"{where}: {key} takes a plain value; only numeric fields take "
+                            f"{{value = ..., sd = ...}}")
+        spec = field_spec(f"{owner}.{key}" if owner in ("gas", "tube") else key)
+        out[key], priors[f"{owner}.{key}"] = declared_prior(entry, spec, f"{where}: {key}")
+    return out
 
 
 def load_core(path: str | Path) -> Core:
@@ -389,6 +429,8 @@ def dump_core(core: Core) -> str:
 
 
 def _toml_value(v) -> str:
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k} = {_toml_value(x)}" for k, x in v.items()) + "}"
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, str):

@@ -1,0 +1,419 @@
+"""Priors: the core file's declared uncertainties, the default physical priors, the
+effects' priors, and the prior's densities against scipy.stats' closed forms."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import integrate, stats
+
+from tawarp.model.core import CoreError, core_from_dict, dump_core, load_core, paper_cores
+from tawarp.model.effects import base_params, impedance_library, tmatrix_library
+from tawarp.model.layer import layer_core
+from tawarp.model.priors import (DEFAULT_PRIORS, TENSION_SD, Z95, Prior, effect_priors, prior_for, segment_role,
+                                 tension)
+
+
+def _ceramic_with(path, text_by_key: dict[tuple[int, str], str], gas: dict[str, str] | None = None):
+    """The bundled ceramic core written to ``path`` with some values replaced by the raw
+    TOML text given ({(segment index, key): text}, {gas key: text})."""
+    lines = dump_core(load_core("ceramic")).splitlines()
+    out, seg, table = [], -1, ""
+    for line in lines:
+        if line.startswith("[[segment]]"):
+            seg, table = seg + 1, "segment"
+        elif line.startswith("["):
+            table = line.strip("[]")
+        key = line.partition(" = ")[0]
+        if table == "segment" and (seg, key) in text_by_key:
+            line = f"{key} = {text_by_key[seg, key]}"
+        elif table == "gas" and gas and key in gas:
+            line = f"{key} = {gas[key]}"
+        out.append(line)
+    path.write_text("\n".join(out))
+    return path
+
+
+# -- the syntax -------------------------------------------------------------------------
+def test_sd_rel_and_range_syntax(tmp_path):
+    """Each form gives a Gaussian in the field's fit scale: h (log-scaled) a log-normal,
+    porosity (linear) a normal; a range is the central 95 % interval."""
+    p = _ceramic_with(tmp_path / "c.toml", {(1, "h"): "{value = 150, sd = 30}",
+                                            (2, "h"): "{value = 100, range = [50, 300]}",
+                                            (1, "porosity"): "{value = 0.9, rel = 0.05}",
+                                            (1, "tortuosity"): "{value = 1.0, sd = 0.05}",
+                                            (3, "h"): "{value = 0.3, center = 0.2, rel = 0.5}"},
+                      gas={"T_cold": "{value = 295.0, sd = 2}"})
+    core = load_core(p)
+    assert core.get("stack.h") == 150.0 and core.get("hot_hx.h") == 100.0 and core.get("stack.porosity") == 0.9
+    assert core.get("gas.T_cold") == 295.0 and core.get("tbt.h") == 0.3
+    pr = core.priors
+    assert set(pr) == {"stack.h", "hot_hx.h", "stack.porosity", "stack.tortuosity", "tbt.h", "gas.T_cold"}
+    # sd on a log-scaled field: relative width sd/center in ln
+    assert pr["stack.h"] == Prior(150.0, 0.2, True, 0.0, math.inf)
+    # rel on a linear field: sd = rel * center, truncated to the physical range (0, 1]
+    assert pr["stack.porosity"] == Prior(0.9, 0.05 * 0.9, False, 0.0, 1.0)
+    assert pr["stack.tortuosity"] == Prior(1.0, 0.05, False, 1.0, math.inf)
+    assert pr["tbt.h"] == Prior(0.2, 0.5, True, 0.0, math.inf)
+    assert pr["gas.T_cold"].log and pr["gas.T_cold"].sd == pytest.approx(2 / 295.0, rel=1e-15)
+    # range: 50 and 300 W/(m^2 K) are the log-normal's 2.5 % and 97.5 % quantiles
+    hx = pr["hot_hx.h"]
+    assert hx.log and Z95 == pytest.approx(stats.norm.ppf(0.975), rel=1e-15)
+    q = stats.lognorm(s=hx.sd, scale=hx.center).ppf([0.025, 0.975])
+    np.testing.assert_allclose(q, [50.0, 300.0], rtol=1e-12)
+
+
+def test_range_of_a_linear_field_is_a_normal(tmp_path):
+    core = load_core(_ceramic_with(tmp_path / "c.toml", {(1, "porosity"): "{value = 0.9, range = [0.8, 0.95]}"}))
+    pr = core.priors["stack.porosity"]
+    assert not pr.log
+    np.testing.assert_allclose(stats.norm(pr.center, pr.sd).ppf([0.025, 0.975]), [0.8, 0.95], rtol=1e-13)
+
+
+def test_old_files_stay_valid():
+    for name in ("ceramic", "mesh", "nicr_foam", "rvc_foam", "foam_sample"):
+        assert load_core(name).priors == {}
+
+
+BAD_SYNTAX = [
+    ((1, "h"), "{value = 150, sd = -30}", "sd must be > 0"),
+    ((1, "h"), "{value = 150, sd = 0}", "sd must be > 0"),
+    ((1, "h"), "{value = 150, rel = 0}", "rel must be > 0"),
+    ((1, "h"), "{value = 150, rel = -0.2}", "rel must be > 0"),
+    ((1, "h"), "{value = 150, range = [300, 50]}", "reversed"),
+    ((1, "h"), "{value = 400, range = [50, 300]}", "outside its range"),
+    ((1, "h"), "{value = 150, range = [0, 300]}", "must be positive"),
+    ((1, "h"), "{value = 150, range = [50]}", "two finite numbers"),
+    ((1, "h"), "{value = 150, sigma = 30}", "unknown key"),
+    ((1, "h"), "{value = 150}", "exactly one of sd, rel, range"),
+    ((1, "h"), "{value = 150, sd = 30, rel = 0.2}", "exactly one of sd, rel, range"),
+    ((1, "h"), "{sd = 30}", "needs value"),
+    ((1, "h"), "{value = 'a', sd = 30}", "finite number"),
+    ((1, "h"), "{value = 150, center = -5, sd = 30}", "outside the physical range"),
+    ((1, "h"), "{value = 150, center = 100, range = [50, 300]}", "range sets the center"),
+    ((1, "porosity"), "{value = 0.9, center = 0, sd = 0.1}", "outside the physical range"),
+    ((1, "porosity"), "{value = 0.9, center = 0, rel = 0.1}", "relative to the center, which is 0"),
+    ((1, "pore_model"), "{value = 1, sd = 1}", "plain value"),
+    ((1, "thermal_radius_ratio"), "{value = 1, sd = 0.3}", None),   # a parameter of the stack: accepted
+    ((0, "length"), "{value = 0.03, sd = 0.002}", None),
+]
+
+
+@pytest.mark.parametrize("where, text, message", BAD_SYNTAX, ids=[t for _, t, _ in BAD_SYNTAX])
+def test_syntax_errors_name_the_file_and_key(tmp_path, where, text, message):
+    seg, key = where
+    d_text = {(seg, key): text}
+    path = tmp_path / "bad.toml"
+    if key not in ("pore_model", "thermal_radius_ratio"):
+        _ceramic_with(path, d_text)
+    else:   # keys the writer leaves out: appended to the stack's table
+        _ceramic_with(path, {})
+        lines = path.read_text().splitlines()
+        i = [k for k, line in enumerate(lines) if line == 'name = "stack"'][0]
+        lines = [line for line in lines if not (key == "pore_model" and line.startswith("pore_model"))]
+        lines.insert(i + 1, f"{key} = {text}")
+        path.write_text("\n".join(lines))
+    if message is None:
+        assert load_core(path).priors
+        return
+    with pytest.raises(CoreError, match=message) as err:
+        load_core(path)
+    assert "bad.toml" in str(err.value) and key in str(err.value)
+
+
+def test_prior_on_a_field_the_segment_does_not_use_is_refused():
+    """An effect field at its "off" value passes validation in any segment; a prior on it
+    where the segment does not take it (convection in a duct outside the heat model) is
+    refused."""
+    d = load_core("ceramic").to_dict()
+    d["segment"][0]["h_convection"] = {"value": 0.0, "sd": 1.0}
+    with pytest.raises(CoreError, match="duct_left.h_convection") as err:
+        core_from_dict(d, "x.toml")
+    assert "x.toml" in str(err.value)
+
+
+def test_round_trip_keeps_declared_priors(tmp_path):
+    """dump_core writes each prior back (rel for a log-normal, sd for a normal, center when
+    the value moved): reloading gives the same priors exactly, also for a fitted copy."""
+    p = _ceramic_with(tmp_path / "c.toml", {(1, "h"): "{value = 150, sd = 30}",
+                                            (2, "h"): "{value = 100, range = [50, 300]}",
+                                            (1, "porosity"): "{value = 0.9, rel = 0.05}"},
+                      gas={"p_mean": "{value = 101325.0, rel = 0.01}"})
+    core = load_core(p)
+    again = tmp_path / "again.toml"
+    again.write_text(dump_core(core))
+    back = load_core(again)
+    assert back.priors == core.priors and back == dataclass_replace_source(core, str(again))
+    fitted = core.replace(**{"stack.h": 80.0, "hot_hx.h": 500.0})   # 500 is outside the declared range
+    assert fitted.priors == core.priors
+    again.write_text(dump_core(fitted))
+    back = load_core(again)
+    assert back.get("stack.h") == 80.0 and back.get("hot_hx.h") == 500.0 and back.priors == core.priors
+
+
+def dataclass_replace_source(core, source):
+    import dataclasses
+
+    return dataclasses.replace(core, source=source)
+
+
+def test_cores_differing_in_priors_are_not_equal_but_hash():
+    core = load_core("ceramic")
+    declared = dataclass_replace_source(core, core.source)
+    object.__setattr__(declared, "priors", {"stack.h": Prior(150.0, 0.2, True)})
+    assert core != declared and hash(core) == hash(declared)
+
+
+# -- the Prior against closed forms -------------------------------------------------------
+PRIORS = {
+    "normal": (Prior(0.5, 0.1, False), stats.norm(0.5, 0.1)),
+    "truncated normal": (Prior(0.9, 0.1, False, 0.0, 1.0),
+                         stats.truncnorm((0.0 - 0.9) / 0.1, (1.0 - 0.9) / 0.1, loc=0.9, scale=0.1)),
+    "half-normal": (Prior(0.0, 0.0134, False, 0.0), stats.halfnorm(0.0, 0.0134)),
+}
+
+
+@pytest.mark.parametrize("name", PRIORS)
+def test_normal_priors_match_scipy(name):
+    prior, ref = PRIORS[name]
+    v = np.linspace(*ref.ppf([1e-6, 1 - 1e-6]), 41)
+    for x in v:
+        assert prior.log_density(x) == pytest.approx(ref.logpdf(x), rel=1e-12, abs=1e-12)
+        assert prior.z(x) == pytest.approx((x - prior.center) / prior.sd, rel=1e-15)
+    lo, hi = ref.support()
+    assert prior.log_density(hi + 1.0) == -math.inf if math.isfinite(hi) else True
+    assert prior.log_density(lo - 1.0) == -math.inf if math.isfinite(lo) else True
+
+
+def test_half_normal_is_the_gaussian_plus_ln2():
+    prior = Prior(0.0, 2.0, False, 0.0)
+    for v in (0.0, 0.7, 5.0):
+        assert prior.log_density(v) == pytest.approx(stats.norm(0, 2).logpdf(v) + math.log(2.0), rel=1e-14)
+
+
+def test_log_normal_priors_match_scipy():
+    """A log-normal: density in v with the 1/v Jacobian (scipy's lognorm); truncated at
+    q >= 1: the truncated normal in ln q; z is the standard-normal quantile of the CDF."""
+    prior, ref = Prior(150.0, math.log(3.0), True, 0.0), stats.lognorm(s=math.log(3.0), scale=150.0)
+    for v in (1.0, 50.0, 150.0, 2000.0):
+        assert prior.log_density(v) == pytest.approx(ref.logpdf(v), rel=1e-12)
+        assert prior.z(v) == pytest.approx(stats.norm.ppf(ref.cdf(v)), rel=1e-9)
+    assert prior.log_density(0.0) == -math.inf and prior.log_density(-1.0) == -math.inf
+    q = Prior(1.06, 0.2, True, 1.0)
+    tn = stats.truncnorm((0.0 - math.log(1.06)) / 0.2, math.inf, loc=math.log(1.06), scale=0.2)
+    for v in (1.0, 1.1, 1.5, 3.0):
+        assert q.log_density(v) == pytest.approx(tn.logpdf(math.log(v)) - math.log(v), rel=1e-12)
+    assert q.log_density(0.99) == -math.inf
+
+
+@pytest.mark.parametrize("prior", [Prior(0.9, 0.1, False, 0.0, 1.0), Prior(1.0, 0.2, True, 1.0),
+                                   Prior(0.0, 1.85, False, 0.0), Prior(0.2, math.log(3.0), True, 0.0)],
+                         ids=["porosity", "q on its bound", "half-normal", "log-normal"])
+def test_densities_integrate_to_one(prior):
+    """Truncation normalisation: the density integrates to 1 over its support (in the
+    prior's variable u = ln v or v, with dv/du = v or 1)."""
+    if prior.log:
+        lo = math.log(prior.lower) if prior.lower > 0 else math.log(prior.center) - 12 * prior.sd
+        hi = min(math.log(prior.upper), math.log(prior.center) + 12 * prior.sd)
+        total, _ = integrate.quad(lambda u: math.exp(prior.log_density(math.exp(u)) + u), lo, hi, limit=200)
+    else:
+        lo, hi = max(prior.lower, prior.center - 12 * prior.sd), min(prior.upper, prior.center + 12 * prior.sd)
+        total, _ = integrate.quad(lambda v: math.exp(prior.log_density(v)), lo, hi, limit=200)
+    assert total == pytest.approx(1.0, abs=1e-10)
+
+
+def test_density_of_x_is_the_density_of_v_times_dv_dx():
+    """log_density_x is the change of variables of log_density: + ln(dv/dx), with
+    dv/dx = v for a log Param and its scale for a linear one."""
+    from tawarp.model.effects import Param
+
+    prior = Prior(0.9, 0.1, False, 0.0, 1.0)
+    for par in (Param("p", ("p",), 0.8, 0.5), Param("p", ("p",), 0.8, log=True)):
+        for v in (0.3, 0.85, 0.999):
+            dvdx = v if par.log else par.scale
+            assert prior.log_density_x(float(par.x_of(v)), par) == pytest.approx(
+                prior.log_density(v) + math.log(dvdx), rel=1e-13)
+
+
+def test_x_moments_exact_against_param_x_of():
+    """Same scale: mu_x = x_of(center), sd_x = x_of(center shifted by one sd) - mu_x,
+    exactly; the density of x is then N(mu_x, sd_x) (untruncated log-normal)."""
+    core = load_core("ceramic")
+    h, phi = base_params(core, ["stack.h", "stack.porosity"])
+    assert h.log and not phi.log
+    lp = Prior(120.0, 0.4, True, 0.0)
+    mu, sd = lp.x_moments(h)
+    assert mu == float(h.x_of(120.0)) and sd == pytest.approx(float(h.x_of(120.0 * math.exp(0.4))) - mu, rel=1e-14)
+    for x in (-1.0, 0.0, 0.7):
+        assert lp.log_density_x(x, h) == pytest.approx(stats.norm(mu, sd).logpdf(x), rel=1e-12)
+    np_ = Prior(0.85, 0.1, False)
+    mu, sd = np_.x_moments(phi)
+    assert mu == pytest.approx(float(phi.x_of(0.85)), rel=1e-15)
+    assert sd == pytest.approx(float(phi.x_of(0.95)) - float(phi.x_of(0.85)), rel=1e-12)
+
+
+def test_x_moments_linearised_across_scales():
+    """Different scales: the width is the derivative dx/dv at the center times the
+    prior's sd in v (log-normal: center * sd), checked by a central difference of x_of."""
+    core = load_core("ceramic")
+    h, phi = base_params(core, ["stack.h", "stack.porosity"])
+    for prior, par in ((Prior(0.85, 0.05, True), phi), (Prior(140.0, 10.0, False), h)):
+        c, eps = prior.center, 1e-6 * prior.center
+        dxdv = (float(par.x_of(c + eps)) - float(par.x_of(c - eps))) / (2 * eps)
+        sd_v = c * prior.sd if prior.log else prior.sd
+        mu, sd = prior.x_moments(par)
+        assert mu == pytest.approx(float(par.x_of(c)), rel=1e-14)
+        assert sd == pytest.approx(dxdv * sd_v, rel=1e-9)
+
+
+def test_describe():
+    assert Prior(150.0, math.log(3.0), True, 0.0).describe("W/(m^2 K)") == "150 W/(m^2 K) x/÷ 3"
+    assert Prior(0.8, 0.1, False, 0.0, 1.0).describe() == "0.8 +- 0.1, <= 1"
+    assert Prior(0.0, 0.0134, False, 0.0).describe("W/(m K)") == "0 +- 0.0134 W/(m K), >= 0"
+
+
+def test_invalid_priors():
+    for args in ((1.0, 0.0, False), (1.0, -1.0, True), (0.0, 1.0, True), (2.0, 0.1, False, 0.0, 1.0),
+                 (math.nan, 0.1, False)):
+        with pytest.raises(ValueError):
+            Prior(*args)
+
+
+# -- defaults and roles -------------------------------------------------------------------
+@pytest.mark.parametrize("name", paper_cores())
+def test_roles_and_h_priors_on_the_bundled_cores(name):
+    core = load_core(name)
+    roles = {s.name: segment_role(core, s.name) for s in core.segments}
+    assert roles == {"duct_left": None, "stack": "stack", "hot_hx": "hot_exchanger", "tbt": "buffer_tube",
+                     "duct_right": None}
+    for seg, role in (("stack", "stack"), ("hot_hx", "hot_exchanger"), ("tbt", "buffer_tube")):
+        p = prior_for(core, f"{seg}.h")
+        row = DEFAULT_PRIORS["h", role]
+        assert p == Prior(core.get(f"{seg}.h"), row.sd, True, 0.0, math.inf) and role.replace("_", " ") in p.source
+    assert prior_for(core, "tbt.h").sd == pytest.approx(math.log(3.0), rel=1e-15)
+    assert prior_for(core, "hot_hx.h").sd == pytest.approx(math.log(2.0), rel=1e-15)
+
+
+def test_roles_follow_the_structure_not_the_names():
+    """Renamed segments keep their roles: the heater, the porous thermal segment before
+    it, the thermal duct after it."""
+    d = load_core("mesh").to_dict()
+    for seg, new in zip(d["segment"], ("a", "b", "c", "d", "e")):
+        seg["name"] = new
+    core = core_from_dict(d, "renamed.toml")
+    assert [segment_role(core, n) for n in "abcde"] == [None, "stack", "hot_exchanger", "buffer_tube", None]
+    with pytest.raises(KeyError, match="'f'"):
+        segment_role(core, "f")
+
+
+def test_default_priors_of_base_fields():
+    core = load_core("nicr_foam")
+    assert prior_for(core, "stack.porosity") == Prior(0.92, 0.1, False, 0.0, 1.0)
+    assert prior_for(core, "stack.tortuosity") == Prior(1.3, 0.2, True, 1.0, math.inf)
+    assert prior_for(core, "stack.pore_radius") == Prior(3.1e-4, math.log(1.5), True, 0.0, math.inf)
+    assert prior_for(core, "duct_left.length") == Prior(0.03, 2e-3, False, 0.0, math.inf)
+    assert prior_for(core, "gas.T_cold") == Prior(293.15, 5.0, False, 0.0, math.inf)
+    assert prior_for(core, "gas.p_mean") == Prior(101325.0, 0.03, True, 0.0, math.inf)
+    broad = prior_for(core, "stack.solid_conductivity")
+    assert broad == Prior(12.0, math.log(3.0), True, 0.0, math.inf) and broad.source == "default"
+    # a log-normal cannot centre on 0: a porous sample's unused solid conductivity gets a
+    # half-normal of the field's linear fit scale
+    foam = load_core("foam_sample")
+    assert prior_for(foam, "foam.solid_conductivity") == Prior(0.0, 1.0, False, 0.0, math.inf)
+
+
+def test_declared_prior_wins_over_the_default(tmp_path):
+    core = load_core(_ceramic_with(tmp_path / "c.toml", {(3, "h"): "{value = 0.2, rel = 0.5}"}))
+    assert prior_for(core, "tbt.h") == Prior(0.2, 0.5, True, 0.0, math.inf)
+    assert "c.toml" in prior_for(core, "tbt.h").source
+    assert prior_for(core, "stack.h") == Prior(150.0, math.log(3.0), True, 0.0, math.inf)
+    # and for an effect's parameter
+    d = core.to_dict()
+    d["segment"][3]["h_convection"] = {"value": 0.0, "sd": 1.0}
+    core = core_from_dict(d, "conv.toml")
+    conv = next(e for e in tmatrix_library(core) if e.name == "convection")
+    assert effect_priors(conv, core)["tbt.h_convection"] == Prior(0.0, 1.0, False, 0.0, math.inf)
+    assert effect_priors(conv)["tbt.h_convection"].sd == pytest.approx(conv.typical["tbt.h_convection"], rel=1e-15)
+
+
+def test_tension_names_the_parameter():
+    prior = prior_for(load_core("ceramic"), "tbt.h")
+    assert tension("tbt.h", prior, 0.2 * 2.0) is None
+    msg = tension("tbt.h", prior, 0.2 * 40.0, "W/(m^2 K)")
+    assert msg.startswith("tbt.h = 8 W/(m^2 K) is 40x its prior 0.2 W/(m^2 K) x/÷ 3")
+    assert prior.z(8.0) == pytest.approx(math.log(40.0) / math.log(3.0), rel=1e-14) and prior.z(8.0) > TENSION_SD
+
+
+# -- effect priors ------------------------------------------------------------------------
+def _libraries():
+    for name in ("ceramic", "mesh", "nicr_foam", "rvc_foam", "foam_sample"):
+        core = load_core(name)
+        yield f"tmatrix:{name}", core, tmatrix_library(core)
+    layer = layer_core(0.03)
+    yield "impedance:layer", layer, impedance_library(layer)
+
+
+@pytest.mark.parametrize("lib", list(_libraries()), ids=lambda lib: lib[0])
+def test_every_library_effect_has_finite_priors(lib):
+    """Every parameter of every effect: a prior with finite moments in its fit variable,
+    a finite density at "off" (its start) and at its typical size, in the Param's own
+    scale; one-sided where "off" is the field's physical bound."""
+    _, core, effects = lib
+    for eff in effects:
+        priors = effect_priors(eff)
+        assert set(priors) == {p.label for p in eff.params}, eff.name
+        for par in eff.params:
+            prior = priors[par.label]
+            mu, sd = prior.x_moments(par)
+            assert np.isfinite([mu, sd]).all() and sd > 0, (eff.name, par.label)
+            assert prior.log == par.log, (eff.name, par.label)
+            for v in (par.start, eff.typical.get(par.label, par.start)):
+                assert math.isfinite(prior.log_density(v)), (eff.name, par.label, v)
+
+
+HALF_NORMAL = {"radiation": "stack.radiative_conductivity", "convection": "tbt.h_convection",
+               "wall_conduction": "wall_conductance", "ambient_exchanger_thermal": "ambient_hx.end_conductance",
+               "ambient_exchangers": "ambient_hx.length"}
+
+
+def test_effect_switches_are_off_plus_minus_their_typical_size():
+    """A switch's typical size is one prior sd from "off"; where "off" is the physical
+    bound the prior is a half-normal (density ln 2 above the Gaussian at "off")."""
+    core = load_core("nicr_foam")
+    lib = {e.name: e for e in tmatrix_library(core)}
+    for name in ("thermal_radius_ratio", "conductivity_T", "calibration", *HALF_NORMAL):
+        eff = lib[name]
+        for label, prior in effect_priors(eff).items():
+            par = next(p for p in eff.params if p.label == label)
+            if label in ("ambient_hx.porosity", "ambient_hx.pore_radius"):
+                continue
+            assert prior.center == par.start and abs(prior.z(eff.typical[label])) == pytest.approx(1.0, rel=1e-12)
+    for name, label in HALF_NORMAL.items():
+        prior = effect_priors(lib[name])[label]
+        assert prior.lower == prior.center == 0.0
+        assert prior.log_density(0.0) == pytest.approx(stats.norm(0, prior.sd).logpdf(0) + math.log(2), rel=1e-14)
+    # calibration gain and phase, the conductivity exponent: "off" inside the range, two-sided
+    for name, label in (("conductivity_T", "stack.conductivity_exponent"), ("calibration", "calibration.phase")):
+        prior = effect_priors(lib[name])[label]
+        assert prior.mass == pytest.approx(1.0, abs=1e-12)
+
+
+def test_effects_that_free_base_parameters_use_the_base_defaults():
+    core = load_core("rvc_foam")
+    lib = {e.name: effect_priors(e) for e in tmatrix_library(core)}
+    assert lib["plane_offsets"]["duct_left.length"] == Prior(0.03, 2e-3, False, 0.0, math.inf)
+    assert lib["T_cold"]["gas.T_cold"] == Prior(293.15, 5.0, False, 0.0, math.inf)
+    # p_mean's effect Param is linear: the +-3 % log-normal as a normal of 3 % of p_mean
+    assert lib["p_mean"]["gas.p_mean"] == Prior(101325.0, 0.03 * 101325.0, False, 0.0, math.inf)
+    # shape parameters of the ambient exchangers: their fields' defaults
+    assert lib["ambient_exchangers"]["ambient_hx.porosity"] == Prior(0.8, 0.1, False, 0.0, 1.0)
+    assert lib["ambient_exchangers"]["ambient_hx.pore_radius"] == Prior(1e-3, math.log(1.5), True, 0.0, math.inf)
+
+
+def test_elastic_frame_prior_spans_its_stated_starts():
+    """The frame's E is stated from 1e4 to 1e7 Pa (its refit starts): the prior's sd
+    covers that span, so a fitted 3e6 Pa is not in tension."""
+    core = load_core("foam_sample")
+    frame = next(e for e in tmatrix_library(core) if e.name == "elastic_frame")
+    prior = effect_priors(frame)["foam.frame_modulus"]
+    assert prior.sd == 1e7 and abs(prior.z(3e6)) < TENSION_SD
