@@ -1,36 +1,52 @@
 """Priors: the core file's declared uncertainties, the default physical priors, the
 effects' priors, and the prior's densities against scipy.stats' closed forms."""
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 from scipy import integrate, stats
 
-from tawarp.model.core import CoreError, core_from_dict, dump_core, load_core, paper_cores
-from tawarp.model.effects import base_params, impedance_library, tmatrix_library
+from tawarp.model.core import (
+    CoreError,
+    bundled_cores,
+    core_from_dict,
+    dump_core,
+    load_core,
+    paper_cores,
+)
+from tawarp.model.effects import Param, base_params, impedance_library, tmatrix_library
 from tawarp.model.layer import layer_core
-from tawarp.model.priors import (DEFAULT_PRIORS, TENSION_SD, Z95, Prior, effect_priors, prior_for, segment_role,
-                                 tension)
+from tawarp.model.priors import (
+    DEFAULT_PRIORS,
+    TENSION_SD,
+    Z95,
+    Prior,
+    effect_priors,
+    prior_for,
+    segment_role,
+    tension,
+)
 
 
-def _ceramic_with(path, text_by_key: dict[tuple[int, str], str], gas: dict[str, str] | None = None):
-    """The bundled ceramic core written to ``path`` with some values replaced by the raw
-    TOML text given ({(segment index, key): text}, {gas key: text})."""
-    lines = dump_core(load_core("ceramic")).splitlines()
-    out, seg, table = [], -1, ""
-    for line in lines:
-        if line.startswith("[[segment]]"):
-            seg, table = seg + 1, "segment"
-        elif line.startswith("["):
-            table = line.strip("[]")
-        key = line.partition(" = ")[0]
-        if table == "segment" and (seg, key) in text_by_key:
-            line = f"{key} = {text_by_key[seg, key]}"
-        elif table == "gas" and gas and key in gas:
-            line = f"{key} = {gas[key]}"
-        out.append(line)
-    path.write_text("\n".join(out))
+def _ceramic_with(path, raw: dict[tuple[str, str], str]):
+    """The bundled ceramic core written to ``path`` with the raw TOML text ``raw``
+    {(table, key): text} in place of a value or added; ``table`` a segment's name, ``gas``
+    or ``tube``."""
+    blocks = []
+    for block in dump_core(load_core("ceramic")).strip().split("\n\n"):
+        lines = block.splitlines()
+        name = next((line.partition(" = ")[2].strip('"') for line in lines if line.startswith("name = ")), "")
+        table = lines[0].strip("[]") if lines[0] in ("[gas]", "[tube]") else name
+        keys = {line.partition(" = ")[0]: k for k, line in enumerate(lines)}
+        for (where, key), text in raw.items():
+            if where == table and key in keys:
+                lines[keys[key]] = f"{key} = {text}"
+            elif where == table:
+                lines.append(f"{key} = {text}")
+        blocks.append("\n".join(lines))
+    path.write_text("\n\n".join(blocks) + "\n")
     return path
 
 
@@ -38,12 +54,12 @@ def _ceramic_with(path, text_by_key: dict[tuple[int, str], str], gas: dict[str, 
 def test_sd_rel_and_range_syntax(tmp_path):
     """Each form gives a Gaussian in the field's fit scale: h (log-scaled) a log-normal,
     porosity (linear) a normal; a range is the central 95 % interval."""
-    p = _ceramic_with(tmp_path / "c.toml", {(1, "h"): "{value = 150, sd = 30}",
-                                            (2, "h"): "{value = 100, range = [50, 300]}",
-                                            (1, "porosity"): "{value = 0.9, rel = 0.05}",
-                                            (1, "tortuosity"): "{value = 1.0, sd = 0.05}",
-                                            (3, "h"): "{value = 0.3, center = 0.2, rel = 0.5}"},
-                      gas={"T_cold": "{value = 295.0, sd = 2}"})
+    p = _ceramic_with(tmp_path / "c.toml", {("stack", "h"): "{value = 150, sd = 30}",
+                                            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
+                                            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
+                                            ("stack", "tortuosity"): "{value = 1.0, sd = 0.05}",
+                                            ("tbt", "h"): "{value = 0.3, center = 0.2, rel = 0.5}",
+                                            ("gas", "T_cold"): "{value = 295.0, sd = 2}"})
     core = load_core(p)
     assert core.get("stack.h") == 150.0 and core.get("hot_hx.h") == 100.0 and core.get("stack.porosity") == 0.9
     assert core.get("gas.T_cold") == 295.0 and core.get("tbt.h") == 0.3
@@ -64,61 +80,50 @@ def test_sd_rel_and_range_syntax(tmp_path):
 
 
 def test_range_of_a_linear_field_is_a_normal(tmp_path):
-    core = load_core(_ceramic_with(tmp_path / "c.toml", {(1, "porosity"): "{value = 0.9, range = [0.8, 0.95]}"}))
+    core = load_core(_ceramic_with(tmp_path / "c.toml", {("stack", "porosity"): "{value = 0.9, range = [0.8, 0.95]}"}))
     pr = core.priors["stack.porosity"]
     assert not pr.log
     np.testing.assert_allclose(stats.norm(pr.center, pr.sd).ppf([0.025, 0.975]), [0.8, 0.95], rtol=1e-13)
 
 
 def test_old_files_stay_valid():
-    for name in ("ceramic", "mesh", "nicr_foam", "rvc_foam", "foam_sample"):
+    for name in bundled_cores():
         assert load_core(name).priors == {}
 
 
 BAD_SYNTAX = [
-    ((1, "h"), "{value = 150, sd = -30}", "sd must be > 0"),
-    ((1, "h"), "{value = 150, sd = 0}", "sd must be > 0"),
-    ((1, "h"), "{value = 150, rel = 0}", "rel must be > 0"),
-    ((1, "h"), "{value = 150, rel = -0.2}", "rel must be > 0"),
-    ((1, "h"), "{value = 150, range = [300, 50]}", "reversed"),
-    ((1, "h"), "{value = 400, range = [50, 300]}", "outside its range"),
-    ((1, "h"), "{value = 150, range = [0, 300]}", "must be positive"),
-    ((1, "h"), "{value = 150, range = [50]}", "two finite numbers"),
-    ((1, "h"), "{value = 150, sigma = 30}", "unknown key"),
-    ((1, "h"), "{value = 150}", "exactly one of sd, rel, range"),
-    ((1, "h"), "{value = 150, sd = 30, rel = 0.2}", "exactly one of sd, rel, range"),
-    ((1, "h"), "{sd = 30}", "needs value"),
-    ((1, "h"), "{value = 'a', sd = 30}", "finite number"),
-    ((1, "h"), "{value = 150, center = -5, sd = 30}", "outside the physical range"),
-    ((1, "h"), "{value = 150, center = 100, range = [50, 300]}", "range sets the center"),
-    ((1, "porosity"), "{value = 0.9, center = 0, sd = 0.1}", "outside the physical range"),
-    ((1, "porosity"), "{value = 0.9, center = 0, rel = 0.1}", "relative to the center, which is 0"),
-    ((1, "pore_model"), "{value = 1, sd = 1}", "plain value"),
-    ((1, "thermal_radius_ratio"), "{value = 1, sd = 0.3}", None),   # a parameter of the stack: accepted
-    ((0, "length"), "{value = 0.03, sd = 0.002}", None),
+    (("stack", "h"), "{value = 150, sd = -30}", "sd must be > 0"),
+    (("stack", "h"), "{value = 150, sd = 0}", "sd must be > 0"),
+    (("stack", "h"), "{value = 150, rel = 0}", "rel must be > 0"),
+    (("stack", "h"), "{value = 150, rel = -0.2}", "rel must be > 0"),
+    (("stack", "h"), "{value = 150, range = [300, 50]}", "reversed"),
+    (("stack", "h"), "{value = 400, range = [50, 300]}", "outside its range"),
+    (("stack", "h"), "{value = 150, range = [0, 300]}", "must be positive"),
+    (("stack", "h"), "{value = 150, range = [50]}", "two finite numbers"),
+    (("stack", "h"), "{value = 150, sigma = 30}", "unknown key"),
+    (("stack", "h"), "{value = 150}", "exactly one of sd, rel, range"),
+    (("stack", "h"), "{value = 150, sd = 30, rel = 0.2}", "exactly one of sd, rel, range"),
+    (("stack", "h"), "{sd = 30}", "needs value"),
+    (("stack", "h"), "{value = 'a', sd = 30}", "finite number"),
+    (("stack", "h"), "{value = 150, center = -5, sd = 30}", "outside the physical range"),
+    (("stack", "h"), "{value = 150, center = 100, range = [50, 300]}", "range sets the center"),
+    (("stack", "porosity"), "{value = 0.9, center = 0, sd = 0.1}", "outside the physical range"),
+    (("stack", "porosity"), "{value = 0.9, center = 0, rel = 0.1}", "relative to the center, which is 0"),
+    (("stack", "pore_model"), "{value = 1, sd = 1}", "plain value"),
+    (("stack", "thermal_radius_ratio"), "{value = 1, sd = 0.3}", None),   # a parameter of the stack: accepted
+    (("duct_left", "length"), "{value = 0.03, sd = 0.002}", None),
 ]
 
 
 @pytest.mark.parametrize("where, text, message", BAD_SYNTAX, ids=[t for _, t, _ in BAD_SYNTAX])
 def test_syntax_errors_name_the_file_and_key(tmp_path, where, text, message):
-    seg, key = where
-    d_text = {(seg, key): text}
-    path = tmp_path / "bad.toml"
-    if key not in ("pore_model", "thermal_radius_ratio"):
-        _ceramic_with(path, d_text)
-    else:   # keys the writer leaves out: appended to the stack's table
-        _ceramic_with(path, {})
-        lines = path.read_text().splitlines()
-        i = [k for k, line in enumerate(lines) if line == 'name = "stack"'][0]
-        lines = [line for line in lines if not (key == "pore_model" and line.startswith("pore_model"))]
-        lines.insert(i + 1, f"{key} = {text}")
-        path.write_text("\n".join(lines))
+    path = _ceramic_with(tmp_path / "bad.toml", {where: text})
     if message is None:
         assert load_core(path).priors
         return
     with pytest.raises(CoreError, match=message) as err:
         load_core(path)
-    assert "bad.toml" in str(err.value) and key in str(err.value)
+    assert "bad.toml" in str(err.value) and where[1] in str(err.value)
 
 
 def test_prior_on_a_field_the_segment_does_not_use_is_refused():
@@ -135,15 +140,16 @@ def test_prior_on_a_field_the_segment_does_not_use_is_refused():
 def test_round_trip_keeps_declared_priors(tmp_path):
     """dump_core writes each prior back (rel for a log-normal, sd for a normal, center when
     the value moved): reloading gives the same priors exactly, also for a fitted copy."""
-    p = _ceramic_with(tmp_path / "c.toml", {(1, "h"): "{value = 150, sd = 30}",
-                                            (2, "h"): "{value = 100, range = [50, 300]}",
-                                            (1, "porosity"): "{value = 0.9, rel = 0.05}"},
-                      gas={"p_mean": "{value = 101325.0, rel = 0.01}"})
+    p = _ceramic_with(tmp_path / "c.toml", {("stack", "h"): "{value = 150, sd = 30}",
+                                            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
+                                            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
+                                            ("gas", "p_mean"): "{value = 101325.0, rel = 0.01}",
+                                            ("tube", "radius"): "{value = 0.0167, sd = 1e-4}"})
     core = load_core(p)
     again = tmp_path / "again.toml"
     again.write_text(dump_core(core))
     back = load_core(again)
-    assert back.priors == core.priors and back == dataclass_replace_source(core, str(again))
+    assert back.priors == core.priors and back == dataclasses.replace(core, source=str(again))
     fitted = core.replace(**{"stack.h": 80.0, "hot_hx.h": 500.0})   # 500 is outside the declared range
     assert fitted.priors == core.priors
     again.write_text(dump_core(fitted))
@@ -151,16 +157,9 @@ def test_round_trip_keeps_declared_priors(tmp_path):
     assert back.get("stack.h") == 80.0 and back.get("hot_hx.h") == 500.0 and back.priors == core.priors
 
 
-def dataclass_replace_source(core, source):
-    import dataclasses
-
-    return dataclasses.replace(core, source=source)
-
-
 def test_cores_differing_in_priors_are_not_equal_but_hash():
     core = load_core("ceramic")
-    declared = dataclass_replace_source(core, core.source)
-    object.__setattr__(declared, "priors", {"stack.h": Prior(150.0, 0.2, True)})
+    declared = dataclasses.replace(core, priors={"stack.h": Prior(150.0, 0.2, True)})
     assert core != declared and hash(core) == hash(declared)
 
 
@@ -225,8 +224,6 @@ def test_densities_integrate_to_one(prior):
 def test_density_of_x_is_the_density_of_v_times_dv_dx():
     """log_density_x is the change of variables of log_density: + ln(dv/dx), with
     dv/dx = v for a log Param and its scale for a linear one."""
-    from tawarp.model.effects import Param
-
     prior = Prior(0.9, 0.1, False, 0.0, 1.0)
     for par in (Param("p", ("p",), 0.8, 0.5), Param("p", ("p",), 0.8, log=True)):
         for v in (0.3, 0.85, 0.999):
@@ -323,7 +320,7 @@ def test_default_priors_of_base_fields():
 
 
 def test_declared_prior_wins_over_the_default(tmp_path):
-    core = load_core(_ceramic_with(tmp_path / "c.toml", {(3, "h"): "{value = 0.2, rel = 0.5}"}))
+    core = load_core(_ceramic_with(tmp_path / "c.toml", {("tbt", "h"): "{value = 0.2, rel = 0.5}"}))
     assert prior_for(core, "tbt.h") == Prior(0.2, 0.5, True, 0.0, math.inf)
     assert "c.toml" in prior_for(core, "tbt.h").source
     assert prior_for(core, "stack.h") == Prior(150.0, math.log(3.0), True, 0.0, math.inf)
@@ -346,11 +343,9 @@ def test_tension_names_the_parameter():
 
 # -- effect priors ------------------------------------------------------------------------
 def _libraries():
-    for name in ("ceramic", "mesh", "nicr_foam", "rvc_foam", "foam_sample"):
-        core = load_core(name)
-        yield f"tmatrix:{name}", core, tmatrix_library(core)
-    layer = layer_core(0.03)
-    yield "impedance:layer", layer, impedance_library(layer)
+    for name in bundled_cores():
+        yield f"tmatrix:{name}", tmatrix_library(load_core(name))
+    yield "impedance:layer", impedance_library(layer_core(0.03))
 
 
 @pytest.mark.parametrize("lib", list(_libraries()), ids=lambda lib: lib[0])
@@ -358,7 +353,7 @@ def test_every_library_effect_has_finite_priors(lib):
     """Every parameter of every effect: a prior with finite moments in its fit variable,
     a finite density at "off" (its start) and at its typical size, in the Param's own
     scale; one-sided where "off" is the field's physical bound."""
-    _, core, effects = lib
+    _, effects = lib
     for eff in effects:
         priors = effect_priors(eff)
         assert set(priors) == {p.label for p in eff.params}, eff.name
