@@ -339,6 +339,10 @@ def test_tension_names_the_parameter():
     msg = tension("tbt.h", prior, 0.2 * 40.0, "W/(m^2 K)")
     assert msg.startswith("tbt.h = 8 W/(m^2 K) is 40x its prior 0.2 W/(m^2 K) x/÷ 3")
     assert prior.z(8.0) == pytest.approx(math.log(40.0) / math.log(3.0), rel=1e-14) and prior.z(8.0) > TENSION_SD
+    wall = Prior(0.0, 1.85, False, 0.0)
+    assert tension("wall_conductance", wall, 5.0) is None
+    assert tension("wall_conductance", wall, 10.0, "W/(m K)") == ("wall_conductance = 10 W/(m K) is 5.4 prior sd "
+                                                                  "above its prior 0 +- 1.85 W/(m K), >= 0")
 
 
 # -- effect priors ------------------------------------------------------------------------

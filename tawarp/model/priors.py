@@ -167,11 +167,15 @@ class Prior:
 DECLARED_KEYS = ("value", "center", "sd", "rel", "range")
 
 
+def _is_number(v) -> bool:
+    """A finite TOML number (a TOML boolean is not one)."""
+    return not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v)
+
+
 def _number(entry: dict, key: str, where: str) -> float:
-    v = entry[key]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise CoreError(f"{where}: {key} must be a finite number, got {v!r}")
-    return float(v)
+    if not _is_number(entry[key]):
+        raise CoreError(f"{where}: {key} must be a finite number, got {entry[key]!r}")
+    return float(entry[key])
 
 
 def declared_prior(entry: dict, f: Field, where: str) -> tuple[float, Prior]:
@@ -199,8 +203,7 @@ def declared_prior(entry: dict, f: Field, where: str) -> tuple[float, Prior]:
         if "center" in entry:
             raise CoreError(f"{where}: a range sets the center (its middle); drop center or write sd/rel")
         lo_hi = entry["range"]
-        if (not isinstance(lo_hi, list) or len(lo_hi) != 2
-                or not all(isinstance(b, (int, float)) and not isinstance(b, bool) and math.isfinite(b) for b in lo_hi)):
+        if not isinstance(lo_hi, list) or len(lo_hi) != 2 or not all(map(_is_number, lo_hi)):
             raise CoreError(f"{where}: range must be two finite numbers [low, high], got {lo_hi!r}")
         lo, hi = map(float, lo_hi)
         if not lo < hi:
@@ -395,10 +398,14 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
 def tension(label: str, prior: Prior, value: float, unit: str = "") -> str | None:
     """A one-line report when ``value`` lies more than :data:`TENSION_SD` prior sds from
     ``prior`` (``tbt.h = 8 W/(m^2 K) is 40x its prior 0.2 W/(m^2 K) x/÷ 3 (+3.4 prior
-    sd)``), else None."""
+    sd)``; a normal prior: ``... is 5.4 prior sd above its prior 0 +- 1.85 W/(m K), >= 0``),
+    else None."""
     z = prior.z(value)
     if abs(z) <= TENSION_SD:
         return None
     u = f" {unit}" if unit and unit != "-" else ""
-    ratio = f" is {value / prior.center:.3g}x its prior" if prior.log else " lies outside its prior"
-    return f"{label} = {value:.4g}{u}{ratio} {prior.describe(unit)} ({z:+.1f} prior sd)"
+    if prior.log and value > 0:
+        return (f"{label} = {value:.4g}{u} is {value / prior.center:.3g}x its prior {prior.describe(unit)} "
+                f"({z:+.1f} prior sd)")
+    side = "above" if z > 0 else "below"
+    return f"{label} = {value:.4g}{u} is {abs(z):.1f} prior sd {side} its prior {prior.describe(unit)}"
