@@ -3,6 +3,8 @@ effects' priors, and the prior's densities against scipy.stats' closed forms."""
 
 import dataclasses
 import math
+import tomllib
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -416,3 +418,47 @@ def test_elastic_frame_prior_spans_its_stated_starts():
     frame = next(e for e in tmatrix_library(core) if e.name == "elastic_frame")
     prior = effect_priors(frame)["foam.frame_modulus"]
     assert prior.sd == 1e7 and abs(prior.z(3e6)) < TENSION_SD
+
+
+# -- the documentation --------------------------------------------------------------------
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "priors.md"
+#: each default row as docs/priors.md states it: (row text, sd, log)
+DOC_ROWS = {
+    ("h", "buffer_tube"): ("`h` (buffer tube) | log-normal, factor 3 per sd", math.log(3.0), True),
+    ("h", "stack"): ("`h` (stack) | log-normal, factor 3 per sd", math.log(3.0), True),
+    ("h", "hot_exchanger"): ("`h` (hot exchanger) | log-normal, factor 2 per sd", math.log(2.0), True),
+    ("porosity", None): ("`porosity` | normal, sd 0.1, in (0, 1]", 0.1, False),
+    ("pore_radius", None): ("`pore_radius` | log-normal, factor 1.5 per sd", math.log(1.5), True),
+    ("tortuosity", None): ("`tortuosity` | log-normal, sd 0.2 in ln, >= 1", 0.2, True),
+    ("length", None): ("`length` | normal, sd 2 mm", 2e-3, False),
+    ("T_cold", None): ("`gas.T_cold` | normal, sd 5 K", 5.0, False),
+    ("p_mean", None): ("`gas.p_mean` | log-normal, sd 0.03 in ln", 0.03, True),
+    ("radius", None): ("`tube.radius` | log-normal, sd 0.02 in ln", 0.02, True),
+}
+
+
+def test_docs_state_the_default_table():
+    text = DOCS.read_text()
+    assert set(DOC_ROWS) == set(DEFAULT_PRIORS)
+    for key, (row, sd, log) in DOC_ROWS.items():
+        assert f"| {row}" in text, row
+        assert DEFAULT_PRIORS[key].sd == pytest.approx(sd, rel=1e-15) and DEFAULT_PRIORS[key].log == log, key
+
+
+def test_docs_example_core_loads():
+    """The core file example of docs/priors.md (its [gas] and stack, in the ceramic core)
+    gives the priors the page describes."""
+    block = DOCS.read_text().split("```toml\n")[1].split("```")[0]
+    example = tomllib.loads(block)
+    d = load_core("ceramic").to_dict()
+    d["gas"] = example["gas"]
+    d["segment"][1] = example["segment"][0]
+    core = core_from_dict(d, "docs/priors.md")
+    pr = core.priors
+    assert set(pr) == {"gas.T_cold", "stack.length", "stack.porosity", "stack.pore_radius", "stack.h"}
+    assert pr["gas.T_cold"] == Prior(295.0, 2.0 / 295.0, True, 0.0, math.inf)
+    assert pr["stack.porosity"] == Prior(0.92, 0.01, False, 0.0, 1.0)
+    assert pr["stack.pore_radius"] == Prior(3.1e-4, 0.15, True, 0.0, math.inf)
+    h = pr["stack.h"]
+    np.testing.assert_allclose(stats.lognorm(s=h.sd, scale=h.center).ppf([0.025, 0.975]), [5.0, 150.0], rtol=1e-12)
+    assert core.get("stack.h") == 30.0 and prior_for(core, "stack.tortuosity").source.startswith("default")
