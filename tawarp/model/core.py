@@ -343,8 +343,8 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             raise CoreError(f"{source}: [fit] pinned: {e.args[0]}") from None
     unused = sorted(set(priors) - set(core.parameter_names()))
     if unused:
-        raise CoreError(f"{source}: {unused} declare a prior but are not parameters of their segment "
-                        f"(Core.parameter_names); write a plain value")
+        raise CoreError(f"{source}: a prior is declared for {', '.join(unused)}, which the segment does not use "
+                        f"as a parameter (Core.parameter_names); write a plain value")
     return core
 
 
