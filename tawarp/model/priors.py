@@ -34,8 +34,6 @@ from .fields import field as field_spec
 TENSION_SD = 3.0
 #: Half-width of a central 95 % interval in standard deviations (the ``range`` syntax).
 Z95 = 1.959963984540054
-#: Segment roles that have their own heat-exchange prior (:func:`segment_role`).
-ROLES = ("stack", "hot_exchanger", "buffer_tube")
 
 
 def _log_phi(z: float) -> float:
