@@ -112,20 +112,24 @@ BAD_SYNTAX = [
     (("stack", "porosity"), "{value = 0.9, center = 0, sd = 0.1}", "outside the physical range"),
     (("stack", "porosity"), "{value = 0.9, center = 0, rel = 0.1}", "relative to the center, which is 0"),
     (("stack", "pore_model"), "{value = 1, sd = 1}", "plain value"),
-    (("stack", "thermal_radius_ratio"), "{value = 1, sd = 0.3}", None),   # a parameter of the stack: accepted
-    (("duct_left", "length"), "{value = 0.03, sd = 0.002}", None),
 ]
 
 
 @pytest.mark.parametrize("where, text, message", BAD_SYNTAX, ids=[t for _, t, _ in BAD_SYNTAX])
 def test_syntax_errors_name_the_file_and_key(tmp_path, where, text, message):
     path = _ceramic_with(tmp_path / "bad.toml", {where: text})
-    if message is None:
-        assert load_core(path).priors
-        return
     with pytest.raises(CoreError, match=message) as err:
         load_core(path)
     assert "bad.toml" in str(err.value) and where[1] in str(err.value)
+
+
+def test_any_parameter_of_a_segment_takes_a_prior(tmp_path):
+    """An effect field the file adds (the stack's thermal radius ratio at "off") and a
+    duct's length take the syntax too."""
+    core = load_core(_ceramic_with(tmp_path / "c.toml", {("stack", "thermal_radius_ratio"): "{value = 1, sd = 0.3}",
+                                                         ("duct_left", "length"): "{value = 0.03, sd = 0.002}"}))
+    assert core.priors == {"stack.thermal_radius_ratio": Prior(1.0, 0.3, False, 0.0, math.inf),
+                           "duct_left.length": Prior(0.03, 0.002 / 0.03, True, 0.0, math.inf)}
 
 
 def test_prior_on_a_field_the_segment_does_not_use_is_refused():
