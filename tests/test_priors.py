@@ -293,7 +293,7 @@ def test_roles_and_h_priors_on_the_bundled_cores(name):
         p = prior_for(core, f"{seg}.h")
         row = DEFAULT_PRIORS["h", role]
         assert p == Prior(core.get(f"{seg}.h"), row.sd, True, 0.0, math.inf) and role.replace("_", " ") in p.source
-    assert prior_for(core, "tbt.h").sd == pytest.approx(math.log(3.0), rel=1e-15)
+    assert prior_for(core, "tbt.h").sd == pytest.approx(1.0, rel=1e-15)   # a factor e: 20x is 3 sd
     assert prior_for(core, "hot_hx.h").sd == pytest.approx(math.log(2.0), rel=1e-15)
 
 
@@ -343,8 +343,8 @@ def test_tension_names_the_parameter():
     prior = prior_for(load_core("ceramic"), "tbt.h")
     assert tension("tbt.h", prior, 0.2 * 2.0) is None
     msg = tension("tbt.h", prior, 0.2 * 40.0, "W/(m^2 K)")
-    assert msg.startswith("tbt.h = 8 W/(m^2 K) is 40x its prior 0.2 W/(m^2 K) x/÷ 3")
-    assert prior.z(8.0) == pytest.approx(math.log(40.0) / math.log(3.0), rel=1e-14) and prior.z(8.0) > TENSION_SD
+    assert msg.startswith("tbt.h = 8 W/(m^2 K) is 40x its prior 0.2 W/(m^2 K) x/÷ 2.72 (+3.7 prior sd)")
+    assert prior.z(8.0) == pytest.approx(math.log(40.0), rel=1e-14) and prior.z(8.0) > TENSION_SD
     wall = Prior(0.0, 1.85, False, 0.0)
     assert tension("wall_conductance", wall, 5.0) is None
     assert tension("wall_conductance", wall, 10.0, "W/(m K)") == ("wall_conductance = 10 W/(m K) is 5.4 prior sd "
@@ -428,7 +428,7 @@ def test_elastic_frame_prior_spans_its_stated_starts():
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "priors.md"
 #: each default row as docs/priors.md states it: (row text, sd, log)
 DOC_ROWS = {
-    ("h", "buffer_tube"): ("`h` (buffer tube) | log-normal, factor 3 per sd", math.log(3.0), True),
+    ("h", "buffer_tube"): ("`h` (buffer tube) | log-normal, factor e per sd", 1.0, True),
     ("h", "stack"): ("`h` (stack) | log-normal, factor 3 per sd", math.log(3.0), True),
     ("h", "hot_exchanger"): ("`h` (hot exchanger) | log-normal, factor 2 per sd", math.log(2.0), True),
     ("porosity", None): ("`porosity` | normal, sd 0.1, in (0, 1]", 0.1, False),

@@ -264,10 +264,10 @@ class DefaultPrior:
 #: :data:`BROAD`. Centred on the core file's value; docs/priors.md explains each row.
 DEFAULT_PRIORS: dict[tuple[str, str | None], DefaultPrior] = {
     ("h", "buffer_tube"): DefaultPrior(
-        math.log(3.0), True,
+        1.0, True,
         "buffer tube: natural convection inside and conduction through the wall to the room; the paper's "
-        "fitted h_a is about 0.2 W/(m^2 K) but the insulation and the convection regime are rarely known: "
-        "the order of magnitude is known, not the value (a factor of 3 per sd)"),
+        "fitted h_a is about 0.2 W/(m^2 K) and a buffer tube's exchange with the room is weak: the order of "
+        "magnitude is known, not the value (a factor of e per sd, so a value 20x the file's is 3 sd off)"),
     ("h", "stack"): DefaultPrior(
         math.log(3.0), True,
         "stack: the paper only bounds h_s (>= 150 ceramic, about 50 mesh, <= 10 RVC) and notes that lam_s and "
