@@ -1,10 +1,12 @@
-"""Closing the loop (issues #4, #9) on data the fitted model did not make: core T-matrices
-from the independent reference (:mod:`tawarp.reference`, converged resolution) with noise,
-the core file's prior 10-30 % off on every base parameter, several seeds. Clean data give
-"adequate" and no claim; a plane offset (the reference implements it as a core value) is
-explained by the plane-offset effect. Unit checks of the loop's pieces: the noise estimate,
-Holm-Bonferroni, the one-sided screen, undetermined std, the ``[fit] pinned`` key.
-On the measured foams (Atalla & Panneton) the loop lowers the error of the circular-pore model."""
+"""Closing the loop on data the fitted model did not make: core T-matrices from the
+independent reference (:mod:`tawarp.reference`, converged resolution) with noise, the core
+file 10-30 % off on every base parameter, several seeds. Clean data give "adequate" and no
+claim; a plane offset (the reference implements it as a core value) is explained by the
+plane-offset effect; buffer-tube convection, which the base fit absorbs into the buffer
+tube's h, is named with that h's prior tension. Unit checks of the loop's pieces: the noise
+estimate, the structure test, undetermined std, the ``[fit] pinned`` key. On the measured
+foams (Atalla & Panneton) the loop lowers the error of the circular-pore model below a
+fitted rigid JCA model's."""
 
 import dataclasses
 import json
@@ -13,9 +15,8 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.loop import base_names, default_base_params, holm, impedance_loop, noise_sigma, run_loop, write_report
+from tawarp.loop import base_names, default_base_params, impedance_loop, noise_sigma, run_loop, write_report
 from tawarp.loop.goodness import STRUCTURE_P, smooth_fraction
-from tawarp.loop.screen import _linearized
 from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
 from tawarp.measure.files import TMatrixData
 from tawarp.model.coefficients import duct_impedance
@@ -135,10 +136,9 @@ def test_plane_offset_in_reference_data_is_explained(seed):
     prob, rep = loop_on({"duct_left.length": 0.033}, seed)
     assert not rep["goodness_of_fit_before"]["adequate"]
     assert rep["verdict"] == "explained" and rep["accepted_effects"] == ["plane_offsets"], (
-        rep["verdict"], [(c["effect"], c.get("checks"), c.get("stability")) for c in rep["candidates"]])
-    st = rep["steps"][0]
-    assert st["stability"] >= 0.7 and st["error_after"] < st["error_before"]
-    assert rep["error_after"] <= 1.3 * rep["noise_floor"]
+        rep["verdict"], rep["model_probabilities"][:3])
+    assert rep["inclusion_probabilities"]["plane_offsets"] >= 0.95
+    assert rep["error_after"] <= 1.3 * rep["noise_floor"] < rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.033) < 4 * dl["std"]
 
@@ -185,26 +185,6 @@ def test_residual_structure_test():
     assert smooth_fraction(prob, w)["p_value"] < 1e-6
 
 
-def test_holm_bonferroni():
-    assert holm([0.001, 0.04, 0.03], 0.05) == [True, False, False]   # 0.03 > 0.05/2
-    assert holm([0.01, 0.02, 0.03], 0.1) == [True, True, True]
-    assert holm([0.2], 0.05) == [False]
-
-
-def test_one_sided_screen():
-    # an effect that may only grow (radiation >= 0) whose column points the wrong way
-    # explains nothing; two-sided, it would explain everything
-    rng = np.random.default_rng(0)
-    c = rng.standard_normal((50, 1))
-    r = 0.5 * c[:, 0]                      # the step that removes r is d = -0.5 < 0
-    B = np.zeros((50, 0))
-    assert _linearized(r, B, c, np.array([0.0]), np.array([np.inf]), [])["score"] < 1e-12
-    assert _linearized(r, B, c, np.array([-np.inf]), np.array([np.inf]), [])["score"] > 0.999
-    # a column that is a base column: degenerate, named
-    out = _linearized(r, c, c, np.array([-np.inf]), np.array([np.inf]), ["stack.h"])
-    assert out["degenerate_with"] == "base:stack.h" and out["score"] == 0.0
-
-
 def test_rank_deficient_jacobian_gives_undetermined_std():
     from tawarp.fit.problems import _covariance_x
 
@@ -232,10 +212,13 @@ def test_loop_cli_writes_report(tmp_path):
                               "--quiet"])
     assert args.func(args) == 0
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
-    for key in ("error_before", "error_after", "chosen_effect", "candidates", "parameters_before", "parameters_after",
-                "noise_floor", "indistinguishable", "steps", "accepted_effects", "goodness_of_fit_before",
-                "goodness_of_fit_after", "unexplained_residual", "verdict", "drift_before", "drift_after"):
+    for key in ("verdict", "accepted_effects", "accepted_steps", "error_before", "error_after", "noise_floor",
+                "parameters_after", "model_probabilities", "inclusion_probabilities", "prior_tension",
+                "next_measurement", "chosen_effect", "parameters_before", "goodness_of_fit_before",
+                "goodness_of_fit_after", "unexplained_residual", "drift_before", "drift_after"):
         assert key in rep
+    assert abs(sum(m["probability"] for m in rep["model_probabilities"]) - 1) < 1e-9 or len(
+        rep["model_probabilities"]) == 20
     assert rep["verdict"] == "adequate"
     assert set(rep["base_parameters"]) == set(base_names(TMatrixKind(reference_data({}, SEED), MESH)))
     assert (tmp_path / "out" / "report.md").read_text().startswith("# tawarp loop report")
@@ -314,7 +297,7 @@ def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
 
 
 def test_loop_reports_its_progress(monkeypatch):
-    """tawarp loop ran up to 400 s silent (issue 10 item 13): its bar passes every stage in order."""
+    """A long loop is not silent: its bar passes every stage in order."""
     import tawarp.loop.run as run
 
     seen = []

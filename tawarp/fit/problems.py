@@ -69,7 +69,8 @@ class KindProblems:
     fit's others at their start values), a structural effect has its own.
     """
 
-    def __init__(self, kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None):
+    def __init__(self, kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
+                 priors: list | None = None):
         self.kind = kind
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
@@ -93,6 +94,12 @@ class KindProblems:
         for c, (params, _, _) in enumerate(self.specs):
             for j, par in enumerate(params):
                 self.zlo[c, j], self.zhi[c, j] = par.bounds_x()
+        #: Gaussian priors in x per fit, padded like z: mean and 1/sd (0 where a fit has none)
+        self.prior_mu, self.prior_isd = np.zeros_like(self.zlo), np.zeros_like(self.zlo)
+        for c, pr in enumerate(priors or []):
+            if pr is not None:
+                mu, sd = (np.asarray(a, dtype=float) for a in pr)
+                self.prior_mu[c, :mu.size], self.prior_isd[c, :sd.size] = mu, 1.0 / sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
 
@@ -137,7 +144,8 @@ class KindProblems:
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
         weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
         H = J^T J with the forward-difference J (``max_sets`` is not used: the batches
-        are small)."""
+        are small). A fit with a prior adds its rows ``(z - mu) / sd`` to r (and 1/sd to J):
+        the LM then finds the maximum a posteriori."""
         n, P = z.shape
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
         requests = []
@@ -160,6 +168,10 @@ class KindProblems:
                 raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
                 g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
             self.last.append((J, got[i][0]))
+        d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
+        cost += np.sum(d ** 2, axis=1)
+        g += d * isd
+        H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf
         return cost, raw, g, H
@@ -225,15 +237,17 @@ def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effec
 
 
 def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
-              max_iter: int = 100, xtol: float = XTOL, gtol: float = GTOL) -> list[FitResult]:
+              max_iter: int = 100, xtol: float = XTOL, gtol: float = GTOL, priors: list | None = None) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
     others at ``fixed`` {name: value} or the core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
     damping ``mu I``, steps projected onto the bounds) on :class:`KindProblems`; the
-    Jacobians and model values at the solutions take one more evaluation."""
+    Jacobians and model values at the solutions take one more evaluation. ``priors``: per
+    spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
+    then the maximum a posteriori (the result's cost and residuals stay the data's)."""
     t0 = time.perf_counter()
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
-    lm = KindProblems(kind, specs, fixed, rows)
+    lm = KindProblems(kind, specs, fixed, rows, priors)
     K = len(lm.specs)
     if K == 0:
         return []

@@ -10,14 +10,23 @@ import numpy as np
 from ..measure.kind import MeasurementKind
 
 
+def _public(v):
+    """``v`` without the keys that start with "_" (fits and arrays kept for the figures), at any depth."""
+    if isinstance(v, dict):
+        return {k: _public(x) for k, x in v.items() if not k.startswith("_")}
+    if isinstance(v, list):
+        return [_public(x) for x in v]
+    return v
+
+
 def _jsonable(report: dict) -> dict:
-    return json.loads(json.dumps({k: v for k, v in report.items() if not k.startswith("_")},
+    return json.loads(json.dumps(_public(report),
                                  default=lambda o: o.tolist() if isinstance(o, np.ndarray) else
                                  (o.item() if isinstance(o, np.generic) else str(o))))
 
 
 def _steps(report: dict) -> list[str]:
-    """The accepted steps' names (an effect, or "one of {A, B} (indistinguishable in these data)")."""
+    """The claims' names (an effect, or "A+B" for a group the data cannot separate)."""
     return report["accepted_steps"]
 
 
@@ -60,7 +69,7 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     if len(groups) > 1:
         axes[0, -1].legend(fontsize=7)
     fig.suptitle(f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; verdict {report['verdict']}; "
-                 f"accepted: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
+                 f"claimed: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
                  fontsize=9)
     path = Path(path)
     fig.savefig(path, dpi=110)
@@ -94,6 +103,41 @@ def drift_figure(report: dict, path: Path) -> Path | None:
     return path
 
 
+def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | None:
+    """The best next measurement: each rival model's prediction of the coefficient and group
+    where they differ most, against frequency (None when no plan was made)."""
+    plans = report.get("next_measurement") or []
+    if not plans:
+        return None
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    best = plans[0]
+    pred = best["_predictions"]
+    freq, group, coef = best["_rows"]
+    a, b = best["separates"]
+    d = np.abs(pred[a] - pred[b])
+    k = int(np.argmax(d))
+    m = np.flatnonzero((coef == coef[k]) & (group == group[k]))
+    m = m[np.argsort(freq[m])]
+    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.4), layout="constrained")
+    for label, y in pred.items():
+        for ax, part in zip(axes, (np.real, np.imag)):
+            ax.plot(freq[m], part(y[m]), "-" if label == a else "--", label=label)
+    for ax, part in zip(axes, ("real", "imaginary")):
+        ax.set_xlabel("frequency [Hz]")
+        ax.set_ylabel(f"{part} part of {problem.coef_names[coef[k]]}")
+    axes[0].legend(fontsize=7)
+    fig.suptitle(f"next measurement: {best['description']}\n{problem.group_name} = {group[k]:.4g}; expected ln Bayes "
+                 f"factor {a} vs {b}: {best['expected_gain']:.3g}", fontsize=9)
+    path = Path(path)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
 def report_markdown(report: dict) -> str:
     r = report
     g0, g1 = r["goodness_of_fit_before"], r["goodness_of_fit_after"]
@@ -113,44 +157,42 @@ def report_markdown(report: dict) -> str:
              f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
              f"- base fit: {gof(g0)}",
              f"- final fit: {gof(g1)}",
-             f"- accepted effects: **{'; '.join(_steps(r)) or 'none'}**",
-             *(["- indistinguishable on these data: " + "; ".join(", ".join(g) for g in r["indistinguishable"])]
-               if r.get("indistinguishable") else []),
+             f"- claimed effects: **{'; '.join(_steps(r)) or 'none'}**"
+             + (f" (the most probable model, {'+'.join(r['best_model']) or 'base'}, is not claimed: it "
+                "fails a check below)" if not _steps(r) and r["best_model"] and r["verdict"] != "indistinguishable" else ""),
              *([f"- unexplained residual: {u['coefficient']}" + (f" at {u['group']:g}" if u["group"] is not None else "")
                 + f", {u['band_Hz'][0]:g}-{u['band_Hz'][1]:g} Hz, error {u['error']:.4g} (noise floor "
                   f"{u['noise_floor']:.4g})"] if (u := r.get("unexplained_residual")) else []),
-             f"- acceptance: {r['acceptance_test']}",
+             f"- models compared: {r['models_compared']['subsets']} subsets of the library linearized, "
+             f"{r['models_compared']['refitted']} refitted",
+             f"- method: {r['method']}",
              f"- residual structure before: {r['residual_structure_before']['structured_fraction']:.3f} of the residual "
              f"is smooth in frequency (white noise: {r['residual_structure_before']['structured_fraction_if_white']:.3f})",
-             "", "## Steps", "", "| step | effect | error before | error after | dBIC | p | stability |",
-             "|---|---|---|---|---|---|---|"]
-    for k, st in enumerate(r["steps"]):
-        lines.append(f"| {k + 1} | {st['effect']} | {st['error_before']:.4g} | {st['error_after']:.4g} | "
-                     f"{st['delta_bic']:.1f} | {st['p_value']:.2g} | {st['stability']:.0%} |")
-    for k, rnd in enumerate(r.get("rounds") or []):
-        lines += ["", f"## Candidates at step {k + 1} (family-wise alpha {rnd['alpha']:.3g})", "",
-                  "| effect | score | if noise | lin. p | refit | error after | dBIC | p | held-out | stability | accepted | note |",
-                  "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-        for c in rnd["candidates"]:
-            if c["refit"]:
-                extra = (f"yes | {c['error_after']:.4g} | {c['delta_bic']:.1f} | {c['p_value']:.2g} | "
-                         f"{c['held_out_error']:.3g}")
-            else:
-                extra = "no | | | | "
-            stab = "" if c.get("stability") is None else f"{c['stability']:.0%}"
-            note = c.get("rejected_because") or (f"degenerate with {c['degenerate_with']}" if c["degenerate_with"] else "")
-            lines.append(f"| {c['effect']} | {c['score']:.3g} | {c['score_if_noise']:.2g} | {c['linearized_p']:.2g} | "
-                         f"{extra} | {stab} | {c['accepted']} | {note} |")
-    lines += ["", f"held-out blocks: {', '.join(r['held_out_blocks'])} (held-out error: the candidate's pooled "
-                  "prediction error over the blocks relative to the current model's)", "",
-              "## Parameters", "", "| parameter | before | after |", "|---|---|---|"]
+             "", "## Prior tension", ""]
+    lines += [f"- {t['message']}" for t in r["prior_tension"]] or ["none: every parameter within 3 prior sd"]
+    lines += ["", "## Most probable models", "", "| model | probability | ln Z | error | chi^2 | parameters |",
+              "|---|---|---|---|---|---|"]
+    for m in r["model_probabilities"][:10]:
+        lines.append(f"| {m['label']} | {m['probability']:.3g} | {m['log_evidence']:.1f} | {m['error']:.4g} | "
+                     f"{m['chi2']:.1f} | {m['n_parameters']} |")
+    lines += ["", "## Inclusion probabilities", "", "| effect | P(in the model) |", "|---|---|"]
+    for k, v in sorted(r["inclusion_probabilities"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"| {k} | {v:.3g} |")
+    for k, v in r["group_probabilities"].items():
+        lines.append(f"| at least one of {k} | {v:.3g} |")
+    if r.get("next_measurement"):
+        lines += ["", "## Next measurement", "", "| plan | separates | expected ln Bayes factor |", "|---|---|---|"]
+        for p in r["next_measurement"]:
+            lines.append(f"| {p['description']} | {' vs '.join(p['separates'])} | {p['expected_gain']:.3g} |")
+    lines += ["", "## Parameters", "", "| parameter | before | after |", "|---|---|---|"]
     keys = list(dict.fromkeys(list(r["parameters_before"]) + list(r["parameters_after"])))
     for k in keys:
         def fmt(d):
             if k not in d:
                 return ""
-            std = d[k]["std"]
-            return f"{d[k]['value']:.5g} ± " + (f"{std:.2g}" if std is not None else "undetermined")
+            std, z = d[k]["std"], d[k].get("prior_z")
+            return (f"{d[k]['value']:.5g} ± " + (f"{std:.2g}" if std is not None else "undetermined")
+                    + (f" ({z:+.1f} prior sd)" if z is not None else ""))
         lines.append(f"| {k} | {fmt(r['parameters_before'])} | {fmt(r['parameters_after'])} |")
     for key in ("drift_before", "drift_after"):
         d = r.get(key)
@@ -175,7 +217,8 @@ def write_report(problem: MeasurementKind, report: dict, outdir: str | Path) -> 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     js = _jsonable(report)
-    figs = [residual_figure(problem, report, outdir / "residuals.png"), drift_figure(report, outdir / "drift.png")]
+    figs = [residual_figure(problem, report, outdir / "residuals.png"), drift_figure(report, outdir / "drift.png"),
+            plan_figure(problem, report, outdir / "next_measurement.png")]
     js["figures"] = [f.name for f in figs if f is not None]
     write_json(outdir / "report.json", js)
     tmp = outdir / "report.md.tmp"

@@ -5,11 +5,13 @@ blocks, stability over resamplings; the verdict and the drift of h."""
 
 from __future__ import annotations
 
-import numpy as np
-from scipy import stats
+import copy
+import math
 
-from ..fit.problems import NULL_RCOND, fit_batch, fit_one
-from ..fit.result import FitResult, bic_of
+import numpy as np
+
+from ..fit.problems import fit_batch, fit_one
+from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
 from ..measure.tmatrix import TMatrixKind
@@ -18,41 +20,17 @@ from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
 from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location
-from .screen import DEGENERATE_CORR, residual_structure, screen
+from .evidence import (REFITS, TENSION_Z, WINDOW, Model, XPrior, any_of, claims, effect_columns, inclusion, laplace_log_evidence,
+                       linearized_evidence, log_model_prior, model_priors, posterior, subsets)
+from .plans import next_measurement
+from .screen import residual_structure
 
-#: Acceptance thresholds (package docstring, step 5).
-DELTA_BIC = -10.0
-#: Family-wise level of the F-tests at the first step; step t (0, 1, ...) uses
-#: ``F_TEST_P / 2**t`` (so at most ``2 F_TEST_P`` over all steps), Holm-Bonferroni over the
-#: candidates refitted at that step.
-F_TEST_P = 0.01
-#: An effect is accepted only when at least this fraction of the resamplings choose it.
-STABILITY = 0.7
-#: Resamplings: every DECIMATION-th frequency at each of its offsets, and BOOTSTRAPS
-#: bootstraps of contiguous frequency blocks (seeded: the report is reproducible). The
-#: refits on resamplings and held-out blocks are linearized (:func:`linear_refit`).
-DECIMATION = 3
-BOOTSTRAPS = 20
-#: Held-out blocks: this many contiguous frequency bands (and every group when there are several).
-BANDS = 4
+#: Effects per model: every subset of the library up to this size is compared.
+MAX_EFFECTS = 3
 #: A base fit whose reduced chi^2 exceeds this (its error more than 5 noise floors) and
-#: that no set of library effects brings to the noise is the wrong model (another core,
+#: whose best model does not bring it to the noise is the wrong model (another core,
 #: another material, a geometry the core file does not describe).
 WRONG_MODEL_CHI2 = 25.0
-#: Two effects whose BIC differ by less than this are indistinguishable ("not worth more
-#: than a bare mention" on Kass & Raftery's scale).
-INDISTINGUISHABLE_BIC = 2.0
-#: Two effects whose sensitivities correlate above :data:`DEGENERATE_CORR` are still told
-#: apart when the worse one's refit is at least this much higher in BIC ("very strong"
-#: evidence on Kass & Raftery's scale) and the resamplings choose the better one alone.
-DISTINGUISHED_BIC = 10.0
-#: An accepted effect removes at least this share of the misfit above the noise floor
-#: (error^2 - floor^2): a significant but small gain from a candidate that only leans
-#: into a residual of another cause (a frequency-dependent calibration drift fitted by a
-#: constant gain: 5 %) is not an explanation.
-MIN_EXCESS_EXPLAINED = 1.0 / 3.0
-#: At most this many effects are accepted.
-MAX_STEPS = 3
 #: Iteration cap and step tolerance of the loop's LM fits (a misfitting model crawls along
 #: a valley: 1e-8 in the scaled variables is far below any parameter's uncertainty).
 MAX_ITER = 40
@@ -100,92 +78,45 @@ def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
     return base_params(problem.core, names if names is not None else base_names(problem))
 
 
-def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None = None) -> FitResult:
+def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None = None, priors: list | None = None) -> FitResult:
     """The base fit; with Q = 0 and Q > 0 rows the paper's two steps: the geometry on the
-    Q = 0 rows first (the h's do not act there), then everything together from there."""
+    Q = 0 rows first (the h's do not act there), then everything together from there.
+    ``priors``: (mu, sd) in x per parameter (a MAP fit), or None (least squares)."""
     hs = [par.label.endswith(".h") for par in params]
     Q0 = np.flatnonzero(problem.group == 0) if isinstance(problem, TMatrixKind) else np.zeros(0, int)
     if any(hs) and not all(hs) and 0 < Q0.size < problem.y.size:
         geo = [par for par, h in zip(params, hs) if not h]
-        step1 = fit_one(problem, geo, fixed, rows=Q0, max_iter=MAX_ITER, xtol=XTOL)
+        geo_prior = None if priors is None else [tuple(a[[not h for h in hs]] for a in priors[0])]
+        step1 = fit_one(problem, geo, fixed, rows=Q0, max_iter=MAX_ITER, xtol=XTOL, priors=geo_prior)
         x0, it = np.zeros(len(params)), iter(step1.x[0])
         for j, h in enumerate(hs):
             if not h:
                 x0[j] = next(it)
-        return fit_one(problem, params, fixed, x0=x0, max_iter=MAX_ITER, xtol=XTOL)
-    return fit_one(problem, params, fixed, max_iter=MAX_ITER, xtol=XTOL)
+        return fit_one(problem, params, fixed, x0=x0, max_iter=MAX_ITER, xtol=XTOL, priors=priors)
+    return fit_one(problem, params, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors)
 
 
-def holdout_blocks(problem: MeasurementKind) -> list[tuple[str, np.ndarray]]:
-    """Held-out blocks (name, test rows): :data:`BANDS` contiguous frequency bands, and
-    each group (heat input / layer) when there are several."""
-    f = np.unique(problem.freq)
-    out = []
-    for band in np.array_split(f, min(BANDS, max(len(f) // 3, 1))):
-        if len(band) and len(band) < len(f):
-            out.append((f"{band[0]:g}-{band[-1]:g} Hz", np.flatnonzero(np.isin(problem.freq, band))))
-    groups = np.unique(problem.group)
-    if len(groups) > 1:
-        out += [(f"{problem.group_name} = {g:g}", np.flatnonzero(problem.group == g)) for g in groups]
+def noise_weighted(problem: MeasurementKind, sigma: np.ndarray) -> MeasurementKind:
+    """A view of ``problem`` whose weights are divided by the estimated noise ``sigma`` (per
+    real residual, :func:`tawarp.loop.goodness.noise_sigma`): residuals in units of the
+    noise, as the likelihood of every model needs them."""
+    out = copy.copy(problem)
+    n = problem.y.size
+    out.w = problem.w / np.stack([sigma[:n], sigma[n:]], -1)
+    out.has_sigma = True
     return out
-
-
-def resamplings(problem: MeasurementKind) -> list[tuple[str, np.ndarray]]:
-    """(name, rows) of the stability check: every :data:`DECIMATION`-th frequency at each
-    offset, and :data:`BOOTSTRAPS` bootstraps of contiguous blocks of frequencies (block
-    length ~ m^(1/3), all groups and coefficients of a frequency together; rows repeat)."""
-    f = np.unique(problem.freq)
-    fi = np.searchsorted(f, problem.freq)
-    out = [(f"every {DECIMATION}rd frequency from #{k}", np.flatnonzero(fi % DECIMATION == k))
-           for k in range(DECIMATION) if len(f) >= 3 * DECIMATION]
-    L = max(2, int(round(len(f) ** (1 / 3))))
-    blocks = [np.arange(s, min(s + L, len(f))) for s in range(0, len(f), L)]
-    rng = np.random.default_rng(0)
-    by_f = [np.flatnonzero(fi == k) for k in range(len(f))]
-    for b in range(BOOTSTRAPS):
-        pick = rng.integers(0, len(blocks), len(blocks))
-        out.append((f"block bootstrap #{b}", np.concatenate([by_f[k] for j in pick for k in blocks[j]])))
-    return out
-
-
-def holm(p: list[float], alpha: float) -> list[bool]:
-    """Holm-Bonferroni: which of the p-values are rejections at family-wise level ``alpha``."""
-    order = np.argsort(p)
-    ok = np.zeros(len(p), dtype=bool)
-    for rank, i in enumerate(order):
-        if p[i] > alpha / (len(p) - rank):
-            break
-        ok[i] = True
-    return ok.tolist()
-
-
-def linear_refit(fit: FitResult, rows: np.ndarray, test: np.ndarray | None = None) -> tuple[float, float]:
-    """The fit ``fit`` (made on all rows) refitted on ``rows`` (may repeat) by one
-    Gauss-Newton step from its solution with its Jacobian: resampled and held-out fits start
-    so close to the full fit that the model is linear over the step (no forward launch).
-    Returns (cost on ``rows``, weighted squared prediction error on ``test`` or 0)."""
-    n = fit.model.shape[1]
-    idx = np.concatenate([rows, rows + n])
-    J, r = fit.jacobian[0], fit.residuals[0]
-    norm = np.linalg.norm(J[idx], axis=0)
-    norm[norm == 0] = 1.0
-    # directions the rows do not determine (NULL_RCOND) are not stepped along
-    d = np.linalg.lstsq(J[idx] / norm, -r[idx], rcond=NULL_RCOND)[0] / norm
-    cost = float(np.sum((r[idx] + J[idx] @ d) ** 2))
-    if test is None:
-        return cost, 0.0
-    it = np.concatenate([test, test + n])
-    return cost, float(np.sum((r[it] + J[it] @ d) ** 2))
 
 
 def step_label(group: list[str]) -> str:
-    """A step's name in the report: the effect, or for a group of effects that the data
-    cannot tell apart "one of {A, B} (indistinguishable in these data)"."""
-    return group[0] if len(group) == 1 else f"one of {{{', '.join(group)}}} (indistinguishable in these data)"
+    """A claim's name in the report: the effect, or "A+B" for a group of effects that the
+    data cannot tell apart (at least one of them is in the model)."""
+    return "+".join(group)
 
 
-def _param_report(f: FitResult) -> dict:
-    return {k: {"value": v, "std": float(s) if np.isfinite(s) else None}
+def _param_report(f: FitResult, z: dict | None = None) -> dict:
+    """{name: {value, std (None: undetermined), prior_z (shift from the prior in prior sds)}}."""
+    z = z or {}
+    return {k: {"value": v, "std": float(s) if np.isfinite(s) else None, "prior_z": z.get(k)}
             for (k, v), s in zip(f.value_dict().items(), f.std[0])}
 
 
@@ -211,16 +142,175 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
     return res
 
 
+#: What the report's ``method`` says of the comparison.
+METHOD = ("Bayesian model comparison: every parameter has a Gaussian prior in its fit variable (log-normal for log "
+          "fields; the core file's declared uncertainty or the documented default; an effect's parameters around off "
+          "with its typical size); fits are maximum a posteriori; each model (the base plus a set of effects) is scored "
+          "by its Laplace log-evidence ln L(x*) + ln pi(x*) + k/2 ln 2 pi - 1/2 ln det H (Kass & Raftery 1995), with "
+          "the model prior uniform over the number of effects and within it (Scott & Berger 2010); every subset up to "
+          "the largest size is linearized at the base solution, the base, every single effect and the most probable "
+          "others refitted (Occam's window, Madigan & Raftery 1994). An effect is claimed when its posterior inclusion "
+          "probability is >= 0.95, effects the data cannot separate as a group whose joint probability is >= 0.95, "
+          "and only when the most probable model passes the posterior predictive checks (chi^2 and whiteness of the "
+          "residual under the noise model) with no parameter more than 3 prior sd from its prior.")
+
+
 #: The loop's stages, in order, as its progress bar names them.
-STAGES = ("base fit", "effects", "drift")
+STAGES = ("base fit", "evidence", "checks", "drift")
+
+
+def _as_pairs(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray]:
+    return np.array([p.mu for p in priors]), np.array([p.sd for p in priors])
+
+
+def fit_models(problem: MeasurementKind, base_params: list[Param], fixed: dict, library: list[Effect],
+               requests: list[tuple[tuple[str, ...], list[np.ndarray]]]) -> list[Model]:
+    """MAP fits of the models ``requests`` = [(effect names, [start x, ...]), ...] in one
+    lockstep batch (every start of every model); per model the start with the lowest
+    posterior objective is kept and its Laplace ln Z computed."""
+    by_name = {e.name: e for e in library}
+    specs, priors, owner = [], [], []
+    out = []
+    for k, (names, starts) in enumerate(requests):
+        effects = tuple(by_name[n] for n in names)
+        params = list(base_params) + [par for e in effects for par in e.params]
+        structure = next((e for e in effects if e.transform is not None), None)
+        pri = model_priors(problem.core, params, effects)
+        lo = np.array([par.bounds_x()[0] for par in params])
+        hi = np.array([par.bounds_x()[1] for par in params])
+        out.append(Model(names, priors=pri, linearized=False))
+        for x0 in starts:
+            specs.append((params, structure, np.clip(x0, lo, hi)))
+            priors.append(_as_pairs(pri))
+            owner.append(k)
+    fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors)
+    for k, m in enumerate(out):
+        mine = [(f, pr) for f, o, pr in zip(fits, owner, priors) if o == k]
+        objective = [float(f.cost[0]) + float(np.sum(((f.x[0] - mu) / sd) ** 2)) for f, (mu, sd) in mine]
+        m.fit = mine[int(np.argmin(objective))][0]
+        m.log_evidence = laplace_log_evidence(m.fit.residuals[0], m.fit.jacobian[0], m.fit.x[0], m.priors)
+    return out
+
+
+def _starts(model_x: np.ndarray, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarray | None) -> list[np.ndarray]:
+    """Starts of a model's refit: its effects off (and at their typical size and further
+    ``starts`` for a single effect) from ``model_x``'s base part, and the linearized optimum."""
+    base_x = model_x[:n_base]
+    out = []
+    if len(effects) == 1:
+        out += [np.concatenate([base_x, x]) for x in refit_starts(effects[0])]
+    else:
+        out.append(np.concatenate([base_x] + [np.zeros(len(e.params)) for e in effects]))
+        typical = [refit_starts(e)[1] if len(refit_starts(e)) > 1 else np.array(
+            [float(par.x_of(e.typical.get(par.label, par.start))) for par in e.params]) for e in effects]
+        out.append(np.concatenate([base_x] + typical))
+    if x_lin is not None:
+        out.append(x_lin)
+    return out
+
+
+def compare_models(problem: MeasurementKind, base: Model, base_params: list[Param], fixed: dict,
+                   library: list[Effect], max_effects: int = MAX_EFFECTS, refits: int = REFITS) -> tuple[list[Model], dict]:
+    """The models of the library up to ``max_effects`` effects compared by their evidence
+    (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
+    every single effect and the ``refits`` most probable others refitted; then linearized at
+    the best refitted model and its most probable supersets refitted. Returns the refitted
+    models (posterior probabilities set) and counts of what was linearized and refitted."""
+    n_base = len(base_params)
+    sets = subsets(library, max_effects)
+    sizes: dict[int, int] = {}
+    for s_ in sets:
+        sizes[len(s_)] = sizes.get(len(s_), 0) + 1
+    base.log_model_prior = log_model_prior(sizes, 0)
+    name_sets = [tuple(e.name for e in s_) for s_ in sets]
+
+    def linearize(at: Model, candidates: list[tuple[Effect, ...]]) -> list[tuple[tuple[str, ...], float, np.ndarray]]:
+        structure = at.fit.effect
+        cand = [c for c in candidates if structure is None or not any(e.transform is not None for e in c)]
+        cols = effect_columns(problem, at.fit, fixed, [e for e in library if e.name not in at.effects])
+        extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
+        pri = [at.priors + model_priors(problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
+        lin = linearized_evidence(at, cols, list(zip(extra, pri)))
+        out = []
+        for c, ex, (logz, x) in zip(cand, extra, lin):
+            # x is ordered as at's parameters then the extra effects': reorder to the model's own order
+            names = tuple(e.name for e in c)
+            xs = {n: x[len(at.fit.x[0]) + sum(len(e.params) for e in ex[:i]):][:len(ex[i].params)]
+                  for i, n in enumerate(e.name for e in ex)}
+            k0 = n_base
+            for n in at.effects:
+                e = next(e for e in library if e.name == n)
+                xs[n] = x[k0:k0 + len(e.params)]
+                k0 += len(e.params)
+            full = np.concatenate([x[:n_base]] + [xs[n] for n in names])
+            out.append((names, logz + log_model_prior(sizes, len(names)), full))
+        return out
+
+    lin = linearize(base, [s_ for s_ in sets if s_])
+    lin.sort(key=lambda t: -t[1])
+    by_name = {e.name: e for e in library}
+    singles = {(e.name,) for e in library}
+    best_lin = max((t[1] for t in lin), default=-math.inf)
+    top = [t for t in lin if t[0] not in singles and t[1] >= best_lin + math.log(WINDOW)][:refits]
+    lin_x = {t[0]: t[2] for t in lin}
+    requests = [((e.name,), _starts(base.fit.x[0], n_base, (e,), lin_x.get((e.name,)))) for e in library]
+    requests += [(names, _starts(base.fit.x[0], n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
+    models = [base] + fit_models(problem, base_params, fixed, library, requests)
+    for m in models[1:]:
+        m.log_model_prior = log_model_prior(sizes, len(m.effects))
+    counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models)}
+    posterior(models)
+    best = max(models, key=lambda m: m.probability)
+    if best.effects and len(best.effects) < max_effects:
+        done = {m.effects for m in models}
+        supersets = [s_ for s_ in sets if set(best.effects) < {e.name for e in s_}]
+        lin2 = [t for t in linearize(best, supersets) if t[0] not in done]
+        lin2.sort(key=lambda t: -t[1])
+        lin2 = [t for t in lin2 if t[1] >= best.log_posterior + math.log(WINDOW)][:refits]
+        if lin2:
+            more = fit_models(problem, base_params, fixed, library,
+                              [(names, _starts(best.fit.x[0], n_base, tuple(by_name[n] for n in names), x))
+                               for names, _, x in lin2])
+            for m in more:
+                m.log_model_prior = log_model_prior(sizes, len(m.effects))
+            models += more
+            counts["linearized"] += len(supersets)
+            counts["refitted"] += len(more)
+            posterior(models)
+    models.sort(key=lambda m: -m.probability)
+    return models, counts
+
+
+def prior_tension(problem: MeasurementKind, models: list[Model]) -> list[dict]:
+    """Parameters further than :data:`TENSION_Z` prior sds from their prior in each of
+    ``models``, by name, with what the most probable model that keeps it inside does."""
+    out = []
+    for m in models:
+        for j, (name, z) in enumerate(m.z().items()):
+            if abs(z) <= TENSION_Z:
+                continue
+            par, pr = m.fit.params[j], m.priors[j]
+            value, centre = float(m.fit.values[0][j]), float(par.value(pr.mu))
+            size = (f"{value / centre:.3g}x its prior" if par.log and centre > 0
+                    else f"{value - centre:+.3g} from its prior")
+            calm = next((o for o in models if o is not m and name in o.fit.names
+                         and abs(o.z()[name]) <= TENSION_Z and o.probability > 0), None)
+            msg = f"{name} is {size} ({z:+.1f} prior sd) in the model {m.label}"
+            if calm is not None:
+                msg += f"; {calm.label} explains the data with {name} inside it ({calm.z()[name]:+.1f} sd)"
+            out.append({"model": m.label, "parameter": name, "value": value, "prior_centre": centre, "z": float(z),
+                        "message": msg})
+    return out
 
 
 def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, library: list[Effect] | None = None,
-             top: int = 3, drift_h: bool = True, progress: bool = False) -> dict:
+             max_effects: int = MAX_EFFECTS, drift_h: bool = True, progress: bool = False,
+             plans: bool = True) -> dict:
     """The loop of the package docstring; returns the report dict (report.json).
     ``base_params``: default :func:`default_base_params`; ``library``: candidate effects
-    (default :func:`library_for` the kind); ``top``: candidates refitted first at each
-    step; ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
+    (default :func:`library_for` the kind); ``max_effects``: the largest set of effects
+    compared; ``plans``: evaluate the next measurement when the top models are close;
+    ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
     bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
 
     def stage(name: str) -> None:
@@ -230,294 +320,95 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     base_params = list(base_params or default_base_params(problem))
     library = library_for(problem) if library is None else library
     fixed: dict = {}
-    base = fit_base(problem, base_params, fixed)
-    stage("base fit")
     if problem.has_sigma:
-        sigma, source = None, "sigma"
+        weighted, sigma, source = problem, None, "sigma"
     else:
-        sigma, source = noise_sigma(problem, base.residuals[0]), NOISE_ESTIMATE
-    gof_before = goodness_of_fit(problem, base, sigma, source)
-    floor = gof_before["noise_floor"]
-    blocks = holdout_blocks(problem)
-    samples = resamplings(problem)
-
-    cur, cur_params, groups, steps, rounds, indistinguishable = base, list(base_params), [], [], [], []
-    gof, tie = gof_before, False
-    for t in range(MAX_STEPS):
-        # effects are looked for while the misfit exceeds the noise, and while a misfit of the
-        # noise's size is not white; then a step must also leave it white (held-out seeds 134,
-        # 157, 161: a visible effect left as a non-white residual of 1.06-1.13 noise floors)
-        if gof["adequate"] and gof["white"]:
-            break
-        structural = cur.effect is not None and cur.effect.transform is not None
-        done = {n for g in groups for n in g}
-        lib = [e for e in library if e.name not in done and not (structural and e.transform is not None)]
-        if not lib:
-            break
-        # far from a fit (reduced chi^2 above WRONG_MODEL_CHI2) the linear screen ranks badly:
-        # every candidate is refitted
-        rnd = _step(problem, cur, cur_params, len(base_params), lib, fixed, sigma, floor, blocks, samples,
-                    len(lib) if gof["reduced_chi2"] > WRONG_MODEL_CHI2 else top, F_TEST_P / 2 ** t,
-                    whiten=gof["adequate"])
-        rounds.append(rnd)
-        indistinguishable += [g for g in rnd["indistinguishable"] if g not in indistinguishable]
-        tie = tie or rnd["tie"]
-        best = rnd["accepted"]
-        if best is None:
-            break
-        c = rnd["_fits"][best]
-        e = next(x for x in lib if x.name == best)
-        gof_new = goodness_of_fit(problem, c, sigma, source)
-        row = next(r for r in rnd["candidates"] if r["effect"] == best)
-        group = rnd["group"]
-        shares = [next(r for r in rnd["candidates"] if r["effect"] == n)["stability"] or 0.0 for n in group]
-        steps.append({"effect": step_label(group), "members": group, "representative": best,
-                      "error_before": float(cur.rms_error[0]), "error_after": float(c.rms_error[0]),
-                      "delta_bic": row["delta_bic"], "p_value": row["p_value"], "stability": float(sum(shares)),
-                      "parameters": {k: v for k, v in _param_report(c).items()
-                                     if k in {par.label for par in e.params}},
-                      "reduced_chi2_after": gof_new["reduced_chi2"]})
-        groups.append(group)
-        cur, cur_params, gof = c, cur_params + list(e.params), gof_new
-    stage("effects")
-    # an effect is claimed only when a step accepted it alone; a group's members never are
-    accepted = [g[0] for g in groups if len(g) == 1]
-
-    after = cur
-    # a residual that no step brought to the noise's size and to white is reported, not
-    # attributed to the steps taken on the way
-    explained = gof["adequate"] and gof["white"]
-    if explained:
-        verdict = "explained" if groups else "adequate"
-    elif gof_before["reduced_chi2"] > WRONG_MODEL_CHI2:
-        # grossly inadequate and the library does not bring it to the noise
-        verdict = "wrong_model"
-    elif tie and not groups:
+        # the noise is estimated once, from the least-squares base fit, and every model's
+        # likelihood uses the same estimate
+        lsq = fit_base(problem, base_params, fixed)
+        weighted = noise_weighted(problem, noise_sigma(problem, lsq.residuals[0]))
+        sigma, source = np.ones(2 * problem.y.size), NOISE_ESTIMATE
+    base_priors = model_priors(problem.core, base_params, ())
+    base = Model((), priors=base_priors, linearized=False)
+    base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
+    base.log_evidence = laplace_log_evidence(base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors)
+    stage("base fit")
+    models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects)
+    stage("evidence")
+    names = [e.name for e in library]
+    best = models[0]
+    gof_before = goodness_of_fit(weighted, base.fit, sigma, source)
+    gof = goodness_of_fit(weighted, best.fit, sigma, source)
+    floor = weighted.noise_floor(None)
+    tension = prior_tension(weighted, [base] + [m for m in models if m is not base][:5])
+    best_tension = [t for t in tension if t["model"] == best.label]
+    alone, groups = claims(models, names)
+    inc = inclusion(models, names)
+    passes = gof["adequate"] and gof["white"] and not best_tension
+    if passes and not best.effects:
+        verdict = "adequate"
+    elif passes and set(best.effects) <= set(alone) | {n for g in groups for n in g}:
+        verdict = "explained"
+    elif passes:
         verdict = "indistinguishable"
+    elif gof_before["reduced_chi2"] > WRONG_MODEL_CHI2:
+        verdict = "wrong_model"
     else:
-        # steps that reduce the misfit without bringing it to the noise are listed, not taken as
-        # its explanation: they may only lean into a residual of another cause (validation: a
-        # calibration gain and plane offsets on a calibration drift)
         verdict = "unexplained_residual"
-    first = rounds[0]["candidates"] if rounds else []
+    claimed = verdict == "explained"
+    accepted = alone if claimed else []
+    accepted_groups = ([[n] for n in alone] + groups) if claimed else []
+    stage("checks")
     report = {
         "kind": problem.name,
-        "n_residuals": base.n,
+        "n_residuals": base.fit.n,
         "verdict": verdict,
         "noise_floor": floor,
         "noise_source": source,
-        "error_before": float(base.rms_error[0]),
-        "error_after": float(after.rms_error[0]),
+        "error_before": float(base.fit.rms_error[0]),
+        "error_after": float(best.fit.rms_error[0]),
         "accepted_effects": accepted,
-        "accepted_groups": groups,
-        "accepted_steps": [step_label(g) for g in groups],
+        "accepted_groups": accepted_groups,
+        "accepted_steps": [step_label(g) for g in accepted_groups],
         "chosen_effect": accepted[0] if accepted else None,
         "chosen_description": next((e.description for e in library if accepted and e.name == accepted[0]), None),
-        "steps": steps,
+        "best_model": list(best.effects),
+        "model_probabilities": [_model_row(m) for m in models[:20]],
+        "inclusion_probabilities": inc,
+        "group_probabilities": {step_label(g): any_of(models, g) for g in groups},
+        "supported_effects": {"alone": alone, "groups": groups},
+        "prior_tension": tension,
+        "models_compared": counts,
         "goodness_of_fit_before": gof_before,
         "goodness_of_fit_after": gof,
-        "unexplained_residual": None if explained else residual_location(problem, after.model[0], floor),
-        "indistinguishable": indistinguishable,
-        "indistinguishable_bic": INDISTINGUISHABLE_BIC,
+        "unexplained_residual": None if verdict in ("adequate", "explained", "indistinguishable")
+        else residual_location(problem, best.fit.model[0], floor),
+        "indistinguishable": groups,
         "base_parameters": [par.label for par in base_params],
         "pinned": list(getattr(problem.core, "pinned", ())),
-        "acceptance_test": (
-            f"one effect at a time while the fit is not adequate, or is but its residual is not white (a step must "
-            f"then leave it white); at step t (0, 1, ...) a candidate is accepted when "
-            f"Delta BIC < {DELTA_BIC:g}, its F-test passes Holm-Bonferroni over the candidates refitted at that step at "
-            f"family-wise level {F_TEST_P:g}/2^t, it predicts a majority of the held-out blocks ({len(blocks)}: "
-            f"{BANDS} frequency bands and each group) better than the current model, none of its parameters ends at a "
-            f"bound, it removes at least {MIN_EXCESS_EXPLAINED:.2g} of the misfit above the noise floor "
-            f"(error^2 - floor^2) (a candidate whose sensitivity correlates > {DEGENERATE_CORR:g} with a base "
-            f"parameter's is refitted with it free); "
-            f"the lowest BIC among those is accepted when it is chosen in >= {STABILITY:.0%} of {len(samples)} "
-            f"resamplings (every {DECIMATION}rd frequency at each offset, {BOOTSTRAPS} block bootstraps); other "
-            f"candidates passing the BIC and F tests within {INDISTINGUISHABLE_BIC:g} in BIC of it, or correlated > "
-            f"{DEGENERATE_CORR:g} with it unless their refit is {DISTINGUISHED_BIC:g} or more higher in BIC and the "
-            f"resamplings choose it alone in >= {STABILITY:.0%}, are indistinguishable from it: the step is then the group (one of them, "
-            f"fitted as the lowest-BIC member, stable when the group is chosen in >= {STABILITY:.0%} of the "
-            f"resamplings), and no member is claimed"),
-        "held_out_blocks": [name for name, _ in blocks],
-        "resamplings": [name for name, _ in samples],
-        "rounds": rounds and [{k: v for k, v in r.items() if not k.startswith("_")} for r in rounds],
-        "parameters_before": _param_report(base),
-        "parameters_after": _param_report(after),
-        "base_converged": bool(base.converged[0]),
-        "candidates": first,
-        "residual_structure_before": residual_structure(problem, base.model[0]),
-        "residual_structure_after": residual_structure(problem, after.model[0]),
+        "method": METHOD,
+        "parameters_before": _param_report(base.fit, base.z()),
+        "parameters_after": _param_report(best.fit, best.z()),
+        "base_converged": bool(base.fit.converged[0]),
+        "residual_structure_before": residual_structure(weighted, base.fit.model[0]),
+        "residual_structure_after": residual_structure(weighted, best.fit.model[0]),
+        "next_measurement": next_measurement(weighted, models, fixed) if plans else [],
     }
     if drift_h:
-        report["drift_before"] = drift(problem, base_params, base, fixed, None)
-        report["drift_after"] = (drift(problem, base_params, after, _effect_fixed(after, base_params), after.effect)
-                                 if groups else report["drift_before"])
+        report["drift_before"] = drift(problem, base_params, base.fit, fixed, None)
+        report["drift_after"] = (drift(problem, base_params, best.fit, _effect_fixed(best.fit, base_params),
+                                       best.fit.effect) if best.effects else report["drift_before"])
     stage("drift")
     bar.close()
-    report["_fits"] = {"before": base, "after": after}
+    report["_fits"] = {"before": base.fit, "after": best.fit}
+    report["_models"] = models
     return report
 
 
-def _step(problem: MeasurementKind, cur: FitResult, cur_params: list[Param], n_base: int, lib: list[Effect],
-          fixed: dict, sigma, floor: float, blocks, samples, top: int, alpha: float, whiten: bool = False) -> dict:
-    """One step of the loop on the current model ``cur``: screen, refit (the promising
-    candidates first, the rest when none passes), test, check stability; returns the
-    round's report (``accepted``: the lowest-BIC passing effect when stable, else None;
-    ``group``: it and the candidates indistinguishable from it, the step the loop takes)."""
-    has_sigma = problem.has_sigma
-    N, p = cur.n, len(cur_params)
-    rss0 = float(cur.cost[0])
-    scores = screen(problem, cur, fixed, lib)
-    directions = {s["effect"]: s.pop("_direction") for s in scores}
-    usable = [s for s in scores if s["degenerate_with"] is None]
-    order = sorted(usable, key=lambda s: -s["score"])
-    promising = [s["effect"] for s in order if s["linearized_p"] < alpha or top >= len(lib)][:top]
-    # the linear screen sees an effect only near its "off" value: one whose fit must start
-    # elsewhere (``Effect.starts``: a frame resonance inside the band) is always refitted
-    promising += [s["effect"] for s in usable if s["effect"] not in promising
-                  and next(e for e in lib if e.name == s["effect"]).starts]
-    # a candidate whose sensitivity correlates with a base parameter's is degenerate with it
-    # to first order only (the screen projects it out): its refit, with that parameter still
-    # free, can tell them apart (held-out seeds 133, 161: buffer-tube convection, whose size
-    # tbt.h absorbs but not its shape), so it is refitted too
-    promising += [s["effect"] for s in scores if s["degenerate_with"] is not None and s["effect"] not in promising]
-    fits: dict = {}
-    rows_out: dict = {}
-
-    def spec(e: Effect, x0, rows=None):
-        return (cur_params + list(e.params), e if e.transform is not None else cur.effect, x0, rows)
-
-    def refit(names: list[str]) -> None:
-        """Augmented fits of ``names`` in one batch, from each of the effect's
-        :func:`refit_starts` with the base parameters at the current solution and at the core
-        file's values (the lowest cost kept); the held-out blocks by :func:`linear_refit`."""
-        effects = [next(x for x in lib if x.name == n) for n in names]
-        # a strong effect pulls the base fit away from where the augmented optimum lies, and
-        # the descent from there can stay in that valley (validation seed 101)
-        at_core = cur.x[0].copy()
-        at_core[:n_base] = 0.0
-        starts = [(e, np.concatenate([x, start])) for e in effects for start in refit_starts(e)
-                  for x in (cur.x[0], at_core)]
-        runs = fit_batch(problem, [spec(e, x0) for e, x0 in starts], fixed, max_iter=MAX_ITER, xtol=XTOL)
-        augs = [min((f for (o, _), f in zip(starts, runs) if o is e), key=lambda f: float(f.cost[0])) for e in effects]
-        train = [np.setdiff1d(np.arange(problem.y.size), test) for _, test in blocks]
-        base_err = np.array([linear_refit(cur, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
-        for e, aug in zip(effects, augs):
-            k = len(e.params)
-            err = np.array([linear_refit(aug, tr, test)[1] for tr, (_, test) in zip(train, blocks)])
-            F = ((rss0 - float(aug.cost[0])) / k) / max(float(aug.cost[0]) / max(N - p - k, 1), 1e-300)
-            own = {par.label for par in e.params}
-            fits[e.name] = aug
-            rows_out[e.name] = {
-                "refit": True, "error_after": float(aug.rms_error[0]), "delta_bic": aug.bic(has_sigma) - cur.bic(has_sigma),
-                "F": F, "p_value": float(stats.f.sf(F, k, max(N - p - k, 1))),
-                "explained_fraction": (rss0 - float(aug.cost[0])) / rss0 if rss0 > 0 else 0.0,
-                "held_out_error": float(np.sqrt(err.sum() / base_err.sum())) if base_err.sum() > 0 else 0.0,
-                "held_out_blocks_better": int(np.sum(err < base_err)),
-                "at_bounds": [n for n in aug.at_bounds() if n in own], "fitted": _param_report(aug)}
-
-    refit(promising)
-    second_pass = False
-
-    def judge() -> list[str]:
-        names = list(rows_out)
-        holm_ok = holm([rows_out[n]["p_value"] for n in names], alpha)
-        passing = []
-        for n, ok in zip(names, holm_ok):
-            r = rows_out[n]
-            # the share of the misfit above the noise floor (FORMATS.md error, in floors^2) it removes
-            excess = (float(cur.rms_error[0]) / floor) ** 2 - 1.0
-            r["excess_explained"] = ((float(cur.rms_error[0]) ** 2 - r["error_after"] ** 2) / floor ** 2 / excess
-                                     if excess > 0 else 0.0)
-            r["checks"] = {"delta_bic": r["delta_bic"] < DELTA_BIC, "f_test_holm": ok,
-                           "held_out": 2 * r["held_out_blocks_better"] > len(blocks), "not_at_bound": not r["at_bounds"],
-                           "explains_excess": r["excess_explained"] >= MIN_EXCESS_EXPLAINED}
-            if whiten:   # a misfit of the noise's size: the step must leave the residual white
-                r["checks"]["whitens"] = bool(goodness_of_fit(problem, fits[n], sigma, "")["white"])
-            if r["at_bounds"]:
-                r["rejected_because"] = f"fitted at a bound: {', '.join(r['at_bounds'])}"
-            if all(r["checks"].values()):
-                passing.append(n)
-        return passing
-
-    passing = judge()
-    if not passing:
-        second_pass = True
-        # the screening is linear: refit the others with something to gain too (one start)
-        rest = [s["effect"] for s in order if s["effect"] not in rows_out and s["linearized_p"] < 0.5]
-        if rest:
-            refit(rest)
-            passing = judge()
-    bic = {n: fits[n].bic(has_sigma) for n in rows_out}
-    chosen, groups, stability = None, [], {}
-    # a candidate degenerate with a base parameter that the data support is named with it
-    for s in scores:
-        if s["degenerate_with"] is not None and s["effect"] not in passing:
-            groups.append(sorted([s["effect"], s["degenerate_with"]]))
-    tie = False
-    group: list[str] = []
-    if passing:
-        best = min(passing, key=bic.get)
-
-        def corr(a, b):
-            da, db = directions[a], directions[b]
-            nn = np.linalg.norm(da) * np.linalg.norm(db)
-            return abs(float(da @ db)) / nn if nn > 0 else 0.0
-
-        contenders = [n for n in rows_out if rows_out[n]["checks"]["delta_bic"] and not rows_out[n]["at_bounds"]]
-        stability = _stability(problem, cur, contenders, fits, samples)
-        for n, v in stability.items():
-            rows_out[n]["stability"] = v
-
-        def distinguished(n):
-            # sensitivities correlated at the current model make two effects look alike to a
-            # linear screen; their nonlinear refits can still differ by far more than the noise
-            # (validation seed 20: radiation against T-dependent conductivity, 374 in BIC, 1.02
-            # against 1.22 noise floors), and then the data tell them apart
-            return bic[n] - bic[best] >= DISTINGUISHED_BIC and stability.get(best, 0.0) >= STABILITY
-
-        rivals = [n for n in rows_out if n != best and rows_out[n]["checks"]["delta_bic"]
-                  and rows_out[n]["checks"]["f_test_holm"]
-                  and (abs(bic[n] - bic[best]) < INDISTINGUISHABLE_BIC
-                       or (corr(n, best) > DEGENERATE_CORR and not distinguished(n)))]
-        members = sorted([best] + rivals)
-        # the data cannot tell the members apart, so a resampling that picks any of them picks the group
-        share = sum(stability.get(n, 0.0) for n in members)
-        if rivals:
-            groups.append(members)
-        if share >= STABILITY:
-            chosen, group = best, members
-        else:
-            tie = bool(rivals)
-            rows_out[best]["rejected_because"] = (f"unstable: {' or '.join(members)} chosen in {share:.0%} of the "
-                                                  f"resamplings (< {STABILITY:.0%})")
-    rows = []
-    for s in scores:
-        row = dict(s)
-        row.update(rows_out.get(s["effect"], {"refit": False}))
-        row["accepted"] = s["effect"] == chosen
-        row["in_accepted_group"] = s["effect"] in group
-        row.setdefault("stability", None)
-        rows.append(row)
-    return {"alpha": alpha, "second_pass": second_pass, "candidates": rows, "accepted": chosen, "group": group,
-            "indistinguishable": groups, "tie": tie, "_fits": fits}
-
-
-def _stability(problem, cur: FitResult, contenders: list[str], fits: dict, samples) -> dict:
-    """Fraction of the resamplings in which each contender is chosen: the current model and
-    every contender refitted on each resampling (:func:`linear_refit`), the choice there
-    being the lowest BIC among the contenders with Delta BIC < DELTA_BIC."""
-    if not contenders or not samples:
-        return {}
-    has_sigma = problem.has_sigma
-    wins = dict.fromkeys(contenders, 0)
-    for _, rows in samples:
-        n = 2 * len(rows)
-        b = bic_of(linear_refit(cur, rows)[0], n, len(cur.names), has_sigma)
-        bics = {c: bic_of(linear_refit(fits[c], rows)[0], n, len(fits[c].names), has_sigma) for c in contenders}
-        ok = [c for c in contenders if bics[c] - b < DELTA_BIC]
-        if ok:
-            wins[min(ok, key=bics.get)] += 1
-    return {c: wins[c] / len(samples) for c in contenders}
+def _model_row(m: Model) -> dict:
+    return {"effects": list(m.effects), "label": m.label, "probability": m.probability,
+            "log_evidence": m.log_evidence, "log_model_prior": m.log_model_prior,
+            "error": float(m.fit.rms_error[0]), "chi2": float(m.fit.cost[0]), "n_parameters": len(m.fit.names)}
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:

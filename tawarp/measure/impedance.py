@@ -62,6 +62,19 @@ class ImpedanceKind(MeasurementKind):
     def default_names(self) -> list[str]:
         return list(LAYER_BASE)
 
+    def extra_groups(self) -> list[float]:
+        """A second sample length: twice and half the thickest layer's."""
+        t = float(np.max(self.thickness))
+        return [2.0 * t, 0.5 * t]
+
+    def at_rows(self, groups, freqs) -> "ImpedanceKind":
+        d0 = self.data[0]
+        data = [ImpedanceData(np.asarray(freqs, dtype=float), np.ones(len(freqs), dtype=complex), float(t),
+                              d0.T_ambient, d0.p_ambient, source=f"{d0.source} (planned)") for t in groups]
+        out = ImpedanceKind(data, self.settings)
+        out.core = self.core
+        return out
+
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Zs (n, rows) of ``n`` parameter sets. The rigid-frame layer is the kernels' porous
         segment; a set with an elastic frame (``layer.frame_compliance`` > 0) takes the

@@ -61,6 +61,17 @@ class MeasurementKind:
         """Parameters fitted when none are named."""
         raise NotImplementedError
 
+    def extra_groups(self) -> list[float]:
+        """Groups a further measurement could add (the loop's next-measurement plans): none
+        by default."""
+        return []
+
+    def at_rows(self, groups, freqs) -> "MeasurementKind | None":
+        """The same kind and model at every (group, frequency) of ``groups`` x ``freqs``
+        (its measured values are placeholders): what a planned measurement would see. None
+        where the kind cannot say."""
+        return None
+
     def unit_weights(self) -> np.ndarray:
         """(rows, 2) weights 1/rms|y|: the cost is then the FORMATS.md error squared times rows."""
         return np.full((self.y.size, 2), 1.0 / np.sqrt(np.mean(np.abs(self.y) ** 2)))

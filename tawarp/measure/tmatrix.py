@@ -78,6 +78,19 @@ class TMatrixKind(MeasurementKind):
         names = [f"{stack}.porosity", f"{stack}.pore_radius"]
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
+    def extra_groups(self) -> list[float]:
+        """Heat inputs 1.5 and 2 times the highest measured (a core's safe limit is not in its
+        file: the report gives the values, the user judges them)."""
+        q = float(np.max(self.Qs))
+        return [1.5 * q, 2.0 * q] if q > 0 else []
+
+    def at_rows(self, groups, freqs) -> "TMatrixKind":
+        g, f = np.meshgrid(np.asarray(groups, dtype=float), np.asarray(freqs, dtype=float), indexing="ij")
+        T = np.broadcast_to(np.eye(2, dtype=complex), (g.size, 2, 2))
+        data = TMatrixData(g.reshape(-1), f.reshape(-1), T, source=f"{self.data.source} (planned)")
+        return TMatrixKind(data, self.core, dataclasses.replace(self.settings, cells=None)
+                           if self.settings.cells is None else self.settings)
+
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
         effect's gain g (``calibration.gain`` exp(i ``calibration.phase``), see

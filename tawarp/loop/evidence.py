@@ -1,0 +1,271 @@
+"""Bayesian comparison of the models the effects library makes: maximum a posteriori fits,
+Laplace log-evidence, posterior model and inclusion probabilities, groups the data cannot
+separate.
+
+A *model* is the base fit plus a set of effects (at most one that changes the core's
+structure). Every parameter carries a Gaussian prior in its scaled fit variable x
+(:class:`tawarp.model.effects.Param`; log-normal for log fields), truncated to the fit
+bounds: the base fields' priors come from the core file or the documented defaults
+(:func:`tawarp.model.priors.prior_for`), an effect's parameters sit around "off" with the
+effect's typical size (:func:`tawarp.model.priors.effect_priors`).
+
+**Evidence.** The Laplace approximation of the marginal likelihood at the maximum a
+posteriori x* (Tierney & Kadane, JASA 81 (1986) 82; Kass & Raftery, JASA 90 (1995) 773,
+Eq. 4; MacKay, *Information Theory, Inference and Learning Algorithms* (2003), Ch. 28):
+
+    ln Z = ln L(x*) + ln pi(x*) + (k/2) ln 2 pi - (1/2) ln det H,
+    H = J^T J + diag(1/sd^2),
+
+with ln L = -chi^2/2 (the Gaussian noise's normalisation, the same for every model, is
+left out), pi the truncated-Gaussian prior density and H the Gauss-Newton Hessian of
+-ln posterior. Parameters the data do not determine get H = 1/sd^2: their Occam factor is
+then exactly 1, so an effect that changes nothing is neither rewarded nor punished beyond
+its model prior.
+
+**Model prior.** Uniform over the number of effects (0 ... ``max_effects``), then uniform
+among the models of that size: the multiplicity correction of Scott & Berger, Ann. Stat. 38
+(2010) 2587, so that the many three-effect models do not outweigh the few small ones by
+their count alone.
+
+**Search (Occam's window, Madigan & Raftery, JASA 89 (1994) 1535).** The evidence of every
+subset of the library up to ``max_effects`` is first computed from the quadratic model of
+the log posterior at the base solution (:func:`linearized_evidence`: one batched launch for
+every effect's sensitivity columns, then only linear algebra per model); the base model,
+every single effect and the most probable subsets are then refitted (nonlinear MAP fits, one
+lockstep batch), and the posterior is taken over the refitted models, those far outside the
+window having negligible mass. A second round linearizes at the best refitted model and
+refits its most probable supersets.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import special, stats
+
+from ..fit.problems import FD_STEP, fit_batch, param_values, residual
+from ..fit.result import FitResult
+from ..measure.kind import MeasurementKind
+from ..model.effects import Effect, Param
+from ..model.priors import effect_priors, prior_for
+
+#: An effect (or a group of effects) is claimed when its posterior inclusion probability is
+#: at least this.
+CLAIM = 0.95
+#: A parameter further than this many prior standard deviations from its prior's centre is
+#: in tension with it: a model with such a value is never ``adequate``.
+TENSION_Z = 3.0
+#: Models refitted nonlinearly per round besides the base and the single effects (the most
+#: probable by the linearized evidence).
+REFITS = 8
+#: Occam's window: subsets whose linearized posterior is below this fraction of the best are
+#: not refitted.
+WINDOW = 1e-3
+
+
+@dataclass(frozen=True)
+class XPrior:
+    """A Gaussian prior in a parameter's scaled fit variable x, truncated to [lo, hi]."""
+
+    mu: float
+    sd: float
+    lo: float = -math.inf
+    hi: float = math.inf
+
+    def log_norm(self) -> float:
+        """ln of the density's normalisation: -ln sd - ln(2 pi)/2 - ln(prior mass inside the bounds)."""
+        mass = stats.norm.cdf((self.hi - self.mu) / self.sd) - stats.norm.cdf((self.lo - self.mu) / self.sd)
+        return -math.log(self.sd) - 0.5 * math.log(2 * math.pi) - math.log(max(mass, 1e-300))
+
+
+def x_prior(core, par: Param, declared=None) -> XPrior:
+    """The prior of ``par`` in its x: ``declared`` (a :class:`tawarp.model.priors.Prior`) or the
+    core file's / default prior of the field it fits."""
+    pr = declared if declared is not None else prior_for(core, par.label)
+    mu, sd = pr.x_moments(par)
+    lo, hi = par.bounds_x()
+    return XPrior(float(mu), float(sd), lo, hi)
+
+
+def model_priors(core, params: list[Param], effects: tuple[Effect, ...]) -> list[XPrior]:
+    """The priors of a model's ``params`` (base parameters first, then its effects')."""
+    declared = {}
+    for e in effects:
+        declared.update(effect_priors(e, core))
+    return [x_prior(core, par, declared.get(par.label)) for par in params]
+
+
+def laplace_log_evidence(r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior]) -> float:
+    """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
+    (in units of the noise) and their Jacobian ``J`` in x."""
+    mu = np.array([p.mu for p in priors])
+    isd2 = np.array([p.sd ** -2 for p in priors])
+    H = J.T @ J + np.diag(isd2)
+    _, logdet = np.linalg.slogdet(H)
+    log_prior = float(np.sum(-0.5 * (x - mu) ** 2 * isd2)) + sum(p.log_norm() for p in priors)
+    return -0.5 * float(r @ r) + log_prior + 0.5 * len(x) * math.log(2 * math.pi) - 0.5 * logdet
+
+
+def prior_z(x: np.ndarray, priors: list[XPrior]) -> np.ndarray:
+    """Shift of ``x`` from each prior's centre, in prior standard deviations."""
+    return np.array([(xi - p.mu) / p.sd for xi, p in zip(x, priors)])
+
+
+@dataclass
+class Model:
+    """One candidate model: its effects (names, in library order), its fit (None while only
+    linearized), ln Z and ln P(M); ``probability`` P(M | data) once compared."""
+
+    effects: tuple[str, ...]
+    log_evidence: float = -math.inf
+    log_model_prior: float = 0.0
+    fit: FitResult | None = None
+    priors: list[XPrior] = field(default_factory=list)
+    linearized: bool = True
+    probability: float = 0.0
+
+    @property
+    def label(self) -> str:
+        return "+".join(self.effects) if self.effects else "base"
+
+    @property
+    def log_posterior(self) -> float:
+        return self.log_evidence + self.log_model_prior
+
+    def z(self) -> dict[str, float]:
+        """Each parameter's shift from its prior in prior sds (fitted models)."""
+        return dict(zip(self.fit.names, prior_z(self.fit.x[0], self.priors).tolist()))
+
+
+def subsets(library: list[Effect], max_effects: int) -> list[tuple[Effect, ...]]:
+    """Every set of at most ``max_effects`` effects of ``library`` with at most one that
+    changes the core's structure (two structures cannot be combined), the empty set first."""
+    out = [()]
+    for k in range(1, max_effects + 1):
+        out += [s for s in itertools.combinations(library, k) if sum(e.transform is not None for e in s) <= 1]
+    return out
+
+
+def log_model_prior(sizes: dict[int, int], k: int) -> float:
+    """ln P(M) of a model of ``k`` effects: uniform over the sizes present, then over the
+    ``sizes[k]`` models of that size (Scott & Berger's multiplicity correction)."""
+    return -math.log(len(sizes)) - math.log(sizes[k])
+
+
+def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, library: list[Effect]) -> dict:
+    """Sensitivity columns (2 rows, k) of every effect's parameters at the base solution,
+    forward differences from "off": the field effects in one launch, each structural effect
+    in its own."""
+    out = {}
+    rows = np.arange(problem.y.size)
+    fields = [e for e in library if e.transform is None]
+    groups = [(None, fields)] + [(e, [e]) for e in library if e.transform is not None]
+    for structure, effects in groups:
+        extra = [par for e in effects for par in e.params]
+        if not extra:
+            continue
+        allp = base.params + extra
+        p0 = len(base.params)
+        x = np.concatenate([base.x[0], np.zeros(len(extra))])
+        h = np.full(len(extra), FD_STEP)
+        hi = np.array([par.bounds_x()[1] for par in extra])
+        h[h > hi] *= -1
+        X = np.vstack([x[None], x[None] + np.pad(np.diag(h), ((0, 0), (p0, 0)))])
+        Y = problem.predict(param_values(allp, X, fixed), X.shape[0], structure)
+        R = residual(problem, Y, rows)
+        cols = ((R[1:] - R[0]) / h[:, None]).T
+        k = 0
+        for e in effects:
+            out[e.name] = cols[:, k:k + len(e.params)]
+            k += len(e.params)
+    return out
+
+
+def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]]) -> list[tuple[float, np.ndarray]]:
+    """ln Z of each model (its effects and their priors, appended to ``at``'s) from the
+    quadratic model of ln posterior at ``at``'s solution: ``||r + J d||^2`` with the base
+    columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"), plus the priors.
+    An effect parameter whose optimum leaves its bounds is held on the bound (the
+    Gaussian then integrates over half a space: ln 2 less). Returns (ln Z, x) per model,
+    x the linearized optimum (``at``'s parameters, then the effects')."""
+    fit = at.fit
+    r0, Jb, xb = fit.residuals[0], fit.jacobian[0], fit.x[0]
+    out = []
+    for effects, priors in models:
+        C = np.hstack([Jb] + [columns[e.name] for e in effects]) if effects else Jb
+        x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
+        mu = np.array([p.mu for p in priors])
+        isd2 = np.array([p.sd ** -2 for p in priors])
+        lo = np.array([p.lo for p in priors])
+        hi = np.array([p.hi for p in priors])
+        G = C.T @ C + np.diag(isd2)
+        b = C.T @ r0 + isd2 * (x0 - mu)
+        free = np.ones(len(x0), dtype=bool)
+        pinned = 0
+        while True:
+            d = np.zeros(len(x0))
+            d[free] = np.linalg.solve(G[np.ix_(free, free)], -b[free])
+            x = x0 + d
+            bad = free & ((x < lo) | (x > hi))
+            bad[:len(xb)] = False            # the base parameters are inside at the solution
+            if not bad.any():
+                break
+            j = int(np.argmax(np.where(bad, np.maximum(lo - x, x - hi), -np.inf)))
+            free[j] = False
+            pinned += 1
+        x = np.clip(x, lo, hi)
+        d = x - x0
+        rr = r0 + C @ d
+        phi = float(rr @ rr) + float(np.sum((x - mu) ** 2 * isd2))
+        _, logdet = np.linalg.slogdet(G)
+        logz = (-0.5 * phi + sum(p.log_norm() for p in priors) + 0.5 * len(x) * math.log(2 * math.pi)
+                - 0.5 * logdet - pinned * math.log(2.0))
+        out.append((logz, x))
+    return out
+
+
+def posterior(models: list[Model]) -> None:
+    """P(M | data) of each model, in place (a softmax of ln Z + ln P(M))."""
+    lp = np.array([m.log_posterior for m in models])
+    w = np.exp(lp - special.logsumexp(lp))
+    for m, p in zip(models, w):
+        m.probability = float(p)
+
+
+def inclusion(models: list[Model], names: list[str]) -> dict[str, float]:
+    """Posterior inclusion probability of each effect: the mass of the models holding it."""
+    return {n: float(sum(m.probability for m in models if n in m.effects)) for n in names}
+
+
+def any_of(models: list[Model], group) -> float:
+    """Posterior probability that at least one effect of ``group`` is in the model."""
+    return float(sum(m.probability for m in models if set(m.effects) & set(group)))
+
+
+def claims(models: list[Model], names: list[str], level: float = CLAIM, max_group: int = 3) -> tuple[list[str], list[list[str]]]:
+    """Effects claimed alone (inclusion >= ``level``) and groups: effects the data cannot
+    separate, each below ``level`` alone but with at least one of them in the model with
+    probability >= ``level`` (built greedily from the most probable, each member adding to
+    the joint probability; at most ``max_group`` members)."""
+    inc = inclusion(models, names)
+    alone = [n for n in names if inc[n] >= level]
+    groups = []
+    rest = sorted((n for n in names if n not in alone and inc[n] >= 0.05), key=lambda n: -inc[n])
+    used: set = set()
+    for first in rest:
+        if first in used:
+            continue
+        group = [first]
+        while any_of(models, group) < level and len(group) < max_group:
+            gains = [(any_of(models, group + [n]) - any_of(models, group), n) for n in rest
+                     if n not in group and n not in used]
+            if not gains or max(gains)[0] < 0.01:
+                break
+            group.append(max(gains)[1])
+        if len(group) > 1 and any_of(models, group) >= level:
+            groups.append(sorted(group, key=names.index))
+            used.update(group)
+    return alone, groups

@@ -1,0 +1,123 @@
+"""The loop's Bayesian pieces against closed forms: the Laplace evidence is exact for a
+linear model with Gaussian noise and prior (the marginal likelihood is then the Gaussian
+N(y; A mu, I + A S A^T)); the linearized evidence equals it at the optimum; the truncated
+prior's normalisation equals scipy's truncnorm; the model prior sums to one over the
+models; inclusion and group claims follow from the model probabilities."""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from tawarp.fit.result import FitResult
+from tawarp.loop.evidence import (CLAIM, Model, XPrior, claims, inclusion, laplace_log_evidence, linearized_evidence,
+                                  log_model_prior, posterior, subsets)
+
+
+def linear_gaussian(seed, n=40, p=3):
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((n, p))
+    mu = rng.standard_normal(p)
+    sd = rng.uniform(0.3, 2.0, p)
+    y = A @ (mu + sd * rng.standard_normal(p)) + rng.standard_normal(n)
+    return A, y, mu, sd
+
+
+def exact_log_evidence(A, y, mu, sd):
+    """ln N(y; A mu, I + A diag(sd^2) A^T) plus (n/2) ln 2 pi (the evidence leaves out the
+    noise's normalisation, the same for every model)."""
+    cov = np.eye(len(y)) + A @ np.diag(sd ** 2) @ A.T
+    return stats.multivariate_normal(A @ mu, cov).logpdf(y) + 0.5 * len(y) * math.log(2 * math.pi)
+
+
+def map_estimate(A, y, mu, sd):
+    H = A.T @ A + np.diag(sd ** -2)
+    return np.linalg.solve(H, A.T @ y + mu / sd ** 2)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_laplace_evidence_is_exact_for_a_linear_gaussian_model(seed):
+    A, y, mu, sd = linear_gaussian(seed)
+    x = map_estimate(A, y, mu, sd)
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)]
+    got = laplace_log_evidence(A @ x - y, A, x, priors)
+    assert got == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
+    # the base model holds the first two columns (at its MAP); the "effect" adds the third,
+    # off at 0: the quadratic model is exact for a linear model, so the linearized evidence of
+    # base + effect equals the exact evidence of the three-column model
+    A, y, mu, sd = linear_gaussian(seed)
+    mu[2] = 0.0
+    xb = map_estimate(A[:, :2], y, mu[:2], sd[:2])
+    base_priors = [XPrior(m, s) for m, s in zip(mu[:2], sd[:2])]
+    fit = FitResult(names=["a", "b"], values=xb[None], std=np.zeros((1, 2)), covariance=np.zeros((1, 2, 2)),
+                    correlation=np.zeros((1, 2, 2)), condition=np.ones(1), iterations=np.zeros(1, int),
+                    converged=np.ones(1, bool), reason=np.array(["xtol"]), cost=np.ones(1), rms_error=np.ones(1),
+                    s2=np.ones(1), dof=1, start=np.zeros((1, 2)), x=xb[None], residuals=(A[:, :2] @ xb - y)[None],
+                    jacobian=A[None, :, :2])
+    at = Model((), fit=fit, priors=base_priors)
+
+    class Effect:
+        name, params = "e", (None,)
+
+    (logz, x), = linearized_evidence(at, {"e": A[:, 2:]}, [((Effect,), base_priors + [XPrior(0.0, sd[2])])])
+    assert logz == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
+    assert np.allclose(x, map_estimate(A, y, mu, sd), atol=1e-12)
+    # and with no effect it is the base model's own evidence
+    (logz0, _), = linearized_evidence(at, {}, [((), base_priors)])
+    assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
+
+
+@pytest.mark.parametrize("lo, hi", [(0.0, math.inf), (-1.0, 2.5), (-math.inf, 0.3)])
+def test_truncated_prior_normalisation(lo, hi):
+    p = XPrior(0.2, 0.7, lo, hi)
+    x = 0.25
+    expected = stats.truncnorm((lo - 0.2) / 0.7, (hi - 0.2) / 0.7, loc=0.2, scale=0.7).logpdf(x)
+    assert p.log_norm() - 0.5 * ((x - 0.2) / 0.7) ** 2 == pytest.approx(expected, abs=1e-12)
+
+
+def test_model_prior_sums_to_one_and_is_uniform_over_sizes():
+    class E:
+        def __init__(self, name, structural=False):
+            self.name, self.transform = name, (lambda c: c) if structural else None
+
+    lib = [E("a"), E("b"), E("c"), E("s1", True), E("s2", True)]
+    sets = subsets(lib, 3)
+    assert all(sum(e.transform is not None for e in s) <= 1 for s in sets)
+    assert not any({"s1", "s2"} <= {e.name for e in s} for s in sets)
+    sizes = {}
+    for s in sets:
+        sizes[len(s)] = sizes.get(len(s), 0) + 1
+    total = sum(math.exp(log_model_prior(sizes, len(s))) for s in sets)
+    assert total == pytest.approx(1.0, abs=1e-12)
+    for k in sizes:     # each size carries 1/(number of sizes)
+        assert sum(math.exp(log_model_prior(sizes, k)) for s in sets if len(s) == k) == pytest.approx(1 / len(sizes))
+
+
+def _models(table):
+    out = []
+    for effects, logz in table:
+        m = Model(tuple(effects), log_evidence=logz)
+        out.append(m)
+    posterior(out)
+    return out
+
+
+def test_inclusion_and_claims():
+    # "a" is in every probable model: claimed alone; "b" and "c" substitute for each other
+    # (either explains the data, rarely both): a group of joint probability >= 0.95; "d" is
+    # in no probable model
+    ms = _models([((), -50.0), (("a",), -20.0), (("a", "b"), 0.0), (("a", "c"), 0.1), (("a", "b", "c"), -4.0),
+                  (("d",), -30.0)])
+    inc = inclusion(ms, ["a", "b", "c", "d"])
+    assert inc["a"] > 0.999 and 0.3 < inc["b"] < 0.7 and 0.3 < inc["c"] < 0.7 and inc["d"] < 1e-6
+    alone, groups = claims(ms, ["a", "b", "c", "d"])
+    assert alone == ["a"] and groups == [["b", "c"]]
+    # no claim when the data do not favour the effects
+    ms = _models([((), 0.0), (("a",), -1.0), (("b",), -1.0)])
+    assert claims(ms, ["a", "b"]) == ([], [])
+    assert CLAIM == 0.95
