@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -317,27 +318,16 @@ def read_atalla_panneton(path: str | os.PathLike, thickness: float | None,
 
 
 def _atalla_panneton_folder() -> Path:
-    """``$TAWARP_SHARED/data/measured/atalla_panneton_2005`` if the variable is set, else
-    the first ``shared/data/measured/atalla_panneton_2005`` found walking up from this file
-    (the repository's ``../shared``, or a ``shared/`` inside the checkout)."""
-    env = os.environ.get("TAWARP_SHARED")
-    if env:
-        return Path(env) / ATALLA_PANNETON_DIR
-    tried = []
-    for parent in Path(__file__).resolve().parents:
-        candidate = parent / "shared" / ATALLA_PANNETON_DIR
-        if candidate.is_dir():
-            return candidate
-        tried.append(str(candidate))
-    raise FileNotFoundError("Atalla & Panneton data set not found; looked in " + ", ".join(tried)
-                            + "; set TAWARP_SHARED to the shared folder or pass folder=")
+    """The copy of the data set bundled with the package (``tawarp/data/measured/``)."""
+    return Path(str(resources.files("tawarp") / ATALLA_PANNETON_DIR))
 
 
 def load_atalla_panneton(name: str, folder: str | os.PathLike | None = None) -> list[ImpedanceData]:
     """``[thin, thick]`` surface impedances of sample ``name`` (foam1, foam2, fibrous1,
     fibrous2), with thickness [m], T_ambient [K], p_ambient [Pa] from the README table.
 
-    ``folder`` defaults to the shared data folder (see ``TAWARP_SHARED``). For fibrous2
+    ``folder`` defaults to the copy bundled with the package (its README, source and
+    licence beside the files); pass another folder to read a copy elsewhere. For fibrous2
     the thick layer's ``thickness`` is None (the README calls that pairing unreliable).
     """
     samples = atalla_panneton_samples()
