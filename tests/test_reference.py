@@ -1,6 +1,6 @@
 """Checks of the independent NumPy/SciPy reference model (tawarp.reference).
 
-PHYSICS.md "Checks": uniform closed form, reciprocity, passivity, exact heat solution and
+docs/physics.md "Checks": uniform closed form, reciprocity, passivity, exact heat solution and
 energy balance; plus the special functions against mpmath and the convergence of the
 ODE integration. Fast: the whole file runs in a few seconds on one core.
 """

@@ -1,6 +1,6 @@
-"""Measured data: loaders and writers for the file formats of FORMATS.md (pure NumPy).
+"""Measured data: loaders and writers for the file formats of docs/formats.md (pure NumPy).
 
-Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of PHYSICS.md
+Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of docs/physics.md
 (data in the other convention are complex-conjugated on load):
 
 - core T-matrices ``(p, U)(x6) = T (p, U)(x1)``: :func:`read_tmatrix_csv`,
@@ -168,7 +168,7 @@ def _sigma_allowed(name: str) -> bool:
 
 
 def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
-    """Read a measured core T-matrix CSV (FORMATS.md "Measured core T-matrices").
+    """Read a measured core T-matrix CSV (docs/formats.md "Measured core T-matrices").
 
     Columns ``Q_W`` [W], ``freq_Hz`` [Hz], ``Tpp_re, Tpp_im, Tpu_re, ..., Tuu_im`` (raw SI
     coefficients) in any order; optional standard deviations ``sigma_Tpp`` (both parts)
@@ -254,7 +254,7 @@ def _write_matrix_csv(path, meta: dict, leading: dict, entries: dict, M: np.ndar
 
 # -- surface impedance -----------------------------------------------------------------
 def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
-    """Read the surface impedance of a rigid-backed layer (FORMATS.md "Other measurement kinds").
+    """Read the surface impedance of a rigid-backed layer (docs/formats.md "Other measurement kinds").
 
     Columns ``freq_Hz`` [Hz], ``Zs_re``, ``Zs_im`` (normalized by rho0 c0). Metadata:
     ``thickness`` [m] (required), ``convention`` (default exp(-iwt); exp(+iwt) is

@@ -1,0 +1,59 @@
+"""The repository stands alone: version, licence, bundled data and documents it cites."""
+
+import importlib.metadata
+import re
+import tomllib
+from pathlib import Path
+
+import pytest
+
+import tawarp
+from tawarp.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_version_is_the_one_of_pyproject(capsys):
+    """``tawarp --version`` prints the installed distribution's version, which is
+    pyproject.toml's and ``tawarp.__version__``; argparse exits 0."""
+    with pytest.raises(SystemExit) as done:
+        main(["--version"])
+    assert done.value.code == 0
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["version"]
+    assert capsys.readouterr().out.strip() == f"tawarp {declared}"
+    assert importlib.metadata.version("tawarp") == tawarp.__version__ == declared
+
+
+def test_licence_file_is_the_declared_one():
+    """pyproject declares MIT; the LICENSE file is the MIT text."""
+    assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == {"text": "MIT"}
+    text = (ROOT / "LICENSE").read_text()
+    assert text.startswith("MIT License") and "Permission is hereby granted, free of charge" in text
+
+
+def _documents():
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "bench").glob("*.md"))]
+
+
+def test_documents_cite_only_files_of_the_repository():
+    """Every relative Markdown link of the README and docs/ resolves inside the repository,
+    and nothing points at a folder beside the clone (``../shared``)."""
+    for doc in _documents():
+        text = doc.read_text()
+        assert "../shared" not in text, doc
+        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+            if "://" in target:
+                continue
+            path = (doc.parent / target).resolve()
+            assert path.exists() and ROOT in path.parents, f"{doc.name}: link {target} does not resolve"
+
+
+def test_physics_and_formats_contract_are_in_docs():
+    """The physics and the formats contract are documents of the repository, and the
+    measured CSV's columns are defined there."""
+    formats = (ROOT / "docs" / "formats.md").read_text()
+    for column in ("Q_W", "freq_Hz", "Tpp_re", "Tuu_im", "sigma_Tpp", "Zs_re", "S11_re"):
+        assert column in formats
+    assert "exp(-iwt)" in formats and "volume velocity" in formats
+    physics = (ROOT / "docs" / "physics.md").read_text()
+    assert "Checks any implementation must pass" in physics
