@@ -45,7 +45,7 @@ def test_documents_cite_only_files_of_the_repository():
             if "://" in target:
                 continue
             path = (doc.parent / target).resolve()
-            assert path.exists() and ROOT in path.parents, f"{doc.name}: link {target} does not resolve"
+            assert path.exists() and ROOT in path.parents, f"{doc.relative_to(ROOT)}: link {target} does not resolve"
 
 
 def test_physics_and_formats_contract_are_in_docs():
