@@ -2,6 +2,8 @@
 
 import importlib.metadata
 import re
+import subprocess
+import sys
 import tomllib
 from pathlib import Path
 
@@ -57,3 +59,10 @@ def test_physics_and_formats_contract_are_in_docs():
     assert "exp(-iwt)" in formats and "volume velocity" in formats
     physics = (ROOT / "docs" / "physics.md").read_text()
     assert "Checks any implementation must pass" in physics
+
+
+def test_ruff_check_is_clean():
+    """``ruff check .`` with pyproject.toml's rule set finds nothing (ruff is in the test extra)."""
+    done = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "--output-format", "concise", str(ROOT)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stdout + done.stderr

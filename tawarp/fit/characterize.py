@@ -316,7 +316,7 @@ def plot_h_vs_Q(curves: dict[str, tuple], path, title: str = ""):
     k = len(first[3])
     fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 3.6))
     axes = np.atleast_1d(axes)
-    for label, (Q, v, s, names) in curves.items():
+    for label, (Q, v, s, _names) in curves.items():
         for a in range(k):
             axes[a].errorbar(Q, v[:, a], yerr=np.where(np.isfinite(s[:, a]), s[:, a], 0), marker="o", ms=4,
                              capsize=3, label=label)
