@@ -37,17 +37,29 @@ def _documents():
     return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")), *sorted((ROOT / "bench").glob("*.md"))]
 
 
+def _anchors(doc: Path) -> set[str]:
+    """GitHub's anchors of a Markdown file's headings (lower case, punctuation dropped,
+    blanks as hyphens)."""
+    text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+            for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+
+
 def test_documents_cite_only_files_of_the_repository():
-    """Every relative Markdown link of the README and docs/ resolves inside the repository,
-    and nothing points at a folder beside the clone (``../shared``)."""
+    """Every relative Markdown link of the README, docs/ and bench/ resolves inside the
+    repository, to a heading where it names one, and nothing points at a folder beside
+    the clone (``../shared``)."""
     for doc in _documents():
         text = doc.read_text()
         assert "../shared" not in text, doc
-        for target in re.findall(r"\]\(([^)#\s]+)(?:#[^)]*)?\)", text):
+        for target, anchor in re.findall(r"\]\(([^)#\s]*)(?:#([^)\s]*))?\)", text):
             if "://" in target:
                 continue
-            path = (doc.parent / target).resolve()
-            assert path.exists() and ROOT in path.parents, f"{doc.relative_to(ROOT)}: link {target} does not resolve"
+            path = (doc.parent / target).resolve() if target else doc
+            where = f"{doc.relative_to(ROOT)}: link {target}#{anchor}"
+            assert path.exists() and (path == doc or ROOT in path.parents), where + " does not resolve"
+            if anchor and path.suffix == ".md":
+                assert anchor in _anchors(path), where + ": no such heading"
 
 
 def test_physics_and_formats_contract_are_in_docs():
