@@ -1,4 +1,4 @@
-"""Benchmark of design search and sweeps (issue #5): writes bench/results/design_<device>.json (cuda: design_cuda_<gpu>.json).
+"""Benchmark of design search and sweeps: writes bench/results/design_<device>.json (cuda: design_cuda_<gpu>.json).
 
 Search: a batched CMA-ES study (and an NSGA-II one) over material x stack length x
 porosity x hot-exchanger length x heat input, stored as the command line does (a journal

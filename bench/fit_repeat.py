@@ -1,5 +1,5 @@
 """Side-by-side fit timing: the median of repeated complete fits in one process, for
-comparing two checkouts (this one and a previous release) on the same machine.
+comparing two checkouts (this one and an older one) on the same machine.
 
     python bench/fit_repeat.py --repeats 7 --n 10000 --out new.json
     (cd ../old-release && python /path/to/bench/fit_repeat.py --bench-dir bench --out old.json)

@@ -1,4 +1,4 @@
-"""Large inputs (issue 10 item 10): the memory of reading a large T-matrix CSV and the
+"""Large inputs: the memory of reading a large T-matrix CSV and the
 time of ``tawarp fit`` against the number of heat inputs. Writes JSON.
 
     python bench/large_inputs.py                                   # 100 MB CSV; 1k, 4k, 19k heat inputs

@@ -20,8 +20,8 @@ on every worker:
   written by this process (one file), then written by the workers to part files that the
   file maps (``parts=True``: ``sweep_parts_*``).
 
-Speed-up = rate on k workers / rate on 1 worker of the same kind of cluster (the target
-of issue 11: >= 1.8 on 2 GPUs). Each row also says whether its evaluations and its sweep
+Speed-up = rate on k workers / rate on 1 worker of the same kind of cluster (the target:
+>= 1.8 on 2 GPUs). Each row also says whether its evaluations and its sweep
 file equal those of one process on the first device (bit for bit: same device kind, same
 code), which checks Warp driving several devices from threads; ``one_process`` holds
 that process's sweep rate (no Dask).

@@ -128,7 +128,7 @@ def main(argv=None):
                                                     "(studies/onset_peer.py)"}
         except ImportError as e:
             peers["openthermoacoustics"] = {"available": False, "reason": str(e)}
-        for k, v in peers.items():
+        for v in peers.values():
             if "seconds_one_prediction" in v:
                 v["speedup_of_tawarp"] = best / 60.0 * v["seconds_one_prediction"]
         result["peers"] = peers

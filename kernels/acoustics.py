@@ -1,4 +1,4 @@
-"""Acoustic two-port of one part (PHYSICS.md, "Acoustics"), as Warp functions.
+"""Acoustic two-port of one part (docs/physics.md, "Acoustics"), as Warp functions.
 
 ``d/dx (p, U) = A(x) (p, U)`` with ``A = [[0, a12], [a21, a22]]``::
 
@@ -9,7 +9,7 @@
 Parts at uniform temperature have constant A and their exact matrix is ``exp(A L)``;
 parts with a gradient are integrated with the sixth-order Magnus scheme on three Gauss
 points per cell. Both use :func:`expm2`, so one code path gives the closed form of
-PHYSICS.md (``exp(A L) = [[cos kL, i Zc sin kL], [i sin kL / Zc, cos kL]]``) and the
+docs/physics.md (``exp(A L) = [[cos kL, i Zc sin kL], [i sin kL / Zc, cos kL]]``) and the
 integrator.
 """
 

@@ -1,4 +1,4 @@
-"""Steady heat model (PHYSICS.md, paper Eqs. 10-12) as Warp functions.
+"""Steady heat model (docs/physics.md, paper Eqs. 10-12) as Warp functions.
 
 In each thermal segment ``lam theta'' - lam k^2 theta = -lam sigma`` with
 ``k^2 = 2 h / (R lam)`` and ``sigma = Q / (l_heater S lam)`` in the heater, 0 elsewhere;

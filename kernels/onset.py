@@ -1,6 +1,6 @@
 """Complex-frequency eigenvalues of an engine: core between resonator ducts and end conditions.
 
-With exp(-i omega t), a mode grows when Im omega > 0 (PHYSICS.md, "Onset"). One thread per
+With exp(-i omega t), a mode grows when Im omega > 0 (docs/physics.md, "Onset"). One thread per
 parameter set finds omega where the end condition holds:
 
 * each end is a row ``(a, b)`` with ``a p + b U = 0`` there (U positive towards +x):
@@ -54,7 +54,7 @@ def mat_vec(m: CMat2, p: wp.vec2d, u: wp.vec2d):
 def duct_step(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.vec2d, T: wp.float64,
               radius: wp.float64, length: wp.float64, p: wp.vec2d, u: wp.vec2d):
     """(p, U) carried through an empty duct of ``length`` [m], ``radius`` [m] at uniform T [K]:
-    exp(A L), the closed form of PHYSICS.md."""
+    exp(A L), the closed form of docs/physics.md."""
     area = PI * radius * radius
     a = propagation_matrix_complex(gas, p_mean, omega, T, wp.float64(0.0), wp.float64(1.0), radius, wp.float64(1.0),
                                    0, area, radius, wp.float64(0.0), wp.float64(1.0))

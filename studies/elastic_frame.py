@@ -14,7 +14,7 @@ rebuilt):
 Starts: the README's values (sigma, phi measured; alpha_inf, Lambda, Lambda' identified by
 the paper) and 8 starts 30 % off them for the rigid fit; the Biot fit starts from the README
 and the rigid fit, each with a grid of frame moduli and densities, and keeps the best. Parameters are fitted in log scale within physical bounds.
-Error: FORMATS.md's measure, rms|Z_meas - Z_model| / rms|Z_meas| over the rows compared.
+Error: docs/formats.md's measure, rms|Z_meas - Z_model| / rms|Z_meas| over the rows compared.
 Writes ``DOCS/elastic_frame.md`` and ``DOCS/elastic_frame.png``.
 """
 
@@ -39,7 +39,7 @@ BAND = (1100.0, 1400.0)  # Hz: the thick layer's frame-resonance feature
 
 
 def error(Z, Zm) -> float:
-    """FORMATS.md error measure: rms|Z - Zm| / rms|Z|."""
+    """docs/formats.md error measure: rms|Z - Zm| / rms|Z|."""
     return float(np.sqrt(np.mean(np.abs(Z - Zm) ** 2) / np.mean(np.abs(Z) ** 2)))
 
 
@@ -200,7 +200,7 @@ def _write_md(path, sample, data, readme, rv, ev, rows, c_frame, seconds, r_fit,
         f"({data[1].thickness * 1e3:.2f} mm) layers,",
         f"{data[0].freq.min():g}-{data[0].freq.max():g} Hz, fitted together (one material) with",
         "`scipy.optimize.least_squares` (log parameters within bounds). Error: rms|Z_meas - Z_model| /",
-        "rms|Z_meas| (FORMATS.md). Poisson ratio fixed at 0.3 (not identifiable at normal incidence).",
+        "rms|Z_meas| (docs/formats.md). Poisson ratio fixed at 0.3 (not identifiable at normal incidence).",
         "",
         "| rows | rigid JCA | Biot (elastic frame) |",
         "| --- | --- | --- |",

@@ -1,4 +1,4 @@
-"""Accuracy per unit of compute of the forward model (issue #2).
+"""Accuracy per unit of compute of the forward model.
 
 Makes studies/out/forward_accuracy.{json,png}: the max relative error of the four
 dimensionless coefficients against the adaptive NumPy reference (DOP853, rtol 1e-12)

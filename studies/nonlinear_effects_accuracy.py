@@ -1,4 +1,4 @@
-"""Accuracy and cost of the temperature-dependent conductivity effects (issue 9, item 4).
+"""Accuracy and cost of the temperature-dependent conductivity effects.
 
 Core ``ceramic``, Q = 40 W, stack.conductivity_exponent = 0.5 and, separately,
 stack.radiative_conductivity = 0.3 W/(m K) (and, for information, tbt.h_convection = 3,

@@ -7,7 +7,7 @@ Same geometry and gas (air, 1 atm, 293.15 K; tube radius 16.7 mm; the core of
 both ends closed), circular pores of radius 0.47 mm (porosity 0.9) in the stack and the
 hot exchanger. The models differ in what sets the temperature:
 
-* tawarp: the heat input Q drives the 1-D steady heat model with lateral losses (PHYSICS.md);
+* tawarp: the heat input Q drives the 1-D steady heat model with lateral losses (docs/physics.md);
   the stack profile is a sum of exponentials, the buffer tube cools back to T_cold, and
   the onset is a heat input, its temperature ratio the largest temperature / T_cold.
 * openthermoacoustics: the temperature is imposed: linear in the stack from T_cold to

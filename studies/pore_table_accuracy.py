@@ -1,4 +1,4 @@
-"""Accuracy and cost of the tabulated circular-pore functions (issue #11).
+"""Accuracy and cost of the tabulated circular-pore functions.
 
 Makes studies/out/pore_table_accuracy.json: the largest error, relative to |f| and to
 |g| separately, of the kernels' tabulated f, g (tawarp.kernels.pore.pore_circular_tabulated)

@@ -6,7 +6,7 @@ the gas constants (:data:`tawarp.model.gas.GASES`) and the core description
 (:class:`tawarp.model.core.Core`). Everything is float64 / complex128; accuracy comes first,
 speed second.
 
-Conventions (PHYSICS.md):
+Conventions (docs/physics.md):
 
 * time dependence ``exp(-i w t)``;
 * state ``(p, U)``: complex pressure amplitude [Pa] and complex volume velocity
@@ -170,7 +170,7 @@ def _ell(m: float, L: float) -> float:
 
 
 class HeatSolution:
-    """Exact piecewise solution of the steady heat model (PHYSICS.md, Eqs. 10-12).
+    """Exact piecewise solution of the steady heat model (docs/physics.md, Eqs. 10-12).
 
     On every thermal segment ``lam theta'' - (2 h / R) theta = -Q/(l_h S)`` (source only
     in the heater), ``theta = T - T_cold`` [K], ``theta' = 0`` at both ends of the thermal
@@ -389,7 +389,7 @@ def energy_balance(core: Core, heat_input: float) -> float:
 # Temperature-dependent (nonlinear) heat model, solved as a BVP
 # ======================================================================================
 #
-# With the temperature-dependent effects on (PHYSICS.md "Effects"; core fields
+# With the temperature-dependent effects on (docs/physics.md "Effects"; core fields
 # conductivity_exponent b, radiative_conductivity c, h_convection h_c), on every thermal segment
 #     (lam(T) theta')' - (2 h(theta)/R) theta + q = 0,   T = T_cold + theta,
 #     lam(T) = lam_m (T/T_cold)^b + c (T/T_cold)^3 + wall_conductance,
@@ -756,7 +756,7 @@ def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e
 def transfer_matrix_omega(core: Core, omega, heat_input: float = 0.0, rtol: float = 1e-12,
                           heat_tol: float = 1e-8) -> np.ndarray:
     """Core T-matrix (m, 2, 2) at complex angular frequencies ``omega`` [rad/s] (scalar or
-    1-D): every model function is analytic in omega (PHYSICS.md, "Onset"), so the closed
+    1-D): every model function is analytic in omega (docs/physics.md, "Onset"), so the closed
     forms and the ODE of :func:`transfer_matrix` hold as written with omega complex
     (Bessel functions of complex argument, DOP853 on the complex system). Im omega > 0 is
     a growing oscillation in exp(-i omega t)."""
@@ -774,7 +774,7 @@ def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, len
     """Closed-form T-matrix (m, 2, 2) of an empty duct of ``radius`` [m] and ``length`` [m]
     at uniform temperature ``T`` [K], at complex angular frequencies ``omega`` [rad/s]:
     k = (w/c) sqrt((1 + (gamma-1) f_k)/(1 - f_nu)), Zc = rho c/(S sqrt((1 - f_nu)(1 + (gamma-1) f_k))),
-    T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]] (PHYSICS.md, "Acoustics")."""
+    T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]] (docs/physics.md, "Acoustics")."""
     w = np.atleast_1d(np.asarray(omega, dtype=complex))
     g = gas_properties(gas_name, T, p_mean)
     f_nu, omf_nu = thermoviscous_function("circular", radius, np.sqrt(2.0 * g.mu / (g.rho * w)))

@@ -1,4 +1,4 @@
-"""The host (NumPy) batched Levenberg-Marquardt the package ran before issue #11, kept
+"""The host (NumPy) batched Levenberg-Marquardt the package ran before the LM iteration moved to the device, kept
 here only as the oracle of :func:`tawarp.fit.lm.levenberg_marquardt` (the device kernels
 of :mod:`tawarp.kernels.lm_step` must take the same decisions)."""
 
@@ -97,7 +97,7 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         A = H[a] + mu[a, None, None] * eye
         # the step on the free components only: a component held at its bound would otherwise
         # take part in the solve, and projecting the full step back onto the bound leaves a
-        # direction that need not descend (the fit then stalls at the bound: issue 9 validation)
+        # direction that need not descend (the fit then stalls at the bound)
         fr = _free_mask(z[a], g[a], prob.zlo[pa], prob.zhi[pa])
         both = fr[:, :, None] & fr[:, None, :]
         A = np.where(both, A, eye)

@@ -1,26 +1,19 @@
-"""Where the real measurements live: ``shared/data/measured`` beside or inside the clone.
+"""Where the real measurements of the tests live: the copies bundled with the package.
 
-The real-data tests call :func:`measured_folder`: it walks up from this file to the first
-directory holding ``shared/data/measured`` (``<repo>/../shared`` or ``<repo>/shared``).
-Missing data FAIL the test when the environment variable ``CI`` is set (a CI run must not
-pass by skipping them) and skip it with the paths tried otherwise.
+The real-data tests call :func:`measured_folder`, the package's ``tawarp/data/measured/<sub>``
+(each data set with its README, source and licence). A missing folder fails the test: a
+real-data test never passes by skipping.
 """
 
-import os
+from importlib import resources
 from pathlib import Path
 
 import pytest
 
 
 def measured_folder(sub: str = "") -> Path:
-    """``.../shared/data/measured/<sub>`` (fails in CI, skips elsewhere when absent)."""
-    tried = []
-    for parent in Path(__file__).resolve().parents:
-        candidate = parent / "shared" / "data" / "measured" / sub
-        if candidate.is_dir():
-            return candidate
-        tried.append(str(candidate))
-    msg = f"real measurements shared/data/measured/{sub} not found; looked in {', '.join(tried)}"
-    if os.environ.get("CI"):
-        pytest.fail(msg + " (CI is set: real-data tests must run)")
-    pytest.skip(msg)
+    """``tawarp/data/measured/<sub>`` of the installed package (the test fails when absent)."""
+    folder = Path(str(resources.files("tawarp") / "data" / "measured" / sub))
+    if not folder.is_dir():
+        pytest.fail(f"real measurements {folder} not found; reinstall the package (pip install -e .)")
+    return folder

@@ -136,7 +136,7 @@ def test_demo_fit_writes_every_material(tmp_path):
 
 
 def test_uncertainty_propagation_steps_inside_the_bounds():
-    """A porosity fitted at its bound 1 (noisy data: issue 10 item 8) is differenced
+    """A porosity fitted at its bound 1 (noisy data) is differenced
     towards the interior: the propagated covariance is finite and positive semi-definite
     instead of 'porosity must lie in (0, 1], got 1.000001'."""
     from tawarp.fit.characterize import default_heat_names, geometry_propagation
@@ -158,7 +158,7 @@ def test_uncertainty_propagation_steps_inside_the_bounds():
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_fit_json_gives_an_honest_verdict(seed):
-    """goodness_of_fit in every step (issue 10 item 5): data of the mesh fitted with the
+    """goodness_of_fit in every step: data of the mesh fitted with the
     mesh core are adequate (chi^2 p-value >= 1e-3: reduced chi^2 near 1); the same data
     fitted with the ceramic core are not (reduced chi^2 >> 1)."""
     data = make_paper_data("mesh", noise=0.005, seed=seed, freqs=np.linspace(30, 500, 12), heat_inputs=[0.0, 40.0],
@@ -175,7 +175,7 @@ def test_fit_json_gives_an_honest_verdict(seed):
 
 def test_fit_mode_error_is_formats_error_over_all_rows(tmp_path):
     """`tawarp fit --fit a,b` reported the mean of the per-Q errors (0.0704 against 0.0799
-    recomputed, issue 10 item 9): now FORMATS.md's rms|Y_meas - Y_model| / rms|Y_meas|
+    recomputed): it must be docs/formats.md's rms|Y_meas - Y_model| / rms|Y_meas|
     over every row, recomputed here from the fitted values."""
     from tawarp.fit.characterize import fit_each_heat_input, grid
     from tawarp.fit.estimate import predict
@@ -194,7 +194,7 @@ def test_fit_mode_error_is_formats_error_over_all_rows(tmp_path):
 
 def test_grid_of_many_heat_inputs_equals_the_per_q_selection():
     """grid() sorts once (it selected the rows of each Q in turn: quadratic in the number of
-    heat inputs, a hang at 19k, issue 10 item 10); same arrays as the per-Q selection, and a
+    heat inputs, a hang at 19k); same arrays as the per-Q selection, and a
     heat input with other frequencies is named."""
     from tawarp.fit.characterize import grid
     from tawarp.measure.files import TMatrixData
@@ -222,7 +222,7 @@ def test_grid_of_many_heat_inputs_equals_the_per_q_selection():
 
 
 def test_cell_groups_size_each_problem_for_its_own_h():
-    """The geometry propagation of thousands of heat inputs (issue 10 item 10): a problem
+    """The geometry propagation of thousands of heat inputs: a problem
     whose h ran to its bound gets its own cell count instead of sizing every problem's
     cascade. Each problem is in one group, whose fixed count per thermal segment is at
     least what the fit's rule asks for its own h and at most sqrt(2) times that."""

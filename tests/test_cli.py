@@ -1,4 +1,4 @@
-"""The command line: outputs readable per FORMATS.md, bad input named, exit codes."""
+"""The command line: outputs readable per docs/formats.md, bad input named, exit codes."""
 
 import numpy as np
 import pytest
@@ -111,7 +111,7 @@ def test_quiet_prints_nothing_on_stdout(tmp_path):
 
 def test_fit_with_an_undetermined_std_prints_it(tmp_path, capsys):
     """`tawarp fit DATA --fit stack.h` on data that do not determine h: fit.json is written
-    and the summary says 'undetermined' (a traceback before, issue 10 item 8)."""
+    and the summary says 'undetermined' (it ended in a traceback when the covariance was singular)."""
     from importlib import resources
 
     data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
@@ -123,7 +123,7 @@ def test_fit_with_an_undetermined_std_prints_it(tmp_path, capsys):
 
 def test_fit_of_a_passive_core_recovers_the_layer(tmp_path, capsys):
     """A passive core (no heater) takes the kind fit of every porous segment's geometry
-    (a StopIteration traceback before, issue 10 item 8). Data from the independent
+    (it ended in a StopIteration traceback, finding no heater). Data from the independent
     reference; the core file starts 15 % off on every parameter."""
     from tawarp import reference
     from tawarp.measure.files import TMatrixData, write_tmatrix_csv
@@ -151,7 +151,7 @@ def test_fit_of_a_passive_core_recovers_the_layer(tmp_path, capsys):
 
 def test_an_inadequate_fit_says_so(tmp_path, capsys):
     """`tawarp synth mesh; tawarp fit --core ceramic` reported 'ok' on every line at a
-    reduced chi^2 of ~2000 (issue 10 item 5); now the summary flags it."""
+    reduced chi^2 of ~2000; the summary must flag it."""
     csv = tmp_path / "m.csv"
     assert main(["synth", "mesh", "-o", str(csv), "--freqs", "30:500:12", "--Q", "0,40", "--cells", "8",
                  "--device", "cpu", "--quiet"]) == 0

@@ -1,4 +1,4 @@
-"""Dimensionless T-matrix coefficients and FORMATS.md's error measure."""
+"""Dimensionless T-matrix coefficients and docs/formats.md's error measure."""
 
 import math
 

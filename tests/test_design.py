@@ -274,7 +274,7 @@ def test_resume_a_generation_cut_short(tmp_path):
         assert a.params == pytest.approx(b.params, rel=1e-12)
 
 
-# -- study integrity (issue 10) ----------------------------------------------------------------
+# -- study integrity -------------------------------------------------------------------------------
 def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
     """Two processes start the same worker on one journal at once (long runs): the storage
     orders their claims and the later one is refused while the earlier lives. Once the

@@ -1,4 +1,4 @@
-"""Shared design studies on a real PostgreSQL server (issue 10): workers of the design
+"""Shared design studies on a real PostgreSQL server: workers of the design
 search (the ``tawarp design`` command, ``--storage postgresql+psycopg://...``) share one
 study, one is killed with SIGKILL and resumed, and every trial is counted once; a
 same-name worker is refused while the first lives.

@@ -1,4 +1,4 @@
-"""Optional effects of the forward model (issue #4): each is a field of the same kernels,
+"""Optional effects of the forward model: each is a field of the same kernels,
 off by default; off it reproduces the base model bit for bit, on it is checked against a
 closed form, an equivalent base model, the energy balance and grid convergence."""
 

@@ -95,7 +95,7 @@ def test_kind_fit_equals_normal_equations(seed):
     assert np.max(np.abs(res.values[0] - v)) <= 1e-8 * np.max(np.abs(v))
     assert np.max(np.abs(res.covariance[0] - C)) <= 1e-8 * np.max(np.abs(C))
     assert np.allclose(res.std[0], np.sqrt(np.diag(C)), rtol=1e-8)
-    # chi^2 at the solution and the FORMATS.md error
+    # chi^2 at the solution and the docs/formats.md error
     r = (A @ v - y) / sigma
     assert abs(res.cost[0] - r @ r) <= 1e-10 * (r @ r)
     assert abs(res.rms_error[0] - np.sqrt(np.mean((A @ v - y) ** 2) / np.mean(y**2))) <= 1e-8

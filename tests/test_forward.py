@@ -1,5 +1,5 @@
 """The Warp forward engine against closed forms, exact solutions and the independent
-NumPy/SciPy reference (PHYSICS.md, "Checks any implementation must pass" 1-5)."""
+NumPy/SciPy reference (docs/physics.md, "Checks any implementation must pass" 1-5)."""
 
 import dataclasses
 
@@ -24,7 +24,7 @@ def relative_error(Y, Yref):
 
 def cold(core: Core) -> Core:
     """The same core with no heat model: every part at T_cold, so the reference uses
-    the closed form of PHYSICS.md for every segment."""
+    the closed form of docs/physics.md for every segment."""
     segs = tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments)
     return Core(segs, core.gas, core.radius, core.source)
 
@@ -178,7 +178,7 @@ def test_bad_batch_values():
 
 
 def test_cpu_threads_split_the_batch_bit_for_bit():
-    """On the CPU a large batch runs split over threads (issue 11): the same numbers as
+    """On the CPU a large batch runs split over threads: the same numbers as
     one thread, to the bit, whether the table comes as NumPy or as a Warp array."""
     import warp as wp
 

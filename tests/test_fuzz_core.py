@@ -1,4 +1,4 @@
-"""Property-based tests of the core loader (issue 10): whatever a core file holds, the
+"""Property-based tests of the core loader: whatever a core file holds, the
 loader returns a valid Core or raises CoreError naming the file; never another exception."""
 
 import copy
@@ -87,7 +87,7 @@ def test_any_text_file_loads_or_is_named(tmp_path_factory, text):
 
 @pytest.mark.parametrize("change", [{"length": ""}, {"porosity": [0.9]}, {"h": "1"}, {"tortuosity": None}])
 def test_strings_and_lists_as_values_are_refused(change):
-    """They passed the loader before and failed in the engine (issue 10 item 11)."""
+    """They passed the loader before and failed in the engine."""
     d = copy.deepcopy(BASE)
     d["segment"][1].update({k: v for k, v in change.items() if v is not None})
     if None in change.values():

@@ -1,4 +1,4 @@
-"""Property-based tests of the measurement readers (issue 10): whatever a CSV holds, each
+"""Property-based tests of the measurement readers: whatever a CSV holds, each
 reader returns data or raises MeasurementError naming the file; never another exception."""
 
 import pytest
@@ -44,7 +44,7 @@ def test_the_uncorrupted_files_read(tmp_path, base, reader):
     assert len(reader(p)) == 2
 
 
-# -- signed reference planes, sigma columns and the empty-tube reader (issue 9) -----------
+# -- signed reference planes, sigma columns and the empty-tube reader -----------------------
 SIGNED = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
           "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im,"
           "sigma_S11,sigma_S12,sigma_S21,sigma_S22\n"

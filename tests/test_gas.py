@@ -1,5 +1,5 @@
 """Gas constants (tawarp.model.gas) and the kernels' gas laws (kernels/gas.py) against
-PHYSICS.md's air laws and the ideal gas."""
+docs/physics.md's air laws and the ideal gas."""
 
 import numpy as np
 import pytest

@@ -1,4 +1,4 @@
-"""Atomic outputs (issue 10 item 12): nothing half-written, no stray temporary files,
+"""Atomic outputs: nothing half-written, no stray temporary files,
 normal permissions."""
 
 import json

@@ -51,7 +51,7 @@ def test_impedance_kind_predicts_the_reference(tmp_path):
         ref = surface_impedance_from_T(reference.transfer_matrix(core, F), core)
         assert np.max(np.abs(Y[k * F.size:(k + 1) * F.size] - ref)) <= 1e-9 * np.max(np.abs(ref))
     assert kind.group_name == "thickness_m" and set(kind.group) == {0.02, 0.05}
-    # unit weights make the cost the FORMATS.md error squared times the residual count
+    # unit weights make the cost the docs/formats.md error squared times the residual count
     d = Y - kind.y
     cost = np.sum((d.real * kind.w[:, 0]) ** 2 + (d.imag * kind.w[:, 1]) ** 2)
     assert abs(cost / kind.y.size - kind.error(Y) ** 2) <= 1e-12 * cost

@@ -203,12 +203,14 @@ def test_atalla_panneton_files_load(name):
     assert np.all(thin.Zs.imag[thin.freq <= 1000] > 0)
 
 
-def test_atalla_panneton_missing_folder(tmp_path, monkeypatch):
+def test_atalla_panneton_bundled_and_missing_folder(tmp_path):
+    """The default folder is the bundled copy (the same data as an explicit folder); a
+    folder that does not exist is named in the error."""
+    bundled = m.load_atalla_panneton("foam1")
+    given = m.load_atalla_panneton("foam1", measured_folder("atalla_panneton_2005"))
+    assert [d.Zs.tolist() for d in bundled] == [d.Zs.tolist() for d in given]
     with pytest.raises(FileNotFoundError, match="nowhere"):
         m.load_atalla_panneton("foam1", folder=tmp_path / "nowhere")
-    monkeypatch.setenv("TAWARP_SHARED", str(tmp_path / "elsewhere"))
-    with pytest.raises(FileNotFoundError, match="elsewhere"):
-        m.load_atalla_panneton("foam1")
     with pytest.raises(KeyError, match="foam1"):
         m.load_atalla_panneton("foam3")
 

@@ -1,5 +1,5 @@
-"""Temperature-dependent conductivity (conductivity_exponent, radiative_conductivity;
-issue 9 item 4): the kernels' Kirchhoff-transformed heat cells against the independent
+"""Temperature-dependent conductivity (conductivity_exponent, radiative_conductivity):
+the kernels' Kirchhoff-transformed heat cells against the independent
 nonlinear heat BVP of the reference (scipy solve_bvp, ~1e-11 in theta) and the reference's
 adaptive acoustic integration on it."""
 

@@ -116,7 +116,7 @@ def _tube(length=0.3, radius=0.0167):
 
 
 def _k(omega, radius, T=293.15, p_mean=101325.0):
-    """Closed-form complex wavenumber of the duct (PHYSICS.md), SciPy Bessel functions."""
+    """Closed-form complex wavenumber of the duct (docs/physics.md), SciPy Bessel functions."""
     g = ref.gas_properties("air", T, p_mean)
 
     def f(delta):

@@ -29,7 +29,7 @@ def test_rank_the_paper_materials_at_9_W():
 
 
 def _fit_json(tmp_path, std, corr):
-    """A fit.json as ``tawarp fit`` writes it (FORMATS.md): ceramic stack parameters with
+    """A fit.json as ``tawarp fit`` writes it (docs/formats.md): ceramic stack parameters with
     standard deviations and their correlation."""
     import json
 

@@ -1,6 +1,6 @@
 """Checks of the independent NumPy/SciPy reference model (tawarp.reference).
 
-PHYSICS.md "Checks": uniform closed form, reciprocity, passivity, exact heat solution and
+docs/physics.md "Checks": uniform closed form, reciprocity, passivity, exact heat solution and
 energy balance; plus the special functions against mpmath and the convergence of the
 ODE integration. Fast: the whole file runs in a few seconds on one core.
 """
@@ -175,7 +175,7 @@ def test_heat_solution_satisfies_model(label, core):
     pos = core.positions()
     scale = hs.theta_max()[1]
     assert scale > 0
-    for j, i in enumerate(hs.indices):
+    for i in hs.indices:
         seg = core.segments[i]
         lam = segment_conductivity(core, i)
         q = Q / (seg.length * S) if seg.heater else 0.0

@@ -1,4 +1,4 @@
-"""Scattering data (issue 9): signed reference planes, sigma columns, the empty-tube
+"""Scattering data: signed reference planes, sigma columns, the empty-tube
 calibration, and the passive end-to-end case (a 3 cm foam in a 100 mm tube, four
 microphones) through ``tawarp fit``; data from the independent reference."""
 

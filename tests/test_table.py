@@ -1,6 +1,6 @@
 """The CSV machinery under every measurement reader (tawarp.measure.table): large files
 read in memory proportional to their numbers, the fast block parser agrees with
-Python's float() bit for bit, and errors in any block name the file line (issue 10)."""
+Python's float() bit for bit, and errors in any block name the file line."""
 
 import tracemalloc
 

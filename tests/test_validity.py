@@ -1,4 +1,4 @@
-"""Numeric guards of the engine (issue 10, item 7): every set outside the model raises or
+"""Numeric guards of the engine: every set outside the model raises or
 warns with its index and parameters; none comes back as a silent NaN."""
 
 import re

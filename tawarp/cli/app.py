@@ -1,4 +1,4 @@
-"""The ``tawarp`` command line (FORMATS.md, "Command line").
+"""The ``tawarp`` command line (docs/formats.md, "Command line").
 
 Every subcommand has ``--help``, ``--device cpu|cuda|cuda:N`` (default: a GPU if there
 is one) and ``--quiet``; outputs are machine readable (CSV/JSON/netCDF) with figures
@@ -8,6 +8,7 @@ beside them.
 from __future__ import annotations
 
 import argparse
+import importlib.metadata
 import sys
 import time
 from pathlib import Path
@@ -61,6 +62,7 @@ def cmd_demo(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tawarp", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"tawarp {importlib.metadata.version('tawarp')}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = _common(sub.add_parser("demo", help="the main job on the bundled paper-like data, end to end"))

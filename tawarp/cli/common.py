@@ -31,7 +31,8 @@ def _parse_list(text: str) -> np.ndarray:
             return np.linspace(start, stop, count)
         return np.array([float(v) for v in text.split(",") if v.strip()])
     except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)")
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)") from None
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:

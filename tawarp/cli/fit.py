@@ -23,7 +23,7 @@ def add_fit_parser(subparsers):
     p = _common(subparsers.add_parser(
         "fit", help="estimate parameters from a measurement: T-matrices (the paper's two-step procedure by default), "
                     "a scattering matrix or a surface impedance"))
-    p.add_argument("data", help="measured T-matrix, scattering-matrix or surface-impedance CSV (FORMATS.md)")
+    p.add_argument("data", help="measured T-matrix, scattering-matrix or surface-impedance CSV (docs/formats.md)")
     p.add_argument("--core", default=None,
                    help="core TOML or bundled core name for T-matrix and scattering data (default: the data's "
                         "'# core = ...' metadata); for surface impedance a passive core of one porous segment "

@@ -13,9 +13,9 @@ from .common import add_measurement_options, load_data
 def add_loop_parser(sub) -> None:
     """Register ``tawarp loop`` on an argparse sub-parsers object."""
     p = sub.add_parser("loop", help="close the loop: fit, diagnose the residual, choose an effect, report")
-    p.add_argument("data", help="T-matrix CSV (FORMATS.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
+    p.add_argument("data", help="T-matrix CSV (docs/formats.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
                                 "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
-                                "or atalla:NAME (foam1, foam2, fibrous1) for the shared Atalla & Panneton data")
+                                "or atalla:NAME (foam1, foam2, fibrous1) for the bundled Atalla & Panneton data")
     p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix and scattering data "
                                                 "(default: the file's '# core = ...' metadata)")
     p.add_argument("--fit", default=None, help="comma list of base parameters (default: the paper's full method: every "

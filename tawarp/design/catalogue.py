@@ -5,7 +5,7 @@ A :class:`Material` holds what the core model needs of a stack material: porosit
 lateral heat-exchange coefficient ``h_s`` [W/(m^2 K)], with their uncertainty: either a
 full covariance over :data:`PARAMS` or independent standard deviations.
 
-The four materials of the paper (Guedra et al. 2015, Table 1; PHYSICS.md) are built in,
+The four materials of the paper (Guedra et al. 2015, Table 1; docs/physics.md) are built in,
 with the same values as the bundled cores. Their ``±`` values are the standard
 deviations. The paper gives no ``±`` for ``h_s`` (ceramic ``>= 150``, mesh ``≈ 50``,
 RVC ``<= 10``, NiCr none); the standard deviations used here are tawarp's choices and are
@@ -25,7 +25,7 @@ A catalogue is extended by the user through TOML files::
 
     [[material]]
     name = "fitted_foam"
-    fit = "fit.json"              # a `tawarp fit` result (FORMATS.md); relative to this file
+    fit = "fit.json"              # a `tawarp fit` result (docs/formats.md); relative to this file
     base = "rvc_foam"             # values of the parameters the fit did not estimate
 
 and by ``fit.json`` files directly (:meth:`Material.from_fit_json`).
@@ -157,7 +157,7 @@ class Material:
     @classmethod
     def from_fit_json(cls, path: str | Path, base: "Material | str | None" = None, name: str | None = None,
                       segment: str = "stack") -> "Material":
-        """A material from a ``tawarp fit`` result (FORMATS.md: for each fitted parameter
+        """A material from a ``tawarp fit`` result (docs/formats.md: for each fitted parameter
         ``value`` and ``std``, plus the correlation matrix).
 
         Accepted layouts: ``{"parameters": {"stack.porosity": {"value", "std"}, ...},
@@ -177,7 +177,7 @@ class Material:
             raise CatalogueError(f"{path}: not a readable JSON file: {e}") from None
         params = data.get("parameters", data.get("params"))
         if params is None:
-            raise CatalogueError(f"{path}: no 'parameters' key (expected the fit.json of FORMATS.md)")
+            raise CatalogueError(f"{path}: no 'parameters' key (expected the fit.json of docs/formats.md)")
         if isinstance(params, list):
             try:
                 params = {p["name"]: p for p in params}

@@ -7,7 +7,7 @@ it is computed: either a ``column`` of the metrics kernel's output
 function ``compute(evaluator, table, metrics) -> (n,)`` for derived quantities (the
 acoustic loss needs a T-matrix cascade; a user objective may combine kernel metrics).
 
-Built-in rows (all from the steady heat model of PHYSICS.md):
+Built-in rows (all from the steady heat model of docs/physics.md):
 
 - ``gradient`` [K/m], maximized: ``(T(x3) - T(x2)) / l_s``, x2/x3 the stack's cold and
   hot planes (exact at the nodes of the exponentially fitted heat grid).

@@ -66,7 +66,7 @@ def plot_best_profiles(space, designs: list[dict], path, n: int = 5, device=None
     from ..model.forward import steady_temperature
 
     fig, ax = plt.subplots(figsize=(7, 4))
-    for j, d in enumerate(designs[:n]):
+    for d in designs[:n]:
         core, q = space.core_for(d["params"])
         pos = core.positions()
         x = np.linspace(0.0, pos[-1], 600)

@@ -1,4 +1,4 @@
-"""The paper's two-step characterization (PHYSICS.md "Inverse problem", paper Sect. 4-5).
+"""The paper's two-step characterization (docs/physics.md "Inverse problem", paper Sect. 4-5).
 
 >>> from tawarp.fit.characterize import characterize
 >>> from tawarp.measure.synthetic import make_paper_data
@@ -126,7 +126,7 @@ class Characterization:
         return {k: float(np.interp(Q, self.heat_inputs, self.step2.values[:, a])) for a, k in enumerate(self.heat_names)}
 
     def to_json(self) -> dict:
-        """The fit.json structure (FORMATS.md): step 1 and one step-2 entry per Q."""
+        """The fit.json structure (docs/formats.md): step 1 and one step-2 entry per Q."""
         s1 = {"heat_input_W": 0.0, **self.step1.problem(0)}
         out = {"data": self.source, "core": str(self.core.source), "freqs_Hz": self.freqs.tolist(),
                "procedure": "two-step (paper Sect. 4): geometry at Q = 0, then h at every Q > 0 on the "
@@ -316,7 +316,7 @@ def plot_h_vs_Q(curves: dict[str, tuple], path, title: str = ""):
     k = len(first[3])
     fig, axes = plt.subplots(1, k, figsize=(4.2 * k, 3.6))
     axes = np.atleast_1d(axes)
-    for label, (Q, v, s, names) in curves.items():
+    for label, (Q, v, s, _names) in curves.items():
         for a in range(k):
             axes[a].errorbar(Q, v[:, a], yerr=np.where(np.isfinite(s[:, a]), s[:, a], 0), marker="o", ms=4,
                              capsize=3, label=label)
@@ -407,7 +407,7 @@ def fit_each_heat_input(data: TMatrixData, core: Core, names, *, settings=None, 
 
 
 def pooled_error(errors: np.ndarray, Y: np.ndarray) -> float:
-    """FORMATS.md's error over all rows of N problems from each problem's own error
+    """docs/formats.md's error over all rows of N problems from each problem's own error
     ``errors`` (N,) and measured values ``Y`` (N, ...): rms|dY| / rms|Y| pooled over the
     rows, ``sqrt(sum e_i^2 |Y_i|^2 / sum |Y_i|^2)`` (not the mean of the per-problem ratios)."""
     y2 = np.sum(np.abs(Y.reshape(len(errors), -1)) ** 2, axis=1)

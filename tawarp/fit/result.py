@@ -22,7 +22,7 @@ class FitResult:
     ``values``, ``std`` (N, p) natural units; ``covariance``, ``correlation`` (N, p, p);
     ``condition`` (N,) of J^T J in the scaled variables; ``iterations`` (N,);
     ``converged`` (N,) bool; ``reason`` (N,) str (:data:`REASONS`); ``cost`` (N,) weighted
-    sum of squares; ``rms_error`` (N,) the error measure of FORMATS.md; ``s2`` (N,) the
+    sum of squares; ``rms_error`` (N,) the error measure of docs/formats.md; ``s2`` (N,) the
     residual variance used in the covariance; ``dof`` = 8 m - p; ``start`` (N, p);
     ``warnings`` (batch summary) and ``problem_warnings`` (one list per problem, formatted
     when read: :class:`ProblemWarnings`);
@@ -129,7 +129,7 @@ class FitResult:
         return bic_of(float(self.cost[i]), self.n, len(self.names), has_sigma)
 
     def problem(self, i: int = 0) -> dict:
-        """Problem ``i`` as a JSON-ready dict (the fit.json entry of FORMATS.md)."""
+        """Problem ``i`` as a JSON-ready dict (the fit.json entry of docs/formats.md)."""
         d = {"parameters": {k: {"value": float(self.values[i, a]), "std": _json_float(self.std[i, a]),
                                 "start": float(self.start[i, a])} for a, k in enumerate(self.names)},
              "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},

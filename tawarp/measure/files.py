@@ -1,6 +1,6 @@
-"""Measured data: loaders and writers for the file formats of FORMATS.md (pure NumPy).
+"""Measured data: loaders and writers for the file formats of docs/formats.md (pure NumPy).
 
-Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of PHYSICS.md
+Three kinds of measurement, all returned in the ``exp(-i w t)`` convention of docs/physics.md
 (data in the other convention are complex-conjugated on load):
 
 - core T-matrices ``(p, U)(x6) = T (p, U)(x1)``: :func:`read_tmatrix_csv`,
@@ -24,6 +24,7 @@ from __future__ import annotations
 import math
 import os
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
@@ -167,7 +168,7 @@ def _sigma_allowed(name: str) -> bool:
 
 
 def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
-    """Read a measured core T-matrix CSV (FORMATS.md "Measured core T-matrices").
+    """Read a measured core T-matrix CSV (docs/formats.md "Measured core T-matrices").
 
     Columns ``Q_W`` [W], ``freq_Hz`` [Hz], ``Tpp_re, Tpp_im, Tpu_re, ..., Tuu_im`` (raw SI
     coefficients) in any order; optional standard deviations ``sigma_Tpp`` (both parts)
@@ -253,7 +254,7 @@ def _write_matrix_csv(path, meta: dict, leading: dict, entries: dict, M: np.ndar
 
 # -- surface impedance -----------------------------------------------------------------
 def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
-    """Read the surface impedance of a rigid-backed layer (FORMATS.md "Other measurement kinds").
+    """Read the surface impedance of a rigid-backed layer (docs/formats.md "Other measurement kinds").
 
     Columns ``freq_Hz`` [Hz], ``Zs_re``, ``Zs_im`` (normalized by rho0 c0). Metadata:
     ``thickness`` [m] (required), ``convention`` (default exp(-iwt); exp(+iwt) is
@@ -317,27 +318,16 @@ def read_atalla_panneton(path: str | os.PathLike, thickness: float | None,
 
 
 def _atalla_panneton_folder() -> Path:
-    """``$TAWARP_SHARED/data/measured/atalla_panneton_2005`` if the variable is set, else
-    the first ``shared/data/measured/atalla_panneton_2005`` found walking up from this file
-    (the repository's ``../shared``, or a ``shared/`` inside the checkout)."""
-    env = os.environ.get("TAWARP_SHARED")
-    if env:
-        return Path(env) / ATALLA_PANNETON_DIR
-    tried = []
-    for parent in Path(__file__).resolve().parents:
-        candidate = parent / "shared" / ATALLA_PANNETON_DIR
-        if candidate.is_dir():
-            return candidate
-        tried.append(str(candidate))
-    raise FileNotFoundError("Atalla & Panneton data set not found; looked in " + ", ".join(tried)
-                            + "; set TAWARP_SHARED to the shared folder or pass folder=")
+    """The copy of the data set bundled with the package (``tawarp/data/measured/``)."""
+    return Path(str(resources.files("tawarp") / ATALLA_PANNETON_DIR))
 
 
 def load_atalla_panneton(name: str, folder: str | os.PathLike | None = None) -> list[ImpedanceData]:
     """``[thin, thick]`` surface impedances of sample ``name`` (foam1, foam2, fibrous1,
     fibrous2), with thickness [m], T_ambient [K], p_ambient [Pa] from the README table.
 
-    ``folder`` defaults to the shared data folder (see ``TAWARP_SHARED``). For fibrous2
+    ``folder`` defaults to the copy bundled with the package (its README, source and
+    licence beside the files); pass another folder to read a copy elsewhere. For fibrous2
     the thick layer's ``thickness`` is None (the README calls that pairing unreliable).
     """
     samples = atalla_panneton_samples()

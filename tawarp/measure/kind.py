@@ -35,7 +35,7 @@ class MeasurementKind:
     """Measured observables and their model (see the module doc).
 
     ``y`` (rows,) complex measured values; ``w`` (rows, 2) weights of (re, im) residuals:
-    1/sigma with sigma columns (``has_sigma``), else 1/rms|y| (the FORMATS.md error
+    1/sigma with sigma columns (``has_sigma``), else 1/rms|y| (the docs/formats.md error
     measure); ``freq``, ``group``, ``coef`` (rows,) labels; ``core`` the model the
     parameter names refer to.
     """
@@ -73,16 +73,16 @@ class MeasurementKind:
         return None
 
     def unit_weights(self) -> np.ndarray:
-        """(rows, 2) weights 1/rms|y|: the cost is then the FORMATS.md error squared times rows."""
+        """(rows, 2) weights 1/rms|y|: the cost is then the docs/formats.md error squared times rows."""
         return np.full((self.y.size, 2), 1.0 / np.sqrt(np.mean(np.abs(self.y) ** 2)))
 
     def error(self, Y: np.ndarray, rows=None) -> float:
-        """The FORMATS.md error measure of model values ``Y`` (rows,) on ``rows``."""
+        """The docs/formats.md error measure of model values ``Y`` (rows,) on ``rows``."""
         rows = slice(None) if rows is None else rows
         return float(rms_error(self.y[rows], np.asarray(Y)[..., rows]))
 
     def noise_floor(self, sigma: np.ndarray | None = None) -> float | None:
-        """The FORMATS.md error of data that differ from the model by noise alone: of
+        """The docs/formats.md error of data that differ from the model by noise alone: of
         standard deviation ``sigma`` per real residual in weighted units (the fit's residual
         order: the rows' real parts, then their imaginary parts), or by default the data's
         own sigma columns (weights 1/sigma: 1 each; None without them)."""

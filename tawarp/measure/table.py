@@ -1,4 +1,4 @@
-"""The CSV tables of every measurement file (FORMATS.md): ``# key = value`` metadata
+"""The CSV tables of every measurement file (docs/formats.md): ``# key = value`` metadata
 lines, one header, numeric rows; the time convention; errors that name the file, the line
 or the metadata key; atomic writes. The kinds' readers (:mod:`.files`) build on it."""
 

@@ -25,7 +25,7 @@ thickness      m          layer thickness d
 T, P0          K, Pa      air temperature and static pressure (default 293.15 K, 101325 Pa)
 =============  =========  =====================================================================
 
-Convention. Time dependence ``exp(-i w t)`` (PHYSICS.md). Allard & Atalla (*Propagation
+Convention. Time dependence ``exp(-i w t)`` (docs/physics.md). Allard & Atalla (*Propagation
 of Sound in Porous Media*, 2nd ed., 2009) write ``exp(+j w t)``; for real ``w`` every
 complex quantity here is the complex conjugate of theirs, i.e. their formulas with
 ``j -> -i``: the frame modulus ``E (1 + j eta)`` becomes ``E (1 - i eta)``, the JCA

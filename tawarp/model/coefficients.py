@@ -1,4 +1,4 @@
-"""Dimensionless T-matrix coefficients and the error measure of FORMATS.md.
+"""Dimensionless T-matrix coefficients and the error measure of docs/formats.md.
 
 Residuals and plots use ``Tpp``, ``Tpu / Zc``, ``Tup * Zc``, ``Tuu`` with
 ``Zc = rho0 c0 / S`` of the empty duct at the cold temperature.
@@ -41,7 +41,7 @@ def denormalize(Y: np.ndarray, Zc: float | np.ndarray) -> np.ndarray:
 
 
 def rms_error(Y_meas: np.ndarray, Y_model: np.ndarray, axis=None) -> np.ndarray:
-    """FORMATS.md error: rms |Y_meas - Y_model| / rms |Y_meas| over rows and coefficients
+    """docs/formats.md error: rms |Y_meas - Y_model| / rms |Y_meas| over rows and coefficients
     (or over ``axis``)."""
     num = np.mean(np.abs(np.asarray(Y_meas) - np.asarray(Y_model)) ** 2, axis=axis)
     den = np.mean(np.abs(np.asarray(Y_meas)) ** 2, axis=axis)

@@ -1,4 +1,4 @@
-"""Description of a thermoacoustic core: gas, tube and segments (FORMATS.md, TOML).
+"""Description of a thermoacoustic core: gas, tube and segments (docs/formats.md, TOML).
 
 A core is an ordered list of segments from measurement plane x1 to plane x6. Every
 numeric quantity is addressable by a *parameter name* ``SEGMENT.FIELD`` (for example
@@ -97,7 +97,7 @@ class Core:
     radius: float = 0.0167
     source: str = "<core>"
     #: parameters the loop's base fit leaves at their core values (the ``[fit] pinned``
-    #: list of a core file, FORMATS.md)
+    #: list of a core file, docs/formats.md)
     pinned: tuple[str, ...] = ()
     #: declared priors, keyed ``SEGMENT.FIELD``, ``gas.FIELD``, ``tube.radius`` (a dict:
     #: compared, not hashed)
@@ -178,7 +178,7 @@ class Core:
         return Core(tuple(segs[s.name] for s in self.segments), gas, radius, self.source, self.pinned, self.priors)
 
     def to_dict(self) -> dict:
-        """The TOML structure (FORMATS.md) of this core; a field with a declared prior as
+        """The TOML structure (docs/formats.md) of this core; a field with a declared prior as
         its inline table (:meth:`~tawarp.model.priors.Prior.toml_entry`)."""
         out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
         for s in self.segments:
@@ -291,7 +291,7 @@ _SEGMENT_KEYS = {f.name for f in dataclasses.fields(Segment)}
 
 
 def core_from_dict(data: dict, source: str = "<core>") -> Core:
-    """Build a :class:`Core` from the TOML structure of FORMATS.md."""
+    """Build a :class:`Core` from the TOML structure of docs/formats.md."""
     for key, kind, example in (("gas", dict, "[gas]"), ("tube", dict, "[tube]"), ("segment", list, "[[segment]]")):
         if key in data and not isinstance(data[key], kind):
             raise CoreError(f"{source}: {key!r} must be a table written {example}, got {data[key]!r}")
@@ -368,7 +368,7 @@ def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dic
 
 
 def load_core(path: str | Path) -> Core:
-    """Read and validate a core TOML file (FORMATS.md).
+    """Read and validate a core TOML file (docs/formats.md).
 
     ``path`` may also name a bundled core: ``ceramic``, ``mesh``, ``nicr_foam``, ``rvc_foam``.
     """

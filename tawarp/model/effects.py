@@ -1,4 +1,4 @@
-"""The library of effects the paper's model lacks (issue #4, PHYSICS.md "Effects the
+"""The library of effects the paper's model lacks (docs/physics.md, "Effects the
 paper's model lacks").
 
 Every effect is an optional term of the *same* forward model: a few named parameters
@@ -225,7 +225,7 @@ def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
 
 def tmatrix_library(core: Core) -> list[Effect]:
     """Candidate effects for 2-port (T-matrix or scattering) data of ``core``: plane
-    offsets, T_cold, p_mean, the calibration gain; for a heated core (PHYSICS.md's list)
+    offsets, T_cold, p_mean, the calibration gain; for a heated core (docs/physics.md's list)
     the stack's thermal radius ratio, T-dependent conductivity, radiation, convection in
     the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
     role; for a passive core (no thermal stack) the porous-layer effects of its porous

@@ -16,8 +16,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 from ..kernels import layout
+
+if TYPE_CHECKING:   # numpy is imported where an array is made
+    import numpy as np
 
 #: Which segments take a field: every segment, porous ones, thermal ones, thermal porous ones.
 APPLIES = ("all", "porous", "thermal", "thermal_porous")

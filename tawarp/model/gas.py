@@ -6,7 +6,7 @@ Transport properties follow ``X(T) = X0 (T/T0)^a (1 + S/T0) / (1 + S/T)`` with
 plain power law (used for helium, where Sutherland fits poorly). Heat capacity and the
 ratio of specific heats are taken constant (ideal gas; monatomic gases exactly so).
 
-Sources: air as PHYSICS.md (White, *Viscous Fluid Flow*, Table 1-2/1-3); nitrogen and
+Sources: air as docs/physics.md (White, *Viscous Fluid Flow*, Table 1-2/1-3); nitrogen and
 argon Sutherland constants from the same tables; helium power laws fitted to NIST
 data over 250-800 K (viscosity 1.865e-5 Pa s and conductivity 0.1415 W/(m K) at
 273.15 K, both about T^0.7), as Swift (*Thermoacoustics*, Sect. 10) recommends.

@@ -8,7 +8,7 @@
 >>> res = onset(eng, Q_max=100.0, device="cpu")
 >>> res.Q_onset, res.f_onset, res.T_hot      # W, Hz, K
 
-Convention exp(-i omega t): a mode grows when Im omega > 0 (PHYSICS.md, "Onset"). One
+Convention exp(-i omega t): a mode grows when Im omega > 0 (docs/physics.md, "Onset"). One
 kernel thread per (parameter set, heat input) finds omega by Muller's method
 (:mod:`tawarp.kernels.onset`); :func:`onset` brackets the heat input where Im omega
 changes sign on a grid of Q (one batched launch per grid point for the sets still

@@ -1,6 +1,6 @@
 """Engines: a core closed by resonator ducts and end conditions (docs/formats.md, "Engine TOML").
 
-An engine file is a core file (FORMATS.md) with one more top-level table::
+An engine file is a core file (docs/formats.md) with one more top-level table::
 
     [engine]
     left = "closed"            # closed | open | impedance
@@ -145,7 +145,7 @@ def _duct(d: dict, side: str, source: str) -> ResonatorDuct:
 
 
 def engine_from_dict(data: dict, source: str = "<engine>", folder: Path | None = None) -> ThermoacousticEngine:
-    """Build an engine from the TOML structure: ``[engine]`` plus a core (FORMATS.md)."""
+    """Build an engine from the TOML structure: ``[engine]`` plus a core (docs/formats.md)."""
     data = dict(data)
     if "engine" not in data:
         raise CoreError(f"{source}: no [engine] table; an engine file is a core file with an [engine] table")

@@ -1,6 +1,6 @@
 """Where the model holds, and what the engine says when a parameter set leaves it.
 
-The forward model of PHYSICS.md is a plane-wave, linear, steady-heat model with
+The forward model of docs/physics.md is a plane-wave, linear, steady-heat model with
 tabulated gas laws. Each check names the parameter set (its index in the batch and its
 varying values) so that a sweep or a fit over thousands of sets says which one failed:
 
