@@ -66,7 +66,12 @@ def prior(seed: int):
 
 def loop_on(truth, seed, sigma=True):
     prob = TMatrixKind(reference_data(truth, seed, sigma), prior(seed), ForwardSettings(device="cpu"))
-    return prob, run_loop(prob)
+    rep = run_loop(prob)
+    # an absorbed effect never hides behind "adequate": no parameter of the chosen model more
+    # than 3 prior sd from its prior
+    best = "+".join(rep["best_model"]) or "base"
+    assert rep["verdict"] != "adequate" or not [t for t in rep["prior_tension"] if t["model"] == best]
+    return prob, rep
 
 
 def test_base_model_is_the_papers_full_method():
@@ -81,7 +86,7 @@ def test_base_model_is_the_papers_full_method():
 
 
 def test_passive_core_fits_its_porous_geometry():
-    # issue 9 item 3: a passive core (no heat input) without --fit fits every porous
+    # a passive core (no heat input) without --fit fits every porous
     # segment's porosity, pore radius, tortuosity, not nothing
     d = {"gas": {"name": "air"}, "tube": {"radius": 0.05},
          "segment": [{"name": "up", "kind": "duct", "length": 0.05},
@@ -141,6 +146,22 @@ def test_plane_offset_in_reference_data_is_explained(seed):
     assert rep["error_after"] <= 1.3 * rep["noise_floor"] < rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.033) < 4 * dl["std"]
+
+
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_buffer_tube_convection_is_named_or_flagged(seed):
+    # h growing with the temperature rise in the buffer tube: the base fit can take its size
+    # into the buffer tube's h only by moving that h far from its prior. The loop never calls
+    # the data adequate: it names convection, or flags the h by name, or (13 frequencies, a
+    # weak effect) leaves the choice open with convection the most probable model and the
+    # measurement that would decide
+    prob, rep = loop_on({"tbt.h_convection": 2.0}, seed)
+    named = "convection" in rep["accepted_effects"] or any("convection" in g for g in rep["accepted_groups"])
+    flagged = any(t["parameter"] == "tbt.h" for t in rep["prior_tension"])
+    open_ = rep["verdict"] == "indistinguishable" and "convection" in rep["best_model"] and rep["next_measurement"]
+    assert named or flagged or open_, (rep["verdict"], rep["model_probabilities"][:3])
+    assert rep["verdict"] != "adequate"
+    assert rep["inclusion_probabilities"]["convection"] > 0.5
 
 
 @pytest.mark.parametrize("seed", SEEDS[:1])
@@ -243,17 +264,21 @@ def test_loop_on_measured_foams(name, tmp_path):
     assert u is not None and u["error"] > 3 * u["noise_floor"]
     js = write_report(prob, rep, tmp_path)
     assert js["comparison"]["phi"]["reference"] == ref["phi"]
+    best = set(rep["best_model"])
+    # neither foam is the rigid circular-pore model: the Lambda'/Lambda of JCA (a separate
+    # thermal radius) is in the best model with certainty, and the fit stays above the noise,
+    # so nothing is claimed (verdict wrong_model)
+    assert rep["inclusion_probabilities"]["thermal_radius_ratio"] > 0.99 and rep["accepted_effects"] == []
+    assert rep["verdict"] == "wrong_model"
     if name == "foam1":
-        # thickness offset and viscous shape factor trade places over resamplings (issue 9
-        # item 2): neither is stable, nothing is claimed
-        assert rep["accepted_effects"] == []
-        assert all(c["stability"] is None or c["stability"] < 0.7 for c in rep["candidates"])
+        # JCA's separate viscous and thermal lengths: below the circular-pore model by 20 %
+        assert {"thermal_radius_ratio", "viscous_shape_factor"} <= best
+        assert rep["error_after"] < 0.85 * rep["error_before"]
     else:
-        # foam2's thick layer has a frame resonance near 1.3 kHz (issue 9): the elastic frame
-        # comes first, stable over the resamplings, then the separate thermal radius; the
-        # error ends below a rigid JCA model's best fit (0.057-0.059 on these data, issue 9)
-        assert rep["accepted_effects"][:2] == ["elastic_frame", "thermal_radius_ratio"]
-        assert rep["steps"][0]["stability"] >= 0.9
+        # foam2's thick layer has a frame resonance near 1.3 kHz: the elastic frame is in the
+        # best model, and the error ends below a rigid JCA model's best fit on these data
+        # (0.057-0.059, docs/elastic_frame.md)
+        assert {"thermal_radius_ratio", "elastic_frame"} <= best
         assert rep["error_after"] < 0.05 < 0.7 * rep["error_before"]
         fitted = {k: v["value"] for k, v in rep["parameters_after"].items()}
         # a soft polymer foam: E of order MPa, loss factor of order 0.1 (Allard & Atalla)

@@ -1,4 +1,4 @@
-"""The loop on data the model did not make (issue 9): a reduced version of
+"""The loop on data the model did not make: a reduced version of
 ``studies/loop_validation.py`` (same cases, same adapter, same scoring), over several seeds.
 
 Data: :mod:`tawarp.reference` (independent NumPy oracle, DOP853 at rtol 1e-12), the core
@@ -7,17 +7,14 @@ study's draw. Reduced: the mesh core, 12 frequencies instead of 37, 3 clean case
 cases of plane offsets (1-3 mm at each plane, the library's strongest effect at a typical
 size: 2.3-5.9 noise floors in these cases), fixed fit cells (8).
 
-Thresholds: the issue's targets scaled to the sample by the rule "allowed failures =
-floor((1 - target) n)": no claim on clean data in <= 5 % -> 0 of 3; the right effect with
+Thresholds: the targets of docs/loop.md scaled to the sample by the rule "allowed failures
+= floor((1 - target) n)": no claim on clean data in <= 5 % -> 0 of 3; the right effect with
 the error after <= 1.3 x the noise floor in >= 95 % -> 3 of 3.
 
-Also: the study's full cases of a T-dependent conductivity on the NiCr foam (seeds 5, 103),
-where the refits tell it from a radiative conductivity whose linearized change correlates
-> 0.99 with it, and of a radiative conductivity (seed 90) where they cannot, so the loop
-accepts "one of {conductivity_T, radiation}" as one step; the per-effect
-scoring of pair cases; the cache of each effect's data alone. From the held-out seeds
-120-239 (never used to tune a rule): a visible effect left as a non-white misfit of the
-noise's size (seed 134) and one degenerate with a base parameter to first order (seed 161).
+Also the study's full cases (37 frequencies) of the hard kinds: two effects that make nearly
+the same data (a radiative and a T-dependent conductivity: claimed as a group), an effect of
+the noise's size, buffer-tube convection absorbed by the buffer tube's h, a wrong core;
+the per-effect scoring of pair cases; the cache of each effect's data alone.
 """
 
 from __future__ import annotations
@@ -38,7 +35,7 @@ CELLS = 8
 
 
 def allowed_failures(target: float, n: int) -> int:
-    """The issue's rate target scaled to n cases: floor((1 - target) n) failures."""
+    """A rate target of docs/loop.md scaled to n cases: floor((1 - target) n) failures."""
     return math.floor((1.0 - target) * n + 1e-9)
 
 
@@ -175,49 +172,29 @@ def _full_case(seed: int, tmp_path: Path):
     return case, arrays, prob, run_loop(prob, drift_h=False)
 
 
-def _candidate(rep: dict, name: str) -> dict:
-    return next(c for c in rep["rounds"][0]["candidates"] if c["effect"] == name)
-
-
-@pytest.mark.parametrize("seed", [5, 103])
-def test_correlated_effects_told_apart_by_their_refits(seed, tmp_path):
-    # the study's cases of a T-dependent solid conductivity lam (T/T_cold)^b (b 0.57, 0.48) on
-    # the NiCr foam, 37 frequencies: its linearized change and a radiative conductivity's (T^3)
-    # correlate > 0.99, but the refits differ by more than 10 in BIC (Kass & Raftery: very
-    # strong) and every resampling picks the true one: the loop claims it, alone, and the fit
+def test_effects_that_substitute_for_each_other_are_claimed_as_a_group(tmp_path):
+    # a radiative conductivity on the NiCr foam (0.12 % noise, no sigma): a T-dependent
+    # solid conductivity makes nearly the same data, so the posterior splits between them
+    # (neither reaches 0.95 alone) while at least one of them is in the model with
+    # probability >= 0.95: the loop claims the pair as a group, neither alone, and the fit
     # reaches the noise floor (1.3 x, the study's yardstick)
-    case, arrays, prob, rep = _full_case(seed, tmp_path)
-    assert case.effects == ["conductivity_T"] and case.material == "nicr_foam"
-    assert rep["accepted_effects"] == ["conductivity_T"], (rep["accepted_groups"], rep["verdict"])
-    assert rep["accepted_groups"] == [["conductivity_T"]]
-    true, other = _candidate(rep, "conductivity_T"), _candidate(rep, "radiation")
-    assert other["delta_bic"] - true["delta_bic"] >= 10.0 and true["stability"] >= 0.7
-    assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)
-
-
-def test_indistinguishable_effects_are_one_step(tmp_path):
-    # the study's seed 90: a radiative conductivity on the NiCr foam whose refit and a
-    # T-dependent conductivity's are within 2 in BIC, the resamplings split between them: the
-    # loop accepts the pair as one step, names both, claims neither, and reaches the floor
     from tawarp.loop import write_report
 
     case, arrays, prob, rep = _full_case(90, tmp_path)
     assert case.effects == ["radiation"] and case.material == "nicr_foam"
-    assert rep["accepted_groups"] == [["conductivity_T", "radiation"]], (rep["accepted_groups"], rep["verdict"])
+    assert rep["accepted_steps"] == ["conductivity_T+radiation"], (rep["accepted_steps"], rep["verdict"])
     assert rep["accepted_effects"] == [] and rep["chosen_effect"] is None
-    assert abs(_candidate(rep, "conductivity_T")["delta_bic"] - _candidate(rep, "radiation")["delta_bic"]) < 2.0
-    st = rep["steps"][0]
-    assert st["members"] == ["conductivity_T", "radiation"] and st["representative"] in st["members"]
-    assert st["effect"] == "one of {conductivity_T, radiation} (indistinguishable in these data)"
-    assert st["error_after"] < st["error_before"] and st["stability"] >= 0.7
+    inc = rep["inclusion_probabilities"]
+    assert inc["radiation"] < 0.95 and inc["conductivity_T"] < 0.95
+    assert rep["group_probabilities"]["conductivity_T+radiation"] >= 0.95
     assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)
     js = write_report(prob, rep, tmp_path)
-    assert js["accepted_steps"] == [st["effect"]]
-    assert st["effect"] in (tmp_path / "report.md").read_text()
+    assert js["accepted_steps"] == ["conductivity_T+radiation"]
+    assert "conductivity_T+radiation" in (tmp_path / "report.md").read_text()
 
 
 def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path):
-    # the study's seed 69: the ceramic's data (stack 48 mm, hot exchanger 10 mm) fitted with
+    # a wrong core: the ceramic's data (stack 48 mm, hot exchanger 10 mm) fitted with
     # the NiCr foam's core (40 mm, 13 mm). At its drawn noise (0.8 %) the NiCr core with plane
     # offsets (and a second library effect) makes the noise-free data to within 0.15 (0.10)
     # noise floors (stack geometry
@@ -240,30 +217,28 @@ def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path):
     assert rec["outcome"]["verdict"] in lv.FLAGGED and rec["right"], (rec["outcome"]["verdict"], rec["visibility"])
 
 
-def test_misfit_of_the_noise_size_that_is_not_white_is_searched(tmp_path):
-    # held-out seed 134 (rvc_foam, 0.27 % noise, sigma given): wall conduction leaves the base
-    # fit at 1.06 noise floors, within chi^2 at 1 % (p = 0.026) but not white (smooth share
-    # 0.19 against 0.11, p = 1e-6): the loop searches on, takes only a step that leaves the
-    # residual white, and claims the true effect at the floor (1.3 x, the study's yardstick)
+def test_effect_at_the_noise_size_is_claimed_by_its_evidence(tmp_path):
+    # wall conduction on the RVC foam (0.27 % noise, sigma given) leaves the base fit at 1.06
+    # noise floors, within chi^2 but not white; the evidence claims it (inclusion >= 0.95) and
+    # the fit then passes the posterior predictive checks at the floor
     case, arrays, prob, rep = _full_case(134, tmp_path)
     assert case.effects == ["wall_conduction"] and case.with_sigma
-    before = rep["goodness_of_fit_before"]
-    assert before["adequate"] and not before["white"]
-    assert rep["accepted_effects"] == ["wall_conduction"], (rep["accepted_groups"], rep["verdict"])
-    assert _candidate(rep, "wall_conduction")["checks"]["whitens"]
+    assert rep["accepted_effects"] == ["wall_conduction"], (rep["accepted_steps"], rep["verdict"])
+    assert rep["inclusion_probabilities"]["wall_conduction"] >= 0.95
     assert rep["verdict"] == "explained" and rep["goodness_of_fit_after"]["white"]
     assert rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)
 
 
-def test_candidate_degenerate_to_first_order_is_refitted(tmp_path):
-    # held-out seed 161 (rvc_foam, 0.11 % noise, no sigma): buffer-tube convection, whose
-    # linearized change correlates with tbt.h's beyond the screen's limit, so that the linear
-    # screen cannot see it; tbt.h absorbs its size, not its shape, and its refit (tbt.h still
-    # free) wins by > 100 in BIC in every resampling: the loop claims it and reaches the floor
+def test_convection_absorbed_by_the_buffer_tube_h_is_named(tmp_path):
+    # buffer-tube convection on the RVC foam (0.11 % noise, no sigma): the base fit takes its
+    # size into tbt.h, which moves 20x its prior; the model with convection explains the data
+    # with tbt.h inside its prior, the loop claims convection and the report names the tension
+    # it relieves
     case, arrays, prob, rep = _full_case(161, tmp_path)
     assert case.effects == ["convection"] and not case.with_sigma
-    conv = _candidate(rep, "convection")
-    assert conv["degenerate_with"] == "base:tbt.h" and conv["refit"]
-    assert rep["accepted_effects"] == ["convection"], (rep["accepted_groups"], rep["verdict"])
-    assert conv["delta_bic"] <= -100.0 and conv["stability"] >= 0.7
+    assert rep["accepted_effects"] == ["convection"], (rep["accepted_steps"], rep["verdict"])
+    assert rep["inclusion_probabilities"]["convection"] >= 0.95
+    base_h = [t for t in rep["prior_tension"] if t["model"] == "base" and t["parameter"] == "tbt.h"]
+    assert base_h and base_h[0]["value"] > 10 * base_h[0]["prior_centre"], rep["prior_tension"]
+    assert abs(rep["parameters_after"]["tbt.h"]["prior_z"]) < 3
     assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)

@@ -6,7 +6,6 @@ from pathlib import Path
 
 import numpy as np
 
-import dataclasses
 import math
 import warnings
 from importlib import resources
@@ -78,10 +77,8 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
     """Close the loop on the bundled measurement: fit, diagnose, choose an effect, and
     print the error and the parameters before and after, with the drift of h with Q."""
     data = read_tmatrix_csv(resources.files("tawarp") / "data" / "measured" / DEMO_MEASUREMENT)
-    # the buffer tube's h pinned at its core value ([fit] pinned): left free, it absorbs the
-    # hidden convection (the data then fit to noise and the loop rightly claims nothing)
-    core = dataclasses.replace(load_core("ceramic"), pinned=("tbt.h",))
-    problem = TMatrixKind(data, core, ForwardSettings(device=device))
+    # the same core and loop as ``tawarp loop FILE --core ceramic``: one answer per file
+    problem = TMatrixKind(data, load_core("ceramic"), ForwardSettings(device=device))
     report = write_report(problem, run_loop(problem, default_base_params(problem)), out)
     if not quiet:
         print(f"\nclosing the loop on {DEMO_MEASUREMENT} (ceramic core, Q = {data.heat_inputs.tolist()} W):")

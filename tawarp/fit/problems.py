@@ -191,7 +191,8 @@ def _covariance_x(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return np.zeros((0, 0)), np.zeros(0, dtype=bool)
     norm = np.linalg.norm(J, axis=0)
     norm[norm == 0] = 1.0
-    _, sv, Vt = np.linalg.svd(J / norm, full_matrices=True)
+    # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
+    _, sv, Vt = np.linalg.svd(J / norm, full_matrices=J.shape[0] < p)
     sv = np.concatenate([sv, np.zeros(p - sv.size)])
     null = sv <= NULL_RCOND * sv.max() if sv.max() > 0 else np.ones(p, dtype=bool)
     keep = ~null

@@ -156,13 +156,16 @@ def log_model_prior(sizes: dict[int, int], k: int) -> float:
 
 
 def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, library: list[Effect]) -> dict:
-    """Sensitivity columns (2 rows, k) of every effect's parameters at the base solution,
-    forward differences from "off": the field effects in one launch, each structural effect
-    in its own."""
+    """Sensitivity columns (2 rows, k) of every effect's parameters at the solution ``base``,
+    forward differences from "off": the field effects in one launch (in ``base``'s structure),
+    each structural effect in its own (none when ``base`` has one: two structures do not
+    combine)."""
     out = {}
     rows = np.arange(problem.y.size)
     fields = [e for e in library if e.transform is None]
-    groups = [(None, fields)] + [(e, [e]) for e in library if e.transform is not None]
+    groups = [(base.effect, fields)]
+    if base.effect is None:
+        groups += [(e, [e]) for e in library if e.transform is not None]
     for structure, effects in groups:
         extra = [par for e in effects for par in e.params]
         if not extra:
@@ -182,6 +185,13 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
             out[e.name] = cols[:, k:k + len(e.params)]
             k += len(e.params)
     return out
+
+
+def visible(effect: Effect, columns: np.ndarray, priors: list[XPrior]) -> bool:
+    """Whether ``effect`` can change the data at all: its parameters moved by one prior sd
+    change the weighted residuals by more than 1e-6 of the noise (a thermal effect on data
+    without heat input cannot; such a model predicts the base's data and is the base)."""
+    return bool(np.max(np.linalg.norm(columns, axis=0) * np.array([p.sd for p in priors]), initial=0.0) > 1e-6)
 
 
 def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]]) -> list[tuple[float, np.ndarray]]:

@@ -26,6 +26,10 @@ from .evidence import Model
 ODDS = 20.0
 #: Plans reported.
 PLANS = 3
+#: A rival is separable when some plan is expected to move the odds against it by at least
+#: this (ln Bayes factor 1: a factor e); a rival that predicts the same data (an effect
+#: fitted at its "off") is not separable by any measurement of the same kind.
+MIN_GAIN = 1.0
 
 
 def candidate_plans(problem: MeasurementKind) -> list[tuple[str, list[float], np.ndarray]]:
@@ -56,30 +60,37 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict,
                      library=None) -> list[dict]:
     """The :data:`PLANS` best plans (module doc) as report entries {description,
     heat_inputs_W / groups, frequencies_Hz, separates, expected_gain}; [] when the best model
-    is more than :data:`ODDS` times as probable as every other, or the kind cannot plan."""
+    is more than :data:`ODDS` times as probable as every other, no plan separates a rival by
+    :data:`MIN_GAIN`, or the kind cannot plan."""
     best = models[0]
     rivals = [m for m in models[1:] if m.probability > 0 and best.probability / m.probability <= ODDS][:3]
     if not rivals:
         return []
     sd = _noise(problem)
-    out = []
+    plans = []
     for text, groups, freqs in candidate_plans(problem):
         kind = problem.at_rows(groups, freqs)
         if kind is None:
             return []
-        pred = {}
-        for m in [best] + rivals:
-            X = m.fit.x
-            pred[m.label] = kind.predict(param_values(m.fit.params, X, fixed), 1, m.fit.effect)[0]
+        pred = {m.label: kind.predict(param_values(m.fit.params, m.fit.x, fixed), 1, m.fit.effect)[0]
+                for m in [best] + rivals}
         s = sd[kind.coef]
         gains = {m.label: float(np.sum(((pred[best.label] - pred[m.label]).real / s[:, 0]) ** 2
                                        + ((pred[best.label] - pred[m.label]).imag / s[:, 1]) ** 2) / 2.0)
                  for m in rivals}
-        worst = min(gains, key=gains.get)
-        key = "heat_inputs_W" if problem.group_name == "Q_W" else problem.group_name
+        plans.append((text, groups, freqs, kind, pred, gains))
+    # a rival that no plan separates predicts the best model's data (an effect fitted at its
+    # "off"): it is the same model for any measurement of this kind, not one to decide against
+    distinct = [m.label for m in rivals if max(p[5][m.label] for p in plans) >= MIN_GAIN]
+    out = []
+    key = "heat_inputs_W" if problem.group_name == "Q_W" else problem.group_name
+    for text, groups, freqs, kind, pred, gains in plans:
+        if not distinct:
+            break
+        worst = min(distinct, key=gains.get)
         out.append({"description": text, key: [float(g) for g in groups],
                     "frequencies_Hz": [float(x) for x in freqs], "separates": [best.label, worst],
                     "expected_gain": gains[worst], "expected_gain_per_rival": gains,
-                    "_predictions": {k: v for k, v in pred.items()}, "_rows": (kind.freq, kind.group, kind.coef)})
+                    "_predictions": pred, "_rows": (kind.freq, kind.group, kind.coef)})
     out.sort(key=lambda p: -p["expected_gain"])
     return out[:PLANS]

@@ -20,8 +20,9 @@ from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
 from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location
-from .evidence import (REFITS, TENSION_Z, WINDOW, Model, XPrior, any_of, claims, effect_columns, inclusion, laplace_log_evidence,
-                       linearized_evidence, log_model_prior, model_priors, posterior, subsets)
+from .evidence import (REFITS, TENSION_Z, WINDOW, Model, XPrior, any_of, claims, effect_columns, inclusion,
+                       laplace_log_evidence, linearized_evidence, log_model_prior, model_priors, posterior, subsets,
+                       visible)
 from .plans import next_measurement
 from .screen import residual_structure
 
@@ -217,17 +218,20 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     the best refitted model and its most probable supersets refitted. Returns the refitted
     models (posterior probabilities set) and counts of what was linearized and refitted."""
     n_base = len(base_params)
+    at_base = effect_columns(problem, base.fit, fixed, library)
+    hidden = [e.name for e in library if not visible(e, at_base[e.name], model_priors(problem.core, list(e.params), (e,)))]
+    library = [e for e in library if e.name not in hidden]
     sets = subsets(library, max_effects)
     sizes: dict[int, int] = {}
     for s_ in sets:
         sizes[len(s_)] = sizes.get(len(s_), 0) + 1
     base.log_model_prior = log_model_prior(sizes, 0)
-    name_sets = [tuple(e.name for e in s_) for s_ in sets]
 
-    def linearize(at: Model, candidates: list[tuple[Effect, ...]]) -> list[tuple[tuple[str, ...], float, np.ndarray]]:
+    def linearize(at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None):
+        """(names, linearized ln Z + ln P(M), x) of each candidate at ``at``'s solution."""
         structure = at.fit.effect
         cand = [c for c in candidates if structure is None or not any(e.transform is not None for e in c)]
-        cols = effect_columns(problem, at.fit, fixed, [e for e in library if e.name not in at.effects])
+        cols = cols or effect_columns(problem, at.fit, fixed, [e for e in library if e.name not in at.effects])
         extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
         pri = [at.priors + model_priors(problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
         lin = linearized_evidence(at, cols, list(zip(extra, pri)))
@@ -246,7 +250,7 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
             out.append((names, logz + log_model_prior(sizes, len(names)), full))
         return out
 
-    lin = linearize(base, [s_ for s_ in sets if s_])
+    lin = linearize(base, [s_ for s_ in sets if s_], at_base)
     lin.sort(key=lambda t: -t[1])
     by_name = {e.name: e for e in library}
     singles = {(e.name,) for e in library}
@@ -258,7 +262,7 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     models = [base] + fit_models(problem, base_params, fixed, library, requests)
     for m in models[1:]:
         m.log_model_prior = log_model_prior(sizes, len(m.effects))
-    counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models)}
+    counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models), "not_visible": hidden}
     posterior(models)
     best = max(models, key=lambda m: m.probability)
     if best.effects and len(best.effects) < max_effects:
@@ -347,7 +351,7 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     passes = gof["adequate"] and gof["white"] and not best_tension
     if passes and not best.effects:
         verdict = "adequate"
-    elif passes and set(best.effects) <= set(alone) | {n for g in groups for n in g}:
+    elif passes and (alone or groups):
         verdict = "explained"
     elif passes:
         verdict = "indistinguishable"

@@ -1,0 +1,103 @@
+"""Loop benchmark: the wall time of one :func:`tawarp.loop.run_loop` (base fit, the Bayesian
+comparison of every model up to three effects, checks, next measurement, drift), warm (after
+one loop that compiles the kernels), on two classes of data. Writes JSON.
+
+    python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
+    taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
+    python bench/loop.py --device cuda
+
+* ``tmatrix``: the validation study's core T-matrix cases (``studies/loop_validation.py``,
+  the independent reference, core file 10-30 % off, 37 frequencies 40-400 Hz, Q = 0/20/40 W),
+  one case per category in ``--seeds`` (default: clean, plane offsets, convection, a pair);
+* ``impedance``: a rigid-backed layer's surface impedance at ``--impedance-freqs`` frequencies
+  (default 2694, 116-4316 Hz): the measured foam2 layers (both thicknesses) interpolated onto
+  that grid, with 0.5 % noise.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
+import loop_validation as lv  # noqa: E402
+from _results import write_result  # noqa: E402
+
+from tawarp.loop import impedance_loop, run_loop  # noqa: E402
+from tawarp.measure import load_atalla_panneton  # noqa: E402
+from tawarp.measure.files import ImpedanceData  # noqa: E402
+from tawarp.model.forward import ForwardSettings  # noqa: E402
+
+
+def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
+    out = []
+    for seed in seeds:
+        case = lv.make_case(seed)
+        arrays = lv.load_or_generate(case, cache)
+        core = lv.load_core(case.core_material).replace(**case.prior)
+        prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
+        t0 = time.perf_counter()
+        rep = run_loop(prob)
+        out.append({"seed": seed, "category": case.category, "material": case.material,
+                    "rows": int(prob.y.size), "seconds": time.perf_counter() - t0, "verdict": rep["verdict"],
+                    "claimed": rep["accepted_steps"], "models": rep["models_compared"]})
+        print(f"tmatrix seed {seed} ({case.category}): {out[-1]['seconds']:.1f} s, {rep['verdict']}")
+    return out
+
+
+def impedance_case(n: int, device: str) -> dict:
+    rng = np.random.default_rng(0)
+    f = np.linspace(116.0, 4316.0, n)
+    data = []
+    for d in load_atalla_panneton("foam2"):
+        Zs = np.interp(f, d.freq, d.Zs.real) + 1j * np.interp(f, d.freq, d.Zs.imag)
+        Zs = Zs * (1 + 0.005 * (rng.standard_normal(n) + 1j * rng.standard_normal(n)))
+        data.append(ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies"))
+    t0 = time.perf_counter()
+    prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
+    out = {"frequencies": n, "rows": int(prob.y.size), "seconds": time.perf_counter() - t0, "verdict": rep["verdict"],
+           "best_model": rep["best_model"], "models": rep["models_compared"], "error_after": rep["error_after"]}
+    print(f"impedance, {n} frequencies: {out['seconds']:.1f} s, best {'+'.join(rep['best_model']) or 'base'}")
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list)")
+    ap.add_argument("--impedance-freqs", type=int, default=2694)
+    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "cache"))
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args(argv)
+    try:
+        seeds = [int(s) for s in args.seeds.split(",")]
+    except ValueError:
+        ap.error(f"--seeds: {args.seeds!r}; expected integers, comma separated")
+    wp.config.quiet = True
+    wp.init()
+    cache = Path(args.cache)
+    cache.mkdir(parents=True, exist_ok=True)
+    tmatrix_cases(seeds[:1], args.device, cache)            # warm-up: compiles the kernels
+    impedance_case(64, args.device)
+    result = {"benchmark": "loop", "device": args.device,
+              "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
+              "cpu_cores": len(os.sched_getaffinity(0)), "host": platform.node(),
+              "tmatrix": tmatrix_cases(seeds, args.device, cache),
+              "impedance": impedance_case(args.impedance_freqs, args.device)}
+    t = [c["seconds"] for c in result["tmatrix"]]
+    result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
+    tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
+    write_result(result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json",
+                 args.out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
