@@ -56,11 +56,29 @@ from dataclasses import dataclass
 import numpy as np
 
 from .model.core import Core, Segment
-from .reference import (HeatSolution, NonlinearHeatSolution, _material_conductivity, _ode_matrix, _uniform_matrix,
-                        duct_waves, gas_properties, heat_profile, heat_profile_exact, thermoviscous_function)
+from .reference import (
+    HeatSolution,
+    NonlinearHeatSolution,
+    _material_conductivity,
+    _ode_matrix,
+    _uniform_matrix,
+    duct_waves,
+    gas_properties,
+    heat_profile,
+    heat_profile_exact,
+    thermoviscous_function,
+)
 
-__all__ = ["LabEffects", "LabHeatSolution", "lab_heat_profile", "side_branch_impedance", "parallel",
-           "microphone_error", "lab_segment_matrices", "lab_transfer_matrix"]
+__all__ = [
+    "LabEffects",
+    "LabHeatSolution",
+    "lab_heat_profile",
+    "lab_segment_matrices",
+    "lab_transfer_matrix",
+    "microphone_error",
+    "parallel",
+    "side_branch_impedance",
+]
 
 #: Rayleigh's end correction of a flanged opening, 8 a/(3 pi) per end (a the hole's radius).
 END_CORRECTION = 8.0 / (3.0 * math.pi)
@@ -368,7 +386,7 @@ def lab_segment_matrices(core: Core, lab: LabEffects, freqs, heat_input: float =
     for i, seg in enumerate(core.segments):
         profile = hs.segment_profile(i)
 
-        def piece(s: Segment, x0: float, uniform_porosity: bool = False) -> np.ndarray:
+        def piece(s: Segment, x0: float, uniform_porosity: bool = False, i=i, profile=profile) -> np.ndarray:
             phi = None if uniform_porosity else porosity_profile(core, lab, s)
             if i not in heated and phi is None:
                 return _uniform_matrix(core, s, w)

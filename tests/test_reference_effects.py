@@ -11,8 +11,14 @@ import pytest
 
 from tawarp import reference as ref
 from tawarp.model.core import Segment, load_core
-from tawarp.reference_effects import (LabEffects, LabHeatSolution, lab_segment_matrices, lab_transfer_matrix,
-                                      microphone_error, side_branch_impedance)
+from tawarp.reference_effects import (
+    LabEffects,
+    LabHeatSolution,
+    lab_segment_matrices,
+    lab_transfer_matrix,
+    microphone_error,
+    side_branch_impedance,
+)
 
 Q = 40.0
 FREQS = np.array([40.0, 150.0, 400.0])
