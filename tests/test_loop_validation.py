@@ -405,3 +405,26 @@ def test_held_out_seeds_never_in_a_tuning_run():
     with pytest.raises(ValueError, match="not held out"):
         lv.study_seeds(0, 0, [3], "heldout")
     assert lv.make_case(lv.HELDOUT_SEED0).held_out and not lv.make_case(0).held_out
+
+
+def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
+    recs = [_lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["wall_conduction"],
+                                                     "inclusion_probabilities": {"wall_conduction": 0.99}}),
+            _lab_record("lab:leak", 5.0, 3.0, {"verdict": "unexplained_residual",
+                                               "inclusion_probabilities": {"plane_offsets": 0.3}}, seed=4),
+            _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate",
+                                                        "prior_tension": [{"parameter": "tbt.h", "z": 40.0}]}, seed=7)]
+    for r, s in zip(recs, (1, 4, lv.HELDOUT_SEED0)):
+        r.update(seed=s, category=r["case"]["category"], material="mesh", core="mesh", noise=0.003, with_sigma=True,
+                 visibility=5.0, ratio_before=1.0, wall_s=1.0)
+    meta = {"base": "loop", "device": "cpu", "command": "test", "generation_s": 0.0, "cases_per_s": 1.0}
+    lv.report(tmp_path, recs, meta, quiet=True)
+    s = lv.json.loads((tmp_path / "loop_validation.json").read_text())["summary"]
+    assert s["held_out_cases"] == 1 and s["adequate_in_tension"] == 1
+    assert s["by_split"]["heldout"]["n_cases"] == 1 and s["by_split"]["heldout"]["adequate_in_tension"] == 1
+    assert s["outside_lab_flagged"]["k"] == 1 and s["outside_lab_explained"]["k"] == 0
+    assert s["calibration"]["claimed"] == {"n": 1, "k": 1, "rate": 1.0}
+    assert s["confusion"]["lab:wall_field"]["wall_conduction"] == 1
+    md = (tmp_path / "loop_validation.md").read_text()
+    assert "Calibration of the inclusion probabilities" in md and "| 0.95-1 | 1 | 0.99 | 1 | 1.00 |" in md
+    assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
