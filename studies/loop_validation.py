@@ -950,7 +950,7 @@ def main(argv=None) -> int:
                     help=f"tuning seeds (< {HELDOUT_SEED0}) or held-out ones (SEED0 counted from {HELDOUT_SEED0}): "
                          "run the held-out split only once the rules are frozen")
     ap.add_argument("--prior-off", type=fraction_range, default=None,
-                    help="LOW,HIGH relative errors of the core file (default 0.1,0.3; the lab suite's 0.1,0.2)")
+                    help="LOW,HIGH relative errors of the core file; none: 0.1,0.3 (the lab suite: 0.1,0.2)")
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
     ap.add_argument("--seeds", type=seed_list, default=None,
                     help="comma-separated seeds instead of SEED0 .. SEED0 + CASES - 1 (with --append: run again)")

@@ -80,6 +80,8 @@ __all__ = [
     "side_branch_impedance",
 ]
 
+#: Residual tolerance of the first, loose solve of :class:`LabHeatSolution`'s BVP.
+LOOSE_TOL = 1e-6
 #: Rayleigh's end correction of a flanged opening, 8 a/(3 pi) per end (a the hole's radius).
 END_CORRECTION = 8.0 / (3.0 * math.pi)
 
@@ -186,7 +188,8 @@ class LabHeatSolution(NonlinearHeatSolution):
 
     Solved on the state (theta_j, F_j = lam theta'_j) of every thermal segment j, plus
     (theta_w, F_w = lam_w theta_w') of the wall when it is on, mapped to s in [0, 1], by
-    scipy.integrate.solve_bvp (residual tolerance ``tol``). Interfaces: F, theta_w and F_w
+    scipy.integrate.solve_bvp (residual tolerance ``tol``, reached from a solve at
+    :data:`LOOSE_TOL`). Interfaces: F, theta_w and F_w
     continuous; theta continuous but at the contact, where it jumps by R_c F.
     """
 
@@ -259,7 +262,13 @@ class LabHeatSolution(NonlinearHeatSolution):
             if wall_on:
                 y0[2 * n + 2 * j] = y0[2 * j]
                 y0[2 * n + 2 * j + 1] = lam_w * lin.dtheta_in(idx, x)
-        self.bvp = solve_bvp(fun, bc, s, y0, tol=tol, bc_tol=tol, max_nodes=100000)
+        # continuation in the tolerance: from the paper model's profile, a loose solve first
+        # (a direct tight one can wander off to the node limit when the wall field is on)
+        for t in dict.fromkeys((max(tol, LOOSE_TOL), tol)):
+            self.bvp = solve_bvp(fun, bc, s, y0, tol=t, bc_tol=t, max_nodes=100000)
+            if not self.bvp.success:
+                break
+            s, y0 = self.bvp.x, self.bvp.y
         if not self.bvp.success:
             raise RuntimeError(f"{core.source}: heat BVP with lab effects (Q = {heat_input} W): {self.bvp.message}")
 
