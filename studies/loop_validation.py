@@ -698,11 +698,12 @@ def outcome_label(rec: dict) -> str:
     """The loop's answer as one column of the confusion matrix: its accepted steps (a group
     of effects it cannot tell apart as "A|B"), or its verdict when none; a flagging verdict
     beside steps is appended ("plane_offsets, unexplained_residual"), so that a flagged
-    case is never read as a claim."""
+    case is never read as a claim; ``adequate`` with the fit more than :data:`TENSION` prior
+    standard deviations from the core file reads "adequate, in tension"."""
     steps = rec["outcome"]["accepted_groups"]
     verdict = rec["outcome"]["verdict"]
     if not steps:
-        return verdict
+        return "adequate, in tension" if verdict == "adequate" and rec.get("tension", 0.0) > TENSION else verdict
     label = "+".join(sorted("|".join(g) for g in steps))
     return f"{label}, {verdict}" if verdict in FLAGGED else label
 
@@ -737,7 +738,7 @@ def summarize(records: list[dict], by_split: bool = True) -> dict:
         "right_effect_group_single": rate((r for r in visible if r["category"] != "two"), "right_group"),
         "right_effect_group_two": rate((r for r in visible if r["category"] == "two"), "right_group"),
         "named_incl_indistinguishable": rate(visible, "named"),
-        "invisible_no_claim": rate(r for r in eff if r["expected"]["verdict"] == "adequate"),
+        "invisible_no_claim": rate(r for r in records if r["category"] != "clean" and r["expected"]["verdict"] == "adequate"),
         "marginal_cases": sum(1 for r in records if not r["expected"]["scored"]),
         "absorbed_right": rate(absorbed),
         "adequate_in_tension": sum(1 for r in records if r["outcome"]["verdict"] == "adequate"

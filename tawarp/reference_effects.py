@@ -175,8 +175,8 @@ def material_conductivity(core: Core, lab: LabEffects, index: int):
     base = _material_conductivity(core, seg)
 
     def lam(x):
-        m = base + 0.0 * np.asarray(x, dtype=float) if phi is None else \
-            phi(x) * k_gas + (1.0 - phi(x)) * seg.solid_conductivity
+        x = np.asarray(x, dtype=float)
+        m = base + 0.0 * x if phi is None else phi(x) * k_gas + (1.0 - phi(x)) * seg.solid_conductivity
         return (1.0 - gap) * m + gap * k_gas
     return lam
 

@@ -425,6 +425,7 @@ def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
     assert s["outside_lab_flagged"]["k"] == 1 and s["outside_lab_explained"]["k"] == 0
     assert s["calibration"]["claimed"] == {"n": 1, "k": 1, "rate": 1.0}
     assert s["confusion"]["lab:wall_field"]["wall_conduction"] == 1
+    assert s["confusion"]["convection (absorbed)"]["adequate, in tension"] == 1
     md = (tmp_path / "loop_validation.md").read_text()
     assert "Calibration of the inclusion probabilities" in md and "| 0.95-1 | 1 | 0.99 | 1 | 1.00 |" in md
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
