@@ -837,6 +837,11 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
     lines += ["| truth \\ loop | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
     for a, row in s["confusion"].items():
         lines.append(f"| {a} | " + " | ".join(str(row[c]) if row[c] else "." for c in cols) + " |")
+    lab = sorted({r["category"].split(":", 1)[1] for r in records if r["category"].startswith("lab:")})
+    if lab:
+        lines += ["", "Lab effects (tawarp.reference_effects) and their sizes:", ""]
+        where = {e: f"the library's `{LAB[e].library}`" if LAB[e].library else "outside the library" for e in lab}
+        lines += [f"* `{e}` ({where[e]}): {LAB[e].why}" for e in lab]
     lines += ["", "Calibration of the inclusion probabilities (every effect of every case's report; true: the "
               "effect is in the data):", "", "| probability | effects | mean probability | true | fraction true |",
               "| --- | --- | --- | --- | --- |"]
