@@ -17,6 +17,7 @@ from tawarp.reference_effects import (
     lab_segment_matrices,
     lab_transfer_matrix,
     microphone_error,
+    parallel,
     side_branch_impedance,
 )
 
@@ -143,6 +144,17 @@ def test_bypass_gap_limits(mesh):
     slit = np.array([[np.cos(k * L), 1j * Zc * np.sin(k * L)], [1j * np.sin(k * L) / Zc, np.cos(k * L)]])
     slit = np.moveaxis(slit, -1, 0)
     assert np.max(np.abs(M - slit) / np.abs(slit)) < 1e-6
+
+
+def test_parallel_two_ports_add_their_areas(mesh):
+    # two equal ducts side by side are one duct of twice the flow area: at uniform temperature
+    # the closed form with twice the porosity (half the characteristic impedance, same k)
+    w = 2 * np.pi * FREQS
+    half = mesh.segment("stack")
+    double = dataclasses.replace(half, porosity=2 * half.porosity * 0.7)
+    single = dataclasses.replace(half, porosity=half.porosity * 0.7)
+    T1 = ref._uniform_matrix(mesh, single, w)
+    np.testing.assert_allclose(parallel(T1, T1), ref._uniform_matrix(mesh, double, w), rtol=1e-12)
 
 
 def test_leak_limits(mesh):
