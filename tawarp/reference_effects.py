@@ -8,12 +8,13 @@ The reference (:mod:`tawarp.reference`) models the paper's core. A built rig als
   stack against the hot exchanger): the temperature jumps by ``R_c`` times the heat flux
   density through the tube section, ``theta(right) - theta(left) = R_c lam theta'``;
 * **a conducting tube wall as a second temperature field** ``theta_w`` along the thermal
-  parts, axial conductance ``lam_w S`` (``wall_conductance`` = lam_w A_w / S [W/(m K)],
-  the library's field's unit), coupled to the gas/solid temperature by a lateral
-  coefficient ``h_w`` [W/(m^2 K)] on the perimeter (the porous parts' solid touching the
-  wall, the buffer tube's gas by laminar conduction), adiabatic at both ends of the
-  thermal domain. The losses to the room stay the h's of the gas/solid, so that the wall
-  only carries heat along the tube:
+  parts, its axial conductance (the wall material's conductivity times the wall's section)
+  written per tube section as ``lam_w`` = ``wall_conductance`` [W/(m K)] (the library's
+  field's unit), coupled to the gas/solid temperature by a lateral coefficient ``h_w``
+  [W/(m^2 K)] on the perimeter (the porous parts' solid touching the wall, the buffer
+  tube's gas by laminar conduction), adiabatic at both ends of the thermal domain. The
+  losses to the room stay the h's of the gas/solid, so that the wall only carries heat
+  along the tube:
 
       lam theta'' - (2 h/R) theta - (2 h_w/R)(theta - theta_w) + q = 0
       lam_w theta_w''             + (2 h_w/R)(theta - theta_w)     = 0
@@ -24,10 +25,10 @@ The reference (:mod:`tawarp.reference`) models the paper's core. A built rig als
   radius R - g and a parallel-plate channel of spacing g and area S g (2R - g)/R^2 (the
   narrow annulus unrolled; curvature corrections O(g/R)), at the stack's temperature, side
   by side between the same two planes: their admittance matrices add
-  (:func:`parallel`). In the heat model the gap's gas replaces that share of the stack.
-  (A gap far below the viscous depth, microns in a wire-mesh stack, makes the slit a
-  diffusion path many decay lengths long: its T-matrix entries grow like e^{|k| L} and the
-  parallel combination loses its digits; a real gap of 0.1 mm and more is far from it.);
+  (:func:`parallel`). In the heat model the gap's gas replaces that share of the stack. A
+  gap far below the viscous depth (microns in a wire-mesh stack) makes the slit a diffusion
+  path many decay lengths long, whose T-matrix entries grow like e^{|k| L} so that the
+  parallel combination loses its digits; a real gap of 0.1 mm and more is far from it;
 * **a side branch (leak)**: a hole of diameter ``d`` through the wall of a duct, neck length
   ``l``, to the room or to a closed cavity of volume ``V``: a shunt admittance
   ``Y = 1/Z_branch`` (:func:`side_branch_impedance`), ``(p, U) -> (p, U - Y p)``;
