@@ -51,6 +51,7 @@ __all__ = [
     "segment_transfer_matrices",
     "transfer_matrix",
     "transfer_matrix_omega",
+    "duct_waves",
     "duct_matrix_omega",
     "dimensionless_transfer",
 ]
@@ -674,11 +675,15 @@ def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: float) -> np.ndarray:
+def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: float,
+                porosity=None) -> np.ndarray:
     """T-matrix (2, 2) of one segment by DOP853 on dM/dx = A(x) M, M(x0) = I.
 
     Integrated on the scaled state (p, Z0 U), Z0 = rho0 c0/S at T_cold, so the four
     entries are O(1) and one absolute tolerance fits all; as a real 8-vector.
+    ``porosity``: None (the segment's), or a callable ``x -> phi(x)`` of a porosity varying
+    along the segment, the pore radius and tortuosity held: the flow area phi S enters
+    a12 as 1/phi and a21 as phi, a22 not at all.
     """
     g0 = gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean)
     Z0 = float(g0.rho * g0.c) / core.area
@@ -687,6 +692,9 @@ def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: fl
         M = (y[:4] + 1j * y[4:]).reshape(2, 2)
         T, dT = profile(x)
         a12, a21, a22 = _coefficients(core, seg, w, float(T), float(dT))
+        if porosity is not None:
+            ratio = float(porosity(x)) / seg.porosity
+            a12, a21 = a12 / ratio, a21 * ratio
         A = np.array([[0.0, a12 / Z0], [a21 * Z0, a22]], dtype=complex)
         dM = (A @ M).ravel()
         return np.concatenate([dM.real, dM.imag])
@@ -770,11 +778,12 @@ def transfer_matrix_omega(core: Core, omega, heat_input: float = 0.0, rtol: floa
     return T
 
 
-def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, length: float, omega) -> np.ndarray:
-    """Closed-form T-matrix (m, 2, 2) of an empty duct of ``radius`` [m] and ``length`` [m]
-    at uniform temperature ``T`` [K], at complex angular frequencies ``omega`` [rad/s]:
-    k = (w/c) sqrt((1 + (gamma-1) f_k)/(1 - f_nu)), Zc = rho c/(S sqrt((1 - f_nu)(1 + (gamma-1) f_k))),
-    T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]] (docs/physics.md, "Acoustics")."""
+def duct_waves(gas_name: str, p_mean: float, T: float, radius: float, omega) -> tuple[np.ndarray, np.ndarray]:
+    """Plane waves of an empty duct of ``radius`` [m] at uniform temperature ``T`` [K]:
+    wavenumber ``k`` [1/m] and characteristic impedance ``Zc`` [Pa s/m^3] (arrays like
+    ``omega`` [rad/s], 1-D): k = (w/c) sqrt((1 + (gamma-1) f_k)/(1 - f_nu)),
+    Zc = rho c/(S sqrt((1 - f_nu)(1 + (gamma-1) f_k))) (docs/physics.md, "Acoustics");
+    p = A e^{ikx} + B e^{-ikx}, U = (A e^{ikx} - B e^{-ikx})/Zc."""
     w = np.atleast_1d(np.asarray(omega, dtype=complex))
     g = gas_properties(gas_name, T, p_mean)
     f_nu, omf_nu = thermoviscous_function("circular", radius, np.sqrt(2.0 * g.mu / (g.rho * w)))
@@ -782,8 +791,17 @@ def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, len
     bulk = 1.0 + (g.gamma - 1.0) * f_k
     k = w / g.c * np.sqrt(bulk / omf_nu)
     Zc = g.rho * g.c / (math.pi * radius**2) / np.sqrt(omf_nu * bulk)
+    return k, Zc
+
+
+def duct_matrix_omega(gas_name: str, p_mean: float, T: float, radius: float, length: float, omega) -> np.ndarray:
+    """Closed-form T-matrix (m, 2, 2) of an empty duct of ``radius`` [m] and ``length`` [m]
+    at uniform temperature ``T`` [K], at complex angular frequencies ``omega`` [rad/s]:
+    k = (w/c) sqrt((1 + (gamma-1) f_k)/(1 - f_nu)), Zc = rho c/(S sqrt((1 - f_nu)(1 + (gamma-1) f_k))),
+    T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]] (docs/physics.md, "Acoustics")."""
+    k, Zc = duct_waves(gas_name, p_mean, T, radius, omega)
     kL = k * length
-    out = np.empty(w.shape + (2, 2), dtype=complex)
+    out = np.empty(kL.shape + (2, 2), dtype=complex)
     out[:, 0, 0] = np.cos(kL)
     out[:, 0, 1] = 1j * Zc * np.sin(kL)
     out[:, 1, 0] = 1j * np.sin(kL) / Zc

@@ -134,12 +134,15 @@ def test_pair_cases_are_scored_per_effect():
     # a group the loop cannot split counts only in the group-aware score
     grp = _pair_record([(5.0, 3.0), (8.0, 1.0)], [sorted([a, "radiation"])])[0]
     assert not grp["right"] and grp["right_group"]
-    # both visible: both required; both invisible: no claim; nothing visible otherwise: not scored
+    # both visible: both required; both invisible: no claim; one absorbed and nothing visible:
+    # scored as absorbed (no false claim; adequate only within the prior); only marginal: not scored
     assert not _pair_record([(5.0, 3.0), (8.0, 3.0)], [[a]])[0]["right"]
     assert _pair_record([(5.0, 3.0), (8.0, 3.0)], [[a], [b]])[0]["right"]
     inv = _pair_record([(0.1, 1.0), (0.2, 1.0)], [])[0]
     assert inv["expected"]["scored"] and inv["expected"]["effects"] == [] and inv["right"]
-    assert not _pair_record([(1.0, 1.2), (8.0, 1.0)], [])[0]["expected"]["scored"]
+    absorbed = _pair_record([(1.0, 1.2), (8.0, 1.0)], [])[0]
+    assert absorbed["expected"]["verdict"] == "absorbed" and absorbed["expected"]["scored"] and absorbed["right"]
+    assert not _pair_record([(1.0, 1.2), (1.5, 1.2)], [])[0]["expected"]["scored"]
 
 
 def test_pair_cases_cache_each_effect_alone(tmp_path):
@@ -242,3 +245,162 @@ def test_convection_absorbed_by_the_buffer_tube_h_is_named(tmp_path):
     assert base_h and base_h[0]["value"] > 10 * base_h[0]["prior_centre"], rep["prior_tension"]
     assert abs(rep["parameters_after"]["tbt.h"]["prior_z"]) < 3
     assert rep["verdict"] == "explained" and rep["error_after"] <= 1.3 * lv.noise_floor(arrays, prob.Zc)
+
+
+# -- the lab suite (tawarp.reference_effects): generation and scoring ---------------------
+
+def test_lab_suite_prior_is_10_to_20_percent_off_and_sizes_are_typical():
+    for seed in range(3 * len(lv.LAB_CATEGORIES)):
+        case = lv.make_case(seed, suite="lab")
+        assert case.category == lv.LAB_CATEGORIES[seed % len(lv.LAB_CATEGORIES)]
+        off = [abs(case.prior[k] / case.truth[k] - 1) for k in case.prior]
+        assert min(off) >= 0.1 - 1e-12 and max(off) <= 0.2 + 1e-12, off
+        lab = lv.lab_effects(case)
+        if case.category == "lab:contact_resistance":
+            assert 1e-4 <= lab.contact_resistance <= 1e-3
+        elif case.category == "lab:bypass_gap":
+            assert 0.1e-3 <= lab.bypass_gap <= 0.5e-3
+        elif case.category == "lab:leak":
+            assert 0.5e-3 <= lab.leak_diameter <= 1e-3
+        elif case.category == "lab:mic_mismatch":
+            assert 0.02 <= abs(lab.mic_gain - 1) <= 0.05 and 1.0 <= abs(math.degrees(lab.mic_phase)) <= 3.0
+        elif case.category == "lab:porosity_gradient":
+            phi = case.truth["stack.porosity"]
+            assert abs(lab.porosity_gradient) <= 0.3 and phi * (1 + abs(lab.porosity_gradient) / 2) <= 0.99 + 1e-12
+        elif case.category == "lab:wall_field":
+            assert case.true_effects() == ["wall_conduction"]
+    # a case without lab effects is described (and cached) as before the lab field existed
+    case = lv.make_case(5)
+    assert case.lab == {} and case.key() == lv.hashlib.sha1(lv.json.dumps(
+        {k: v for k, v in lv.asdict(case).items() if k != "lab"}, sort_keys=True).encode()).hexdigest()[:10]
+
+
+@pytest.mark.parametrize("category", [c for c in lv.LAB_CATEGORIES if c.startswith("lab:")])
+def test_lab_categories_generate(category, tmp_path):
+    # every lab effect makes data that differ from the reference without it, through the
+    # study's own generation (noise, sigma, cache) at two frequencies
+    case = lv.make_case(3, category=category, material="mesh", n_freqs=2)
+    assert case.lab and not case.effects
+    a = lv.load_or_generate(case, tmp_path)
+    assert set(a) == set(lv.array_keys(case)) and "Y_without" in a
+    assert np.all(np.isfinite(a["T"])) and np.all(np.isfinite(a["Y_clean"]))
+    assert lv.rms_error(a["Y_clean"], a["Y_without"]) > 1e-4
+    # the data without the effect are the reference's own
+    base = lv.normalize(lv.reference.transfer_matrix(lv.true_core(case), case.freqs, case.heat_inputs[-1]),
+                        lv.rig_Zc(case)).reshape(-1, 4)
+    np.testing.assert_allclose(a["Y_without"][-1], base, rtol=1e-12)
+
+
+def _lab_record(category: str, visibility: float, ratio_before: float, report: dict, ratio_after: float = 1.05,
+                seed: int = 1) -> dict:
+    case = lv.make_case(seed, category=category, material="mesh", suite="lab")
+    name = (case.effects + list(case.lab))[0] if case.effects or case.lab else None
+    per = {name: {"visibility": visibility, "ratio_before": ratio_before}} if name else {}
+    report = {"error_before": 0.02, "error_after": 0.01, **report}
+    rec = {"case": lv.asdict(case), "per_effect": per, "outcome": lv.loop_outcome(report), "ratio_after": ratio_after}
+    return lv.score(rec)
+
+
+def test_outside_lab_effects_must_be_flagged_not_explained():
+    vis, absorbed = (5.0, 3.0), (5.0, 1.0)
+    explained = {"verdict": "explained", "accepted_effects": ["thermal_radius_ratio"],
+                 "accepted_groups": [["thermal_radius_ratio"]]}
+    rec = _lab_record("lab:contact_resistance", *vis, explained)
+    assert rec["expected"]["verdict"] == "unexplained_residual" and not rec["right"]
+    assert _lab_record("lab:contact_resistance", *vis, {"verdict": "unexplained_residual"})["right"]
+    # absorbed by the base fit: a false claim is wrong, flagging is right
+    rec = _lab_record("lab:bypass_gap", *absorbed, explained)
+    assert rec["expected"]["verdict"] == "absorbed" and rec["expected"]["scored"] and not rec["right"]
+    assert _lab_record("lab:bypass_gap", *absorbed, {"verdict": "unexplained_residual"})["right"]
+
+
+def test_absorbed_effect_adequate_only_within_the_prior():
+    # buffer-tube convection absorbed by tbt.h: "adequate" with tbt.h 30x the core file's
+    # value (145 prior sd at 20 %) is wrong; within the prior it is right; the loop's own
+    # prior_tension counts too
+    case = lv.make_case(1, category="effect:convection", material="mesh", suite="lab")
+    far = {k: {"value": v, "std": None} for k, v in case.prior.items()}
+    far["tbt.h"]["value"] = 30 * case.prior["tbt.h"]
+    rec = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate", "parameters_after": far})
+    assert rec["expected"]["verdict"] == "absorbed" and rec["tension"] > 100 and not rec["right"]
+    near = {k: v * 1.1 for k, v in case.prior.items()}
+    rec = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate", "parameters_after": near})
+    assert rec["tension"] == pytest.approx(0.5) and rec["right"]
+    rec = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate", "parameters_after": near,
+                                                      "prior_tension": [{"parameter": "tbt.h", "z": 4.0}]})
+    assert not rec["right"]
+    named = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "explained", "accepted_steps": ["convection"]})
+    assert named["right"]
+    # clean data judged adequate in tension are wrong as well
+    clean = _lab_record("clean", 0.0, 1.0, {"verdict": "adequate", "parameters_after": {"tbt.h": far["tbt.h"]}})
+    assert not clean["right"]
+
+
+def test_wall_field_is_scored_as_the_library_wall_conduction():
+    good = {"verdict": "explained", "accepted_steps": ["wall_conduction"]}
+    rec = _lab_record("lab:wall_field", 5.0, 3.0, good)
+    assert rec["expected"]["effects"] == ["wall_conduction"] and rec["right"]
+    assert not _lab_record("lab:wall_field", 5.0, 3.0, good, ratio_after=1.5)["right"]
+    assert not _lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["radiation"]})["right"]
+
+
+def test_inclusion_probabilities_calibration():
+    # two effects at >= 0.95: one true (wall conduction in the wall-field case), one not
+    # (radiation in clean data): 1 of 2 claims true; the bins count every probability
+    recs = [_lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["wall_conduction"],
+                                                     "inclusion_probabilities": {"wall_conduction": 0.99,
+                                                                                 "radiation": 0.02}}),
+            _lab_record("clean", 0.0, 1.0, {"verdict": "explained", "accepted_steps": ["radiation"],
+                                            "inclusion_probabilities": {"radiation": 0.97, "T_cold": 0.6}})]
+    cal = lv.calibration(recs)
+    assert cal["claimed"] == {"n": 2, "k": 1, "rate": 0.5}
+    assert [b["n"] for b in cal["bins"]] == [1, 0, 1, 2] and cal["bins"][3]["true"] == 1
+    assert cal["groups"] == {"n": 2, "k": 1, "rate": 0.5}
+
+
+def test_adapter_tolerates_both_report_contracts():
+    new = {"error_before": 0.05, "error_after": 0.01, "verdict": "explained", "accepted_steps": ["a+b", "c"],
+           "inclusion_probabilities": {"a": 0.5, "b": 0.5, "c": 0.99},
+           "prior_tension": [{"parameter": "tbt.h", "z": 4.2, "ratio": 40.0}],
+           "parameters_after": {"tbt.h": {"value": 8.0, "std": 1.0}}}
+    got = lv.loop_outcome(new)
+    assert got["accepted_groups"] == [["a", "b"], ["c"]] and got["accepted_effects"] == ["c"]
+    assert got["prior_tension"] == [{"parameter": "tbt.h", "z": 4.2}] and got["parameters_after"] == {"tbt.h": 8.0}
+    old = lv.loop_outcome({"error_before": 0.05, "error_after": 0.01, "verdict": "explained",
+                           "accepted_steps": ["one of {a, b} (indistinguishable in these data)"]})
+    assert old["accepted_groups"] == [["a", "b"]] and old["inclusion_probabilities"] == {}
+    assert old["prior_tension"] == [] and old["parameters_after"] == {}
+
+
+def test_held_out_seeds_never_in_a_tuning_run():
+    assert lv.study_seeds(0, 3, None, "tuning") == [0, 1, 2]
+    assert lv.study_seeds(5, 2, None, "heldout") == [lv.HELDOUT_SEED0 + 5, lv.HELDOUT_SEED0 + 6]
+    with pytest.raises(ValueError, match="held out"):
+        lv.study_seeds(0, 0, [3, lv.HELDOUT_SEED0], "tuning")
+    with pytest.raises(ValueError, match="not held out"):
+        lv.study_seeds(0, 0, [3], "heldout")
+    assert lv.make_case(lv.HELDOUT_SEED0).held_out and not lv.make_case(0).held_out
+
+
+def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
+    recs = [_lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["wall_conduction"],
+                                                     "inclusion_probabilities": {"wall_conduction": 0.99}}),
+            _lab_record("lab:leak", 5.0, 3.0, {"verdict": "unexplained_residual",
+                                               "inclusion_probabilities": {"plane_offsets": 0.3}}, seed=4),
+            _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate",
+                                                        "prior_tension": [{"parameter": "tbt.h", "z": 40.0}]}, seed=7)]
+    for r, s in zip(recs, (1, 4, lv.HELDOUT_SEED0)):
+        r.update(seed=s, category=r["case"]["category"], material="mesh", core="mesh", noise=0.003, with_sigma=True,
+                 visibility=5.0, ratio_before=1.0, wall_s=1.0)
+    meta = {"base": "loop", "device": "cpu", "command": "test", "generation_s": 0.0, "cases_per_s": 1.0}
+    lv.report(tmp_path, recs, meta, quiet=True)
+    s = lv.json.loads((tmp_path / "loop_validation.json").read_text())["summary"]
+    assert s["held_out_cases"] == 1 and s["adequate_in_tension"] == 1
+    assert s["by_split"]["heldout"]["n_cases"] == 1 and s["by_split"]["heldout"]["adequate_in_tension"] == 1
+    assert s["outside_lab_flagged"]["k"] == 1 and s["outside_lab_explained"]["k"] == 0
+    assert s["calibration"]["claimed"] == {"n": 1, "k": 1, "rate": 1.0}
+    assert s["confusion"]["lab:wall_field"]["wall_conduction"] == 1
+    assert s["confusion"]["convection (absorbed)"]["adequate, in tension"] == 1
+    md = (tmp_path / "loop_validation.md").read_text()
+    assert "Calibration of the inclusion probabilities" in md and "| 0.95-1 | 1 | 0.99 | 1 | 1.00 |" in md
+    assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
