@@ -394,11 +394,13 @@ def test_journal_file_is_optunas_format(tmp_path):
 
 
 def test_resume_with_another_seed_is_refused(tmp_path):
-    """A lineage is the stream of its seed: resuming it with another seed would tell the
-    sampler points it never asked; refused, naming the member that differs."""
+    """A lineage is the stream of its seed: resuming it with another seed or batch is
+    refused, naming those the lineage was started with."""
     journal = str(tmp_path / "s.journal")
     search(_space(), n_trials=8, batch=8, storage=journal, seed=1)
-    with pytest.raises(StudyConflict, match="generation 0 member 0 was stored as"):
+    with pytest.raises(StudyConflict, match="was started with seed 1, batch 8, not seed 2, batch 8"):
         search(_space(), n_trials=16, batch=8, storage=journal, seed=2)
+    with pytest.raises(StudyConflict, match="was started with seed 1, batch 8, not seed 1, batch 4"):
+        search(_space(), n_trials=16, batch=4, storage=journal, seed=1)
     res = search(_space(), n_trials=16, batch=8, storage=journal, seed=1)
     assert study_summary(res.study)["trials"] == 16

@@ -52,7 +52,7 @@ STORE_ATTR = "tawarp_trials"  # study user attribute: the trial store's folder
 
 class StudyConflict(ValueError):
     """The study cannot be continued as asked (a live worker of the same name, another
-    batch, another design space, other objectives)."""
+    seed or batch for a worker's lineage, another design space, other objectives)."""
 
 
 class JournalFile(BaseJournalBackend):
@@ -161,6 +161,23 @@ def _bind(study, key: str, value, what: str) -> None:
     elif prev != value:
         raise StudyConflict(f"study {study.study_name!r} was run with {what} {prev}, not {value}; "
                             f"a study is bound to its {what}: give another study name or output")
+
+
+def bind_worker(study, worker: str, resumed: bool, **given) -> None:
+    """Bind ``worker``'s lineage to what the user gave for it (``seed``, ``batch``): the
+    run that starts the lineage records them in the study's user attribute
+    ``tawarp_worker:NAME``; a run that resumes it (``resumed``: generations are stored)
+    with others is refused, naming them. A lineage whose first run died before storing
+    anything may start again with any."""
+    key = f"tawarp_worker:{worker}"
+    prev = study.user_attrs.get(key)
+    if resumed and prev is not None and prev != given:
+        was = ", ".join(f"{k} {v}" for k, v in prev.items())
+        now = ", ".join(f"{k} {v}" for k, v in given.items())
+        raise StudyConflict(f"worker {worker!r} of study {study.study_name!r} was started with {was}, not {now}: "
+                            f"resume it with those, or give another worker name")
+    if prev != given:
+        study.set_user_attr(key, given)
 
 
 # -- the columnar trial store ------------------------------------------------------------------
