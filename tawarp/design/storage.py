@@ -118,19 +118,43 @@ def make_storage(storage):
         return storage
     s = str(storage)
     if "://" in s:
-        kw = {"connect_args": {"timeout": 60}} if s.startswith("sqlite") else {}
-        for attempt in range(8):
-            try:
-                return optuna.storages.RDBStorage(s, engine_kwargs=kw)
-            except Exception:  # workers creating a fresh database's schema at once race; retry
-                if attempt == 7:
-                    raise
-                time.sleep(0.2 * (attempt + 1))
+        return _rdb_storage(s)
     os.makedirs(os.path.dirname(os.path.abspath(s)), exist_ok=True)
     backend = JournalFile(s)
     st = JournalStorage(backend)
     _JOURNALS[st] = backend
     return st
+
+
+def _rdb_storage(url: str):
+    """Optuna's RDB storage at ``url``; a database that cannot be opened raises ValueError
+    naming the URL (password hidden) and what to do."""
+    import optuna
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except (ArgumentError, ValueError) as e:
+        raise ValueError(f"storage {url!r}: not a database URL ({e}); give sqlite:///FILE.db, "
+                         "postgresql://USER@HOST/DB or a journal file path") from None
+    shown = parsed.render_as_string(hide_password=True)
+    sqlite = parsed.get_backend_name() == "sqlite"
+    if sqlite and parsed.database and parsed.database != ":memory:":
+        folder = Path(parsed.database).parent
+        if not folder.is_dir():
+            raise ValueError(f"storage {shown}: the folder {str(folder)!r} of the database does not exist; "
+                             "create it or give another path")
+    kw = {"connect_args": {"timeout": 60}} if sqlite else {}
+    for attempt in range(8):
+        try:
+            return optuna.storages.RDBStorage(url, engine_kwargs=kw)
+        except Exception as e:  # workers creating a fresh database's schema at once race; retry
+            if attempt == 7:
+                cause = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
+                raise ValueError(f"storage {shown}: cannot open the database ({cause}); check the URL, "
+                                 "that the server runs and that you may write there") from e
+            time.sleep(0.2 * (attempt + 1))
 
 
 def open_study(storage, study_name: str, objectives, space_description: list | None = None):
