@@ -183,6 +183,7 @@ def test_measured_impedances_pass_the_convention_check():
     """The measured Atalla & Panneton layers (conjugated from the paper's exp(+jwt) on
     load) show the signs of exp(-iwt) data; their conjugates those of exp(+iwt)."""
     from shared_data import measured_folder
+
     from tawarp.measure import atalla_panneton_samples, load_atalla_panneton
     from tawarp.measure.files import impedance_convention_evidence
 

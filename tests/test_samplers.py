@@ -6,8 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tawarp.design.samplers import (BatchCmaEs, BatchNsga2, Sampler, constrained_objectives, crowding, make_sampler,
-                                    nondominated_ranks, pareto_mask)
+from tawarp.design.samplers import (
+    BatchCmaEs,
+    BatchNsga2,
+    Sampler,
+    constrained_objectives,
+    crowding,
+    make_sampler,
+    nondominated_ranks,
+    pareto_mask,
+)
 
 # hand-made set (both minimized): fronts by inspection
 POINTS = np.array([[1, 5], [2, 3], [4, 1],      # front 0
