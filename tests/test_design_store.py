@@ -20,6 +20,8 @@ from tawarp.design.space import DesignSpace
 from tawarp.design.storage import TrialStore, open_study, study_summary, trials_table
 from tawarp.model.core import load_core
 
+from processes import reaped, released
+
 ROOT = Path(__file__).resolve().parents[1]
 VARS = ["material=ceramic,rvc_foam", "stack.length=0.005:0.1", "heat_input=1:30", "hot_hx.length=0.005:0.03"]
 
@@ -183,14 +185,13 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
     def run(start, wait):
-        p = subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        first = p.stdout.readline()  # the first generation is stored: the writer is under way
-        assert first.strip() == str(start), first + p.stdout.read()
-        time.sleep(wait)
-        while_writing = check()  # a reader beside the live writer
-        p.send_signal(signal.SIGKILL)
-        p.communicate()
+        with reaped(subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)) as (p,):
+            first = p.stdout.readline()  # the first generation is stored: the writer is under way
+            assert first.strip() == str(start), first
+            time.sleep(wait)
+            while_writing = check()  # a reader beside the live writer
+            p.send_signal(signal.SIGKILL)
         assert while_writing >= start + 1
 
     def check():
@@ -234,14 +235,12 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)
     other.start()
-    with pytest.raises(KeyboardInterrupt):
+    with released(stop, other), pytest.raises(KeyboardInterrupt):
         with journal.batch():
             journal.append_logs([{"op_code": 0, "a": 1}])
             os.kill(os.getpid(), signal.SIGINT)      # Ctrl-C in the middle of the batch
             journal.append_logs([{"op_code": 0, "a": 2}])
         raise AssertionError("the interrupt must arrive as soon as the batch ends")
-    stop.set()
-    other.join()
     assert [log["a"] for log in journal.read_logs(0)] == [1, 2]
     assert not os.path.lexists(path + ".lock")        # lock released
     with journal.batch():                              # and can be taken again at once
