@@ -26,7 +26,10 @@ generations (:func:`tawarp.design.storage.lineage`: the trial store and the stud
 a run killed at any point resumes exactly: members of a generation missing from the
 storage are asked again and evaluated (the trial store commits whole generations), none
 is lost or stored twice; copies the study misses (a run killed between the store and
-the study) are added.
+the study) are added. A lineage is bound to the seed and batch of its first run
+(:func:`tawarp.design.storage.bind_worker`: a resume with others is refused, naming
+them); its stored points are told to the sampler as stored, so it resumes whatever the
+sampler would ask now (a lineage stored by an earlier version of it included).
 Several workers with different names share one study (an island model); ``n_trials``
 counts the worker's own trials.
 """
