@@ -196,13 +196,21 @@ def test_measured_impedances_pass_the_convention_check():
 
 
 def test_zero_impedance_is_named(tmp_path):
-    """Zs = 0 (no layer can have it) gave "SVD did not converge" from the fit."""
-    from tawarp.measure import MeasurementError, read_impedance_csv
+    """Zs = 0 (no layer can have it) gave "SVD did not converge" from the fit: the file is
+    refused naming the line, data made in code naming the kind."""
+    from tawarp.measure import (
+        ImpedanceData,
+        ImpedanceKind,
+        MeasurementError,
+        read_impedance_csv,
+    )
 
     f = np.linspace(200.0, 1600.0, 8)
     _impedance_file(tmp_path / "zero.csv", f, np.zeros(8))
     with pytest.raises(MeasurementError, match=r"zero\.csv, line 3: Zs = 0"):
         read_impedance_csv(tmp_path / "zero.csv")
+    with pytest.raises(MeasurementError, match="impedance data: every value is 0"):
+        ImpedanceKind(ImpedanceData(f, np.zeros(8), thickness=0.05))
 
 
 def test_transfer_matrices_of_no_core_is_a_type_error():
@@ -213,13 +221,18 @@ def test_transfer_matrices_of_no_core_is_a_type_error():
         transfer_matrices(None, [100.0])
 
 
-def test_a_database_in_a_missing_folder_is_named(tmp_path):
+def test_a_database_in_a_missing_folder_is_named(tmp_path, capsys):
     """--storage sqlite:///missing/dir/x.db gave sqlalchemy's traceback."""
+    from tawarp.cli import main
     from tawarp.design.storage import make_storage
 
     url = f"sqlite:///{tmp_path / 'missing' / 'dir' / 'x.db'}"
     with pytest.raises(ValueError, match=r"the folder '.*missing/dir' of the database does not exist; create it"):
         make_storage(url)
+    assert main(["design", "rvc_foam", "--var", "Q=1:18", "--trials", "8", "--batch", "8", "--storage", url,
+                 "--device", "cpu", "--quiet", "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing/dir' of the database does not exist" in err
     assert not (tmp_path / "missing").exists()
     with pytest.raises(ValueError, match="not a database URL"):
         make_storage("sqlite://x:y:z//")

@@ -63,7 +63,10 @@ class MeasurementKind:
 
     def unit_weights(self) -> np.ndarray:
         """(rows, 2) weights 1/rms|y|: the cost is then the FORMATS.md error squared times rows."""
-        return np.full((self.y.size, 2), 1.0 / np.sqrt(np.mean(np.abs(self.y) ** 2)))
+        rms = np.sqrt(np.mean(np.abs(self.y) ** 2))
+        if not rms > 0:
+            raise MeasurementError(f"{self.name} data: every value is 0, nothing to fit; check the data")
+        return np.full((self.y.size, 2), 1.0 / rms)
 
     def error(self, Y: np.ndarray, rows=None) -> float:
         """The FORMATS.md error measure of model values ``Y`` (rows,) on ``rows``."""
