@@ -11,14 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from processes import reaped
 
 from tawarp.design.samplers import nondominated_ranks
 from tawarp.design.search import SearchCrash, search
 from tawarp.design.space import DesignSpace
 from tawarp.design.storage import StudyConflict, open_study, study_summary, trials_table
 from tawarp.model.core import load_core
-
-from processes import reaped
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ("ceramic", "mesh", "nicr_foam", "rvc_foam")

@@ -13,14 +13,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from processes import reaped, released
 
 from tawarp.design.evaluate import Evaluator
 from tawarp.design.search import search
 from tawarp.design.space import DesignSpace
 from tawarp.design.storage import TrialStore, open_study, study_summary, trials_table
 from tawarp.model.core import load_core
-
-from processes import reaped, released
 
 ROOT = Path(__file__).resolve().parents[1]
 VARS = ["material=ceramic,rvc_foam", "stack.length=0.005:0.1", "heat_input=1:30", "hot_hx.length=0.005:0.03"]
@@ -221,12 +220,11 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     and the KeyboardInterrupt comes right after the block."""
     import os
     import signal
+    import threading
 
     import pytest
 
     from tawarp.design.storage import JournalFile
-
-    import threading
 
     path = str(tmp_path / "j.journal")
     journal = JournalFile(path)
