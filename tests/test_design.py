@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from processes import reaped
 
 from tawarp.design.samplers import nondominated_ranks
 from tawarp.design.search import SearchCrash, search
@@ -151,8 +152,8 @@ def test_resume_after_a_killed_run(tmp_path):
     one is not; on resume the study becomes the one an uninterrupted run makes (the sampler
     state is replayed from the stored generations), nothing lost or duplicated."""
     journal = tmp_path / "study.journal"
-    p = _run([journal, "w0", 32, 5, 2])
-    out, _ = p.communicate(timeout=120)
+    with reaped(_run([journal, "w0", 32, 5, 2])) as (p,):
+        out, _ = p.communicate(timeout=120)
     assert p.returncode == 3, out
     st = study_summary(open_study(str(journal), "tawarp-design", ["gradient"]))
     assert st["trials"] == 8 and st["states"] == {"COMPLETE": 8} and st["in_study"] == 1
@@ -182,10 +183,10 @@ def test_resume_in_process_optuna_engine(tmp_path):
 @pytest.mark.parametrize("kind", ["sqlite", "journal"])
 def test_two_processes_share_one_study(tmp_path, kind):
     url = f"sqlite:///{tmp_path / 'study.db'}" if kind == "sqlite" else str(tmp_path / "study.journal")
-    procs = [_run([url, "a", 48, 1]), _run([url, "b", 40, 2])]
-    for p in procs:
-        out, _ = p.communicate(timeout=180)
-        assert p.returncode == 0, out
+    with reaped(_run([url, "a", 48, 1]), _run([url, "b", 40, 2])) as procs:
+        for p in procs:
+            out, _ = p.communicate(timeout=180)
+            assert p.returncode == 0, out
     study = open_study(url, "tawarp-design", ["gradient"])
     st = study_summary(study)
     assert st["trials"] == 48 + 40 and st["states"] == {"COMPLETE": 88} and st["unique"]
@@ -285,27 +286,27 @@ def test_same_name_worker_is_refused_while_the_first_lives(tmp_path):
     import time
 
     journal = tmp_path / "race.journal"
-    procs = [_run([journal, "same", 10**6, 0]) for _ in range(2)]
-    t0 = time.monotonic()
-    while all(p.poll() is None for p in procs) and time.monotonic() - t0 < 120:
-        time.sleep(0.05)
-    done = [p for p in procs if p.poll() is not None]
-    assert len(done) == 1, "one of the two must be refused while the other runs"
-    winner = next(p for p in procs if p is not done[0])
 
     def keys():
         k = _keys(trials_table(open_study(str(journal), "tawarp-design", ["gradient"])))
         return k, set(k)
 
-    # let it store a generation first: SIGINT is handled between Python bytecodes, and a
-    # winner still loading (or, in a fresh clone, compiling) its kernels would take that
-    # long to see it
-    t0 = time.monotonic()
-    while winner.poll() is None and not keys()[0] and time.monotonic() - t0 < 300:
-        time.sleep(0.1)
-    winner.send_signal(signal.SIGINT)
-    winner.communicate(timeout=60)
-    out = done[0].communicate(timeout=60)[0]
+    with reaped(*(_run([journal, "same", 10**6, 0]) for _ in range(2))) as procs:
+        t0 = time.monotonic()
+        while all(p.poll() is None for p in procs) and time.monotonic() - t0 < 120:
+            time.sleep(0.05)
+        done = [p for p in procs if p.poll() is not None]
+        assert len(done) == 1, "one of the two must be refused while the other runs"
+        winner = next(p for p in procs if p is not done[0])
+        # let it store a generation first: SIGINT is handled between Python bytecodes, and a
+        # winner still loading (or, in a fresh clone, compiling) its kernels would take that
+        # long to see it
+        t0 = time.monotonic()
+        while winner.poll() is None and not keys()[0] and time.monotonic() - t0 < 300:
+            time.sleep(0.1)
+        winner.send_signal(signal.SIGINT)
+        winner.communicate(timeout=60)
+        out = done[0].communicate(timeout=60)[0]
     assert done[0].returncode != 0 and "StudyConflict" in out and "is running in another live process" in out, out
 
     trials, k = keys()
@@ -394,11 +395,13 @@ def test_journal_file_is_optunas_format(tmp_path):
 
 
 def test_resume_with_another_seed_is_refused(tmp_path):
-    """A lineage is the stream of its seed: resuming it with another seed would tell the
-    sampler points it never asked; refused, naming the member that differs."""
+    """A lineage is the stream of its seed: resuming it with another seed or batch is
+    refused, naming those the lineage was started with."""
     journal = str(tmp_path / "s.journal")
     search(_space(), n_trials=8, batch=8, storage=journal, seed=1)
-    with pytest.raises(StudyConflict, match="generation 0 member 0 was stored as"):
+    with pytest.raises(StudyConflict, match="was started with seed 1, batch 8, not seed 2, batch 8"):
         search(_space(), n_trials=16, batch=8, storage=journal, seed=2)
+    with pytest.raises(StudyConflict, match="was started with seed 1, batch 8, not seed 1, batch 4"):
+        search(_space(), n_trials=16, batch=4, storage=journal, seed=1)
     res = search(_space(), n_trials=16, batch=8, storage=journal, seed=1)
     assert study_summary(res.study)["trials"] == 16

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from processes import reaped, released
 
 from tawarp.design.evaluate import Evaluator
 from tawarp.design.search import search
@@ -183,14 +184,13 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
     def run(start, wait):
-        p = subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
-                             stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        first = p.stdout.readline()  # the first generation is stored: the writer is under way
-        assert first.strip() == str(start), first + p.stdout.read()
-        time.sleep(wait)
-        while_writing = check()  # a reader beside the live writer
-        p.send_signal(signal.SIGKILL)
-        p.communicate()
+        with reaped(subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
+                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)) as (p,):
+            first = p.stdout.readline()  # the first generation is stored: the writer is under way
+            assert first.strip() == str(start), first
+            time.sleep(wait)
+            while_writing = check()  # a reader beside the live writer
+            p.send_signal(signal.SIGKILL)
         assert while_writing >= start + 1
 
     def check():
@@ -220,12 +220,11 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     and the KeyboardInterrupt comes right after the block."""
     import os
     import signal
+    import threading
 
     import pytest
 
     from tawarp.design.storage import JournalFile
-
-    import threading
 
     path = str(tmp_path / "j.journal")
     journal = JournalFile(path)
@@ -234,14 +233,12 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     stop = threading.Event()
     other = threading.Thread(target=stop.wait)
     other.start()
-    with pytest.raises(KeyboardInterrupt):
+    with released(stop, other), pytest.raises(KeyboardInterrupt):
         with journal.batch():
             journal.append_logs([{"op_code": 0, "a": 1}])
             os.kill(os.getpid(), signal.SIGINT)      # Ctrl-C in the middle of the batch
             journal.append_logs([{"op_code": 0, "a": 2}])
         raise AssertionError("the interrupt must arrive as soon as the batch ends")
-    stop.set()
-    other.join()
     assert [log["a"] for log in journal.read_logs(0)] == [1, 2]
     assert not os.path.lexists(path + ".lock")        # lock released
     with journal.batch():                              # and can be taken again at once

@@ -6,8 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tawarp.design.samplers import (BatchCmaEs, BatchNsga2, Sampler, constrained_objectives, crowding, make_sampler,
-                                    nondominated_ranks, pareto_mask)
+from tawarp.design.samplers import (
+    BatchCmaEs,
+    BatchNsga2,
+    Sampler,
+    constrained_objectives,
+    crowding,
+    make_sampler,
+    nondominated_ranks,
+    pareto_mask,
+)
 
 # hand-made set (both minimized): fronts by inspection
 POINTS = np.array([[1, 5], [2, 3], [4, 1],      # front 0
@@ -104,3 +112,40 @@ def test_replay_is_exact():
             s.tell(X, np.sum(X[:, :2] ** 2, axis=1)[:, None], np.zeros(8))
         return s.ask(8)
     np.testing.assert_array_equal(run(3), run(3))
+
+
+@pytest.mark.parametrize("kind", ["interior", "corner"])
+def test_cma_es_restarts_instead_of_degenerating(kind):
+    """A converging CMA-ES shrinks its step size without bound: on f = |x - c|^2 (minimum
+    inside the box) or f = -(x0 + x1) (minimum at the corner (1, 1)) with 64 trials per
+    generation, ``cmaes`` left alone asks NaN points after 53 (interior) or 233 (corner)
+    generations and its ``tell`` then raises "Abs of all param values must be less than
+    1e+32". Over 300 generations every point asked is finite and in the box, the instance
+    restarts at least once, and the best point is the minimum to 1e-6."""
+    c = np.array([0.3, 0.7]) if kind == "interior" else np.ones(2)
+    f = (lambda X: np.sum((X - c) ** 2, axis=1)) if kind == "interior" else (lambda X: -X.sum(axis=1))
+    s = make_sampler(2, 0, 64, 0, 1)
+    best = np.inf, None
+    for _ in range(300):
+        X = s.ask(64)
+        assert np.all(np.isfinite(X)) and np.all((X >= 0) & (X <= 1))
+        y = f(X)
+        s.tell(X, y[:, None], np.zeros(64))
+        j = int(np.argmin(y))
+        if y[j] < best[0]:
+            best = y[j], X[j]
+    assert s.restarts[0] >= 1
+    assert np.linalg.norm(best[1] - c) < 1e-6
+
+
+def test_cma_es_told_points_that_are_not_finite_goes_on():
+    """A store written before the restarts existed may hold a generation of NaN points;
+    told them on a resume, the sampler counts them failed and asks finite points next."""
+    s = make_sampler(2, 2, 8, 0, 1)
+    for g in range(3):
+        X = s.ask(8)
+        if g == 1:
+            X[:, :2] = np.nan
+        s.tell(X, np.sum(X[:, :2] ** 2, axis=1)[:, None], np.zeros(8))
+    X = s.ask(8)
+    assert np.all(np.isfinite(X)) and np.all((X[:, :2] >= 0) & (X[:, :2] <= 1))

@@ -1,8 +1,8 @@
 """The ``tawarp`` command line (docs/formats.md, "Command line").
 
 Every subcommand has ``--help``, ``--device cpu|cuda|cuda:N`` (default: a GPU if there
-is one) and ``--quiet``; outputs are machine readable (CSV/JSON/netCDF) with figures
-beside them.
+is one), ``--quiet`` and ``--verbose`` (Warp's own banner and module-load lines, silent
+otherwise); outputs are machine readable (CSV/JSON/netCDF) with figures beside them.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import _common, _say, parse_list
+from .common import _common, _say, init_warp, interrupts_honoured, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
 from .loop import add_loop_parser
@@ -94,19 +94,17 @@ def main(argv: list[str] | None = None) -> int:
     one-line message on stderr and exit code 2 (130 when interrupted), never a traceback."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    import warp as wp
-
     from ..measure.files import MeasurementError
     from ..model.core import CoreError
     from ..model.forward import resolve_device
 
-    if getattr(args, "quiet", False):   # before Warp's first init prints its banner and module loads
-        wp.config.log_level = wp.LOG_ERROR
     t0 = time.perf_counter()
     try:
-        if getattr(args, "device", None) is not None:
-            resolve_device(args.device)
-        rc = args.func(args)
+        with interrupts_honoured():
+            init_warp(args.verbose, args.quiet)
+            if args.device is not None:
+                resolve_device(args.device)
+            rc = args.func(args)
     except (CoreError, MeasurementError, OSError, KeyError, ValueError) as e:
         print(f"tawarp {args.command}: error: {e}", file=sys.stderr)
         return 2

@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
+import os
+import sys
+import tempfile
 
 import numpy as np
 
@@ -38,7 +42,68 @@ def _parse_list(text: str) -> np.ndarray:
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars, banners or chatter")
+    p.add_argument("--verbose", action="store_true",
+                   help="let Warp print its banner, driver warnings and a line per kernel module loaded")
     return p
+
+
+def init_warp(verbose: bool = False, quiet: bool = False) -> None:
+    """Initialize Warp for a command. Unless ``verbose``, what Warp prints on its own
+    (its banner and a line per module load, at log level INFO, and the native library's
+    "Warp CUDA warning: ..." on a machine without a CUDA driver, written straight to file
+    descriptor 2) is kept off the terminal, where it breaks the progress bars: the log
+    level becomes WARNING (ERROR with ``quiet``) and ``wp.init`` runs with descriptor 2
+    captured, its text shown only if the initialization fails."""
+    import warp as wp
+
+    if verbose:
+        return
+    wp.config.log_level = wp.LOG_ERROR if quiet else wp.LOG_WARNING
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as captured:
+        os.dup2(captured.fileno(), 2)
+        try:
+            wp.init()
+        except BaseException:
+            os.dup2(saved, 2)
+            captured.seek(0)
+            sys.stderr.write(captured.read().decode(errors="replace"))
+            raise
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+
+
+@contextlib.contextmanager
+def interrupts_honoured():
+    """Within the block, a Ctrl-C that Python drops is raised again. Python swallows an
+    exception raised in a weakref callback or ``__del__`` (it prints "Exception ignored
+    in ..." through ``sys.unraisablehook``), and Warp frees its arrays in such callbacks: a
+    Ctrl-C landing there was lost and the command ran on. The hook hands such a
+    KeyboardInterrupt back to the main thread (``_thread.interrupt_main``) 20 ms later,
+    from a timer thread: signalled at once, the main thread would raise it inside the
+    hook itself, where it is dropped again; once the hook has returned it raises it at its
+    next bytecode (inside another callback: dropped and handed back once more). Any
+    other unraisable exception goes to the hook before."""
+    import _thread
+    import threading
+
+    previous = sys.unraisablehook
+
+    def hook(unraisable):
+        if unraisable.exc_type is not None and issubclass(unraisable.exc_type, KeyboardInterrupt):
+            again = threading.Timer(0.02, _thread.interrupt_main)
+            again.daemon = True
+            again.start()
+        else:
+            previous(unraisable)
+
+    sys.unraisablehook = hook
+    try:
+        yield
+    finally:
+        sys.unraisablehook = previous
 
 
 def add_measurement_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:

@@ -7,7 +7,7 @@ from pathlib import Path
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
 from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
-from .common import add_measurement_options, load_data
+from .common import _common, add_measurement_options, load_data
 
 
 def add_loop_parser(sub) -> None:
@@ -24,8 +24,7 @@ def add_loop_parser(sub) -> None:
                                                "porosity, pore radius, tortuosity)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
-    p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
-    p.add_argument("--quiet", action="store_true", help="no progress bar or chatter")
+    _common(p)
     add_measurement_options(p)
     p.set_defaults(func=cmd_loop)
 

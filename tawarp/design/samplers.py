@@ -12,7 +12,8 @@ state is stored).
 - :class:`BatchCmaEs` (one objective): CMA-ES (the ``cmaes`` library that Optuna's
   ``CmaEsSampler`` wraps), one instance per category, the population split evenly
   between them; generation 0 is a scrambled Sobol batch from which CMA-ES is
-  warm-started (``cmaes.get_warm_start_mgd``); constraints by Deb's rule.
+  warm-started (``cmaes.get_warm_start_mgd``); constraints by Deb's rule; an instance
+  that has converged or degenerated is restarted (see :class:`BatchCmaEs`).
 - :class:`BatchNsga2` (several objectives): NSGA-II with constrained domination,
   crowding distance, binary tournament, SBX crossover and polynomial mutation;
   generation 0 scrambled Sobol.
@@ -88,10 +89,36 @@ def _penalized(f: np.ndarray, violation: np.ndarray) -> np.ndarray:
     return np.where(feas, f, worst + 1.0 + np.abs(worst) + big)
 
 
+#: Initial step size of a CMA-ES (re)started without a warm start: a sixth of the unit
+#: box, so that +-3 sigma spans it.
+SIGMA0 = 1.0 / 6.0
+
+
+def _degenerate(opt) -> bool:
+    """Whether a CMA-ES instance can no longer sample: its state is not finite, or
+    ``cmaes``' own stopping test holds (converged: step size or function values below
+    tolerance, a step with no effect on the mean, covariance condition number > 1e14).
+    Left running, such an instance divides by a vanishing step size and asks NaN points
+    (a quadratic with 256 trials per generation does so within 60 generations)."""
+    state = (opt.mean, np.asarray(opt._sigma), opt._C)  # cmaes has no public accessor
+    if not all(np.all(np.isfinite(a)) for a in state) or not opt._sigma > 0:
+        return True
+    with np.errstate(all="ignore"):
+        return bool(opt.should_stop())
+
+
 class BatchCmaEs:
     """CMA-ES over ``dim`` unit-cube coordinates, one instance per category (``categories``
     0 or 1: none), population = ``batch`` split between categories. Generation 0 is
-    scrambled Sobol; CMA-ES is warm-started from it. Constraints: Deb's rule."""
+    scrambled Sobol; CMA-ES is warm-started from it. Constraints: Deb's rule.
+
+    Points stay in the unit box (``cmaes`` resamples, then clips). An instance that has
+    converged or degenerated (:func:`_degenerate`) is restarted, before it asks, from a
+    random point of the box with step size :data:`SIGMA0` and the same population (the
+    batch is already far above CMA-ES's default 4 + 3 ln d, so IPOP's doubling of the
+    population buys nothing); ``restarts[m]`` counts them. Restarts depend only on what
+    was told, so a replay restarts alike. Points told that are not finite (none are asked;
+    a store may hold some) are told as the points asked, failed."""
 
     def __init__(self, dim: int, categories: int, batch: int, seed: int):
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
@@ -101,8 +128,33 @@ class BatchCmaEs:
         self.d = max(dim, 2)  # cmaes needs >= 2 dimensions: pad a dummy one, kept internal
         self.sizes = [batch // self.n_cat + (1 if m < batch % self.n_cat else 0) for m in range(self.n_cat)]
         self.opts = [None] * self.n_cat
+        self.restarts = [0] * self.n_cat
         self.generation = 0
         self._asked = None  # (internal coordinates (batch, d), category (batch,)) of the last ask
+
+    def _start(self, m: int, mean, sigma: float, cov, seed: int) -> None:
+        import cmaes
+
+        self.opts[m] = cmaes.CMA(mean=np.clip(mean, 0.0, 1.0), sigma=max(float(sigma), 1e-8), cov=cov,
+                                 bounds=np.tile([0.0, 1.0], (self.d, 1)), seed=seed,
+                                 n_max_resampling=10 * self.d, population_size=self.sizes[m])
+
+    def _restart(self, m: int) -> None:
+        self.restarts[m] += 1
+        seq = np.random.SeedSequence([self.seed, m, self.restarts[m]])
+        self._start(m, np.random.default_rng(seq).random(self.d), SIGMA0, None,
+                    int(seq.generate_state(1)[0] % (2**31 - 2)) + 1)
+
+    def _population(self, m: int) -> np.ndarray:
+        """Instance m's next population (sizes[m], d), restarting it first if it degenerated."""
+        if _degenerate(self.opts[m]):
+            self._restart(m)
+        with np.errstate(all="ignore"):
+            u = np.array([self.opts[m].ask() for _ in range(self.sizes[m])])
+        if not np.all(np.isfinite(u)):  # a state finite yet too extreme to sample from
+            self._restart(m)
+            u = np.array([self.opts[m].ask() for _ in range(self.sizes[m])])
+        return u
 
     def ask(self, n: int) -> np.ndarray:
         if n != self.batch:
@@ -111,11 +163,8 @@ class BatchCmaEs:
             u = sobol_unit(self.batch, self.d, self.seed)
             cat = np.arange(self.batch) % self.n_cat
         else:
-            us, cats = [], []
-            for m, opt in enumerate(self.opts):
-                us.append(np.array([opt.ask() for _ in range(opt.population_size)]))
-                cats.append(np.full(opt.population_size, m))
-            u, cat = np.concatenate(us), np.concatenate(cats)
+            u = np.concatenate([self._population(m) for m in range(self.n_cat)])
+            cat = np.concatenate([np.full(size, m) for m, size in enumerate(self.sizes)])
         self._asked = (u, cat)
         X = u[:, :self.dim]
         return np.concatenate([X, cat[:, None].astype(float)], axis=1) if self.categories else X
@@ -125,10 +174,13 @@ class BatchCmaEs:
 
         if self._asked is None:
             raise RuntimeError("tell without ask: tell the generation last asked")
-        u_asked, _ = self._asked
+        u_asked, cat_asked = self._asked
         u = np.concatenate([X[:, :self.dim], u_asked[:, self.dim:]], axis=1)
         cat = X[:, self.dim].astype(int) if self.categories else np.zeros(len(X), dtype=int)
-        f = _penalized(np.asarray(F, dtype=float).reshape(len(X), -1)[:, 0], np.asarray(violation, dtype=float))
+        f = np.asarray(F, dtype=float).reshape(len(X), -1)[:, 0]
+        bad = ~np.all(np.isfinite(u), axis=1)
+        u[bad], cat[bad] = u_asked[bad], cat_asked[bad]
+        f = _penalized(np.where(bad, np.inf, f), np.where(bad, np.inf, np.asarray(violation, dtype=float)))
         if self.generation == 0:
             for m in range(self.n_cat):
                 sols = [(u[i], f[i]) for i in np.flatnonzero(cat == m)]
@@ -139,15 +191,12 @@ class BatchCmaEs:
                 except (AssertionError, np.linalg.LinAlgError, ValueError):
                     ok = False
                 if not ok:
-                    mean, sigma, cov = np.full(self.d, 0.5), 1.0 / 6.0, None
-                mean = np.clip(mean, 0.0, 1.0)
-                self.opts[m] = cmaes.CMA(mean=mean, sigma=max(float(sigma), 1e-8), cov=cov,
-                                         bounds=np.tile([0.0, 1.0], (self.d, 1)),
-                                         seed=(self.seed + 1000 * m) % (2**31 - 1) + 1,
-                                         n_max_resampling=10 * self.d, population_size=self.sizes[m])
+                    mean, sigma, cov = np.full(self.d, 0.5), SIGMA0, None
+                self._start(m, mean, sigma, cov, (self.seed + 1000 * m) % (2**31 - 1) + 1)
         else:
-            for m, opt in enumerate(self.opts):
-                opt.tell([(u[i], float(f[i])) for i in np.flatnonzero(cat == m)])
+            with np.errstate(all="ignore"):  # a degenerating update is caught before the next ask
+                for m, opt in enumerate(self.opts):
+                    opt.tell([(u[i], float(f[i])) for i in np.flatnonzero(cat == m)])
         self._asked = None
         self.generation += 1
 

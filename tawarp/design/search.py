@@ -26,7 +26,10 @@ generations (:func:`tawarp.design.storage.lineage`: the trial store and the stud
 a run killed at any point resumes exactly: members of a generation missing from the
 storage are asked again and evaluated (the trial store commits whole generations), none
 is lost or stored twice; copies the study misses (a run killed between the store and
-the study) are added.
+the study) are added. A lineage is bound to the seed and batch of its first run
+(:func:`tawarp.design.storage.bind_worker`: a resume with others is refused, naming
+them); its stored points are told to the sampler as stored, so it resumes whatever the
+sampler would ask now (a lineage stored by an earlier version of it included).
 Several workers with different names share one study (an island model); ``n_trials``
 counts the worker's own trials.
 """
@@ -43,8 +46,8 @@ from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
 from .samplers import make_sampler, pareto_mask
 from .space import DesignSpace
-from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, copies_in_study,
-                      journal_batch, lineage, make_storage, open_study)
+from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, bind_worker,
+                      copies_in_study, journal_batch, lineage, make_storage, open_study)
 from ..io import interrupt_guard
 from ..model.forward import ForwardSettings
 
@@ -122,11 +125,9 @@ def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, b
         try:
             with interrupt_guard() as run.interrupted:
                 if engine == "optuna":
-                    _search_optuna(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after,
-                                   _crash_after)
+                    _search_optuna(run, n_target, batch, seed, bar, claim, _stop_after, _crash_after)
                 else:
-                    _search_batched(run, n_target, batch, worker_seed(seed, worker), bar, claim, _stop_after,
-                                    _crash_after)
+                    _search_batched(run, n_target, batch, seed, bar, claim, _stop_after, _crash_after)
         finally:
             bar.close()
     finally:
@@ -242,14 +243,16 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
     gens = lineage(run.study, run.worker)
     copied = ({(g, j) for (w, g, j) in copies_in_study(run.study) if w == run.worker}
               if run.store is not None else set())
+    bind_worker(run.study, run.worker, bool(gens), seed=seed, batch=batch)
     run.timing["storage"] += time.perf_counter() - t
-    for g, rows in gens.items():
+    for g, rows in gens.items():  # a lineage stored before its seed and batch were recorded
         if rows["index"].max() >= batch:
             raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} has members "
                                 f"up to index {rows['index'].max()}; resume with the same batch "
                                 f"(> {rows['index'].max()}), not {batch}")
     categories = len(space.material.choices) if space.material is not None else 0
-    sampler = make_sampler(len(space.continuous), categories, batch, seed, len(run.objectives))
+    sampler = make_sampler(len(space.continuous), categories, batch, worker_seed(seed, run.worker),
+                           len(run.objectives))
     names = [v.name for v in space.variables]
     done, asked = 0, 0
     while done < n_target:
@@ -268,8 +271,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         def put(rows, cols):
             for k, v in cols.items():
                 metrics.setdefault(k, np.full(batch, np.nan))[rows] = v
-        if stored is not None:
-            _check_same_points(run, g, values, stored, idx)
+        if stored is not None:  # the stored points are told, whatever the sampler asks now
             for k in names:
                 values[k][idx] = space.material_index(stored["param:material"]) if k == "material" \
                     else stored["param:" + k].astype(np.float64)
@@ -309,25 +311,6 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         bar.update(batch)
 
 
-def _check_same_points(run, g, values, stored, idx) -> None:
-    """Stored members of generation ``g`` must be the points the sampler asks again, up to
-    the rounding of a unit-cube round trip (1e-9 relative)."""
-    space = run.space
-    for k in (v.name for v in space.variables):
-        if k == "material":
-            same = space.material_index(stored["param:material"]) == values[k][idx]
-        else:
-            a, b = stored["param:" + k].astype(np.float64), values[k][idx]
-            same = np.abs(a - b) <= 1e-9 * np.maximum(np.abs(a), np.abs(b))
-        if not np.all(same):
-            j = int(np.flatnonzero(~same)[0])
-            was = {n: stored["param:" + n][j] for n in (v.name for v in space.variables)}
-            now = space.points_of(values, [int(idx[j])])[0]
-            raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} "
-                                f"member {int(idx[j])} was stored as {was}, the sampler now asks {now}; "
-                                f"resume with the seed and batch of the first run")
-
-
 def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):
     """Optuna's own samplers, one ``study.ask()`` per trial, one evaluation launch per batch."""
     import warnings
@@ -336,6 +319,7 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
     from optuna.trial import TrialState
 
     study, storage, T_limit = run.study, run.storage, run.T_limit
+    seed = worker_seed(seed, run.worker)
 
     def constraints_func(trial):
         return [trial.user_attrs["T_max"] - T_limit]

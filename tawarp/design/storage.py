@@ -52,7 +52,7 @@ STORE_ATTR = "tawarp_trials"  # study user attribute: the trial store's folder
 
 class StudyConflict(ValueError):
     """The study cannot be continued as asked (a live worker of the same name, another
-    batch, another design space, other objectives)."""
+    seed or batch for a worker's lineage, another design space, other objectives)."""
 
 
 class JournalFile(BaseJournalBackend):
@@ -118,19 +118,43 @@ def make_storage(storage):
         return storage
     s = str(storage)
     if "://" in s:
-        kw = {"connect_args": {"timeout": 60}} if s.startswith("sqlite") else {}
-        for attempt in range(8):
-            try:
-                return optuna.storages.RDBStorage(s, engine_kwargs=kw)
-            except Exception:  # workers creating a fresh database's schema at once race; retry
-                if attempt == 7:
-                    raise
-                time.sleep(0.2 * (attempt + 1))
+        return _rdb_storage(s)
     os.makedirs(os.path.dirname(os.path.abspath(s)), exist_ok=True)
     backend = JournalFile(s)
     st = JournalStorage(backend)
     _JOURNALS[st] = backend
     return st
+
+
+def _rdb_storage(url: str):
+    """Optuna's RDB storage at ``url``; a database that cannot be opened raises ValueError
+    naming the URL (password hidden) and what to do."""
+    import optuna
+    from sqlalchemy.engine import make_url
+    from sqlalchemy.exc import ArgumentError
+
+    try:
+        parsed = make_url(url)
+    except (ArgumentError, ValueError) as e:
+        raise ValueError(f"storage {url!r}: not a database URL ({e}); give sqlite:///FILE.db, "
+                         "postgresql://USER@HOST/DB or a journal file path") from None
+    shown = parsed.render_as_string(hide_password=True)
+    sqlite = parsed.get_backend_name() == "sqlite"
+    if sqlite and parsed.database and parsed.database != ":memory:":
+        folder = Path(parsed.database).parent
+        if not folder.is_dir():
+            raise ValueError(f"storage {shown}: the folder {str(folder)!r} of the database does not exist; "
+                             "create it or give another path")
+    kw = {"connect_args": {"timeout": 60}} if sqlite else {}
+    for attempt in range(8):
+        try:
+            return optuna.storages.RDBStorage(url, engine_kwargs=kw)
+        except Exception as e:  # workers creating a fresh database's schema at once race; retry
+            if attempt == 7:
+                cause = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
+                raise ValueError(f"storage {shown}: cannot open the database ({cause}); check the URL, "
+                                 "that the server runs and that you may write there") from e
+            time.sleep(0.2 * (attempt + 1))
 
 
 def open_study(storage, study_name: str, objectives, space_description: list | None = None):
@@ -161,6 +185,23 @@ def _bind(study, key: str, value, what: str) -> None:
     elif prev != value:
         raise StudyConflict(f"study {study.study_name!r} was run with {what} {prev}, not {value}; "
                             f"a study is bound to its {what}: give another study name or output")
+
+
+def bind_worker(study, worker: str, resumed: bool, **given) -> None:
+    """Bind ``worker``'s lineage to what the user gave for it (``seed``, ``batch``): the
+    run that starts the lineage records them in the study's user attribute
+    ``tawarp_worker:NAME``; a run that resumes it (``resumed``: generations are stored)
+    with others is refused, naming them. A lineage whose first run died before storing
+    anything may start again with any."""
+    key = f"tawarp_worker:{worker}"
+    prev = study.user_attrs.get(key)
+    if resumed and prev is not None and prev != given:
+        was = ", ".join(f"{k} {v}" for k, v in prev.items())
+        now = ", ".join(f"{k} {v}" for k, v in given.items())
+        raise StudyConflict(f"worker {worker!r} of study {study.study_name!r} was started with {was}, not {now}: "
+                            f"resume it with those, or give another worker name")
+    if prev != given:
+        study.set_user_attr(key, given)
 
 
 # -- the columnar trial store ------------------------------------------------------------------

@@ -30,8 +30,9 @@ from pathlib import Path
 import numpy as np
 
 from ..model.gas import GASES
-from .table import (CONVENTION, MeasurementError, _atomic_write, _check_positive_unique, _complex,  # noqa: F401
-                    _converted_metadata, _fail, _meta_float, _metadata_line, _needs_conjugate, _read_table, _Table)
+from .table import (CONVENTION, MeasurementError, _atomic_write, _check_convention,  # noqa: F401
+                    _check_positive_unique, _complex, _converted_metadata, _fail, _meta_float, _metadata_line,
+                    _needs_conjugate, _read_table, _Table)
 
 #: The four raw coefficients and their (row, column) in the 2x2 T-matrix.
 COEFFICIENTS = {"Tpp": (0, 0), "Tpu": (0, 1), "Tup": (1, 0), "Tuu": (1, 1)}
@@ -186,8 +187,24 @@ def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
     for c, (i, j) in COEFFICIENTS.items():
         T[:, i, j] = _complex(t, c)
     sigma = _read_sigma(t, COEFFICIENTS).reshape(rows, 2, 2, 2) if _has_sigma(t) else None
-    return TMatrixData(t.values["Q_W"], t.values["freq_Hz"], T.conj() if conj else T, sigma,
-                       _converted_metadata(t, conj), t.source)
+    T = T.conj() if conj else T
+    _check_convention(t, conj, tmatrix_convention_evidence(t.values["Q_W"], t.values["freq_Hz"], T))
+    return TMatrixData(t.values["Q_W"], t.values["freq_Hz"], T, sigma, _converted_metadata(t, conj), t.source)
+
+
+def tmatrix_convention_evidence(heat_input, freq, T) -> str | None:
+    """Why core T-matrices ``T`` (rows, 2, 2), taken as exp(-iwt), look like exp(+iwt)
+    data, or None. Below a core's first resonance its gas is an inertance and a
+    compliance: for a duct, ``Tpu = i Zc sin kL`` and ``Tup = i sin(kL) / Zc`` in
+    exp(-iwt), so ``Im Tpu > 0`` and ``Im Tup > 0`` while ``Re Tpp = cos kL > 0``,
+    heated or not (viscous and thermal losses change the real parts). The evidence: at
+    the lowest frequency of every heat input, ``Re Tpp > 0`` and both imaginary parts < 0."""
+    low = [np.flatnonzero(heat_input == q)[np.argmin(freq[heat_input == q])] for q in np.unique(heat_input)]
+    t = T[low]
+    if np.all((t[:, 0, 0].real > 0) & (t[:, 0, 1].imag < 0) & (t[:, 1, 0].imag < 0)):
+        return (f"Im Tpu < 0 and Im Tup < 0 at {freq[low[0]]:g} Hz, the lowest frequency, where a passive core "
+                "has both > 0 in exp(-iwt)")
+    return None
 
 
 def _has_sigma(t: _Table) -> bool:
@@ -268,9 +285,29 @@ def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
     p_amb = _meta_float(t, "p_ambient", "Pa", required=False)
     _check_positive_unique(t, "freq_Hz")
     Zs = _complex(t, "Zs")
+    zero = np.flatnonzero(Zs == 0)
+    if zero.size:
+        raise _fail(t.source, t.lines[zero[0]], "Zs = 0: a rigid-backed layer has |Zs| > 0 (infinite at low "
+                                                "frequency); correct or remove the row")
     sigma = _read_sigma(t, ("Zs",))[:, 0] if _has_sigma(t) else None
-    return ImpedanceData(t.values["freq_Hz"], Zs.conj() if conj else Zs, thickness, T_amb, p_amb,
-                         _converted_metadata(t, conj), t.source, sigma)
+    Zs = Zs.conj() if conj else Zs
+    _check_convention(t, conj, impedance_convention_evidence(t.values["freq_Hz"], Zs))
+    return ImpedanceData(t.values["freq_Hz"], Zs, thickness, T_amb, p_amb, _converted_metadata(t, conj), t.source,
+                         sigma)
+
+
+def impedance_convention_evidence(freq, Zs) -> str | None:
+    """Why surface impedances ``Zs`` of a rigid-backed layer, taken as exp(-iwt), look
+    like exp(+iwt) data, or None. In exp(-iwt) ``Zs = i Zc cot(kd)``: a compliance at low
+    frequency (``Im Zs > 0``, infinite as f -> 0), and ``Im Zs`` falls with frequency
+    between the half-wave poles (losses round the poles off). The evidence: ``Im Zs < 0``
+    at the lowest frequency and rising over most steps of frequency."""
+    order = np.argsort(freq)
+    im = Zs.imag[order]
+    if im.size >= 2 and im[0] < 0 and np.mean(np.diff(im) > 0) > 0.5:
+        return (f"Im Zs < 0 at {freq[order[0]]:g} Hz, the lowest frequency, and rising with frequency; a "
+                "rigid-backed layer has Im Zs > 0 there, falling, in exp(-iwt)")
+    return None
 
 
 # Atalla & Panneton (2005) sample table, transcribed from the data set's README in SI:

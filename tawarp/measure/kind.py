@@ -18,7 +18,6 @@ import dataclasses
 import inspect
 import math
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -29,6 +28,7 @@ from ..model.coefficients import rms_error
 from ..model.core import Core
 from ..model.forward import Engine, ForwardSettings
 from .files import MeasurementError
+from .table import text_lines
 
 
 class MeasurementKind:
@@ -74,7 +74,10 @@ class MeasurementKind:
 
     def unit_weights(self) -> np.ndarray:
         """(rows, 2) weights 1/rms|y|: the cost is then the docs/formats.md error squared times rows."""
-        return np.full((self.y.size, 2), 1.0 / np.sqrt(np.mean(np.abs(self.y) ** 2)))
+        rms = np.sqrt(np.mean(np.abs(self.y) ** 2))
+        if not rms > 0:
+            raise MeasurementError(f"{self.name} data: every value is 0, nothing to fit; check the data")
+        return np.full((self.y.size, 2), 1.0 / rms)
 
     def error(self, Y: np.ndarray, rows=None) -> float:
         """The docs/formats.md error measure of model values ``Y`` (rows,) on ``rows``."""
@@ -187,14 +190,9 @@ def register_kind(name: str, cls: type, detect: Callable[[list[str]], bool], loa
 
 def header_columns(path) -> list[str]:
     """Column names of a CSV measurement file (its first line that is not a comment)."""
-    path = Path(path)
-    try:
-        with path.open() as fh:
-            for ln in fh:
-                if ln.strip() and not ln.lstrip().startswith("#"):
-                    return [c.strip() for c in ln.split(",")]
-    except OSError as e:
-        raise MeasurementError(f"{path}: cannot read ({e.strerror})") from e
+    for _, line in text_lines(path):
+        if not line.startswith("#"):
+            return [c.strip() for c in line.split(",")]
     raise MeasurementError(f"{path}: no header line")
 
 

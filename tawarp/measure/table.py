@@ -52,39 +52,31 @@ def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) 
     meta, meta_line = {}, {}
     header, header_line, used, width = None, 0, {}, 0
     blocks, line_blocks, lines, numbers = [], [], [], []
-    n = 0
-    try:
-        with open(path, encoding="utf-8-sig", newline=None) as f:  # -sig: tolerate a spreadsheet's BOM
-            for n, raw in enumerate(f, start=1):
-                line = raw.strip()
-                if not line:
-                    continue
-                if header is not None and not line.startswith("#"):
-                    lines.append(line)
-                    numbers.append(n)
-                    if len(lines) == _BLOCK:
-                        blocks.append(_parse_rows(src, lines, numbers, used, width, header_line, ignore_extra))
-                        line_blocks.append(np.array(numbers, dtype=np.int64))
-                        lines, numbers = [], []
-                    continue
-                if line.startswith("#"):
-                    if header is not None:
-                        raise _fail(src, n, "comment or metadata line after the header; "
-                                            "'# key = value' lines must come before it")
-                    key, eq, value = line[1:].partition("=")
-                    if eq:  # '# key = value'; a comment without '=' is free text
-                        key = key.strip()
-                        if not key:
-                            raise _fail(src, n, "metadata line without a key; expected '# key = value'")
-                        if key in meta:
-                            raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
-                        meta[key], meta_line[key] = value.strip(), n
-                    continue
-                header, header_line = _split(line), n
-                used = _check_header(src, n, header, required, allowed, ignore_extra)
-                width = max(used.values()) + 1 if ignore_extra else len(header)
-    except UnicodeDecodeError as e:
-        raise MeasurementError(f"{src}: not a UTF-8 text file (after line {n}: {e})") from None
+    for n, line in text_lines(path):
+        if header is not None and not line.startswith("#"):
+            lines.append(line)
+            numbers.append(n)
+            if len(lines) == _BLOCK:
+                blocks.append(_parse_rows(src, lines, numbers, used, width, header_line, ignore_extra))
+                line_blocks.append(np.array(numbers, dtype=np.int64))
+                lines, numbers = [], []
+            continue
+        if line.startswith("#"):
+            if header is not None:
+                raise _fail(src, n, "comment or metadata line after the header; "
+                                    "'# key = value' lines must come before it")
+            key, eq, value = line[1:].partition("=")
+            if eq:  # '# key = value'; a comment without '=' is free text
+                key = key.strip()
+                if not key:
+                    raise _fail(src, n, "metadata line without a key; expected '# key = value'")
+                if key in meta:
+                    raise _fail(src, n, f"metadata key {key!r} given twice (first on line {meta_line[key]})")
+                meta[key], meta_line[key] = value.strip(), n
+            continue
+        header, header_line = _split(src, n, line), n
+        used = _check_header(src, n, header, required, allowed, ignore_extra)
+        width = max(used.values()) + 1 if ignore_extra else len(header)
     if lines:
         blocks.append(_parse_rows(src, lines, numbers, used, width, header_line, ignore_extra))
         line_blocks.append(np.array(numbers, dtype=np.int64))
@@ -102,10 +94,38 @@ def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) 
 #: Data lines parsed at once (a few MB of text at most).
 _BLOCK = 8192
 
+#: The byte-order mark; spreadsheets write it at the start of a file, and files joined
+#: by hand carry it to the start of a line.
+_BOM = "\ufeff"
 
-def _split(line: str) -> list[str]:
-    """The stripped fields of one CSV line (quotes as the csv module reads them)."""
-    return [f.strip() for f in next(csv.reader([line]))]
+
+def text_lines(path):
+    """``(line number, text)`` of the lines of the measurement file ``path`` that are not
+    blank, stripped of blanks and of byte-order marks. A file that is not UTF-8 text (an
+    image, a spreadsheet) or cannot be read raises :class:`MeasurementError` naming it."""
+    src = str(path)
+    n = 0
+    try:
+        with open(path, encoding="utf-8", newline=None) as f:
+            for n, raw in enumerate(f, start=1):
+                line = raw.replace(_BOM, "").strip()
+                if line:
+                    yield n, line
+    except UnicodeDecodeError as e:
+        byte = e.object[e.start:e.start + 1].hex()
+        raise MeasurementError(f"{src}: not a text file (byte 0x{byte} on line {n + 1} is not UTF-8); give the "
+                               "measurement CSV, saved as UTF-8 text (docs/formats.md)") from None
+    except OSError as e:
+        raise MeasurementError(f"{src}: cannot read ({e.strerror})") from None
+
+
+def _split(src, n, line: str) -> list[str]:
+    """The stripped fields of line ``n`` of ``src`` (quotes as the csv module reads them)."""
+    try:
+        return [f.strip() for f in next(csv.reader([line]))]
+    except csv.Error as e:  # e.g. a field over csv.field_size_limit() (128 kB): no number is that long
+        raise _fail(src, n, f"not a CSV line of numbers ({e}); a measurement CSV holds one number per "
+                            "field (docs/formats.md)") from None
 
 
 def _parse_rows(src, lines, numbers, used, width, header_line, ignore_extra) -> np.ndarray:
@@ -126,7 +146,7 @@ def _parse_rows(src, lines, numbers, used, width, header_line, ignore_extra) -> 
             return arr
     out = np.empty((len(lines), len(cols)))
     for r, (line, n) in enumerate(zip(lines, numbers)):
-        fields = _split(line)
+        fields = _split(src, n, line)
         if len(fields) < width or (not ignore_extra and len(fields) != width):
             raise _fail(src, n, f"{len(fields)} fields; expected {width} as in the header (line {header_line})")
         for k, (name, j) in enumerate(used.items()):
@@ -173,6 +193,21 @@ def _needs_conjugate(t: _Table) -> bool:
         return True
     raise _fail(t.source, t.meta_line["convention"],
                 f"convention = {value!r}; expected 'exp(-iwt)' (default) or 'exp(+iwt)'")
+
+
+def _check_convention(t: _Table, conjugated: bool, evidence: str | None) -> None:
+    """Refuse data whose values, read in the convention the file declares (``conjugated``:
+    declared exp(+iwt)), have the signs that passive data take in the other convention
+    (``evidence``: which signs, or None when they are those of the declared one)."""
+    if evidence is None:
+        return
+    other = CONVENTION if conjugated else "exp(+iwt)"
+    if "convention" in t.meta:
+        raise _fail(t.source, t.meta_line["convention"],
+                    f"this file looks like {other} data ({evidence}), yet declares convention = "
+                    f"{t.meta['convention']!r}; correct the line to '# convention = {other}'")
+    raise MeasurementError(f"{t.source}: this file looks like {other} data ({evidence}); add a line "
+                           f"'# convention = {other}' before the header")
 
 
 def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False, default=None):

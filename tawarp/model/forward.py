@@ -626,6 +626,9 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
     Sets outside the model raise :class:`~tawarp.model.validity.ModelValidityError` or
     warn (:class:`~tawarp.model.validity.ValidityWarning`) naming the set: never a silent NaN.
     """
+    if not isinstance(core, Core):
+        raise TypeError(f"transfer_matrices: core must be a Core, e.g. load_core('ceramic') or load_core('my_core.toml'); "
+                        f"got {type(core).__name__}")
     settings = dataclasses.replace(settings or ForwardSettings(), **kw)
     names, varying = batch_table(core, heat_input, params)
     engine = Engine(core, freqs, names, settings)

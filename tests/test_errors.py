@@ -1,0 +1,238 @@
+"""Failures that must end in a clear message or go on: a design worker whose sampler
+degenerated, bad files and arguments (one line naming the file and what to do)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tawarp.design import search as search_module
+from tawarp.design.samplers import make_sampler
+from tawarp.design.search import search
+from tawarp.design.space import DesignSpace
+from tawarp.design.storage import trials_table
+from tawarp.model.core import load_core
+
+
+def _space():
+    return DesignSpace(load_core("rvc_foam"), ["heat_input=1:18", "stack.length=0.01:0.1"])
+
+
+class _DegeneratedSampler:
+    """CMA-ES as it failed before its restarts: generation 2 asked as NaN points (stored
+    by the search), then ``cmaes``' tell refusing them."""
+
+    def __init__(self, *args):
+        self.inner = make_sampler(*args)
+
+    @property
+    def generation(self):
+        return self.inner.generation
+
+    def ask(self, n):
+        X = self.inner.ask(n)
+        return np.full_like(X, np.nan) if self.inner.generation == 2 else X
+
+    def tell(self, X, F, violation):
+        if not np.all(np.isfinite(X)):
+            raise AssertionError("Abs of all param values must be less than 1e+32 to avoid overflow errors")
+        self.inner.tell(X, F, violation)
+
+
+def test_a_worker_whose_sampler_degenerated_resumes(tmp_path, monkeypatch):
+    """A lineage holding a generation of NaN points (stored by a sampler that then failed)
+    resumes with the seed and batch it was started with, to the trials asked; no point
+    stored after it is NaN."""
+    journal = str(tmp_path / "s.journal")
+    with monkeypatch.context() as m:
+        m.setattr(search_module, "make_sampler", lambda *a: _DegeneratedSampler(*a))
+        with pytest.raises(AssertionError, match="1e\\+32"):
+            search(_space(), n_trials=64, batch=8, storage=journal, seed=3)
+    ds = trials_table(search(_space(), n_trials=64, batch=8, storage=journal, seed=3).study)
+    assert sorted(ds.generation.values.tolist()) == [g for g in range(8) for _ in range(8)]
+    nan = np.isnan(ds["heat_input"].values) | np.isnan(ds["stack.length"].values)
+    assert set(ds.generation.values[nan].tolist()) == {2}
+
+
+# -- files that are not what they should be -----------------------------------------------------
+BUNDLED = "ceramic_hidden_effect.csv"  # T-matrices of the model, exp(-iwt), heat inputs from 0 W
+
+
+def _bundled_text() -> str:
+    from importlib import resources
+
+    return (resources.files("tawarp") / "data" / "measured" / BUNDLED).read_text()
+
+
+def _header_index(lines) -> int:
+    return next(i for i, line in enumerate(lines) if line.startswith("Q_W"))
+
+
+def test_a_huge_field_is_named_with_its_line(tmp_path):
+    """A field over the csv module's limit (128 kB) gave the csv module's traceback."""
+    from tawarp.measure import MeasurementError, read_tmatrix_csv
+
+    lines = _bundled_text().splitlines()
+    h = _header_index(lines)
+    lines[h + 1] += ',"' + "x" * (10 << 20) + '"'
+    path = tmp_path / "big.csv"
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(MeasurementError, match=rf"big\.csv, line {h + 2}: not a CSV line of numbers"):
+        read_tmatrix_csv(path)
+
+
+def test_a_binary_file_is_named(tmp_path):
+    """A PNG given as data gave a bare utf-8 codec error, without the file's name."""
+    from tawarp.measure import MeasurementError, load_measurement
+
+    path = tmp_path / "figure.png"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(range(256)))
+    with pytest.raises(MeasurementError, match=r"figure\.png: not a text file \(byte 0x89 on line 1"):
+        load_measurement(path)
+
+
+@pytest.mark.parametrize("where", [0, 1])
+def test_a_byte_order_mark_before_a_metadata_line_is_accepted(tmp_path, where):
+    """A byte-order mark at the start of the file or of a later metadata line (files
+    joined by hand) was taken for the header; the data read are those without it."""
+    from tawarp.measure import load_measurement, read_tmatrix_csv
+
+    text = _bundled_text()
+    lines = text.splitlines()
+    lines[where] = "\ufeff" + lines[where]
+    path = tmp_path / "bom.csv"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    plain = tmp_path / "plain.csv"
+    plain.write_text(text)
+    assert load_measurement(path, "ceramic").name == "tmatrix"
+    np.testing.assert_array_equal(read_tmatrix_csv(path).T, read_tmatrix_csv(plain).T)
+
+
+def _conjugated_text(text: str, convention: str | None) -> str:
+    """The file's data conjugated (its imaginary parts negated; sigma columns kept), with
+    the convention line replaced by ``convention`` (None: no such line)."""
+    lines = [line for line in text.splitlines() if not line.startswith("# convention")]
+    h = _header_index(lines)
+    names = lines[h].split(",")
+    flip = [j for j, name in enumerate(names) if name.endswith("_im") and not name.startswith("sigma_")]
+    rows = []
+    for line in lines[h + 1:]:
+        f = line.split(",")
+        for j in flip:
+            f[j] = repr(-float(f[j]))
+        rows.append(",".join(f))
+    head = ([f"# convention = {convention}"] if convention else []) + lines[:h + 1]
+    return "\n".join(head + rows) + "\n"
+
+
+def test_tmatrix_data_of_the_other_convention_are_named(tmp_path):
+    """exp(+iwt) T-matrices read as exp(-iwt) gave an error blaming the core's pore radius.
+    Below its first resonance a passive core has Im Tpu > 0 and Im Tup > 0 in exp(-iwt)
+    (a duct: Tpu = i Zc sin kL, Tup = i sin(kL)/Zc): the conjugated file is refused,
+    undeclared or declared exp(-iwt), naming the line to write; declared exp(+iwt) it
+    reads back as the original."""
+    from tawarp.measure import MeasurementError, read_tmatrix_csv
+
+    text = _bundled_text()
+    original = tmp_path / "minus.csv"
+    original.write_text(text)
+    for name, convention in (("undeclared.csv", None), ("declared.csv", "exp(-iwt)")):
+        path = tmp_path / name
+        path.write_text(_conjugated_text(text, convention))
+        with pytest.raises(MeasurementError, match=r"looks like exp\(\+iwt\) data \(Im Tpu < 0 and Im Tup < 0 at "
+                                                   r"50 Hz.*'# convention = exp\(\+iwt\)'"):
+            read_tmatrix_csv(path)
+    path = tmp_path / "plus.csv"
+    path.write_text(_conjugated_text(text, "exp(+iwt)"))
+    np.testing.assert_array_equal(read_tmatrix_csv(path).T, read_tmatrix_csv(original).T)
+
+
+def _layer_impedance(f, d=0.05):
+    """Zs / (rho0 c0) of a rigid-backed lossy layer of thickness d [m] in exp(-iwt):
+    i Zc cot(k d) (pressure p = A cos k(x - d) against the wall at x = d), with a complex
+    k and Zc of a foam (speed 250 m/s, 5 % loss; Zc 1.3 (1 + 0.3 i))."""
+    k = 2 * np.pi * f / 250.0 * (1 + 0.05j)
+    return 1j * 1.3 * (1 + 0.3j) / np.tan(k * d)
+
+
+def _impedance_file(path, f, Zs, convention=None) -> None:
+    head = f"# convention = {convention}\n" if convention else ""
+    rows = "".join(f"{a!r},{float(z.real)!r},{float(z.imag)!r}\n" for a, z in zip(f.tolist(), Zs))
+    path.write_text(head + "# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im\n" + rows)
+
+
+def test_impedance_data_of_the_other_convention_are_named(tmp_path):
+    """A rigid-backed layer is a compliance at low frequency: Im Zs > 0, falling with
+    frequency, in exp(-iwt). Its conjugate without a convention line is refused; with
+    '# convention = exp(+iwt)' it reads as the layer."""
+    from tawarp.measure import MeasurementError, read_impedance_csv
+
+    f = np.linspace(200.0, 1600.0, 71)
+    Zs = _layer_impedance(f)
+    _impedance_file(tmp_path / "minus.csv", f, Zs)
+    np.testing.assert_allclose(read_impedance_csv(tmp_path / "minus.csv").Zs, Zs, rtol=1e-15)
+    _impedance_file(tmp_path / "plus.csv", f, Zs.conj())
+    with pytest.raises(MeasurementError, match=r"plus\.csv: this file looks like exp\(\+iwt\) data \(Im Zs < 0 at "
+                                               r"200 Hz.*add a line '# convention = exp\(\+iwt\)'"):
+        read_impedance_csv(tmp_path / "plus.csv")
+    _impedance_file(tmp_path / "declared.csv", f, Zs.conj(), "exp(+iwt)")
+    np.testing.assert_allclose(read_impedance_csv(tmp_path / "declared.csv").Zs, Zs, rtol=1e-15)
+
+
+def test_measured_impedances_pass_the_convention_check():
+    """The measured Atalla & Panneton layers (conjugated from the paper's exp(+jwt) on
+    load) show the signs of exp(-iwt) data; their conjugates those of exp(+iwt)."""
+    from shared_data import measured_folder
+
+    from tawarp.measure import atalla_panneton_samples, load_atalla_panneton
+    from tawarp.measure.files import impedance_convention_evidence
+
+    folder = measured_folder("atalla_panneton_2005")
+    for name, sample in atalla_panneton_samples().items():
+        for d in load_atalla_panneton(name, folder):
+            assert impedance_convention_evidence(d.freq, d.Zs) is None, (name, d.source)
+            if d.thickness == sample["thickness_thin"]:
+                assert impedance_convention_evidence(d.freq, d.Zs.conj()) is not None, (name, d.source)
+
+
+def test_zero_impedance_is_named(tmp_path):
+    """Zs = 0 (no layer can have it) gave "SVD did not converge" from the fit: the file is
+    refused naming the line, data made in code naming the kind."""
+    from tawarp.measure import (
+        ImpedanceData,
+        ImpedanceKind,
+        MeasurementError,
+        read_impedance_csv,
+    )
+
+    f = np.linspace(200.0, 1600.0, 8)
+    _impedance_file(tmp_path / "zero.csv", f, np.zeros(8))
+    with pytest.raises(MeasurementError, match=r"zero\.csv, line 3: Zs = 0"):
+        read_impedance_csv(tmp_path / "zero.csv")
+    with pytest.raises(MeasurementError, match="impedance data: every value is 0"):
+        ImpedanceKind(ImpedanceData(f, np.zeros(8), thickness=0.05))
+
+
+def test_transfer_matrices_of_no_core_is_a_type_error():
+    """transfer_matrices(None, ...) raised AttributeError from deep inside."""
+    from tawarp.model.forward import transfer_matrices
+
+    with pytest.raises(TypeError, match="core must be a Core, e.g. load_core"):
+        transfer_matrices(None, [100.0])
+
+
+def test_a_database_in_a_missing_folder_is_named(tmp_path, capsys):
+    """--storage sqlite:///missing/dir/x.db gave sqlalchemy's traceback."""
+    from tawarp.cli import main
+    from tawarp.design.storage import make_storage
+
+    url = f"sqlite:///{tmp_path / 'missing' / 'dir' / 'x.db'}"
+    with pytest.raises(ValueError, match=r"the folder '.*missing/dir' of the database does not exist; create it"):
+        make_storage(url)
+    assert main(["design", "rvc_foam", "--var", "Q=1:18", "--trials", "8", "--batch", "8", "--storage", url,
+                 "--device", "cpu", "--quiet", "-o", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "missing/dir' of the database does not exist" in err
+    assert not (tmp_path / "missing").exists()
+    with pytest.raises(ValueError, match="not a database URL"):
+        make_storage("sqlite://x:y:z//")
