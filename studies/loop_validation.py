@@ -488,13 +488,16 @@ def loop_outcome(report: dict) -> dict:
     groups = [list(g) for g in groups]
     accepted = report.get("accepted_effects")
     after = report.get("parameters_after") or {}
+    chosen = "+".join(report.get("best_model") or []) or "base"
     return {"error_before": report["error_before"], "error_after": report["error_after"],
             "noise_floor": report.get("noise_floor") or gof.get("noise_floor"),
             "accepted_effects": list(accepted if accepted is not None else [g[0] for g in groups if len(g) == 1]),
             "accepted_groups": groups, "verdict": report["verdict"],
             "indistinguishable": [step_members(g) for g in report.get("indistinguishable") or []],
             "inclusion_probabilities": {str(k): float(v) for k, v in (report.get("inclusion_probabilities") or {}).items()},
-            "prior_tension": [{"parameter": t["parameter"], "z": float(t["z"])} for t in report.get("prior_tension") or []],
+            # the tension of the model the loop chose (the report also names its rivals')
+            "prior_tension": [{"parameter": t["parameter"], "z": float(t["z"])} for t in report.get("prior_tension") or []
+                              if t.get("model", chosen) == chosen],
             "parameters_after": {k: float(v["value"] if isinstance(v, dict) else v) for k, v in after.items()}}
 
 
@@ -579,18 +582,18 @@ def run_case(case: Case, arrays: dict, device: str = "cpu", base: str = "loop", 
     report = run_loop(prob, default_base_params(prob, names) if names else None)
     wall = time.perf_counter() - t0
     got = loop_outcome(report)
-    names = list(case.effects) + list(case.lab)
+    present = list(case.effects) + list(case.lab)
     rec = {"seed": case.seed, "category": case.category, "material": case.material, "core": case.core_material,
            "noise": case.noise, "with_sigma": case.with_sigma, "effects": case.effects,
-           "visibility": (float(rms_error(arrays["Y_clean"], arrays["Y_without"])) / floor) if names else None,
+           "visibility": (float(rms_error(arrays["Y_clean"], arrays["Y_without"])) / floor) if present else None,
            "outcome": got, "noise_floor_true": floor, "ratio_after": got["error_after"] / floor,
            "ratio_before": got["error_before"] / floor, "wall_s": wall, "case": asdict(case)}
     if case.category == "wrong_core":
         rec["visibility"] = wrong_core_visibility(case, arrays, core, settings, names)
         rec["per_effect"] = {"wrong_core": {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
     else:
-        rec["per_effect"] = ({names[0]: {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
-                             if len(names) == 1 else
+        rec["per_effect"] = ({present[0]: {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
+                             if len(present) == 1 else
                              {e: effect_alone(case, arrays, e, core, settings, names) for e in case.effects})
     return score(rec)
 
@@ -964,6 +967,7 @@ def main(argv=None) -> int:
                     help="every case of this category (default: cycled by seed, so the study mixes them all)")
     ap.add_argument("--device", default="cpu", help="device of the loop's fits (cpu, cuda, cuda:N)")
     ap.add_argument("--out", default="studies/out/loop_validation", help="output folder (cache in OUT/cache)")
+    ap.add_argument("--loop-workers", type=int, default=1, help="processes running the loops")
     ap.add_argument("--workers", type=int, default=max(1, min(4, (os.cpu_count() or 1))),
                     help="processes generating the reference data")
     ap.add_argument("--base", choices=("loop", "paper"), default="loop",
@@ -1002,16 +1006,22 @@ def main(argv=None) -> int:
     records = []
     bar = progress_bar(len(cases), "closing the loop", not a.quiet, unit="case")
     t1 = time.perf_counter()
-    for case in cases:
-        records.append(run_case(case, arrays[case.seed], a.device, a.base))
-        bar.set_postfix_str(f"{case.category}: {outcome_label(records[-1])}")
-        bar.update(1)
-        # the cases so far, so that an interrupted run keeps them
-        write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
+    # each case's loop is independent: with --loop-workers they run in processes of their own
+    # (each its own Warp context, on the CPU or sharing the GPU)
+    with ProcessPoolExecutor(a.loop_workers) as pool:
+        runs = pool.map(run_case, cases, [arrays[c.seed] for c in cases], [a.device] * len(cases),
+                        [a.base] * len(cases))
+        for case, rec in zip(cases, runs):
+            records.append(rec)
+            bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
+            bar.update(1)
+            # the cases so far, so that an interrupted run keeps them
+            write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
     bar.close()
     t_loop = time.perf_counter() - t1
     meta = {"command": " ".join(["python studies/loop_validation.py"] + (sys.argv[1:] if argv is None else list(argv))),
-            "seed0": a.seed0, "suite": a.suite, "split": a.split, "device": a.device, "base": a.base, "workers": a.workers, "generation_s": t_gen,
+            "seed0": a.seed0, "suite": a.suite, "split": a.split, "device": a.device, "base": a.base, "workers": a.workers,
+            "loop_workers": a.loop_workers, "generation_s": t_gen,
             "loop_s": t_loop, "cases_per_s": len(cases) / t_loop, "cases_this_run": len(cases)}
     report(out, sorted(earlier + records, key=lambda r: r["seed"]), meta, a.quiet)
     return 0
