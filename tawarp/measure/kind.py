@@ -28,6 +28,7 @@ from ..kernels import lm as klm
 from ..model.coefficients import rms_error
 from ..model.core import Core
 from ..model.forward import Engine, ForwardSettings
+from ..model.validity import ModelValidityError
 from .files import MeasurementError
 
 
@@ -209,4 +210,7 @@ def load_measurement(path, core: Core | None = None, settings: ForwardSettings |
             takers = [n for n, e in KINDS.items() if key in inspect.signature(e.load).parameters]
             raise MeasurementError(f"{path}: {entry.name} data take no {key} option (it applies to "
                                    f"{', '.join(takers) or 'no kind of'} data)")
-    return entry.load(path, core, settings, **options)
+    try:
+        return entry.load(path, core, settings, **options)
+    except ModelValidityError as e:   # the file's frequencies or heat inputs are outside the model: name it
+        raise MeasurementError(f"{path}: {e}") from None

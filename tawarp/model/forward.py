@@ -29,7 +29,8 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import ValidityWarning, check_results, check_sets
+from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_precision, check_results,
+                       check_sets, describe_set)
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
@@ -219,8 +220,8 @@ class ForwardSettings:
             counts = [self.cells.get(s.name, 1) for s in core.segments]
         else:
             counts = [self.cells] * len(core.segments)
-        if any(int(c) < 1 for c in counts):
-            raise ValueError(f"cells must be >= 1, got {self.cells}")
+        if any(not 1 <= int(c) <= MAX_CELLS for c in counts):
+            raise ValueError(f"cells must lie in [1, {MAX_CELLS}], got {self.cells}")
         return np.array(counts, dtype=np.int32)
 
 
@@ -281,6 +282,7 @@ class Engine:
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
         if self.freqs.ndim != 1 or not np.all(np.isfinite(self.freqs)) or np.any(self.freqs <= 0):
             raise ValueError("freqs [Hz] must be a 1-D array of positive finite values")
+        check_frequencies(self.freqs)
         self.names = list(names)
         self.rows = np.array([layout.HEAT_INPUT] + [parameter_row(core, k) for k in self.names], dtype=np.int32)
         self.first, self.count = _thermal_range(core)
@@ -469,10 +471,12 @@ class Engine:
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
-        most = wp.zeros(2, dtype=wp.int32, device=self.device)
+        most = wp.zeros(3, dtype=wp.int32, device=self.device)
         wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
                                                  cells, most], device=self.device)
-        n_points, n_slots = (int(v) for v in most.numpy())
+        n_points, n_slots, n_cells = (int(v) for v in most.numpy())
+        if n_cells > MAX_CELLS:
+            self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
@@ -489,6 +493,22 @@ class Engine:
                       inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, rows(out),
                               rows(doubled), rows(step) if tangents else step, rows(tangent) if tangents else tangent],
                       device=self.device, block_dim=self.settings.block_dim)
+
+    def _refuse_cells(self, params: wp.array, cells: np.ndarray):
+        """Raise :class:`~tawarp.model.validity.ModelValidityError` for the first set whose
+        cascade would need more than :data:`MAX_CELLS` cells in a segment (the kernel caps
+        the count there): a heat-decay or acoustic length of tens of thousands of cells (an
+        extreme ``h``, length or frequency) would not end, and overflows the point indices."""
+        table = params.numpy()
+        bad = np.flatnonzero((cells > MAX_CELLS).any(axis=1))
+        i = int(bad[0])
+        seg = self.core.segments[int(np.flatnonzero(cells[i] > MAX_CELLS)[0]) % len(self.core.segments)]
+        values = {name: table[row] for name, row in zip(self.names, self.rows[1:])}
+        raise ModelValidityError(
+            f"{self.core.source}: {describe_set(i, table[layout.HEAT_INPUT], values)}: {seg.name} would need more "
+            f"than {MAX_CELLS} Magnus cells up to {self.freqs.max():g} Hz (its heat-decay length or wavelength is "
+            f"that many times shorter than the segment: an extreme h, conductivity, length or frequency; "
+            f"docs/trusted_ranges.md); {bad.size} of {len(cells)} sets")
 
     def _point_buffer_bytes(self) -> int:
         """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
@@ -642,6 +662,7 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
         T[lo:hi] = out.numpy().view(np.complex128).reshape(hi - lo, m, 2, 2)
         theta[lo:hi] = w_theta.numpy()
         check_results(core, varying[0], values, T[lo:hi], theta[lo:hi], lo, engine.freqs)
+        check_precision(core, varying[0], values, T[lo:hi], settings.tolerance or DEFAULT_TOLERANCE, lo)
         table[:, lo:hi] = w_params.numpy()
         bar.update(hi - lo)
     bar.close()
