@@ -83,7 +83,8 @@ def test_an_extreme_h_in_a_core_file_is_an_error_line_not_a_signal(tmp_path):
     (tmp_path / "hot.toml").write_text(text)
     run = _cli("forward", "hot.toml", "--Q", "10", "--freqs", "100", "--device", "cpu", "--no-plots", cwd=tmp_path)
     assert run.returncode == 2, run.stderr
-    assert re.search(r"hot\.toml: segment 'stack': h \[W/\(m\^2 K\)\]: 1e\+300 lies outside the trusted range", run.stderr)
+    assert re.search(r"hot\.toml: segment 'stack': h \[W/\(m\^2 K\)\]: 1e\+300 lies outside the trusted range",
+                     run.stderr)
     assert not (tmp_path / "T.csv").exists()
 
 
@@ -91,7 +92,9 @@ def test_a_data_file_with_an_extreme_frequency_names_the_file(tmp_path):
     """One frequency of 1e300 Hz in a T-matrix file ended ``tawarp fit`` with SIGSEGV."""
     from tawarp.measure.files import read_tmatrix_csv, write_tmatrix_csv
 
-    data = read_tmatrix_csv(load_core("ceramic").source.replace("cores/ceramic.toml", "measured/ceramic_hidden_effect.csv"))
+    from importlib import resources
+
+    data = read_tmatrix_csv(resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv")
     data.freq = data.freq.copy()
     data.freq[len(data.freq) // 2] = 1e300
     write_tmatrix_csv(tmp_path / "far.csv", data)

@@ -29,8 +29,8 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_precision, check_results,
-                       check_sets, describe_set)
+from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_precision,
+                       check_results, check_sets, describe_set)
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
