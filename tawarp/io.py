@@ -11,8 +11,10 @@ gets the permissions a plain ``open()`` would give (``0666`` less the umask, not
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
+import re
 import shutil
 import signal
 import tempfile
@@ -105,9 +107,43 @@ def atomic_path(path: str | Path):
         yield Path(tmp)
         os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
+    except (OSError, RuntimeError) as e:
+        reason = io_failure(e)
+        if reason is None:
+            raise
+        raise OSError(getattr(e, "errno", None) or errno.EIO,
+                      f"{path}: could not be written ({reason}); {'the older file is kept' if path.exists() else 'nothing was written'}") from None
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
+
+
+#: Room [bytes] left for a file's metadata beside its data (:func:`ensure_free_space`).
+METADATA_SLACK = 1 << 20
+
+
+def ensure_free_space(path: str | Path, nbytes: int) -> None:
+    """Raise OSError(ENOSPC) naming ``path`` when its folder's file system has fewer than
+    ``nbytes`` + :data:`METADATA_SLACK` bytes free. Called before an HDF5 write: the library
+    cannot give up a file whose writing failed for want of space (its close and its exit
+    handler flush again, and the process ended with SIGSEGV after the error)."""
+    path = Path(path)
+    folder = next(p for p in (path.parent, *path.parents) if p.exists())
+    free = shutil.disk_usage(folder).free
+    need = int(nbytes) + METADATA_SLACK
+    if free < need:
+        raise OSError(errno.ENOSPC, f"{path}: the disk has {free / 1e6:.3g} MB free and this write needs about "
+                                    f"{need / 1e6:.3g} MB; nothing was written: free some space or write elsewhere")
+
+
+def io_failure(e: BaseException) -> str | None:
+    """The operating system's reason when ``e`` is a failed read or write (an OSError with
+    an errno, or h5py's RuntimeError around one: HDF5 reports a full disk as "... errno =
+    28, error message = 'No space left on device' ..."), else None."""
+    if isinstance(e, OSError) and e.errno:
+        return os.strerror(e.errno)
+    m = re.search(r"errno = (\d+)", str(e))
+    return os.strerror(int(m.group(1))) if m else None
 
 
 @contextlib.contextmanager
@@ -133,6 +169,40 @@ def atomic_dir(path: str | Path):
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def hdf5_writing(f):
+    """``with hdf5_writing(h5py.File(...)) as f:`` (an ``h5netcdf.File`` too): flushed and
+    closed at the end; when the writing or the flush fails (a full disk, a lost
+    permission), the file is discarded (:func:`discard_hdf5`) and the error raised.
+    HDF5 keeps a file whose close failed open, and its exit handler, flushing it once
+    more, ended the process with SIGSEGV after the error message."""
+    try:
+        yield f
+        f.flush()
+    except BaseException:
+        discard_hdf5(f)
+        raise
+    f.close()
+
+
+def discard_hdf5(f) -> None:
+    """Close an open ``h5py.File`` (or ``h5netcdf.File``) without writing anything more to
+    it: its file descriptor is pointed at the null device first, so that the close, which
+    flushes the file's metadata, succeeds. What reached the file before stays; a SWMR
+    file keeps its last flushed state."""
+    h5 = getattr(f, "_h5file", f)   # h5netcdf keeps its h5py file there
+    if not h5.id.valid:
+        return
+    fd = h5.id.get_vfd_handle()
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+    finally:
+        os.close(null)
+    with contextlib.suppress(Exception):
+        f.close()
 
 
 def write_text(path: str | Path, text: str) -> Path:

@@ -87,6 +87,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def error_text(e: Exception) -> str:
+    """One line for an error: an OSError without its ``[Errno N]`` prefix (its text names
+    the file), a KeyError without its quotes."""
+    if isinstance(e, OSError) and e.strerror:
+        return f"{e.filename}: {e.strerror}" if e.filename else e.strerror
+    if isinstance(e, KeyError) and e.args:
+        return str(e.args[0])
+    return str(e)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one subcommand; bad input, a missing device or an interruption end with a
     one-line message on stderr and exit code 2 (130 when interrupted), never a traceback."""
@@ -106,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
             resolve_device(args.device)
         rc = args.func(args)
     except (CoreError, MeasurementError, OSError, KeyError, ValueError) as e:
-        print(f"tawarp {args.command}: error: {e}", file=sys.stderr)
+        print(f"tawarp {args.command}: error: {error_text(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"tawarp {args.command}: interrupted; finished outputs are complete, none is half-written",

@@ -42,7 +42,7 @@ from urllib.parse import quote
 import numpy as np
 from optuna.storages.journal import BaseJournalBackend
 
-from ..io import interrupts_deferred
+from ..io import discard_hdf5, ensure_free_space, hdf5_writing, interrupts_deferred, io_failure
 from .objectives import directions
 
 ATTR = "tawarp:"
@@ -248,17 +248,28 @@ class StoreWriter:
                 "time": np.full(k, time.time())}
         cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
         cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
+        # a new chunk of every column may be allocated
+        ensure_free_space(self.store.path / self.name, sum(self.chunk * v.dtype.itemsize for v in cols.values()))
         if self._f is None:
             self._open(cols)
         f, n0 = self._f, self.rows
-        for name, v in cols.items():
-            ds = f[name]
-            ds.resize((n0 + k,))
-            ds[n0:] = v
-        f.flush()  # the rows reach the file before the count that makes them visible
-        f["committed"][0] = n0 + k
-        f.flush()
-        os.fsync(f.id.get_vfd_handle())
+        try:
+            for name, v in cols.items():
+                ds = f[name]
+                ds.resize((n0 + k,))
+                ds[n0:] = v
+            f.flush()  # the rows reach the file before the count that makes them visible
+            f["committed"][0] = n0 + k
+            f.flush()
+            os.fsync(f.id.get_vfd_handle())
+        except (OSError, RuntimeError) as e:   # a full disk: the committed generations stay readable (SWMR)
+            reason = io_failure(e)
+            if reason is None:
+                raise
+            discard_hdf5(f)
+            self._f = None
+            raise OSError(getattr(e, "errno", None), f"{self.store.path / self.name}: the trial store could not be "
+                                                     f"written ({reason}); the generations stored before are kept") from None
         self.rows = n0 + k
 
     def _open(self, cols: dict) -> None:
@@ -271,7 +282,7 @@ class StoreWriter:
             stale.unlink()  # left by an earlier run of this worker, which the claim says is gone
         path = self.store.path / self.name
         tmp = path.with_name(path.name + ".tmp")
-        with h5py.File(tmp, "w", libver="latest") as f:
+        with hdf5_writing(h5py.File(tmp, "w", libver="latest")) as f:
             f.attrs["study"], f.attrs["worker"] = self.store.study_name, self.worker
             for name, v in cols.items():
                 ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(self.chunk,), dtype=v.dtype)
