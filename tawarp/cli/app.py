@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import claim_outputs
 from .common import _common, _say, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
@@ -29,6 +30,9 @@ def cmd_forward(args) -> int:
     from ..measure.files import TMatrixData, write_tmatrix_csv
     from ..plots import plot_coefficients, plot_temperature
 
+    stem = Path(args.output).with_suffix("")
+    if not args.no_plots:
+        claim_outputs(f"{stem}_coefficients.png", f"{stem}_temperature.png", why="a figure")
     core = load_core(args.core)
     Q = args.Q
     res = transfer_matrices(core, args.freqs, heat_input=Q, cells=args.cells, device=args.device,
@@ -39,7 +43,6 @@ def cmd_forward(args) -> int:
                        source=str(args.output))
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     write_tmatrix_csv(args.output, data)
-    stem = Path(args.output).with_suffix("")
     Y = res.dimensionless()
     if not args.no_plots:
         plot_coefficients(args.freqs, {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)}, f"{stem}_coefficients.png",

@@ -6,10 +6,10 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from ..fit.characterize import characterize, fit_each_heat_input, write_figures
+from ..fit.characterize import characterize, figure_paths, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
-from ..io import write_json
+from ..io import claim_outputs, write_json
 from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
 from ..model.core import CoreError
 from ..model.forward import ForwardSettings
@@ -56,6 +56,8 @@ def cmd_fit(args) -> int:
     data, core = getattr(kind, "data", None), kind.core
     start = "spread" if args.start == "spread" else None
     out = Path(args.output)
+    if not args.no_plots:
+        claim_outputs(*figure_paths(out.with_suffix("")), why="a figure of the fit")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
         if not isinstance(kind, TMatrixKind) or not core.thermal_indices:   # other kinds, passive cores

@@ -32,6 +32,7 @@ file format and lock) that takes the lock and syncs once per generation.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import time
@@ -268,8 +269,9 @@ class StoreWriter:
                 raise
             discard_hdf5(f)
             self._f = None
-            raise OSError(getattr(e, "errno", None), f"{self.store.path / self.name}: the trial store could not be "
-                                                     f"written ({reason}); the generations stored before are kept") from None
+            raise OSError(getattr(e, "errno", None) or errno.EIO,
+                          f"{self.store.path / self.name}: the trial store could not be written ({reason}); the "
+                          f"generations stored before are kept") from None
         self.rows = n0 + k
 
     def _open(self, cols: dict) -> None:
