@@ -29,8 +29,8 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_precision,
-                       check_results, check_sets, describe_set)
+from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_heat_inputs,
+                       check_precision, check_results, check_sets, describe_set)
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
@@ -248,6 +248,7 @@ def broadcast_batch(core: Core, heat_input, params: dict | None) -> tuple[int, n
     q = out.pop("heat_input")
     if not np.all(np.isfinite(q)) or np.any(q < 0):
         raise CoreError(f"heat_input [W]: must be finite and >= 0, got {q[~(np.isfinite(q) & (q >= 0))][:3]}")
+    check_heat_inputs(q)
     if np.any(q > 0) and not core.thermal_indices:
         raise CoreError(f"{core.source}: heat_input > 0 but the core has no thermal segment with heater = true")
     for name, a in out.items():
@@ -318,7 +319,8 @@ class Engine:
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
-        if not isinstance(varying, wp.array):
+        if not isinstance(varying, wp.array):   # (a device table's values were checked where they were made)
+            check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
         params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)

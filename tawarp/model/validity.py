@@ -45,10 +45,16 @@ T_LIMIT = 1500.0
 CUT_ON_KR = 1.8412
 #: Relative error (:func:`check_precision`) beyond which no significant digit is left.
 PRECISION_LOST = 0.1
-#: Highest frequency [Hz] the model is evaluated at: the plane-wave cut-on of a tube of
-#: 0.1 mm radius in air at 293 K is 1 MHz; far beyond, the phase of a metre of duct
+#: Frequency range [Hz] the model is evaluated in. Above: the plane-wave cut-on of a tube
+#: of 0.1 mm radius in air at 293 K is 1 MHz; far beyond, the phase of a metre of duct
 #: (~2e5 rad at 1e7 Hz) leaves too few digits in its sine for the rest of the answer.
-F_MAX = 1e7
+#: Below: checked against the reference's closed forms to 1e-20 Hz; at 1e-300 Hz the
+#: pore functions' arguments underflow.
+F_MIN, F_MAX = 1e-9, 1e7
+#: Largest heat input [W] the model is evaluated at: a megawatt heats a bundled core's
+#: hot exchanger to ~1e6 K at its own h (~1e9 K at h = 0.01), far beyond
+#: :data:`T_LIMIT` already; at 1e11 W the gas laws' float64 arithmetic gave NaN.
+Q_MAX = 1e6
 
 
 class ModelValidityError(CoreError):
@@ -123,14 +129,25 @@ def check_sets(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray]
 
 
 def check_frequencies(freqs: np.ndarray) -> None:
-    """Refuse frequencies [Hz] outside (0, :data:`F_MAX`] (:class:`ModelValidityError`,
-    naming the first one): beyond, the cascade's cell count and its phases leave the
-    float64 range the kernels are trusted in (docs/trusted_ranges.md)."""
+    """Refuse frequencies [Hz] outside [:data:`F_MIN`, :data:`F_MAX`]
+    (:class:`ModelValidityError`, naming the first one): beyond, the cascade's cell count
+    and its phases leave the float64 range the kernels are trusted in
+    (docs/trusted_ranges.md)."""
     f = np.asarray(freqs, dtype=float)
-    bad = np.flatnonzero(~(np.isfinite(f) & (f > 0) & (f <= F_MAX)))
+    bad = np.flatnonzero(~(np.isfinite(f) & (f >= F_MIN) & (f <= F_MAX)))
     if bad.size:
-        raise ModelValidityError(f"frequency {f[bad[0]]:g} Hz lies outside the trusted range (0, {F_MAX:g}] Hz "
-                                 f"(docs/trusted_ranges.md); {bad.size} of {f.size} frequencies")
+        raise ModelValidityError(f"frequency {f[bad[0]]:g} Hz lies outside the trusted range [{F_MIN:g}, {F_MAX:g}] "
+                                 f"Hz (docs/trusted_ranges.md); {bad.size} of {f.size} frequencies")
+
+
+def check_heat_inputs(heat_input: np.ndarray) -> None:
+    """Refuse heat inputs [W] outside [0, :data:`Q_MAX`] (:class:`ModelValidityError`,
+    naming the first one; docs/trusted_ranges.md)."""
+    q = np.asarray(heat_input, dtype=float)
+    bad = np.flatnonzero(~(np.isfinite(q) & (q >= 0) & (q <= Q_MAX)))
+    if bad.size:
+        raise ModelValidityError(f"heat input {q.flat[bad[0]]:g} W lies outside the trusted range [0, {Q_MAX:g}] W "
+                                 f"(docs/trusted_ranges.md); {bad.size} of {q.size} heat inputs")
 
 
 def precision_error(T: np.ndarray) -> np.ndarray:
