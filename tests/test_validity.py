@@ -111,3 +111,14 @@ def test_a_cascade_beyond_the_cell_limit_is_refused_inside_the_trusted_ranges():
     with pytest.raises(ModelValidityError, match=rf"set 1 \(heat_input = 10 W, stack.h = 1e\+07, stack.length = 100\): "
                                                  rf"stack would need more than {MAX_CELLS} Magnus cells"):
         transfer_matrices(CORE, [100.0], 10.0, params={"stack.h": [150.0, 1e7], "stack.length": [0.048, 100.0]}, **KW)
+
+
+def test_fits_stay_inside_the_trusted_ranges():
+    """A fit is projected onto its field's fit bounds: they must lie inside the trusted
+    range, or a fit would step onto values the engine refuses."""
+    from tawarp.model.fields import GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, TRUSTED_RANGE
+
+    for f in (*GLOBAL_FIELD_TABLE.values(), *SEGMENT_FIELD_TABLE):
+        lo, hi = TRUSTED_RANGE[f.name]
+        assert lo <= f.fit_range[0] and f.fit_range[1] <= hi, f.name
+        assert f.check(lo) and f.check(hi), f.name            # inside the physical range
