@@ -103,6 +103,10 @@ def _umask() -> int:
 GENERATOR = "tawarp"
 
 
+#: The help text of an output written beside a named one (:func:`claim_outputs`).
+CLAIM_HELP = " (a file there that tawarp did not write is never replaced)"
+
+
 class OutputConflict(FileExistsError):
     """A file beside an output would be replaced and tawarp did not write it."""
 

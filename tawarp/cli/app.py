@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import claim_outputs
+from ..io import CLAIM_HELP, claim_outputs
 from .common import _common, _say, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
@@ -24,6 +24,7 @@ from .synth import add_synth_parser
 
 
 # -- forward -----------------------------------------------------------------------------
+
 def cmd_forward(args) -> int:
     from ..model.core import load_core
     from ..model.forward import transfer_matrices
@@ -76,7 +77,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Hz, list or start:stop:count (default: %(default)s)")
     p.add_argument("--Q", type=parse_list, default="0", help="heat inputs [W], list or start:stop:count (default: %(default)s)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default: adaptive)")
-    p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
+    p.add_argument("-o", "--output", default="T.csv",
+                   help="output CSV (default: %(default)s); figures STEM_coefficients.png and STEM_temperature.png "
+                        "beside it" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
 

@@ -11,13 +11,14 @@ from pathlib import Path
 
 import numpy as np
 
-from ..io import GENERATOR, claim_outputs
+from ..io import CLAIM_HELP, GENERATOR, claim_outputs
 from .common import _common, _say, parse_list
 
 VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
             "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
             "material=NAME,NAME,... (catalogue materials in the stack), NAME=VALUE (fixed); sweeps: "
             "NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,... (a grid axis of COUNT points)")
+
 
 
 def _floats(text: str) -> np.ndarray:
@@ -195,7 +196,9 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
                    help="frequencies [Hz] of acoustic_loss, list or start:stop:count")
     _add_onset_args(p)
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
-    p.add_argument("-o", "--output", default="tawarp-design", help="output folder (default: %(default)s)")
+    p.add_argument("-o", "--output", default="tawarp-design",
+                   help="output folder (default: %(default)s): design.json, the study (study.journal, study.trials/ "
+                        "unless --storage) and figures history.png, pareto.png, best_profiles.png" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_design)
     return p
@@ -301,7 +304,8 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
                    help="draws per material (default: 4000 by gradient, 400 by onset)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
-    p.add_argument("-o", "--output", default="rank.json", help="output JSON; figure beside it (default: %(default)s)")
+    p.add_argument("-o", "--output", default="rank.json",
+                   help="output JSON (default: %(default)s); its figure STEM.png beside it" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=cmd_rank)
     return p
@@ -338,6 +342,7 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=None, help="quasi-random (Sobol) sweep of this many points")
     p.add_argument("--chunk", type=int, default=1 << 20, help="points per launch and write (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("-o", "--output", default="sweep.nc", help="output netCDF (default: %(default)s); JSON summary beside it")
+    p.add_argument("-o", "--output", default="sweep.nc",
+                   help="output netCDF (default: %(default)s); its JSON summary STEM.json beside it" + CLAIM_HELP)
     p.set_defaults(func=cmd_sweep)
     return p

@@ -9,12 +9,13 @@ from pathlib import Path
 from ..fit.characterize import characterize, figure_paths, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
-from ..io import claim_outputs, write_json
+from ..io import CLAIM_HELP, claim_outputs, write_json
 from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
 from ..model.core import CoreError
 from ..model.forward import ForwardSettings
 from ..model.layer import LAYER_BASE
 from .common import _common, add_measurement_options, load_data
+
 
 
 def add_fit_parser(subparsers):
@@ -32,7 +33,9 @@ def add_fit_parser(subparsers):
                    help="comma list of parameters: fitted at every heat input instead of the two-step procedure "
                         "(T-matrices), or the layer's parameters (default porosity, pore radius, tortuosity)")
     add_measurement_options(p)
-    p.add_argument("-o", "--output", default="fit.json", help="output JSON (default: %(default)s); figures beside it")
+    p.add_argument("-o", "--output", default="fit.json",
+                   help="output JSON (default: %(default)s); figures STEM_step1.png, STEM_step2.png, STEM_h.png and "
+                        "STEM_temperature.png beside it" + CLAIM_HELP)
     p.add_argument("--start", default="core", choices=("core", "spread"),
                    help="start values: the core's ('core', default) or a Sobol spread of starts ('spread')")
     p.add_argument("--restarts", type=int, default=2, help="restarts from the solution ±20%% (default: %(default)s)")

@@ -221,7 +221,8 @@ class ForwardSettings:
         else:
             counts = [self.cells] * len(core.segments)
         if any(not 1 <= int(c) <= MAX_CELLS for c in counts):
-            raise ValueError(f"cells must lie in [1, {MAX_CELLS}], got {self.cells}")
+            raise ValueError(f"Magnus cells must lie in [1, {MAX_CELLS}] per segment, got {self.cells} (a count "
+                             f"sized this large means an extreme h, length or frequency: docs/trusted_ranges.md)")
         return np.array(counts, dtype=np.int32)
 
 
