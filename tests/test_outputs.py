@@ -190,3 +190,14 @@ def test_the_fitted_temperature_figure_is_drawn_at_the_measured_heat_inputs(tmp_
     for (label, T), Q, h in zip(drawn["curves"].items(), (5.0, 7.0), ch.step2.values):
         direct, _ = steady_temperature(ch.core, drawn["x"], Q, params=dict(zip(ch.heat_names, h)), settings=settings)
         np.testing.assert_array_equal(T, direct[0])
+
+
+def test_a_users_figure_beside_the_fit_is_refused_before_fitting(tmp_path, capsys):
+    from importlib import resources
+
+    data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
+    (tmp_path / "fit_h.png").write_bytes(b"mine")
+    assert main(["fit", str(data), "--device", "cpu", "--quiet", "-o", str(tmp_path / "fit.json")]) == 2
+    assert "fit_h.png: exists and tawarp did not write it; it would be replaced by a figure of the fit" in \
+        capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit_h.png"]

@@ -59,7 +59,8 @@ def cmd_fit(args) -> int:
     data, core = getattr(kind, "data", None), kind.core
     start = "spread" if args.start == "spread" else None
     out = Path(args.output)
-    if not args.no_plots:
+    two_step = isinstance(kind, TMatrixKind) and core.thermal_indices and not names   # the one with figures
+    if two_step and not args.no_plots:
         claim_outputs(*figure_paths(out.with_suffix("")), why="a figure of the fit")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
