@@ -158,7 +158,7 @@ HOST_FIELD_TABLE: dict[str, Field] = {
 TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "T_cold": (1.0, 1e4), "p_mean": (1.0, 1e9), "radius": (1e-6, 10.0),
     "length": (1e-9, 100.0), "porosity": (1e-12, 1.0), "pore_radius": (1e-9, 10.0), "tortuosity": (1.0, 1e3),
-    "solid_conductivity": (0.0, 1e5), "h": (0.0, 1e7), "thermal_radius_ratio": (1e-3, 1e3),
+    "solid_conductivity": (0.0, 1e5), "h": (0.0, 1e7), "thermal_radius_ratio": (1e-6, 1e6),
     "frame_mobility": (0.0, 1e6), "viscous_shape_factor": (1e-3, 1e3), "conductivity_exponent": (-10.0, 10.0),
     "radiative_conductivity": (0.0, 1e4), "h_convection": (0.0, 1e5), "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
