@@ -236,14 +236,20 @@ def ensure_free_space(path: str | Path, nbytes: int) -> None:
                                     f"{need / 1e6:.3g} MB; nothing was written: free some space or write elsewhere")
 
 
+#: The errors that say a file cannot be written where it is (:func:`io_failure`).
+WRITE_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EROFS, errno.EACCES, errno.EPERM, errno.EIO, errno.EFBIG}
+
+
 def io_failure(e: BaseException) -> str | None:
-    """The operating system's reason when ``e`` is a failed read or write (an OSError with
-    an errno, or h5py's RuntimeError around one: HDF5 reports a full disk as "... errno =
-    28, error message = 'No space left on device' ..."), else None."""
-    if isinstance(e, OSError) and e.errno:
-        return os.strerror(e.errno)
-    m = re.search(r"errno = (\d+)", str(e))
-    return os.strerror(int(m.group(1))) if m else None
+    """The operating system's reason when ``e`` is a failed write (an OSError of
+    :data:`WRITE_ERRNOS`, or h5py's RuntimeError around one: HDF5 reports a full disk as
+    "... errno = 28, error message = 'No space left on device' ..."), else None (another
+    error inside a writing block, a missing input file say, is not blamed on the output)."""
+    code = e.errno if isinstance(e, OSError) else None
+    if code is None:
+        m = re.search(r"errno = (\d+)", str(e))
+        code = int(m.group(1)) if m else None
+    return os.strerror(code) if code in WRITE_ERRNOS else None
 
 
 @contextlib.contextmanager
