@@ -149,7 +149,7 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
     from tawarp.io import remove_stale_temporaries
 
     child = subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
-                              *SWEEP[:2], "--var", "Q=1:18:40", "--var", "stack.length=0.01:0.1:40", "--chunk", "16",
+                              *SWEEP[:2], "--var", "Q=1:18:100", "--var", "stack.length=0.01:0.1:100", "--chunk", "16",
                               "-o", "res.nc"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.monotonic() + 240

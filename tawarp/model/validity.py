@@ -5,10 +5,15 @@ tabulated gas laws. Each check names the parameter set (its index in the batch a
 varying values) so that a sweep or a fit over thousands of sets says which one failed:
 
 - **Refused before solving** (:class:`ModelValidityError`, a :class:`~tawarp.model.core.CoreError`):
-  a pore radius wider than the tube; heat put in with no heat sink (every thermal ``h``
-  and ``h_convection`` zero: the heat model's ends are adiabatic, so no steady state
-  exists); an adaptive Magnus cascade that would need more than :data:`MAX_CELLS` cells
-  in a segment (a segment thousands of wavelengths long: the run would not end).
+  a value outside its trusted range (each field's in
+  :data:`tawarp.model.fields.TRUSTED_RANGE`, checked with the physical range; frequencies
+  outside [:data:`F_MIN`, :data:`F_MAX`], heat inputs above :data:`Q_MAX`;
+  docs/trusted_ranges.md); a pore radius wider than the tube; heat put in with no heat
+  sink (every thermal ``h`` and ``h_convection`` zero: the heat model's ends are
+  adiabatic, so no steady state exists); an adaptive Magnus cascade that would need more
+  than :data:`MAX_CELLS` cells in a segment (a segment thousands of wavelengths or
+  heat-decay lengths long: the run would not end; the kernels cap the count and the
+  engine refuses the set, whatever the path that sized it).
 - **Refused after solving** (:class:`NonFiniteError`): a T-matrix or temperature that is
   not finite. The usual cause is overflow: a stack so lossy (pore radius far below the
   viscous penetration depth, a huge tortuosity or length) that its matrix entries exceed
@@ -19,8 +24,9 @@ varying values) so that a sweep or a fit over thousands of sets says which one f
   is the relative error that rounding left in the cascade's entries. Above the requested
   tolerance it is a :class:`ValidityWarning`, above :data:`PRECISION_LOST` a
   :class:`PrecisionLostError`. (The unscaled ``|det T - 1|`` is no measure: in a strongly
-  attenuating core the products are ~1e90 and their float64 difference is ~1e74 off even
-  when every entry is exact to 1e-14, tests/test_validity_precision.py.)
+  attenuating core the products ``Tpp Tuu`` and ``Tpu Tup`` are huge and their float64
+  difference misses 1 by eps times their size, 8e45 for the RVC foam with 1 um pores,
+  whose entries equal the reference to 1e-13: tests/test_validity_precision.py.)
 - **Warned** (:class:`ValidityWarning`): a temperature above :data:`T_LIMIT` (the gas
   laws are Sutherland fits to about 1000-1500 K, and the paper's linear heat model
   ignores radiation and convection that dominate long before); a frequency above the
