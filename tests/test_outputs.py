@@ -201,3 +201,32 @@ def test_a_users_figure_beside_the_fit_is_refused_before_fitting(tmp_path, capsy
     assert "fit_h.png: exists and tawarp did not write it; it would be replaced by a figure of the fit" in \
         capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit_h.png"]
+
+
+def test_a_full_disk_leaves_no_half_line_in_the_study_journal(tmp_path, monkeypatch):
+    """A journal append cut short by a full disk left a partial JSON line: every later
+    reader of the study, and every worker resuming it, would stop on it."""
+    import errno
+    import os
+
+    import pytest
+
+    from tawarp.design.storage import JournalFile
+
+    journal = JournalFile(str(tmp_path / "study.journal"))
+    journal.append_logs([{"op_code": 0, "worker_id": "w", "study_name": "s", "directions": [1]}])
+    before = (tmp_path / "study.journal").read_bytes()
+    write = os.write
+
+    def half_then_full(fd, data):   # the first write gets half through, the next finds the disk full
+        if len(data) > 8:
+            return write(fd, bytes(data[: len(data) // 2]))
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "write", half_then_full)
+    with pytest.raises(OSError, match=r"study\.journal: could not be written \(No space left on device\); the "
+                                      r"trials stored before are kept"):
+        journal.append_logs([{"op_code": 4, "worker_id": "w", "study_id": 0, "payload": "x" * 100}])
+    monkeypatch.setattr(os, "write", write)
+    assert (tmp_path / "study.journal").read_bytes() == before
+    assert len(list(journal.read_logs(0))) == 1

@@ -77,11 +77,26 @@ class JournalFile(BaseJournalBackend):
     def append_logs(self, logs: list) -> None:
         text = "".join(json.dumps(log, separators=(",", ":")) + "\n" for log in logs).encode("utf-8")
         if self._file is not None:
-            self._file.write(text)
-            self._file.flush()
+            self._write(text)
             return
         with self.batch():
             self.append_logs(logs)
+
+    def _write(self, text: bytes) -> None:
+        """Append ``text`` whole or not at all: a write that fails (a full disk) is cut
+        back to the file's size before it, since a half-written line would stop every
+        later reader of the study."""
+        fd = self._file.fileno()
+        size = os.fstat(fd).st_size   # under the lock: nobody else appends
+        view = memoryview(text)
+        try:
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise OSError(e.errno, f"{self.path}: could not be written ({os.strerror(e.errno) if e.errno else e}); "
+                                   f"the trials stored before are kept") from None
 
     @contextlib.contextmanager
     def batch(self):
@@ -91,13 +106,12 @@ class JournalFile(BaseJournalBackend):
         with interrupts_deferred():
             self.lock.acquire()
             try:
-                with open(self.path, "ab") as f:
+                with open(self.path, "ab", buffering=0) as f:   # unbuffered: each append reaches the file
                     self._file = f
                     try:
                         yield
                     finally:
                         self._file = None
-                        f.flush()
                         os.fsync(f.fileno())
             finally:
                 self.lock.release()
