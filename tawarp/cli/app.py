@@ -24,7 +24,6 @@ from .synth import add_synth_parser
 
 
 # -- forward -----------------------------------------------------------------------------
-
 def cmd_forward(args) -> int:
     from ..model.core import load_core
     from ..model.forward import transfer_matrices

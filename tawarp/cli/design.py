@@ -20,7 +20,6 @@ VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input 
             "NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,... (a grid axis of COUNT points)")
 
 
-
 def _floats(text: str) -> np.ndarray:
     return parse_list(text)
 
@@ -121,8 +120,8 @@ def cmd_design(args) -> int:
                  settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args),
                  store=args.trial_store)
     summary = study_summary(res.study)
-    report = {"generator": f"{GENERATOR} design", "core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
-              "objective_definitions": objective_definitions(objectives),
+    report = {"generator": f"{GENERATOR} design", "core": str(space.core.source), "variables": space.describe(),
+              "objectives": objectives, "objective_definitions": objective_definitions(objectives),
               "T_limit_K": T_limit, "storage": storage, "trial_store": summary["store"], "study": args.study,
               "worker": args.worker, "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
               "summary": summary, "timing": res.timing, "best": res.best[: args.keep]}
@@ -325,8 +324,8 @@ def cmd_sweep(args) -> int:
     mode = "grid" if args.samples is None else "sobol"
     info = sweep(space, args.output, mode=mode, n_samples=args.samples, chunk=args.chunk, seed=args.seed,
                  settings=_settings(args), progress=not args.quiet)
-    meta = {"generator": f"{GENERATOR} sweep", "output": str(info.path), "mode": mode, "points": info.n_points, "seconds": info.seconds,
-            "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
+    meta = {"generator": f"{GENERATOR} sweep", "output": str(info.path), "mode": mode, "points": info.n_points,
+            "seconds": info.seconds, "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
             "evaluation_seconds": info.evaluation_seconds, "write_seconds": info.write_seconds,
             "variables": space.describe()}
     write_json(summary, meta)

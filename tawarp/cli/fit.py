@@ -17,7 +17,6 @@ from ..model.layer import LAYER_BASE
 from .common import _common, add_measurement_options, load_data
 
 
-
 def add_fit_parser(subparsers):
     """Register ``tawarp fit DATA.csv --core CORE.toml [--fit a,b,c] -o fit.json``."""
 

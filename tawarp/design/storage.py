@@ -263,7 +263,10 @@ class StoreWriter:
                 "time": np.full(k, time.time())}
         cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
         cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
-        # a new chunk of every column may be allocated
+        # a new chunk of every column may be allocated; checked first because HDF5 does not
+        # survive a failed write to a SWMR file (its close, or its exit handler, ends the
+        # process with SIGSEGV): the except below serves a disk filled by another process
+        # between this check and the write, and may not be reached
         ensure_free_space(self.store.path / self.name, sum(self.chunk * v.dtype.itemsize for v in cols.values()))
         if self._f is None:
             self._open(cols)
