@@ -39,6 +39,10 @@ TWO_PI = wp.constant(wp.float64(6.283185307179586))
 PI = wp.constant(wp.float64(3.141592653589793))
 # Gauss-Legendre points of [0, 1] for the three-point rule: 1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10
 GAUSS = wp.constant(wp.vec3d(0.1127016653792583, 0.5, 0.8872983346207417))
+#: Most Magnus cells of one segment (the host refuses a set above it: the cascade would not
+#: end, and a larger count overflows the int32 point indices).
+MAX_CELLS = 100_000
+CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
 
 
 @wp.kernel
@@ -170,8 +174,13 @@ def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, om
     [rad/s], c_cold [m/s]: the profile varies on the scale 1/k and the wave on c/omega, and a
     sixth-order cell's error scales with the sixth power of its length over those scales.
     The one rule of the cascade, the onset's walk (:mod:`tawarp.kernels.onset`) and the
-    fits' fixed counts (:func:`tawarp.kernels.lm.magnus_cells`)."""
-    return int(wp.ceil(density * (wp.float64(1.0) + k * length + omega * length / c_cold)))
+    fits' fixed counts (:func:`tawarp.kernels.lm.magnus_cells`). Capped at :data:`MAX_CELLS` + 1
+    (a NaN or infinite count too): an int32 conversion of a larger value is undefined, and
+    the host refuses any count above :data:`MAX_CELLS` (``cell_counts``' ``most[2]``)."""
+    n = wp.ceil(density * (wp.float64(1.0) + k * length + omega * length / c_cold))
+    if not (n <= CELL_CAP):
+        n = CELL_CAP
+    return int(n)
 
 
 @wp.func
@@ -227,7 +236,8 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
     """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
     cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
     ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
-    most[1] its largest count of point-kernel slots (:func:`segment_slots`).
+    most[1] its largest count of point-kernel slots (:func:`segment_slots`), most[2] the
+    largest cell count of a segment (above :data:`MAX_CELLS`: refused on the host).
     0 for a segment at uniform temperature: one that is not thermal, and every segment of a
     set without heat input (its heat model has no source, so theta = 0 exactly and exp(A L)
     is the segment's exact matrix: a two-step characterization's first fits, at Q = 0,
@@ -243,6 +253,7 @@ def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
         if flags[s, F_THERMAL] != 0 and heated:
             density = cell_density[i] * wp.float64(1 + column // n_seg)
             cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
+            wp.atomic_max(most, 2, cells[i, column])
         points = points + segment_points(flags, cells, i, column, s)
         slots = slots + segment_slots(flags, cells, i, column, s)
     wp.atomic_max(most, 0, points)

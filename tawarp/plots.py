@@ -14,15 +14,23 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .io import atomic_path  # noqa: E402
+from .io import GENERATOR, atomic_path  # noqa: E402
 from .model.coefficients import COEFFICIENTS  # noqa: E402
 
 
+#: Matplotlib's metadata key for the writing software, per format: tawarp's mark
+#: (:func:`tawarp.io.written_by_tawarp` reads it back from a PNG).
+SOFTWARE_KEY = {"png": "Software", "pdf": "Creator", "svg": "Creator"}
+
+
 def save(fig, path: str | Path) -> Path:
-    """Write ``fig`` to ``path`` atomically (:func:`tawarp.io.atomic_path`) and close it."""
+    """Write ``fig`` to ``path`` atomically (:func:`tawarp.io.atomic_path`), marked as
+    tawarp's (:data:`SOFTWARE_KEY`), and close it."""
+    fmt = Path(path).suffix.lstrip(".").lower() or "png"
+    metadata = {SOFTWARE_KEY[fmt]: GENERATOR} if fmt in SOFTWARE_KEY else None
     try:
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120, bbox_inches="tight", format=Path(path).suffix.lstrip(".") or "png")
+            fig.savefig(tmp, dpi=120, bbox_inches="tight", format=fmt, metadata=metadata)
     finally:
         plt.close(fig)
     return Path(path)

@@ -44,7 +44,7 @@ def test_the_uncorrupted_files_read(tmp_path, base, reader):
     assert len(reader(p)) == 2
 
 
-# -- signed reference planes, sigma columns and the empty-tube reader -----------------------
+# -- signed reference planes, sigma columns and the empty-tube reader -------------------
 SIGNED = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
           "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im,"
           "sigma_S11,sigma_S12,sigma_S21,sigma_S22\n"
@@ -83,3 +83,64 @@ def test_the_uncorrupted_pair_reads(tmp_path):
     e.write_text(EMPTY)
     kind = _load_pair(s, e)
     assert kind.name == "scattering" and kind.has_sigma and kind.data.metadata["empty_tube"] == str(e)
+
+
+# -- extreme values in a T-matrix file, loaded and predicted --------------------------------
+# In a child process: one frequency of 1e300 Hz ended ``tawarp fit`` with SIGSEGV (the
+# cascade's cell count overflowed); a crash is then an exit code that fails this test, with
+# the example printed just before it.
+_LOAD_FUZZ = r"""
+import math, sys, tempfile, warnings
+from pathlib import Path
+import numpy as np
+from hypothesis import HealthCheck, given, settings, strategies as st
+from tawarp.measure import MeasurementError, load_measurement
+from tawarp.model.core import load_core
+
+CORE = load_core("ceramic")
+HEADER = "Q_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im"
+ROWS = [[0, 100, 1, 0, 0, 4e4, 0, 1e-6, 1, 0], [0, 200, 0.9, 0, 0, 8e4, 0, 2e-6, 0.9, 0],
+        [40, 100, 1, 0, 0, 4e4, 0, 1e-6, 1, 0], [40, 200, 0.9, 0, 0, 8e4, 0, 2e-6, 0.9, 0]]
+magnitude = st.builds(lambda sign, e: sign * 10.0 ** e, st.sampled_from([1.0, -1.0]), st.floats(-320, 308))
+values = st.one_of(magnitude, st.sampled_from([0.0, math.inf, math.nan, 5e-324, 1.7e308]))
+edits = st.lists(st.tuples(st.integers(0, 3), st.integers(0, 9), values), min_size=1, max_size=3)
+folder = Path(tempfile.mkdtemp())
+
+
+@settings(max_examples=int(sys.argv[1]), deadline=None, derandomize=True, database=None,
+          suppress_health_check=list(HealthCheck))
+@given(edits)
+def load(edits):
+    rows = [list(r) for r in ROWS]
+    for i, j, v in edits:
+        rows[i][j] = v
+    print(rows, flush=True)
+    path = folder / "fuzz.csv"
+    path.write_text("# convention = exp(-iwt)\n" + HEADER + "\n" + "".join(",".join(map(repr, r)) + "\n" for r in rows))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            kind = load_measurement(path, CORE)
+            Y = kind.predict({}, 1)
+    except MeasurementError as e:
+        assert "fuzz.csv" in str(e), e
+        return
+    assert np.all(np.isfinite(Y)), Y
+    assert np.all(np.isfinite(kind.y))
+
+
+load()
+print("done")
+"""
+
+
+def test_extreme_values_in_a_data_file_load_or_are_named():
+    """One to three cells of a T-matrix file (frequencies, heat inputs, coefficients) set
+    to any magnitude and sign, inf or NaN: a MeasurementError naming the file, or data
+    whose model prediction is finite."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", _LOAD_FUZZ, "300"], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0 and run.stdout.rstrip().endswith("done"), \
+        f"rc {run.returncode}; last example: {run.stdout.strip().splitlines()[-1:]}\n{run.stderr[-3000:]}"

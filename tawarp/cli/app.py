@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import CLAIM_HELP, claim_outputs
 from .common import _common, _say, init_warp, interrupts_honoured, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
@@ -30,6 +31,9 @@ def cmd_forward(args) -> int:
     from ..measure.files import TMatrixData, write_tmatrix_csv
     from ..plots import plot_coefficients, plot_temperature
 
+    stem = Path(args.output).with_suffix("")
+    if not args.no_plots:
+        claim_outputs(f"{stem}_coefficients.png", f"{stem}_temperature.png", why="a figure")
     core = load_core(args.core)
     Q = args.Q
     res = transfer_matrices(core, args.freqs, heat_input=Q, cells=args.cells, device=args.device,
@@ -40,7 +44,6 @@ def cmd_forward(args) -> int:
                        source=str(args.output))
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     write_tmatrix_csv(args.output, data)
-    stem = Path(args.output).with_suffix("")
     Y = res.dimensionless()
     if not args.no_plots:
         plot_coefficients(args.freqs, {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)}, f"{stem}_coefficients.png",
@@ -75,7 +78,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="Hz, list or start:stop:count (default: %(default)s)")
     p.add_argument("--Q", type=parse_list, default="0", help="heat inputs [W], list or start:stop:count (default: %(default)s)")
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default: adaptive)")
-    p.add_argument("-o", "--output", default="T.csv", help="output CSV (default: %(default)s)")
+    p.add_argument("-o", "--output", default="T.csv",
+                   help="output CSV (default: %(default)s); figures STEM_coefficients.png and STEM_temperature.png "
+                        "beside it" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
 
@@ -87,6 +92,16 @@ def build_parser() -> argparse.ArgumentParser:
     add_loop_parser(sub)
     add_onset_parser(sub)
     return parser
+
+
+def error_text(e: Exception) -> str:
+    """One line for an error: an OSError without its ``[Errno N]`` prefix (its text names
+    the file), a KeyError without its quotes."""
+    if isinstance(e, OSError) and e.strerror:
+        return f"{e.filename}: {e.strerror}" if e.filename else e.strerror
+    if isinstance(e, KeyError) and e.args:
+        return str(e.args[0])
+    return str(e)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -106,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                 resolve_device(args.device)
             rc = args.func(args)
     except (CoreError, MeasurementError, OSError, KeyError, ValueError) as e:
-        print(f"tawarp {args.command}: error: {e}", file=sys.stderr)
+        print(f"tawarp {args.command}: error: {error_text(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"tawarp {args.command}: interrupted; finished outputs are complete, none is half-written",

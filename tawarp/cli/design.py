@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import CLAIM_HELP, GENERATOR, claim_outputs
 from .common import _common, _say, parse_list
 
 VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
@@ -108,6 +109,9 @@ def cmd_design(args) -> int:
     space = _space(args)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
     out = Path(args.output)
+    claim_outputs(out / "design.json", *([] if args.no_plots else [out / "history.png", out / "pareto.png",
+                                                                    out / "best_profiles.png"]),
+                  why="the design report")
     out.mkdir(parents=True, exist_ok=True)
     storage = args.storage or str(out / "study.journal")
     T_limit = None if args.no_T_limit else args.T_limit
@@ -116,8 +120,8 @@ def cmd_design(args) -> int:
                  settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args),
                  store=args.trial_store)
     summary = study_summary(res.study)
-    report = {"core": str(space.core.source), "variables": space.describe(), "objectives": objectives,
-              "objective_definitions": objective_definitions(objectives),
+    report = {"generator": f"{GENERATOR} design", "core": str(space.core.source), "variables": space.describe(),
+              "objectives": objectives, "objective_definitions": objective_definitions(objectives),
               "T_limit_K": T_limit, "storage": storage, "trial_store": summary["store"], "study": args.study,
               "worker": args.worker, "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
               "summary": summary, "timing": res.timing, "best": res.best[: args.keep]}
@@ -191,7 +195,9 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
                    help="frequencies [Hz] of acoustic_loss, list or start:stop:count")
     _add_onset_args(p)
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
-    p.add_argument("-o", "--output", default="tawarp-design", help="output folder (default: %(default)s)")
+    p.add_argument("-o", "--output", default="tawarp-design",
+                   help="output folder (default: %(default)s): design.json, the study (study.journal, study.trials/ "
+                        "unless --storage) and figures history.png, pareto.png, best_profiles.png" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_design)
     return p
@@ -208,6 +214,8 @@ def cmd_rank(args) -> int:
     if out.suffix.lower() != ".json":
         raise ValueError(f"-o {out}: the ranking is written as JSON and its figure beside it as .png; "
                          f"give a .json file name")
+    if not args.no_plots and args.by != "onset":
+        claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
     cat = load_catalogue(args.catalogue or [])
     mats = [m.strip() for m in args.materials.split(",")] if args.materials else None
     if mats:
@@ -295,7 +303,8 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
                    help="draws per material (default: 4000 by gradient, 400 by onset)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
-    p.add_argument("-o", "--output", default="rank.json", help="output JSON; figure beside it (default: %(default)s)")
+    p.add_argument("-o", "--output", default="rank.json",
+                   help="output JSON (default: %(default)s); its figure STEM.png beside it" + CLAIM_HELP)
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=cmd_rank)
     return p
@@ -309,15 +318,17 @@ def cmd_sweep(args) -> int:
     if Path(args.output).suffix.lower() != ".nc":
         raise ValueError(f"-o {args.output}: the sweep is written as netCDF and its JSON summary beside it; "
                          f"give a .nc file name")
+    summary = Path(args.output).with_suffix(".json")
+    claim_outputs(summary, why="the sweep's summary")
     space = _space(args, grid=args.samples is None)
     mode = "grid" if args.samples is None else "sobol"
     info = sweep(space, args.output, mode=mode, n_samples=args.samples, chunk=args.chunk, seed=args.seed,
                  settings=_settings(args), progress=not args.quiet)
-    meta = {"output": str(info.path), "mode": mode, "points": info.n_points, "seconds": info.seconds,
-            "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
+    meta = {"generator": f"{GENERATOR} sweep", "output": str(info.path), "mode": mode, "points": info.n_points,
+            "seconds": info.seconds, "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
             "evaluation_seconds": info.evaluation_seconds, "write_seconds": info.write_seconds,
             "variables": space.describe()}
-    write_json(Path(args.output).with_suffix(".json"), meta)
+    write_json(summary, meta)
     _say(args, f"{info.n_points} points in {info.seconds:.1f} s ({info.evaluations_per_hour:.3g}/h); wrote {info.path}")
     return 0
 
@@ -330,6 +341,7 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
     p.add_argument("--samples", type=int, default=None, help="quasi-random (Sobol) sweep of this many points")
     p.add_argument("--chunk", type=int, default=1 << 20, help="points per launch and write (default: %(default)s)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("-o", "--output", default="sweep.nc", help="output netCDF (default: %(default)s); JSON summary beside it")
+    p.add_argument("-o", "--output", default="sweep.nc",
+                   help="output netCDF (default: %(default)s); its JSON summary STEM.json beside it" + CLAIM_HELP)
     p.set_defaults(func=cmd_sweep)
     return p

@@ -6,10 +6,10 @@ from __future__ import annotations
 import warnings
 from pathlib import Path
 
-from ..fit.characterize import characterize, fit_each_heat_input, write_figures
+from ..fit.characterize import characterize, figure_paths, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
-from ..io import write_json
+from ..io import CLAIM_HELP, claim_outputs, write_json
 from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
 from ..model.core import CoreError
 from ..model.forward import ForwardSettings
@@ -32,7 +32,9 @@ def add_fit_parser(subparsers):
                    help="comma list of parameters: fitted at every heat input instead of the two-step procedure "
                         "(T-matrices), or the layer's parameters (default porosity, pore radius, tortuosity)")
     add_measurement_options(p)
-    p.add_argument("-o", "--output", default="fit.json", help="output JSON (default: %(default)s); figures beside it")
+    p.add_argument("-o", "--output", default="fit.json",
+                   help="output JSON (default: %(default)s); figures STEM_step1.png, STEM_step2.png, STEM_h.png and "
+                        "STEM_temperature.png beside it" + CLAIM_HELP)
     p.add_argument("--start", default="core", choices=("core", "spread"),
                    help="start values: the core's ('core', default) or a Sobol spread of starts ('spread')")
     p.add_argument("--restarts", type=int, default=2, help="restarts from the solution ±20%% (default: %(default)s)")
@@ -56,6 +58,9 @@ def cmd_fit(args) -> int:
     data, core = getattr(kind, "data", None), kind.core
     start = "spread" if args.start == "spread" else None
     out = Path(args.output)
+    two_step = isinstance(kind, TMatrixKind) and core.thermal_indices and not names   # the one with figures
+    if two_step and not args.no_plots:
+        claim_outputs(*figure_paths(out.with_suffix("")), why="a figure of the fit")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)   # reported in fit.json and printed below
         if not isinstance(kind, TMatrixKind) or not core.thermal_indices:   # other kinds, passive cores

@@ -32,6 +32,7 @@ file format and lock) that takes the lock and syncs once per generation.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import os
 import time
@@ -42,7 +43,7 @@ from urllib.parse import quote
 import numpy as np
 from optuna.storages.journal import BaseJournalBackend
 
-from ..io import interrupts_deferred
+from ..io import discard_hdf5, ensure_free_space, hdf5_writing, interrupts_deferred, io_failure
 from .objectives import directions
 
 ATTR = "tawarp:"
@@ -76,11 +77,26 @@ class JournalFile(BaseJournalBackend):
     def append_logs(self, logs: list) -> None:
         text = "".join(json.dumps(log, separators=(",", ":")) + "\n" for log in logs).encode("utf-8")
         if self._file is not None:
-            self._file.write(text)
-            self._file.flush()
+            self._write(text)
             return
         with self.batch():
             self.append_logs(logs)
+
+    def _write(self, text: bytes) -> None:
+        """Append ``text`` whole or not at all: a write that fails (a full disk) is cut
+        back to the file's size before it, since a half-written line would stop every
+        later reader of the study."""
+        fd = self._file.fileno()
+        size = os.fstat(fd).st_size   # under the lock: nobody else appends
+        view = memoryview(text)
+        try:
+            while view:
+                view = view[os.write(fd, view):]
+        except OSError as e:
+            with contextlib.suppress(OSError):
+                os.ftruncate(fd, size)
+            raise OSError(e.errno, f"{self.path}: could not be written ({os.strerror(e.errno) if e.errno else e}); "
+                                   f"the trials stored before are kept") from None
 
     @contextlib.contextmanager
     def batch(self):
@@ -90,13 +106,12 @@ class JournalFile(BaseJournalBackend):
         with interrupts_deferred():
             self.lock.acquire()
             try:
-                with open(self.path, "ab") as f:
+                with open(self.path, "ab", buffering=0) as f:   # unbuffered: each append reaches the file
                     self._file = f
                     try:
                         yield
                     finally:
                         self._file = None
-                        f.flush()
                         os.fsync(f.fileno())
             finally:
                 self.lock.release()
@@ -289,17 +304,32 @@ class StoreWriter:
                 "time": np.full(k, time.time())}
         cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
         cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
+        # a new chunk of every column may be allocated; checked first because HDF5 does not
+        # survive a failed write to a SWMR file (its close, or its exit handler, ends the
+        # process with SIGSEGV): the except below serves a disk filled by another process
+        # between this check and the write, and may not be reached
+        ensure_free_space(self.store.path / self.name, sum(self.chunk * v.dtype.itemsize for v in cols.values()))
         if self._f is None:
             self._open(cols)
         f, n0 = self._f, self.rows
-        for name, v in cols.items():
-            ds = f[name]
-            ds.resize((n0 + k,))
-            ds[n0:] = v
-        f.flush()  # the rows reach the file before the count that makes them visible
-        f["committed"][0] = n0 + k
-        f.flush()
-        os.fsync(f.id.get_vfd_handle())
+        try:
+            for name, v in cols.items():
+                ds = f[name]
+                ds.resize((n0 + k,))
+                ds[n0:] = v
+            f.flush()  # the rows reach the file before the count that makes them visible
+            f["committed"][0] = n0 + k
+            f.flush()
+            os.fsync(f.id.get_vfd_handle())
+        except (OSError, RuntimeError) as e:   # a full disk: the committed generations stay readable (SWMR)
+            reason = io_failure(e)
+            if reason is None:
+                raise
+            discard_hdf5(f)
+            self._f = None
+            raise OSError(getattr(e, "errno", None) or errno.EIO,
+                          f"{self.store.path / self.name}: the trial store could not be written ({reason}); the "
+                          f"generations stored before are kept") from None
         self.rows = n0 + k
 
     def _open(self, cols: dict) -> None:
@@ -312,7 +342,7 @@ class StoreWriter:
             stale.unlink()  # left by an earlier run of this worker, which the claim says is gone
         path = self.store.path / self.name
         tmp = path.with_name(path.name + ".tmp")
-        with h5py.File(tmp, "w", libver="latest") as f:
+        with hdf5_writing(h5py.File(tmp, "w", libver="latest")) as f:
             f.attrs["study"], f.attrs["worker"] = self.store.study_name, self.worker
             for name, v in cols.items():
                 ds = f.create_dataset(name, shape=(0,), maxshape=(None,), chunks=(self.chunk,), dtype=v.dtype)

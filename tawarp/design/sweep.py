@@ -43,7 +43,7 @@ from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import kernel_metrics, objective
 from .samplers import SOBOL_MAX_POINTS
 from .space import DesignSpace, DeviceTable
-from ..io import atomic_dir, atomic_path
+from ..io import atomic_dir, atomic_path, ensure_free_space, hdf5_writing
 from ..model.forward import ForwardSettings
 
 
@@ -153,10 +153,11 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     variables = _stored_variables(space, mode, rows)
+    ensure_free_space(path, n * sum(np.dtype(dtype).itemsize for dtype, _ in variables.values()))
     mapped = []   # parts=True: (chunk, index in the file, block shape) of each part written
     try:
         with atomic_path(path) as tmp, (atomic_dir(parts_path(path)) if parts else contextlib.nullcontext()) as pdir:
-            with h5netcdf.File(tmp, "w") as f:
+            with hdf5_writing(h5netcdf.File(tmp, "w")) as f:
                 f.attrs["title"] = "tawarp sweep"
                 f.attrs["core"] = str(space.core.source)
                 f.attrs["mode"] = mode
@@ -256,7 +257,7 @@ def _map_parts(file, folder: str, mapped, variables: dict, dims: list, shape: tu
     a missing part reads as the fill value (NaN, -1 for the material index)."""
     import h5py
 
-    with h5py.File(file, "r+") as h5:
+    with hdf5_writing(h5py.File(file, "r+")) as h5:
         for name, (dtype, var_attrs) in variables.items():
             layout = h5py.VirtualLayout(shape=shape, dtype=dtype)
             for k, full, sub_shape in mapped:
@@ -386,7 +387,7 @@ def _write_part(path: Path, res: dict, values: dict | None, block: tuple):
     again replaces it whole)."""
     import h5py
 
-    with atomic_path(path) as tmp, h5py.File(tmp, "w") as h5:
+    with atomic_path(path) as tmp, hdf5_writing(h5py.File(tmp, "w")) as h5:
         for name, v in res.items():
             h5.create_dataset(name, data=v.reshape(block))
         for name, v in (values or {}).items():

@@ -361,9 +361,21 @@ def temperature_profile(ch: Characterization, Q: float, n: int = 400):
 MAX_CURVES = 8
 
 
-def write_figures(ch: Characterization, stem: str | Path, label: str = "", Q_profile: float = 9.0) -> list[Path]:
+#: The figures of a characterization: ``STEM_NAME.png`` (:func:`write_figures`).
+FIGURES = ("step1", "step2", "h", "temperature")
+
+
+def figure_paths(stem: str | Path) -> list[Path]:
+    """The files :func:`write_figures` may write for ``stem``."""
+    return [Path(f"{stem}_{name}.png") for name in FIGURES]
+
+
+def write_figures(ch: Characterization, stem: str | Path, label: str = "") -> list[Path]:
     """Figures of one characterization: ``STEM_step1.png`` (Fig. 3), ``STEM_step2.png``
-    (Fig. 4; at most :data:`MAX_CURVES` heat inputs), ``STEM_h.png`` (Fig. 5), ``STEM_temperature.png`` (Fig. 6, Q = 9 W)."""
+    (Fig. 4; at most :data:`MAX_CURVES` heat inputs), ``STEM_h.png`` (Fig. 5),
+    ``STEM_temperature.png`` (Fig. 6: the fitted profiles at the measured heat inputs of
+    the step-2 figure, each with the h fitted there; no profile is drawn where no h was
+    fitted)."""
     from ..plots import plot_coefficients, plot_temperature
 
     stem = Path(stem)
@@ -380,9 +392,10 @@ def write_figures(ch: Characterization, stem: str | Path, label: str = "", Q_pro
                                        title=f"{label}: heated, bias-corrected measured vs fitted{some}"))
         paths.append(plot_h_vs_Q({label: (ch.heat_inputs, ch.step2.values, ch.step2.std, ch.heat_names)},
                                  f"{stem}_h.png", title=f"{label}: fitted heat-exchange coefficients"))
-        x, T = temperature_profile(ch, Q_profile)
-        paths.append(plot_temperature(x, {f"Q = {Q_profile:g} W": T}, f"{stem}_temperature.png",
-                                      planes=ch.core.positions(), title=f"{label}: fitted temperature profile"))
+        profiles = {f"Q = {ch.heat_inputs[i]:g} W": temperature_profile(ch, ch.heat_inputs[i]) for i in shown}
+        paths.append(plot_temperature(next(iter(profiles.values()))[0], {k: T for k, (x, T) in profiles.items()},
+                                      f"{stem}_temperature.png", planes=ch.core.positions(),
+                                      title=f"{label}: fitted temperature profiles at the measured heat inputs{some}"))
     return paths
 
 

@@ -27,6 +27,7 @@ from ..kernels import lm as klm
 from ..model.coefficients import rms_error
 from ..model.core import Core
 from ..model.forward import Engine, ForwardSettings
+from ..model.validity import ModelValidityError
 from .files import MeasurementError
 from .table import text_lines
 
@@ -218,4 +219,14 @@ def load_measurement(path, core: Core | None = None, settings: ForwardSettings |
             takers = [n for n, e in KINDS.items() if key in inspect.signature(e.load).parameters]
             raise MeasurementError(f"{path}: {entry.name} data take no {key} option (it applies to "
                                    f"{', '.join(takers) or 'no kind of'} data)")
-    return entry.load(path, core, settings, **options)
+    try:
+        kind = entry.load(path, core, settings, **options)
+    except ModelValidityError as e:   # the file's frequencies or heat inputs are outside the model: name it
+        raise MeasurementError(f"{path}: {e}") from None
+    for what, a in (("values", kind.y), ("weights (1/sigma)", kind.w)):
+        bad = np.flatnonzero(~np.isfinite(a).reshape(len(kind.y), -1).all(axis=1))
+        if bad.size:   # finite in the file, out of the float64 range once scaled
+            raise MeasurementError(f"{path}: {bad.size} {what} overflow the float64 range once made dimensionless "
+                                   f"(the first of the {kind.name} rows: {int(bad[0])}); the file holds values out "
+                                   f"of scale")
+    return kind

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, takes
+from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, TRUSTED_RANGE, takes
 from .fields import field as field_spec
 from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES
@@ -221,13 +221,14 @@ def check_values(name: str, values, where: str) -> None:
     parameter name) is finite and within its physical range
     (:mod:`tawarp.model.fields`); ``where`` names the file/key (or the parameter)."""
     f = field_spec(name)
+    lo, hi = TRUSTED_RANGE.get(f.name, (-math.inf, math.inf)) if f.row >= 0 else (-math.inf, math.inf)
     # a batch is a NumPy array; anything else is one value (a string or a list from a
     # TOML file is a wrong value, not a sequence of values)
     batch = getattr(values, "ndim", 0) > 0
     if batch and values.dtype.kind in "iuf":
         # checked in one pass (a per-value loop took 3 s for an onset batch of 1e6 designs);
         # the first bad value, if any, goes through the scalar checks for its message
-        bad = np.flatnonzero(~f.check_array(values))
+        bad = np.flatnonzero(~(f.check_array(values) & (values >= lo) & (values <= hi)))
         values = values.ravel()[bad[:1]]
     for value in (values if batch else [values]):
         if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
@@ -237,6 +238,9 @@ def check_values(name: str, values, where: str) -> None:
             raise CoreError(f"{where} [{f.unit}]: expected a finite number, got {value!r}")
         if not f.check(v):
             raise CoreError(f"{where} [{f.unit}]: must lie in {f.range_text()}, got {v}")
+        if not lo <= v <= hi:
+            raise CoreError(f"{where} [{f.unit}]: {v:g} lies outside the trusted range [{lo:g}, {hi:g}] "
+                            f"(docs/trusted_ranges.md)")
 
 
 def validate(core: Core) -> None:

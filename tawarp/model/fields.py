@@ -154,6 +154,20 @@ HOST_FIELD_TABLE: dict[str, Field] = {
                                fit_range=(-0.5, 0.5), description="arg g of the 2-port calibration gain"),
 }
 
+#: Trusted range (lowest, highest) of each kernel field, inside its physical range: the
+#: values at which the kernels' float64 arithmetic was checked against the independent
+#: reference (tawarp/reference.py) and by tests/test_fuzz_core.py. A value outside is
+#: refused before any kernel launch (:func:`tawarp.model.core.check_values`);
+#: docs/trusted_ranges.md gives the reasons.
+TRUSTED_RANGE: dict[str, tuple[float, float]] = {
+    "T_cold": (1.0, 1e4), "p_mean": (1.0, 1e9), "radius": (1e-6, 10.0),
+    "length": (1e-9, 100.0), "porosity": (1e-12, 1.0), "pore_radius": (1e-9, 10.0), "tortuosity": (1.0, 1e3),
+    "solid_conductivity": (0.0, 1e5), "h": (0.0, 1e7), "thermal_radius_ratio": (1e-6, 1e6),
+    "frame_mobility": (0.0, 1e6), "viscous_shape_factor": (1e-3, 1e3), "conductivity_exponent": (-10.0, 10.0),
+    "radiative_conductivity": (0.0, 1e4), "h_convection": (0.0, 1e5), "wall_conductance": (0.0, 1e4),
+    "end_conductance": (0.0, 1e9),
+}
+
 SEGMENT_FIELDS: dict[str, Field] = {f.name: f for f in SEGMENT_FIELD_TABLE}
 assert sorted(f.row for f in SEGMENT_FIELD_TABLE) == list(range(layout.N_FIELDS)), "kernels/layout.py rows"
 #: Effect fields and their neutral ("off") values.

@@ -29,7 +29,8 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import ValidityWarning, check_results, check_sets
+from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_heat_inputs,
+                       check_precision, check_results, check_sets, describe_set)
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
@@ -219,8 +220,9 @@ class ForwardSettings:
             counts = [self.cells.get(s.name, 1) for s in core.segments]
         else:
             counts = [self.cells] * len(core.segments)
-        if any(int(c) < 1 for c in counts):
-            raise ValueError(f"cells must be >= 1, got {self.cells}")
+        if any(not 1 <= int(c) <= MAX_CELLS for c in counts):
+            raise ValueError(f"Magnus cells must lie in [1, {MAX_CELLS}] per segment, got {self.cells} (a count "
+                             f"sized this large means an extreme h, length or frequency: docs/trusted_ranges.md)")
         return np.array(counts, dtype=np.int32)
 
 
@@ -247,6 +249,7 @@ def broadcast_batch(core: Core, heat_input, params: dict | None) -> tuple[int, n
     q = out.pop("heat_input")
     if not np.all(np.isfinite(q)) or np.any(q < 0):
         raise CoreError(f"heat_input [W]: must be finite and >= 0, got {q[~(np.isfinite(q) & (q >= 0))][:3]}")
+    check_heat_inputs(q)
     if np.any(q > 0) and not core.thermal_indices:
         raise CoreError(f"{core.source}: heat_input > 0 but the core has no thermal segment with heater = true")
     for name, a in out.items():
@@ -281,6 +284,7 @@ class Engine:
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
         if self.freqs.ndim != 1 or not np.all(np.isfinite(self.freqs)) or np.any(self.freqs <= 0):
             raise ValueError("freqs [Hz] must be a 1-D array of positive finite values")
+        check_frequencies(self.freqs)
         self.names = list(names)
         self.rows = np.array([layout.HEAT_INPUT] + [parameter_row(core, k) for k in self.names], dtype=np.int32)
         self.first, self.count = _thermal_range(core)
@@ -316,7 +320,8 @@ class Engine:
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
-        if not isinstance(varying, wp.array):
+        if not isinstance(varying, wp.array):   # (a device table's values were checked where they were made)
+            check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
         params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
@@ -469,10 +474,12 @@ class Engine:
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
-        most = wp.zeros(2, dtype=wp.int32, device=self.device)
+        most = wp.zeros(3, dtype=wp.int32, device=self.device)
         wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
                                                  cells, most], device=self.device)
-        n_points, n_slots = (int(v) for v in most.numpy())
+        n_points, n_slots, n_cells = (int(v) for v in most.numpy())
+        if n_cells > MAX_CELLS:
+            self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
@@ -489,6 +496,22 @@ class Engine:
                       inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, rows(out),
                               rows(doubled), rows(step) if tangents else step, rows(tangent) if tangents else tangent],
                       device=self.device, block_dim=self.settings.block_dim)
+
+    def _refuse_cells(self, params: wp.array, cells: np.ndarray):
+        """Raise :class:`~tawarp.model.validity.ModelValidityError` for the first set whose
+        cascade would need more than :data:`MAX_CELLS` cells in a segment (the kernel caps
+        the count there): a heat-decay or acoustic length of tens of thousands of cells (an
+        extreme ``h``, length or frequency) would not end, and overflows the point indices."""
+        table = params.numpy()
+        bad = np.flatnonzero((cells > MAX_CELLS).any(axis=1))
+        i = int(bad[0])
+        seg = self.core.segments[int(np.flatnonzero(cells[i] > MAX_CELLS)[0]) % len(self.core.segments)]
+        values = {name: table[row] for name, row in zip(self.names, self.rows[1:])}
+        raise ModelValidityError(
+            f"{self.core.source}: {describe_set(i, table[layout.HEAT_INPUT], values)}: {seg.name} would need more "
+            f"than {MAX_CELLS} Magnus cells up to {self.freqs.max():g} Hz (its heat-decay length or wavelength is "
+            f"that many times shorter than the segment: an extreme h, conductivity, length or frequency; "
+            f"docs/trusted_ranges.md); {bad.size} of {len(cells)} sets")
 
     def _point_buffer_bytes(self) -> int:
         """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
@@ -645,6 +668,7 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
         T[lo:hi] = out.numpy().view(np.complex128).reshape(hi - lo, m, 2, 2)
         theta[lo:hi] = w_theta.numpy()
         check_results(core, varying[0], values, T[lo:hi], theta[lo:hi], lo, engine.freqs)
+        check_precision(core, varying[0], values, T[lo:hi], settings.tolerance or DEFAULT_TOLERANCE, lo)
         table[:, lo:hi] = w_params.numpy()
         bar.update(hi - lo)
     bar.close()
