@@ -187,7 +187,7 @@ def test_the_fitted_temperature_figure_is_drawn_at_the_measured_heat_inputs(tmp_
                                                                                              **kw) or path)
     write_figures(ch, tmp_path / "fit")
     assert list(drawn["curves"]) == ["Q = 5 W", "Q = 7 W"] and "measured heat inputs" in drawn["title"]
-    for (label, T), Q, h in zip(drawn["curves"].items(), (5.0, 7.0), ch.step2.values):
+    for T, Q, h in zip(drawn["curves"].values(), (5.0, 7.0), ch.step2.values):
         direct, _ = steady_temperature(ch.core, drawn["x"], Q, params=dict(zip(ch.heat_names, h)), settings=settings)
         np.testing.assert_array_equal(T, direct[0])
 

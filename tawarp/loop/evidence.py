@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special, stats
 
-from ..fit.problems import FD_STEP, fit_batch, param_values, residual
+from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param

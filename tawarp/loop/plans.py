@@ -38,7 +38,7 @@ def candidate_plans(problem: MeasurementKind) -> list[tuple[str, list[float], np
     groups = [float(g) for g in np.unique(problem.group)]
     n = len(f)
     out = [(f"{problem.group_name} = {g:.4g} at the measured frequencies", [g], f) for g in problem.extra_groups()]
-    for k, band in enumerate(np.array_split(f, 3)):
+    for band in np.array_split(f, 3):
         if len(band) > 1:
             dense = np.linspace(band[0], band[-1], 2 * len(band))
             out.append((f"{band[0]:.4g}-{band[-1]:.4g} Hz at twice the density, every {problem.group_name}", groups, dense))
