@@ -72,10 +72,11 @@ they must be flagged (``unexplained_residual`` or ``wrong_model``; ``explained``
 **Absorbed effects are scored, not skipped** (:func:`score`): an effect the base fit
 explains (chi^2 at 1 %) must not be claimed as a false effect, and no case may be judged
 ``adequate`` while the fit sits more than :data:`TENSION` prior standard deviations from the
-core file (:func:`tension`: :data:`PRIOR_SD` = 20 % of the file's value, or the loop's own
-``prior_tension`` z, whichever is larger). The summary adds the calibration of the loop's
-inclusion probabilities (of the effects at >= 0.95, how many are true; per bin of
-:data:`CALIBRATION_BINS`; ``OUT/calibration.png``).
+core file (:func:`tension`: the loop's own ``prior_tension`` z of the model it chose,
+against its documented priors; for a report without priors :data:`PRIOR_SD` = 20 % of the
+file's value). The summary adds the calibration of the loop's inclusion probabilities (of
+the effects it claimed, how many are true; per bin of :data:`CALIBRATION_BINS` over every
+report; ``OUT/calibration.png``).
 
 **Held-out seeds** (``--split heldout``, seeds >= :data:`HELDOUT_SEED0`): never run while a
 rule of the loop or of this study is being tuned; a tuning run refuses them.
@@ -498,7 +499,8 @@ def loop_outcome(report: dict) -> dict:
             # the tension of the model the loop chose (the report also names its rivals')
             "prior_tension": [{"parameter": t["parameter"], "z": float(t["z"])} for t in report.get("prior_tension") or []
                               if t.get("model", chosen) == chosen],
-            "parameters_after": {k: float(v["value"] if isinstance(v, dict) else v) for k, v in after.items()}}
+            "parameters_after": {k: float(v["value"] if isinstance(v, dict) else v) for k, v in after.items()},
+            "has_priors": "prior_tension" in report}
 
 
 #: Verdicts that flag a residual nothing in the library explains.
@@ -525,13 +527,15 @@ def effect_status(visibility: float, ratio_before: float, n: int) -> str:
 
 def tension(case: Case, outcome: dict) -> float:
     """How far the loop's fit sits from the core file, in prior standard deviations: the
-    largest of the study's own measure, |after - prior| / (:data:`PRIOR_SD` |prior|) over the
-    core file's fitted parameters (:func:`paper_names`), and the loop's own ``prior_tension``
-    z's; 0 when the report gives neither."""
+    largest z of the loop's own ``prior_tension`` for the model it chose (its documented
+    priors, docs/priors.md); for a report without priors, the study's own measure
+    |after - prior| / (:data:`PRIOR_SD` |prior|) over the core file's fitted parameters
+    (:func:`paper_names`); 0 when the report gives neither."""
+    if outcome.get("has_priors"):
+        return float(max((abs(t["z"]) for t in outcome.get("prior_tension") or []), default=0.0))
     after = outcome.get("parameters_after") or {}
     own = [abs(after[k] - v) / (PRIOR_SD * abs(v)) for k, v in case.prior.items() if k in after and v]
-    loop = [abs(t["z"]) for t in outcome.get("prior_tension") or []]
-    return float(max(own + loop, default=0.0))
+    return float(max(own, default=0.0))
 
 
 def expected(case: Case, status: dict) -> dict:
@@ -770,12 +774,17 @@ def calibration(records: list[dict]) -> dict:
     :data:`CALIBRATION_BINS`, how many (effect, case) probabilities fall in it, their mean
     and the fraction of those effects that are true in the case (:meth:`Case.true_effects`;
     nothing is true in clean, outside and wrong-core data); ``claimed``: of the effects at
-    >= 0.95, how many are true; ``groups``: of the accepted steps, how many hold a true effect."""
-    pairs, groups = [], []
+    >= 0.95 that the loop claimed (alone: its verdict passed the checks), how many are true;
+    ``groups``: of the accepted steps, how many hold a true effect. The bins hold every case's
+    probabilities, those of reports whose verdict says the library does not explain the data
+    too (there the probabilities are conditional on a library that cannot make the data, and
+    nothing is claimed)."""
+    pairs, groups, claimed = [], [], []
     for r in records:
         true = set(Case(**r["case"]).true_effects())
         pairs += [(p, e in true) for e, p in (r["outcome"].get("inclusion_probabilities") or {}).items()]
         groups += [bool(set(g) & true) for g in r["outcome"]["accepted_groups"]]
+        claimed += [e in true for e in r["outcome"]["accepted_effects"]]
     bins = []
     edges = CALIBRATION_BINS
     for lo, hi in itertools.pairwise(edges):
@@ -783,7 +792,6 @@ def calibration(records: list[dict]) -> dict:
         bins.append({"low": lo, "high": hi, "n": len(sel), "true": sum(t for _, t in sel),
                      "mean_probability": float(np.mean([p for p, _ in sel])) if sel else None,
                      "fraction_true": (sum(t for _, t in sel) / len(sel)) if sel else None})
-    claimed = [t for p, t in pairs if p >= 0.95]
     return {"bins": bins,
             "claimed": {"n": len(claimed), "k": sum(claimed), "rate": (sum(claimed) / len(claimed)) if claimed else None},
             "groups": {"n": len(groups), "k": sum(groups), "rate": (sum(groups) / len(groups)) if groups else None}}
@@ -817,7 +825,7 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
              f"| lab effect outside the library, visible: flagged | {_fmt_rate(s['outside_lab_flagged'])} | |",
              f"| lab effect outside the library, visible or absorbed: `explained` | "
              f"{_fmt_rate(s['outside_lab_explained'])} | <= 5 % |",
-             f"| effects claimed at inclusion probability >= 0.95 that are true | "
+             f"| effects claimed (inclusion probability >= 0.95, the checks passed) that are true | "
              f"{_fmt_rate(s['calibration']['claimed'])} | >= 90 % |",
              f"| accepted steps (an effect or a group) holding a true effect | {_fmt_rate(s['calibration']['groups'])} | |",
              f"| claim on clean data | {_fmt_rate(s['clean_claims'])} | <= 2 % |",

@@ -40,18 +40,20 @@ class _DegeneratedSampler:
 
 
 def test_a_worker_whose_sampler_degenerated_resumes(tmp_path, monkeypatch):
-    """A lineage holding a generation of NaN points (stored by a sampler that then failed)
-    resumes with the seed and batch it was started with, to the trials asked; no point
-    stored after it is NaN."""
+    """A lineage whose sampler degenerated (it asked NaN points: the evaluation refuses them
+    before any launch, or they were stored and the sampler then failed) resumes with the
+    seed and batch it was started with, to the trials asked; no point stored after it is NaN."""
+    from tawarp.model.validity import ModelValidityError
+
     journal = str(tmp_path / "s.journal")
     with monkeypatch.context() as m:
         m.setattr(search_module, "make_sampler", lambda *a: _DegeneratedSampler(*a))
-        with pytest.raises(AssertionError, match="1e\\+32"):
+        with pytest.raises((AssertionError, ModelValidityError), match="1e\\+32|nan"):
             search(_space(), n_trials=64, batch=8, storage=journal, seed=3)
     ds = trials_table(search(_space(), n_trials=64, batch=8, storage=journal, seed=3).study)
     assert sorted(ds.generation.values.tolist()) == [g for g in range(8) for _ in range(8)]
     nan = np.isnan(ds["heat_input"].values) | np.isnan(ds["stack.length"].values)
-    assert set(ds.generation.values[nan].tolist()) == {2}
+    assert set(ds.generation.values[nan].tolist()) <= {2}
 
 
 # -- files that are not what they should be -----------------------------------------------------

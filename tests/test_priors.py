@@ -22,6 +22,7 @@ from tawarp.model.effects import Param, base_params, impedance_library, tmatrix_
 from tawarp.model.layer import layer_core
 from tawarp.model.priors import (
     DEFAULT_PRIORS,
+    EFFECT_WIDTH,
     TENSION_SD,
     Z95,
     Prior,
@@ -336,7 +337,8 @@ def test_declared_prior_wins_over_the_default(tmp_path):
     core = core_from_dict(d, "conv.toml")
     conv = next(e for e in tmatrix_library(core) if e.name == "convection")
     assert effect_priors(conv, core)["tbt.h_convection"] == Prior(0.0, 1.0, False, 0.0, math.inf)
-    assert effect_priors(conv)["tbt.h_convection"].sd == pytest.approx(conv.typical["tbt.h_convection"], rel=1e-15)
+    assert effect_priors(conv)["tbt.h_convection"].sd == pytest.approx(EFFECT_WIDTH * conv.typical["tbt.h_convection"],
+                                                                       rel=1e-15)
 
 
 def test_tension_names_the_parameter():
@@ -382,8 +384,8 @@ HALF_NORMAL = {"radiation": "stack.radiative_conductivity", "convection": "tbt.h
 
 
 def test_effect_switches_are_off_plus_minus_their_typical_size():
-    """A switch's typical size is one prior sd from "off"; where "off" is the physical
-    bound the prior is a half-normal (density ln 2 above the Gaussian at "off")."""
+    """A switch's typical size is 1/EFFECT_WIDTH prior sd from "off"; where "off" is the
+    physical bound the prior is a half-normal (density ln 2 above the Gaussian at "off")."""
     core = load_core("nicr_foam")
     lib = {e.name: e for e in tmatrix_library(core)}
     for name in ("thermal_radius_ratio", "conductivity_T", "calibration", *HALF_NORMAL):
@@ -392,7 +394,8 @@ def test_effect_switches_are_off_plus_minus_their_typical_size():
             par = next(p for p in eff.params if p.label == label)
             if label in ("ambient_hx.porosity", "ambient_hx.pore_radius"):
                 continue
-            assert prior.center == par.start and abs(prior.z(eff.typical[label])) == pytest.approx(1.0, rel=1e-12)
+            assert prior.center == par.start
+            assert abs(prior.z(eff.typical[label])) == pytest.approx(1.0 / EFFECT_WIDTH, rel=1e-12)
     for name, label in HALF_NORMAL.items():
         prior = effect_priors(lib[name])[label]
         assert prior.lower == prior.center == 0.0
@@ -417,11 +420,11 @@ def test_effects_that_free_base_parameters_use_the_base_defaults():
 
 def test_elastic_frame_prior_spans_its_stated_starts():
     """The frame's E is stated from 1e4 to 1e7 Pa (its refit starts): the prior's sd
-    covers that span, so a fitted 3e6 Pa is not in tension."""
+    covers that span (EFFECT_WIDTH times it), so a fitted 3e6 Pa is not in tension."""
     core = load_core("foam_sample")
     frame = next(e for e in tmatrix_library(core) if e.name == "elastic_frame")
     prior = effect_priors(frame)["foam.frame_modulus"]
-    assert prior.sd == 1e7 and abs(prior.z(3e6)) < TENSION_SD
+    assert prior.sd == EFFECT_WIDTH * 1e7 and abs(prior.z(3e6)) < TENSION_SD
 
 
 # -- the documentation --------------------------------------------------------------------

@@ -193,18 +193,29 @@ def fit_models(problem: MeasurementKind, base_params: list[Param], fixed: dict, 
     return out
 
 
-def _starts(model_x: np.ndarray, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarray | None) -> list[np.ndarray]:
-    """Starts of a model's refit: its effects off (and at their typical size and further
-    ``starts`` for a single effect) from ``model_x``'s base part, and the linearized optimum."""
-    base_x = model_x[:n_base]
-    out = []
+def _typical_x(e: Effect) -> np.ndarray:
+    """An effect's fit variables at its typical size."""
+    return np.array([float(par.x_of(e.typical.get(par.label, par.start))) for par in e.params])
+
+
+def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarray | None) -> list[np.ndarray]:
+    """Starts of the refit of the model of ``effects``, which extends ``at`` (the base, or
+    the best model so far): ``at``'s solution with its own effects at their fitted values and
+    the others off (for a single effect also its further ``starts`` and, where it has
+    several parameters, its typical size: at "off" the others can be undetermined); the base
+    parameters at the core file's values with every effect at its typical size (a strong
+    effect pulls the base fit away from where the augmented optimum lies, and a descent
+    from there can stay in that valley); and the linearized optimum."""
+    own, k = {}, n_base
+    for name in at.effects:
+        n = len(next(e for e in effects if e.name == name).params)
+        own[name] = at.fit.x[0][k:k + n]
+        k += n
+    base_x = at.fit.x[0][:n_base]
+    out = [np.concatenate([base_x] + [own.get(e.name, np.zeros(len(e.params))) for e in effects])]
     if len(effects) == 1:
-        out += [np.concatenate([base_x, x]) for x in refit_starts(effects[0])]
-    else:
-        out.append(np.concatenate([base_x] + [np.zeros(len(e.params)) for e in effects]))
-        typical = [refit_starts(e)[1] if len(refit_starts(e)) > 1 else np.array(
-            [float(par.x_of(e.typical.get(par.label, par.start))) for par in e.params]) for e in effects]
-        out.append(np.concatenate([base_x] + typical))
+        out += [np.concatenate([base_x, x]) for x in refit_starts(effects[0])[1:]]
+    out.append(np.concatenate([np.zeros(n_base)] + [_typical_x(e) for e in effects]))
     if x_lin is not None:
         out.append(x_lin)
     return out
@@ -257,8 +268,8 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     best_lin = max((t[1] for t in lin), default=-math.inf)
     top = [t for t in lin if t[0] not in singles and t[1] >= best_lin + math.log(WINDOW)][:refits]
     lin_x = {t[0]: t[2] for t in lin}
-    requests = [((e.name,), _starts(base.fit.x[0], n_base, (e,), lin_x.get((e.name,)))) for e in library]
-    requests += [(names, _starts(base.fit.x[0], n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
+    requests = [((e.name,), _starts(base, n_base, (e,), lin_x.get((e.name,)))) for e in library]
+    requests += [(names, _starts(base, n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
     models = [base] + fit_models(problem, base_params, fixed, library, requests)
     for m in models[1:]:
         m.log_model_prior = log_model_prior(sizes, len(m.effects))
@@ -273,7 +284,7 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
         lin2 = [t for t in lin2 if t[1] >= best.log_posterior + math.log(WINDOW)][:refits]
         if lin2:
             more = fit_models(problem, base_params, fixed, library,
-                              [(names, _starts(best.fit.x[0], n_base, tuple(by_name[n] for n in names), x))
+                              [(names, _starts(best, n_base, tuple(by_name[n] for n in names), x))
                                for names, _, x in lin2])
             for m in more:
                 m.log_model_prior = log_model_prior(sizes, len(m.effects))

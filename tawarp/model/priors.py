@@ -356,6 +356,13 @@ def _frees_base_parameter(par: Param) -> bool:
     return par.expand is None and par.targets == (par.label,) and f.neutral is None and f.row >= 0
 
 
+#: An effect's switch has a prior sd of this many typical sizes: the typical size is where
+#: the effect usually sits, not how far it goes (a radiative conductivity of 0.05 W/(m K),
+#: 3.7 typical sizes, is a foam at 600 K; a conductivity exponent of 1 is 2.9), and a value
+#: a few typical sizes away must not read as prior tension.
+EFFECT_WIDTH = 2.0
+
+
 def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
     """{param label: prior} of ``effect``, each in its Param's own scale (ln for a log
     Param, linear otherwise; a default of the other scale linearised at its center),
@@ -363,10 +370,10 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
 
     - a Param that frees a base parameter (plane offsets, ``gas.T_cold``, ``gas.p_mean``):
       that field's default (:func:`default_prior`: +-2 mm, +-5 K, +-3 %) around its start;
-    - an effect's switch: centred on "off" (the Param's start) with its typical size as
-      one sd: the largest distance from "off" of :attr:`Effect.typical` and of the
-      effect's extra refit ``starts`` (the elastic frame's E from 1e4 to 1e7 Pa is such a
-      stated span). "Off" on the field's physical bound (radiation, convection, wall
+    - an effect's switch: centred on "off" (the Param's start) with :data:`EFFECT_WIDTH`
+      typical sizes as one sd, the typical size being the largest distance from "off" of
+      :attr:`Effect.typical` and of the effect's extra refit ``starts`` (the elastic
+      frame's E from 1e4 to 1e7 Pa is such a stated span). "Off" on the field's physical bound (radiation, convection, wall
       conduction, frame mobility >= 0) makes it a half-normal;
     - a Param whose typical value is its start (the ambient exchangers' porosity and pore
       radius, a frame's loss factor and density: shape parameters of an effect another
@@ -382,9 +389,9 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
         spread = [v[par.label] for v in (effect.typical, *effect.starts)
                   if par.label in v and v[par.label] != par.start]
         if spread and not _frees_base_parameter(par):
-            sd = max(abs(float(par.x_of(v))) for v in spread) * (1.0 if par.log else par.scale)
+            sd = EFFECT_WIDTH * max(abs(float(par.x_of(v))) for v in spread) * (1.0 if par.log else par.scale)
             prior = Prior(par.start, sd, par.log, f.lower, f.upper,
-                          source=f"effect {effect.name}: off +- its typical size")
+                          source=f"effect {effect.name}: off +- {EFFECT_WIDTH:g} typical sizes")
         else:
             prior = default_prior(par.label, par.start)
             if prior.log and not par.log:
