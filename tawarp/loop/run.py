@@ -226,7 +226,8 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
-    the best refitted model and its most probable supersets refitted. Returns the refitted
+    the most probable refitted model and at the most probable single effect, and the most
+    probable supersets of each refitted. Returns the refitted
     models (posterior probabilities set) and counts of what was linearized and refitted."""
     n_base = len(base_params)
     at_base = effect_columns(problem, base.fit, fixed, library)
@@ -275,23 +276,29 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
         m.log_model_prior = log_model_prior(sizes, len(m.effects))
     counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models), "not_visible": hidden}
     posterior(models)
+    # second round: linearized again at the most probable model and at the most probable
+    # single effect (far from the base, as a strong effect leaves it, the first round's
+    # quadratic model is poor, and a weaker second effect is found only beside the strong one)
     best = max(models, key=lambda m: m.probability)
-    if best.effects and len(best.effects) < max_effects:
-        done = {m.effects for m in models}
-        supersets = [s_ for s_ in sets if set(best.effects) < {e.name for e in s_}]
-        lin2 = [t for t in linearize(best, supersets) if t[0] not in done]
-        lin2.sort(key=lambda t: -t[1])
-        lin2 = [t for t in lin2 if t[1] >= best.log_posterior + math.log(WINDOW)][:refits]
-        if lin2:
-            more = fit_models(problem, base_params, fixed, library,
-                              [(names, _starts(best, n_base, tuple(by_name[n] for n in names), x))
-                               for names, _, x in lin2])
-            for m in more:
-                m.log_model_prior = log_model_prior(sizes, len(m.effects))
-            models += more
-            counts["linearized"] += len(supersets)
-            counts["refitted"] += len(more)
-            posterior(models)
+    single = max((m for m in models if len(m.effects) == 1), key=lambda m: m.probability, default=None)
+    anchors = [m for k, m in enumerate([best, single]) if m is not None and m.effects
+               and len(m.effects) < max_effects and not (k == 1 and m is best)]
+    done = {m.effects for m in models}
+    requests = []
+    for at in anchors:
+        supersets = [s_ for s_ in sets if set(at.effects) < {e.name for e in s_}]
+        counts["linearized"] += len(supersets)
+        lin2 = sorted((t for t in linearize(at, supersets) if t[0] not in done), key=lambda t: -t[1])
+        for names, _, x in [t for t in lin2 if t[1] >= at.log_posterior + math.log(WINDOW)][:refits]:
+            done.add(names)
+            requests.append((names, _starts(at, n_base, tuple(by_name[n] for n in names), x)))
+    if requests:
+        more = fit_models(problem, base_params, fixed, library, requests)
+        for m in more:
+            m.log_model_prior = log_model_prior(sizes, len(m.effects))
+        models += more
+        counts["refitted"] += len(more)
+        posterior(models)
     models.sort(key=lambda m: -m.probability)
     return models, counts
 
