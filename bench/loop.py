@@ -73,7 +73,8 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list)")
     ap.add_argument("--impedance-freqs", type=int, default=2694)
-    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "cache"))
+    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "loop_bench" / "cache"),
+                    help="where the reference data of the cases are kept (git-ignored)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
