@@ -145,7 +145,7 @@ PRIOR_SD, TENSION = 0.20, 3.0
 HELDOUT_SEED0 = 1000
 #: visibility rule of :func:`expected`: effect size / noise floor
 VISIBLE, INVISIBLE = 2.0, 0.5
-#: the issue's targets
+#: the targets of docs/loop.md
 TARGETS = {"right_effect": 0.95, "residual_ratio": 1.3, "clean_claims": 0.02, "outside_unexplained": 0.90,
            "wrong_core_flagged": 1.0, "outside_explained": 0.05, "claimed_true": 0.90, "adequate_in_tension": 0}
 #: bins of the inclusion probabilities' calibration table; an effect is claimed at >= 0.95
@@ -634,12 +634,13 @@ def wrong_core_visibility(case: Case, arrays: dict, core: Core, settings: Forwar
     file, in noise floors: the smallest misfit (docs/formats.md error) to the noise-free data of
     the base fit alone, with each library effect (from every one of its refit starts, the
     base part at the base solution and at the core file's values, as the loop's refits), and
-    with each pair of them (the loop takes up to :data:`tawarp.loop.run.MAX_STEPS`; a pair
+    with each pair of them (the loop compares sets of up to :data:`tawarp.loop.run.MAX_EFFECTS`; a pair
     from the base solution and every pair of the two effects' refit starts). Below
     :data:`INVISIBLE` (:func:`effect_status`) the core file with library effects makes these
     data to a fraction of the noise, so that no method can flag the core from them, and the
-    case is not scored; marginal ones are (seed 69: ceramic data fitted with the NiCr core and
-    plane offsets, 0.15 floors at its 0.8 % noise; the same case at 0.1 % noise is flagged)."""
+    case is not scored; marginal ones are (ceramic data fitted with the NiCr core and plane
+    offsets came within 0.15 floors at 0.8 % noise; the same case at 0.1 % noise is flagged,
+    tests/test_loop_validation.py::test_wrong_core_flagged_when_the_data_can_show_it)."""
     Zc = rig_Zc(case)
     clean = dict(arrays, T=denormalize(arrays["Y_clean"], Zc).reshape(-1, 2, 2))
     prob = TMatrixKind(measurement(case, clean), core, settings)
@@ -716,7 +717,7 @@ def outcome_label(rec: dict) -> str:
 
 
 def summarize(records: list[dict], by_split: bool = True) -> dict:
-    """Confusion matrix and the rates of the issue's targets; with tuning and held-out seeds
+    """Confusion matrix and the rates of the targets; with the tuning and held-out splits
     both present (``by_split``), the same for each apart under ``by_split``."""
     def rate(sel, key="right"):
         sel = list(sel)
@@ -946,7 +947,7 @@ def fraction_range(text: str) -> tuple[float, float]:
 
 def study_seeds(seed0: int, cases: int, seeds: list[int] | None, split: str) -> list[int]:
     """The seeds of a run: ``seeds``, or ``cases`` of them from ``seed0``, counted from
-    :data:`HELDOUT_SEED0` for the held-out split. A tuning run never touches a held-out seed."""
+    :data:`HELDOUT_SEED0` for the held-out split. A tuning run never touches the held-out split."""
     chosen = seeds or list(range(seed0, seed0 + cases))
     if split == "heldout" and not seeds:
         chosen = [HELDOUT_SEED0 + s for s in chosen]

@@ -167,7 +167,7 @@ def test_buffer_tube_convection_is_named_or_flagged(seed):
 @pytest.mark.parametrize("seed", SEEDS[:1])
 def test_wrong_core_is_flagged(seed):
     # mesh-regenerator data given the ceramic core: whatever the library adds, the fit does
-    # not reach the noise (one seed here, about 20 s: seed 1 gives the same verdict; the
+    # not reach the noise (one noise draw here, about 20 s; the
     # validation study runs many)
     prob = TMatrixKind(reference_data({}, seed), CORE, ForwardSettings(device="cpu"))
     rep = run_loop(prob, drift_h=False)

@@ -1,4 +1,4 @@
-"""Batched Levenberg-Marquardt estimation on the device (paper Sect. 4, issue #3).
+"""Batched Levenberg-Marquardt estimation on the device (paper Sect. 4).
 
 >>> from tawarp import load_core
 >>> from tawarp.fit.estimate import fit

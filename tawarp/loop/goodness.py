@@ -100,8 +100,8 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     n = problem.y.size
     # the residual as the fit weights it (1/sigma with sigma given): with estimated noise,
     # dividing by it would weight up the low-noise coefficients, where the estimate is least
-    # sure and the forward model's own smooth error shows first (validation seed 6: no visible
-    # effect, p = 0.0009 so weighted, 0.6 with the fit's weights)
+    # sure and the forward model's own smooth error shows first (a validation case with no
+    # visible effect gave p = 0.0009 so weighted, 0.6 with the fit's weights)
     structure = smooth_fraction(problem, np.stack([r[:n], r[n:]], -1))
     fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
     floor = problem.noise_floor(sigma)
@@ -114,7 +114,7 @@ def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> 
     """Where the misfit of model values ``Y`` lives: the (coefficient, group) series with
     the largest rms residual, and in it the contiguous frequency band around its largest
     (3-point smoothed) |residual|^2 where that stays above half its peak. ``error``: the
-    FORMATS.md error on those rows (the denominator rms|y| of all rows, so it compares
+    docs/formats.md error on those rows (the denominator rms|y| of all rows, so it compares
     with the noise floor)."""
     d2 = np.abs(Y - problem.y) ** 2
     norm = np.mean(np.abs(problem.y) ** 2)

@@ -1,7 +1,7 @@
-"""The loop (steps of the package doc :mod:`tawarp.loop`): the paper's base fit, its
-goodness of fit, then one effect at a time: screening, augmented fits in lockstep, the
-acceptance tests (false discoveries controlled over candidates and steps), held-out
-blocks, stability over resamplings; the verdict and the drift of h."""
+"""The loop (steps of the package doc :mod:`tawarp.loop`): the paper's base fit under the
+priors, the Bayesian comparison of the library's models (:func:`compare_models`: the
+search and the refits; the evidence itself in :mod:`.evidence`), the posterior predictive
+checks, prior tension, the verdict, the next measurement and the drift of h."""
 
 from __future__ import annotations
 
@@ -14,7 +14,6 @@ from ..fit.problems import fit_batch, fit_one
 from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
-from ..measure.tmatrix import TMatrixKind
 from ..model.effects import Effect, Param, base_params, library_for_core
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
@@ -36,8 +35,6 @@ WRONG_MODEL_CHI2 = 25.0
 #: a valley: 1e-8 in the scaled variables is far below any parameter's uncertainty).
 MAX_ITER = 40
 XTOL = 1e-8
-#: Geometry fields of porous segments in the paper's base fit.
-GEOMETRY = ("porosity", "pore_radius", "tortuosity")
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
@@ -56,21 +53,9 @@ def refit_starts(e: Effect) -> list[np.ndarray]:
 
 
 def base_names(problem: MeasurementKind) -> list[str]:
-    """The paper's full base fit (PHYSICS.md, "Inverse problem"): for core T-matrices the
-    porosity, pore radius and tortuosity of every porous segment that is not the heater (the
-    stack, a passive sample: the material under test) and, with heat input in the data,
-    every thermal segment's h, whatever its size; for other kinds their
-    ``default_names()``. The hot exchanger's geometry is part of the rig, as in the paper:
-    freeing it lets it bend towards the bounds to take up an effect's misfit (add it with
-    ``--fit``). Names in the core's ``[fit] pinned`` list stay at their core values."""
-    core = problem.core
-    if isinstance(problem, TMatrixKind):
-        names = [f"{s.name}.{f}" for s in core.segments if s.is_porous and not s.heater for f in GEOMETRY]
-        if np.any(problem.group > 0):
-            names += [f"{s.name}.h" for s in core.segments if s.thermal]
-    else:
-        names = problem.default_names()
-    return [n for n in names if n not in getattr(core, "pinned", ())]
+    """The paper's full base fit of the kind (:meth:`MeasurementKind.base_names`), less the
+    names in the core's ``[fit] pinned`` list, which stay at their core values."""
+    return [n for n in problem.base_names() if n not in getattr(problem.core, "pinned", ())]
 
 
 def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
@@ -80,11 +65,12 @@ def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
 
 
 def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None = None, priors: list | None = None) -> FitResult:
-    """The base fit; with Q = 0 and Q > 0 rows the paper's two steps: the geometry on the
-    Q = 0 rows first (the h's do not act there), then everything together from there.
+    """The base fit; where the kind has first-step rows (a core's Q = 0 rows) and heat
+    inputs, the paper's two steps: the geometry on those rows first (the h's do not act
+    there), then everything together from there.
     ``priors``: (mu, sd) in x per parameter (a MAP fit), or None (least squares)."""
     hs = [par.label.endswith(".h") for par in params]
-    Q0 = np.flatnonzero(problem.group == 0) if isinstance(problem, TMatrixKind) else np.zeros(0, int)
+    Q0 = problem.first_step_rows()
     if any(hs) and not all(hs) and 0 < Q0.size < problem.y.size:
         geo = [par for par, h in zip(params, hs) if not h]
         geo_prior = None if priors is None else [tuple(a[[not h for h in hs]] for a in priors[0])]
@@ -124,10 +110,8 @@ def _param_report(f: FitResult, z: dict | None = None) -> dict:
 def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fixed: dict, effect: Effect | None) -> dict | None:
     """h's refitted at each heat input > 0 alone (all heat inputs in one batch), the rest
     fixed at ``sol``."""
-    if not isinstance(problem, TMatrixKind):
-        return None
     hp = [par for par in base_params if par.label.endswith(".h")]
-    Qs = [q for q in np.unique(problem.group) if q > 0]
+    Qs = problem.heat_groups()
     if not hp or len(Qs) < 2:
         return None
     fx = dict(fixed)

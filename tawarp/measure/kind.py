@@ -62,6 +62,21 @@ class MeasurementKind:
         """Parameters fitted when none are named."""
         raise NotImplementedError
 
+    def base_names(self) -> list[str]:
+        """The loop's base fit (the paper's full method for this kind): by default
+        :meth:`default_names`."""
+        return self.default_names()
+
+    def first_step_rows(self) -> np.ndarray:
+        """Rows of the paper's first step, fitted alone before everything together (a core's
+        Q = 0 rows, where the h's do not act); none by default."""
+        return np.zeros(0, dtype=int)
+
+    def heat_groups(self) -> list[float]:
+        """Groups that are heat inputs > 0, whose h's the loop refits apart to show their
+        drift; none by default."""
+        return []
+
     def extra_groups(self) -> list[float]:
         """Groups a further measurement could add (the loop's next-measurement plans): none
         by default."""

@@ -78,6 +78,26 @@ class TMatrixKind(MeasurementKind):
         names = [f"{stack}.porosity", f"{stack}.pore_radius"]
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
+    def base_names(self) -> list[str]:
+        """The paper's full base fit (docs/physics.md, "Inverse problem"): the porosity, pore
+        radius and tortuosity of every porous segment that is not the heater (the stack, a
+        passive sample: the material under test) and, with heat input in the data, every
+        thermal segment's h, whatever its size. The hot exchanger's geometry is part of the
+        rig, as in the paper: freeing it lets it bend towards the bounds to take up an
+        effect's misfit (add it with ``--fit``)."""
+        names = [f"{s.name}.{f}" for s in self.core.segments if s.is_porous and not s.heater
+                 for f in ("porosity", "pore_radius", "tortuosity")]
+        if np.any(self.group > 0):
+            names += [f"{s.name}.h" for s in self.core.segments if s.thermal]
+        return names
+
+    def first_step_rows(self) -> np.ndarray:
+        """The Q = 0 rows, where the h's do not act (the paper's step 1)."""
+        return np.flatnonzero(self.group == 0)
+
+    def heat_groups(self) -> list[float]:
+        return [float(q) for q in np.unique(self.group) if q > 0]
+
     def extra_groups(self) -> list[float]:
         """Heat inputs 1.5 and 2 times the highest measured (a core's safe limit is not in its
         file: the report gives the values, the user judges them)."""
