@@ -43,8 +43,13 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 from _results import write_result  # noqa: E402 (bench/ is the script's own folder)
 
-VARS = ["material=ceramic,mesh,nicr_foam,rvc_foam", "stack.length=0.005:0.1", "stack.porosity=0.6:0.98",
-        "hot_hx.length=0.005:0.03", "heat_input=1:30"]
+VARS = [
+    "material=ceramic,mesh,nicr_foam,rvc_foam",
+    "stack.length=0.005:0.1",
+    "stack.porosity=0.6:0.98",
+    "hot_hx.length=0.005:0.03",
+    "heat_input=1:30",
+]
 
 
 def _space():
@@ -66,8 +71,15 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
     settings = ForwardSettings(device=device)
     storage = os.path.join(tmp, f"{engine}_{len(objectives)}.journal")
     # warm-up: kernels compiled and modules (h5py too) imported before timing
-    search(space, objectives, n_trials=2 * min(batch, 64), batch=min(batch, 64), settings=settings, engine=engine,
-           storage=os.path.join(tmp, f"warmup_{engine}_{len(objectives)}.journal"))
+    search(
+        space,
+        objectives,
+        n_trials=2 * min(batch, 64),
+        batch=min(batch, 64),
+        settings=settings,
+        engine=engine,
+        storage=os.path.join(tmp, f"warmup_{engine}_{len(objectives)}.journal"),
+    )
     t = time.perf_counter()
     res = search(space, objectives, n_trials=n_trials, batch=batch, storage=storage, settings=settings, engine=engine)
     wall = time.perf_counter() - t
@@ -92,16 +104,28 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
     n_batches = res.timing["evaluations"] / batch
     tm = res.timing
     summary = study_summary(res.study)
-    return {"engine": engine, "objectives": list(objectives), "trials": tm["evaluations"], "batch": batch,
-            "storage": "journal file" + (" + HDF5 trial store" if summary["store"] else ""), "wall_s": wall,
-            "evaluations_per_minute": 60.0 * tm["evaluations"] / wall,
-            "sampler_s": tm["sampler"], "storage_s": tm["storage"], "evaluation_s": tm["evaluation"],
-            "sampler_share": tm["sampler"] / wall, "storage_share": tm["storage"] / wall,
-            "evaluation_share": tm["evaluation"] / wall,
-            "trial_store_s": tm["trial_store"], "trial_store_share": tm["trial_store"] / wall,
-            "trials_in_study": summary["in_study"], "trials_queryable": summary["trials"],
-            "kernel_s_per_batch": kernel, "device_busy_share": kernel * n_batches / wall,
-            "best": res.best[0]["values"] if res.best else None}
+    return {
+        "engine": engine,
+        "objectives": list(objectives),
+        "trials": tm["evaluations"],
+        "batch": batch,
+        "storage": "journal file" + (" + HDF5 trial store" if summary["store"] else ""),
+        "wall_s": wall,
+        "evaluations_per_minute": 60.0 * tm["evaluations"] / wall,
+        "sampler_s": tm["sampler"],
+        "storage_s": tm["storage"],
+        "evaluation_s": tm["evaluation"],
+        "sampler_share": tm["sampler"] / wall,
+        "storage_share": tm["storage"] / wall,
+        "evaluation_share": tm["evaluation"] / wall,
+        "trial_store_s": tm["trial_store"],
+        "trial_store_share": tm["trial_store"] / wall,
+        "trials_in_study": summary["in_study"],
+        "trials_queryable": summary["trials"],
+        "kernel_s_per_batch": kernel,
+        "device_busy_share": kernel * n_batches / wall,
+        "best": res.best[0]["values"] if res.best else None,
+    }
 
 
 def _grid_space(n):
@@ -154,22 +178,39 @@ def sweep_child(device, mode, n, chunk, path):
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     info = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)   # over the file just written
+    again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)  # over the file just written
     engine = _engine_rate(_grid_space(n), device, chunk)
-    print(json.dumps({"mode": mode, "points": info.n_points, "chunk": chunk, "chunks": info.chunks,
-                      "seconds": info.seconds, "evaluations_per_hour": info.evaluations_per_hour,
-                      "evaluation_s": info.evaluation_seconds, "write_s": info.write_seconds,
-                      "engine_evaluations_per_hour": 3600.0 * engine,
-                      "share_of_engine_rate": info.evaluations_per_hour / (3600.0 * engine),
-                      "overwrite_seconds": again.seconds, "overwrite_evaluations_per_hour": again.evaluations_per_hour,
-                      "peak_rss_MiB": rss / 1024.0, "peak_rss_after_warmup_MiB": rss0 / 1024.0,
-                      "file_MiB": os.path.getsize(path) / 2**20}))
+    print(
+        json.dumps(
+            {
+                "mode": mode,
+                "points": info.n_points,
+                "chunk": chunk,
+                "chunks": info.chunks,
+                "seconds": info.seconds,
+                "evaluations_per_hour": info.evaluations_per_hour,
+                "evaluation_s": info.evaluation_seconds,
+                "write_s": info.write_seconds,
+                "engine_evaluations_per_hour": 3600.0 * engine,
+                "share_of_engine_rate": info.evaluations_per_hour / (3600.0 * engine),
+                "overwrite_seconds": again.seconds,
+                "overwrite_evaluations_per_hour": again.evaluations_per_hour,
+                "peak_rss_MiB": rss / 1024.0,
+                "peak_rss_after_warmup_MiB": rss0 / 1024.0,
+                "file_MiB": os.path.getsize(path) / 2**20,
+            }
+        )
+    )
 
 
 def bench_sweep(device, mode, n, chunk, tmp):
     path = os.path.join(tmp, f"sweep_{mode}_{n}.nc")
-    out = subprocess.run([sys.executable, __file__, "--device", device, "--sweep-child", mode, str(n), str(chunk), path],
-                         capture_output=True, text=True, check=True)
+    out = subprocess.run(
+        [sys.executable, __file__, "--device", device, "--sweep-child", mode, str(n), str(chunk), path],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     os.remove(path)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -189,11 +230,15 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
     ap.add_argument("--small", action="store_true", help="CPU-sized run (< 2 min)")
-    ap.add_argument("--trials", type=int, default=None, help="trials of the CMA-ES search (default: 16384 --small, "
-                                                              "else 262144)")
+    ap.add_argument(
+        "--trials", type=int, default=None, help="trials of the CMA-ES search (default: 16384 --small, else 262144)"
+    )
     ap.add_argument("--batch", type=int, default=None, help="its population (default: 1024 --small, else 8192)")
-    ap.add_argument("--sweep-only", action="store_true",
-                    help="only the sweeps (grid and Sobol, two sizes each): design_sweep_<device>.json")
+    ap.add_argument(
+        "--sweep-only",
+        action="store_true",
+        help="only the sweeps (grid and Sobol, two sizes each): design_sweep_<device>.json",
+    )
     ap.add_argument("--chunk", type=int, default=None, help="sweep chunk in points (default: 2^14 --small, else 2^22)")
     ap.add_argument("--sweep-child", nargs=4, metavar=("MODE", "N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
@@ -208,36 +253,68 @@ def main(argv=None):
     import warp as wp
 
     if args.small:
-        cfg = dict(trials=16384, batch=1024, mo_trials=4096, mo_batch=512, opt_trials=512, opt_batch=64,
-                   sweep=(1 << 16, 1 << 18), chunk=1 << 14)
+        cfg = dict(
+            trials=16384,
+            batch=1024,
+            mo_trials=4096,
+            mo_batch=512,
+            opt_trials=512,
+            opt_batch=64,
+            sweep=(1 << 16, 1 << 18),
+            chunk=1 << 14,
+        )
     else:
-        cfg = dict(trials=262144, batch=8192, mo_trials=32768, mo_batch=2048, opt_trials=2048, opt_batch=256,
-                   sweep=(1 << 24, 1 << 26), chunk=1 << 22)
-    cfg.update({k: v for k, v in (("trials", args.trials), ("batch", args.batch), ("chunk", args.chunk))
-                if v is not None})
+        cfg = dict(
+            trials=262144,
+            batch=8192,
+            mo_trials=32768,
+            mo_batch=2048,
+            opt_trials=2048,
+            opt_batch=256,
+            sweep=(1 << 24, 1 << 26),
+            chunk=1 << 22,
+        )
+    cfg.update(
+        {k: v for k, v in (("trials", args.trials), ("batch", args.batch), ("chunk", args.chunk)) if v is not None}
+    )
     t_all = time.perf_counter()
-    out = {"device": device, "device_name": str(wp.get_device(device).name), "host": platform.node(),
-           "python": platform.python_version(), "warp": wp.__version__, "config": cfg, "design_space": VARS}
+    out = {
+        "device": device,
+        "device_name": str(wp.get_device(device).name),
+        "host": platform.node(),
+        "python": platform.python_version(),
+        "warp": wp.__version__,
+        "config": cfg,
+        "design_space": VARS,
+    }
     tag = _tag(device, out["device_name"])
     if args.sweep_only:
         with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
             for mode in ("grid", "sobol"):
                 out[f"sweep_{mode}"] = [bench_sweep(device, mode, n, cfg["chunk"], tmp) for n in cfg["sweep"]]
                 print(json.dumps(out[f"sweep_{mode}"]), flush=True)
-        out["summary"] = {f"{mode}_evaluations_per_hour": out[f"sweep_{mode}"][-1]["evaluations_per_hour"]
-                          for mode in ("grid", "sobol")}
-        out["summary"].update(engine_evaluations_per_hour=out["sweep_grid"][-1]["engine_evaluations_per_hour"],
-                              target_per_hour=1e11, bench_seconds=time.perf_counter() - t_all)
+        out["summary"] = {
+            f"{mode}_evaluations_per_hour": out[f"sweep_{mode}"][-1]["evaluations_per_hour"]
+            for mode in ("grid", "sobol")
+        }
+        out["summary"].update(
+            engine_evaluations_per_hour=out["sweep_grid"][-1]["engine_evaluations_per_hour"],
+            target_per_hour=1e11,
+            bench_seconds=time.perf_counter() - t_all,
+        )
         print(json.dumps(out["summary"], indent=2))
         write_result(out, f"design_sweep_{tag}.json", args.output)
         return 0
     with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
         out["search_cmaes"] = bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp)
         print(json.dumps(out["search_cmaes"]), flush=True)
-        out["search_nsga2"] = bench_search(device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp)
+        out["search_nsga2"] = bench_search(
+            device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp
+        )
         print(json.dumps(out["search_nsga2"]), flush=True)
-        out["search_optuna_cmaes"] = bench_search(device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",),
-                                                  engine="optuna", tmp=tmp)
+        out["search_optuna_cmaes"] = bench_search(
+            device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",), engine="optuna", tmp=tmp
+        )
         print(json.dumps(out["search_optuna_cmaes"]), flush=True)
         out["sweep"] = [bench_sweep(device, "sobol", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
         print(json.dumps(out["sweep"]), flush=True)

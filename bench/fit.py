@@ -57,8 +57,11 @@ from _results import write_result
 FREQS = np.linspace(30.0, 500.0, 100)
 WORKLOADS = {
     "heat": {"names": ["stack.h", "hot_hx.h", "tbt.h"], "Q": 40.0, "start": [1.3, 0.7, 1.3]},
-    "geometry": {"names": ["stack.porosity", "stack.pore_radius", "stack.tortuosity"], "Q": 0.0,
-                 "start": [0.9, 1.3, 1.1]},
+    "geometry": {
+        "names": ["stack.porosity", "stack.pore_radius", "stack.tortuosity"],
+        "Q": 0.0,
+        "start": [0.9, 1.3, 1.1],
+    },
 }
 
 
@@ -79,17 +82,38 @@ def time_fits(core, wl, Y, sd, n, device, settings, jacobian="auto") -> dict:
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", FitWarning)
-        r = fit(core, FREQS, Y[:n], names, start, heat_input=wl["Q"], weights=w, settings=settings, device=device,
-                warn=False, jacobian=jacobian)
+        r = fit(
+            core,
+            FREQS,
+            Y[:n],
+            names,
+            start,
+            heat_input=wl["Q"],
+            weights=w,
+            settings=settings,
+            device=device,
+            warn=False,
+            jacobian=jacobian,
+        )
     wp.synchronize_device(device)
     dt = time.perf_counter() - t0
     truth = np.array([core.get(k) for k in names])
     z = (r.values - truth) / r.std
-    return {"n": n, "jacobian": jacobian, "seconds": dt, "fits_per_s": n / dt, "converged": float(r.converged.mean()),
-            "max_relative_error_vs_truth": float(np.max(np.abs(r.values / truth - 1))),
-            "iterations_mean": float(r.iterations.mean()), "iterations_max": int(r.iterations.max()),
-            "launches": r.launches, "evaluations": r.evaluations, "rms_z": float(np.sqrt(np.mean(z ** 2))),
-            "values": r.values, "std": r.std}
+    return {
+        "n": n,
+        "jacobian": jacobian,
+        "seconds": dt,
+        "fits_per_s": n / dt,
+        "converged": float(r.converged.mean()),
+        "max_relative_error_vs_truth": float(np.max(np.abs(r.values / truth - 1))),
+        "iterations_mean": float(r.iterations.mean()),
+        "iterations_max": int(r.iterations.max()),
+        "launches": r.launches,
+        "evaluations": r.evaluations,
+        "rms_z": float(np.sqrt(np.mean(z**2))),
+        "values": r.values,
+        "std": r.std,
+    }
 
 
 def reference_model(core, Q, rtol=1e-8):
@@ -107,6 +131,7 @@ def kernel_model(core, names, Q, start):
     def model(vals):
         out, _, _ = engine.evaluate(np.array([[Q]] + [[vals[k]] for k in names]))
         return normalize(out.numpy().view(np.complex128).reshape(len(FREQS), 2, 2), Zc)
+
     return model
 
 
@@ -140,18 +165,27 @@ def scipy_fit(model, names, Y, sd, start) -> dict:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None, help="cpu or cuda (default: cuda if present)")
-    ap.add_argument("--sizes", default=None, help="comma list of batch sizes (default: 1..1e5 on a GPU, 1,4,16,64 on the CPU)")
+    ap.add_argument(
+        "--sizes", default=None, help="comma list of batch sizes (default: 1..1e5 on a GPU, 1,4,16,64 on the CPU)"
+    )
     ap.add_argument("--workloads", default="heat,geometry", help="comma list of %s" % ",".join(WORKLOADS))
-    ap.add_argument("--scipy-fits", type=int, default=None,
-                    help="SciPy fits per workload (default: 1 heat, 3 geometry; 0 skips)")
-    ap.add_argument("--kernel-fits", type=int, default=16,
-                    help="SciPy fits on the project's CPU kernel per workload (0 skips)")
+    ap.add_argument(
+        "--scipy-fits", type=int, default=None, help="SciPy fits per workload (default: 1 heat, 3 geometry; 0 skips)"
+    )
+    ap.add_argument(
+        "--kernel-fits", type=int, default=16, help="SciPy fits on the project's CPU kernel per workload (0 skips)"
+    )
     ap.add_argument("--cpu-sizes", default="1,16,64", help="batched CPU fits on a GPU run (empty: none)")
-    ap.add_argument("--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)")
-    ap.add_argument("--jacobians", default=None,
-                    help="comma list of the batched fits' Jacobians (tangent, difference), the first the headline; "
-                         "the others are timed on the same batches (default: the one fit()'s jacobian='auto' takes "
-                         "on the device first: tangent on the CPU, difference on a GPU)")
+    ap.add_argument(
+        "--cells", type=int, default=None, help="fixed Magnus cells (default: adaptive rule, fixed per fit)"
+    )
+    ap.add_argument(
+        "--jacobians",
+        default=None,
+        help="comma list of the batched fits' Jacobians (tangent, difference), the first the headline; "
+        "the others are timed on the same batches (default: the one fit()'s jacobian='auto' takes "
+        "on the device first: tangent on the CPU, difference on a GPU)",
+    )
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
     bad = [j for j in (args.jacobians or "tangent").split(",") if j not in ("auto", "tangent", "difference")]
@@ -165,11 +199,19 @@ def main(argv=None) -> int:
     settings = ForwardSettings(cells=args.cells, device=device)
     core = load_core("mesh")
     dev_name = wp.get_device(device).name
-    result = {"device": device, "device_name": dev_name, "cpu": platform.processor() or platform.machine(),
-              "load_average_at_start": list(os.getloadavg()),
-              "cpu_count": os.cpu_count(), "warp": wp.config.version, "python": sys.version.split()[0],
-              "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size}, "xtol": 1e-3,
-              "cells": args.cells, "workloads": {}}
+    result = {
+        "device": device,
+        "device_name": dev_name,
+        "cpu": platform.processor() or platform.machine(),
+        "load_average_at_start": list(os.getloadavg()),
+        "cpu_count": os.cpu_count(),
+        "warp": wp.config.version,
+        "python": sys.version.split()[0],
+        "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size},
+        "xtol": 1e-3,
+        "cells": args.cells,
+        "workloads": {},
+    }
     for wname in args.workloads.split(","):
         wl = WORKLOADS[wname]
         Y, sd = make_data(core, wl["names"], wl["Q"], max(sizes))
@@ -180,24 +222,34 @@ def main(argv=None) -> int:
             for n in sizes:
                 row = time_fits(core, wl, Y, sd, n, device, settings, jac)
                 (rows if k == 0 else others).append(row)
-                print(f"{wname:9s} {device:5s} {jac:10s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
-                      f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
-                      flush=True)
-        for row in others:   # the same problems as the headline's: how far apart their results are
+                print(
+                    f"{wname:9s} {device:5s} {jac:10s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s  "
+                    f"({row['seconds']:.3f} s, {row['iterations_mean']:.1f} it, {row['converged']:.3f} converged)",
+                    flush=True,
+                )
+        for row in others:  # the same problems as the headline's: how far apart their results are
             head = next(r for r in rows if r["n"] == row["n"])
             with np.errstate(divide="ignore", invalid="ignore"):
-                row["max_values_difference_in_std"] = float(np.nanmax(np.abs(row["values"] - head["values"]) / head["std"]))
+                row["max_values_difference_in_std"] = float(
+                    np.nanmax(np.abs(row["values"] - head["values"]) / head["std"])
+                )
                 row["max_std_relative_difference"] = float(np.nanmax(np.abs(row["std"] / head["std"] - 1)))
         for row in rows + others:
             del row["values"], row["std"]
-        entry = {"names": wl["names"], "heat_input_W": wl["Q"], "start_factor": wl["start"], "batches": rows,
-                 "other_jacobians": others}
+        entry = {
+            "names": wl["names"],
+            "heat_input_W": wl["Q"],
+            "start_factor": wl["start"],
+            "batches": rows,
+            "other_jacobians": others,
+        }
         best = max(r["fits_per_s"] for r in rows)
         if gpu and args.cpu_sizes:
             cpu = ForwardSettings(cells=args.cells, device="cpu")
             time_fits(core, wl, Y, sd, 1, "cpu", cpu)  # warm-up
-            entry["cpu_batches"] = [time_fits(core, wl, Y, sd, int(float(n)), "cpu", cpu)
-                                    for n in args.cpu_sizes.split(",")]
+            entry["cpu_batches"] = [
+                time_fits(core, wl, Y, sd, int(float(n)), "cpu", cpu) for n in args.cpu_sizes.split(",")
+            ]
             for row in entry["cpu_batches"]:
                 del row["values"], row["std"]
             for row in entry["cpu_batches"]:
@@ -209,21 +261,37 @@ def main(argv=None) -> int:
             kf = [scipy_fit(model, wl["names"], Y[i], sd, start) for i in range(args.kernel_fits)]
             per = float(np.mean([s["seconds"] for s in kf]))
             truth = np.array([core.get(k) for k in wl["names"]])
-            batched = fit(core, FREQS, Y[:args.kernel_fits], wl["names"], start, heat_input=wl["Q"], device="cpu",
-                          weights=np.broadcast_to(1.0 / sd, (args.kernel_fits,) + sd.shape), warn=False,
-                          settings=ForwardSettings(cells=args.cells, device="cpu"))
+            batched = fit(
+                core,
+                FREQS,
+                Y[: args.kernel_fits],
+                wl["names"],
+                start,
+                heat_input=wl["Q"],
+                device="cpu",
+                weights=np.broadcast_to(1.0 / sd, (args.kernel_fits,) + sd.shape),
+                warn=False,
+                settings=ForwardSettings(cells=args.cells, device="cpu"),
+            )
             sv = np.array([s["values"] for s in kf])
             cpu_best = max(r["fits_per_s"] for r in entry.get("cpu_batches", rows if not gpu else []))
             entry["scipy_kernel"] = {
-                "fits": kf, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
+                "fits": kf,
+                "seconds_per_fit": per,
+                "fits_per_s": 1.0 / per,
                 "method": "least_squares(method='lm', xtol=1e-3) on the project's CPU kernel (Engine.evaluate, "
-                          "one set x 100 frequencies, the batched fit's fixed cells), one fit at a time",
-                "speedup_best_batch": best * per, "speedup_best_cpu_batch": cpu_best * per,
+                "one set x 100 frequencies, the batched fit's fixed cells), one fit at a time",
+                "speedup_best_batch": best * per,
+                "speedup_best_cpu_batch": cpu_best * per,
                 "max_relative_error_vs_truth": float(np.max(np.abs(sv / truth - 1))),
-                "max_difference_to_batched_fit_in_std": float(np.max(np.abs(sv - batched.values) / batched.std))}
-            print(f"{wname:9s} scipy on the CPU kernel: {per * 1e3:.1f} ms per fit "
-                  f"({np.mean([s['nfev'] for s in kf]):.1f} evaluations); best batch {best * per:.1f} x, "
-                  f"best CPU batch {cpu_best * per:.1f} x", flush=True)
+                "max_difference_to_batched_fit_in_std": float(np.max(np.abs(sv - batched.values) / batched.std)),
+            }
+            print(
+                f"{wname:9s} scipy on the CPU kernel: {per * 1e3:.1f} ms per fit "
+                f"({np.mean([s['nfev'] for s in kf]):.1f} evaluations); best batch {best * per:.1f} x, "
+                f"best CPU batch {cpu_best * per:.1f} x",
+                flush=True,
+            )
         nsp = args.scipy_fits if args.scipy_fits is not None else (1 if wname == "heat" else 3)
         sp = []
         for i in range(nsp):
@@ -231,8 +299,12 @@ def main(argv=None) -> int:
             print(f"{wname:9s} scipy fit {i}: {sp[-1]['seconds']:.2f} s ({sp[-1]['nfev']} evaluations)", flush=True)
         if sp:
             per = float(np.mean([s["seconds"] for s in sp]))
-            entry["scipy"] = {"fits": sp, "seconds_per_fit": per, "fits_per_s": 1.0 / per,
-                              "method": "least_squares(method='lm', xtol=1e-3) on reference.dimensionless_transfer"}
+            entry["scipy"] = {
+                "fits": sp,
+                "seconds_per_fit": per,
+                "fits_per_s": 1.0 / per,
+                "method": "least_squares(method='lm', xtol=1e-3) on reference.dimensionless_transfer",
+            }
             entry["speedup_best_batch_vs_scipy"] = best * per
             print(f"{wname:9s} best {best:.1f} fits/s = {best * per:.0f} x SciPy ({per:.3f} s per fit)", flush=True)
         result["workloads"][wname] = entry

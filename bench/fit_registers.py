@@ -49,11 +49,11 @@ def main(argv=None) -> int:
         except ValueError:
             ap.error(f"{option}: {text!r}; expected a comma list of register counts or none")
 
-    runs = ([("difference", c) for c in caps(args.plain_caps, "--plain-caps")]
-            + [("tangent", c) for c in caps(args.tangent_caps, "--tangent-caps")])
+    runs = [("difference", c) for c in caps(args.plain_caps, "--plain-caps")] + [
+        ("tangent", c) for c in caps(args.tangent_caps, "--tangent-caps")
+    ]
     core = load_core("mesh")
-    result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version,
-              "workloads": {}}
+    result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version, "workloads": {}}
     for wname, wl in WORKLOADS.items():
         Y, sd = make_data(core, wl["names"], wl["Q"], max(sizes))
         rows = []
@@ -63,8 +63,10 @@ def main(argv=None) -> int:
             for n in sizes:
                 row = dict(timed_fit(core, wl, Y, sd, n, device, jacobian, settings), max_registers=cap)
                 rows.append(row)
-                print(f"{wname:9s} {jacobian:10s} cap {str(cap):5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s",
-                      flush=True)
+                print(
+                    f"{wname:9s} {jacobian:10s} cap {str(cap):5s} n = {n:7d}: {row['fits_per_s']:10.1f} fits/s",
+                    flush=True,
+                )
         result["workloads"][wname] = rows
     forward.TANGENT_MAX_REGISTERS = None
     write_result(result, f"fit_registers_{device.replace(':', '')}.json", args.out)

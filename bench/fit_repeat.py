@@ -23,8 +23,11 @@ from pathlib import Path
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--bench-dir", default=str(Path(__file__).resolve().parent),
-                    help="bench/ folder of the checkout to time (default: this one)")
+    ap.add_argument(
+        "--bench-dir",
+        default=str(Path(__file__).resolve().parent),
+        help="bench/ folder of the checkout to time (default: this one)",
+    )
     ap.add_argument("--repeats", type=int, default=7)
     ap.add_argument("--n", type=float, default=1e4, help="problems per fit")
     ap.add_argument("--device", default="cuda")
@@ -32,8 +35,9 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     sys.path.insert(0, args.bench_dir)
     import warp as wp
+
     wp.config.quiet = True
-    import fit as fb              # the checkout's own bench/fit.py
+    import fit as fb  # the checkout's own bench/fit.py
 
     n, dev = int(args.n), args.device
     settings = fb.ForwardSettings(device=dev)
@@ -41,15 +45,23 @@ def main(argv=None) -> int:
     for name, wl in fb.WORKLOADS.items():
         core = fb.load_core("mesh")
         Y, sd = fb.make_data(core, wl["names"], wl["Q"], n)
-        fb.time_fits(core, wl, Y, sd, min(16, n), dev, settings)   # compile
-        fb.time_fits(core, wl, Y, sd, n, dev, settings)            # allocations at full size
+        fb.time_fits(core, wl, Y, sd, min(16, n), dev, settings)  # compile
+        fb.time_fits(core, wl, Y, sd, n, dev, settings)  # allocations at full size
         rows = [fb.time_fits(core, wl, Y, sd, n, dev, settings) for _ in range(args.repeats)]
         ts = [r["seconds"] for r in rows]
-        out["workloads"][name] = {"n": n, "seconds": ts, "median_fits_per_s": n / statistics.median(ts),
-                                  "iterations_mean": rows[0]["iterations_mean"], "launches": rows[0]["launches"]}
-        print(f"{name:9s} median {n / statistics.median(ts):.4g} fits/s (min/max {min(ts):.3f}/{max(ts):.3f} s, "
-              f"{rows[0]['iterations_mean']:.1f} it)", flush=True)
-    if args.out:   # atomically, without tawarp.io: an older checkout may not have it
+        out["workloads"][name] = {
+            "n": n,
+            "seconds": ts,
+            "median_fits_per_s": n / statistics.median(ts),
+            "iterations_mean": rows[0]["iterations_mean"],
+            "launches": rows[0]["launches"],
+        }
+        print(
+            f"{name:9s} median {n / statistics.median(ts):.4g} fits/s (min/max {min(ts):.3f}/{max(ts):.3f} s, "
+            f"{rows[0]['iterations_mean']:.1f} it)",
+            flush=True,
+        )
+    if args.out:  # atomically, without tawarp.io: an older checkout may not have it
         tmp = Path(args.out).with_suffix(".tmp")
         tmp.write_text(json.dumps(out, indent=1))
         os.replace(tmp, args.out)

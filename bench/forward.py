@@ -44,8 +44,9 @@ ACC_HEAT = {"rvc_foam": 18.0}
 
 def random_batch(n: int, rng) -> tuple[list[str], np.ndarray]:
     names = ["stack.h", "stack.porosity", "stack.pore_radius"]
-    table = np.stack([rng.uniform(0, 80, n), rng.uniform(50, 250, n), rng.uniform(0.85, 0.95, n),
-                      rng.uniform(0.3e-3, 0.6e-3, n)])
+    table = np.stack(
+        [rng.uniform(0, 80, n), rng.uniform(50, 250, n), rng.uniform(0.85, 0.95, n), rng.uniform(0.3e-3, 0.6e-3, n)]
+    )
     return names, table
 
 
@@ -70,20 +71,34 @@ def relative_error(Y, Yref) -> float:
 def accuracy_table(device: str, densities) -> dict:
     """Max relative error of each cell density against the adaptive NumPy reference,
     over the four bundled cores at their largest heat input (80 W, RVC 18 W)."""
-    refs = {name: reference.dimensionless_transfer(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0))
-            for name in paper_cores()}
+    refs = {
+        name: reference.dimensionless_transfer(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0))
+        for name in paper_cores()
+    }
     out = {}
     for d in densities:
-        errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
-                                                       device=device, cell_density=d, tolerance=None
-                                                       ).dimensionless()[0], refs[name])
-                for name in paper_cores()}
+        errs = {
+            name: relative_error(
+                transfer_matrices(
+                    load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0), device=device, cell_density=d, tolerance=None
+                ).dimensionless()[0],
+                refs[name],
+            )
+            for name in paper_cores()
+        }
         out[str(d)] = {"max_relative_error": max(errs.values()), "per_core": errs}
-    errs = {name: relative_error(transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0),
-                                                   device=device).dimensionless()[0], refs[name])
-            for name in paper_cores()}
-    out["estimate"] = {"max_relative_error": max(errs.values()), "per_core": errs,
-                       "settings": "default: cell_density 1.5, tolerance 1e-6"}
+    errs = {
+        name: relative_error(
+            transfer_matrices(load_core(name), ACC_FREQS, ACC_HEAT.get(name, 80.0), device=device).dimensionless()[0],
+            refs[name],
+        )
+        for name in paper_cores()
+    }
+    out["estimate"] = {
+        "max_relative_error": max(errs.values()),
+        "per_core": errs,
+        "settings": "default: cell_density 1.5, tolerance 1e-6",
+    }
     return out
 
 
@@ -97,8 +112,10 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     core = load_core("ceramic")
     names, table = random_batch(n, np.random.default_rng(1))
     varying = wp.array(table, dtype=wp.float64, device=device)
-    engines = {label: Engine(core, FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
-               for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))}
+    engines = {
+        label: Engine(core, FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
+        for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))
+    }
     params, theta = engines["estimate"].heat(varying)
     best = {"rule": np.inf, "estimate": np.inf, "estimate_alone": np.inf}
     for _ in range(repeats):
@@ -108,10 +125,16 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         d = engines["estimate"].cell_densities(params, theta).numpy()
         wp.synchronize_device(device)
         best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
-    return {"models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
-            "seconds_best": best, "cost_fraction": best["estimate"] / best["rule"] - 1.0,
-            "cpu_threads": 1, "density_mean": float(d.mean()), "density_max": float(d.max()),
-            "sets_raised": float(np.mean(d > ForwardSettings().cell_density)), "sets": n}
+    return {
+        "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
+        "seconds_best": best,
+        "cost_fraction": best["estimate"] / best["rule"] - 1.0,
+        "cpu_threads": 1,
+        "density_mean": float(d.mean()),
+        "density_max": float(d.max()),
+        "sets_raised": float(np.mean(d > ForwardSettings().cell_density)),
+        "sets": n,
+    }
 
 
 def cpu_scaling(threads, n: int, min_time: float) -> dict:
@@ -132,16 +155,31 @@ def cpu_scaling(threads, n: int, min_time: float) -> dict:
             engine.evaluate(table)
             calls += 1
         wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
-        rows.append({"threads": t, "models_per_s": calls * n * len(FREQS) / wall,
-                     "models_per_cpu_s": calls * n * len(FREQS) / cpu, "cpu_s_per_wall_s": cpu / wall,
-                     "load_average_1min_before": load})
-        print(f"threads={t:3d} models={n * len(FREQS):>9d}  {rows[-1]['models_per_s']:.3e} models/s, "
-              f"{rows[-1]['models_per_cpu_s']:.3e} per CPU s, {cpu / wall:.2f} cores busy (load {load:.2f})", flush=True)
+        rows.append(
+            {
+                "threads": t,
+                "models_per_s": calls * n * len(FREQS) / wall,
+                "models_per_cpu_s": calls * n * len(FREQS) / cpu,
+                "cpu_s_per_wall_s": cpu / wall,
+                "load_average_1min_before": load,
+            }
+        )
+        print(
+            f"threads={t:3d} models={n * len(FREQS):>9d}  {rows[-1]['models_per_s']:.3e} models/s, "
+            f"{rows[-1]['models_per_cpu_s']:.3e} per CPU s, {cpu / wall:.2f} cores busy (load {load:.2f})",
+            flush=True,
+        )
     for r in rows:
         r["speedup"] = r["models_per_s"] / rows[0]["models_per_s"]
         r["work_efficiency"] = r["models_per_cpu_s"] / rows[0]["models_per_cpu_s"]
-    return {"sets": n, "models": n * len(FREQS), "usable_cores": len(os.sched_getaffinity(0)), "rows": rows,
-            "control_speedup": control_scaling(threads), "load_average_after": list(os.getloadavg())}
+    return {
+        "sets": n,
+        "models": n * len(FREQS),
+        "usable_cores": len(os.sched_getaffinity(0)),
+        "rows": rows,
+        "control_speedup": control_scaling(threads),
+        "load_average_after": list(os.getloadavg()),
+    }
 
 
 def control_scaling(threads) -> dict:
@@ -188,8 +226,20 @@ def openthermoacoustics_rate(n_freqs: int = 8) -> dict:
         return {"available": False, "reason": str(e)}
     R = 0.0167
     gas = Air(mean_pressure=101325.0)
-    segs = [Duct(0.03, R), Stack(0.048, 0.9, 0.47e-3, area=np.pi * R**2, geometry=CircularPore(),
-                                 solid_thermal_conductivity=3.0, T_hot=600.0, T_cold=293.15), Duct(0.03, R)]
+    segs = [
+        Duct(0.03, R),
+        Stack(
+            0.048,
+            0.9,
+            0.47e-3,
+            area=np.pi * R**2,
+            geometry=CircularPore(),
+            solid_thermal_conductivity=3.0,
+            T_hot=600.0,
+            T_cold=293.15,
+        ),
+        Duct(0.03, R),
+    ]
     f = np.linspace(30, 500, n_freqs)
     t0 = time.perf_counter()
     for fr in f:
@@ -198,8 +248,12 @@ def openthermoacoustics_rate(n_freqs: int = 8) -> dict:
             for s in segs:
                 p, U, T_m = s.propagate(p, U, T_m, 2 * np.pi * fr, gas)
     dt = time.perf_counter() - t0
-    return {"available": True, "version": getattr(ota, "__version__", "?"), "models_per_s": n_freqs / dt,
-            "note": "duct-stack-duct, linear stack temperature, RK45 rtol 1e-8 (its default)"}
+    return {
+        "available": True,
+        "version": getattr(ota, "__version__", "?"),
+        "models_per_s": n_freqs / dt,
+        "note": "duct-stack-duct, linear stack temperature, RK45 rtol 1e-8 (its default)",
+    }
 
 
 def main(argv=None):
@@ -210,8 +264,11 @@ def main(argv=None):
     ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
     ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
-    ap.add_argument("--sections", default="accuracy,throughput,blocks,peers,estimate",
-                    help="comma list of accuracy, throughput, blocks, peers, estimate, threads")
+    ap.add_argument(
+        "--sections",
+        default="accuracy,throughput,blocks,peers,estimate",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, threads",
+    )
     ap.add_argument("--threads", default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -222,9 +279,15 @@ def main(argv=None):
     densities = [float(c) for c in args.densities.split(",")]
     rng = np.random.default_rng(0)
     core = load_core("ceramic")
-    result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version,
-              "host": platform.processor() or platform.machine(), "python": sys.version.split()[0],
-              "frequencies_per_set": len(FREQS), "core": "ceramic (paper-like), heated 0-80 W"}
+    result = {
+        "device": device,
+        "device_name": wp.get_device(device).name,
+        "warp": wp.config.version,
+        "host": platform.processor() or platform.machine(),
+        "python": sys.version.split()[0],
+        "frequencies_per_set": len(FREQS),
+        "core": "ceramic (paper-like), heated 0-80 W",
+    }
 
     sections = set(args.sections.split(","))
     unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads"}
@@ -268,24 +331,31 @@ def main(argv=None):
                     print(f"block_dim={b} max_registers={r}: {e}", flush=True)
                     continue
                 blocks[f"{b}/{r}"] = rate
-                print(f"block_dim={b:4d} max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
+                print(
+                    f"block_dim={b:4d} max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True
+                )
         result["block_dim/max_registers_models_per_s"] = blocks
 
     if "peers" in sections and throughput:
-        peers = {"numpy_reference_models_per_s": numpy_reference_rate(),
-                 "openthermoacoustics": openthermoacoustics_rate()}
+        peers = {
+            "numpy_reference_models_per_s": numpy_reference_rate(),
+            "openthermoacoustics": openthermoacoustics_rate(),
+        }
         best = {c: max(r["models_per_s"] for r in rows) for c, rows in throughput.items()}
         peers["speedup_vs_numpy_reference"] = {c: v / peers["numpy_reference_models_per_s"] for c, v in best.items()}
         if peers["openthermoacoustics"].get("available"):
-            peers["speedup_vs_openthermoacoustics"] = {c: v / peers["openthermoacoustics"]["models_per_s"]
-                                                       for c, v in best.items()}
+            peers["speedup_vs_openthermoacoustics"] = {
+                c: v / peers["openthermoacoustics"]["models_per_s"] for c, v in best.items()
+            }
         result["peers"] = peers
         ok = [d for d in densities if result.get("accuracy", {}).get(str(d), {}).get("max_relative_error", 1) <= 1e-6]
         if ok:
             d = min(ok)
-            result["operating_point"] = {"cell_density": d,
-                                         "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
-                                         "models_per_s": best[str(d)]}
+            result["operating_point"] = {
+                "cell_density": d,
+                "max_relative_error": result["accuracy"][str(d)]["max_relative_error"],
+                "models_per_s": best[str(d)],
+            }
     print(json.dumps(result, indent=2))
     if args.out:
         write_result(result, "", args.out)

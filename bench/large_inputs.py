@@ -65,8 +65,13 @@ def write_big_csv(path: str, megabytes: float) -> dict:
     nQ = max(1, int(megabytes * 1e6 / row_bytes / len(one)))
     m = len(one)
     Q = np.arange(nQ) * 0.001
-    data = TMatrixData(np.repeat(Q, m), np.tile(one.freq, nQ), np.tile(one.T, (nQ, 1, 1)),
-                       np.tile(one.sigma, (nQ, 1, 1, 1)), one.metadata)
+    data = TMatrixData(
+        np.repeat(Q, m),
+        np.tile(one.freq, nQ),
+        np.tile(one.T, (nQ, 1, 1)),
+        np.tile(one.sigma, (nQ, 1, 1, 1)),
+        one.metadata,
+    )
     write_tmatrix_csv(path, data)
     return {"rows": len(data), "heat_inputs": nQ, "columns": 18, "bytes": os.path.getsize(path)}
 
@@ -80,14 +85,24 @@ def read_memory(path: str) -> dict:
     as tracing slows Python down)."""
     out = subprocess.run([sys.executable, "-c", READ_SCRIPT, path], capture_output=True, text=True, check=True)
     before, peak, traced, _, rows = out.stdout.split()
-    plain = subprocess.run([sys.executable, "-c", READ_SCRIPT.replace("tracemalloc.start()", ""), path],
-                           capture_output=True, text=True, check=True)
+    plain = subprocess.run(
+        [sys.executable, "-c", READ_SCRIPT.replace("tracemalloc.start()", ""), path],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
     size = os.path.getsize(path)
     before, peak, traced = int(before), int(plain.stdout.split()[1]), int(traced)
-    return {"file_bytes": size, "rows": int(rows), "seconds": float(plain.stdout.split()[3]),
-            "peak_rss_bytes": peak, "rss_before_read_bytes": before, "peak_allocated_bytes": traced,
-            "peak_rss_increase_over_file_size": (peak - before) / size,
-            "peak_allocated_over_file_size": traced / size}
+    return {
+        "file_bytes": size,
+        "rows": int(rows),
+        "seconds": float(plain.stdout.split()[3]),
+        "peak_rss_bytes": peak,
+        "rss_before_read_bytes": before,
+        "peak_allocated_bytes": traced,
+        "peak_rss_increase_over_file_size": (peak - before) / size,
+        "peak_allocated_over_file_size": traced / size,
+    }
 
 
 def fit_time(n_heat: int, n_freqs: int, folder: str) -> dict:
@@ -98,16 +113,32 @@ def fit_time(n_heat: int, n_freqs: int, folder: str) -> dict:
     freqs = paper_frequencies("ceramic", n_freqs)
     path = os.path.join(folder, f"heat_{n_heat}.csv")
     write_tmatrix_csv(path, make_paper_data("ceramic", heat_inputs=Q, freqs=freqs, device="cpu"))
-    cmd = [os.path.join(os.path.dirname(sys.executable), "tawarp"), "fit", path, "--core", "ceramic", "--device", "cpu", "--quiet",
-           "-o", os.path.join(folder, f"fit_{n_heat}.json")]
+    cmd = [
+        os.path.join(os.path.dirname(sys.executable), "tawarp"),
+        "fit",
+        path,
+        "--core",
+        "ceramic",
+        "--device",
+        "cpu",
+        "--quiet",
+        "-o",
+        os.path.join(folder, f"fit_{n_heat}.json"),
+    ]
     t0 = time.perf_counter()
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     subprocess.run(cmd, check=True)
     dt = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return {"heat_inputs": n_heat, "frequencies": n_freqs, "file_bytes": os.path.getsize(path), "seconds": dt,
-            "cpu_seconds": (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime),
-            "seconds_per_heat_input": dt / n_heat, "command": "tawarp " + " ".join(cmd[1:])}
+    return {
+        "heat_inputs": n_heat,
+        "frequencies": n_freqs,
+        "file_bytes": os.path.getsize(path),
+        "seconds": dt,
+        "cpu_seconds": (after.ru_utime + after.ru_stime) - (before.ru_utime + before.ru_stime),
+        "seconds_per_heat_input": dt / n_heat,
+        "command": "tawarp " + " ".join(cmd[1:]),
+    }
 
 
 def main(argv=None) -> int:
@@ -117,26 +148,35 @@ def main(argv=None) -> int:
     ap.add_argument("--n-freqs", type=int, default=3, help="frequencies per heat input in the fit files")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/large_inputs_cpu.json)")
     args = ap.parse_args(argv)
-    result = {"cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "python": sys.version.split()[0], "load_average": os.getloadavg()}
+    result = {
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "load_average": os.getloadavg(),
+    }
     with tempfile.TemporaryDirectory() as folder:
         if args.csv_mb > 0:
             path = os.path.join(folder, "big.csv")
             result["csv"] = write_big_csv(path, args.csv_mb)
             result["read"] = read_memory(path)
             r = result["read"]
-            print(f"read {r['file_bytes'] / 1e6:.1f} MB ({r['rows']} rows) in {r['seconds']:.2f} s: peak RSS "
-                  f"{r['peak_rss_bytes'] / 1e6:.0f} MB ({r['peak_rss_increase_over_file_size']:.2f} x the file above "
-                  f"the {r['rss_before_read_bytes'] / 1e6:.0f} MB before reading); allocated by the read at its peak "
-                  f"{r['peak_allocated_bytes'] / 1e6:.0f} MB = {r['peak_allocated_over_file_size']:.2f} x the file",
-                  flush=True)
+            print(
+                f"read {r['file_bytes'] / 1e6:.1f} MB ({r['rows']} rows) in {r['seconds']:.2f} s: peak RSS "
+                f"{r['peak_rss_bytes'] / 1e6:.0f} MB ({r['peak_rss_increase_over_file_size']:.2f} x the file above "
+                f"the {r['rss_before_read_bytes'] / 1e6:.0f} MB before reading); allocated by the read at its peak "
+                f"{r['peak_allocated_bytes'] / 1e6:.0f} MB = {r['peak_allocated_over_file_size']:.2f} x the file",
+                flush=True,
+            )
             os.unlink(path)
         result["fit"] = []
         for n in [int(float(s)) for s in args.heat_inputs.split(",") if s.strip()]:
             row = fit_time(n, args.n_freqs, folder)
             result["fit"].append(row)
-            print(f"tawarp fit: {n:6d} heat inputs x {args.n_freqs} frequencies: {row['seconds']:.1f} s "
-                  f"({1e3 * row['seconds_per_heat_input']:.2f} ms per heat input)", flush=True)
+            print(
+                f"tawarp fit: {n:6d} heat inputs x {args.n_freqs} frequencies: {row['seconds']:.1f} s "
+                f"({1e3 * row['seconds_per_heat_input']:.2f} ms per heat input)",
+                flush=True,
+            )
     result["load_average_after"] = os.getloadavg()
     write_result(result, "large_inputs_cpu.json", args.out)
     return 0

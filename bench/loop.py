@@ -45,9 +45,18 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
         prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
         t0 = time.perf_counter()
         rep = run_loop(prob)
-        out.append({"seed": seed, "category": case.category, "material": case.material,
-                    "rows": int(prob.y.size), "seconds": time.perf_counter() - t0, "verdict": rep["verdict"],
-                    "claimed": rep["accepted_steps"], "models": rep["models_compared"]})
+        out.append(
+            {
+                "seed": seed,
+                "category": case.category,
+                "material": case.material,
+                "rows": int(prob.y.size),
+                "seconds": time.perf_counter() - t0,
+                "verdict": rep["verdict"],
+                "claimed": rep["accepted_steps"],
+                "models": rep["models_compared"],
+            }
+        )
         print(f"tmatrix seed {seed} ({case.category}): {out[-1]['seconds']:.1f} s, {rep['verdict']}")
     return out
 
@@ -59,11 +68,20 @@ def impedance_case(n: int, device: str) -> dict:
     for d in load_atalla_panneton("foam2"):
         Zs = np.interp(f, d.freq, d.Zs.real) + 1j * np.interp(f, d.freq, d.Zs.imag)
         Zs = Zs * (1 + 0.005 * (rng.standard_normal(n) + 1j * rng.standard_normal(n)))
-        data.append(ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies"))
+        data.append(
+            ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies")
+        )
     t0 = time.perf_counter()
     prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
-    out = {"frequencies": n, "rows": int(prob.y.size), "seconds": time.perf_counter() - t0, "verdict": rep["verdict"],
-           "best_model": rep["best_model"], "models": rep["models_compared"], "error_after": rep["error_after"]}
+    out = {
+        "frequencies": n,
+        "rows": int(prob.y.size),
+        "seconds": time.perf_counter() - t0,
+        "verdict": rep["verdict"],
+        "best_model": rep["best_model"],
+        "models": rep["models_compared"],
+        "error_after": rep["error_after"],
+    }
     print(f"impedance, {n} frequencies: {out['seconds']:.1f} s, best {'+'.join(rep['best_model']) or 'base'}")
     return out
 
@@ -73,8 +91,11 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list)")
     ap.add_argument("--impedance-freqs", type=int, default=2694)
-    ap.add_argument("--cache", default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "loop_bench" / "cache"),
-                    help="where the reference data of the cases are kept (git-ignored)")
+    ap.add_argument(
+        "--cache",
+        default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "loop_bench" / "cache"),
+        help="where the reference data of the cases are kept (git-ignored)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
@@ -85,18 +106,23 @@ def main(argv=None) -> int:
     wp.init()
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    tmatrix_cases(seeds[:1], args.device, cache)            # warm-up: compiles the kernels
+    tmatrix_cases(seeds[:1], args.device, cache)  # warm-up: compiles the kernels
     impedance_case(64, args.device)
-    result = {"benchmark": "loop", "device": args.device,
-              "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
-              "cpu_cores": len(os.sched_getaffinity(0)), "host": platform.node(),
-              "tmatrix": tmatrix_cases(seeds, args.device, cache),
-              "impedance": impedance_case(args.impedance_freqs, args.device)}
+    result = {
+        "benchmark": "loop",
+        "device": args.device,
+        "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
+        "cpu_cores": len(os.sched_getaffinity(0)),
+        "host": platform.node(),
+        "tmatrix": tmatrix_cases(seeds, args.device, cache),
+        "impedance": impedance_case(args.impedance_freqs, args.device),
+    }
     t = [c["seconds"] for c in result["tmatrix"]]
     result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
-    write_result(result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json",
-                 args.out)
+    write_result(
+        result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json", args.out
+    )
     return 0
 
 

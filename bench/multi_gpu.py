@@ -67,8 +67,10 @@ def fit_data(n: int, seed: int = 0):
 
 
 def design_space() -> DesignSpace:
-    return DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03",
-                                               "stack.porosity=0.6:0.98"])
+    return DesignSpace(
+        load_core("rvc_foam"),
+        ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03", "stack.porosity=0.6:0.98"],
+    )
 
 
 def timed(fn, repeats: int = 2) -> float:
@@ -85,8 +87,9 @@ def same_file(a: str, b: str) -> bool:
     """Whether the netCDF files ``a`` and ``b`` hold the same variables, value for value."""
     with h5py.File(a, "r") as x, h5py.File(b, "r") as y:
         names = [k for k in x if isinstance(x[k], h5py.Dataset)]
-        return sorted(names) == sorted(k for k in y if isinstance(y[k], h5py.Dataset)) and \
-            all(np.array_equal(x[k][()], y[k][()], equal_nan=True) for k in names)
+        return sorted(names) == sorted(k for k in y if isinstance(y[k], h5py.Dataset)) and all(
+            np.array_equal(x[k][()], y[k][()], equal_nan=True) for k in names
+        )
 
 
 def measure(client, k: int, args, data, table, reference: dict, tmp) -> dict:
@@ -98,15 +101,26 @@ def measure(client, k: int, args, data, table, reference: dict, tmp) -> dict:
     def fits(per_worker=args.fit_chunks[0]):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FitWarning)
-            return fit_on_cluster(client, core, FREQS, Y, FIT_NAMES, start, heat_input=40.0, weights=w, warn=False,
-                                  chunk=-(-len(Y) // (per_worker * k)))
+            return fit_on_cluster(
+                client,
+                core,
+                FREQS,
+                Y,
+                FIT_NAMES,
+                start,
+                heat_input=40.0,
+                weights=w,
+                warn=False,
+                chunk=-(-len(Y) // (per_worker * k)),
+            )
 
     def sweep_once(n=args.sweep_points, chunk=args.sweep_chunk, parts=False):
         return sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, client=client, parts=parts)
 
     # warm-up on every worker: compile/load the kernels (one small chunk per worker)
-    fit_on_cluster(client, core, FREQS, Y[: 2 * k], FIT_NAMES, start, heat_input=40.0, weights=w[: 2 * k], warn=False,
-                   chunk=1)
+    fit_on_cluster(
+        client, core, FREQS, Y[: 2 * k], FIT_NAMES, start, heat_input=40.0, weights=w[: 2 * k], warn=False, chunk=1
+    )
     ev.evaluate_table(table[:, : 64 * k])
     sweep_once(64 * k, 64)
     sweep_once(64 * k, 64, parts=True)
@@ -118,17 +132,27 @@ def measure(client, k: int, args, data, table, reference: dict, tmp) -> dict:
     t_sw = timed(sweep_once, 1)
     sweep_same = same_file(path, reference["sweep_path"])
     t_parts = timed(lambda: sweep_once(parts=True), 1)
-    row = {"workers": k, "fits": len(Y), "fit_seconds": t_fit, "fits_per_s": len(Y) / t_fit,
-           "fits_converged": float(res.converged.mean()),
-           "fits_per_s_by_chunks_per_worker": {c: len(Y) / t for c, t in t_fits.items()},
-           "evaluation_points": table.shape[1], "evaluation_seconds": t_ev, "evaluations_per_s": table.shape[1] / t_ev,
-           "evaluations_equal_one_process": all(np.array_equal(values[key], v, equal_nan=True)
-                                                for key, v in reference["evaluations"].items()),
-           "sweep_points": args.sweep_points, "sweep_seconds": t_sw,
-           "sweep_points_per_hour": 3600.0 * args.sweep_points / t_sw,
-           "sweep_equals_one_process": sweep_same,
-           "sweep_parts_seconds": t_parts, "sweep_parts_points_per_hour": 3600.0 * args.sweep_points / t_parts,
-           "sweep_parts_equals_one_process": same_file(path, reference["sweep_path"])}
+    row = {
+        "workers": k,
+        "fits": len(Y),
+        "fit_seconds": t_fit,
+        "fits_per_s": len(Y) / t_fit,
+        "fits_converged": float(res.converged.mean()),
+        "fits_per_s_by_chunks_per_worker": {c: len(Y) / t for c, t in t_fits.items()},
+        "evaluation_points": table.shape[1],
+        "evaluation_seconds": t_ev,
+        "evaluations_per_s": table.shape[1] / t_ev,
+        "evaluations_equal_one_process": all(
+            np.array_equal(values[key], v, equal_nan=True) for key, v in reference["evaluations"].items()
+        ),
+        "sweep_points": args.sweep_points,
+        "sweep_seconds": t_sw,
+        "sweep_points_per_hour": 3600.0 * args.sweep_points / t_sw,
+        "sweep_equals_one_process": sweep_same,
+        "sweep_parts_seconds": t_parts,
+        "sweep_parts_points_per_hour": 3600.0 * args.sweep_points / t_parts,
+        "sweep_parts_equals_one_process": same_file(path, reference["sweep_path"]),
+    }
     os.remove(path)
     shutil.rmtree(parts_path(path))
     return row
@@ -141,9 +165,16 @@ def one_process(args, space, table, tmp, device: str) -> dict:
     path = os.path.join(tmp, "one_process.nc")
     evaluations = Evaluator(space, settings=settings).evaluate_table(table)
     info = sweep(space, path, mode="sobol", n_samples=args.sweep_points, chunk=args.sweep_chunk, settings=settings)
-    return {"evaluations": evaluations, "sweep_path": path,
-            "summary": {"device": device, "sweep_points": args.sweep_points, "sweep_seconds": info.seconds,
-                        "sweep_points_per_hour": info.evaluations_per_hour}}
+    return {
+        "evaluations": evaluations,
+        "sweep_path": path,
+        "summary": {
+            "device": device,
+            "sweep_points": args.sweep_points,
+            "sweep_seconds": info.seconds,
+            "sweep_points_per_hour": info.evaluations_per_hour,
+        },
+    }
 
 
 def main(argv=None) -> int:
@@ -153,11 +184,18 @@ def main(argv=None) -> int:
     ap.add_argument("--points", type=int, default=1 << 22, help="design points per evaluation timing")
     ap.add_argument("--sweep-points", type=int, default=1 << 24, help="Sobol points of the sweep")
     ap.add_argument("--sweep-chunk", type=int, default=1 << 21, help="sweep points per task")
-    ap.add_argument("--fit-chunks", default="2", help="fit chunks per worker (comma list: each timed; the first "
-                    "is the row's fits_per_s)")
+    ap.add_argument(
+        "--fit-chunks",
+        default="2",
+        help="fit chunks per worker (comma list: each timed; the first is the row's fits_per_s)",
+    )
     ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument("--cluster", choices=("processes", "threads", "both"), default="both",
-                    help="workers as processes, as threads of this process (local_cluster(processes=False)), or both")
+    ap.add_argument(
+        "--cluster",
+        choices=("processes", "threads", "both"),
+        default="both",
+        help="workers as processes, as threads of this process (local_cluster(processes=False)), or both",
+    )
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
     args = ap.parse_args(argv)
     try:
@@ -182,19 +220,39 @@ def main(argv=None) -> int:
     space = design_space()
     rng = np.random.default_rng(0)
     table = space.varying_table(space.from_unit(rng.random((args.points, len(space.continuous)))))
-    result = {"devices": devices, "device_names": [wp.get_device(d).name for d in devices],
-              "host": platform.node(), "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "warp": wp.config.version, "python": sys.version.split()[0], "load_average_at_start": list(os.getloadavg()),
-              "sweep_chunk": args.sweep_chunk, "rows": []}
+    result = {
+        "devices": devices,
+        "device_names": [wp.get_device(d).name for d in devices],
+        "host": platform.node(),
+        "cpu": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "warp": wp.config.version,
+        "python": sys.version.split()[0],
+        "load_average_at_start": list(os.getloadavg()),
+        "sweep_chunk": args.sweep_chunk,
+        "rows": [],
+    }
     # compile the kernels once here, so the workers only load them from Warp's cache
     core, Y, w, start = data
-    fit_on_cluster(None, core, FREQS, Y[:2], FIT_NAMES, start, heat_input=40.0, weights=w[:2], warn=False,
-                   settings=ForwardSettings(device=devices[0]))
+    fit_on_cluster(
+        None,
+        core,
+        FREQS,
+        Y[:2],
+        FIT_NAMES,
+        start,
+        heat_input=40.0,
+        weights=w[:2],
+        warn=False,
+        settings=ForwardSettings(device=devices[0]),
+    )
     with tempfile.TemporaryDirectory() as tmp:
         reference = one_process(args, space, table, tmp, devices[0])
         result["one_process"] = reference["summary"]
-        print(f"one process on {devices[0]}: {reference['summary']['sweep_points_per_hour']:.3e} sweep points/h",
-              flush=True)
+        print(
+            f"one process on {devices[0]}: {reference['summary']['sweep_points_per_hour']:.3e} sweep points/h",
+            flush=True,
+        )
         for kind in kinds:
             for k in range(1, len(devices) + 1):
                 client = local_cluster(devices[:k], processes=kind == "processes", cpu_threads=1)  # CPU: a core each
@@ -204,11 +262,13 @@ def main(argv=None) -> int:
                     cluster = client.cluster
                     client.close()
                     cluster.close()
-                print(f"{kind}, {k} workers: {row['fits_per_s']:.3e} fits/s, {row['evaluations_per_s']:.3e} "
-                      f"evaluations/s, {row['sweep_points_per_hour']:.3e} sweep points/h ({row['sweep_parts_points_per_hour']:.3e} "
-                      f"with parts); equal to one process: evaluations {row['evaluations_equal_one_process']}, "
-                      f"sweep {row['sweep_equals_one_process']}, parts {row['sweep_parts_equals_one_process']}",
-                      flush=True)
+                print(
+                    f"{kind}, {k} workers: {row['fits_per_s']:.3e} fits/s, {row['evaluations_per_s']:.3e} "
+                    f"evaluations/s, {row['sweep_points_per_hour']:.3e} sweep points/h ({row['sweep_parts_points_per_hour']:.3e} "
+                    f"with parts); equal to one process: evaluations {row['evaluations_equal_one_process']}, "
+                    f"sweep {row['sweep_equals_one_process']}, parts {row['sweep_parts_equals_one_process']}",
+                    flush=True,
+                )
                 result["rows"].append(row)
     for r in result["rows"]:
         base = next(b for b in result["rows"] if b["cluster"] == r["cluster"])

@@ -39,23 +39,35 @@ Q_MAX = 100.0
 
 
 def random_designs(n: int, rng) -> dict:
-    return {"engine.left_duct": rng.uniform(0.5, 0.9, n), "stack.length": rng.uniform(0.03, 0.07, n),
-            "stack.porosity": rng.uniform(0.85, 0.93, n), "stack.h": rng.uniform(100, 200, n)}
+    return {
+        "engine.left_duct": rng.uniform(0.5, 0.9, n),
+        "stack.length": rng.uniform(0.03, 0.07, n),
+        "stack.porosity": rng.uniform(0.85, 0.93, n),
+        "stack.h": rng.uniform(100, 200, n),
+    }
 
 
 def time_onsets(eng, n: int, bracket: int, device: str, rng, repeats: int) -> dict:
     params = random_designs(n, rng)
-    onset(eng, Q_max=Q_MAX, params={k: v[: min(n, 64)] for k, v in params.items()}, n_bracket=bracket,
-          device=device)   # warm-up: compilation, allocation
+    onset(
+        eng, Q_max=Q_MAX, params={k: v[: min(n, 64)] for k, v in params.items()}, n_bracket=bracket, device=device
+    )  # warm-up: compilation, allocation
     times, res = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
         res = onset(eng, Q_max=Q_MAX, params=params, n_bracket=bracket, device=device)
         times.append(time.perf_counter() - t0)
     dt = float(np.median(times))
-    return {"designs": n, "bracket": bracket, "seconds": dt, "onsets_per_minute": 60.0 * n / dt,
-            "evaluations_per_onset": res.mean_evaluations, "refine_steps": res.refine_steps,
-            "secant_fallbacks": int(res.fallback.size), "with_onset": int(np.isfinite(res.Q_onset).sum())}
+    return {
+        "designs": n,
+        "bracket": bracket,
+        "seconds": dt,
+        "onsets_per_minute": 60.0 * n / dt,
+        "evaluations_per_onset": res.mean_evaluations,
+        "refine_steps": res.refine_steps,
+        "secant_fallbacks": int(res.fallback.size),
+        "with_onset": int(np.isfinite(res.Q_onset).sum()),
+    }
 
 
 def reference_onset(eng, rtol: float = 1e-10) -> dict:
@@ -79,8 +91,12 @@ def reference_onset(eng, rtol: float = 1e-10) -> dict:
 
     t0 = time.perf_counter()
     Q = so.brentq(growth, 0.0, Q_MAX / 2, xtol=1e-9, rtol=1e-10)
-    return {"seconds_one_prediction": time.perf_counter() - t0, "Q_onset_W": Q, "rtol": rtol,
-            "method": "scipy.optimize.newton (secant) on omega, brentq on Q in [0, 50] W"}
+    return {
+        "seconds_one_prediction": time.perf_counter() - t0,
+        "Q_onset_W": Q,
+        "rtol": rtol,
+        "method": "scipy.optimize.newton (secant) on omega, brentq on Q in [0, 50] W",
+    }
 
 
 def main(argv=None):
@@ -98,17 +114,27 @@ def main(argv=None):
     sizes = [int(float(s)) for s in (args.sizes or ("1e4,1e5,1e6" if gpu else "50,200")).split(",")]
     eng = load_engine("standing_wave")
     rng = np.random.default_rng(0)
-    result = {"device": device, "device_name": wp.get_device(device).name, "warp": wp.config.version,
-              "host": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-              "python": sys.version.split()[0], "engine": "standing_wave", "Q_max_W": Q_MAX,
-              "definition": "one design's onset(): unheated eigenfrequency, bracket grid to the first crossing, "
-                            "Newton on (Re omega, Q) to 1e-10 (Illinois secant fallback), T_hot at onset"}
+    result = {
+        "device": device,
+        "device_name": wp.get_device(device).name,
+        "warp": wp.config.version,
+        "host": platform.processor() or platform.machine(),
+        "cpu_count": os.cpu_count(),
+        "python": sys.version.split()[0],
+        "engine": "standing_wave",
+        "Q_max_W": Q_MAX,
+        "definition": "one design's onset(): unheated eigenfrequency, bracket grid to the first crossing, "
+        "Newton on (Re omega, Q) to 1e-10 (Illinois secant fallback), T_hot at onset",
+    }
     rows = []
     for n in sizes:
         r = time_onsets(eng, n, args.bracket, device, rng, args.repeats)
         rows.append(r)
-        print(f"designs={n:>9d}  {r['seconds']:.3f} s  {r['onsets_per_minute']:.3e} onsets/min  "
-              f"{r['evaluations_per_onset']:.1f} evaluations/onset", flush=True)
+        print(
+            f"designs={n:>9d}  {r['seconds']:.3f} s  {r['onsets_per_minute']:.3e} onsets/min  "
+            f"{r['evaluations_per_onset']:.1f} evaluations/onset",
+            flush=True,
+        )
     result["throughput"] = rows
     best = max(r["onsets_per_minute"] for r in rows)
     result["best_onsets_per_minute"] = best
@@ -123,9 +149,11 @@ def main(argv=None):
 
             t0 = time.perf_counter()
             p = peer_onset(eng)
-            peers["openthermoacoustics"] = {"seconds_one_prediction": time.perf_counter() - t0, **p,
-                                            "note": "imposed linear stack profile; 9-point T-ratio grid, brentq "
-                                                    "(studies/onset_peer.py)"}
+            peers["openthermoacoustics"] = {
+                "seconds_one_prediction": time.perf_counter() - t0,
+                **p,
+                "note": "imposed linear stack profile; 9-point T-ratio grid, brentq (studies/onset_peer.py)",
+            }
         except ImportError as e:
             peers["openthermoacoustics"] = {"available": False, "reason": str(e)}
         for v in peers.values():

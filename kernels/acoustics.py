@@ -51,8 +51,12 @@ def identity2():
 
 @wp.func
 def matmul2(x: CMat2, y: CMat2):
-    return cmat2(cmul(x.a, y.a) + cmul(x.b, y.c), cmul(x.a, y.b) + cmul(x.b, y.d),
-                 cmul(x.c, y.a) + cmul(x.d, y.c), cmul(x.c, y.b) + cmul(x.d, y.d))
+    return cmat2(
+        cmul(x.a, y.a) + cmul(x.b, y.c),
+        cmul(x.a, y.b) + cmul(x.b, y.d),
+        cmul(x.c, y.a) + cmul(x.d, y.c),
+        cmul(x.c, y.b) + cmul(x.d, y.d),
+    )
 
 
 @wp.func
@@ -88,11 +92,15 @@ def cosh_sinhc(delta: wp.vec2d):
         terms = taylor_terms(size)
         ch = creal(wp.float64(1.0))
         sh = creal(wp.float64(1.0))
-        for jj in range(9):   # a fixed count: unrolled, its divisions folded to constants
+        for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
             if 9 - jj <= terms:
                 j = wp.float64(9 - jj)
-                ch = creal(wp.float64(1.0)) + cscale(cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0))))
-                sh = creal(wp.float64(1.0)) + cscale(cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0))))
+                ch = creal(wp.float64(1.0)) + cscale(
+                    cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
+                )
+                sh = creal(wp.float64(1.0)) + cscale(
+                    cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
+                )
         return ch, sh
     r = csqrt(delta)
     ep = cexp(r)
@@ -114,7 +122,9 @@ def sinhc_derivative(delta: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d):
         for jj in range(10):
             if 10 - jj <= terms:
                 k = wp.float64(10 - jj)
-                d = creal(wp.float64(1.0)) + cscale(cmul(delta, d), wp.float64(1.0) / ((wp.float64(2.0) * k) * (wp.float64(2.0) * k + wp.float64(3.0))))
+                d = creal(wp.float64(1.0)) + cscale(
+                    cmul(delta, d), wp.float64(1.0) / ((wp.float64(2.0) * k) * (wp.float64(2.0) * k + wp.float64(3.0)))
+                )
         return cscale(d, wp.float64(1.0) / wp.float64(6.0))
     return cdiv(cscale(ch - sh, wp.float64(0.5)), delta)
 
@@ -195,9 +205,17 @@ class PointCoefficients:
 
 
 @wp.func
-def point_coefficients(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, T: wp.float64, dTdx: wp.float64,
-                       porosity: wp.float64, pore_radius: wp.float64, tortuosity: wp.float64, area: wp.float64,
-                       thermal_radius: wp.float64):
+def point_coefficients(
+    gas: wp.array(dtype=wp.float64),
+    p_mean: wp.float64,
+    T: wp.float64,
+    dTdx: wp.float64,
+    porosity: wp.float64,
+    pore_radius: wp.float64,
+    tortuosity: wp.float64,
+    area: wp.float64,
+    thermal_radius: wp.float64,
+):
     """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
     part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
     for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
@@ -217,9 +235,19 @@ def point_coefficients(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, T: w
 
 
 @wp.func
-def propagation_at(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.float64, gamma: wp.float64,
-                   porosity: wp.float64, tortuosity: wp.float64, pore_model: int, area: wp.float64,
-                   frame_mobility: wp.float64, shape_factor: wp.float64, pore_table: wp.array(dtype=wp.float64)):
+def propagation_at(
+    pc: PointCoefficients,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    porosity: wp.float64,
+    tortuosity: wp.float64,
+    pore_model: int,
+    area: wp.float64,
+    frame_mobility: wp.float64,
+    shape_factor: wp.float64,
+    pore_table: wp.array(dtype=wp.float64),
+):
     """A(x) of the two-port ODE at angular frequency omega [rad/s] (``half_log_omega`` =
     ln(omega)/2, shared by a cascade's points) from the point's :class:`PointCoefficients`.
     ``frame_mobility`` = 1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame
@@ -263,8 +291,14 @@ class PropagationPartials:
 
 
 @wp.func
-def propagation_partials(pc: PointCoefficients, omega: wp.float64, half_log_omega: wp.float64, gamma: wp.float64,
-                         pore_model: int, pore_table: wp.array(dtype=wp.float64)):
+def propagation_partials(
+    pc: PointCoefficients,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_model: int,
+    pore_table: wp.array(dtype=wp.float64),
+):
     """:class:`PropagationPartials` at angular frequency omega [rad/s] (arguments as
     :func:`propagation_at`, whose A they give for a rigid frame and shape factor 1): with
     f' = df/d ln s (:func:`tawarp.kernels.pore.pore_log_derivative`) and dg = -df,
@@ -300,9 +334,12 @@ def propagation_tangent(d: PropagationPartials, dpc: PointCoefficients):
     """dA in the direction ``dpc`` of the point coefficients (their derivatives along one
     parameter; ``rho`` is not used)."""
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return cmat2(zero, cscale(d.a12_c12, dpc.c12) + cscale(d.a12_nu, dpc.log_nu),
-                 cscale(d.a21_c21, dpc.c21) + cscale(d.a21_k, dpc.log_k),
-                 cscale(d.a22_c22, dpc.c22) + cscale(d.a22_nu, dpc.log_nu) + cscale(d.a22_k, dpc.log_k))
+    return cmat2(
+        zero,
+        cscale(d.a12_c12, dpc.c12) + cscale(d.a12_nu, dpc.log_nu),
+        cscale(d.a21_c21, dpc.c21) + cscale(d.a21_k, dpc.log_k),
+        cscale(d.a22_c22, dpc.c22) + cscale(d.a22_nu, dpc.log_nu) + cscale(d.a22_k, dpc.log_k),
+    )
 
 
 @wp.func
@@ -392,12 +429,15 @@ def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
     c1 = commutator2(b1, b2)
     c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
-    return axpy2(wp.float64(1.0 / 240.0), commutator2(left, axpy2(wp.float64(1.0), b2, c2)), axpy2(wp.float64(1.0 / 12.0), b3, b1))
+    return axpy2(
+        wp.float64(1.0 / 240.0),
+        commutator2(left, axpy2(wp.float64(1.0), b2, c2)),
+        axpy2(wp.float64(1.0 / 12.0), b3, b1),
+    )
 
 
 @wp.func
-def magnus6_tangent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64, d1: CMat2, d2: CMat2, d3: CMat2,
-                    dh: wp.float64):
+def magnus6_tangent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64, d1: CMat2, d2: CMat2, d3: CMat2, dh: wp.float64):
     """The derivative of :func:`magnus6_exponent`'s Omega along a direction in which A at
     the three Gauss points moves by d1, d2, d3 and the cell length by dh: the b's are
     linear in A and in h separately (db = b(d, h) + b(A, dh)), the commutators follow the
@@ -449,10 +489,21 @@ def johnson_factor_complex(x: wp.vec2d, s: wp.float64):
 
 
 @wp.func
-def propagation_matrix_complex(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.vec2d,
-                               T: wp.float64, dTdx: wp.float64, porosity: wp.float64, pore_radius: wp.float64,
-                               tortuosity: wp.float64, pore_model: int, area: wp.float64, thermal_radius: wp.float64,
-                               frame_mobility: wp.float64, shape_factor: wp.float64):
+def propagation_matrix_complex(
+    gas: wp.array(dtype=wp.float64),
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T: wp.float64,
+    dTdx: wp.float64,
+    porosity: wp.float64,
+    pore_radius: wp.float64,
+    tortuosity: wp.float64,
+    pore_model: int,
+    area: wp.float64,
+    thermal_radius: wp.float64,
+    frame_mobility: wp.float64,
+    shape_factor: wp.float64,
+):
     """A(x) at complex angular frequency omega [rad/s] (re, im): :func:`propagation_at`'s
     matrix from the same :class:`PointCoefficients` (arguments as :func:`point_coefficients`),
     with s = r/delta = exp(log_nu) sqrt(omega) complex."""
@@ -463,12 +514,16 @@ def propagation_matrix_complex(gas: wp.array(dtype=wp.float64), p_mean: wp.float
     f_nu, g_nu = pore_functions_complex(pore_model, s_nu)
     f_k, g_k = pore_functions_complex(pore_model, s_k)
     if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
-        g_nu = cdiv(g_nu, cdiv(johnson_factor_complex(s_nu, shape_factor),
-                               johnson_factor_complex(s_nu, wp.float64(1.0))))
+        g_nu = cdiv(
+            g_nu, cdiv(johnson_factor_complex(s_nu, shape_factor), johnson_factor_complex(s_nu, wp.float64(1.0)))
+        )
     a12 = cmuli(cscale(cdiv(omega, g_nu), pc.c12))
     if frame_mobility > wp.float64(0.0):
-        a12 = cmuli(cscale(cmul(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega),
-                           wp.float64(1.0) / area))
+        a12 = cmuli(
+            cscale(
+                cmul(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega), wp.float64(1.0) / area
+            )
+        )
     a21 = cmuli(cscale(cmul(omega, creal(wp.float64(1.0)) + cscale(f_k, gas[G_GAMMA] - wp.float64(1.0))), pc.c21))
     a22 = cscale(cdiv(g_nu - g_k, g_nu), pc.c22)
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))

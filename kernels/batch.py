@@ -8,9 +8,13 @@ wp.set_module_options({"enable_backward": False})
 
 
 @wp.kernel
-def gather_sets(params: wp.array2d(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                index: wp.array(dtype=wp.int32), params_out: wp.array2d(dtype=wp.float64),
-                theta_out: wp.array2d(dtype=wp.float64)):
+def gather_sets(
+    params: wp.array2d(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    index: wp.array(dtype=wp.int32),
+    params_out: wp.array2d(dtype=wp.float64),
+    theta_out: wp.array2d(dtype=wp.float64),
+):
     """Set ``index[k]`` of (``params`` (rows, n), ``theta`` (n, nodes)) as set k of
     (``params_out``, ``theta_out``)."""
     k = wp.tid()
@@ -22,8 +26,9 @@ def gather_sets(params: wp.array2d(dtype=wp.float64), theta: wp.array2d(dtype=wp
 
 
 @wp.kernel
-def scatter_sets(part: wp.array3d(dtype=wp.float64), index: wp.array(dtype=wp.int32),
-                 out: wp.array3d(dtype=wp.float64)):
+def scatter_sets(
+    part: wp.array3d(dtype=wp.float64), index: wp.array(dtype=wp.int32), out: wp.array3d(dtype=wp.float64)
+):
     """Row k of ``part`` (k, m, c) as row ``index[k]`` of ``out`` (n, m, c); launched on (k, m)."""
     k, j = wp.tid()
     for c in range(part.shape[2]):

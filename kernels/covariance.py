@@ -46,17 +46,24 @@ def covariance_kernel(p: int):
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def covariance(w: wp.array2d(dtype=wp.float64), V: wp.array3d(dtype=wp.float64), D: wp.array2d(dtype=wp.float64),
-                   s2: wp.array(dtype=wp.float64), cov: wp.array3d(dtype=wp.float64), std: wp.array2d(dtype=wp.float64),
-                   corr: wp.array3d(dtype=wp.float64), cond: wp.array(dtype=wp.float64)):
+    def covariance(
+        w: wp.array2d(dtype=wp.float64),
+        V: wp.array3d(dtype=wp.float64),
+        D: wp.array2d(dtype=wp.float64),
+        s2: wp.array(dtype=wp.float64),
+        cov: wp.array3d(dtype=wp.float64),
+        std: wp.array2d(dtype=wp.float64),
+        corr: wp.array3d(dtype=wp.float64),
+        cond: wp.array(dtype=wp.float64),
+    ):
         n = wp.tid()
         inf = wp.float64(wp.inf)
-        wmax = wp.max(wp.abs(w[n, 0]), wp.abs(w[n, P - 1]))   # ascending: the largest |w| is at an end
+        wmax = wp.max(wp.abs(w[n, 0]), wp.abs(w[n, P - 1]))  # ascending: the largest |w| is at an end
         cond[n] = inf
         if w[n, 0] > wp.float64(0.0):
             cond[n] = wmax / w[n, 0]
-        inv = vecp()      # 1/w_j of the determined directions, 0 for the others
-        undet = vecp()    # 1 for the undetermined ones (every one when w is NaN)
+        inv = vecp()  # 1/w_j of the determined directions, 0 for the others
+        undet = vecp()  # 1 for the undetermined ones (every one when w is NaN)
         for j in range(P):
             if w[n, j] > SINGULAR * wmax:
                 inv[j] = wp.float64(1.0) / w[n, j]

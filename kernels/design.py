@@ -24,8 +24,15 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 
 @wp.func
-def cell_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int, node: int):
+def cell_coeffs(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node: int,
+):
     """Heat coefficients (lam, k, sigma) of the cell starting at ``node``: the segment's
     own, or, with a temperature-dependent model, those at the converged profile."""
     return cell_coeffs_at(params, flags, gas, theta, i, s, node, segment_nonlinear(params, i, s))
@@ -62,9 +69,17 @@ def cell_max(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma: wp.
 
 
 @wp.kernel
-def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                   first: int, count: int, cells: int, stack: int, out: wp.array2d(dtype=wp.float64)):
+def design_metrics(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    first: int,
+    count: int,
+    cells: int,
+    stack: int,
+    out: wp.array2d(dtype=wp.float64),
+):
     i = wp.tid()
     Tc = params[T_COLD, i]
     R = params[RADIUS, i]
@@ -104,8 +119,9 @@ def design_metrics(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.kernel
-def metric_columns(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32),
-                   out: wp.array2d(dtype=Any)):
+def metric_columns(
+    metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtype=wp.int32), out: wp.array2d(dtype=Any)
+):
     """out[c, i] = metrics[i, columns[c]] in out's precision (float32: to nearest, as
     NumPy's cast): chosen columns, each contiguous. A sweep file stores float32 (half the
     copy to the host); a table's objectives come back as float64 columns, which Dask
@@ -114,7 +130,7 @@ def metric_columns(metrics: wp.array2d(dtype=wp.float64), columns: wp.array(dtyp
     out[c, i] = out.dtype(metrics[i, columns[c]])
 
 
-for _dtype in (wp.float32, wp.float64):   # instantiated here: the module holds both (and AOT builds them)
+for _dtype in (wp.float32, wp.float64):  # instantiated here: the module holds both (and AOT builds them)
     wp.overload(metric_columns, {"out": wp.array2d(dtype=_dtype)})
 
 
@@ -125,11 +141,19 @@ MATERIAL = wp.constant(2)
 
 
 @wp.func
-def design_coordinate(lo: wp.int64, i: int, v: int, unit: wp.array2d(dtype=wp.float64),
-                      grid: wp.array(dtype=wp.float64), kind: wp.array(dtype=wp.int32),
-                      stride: wp.array(dtype=wp.int64), size: wp.array(dtype=wp.int32),
-                      start: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64),
-                      span: wp.array(dtype=wp.float64)):
+def design_coordinate(
+    lo: wp.int64,
+    i: int,
+    v: int,
+    unit: wp.array2d(dtype=wp.float64),
+    grid: wp.array(dtype=wp.float64),
+    kind: wp.array(dtype=wp.int32),
+    stride: wp.array(dtype=wp.int64),
+    size: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    low: wp.array(dtype=wp.float64),
+    span: wp.array(dtype=wp.float64),
+):
     """(value, material index) of variable v at point lo + i: on the grid when ``unit`` is
     empty (C-order index ((lo + i) // stride) % size into the variable's grid values at
     ``start``), else from the unit-cube coordinate unit[i, v] as DesignSpace.from_unit
@@ -151,8 +175,13 @@ def design_coordinate(lo: wp.int64, i: int, v: int, unit: wp.array2d(dtype=wp.fl
 
 
 @wp.kernel
-def sobol_points(first: wp.int64, directions: wp.array2d(dtype=wp.int64), shift: wp.array(dtype=wp.int64),
-                 scale: wp.float64, unit: wp.array2d(dtype=wp.float64)):
+def sobol_points(
+    first: wp.int64,
+    directions: wp.array2d(dtype=wp.int64),
+    shift: wp.array(dtype=wp.int64),
+    scale: wp.float64,
+    unit: wp.array2d(dtype=wp.float64),
+):
     """unit[k, d] = coordinate d of point first + k of a scrambled Sobol sequence (one thread
     per coordinate): the digital ``shift`` XOR the direction numbers ``directions[d, j]`` of
     the set bits j of the point's Gray code i ^ (i >> 1), times ``scale`` = 2^-bits. This is
@@ -170,12 +199,23 @@ def sobol_points(first: wp.int64, directions: wp.array2d(dtype=wp.int64), shift:
 
 
 @wp.kernel
-def design_table(lo: wp.int64, unit: wp.array2d(dtype=wp.float64), grid: wp.array(dtype=wp.float64),
-                 kind: wp.array(dtype=wp.int32), stride: wp.array(dtype=wp.int64), size: wp.array(dtype=wp.int32),
-                 start: wp.array(dtype=wp.int32), low: wp.array(dtype=wp.float64), span: wp.array(dtype=wp.float64),
-                 row: wp.array(dtype=wp.int32), materials: wp.array2d(dtype=wp.float64),
-                 material_rows: wp.array(dtype=wp.int32), heat_input: wp.float64,
-                 table: wp.array2d(dtype=wp.float64), values: wp.array2d(dtype=wp.float64)):
+def design_table(
+    lo: wp.int64,
+    unit: wp.array2d(dtype=wp.float64),
+    grid: wp.array(dtype=wp.float64),
+    kind: wp.array(dtype=wp.int32),
+    stride: wp.array(dtype=wp.int64),
+    size: wp.array(dtype=wp.int32),
+    start: wp.array(dtype=wp.int32),
+    low: wp.array(dtype=wp.float64),
+    span: wp.array(dtype=wp.float64),
+    row: wp.array(dtype=wp.int32),
+    materials: wp.array2d(dtype=wp.float64),
+    material_rows: wp.array(dtype=wp.int32),
+    heat_input: wp.float64,
+    table: wp.array2d(dtype=wp.float64),
+    values: wp.array2d(dtype=wp.float64),
+):
     """Column i of DesignSpace.varying_table for design point lo + i (one thread), on the
     device: row 0 the heat input, a material's rows (``material_rows``) the row of
     ``materials`` (one per choice) it picks, then each continuous variable's value in its

@@ -82,7 +82,7 @@ def eigh_kernel(p: int):
                         # Rutishauser's rotation: t = tan of the angle that zeroes a_ij, the
                         # smaller root; the diagonal moves by exactly t a_ij
                         theta = wp.float64(0.5) * (A[j, j] - A[i, i]) / aij
-                        t = wp.float64(0.5) / theta       # the limit, where theta^2 would overflow
+                        t = wp.float64(0.5) / theta  # the limit, where theta^2 would overflow
                         if wp.abs(theta) < wp.float64(1e150):
                             t = wp.float64(1.0) / (wp.abs(theta) + wp.sqrt(theta * theta + wp.float64(1.0)))
                             if theta < wp.float64(0.0):

@@ -23,15 +23,50 @@ from typing import Any
 
 import warp as wp
 
-from .acoustics import (CMat2, PointCoefficients, axpy2, cmat2, cosh_sinhc, cscale2, expm2_tangent, expm2_traceless,
-                        identity2, magnus6_exponent, magnus6_tangent, matmul2, point_coefficients, point_difference,
-                        propagation_at, propagation_partials, propagation_tangent, propagation_value, scale2,
-                        sinhc_derivative, traceless_exp, traceless_parts)
+from .acoustics import (
+    CMat2,
+    PointCoefficients,
+    axpy2,
+    cmat2,
+    cosh_sinhc,
+    cscale2,
+    expm2_tangent,
+    expm2_traceless,
+    identity2,
+    magnus6_exponent,
+    magnus6_tangent,
+    matmul2,
+    point_coefficients,
+    point_difference,
+    propagation_at,
+    propagation_partials,
+    propagation_tangent,
+    propagation_value,
+    scale2,
+    sinhc_derivative,
+    traceless_exp,
+    traceless_parts,
+)
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
-from .layout import (F_POROUS, F_PORE_MODEL, F_THERMAL, HEAT_INPUT, LENGTH, P_MEAN, PORE_RADIUS, POROSITY, RADIUS, T_COLD,
-                     FRAME_MOBILITY, THERMAL_RADIUS_RATIO, TORTUOSITY, VISCOUS_SHAPE_FACTOR, seg_value)
+from .layout import (
+    F_POROUS,
+    F_PORE_MODEL,
+    F_THERMAL,
+    HEAT_INPUT,
+    LENGTH,
+    P_MEAN,
+    PORE_RADIUS,
+    POROSITY,
+    RADIUS,
+    T_COLD,
+    FRAME_MOBILITY,
+    THERMAL_RADIUS_RATIO,
+    TORTUOSITY,
+    VISCOUS_SHAPE_FACTOR,
+    seg_value,
+)
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -46,8 +81,12 @@ CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
 
 
 @wp.kernel
-def expand_parameters(base: wp.array(dtype=wp.float64), varying: wp.array2d(dtype=wp.float64),
-                      rows: wp.array(dtype=wp.int32), params: wp.array2d(dtype=wp.float64)):
+def expand_parameters(
+    base: wp.array(dtype=wp.float64),
+    varying: wp.array2d(dtype=wp.float64),
+    rows: wp.array(dtype=wp.int32),
+    params: wp.array2d(dtype=wp.float64),
+):
     """params[:, i] = base, then params[rows[v], i] = varying[v, i]."""
     i = wp.tid()
     for r in range(base.shape[0]):
@@ -57,10 +96,19 @@ def expand_parameters(base: wp.array(dtype=wp.float64), varying: wp.array2d(dtyp
 
 
 @wp.kernel
-def heat_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                gas: wp.array(dtype=wp.float64), first: int, count: int, heat_cells: int, fitted: int,
-                max_iter: int, tol: wp.float64,
-                theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+def heat_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    first: int,
+    count: int,
+    heat_cells: int,
+    fitted: int,
+    max_iter: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+):
     i = wp.tid()
     solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch)
 
@@ -75,8 +123,9 @@ def pore_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
 
 
 @wp.func
-def thermal_radius(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int,
-                   r: wp.float64):
+def thermal_radius(
+    params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int, r: wp.float64
+):
     """Radius [m] of the thermal function f_k: r times ``thermal_radius_ratio`` in a porous
     segment (a ratio <= 0 counts as 1), r in a duct."""
     if flags[s, F_POROUS] == 0:
@@ -119,8 +168,12 @@ def store_matrix(out: wp.array3d(dtype=wp.float64), i: int, j: int, m: CMat2):
 @wp.func
 def tangent_row(rows: Any, a: int):
     """Row a of a (P, 8) matrix of tangents as a :class:`CMat2`."""
-    return cmat2(wp.vec2d(rows[a, 0], rows[a, 1]), wp.vec2d(rows[a, 2], rows[a, 3]),
-                 wp.vec2d(rows[a, 4], rows[a, 5]), wp.vec2d(rows[a, 6], rows[a, 7]))
+    return cmat2(
+        wp.vec2d(rows[a, 0], rows[a, 1]),
+        wp.vec2d(rows[a, 2], rows[a, 3]),
+        wp.vec2d(rows[a, 4], rows[a, 5]),
+        wp.vec2d(rows[a, 6], rows[a, 7]),
+    )
 
 
 @wp.func
@@ -136,9 +189,14 @@ def dimensionless(out: wp.array3d(dtype=wp.float64), i: int, j: int, c: int, zc:
 
 
 @wp.kernel
-def step_doubling_error(params: wp.array2d(dtype=wp.float64), gas: wp.array(dtype=wp.float64),
-                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64),
-                        sample: wp.array(dtype=wp.int32), err: wp.array(dtype=wp.float64)):
+def step_doubling_error(
+    params: wp.array2d(dtype=wp.float64),
+    gas: wp.array(dtype=wp.float64),
+    out: wp.array3d(dtype=wp.float64),
+    doubled: wp.array3d(dtype=wp.float64),
+    sample: wp.array(dtype=wp.int32),
+    err: wp.array(dtype=wp.float64),
+):
     """err[i] = max over k of max_c |Y_c - Y2_c| / max_c |Y2_c| (dimensionless), Y the
     coefficients (Tpp, Tpu/Zc, Tup Zc, Tuu) of out[i, sample[k]] (cell density d) and Y2
     those of doubled[i, k] (2d), Zc = p_mean / (c_cold S) [Pa s/m^3] the cold duct's
@@ -167,8 +225,7 @@ def step_doubling_error(params: wp.array2d(dtype=wp.float64), gas: wp.array(dtyp
 
 
 @wp.func
-def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, omega: wp.float64,
-                      c_cold: wp.float64):
+def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, omega: wp.float64, c_cold: wp.float64):
     """Magnus cells of a thermal segment of length ``length`` [m] at cell density ``density``:
     ceil(density (1 + k L + omega L / c_cold)), k [1/m] the heat model's decay rate, omega
     [rad/s], c_cold [m/s]: the profile varies on the scale 1/k and the wave on c/omega, and a
@@ -184,9 +241,16 @@ def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, om
 
 
 @wp.func
-def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                  gas: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32), density: wp.float64,
-                  omega_max: wp.float64, i: int, s: int):
+def segment_cells(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    density: wp.float64,
+    omega_max: wp.float64,
+    i: int,
+    s: int,
+):
     """Magnus cells of thermal segment s of set i: ``seg_cells[s]``, or where that is 0
     :func:`magnus_cell_count` at ``density`` and the batch's highest angular frequency
     ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
@@ -201,16 +265,14 @@ def segment_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=
 
 
 @wp.func
-def segment_uniform(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
-                    s: int):
+def segment_uniform(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int, s: int):
     """True when segment s of set i is at uniform temperature on the grid of ``column``: it
     is not thermal, or it has no Magnus cells (no heat input); its matrix is exp(A L)."""
     return flags[s, F_THERMAL] == 0 or cells[i, column] == 0
 
 
 @wp.func
-def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
-                   s: int):
+def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int, s: int):
     """Points of segment s in set i's point list: 3 Gauss points per Magnus cell of a
     thermal segment (``cells[i, column]``), one for a part at uniform temperature."""
     if segment_uniform(flags, cells, i, column, s):
@@ -219,8 +281,7 @@ def segment_points(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp
 
 
 @wp.func
-def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int,
-                  s: int):
+def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int, s: int):
     """Threads of the point kernel for segment s of set i: one per Magnus cell (its three
     Gauss points), one for a part at uniform temperature (its one point)."""
     if segment_uniform(flags, cells, i, column, s):
@@ -229,10 +290,16 @@ def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.
 
 
 @wp.kernel
-def cell_counts(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                gas: wp.array(dtype=wp.float64), seg_cells: wp.array(dtype=wp.int32),
-                cell_density: wp.array(dtype=wp.float64), omega_max: wp.float64,
-                cells: wp.array2d(dtype=wp.int32), most: wp.array(dtype=wp.int32)):
+def cell_counts(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.array(dtype=wp.float64),
+    omega_max: wp.float64,
+    cells: wp.array2d(dtype=wp.int32),
+    most: wp.array(dtype=wp.int32),
+):
     """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
     cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
     ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
@@ -265,10 +332,17 @@ def make_point_kernel(nonlinear: bool):
     False: the Kirchhoff profile of the temperature-dependent effects is left out, which
     frees registers on the GPU) or for both."""
 
-    def point_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                     gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                     cells: wp.array2d(dtype=wp.int32), first: int, heat_cells: int, set0: int,
-                     points: wp.array2d(dtype=PointCoefficients)):
+    def point_kernel(
+        params: wp.array2d(dtype=wp.float64),
+        flags: wp.array2d(dtype=wp.int32),
+        gas: wp.array(dtype=wp.float64),
+        theta: wp.array2d(dtype=wp.float64),
+        cells: wp.array2d(dtype=wp.int32),
+        first: int,
+        heat_cells: int,
+        set0: int,
+        points: wp.array2d(dtype=PointCoefficients),
+    ):
         """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
         (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
         grids (``cells``' column blocks), and in each over the segments in order: one point
@@ -297,7 +371,7 @@ def make_point_kernel(nonlinear: bool):
                 else:
                     rest = rest - slots
                     p = p + segment_points(flags, cells, i, c, c % n_seg)
-        if column < 0:   # beyond this set's slots
+        if column < 0:  # beyond this set's slots
             return
         s = column % n_seg
         phi, r, q = pore_geometry(params, flags, i, s)
@@ -308,12 +382,24 @@ def make_point_kernel(nonlinear: bool):
             length = seg_value(params, i, s, LENGTH)
             h = length / wp.float64(n_cells)
             nonlin = 0
-            if wp.static(nonlinear):   # compiled out of the linear kernel: fewer registers on the GPU
+            if wp.static(nonlinear):  # compiled out of the linear kernel: fewer registers on the GPU
                 nonlin = segment_nonlinear(params, i, s)
             for g in range(3):
-                th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells,
-                                          k, sigma, length / wp.float64(heat_cells), nonlin,
-                                          (wp.float64(rest) + GAUSS[g]) * h)
+                th, dth = segment_profile(
+                    params,
+                    flags,
+                    gas,
+                    theta,
+                    i,
+                    s,
+                    (s - first) * heat_cells,
+                    heat_cells,
+                    k,
+                    sigma,
+                    length / wp.float64(heat_cells),
+                    nonlin,
+                    (wp.float64(rest) + GAUSS[g]) * h,
+                )
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
         else:
             points[li, p] = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, area, r_k)
@@ -327,17 +413,25 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
     of each T-matrix along P parameters, carried through the cascade with the value."""
     P = wp.constant(tangents)
-    Q = max(tangents, 1)   # local sizes must be > 0; the P = 0 kernel never touches them
+    Q = max(tangents, 1)  # local sizes must be > 0; the P = 0 kernel never touches them
     stride = wp.constant(1 + 2 * tangents)
     tangent_rows = wp.types.matrix(shape=(Q, 8), dtype=wp.float64)
     scale_rows = wp.types.matrix(shape=(Q, 2), dtype=wp.float64)
 
-    def transfer_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                        gas: wp.array(dtype=wp.float64), freqs: wp.array(dtype=wp.float64),
-                        cells: wp.array2d(dtype=wp.int32), points: wp.array2d(dtype=PointCoefficients),
-                        set0: int, pore_table: wp.array(dtype=wp.float64),
-                        out: wp.array3d(dtype=wp.float64), doubled: wp.array3d(dtype=wp.float64),
-                        step: wp.array2d(dtype=wp.float64), tangent: wp.array4d(dtype=wp.float64)):
+    def transfer_kernel(
+        params: wp.array2d(dtype=wp.float64),
+        flags: wp.array2d(dtype=wp.int32),
+        gas: wp.array(dtype=wp.float64),
+        freqs: wp.array(dtype=wp.float64),
+        cells: wp.array2d(dtype=wp.int32),
+        points: wp.array2d(dtype=PointCoefficients),
+        set0: int,
+        pore_table: wp.array(dtype=wp.float64),
+        out: wp.array3d(dtype=wp.float64),
+        doubled: wp.array3d(dtype=wp.float64),
+        step: wp.array2d(dtype=wp.float64),
+        tangent: wp.array4d(dtype=wp.float64),
+    ):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
         frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
         freqs[m + k] on the grid of twice the cell density (the step-doubling error estimate,
@@ -379,13 +473,13 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         area = PI * radius * radius
         n_seg = flags.shape[0]
         p = int(0)
-        for column in range(grid * n_seg):   # the doubled grid's points follow the main grid's
+        for column in range(grid * n_seg):  # the doubled grid's points follow the main grid's
             p = p + segment_points(flags, cells, i, column, column % n_seg)
         m = identity2()
-        log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))   # sum of the cells' tau (expm2_traceless)
+        log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # sum of the cells' tau (expm2_traceless)
         dm = tangent_rows()
         dlog = scale_rows()
-        undifferentiated = wp.float64(0.0)   # NaN where a part's A is not differentiated
+        undifferentiated = wp.float64(0.0)  # NaN where a part's A is not differentiated
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
             phi, r, q = pore_geometry(params, flags, i, s)
@@ -399,15 +493,18 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 if wp.static(tangents == 0):
-                    a1 = propagation_at(points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf,
-                                        pore_table)
-                    if uniform:   # exp(A L) of a part at uniform temperature
+                    a1 = propagation_at(
+                        points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
+                    )
+                    if uniform:  # exp(A L) of a part at uniform temperature
                         e, tau = expm2_traceless(scale2(a1, length))
                     else:
-                        a2 = propagation_at(points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area,
-                                            mob, sf, pore_table)
-                        a3 = propagation_at(points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area,
-                                            mob, sf, pore_table)
+                        a2 = propagation_at(
+                            points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
+                        )
+                        a3 = propagation_at(
+                            points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
+                        )
                         e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
                 else:
                     s1 = propagation_partials(points[li, p], omega, half_log_omega, gamma, model, pore_table)
@@ -432,16 +529,20 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                     for a in range(P):
                         plus = li + 1 + 2 * a
                         inv_two_step = wp.float64(0.5) / step[group, a]
-                        dlength = (seg_value(params, i + 1 + 2 * a, s, LENGTH)
-                                   - seg_value(params, i + 2 + 2 * a, s, LENGTH)) * inv_two_step
-                        d1 = propagation_tangent(s1, point_difference(points[plus, p], points[plus + 1, p],
-                                                                      inv_two_step))
+                        dlength = (
+                            seg_value(params, i + 1 + 2 * a, s, LENGTH) - seg_value(params, i + 2 + 2 * a, s, LENGTH)
+                        ) * inv_two_step
+                        d1 = propagation_tangent(
+                            s1, point_difference(points[plus, p], points[plus + 1, p], inv_two_step)
+                        )
                         dom = axpy2(dlength, a1, scale2(d1, length))
                         if not uniform:
-                            d2 = propagation_tangent(s2, point_difference(points[plus, p + 1], points[plus + 1, p + 1],
-                                                                          inv_two_step))
-                            d3 = propagation_tangent(s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2],
-                                                                          inv_two_step))
+                            d2 = propagation_tangent(
+                                s2, point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step)
+                            )
+                            d3 = propagation_tangent(
+                                s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step)
+                            )
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
                         de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
                         # d(E M) = dE M + E dM; the cells' tau are summed like the value's
@@ -486,10 +587,17 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
 
 
 @wp.kernel
-def profile_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                   first: int, heat_cells: int, x: wp.array(dtype=wp.float64),
-                   T: wp.array2d(dtype=wp.float64), dTdx: wp.array2d(dtype=wp.float64)):
+def profile_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    first: int,
+    heat_cells: int,
+    x: wp.array(dtype=wp.float64),
+    T: wp.array2d(dtype=wp.float64),
+    dTdx: wp.array2d(dtype=wp.float64),
+):
     """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
     cold temperature outside the thermal segments)."""
     i, j = wp.tid()

@@ -34,9 +34,23 @@ approximation (lam at the cell's mean temperature) that the design metrics use.
 
 import warp as wp
 
-from .layout import (CONDUCTIVITY_EXPONENT, END_CONDUCTANCE, F_HEATER, F_POROUS, H, H_CONVECTION, HEAT_INPUT,
-                     LENGTH, POROSITY, RADIATIVE_CONDUCTIVITY, RADIUS, SOLID_CONDUCTIVITY, T_COLD, WALL_CONDUCTANCE,
-                     seg_value)
+from .layout import (
+    CONDUCTIVITY_EXPONENT,
+    END_CONDUCTANCE,
+    F_HEATER,
+    F_POROUS,
+    H,
+    H_CONVECTION,
+    HEAT_INPUT,
+    LENGTH,
+    POROSITY,
+    RADIATIVE_CONDUCTIVITY,
+    RADIUS,
+    SOLID_CONDUCTIVITY,
+    T_COLD,
+    WALL_CONDUCTANCE,
+    seg_value,
+)
 from .gas import conductivity
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
@@ -98,7 +112,9 @@ def hyperbolic_ratios(u: wp.float64, v: wp.float64):
 
 
 @wp.func
-def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float64, xi: wp.float64):
+def cell_profile(
+    theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float64, xi: wp.float64
+):
     """Exact solution (theta, dtheta/dx) inside a constant-coefficient cell [0, d] at xi,
     given its end values. Written about the cell centre (m = xi - d/2) so that every
     ratio stays bounded for large k d and every small-k limit is taken analytically."""
@@ -113,7 +129,13 @@ def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma:
         theta = mean * wp.cosh(u) / ch + half * (m * shx(u)) / (wp.float64(0.5) * d * shx(v))
         dtheta = mean * k * k * m * shx(u) / ch + half * wp.cosh(u) / (wp.float64(0.5) * d * shx(v))
         # particular part w = (cosh v - cosh u)/(k^2 cosh v), w' = -sinh(u)/(k cosh v)
-        w = wp.float64(0.5) * (wp.float64(0.25) * d * d - m * m) * shx(wp.float64(0.5) * (v + u)) * shx(wp.float64(0.5) * (v - u)) / ch
+        w = (
+            wp.float64(0.5)
+            * (wp.float64(0.25) * d * d - m * m)
+            * shx(wp.float64(0.5) * (v + u))
+            * shx(wp.float64(0.5) * (v - u))
+            / ch
+        )
         theta = theta + sigma * w
         dtheta = dtheta - sigma * m * shx(u) / ch
         return theta, dtheta
@@ -125,8 +147,13 @@ def cell_profile(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma:
 
 
 @wp.func
-def segment_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), i: int, s: int):
+def segment_lambda(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
     """Axial conductivity [W/(m K)]: phi lam_gas + (1 - phi) lam_solid, gas at T_cold,
     plus the wall's axial conductance (``wall_conductance`` = lam_wall A_wall / S, 0 = off)."""
     lam = material_lambda(params, flags, gas, i, s)
@@ -137,8 +164,13 @@ def segment_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
-def material_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), i: int, s: int):
+def material_lambda(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
     """Conductivity of the gas and solid of segment s at T_cold [W/(m K)]."""
     lam_gas = conductivity(gas, params[T_COLD, i])
     if flags[s, F_POROUS] == 0:
@@ -148,8 +180,14 @@ def material_lambda(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtyp
 
 
 @wp.func
-def heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int,
-                lam: wp.float64, h: wp.float64):
+def heat_coeffs(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    i: int,
+    s: int,
+    lam: wp.float64,
+    h: wp.float64,
+):
     """(lam, k, sigma) from a conductivity lam and an exchange coefficient h."""
     R = params[RADIUS, i]
     k = wp.sqrt(wp.float64(2.0) * h / (R * lam))
@@ -160,8 +198,13 @@ def heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
 
 
 @wp.func
-def segment_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                        gas: wp.array(dtype=wp.float64), i: int, s: int):
+def segment_heat_coeffs(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
     """(lam, k, sigma) of thermal segment s: k = sqrt(2 h/(R lam)) [1/m], sigma [K/m^2]
     (the linear model: temperature-dependent effects off)."""
     return heat_coeffs(params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H))
@@ -180,8 +223,14 @@ def segment_nonlinear(params: wp.array2d(dtype=wp.float64), i: int, s: int):
 
 
 @wp.func
-def cell_heat_coeffs(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                     gas: wp.array(dtype=wp.float64), i: int, s: int, theta_mean: wp.float64):
+def cell_heat_coeffs(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    theta_mean: wp.float64,
+):
     """(lam, k, sigma) of a heat cell of segment s whose mean temperature excess is
     theta_mean [K]. With the temperature-dependent effects off this is exactly
     :func:`segment_heat_coeffs`; on, with T = T_cold + theta_mean:
@@ -243,8 +292,13 @@ class ConductivityLaw:
 
 
 @wp.func
-def conductivity_law(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                     gas: wp.array(dtype=wp.float64), i: int, s: int):
+def conductivity_law(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
     """The conductivity law of segment s of set i (evaluated once per cell: the gas
     conductivity at T_cold costs a pow)."""
     law = ConductivityLaw()
@@ -277,7 +331,12 @@ def kirchhoff(law: ConductivityLaw, theta: wp.float64):
         p = b + wp.float64(1.0)
         y = p * lt
         if wp.abs(y) < wp.float64(1.0e-3):
-            e = lt * (wp.float64(1.0) + y / wp.float64(2.0) * (wp.float64(1.0) + y / wp.float64(3.0) * (wp.float64(1.0) + y / wp.float64(4.0))))
+            e = lt * (
+                wp.float64(1.0)
+                + y
+                / wp.float64(2.0)
+                * (wp.float64(1.0) + y / wp.float64(3.0) * (wp.float64(1.0) + y / wp.float64(4.0)))
+            )
         else:
             e = (tb * t - wp.float64(1.0)) / p
     # (t^4 - 1)/4 = (t - 1)(t + 1)(t^2 + 1)/4 with t - 1 = theta/T_cold: no cancellation
@@ -319,9 +378,17 @@ def wall_sink(h: wp.float64, hc: wp.float64, R: wp.float64, theta: wp.float64):
 
 
 @wp.func
-def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), i: int, s: int, law: ConductivityLaw, theta_l: wp.float64,
-                   theta_r: wp.float64, d: wp.float64):
+def nonlinear_cell(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    law: ConductivityLaw,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+    d: wp.float64,
+):
     """Kirchhoff form of a heat cell of length d [m] of segment s (conductivity ``law``,
     :func:`conductivity_law`) with nodal excesses theta_l, theta_r [K] (see the comment
     block above): returns (U_l, U_r [W/m], lam_l,
@@ -374,9 +441,17 @@ def nonlinear_cell(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
-def nonlinear_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                      gas: wp.array(dtype=wp.float64), i: int, s: int, theta_l: wp.float64, theta_r: wp.float64,
-                      d: wp.float64, xi: wp.float64):
+def nonlinear_profile(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+    d: wp.float64,
+    xi: wp.float64,
+):
     """(theta [K], dtheta/dx [K/m]) at xi [m] in a heat cell [0, d] of segment s with a
     temperature-dependent conductivity: the cell's exact U(xi), U'(xi), then theta(U) and
     U'/lam."""
@@ -404,10 +479,20 @@ def end_sink(params: wp.array2d(dtype=wp.float64), i: int, first: int, count: in
 
 
 @wp.func
-def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                         gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
-                         max_iter: int, tol: wp.float64,
-                         theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+def solve_heat_nonlinear(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    max_iter: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+):
     """Nodal theta [K] of the nonlinear model (Kirchhoff cells, :func:`nonlinear_cell`):
     iterations that re-solve the tridiagonal flux balance with each cell's (k, sigma) and
     U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the previous iterate
@@ -440,9 +525,9 @@ def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d
                     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
                     tl = scratch[i, n_nodes + r]
                     tr = scratch[i, n_nodes + r + 1]
-                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s,
-                                                                      conductivity_law(params, flags, gas, i, s),
-                                                                      tl, tr, d)
+                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(
+                        params, flags, gas, i, s, conductivity_law(params, flags, gas, i, s), tl, tr, d
+                    )
                     a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
                     c_l = U_l - lam_l * tl
                     c_r = U_r - lam_r * tr
@@ -476,10 +561,20 @@ def solve_heat_nonlinear(params: wp.array2d(dtype=wp.float64), flags: wp.array2d
 
 
 @wp.func
-def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-               gas: wp.array(dtype=wp.float64), i: int, first: int, count: int, cells: int, fitted: int,
-               max_iter: int, tol: wp.float64,
-               theta: wp.array2d(dtype=wp.float64), scratch: wp.array2d(dtype=wp.float64)):
+def solve_heat(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    max_iter: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+):
     """Nodal temperature excess theta [K] of set i on the thermal segments
     first..first+count-1 (``cells`` per segment), written to theta[i, :]; ``scratch[i, :]``
     (2 x nodes columns) holds the Thomas algorithm's modified super-diagonal and the
@@ -525,9 +620,16 @@ def solve_heat(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.
 
 
 @wp.func
-def cell_coeffs_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                   i: int, s: int, node: int, nonlin: int):
+def cell_coeffs_at(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node: int,
+    nonlin: int,
+):
     """(lam, k, sigma) of the heat cell of segment s starting at node ``node``: the
     segment's constants, or with a temperature-dependent effect on, the cell-constant
     approximation at the cell's mean temperature (second order; the heat solve and the
@@ -538,28 +640,49 @@ def cell_coeffs_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 
 @wp.func
-def segment_profile(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int,
-                    node0: int, cells: int, k: wp.float64, sigma: wp.float64, d: wp.float64, nonlin: int,
-                    xi: wp.float64):
+def segment_profile(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node0: int,
+    cells: int,
+    k: wp.float64,
+    sigma: wp.float64,
+    d: wp.float64,
+    nonlin: int,
+    xi: wp.float64,
+):
     """(theta [K], dtheta/dx [K/m]) at local position xi [m] of thermal segment s, whose
     heat cells (length d) start at node0; (k, sigma) are the segment's, unused when
     ``nonlin`` (a temperature-dependent effect is on: the Kirchhoff cell,
     :func:`nonlinear_profile`)."""
     c = wp.min(int(xi / d), cells - 1)
     if nonlin != 0:
-        return nonlinear_profile(params, flags, gas, i, s, theta[i, node0 + c], theta[i, node0 + c + 1], d,
-                                 xi - wp.float64(c) * d)
+        return nonlinear_profile(
+            params, flags, gas, i, s, theta[i, node0 + c], theta[i, node0 + c + 1], d, xi - wp.float64(c) * d
+        )
     return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
 
 
 @wp.func
-def temperature_at(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                   gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                   i: int, s: int, first: int, cells: int, xi: wp.float64):
+def temperature_at(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    first: int,
+    cells: int,
+    xi: wp.float64,
+):
     """(T [K], dT/dx [K/m]) at local position xi [m] in thermal segment s of set i."""
     lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-    th, dth = segment_profile(params, flags, gas, theta, i, s, (s - first) * cells, cells, k, sigma, d,
-                              segment_nonlinear(params, i, s), xi)
+    th, dth = segment_profile(
+        params, flags, gas, theta, i, s, (s - first) * cells, cells, k, sigma, d, segment_nonlinear(params, i, s), xi
+    )
     return params[T_COLD, i] + th, dth

@@ -20,8 +20,16 @@ LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
 # thermal_radius_ratio (1: r_k = r), conductivity_exponent (0), radiative_conductivity (0),
 # h_convection (0), wall_conductance (0), frame_mobility (0: rigid frame), viscous_shape_factor (1),
 # end_conductance (0: adiabatic ends of the heat model)
-(THERMAL_RADIUS_RATIO, CONDUCTIVITY_EXPONENT, RADIATIVE_CONDUCTIVITY, H_CONVECTION, WALL_CONDUCTANCE, FRAME_MOBILITY,
- VISCOUS_SHAPE_FACTOR, END_CONDUCTANCE) = range(6, 14)
+(
+    THERMAL_RADIUS_RATIO,
+    CONDUCTIVITY_EXPONENT,
+    RADIATIVE_CONDUCTIVITY,
+    H_CONVECTION,
+    WALL_CONDUCTANCE,
+    FRAME_MOBILITY,
+    VISCOUS_SHAPE_FACTOR,
+    END_CONDUCTANCE,
+) = range(6, 14)
 N_FIELDS = 14
 # structure flags per segment
 F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER = range(4)

@@ -39,9 +39,15 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 
 @wp.kernel(enable_backward=False)
-def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                 gas: wp.array(dtype=wp.float64), omega: wp.float64, cell_density: wp.array(dtype=wp.float64),
-                 k_factor: wp.float64, cells: wp.array2d(dtype=wp.int32)):
+def magnus_cells(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    omega: wp.float64,
+    cell_density: wp.array(dtype=wp.float64),
+    k_factor: wp.float64,
+    cells: wp.array2d(dtype=wp.int32),
+):
     """cells[i, s]: the Magnus cells the cascade kernel (``kernels.forward.transfer_kernel``)
     gives thermal segment s of parameter set i at angular frequency ``omega`` [rad/s],
     ``ceil(cell_density[i] (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
@@ -58,23 +64,36 @@ def magnus_cells(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
 
 
 @wp.kernel(enable_backward=False)
-def gas_transport(gas: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64),
-                  mu: wp.array(dtype=wp.float64), k: wp.array(dtype=wp.float64)):
+def gas_transport(
+    gas: wp.array(dtype=wp.float64),
+    T: wp.array(dtype=wp.float64),
+    mu: wp.array(dtype=wp.float64),
+    k: wp.array(dtype=wp.float64),
+):
     """Dynamic viscosity mu [Pa s] and conductivity k [W/(m K)] at temperatures T [K]."""
     i = wp.tid()
     mu[i] = viscosity(gas, T[i])
     k[i] = conductivity(gas, T[i])
 
+
 #: kinds of parameter transform: natural value v from the scaled variable z and the scale s
 KIND_LINEAR = wp.constant(0)  # v = o + s z
-KIND_LOG = wp.constant(1)     # v = s exp(z)
+KIND_LOG = wp.constant(1)  # v = s exp(z)
 
 
 @wp.kernel(enable_backward=False)
-def build_sets(z: wp.array2d(dtype=wp.float64), step: wp.array2d(dtype=wp.float64),
-               ids: wp.array(dtype=wp.int32), scale: wp.array2d(dtype=wp.float64),
-               offset: wp.array2d(dtype=wp.float64), kind: wp.array(dtype=wp.int32), fixed: wp.array2d(dtype=wp.float64),
-               row_src: wp.array(dtype=wp.int32), central: int, varying: wp.array2d(dtype=wp.float64)):
+def build_sets(
+    z: wp.array2d(dtype=wp.float64),
+    step: wp.array2d(dtype=wp.float64),
+    ids: wp.array(dtype=wp.int32),
+    scale: wp.array2d(dtype=wp.float64),
+    offset: wp.array2d(dtype=wp.float64),
+    kind: wp.array(dtype=wp.int32),
+    fixed: wp.array2d(dtype=wp.float64),
+    row_src: wp.array(dtype=wp.int32),
+    central: int,
+    varying: wp.array2d(dtype=wp.float64),
+):
     """varying[r, col]: slot = col // (1 + p) and j = col % (1 + p) (forward differences:
     set j = 1 + a is z + step e_a), or with ``central`` = 1 slot = col // (1 + 2p) and set
     j = 1 + 2a, 2 + 2a is z +- step e_a (the tangent pass's neighbours,
@@ -133,12 +152,19 @@ def normal_kernel(p: int, tangents: bool = False):
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def normal_equations(out: wp.array3d(dtype=wp.float64), Y: wp.array3d(dtype=wp.float64),
-                         W: wp.array3d(dtype=wp.float64), zc: wp.array(dtype=wp.float64),
-                         ids: wp.array(dtype=wp.int32), step: wp.array2d(dtype=wp.float64),
-                         tangent: wp.array4d(dtype=wp.float64),
-                         cost: wp.array(dtype=wp.float64), raw: wp.array(dtype=wp.float64),
-                         g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64)):
+    def normal_equations(
+        out: wp.array3d(dtype=wp.float64),
+        Y: wp.array3d(dtype=wp.float64),
+        W: wp.array3d(dtype=wp.float64),
+        zc: wp.array(dtype=wp.float64),
+        ids: wp.array(dtype=wp.int32),
+        step: wp.array2d(dtype=wp.float64),
+        tangent: wp.array4d(dtype=wp.float64),
+        cost: wp.array(dtype=wp.float64),
+        raw: wp.array(dtype=wp.float64),
+        g: wp.array2d(dtype=wp.float64),
+        H: wp.array3d(dtype=wp.float64),
+    ):
         s = wp.tid()
         pid = ids[s]
         base = s
@@ -152,7 +178,7 @@ def normal_kernel(p: int, tangents: bool = False):
         c2 = wp.float64(0.0)
         u2 = wp.float64(0.0)
         wrow = pid
-        if W.shape[0] == 1:    # one weight row shared by every problem
+        if W.shape[0] == 1:  # one weight row shared by every problem
             wrow = 0
         for f in range(out.shape[1]):
             for k in range(8):

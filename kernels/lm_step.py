@@ -97,9 +97,16 @@ def step_kernels(p: int):
     veci = wp.types.vector(length=p, dtype=wp.int32)
 
     @wp.func
-    def grad_cosine(q: int, b: int, z: wp.array2d(dtype=wp.float64), g: wp.array2d(dtype=wp.float64),
-                    H: wp.array3d(dtype=wp.float64), cost: wp.float64, zlo: wp.array2d(dtype=wp.float64),
-                    zhi: wp.array2d(dtype=wp.float64)):
+    def grad_cosine(
+        q: int,
+        b: int,
+        z: wp.array2d(dtype=wp.float64),
+        g: wp.array2d(dtype=wp.float64),
+        H: wp.array3d(dtype=wp.float64),
+        cost: wp.float64,
+        zlo: wp.array2d(dtype=wp.float64),
+        zhi: wp.array2d(dtype=wp.float64),
+    ):
         """max over free a of |g_a| / sqrt(H_aa F) of slot q (data row b), and the number
         of free components."""
         tiny = wp.float64(1e-300)
@@ -125,11 +132,22 @@ def step_kernels(p: int):
         return wp.float64(wp.inf)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def init(pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64), zhi: wp.array2d(dtype=wp.float64),
-             tau: wp.float64, gtol: wp.float64, z: wp.array2d(dtype=wp.float64), cost: wp.array(dtype=wp.float64),
-             g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64), mu: wp.array(dtype=wp.float64),
-             nu: wp.array(dtype=wp.float64), reason: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32),
-             done: wp.array(dtype=wp.int32)):
+    def init(
+        pid: wp.array(dtype=wp.int32),
+        zlo: wp.array2d(dtype=wp.float64),
+        zhi: wp.array2d(dtype=wp.float64),
+        tau: wp.float64,
+        gtol: wp.float64,
+        z: wp.array2d(dtype=wp.float64),
+        cost: wp.array(dtype=wp.float64),
+        g: wp.array2d(dtype=wp.float64),
+        H: wp.array3d(dtype=wp.float64),
+        mu: wp.array(dtype=wp.float64),
+        nu: wp.array(dtype=wp.float64),
+        reason: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32),
+        done: wp.array(dtype=wp.int32),
+    ):
         q = wp.tid()
         b = int(pid[q])
         c = valid(cost[q], q, g, H)
@@ -155,10 +173,20 @@ def step_kernels(p: int):
             done[q] = 1
 
     @wp.kernel(enable_backward=False, module="unique")
-    def propose(act: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64),
-                zhi: wp.array2d(dtype=wp.float64), z: wp.array2d(dtype=wp.float64), g: wp.array2d(dtype=wp.float64),
-                H: wp.array3d(dtype=wp.float64), mu: wp.array(dtype=wp.float64), zt: wp.array2d(dtype=wp.float64),
-                dz: wp.array2d(dtype=wp.float64), pred: wp.array(dtype=wp.float64), chol_ok: wp.array(dtype=wp.int32)):
+    def propose(
+        act: wp.array(dtype=wp.int32),
+        pid: wp.array(dtype=wp.int32),
+        zlo: wp.array2d(dtype=wp.float64),
+        zhi: wp.array2d(dtype=wp.float64),
+        z: wp.array2d(dtype=wp.float64),
+        g: wp.array2d(dtype=wp.float64),
+        H: wp.array3d(dtype=wp.float64),
+        mu: wp.array(dtype=wp.float64),
+        zt: wp.array2d(dtype=wp.float64),
+        dz: wp.array2d(dtype=wp.float64),
+        pred: wp.array(dtype=wp.float64),
+        chol_ok: wp.array(dtype=wp.int32),
+    ):
         s = wp.tid()
         q = int(act[s])
         b = int(pid[q])
@@ -235,16 +263,38 @@ def step_kernels(p: int):
         chol_ok[s] = ok
 
     @wp.kernel(enable_backward=False, module="unique")
-    def update(act: wp.array(dtype=wp.int32), pid: wp.array(dtype=wp.int32), zlo: wp.array2d(dtype=wp.float64),
-               zhi: wp.array2d(dtype=wp.float64), change_kind: wp.array(dtype=wp.int32),
-               scale: wp.array2d(dtype=wp.float64), offset: wp.array2d(dtype=wp.float64),
-               zt: wp.array2d(dtype=wp.float64), dz: wp.array2d(dtype=wp.float64), pred: wp.array(dtype=wp.float64),
-               chol_ok: wp.array(dtype=wp.int32), ct: wp.array(dtype=wp.float64), rt: wp.array(dtype=wp.float64),
-               gt: wp.array2d(dtype=wp.float64), Ht: wp.array3d(dtype=wp.float64), damping: int, xtol: wp.float64,
-               gtol: wp.float64, max_iter: int, z: wp.array2d(dtype=wp.float64), cost: wp.array(dtype=wp.float64),
-               raw: wp.array(dtype=wp.float64), g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64),
-               mu: wp.array(dtype=wp.float64), nu: wp.array(dtype=wp.float64), iterations: wp.array(dtype=wp.int32),
-               reason: wp.array(dtype=wp.int32), converged: wp.array(dtype=wp.int32), done: wp.array(dtype=wp.int32)):
+    def update(
+        act: wp.array(dtype=wp.int32),
+        pid: wp.array(dtype=wp.int32),
+        zlo: wp.array2d(dtype=wp.float64),
+        zhi: wp.array2d(dtype=wp.float64),
+        change_kind: wp.array(dtype=wp.int32),
+        scale: wp.array2d(dtype=wp.float64),
+        offset: wp.array2d(dtype=wp.float64),
+        zt: wp.array2d(dtype=wp.float64),
+        dz: wp.array2d(dtype=wp.float64),
+        pred: wp.array(dtype=wp.float64),
+        chol_ok: wp.array(dtype=wp.int32),
+        ct: wp.array(dtype=wp.float64),
+        rt: wp.array(dtype=wp.float64),
+        gt: wp.array2d(dtype=wp.float64),
+        Ht: wp.array3d(dtype=wp.float64),
+        damping: int,
+        xtol: wp.float64,
+        gtol: wp.float64,
+        max_iter: int,
+        z: wp.array2d(dtype=wp.float64),
+        cost: wp.array(dtype=wp.float64),
+        raw: wp.array(dtype=wp.float64),
+        g: wp.array2d(dtype=wp.float64),
+        H: wp.array3d(dtype=wp.float64),
+        mu: wp.array(dtype=wp.float64),
+        nu: wp.array(dtype=wp.float64),
+        iterations: wp.array(dtype=wp.int32),
+        reason: wp.array(dtype=wp.int32),
+        converged: wp.array(dtype=wp.int32),
+        done: wp.array(dtype=wp.int32),
+    ):
         s = wp.tid()
         q = int(act[s])
         b = int(pid[q])

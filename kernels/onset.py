@@ -23,8 +23,7 @@ import warp as wp
 
 from .acoustics import CMat2, expm2, magnus6_step, propagation_matrix_complex, scale2
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
-from .forward import (GAUSS, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry,
-                      shape_factor, thermal_radius)
+from .forward import GAUSS, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry, shape_factor, thermal_radius
 from .gas import sound_speed_squared
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
 from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
@@ -51,23 +50,64 @@ def mat_vec(m: CMat2, p: wp.vec2d, u: wp.vec2d):
 
 
 @wp.func
-def duct_step(gas: wp.array(dtype=wp.float64), p_mean: wp.float64, omega: wp.vec2d, T: wp.float64,
-              radius: wp.float64, length: wp.float64, p: wp.vec2d, u: wp.vec2d):
+def duct_step(
+    gas: wp.array(dtype=wp.float64),
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T: wp.float64,
+    radius: wp.float64,
+    length: wp.float64,
+    p: wp.vec2d,
+    u: wp.vec2d,
+):
     """(p, U) carried through an empty duct of ``length`` [m], ``radius`` [m] at uniform T [K]:
     exp(A L), the closed form of docs/physics.md."""
     area = PI * radius * radius
-    a = propagation_matrix_complex(gas, p_mean, omega, T, wp.float64(0.0), wp.float64(1.0), radius, wp.float64(1.0),
-                                   0, area, radius, wp.float64(0.0), wp.float64(1.0))
+    a = propagation_matrix_complex(
+        gas,
+        p_mean,
+        omega,
+        T,
+        wp.float64(0.0),
+        wp.float64(1.0),
+        radius,
+        wp.float64(1.0),
+        0,
+        area,
+        radius,
+        wp.float64(0.0),
+        wp.float64(1.0),
+    )
     return mat_vec(expm2(scale2(a, length)), p, u)
 
 
 @wp.func
-def gradient_matrix_complex(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                            gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), i: int, s: int,
-                            node0: int, heat_cells: int, k: wp.float64, sigma: wp.float64, dh: wp.float64,
-                            xi: wp.float64, p_mean: wp.float64, omega: wp.vec2d, T_cold: wp.float64, phi: wp.float64,
-                            r: wp.float64, q: wp.float64, model: int, area: wp.float64, r_k: wp.float64,
-                            mob: wp.float64, sf: wp.float64, nonlin: int):
+def gradient_matrix_complex(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node0: int,
+    heat_cells: int,
+    k: wp.float64,
+    sigma: wp.float64,
+    dh: wp.float64,
+    xi: wp.float64,
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T_cold: wp.float64,
+    phi: wp.float64,
+    r: wp.float64,
+    q: wp.float64,
+    model: int,
+    area: wp.float64,
+    r_k: wp.float64,
+    mob: wp.float64,
+    sf: wp.float64,
+    nonlin: int,
+):
     """A(x) at complex omega and local position xi [m] of thermal segment s whose heat cells
     start at node0 (:func:`tawarp.kernels.acoustics.propagation_matrix_complex` at the
     segment's profile)."""
@@ -76,10 +116,21 @@ def gradient_matrix_complex(params: wp.array2d(dtype=wp.float64), flags: wp.arra
 
 
 @wp.func
-def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
-                i: int, omega: wp.vec2d, omega_ref: wp.float64, p_in: wp.vec2d, u_in: wp.vec2d):
+def core_vector(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.float64,
+    first: int,
+    heat_cells: int,
+    i: int,
+    omega: wp.vec2d,
+    omega_ref: wp.float64,
+    p_in: wp.vec2d,
+    u_in: wp.vec2d,
+):
     """(p, U) at x6 from (p, U) at x1 through the core of set i at complex omega: the
     segment walk of ``transfer_kernel`` (same cells, same Magnus scheme), applied to a vector.
     Adaptive cell counts use the real ``omega_ref`` [rad/s]."""
@@ -98,8 +149,9 @@ def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
         sf = shape_factor(params, flags, i, s)
         model = flags[s, F_PORE_MODEL]
         if flags[s, F_THERMAL] == 0:
-            a = propagation_matrix_complex(gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k,
-                                           mob, sf)
+            a = propagation_matrix_complex(
+                gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf
+            )
             p, u = mat_vec(expm2(scale2(a, length)), p, u)
         else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
@@ -113,15 +165,84 @@ def core_vector(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 x0 = wp.float64(c) * h
-                a1 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS[0] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
-                                             mob, sf, nonlin)
-                a2 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS[1] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
-                                             mob, sf, nonlin)
-                a3 = gradient_matrix_complex(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh,
-                                             x0 + GAUSS[2] * h, p_mean, omega, T_cold, phi, r, q, model, area, r_k,
-                                             mob, sf, nonlin)
+                a1 = gradient_matrix_complex(
+                    params,
+                    flags,
+                    gas,
+                    theta,
+                    i,
+                    s,
+                    node0,
+                    heat_cells,
+                    k,
+                    sigma,
+                    dh,
+                    x0 + GAUSS[0] * h,
+                    p_mean,
+                    omega,
+                    T_cold,
+                    phi,
+                    r,
+                    q,
+                    model,
+                    area,
+                    r_k,
+                    mob,
+                    sf,
+                    nonlin,
+                )
+                a2 = gradient_matrix_complex(
+                    params,
+                    flags,
+                    gas,
+                    theta,
+                    i,
+                    s,
+                    node0,
+                    heat_cells,
+                    k,
+                    sigma,
+                    dh,
+                    x0 + GAUSS[1] * h,
+                    p_mean,
+                    omega,
+                    T_cold,
+                    phi,
+                    r,
+                    q,
+                    model,
+                    area,
+                    r_k,
+                    mob,
+                    sf,
+                    nonlin,
+                )
+                a3 = gradient_matrix_complex(
+                    params,
+                    flags,
+                    gas,
+                    theta,
+                    i,
+                    s,
+                    node0,
+                    heat_cells,
+                    k,
+                    sigma,
+                    dh,
+                    x0 + GAUSS[2] * h,
+                    p_mean,
+                    omega,
+                    T_cold,
+                    phi,
+                    r,
+                    q,
+                    model,
+                    area,
+                    r_k,
+                    mob,
+                    sf,
+                    nonlin,
+                )
                 m = magnus6_step(a1, a2, a3, h)
                 p, u = mat_vec(m, p, u)
     return p, u
@@ -142,8 +263,10 @@ def table_impedance(table: wp.array2d(dtype=wp.float64), omega: wp.vec2d):
         j = j + 1
     za = cplx(table[j, 1], table[j, 2])
     zb = cplx(table[j + 1, 1], table[j + 1, 2])
-    t = cplx((omega[0] / TWO_PI - table[j, 0]) / (table[j + 1, 0] - table[j, 0]),
-             omega[1] / TWO_PI / (table[j + 1, 0] - table[j, 0]))
+    t = cplx(
+        (omega[0] / TWO_PI - table[j, 0]) / (table[j + 1, 0] - table[j, 0]),
+        omega[1] / TWO_PI / (table[j + 1, 0] - table[j, 0]),
+    )
     return za + cmul(zb - za, t)
 
 
@@ -162,36 +285,62 @@ def end_row(kind: int, table: wp.array2d(dtype=wp.float64), omega: wp.vec2d, sig
 
 
 @wp.func
-def engine_residual(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                    seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
-                    resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
-                    z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
-                    i: int, omega: wp.vec2d, omega_ref: wp.float64):
+def engine_residual(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.float64,
+    first: int,
+    heat_cells: int,
+    resonator: wp.array2d(dtype=wp.float64),
+    ends: wp.array(dtype=wp.int32),
+    z_left: wp.array2d(dtype=wp.float64),
+    z_right: wp.array2d(dtype=wp.float64),
+    i: int,
+    omega: wp.vec2d,
+    omega_ref: wp.float64,
+):
     """a_R p + b_R U at the right end for the state that meets the left end condition."""
     p_mean = params[P_MEAN, i]
     a_l, b_l = end_row(ends[0], z_left, omega, wp.float64(1.0))
     p = b_l
     u = -a_l
-    p, u = duct_step(gas, p_mean, omega, resonator[i, R_LEFT_T], resonator[i, R_LEFT_RADIUS],
-                     resonator[i, R_LEFT_LENGTH], p, u)
+    p, u = duct_step(
+        gas, p_mean, omega, resonator[i, R_LEFT_T], resonator[i, R_LEFT_RADIUS], resonator[i, R_LEFT_LENGTH], p, u
+    )
     p, u = core_vector(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, i, omega, omega_ref, p, u)
-    p, u = duct_step(gas, p_mean, omega, resonator[i, R_RIGHT_T], resonator[i, R_RIGHT_RADIUS],
-                     resonator[i, R_RIGHT_LENGTH], p, u)
+    p, u = duct_step(
+        gas, p_mean, omega, resonator[i, R_RIGHT_T], resonator[i, R_RIGHT_RADIUS], resonator[i, R_RIGHT_LENGTH], p, u
+    )
     a_r, b_r = end_row(ends[1], z_right, omega, wp.float64(-1.0))
     return cmul(a_r, p) + cmul(b_r, u)
 
 
 @wp.kernel
-def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                 gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                 seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
-                 resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
-                 z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
-                 guess: wp.array(dtype=wp.vec2d), omega_ref: wp.array(dtype=wp.float64), spread: wp.float64,
-                 tol: wp.float64, max_iter: int,
-                 omega_out: wp.array(dtype=wp.vec2d), iterations: wp.array(dtype=wp.int32),
-                 evaluations: wp.array(dtype=wp.int32)):
+def eigen_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.float64,
+    first: int,
+    heat_cells: int,
+    resonator: wp.array2d(dtype=wp.float64),
+    ends: wp.array(dtype=wp.int32),
+    z_left: wp.array2d(dtype=wp.float64),
+    z_right: wp.array2d(dtype=wp.float64),
+    guess: wp.array(dtype=wp.vec2d),
+    omega_ref: wp.array(dtype=wp.float64),
+    spread: wp.float64,
+    tol: wp.float64,
+    max_iter: int,
+    omega_out: wp.array(dtype=wp.vec2d),
+    iterations: wp.array(dtype=wp.int32),
+    evaluations: wp.array(dtype=wp.int32),
+):
     """omega_out[i]: the zero of :func:`engine_residual` nearest ``guess[i]`` [rad/s] by
     Muller's method from guess (1 -+ spread) and guess; stops when a step is below
     ``tol`` |omega|. iterations[i]: steps taken, or -1 when max_iter steps did not converge;
@@ -219,8 +368,23 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
                 x = x0
             elif it == 1:
                 x = x1
-            fx = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator,
-                                 ends, z_left, z_right, i, x, w_ref)
+            fx = engine_residual(
+                params,
+                flags,
+                gas,
+                theta,
+                seg_cells,
+                cell_density,
+                first,
+                heat_cells,
+                resonator,
+                ends,
+                z_left,
+                z_right,
+                i,
+                x,
+                w_ref,
+            )
             if it == 0:
                 f0 = fx
             elif it == 1:
@@ -253,26 +417,58 @@ def eigen_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=w
 
 
 @wp.kernel
-def residual_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                    gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                    seg_cells: wp.array(dtype=wp.int32), cell_density: wp.float64, first: int, heat_cells: int,
-                    resonator: wp.array2d(dtype=wp.float64), ends: wp.array(dtype=wp.int32),
-                    z_left: wp.array2d(dtype=wp.float64), z_right: wp.array2d(dtype=wp.float64),
-                    column: wp.array(dtype=wp.int32), omega: wp.array(dtype=wp.vec2d),
-                    omega_ref: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec2d)):
+def residual_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.float64,
+    first: int,
+    heat_cells: int,
+    resonator: wp.array2d(dtype=wp.float64),
+    ends: wp.array(dtype=wp.int32),
+    z_left: wp.array2d(dtype=wp.float64),
+    z_right: wp.array2d(dtype=wp.float64),
+    column: wp.array(dtype=wp.int32),
+    omega: wp.array(dtype=wp.vec2d),
+    omega_ref: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.vec2d),
+):
     """out[j]: :func:`engine_residual` of parameter set ``column[j]`` (its params, theta,
     resonator row and ``omega_ref`` [rad/s]) at complex ``omega[j]`` [rad/s]: one evaluation
     per thread, for the onset's Newton refinement (finite differences in omega and Q)."""
     j = wp.tid()
     i = column[j]
-    out[j] = engine_residual(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, resonator, ends,
-                             z_left, z_right, i, omega[j], omega_ref[i])
+    out[j] = engine_residual(
+        params,
+        flags,
+        gas,
+        theta,
+        seg_cells,
+        cell_density,
+        first,
+        heat_cells,
+        resonator,
+        ends,
+        z_left,
+        z_right,
+        i,
+        omega[j],
+        omega_ref[i],
+    )
 
 
 @wp.kernel
-def hot_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-               gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64), first: int, heat_cells: int,
-               out: wp.array(dtype=wp.float64)):
+def hot_kernel(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    first: int,
+    heat_cells: int,
+    out: wp.array(dtype=wp.float64),
+):
     """out[i]: the largest steady temperature [K] of set i. In each heat cell the profile
     has at most one interior maximum (a cosh plus a constant, or the Kirchhoff cell's
     smooth profile): the cell's ends, and where dT/dx goes from > 0 to < 0 across the cell,
@@ -296,6 +492,8 @@ def hot_kernel(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.
                             a = mid
                         else:
                             b = mid
-                    tm, dm = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, wp.float64(0.5) * (a + b))
+                    tm, dm = temperature_at(
+                        params, flags, gas, theta, i, s, first, heat_cells, wp.float64(0.5) * (a + b)
+                    )
                     best = wp.max(best, tm)
     out[i] = best

@@ -184,7 +184,7 @@ def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64
     that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
     Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
     Chebyshev coefficients."""
-    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):   # also NaN: never an index from it
+    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
         return pore_circular(wp.exp(log_s))
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
@@ -319,7 +319,7 @@ def _plates_exponential_c(s: wp.vec2d):
 @wp.func
 def pore_functions_complex(model: int, s: wp.vec2d):
     """f, g of the pore ``model`` at complex s = r / delta (complex frequency)."""
-    reach = s[0] + s[1]   # Im z of the tube, Re w of the plates
+    reach = s[0] + s[1]  # Im z of the tube, Re w of the plates
     if model == PORE_PLATES:
         if reach < PLATES_EXPONENTIAL_S:
             return _plates_continued_fraction_c(s)

@@ -32,8 +32,13 @@ from tawarp.model import biot
 
 NU = 0.3
 #: (name, lower bound, upper bound) of the fitted parameters
-RIGID = (("phi", 0.7, 0.999), ("sigma", 1e3, 1e5), ("alpha_inf", 1.0, 4.0), ("Lambda", 10e-6, 1e-3),
-         ("Lambda_prime", 10e-6, 2e-3))
+RIGID = (
+    ("phi", 0.7, 0.999),
+    ("sigma", 1e3, 1e5),
+    ("alpha_inf", 1.0, 4.0),
+    ("Lambda", 10e-6, 1e-3),
+    ("Lambda_prime", 10e-6, 2e-3),
+)
 FRAME = (("E", 1e3, 1e8), ("eta", 1e-3, 1.0), ("rho_1", 2.0, 200.0))
 BAND = (1100.0, 1400.0)  # Hz: the thick layer's frame-resonance feature
 
@@ -57,8 +62,10 @@ class Fit:
 
     def predict(self, x) -> list[np.ndarray]:
         v = self.values(x)
-        return [self.model(d.freq, thickness=d.thickness, T=d.T_ambient, P0=d.p_ambient, **v, **self.fixed)
-                for d in self.data]
+        return [
+            self.model(d.freq, thickness=d.thickness, T=d.T_ambient, P0=d.p_ambient, **v, **self.fixed)
+            for d in self.data
+        ]
 
     def residual(self, x) -> np.ndarray:
         r = np.concatenate([d.Zs - Z for d, Z in zip(self.data, self.predict(x))]) / self.scale
@@ -97,14 +104,19 @@ def main(argv=None) -> int:
     rigid = Fit(data, RIGID, biot.rigid_surface_impedance, {})
     # README start and 8 starts 30 % off it on every parameter (seeded)
     rng = np.random.default_rng(0)
-    r_starts = [start] + [{k: v * f for (k, v), f in zip(start.items(), rng.choice([0.7, 1.3], len(start)))}
-                          for _ in range(8)]
+    r_starts = [start] + [
+        {k: v * f for (k, v), f in zip(start.items(), rng.choice([0.7, 1.3], len(start)))} for _ in range(8)
+    ]
     r_fit = rigid.run(r_starts)
     r_vals = rigid.values(r_fit.x)
 
     elastic = Fit(data, RIGID + FRAME, biot.surface_impedance, {"nu": NU})
-    starts = [{**s, "E": E, "eta": 0.1, "rho_1": rho} for s in (start, r_vals)
-              for E in (3e4, 1e5, 3e5, 1e6) for rho in (10.0, 40.0)]
+    starts = [
+        {**s, "E": E, "eta": 0.1, "rho_1": rho}
+        for s in (start, r_vals)
+        for E in (3e4, 1e5, 3e5, 1e6)
+        for rho in (10.0, 40.0)
+    ]
     e_fit = elastic.run(starts)
     e_vals = elastic.values(e_fit.x)
     seconds = time.perf_counter() - t0
@@ -126,12 +138,23 @@ def main(argv=None) -> int:
     docs.mkdir(parents=True, exist_ok=True)
     _figure(data, Zr, Ze, docs / "elastic_frame.png", args.sample)
     c_frame = np.sqrt(e_vals["E"] * (1 - NU) / ((1 + NU) * (1 - 2 * NU) * e_vals["rho_1"]))
-    _write_md(docs / "elastic_frame.md", args.sample, data, readme, r_vals, e_vals, rows, c_frame, seconds,
-              r_fit, e_fit, elastic.log_std(e_fit))
+    _write_md(
+        docs / "elastic_frame.md",
+        args.sample,
+        data,
+        readme,
+        r_vals,
+        e_vals,
+        rows,
+        c_frame,
+        seconds,
+        r_fit,
+        e_fit,
+        elastic.log_std(e_fit),
+    )
     for name, a, b in rows:
         print(f"{name:>24}: rigid JCA {a:.4f}  Biot {b:.4f}")
-    print(f"E = {e_vals['E']:.3g} Pa, eta = {e_vals['eta']:.3g}, rho_1 = {e_vals['rho_1']:.3g} kg/m^3; "
-          f"{seconds:.1f} s")
+    print(f"E = {e_vals['E']:.3g} Pa, eta = {e_vals['eta']:.3g}, rho_1 = {e_vals['rho_1']:.3g} kg/m^3; {seconds:.1f} s")
     return 0
 
 
@@ -206,8 +229,13 @@ def _write_md(path, sample, data, readme, rv, ev, rows, c_frame, seconds, r_fit,
         "| --- | --- | --- |",
     ]
     lines += [f"| {n} | {a:.4f} | {b:.4f} |" for n, a, b in rows]
-    lines += ["", "Fitted parameters (README: the paper's values):", "",
-              "| parameter | unit | README | rigid JCA | Biot |", "| --- | --- | --- | --- | --- |"]
+    lines += [
+        "",
+        "Fitted parameters (README: the paper's values):",
+        "",
+        "| parameter | unit | README | rigid JCA | Biot |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for k in biot.JCA_PARAMETERS:
         lines.append(f"| {k} | {units[k]} | {readme[k]:.4g} | {rv[k]:.4g} | {ev[k]:.4g} |")
     for k in ("E", "eta", "rho_1"):
@@ -215,10 +243,13 @@ def _write_md(path, sample, data, readme, rv, ev, rows, c_frame, seconds, r_fit,
     names = [s[0] for s in RIGID + FRAME]
     std, corr = e_std
     iE, ir = names.index("E"), names.index("rho_1")
-    lines += ["", "Relative std (from the Jacobian, indicative: digitized data) of the Biot fit: "
-              + ", ".join(f"{n} {v:.2g}" for n, v in zip(names, std))
-              + f"; correlation(E, rho_1) = {corr[iE, ir]:.3f}: what the data fix is the frame wave speed",
-              "(the resonance frequency), less so E and rho_1 apart."]
+    lines += [
+        "",
+        "Relative std (from the Jacobian, indicative: digitized data) of the Biot fit: "
+        + ", ".join(f"{n} {v:.2g}" for n, v in zip(names, std))
+        + f"; correlation(E, rho_1) = {corr[iE, ir]:.3f}: what the data fix is the frame wave speed",
+        "(the resonance frequency), less so E and rho_1 apart.",
+    ]
     r_bound = [s[0] for s, m in zip(RIGID, r_fit.active_mask) if m != 0]
     e_bound = [s[0] for s, m in zip(RIGID + FRAME, e_fit.active_mask) if m != 0]
     lines += [
@@ -233,8 +264,10 @@ def _write_md(path, sample, data, readme, rv, ev, rows, c_frame, seconds, r_fit,
         "",
     ]
     if "Lambda" in r_bound:
-        lines[-3:-3] = ["(The rigid fit runs Lambda to its bound, flattening the viscous dispersion in place of the",
-                        "missing frame; for foam2, raising the bound to 10 mm left its error at 0.0581.)"]
+        lines[-3:-3] = [
+            "(The rigid fit runs Lambda to its bound, flattening the viscous dispersion in place of the",
+            "missing frame; for foam2, raising the bound to 10 mm left its error at 0.0581.)",
+        ]
     Path(path).write_text("\n".join(lines))
 
 

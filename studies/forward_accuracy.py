@@ -44,21 +44,37 @@ def main(argv=None):
         core, Q = load_core(name), HEAT.get(name, 80.0)
         ref = reference.dimensionless_transfer(core, FREQS, Q)
         cells = [2, 4, 8, 16, 32, 64]
-        e = [relative_error(transfer_matrices(core, FREQS, Q, device=args.device, cells=c).dimensionless()[0], ref)
-             for c in cells]
+        e = [
+            relative_error(transfer_matrices(core, FREQS, Q, device=args.device, cells=c).dimensionless()[0], ref)
+            for c in cells
+        ]
         dens = [0.5, 0.75, 1.0, 1.5, 2.0, 3.0]
-        ed = [relative_error(transfer_matrices(core, FREQS, Q, device=args.device, cell_density=d,
-                                               tolerance=None).dimensionless()[0], ref) for d in dens]
-        result["estimate"][name] = relative_error(transfer_matrices(core, FREQS, Q, device=args.device)
-                                                  .dimensionless()[0], ref)
+        ed = [
+            relative_error(
+                transfer_matrices(core, FREQS, Q, device=args.device, cell_density=d, tolerance=None).dimensionless()[
+                    0
+                ],
+                ref,
+            )
+            for d in dens
+        ]
+        result["estimate"][name] = relative_error(
+            transfer_matrices(core, FREQS, Q, device=args.device).dimensionless()[0], ref
+        )
         result["fixed_cells"][name] = dict(zip(map(str, cells), e))
         result["density"][name] = dict(zip(map(str, dens), ed))
         ax1.loglog(np.array(cells) * 3, e, "o-", label=f"{name} fixed")
         x = np.array(core.positions()[1:5])
         exact = reference.heat_profile_exact(core, Q).temperature(x)
         hc = [4, 8, 16, 32, 64]
-        eh = [float(np.abs(steady_temperature(core, x, Q, device=args.device, heat_cells=c, fitted=False)[0][0]
-                           - exact).max()) for c in hc]
+        eh = [
+            float(
+                np.abs(
+                    steady_temperature(core, x, Q, device=args.device, heat_cells=c, fitted=False)[0][0] - exact
+                ).max()
+            )
+            for c in hc
+        ]
         fitted = float(np.abs(steady_temperature(core, x, Q, device=args.device, heat_cells=1)[0][0] - exact).max())
         result["heat_plain"][name] = {"cells": hc, "max_abs_error_K": eh, "fitted_1_cell_error_K": fitted}
         ax2.loglog(hc, eh, "s-", label=f"{name} plain (fitted, 1 cell: {fitted:.0e} K)")

@@ -125,9 +125,9 @@ from tawarp.model.forward import ForwardSettings
 from tawarp.progress import progress_bar
 from tawarp.reference_effects import LabEffects, lab_transfer_matrix
 
-FREQS = {"ceramic": (50.0, 200.0)}           # Hz; others 40-400
+FREQS = {"ceramic": (50.0, 200.0)}  # Hz; others 40-400
 N_FREQS = 37
-HEAT = {"rvc_foam": (0.0, 9.0, 18.0)}        # W; others 0, 20, 40 (RVC <= 18 W: combustion)
+HEAT = {"rvc_foam": (0.0, 9.0, 18.0)}  # W; others 0, 20, 40 (RVC <= 18 W: combustion)
 #: true h_s ranges [W/(m^2 K)] (Sect. 5.2: ceramic >= 150, mesh ~ 50, RVC <= 10; NiCr not given)
 H_RANGES = {"ceramic": (150.0, 250.0), "mesh": (35.0, 65.0), "nicr_foam": (20.0, 40.0), "rvc_foam": (4.0, 10.0)}
 HOT_H, TBT_H = (50.0, 150.0), (0.1, 0.3)
@@ -146,8 +146,16 @@ HELDOUT_SEED0 = 1000
 #: visibility rule of :func:`expected`: effect size / noise floor
 VISIBLE, INVISIBLE = 2.0, 0.5
 #: the targets of docs/loop.md
-TARGETS = {"right_effect": 0.95, "residual_ratio": 1.3, "clean_claims": 0.02, "outside_unexplained": 0.90,
-           "wrong_core_flagged": 1.0, "outside_explained": 0.05, "claimed_true": 0.90, "adequate_in_tension": 0}
+TARGETS = {
+    "right_effect": 0.95,
+    "residual_ratio": 1.3,
+    "clean_claims": 0.02,
+    "outside_unexplained": 0.90,
+    "wrong_core_flagged": 1.0,
+    "outside_explained": 0.05,
+    "claimed_true": 0.90,
+    "adequate_in_tension": 0,
+}
 #: bins of the inclusion probabilities' calibration table; an effect is claimed at >= 0.95
 CALIBRATION_BINS = (0.0, 0.05, 0.5, 0.95, 1.0)
 
@@ -164,8 +172,12 @@ def _signed(rng, lo, hi):
 #: {"ambient": geometry}, and why that size.
 TYPICAL = {
     # reference planes placed to +-1-3 mm (microphone positions from a ruler)
-    "plane_offsets": lambda rng: {"params": {"duct_left.length": 0.03 + _signed(rng, 1e-3, 3e-3),
-                                             "duct_right.length": 0.03 + _signed(rng, 1e-3, 3e-3)}},
+    "plane_offsets": lambda rng: {
+        "params": {
+            "duct_left.length": 0.03 + _signed(rng, 1e-3, 3e-3),
+            "duct_right.length": 0.03 + _signed(rng, 1e-3, 3e-3),
+        }
+    },
     # room temperature assumed, off by 3-6 K
     "T_cold": lambda rng: {"params": {"gas.T_cold": 293.15 + _signed(rng, 3.0, 6.0)}},
     # static pressure assumed 1 atm: weather and altitude give 2-4 %
@@ -181,13 +193,23 @@ TYPICAL = {
     # stainless wall 0.5-1 mm thick on R = 16.7 mm: lam_w 2 t / R ~ 0.2-1 W/(m K)
     "wall_conduction": lambda rng: {"wall": _u(rng, 0.2, 1.0)},
     # ambient exchangers: 5-15 mm of fins or mesh, porosity 0.6-0.85, pore radius 0.3-1.2 mm
-    "ambient_exchangers": lambda rng: {"ambient": {"length": _u(rng, 5e-3, 15e-3), "porosity": _u(rng, 0.6, 0.85),
-                                                   "pore_radius": _u(rng, 0.3e-3, 1.2e-3)}},
+    "ambient_exchangers": lambda rng: {
+        "ambient": {
+            "length": _u(rng, 5e-3, 15e-3),
+            "porosity": _u(rng, 0.6, 0.85),
+            "pore_radius": _u(rng, 0.3e-3, 1.2e-3),
+        }
+    },
 }
 EFFECTS = tuple(TYPICAL)
 #: pairs of effects at once: one geometric/ambient with one thermal, no pair known degenerate
-PAIRS = (("plane_offsets", "convection"), ("T_cold", "thermal_radius_ratio"), ("p_mean", "wall_conduction"),
-         ("ambient_exchangers", "convection"), ("plane_offsets", "thermal_radius_ratio"))
+PAIRS = (
+    ("plane_offsets", "convection"),
+    ("T_cold", "thermal_radius_ratio"),
+    ("p_mean", "wall_conduction"),
+    ("ambient_exchangers", "convection"),
+    ("plane_offsets", "thermal_radius_ratio"),
+)
 CATEGORIES = ("clean",) + tuple(f"effect:{e}" for e in EFFECTS) + ("clean", "two", "outside", "wrong_core")
 
 
@@ -206,8 +228,11 @@ def _leak(rng, truth, core):
     # the middle of one of the two end ducts
     pos = core.positions()
     i = int(rng.choice([0, len(core.segments) - 1]))
-    return {"leak_diameter": _u(rng, 0.5e-3, 1.0e-3), "leak_length": _u(rng, 1e-3, 2e-3),
-            "leak_position": 0.5 * (pos[i] + pos[i + 1])}
+    return {
+        "leak_diameter": _u(rng, 0.5e-3, 1.0e-3),
+        "leak_length": _u(rng, 1e-3, 2e-3),
+        "leak_position": 0.5 * (pos[i] + pos[i + 1]),
+    }
 
 
 def _gradient(rng, truth, core):
@@ -220,26 +245,41 @@ def _gradient(rng, truth, core):
 #: The lab effects of the lab suite, each at a physically typical size.
 LAB = {
     "contact_resistance": LabEffect(
-        lambda rng, truth, core: {"contact_resistance": _u(rng, 1e-4, 1e-3)}, None,
-        "stack pressed against the hot exchanger: contact conductance 1e3-1e4 W/(m^2 K), R_c 1e-4..1e-3 m^2 K/W"),
+        lambda rng, truth, core: {"contact_resistance": _u(rng, 1e-4, 1e-3)},
+        None,
+        "stack pressed against the hot exchanger: contact conductance 1e3-1e4 W/(m^2 K), R_c 1e-4..1e-3 m^2 K/W",
+    ),
     "wall_field": LabEffect(
-        lambda rng, truth, core: {"wall_conductance": _u(rng, 0.2, 1.0), "wall_coupling_porous": _u(rng, 100.0, 500.0),
-                                  "wall_coupling_duct": _u(rng, 2.9, 3.4)}, "wall_conduction",
+        lambda rng, truth, core: {
+            "wall_conductance": _u(rng, 0.2, 1.0),
+            "wall_coupling_porous": _u(rng, 100.0, 500.0),
+            "wall_coupling_duct": _u(rng, 2.9, 3.4),
+        },
+        "wall_conduction",
         "stainless wall 0.5-1 mm (lam_w A_w/S 0.2-1 W/(m K)); h_w 100-500 W/(m^2 K) where the porous parts touch "
-        "it, 2.9-3.4 in the buffer tube (laminar gas, Nu 3.7-4.4 over D = 33 mm)"),
+        "it, 2.9-3.4 in the buffer tube (laminar gas, Nu 3.7-4.4 over D = 33 mm)",
+    ),
     "bypass_gap": LabEffect(
-        lambda rng, truth, core: {"bypass_gap": _u(rng, 0.1e-3, 0.5e-3)}, None,
-        "stack cut or wound 0.1-0.5 mm under the tube's diameter"),
+        lambda rng, truth, core: {"bypass_gap": _u(rng, 0.1e-3, 0.5e-3)},
+        None,
+        "stack cut or wound 0.1-0.5 mm under the tube's diameter",
+    ),
     "leak": LabEffect(
-        _leak, None, "an unsealed port of 0.5-1 mm diameter through a 1-2 mm wall into the room, mid-duct"),
+        _leak, None, "an unsealed port of 0.5-1 mm diameter through a 1-2 mm wall into the room, mid-duct"
+    ),
     "mic_mismatch": LabEffect(
-        lambda rng, truth, core: {"mic_gain": 1.0 + _signed(rng, 0.02, 0.05),
-                                  "mic_phase": math.radians(_signed(rng, 1.0, 3.0)),
-                                  "mic_pair": str(rng.choice(["upstream", "downstream"]))}, None,
+        lambda rng, truth, core: {
+            "mic_gain": 1.0 + _signed(rng, 0.02, 0.05),
+            "mic_phase": math.radians(_signed(rng, 1.0, 3.0)),
+            "mic_pair": str(rng.choice(["upstream", "downstream"])),
+        },
+        None,
         "the far microphone of one pair 2-5 % and 1-3 degrees off its partner (an uncalibrated pair; "
-        "microphones 0.1 and 0.2 m from the face)"),
+        "microphones 0.1 and 0.2 m from the face)",
+    ),
     "porosity_gradient": LabEffect(
-        _gradient, None, "porosity varying linearly along the stack, a = 0.1-0.3 end to end (limited to phi <= 0.99)"),
+        _gradient, None, "porosity varying linearly along the stack, a = 0.1-0.3 end to end (limited to phi <= 0.99)"
+    ),
 }
 #: The lab suite: clean data, every lab effect, and buffer-tube convection (the reference's
 #: nonlinear heat model; in the library) with the core file 10-20 % off.
@@ -253,18 +293,18 @@ class Case:
 
     seed: int
     category: str
-    material: str            # the data's material
-    core_material: str       # the core file the loop is given
-    truth: dict              # true parameters (names of the core)
-    prior: dict              # the core file's values of the fitted parameters
-    effects: list            # true library effects (names)
-    effect_truth: dict = field(default_factory=dict)   # per effect: its TYPICAL draw
-    drift: list | None = None                          # (a, b) of the outside calibration drift
+    material: str  # the data's material
+    core_material: str  # the core file the loop is given
+    truth: dict  # true parameters (names of the core)
+    prior: dict  # the core file's values of the fitted parameters
+    effects: list  # true library effects (names)
+    effect_truth: dict = field(default_factory=dict)  # per effect: its TYPICAL draw
+    drift: list | None = None  # (a, b) of the outside calibration drift
     noise: float = 0.0
     with_sigma: bool = True
     freqs: list = field(default_factory=list)
     heat_inputs: list = field(default_factory=list)
-    lab: dict = field(default_factory=dict)            # lab effect name -> its LabEffects fields (:data:`LAB`)
+    lab: dict = field(default_factory=dict)  # lab effect name -> its LabEffects fields (:data:`LAB`)
 
     def key(self) -> str:
         # a case without lab effects hashes as before the field existed: its cache stays valid
@@ -323,8 +363,15 @@ def wrong_cores(material: str) -> list[str]:
     return [m for m in MATERIALS if lengths(m) != lengths(material)]
 
 
-def make_case(seed: int, category: str | None = None, material: str | None = None, noise: float | None = None,
-              n_freqs: int = N_FREQS, suite: str = "library", prior_off: tuple | None = None) -> Case:
+def make_case(
+    seed: int,
+    category: str | None = None,
+    material: str | None = None,
+    noise: float | None = None,
+    n_freqs: int = N_FREQS,
+    suite: str = "library",
+    prior_off: tuple | None = None,
+) -> Case:
     """The case of ``seed``: its category from the ``suite``'s categories (:data:`SUITES`,
     cycled), all else drawn from ``numpy.random.default_rng(seed)``. ``category``,
     ``material``, ``noise`` and ``n_freqs`` override (the test suite's reduced version); a
@@ -359,10 +406,22 @@ def make_case(seed: int, category: str | None = None, material: str | None = Non
     drift = [_signed(rng, 0.03, 0.05), _signed(rng, 0.03, 0.05)] if category == "outside" else None
     lo, hi = FREQS.get(material, (40.0, 400.0))
     drawn_noise = float(math.exp(rng.uniform(*np.log(NOISE))))
-    return Case(seed, category, material, core_material, truth, prior, effects, effect_truth, drift,
-                noise=drawn_noise if noise is None else float(noise), with_sigma=bool(rng.random() < SIGMA_FRACTION),
-                freqs=[float(f) for f in np.linspace(lo, hi, n_freqs)],
-                heat_inputs=list(HEAT.get(material, (0.0, 20.0, 40.0))), lab=lab)
+    return Case(
+        seed,
+        category,
+        material,
+        core_material,
+        truth,
+        prior,
+        effects,
+        effect_truth,
+        drift,
+        noise=drawn_noise if noise is None else float(noise),
+        with_sigma=bool(rng.random() < SIGMA_FRACTION),
+        freqs=[float(f) for f in np.linspace(lo, hi, n_freqs)],
+        heat_inputs=list(HEAT.get(material, (0.0, 20.0, 40.0))),
+        lab=lab,
+    )
 
 
 def true_core(case: Case, effects: list[str] | None = None) -> Core:
@@ -373,7 +432,9 @@ def true_core(case: Case, effects: list[str] | None = None) -> Core:
         if "params" in draw:
             core = core.replace(**draw["params"])
         if "wall" in draw:
-            core = core.replace(**{f"{core.segments[i].name}.wall_conductance": draw["wall"] for i in core.thermal_indices})
+            core = core.replace(
+                **{f"{core.segments[i].name}.wall_conductance": draw["wall"] for i in core.thermal_indices}
+            )
         if "ambient" in draw:
             core = with_ambient_exchangers(core, **draw["ambient"])
     return core
@@ -394,8 +455,11 @@ def _clean_Y(core: Core, case: Case, Zc: float, lab: LabEffects | None = None) -
     """Noise-free dimensionless coefficients (nQ, m, 4) from the reference, with the lab
     effects ``lab`` (:func:`tawarp.reference_effects.lab_transfer_matrix`) when given."""
     f = np.asarray(case.freqs)
-    T = ((lambda q: reference.transfer_matrix(core, f, q)) if lab is None else
-         (lambda q: lab_transfer_matrix(core, lab, f, q)))
+    T = (
+        (lambda q: reference.transfer_matrix(core, f, q))
+        if lab is None
+        else (lambda q: lab_transfer_matrix(core, lab, f, q))
+    )
     return np.stack([normalize(T(q), Zc).reshape(f.size, 4) for q in case.heat_inputs])
 
 
@@ -424,11 +488,14 @@ def generate(case: Case, keys: list[str] | None = None) -> dict:
         if case.drift:
             Y = Y * calibration_drift(case.freqs, *case.drift)[None, :, None]
         rng = np.random.default_rng([case.seed, 1])
-        sd = case.noise * np.sqrt(np.mean(np.abs(Y) ** 2, axis=(0, 1))) / math.sqrt(2.0)   # per coefficient, per part
+        sd = case.noise * np.sqrt(np.mean(np.abs(Y) ** 2, axis=(0, 1))) / math.sqrt(2.0)  # per coefficient, per part
         sd = np.broadcast_to(sd, Y.shape)
         Yn = Y + sd * (rng.standard_normal(Y.shape) + 1j * rng.standard_normal(Y.shape))
-        out.update(T=denormalize(Yn, Zc).reshape(-1, 2, 2),
-                   sigma=np.abs(denormalize(sd.astype(complex), Zc)).reshape(-1, 2, 2), Y_clean=Y)
+        out.update(
+            T=denormalize(Yn, Zc).reshape(-1, 2, 2),
+            sigma=np.abs(denormalize(sd.astype(complex), Zc)).reshape(-1, 2, 2),
+            Y_clean=Y,
+        )
     if "Y_without" in keys:
         out["Y_without"] = _clean_Y(true_core(case, []), case, Zc)
     for e in case.effects:
@@ -458,9 +525,19 @@ def load_or_generate(case: Case, cache: Path) -> dict:
 def measurement(case: Case, arrays: dict) -> TMatrixData:
     nf, nq = len(case.freqs), len(case.heat_inputs)
     sigma = arrays["sigma"] if case.with_sigma else None
-    meta = {"generator": "studies/loop_validation.py (tawarp.reference)", "seed": str(case.seed), "noise": repr(case.noise)}
-    return TMatrixData(np.repeat(case.heat_inputs, nf), np.tile(case.freqs, nq), arrays["T"], sigma, meta,
-                       f"validation case {case.seed}")
+    meta = {
+        "generator": "studies/loop_validation.py (tawarp.reference)",
+        "seed": str(case.seed),
+        "noise": repr(case.noise),
+    }
+    return TMatrixData(
+        np.repeat(case.heat_inputs, nf),
+        np.tile(case.freqs, nq),
+        arrays["T"],
+        sigma,
+        meta,
+        f"validation case {case.seed}",
+    )
 
 
 def step_members(step) -> list[str]:
@@ -469,7 +546,7 @@ def step_members(step) -> list[str]:
     if isinstance(step, (list, tuple)):
         return [str(e) for e in step]
     if "{" in step:
-        return [e.strip() for e in step[step.index("{") + 1:step.index("}")].split(",")]
+        return [e.strip() for e in step[step.index("{") + 1 : step.index("}")].split(",")]
     return [e.strip() for e in step.split("+")]
 
 
@@ -490,17 +567,24 @@ def loop_outcome(report: dict) -> dict:
     accepted = report.get("accepted_effects")
     after = report.get("parameters_after") or {}
     chosen = "+".join(report.get("best_model") or []) or "base"
-    return {"error_before": report["error_before"], "error_after": report["error_after"],
-            "noise_floor": report.get("noise_floor") or gof.get("noise_floor"),
-            "accepted_effects": list(accepted if accepted is not None else [g[0] for g in groups if len(g) == 1]),
-            "accepted_groups": groups, "verdict": report["verdict"],
-            "indistinguishable": [step_members(g) for g in report.get("indistinguishable") or []],
-            "inclusion_probabilities": {str(k): float(v) for k, v in (report.get("inclusion_probabilities") or {}).items()},
-            # the tension of the model the loop chose (the report also names its rivals')
-            "prior_tension": [{"parameter": t["parameter"], "z": float(t["z"])} for t in report.get("prior_tension") or []
-                              if t.get("model", chosen) == chosen],
-            "parameters_after": {k: float(v["value"] if isinstance(v, dict) else v) for k, v in after.items()},
-            "has_priors": "prior_tension" in report}
+    return {
+        "error_before": report["error_before"],
+        "error_after": report["error_after"],
+        "noise_floor": report.get("noise_floor") or gof.get("noise_floor"),
+        "accepted_effects": list(accepted if accepted is not None else [g[0] for g in groups if len(g) == 1]),
+        "accepted_groups": groups,
+        "verdict": report["verdict"],
+        "indistinguishable": [step_members(g) for g in report.get("indistinguishable") or []],
+        "inclusion_probabilities": {str(k): float(v) for k, v in (report.get("inclusion_probabilities") or {}).items()},
+        # the tension of the model the loop chose (the report also names its rivals')
+        "prior_tension": [
+            {"parameter": t["parameter"], "z": float(t["z"])}
+            for t in report.get("prior_tension") or []
+            if t.get("model", chosen) == chosen
+        ],
+        "parameters_after": {k: float(v["value"] if isinstance(v, dict) else v) for k, v in after.items()},
+        "has_priors": "prior_tension" in report,
+    }
 
 
 #: Verdicts that flag a residual nothing in the library explains.
@@ -510,7 +594,7 @@ FLAGGED = ("unexplained_residual", "wrong_model")
 def base_fits(ratio_before: float, n: int) -> bool:
     """True when the base fit alone passes a chi^2 test at 1 %: reduced chi^2 ~ (error before /
     noise floor)^2 <= 1 + 2.33 sqrt(2 / n) for n real residuals (normal approximation)."""
-    return ratio_before ** 2 <= 1.0 + 2.33 * math.sqrt(2.0 / n)
+    return ratio_before**2 <= 1.0 + 2.33 * math.sqrt(2.0 / n)
 
 
 def effect_status(visibility: float, ratio_before: float, n: int) -> str:
@@ -555,11 +639,16 @@ def expected(case: Case, status: dict) -> dict:
         # scored unless the data cannot show it (:func:`wrong_core_visibility` below
         # INVISIBLE; stricter than for an effect: a marginal wrong core must be flagged too)
         st = status.get("wrong_core", "visible")
-        return {"label": "wrong_core" + (" (invisible)" if st == "invisible" else ""), "effects": [],
-                "verdict": "wrong_model", "scored": st != "invisible"}
+        return {
+            "label": "wrong_core" + (" (invisible)" if st == "invisible" else ""),
+            "effects": [],
+            "verdict": "wrong_model",
+            "scored": st != "invisible",
+        }
     names = list(case.effects) + list(case.lab)
-    label = "+".join(("lab:" if e in case.lab else "") + e + ("" if status[e] == "visible" else f" ({status[e]})")
-                     for e in names)
+    label = "+".join(
+        ("lab:" if e in case.lab else "") + e + ("" if status[e] == "visible" else f" ({status[e]})") for e in names
+    )
     library = {e: LAB[e].library if e in case.lab else e for e in names}
     visible = [e for e in names if status[e] == "visible"]
     if any(library[e] is None for e in visible):
@@ -587,18 +676,31 @@ def run_case(case: Case, arrays: dict, device: str = "cpu", base: str = "loop", 
     wall = time.perf_counter() - t0
     got = loop_outcome(report)
     present = list(case.effects) + list(case.lab)
-    rec = {"seed": case.seed, "category": case.category, "material": case.material, "core": case.core_material,
-           "noise": case.noise, "with_sigma": case.with_sigma, "effects": case.effects,
-           "visibility": (float(rms_error(arrays["Y_clean"], arrays["Y_without"])) / floor) if present else None,
-           "outcome": got, "noise_floor_true": floor, "ratio_after": got["error_after"] / floor,
-           "ratio_before": got["error_before"] / floor, "wall_s": wall, "case": asdict(case)}
+    rec = {
+        "seed": case.seed,
+        "category": case.category,
+        "material": case.material,
+        "core": case.core_material,
+        "noise": case.noise,
+        "with_sigma": case.with_sigma,
+        "effects": case.effects,
+        "visibility": (float(rms_error(arrays["Y_clean"], arrays["Y_without"])) / floor) if present else None,
+        "outcome": got,
+        "noise_floor_true": floor,
+        "ratio_after": got["error_after"] / floor,
+        "ratio_before": got["error_before"] / floor,
+        "wall_s": wall,
+        "case": asdict(case),
+    }
     if case.category == "wrong_core":
         rec["visibility"] = wrong_core_visibility(case, arrays, core, settings, names)
         rec["per_effect"] = {"wrong_core": {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
     else:
-        rec["per_effect"] = ({present[0]: {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
-                             if len(present) == 1 else
-                             {e: effect_alone(case, arrays, e, core, settings, names) for e in case.effects})
+        rec["per_effect"] = (
+            {present[0]: {"visibility": rec["visibility"], "ratio_before": rec["ratio_before"]}}
+            if len(present) == 1
+            else {e: effect_alone(case, arrays, e, core, settings, names) for e in case.effects}
+        )
     return score(rec)
 
 
@@ -608,11 +710,12 @@ def noise_floor(arrays: dict, Zc: float) -> float:
     the yardstick of every ratio of the study."""
     Yn = normalize(arrays["T"], Zc)
     s = arrays["sigma"] * np.array([[1.0, 1.0 / Zc], [Zc, 1.0]])
-    return float(np.sqrt(np.mean(2 * s ** 2) / np.mean(np.abs(Yn) ** 2)))
+    return float(np.sqrt(np.mean(2 * s**2) / np.mean(np.abs(Yn) ** 2)))
 
 
-def effect_alone(case: Case, arrays: dict, effect: str, core: Core, settings: ForwardSettings,
-                 names: list[str] | None) -> dict:
+def effect_alone(
+    case: Case, arrays: dict, effect: str, core: Core, settings: ForwardSettings, names: list[str] | None
+) -> dict:
     """One effect of a case with several, judged on its own data: the reference data with that
     effect alone plus the case's own noise draw. ``visibility``: its noise-free size in noise
     floors; ``ratio_before``: the loop's base fit on those data (error / noise floor), for
@@ -624,12 +727,15 @@ def effect_alone(case: Case, arrays: dict, effect: str, core: Core, settings: Fo
     floor = noise_floor(own, Zc)
     prob = TMatrixKind(measurement(case, own), core, settings)
     base = fit_base(prob, default_base_params(prob, names))
-    return {"visibility": float(rms_error(alone, arrays["Y_without"])) / floor,
-            "ratio_before": float(base.rms_error[0]) / floor}
+    return {
+        "visibility": float(rms_error(alone, arrays["Y_without"])) / floor,
+        "ratio_before": float(base.rms_error[0]) / floor,
+    }
 
 
-def wrong_core_visibility(case: Case, arrays: dict, core: Core, settings: ForwardSettings,
-                          names: list[str] | None) -> float:
+def wrong_core_visibility(
+    case: Case, arrays: dict, core: Core, settings: ForwardSettings, names: list[str] | None
+) -> float:
     """How far the data of a wrong-core case lie from what the loop can make of the core
     file, in noise floors: the smallest misfit (docs/formats.md error) to the noise-free data of
     the base fit alone, with each library effect (from every one of its refit starts, the
@@ -648,13 +754,25 @@ def wrong_core_visibility(case: Case, arrays: dict, core: Core, settings: Forwar
     base = fit_base(prob, params)
     at_core = np.zeros_like(base.x[0])
     lib = library_for(prob)
-    specs = [(params + list(e.params), e if e.transform is not None else None, np.concatenate([x, start]))
-             for e in lib for start in refit_starts(e) for x in (base.x[0], at_core)]
+    specs = [
+        (params + list(e.params), e if e.transform is not None else None, np.concatenate([x, start]))
+        for e in lib
+        for start in refit_starts(e)
+        for x in (base.x[0], at_core)
+    ]
     # two structural effects do not combine (nor does the loop combine them)
-    specs += [(params + list(a.params) + list(b.params), a if a.transform is not None else b if b.transform is not None
-               else None, np.concatenate([base.x[0], sa, sb]))
-              for i, a in enumerate(lib) for b in lib[i + 1:] if a.transform is None or b.transform is None
-              for sa in refit_starts(a) for sb in refit_starts(b)]
+    specs += [
+        (
+            params + list(a.params) + list(b.params),
+            a if a.transform is not None else b if b.transform is not None else None,
+            np.concatenate([base.x[0], sa, sb]),
+        )
+        for i, a in enumerate(lib)
+        for b in lib[i + 1 :]
+        if a.transform is None or b.transform is None
+        for sa in refit_starts(a)
+        for sb in refit_starts(b)
+    ]
     fits = fit_batch(prob, specs, max_iter=MAX_ITER, xtol=XTOL)
     best = min([float(base.rms_error[0])] + [float(f.rms_error[0]) for f in fits])
     return best / noise_floor(arrays, Zc)
@@ -690,16 +808,24 @@ def score(rec: dict) -> dict:
         right_group = all(set(g) & true for g in steps) and calm
     elif exp["effects"]:
         at_floor = rec["ratio_after"] <= TARGETS["residual_ratio"]
-        right = (set(exp["effects"]) <= set(got["accepted_effects"]) and all(set(g) <= true for g in steps)
-                 and at_floor and calm)
-        right_group = (all(any(e in g for g in steps) for e in exp["effects"]) and all(set(g) & true for g in steps)
-                       and at_floor and calm)
-    else:   # clean or invisible effects: nothing claimed and the base fit judged adequate
+        right = (
+            set(exp["effects"]) <= set(got["accepted_effects"])
+            and all(set(g) <= true for g in steps)
+            and at_floor
+            and calm
+        )
+        right_group = (
+            all(any(e in g for g in steps) for e in exp["effects"])
+            and all(set(g) & true for g in steps)
+            and at_floor
+            and calm
+        )
+    else:  # clean or invisible effects: nothing claimed and the base fit judged adequate
         right = right_group = not steps and got["verdict"] == "adequate" and calm
-    named = bool(exp["effects"]) and all(any(e in g for g in steps + got["indistinguishable"])
-                                         for e in exp["effects"])
-    return dict(rec, status=status, expected=exp, right=bool(right), right_group=bool(right_group), named=named,
-                tension=tens)
+    named = bool(exp["effects"]) and all(any(e in g for g in steps + got["indistinguishable"]) for e in exp["effects"])
+    return dict(
+        rec, status=status, expected=exp, right=bool(right), right_group=bool(right_group), named=named, tension=tens
+    )
 
 
 def outcome_label(rec: dict) -> str:
@@ -719,14 +845,22 @@ def outcome_label(rec: dict) -> str:
 def summarize(records: list[dict], by_split: bool = True) -> dict:
     """Confusion matrix and the rates of the targets; with the tuning and held-out splits
     both present (``by_split``), the same for each apart under ``by_split``."""
+
     def rate(sel, key="right"):
         sel = list(sel)
-        return {"n": len(sel), "k": int(sum(r[key] for r in sel)), "rate": (sum(r[key] for r in sel) / len(sel)) if sel else None}
+        return {
+            "n": len(sel),
+            "k": int(sum(r[key] for r in sel)),
+            "rate": (sum(r[key] for r in sel) / len(sel)) if sel else None,
+        }
 
     rows = sorted({r["expected"]["label"] for r in records})
     cols = sorted({outcome_label(r) for r in records})
-    confusion = {a: {b: sum(1 for r in records if r["expected"]["label"] == a and outcome_label(r) == b) for b in cols}
-                 for a in rows}
+    confusion = {
+        a: {b: sum(1 for r in records if r["expected"]["label"] == a and outcome_label(r) == b) for b in cols}
+        for a in rows
+    }
+
     def lab_library(r):
         return LAB[r["category"].split(":", 1)[1]].library if r["category"].startswith("lab:") else None
 
@@ -746,15 +880,23 @@ def summarize(records: list[dict], by_split: bool = True) -> dict:
         "right_effect_group_single": rate((r for r in visible if r["category"] != "two"), "right_group"),
         "right_effect_group_two": rate((r for r in visible if r["category"] == "two"), "right_group"),
         "named_incl_indistinguishable": rate(visible, "named"),
-        "invisible_no_claim": rate(r for r in records if r["category"] != "clean" and r["expected"]["verdict"] == "adequate"),
+        "invisible_no_claim": rate(
+            r for r in records if r["category"] != "clean" and r["expected"]["verdict"] == "adequate"
+        ),
         "marginal_cases": sum(1 for r in records if not r["expected"]["scored"]),
         "absorbed_right": rate(absorbed),
-        "adequate_in_tension": sum(1 for r in records if r["outcome"]["verdict"] == "adequate"
-                                   and r.get("tension", 0.0) > TENSION),
+        "adequate_in_tension": sum(
+            1 for r in records if r["outcome"]["verdict"] == "adequate" and r.get("tension", 0.0) > TENSION
+        ),
         "outside_lab_flagged": rate(r for r in outside_lab if r["expected"]["verdict"] in FLAGGED),
-        "outside_lab_explained": rate(({"explained": r["outcome"]["verdict"] == "explained"} for r in outside_lab
-                                       if r["expected"]["scored"] and r["expected"]["verdict"] != "adequate"),
-                                      "explained"),
+        "outside_lab_explained": rate(
+            (
+                {"explained": r["outcome"]["verdict"] == "explained"}
+                for r in outside_lab
+                if r["expected"]["scored"] and r["expected"]["verdict"] != "adequate"
+            ),
+            "explained",
+        ),
         "clean_claims": rate(({"claim": bool(r["outcome"]["accepted_groups"])} for r in clean), "claim"),
         "clean_not_adequate": rate(({"flag": r["outcome"]["verdict"] != "adequate"} for r in clean), "flag"),
         "outside_unexplained": rate(r for r in records if r["category"] == "outside"),
@@ -765,9 +907,16 @@ def summarize(records: list[dict], by_split: bool = True) -> dict:
         "calibration": calibration(records),
         "loop_wall_s": {"mean": float(np.mean(walls)), "median": float(np.median(walls)), "max": float(np.max(walls))},
         "targets": TARGETS,
-    } | ({"by_split": {"tuning": summarize([r for r in records if r["seed"] < HELDOUT_SEED0], False),
-                       "heldout": summarize([r for r in records if r["seed"] >= HELDOUT_SEED0], False)}}
-         if by_split and 0 < sum(r["seed"] >= HELDOUT_SEED0 for r in records) < len(records) else {})
+    } | (
+        {
+            "by_split": {
+                "tuning": summarize([r for r in records if r["seed"] < HELDOUT_SEED0], False),
+                "heldout": summarize([r for r in records if r["seed"] >= HELDOUT_SEED0], False),
+            }
+        }
+        if by_split and 0 < sum(r["seed"] >= HELDOUT_SEED0 for r in records) < len(records)
+        else {}
+    )
 
 
 def calibration(records: list[dict]) -> dict:
@@ -790,12 +939,21 @@ def calibration(records: list[dict]) -> dict:
     edges = CALIBRATION_BINS
     for lo, hi in itertools.pairwise(edges):
         sel = [(p, t) for p, t in pairs if lo <= p < hi or (hi == edges[-1] and p == hi)]
-        bins.append({"low": lo, "high": hi, "n": len(sel), "true": sum(t for _, t in sel),
-                     "mean_probability": float(np.mean([p for p, _ in sel])) if sel else None,
-                     "fraction_true": (sum(t for _, t in sel) / len(sel)) if sel else None})
-    return {"bins": bins,
-            "claimed": {"n": len(claimed), "k": sum(claimed), "rate": (sum(claimed) / len(claimed)) if claimed else None},
-            "groups": {"n": len(groups), "k": sum(groups), "rate": (sum(groups) / len(groups)) if groups else None}}
+        bins.append(
+            {
+                "low": lo,
+                "high": hi,
+                "n": len(sel),
+                "true": sum(t for _, t in sel),
+                "mean_probability": float(np.mean([p for p, _ in sel])) if sel else None,
+                "fraction_true": (sum(t for _, t in sel) / len(sel)) if sel else None,
+            }
+        )
+    return {
+        "bins": bins,
+        "claimed": {"n": len(claimed), "k": sum(claimed), "rate": (sum(claimed) / len(claimed)) if claimed else None},
+        "groups": {"n": len(groups), "k": sum(groups), "rate": (sum(groups) / len(groups)) if groups else None},
+    }
 
 
 def _fmt_rate(d: dict) -> str:
@@ -805,45 +963,51 @@ def _fmt_rate(d: dict) -> str:
 def markdown(summary: dict, records: list[dict], meta: dict) -> str:
     s = summary
     seeds = [r["seed"] for r in records]
-    lines = [f"Validation of the loop on data made by `tawarp.reference` ({s['n_cases']} cases, seeds "
-             f"{min(seeds)}-{max(seeds)}, {s['held_out_cases']} of them held out (seeds >= {HELDOUT_SEED0}), "
-             f"base `{meta['base']}`, device {meta['device']}; last run `{meta['command']}`).", "",
-             "| measure | result | target |", "| --- | --- | --- |",
-             f"| right effect(s), error after <= 1.3 x noise floor (visible effects; strict: each named alone) | "
-             f"{_fmt_rate(s['right_effect'])} | >= 95 % |",
-             f"| ... one effect | {_fmt_rate(s['right_effect_single'])} | |",
-             f"| ... two effects (scored against their visible, non-absorbed effects) | {_fmt_rate(s['right_effect_two'])} | |",
-             f"| right effect(s), a group of indistinguishable effects counting when it contains the true one | "
-             f"{_fmt_rate(s['right_effect_group'])} | >= 95 % |",
-             f"| ... one effect | {_fmt_rate(s['right_effect_group_single'])} | |",
-             f"| ... two effects | {_fmt_rate(s['right_effect_group_two'])} | |",
-             f"| true effect(s) accepted or named as indistinguishable | {_fmt_rate(s['named_incl_indistinguishable'])} | |",
-             f"| invisible effect (< {INVISIBLE:g} x floor): no claim | {_fmt_rate(s['invisible_no_claim'])} | |",
-             f"| cases not scored (marginal visibility) | {s['marginal_cases']} | |",
-             f"| effect absorbed by the base fit: no false claim, not `adequate` with a parameter > {TENSION:g} prior "
-             f"sd ({100 * PRIOR_SD:g} % of the core file's value) away | {_fmt_rate(s['absorbed_right'])} | |",
-             f"| any case `adequate` with a parameter > {TENSION:g} prior sd away | {s['adequate_in_tension']} | 0 |",
-             f"| lab effect outside the library, visible: flagged | {_fmt_rate(s['outside_lab_flagged'])} | |",
-             f"| lab effect outside the library, visible or absorbed: `explained` | "
-             f"{_fmt_rate(s['outside_lab_explained'])} | <= 5 % |",
-             f"| effects claimed (inclusion probability >= 0.95, the checks passed) that are true | "
-             f"{_fmt_rate(s['calibration']['claimed'])} | >= 90 % |",
-             f"| accepted steps (an effect or a group) holding a true effect | {_fmt_rate(s['calibration']['groups'])} | |",
-             f"| claim on clean data | {_fmt_rate(s['clean_claims'])} | <= 2 % |",
-             f"| clean data judged not adequate (no claim, but a residual flagged) | {_fmt_rate(s['clean_not_adequate'])} | |",
-             f"| outside the library: unexplained residual flagged | {_fmt_rate(s['outside_unexplained'])} | >= 90 % |",
-             f"| wrong core flagged (scored unless invisible: the core file with one library effect within "
-             f"{INVISIBLE:g} floors of the noise-free data) | {_fmt_rate(s['wrong_core_flagged'])} | all |",
-             f"| ... every wrong-core case, visible or not | {_fmt_rate(s['wrong_core_flagged_all'])} | |",
-             f"| median error after / noise floor (visible effects) | {s['ratio_after_visible_median'] or float('nan'):.2f} | <= 1.3 |",
-             f"| loop wall time per case (mean / max) | {s['loop_wall_s']['mean']:.1f} / {s['loop_wall_s']['max']:.1f} s | |",
-             f"| cases per second (last run, loop only; its generation {meta['generation_s']:.0f} s, cached) | "
-             f"{meta['cases_per_s']:.3g} | |"]
+    lines = [
+        f"Validation of the loop on data made by `tawarp.reference` ({s['n_cases']} cases, seeds "
+        f"{min(seeds)}-{max(seeds)}, {s['held_out_cases']} of them held out (seeds >= {HELDOUT_SEED0}), "
+        f"base `{meta['base']}`, device {meta['device']}; last run `{meta['command']}`).",
+        "",
+        "| measure | result | target |",
+        "| --- | --- | --- |",
+        f"| right effect(s), error after <= 1.3 x noise floor (visible effects; strict: each named alone) | "
+        f"{_fmt_rate(s['right_effect'])} | >= 95 % |",
+        f"| ... one effect | {_fmt_rate(s['right_effect_single'])} | |",
+        f"| ... two effects (scored against their visible, non-absorbed effects) | {_fmt_rate(s['right_effect_two'])} | |",
+        f"| right effect(s), a group of indistinguishable effects counting when it contains the true one | "
+        f"{_fmt_rate(s['right_effect_group'])} | >= 95 % |",
+        f"| ... one effect | {_fmt_rate(s['right_effect_group_single'])} | |",
+        f"| ... two effects | {_fmt_rate(s['right_effect_group_two'])} | |",
+        f"| true effect(s) accepted or named as indistinguishable | {_fmt_rate(s['named_incl_indistinguishable'])} | |",
+        f"| invisible effect (< {INVISIBLE:g} x floor): no claim | {_fmt_rate(s['invisible_no_claim'])} | |",
+        f"| cases not scored (marginal visibility) | {s['marginal_cases']} | |",
+        f"| effect absorbed by the base fit: no false claim, not `adequate` with a parameter > {TENSION:g} prior "
+        f"sd ({100 * PRIOR_SD:g} % of the core file's value) away | {_fmt_rate(s['absorbed_right'])} | |",
+        f"| any case `adequate` with a parameter > {TENSION:g} prior sd away | {s['adequate_in_tension']} | 0 |",
+        f"| lab effect outside the library, visible: flagged | {_fmt_rate(s['outside_lab_flagged'])} | |",
+        f"| lab effect outside the library, visible or absorbed: `explained` | "
+        f"{_fmt_rate(s['outside_lab_explained'])} | <= 5 % |",
+        f"| effects claimed (inclusion probability >= 0.95, the checks passed) that are true | "
+        f"{_fmt_rate(s['calibration']['claimed'])} | >= 90 % |",
+        f"| accepted steps (an effect or a group) holding a true effect | {_fmt_rate(s['calibration']['groups'])} | |",
+        f"| claim on clean data | {_fmt_rate(s['clean_claims'])} | <= 2 % |",
+        f"| clean data judged not adequate (no claim, but a residual flagged) | {_fmt_rate(s['clean_not_adequate'])} | |",
+        f"| outside the library: unexplained residual flagged | {_fmt_rate(s['outside_unexplained'])} | >= 90 % |",
+        f"| wrong core flagged (scored unless invisible: the core file with one library effect within "
+        f"{INVISIBLE:g} floors of the noise-free data) | {_fmt_rate(s['wrong_core_flagged'])} | all |",
+        f"| ... every wrong-core case, visible or not | {_fmt_rate(s['wrong_core_flagged_all'])} | |",
+        f"| median error after / noise floor (visible effects) | {s['ratio_after_visible_median'] or float('nan'):.2f} | <= 1.3 |",
+        f"| loop wall time per case (mean / max) | {s['loop_wall_s']['mean']:.1f} / {s['loop_wall_s']['max']:.1f} s | |",
+        f"| cases per second (last run, loop only; its generation {meta['generation_s']:.0f} s, cached) | "
+        f"{meta['cases_per_s']:.3g} | |",
+    ]
     for name, sub in (s.get("by_split") or {}).items():
-        lines.append(f"| {name} seeds only: right effect(s) strict / outside-lab `explained` / claims at >= 0.95 "
-                     f"true / `adequate` in tension | {_fmt_rate(sub['right_effect'])} / "
-                     f"{_fmt_rate(sub['outside_lab_explained'])} / {_fmt_rate(sub['calibration']['claimed'])} / "
-                     f"{sub['adequate_in_tension']} | |")
+        lines.append(
+            f"| {name} seeds only: right effect(s) strict / outside-lab `explained` / claims at >= 0.95 "
+            f"true / `adequate` in tension | {_fmt_rate(sub['right_effect'])} / "
+            f"{_fmt_rate(sub['outside_lab_explained'])} / {_fmt_rate(sub['calibration']['claimed'])} / "
+            f"{sub['adequate_in_tension']} | |"
+        )
     lines += ["", "Confusion matrix (rows: truth; columns: accepted effects, or the verdict when none):", ""]
     cols = sorted({c for row in s["confusion"].values() for c in row})
     lines += ["| truth \\ loop | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
@@ -854,25 +1018,37 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
         lines += ["", "Lab effects (tawarp.reference_effects) and their sizes:", ""]
         where = {e: f"the library's `{LAB[e].library}`" if LAB[e].library else "outside the library" for e in lab}
         lines += [f"* `{e}` ({where[e]}): {LAB[e].why}" for e in lab]
-    lines += ["", "Calibration of the inclusion probabilities (every effect of every case's report; true: the "
-              "effect is in the data):", "", "| probability | effects | mean probability | true | fraction true |",
-              "| --- | --- | --- | --- | --- |"]
+    lines += [
+        "",
+        "Calibration of the inclusion probabilities (every effect of every case's report; true: the "
+        "effect is in the data):",
+        "",
+        "| probability | effects | mean probability | true | fraction true |",
+        "| --- | --- | --- | --- | --- |",
+    ]
     for b in s["calibration"]["bins"]:
         frac = "-" if b["fraction_true"] is None else f"{b['fraction_true']:.2f}"
         mean = "-" if b["mean_probability"] is None else f"{b['mean_probability']:.2f}"
         lines.append(f"| {b['low']:g}-{b['high']:g} | {b['n']} | {mean} | {b['true']} | {frac} |")
-    lines += ["", "Cases (visibility: of all the case's effects; per effect with several; right: strict / with "
-              "groups):", "", "| seed | category | material / core | noise | sigma | visibility | before/floor | "
-              "after/floor | loop | right | s |", "| --- |" + " --- |" * 10]
+    lines += [
+        "",
+        "Cases (visibility: of all the case's effects; per effect with several; right: strict / with groups):",
+        "",
+        "| seed | category | material / core | noise | sigma | visibility | before/floor | "
+        "after/floor | loop | right | s |",
+        "| --- |" + " --- |" * 10,
+    ]
     yes = lambda ok: "yes" if ok else "**no**"
     right = lambda r: f"{yes(r['right'])} / {yes(r['right_group'])}" if r["expected"]["scored"] else "not scored"
     for r in records:
         vis = "-" if r["visibility"] is None else f"{r['visibility']:.1f}"
         if len(r["per_effect"]) > 1:
             vis += " (" + ", ".join(f"{v['visibility']:.1f}" for v in r["per_effect"].values()) + ")"
-        lines.append(f"| {r['seed']} | {r['category']} | {r['material']} / {r['core']} | {100 * r['noise']:.2f} % | "
-                     f"{'yes' if r['with_sigma'] else 'no'} | {vis} | {r['ratio_before']:.2f} | {r['ratio_after']:.2f} | "
-                     f"{outcome_label(r)} | {right(r)} | {r['wall_s']:.0f} |")
+        lines.append(
+            f"| {r['seed']} | {r['category']} | {r['material']} / {r['core']} | {100 * r['noise']:.2f} % | "
+            f"{'yes' if r['with_sigma'] else 'no'} | {vis} | {r['ratio_before']:.2f} | {r['ratio_after']:.2f} | "
+            f"{outcome_label(r)} | {right(r)} | {r['wall_s']:.0f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -901,8 +1077,13 @@ def figures(summary: dict, records: list[dict], out: Path) -> None:
         ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--")
         ax.plot([b["mean_probability"] for b in bins], [b["fraction_true"] for b in bins], "o-")
         for b in bins:
-            ax.annotate(f"{b['n']}", (b["mean_probability"], b["fraction_true"]), textcoords="offset points",
-                        xytext=(4, -10), fontsize=8)
+            ax.annotate(
+                f"{b['n']}",
+                (b["mean_probability"], b["fraction_true"]),
+                textcoords="offset points",
+                xytext=(4, -10),
+                fontsize=8,
+            )
         ax.set_xlabel("inclusion probability (bin mean)")
         ax.set_ylabel("fraction of those effects that are true")
         ax.set_title("calibration (labels: effects per bin)", fontsize=9)
@@ -914,15 +1095,29 @@ def figures(summary: dict, records: list[dict], out: Path) -> None:
         sel = [r for r in records if r["category"] == c]
         x = i + np.linspace(-0.2, 0.2, len(sel)) if len(sel) > 1 else np.array([i])
         ax.scatter(x, [r["ratio_before"] for r in sel], marker="v", color="0.6", s=14)
-        ax.scatter(x, [r["ratio_after"] for r in sel], s=16,
-                   c=["0.6" if not r["expected"]["scored"] else "tab:green" if r["right"] else
-                      "tab:orange" if r["right_group"] else "tab:red" for r in sel])
+        ax.scatter(
+            x,
+            [r["ratio_after"] for r in sel],
+            s=16,
+            c=[
+                "0.6"
+                if not r["expected"]["scored"]
+                else "tab:green"
+                if r["right"]
+                else "tab:orange"
+                if r["right_group"]
+                else "tab:red"
+                for r in sel
+            ],
+        )
     ax.axhline(TARGETS["residual_ratio"], color="k", lw=0.8, ls="--")
     ax.set_yscale("log")
     ax.set_xticks(range(len(cats)), cats, rotation=45, ha="right", fontsize=8)
     ax.set_ylabel("error / noise floor")
-    ax.set_title("triangle: before; dot: after (green right, orange right as a group, red wrong, grey not scored); "
-                 "dashed: 1.3", fontsize=8)
+    ax.set_title(
+        "triangle: before; dot: after (green right, orange right as a group, red wrong, grey not scored); dashed: 1.3",
+        fontsize=8,
+    )
     save(fig, out / "residual_ratio.png")
 
 
@@ -953,39 +1148,77 @@ def study_seeds(seed0: int, cases: int, seeds: list[int] | None, split: str) -> 
         chosen = [HELDOUT_SEED0 + s for s in chosen]
     crossing = [s for s in chosen if (s >= HELDOUT_SEED0) != (split == "heldout")]
     if crossing:
-        raise ValueError(f"seeds {crossing[:5]} are {'not ' if split == 'heldout' else ''}held out (held out: seeds >= "
-                         f"{HELDOUT_SEED0}); pass --split {'tuning' if split == 'heldout' else 'heldout'} for them")
+        raise ValueError(
+            f"seeds {crossing[:5]} are {'not ' if split == 'heldout' else ''}held out (held out: seeds >= "
+            f"{HELDOUT_SEED0}); pass --split {'tuning' if split == 'heldout' else 'heldout'} for them"
+        )
     return chosen
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.ArgumentDefaultsHelpFormatter
+    )
     ap.add_argument("--cases", type=int, default=14, help="number of cases (seeds SEED0 .. SEED0 + CASES - 1)")
-    ap.add_argument("--suite", choices=tuple(SUITES), default="library",
-                    help="the library's effects (with pairs, outside and wrong core) or the lab effects of "
-                         "tawarp.reference_effects (core file 10-20 %% off)")
-    ap.add_argument("--split", choices=("tuning", "heldout"), default="tuning",
-                    help=f"tuning seeds (< {HELDOUT_SEED0}) or held-out ones (SEED0 counted from {HELDOUT_SEED0}): "
-                         "run the held-out split only once the rules are frozen")
-    ap.add_argument("--prior-off", type=fraction_range, default=None,
-                    help="LOW,HIGH relative errors of the core file; none: 0.1,0.3 (the lab suite: 0.1,0.2)")
+    ap.add_argument(
+        "--suite",
+        choices=tuple(SUITES),
+        default="library",
+        help="the library's effects (with pairs, outside and wrong core) or the lab effects of "
+        "tawarp.reference_effects (core file 10-20 %% off)",
+    )
+    ap.add_argument(
+        "--split",
+        choices=("tuning", "heldout"),
+        default="tuning",
+        help=f"tuning seeds (< {HELDOUT_SEED0}) or held-out ones (SEED0 counted from {HELDOUT_SEED0}): "
+        "run the held-out split only once the rules are frozen",
+    )
+    ap.add_argument(
+        "--prior-off",
+        type=fraction_range,
+        default=None,
+        help="LOW,HIGH relative errors of the core file; none: 0.1,0.3 (the lab suite: 0.1,0.2)",
+    )
     ap.add_argument("--seed0", type=int, default=0, help="first seed")
-    ap.add_argument("--seeds", type=seed_list, default=None,
-                    help="comma-separated seeds instead of SEED0 .. SEED0 + CASES - 1 (with --append: run again)")
-    ap.add_argument("--category", choices=tuple(dict.fromkeys(CATEGORIES + LAB_CATEGORIES)), default=None,
-                    help="every case of this category (default: cycled by seed, so the study mixes them all)")
+    ap.add_argument(
+        "--seeds",
+        type=seed_list,
+        default=None,
+        help="comma-separated seeds instead of SEED0 .. SEED0 + CASES - 1 (with --append: run again)",
+    )
+    ap.add_argument(
+        "--category",
+        choices=tuple(dict.fromkeys(CATEGORIES + LAB_CATEGORIES)),
+        default=None,
+        help="every case of this category (default: cycled by seed, so the study mixes them all)",
+    )
     ap.add_argument("--device", default="cpu", help="device of the loop's fits (cpu, cuda, cuda:N)")
     ap.add_argument("--out", default="studies/out/loop_validation", help="output folder (cache in OUT/cache)")
     ap.add_argument("--loop-workers", type=int, default=1, help="processes running the loops")
-    ap.add_argument("--workers", type=int, default=max(1, min(4, (os.cpu_count() or 1))),
-                    help="processes generating the reference data")
-    ap.add_argument("--base", choices=("loop", "paper"), default="loop",
-                    help="base parameters: the loop's default, or the paper's full set passed explicitly")
-    ap.add_argument("--rescore", action="store_true",
-                    help="no new runs: score OUT/loop_validation.json's cases again and rewrite the tables and figures")
-    ap.add_argument("--append", action="store_true",
-                    help="keep the cases of other seeds already in OUT/loop_validation.json (a study run in chunks "
-                         "of seeds, e.g. one GPU job per --seed0) and summarize them all")
+    ap.add_argument(
+        "--workers",
+        type=int,
+        default=max(1, min(4, (os.cpu_count() or 1))),
+        help="processes generating the reference data",
+    )
+    ap.add_argument(
+        "--base",
+        choices=("loop", "paper"),
+        default="loop",
+        help="base parameters: the loop's default, or the paper's full set passed explicitly",
+    )
+    ap.add_argument(
+        "--rescore",
+        action="store_true",
+        help="no new runs: score OUT/loop_validation.json's cases again and rewrite the tables and figures",
+    )
+    ap.add_argument(
+        "--append",
+        action="store_true",
+        help="keep the cases of other seeds already in OUT/loop_validation.json (a study run in chunks "
+        "of seeds, e.g. one GPU job per --seed0) and summarize them all",
+    )
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
     out = Path(a.out)
@@ -1018,8 +1251,9 @@ def main(argv=None) -> int:
     # each case's loop is independent: with --loop-workers they run in processes of their own
     # (each its own Warp context, on the CPU or sharing the GPU)
     with ProcessPoolExecutor(a.loop_workers) as pool:
-        runs = pool.map(run_case, cases, [arrays[c.seed] for c in cases], [a.device] * len(cases),
-                        [a.base] * len(cases))
+        runs = pool.map(
+            run_case, cases, [arrays[c.seed] for c in cases], [a.device] * len(cases), [a.base] * len(cases)
+        )
         for case, rec in zip(cases, runs):
             records.append(rec)
             bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
@@ -1028,10 +1262,20 @@ def main(argv=None) -> int:
             write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
     bar.close()
     t_loop = time.perf_counter() - t1
-    meta = {"command": " ".join(["python studies/loop_validation.py"] + (sys.argv[1:] if argv is None else list(argv))),
-            "seed0": a.seed0, "suite": a.suite, "split": a.split, "device": a.device, "base": a.base, "workers": a.workers,
-            "loop_workers": a.loop_workers, "generation_s": t_gen,
-            "loop_s": t_loop, "cases_per_s": len(cases) / t_loop, "cases_this_run": len(cases)}
+    meta = {
+        "command": " ".join(["python studies/loop_validation.py"] + (sys.argv[1:] if argv is None else list(argv))),
+        "seed0": a.seed0,
+        "suite": a.suite,
+        "split": a.split,
+        "device": a.device,
+        "base": a.base,
+        "workers": a.workers,
+        "loop_workers": a.loop_workers,
+        "generation_s": t_gen,
+        "loop_s": t_loop,
+        "cases_per_s": len(cases) / t_loop,
+        "cases_this_run": len(cases),
+    }
     report(out, sorted(earlier + records, key=lambda r: r["seed"]), meta, a.quiet)
     return 0
 

@@ -25,11 +25,19 @@ TRUTH = {"tbt.h_convection": 3.0}
 
 
 def main():
-    data = synthetic_tmatrix(load_core("ceramic"), TRUTH, freqs=np.linspace(50.0, 500.0, 16),
-                             heat_inputs=(0.0, 40.0, 80.0), noise=0.002, seed=7,
-                             settings=ForwardSettings(device="cpu", cells=24))
+    data = synthetic_tmatrix(
+        load_core("ceramic"),
+        TRUTH,
+        freqs=np.linspace(50.0, 500.0, 16),
+        heat_inputs=(0.0, 40.0, 80.0),
+        noise=0.002,
+        seed=7,
+        settings=ForwardSettings(device="cpu", cells=24),
+    )
     out = Path(__file__).resolve().parents[1] / "tawarp" / "data" / "measured" / "ceramic_hidden_effect.csv"
-    write_tmatrix_csv(out, data, metadata={"core": "ceramic", "hidden_effect": "none declared (see studies/make_demo_data.py)"})
+    write_tmatrix_csv(
+        out, data, metadata={"core": "ceramic", "hidden_effect": "none declared (see studies/make_demo_data.py)"}
+    )
     print(f"wrote {out}")
 
 

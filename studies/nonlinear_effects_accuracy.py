@@ -43,16 +43,21 @@ def relative_error(Y, Yref) -> float:
 def with_value(core, name: str, value: float):
     """The core with field ``SEGMENT.FIELD`` = value."""
     seg, _, field = name.partition(".")
-    return dataclasses.replace(core, segments=tuple(dataclasses.replace(s, **{field: value}) if s.name == seg else s
-                                                    for s in core.segments))
+    return dataclasses.replace(
+        core, segments=tuple(dataclasses.replace(s, **{field: value}) if s.name == seg else s for s in core.segments)
+    )
 
 
 def settings(level: int) -> ForwardSettings:
     """Default settings refined by 2^level (heat grid and Magnus cell density; the rule
     alone, without the error estimate that would raise the coarse levels' cells)."""
     base = ForwardSettings()
-    return ForwardSettings(nonlinear_heat_cells=base.nonlinear_heat_cells * 2**level,
-                           cell_density=DEFAULT_CELL_DENSITY * 2**level, tolerance=None, device="cpu")
+    return ForwardSettings(
+        nonlinear_heat_cells=base.nonlinear_heat_cells * 2**level,
+        cell_density=DEFAULT_CELL_DENSITY * 2**level,
+        tolerance=None,
+        device="cpu",
+    )
 
 
 def throughput(core, params: dict, n: int = 64, repeats: int = 3) -> float:
@@ -88,9 +93,14 @@ def main(argv=None):
             s = settings(level)
             Y = transfer_matrices(core, FREQS, Q, params={field: value}, settings=s).dimensionless()[0]
             th = steady_temperature(core, x, Q, params={field: value}, settings=s)[0][0] - core.gas.T_cold
-            row["levels"].append({"nonlinear_heat_cells": s.nonlinear_heat_cells, "cell_density": s.cell_density,
-                                  "tmatrix_error": relative_error(Y, Yref),
-                                  "theta_error": float(np.abs(th - th_ref).max() / th_ref.max())})
+            row["levels"].append(
+                {
+                    "nonlinear_heat_cells": s.nonlinear_heat_cells,
+                    "cell_density": s.cell_density,
+                    "tmatrix_error": relative_error(Y, Yref),
+                    "theta_error": float(np.abs(th - th_ref).max() / th_ref.max()),
+                }
+            )
             print(field, row["levels"][-1], flush=True)
         print(field, "effect size", row["effect_size"])
         if not args.no_timing:
@@ -98,9 +108,13 @@ def main(argv=None):
         result["effects"][field] = row
     if not args.no_timing:
         result["linear_models_per_s_cpu"] = throughput(core, {})
-        print("linear models/s", result["linear_models_per_s_cpu"],
-              {k: v["models_per_s_cpu"] for k, v in result["effects"].items()})
+        print(
+            "linear models/s",
+            result["linear_models_per_s_cpu"],
+            {k: v["models_per_s_cpu"] for k, v in result["effects"].items()},
+        )
     from tawarp.io import write_json
+
     write_json(args.out, result)
 
 

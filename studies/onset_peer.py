@@ -55,13 +55,23 @@ def peer_network(eng, T_hot: float, n_points: int = 120):
     st, hx, tbt = seg["stack"], seg["hot_hx"], seg["tbt"]
     T_c = core.gas.T_cold
     # CircularPore's "hydraulic radius" is the pore radius (f = 2 J1(z) / (z J0(z)), z = (i - 1) r / delta)
-    return [Duct(eng.left_duct.length + seg["duct_left"].length, R),
-            Stack(st.length, st.porosity, st.pore_radius, area=A, geometry=CircularPore(),
-                  solid_thermal_conductivity=st.solid_conductivity, T_hot=T_hot, T_cold=T_c),
-            HeatExchanger(hx.length, hx.porosity, hx.pore_radius, T_hot, area=A, geometry=CircularPore()),
-            # StackDuct runs from its T_cold at x = 0 to its T_hot at x = L: hot end first here
-            StackDuct(tbt.length, A, 2 * math.pi * R, T_hot=T_c, T_cold=T_hot),
-            Duct(seg["duct_right"].length + eng.right_duct.length, R)]
+    return [
+        Duct(eng.left_duct.length + seg["duct_left"].length, R),
+        Stack(
+            st.length,
+            st.porosity,
+            st.pore_radius,
+            area=A,
+            geometry=CircularPore(),
+            solid_thermal_conductivity=st.solid_conductivity,
+            T_hot=T_hot,
+            T_cold=T_c,
+        ),
+        HeatExchanger(hx.length, hx.porosity, hx.pore_radius, T_hot, area=A, geometry=CircularPore()),
+        # StackDuct runs from its T_cold at x = 0 to its T_hot at x = L: hot end first here
+        StackDuct(tbt.length, A, 2 * math.pi * R, T_hot=T_c, T_cold=T_hot),
+        Duct(seg["duct_right"].length + eng.right_duct.length, R),
+    ]
 
 
 def peer_end_velocity(segs, gas, omega: complex, T_c: float) -> complex:
@@ -78,8 +88,9 @@ def peer_eigenfrequency(eng, T_hot: float, f_guess: complex) -> complex:
 
     gas = Air(mean_pressure=eng.core.gas.p_mean)
     segs = peer_network(eng, T_hot)
-    return so.newton(lambda f: peer_end_velocity(segs, gas, 2 * math.pi * f, eng.core.gas.T_cold), f_guess,
-                     tol=1e-9, maxiter=60)
+    return so.newton(
+        lambda f: peer_end_velocity(segs, gas, 2 * math.pi * f, eng.core.gas.T_cold), f_guess, tol=1e-9, maxiter=60
+    )
 
 
 def peer_onset(eng, ratio_max: float = 3.0, n_grid: int = 9) -> dict:
@@ -108,8 +119,12 @@ def peer_onset(eng, ratio_max: float = 3.0, n_grid: int = 9) -> dict:
         return {"T_ratio": None, "f_Hz": None, "grid_ratio": ratios.tolist(), "grid_f_imag": gi.tolist()}
     k = int(k[0])
     r_on = so.brentq(lambda r: f_at(float(r), fs[k]).imag, ratios[k], ratios[k + 1], xtol=1e-10, rtol=1e-10)
-    return {"T_ratio": float(r_on), "f_Hz": float(f_at(float(r_on), fs[k]).real),
-            "grid_ratio": ratios.tolist(), "grid_f_imag": gi.tolist()}
+    return {
+        "T_ratio": float(r_on),
+        "f_Hz": float(f_at(float(r_on), fs[k]).real),
+        "grid_ratio": ratios.tolist(),
+        "grid_f_imag": gi.tolist(),
+    }
 
 
 def main(argv=None):
@@ -121,9 +136,16 @@ def main(argv=None):
     ours = onset(eng, Q_max=100.0, n_bracket=9, device="cpu")
     t_ours = time.perf_counter() - t0
     T_c = eng.core.gas.T_cold
-    result = {"engine": ENGINE, "tawarp": {"Q_onset_W": ours.Q_onset[0], "f_onset_Hz": ours.f_onset[0],
-                                           "T_hot_K": ours.T_hot[0], "T_ratio": ours.T_hot[0] / T_c,
-                                           "seconds_one_prediction_cpu": t_ours}}
+    result = {
+        "engine": ENGINE,
+        "tawarp": {
+            "Q_onset_W": ours.Q_onset[0],
+            "f_onset_Hz": ours.f_onset[0],
+            "T_hot_K": ours.T_hot[0],
+            "T_ratio": ours.T_hot[0] / T_c,
+            "seconds_one_prediction_cpu": t_ours,
+        },
+    }
     cold = eigenfrequencies(eng, 0.0, device="cpu")
     result["tawarp"]["isothermal_f_Hz"] = cold.frequency[0]
     result["tawarp"]["isothermal_growth_rate_1_per_s"] = cold.growth_rate[0]
@@ -140,11 +162,15 @@ def main(argv=None):
         f0 = peer_eigenfrequency(eng, T_c, cold.frequency[0] + 0j)
         peer["isothermal_f_Hz"] = f0.real
         peer["isothermal_growth_rate_1_per_s"] = -2 * math.pi * f0.imag
-        result["isothermal_difference"] = {"f_relative": f0.real / cold.frequency[0] - 1,
-                                           "growth_rate_relative": -2 * math.pi * f0.imag / cold.growth_rate[0] - 1}
+        result["isothermal_difference"] = {
+            "f_relative": f0.real / cold.frequency[0] - 1,
+            "growth_rate_relative": -2 * math.pi * f0.imag / cold.growth_rate[0] - 1,
+        }
         if peer["T_ratio"] is not None:
-            result["difference"] = {"T_ratio_relative": peer["T_ratio"] / result["tawarp"]["T_ratio"] - 1,
-                                    "f_relative": peer["f_Hz"] / result["tawarp"]["f_onset_Hz"] - 1}
+            result["difference"] = {
+                "T_ratio_relative": peer["T_ratio"] / result["tawarp"]["T_ratio"] - 1,
+                "f_relative": peer["f_Hz"] / result["tawarp"]["f_onset_Hz"] - 1,
+            }
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2, default=float) + "\n")

@@ -51,19 +51,28 @@ def table(res, mats, label: str) -> str:
     def q(v):
         return f"{v:.2f}" if v is not None else f"> {Q_MAX:g}"
 
-    lines = [f"**{label}** ({res.n_samples} draws per material, Q_max {Q_MAX:g} W)", "",
-             "| rank | material | Q_onset nominal [W] | median [W] | 5-95 % [W] | p90 [W] | f_onset [Hz] | "
-             "T_hot/T_cold | P(no onset) | P(best) |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    lines = [
+        f"**{label}** ({res.n_samples} draws per material, Q_max {Q_MAX:g} W)",
+        "",
+        "| rank | material | Q_onset nominal [W] | median [W] | 5-95 % [W] | p90 [W] | f_onset [Hz] | "
+        "T_hot/T_cold | P(no onset) | P(best) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for r in res.table:
         f = f"{r['f_onset_median_Hz']:.1f}" if r["f_onset_median_Hz"] is not None else "-"
         t = f"{r['T_ratio_median']:.3f}" if r["T_ratio_median"] is not None else "-"
-        lines.append(f"| {r['rank']} | {r['material']} | {q(r['Q_onset_nominal_W'])} | {q(r['Q_onset_median_W'])} | "
-                     f"{q(r['Q_onset_p05_W'])} - {q(r['Q_onset_p95_W'])} | {q(r['Q_onset_p90_W'])} | {f} | {t} | "
-                     f"{r['p_no_onset']:.2f} | {r['p_best']:.2f} |")
-    pairs = [f"P({a} < {b}) = {r['p_beats'][b]:.2f}" for r in res.table for a in [r["material"]]
-             for b in r["p_beats"] if r["rank"] < next(x["rank"] for x in res.table if x["material"] == b)
-             and r["p_no_onset"] < 1]
+        lines.append(
+            f"| {r['rank']} | {r['material']} | {q(r['Q_onset_nominal_W'])} | {q(r['Q_onset_median_W'])} | "
+            f"{q(r['Q_onset_p05_W'])} - {q(r['Q_onset_p95_W'])} | {q(r['Q_onset_p90_W'])} | {f} | {t} | "
+            f"{r['p_no_onset']:.2f} | {r['p_best']:.2f} |"
+        )
+    pairs = [
+        f"P({a} < {b}) = {r['p_beats'][b]:.2f}"
+        for r in res.table
+        for a in [r["material"]]
+        for b in r["p_beats"]
+        if r["rank"] < next(x["rank"] for x in res.table if x["material"] == b) and r["p_no_onset"] < 1
+    ]
     return "\n".join(lines + ["", "Pairwise: " + "; ".join(pairs) + "." if pairs else ""])
 
 
@@ -75,7 +84,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory() as work:     # the synthetic data and fits are not kept
+    with tempfile.TemporaryDirectory() as work:  # the synthetic data and fits are not kept
         mats = [fitted_material(m, Path(work)) for m in MATERIALS]
     base = load_engine("standing_wave")
     report, md = {"materials": {m.name: m.to_dict() for m in mats}}, []

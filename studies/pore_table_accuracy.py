@@ -26,8 +26,13 @@ from tawarp.kernels.pore_table import circular_table
 
 
 @wp.kernel
-def _evaluate(s: wp.array(dtype=wp.float64), table: wp.array(dtype=wp.float64), tabulated: int,
-              f: wp.array(dtype=wp.vec2d), g: wp.array(dtype=wp.vec2d)):
+def _evaluate(
+    s: wp.array(dtype=wp.float64),
+    table: wp.array(dtype=wp.float64),
+    tabulated: int,
+    f: wp.array(dtype=wp.vec2d),
+    g: wp.array(dtype=wp.vec2d),
+):
     i = wp.tid()
     if tabulated != 0:
         fi, gi = pore_circular_tabulated(table, wp.log(s[i]))
@@ -70,23 +75,39 @@ def main(argv=None):
     args = ap.parse_args(argv)
     rng = np.random.default_rng(0)
     edges = S_MIN * 2.0 ** (np.arange(PIECES + 1) / PIECES_PER_OCTAVE)
-    s = np.sort(np.concatenate([np.exp(rng.uniform(np.log(1e-4), np.log(1e5), args.points)),
-                                np.nextafter(edges, 0.0), edges, np.nextafter(edges, np.inf)]))
+    s = np.sort(
+        np.concatenate(
+            [
+                np.exp(rng.uniform(np.log(1e-4), np.log(1e5), args.points)),
+                np.nextafter(edges, 0.0),
+                edges,
+                np.nextafter(edges, np.inf),
+            ]
+        )
+    )
     ref = np.array([reference(si) for si in s])
-    result = {"s_range": [1e-4, 1e5], "table_range": [S_MIN, S_MAX], "pieces": PIECES,
-              "points": len(s), "device": args.device, "max_rel_error": {}, "seconds_per_evaluation": {}}
+    result = {
+        "s_range": [1e-4, 1e5],
+        "table_range": [S_MIN, S_MAX],
+        "pieces": PIECES,
+        "points": len(s),
+        "device": args.device,
+        "max_rel_error": {},
+        "seconds_per_evaluation": {},
+    }
     decades = np.floor(np.log10(s)).astype(int)
     for name, tabulated in (("table", True), ("recurrence", False)):
         f, g, _ = evaluate(s, tabulated, args.device)
         ef = np.abs(f - ref[:, 0]) / np.abs(ref[:, 0])
         eg = np.abs(g - ref[:, 1]) / np.abs(ref[:, 1])
-        per_decade = {f"1e{d}": [float(ef[decades == d].max()), float(eg[decades == d].max())]
-                      for d in np.unique(decades)}
+        per_decade = {
+            f"1e{d}": [float(ef[decades == d].max()), float(eg[decades == d].max())] for d in np.unique(decades)
+        }
         result["max_rel_error"][name] = {"f": float(ef.max()), "g": float(eg.max()), "per_decade_f_g": per_decade}
         print(f"{name}: max relative error f {ef.max():.2e}, g {eg.max():.2e}")
     s_cost = np.exp(rng.uniform(np.log(0.1), np.log(30.0), 1 << 20))
     for name, tabulated in (("table", True), ("recurrence", False)):
-        evaluate(s_cost[:16], tabulated, args.device)   # compile and load first
+        evaluate(s_cost[:16], tabulated, args.device)  # compile and load first
         seconds = evaluate(s_cost, tabulated, args.device)[2] / len(s_cost)
         result["seconds_per_evaluation"][name] = seconds
         print(f"{name}: {seconds * 1e9:.1f} ns per evaluation of f, g on {args.device} (s in [0.1, 30])")

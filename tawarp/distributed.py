@@ -90,8 +90,9 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
         raise ValueError("local_cluster: give at least one device")
     n_cpu = sum(d == "cpu" for d in devices)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    cluster = distributed.LocalCluster(n_workers=len(devices), threads_per_worker=1, processes=processes,
-                                       dashboard_address=None)
+    cluster = distributed.LocalCluster(
+        n_workers=len(devices), threads_per_worker=1, processes=processes, dashboard_address=None
+    )
     client = distributed.Client(cluster)
     client.register_plugin(_as_worker_plugin(DevicePlugin(devices, cpu_threads or max(1, cores // max(1, n_cpu)))))
     return client
@@ -156,7 +157,7 @@ def worker_state(key: str, build):
     obj = cache.get(key)
     if obj is None:
         with _BUILD:
-            obj = cache.get(key)   # (a worker of several threads may have built it meanwhile)
+            obj = cache.get(key)  # (a worker of several threads may have built it meanwhile)
             if obj is None:
                 obj = build()
                 if len(cache) >= STATE_KEYS:
@@ -194,13 +195,35 @@ def _fit_chunk(chunk: dict, core, freqs, names, kw: dict):
 
     kw = dict(kw, settings=worker_settings(kw.get("settings")))
     if getattr(_worker(), "tawarp_device", None) is not None:
-        kw["device"] = None   # the worker's device, in its settings
-    return fit(core, freqs, chunk["Y"], names, chunk["start"], heat_input=chunk["heat_input"],
-               fixed=chunk["fixed"], weights=chunk["weights"], **kw)
+        kw["device"] = None  # the worker's device, in its settings
+    return fit(
+        core,
+        freqs,
+        chunk["Y"],
+        names,
+        chunk["start"],
+        heat_input=chunk["heat_input"],
+        fixed=chunk["fixed"],
+        weights=chunk["weights"],
+        **kw,
+    )
 
 
-def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 4096, heat_input=0.0, fixed=None,
-                   weights=None, settings: ForwardSettings | None = None, **kw):
+def fit_on_cluster(
+    client,
+    core,
+    freqs,
+    Y,
+    names,
+    start=None,
+    *,
+    chunk: int = 4096,
+    heat_input=0.0,
+    fixed=None,
+    weights=None,
+    settings: ForwardSettings | None = None,
+    **kw,
+):
     """:func:`tawarp.fit.estimate.fit` of N problems split into chunks of ``chunk``
     problems over the cluster's workers; the same :class:`~tawarp.fit.result.FitResult`
     as one call (per-problem arrays concatenated in order; counts summed; ``seconds`` the
@@ -242,9 +265,16 @@ def fit_on_cluster(client, core, freqs, Y, names, start=None, *, chunk: int = 40
         w = np.asarray(weights) if weights is not None and np.ndim(weights) >= 3 else None
         return w[:1] if w is not None and w.strides[0] == 0 else take(weights, sl, 3)
 
-    chunks = [{"Y": take(Y, sl, 3), "start": take(start, sl, 2), "heat_input": take(heat_input, sl, 1),
-               "fixed": take(fixed, sl, 1), "weights": take_weights(sl)}
-              for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))]
+    chunks = [
+        {
+            "Y": take(Y, sl, 3),
+            "start": take(start, sl, 2),
+            "heat_input": take(heat_input, sl, 1),
+            "fixed": take(fixed, sl, 1),
+            "weights": take_weights(sl),
+        }
+        for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))
+    ]
     parts = list(ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings)))
     res = concatenate_results(parts)
     res.seconds = time.perf_counter() - t0
@@ -270,8 +300,13 @@ def concatenate_results(parts):
             out[f.name] = list(dict.fromkeys(w for v in vals for w in v))
         elif f.name == "problem_warnings":
             out[f.name] = ProblemWarnings.concatenate(vals)
-        elif isinstance(vals[0], np.ndarray) and vals[0].ndim >= 1 and f.name not in ("lower", "upper") \
-                and all(isinstance(v, np.ndarray) for v in vals) and len(parts) > 1:
+        elif (
+            isinstance(vals[0], np.ndarray)
+            and vals[0].ndim >= 1
+            and f.name not in ("lower", "upper")
+            and all(isinstance(v, np.ndarray) for v in vals)
+            and len(parts) > 1
+        ):
             out[f.name] = np.concatenate(vals)
         else:
             out[f.name] = vals[0]
@@ -284,9 +319,14 @@ def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
     from .design.evaluate import Evaluator
 
     def build():
-        ev = Evaluator(spec["space"], extra=spec["extra"], freqs=spec["freqs"],
-                       settings=worker_settings(spec["settings"]), onset=spec["onset"])
-        ev.evaluate_table(table[:, :1])   # loads the modules of every objective asked for
+        ev = Evaluator(
+            spec["space"],
+            extra=spec["extra"],
+            freqs=spec["freqs"],
+            settings=worker_settings(spec["settings"]),
+            onset=spec["onset"],
+        )
+        ev.evaluate_table(table[:, :1])  # loads the modules of every objective asked for
         return ev
 
     return worker_state(key, build).evaluate_table(table)
@@ -300,14 +340,27 @@ class ClusterEvaluator:
     pickled between worker processes, by reference to worker threads
     (``local_cluster(..., processes=False)``)."""
 
-    def __init__(self, client, space, extra=(), freqs=None, settings: ForwardSettings | None = None,
-                 chunk: int | None = None, onset=None):
+    def __init__(
+        self,
+        client,
+        space,
+        extra=(),
+        freqs=None,
+        settings: ForwardSettings | None = None,
+        chunk: int | None = None,
+        onset=None,
+    ):
         from .design.evaluate import DEFAULT_FREQS
 
         self.client, self.space, self.chunk = client, space, chunk
         self.settings = settings or ForwardSettings()
-        self.spec = {"space": space, "extra": list(extra), "settings": self.settings,
-                     "freqs": DEFAULT_FREQS if freqs is None else freqs, "onset": onset}
+        self.spec = {
+            "space": space,
+            "extra": list(extra),
+            "settings": self.settings,
+            "freqs": DEFAULT_FREQS if freqs is None else freqs,
+            "onset": onset,
+        }
         self.key = uuid.uuid4().hex
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
@@ -320,13 +373,13 @@ class ClusterEvaluator:
         # which is not contiguous, element by element: seconds for 1e7 points) and each result
         # into place while the workers evaluate the others: only the first copy and the last
         # result's are not hidden
-        chunks = (np.ascontiguousarray(table[:, lo:lo + starts.step]) for lo in starts)
+        chunks = (np.ascontiguousarray(table[:, lo : lo + starts.step]) for lo in starts)
         out = {}
         for lo, part in zip(starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec)):
             for k, v in part.items():
                 if k not in out:
                     out[k] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
-                out[k][lo:lo + len(v)] = v
+                out[k][lo : lo + len(v)] = v
         return out
 
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:

@@ -80,9 +80,9 @@ def interrupt_guard():
 
     def handler(signum, frame):
         hit.append(signum)
-        if callable(previous):      # Python's default raises KeyboardInterrupt; a custom one runs first
+        if callable(previous):  # Python's default raises KeyboardInterrupt; a custom one runs first
             return previous(signum, frame)
-        raise KeyboardInterrupt     # SIG_DFL would end the process: the nearest Python equivalent
+        raise KeyboardInterrupt  # SIG_DFL would end the process: the nearest Python equivalent
 
     signal.signal(signal.SIGINT, handler)
     try:
@@ -133,7 +133,7 @@ def written_by_tawarp(path: str | Path) -> bool:
         if suffix == ".csv":
             with open(path, encoding="utf-8", errors="replace") as f:
                 return any(line.replace(" ", "").startswith(f"#generator={GENERATOR}") for line in f.readlines(4096))
-    except Exception:   # unreadable, not of its suffix's format: not ours
+    except Exception:  # unreadable, not of its suffix's format: not ours
         return False
     return False
 
@@ -144,8 +144,11 @@ def claim_outputs(*paths: str | Path, why: str = "") -> None:
     writing anything. ``why`` says what the file would have held."""
     for p in map(Path, paths):
         if p.exists() and not written_by_tawarp(p):
-            raise OutputConflict(errno.EEXIST, f"{p}: exists and tawarp did not write it; it would be replaced"
-                                               f"{' by ' + why if why else ''}: move it away or give another -o")
+            raise OutputConflict(
+                errno.EEXIST,
+                f"{p}: exists and tawarp did not write it; it would be replaced"
+                f"{' by ' + why if why else ''}: move it away or give another -o",
+            )
 
 
 def remove_stale_temporaries(path: str | Path) -> list[Path]:
@@ -157,11 +160,11 @@ def remove_stale_temporaries(path: str | Path) -> list[Path]:
     removed = []
     pattern = f".{glob.escape(path.name)}.*"
     for tmp in (*path.parent.glob(pattern + ".tmp"), *path.parent.glob(pattern + ".old")):
-        writer = tmp.name[len(path.name) + 2:].split(".")[0]
+        writer = tmp.name[len(path.name) + 2 :].split(".")[0]
         pid, at, where = writer.partition("@")
         if at and (where != host or not pid.isdigit() or _alive(int(pid))):
             continue
-        if not at and len(writer) != 8:   # an older name: .NAME.XXXXXXXX.tmp (mkstemp's 8 characters)
+        if not at and len(writer) != 8:  # an older name: .NAME.XXXXXXXX.tmp (mkstemp's 8 characters)
             continue
         with contextlib.suppress(OSError):
             shutil.rmtree(tmp) if tmp.is_dir() and not tmp.is_symlink() else tmp.unlink()
@@ -178,7 +181,7 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:   # another user's process
+    except PermissionError:  # another user's process
         return True
     return True
 
@@ -212,7 +215,9 @@ def atomic_path(path: str | Path):
         if reason is None:
             raise
         kept = "the older file is kept" if path.exists() else "nothing was written"
-        raise OSError(getattr(e, "errno", None) or errno.EIO, f"{path}: could not be written ({reason}); {kept}") from None
+        raise OSError(
+            getattr(e, "errno", None) or errno.EIO, f"{path}: could not be written ({reason}); {kept}"
+        ) from None
     finally:
         if os.path.exists(tmp):
             os.remove(tmp)
@@ -232,8 +237,11 @@ def ensure_free_space(path: str | Path, nbytes: int) -> None:
     free = shutil.disk_usage(folder).free
     need = int(nbytes) + METADATA_SLACK
     if free < need:
-        raise OSError(errno.ENOSPC, f"{path}: the disk has {free / 1e6:.3g} MB free and this write needs about "
-                                    f"{need / 1e6:.3g} MB; nothing was written: free some space or write elsewhere")
+        raise OSError(
+            errno.ENOSPC,
+            f"{path}: the disk has {free / 1e6:.3g} MB free and this write needs about "
+            f"{need / 1e6:.3g} MB; nothing was written: free some space or write elsewhere",
+        )
 
 
 #: The errors that say a file cannot be written where it is (:func:`io_failure`).
@@ -299,7 +307,7 @@ def discard_hdf5(f) -> None:
     it: its file descriptor is pointed at the null device first, so that the close, which
     flushes the file's metadata, succeeds. What reached the file before stays; a SWMR
     file keeps its last flushed state."""
-    h5 = getattr(f, "_h5file", f)   # h5netcdf keeps its h5py file there
+    h5 = getattr(f, "_h5file", f)  # h5netcdf keeps its h5py file there
     if not h5.id.valid:
         return
     fd = h5.id.get_vfd_handle()

@@ -36,8 +36,9 @@ def save(fig, path: str | Path) -> Path:
     return Path(path)
 
 
-def plot_coefficients(freqs, curves: dict[str, np.ndarray], path, *, markers: dict[str, np.ndarray] | None = None,
-                      title: str = ""):
+def plot_coefficients(
+    freqs, curves: dict[str, np.ndarray], path, *, markers: dict[str, np.ndarray] | None = None, title: str = ""
+):
     """|Y| and arg Y of the four dimensionless coefficients against frequency.
 
     ``curves``: label -> (m, 4) complex, drawn as lines; ``markers``: label -> (m, 4)

@@ -215,7 +215,8 @@ class HeatSolution:
             if not np.any(self.h > 0):
                 raise ValueError(
                     f"{core.source}: heat input {self.heat_input} W but every thermal segment has "
-                    "h = 0: the heat cannot leave, the steady heat model has no solution")
+                    "h = 0: the heat cannot leave, the steady heat model has no solution"
+                )
             self._solve()
 
     # -- the 2N linear system --------------------------------------------------------
@@ -326,9 +327,11 @@ class HeatSolution:
         its closed interval (uniform ``T_cold`` for a non-thermal segment)."""
         Tc = self.T_cold
         if index not in self.indices or self.heat_input == 0.0:
+
             def uniform(x):
                 z = 0.0 * np.asarray(x, dtype=float)
                 return Tc + z, z
+
             return uniform
         j = self._j(index)
         m2, src, al, be = self.m[j] ** 2, self.q[j] / self.lam[j], self.alpha[j], self.beta[j]
@@ -336,6 +339,7 @@ class HeatSolution:
         def profile(x):
             E, O, P = self._local(j, x)
             return Tc + src * P + al * E + be * O, (al * m2 - src) * O + be * E
+
         return profile
 
     def theta_max(self) -> tuple[float, float]:
@@ -513,8 +517,12 @@ class NonlinearHeatSolution:
 
 def nonlinear_effects_on(core: Core) -> bool:
     """True when a temperature-dependent effect is on in a thermal segment of ``core``."""
-    return any(core.segments[i].conductivity_exponent != 0.0 or core.segments[i].radiative_conductivity != 0.0
-               or core.segments[i].h_convection != 0.0 for i in core.thermal_indices)
+    return any(
+        core.segments[i].conductivity_exponent != 0.0
+        or core.segments[i].radiative_conductivity != 0.0
+        or core.segments[i].h_convection != 0.0
+        for i in core.thermal_indices
+    )
 
 
 def heat_profile(core: Core, heat_input: float, tol: float = 1e-8):
@@ -529,6 +537,7 @@ def heat_profile(core: Core, heat_input: float, tol: float = 1e-8):
 # ======================================================================================
 # Thermoviscous functions
 # ======================================================================================
+
 
 def _bernoulli_even(nmax: int) -> list:
     """Exact B_0 .. B_(nmax) (fractions; Akiyama-Tanigawa). scipy's float version loses
@@ -546,9 +555,9 @@ def _bernoulli_even(nmax: int) -> list:
 
 _B = _bernoulli_even(50)
 # Series of tanh(w)/w = sum_n c_n w^(2n-2), c_n = 2^(2n) (2^(2n) - 1) B_(2n) / (2n)!
-_TANH_COEF = np.array([
-    float(2 ** (2 * n) * (2 ** (2 * n) - 1) * _B[2 * n] / math.factorial(2 * n)) for n in range(1, 26)
-])
+_TANH_COEF = np.array(
+    [float(2 ** (2 * n) * (2 ** (2 * n) - 1) * _B[2 * n] / math.factorial(2 * n)) for n in range(1, 26)]
+)
 # 1 - 2 J1(z)/(z J0(z)) = [sum_{k>=1} (-1)^k k t^(2k) / ((k+1) (k!)^2)] / J0(z), t = z/2
 _BESSEL_COEF = np.array([(-1.0) ** k * k / ((k + 1) * math.factorial(k) ** 2) for k in range(1, 26)])
 
@@ -675,8 +684,7 @@ def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: float,
-                porosity=None) -> np.ndarray:
+def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: float, porosity=None) -> np.ndarray:
     """T-matrix (2, 2) of one segment by DOP853 on dM/dx = A(x) M, M(x0) = I.
 
     Integrated on the scaled state (p, Z0 U), Z0 = rho0 c0/S at T_cold, so the four
@@ -709,8 +717,9 @@ def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: fl
     return np.array([[Ms[0, 0], Ms[0, 1] * Z0], [Ms[1, 0] / Z0, Ms[1, 1]]])
 
 
-def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                              heat_tol: float = 1e-8, *, _force_ode: bool = False) -> list[np.ndarray]:
+def segment_transfer_matrices(
+    core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12, heat_tol: float = 1e-8, *, _force_ode: bool = False
+) -> list[np.ndarray]:
     """T-matrix of every segment, a list of complex arrays (m, 2, 2), raw SI units.
 
     ``freqs`` [Hz] (scalar or 1-D), ``heat_input`` Q [W]. A segment at uniform T_cold
@@ -726,8 +735,9 @@ def segment_transfer_matrices(core: Core, freqs, heat_input: float = 0.0, rtol: 
     return _segment_matrices(core, 2.0 * np.pi * f, heat_input, rtol, heat_tol, _force_ode)
 
 
-def _segment_matrices(core: Core, w: np.ndarray, heat_input: float, rtol: float, heat_tol: float,
-                      _force_ode: bool) -> list[np.ndarray]:
+def _segment_matrices(
+    core: Core, w: np.ndarray, heat_input: float, rtol: float, heat_tol: float, _force_ode: bool
+) -> list[np.ndarray]:
     """:func:`segment_transfer_matrices` at angular frequencies ``w`` [rad/s], real or complex."""
     hs = heat_profile(core, heat_input, heat_tol)
     heated = set(hs.indices) if heat_input != 0.0 else set()
@@ -745,8 +755,9 @@ def _segment_matrices(core: Core, w: np.ndarray, heat_input: float, rtol: float,
     return out
 
 
-def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                    heat_tol: float = 1e-8, *, _force_ode: bool = False) -> np.ndarray:
+def transfer_matrix(
+    core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e-12, heat_tol: float = 1e-8, *, _force_ode: bool = False
+) -> np.ndarray:
     """Core T-matrix, complex array (m, 2, 2), with ``(p, U)(x6) = T (p, U)(x1)``.
 
     ``freqs`` [Hz] (scalar or 1-D, m values), ``heat_input`` Q [W] dissipated in the
@@ -761,8 +772,9 @@ def transfer_matrix(core: Core, freqs, heat_input: float = 0.0, rtol: float = 1e
     return T
 
 
-def transfer_matrix_omega(core: Core, omega, heat_input: float = 0.0, rtol: float = 1e-12,
-                          heat_tol: float = 1e-8) -> np.ndarray:
+def transfer_matrix_omega(
+    core: Core, omega, heat_input: float = 0.0, rtol: float = 1e-12, heat_tol: float = 1e-8
+) -> np.ndarray:
     """Core T-matrix (m, 2, 2) at complex angular frequencies ``omega`` [rad/s] (scalar or
     1-D): every model function is analytic in omega (docs/physics.md, "Onset"), so the closed
     forms and the ODE of :func:`transfer_matrix` hold as written with omega complex

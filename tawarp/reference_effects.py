@@ -130,9 +130,19 @@ class LabEffects:
     graded_segment: str = "stack"
 
     def __post_init__(self):
-        for name in ("contact_resistance", "wall_conductance", "wall_coupling_porous", "wall_coupling_duct",
-                     "bypass_gap", "leak_diameter", "leak_length", "leak_volume", "mic_gain", "mic_distance",
-                     "mic_spacing"):
+        for name in (
+            "contact_resistance",
+            "wall_conductance",
+            "wall_coupling_porous",
+            "wall_coupling_duct",
+            "bypass_gap",
+            "leak_diameter",
+            "leak_length",
+            "leak_volume",
+            "mic_gain",
+            "mic_distance",
+            "mic_spacing",
+        ):
             v = getattr(self, name)
             if not (v >= 0.0):
                 raise ValueError(f"LabEffects.{name} = {v!r}: must be >= 0")
@@ -184,6 +194,7 @@ def material_conductivity(core: Core, lab: LabEffects, index: int):
         x = np.asarray(x, dtype=float)
         m = base + 0.0 * x if phi is None else phi(x) * k_gas + (1.0 - phi(x)) * seg.solid_conductivity
         return (1.0 - gap) * m + gap * k_gas
+
     return lam
 
 
@@ -220,13 +231,20 @@ class LabHeatSolution(NonlinearHeatSolution):
         self.contact = None
         if lab.contact_resistance:
             if lab.contact_left not in names[:-1]:
-                raise ValueError(f"{core.source}: contact_left = {lab.contact_left!r} is not a thermal segment followed "
-                                 f"by another (thermal: {names})")
+                raise ValueError(
+                    f"{core.source}: contact_left = {lab.contact_left!r} is not a thermal segment followed "
+                    f"by another (thermal: {names})"
+                )
             self.contact = names.index(lab.contact_left)
         wall_on = lab.wall_conductance > 0.0
         # lateral coupling to the wall per unit volume of tube, 2 h_w / R [W/(m^3 K)]
-        self.coupling = np.array([2.0 * (lab.wall_coupling_porous if s.is_porous else lab.wall_coupling_duct) / self.R
-                                  for s in segs]) if wall_on else np.zeros(n)
+        self.coupling = (
+            np.array(
+                [2.0 * (lab.wall_coupling_porous if s.is_porous else lab.wall_coupling_duct) / self.R for s in segs]
+            )
+            if wall_on
+            else np.zeros(n)
+        )
         L, xl = self.length, self.x_left
         lam_w = lab.wall_conductance
 
@@ -307,8 +325,9 @@ def lab_heat_profile(core: Core, lab: LabEffects, heat_input: float, tol: float 
     return heat_profile(core, heat_input, tol) if heat_input != 0.0 else heat_profile_exact(core, 0.0)
 
 
-def side_branch_impedance(gas_name: str, p_mean: float, T: float, diameter: float, neck_length: float, omega,
-                          volume: float = math.inf) -> np.ndarray:
+def side_branch_impedance(
+    gas_name: str, p_mean: float, T: float, diameter: float, neck_length: float, omega, volume: float = math.inf
+) -> np.ndarray:
     """Acoustic impedance p/U [Pa s/m^3] (arrays like ``omega`` [rad/s]) of a hole of
     ``diameter`` [m] through a wall of thickness ``neck_length`` [m], gas at ``T`` [K], into
     a closed cavity of ``volume`` [m^3] or, at inf, the room (exp(-i w t)):
@@ -336,6 +355,7 @@ def parallel(Ta: np.ndarray, Tb: np.ndarray) -> np.ndarray:
     p at each plane, volume velocities adding): their admittance matrices
     ``[U_in, U_out] = Y [p_in, p_out]``, ``Y = [[-A/B, 1/B], [C - D A/B, D/B]]`` of
     ``T = [[A, B], [C, D]]``, add. Needs B != 0 in both (a 2-port that lets flow through)."""
+
     def admittance(T):
         A, B, C, D = T[..., 0, 0], T[..., 0, 1], T[..., 1, 0], T[..., 1, 1]
         return -A / B, 1.0 / B, C - D * A / B, D / B
@@ -377,14 +397,17 @@ def _leak_segment(core: Core, lab: LabEffects) -> int | None:
     for i, seg in enumerate(core.segments):
         if pos[i] < lab.leak_position < pos[i + 1]:
             if seg.kind != "duct":
-                raise ValueError(f"leak_position {lab.leak_position} m lies in the porous segment {seg.name!r}; "
-                                 "place the leak in a duct")
+                raise ValueError(
+                    f"leak_position {lab.leak_position} m lies in the porous segment {seg.name!r}; "
+                    "place the leak in a duct"
+                )
             return i
     raise ValueError(f"leak_position {lab.leak_position} m is not inside the core (0 to {pos[-1]} m)")
 
 
-def lab_segment_matrices(core: Core, lab: LabEffects, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                         heat_tol: float = HEAT_TOL) -> list[np.ndarray]:
+def lab_segment_matrices(
+    core: Core, lab: LabEffects, freqs, heat_input: float = 0.0, rtol: float = 1e-12, heat_tol: float = HEAT_TOL
+) -> list[np.ndarray]:
     """T-matrix of every segment with the lab effects of the core (not the microphones),
     a list of complex arrays (m, 2, 2), raw SI units; arguments as
     :func:`tawarp.reference.segment_transfer_matrices`. A segment at uniform T_cold with
@@ -410,15 +433,29 @@ def lab_segment_matrices(core: Core, lab: LabEffects, freqs, heat_input: float =
         if lab.bypass_gap and seg.name == lab.gap_segment:
             share = gap_area_fraction(core, lab.bypass_gap)
             inner = dataclasses.replace(seg, porosity=seg.porosity * (1.0 - share))
-            slit = Segment("bypass_gap", "porous", seg.length, pore_model="plates", porosity=share,
-                           pore_radius=lab.bypass_gap / 2.0, tortuosity=1.0)
+            slit = Segment(
+                "bypass_gap",
+                "porous",
+                seg.length,
+                pore_model="plates",
+                porosity=share,
+                pore_radius=lab.bypass_gap / 2.0,
+                tortuosity=1.0,
+            )
             out.append(parallel(piece(inner, pos[i]), piece(slit, pos[i], uniform_porosity=True)))
         elif i == leak_at:
             xl = lab.leak_position
             first = piece(dataclasses.replace(seg, length=xl - pos[i]), pos[i])
             second = piece(dataclasses.replace(seg, length=pos[i + 1] - xl), xl)
-            Y = 1.0 / side_branch_impedance(core.gas.name, core.gas.p_mean, float(profile(xl)[0]), lab.leak_diameter,
-                                            lab.leak_length, w, lab.leak_volume)
+            Y = 1.0 / side_branch_impedance(
+                core.gas.name,
+                core.gas.p_mean,
+                float(profile(xl)[0]),
+                lab.leak_diameter,
+                lab.leak_length,
+                w,
+                lab.leak_volume,
+            )
             shunt = np.zeros(w.shape + (2, 2), dtype=complex)
             shunt[:, 0, 0] = shunt[:, 1, 1] = 1.0
             shunt[:, 1, 0] = -Y
@@ -428,8 +465,9 @@ def lab_segment_matrices(core: Core, lab: LabEffects, freqs, heat_input: float =
     return out
 
 
-def lab_transfer_matrix(core: Core, lab: LabEffects, freqs, heat_input: float = 0.0, rtol: float = 1e-12,
-                        heat_tol: float = HEAT_TOL) -> np.ndarray:
+def lab_transfer_matrix(
+    core: Core, lab: LabEffects, freqs, heat_input: float = 0.0, rtol: float = 1e-12, heat_tol: float = HEAT_TOL
+) -> np.ndarray:
     """The core T-matrix (m, 2, 2) that the rig with the lab effects measures:
     ``T = T_last ... T_first`` of :func:`lab_segment_matrices`, then the microphones:
     ``E_down T E_up^-1`` (:func:`microphone_error`; the mismatched pair's E, identity for

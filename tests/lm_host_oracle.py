@@ -26,8 +26,9 @@ def _relative_change(prob, dz, z, pid):
     s, o = scale[pid], offset[pid]
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         lin = s * np.abs(dz) / np.maximum(np.abs(o + s * z), 1e-300)
-        return np.where(kind == lm_step.CHANGE_LOG, np.abs(np.expm1(dz)),
-                        np.where(kind == lm_step.CHANGE_LINEAR, lin, np.abs(dz)))
+        return np.where(
+            kind == lm_step.CHANGE_LOG, np.abs(np.expm1(dz)), np.where(kind == lm_step.CHANGE_LINEAR, lin, np.abs(dz))
+        )
 
 
 def chol_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -48,7 +49,7 @@ def chol_solve(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         y[:, i] = (b[:, i] - np.sum(L[:, i, :i] * y[:, :i], axis=1)) / L[:, i, i]
     x = np.zeros_like(b)
     for i in reversed(range(p)):
-        x[:, i] = (y[:, i] - np.sum(L[:, i + 1:, i] * x[:, i + 1:], axis=1)) / L[:, i, i]
+        x[:, i] = (y[:, i] - np.sum(L[:, i + 1 :, i] * x[:, i + 1 :], axis=1)) / L[:, i, i]
     x[~ok] = 0.0
     return x, ok
 
@@ -66,9 +67,19 @@ def _grad_cosine(g, H, cost, free):
     return c.max(axis=1) if c.shape[1] else np.zeros(len(c))
 
 
-def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
-                        xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100, tau: float = 1e-3,
-                        progress: bool = False, max_sets: int = 1 << 20) -> LMState:
+def levenberg_marquardt(
+    prob: LMProblems,
+    pid: np.ndarray,
+    z0: np.ndarray,
+    *,
+    damping: str = "nielsen",
+    xtol: float = 1e-3,
+    gtol: float = 1e-8,
+    max_iter: int = 100,
+    tau: float = 1e-3,
+    progress: bool = False,
+    max_sets: int = 1 << 20,
+) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
     ``prob``: any :class:`tawarp.fit.lm.LMProblems`."""
@@ -134,8 +145,13 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         capped = iterations[a] >= max_iter
         r = reason[a]
         done = np.zeros(len(a), dtype=bool)
-        for mask, why, good in ((conv_x, "xtol", True), (conv_g, "gtol", True), (zero_step, "bound", True),
-                                (stalled, "stalled", None), (capped, "max_iterations", False)):
+        for mask, why, good in (
+            (conv_x, "xtol", True),
+            (conv_g, "gtol", True),
+            (zero_step, "bound", True),
+            (stalled, "stalled", None),
+            (capped, "max_iterations", False),
+        ):
             new = mask & ~done
             r[new] = why
             ok = (gcos[new] <= 1e-4) if good is None else np.full(new.sum(), good)

@@ -14,8 +14,13 @@ from tawarp.reference import gas_properties
 T_AIR, P_AIR = 293.15, 101325.0
 FREQ = np.linspace(100.0, 4000.0, 40)
 # foam2-like fluid parameters (Atalla & Panneton 2005 README), two parameter sets per call
-FLUID = dict(phi=np.array([0.95, 0.97]), sigma=np.array([8197.0, 25000.0]), alpha_inf=np.array([1.42, 1.05]),
-             Lambda=np.array([133.1e-6, 60e-6]), Lambda_prime=np.array([212.65e-6, 150e-6]))
+FLUID = dict(
+    phi=np.array([0.95, 0.97]),
+    sigma=np.array([8197.0, 25000.0]),
+    alpha_inf=np.array([1.42, 1.05]),
+    Lambda=np.array([133.1e-6, 60e-6]),
+    Lambda_prime=np.array([212.65e-6, 150e-6]),
+)
 FRAME = dict(eta=0.1, nu=0.3, rho_1=30.0)
 THICKNESS = np.array([0.03435, 0.06877])
 
@@ -28,10 +33,22 @@ def _jca_oracle(freq, phi, sigma, alpha_inf, Lambda, Lambda_prime):
     w = 2 * np.pi * np.asarray(freq)[None, :]
     phi, sigma, alpha_inf, L, Lp = (np.asarray(x)[:, None] for x in (phi, sigma, alpha_inf, Lambda, Lambda_prime))
     j = 1j
-    alpha = alpha_inf * (1 + sigma * phi / (j * w * g.rho * alpha_inf)
-                         * np.sqrt(1 + 4 * j * alpha_inf**2 * g.mu * g.rho * w / (sigma**2 * L**2 * phi**2)))
-    K = g.gamma * P_AIR / (g.gamma - (g.gamma - 1) / (
-        1 + 8 * g.mu / (j * Lp**2 * g.Pr * w * g.rho) * np.sqrt(1 + j * g.rho * w * g.Pr * Lp**2 / (16 * g.mu))))
+    alpha = alpha_inf * (
+        1
+        + sigma
+        * phi
+        / (j * w * g.rho * alpha_inf)
+        * np.sqrt(1 + 4 * j * alpha_inf**2 * g.mu * g.rho * w / (sigma**2 * L**2 * phi**2))
+    )
+    K = (
+        g.gamma
+        * P_AIR
+        / (
+            g.gamma
+            - (g.gamma - 1)
+            / (1 + 8 * g.mu / (j * Lp**2 * g.Pr * w * g.rho) * np.sqrt(1 + j * g.rho * w * g.Pr * Lp**2 / (16 * g.mu)))
+        )
+    )
     return np.conj(g.rho * alpha / phi), np.conj(K / phi), g.rho, g.c
 
 
@@ -41,8 +58,9 @@ def _fluid_layer(rho, K, freq, d):
     k = w * np.sqrt(rho / K)
     Zc = np.sqrt(rho * K)
     kd = k * np.asarray(d)[:, None]
-    T = np.stack([np.stack([np.cos(kd), 1j * Zc * np.sin(kd)], -1),
-                  np.stack([1j * np.sin(kd) / Zc, np.cos(kd)], -1)], -2)
+    T = np.stack(
+        [np.stack([np.cos(kd), 1j * Zc * np.sin(kd)], -1), np.stack([1j * np.sin(kd) / Zc, np.cos(kd)], -1)], -2
+    )
     return k, Zc, T
 
 
@@ -123,8 +141,7 @@ def test_stiff_heavy_frame_two_port_is_equivalent_fluid():
     rho, K, rho0, c0 = _jca_oracle(FREQ, **FLUID)
     _, _, T_ref = _fluid_layer(rho, K, FREQ, THICKNESS)
     area = 0.01
-    T = biot.transfer_matrix(FREQ, thickness=THICKNESS, E=1e12, area=area, **FLUID,
-                             **{**FRAME, "rho_1": 1e12})
+    T = biot.transfer_matrix(FREQ, thickness=THICKNESS, E=1e12, area=area, **FLUID, **{**FRAME, "rho_1": 1e12})
     assert _relmax(_specific(T, area), T_ref) < 1e-6
 
 
@@ -201,8 +218,10 @@ def test_frame_resonance_near_quarter_wavelength():
     assert abs(f[np.argmax(np.abs(Z - Zr))] / f_r - 1) < 0.15
 
 
-@pytest.mark.parametrize("name, value", [("phi", 1.3), ("E", -1e5), ("nu", 0.5), ("nu", 0.7), ("sigma", 0.0),
-                                         ("thickness", -0.01), ("eta", np.nan)])
+@pytest.mark.parametrize(
+    "name, value",
+    [("phi", 1.3), ("E", -1e5), ("nu", 0.5), ("nu", 0.7), ("sigma", 0.0), ("thickness", -0.01), ("eta", np.nan)],
+)
 def test_invalid_parameters_name_the_parameter(name, value):
     """Out-of-range parameters raise ValueError naming the parameter."""
     params = dict(thickness=0.05, E=1e5, **{k: v[0] for k, v in FLUID.items()}, **FRAME)
@@ -219,8 +238,7 @@ def test_batch_shape_and_waves():
     E = np.array([1e4, 1e5, 1e6])[:, None]
     Z = biot.surface_impedance(FREQ, thickness=THICKNESS, E=E, **FLUID, **FRAME)
     assert Z.shape == (3, 2, FREQ.size)
-    one = biot.surface_impedance(FREQ, thickness=THICKNESS[1], E=1e5, **{k: v[1] for k, v in FLUID.items()},
-                                 **FRAME)
+    one = biot.surface_impedance(FREQ, thickness=THICKNESS[1], E=1e5, **{k: v[1] for k, v in FLUID.items()}, **FRAME)
     assert np.max(np.abs(Z[1, 1] - one) / np.abs(one)) < 1e-13
     wv = biot.biot_waves(FREQ, E=E, **FLUID, **FRAME)
     w2 = (2 * np.pi * FREQ) ** 2
@@ -235,6 +253,7 @@ def test_batch_shape_and_waves():
 def test_normal_incidence_sees_only_the_p_wave_modulus():
     """(E, nu) = (1e5 Pa, 0.3) and (E', 0.1) with the same P-wave modulus
     E (1-nu)/((1+nu)(1-2nu)) give the same Zs and 2-port to 1e-12 (E, nu not separable)."""
+
     def p_mod(E, nu):
         return E * (1 - nu) / ((1 + nu) * (1 - 2 * nu))
 
@@ -264,10 +283,17 @@ def test_wide_parameter_ranges_stay_passive_and_reciprocal(seed):
     absolute det test would only measure the rounding of its products)."""
     rng = np.random.default_rng(seed)
     n = 100
-    p = dict(phi=rng.uniform(0.7, 1.0, n), sigma=10 ** rng.uniform(3, 5.5, n), alpha_inf=rng.uniform(1, 3, n),
-             Lambda=10 ** rng.uniform(-5, -3, n), E=10 ** rng.uniform(-6, 12, n), eta=rng.uniform(0, 0.5, n),
-             nu=rng.uniform(-0.5, 0.49, n), rho_1=10 ** rng.uniform(0, 2.5, n),
-             thickness=10 ** rng.uniform(-2.5, -0.5, n))
+    p = dict(
+        phi=rng.uniform(0.7, 1.0, n),
+        sigma=10 ** rng.uniform(3, 5.5, n),
+        alpha_inf=rng.uniform(1, 3, n),
+        Lambda=10 ** rng.uniform(-5, -3, n),
+        E=10 ** rng.uniform(-6, 12, n),
+        eta=rng.uniform(0, 0.5, n),
+        nu=rng.uniform(-0.5, 0.49, n),
+        rho_1=10 ** rng.uniform(0, 2.5, n),
+        thickness=10 ** rng.uniform(-2.5, -0.5, n),
+    )
     p["Lambda_prime"] = p["Lambda"] * rng.uniform(1, 4, n)
     f = np.geomspace(20, 1e4, 30)
     Z = biot.surface_impedance(f, **p)

@@ -52,9 +52,17 @@ def errors(core, sets, **settings):
     out = []
     for Q, vals in sets:
         Yref = reference.dimensionless_transfer(core.replace(**vals), FREQS, Q)
-        out.append([relative_error(transfer_matrices(core, FREQS, Q, params={k: [v] for k, v in vals.items()},
-                                                     device="cpu", **s).dimensionless()[0], Yref)
-                    for s in settings.values()])
+        out.append(
+            [
+                relative_error(
+                    transfer_matrices(
+                        core, FREQS, Q, params={k: [v] for k, v in vals.items()}, device="cpu", **s
+                    ).dimensionless()[0],
+                    Yref,
+                )
+                for s in settings.values()
+            ]
+        )
     return np.array(out)
 
 
@@ -64,9 +72,12 @@ def test_estimated_cells_meet_tolerance_on_random_cores():
     # (tolerance=None) errs by more than 1e-6 (up to 1e-3 on such draws: narrow pores,
     # where the wave's scale is the viscous wavenumber, not w/c), so the estimate is what
     # meets the budget and this test fails without it.
-    err = np.concatenate([errors(load_core(name), random_sets(load_core(name), 3, seed), estimate={},
-                                 rule={"tolerance": None})
-                          for name, seed in [("ceramic", 0), ("mesh", 1), ("ceramic", 2), ("mesh", 3)]])
+    err = np.concatenate(
+        [
+            errors(load_core(name), random_sets(load_core(name), 3, seed), estimate={}, rule={"tolerance": None})
+            for name, seed in [("ceramic", 0), ("mesh", 1), ("ceramic", 2), ("mesh", 3)]
+        ]
+    )
     assert err[:, 0].max() < 1e-6, err[:, 0]
     assert err[:, 1].max() > 1e-6, err[:, 1]
 
@@ -107,8 +118,14 @@ def cascade(engine, params, theta, freqs, d):
     dev = engine.device
     n = params.shape[1]
     out = wp.empty((n, len(freqs), 8), dtype=wp.float64, device=dev)
-    engine._cascade(params, theta, wp.array(freqs, dtype=wp.float64, device=dev),
-                    wp.array(d, dtype=wp.float64, device=dev), out, wp.empty((n, 0, 8), dtype=wp.float64, device=dev))
+    engine._cascade(
+        params,
+        theta,
+        wp.array(freqs, dtype=wp.float64, device=dev),
+        wp.array(d, dtype=wp.float64, device=dev),
+        out,
+        wp.empty((n, 0, 8), dtype=wp.float64, device=dev),
+    )
     return out.numpy().view(np.complex128).reshape(n, len(freqs), 2, 2)
 
 

@@ -25,8 +25,9 @@ HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}
 
 
 def small_data(material, seed=0, **kw):
-    return make_paper_data(material, n_freqs=16, cells=12, seed=seed, heat_inputs=HEAT.get(material, [0.0, 40.0, 80.0]),
-                           device="cpu", **kw)
+    return make_paper_data(
+        material, n_freqs=16, cells=12, seed=seed, heat_inputs=HEAT.get(material, [0.0, 40.0, 80.0]), device="cpu", **kw
+    )
 
 
 @pytest.mark.parametrize("material", MATERIALS)
@@ -38,9 +39,15 @@ def test_round_trip_within_two_std(material):
     data = small_data(material)
     truth = true_values(data)
     geom, ties = default_geometry(load_core(material))
-    ch = characterize(data, material, settings=FIT, warn=False, start1={k: truth[k] * 0.9 for k in geom},
-                      start2={k: truth[k] * 1.5 for k in ("stack.h", "hot_hx.h", "tbt.h")})
-    assert (material == "ceramic") == bool(ties)   # the ceramic's stack and hot exchanger are one material
+    ch = characterize(
+        data,
+        material,
+        settings=FIT,
+        warn=False,
+        start1={k: truth[k] * 0.9 for k in geom},
+        start2={k: truth[k] * 1.5 for k in ("stack.h", "hot_hx.h", "tbt.h")},
+    )
+    assert (material == "ceramic") == bool(ties)  # the ceramic's stack and hot exchanger are one material
     r1, r2 = ch.step1, ch.step2
     assert r1.converged.all() and r2.converged.all()
     z1 = (r1.values[0] - [truth[k] for k in r1.names]) / r1.std[0]
@@ -73,8 +80,13 @@ def test_synthetic_data_are_paper_like():
     d = make_paper_data("rvc_foam", noise=0.01, seed=3, n_freqs=20, cells=12, device="cpu")
     assert d.heat_inputs.tolist() == [0.0, 4.5, 9.0, 13.5, 18.0]
     assert d.frequencies.min() == 30 and d.frequencies.max() == 500
-    assert make_paper_data("ceramic", noise=0, n_freqs=5, cells=12, device="cpu").frequencies.tolist() == \
-        [50.0, 87.5, 125.0, 162.5, 200.0]
+    assert make_paper_data("ceramic", noise=0, n_freqs=5, cells=12, device="cpu").frequencies.tolist() == [
+        50.0,
+        87.5,
+        125.0,
+        162.5,
+        200.0,
+    ]
     core = load_core("rvc_foam")
     clean = transfer_matrices(core, d.frequencies, d.heat_inputs, cells=12, device="cpu").dimensionless()
     Y = normalize(d.T, duct_impedance(core)).reshape(clean.shape)
@@ -92,13 +104,29 @@ def test_fit_and_synth_commands(tmp_path):
     add_synth_parser(sub)
     add_fit_parser(sub)
     csv = tmp_path / "mesh.csv"
-    args = parser.parse_args(["synth", "mesh", "-o", str(csv), "--freqs", "30:500:12", "--Q", "0,40", "--cells", "12",
-                              "--device", "cpu", "--quiet"])
+    args = parser.parse_args(
+        [
+            "synth",
+            "mesh",
+            "-o",
+            str(csv),
+            "--freqs",
+            "30:500:12",
+            "--Q",
+            "0,40",
+            "--cells",
+            "12",
+            "--device",
+            "cpu",
+            "--quiet",
+        ]
+    )
     assert args.func(args) == 0
     assert read_tmatrix_csv(csv).heat_inputs.tolist() == [0.0, 40.0]
     out = tmp_path / "fit.json"
-    args = parser.parse_args(["fit", str(csv), "--core", "mesh", "-o", str(out), "--cells", "8", "--device", "cpu",
-                              "--quiet"])
+    args = parser.parse_args(
+        ["fit", str(csv), "--core", "mesh", "-o", str(out), "--cells", "8", "--device", "cpu", "--quiet"]
+    )
     assert args.func(args) == 0
     obj = json.loads(out.read_text())
     for key in ("parameters", "correlation", "converged", "iterations", "cost", "rms_error", "step1", "step2"):
@@ -112,8 +140,25 @@ def test_fit_and_synth_commands(tmp_path):
         assert Path(f).exists()
     # --fit: the named parameters at every heat input (no two-step procedure)
     out2 = tmp_path / "fit2.json"
-    args = parser.parse_args(["fit", str(csv), "--core", "mesh", "--fit", "stack.porosity,stack.pore_radius",
-                              "-o", str(out2), "--cells", "8", "--device", "cpu", "--quiet", "--restarts", "0"])
+    args = parser.parse_args(
+        [
+            "fit",
+            str(csv),
+            "--core",
+            "mesh",
+            "--fit",
+            "stack.porosity,stack.pore_radius",
+            "-o",
+            str(out2),
+            "--cells",
+            "8",
+            "--device",
+            "cpu",
+            "--quiet",
+            "--restarts",
+            "0",
+        ]
+    )
     assert args.func(args) == 0
     obj2 = json.loads(out2.read_text())
     assert [e["heat_input_W"] for e in obj2["fits"]] == [0.0, 40.0]
@@ -161,8 +206,9 @@ def test_fit_json_gives_an_honest_verdict(seed):
     """goodness_of_fit in every step: data of the mesh fitted with the
     mesh core are adequate (chi^2 p-value >= 1e-3: reduced chi^2 near 1); the same data
     fitted with the ceramic core are not (reduced chi^2 >> 1)."""
-    data = make_paper_data("mesh", noise=0.005, seed=seed, freqs=np.linspace(30, 500, 12), heat_inputs=[0.0, 40.0],
-                           cells=8, device="cpu")
+    data = make_paper_data(
+        "mesh", noise=0.005, seed=seed, freqs=np.linspace(30, 500, 12), heat_inputs=[0.0, 40.0], cells=8, device="cpu"
+    )
     st = ForwardSettings(device="cpu", cells=8)
     right = characterize(data, "mesh", settings=st).to_json()
     wrong = characterize(data, "ceramic", settings=st).to_json()
@@ -181,8 +227,9 @@ def test_fit_mode_error_is_formats_error_over_all_rows(tmp_path):
     from tawarp.fit.estimate import predict
 
     core = load_core("mesh")
-    data = make_paper_data("mesh", noise=0.02, seed=2, freqs=np.linspace(30, 500, 10), heat_inputs=[20.0, 80.0],
-                           cells=8, device="cpu")
+    data = make_paper_data(
+        "mesh", noise=0.02, seed=2, freqs=np.linspace(30, 500, 10), heat_inputs=[20.0, 80.0], cells=8, device="cpu"
+    )
     st = ForwardSettings(device="cpu", cells=8)
     obj = fit_each_heat_input(data, core, ["stack.h"], settings=st, restarts=0)
     Qs, freqs, Y, _ = grid(data, core)
@@ -202,7 +249,7 @@ def test_grid_of_many_heat_inputs_equals_the_per_q_selection():
     rng = np.random.default_rng(0)
     Qs, freqs = np.arange(0.0, 50.0, 0.5), np.array([40.0, 90.0, 300.0])
     q, f = np.repeat(Qs, 3), np.tile(freqs, len(Qs))
-    perm = rng.permutation(q.size)                      # rows in any order
+    perm = rng.permutation(q.size)  # rows in any order
     T = rng.standard_normal((q.size, 2, 2)) + 1j * rng.standard_normal((q.size, 2, 2))
     sigma = rng.uniform(0.1, 1.0, (q.size, 2, 2, 2))
     data = TMatrixData(q[perm], f[perm], T[perm], sigma[perm], source="many.csv")
@@ -233,7 +280,7 @@ def test_cell_groups_size_each_problem_for_its_own_h():
     freqs = np.array([50.0, 200.0])
     n = 200
     h = {k: np.full(n, core.get(k)) * np.linspace(0.5, 2.0, n) for k in ("stack.h", "hot_hx.h", "tbt.h")}
-    h["stack.h"][17] = 1e5                                  # the fit's upper bound
+    h["stack.h"][17] = 1e5  # the fit's upper bound
     groups = list(cell_groups(core, freqs, ForwardSettings(device="cpu"), h))
     seen = np.concatenate([idx for idx, _ in groups])
     assert np.array_equal(np.sort(seen), np.arange(n))
@@ -246,7 +293,7 @@ def test_cell_groups_size_each_problem_for_its_own_h():
                 assert need[name] <= settings.cells[name] <= np.sqrt(2) * need[name] + 1
     outlier = next(s for idx, s in groups if 17 in idx)
     rest = max(s.cells["stack"] for idx, s in groups if 17 not in idx)
-    assert outlier.cells["stack"] > 5 * rest                # one outlier no longer sizes them all
+    assert outlier.cells["stack"] > 5 * rest  # one outlier no longer sizes them all
     assert len(groups) <= 12
     # fixed cells: one group, unchanged settings
     fixed = ForwardSettings(cells=8, device="cpu")

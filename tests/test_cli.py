@@ -19,8 +19,9 @@ def test_list_options():
 
 def test_forward_writes_measurement_csv(tmp_path):
     out = tmp_path / "T.csv"
-    assert main(["forward", "mesh", "--freqs", "40,200", "--Q", "0,20", "-o", str(out), "--device", "cpu",
-                 "--quiet"]) == 0
+    assert (
+        main(["forward", "mesh", "--freqs", "40,200", "--Q", "0,20", "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    )
     data = read_tmatrix_csv(out)
     expected = transfer_matrices(load_core("mesh"), [40.0, 200.0], [0.0, 20.0], device="cpu").T
     # rows are (Q, freq) in Q-major order; repr() round trip is exact
@@ -32,7 +33,9 @@ def test_forward_writes_measurement_csv(tmp_path):
 
 def test_bad_core_exit_code_names_key(tmp_path, capsys):
     core = tmp_path / "bad.toml"
-    text = (load_core("ceramic").source and open(load_core("ceramic").source).read()).replace("porosity = 0.9\n", "porosity = 1.3\n", 1)
+    text = (load_core("ceramic").source and open(load_core("ceramic").source).read()).replace(
+        "porosity = 0.9\n", "porosity = 1.3\n", 1
+    )
     core.write_text(text)
     assert main(["forward", str(core), "--freqs", "50", "-o", str(tmp_path / "T.csv"), "--device", "cpu"]) == 2
     err = capsys.readouterr().err
@@ -70,11 +73,14 @@ def test_forward_help_shows_defaults(capsys):
     assert "(default: 30:500:100)" in out and "(default: 0)" in out
 
 
-@pytest.mark.parametrize("args, say", [
-    (["forward", "mesh", "--device", "cuda:7"], "cuda:7"),           # no GPU here, or no 8th GPU
-    (["forward", "{tmp}", "--freqs", "50"], "{tmp}"),                  # a directory as the core
-    (["forward", "mesh", "--freqs", "50", "-o", "{tmp}/afile/T.csv"], "afile"),   # output parent is a file
-])
+@pytest.mark.parametrize(
+    "args, say",
+    [
+        (["forward", "mesh", "--device", "cuda:7"], "cuda:7"),  # no GPU here, or no 8th GPU
+        (["forward", "{tmp}", "--freqs", "50"], "{tmp}"),  # a directory as the core
+        (["forward", "mesh", "--freqs", "50", "-o", "{tmp}/afile/T.csv"], "afile"),  # output parent is a file
+    ],
+)
 def test_bad_paths_and_devices_give_a_message_not_a_traceback(args, say, tmp_path, capsys):
     (tmp_path / "afile").write_text("x")
     args = [a.replace("{tmp}", str(tmp_path)) for a in args]
@@ -101,8 +107,10 @@ def test_quiet_prints_nothing_on_stdout(tmp_path):
     import subprocess
     import sys
 
-    code = (f"from tawarp.cli import main; raise SystemExit(main(['forward', 'mesh', '--freqs', '50', '--no-plots', "
-            f"'-o', {str(tmp_path / 'T.csv')!r}, '--device', 'cpu', '--quiet']))")
+    code = (
+        f"from tawarp.cli import main; raise SystemExit(main(['forward', 'mesh', '--freqs', '50', '--no-plots', "
+        f"'-o', {str(tmp_path / 'T.csv')!r}, '--device', 'cpu', '--quiet']))"
+    )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert run.returncode == 0, run.stderr
     assert run.stdout == ""
@@ -118,8 +126,10 @@ def test_warp_prints_its_own_lines_only_with_verbose(tmp_path):
     import sys
 
     def run(*extra):
-        code = (f"from tawarp.cli import main; raise SystemExit(main(['forward', 'mesh', '--freqs', '50', "
-                f"'--no-plots', '-o', {str(tmp_path / 'T.csv')!r}, '--device', 'cpu', {', '.join(map(repr, extra))}]))")
+        code = (
+            f"from tawarp.cli import main; raise SystemExit(main(['forward', 'mesh', '--freqs', '50', "
+            f"'--no-plots', '-o', {str(tmp_path / 'T.csv')!r}, '--device', 'cpu', {', '.join(map(repr, extra))}]))"
+        )
         done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, check=False)
         assert done.returncode == 0, done.stderr
         return done.stdout + done.stderr
@@ -149,7 +159,7 @@ def test_a_ctrl_c_that_python_drops_is_raised_again():
 
     def work():
         t = Thing()
-        weakref.finalize(t, lambda: os.kill(os.getpid(), signal.SIGINT))   # Ctrl-C inside a callback
+        weakref.finalize(t, lambda: os.kill(os.getpid(), signal.SIGINT))  # Ctrl-C inside a callback
         del t
         gc.collect()
         for _ in range(10**8):
@@ -167,8 +177,12 @@ def test_fit_with_an_undetermined_std_prints_it(tmp_path, capsys):
 
     data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
     out = tmp_path / "f.json"
-    assert main(["fit", str(data), "--core", "ceramic", "--fit", "stack.h", "--device", "cpu", "--no-plots",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            ["fit", str(data), "--core", "ceramic", "--fit", "stack.h", "--device", "cpu", "--no-plots", "-o", str(out)]
+        )
+        == 0
+    )
     assert "undetermined" in capsys.readouterr().out and out.exists()
 
 
@@ -181,18 +195,37 @@ def test_fit_of_a_passive_core_recovers_the_layer(tmp_path, capsys):
     from tawarp.model.core import Core, Segment, dump_core
 
     truth = {"layer.porosity": 0.95, "layer.pore_radius": 2e-4, "layer.tortuosity": 1.1}
-    segs = (Segment("duct_left", "duct", 0.05), Segment("layer", "porous", 0.03, porosity=0.95, pore_radius=2e-4,
-                                                        tortuosity=1.1), Segment("duct_right", "duct", 0.05))
+    segs = (
+        Segment("duct_left", "duct", 0.05),
+        Segment("layer", "porous", 0.03, porosity=0.95, pore_radius=2e-4, tortuosity=1.1),
+        Segment("duct_right", "duct", 0.05),
+    )
     core = Core(segs, radius=0.05, source="passive")
     freqs = np.linspace(100.0, 1000.0, 12)
     T = reference.transfer_matrix(core, freqs)
     write_tmatrix_csv(tmp_path / "p.csv", TMatrixData(np.zeros(12), freqs, T, source="p.csv"))
-    start = core.replace(**{"layer.porosity": 0.95 * 0.85, "layer.pore_radius": 2e-4 * 1.15,
-                            "layer.tortuosity": 1.1 * 1.15})
+    start = core.replace(
+        **{"layer.porosity": 0.95 * 0.85, "layer.pore_radius": 2e-4 * 1.15, "layer.tortuosity": 1.1 * 1.15}
+    )
     (tmp_path / "start.toml").write_text(dump_core(start))
     out = tmp_path / "f.json"
-    assert main(["fit", str(tmp_path / "p.csv"), "--core", str(tmp_path / "start.toml"), "--device", "cpu",
-                 "--no-plots", "--quiet", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(tmp_path / "p.csv"),
+                "--core",
+                str(tmp_path / "start.toml"),
+                "--device",
+                "cpu",
+                "--no-plots",
+                "--quiet",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     import json
 
     got = json.loads(out.read_text())["fits"][0]["parameters"]
@@ -204,9 +237,43 @@ def test_an_inadequate_fit_says_so(tmp_path, capsys):
     """`tawarp synth mesh; tawarp fit --core ceramic` reported 'ok' on every line at a
     reduced chi^2 of ~2000; the summary must flag it."""
     csv = tmp_path / "m.csv"
-    assert main(["synth", "mesh", "-o", str(csv), "--freqs", "30:500:12", "--Q", "0,40", "--cells", "8",
-                 "--device", "cpu", "--quiet"]) == 0
-    assert main(["fit", str(csv), "--core", "ceramic", "--cells", "8", "--device", "cpu", "--no-plots",
-                 "-o", str(tmp_path / "f.json")]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                "mesh",
+                "-o",
+                str(csv),
+                "--freqs",
+                "30:500:12",
+                "--Q",
+                "0,40",
+                "--cells",
+                "8",
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
+    assert (
+        main(
+            [
+                "fit",
+                str(csv),
+                "--core",
+                "ceramic",
+                "--cells",
+                "8",
+                "--device",
+                "cpu",
+                "--no-plots",
+                "-o",
+                str(tmp_path / "f.json"),
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "INADEQUATE FIT: reduced chi^2 = " in out

@@ -13,7 +13,7 @@ def test_duct_impedance_is_rho_c_over_area():
     core = load_core("ceramic")
     rho = 101325.0 / (287.05 * 293.15)
     c = math.sqrt(1.4 * 287.05 * 293.15)
-    assert duct_impedance(core) == pytest.approx(rho * c / (math.pi * core.radius ** 2), rel=1e-15)
+    assert duct_impedance(core) == pytest.approx(rho * c / (math.pi * core.radius**2), rel=1e-15)
 
 
 def test_normalize_round_trip_and_lossless_duct():

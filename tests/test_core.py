@@ -3,8 +3,16 @@
 import numpy as np
 import pytest
 
-from tawarp.model.core import (CoreError, Segment, bundled_cores, core_from_dict, dump_core, load_core, paper_cores,
-                               segment_parameter_fields)
+from tawarp.model.core import (
+    CoreError,
+    Segment,
+    bundled_cores,
+    core_from_dict,
+    dump_core,
+    load_core,
+    paper_cores,
+    segment_parameter_fields,
+)
 from tawarp.model.fields import SEGMENT_FIELD_TABLE, takes
 
 
@@ -50,7 +58,7 @@ def test_every_field_rejects_a_value_outside_its_range(f):
     """Validation reads the table: a value just outside each field's physical range is
     refused with the file, the segment and the field's unit in the message."""
     d = load_core("ceramic").to_dict()
-    seg = d["segment"][1]   # the stack: porous and thermal, takes every field but radiative only as thermal porous
+    seg = d["segment"][1]  # the stack: porous and thermal, takes every field but radiative only as thermal porous
     seg[f.name] = f.lower if f.lower_open else f.lower - 1.0
     with pytest.raises(CoreError) as err:
         core_from_dict(d, "bad.toml")
@@ -65,8 +73,14 @@ def test_parameter_names_follow_the_table():
     hot_duct = Segment("t", "duct", 0.1, thermal=True, h=0.2)
     stack = Segment("s", "porous", 0.04, porosity=0.8, pore_radius=1e-4, thermal=True, h=50.0)
     assert segment_parameter_fields(duct) == ("length",)
-    assert segment_parameter_fields(hot_duct) == ("length", "h", "conductivity_exponent", "h_convection",
-                                                  "wall_conductance", "end_conductance")
+    assert segment_parameter_fields(hot_duct) == (
+        "length",
+        "h",
+        "conductivity_exponent",
+        "h_convection",
+        "wall_conductance",
+        "end_conductance",
+    )
     assert segment_parameter_fields(stack) == tuple(f.name for f in SEGMENT_FIELD_TABLE)
     passive = Segment("p", "porous", 0.04, porosity=0.8, pore_radius=1e-4)
     assert "radiative_conductivity" not in segment_parameter_fields(passive)
@@ -86,7 +100,7 @@ def test_get_and_replace_by_parameter_name():
     core = load_core("ceramic")
     c2 = core.replace(**{"stack.porosity": 0.7, "gas.T_cold": 300.0, "tube.radius": 0.02})
     assert (c2.get("stack.porosity"), c2.get("gas.T_cold"), c2.get("tube.radius")) == (0.7, 300.0, 0.02)
-    assert c2.get("duct_left.pore_radius") == 0.02          # a duct's pore radius is the tube's
+    assert c2.get("duct_left.pore_radius") == 0.02  # a duct's pore radius is the tube's
     np.testing.assert_allclose(c2.positions(), core.positions(), rtol=0, atol=0)
     with pytest.raises(KeyError, match="no segment named 'nope'"):
         core.get("nope.length")

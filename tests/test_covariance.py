@@ -90,7 +90,7 @@ def test_covariance_matches_the_numpy_formulas():
             assert np.array_equal(cond < 1e14, fin)
             assert np.max(np.abs(cond[fin] - rcond[fin]) / rcond[fin], initial=0.0) < 1e-10
             assert np.array_equal(s2, rs2)
-            nz = n - 1   # H = 0: every direction undetermined, any orthonormal V is right
+            nz = n - 1  # H = 0: every direction undetermined, any orthonormal V is right
             assert np.max(np.abs(np.abs(np.einsum("nik,nik->nk", V[:nz], rV[:nz])) - 1.0)) < 1e-10
 
 
@@ -102,14 +102,14 @@ def test_padded_parameter_and_singular_pair():
     H, D, cost = batch(3, 0)
     n = H.shape[0]
     cov, std, corr, cond, s2, V = covariance(problems(D), np.arange(n), np.zeros((n, 3)), H, cost)
-    i, k = 40, 0                      # problem 40: parameter 0 padded
+    i, k = 40, 0  # problem 40: parameter 0 padded
     assert np.isinf(std[i, k]) and np.all(np.isfinite(std[i, 1:])) and cond[i] == np.inf
     assert np.all(cov[i, k, 1:] == 0.0) and np.all(corr[i, k, 1:] == 0.0)
     sub = np.linalg.inv(H[i, 1:, 1:]) * np.outer(D[i, 1:], D[i, 1:]) * s2[i]
     assert np.max(np.abs(cov[i, 1:, 1:] - sub) / np.sqrt(np.outer(np.diag(sub), np.diag(sub)))) < 1e-12
     assert np.all(np.abs(V[i, :, 0]) == [1.0, 0.0, 0.0])
-    j = 80                            # first exactly singular problem
-    assert np.all(np.isinf(std[j])) and np.all(np.isinf(cov[j])) and cond[j] > 1e14   # w_0 is rounding
+    j = 80  # first exactly singular problem
+    assert np.all(np.isinf(std[j])) and np.all(np.isinf(cov[j])) and cond[j] > 1e14  # w_0 is rounding
 
 
 def test_non_finite_and_empty():

@@ -107,8 +107,14 @@ search(space, **kw)
 
 def _run(args, **kw):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.Popen([sys.executable, "-c", _SCRIPT, *map(str, args)], env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.STDOUT, text=True, **kw)
+    return subprocess.Popen(
+        [sys.executable, "-c", _SCRIPT, *map(str, args)],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        **kw,
+    )
 
 
 def _space():
@@ -142,7 +148,9 @@ def _copies_are_the_generation_bests(study, ds) -> None:
     for t in copies:
         sa = t.system_attrs
         gen = (ds.worker.values == sa["tawarp:worker"]) & (ds.generation.values == sa["tawarp:generation"])
-        best = np.flatnonzero(gen)[np.argmax(np.where(ds.constraint.values[gen] <= 0, ds.gradient.values[gen], -np.inf))]
+        best = np.flatnonzero(gen)[
+            np.argmax(np.where(ds.constraint.values[gen] <= 0, ds.gradient.values[gen], -np.inf))
+        ]
         assert sa["tawarp:copy"] and int(ds["index"].values[best]) == sa["tawarp:index"]
         assert t.values[0] == ds.gradient.values[best] and int(ds.number.values[best]) == t.number
 
@@ -195,12 +203,17 @@ def test_two_processes_share_one_study(tmp_path, kind):
     ds = trials_table(study)
     for w, n, seed in (("a", 48, 1), ("b", 40, 2)):
         ref = trials_table(search(_space(), n_trials=n, batch=8, worker=w, seed=seed).study)
-        _same_rows(ds.isel(trial=ds.worker.values == w), ref, ["stack.length", "heat_input", "hot_hx.length",
-                                                                 "gradient", "T_max"])
+        _same_rows(
+            ds.isel(trial=ds.worker.values == w),
+            ref,
+            ["stack.length", "heat_input", "hot_hx.length", "gradient", "T_max"],
+        )
     if kind == "journal":  # one trial-store file per worker run, the study holds a copy per generation
         assert st["in_study"] == (48 + 40) // 8
-        assert sorted(p.name.split("-")[0] for p in (tmp_path / "study.trials" / "tawarp-design").glob("*.h5")) \
-            == ["a", "b"]
+        assert sorted(p.name.split("-")[0] for p in (tmp_path / "study.trials" / "tawarp-design").glob("*.h5")) == [
+            "a",
+            "b",
+        ]
     else:
         assert st["in_study"] == 88 and st["store"] is None
 
@@ -224,29 +237,106 @@ def test_cli_design_rank_sweep(tmp_path):
     import xarray as xr
 
     out = tmp_path / "d"
-    assert _cli(["design", "rvc_foam", "--var", "stack.length=0.005:0.1", "--var", "Q=1:18",
-                 "--var", "material=ceramic,rvc_foam", "--trials", "64", "--batch", "16", "--device", "cpu",
-                 "--quiet", "-o", str(out)]) == 0
+    assert (
+        _cli(
+            [
+                "design",
+                "rvc_foam",
+                "--var",
+                "stack.length=0.005:0.1",
+                "--var",
+                "Q=1:18",
+                "--var",
+                "material=ceramic,rvc_foam",
+                "--trials",
+                "64",
+                "--batch",
+                "16",
+                "--device",
+                "cpu",
+                "--quiet",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rep = json.loads((out / "design.json").read_text())
     assert rep["summary"]["trials"] == 64 and rep["best"] and (out / "history.png").exists()
     assert (out / "best_profiles.png").exists() and (out / "study.journal").exists()
     assert rep["trial_store"] == str((out / "study.trials" / "tawarp-design").resolve())
     assert rep["summary"]["in_study"] == 64 // 16
-    assert _cli(["design", "rvc_foam", "--var", "stack.length=0.005:0.1", "--var", "Q=1:18", "--objectives",
-                 "gradient,acoustic_loss", "--freqs", "100,300", "--trials", "32", "--batch", "16", "--quiet",
-                 "-o", str(tmp_path / "mo")]) == 0
+    assert (
+        _cli(
+            [
+                "design",
+                "rvc_foam",
+                "--var",
+                "stack.length=0.005:0.1",
+                "--var",
+                "Q=1:18",
+                "--objectives",
+                "gradient,acoustic_loss",
+                "--freqs",
+                "100,300",
+                "--trials",
+                "32",
+                "--batch",
+                "16",
+                "--quiet",
+                "-o",
+                str(tmp_path / "mo"),
+            ]
+        )
+        == 0
+    )
     assert (tmp_path / "mo" / "pareto.png").exists()
     # the same output folder with other ranges: refused, design.json untouched
     with pytest.raises(StudyConflict, match="design space"):
-        _cli(["design", "rvc_foam", "--var", "stack.length=0.005:0.2", "--var", "Q=1:18", "--objectives",
-              "gradient,acoustic_loss", "--freqs", "100,300", "--trials", "16",
-              "--batch", "16", "--device", "cpu", "--quiet", "--no-plots", "-o", str(tmp_path / "mo")])
+        _cli(
+            [
+                "design",
+                "rvc_foam",
+                "--var",
+                "stack.length=0.005:0.2",
+                "--var",
+                "Q=1:18",
+                "--objectives",
+                "gradient,acoustic_loss",
+                "--freqs",
+                "100,300",
+                "--trials",
+                "16",
+                "--batch",
+                "16",
+                "--device",
+                "cpu",
+                "--quiet",
+                "--no-plots",
+                "-o",
+                str(tmp_path / "mo"),
+            ]
+        )
     assert json.loads((tmp_path / "mo" / "design.json").read_text())["summary"]["trials"] == 32
     assert _cli(["rank", "--Q", "9,18", "--samples", "100", "--quiet", "-o", str(tmp_path / "rank.json")]) == 0
     rank = json.loads((tmp_path / "rank.json").read_text())
     assert {r["material"] for r in rank["ranking"]} == set(PAPER) and (tmp_path / "rank.png").exists()
-    assert _cli(["sweep", "rvc_foam", "--var", "stack.length=0.01:0.08:4", "--var", "Q=1:18:3", "--quiet",
-                 "-o", str(tmp_path / "s.nc")]) == 0
+    assert (
+        _cli(
+            [
+                "sweep",
+                "rvc_foam",
+                "--var",
+                "stack.length=0.01:0.08:4",
+                "--var",
+                "Q=1:18:3",
+                "--quiet",
+                "-o",
+                str(tmp_path / "s.nc"),
+            ]
+        )
+        == 0
+    )
     ds = xr.open_dataset(tmp_path / "s.nc", engine="h5netcdf")
     assert ds.gradient.shape == (4, 3)
     ds.close()
@@ -262,10 +352,22 @@ def test_resume_a_generation_cut_short(tmp_path):
     search(_space(), n_trials=8, batch=8, storage=url, seed=2)
     study = open_study(url, "tawarp-design", ["gradient"])
     # three members of generation 1, as a process that died would have left them
-    gen1 = sorted((t for t in ref.study.get_trials() if t.system_attrs["tawarp:generation"] == 1),
-                  key=lambda t: t.system_attrs["tawarp:index"])[:3]
-    study.add_trials([create_trial(params=t.params, distributions=t.distributions, values=t.values,
-                                   user_attrs=t.user_attrs, system_attrs=t.system_attrs) for t in gen1])
+    gen1 = sorted(
+        (t for t in ref.study.get_trials() if t.system_attrs["tawarp:generation"] == 1),
+        key=lambda t: t.system_attrs["tawarp:index"],
+    )[:3]
+    study.add_trials(
+        [
+            create_trial(
+                params=t.params,
+                distributions=t.distributions,
+                values=t.values,
+                user_attrs=t.user_attrs,
+                system_attrs=t.system_attrs,
+            )
+            for t in gen1
+        ]
+    )
     res = search(_space(), n_trials=24, batch=8, storage=url, seed=2)
     trials = res.study.get_trials()
     assert res.resumed == 5 and len(trials) == 24 and {t.state.name for t in trials} == {"COMPLETE"}
@@ -380,9 +482,17 @@ def test_journal_file_is_optunas_format(tmp_path):
     st = make_storage(path)
     study = open_study(st, "s", ["gradient"])
     d = {"x": FloatDistribution(0.0, 1.0)}
-    add_evaluated(study, st, [{"x": 0.1 * j} for j in range(5)], d, np.arange(5.0)[:, None],
-                  [{"T_max": 300.0 + j} for j in range(5)], np.array([-1.0, 0, 1, 2, 3]), np.array([0, 0, 0, 1, 0], bool),
-                  [{"tawarp:index": j} for j in range(5)])
+    add_evaluated(
+        study,
+        st,
+        [{"x": 0.1 * j} for j in range(5)],
+        d,
+        np.arange(5.0)[:, None],
+        [{"T_max": 300.0 + j} for j in range(5)],
+        np.array([-1.0, 0, 1, 2, 3]),
+        np.array([0, 0, 0, 1, 0], bool),
+        [{"tawarp:index": j} for j in range(5)],
+    )
     other = optuna.load_study(study_name="s", storage=JournalStorage(JournalFileBackend(path)))
     other.add_trial(create_trial(params={"x": 0.9}, distributions=d, value=9.0))
     add_evaluated(study, st, [{"x": 0.5}], d, np.array([[5.0]]), [{}], None, np.zeros(1, bool), [{}])

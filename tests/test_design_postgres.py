@@ -49,8 +49,10 @@ def postgres(tmp_path_factory):
         srv = pgserver.get_server(tmp_path_factory.mktemp("pgdata"), cleanup_mode="delete")
     except Exception as e:
         if os.environ.get("CI"):
-            raise RuntimeError(f"CI: a PostgreSQL server must start for the shared-study tests "
-                               f"(pip install -e '.[test]' installs pgserver): {e!r}") from e
+            raise RuntimeError(
+                f"CI: a PostgreSQL server must start for the shared-study tests "
+                f"(pip install -e '.[test]' installs pgserver): {e!r}"
+            ) from e
         pytest.skip(f"no PostgreSQL server: pgserver could not start one ({e!r}); pip install pgserver psycopg[binary]")
     base = urlsplit(srv.get_uri())  # postgresql://postgres:@/postgres?host=SOCKET_DIR
 
@@ -80,11 +82,36 @@ def _no_worker_outlives_its_test():
 def _design(url: str, worker: str, trials: int, out, seed: int = 0, store=None) -> subprocess.Popen:
     """``tawarp design`` over :func:`_space` as a process of its own, storing into ``url``
     (every trial into the trial store ``store`` when given)."""
-    argv = ["design", "rvc_foam", *(a for v in VARS for a in ("--var", v)), "--trials", trials, "--batch", BATCH,
-            "--storage", url, "--worker", worker, "--seed", seed, "--device", "cpu", "--quiet", "--no-plots",
-            "-o", out, *(["--trial-store", store] if store else [])]
-    _STARTED.append(subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
-                                      *map(str, argv)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+    argv = [
+        "design",
+        "rvc_foam",
+        *(a for v in VARS for a in ("--var", v)),
+        "--trials",
+        trials,
+        "--batch",
+        BATCH,
+        "--storage",
+        url,
+        "--worker",
+        worker,
+        "--seed",
+        seed,
+        "--device",
+        "cpu",
+        "--quiet",
+        "--no-plots",
+        "-o",
+        out,
+        *(["--trial-store", store] if store else []),
+    ]
+    _STARTED.append(
+        subprocess.Popen(
+            [sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())", *map(str, argv)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
+    )
     return _STARTED[-1]
 
 
@@ -132,8 +159,11 @@ def _check_counted_once(study, asked: dict[str, int]) -> None:
     keys = Counter(zip(ds.worker.values.tolist(), ds.generation.values.tolist(), ds["index"].values.tolist()))
     assert set(keys.values()) == {1}, [k for k, c in keys.items() if c > 1]
     assert set(keys) == {(w, g, j) for w, n in asked.items() for g in range(n // BATCH) for j in range(BATCH)}
-    copies = Counter((t.system_attrs["tawarp:worker"], t.system_attrs["tawarp:generation"]) for t in trials
-                     if t.system_attrs.get("tawarp:copy"))
+    copies = Counter(
+        (t.system_attrs["tawarp:worker"], t.system_attrs["tawarp:generation"])
+        for t in trials
+        if t.system_attrs.get("tawarp:copy")
+    )
     if ds.attrs["store"]:  # one copy per generation (one objective: its best)
         assert copies == {(w, g): 1 for w, n in asked.items() for g in range(n // BATCH)}
     else:
@@ -175,8 +205,7 @@ def test_two_workers_one_killed_and_resumed_count_every_trial_once(postgres, tmp
     for g in want:
         assert got[g]["index"].tolist() == want[g]["index"].tolist()
         for k in ["param:" + v.partition("=")[0] for v in VARS] + ["metric:gradient", "metric:T_max"]:
-            np.testing.assert_allclose(got[g][k].astype(float), want[g][k].astype(float), rtol=1e-12, atol=0,
-                                       err_msg=k)
+            np.testing.assert_allclose(got[g][k].astype(float), want[g][k].astype(float), rtol=1e-12, atol=0, err_msg=k)
 
 
 def test_same_name_worker_is_refused_while_the_first_lives(postgres, tmp_path):

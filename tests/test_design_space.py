@@ -26,8 +26,9 @@ def test_parse_variable_forms():
 
 
 def test_unit_cube_round_trip_and_log_scale():
-    space = DesignSpace(load_core("rvc_foam"), ["material=ceramic,rvc_foam", "stack.pore_radius=1e-5:1e-3:log",
-                                                "heat_input=1:9"])
+    space = DesignSpace(
+        load_core("rvc_foam"), ["material=ceramic,rvc_foam", "stack.pore_radius=1e-5:1e-3:log", "heat_input=1:9"]
+    )
     X = np.array([[0.0, 0.5, 1.0], [0.5, 0.25, 0.0]])
     pts = space.points_from_unit(X)
     # log scale: the cube's middle is the geometric mean; linear: the arithmetic one
@@ -40,8 +41,10 @@ def test_unit_cube_round_trip_and_log_scale():
 def test_varying_table_puts_the_material_in_the_stack():
     cat = default_catalogue()
     space = DesignSpace(load_core("rvc_foam"), ["material=ceramic,mesh", "stack.length=0.01:0.05", "Q=1:9"])
-    pts = [{"material": "mesh", "stack.length": 0.02, "heat_input": 3.0},
-           {"material": "ceramic", "stack.length": 0.04, "heat_input": 7.0}]
+    pts = [
+        {"material": "mesh", "stack.length": 0.02, "heat_input": 3.0},
+        {"material": "ceramic", "stack.length": 0.04, "heat_input": 7.0},
+    ]
     table = space.varying_table(space.values_of(pts))
     rows = dict(zip(space.param_names, table[1:]))
     np.testing.assert_array_equal(table[0], [3.0, 7.0])

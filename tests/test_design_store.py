@@ -75,8 +75,15 @@ def test_several_objectives_the_study_holds_the_pareto_front(tmp_path, seed):
     front), while holding fewer trials than were evaluated."""
     from tawarp.design.samplers import pareto_mask
 
-    res = search(_space(), ("gradient", "heat_leak"), n_trials=256, batch=32,
-                 storage=str(tmp_path / "m.journal"), seed=seed, T_limit=450.0)
+    res = search(
+        _space(),
+        ("gradient", "heat_leak"),
+        n_trials=256,
+        batch=32,
+        storage=str(tmp_path / "m.journal"),
+        seed=seed,
+        T_limit=450.0,
+    )
     ds = trials_table(res.study)
     assert ds.sizes["trial"] == 256 and len(set(_keys(ds))) == 256
     ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
@@ -128,8 +135,9 @@ def test_a_crash_mid_generation_loses_only_that_generation(tmp_path, where, gen)
     (generation, index) once and the study with one copy per generation."""
     journal = str(tmp_path / "c.journal")
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    p = subprocess.run([sys.executable, "-c", _CRASH, journal, where, str(gen)], env=env, capture_output=True,
-                       text=True, timeout=180)
+    p = subprocess.run(
+        [sys.executable, "-c", _CRASH, journal, where, str(gen)], env=env, capture_output=True, text=True, timeout=180
+    )
     assert p.returncode == 3, p.stdout + p.stderr
     ref = trials_table(search(_space(), n_trials=64, batch=8, seed=7).study)  # in memory, never interrupted
     names = ["material", "stack.length", "heat_input", "hot_hx.length", "gradient", "T_max", "heat_leak"]
@@ -184,8 +192,15 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
     def run(start, wait):
-        with reaped(subprocess.Popen([sys.executable, "-c", _WRITER, str(tmp_path), str(start)], env=env,
-                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)) as (p,):
+        with reaped(
+            subprocess.Popen(
+                [sys.executable, "-c", _WRITER, str(tmp_path), str(start)],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
+        ) as (p,):
             first = p.stdout.readline()  # the first generation is stored: the writer is under way
             assert first.strip() == str(start), first
             time.sleep(wait)
@@ -236,11 +251,11 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     with released(stop, other), pytest.raises(KeyboardInterrupt):
         with journal.batch():
             journal.append_logs([{"op_code": 0, "a": 1}])
-            os.kill(os.getpid(), signal.SIGINT)      # Ctrl-C in the middle of the batch
+            os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C in the middle of the batch
             journal.append_logs([{"op_code": 0, "a": 2}])
         raise AssertionError("the interrupt must arrive as soon as the batch ends")
     assert [log["a"] for log in journal.read_logs(0)] == [1, 2]
-    assert not os.path.lexists(path + ".lock")        # lock released
-    with journal.batch():                              # and can be taken again at once
+    assert not os.path.lexists(path + ".lock")  # lock released
+    with journal.batch():  # and can be taken again at once
         journal.append_logs([{"op_code": 0, "a": 3}])
     assert [log["a"] for log in journal.read_logs(0)] == [1, 2, 3]

@@ -93,9 +93,16 @@ def test_search_on_cluster_equals_one_process(client):
     assert a == b
 
 
-@pytest.mark.parametrize("mode, outputs, parts", [("sobol", None, False), ("grid", None, False),
-                                                  ("sobol", ["gradient", "acoustic_loss"], False),
-                                                  ("sobol", None, True), ("grid", ["gradient", "acoustic_loss"], True)])
+@pytest.mark.parametrize(
+    "mode, outputs, parts",
+    [
+        ("sobol", None, False),
+        ("grid", None, False),
+        ("sobol", ["gradient", "acoustic_loss"], False),
+        ("sobol", None, True),
+        ("grid", ["gradient", "acoustic_loss"], True),
+    ],
+)
 def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs, parts):
     # the workers make the chunks' tables (grid indices, Sobol points) on their devices and
     # send back the float32 outputs and a Sobol chunk's design values, or write them to part
@@ -108,23 +115,27 @@ def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs, pa
 
     from tawarp.design.sweep import parts_path, sweep
 
-    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "material=ceramic,mesh,rvc_foam",
-                                                "heat_input=1:9:3"])
-    kw = dict(mode=mode, n_samples=96, seed=2, outputs=outputs,
-              chunk=8 if mode == "grid" else 20)   # grid: hyperslabs of 2 x 3 points
+    space = DesignSpace(
+        load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "material=ceramic,mesh,rvc_foam", "heat_input=1:9:3"]
+    )
+    kw = dict(
+        mode=mode, n_samples=96, seed=2, outputs=outputs, chunk=8 if mode == "grid" else 20
+    )  # grid: hyperslabs of 2 x 3 points
     one = sweep(space, tmp_path / "one.nc", **kw)
-    if parts:   # over an older sweep of other chunks, whose parts go
+    if parts:  # over an older sweep of other chunks, whose parts go
         sweep(space, tmp_path / "many.nc", client=client, parts=True, **{**kw, "seed": 5, "chunk": 3})
     many = sweep(space, tmp_path / "many.nc", client=client, parts=parts, **kw)
     assert many.chunks == one.chunks > 2
     assert parts_path(many.path).is_dir() == parts
-    if parts:   # the file and its folder moved together (the file names its parts relative to itself)
+    if parts:  # the file and its folder moved together (the file names its parts relative to itself)
         assert len(list(parts_path(many.path).iterdir())) == many.chunks
         (tmp_path / "moved").mkdir()
         for p in (many.path, parts_path(many.path)):
             shutil.move(p, tmp_path / "moved" / p.name)
-    with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
-            xr.open_dataset(tmp_path / ("moved" if parts else ".") / "many.nc", engine="h5netcdf") as y:
+    with (
+        xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x,
+        xr.open_dataset(tmp_path / ("moved" if parts else ".") / "many.nc", engine="h5netcdf") as y,
+    ):
         xr.testing.assert_identical(x, y)
         assert x["gradient"].size == one.n_points and np.isfinite(x["gradient"].values).all()
 
@@ -136,8 +147,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
 
     from tawarp.design.sweep import sweep
 
-    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "material=ceramic,mesh,rvc_foam",
-                                                "heat_input=1:9"])
+    space = DesignSpace(
+        load_core("rvc_foam"), ["stack.length=0.01:0.08", "material=ceramic,mesh,rvc_foam", "heat_input=1:9"]
+    )
     values = space.from_unit(np.random.default_rng(3).random((40, 2)))
     values["material"] = np.arange(40) % 3
     procs = local_cluster(["cpu", "cpu"], processes=True)
@@ -152,9 +164,11 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     one = Evaluator(space).evaluate(values)
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k]) for k in one)
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
-    for name in ("many.nc", "parts.nc"):   # parts: written by the worker processes
-        with xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x, \
-                xr.open_dataset(tmp_path / name, engine="h5netcdf") as y:
+    for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
+        with (
+            xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf") as x,
+            xr.open_dataset(tmp_path / name, engine="h5netcdf") as y,
+        ):
             xr.testing.assert_identical(x, y)
     with pytest.raises(ValueError, match="parts=True.*client="):
         sweep(space, tmp_path / "no.nc", mode="sobol", n_samples=8, parts=True)
@@ -196,7 +210,7 @@ def test_worker_threads_keep_their_own_state(client):
     built = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
     again = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
     assert built[0][1] != built[1][1] and built[0][2] is not built[1][2]  # two threads, two objects
-    assert all(a[2] is b[2] for a, b in zip(built, again))                # kept between tasks
+    assert all(a[2] is b[2] for a, b in zip(built, again))  # kept between tasks
 
 
 def test_task_arguments_pickle():

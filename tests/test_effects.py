@@ -14,8 +14,13 @@ from tawarp.model.core import Core, CoreError, core_from_dict, dump_core, load_c
 from tawarp.model.forward import steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
-NONLINEAR = [("stack.conductivity_exponent", 1.0), ("stack.radiative_conductivity", 0.5),
-             ("tbt.h_convection", 3.0), ("hot_hx.conductivity_exponent", -0.5), ("tbt.conductivity_exponent", 0.8)]
+NONLINEAR = [
+    ("stack.conductivity_exponent", 1.0),
+    ("stack.radiative_conductivity", 0.5),
+    ("tbt.h_convection", 3.0),
+    ("hot_hx.conductivity_exponent", -0.5),
+    ("tbt.conductivity_exponent", 0.8),
+]
 
 
 @pytest.mark.parametrize("field", sorted(EFFECT_OFF))
@@ -37,6 +42,7 @@ def test_effect_fields_in_toml_round_trip_and_validation():
     d["segment"][3].update(h_convection=2.0, wall_conductance=0.3)
     core = core_from_dict(d, "<effects>")
     import tomllib
+
     again = core_from_dict(tomllib.loads(dump_core(core)), "<again>")
     assert again == dataclasses.replace(core, source="<again>")
     assert "stack.thermal_radius_ratio" in core.parameter_names() and "tbt.h_convection" in core.parameter_names()
@@ -60,8 +66,9 @@ def johnson(x, s):
     return 1 + 4j / x**2 * np.sqrt(1 - 1j * s**2 * x**2 / 8)
 
 
-def _closed_form_two_radii(core: Core, freqs, ratios: dict, mobility: dict | None = None,
-                           shape: dict | None = None) -> np.ndarray:
+def _closed_form_two_radii(
+    core: Core, freqs, ratios: dict, mobility: dict | None = None, shape: dict | None = None
+) -> np.ndarray:
     """T-matrix at uniform T_cold with f_k taken at radius ratio * r (closed form, SciPy);
     ``mobility``: segment -> 1/rho_frame of a limp frame, derived independently here from
     the fluid and frame momentum balances (2x2 solve per frequency)."""
@@ -100,16 +107,21 @@ def _closed_form_two_radii(core: Core, freqs, ratios: dict, mobility: dict | Non
             k = np.where(k.imag < 0, -k, k)
             Zc = a12 / (1j * k)
         kL = k * seg.length
-        Ts = np.stack([np.stack([np.cos(kL), 1j * Zc * np.sin(kL)], -1),
-                       np.stack([1j * np.sin(kL) / Zc, np.cos(kL)], -1)], -2)
+        Ts = np.stack(
+            [np.stack([np.cos(kL), 1j * Zc * np.sin(kL)], -1), np.stack([1j * np.sin(kL) / Zc, np.cos(kL)], -1)], -2
+        )
         M = Ts @ M
     return M
 
 
 def test_thermal_radius_ratio_matches_closed_form():
     core = load_core("nicr_foam")
-    cold = Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
-                core.radius, core.source)
+    cold = Core(
+        tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments),
+        core.gas,
+        core.radius,
+        core.source,
+    )
     ratio = 1.9
     T = transfer_matrices(cold, FREQS, 0.0, params={"stack.thermal_radius_ratio": ratio}, device="cpu").T[0]
     Zc = duct_impedance(core)
@@ -121,8 +133,12 @@ def test_thermal_radius_ratio_matches_closed_form():
 
 def test_limp_frame_matches_closed_form_and_rigid_limit():
     core = load_core("rvc_foam")
-    cold = Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
-                core.radius, core.source)
+    cold = Core(
+        tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments),
+        core.gas,
+        core.radius,
+        core.source,
+    )
     Zc = duct_impedance(core)
     m = 1 / 30.0  # a 30 kg/m^3 frame
     Y = normalize(transfer_matrices(cold, FREQS, 0.0, params={"stack.frame_mobility": m}, device="cpu").T[0], Zc)
@@ -136,10 +152,16 @@ def test_limp_frame_matches_closed_form_and_rigid_limit():
 
 def test_viscous_shape_factor_matches_closed_form_and_limits():
     core = load_core("nicr_foam")
-    cold = Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
-                core.radius, core.source)
+    cold = Core(
+        tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments),
+        core.gas,
+        core.radius,
+        core.source,
+    )
     Zc = duct_impedance(core)
-    Y = normalize(transfer_matrices(cold, FREQS, 0.0, params={"stack.viscous_shape_factor": 1.6}, device="cpu").T[0], Zc)
+    Y = normalize(
+        transfer_matrices(cold, FREQS, 0.0, params={"stack.viscous_shape_factor": 1.6}, device="cpu").T[0], Zc
+    )
     Yref = normalize(_closed_form_two_radii(cold, FREQS, {}, shape={"stack": 1.6}), Zc)
     assert np.abs(Y - Yref).max() < 1e-11 * np.abs(Yref).max()
     # the correction keeps the flow resistivity (x -> 0) and gives Lambda = r/s at high frequency
@@ -155,8 +177,14 @@ def test_wall_conductance_equals_a_raised_solid_conductivity():
     G = 0.4
     seg = core.segment("stack")
     a = transfer_matrices(core, FREQS, 60.0, params={"stack.wall_conductance": G}, device="cpu", cells=12)
-    b = transfer_matrices(core, FREQS, 60.0, params={"stack.solid_conductivity": seg.solid_conductivity
-                                                     + G / (1 - seg.porosity)}, device="cpu", cells=12)
+    b = transfer_matrices(
+        core,
+        FREQS,
+        60.0,
+        params={"stack.solid_conductivity": seg.solid_conductivity + G / (1 - seg.porosity)},
+        device="cpu",
+        cells=12,
+    )
     np.testing.assert_allclose(a.theta, b.theta, rtol=1e-12)
     np.testing.assert_allclose(a.T, b.T, rtol=1e-10, atol=1e-12 * np.abs(b.T).max())
 
@@ -199,8 +227,10 @@ def test_nonlinear_heat_converges_with_heat_cells(name, value):
     # the per-cell coefficients (at the cell's mean temperature) make the scheme second order
     core = load_core("ceramic")
     x = np.array(core.positions()[1:5])  # planes x2..x5 are nodes on every grid
-    T = {c: steady_temperature(core, x, 80.0, params={name: value}, device="cpu", nonlinear_heat_cells=c)[0][0]
-         for c in (32, 64, 128, 1024)}
+    T = {
+        c: steady_temperature(core, x, 80.0, params={name: value}, device="cpu", nonlinear_heat_cells=c)[0][0]
+        for c in (32, 64, 128, 1024)
+    }
     e = [np.abs(T[c] - T[1024]).max() for c in (32, 64, 128)]
     orders = np.log2(np.array(e[:-1]) / np.array(e[1:]))
     assert np.all(orders > 1.7), (e, orders)
@@ -214,10 +244,15 @@ def test_effects_on_cuda_match_cpu():
     if not wp.is_cuda_available():
         pytest.skip("no CUDA device: GPU comparison of the effects skipped")
     core = load_core("ceramic")
-    params = {"stack.thermal_radius_ratio": [1.0, 1.7, 1.3], "stack.conductivity_exponent": [0.0, 0.8, 0.0],
-              "tbt.h_convection": [0.0, 2.0, 5.0], "stack.radiative_conductivity": [0.0, 0.0, 0.2],
-              "hot_hx.wall_conductance": [0.0, 0.1, 0.3], "stack.viscous_shape_factor": [1.0, 1.4, 0.8],
-              "stack.frame_mobility": [0.0, 0.0, 0.02]}
+    params = {
+        "stack.thermal_radius_ratio": [1.0, 1.7, 1.3],
+        "stack.conductivity_exponent": [0.0, 0.8, 0.0],
+        "tbt.h_convection": [0.0, 2.0, 5.0],
+        "stack.radiative_conductivity": [0.0, 0.0, 0.2],
+        "hot_hx.wall_conductance": [0.0, 0.1, 0.3],
+        "stack.viscous_shape_factor": [1.0, 1.4, 0.8],
+        "stack.frame_mobility": [0.0, 0.0, 0.02],
+    }
     cpu = transfer_matrices(core, FREQS, [0.0, 40.0, 80.0], params=params, device="cpu")
     gpu = transfer_matrices(core, FREQS, [0.0, 40.0, 80.0], params=params, device="cuda")
     Y, Yg = cpu.dimensionless(), gpu.dimensionless()

@@ -14,8 +14,16 @@ from tawarp.model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, equivalent_fluid
 from tawarp.measure.tmatrix import TMatrixKind
 from tawarp.model import biot
 from tawarp.model.core import Core, Segment
-from tawarp.model.effects import (AMBIENT_HX, Param, ambient_exchanger_effect, base_params, impedance_library,
-                                  library_for_core, tmatrix_library, with_ambient_exchangers)
+from tawarp.model.effects import (
+    AMBIENT_HX,
+    Param,
+    ambient_exchanger_effect,
+    base_params,
+    impedance_library,
+    library_for_core,
+    tmatrix_library,
+    with_ambient_exchangers,
+)
 from tawarp.model.forward import ForwardSettings
 from tawarp.model.fields import field
 from tawarp.model.coefficients import normalize
@@ -52,12 +60,32 @@ def test_base_params_read_the_fields_table():
 
 
 #: A passive core: a porous sample between two ducts (tests/test_cli.py's layer).
-PASSIVE = Core((Segment("duct_left", "duct", 0.05), Segment("sample", "porous", 0.03, porosity=0.95, pore_radius=2e-4,
-                                                             tortuosity=1.1), Segment("duct_right", "duct", 0.05)),
-               radius=0.05, source="passive")
-STABLE_NAMES = {"plane_offsets", "T_cold", "p_mean", "thermal_radius_ratio", "conductivity_T", "radiation", "convection",
-                "wall_conduction", "ambient_exchangers", "viscous_shape_factor", "thickness_offset", "limp_frame",
-                "elastic_frame", "calibration", "ambient_exchanger_thermal"}
+PASSIVE = Core(
+    (
+        Segment("duct_left", "duct", 0.05),
+        Segment("sample", "porous", 0.03, porosity=0.95, pore_radius=2e-4, tortuosity=1.1),
+        Segment("duct_right", "duct", 0.05),
+    ),
+    radius=0.05,
+    source="passive",
+)
+STABLE_NAMES = {
+    "plane_offsets",
+    "T_cold",
+    "p_mean",
+    "thermal_radius_ratio",
+    "conductivity_T",
+    "radiation",
+    "convection",
+    "wall_conduction",
+    "ambient_exchangers",
+    "viscous_shape_factor",
+    "thickness_offset",
+    "limp_frame",
+    "elastic_frame",
+    "calibration",
+    "ambient_exchanger_thermal",
+}
 
 
 def _tmatrix_kind(core, freqs, Qs=(0.0,)):
@@ -82,16 +110,44 @@ def _start_values(kind, effects):
 
 def test_library_for_core_names_typical_sizes_and_passive_cores():
     heated = {e.name for e in library_for_core(CORE, "tmatrix")}
-    assert heated == {"plane_offsets", "T_cold", "p_mean", "calibration", "thermal_radius_ratio", "conductivity_T",
-                      "radiation", "convection", "wall_conduction", "ambient_exchangers", "ambient_exchanger_thermal"}
+    assert heated == {
+        "plane_offsets",
+        "T_cold",
+        "p_mean",
+        "calibration",
+        "thermal_radius_ratio",
+        "conductivity_T",
+        "radiation",
+        "convection",
+        "wall_conduction",
+        "ambient_exchangers",
+        "ambient_exchanger_thermal",
+    }
     passive = {e.name for e in library_for_core(PASSIVE, "scattering")}
-    assert passive == {"plane_offsets", "T_cold", "p_mean", "calibration", "thermal_radius_ratio",
-                       "viscous_shape_factor", "limp_frame", "elastic_frame"}
+    assert passive == {
+        "plane_offsets",
+        "T_cold",
+        "p_mean",
+        "calibration",
+        "thermal_radius_ratio",
+        "viscous_shape_factor",
+        "limp_frame",
+        "elastic_frame",
+    }
     layer = {e.name for e in library_for_core(CORE, "impedance")}
-    assert layer == {"thermal_radius_ratio", "viscous_shape_factor", "limp_frame", "elastic_frame", "thickness_offset",
-                     "T_cold", "p_mean"}
+    assert layer == {
+        "thermal_radius_ratio",
+        "viscous_shape_factor",
+        "limp_frame",
+        "elastic_frame",
+        "thickness_offset",
+        "T_cold",
+        "p_mean",
+    }
     assert library_for_core(CORE, "toy") == []
-    for e in library_for_core(CORE, "tmatrix") + library_for_core(PASSIVE, "tmatrix") + library_for_core(CORE, "impedance"):
+    for e in (
+        library_for_core(CORE, "tmatrix") + library_for_core(PASSIVE, "tmatrix") + library_for_core(CORE, "impedance")
+    ):
         assert e.name in STABLE_NAMES
         # every parameter has a typical value within its bounds, and the typical effect is on
         assert set(e.typical) == {p.label for p in e.params}, e.name
@@ -100,7 +156,7 @@ def test_library_for_core_names_typical_sizes_and_passive_cores():
         assert any(e.typical[p.label] != p.start for p in e.params), e.name
     # the sizes the issue names: wall of 1 mm stainless steel on R = 16.7 mm: 15 ((R + t)^2 - R^2)/R^2 = 1.83 W/(m K)
     wall = next(e for e in tmatrix_library(CORE) if e.name == "wall_conduction")
-    assert wall.typical["wall_conductance"] == pytest.approx(15 * ((0.0177) ** 2 - 0.0167 ** 2) / 0.0167 ** 2, rel=1e-3)
+    assert wall.typical["wall_conductance"] == pytest.approx(15 * ((0.0177) ** 2 - 0.0167**2) / 0.0167**2, rel=1e-3)
 
 
 def test_passive_and_layer_libraries_are_off_at_their_start_bit_for_bit():
@@ -124,8 +180,12 @@ def test_ambient_exchangers_off_at_zero_length_and_typical_against_the_reference
     base = kind.predict(_start_values(kind, []), 1)
     for phi, r in ((0.8, 1e-3), (0.3, 5e-5)):
         off = _start_values(kind, [e])
-        off.update({k: np.array([v]) for k, v in e.model_values({"ambient_hx.porosity": phi,
-                                                                   "ambient_hx.pore_radius": r}).items()})
+        off.update(
+            {
+                k: np.array([v])
+                for k, v in e.model_values({"ambient_hx.porosity": phi, "ambient_hx.pore_radius": r}).items()
+            }
+        )
         np.testing.assert_array_equal(kind.predict(off, 1, e), base)
     on = _start_values(kind, [e])
     on.update({k: np.array([v]) for k, v in e.model_values().items()})
@@ -160,24 +220,28 @@ def test_calibration_gain_is_a_gain_of_the_downstream_microphones():
 
 
 def _frame(C, eta=0.1, rho_1=30.0):
-    return {"layer.frame_compliance": np.array([C]), "layer.frame_loss_factor": np.array([eta]),
-            "layer.frame_density": np.array([rho_1])}
+    return {
+        "layer.frame_compliance": np.array([C]),
+        "layer.frame_loss_factor": np.array([eta]),
+        "layer.frame_density": np.array([rho_1]),
+    }
 
 
 def test_equivalent_fluid_of_the_kernels_equals_the_circular_pore_closed_form():
-    f = np.geomspace(100.0, 2000.0, 7)   # below the cut-on of the layer core's tube
+    f = np.geomspace(100.0, 2000.0, 7)  # below the cut-on of the layer core's tube
     w = 2 * np.pi * f
     kind = _impedance_kind(f)
     phi, r, q = 0.95, 1.5e-4, 1.1
-    core = kind.core.replace(**{"layer.porosity": phi, "layer.pore_radius": r, "layer.tortuosity": q,
-                                "layer.length": FLUID_SLICE})
+    core = kind.core.replace(
+        **{"layer.porosity": phi, "layer.pore_radius": r, "layer.tortuosity": q, "layer.length": FLUID_SLICE}
+    )
     T = transfer_matrices(core, f, 0.0, device="cpu").T[0]
     rho_eq, K_eq = equivalent_fluid(T, FLUID_SLICE, w, core.area)
     g = reference.gas_properties("air", core.gas.T_cold, core.gas.p_mean)
     f_nu, omf_nu = reference.thermoviscous_function("circular", r, np.sqrt(2 * g.mu / (g.rho * w)))
     f_k, _ = reference.thermoviscous_function("circular", r, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
     np.testing.assert_allclose(rho_eq, q * q * g.rho / (phi * omf_nu), rtol=1e-9)
-    np.testing.assert_allclose(K_eq, g.rho * g.c ** 2 / (phi * (1 + (g.gamma - 1) * f_k)), rtol=1e-9)
+    np.testing.assert_allclose(K_eq, g.rho * g.c**2 / (phi * (1 + (g.gamma - 1) * f_k)), rtol=1e-9)
 
 
 def test_elastic_frame_effect_limits_and_biot_on_the_closed_form_fluid():
@@ -201,10 +265,15 @@ def test_elastic_frame_effect_limits_and_biot_on_the_closed_form_fluid():
     g = reference.gas_properties("air", kind.core.gas.T_cold, kind.core.gas.p_mean)
     _, omf_nu = reference.thermoviscous_function("circular", r, np.sqrt(2 * g.mu / (g.rho * w)))
     f_k, _ = reference.thermoviscous_function("circular", r, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
-    fl = biot.JCAFluid(q * q * g.rho / (phi * omf_nu), g.rho * g.c ** 2 / (phi * (1 + (g.gamma - 1) * f_k)),
-                       np.array(g.rho), np.array(g.c))
-    Zref = biot.fluid_surface_impedance(f, fl, thickness=0.03, phi=phi, E=2e5, eta=0.1, nu=FRAME_POISSON_RATIO,
-                                        rho_1=30.0)
+    fl = biot.JCAFluid(
+        q * q * g.rho / (phi * omf_nu),
+        g.rho * g.c**2 / (phi * (1 + (g.gamma - 1) * f_k)),
+        np.array(g.rho),
+        np.array(g.c),
+    )
+    Zref = biot.fluid_surface_impedance(
+        f, fl, thickness=0.03, phi=phi, E=2e5, eta=0.1, nu=FRAME_POISSON_RATIO, rho_1=30.0
+    )
     assert np.abs(Z - Zref).max() < 1e-8 * np.abs(Zref).max()
     assert np.abs(Z - Z0[0]).max() > 1e-3 * np.abs(Z0).max()
 
@@ -223,8 +292,9 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     from tawarp.fit.problems import fit_batch, fit_one
     from tawarp.measure import load_atalla_panneton
 
-    prob = ImpedanceKind(load_atalla_panneton("foam2", measured_folder("atalla_panneton_2005")),
-                         ForwardSettings(device="cpu"))
+    prob = ImpedanceKind(
+        load_atalla_panneton("foam2", measured_folder("atalla_panneton_2005")), ForwardSettings(device="cpu")
+    )
     lib = {e.name: e for e in impedance_library(prob.core)}
     bp = base_params(prob.core, prob.default_names())
     base = fit_one(prob, bp)
@@ -236,7 +306,7 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
         labels = [p.label for p in pars]
         x_off = np.concatenate([base.x[0], np.zeros(len(pars) - len(bp))])
         starts = [x_off]
-        for start in lib["elastic_frame"].starts:   # the effect's own extra starts (from "off" the fit stays)
+        for start in lib["elastic_frame"].starts:  # the effect's own extra starts (from "off" the fit stays)
             x = x_off.copy()
             for label, v in start.items():
                 x[labels.index(label)] = pars[labels.index(label)].x_of(v)
@@ -249,7 +319,7 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     assert 2e6 < 1 / v["layer.frame_compliance"] < 4.5e6 and 0.1 < v["layer.frame_loss_factor"] < 0.2
     assert 25 < v["layer.frame_density"] < 45
     full = fit(["thermal_radius_ratio", "viscous_shape_factor", "elastic_frame"])
-    assert float(full.rms_error[0]) < 0.036   # rigid JCA: 0.0581
+    assert float(full.rms_error[0]) < 0.036  # rigid JCA: 0.0581
 
 
 def _exact_profile_with_exchangers(core, Q, H):
@@ -270,10 +340,10 @@ def _exact_profile_with_exchangers(core, Q, H):
     b[0] = H * part[0]
     for j in range(n - 1):
         c, sh = np.cosh(m[j] * L[j]), np.sinh(m[j] * L[j])
-        A[1 + 2 * j, 2 * j:2 * j + 2] = c, sh
+        A[1 + 2 * j, 2 * j : 2 * j + 2] = c, sh
         A[1 + 2 * j, 2 * j + 2] = -1.0
         b[1 + 2 * j] = part[j + 1] - part[j]
-        A[2 + 2 * j, 2 * j:2 * j + 2] = lam[j] * m[j] * sh, lam[j] * m[j] * c
+        A[2 + 2 * j, 2 * j : 2 * j + 2] = lam[j] * m[j] * sh, lam[j] * m[j] * c
         A[2 + 2 * j, 2 * j + 3] = -lam[j + 1] * m[j + 1]
     c, sh = np.cosh(m[-1] * L[-1]), np.sinh(m[-1] * L[-1])
     A[-1, -2:] = lam[-1] * m[-1] * sh + H * c, lam[-1] * m[-1] * c + H * sh
@@ -285,6 +355,7 @@ def _exact_profile_with_exchangers(core, Q, H):
         j = np.clip(np.searchsorted(starts, x, side="right") - 1, 0, n - 1)
         xi = x - starts[j]
         return coef[2 * j] * np.cosh(m[j] * xi) + coef[2 * j + 1] * np.sinh(m[j] * xi) + part[j]
+
     return theta
 
 
@@ -303,7 +374,7 @@ def test_ambient_exchanger_thermal_matches_the_closed_form(H):
     exact = _exact_profile_with_exchangers(core, Q, H)(x)
     assert np.abs(T[0] - core.gas.T_cold - exact).max() < 1e-9 * exact.max()
     if H == 1e6:
-        assert exact[0] < 1e-3 * exact.max()   # nearly held at T_cold
+        assert exact[0] < 1e-3 * exact.max()  # nearly held at T_cold
 
 
 def test_ambient_exchanger_thermal_energy_balance_with_a_nonlinear_conductivity():
@@ -341,8 +412,13 @@ def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
     np.testing.assert_array_equal(kind.predict(dict(base, **_start_values(kind, [e])), 1), Y0)
     limp = kind.predict(dict(base, **{"sample.frame_mobility": np.array([1 / 30.0])}), 1)
     at_zero = {k: np.array([v]) for k, v in e.model_values({"sample.frame_mobility": 1 / 30.0}).items()}
-    np.testing.assert_array_equal(kind.predict(dict(base, **at_zero), 1), limp)   # E = 0: the limp frame itself
-    soft = {k: np.array([v]) for k, v in e.model_values({"sample.frame_mobility": 1 / 30.0, "sample.frame_modulus": 1e-3, "sample.frame_loss_factor": 0.0}).items()}
+    np.testing.assert_array_equal(kind.predict(dict(base, **at_zero), 1), limp)  # E = 0: the limp frame itself
+    soft = {
+        k: np.array([v])
+        for k, v in e.model_values(
+            {"sample.frame_mobility": 1 / 30.0, "sample.frame_modulus": 1e-3, "sample.frame_loss_factor": 0.0}
+        ).items()
+    }
     assert np.abs(kind.predict(dict(base, **soft), 1) - limp).max() < 1e-8 * np.abs(limp).max()
     Y = kind.predict(dict(base, **{k: np.array([v]) for k, v in e.model_values().items()}), 1)
     seg = PASSIVE.segments[1]
@@ -350,10 +426,23 @@ def test_two_port_elastic_frame_limits_and_biot_between_reference_ducts():
     g = reference.gas_properties("air", PASSIVE.gas.T_cold, PASSIVE.gas.p_mean)
     _, omf_nu = reference.thermoviscous_function("circular", seg.pore_radius, np.sqrt(2 * g.mu / (g.rho * w)))
     f_k, _ = reference.thermoviscous_function("circular", seg.pore_radius, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
-    fl = biot.JCAFluid(seg.tortuosity ** 2 * g.rho / (seg.porosity * omf_nu),
-                       g.rho * g.c ** 2 / (seg.porosity * (1 + (g.gamma - 1) * f_k)), np.array(g.rho), np.array(g.c))
-    Tb = biot.fluid_transfer_matrix(f, fl, thickness=seg.length, phi=seg.porosity, E=2e5, eta=0.1,
-                                    nu=FRAME_POISSON_RATIO, rho_1=30.0, area=PASSIVE.area)
+    fl = biot.JCAFluid(
+        seg.tortuosity**2 * g.rho / (seg.porosity * omf_nu),
+        g.rho * g.c**2 / (seg.porosity * (1 + (g.gamma - 1) * f_k)),
+        np.array(g.rho),
+        np.array(g.c),
+    )
+    Tb = biot.fluid_transfer_matrix(
+        f,
+        fl,
+        thickness=seg.length,
+        phi=seg.porosity,
+        E=2e5,
+        eta=0.1,
+        nu=FRAME_POISSON_RATIO,
+        rho_1=30.0,
+        area=PASSIVE.area,
+    )
     duct = lambda s: reference.transfer_matrix(Core((s,), PASSIVE.gas, PASSIVE.radius, "duct"), f)  # noqa: E731
     Tref = duct(PASSIVE.segments[2]) @ Tb @ duct(PASSIVE.segments[0])
     Yref = normalize(Tref, kind.Zc).reshape(-1)
@@ -393,8 +482,9 @@ def test_loop_finds_a_calibration_gain_on_reference_data_of_a_passive_sample(see
     sigma = np.broadcast_to(0.002 * np.array([[1, Zc], [1 / Zc, 1]]), T.shape)
     rng = np.random.default_rng(seed)
     Tn = T + sigma * (rng.standard_normal(T.shape) + 1j * rng.standard_normal(T.shape))
-    start = PASSIVE.replace(**{"sample.porosity": 0.95 * 0.9, "sample.pore_radius": 2e-4 * 1.15,
-                               "sample.tortuosity": 1.1 * 1.1})
+    start = PASSIVE.replace(
+        **{"sample.porosity": 0.95 * 0.9, "sample.pore_radius": 2e-4 * 1.15, "sample.tortuosity": 1.1 * 1.1}
+    )
     prob = TMatrixKind(TMatrixData(np.zeros(f.size), f, Tn, sigma.copy()), start, ForwardSettings(device="cpu"))
     rep = run_loop(prob, library=library_for_core(start, "tmatrix"), drift_h=False)
     assert rep["chosen_effect"] == "calibration"

@@ -64,7 +64,7 @@ def test_random_spd_matches_numpy(p):
                 if i != j:
                     gap[:, i] = np.minimum(gap[:, i], np.abs(w0[:, i] - w0[:, j]))
         apart = gap / wmax > 1e-3
-        assert apart.mean() > 0.9                 # the test compares most eigenvectors
+        assert apart.mean() > 0.9  # the test compares most eigenvectors
         dots = np.abs(np.einsum("nik,nik->nk", V0, V))
         assert np.max(np.abs(dots[apart] - 1.0)) < 1e-10
 

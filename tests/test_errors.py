@@ -118,12 +118,12 @@ def _conjugated_text(text: str, convention: str | None) -> str:
     names = lines[h].split(",")
     flip = [j for j, name in enumerate(names) if name.endswith("_im") and not name.startswith("sigma_")]
     rows = []
-    for line in lines[h + 1:]:
+    for line in lines[h + 1 :]:
         f = line.split(",")
         for j in flip:
             f[j] = repr(-float(f[j]))
         rows.append(",".join(f))
-    head = ([f"# convention = {convention}"] if convention else []) + lines[:h + 1]
+    head = ([f"# convention = {convention}"] if convention else []) + lines[: h + 1]
     return "\n".join(head + rows) + "\n"
 
 
@@ -141,8 +141,11 @@ def test_tmatrix_data_of_the_other_convention_are_named(tmp_path):
     for name, convention in (("undeclared.csv", None), ("declared.csv", "exp(-iwt)")):
         path = tmp_path / name
         path.write_text(_conjugated_text(text, convention))
-        with pytest.raises(MeasurementError, match=r"looks like exp\(\+iwt\) data \(Im Tpu < 0 and Im Tup < 0 at "
-                                                   r"50 Hz.*'# convention = exp\(\+iwt\)'"):
+        with pytest.raises(
+            MeasurementError,
+            match=r"looks like exp\(\+iwt\) data \(Im Tpu < 0 and Im Tup < 0 at "
+            r"50 Hz.*'# convention = exp\(\+iwt\)'",
+        ):
             read_tmatrix_csv(path)
     path = tmp_path / "plus.csv"
     path.write_text(_conjugated_text(text, "exp(+iwt)"))
@@ -174,8 +177,11 @@ def test_impedance_data_of_the_other_convention_are_named(tmp_path):
     _impedance_file(tmp_path / "minus.csv", f, Zs)
     np.testing.assert_allclose(read_impedance_csv(tmp_path / "minus.csv").Zs, Zs, rtol=1e-15)
     _impedance_file(tmp_path / "plus.csv", f, Zs.conj())
-    with pytest.raises(MeasurementError, match=r"plus\.csv: this file looks like exp\(\+iwt\) data \(Im Zs < 0 at "
-                                               r"200 Hz.*add a line '# convention = exp\(\+iwt\)'"):
+    with pytest.raises(
+        MeasurementError,
+        match=r"plus\.csv: this file looks like exp\(\+iwt\) data \(Im Zs < 0 at "
+        r"200 Hz.*add a line '# convention = exp\(\+iwt\)'",
+    ):
         read_impedance_csv(tmp_path / "plus.csv")
     _impedance_file(tmp_path / "declared.csv", f, Zs.conj(), "exp(+iwt)")
     np.testing.assert_allclose(read_impedance_csv(tmp_path / "declared.csv").Zs, Zs, rtol=1e-15)
@@ -231,8 +237,28 @@ def test_a_database_in_a_missing_folder_is_named(tmp_path, capsys):
     url = f"sqlite:///{tmp_path / 'missing' / 'dir' / 'x.db'}"
     with pytest.raises(ValueError, match=r"the folder '.*missing/dir' of the database does not exist; create it"):
         make_storage(url)
-    assert main(["design", "rvc_foam", "--var", "Q=1:18", "--trials", "8", "--batch", "8", "--storage", url,
-                 "--device", "cpu", "--quiet", "-o", str(tmp_path / "out")]) == 2
+    assert (
+        main(
+            [
+                "design",
+                "rvc_foam",
+                "--var",
+                "Q=1:18",
+                "--trials",
+                "8",
+                "--batch",
+                "8",
+                "--storage",
+                url,
+                "--device",
+                "cpu",
+                "--quiet",
+                "-o",
+                str(tmp_path / "out"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "missing/dir' of the database does not exist" in err
     assert not (tmp_path / "missing").exists()

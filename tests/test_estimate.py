@@ -4,7 +4,6 @@ Sizes are small (16 frequencies, 8 Magnus cells in the fits, 12 in the data so t
 fit is not an inverse crime at Q > 0) so the file runs in well under a minute.
 """
 
-
 import numpy as np
 import pytest
 
@@ -38,8 +37,9 @@ def test_normal_equations_match_central_differences(jacobian, tol):
     rng = np.random.default_rng(0)
     w = rng.uniform(0.5, 2.0, (1, 12, 4, 2)) / sd[None, ..., None]
     start = np.array([0.7, 4.4e-5, 1.1, 40.0])
-    prob = Problems(core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None],
-                    jacobian=jacobian)
+    prob = Problems(
+        core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None], jacobian=jacobian
+    )
     z = prob.to_z(start * np.array([1.02, 0.97, 1.01, 1.1]), 0)
     cost, raw, g, H = [a.numpy() for a in prob.evaluate(np.array([0]), z[None])]
     # host reference: central differences at steps 2h and h in z, extrapolated (the h^2
@@ -47,11 +47,14 @@ def test_normal_equations_match_central_differences(jacobian, tol):
     h = 1e-4
     zs = [z] + [z + s * k * h * e for e in np.eye(4) for k in (2, 1) for s in (1, -1)]
     vs = np.array([prob.to_v(zz, 0) for zz in zs])
-    Ym = transfer_matrices(core, freqs, 40.0, params={k: vs[:, a] for a, k in enumerate(names)},
-                           settings=FIT).dimensionless()
+    Ym = transfer_matrices(
+        core, freqs, 40.0, params={k: vs[:, a] for a, k in enumerate(names)}, settings=FIT
+    ).dimensionless()
+
     def real(Yc):
         d = np.stack([Yc.real, Yc.imag], axis=-1) * w[0]
         return d.reshape(-1)
+
     r = real(Ym[0] - Y[0])
     d2 = [(real(Ym[1 + 4 * a]) - real(Ym[2 + 4 * a])) / (4 * h) for a in range(4)]
     d1 = [(real(Ym[3 + 4 * a]) - real(Ym[4 + 4 * a])) / (2 * h) for a in range(4)]
@@ -76,8 +79,16 @@ def test_std_matches_scatter_over_noise_draws():
     core = load_core("mesh")
     freqs = paper_frequencies("mesh", 16)
     Y, sd = noisy(core, freqs, 0.0, n, seed=11)
-    r = fit(core, freqs, Y, GEOM, {"stack.porosity": 0.6, "stack.pore_radius": 6e-5, "stack.tortuosity": 1.2},
-            weights=1 / sd, settings=FIT, warn=False)
+    r = fit(
+        core,
+        freqs,
+        Y,
+        GEOM,
+        {"stack.porosity": 0.6, "stack.pore_radius": 6e-5, "stack.tortuosity": 1.2},
+        weights=1 / sd,
+        settings=FIT,
+        warn=False,
+    )
     assert r.converged.all()
     ratio = r.values.std(axis=0, ddof=1) / r.std.mean(axis=0)
     assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), ratio
@@ -101,14 +112,14 @@ def test_lam_s_with_h_s_gives_the_warning():
     Y, sd = noisy(core, freqs, 40.0, 1, seed=5)
     names = ["stack.h", "stack.solid_conductivity", "hot_hx.h", "hot_hx.solid_conductivity", "tbt.h"]
     with pytest.warns(FitWarning, match="stack.h and stack.solid_conductivity are too correlated"):
-        r = fit(core, freqs, Y, names, [core.get(k) * 1.2 for k in names], heat_input=40.0, weights=1 / sd,
-                settings=FIT)
+        r = fit(
+            core, freqs, Y, names, [core.get(k) * 1.2 for k in names], heat_input=40.0, weights=1 / sd, settings=FIT
+        )
     assert abs(r.correlation[0, 0, 1]) > 0.95
     Y0, sd0 = noisy(core, freqs, 0.0, 1, seed=6)
     with pytest.warns(FitWarning, match="ill-conditioned.*mostly along stack.h"):
-        r = fit(core, freqs, Y0, ["stack.porosity", "stack.h"], [0.9, 30.0], weights=1 / sd0, settings=FIT,
-                restarts=2)
-    assert not np.isfinite(r.std[0, 1])   # h has no effect at Q = 0: infinite std, not a number
+        r = fit(core, freqs, Y0, ["stack.porosity", "stack.h"], [0.9, 30.0], weights=1 / sd0, settings=FIT, restarts=2)
+    assert not np.isfinite(r.std[0, 1])  # h has no effect at Q = 0: infinite std, not a number
     # a flat direction is a continuum of minima: the ±20 % restarts stay where they start
     assert r.distinct_minima[0]
     assert any("restarts landed in different minima" in w for w in r.warnings)
@@ -121,8 +132,18 @@ def test_restarts_agree_and_bounds_hold():
     freqs = paper_frequencies("ceramic", 16)
     Y, sd = noisy(core, freqs, 0.0, 6, seed=7)
     ties = {"stack.porosity": ["hot_hx.porosity"], "stack.pore_radius": ["hot_hx.pore_radius"]}
-    r = fit(core, freqs, Y, ["stack.porosity", "stack.pore_radius", "stack.tortuosity"], [0.8, 0.6e-3, 1.3],
-            ties=ties, weights=1 / sd, settings=FIT, restarts=3, warn=False)
+    r = fit(
+        core,
+        freqs,
+        Y,
+        ["stack.porosity", "stack.pore_radius", "stack.tortuosity"],
+        [0.8, 0.6e-3, 1.3],
+        ties=ties,
+        weights=1 / sd,
+        settings=FIT,
+        restarts=3,
+        warn=False,
+    )
     assert r.restart_values.shape == (6, 3, 3)
     assert not r.distinct_minima.any()
     assert r.restart_converged.all()
@@ -243,10 +264,12 @@ def test_cells_sized_at_the_starts_are_checked_at_the_solutions(monkeypatch):
     original = estimate._cells_at_solutions
     monkeypatch.setattr(estimate, "_cells_at_solutions", lambda *a: runs.append(original(*a)) or runs[-1])
     for factor, rerun in (([1.0, 1.0, 0.3], True), ([1.2, 0.8, 1.2], False)):
-        r = fit(core, freqs, Y, HEAT, truth * np.array(factor), heat_input=40.0, weights=1 / sd, device="cpu",
-                warn=False)
-        ref = fit(core, freqs, Y, HEAT, truth, heat_input=40.0, weights=1 / sd, settings=ForwardSettings(cells=40),
-                  warn=False)
+        r = fit(
+            core, freqs, Y, HEAT, truth * np.array(factor), heat_input=40.0, weights=1 / sd, device="cpu", warn=False
+        )
+        ref = fit(
+            core, freqs, Y, HEAT, truth, heat_input=40.0, weights=1 / sd, settings=ForwardSettings(cells=40), warn=False
+        )
         assert (runs[-1] is not None) == rerun
         assert r.converged.all()
         assert np.max(np.abs(r.values - ref.values) / ref.std) < 2e-3

@@ -11,8 +11,18 @@ import pytest
 from scipy import stats
 
 from tawarp.fit.result import FitResult
-from tawarp.loop.evidence import (CLAIM, Model, XPrior, claims, inclusion, laplace_log_evidence, linearized_evidence,
-                                  log_model_prior, posterior, subsets)
+from tawarp.loop.evidence import (
+    CLAIM,
+    Model,
+    XPrior,
+    claims,
+    inclusion,
+    laplace_log_evidence,
+    linearized_evidence,
+    log_model_prior,
+    posterior,
+    subsets,
+)
 
 
 def linear_gaussian(seed, n=40, p=3):
@@ -27,13 +37,13 @@ def linear_gaussian(seed, n=40, p=3):
 def exact_log_evidence(A, y, mu, sd):
     """ln N(y; A mu, I + A diag(sd^2) A^T) plus (n/2) ln 2 pi (the evidence leaves out the
     noise's normalisation, the same for every model)."""
-    cov = np.eye(len(y)) + A @ np.diag(sd ** 2) @ A.T
+    cov = np.eye(len(y)) + A @ np.diag(sd**2) @ A.T
     return stats.multivariate_normal(A @ mu, cov).logpdf(y) + 0.5 * len(y) * math.log(2 * math.pi)
 
 
 def map_estimate(A, y, mu, sd):
-    H = A.T @ A + np.diag(sd ** -2)
-    return np.linalg.solve(H, A.T @ y + mu / sd ** 2)
+    H = A.T @ A + np.diag(sd**-2)
+    return np.linalg.solve(H, A.T @ y + mu / sd**2)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -54,21 +64,35 @@ def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
     mu[2] = 0.0
     xb = map_estimate(A[:, :2], y, mu[:2], sd[:2])
     base_priors = [XPrior(m, s) for m, s in zip(mu[:2], sd[:2])]
-    fit = FitResult(names=["a", "b"], values=xb[None], std=np.zeros((1, 2)), covariance=np.zeros((1, 2, 2)),
-                    correlation=np.zeros((1, 2, 2)), condition=np.ones(1), iterations=np.zeros(1, int),
-                    converged=np.ones(1, bool), reason=np.array(["xtol"]), cost=np.ones(1), rms_error=np.ones(1),
-                    s2=np.ones(1), dof=1, start=np.zeros((1, 2)), x=xb[None], residuals=(A[:, :2] @ xb - y)[None],
-                    jacobian=A[None, :, :2])
+    fit = FitResult(
+        names=["a", "b"],
+        values=xb[None],
+        std=np.zeros((1, 2)),
+        covariance=np.zeros((1, 2, 2)),
+        correlation=np.zeros((1, 2, 2)),
+        condition=np.ones(1),
+        iterations=np.zeros(1, int),
+        converged=np.ones(1, bool),
+        reason=np.array(["xtol"]),
+        cost=np.ones(1),
+        rms_error=np.ones(1),
+        s2=np.ones(1),
+        dof=1,
+        start=np.zeros((1, 2)),
+        x=xb[None],
+        residuals=(A[:, :2] @ xb - y)[None],
+        jacobian=A[None, :, :2],
+    )
     at = Model((), fit=fit, priors=base_priors)
 
     class Effect:
         name, params = "e", (None,)
 
-    (logz, x), = linearized_evidence(at, {"e": A[:, 2:]}, [((Effect,), base_priors + [XPrior(0.0, sd[2])])])
+    ((logz, x),) = linearized_evidence(at, {"e": A[:, 2:]}, [((Effect,), base_priors + [XPrior(0.0, sd[2])])])
     assert logz == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
     assert np.allclose(x, map_estimate(A, y, mu, sd), atol=1e-12)
     # and with no effect it is the base model's own evidence
-    (logz0, _), = linearized_evidence(at, {}, [((), base_priors)])
+    ((logz0, _),) = linearized_evidence(at, {}, [((), base_priors)])
     assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
 
 
@@ -94,7 +118,7 @@ def test_model_prior_sums_to_one_and_is_uniform_over_sizes():
         sizes[len(s)] = sizes.get(len(s), 0) + 1
     total = sum(math.exp(log_model_prior(sizes, len(s))) for s in sets)
     assert total == pytest.approx(1.0, abs=1e-12)
-    for k in sizes:     # each size carries 1/(number of sizes)
+    for k in sizes:  # each size carries 1/(number of sizes)
         assert sum(math.exp(log_model_prior(sizes, k)) for s in sets if len(s) == k) == pytest.approx(1 / len(sizes))
 
 
@@ -111,8 +135,9 @@ def test_inclusion_and_claims():
     # "a" is in every probable model: claimed alone; "b" and "c" substitute for each other
     # (either explains the data, rarely both): a group of joint probability >= 0.95; "d" is
     # in no probable model
-    ms = _models([((), -50.0), (("a",), -20.0), (("a", "b"), 0.0), (("a", "c"), 0.1), (("a", "b", "c"), -4.0),
-                  (("d",), -30.0)])
+    ms = _models(
+        [((), -50.0), (("a",), -20.0), (("a", "b"), 0.0), (("a", "c"), 0.1), (("a", "b", "c"), -4.0), (("d",), -30.0)]
+    )
     inc = inclusion(ms, ["a", "b", "c", "d"])
     assert inc["a"] > 0.999 and 0.3 < inc["b"] < 0.7 and 0.3 < inc["c"] < 0.7 and inc["d"] < 1e-6
     alone, groups = claims(ms, ["a", "b", "c", "d"])

@@ -83,6 +83,6 @@ def test_toy_measurement_kind(tmp_path, seed):
     for k, v in TRUTH.items():
         got, std = res.value_dict()[k], res.std_dict()[k]
         assert abs(got - v) < 3 * std, (k, got, v, std)
-        assert std < 0.05 * v   # the fit determines the parameter
+        assert std < 0.05 * v  # the fit determines the parameter
     # with sigma known, chi^2 / dof ~ 1 (2 m - p = 30 dof: 99.9 % range 0.4..2.1)
     assert 0.4 < res.cost[0] / res.dof < 2.1

@@ -8,7 +8,7 @@ import pytest
 
 from tawarp.kernels import layout
 from tawarp.model.core import Segment, load_core
-from tawarp.model.fields import (EFFECT_OFF, GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, field)
+from tawarp.model.fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, field
 from tawarp.model.forward import base_table, parameter_row
 
 ALL = list(SEGMENT_FIELD_TABLE) + list(GLOBAL_FIELD_TABLE.values())
@@ -44,14 +44,14 @@ def test_fit_ranges_lie_inside_the_physical_range(f):
     assert lo < hi
     assert f.check(lo)
     assert f.check(hi)
-    if f.log:        # a log-scaled parameter must stay positive
+    if f.log:  # a log-scaled parameter must stay positive
         assert lo > 0 and f.lower >= 0
     else:
         assert f.scale > 0
     if f.prior is not None:
         assert lo <= f.prior[0] < f.prior[1] <= hi
     if f.is_effect:
-        assert lo <= f.neutral <= hi        # a fit can start from "off"
+        assert lo <= f.neutral <= hi  # a fit can start from "off"
 
 
 def test_field_lookup_by_any_name():

@@ -27,8 +27,10 @@ def test_fit_command_on_surface_impedance(tmp_path, seed):
     rng = np.random.default_rng(seed)
     Zs = Zs + NOISE * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
     path = tmp_path / "zs.csv"
-    path.write_text("# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im\n"
-                    + "".join(f"{float(a)!r},{float(z.real)!r},{float(z.imag)!r}\n" for a, z in zip(f, Zs)))
+    path.write_text(
+        "# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im\n"
+        + "".join(f"{float(a)!r},{float(z.real)!r},{float(z.imag)!r}\n" for a, z in zip(f, Zs))
+    )
     parser = argparse.ArgumentParser()
     add_fit_parser(parser.add_subparsers(dest="command"))
     out = tmp_path / "fit.json"
@@ -49,11 +51,24 @@ def test_fit_command_on_surface_impedance(tmp_path, seed):
 
 def test_add_covariance_and_bic():
     cov = np.array([[[4.0, 1.0], [1.0, 9.0]]])
-    r = FitResult(names=["a", "b"], values=np.array([[1.0, 2.0]]), std=np.array([[2.0, 3.0]]), covariance=cov.copy(),
-                  correlation=np.array([[[1.0, 1 / 6], [1 / 6, 1.0]]]), condition=np.array([3.0]),
-                  iterations=np.array([3]), converged=np.array([True]), reason=np.array(["xtol"]),
-                  cost=np.array([50.0]), rms_error=np.array([0.1]), s2=np.array([1.0]), dof=48,
-                  start=np.array([[1.0, 2.0]]), problem_warnings=[[]], n=50)
+    r = FitResult(
+        names=["a", "b"],
+        values=np.array([[1.0, 2.0]]),
+        std=np.array([[2.0, 3.0]]),
+        covariance=cov.copy(),
+        correlation=np.array([[[1.0, 1 / 6], [1 / 6, 1.0]]]),
+        condition=np.array([3.0]),
+        iterations=np.array([3]),
+        converged=np.array([True]),
+        reason=np.array(["xtol"]),
+        cost=np.array([50.0]),
+        rms_error=np.array([0.1]),
+        s2=np.array([1.0]),
+        dof=48,
+        start=np.array([[1.0, 2.0]]),
+        problem_warnings=[[]],
+        n=50,
+    )
     r.add_covariance(np.array([[[5.0, 2.0], [2.0, 7.0]]]))
     assert np.allclose(r.std, [[3.0, 4.0]], rtol=1e-15) and np.allclose(r.std_statistical, [[2.0, 3.0]])
     assert np.isclose(r.correlation[0, 0, 1], 3.0 / 12.0, rtol=1e-15)
@@ -70,8 +85,10 @@ def _impedance_file(path, seed=0):
     Zs = surface_impedance_from_T(reference.transfer_matrix(core, f), core)
     rng = np.random.default_rng(seed)
     Zs = Zs + NOISE * (rng.standard_normal(f.size) + 1j * rng.standard_normal(f.size))
-    path.write_text("# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im,sigma_Zs\n"
-                    + "".join(f"{float(a)!r},{float(z.real)!r},{float(z.imag)!r},{NOISE!r}\n" for a, z in zip(f, Zs)))
+    path.write_text(
+        "# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im,sigma_Zs\n"
+        + "".join(f"{float(a)!r},{float(z.real)!r},{float(z.imag)!r},{NOISE!r}\n" for a, z in zip(f, Zs))
+    )
     return path
 
 
@@ -84,9 +101,24 @@ def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
     seg = Segment("foam", "porous", 0.05, porosity=0.9 * 0.8, pore_radius=1.2e-4 * 1.25, tortuosity=1.3 * 1.15)
     (tmp_path / "c.toml").write_text(dump_core(Core((seg,), radius=0.05, source="c")))
     out = tmp_path / "f.json"
-    assert main(["fit", str(_impedance_file(tmp_path / "z.csv")), "--core", str(tmp_path / "c.toml"),
-                 "--fit", "layer.porosity,layer.pore_radius,layer.tortuosity", "--device", "cpu", "--quiet",
-                 "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(_impedance_file(tmp_path / "z.csv")),
+                "--core",
+                str(tmp_path / "c.toml"),
+                "--fit",
+                "layer.porosity,layer.pore_radius,layer.tortuosity",
+                "--device",
+                "cpu",
+                "--quiet",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     e = json.loads(out.read_text())["fits"][0]
     assert e["parameters"]["layer.porosity"]["start"] == pytest.approx(0.72)
     for k, v in TRUTH.items():
@@ -94,13 +126,16 @@ def test_impedance_on_a_passive_core_starts_from_it(tmp_path):
     assert 0.5 < e["goodness_of_fit"]["reduced_chi2"] < 1.6
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--core", "ceramic"], "--core ceramic: a thermoacoustic core (thermal segments stack, hot_hx, tbt)"),
-    (["--core", "foam_sample", "--fit", "layer.porosity,foam.porosity"], "--fit foam.porosity: unknown parameter"),
-    (["--fit", "layer.length"], "--fit layer.length: the layer thickness is the file's"),
-    (["--empty-tube", "E.csv"], "impedance data take no empty_tube option (it applies to scattering data)"),
-    (["--start", "spread"], "--start spread: applies to T-matrix data of a thermoacoustic core"),
-])
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--core", "ceramic"], "--core ceramic: a thermoacoustic core (thermal segments stack, hot_hx, tbt)"),
+        (["--core", "foam_sample", "--fit", "layer.porosity,foam.porosity"], "--fit foam.porosity: unknown parameter"),
+        (["--fit", "layer.length"], "--fit layer.length: the layer thickness is the file's"),
+        (["--empty-tube", "E.csv"], "impedance data take no empty_tube option (it applies to scattering data)"),
+        (["--start", "spread"], "--start spread: applies to T-matrix data of a thermoacoustic core"),
+    ],
+)
 def test_impossible_combinations_are_one_line_errors(tmp_path, capsys, argv, message):
     from tawarp.cli import main
 
@@ -115,9 +150,27 @@ def test_tmatrix_fit_names_are_checked(tmp_path, capsys):
     from tawarp.measure import TMatrixData, write_tmatrix_csv
 
     f = np.array([100.0, 300.0])
-    write_tmatrix_csv(tmp_path / "t.csv", TMatrixData(np.zeros(2), f, reference.transfer_matrix(load_core("foam_sample"), f)))
-    assert main(["fit", str(tmp_path / "t.csv"), "--core", "foam_sample", "--fit", "stack.porosity", "--device",
-                 "cpu", "--quiet", "-o", str(tmp_path / "f.json")]) == 2
+    write_tmatrix_csv(
+        tmp_path / "t.csv", TMatrixData(np.zeros(2), f, reference.transfer_matrix(load_core("foam_sample"), f))
+    )
+    assert (
+        main(
+            [
+                "fit",
+                str(tmp_path / "t.csv"),
+                "--core",
+                "foam_sample",
+                "--fit",
+                "stack.porosity",
+                "--device",
+                "cpu",
+                "--quiet",
+                "-o",
+                str(tmp_path / "f.json"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "--fit stack.porosity: unknown parameter for tmatrix data" in err and "foam.porosity" in err
 
@@ -132,14 +185,40 @@ def test_scattering_on_a_thermoacoustic_core(tmp_path):
 
     core = load_core("ceramic")
     f = np.linspace(50.0, 200.0, 8)
-    s, _ = scattering_measurement(reference.transfer_matrix(core, f, 20.0), f, tube_radius=core.radius,
-                                  plane_upstream=-0.05, plane_downstream=0.05, length=core.positions()[-1],
-                                  heat_input=20.0, noise=1e-3, seed=1)
+    s, _ = scattering_measurement(
+        reference.transfer_matrix(core, f, 20.0),
+        f,
+        tube_radius=core.radius,
+        plane_upstream=-0.05,
+        plane_downstream=0.05,
+        length=core.positions()[-1],
+        heat_input=20.0,
+        noise=1e-3,
+        seed=1,
+    )
     write_scattering_csv(tmp_path / "s.csv", s)
     (tmp_path / "c.toml").write_text(dump_core(core.replace(**{"stack.h": 110.0})))
     out = tmp_path / "f.json"
-    assert main(["fit", str(tmp_path / "s.csv"), "--core", str(tmp_path / "c.toml"), "--fit", "stack.h",
-                 "--device", "cpu", "--quiet", "--cells", "8", "-o", str(out)]) == 0
+    assert (
+        main(
+            [
+                "fit",
+                str(tmp_path / "s.csv"),
+                "--core",
+                str(tmp_path / "c.toml"),
+                "--fit",
+                "stack.h",
+                "--device",
+                "cpu",
+                "--quiet",
+                "--cells",
+                "8",
+                "-o",
+                str(out),
+            ]
+        )
+        == 0
+    )
     e = json.loads(out.read_text())["fits"][0]
     h = e["parameters"]["stack.h"]
     assert e["heat_input_W"] == 20.0 and abs(h["value"] - 150.0) < 3 * h["std"], h

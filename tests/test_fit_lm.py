@@ -50,8 +50,9 @@ def test_lm_equals_normal_equations(damping):
     W = np.diag(1 / sigma**2)
     C = np.linalg.inv(A.T @ W @ A)
     prob = LinearProblems(A, sigma, Y)
-    st = levenberg_marquardt(prob, np.arange(3), np.zeros((3, A.shape[1])), damping=damping, xtol=1e-15,
-                             gtol=1e-15, max_iter=200)
+    st = levenberg_marquardt(
+        prob, np.arange(3), np.zeros((3, A.shape[1])), damping=damping, xtol=1e-15, gtol=1e-15, max_iter=200
+    )
     # values to 1e-8: a step is accepted on a lower cost, and at 1e-9 from the minimum the
     # cost differs from it by ~1e-18 of itself, below rounding (seen: 4e-10 Nielsen, 1.3e-9
     # the paper's rule); the covariance from J^T J at the solution to 1e-10

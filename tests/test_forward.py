@@ -12,8 +12,12 @@ from tawarp.model.core import Core, CoreError, core_from_dict, load_core
 from tawarp.model.forward import steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
-HEAT = {"ceramic": [0.0, 40.0, 80.0], "mesh": [0.0, 40.0, 80.0], "nicr_foam": [0.0, 40.0, 80.0],
-        "rvc_foam": [0.0, 9.0, 18.0]}
+HEAT = {
+    "ceramic": [0.0, 40.0, 80.0],
+    "mesh": [0.0, 40.0, 80.0],
+    "nicr_foam": [0.0, 40.0, 80.0],
+    "rvc_foam": [0.0, 9.0, 18.0],
+}
 
 
 def relative_error(Y, Yref):
@@ -84,8 +88,10 @@ def test_heat_solve_second_order_with_plain_scheme():
     core = load_core("ceramic")
     x = np.array(core.positions()[1:5])  # planes x2..x5 are nodes at every cell count
     exact = reference.heat_profile_exact(core, 40.0).temperature(x)
-    errors = [np.abs(steady_temperature(core, x, 40.0, device="cpu", heat_cells=c, fitted=False)[0][0] - exact).max()
-              for c in (16, 32, 64)]
+    errors = [
+        np.abs(steady_temperature(core, x, 40.0, device="cpu", heat_cells=c, fitted=False)[0][0] - exact).max()
+        for c in (16, 32, 64)
+    ]
     orders = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
     assert np.all((orders > 1.9) & (orders < 2.1)), orders
 
@@ -112,8 +118,7 @@ def test_energy_balance(name):
 def test_magnus_converges_at_sixth_order():
     # Check 5: the cascade's error against a converged reference falls as cells^-6.
     core = load_core("ceramic")
-    Y = {c: transfer_matrices(core, FREQS, 80.0, device="cpu", cells=c).dimensionless()
-         for c in (6, 12, 24, 256)}
+    Y = {c: transfer_matrices(core, FREQS, 80.0, device="cpu", cells=c).dimensionless() for c in (6, 12, 24, 256)}
     e = [relative_error(Y[c], Y[256]) for c in (6, 12, 24)]
     orders = np.log2(np.array(e[:-1]) / np.array(e[1:]))
     assert np.all((orders > 5.5) & (orders < 6.6)), orders
@@ -153,11 +158,17 @@ def test_batch_parameters_override_core_values():
     core = load_core("mesh")
     h = np.array([20.0, 50.0, 90.0])
     r = np.array([30e-6, 40e-6, 60e-6])
-    res = transfer_matrices(core, FREQS, [10.0, 20.0, 40.0], params={"stack.h": h, "stack.pore_radius": r},
-                            device="cpu", cells=8)
+    res = transfer_matrices(
+        core, FREQS, [10.0, 20.0, 40.0], params={"stack.h": h, "stack.pore_radius": r}, device="cpu", cells=8
+    )
     for k in range(3):
-        one = transfer_matrices(core.replace(**{"stack.h": h[k], "stack.pore_radius": r[k]}), FREQS,
-                                [10.0, 20.0, 40.0][k], device="cpu", cells=8)
+        one = transfer_matrices(
+            core.replace(**{"stack.h": h[k], "stack.pore_radius": r[k]}),
+            FREQS,
+            [10.0, 20.0, 40.0][k],
+            device="cpu",
+            cells=8,
+        )
         np.testing.assert_array_equal(res.T[k], one.T[0])
 
 
@@ -187,7 +198,7 @@ def test_cpu_threads_split_the_batch_bit_for_bit():
     core = load_core("ceramic")
     freqs = np.linspace(30.0, 500.0, 50)
     rng = np.random.default_rng(3)
-    table = np.stack([rng.uniform(0, 80, 120), rng.uniform(50, 250, 120)])      # 6000 models: 3 threads
+    table = np.stack([rng.uniform(0, 80, 120), rng.uniform(50, 250, 120)])  # 6000 models: 3 threads
     one = Engine(core, freqs, ["stack.h"], ForwardSettings(device="cpu", cpu_threads=1))
     three = Engine(core, freqs, ["stack.h"], ForwardSettings(device="cpu", cpu_threads=3))
     assert three._cpu_parts(120) == 3 and one._cpu_parts(120) == 1
@@ -238,8 +249,9 @@ def test_matrix_exponential_against_scipy(scale):
 
     rng = np.random.default_rng(int(scale * 1e6))
     a = scale * (rng.normal(size=(200, 2, 2)) + 1j * rng.normal(size=(200, 2, 2)))
-    m = wp.array(np.ascontiguousarray(a.reshape(200, 4)).view(np.float64).reshape(200, 4, 2), dtype=wp.vec2d,
-                 device="cpu")
+    m = wp.array(
+        np.ascontiguousarray(a.reshape(200, 4)).view(np.float64).reshape(200, 4, 2), dtype=wp.vec2d, device="cpu"
+    )
     e = wp.empty((200, 4), dtype=wp.vec2d, device="cpu")
     wp.launch(run, dim=200, inputs=[m, e], device="cpu")
     got = e.numpy().reshape(200, 8).view(np.complex128).reshape(200, 2, 2)

@@ -15,11 +15,12 @@ from tawarp.model.core import Core, CoreError, core_from_dict, load_core
 BASE = load_core("ceramic").to_dict()
 SOURCE = "fuzz.toml"
 # every value a TOML file can hold
-toml_scalars = st.one_of(st.text(max_size=8), st.integers(-10**6, 10**6), st.floats(allow_nan=True),
-                         st.booleans())
-toml_values = st.recursive(toml_scalars, lambda inner: st.one_of(st.lists(inner, max_size=3),
-                                                                 st.dictionaries(st.text(max_size=6), inner, max_size=3)),
-                           max_leaves=6)
+toml_scalars = st.one_of(st.text(max_size=8), st.integers(-(10**6), 10**6), st.floats(allow_nan=True), st.booleans())
+toml_values = st.recursive(
+    toml_scalars,
+    lambda inner: st.one_of(st.lists(inner, max_size=3), st.dictionaries(st.text(max_size=6), inner, max_size=3)),
+    max_leaves=6,
+)
 
 
 def _paths(d, prefix=()):
@@ -57,7 +58,7 @@ def _loads_or_names_the_file(data):
         assert SOURCE in str(e)
         return None
     assert isinstance(core, Core)
-    for s in core.segments:       # accepted values are physical
+    for s in core.segments:  # accepted values are physical
         assert math.isfinite(s.length) and s.length > 0
         if s.is_porous:
             assert 0 < s.porosity <= 1 and 0 < s.pore_radius <= core.radius
@@ -167,5 +168,6 @@ def test_any_core_that_loads_forwards_to_a_clear_error_or_a_sound_result():
     import sys
 
     run = subprocess.run([sys.executable, "-c", _FORWARD_FUZZ, "400"], capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0 and run.stdout.rstrip().endswith("done"), \
+    assert run.returncode == 0 and run.stdout.rstrip().endswith("done"), (
         f"rc {run.returncode}; last example: {run.stdout.strip().splitlines()[-1:]}\n{run.stderr[-3000:]}"
+    )

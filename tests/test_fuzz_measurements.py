@@ -7,12 +7,16 @@ from hypothesis import strategies as st
 
 from tawarp.measure import MeasurementError, read_impedance_csv, read_scattering_csv, read_tmatrix_csv
 
-TMATRIX = ("# convention = exp(-iwt)\nQ_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im\n"
-           "0,100,1,0,0,1,0,1e-6,1,0\n0,200,0.9,0,0,2,0,2e-6,0.9,0\n")
+TMATRIX = (
+    "# convention = exp(-iwt)\nQ_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im\n"
+    "0,100,1,0,0,1,0,1e-6,1,0\n0,200,0.9,0,0,2,0,2e-6,0.9,0\n"
+)
 IMPEDANCE = "# thickness = 0.02\nfreq_Hz,Zs_re,Zs_im\n100,1,2\n200,1.5,-1\n"
-SCATTERING = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_upstream = 0.1\n"
-              "# ref_downstream = 0.1\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
-              "100,0.1,0,0.9,0,0.9,0,0.1,0\n200,0.1,0,0.9,0,0.9,0,0.1,0\n")
+SCATTERING = (
+    "# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_upstream = 0.1\n"
+    "# ref_downstream = 0.1\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
+    "100,0.1,0,0.9,0,0.9,0,0.1,0\n200,0.1,0,0.9,0,0.9,0,0.1,0\n"
+)
 TOKENS = ["nan", "inf", "", "abc", "-1", "0", "1e400", ",", "\n", "# x = 1\n", "Q_W", '"', "\t", "\x00", ",,,"]
 edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS) | st.text(max_size=3))
 
@@ -20,7 +24,7 @@ edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS)
 def _apply(text, edits):
     for at, width, token in edits:
         at = at % (len(text) + 1)
-        text = text[:at] + token + text[at + width:]
+        text = text[:at] + token + text[at + width :]
     return text
 
 
@@ -36,8 +40,9 @@ def test_any_corruption_reads_or_is_named(tmp_path, base, edits):
             assert "fuzz.csv" in str(e)
 
 
-@pytest.mark.parametrize("base, reader", [(TMATRIX, read_tmatrix_csv), (IMPEDANCE, read_impedance_csv),
-                                          (SCATTERING, read_scattering_csv)])
+@pytest.mark.parametrize(
+    "base, reader", [(TMATRIX, read_tmatrix_csv), (IMPEDANCE, read_impedance_csv), (SCATTERING, read_scattering_csv)]
+)
 def test_the_uncorrupted_files_read(tmp_path, base, reader):
     p = tmp_path / "ok.csv"
     p.write_text(base)
@@ -45,16 +50,31 @@ def test_the_uncorrupted_files_read(tmp_path, base, reader):
 
 
 # -- signed reference planes, sigma columns and the empty-tube reader -------------------
-SIGNED = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
-          "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im,"
-          "sigma_S11,sigma_S12,sigma_S21,sigma_S22\n"
-          "100,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n200,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n")
-EMPTY = ("# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
-         "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
-         "100,0.001,0,0.97499,0.21769,0.97499,0.21769,0,0.002\n200,0,0.001,0.90322,0.42449,0.90322,0.42449,0.001,0\n")
-PLANE_TOKENS = ["ref_upstream", "ref_plane_upstream", "ref_plane_downstream", "-", "-0", "1e-320", "sigma_S12",
-                "sigma_S11_re", "S12_re"]
-plane_edit = st.tuples(st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS + PLANE_TOKENS) | st.text(max_size=3))
+SIGNED = (
+    "# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
+    "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im,"
+    "sigma_S11,sigma_S12,sigma_S21,sigma_S22\n"
+    "100,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n200,0.1,0,0.9,0,0.9,0,0.1,0,0.01,0.01,0.01,0.01\n"
+)
+EMPTY = (
+    "# tube_radius = 0.05\n# T_ambient = 293.15\n# p_ambient = 101325\n# ref_plane_upstream = -0.05\n"
+    "# ref_plane_downstream = 0.04\nfreq_Hz,S11_re,S11_im,S12_re,S12_im,S21_re,S21_im,S22_re,S22_im\n"
+    "100,0.001,0,0.97499,0.21769,0.97499,0.21769,0,0.002\n200,0,0.001,0.90322,0.42449,0.90322,0.42449,0.001,0\n"
+)
+PLANE_TOKENS = [
+    "ref_upstream",
+    "ref_plane_upstream",
+    "ref_plane_downstream",
+    "-",
+    "-0",
+    "1e-320",
+    "sigma_S12",
+    "sigma_S11_re",
+    "S12_re",
+]
+plane_edit = st.tuples(
+    st.integers(0, 400), st.integers(0, 8), st.sampled_from(TOKENS + PLANE_TOKENS) | st.text(max_size=3)
+)
 
 
 def _load_pair(sample, empty):
@@ -142,5 +162,6 @@ def test_extreme_values_in_a_data_file_load_or_are_named():
     import sys
 
     run = subprocess.run([sys.executable, "-c", _LOAD_FUZZ, "300"], capture_output=True, text=True, timeout=600)
-    assert run.returncode == 0 and run.stdout.rstrip().endswith("done"), \
+    assert run.returncode == 0 and run.stdout.rstrip().endswith("done"), (
         f"rc {run.returncode}; last example: {run.stdout.strip().splitlines()[-1:]}\n{run.stderr[-3000:]}"
+    )

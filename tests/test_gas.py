@@ -12,7 +12,9 @@ T = np.array([250.0, 293.15, 600.0, 1000.0])
 
 
 @wp.kernel
-def _laws(g: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64), p: wp.float64, out: wp.array2d(dtype=wp.float64)):
+def _laws(
+    g: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64), p: wp.float64, out: wp.array2d(dtype=wp.float64)
+):
     i = wp.tid()
     out[i, 0] = kgas.viscosity(g, T[i])
     out[i, 1] = kgas.conductivity(g, T[i])
@@ -23,8 +25,9 @@ def _laws(g: wp.array(dtype=wp.float64), T: wp.array(dtype=wp.float64), p: wp.fl
 def kernel_laws(name: str, p: float = 101325.0) -> np.ndarray:
     g = wp.array(GASES[name].as_tuple(), dtype=wp.float64, device="cpu")
     out = wp.zeros((T.size, 4), dtype=wp.float64, device="cpu")
-    wp.launch(_laws, dim=T.size, inputs=[g, wp.array(T, dtype=wp.float64, device="cpu"), wp.float64(p), out],
-              device="cpu")
+    wp.launch(
+        _laws, dim=T.size, inputs=[g, wp.array(T, dtype=wp.float64, device="cpu"), wp.float64(p), out], device="cpu"
+    )
     return out.numpy()
 
 
@@ -34,7 +37,7 @@ def test_air_follows_physics_md():
     np.testing.assert_allclose(k, 0.0241 * (T / 273.15) ** 1.5 * 467.15 / (T + 194.0), rtol=1e-14)
     np.testing.assert_allclose(rho, 101325.0 / (287.05 * T), rtol=1e-15)
     np.testing.assert_allclose(np.sqrt(c2), np.sqrt(1.4 * 287.05 * T), rtol=1e-15)
-    assert np.sqrt(c2[1]) == pytest.approx(343.2, abs=0.05)          # m/s at 20 C
+    assert np.sqrt(c2[1]) == pytest.approx(343.2, abs=0.05)  # m/s at 20 C
 
 
 @pytest.mark.parametrize("name", sorted(GASES))
@@ -45,7 +48,7 @@ def test_laws_match_the_constants(name):
     law = lambda x0, a, s: x0 * (T / T_REF) ** a * (1 + s / T_REF) / (1 + s / T)  # noqa: E731
     np.testing.assert_allclose(mu, law(g.mu0, g.mu_exponent, g.mu_sutherland), rtol=1e-13)
     np.testing.assert_allclose(k, law(g.k0, g.k_exponent, g.k_sutherland), rtol=1e-13)
-    assert g.cp == pytest.approx(g.gamma * g.R_gas / (g.gamma - 1), rel=0.02)   # ideal gas: cp = gamma R/(gamma-1)
+    assert g.cp == pytest.approx(g.gamma * g.R_gas / (g.gamma - 1), rel=0.02)  # ideal gas: cp = gamma R/(gamma-1)
 
 
 def test_monatomic_gases_have_gamma_five_thirds():

@@ -23,8 +23,9 @@ def test_cuda_matches_cpu(name):
     gpu = transfer_matrices(core, f, q, device="cuda").dimensionless()
     assert np.abs(gpu - cpu).max() / np.abs(cpu).max() < 1e-12
     x = np.linspace(0, core.positions()[-1], 50)
-    np.testing.assert_allclose(steady_temperature(core, x, q, device="cuda")[0],
-                               steady_temperature(core, x, q, device="cpu")[0], rtol=1e-12)
+    np.testing.assert_allclose(
+        steady_temperature(core, x, q, device="cuda")[0], steady_temperature(core, x, q, device="cpu")[0], rtol=1e-12
+    )
 
 
 @pytest.mark.gpu
@@ -38,8 +39,12 @@ def test_cuda_onset_matches_cpu(seed):
 
     rng = np.random.default_rng(seed)
     n = 16
-    params = {"engine.left_duct": rng.uniform(0.5, 0.9, n), "stack.length": rng.uniform(0.03, 0.07, n),
-              "stack.porosity": rng.uniform(0.85, 0.93, n), "stack.h": rng.uniform(100, 200, n)}
+    params = {
+        "engine.left_duct": rng.uniform(0.5, 0.9, n),
+        "stack.length": rng.uniform(0.03, 0.07, n),
+        "stack.porosity": rng.uniform(0.85, 0.93, n),
+        "stack.h": rng.uniform(100, 200, n),
+    }
     eng = load_engine("standing_wave")
     cpu = onset(eng, Q_max=100.0, params=params, device="cpu")
     gpu = onset(eng, Q_max=100.0, params=params, device="cuda")
@@ -87,8 +92,7 @@ def test_cuda_design_evaluations_match_cpu():
     from tawarp.design.space import DesignSpace
     from tawarp.model.forward import ForwardSettings
 
-    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9",
-                                                "stack.porosity=0.6:0.98"])
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "heat_input=1:9", "stack.porosity=0.6:0.98"])
     table = space.varying_table(space.from_unit(np.random.default_rng(4).random((257, 3))))
     cpu, gpu = (Evaluator(space, settings=ForwardSettings(device=d)) for d in ("cpu", "cuda"))
     a, b = cpu.evaluate_table(table), gpu.evaluate_table(table)

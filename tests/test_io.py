@@ -64,15 +64,15 @@ def test_interrupt_guard_remembers_a_ctrl_c_that_a_callback_swallowed():
 
     before = signal.getsignal(signal.SIGINT)
     with interrupt_guard() as interrupted:
-        interrupted()                                   # nothing pressed: no-op
+        interrupted()  # nothing pressed: no-op
         t = Thing()
-        weakref.finalize(t, lambda: os.kill(os.getpid(), signal.SIGINT))   # Ctrl-C inside a callback
+        weakref.finalize(t, lambda: os.kill(os.getpid(), signal.SIGINT))  # Ctrl-C inside a callback
         del t
         gc.collect()
         with pytest.raises(KeyboardInterrupt):
-            interrupted()                               # remembered
+            interrupted()  # remembered
         with pytest.raises(KeyboardInterrupt):
-            os.kill(os.getpid(), signal.SIGINT)         # and raised at once as usual
+            os.kill(os.getpid(), signal.SIGINT)  # and raised at once as usual
             for _ in range(1000):
                 pass
-    assert signal.getsignal(signal.SIGINT) is before    # handler restored
+    assert signal.getsignal(signal.SIGINT) is before  # handler restored

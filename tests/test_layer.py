@@ -19,8 +19,13 @@ def test_gas_transport_is_the_reference_law():
 def test_jca_equivalent_closed_form():
     # circular pores: Lambda = r / s, Lambda' = ratio r, alpha_inf = q^2, sigma = 8 mu q^2/(phi r^2)
     core = layer_core(0.05, T_ambient=295.0)
-    v = {"layer.porosity": 0.96, "layer.pore_radius": 1.2e-4, "layer.tortuosity": 1.2,
-         "layer.thermal_radius_ratio": 1.7, "layer.viscous_shape_factor": 1.25}
+    v = {
+        "layer.porosity": 0.96,
+        "layer.pore_radius": 1.2e-4,
+        "layer.tortuosity": 1.2,
+        "layer.thermal_radius_ratio": 1.7,
+        "layer.viscous_shape_factor": 1.25,
+    }
     out = jca_equivalent(v, core)
     mu = float(reference.gas_properties("air", 295.0, core.gas.p_mean).mu)
     assert out["phi"] == 0.96 and abs(out["alpha_inf"] - 1.44) < 1e-15

@@ -31,9 +31,9 @@ class CurveProblems:
         self.y = np.stack([self.model(ztrue[i]) for i in range(N)]) + 0.05 * rng.standard_normal((N, m))
         self.w = rng.uniform(0.5, 2.0, (N, m))
         half = rng.uniform(0.2, 3.0, (N, p))
-        half[rng.random(N) < 0.33] *= 0.1          # tight boxes: bounds active at the solution
+        half[rng.random(N) < 0.33] *= 0.1  # tight boxes: bounds active at the solution
         centre = rng.normal(0.0, 0.3, (N, p))
-        away = rng.random(N) < 0.1                  # boxes away from the solution: "bound"
+        away = rng.random(N) < 0.1  # boxes away from the solution: "bound"
         half[away] = 0.05
         centre[away] = ztrue[away] + 1.0 * np.sign(rng.standard_normal((away.sum(), p)))
         self.zlo, self.zhi = centre - half, centre + half
@@ -48,7 +48,7 @@ class CurveProblems:
         z = np.atleast_2d(z)
         f = np.exp(z[:, :1]) * (np.exp(-z[:, 1:2] * self.t) if self.p > 1 else 1.0)
         for j in range(2, self.p):
-            f = f + z[:, j:j + 1] * self.t ** j
+            f = f + z[:, j : j + 1] * self.t**j
         return f[0] if f.shape[0] == 1 else f
 
     def jacobian(self, z):
@@ -59,7 +59,7 @@ class CurveProblems:
         if self.p > 1:
             J[:, :, 1] = -self.t * e
         for j in range(2, self.p):
-            J[:, :, j] = self.t ** j
+            J[:, :, j] = self.t**j
         return J
 
     def change_rule(self):
@@ -78,11 +78,16 @@ class CurveProblems:
         return cost, raw, np.einsum("nij,ni->nj", J, r), np.einsum("nij,nik->njk", J, J)
 
 
-SETTINGS = [dict(), dict(damping="paper"), dict(xtol=1e-14, gtol=1e-15, max_iter=200), dict(max_iter=3),
-            dict(xtol=1e-6, gtol=1e-10, damping="paper", max_iter=50),
-            # no gradient test: with every component held at a bound the gradient cosine is 0,
-            # so "gtol" otherwise always comes before "bound"
-            dict(gtol=-1.0, max_iter=30)]
+SETTINGS = [
+    dict(),
+    dict(damping="paper"),
+    dict(xtol=1e-14, gtol=1e-15, max_iter=200),
+    dict(max_iter=3),
+    dict(xtol=1e-6, gtol=1e-10, damping="paper", max_iter=50),
+    # no gradient test: with every component held at a bound the gradient cosine is 0,
+    # so "gtol" otherwise always comes before "bound"
+    dict(gtol=-1.0, max_iter=30),
+]
 
 
 @pytest.mark.parametrize("p", [1, 3, 5])
@@ -123,7 +128,7 @@ def test_device_lm_equals_host_lm_on_tmatrix_problems(heat, jacobian):
     prob = Problems(core, freqs, Y, GEOM, heat_input=heat, weights=1 / sd, settings=FIT, jacobian=jacobian)
     rng = np.random.default_rng(6)
     v0 = np.array([core.get(k) for k in GEOM]) * rng.uniform(0.6, 1.5, (12, 3))
-    v0[:3, 0] = 1.0                                  # porosity at its upper bound
+    v0[:3, 0] = 1.0  # porosity at its upper bound
     pid = np.arange(12)
     z0 = prob.to_z(v0, pid)
     ref = host_lm(prob, pid, z0, xtol=1e-6, gtol=1e-10)
@@ -163,10 +168,25 @@ def test_propose_is_the_cholesky_step():
         arr = lambda x, dt=wp.float64: wp.array(np.ascontiguousarray(x), dtype=dt, device=dev)  # noqa: E731
         zt, dz = wp.empty((n, p), dtype=wp.float64), wp.empty((n, p), dtype=wp.float64)
         pred, ok = wp.empty(n, dtype=wp.float64), wp.empty(n, dtype=wp.int32)
-        wp.launch(propose, dim=n, device=dev,
-                  inputs=[arr(np.arange(n, dtype=np.int32), wp.int32), arr(np.arange(n, dtype=np.int32), wp.int32),
-                          arr(np.full((n, p), -np.inf)), arr(np.full((n, p), np.inf)), arr(np.zeros((n, p))),
-                          arr(-b), arr(H), arr(np.zeros(n)), zt, dz, pred, ok])
+        wp.launch(
+            propose,
+            dim=n,
+            device=dev,
+            inputs=[
+                arr(np.arange(n, dtype=np.int32), wp.int32),
+                arr(np.arange(n, dtype=np.int32), wp.int32),
+                arr(np.full((n, p), -np.inf)),
+                arr(np.full((n, p), np.inf)),
+                arr(np.zeros((n, p))),
+                arr(-b),
+                arr(H),
+                arr(np.zeros(n)),
+                zt,
+                dz,
+                pred,
+                ok,
+            ],
+        )
         assert np.all(ok.numpy() == ok_expected)
         if ok_expected:
             # 1e-10: well-conditioned SPD systems, double precision
@@ -187,8 +207,12 @@ def test_device_lm_equals_host_lm_on_kind_problems():
     kind = LinearKind(A, sigma, y)
     params = [Param(f"v{j}", (f"v{j}",), 0.5, 1.0) for j in range(3)]
     bounded = [Param("v0", ("v0",), 0.5, 1.0, lower=0.0, upper=0.6)] + params[1:]
-    specs = [(params, None, np.zeros(3)), (params[:2], None, np.ones(2)), (bounded, None, np.zeros(3)),
-             (params[1:], None, np.full(2, 0.3))]
+    specs = [
+        (params, None, np.zeros(3)),
+        (params[:2], None, np.ones(2)),
+        (bounded, None, np.zeros(3)),
+        (params[1:], None, np.full(2, 0.3)),
+    ]
     lm = KindProblems(kind, specs)
     pid = np.arange(len(specs))
     ref = host_lm(lm, pid, lm.start(), xtol=1e-10, gtol=1e-6)

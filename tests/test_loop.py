@@ -17,7 +17,13 @@ import pytest
 from tawarp import reference
 from tawarp.loop import base_names, default_base_params, impedance_loop, noise_sigma, run_loop, write_report
 from tawarp.loop.goodness import STRUCTURE_P, smooth_fraction
-from tawarp.measure import TMatrixKind, atalla_panneton_samples, load_atalla_panneton, load_measurement, write_tmatrix_csv
+from tawarp.measure import (
+    TMatrixKind,
+    atalla_panneton_samples,
+    load_atalla_panneton,
+    load_measurement,
+    write_tmatrix_csv,
+)
 from tawarp.measure.files import TMatrixData
 from tawarp.model.coefficients import duct_impedance
 from tawarp.model.core import CoreError, core_from_dict, load_core
@@ -47,8 +53,12 @@ def reference_data(truth: dict, seed: int, sigma: bool = True) -> TMatrixData:
     s = NOISE * np.sqrt(np.mean(np.abs(Y) ** 2))
     T = Y.reshape(-1, 2, 2) * scale
     T = T + s * scale * (rng.standard_normal(T.shape) + 1j * rng.standard_normal(T.shape))
-    return TMatrixData(np.repeat(QS, FREQS.size), np.tile(FREQS, len(QS)), T,
-                       np.broadcast_to(s * scale, T.shape).copy() if sigma else None)
+    return TMatrixData(
+        np.repeat(QS, FREQS.size),
+        np.tile(FREQS, len(QS)),
+        T,
+        np.broadcast_to(s * scale, T.shape).copy() if sigma else None,
+    )
 
 
 def prior(seed: int):
@@ -61,6 +71,7 @@ def prior(seed: int):
         v = MESH.get(n)
         sign = 1 if n.endswith("tortuosity") else (-1 if n.endswith("porosity") and v > 0.75 else rng.choice([-1, 1]))
         return v * (1 + sign * rng.uniform(0.1, 0.3))
+
     return MESH.replace(**{n: off(n) for n in names})
 
 
@@ -88,11 +99,22 @@ def test_base_model_is_the_papers_full_method():
 def test_passive_core_fits_its_porous_geometry():
     # a passive core (no heat input) without --fit fits every porous
     # segment's porosity, pore radius, tortuosity, not nothing
-    d = {"gas": {"name": "air"}, "tube": {"radius": 0.05},
-         "segment": [{"name": "up", "kind": "duct", "length": 0.05},
-                     {"name": "foam", "kind": "porous", "length": 0.03, "porosity": 0.95, "pore_radius": 2e-4,
-                      "tortuosity": 1.2},
-                     {"name": "down", "kind": "duct", "length": 0.05}]}
+    d = {
+        "gas": {"name": "air"},
+        "tube": {"radius": 0.05},
+        "segment": [
+            {"name": "up", "kind": "duct", "length": 0.05},
+            {
+                "name": "foam",
+                "kind": "porous",
+                "length": 0.03,
+                "porosity": 0.95,
+                "pore_radius": 2e-4,
+                "tortuosity": 1.2,
+            },
+            {"name": "down", "kind": "duct", "length": 0.05},
+        ],
+    }
     core = core_from_dict(d, "passive.toml")
     f = np.linspace(200.0, 1000.0, 5)
     data = TMatrixData(np.zeros(f.size), f, np.tile(np.eye(2, dtype=complex), (f.size, 1, 1)))
@@ -118,7 +140,7 @@ def test_clean_reference_data_adequate_no_claim(seed):
     assert rep["verdict"] == "adequate" and rep["accepted_effects"] == [] and rep["chosen_effect"] is None
     g = rep["goodness_of_fit_before"]
     assert g["noise_source"] == "sigma" and 0.75 < g["reduced_chi2"] < 1.3, g
-    assert g["white"], g["structure"]      # the base model leaves no smooth misfit along frequency
+    assert g["white"], g["structure"]  # the base model leaves no smooth misfit along frequency
     assert rep["error_after"] <= 1.3 * rep["noise_floor"]
     assert rep["unexplained_residual"] is None
 
@@ -141,7 +163,9 @@ def test_plane_offset_in_reference_data_is_explained(seed):
     prob, rep = loop_on({"duct_left.length": 0.033}, seed)
     assert not rep["goodness_of_fit_before"]["adequate"]
     assert rep["verdict"] == "explained" and rep["accepted_effects"] == ["plane_offsets"], (
-        rep["verdict"], rep["model_probabilities"][:3])
+        rep["verdict"],
+        rep["model_probabilities"][:3],
+    )
     assert rep["inclusion_probabilities"]["plane_offsets"] >= 0.95
     assert rep["error_after"] <= 1.3 * rep["noise_floor"] < rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
@@ -200,7 +224,7 @@ def test_residual_structure_test():
         st = smooth_fraction(prob, w)
         fractions.append(st["fraction"])
         assert st["p_value"] >= STRUCTURE_P and np.isclose(st["if_white"], 4 / 13)
-    assert abs(np.mean(fractions) / (4 / 13) - 1) < 0.1     # std of one fraction ~ 0.026 / 0.31
+    assert abs(np.mean(fractions) / (4 / 13) - 1) < 0.1  # std of one fraction ~ 0.026 / 0.31
     smooth = np.cos(2 * np.pi * prob.freq / 400.0)[:, None] * np.ones(2)
     w = np.random.default_rng(9).standard_normal((n, 2)) + smooth
     assert smooth_fraction(prob, w)["p_value"] < 1e-6
@@ -211,7 +235,7 @@ def test_rank_deficient_jacobian_gives_undetermined_std():
 
     rng = np.random.default_rng(1)
     a = rng.standard_normal(40)
-    J = np.stack([a, 2 * a, rng.standard_normal(40)], 1)   # the first two columns are one direction
+    J = np.stack([a, 2 * a, rng.standard_normal(40)], 1)  # the first two columns are one direction
     cov, und = _covariance_x(J)
     assert und.tolist() == [True, True, False]
     assert np.isclose(cov[2, 2], 1 / (J[:, 2] @ J[:, 2] - (J[:, 2] @ a) ** 2 / (a @ a)))
@@ -229,17 +253,36 @@ def test_loop_cli_writes_report(tmp_path):
     core.write_text(dump_core(prior(SEED)))
     parser = argparse.ArgumentParser()
     add_loop_parser(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["loop", str(csv), "--core", str(core), "-o", str(tmp_path / "out"), "--device", "cpu",
-                              "--quiet"])
+    args = parser.parse_args(
+        ["loop", str(csv), "--core", str(core), "-o", str(tmp_path / "out"), "--device", "cpu", "--quiet"]
+    )
     assert args.func(args) == 0
     rep = json.loads((tmp_path / "out" / "report.json").read_text())
-    for key in ("verdict", "accepted_effects", "accepted_steps", "error_before", "error_after", "noise_floor",
-                "parameters_after", "model_probabilities", "inclusion_probabilities", "prior_tension",
-                "next_measurement", "chosen_effect", "parameters_before", "goodness_of_fit_before",
-                "goodness_of_fit_after", "unexplained_residual", "drift_before", "drift_after"):
+    for key in (
+        "verdict",
+        "accepted_effects",
+        "accepted_steps",
+        "error_before",
+        "error_after",
+        "noise_floor",
+        "parameters_after",
+        "model_probabilities",
+        "inclusion_probabilities",
+        "prior_tension",
+        "next_measurement",
+        "chosen_effect",
+        "parameters_before",
+        "goodness_of_fit_before",
+        "goodness_of_fit_after",
+        "unexplained_residual",
+        "drift_before",
+        "drift_after",
+    ):
         assert key in rep
-    assert abs(sum(m["probability"] for m in rep["model_probabilities"]) - 1) < 1e-9 or len(
-        rep["model_probabilities"]) == 20
+    assert (
+        abs(sum(m["probability"] for m in rep["model_probabilities"]) - 1) < 1e-9
+        or len(rep["model_probabilities"]) == 20
+    )
     assert rep["verdict"] == "adequate"
     assert set(rep["base_parameters"]) == set(base_names(TMatrixKind(reference_data({}, SEED), MESH)))
     assert (tmp_path / "out" / "report.md").read_text().startswith("# tawarp loop report")
@@ -261,8 +304,9 @@ def rigid_jca_error(data, name: str) -> float:
     start = {k: atalla_panneton_samples()[name][k] for k in biot.JCA_PARAMETERS}
     rigid = ef.Fit(data, ef.RIGID, biot.rigid_surface_impedance, {})
     rng = np.random.default_rng(0)
-    starts = [start] + [{k: v * f for (k, v), f in zip(start.items(), rng.choice([0.7, 1.3], len(start)))}
-                        for _ in range(8)]
+    starts = [start] + [
+        {k: v * f for (k, v), f in zip(start.items(), rng.choice([0.7, 1.3], len(start)))} for _ in range(8)
+    ]
     x = rigid.run(starts).x
     return ef.error(np.concatenate([d.Zs for d in data]), np.concatenate(rigid.predict(x)))
 
@@ -327,9 +371,14 @@ def test_loop_on_scattering_matrix_with_misplaced_reference_plane(tmp_path):
     S = transfer_to_scattering(T, 2 * np.pi * f / c0, duct_impedance(CORE), 0.05, 0.05)
     rng = np.random.default_rng(SEED)
     S = S + 0.002 * (rng.standard_normal(S.shape) + 1j * rng.standard_normal(S.shape))
-    lines = [f"# tube_radius = {CORE.radius}", f"# T_ambient = {Tc}", f"# p_ambient = {p0}", "# ref_upstream = 0.05",
-             "# ref_downstream = 0.05", "freq_Hz," + ",".join(f"S{ij}_{p}" for ij in ("11", "12", "21", "22")
-                                                              for p in ("re", "im"))]
+    lines = [
+        f"# tube_radius = {CORE.radius}",
+        f"# T_ambient = {Tc}",
+        f"# p_ambient = {p0}",
+        "# ref_upstream = 0.05",
+        "# ref_downstream = 0.05",
+        "freq_Hz," + ",".join(f"S{ij}_{p}" for ij in ("11", "12", "21", "22") for p in ("re", "im")),
+    ]
     for k in range(len(f)):
         vals = [S[k, 0, 0], S[k, 0, 1], S[k, 1, 0], S[k, 1, 1]]
         lines.append(f"{float(f[k])!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in vals))

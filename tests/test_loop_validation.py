@@ -48,12 +48,12 @@ def test_clean_and_plane_offsets_over_seeds(tmp_path):
     clean = [_run("clean", s, tmp_path) for s in SEEDS]
     claims = [r["outcome"]["accepted_effects"] for r in clean if r["outcome"]["accepted_effects"]]
     assert len(claims) <= allowed_failures(1 - lv.TARGETS["clean_claims"], 3), claims
-    for r in clean:   # nothing to explain: the base fit reaches the noise floor (1.3 x, the study's yardstick)
+    for r in clean:  # nothing to explain: the base fit reaches the noise floor (1.3 x, the study's yardstick)
         assert r["ratio_after"] <= lv.TARGETS["residual_ratio"], (r["seed"], r["ratio_before"], r["ratio_after"])
 
     effect = [_run("effect:plane_offsets", s, tmp_path) for s in SEEDS]
     for r in effect:
-        assert r["visibility"] >= lv.VISIBLE, r["visibility"]      # the cases test a visible effect
+        assert r["visibility"] >= lv.VISIBLE, r["visibility"]  # the cases test a visible effect
     wrong = [(r["seed"], lv.outcome_label(r), round(r["ratio_after"], 2)) for r in effect if not r["right"]]
     assert len(wrong) <= allowed_failures(lv.TARGETS["right_effect"], 3), wrong
 
@@ -69,7 +69,7 @@ def test_cache_returns_the_generated_case(tmp_path):
     # the noise is what the case says: its rms over the noise-free data, per coefficient
     Y = lv.normalize(a["T"], lv.duct_impedance(lv.load_core("ceramic"))).reshape(a["Y_clean"].shape)
     rel = np.sqrt(np.mean(np.abs(Y - a["Y_clean"]) ** 2, axis=(0, 1)) / np.mean(np.abs(a["Y_clean"]) ** 2, axis=(0, 1)))
-    assert np.all(np.abs(rel / case.noise - 1) < 0.6)      # 9 complex draws per coefficient: chi with 18 dof (std 0.17)
+    assert np.all(np.abs(rel / case.noise - 1) < 0.6)  # 9 complex draws per coefficient: chi with 18 dof (std 0.17)
 
 
 def test_prior_is_10_to_30_percent_off_every_parameter():
@@ -84,9 +84,16 @@ def test_prior_is_10_to_30_percent_off_every_parameter():
 
 
 def test_adapter_reads_the_report_contract():
-    report = {"error_before": 0.05, "error_after": 0.01, "noise_floor": None, "verdict": "unexplained_residual",
-              "accepted_effects": ["T_cold"], "accepted_groups": [["T_cold"], ["a", "b"]],
-              "indistinguishable": [["a", "b"]], "goodness_of_fit_before": {"noise_floor": 0.002}}
+    report = {
+        "error_before": 0.05,
+        "error_after": 0.01,
+        "noise_floor": None,
+        "verdict": "unexplained_residual",
+        "accepted_effects": ["T_cold"],
+        "accepted_groups": [["T_cold"], ["a", "b"]],
+        "indistinguishable": [["a", "b"]],
+        "goodness_of_fit_before": {"noise_floor": 0.002},
+    }
     got = lv.loop_outcome(report)
     assert got["verdict"] == "unexplained_residual" and got["indistinguishable"] == [["a", "b"]]
     assert got["accepted_effects"] == ["T_cold"] and got["noise_floor"] == 0.002
@@ -111,8 +118,12 @@ def _pair_record(status_inputs: dict, groups: list, ratio_after: float = 1.05, s
     and the loop's accepted steps ``groups`` (lists of effect names)."""
     case = lv.make_case(seed, category="two", material="mesh")
     per = dict(zip(case.effects, ({"visibility": v, "ratio_before": b} for v, b in status_inputs)))
-    outcome = {"accepted_groups": groups, "accepted_effects": [g[0] for g in groups if len(g) == 1],
-               "verdict": "explained" if groups else "adequate", "indistinguishable": []}
+    outcome = {
+        "accepted_groups": groups,
+        "accepted_effects": [g[0] for g in groups if len(g) == 1],
+        "verdict": "explained" if groups else "adequate",
+        "indistinguishable": [],
+    }
     rec = {"case": lv.asdict(case), "per_effect": per, "outcome": outcome, "ratio_after": ratio_after}
     return lv.score(rec), case.effects
 
@@ -129,8 +140,8 @@ def test_pair_cases_are_scored_per_effect():
     assert rec["expected"]["effects"] == [a] and rec["expected"]["scored"] and not rec["right"]
     assert _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a]])[0]["right"]
     assert _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a], [b]])[0]["right"]
-    assert not _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a]], ratio_after=1.4)[0]["right"]     # not at the floor
-    assert not _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a], ["radiation"]])[0]["right"]      # a false claim
+    assert not _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a]], ratio_after=1.4)[0]["right"]  # not at the floor
+    assert not _pair_record([(5.0, 3.0), (8.0, 1.0)], [[a], ["radiation"]])[0]["right"]  # a false claim
     # a group the loop cannot split counts only in the group-aware score
     grp = _pair_record([(5.0, 3.0), (8.0, 1.0)], [sorted([a, "radiation"])])[0]
     assert not grp["right"] and grp["right_group"]
@@ -170,8 +181,11 @@ def _full_case(seed: int, tmp_path: Path):
 
     case = lv.make_case(seed)
     arrays = lv.load_or_generate(case, tmp_path)
-    prob = lv.TMatrixKind(lv.measurement(case, arrays), lv.load_core(case.core_material).replace(**case.prior),
-                          ForwardSettings(device="cpu"))
+    prob = lv.TMatrixKind(
+        lv.measurement(case, arrays),
+        lv.load_core(case.core_material).replace(**case.prior),
+        ForwardSettings(device="cpu"),
+    )
     return case, arrays, prob, run_loop(prob, drift_h=False)
 
 
@@ -249,6 +263,7 @@ def test_convection_absorbed_by_the_buffer_tube_h_is_named(tmp_path):
 
 # -- the lab suite (tawarp.reference_effects): generation and scoring ---------------------
 
+
 def test_lab_suite_prior_is_10_to_20_percent_off_and_sizes_are_typical():
     for seed in range(3 * len(lv.LAB_CATEGORIES)):
         case = lv.make_case(seed, suite="lab")
@@ -271,8 +286,13 @@ def test_lab_suite_prior_is_10_to_20_percent_off_and_sizes_are_typical():
             assert case.true_effects() == ["wall_conduction"]
     # a case without lab effects is described (and cached) as before the lab field existed
     case = lv.make_case(5)
-    assert case.lab == {} and case.key() == lv.hashlib.sha1(lv.json.dumps(
-        {k: v for k, v in lv.asdict(case).items() if k != "lab"}, sort_keys=True).encode()).hexdigest()[:10]
+    assert (
+        case.lab == {}
+        and case.key()
+        == lv.hashlib.sha1(
+            lv.json.dumps({k: v for k, v in lv.asdict(case).items() if k != "lab"}, sort_keys=True).encode()
+        ).hexdigest()[:10]
+    )
 
 
 @pytest.mark.parametrize("category", [c for c in lv.LAB_CATEGORIES if c.startswith("lab:")])
@@ -286,13 +306,15 @@ def test_lab_categories_generate(category, tmp_path):
     assert np.all(np.isfinite(a["T"])) and np.all(np.isfinite(a["Y_clean"]))
     assert lv.rms_error(a["Y_clean"], a["Y_without"]) > 1e-4
     # the data without the effect are the reference's own
-    base = lv.normalize(lv.reference.transfer_matrix(lv.true_core(case), case.freqs, case.heat_inputs[-1]),
-                        lv.rig_Zc(case)).reshape(-1, 4)
+    base = lv.normalize(
+        lv.reference.transfer_matrix(lv.true_core(case), case.freqs, case.heat_inputs[-1]), lv.rig_Zc(case)
+    ).reshape(-1, 4)
     np.testing.assert_allclose(a["Y_without"][-1], base, rtol=1e-12)
 
 
-def _lab_record(category: str, visibility: float, ratio_before: float, report: dict, ratio_after: float = 1.05,
-                seed: int = 1) -> dict:
+def _lab_record(
+    category: str, visibility: float, ratio_before: float, report: dict, ratio_after: float = 1.05, seed: int = 1
+) -> dict:
     case = lv.make_case(seed, category=category, material="mesh", suite="lab")
     name = (case.effects + list(case.lab))[0] if case.effects or case.lab else None
     per = {name: {"visibility": visibility, "ratio_before": ratio_before}} if name else {}
@@ -303,8 +325,11 @@ def _lab_record(category: str, visibility: float, ratio_before: float, report: d
 
 def test_outside_lab_effects_must_be_flagged_not_explained():
     vis, absorbed = (5.0, 3.0), (5.0, 1.0)
-    explained = {"verdict": "explained", "accepted_effects": ["thermal_radius_ratio"],
-                 "accepted_groups": [["thermal_radius_ratio"]]}
+    explained = {
+        "verdict": "explained",
+        "accepted_effects": ["thermal_radius_ratio"],
+        "accepted_groups": [["thermal_radius_ratio"]],
+    }
     rec = _lab_record("lab:contact_resistance", *vis, explained)
     assert rec["expected"]["verdict"] == "unexplained_residual" and not rec["right"]
     assert _lab_record("lab:contact_resistance", *vis, {"verdict": "unexplained_residual"})["right"]
@@ -326,8 +351,12 @@ def test_absorbed_effect_adequate_only_within_the_prior():
     near = {k: v * 1.1 for k, v in case.prior.items()}
     rec = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate", "parameters_after": near})
     assert rec["tension"] == pytest.approx(0.5) and rec["right"]
-    rec = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate", "parameters_after": near,
-                                                      "prior_tension": [{"parameter": "tbt.h", "z": 4.0}]})
+    rec = _lab_record(
+        "effect:convection",
+        5.0,
+        1.0,
+        {"verdict": "adequate", "parameters_after": near, "prior_tension": [{"parameter": "tbt.h", "z": 4.0}]},
+    )
     assert not rec["right"]
     named = _lab_record("effect:convection", 5.0, 1.0, {"verdict": "explained", "accepted_steps": ["convection"]})
     assert named["right"]
@@ -341,17 +370,36 @@ def test_wall_field_is_scored_as_the_library_wall_conduction():
     rec = _lab_record("lab:wall_field", 5.0, 3.0, good)
     assert rec["expected"]["effects"] == ["wall_conduction"] and rec["right"]
     assert not _lab_record("lab:wall_field", 5.0, 3.0, good, ratio_after=1.5)["right"]
-    assert not _lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["radiation"]})["right"]
+    assert not _lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["radiation"]})[
+        "right"
+    ]
 
 
 def test_inclusion_probabilities_calibration():
     # two effects at >= 0.95: one true (wall conduction in the wall-field case), one not
     # (radiation in clean data): 1 of 2 claims true; the bins count every probability
-    recs = [_lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["wall_conduction"],
-                                                     "inclusion_probabilities": {"wall_conduction": 0.99,
-                                                                                 "radiation": 0.02}}),
-            _lab_record("clean", 0.0, 1.0, {"verdict": "explained", "accepted_steps": ["radiation"],
-                                            "inclusion_probabilities": {"radiation": 0.97, "T_cold": 0.6}})]
+    recs = [
+        _lab_record(
+            "lab:wall_field",
+            5.0,
+            3.0,
+            {
+                "verdict": "explained",
+                "accepted_steps": ["wall_conduction"],
+                "inclusion_probabilities": {"wall_conduction": 0.99, "radiation": 0.02},
+            },
+        ),
+        _lab_record(
+            "clean",
+            0.0,
+            1.0,
+            {
+                "verdict": "explained",
+                "accepted_steps": ["radiation"],
+                "inclusion_probabilities": {"radiation": 0.97, "T_cold": 0.6},
+            },
+        ),
+    ]
     cal = lv.calibration(recs)
     assert cal["claimed"] == {"n": 2, "k": 1, "rate": 0.5}
     assert [b["n"] for b in cal["bins"]] == [1, 0, 1, 2] and cal["bins"][3]["true"] == 1
@@ -359,15 +407,26 @@ def test_inclusion_probabilities_calibration():
 
 
 def test_adapter_tolerates_both_report_contracts():
-    new = {"error_before": 0.05, "error_after": 0.01, "verdict": "explained", "accepted_steps": ["a+b", "c"],
-           "inclusion_probabilities": {"a": 0.5, "b": 0.5, "c": 0.99},
-           "prior_tension": [{"parameter": "tbt.h", "z": 4.2, "ratio": 40.0}],
-           "parameters_after": {"tbt.h": {"value": 8.0, "std": 1.0}}}
+    new = {
+        "error_before": 0.05,
+        "error_after": 0.01,
+        "verdict": "explained",
+        "accepted_steps": ["a+b", "c"],
+        "inclusion_probabilities": {"a": 0.5, "b": 0.5, "c": 0.99},
+        "prior_tension": [{"parameter": "tbt.h", "z": 4.2, "ratio": 40.0}],
+        "parameters_after": {"tbt.h": {"value": 8.0, "std": 1.0}},
+    }
     got = lv.loop_outcome(new)
     assert got["accepted_groups"] == [["a", "b"], ["c"]] and got["accepted_effects"] == ["c"]
     assert got["prior_tension"] == [{"parameter": "tbt.h", "z": 4.2}] and got["parameters_after"] == {"tbt.h": 8.0}
-    old = lv.loop_outcome({"error_before": 0.05, "error_after": 0.01, "verdict": "explained",
-                           "accepted_steps": ["one of {a, b} (indistinguishable in these data)"]})
+    old = lv.loop_outcome(
+        {
+            "error_before": 0.05,
+            "error_after": 0.01,
+            "verdict": "explained",
+            "accepted_steps": ["one of {a, b} (indistinguishable in these data)"],
+        }
+    )
     assert old["accepted_groups"] == [["a", "b"]] and old["inclusion_probabilities"] == {}
     assert old["prior_tension"] == [] and old["parameters_after"] == {}
 
@@ -383,15 +442,44 @@ def test_held_out_seeds_never_in_a_tuning_run():
 
 
 def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
-    recs = [_lab_record("lab:wall_field", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["wall_conduction"],
-                                                     "inclusion_probabilities": {"wall_conduction": 0.99}}),
-            _lab_record("lab:leak", 5.0, 3.0, {"verdict": "unexplained_residual",
-                                               "inclusion_probabilities": {"plane_offsets": 0.3}}, seed=4),
-            _lab_record("effect:convection", 5.0, 1.0, {"verdict": "adequate",
-                                                        "prior_tension": [{"parameter": "tbt.h", "z": 40.0}]}, seed=7)]
+    recs = [
+        _lab_record(
+            "lab:wall_field",
+            5.0,
+            3.0,
+            {
+                "verdict": "explained",
+                "accepted_steps": ["wall_conduction"],
+                "inclusion_probabilities": {"wall_conduction": 0.99},
+            },
+        ),
+        _lab_record(
+            "lab:leak",
+            5.0,
+            3.0,
+            {"verdict": "unexplained_residual", "inclusion_probabilities": {"plane_offsets": 0.3}},
+            seed=4,
+        ),
+        _lab_record(
+            "effect:convection",
+            5.0,
+            1.0,
+            {"verdict": "adequate", "prior_tension": [{"parameter": "tbt.h", "z": 40.0}]},
+            seed=7,
+        ),
+    ]
     for r, s in zip(recs, (1, 4, lv.HELDOUT_SEED0)):
-        r.update(seed=s, category=r["case"]["category"], material="mesh", core="mesh", noise=0.003, with_sigma=True,
-                 visibility=5.0, ratio_before=1.0, wall_s=1.0)
+        r.update(
+            seed=s,
+            category=r["case"]["category"],
+            material="mesh",
+            core="mesh",
+            noise=0.003,
+            with_sigma=True,
+            visibility=5.0,
+            ratio_before=1.0,
+            wall_s=1.0,
+        )
     meta = {"base": "loop", "device": "cpu", "command": "test", "generation_s": 0.0, "cases_per_s": 1.0}
     lv.report(tmp_path, recs, meta, quiet=True)
     s = lv.json.loads((tmp_path / "loop_validation.json").read_text())["summary"]

@@ -6,8 +6,18 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.measure import (ImpedanceData, ImpedanceKind, MeasurementError, ScatteringKind, TMatrixData, TMatrixKind,
-                            kind_of, load_measurement, transfer_to_scattering, write_tmatrix_csv)
+from tawarp.measure import (
+    ImpedanceData,
+    ImpedanceKind,
+    MeasurementError,
+    ScatteringKind,
+    TMatrixData,
+    TMatrixKind,
+    kind_of,
+    load_measurement,
+    transfer_to_scattering,
+    write_tmatrix_csv,
+)
 from tawarp.measure.kind import fit_cells
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core
@@ -33,7 +43,9 @@ def test_tmatrix_kind_predicts_the_reference():
     Y = kind.predict(vals, 2)
     for i in range(2):
         core = CORE.replace(**{k: float(v[i]) for k, v in vals.items()})
-        ref = np.concatenate([normalize(reference.transfer_matrix(core, F, q), duct_impedance(CORE)) for q in (0.0, 40.0)])
+        ref = np.concatenate(
+            [normalize(reference.transfer_matrix(core, F, q), duct_impedance(CORE)) for q in (0.0, 40.0)]
+        )
         assert np.max(np.abs(Y[i] - ref.reshape(-1))) <= 2e-5 * np.max(np.abs(ref))
     # the rows: (heat input, frequency) x the four coefficients
     assert kind.coef.tolist()[:8] == [0, 1, 2, 3, 0, 1, 2, 3] and kind.group[-1] == 40.0 and kind.freq[4] == F[1]
@@ -43,13 +55,17 @@ def test_impedance_kind_predicts_the_reference(tmp_path):
     # Zs = -Tuu/Tup S/(rho0 c0) of the reference's one-segment layer, two thicknesses
     data = [ImpedanceData(F, np.ones(F.size), L, 293.15, 101325.0, {}, f"<{L}>") for L in (0.02, 0.05)]
     kind = ImpedanceKind(data, CPU)
-    vals = {"layer.porosity": np.array([0.97]), "layer.pore_radius": np.array([1e-4]),
-            "layer.tortuosity": np.array([1.3]), "layer.length_offset": np.array([1e-3])}
+    vals = {
+        "layer.porosity": np.array([0.97]),
+        "layer.pore_radius": np.array([1e-4]),
+        "layer.tortuosity": np.array([1.3]),
+        "layer.length_offset": np.array([1e-3]),
+    }
     Y = kind.predict(vals, 1)[0]
     for k, L in enumerate((0.02, 0.05)):
         core = layer_core(L + 1e-3, 0.97, 1e-4, 1.3)
         ref = surface_impedance_from_T(reference.transfer_matrix(core, F), core)
-        assert np.max(np.abs(Y[k * F.size:(k + 1) * F.size] - ref)) <= 1e-9 * np.max(np.abs(ref))
+        assert np.max(np.abs(Y[k * F.size : (k + 1) * F.size] - ref)) <= 1e-9 * np.max(np.abs(ref))
     assert kind.group_name == "thickness_m" and set(kind.group) == {0.02, 0.05}
     # unit weights make the cost the docs/formats.md error squared times the residual count
     d = Y - kind.y
@@ -62,11 +78,18 @@ def test_scattering_kind_is_the_converted_tmatrix_kind(tmp_path):
     g = GASES["air"]
     c0 = np.sqrt(g.gamma * g.R_gas * CORE.gas.T_cold)
     S = transfer_to_scattering(T, 2 * np.pi * F / c0, duct_impedance(CORE), 0.05, 0.04)
-    lines = [f"# tube_radius = {CORE.radius}", f"# T_ambient = {CORE.gas.T_cold}", f"# p_ambient = {CORE.gas.p_mean}",
-             "# ref_upstream = 0.05", "# ref_downstream = 0.04",
-             "freq_Hz," + ",".join(f"S{ij}_{p}" for ij in ("11", "12", "21", "22") for p in ("re", "im"))]
-    lines += [f"{float(f)!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in S[k].reshape(-1))
-              for k, f in enumerate(F)]
+    lines = [
+        f"# tube_radius = {CORE.radius}",
+        f"# T_ambient = {CORE.gas.T_cold}",
+        f"# p_ambient = {CORE.gas.p_mean}",
+        "# ref_upstream = 0.05",
+        "# ref_downstream = 0.04",
+        "freq_Hz," + ",".join(f"S{ij}_{p}" for ij in ("11", "12", "21", "22") for p in ("re", "im")),
+    ]
+    lines += [
+        f"{float(f)!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in S[k].reshape(-1))
+        for k, f in enumerate(F)
+    ]
     path = tmp_path / "s.csv"
     path.write_text("\n".join(lines) + "\n")
     kind = load_measurement(path, "ceramic", CPU)
@@ -79,7 +102,7 @@ def test_registry_picks_the_kind_from_the_header(tmp_path):
     path = tmp_path / "t.csv"
     write_tmatrix_csv(path, tmatrix_data(CORE, F[:2], (0.0,)), {"core": "ceramic"})
     assert kind_of(path).name == "tmatrix"
-    kind = load_measurement(path, settings=CPU)   # the core from the '# core = ...' line
+    kind = load_measurement(path, settings=CPU)  # the core from the '# core = ...' line
     assert isinstance(kind, TMatrixKind) and kind.core == CORE
     bad = tmp_path / "bad.csv"
     bad.write_text("# a comment\nfreq_Hz,X_re,X_im\n100,1,2\n")
@@ -91,8 +114,9 @@ def test_registry_picks_the_kind_from_the_header(tmp_path):
         load_measurement(no_core)
 
 
-@pytest.mark.parametrize("values", [{}, {"tbt.wall_conductance": 5.0, "stack.wall_conductance": 2.0},
-                                    {"stack.h": 900.0, "hot_hx.h": 20.0}])
+@pytest.mark.parametrize(
+    "values", [{}, {"tbt.wall_conductance": 5.0, "stack.wall_conductance": 2.0}, {"stack.h": 900.0, "hot_hx.h": 20.0}]
+)
 def test_fit_cells_are_the_kernels_adaptive_counts(values):
     # with k_factor = 1 the counts are the cascade's own adaptive ones (wall conductance
     # included): fixing them gives the adaptive model's T-matrices bit for bit

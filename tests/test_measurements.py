@@ -63,7 +63,12 @@ def test_columns_any_order_and_single_sigma(tmp_path):
     vals = ROW.split(",")
     order = [9, 0, 3, 1, 2, 8, 4, 7, 5, 6]
     sig = ["sigma_Tpp", "sigma_Tpu_re", "sigma_Tpu_im", "sigma_Tup", "sigma_Tuu"]
-    text = ",".join([cols[i] for i in order] + sig) + "\n" + ",".join([vals[i] for i in order] + ["0.01", "10", "20", "1e-9", "0.02"]) + "\n"
+    text = (
+        ",".join([cols[i] for i in order] + sig)
+        + "\n"
+        + ",".join([vals[i] for i in order] + ["0.01", "10", "20", "1e-9", "0.02"])
+        + "\n"
+    )
     d = m.read_tmatrix_csv(write(tmp_path, text))
     assert d.T[0, 0, 1] == complex(-5.02e4, 2.07e5) and d.T[0, 1, 1] == complex(0.95, 0.01)
     assert d.sigma.shape == (1, 2, 2, 2)
@@ -77,8 +82,13 @@ ROW_PLUS = "0,50,0.9121,0.0177,-5.02e4,-2.07e5,1e-6,-2e-7,0.95,-0.01"
 
 def test_plus_convention_is_conjugated(tmp_path):
     minus = m.read_tmatrix_csv(write(tmp_path, f"# convention = exp(-iwt)\n{HEADER}\n{ROW}\n", "a.csv"))
-    plus = m.read_tmatrix_csv(write(tmp_path, f"# convention = exp(+iwt)\n{HEADER},sigma_Tpp,sigma_Tpu,sigma_Tup,sigma_Tuu\n"
-                                              f"{ROW_PLUS},1,2,3,4\n", "b.csv"))
+    plus = m.read_tmatrix_csv(
+        write(
+            tmp_path,
+            f"# convention = exp(+iwt)\n{HEADER},sigma_Tpp,sigma_Tpu,sigma_Tup,sigma_Tuu\n{ROW_PLUS},1,2,3,4\n",
+            "b.csv",
+        )
+    )
     assert np.array_equal(plus.T, minus.T)
     assert plus.sigma[0, :, :, 0].tolist() == [[1, 2], [3, 4]]  # sigma unchanged
     assert plus.metadata["convention"] == "exp(-iwt)"
@@ -140,6 +150,7 @@ def test_failed_write_leaves_target_untouched(tmp_path, monkeypatch):
 
     def broken_replace(src, dst):  # a failure after the temporary file is written
         raise OSError("disk full")
+
     monkeypatch.setattr(m.os, "replace", broken_replace)
     with pytest.raises(OSError, match="disk full"):
         m.write_tmatrix_csv(path, data)
@@ -157,20 +168,25 @@ def test_duplicate_rows_rejected_before_writing(tmp_path):
 
 # -- surface impedance -----------------------------------------------------------------
 def test_impedance_csv(tmp_path):
-    text = ("# thickness = 0.0499\n# convention = exp(+iwt)\n# T_ambient = 294.65\n"
-            "freq_Hz,Zs_re,Zs_im\n200,0.75,-4.5\n220,0.714,-4.16\n")
+    text = (
+        "# thickness = 0.0499\n# convention = exp(+iwt)\n# T_ambient = 294.65\n"
+        "freq_Hz,Zs_re,Zs_im\n200,0.75,-4.5\n220,0.714,-4.16\n"
+    )
     d = m.read_impedance_csv(write(tmp_path, text))
     assert d.thickness == 0.0499 and d.T_ambient == 294.65 and d.p_ambient is None
     assert d.freq.tolist() == [200, 220]
     assert d.Zs.tolist() == [0.75 + 4.5j, 0.714 + 4.16j]
 
 
-@pytest.mark.parametrize("text, where", [
-    ("freq_Hz,Zs_re,Zs_im\n200,1,1\n", "'thickness'"),
-    ("# thickness = -1\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n", "line 1:"),
-    ("# thickness = 0.05\n# p_ambient = abc\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n", "line 2:"),
-    ("# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n200,1,2\n", "line 4:"),
-])
+@pytest.mark.parametrize(
+    "text, where",
+    [
+        ("freq_Hz,Zs_re,Zs_im\n200,1,1\n", "'thickness'"),
+        ("# thickness = -1\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n", "line 1:"),
+        ("# thickness = 0.05\n# p_ambient = abc\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n", "line 2:"),
+        ("# thickness = 0.05\nfreq_Hz,Zs_re,Zs_im\n200,1,1\n200,1,2\n", "line 4:"),
+    ],
+)
 def test_bad_impedance_input(tmp_path, text, where):
     with pytest.raises(m.MeasurementError) as err:
         m.read_impedance_csv(write(tmp_path, text, "imp.csv"))
@@ -260,9 +276,16 @@ def test_uniform_duct_scattering():
 
 
 def scattering_text(S, freq, convention="exp(-iwt)", extra=""):
-    lines = ["# tube_radius = 0.0167", "# T_ambient = 293.15", "# p_ambient = 101325",
-             "# ref_upstream = 0.05", "# ref_downstream = 0.08", f"# convention = {convention}", *extra.splitlines(),
-             ",".join(m.SCATTERING_COLUMNS)]
+    lines = [
+        "# tube_radius = 0.0167",
+        "# T_ambient = 293.15",
+        "# p_ambient = 101325",
+        "# ref_upstream = 0.05",
+        "# ref_downstream = 0.08",
+        f"# convention = {convention}",
+        *extra.splitlines(),
+        ",".join(m.SCATTERING_COLUMNS),
+    ]
     for f, s in zip(freq, S):
         lines.append(",".join(repr(float(v)) for v in [f] + [p for z in s.reshape(-1) for p in (z.real, z.imag)]))
     return "\n".join(lines) + "\n"

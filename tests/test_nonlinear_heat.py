@@ -24,16 +24,21 @@ def relative_error(Y, Yref):
 
 
 def with_stack(core, **kw):
-    return dataclasses.replace(core, segments=tuple(dataclasses.replace(s, **kw) if s.name == "stack" else s
-                                                    for s in core.segments))
+    return dataclasses.replace(
+        core, segments=tuple(dataclasses.replace(s, **kw) if s.name == "stack" else s for s in core.segments)
+    )
 
 
 def refined(level: int) -> ForwardSettings:
     """Default settings with the heat grid and the Magnus cell density times 2^level (the
     rule alone: the error estimate would raise the coarse levels' cells)."""
     d = ForwardSettings()
-    return ForwardSettings(nonlinear_heat_cells=d.nonlinear_heat_cells * 2**level,
-                           cell_density=DEFAULT_CELL_DENSITY * 2**level, tolerance=None, device="cpu")
+    return ForwardSettings(
+        nonlinear_heat_cells=d.nonlinear_heat_cells * 2**level,
+        cell_density=DEFAULT_CELL_DENSITY * 2**level,
+        tolerance=None,
+        device="cpu",
+    )
 
 
 def test_reference_bvp_reduces_to_the_exact_linear_solution():
@@ -82,16 +87,25 @@ def test_tmatrix_matches_reference_and_converges(field, value):
     # (the effect itself is 3e-3 .. 2e-2); (c) the error falls monotonically, at about
     # fourth order, as the heat grid and the Magnus cells are refined 2x and 4x.
     Yref = reference.dimensionless_transfer(with_stack(CORE, **{field: value}), FREQS, Q)
-    err = [relative_error(transfer_matrices(CORE, FREQS, Q, params={f"stack.{field}": value},
-                                            settings=refined(level)).dimensionless()[0], Yref) for level in range(3)]
+    err = [
+        relative_error(
+            transfer_matrices(
+                CORE, FREQS, Q, params={f"stack.{field}": value}, settings=refined(level)
+            ).dimensionless()[0],
+            Yref,
+        )
+        for level in range(3)
+    ]
     assert err[0] < 1e-5, err
     assert err[1] < err[0] / 8 and err[2] < err[1] / 8, err
     effect = relative_error(reference.dimensionless_transfer(CORE, FREQS, Q), Yref)
     assert effect > 100 * err[0]
 
 
-@pytest.mark.parametrize("name, value", [(f"stack.{f}", v) for f, v in EFFECTS]
-                         + [("stack.conductivity_exponent", -1.0), ("tbt.h_convection", 3.0)])
+@pytest.mark.parametrize(
+    "name, value",
+    [(f"stack.{f}", v) for f, v in EFFECTS] + [("stack.conductivity_exponent", -1.0), ("tbt.h_convection", 3.0)],
+)
 def test_energy_balance(name, value):
     # (d) Q = heat leaked to the walls int (2 h(theta)/R) theta S dx (12-point Gauss per heat
     # cell on the kernel's profile) + heat conducted out at the ends (0: theta' = 0 there).
@@ -104,8 +118,9 @@ def test_energy_balance(name, value):
         x = (0.5 * (e[1:] - e[:-1])[:, None] * g + 0.5 * (e[1:] + e[:-1])[:, None]).ravel()
         wx = (0.5 * (e[1:] - e[:-1])[:, None] * w).ravel()
         theta = steady_temperature(CORE, x, Q, params={name: value}, device="cpu")[0][0] - CORE.gas.T_cold
-        h = CORE.segments[i].h + (value * np.maximum(theta, 0) ** 0.25 if name == f"{CORE.segments[i].name}.h_convection"
-                                  else 0.0)
+        h = CORE.segments[i].h + (
+            value * np.maximum(theta, 0) ** 0.25 if name == f"{CORE.segments[i].name}.h_convection" else 0.0
+        )
         lost += np.sum(wx * theta * 2 * h) / CORE.radius * CORE.area
     ends = steady_temperature(CORE, [pos[1], pos[4]], Q, params={name: value}, device="cpu")[1][0]
     assert np.abs(ends).max() < 1e-9 * Q

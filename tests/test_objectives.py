@@ -33,8 +33,11 @@ def test_metrics_match_the_heat_model():
 
     core = load_core("rvc_foam")
     space = DesignSpace(core, ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08", "heat_input=1:18"])
-    pts = {"material": np.array(["ceramic", "mesh", "rvc_foam", "rvc_foam"]),
-           "stack.length": np.array([0.02, 0.05, 0.01, 0.08]), "heat_input": np.array([9.0, 18.0, 3.0, 12.0])}
+    pts = {
+        "material": np.array(["ceramic", "mesh", "rvc_foam", "rvc_foam"]),
+        "stack.length": np.array([0.02, 0.05, 0.01, 0.08]),
+        "heat_input": np.array([9.0, 18.0, 3.0, 12.0]),
+    }
     m = Evaluator(space, settings=None).evaluate(pts)
     for j in range(4):
         c, q = space.core_for({k: v[j] for k, v in pts.items()})
@@ -69,8 +72,15 @@ def test_acoustic_loss_is_a_passive_absorbed_fraction():
 @pytest.fixture
 def toy_objective():
     """A user objective registered from outside the package: minus the gradient [K/m]."""
-    row = register_objective(Objective("minus_gradient", "minimize", "K/m", "minus the stack gradient",
-                                       compute=lambda evaluator, table, metrics: -metrics["gradient"]))
+    row = register_objective(
+        Objective(
+            "minus_gradient",
+            "minimize",
+            "K/m",
+            "minus the stack gradient",
+            compute=lambda evaluator, table, metrics: -metrics["gradient"],
+        )
+    )
     yield row.name
     OBJECTIVES.pop(row.name)
 
@@ -87,13 +97,17 @@ def test_objective_registered_from_outside_is_searched_and_swept(toy_objective, 
     best = res.best[0]
     # the search minimized the toy objective: its best is minus the largest gradient of all trials
     assert best["values"][toy_objective] == pytest.approx(-best["metrics"]["gradient"], rel=0, abs=1e-12)
-    assert best["values"][toy_objective] == pytest.approx(-max(t.user_attrs["gradient"] for t in trials), rel=0, abs=1e-12)
+    assert best["values"][toy_objective] == pytest.approx(
+        -max(t.user_attrs["gradient"] for t in trials), rel=0, abs=1e-12
+    )
     assert res.study.directions[0].name == "MINIMIZE"
     space_g = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08:4", "heat_input=1:9:3"])
     sweep(space_g, tmp_path / "toy.nc", outputs=["gradient", toy_objective], chunk=5)
     ds = xr.open_dataset(tmp_path / "toy.nc", engine="h5netcdf")
     np.testing.assert_array_equal(ds[toy_objective].values, -ds.gradient.values)  # float32 negation is exact
-    assert ds[toy_objective].attrs["units"] == "K/m" and ds[toy_objective].attrs["long_name"] == "minus the stack gradient"
+    assert (
+        ds[toy_objective].attrs["units"] == "K/m" and ds[toy_objective].attrs["long_name"] == "minus the stack gradient"
+    )
     ds.close()
 
 
@@ -114,8 +128,11 @@ def test_onset_objectives_are_the_onset_of_the_closed_core():
     pts = {"stack.length": np.array([0.048, 0.03, 0.07]), "stack.porosity": np.array([0.9, 0.85, 0.93])}
     cer = default_catalogue()["ceramic"]
     exact = dataclasses.replace(cer, std={})
-    ev = Evaluator(space, extra=["Q_onset", "onset_T_ratio", "Q_onset_p90"],
-                   onset=OnsetSpec(Q_max=100.0, uncertainty=exact, n_draws=2))
+    ev = Evaluator(
+        space,
+        extra=["Q_onset", "onset_T_ratio", "Q_onset_p90"],
+        onset=OnsetSpec(Q_max=100.0, uncertainty=exact, n_draws=2),
+    )
     m = ev.evaluate(pts)
     ref = onset(eng, Q_max=100.0, params=pts)
     np.testing.assert_allclose(m["Q_onset"], ref.Q_onset, rtol=1e-12)
@@ -125,8 +142,12 @@ def test_onset_objectives_are_the_onset_of_the_closed_core():
     p90 = ev.evaluate(pts)["Q_onset_p90"]
     d = cer.sample(8, 3)
     for j in range(3):
-        params = {"stack.length": pts["stack.length"][j], "stack.porosity": pts["stack.porosity"][j] + d["porosity"] - 0.9,
-                  "stack.pore_radius": d["pore_radius"], "stack.h": d["h_s"]}
+        params = {
+            "stack.length": pts["stack.length"][j],
+            "stack.porosity": pts["stack.porosity"][j] + d["porosity"] - 0.9,
+            "stack.pore_radius": d["pore_radius"],
+            "stack.h": d["h_s"],
+        }
         q = onset(eng, Q_max=100.0, params=params).Q_onset
         assert p90[j] == pytest.approx(np.percentile(q, 90), rel=1e-12)
     with pytest.raises(ValueError, match="uncertainty"):
@@ -144,14 +165,59 @@ def test_design_search_on_onset(tmp_path):
     from tawarp.model.resonator import load_engine
 
     out = tmp_path / "d"
-    assert main(["design", "ceramic", "--var", "stack.length=0.02:0.08", "--var", "stack.porosity=0.8:0.95",
-                 "--objectives", "Q_onset", "--trials", "48", "--batch", "16", "--Q-max", "100", "--no-plots",
-                 "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "design",
+                "ceramic",
+                "--var",
+                "stack.length=0.02:0.08",
+                "--var",
+                "stack.porosity=0.8:0.95",
+                "--objectives",
+                "Q_onset",
+                "--trials",
+                "48",
+                "--batch",
+                "16",
+                "--Q-max",
+                "100",
+                "--no-plots",
+                "-o",
+                str(out),
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     best = json.loads((out / "design.json").read_text())["best"][0]
     q = onset(load_engine("standing_wave"), Q_max=100.0, params=best["params"]).Q_onset[0]
     assert best["values"]["Q_onset"] == pytest.approx(q, rel=1e-12) and q < 25.0
     out2 = tmp_path / "d2"
-    assert main(["design", "ceramic", "--var", "stack.length=0.02:0.08", "--objectives", "Q_onset,onset_T_ratio",
-                 "--trials", "32", "--batch", "16", "--no-plots", "-o", str(out2), "--device", "cpu", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "design",
+                "ceramic",
+                "--var",
+                "stack.length=0.02:0.08",
+                "--objectives",
+                "Q_onset,onset_T_ratio",
+                "--trials",
+                "32",
+                "--batch",
+                "16",
+                "--no-plots",
+                "-o",
+                str(out2),
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     front = json.loads((out2 / "design.json").read_text())["best"]
     assert front and all({"Q_onset", "onset_T_ratio"} <= set(b["values"]) for b in front)

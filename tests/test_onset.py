@@ -20,8 +20,7 @@ from tawarp.kernels.pore import PORE_CIRCULAR, PORE_PLATES, pore_functions_compl
 from tawarp.model.core import CoreError, core_from_dict, load_core
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from tawarp.model.onset import eigenfrequencies, onset
-from tawarp.model.resonator import (EndCondition, ResonatorDuct, ThermoacousticEngine, engine_from_dict,
-                                    load_engine)
+from tawarp.model.resonator import EndCondition, ResonatorDuct, ThermoacousticEngine, engine_from_dict, load_engine
 
 DEVICE = "cpu"
 
@@ -68,10 +67,17 @@ def test_pore_functions_complex_argument(model):
 
 
 @wp.kernel
-def _core_columns(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32),
-                  gas: wp.array(dtype=wp.float64), theta: wp.array2d(dtype=wp.float64),
-                  seg_cells: wp.array(dtype=wp.int32), first: int, heat_cells: int, omega: wp.array(dtype=wp.vec2d),
-                  out: wp.array2d(dtype=wp.vec2d)):
+def _core_columns(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    first: int,
+    heat_cells: int,
+    omega: wp.array(dtype=wp.vec2d),
+    out: wp.array2d(dtype=wp.vec2d),
+):
     j = wp.tid()
     one = wp.vec2d(wp.float64(1.0), wp.float64(0.0))
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
@@ -89,9 +95,22 @@ def _core_matrix(core, Q, omega):
     params, theta = fe.heat(np.array([[Q]]))
     w = np.ascontiguousarray(np.asarray(omega, dtype=complex))
     out = wp.empty((w.size, 4), dtype=wp.vec2d, device=DEVICE)
-    wp.launch(_core_columns, dim=w.size, device=DEVICE,
-              inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, fe.first, fe.heat_cells,
-                      wp.array(w.view(np.float64).reshape(-1, 2), dtype=wp.vec2d, device=DEVICE), out])
+    wp.launch(
+        _core_columns,
+        dim=w.size,
+        device=DEVICE,
+        inputs=[
+            params,
+            fe.flags,
+            fe.gas,
+            theta,
+            fe.seg_cells,
+            fe.first,
+            fe.heat_cells,
+            wp.array(w.view(np.float64).reshape(-1, 2), dtype=wp.vec2d, device=DEVICE),
+            out,
+        ],
+    )
     return out.numpy().view(np.complex128).reshape(-1, 2, 2)
 
 
@@ -111,8 +130,14 @@ def test_core_cascade_complex_omega():
 
 
 def _tube(length=0.3, radius=0.0167):
-    return core_from_dict({"gas": {"name": "air"}, "tube": {"radius": radius},
-                           "segment": [{"name": "d", "kind": "duct", "length": length}]}, "<tube>")
+    return core_from_dict(
+        {
+            "gas": {"name": "air"},
+            "tube": {"radius": radius},
+            "segment": [{"name": "d", "kind": "duct", "length": length}],
+        },
+        "<tube>",
+    )
 
 
 def _k(omega, radius, T=293.15, p_mean=101325.0):
@@ -128,16 +153,18 @@ def _k(omega, radius, T=293.15, p_mean=101325.0):
     return omega / g.c * np.sqrt((1 + (g.gamma - 1) * f_k) / (1 - f_nu))
 
 
-@pytest.mark.parametrize("left, right, shift", [("closed", "closed", 0.0), ("closed", "open", 0.5),
-                                                ("open", "open", 0.0)])
+@pytest.mark.parametrize(
+    "left, right, shift", [("closed", "closed", 0.0), ("closed", "open", 0.5), ("open", "open", 0.0)]
+)
 def test_uniform_tube_modes(left, right, shift):
     """Unheated uniform tube (a duct core between resonator ducts of the same tube, L = 1 m):
     k(omega) L = (n - shift) pi, shift 0 between like ends, 1/2 closed-open; modes 1-3:
     frequency Re omega and damping rate Im omega each within 1e-8 relative of the scalar
     oracle (scipy.optimize.newton on complex omega)."""
     R, L = 0.0167, 1.0
-    eng = ThermoacousticEngine(_tube(0.3, R), EndCondition(left), EndCondition(right), ResonatorDuct(0.45),
-                               ResonatorDuct(0.25))
+    eng = ThermoacousticEngine(
+        _tube(0.3, R), EndCondition(left), EndCondition(right), ResonatorDuct(0.45), ResonatorDuct(0.25)
+    )
     for n in (1, 2, 3):
         res = eigenfrequencies(eng, 0.0, mode=n, device=DEVICE)
         w0 = (n - shift) * math.pi * 343.2 / L
@@ -156,11 +183,13 @@ def test_impedance_end_against_reference():
     R = 0.0167
     core = _tube(0.3, R)
     Z = (2.0 + 1.5j) * ref.gas_properties("air", 293.15, 101325.0).rho * 343.2 / (math.pi * R**2)
-    slope = 0.004 * Z    # per Hz
+    slope = 0.004 * Z  # per Hz
     za, zb = Z + slope * 50, Z + slope * 400
     table = np.array([[50.0, za.real, za.imag], [400.0, zb.real, zb.imag]])
-    for zfun, end in ((lambda w: Z, EndCondition("impedance", np.array([[1.0, Z.real, Z.imag]]))),
-                      (lambda w: Z + slope * w / (2 * math.pi), EndCondition("impedance", table))):
+    for zfun, end in (
+        (lambda w: Z, EndCondition("impedance", np.array([[1.0, Z.real, Z.imag]]))),
+        (lambda w: Z + slope * w / (2 * math.pi), EndCondition("impedance", table)),
+    ):
         eng = ThermoacousticEngine(core, EndCondition("closed"), end, ResonatorDuct(0.45), ResonatorDuct(0.25))
         res = eigenfrequencies(eng, 0.0, device=DEVICE)
 
@@ -189,10 +218,9 @@ def test_heated_engine_against_reference():
     eng = load_engine("standing_wave")
     Q = 40.0
     res = eigenfrequencies(eng, Q, cells=16, device=DEVICE)
-    exact = so.newton(lambda w: _engine_matrix_ref(eng, w, Q)[1, 0], 2 * math.pi * 170.0 - 3.0j, tol=1e-12,
-                      maxiter=50)
+    exact = so.newton(lambda w: _engine_matrix_ref(eng, w, Q)[1, 0], 2 * math.pi * 170.0 - 3.0j, tol=1e-12, maxiter=50)
     assert abs(res.omega[0] - exact) < 1e-6 * abs(exact)
-    assert exact.imag > 0      # 40 W is above onset for this engine (growth)
+    assert exact.imag > 0  # 40 W is above onset for this engine (growth)
     T_max = eng.core.gas.T_cold + ref.heat_profile_exact(eng.core, Q).theta_max()[1]
     assert abs(res.T_hot[0] - T_max) < 1e-9 * T_max
 
@@ -236,8 +264,12 @@ def test_onset_batch_equals_single_runs():
 def _random_designs(seed, n):
     """The bench's design ranges (bench/onset.py): left duct, stack length, porosity, h_s."""
     rng = np.random.default_rng(seed)
-    return {"engine.left_duct": rng.uniform(0.5, 0.9, n), "stack.length": rng.uniform(0.03, 0.07, n),
-            "stack.porosity": rng.uniform(0.85, 0.93, n), "stack.h": rng.uniform(100, 200, n)}
+    return {
+        "engine.left_duct": rng.uniform(0.5, 0.9, n),
+        "stack.length": rng.uniform(0.03, 0.07, n),
+        "stack.porosity": rng.uniform(0.85, 0.93, n),
+        "stack.h": rng.uniform(100, 200, n),
+    }
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -287,14 +319,17 @@ def _engine_dict(**engine):
     return dict(core, engine=engine)
 
 
-@pytest.mark.parametrize("engine, match", [
-    ({"left": "shut"}, "left = 'shut'"),
-    ({"right": "impedance"}, "right_impedance"),
-    ({"left": "closed", "left_impedance": [1.0, 0.0]}, "left_impedance given"),
-    ({"left_duct": -1.0}, "left_duct"),
-    ({"right_duct_T": 0.0}, "right_duct_T"),
-    ({"middle": 1}, "unknown key"),
-])
+@pytest.mark.parametrize(
+    "engine, match",
+    [
+        ({"left": "shut"}, "left = 'shut'"),
+        ({"right": "impedance"}, "right_impedance"),
+        ({"left": "closed", "left_impedance": [1.0, 0.0]}, "left_impedance given"),
+        ({"left_duct": -1.0}, "left_duct"),
+        ({"right_duct_T": 0.0}, "right_duct_T"),
+        ({"middle": 1}, "unknown key"),
+    ],
+)
 def test_engine_file_errors(engine, match):
     """Bad [engine] tables are refused with the file and key named."""
     with pytest.raises(CoreError, match=match):
@@ -320,17 +355,37 @@ def test_cli_onset(tmp_path, capsys):
     from tawarp.cli import main
 
     out = tmp_path / "o"
-    assert main(["onset", "standing_wave", "--Q-max", "80", "--bracket", "9", "--var", "engine.left_duct=0.6,0.8",
-                 "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "onset",
+                "standing_wave",
+                "--Q-max",
+                "80",
+                "--bracket",
+                "9",
+                "--var",
+                "engine.left_duct=0.6,0.8",
+                "-o",
+                str(out),
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     js = json.loads((out / "onset.json").read_text())
-    api = onset(load_engine("standing_wave"), Q_max=80.0, n_bracket=9, params={"engine.left_duct": [0.6, 0.8]},
-                device=DEVICE)
+    api = onset(
+        load_engine("standing_wave"), Q_max=80.0, n_bracket=9, params={"engine.left_duct": [0.6, 0.8]}, device=DEVICE
+    )
     for k, s in enumerate(js["sets"]):
         assert s["params"] == {"engine.left_duct": [0.6, 0.8][k]}
         assert (s["Q_onset_W"], s["f_onset_Hz"], s["T_hot_K"]) == (api.Q_onset[k], api.f_onset[k], api.T_hot[k])
     assert (out / "growth_rate.png").stat().st_size > 0 and (out / "root_locus.png").stat().st_size > 0
-    assert main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu",
-                 "--quiet"]) == 2
+    assert (
+        main(["onset", "standing_wave", "--var", "engine.middle=1", "-o", str(out), "--device", "cpu", "--quiet"]) == 2
+    )
     assert "engine.middle" in capsys.readouterr().err
 
 

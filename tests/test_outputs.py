@@ -9,8 +9,22 @@ from collections import namedtuple
 from tawarp.cli import main
 
 SWEEP = ["sweep", "rvc_foam", "--var", "Q=1:18:3", "--device", "cpu", "--quiet"]
-DESIGN = ["design", "rvc_foam", "--var", "Q=1:18", "--var", "stack.length=0.01:0.1", "--trials", "16", "--batch", "8",
-          "--device", "cpu", "--quiet", "--no-plots"]
+DESIGN = [
+    "design",
+    "rvc_foam",
+    "--var",
+    "Q=1:18",
+    "--var",
+    "stack.length=0.01:0.1",
+    "--trials",
+    "16",
+    "--batch",
+    "8",
+    "--device",
+    "cpu",
+    "--quiet",
+    "--no-plots",
+]
 
 # the HDF5 writes of a sweep fail as on a full disk
 _FULL_DISK = """
@@ -32,11 +46,17 @@ def test_a_full_disk_during_a_sweep_is_an_error_line_and_the_older_file_stays(tm
     """It printed an h5py traceback and ended with SIGSEGV (HDF5's exit handler flushed the
     failed file again). In a child process: a crash is an exit code there."""
     (tmp_path / "res.nc").write_text("older")
-    run = subprocess.run([sys.executable, "-c", _FULL_DISK, *SWEEP, "-o", "res.nc"], cwd=tmp_path,
-                         capture_output=True, text=True, timeout=300)
+    run = subprocess.run(
+        [sys.executable, "-c", _FULL_DISK, *SWEEP, "-o", "res.nc"],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert run.returncode == 2, run.stderr
-    assert run.stderr.strip().splitlines()[-1] == ("tawarp sweep: error: res.nc: could not be written (No space left "
-                                                   "on device); the older file is kept")
+    assert run.stderr.strip().splitlines()[-1] == (
+        "tawarp sweep: error: res.nc: could not be written (No space left on device); the older file is kept"
+    )
     assert (tmp_path / "res.nc").read_text() == "older"
     assert not (tmp_path / "res.json").exists() and _debris(tmp_path) == []
 
@@ -75,7 +95,8 @@ def test_a_permission_error_is_an_error_line(tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(os, "replace", refused)
     assert main([*SWEEP, "-o", str(tmp_path / "res.nc")]) == 2
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
-        f"tawarp sweep: error: {tmp_path / 'res.nc'}: could not be written (Permission denied); the older file is kept")
+        f"tawarp sweep: error: {tmp_path / 'res.nc'}: could not be written (Permission denied); the older file is kept"
+    )
     assert (tmp_path / "res.nc").read_text() == "older" and _debris(tmp_path) == []
 
 
@@ -101,24 +122,74 @@ def test_a_users_figure_beside_the_ranking_is_refused(tmp_path, capsys):
 
     Image.new("RGB", (4, 4)).save(tmp_path / "plot.png")
     before = (tmp_path / "plot.png").read_bytes()
-    assert main(["rank", "--materials", "ceramic,mesh", "--Q", "5", "--samples", "16", "--device", "cpu", "--quiet",
-                 "-o", str(tmp_path / "plot.json")]) == 2
+    assert (
+        main(
+            [
+                "rank",
+                "--materials",
+                "ceramic,mesh",
+                "--Q",
+                "5",
+                "--samples",
+                "16",
+                "--device",
+                "cpu",
+                "--quiet",
+                "-o",
+                str(tmp_path / "plot.json"),
+            ]
+        )
+        == 2
+    )
     assert "plot.png: exists and tawarp did not write it" in capsys.readouterr().err
     assert (tmp_path / "plot.png").read_bytes() == before and not (tmp_path / "plot.json").exists()
     (tmp_path / "plot.png").unlink()
-    for _ in range(2):     # tawarp's own figure is recognised and replaced
-        assert main(["rank", "--materials", "ceramic,mesh", "--Q", "5", "--samples", "16", "--device", "cpu",
-                     "--quiet", "-o", str(tmp_path / "plot.json")]) == 0
+    for _ in range(2):  # tawarp's own figure is recognised and replaced
+        assert (
+            main(
+                [
+                    "rank",
+                    "--materials",
+                    "ceramic,mesh",
+                    "--Q",
+                    "5",
+                    "--samples",
+                    "16",
+                    "--device",
+                    "cpu",
+                    "--quiet",
+                    "-o",
+                    str(tmp_path / "plot.json"),
+                ]
+            )
+            == 0
+        )
 
 
 def test_forward_and_design_keep_a_users_files(tmp_path, capsys):
     (tmp_path / "T_temperature.png").write_bytes(b"mine")
-    assert main(["forward", "ceramic", "--freqs", "100", "-o", str(tmp_path / "T.csv"), "--device", "cpu",
-                 "--quiet"]) == 2
+    assert (
+        main(["forward", "ceramic", "--freqs", "100", "-o", str(tmp_path / "T.csv"), "--device", "cpu", "--quiet"]) == 2
+    )
     assert "T_temperature.png: exists and tawarp did not write it" in capsys.readouterr().err
     assert not (tmp_path / "T.csv").exists() and (tmp_path / "T_temperature.png").read_bytes() == b"mine"
-    assert main(["forward", "ceramic", "--freqs", "100", "-o", str(tmp_path / "T.csv"), "--device", "cpu",
-                 "--quiet", "--no-plots"]) == 0     # no figure asked for: nothing beside it is touched
+    assert (
+        main(
+            [
+                "forward",
+                "ceramic",
+                "--freqs",
+                "100",
+                "-o",
+                str(tmp_path / "T.csv"),
+                "--device",
+                "cpu",
+                "--quiet",
+                "--no-plots",
+            ]
+        )
+        == 0
+    )  # no figure asked for: nothing beside it is touched
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "design.json").write_text("[]")
     assert main([*DESIGN, "-o", str(tmp_path / "d")]) == 2
@@ -148,9 +219,25 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
 
     from tawarp.io import remove_stale_temporaries
 
-    child = subprocess.Popen([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
-                              *SWEEP[:2], "--var", "Q=1:18:100", "--var", "stack.length=0.01:0.1:100", "--chunk", "16",
-                              "-o", "res.nc"], cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            "import sys; from tawarp.cli import main; sys.exit(main())",
+            *SWEEP[:2],
+            "--var",
+            "Q=1:18:100",
+            "--var",
+            "stack.length=0.01:0.1:100",
+            "--chunk",
+            "16",
+            "-o",
+            "res.nc",
+        ],
+        cwd=tmp_path,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.monotonic() + 240
         while not list(tmp_path.glob(".res.nc.*.tmp")) and time.monotonic() < deadline and child.poll() is None:
@@ -183,8 +270,9 @@ def test_the_fitted_temperature_figure_is_drawn_at_the_measured_heat_inputs(tmp_
     data = make_paper_data("rvc_foam", n_freqs=12, cells=12, seed=0, heat_inputs=[0.0, 5.0, 7.0], device="cpu")
     ch = characterize(data, "rvc_foam", settings=settings, warn=False, restarts=0)
     drawn = {}
-    monkeypatch.setattr(plots, "plot_temperature", lambda x, curves, path, **kw: drawn.update(x=x, curves=curves,
-                                                                                             **kw) or path)
+    monkeypatch.setattr(
+        plots, "plot_temperature", lambda x, curves, path, **kw: drawn.update(x=x, curves=curves, **kw) or path
+    )
     write_figures(ch, tmp_path / "fit")
     assert list(drawn["curves"]) == ["Q = 5 W", "Q = 7 W"] and "measured heat inputs" in drawn["title"]
     for T, Q, h in zip(drawn["curves"].values(), (5.0, 7.0), ch.step2.values):
@@ -198,8 +286,10 @@ def test_a_users_figure_beside_the_fit_is_refused_before_fitting(tmp_path, capsy
     data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
     (tmp_path / "fit_h.png").write_bytes(b"mine")
     assert main(["fit", str(data), "--device", "cpu", "--quiet", "-o", str(tmp_path / "fit.json")]) == 2
-    assert "fit_h.png: exists and tawarp did not write it; it would be replaced by a figure of the fit" in \
-        capsys.readouterr().err
+    assert (
+        "fit_h.png: exists and tawarp did not write it; it would be replaced by a figure of the fit"
+        in capsys.readouterr().err
+    )
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit_h.png"]
 
 
@@ -218,14 +308,17 @@ def test_a_full_disk_leaves_no_half_line_in_the_study_journal(tmp_path, monkeypa
     before = (tmp_path / "study.journal").read_bytes()
     write = os.write
 
-    def half_then_full(fd, data):   # the first write gets half through, the next finds the disk full
+    def half_then_full(fd, data):  # the first write gets half through, the next finds the disk full
         if len(data) > 8:
             return write(fd, bytes(data[: len(data) // 2]))
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(os, "write", half_then_full)
-    with pytest.raises(OSError, match=r"study\.journal: could not be written \(No space left on device\); the "
-                                      r"trials stored before are kept"):
+    with pytest.raises(
+        OSError,
+        match=r"study\.journal: could not be written \(No space left on device\); the "
+        r"trials stored before are kept",
+    ):
         journal.append_logs([{"op_code": 4, "worker_id": "w", "study_id": 0, "payload": "x" * 100}])
     monkeypatch.setattr(os, "write", write)
     assert (tmp_path / "study.journal").read_bytes() == before

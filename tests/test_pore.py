@@ -135,9 +135,15 @@ def test_table_at_piece_boundaries_and_random_points():
     edges = S_MIN * 2.0 ** (np.arange(PIECES + 1) / PIECES_PER_OCTAVE)
     edges = edges[(edges > S_MIN) & (edges < S_MAX)]
     rng = np.random.default_rng(11)
-    s = np.concatenate([np.nextafter(edges, 0.0), edges, np.nextafter(edges, np.inf),
-                        [S_MIN, np.nextafter(S_MAX, 0.0)],
-                        np.exp(rng.uniform(np.log(S_MIN), np.log(S_MAX), 1500))])
+    s = np.concatenate(
+        [
+            np.nextafter(edges, 0.0),
+            edges,
+            np.nextafter(edges, np.inf),
+            [S_MIN, np.nextafter(S_MAX, 0.0)],
+            np.exp(rng.uniform(np.log(S_MIN), np.log(S_MAX), 1500)),
+        ]
+    )
     f, g = evaluate(PORE_CIRCULAR, s)
     err_f, err_g = max_rel_err(PORE_CIRCULAR, s, f, g)
     print(f"table: max relative error f {err_f:.2e}, g {err_g:.2e} at {len(s)} points")

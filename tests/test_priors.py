@@ -57,12 +57,17 @@ def _ceramic_with(path, raw: dict[tuple[str, str], str]):
 def test_sd_rel_and_range_syntax(tmp_path):
     """Each form gives a Gaussian in the field's fit scale: h (log-scaled) a log-normal,
     porosity (linear) a normal; a range is the central 95 % interval."""
-    p = _ceramic_with(tmp_path / "c.toml", {("stack", "h"): "{value = 150, sd = 30}",
-                                            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
-                                            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
-                                            ("stack", "tortuosity"): "{value = 1.0, sd = 0.05}",
-                                            ("tbt", "h"): "{value = 0.3, center = 0.2, rel = 0.5}",
-                                            ("gas", "T_cold"): "{value = 295.0, sd = 2}"})
+    p = _ceramic_with(
+        tmp_path / "c.toml",
+        {
+            ("stack", "h"): "{value = 150, sd = 30}",
+            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
+            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
+            ("stack", "tortuosity"): "{value = 1.0, sd = 0.05}",
+            ("tbt", "h"): "{value = 0.3, center = 0.2, rel = 0.5}",
+            ("gas", "T_cold"): "{value = 295.0, sd = 2}",
+        },
+    )
     core = load_core(p)
     assert core.get("stack.h") == 150.0 and core.get("hot_hx.h") == 100.0 and core.get("stack.porosity") == 0.9
     assert core.get("gas.T_cold") == 295.0 and core.get("tbt.h") == 0.3
@@ -127,10 +132,19 @@ def test_syntax_errors_name_the_file_and_key(tmp_path, where, text, message):
 def test_any_parameter_of_a_segment_takes_a_prior(tmp_path):
     """An effect field the file adds (the stack's thermal radius ratio at "off") and a
     duct's length take the syntax too."""
-    core = load_core(_ceramic_with(tmp_path / "c.toml", {("stack", "thermal_radius_ratio"): "{value = 1, sd = 0.3}",
-                                                         ("duct_left", "length"): "{value = 0.03, sd = 0.002}"}))
-    assert core.priors == {"stack.thermal_radius_ratio": Prior(1.0, 0.3, False, 0.0, math.inf),
-                           "duct_left.length": Prior(0.03, 0.002 / 0.03, True, 0.0, math.inf)}
+    core = load_core(
+        _ceramic_with(
+            tmp_path / "c.toml",
+            {
+                ("stack", "thermal_radius_ratio"): "{value = 1, sd = 0.3}",
+                ("duct_left", "length"): "{value = 0.03, sd = 0.002}",
+            },
+        )
+    )
+    assert core.priors == {
+        "stack.thermal_radius_ratio": Prior(1.0, 0.3, False, 0.0, math.inf),
+        "duct_left.length": Prior(0.03, 0.002 / 0.03, True, 0.0, math.inf),
+    }
 
 
 def test_prior_on_a_field_the_segment_does_not_use_is_refused():
@@ -147,17 +161,22 @@ def test_prior_on_a_field_the_segment_does_not_use_is_refused():
 def test_round_trip_keeps_declared_priors(tmp_path):
     """dump_core writes each prior back (rel for a log-normal, sd for a normal, center when
     the value moved): reloading gives the same priors exactly, also for a fitted copy."""
-    p = _ceramic_with(tmp_path / "c.toml", {("stack", "h"): "{value = 150, sd = 30}",
-                                            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
-                                            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
-                                            ("gas", "p_mean"): "{value = 101325.0, rel = 0.01}",
-                                            ("tube", "radius"): "{value = 0.0167, sd = 1e-4}"})
+    p = _ceramic_with(
+        tmp_path / "c.toml",
+        {
+            ("stack", "h"): "{value = 150, sd = 30}",
+            ("hot_hx", "h"): "{value = 100, range = [50, 300]}",
+            ("stack", "porosity"): "{value = 0.9, rel = 0.05}",
+            ("gas", "p_mean"): "{value = 101325.0, rel = 0.01}",
+            ("tube", "radius"): "{value = 0.0167, sd = 1e-4}",
+        },
+    )
     core = load_core(p)
     again = tmp_path / "again.toml"
     again.write_text(dump_core(core))
     back = load_core(again)
     assert back.priors == core.priors and back == dataclasses.replace(core, source=str(again))
-    fitted = core.replace(**{"stack.h": 80.0, "hot_hx.h": 500.0})   # 500 is outside the declared range
+    fitted = core.replace(**{"stack.h": 80.0, "hot_hx.h": 500.0})  # 500 is outside the declared range
     assert fitted.priors == core.priors
     again.write_text(dump_core(fitted))
     back = load_core(again)
@@ -173,8 +192,10 @@ def test_cores_differing_in_priors_are_not_equal_but_hash():
 # -- the Prior against closed forms -------------------------------------------------------
 PRIORS = {
     "normal": (Prior(0.5, 0.1, False), stats.norm(0.5, 0.1)),
-    "truncated normal": (Prior(0.9, 0.1, False, 0.0, 1.0),
-                         stats.truncnorm((0.0 - 0.9) / 0.1, (1.0 - 0.9) / 0.1, loc=0.9, scale=0.1)),
+    "truncated normal": (
+        Prior(0.9, 0.1, False, 0.0, 1.0),
+        stats.truncnorm((0.0 - 0.9) / 0.1, (1.0 - 0.9) / 0.1, loc=0.9, scale=0.1),
+    ),
     "half-normal": (Prior(0.0, 0.0134, False, 0.0), stats.halfnorm(0.0, 0.0134)),
 }
 
@@ -212,9 +233,16 @@ def test_log_normal_priors_match_scipy():
     assert q.log_density(0.99) == -math.inf
 
 
-@pytest.mark.parametrize("prior", [Prior(0.9, 0.1, False, 0.0, 1.0), Prior(1.0, 0.2, True, 1.0),
-                                   Prior(0.0, 1.85, False, 0.0), Prior(0.2, math.log(3.0), True, 0.0)],
-                         ids=["porosity", "q on its bound", "half-normal", "log-normal"])
+@pytest.mark.parametrize(
+    "prior",
+    [
+        Prior(0.9, 0.1, False, 0.0, 1.0),
+        Prior(1.0, 0.2, True, 1.0),
+        Prior(0.0, 1.85, False, 0.0),
+        Prior(0.2, math.log(3.0), True, 0.0),
+    ],
+    ids=["porosity", "q on its bound", "half-normal", "log-normal"],
+)
 def test_densities_integrate_to_one(prior):
     """Truncation normalisation: the density integrates to 1 over its support (in the
     prior's variable u = ln v or v, with dv/du = v or 1)."""
@@ -236,7 +264,8 @@ def test_density_of_x_is_the_density_of_v_times_dv_dx():
         for v in (0.3, 0.85, 0.999):
             dvdx = v if par.log else par.scale
             assert prior.log_density_x(float(par.x_of(v)), par) == pytest.approx(
-                prior.log_density(v) + math.log(dvdx), rel=1e-13)
+                prior.log_density(v) + math.log(dvdx), rel=1e-13
+            )
 
 
 def test_x_moments_exact_against_param_x_of():
@@ -277,8 +306,13 @@ def test_describe():
 
 
 def test_invalid_priors():
-    for args in ((1.0, 0.0, False), (1.0, -1.0, True), (0.0, 1.0, True), (2.0, 0.1, False, 0.0, 1.0),
-                 (math.nan, 0.1, False)):
+    for args in (
+        (1.0, 0.0, False),
+        (1.0, -1.0, True),
+        (0.0, 1.0, True),
+        (2.0, 0.1, False, 0.0, 1.0),
+        (math.nan, 0.1, False),
+    ):
         with pytest.raises(ValueError):
             Prior(*args)
 
@@ -288,13 +322,18 @@ def test_invalid_priors():
 def test_roles_and_h_priors_on_the_bundled_cores(name):
     core = load_core(name)
     roles = {s.name: segment_role(core, s.name) for s in core.segments}
-    assert roles == {"duct_left": None, "stack": "stack", "hot_hx": "hot_exchanger", "tbt": "buffer_tube",
-                     "duct_right": None}
+    assert roles == {
+        "duct_left": None,
+        "stack": "stack",
+        "hot_hx": "hot_exchanger",
+        "tbt": "buffer_tube",
+        "duct_right": None,
+    }
     for seg, role in (("stack", "stack"), ("hot_hx", "hot_exchanger"), ("tbt", "buffer_tube")):
         p = prior_for(core, f"{seg}.h")
         row = DEFAULT_PRIORS["h", role]
         assert p == Prior(core.get(f"{seg}.h"), row.sd, True, 0.0, math.inf) and role.replace("_", " ") in p.source
-    assert prior_for(core, "tbt.h").sd == pytest.approx(1.0, rel=1e-15)   # a factor e: 20x is 3 sd
+    assert prior_for(core, "tbt.h").sd == pytest.approx(1.0, rel=1e-15)  # a factor e: 20x is 3 sd
     assert prior_for(core, "hot_hx.h").sd == pytest.approx(math.log(2.0), rel=1e-15)
 
 
@@ -337,8 +376,9 @@ def test_declared_prior_wins_over_the_default(tmp_path):
     core = core_from_dict(d, "conv.toml")
     conv = next(e for e in tmatrix_library(core) if e.name == "convection")
     assert effect_priors(conv, core)["tbt.h_convection"] == Prior(0.0, 1.0, False, 0.0, math.inf)
-    assert effect_priors(conv)["tbt.h_convection"].sd == pytest.approx(EFFECT_WIDTH * conv.typical["tbt.h_convection"],
-                                                                       rel=1e-15)
+    assert effect_priors(conv)["tbt.h_convection"].sd == pytest.approx(
+        EFFECT_WIDTH * conv.typical["tbt.h_convection"], rel=1e-15
+    )
 
 
 def test_tension_names_the_parameter():
@@ -349,8 +389,9 @@ def test_tension_names_the_parameter():
     assert prior.z(8.0) == pytest.approx(math.log(40.0), rel=1e-14) and prior.z(8.0) > TENSION_SD
     wall = Prior(0.0, 1.85, False, 0.0)
     assert tension("wall_conductance", wall, 5.0) is None
-    assert tension("wall_conductance", wall, 10.0, "W/(m K)") == ("wall_conductance = 10 W/(m K) is 5.4 prior sd "
-                                                                  "above its prior 0 +- 1.85 W/(m K), >= 0")
+    assert tension("wall_conductance", wall, 10.0, "W/(m K)") == (
+        "wall_conductance = 10 W/(m K) is 5.4 prior sd above its prior 0 +- 1.85 W/(m K), >= 0"
+    )
 
 
 # -- effect priors ------------------------------------------------------------------------
@@ -378,9 +419,13 @@ def test_every_library_effect_has_finite_priors(lib):
                 assert math.isfinite(prior.log_density(v)), (eff.name, par.label, v)
 
 
-HALF_NORMAL = {"radiation": "stack.radiative_conductivity", "convection": "tbt.h_convection",
-               "wall_conduction": "wall_conductance", "ambient_exchanger_thermal": "ambient_hx.end_conductance",
-               "ambient_exchangers": "ambient_hx.length"}
+HALF_NORMAL = {
+    "radiation": "stack.radiative_conductivity",
+    "convection": "tbt.h_convection",
+    "wall_conduction": "wall_conductance",
+    "ambient_exchanger_thermal": "ambient_hx.end_conductance",
+    "ambient_exchangers": "ambient_hx.length",
+}
 
 
 def test_effect_switches_are_off_plus_minus_their_typical_size():

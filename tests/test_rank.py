@@ -35,8 +35,11 @@ def _fit_json(tmp_path, std, corr):
 
     names = ["stack.porosity", "stack.pore_radius", "stack.h"]
     values = [0.9, 0.47e-3, 150.0]
-    d = {"core": "ceramic", "parameters": {k: {"value": v, "std": s} for k, v, s in zip(names, values, std)},
-         "correlation": {"names": names, "matrix": corr}}
+    d = {
+        "core": "ceramic",
+        "parameters": {k: {"value": v, "std": s} for k, v, s in zip(names, values, std)},
+        "correlation": {"names": names, "matrix": corr},
+    }
     p = tmp_path / "fit.json"
     p.write_text(json.dumps(d))
     return p, names, np.array(values), np.array(std)[:, None] * np.array(corr) * np.array(std)[None, :]
@@ -118,6 +121,27 @@ def test_rank_by_onset_probabilities(tmp_path):
     assert [rows[m]["p_best"] for m in PAPER] == [np.mean(best == k) for k in range(4)]
     assert res.ordering()[-1] == "mesh"
     out = tmp_path / "r.json"
-    assert main(["rank", "--by", "onset", "--samples", "24", "--seed", "2", "--Q-max", "120", "--set",
-                 "gas.p_mean=1e6", "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "rank",
+                "--by",
+                "onset",
+                "--samples",
+                "24",
+                "--seed",
+                "2",
+                "--Q-max",
+                "120",
+                "--set",
+                "gas.p_mean=1e6",
+                "-o",
+                str(out),
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert json.loads(out.read_text())["ranking"] == json.loads(json.dumps(res.to_dict()["ranking"]))

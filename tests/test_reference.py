@@ -53,10 +53,28 @@ def _stress_cores():
         Segment("d0", "duct", 0.02),
         Segment("a", "porous", 0.03, porosity=0.8, pore_radius=2e-4, solid_conductivity=10.0, h=40.0, thermal=True),
         Segment("b", "duct", 0.015, h=0.0, thermal=True),
-        Segment("heat", "porous", 0.012, porosity=0.9, pore_radius=4.7e-4, solid_conductivity=3.0, h=100.0,
-                thermal=True, heater=True),
-        Segment("c", "porous", 0.02, pore_model="plates", porosity=0.7, pore_radius=1e-4, solid_conductivity=1.0,
-                h=5.0, thermal=True),
+        Segment(
+            "heat",
+            "porous",
+            0.012,
+            porosity=0.9,
+            pore_radius=4.7e-4,
+            solid_conductivity=3.0,
+            h=100.0,
+            thermal=True,
+            heater=True,
+        ),
+        Segment(
+            "c",
+            "porous",
+            0.02,
+            pore_model="plates",
+            porosity=0.7,
+            pore_radius=1e-4,
+            solid_conductivity=1.0,
+            h=5.0,
+            thermal=True,
+        ),
         Segment("tbt", "duct", 0.08, h=0.3, thermal=True),
         Segment("d1", "duct", 0.02),
     )
@@ -223,9 +241,18 @@ def test_heat_solution_satisfies_model(label, core):
         w = [t / hs.m[j] for t in (1, 4, 16, 64) if hs.m[j] and t / hs.m[j] < (b - a) / 2]
         pts = sorted({a, b, (a + b) / 2, *[a + t for t in w], *[b - t for t in w]})
         for lo, hi in zip(pts[:-1], pts[1:]):
-            total += (2 * hs.h[j] / core.radius) * S * quad(lambda t: float(hs.theta_in(i, t)), lo, hi,
-                                                            epsabs=1e-14 * scale * (hi - lo), epsrel=1e-12,
-                                                            limit=200)[0]
+            total += (
+                (2 * hs.h[j] / core.radius)
+                * S
+                * quad(
+                    lambda t: float(hs.theta_in(i, t)),
+                    lo,
+                    hi,
+                    epsabs=1e-14 * scale * (hi - lo),
+                    epsrel=1e-12,
+                    limit=200,
+                )[0]
+            )
     assert total == pytest.approx(Q, rel=1e-10)
 
 
@@ -311,7 +338,7 @@ def test_thermal_radius_ratio_closed_form(ratio):
 
     def fr(a, delta):
         z = (1 + 1j) * a / delta
-        return 2 * sps.jve(1, z) / (z * sps.jve(0, z))   # scaled: no overflow at large z
+        return 2 * sps.jve(1, z) / (z * sps.jve(0, z))  # scaled: no overflow at large z
 
     f_nu = fr(r, np.sqrt(2 * g.mu / (g.rho * w)))
     f_k = fr(ratio * r, np.sqrt(2 * g.k / (g.rho * g.cp * w)))
@@ -327,7 +354,7 @@ def test_thermal_radius_ratio_closed_form(ratio):
         Y = _Y(core, transfer_matrix(core, f, _force_ode=force))
         assert np.max(np.abs(Y - Yx)) < 1e-10 * np.max(np.abs(Yx))
     if ratio == 1e4:
-        assert np.max(np.abs(f_k)) < 1e-3   # the adiabatic limit is reached
+        assert np.max(np.abs(f_k)) < 1e-3  # the adiabatic limit is reached
 
 
 def test_thermal_radius_ratio_one_is_the_paper_model_bit_for_bit():

@@ -48,8 +48,18 @@ def test_no_lab_effect_is_the_exact_heat_solution(mesh):
 
 def test_off_effects_give_the_reference_bit_for_bit(mesh):
     base = ref.transfer_matrix(mesh, FREQS, Q)
-    for lab in (LabEffects(), LabEffects(contact_resistance=0.0, bypass_gap=0.0, leak_diameter=0.0,
-                                          porosity_gradient=0.0, wall_conductance=0.0, mic_gain=1.0, mic_phase=0.0)):
+    for lab in (
+        LabEffects(),
+        LabEffects(
+            contact_resistance=0.0,
+            bypass_gap=0.0,
+            leak_diameter=0.0,
+            porosity_gradient=0.0,
+            wall_conductance=0.0,
+            mic_gain=1.0,
+            mic_phase=0.0,
+        ),
+    ):
         np.testing.assert_array_equal(lab_transfer_matrix(mesh, lab, FREQS, Q), base)
 
 
@@ -60,11 +70,13 @@ def test_contact_resistance_is_a_thin_resistive_layer(mesh):
     Rc, d = 5e-4, 1e-7
     lab = LabHeatSolution(mesh, LabEffects(contact_resistance=Rc), Q)
     segs = list(mesh.segments)
-    layer = Segment("contact", "porous", d, porosity=1e-9, pore_radius=1e-4, solid_conductivity=d / Rc, h=0.0,
-                    thermal=True)
+    layer = Segment(
+        "contact", "porous", d, porosity=1e-9, pore_radius=1e-4, solid_conductivity=d / Rc, h=0.0, thermal=True
+    )
     hot = segs[2]
-    layered = dataclasses.replace(mesh, segments=segs[:2] + [layer, dataclasses.replace(hot, length=hot.length - d)]
-                                  + segs[3:])
+    layered = dataclasses.replace(
+        mesh, segments=segs[:2] + [layer, dataclasses.replace(hot, length=hot.length - d)] + segs[3:]
+    )
     exact = ref.heat_profile_exact(layered, Q)
     pos = mesh.positions()
     xs = np.linspace(pos[1], pos[2], 101)
@@ -73,7 +85,7 @@ def test_contact_resistance_is_a_thin_resistive_layer(mesh):
     assert np.max(np.abs(lab.theta_in(1, xs) - exact.theta_in(1, xs))) < 1e-4 * scale
     assert np.max(np.abs(lab.theta_in(2, xh[1:]) - exact.theta_in(3, xh[1:]))) < 1e-4 * scale
     jump = float(lab.theta_in(2, pos[2]) - lab.theta_in(1, pos[2]))
-    assert jump > 1.0 and abs(lab.lost() / Q - 1) < 1e-9       # the hot side hotter, energy conserved
+    assert jump > 1.0 and abs(lab.lost() / Q - 1) < 1e-9  # the hot side hotter, energy conserved
 
 
 def test_wall_field_tends_to_the_added_conductivity(mesh):
@@ -83,13 +95,15 @@ def test_wall_field_tends_to_the_added_conductivity(mesh):
     # coupling length sqrt(lam R/(2 h_w)) of the layers at the interfaces): 10x the coupling,
     # sqrt(10) x closer (+-15 %).
     lam_w = 0.5
-    added = ref.heat_profile_exact(mesh.replace(**{f"{mesh.segments[i].name}.wall_conductance": lam_w
-                                                   for i in mesh.thermal_indices}), Q)
+    added = ref.heat_profile_exact(
+        mesh.replace(**{f"{mesh.segments[i].name}.wall_conductance": lam_w for i in mesh.thermal_indices}), Q
+    )
     x = _thermal_x(mesh)
     gaps = []
     for hw in (3e3, 3e4):
-        lab = LabHeatSolution(mesh, LabEffects(wall_conductance=lam_w, wall_coupling_porous=hw, wall_coupling_duct=hw),
-                              Q, tol=1e-6)
+        lab = LabHeatSolution(
+            mesh, LabEffects(wall_conductance=lam_w, wall_coupling_porous=hw, wall_coupling_duct=hw), Q, tol=1e-6
+        )
         gaps.append(np.max(np.abs(lab.theta(x) - added.theta(x))))
         assert abs(lab.lost() / Q - 1) < 1e-6
     assert abs(gaps[0] / gaps[1] / math.sqrt(10) - 1) < 0.15, gaps
@@ -119,8 +133,10 @@ def test_bypass_gap_limits(mesh):
     base = ref.transfer_matrix(mesh, FREQS, Q)
     # a vanishing gap: the stack loses the share 2g/R of its section, the slit adds an
     # admittance ~ g^3: the change is linear in g, of the size of the lost share
-    change = [np.max(np.abs(lab_transfer_matrix(mesh, LabEffects(bypass_gap=g), FREQS, Q) - base) / np.abs(base))
-              for g in (1e-5, 2e-5)]
+    change = [
+        np.max(np.abs(lab_transfer_matrix(mesh, LabEffects(bypass_gap=g), FREQS, Q) - base) / np.abs(base))
+        for g in (1e-5, 2e-5)
+    ]
     share = 2 * 1e-5 / mesh.radius
     assert abs(change[1] / change[0] - 2) < 0.1 and 0.5 < change[0] / share < 2, (change, share)
     # the gap alone (stack porosity -> 0): a parallel-plate slit of spacing g and the
@@ -188,7 +204,7 @@ def test_leak_draws_flow_out_of_the_duct(mesh):
     half = dataclasses.replace(mesh.segments[0], length=0.015)
     H = ref._uniform_matrix(mesh, half, 2 * np.pi * FREQS)
     Y = 1 / side_branch_impedance("air", mesh.gas.p_mean, mesh.gas.T_cold, 1e-3, lab.leak_length, 2 * np.pi * FREQS)
-    state = H @ np.array([1.0, 0.0])                      # unit pressure, no flow, at x1
+    state = H @ np.array([1.0, 0.0])  # unit pressure, no flow, at x1
     after = M @ np.array([1.0, 0.0])
     expect = H @ (state - np.stack([np.zeros_like(Y), Y * state[:, 0]], -1))[..., None]
     np.testing.assert_allclose(after, expect[..., 0], rtol=1e-12)
@@ -207,19 +223,20 @@ def test_microphone_mismatch_is_the_two_load_method(mesh, pair):
     k, Zc = ref.duct_waves("air", mesh.gas.p_mean, mesh.gas.T_cold, mesh.radius, w)
     rng = np.random.default_rng(0)
     X1 = rng.standard_normal((2, 2)) + 1j * rng.standard_normal((2, 2))
-    X1 = X1 * np.array([[1.0], [1.0 / Zc[0].real]])          # pressures [Pa], volume velocities [m^3/s]
+    X1 = X1 * np.array([[1.0], [1.0 / Zc[0].real]])  # pressures [Pa], volume velocities [m^3/s]
     side = {"downstream": 1.0, "upstream": -1.0}
     G = lab.mic_gain * np.exp(1j * lab.mic_phase)
 
     def measured(states, which):
         x = side[which] * np.array([lab.mic_distance, lab.mic_distance + lab.mic_spacing])
-        A = (states[:, 0] + Zc[:, None] * states[:, 1]) / 2                      # (m, loads)
+        A = (states[:, 0] + Zc[:, None] * states[:, 1]) / 2  # (m, loads)
         B = (states[:, 0] - Zc[:, None] * states[:, 1]) / 2
-        p = A[:, None, :] * np.exp(1j * k[:, None, None] * x[None, :, None]) + \
-            B[:, None, :] * np.exp(-1j * k[:, None, None] * x[None, :, None])      # (m, mic, loads)
+        p = A[:, None, :] * np.exp(1j * k[:, None, None] * x[None, :, None]) + B[:, None, :] * np.exp(
+            -1j * k[:, None, None] * x[None, :, None]
+        )  # (m, mic, loads)
         if which == pair:
             p[:, 1] *= G
-        W = np.stack([np.exp(1j * k[:, None] * x), np.exp(-1j * k[:, None] * x)], -1)   # (m, mic, 2)
+        W = np.stack([np.exp(1j * k[:, None] * x), np.exp(-1j * k[:, None] * x)], -1)  # (m, mic, 2)
         AB = np.linalg.solve(W, p)
         return np.stack([AB[:, 0] + AB[:, 1], (AB[:, 0] - AB[:, 1]) / Zc[:, None]], 1)
 
@@ -238,8 +255,9 @@ def test_porosity_gradient_limits(mesh):
     # frequency the graded stack's T_pU is its a12 integrated, a12 ~ 1/phi(x):
     # (1/a) ln((1 + a/2)/(1 - a/2)) times the uniform stack's, T_Up its a21 integrated,
     # a21 ~ phi: the uniform one's (the mean porosity is phi0), to O((kL)^2)
-    np.testing.assert_array_equal(lab_transfer_matrix(mesh, LabEffects(porosity_gradient=0.0), FREQS, Q),
-                                  ref.transfer_matrix(mesh, FREQS, Q))
+    np.testing.assert_array_equal(
+        lab_transfer_matrix(mesh, LabEffects(porosity_gradient=0.0), FREQS, Q), ref.transfer_matrix(mesh, FREQS, Q)
+    )
     a = 0.3
     lab = LabEffects(porosity_gradient=a)
     T = lab_transfer_matrix(mesh, lab, FREQS, 0.0)
@@ -247,7 +265,7 @@ def test_porosity_gradient_limits(mesh):
     f = np.array([0.1])
     graded = lab_segment_matrices(mesh, lab, f, 0.0)[1][0]
     uniform = ref.segment_transfer_matrices(mesh, f, 0.0)[1][0]
-    kL2 = abs(uniform[0, 1] * uniform[1, 0])                 # (kL)^2 of the uniform stack
+    kL2 = abs(uniform[0, 1] * uniform[1, 0])  # (kL)^2 of the uniform stack
     assert abs(graded[0, 1] / uniform[0, 1] / (math.log((1 + a / 2) / (1 - a / 2)) / a) - 1) < kL2
     assert abs(graded[1, 0] / uniform[1, 0] - 1) < kL2
     heat = LabHeatSolution(mesh, lab, Q)

@@ -41,8 +41,9 @@ def _anchors(doc: Path) -> set[str]:
     """GitHub's anchors of a Markdown file's headings (lower case, punctuation dropped,
     blanks as hyphens)."""
     text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)
-    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
-            for h in re.findall(r"^#+ (.+)$", text, flags=re.M)}
+    return {
+        re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in re.findall(r"^#+ (.+)$", text, flags=re.M)
+    }
 
 
 def test_documents_cite_only_files_of_the_repository():
@@ -75,6 +76,23 @@ def test_physics_and_formats_contract_are_in_docs():
 
 def test_ruff_check_is_clean():
     """``ruff check .`` with pyproject.toml's rule set finds nothing (ruff is in the test extra)."""
-    done = subprocess.run([sys.executable, "-m", "ruff", "check", "--no-cache", "--output-format", "concise", str(ROOT)],
-                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-m", "ruff", "check", "--no-cache", "--output-format", "concise", str(ROOT)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_ruff_format_is_clean():
+    """``ruff format --check .`` finds nothing to reformat (pyproject.toml's [tool.ruff.format])."""
+    done = subprocess.run(
+        [sys.executable, "-m", "ruff", "format", "--check", "--no-cache", str(ROOT)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stdout + done.stderr

@@ -18,10 +18,18 @@ from tawarp.design.samplers import (
 )
 
 # hand-made set (both minimized): fronts by inspection
-POINTS = np.array([[1, 5], [2, 3], [4, 1],      # front 0
-                   [3, 4], [5, 2],              # front 1: each dominated only by front 0
-                   [6, 6],                      # front 2
-                   [2, 3]], dtype=float)        # a duplicate of a front-0 point: same front
+POINTS = np.array(
+    [
+        [1, 5],
+        [2, 3],
+        [4, 1],  # front 0
+        [3, 4],
+        [5, 2],  # front 1: each dominated only by front 0
+        [6, 6],  # front 2
+        [2, 3],
+    ],
+    dtype=float,
+)  # a duplicate of a front-0 point: same front
 RANKS = [0, 0, 0, 1, 1, 2, 0]
 
 
@@ -105,12 +113,14 @@ def test_nsga2_converges_to_the_pareto_set(seed):
 def test_replay_is_exact():
     """A sampler told the same generations asks the same next generation (the search
     resumes by replaying its stored generations)."""
+
     def run(n_gen):
         s = make_sampler(2, 2, 8, 5, 1)
         for _ in range(n_gen):
             X = s.ask(8)
             s.tell(X, np.sum(X[:, :2] ** 2, axis=1)[:, None], np.zeros(8))
         return s.ask(8)
+
     np.testing.assert_array_equal(run(3), run(3))
 
 

@@ -10,8 +10,15 @@ import pytest
 
 from tawarp import reference
 from tawarp.cli import main
-from tawarp.measure import (MeasurementError, calibrate_empty_tube, read_scattering, read_scattering_csv,
-                            scattering_to_transfer, transfer_to_scattering, write_scattering_csv)
+from tawarp.measure import (
+    MeasurementError,
+    calibrate_empty_tube,
+    read_scattering,
+    read_scattering_csv,
+    scattering_to_transfer,
+    transfer_to_scattering,
+    write_scattering_csv,
+)
 from tawarp.measure.scattering import microphone_gain, tube_waves
 from tawarp.measure.synthetic import scattering_measurement
 from tawarp.model.core import dump_core, load_core
@@ -37,8 +44,10 @@ def foam_T(freqs=F):
 def scattering_file(path, S, planes: dict, extra=""):
     lines = ["# tube_radius = 0.05", "# T_ambient = 293.15", "# p_ambient = 101325"]
     lines += [f"# {k} = {v!r}" for k, v in planes.items()] + ([extra] if extra else []) + [HEADER]
-    lines += [f"{float(f)!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in S[k].reshape(-1))
-              for k, f in enumerate(F[:len(S)])]
+    lines += [
+        f"{float(f)!r}," + ",".join(f"{float(v.real)!r},{float(v.imag)!r}" for v in S[k].reshape(-1))
+        for k, f in enumerate(F[: len(S)])
+    ]
     path.write_text("\n".join(lines) + "\n")
     return path
 
@@ -70,12 +79,18 @@ def test_coinciding_planes_read_the_sample_and_a_zero_thickness_check(tmp_path):
     # both planes on the front face of the 3 cm foam
     g = GASES["air"]
     k = 2 * np.pi * F / math.sqrt(g.gamma * g.R_gas * 293.15)
-    data = read_scattering(scattering_file(tmp_path / "s.csv", np.zeros((F.size, 2, 2)) + [[0, 1], [1, 0]],
-                                           {"ref_plane_upstream": 0.0, "ref_plane_downstream": 0.0}))
+    data = read_scattering(
+        scattering_file(
+            tmp_path / "s.csv",
+            np.zeros((F.size, 2, 2)) + [[0, 1], [1, 0]],
+            {"ref_plane_upstream": 0.0, "ref_plane_downstream": 0.0},
+        )
+    )
     T = foam_T()
     S = transfer_to_scattering(T, k, data.Zc, 0.0, -0.03)
-    got = read_scattering_csv(scattering_file(tmp_path / "f.csv", S, {"ref_plane_upstream": 0.0,
-                                                                     "ref_plane_downstream": -0.03}))
+    got = read_scattering_csv(
+        scattering_file(tmp_path / "f.csv", S, {"ref_plane_upstream": 0.0, "ref_plane_downstream": -0.03})
+    )
     assert np.max(np.abs(got.T - T) / np.abs(T).max(axis=(1, 2), keepdims=True)) < 1e-12
     # zero thickness: S = [[0, 1], [1, 0]] at coinciding planes is the identity
     assert np.max(np.abs(data.to_tmatrix().T - np.eye(2))) < 1e-15
@@ -88,8 +103,9 @@ def test_first_format_reads_as_before(tmp_path):
     k = 2 * np.pi * F / math.sqrt(g.gamma * g.R_gas * 293.15)
     S = transfer_to_scattering(foam_T(), k, ZC, 0.05, 0.04)
     old = read_scattering_csv(scattering_file(tmp_path / "old.csv", S, {"ref_upstream": 0.05, "ref_downstream": 0.04}))
-    new = read_scattering_csv(scattering_file(tmp_path / "new.csv", S, {"ref_plane_upstream": -0.05,
-                                                                       "ref_plane_downstream": 0.04}))
+    new = read_scattering_csv(
+        scattering_file(tmp_path / "new.csv", S, {"ref_plane_upstream": -0.05, "ref_plane_downstream": 0.04})
+    )
     assert np.array_equal(old.T, new.T)
     assert np.array_equal(old.T, scattering_to_transfer(S, k, read_scattering(tmp_path / "old.csv").Zc, 0.05, 0.04))
     # written and read back: the signed form, the same data
@@ -100,8 +116,9 @@ def test_first_format_reads_as_before(tmp_path):
 
 def test_plane_metadata_errors_name_the_key(tmp_path):
     S = np.zeros((2, 2, 2)) + [[0.1, 0.9], [0.9, 0.1]]
-    both = scattering_file(tmp_path / "both.csv", S, {"ref_upstream": 0.05, "ref_plane_upstream": -0.05,
-                                                      "ref_downstream": 0.0})
+    both = scattering_file(
+        tmp_path / "both.csv", S, {"ref_upstream": 0.05, "ref_plane_upstream": -0.05, "ref_downstream": 0.0}
+    )
     with pytest.raises(MeasurementError, match=r"both\.csv, line 4: metadata ref_upstream and ref_plane_upstream"):
         read_scattering(both)
     missing = scattering_file(tmp_path / "missing.csv", S, {"ref_plane_upstream": 0.0})
@@ -115,8 +132,15 @@ def test_plane_metadata_errors_name_the_key(tmp_path):
 def test_sigma_columns_propagate_to_the_tmatrix(tmp_path):
     # first-order propagation against a Monte Carlo of the conversion (5 % on the std)
     s = 1e-3
-    sample, _ = scattering_measurement(foam_T(F[:3]), F[:3], tube_radius=0.05, plane_upstream=-0.05,
-                                       plane_downstream=0.04, length=0.03, noise=s * math.sqrt(2))
+    sample, _ = scattering_measurement(
+        foam_T(F[:3]),
+        F[:3],
+        tube_radius=0.05,
+        plane_upstream=-0.05,
+        plane_downstream=0.04,
+        length=0.03,
+        noise=s * math.sqrt(2),
+    )
     path = tmp_path / "s.csv"
     write_scattering_csv(path, sample)
     assert "sigma_S11_re" in [ln for ln in path.read_text().splitlines() if ln.startswith("freq_Hz")][0]
@@ -135,7 +159,9 @@ def test_impedance_sigma_columns_are_weights(tmp_path):
     from tawarp.measure import ImpedanceKind, load_measurement
 
     p = tmp_path / "z.csv"
-    p.write_text("# thickness = 0.02\nfreq_Hz,Zs_re,Zs_im,sigma_Zs_re,sigma_Zs_im\n100,1,2,0.01,0.02\n200,1.5,-1,0.03,0.04\n")
+    p.write_text(
+        "# thickness = 0.02\nfreq_Hz,Zs_re,Zs_im,sigma_Zs_re,sigma_Zs_im\n100,1,2,0.01,0.02\n200,1.5,-1,0.03,0.04\n"
+    )
     kind = load_measurement(p)
     assert isinstance(kind, ImpedanceKind) and kind.has_sigma
     assert np.array_equal(kind.w, 1 / np.array([[0.01, 0.02], [0.03, 0.04]]))
@@ -161,9 +187,19 @@ def rig(seed, noise=0.003, planes=(-0.05, 0.04)):
     is then as the metadata say (lossless, at T_ambient)."""
     k, Zc = lossy_tube() if planes == (-0.05, 0.04) else (None, None)
     gain = 1.04 * np.exp(0.05j) * (1 + 0.02 * F / 1000.0)
-    return scattering_measurement(foam_T(), F, tube_radius=0.05, plane_upstream=planes[0], plane_downstream=planes[1],
-                                  length=0.03, gain=gain, tube_wavenumber=k, tube_impedance=Zc, noise=noise,
-                                  seed=seed)
+    return scattering_measurement(
+        foam_T(),
+        F,
+        tube_radius=0.05,
+        plane_upstream=planes[0],
+        plane_downstream=planes[1],
+        length=0.03,
+        gain=gain,
+        tube_wavenumber=k,
+        tube_impedance=Zc,
+        noise=noise,
+        seed=seed,
+    )
 
 
 def test_empty_tube_calibration_removes_gain_and_tube():
@@ -175,7 +211,7 @@ def test_empty_tube_calibration_removes_gain_and_tube():
     k_ref, Zc_ref = lossy_tube()
     g = GASES["air"]
     assert tube["sound_speed"] == pytest.approx(math.sqrt(g.gamma * g.R_gas * 298.15), rel=1e-5)
-    assert np.max(np.abs(k / k_ref - 1)) < 3e-5 and np.max(np.abs(Zc / Zc_ref - 1)) < 3e-5   # 3 eps^2 at 100 Hz
+    assert np.max(np.abs(k / k_ref - 1)) < 3e-5 and np.max(np.abs(Zc / Zc_ref - 1)) < 3e-5  # 3 eps^2 at 100 Hz
     T = foam_T()
     scale = np.abs(T).max(axis=(1, 2), keepdims=True)
     assert np.max(np.abs(calibrate_empty_tube(sample, empty, 0.03).T - T) / scale) < 2e-5
@@ -187,8 +223,9 @@ def test_empty_tube_calibration_removes_gain_and_tube():
         calibrate_empty_tube(sample, sample, 0.03)
 
 
-@pytest.mark.parametrize("seed, planes", [(0, (-0.05, 0.04)), (1, (-0.05, 0.04)), (2, (-0.05, 0.04)),
-                                         (3, (0.0, -0.03))])
+@pytest.mark.parametrize(
+    "seed, planes", [(0, (-0.05, 0.04)), (1, (-0.05, 0.04)), (2, (-0.05, 0.04)), (3, (0.0, -0.03))]
+)
 def test_fit_foam_sample_with_empty_tube(tmp_path, seed, planes):
     """Issue 9 item 3 end to end: ``tawarp fit S.csv --core foam_sample --empty-tube E.csv``
     recovers porosity, pore radius and tortuosity within 3 std from a core 10-30 % off;
@@ -198,14 +235,35 @@ def test_fit_foam_sample_with_empty_tube(tmp_path, seed, planes):
     write_scattering_csv(tmp_path / "E.csv", empty)
     rng = np.random.default_rng(100 + seed)
     u = rng.uniform(0.1, 0.3, 3)
-    start = FOAM.replace(**{"foam.porosity": 0.96 * (1 - u[0]), "foam.tortuosity": 1.25 * (1 + u[2]),
-                            "foam.pore_radius": 1.2e-4 * (1 + rng.choice([-1, 1]) * u[1])})
+    start = FOAM.replace(
+        **{
+            "foam.porosity": 0.96 * (1 - u[0]),
+            "foam.tortuosity": 1.25 * (1 + u[2]),
+            "foam.pore_radius": 1.2e-4 * (1 + rng.choice([-1, 1]) * u[1]),
+        }
+    )
     (tmp_path / "start.toml").write_text(dump_core(start))
     fits = {}
     for name, extra in (("calibrated", ["--empty-tube", str(tmp_path / "E.csv")]), ("raw", [])):
         out = tmp_path / f"{name}.json"
-        assert main(["fit", str(tmp_path / "S.csv"), "--core", str(tmp_path / "start.toml"), "--device", "cpu",
-                     "--quiet", "--no-plots", "-o", str(out)] + extra) == 0
+        assert (
+            main(
+                [
+                    "fit",
+                    str(tmp_path / "S.csv"),
+                    "--core",
+                    str(tmp_path / "start.toml"),
+                    "--device",
+                    "cpu",
+                    "--quiet",
+                    "--no-plots",
+                    "-o",
+                    str(out),
+                ]
+                + extra
+            )
+            == 0
+        )
         fits[name] = json.loads(out.read_text())
     cal = fits["calibrated"]["fits"][0]
     assert cal["converged"] and fits["calibrated"]["empty_tube"]["empty_tube"].endswith("E.csv")
@@ -226,8 +284,23 @@ def test_loop_takes_the_empty_tube(tmp_path):
     write_scattering_csv(tmp_path / "E.csv", empty)
     errors = {}
     for name, extra in (("calibrated", ["--empty-tube", str(tmp_path / "E.csv")]), ("raw", [])):
-        assert main(["loop", str(tmp_path / "S.csv"), "--core", "foam_sample", "--device", "cpu", "--quiet",
-                     "-o", str(tmp_path / name)] + extra) == 0
+        assert (
+            main(
+                [
+                    "loop",
+                    str(tmp_path / "S.csv"),
+                    "--core",
+                    "foam_sample",
+                    "--device",
+                    "cpu",
+                    "--quiet",
+                    "-o",
+                    str(tmp_path / name),
+                ]
+                + extra
+            )
+            == 0
+        )
         errors[name] = json.loads((tmp_path / name / "report.json").read_text())["error_before"]
     assert errors["calibrated"] < errors["raw"] / 5
 
@@ -240,8 +313,29 @@ def test_synth_writes_a_scattering_pair(tmp_path, capsys):
     from tawarp.model.forward import transfer_matrices
 
     out = tmp_path / "S.csv"
-    assert main(["synth", "foam_sample", "--scattering=-0.05,0.04", "--freqs", "100:1600:5", "--noise", "0",
-                 "--mic-gain", "1.04,3", "--cells", "8", "-o", str(out), "--device", "cpu", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                "foam_sample",
+                "--scattering=-0.05,0.04",
+                "--freqs",
+                "100:1600:5",
+                "--noise",
+                "0",
+                "--mic-gain",
+                "1.04,3",
+                "--cells",
+                "8",
+                "-o",
+                str(out),
+                "--device",
+                "cpu",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     data = read_scattering(out)
     assert (data.plane_upstream, data.plane_downstream, data.metadata["core"]) == (-0.05, 0.04, "foam_sample")
     kind = load_measurement(out, settings=None, empty_tube=tmp_path / "S_empty.csv")

@@ -19,8 +19,13 @@ def test_grid_and_sobol_sweeps_match_direct_evaluation(tmp_path):
     from tawarp.design.sweep import sweep
 
     core = load_core("rvc_foam")
-    space = DesignSpace(core, [parse_variable(s, grid=True) for s in
-                               ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08:5", "heat_input=1:18:7"]])
+    space = DesignSpace(
+        core,
+        [
+            parse_variable(s, grid=True)
+            for s in ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08:5", "heat_input=1:18:7"]
+        ],
+    )
     info = sweep(space, tmp_path / "grid.nc", chunk=6)  # blocks cut inside the last two dimensions
     assert info.n_points == 105 and info.chunks > 3
     ds = xr.open_dataset(tmp_path / "grid.nc", engine="h5netcdf")
@@ -79,6 +84,6 @@ def test_sweep_file_has_normal_permissions_and_no_debris(tmp_path):
     assert (tmp_path / "p.nc").stat().st_mode & 0o777 == 0o644
     with pytest.raises(ValueError, match="n_samples"):
         sweep(space, tmp_path / "q.nc", mode="sobol", n_samples=0)
-    with pytest.raises(ValueError, match="at most 1073741824 points"):   # the Sobol sequence's 2^30
+    with pytest.raises(ValueError, match="at most 1073741824 points"):  # the Sobol sequence's 2^30
         sweep(space, tmp_path / "q.nc", mode="sobol", n_samples=2**30 + 1)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["p.nc"]

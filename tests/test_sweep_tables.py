@@ -21,8 +21,10 @@ from tawarp.model.core import load_core
 
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
 wp.init()
-CUDA = pytest.param("cuda", marks=[pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(),
-                                                                        reason="no CUDA device: GPU tests skipped")])
+CUDA = pytest.param(
+    "cuda",
+    marks=[pytest.mark.gpu, pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device: GPU tests skipped")],
+)
 
 
 def _space(rng, grid: bool) -> DesignSpace:
@@ -32,8 +34,11 @@ def _space(rng, grid: bool) -> DesignSpace:
     duct's length) and the heat input; variables in random order, grids of 2-4 values."""
     mats = tuple(rng.permutation(MATERIALS)[: rng.integers(2, 5)])
     specs = [("stack.length", 0.01, 0.08, False), ("hot_hx.length", 0.005, 0.03, True)]
-    for extra in (("stack.porosity", 0.6, 0.98, False), ("stack.position", 0.01, 0.05, False),
-                  ("heat_input", 1.0, 30.0, False)):
+    for extra in (
+        ("stack.porosity", 0.6, 0.98, False),
+        ("stack.position", 0.01, 0.05, False),
+        ("heat_input", 1.0, 30.0, False),
+    ):
         if rng.random() < 0.5:
             specs.append(extra)
     variables = [Variable("material", choices=mats)]
@@ -49,8 +54,10 @@ def _grid_values(space: DesignSpace, lo: int, hi: int) -> dict:
     """The host's design values of grid points lo..hi-1 (C order over space.variables)."""
     shape = tuple(len(v.grid()) for v in space.variables)
     idx = np.unravel_index(np.arange(lo, hi, dtype=np.int64), shape)
-    return {v.name: (idx[j].astype(np.int64) if v.categorical else np.asarray(v.values)[idx[j]])
-            for j, v in enumerate(space.variables)}
+    return {
+        v.name: (idx[j].astype(np.int64) if v.categorical else np.asarray(v.values)[idx[j]])
+        for j, v in enumerate(space.variables)
+    }
 
 
 def _unit_values(space: DesignSpace, u: np.ndarray) -> dict:
@@ -69,9 +76,18 @@ def test_device_sobol_points_are_scipys(d, seed, first, device):
 
     directions, shift, scale = sobol_directions(d, seed)
     u = wp.empty((300, d), dtype=wp.float64, device=device)
-    wp.launch(sobol_points, dim=u.shape, device=device,
-              inputs=[wp.int64(first), wp.array(directions, dtype=wp.int64, device=device),
-                      wp.array(shift, dtype=wp.int64, device=device), wp.float64(scale), u])
+    wp.launch(
+        sobol_points,
+        dim=u.shape,
+        device=device,
+        inputs=[
+            wp.int64(first),
+            wp.array(directions, dtype=wp.int64, device=device),
+            wp.array(shift, dtype=wp.int64, device=device),
+            wp.float64(scale),
+            u,
+        ],
+    )
     np.testing.assert_array_equal(u.numpy(), sobol_unit(300, d, seed, skip=first))
 
 
@@ -87,7 +103,7 @@ def test_device_tables_equal_the_host_tables(seed, device):
     np.testing.assert_array_equal(tables.grid(lo, hi).numpy(), space.varying_table(_grid_values(space, lo, hi)))
     skip = int(rng.integers(0, 1000))
     u = sobol_unit(257, len(tables.names), seed, skip=skip)
-    table, values = tables.sobol(skip, skip + 257, seed)    # the points made on the device: scipy's, bit for bit
+    table, values = tables.sobol(skip, skip + 257, seed)  # the points made on the device: scipy's, bit for bit
     host = _unit_values(space, u)
     np.testing.assert_allclose(table.numpy(), space.varying_table(host), rtol=1e-12, atol=0)
     for j, name in enumerate(tables.names):
@@ -151,13 +167,15 @@ def test_cuda_sweep_equals_the_cpu_sweep(tmp_path, mode):
     kw = dict(mode=mode, n_samples=1000, chunk=97, seed=5)
     sweep(space, tmp_path / "cpu.nc", settings=ForwardSettings(device="cpu"), **kw)
     sweep(space, tmp_path / "cuda.nc", settings=ForwardSettings(device="cuda"), **kw)
-    with xr.open_dataset(tmp_path / "cpu.nc", engine="h5netcdf") as a, \
-            xr.open_dataset(tmp_path / "cuda.nc", engine="h5netcdf") as b:
+    with (
+        xr.open_dataset(tmp_path / "cpu.nc", engine="h5netcdf") as a,
+        xr.open_dataset(tmp_path / "cuda.nc", engine="h5netcdf") as b,
+    ):
         np.testing.assert_equal(b.attrs, a.attrs)
         assert list(a.variables) == list(b.variables)
         for k in a.variables:
             assert a[k].dtype == b[k].dtype, k
-            np.testing.assert_equal(b[k].attrs, a[k].attrs, err_msg=k)   # flag_values: an array
+            np.testing.assert_equal(b[k].attrs, a[k].attrs, err_msg=k)  # flag_values: an array
             if a[k].dtype == np.float32:
                 np.testing.assert_allclose(b[k].values, a[k].values, rtol=2.0**-23, atol=0, err_msg=k)
             elif a[k].dtype == np.float64:

@@ -11,14 +11,14 @@ from tawarp.measure import MeasurementError, read_tmatrix_csv
 from tawarp.measure.table import _BLOCK
 
 HEADER = "Q_W,freq_Hz,Tpp_re,Tpp_im,Tpu_re,Tpu_im,Tup_re,Tup_im,Tuu_re,Tuu_im"
-META_LINES = 2   # '# convention' and the header
+META_LINES = 2  # '# convention' and the header
 
 
 def _rows(n: int, seed: int = 0) -> tuple[list[str], np.ndarray]:
     """n data lines with distinct (Q, f) and random 17-digit values, and those values."""
     rng = np.random.default_rng(seed)
     v = rng.standard_normal((n, 10)) * 10.0 ** rng.integers(-8, 4, (n, 10))
-    v[:, 0] = np.repeat(np.arange(n // 4 + 1), 4)[:n] * 0.5         # Q: 4 frequencies each
+    v[:, 0] = np.repeat(np.arange(n // 4 + 1), 4)[:n] * 0.5  # Q: 4 frequencies each
     v[:, 1] = np.tile([50.0, 100.0, 150.0, 200.0], n // 4 + 1)[:n]
     return [",".join(repr(float(x)) for x in row) for row in v], v
 
@@ -54,9 +54,16 @@ def test_block_parser_equals_float_bit_for_bit_across_blocks(tmp_path):
     f[2] = f'"{f[2]}"'
     lines[_BLOCK + 7] = ",".join(f)
     k = lines[5].index(",")
-    lines[5] = lines[5][:k] + " , " + lines[5][k + 1:]
-    text = ("# convention = exp(-iwt)\r\n" + HEADER + "\r\n" + "\r\n".join(lines[:10]) + "\r\n\r\n"
-            + "\r\n".join(lines[10:]) + "\r\n")
+    lines[5] = lines[5][:k] + " , " + lines[5][k + 1 :]
+    text = (
+        "# convention = exp(-iwt)\r\n"
+        + HEADER
+        + "\r\n"
+        + "\r\n".join(lines[:10])
+        + "\r\n\r\n"
+        + "\r\n".join(lines[10:])
+        + "\r\n"
+    )
     p = tmp_path / "mixed.csv"
     p.write_bytes(text.encode())
     data = read_tmatrix_csv(p)
@@ -66,12 +73,17 @@ def test_block_parser_equals_float_bit_for_bit_across_blocks(tmp_path):
     assert np.array_equal(got, v[:, 2:])
 
 
-@pytest.mark.parametrize("bad, what", [("abc", "expected a number, got 'abc'"),
-                                       ("1e400", "expected a finite number"),
-                                       ("nan", "expected a finite number")])
+@pytest.mark.parametrize(
+    "bad, what",
+    [
+        ("abc", "expected a number, got 'abc'"),
+        ("1e400", "expected a finite number"),
+        ("nan", "expected a finite number"),
+    ],
+)
 def test_error_in_a_late_block_names_its_line(tmp_path, bad, what):
     lines, _ = _rows(_BLOCK + 50, seed=2)
-    i = _BLOCK + 20                                   # in the second block
+    i = _BLOCK + 20  # in the second block
     f = lines[i].split(",")
     f[6] = bad
     lines[i] = ",".join(f)
@@ -101,7 +113,10 @@ def test_duplicate_names_the_first_repeat_and_its_original(tmp_path):
         lines[dst] = ",".join(f)
     p = tmp_path / "dup.csv"
     _write(p, lines)
-    with pytest.raises(MeasurementError, match=rf"dup\.csv, line {3 + 1 + META_LINES}: duplicate row "
-                                               rf"\(Q_W = {float(v[1, 0])!r}, freq_Hz = {float(v[1, 1])!r}\), first on line "
-                                               rf"{1 + 1 + META_LINES}"):
+    with pytest.raises(
+        MeasurementError,
+        match=rf"dup\.csv, line {3 + 1 + META_LINES}: duplicate row "
+        rf"\(Q_W = {float(v[1, 0])!r}, freq_Hz = {float(v[1, 1])!r}\), first on line "
+        rf"{1 + 1 + META_LINES}",
+    ):
         read_tmatrix_csv(p)

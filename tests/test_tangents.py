@@ -32,8 +32,14 @@ def _put(out: wp.array2d(dtype=wp.vec2d), i: int, m: CMat2):
 
 
 @wp.kernel
-def _exp_and_tangent(m: wp.array2d(dtype=wp.vec2d), dm: wp.array2d(dtype=wp.vec2d), e: wp.array2d(dtype=wp.vec2d),
-                     de: wp.array2d(dtype=wp.vec2d), tau: wp.array(dtype=wp.vec2d), dtau: wp.array(dtype=wp.vec2d)):
+def _exp_and_tangent(
+    m: wp.array2d(dtype=wp.vec2d),
+    dm: wp.array2d(dtype=wp.vec2d),
+    e: wp.array2d(dtype=wp.vec2d),
+    de: wp.array2d(dtype=wp.vec2d),
+    tau: wp.array(dtype=wp.vec2d),
+    dtau: wp.array(dtype=wp.vec2d),
+):
     i = wp.tid()
     x = _mat(m, i)
     t, na, delta = traceless_parts(x)
@@ -65,8 +71,9 @@ def test_exponential_tangent_against_frechet(scale):
     d = rng.normal(size=(n, 2, 2)) + 1j * rng.normal(size=(n, 2, 2))
     e, de = wp.empty((n, 4), dtype=wp.vec2d, device="cpu"), wp.empty((n, 4), dtype=wp.vec2d, device="cpu")
     tau, dtau = wp.empty(n, dtype=wp.vec2d, device="cpu"), wp.empty(n, dtype=wp.vec2d, device="cpu")
-    wp.launch(_exp_and_tangent, dim=n, inputs=[_vec2(a.reshape(n, 4)), _vec2(d.reshape(n, 4)), e, de, tau, dtau],
-              device="cpu")
+    wp.launch(
+        _exp_and_tangent, dim=n, inputs=[_vec2(a.reshape(n, 4)), _vec2(d.reshape(n, 4)), e, de, tau, dtau], device="cpu"
+    )
     E, dE = _complex(e).reshape(n, 2, 2), _complex(de).reshape(n, 2, 2)
     t, dt = _complex(tau)[:, 0], _complex(dtau)[:, 0]
     got = np.exp(t)[:, None, None] * (dt[:, None, None] * E + dE)
@@ -76,8 +83,14 @@ def test_exponential_tangent_against_frechet(scale):
 
 
 @wp.kernel
-def _magnus(a: wp.array2d(dtype=wp.vec2d), d: wp.array2d(dtype=wp.vec2d), h: wp.array(dtype=wp.float64),
-            dh: wp.array(dtype=wp.float64), om: wp.array2d(dtype=wp.vec2d), dom: wp.array2d(dtype=wp.vec2d)):
+def _magnus(
+    a: wp.array2d(dtype=wp.vec2d),
+    d: wp.array2d(dtype=wp.vec2d),
+    h: wp.array(dtype=wp.float64),
+    dh: wp.array(dtype=wp.float64),
+    om: wp.array2d(dtype=wp.vec2d),
+    dom: wp.array2d(dtype=wp.vec2d),
+):
     i = wp.tid()
     a1 = cmat2(a[i, 0], a[i, 1], a[i, 2], a[i, 3])
     a2 = cmat2(a[i, 4], a[i, 5], a[i, 6], a[i, 7])
@@ -103,12 +116,23 @@ def test_magnus_tangent_against_central_differences():
 
     def run(k):
         om, dom = wp.empty((n, 4), dtype=wp.vec2d, device="cpu"), wp.empty((n, 4), dtype=wp.vec2d, device="cpu")
-        wp.launch(_magnus, dim=n, inputs=[_vec2(A + k * D), _vec2(D), wp.array(h + k * dh, dtype=wp.float64),
-                                          wp.array(dh, dtype=wp.float64), om, dom], device="cpu")
+        wp.launch(
+            _magnus,
+            dim=n,
+            inputs=[
+                _vec2(A + k * D),
+                _vec2(D),
+                wp.array(h + k * dh, dtype=wp.float64),
+                wp.array(dh, dtype=wp.float64),
+                om,
+                dom,
+            ],
+            device="cpu",
+        )
         return _complex(om), _complex(dom)
 
     k = 1e-3
-    cd = lambda s: (run(s)[0] - run(-s)[0]) / (2 * s)   # noqa: E731
+    cd = lambda s: (run(s)[0] - run(-s)[0]) / (2 * s)  # noqa: E731
     want = (4 * cd(k) - cd(2 * k)) / 3
     got = run(0.0)[1]
     err = np.abs(got - want).max(axis=1) / np.abs(want).max(axis=1)
@@ -116,8 +140,13 @@ def test_magnus_tangent_against_central_differences():
 
 
 @wp.kernel
-def _pore(model: int, log_s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d), g: wp.array(dtype=wp.vec2d),
-          df: wp.array(dtype=wp.vec2d)):
+def _pore(
+    model: int,
+    log_s: wp.array(dtype=wp.float64),
+    f: wp.array(dtype=wp.vec2d),
+    g: wp.array(dtype=wp.vec2d),
+    df: wp.array(dtype=wp.vec2d),
+):
     i = wp.tid()
     s = wp.exp(log_s[i])
     fi = wp.vec2d()
@@ -147,7 +176,7 @@ def test_pore_log_derivative_against_central_differences(model):
         return _complex(f)[:, 0], _complex(g)[:, 0], _complex(df)[:, 0]
 
     f0, g0, got = run(0.0)
-    small_g = np.abs(g0) < np.abs(f0)   # which one each s differentiates, fixed for all steps
+    small_g = np.abs(g0) < np.abs(f0)  # which one each s differentiates, fixed for all steps
     k = 1e-3
 
     def cd(s):
@@ -161,11 +190,32 @@ def test_pore_log_derivative_against_central_differences(model):
 
 # -- the whole cascade -------------------------------------------------------------------------
 CASES = [
-    ("mesh", 40.0, ["stack.porosity", "stack.pore_radius", "stack.h", "stack.length", "hot_hx.tortuosity",
-                    "gas.T_cold", "tube.radius", "tbt.h"]),
+    (
+        "mesh",
+        40.0,
+        [
+            "stack.porosity",
+            "stack.pore_radius",
+            "stack.h",
+            "stack.length",
+            "hot_hx.tortuosity",
+            "gas.T_cold",
+            "tube.radius",
+            "tbt.h",
+        ],
+    ),
     ("ceramic", 0.0, ["stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.length", "gas.p_mean"]),
-    ("rvc_foam", 25.0, ["stack.thermal_radius_ratio", "stack.solid_conductivity", "hot_hx.h", "stack.h_convection",
-                        "stack.wall_conductance"]),
+    (
+        "rvc_foam",
+        25.0,
+        [
+            "stack.thermal_radius_ratio",
+            "stack.solid_conductivity",
+            "hot_hx.h",
+            "stack.h_convection",
+            "stack.wall_conductance",
+        ],
+    ),
     # a temperature-dependent effect: the heat solve iterates (Picard)
     ("nicr_foam", 40.0, ["stack.conductivity_exponent", "stack.h", "stack.porosity", "tbt.length"]),
 ]
@@ -173,6 +223,7 @@ CASES = [
 
 def _log(name, core):
     from tawarp.fit.estimate import is_log
+
     return is_log(name)
 
 
@@ -239,11 +290,18 @@ def test_undifferentiated_effects_refuse_or_fall_back():
         Problems(core, freqs, Y, names, settings=ForwardSettings(cells=4, device="cpu"), jacobian="tangent")
     assert not Problems(core, freqs, Y, names, settings=ForwardSettings(cells=4, device="cpu")).tangents
     with pytest.raises(ValueError, match="stack.viscous_shape_factor is fitted"):
-        Problems(load_core("rvc_foam"), freqs, Y, ["stack.viscous_shape_factor"],
-                 settings=ForwardSettings(cells=4, device="cpu"), jacobian="tangent")
+        Problems(
+            load_core("rvc_foam"),
+            freqs,
+            Y,
+            ["stack.viscous_shape_factor"],
+            settings=ForwardSettings(cells=4, device="cpu"),
+            jacobian="tangent",
+        )
     with pytest.raises(ValueError, match="cell count must be fixed"):
         Engine(load_core("mesh"), freqs, names, ForwardSettings(device="cpu")).evaluate_tangents(
-            np.zeros((2, 3)), np.ones((1, 1)), 1)
+            np.zeros((2, 3)), np.ones((1, 1)), 1
+        )
 
 
 def test_fits_with_tangents_on_reference_data():
@@ -271,6 +329,6 @@ def test_fits_with_tangents_on_reference_data():
     r = fit(core, freqs, Y, names, start, jacobian="tangent", **kw)
     assert r.converged.all()
     z = (r.values - truth) / r.std
-    assert 0.8 < np.sqrt(np.mean(z ** 2)) < 1.25
+    assert 0.8 < np.sqrt(np.mean(z**2)) < 1.25
     d = fit(core, freqs, Y, names, start, jacobian="difference", **kw)
     assert np.max(np.abs(d.values - r.values) / r.std) < 1e-4

@@ -15,18 +15,24 @@ CORE = load_core("ceramic")
 KW = dict(device="cpu")
 
 
-@pytest.mark.parametrize("params, freq", [({"stack.pore_radius": 1e-7}, 1000.0),   # the fit's own lower bound
-                                          ({"stack.porosity": 1e-12, "stack.pore_radius": 1e-7}, 1000.0),
-                                          ({"stack.length": 100.0, "stack.pore_radius": 1e-5}, 100.0)])
+@pytest.mark.parametrize(
+    "params, freq",
+    [
+        ({"stack.pore_radius": 1e-7}, 1000.0),  # the fit's own lower bound
+        ({"stack.porosity": 1e-12, "stack.pore_radius": 1e-7}, 1000.0),
+        ({"stack.length": 100.0, "stack.pore_radius": 1e-5}, 100.0),
+    ],
+)
 def test_overflow_names_the_set_instead_of_nan(params, freq):
     name, value = next(iter(params.items()))
-    batch = {k: [CORE.get(k), v] for k, v in params.items()}       # set 0 is fine, set 1 overflows
+    batch = {k: [CORE.get(k), v] for k, v in params.items()}  # set 0 is fine, set 1 overflows
     with pytest.raises(NonFiniteError, match=re.escape(f"set 1 (heat_input = 0 W, {name} = {value:.6g}")):
         transfer_matrices(CORE, [freq], 0.0, params=batch, **KW)
 
 
-@pytest.mark.parametrize("name, value", [("stack.tortuosity", 1e6), ("stack.length", 1e3), ("stack.h", 1e100),
-                                         ("gas.p_mean", 0.5)])
+@pytest.mark.parametrize(
+    "name, value", [("stack.tortuosity", 1e6), ("stack.length", 1e3), ("stack.h", 1e100), ("gas.p_mean", 0.5)]
+)
 def test_values_beyond_the_trusted_range_are_refused_before_solving(name, value):
     """Outside docs/trusted_ranges.md a value is refused naming the parameter and the range
     (``stack.h = 1e100`` crashed the cascade with SIGSEGV: an int32 cell count overflowed)."""
@@ -57,13 +63,15 @@ def test_a_segment_too_long_for_the_cascade_is_refused_not_run():
 
 
 def test_hot_and_high_frequency_sets_warn():
-    with pytest.warns(ValidityWarning, match=rf"set 1 \(heat_input = 10000 W\): T_max = \d+ K is above .* {T_LIMIT:g} K"):
+    with pytest.warns(
+        ValidityWarning, match=rf"set 1 \(heat_input = 10000 W\): T_max = \d+ K is above .* {T_LIMIT:g} K"
+    ):
         transfer_matrices(CORE, [100.0], [40.0, 1e4], **KW)
     # plane-wave cut-on of a 16.7 mm tube at 293 K: 1.8412 c / (2 pi R) = 6023 Hz
     with pytest.warns(ValidityWarning, match="cut-on 6023 Hz"):
         transfer_matrices(CORE, [8000.0], 0.0, **KW)
     with warnings.catch_warnings():
-        warnings.simplefilter("error")          # the paper's range warns about nothing
+        warnings.simplefilter("error")  # the paper's range warns about nothing
         transfer_matrices(CORE, [30.0, 500.0], [0.0, 80.0], **KW)
 
 
@@ -73,8 +81,13 @@ def _cli(*argv, cwd):
     import subprocess
     import sys
 
-    return subprocess.run([sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())",
-                           *map(str, argv)], cwd=cwd, capture_output=True, text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-c", "import sys; from tawarp.cli import main; sys.exit(main())", *map(str, argv)],
+        cwd=cwd,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
 
 
 def test_an_extreme_h_in_a_core_file_is_an_error_line_not_a_signal(tmp_path):
@@ -83,8 +96,9 @@ def test_an_extreme_h_in_a_core_file_is_an_error_line_not_a_signal(tmp_path):
     (tmp_path / "hot.toml").write_text(text)
     run = _cli("forward", "hot.toml", "--Q", "10", "--freqs", "100", "--device", "cpu", "--no-plots", cwd=tmp_path)
     assert run.returncode == 2, run.stderr
-    assert re.search(r"hot\.toml: segment 'stack': h \[W/\(m\^2 K\)\]: 1e\+300 lies outside the trusted range",
-                     run.stderr)
+    assert re.search(
+        r"hot\.toml: segment 'stack': h \[W/\(m\^2 K\)\]: 1e\+300 lies outside the trusted range", run.stderr
+    )
     assert not (tmp_path / "T.csv").exists()
 
 
@@ -108,8 +122,11 @@ def test_a_cascade_beyond_the_cell_limit_is_refused_inside_the_trusted_ranges():
     """h and the length at the top of their trusted ranges: the heat-decay length is 1e-5
     of the stack, more cells than the cascade allows. The kernel caps its count (an int32
     of 1e50 was undefined and crashed the point buffers) and the host names the set."""
-    with pytest.raises(ModelValidityError, match=rf"set 1 \(heat_input = 10 W, stack.h = 1e\+07, stack.length = 100\): "
-                                                 rf"stack would need more than {MAX_CELLS} Magnus cells"):
+    with pytest.raises(
+        ModelValidityError,
+        match=rf"set 1 \(heat_input = 10 W, stack.h = 1e\+07, stack.length = 100\): "
+        rf"stack would need more than {MAX_CELLS} Magnus cells",
+    ):
         transfer_matrices(CORE, [100.0], 10.0, params={"stack.h": [150.0, 1e7], "stack.length": [0.048, 100.0]}, **KW)
 
 
@@ -121,4 +138,4 @@ def test_fits_stay_inside_the_trusted_ranges():
     for f in (*GLOBAL_FIELD_TABLE.values(), *SEGMENT_FIELD_TABLE):
         lo, hi = TRUSTED_RANGE[f.name]
         assert lo <= f.fit_range[0] and f.fit_range[1] <= hi, f.name
-        assert f.check(lo) and f.check(hi), f.name            # inside the physical range
+        assert f.check(lo) and f.check(hi), f.name  # inside the physical range

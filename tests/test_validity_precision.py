@@ -14,22 +14,29 @@ import pytest
 from tawarp import reference
 from tawarp.model.core import load_core
 from tawarp.model.forward import transfer_matrices
-from tawarp.model.validity import (PRECISION_LOST, PrecisionLostError, ValidityWarning, check_precision,
-                                   precision_error)
+from tawarp.model.validity import PRECISION_LOST, PrecisionLostError, ValidityWarning, check_precision, precision_error
 
 RVC = load_core("rvc_foam")
 FREQS = [30.0, 100.0, 500.0]
 
 
-@pytest.mark.parametrize("name, value", [("stack.pore_radius", 1e-6), ("stack.tortuosity", 100.0),
-                                         ("stack.porosity", 1e-12), ("gas.p_mean", 1.0), ("gas.p_mean", 100.0)])
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("stack.pore_radius", 1e-6),
+        ("stack.tortuosity", 100.0),
+        ("stack.porosity", 1e-12),
+        ("gas.p_mean", 1.0),
+        ("gas.p_mean", 100.0),
+    ],
+)
 def test_strongly_attenuating_cores_are_exact_and_pass_the_check(name, value):
     with warnings.catch_warnings():
         warnings.simplefilter("error", ValidityWarning)
         T = transfer_matrices(RVC, FREQS, 0.0, params={name: value}, device="cpu").T[0]
     R = reference.transfer_matrix(RVC.replace(**{name: value}), FREQS, 0.0)
-    assert np.max(np.abs(T - R) / np.abs(R)) < 1e-12          # entry by entry, the reference's closed forms
-    assert np.max(np.abs(np.linalg.det(T) - 1)) > 1e-3       # what a raw det check would have flagged
+    assert np.max(np.abs(T - R) / np.abs(R)) < 1e-12  # entry by entry, the reference's closed forms
+    assert np.max(np.abs(np.linalg.det(T) - 1)) > 1e-3  # what a raw det check would have flagged
     assert precision_error(T[None])[0] < 1e-14
 
 
@@ -50,10 +57,13 @@ def test_beyond_the_tolerance_warns_and_beyond_any_digit_raises():
     q = np.array([0.0, 0.0, 5.0])
     P = T.copy()
     P[1, 1, 0, 0] *= 1 + 1e-3
-    with pytest.warns(ValidityWarning, match=r"set 1 \(heat_input = 0 W, stack.h = 2\): rounding .* above the "
-                                             r"tolerance 1e-06 .*1 of 3 sets"):
+    with pytest.warns(
+        ValidityWarning,
+        match=r"set 1 \(heat_input = 0 W, stack.h = 2\): rounding .* above the "
+        r"tolerance 1e-06 .*1 of 3 sets",
+    ):
         check_precision(RVC, q, values, P, 1e-6)
-    P[2] *= 1 + 1.0          # a heated set: its exact det is not 1; left to the step-doubling estimate
+    P[2] *= 1 + 1.0  # a heated set: its exact det is not 1; left to the step-doubling estimate
     with warnings.catch_warnings():
         warnings.simplefilter("error", ValidityWarning)
         check_precision(RVC, q, values, P, 1e-2)

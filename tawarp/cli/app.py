@@ -36,22 +36,36 @@ def cmd_forward(args) -> int:
         claim_outputs(f"{stem}_coefficients.png", f"{stem}_temperature.png", why="a figure")
     core = load_core(args.core)
     Q = args.Q
-    res = transfer_matrices(core, args.freqs, heat_input=Q, cells=args.cells, device=args.device,
-                            progress=not args.quiet)
+    res = transfer_matrices(
+        core, args.freqs, heat_input=Q, cells=args.cells, device=args.device, progress=not args.quiet
+    )
     m = len(args.freqs)
-    data = TMatrixData(np.repeat(Q, m), np.tile(args.freqs, len(Q)), res.T.reshape(-1, 2, 2),
-                       metadata={"core": str(core.source), "generator": "tawarp forward", "cells": str(args.cells)},
-                       source=str(args.output))
+    data = TMatrixData(
+        np.repeat(Q, m),
+        np.tile(args.freqs, len(Q)),
+        res.T.reshape(-1, 2, 2),
+        metadata={"core": str(core.source), "generator": "tawarp forward", "cells": str(args.cells)},
+        source=str(args.output),
+    )
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
     write_tmatrix_csv(args.output, data)
     Y = res.dimensionless()
     if not args.no_plots:
-        plot_coefficients(args.freqs, {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)}, f"{stem}_coefficients.png",
-                          title=f"{Path(core.source).name}: dimensionless T-matrix")
+        plot_coefficients(
+            args.freqs,
+            {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)},
+            f"{stem}_coefficients.png",
+            title=f"{Path(core.source).name}: dimensionless T-matrix",
+        )
         x = np.linspace(0, core.positions()[-1], 400)
         T, _ = res.temperature(x)
-        plot_temperature(x, {f"Q = {q:g} W": T[k] for k, q in enumerate(Q)}, f"{stem}_temperature.png",
-                         planes=core.positions(), title=f"{Path(core.source).name}: temperature")
+        plot_temperature(
+            x,
+            {f"Q = {q:g} W": T[k] for k, q in enumerate(Q)},
+            f"{stem}_temperature.png",
+            planes=core.positions(),
+            title=f"{Path(core.source).name}: temperature",
+        )
     _say(args, f"wrote {args.output} ({len(Q)} heat inputs x {m} frequencies)")
     return 0
 
@@ -74,13 +88,20 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = _common(sub.add_parser("forward", help="T-matrices of a core (CSV as the measurement format) and plots"))
     p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
-    p.add_argument("--freqs", type=parse_list, default="30:500:100",
-                   help="Hz, list or start:stop:count (default: %(default)s)")
-    p.add_argument("--Q", type=parse_list, default="0", help="heat inputs [W], list or start:stop:count (default: %(default)s)")
+    p.add_argument(
+        "--freqs", type=parse_list, default="30:500:100", help="Hz, list or start:stop:count (default: %(default)s)"
+    )
+    p.add_argument(
+        "--Q", type=parse_list, default="0", help="heat inputs [W], list or start:stop:count (default: %(default)s)"
+    )
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default: adaptive)")
-    p.add_argument("-o", "--output", default="T.csv",
-                   help="output CSV (default: %(default)s); figures STEM_coefficients.png and STEM_temperature.png "
-                        "beside it" + CLAIM_HELP)
+    p.add_argument(
+        "-o",
+        "--output",
+        default="T.csv",
+        help="output CSV (default: %(default)s); figures STEM_coefficients.png and STEM_temperature.png "
+        "beside it" + CLAIM_HELP,
+    )
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_forward)
 
@@ -124,8 +145,9 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tawarp {args.command}: error: {error_text(e)}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"tawarp {args.command}: interrupted; finished outputs are complete, none is half-written",
-              file=sys.stderr)
+        print(
+            f"tawarp {args.command}: interrupted; finished outputs are complete, none is half-written", file=sys.stderr
+        )
         return 130
     _say(args, f"done in {time.perf_counter() - t0:.1f} s")
     return rc

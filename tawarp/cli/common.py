@@ -36,14 +36,18 @@ def _parse_list(text: str) -> np.ndarray:
         return np.array([float(v) for v in text.split(",") if v.strip()])
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)") from None
+            f"{text!r}: expected a comma list (30,100,250) or start:stop:count (30:500:100)"
+        ) from None
 
 
 def _common(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     p.add_argument("--device", default=None, help="cpu, cuda or cuda:N (default: a GPU if Warp sees one, else cpu)")
     p.add_argument("--quiet", action="store_true", help="no progress bars, banners or chatter")
-    p.add_argument("--verbose", action="store_true",
-                   help="let Warp print its banner, driver warnings and a line per kernel module loaded")
+    p.add_argument(
+        "--verbose",
+        action="store_true",
+        help="let Warp print its banner, driver warnings and a line per kernel module loaded",
+    )
     return p
 
 
@@ -108,10 +112,14 @@ def interrupts_honoured():
 
 def add_measurement_options(p: argparse.ArgumentParser) -> argparse.ArgumentParser:
     """The options of a measurement file shared by ``tawarp fit`` and ``tawarp loop``."""
-    p.add_argument("--empty-tube", default=None, metavar="EMPTY.csv",
-                   help="empty-tube scattering CSV (same tube, reference planes and frequencies, no sample) that "
-                        "calibrates scattering data: microphone gain/phase, the tube's sound speed and wall losses "
-                        "(docs/formats.md)")
+    p.add_argument(
+        "--empty-tube",
+        default=None,
+        metavar="EMPTY.csv",
+        help="empty-tube scattering CSV (same tube, reference planes and frequencies, no sample) that "
+        "calibrates scattering data: microphone gain/phase, the tube's sound speed and wall losses "
+        "(docs/formats.md)",
+    )
     return p
 
 
@@ -133,13 +141,17 @@ def impedance_on_core(kind: ImpedanceKind, core_arg, settings) -> ImpedanceKind:
     core = load_core(core_arg)
     thermal = [core.segments[i].name for i in core.thermal_indices]
     if thermal:
-        raise CoreError(f"--core {core_arg}: a thermoacoustic core (thermal segments {', '.join(thermal)}) cannot "
-                        "model surface-impedance data of a rigid-backed layer; give a passive core of one porous "
-                        "segment, or no --core")
+        raise CoreError(
+            f"--core {core_arg}: a thermoacoustic core (thermal segments {', '.join(thermal)}) cannot "
+            "model surface-impedance data of a rigid-backed layer; give a passive core of one porous "
+            "segment, or no --core"
+        )
     porous = [s for s in core.segments if s.is_porous]
     if len(porous) != 1:
-        raise CoreError(f"--core {core_arg}: surface-impedance data need a core of one porous segment (the layer); "
-                        f"it has {len(porous)}")
+        raise CoreError(
+            f"--core {core_arg}: surface-impedance data need a core of one porous segment (the layer); "
+            f"it has {len(porous)}"
+        )
     start = {f"layer.{f}": getattr(porous[0], f) for f in ("porosity", "pore_radius", "tortuosity")}
     return ImpedanceKind(kind.data, settings, start=start, gas=core.gas.name)
 

@@ -37,19 +37,34 @@ def run_demo(args) -> int:
         core = load_core(name)
         Q = DEMO_HEAT.get(name, DEFAULT_HEAT)
         res = transfer_matrices(core, freqs, heat_input=Q, device=args.device, progress=not args.quiet)
-        write_tmatrix_csv(out / f"{name}_T.csv", TMatrixData(np.repeat(Q, len(freqs)), np.tile(freqs, len(Q)),
-                                                             res.T.reshape(-1, 2, 2), metadata={"core": name},
-                                                             source=str(out / f"{name}_T.csv")))
+        write_tmatrix_csv(
+            out / f"{name}_T.csv",
+            TMatrixData(
+                np.repeat(Q, len(freqs)),
+                np.tile(freqs, len(Q)),
+                res.T.reshape(-1, 2, 2),
+                metadata={"core": name},
+                source=str(out / f"{name}_T.csv"),
+            ),
+        )
         Y = res.dimensionless()
-        plot_coefficients(freqs, {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)}, out / f"{name}_coefficients.png",
-                          title=f"{name}: dimensionless T-matrix")
+        plot_coefficients(
+            freqs,
+            {f"Q = {q:g} W": Y[k] for k, q in enumerate(Q)},
+            out / f"{name}_coefficients.png",
+            title=f"{name}: dimensionless T-matrix",
+        )
         x = np.linspace(0, core.positions()[-1], 400)
         T, _ = res.temperature(x)
-        plot_temperature(x, {f"Q = {q:g} W": T[k] for k, q in enumerate(Q)}, out / f"{name}_temperature.png",
-                         planes=core.positions(), title=f"{name}: steady temperature")
+        plot_temperature(
+            x,
+            {f"Q = {q:g} W": T[k] for k, q in enumerate(Q)},
+            out / f"{name}_temperature.png",
+            planes=core.positions(),
+            title=f"{name}: steady temperature",
+        )
         det = np.linalg.det(res.T)
-        summary[name] = {"heat_input_W": Q, "T_max_K": T.max(axis=1),
-                         "det_T_minus_1_max": np.abs(det - 1).max(axis=1)}
+        summary[name] = {"heat_input_W": Q, "T_max_K": T.max(axis=1), "det_T_minus_1_max": np.abs(det - 1).max(axis=1)}
         for k, q in enumerate(Q):
             rows.append((name, q, T[k].max(), np.abs(det[k] - 1).max()))
     write_json(out / "summary.json", {"cell_density": DEFAULT_CELL_DENSITY, "freqs_Hz": freqs, "cores": summary})
@@ -82,8 +97,10 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
     report = write_report(problem, run_loop(problem, default_base_params(problem)), out)
     if not quiet:
         print(f"\nclosing the loop on {DEMO_MEASUREMENT} (ceramic core, Q = {data.heat_inputs.tolist()} W):")
-        print(f"  error before {report['error_before']:.3e}, after {report['error_after']:.3e} "
-              f"(noise floor {report['noise_floor']:.3e}); chosen effect: {report['chosen_effect']}")
+        print(
+            f"  error before {report['error_before']:.3e}, after {report['error_after']:.3e} "
+            f"(noise floor {report['noise_floor']:.3e}); chosen effect: {report['chosen_effect']}"
+        )
         before, after = report["parameters_before"], report["parameters_after"]
         print(f"  {'parameter':<30} {'before':>22} {'after':>22}")
         for name in after:
@@ -99,8 +116,16 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
     return report
 
 
-def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: int = 40, noise: float = 0.005,
-             seed: int = 0, cells: int | None = None, spread: bool = False) -> dict:
+def demo_fit(
+    out_dir,
+    device: str | None = None,
+    quiet: bool = False,
+    n_freqs: int = 40,
+    noise: float = 0.005,
+    seed: int = 0,
+    cells: int | None = None,
+    spread: bool = False,
+) -> dict:
     """Fit every bundled core's synthetic data end to end (``tawarp demo``): writes
     ``OUT/fit_MATERIAL.csv`` (data), ``OUT/fit_MATERIAL.json`` and figures, and
     ``OUT/fit_summary.json``; returns the summary dict and prints a table (unless quiet).
@@ -112,8 +137,14 @@ def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: i
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = ForwardSettings(cells=cells, device=device)
-    summary = {"noise": noise, "seed": seed, "n_freqs": n_freqs, "cells": settings.cells,
-               "starts": "spread" if spread else "offset from the truth", "materials": {}}
+    summary = {
+        "noise": noise,
+        "seed": seed,
+        "n_freqs": n_freqs,
+        "cells": settings.cells,
+        "starts": "spread" if spread else "offset from the truth",
+        "materials": {},
+    }
     rows = []
     for mat in MATERIALS:
         data = make_paper_data(mat, noise=noise, seed=seed, n_freqs=n_freqs, device=device)
@@ -136,13 +167,15 @@ def demo_fit(out_dir, device: str | None = None, quiet: bool = False, n_freqs: i
             rows.append((mat, "0", k, v["value"], v["std"], truth.get(k)))
         for e in obj["step2"]:
             for k, v in e["parameters"].items():
-                ent["step2"].setdefault(k, []).append({"Q_W": e["heat_input_W"], "value": v["value"], "std": v["std"],
-                                                       "true": truth.get(k)})
+                ent["step2"].setdefault(k, []).append(
+                    {"Q_W": e["heat_input_W"], "value": v["value"], "std": v["std"], "true": truth.get(k)}
+                )
         for k in ch.heat_names:
             # one row per h: the fit at the largest Q (best determined)
             e = obj["step2"][-1]
-            rows.append((mat, f"{e['heat_input_W']:g}", k, e["parameters"][k]["value"], e["parameters"][k]["std"],
-                         truth.get(k)))
+            rows.append(
+                (mat, f"{e['heat_input_W']:g}", k, e["parameters"][k]["value"], e["parameters"][k]["std"], truth.get(k))
+            )
         summary["materials"][mat] = ent
     write_json(out / "fit_summary.json", summary)
     if not quiet:
@@ -160,10 +193,18 @@ def demo_onset(path: Path, device=None, quiet=False) -> dict:
     from ..model.resonator import load_engine
 
     res = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, curve=True, device=device)
-    summary = {"engine": "standing_wave", "Q_onset_W": res.Q_onset[0], "f_onset_Hz": res.f_onset[0],
-               "T_hot_K": res.T_hot[0], "Q_grid_W": res.Q_grid, "growth_rate_1_per_s": res.omega_grid[0].imag}
+    summary = {
+        "engine": "standing_wave",
+        "Q_onset_W": res.Q_onset[0],
+        "f_onset_Hz": res.f_onset[0],
+        "T_hot_K": res.T_hot[0],
+        "Q_grid_W": res.Q_grid,
+        "growth_rate_1_per_s": res.omega_grid[0].imag,
+    }
     write_json(path, summary)
     if not quiet:
-        print(f"\nonset of the standing-wave engine (ceramic core, closed-closed resonator): Q_onset "
-              f"{res.Q_onset[0]:.2f} W, f_onset {res.f_onset[0]:.1f} Hz, T_hot {res.T_hot[0]:.0f} K")
+        print(
+            f"\nonset of the standing-wave engine (ceramic core, closed-closed resonator): Q_onset "
+            f"{res.Q_onset[0]:.2f} W, f_onset {res.f_onset[0]:.1f} Hz, T_hot {res.T_hot[0]:.0f} K"
+        )
     return summary

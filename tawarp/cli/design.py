@@ -14,10 +14,12 @@ import numpy as np
 from ..io import CLAIM_HELP, GENERATOR, claim_outputs
 from .common import _common, _say, parse_list
 
-VAR_HELP = ("design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
-            "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
-            "material=NAME,NAME,... (catalogue materials in the stack), NAME=VALUE (fixed); sweeps: "
-            "NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,... (a grid axis of COUNT points)")
+VAR_HELP = (
+    "design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
+    "stack.length, stack.porosity, stack.pore_radius, hot_hx.length, or stack.position), "
+    "material=NAME,NAME,... (catalogue materials in the stack), NAME=VALUE (fixed); sweeps: "
+    "NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,... (a grid axis of COUNT points)"
+)
 
 
 def _floats(text: str) -> np.ndarray:
@@ -57,8 +59,14 @@ def _settings(args):
 def _add_space_args(p):
     p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
     p.add_argument("--var", action="append", help=VAR_HELP)
-    p.add_argument("--heat-input", "--Q", dest="heat_input", type=float, default=9.0,
-                   help="heat input [W] when it is not a --var (default: %(default)s)")
+    p.add_argument(
+        "--heat-input",
+        "--Q",
+        dest="heat_input",
+        type=float,
+        default=9.0,
+        help="heat input [W] when it is not a --var (default: %(default)s)",
+    )
     p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
     p.add_argument("--segment", default="stack", help="the segment the design is about (default: %(default)s)")
 
@@ -81,23 +89,48 @@ def _onset_spec(args):
     from ..design.catalogue import load_catalogue
     from ..design.objectives import OnsetSpec
 
-    return OnsetSpec(engine=args.onset_engine, Q_max=args.Q_max, n_bracket=args.bracket,
-                     uncertainty=_uncertain_material(args.uncertainty, load_catalogue(args.catalogue or [])),
-                     n_draws=args.draws, seed=args.seed, segment=args.segment)
+    return OnsetSpec(
+        engine=args.onset_engine,
+        Q_max=args.Q_max,
+        n_bracket=args.bracket,
+        uncertainty=_uncertain_material(args.uncertainty, load_catalogue(args.catalogue or [])),
+        n_draws=args.draws,
+        seed=args.seed,
+        segment=args.segment,
+    )
 
 
 def _add_onset_args(p):
-    p.add_argument("--onset-engine", default="standing_wave",
-                   help="onset objectives: the engine (TOML or bundled name) whose resonator closes the core "
-                        "(default: %(default)s)")
-    p.add_argument("--Q-max", dest="Q_max", type=float, default=200.0,
-                   help="onset: largest heat input searched [W]; no onset below it counts as inf (default: %(default)s)")
-    p.add_argument("--bracket", type=int, default=9,
-                   help="onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)")
-    p.add_argument("--uncertainty", default=None,
-                   help="Q_onset_p90: the stack material's uncertainty, a catalogue name or a fit.json")
-    p.add_argument("--draws", type=int, default=64,
-                   help="Q_onset_p90 / rank --by onset: parameter sets drawn per design (default: %(default)s)")
+    p.add_argument(
+        "--onset-engine",
+        default="standing_wave",
+        help="onset objectives: the engine (TOML or bundled name) whose resonator closes the core "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--Q-max",
+        dest="Q_max",
+        type=float,
+        default=200.0,
+        help="onset: largest heat input searched [W]; no onset below it counts as inf (default: %(default)s)",
+    )
+    p.add_argument(
+        "--bracket",
+        type=int,
+        default=9,
+        help="onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)",
+    )
+    p.add_argument(
+        "--uncertainty",
+        default=None,
+        help="Q_onset_p90: the stack material's uncertainty, a catalogue name or a fit.json",
+    )
+    p.add_argument(
+        "--draws",
+        type=int,
+        default=64,
+        help="Q_onset_p90 / rank --by onset: parameter sets drawn per design (default: %(default)s)",
+    )
 
 
 def cmd_design(args) -> int:
@@ -109,22 +142,50 @@ def cmd_design(args) -> int:
     space = _space(args)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
     out = Path(args.output)
-    claim_outputs(out / "design.json", *([] if args.no_plots else [out / "history.png", out / "pareto.png",
-                                                                    out / "best_profiles.png"]),
-                  why="the design report")
+    claim_outputs(
+        out / "design.json",
+        *([] if args.no_plots else [out / "history.png", out / "pareto.png", out / "best_profiles.png"]),
+        why="the design report",
+    )
     out.mkdir(parents=True, exist_ok=True)
     storage = args.storage or str(out / "study.journal")
     T_limit = None if args.no_T_limit else args.T_limit
-    res = search(space, objectives, n_trials=args.trials, batch=args.batch, storage=storage, study_name=args.study,
-                 worker=args.worker, seed=args.seed, T_limit=T_limit, engine=args.engine,
-                 settings=_settings(args), freqs=args.freqs, progress=not args.quiet, onset=_onset_spec(args),
-                 store=args.trial_store)
+    res = search(
+        space,
+        objectives,
+        n_trials=args.trials,
+        batch=args.batch,
+        storage=storage,
+        study_name=args.study,
+        worker=args.worker,
+        seed=args.seed,
+        T_limit=T_limit,
+        engine=args.engine,
+        settings=_settings(args),
+        freqs=args.freqs,
+        progress=not args.quiet,
+        onset=_onset_spec(args),
+        store=args.trial_store,
+    )
     summary = study_summary(res.study)
-    report = {"generator": f"{GENERATOR} design", "core": str(space.core.source), "variables": space.describe(),
-              "objectives": objectives, "objective_definitions": objective_definitions(objectives),
-              "T_limit_K": T_limit, "storage": storage, "trial_store": summary["store"], "study": args.study,
-              "worker": args.worker, "engine": args.engine, "batch": args.batch, "resumed_trials": res.resumed,
-              "summary": summary, "timing": res.timing, "best": res.best[: args.keep]}
+    report = {
+        "generator": f"{GENERATOR} design",
+        "core": str(space.core.source),
+        "variables": space.describe(),
+        "objectives": objectives,
+        "objective_definitions": objective_definitions(objectives),
+        "T_limit_K": T_limit,
+        "storage": storage,
+        "trial_store": summary["store"],
+        "study": args.study,
+        "worker": args.worker,
+        "engine": args.engine,
+        "batch": args.batch,
+        "resumed_trials": res.resumed,
+        "summary": summary,
+        "timing": res.timing,
+        "best": res.best[: args.keep],
+    }
     write_json(out / "design.json", report)
     if not args.no_plots:
         plot_history(res.study, objectives, out / "history.png", T_limit)
@@ -136,12 +197,18 @@ def cmd_design(args) -> int:
     if res.best:
         b = res.best[0]
         _say(args, f"best: {b['values']} at {b['params']}")
-    _say(args, f"{res.timing['evaluations']} evaluations, {res.timing['evaluations_per_minute']:.3g}/min; "
-               f"wrote {out / 'design.json'}")
+    _say(
+        args,
+        f"{res.timing['evaluations']} evaluations, {res.timing['evaluations_per_minute']:.3g}/min; "
+        f"wrote {out / 'design.json'}",
+    )
     if summary["store"]:
-        _say(args, f"all {summary['trials']} trials in the trial store {summary['store']}; the study in {storage} "
-                   f"holds {summary['in_study']} (the best); read all with "
-                   f"tawarp.design.storage.trials_table(optuna.load_study(...))")
+        _say(
+            args,
+            f"all {summary['trials']} trials in the trial store {summary['store']}; the study in {storage} "
+            f"holds {summary['in_study']} (the best); read all with "
+            f"tawarp.design.storage.trials_table(optuna.load_study(...))",
+        )
     else:
         _say(args, f"all {summary['trials']} trials in the study in {storage}")
     return 0
@@ -166,38 +233,72 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
     from ..design.evaluate import DEFAULT_FREQS
     from ..design.objectives import DEFAULT_T_LIMIT, OBJECTIVES
 
-    p = _common(sub.add_parser("design", help="design search (CMA-ES / NSGA-II, batched on the device, Optuna study)",
-                               description="Batched design search. Objectives: " + "; ".join(
-                                   f"{o.name} [{o.unit}] ({o.direction}d): {o.long_name}" for o in OBJECTIVES.values())))
+    p = _common(
+        sub.add_parser(
+            "design",
+            help="design search (CMA-ES / NSGA-II, batched on the device, Optuna study)",
+            description="Batched design search. Objectives: "
+            + "; ".join(f"{o.name} [{o.unit}] ({o.direction}d): {o.long_name}" for o in OBJECTIVES.values()),
+        )
+    )
     _add_space_args(p)
-    p.add_argument("--objectives", default="gradient",
-                   help=f"comma list of {', '.join(OBJECTIVES)} (two or more: NSGA-II; default: %(default)s)")
+    p.add_argument(
+        "--objectives",
+        default="gradient",
+        help=f"comma list of {', '.join(OBJECTIVES)} (two or more: NSGA-II; default: %(default)s)",
+    )
     p.add_argument("--trials", type=int, default=4096, help="trials of this worker (default: %(default)s)")
     p.add_argument("--batch", type=int, default=256, help="population = trials per launch (default: %(default)s)")
-    p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT,
-                   help="constraint T_max <= T_LIMIT [K] (default: %(default)s)")
+    p.add_argument(
+        "--T-limit",
+        dest="T_limit",
+        type=float,
+        default=DEFAULT_T_LIMIT,
+        help="constraint T_max <= T_LIMIT [K] (default: %(default)s)",
+    )
     p.add_argument("--no-T-limit", action="store_true", help="no temperature constraint")
-    p.add_argument("--storage", default=None,
-                   help="journal file path or database URL (sqlite:///x.db, postgresql://...); "
-                        "default: OUTPUT/study.journal")
-    p.add_argument("--trial-store", default=None,
-                   help="folder of the columnar trial store that keeps every evaluated trial (HDF5, one file per "
-                        "worker run; the study keeps the best); default: beside a journal file "
-                        "(OUTPUT/study.trials/STUDY), none with a database URL (every trial in the database); "
-                        "with several machines give a folder they all see")
+    p.add_argument(
+        "--storage",
+        default=None,
+        help="journal file path or database URL (sqlite:///x.db, postgresql://...); default: OUTPUT/study.journal",
+    )
+    p.add_argument(
+        "--trial-store",
+        default=None,
+        help="folder of the columnar trial store that keeps every evaluated trial (HDF5, one file per "
+        "worker run; the study keeps the best); default: beside a journal file "
+        "(OUTPUT/study.trials/STUDY), none with a database URL (every trial in the database); "
+        "with several machines give a folder they all see",
+    )
     p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
     p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
-    p.add_argument("--seed", type=int, default=0,
-                   help="with the worker name, seeds this worker's sampler stream (default: %(default)s)")
-    p.add_argument("--engine", choices=("batched", "optuna"), default="batched",
-                   help="batched population samplers (default) or Optuna's own samplers, one ask per trial")
-    p.add_argument("--freqs", type=_floats, default=np.array(DEFAULT_FREQS),
-                   help="frequencies [Hz] of acoustic_loss, list or start:stop:count")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=0,
+        help="with the worker name, seeds this worker's sampler stream (default: %(default)s)",
+    )
+    p.add_argument(
+        "--engine",
+        choices=("batched", "optuna"),
+        default="batched",
+        help="batched population samplers (default) or Optuna's own samplers, one ask per trial",
+    )
+    p.add_argument(
+        "--freqs",
+        type=_floats,
+        default=np.array(DEFAULT_FREQS),
+        help="frequencies [Hz] of acoustic_loss, list or start:stop:count",
+    )
     _add_onset_args(p)
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
-    p.add_argument("-o", "--output", default="tawarp-design",
-                   help="output folder (default: %(default)s): design.json, the study (study.journal, study.trials/ "
-                        "unless --storage) and figures history.png, pareto.png, best_profiles.png" + CLAIM_HELP)
+    p.add_argument(
+        "-o",
+        "--output",
+        default="tawarp-design",
+        help="output folder (default: %(default)s): design.json, the study (study.journal, study.trials/ "
+        "unless --storage) and figures history.png, pareto.png, best_profiles.png" + CLAIM_HELP,
+    )
     p.add_argument("--no-plots", action="store_true", help="skip the figures")
     p.set_defaults(func=cmd_design)
     return p
@@ -212,8 +313,9 @@ def cmd_rank(args) -> int:
 
     out = Path(args.output)
     if out.suffix.lower() != ".json":
-        raise ValueError(f"-o {out}: the ranking is written as JSON and its figure beside it as .png; "
-                         f"give a .json file name")
+        raise ValueError(
+            f"-o {out}: the ranking is written as JSON and its figure beside it as .png; give a .json file name"
+        )
     if not args.no_plots and args.by != "onset":
         claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
     cat = load_catalogue(args.catalogue or [])
@@ -226,8 +328,17 @@ def cmd_rank(args) -> int:
         args.samples = 400 if args.by == "onset" else 4000
     if args.by == "onset":
         return _rank_onset(args, cat, mats, out)
-    res = rank_materials(mats, args.Q, core=args.core, segment=args.segment, n_samples=args.samples, seed=args.seed,
-                         T_limit=args.T_limit, catalogue=cat, settings=_settings(args))
+    res = rank_materials(
+        mats,
+        args.Q,
+        core=args.core,
+        segment=args.segment,
+        n_samples=args.samples,
+        seed=args.seed,
+        T_limit=args.T_limit,
+        catalogue=cat,
+        settings=_settings(args),
+    )
     d = res.to_dict()
     d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
     write_json(out, d)
@@ -254,12 +365,21 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
         name, sep, value = t.partition("=")
         if not sep:
             raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
-        parameter_row(engine.core, name.strip())     # a KeyError listing the engine's parameters
+        parameter_row(engine.core, name.strip())  # a KeyError listing the engine's parameters
         changes[name.strip()] = float(value)
     if changes:
         engine = dataclasses.replace(engine, core=engine.core.replace(**changes))
-    res = rank_by_onset(mats, engine, segment=args.segment, n_samples=args.samples, seed=args.seed, Q_max=args.Q_max,
-                        n_bracket=args.bracket, catalogue=cat, settings=_settings(args))
+    res = rank_by_onset(
+        mats,
+        engine,
+        segment=args.segment,
+        n_samples=args.samples,
+        seed=args.seed,
+        Q_max=args.Q_max,
+        n_bracket=args.bracket,
+        catalogue=cat,
+        settings=_settings(args),
+    )
     d = res.to_dict()
     d["engine_changes"] = changes
     d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
@@ -270,9 +390,12 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
         return f"{v:.3g}" if v is not None else f">{args.Q_max:g}"
 
     for r in res.table:
-        _say(args, f"{r['material']:<12}{fmt(r['Q_onset_nominal_W']):>22}{fmt(r['Q_onset_median_W']):>9}"
-                   f"{fmt(r['Q_onset_p05_W']) + '-' + fmt(r['Q_onset_p95_W']):>17}{fmt(r['Q_onset_p90_W']):>9}"
-                   f"{r['p_best']:9.2f}")
+        _say(
+            args,
+            f"{r['material']:<12}{fmt(r['Q_onset_nominal_W']):>22}{fmt(r['Q_onset_median_W']):>9}"
+            f"{fmt(r['Q_onset_p05_W']) + '-' + fmt(r['Q_onset_p95_W']):>17}{fmt(r['Q_onset_p90_W']):>9}"
+            f"{r['p_best']:9.2f}",
+        )
     _say(args, f"wrote {out}")
     return 0
 
@@ -280,31 +403,62 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
 def add_rank_parser(sub) -> argparse.ArgumentParser:
     from ..design.objectives import DEFAULT_T_LIMIT
 
-    p = _common(sub.add_parser("rank", help="rank stack materials by the gradient they reach or by the onset heat "
-                                            "input of an engine, with uncertainty"))
-    p.add_argument("--by", choices=("gradient", "onset"), default="gradient",
-                   help="gradient: stack gradient at --Q in --core; onset: onset heat input of --engine "
-                        "(default: %(default)s)")
-    p.add_argument("--engine", default="standing_wave",
-                   help="--by onset: reference engine (TOML or bundled name) whose stack takes each material "
-                        "(default: %(default)s)")
-    p.add_argument("--set", action="append", default=[],
-                   help="--by onset: NAME=VALUE changes the engine's core, e.g. gas.p_mean=1e6 (repeatable)")
-    p.add_argument("--Q-max", dest="Q_max", type=float, default=200.0,
-                   help="--by onset: largest heat input searched [W] (default: %(default)s)")
-    p.add_argument("--bracket", type=int, default=9,
-                   help="--by onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)")
+    p = _common(
+        sub.add_parser(
+            "rank",
+            help="rank stack materials by the gradient they reach or by the onset heat "
+            "input of an engine, with uncertainty",
+        )
+    )
+    p.add_argument(
+        "--by",
+        choices=("gradient", "onset"),
+        default="gradient",
+        help="gradient: stack gradient at --Q in --core; onset: onset heat input of --engine (default: %(default)s)",
+    )
+    p.add_argument(
+        "--engine",
+        default="standing_wave",
+        help="--by onset: reference engine (TOML or bundled name) whose stack takes each material "
+        "(default: %(default)s)",
+    )
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        help="--by onset: NAME=VALUE changes the engine's core, e.g. gas.p_mean=1e6 (repeatable)",
+    )
+    p.add_argument(
+        "--Q-max",
+        dest="Q_max",
+        type=float,
+        default=200.0,
+        help="--by onset: largest heat input searched [W] (default: %(default)s)",
+    )
+    p.add_argument(
+        "--bracket",
+        type=int,
+        default=9,
+        help="--by onset: heat inputs on [0, Q-max] bracketing the onset (default: %(default)s)",
+    )
     p.add_argument("--materials", default=None, help="comma list of catalogue names (default: all)")
     p.add_argument("--Q", type=_floats, default=_floats("9"), help="heat inputs [W], list or start:stop:count")
-    p.add_argument("--core", default="rvc_foam", help="reference core whose stack takes each material (default: %(default)s)")
+    p.add_argument(
+        "--core", default="rvc_foam", help="reference core whose stack takes each material (default: %(default)s)"
+    )
     p.add_argument("--segment", default="stack")
     p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
-    p.add_argument("--samples", type=int, default=None,
-                   help="draws per material (default: 4000 by gradient, 400 by onset)")
+    p.add_argument(
+        "--samples", type=int, default=None, help="draws per material (default: 4000 by gradient, 400 by onset)"
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
-    p.add_argument("-o", "--output", default="rank.json",
-                   help="output JSON (default: %(default)s); its figure STEM.png beside it" + CLAIM_HELP)
+    p.add_argument(
+        "-o",
+        "--output",
+        default="rank.json",
+        help="output JSON (default: %(default)s); its figure STEM.png beside it" + CLAIM_HELP,
+    )
     p.add_argument("--no-plots", action="store_true")
     p.set_defaults(func=cmd_rank)
     return p
@@ -316,34 +470,64 @@ def cmd_sweep(args) -> int:
     from ..design.sweep import sweep
 
     if Path(args.output).suffix.lower() != ".nc":
-        raise ValueError(f"-o {args.output}: the sweep is written as netCDF and its JSON summary beside it; "
-                         f"give a .nc file name")
+        raise ValueError(
+            f"-o {args.output}: the sweep is written as netCDF and its JSON summary beside it; give a .nc file name"
+        )
     summary = Path(args.output).with_suffix(".json")
     claim_outputs(summary, why="the sweep's summary")
     space = _space(args, grid=args.samples is None)
     mode = "grid" if args.samples is None else "sobol"
-    info = sweep(space, args.output, mode=mode, n_samples=args.samples, chunk=args.chunk, seed=args.seed,
-                 settings=_settings(args), progress=not args.quiet)
-    meta = {"generator": f"{GENERATOR} sweep", "output": str(info.path), "mode": mode, "points": info.n_points,
-            "seconds": info.seconds, "evaluations_per_hour": info.evaluations_per_hour, "chunks": info.chunks,
-            "evaluation_seconds": info.evaluation_seconds, "write_seconds": info.write_seconds,
-            "variables": space.describe()}
+    info = sweep(
+        space,
+        args.output,
+        mode=mode,
+        n_samples=args.samples,
+        chunk=args.chunk,
+        seed=args.seed,
+        settings=_settings(args),
+        progress=not args.quiet,
+    )
+    meta = {
+        "generator": f"{GENERATOR} sweep",
+        "output": str(info.path),
+        "mode": mode,
+        "points": info.n_points,
+        "seconds": info.seconds,
+        "evaluations_per_hour": info.evaluations_per_hour,
+        "chunks": info.chunks,
+        "evaluation_seconds": info.evaluation_seconds,
+        "write_seconds": info.write_seconds,
+        "variables": space.describe(),
+    }
     write_json(summary, meta)
     _say(args, f"{info.n_points} points in {info.seconds:.1f} s ({info.evaluations_per_hour:.3g}/h); wrote {info.path}")
     return 0
 
 
 def add_sweep_parser(sub) -> argparse.ArgumentParser:
-    p = _common(sub.add_parser("sweep", help="grid or quasi-random sweep streamed to a netCDF file",
-                               description="Grid: every --var NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2 is a dimension. "
-                                           "With --samples N: N scrambled Sobol points over --var NAME=LOW:HIGH ranges."))
+    p = _common(
+        sub.add_parser(
+            "sweep",
+            help="grid or quasi-random sweep streamed to a netCDF file",
+            description="Grid: every --var NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2 is a dimension. "
+            "With --samples N: N scrambled Sobol points over --var NAME=LOW:HIGH ranges.",
+        )
+    )
     _add_space_args(p)
     p.add_argument("--samples", type=int, default=None, help="quasi-random (Sobol) sweep of this many points")
-    p.add_argument("--chunk", type=int, default=None,
-                   help="points per launch and write (default: 2^20 on a GPU, 2^16 on the CPU, where a Ctrl-C waits "
-                        "for the launch in flight)")
+    p.add_argument(
+        "--chunk",
+        type=int,
+        default=None,
+        help="points per launch and write (default: 2^20 on a GPU, 2^16 on the CPU, where a Ctrl-C waits "
+        "for the launch in flight)",
+    )
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("-o", "--output", default="sweep.nc",
-                   help="output netCDF (default: %(default)s); its JSON summary STEM.json beside it" + CLAIM_HELP)
+    p.add_argument(
+        "-o",
+        "--output",
+        default="sweep.nc",
+        help="output netCDF (default: %(default)s); its JSON summary STEM.json beside it" + CLAIM_HELP,
+    )
     p.set_defaults(func=cmd_sweep)
     return p

@@ -13,15 +13,26 @@ from .common import _common, add_measurement_options, load_data
 def add_loop_parser(sub) -> None:
     """Register ``tawarp loop`` on an argparse sub-parsers object."""
     p = sub.add_parser("loop", help="close the loop: fit, diagnose the residual, choose an effect, report")
-    p.add_argument("data", help="T-matrix CSV (docs/formats.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
-                                "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
-                                "or atalla:NAME (foam1, foam2, fibrous1) for the bundled Atalla & Panneton data")
-    p.add_argument("--core", default=None, help="core TOML (or bundled name) for T-matrix and scattering data "
-                                                "(default: the file's '# core = ...' metadata)")
-    p.add_argument("--fit", default=None, help="comma list of base parameters (default: the paper's full method: every "
-                                               "porous segment's porosity, pore radius, tortuosity and every thermal "
-                                               "segment's h, less the core file's [fit] pinned list; a layer's "
-                                               "porosity, pore radius, tortuosity)")
+    p.add_argument(
+        "data",
+        help="T-matrix CSV (docs/formats.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
+        "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
+        "or atalla:NAME (foam1, foam2, fibrous1) for the bundled Atalla & Panneton data",
+    )
+    p.add_argument(
+        "--core",
+        default=None,
+        help="core TOML (or bundled name) for T-matrix and scattering data "
+        "(default: the file's '# core = ...' metadata)",
+    )
+    p.add_argument(
+        "--fit",
+        default=None,
+        help="comma list of base parameters (default: the paper's full method: every "
+        "porous segment's porosity, pore radius, tortuosity and every thermal "
+        "segment's h, less the core file's [fit] pinned list; a layer's "
+        "porosity, pore radius, tortuosity)",
+    )
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
     _common(p)
@@ -38,22 +49,31 @@ def cmd_loop(args) -> int:
         name = args.data.split(":", 1)[1]
         data = load_atalla_panneton(name)
         ref = atalla_panneton_samples()[name]
-        ref = {"phi": ref["phi"], "alpha_inf": ref["alpha_inf"], "Lambda": ref["Lambda"],
-               "Lambda_prime": ref["Lambda_prime"], "sigma": ref["sigma"]}
+        ref = {
+            "phi": ref["phi"],
+            "alpha_inf": ref["alpha_inf"],
+            "Lambda": ref["Lambda"],
+            "Lambda_prime": ref["Lambda_prime"],
+            "sigma": ref["sigma"],
+        }
         data = [d for d in data if d.thickness is not None]
         prob, rep = impedance_loop(data, ref, settings, names)
     else:
         prob = load_data(args, settings)
         if isinstance(prob, ImpedanceKind):
             if args.core:
-                raise ValueError(f"--core does not apply to the surface impedance file {args.data} "
-                                 "(layers use the circular-pore layer model)")
+                raise ValueError(
+                    f"--core does not apply to the surface impedance file {args.data} "
+                    "(layers use the circular-pore layer model)"
+                )
             prob, rep = impedance_loop(prob.data, None, settings, names)
         else:
             rep = run_loop(prob, default_base_params(prob, names), progress=not args.quiet)
     js = write_report(prob, rep, args.output)
     if not args.quiet:
-        print(f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
-              f"(noise floor {js['noise_floor']:.4g}); accepted: {'; '.join(js['accepted_steps']) or 'none'}; "
-              f"wrote {Path(args.output) / 'report.json'}")
+        print(
+            f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
+            f"(noise floor {js['noise_floor']:.4g}); accepted: {'; '.join(js['accepted_steps']) or 'none'}; "
+            f"wrote {Path(args.output) / 'report.json'}"
+        )
     return 0

@@ -14,16 +14,31 @@ from .common import _common, _say, parse_list
 
 def add_onset_parser(sub) -> None:
     """Register ``tawarp onset`` on an argparse sub-parsers object."""
-    p = _common(sub.add_parser("onset", help="onset heat input, frequency and hot temperature of an engine "
-                                             "(complex eigenfrequency against heat input)"))
-    p.add_argument("engine", help="engine TOML (a core file with an [engine] table), or a bundled engine: standing_wave")
+    p = _common(
+        sub.add_parser(
+            "onset",
+            help="onset heat input, frequency and hot temperature of an engine "
+            "(complex eigenfrequency against heat input)",
+        )
+    )
+    p.add_argument(
+        "engine", help="engine TOML (a core file with an [engine] table), or a bundled engine: standing_wave"
+    )
     p.add_argument("--Q-max", type=float, default=100.0, help="largest heat input searched [W] (default: %(default)s)")
     p.add_argument("--mode", type=int, default=1, help="mode number, 1 = fundamental (default: %(default)s)")
-    p.add_argument("--bracket", type=int, default=21,
-                   help="heat inputs on [0, Q-max] for the bracket and the growth-rate curve (default: %(default)s)")
-    p.add_argument("--var", action="append", default=[],
-                   help="NAME=LIST: a parameter varied over a batch (SEGMENT.FIELD or engine.left_duct, "
-                        "engine.right_duct, ...); LIST is v1,v2 or start:stop:count; several --var form a grid")
+    p.add_argument(
+        "--bracket",
+        type=int,
+        default=21,
+        help="heat inputs on [0, Q-max] for the bracket and the growth-rate curve (default: %(default)s)",
+    )
+    p.add_argument(
+        "--var",
+        action="append",
+        default=[],
+        help="NAME=LIST: a parameter varied over a batch (SEGMENT.FIELD or engine.left_duct, "
+        "engine.right_duct, ...); LIST is v1,v2 or start:stop:count; several --var form a grid",
+    )
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
     p.add_argument("-o", "--output", default="tawarp-onset", help="output folder (default: %(default)s)")
     p.add_argument("--no-plots", action="store_true", help="skip the figures (growth_rate.png, root_locus.png)")
@@ -53,23 +68,45 @@ def cmd_onset(args) -> int:
     names = list(axes)
     combos = list(itertools.product(*axes.values())) if names else [()]
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}
-    res = onset(engine, Q_max=args.Q_max, mode=args.mode, params=params, n_bracket=args.bracket, curve=True, cells=args.cells,
-                device=args.device)
+    res = onset(
+        engine,
+        Q_max=args.Q_max,
+        mode=args.mode,
+        params=params,
+        n_bracket=args.bracket,
+        curve=True,
+        cells=args.cells,
+        device=args.device,
+    )
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     sets = []
     head = "".join(f"{k:>22s}" for k in names) + f"{'Q_onset [W]':>14s}{'f_onset [Hz]':>14s}{'T_hot [K]':>12s}"
     _say(args, head)
     for i, c in enumerate(combos):
-        row = {"params": dict(zip(names, map(float, c))), "Q_onset_W": _finite(res.Q_onset[i]),
-               "f_onset_Hz": _finite(res.f_onset[i]), "T_hot_K": _finite(res.T_hot[i]),
-               "growth_rate_1_per_s": res.omega_grid[i].imag, "frequency_Hz": res.omega_grid[i].real / (2 * math.pi)}
+        row = {
+            "params": dict(zip(names, map(float, c))),
+            "Q_onset_W": _finite(res.Q_onset[i]),
+            "f_onset_Hz": _finite(res.f_onset[i]),
+            "T_hot_K": _finite(res.T_hot[i]),
+            "growth_rate_1_per_s": res.omega_grid[i].imag,
+            "frequency_Hz": res.omega_grid[i].real / (2 * math.pi),
+        }
         sets.append(row)
-        _say(args, "".join(f"{v:22.6g}" for v in c) + f"{res.Q_onset[i]:14.6g}{res.f_onset[i]:14.6g}{res.T_hot[i]:12.6g}")
-    write_json(out / "onset.json", {
-        "engine": str(engine.source), "mode": args.mode, "Q_max_W": args.Q_max, "Q_grid_W": res.Q_grid,
-        "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; Q_onset null: no onset on [0, Q_max]",
-        "sets": sets})
+        _say(
+            args, "".join(f"{v:22.6g}" for v in c) + f"{res.Q_onset[i]:14.6g}{res.f_onset[i]:14.6g}{res.T_hot[i]:12.6g}"
+        )
+    write_json(
+        out / "onset.json",
+        {
+            "engine": str(engine.source),
+            "mode": args.mode,
+            "Q_max_W": args.Q_max,
+            "Q_grid_W": res.Q_grid,
+            "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; Q_onset null: no onset on [0, Q_max]",
+            "sets": sets,
+        },
+    )
     if not args.no_plots:
         title = Path(str(engine.source)).stem
         _plot_growth(res, combos, names, out / "growth_rate.png", title)

@@ -48,8 +48,13 @@ from ..model.fields import field as parameter_field
 #: Uncertain parameters of a material, in the order of :attr:`Material.covariance`.
 PARAMS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity", "h_s")
 #: Core field (``SEGMENT.FIELD``) of each material parameter.
-CORE_FIELD = {"porosity": "porosity", "pore_radius": "pore_radius", "tortuosity": "tortuosity",
-              "solid_conductivity": "solid_conductivity", "h_s": "h"}
+CORE_FIELD = {
+    "porosity": "porosity",
+    "pore_radius": "pore_radius",
+    "tortuosity": "tortuosity",
+    "solid_conductivity": "solid_conductivity",
+    "h_s": "h",
+}
 _FIELD_TO_PARAM = {v: k for k, v in CORE_FIELD.items()}
 
 
@@ -88,9 +93,15 @@ class Material:
                 raise CatalogueError(f"{where}: std.{k} must be a finite number >= 0, got {v!r}")
         if self.correlation is not None:
             c = np.asarray(self.correlation, dtype=float)
-            if c.shape != (len(PARAMS), len(PARAMS)) or not np.allclose(c, c.T) or np.any(np.abs(np.diag(c) - 1) > 1e-9):
-                raise CatalogueError(f"{where}: correlation must be a symmetric {len(PARAMS)}x{len(PARAMS)} matrix "
-                                     f"with unit diagonal over {PARAMS}")
+            if (
+                c.shape != (len(PARAMS), len(PARAMS))
+                or not np.allclose(c, c.T)
+                or np.any(np.abs(np.diag(c) - 1) > 1e-9)
+            ):
+                raise CatalogueError(
+                    f"{where}: correlation must be a symmetric {len(PARAMS)}x{len(PARAMS)} matrix "
+                    f"with unit diagonal over {PARAMS}"
+                )
             object.__setattr__(self, "correlation", tuple(map(tuple, c.tolist())))
 
     # -- values ------------------------------------------------------------------------
@@ -146,17 +157,29 @@ class Material:
 
     # -- construction ------------------------------------------------------------------
     @classmethod
-    def from_core(cls, core: Core, segment: str = "stack", name: str | None = None, std: dict | None = None) -> "Material":
+    def from_core(
+        cls, core: Core, segment: str = "stack", name: str | None = None, std: dict | None = None
+    ) -> "Material":
         """The material of porous ``segment`` of ``core``."""
         seg = core.segment(segment)
         if not seg.is_porous:
             raise CoreError(f"{core.source}: segment {segment!r} is not porous")
-        return cls(name or Path(core.source).stem, seg.porosity, seg.pore_radius, seg.tortuosity,
-                   seg.solid_conductivity, seg.h, dict(std or {}), None, core.source)
+        return cls(
+            name or Path(core.source).stem,
+            seg.porosity,
+            seg.pore_radius,
+            seg.tortuosity,
+            seg.solid_conductivity,
+            seg.h,
+            dict(std or {}),
+            None,
+            core.source,
+        )
 
     @classmethod
-    def from_fit_json(cls, path: str | Path, base: "Material | str | None" = None, name: str | None = None,
-                      segment: str = "stack") -> "Material":
+    def from_fit_json(
+        cls, path: str | Path, base: "Material | str | None" = None, name: str | None = None, segment: str = "stack"
+    ) -> "Material":
         """A material from a ``tawarp fit`` result (docs/formats.md: for each fitted parameter
         ``value`` and ``std``, plus the correlation matrix).
 
@@ -197,8 +220,9 @@ class Material:
         if corr is not None:
             C = np.asarray(corr, dtype=float)
             if C.shape != (len(cnames), len(cnames)):
-                raise CatalogueError(f"{path}: correlation is {C.shape}, expected {len(cnames)}x{len(cnames)} "
-                                     f"over {cnames}")
+                raise CatalogueError(
+                    f"{path}: correlation is {C.shape}, expected {len(cnames)}x{len(cnames)} over {cnames}"
+                )
         if base is None:
             if "core" not in data:
                 raise CatalogueError(f"{path}: give base= (a material) or a 'core' key naming the core that was fitted")
@@ -268,14 +292,50 @@ PAPER_NOTES = {
 }
 
 _PAPER = [
-    Material("ceramic", 0.90, 0.47e-3, 1.0, 3.0, 150.0,
-             {"porosity": 0.01, "pore_radius": 0.05e-3, "h_s": 30.0}, None, "paper Table 1"),
-    Material("mesh", 0.68, 40e-6, 1.06, 13.4, 50.0,
-             {"porosity": 0.01, "pore_radius": 4e-6, "tortuosity": 0.03, "h_s": 10.0}, None, "paper Table 1"),
-    Material("nicr_foam", 0.92, 0.31e-3, 1.30, 12.0, 30.0,
-             {"porosity": 0.01, "pore_radius": 0.04e-3, "tortuosity": 0.04, "h_s": 10.0}, None, "paper Table 1"),
-    Material("rvc_foam", 0.97, 0.17e-3, 1.13, 6.3, 8.0,
-             {"porosity": 0.01, "pore_radius": 0.02e-3, "tortuosity": 0.03, "h_s": 2.0}, None, "paper Table 1"),
+    Material(
+        "ceramic",
+        0.90,
+        0.47e-3,
+        1.0,
+        3.0,
+        150.0,
+        {"porosity": 0.01, "pore_radius": 0.05e-3, "h_s": 30.0},
+        None,
+        "paper Table 1",
+    ),
+    Material(
+        "mesh",
+        0.68,
+        40e-6,
+        1.06,
+        13.4,
+        50.0,
+        {"porosity": 0.01, "pore_radius": 4e-6, "tortuosity": 0.03, "h_s": 10.0},
+        None,
+        "paper Table 1",
+    ),
+    Material(
+        "nicr_foam",
+        0.92,
+        0.31e-3,
+        1.30,
+        12.0,
+        30.0,
+        {"porosity": 0.01, "pore_radius": 0.04e-3, "tortuosity": 0.04, "h_s": 10.0},
+        None,
+        "paper Table 1",
+    ),
+    Material(
+        "rvc_foam",
+        0.97,
+        0.17e-3,
+        1.13,
+        6.3,
+        8.0,
+        {"porosity": 0.01, "pore_radius": 0.02e-3, "tortuosity": 0.03, "h_s": 2.0},
+        None,
+        "paper Table 1",
+    ),
 ]
 
 
@@ -310,7 +370,9 @@ class Catalogue(dict):
                 raise CatalogueError(f"{where}: missing key 'name'")
             bad = set(md) - allowed
             if bad:
-                raise CatalogueError(f"{where} ({md['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(allowed)}")
+                raise CatalogueError(
+                    f"{where} ({md['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(allowed)}"
+                )
             base = md.get("base")
             if base is not None and base not in self:
                 raise CatalogueError(f"{where} ({md['name']!r}): base {base!r} is not in the catalogue {list(self)}")
@@ -337,7 +399,9 @@ class Catalogue(dict):
                 keys = [p for p in PARAMS if p in std]
                 C = np.asarray(corr, dtype=float)
                 if C.shape != (len(keys), len(keys)):
-                    raise CatalogueError(f"{where} ({md['name']!r}): correlation must be {len(keys)}x{len(keys)} over {keys}")
+                    raise CatalogueError(
+                        f"{where} ({md['name']!r}): correlation must be {len(keys)}x{len(keys)} over {keys}"
+                    )
                 full = np.eye(len(PARAMS))
                 idx = [PARAMS.index(p) for p in keys]
                 full[np.ix_(idx, idx)] = C
@@ -345,8 +409,11 @@ class Catalogue(dict):
             for p in PARAMS:
                 if isinstance(values[p], bool) or not isinstance(values[p], (int, float)):
                     raise CatalogueError(f"{where} ({md['name']!r}): {p} must be a number, got {values[p]!r}")
-            self.add(Material(md["name"], std=std, correlation=corr, source=str(path),
-                              **{p: float(values[p]) for p in PARAMS}))
+            self.add(
+                Material(
+                    md["name"], std=std, correlation=corr, source=str(path), **{p: float(values[p]) for p in PARAMS}
+                )
+            )
         return self
 
 

@@ -28,9 +28,18 @@ class Evaluator:
     ``settings.heat_cells`` sets the heat grid (1 is exact for piecewise-constant
     coefficients)."""
 
-    def __init__(self, space: DesignSpace | None, extra=(), freqs=DEFAULT_FREQS,
-                 settings: ForwardSettings | None = None, *, core: Core | None = None, names=None,
-                 stack_index: int | None = None, onset=None):
+    def __init__(
+        self,
+        space: DesignSpace | None,
+        extra=(),
+        freqs=DEFAULT_FREQS,
+        settings: ForwardSettings | None = None,
+        *,
+        core: Core | None = None,
+        names=None,
+        stack_index: int | None = None,
+        onset=None,
+    ):
         from ..kernels.design import N_METRICS
 
         self.space = space
@@ -76,8 +85,10 @@ class Evaluator:
         n = table.shape[1]
         if draws:
             if spec.uncertainty is None:
-                raise ValueError("objective Q_onset_p90 needs the stack material's uncertainty: OnsetSpec.uncertainty "
-                                 "(tawarp design --uncertainty MATERIAL|fit.json)")
+                raise ValueError(
+                    "objective Q_onset_p90 needs the stack material's uncertainty: OnsetSpec.uncertainty "
+                    "(tawarp design --uncertainty MATERIAL|fit.json)"
+                )
             m = spec.uncertainty
             dev = m.sample(spec.n_draws, spec.seed)
             seg = self.core.segment(spec.segment)
@@ -87,12 +98,14 @@ class Evaluator:
                 lo, hi = parameter_field(CORE_FIELD[p]).fit_range
                 params[name] = np.clip(base[:, None] + (dev[p] - getattr(m, p))[None, :], lo, hi).ravel()
             for k in self.names:
-                if params[k].size == n:       # not a stack parameter: the same for every draw
+                if params[k].size == n:  # not a stack parameter: the same for every draw
                     params[k] = np.repeat(params[k], spec.n_draws)
         res = onset(engine, Q_max=spec.Q_max, params=params, n_bracket=spec.n_bracket, settings=self.settings)
         shape = (n, spec.n_draws) if draws else (n,)
-        out = (np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(shape),
-               np.where(np.isfinite(res.T_hot), res.T_hot, np.inf).reshape(shape))
+        out = (
+            np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(shape),
+            np.where(np.isfinite(res.T_hot), res.T_hot, np.inf).reshape(shape),
+        )
         self._onset_cache = (table, draws, out)
         return out
 
@@ -124,9 +137,12 @@ class Evaluator:
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, self.n_metrics), dtype=wp.float64, device=self.device)
-        wp.launch(design_metrics, dim=n, device=self.device,
-                  inputs=[params, eng.flags, eng.gas, theta, eng.first, eng.count, eng.heat_cells,
-                          self.stack_index, out])
+        wp.launch(
+            design_metrics,
+            dim=n,
+            device=self.device,
+            inputs=[params, eng.flags, eng.gas, theta, eng.first, eng.count, eng.heat_cells, self.stack_index, out],
+        )
         return out
 
     def metric_columns(self, out: wp.array, names, dtype=wp.float32) -> wp.array:
@@ -136,9 +152,10 @@ class Evaluator:
         from ..kernels.design import metric_columns
 
         key = tuple(names)
-        if key not in self._column_index:   # once: no small copy to the device in a sweep's loop
-            self._column_index[key] = wp.array([self.columns.index(k) for k in names], dtype=wp.int32,
-                                               device=self.device)
+        if key not in self._column_index:  # once: no small copy to the device in a sweep's loop
+            self._column_index[key] = wp.array(
+                [self.columns.index(k) for k in names], dtype=wp.int32, device=self.device
+            )
         cols = self._column_index[key]
         res = wp.empty((len(names), out.shape[0]), dtype=dtype, device=self.device)
         wp.launch(metric_columns, dim=(len(names), out.shape[0]), inputs=[out, cols, res], device=self.device)
@@ -148,6 +165,8 @@ class Evaluator:
         """Objectives of design points ``{variable: (n,) array}``, in chunks of ``settings.chunk``."""
         table = self.space.varying_table(values)
         n = table.shape[1]
-        parts = [self.evaluate_table(table[:, lo:lo + self.settings.chunk])
-                 for lo in range(0, max(n, 1), self.settings.chunk)]
+        parts = [
+            self.evaluate_table(table[:, lo : lo + self.settings.chunk])
+            for lo in range(0, max(n, 1), self.settings.chunk)
+        ]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}

@@ -63,7 +63,9 @@ class Objective:
 
     def __post_init__(self):
         if self.direction not in ("maximize", "minimize"):
-            raise ValueError(f"objective {self.name!r}: direction must be 'maximize' or 'minimize', got {self.direction!r}")
+            raise ValueError(
+                f"objective {self.name!r}: direction must be 'maximize' or 'minimize', got {self.direction!r}"
+            )
         if (self.column is None) == (self.compute is None):
             raise ValueError(f"objective {self.name!r}: give exactly one of column (kernel output) and compute (host)")
         if self.column is not None and not 0 <= self.column < _kernel.N_METRICS:
@@ -123,13 +125,14 @@ def _Q_onset(evaluator, table, metrics):
 
 
 def _onset_T_ratio(evaluator, table, metrics):
-    T_cold = table[1 + evaluator.names.index("gas.T_cold")] if "gas.T_cold" in evaluator.names \
-        else evaluator.core.gas.T_cold
+    T_cold = (
+        table[1 + evaluator.names.index("gas.T_cold")] if "gas.T_cold" in evaluator.names else evaluator.core.gas.T_cold
+    )
     return evaluator.onset_metrics(table)[1] / T_cold
 
 
 def _Q_onset_p90(evaluator, table, metrics):
-    with np.errstate(invalid="ignore"):    # inf - inf between draws without onset: the point is inf
+    with np.errstate(invalid="ignore"):  # inf - inf between draws without onset: the point is inf
         return np.percentile(evaluator.onset_metrics(table, draws=True)[0], 90, axis=1)
 
 
@@ -148,21 +151,46 @@ def register_objective(obj: Objective, replace: bool = False) -> Objective:
 
 
 for _row in (
-    Objective("gradient", "maximize", "K/m", "temperature gradient across the stack (T(x3) - T(x2)) / l_s",
-              column=_kernel.GRADIENT),
+    Objective(
+        "gradient",
+        "maximize",
+        "K/m",
+        "temperature gradient across the stack (T(x3) - T(x2)) / l_s",
+        column=_kernel.GRADIENT,
+    ),
     Objective("T_max", "minimize", "K", "maximum temperature of the core", column=_kernel.T_MAX),
-    Objective("heat_leak", "minimize", "W", "heat leaked to the wall in the stack, integral of (2 h_s/R) theta S dx",
-              column=_kernel.HEAT_LEAK),
+    Objective(
+        "heat_leak",
+        "minimize",
+        "W",
+        "heat leaked to the wall in the stack, integral of (2 h_s/R) theta S dx",
+        column=_kernel.HEAT_LEAK,
+    ),
     Objective("T_hot", "minimize", "K", "temperature at the hot end of the stack, T(x3)", column=_kernel.T_HOT),
-    Objective("acoustic_loss", "minimize", "-",
-              "absorbed fraction of incident plane-wave power at Q = 0, mean over freqs", compute=_acoustic_loss),
-    Objective("Q_onset", "minimize", "W", "onset heat input of the core in the reference engine's resonator",
-              compute=_Q_onset),
-    Objective("onset_T_ratio", "minimize", "-", "T_hot / T_cold at onset in the reference engine's resonator",
-              compute=_onset_T_ratio),
-    Objective("Q_onset_p90", "minimize", "W",
-              "90th percentile of the onset heat input over draws from the material's covariance",
-              compute=_Q_onset_p90),
+    Objective(
+        "acoustic_loss",
+        "minimize",
+        "-",
+        "absorbed fraction of incident plane-wave power at Q = 0, mean over freqs",
+        compute=_acoustic_loss,
+    ),
+    Objective(
+        "Q_onset", "minimize", "W", "onset heat input of the core in the reference engine's resonator", compute=_Q_onset
+    ),
+    Objective(
+        "onset_T_ratio",
+        "minimize",
+        "-",
+        "T_hot / T_cold at onset in the reference engine's resonator",
+        compute=_onset_T_ratio,
+    ),
+    Objective(
+        "Q_onset_p90",
+        "minimize",
+        "W",
+        "90th percentile of the onset heat input over draws from the material's covariance",
+        compute=_Q_onset_p90,
+    ),
 ):
     register_objective(_row)
 

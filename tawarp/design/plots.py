@@ -21,8 +21,7 @@ def plot_history(study, objectives, path, T_limit=None, title: str = ""):
     if ok.any():
         num = np.flatnonzero(ok)
         val = ds[objectives[0]].values[ok]
-        feas = np.nan_to_num(ds.constraint.values[ok], nan=0.0) <= 0 if T_limit is not None \
-            else np.ones(len(num), bool)
+        feas = np.nan_to_num(ds.constraint.values[ok], nan=0.0) <= 0 if T_limit is not None else np.ones(len(num), bool)
         ax.plot(num[feas], val[feas], ".", ms=2, alpha=0.4, label="feasible trials")
         if np.any(~feas):
             ax.plot(num[~feas], val[~feas], "x", ms=2, alpha=0.4, color="0.6", label="T_max above limit")
@@ -72,7 +71,7 @@ def plot_best_profiles(space, designs: list[dict], path, n: int = 5, device=None
         x = np.linspace(0.0, pos[-1], 600)
         T, _ = steady_temperature(core, x, heat_input=q, device=device)
         label = ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in d["params"].items())
-        line, = ax.plot(x * 100, T[0], lw=1.3, label=label)
+        (line,) = ax.plot(x * 100, T[0], lw=1.3, label=label)
         i = space.stack_index
         for xp in (pos[i], pos[i + 1]):
             ax.axvline(xp * 100, color=line.get_color(), lw=0.6, ls=":")

@@ -58,9 +58,14 @@ class RankResult:
         return [r["material"] for r in sorted(rows, key=lambda r: r["rank"])]
 
     def to_dict(self) -> dict:
-        return {"core": self.core, "heat_inputs_W": self.heat_inputs, "materials": self.materials,
-                "n_samples": self.n_samples, "gradient_definition": "(T(x3) - T(x2)) / l_s [K/m]",
-                "ranking": self.table}
+        return {
+            "core": self.core,
+            "heat_inputs_W": self.heat_inputs,
+            "materials": self.materials,
+            "n_samples": self.n_samples,
+            "gradient_definition": "(T(x3) - T(x2)) / l_s [K/m]",
+            "ranking": self.table,
+        }
 
 
 def _materials(materials, catalogue: Catalogue | None) -> list[Material]:
@@ -73,8 +78,9 @@ def _materials(materials, catalogue: Catalogue | None) -> list[Material]:
     return mats
 
 
-def draw_parameter_sets(materials, n_samples: int, seed: int | np.random.Generator | None = 0,
-                        segment: str = "stack") -> dict[str, np.ndarray]:
+def draw_parameter_sets(
+    materials, n_samples: int, seed: int | np.random.Generator | None = 0, segment: str = "stack"
+) -> dict[str, np.ndarray]:
     """``{"SEGMENT.FIELD": (M, n_samples + 1)}``: per material, column 0 its nominal values
     and columns 1.. ``n_samples`` draws from N(mean, covariance) (:meth:`Material.sample`:
     a fit.json's covariance, clipped to the fit ranges), one generator for all materials."""
@@ -87,9 +93,17 @@ def draw_parameter_sets(materials, n_samples: int, seed: int | np.random.Generat
     return out
 
 
-def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_foam", segment: str = "stack",
-                   n_samples: int = 2000, seed: int = 0, T_limit: float = DEFAULT_T_LIMIT,
-                   catalogue: Catalogue | None = None, settings: ForwardSettings | None = None) -> RankResult:
+def rank_materials(
+    materials=None,
+    heat_inputs=(9.0,),
+    core: Core | str = "rvc_foam",
+    segment: str = "stack",
+    n_samples: int = 2000,
+    seed: int = 0,
+    T_limit: float = DEFAULT_T_LIMIT,
+    catalogue: Catalogue | None = None,
+    settings: ForwardSettings | None = None,
+) -> RankResult:
     """Rank ``materials`` (Material objects or catalogue names; default: the whole catalogue)
     at each heat input [W]; see the module docstring."""
     mats = _materials(materials, catalogue)
@@ -112,7 +126,7 @@ def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_f
     out = {}
     chunk = ev.settings.chunk
     for lo in range(0, table.shape[1], chunk):
-        part = ev.evaluate_table(table[:, lo:lo + chunk])
+        part = ev.evaluate_table(table[:, lo : lo + chunk])
         for k, v in part.items():
             out.setdefault(k, []).append(v)
     res = {k: np.concatenate(v).reshape(M, Nq, N + 1) for k, v in out.items()}
@@ -126,16 +140,22 @@ def rank_materials(materials=None, heat_inputs=(9.0,), core: Core | str = "rvc_f
         rank = np.empty(M, int)
         rank[order] = np.arange(1, M + 1)
         for i, m in enumerate(mats):
-            rows.append({"material": m.name, "Q_W": float(q), "rank": int(rank[i]),
-                         "gradient_nominal_K_per_m": float(g[i, j, 0]),
-                         "gradient_mean_K_per_m": float(means[i]),
-                         "gradient_std_K_per_m": float(draws[i].std(ddof=1)),
-                         "gradient_p025_K_per_m": float(np.percentile(draws[i], 2.5)),
-                         "gradient_p975_K_per_m": float(np.percentile(draws[i], 97.5)),
-                         "p_best": float(np.mean(best == i)),
-                         "T_max_mean_K": float(tmax[i, j, 1:].mean()),
-                         "p_T_max_over_limit": float(np.mean(tmax[i, j, 1:] > T_limit)),
-                         "T_limit_K": float(T_limit)})
+            rows.append(
+                {
+                    "material": m.name,
+                    "Q_W": float(q),
+                    "rank": int(rank[i]),
+                    "gradient_nominal_K_per_m": float(g[i, j, 0]),
+                    "gradient_mean_K_per_m": float(means[i]),
+                    "gradient_std_K_per_m": float(draws[i].std(ddof=1)),
+                    "gradient_p025_K_per_m": float(np.percentile(draws[i], 2.5)),
+                    "gradient_p975_K_per_m": float(np.percentile(draws[i], 97.5)),
+                    "p_best": float(np.mean(best == i)),
+                    "T_max_mean_K": float(tmax[i, j, 1:].mean()),
+                    "p_T_max_over_limit": float(np.mean(tmax[i, j, 1:] > T_limit)),
+                    "T_limit_K": float(T_limit),
+                }
+            )
             samples[(m.name, float(q))] = draws[i]
     rows.sort(key=lambda r: (r["Q_W"], r["rank"]))
     return RankResult(str(core.source), [float(q) for q in qs], [m.name for m in mats], N, rows, samples)
@@ -164,14 +184,27 @@ class OnsetRankResult:
         return [r["material"] for r in sorted(self.table, key=lambda r: r["rank"])]
 
     def to_dict(self) -> dict:
-        return {"engine": self.engine, "Q_max_W": self.Q_max, "materials": self.materials,
-                "n_samples": self.n_samples, "ranked_by": "median onset heat input Q_onset [W] (lower first)",
-                "ranking": self.table}
+        return {
+            "engine": self.engine,
+            "Q_max_W": self.Q_max,
+            "materials": self.materials,
+            "n_samples": self.n_samples,
+            "ranked_by": "median onset heat input Q_onset [W] (lower first)",
+            "ranking": self.table,
+        }
 
 
-def rank_by_onset(materials=None, engine: ThermoacousticEngine | str = "standing_wave", segment: str = "stack",
-                  n_samples: int = 200, seed: int = 0, Q_max: float = 200.0, n_bracket: int = 9,
-                  catalogue: Catalogue | None = None, settings: ForwardSettings | None = None) -> OnsetRankResult:
+def rank_by_onset(
+    materials=None,
+    engine: ThermoacousticEngine | str = "standing_wave",
+    segment: str = "stack",
+    n_samples: int = 200,
+    seed: int = 0,
+    Q_max: float = 200.0,
+    n_bracket: int = 9,
+    catalogue: Catalogue | None = None,
+    settings: ForwardSettings | None = None,
+) -> OnsetRankResult:
     """Rank ``materials`` by the onset heat input of ``engine`` with each in ``segment``;
     see the module docstring. ``Q_max`` [W] and ``n_bracket``: :func:`tawarp.model.onset.onset`."""
     from ..model.onset import onset
@@ -184,13 +217,14 @@ def rank_by_onset(materials=None, engine: ThermoacousticEngine | str = "standing
         raise ValueError("n_samples must be >= 2")
     M, N = len(mats), n_samples
     sets = draw_parameter_sets(mats, N, seed, segment)
-    res = onset(eng, Q_max=Q_max, params={k: v.ravel() for k, v in sets.items()}, n_bracket=n_bracket,
-                settings=settings)
+    res = onset(
+        eng, Q_max=Q_max, params={k: v.ravel() for k, v in sets.items()}, n_bracket=n_bracket, settings=settings
+    )
     Q = np.where(np.isfinite(res.Q_onset), res.Q_onset, np.inf).reshape(M, N + 1)
     f = res.f_onset.reshape(M, N + 1)
     ratio = (res.T_hot / eng.core.gas.T_cold).reshape(M, N + 1)
     draws = Q[:, 1:]
-    with np.errstate(invalid="ignore"):    # inf - inf between two draws without onset: the point is inf
+    with np.errstate(invalid="ignore"):  # inf - inf between two draws without onset: the point is inf
         p05, p90, p95 = np.percentile(draws, [5, 90, 95], axis=1)
     median = np.median(draws, axis=1)
     order = np.argsort(median, kind="stable")
@@ -201,17 +235,22 @@ def rank_by_onset(materials=None, engine: ThermoacousticEngine | str = "standing
     rows, samples = [], {}
     for i, m in enumerate(mats):
         ok = np.isfinite(draws[i])
-        rows.append({"material": m.name, "rank": int(rank[i]),
-                     "Q_onset_nominal_W": _none_if_inf(Q[i, 0]),
-                     "Q_onset_median_W": _none_if_inf(median[i]),
-                     "Q_onset_p05_W": _none_if_inf(p05[i]),
-                     "Q_onset_p90_W": _none_if_inf(p90[i]),
-                     "Q_onset_p95_W": _none_if_inf(p95[i]),
-                     "f_onset_median_Hz": float(np.median(f[i, 1:][ok])) if ok.any() else None,
-                     "T_ratio_median": float(np.median(ratio[i, 1:][ok])) if ok.any() else None,
-                     "p_no_onset": float(np.mean(~ok)),
-                     "p_best": float(np.mean((best == i) & ~all_inf)),
-                     "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i}})
+        rows.append(
+            {
+                "material": m.name,
+                "rank": int(rank[i]),
+                "Q_onset_nominal_W": _none_if_inf(Q[i, 0]),
+                "Q_onset_median_W": _none_if_inf(median[i]),
+                "Q_onset_p05_W": _none_if_inf(p05[i]),
+                "Q_onset_p90_W": _none_if_inf(p90[i]),
+                "Q_onset_p95_W": _none_if_inf(p95[i]),
+                "f_onset_median_Hz": float(np.median(f[i, 1:][ok])) if ok.any() else None,
+                "T_ratio_median": float(np.median(ratio[i, 1:][ok])) if ok.any() else None,
+                "p_no_onset": float(np.mean(~ok)),
+                "p_best": float(np.mean((best == i) & ~all_inf)),
+                "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i},
+            }
+        )
         samples[m.name] = draws[i]
     rows.sort(key=lambda r: r["rank"])
     return OnsetRankResult(str(eng.source), float(Q_max), [m.name for m in mats], N, rows, samples)

@@ -63,7 +63,7 @@ def sobol_unit(n: int, d: int, seed: int, skip: int = 0) -> np.ndarray:
 
 
 #: Points of a scrambled Sobol sequence of :func:`sobol_unit` (scipy's default 30 bits).
-SOBOL_MAX_POINTS = 2 ** 30
+SOBOL_MAX_POINTS = 2**30
 
 
 def sobol_directions(d: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -124,7 +124,9 @@ class BatchCmaEs:
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
         self.n_cat = max(categories, 1)
         if batch < 2 * self.n_cat:
-            raise ValueError(f"batch {batch} too small: CMA-ES needs at least 2 trials per material ({self.n_cat} materials)")
+            raise ValueError(
+                f"batch {batch} too small: CMA-ES needs at least 2 trials per material ({self.n_cat} materials)"
+            )
         self.d = max(dim, 2)  # cmaes needs >= 2 dimensions: pad a dummy one, kept internal
         self.sizes = [batch // self.n_cat + (1 if m < batch % self.n_cat else 0) for m in range(self.n_cat)]
         self.opts = [None] * self.n_cat
@@ -135,15 +137,22 @@ class BatchCmaEs:
     def _start(self, m: int, mean, sigma: float, cov, seed: int) -> None:
         import cmaes
 
-        self.opts[m] = cmaes.CMA(mean=np.clip(mean, 0.0, 1.0), sigma=max(float(sigma), 1e-8), cov=cov,
-                                 bounds=np.tile([0.0, 1.0], (self.d, 1)), seed=seed,
-                                 n_max_resampling=10 * self.d, population_size=self.sizes[m])
+        self.opts[m] = cmaes.CMA(
+            mean=np.clip(mean, 0.0, 1.0),
+            sigma=max(float(sigma), 1e-8),
+            cov=cov,
+            bounds=np.tile([0.0, 1.0], (self.d, 1)),
+            seed=seed,
+            n_max_resampling=10 * self.d,
+            population_size=self.sizes[m],
+        )
 
     def _restart(self, m: int) -> None:
         self.restarts[m] += 1
         seq = np.random.SeedSequence([self.seed, m, self.restarts[m]])
-        self._start(m, np.random.default_rng(seq).random(self.d), SIGMA0, None,
-                    int(seq.generate_state(1)[0] % (2**31 - 2)) + 1)
+        self._start(
+            m, np.random.default_rng(seq).random(self.d), SIGMA0, None, int(seq.generate_state(1)[0] % (2**31 - 2)) + 1
+        )
 
     def _population(self, m: int) -> np.ndarray:
         """Instance m's next population (sizes[m], d), restarting it first if it degenerated."""
@@ -166,7 +175,7 @@ class BatchCmaEs:
             u = np.concatenate([self._population(m) for m in range(self.n_cat)])
             cat = np.concatenate([np.full(size, m) for m, size in enumerate(self.sizes)])
         self._asked = (u, cat)
-        X = u[:, :self.dim]
+        X = u[:, : self.dim]
         return np.concatenate([X, cat[:, None].astype(float)], axis=1) if self.categories else X
 
     def tell(self, X: np.ndarray, F: np.ndarray, violation: np.ndarray) -> None:
@@ -175,7 +184,7 @@ class BatchCmaEs:
         if self._asked is None:
             raise RuntimeError("tell without ask: tell the generation last asked")
         u_asked, cat_asked = self._asked
-        u = np.concatenate([X[:, :self.dim], u_asked[:, self.dim:]], axis=1)
+        u = np.concatenate([X[:, : self.dim], u_asked[:, self.dim :]], axis=1)
         cat = X[:, self.dim].astype(int) if self.categories else np.zeros(len(X), dtype=int)
         f = np.asarray(F, dtype=float).reshape(len(X), -1)[:, 0]
         bad = ~np.all(np.isfinite(u), axis=1)
@@ -231,8 +240,8 @@ def nondominated_ranks(F: np.ndarray) -> np.ndarray:
         return rank
     dom = np.zeros((N, N), dtype=bool)  # dom[p, q]: p dominates q
     for lo in range(0, N, 1024):
-        a = F[lo:lo + 1024, None, :]
-        dom[lo:lo + 1024] = np.all(a <= F[None, :, :], axis=2) & np.any(a < F[None, :, :], axis=2)
+        a = F[lo : lo + 1024, None, :]
+        dom[lo : lo + 1024] = np.all(a <= F[None, :, :], axis=2) & np.any(a < F[None, :, :], axis=2)
     count = dom.sum(axis=0)
     rank = np.full(N, -1)
     front = np.flatnonzero(count == 0)
@@ -296,8 +305,16 @@ class BatchNsga2:
     is inherited from a parent and mutated with probability 1/(dim + 1)), population =
     ``batch``; generation 0 scrambled Sobol."""
 
-    def __init__(self, dim: int, categories: int, batch: int, seed: int, eta_c: float = 15.0, eta_m: float = 20.0,
-                 n_objectives: int = 2):
+    def __init__(
+        self,
+        dim: int,
+        categories: int,
+        batch: int,
+        seed: int,
+        eta_c: float = 15.0,
+        eta_m: float = 20.0,
+        n_objectives: int = 2,
+    ):
         self.batch, self.seed, self.categories = batch, seed, categories
         if n_objectives > 2 and batch > 4096:
             raise ValueError("NSGA-II with more than two objectives: batch at most 4096 (O(batch^2) sorting memory)")
@@ -349,7 +366,9 @@ class BatchNsga2:
             # polynomial mutation, probability 1/d per gene
             mut = rng.random((B, self.d)) < 1.0 / max(self.d, 1)
             r = rng.random((B, self.d))
-            delta = np.where(r < 0.5, (2 * r) ** (1 / (self.eta_m + 1)) - 1, 1 - (2 * (1 - r)) ** (1 / (self.eta_m + 1)))
+            delta = np.where(
+                r < 0.5, (2 * r) ** (1 / (self.eta_m + 1)) - 1, 1 - (2 * (1 - r)) ** (1 / (self.eta_m + 1))
+            )
             child = np.clip(np.where(mut, child + delta, child), 0.0, 1.0)
         cm = np.where(rng.random(B) < 0.5, mat[p1], mat[p2])
         if self.n_mat > 1:
@@ -358,7 +377,7 @@ class BatchNsga2:
         return child, cm
 
     def tell(self, X: np.ndarray, F: np.ndarray, violation: np.ndarray) -> None:
-        u = np.asarray(X[:, :self.d], dtype=float)
+        u = np.asarray(X[:, : self.d], dtype=float)
         mat = X[:, self.d].astype(int) if self.categories else np.zeros(len(X), dtype=int)
         F = np.where(np.isfinite(F), np.asarray(F, dtype=float), np.inf)
         viol = np.asarray(violation, dtype=float)
@@ -366,6 +385,10 @@ class BatchNsga2:
             self.pop = self._select(u, mat, F, viol)
         else:
             P = self.pop
-            self.pop = self._select(np.concatenate([P[0], u]), np.concatenate([P[1], mat]),
-                                    np.concatenate([P[2], F]), np.concatenate([P[3], viol]))
+            self.pop = self._select(
+                np.concatenate([P[0], u]),
+                np.concatenate([P[1], mat]),
+                np.concatenate([P[2], F]),
+                np.concatenate([P[3], viol]),
+            )
         self.generation += 1

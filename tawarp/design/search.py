@@ -46,10 +46,24 @@ from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
 from .samplers import make_sampler, pareto_mask
 from .space import DesignSpace
-from .storage import (ATTR, COPY, StudyConflict, WorkerClaim, add_evaluated, best_designs, bind_store, bind_worker,
-                      copies_in_study, journal_batch, lineage, make_storage, open_study)
+from .storage import (
+    ATTR,
+    COPY,
+    StudyConflict,
+    WorkerClaim,
+    add_evaluated,
+    best_designs,
+    bind_store,
+    bind_worker,
+    copies_in_study,
+    journal_batch,
+    lineage,
+    make_storage,
+    open_study,
+)
 from ..io import interrupt_guard
 from ..model.forward import ForwardSettings
+
 
 @dataclass
 class SearchResult:
@@ -82,11 +96,27 @@ def _interruption_hooks(asked: int, stop_after: int | None, crash_after: int | N
         raise SearchCrash(f"stopped after asking {asked} batches (test hook)")
 
 
-def search(space: DesignSpace, objectives=("gradient",), n_trials: int = 1024, batch: int = 256, storage=None,
-           study_name: str = "tawarp-design", worker: str = "w0", seed: int = 0, T_limit: float | None = DEFAULT_T_LIMIT,
-           engine: str = "batched", settings: ForwardSettings | None = None, freqs=DEFAULT_FREQS,
-           progress: bool = False, stale_after: float = 3600.0, onset=None, client=None, store=None,
-           _stop_after: int | None = None, _crash_after: int | None = None) -> SearchResult:
+def search(
+    space: DesignSpace,
+    objectives=("gradient",),
+    n_trials: int = 1024,
+    batch: int = 256,
+    storage=None,
+    study_name: str = "tawarp-design",
+    worker: str = "w0",
+    seed: int = 0,
+    T_limit: float | None = DEFAULT_T_LIMIT,
+    engine: str = "batched",
+    settings: ForwardSettings | None = None,
+    freqs=DEFAULT_FREQS,
+    progress: bool = False,
+    stale_after: float = 3600.0,
+    onset=None,
+    client=None,
+    store=None,
+    _stop_after: int | None = None,
+    _crash_after: int | None = None,
+) -> SearchResult:
     """Run (or resume) a batched design search; see the module docstring.
 
     ``n_trials``: trials of this worker's lineage in the study when done (rounded up to
@@ -153,8 +183,9 @@ def worker_seed(seed: int, worker: str) -> int:
 class _Run:
     """What one search run shares between its engines: evaluation, timing, storage."""
 
-    def __init__(self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None,
-                 store=None):
+    def __init__(
+        self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None, store=None
+    ):
         self.space, self.objectives, self.study, self.storage = space, objectives, study, storage
         self.worker, self.T_limit, self.store = worker, T_limit, store
         #: raises KeyboardInterrupt once Ctrl-C was pressed (:func:`tawarp.io.interrupt_guard`)
@@ -164,12 +195,12 @@ class _Run:
         else:
             from ..distributed import ClusterEvaluator
 
-            self.evaluator = ClusterEvaluator(client, space, extra=objectives, freqs=freqs, settings=settings,
-                                              onset=onset)
+            self.evaluator = ClusterEvaluator(
+                client, space, extra=objectives, freqs=freqs, settings=settings, onset=onset
+            )
         self.dists = space.distributions()
         self.sign = signs(objectives)
-        self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0,
-                           trials_in_study=0)
+        self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
         self.resumed = 0
         self.writer = None
         self.front = np.zeros((0, len(objectives)))  # the lineage's feasible front so far (minimized)
@@ -210,10 +241,18 @@ class _Run:
         rows = range(len(index))
         vals = np.stack([np.asarray(metrics[o], dtype=np.float64) for o in self.objectives], axis=1)
         metric_dicts = [{k: float(v[j]) for k, v in metrics.items()} for j in rows]
-        attrs = [{ATTR + "worker": self.worker, ATTR + "generation": g, ATTR + "index": int(index[j]),
-                  **({COPY: True} if copies else {})} for j in rows]
-        add_evaluated(self.study, self.storage, self.space.points_of(values), self.dists, vals, metric_dicts,
-                      viol, failed, attrs)
+        attrs = [
+            {
+                ATTR + "worker": self.worker,
+                ATTR + "generation": g,
+                ATTR + "index": int(index[j]),
+                **({COPY: True} if copies else {}),
+            }
+            for j in rows
+        ]
+        add_evaluated(
+            self.study, self.storage, self.space.points_of(values), self.dists, vals, metric_dicts, viol, failed, attrs
+        )
         self.timing["trials_in_study"] += len(index)
 
     def kept(self, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
@@ -228,7 +267,7 @@ class _Run:
         G = np.concatenate([self.front, F[feas]])
         on = pareto_mask(G)
         self.front = G[on]
-        return feas[on[len(G) - len(feas):]]
+        return feas[on[len(G) - len(feas) :]]
 
     def close(self) -> None:
         if self.writer is not None:
@@ -241,18 +280,18 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
     space = run.space
     t = time.perf_counter()
     gens = lineage(run.study, run.worker)
-    copied = ({(g, j) for (w, g, j) in copies_in_study(run.study) if w == run.worker}
-              if run.store is not None else set())
+    copied = {(g, j) for (w, g, j) in copies_in_study(run.study) if w == run.worker} if run.store is not None else set()
     bind_worker(run.study, run.worker, bool(gens), seed=seed, batch=batch)
     run.timing["storage"] += time.perf_counter() - t
     for g, rows in gens.items():  # a lineage stored before its seed and batch were recorded
         if rows["index"].max() >= batch:
-            raise StudyConflict(f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} has members "
-                                f"up to index {rows['index'].max()}; resume with the same batch "
-                                f"(> {rows['index'].max()}), not {batch}")
+            raise StudyConflict(
+                f"study {run.study.study_name!r}, worker {run.worker!r}: generation {g} has members "
+                f"up to index {rows['index'].max()}; resume with the same batch "
+                f"(> {rows['index'].max()}), not {batch}"
+            )
     categories = len(space.material.choices) if space.material is not None else 0
-    sampler = make_sampler(len(space.continuous), categories, batch, worker_seed(seed, run.worker),
-                           len(run.objectives))
+    sampler = make_sampler(len(space.continuous), categories, batch, worker_seed(seed, run.worker), len(run.objectives))
     names = [v.name for v in space.variables]
     done, asked = 0, 0
     while done < n_target:
@@ -271,13 +310,20 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         def put(rows, cols):
             for k, v in cols.items():
                 metrics.setdefault(k, np.full(batch, np.nan))[rows] = v
+
         if stored is not None:  # the stored points are told, whatever the sampler asks now
             for k in names:
-                values[k][idx] = space.material_index(stored["param:material"]) if k == "material" \
+                values[k][idx] = (
+                    space.material_index(stored["param:material"])
+                    if k == "material"
                     else stored["param:" + k].astype(np.float64)
+                )
             bad = stored["failed"].astype(bool)
-            F[idx] = np.where(bad[:, None], np.inf,
-                              np.stack([stored["metric:" + o].astype(np.float64) for o in run.objectives], 1) * run.sign)
+            F[idx] = np.where(
+                bad[:, None],
+                np.inf,
+                np.stack([stored["metric:" + o].astype(np.float64) for o in run.objectives], 1) * run.sign,
+            )
             c = np.nan_to_num(stored["constraint"].astype(np.float64), nan=0.0)
             viol[idx] = np.where(bad, np.inf, c)
             put(idx, {k[7:]: v.astype(np.float64) for k, v in stored.items() if k.startswith("metric:")})
@@ -299,8 +345,14 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
             if keep:  # copies of the generation's kept members that the study lacks
                 keep = np.array(keep)
                 c = viol[keep] if run.T_limit is not None else None
-                run.copy_to_study(g, keep, {k: v[keep] for k, v in values.items()},
-                                  {k: v[keep] for k, v in metrics.items()}, c, np.zeros(len(keep), bool))
+                run.copy_to_study(
+                    g,
+                    keep,
+                    {k: v[keep] for k, v in values.items()},
+                    {k: v[keep] for k, v in metrics.items()},
+                    c,
+                    np.zeros(len(keep), bool),
+                )
             if missing.size:
                 claim.heartbeat()
         run.timing["storage"] += time.perf_counter() - t
@@ -327,12 +379,17 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning, module="tawarp.design")
     warnings.filterwarnings("ignore", message="Constraints have been set, but CmaEsSampler")
     if len(run.objectives) > 1:
-        sampler = optuna.samplers.NSGAIISampler(population_size=batch, seed=seed,
-                                                constraints_func=constraints_func if T_limit is not None else None)
+        sampler = optuna.samplers.NSGAIISampler(
+            population_size=batch, seed=seed, constraints_func=constraints_func if T_limit is not None else None
+        )
     else:
-        sampler = optuna.samplers.CmaEsSampler(popsize=batch, n_startup_trials=batch, seed=seed,
-                                               independent_sampler=optuna.samplers.QMCSampler(seed=seed, scramble=True, warn_independent_sampling=False),
-                                               warn_independent_sampling=False)
+        sampler = optuna.samplers.CmaEsSampler(
+            popsize=batch,
+            n_startup_trials=batch,
+            seed=seed,
+            independent_sampler=optuna.samplers.QMCSampler(seed=seed, scramble=True, warn_independent_sampling=False),
+            warn_independent_sampling=False,
+        )
     study.sampler = sampler
     study_id = storage.get_study_id_from_name(study.study_name)
 
@@ -367,8 +424,9 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
         trials = []
         for _ in range(batch):
             tr = study.ask(run.dists)
-            storage.set_trial_system_attr(storage.get_trial_id_from_study_id_trial_number(study_id, tr.number),
-                                          ATTR + "worker", run.worker)
+            storage.set_trial_system_attr(
+                storage.get_trial_id_from_study_id_trial_number(study_id, tr.number), ATTR + "worker", run.worker
+            )
             trials.append(tr)
         run.timing["sampler"] += time.perf_counter() - t
         asked += 1
@@ -380,5 +438,7 @@ def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, cra
 
 def objective_definitions(objectives) -> dict:
     """``{name: {direction, units, definition}}`` of the objectives table (for reports)."""
-    return {o: {"direction": objective(o).direction, "units": objective(o).unit,
-                "definition": objective(o).long_name} for o in objectives}
+    return {
+        o: {"direction": objective(o).direction, "units": objective(o).unit, "definition": objective(o).long_name}
+        for o in objectives
+    }

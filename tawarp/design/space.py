@@ -73,7 +73,9 @@ def parse_variable(text: str, grid: bool = False) -> Variable:
     except ValueError as e:
         if str(e).startswith(repr(text)):
             raise
-        raise ValueError(f"{text!r}: expected NAME=LOW:HIGH[:log], NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,...") from None
+        raise ValueError(
+            f"{text!r}: expected NAME=LOW:HIGH[:log], NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,..."
+        ) from None
 
 
 class DesignSpace:
@@ -86,8 +88,9 @@ class DesignSpace:
     ``segment`` (default ``stack``). ``heat_input``: its value when not a variable.
     """
 
-    def __init__(self, core: Core, variables, catalogue: Catalogue | None = None, segment: str = "stack",
-                 heat_input: float = 0.0):
+    def __init__(
+        self, core: Core, variables, catalogue: Catalogue | None = None, segment: str = "stack", heat_input: float = 0.0
+    ):
         self.core = core
         self.segment = segment
         self.catalogue = catalogue if catalogue is not None else default_catalogue()
@@ -133,8 +136,10 @@ class DesignSpace:
                 raise ValueError(f"heat_input [W]: must be >= 0, got low = {v.low}")
         else:
             if name not in self.core.parameter_names():
-                raise KeyError(f"{v.name!r} is not a parameter of {self.core.source}; "
-                               f"parameters are {', '.join(self.core.parameter_names())}")
+                raise KeyError(
+                    f"{v.name!r} is not a parameter of {self.core.source}; "
+                    f"parameters are {', '.join(self.core.parameter_names())}"
+                )
             fld = name.partition(".")[2]
             check_values(fld, np.array([v.low, v.high]), f"design variable {v.name}")
         if v.log and v.low <= 0:
@@ -239,12 +244,22 @@ class DesignSpace:
     def binding(self) -> dict:
         """What a study is bound to: the core, the designed segment, the fixed heat input
         [W] and the variables (JSON types, so that a stored copy compares equal)."""
-        return {"core": str(self.core.source), "segment": self.segment, "heat_input_W": self.heat_input,
-                "variables": self.describe()}
+        return {
+            "core": str(self.core.source),
+            "segment": self.segment,
+            "heat_input_W": self.heat_input,
+            "variables": self.describe(),
+        }
 
     def describe(self) -> list[dict]:
-        return [({"name": v.name, "choices": list(v.choices)} if v.categorical else
-                 {"name": v.name, "low": v.low, "high": v.high, "log": v.log}) for v in self.variables]
+        return [
+            (
+                {"name": v.name, "choices": list(v.choices)}
+                if v.categorical
+                else {"name": v.name, "low": v.low, "high": v.high, "log": v.log}
+            )
+            for v in self.variables
+        ]
 
     # -- sampler coordinates --------------------------------------------------------------
     @property
@@ -349,24 +364,31 @@ class DeviceTable:
             grids.append(np.asarray(v.values, dtype=np.float64))
         # C-order strides of the grid over space.variables (the sweep file's dimensions)
         shape = [len(v.grid()) for v in space.variables]
-        strides = {v.name: int(np.prod(shape[j + 1:], dtype=np.int64)) for j, v in enumerate(space.variables)}
+        strides = {v.name: int(np.prod(shape[j + 1 :], dtype=np.int64)) for j, v in enumerate(space.variables)}
         sizes = [len(v.choices) if v.categorical else len(v.values) for v in self.variables]
         mats = space.material.choices if space.material is not None else ()
-        materials = np.array([[getattr(space.catalogue[c], p) for p in MATERIAL_PARAMS] for c in mats],
-                             dtype=np.float64).reshape(len(mats), len(MATERIAL_PARAMS))
+        materials = np.array(
+            [[getattr(space.catalogue[c], p) for p in MATERIAL_PARAMS] for c in mats], dtype=np.float64
+        ).reshape(len(mats), len(MATERIAL_PARAMS))
         material_rows = [row[f"{space.segment}.{CORE_FIELD[p]}"] for p in MATERIAL_PARAMS] if mats else []
 
         def up(a, dtype):
             return wp.array(np.asarray(a), dtype=dtype, device=device)
 
         self._inputs = dict(
-            grid=up(np.concatenate(grids) if grids else np.zeros(0), wp.float64), kind=up(kinds, wp.int32),
-            stride=up([strides[v.name] for v in self.variables], wp.int64), size=up(sizes, wp.int32),
-            start=up(starts, wp.int32), low=up(lows, wp.float64), span=up(spans, wp.float64), row=up(rows, wp.int32),
+            grid=up(np.concatenate(grids) if grids else np.zeros(0), wp.float64),
+            kind=up(kinds, wp.int32),
+            stride=up([strides[v.name] for v in self.variables], wp.int64),
+            size=up(sizes, wp.int32),
+            start=up(starts, wp.int32),
+            low=up(lows, wp.float64),
+            span=up(spans, wp.float64),
+            row=up(rows, wp.int32),
             materials=wp.array2d(materials, dtype=wp.float64, device=device),
-            material_rows=up(np.asarray(material_rows, dtype=np.int32), wp.int32))
+            material_rows=up(np.asarray(material_rows, dtype=np.int32), wp.int32),
+        )
         self.rows = 1 + len(params)
-        self._sobol = None   # (seed, directions, shift, scale) on the device, made by the first sobol()
+        self._sobol = None  # (seed, directions, shift, scale) on the device, made by the first sobol()
 
     def _launch(self, lo: int, m: int, unit, values):
         import warp as wp
@@ -375,10 +397,28 @@ class DeviceTable:
 
         table = wp.empty((self.rows, m), dtype=wp.float64, device=self.device)
         p = self._inputs
-        wp.launch(design_table, dim=m, device=self.device,
-                  inputs=[wp.int64(lo), unit, p["grid"], p["kind"], p["stride"], p["size"], p["start"], p["low"],
-                          p["span"], p["row"], p["materials"], p["material_rows"], float(self.space.heat_input),
-                          table, values])
+        wp.launch(
+            design_table,
+            dim=m,
+            device=self.device,
+            inputs=[
+                wp.int64(lo),
+                unit,
+                p["grid"],
+                p["kind"],
+                p["stride"],
+                p["size"],
+                p["start"],
+                p["low"],
+                p["span"],
+                p["row"],
+                p["materials"],
+                p["material_rows"],
+                float(self.space.heat_input),
+                table,
+                values,
+            ],
+        )
         return table
 
     def grid(self, lo: int, hi: int):
@@ -398,11 +438,19 @@ class DeviceTable:
         if self.names:
             if self._sobol is None or self._sobol[0] != seed:
                 directions, shift, scale = sobol_directions(len(self.names), seed)
-                self._sobol = (seed, wp.array(directions, dtype=wp.int64, device=self.device),
-                               wp.array(shift, dtype=wp.int64, device=self.device), scale)
+                self._sobol = (
+                    seed,
+                    wp.array(directions, dtype=wp.int64, device=self.device),
+                    wp.array(shift, dtype=wp.int64, device=self.device),
+                    scale,
+                )
             _, directions, shift, scale = self._sobol
-            wp.launch(sobol_points, dim=u.shape, device=self.device,
-                      inputs=[wp.int64(lo), directions, shift, wp.float64(scale), u])
+            wp.launch(
+                sobol_points,
+                dim=u.shape,
+                device=self.device,
+                inputs=[wp.int64(lo), directions, shift, wp.float64(scale), u],
+            )
         return self.unit(u)
 
     def unit(self, u):

@@ -87,16 +87,19 @@ class JournalFile(BaseJournalBackend):
         back to the file's size before it, since a half-written line would stop every
         later reader of the study."""
         fd = self._file.fileno()
-        size = os.fstat(fd).st_size   # under the lock: nobody else appends
+        size = os.fstat(fd).st_size  # under the lock: nobody else appends
         view = memoryview(text)
         try:
             while view:
-                view = view[os.write(fd, view):]
+                view = view[os.write(fd, view) :]
         except OSError as e:
             with contextlib.suppress(OSError):
                 os.ftruncate(fd, size)
-            raise OSError(e.errno, f"{self.path}: could not be written ({os.strerror(e.errno) if e.errno else e}); "
-                                   f"the trials stored before are kept") from None
+            raise OSError(
+                e.errno,
+                f"{self.path}: could not be written ({os.strerror(e.errno) if e.errno else e}); "
+                f"the trials stored before are kept",
+            ) from None
 
     @contextlib.contextmanager
     def batch(self):
@@ -106,7 +109,7 @@ class JournalFile(BaseJournalBackend):
         with interrupts_deferred():
             self.lock.acquire()
             try:
-                with open(self.path, "ab", buffering=0) as f:   # unbuffered: each append reaches the file
+                with open(self.path, "ab", buffering=0) as f:  # unbuffered: each append reaches the file
                     self._file = f
                     try:
                         yield
@@ -151,15 +154,19 @@ def _rdb_storage(url: str):
     try:
         parsed = make_url(url)
     except (ArgumentError, ValueError) as e:
-        raise ValueError(f"storage {url!r}: not a database URL ({e}); give sqlite:///FILE.db, "
-                         "postgresql://USER@HOST/DB or a journal file path") from None
+        raise ValueError(
+            f"storage {url!r}: not a database URL ({e}); give sqlite:///FILE.db, "
+            "postgresql://USER@HOST/DB or a journal file path"
+        ) from None
     shown = parsed.render_as_string(hide_password=True)
     sqlite = parsed.get_backend_name() == "sqlite"
     if sqlite and parsed.database and parsed.database != ":memory:":
         folder = Path(parsed.database).parent
         if not folder.is_dir():
-            raise ValueError(f"storage {shown}: the folder {str(folder)!r} of the database does not exist; "
-                             "create it or give another path")
+            raise ValueError(
+                f"storage {shown}: the folder {str(folder)!r} of the database does not exist; "
+                "create it or give another path"
+            )
     kw = {"connect_args": {"timeout": 60}} if sqlite else {}
     for attempt in range(8):
         try:
@@ -167,8 +174,10 @@ def _rdb_storage(url: str):
         except Exception as e:  # workers creating a fresh database's schema at once race; retry
             if attempt == 7:
                 cause = str(getattr(e, "orig", None) or e).strip().splitlines()[0]
-                raise ValueError(f"storage {shown}: cannot open the database ({cause}); check the URL, "
-                                 "that the server runs and that you may write there") from e
+                raise ValueError(
+                    f"storage {shown}: cannot open the database ({cause}); check the URL, "
+                    "that the server runs and that you may write there"
+                ) from e
             time.sleep(0.2 * (attempt + 1))
 
 
@@ -185,8 +194,10 @@ def open_study(storage, study_name: str, objectives, space_description: list | N
     dirs = directions(objectives)
     study = optuna.create_study(storage=st, study_name=study_name, directions=dirs, load_if_exists=True)
     if [d.name.lower() for d in study.directions] != dirs:
-        raise StudyConflict(f"study {study_name!r} has directions {[d.name.lower() for d in study.directions]}, "
-                            f"objectives {list(objectives)} need {dirs}")
+        raise StudyConflict(
+            f"study {study_name!r} has directions {[d.name.lower() for d in study.directions]}, "
+            f"objectives {list(objectives)} need {dirs}"
+        )
     _bind(study, "tawarp_objectives", list(objectives), "objectives")
     if space_description is not None:
         _bind(study, "tawarp_space", space_description, "design space")
@@ -198,8 +209,10 @@ def _bind(study, key: str, value, what: str) -> None:
     if prev is None:
         study.set_user_attr(key, value)
     elif prev != value:
-        raise StudyConflict(f"study {study.study_name!r} was run with {what} {prev}, not {value}; "
-                            f"a study is bound to its {what}: give another study name or output")
+        raise StudyConflict(
+            f"study {study.study_name!r} was run with {what} {prev}, not {value}; "
+            f"a study is bound to its {what}: give another study name or output"
+        )
 
 
 def bind_worker(study, worker: str, resumed: bool, **given) -> None:
@@ -213,8 +226,10 @@ def bind_worker(study, worker: str, resumed: bool, **given) -> None:
     if resumed and prev is not None and prev != given:
         was = ", ".join(f"{k} {v}" for k, v in prev.items())
         now = ", ".join(f"{k} {v}" for k, v in given.items())
-        raise StudyConflict(f"worker {worker!r} of study {study.study_name!r} was started with {was}, not {now}: "
-                            f"resume it with those, or give another worker name")
+        raise StudyConflict(
+            f"worker {worker!r} of study {study.study_name!r} was started with {was}, not {now}: "
+            f"resume it with those, or give another worker name"
+        )
     if prev != given:
         study.set_user_attr(key, given)
 
@@ -298,10 +313,13 @@ class StoreWriter:
         categorical one as indices into its choices), ``metrics`` {name: (k,)},
         ``violation`` (k,) or None, ``failed`` (k,)."""
         k = len(index)
-        cols = {"generation": np.full(k, generation, dtype=np.int64), "index": np.asarray(index, dtype=np.int64),
-                "failed": np.asarray(failed, dtype=bool),
-                "constraint": np.full(k, np.nan) if violation is None else np.asarray(violation, dtype=np.float64),
-                "time": np.full(k, time.time())}
+        cols = {
+            "generation": np.full(k, generation, dtype=np.int64),
+            "index": np.asarray(index, dtype=np.int64),
+            "failed": np.asarray(failed, dtype=bool),
+            "constraint": np.full(k, np.nan) if violation is None else np.asarray(violation, dtype=np.float64),
+            "time": np.full(k, time.time()),
+        }
         cols.update({"params/" + n: np.asarray(v) for n, v in params.items()})
         cols.update({"metrics/" + n: np.asarray(v, dtype=np.float64) for n, v in metrics.items()})
         # a new chunk of every column may be allocated; checked first because HDF5 does not
@@ -321,15 +339,17 @@ class StoreWriter:
             f["committed"][0] = n0 + k
             f.flush()
             os.fsync(f.id.get_vfd_handle())
-        except (OSError, RuntimeError) as e:   # a full disk: the committed generations stay readable (SWMR)
+        except (OSError, RuntimeError) as e:  # a full disk: the committed generations stay readable (SWMR)
             reason = io_failure(e)
             if reason is None:
                 raise
             discard_hdf5(f)
             self._f = None
-            raise OSError(getattr(e, "errno", None) or errno.EIO,
-                          f"{self.store.path / self.name}: the trial store could not be written ({reason}); the "
-                          f"generations stored before are kept") from None
+            raise OSError(
+                getattr(e, "errno", None) or errno.EIO,
+                f"{self.store.path / self.name}: the trial store could not be written ({reason}); the "
+                f"generations stored before are kept",
+            ) from None
         self.rows = n0 + k
 
     def _open(self, cols: dict) -> None:
@@ -368,8 +388,12 @@ def _concat(parts: list[dict]) -> dict[str, np.ndarray]:
     keys = list(dict.fromkeys(k for p in parts for k in p))
     out = {}
     for k in keys:
-        out[k] = np.concatenate([p[k] if k in p else np.full(len(p["generation"]), np.nan if k.startswith("metric:")
-                                                             else None) for p in parts])
+        out[k] = np.concatenate(
+            [
+                p[k] if k in p else np.full(len(p["generation"]), np.nan if k.startswith("metric:") else None)
+                for p in parts
+            ]
+        )
     return out
 
 
@@ -381,8 +405,10 @@ def bind_store(study, storage, store=None) -> TrialStore | None:
     that has a store)."""
     if store is False:
         if study.user_attrs.get(STORE_ATTR):
-            raise StudyConflict(f"study {study.study_name!r} keeps its trials in the trial store "
-                                f"{study.user_attrs[STORE_ATTR]}; it cannot go without one")
+            raise StudyConflict(
+                f"study {study.study_name!r} keeps its trials in the trial store "
+                f"{study.user_attrs[STORE_ATTR]}; it cannot go without one"
+            )
         return None
     if store is None:
         store = study.user_attrs.get(STORE_ATTR)
@@ -418,13 +444,15 @@ def _study_rows(study) -> tuple[dict, dict]:
     if not rows:
         return {}, copies
     ts = [t for _, t in rows]
-    cols = {"worker": np.array([k[0] for k, _ in rows], dtype=object),
-            "generation": np.array([k[1] for k, _ in rows], dtype=np.int64),
-            "index": np.array([k[2] for k, _ in rows], dtype=np.int64),
-            "failed": np.array([t.state == TrialState.FAIL for t in ts]),
-            "constraint": np.array([t.system_attrs.get("constraints", [np.nan])[0] for t in ts], dtype=np.float64),
-            "time": np.array([t.datetime_complete.timestamp() if t.datetime_complete else np.nan for t in ts]),
-            "number": np.array([t.number for t in ts], dtype=np.int64)}
+    cols = {
+        "worker": np.array([k[0] for k, _ in rows], dtype=object),
+        "generation": np.array([k[1] for k, _ in rows], dtype=np.int64),
+        "index": np.array([k[2] for k, _ in rows], dtype=np.int64),
+        "failed": np.array([t.state == TrialState.FAIL for t in ts]),
+        "constraint": np.array([t.system_attrs.get("constraints", [np.nan])[0] for t in ts], dtype=np.float64),
+        "time": np.array([t.datetime_complete.timestamp() if t.datetime_complete else np.nan for t in ts]),
+        "number": np.array([t.number for t in ts], dtype=np.int64),
+    }
     for name in dict.fromkeys(k for t in ts for k in t.params):
         vals = [t.params.get(name) for t in ts]
         cols["param:" + name] = np.array(vals, dtype=object if any(isinstance(v, str) for v in vals) else np.float64)
@@ -444,8 +472,10 @@ def _rows(study, store=None) -> dict[str, np.ndarray]:
     ts = store_of(study, store)
     stored = ts.read() if ts is not None else {}
     if stored:
-        stored["number"] = np.array([copies.get(k, -1) for k in zip(stored["worker"], stored["generation"].tolist(),
-                                                                      stored["index"].tolist())], dtype=np.int64)
+        stored["number"] = np.array(
+            [copies.get(k, -1) for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())],
+            dtype=np.int64,
+        )
     cols = _concat([stored, own])
     if cols:  # evaluation order: generations by time, members in order
         order = np.lexsort((cols["index"], cols["generation"], cols["worker"].astype(str), cols["time"]))
@@ -472,12 +502,23 @@ def trials_table(study, store=None):
 
     cols = _rows(study, store)
     ts = store_of(study, store)
-    ds = xr.Dataset(attrs={"study": study.study_name, "objectives": list(study.user_attrs.get("tawarp_objectives", [])),
-                           "store": str(ts.path) if ts is not None else ""})
+    ds = xr.Dataset(
+        attrs={
+            "study": study.study_name,
+            "objectives": list(study.user_attrs.get("tawarp_objectives", [])),
+            "store": str(ts.path) if ts is not None else "",
+        }
+    )
     if not cols:
-        cols = {"worker": np.zeros(0, object), "generation": np.zeros(0, np.int64), "index": np.zeros(0, np.int64),
-                "number": np.zeros(0, np.int64), "failed": np.zeros(0, bool), "constraint": np.zeros(0),
-                "time": np.zeros(0)}
+        cols = {
+            "worker": np.zeros(0, object),
+            "generation": np.zeros(0, np.int64),
+            "index": np.zeros(0, np.int64),
+            "number": np.zeros(0, np.int64),
+            "failed": np.zeros(0, bool),
+            "constraint": np.zeros(0),
+            "time": np.zeros(0),
+        }
     ds["worker"] = ("trial", np.array(cols["worker"], dtype=str))
     for k in ("generation", "index", "number"):
         ds[k] = ("trial", cols[k])
@@ -509,11 +550,20 @@ def lineage(study, worker: str, store=None) -> dict[int, dict[str, np.ndarray]]:
     sel = sel[np.lexsort((cols["index"][sel], cols["generation"][sel]))]
     gens, starts = np.unique(cols["generation"][sel], return_index=True)
     bounds = list(starts) + [len(sel)]
-    return {int(g): {k: v[sel[bounds[i]:bounds[i + 1]]] for k, v in cols.items()} for i, g in enumerate(gens)}
+    return {int(g): {k: v[sel[bounds[i] : bounds[i + 1]]] for k, v in cols.items()} for i, g in enumerate(gens)}
 
 
-def add_evaluated(study, storage, points: list[dict], distributions: dict, values: np.ndarray, metrics: list[dict],
-                  violation: np.ndarray | None, failed: np.ndarray, system_attrs: list[dict]) -> None:
+def add_evaluated(
+    study,
+    storage,
+    points: list[dict],
+    distributions: dict,
+    values: np.ndarray,
+    metrics: list[dict],
+    violation: np.ndarray | None,
+    failed: np.ndarray,
+    system_attrs: list[dict],
+) -> None:
     """Store evaluated design points as finished trials of ``study`` in ``storage``:
     COMPLETE with ``values`` (n, m) (FAIL where ``failed``), metrics as user attributes,
     ``constraints`` = [violation]. A journal made by :func:`make_storage` is locked and
@@ -526,10 +576,16 @@ def add_evaluated(study, storage, points: list[dict], distributions: dict, value
         if violation is not None:
             sa["constraints"] = [float(violation[j])]
         ok = not failed[j]
-        trials.append(create_trial(state=TrialState.COMPLETE if ok else TrialState.FAIL,
-                                   values=[float(x) for x in values[j]] if ok else None,
-                                   params=p, distributions={k: distributions[k] for k in p},
-                                   user_attrs=metrics[j], system_attrs=sa))
+        trials.append(
+            create_trial(
+                state=TrialState.COMPLETE if ok else TrialState.FAIL,
+                values=[float(x) for x in values[j]] if ok else None,
+                params=p,
+                distributions={k: distributions[k] for k in p},
+                user_attrs=metrics[j],
+                system_attrs=sa,
+            )
+        )
     with journal_batch(storage):
         study.add_trials(trials)
 
@@ -578,11 +634,17 @@ def best_designs(study, objectives, T_limit, k: int = 1, store=None, per: str | 
             continue
         seen.add(key)
         num = int(cols["number"][i])
-        out.append({"number": num if num >= 0 else None, "params": params,
-                    "values": {o: float(cols["metric:" + o][i]) for o in objectives},
-                    "metrics": {c[7:]: float(cols[c][i]) for c in mnames},
-                    "worker": cols["worker"][i], "generation": int(cols["generation"][i]),
-                    "index": int(cols["index"][i])})
+        out.append(
+            {
+                "number": num if num >= 0 else None,
+                "params": params,
+                "values": {o: float(cols["metric:" + o][i]) for o in objectives},
+                "metrics": {c[7:]: float(cols[c][i]) for c in mnames},
+                "worker": cols["worker"][i],
+                "generation": int(cols["generation"][i]),
+                "index": int(cols["index"][i]),
+            }
+        )
         if len(objectives) == 1 and len(out) >= k:
             break
     return out
@@ -599,10 +661,14 @@ def study_summary(study, store=None) -> dict:
     keys = list(zip(cols["worker"], cols["generation"].tolist(), cols["index"].tolist())) if n else []
     lineage_keys = [k for k in keys if k[1] >= 0]
     ts = store_of(study, store)
-    return {"trials": n, "states": dict(Counter(np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE").tolist()))
-            if n else {}, "workers": dict(Counter(cols["worker"].tolist())) if n else {},
-            "unique": len(set(lineage_keys)) == len(lineage_keys), "in_study": len(study.get_trials(deepcopy=False)),
-            "store": str(ts.path) if ts is not None else None}
+    return {
+        "trials": n,
+        "states": dict(Counter(np.where(cols["failed"].astype(bool), "FAIL", "COMPLETE").tolist())) if n else {},
+        "workers": dict(Counter(cols["worker"].tolist())) if n else {},
+        "unique": len(set(lineage_keys)) == len(lineage_keys),
+        "in_study": len(study.get_trials(deepcopy=False)),
+        "store": str(ts.path) if ts is not None else None,
+    }
 
 
 class WorkerClaim:
@@ -624,18 +690,22 @@ class WorkerClaim:
         self.owner = f"{self.host}:{os.getpid()}:{uuid.uuid4().hex[:12]}"
         name = f"{study_name}#worker={worker}"
         self.claims = optuna.create_study(storage=storage, study_name=name, load_if_exists=True)
-        self.claims.add_trial(create_trial(state=TrialState.RUNNING, user_attrs={"owner": self.owner,
-                                                                                 "heartbeat": time.time()}))
+        self.claims.add_trial(
+            create_trial(state=TrialState.RUNNING, user_attrs={"owner": self.owner, "heartbeat": time.time()})
+        )
         running = sorted(self.claims.get_trials(deepcopy=False, states=(TrialState.RUNNING,)), key=lambda t: t.number)
         mine = next(t for t in running if t.user_attrs.get("owner") == self.owner)
         self.number = mine.number
         self.trial_id = storage.get_trial_id_from_study_id_trial_number(
-            storage.get_study_id_from_name(name), self.number)
+            storage.get_study_id_from_name(name), self.number
+        )
         live = [t for t in running if t.number < self.number and self._alive(t)]
         if live:
             self.release(failed=True)
-            raise StudyConflict(f"worker {worker!r} of study {study_name!r} is running in another live process "
-                                f"({live[0].user_attrs.get('owner')}); give this run another worker name")
+            raise StudyConflict(
+                f"worker {worker!r} of study {study_name!r} is running in another live process "
+                f"({live[0].user_attrs.get('owner')}); give this run another worker name"
+            )
 
     def _alive(self, t) -> bool:
         owner = t.user_attrs.get("owner")

@@ -82,7 +82,7 @@ def _blocks(shape: tuple, chunk: int):
     """Contiguous C-order blocks of at most ~chunk points that are hyperslabs:
     yields (lo, hi, index tuple of slices)."""
     k = len(shape)
-    trailing = [int(np.prod(shape[j + 1:])) for j in range(k)]
+    trailing = [int(np.prod(shape[j + 1 :])) for j in range(k)]
     a = next((j for j in range(k) if trailing[j] <= chunk), k - 1)
     step = max(1, chunk // trailing[a])
     lead_shape = shape[:a]
@@ -100,10 +100,21 @@ def _blocks(shape: tuple, chunk: int):
 CHUNK_GPU, CHUNK_CPU = 1 << 20, 1 << 16
 
 
-def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: int | None = None,
-          chunk: int | None = None, seed: int = 0, settings: ForwardSettings | None = None,
-          progress: bool = False, attrs: dict | None = None, outputs=None, freqs=DEFAULT_FREQS,
-          client=None, parts: bool = False) -> SweepInfo:
+def sweep(
+    space: DesignSpace,
+    path: str | Path,
+    mode: str = "grid",
+    n_samples: int | None = None,
+    chunk: int | None = None,
+    seed: int = 0,
+    settings: ForwardSettings | None = None,
+    progress: bool = False,
+    attrs: dict | None = None,
+    outputs=None,
+    freqs=DEFAULT_FREQS,
+    client=None,
+    parts: bool = False,
+) -> SweepInfo:
     """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
     results to the netCDF file ``path``. ``outputs``: objective names written (default: the
@@ -147,8 +158,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
         if not n_samples or n_samples < 1:
             raise ValueError("sobol sweep: give n_samples >= 1")
         if n_samples > SOBOL_MAX_POINTS:
-            raise ValueError(f"sobol sweep: at most {SOBOL_MAX_POINTS} points (2^30, the sequence's), "
-                             f"got {n_samples}")
+            raise ValueError(f"sobol sweep: at most {SOBOL_MAX_POINTS} points (2^30, the sequence's), got {n_samples}")
         n = int(n_samples)
         shape = (n,)
         dims = ["sample"]
@@ -161,9 +171,9 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
     bar = progress_bar(n, "sweep", progress, unit="pt")
     variables = _stored_variables(space, mode, rows)
     ensure_free_space(path, n * sum(np.dtype(dtype).itemsize for dtype, _ in variables.values()))
-    mapped = []   # parts=True: (chunk, index in the file, block shape) of each part written
+    mapped = []  # parts=True: (chunk, index in the file, block shape) of each part written
     try:
-        with atomic_path(path) as tmp, (atomic_dir(parts_path(path)) if parts else contextlib.nullcontext()) as pdir:
+        with atomic_path(path) as tmp, atomic_dir(parts_path(path)) if parts else contextlib.nullcontext() as pdir:
             with hdf5_writing(h5netcdf.File(tmp, "w")) as f:
                 f.attrs["title"] = "tawarp sweep"
                 f.attrs["core"] = str(space.core.source)
@@ -184,7 +194,7 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                             var.attrs["units"] = _units(space, d)
                 else:
                     f.dimensions = {"sample": n}
-                if not parts:   # (parts=True: virtual variables over the parts, made below)
+                if not parts:  # (parts=True: virtual variables over the parts, made below)
                     for name, (dtype, var_attrs) in variables.items():
                         var = f.create_variable(name, tuple(dims), dtype=dtype)
                         var.attrs.update(var_attrs)
@@ -192,8 +202,11 @@ def sweep(space: DesignSpace, path: str | Path, mode: str = "grid", n_samples: i
                     blocks = _blocks(shape, chunk)
                 else:
                     blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
-                chunks = _evaluated_here(job, blocks, chunk, n) if client is None else \
-                    _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
+                chunks = (
+                    _evaluated_here(job, blocks, chunk, n)
+                    if client is None
+                    else _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
+                )
                 while True:
                     t = time.perf_counter()
                     done = next(chunks, None)
@@ -238,7 +251,7 @@ def _part_name(k: int) -> str:
 def _block_shape(sl: tuple, shape: tuple) -> tuple:
     """The shape of a block (:func:`_blocks`) in the file: its index ``sl`` over the leading
     dimensions, the whole of the trailing ones of ``shape``."""
-    return tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl) + tuple(shape[len(sl):])
+    return tuple(s.stop - s.start if isinstance(s, slice) else 1 for s in sl) + tuple(shape[len(sl) :])
 
 
 def _stored_variables(space: DesignSpace, mode: str, rows) -> dict:
@@ -250,8 +263,13 @@ def _stored_variables(space: DesignSpace, mode: str, rows) -> dict:
         for v in space.continuous:
             out[v.name] = ("f8", {"units": _units(space, v.name)})
         if space.material is not None:
-            out["material"] = ("i1", {"flag_values": np.arange(len(space.material.choices), dtype=np.int8),
-                                      "flag_meanings": " ".join(space.material.choices)})
+            out["material"] = (
+                "i1",
+                {
+                    "flag_values": np.arange(len(space.material.choices), dtype=np.int8),
+                    "flag_meanings": " ".join(space.material.choices),
+                },
+            )
     for o in rows:
         out[o.name] = ("f4", {"units": o.unit, "long_name": o.long_name})
     return out
@@ -326,15 +344,15 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int):
     for k, (lo, hi, sl) in enumerate(blocks):
         table, values = job.table(tables, lo, hi)
         finish = _launch(ev, table, job.outputs, host[k % 2] if host else None)
-        if staged:   # queued behind the chunk's evaluation
+        if staged:  # queued behind the chunk's evaluation
             for j in range(len(tables.names)):
                 wp.copy(values_host[k % 2][j], values[j], count=hi - lo)
         if pending is not None:
             yield pending
         done = finish()
-        if staged:   # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
+        if staged:  # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
             wp.synchronize_device(ev.device)
-            values = values_host[k % 2].numpy()[:, :hi - lo]
+            values = values_host[k % 2].numpy()[:, : hi - lo]
         elif values is not None:
             values = values.numpy()
         pending = (lo, hi, sl, done, job.stored_values(tables, values))
@@ -371,7 +389,7 @@ def _cluster_chunk(task: tuple, key: str, job: _Job, parts: str | None):
     def build():
         ev = job.evaluator(worker_settings(job.settings))
         tables = DeviceTable(job.space, ev.device)
-        _launch(ev, job.table(tables, 0, 1)[0], job.outputs)()   # loads the modules (worker_state)
+        _launch(ev, job.table(tables, 0, 1)[0], job.outputs)()  # loads the modules (worker_state)
         return ev, tables, itertools.count()
 
     ev, tables, done = worker_state(key, build)
@@ -381,7 +399,7 @@ def _cluster_chunk(task: tuple, key: str, job: _Job, parts: str | None):
     values = job.stored_values(tables, None if values is None else values.numpy())
     del table
     if next(done) % GC_CHUNKS == GC_CHUNKS - 1:
-        gc.collect()   # as _evaluated_here does
+        gc.collect()  # as _evaluated_here does
     if parts is None:
         return res, values
     _write_part(Path(parts) / _part_name(k), res, values, block)
@@ -411,8 +429,9 @@ def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None):
     use; without ``host``, new arrays (a cluster worker's, handed to Dask)."""
     out = ev.evaluate_device(table)
     if ev.extra:
-        return lambda: {k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items()
-                        if k in outputs}
+        return lambda: {
+            k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items() if k in outputs
+        }
     f32 = ev.metric_columns(out, outputs)
     if host is None:
         return lambda: dict(zip(outputs, f32.numpy()))

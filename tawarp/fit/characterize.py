@@ -76,16 +76,21 @@ def grid(data: TMatrixData, core: Core):
     counts = np.unique(data.heat_input, return_counts=True)[1]
     nQ, m = len(Qs), int(counts[0])
     F = data.freq[order].reshape(nQ, m) if np.all(counts == m) else None
-    bad = (np.flatnonzero(counts != m) if F is None else
-           np.flatnonzero(~np.all(np.isclose(F, F[0], rtol=1e-9, atol=0.0), axis=1)))
+    bad = (
+        np.flatnonzero(counts != m)
+        if F is None
+        else np.flatnonzero(~np.all(np.isclose(F, F[0], rtol=1e-9, atol=0.0), axis=1))
+    )
     if bad.size:
-        raise ValueError(f"{data.source}: the rows at Q = {Qs[bad[0]]:g} W have other frequencies than at "
-                         f"Q = {Qs[0]:g} W; every heat input must share one frequency grid")
+        raise ValueError(
+            f"{data.source}: the rows at Q = {Qs[bad[0]]:g} W have other frequencies than at "
+            f"Q = {Qs[0]:g} W; every heat input must share one frequency grid"
+        )
     zc = duct_impedance(core)
     Y = normalize(data.T[order], zc).reshape(nQ, m, 4)
     sig = None
     if data.sigma is not None:
-        s = data.sigma[order]                         # (rows, 2, 2, 2) raw
+        s = data.sigma[order]  # (rows, 2, 2, 2) raw
         sig = np.stack([s[:, 0, 0], s[:, 0, 1] / zc, s[:, 1, 0] * zc, s[:, 1, 1]], axis=1).reshape(nQ, m, 4, 2)
     return Qs, F[0], Y, sig
 
@@ -123,21 +128,34 @@ class Characterization:
         between the fitted heat inputs (held constant beyond them)."""
         if self.step2 is None or not len(self.heat_inputs):
             return {k: self.core.get(k) for k in self.heat_names}
-        return {k: float(np.interp(Q, self.heat_inputs, self.step2.values[:, a])) for a, k in enumerate(self.heat_names)}
+        return {
+            k: float(np.interp(Q, self.heat_inputs, self.step2.values[:, a])) for a, k in enumerate(self.heat_names)
+        }
 
     def to_json(self) -> dict:
         """The fit.json structure (docs/formats.md): step 1 and one step-2 entry per Q."""
         s1 = {"heat_input_W": 0.0, **self.step1.problem(0)}
-        out = {"data": self.source, "core": str(self.core.source), "freqs_Hz": self.freqs.tolist(),
-               "procedure": "two-step (paper Sect. 4): geometry at Q = 0, then h at every Q > 0 on the "
-                            "bias-corrected data of Eqs. 22-23",
-               "cells": self.settings.cells, "cell_density": self.settings.cell_density,
-               "parameters": s1["parameters"], "correlation": s1["correlation"], "ties": self.ties,
-               "step1": s1,
-               "bias_correction": {"max_abs_b_minus_1": float(np.max(np.abs(self.bias - 1))) if self.bias.size else 0.0,
-                                   "b": {c: {"re": self.bias[:, k].real.tolist(), "im": self.bias[:, k].imag.tolist()}
-                                         for k, c in enumerate(COEFFICIENTS)}},
-               "step2": []}
+        out = {
+            "data": self.source,
+            "core": str(self.core.source),
+            "freqs_Hz": self.freqs.tolist(),
+            "procedure": "two-step (paper Sect. 4): geometry at Q = 0, then h at every Q > 0 on the "
+            "bias-corrected data of Eqs. 22-23",
+            "cells": self.settings.cells,
+            "cell_density": self.settings.cell_density,
+            "parameters": s1["parameters"],
+            "correlation": s1["correlation"],
+            "ties": self.ties,
+            "step1": s1,
+            "bias_correction": {
+                "max_abs_b_minus_1": float(np.max(np.abs(self.bias - 1))) if self.bias.size else 0.0,
+                "b": {
+                    c: {"re": self.bias[:, k].real.tolist(), "im": self.bias[:, k].imag.tolist()}
+                    for k, c in enumerate(COEFFICIENTS)
+                },
+            },
+            "step2": [],
+        }
         fits = [self.step1]
         if self.step2 is not None:
             for i, q in enumerate(self.heat_inputs):
@@ -149,8 +167,9 @@ class Characterization:
         out["iterations"] = int(sum(int(f.iterations.sum()) for f in fits))
         out["cost"] = float(sum(float(f.cost.sum()) for f in fits))
         out["rms_error"] = float(rms_error(Ym, Yf))
-        out["warnings"] = [f"step 1: {w}" for w in self.step1.warnings] + \
-                          ([f"step 2: {w}" for w in self.step2.warnings] if self.step2 is not None else [])
+        out["warnings"] = [f"step 1: {w}" for w in self.step1.warnings] + (
+            [f"step 2: {w}" for w in self.step2.warnings] if self.step2 is not None else []
+        )
         return out
 
 
@@ -169,11 +188,27 @@ def _weights(sig):
         return 1.0 / sig
 
 
-def characterize(data: TMatrixData, core: Core | str, *, geometry: list[str] | None = None, ties=None,
-                 heat_names: list[str] | None = None, start1=None, start2=None, bias_correction: bool = True,
-                 settings: ForwardSettings | None = None, device: str | None = None, restarts: int = 2,
-                 n_starts: int = 8, damping: str = "nielsen", use_sigma: bool = True, seed: int = 0,
-                 progress: bool = False, warn: bool = True, propagate: bool = True) -> Characterization:
+def characterize(
+    data: TMatrixData,
+    core: Core | str,
+    *,
+    geometry: list[str] | None = None,
+    ties=None,
+    heat_names: list[str] | None = None,
+    start1=None,
+    start2=None,
+    bias_correction: bool = True,
+    settings: ForwardSettings | None = None,
+    device: str | None = None,
+    restarts: int = 2,
+    n_starts: int = 8,
+    damping: str = "nielsen",
+    use_sigma: bool = True,
+    seed: int = 0,
+    progress: bool = False,
+    warn: bool = True,
+    propagate: bool = True,
+) -> Characterization:
     """Run the two-step procedure on ``data`` (needs rows at Q = 0; every heat input on
     one frequency grid). ``geometry``/``ties`` default to :func:`default_geometry`,
     ``heat_names`` to :func:`default_heat_names`. ``start1``/``start2``: None (the core's
@@ -197,10 +232,26 @@ def characterize(data: TMatrixData, core: Core | str, *, geometry: list[str] | N
     if not np.any(Qs == 0):
         raise ValueError(f"{data.source}: no rows at Q = 0 W; step 1 (geometry) needs unheated data")
     i0 = int(np.flatnonzero(Qs == 0)[0])
-    kw = dict(settings=settings, damping=damping, restarts=restarts, n_starts=n_starts, seed=seed,
-              progress=progress, warn=warn)
-    s1 = fit(core, freqs, Y[i0], geometry, _start(core, geometry, start1, 1), heat_input=0.0, ties=ties,
-             weights=None if sig is None else _weights(sig[i0])[None], **kw)
+    kw = dict(
+        settings=settings,
+        damping=damping,
+        restarts=restarts,
+        n_starts=n_starts,
+        seed=seed,
+        progress=progress,
+        warn=warn,
+    )
+    s1 = fit(
+        core,
+        freqs,
+        Y[i0],
+        geometry,
+        _start(core, geometry, start1, 1),
+        heat_input=0.0,
+        ties=ties,
+        weights=None if sig is None else _weights(sig[i0])[None],
+        **kw,
+    )
     vals = s1.value_dict(0)
     for k, others in ties.items():
         for o in others:
@@ -220,23 +271,79 @@ def characterize(data: TMatrixData, core: Core | str, *, geometry: list[str] | N
             # Ybar(Q) b = Ybar(Q) Y0_fit / Ybar(0): first-order propagation of both noises
             s2q = 0.5 * (sig[hot][..., 0] ** 2 + sig[hot][..., 1] ** 2)
             s20 = 0.5 * (sig[i0][..., 0] ** 2 + sig[i0][..., 1] ** 2)
-            s = np.abs(bias)[None] * np.sqrt(s2q + np.abs(Yh / Y[i0][None]) ** 2 * s20[None]) if bias_correction \
+            s = (
+                np.abs(bias)[None] * np.sqrt(s2q + np.abs(Yh / Y[i0][None]) ** 2 * s20[None])
+                if bias_correction
                 else np.sqrt(s2q)
+            )
             w2 = _weights(np.stack([s, s], axis=-1))
-        step2 = fit(core1, freqs, Y_corr, heat_names, _start(core1, heat_names, start2, Qh.size), heat_input=Qh,
-                    weights=w2, **kw)
-        Y_fit = predict(core1, freqs, {k: step2.values[:, a] for a, k in enumerate(heat_names)}, heat_input=Qh,
-                        settings=settings)
+        step2 = fit(
+            core1,
+            freqs,
+            Y_corr,
+            heat_names,
+            _start(core1, heat_names, start2, Qh.size),
+            heat_input=Qh,
+            weights=w2,
+            **kw,
+        )
+        Y_fit = predict(
+            core1, freqs, {k: step2.values[:, a] for a, k in enumerate(heat_names)}, heat_input=Qh, settings=settings
+        )
         if propagate and np.all(np.isfinite(s1.covariance[0])):
-            step2.add_covariance(geometry_propagation(core1, freqs, Qh, heat_names, step2.values, list(geometry),
-                                                      ties, s1.covariance[0], Yh, Y[i0], w2, settings,
-                                                      bias_correction))
-    return Characterization(core1, freqs, list(geometry), ties, s1, Y[i0], Y0_fit, bias, Qh, heat_names, step2,
-                            Yh, Y_corr, Y_fit, settings, data.source)
+            step2.add_covariance(
+                geometry_propagation(
+                    core1,
+                    freqs,
+                    Qh,
+                    heat_names,
+                    step2.values,
+                    list(geometry),
+                    ties,
+                    s1.covariance[0],
+                    Yh,
+                    Y[i0],
+                    w2,
+                    settings,
+                    bias_correction,
+                )
+            )
+    return Characterization(
+        core1,
+        freqs,
+        list(geometry),
+        ties,
+        s1,
+        Y[i0],
+        Y0_fit,
+        bias,
+        Qh,
+        heat_names,
+        step2,
+        Yh,
+        Y_corr,
+        Y_fit,
+        settings,
+        data.source,
+    )
 
 
-def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ties, Cg, Yh, Y0, w2, settings,
-                         bias_correction: bool = True, rel: float = 1e-6) -> np.ndarray:
+def geometry_propagation(
+    core1: Core,
+    freqs,
+    Qh,
+    heat_names,
+    hvals,
+    geometry,
+    ties,
+    Cg,
+    Yh,
+    Y0,
+    w2,
+    settings,
+    bias_correction: bool = True,
+    rel: float = 1e-6,
+) -> np.ndarray:
     """Covariance (nQ, ph, ph) the step-1 geometry uncertainty ``Cg`` (pg, pg) adds to the
     step-2 estimates, by the implicit-function theorem: at the step-2 solution
     ``dh/dg = -(J_h^T J_h)^-1 J_h^T J_g`` with ``J_g`` the derivative of the step-2
@@ -256,30 +363,41 @@ def geometry_propagation(core1: Core, freqs, Qh, heat_names, hvals, geometry, ti
     params.update({k: np.full((nQ, k_sets), g0[b]) for b, k in enumerate(geometry)})
     # steps towards the interior: a porosity fitted at 1 must not be stepped past it
     g_step = np.array([-rel * g if g * (1 + rel) > field_spec(k).upper else rel * g for k, g in zip(geometry, g0)])
-    steps = np.concatenate([hvals * rel, np.broadcast_to(g_step, (nQ, pg))], axis=1)     # (nQ, ph + pg)
+    steps = np.concatenate([hvals * rel, np.broadcast_to(g_step, (nQ, pg))], axis=1)  # (nQ, ph + pg)
     for a, k in enumerate(heat_names + geometry):
         params[k][:, 1 + a] += steps[:, a]
     Y = np.empty((nQ, k_sets, m, 4), dtype=complex)
     for idx, cells in cell_groups(core1, freqs, settings, {k: hvals[:, a] for a, k in enumerate(heat_names)}):
-        Y[idx] = predict(core1, freqs, {k: v[idx].reshape(-1) for k, v in params.items()},
-                         heat_input=np.repeat(Qh[idx], k_sets), ties=ties, settings=cells).reshape(-1, k_sets, m, 4)
-    dY = (Y[:, 1:] - Y[:, :1]) / steps[:, :, None, None]                                  # (nQ, ph+pg, m, 4)
+        Y[idx] = predict(
+            core1,
+            freqs,
+            {k: v[idx].reshape(-1) for k, v in params.items()},
+            heat_input=np.repeat(Qh[idx], k_sets),
+            ties=ties,
+            settings=cells,
+        ).reshape(-1, k_sets, m, 4)
+    dY = (Y[:, 1:] - Y[:, :1]) / steps[:, :, None, None]  # (nQ, ph+pg, m, 4)
     Jh, Jg = dY[:, :ph], dY[:, ph:]
     if bias_correction:
         p0 = {k: np.full(1 + pg, g0[b]) for b, k in enumerate(geometry)}
         for b, k in enumerate(geometry):
             p0[k][1 + b] += g_step[b]
-        Y0m = predict(core1, freqs, p0, heat_input=0.0, ties=ties,
-                      settings=smooth_settings(core1, freqs, settings))                         # (1 + pg, m, 4)
+        Y0m = predict(
+            core1, freqs, p0, heat_input=0.0, ties=ties, settings=smooth_settings(core1, freqs, settings)
+        )  # (1 + pg, m, 4)
         dY0 = (Y0m[1:] - Y0m[:1]) / g_step[:, None, None]
         Jg = Jg - (Yh / Y0[None])[:, None] * dY0[None]
     w = np.ones((nQ, m, 4, 2)) if w2 is None else np.broadcast_to(w2, (nQ, m, 4, 2))
     out = np.zeros((nQ, ph, ph))
     for i in range(nQ):
+
         def real(J):
-            return np.concatenate([(J.real * w[i, ..., 0]).reshape(J.shape[0], -1),
-                                   (J.imag * w[i, ..., 1]).reshape(J.shape[0], -1)], axis=1).T
-        A = -np.linalg.lstsq(real(Jh[i]), real(Jg[i]), rcond=None)[0]                     # (ph, pg)
+            return np.concatenate(
+                [(J.real * w[i, ..., 0]).reshape(J.shape[0], -1), (J.imag * w[i, ..., 1]).reshape(J.shape[0], -1)],
+                axis=1,
+            ).T
+
+        A = -np.linalg.lstsq(real(Jh[i]), real(Jg[i]), rcond=None)[0]  # (ph, pg)
         out[i] = A @ Cg @ A.T
     return out
 
@@ -302,8 +420,10 @@ def cell_groups(core: Core, freqs, settings: ForwardSettings, values: dict):
     cells = np.ceil(np.sqrt(2.0) ** np.ceil(2 * np.log2(np.maximum(need, 1)) - 1e-9) - 1e-9).astype(int)
     keys, inverse = np.unique(cells, axis=0, return_inverse=True)
     for g, key in enumerate(keys):
-        yield (np.flatnonzero(inverse.reshape(-1) == g),
-               dataclasses.replace(settings, cells={core.segments[i].name: int(c) for i, c in zip(thermal, key)}))
+        yield (
+            np.flatnonzero(inverse.reshape(-1) == g),
+            dataclasses.replace(settings, cells={core.segments[i].name: int(c) for i, c in zip(thermal, key)}),
+        )
 
 
 # -- figures -----------------------------------------------------------------------------
@@ -318,8 +438,9 @@ def plot_h_vs_Q(curves: dict[str, tuple], path, title: str = ""):
     axes = np.atleast_1d(axes)
     for label, (Q, v, s, _names) in curves.items():
         for a in range(k):
-            axes[a].errorbar(Q, v[:, a], yerr=np.where(np.isfinite(s[:, a]), s[:, a], 0), marker="o", ms=4,
-                             capsize=3, label=label)
+            axes[a].errorbar(
+                Q, v[:, a], yerr=np.where(np.isfinite(s[:, a]), s[:, a], 0), marker="o", ms=4, capsize=3, label=label
+            )
     for a, name in enumerate(first[3]):
         axes[a].set_title(name)
         axes[a].set_xlabel("Q [W]")
@@ -380,22 +501,45 @@ def write_figures(ch: Characterization, stem: str | Path, label: str = "") -> li
 
     stem = Path(stem)
     label = label or Path(str(ch.core.source)).stem
-    paths = [plot_coefficients(ch.freqs, {"fitted": ch.Y0_fit}, f"{stem}_step1.png", markers={"measured": ch.Y0},
-                               title=f"{label}: Q = 0, measured vs fitted ({_fmt1(ch)})")]
+    paths = [
+        plot_coefficients(
+            ch.freqs,
+            {"fitted": ch.Y0_fit},
+            f"{stem}_step1.png",
+            markers={"measured": ch.Y0},
+            title=f"{label}: Q = 0, measured vs fitted ({_fmt1(ch)})",
+        )
+    ]
     if ch.step2 is not None:
         nQ = len(ch.heat_inputs)
         shown = np.unique(np.linspace(0, nQ - 1, min(nQ, MAX_CURVES)).round().astype(int))
         some = f" ({shown.size} of {nQ} heat inputs)" if shown.size < nQ else ""
-        paths.append(plot_coefficients(ch.freqs, {f"fit Q = {ch.heat_inputs[i]:g} W": ch.Y_fit[i] for i in shown},
-                                       f"{stem}_step2.png",
-                                       markers={f"Q = {ch.heat_inputs[i]:g} W": ch.Y_corr[i] for i in shown},
-                                       title=f"{label}: heated, bias-corrected measured vs fitted{some}"))
-        paths.append(plot_h_vs_Q({label: (ch.heat_inputs, ch.step2.values, ch.step2.std, ch.heat_names)},
-                                 f"{stem}_h.png", title=f"{label}: fitted heat-exchange coefficients"))
+        paths.append(
+            plot_coefficients(
+                ch.freqs,
+                {f"fit Q = {ch.heat_inputs[i]:g} W": ch.Y_fit[i] for i in shown},
+                f"{stem}_step2.png",
+                markers={f"Q = {ch.heat_inputs[i]:g} W": ch.Y_corr[i] for i in shown},
+                title=f"{label}: heated, bias-corrected measured vs fitted{some}",
+            )
+        )
+        paths.append(
+            plot_h_vs_Q(
+                {label: (ch.heat_inputs, ch.step2.values, ch.step2.std, ch.heat_names)},
+                f"{stem}_h.png",
+                title=f"{label}: fitted heat-exchange coefficients",
+            )
+        )
         profiles = {f"Q = {ch.heat_inputs[i]:g} W": temperature_profile(ch, ch.heat_inputs[i]) for i in shown}
-        paths.append(plot_temperature(next(iter(profiles.values()))[0], {k: T for k, (x, T) in profiles.items()},
-                                      f"{stem}_temperature.png", planes=ch.core.positions(),
-                                      title=f"{label}: fitted temperature profiles at the measured heat inputs{some}"))
+        paths.append(
+            plot_temperature(
+                next(iter(profiles.values()))[0],
+                {k: T for k, (x, T) in profiles.items()},
+                f"{stem}_temperature.png",
+                planes=ch.core.positions(),
+                title=f"{label}: fitted temperature profiles at the measured heat inputs{some}",
+            )
+        )
     return paths
 
 
@@ -404,19 +548,50 @@ def _fmt1(ch):
     return ", ".join(f"{k.split('.')[-1]} = {v:.4g} ± {s:.2g}" for k, v, s in zip(r.names, r.values[0], r.std[0]))
 
 
-def fit_each_heat_input(data: TMatrixData, core: Core, names, *, settings=None, start=None, restarts=2,
-                        damping="nielsen", use_sigma=True, progress=False) -> dict:
+def fit_each_heat_input(
+    data: TMatrixData,
+    core: Core,
+    names,
+    *,
+    settings=None,
+    start=None,
+    restarts=2,
+    damping="nielsen",
+    use_sigma=True,
+    progress=False,
+) -> dict:
     """Fit ``names`` at every heat input of ``data`` (one problem per Q, one batch, no
     bias correction); the fit.json structure with one entry per Q under ``fits``."""
     Qs, freqs, Y, sig = grid(data, core)
     st = None if start == "spread" else {k: core.get(k) for k in names}
-    r = fit(core, freqs, Y, names, st, heat_input=Qs, weights=None if (sig is None or not use_sigma) else 1.0 / sig,
-            settings=settings, restarts=restarts, damping=damping, progress=progress, warn=False)
+    r = fit(
+        core,
+        freqs,
+        Y,
+        names,
+        st,
+        heat_input=Qs,
+        weights=None if (sig is None or not use_sigma) else 1.0 / sig,
+        settings=settings,
+        restarts=restarts,
+        damping=damping,
+        progress=progress,
+        warn=False,
+    )
     fits = [{"heat_input_W": float(q), **r.problem(i)} for i, q in enumerate(Qs)]
-    return {"data": data.source, "core": str(core.source), "freqs_Hz": freqs.tolist(), "fits": fits,
-            "parameters": fits[0]["parameters"], "correlation": fits[0]["correlation"],
-            "converged": bool(r.converged.all()), "iterations": int(r.iterations.sum()),
-            "cost": float(r.cost.sum()), "rms_error": pooled_error(r.rms_error, Y), "warnings": r.warnings}
+    return {
+        "data": data.source,
+        "core": str(core.source),
+        "freqs_Hz": freqs.tolist(),
+        "fits": fits,
+        "parameters": fits[0]["parameters"],
+        "correlation": fits[0]["correlation"],
+        "converged": bool(r.converged.all()),
+        "iterations": int(r.iterations.sum()),
+        "cost": float(r.cost.sum()),
+        "rms_error": pooled_error(r.rms_error, Y),
+        "warnings": r.warnings,
+    }
 
 
 def pooled_error(errors: np.ndarray, Y: np.ndarray) -> float:
@@ -425,5 +600,3 @@ def pooled_error(errors: np.ndarray, Y: np.ndarray) -> float:
     rows, ``sqrt(sum e_i^2 |Y_i|^2 / sum |Y_i|^2)`` (not the mean of the per-problem ratios)."""
     y2 = np.sum(np.abs(Y.reshape(len(errors), -1)) ** 2, axis=1)
     return float(np.sqrt(np.sum(np.asarray(errors) ** 2 * y2) / np.sum(y2)))
-
-

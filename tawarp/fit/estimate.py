@@ -142,8 +142,12 @@ def _cold_core(core: Core) -> Core:
     """The same core with no thermal segment: at Q = 0 the temperature is uniform, so
     every segment's matrix is the exact exp(A L) instead of a Magnus cascade (identical to
     rounding; the parameter table keeps its layout)."""
-    return Core(tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments), core.gas,
-                core.radius, core.source)
+    return Core(
+        tuple(dataclasses.replace(s, thermal=False, heater=False) for s in core.segments),
+        core.gas,
+        core.radius,
+        core.source,
+    )
 
 
 class Problems:
@@ -156,9 +160,23 @@ class Problems:
     (:meth:`set_scale`).
     """
 
-    def __init__(self, core: Core, freqs, Y, names, *, heat_input=0.0, fixed=None, weights=None, ties=None,
-                 bounds=None, settings: ForwardSettings | None = None, device=None, scale=None,
-                 jacobian: str = "auto"):
+    def __init__(
+        self,
+        core: Core,
+        freqs,
+        Y,
+        names,
+        *,
+        heat_input=0.0,
+        fixed=None,
+        weights=None,
+        ties=None,
+        bounds=None,
+        settings: ForwardSettings | None = None,
+        device=None,
+        scale=None,
+        jacobian: str = "auto",
+    ):
         self.core = core
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=float))
         m = self.freqs.size
@@ -207,10 +225,14 @@ class Problems:
         engine_names = self.names + tied + list(fixed)
         row_src = [-1] + list(range(self.p)) + [self.names.index(k) for k, v in self.ties.items() for _ in v]
         row_src += [-2 - j for j in range(len(fixed))]
-        self.settings = dataclasses.replace(settings or ForwardSettings(), device=device) if device is not None \
+        self.settings = (
+            dataclasses.replace(settings or ForwardSettings(), device=device)
+            if device is not None
             else (settings or ForwardSettings())
-        self.engine = get_engine(_cold_core(core) if cold_batch(q, engine_names) else core, self.freqs,
-                                 engine_names, self.settings)
+        )
+        self.engine = get_engine(
+            _cold_core(core) if cold_batch(q, engine_names) else core, self.freqs, engine_names, self.settings
+        )
         self.device = self.engine.device
         dev = self.device
         fixed_table = np.stack([q] + [fixed[k] for k in fixed])
@@ -220,9 +242,9 @@ class Problems:
             W = np.ones((1, m, 8))
         else:
             w = np.asarray(weights, dtype=float)
-            pair = w.ndim >= 3 and w.shape[-2:] == (4, 2)     # else (.., m, 4): the same for re and im
+            pair = w.ndim >= 3 and w.shape[-2:] == (4, 2)  # else (.., m, 4): the same for re and im
             w = np.broadcast_to(w, (N, m, 4, 2) if pair else (N, m, 4))
-            if w.strides[0] == 0:                             # a broadcast: one row for all problems
+            if w.strides[0] == 0:  # a broadcast: one row for all problems
                 w = w[:1]
             if not np.all(np.isfinite(w)) or np.any(w < 0):
                 raise ValueError("weights: must be finite and >= 0")
@@ -287,15 +309,18 @@ class Problems:
         for seg in self.core.segments:
             for f, neutral in UNDIFFERENTIATED_FIELDS.items():
                 values = [getattr(seg, f, neutral)] + [self.fixed[k] for k in self.fixed if k == f"{seg.name}.{f}"]
-                if any(np.any(np.asarray(v) != neutral) for v in values) and not (f == "viscous_shape_factor" and
-                                                                                 seg.pore_model == "plates"):
+                if any(np.any(np.asarray(v) != neutral) for v in values) and not (
+                    f == "viscous_shape_factor" and seg.pore_model == "plates"
+                ):
                     why = f"{seg.name}.{f} is on"
         varied = [k for k in engine_names if field_of(k) in UNDIFFERENTIATED_FIELDS and k not in self.fixed]
         if varied:
             why = f"{varied[0]} is fitted"
         if why is not None and jacobian == "tangent":
-            raise ValueError(f"jacobian='tangent': {why}; the tangent cascade does not differentiate "
-                             f"{sorted(UNDIFFERENTIATED_FIELDS)} (use 'difference' or 'auto')")
+            raise ValueError(
+                f"jacobian='tangent': {why}; the tangent cascade does not differentiate "
+                f"{sorted(UNDIFFERENTIATED_FIELDS)} (use 'difference' or 'auto')"
+            )
         return why is None
 
     def set_scale(self, ref):
@@ -305,8 +330,10 @@ class Problems:
         ref = np.broadcast_to(np.asarray(ref, dtype=float), (self.N, self.p))
         log = self.kind == 1
         if not np.all(np.isfinite(ref) & (~log | (ref > 0))):
-            raise ValueError(f"start values of {self.names} must be finite, and > 0 for the log-scaled ones "
-                             f"({[k for k in self.names if is_log(k)]}); they set the scale of each parameter")
+            raise ValueError(
+                f"start values of {self.names} must be finite, and > 0 for the log-scaled ones "
+                f"({[k for k in self.names if is_log(k)]}); they set the scale of each parameter"
+            )
         self.scale = np.where(log, ref, self.step)
         self.offset = np.where(log, 0.0, ref)
         self.w_scale = wp.array(self.scale, dtype=wp.float64, device=self.engine.device)
@@ -363,15 +390,45 @@ class Problems:
             w_step = wp.array(np.ascontiguousarray(step[lo:hi]), dtype=wp.float64, device=dev)
             w_ids = wp.array(pid[lo:hi].astype(np.int32), dtype=wp.int32, device=dev)
             varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
-            wp.launch(klm.build_sets, dim=k * sets, device=dev,
-                      inputs=[w_z, w_step, w_ids, self.w_scale, self.w_offset, self.w_kind, self.w_fixed, self.w_row_src,
-                              int(self.tangents), varying])
+            wp.launch(
+                klm.build_sets,
+                dim=k * sets,
+                device=dev,
+                inputs=[
+                    w_z,
+                    w_step,
+                    w_ids,
+                    self.w_scale,
+                    self.w_offset,
+                    self.w_kind,
+                    self.w_fixed,
+                    self.w_row_src,
+                    int(self.tangents),
+                    varying,
+                ],
+            )
             if self.tangents:
                 out, tangent = self.engine.evaluate_tangents(varying, w_step, p)
             else:
                 (out, _, _), tangent = self.engine.evaluate(varying), self._no_tangent
-            wp.launch(self.normal, dim=k, device=dev, inputs=[out, self.w_Y, self.w_W, self.w_zc, w_ids, w_step, tangent,
-                                                              w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]])
+            wp.launch(
+                self.normal,
+                dim=k,
+                device=dev,
+                inputs=[
+                    out,
+                    self.w_Y,
+                    self.w_W,
+                    self.w_zc,
+                    w_ids,
+                    w_step,
+                    tangent,
+                    w_cost[lo:hi],
+                    w_raw[lo:hi],
+                    w_g[lo:hi],
+                    w_H[lo:hi],
+                ],
+            )
             self.launches += 1
         self.evaluations += n * sets
         return w_cost, w_raw, w_g, w_H
@@ -414,21 +471,30 @@ def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_
         ill = ~np.isfinite(cond) | (cond > cond_limit)
     groups = []
     for k, (a, b) in enumerate(zip(*iu)):
+
         def correlated(i, k=k, a=a, b=b):
-            return (f"{names[a]} and {names[b]} are too correlated to separate "
-                    f"(correlation {pair[i, k]:+.4f}); fix one of them")
+            return (
+                f"{names[a]} and {names[b]} are too correlated to separate "
+                f"(correlation {pair[i, k]:+.4f}); fix one of them"
+            )
+
         groups.append((("corr", int(a), int(b)), np.flatnonzero(hit[:, k]), correlated))
 
     def conditioned(i):
         v = np.abs(V[i, :, 0])
         dom = ", ".join(names[k] for k in np.argsort(-v) if v[k] > 0.3 * v.max())
-        return (f"ill-conditioned (condition number {cond[i]:.3g} of J^T J in scaled variables > "
-                f"{cond_limit:g}): the direction mostly along {dom} is not determined")
+        return (
+            f"ill-conditioned (condition number {cond[i]:.3g} of J^T J in scaled variables > "
+            f"{cond_limit:g}): the direction mostly along {dom} is not determined"
+        )
+
     groups.append((("cond",), np.flatnonzero(ill), conditioned))
     bad = ~np.asarray(converged, dtype=bool)
     reason = np.asarray(reason, dtype=str)
     for why in dict.fromkeys(reason[bad].tolist()):
-        groups.append((("conv", why), np.flatnonzero(bad & (reason == why)), lambda i: f"did not converge ({reason[i]})"))
+        groups.append(
+            (("conv", why), np.flatnonzero(bad & (reason == why)), lambda i: f"did not converge ({reason[i]})")
+        )
     return groups
 
 
@@ -476,12 +542,36 @@ def _as_start(start, names, N) -> np.ndarray:
     return np.broadcast_to(s, (N, len(names))).copy()
 
 
-def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, weights=None, ties=None,
-        bounds=None, settings: ForwardSettings | None = None, device: str | None = None,
-        damping: str = "nielsen", xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100,
-        restarts: int = 0, restart_spread: float = 0.2, n_starts: int = 8, seed: int = 0,
-        absolute_sigma: bool = False, corr_limit: float = 0.95, cond_limit: float = 1e8,
-        progress: bool = False, warn: bool = True, max_sets: int = 1 << 20, jacobian: str = "auto") -> FitResult:
+def fit(
+    core: Core,
+    freqs,
+    Y,
+    names,
+    start=None,
+    *,
+    heat_input=0.0,
+    fixed=None,
+    weights=None,
+    ties=None,
+    bounds=None,
+    settings: ForwardSettings | None = None,
+    device: str | None = None,
+    damping: str = "nielsen",
+    xtol: float = 1e-3,
+    gtol: float = 1e-8,
+    max_iter: int = 100,
+    restarts: int = 0,
+    restart_spread: float = 0.2,
+    n_starts: int = 8,
+    seed: int = 0,
+    absolute_sigma: bool = False,
+    corr_limit: float = 0.95,
+    cond_limit: float = 1e8,
+    progress: bool = False,
+    warn: bool = True,
+    max_sets: int = 1 << 20,
+    jacobian: str = "auto",
+) -> FitResult:
     """Fit the free parameters ``names`` of N independent problems at once.
 
     Parameters
@@ -522,13 +612,14 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
     sized = with_ties(sized, ties)
     chosen = settings
     settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input, FIT_K_FACTOR)
-    problem_kw = dict(heat_input=heat_input, fixed=fixed, weights=weights, ties=ties, bounds=bounds, device=device,
-                      jacobian=jacobian)
+    problem_kw = dict(
+        heat_input=heat_input, fixed=fixed, weights=weights, ties=ties, bounds=bounds, device=device, jacobian=jacobian
+    )
     prob = Problems(core, freqs, Y, names, settings=settings, **problem_kw)
     p = prob.p
     lm_kw = dict(damping=damping, xtol=xtol, gtol=gtol, max_iter=max_iter, progress=progress, max_sets=max_sets)
     data = np.arange(N)
-    alt_v, alt_cost, alt_conv, alt_spread = [], [], [], []   # other runs per problem, for distinct minima
+    alt_v, alt_cost, alt_conv, alt_spread = [], [], [], []  # other runs per problem, for distinct minima
     if start is None:
         starts = spread_starts(core, names, n_starts, seed)  # (n_starts, p)
         pid = np.repeat(data, n_starts)
@@ -576,7 +667,7 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         q = i * restarts + j[i]
         z[i], cost[i], raw[i], H[i] = rs.z[q], rs.cost[q], rs.raw[q], rs.H[q]
         its[i], reason[i], conv[i] = rs.iterations[q], rs.reason[q], True
-    if chosen is None or chosen.cells is None:   # fit() sized the cells: check them where the fits ended
+    if chosen is None or chosen.cells is None:  # fit() sized the cells: check them where the fits ended
         rerun = _cells_at_solutions(prob, z, data, chosen, lm_kw, problem_kw)
         if rerun is not None:
             prob, st = rerun
@@ -598,11 +689,15 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         far_all = away & (~asp | close_cost)
         local = np.sum(away & asp & ~close_cost, axis=1)
         distinct = far_all.any(axis=1)
+
         def other_minimum(i):
             far = far_all[i]
             j = int(np.flatnonzero(far)[np.argmin(ac[i][far])])
-            return (f"restarts landed in different minima: best cost {cost[i]:.4g} at {_fmt(names, values[i])}, "
-                    f"another at cost {ac[i, j]:.4g}, {_fmt(names, av[i, j])}")
+            return (
+                f"restarts landed in different minima: best cost {cost[i]:.4g} at {_fmt(names, values[i])}, "
+                f"another at cost {ac[i, j]:.4g}, {_fmt(names, av[i, j])}"
+            )
+
         per.append((("minima",), np.flatnonzero(distinct & far_all.any(axis=1)), other_minimum))
     problem_warnings = ProblemWarnings(N, per)
     warn_list = problem_warnings.summary()
@@ -610,14 +705,35 @@ def fit(core: Core, freqs, Y, names, start=None, *, heat_input=0.0, fixed=None, 
         for msg in warn_list:
             _warnings.warn(msg, FitWarning, stacklevel=2)
     rms = np.sqrt(raw / np.maximum(prob.y2, 1e-300))
-    return FitResult(names=names, values=values, std=std, covariance=cov, correlation=corr, condition=cond,
-                     iterations=its, converged=conv, reason=np.asarray(reason, dtype=str), cost=cost,
-                     rms_error=rms, s2=s2, dof=max(8 * prob.freqs.size - p, 1), start=start_v,
-                     warnings=warn_list, problem_warnings=problem_warnings,
-                     distinct_minima=distinct, restart_values=restart_values, restart_cost=restart_cost,
-                     restart_converged=restart_conv, local_minima=local, evaluations=prob.evaluations,
-                     launches=prob.launches,
-                     seconds=time.perf_counter() - t0, weighted=weights is not None, lower=prob.lo, upper=prob.hi)
+    return FitResult(
+        names=names,
+        values=values,
+        std=std,
+        covariance=cov,
+        correlation=corr,
+        condition=cond,
+        iterations=its,
+        converged=conv,
+        reason=np.asarray(reason, dtype=str),
+        cost=cost,
+        rms_error=rms,
+        s2=s2,
+        dof=max(8 * prob.freqs.size - p, 1),
+        start=start_v,
+        warnings=warn_list,
+        problem_warnings=problem_warnings,
+        distinct_minima=distinct,
+        restart_values=restart_values,
+        restart_cost=restart_cost,
+        restart_converged=restart_conv,
+        local_minima=local,
+        evaluations=prob.evaluations,
+        launches=prob.launches,
+        seconds=time.perf_counter() - t0,
+        weighted=weights is not None,
+        lower=prob.lo,
+        upper=prob.hi,
+    )
 
 
 def _cells_at_solutions(prob: Problems, z, pid, settings: ForwardSettings | None, lm_kw: dict, problem_kw: dict):
@@ -634,8 +750,15 @@ def _cells_at_solutions(prob: Problems, z, pid, settings: ForwardSettings | None
     if all(need[s] <= prob.settings.cells.get(s, 0) for s in need):
         return None
     resized = smooth_settings(core, freqs, settings, values, q, FIT_K_FACTOR)
-    again = Problems(core, freqs, prob.Y, prob.names, settings=resized, scale=np.where(prob.kind == 1, prob.scale, prob.offset),
-                     **problem_kw)
+    again = Problems(
+        core,
+        freqs,
+        prob.Y,
+        prob.names,
+        settings=resized,
+        scale=np.where(prob.kind == 1, prob.scale, prob.offset),
+        **problem_kw,
+    )
     again.evaluations, again.launches = prob.evaluations, prob.launches
     return again, levenberg_marquardt(again, pid, z, **lm_kw)
 
@@ -644,8 +767,15 @@ def _fmt(names, v) -> str:
     return ", ".join(f"{k} = {x:.4g}" for k, x in zip(names, v))
 
 
-def predict(core: Core, freqs, values: dict | None = None, heat_input=0.0, ties=None,
-            settings: ForwardSettings | None = None, **kw) -> np.ndarray:
+def predict(
+    core: Core,
+    freqs,
+    values: dict | None = None,
+    heat_input=0.0,
+    ties=None,
+    settings: ForwardSettings | None = None,
+    **kw,
+) -> np.ndarray:
     """Dimensionless coefficients (n, m, 4) of ``core`` with ``values`` {name: scalar or (n,)}
     (tied names follow their free parameter), normalised with the core's duct impedance."""
     from ..model.forward import transfer_matrices

@@ -74,13 +74,27 @@ class LMProblems(Protocol):
 def _on_device(arrays, device, own=False):
     """The evaluation's arrays as float64 Warp arrays on ``device`` (NumPy ones copied there;
     ``own``: Warp ones too, for the state the kernels overwrite)."""
-    return [(wp.clone(a) if own else a) if isinstance(a, wp.array)
-            else wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device) for a in arrays]
+    return [
+        (wp.clone(a) if own else a)
+        if isinstance(a, wp.array)
+        else wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
+        for a in arrays
+    ]
 
 
-def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, damping: str = "nielsen",
-                        xtol: float = 1e-3, gtol: float = 1e-8, max_iter: int = 100, tau: float = 1e-3,
-                        progress: bool = False, max_sets: int = 1 << 20) -> LMState:
+def levenberg_marquardt(
+    prob: LMProblems,
+    pid: np.ndarray,
+    z0: np.ndarray,
+    *,
+    damping: str = "nielsen",
+    xtol: float = 1e-3,
+    gtol: float = 1e-8,
+    max_iter: int = 100,
+    tau: float = 1e-3,
+    progress: bool = False,
+    max_sets: int = 1 << 20,
+) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
     ``prob``: any :class:`LMProblems`."""
@@ -107,8 +121,27 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
     w_it = wp.zeros(Q, dtype=wp.int32, device=dev)
     w_reason, w_conv = wp.empty(Q, dtype=wp.int32, device=dev), wp.empty(Q, dtype=wp.int32, device=dev)
     w_done = wp.empty(Q, dtype=wp.int32, device=dev)
-    wp.launch(init, dim=Q, device=dev, inputs=[w_pid, w_zlo, w_zhi, float(tau), float(gtol), w_z, w_cost, w_g, w_H,
-                                               w_mu, w_nu, w_reason, w_conv, w_done])
+    wp.launch(
+        init,
+        dim=Q,
+        device=dev,
+        inputs=[
+            w_pid,
+            w_zlo,
+            w_zhi,
+            float(tau),
+            float(gtol),
+            w_z,
+            w_cost,
+            w_g,
+            w_H,
+            w_mu,
+            w_nu,
+            w_reason,
+            w_conv,
+            w_done,
+        ],
+    )
     active = np.flatnonzero(w_done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
@@ -118,17 +151,62 @@ def levenberg_marquardt(prob: LMProblems, pid: np.ndarray, z0: np.ndarray, *, da
         w_act = put(active.astype(np.int32), wp.int32)
         w_zt, w_dz = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p), dtype=wp.float64, device=dev)
         w_pred, w_ok = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(propose, dim=n, device=dev, inputs=[w_act, w_pid, w_zlo, w_zhi, w_z, w_g, w_H, w_mu,
-                                                      w_zt, w_dz, w_pred, w_ok])
+        wp.launch(
+            propose,
+            dim=n,
+            device=dev,
+            inputs=[w_act, w_pid, w_zlo, w_zhi, w_z, w_g, w_H, w_mu, w_zt, w_dz, w_pred, w_ok],
+        )
         ct, rt, gt, Ht = _on_device(prob.evaluate(pid[active], w_zt.numpy(), max_sets), dev)
         done = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(update, dim=n, device=dev,
-                  inputs=[w_act, w_pid, w_zlo, w_zhi, w_kind, w_scale, w_offset, w_zt, w_dz, w_pred, w_ok,
-                          ct, rt, gt, Ht, damp, float(xtol), float(gtol), int(max_iter), w_z, w_cost, w_raw, w_g,
-                          w_H, w_mu, w_nu, w_it, w_reason, w_conv, done])
+        wp.launch(
+            update,
+            dim=n,
+            device=dev,
+            inputs=[
+                w_act,
+                w_pid,
+                w_zlo,
+                w_zhi,
+                w_kind,
+                w_scale,
+                w_offset,
+                w_zt,
+                w_dz,
+                w_pred,
+                w_ok,
+                ct,
+                rt,
+                gt,
+                Ht,
+                damp,
+                float(xtol),
+                float(gtol),
+                int(max_iter),
+                w_z,
+                w_cost,
+                w_raw,
+                w_g,
+                w_H,
+                w_mu,
+                w_nu,
+                w_it,
+                w_reason,
+                w_conv,
+                done,
+            ],
+        )
         finished = done.numpy() != 0
         active = active[~finished]
         bar.update(int(finished.sum()))
     bar.close()
-    return LMState(w_z.numpy(), w_cost.numpy(), w_raw.numpy(), w_g.numpy(), w_H.numpy(), w_it.numpy().astype(int),
-                   np.array(REASONS, dtype=object)[w_reason.numpy()], w_conv.numpy() != 0)
+    return LMState(
+        w_z.numpy(),
+        w_cost.numpy(),
+        w_raw.numpy(),
+        w_g.numpy(),
+        w_H.numpy(),
+        w_it.numpy().astype(int),
+        np.array(REASONS, dtype=object)[w_reason.numpy()],
+        w_conv.numpy() != 0,
+    )

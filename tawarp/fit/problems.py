@@ -69,8 +69,14 @@ class KindProblems:
     fit's others at their start values), a structural effect has its own.
     """
 
-    def __init__(self, kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
-                 priors: list | None = None):
+    def __init__(
+        self,
+        kind: MeasurementKind,
+        specs: list,
+        fixed: dict | None = None,
+        rows: np.ndarray | None = None,
+        priors: list | None = None,
+    ):
         self.kind = kind
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
@@ -99,7 +105,7 @@ class KindProblems:
         for c, pr in enumerate(priors or []):
             if pr is not None:
                 mu, sd = (np.asarray(a, dtype=float) for a in pr)
-                self.prior_mu[c, :mu.size], self.prior_isd[c, :sd.size] = mu, 1.0 / sd
+                self.prior_mu[c, : mu.size], self.prior_isd[c, : sd.size] = mu, 1.0 / sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
 
@@ -107,7 +113,7 @@ class KindProblems:
         """The specs' x0, padded (K, P)."""
         z = np.zeros_like(self.zlo)
         for c, (_, _, x0) in enumerate(self.specs):
-            z[c, :self.p[c]] = np.asarray(x0, dtype=float)
+            z[c, : self.p[c]] = np.asarray(x0, dtype=float)
         return z
 
     def change_rule(self):
@@ -136,7 +142,7 @@ class KindProblems:
             Y = self.kind.predict(values, sum(b[1] for b in blocks), effect)
             k0 = 0
             for i, n, _ in blocks:
-                out[i] = Y[k0:k0 + n]
+                out[i] = Y[k0 : k0 + n]
                 k0 += n
         return out
 
@@ -169,7 +175,7 @@ class KindProblems:
                 g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
             self.last.append((J, got[i][0]))
         d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
-        cost += np.sum(d ** 2, axis=1)
+        cost += np.sum(d**2, axis=1)
         g += d * isd
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
@@ -201,8 +207,20 @@ def _covariance_x(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return inv / norm[:, None] / norm[None, :], undetermined
 
 
-def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effect, converged: bool,
-                reason: str, iterations: int, evaluations: int = 0, seconds: float = 0.0) -> FitResult:
+def kind_result(
+    kind: MeasurementKind,
+    params: list[Param],
+    x,
+    J,
+    Y,
+    rows,
+    effect,
+    converged: bool,
+    reason: str,
+    iterations: int,
+    evaluations: int = 0,
+    seconds: float = 0.0,
+) -> FitResult:
     """:class:`FitResult` (one problem) of a kind fit at x with Jacobian J (n, p) in x and
     model values Y: covariance ``s^2 (J^T J)^-1`` (s^2 = 1 with the kind's sigma, else
     cost / (n - p)) carried to natural units by the delta method (dv/dx = v for log
@@ -227,18 +245,47 @@ def kind_result(kind: MeasurementKind, params: list[Param], x, J, Y, rows, effec
     w = np.linalg.eigvalsh(JtJ) if p else np.ones(1)
     cond = float(w[-1] / w[0]) if w[0] > 0 else math.inf
     one = lambda a, dt=float: np.array([a], dtype=dt)  # noqa: E731
-    return FitResult(names=[par.label for par in params], values=values[None], std=std[None], covariance=cov[None],
-                     correlation=corr[None], condition=one(cond), iterations=one(iterations, int),
-                     converged=one(converged, bool), reason=one(reason, object).astype(str), cost=one(cost),
-                     rms_error=one(kind.error(Y, rows)), s2=one(s2), dof=dof,
-                     start=np.array([[par.start for par in params]]), problem_warnings=[[]],
-                     evaluations=evaluations, seconds=seconds, params=list(params), x=np.asarray(x, dtype=float)[None],
-                     residuals=r[None], jacobian=J[None], model=Y[None], effect=effect, n=n, weighted=kind.has_sigma,
-                     lower=np.array([par.lower for par in params]), upper=np.array([par.upper for par in params]))
+    return FitResult(
+        names=[par.label for par in params],
+        values=values[None],
+        std=std[None],
+        covariance=cov[None],
+        correlation=corr[None],
+        condition=one(cond),
+        iterations=one(iterations, int),
+        converged=one(converged, bool),
+        reason=one(reason, object).astype(str),
+        cost=one(cost),
+        rms_error=one(kind.error(Y, rows)),
+        s2=one(s2),
+        dof=dof,
+        start=np.array([[par.start for par in params]]),
+        problem_warnings=[[]],
+        evaluations=evaluations,
+        seconds=seconds,
+        params=list(params),
+        x=np.asarray(x, dtype=float)[None],
+        residuals=r[None],
+        jacobian=J[None],
+        model=Y[None],
+        effect=effect,
+        n=n,
+        weighted=kind.has_sigma,
+        lower=np.array([par.lower for par in params]),
+        upper=np.array([par.upper for par in params]),
+    )
 
 
-def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, rows: np.ndarray | None = None,
-              max_iter: int = 100, xtol: float = XTOL, gtol: float = GTOL, priors: list | None = None) -> list[FitResult]:
+def fit_batch(
+    kind: MeasurementKind,
+    specs: list,
+    fixed: dict | None = None,
+    rows: np.ndarray | None = None,
+    max_iter: int = 100,
+    xtol: float = XTOL,
+    gtol: float = GTOL,
+    priors: list | None = None,
+) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
     others at ``fixed`` {name: value} or the core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
@@ -260,13 +307,33 @@ def fit_batch(kind: MeasurementKind, specs: list, fixed: dict | None = None, row
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
     lm.evaluate(pid, z)
     dt = time.perf_counter() - t0
-    return [kind_result(kind, params, z[c, :lm.p[c]], lm.last[c][0], lm.last[c][1], lm.rows[c], effect,
-                        bool(converged[c]), str(reason[c]), int(its[c]), seconds=dt)
-            for c, (params, effect, _) in enumerate(lm.specs)]
+    return [
+        kind_result(
+            kind,
+            params,
+            z[c, : lm.p[c]],
+            lm.last[c][0],
+            lm.last[c][1],
+            lm.rows[c],
+            effect,
+            bool(converged[c]),
+            str(reason[c]),
+            int(its[c]),
+            seconds=dt,
+        )
+        for c, (params, effect, _) in enumerate(lm.specs)
+    ]
 
 
-def fit_one(kind: MeasurementKind, params: list[Param], fixed: dict | None = None, effect: Effect | None = None,
-            rows: np.ndarray | None = None, x0=None, **kw) -> FitResult:
+def fit_one(
+    kind: MeasurementKind,
+    params: list[Param],
+    fixed: dict | None = None,
+    effect: Effect | None = None,
+    rows: np.ndarray | None = None,
+    x0=None,
+    **kw,
+) -> FitResult:
     """One fit of ``kind`` (:func:`fit_batch` of one spec)."""
     return fit_batch(kind, [(params, effect, x0)], fixed, rows, **kw)[0]
 

@@ -77,8 +77,11 @@ class FitResult:
         relative)."""
         if self.lower is None:
             return []
-        return [k for k, v, lo, hi in zip(self.names, self.values[i], self.lower, self.upper)
-                if min(v - lo, hi - v) <= 1e-9 * max(abs(v), 1e-300)]
+        return [
+            k
+            for k, v, lo, hi in zip(self.names, self.values[i], self.lower, self.upper)
+            if min(v - lo, hi - v) <= 1e-9 * max(abs(v), 1e-300)
+        ]
 
     def goodness_of_fit(self, i: int = 0) -> dict:
         """The verdict on problem ``i`` (fit.json's ``goodness_of_fit``): reduced chi^2 and
@@ -86,10 +89,14 @@ class FitResult:
         ``adequate`` by the rule of :data:`ADEQUATE_P` (None when there is no sigma and no
         parameter at a bound: the noise level is then unknown)."""
         at = self.at_bounds(i)
-        out = {"reduced_chi2": None, "chi2_p_value": None, "adequate": False if at else None,
-               "parameters_at_bounds": at,
-               "rule": f"adequate when the weights are 1/sigma and chi^2 has p-value >= {ADEQUATE_P:g} for "
-                       f"{self.dof} degrees of freedom, and no parameter sits at a bound of its fit range"}
+        out = {
+            "reduced_chi2": None,
+            "chi2_p_value": None,
+            "adequate": False if at else None,
+            "parameters_at_bounds": at,
+            "rule": f"adequate when the weights are 1/sigma and chi^2 has p-value >= {ADEQUATE_P:g} for "
+            f"{self.dof} degrees of freedom, and no parameter sits at a bound of its fit range",
+        }
         if self.weighted:
             chi2 = float(self.cost[i])
             out["reduced_chi2"] = _json_float(chi2 / self.dof)
@@ -130,14 +137,27 @@ class FitResult:
 
     def problem(self, i: int = 0) -> dict:
         """Problem ``i`` as a JSON-ready dict (the fit.json entry of docs/formats.md)."""
-        d = {"parameters": {k: {"value": float(self.values[i, a]), "std": _json_float(self.std[i, a]),
-                                "start": float(self.start[i, a])} for a, k in enumerate(self.names)},
-             "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},
-             "converged": bool(self.converged[i]), "reason": str(self.reason[i]),
-             "iterations": int(self.iterations[i]), "cost": _json_float(self.cost[i]),
-             "rms_error": _json_float(self.rms_error[i]), "s2": _json_float(self.s2[i]), "dof": int(self.dof),
-             "condition": _json_float(self.condition[i]), "warnings": list(self.problem_warnings[i]),
-             "goodness_of_fit": self.goodness_of_fit(i)}
+        d = {
+            "parameters": {
+                k: {
+                    "value": float(self.values[i, a]),
+                    "std": _json_float(self.std[i, a]),
+                    "start": float(self.start[i, a]),
+                }
+                for a, k in enumerate(self.names)
+            },
+            "correlation": {"names": list(self.names), "matrix": _finite(self.correlation[i]).tolist()},
+            "converged": bool(self.converged[i]),
+            "reason": str(self.reason[i]),
+            "iterations": int(self.iterations[i]),
+            "cost": _json_float(self.cost[i]),
+            "rms_error": _json_float(self.rms_error[i]),
+            "s2": _json_float(self.s2[i]),
+            "dof": int(self.dof),
+            "condition": _json_float(self.condition[i]),
+            "warnings": list(self.problem_warnings[i]),
+            "goodness_of_fit": self.goodness_of_fit(i),
+        }
         if self.std_statistical is not None:
             for a, k in enumerate(self.names):
                 d["parameters"][k]["std_statistical"] = _json_float(self.std_statistical[i, a])
@@ -146,9 +166,10 @@ class FitResult:
         if self.local_minima is not None:
             d["local_minima"] = int(self.local_minima[i])
         if self.restart_values is not None:
-            d["restarts"] = [{"values": dict(zip(self.names, map(float, v))), "cost": float(c), "converged": bool(ok)}
-                             for v, c, ok in zip(self.restart_values[i], self.restart_cost[i],
-                                                 self.restart_converged[i])]
+            d["restarts"] = [
+                {"values": dict(zip(self.names, map(float, v))), "cost": float(c), "converged": bool(ok)}
+                for v, c, ok in zip(self.restart_values[i], self.restart_cost[i], self.restart_converged[i])
+            ]
         return d
 
 
@@ -198,8 +219,10 @@ class ProblemWarnings(Sequence):
     def __reduce__(self):
         # pickled (a Dask worker's result) with the messages of the problems that have them
         # formatted: the closures, which hold the batch's arrays, stay here
-        return ProblemWarnings, (self.n, [(key, rows, _Formatted(rows, [message(int(i)) for i in rows]))
-                                          for key, rows, message in self.groups])
+        return ProblemWarnings, (
+            self.n,
+            [(key, rows, _Formatted(rows, [message(int(i)) for i in rows])) for key, rows, message in self.groups],
+        )
 
     @classmethod
     def from_lists(cls, lists) -> "ProblemWarnings":
@@ -229,9 +252,13 @@ class ProblemWarnings(Sequence):
             first = np.array([starts[k] for k, _, _ in pieces], dtype=np.int64)
             groups.append((key, rows, _Joined(first, [m for _, _, m in pieces])))
         return cls(int(starts[-1]), groups)
+
     def __eq__(self, other) -> bool:
-        return isinstance(other, Sequence) and len(other) == self.n and all(
-            list(a) == list(b) for a, b in zip(self, other))
+        return (
+            isinstance(other, Sequence)
+            and len(other) == self.n
+            and all(list(a) == list(b) for a, b in zip(self, other))
+        )
 
     def summary(self) -> list[str]:
         """One line per warning key: its message for the first problem that has it, and how
@@ -239,8 +266,11 @@ class ProblemWarnings(Sequence):
         out = []
         for _, rows, message in self.groups:
             if rows.size:
-                head = f"problem {rows[0]}" if rows.size == 1 else \
-                    f"{rows.size} of {self.n} problems (e.g. problem {rows[0]})"
+                head = (
+                    f"problem {rows[0]}"
+                    if rows.size == 1
+                    else f"{rows.size} of {self.n} problems (e.g. problem {rows[0]})"
+                )
                 out.append(f"{head}: {message(int(rows[0]))}")
         return out
 

@@ -27,10 +27,32 @@ structure), :mod:`.run`, :mod:`.report` (report.json/md and figures).
 
 from .goodness import goodness_of_fit, noise_sigma, residual_location
 from .report import write_report
-from .run import (MAX_EFFECTS, WRONG_MODEL_CHI2, base_names, default_base_params, drift, fit_base, impedance_loop,
-                  library_for, run_loop)
+from .run import (
+    MAX_EFFECTS,
+    WRONG_MODEL_CHI2,
+    base_names,
+    default_base_params,
+    drift,
+    fit_base,
+    impedance_loop,
+    library_for,
+    run_loop,
+)
 from .screen import residual_structure
 
-__all__ = ["goodness_of_fit", "noise_sigma", "residual_location", "write_report", "MAX_EFFECTS", "WRONG_MODEL_CHI2",
-           "base_names", "default_base_params", "drift", "fit_base", "impedance_loop", "library_for", "run_loop",
-           "residual_structure"]
+__all__ = [
+    "goodness_of_fit",
+    "noise_sigma",
+    "residual_location",
+    "write_report",
+    "MAX_EFFECTS",
+    "WRONG_MODEL_CHI2",
+    "base_names",
+    "default_base_params",
+    "drift",
+    "fit_base",
+    "impedance_loop",
+    "library_for",
+    "run_loop",
+    "residual_structure",
+]

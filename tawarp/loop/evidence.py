@@ -102,7 +102,7 @@ def laplace_log_evidence(r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: li
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
     (in units of the noise) and their Jacobian ``J`` in x."""
     mu = np.array([p.mu for p in priors])
-    isd2 = np.array([p.sd ** -2 for p in priors])
+    isd2 = np.array([p.sd**-2 for p in priors])
     H = J.T @ J + np.diag(isd2)
     _, logdet = np.linalg.slogdet(H)
     log_prior = float(np.sum(-0.5 * (x - mu) ** 2 * isd2)) + sum(p.log_norm() for p in priors)
@@ -182,7 +182,7 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
         cols = ((R[1:] - R[0]) / h[:, None]).T
         k = 0
         for e in effects:
-            out[e.name] = cols[:, k:k + len(e.params)]
+            out[e.name] = cols[:, k : k + len(e.params)]
             k += len(e.params)
     return out
 
@@ -194,7 +194,9 @@ def visible(effect: Effect, columns: np.ndarray, priors: list[XPrior]) -> bool:
     return bool(np.max(np.linalg.norm(columns, axis=0) * np.array([p.sd for p in priors]), initial=0.0) > 1e-6)
 
 
-def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]]) -> list[tuple[float, np.ndarray]]:
+def linearized_evidence(
+    at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]]
+) -> list[tuple[float, np.ndarray]]:
     """ln Z of each model (its effects and their priors, appended to ``at``'s) from the
     quadratic model of ln posterior at ``at``'s solution: ``||r + J d||^2`` with the base
     columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"), plus the priors.
@@ -208,7 +210,7 @@ def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effec
         C = np.hstack([Jb] + [columns[e.name] for e in effects]) if effects else Jb
         x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
         mu = np.array([p.mu for p in priors])
-        isd2 = np.array([p.sd ** -2 for p in priors])
+        isd2 = np.array([p.sd**-2 for p in priors])
         lo = np.array([p.lo for p in priors])
         hi = np.array([p.hi for p in priors])
         G = C.T @ C + np.diag(isd2)
@@ -220,7 +222,7 @@ def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effec
             d[free] = np.linalg.solve(G[np.ix_(free, free)], -b[free])
             x = x0 + d
             bad = free & ((x < lo) | (x > hi))
-            bad[:len(xb)] = False            # the base parameters are inside at the solution
+            bad[: len(xb)] = False  # the base parameters are inside at the solution
             if not bad.any():
                 break
             j = int(np.argmax(np.where(bad, np.maximum(lo - x, x - hi), -np.inf)))
@@ -231,8 +233,13 @@ def linearized_evidence(at: Model, columns: dict, models: list[tuple[tuple[Effec
         rr = r0 + C @ d
         phi = float(rr @ rr) + float(np.sum((x - mu) ** 2 * isd2))
         _, logdet = np.linalg.slogdet(G)
-        logz = (-0.5 * phi + sum(p.log_norm() for p in priors) + 0.5 * len(x) * math.log(2 * math.pi)
-                - 0.5 * logdet - pinned * math.log(2.0))
+        logz = (
+            -0.5 * phi
+            + sum(p.log_norm() for p in priors)
+            + 0.5 * len(x) * math.log(2 * math.pi)
+            - 0.5 * logdet
+            - pinned * math.log(2.0)
+        )
         out.append((logz, x))
     return out
 
@@ -255,7 +262,9 @@ def any_of(models: list[Model], group) -> float:
     return float(sum(m.probability for m in models if set(m.effects) & set(group)))
 
 
-def claims(models: list[Model], names: list[str], level: float = CLAIM, max_group: int = 3) -> tuple[list[str], list[list[str]]]:
+def claims(
+    models: list[Model], names: list[str], level: float = CLAIM, max_group: int = 3
+) -> tuple[list[str], list[list[str]]]:
     """Effects claimed alone (inclusion >= ``level``) and groups: effects the data cannot
     separate, each below ``level`` alone but with at least one of them in the model with
     probability >= ``level`` (built greedily from the most probable, each member adding to
@@ -270,8 +279,11 @@ def claims(models: list[Model], names: list[str], level: float = CLAIM, max_grou
             continue
         group = [first]
         while any_of(models, group) < level and len(group) < max_group:
-            gains = [(any_of(models, group + [n]) - any_of(models, group), n) for n in rest
-                     if n not in group and n not in used]
+            gains = [
+                (any_of(models, group + [n]) - any_of(models, group), n)
+                for n in rest
+                if n not in group and n not in used
+            ]
             if not gains or max(gains)[0] < 0.01:
                 break
             group.append(max(gains)[1])

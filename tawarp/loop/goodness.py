@@ -15,9 +15,11 @@ from ..measure.kind import MeasurementKind
 #: uncertain by a few per cent and picks up some curvature, so a p-value would be too strict.
 ADEQUATE_REDUCED_CHI2_ESTIMATED = 1.5
 #: The noise estimate's rule, as the report states it.
-NOISE_ESTIMATE = ("estimated: rms of the second differences d2 along frequency of the base fit's weighted "
-                  "residual, per coefficient (sigma = rms(d2) / sqrt(6): white noise gives var d2 = 6 sigma^2, a "
-                  "residual smooth over three frequencies cancels in d2)")
+NOISE_ESTIMATE = (
+    "estimated: rms of the second differences d2 along frequency of the base fit's weighted "
+    "residual, per coefficient (sigma = rms(d2) / sqrt(6): white noise gives var d2 = 6 sigma^2, a "
+    "residual smooth over three frequencies cancels in d2)"
+)
 
 
 #: A fit that explains the data leaves a white residual: the share of it that cubics in
@@ -54,8 +56,12 @@ def smooth_fraction(problem: MeasurementKind, wr: np.ndarray) -> dict:
                 k += V.shape[1]
     N = wr.size
     F = (smooth / k) / max((total - smooth) / max(N - k, 1), 1e-300) if total > 0 else 0.0
-    return {"fraction": smooth / total if total > 0 else 0.0, "if_white": k / N, "F": F,
-            "p_value": float(stats.f.sf(F, k, max(N - k, 1)))}
+    return {
+        "fraction": smooth / total if total > 0 else 0.0,
+        "if_white": k / N,
+        "F": F,
+        "p_value": float(stats.f.sf(F, k, max(N - k, 1))),
+    }
 
 
 def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
@@ -65,7 +71,7 @@ def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
     n = problem.y.size
     d2_all = {}
     for part in range(2):
-        r = residual[part * n:(part + 1) * n]
+        r = residual[part * n : (part + 1) * n]
         for c in range(len(problem.coef_names)):
             for g in np.unique(problem.group):
                 m = np.flatnonzero((problem.coef == c) & (problem.group == g))
@@ -75,10 +81,10 @@ def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
                 d2_all.setdefault(c, []).append(s[:-2] - 2 * s[1:-1] + s[2:])
     out = np.empty(2 * n)
     pooled = np.concatenate([np.concatenate(v) for v in d2_all.values()]) if d2_all else np.zeros(0)
-    fallback = (np.sqrt(np.mean(pooled ** 2) / 6.0) if pooled.size else float(np.sqrt(np.mean(residual ** 2))))
+    fallback = np.sqrt(np.mean(pooled**2) / 6.0) if pooled.size else float(np.sqrt(np.mean(residual**2)))
     for c in range(len(problem.coef_names)):
         d2 = np.concatenate(d2_all[c]) if c in d2_all else np.zeros(0)
-        s = np.sqrt(np.mean(d2 ** 2) / 6.0) if d2.size >= 5 else fallback
+        s = np.sqrt(np.mean(d2**2) / 6.0) if d2.size >= 5 else fallback
         m = problem.coef == c
         out[:n][m] = out[n:][m] = max(s, 1e-300)
     return out
@@ -93,7 +99,7 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     structure test of the fit's weighted residual (:func:`smooth_fraction`: ``structure``)
     and ``white``: its p-value >= :data:`STRUCTURE_P`."""
     r = fit.residuals[0]
-    chi2 = float(np.sum(r ** 2)) if sigma is None else float(np.sum((r / sigma) ** 2))
+    chi2 = float(np.sum(r**2)) if sigma is None else float(np.sum((r / sigma) ** 2))
     dof = max(r.size - len(fit.names), 1)
     p = float(stats.chi2.sf(chi2, dof))
     at = fit.at_bounds()
@@ -105,9 +111,17 @@ def goodness_of_fit(problem: MeasurementKind, fit: FitResult, sigma: np.ndarray 
     structure = smooth_fraction(problem, np.stack([r[:n], r[n:]], -1))
     fits = p >= ADEQUATE_P if sigma is None else chi2 / dof <= ADEQUATE_REDUCED_CHI2_ESTIMATED
     floor = problem.noise_floor(sigma)
-    return {"reduced_chi2": chi2 / dof, "p_value": p, "noise_floor": floor, "noise_source": source,
-            "error": float(fit.rms_error[0]), "adequate": bool(fits), "structure": structure,
-            "white": structure["p_value"] >= STRUCTURE_P, "at_bounds": at}
+    return {
+        "reduced_chi2": chi2 / dof,
+        "p_value": p,
+        "noise_floor": floor,
+        "noise_source": source,
+        "error": float(fit.rms_error[0]),
+        "adequate": bool(fits),
+        "structure": structure,
+        "white": structure["p_value"] >= STRUCTURE_P,
+        "at_bounds": at,
+    }
 
 
 def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> dict:
@@ -134,7 +148,11 @@ def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> 
     hi = k
     while hi < m.size - 1 and s[hi + 1] >= 0.5 * s[k]:
         hi += 1
-    band = m[lo:hi + 1]
-    return {"band_Hz": [float(problem.freq[band].min()), float(problem.freq[band].max())],
-            "group": float(g) if len(groups) > 1 else None, "coefficient": problem.coef_names[c],
-            "error": float(np.sqrt(d2[band].mean() / norm)), "noise_floor": floor}
+    band = m[lo : hi + 1]
+    return {
+        "band_Hz": [float(problem.freq[band].min()), float(problem.freq[band].max())],
+        "group": float(g) if len(groups) > 1 else None,
+        "coefficient": problem.coef_names[c],
+        "error": float(np.sqrt(d2[band].mean() / norm)),
+        "noise_floor": floor,
+    }

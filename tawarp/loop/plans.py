@@ -41,23 +41,37 @@ def candidate_plans(problem: MeasurementKind) -> list[tuple[str, list[float], np
     for band in np.array_split(f, 3):
         if len(band) > 1:
             dense = np.linspace(band[0], band[-1], 2 * len(band))
-            out.append((f"{band[0]:.4g}-{band[-1]:.4g} Hz at twice the density, every {problem.group_name}", groups, dense))
-    out.append((f"{f[0]:.4g}-{f[-1]:.4g} Hz at twice the density, every {problem.group_name}", groups,
-                np.linspace(f[0], f[-1], 2 * n)))
-    out.append((f"{f[-1]:.4g}-{1.5 * f[-1]:.4g} Hz, every {problem.group_name}", groups,
-                np.linspace(f[-1], 1.5 * f[-1], max(n // 2, 4))[1:]))
+            out.append(
+                (f"{band[0]:.4g}-{band[-1]:.4g} Hz at twice the density, every {problem.group_name}", groups, dense)
+            )
+    out.append(
+        (
+            f"{f[0]:.4g}-{f[-1]:.4g} Hz at twice the density, every {problem.group_name}",
+            groups,
+            np.linspace(f[0], f[-1], 2 * n),
+        )
+    )
+    out.append(
+        (
+            f"{f[-1]:.4g}-{1.5 * f[-1]:.4g} Hz, every {problem.group_name}",
+            groups,
+            np.linspace(f[-1], 1.5 * f[-1], max(n // 2, 4))[1:],
+        )
+    )
     return out
 
 
 def _noise(problem: MeasurementKind) -> np.ndarray:
     """(coefficients, 2) noise sd of each coefficient's re and im parts in the data's units
     (the median over the measured rows of 1/w, w in units of the noise)."""
-    return np.array([[np.median(1.0 / problem.w[problem.coef == c, k]) for k in range(2)]
-                     for c in range(len(problem.coef_names))])
+    return np.array(
+        [[np.median(1.0 / problem.w[problem.coef == c, k]) for k in range(2)] for c in range(len(problem.coef_names))]
+    )
 
 
-def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict, base_params=None,
-                     library=None) -> list[dict]:
+def next_measurement(
+    problem: MeasurementKind, models: list[Model], fixed: dict, base_params=None, library=None
+) -> list[dict]:
     """The :data:`PLANS` best plans (module doc) as report entries {description,
     heat_inputs_W / groups, frequencies_Hz, separates, expected_gain}; [] when the best model
     is more than :data:`ODDS` times as probable as every other, no plan separates a rival by
@@ -72,12 +86,21 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict,
         kind = problem.at_rows(groups, freqs)
         if kind is None:
             return []
-        pred = {m.label: kind.predict(param_values(m.fit.params, m.fit.x, fixed), 1, m.fit.effect)[0]
-                for m in [best] + rivals}
+        pred = {
+            m.label: kind.predict(param_values(m.fit.params, m.fit.x, fixed), 1, m.fit.effect)[0]
+            for m in [best] + rivals
+        }
         s = sd[kind.coef]
-        gains = {m.label: float(np.sum(((pred[best.label] - pred[m.label]).real / s[:, 0]) ** 2
-                                       + ((pred[best.label] - pred[m.label]).imag / s[:, 1]) ** 2) / 2.0)
-                 for m in rivals}
+        gains = {
+            m.label: float(
+                np.sum(
+                    ((pred[best.label] - pred[m.label]).real / s[:, 0]) ** 2
+                    + ((pred[best.label] - pred[m.label]).imag / s[:, 1]) ** 2
+                )
+                / 2.0
+            )
+            for m in rivals
+        }
         plans.append((text, groups, freqs, kind, pred, gains))
     # a rival that no plan separates predicts the best model's data (an effect fitted at its
     # "off"): it is the same model for any measurement of this kind, not one to decide against
@@ -88,9 +111,17 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict,
         if not distinct:
             break
         worst = min(distinct, key=gains.get)
-        out.append({"description": text, key: [float(g) for g in groups],
-                    "frequencies_Hz": [float(x) for x in freqs], "separates": [best.label, worst],
-                    "expected_gain": gains[worst], "expected_gain_per_rival": gains,
-                    "_predictions": pred, "_rows": (kind.freq, kind.group, kind.coef)})
+        out.append(
+            {
+                "description": text,
+                key: [float(g) for g in groups],
+                "frequencies_Hz": [float(x) for x in freqs],
+                "separates": [best.label, worst],
+                "expected_gain": gains[worst],
+                "expected_gain_per_rival": gains,
+                "_predictions": pred,
+                "_rows": (kind.freq, kind.group, kind.coef),
+            }
+        )
     out.sort(key=lambda p: -p["expected_gain"])
     return out[:PLANS]

@@ -20,9 +20,14 @@ def _public(v):
 
 
 def _jsonable(report: dict) -> dict:
-    return json.loads(json.dumps(_public(report),
-                                 default=lambda o: o.tolist() if isinstance(o, np.ndarray) else
-                                 (o.item() if isinstance(o, np.generic) else str(o))))
+    return json.loads(
+        json.dumps(
+            _public(report),
+            default=lambda o: (
+                o.tolist() if isinstance(o, np.ndarray) else (o.item() if isinstance(o, np.generic) else str(o))
+            ),
+        )
+    )
 
 
 def _steps(report: dict) -> list[str]:
@@ -44,8 +49,9 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     groups = np.unique(problem.group)
     scale = np.sqrt(np.mean(np.abs(problem.y) ** 2))
     floor = report.get("noise_floor")
-    fig, axes = plt.subplots(2, nc, figsize=(max(3.2 * nc, 5.0), 5.6), squeeze=False, sharex=True, sharey="row",
-                             layout="constrained")
+    fig, axes = plt.subplots(
+        2, nc, figsize=(max(3.2 * nc, 5.0), 5.6), squeeze=False, sharex=True, sharey="row", layout="constrained"
+    )
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     for row, key in enumerate(("before", "after")):
         d = (fits[key].model[0] - problem.y) / scale
@@ -57,8 +63,14 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
                 m = np.flatnonzero((problem.coef == c) & (problem.group == g))
                 m = m[np.argsort(problem.freq[m])]
                 col = colors[k % len(colors)]
-                ax.plot(problem.freq[m], d[m].real, "-", color=col, lw=1.0,
-                        label=f"{problem.group_name} = {g:.3g}" if len(groups) > 1 else None)
+                ax.plot(
+                    problem.freq[m],
+                    d[m].real,
+                    "-",
+                    color=col,
+                    lw=1.0,
+                    label=f"{problem.group_name} = {g:.3g}" if len(groups) > 1 else None,
+                )
                 ax.plot(problem.freq[m], d[m].imag, "--", color=col, lw=1.0)
             ax.axhline(0.0, color="k", lw=0.5)
             ax.set_title(f"{problem.coef_names[c]} ({key})", fontsize=9)
@@ -68,9 +80,11 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
                 ax.set_ylabel("(model - data) / rms|y|")
     if len(groups) > 1:
         axes[0, -1].legend(fontsize=7)
-    fig.suptitle(f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; verdict {report['verdict']}; "
-                 f"claimed: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
-                 fontsize=9)
+    fig.suptitle(
+        f"error {report['error_before']:.3g} -> {report['error_after']:.3g}; verdict {report['verdict']}; "
+        f"claimed: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
+        fontsize=9,
+    )
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -130,8 +144,11 @@ def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | No
         ax.set_xlabel("frequency [Hz]")
         ax.set_ylabel(f"{part} part of {problem.coef_names[coef[k]]}")
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"next measurement: {best['description']}\n{problem.group_name} = {group[k]:.4g}; expected ln Bayes "
-                 f"factor {a} vs {b}: {best['expected_gain']:.3g}", fontsize=9)
+    fig.suptitle(
+        f"next measurement: {best['description']}\n{problem.group_name} = {group[k]:.4g}; expected ln Bayes "
+        f"factor {a} vs {b}: {best['expected_gain']:.3g}",
+        fontsize=9,
+    )
     path = Path(path)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -143,38 +160,62 @@ def report_markdown(report: dict) -> str:
     g0, g1 = r["goodness_of_fit_before"], r["goodness_of_fit_after"]
 
     def gof(g):
-        return (f"reduced chi^2 {g['reduced_chi2']:.3g} (p = {g['p_value']:.2g}), error {g['error']:.4g}, "
-                f"adequate: {g['adequate']}, residual white: {g['white']} (smooth share "
-                f"{g['structure']['fraction']:.3f}, white noise {g['structure']['if_white']:.3f}, "
-                f"p = {g['structure']['p_value']:.2g})"
-                + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else ""))
+        return (
+            f"reduced chi^2 {g['reduced_chi2']:.3g} (p = {g['p_value']:.2g}), error {g['error']:.4g}, "
+            f"adequate: {g['adequate']}, residual white: {g['white']} (smooth share "
+            f"{g['structure']['fraction']:.3f}, white noise {g['structure']['if_white']:.3f}, "
+            f"p = {g['structure']['p_value']:.2g})"
+            + (f", at bounds: {', '.join(g['at_bounds'])}" if g["at_bounds"] else "")
+        )
 
-    lines = ["# tawarp loop report", "",
-             f"- verdict: **{r['verdict']}**",
-             f"- measurement kind: {r['kind']}, {r['n_residuals']} real residuals",
-             f"- base parameters: {', '.join(r['base_parameters'])}" + (f"; pinned: {', '.join(r['pinned'])}"
-                                                                         if r["pinned"] else ""),
-             f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
-             f"- base fit: {gof(g0)}",
-             f"- final fit: {gof(g1)}",
-             f"- claimed effects: **{'; '.join(_steps(r)) or 'none'}**"
-             + (f" (the most probable model, {'+'.join(r['best_model']) or 'base'}, is not claimed: it "
-                "fails a check below)" if not _steps(r) and r["best_model"] and r["verdict"] != "indistinguishable" else ""),
-             *([f"- unexplained residual: {u['coefficient']}" + (f" at {u['group']:g}" if u["group"] is not None else "")
+    lines = [
+        "# tawarp loop report",
+        "",
+        f"- verdict: **{r['verdict']}**",
+        f"- measurement kind: {r['kind']}, {r['n_residuals']} real residuals",
+        f"- base parameters: {', '.join(r['base_parameters'])}"
+        + (f"; pinned: {', '.join(r['pinned'])}" if r["pinned"] else ""),
+        f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
+        f"- base fit: {gof(g0)}",
+        f"- final fit: {gof(g1)}",
+        f"- claimed effects: **{'; '.join(_steps(r)) or 'none'}**"
+        + (
+            f" (the most probable model, {'+'.join(r['best_model']) or 'base'}, is not claimed: it fails a check below)"
+            if not _steps(r) and r["best_model"] and r["verdict"] != "indistinguishable"
+            else ""
+        ),
+        *(
+            [
+                f"- unexplained residual: {u['coefficient']}"
+                + (f" at {u['group']:g}" if u["group"] is not None else "")
                 + f", {u['band_Hz'][0]:g}-{u['band_Hz'][1]:g} Hz, error {u['error']:.4g} (noise floor "
-                  f"{u['noise_floor']:.4g})"] if (u := r.get("unexplained_residual")) else []),
-             f"- models compared: {r['models_compared']['subsets']} subsets of the library linearized, "
-             f"{r['models_compared']['refitted']} refitted",
-             f"- method: {r['method']}",
-             f"- residual structure before: {r['residual_structure_before']['structured_fraction']:.3f} of the residual "
-             f"is smooth in frequency (white noise: {r['residual_structure_before']['structured_fraction_if_white']:.3f})",
-             "", "## Prior tension", ""]
+                f"{u['noise_floor']:.4g})"
+            ]
+            if (u := r.get("unexplained_residual"))
+            else []
+        ),
+        f"- models compared: {r['models_compared']['subsets']} subsets of the library linearized, "
+        f"{r['models_compared']['refitted']} refitted",
+        f"- method: {r['method']}",
+        f"- residual structure before: {r['residual_structure_before']['structured_fraction']:.3f} of the residual "
+        f"is smooth in frequency (white noise: {r['residual_structure_before']['structured_fraction_if_white']:.3f})",
+        "",
+        "## Prior tension",
+        "",
+    ]
     lines += [f"- {t['message']}" for t in r["prior_tension"]] or ["none: every parameter within 3 prior sd"]
-    lines += ["", "## Most probable models", "", "| model | probability | ln Z | error | chi^2 | parameters |",
-              "|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Most probable models",
+        "",
+        "| model | probability | ln Z | error | chi^2 | parameters |",
+        "|---|---|---|---|---|---|",
+    ]
     for m in r["model_probabilities"][:10]:
-        lines.append(f"| {m['label']} | {m['probability']:.3g} | {m['log_evidence']:.1f} | {m['error']:.4g} | "
-                     f"{m['chi2']:.1f} | {m['n_parameters']} |")
+        lines.append(
+            f"| {m['label']} | {m['probability']:.3g} | {m['log_evidence']:.1f} | {m['error']:.4g} | "
+            f"{m['chi2']:.1f} | {m['n_parameters']} |"
+        )
     lines += ["", "## Inclusion probabilities", "", "| effect | P(in the model) |", "|---|---|"]
     for k, v in sorted(r["inclusion_probabilities"].items(), key=lambda kv: -kv[1]):
         lines.append(f"| {k} | {v:.3g} |")
@@ -187,24 +228,38 @@ def report_markdown(report: dict) -> str:
     lines += ["", "## Parameters", "", "| parameter | before | after |", "|---|---|---|"]
     keys = list(dict.fromkeys(list(r["parameters_before"]) + list(r["parameters_after"])))
     for k in keys:
+
         def fmt(d):
             if k not in d:
                 return ""
             std, z = d[k]["std"], d[k].get("prior_z")
-            return (f"{d[k]['value']:.5g} ± " + (f"{std:.2g}" if std is not None else "undetermined")
-                    + (f" ({z:+.1f} prior sd)" if z is not None else ""))
+            return (
+                f"{d[k]['value']:.5g} ± "
+                + (f"{std:.2g}" if std is not None else "undetermined")
+                + (f" ({z:+.1f} prior sd)" if z is not None else "")
+            )
+
         lines.append(f"| {k} | {fmt(r['parameters_before'])} | {fmt(r['parameters_after'])} |")
     for key in ("drift_before", "drift_after"):
         d = r.get(key)
         if d:
-            lines += ["", f"## h refitted per heat input ({key.split('_')[1]})", "",
-                      "| parameter | " + " | ".join(f"Q = {q:g} W" for q in d["Q_W"]) + " | spread |",
-                      "|---|" + "---|" * (len(d["Q_W"]) + 1)]
+            lines += [
+                "",
+                f"## h refitted per heat input ({key.split('_')[1]})",
+                "",
+                "| parameter | " + " | ".join(f"Q = {q:g} W" for q in d["Q_W"]) + " | spread |",
+                "|---|" + "---|" * (len(d["Q_W"]) + 1),
+            ]
             for k, v in d["values"].items():
                 lines.append(f"| {k} | " + " | ".join(f"{x:.4g}" for x in v) + f" | {d['relative_spread'][k]:.2%} |")
     if r.get("comparison"):
-        lines += ["", "## Fitted values beside the reference", "", "| quantity | before | after | reference |",
-                  "|---|---|---|---|"]
+        lines += [
+            "",
+            "## Fitted values beside the reference",
+            "",
+            "| quantity | before | after | reference |",
+            "|---|---|---|---|",
+        ]
         for k, row in r["comparison"].items():
             lines.append(f"| {k} | {row['before']:.4g} | {row['after']:.4g} | {row['reference']:.4g} |")
     return "\n".join(lines) + "\n"
@@ -217,8 +272,11 @@ def write_report(problem: MeasurementKind, report: dict, outdir: str | Path) -> 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     js = _jsonable(report)
-    figs = [residual_figure(problem, report, outdir / "residuals.png"), drift_figure(report, outdir / "drift.png"),
-            plan_figure(problem, report, outdir / "next_measurement.png")]
+    figs = [
+        residual_figure(problem, report, outdir / "residuals.png"),
+        drift_figure(report, outdir / "drift.png"),
+        plan_figure(problem, report, outdir / "next_measurement.png"),
+    ]
     js["figures"] = [f.name for f in figs if f is not None]
     write_json(outdir / "report.json", js)
     tmp = outdir / "report.md.tmp"

@@ -19,9 +19,24 @@ from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
 from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location
-from .evidence import (REFITS, TENSION_Z, WINDOW, Model, XPrior, any_of, claims, effect_columns, inclusion,
-                       laplace_log_evidence, linearized_evidence, log_model_prior, model_priors, posterior, subsets,
-                       visible)
+from .evidence import (
+    REFITS,
+    TENSION_Z,
+    WINDOW,
+    Model,
+    XPrior,
+    any_of,
+    claims,
+    effect_columns,
+    inclusion,
+    laplace_log_evidence,
+    linearized_evidence,
+    log_model_prior,
+    model_priors,
+    posterior,
+    subsets,
+    visible,
+)
 from .plans import next_measurement
 from .screen import residual_structure
 
@@ -64,7 +79,9 @@ def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
     return base_params(problem.core, names if names is not None else base_names(problem))
 
 
-def fit_base(problem: MeasurementKind, params: list[Param], fixed: dict | None = None, priors: list | None = None) -> FitResult:
+def fit_base(
+    problem: MeasurementKind, params: list[Param], fixed: dict | None = None, priors: list | None = None
+) -> FitResult:
     """The base fit; where the kind has first-step rows (a core's Q = 0 rows) and heat
     inputs, the paper's two steps: the geometry on those rows first (the h's do not act
     there), then everything together from there.
@@ -103,11 +120,15 @@ def step_label(group: list[str]) -> str:
 def _param_report(f: FitResult, z: dict | None = None) -> dict:
     """{name: {value, std (None: undetermined), prior_z (shift from the prior in prior sds)}}."""
     z = z or {}
-    return {k: {"value": v, "std": float(s) if np.isfinite(s) else None, "prior_z": z.get(k)}
-            for (k, v), s in zip(f.value_dict().items(), f.std[0])}
+    return {
+        k: {"value": v, "std": float(s) if np.isfinite(s) else None, "prior_z": z.get(k)}
+        for (k, v), s in zip(f.value_dict().items(), f.std[0])
+    }
 
 
-def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fixed: dict, effect: Effect | None) -> dict | None:
+def drift(
+    problem: MeasurementKind, base_params: list[Param], sol: FitResult, fixed: dict, effect: Effect | None
+) -> dict | None:
     """h's refitted at each heat input > 0 alone (all heat inputs in one batch), the rest
     fixed at ``sol``."""
     hp = [par for par in base_params if par.label.endswith(".h")]
@@ -119,8 +140,13 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
         if par not in hp:
             par.assign(float(sol.value_dict()[par.label]), fx)
     hp_start = [par.with_start(sol.value_dict()[par.label]) for par in hp]
-    fits = fit_batch(problem, [(hp_start, effect, None, np.flatnonzero(problem.group == q)) for q in Qs], fx,
-                     max_iter=MAX_ITER, xtol=XTOL)
+    fits = fit_batch(
+        problem,
+        [(hp_start, effect, None, np.flatnonzero(problem.group == q)) for q in Qs],
+        fx,
+        max_iter=MAX_ITER,
+        xtol=XTOL,
+    )
     out = {par.label: [f.value_dict()[par.label] for f in fits] for par in hp}
     res = {"Q_W": [float(q) for q in Qs], "values": out}
     res["relative_spread"] = {k: float(np.ptp(v) / np.mean(v)) if np.mean(v) else None for k, v in out.items()}
@@ -128,16 +154,18 @@ def drift(problem: MeasurementKind, base_params: list[Param], sol: FitResult, fi
 
 
 #: What the report's ``method`` says of the comparison.
-METHOD = ("Bayesian model comparison: every parameter has a Gaussian prior in its fit variable (log-normal for log "
-          "fields; the core file's declared uncertainty or the documented default; an effect's parameters around off "
-          "with its typical size); fits are maximum a posteriori; each model (the base plus a set of effects) is scored "
-          "by its Laplace log-evidence ln L(x*) + ln pi(x*) + k/2 ln 2 pi - 1/2 ln det H (Kass & Raftery 1995), with "
-          "the model prior uniform over the number of effects and within it (Scott & Berger 2010); every subset up to "
-          "the largest size is linearized at the base solution, the base, every single effect and the most probable "
-          "others refitted (Occam's window, Madigan & Raftery 1994). An effect is claimed when its posterior inclusion "
-          "probability is >= 0.95, effects the data cannot separate as a group whose joint probability is >= 0.95, "
-          "and only when the most probable model passes the posterior predictive checks (chi^2 and whiteness of the "
-          "residual under the noise model) with no parameter more than 3 prior sd from its prior.")
+METHOD = (
+    "Bayesian model comparison: every parameter has a Gaussian prior in its fit variable (log-normal for log "
+    "fields; the core file's declared uncertainty or the documented default; an effect's parameters around off "
+    "with its typical size); fits are maximum a posteriori; each model (the base plus a set of effects) is scored "
+    "by its Laplace log-evidence ln L(x*) + ln pi(x*) + k/2 ln 2 pi - 1/2 ln det H (Kass & Raftery 1995), with "
+    "the model prior uniform over the number of effects and within it (Scott & Berger 2010); every subset up to "
+    "the largest size is linearized at the base solution, the base, every single effect and the most probable "
+    "others refitted (Occam's window, Madigan & Raftery 1994). An effect is claimed when its posterior inclusion "
+    "probability is >= 0.95, effects the data cannot separate as a group whose joint probability is >= 0.95, "
+    "and only when the most probable model passes the posterior predictive checks (chi^2 and whiteness of the "
+    "residual under the noise model) with no parameter more than 3 prior sd from its prior."
+)
 
 
 #: The loop's stages, in order, as its progress bar names them.
@@ -148,8 +176,13 @@ def _as_pairs(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p.mu for p in priors]), np.array([p.sd for p in priors])
 
 
-def fit_models(problem: MeasurementKind, base_params: list[Param], fixed: dict, library: list[Effect],
-               requests: list[tuple[tuple[str, ...], list[np.ndarray]]]) -> list[Model]:
+def fit_models(
+    problem: MeasurementKind,
+    base_params: list[Param],
+    fixed: dict,
+    library: list[Effect],
+    requests: list[tuple[tuple[str, ...], list[np.ndarray]]],
+) -> list[Model]:
     """MAP fits of the models ``requests`` = [(effect names, [start x, ...]), ...] in one
     lockstep batch (every start of every model); per model the start with the lowest
     posterior objective is kept and its Laplace ln Z computed."""
@@ -193,7 +226,7 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     own, k = {}, n_base
     for name in at.effects:
         n = len(next(e for e in effects if e.name == name).params)
-        own[name] = at.fit.x[0][k:k + n]
+        own[name] = at.fit.x[0][k : k + n]
         k += n
     base_x = at.fit.x[0][:n_base]
     out = [np.concatenate([base_x] + [own.get(e.name, np.zeros(len(e.params))) for e in effects])]
@@ -205,8 +238,15 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     return out
 
 
-def compare_models(problem: MeasurementKind, base: Model, base_params: list[Param], fixed: dict,
-                   library: list[Effect], max_effects: int = MAX_EFFECTS, refits: int = REFITS) -> tuple[list[Model], dict]:
+def compare_models(
+    problem: MeasurementKind,
+    base: Model,
+    base_params: list[Param],
+    fixed: dict,
+    library: list[Effect],
+    max_effects: int = MAX_EFFECTS,
+    refits: int = REFITS,
+) -> tuple[list[Model], dict]:
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
@@ -215,7 +255,9 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     models (posterior probabilities set) and counts of what was linearized and refitted."""
     n_base = len(base_params)
     at_base = effect_columns(problem, base.fit, fixed, library)
-    hidden = [e.name for e in library if not visible(e, at_base[e.name], model_priors(problem.core, list(e.params), (e,)))]
+    hidden = [
+        e.name for e in library if not visible(e, at_base[e.name], model_priors(problem.core, list(e.params), (e,)))
+    ]
     library = [e for e in library if e.name not in hidden]
     sets = subsets(library, max_effects)
     sizes: dict[int, int] = {}
@@ -235,12 +277,14 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
         for c, ex, (logz, x) in zip(cand, extra, lin):
             # x is ordered as at's parameters then the extra effects': reorder to the model's own order
             names = tuple(e.name for e in c)
-            xs = {n: x[len(at.fit.x[0]) + sum(len(e.params) for e in ex[:i]):][:len(ex[i].params)]
-                  for i, n in enumerate(e.name for e in ex)}
+            xs = {
+                n: x[len(at.fit.x[0]) + sum(len(e.params) for e in ex[:i]) :][: len(ex[i].params)]
+                for i, n in enumerate(e.name for e in ex)
+            }
             k0 = n_base
             for n in at.effects:
                 e = next(e for e in library if e.name == n)
-                xs[n] = x[k0:k0 + len(e.params)]
+                xs[n] = x[k0 : k0 + len(e.params)]
                 k0 += len(e.params)
             full = np.concatenate([x[:n_base]] + [xs[n] for n in names])
             out.append((names, logz + log_model_prior(sizes, len(names)), full))
@@ -265,8 +309,11 @@ def compare_models(problem: MeasurementKind, base: Model, base_params: list[Para
     # quadratic model is poor, and a weaker second effect is found only beside the strong one)
     best = max(models, key=lambda m: m.probability)
     single = max((m for m in models if len(m.effects) == 1), key=lambda m: m.probability, default=None)
-    anchors = [m for k, m in enumerate([best, single]) if m is not None and m.effects
-               and len(m.effects) < max_effects and not (k == 1 and m is best)]
+    anchors = [
+        m
+        for k, m in enumerate([best, single])
+        if m is not None and m.effects and len(m.effects) < max_effects and not (k == 1 and m is best)
+    ]
     done = {m.effects for m in models}
     requests = []
     for at in anchors:
@@ -297,21 +344,44 @@ def prior_tension(problem: MeasurementKind, models: list[Model]) -> list[dict]:
                 continue
             par, pr = m.fit.params[j], m.priors[j]
             value, centre = float(m.fit.values[0][j]), float(par.value(pr.mu))
-            size = (f"{value / centre:.3g}x its prior" if par.log and centre > 0
-                    else f"{value - centre:+.3g} from its prior")
-            calm = next((o for o in models if o is not m and name in o.fit.names
-                         and abs(o.z()[name]) <= TENSION_Z and o.probability > 0), None)
+            size = (
+                f"{value / centre:.3g}x its prior"
+                if par.log and centre > 0
+                else f"{value - centre:+.3g} from its prior"
+            )
+            calm = next(
+                (
+                    o
+                    for o in models
+                    if o is not m and name in o.fit.names and abs(o.z()[name]) <= TENSION_Z and o.probability > 0
+                ),
+                None,
+            )
             msg = f"{name} is {size} ({z:+.1f} prior sd) in the model {m.label}"
             if calm is not None:
                 msg += f"; {calm.label} explains the data with {name} inside it ({calm.z()[name]:+.1f} sd)"
-            out.append({"model": m.label, "parameter": name, "value": value, "prior_centre": centre, "z": float(z),
-                        "message": msg})
+            out.append(
+                {
+                    "model": m.label,
+                    "parameter": name,
+                    "value": value,
+                    "prior_centre": centre,
+                    "z": float(z),
+                    "message": msg,
+                }
+            )
     return out
 
 
-def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, library: list[Effect] | None = None,
-             max_effects: int = MAX_EFFECTS, drift_h: bool = True, progress: bool = False,
-             plans: bool = True) -> dict:
+def run_loop(
+    problem: MeasurementKind,
+    base_params: list[Param] | None = None,
+    library: list[Effect] | None = None,
+    max_effects: int = MAX_EFFECTS,
+    drift_h: bool = True,
+    progress: bool = False,
+    plans: bool = True,
+) -> dict:
     """The loop of the package docstring; returns the report dict (report.json).
     ``base_params``: default :func:`default_base_params`; ``library``: candidate effects
     (default :func:`library_for` the kind); ``max_effects``: the largest set of effects
@@ -387,7 +457,8 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
         "models_compared": counts,
         "goodness_of_fit_before": gof_before,
         "goodness_of_fit_after": gof,
-        "unexplained_residual": None if verdict in ("adequate", "explained", "indistinguishable")
+        "unexplained_residual": None
+        if verdict in ("adequate", "explained", "indistinguishable")
         else residual_location(problem, best.fit.model[0], floor),
         "indistinguishable": groups,
         "base_parameters": [par.label for par in base_params],
@@ -402,8 +473,11 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
     }
     if drift_h:
         report["drift_before"] = drift(problem, base_params, base.fit, fixed, None)
-        report["drift_after"] = (drift(problem, base_params, best.fit, _effect_fixed(best.fit, base_params),
-                                       best.fit.effect) if best.effects else report["drift_before"])
+        report["drift_after"] = (
+            drift(problem, base_params, best.fit, _effect_fixed(best.fit, base_params), best.fit.effect)
+            if best.effects
+            else report["drift_before"]
+        )
     stage("drift")
     bar.close()
     report["_fits"] = {"before": base.fit, "after": best.fit}
@@ -412,9 +486,16 @@ def run_loop(problem: MeasurementKind, base_params: list[Param] | None = None, l
 
 
 def _model_row(m: Model) -> dict:
-    return {"effects": list(m.effects), "label": m.label, "probability": m.probability,
-            "log_evidence": m.log_evidence, "log_model_prior": m.log_model_prior,
-            "error": float(m.fit.rms_error[0]), "chi2": float(m.fit.cost[0]), "n_parameters": len(m.fit.names)}
+    return {
+        "effects": list(m.effects),
+        "label": m.label,
+        "probability": m.probability,
+        "log_evidence": m.log_evidence,
+        "log_model_prior": m.log_model_prior,
+        "error": float(m.fit.rms_error[0]),
+        "chi2": float(m.fit.cost[0]),
+        "n_parameters": len(m.fit.names),
+    }
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
@@ -425,7 +506,9 @@ def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
     return out
 
 
-def impedance_loop(data: list, reference: dict | None = None, settings=None, names=None) -> tuple[MeasurementKind, dict]:
+def impedance_loop(
+    data: list, reference: dict | None = None, settings=None, names=None
+) -> tuple[MeasurementKind, dict]:
     """Fit the circular-pore model (porosity, pore radius, tortuosity, or ``names``) to all
     layers of one material together, then let the loop find what it lacks. ``reference``:
     the paper's values (``phi``, ``alpha_inf``, ``Lambda``, ``Lambda_prime``, ``sigma``)
@@ -435,8 +518,12 @@ def impedance_loop(data: list, reference: dict | None = None, settings=None, nam
     if reference:
         before = jca_equivalent(rep["_fits"]["before"].value_dict(), prob.core)
         after = jca_equivalent(rep["_fits"]["after"].value_dict(), prob.core)
-        rep["comparison"] = {k: {"before": before[k], "after": after[k], "reference": reference[k]}
-                             for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")}
-        rep["comparison_note"] = ("circular pores: Lambda = Lambda' = r (Lambda' = ratio r with the thermal radius "
-                                  "effect), alpha_inf = q^2, sigma = 8 mu q^2 / (phi r^2)")
+        rep["comparison"] = {
+            k: {"before": before[k], "after": after[k], "reference": reference[k]}
+            for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")
+        }
+        rep["comparison_note"] = (
+            "circular pores: Lambda = Lambda' = r (Lambda' = ratio r with the thermal radius "
+            "effect), alpha_inf = q^2, sigma = 8 mu q^2 / (phi r^2)"
+        )
     return prob, rep

@@ -24,11 +24,18 @@ def residual_structure(problem: MeasurementKind, Y: np.ndarray) -> dict:
     per_coef = {}
     groups = np.unique(problem.group)
     for c, cname in enumerate(problem.coef_names):
-        per_coef[cname] = {f"{g:g}": float(np.sqrt(np.mean((wr[m] ** 2).sum(-1))))
-                           for g in groups if (m := (problem.coef == c) & (problem.group == g)).any()}
-    return {"rms_weighted_residual": {"per_coefficient_and_group": per_coef},
-            "structured_fraction": smooth["fraction"], "structured_fraction_if_white": smooth["if_white"],
-            "groups": [float(g) for g in groups], "group_name": problem.group_name}
+        per_coef[cname] = {
+            f"{g:g}": float(np.sqrt(np.mean((wr[m] ** 2).sum(-1))))
+            for g in groups
+            if (m := (problem.coef == c) & (problem.group == g)).any()
+        }
+    return {
+        "rms_weighted_residual": {"per_coefficient_and_group": per_coef},
+        "structured_fraction": smooth["fraction"],
+        "structured_fraction_if_white": smooth["if_white"],
+        "groups": [float(g) for g in groups],
+        "group_name": problem.group_name,
+    }
 
 
 #: A candidate with a sensitivity column correlated with a base parameter's beyond this
@@ -37,8 +44,7 @@ def residual_structure(problem: MeasurementKind, Y: np.ndarray) -> dict:
 DEGENERATE_CORR = 0.99
 
 
-def _linearized(r: np.ndarray, B: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-                names: list[str]) -> dict:
+def _linearized(r: np.ndarray, B: np.ndarray, C: np.ndarray, lo: np.ndarray, hi: np.ndarray, names: list[str]) -> dict:
     """The linearized step along the candidate columns C, orthogonalized against the base
     columns B, within the candidate's bounds [lo, hi] in x from its off value (a one-sided
     effect, e.g. a radiative conductivity >= 0, may only move one way: a gradient pointing
@@ -107,13 +113,13 @@ def screen(problem: MeasurementKind, base: FitResult, fixed: dict, library: list
         h = np.full(len(allp), FD_STEP)
         hi = np.array([par.bounds_x()[1] for par in allp])
         h[x + h > hi] *= -1
-        X = np.vstack([x[None], x[None] + np.diag(h)[len(base.params):]])
+        X = np.vstack([x[None], x[None] + np.diag(h)[len(base.params) :]])
         Y = problem.predict(param_values(allp, X, fixed), X.shape[0], base.effect)
         R = residual(problem, Y, np.arange(problem.y.size))
-        Jc = (R[1:] - R[0]) / h[len(base.params):, None]
+        Jc = (R[1:] - R[0]) / h[len(base.params) :, None]
         k = 0
         for e in field_effects:
-            results[e.name] = Jc[k:k + len(e.params)].T
+            results[e.name] = Jc[k : k + len(e.params)].T
             k += len(e.params)
     for e in library:
         if e.transform is not None:
@@ -133,8 +139,17 @@ def screen(problem: MeasurementKind, base: FitResult, fixed: dict, library: list
         lin = _linearized(base.residuals[0], base.jacobian[0], C, lo, hi, base.names)
         score = lin["score"]
         F = (score / k) / max((1 - score) / max(N - p - k, 1), 1e-300)
-        out.append({"effect": e.name, "description": e.description, "parameters": [par.label for par in e.params],
-                    "score": score, "score_if_noise": k / max(N - p, 1), "linearized_F": F,
-                    "linearized_p": float(stats.f.sf(F, k, max(N - p - k, 1))),
-                    "degenerate_with": lin["degenerate_with"], "_direction": lin["direction"]})
+        out.append(
+            {
+                "effect": e.name,
+                "description": e.description,
+                "parameters": [par.label for par in e.params],
+                "score": score,
+                "score_if_noise": k / max(N - p, 1),
+                "linearized_F": F,
+                "linearized_p": float(stats.f.sf(F, k, max(N - p - k, 1))),
+                "degenerate_with": lin["degenerate_with"],
+                "_direction": lin["direction"],
+            }
+        )
     return out

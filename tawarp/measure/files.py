@@ -30,15 +30,28 @@ from pathlib import Path
 import numpy as np
 
 from ..model.gas import GASES
-from .table import (CONVENTION, MeasurementError, _atomic_write, _check_convention,  # noqa: F401
-                    _check_positive_unique, _complex, _converted_metadata, _fail, _meta_float, _metadata_line,
-                    _needs_conjugate, _read_table, _Table)
+from .table import (
+    CONVENTION,
+    MeasurementError,
+    _atomic_write,
+    _check_convention,  # noqa: F401
+    _check_positive_unique,
+    _complex,
+    _converted_metadata,
+    _fail,
+    _meta_float,
+    _metadata_line,
+    _needs_conjugate,
+    _read_table,
+    _Table,
+)
 
 #: The four raw coefficients and their (row, column) in the 2x2 T-matrix.
 COEFFICIENTS = {"Tpp": (0, 0), "Tpu": (0, 1), "Tup": (1, 0), "Tuu": (1, 1)}
 TMATRIX_COLUMNS = ("Q_W", "freq_Hz") + tuple(f"{c}_{p}" for c in COEFFICIENTS for p in ("re", "im"))
 IMPEDANCE_COLUMNS = ("freq_Hz", "Zs_re", "Zs_im")
 SCATTERING_COLUMNS = ("freq_Hz",) + tuple(f"S{ij}_{p}" for ij in ("11", "12", "21", "22") for p in ("re", "im"))
+
 
 # -- data containers -------------------------------------------------------------------
 @dataclass
@@ -71,7 +84,8 @@ class TMatrixData:
         if self.heat_input.shape != (n,) or self.T.shape != (n, 2, 2):
             raise MeasurementError(
                 f"{self.source}: shapes heat_input {self.heat_input.shape}, freq {self.freq.shape}, "
-                f"T {self.T.shape}; expected (n,), (n,), (n, 2, 2)")
+                f"T {self.T.shape}; expected (n,), (n,), (n, 2, 2)"
+            )
         if self.sigma is not None:
             s = np.asarray(self.sigma, dtype=float)
             if s.shape == (n, 2, 2):
@@ -99,14 +113,23 @@ class TMatrixData:
         mask = np.isclose(self.heat_input, heat_input, rtol=1e-9, atol=1e-12)
         if not mask.any():
             raise KeyError(f"{self.source}: no rows at Q = {heat_input} W; have {self.heat_inputs.tolist()}")
-        return TMatrixData(self.heat_input[mask], self.freq[mask], self.T[mask],
-                           None if self.sigma is None else self.sigma[mask], dict(self.metadata), self.source)
+        return TMatrixData(
+            self.heat_input[mask],
+            self.freq[mask],
+            self.T[mask],
+            None if self.sigma is None else self.sigma[mask],
+            dict(self.metadata),
+            self.source,
+        )
 
     def check(self) -> None:
         """Raise :class:`MeasurementError` naming the row if any value is not usable."""
+
         def fail(i, what):
-            raise MeasurementError(f"{self.source}: row {i} (Q = {self.heat_input[i]!r} W, "
-                                   f"freq = {self.freq[i]!r} Hz): {what}")
+            raise MeasurementError(
+                f"{self.source}: row {i} (Q = {self.heat_input[i]!r} W, freq = {self.freq[i]!r} Hz): {what}"
+            )
+
         for i in range(len(self)):
             if not (np.isfinite(self.heat_input[i]) and self.heat_input[i] >= 0):
                 fail(i, "heat input must be a finite number >= 0 W")
@@ -202,8 +225,10 @@ def tmatrix_convention_evidence(heat_input, freq, T) -> str | None:
     low = [np.flatnonzero(heat_input == q)[np.argmin(freq[heat_input == q])] for q in np.unique(heat_input)]
     t = T[low]
     if np.all((t[:, 0, 0].real > 0) & (t[:, 0, 1].imag < 0) & (t[:, 1, 0].imag < 0)):
-        return (f"Im Tpu < 0 and Im Tup < 0 at {freq[low[0]]:g} Hz, the lowest frequency, where a passive core "
-                "has both > 0 in exp(-iwt)")
+        return (
+            f"Im Tpu < 0 and Im Tup < 0 at {freq[low[0]]:g} Hz, the lowest frequency, where a passive core "
+            "has both > 0 in exp(-iwt)"
+        )
     return None
 
 
@@ -221,16 +246,20 @@ def _read_sigma(t: _Table, entries) -> np.ndarray:
         if one and (re or im):
             raise _fail(t.source, t.header_line, f"give either sigma_{c} or sigma_{c}_re/_im, not both")
         if not one and not (re and im):
-            raise _fail(t.source, t.header_line,
-                        f"sigma for {c} incomplete; expected sigma_{c} or both sigma_{c}_re and sigma_{c}_im "
-                        f"(sigma columns cover all of {', '.join(entries)} or none)")
+            raise _fail(
+                t.source,
+                t.header_line,
+                f"sigma for {c} incomplete; expected sigma_{c} or both sigma_{c}_re and sigma_{c}_im "
+                f"(sigma columns cover all of {', '.join(entries)} or none)",
+            )
         for k, p in enumerate(("_re", "_im")):
             name = f"sigma_{c}" if one else f"sigma_{c}{p}"
             sigma[:, e, k] = t.values[name]
             bad = np.flatnonzero(t.values[name] <= 0)
             if bad.size:
-                raise _fail(t.source, t.lines[bad[0]],
-                            f"{name} = {t.values[name][bad[0]]!r}: expected a standard deviation > 0")
+                raise _fail(
+                    t.source, t.lines[bad[0]], f"{name} = {t.values[name][bad[0]]!r}: expected a standard deviation > 0"
+                )
     return sigma
 
 
@@ -287,13 +316,17 @@ def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
     Zs = _complex(t, "Zs")
     zero = np.flatnonzero(Zs == 0)
     if zero.size:
-        raise _fail(t.source, t.lines[zero[0]], "Zs = 0: a rigid-backed layer has |Zs| > 0 (infinite at low "
-                                                "frequency); correct or remove the row")
+        raise _fail(
+            t.source,
+            t.lines[zero[0]],
+            "Zs = 0: a rigid-backed layer has |Zs| > 0 (infinite at low frequency); correct or remove the row",
+        )
     sigma = _read_sigma(t, ("Zs",))[:, 0] if _has_sigma(t) else None
     Zs = Zs.conj() if conj else Zs
     _check_convention(t, conj, impedance_convention_evidence(t.values["freq_Hz"], Zs))
-    return ImpedanceData(t.values["freq_Hz"], Zs, thickness, T_amb, p_amb, _converted_metadata(t, conj), t.source,
-                         sigma)
+    return ImpedanceData(
+        t.values["freq_Hz"], Zs, thickness, T_amb, p_amb, _converted_metadata(t, conj), t.source, sigma
+    )
 
 
 def impedance_convention_evidence(freq, Zs) -> str | None:
@@ -305,8 +338,10 @@ def impedance_convention_evidence(freq, Zs) -> str | None:
     order = np.argsort(freq)
     im = Zs.imag[order]
     if im.size >= 2 and im[0] < 0 and np.mean(np.diff(im) > 0) > 0.5:
-        return (f"Im Zs < 0 at {freq[order[0]]:g} Hz, the lowest frequency, and rising with frequency; a "
-                "rigid-backed layer has Im Zs > 0 there, falling, in exp(-iwt)")
+        return (
+            f"Im Zs < 0 at {freq[order[0]]:g} Hz, the lowest frequency, and rising with frequency; a "
+            "rigid-backed layer has Im Zs > 0 there, falling, in exp(-iwt)"
+        )
     return None
 
 
@@ -320,8 +355,18 @@ _ATALLA_PANNETON = {
     # README: the fibrous2 "thick" file behaves like a thinner sample; its thickness is unknown
     "fibrous2": (37.38e-3, None, 50470.0, 0.89, 1.00, 41.51e-6, 114.27e-6, 24.6 + 273.15, 0.977e5, "limp"),
 }
-_AP_KEYS = ("thickness_thin", "thickness_thick", "sigma", "phi", "alpha_inf", "Lambda", "Lambda_prime",
-            "T", "P0", "frame")
+_AP_KEYS = (
+    "thickness_thin",
+    "thickness_thick",
+    "sigma",
+    "phi",
+    "alpha_inf",
+    "Lambda",
+    "Lambda_prime",
+    "T",
+    "P0",
+    "frame",
+)
 ATALLA_PANNETON_DIR = Path("data") / "measured" / "atalla_panneton_2005"
 
 
@@ -333,12 +378,15 @@ def atalla_panneton_samples() -> dict[str, dict]:
     P0 [Pa], frame ("rigid" | "limp"), files (thin, thick)}}`` for foam1, foam2,
     fibrous1, fibrous2. A fresh dict on every call.
     """
-    return {name: {**dict(zip(_AP_KEYS, row)), "files": (f"{name}.csv", f"{name}thick.csv")}
-            for name, row in _ATALLA_PANNETON.items()}
+    return {
+        name: {**dict(zip(_AP_KEYS, row)), "files": (f"{name}.csv", f"{name}thick.csv")}
+        for name, row in _ATALLA_PANNETON.items()
+    }
 
 
-def read_atalla_panneton(path: str | os.PathLike, thickness: float | None,
-                         T_ambient: float | None = None, p_ambient: float | None = None) -> ImpedanceData:
+def read_atalla_panneton(
+    path: str | os.PathLike, thickness: float | None, T_ambient: float | None = None, p_ambient: float | None = None
+) -> ImpedanceData:
     """Read one file of the Atalla & Panneton data set (header ``f,Re,Im,,,``).
 
     ``f`` [Hz], ``Re``, ``Im`` of ``Zs / (rho0 c0)`` in the paper's ``exp(+jwt)``
@@ -349,8 +397,11 @@ def read_atalla_panneton(path: str | os.PathLike, thickness: float | None,
     t = _read_table(path, ("f", "Re", "Im"), ignore_extra=True)
     _check_positive_unique(t, "f")
     Zs = (t.values["Re"] + 1j * t.values["Im"]).conj()  # exp(+jwt) -> exp(-iwt)
-    meta = {"convention": CONVENTION, "original_convention": "exp(+jwt)",
-            "origin": "Atalla & Panneton, Canadian Acoustics 33(1) 2005, Fig. 7 (digitized by pyva)"}
+    meta = {
+        "convention": CONVENTION,
+        "original_convention": "exp(+jwt)",
+        "origin": "Atalla & Panneton, Canadian Acoustics 33(1) 2005, Fig. 7 (digitized by pyva)",
+    }
     return ImpedanceData(t.values["f"], Zs, thickness, T_ambient, p_ambient, meta, t.source)
 
 
@@ -428,8 +479,12 @@ def scattering_to_transfer(S, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
     s11, s12, s21, s22 = s11 * e1 * e1, s12 * e1 * e2, s21 * e1 * e2, s22 * e2 * e2
     # wave transfer [a2, b2] = W [a1, b1], then T = M W M^-1 with [p, U] = M [a, b]
     w11, w12, w21, w22 = -(s11 * s22 - s12 * s21) / s12, s22 / s12, -s11 / s12, 1 / s12
-    return _matrix(0.5 * (w11 + w21 + w12 + w22), 0.5 * Zc * (w11 + w21 - w12 - w22),
-                   0.5 / Zc * (w11 - w21 + w12 - w22), 0.5 * (w11 - w21 - w12 + w22))
+    return _matrix(
+        0.5 * (w11 + w21 + w12 + w22),
+        0.5 * Zc * (w11 + w21 - w12 - w22),
+        0.5 / Zc * (w11 - w21 + w12 - w22),
+        0.5 * (w11 - w21 - w12 + w22),
+    )
 
 
 def transfer_to_scattering(T, k, Zc, d1=0.0, d2=0.0) -> np.ndarray:
@@ -540,8 +595,9 @@ class ScatteringData:
 
     def transfer(self, S=None) -> np.ndarray:
         """Core T-matrices (m, 2, 2) [SI] of ``S`` (default the data's) at these planes."""
-        return scattering_to_transfer(self.S if S is None else S, self.k, self.Zc, -self.plane_upstream,
-                                      self.plane_downstream)
+        return scattering_to_transfer(
+            self.S if S is None else S, self.k, self.Zc, -self.plane_upstream, self.plane_downstream
+        )
 
     def to_tmatrix(self) -> TMatrixData:
         """The core T-matrices, sigma propagated to first order (:func:`propagated_sigma`)."""
@@ -551,7 +607,7 @@ class ScatteringData:
         meta = dict(self.metadata)
         meta["converted_from"] = "scattering matrix"
         data = TMatrixData(np.full(len(self), self.heat_input), self.freq, self.transfer(), sigma, meta, self.source)
-        data.check()   # an overflow of extreme S: named, not NaN data
+        data.check()  # an overflow of extreme S: named, not NaN data
         return data
 
 
@@ -570,16 +626,21 @@ def _meta_signed(t: _Table, key: str, unit: str) -> float:
 def _reference_plane(t: _Table, signed: str, distance: str, sign: float) -> float:
     """Signed position of one reference plane from ``signed`` or the first format's ``distance``."""
     if signed in t.meta and distance in t.meta:
-        raise _fail(t.source, t.meta_line[distance],
-                    f"metadata {distance} and {signed} (line {t.meta_line[signed]}) both place the same "
-                    f"reference plane; give one of them")
+        raise _fail(
+            t.source,
+            t.meta_line[distance],
+            f"metadata {distance} and {signed} (line {t.meta_line[signed]}) both place the same "
+            f"reference plane; give one of them",
+        )
     if signed in t.meta:
         return _meta_signed(t, signed, "m")
     if distance in t.meta:
         return sign * _meta_float(t, distance, "m", allow_zero=True)
-    raise MeasurementError(f"{t.source}: metadata key {signed!r} [m] is missing; add a line '# {signed} = ...' "
-                           f"(signed position of the reference plane from the sample face, positive downstream) "
-                           f"or '# {distance} = ...' (its distance from the face, >= 0) before the header")
+    raise MeasurementError(
+        f"{t.source}: metadata key {signed!r} [m] is missing; add a line '# {signed} = ...' "
+        f"(signed position of the reference plane from the sample face, positive downstream) "
+        f"or '# {distance} = ...' (its distance from the face, >= 0) before the header"
+    )
 
 
 def read_scattering(path: str | os.PathLike) -> ScatteringData:
@@ -615,8 +676,21 @@ def read_scattering(path: str | os.PathLike) -> ScatteringData:
     if zero.size:
         raise _fail(t.source, t.lines[zero[0]], "S12 = 0: no transmission, the T-matrix is undefined")
     sigma = _read_sigma(t, S_ENTRIES).reshape(-1, 2, 2, 2) if _has_sigma(t) else None
-    return ScatteringData(t.values["freq_Hz"], S, x_up, x_down, radius, T_amb, p_amb, gas, Q, sigma, None,
-                          _converted_metadata(t, conj), t.source)
+    return ScatteringData(
+        t.values["freq_Hz"],
+        S,
+        x_up,
+        x_down,
+        radius,
+        T_amb,
+        p_amb,
+        gas,
+        Q,
+        sigma,
+        None,
+        _converted_metadata(t, conj),
+        t.source,
+    )
 
 
 def read_scattering_csv(path: str | os.PathLike) -> TMatrixData:
@@ -636,9 +710,16 @@ def write_scattering_csv(path: str | os.PathLike, data: ScatteringData, metadata
         raise MeasurementError(f"{path}: calibrated scattering data (a fitted tube wavenumber) have no CSV form")
     if not (np.all(np.isfinite(data.S)) and np.all(np.isfinite(data.freq)) and np.all(data.freq > 0)):
         raise MeasurementError(f"{path}: S and freq must be finite, freq > 0")
-    own = {"convention": CONVENTION, "tube_radius": data.tube_radius, "T_ambient": data.T_ambient,
-           "p_ambient": data.p_ambient, "gas": data.gas, "Q_W": data.heat_input,
-           "ref_plane_upstream": data.plane_upstream, "ref_plane_downstream": data.plane_downstream}
+    own = {
+        "convention": CONVENTION,
+        "tube_radius": data.tube_radius,
+        "T_ambient": data.T_ambient,
+        "p_ambient": data.p_ambient,
+        "gas": data.gas,
+        "Q_W": data.heat_input,
+        "ref_plane_upstream": data.plane_upstream,
+        "ref_plane_downstream": data.plane_downstream,
+    }
     replaced = set(own) | {"ref_upstream", "ref_downstream", "original_convention", "converted_from"}
     meta = {k: repr(float(v)) if isinstance(v, float) else v for k, v in own.items()}
     meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k not in replaced})

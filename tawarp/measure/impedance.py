@@ -32,8 +32,13 @@ class ImpedanceKind(MeasurementKind):
     group_name = "thickness_m"
     coef_names = ("Zs",)
 
-    def __init__(self, data: list[ImpedanceData], settings: ForwardSettings | None = None,
-                 start: dict | None = None, gas: str = "air"):
+    def __init__(
+        self,
+        data: list[ImpedanceData],
+        settings: ForwardSettings | None = None,
+        start: dict | None = None,
+        gas: str = "air",
+    ):
         self.data = [data] if isinstance(data, ImpedanceData) else list(data)
         if not self.data:
             raise MeasurementError("impedance: no data sets")
@@ -42,8 +47,9 @@ class ImpedanceKind(MeasurementKind):
                 raise MeasurementError(f"{d.source}: layer thickness unknown (metadata 'thickness')")
         self.settings = settings or ForwardSettings()
         d0 = self.data[0]
-        self.core = layer_core(d0.thickness, T_ambient=d0.T_ambient or 293.15, p_ambient=d0.p_ambient or 101325.0,
-                               gas=gas).replace(**(LAYER_START if start is None else start))
+        self.core = layer_core(
+            d0.thickness, T_ambient=d0.T_ambient or 293.15, p_ambient=d0.p_ambient or 101325.0, gas=gas
+        ).replace(**(LAYER_START if start is None else start))
         self.freqs = np.unique(np.concatenate([d.freq for d in self.data]))
         self._index = [np.searchsorted(self.freqs, d.freq) for d in self.data]
         self.thickness = np.array([d.thickness for d in self.data])
@@ -69,8 +75,17 @@ class ImpedanceKind(MeasurementKind):
 
     def at_rows(self, groups, freqs) -> "ImpedanceKind":
         d0 = self.data[0]
-        data = [ImpedanceData(np.asarray(freqs, dtype=float), np.ones(len(freqs), dtype=complex), float(t),
-                              d0.T_ambient, d0.p_ambient, source=f"{d0.source} (planned)") for t in groups]
+        data = [
+            ImpedanceData(
+                np.asarray(freqs, dtype=float),
+                np.ones(len(freqs), dtype=complex),
+                float(t),
+                d0.T_ambient,
+                d0.p_ambient,
+                source=f"{d0.source} (planned)",
+            )
+            for t in groups
+        ]
         out = ImpedanceKind(data, self.settings)
         out.core = self.core
         return out
@@ -89,12 +104,12 @@ class ImpedanceKind(MeasurementKind):
         C = per_set(FRAME_COMPLIANCE, 0.0)
         elastic = np.flatnonzero(C > 0)
         L = len(self.data)
-        cols = L + (1 if elastic.size else 0)   # the layers, then a thin slice for the fluid
+        cols = L + (1 if elastic.size else 0)  # the layers, then a thin slice for the fluid
         table = np.empty((2 + len(names), n * cols))
         table[0] = 0.0
         for j, name in enumerate(names):
             table[1 + j] = np.repeat(per_set(name, None), cols)
-            if name == "layer.frame_mobility" and cols > L:   # the fluid slice is of the rigid frame
+            if name == "layer.frame_mobility" and cols > L:  # the fluid slice is of the rigid frame
                 table[1 + j].reshape(n, cols)[:, L:] = 0.0
         d = self.thickness[None, :] + per_set("layer.length_offset", 0.0)[:, None]
         table[-1] = np.concatenate([d, np.full((n, cols - L), FLUID_SLICE)], axis=1).reshape(-1)
@@ -102,9 +117,14 @@ class ImpedanceKind(MeasurementKind):
         T = out.numpy().view(np.complex128).reshape(n, cols, len(self.freqs), 2, 2)
         Z = surface_impedance_from_T(T[:, :L], self.core)
         if elastic.size:
-            Z[elastic] = self._elastic(T[elastic, L], d[elastic], {k: per_set(k, None)[elastic] for k in names},
-                                       C[elastic], per_set(FRAME_LOSS_FACTOR, 0.0)[elastic],
-                                       per_set(FRAME_DENSITY, 30.0)[elastic])
+            Z[elastic] = self._elastic(
+                T[elastic, L],
+                d[elastic],
+                {k: per_set(k, None)[elastic] for k in names},
+                C[elastic],
+                per_set(FRAME_LOSS_FACTOR, 0.0)[elastic],
+                per_set(FRAME_DENSITY, 30.0)[elastic],
+            )
         return np.concatenate([Z[:, k, self._index[k]] for k in range(L)], axis=1)
 
     def _elastic(self, T_slice, d, vals, C, eta, rho_1) -> np.ndarray:
@@ -117,8 +137,15 @@ class ImpedanceKind(MeasurementKind):
         rho_eq, K_eq = equivalent_fluid(T_slice, FLUID_SLICE, 2 * np.pi * self.freqs, self.core.area)
         fl = JCAFluid(rho_eq, K_eq, rho0, c0)
         phi = vals.get("layer.porosity", np.full(C.size, self.core.segments[0].porosity))
-        Zs = fluid_surface_impedance(self.freqs, JCAFluid(*(a[:, None] for a in fl)), thickness=d, phi=phi[:, None],
-                                     E=1.0 / C[:, None], eta=eta[:, None], nu=FRAME_POISSON_RATIO,
-                                     rho_1=rho_1[:, None])
+        Zs = fluid_surface_impedance(
+            self.freqs,
+            JCAFluid(*(a[:, None] for a in fl)),
+            thickness=d,
+            phi=phi[:, None],
+            E=1.0 / C[:, None],
+            eta=eta[:, None],
+            nu=FRAME_POISSON_RATIO,
+            rho_1=rho_1[:, None],
+        )
         # biot normalizes by the set's rho0 c0; the rigid path (and the data) by the core's
         return Zs * (rho0 * c0)[:, None] / characteristic_impedance(self.core)

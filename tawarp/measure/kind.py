@@ -114,8 +114,14 @@ class MeasurementKind:
 
 
 # -- forward engines for fits -------------------------------------------------------------
-def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values: dict | None = None,
-                    heat_input=0.0, k_factor: float = 2.0) -> ForwardSettings:
+def smooth_settings(
+    core: Core,
+    freqs,
+    settings: ForwardSettings | None,
+    values: dict | None = None,
+    heat_input=0.0,
+    k_factor: float = 2.0,
+) -> ForwardSettings:
     """Forward settings whose model is smooth in the parameters, as finite-difference
     Jacobians need.
 
@@ -138,13 +144,27 @@ def smooth_settings(core: Core, freqs, settings: ForwardSettings | None, values:
     # one parameter set: sized on the CPU, where its few cascades take microseconds (on a
     # GPU each estimate round costs a whole thread's latency and a synchronization); the
     # count does not depend on the device
-    counts = fit_cells(core, float(np.max(freqs)), values, dataclasses.replace(settings, device="cpu"), k_factor=k_factor,
-                       freqs=freqs, heat_input=float(np.max(heat_input, initial=0.0)))
+    counts = fit_cells(
+        core,
+        float(np.max(freqs)),
+        values,
+        dataclasses.replace(settings, device="cpu"),
+        k_factor=k_factor,
+        freqs=freqs,
+        heat_input=float(np.max(heat_input, initial=0.0)),
+    )
     return dataclasses.replace(settings, cells={s.name: int(n) for s, n in zip(core.segments, counts) if s.thermal})
 
 
-def fit_cells(core: Core, freq: float, values: dict | None = None, settings: ForwardSettings | None = None,
-              k_factor: float = 1.0, freqs=None, heat_input: float = 0.0) -> np.ndarray:
+def fit_cells(
+    core: Core,
+    freq: float,
+    values: dict | None = None,
+    settings: ForwardSettings | None = None,
+    k_factor: float = 1.0,
+    freqs=None,
+    heat_input: float = 0.0,
+) -> np.ndarray:
     """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
     segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
     non-thermal segments), at the cell density the error estimate of ``settings.tolerance``
@@ -161,9 +181,20 @@ def fit_cells(core: Core, freq: float, values: dict | None = None, settings: For
     eng = Engine(core, [freq] if freqs is None else freqs, names, dataclasses.replace(settings, cells=None))
     params, theta = eng.heat(np.stack([np.full(n, float(heat_input))] + [np.broadcast_to(c, (n,)) for c in cols]))
     cells = wp.empty((n, len(core.segments)), dtype=wp.int32, device=eng.device)
-    wp.launch(klm.magnus_cells, dim=(n, len(core.segments)), device=eng.device,
-              inputs=[params, eng.flags, eng.gas, 2 * math.pi * float(freq), eng.cell_densities(params, theta),
-                      float(k_factor), cells])
+    wp.launch(
+        klm.magnus_cells,
+        dim=(n, len(core.segments)),
+        device=eng.device,
+        inputs=[
+            params,
+            eng.flags,
+            eng.gas,
+            2 * math.pi * float(freq),
+            eng.cell_densities(params, theta),
+            float(k_factor),
+            cells,
+        ],
+    )
     return cells.numpy() if any(c.ndim for c in cols) else cells.numpy()[0]
 
 
@@ -221,8 +252,9 @@ def kind_of(path) -> KindEntry:
     raise MeasurementError(f"{path}: header {','.join(cols)} matches no measurement kind ({sorted(KINDS)})")
 
 
-def load_measurement(path, core: Core | None = None, settings: ForwardSettings | None = None,
-                     **options) -> MeasurementKind:
+def load_measurement(
+    path, core: Core | None = None, settings: ForwardSettings | None = None, **options
+) -> MeasurementKind:
     """A measurement kind built from the CSV file ``path``, the kind picked by its header.
     ``options`` {name: value} (e.g. ``empty_tube`` for scattering data; None values are
     dropped) go to the kind's loader; a kind whose loader does not take one is refused,
@@ -232,16 +264,20 @@ def load_measurement(path, core: Core | None = None, settings: ForwardSettings |
     for key in options:
         if key not in inspect.signature(entry.load).parameters:
             takers = [n for n, e in KINDS.items() if key in inspect.signature(e.load).parameters]
-            raise MeasurementError(f"{path}: {entry.name} data take no {key} option (it applies to "
-                                   f"{', '.join(takers) or 'no kind of'} data)")
+            raise MeasurementError(
+                f"{path}: {entry.name} data take no {key} option (it applies to "
+                f"{', '.join(takers) or 'no kind of'} data)"
+            )
     try:
         kind = entry.load(path, core, settings, **options)
-    except ModelValidityError as e:   # the file's frequencies or heat inputs are outside the model: name it
+    except ModelValidityError as e:  # the file's frequencies or heat inputs are outside the model: name it
         raise MeasurementError(f"{path}: {e}") from None
     for what, a in (("values", kind.y), ("weights (1/sigma)", kind.w)):
         bad = np.flatnonzero(~np.isfinite(a).reshape(len(kind.y), -1).all(axis=1))
-        if bad.size:   # finite in the file, out of the float64 range once scaled
-            raise MeasurementError(f"{path}: {bad.size} {what} overflow the float64 range once made dimensionless "
-                                   f"(the first of the {kind.name} rows: {int(bad[0])}); the file holds values out "
-                                   f"of scale")
+        if bad.size:  # finite in the file, out of the float64 range once scaled
+            raise MeasurementError(
+                f"{path}: {bad.size} {what} overflow the float64 range once made dimensionless "
+                f"(the first of the {kind.name} rows: {int(bad[0])}); the file holds values out "
+                f"of scale"
+            )
     return kind

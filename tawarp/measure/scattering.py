@@ -81,9 +81,11 @@ def tube_waves(empty: ScatteringData, length: float) -> tuple[np.ndarray, np.nda
     (a, b), *_ = np.linalg.lstsq(A, np.concatenate([k.real, k.imag]), rcond=None)
     c, eps = 1.0 / a, b / a * rf
     if not (0.5 < c / empty.sound_speed < 2.0 and abs(b / a) < 1.0):
-        raise MeasurementError(f"{empty.source}: the empty tube's waves fit to a sound speed of {c:.6g} m/s and a loss "
-                               f"coefficient of {b / a:.3g} Hz^0.5 (T_ambient gives {empty.sound_speed:.6g} m/s); "
-                               "is this an empty-tube measurement at the sample's reference planes?")
+        raise MeasurementError(
+            f"{empty.source}: the empty tube's waves fit to a sound speed of {c:.6g} m/s and a loss "
+            f"coefficient of {b / a:.3g} Hz^0.5 (T_ambient gives {empty.sound_speed:.6g} m/s); "
+            "is this an empty-tube measurement at the sample's reference planes?"
+        )
     k_t = w / c * (1 + (1 + 1j) * eps)
     gas = GASES[empty.gas]
     mu, lam = gas_transport(empty.gas, c * c / (gas.gamma * gas.R_gas))
@@ -96,27 +98,36 @@ def tube_waves(empty: ScatteringData, length: float) -> tuple[np.ndarray, np.nda
 def _check_pair(sample: ScatteringData, empty: ScatteringData, length: float) -> None:
     src = empty.source
     if empty.freq.shape != sample.freq.shape or not np.allclose(empty.freq, sample.freq, rtol=1e-9, atol=0):
-        raise MeasurementError(f"{src}: the empty tube's frequencies differ from {sample.source}'s; "
-                               "measure both on the same frequencies")
-    for key, a, b in (("ref_plane_upstream", empty.plane_upstream, sample.plane_upstream),
-                      ("ref_plane_downstream", empty.plane_downstream, sample.plane_downstream),
-                      ("tube_radius", empty.tube_radius, sample.tube_radius)):
+        raise MeasurementError(
+            f"{src}: the empty tube's frequencies differ from {sample.source}'s; measure both on the same frequencies"
+        )
+    for key, a, b in (
+        ("ref_plane_upstream", empty.plane_upstream, sample.plane_upstream),
+        ("ref_plane_downstream", empty.plane_downstream, sample.plane_downstream),
+        ("tube_radius", empty.tube_radius, sample.tube_radius),
+    ):
         if abs(a - b) > 1e-9 * max(1.0, abs(b)):
-            raise MeasurementError(f"{src}: metadata {key} = {a!r} differs from {sample.source}'s {b!r}; "
-                                   "the empty tube must be measured in the same tube at the same planes")
+            raise MeasurementError(
+                f"{src}: metadata {key} = {a!r} differs from {sample.source}'s {b!r}; "
+                "the empty tube must be measured in the same tube at the same planes"
+            )
     if empty.gas != sample.gas:
         raise MeasurementError(f"{src}: gas = {empty.gas!r} differs from {sample.source}'s {sample.gas!r}")
     D = length + empty.plane_downstream - empty.plane_upstream
     if D < 0:
-        raise MeasurementError(f"{src}: the downstream reference plane lies {-D!r} m upstream of the upstream one "
-                               f"(sample length {length!r} m); check ref_plane_upstream and ref_plane_downstream")
+        raise MeasurementError(
+            f"{src}: the downstream reference plane lies {-D!r} m upstream of the upstream one "
+            f"(sample length {length!r} m); check ref_plane_upstream and ref_plane_downstream"
+        )
     zero = np.flatnonzero(empty.S[:, 1, 0] == 0)
     if zero.size:
         raise MeasurementError(f"{src}: S21 = 0 at {empty.freq[zero[0]]!r} Hz: an empty tube transmits")
     refl = float(np.max(np.abs(empty.S[:, [0, 1], [0, 1]])))
     if refl > MAX_EMPTY_REFLECTION:
-        raise MeasurementError(f"{src}: |S11| or |S22| reaches {refl:.3g} (> {MAX_EMPTY_REFLECTION}); an empty tube "
-                               "reflects almost nothing: is this the empty-tube measurement?")
+        raise MeasurementError(
+            f"{src}: |S11| or |S22| reaches {refl:.3g} (> {MAX_EMPTY_REFLECTION}); an empty tube "
+            "reflects almost nothing: is this the empty-tube measurement?"
+        )
 
 
 def calibrate_empty_tube(sample: ScatteringData, empty: ScatteringData, length: float) -> TMatrixData:
@@ -134,14 +145,20 @@ def calibrate_empty_tube(sample: ScatteringData, empty: ScatteringData, length: 
         return dataclasses.replace(sample, S=Sc, sigma=None, wavenumber=k, impedance=Zc).transfer()
 
     T = transfer(sample.S, empty.S)
-    sigma = None if sample.sigma is None else propagated_sigma(transfer, [sample.S, empty.S],
-                                                               [sample.sigma, empty.sigma])
+    sigma = (
+        None if sample.sigma is None else propagated_sigma(transfer, [sample.S, empty.S], [sample.sigma, empty.sigma])
+    )
     g = microphone_gain(empty.S)
     meta = dict(sample.metadata)
-    meta.update({"converted_from": "scattering matrix", "empty_tube": empty.source,
-                 "empty_tube.gain_abs": f"{np.min(np.abs(g)):.6g}..{np.max(np.abs(g)):.6g}",
-                 "empty_tube.gain_phase_deg": f"{np.degrees(np.min(np.angle(g))):.6g}.."
-                                              f"{np.degrees(np.max(np.angle(g))):.6g}"})
+    meta.update(
+        {
+            "converted_from": "scattering matrix",
+            "empty_tube": empty.source,
+            "empty_tube.gain_abs": f"{np.min(np.abs(g)):.6g}..{np.max(np.abs(g)):.6g}",
+            "empty_tube.gain_phase_deg": f"{np.degrees(np.min(np.angle(g))):.6g}.."
+            f"{np.degrees(np.max(np.angle(g))):.6g}",
+        }
+    )
     meta.update({f"empty_tube.{k_}": f"{v:.6g}" for k_, v in tube.items()})
     data = TMatrixData(np.full(len(sample), sample.heat_input), sample.freq, T, sigma, meta, sample.source)
     data.check()

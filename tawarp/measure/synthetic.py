@@ -44,13 +44,29 @@ from .files import ScatteringData, TMatrixData, transfer_to_scattering
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
 #: Paper Table 1 (value, uncertainty) in SI, and the h's of Sect. 5.2 used as the truth.
 PAPER_TABLE1 = {
-    "ceramic": {"stack.porosity": (0.90, 0.01), "stack.pore_radius": (0.47e-3, 0.05e-3), "stack.tortuosity": (1.0, None)},
+    "ceramic": {
+        "stack.porosity": (0.90, 0.01),
+        "stack.pore_radius": (0.47e-3, 0.05e-3),
+        "stack.tortuosity": (1.0, None),
+    },
     "mesh": {"stack.porosity": (0.68, 0.01), "stack.pore_radius": (40e-6, 4e-6), "stack.tortuosity": (1.06, 0.03)},
-    "nicr_foam": {"stack.porosity": (0.92, 0.01), "stack.pore_radius": (0.31e-3, 0.04e-3), "stack.tortuosity": (1.30, 0.04)},
-    "rvc_foam": {"stack.porosity": (0.97, 0.01), "stack.pore_radius": (0.17e-3, 0.02e-3), "stack.tortuosity": (1.13, 0.03)},
+    "nicr_foam": {
+        "stack.porosity": (0.92, 0.01),
+        "stack.pore_radius": (0.31e-3, 0.04e-3),
+        "stack.tortuosity": (1.30, 0.04),
+    },
+    "rvc_foam": {
+        "stack.porosity": (0.97, 0.01),
+        "stack.pore_radius": (0.17e-3, 0.02e-3),
+        "stack.tortuosity": (1.13, 0.03),
+    },
 }
-MATERIAL_NAMES = {"ceramic": "ceramic catalyst 600 CPSI", "mesh": "stainless-steel wire mesh",
-                  "nicr_foam": "NiCr foam", "rvc_foam": "RVC foam"}
+MATERIAL_NAMES = {
+    "ceramic": "ceramic catalyst 600 CPSI",
+    "mesh": "stainless-steel wire mesh",
+    "nicr_foam": "NiCr foam",
+    "rvc_foam": "RVC foam",
+}
 DEFAULT_HEAT = (0.0, 10.0, 20.0, 40.0, 60.0, 80.0)
 RVC_HEAT = (0.0, 4.5, 9.0, 13.5, 18.0)
 BIAS_PHASES = (0.0, 0.5 * math.pi, math.pi, 1.5 * math.pi)
@@ -79,9 +95,20 @@ def bias_factors(bias) -> np.ndarray:
     return b
 
 
-def make_paper_data(material: str, noise: float = 0.005, bias=None, seed: int = 0, *, freqs=None,
-                    heat_inputs=None, n_freqs: int = 60, cells: int = 48, truth: dict | None = None,
-                    write_sigma: bool = True, device: str | None = None) -> TMatrixData:
+def make_paper_data(
+    material: str,
+    noise: float = 0.005,
+    bias=None,
+    seed: int = 0,
+    *,
+    freqs=None,
+    heat_inputs=None,
+    n_freqs: int = 60,
+    cells: int = 48,
+    truth: dict | None = None,
+    write_sigma: bool = True,
+    device: str | None = None,
+) -> TMatrixData:
     """Paper-like T-matrix measurements of ``material`` (module doc): a :class:`TMatrixData`
     with rows ordered by heat input then frequency, ``sigma`` (raw units) unless
     ``write_sigma=False``, and metadata naming the material, noise, bias, seed, cells and
@@ -96,7 +123,7 @@ def make_paper_data(material: str, noise: float = 0.005, bias=None, seed: int = 
     f = paper_frequencies(material, n_freqs) if freqs is None else np.asarray(freqs, dtype=float)
     Q = paper_heat_inputs(material) if heat_inputs is None else np.asarray(heat_inputs, dtype=float)
     res = transfer_matrices(core, f, heat_input=Q, cells=cells, device=device)
-    Y = res.dimensionless()                                  # (nQ, m, 4)
+    Y = res.dimensionless()  # (nQ, m, 4)
     Y = Y * bias_factors(bias)
     rng = np.random.default_rng(seed)
     sd = noise * np.abs(Y) / math.sqrt(2.0)
@@ -107,12 +134,28 @@ def make_paper_data(material: str, noise: float = 0.005, bias=None, seed: int = 
     if write_sigma and noise > 0:
         s = np.abs(denormalize(sd.astype(complex), zc)).reshape(-1, 2, 2)
         sigma = np.stack([s, s], axis=-1)
-    meta = {"generator": "tawarp.measure.synthetic.make_paper_data", "material": material, "noise": repr(noise),
-            "noise_model": "complex Gaussian, std noise*|Y|/sqrt(2) per part of each dimensionless coefficient",
-            "bias": "none" if bias is None else " ".join(repr(complex(x)) for x in bias_factors(bias)),
-            "seed": str(seed), "cells": str(cells), "core": material}
-    for k in ("stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.solid_conductivity",
-              "stack.h", "hot_hx.porosity", "hot_hx.pore_radius", "hot_hx.length", "hot_hx.h", "tbt.h"):
+    meta = {
+        "generator": "tawarp.measure.synthetic.make_paper_data",
+        "material": material,
+        "noise": repr(noise),
+        "noise_model": "complex Gaussian, std noise*|Y|/sqrt(2) per part of each dimensionless coefficient",
+        "bias": "none" if bias is None else " ".join(repr(complex(x)) for x in bias_factors(bias)),
+        "seed": str(seed),
+        "cells": str(cells),
+        "core": material,
+    }
+    for k in (
+        "stack.porosity",
+        "stack.pore_radius",
+        "stack.tortuosity",
+        "stack.solid_conductivity",
+        "stack.h",
+        "hot_hx.porosity",
+        "hot_hx.pore_radius",
+        "hot_hx.length",
+        "hot_hx.h",
+        "tbt.h",
+    ):
         meta[f"true.{k}"] = repr(core.get(k))
     return TMatrixData(np.repeat(Q, f.size), np.tile(f, Q.size), T, sigma, meta, f"synthetic:{material}")
 
@@ -122,9 +165,16 @@ def true_values(data: TMatrixData) -> dict[str, float]:
     return {k[5:]: float(v) for k, v in data.metadata.items() if k.startswith("true.")}
 
 
-def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_inputs=(0.0, 40.0, 80.0),
-                      noise: float = 0.002, seed: int = 0, ambient_exchangers: dict | None = None,
-                      settings: ForwardSettings | None = None) -> TMatrixData:
+def synthetic_tmatrix(
+    core: Core,
+    truth: dict | None = None,
+    freqs=None,
+    heat_inputs=(0.0, 40.0, 80.0),
+    noise: float = 0.002,
+    seed: int = 0,
+    ambient_exchangers: dict | None = None,
+    settings: ForwardSettings | None = None,
+) -> TMatrixData:
     """Core T-matrices made by the forward model with parameters ``truth`` (any names,
     effects included) plus complex Gaussian noise of standard deviation ``noise`` times
     the rms of the dimensionless coefficients (per re/im part); sigma columns carry it.
@@ -141,8 +191,9 @@ def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_in
         truth.update({k: float(v) for k, v in effect.model_values({**effect.typical, **ambient_exchangers}).items()})
     nq = len(heat_inputs)
     settings = settings or ForwardSettings(device="cpu", cells=8)
-    res = transfer_matrices(model, freqs, list(heat_inputs), params={k: np.full(nq, v) for k, v in truth.items()},
-                            settings=settings)
+    res = transfer_matrices(
+        model, freqs, list(heat_inputs), params={k: np.full(nq, v) for k, v in truth.items()}, settings=settings
+    )
     T = res.T.reshape(-1, 2, 2)
     Zc = duct_impedance(core)
     s = noise * np.sqrt(np.mean(np.abs(normalize(T, Zc)) ** 2))
@@ -154,11 +205,26 @@ def synthetic_tmatrix(core: Core, truth: dict | None = None, freqs=None, heat_in
     return TMatrixData(np.repeat(heat_inputs, len(freqs)), np.tile(freqs, nq), Tn, sigma, meta, "<synthetic>")
 
 
-def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: float, plane_downstream: float,
-                           length: float, T_ambient: float = 293.15, p_ambient: float = 101325.0, gas: str = "air",
-                           gain=None, tube_wavenumber=None, tube_impedance=None, noise: float = 0.0, seed: int = 0,
-                           write_sigma: bool = True, heat_input: float = 0.0,
-                           source: str = "<synthetic>") -> tuple[ScatteringData, ScatteringData]:
+def scattering_measurement(
+    T,
+    freqs,
+    *,
+    tube_radius: float,
+    plane_upstream: float,
+    plane_downstream: float,
+    length: float,
+    T_ambient: float = 293.15,
+    p_ambient: float = 101325.0,
+    gas: str = "air",
+    gain=None,
+    tube_wavenumber=None,
+    tube_impedance=None,
+    noise: float = 0.0,
+    seed: int = 0,
+    write_sigma: bool = True,
+    heat_input: float = 0.0,
+    source: str = "<synthetic>",
+) -> tuple[ScatteringData, ScatteringData]:
     """Scattering matrices of a sample with core T-matrices ``T`` (m, 2, 2) [SI] at
     ``freqs`` (m,) [Hz], and of the empty tube, as a four-microphone rig would measure them.
 
@@ -176,8 +242,21 @@ def scattering_measurement(T, freqs, *, tube_radius: float, plane_upstream: floa
     """
     f = np.asarray(freqs, dtype=float)
     meta = {"generator": "tawarp.measure.synthetic.scattering_measurement", "noise": repr(noise), "seed": str(seed)}
-    base = ScatteringData(f, np.zeros((f.size, 2, 2)), plane_upstream, plane_downstream, tube_radius, T_ambient,
-                          p_ambient, gas, heat_input, None, None, meta, source)
+    base = ScatteringData(
+        f,
+        np.zeros((f.size, 2, 2)),
+        plane_upstream,
+        plane_downstream,
+        tube_radius,
+        T_ambient,
+        p_ambient,
+        gas,
+        heat_input,
+        None,
+        None,
+        meta,
+        source,
+    )
     k = base.k if tube_wavenumber is None else np.asarray(tube_wavenumber, dtype=complex)
     g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=complex), f.shape)
     Zc = base.Zc if tube_impedance is None else np.asarray(tube_impedance, dtype=complex)

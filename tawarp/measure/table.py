@@ -24,17 +24,16 @@ class MeasurementError(ValueError):
     """A measurement file or data set is invalid; the message names the file and line or key."""
 
 
-
 # -- generic CSV reading ---------------------------------------------------------------
 @dataclass
 class _Table:
     source: str
     meta: dict[str, str]
-    meta_line: dict[str, int]   # line of each metadata key
+    meta_line: dict[str, int]  # line of each metadata key
     header_line: int
     columns: list[str]
-    values: dict[str, np.ndarray]   # column name -> floats
-    lines: np.ndarray           # file line of each data row
+    values: dict[str, np.ndarray]  # column name -> floats
+    lines: np.ndarray  # file line of each data row
 
 
 def _fail(source, line, what) -> MeasurementError:
@@ -63,8 +62,9 @@ def _read_table(path, required, allowed=lambda name: False, ignore_extra=False) 
             continue
         if line.startswith("#"):
             if header is not None:
-                raise _fail(src, n, "comment or metadata line after the header; "
-                                    "'# key = value' lines must come before it")
+                raise _fail(
+                    src, n, "comment or metadata line after the header; '# key = value' lines must come before it"
+                )
             key, eq, value = line[1:].partition("=")
             if eq:  # '# key = value'; a comment without '=' is free text
                 key = key.strip()
@@ -112,9 +112,11 @@ def text_lines(path):
                 if line:
                     yield n, line
     except UnicodeDecodeError as e:
-        byte = e.object[e.start:e.start + 1].hex()
-        raise MeasurementError(f"{src}: not a text file (byte 0x{byte} on line {n + 1} is not UTF-8); give the "
-                               "measurement CSV, saved as UTF-8 text (docs/formats.md)") from None
+        byte = e.object[e.start : e.start + 1].hex()
+        raise MeasurementError(
+            f"{src}: not a text file (byte 0x{byte} on line {n + 1} is not UTF-8); give the "
+            "measurement CSV, saved as UTF-8 text (docs/formats.md)"
+        ) from None
     except OSError as e:
         raise MeasurementError(f"{src}: cannot read ({e.strerror})") from None
 
@@ -124,8 +126,9 @@ def _split(src, n, line: str) -> list[str]:
     try:
         return [f.strip() for f in next(csv.reader([line]))]
     except csv.Error as e:  # e.g. a field over csv.field_size_limit() (128 kB): no number is that long
-        raise _fail(src, n, f"not a CSV line of numbers ({e}); a measurement CSV holds one number per "
-                            "field (docs/formats.md)") from None
+        raise _fail(
+            src, n, f"not a CSV line of numbers ({e}); a measurement CSV holds one number per field (docs/formats.md)"
+        ) from None
 
 
 def _parse_rows(src, lines, numbers, used, width, header_line, ignore_extra) -> np.ndarray:
@@ -135,11 +138,13 @@ def _parse_rows(src, lines, numbers, used, width, header_line, ignore_extra) -> 
     cols = list(used.values())
     commas = width - 1
     plain = not any('"' in s for s in lines) and all(
-        (s.count(",") >= commas) if ignore_extra else (s.count(",") == commas) for s in lines)
+        (s.count(",") >= commas) if ignore_extra else (s.count(",") == commas) for s in lines
+    )
     if plain:
         try:
-            arr = np.loadtxt(lines, delimiter=",", usecols=cols, dtype=np.float64, comments=None, ndmin=2,
-                             quotechar=None)
+            arr = np.loadtxt(
+                lines, delimiter=",", usecols=cols, dtype=np.float64, comments=None, ndmin=2, quotechar=None
+            )
         except ValueError:
             arr = None
         if arr is not None and arr.shape == (len(lines), len(cols)) and np.isfinite(arr).all():
@@ -191,8 +196,9 @@ def _needs_conjugate(t: _Table) -> bool:
         return False
     if key in _PLUS:
         return True
-    raise _fail(t.source, t.meta_line["convention"],
-                f"convention = {value!r}; expected 'exp(-iwt)' (default) or 'exp(+iwt)'")
+    raise _fail(
+        t.source, t.meta_line["convention"], f"convention = {value!r}; expected 'exp(-iwt)' (default) or 'exp(+iwt)'"
+    )
 
 
 def _check_convention(t: _Table, conjugated: bool, evidence: str | None) -> None:
@@ -203,19 +209,25 @@ def _check_convention(t: _Table, conjugated: bool, evidence: str | None) -> None
         return
     other = CONVENTION if conjugated else "exp(+iwt)"
     if "convention" in t.meta:
-        raise _fail(t.source, t.meta_line["convention"],
-                    f"this file looks like {other} data ({evidence}), yet declares convention = "
-                    f"{t.meta['convention']!r}; correct the line to '# convention = {other}'")
-    raise MeasurementError(f"{t.source}: this file looks like {other} data ({evidence}); add a line "
-                           f"'# convention = {other}' before the header")
+        raise _fail(
+            t.source,
+            t.meta_line["convention"],
+            f"this file looks like {other} data ({evidence}), yet declares convention = "
+            f"{t.meta['convention']!r}; correct the line to '# convention = {other}'",
+        )
+    raise MeasurementError(
+        f"{t.source}: this file looks like {other} data ({evidence}); add a line "
+        f"'# convention = {other}' before the header"
+    )
 
 
 def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False, default=None):
     """Metadata ``key`` as a finite number > 0 (>= 0 with ``allow_zero``) [unit]."""
     if key not in t.meta:
         if required:
-            raise MeasurementError(f"{t.source}: metadata key {key!r} [{unit}] is missing; "
-                                   f"add a line '# {key} = ...' before the header")
+            raise MeasurementError(
+                f"{t.source}: metadata key {key!r} [{unit}] is missing; add a line '# {key} = ...' before the header"
+            )
         return default
     text = t.meta[key]
     try:
@@ -223,8 +235,11 @@ def _meta_float(t: _Table, key: str, unit: str, required=True, allow_zero=False,
     except ValueError:
         v = math.nan
     if not (math.isfinite(v) and (v >= 0 if allow_zero else v > 0)):
-        raise _fail(t.source, t.meta_line[key],
-                    f"metadata {key} = {text!r}: expected a number {'>=' if allow_zero else '>'} 0 [{unit}]")
+        raise _fail(
+            t.source,
+            t.meta_line[key],
+            f"metadata {key} = {text!r}: expected a number {'>=' if allow_zero else '>'} 0 [{unit}]",
+        )
     return v
 
 
@@ -236,15 +251,15 @@ def _check_positive_unique(t: _Table, col: str, others=()) -> None:
     if bad.size:
         raise _fail(t.source, t.lines[bad[0]], f"{col} = {t.values[col][bad[0]]!r}: expected a number > 0")
     keys = [t.values[c] for c in (*others, col)]
-    order = np.lexsort(keys[::-1])                     # stable: equal keys stay in file order
+    order = np.lexsort(keys[::-1])  # stable: equal keys stay in file order
     same = np.ones(order.size - 1, dtype=bool)
     for k in keys:
         same &= k[order[1:]] == k[order[:-1]]
     if same.any():
-        first = order[np.r_[0, np.flatnonzero(~same) + 1]]       # first row of each run of equal keys
-        run = np.cumsum(np.r_[True, ~same]) - 1                  # run of each sorted position
+        first = order[np.r_[0, np.flatnonzero(~same) + 1]]  # first row of each run of equal keys
+        run = np.cumsum(np.r_[True, ~same]) - 1  # run of each sorted position
         dup = order[1:][same]
-        i = int(dup.min())                                       # earliest repeat in the file
+        i = int(dup.min())  # earliest repeat in the file
         j = int(first[run[1:][same][np.argmin(dup)]])
         names = ", ".join(f"{c} = {float(t.values[c][i])!r}" for c in (*others, col))
         raise _fail(t.source, t.lines[i], f"duplicate row ({names}), first on line {t.lines[j]}")

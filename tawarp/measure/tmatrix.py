@@ -55,7 +55,7 @@ class TMatrixKind(MeasurementKind):
         self._qi = np.searchsorted(self.Qs, data.heat_input)
         self._fi = np.searchsorted(self.freqs, data.freq)
         if data.sigma is not None:
-            scale = np.array([[1.0, 1.0 / self.Zc], [self.Zc, 1.0]])   # sigma of the dimensionless values
+            scale = np.array([[1.0, 1.0 / self.Zc], [self.Zc, 1.0]])  # sigma of the dimensionless values
             s = np.asarray(data.sigma) * scale[None, :, :, None]
             self.w = 1.0 / s.reshape(nr * 4, 2)
             self.has_sigma = True
@@ -73,8 +73,12 @@ class TMatrixKind(MeasurementKind):
         tortuosity."""
         stack, _ = stack_and_heater(self.core)
         if stack is None:
-            return [f"{s.name}.{f}" for s in self.core.segments if s.is_porous
-                    for f in ("porosity", "pore_radius", "tortuosity")]
+            return [
+                f"{s.name}.{f}"
+                for s in self.core.segments
+                if s.is_porous
+                for f in ("porosity", "pore_radius", "tortuosity")
+            ]
         names = [f"{stack}.porosity", f"{stack}.pore_radius"]
         return names + [f"{s.name}.h" for s in (self.core.segments[i] for i in self.core.thermal_indices) if s.h > 1.0]
 
@@ -85,8 +89,12 @@ class TMatrixKind(MeasurementKind):
         thermal segment's h, whatever its size. The hot exchanger's geometry is part of the
         rig, as in the paper: freeing it lets it bend towards the bounds to take up an
         effect's misfit (add it with ``--fit``)."""
-        names = [f"{s.name}.{f}" for s in self.core.segments if s.is_porous and not s.heater
-                 for f in ("porosity", "pore_radius", "tortuosity")]
+        names = [
+            f"{s.name}.{f}"
+            for s in self.core.segments
+            if s.is_porous and not s.heater
+            for f in ("porosity", "pore_radius", "tortuosity")
+        ]
         if np.any(self.group > 0):
             names += [f"{s.name}.h" for s in self.core.segments if s.thermal]
         return names
@@ -108,8 +116,11 @@ class TMatrixKind(MeasurementKind):
         g, f = np.meshgrid(np.asarray(groups, dtype=float), np.asarray(freqs, dtype=float), indexing="ij")
         T = np.broadcast_to(np.eye(2, dtype=complex), (g.size, 2, 2))
         data = TMatrixData(g.reshape(-1), f.reshape(-1), T, source=f"{self.data.source} (planned)")
-        return TMatrixKind(data, self.core, dataclasses.replace(self.settings, cells=None)
-                           if self.settings.cells is None else self.settings)
+        return TMatrixKind(
+            data,
+            self.core,
+            dataclasses.replace(self.settings, cells=None) if self.settings.cells is None else self.settings,
+        )
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
@@ -173,21 +184,29 @@ class TMatrixKind(MeasurementKind):
             return out.numpy().view(np.complex128).reshape(sets.size, len(freqs), 2, 2)
 
         rigid = dataclasses.replace(seg, frame_mobility=0.0)
-        slab = part((rigid,), {f"{sample}.length": np.full(sets.size, FLUID_SLICE),
-                               f"{sample}.frame_mobility": np.zeros(sets.size)})
+        slab = part(
+            (rigid,),
+            {f"{sample}.length": np.full(sets.size, FLUID_SLICE), f"{sample}.frame_mobility": np.zeros(sets.size)},
+        )
         g = GASES[self.core.gas.name]
         T0 = glob.get("gas.T_cold", np.full(sets.size, self.core.gas.T_cold))[:, None]
         p0 = glob.get("gas.p_mean", np.full(sets.size, self.core.gas.p_mean))[:, None]
         radius = glob.get("tube.radius", np.full(sets.size, self.core.radius))[:, None]
-        area = np.pi * radius ** 2
+        area = np.pi * radius**2
         rho_eq, K_eq = equivalent_fluid(slab, FLUID_SLICE, 2 * np.pi * freqs, area)
         fluid = JCAFluid(rho_eq, K_eq, p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0))
         # Biot's parameters per set (its batch shape; it adds the frequency axis itself)
-        Tb = fluid_transfer_matrix(freqs, fluid, thickness=per_set(f"{sample}.length", seg.length)[sets],
-                                   phi=per_set(f"{sample}.porosity", seg.porosity)[sets],
-                                   E=per_set(f"{sample}.frame_modulus", None)[sets],
-                                   eta=per_set(f"{sample}.frame_loss_factor", None)[sets],
-                                   nu=FRAME_POISSON_RATIO, rho_1=1.0 / mob[sets], area=area[:, 0])
+        Tb = fluid_transfer_matrix(
+            freqs,
+            fluid,
+            thickness=per_set(f"{sample}.length", seg.length)[sets],
+            phi=per_set(f"{sample}.porosity", seg.porosity)[sets],
+            E=per_set(f"{sample}.frame_modulus", None)[sets],
+            eta=per_set(f"{sample}.frame_loss_factor", None)[sets],
+            nu=FRAME_POISSON_RATIO,
+            rho_1=1.0 / mob[sets],
+            area=area[:, 0],
+        )
         T = T.copy()
-        T[sets] = (part(segs[k + 1:]) @ Tb @ part(segs[:k]))[:, None]
+        T[sets] = (part(segs[k + 1 :]) @ Tb @ part(segs[:k]))[:, None]
         return T

@@ -105,9 +105,19 @@ JCA_PARAMETERS = ("phi", "sigma", "alpha_inf", "Lambda", "Lambda_prime")
 #: table): the JCA lengths and the pore radius are radii, ``alpha_inf = q^2`` has q's range
 #: [1, inf); the others (the moduli, the resistivity, the tube area) are only positive
 #: (:func:`_check`).
-_FIELD_OF = {"phi": "porosity", "alpha_inf": "tortuosity", "Lambda": "pore_radius", "Lambda_prime": "pore_radius",
-             "pore_radius": "pore_radius", "thickness": "length", "eta": "frame_loss_factor", "nu": "poisson_ratio",
-             "rho_1": "frame_density", "T": "gas.T_cold", "P0": "gas.p_mean"}
+_FIELD_OF = {
+    "phi": "porosity",
+    "alpha_inf": "tortuosity",
+    "Lambda": "pore_radius",
+    "Lambda_prime": "pore_radius",
+    "pore_radius": "pore_radius",
+    "thickness": "length",
+    "eta": "frame_loss_factor",
+    "nu": "poisson_ratio",
+    "rho_1": "frame_density",
+    "T": "gas.T_cold",
+    "P0": "gas.p_mean",
+}
 
 
 class JCAFluid(NamedTuple):
@@ -157,8 +167,10 @@ def _check(name: str, value) -> np.ndarray:
     if not ok.all():
         bad = a.reshape(-1)[np.flatnonzero(~ok.reshape(-1))[0]]
         rng = f.range_text() if f is not None else "(0, inf)"
-        raise ValueError(f"biot: parameter {name!r} = {bad!r} outside its physical range {rng} "
-                         f"({BIOT_PARAMETERS.get(name, ('', name))[1]})")
+        raise ValueError(
+            f"biot: parameter {name!r} = {bad!r} outside its physical range {rng} "
+            f"({BIOT_PARAMETERS.get(name, ('', name))[1]})"
+        )
     return a
 
 
@@ -204,20 +216,23 @@ def _jca(w, b, gas) -> JCAFluid:
     return JCAFluid(rho0 * alpha / phi, K_f / phi, rho0, c0)
 
 
-def jca_fluid(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15, P0=101325.0,
-              gas: str = "air") -> JCAFluid:
+def jca_fluid(
+    freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15, P0=101325.0, gas: str = "air"
+) -> JCAFluid:
     """JCA equivalent fluid of a rigid frame (exp(-iwt)); see :class:`JCAFluid`."""
     f = _frequencies(freq)
     b = _batch(phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, T=T, P0=P0)
     return _jca(2 * np.pi * f, b, gas)
 
 
-def rigid_surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15,
-                            P0=101325.0, gas: str = "air") -> np.ndarray:
+def rigid_surface_impedance(
+    freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, T=293.15, P0=101325.0, gas: str = "air"
+) -> np.ndarray:
     """``Zs / (rho0 c0)`` of a rigid-backed JCA layer with a rigid frame:
     ``i Zc cot(k d)`` with ``k = w sqrt(rho_eq/K_eq)``, ``Zc = sqrt(rho_eq K_eq)`` (exp(-iwt))."""
-    fl = jca_fluid(freq, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime,
-                   T=T, P0=P0, gas=gas)
+    fl = jca_fluid(
+        freq, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, T=T, P0=P0, gas=gas
+    )
     d = np.asarray(_check("thickness", thickness))[..., None]
     k = 2 * np.pi * _frequencies(freq) * np.sqrt(fl.rho_eq / fl.K_eq)
     Zc = np.sqrt(fl.rho_eq * fl.K_eq)
@@ -265,16 +280,29 @@ def _waves(w, b, fl: JCAFluid) -> BiotWaves:
     N = Em / (2.0 * (1.0 + nu))
     delta3 = w * np.sqrt(C / (N * rho22))
     delta3 = np.where(delta3.imag < 0, -delta3, delta3)
-    return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], mu12[0], mu12[1], delta3,
-                     -rho12 / rho22, P_hat, modes)
+    return BiotWaves(
+        P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], mu12[0], mu12[1], delta3, -rho12 / rho22, P_hat, modes
+    )
 
 
-def biot_waves(freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1, T=293.15,
-               P0=101325.0, gas: str = "air") -> BiotWaves:
+def biot_waves(
+    freq, *, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1, T=293.15, P0=101325.0, gas: str = "air"
+) -> BiotWaves:
     """Biot coefficients and the three waves (see :class:`BiotWaves`)."""
     f = _frequencies(freq)
-    b = _batch(phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda, Lambda_prime=Lambda_prime, E=E,
-               eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
+    b = _batch(
+        phi=phi,
+        sigma=sigma,
+        alpha_inf=alpha_inf,
+        Lambda=Lambda,
+        Lambda_prime=Lambda_prime,
+        E=E,
+        eta=eta,
+        nu=nu,
+        rho_1=rho_1,
+        T=T,
+        P0=P0,
+    )
     w = 2 * np.pi * f
     return _waves(w, b, _jca(w, b, gas))
 
@@ -322,13 +350,41 @@ def _params(freq, **params):
     return 2 * np.pi * _frequencies(freq), _batch(**params)
 
 
-def surface_impedance(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1,
-                      T=293.15, P0=101325.0, gas: str = "air") -> np.ndarray:
+def surface_impedance(
+    freq,
+    *,
+    thickness,
+    phi,
+    sigma,
+    alpha_inf,
+    Lambda,
+    Lambda_prime,
+    E,
+    eta,
+    nu,
+    rho_1,
+    T=293.15,
+    P0=101325.0,
+    gas: str = "air",
+) -> np.ndarray:
     """Normalized surface impedance ``Zs / (rho0 c0)`` (exp(-iwt)) of a rigid-backed Biot
     layer, frame bonded to the backing; shape ``B + (m,)``. Comparable directly with
     :attr:`tawarp.measure.files.ImpedanceData.Zs`."""
-    w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
-                   Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, T=T, P0=P0)
+    w, b = _params(
+        freq,
+        thickness=thickness,
+        phi=phi,
+        sigma=sigma,
+        alpha_inf=alpha_inf,
+        Lambda=Lambda,
+        Lambda_prime=Lambda_prime,
+        E=E,
+        eta=eta,
+        nu=nu,
+        rho_1=rho_1,
+        T=T,
+        P0=P0,
+    )
     return _surface_impedance(w, b, _jca(w, b, gas))
 
 
@@ -353,14 +409,44 @@ def _surface_impedance(w, b, fl: JCAFluid) -> np.ndarray:
     return 1.0 / np.sum(v0 * a, axis=-1)
 
 
-def transfer_matrix(freq, *, thickness, phi, sigma, alpha_inf, Lambda, Lambda_prime, E, eta, nu, rho_1,
-                    area=1.0, T=293.15, P0=101325.0, gas: str = "air") -> np.ndarray:
+def transfer_matrix(
+    freq,
+    *,
+    thickness,
+    phi,
+    sigma,
+    alpha_inf,
+    Lambda,
+    Lambda_prime,
+    E,
+    eta,
+    nu,
+    rho_1,
+    area=1.0,
+    T=293.15,
+    P0=101325.0,
+    gas: str = "air",
+) -> np.ndarray:
     """2-port ``(p, U)(d) = T (p, U)(0)`` of a Biot layer in a tube of cross-section ``area``
     [m^2] (``U = area v`` [m^3/s]; the default 1 m^2 gives the specific (p, v) matrix),
     air on both faces, frame sliding freely at the wall (1-D); shape ``B + (m, 2, 2)``,
     exp(-iwt). Passive and reciprocal: ``det T = 1``."""
-    w, b = _params(freq, thickness=thickness, phi=phi, sigma=sigma, alpha_inf=alpha_inf, Lambda=Lambda,
-                   Lambda_prime=Lambda_prime, E=E, eta=eta, nu=nu, rho_1=rho_1, area=area, T=T, P0=P0)
+    w, b = _params(
+        freq,
+        thickness=thickness,
+        phi=phi,
+        sigma=sigma,
+        alpha_inf=alpha_inf,
+        Lambda=Lambda,
+        Lambda_prime=Lambda_prime,
+        E=E,
+        eta=eta,
+        nu=nu,
+        rho_1=rho_1,
+        area=area,
+        T=T,
+        P0=P0,
+    )
     return _transfer_matrix(w, b, _jca(w, b, gas))
 
 

@@ -184,8 +184,13 @@ class Core:
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
             if s.is_porous:
-                d.update(pore_model=s.pore_model, porosity=s.porosity, pore_radius=s.pore_radius,
-                         tortuosity=s.tortuosity, solid_conductivity=s.solid_conductivity)
+                d.update(
+                    pore_model=s.pore_model,
+                    porosity=s.porosity,
+                    pore_radius=s.pore_radius,
+                    tortuosity=s.tortuosity,
+                    solid_conductivity=s.solid_conductivity,
+                )
             if s.thermal:
                 d.update(h=s.h, thermal=True)
             if s.heater:
@@ -230,7 +235,7 @@ def check_values(name: str, values, where: str) -> None:
         # the first bad value, if any, goes through the scalar checks for its message
         bad = np.flatnonzero(~(f.check_array(values) & (values >= lo) & (values <= hi)))
         values = values.ravel()[bad[:1]]
-    for value in (values if batch else [values]):
+    for value in values if batch else [values]:
         if isinstance(value, bool) or not isinstance(value, (int, float)) and not hasattr(value, "dtype"):
             raise CoreError(f"{where} [{f.unit}]: expected a number, got {value!r}")
         v = float(value)
@@ -239,8 +244,9 @@ def check_values(name: str, values, where: str) -> None:
         if not f.check(v):
             raise CoreError(f"{where} [{f.unit}]: must lie in {f.range_text()}, got {v}")
         if not lo <= v <= hi:
-            raise CoreError(f"{where} [{f.unit}]: {v:g} lies outside the trusted range [{lo:g}, {hi:g}] "
-                            f"(docs/trusted_ranges.md)")
+            raise CoreError(
+                f"{where} [{f.unit}]: {v:g} lies outside the trusted range [{lo:g}, {hi:g}] (docs/trusted_ranges.md)"
+            )
 
 
 def validate(core: Core) -> None:
@@ -279,8 +285,10 @@ def validate(core: Core) -> None:
         for fld, off in EFFECT_OFF.items():
             check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if getattr(s, fld) != off and fld not in allowed:
-                raise CoreError(f"{w}: {fld} = {getattr(s, fld)} applies only to "
-                                f"{SEGMENT_FIELDS[fld].applies.replace('_', ' ')} segments")
+                raise CoreError(
+                    f"{w}: {fld} = {getattr(s, fld)} applies only to "
+                    f"{SEGMENT_FIELDS[fld].applies.replace('_', ' ')} segments"
+                )
     thermal = core.thermal_indices
     if thermal:
         if thermal != list(range(thermal[0], thermal[-1] + 1)):
@@ -306,7 +314,7 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, tube, segment, fit")
     fit = data.get("fit", {})
     if not isinstance(fit, dict) or set(fit) - {"pinned"}:
-        raise CoreError(f"{source}: [fit] takes only pinned = [\"SEGMENT.FIELD\", ...], got {fit!r}")
+        raise CoreError(f'{source}: [fit] takes only pinned = ["SEGMENT.FIELD", ...], got {fit!r}')
     pinned = fit.get("pinned", [])
     if not isinstance(pinned, list) or not all(isinstance(n, str) for n in pinned):
         raise CoreError(f"{source}: [fit] pinned must be a list of parameter names, got {pinned!r}")
@@ -347,8 +355,10 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             raise CoreError(f"{source}: [fit] pinned: {e.args[0]}") from None
     unused = sorted(set(priors) - set(core.parameter_names()))
     if unused:
-        raise CoreError(f"{source}: a prior is declared for {', '.join(unused)}, which the segment does not use "
-                        f"as a parameter (Core.parameter_names); write a plain value")
+        raise CoreError(
+            f"{source}: a prior is declared for {', '.join(unused)}, which the segment does not use "
+            f"as a parameter (Core.parameter_names); write a plain value"
+        )
     return core
 
 
@@ -364,8 +374,7 @@ def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dic
         if not isinstance(entry, dict):
             continue
         if key not in numeric:
-            raise CoreError(f"{where}: {key} takes a plain value; only numeric fields take "
-                            f"{{value = ..., sd = ...}}")
+            raise CoreError(f"{where}: {key} takes a plain value; only numeric fields take {{value = ..., sd = ...}}")
         spec = field_spec(f"{owner}.{key}" if owner in ("gas", "tube") else key)
         out[key], priors[f"{owner}.{key}"] = declared_prior(entry, spec, f"{where}: {key}")
     return out
@@ -399,8 +408,9 @@ def read_toml(path: str | Path, folder: str) -> tuple[Path, dict]:
 
 def bundled(folder: str) -> list[str]:
     """Names of the TOML files shipped in ``tawarp/data/FOLDER``."""
-    return sorted(f.name[:-5] for f in (resources.files("tawarp") / "data" / folder).iterdir()
-                  if f.name.endswith(".toml"))
+    return sorted(
+        f.name[:-5] for f in (resources.files("tawarp") / "data" / folder).iterdir() if f.name.endswith(".toml")
+    )
 
 
 def bundled_cores() -> list[str]:

@@ -68,7 +68,10 @@ class Param:
     def bounds_x(self) -> tuple[float, float]:
         lo, hi = self.lower, self.upper
         if self.log:
-            return (math.log(lo / self.start) if lo > 0 else -np.inf, math.log(hi / self.start) if math.isfinite(hi) else np.inf)
+            return (
+                math.log(lo / self.start) if lo > 0 else -np.inf,
+                math.log(hi / self.start) if math.isfinite(hi) else np.inf,
+            )
         return ((lo - self.start) / self.scale, (hi - self.start) / self.scale)
 
     def with_start(self, v: float) -> "Param":
@@ -119,8 +122,9 @@ class Effect:
         return out
 
 
-def with_ambient_exchangers(core: Core, length: float = 1e-3, porosity: float = 0.8, pore_radius: float = 1e-3,
-                            tortuosity: float = 1.0) -> Core:
+def with_ambient_exchangers(
+    core: Core, length: float = 1e-3, porosity: float = 0.8, pore_radius: float = 1e-3, tortuosity: float = 1.0
+) -> Core:
     """``core`` with two ambient heat exchangers: non-thermal porous segments
     ``ambient_hx_left`` (after the first segment, a duct) and ``ambient_hx_right`` (before
     the last), each of ``length`` [m] taken from that duct so that the planes do not move."""
@@ -174,23 +178,39 @@ def plane_offsets_effect(core: Core) -> Effect:
     """Both end ducts' lengths free: the measurement planes off by millimetres (typical: 2 mm
     further out on each side)."""
     a, b = core.segments[0], core.segments[-1]
-    return Effect("plane_offsets", "measurement planes off by millimetres (end duct lengths)",
-                  (Param(f"{a.name}.length", (f"{a.name}.length",), a.length, 1e-3, 1e-4, 10.0),
-                   Param(f"{b.name}.length", (f"{b.name}.length",), b.length, 1e-3, 1e-4, 10.0)),
-                  typical={f"{a.name}.length": a.length + 2e-3, f"{b.name}.length": b.length + 2e-3})
+    return Effect(
+        "plane_offsets",
+        "measurement planes off by millimetres (end duct lengths)",
+        (
+            Param(f"{a.name}.length", (f"{a.name}.length",), a.length, 1e-3, 1e-4, 10.0),
+            Param(f"{b.name}.length", (f"{b.name}.length",), b.length, 1e-3, 1e-4, 10.0),
+        ),
+        typical={f"{a.name}.length": a.length + 2e-3, f"{b.name}.length": b.length + 2e-3},
+    )
 
 
-def ambient_effects(core: Core, T_bounds: tuple[float, float] | None = None,
-                    p_bounds: tuple[float, float] | None = None) -> list[Effect]:
+def ambient_effects(
+    core: Core, T_bounds: tuple[float, float] | None = None, p_bounds: tuple[float, float] | None = None
+) -> list[Effect]:
     """T_cold and p_mean not as assumed (typical: +5 K, -2 %); bounds default to the fields
     table's fit range."""
     T0, p0 = core.gas.T_cold, core.gas.p_mean
     Tlo, Thi = T_bounds or field_spec("gas.T_cold").fit_range
     plo, phi = p_bounds or field_spec("gas.p_mean").fit_range
-    return [Effect("T_cold", "cold-end (room) temperature not as assumed",
-                   (Param("gas.T_cold", ("gas.T_cold",), T0, 1.0, Tlo, Thi),), typical={"gas.T_cold": T0 + 5.0}),
-            Effect("p_mean", "static pressure not as assumed",
-                   (Param("gas.p_mean", ("gas.p_mean",), p0, 1e3, plo, phi),), typical={"gas.p_mean": 0.98 * p0})]
+    return [
+        Effect(
+            "T_cold",
+            "cold-end (room) temperature not as assumed",
+            (Param("gas.T_cold", ("gas.T_cold",), T0, 1.0, Tlo, Thi),),
+            typical={"gas.T_cold": T0 + 5.0},
+        ),
+        Effect(
+            "p_mean",
+            "static pressure not as assumed",
+            (Param("gas.p_mean", ("gas.p_mean",), p0, 1e3, plo, phi),),
+            typical={"gas.p_mean": 0.98 * p0},
+        ),
+    ]
 
 
 def calibration_effect() -> Effect:
@@ -202,24 +222,44 @@ def calibration_effect() -> Effect:
     ``g T``: all four coefficients (:func:`tawarp.measure.files.scattering_to_transfer`:
     T = M W M^-1 with the wave transfer W scaled by g). Off at gain 1, phase 0; typical
     1.02 at 2 degrees."""
-    return Effect("calibration", "downstream/upstream microphone calibration off by a constant gain and phase "
-                                 "(measured T = g T)",
-                  (Param(CALIBRATION_GAIN, (CALIBRATION_GAIN,), 1.0, 0.01, 0.5, 2.0),
-                   Param(CALIBRATION_PHASE, (CALIBRATION_PHASE,), 0.0, 0.01, -0.5, 0.5)),
-                  typical={CALIBRATION_GAIN: 1.02, CALIBRATION_PHASE: math.radians(2.0)})
+    return Effect(
+        "calibration",
+        "downstream/upstream microphone calibration off by a constant gain and phase (measured T = g T)",
+        (
+            Param(CALIBRATION_GAIN, (CALIBRATION_GAIN,), 1.0, 0.01, 0.5, 2.0),
+            Param(CALIBRATION_PHASE, (CALIBRATION_PHASE,), 0.0, 0.01, -0.5, 0.5),
+        ),
+        typical={CALIBRATION_GAIN: 1.02, CALIBRATION_PHASE: math.radians(2.0)},
+    )
 
 
 def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
     """Effects of the porous segments ``names`` (all together): a separate thermal length
     (typical Lambda'/Lambda = 1.8), a viscous shape factor (typical 1.5), a limp frame
     (typical frame bulk density 30 kg/m^3)."""
-    out = [_field_effect("thermal_radius_ratio", "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
-                         [f"{n}.thermal_radius_ratio" for n in names], 1.8),
-           _field_effect("viscous_shape_factor", "viscous length Lambda = r/s apart from the resistivity radius r "
-                                                  "(shape factor)", [f"{n}.viscous_shape_factor" for n in names], 1.5)]
+    out = [
+        _field_effect(
+            "thermal_radius_ratio",
+            "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
+            [f"{n}.thermal_radius_ratio" for n in names],
+            1.8,
+        ),
+        _field_effect(
+            "viscous_shape_factor",
+            "viscous length Lambda = r/s apart from the resistivity radius r (shape factor)",
+            [f"{n}.viscous_shape_factor" for n in names],
+            1.5,
+        ),
+    ]
     if frame:
-        out.append(_field_effect("limp_frame", "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk "
-                                               "density)", [f"{n}.frame_mobility" for n in names], 1.0 / 30.0))
+        out.append(
+            _field_effect(
+                "limp_frame",
+                "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk density)",
+                [f"{n}.frame_mobility" for n in names],
+                1.0 / 30.0,
+            )
+        )
     return out
 
 
@@ -239,16 +279,34 @@ def tmatrix_library(core: Core) -> list[Effect]:
     lib = [plane_offsets_effect(core)] if ducts else []
     T0, p0 = core.gas.T_cold, core.gas.p_mean
     # a passive sample is measured at room conditions, known to +-15 K and +-5 % (as a layer's)
-    lib += (ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0)))
+    lib += ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0))
     lib.append(calibration_effect())
     if stack:
-        lib.append(_field_effect("thermal_radius_ratio", "separate thermal and viscous pore radii in the stack "
-                                                          "(Lambda'/Lambda)", [f"{stack}.thermal_radius_ratio"], 1.8))
+        lib.append(
+            _field_effect(
+                "thermal_radius_ratio",
+                "separate thermal and viscous pore radii in the stack (Lambda'/Lambda)",
+                [f"{stack}.thermal_radius_ratio"],
+                1.8,
+            )
+        )
         # stainless steel: 14.9 W/(m K) at 300 K, 19 at 600 K: b = ln(19/14.9)/ln 2 = 0.35
-        lib.append(_field_effect("conductivity_T", "temperature-dependent stack conductivity lam (T/T_cold)^b",
-                                 [f"{stack}.conductivity_exponent"], 0.35))
-        lib.append(_field_effect("radiation", "radiative conductivity in the porous stack (prop. T^3)",
-                                 [f"{stack}.radiative_conductivity"], TYPICAL_RADIATIVE_CONDUCTIVITY))
+        lib.append(
+            _field_effect(
+                "conductivity_T",
+                "temperature-dependent stack conductivity lam (T/T_cold)^b",
+                [f"{stack}.conductivity_exponent"],
+                0.35,
+            )
+        )
+        lib.append(
+            _field_effect(
+                "radiation",
+                "radiative conductivity in the porous stack (prop. T^3)",
+                [f"{stack}.radiative_conductivity"],
+                TYPICAL_RADIATIVE_CONDUCTIVITY,
+            )
+        )
     else:
         porous = [s.name for s in segs if s.is_porous]
         if porous:
@@ -256,21 +314,40 @@ def tmatrix_library(core: Core) -> list[Effect]:
         if len(porous) == 1:
             lib.append(two_port_frame_effect(porous[0]))
     if buffer:
-        lib.append(_field_effect("convection", "natural convection in the buffer tube, h = h_a + h_c theta^(1/4)",
-                                 [f"{buffer}.h_convection"], CONVECTION_COEFFICIENT * (2 * core.radius) ** -0.25))
+        lib.append(
+            _field_effect(
+                "convection",
+                "natural convection in the buffer tube, h = h_a + h_c theta^(1/4)",
+                [f"{buffer}.h_convection"],
+                CONVECTION_COEFFICIENT * (2 * core.radius) ** -0.25,
+            )
+        )
     if thermal:
         R = core.radius
         wall = WALL_CONDUCTIVITY * ((R + WALL_THICKNESS) ** 2 - R * R) / (R * R)
-        lib.append(_field_effect("wall_conduction", "axial heat conduction in the tube wall (all thermal parts)",
-                                 [f"{s.name}.wall_conductance" for s in thermal], wall, label="wall_conductance"))
+        lib.append(
+            _field_effect(
+                "wall_conduction",
+                "axial heat conduction in the tube wall (all thermal parts)",
+                [f"{s.name}.wall_conductance" for s in thermal],
+                wall,
+                label="wall_conductance",
+            )
+        )
     if ducts and stack and min(segs[0].length, segs[-1].length) > AMBIENT_HX_MIN_DUCT:
         lib.append(ambient_exchanger_effect(core))
     if stack:
-        ends = dict.fromkeys((thermal[0].name, thermal[-1].name))   # the heat model's two ends
-        lib.append(_field_effect("ambient_exchanger_thermal", "ambient exchangers drawing heat H theta at both ends "
-                                                               "of the heat model toward T_cold (H = 0: adiabatic)",
-                                 [f"{n}.end_conductance" for n in ends], TYPICAL_END_CONDUCTANCE,
-                                 label="ambient_hx.end_conductance"))
+        ends = dict.fromkeys((thermal[0].name, thermal[-1].name))  # the heat model's two ends
+        lib.append(
+            _field_effect(
+                "ambient_exchanger_thermal",
+                "ambient exchangers drawing heat H theta at both ends "
+                "of the heat model toward T_cold (H = 0: adiabatic)",
+                [f"{n}.end_conductance" for n in ends],
+                TYPICAL_END_CONDUCTANCE,
+                label="ambient_hx.end_conductance",
+            )
+        )
     return lib
 
 
@@ -292,26 +369,62 @@ def ambient_exchanger_effect(core: Core) -> Effect:
     La, Lb = a.length, b.length
 
     def lengths(v):
-        return {"ambient_hx_left.length": v, "ambient_hx_right.length": v,
-                f"{a.name}.length": La - v, f"{b.name}.length": Lb - v}
+        return {
+            "ambient_hx_left.length": v,
+            "ambient_hx_right.length": v,
+            f"{a.name}.length": La - v,
+            f"{b.name}.length": Lb - v,
+        }
 
     upper = min(La, Lb) - 1e-4
-    return Effect("ambient_exchangers",
-                  "acoustics of the two ambient heat exchangers (length, porosity, pore radius free; off at length 0)",
-                  (Param("ambient_hx.length", ("ambient_hx_left.length", "ambient_hx_right.length", f"{a.name}.length",
-                                               f"{b.name}.length"), 0.0, 1e-3, 0.0, upper, expand=lengths),
-                   Param("ambient_hx.porosity", ("ambient_hx_left.porosity", "ambient_hx_right.porosity"),
-                         AMBIENT_HX["porosity"], 0.5, 0.05, 1.0),
-                   Param("ambient_hx.pore_radius", ("ambient_hx_left.pore_radius", "ambient_hx_right.pore_radius"),
-                         AMBIENT_HX["pore_radius"], 1.0, 1e-5, core.radius, log=True)),
-                  transform=lambda c: with_ambient_exchangers(c, AMBIENT_HX_MIN_DUCT / 2, AMBIENT_HX["porosity"],
-                                                              AMBIENT_HX["pore_radius"]),
-                  typical={"ambient_hx.length": AMBIENT_HX["length"], "ambient_hx.porosity": AMBIENT_HX["porosity"],
-                           "ambient_hx.pore_radius": AMBIENT_HX["pore_radius"]})
+    return Effect(
+        "ambient_exchangers",
+        "acoustics of the two ambient heat exchangers (length, porosity, pore radius free; off at length 0)",
+        (
+            Param(
+                "ambient_hx.length",
+                ("ambient_hx_left.length", "ambient_hx_right.length", f"{a.name}.length", f"{b.name}.length"),
+                0.0,
+                1e-3,
+                0.0,
+                upper,
+                expand=lengths,
+            ),
+            Param(
+                "ambient_hx.porosity",
+                ("ambient_hx_left.porosity", "ambient_hx_right.porosity"),
+                AMBIENT_HX["porosity"],
+                0.5,
+                0.05,
+                1.0,
+            ),
+            Param(
+                "ambient_hx.pore_radius",
+                ("ambient_hx_left.pore_radius", "ambient_hx_right.pore_radius"),
+                AMBIENT_HX["pore_radius"],
+                1.0,
+                1e-5,
+                core.radius,
+                log=True,
+            ),
+        ),
+        transform=lambda c: with_ambient_exchangers(
+            c, AMBIENT_HX_MIN_DUCT / 2, AMBIENT_HX["porosity"], AMBIENT_HX["pore_radius"]
+        ),
+        typical={
+            "ambient_hx.length": AMBIENT_HX["length"],
+            "ambient_hx.porosity": AMBIENT_HX["porosity"],
+            "ambient_hx.pore_radius": AMBIENT_HX["pore_radius"],
+        },
+    )
 
 
 #: Names of the elastic-frame effect of a layer (host-side fields, :data:`tawarp.model.fields.HOST_FIELD_TABLE`).
-FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY = "layer.frame_compliance", "layer.frame_loss_factor", "layer.frame_density"
+FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY = (
+    "layer.frame_compliance",
+    "layer.frame_loss_factor",
+    "layer.frame_density",
+)
 #: Typical foam frame: E = 2e5 Pa, loss factor 0.1, bulk density 30 kg/m^3.
 TYPICAL_FRAME = {"E": 2e5, "eta": 0.1, "rho_1": 30.0}
 
@@ -325,16 +438,25 @@ def elastic_frame_effect() -> Effect:
     c = field_spec(FRAME_COMPLIANCE)
     e = field_spec(FRAME_LOSS_FACTOR)
     d = field_spec(FRAME_DENSITY)
-    return Effect("elastic_frame", "elastic frame (Biot-Allard): frame resonance; compliance 1/E, loss factor, "
-                                   "frame density",
-                  (Param(FRAME_COMPLIANCE, (FRAME_COMPLIANCE,), c.neutral, c.scale, *c.fit_range),
-                   Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], e.scale, *e.fit_range),
-                   Param(FRAME_DENSITY, (FRAME_DENSITY,), TYPICAL_FRAME["rho_1"], 1.0, *d.fit_range, log=True)),
-                  typical={FRAME_COMPLIANCE: 1.0 / TYPICAL_FRAME["E"], FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
-                           FRAME_DENSITY: TYPICAL_FRAME["rho_1"]},
-                  # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
-                  starts=tuple({FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
-                                FRAME_DENSITY: TYPICAL_FRAME["rho_1"]} for E in (1e4, 1e5, 1e6, 1e7)))
+    return Effect(
+        "elastic_frame",
+        "elastic frame (Biot-Allard): frame resonance; compliance 1/E, loss factor, frame density",
+        (
+            Param(FRAME_COMPLIANCE, (FRAME_COMPLIANCE,), c.neutral, c.scale, *c.fit_range),
+            Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], e.scale, *e.fit_range),
+            Param(FRAME_DENSITY, (FRAME_DENSITY,), TYPICAL_FRAME["rho_1"], 1.0, *d.fit_range, log=True),
+        ),
+        typical={
+            FRAME_COMPLIANCE: 1.0 / TYPICAL_FRAME["E"],
+            FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
+            FRAME_DENSITY: TYPICAL_FRAME["rho_1"],
+        },
+        # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
+        starts=tuple(
+            {FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"], FRAME_DENSITY: TYPICAL_FRAME["rho_1"]}
+            for E in (1e4, 1e5, 1e6, 1e7)
+        ),
+    )
 
 
 def two_port_frame_effect(sample: str) -> Effect:
@@ -350,12 +472,17 @@ def two_port_frame_effect(sample: str) -> Effect:
     m, E, eta = (f"{sample}.{f}" for f in ("frame_mobility", "frame_modulus", "frame_loss_factor"))
     fm, fE, fe = field_spec(m), field_spec(E), field_spec(eta)
     typical = {m: 1.0 / TYPICAL_FRAME["rho_1"], E: TYPICAL_FRAME["E"], eta: TYPICAL_FRAME["eta"]}
-    return Effect("elastic_frame", "elastic frame (Biot-Allard, frame sliding at the wall): 1/frame density, "
-                                   "Young's modulus, loss factor",
-                  (Param(m, (m,), fm.neutral, fm.scale, *fm.fit_range),
-                   Param(E, (E,), 0.0, fE.scale, *fE.fit_range),
-                   Param(eta, (eta,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range)),
-                  typical=typical, starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)))
+    return Effect(
+        "elastic_frame",
+        "elastic frame (Biot-Allard, frame sliding at the wall): 1/frame density, Young's modulus, loss factor",
+        (
+            Param(m, (m,), fm.neutral, fm.scale, *fm.fit_range),
+            Param(E, (E,), 0.0, fE.scale, *fE.fit_range),
+            Param(eta, (eta,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range),
+        ),
+        typical=typical,
+        starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)),
+    )
 
 
 def impedance_library(core: Core) -> list[Effect]:
@@ -364,11 +491,19 @@ def impedance_library(core: Core) -> list[Effect]:
     within what a room's are known to (+-15 K, +-5 %)."""
     off = field_spec("layer.length_offset")
     T0, p0 = core.gas.T_cold, core.gas.p_mean
-    return (porous_layer_effects(["layer"]) + [elastic_frame_effect()]
-            + [Effect("thickness_offset", "layer thicknesses off by a common offset (measurement plane)",
-                      (Param("layer.length_offset", ("layer.length_offset",), off.neutral, off.scale, *off.fit_range),),
-                      typical={"layer.length_offset": 5e-4})]
-            + ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0)))
+    return (
+        porous_layer_effects(["layer"])
+        + [elastic_frame_effect()]
+        + [
+            Effect(
+                "thickness_offset",
+                "layer thicknesses off by a common offset (measurement plane)",
+                (Param("layer.length_offset", ("layer.length_offset",), off.neutral, off.scale, *off.fit_range),),
+                typical={"layer.length_offset": 5e-4},
+            )
+        ]
+        + ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0))
+    )
 
 
 def library_for_core(core: Core, kind_name: str) -> list[Effect]:

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from ..kernels import layout
 
-if TYPE_CHECKING:   # numpy is imported where an array is made
+if TYPE_CHECKING:  # numpy is imported where an array is made
     import numpy as np
 
 #: Which segments take a field: every segment, porous ones, thermal ones, thermal porous ones.
@@ -62,8 +62,12 @@ class Field:
 
     def check(self, value: float) -> bool:
         """True when ``value`` lies in the physical range."""
-        return not (value < self.lower or (self.lower_open and value == self.lower) or value > self.upper
-                    or (self.upper_open and value == self.upper))
+        return not (
+            value < self.lower
+            or (self.lower_open and value == self.lower)
+            or value > self.upper
+            or (self.upper_open and value == self.upper)
+        )
 
     def check_array(self, values) -> "np.ndarray":
         """Element-wise :meth:`check` of an array (non-finite values fail)."""
@@ -85,48 +89,206 @@ class Field:
 _INF = math.inf
 #: Segment fields in the order they are listed as parameters (``Core.parameter_names``).
 SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
-    Field("length", layout.LENGTH, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0),
-          description="segment length"),
-    Field("porosity", layout.POROSITY, "-", 0.0, 1.0, True, "porous", log=False, scale=0.5,
-          fit_range=(1e-2, 1.0), prior=(0.3, 0.99), description="open fraction of the cross-section"),
-    Field("pore_radius", layout.PORE_RADIUS, "m", 0.0, _INF, True, "porous", fit_range=(1e-7, 0.1),
-          prior=(1e-5, 2e-3), description="pore radius (plates: half the spacing)"),
-    Field("tortuosity", layout.TORTUOSITY, "-", 1.0, _INF, False, "porous", log=False, scale=1.0,
-          fit_range=(1.0, 10.0), prior=(1.0, 2.0), description="q, with q^2 = alpha_inf"),
-    Field("solid_conductivity", layout.SOLID_CONDUCTIVITY, "W/(m K)", 0.0, _INF, False, "porous",
-          fit_range=(1e-4, 1e4), prior=(0.3, 50.0), description="conductivity of the solid matrix"),
-    Field("h", layout.H, "W/(m^2 K)", 0.0, _INF, False, "thermal", fit_range=(1e-4, 1e5), prior=(0.05, 500.0),
-          description="lateral heat exchange with the wall"),
-    Field("thermal_radius_ratio", layout.THERMAL_RADIUS_RATIO, "-", 0.0, _INF, True, "porous", neutral=1.0,
-          log=False, scale=0.2, fit_range=(0.1, 10.0), description="Lambda'/Lambda: f_k uses ratio * pore_radius"),
-    Field("frame_mobility", layout.FRAME_MOBILITY, "m^3/kg", 0.0, _INF, False, "porous", neutral=0.0, log=False,
-          scale=0.01, fit_range=(0.0, 10.0), description="1/(frame bulk density): > 0 makes the frame limp"),
-    Field("viscous_shape_factor", layout.VISCOUS_SHAPE_FACTOR, "-", 0.0, _INF, True, "porous", neutral=1.0,
-          log=False, scale=0.2, fit_range=(0.2, 5.0), description="s = r/Lambda (circular pores: 1)"),
-    Field("conductivity_exponent", layout.CONDUCTIVITY_EXPONENT, "-", -10.0, 10.0, False, "thermal", neutral=0.0,
-          nonlinear=True, log=False, scale=0.5, fit_range=(-3.0, 3.0),
-          description="b in lam (T/T_cold)^b (heat model)"),
-    Field("radiative_conductivity", layout.RADIATIVE_CONDUCTIVITY, "W/(m K)", 0.0, _INF, False, "thermal_porous",
-          neutral=0.0, nonlinear=True, log=False, scale=0.1, fit_range=(0.0, 100.0),
-          description="Rosseland conductivity at T_cold, added as c (T/T_cold)^3"),
-    Field("h_convection", layout.H_CONVECTION, "W/(m^2 K^1.25)", 0.0, _INF, False, "thermal", neutral=0.0,
-          nonlinear=True, log=False, scale=1.0, fit_range=(0.0, 1e3),
-          description="natural convection: h_eff = h + h_conv theta^(1/4)"),
-    Field("wall_conductance", layout.WALL_CONDUCTANCE, "W/(m K)", 0.0, _INF, False, "thermal", neutral=0.0,
-          log=False, scale=0.1, fit_range=(0.0, 1e3), description="axial conduction of the tube wall, lam_wall A_wall/S"),
-    Field("end_conductance", layout.END_CONDUCTANCE, "W/(m^2 K)", 0.0, _INF, False, "thermal", neutral=0.0,
-          log=False, scale=100.0, fit_range=(0.0, 1e5),
-          description="heat flux H theta per section area drawn to T_cold at the heat model's end that lies in this "
-                      "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)"),
+    Field("length", layout.LENGTH, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0), description="segment length"),
+    Field(
+        "porosity",
+        layout.POROSITY,
+        "-",
+        0.0,
+        1.0,
+        True,
+        "porous",
+        log=False,
+        scale=0.5,
+        fit_range=(1e-2, 1.0),
+        prior=(0.3, 0.99),
+        description="open fraction of the cross-section",
+    ),
+    Field(
+        "pore_radius",
+        layout.PORE_RADIUS,
+        "m",
+        0.0,
+        _INF,
+        True,
+        "porous",
+        fit_range=(1e-7, 0.1),
+        prior=(1e-5, 2e-3),
+        description="pore radius (plates: half the spacing)",
+    ),
+    Field(
+        "tortuosity",
+        layout.TORTUOSITY,
+        "-",
+        1.0,
+        _INF,
+        False,
+        "porous",
+        log=False,
+        scale=1.0,
+        fit_range=(1.0, 10.0),
+        prior=(1.0, 2.0),
+        description="q, with q^2 = alpha_inf",
+    ),
+    Field(
+        "solid_conductivity",
+        layout.SOLID_CONDUCTIVITY,
+        "W/(m K)",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        fit_range=(1e-4, 1e4),
+        prior=(0.3, 50.0),
+        description="conductivity of the solid matrix",
+    ),
+    Field(
+        "h",
+        layout.H,
+        "W/(m^2 K)",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        fit_range=(1e-4, 1e5),
+        prior=(0.05, 500.0),
+        description="lateral heat exchange with the wall",
+    ),
+    Field(
+        "thermal_radius_ratio",
+        layout.THERMAL_RADIUS_RATIO,
+        "-",
+        0.0,
+        _INF,
+        True,
+        "porous",
+        neutral=1.0,
+        log=False,
+        scale=0.2,
+        fit_range=(0.1, 10.0),
+        description="Lambda'/Lambda: f_k uses ratio * pore_radius",
+    ),
+    Field(
+        "frame_mobility",
+        layout.FRAME_MOBILITY,
+        "m^3/kg",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=0.01,
+        fit_range=(0.0, 10.0),
+        description="1/(frame bulk density): > 0 makes the frame limp",
+    ),
+    Field(
+        "viscous_shape_factor",
+        layout.VISCOUS_SHAPE_FACTOR,
+        "-",
+        0.0,
+        _INF,
+        True,
+        "porous",
+        neutral=1.0,
+        log=False,
+        scale=0.2,
+        fit_range=(0.2, 5.0),
+        description="s = r/Lambda (circular pores: 1)",
+    ),
+    Field(
+        "conductivity_exponent",
+        layout.CONDUCTIVITY_EXPONENT,
+        "-",
+        -10.0,
+        10.0,
+        False,
+        "thermal",
+        neutral=0.0,
+        nonlinear=True,
+        log=False,
+        scale=0.5,
+        fit_range=(-3.0, 3.0),
+        description="b in lam (T/T_cold)^b (heat model)",
+    ),
+    Field(
+        "radiative_conductivity",
+        layout.RADIATIVE_CONDUCTIVITY,
+        "W/(m K)",
+        0.0,
+        _INF,
+        False,
+        "thermal_porous",
+        neutral=0.0,
+        nonlinear=True,
+        log=False,
+        scale=0.1,
+        fit_range=(0.0, 100.0),
+        description="Rosseland conductivity at T_cold, added as c (T/T_cold)^3",
+    ),
+    Field(
+        "h_convection",
+        layout.H_CONVECTION,
+        "W/(m^2 K^1.25)",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        nonlinear=True,
+        log=False,
+        scale=1.0,
+        fit_range=(0.0, 1e3),
+        description="natural convection: h_eff = h + h_conv theta^(1/4)",
+    ),
+    Field(
+        "wall_conductance",
+        layout.WALL_CONDUCTANCE,
+        "W/(m K)",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        log=False,
+        scale=0.1,
+        fit_range=(0.0, 1e3),
+        description="axial conduction of the tube wall, lam_wall A_wall/S",
+    ),
+    Field(
+        "end_conductance",
+        layout.END_CONDUCTANCE,
+        "W/(m^2 K)",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        log=False,
+        scale=100.0,
+        fit_range=(0.0, 1e5),
+        description="heat flux H theta per section area drawn to T_cold at the heat model's end that lies in this "
+        "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)",
+    ),
 )
 #: Core-wide fields, addressed ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELD_TABLE: dict[str, Field] = {
-    "gas.T_cold": Field("T_cold", layout.T_COLD, "K", 0.0, _INF, True, fit_range=(150.0, 500.0),
-                        description="cold-end (ambient) temperature"),
-    "gas.p_mean": Field("p_mean", layout.P_MEAN, "Pa", 0.0, _INF, True, fit_range=(1e3, 1e8),
-                        description="mean pressure"),
-    "tube.radius": Field("radius", layout.RADIUS, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0),
-                         description="tube radius"),
+    "gas.T_cold": Field(
+        "T_cold",
+        layout.T_COLD,
+        "K",
+        0.0,
+        _INF,
+        True,
+        fit_range=(150.0, 500.0),
+        description="cold-end (ambient) temperature",
+    ),
+    "gas.p_mean": Field(
+        "p_mean", layout.P_MEAN, "Pa", 0.0, _INF, True, fit_range=(1e3, 1e8), description="mean pressure"
+    ),
+    "tube.radius": Field(
+        "radius", layout.RADIUS, "m", 0.0, _INF, True, fit_range=(1e-4, 10.0), description="tube radius"
+    ),
 }
 
 #: Fields the kernels do not read (``row`` -1): effects a measurement kind applies on the
@@ -134,24 +296,111 @@ GLOBAL_FIELD_TABLE: dict[str, Field] = {
 #: thickness offset of :mod:`tawarp.measure.impedance`) or by their full name (the 2-port
 #: calibration of :mod:`tawarp.measure.tmatrix`).
 HOST_FIELD_TABLE: dict[str, Field] = {
-    "frame_compliance": Field("frame_compliance", -1, "1/Pa", 0.0, _INF, False, "porous", neutral=0.0, log=False,
-                              scale=1e-6, fit_range=(0.0, 1e-3),
-                              description="1/E of the elastic frame (Biot): 0 is a rigid frame"),
-    "frame_modulus": Field("frame_modulus", -1, "Pa", 0.0, _INF, False, "porous", log=False, scale=1e5,
-                           fit_range=(0.0, 1e8), description="Young's modulus E of the elastic frame (real part of "
-                                                             "E (1 - i eta)); 0: a limp frame"),
-    "frame_loss_factor": Field("frame_loss_factor", -1, "-", 0.0, _INF, False, "porous", log=False, scale=0.05,
-                               fit_range=(0.0, 1.0), description="eta of the frame modulus E (1 - i eta)"),
-    "frame_density": Field("frame_density", -1, "kg/m^3", 0.0, _INF, True, "porous", fit_range=(1.0, 1e3),
-                           description="frame bulk density rho_1 (frame mass per layer volume)"),
-    "poisson_ratio": Field("poisson_ratio", -1, "-", -1.0, 0.5, True, "porous", log=False, scale=0.1,
-                           fit_range=(0.0, 0.49), upper_open=True, description="Poisson ratio nu of the frame"),
-    "length_offset": Field("length_offset", -1, "m", -_INF, _INF, False, "porous", neutral=0.0, log=False,
-                           scale=1e-3, fit_range=(-0.01, 0.01), description="offset added to every layer thickness"),
-    "calibration.gain": Field("gain", -1, "-", 0.0, _INF, True, neutral=1.0, log=False, scale=0.01,
-                              fit_range=(0.5, 2.0), description="|g| of the 2-port calibration gain g (measured T = g T)"),
-    "calibration.phase": Field("phase", -1, "rad", -math.pi, math.pi, False, neutral=0.0, log=False, scale=0.01,
-                               fit_range=(-0.5, 0.5), description="arg g of the 2-port calibration gain"),
+    "frame_compliance": Field(
+        "frame_compliance",
+        -1,
+        "1/Pa",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=1e-6,
+        fit_range=(0.0, 1e-3),
+        description="1/E of the elastic frame (Biot): 0 is a rigid frame",
+    ),
+    "frame_modulus": Field(
+        "frame_modulus",
+        -1,
+        "Pa",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        log=False,
+        scale=1e5,
+        fit_range=(0.0, 1e8),
+        description="Young's modulus E of the elastic frame (real part of E (1 - i eta)); 0: a limp frame",
+    ),
+    "frame_loss_factor": Field(
+        "frame_loss_factor",
+        -1,
+        "-",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        log=False,
+        scale=0.05,
+        fit_range=(0.0, 1.0),
+        description="eta of the frame modulus E (1 - i eta)",
+    ),
+    "frame_density": Field(
+        "frame_density",
+        -1,
+        "kg/m^3",
+        0.0,
+        _INF,
+        True,
+        "porous",
+        fit_range=(1.0, 1e3),
+        description="frame bulk density rho_1 (frame mass per layer volume)",
+    ),
+    "poisson_ratio": Field(
+        "poisson_ratio",
+        -1,
+        "-",
+        -1.0,
+        0.5,
+        True,
+        "porous",
+        log=False,
+        scale=0.1,
+        fit_range=(0.0, 0.49),
+        upper_open=True,
+        description="Poisson ratio nu of the frame",
+    ),
+    "length_offset": Field(
+        "length_offset",
+        -1,
+        "m",
+        -_INF,
+        _INF,
+        False,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=1e-3,
+        fit_range=(-0.01, 0.01),
+        description="offset added to every layer thickness",
+    ),
+    "calibration.gain": Field(
+        "gain",
+        -1,
+        "-",
+        0.0,
+        _INF,
+        True,
+        neutral=1.0,
+        log=False,
+        scale=0.01,
+        fit_range=(0.5, 2.0),
+        description="|g| of the 2-port calibration gain g (measured T = g T)",
+    ),
+    "calibration.phase": Field(
+        "phase",
+        -1,
+        "rad",
+        -math.pi,
+        math.pi,
+        False,
+        neutral=0.0,
+        log=False,
+        scale=0.01,
+        fit_range=(-0.5, 0.5),
+        description="arg g of the 2-port calibration gain",
+    ),
 }
 
 #: Trusted range (lowest, highest) of each kernel field, inside its physical range: the
@@ -160,11 +409,22 @@ HOST_FIELD_TABLE: dict[str, Field] = {
 #: refused before any kernel launch (:func:`tawarp.model.core.check_values`);
 #: docs/trusted_ranges.md gives the reasons.
 TRUSTED_RANGE: dict[str, tuple[float, float]] = {
-    "T_cold": (1.0, 1e4), "p_mean": (1.0, 1e9), "radius": (1e-6, 10.0),
-    "length": (1e-9, 100.0), "porosity": (1e-12, 1.0), "pore_radius": (1e-9, 10.0), "tortuosity": (1.0, 1e3),
-    "solid_conductivity": (0.0, 1e5), "h": (0.0, 1e7), "thermal_radius_ratio": (1e-6, 1e6),
-    "frame_mobility": (0.0, 1e6), "viscous_shape_factor": (1e-3, 1e3), "conductivity_exponent": (-10.0, 10.0),
-    "radiative_conductivity": (0.0, 1e4), "h_convection": (0.0, 1e5), "wall_conductance": (0.0, 1e4),
+    "T_cold": (1.0, 1e4),
+    "p_mean": (1.0, 1e9),
+    "radius": (1e-6, 10.0),
+    "length": (1e-9, 100.0),
+    "porosity": (1e-12, 1.0),
+    "pore_radius": (1e-9, 10.0),
+    "tortuosity": (1.0, 1e3),
+    "solid_conductivity": (0.0, 1e5),
+    "h": (0.0, 1e7),
+    "thermal_radius_ratio": (1e-6, 1e6),
+    "frame_mobility": (0.0, 1e6),
+    "viscous_shape_factor": (1e-3, 1e3),
+    "conductivity_exponent": (-10.0, 10.0),
+    "radiative_conductivity": (0.0, 1e4),
+    "h_convection": (0.0, 1e5),
+    "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
 }
 
@@ -192,8 +452,10 @@ def field(name: str) -> Field:
     for f in GLOBAL_FIELD_TABLE.values():
         if f.name == fld:
             return f
-    raise KeyError(f"{name!r}: unknown field {fld!r}; segment fields are {tuple(SEGMENT_FIELDS)}, globals "
-                   f"{tuple(GLOBAL_FIELD_TABLE)}")
+    raise KeyError(
+        f"{name!r}: unknown field {fld!r}; segment fields are {tuple(SEGMENT_FIELDS)}, globals "
+        f"{tuple(GLOBAL_FIELD_TABLE)}"
+    )
 
 
 def takes(f: Field, porous: bool, thermal: bool) -> bool:

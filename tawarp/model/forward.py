@@ -29,8 +29,17 @@ from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
-from .validity import (MAX_CELLS, ModelValidityError, ValidityWarning, check_frequencies, check_heat_inputs,
-                       check_precision, check_results, check_sets, describe_set)
+from .validity import (
+    MAX_CELLS,
+    ModelValidityError,
+    ValidityWarning,
+    check_frequencies,
+    check_heat_inputs,
+    check_precision,
+    check_results,
+    check_sets,
+    describe_set,
+)
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
@@ -96,8 +105,9 @@ def parameter_row(core: Core, name: str) -> int:
     if name in GLOBAL_FIELD_TABLE:
         return GLOBAL_FIELD_TABLE[name].row
     if name not in core.parameter_names():
-        raise KeyError(f"{name!r} is not a parameter of core {core.source}; "
-                       f"parameters are {', '.join(core.parameter_names())}")
+        raise KeyError(
+            f"{name!r} is not a parameter of core {core.source}; parameters are {', '.join(core.parameter_names())}"
+        )
     seg, _, fld = name.partition(".")
     s = [x.name for x in core.segments].index(seg)
     return layout.N_GLOBAL + s * layout.N_FIELDS + SEGMENT_FIELDS[fld].row
@@ -119,8 +129,13 @@ def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
     from ..kernels.pore import PORE_MODELS
 
-    return np.array([[s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater]
-                     for s in core.segments], dtype=np.int32)
+    return np.array(
+        [
+            [s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater]
+            for s in core.segments
+        ],
+        dtype=np.int32,
+    )
 
 
 @dataclass
@@ -148,8 +163,9 @@ class ForwardResult:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
         engine = Engine(self.core, self.freqs, (), self.settings)
         dev = engine.device
-        return engine.temperature(wp.array(self.params, dtype=wp.float64, device=dev),
-                                  wp.array(self.theta, dtype=wp.float64, device=dev), x)
+        return engine.temperature(
+            wp.array(self.params, dtype=wp.float64, device=dev), wp.array(self.theta, dtype=wp.float64, device=dev), x
+        )
 
 
 @dataclass(frozen=True)
@@ -221,8 +237,10 @@ class ForwardSettings:
         else:
             counts = [self.cells] * len(core.segments)
         if any(not 1 <= int(c) <= MAX_CELLS for c in counts):
-            raise ValueError(f"Magnus cells must lie in [1, {MAX_CELLS}] per segment, got {self.cells} (a count "
-                             f"sized this large means an extreme h, length or frequency: docs/trusted_ranges.md)")
+            raise ValueError(
+                f"Magnus cells must lie in [1, {MAX_CELLS}] per segment, got {self.cells} (a count "
+                f"sized this large means an extreme h, length or frequency: docs/trusted_ranges.md)"
+            )
         return np.array(counts, dtype=np.int32)
 
 
@@ -305,9 +323,12 @@ class Engine:
         self.estimating = s.cells is None and s.tolerance is not None and self.count > 0
         # the error estimate's frequencies: the grid's lowest, geometric middle and highest
         f = self.freqs
-        self.sample = (np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
-                       if self.estimating else np.zeros(0, dtype=np.int64))
-        self.columns = self._columns(f, self.sample)                                   # evaluate
+        self.sample = (
+            np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
+            if self.estimating
+            else np.zeros(0, dtype=np.int64)
+        )
+        self.columns = self._columns(f, self.sample)  # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev)
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
@@ -316,11 +337,11 @@ class Engine:
         # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
-        self._modules_loaded = set()   # strides whose modules a thread of _threaded has loaded
+        self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
 
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
-        if not isinstance(varying, wp.array):   # (a device table's values were checked where they were made)
+        if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
             check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
@@ -329,11 +350,24 @@ class Engine:
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
             scratch = wp.empty((n, 2 * self.nodes), dtype=wp.float64, device=self.device)
-            wp.launch(kf.heat_kernel, dim=n, inputs=[params, self.flags, self.gas, self.first, self.count,
-                                                     self.heat_cells, int(self.settings.fitted),
-                                                     int(self.settings.picard_iterations), float(self.settings.picard_tol),
-                                                     theta, scratch],
-                      device=self.device)
+            wp.launch(
+                kf.heat_kernel,
+                dim=n,
+                inputs=[
+                    params,
+                    self.flags,
+                    self.gas,
+                    self.first,
+                    self.count,
+                    self.heat_cells,
+                    int(self.settings.fitted),
+                    int(self.settings.picard_iterations),
+                    float(self.settings.picard_tol),
+                    theta,
+                    scratch,
+                ],
+                device=self.device,
+            )
         return params, theta
 
     def evaluate(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
@@ -378,8 +412,11 @@ class Engine:
             out = wp.array(T, dtype=wp.float64, device=self.device)
         else:
             out.assign(T)
-        return (out, wp.array(params, dtype=wp.float64, device=self.device),
-                wp.array(theta, dtype=wp.float64, device=self.device))
+        return (
+            out,
+            wp.array(params, dtype=wp.float64, device=self.device),
+            wp.array(theta, dtype=wp.float64, device=self.device),
+        )
 
     def evaluate_serial(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
         """:meth:`evaluate` in the calling thread alone."""
@@ -395,14 +432,17 @@ class Engine:
         cascade at the sampled frequencies alone (for callers that need the density, not
         the T-matrices); ``cell_density`` for every set where the estimate is off."""
         out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
-        return wp.array(self._adaptive_cascade(params, theta, self.sample_columns, out), dtype=wp.float64,
-                        device=self.device)
+        return wp.array(
+            self._adaptive_cascade(params, theta, self.sample_columns, out), dtype=wp.float64, device=self.device
+        )
 
     def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
         """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
         again (run at twice the density: the error estimate), and ``sample`` as int32."""
-        return (wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
-                wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device))
+        return (
+            wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
+            wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device),
+        )
 
     @property
     def tangent_step(self) -> float:
@@ -424,8 +464,10 @@ class Engine:
         :func:`tawarp.measure.kind.smooth_settings`): a neighbour's points must lie where
         its point's do. A large CPU batch runs split over threads, as :meth:`evaluate`."""
         if self.estimating:
-            raise ValueError("evaluate_tangents: the cell count must be fixed (ForwardSettings(cells=...) or "
-                             "smooth_settings), not adapted per set")
+            raise ValueError(
+                "evaluate_tangents: the cell count must be fixed (ForwardSettings(cells=...) or "
+                "smooth_settings), not adapted per set"
+            )
         stride = 1 + 2 * tangents
         if varying.shape[1] % stride:
             raise ValueError(f"evaluate_tangents: {varying.shape[1]} sets is not a multiple of 1 + 2 P = {stride}")
@@ -434,11 +476,20 @@ class Engine:
             return self._tangents_serial(varying, step, tangents)
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         steps = step.numpy() if isinstance(step, wp.array) else np.asarray(step, dtype=np.float64)
-        one = lambda b: tuple(a.numpy() for a in self._tangents_serial(  # noqa: E731
-            np.ascontiguousarray(table[:, b]), np.ascontiguousarray(steps[b.start // stride:b.stop // stride]), tangents))
+        one = (
+            lambda b: tuple(
+                a.numpy()
+                for a in self._tangents_serial(  # noqa: E731
+                    np.ascontiguousarray(table[:, b]),
+                    np.ascontiguousarray(steps[b.start // stride : b.stop // stride]),
+                    tangents,
+                )
+            )
+        )
         done = self._threaded(one, table, parts, stride)
-        return tuple(wp.array(np.concatenate([r[k] for r in done]), dtype=wp.float64, device=self.device)
-                     for k in range(2))
+        return tuple(
+            wp.array(np.concatenate([r[k] for r in done]), dtype=wp.float64, device=self.device) for k in range(2)
+        )
 
     def _tangents_serial(self, varying, step, tangents: int) -> tuple[wp.array, wp.array]:
         """:meth:`evaluate_tangents` in the calling thread alone."""
@@ -455,8 +506,17 @@ class Engine:
         self._cascade(params, theta, self.columns[0], density, out, doubled, step, tangent)
         return out, tangent
 
-    def _cascade(self, params: wp.array, theta: wp.array, freqs: wp.array, density: wp.array, out: wp.array,
-                 doubled: wp.array, step: wp.array | None = None, tangent: wp.array | None = None):
+    def _cascade(
+        self,
+        params: wp.array,
+        theta: wp.array,
+        freqs: wp.array,
+        density: wp.array,
+        out: wp.array,
+        doubled: wp.array,
+        step: wp.array | None = None,
+        tangent: wp.array | None = None,
+    ):
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
         ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
         counted first and the largest point count read back (the one host round trip); then
@@ -475,27 +535,53 @@ class Engine:
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
         most = wp.zeros(3, dtype=wp.int32, device=self.device)
-        wp.launch(kf.cell_counts, dim=n, inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max,
-                                                 cells, most], device=self.device)
+        wp.launch(
+            kf.cell_counts,
+            dim=n,
+            inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max, cells, most],
+            device=self.device,
+        )
         n_points, n_slots, n_cells = (int(v) for v in most.numpy())
         if n_cells > MAX_CELLS:
             self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
-            part = points if lo + block <= n else points[:n - lo]
-            wp.launch(self.point_kernel, dim=(part.shape[0], n_slots), device=self.device,
-                      inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part])
+            part = points if lo + block <= n else points[: n - lo]
+            wp.launch(
+                self.point_kernel,
+                dim=(part.shape[0], n_slots),
+                device=self.device,
+                inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part],
+            )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + doubled.shape[1])
-            if threads >= 2 ** 31:   # a 1-D launch's thread index is an int32
-                raise ValueError(f"{part.shape[0]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
-                                 f"threads in one launch: split the batch (ForwardSettings.chunk)")
-            rows = lambda a: a[g0:g1] if a.size else a   # noqa: E731 (Warp will not slice an empty array)
-            wp.launch(kernel, dim=threads,
-                      inputs=[params, self.flags, self.gas, freqs, cells, part, lo, self.pore_table, rows(out),
-                              rows(doubled), rows(step) if tangents else step, rows(tangent) if tangents else tangent],
-                      device=self.device, block_dim=self.settings.block_dim)
+            if threads >= 2**31:  # a 1-D launch's thread index is an int32
+                raise ValueError(
+                    f"{part.shape[0]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
+                    f"threads in one launch: split the batch (ForwardSettings.chunk)"
+                )
+            rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
+            wp.launch(
+                kernel,
+                dim=threads,
+                inputs=[
+                    params,
+                    self.flags,
+                    self.gas,
+                    freqs,
+                    cells,
+                    part,
+                    lo,
+                    self.pore_table,
+                    rows(out),
+                    rows(doubled),
+                    rows(step) if tangents else step,
+                    rows(tangent) if tangents else tangent,
+                ],
+                device=self.device,
+                block_dim=self.settings.block_dim,
+            )
 
     def _refuse_cells(self, params: wp.array, cells: np.ndarray):
         """Raise :class:`~tawarp.model.validity.ModelValidityError` for the first set whose
@@ -511,7 +597,8 @@ class Engine:
             f"{self.core.source}: {describe_set(i, table[layout.HEAT_INPUT], values)}: {seg.name} would need more "
             f"than {MAX_CELLS} Magnus cells up to {self.freqs.max():g} Hz (its heat-decay length or wavelength is "
             f"that many times shorter than the segment: an extreme h, conductivity, length or frequency; "
-            f"docs/trusted_ranges.md); {bad.size} of {len(cells)} sets")
+            f"docs/trusted_ranges.md); {bad.size} of {len(cells)} sets"
+        )
 
     def _point_buffer_bytes(self) -> int:
         """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
@@ -520,8 +607,9 @@ class Engine:
             return POINT_BUFFER_BYTES
         return int(min(POINT_BUFFER_BYTES_GPU, device.free_memory // 4))
 
-    def _estimated_cascade(self, params: wp.array, theta: wp.array, columns, density: wp.array,
-                           out: wp.array) -> np.ndarray | None:
+    def _estimated_cascade(
+        self, params: wp.array, theta: wp.array, columns, density: wp.array, out: wp.array
+    ) -> np.ndarray | None:
         """The cascade into ``out`` at ``density`` and, in the same launch, at twice it on the
         sampled columns; the step-doubling estimate (n,) of each set, compared on the device
         (:func:`tawarp.kernels.forward.step_doubling_error`) and read back, the one host round
@@ -533,8 +621,9 @@ class Engine:
         if not self.estimating or n == 0:
             return None
         err = wp.empty(n, dtype=wp.float64, device=self.device)
-        wp.launch(kf.step_doubling_error, dim=n, inputs=[params, self.gas, out, doubled, sample, err],
-                  device=self.device)
+        wp.launch(
+            kf.step_doubling_error, dim=n, inputs=[params, self.gas, out, doubled, sample, err], device=self.device
+        )
         return err.numpy()
 
     def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
@@ -562,11 +651,14 @@ class Engine:
             if not above.any():
                 break
             if rounds == MAX_ESTIMATE_ROUNDS - 1:
-                warnings.warn(f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
-                              f"still {err[above].max():.2g} > {target:.2g} at cell density {d[active[above]].max():.3g} "
-                              f"(cell_density {self.settings.cell_density:g}); pass ForwardSettings(cells=...) "
-                              f"for a fixed count",
-                              ValidityWarning, stacklevel=4)
+                warnings.warn(
+                    f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
+                    f"still {err[above].max():.2g} > {target:.2g} at cell density {d[active[above]].max():.3g} "
+                    f"(cell_density {self.settings.cell_density:g}); pass ForwardSettings(cells=...) "
+                    f"for a fixed count",
+                    ValidityWarning,
+                    stacklevel=4,
+                )
                 break
             raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
             active = active[above]
@@ -577,10 +669,12 @@ class Engine:
             t = wp.empty((active.size, theta.shape[1]), dtype=wp.float64, device=self.device)
             wp.launch(kbatch.gather_sets, dim=active.size, inputs=[params, theta, index, p, t], device=self.device)
             part = wp.empty((active.size, out.shape[1], 8), dtype=wp.float64, device=self.device)
-            err = self._estimated_cascade(p, t, columns, wp.array(d[active], dtype=wp.float64, device=self.device),
-                                          part)
-            wp.launch(kbatch.scatter_sets, dim=(active.size, out.shape[1]), inputs=[part, index, out],
-                      device=self.device)
+            err = self._estimated_cascade(
+                p, t, columns, wp.array(d[active], dtype=wp.float64, device=self.device), part
+            )
+            wp.launch(
+                kbatch.scatter_sets, dim=(active.size, out.shape[1]), inputs=[part, index, out], device=self.device
+            )
         return d
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
@@ -589,8 +683,12 @@ class Engine:
         n = params.shape[1]
         T = wp.zeros((n, x.shape[0]), dtype=wp.float64, device=self.device)
         dT = wp.zeros((n, x.shape[0]), dtype=wp.float64, device=self.device)
-        wp.launch(kf.profile_kernel, dim=(n, x.shape[0]), device=self.device,
-                  inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT])
+        wp.launch(
+            kf.profile_kernel,
+            dim=(n, x.shape[0]),
+            device=self.device,
+            inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT],
+        )
         return T.numpy(), dT.numpy()
 
 
@@ -631,8 +729,15 @@ def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str],
     return names, np.stack([q] + [arrays[k] for k in names]) if n else np.zeros((1 + len(names), 0))
 
 
-def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = None,
-                      settings: ForwardSettings | None = None, progress: bool = False, **kw) -> ForwardResult:
+def transfer_matrices(
+    core: Core,
+    freqs,
+    heat_input=0.0,
+    params: dict | None = None,
+    settings: ForwardSettings | None = None,
+    progress: bool = False,
+    **kw,
+) -> ForwardResult:
     """Core T-matrices for a batch of parameter sets and frequencies.
 
     Parameters
@@ -650,8 +755,10 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
     warn (:class:`~tawarp.model.validity.ValidityWarning`) naming the set: never a silent NaN.
     """
     if not isinstance(core, Core):
-        raise TypeError(f"transfer_matrices: core must be a Core, e.g. load_core('ceramic') or load_core('my_core.toml'); "
-                        f"got {type(core).__name__}")
+        raise TypeError(
+            f"transfer_matrices: core must be a Core, e.g. load_core('ceramic') or load_core('my_core.toml'); "
+            f"got {type(core).__name__}"
+        )
     settings = dataclasses.replace(settings or ForwardSettings(), **kw)
     names, varying = batch_table(core, heat_input, params)
     engine = Engine(core, freqs, names, settings)
@@ -672,12 +779,14 @@ def transfer_matrices(core: Core, freqs, heat_input=0.0, params: dict | None = N
         table[:, lo:hi] = w_params.numpy()
         bar.update(hi - lo)
     bar.close()
-    return ForwardResult(core, engine.freqs, varying[0].copy(), T, theta, table,
-                         dataclasses.replace(settings, device=engine.device))
+    return ForwardResult(
+        core, engine.freqs, varying[0].copy(), T, theta, table, dataclasses.replace(settings, device=engine.device)
+    )
 
 
-def steady_temperature(core: Core, x, heat_input=0.0, params: dict | None = None,
-                       settings: ForwardSettings | None = None, **kw) -> tuple[np.ndarray, np.ndarray]:
+def steady_temperature(
+    core: Core, x, heat_input=0.0, params: dict | None = None, settings: ForwardSettings | None = None, **kw
+) -> tuple[np.ndarray, np.ndarray]:
     """Steady temperature T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m]
     from plane x1, for a batch (heat solve only, no acoustics). Arguments as
     :func:`transfer_matrices`."""

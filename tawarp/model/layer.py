@@ -34,11 +34,19 @@ LAYER_TUBE_RADIUS = 0.05
 LAYER_BASE = ("layer.porosity", "layer.pore_radius", "layer.tortuosity")
 
 
-def layer_core(thickness: float, porosity: float = 0.95, pore_radius: float = 1e-4, tortuosity: float = 1.0,
-               T_ambient: float = 293.15, p_ambient: float = 101325.0, gas: str = "air") -> Core:
+def layer_core(
+    thickness: float,
+    porosity: float = 0.95,
+    pore_radius: float = 1e-4,
+    tortuosity: float = 1.0,
+    T_ambient: float = 293.15,
+    p_ambient: float = 101325.0,
+    gas: str = "air",
+) -> Core:
     """A core of one porous, non-thermal segment ``layer`` of ``thickness`` [m]."""
-    seg = Segment("layer", "porous", float(thickness), porosity=porosity, pore_radius=pore_radius,
-                  tortuosity=tortuosity)
+    seg = Segment(
+        "layer", "porous", float(thickness), porosity=porosity, pore_radius=pore_radius, tortuosity=tortuosity
+    )
     return Core((seg,), Gas(gas, float(p_ambient), float(T_ambient)), LAYER_TUBE_RADIUS, "<layer>")
 
 
@@ -64,8 +72,13 @@ def jca_equivalent(values: dict, core: Core) -> dict:
     ratio = values.get("layer.thermal_radius_ratio", 1.0)
     shape = values.get("layer.viscous_shape_factor", 1.0)
     mu = float(gas_transport(core.gas.name, core.gas.T_cold)[0][0])
-    return {"phi": phi, "alpha_inf": q * q, "Lambda": r / shape, "Lambda_prime": ratio * r,
-            "sigma": 8 * mu * q * q / (phi * r * r)}
+    return {
+        "phi": phi,
+        "alpha_inf": q * q,
+        "Lambda": r / shape,
+        "Lambda_prime": ratio * r,
+        "sigma": 8 * mu * q * q / (phi * r * r),
+    }
 
 
 def gas_transport(gas: str, T) -> tuple[np.ndarray, np.ndarray]:
@@ -75,7 +88,15 @@ def gas_transport(gas: str, T) -> tuple[np.ndarray, np.ndarray]:
     dev = resolve_device("cpu")
     mu = wp.empty(T.size, dtype=wp.float64, device=dev)
     k = wp.empty(T.size, dtype=wp.float64, device=dev)
-    wp.launch(klm.gas_transport, dim=T.size, device=dev,
-              inputs=[wp.array(GASES[gas].as_tuple(), dtype=wp.float64, device=dev),
-                      wp.array(T.ravel(), dtype=wp.float64, device=dev), mu, k])
+    wp.launch(
+        klm.gas_transport,
+        dim=T.size,
+        device=dev,
+        inputs=[
+            wp.array(GASES[gas].as_tuple(), dtype=wp.float64, device=dev),
+            wp.array(T.ravel(), dtype=wp.float64, device=dev),
+            mu,
+            k,
+        ],
+    )
     return mu.numpy().reshape(T.shape), k.numpy().reshape(T.shape)

@@ -113,8 +113,9 @@ class EigenSolver:
         self.engine = engine
         self.forward = Engine(engine.core, [1.0], names, settings)
         dev = self.forward.device
-        self.ends = wp.array([ko.END_KINDS[engine.left.kind], ko.END_KINDS[engine.right.kind]], dtype=wp.int32,
-                             device=dev)
+        self.ends = wp.array(
+            [ko.END_KINDS[engine.left.kind], ko.END_KINDS[engine.right.kind]], dtype=wp.int32, device=dev
+        )
         self.z_left = wp.array(engine.left.table(), dtype=wp.float64, device=dev)
         self.z_right = wp.array(engine.right.table(), dtype=wp.float64, device=dev)
 
@@ -135,8 +136,17 @@ class EigenSolver:
         open_ends = (self.engine.left.kind == "open") + (self.engine.right.kind == "open")
         return (mode - 0.5 * (open_ends == 1)) * math.pi / tau
 
-    def solve(self, varying: np.ndarray, resonator: np.ndarray, guess: np.ndarray | None, omega_ref: np.ndarray | None,
-              mode: int = 1, tol: float = 1e-13, max_iter: int = 60, hot: bool = True) -> EigenResult:
+    def solve(
+        self,
+        varying: np.ndarray,
+        resonator: np.ndarray,
+        guess: np.ndarray | None,
+        omega_ref: np.ndarray | None,
+        mode: int = 1,
+        tol: float = 1e-13,
+        max_iter: int = 60,
+        hot: bool = True,
+    ) -> EigenResult:
         """Eigenfrequencies of the (1 + names, n) batch ``varying`` (row 0 heat input [W])
         with resonator rows (n, 6). ``guess`` (n,) complex start [rad/s] and ``omega_ref``
         (n,) [rad/s] for the adaptive cells: None takes the lossless mode ``mode``.
@@ -149,24 +159,56 @@ class EigenSolver:
             w0 = self.lossless_omega(params.numpy(), resonator, mode)
             guess = w0.astype(complex) if guess is None else guess
             omega_ref = w0 if omega_ref is None else omega_ref
-        w_guess = wp.array(np.ascontiguousarray(np.broadcast_to(guess, (n,)), dtype=np.complex128).view(np.float64)
-                           .reshape(n, 2), dtype=wp.vec2d, device=dev)
-        w_ref = wp.array(np.ascontiguousarray(np.broadcast_to(omega_ref, (n,)), dtype=np.float64), dtype=wp.float64,
-                         device=dev)
+        w_guess = wp.array(
+            np.ascontiguousarray(np.broadcast_to(guess, (n,)), dtype=np.complex128).view(np.float64).reshape(n, 2),
+            dtype=wp.vec2d,
+            device=dev,
+        )
+        w_ref = wp.array(
+            np.ascontiguousarray(np.broadcast_to(omega_ref, (n,)), dtype=np.float64), dtype=wp.float64, device=dev
+        )
         w_res = wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev)
         omega = wp.empty(n, dtype=wp.vec2d, device=dev)
         its = wp.empty(n, dtype=wp.int32, device=dev)
         evals = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(ko.eigen_kernel, dim=n, device=dev,
-                  inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, float(fe.settings.cell_density), fe.first,
-                          fe.heat_cells, w_res, self.ends, self.z_left, self.z_right, w_guess, w_ref,
-                          MULLER_SPREAD, float(tol), int(max_iter), omega, its, evals])
-        return EigenResult(omega.numpy().view(np.complex128).reshape(n), np.asarray(varying[0]).copy(),
-                           self.hot_temperature(params, theta) if hot else np.full(n, np.nan), its.numpy(),
-                           evals.numpy())
+        wp.launch(
+            ko.eigen_kernel,
+            dim=n,
+            device=dev,
+            inputs=[
+                params,
+                fe.flags,
+                fe.gas,
+                theta,
+                fe.seg_cells,
+                float(fe.settings.cell_density),
+                fe.first,
+                fe.heat_cells,
+                w_res,
+                self.ends,
+                self.z_left,
+                self.z_right,
+                w_guess,
+                w_ref,
+                MULLER_SPREAD,
+                float(tol),
+                int(max_iter),
+                omega,
+                its,
+                evals,
+            ],
+        )
+        return EigenResult(
+            omega.numpy().view(np.complex128).reshape(n),
+            np.asarray(varying[0]).copy(),
+            self.hot_temperature(params, theta) if hot else np.full(n, np.nan),
+            its.numpy(),
+            evals.numpy(),
+        )
 
-    def residuals(self, varying: np.ndarray, resonator: np.ndarray, omega_ref: np.ndarray, column: np.ndarray,
-                  omega: np.ndarray) -> np.ndarray:
+    def residuals(
+        self, varying: np.ndarray, resonator: np.ndarray, omega_ref: np.ndarray, column: np.ndarray, omega: np.ndarray
+    ) -> np.ndarray:
         """Residuals (complex, n_points) of the end condition: point j at complex ``omega[j]``
         [rad/s] for set ``column[j]`` of the (1 + names, n) batch ``varying`` (row 0 heat input
         [W]), its resonator row (n, 6) and reference frequency ``omega_ref`` (n,) [rad/s]."""
@@ -175,24 +217,45 @@ class EigenSolver:
         params, theta = fe.heat(np.ascontiguousarray(varying, dtype=np.float64))
         k = omega.size
         out = wp.empty(k, dtype=wp.vec2d, device=dev)
-        wp.launch(ko.residual_kernel, dim=k, device=dev,
-                  inputs=[params, fe.flags, fe.gas, theta, fe.seg_cells, float(fe.settings.cell_density), fe.first,
-                          fe.heat_cells, wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64,
-                                                  device=dev),
-                          self.ends, self.z_left, self.z_right,
-                          wp.array(np.asarray(column, dtype=np.int32), dtype=wp.int32, device=dev),
-                          wp.array(np.ascontiguousarray(omega, dtype=np.complex128).view(np.float64).reshape(k, 2),
-                                   dtype=wp.vec2d, device=dev),
-                          wp.array(np.ascontiguousarray(omega_ref, dtype=np.float64), dtype=wp.float64, device=dev),
-                          out])
+        wp.launch(
+            ko.residual_kernel,
+            dim=k,
+            device=dev,
+            inputs=[
+                params,
+                fe.flags,
+                fe.gas,
+                theta,
+                fe.seg_cells,
+                float(fe.settings.cell_density),
+                fe.first,
+                fe.heat_cells,
+                wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev),
+                self.ends,
+                self.z_left,
+                self.z_right,
+                wp.array(np.asarray(column, dtype=np.int32), dtype=wp.int32, device=dev),
+                wp.array(
+                    np.ascontiguousarray(omega, dtype=np.complex128).view(np.float64).reshape(k, 2),
+                    dtype=wp.vec2d,
+                    device=dev,
+                ),
+                wp.array(np.ascontiguousarray(omega_ref, dtype=np.float64), dtype=wp.float64, device=dev),
+                out,
+            ],
+        )
         return out.numpy().view(np.complex128).reshape(k)
 
     def hot_temperature(self, params: wp.array, theta: wp.array) -> np.ndarray:
         """Largest steady temperature [K] in the core per set (:func:`tawarp.kernels.onset.hot_kernel`)."""
         fe = self.forward
         out = wp.empty(params.shape[1], dtype=wp.float64, device=fe.device)
-        wp.launch(ko.hot_kernel, dim=params.shape[1], device=fe.device,
-                  inputs=[params, fe.flags, fe.gas, theta, fe.first, fe.heat_cells, out])
+        wp.launch(
+            ko.hot_kernel,
+            dim=params.shape[1],
+            device=fe.device,
+            inputs=[params, fe.flags, fe.gas, theta, fe.first, fe.heat_cells, out],
+        )
         return out.numpy()
 
 
@@ -202,23 +265,34 @@ def prepare(engine: ThermoacousticEngine, heat_input, params: dict | None, setti
     core_p, res_p = _split_names(params)
     arrays = {k: np.atleast_1d(np.asarray(v, dtype=np.float64)) for k, v in res_p.items()}
     q = np.atleast_1d(np.asarray(heat_input, dtype=np.float64))
-    n = np.broadcast_shapes(q.shape, *(a.shape for a in arrays.values()),
-                            *(np.atleast_1d(np.asarray(v)).shape for v in core_p.values()))[0]
+    n = np.broadcast_shapes(
+        q.shape, *(a.shape for a in arrays.values()), *(np.atleast_1d(np.asarray(v)).shape for v in core_p.values())
+    )[0]
     names, varying = batch_table(engine.core, np.broadcast_to(q, (n,)), core_p)
     resonator = np.tile(engine.resonator_row(), (n, 1))
     for k, a in arrays.items():
         col = RESONATOR_FIELDS.index(k)
         a = np.broadcast_to(a, (n,))
         if not np.all(np.isfinite(a)) or np.any(a < 0) or (not k.endswith("_duct") and np.any(a <= 0)):
-            raise CoreError(f"parameter engine.{k}: values must be finite and {'>= 0' if k.endswith('_duct') else '> 0'}")
+            raise CoreError(
+                f"parameter engine.{k}: values must be finite and {'>= 0' if k.endswith('_duct') else '> 0'}"
+            )
         resonator[:, col] = a
     check_sets(engine.core, varying[0], dict(zip(names, varying[1:])))
     return EigenSolver(engine, names, settings), varying, resonator
 
 
-def eigenfrequencies(engine: ThermoacousticEngine, heat_input=0.0, mode: int = 1, params: dict | None = None,
-                     guess=None, settings: ForwardSettings | None = None, tol: float = 1e-13, max_iter: int = 60,
-                     **kw) -> EigenResult:
+def eigenfrequencies(
+    engine: ThermoacousticEngine,
+    heat_input=0.0,
+    mode: int = 1,
+    params: dict | None = None,
+    guess=None,
+    settings: ForwardSettings | None = None,
+    tol: float = 1e-13,
+    max_iter: int = 60,
+    **kw,
+) -> EigenResult:
     """Complex eigenfrequency of mode ``mode`` (1 = fundamental) for a batch of heat inputs
     [W] and parameter sets (broadcast together, as :func:`~tawarp.model.forward.transfer_matrices`).
 
@@ -229,8 +303,9 @@ def eigenfrequencies(engine: ThermoacousticEngine, heat_input=0.0, mode: int = 1
     if int(mode) < 1:
         raise ValueError(f"mode must be >= 1, got {mode}")
     solver, varying, resonator = prepare(engine, heat_input, params, settings, **kw)
-    res = solver.solve(varying, resonator, None if guess is None else np.asarray(guess, dtype=complex), None, mode,
-                       tol, max_iter)
+    res = solver.solve(
+        varying, resonator, None if guess is None else np.asarray(guess, dtype=complex), None, mode, tol, max_iter
+    )
     _warn_unconverged(res.iterations, res.heat_input)
     return res
 
@@ -238,14 +313,28 @@ def eigenfrequencies(engine: ThermoacousticEngine, heat_input=0.0, mode: int = 1
 def _warn_unconverged(its: np.ndarray, q: np.ndarray) -> None:
     bad = np.flatnonzero(its < 0)
     if bad.size:
-        warnings.warn(f"eigenfrequency search did not converge for {bad.size} set(s), first: set {bad[0]} "
-                      f"(heat input {q[bad[0]]:g} W); raise max_iter or give a closer guess", RuntimeWarning,
-                      stacklevel=3)
+        warnings.warn(
+            f"eigenfrequency search did not converge for {bad.size} set(s), first: set {bad[0]} "
+            f"(heat input {q[bad[0]]:g} W); raise max_iter or give a closer guess",
+            RuntimeWarning,
+            stacklevel=3,
+        )
 
 
-def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dict | None = None,
-          n_bracket: int = 9, rtol: float = 1e-10, max_steps: int = 100, settings: ForwardSettings | None = None,
-          grid_tol: float = 1e-6, newton_steps: int = 12, curve: bool = False, **kw) -> OnsetResult:
+def onset(
+    engine: ThermoacousticEngine,
+    Q_max: float,
+    mode: int = 1,
+    params: dict | None = None,
+    n_bracket: int = 9,
+    rtol: float = 1e-10,
+    max_steps: int = 100,
+    settings: ForwardSettings | None = None,
+    grid_tol: float = 1e-6,
+    newton_steps: int = 12,
+    curve: bool = False,
+    **kw,
+) -> OnsetResult:
     """Onset heat input of mode ``mode`` for a batch of engines (``params`` as
     :func:`eigenfrequencies`).
 
@@ -288,7 +377,7 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
 
     wg = np.full((n, n_bracket), np.nan + 0j)
     wg[:, 0] = base.omega
-    j = np.full(n, -1)                  # the first crossing lies in (Qg[j], Qg[j + 1])
+    j = np.full(n, -1)  # the first crossing lies in (Qg[j], Qg[j + 1])
     march = np.arange(n)
     for k in range(1, n_bracket):
         if not curve:
@@ -312,8 +401,11 @@ def onset(engine: ThermoacousticEngine, Q_max: float, mode: int = 1, params: dic
         Q_on[idx[fb]], w_on[idx[fb]] = q, w
         steps += secant
         if active.any():
-            warnings.warn(f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
-                          RuntimeWarning, stacklevel=2)
+            warnings.warn(
+                f"onset: {int(active.sum())} set(s) not refined to rtol = {rtol} in {max_steps} steps",
+                RuntimeWarning,
+                stacklevel=2,
+            )
     if idx.size:
         v = varying[:, idx].copy()
         v[0] = Q_on[idx]
@@ -351,9 +443,18 @@ FD_STEP = 1e-7
 CHORD_STEP = 1e-4
 
 
-def _newton_onset(solver: EigenSolver, varying: np.ndarray, resonator: np.ndarray, w_ref: np.ndarray,
-                  idx: np.ndarray, br: _Bracket, rtol: float, max_steps: int, grid_tol: float,
-                  evals: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+def _newton_onset(
+    solver: EigenSolver,
+    varying: np.ndarray,
+    resonator: np.ndarray,
+    w_ref: np.ndarray,
+    idx: np.ndarray,
+    br: _Bracket,
+    rtol: float,
+    max_steps: int,
+    grid_tol: float,
+    evals: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
     """Onset of sets ``idx`` by Newton's method on the real unknowns (w = Re omega, Q): the
     complex residual R of :func:`tawarp.kernels.onset.engine_residual` is zero at real omega
     exactly at onset, two real equations. Jacobian: dR/dw (R is analytic in omega, a real
@@ -375,7 +476,7 @@ def _newton_onset(solver: EigenSolver, varying: np.ndarray, resonator: np.ndarra
     margin = 10 * grid_tol * np.abs(br.w_lo) / slope
     J = np.full((m, 2, 2), np.nan)
     R_prev = np.full(m, np.inf)
-    last = np.full(m, np.inf)            # relative size of the last step
+    last = np.full(m, np.inf)  # relative size of the last step
     Q_out, w_out = np.full(m, np.nan), np.full(m, np.nan)
     done = np.zeros(m, dtype=bool)
     failed = np.zeros(m, dtype=bool)
@@ -397,9 +498,9 @@ def _newton_onset(solver: EigenSolver, varying: np.ndarray, resonator: np.ndarra
         pts = np.concatenate([w[a], w[an] + dw, w[an]]).astype(complex)
         out = solver.residuals(v, resonator[cols], w_ref[cols], col, pts)
         evals[idx[a]] += 1 + 2 * need
-        R = out[:a.size]
-        dR_dw = (out[a.size:a.size + an.size] - R[need]) / dw
-        dR_dQ = (out[a.size + an.size:] - R[need]) / dQ
+        R = out[: a.size]
+        dR_dw = (out[a.size : a.size + an.size] - R[need]) / dw
+        dR_dQ = (out[a.size + an.size :] - R[need]) / dQ
         J[an] = np.stack([np.stack([dR_dw.real, dR_dQ.real], -1), np.stack([dR_dw.imag, dR_dQ.imag], -1)], -2)
         Ja = J[a]
         det = Ja[:, 0, 0] * Ja[:, 1, 1] - Ja[:, 0, 1] * Ja[:, 1, 0]
@@ -425,7 +526,7 @@ def _illinois(at, idx: np.ndarray, br: _Bracket, rtol: float, max_steps: int):
     g_lo, g_hi = w_lo.imag.copy(), w_hi.imag.copy()
     Q_on = np.full(idx.size, np.nan)
     w_on = np.full(idx.size, np.nan + 0j)
-    side = np.zeros(idx.size, dtype=int)       # Illinois: which end was kept last (-1 lo, +1 hi)
+    side = np.zeros(idx.size, dtype=int)  # Illinois: which end was kept last (-1 lo, +1 hi)
     active = np.ones(idx.size, dtype=bool)
     q_prev = np.full(idx.size, np.inf)
     steps = 0
@@ -439,7 +540,7 @@ def _illinois(at, idx: np.ndarray, br: _Bracket, rtol: float, max_steps: int):
         Q_on[a] = q_new
         w_on[a] = r.omega
         lo = gn < 0
-        al, ah = a[lo], a[~lo]          # the new point replaces the bracket end of its sign
+        al, ah = a[lo], a[~lo]  # the new point replaces the bracket end of its sign
         q_lo[al], g_lo[al], w_lo[al] = q_new[lo], gn[lo], r.omega[lo]
         q_hi[ah], g_hi[ah], w_hi[ah] = q_new[~lo], gn[~lo], r.omega[~lo]
         # Illinois: the end kept twice in a row has its value halved

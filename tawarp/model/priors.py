@@ -144,10 +144,16 @@ class Prior:
         """Short text: ``150 W/(m^2 K) x/÷ 3`` (log-normal: a factor per sd) or
         ``0.8 +- 0.1`` (normal), with the bounds that lie within 3 sd."""
         u = f" {unit}" if unit and unit != "-" else ""
-        text = (f"{self.center:.4g}{u} x/÷ {math.exp(self.sd):.3g}" if self.log
-                else f"{self.center:.4g} +- {self.sd:.3g}{u}")
-        near = [(op, b) for op, b in ((">=", self.lower), ("<=", self.upper))
-                if math.isfinite(self._y(b)) and abs(self.z(b)) <= 3.0]
+        text = (
+            f"{self.center:.4g}{u} x/÷ {math.exp(self.sd):.3g}"
+            if self.log
+            else f"{self.center:.4g} +- {self.sd:.3g}{u}"
+        )
+        near = [
+            (op, b)
+            for op, b in ((">=", self.lower), ("<=", self.upper))
+            if math.isfinite(self._y(b)) and abs(self.z(b)) <= 3.0
+        ]
         return text + "".join(f", {op} {b:.4g}" for op, b in near)
 
     def toml_entry(self, value: float) -> dict:
@@ -188,8 +194,10 @@ def declared_prior(entry: dict, f: Field, where: str) -> tuple[float, Prior]:
     ``where`` names the file and key in errors (:class:`~tawarp.model.core.CoreError`)."""
     unknown = sorted(set(entry) - set(DECLARED_KEYS))
     if unknown:
-        raise CoreError(f"{where}: unknown key(s) {unknown} in the inline table; allowed {list(DECLARED_KEYS)}, "
-                        f"e.g. {{value = 150, rel = 0.2}}")
+        raise CoreError(
+            f"{where}: unknown key(s) {unknown} in the inline table; allowed {list(DECLARED_KEYS)}, "
+            f"e.g. {{value = 150, rel = 0.2}}"
+        )
     if "value" not in entry:
         raise CoreError(f"{where}: an inline table needs value = ..., e.g. {{value = 150, sd = 30}}")
     value = _number(entry, "value", where)
@@ -209,8 +217,10 @@ def declared_prior(entry: dict, f: Field, where: str) -> tuple[float, Prior]:
         if not lo <= value <= hi:
             raise CoreError(f"{where}: value {value} lies outside its range [{lo}, {hi}]")
         if f.log and lo <= 0:
-            raise CoreError(f"{where}: {f.name} is fitted in ln (log-normal prior): its range must be positive, "
-                            f"got [{lo}, {hi}]; or write sd = ...")
+            raise CoreError(
+                f"{where}: {f.name} is fitted in ln (log-normal prior): its range must be positive, "
+                f"got [{lo}, {hi}]; or write sd = ..."
+            )
         if f.log:
             center, sd = math.sqrt(lo * hi), math.log(hi / lo) / (2 * Z95)
         else:
@@ -220,8 +230,7 @@ def declared_prior(entry: dict, f: Field, where: str) -> tuple[float, Prior]:
         center = _number(entry, "center", where) if "center" in entry else value
         s = _number(entry, width, where)
         if s <= 0:
-            raise CoreError(f"{where}: {width} must be > 0, got {s} (a value known exactly belongs in "
-                            f"[fit] pinned)")
+            raise CoreError(f"{where}: {width} must be > 0, got {s} (a value known exactly belongs in [fit] pinned)")
         log = f.log and center > 0
         if width == "sd":
             sd = s / center if log else s
@@ -264,40 +273,53 @@ class DefaultPrior:
 #: :data:`BROAD`. Centred on the core file's value; docs/priors.md explains each row.
 DEFAULT_PRIORS: dict[tuple[str, str | None], DefaultPrior] = {
     ("h", "buffer_tube"): DefaultPrior(
-        1.0, True,
+        1.0,
+        True,
         "buffer tube: natural convection inside and conduction through the wall to the room; the paper's "
         "fitted h_a is about 0.2 W/(m^2 K) and a buffer tube's exchange with the room is weak: the order of "
-        "magnitude is known, not the value (a factor of e per sd, so a value 20x the file's is 3 sd off)"),
+        "magnitude is known, not the value (a factor of e per sd, so a value 20x the file's is 3 sd off)",
+    ),
     ("h", "stack"): DefaultPrior(
-        math.log(3.0), True,
+        math.log(3.0),
+        True,
         "stack: the paper only bounds h_s (>= 150 ceramic, about 50 mesh, <= 10 RVC) and notes that lam_s and "
-        "h_s are too correlated to fit together: a factor of 3 per sd"),
+        "h_s are too correlated to fit together: a factor of 3 per sd",
+    ),
     ("h", "hot_exchanger"): DefaultPrior(
-        math.log(2.0), True,
+        math.log(2.0),
+        True,
         "hot exchanger: the paper gives h_h = 100 +- 50 W/(m^2 K), a factor of 1.5, widened to 2 per sd for "
-        "a core file itself 10-20 % off"),
+        "a core file itself 10-20 % off",
+    ),
     ("porosity", None): DefaultPrior(
-        0.1, False,
+        0.1,
+        False,
         "porosity from a datasheet or a weighing is good to a few hundredths; 0.1 allows for the open vs. "
-        "total porosity of foams; truncated to (0, 1]"),
+        "total porosity of foams; truncated to (0, 1]",
+    ),
     ("pore_radius", None): DefaultPrior(
-        math.log(1.5), True,
+        math.log(1.5),
+        True,
         "a pore radius follows from a cell count or a fibre diameter through a shape assumption (hydraulic "
-        "radius, PPI to pore size): good to some 30-50 %, the paper's +-10 % are fitted values"),
+        "radius, PPI to pore size): good to some 30-50 %, the paper's +-10 % are fitted values",
+    ),
     ("tortuosity", None): DefaultPrior(
-        0.2, True,
+        0.2,
+        True,
         "q = sqrt(alpha_inf) is 1.0-1.3 for the paper's materials: 0.2 in ln (+-20 %), truncated to q >= 1",
-        lower=1.0),
+        lower=1.0,
+    ),
     ("length", None): DefaultPrior(
-        2e-3, False,
+        2e-3,
+        False,
         "a length is a plane position or a cut: known to a couple of millimetres (microphone spacers, the "
-        "sample's faces)"),
-    ("T_cold", None): DefaultPrior(
-        5.0, False, "the room or cold-end temperature is known to a few kelvin (+-5 K)"),
-    ("p_mean", None): DefaultPrior(
-        0.03, True, "the static pressure from a barometer or the altitude: +-3 %"),
+        "sample's faces)",
+    ),
+    ("T_cold", None): DefaultPrior(5.0, False, "the room or cold-end temperature is known to a few kelvin (+-5 K)"),
+    ("p_mean", None): DefaultPrior(0.03, True, "the static pressure from a barometer or the altitude: +-3 %"),
     ("radius", None): DefaultPrior(
-        0.02, True, "the tube's bore, measured with calipers or taken from a pipe standard: +-2 %"),
+        0.02, True, "the tube's bore, measured with calipers or taken from a pipe standard: +-2 %"
+    ),
 }
 #: The prior of a field without a row: broad, a factor of 3 per sd around the core's value.
 BROAD = DefaultPrior(math.log(3.0), True, "no physical knowledge stated: a factor of 3 per sd")
@@ -386,12 +408,19 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
             out[par.label] = core.priors[par.label]
             continue
         f = field_spec(par.label)
-        spread = [v[par.label] for v in (effect.typical, *effect.starts)
-                  if par.label in v and v[par.label] != par.start]
+        spread = [
+            v[par.label] for v in (effect.typical, *effect.starts) if par.label in v and v[par.label] != par.start
+        ]
         if spread and not _frees_base_parameter(par):
             sd = EFFECT_WIDTH * max(abs(float(par.x_of(v))) for v in spread) * (1.0 if par.log else par.scale)
-            prior = Prior(par.start, sd, par.log, f.lower, f.upper,
-                          source=f"effect {effect.name}: off +- {EFFECT_WIDTH:g} typical sizes")
+            prior = Prior(
+                par.start,
+                sd,
+                par.log,
+                f.lower,
+                f.upper,
+                source=f"effect {effect.name}: off +- {EFFECT_WIDTH:g} typical sizes",
+            )
         else:
             prior = default_prior(par.label, par.start)
             if prior.log and not par.log:
@@ -410,7 +439,9 @@ def tension(label: str, prior: Prior, value: float, unit: str = "") -> str | Non
         return None
     u = f" {unit}" if unit and unit != "-" else ""
     if prior.log and value > 0:
-        return (f"{label} = {value:.4g}{u} is {value / prior.center:.3g}x its prior {prior.describe(unit)} "
-                f"({z:+.1f} prior sd)")
+        return (
+            f"{label} = {value:.4g}{u} is {value / prior.center:.3g}x its prior {prior.describe(unit)} "
+            f"({z:+.1f} prior sd)"
+        )
     side = "above" if z > 0 else "below"
     return f"{label} = {value:.4g}{u} is {abs(z):.1f} prior sd {side} its prior {prior.describe(unit)}"

@@ -73,8 +73,11 @@ class ThermoacousticEngine:
         """(6,) left (length, radius, T), right (length, radius, T), defaults filled in."""
         out = []
         for d in (self.left_duct, self.right_duct):
-            out += [d.length, self.core.radius if d.radius is None else d.radius,
-                    self.core.gas.T_cold if d.T is None else d.T]
+            out += [
+                d.length,
+                self.core.radius if d.radius is None else d.radius,
+                self.core.gas.T_cold if d.T is None else d.T,
+            ]
         return np.array(out, dtype=np.float64)
 
     def total_length(self) -> float:
@@ -118,13 +121,19 @@ def _end(d: dict, side: str, source: str, folder: Path) -> EndCondition:
             raise CoreError(f"{source}: [engine] {given[0]} given but {side} = {kind!r}; use {side} = 'impedance'")
         return EndCondition(kind)
     if len(given) != 1:
-        raise CoreError(f"{source}: [engine] {side} = 'impedance' needs exactly one of "
-                        f"{side}_impedance = [Z_re, Z_im] or {side}_impedance_csv = 'file.csv'")
+        raise CoreError(
+            f"{source}: [engine] {side} = 'impedance' needs exactly one of "
+            f"{side}_impedance = [Z_re, Z_im] or {side}_impedance_csv = 'file.csv'"
+        )
     if given[0].endswith("_csv"):
         return EndCondition(kind, read_impedance_csv(folder / d[given[0]]))
     z = d[given[0]]
-    if (not isinstance(z, list) or len(z) != 2 or not all(isinstance(v, (int, float)) for v in z)
-            or not all(math.isfinite(v) for v in z)):
+    if (
+        not isinstance(z, list)
+        or len(z) != 2
+        or not all(isinstance(v, (int, float)) for v in z)
+        or not all(math.isfinite(v) for v in z)
+    ):
         raise CoreError(f"{source}: [engine] {given[0]} must be [Z_re, Z_im] in Pa s/m^3, got {z!r}")
     return EndCondition(kind, np.array([[1.0, float(z[0]), float(z[1])]]))
 
@@ -136,10 +145,16 @@ def _duct(d: dict, side: str, source: str) -> ResonatorDuct:
         if k not in d:
             continue
         v = d[k]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or \
-                (v < 0 if lo is not None else v <= 0):
-            raise CoreError(f"{source}: [engine] {k} = {v!r}; expected a finite number "
-                            f"{'>= 0' if lo is not None else '> 0'} (SI units)")
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, float))
+            or not math.isfinite(v)
+            or (v < 0 if lo is not None else v <= 0)
+        ):
+            raise CoreError(
+                f"{source}: [engine] {k} = {v!r}; expected a finite number "
+                f"{'>= 0' if lo is not None else '> 0'} (SI units)"
+            )
         vals[name] = float(v)
     return ResonatorDuct(**vals)
 
@@ -157,8 +172,14 @@ def engine_from_dict(data: dict, source: str = "<engine>", folder: Path | None =
         raise CoreError(f"{source}: unknown key(s) in [engine]: {sorted(bad)}; allowed {sorted(_ENGINE_KEYS)}")
     folder = folder or Path(".")
     core = core_from_dict(data, source)
-    return ThermoacousticEngine(core, _end(d, "left", source, folder), _end(d, "right", source, folder),
-                                _duct(d, "left", source), _duct(d, "right", source), source)
+    return ThermoacousticEngine(
+        core,
+        _end(d, "left", source, folder),
+        _end(d, "right", source, folder),
+        _duct(d, "left", source),
+        _duct(d, "right", source),
+        source,
+    )
 
 
 def bundled_engines() -> list[str]:

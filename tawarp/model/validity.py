@@ -90,8 +90,9 @@ def _value(core: Core, values: dict, name: str, n: int) -> np.ndarray:
     return np.broadcast_to(np.asarray(core.get(name) if v is None else v, dtype=float), (n,))
 
 
-def check_sets(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], freqs=None,
-               cell_density: float | None = None) -> None:
+def check_sets(
+    core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], freqs=None, cell_density: float | None = None
+) -> None:
     """Refuse parameter sets outside the model before solving (module doc).
 
     ``values`` {name: (n,)} are the varying parameters, ``heat_input`` (n,) [W]; ``freqs``
@@ -109,17 +110,20 @@ def check_sets(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray]
                 i = int(bad[0])
                 raise ModelValidityError(
                     f"{core.source}: {describe_set(i, heat_input, values)}: {s.name}.pore_radius = {r[i]:.4g} m is "
-                    f"wider than the tube (radius {R[i]:.4g} m); {bad.size} of {n} sets")
+                    f"wider than the tube (radius {R[i]:.4g} m); {bad.size} of {n} sets"
+                )
     thermal = [core.segments[k] for k in core.thermal_indices]
     if thermal:
-        sink = sum(_value(core, values, f"{s.name}.h", n) + _value(core, values, f"{s.name}.h_convection", n)
-                   for s in thermal)
+        sink = sum(
+            _value(core, values, f"{s.name}.h", n) + _value(core, values, f"{s.name}.h_convection", n) for s in thermal
+        )
         bad = np.flatnonzero((heat_input > 0) & (sink <= 0))
         if bad.size:
             raise ModelValidityError(
                 f"{core.source}: {describe_set(int(bad[0]), heat_input, values)}: heat is put in but every thermal "
                 f"segment has h = 0 and h_convection = 0; with adiabatic ends no steady temperature exists "
-                f"(give some segment h > 0); {bad.size} of {n} sets")
+                f"(give some segment h > 0); {bad.size} of {n} sets"
+            )
     if freqs is not None and cell_density is not None and thermal:
         c = cold_sound_speed(core, values, n)
         w = 2 * math.pi * float(np.max(freqs))
@@ -131,7 +135,8 @@ def check_sets(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray]
                 raise ModelValidityError(
                     f"{core.source}: {describe_set(i, heat_input, values)}: {s.name} is {cells[i] / cell_density:.3g} "
                     f"radians of acoustic phase long at {np.max(freqs):g} Hz: the adaptive cascade would need "
-                    f"more than {MAX_CELLS} cells (pass ForwardSettings(cells=...) to force a count)")
+                    f"more than {MAX_CELLS} cells (pass ForwardSettings(cells=...) to force a count)"
+                )
 
 
 def check_frequencies(freqs: np.ndarray) -> None:
@@ -142,8 +147,10 @@ def check_frequencies(freqs: np.ndarray) -> None:
     f = np.asarray(freqs, dtype=float)
     bad = np.flatnonzero(~(np.isfinite(f) & (f >= F_MIN) & (f <= F_MAX)))
     if bad.size:
-        raise ModelValidityError(f"frequency {f[bad[0]]:g} Hz lies outside the trusted range [{F_MIN:g}, {F_MAX:g}] "
-                                 f"Hz (docs/trusted_ranges.md); {bad.size} of {f.size} frequencies")
+        raise ModelValidityError(
+            f"frequency {f[bad[0]]:g} Hz lies outside the trusted range [{F_MIN:g}, {F_MAX:g}] "
+            f"Hz (docs/trusted_ranges.md); {bad.size} of {f.size} frequencies"
+        )
 
 
 def check_heat_inputs(heat_input: np.ndarray) -> None:
@@ -152,8 +159,10 @@ def check_heat_inputs(heat_input: np.ndarray) -> None:
     q = np.asarray(heat_input, dtype=float)
     bad = np.flatnonzero(~(np.isfinite(q) & (q >= 0) & (q <= Q_MAX)))
     if bad.size:
-        raise ModelValidityError(f"heat input {q.flat[bad[0]]:g} W lies outside the trusted range [0, {Q_MAX:g}] W "
-                                 f"(docs/trusted_ranges.md); {bad.size} of {q.size} heat inputs")
+        raise ModelValidityError(
+            f"heat input {q.flat[bad[0]]:g} W lies outside the trusted range [0, {Q_MAX:g}] W "
+            f"(docs/trusted_ranges.md); {bad.size} of {q.size} heat inputs"
+        )
 
 
 def precision_error(T: np.ndarray) -> np.ndarray:
@@ -165,20 +174,21 @@ def precision_error(T: np.ndarray) -> np.ndarray:
     M = T / s
     a, b, c, d = M[..., 0, 0], M[..., 0, 1], M[..., 1, 0], M[..., 1, 1]
     with np.errstate(over="ignore", under="ignore", invalid="ignore"):
-        one = 1.0 / s[..., 0, 0] ** 2      # det of the scaled matrix; underflows to 0 beside rounding
+        one = 1.0 / s[..., 0, 0] ** 2  # det of the scaled matrix; underflows to 0 beside rounding
         rel = np.abs(a * d - b * c - one) / (np.abs(a * d) + np.abs(b * c))
     return np.max(rel, axis=1, initial=0.0)
 
 
-def check_precision(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], T: np.ndarray,
-                    tolerance: float, offset: int = 0) -> None:
+def check_precision(
+    core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], T: np.ndarray, tolerance: float, offset: int = 0
+) -> None:
     """Warn (:class:`ValidityWarning`) for the unheated sets ``offset .. offset + k`` of
     ``T`` (k, m, 2, 2) whose :func:`precision_error` exceeds ``tolerance``; raise
     :class:`PrecisionLostError` above :data:`PRECISION_LOST`. Heated sets are left to the
     step-doubling estimate: their exact determinant is the cascade's own exp(integral of
     tr A), not known here; their products are those of the same kernels."""
     k = T.shape[0]
-    unheated = np.flatnonzero(heat_input[offset:offset + k] == 0)
+    unheated = np.flatnonzero(heat_input[offset : offset + k] == 0)
     if not unheated.size:
         return
     err = precision_error(T[unheated])
@@ -190,12 +200,17 @@ def check_precision(core: Core, heat_input: np.ndarray, values: dict[str, np.nda
         raise PrecisionLostError(
             f"{where}: rounding in the T-matrix cascade left a relative error of {err[worst]:.2g} (det T = 1 checked "
             f"at uniform temperature; {lost.size} of {k} sets): no significant digit is left; the core attenuates "
-            f"too strongly for float64 (docs/trusted_ranges.md)")
+            f"too strongly for float64 (docs/trusted_ranges.md)"
+        )
     above = np.flatnonzero(err > tolerance)
     if above.size:
-        warnings.warn(f"{where}: rounding in the T-matrix cascade leaves a relative error of {err[worst]:.2g} above "
-                      f"the tolerance {tolerance:g} (det T = 1 checked at uniform temperature; {above.size} of {k} "
-                      f"sets)", ValidityWarning, stacklevel=3)
+        warnings.warn(
+            f"{where}: rounding in the T-matrix cascade leaves a relative error of {err[worst]:.2g} above "
+            f"the tolerance {tolerance:g} (det T = 1 checked at uniform temperature; {above.size} of {k} "
+            f"sets)",
+            ValidityWarning,
+            stacklevel=3,
+        )
 
 
 def cold_sound_speed(core: Core, values: dict, n: int) -> np.ndarray:
@@ -204,8 +219,15 @@ def cold_sound_speed(core: Core, values: dict, n: int) -> np.ndarray:
     return np.sqrt(g.gamma * g.R_gas * _value(core, values, "gas.T_cold", n))
 
 
-def check_results(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarray], T: np.ndarray | None,
-                  theta: np.ndarray, offset: int = 0, freqs=None) -> None:
+def check_results(
+    core: Core,
+    heat_input: np.ndarray,
+    values: dict[str, np.ndarray],
+    T: np.ndarray | None,
+    theta: np.ndarray,
+    offset: int = 0,
+    freqs=None,
+) -> None:
     """Raise :class:`NonFiniteError` for non-finite T-matrices ``T`` (k, m, 2, 2) or nodal
     temperatures ``theta`` (k, nodes) of the sets ``offset .. offset + k``; warn
     (:class:`ValidityWarning`) above :data:`T_LIMIT` and above the cut-on frequency."""
@@ -221,21 +243,30 @@ def check_results(core: Core, heat_input: np.ndarray, values: dict[str, np.ndarr
             f"{core.source}: {describe_set(i, heat_input, values)} gives a non-finite "
             f"{'T-matrix' if T is not None else 'temperature'} ({bad.size} of {k} sets in this chunk); usually an "
             f"overflow: the core attenuates by more than e^700 (a pore radius far below the viscous penetration "
-            f"depth, a huge tortuosity or length), so it transmits nothing measurable")
+            f"depth, a huge tortuosity or length), so it transmits nothing measurable"
+        )
     T_cold = _value(core, values, "gas.T_cold", heat_input.shape[0])[rows]
     T_max = T_cold + (theta.max(axis=1) if theta.shape[1] else 0.0)
     hot = np.flatnonzero(T_max > T_LIMIT)
     if hot.size:
         i = offset + int(hot[0])
-        warnings.warn(f"{core.source}: {describe_set(i, heat_input, values)}: T_max = {T_max[hot[0]]:.0f} K is above "
-                      f"the model's limit of {T_LIMIT:g} K ({hot.size} of {k} sets); the gas laws and the linear heat "
-                      f"model are not trusted there", ValidityWarning, stacklevel=3)
+        warnings.warn(
+            f"{core.source}: {describe_set(i, heat_input, values)}: T_max = {T_max[hot[0]]:.0f} K is above "
+            f"the model's limit of {T_LIMIT:g} K ({hot.size} of {k} sets); the gas laws and the linear heat "
+            f"model are not trusted there",
+            ValidityWarning,
+            stacklevel=3,
+        )
     if freqs is not None and offset == 0:
         R = _value(core, values, "tube.radius", heat_input.shape[0])
         f_c = CUT_ON_KR * cold_sound_speed(core, values, heat_input.shape[0]) / (2 * math.pi * R)
         above = np.flatnonzero(float(np.max(freqs)) > f_c)
         if above.size:
             i = int(above[0])
-            warnings.warn(f"{core.source}: {describe_set(i, heat_input, values)}: frequencies up to "
-                          f"{np.max(freqs):g} Hz exceed the plane-wave cut-on {f_c[i]:.0f} Hz of the tube; the "
-                          f"plane-wave model does not hold there", ValidityWarning, stacklevel=3)
+            warnings.warn(
+                f"{core.source}: {describe_set(i, heat_input, values)}: frequencies up to "
+                f"{np.max(freqs):g} Hz exceed the plane-wave cut-on {f_c[i]:.0f} Hz of the tube; the "
+                f"plane-wave model does not hold there",
+                ValidityWarning,
+                stacklevel=3,
+            )
