@@ -116,15 +116,14 @@ def prior_z(x: np.ndarray, priors: list[XPrior]) -> np.ndarray:
 
 @dataclass
 class Model:
-    """One candidate model: its effects (names, in library order), its fit (None while only
-    linearized), ln Z and ln P(M); ``probability`` P(M | data) once compared."""
+    """One candidate model: its effects (names, in library order), its MAP fit, the priors
+    of its parameters, ln Z and ln P(M); ``probability`` P(M | data) once compared."""
 
     effects: tuple[str, ...]
     log_evidence: float = -math.inf
     log_model_prior: float = 0.0
     fit: FitResult | None = None
     priors: list[XPrior] = field(default_factory=list)
-    linearized: bool = True
     probability: float = 0.0
 
     @property

@@ -157,7 +157,7 @@ def drift(
 METHOD = (
     "Bayesian model comparison: every parameter has a Gaussian prior in its fit variable (log-normal for log "
     "fields; the core file's declared uncertainty or the documented default; an effect's parameters around off "
-    "with its typical size); fits are maximum a posteriori; each model (the base plus a set of effects) is scored "
+    "with twice its typical size as one sd); fits are maximum a posteriori; each model (the base plus a set of effects) is scored "
     "by its Laplace log-evidence ln L(x*) + ln pi(x*) + k/2 ln 2 pi - 1/2 ln det H (Kass & Raftery 1995), with "
     "the model prior uniform over the number of effects and within it (Scott & Berger 2010); every subset up to "
     "the largest size is linearized at the base solution, the base, every single effect and the most probable "
@@ -182,10 +182,12 @@ def fit_models(
     fixed: dict,
     library: list[Effect],
     requests: list[tuple[tuple[str, ...], list[np.ndarray]]],
+    sizes: dict[int, int],
 ) -> list[Model]:
     """MAP fits of the models ``requests`` = [(effect names, [start x, ...]), ...] in one
     lockstep batch (every start of every model); per model the start with the lowest
-    posterior objective is kept and its Laplace ln Z computed."""
+    posterior objective is kept, its Laplace ln Z computed and its model prior set from the
+    number of models of each size ``sizes``."""
     by_name = {e.name: e for e in library}
     specs, priors, owner = [], [], []
     out = []
@@ -196,7 +198,7 @@ def fit_models(
         pri = model_priors(problem.core, params, effects)
         lo = np.array([par.bounds_x()[0] for par in params])
         hi = np.array([par.bounds_x()[1] for par in params])
-        out.append(Model(names, priors=pri, linearized=False))
+        out.append(Model(names, priors=pri, log_model_prior=log_model_prior(sizes, len(names))))
         for x0 in starts:
             specs.append((params, structure, np.clip(x0, lo, hi)))
             priors.append(_as_pairs(pri))
@@ -299,9 +301,7 @@ def compare_models(
     lin_x = {t[0]: t[2] for t in lin}
     requests = [((e.name,), _starts(base, n_base, (e,), lin_x.get((e.name,)))) for e in library]
     requests += [(names, _starts(base, n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
-    models = [base] + fit_models(problem, base_params, fixed, library, requests)
-    for m in models[1:]:
-        m.log_model_prior = log_model_prior(sizes, len(m.effects))
+    models = [base] + fit_models(problem, base_params, fixed, library, requests, sizes)
     counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models), "not_visible": hidden}
     posterior(models)
     # second round: linearized again at the most probable model and at the most probable
@@ -324,9 +324,7 @@ def compare_models(
             done.add(names)
             requests.append((names, _starts(at, n_base, tuple(by_name[n] for n in names), x)))
     if requests:
-        more = fit_models(problem, base_params, fixed, library, requests)
-        for m in more:
-            m.log_model_prior = log_model_prior(sizes, len(m.effects))
+        more = fit_models(problem, base_params, fixed, library, requests, sizes)
         models += more
         counts["refitted"] += len(more)
         posterior(models)
@@ -405,7 +403,7 @@ def run_loop(
         weighted = noise_weighted(problem, noise_sigma(problem, lsq.residuals[0]))
         sigma, source = np.ones(2 * problem.y.size), NOISE_ESTIMATE
     base_priors = model_priors(problem.core, base_params, ())
-    base = Model((), priors=base_priors, linearized=False)
+    base = Model((), priors=base_priors)
     base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
     base.log_evidence = laplace_log_evidence(base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors)
     stage("base fit")
