@@ -146,3 +146,17 @@ def test_inclusion_and_claims():
     ms = _models([((), 0.0), (("a",), -1.0), (("b",), -1.0)])
     assert claims(ms, ["a", "b"]) == ([], [])
     assert CLAIM == 0.95
+
+
+def test_an_effect_the_data_do_not_see_changes_nothing():
+    # a one-sided effect (half-normal prior on its bound "off") whose column is zero, fitted
+    # at "off": the posterior is half the Laplace Gaussian, and the evidence is the base
+    # model's exactly (its Occam factor is 1), whatever the prior's width
+    A, y, mu, sd = linear_gaussian(0)
+    x = map_estimate(A, y, mu, sd)
+    base = [XPrior(m, s) for m, s in zip(mu, sd)]
+    want = laplace_log_evidence(A @ x - y, A, x, base)
+    for width in (0.1, 1.0, 30.0):
+        Ja = np.hstack([A, np.zeros((len(y), 1))])
+        got = laplace_log_evidence(A @ x - y, Ja, np.append(x, 0.0), base + [XPrior(0.0, width, 0.0, math.inf)])
+        assert got == pytest.approx(want, abs=1e-10)

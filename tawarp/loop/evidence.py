@@ -6,21 +6,23 @@ A *model* is the base fit plus a set of effects (at most one that changes the co
 structure). Every parameter carries a Gaussian prior in its scaled fit variable x
 (:class:`tawarp.model.effects.Param`; log-normal for log fields), truncated to the fit
 bounds: the base fields' priors come from the core file or the documented defaults
-(:func:`tawarp.model.priors.prior_for`), an effect's parameters sit around "off" with the
-effect's typical size (:func:`tawarp.model.priors.effect_priors`).
+(:func:`tawarp.model.priors.prior_for`), an effect's parameters sit around "off" with twice
+the effect's typical size as one sd (:func:`tawarp.model.priors.effect_priors`).
 
 **Evidence.** The Laplace approximation of the marginal likelihood at the maximum a
 posteriori x* (Tierney & Kadane, JASA 81 (1986) 82; Kass & Raftery, JASA 90 (1995) 773,
 Eq. 4; MacKay, *Information Theory, Inference and Learning Algorithms* (2003), Ch. 28):
 
-    ln Z = ln L(x*) + ln pi(x*) + (k/2) ln 2 pi - (1/2) ln det H,
+    ln Z = ln L(x*) + ln pi(x*) + (k/2) ln 2 pi - (1/2) ln det H + ln m,
     H = J^T J + diag(1/sd^2),
 
 with ln L = -chi^2/2 (the Gaussian noise's normalisation, the same for every model, is
 left out), pi the truncated-Gaussian prior density and H the Gauss-Newton Hessian of
--ln posterior. Parameters the data do not determine get H = 1/sd^2: their Occam factor is
-then exactly 1, so an effect that changes nothing is neither rewarded nor punished beyond
-its model prior.
+-ln posterior, m the share of that Gaussian inside the parameters' ranges (per parameter:
+1/2 for a one-sided effect fitted at its bound). Parameters the data do not determine get
+H = 1/sd^2 and m = 1/2 on a half-normal's bound: their Occam factor is then exactly 1, so
+an effect that changes nothing is neither rewarded nor punished beyond its model prior
+(``tests/test_evidence.py``).
 
 **Model prior.** Uniform over the number of effects (0 ... ``max_effects``), then uniform
 among the models of that size: the multiplicity correction of Scott & Berger, Ann. Stat. 38
@@ -98,15 +100,34 @@ def model_priors(core, params: list[Param], effects: tuple[Effect, ...]) -> list
     return [x_prior(core, par, declared.get(par.label)) for par in params]
 
 
+def inside_mass(x: np.ndarray, H: np.ndarray, priors: list[XPrior]) -> float:
+    """ln of the share of the Laplace Gaussian (mean ``x``, covariance ``H^-1``) that lies in
+    each parameter's range, parameter by parameter: 1/2 for a parameter on its bound (a
+    one-sided effect fitted at "off"), about 1 far inside. Without it a one-sided effect the
+    data barely see would gain ln 2 from its half-normal's normalisation alone."""
+    s = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 1e-300))
+    lo = np.array([p.lo for p in priors])
+    hi = np.array([p.hi for p in priors])
+    mass = stats.norm.cdf((hi - x) / s) - stats.norm.cdf((lo - x) / s)
+    return float(np.sum(np.log(np.maximum(mass, 1e-300))))
+
+
 def laplace_log_evidence(r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior]) -> float:
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
-    (in units of the noise) and their Jacobian ``J`` in x."""
+    (in units of the noise) and their Jacobian ``J`` in x, the Gaussian cut to the parameters'
+    ranges (:func:`inside_mass`)."""
     mu = np.array([p.mu for p in priors])
     isd2 = np.array([p.sd**-2 for p in priors])
     H = J.T @ J + np.diag(isd2)
     _, logdet = np.linalg.slogdet(H)
     log_prior = float(np.sum(-0.5 * (x - mu) ** 2 * isd2)) + sum(p.log_norm() for p in priors)
-    return -0.5 * float(r @ r) + log_prior + 0.5 * len(x) * math.log(2 * math.pi) - 0.5 * logdet
+    return (
+        -0.5 * float(r @ r)
+        + log_prior
+        + 0.5 * len(x) * math.log(2 * math.pi)
+        - 0.5 * logdet
+        + inside_mass(x, H, priors)
+    )
 
 
 def prior_z(x: np.ndarray, priors: list[XPrior]) -> np.ndarray:
@@ -199,9 +220,10 @@ def linearized_evidence(
     """ln Z of each model (its effects and their priors, appended to ``at``'s) from the
     quadratic model of ln posterior at ``at``'s solution: ``||r + J d||^2`` with the base
     columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"), plus the priors.
-    An effect parameter whose optimum leaves its bounds is held on the bound (the
-    Gaussian then integrates over half a space: ln 2 less). Returns (ln Z, x) per model,
-    x the linearized optimum (``at``'s parameters, then the effects')."""
+    An effect parameter whose optimum leaves its bounds is held on the bound, and the
+    Gaussian is cut to the ranges as in :func:`laplace_log_evidence`.
+    Returns (ln Z, x) per model, x the linearized optimum (``at``'s parameters, then the
+    effects')."""
     fit = at.fit
     r0, Jb, xb = fit.residuals[0], fit.jacobian[0], fit.x[0]
     out = []
@@ -215,7 +237,6 @@ def linearized_evidence(
         G = C.T @ C + np.diag(isd2)
         b = C.T @ r0 + isd2 * (x0 - mu)
         free = np.ones(len(x0), dtype=bool)
-        pinned = 0
         while True:
             d = np.zeros(len(x0))
             d[free] = np.linalg.solve(G[np.ix_(free, free)], -b[free])
@@ -226,7 +247,6 @@ def linearized_evidence(
                 break
             j = int(np.argmax(np.where(bad, np.maximum(lo - x, x - hi), -np.inf)))
             free[j] = False
-            pinned += 1
         x = np.clip(x, lo, hi)
         d = x - x0
         rr = r0 + C @ d
@@ -237,7 +257,7 @@ def linearized_evidence(
             + sum(p.log_norm() for p in priors)
             + 0.5 * len(x) * math.log(2 * math.pi)
             - 0.5 * logdet
-            - pinned * math.log(2.0)
+            + inside_mass(x, G, priors)
         )
         out.append((logz, x))
     return out
