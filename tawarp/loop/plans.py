@@ -120,6 +120,7 @@ def next_measurement(
                 "expected_gain": gains[worst],
                 "expected_gain_per_rival": gains,
                 "_predictions": pred,
+                "_sd": sd[kind.coef],
                 "_rows": (kind.freq, kind.group, kind.coef),
             }
         )

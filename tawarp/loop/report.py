@@ -118,8 +118,10 @@ def drift_figure(report: dict, path: Path) -> Path | None:
 
 
 def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | None:
-    """The best next measurement: each rival model's prediction of the coefficient and group
-    where they differ most, against frequency (None when no plan was made)."""
+    """The best next measurement: each rival's prediction minus the best model's, in units of
+    the data's noise, for the coefficient and group where they differ most, against
+    frequency (real part solid, imaginary dashed; grey: one noise sd). None when no plan was
+    made."""
     plans = report.get("next_measurement") or []
     if not plans:
         return None
@@ -129,21 +131,23 @@ def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | No
     import matplotlib.pyplot as plt
 
     best = plans[0]
-    pred = best["_predictions"]
+    pred, sd = best["_predictions"], best["_sd"]
     freq, group, coef = best["_rows"]
     a, b = best["separates"]
-    d = np.abs(pred[a] - pred[b])
-    k = int(np.argmax(d))
+    k = int(np.argmax(np.abs(pred[b] - pred[a]) / sd.min(axis=1)))
     m = np.flatnonzero((coef == coef[k]) & (group == group[k]))
     m = m[np.argsort(freq[m])]
-    fig, axes = plt.subplots(1, 2, figsize=(9.0, 3.4), layout="constrained")
-    for label, y in pred.items():
-        for ax, part in zip(axes, (np.real, np.imag)):
-            ax.plot(freq[m], part(y[m]), "-" if label == a else "--", label=label)
-    for ax, part in zip(axes, ("real", "imaginary")):
-        ax.set_xlabel("frequency [Hz]")
-        ax.set_ylabel(f"{part} part of {problem.coef_names[coef[k]]}")
-    axes[0].legend(fontsize=7)
+    fig, ax = plt.subplots(figsize=(7.0, 3.6), layout="constrained")
+    ax.axhspan(-1.0, 1.0, color="0.88", lw=0)
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for j, (label, y) in enumerate((lab, y) for lab, y in pred.items() if lab != a):
+        d = y[m] - pred[a][m]
+        ax.plot(freq[m], d.real / sd[m, 0], "-", color=colors[j % len(colors)], label=label)
+        ax.plot(freq[m], d.imag / sd[m, 1], "--", color=colors[j % len(colors)])
+    ax.axhline(0.0, color="k", lw=0.5)
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel(f"{problem.coef_names[coef[k]]}: rival - {a} [noise sd]")
+    ax.legend(fontsize=7, title="rival", title_fontsize=7)
     fig.suptitle(
         f"next measurement: {best['description']}\n{problem.group_name} = {group[k]:.4g}; expected ln Bayes "
         f"factor {a} vs {b}: {best['expected_gain']:.3g}",
