@@ -20,17 +20,8 @@ from tawarp.model.core import (
 )
 from tawarp.model.effects import Param, base_params, impedance_library, tmatrix_library
 from tawarp.model.layer import layer_core
-from tawarp.model.priors import (
-    DEFAULT_PRIORS,
-    EFFECT_WIDTH,
-    TENSION_SD,
-    Z95,
-    Prior,
-    effect_priors,
-    prior_for,
-    segment_role,
-    tension,
-)
+from tawarp.model.prior import TENSION_SD, Z95, Prior, tension
+from tawarp.model.priors import DEFAULT_PRIORS, EFFECT_WIDTH, effect_priors, prior_for, segment_role
 
 
 def _ceramic_with(path, raw: dict[tuple[str, str], str]):

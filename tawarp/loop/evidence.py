@@ -84,7 +84,7 @@ class XPrior:
 
 
 def x_prior(core, par: Param, declared=None) -> XPrior:
-    """The prior of ``par`` in its x: ``declared`` (a :class:`tawarp.model.priors.Prior`) or the
+    """The prior of ``par`` in its x: ``declared`` (a :class:`tawarp.model.prior.Prior`) or the
     core file's / default prior of the field it fits."""
     pr = declared if declared is not None else prior_for(core, par.label)
     mu, sd = pr.x_moments(par)

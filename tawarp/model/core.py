@@ -17,7 +17,6 @@ import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,9 +24,7 @@ from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT
 from .fields import field as field_spec
 from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES
-
-if TYPE_CHECKING:
-    from .priors import Prior
+from .prior import Prior, PriorError, declared_prior
 
 SEGMENT_KINDS = ("duct", "porous")
 PORE_MODELS = tuple(KERNEL_PORE_MODELS)
@@ -89,7 +86,7 @@ class Segment:
 @dataclass(frozen=True)
 class Core:
     """A thermoacoustic core: ``gas``, tube ``radius`` [m] and ``segments`` from x1 to x6;
-    ``priors`` {parameter name: :class:`~tawarp.model.priors.Prior`} the uncertainties its
+    ``priors`` {parameter name: :class:`~tawarp.model.prior.Prior`} the uncertainties its
     file declares (docs/priors.md), kept by :meth:`replace` and written back."""
 
     segments: tuple[Segment, ...]
@@ -179,7 +176,7 @@ class Core:
 
     def to_dict(self) -> dict:
         """The TOML structure (docs/formats.md) of this core; a field with a declared prior as
-        its inline table (:meth:`~tawarp.model.priors.Prior.toml_entry`)."""
+        its inline table (:meth:`~tawarp.model.prior.Prior.toml_entry`)."""
         out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
@@ -366,9 +363,6 @@ def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dic
     """``table`` (a [gas], [tube] or [[segment]] table) with every inline table
     ``{value = v, sd | rel | range = ...}`` of a ``numeric`` field replaced by its value
     ``v``, its prior stored in ``priors`` under ``OWNER.FIELD`` (docs/priors.md)."""
-    # priors.py builds on effects.py, which builds on this module: imported when used
-    from .priors import declared_prior
-
     out = dict(table)
     for key, entry in table.items():
         if not isinstance(entry, dict):
@@ -376,7 +370,10 @@ def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dic
         if key not in numeric:
             raise CoreError(f"{where}: {key} takes a plain value; only numeric fields take {{value = ..., sd = ...}}")
         spec = field_spec(f"{owner}.{key}" if owner in ("gas", "tube") else key)
-        out[key], priors[f"{owner}.{key}"] = declared_prior(entry, spec, f"{where}: {key}")
+        try:
+            out[key], priors[f"{owner}.{key}"] = declared_prior(entry, spec, f"{where}: {key}")
+        except PriorError as e:
+            raise CoreError(str(e)) from None
     return out
 
 
