@@ -21,11 +21,11 @@ Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
 5. **Next measurement** (:mod:`.plans`) when the top models are within 20:1, and the drift
    of the h's refitted per heat input.
 
-Modules: :mod:`.evidence`, :mod:`.goodness`, :mod:`.plans`, :mod:`.screen` (residual
-structure), :mod:`.run`, :mod:`.report` (report.json/md and figures).
+Modules: :mod:`.evidence`, :mod:`.goodness` (the checks and the residual's structure),
+:mod:`.plans`, :mod:`.run`, :mod:`.report` (report.json/md and figures).
 """
 
-from .goodness import goodness_of_fit, noise_sigma, residual_location
+from .goodness import goodness_of_fit, noise_sigma, residual_location, residual_structure
 from .report import write_report
 from .run import (
     MAX_EFFECTS,
@@ -38,7 +38,6 @@ from .run import (
     library_for,
     run_loop,
 )
-from .screen import residual_structure
 
 __all__ = [
     "goodness_of_fit",

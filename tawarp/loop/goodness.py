@@ -156,3 +156,27 @@ def residual_location(problem: MeasurementKind, Y: np.ndarray, floor: float) -> 
         "error": float(np.sqrt(d2[band].mean() / norm)),
         "noise_floor": floor,
     }
+
+
+def residual_structure(problem: MeasurementKind, Y: np.ndarray) -> dict:
+    """Per coefficient: rms weighted residual against frequency and group; the fraction
+    explained by a cubic in frequency per (coefficient, group, re/im)
+    (:func:`smooth_fraction`)."""
+    d = Y - problem.y
+    wr = np.stack([d.real * problem.w[:, 0], d.imag * problem.w[:, 1]], -1)
+    smooth = smooth_fraction(problem, wr)
+    per_coef = {}
+    groups = np.unique(problem.group)
+    for c, cname in enumerate(problem.coef_names):
+        per_coef[cname] = {
+            f"{g:g}": float(np.sqrt(np.mean((wr[m] ** 2).sum(-1))))
+            for g in groups
+            if (m := (problem.coef == c) & (problem.group == g)).any()
+        }
+    return {
+        "rms_weighted_residual": {"per_coefficient_and_group": per_coef},
+        "structured_fraction": smooth["fraction"],
+        "structured_fraction_if_white": smooth["if_white"],
+        "groups": [float(g) for g in groups],
+        "group_name": problem.group_name,
+    }

@@ -18,7 +18,7 @@ from ..model.effects import Effect, Param, base_params, library_for_core
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
-from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location
+from .goodness import NOISE_ESTIMATE, goodness_of_fit, noise_sigma, residual_location, residual_structure
 from .evidence import (
     REFITS,
     TENSION_Z,
@@ -38,7 +38,6 @@ from .evidence import (
     visible,
 )
 from .plans import next_measurement
-from .screen import residual_structure
 
 #: Effects per model: every subset of the library up to this size is compared.
 MAX_EFFECTS = 3
