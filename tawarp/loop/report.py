@@ -39,10 +39,7 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
     """The residual per coefficient against frequency, one line per group (real part solid,
     imaginary part dashed), before (top row) and after (bottom row), in units of rms|y|
     with the noise floor shaded: a narrow feature such as a resonance dip stays visible."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..plots import plt, save
 
     fits = report["_fits"]
     nc = len(problem.coef_names)
@@ -85,10 +82,7 @@ def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
         f"claimed: {'; '.join(_steps(report)) or 'none'} (re solid, im dashed; grey: noise)",
         fontsize=9,
     )
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def drift_figure(report: dict, path: Path) -> Path | None:
@@ -96,10 +90,7 @@ def drift_figure(report: dict, path: Path) -> Path | None:
     db, da = report.get("drift_before"), report.get("drift_after")
     if not db:
         return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..plots import plt, save
 
     names = list(db["values"])
     fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.4), squeeze=False, layout="constrained")
@@ -111,10 +102,7 @@ def drift_figure(report: dict, path: Path) -> Path | None:
         ax.set_ylabel(f"{k} [W/(m^2 K)]")
         ax.legend(fontsize=8)
     fig.suptitle("heat-exchange coefficients refitted per heat input", fontsize=10)
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | None:
@@ -125,10 +113,7 @@ def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | No
     plans = report.get("next_measurement") or []
     if not plans:
         return None
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from ..plots import plt, save
 
     best = plans[0]
     pred, sd = best["_predictions"], best["_sd"]
@@ -153,10 +138,7 @@ def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | No
         f"factor {a} vs {b}: {best['expected_gain']:.3g}",
         fontsize=9,
     )
-    path = Path(path)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save(fig, path)
 
 
 def report_markdown(report: dict) -> str:
@@ -271,7 +253,7 @@ def report_markdown(report: dict) -> str:
 
 def write_report(problem: MeasurementKind, report: dict, outdir: str | Path) -> dict:
     """OUTDIR/report.json, report.md, residuals.png (and drift.png); returns the JSON dict."""
-    from ..io import write_json
+    from ..io import write_json, write_text
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
@@ -283,7 +265,5 @@ def write_report(problem: MeasurementKind, report: dict, outdir: str | Path) -> 
     ]
     js["figures"] = [f.name for f in figs if f is not None]
     write_json(outdir / "report.json", js)
-    tmp = outdir / "report.md.tmp"
-    tmp.write_text(report_markdown(js) + "".join(f"\n![{f[:-4]}]({f})\n" for f in js["figures"]))
-    tmp.replace(outdir / "report.md")  # atomic: no half-written report
+    write_text(outdir / "report.md", report_markdown(js) + "".join(f"\n![{f[:-4]}]({f})\n" for f in js["figures"]))
     return js
