@@ -69,9 +69,7 @@ def _noise(problem: MeasurementKind) -> np.ndarray:
     )
 
 
-def next_measurement(
-    problem: MeasurementKind, models: list[Model], fixed: dict, base_params=None, library=None
-) -> list[dict]:
+def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict) -> list[dict]:
     """The :data:`PLANS` best plans (module doc) as report entries {description,
     heat_inputs_W / groups, frequencies_Hz, separates, expected_gain}; [] when the best model
     is more than :data:`ODDS` times as probable as every other, no plan separates a rival by

@@ -216,6 +216,16 @@ def _typical_x(e: Effect) -> np.ndarray:
     return np.array([float(par.x_of(e.typical.get(par.label, par.start))) for par in e.params])
 
 
+def _effect_parts(x: np.ndarray, n_base: int, effects: list[Effect]) -> dict[str, np.ndarray]:
+    """{effect name: its fit variables} of ``x``, which holds the base parameters and then
+    the parameters of ``effects`` in that order."""
+    out, k = {}, n_base
+    for e in effects:
+        out[e.name] = x[k : k + len(e.params)]
+        k += len(e.params)
+    return out
+
+
 def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarray | None) -> list[np.ndarray]:
     """Starts of the refit of the model of ``effects``, which extends ``at`` (the base, or
     the best model so far): ``at``'s solution with its own effects at their fitted values and
@@ -224,11 +234,7 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     parameters at the core file's values with every effect at its typical size (a strong
     effect pulls the base fit away from where the augmented optimum lies, and a descent
     from there can stay in that valley); and the linearized optimum."""
-    own, k = {}, n_base
-    for name in at.effects:
-        n = len(next(e for e in effects if e.name == name).params)
-        own[name] = at.fit.x[0][k : k + n]
-        k += n
+    own = _effect_parts(at.fit.x[0], n_base, [e for e in effects if e.name in at.effects])
     base_x = at.fit.x[0][:n_base]
     out = [np.concatenate([base_x] + [own.get(e.name, np.zeros(len(e.params))) for e in effects])]
     if len(effects) == 1:
@@ -265,6 +271,7 @@ def compare_models(
     for s_ in sets:
         sizes[len(s_)] = sizes.get(len(s_), 0) + 1
     base.log_model_prior = log_model_prior(sizes, 0)
+    by_name = {e.name: e for e in library}
 
     def linearize(at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None):
         """(names, linearized ln Z + ln P(M), x) of each candidate at ``at``'s solution."""
@@ -276,24 +283,20 @@ def compare_models(
         lin = linearized_evidence(at, cols, list(zip(extra, pri)))
         out = []
         for c, ex, (logz, x) in zip(cand, extra, lin):
-            # x is ordered as at's parameters then the extra effects': reorder to the model's own order
+            # x holds at's parameters, then the extra effects': taken to the model's own order
+            parts = _effect_parts(x, n_base, [by_name[n] for n in at.effects] + list(ex))
             names = tuple(e.name for e in c)
-            xs = {
-                n: x[len(at.fit.x[0]) + sum(len(e.params) for e in ex[:i]) :][: len(ex[i].params)]
-                for i, n in enumerate(e.name for e in ex)
-            }
-            k0 = n_base
-            for n in at.effects:
-                e = next(e for e in library if e.name == n)
-                xs[n] = x[k0 : k0 + len(e.params)]
-                k0 += len(e.params)
-            full = np.concatenate([x[:n_base]] + [xs[n] for n in names])
-            out.append((names, logz + log_model_prior(sizes, len(names)), full))
+            out.append(
+                (
+                    names,
+                    logz + log_model_prior(sizes, len(names)),
+                    np.concatenate([x[:n_base]] + [parts[n] for n in names]),
+                )
+            )
         return out
 
     lin = linearize(base, [s_ for s_ in sets if s_], at_base)
     lin.sort(key=lambda t: -t[1])
-    by_name = {e.name: e for e in library}
     singles = {(e.name,) for e in library}
     best_lin = max((t[1] for t in lin), default=-math.inf)
     top = [t for t in lin if t[0] not in singles and t[1] >= best_lin + math.log(WINDOW)][:refits]
