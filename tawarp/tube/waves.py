@@ -16,10 +16,9 @@ import numpy as np
 
 from .spectra import Transfers
 
-#: Microphone spacing band [wavelengths] where a pair resolves the two waves: ISO 10534-2
-#: (sec. 4.2, 4.3) and ASTM E2611-19 (sec. 6.5): s > 0.05 wavelength (below, the two
-#: pressures differ too little) and s < 0.45 wavelength (at 0.5 the pair cannot separate the
-#: waves).
+#: Microphone spacing band [wavelengths] where a pair resolves the two waves, ISO 10534-2's
+#: working range: s > 0.05 wavelength (below, the two pressures differ too little) and
+#: s < 0.45 wavelength (at 0.5 the pair cannot separate the waves).
 SPACING_BAND = (0.05, 0.45)
 #: Largest condition number of a method's linear solve with a written value: beyond it the
 #: solved states (or loads) are alike to within 1 % of their size, and the first-order
