@@ -112,7 +112,8 @@ def core_tmatrix(
     var = np.full((nf, 4), np.nan)
     if ok.any():
         a, b, cov, zl_ok = a[ok], b[ok], cov[ok], zl[ok]
-        t0, _, _ = _solve(a, b, np.broadcast_to(np.eye(2 * m), (a.shape[0], 2 * m, 2 * m)))
+        # first pass: every equation at unit weight (rows scaled to unit norm)
+        t0, _, _ = _solve(a, b, np.einsum("fi,ij->fij", 1 / np.linalg.norm(a, axis=2) ** 2, np.eye(2 * m)))
         # error of equation (1), (2) of termination j from d(zin, z61): E_j = [[tpp, -1], [zl tup, -1]]
         e = np.zeros(cov.shape, dtype=complex)
         e[..., 0, 0], e[..., 1, 0] = t0[:, 0, None], zl_ok * t0[:, 2, None]
