@@ -86,13 +86,12 @@ def state_from_pair(k, z0, xa: float, xb: float) -> np.ndarray:
     for row, x in enumerate((xa, xb)):
         m[:, row, 0] = np.cos(k * x)
         m[:, row, 1] = -1j * z0 * np.sin(k * x)
-    # inverse of [[a, b], [c, d]] with det = -i z0 sin(k (xb - xa))
+    # inverse of [[a, b], [c, d]] with det = -i z0 sin(k (xb - xa)); NaN where singular
     det = -1j * z0 * np.sin(k * (xb - xa))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = (
-            np.stack([np.stack([m[:, 1, 1], -m[:, 0, 1]], -1), np.stack([-m[:, 1, 0], m[:, 0, 0]], -1)], -2)
-            / det[:, None, None]
-        )
+    det = np.where(det == 0, np.nan, det)
+    adj = np.stack([np.stack([m[:, 1, 1], -m[:, 0, 1]], -1), np.stack([-m[:, 1, 0], m[:, 0, 0]], -1)], -2)
+    with np.errstate(invalid="ignore"):
+        inv = adj / det[:, None, None]
     return inv
 
 
@@ -132,8 +131,9 @@ def two_state_solve(up: np.ndarray, down: np.ndarray, h: np.ndarray, cov: np.nda
     ``T = S_down S_up^-1`` and, to first order, ``dT = sum_j (down_j - T up_j) dh V[j, :]``,
     ``V = S_up^-1``. Returns ``T`` (nf, 2, 2), ``E|dT|^2`` (nf, 2, 2) and the condition number
     of ``S_up`` with rows ``(p, z0 U)`` and unit columns."""
-    s_up = np.einsum("fjqn,fn->fqj", up, h)
-    s_down = np.einsum("fjqn,fn->fqj", down, h)
+    with np.errstate(invalid="ignore"):  # NaN maps where a microphone pair is singular
+        s_up = np.einsum("fjqn,fn->fqj", up, h)
+        s_down = np.einsum("fjqn,fn->fqj", down, h)
     scale = np.stack([np.ones_like(z0), z0], -1)[:, :, None]
     condition = normalized_condition(s_up * scale)
     ok = np.isfinite(condition) & (condition < 1e14)
