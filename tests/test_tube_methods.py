@@ -311,5 +311,5 @@ def test_bad_input_raises_clear_errors():
         terminations.core_tmatrix([two], [load], z0)
     with pytest.raises(ValueError, match="2 readings but 1 loads"):
         terminations.core_tmatrix([two, two], [load], z0)
-    with pytest.raises(ValueError, match="termination impedance is NaN or infinite"):
+    with pytest.raises(ValueError, match="load 2 contains NaN or infinite values"):
         terminations.core_tmatrix([two, two], [load, np.full(F.size, np.inf)], z0)

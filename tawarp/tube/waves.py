@@ -61,16 +61,20 @@ def same_frequencies(first: Transfers, *others: Transfers) -> None:
             )
 
 
-def tube_constants(k, z0, nf: int) -> tuple[np.ndarray, np.ndarray]:
-    """``k`` and ``z0`` broadcast to (nf,) complex, checked finite with ``Re k >= 0`` and
-    ``z0 != 0``."""
+def per_frequency(x, nf: int, name: str) -> np.ndarray:
+    """``x`` (scalar or (nf,)) as (nf,) complex, finite, or a ValueError naming ``name``."""
     try:
-        kk = np.broadcast_to(np.asarray(k, dtype=complex), (nf,)).copy()
-        zz = np.broadcast_to(np.asarray(z0, dtype=complex), (nf,)).copy()
-    except ValueError:
-        raise ValueError(f"k has shape {np.shape(k)} and z0 {np.shape(z0)}; expected ({nf},) or scalars") from None
-    if not (np.all(np.isfinite(kk)) and np.all(np.isfinite(zz))):
-        raise ValueError("k or z0 contain NaN or infinite values")
+        out = np.broadcast_to(np.asarray(x, dtype=complex), (nf,)).copy()
+    except (ValueError, TypeError):
+        raise ValueError(f"{name} has shape {np.shape(x)}; expected ({nf},), one per frequency, or a scalar") from None
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return out
+
+
+def tube_constants(k, z0, nf: int) -> tuple[np.ndarray, np.ndarray]:
+    """``k`` and ``z0`` as (nf,) complex, checked finite with ``Re k >= 0`` and ``z0 != 0``."""
+    kk, zz = per_frequency(k, nf, "k"), per_frequency(z0, nf, "z0")
     if np.any(kk.real < 0):
         raise ValueError("k has a negative real part: give the wavenumber of exp(+i omega t), Re k = omega / c > 0")
     if np.any(zz == 0):
