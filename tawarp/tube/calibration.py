@@ -126,9 +126,9 @@ class SelfCalibration:
         moved = np.array(self.positions) - np.array(self.nominal_positions)
         sd = np.sqrt(np.diag(self.covariance))
         return {
-            "positions_m": [round(v, 6) for v in self.positions],
-            "position_shift_mm": [round(1e3 * v, 3) for v in moved],
-            "position_sd_mm": [0.0] + [round(1e3 * v, 3) for v in sd[:-2]] + [0.0],
+            "positions_m": [round(float(v), 6) for v in self.positions],
+            "position_shift_mm": [round(1e3 * float(v), 3) for v in moved],
+            "position_sd_mm": [0.0] + [round(1e3 * float(v), 3) for v in sd[:-2]] + [0.0],
             "temperature_K": round(self.temperature, 3),
             "temperature_sd_K": round(float(sd[-2]), 3),
             "temperature_shift_K": round(self.temperature - self.nominal_temperature, 3),
