@@ -152,7 +152,7 @@ def _one_set(setup: Setup, pset: PositionSet, spectra, direct, gains, self_cal: 
         gas, loss = dataclasses.replace(setup.gas, temperature=fitted.temperature), fitted.loss
     progress()
     result = _run(setup, transfers, x, gas, loss)
-    var = _parts(result.sd) ** 2
+    var = np.stack([result.sd**2, result.sd**2], -1)  # circular: the same for both parts
     if band_gains is not None:
         movable = [i for i, c in enumerate(ch) if c != setup.reference]
         m = len(movable)

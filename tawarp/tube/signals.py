@@ -129,8 +129,8 @@ def read_cross_spectra(path: str | Path) -> CrossSpectra:
     G = np.empty((len(t.lines), n, n), dtype=complex)
     for i in range(n):
         for j in range(i, n):
+            G[:, j, i] = t.values[f"G_{i}_{j}_re"] - 1j * t.values[f"G_{i}_{j}_im"]
             G[:, i, j] = t.values[f"G_{i}_{j}_re"] + 1j * t.values[f"G_{i}_{j}_im"]
-            G[:, j, i] = np.conj(G[:, i, j])
     auto = np.einsum("fii->fi", G).real
     bad = np.argwhere(auto <= 0)
     if bad.size:
