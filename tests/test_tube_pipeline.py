@@ -324,3 +324,38 @@ def test_cli_measure_end_to_end(tmp_path):
     assert abs(fitted - 296.15) < 0.5
     assert np.median(np.abs(d.T - truth) / np.abs(truth)) < 1e-2
     assert main(["measure", str(path), "-o", str(out), "--quiet", "--method", "one_load"]) == 2
+
+
+def test_iso10534_surface_impedance_end_to_end(tmp_path):
+    """A rigid-backed layer (the specimen above, ``U = 0`` behind it) seen by two
+    microphones: the surface-impedance CSV holds ``Zs / (rho0 c0)`` of the layer within
+    its sd and reads back through tawarp's reader."""
+    from tawarp.measure import read_impedance_csv
+
+    rng = np.random.default_rng(8)
+    T = specimen(FULL)
+    k, z = plane_waves(FULL, GAS, TUBE)
+    k, z0 = np.conj(k), np.conj(z) / TUBE.area
+    with np.errstate(divide="ignore", invalid="ignore"):
+        zin = -T[:, 1, 1] / T[:, 1, 0]  # p / U at the front face
+    zin[0] = 1.0  # f = 0: no wave, no layer impedance
+    A, B = 1.0, (zin - z0) / (zin + z0)  # a unit incident wave and its reflection (bounded)
+    P = np.stack([A * np.exp(-1j * k * x) + B * np.exp(1j * k * x) for x in X[:2]], -1)
+    write_h5(tmp_path / "layer.h5", signals(P, np.ones(2), rng, snr=100.0))
+    path = description(tmp_path, [tmp_path / "layer.h5"], method="iso10534")
+    text = path.read_text().replace("channels = [0, 1, 2, 3]", "channels = [0, 1]")
+    path.write_text(text.replace(f"positions = {X.tolist()!r}", f"positions = {X[:2].tolist()!r}"))
+    m = measure(path)
+    d = m.data
+    g = GASES["air"]
+    rho_c = GAS.pressure * math.sqrt(g.gamma / (g.R_gas * GAS.temperature))
+    T_f = specimen(d.freq)
+    truth = np.conj(-T_f[:, 1, 1] / T_f[:, 1, 0] * TUBE.area / rho_c)
+    z = np.concatenate([(d.Zs - truth).real / d.sigma[:, 0], (d.Zs - truth).imag / d.sigma[:, 1]])
+    assert 0.6 < np.std(z) < 1.5 and np.mean(np.abs(z) < 4) > 0.99
+    out = tmp_path / "Zs.csv"
+    write_measurement(m, out, figure=False)
+    back = read_impedance_csv(out)
+    np.testing.assert_array_equal(back.Zs, d.Zs)
+    np.testing.assert_array_equal(back.sigma, d.sigma)
+    assert back.thickness == THICKNESS and back.T_ambient == GAS.temperature
