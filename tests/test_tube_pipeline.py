@@ -320,7 +320,7 @@ def test_cli_measure_end_to_end(tmp_path):
     truth = np.conj(specimen(d.freq))
     assert (out.parent / "cli_measure.png").is_file()
     # the description says 293.15 K; the self-calibration finds the 296.15 K of the signals
-    fitted = float(d.metadata["self_calibration.set0.temperature_K"])
+    fitted = float(d.metadata["self_calibration.temperature_K"])
     assert abs(fitted - 296.15) < 0.5
     assert np.median(np.abs(d.T - truth) / np.abs(truth)) < 1e-2
     assert main(["measure", str(path), "-o", str(out), "--quiet", "--method", "one_load"]) == 2

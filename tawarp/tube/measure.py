@@ -130,25 +130,51 @@ def _gain_pairs(gains: MicrophoneGains) -> np.ndarray:
     return np.block([[re, -im], [im, re]])
 
 
-def _one_set(setup: Setup, pset: PositionSet, spectra, direct, gains, self_cal: bool, progress) -> SetResult:
+def _band_gains(gains: MicrophoneGains, channels, lo: float, hi: float) -> MicrophoneGains:
+    """The factors of ``channels`` at lo <= f <= hi [Hz]."""
+    g = gains.select(channels)
+    keep = (g.frequencies >= lo) & (g.frequencies <= hi)
+    return MicrophoneGains(g.frequencies[keep], g.channels, g.factors[keep], g.covariance[keep])
+
+
+def _tube_fit(setup: Setup, direct: CrossSpectra, gains) -> tuple[SelfCalibration, list[int]]:
+    """One self-calibration of the tube (:func:`tawarp.tube.calibration.self_calibrate`)
+    over every microphone of every position set, ordered downstream, and the union of the
+    sets' bands: one tube, one gas for all sets. Returns it and the channels in its order."""
+    where = {}
+    for n, s in enumerate(setup.sets):
+        for c, x in zip(s.channels, s.positions):
+            if c in where and where[c] != x:
+                raise setup.error(
+                    f"microphones[{n}].positions",
+                    f"channel {c} at {x} m, at {where[c]} m in an earlier set; one microphone has one place",
+                )
+            where[c] = x
+    channels = sorted(where, key=where.get)
+    x = [where[c] for c in channels]
+    if len(set(x)) != len(x):
+        raise setup.error("microphones", f"two channels share a position: {dict(zip(channels, x))}")
+    lo, hi = min(s.band[0] for s in setup.sets), max(s.band[1] for s in setup.sets)
+    empty = direct.band(lo, hi).transfers(setup.reference, channels)
+    if gains is not None:
+        empty = corrected(empty, _band_gains(gains, channels, lo, hi))
+    return self_calibrate(empty, x, setup.gas, setup.tube), channels
+
+
+def _one_set(setup: Setup, pset: PositionSet, spectra, gains, tube_fit, progress) -> SetResult:
+    """The method in ``pset``'s band; ``tube_fit`` (the self-calibration and its channels)
+    or None for the description's tube."""
     lo, hi = pset.band
     ch = list(pset.channels)
     measured = [s.band(lo, hi).transfers(setup.reference, ch) for s in spectra]
-    g = gains.select(ch) if gains is not None else None
-    band_gains = None
-    if g is not None:
-        keep = (g.frequencies >= lo) & (g.frequencies <= hi)
-        band_gains = MicrophoneGains(g.frequencies[keep], g.channels, g.factors[keep], g.covariance[keep])
-        transfers = [corrected(t, band_gains) for t in measured]
-    else:
-        transfers = measured
+    band_gains = _band_gains(gains, ch, lo, hi) if gains is not None else None
+    transfers = [corrected(t, band_gains) for t in measured] if band_gains is not None else measured
     x = np.array(pset.positions)
     gas, loss, fitted = setup.gas, 1.0, None
-    if self_cal:
-        empty = direct.band(lo, hi).transfers(setup.reference, ch)
-        empty = corrected(empty, band_gains) if band_gains is not None else empty
-        fitted = self_calibrate(empty, x, setup.gas, setup.tube)
-        x = np.array(fitted.positions)
+    if tube_fit is not None:
+        fitted, order = tube_fit
+        idx = [order.index(c) for c in ch]
+        x = np.array(fitted.positions)[idx]
         gas, loss = dataclasses.replace(setup.gas, temperature=fitted.temperature), fitted.loss
     progress()
     result = _run(setup, transfers, x, gas, loss)
@@ -167,14 +193,13 @@ def _one_set(setup: Setup, pset: PositionSet, spectra, direct, gains, self_cal: 
         var = var + _propagate(with_gains, 2 * m, _gain_pairs(dataclasses.replace(band_gains, covariance=sub)))
     change = None
     if fitted is not None:
-        inner = len(x) - 2
+        inner = len(fitted.positions) - 2
 
         def with_tube(d):
-            y = x.copy()
+            y = np.array(fitted.positions)
             y[1:-1] += d[:inner]
-            return _run(
-                setup, transfers, y, dataclasses.replace(gas, temperature=gas.temperature + d[-2]), loss + d[-1]
-            ).values
+            shifted = dataclasses.replace(gas, temperature=gas.temperature + d[-2])
+            return _run(setup, transfers, y[idx], shifted, loss + d[-1]).values
 
         var = var + _propagate(with_tube, inner + 2, fitted.covariance)
         nominal = _run(setup, transfers, np.array(pset.positions), setup.gas, 1.0)
@@ -237,11 +262,12 @@ def measure(
             raise MeasurementError(
                 f"{cal.direct}: frequencies differ from {setup.files[0]}'s: same sample rate and block"
             )
-        sets = [_one_set(setup, s, spectra, direct, gains, self_cal, bar.update) for s in setup.sets]
-    return _combine(setup, sets, gains is not None, self_cal)
+        tube_fit = _tube_fit(setup, direct, gains) if self_cal else None
+        sets = [_one_set(setup, s, spectra, gains, tube_fit, bar.update) for s in setup.sets]
+    return _combine(setup, sets, gains is not None, tube_fit)
 
 
-def _combine(setup: Setup, sets: list[SetResult], switched: bool, self_cal: bool) -> Measurement:
+def _combine(setup: Setup, sets: list[SetResult], switched: bool, tube_fit) -> Measurement:
     """One row per frequency: the valid set of lowest condition; the others left out."""
     best: dict[float, tuple] = {}
     reasons: dict[float, str] = {}
@@ -273,20 +299,22 @@ def _combine(setup: Setup, sets: list[SetResult], switched: bool, self_cal: bool
             for s in sets
         ),
         "calibration": ", ".join(
-            [p for p, on in (("switched microphones", switched), ("empty-tube self-calibration", self_cal)) if on]
+            [p for p, on in (("switched microphones", switched), ("empty-tube self-calibration", tube_fit)) if on]
         )
         or "none",
         "sigma": "random error of the transfer functions (Bendat & Piersol)"
         + (" + switched-microphone factors" if switched else "")
-        + (" + self-calibrated tube" if self_cal else "")
+        + (" + self-calibrated tube" if tube_fit is not None else "")
         + ", first order",
         "welch": ", ".join(f"{k} {v}" for k, v in setup.welch.items()),
     }
-    for s in sets:
-        if s.self_calibration is not None:
-            for k, v in s.self_calibration.summary().items():
-                summary[f"self_calibration.{s.positions.name}.{k}"] = v
-            summary[f"self_calibration.{s.positions.name}.median_change"] = s.self_calibration_change
+    if tube_fit is not None:
+        fit, channels = tube_fit
+        summary["self_calibration.channels"] = channels
+        for k, v in fit.summary().items():
+            summary[f"self_calibration.{k}"] = v
+        for s in sets:
+            summary[f"self_calibration.median_change.{s.positions.name}"] = s.self_calibration_change
     summary["left_out_Hz"] = ", ".join(f"{f:g}" for f in left_out) or "none"
     if left_out:
         summary["left_out_reason"] = "; ".join(f"{f:g} Hz: {why}" for f, why in left_out.items())
