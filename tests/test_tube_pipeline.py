@@ -420,3 +420,60 @@ block = 8192
     for name, entry in result["parameters"].items():
         truth = getattr(core.segments[0], name.split(".")[1])
         assert abs(entry["value"] - truth) < 3 * entry["std"], (name, entry, truth)
+
+
+def test_terminations_core_tmatrix_at_each_heat_input(tmp_path):
+    """An impedance sensor on a core closed by three tubes at each of two heat inputs (the
+    independent signals of tawarp.tube.synthetic): the T-matrix CSV holds both heat inputs,
+    within their sd, and reads back; one termination at a heat input is refused."""
+    from tawarp.tube import synthetic, terminations
+
+    tube = Tube("circular", 0.05, 0.05)
+    heated = np.diag([1.0, 1.3])  # a gain in the volume velocity: not reciprocal, as a heated core
+
+    def core(q):
+        return lambda f: (heated if q else np.eye(2)) @ np.conj(specimen(f))
+
+    def closed(length):
+        def load(f):
+            k, z = plane_waves(f, GAS, tube)
+            return terminations.closed_tube(np.conj(k), np.conj(z) / tube.area, length)
+
+        return load
+
+    tables = []
+    for n, (q, length) in enumerate((q, L) for q in (0.0, 40.0) for L in (0.10, 0.23, 0.37)):
+        x = synthetic.sensor_signals(core(q), closed(length), FS, N, (100.0, 3500.0), 40.0, seed=20 + n)
+        write_h5(tmp_path / f"t{n}.h5", x)
+        tables.append(f'[[termination]]\nfile = "t{n}.h5"\nheat_input = {q}\nclosed_tube = {length}\n')
+    path = tmp_path / "core.toml"
+    head = f"""[tube]
+shape = "circular"
+diameter = {tube.width}
+[gas]
+temperature = {GAS.temperature}
+pressure = {GAS.pressure}
+[measurement]
+method = "terminations"
+reference = 0
+[sensor]
+channels = [1, 2]
+band = [200.0, 2000.0]
+[spectra]
+block = {BLOCK}
+"""
+    path.write_text(head + "\n".join(tables))
+    m = measure(path)
+    d = m.data
+    assert sorted(set(d.heat_input)) == [0.0, 40.0]
+    truth = np.stack([core(q)(np.array([f]))[0] for q, f in zip(d.heat_input, d.freq)])
+    z = np.stack([(d.T - truth).real / d.sigma[..., 0], (d.T - truth).imag / d.sigma[..., 1]], -1)
+    assert 0.6 < np.std(z) < 1.5 and np.mean(np.abs(z) < 4) > 0.99, np.std(z)
+    out = tmp_path / "core.csv"
+    write_measurement(m, out, figure=False)
+    back = read_tmatrix_csv(out)
+    np.testing.assert_array_equal(back.T, d.T)
+    np.testing.assert_array_equal(back.heat_input, d.heat_input)
+    path.write_text(head + "\n".join(tables[:4]))  # 40 W has one termination
+    with pytest.raises(MeasurementError, match=r"\[\[termination\]\].*\[40.0\] W"):
+        load_setup(path)

@@ -33,13 +33,13 @@ from ..io import claim_outputs
 from ..measure.files import ImpedanceData, TMatrixData, write_impedance_csv, write_tmatrix_csv
 from ..measure.table import MeasurementError
 from ..model.gas import GASES
-from . import e2611, iso10534
+from . import e2611, iso10534, terminations
 from .acoustics import plane_waves
 from .calibration import MicrophoneGains, SelfCalibration, corrected, self_calibrate, switched_gains
 from .result import TubeResult
 from .setup import PositionSet, Setup, load_setup
 from .signals import cross_spectra
-from .spectra import CrossSpectra
+from .spectra import CrossSpectra, Transfers
 
 #: Relative step of the central differences that propagate the calibration errors.
 STEP = 1e-6
@@ -56,6 +56,7 @@ class SetResult:
     sd_parts: np.ndarray
     self_calibration: SelfCalibration | None
     self_calibration_change: dict | None
+    heat_input: float = 0.0
 
 
 @dataclass
@@ -67,7 +68,7 @@ class Measurement:
     setup: Setup
     sets: list[SetResult]
     data: TMatrixData | ImpedanceData
-    left_out: dict[float, str]
+    left_out: dict[tuple[float, float], str]  # (heat input [W], frequency [Hz]) -> why
     summary: dict
 
 
@@ -208,7 +209,41 @@ def _one_set(setup: Setup, pset: PositionSet, spectra, gains, tube_fit, progress
     sd_parts = np.sqrt(var)
     sd = np.sqrt(np.mean(var, axis=-1))
     result = dataclasses.replace(result, sd=np.where(result.valid.reshape((-1,) + (1,) * (sd.ndim - 1)), sd, np.nan))
-    return SetResult(pset, result, sd_parts, fitted, change)
+    return SetResult(pset, result, sd_parts, fitted, change, setup.heat_input)
+
+
+def _terminations(setup: Setup, spectra, progress) -> list[SetResult]:
+    """The multi-termination method at each heat input: the sensor's transfer functions
+    from the volume-velocity channel (scaled by ``sensor.scale``) to ``p(x1)``, ``p(x6)``
+    under each known termination."""
+    pset = setup.sets[0]
+    ch = list(pset.channels)
+    out = []
+    for q in sorted({t.heat_input for t in setup.terminations}):
+        chosen = [i for i, t in enumerate(setup.terminations) if t.heat_input == q]
+        readings = []
+        for i in chosen:
+            t = spectra[i].band(*pset.band).transfers(setup.reference, ch)
+            a = setup.sensor_scale
+            readings.append(Transfers(t.frequencies, a * t.values, a * a * t.covariance))
+        f = readings[0].frequencies
+        k, z = plane_waves(f, setup.gas, setup.tube)
+        kp, z0 = np.conj(k), np.conj(z) / setup.tube.area  # the method's exp(+i omega t)
+        loads = []
+        for i in chosen:
+            term = setup.terminations[i]
+            if term.closed_tube is not None:
+                loads.append(terminations.closed_tube(kp, z0, term.closed_tube))
+            else:
+                table = term.impedance
+                zl = np.interp(f, table[:, 0], table[:, 1]) + 1j * np.interp(f, table[:, 0], table[:, 2])
+                loads.append(np.conj(zl))
+        progress()
+        r = terminations.core_tmatrix(readings, loads, z0)
+        progress()
+        name = f"Q = {q:g} W"
+        out.append(SetResult(dataclasses.replace(pset, name=name), r, np.stack([r.sd, r.sd], -1), None, None, q))
+    return out
 
 
 def _change(before: TubeResult, after: TubeResult) -> dict:
@@ -240,7 +275,8 @@ def measure(
     cal = setup.calibration
     self_cal = cal.self_calibration if self_calibration is None else self_calibration and cal.direct is not None
     n_files = len(setup.files) + (cal.direct is not None) + len(cal.switched)
-    with progress_bar(n_files + 2 * len(setup.sets), f"measure {Path(setup.source).name}", progress) as bar:
+    n_runs = len({t.heat_input for t in setup.terminations}) or len(setup.sets)
+    with progress_bar(n_files + 2 * n_runs, f"measure {Path(setup.source).name}", progress) as bar:
 
         def read(p):
             s = _spectra(setup, p)
@@ -263,29 +299,35 @@ def measure(
                 f"{cal.direct}: frequencies differ from {setup.files[0]}'s: same sample rate and block"
             )
         tube_fit = _tube_fit(setup, direct, gains) if self_cal else None
-        sets = [_one_set(setup, s, spectra, gains, tube_fit, bar.update) for s in setup.sets]
+        if setup.method == "terminations":
+            sets = _terminations(setup, spectra, bar.update)
+        else:
+            sets = [_one_set(setup, s, spectra, gains, tube_fit, bar.update) for s in setup.sets]
     return _combine(setup, sets, gains is not None, tube_fit)
 
 
 def _combine(setup: Setup, sets: list[SetResult], switched: bool, tube_fit) -> Measurement:
-    """One row per frequency: the valid set of lowest condition; the others left out."""
-    best: dict[float, tuple] = {}
-    reasons: dict[float, str] = {}
+    """One row per (heat input, frequency): the valid set of lowest condition; the others
+    left out."""
+    best: dict[tuple[float, float], tuple] = {}
+    reasons: dict[tuple[float, float], str] = {}
     for s in sets:
         r = s.result
         for i, f in enumerate(r.frequencies):
-            f = float(f)
+            key = (s.heat_input, float(f))
             if not r.valid[i]:
-                reasons.setdefault(f, f"{s.positions.name}: {r.reason[i]}")
+                reasons.setdefault(key, f"{s.positions.name}: {r.reason[i]}")
                 continue
-            if f not in best or r.condition[i] < best[f][0]:
-                best[f] = (r.condition[i], r.values[i], s.sd_parts[i], s.positions.name)
-    left_out = {f: why for f, why in sorted(reasons.items()) if f not in best}
+            if key not in best or r.condition[i] < best[key][0]:
+                best[key] = (r.condition[i], r.values[i], s.sd_parts[i], s.positions.name)
+    left_out = {key: why for key, why in sorted(reasons.items()) if key not in best}
     if not best:
         raise MeasurementError(f"{setup.source}: the method is ill-conditioned at every frequency of every band")
-    freqs = np.array(sorted(best))
-    values = np.stack([best[f][1] for f in freqs])
-    sd = np.stack([best[f][2] for f in freqs])
+    keys = sorted(best)
+    heat = np.array([q for q, _ in keys])
+    freqs = np.array([f for _, f in keys])
+    values = np.stack([best[key][1] for key in keys])
+    sd = np.stack([best[key][2] for key in keys])
     g = setup.gas
     summary = {
         "generator": "tawarp measure",
@@ -293,11 +335,7 @@ def _combine(setup: Setup, sets: list[SetResult], switched: bool, tube_fit) -> M
         "method": setup.method,
         "tube": f"{setup.tube.shape} {setup.tube.width:g} x {setup.tube.height:g} m, area {setup.tube.area:.6g} m^2",
         "gas": f"{g.name}, {g.temperature:g} K, {g.pressure:g} Pa, humidity {g.humidity:g} %",
-        "position_sets": "; ".join(
-            f"{s.positions.name}: channels {list(s.positions.channels)} at {list(s.positions.positions)} m, "
-            f"{s.positions.band[0]:.6g}-{s.positions.band[1]:.6g} Hz"
-            for s in sets
-        ),
+        **_layout(setup, sets),
         "calibration": ", ".join(
             [p for p, on in (("switched microphones", switched), ("empty-tube self-calibration", tube_fit)) if on]
         )
@@ -315,16 +353,40 @@ def _combine(setup: Setup, sets: list[SetResult], switched: bool, tube_fit) -> M
             summary[f"self_calibration.{k}"] = v
         for s in sets:
             summary[f"self_calibration.median_change.{s.positions.name}"] = s.self_calibration_change
-    summary["left_out_Hz"] = ", ".join(f"{f:g}" for f in left_out) or "none"
+    several = len({q for q, _ in keys}) > 1
+    where = lambda q, f: f"{q:g} W {f:g}" if several else f"{f:g}"  # noqa: E731
+    summary["left_out_Hz"] = ", ".join(where(q, f) for q, f in left_out) or "none"
     if left_out:
-        summary["left_out_reason"] = "; ".join(f"{f:g} Hz: {why}" for f, why in left_out.items())
+        summary["left_out_reason"] = "; ".join(f"{where(q, f)} Hz: {why}" for (q, f), why in left_out.items())
     meta = {k: str(v) for k, v in summary.items() if k != "generator"}
     meta["generator"] = "tawarp measure"
     if setup.method == "iso10534":
         data = ImpedanceData(freqs, values, setup.thickness, g.temperature, g.pressure, meta, setup.source, sigma=sd)
     else:
-        data = TMatrixData(np.full(len(freqs), setup.heat_input), freqs, values, sd, meta, setup.source)
+        data = TMatrixData(heat, freqs, values, sd, meta, setup.source)
     return Measurement(setup, sets, data, left_out, summary)
+
+
+def _layout(setup: Setup, sets: list[SetResult]) -> dict:
+    """The header lines that say where the microphones were (or the sensor and its loads)."""
+    if setup.method != "terminations":
+        return {
+            "position_sets": "; ".join(
+                f"{s.positions.name}: channels {list(s.positions.channels)} at {list(s.positions.positions)} m, "
+                f"{s.positions.band[0]:.6g}-{s.positions.band[1]:.6g} Hz"
+                for s in sets
+            )
+        }
+    p = setup.sets[0]
+    return {
+        "sensor": f"channels {list(p.channels)} = p(x1), p(x6) over channel {setup.reference} = U(x1), scale "
+        f"{setup.sensor_scale:g}, {p.band[0]:.6g}-{p.band[1]:.6g} Hz",
+        "terminations": "; ".join(
+            f"{t.file.name} at {t.heat_input:g} W: "
+            + (f"closed tube {t.closed_tube:g} m" if t.closed_tube is not None else "tabulated impedance")
+            for t in setup.terminations
+        ),
+    }
 
 
 def write_measurement(m: Measurement, path: str | Path, figure: bool = True) -> list[Path]:

@@ -34,6 +34,7 @@ METHODS = {
     "one_load": (4, 1, "a symmetric specimen under one termination"),
     "two_source": (4, 2, "the source upstream, then the source downstream"),
     "iso10534": (2, 1, "the rigid-backed layer"),
+    "terminations": (2, None, "one per [[termination]] table"),
 }
 #: ASTM E2611 / ISO 10534-2 limits of a position set's band: the lowest frequency has a
 #: microphone spacing of LOW_SPACING wavelengths; the highest is UPPER_SPACING of the
@@ -111,6 +112,20 @@ class Calibration:
 
 
 @dataclass(frozen=True)
+class Termination:
+    """A known termination of a core's downstream face (the multi-termination method):
+    the signal ``file``, the ``heat_input`` [W] of the core, and either a rigidly closed
+    tube of the description's section ``closed_tube`` [m] long, or an ``impedance`` table
+    (k, 3): freq_Hz, Z_re, Z_im, ``p / U`` [Pa s/m^3] in exp(-iwt) (the engine TOML's
+    impedance CSV)."""
+
+    file: Path
+    heat_input: float
+    closed_tube: float | None = None
+    impedance: object = None
+
+
+@dataclass(frozen=True)
 class Setup:
     """A checked measurement description (module doc); paths are absolute."""
 
@@ -126,6 +141,8 @@ class Setup:
     calibration: Calibration
     heat_input: float = 0.0
     sample_rate: float | None = None  # for CSV time series without their own
+    terminations: tuple[Termination, ...] = ()
+    sensor_scale: float = 1.0  # Pa per unit of a pressure channel over m^3/s per unit of the reference
 
     def error(self, key: str, what: str) -> MeasurementError:
         return MeasurementError(f"{self.source}: {key}: {what}")
@@ -266,6 +283,50 @@ def _position_sets(src, raw, method, thickness, tube, gas) -> tuple[PositionSet,
     return tuple(sets)
 
 
+def _sensor(src, data, base, tube, gas) -> tuple:
+    """The impedance sensor and the terminations of the multi-termination method."""
+    sensor = _table(src, data, "sensor")
+    _unknown(src, sensor, ("channels", "scale", "band"), "sensor")
+    ch = sensor.get("channels")
+    if not isinstance(ch, list) or len(ch) != 2:
+        raise _fail(src, "sensor.channels", f"expected the channels of [p(x1), p(x6)], got {ch!r}")
+    channels = tuple(_channel(src, c, "sensor.channels") for c in ch)
+    scale = _number(src, sensor, "scale", "sensor", default=1.0)
+    b = sensor.get("band")
+    if not (isinstance(b, list) and len(b) == 2 and all(isinstance(v, (int, float)) for v in b) and 0 < b[0] < b[1]):
+        raise _fail(src, "sensor.band", f"expected [lo, hi] in Hz with 0 < lo < hi, got {b!r}")
+    raw = data.get("termination")
+    if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
+        raise _fail(src, "[[termination]]", "expected one [[termination]] table per file")
+    terms = []
+    for n, t in enumerate(raw):
+        where = f"termination[{n}]"
+        _unknown(src, t, ("file", "heat_input", "closed_tube", "impedance_csv"), where)
+        if ("closed_tube" in t) == ("impedance_csv" in t):
+            raise _fail(src, where, "give closed_tube = LENGTH [m] or impedance_csv = FILE (one of them)")
+        file = _file(src, base, t.get("file"), f"{where}.file")
+        heat = _number(src, t, "heat_input", where, default=0.0, positive=False, minimum=0.0)
+        if "closed_tube" in t:
+            terms.append(Termination(file, heat, closed_tube=_number(src, t, "closed_tube", where)))
+        else:
+            from ..model.resonator import read_impedance_csv
+
+            table = read_impedance_csv(_file(src, base, t["impedance_csv"], f"{where}.impedance_csv"))
+            if not (table[0, 0] <= b[0] and table[-1, 0] >= b[1]):
+                raise _fail(
+                    src, f"{where}.impedance_csv", f"covers {table[0, 0]:g}-{table[-1, 0]:g} Hz, not sensor.band {b}"
+                )
+            terms.append(Termination(file, heat, impedance=table))
+    per_q = {}
+    for t in terms:
+        per_q[t.heat_input] = per_q.get(t.heat_input, 0) + 1
+    few = sorted(q for q, count in per_q.items() if count < 2)
+    if few:
+        raise _fail(src, "[[termination]]", f"heat input(s) {few} W have one termination; the method needs two or more")
+    band = (float(b[0]), float(b[1]))
+    return tuple(terms), PositionSet("sensor", channels, (0.0, 0.0), band), scale
+
+
 def load_setup(path: str | Path) -> Setup:
     """Read and check the measurement description TOML ``path`` (module doc)."""
     path = Path(path)
@@ -277,31 +338,45 @@ def load_setup(path: str | Path) -> Setup:
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
         raise MeasurementError(f"{src}: not valid TOML ({e})") from None
     _unknown(
-        src, data, ("tube", "gas", "specimen", "microphones", "measurement", "calibration", "spectra"), "description"
+        src,
+        data,
+        ("tube", "gas", "specimen", "microphones", "measurement", "calibration", "spectra", "sensor", "termination"),
+        "description",
     )
     base = path.resolve().parent
     tube = _tube(src, _table(src, data, "tube"))
     gas = _gas(src, _table(src, data, "gas"))
-    spec = _table(src, data, "specimen")
-    _unknown(src, spec, ("thickness", "heat_input"), "specimen")
-    thickness = _number(src, spec, "thickness", "specimen", positive=False, minimum=0.0)
-    heat = _number(src, spec, "heat_input", "specimen", default=0.0, positive=False, minimum=0.0)
-
     m = _table(src, data, "measurement")
     _unknown(src, m, ("method", "files", "reference", "sample_rate"), "measurement")
     method = m.get("method")
     if method not in METHODS:
         raise _fail(src, "measurement.method", f"expected one of {sorted(METHODS)}, got {method!r}")
-    _, nfiles, what = METHODS[method]
-    files = m.get("files")
-    if not isinstance(files, list) or len(files) != nfiles:
-        raise _fail(src, "measurement.files", f"method {method!r} needs {nfiles} file(s), {what}; got {files!r}")
-    files = tuple(_file(src, base, f, "measurement.files") for f in files)
+    core = method == "terminations"
+    spec = _table(src, data, "specimen", required=not core)
+    _unknown(src, spec, ("thickness", "heat_input"), "specimen")
+    thickness = _number(src, spec, "thickness", "specimen", positive=False, minimum=0.0, default=0.0 if core else None)
+    heat = _number(src, spec, "heat_input", "specimen", default=0.0, positive=False, minimum=0.0)
     if "reference" not in m:
         raise _fail(src, "measurement.reference", "missing: the channel every transfer function is taken from")
     reference = _channel(src, m["reference"], "measurement.reference")
     rate = _number(src, m, "sample_rate", "measurement", default=-1.0)
-    sets = _position_sets(src, data.get("microphones"), method, thickness, tube, gas)
+    terminations, scale = (), 1.0
+    if core:
+        for key in ("files", "microphones", "calibration"):
+            if key in m or key in data:
+                raise _fail(src, key, "the terminations method takes [sensor] and [[termination]] tables instead")
+        terminations, sensor, scale = _sensor(src, data, base, tube, gas)
+        files, sets = tuple(t.file for t in terminations), (sensor,)
+    else:
+        for key in ("sensor", "termination"):
+            if key in data:
+                raise _fail(src, key, f"applies to method 'terminations' only (measurement.method = {method!r})")
+        _, nfiles, what = METHODS[method]
+        files = m.get("files")
+        if not isinstance(files, list) or len(files) != nfiles:
+            raise _fail(src, "measurement.files", f"method {method!r} needs {nfiles} file(s), {what}; got {files!r}")
+        files = tuple(_file(src, base, f, "measurement.files") for f in files)
+        sets = _position_sets(src, data.get("microphones"), method, thickness, tube, gas)
 
     w = _table(src, data, "spectra", required=False)
     _unknown(src, w, ("block", "window", "overlap"), "spectra")
@@ -354,4 +429,6 @@ def load_setup(path: str | Path) -> Setup:
         Calibration(direct, switched, self_cal),
         heat,
         None if rate < 0 else rate,
+        terminations,
+        scale,
     )
