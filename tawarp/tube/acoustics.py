@@ -17,9 +17,9 @@ sec. 10-5): to first order in the boundary-layer thickness,
     eps = f_loss (1 + (gamma - 1) / sqrt(Pr)) sqrt(nu / (2 w)) / a,
     r   = (1 - (gamma - 1) / sqrt(Pr)) / (1 + (gamma - 1) / sqrt(Pr)),
 
-with ``a = 2 S / P`` (the radius of a circular tube; for any wide section the losses go
-with the wetted perimeter over the area, Morse & Ingard, *Theoretical Acoustics*, 1968,
-sec. 6.4) and ``f_loss`` = 1 for Kirchhoff's tube (the empty-tube self-calibration fits
+with ``a = 2 S / P`` (the radius of a circular tube; in a wide tube of any section each
+wall element loses as a plane wall does, so the losses per unit length go with the wetted
+perimeter ``P`` over the area ``S``; corners add terms of the order of ``eps^2``) and ``f_loss`` = 1 for Kirchhoff's tube (the empty-tube self-calibration fits
 it). ``z0`` is the specific characteristic impedance ``p / u`` [Pa s/m] of a plane wave.
 """
 

@@ -12,8 +12,8 @@ independent, while the ``H_I`` of different channels share the direct file and a
 correlated as :meth:`tawarp.tube.spectra.CrossSpectra.transfers` states.
 
 **Empty-tube self-calibration** (the microphones' acoustic centres and the gas state
-from the data, as in Boden & Abom, J. Acoust. Soc. Am. 79, 541, 1986, sec. III, and
-Katz, J. Acoust. Soc. Am. 107, 2360, 2000). In the empty tube the calibrated transfer
+from the data; on why they matter, Boden & Abom, J. Acoust. Soc. Am. 79, 541, 1986; a
+fit of the locations to the measured field, Katz, J. Acoust. Soc. Am. 108, 2231, 2000). In the empty tube the calibrated transfer
 functions of ``n >= 3`` microphones at ``x_j`` are one plane-wave field,
 ``H_j = a exp(-i k x_j) + b exp(+i k x_j)`` (exp(+i omega t), the spectra's convention)
 with ``a``, ``b`` free at each frequency and ``k`` Kirchhoff's wavenumber

@@ -258,7 +258,9 @@ def _position_sets(src, raw, method, thickness, tube, gas) -> tuple[PositionSet,
             raise _fail(src, f"{where}.channels", f"a channel is listed twice: {list(channels)}")
         if not isinstance(x, list) or len(x) != mics:
             raise _fail(src, f"{where}.positions", f"expected {mics} positions [m], got {x!r}")
-        pos = tuple(_number(src, {"p": v}, "p", f"{where}.positions", positive=False) for v in x)
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in x):
+            raise _fail(src, f"{where}.positions", f"expected finite numbers [m], got {x!r}")
+        pos = tuple(float(v) for v in x)
         if any(b <= a for a, b in zip(pos, pos[1:])):
             raise _fail(src, f"{where}.positions", f"positions must increase downstream, got {list(pos)}")
         if mics == 4 and not (pos[1] < 0 and pos[2] > thickness):
@@ -359,7 +361,7 @@ def load_setup(path: str | Path) -> Setup:
     if "reference" not in m:
         raise _fail(src, "measurement.reference", "missing: the channel every transfer function is taken from")
     reference = _channel(src, m["reference"], "measurement.reference")
-    rate = _number(src, m, "sample_rate", "measurement", default=-1.0)
+    rate = _number(src, m, "sample_rate", "measurement") if "sample_rate" in m else None
     terminations, scale = (), 1.0
     if core:
         for key in ("files", "microphones", "calibration"):
@@ -428,7 +430,7 @@ def load_setup(path: str | Path) -> Setup:
         {"block": block, "window": window, "overlap": overlap},
         Calibration(direct, switched, self_cal),
         heat,
-        None if rate < 0 else rate,
+        rate,
         terminations,
         scale,
     )
