@@ -8,11 +8,12 @@ import math
 
 import numpy as np
 import pytest
-from scipy import stats
+from scipy import special, stats
 
 from tawarp.fit.result import FitResult
 from tawarp.loop.evidence import (
     CLAIM,
+    NOISE_SCALE_RANGE,
     Model,
     XPrior,
     claims,
@@ -53,6 +54,31 @@ def test_laplace_evidence_is_exact_for_a_linear_gaussian_model(seed):
     priors = [XPrior(m, s) for m, s in zip(mu, sd)]
     got = laplace_log_evidence(A @ x - y, A, x, priors)
     assert got == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_evidence_with_an_unknown_noise_scale_is_the_exact_marginal(seed):
+    # noise 3x its estimate: ln Z marginalized over the scale s (flat in ln s) equals the
+    # quadrature of the exact Gaussian marginal N(y; A mu, s^2 I + A S A^T), whatever the
+    # point x the quadratic model is taken at (it is exact for a linear model)
+    A, y, mu, sd = linear_gaussian(seed)
+    y = A @ mu + 3.0 * (y - A @ mu)
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)]
+    R = NOISE_SCALE_RANGE
+    u = np.linspace(-math.log(R), math.log(R), 4001)
+    logpdf = [
+        stats.multivariate_normal(A @ mu, math.exp(2 * v) * np.eye(len(y)) + A @ np.diag(sd**2) @ A.T).logpdf(y)
+        for v in u
+    ]
+    exact = special.logsumexp(logpdf) + math.log(u[1] - u[0]) - math.log(2 * math.log(R))
+    exact += 0.5 * len(y) * math.log(2 * math.pi)
+    for x in (map_estimate(A, y, mu, sd), mu + sd):
+        got = laplace_log_evidence(A @ x - y, A, x, priors, noise_scale=True)
+        assert got == pytest.approx(exact, abs=2e-3)
+    # against the estimate taken as exact, the marginal prefers the scale the data show
+    assert laplace_log_evidence(A @ x - y, A, x, priors, noise_scale=True) > laplace_log_evidence(
+        A @ x - y, A, x, priors
+    )
 
 
 @pytest.mark.parametrize("seed", range(3))

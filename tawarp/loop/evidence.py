@@ -60,6 +60,9 @@ CLAIM = 0.95
 #: A parameter further than this many prior standard deviations from its prior's centre is
 #: in tension with it: a model with such a value is never ``adequate``.
 TENSION_Z = 3.0
+#: The noise estimated from the data is taken as right within this factor either way
+#: (:func:`laplace_log_evidence`).
+NOISE_SCALE_RANGE = 30.0
 #: Models refitted nonlinearly per round besides the base and the single effects (the most
 #: probable by the linearized evidence).
 REFITS = 8
@@ -112,20 +115,44 @@ def inside_mass(x: np.ndarray, H: np.ndarray, priors: list[XPrior]) -> float:
     return float(np.sum(np.log(np.maximum(mass, 1e-300))))
 
 
-def laplace_log_evidence(r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior]) -> float:
+def laplace_log_evidence(
+    r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior], noise_scale: bool = False
+) -> float:
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
     (in units of the noise) and their Jacobian ``J`` in x, the Gaussian cut to the parameters'
-    ranges (:func:`inside_mass`)."""
+    ranges (:func:`inside_mass`). ``noise_scale``: the noise is an estimate known up to a
+    factor s, marginalized with a flat prior in ln s over
+    [1/:data:`NOISE_SCALE_RANGE`, :data:`NOISE_SCALE_RANGE`]: ``Z = int Z(s) p(ln s) dln s``,
+    each ``Z(s)`` the Laplace evidence at the optimum for that noise (from the quadratic
+    model at ``x``; exact for a linear model, ``tests/test_evidence.py``). A noise estimate
+    from the data (second differences of a misfitting base fit's residual) is too large
+    where the frequency grid is coarse: with it fixed, every misfit below it looks like
+    noise, and the choice of model changes with the grid."""
     mu = np.array([p.mu for p in priors])
     isd2 = np.array([p.sd**-2 for p in priors])
-    H = J.T @ J + np.diag(isd2)
-    _, logdet = np.linalg.slogdet(H)
-    log_prior = float(np.sum(-0.5 * (x - mu) ** 2 * isd2)) + sum(p.log_norm() for p in priors)
+    norm = sum(p.log_norm() for p in priors) + 0.5 * len(x) * math.log(2 * math.pi)
+    if not noise_scale:
+        H = J.T @ J + np.diag(isd2)
+        _, logdet = np.linalg.slogdet(H)
+        phi = float(r @ r) + float(np.sum((x - mu) ** 2 * isd2))
+        return norm - 0.5 * phi - 0.5 * logdet + inside_mass(x, H, priors)
+    # in the prior-whitened variables the Hessian at noise s is I + Lambda / s^2 (Lambda the
+    # eigenvalues of sd J^T J sd), so each s costs only vector operations
+    sd = 1.0 / np.sqrt(isd2)
+    lam, V = np.linalg.eigh((J.T @ J) * sd[:, None] * sd[None, :])
+    lam = np.clip(lam, 0.0, None)
+    bt = V.T @ (sd * (J.T @ r))  # data gradient at x, whitened
+    gt = V.T @ ((x - mu) / sd)  # prior gradient at x, whitened
+    u = np.linspace(-math.log(NOISE_SCALE_RANGE), math.log(NOISE_SCALE_RANGE), 401)[:, None]
+    s2 = np.exp(2 * u)
+    c = bt / s2 + gt
+    phi = float(r @ r) / s2[:, 0] + float(gt @ gt) - np.sum(c * c / (1.0 + lam / s2), axis=1)
+    terms = -0.5 * phi - len(r) * u[:, 0] - 0.5 * np.sum(np.log1p(lam / s2), axis=1)
+    H = J.T @ J / s2[int(np.argmax(terms)), 0] + np.diag(isd2)
     return (
-        -0.5 * float(r @ r)
-        + log_prior
-        + 0.5 * len(x) * math.log(2 * math.pi)
-        - 0.5 * logdet
+        norm
+        - 0.5 * float(np.sum(np.log(isd2)))
+        + float(special.logsumexp(terms) + math.log(u[1, 0] - u[0, 0]) - math.log(2 * u[-1, 0]))
         + inside_mass(x, H, priors)
     )
 
@@ -215,13 +242,14 @@ def visible(effect: Effect, columns: np.ndarray, priors: list[XPrior]) -> bool:
 
 
 def linearized_evidence(
-    at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]]
+    at: Model, columns: dict, models: list[tuple[tuple[Effect, ...], list[XPrior]]], noise_scale: bool = False
 ) -> list[tuple[float, np.ndarray]]:
     """ln Z of each model (its effects and their priors, appended to ``at``'s) from the
     quadratic model of ln posterior at ``at``'s solution: ``||r + J d||^2`` with the base
     columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"), plus the priors.
     An effect parameter whose optimum leaves its bounds is held on the bound, and the
-    Gaussian is cut to the ranges as in :func:`laplace_log_evidence`.
+    Gaussian is cut to the ranges as in :func:`laplace_log_evidence` (``noise_scale`` as
+    there).
     Returns (ln Z, x) per model, x the linearized optimum (``at``'s parameters, then the
     effects')."""
     fit = at.fit
@@ -249,17 +277,8 @@ def linearized_evidence(
             free[j] = False
         x = np.clip(x, lo, hi)
         d = x - x0
-        rr = r0 + C @ d
-        phi = float(rr @ rr) + float(np.sum((x - mu) ** 2 * isd2))
-        _, logdet = np.linalg.slogdet(G)
-        logz = (
-            -0.5 * phi
-            + sum(p.log_norm() for p in priors)
-            + 0.5 * len(x) * math.log(2 * math.pi)
-            - 0.5 * logdet
-            + inside_mass(x, G, priors)
-        )
-        out.append((logz, x))
+        # the columns are linear, so the quadratic model at x is this model's own: its Laplace ln Z
+        out.append((laplace_log_evidence(r0 + C @ d, C, x, priors, noise_scale), x))
     return out
 
 

@@ -182,11 +182,14 @@ def fit_models(
     library: list[Effect],
     requests: list[tuple[tuple[str, ...], list[np.ndarray]]],
     sizes: dict[int, int],
+    noise_scale: bool = False,
 ) -> list[Model]:
     """MAP fits of the models ``requests`` = [(effect names, [start x, ...]), ...] in one
-    lockstep batch (every start of every model); per model the start with the lowest
-    posterior objective is kept, its Laplace ln Z computed and its model prior set from the
-    number of models of each size ``sizes``."""
+    lockstep batch (every start of every model); per model the start with the highest
+    Laplace ln Z is kept (the posterior objective would pick the same optimum, but with an
+    estimated noise the data's weight depends on that estimate), and its model prior set from the
+    number of models of each size ``sizes`` (``noise_scale``: the noise is an estimate,
+    :func:`laplace_log_evidence`)."""
     by_name = {e.name: e for e in library}
     specs, priors, owner = [], [], []
     out = []
@@ -204,10 +207,12 @@ def fit_models(
             owner.append(k)
     fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors)
     for k, m in enumerate(out):
-        mine = [(f, pr) for f, o, pr in zip(fits, owner, priors) if o == k]
-        objective = [float(f.cost[0]) + float(np.sum(((f.x[0] - mu) / sd) ** 2)) for f, (mu, sd) in mine]
-        m.fit = mine[int(np.argmin(objective))][0]
-        m.log_evidence = laplace_log_evidence(m.fit.residuals[0], m.fit.jacobian[0], m.fit.x[0], m.priors)
+        scored = [
+            (laplace_log_evidence(f.residuals[0], f.jacobian[0], f.x[0], m.priors, noise_scale), f)
+            for f, o in zip(fits, owner)
+            if o == k
+        ]
+        m.log_evidence, m.fit = max(scored, key=lambda t: t[0])
     return out
 
 
@@ -253,12 +258,14 @@ def compare_models(
     library: list[Effect],
     max_effects: int = MAX_EFFECTS,
     refits: int = REFITS,
+    noise_scale: bool = False,
 ) -> tuple[list[Model], dict]:
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
     the most probable refitted model and at the most probable single effect, and the most
-    probable supersets of each refitted. Returns the refitted
+    probable supersets of each refitted (``noise_scale``: the noise is an estimate, known up
+    to a factor). Returns the refitted
     models (posterior probabilities set) and counts of what was linearized and refitted."""
     n_base = len(base_params)
     at_base = effect_columns(problem, base.fit, fixed, library)
@@ -280,7 +287,7 @@ def compare_models(
         cols = cols or effect_columns(problem, at.fit, fixed, [e for e in library if e.name not in at.effects])
         extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
         pri = [at.priors + model_priors(problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
-        lin = linearized_evidence(at, cols, list(zip(extra, pri)))
+        lin = linearized_evidence(at, cols, list(zip(extra, pri)), noise_scale)
         out = []
         for c, ex, (logz, x) in zip(cand, extra, lin):
             # x holds at's parameters, then the extra effects': taken to the model's own order
@@ -303,7 +310,7 @@ def compare_models(
     lin_x = {t[0]: t[2] for t in lin}
     requests = [((e.name,), _starts(base, n_base, (e,), lin_x.get((e.name,)))) for e in library]
     requests += [(names, _starts(base, n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
-    models = [base] + fit_models(problem, base_params, fixed, library, requests, sizes)
+    models = [base] + fit_models(problem, base_params, fixed, library, requests, sizes, noise_scale)
     counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models), "not_visible": hidden}
     posterior(models)
     # second round: linearized again at the most probable model and at the most probable
@@ -326,7 +333,7 @@ def compare_models(
             done.add(names)
             requests.append((names, _starts(at, n_base, tuple(by_name[n] for n in names), x)))
     if requests:
-        more = fit_models(problem, base_params, fixed, library, requests, sizes)
+        more = fit_models(problem, base_params, fixed, library, requests, sizes, noise_scale)
         models += more
         counts["refitted"] += len(more)
         posterior(models)
@@ -407,9 +414,12 @@ def run_loop(
     base_priors = model_priors(problem.core, base_params, ())
     base = Model((), priors=base_priors)
     base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
-    base.log_evidence = laplace_log_evidence(base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors)
+    estimated = source == NOISE_ESTIMATE
+    base.log_evidence = laplace_log_evidence(
+        base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors, estimated
+    )
     stage("base fit")
-    models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects)
+    models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
     stage("evidence")
     names = [e.name for e in library]
     best = models[0]

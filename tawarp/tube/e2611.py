@@ -156,8 +156,9 @@ def one_load(
     k, z0 = waves.tube_constants(k, z0, len(a.frequencies))
     g_up, g_down = _face_maps(mics, k, z0)
     mirror = np.array([1.0, -1.0])[None, :, None]
-    up = np.stack([g_up, mirror * g_down], axis=1)
-    down = np.stack([g_down, mirror * g_up], axis=1)
+    with np.errstate(invalid="ignore"):  # NaN maps where a microphone pair is singular
+        up = np.stack([g_up, mirror * g_down], axis=1)
+        down = np.stack([g_down, mirror * g_up], axis=1)
     t, var, condition = waves.two_state_solve(up, down, h, c, z0)
     reasons = waves.merge_reasons(
         _spacing(mics, k, spacing_band),

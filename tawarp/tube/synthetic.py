@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .spectra import Transfers, welch
+
 
 @dataclass(frozen=True)
 class Tube:
@@ -166,6 +168,40 @@ def sensor_signals(core_of_f, load_of_f, sample_rate, samples, band, snr_db, see
     spectra[on, 1:] = sensor_pressures(core_of_f(f[on]), load_of_f(f[on])) * drive[on, None]
     out = np.fft.irfft(spectra, samples, axis=0)
     return _add_noise(out, snr_db, rng)
+
+
+def sensor_measurement(
+    core_of_f,
+    lengths,
+    tube: Tube,
+    band: tuple[float, float],
+    snr_db: float = 30.0,
+    seed: int = 0,
+    sample_rate: float = 1024.0,
+    block: int = 1024,
+    blocks: int = 33,
+) -> tuple[list[Transfers], list[np.ndarray]]:
+    """The multi-termination measurement simulated and averaged: for each closed tube of
+    ``lengths`` [m] on x6, :func:`sensor_signals` (drive up to 0.49 ``sample_rate``) and
+    Welch's transfer functions ``(Zin, Z61)`` on the lines within ``band`` [Hz], with the
+    terminations' impedances there (exp(+i omega t)). ``blocks`` non-overlapping block
+    lengths of signal (~2 ``blocks`` averages at 50 % overlap); 1 Hz lines by default, fine
+    enough for the closed tubes' resonances."""
+    drive = (0.5 * band[0], 0.49 * sample_rate)
+    readings, loads = [], []
+    for j, length in enumerate(lengths):
+        x = sensor_signals(
+            core_of_f,
+            lambda f, length=length: closed_end(f, length, tube),
+            sample_rate,
+            block * blocks,
+            drive,
+            snr_db,
+            seed=1000 * seed + j,
+        )
+        readings.append(welch(x, sample_rate, block).band(*band).transfers(0, [1, 2]))
+        loads.append(closed_end(readings[-1].frequencies, length, tube))
+    return readings, loads
 
 
 def _add_noise(out: np.ndarray, snr_db: float, rng) -> np.ndarray:

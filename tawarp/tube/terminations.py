@@ -87,17 +87,10 @@ def core_tmatrix(
     checked = [waves.checked(r, 2, f"core_tmatrix reading {j + 1}") for j, r in enumerate(readings)]
     waves.same_frequencies(*readings)
     nf, m = len(readings[0].frequencies), len(readings)
-    _, z0 = waves.tube_constants(1.0, z0, nf)
-    zl = np.empty((nf, m), dtype=complex)
-    for j, load in enumerate(loads):
-        try:
-            zl[:, j] = np.broadcast_to(np.asarray(load, dtype=complex), (nf,))
-        except ValueError:
-            raise ValueError(f"load {j + 1} has shape {np.shape(load)}; expected ({nf},) or a scalar") from None
-    if not np.all(np.isfinite(zl)):
-        raise ValueError(
-            "a termination impedance is NaN or infinite: give a finite p/U (a long closed tube's, not a rigid wall)"
-        )
+    z0 = waves.per_frequency(z0, nf, "z0")
+    if np.any(z0 == 0):
+        raise ValueError("z0 is zero")
+    zl = np.stack([waves.per_frequency(load, nf, f"load {j + 1}") for j, load in enumerate(loads)], axis=1)
     y = np.stack([h for h, _ in checked], axis=1) / z0[:, None, None]  # (nf, m, 2): (zin, z61)
     cov = np.stack([c for _, c in checked], axis=1) / np.abs(z0[:, None, None, None]) ** 2  # (nf, m, 2, 2)
     zin, z61 = y[..., 0], y[..., 1]
@@ -112,7 +105,8 @@ def core_tmatrix(
     var = np.full((nf, 4), np.nan)
     if ok.any():
         a, b, cov, zl_ok = a[ok], b[ok], cov[ok], zl[ok]
-        t0, _, _ = _solve(a, b, np.broadcast_to(np.eye(2 * m), (a.shape[0], 2 * m, 2 * m)))
+        # first pass: every equation at unit weight (rows scaled to unit norm)
+        t0, _, _ = _solve(a, b, np.einsum("fi,ij->fij", 1 / np.linalg.norm(a, axis=2) ** 2, np.eye(2 * m)))
         # error of equation (1), (2) of termination j from d(zin, z61): E_j = [[tpp, -1], [zl tup, -1]]
         e = np.zeros(cov.shape, dtype=complex)
         e[..., 0, 0], e[..., 1, 0] = t0[:, 0, None], zl_ok * t0[:, 2, None]

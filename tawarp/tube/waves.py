@@ -16,10 +16,9 @@ import numpy as np
 
 from .spectra import Transfers
 
-#: Microphone spacing band [wavelengths] where a pair resolves the two waves: ISO 10534-2
-#: (sec. 4.2, 4.3) and ASTM E2611-19 (sec. 6.5): s > 0.05 wavelength (below, the two
-#: pressures differ too little) and s < 0.45 wavelength (at 0.5 the pair cannot separate the
-#: waves).
+#: Microphone spacing band [wavelengths] where a pair resolves the two waves, ISO 10534-2's
+#: working range: s > 0.05 wavelength (below, the two pressures differ too little) and
+#: s < 0.45 wavelength (at 0.5 the pair cannot separate the waves).
 SPACING_BAND = (0.05, 0.45)
 #: Largest condition number of a method's linear solve with a written value: beyond it the
 #: solved states (or loads) are alike to within 1 % of their size, and the first-order
@@ -62,16 +61,20 @@ def same_frequencies(first: Transfers, *others: Transfers) -> None:
             )
 
 
-def tube_constants(k, z0, nf: int) -> tuple[np.ndarray, np.ndarray]:
-    """``k`` and ``z0`` broadcast to (nf,) complex, checked finite with ``Re k >= 0`` and
-    ``z0 != 0``."""
+def per_frequency(x, nf: int, name: str) -> np.ndarray:
+    """``x`` (scalar or (nf,)) as (nf,) complex, finite, or a ValueError naming ``name``."""
     try:
-        kk = np.broadcast_to(np.asarray(k, dtype=complex), (nf,)).copy()
-        zz = np.broadcast_to(np.asarray(z0, dtype=complex), (nf,)).copy()
-    except ValueError:
-        raise ValueError(f"k has shape {np.shape(k)} and z0 {np.shape(z0)}; expected ({nf},) or scalars") from None
-    if not (np.all(np.isfinite(kk)) and np.all(np.isfinite(zz))):
-        raise ValueError("k or z0 contain NaN or infinite values")
+        out = np.broadcast_to(np.asarray(x, dtype=complex), (nf,)).copy()
+    except (ValueError, TypeError):
+        raise ValueError(f"{name} has shape {np.shape(x)}; expected ({nf},), one per frequency, or a scalar") from None
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name} contains NaN or infinite values")
+    return out
+
+
+def tube_constants(k, z0, nf: int) -> tuple[np.ndarray, np.ndarray]:
+    """``k`` and ``z0`` as (nf,) complex, checked finite with ``Re k >= 0`` and ``z0 != 0``."""
+    kk, zz = per_frequency(k, nf, "k"), per_frequency(z0, nf, "z0")
     if np.any(kk.real < 0):
         raise ValueError("k has a negative real part: give the wavenumber of exp(+i omega t), Re k = omega / c > 0")
     if np.any(zz == 0):
@@ -87,13 +90,12 @@ def state_from_pair(k, z0, xa: float, xb: float) -> np.ndarray:
     for row, x in enumerate((xa, xb)):
         m[:, row, 0] = np.cos(k * x)
         m[:, row, 1] = -1j * z0 * np.sin(k * x)
-    # inverse of [[a, b], [c, d]] with det = -i z0 sin(k (xb - xa))
+    # inverse of [[a, b], [c, d]] with det = -i z0 sin(k (xb - xa)); NaN where singular
     det = -1j * z0 * np.sin(k * (xb - xa))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        inv = (
-            np.stack([np.stack([m[:, 1, 1], -m[:, 0, 1]], -1), np.stack([-m[:, 1, 0], m[:, 0, 0]], -1)], -2)
-            / det[:, None, None]
-        )
+    det = np.where(det == 0, np.nan, det)
+    adj = np.stack([np.stack([m[:, 1, 1], -m[:, 0, 1]], -1), np.stack([-m[:, 1, 0], m[:, 0, 0]], -1)], -2)
+    with np.errstate(invalid="ignore"):
+        inv = adj / det[:, None, None]
     return inv
 
 
@@ -133,8 +135,9 @@ def two_state_solve(up: np.ndarray, down: np.ndarray, h: np.ndarray, cov: np.nda
     ``T = S_down S_up^-1`` and, to first order, ``dT = sum_j (down_j - T up_j) dh V[j, :]``,
     ``V = S_up^-1``. Returns ``T`` (nf, 2, 2), ``E|dT|^2`` (nf, 2, 2) and the condition number
     of ``S_up`` with rows ``(p, z0 U)`` and unit columns."""
-    s_up = np.einsum("fjqn,fn->fqj", up, h)
-    s_down = np.einsum("fjqn,fn->fqj", down, h)
+    with np.errstate(invalid="ignore"):  # NaN maps where a microphone pair is singular
+        s_up = np.einsum("fjqn,fn->fqj", up, h)
+        s_down = np.einsum("fjqn,fn->fqj", down, h)
     scale = np.stack([np.ones_like(z0), z0], -1)[:, :, None]
     condition = normalized_condition(s_up * scale)
     ok = np.isfinite(condition) & (condition < 1e14)
