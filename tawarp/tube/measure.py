@@ -6,7 +6,9 @@ standard deviations, as the CSV that ``tawarp fit`` and ``tawarp loop`` read.
 reference channel, corrects them by the switched-microphone calibration, fits the tube
 to the empty-tube data (:mod:`.calibration`), computes the plane waves (:mod:`.acoustics`)
 and runs the method (:mod:`.e2611`, :mod:`.iso10534`) for each microphone position set in
-its band. The standard deviation of every output coefficient adds, as variances of the
+its band, or the multi-termination method (:mod:`.terminations`) at each heat input from
+the impedance sensor's transfer functions (its errors: the random term alone). The
+standard deviation of every output coefficient adds, as variances of the
 real and of the imaginary part, three independent first-order terms:
 
 1. the random error of the transfer functions (coherence and averages, Bendat & Piersol)
