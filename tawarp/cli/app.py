@@ -20,6 +20,7 @@ from .common import _common, _say, init_warp, interrupts_honoured, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
 from .loop import add_loop_parser
+from .measure import add_measure_parser
 from .onset import add_onset_parser
 from .synth import add_synth_parser
 
@@ -112,6 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_sweep_parser(sub)
     add_loop_parser(sub)
     add_onset_parser(sub)
+    add_measure_parser(sub)
     return parser
 
 

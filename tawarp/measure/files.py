@@ -329,6 +329,33 @@ def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
     )
 
 
+def write_impedance_csv(path: str | os.PathLike, data: ImpedanceData, metadata: dict | None = None) -> None:
+    """Write ``data`` in the format read by :func:`read_impedance_csv` (``thickness``,
+    ``T_ambient``, ``p_ambient`` from the data; shortest exact floats; atomically, as
+    :func:`write_tmatrix_csv`)."""
+    if data.thickness is None:
+        raise MeasurementError(f"{path}: the layer's thickness is unknown; the impedance CSV requires it")
+    if not (np.all(np.isfinite(data.Zs)) and np.all(np.isfinite(data.freq)) and np.all(data.freq > 0)):
+        raise MeasurementError(f"{path}: Zs and freq must be finite, freq > 0")
+    if data.sigma is not None and not np.all(np.isfinite(data.sigma) & (data.sigma > 0)):
+        raise MeasurementError(f"{path}: sigma must be finite and > 0")
+    own = {"convention": CONVENTION, "thickness": repr(float(data.thickness))}
+    for key, v in (("T_ambient", data.T_ambient), ("p_ambient", data.p_ambient)):
+        if v is not None:
+            own[key] = repr(float(v))
+    meta = dict(own)
+    meta.update({k: v for k, v in {**data.metadata, **(metadata or {})}.items() if k not in own})
+    out = [_metadata_line(path, k, v) for k, v in meta.items()]
+    columns = ["freq_Hz", "Zs_re", "Zs_im"] + (["sigma_Zs_re", "sigma_Zs_im"] if data.sigma is not None else [])
+    out.append(",".join(columns))
+    for r in range(len(data)):
+        row = [data.freq[r], data.Zs[r].real, data.Zs[r].imag]
+        if data.sigma is not None:
+            row += list(data.sigma[r])
+        out.append(",".join(repr(float(v)) for v in row))
+    _atomic_write(path, "\n".join(out) + "\n")
+
+
 def impedance_convention_evidence(freq, Zs) -> str | None:
     """Why surface impedances ``Zs`` of a rigid-backed layer, taken as exp(-iwt), look
     like exp(+iwt) data, or None. In exp(-iwt) ``Zs = i Zc cot(kd)``: a compliance at low
