@@ -291,9 +291,9 @@ def scale2(m: CMat2, s: wp.float64):
 
 
 # -- the propagation matrix A(x) ---------------------------------------------------------------
-# Its physics is written once, in propagation_entries, over a generic complex number: a
-# wp.vec2d gives A at a real or complex angular frequency, a dual one (wp.vec4d,
-# tawarp.kernels.cmath) its derivative along a parameter as well. propagation_at (the
+# Its physics is written once, in propagation_entries, over generic numbers
+# (tawarp.kernels.cmath): float64 reals and wp.vec2d complex numbers give A at a real or
+# complex angular frequency, dual numbers (wp.vec4d) its derivative along a parameter too. propagation_at (the
 # forward cascade: real omega, tabulated pore functions), propagation_tangent (the tangent
 # cascade) and propagation_complex (the onset's complex omega) only differ in where the
 # pore functions come from.
@@ -335,10 +335,10 @@ class PartGeometry:
 
 @wp.struct
 class PorePoint:
-    """The pore functions at one point and frequency: f, g = 1 - f of the viscous and the
-    thermal s, and (tangent cascade only) their derivatives df/d ln s."""
+    """The pore functions at one point and frequency that A takes: g_nu = 1 - f_nu of the
+    viscous s, f_k and g_k = 1 - f_k of the thermal s, and (tangent cascade only) the
+    derivatives df/d ln s of both."""
 
-    f_nu: wp.vec2d
     g_nu: wp.vec2d
     f_k: wp.vec2d
     g_k: wp.vec2d
@@ -501,7 +501,6 @@ def pore_point(
     f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
     f_k, g_k = pore_functions_log(pore_model, log_s_k, pore_table)
     pp = PorePoint()
-    pp.f_nu = f_nu
     pp.g_nu = g_nu
     pp.f_k = f_k
     pp.g_k = g_k
