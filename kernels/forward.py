@@ -32,14 +32,16 @@ from .acoustics import (
     cscale2,
     expm2_tangent,
     expm2_traceless,
+    geometry_difference,
     identity2,
     magnus6_exponent,
     magnus6_tangent,
     matmul2,
+    part_geometry,
     point_coefficients,
     point_difference,
+    pore_point,
     propagation_at,
-    propagation_partials,
     propagation_tangent,
     propagation_value,
     scale2,
@@ -53,6 +55,7 @@ from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve
 from .layout import (
     F_POROUS,
     F_PORE_MODEL,
+    F_IMPOSED,
     F_THERMAL,
     HEAT_INPUT,
     LENGTH,
@@ -61,6 +64,8 @@ from .layout import (
     POROSITY,
     RADIUS,
     T_COLD,
+    T_END,
+    T_START,
     FRAME_MOBILITY,
     THERMAL_RADIUS_RATIO,
     TORTUOSITY,
@@ -150,6 +155,54 @@ def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     if flags[s, F_POROUS] == 0:
         return wp.float64(0.0)
     return seg_value(params, i, s, FRAME_MOBILITY)
+
+
+@wp.func
+def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i."""
+    phi, r, q = pore_geometry(params, flags, i, s)
+    radius = params[RADIUS, i]
+    return part_geometry(
+        phi, q, PI * radius * radius, frame_mobility(params, flags, i, s), shape_factor(params, flags, i, s)
+    )
+
+
+@wp.func
+def imposed_temperature(params: wp.array2d(dtype=wp.float64), i: int, s: int, xi: wp.float64):
+    """(T [K], dT/dx [K/m]) at local position xi [m] of segment s with imposed
+    temperatures: linear from T_start at its start to T_end at its end."""
+    t0 = seg_value(params, i, s, T_START)
+    slope = (seg_value(params, i, s, T_END) - t0) / seg_value(params, i, s, LENGTH)
+    return t0 + slope * xi, slope
+
+
+@wp.func
+def temperature_varies(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """True when the temperature may vary along segment s of set i: a segment of the heat
+    model, or imposed temperatures that differ at its ends (it then takes Magnus cells)."""
+    if flags[s, F_THERMAL] != 0:
+        return True
+    return flags[s, F_IMPOSED] != 0 and seg_value(params, i, s, T_START) != seg_value(params, i, s, T_END)
+
+
+@wp.func
+def temperature_scale(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
+    """(k [1/m], c [m/s]) of :func:`magnus_cell_count` for segment s of set i: the rate k at
+    which its temperature profile varies (the heat model's decay rate; |ln(T_end/T_start)|/L
+    for imposed temperatures) and its slowest sound speed (at T_cold; at the colder end)."""
+    if flags[s, F_IMPOSED] != 0:
+        t0 = seg_value(params, i, s, T_START)
+        t1 = seg_value(params, i, s, T_END)
+        k = wp.abs(wp.log(t1 / t0)) / seg_value(params, i, s, LENGTH)
+        return k, wp.sqrt(sound_speed_squared(gas, wp.min(t0, t1)))
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    return k, wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
 
 
 @wp.func
@@ -251,24 +304,24 @@ def segment_cells(
     i: int,
     s: int,
 ):
-    """Magnus cells of thermal segment s of set i: ``seg_cells[s]``, or where that is 0
-    :func:`magnus_cell_count` at ``density`` and the batch's highest angular frequency
+    """Magnus cells of segment s of set i, whose temperature varies
+    (:func:`temperature_varies`): ``seg_cells[s]``, or where that is 0
+    :func:`magnus_cell_count` (:func:`temperature_scale`) at ``density`` and the batch's highest angular frequency
     ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
     points (:func:`make_point_kernel`); the count's omega term is small beside its k term in a
     stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
     n_cells = seg_cells[s]
     if n_cells == 0:
-        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-        c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
-        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c_cold)
+        k, c = temperature_scale(params, flags, gas, i, s)
+        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c)
     return n_cells
 
 
 @wp.func
 def segment_uniform(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int, s: int):
     """True when segment s of set i is at uniform temperature on the grid of ``column``: it
-    is not thermal, or it has no Magnus cells (no heat input); its matrix is exp(A L)."""
-    return flags[s, F_THERMAL] == 0 or cells[i, column] == 0
+    has no Magnus cells (:func:`cell_counts`); its matrix is exp(A L)."""
+    return cells[i, column] == 0
 
 
 @wp.func
@@ -305,10 +358,10 @@ def cell_counts(
     ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
     most[1] its largest count of point-kernel slots (:func:`segment_slots`), most[2] the
     largest cell count of a segment (above :data:`MAX_CELLS`: refused on the host).
-    0 for a segment at uniform temperature: one that is not thermal, and every segment of a
-    set without heat input (its heat model has no source, so theta = 0 exactly and exp(A L)
-    is the segment's exact matrix: a two-step characterization's first fits, at Q = 0,
-    need no Magnus cell)."""
+    0 for a segment at uniform temperature: one that is neither thermal nor imposed with
+    different end temperatures, and every thermal segment of a set without heat input (its
+    heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
+    matrix: a two-step characterization's first fits, at Q = 0, need no Magnus cell)."""
     i = wp.tid()
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
@@ -317,7 +370,7 @@ def cell_counts(
     for column in range(cells.shape[1]):
         s = column % n_seg
         cells[i, column] = 0
-        if flags[s, F_THERMAL] != 0 and heated:
+        if temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
             density = cell_density[i] * wp.float64(1 + column // n_seg)
             cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
             wp.atomic_max(most, 2, cells[i, column])
@@ -346,7 +399,7 @@ def make_point_kernel(nonlinear: bool):
         """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
         (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
         grids (``cells``' column blocks), and in each over the segments in order: one point
-        (the cold temperature) for a part at uniform temperature, the three Gauss points
+        (the cold or the imposed temperature) for a part at uniform temperature, the three Gauss points
         x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
         (length h) for a thermal segment, a thread per cell (they share its heat cell's
         coefficients)."""
@@ -377,7 +430,17 @@ def make_point_kernel(nonlinear: bool):
         phi, r, q = pore_geometry(params, flags, i, s)
         r_k = thermal_radius(params, flags, i, s, r)
         n_cells = cells[i, column]
-        if not segment_uniform(flags, cells, i, column, s):
+        if segment_uniform(flags, cells, i, column, s):
+            T = T_cold
+            if flags[s, F_IMPOSED] != 0:
+                T = seg_value(params, i, s, T_START)
+            points[li, p] = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, area, r_k)
+        elif flags[s, F_IMPOSED] != 0:
+            h = seg_value(params, i, s, LENGTH) / wp.float64(n_cells)
+            for g in range(3):
+                T, dT = imposed_temperature(params, i, s, (wp.float64(rest) + GAUSS[g]) * h)
+                points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T, dT, phi, r, q, area, r_k)
+        else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             length = seg_value(params, i, s, LENGTH)
             h = length / wp.float64(n_cells)
@@ -401,8 +464,6 @@ def make_point_kernel(nonlinear: bool):
                     (wp.float64(rest) + GAUSS[g]) * h,
                 )
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
-        else:
-            points[li, p] = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, area, r_k)
 
     # a unique module does not inherit this file's module options
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
@@ -448,11 +509,11 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         points.shape[0] / (1 + 2P) m threads (no doubled grid: fixed cells), it writes the
         value at z to out[g, j] and dT/dz_a to tangent[g, a, j]. Only the cascade is
         differentiated (:func:`tawarp.kernels.acoustics.magnus6_tangent`,
-        :func:`tawarp.kernels.acoustics.expm2_tangent`, the pore functions'
-        :func:`tawarp.kernels.acoustics.propagation_partials`); the frequency-independent
-        point coefficients' derivatives are the central differences of the neighbours'
-        points (the heat solve and the point kernel, a few per cent of a set's cost). A limp
-        frame or a shape factor is not differentiated: their tangents are NaN."""
+        :func:`tawarp.kernels.acoustics.expm2_tangent`, and A by
+        :func:`tawarp.kernels.acoustics.propagation_tangent`: the same physics as the
+        value's, on dual numbers); the frequency-independent point coefficients' and part
+        geometries' derivatives are the central differences of the neighbours' (the heat
+        solve and the point kernel, a few per cent of a set's cost)."""
         t = wp.tid()
         n_freqs = out.shape[1]
         n_doubled = points.shape[0] * doubled.shape[1]
@@ -469,8 +530,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         omega = TWO_PI * freqs[j]
         half_log_omega = wp.float64(0.5) * wp.log(omega)
         gamma = gas[G_GAMMA]
-        radius = params[RADIUS, i]
-        area = PI * radius * radius
         n_seg = flags.shape[0]
         p = int(0)
         for column in range(grid * n_seg):  # the doubled grid's points follow the main grid's
@@ -479,12 +538,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # sum of the cells' tau (expm2_traceless)
         dm = tangent_rows()
         dlog = scale_rows()
-        undifferentiated = wp.float64(0.0)  # NaN where a part's A is not differentiated
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
-            phi, r, q = pore_geometry(params, flags, i, s)
-            mob = frame_mobility(params, flags, i, s)
-            sf = shape_factor(params, flags, i, s)
+            geo = segment_geometry(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
             uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
             n_cells = 1
@@ -493,55 +549,73 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 if wp.static(tangents == 0):
-                    a1 = propagation_at(
-                        points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                    )
+                    a1 = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
                     if uniform:  # exp(A L) of a part at uniform temperature
                         e, tau = expm2_traceless(scale2(a1, length))
                     else:
-                        a2 = propagation_at(
-                            points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                        )
-                        a3 = propagation_at(
-                            points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                        )
+                        a2 = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+                        a3 = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
                         e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
                 else:
-                    s1 = propagation_partials(points[li, p], omega, half_log_omega, gamma, model, pore_table)
-                    a1 = propagation_value(s1, points[li, p])
+                    s1 = pore_point(points[li, p], half_log_omega, model, pore_table, 1)
+                    a1 = propagation_value(s1, points[li, p], geo, omega, gamma, model)
                     s2 = s1
                     s3 = s1
                     a2 = a1
                     a3 = a1
                     om = scale2(a1, length)
                     if not uniform:
-                        s2 = propagation_partials(points[li, p + 1], omega, half_log_omega, gamma, model, pore_table)
-                        s3 = propagation_partials(points[li, p + 2], omega, half_log_omega, gamma, model, pore_table)
-                        a2 = propagation_value(s2, points[li, p + 1])
-                        a3 = propagation_value(s3, points[li, p + 2])
+                        s2 = pore_point(points[li, p + 1], half_log_omega, model, pore_table, 1)
+                        s3 = pore_point(points[li, p + 2], half_log_omega, model, pore_table, 1)
+                        a2 = propagation_value(s2, points[li, p + 1], geo, omega, gamma, model)
+                        a3 = propagation_value(s3, points[li, p + 2], geo, omega, gamma, model)
                         om = magnus6_exponent(a1, a2, a3, h)
                     tau, na, delta = traceless_parts(om)
                     ch, sh = cosh_sinhc(delta)
                     dsh = sinhc_derivative(delta, ch, sh)
                     e = traceless_exp(om, na, ch, sh)
-                    if mob > wp.float64(0.0) or (sf != wp.float64(1.0) and model == 0):
-                        undifferentiated = wp.float64(wp.nan)
                     for a in range(P):
                         plus = li + 1 + 2 * a
                         inv_two_step = wp.float64(0.5) / step[group, a]
                         dlength = (
                             seg_value(params, i + 1 + 2 * a, s, LENGTH) - seg_value(params, i + 2 + 2 * a, s, LENGTH)
                         ) * inv_two_step
+                        dgeo = geometry_difference(
+                            segment_geometry(params, flags, i + 1 + 2 * a, s),
+                            segment_geometry(params, flags, i + 2 + 2 * a, s),
+                            inv_two_step,
+                        )
                         d1 = propagation_tangent(
-                            s1, point_difference(points[plus, p], points[plus + 1, p], inv_two_step)
+                            s1,
+                            points[li, p],
+                            point_difference(points[plus, p], points[plus + 1, p], inv_two_step),
+                            geo,
+                            dgeo,
+                            omega,
+                            gamma,
+                            model,
                         )
                         dom = axpy2(dlength, a1, scale2(d1, length))
                         if not uniform:
                             d2 = propagation_tangent(
-                                s2, point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step)
+                                s2,
+                                points[li, p + 1],
+                                point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step),
+                                geo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                model,
                             )
                             d3 = propagation_tangent(
-                                s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step)
+                                s3,
+                                points[li, p + 2],
+                                point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step),
+                                geo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                model,
                             )
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
                         de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
@@ -572,14 +646,14 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             # T = e^S M: dT = e^S (dS M + dM)
             da = axpy2(wp.float64(1.0), cscale2(m, wp.vec2d(dlog[a, 0], dlog[a, 1])), tangent_row(dm, a))
             da = cscale2(da, scale)
-            tangent[group, a, j, 0] = da.a[0] + undifferentiated
-            tangent[group, a, j, 1] = da.a[1] + undifferentiated
-            tangent[group, a, j, 2] = da.b[0] + undifferentiated
-            tangent[group, a, j, 3] = da.b[1] + undifferentiated
-            tangent[group, a, j, 4] = da.c[0] + undifferentiated
-            tangent[group, a, j, 5] = da.c[1] + undifferentiated
-            tangent[group, a, j, 6] = da.d[0] + undifferentiated
-            tangent[group, a, j, 7] = da.d[1] + undifferentiated
+            tangent[group, a, j, 0] = da.a[0]
+            tangent[group, a, j, 1] = da.a[1]
+            tangent[group, a, j, 2] = da.b[0]
+            tangent[group, a, j, 3] = da.b[1]
+            tangent[group, a, j, 4] = da.c[0]
+            tangent[group, a, j, 5] = da.c[1]
+            tangent[group, a, j, 6] = da.d[0]
+            tangent[group, a, j, 7] = da.d[1]
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
     # a unique module does not inherit this file's module options
@@ -599,7 +673,7 @@ def profile_kernel(
     dTdx: wp.array2d(dtype=wp.float64),
 ):
     """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
-    cold temperature outside the thermal segments)."""
+    cold temperature outside the thermal segments and those with imposed temperatures)."""
     i, j = wp.tid()
     start = wp.float64(0.0)
     T[i, j] = params[T_COLD, i]
@@ -607,8 +681,13 @@ def profile_kernel(
     for s in range(flags.shape[0]):
         length = seg_value(params, i, s, LENGTH)
         xi = x[j] - start
-        if flags[s, F_THERMAL] != 0 and xi >= wp.float64(0.0) and xi <= length:
-            t, dt = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, xi)
-            T[i, j] = t
-            dTdx[i, j] = dt
+        if xi >= wp.float64(0.0) and xi <= length:
+            if flags[s, F_THERMAL] != 0:
+                t, dt = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, xi)
+                T[i, j] = t
+                dTdx[i, j] = dt
+            elif flags[s, F_IMPOSED] != 0:
+                t, dt = imposed_temperature(params, i, s, xi)
+                T[i, j] = t
+                dTdx[i, j] = dt
         start = start + length

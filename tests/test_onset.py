@@ -22,6 +22,8 @@ from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from tawarp.model.onset import eigenfrequencies, onset
 from tawarp.model.resonator import EndCondition, ResonatorDuct, ThermoacousticEngine, engine_from_dict, load_engine
 
+from imposed_cores import imposed_ceramic
+
 DEVICE = "cpu"
 
 
@@ -127,6 +129,35 @@ def test_core_cascade_complex_omega():
     K = _core_matrix(core, 30.0, w)
     R = ref.transfer_matrix_omega(core, w, 30.0, rtol=1e-11)
     assert np.max(np.abs(K - R) / np.abs(R)) < 1e-6
+
+
+@pytest.mark.parametrize(
+    "core, Q",
+    [
+        # every effect of A at once: limp frame, shape factor, separate thermal radius
+        (
+            load_core("rvc_foam").replace(
+                **{
+                    "stack.frame_mobility": 0.03,
+                    "stack.viscous_shape_factor": 1.4,
+                    "stack.thermal_radius_ratio": 1.8,
+                }
+            ),
+            20.0,
+        ),
+        # imposed temperatures: a graded stack and buffer tube, a uniform hot exchanger
+        (imposed_ceramic(), 0.0),
+    ],
+    ids=["effects", "imposed"],
+)
+def test_complex_walk_equals_the_cascade_at_real_omega(core, Q):
+    """The onset's segment matrices (A at complex omega) at real omega are transfer_matrices'
+    T (A at real omega, the tabulated pore functions) to 1e-13: both evaluate the one
+    propagation_entries, so every effect is in both."""
+    f = np.array([45.0, 320.0])
+    K = _core_matrix(core, Q, 2 * np.pi * f)
+    T = transfer_matrices(core, f, Q, cells=16, device=DEVICE).T[0]
+    assert np.max(np.abs(K - T) / np.abs(T)) < 1e-13
 
 
 def _tube(length=0.3, radius=0.0167):
