@@ -166,6 +166,7 @@ def cmd_design(args) -> int:
         progress=not args.quiet,
         onset=_onset_spec(args),
         store=args.trial_store,
+        commit_seconds=args.commit_seconds,
     )
     summary = study_summary(res.study)
     report = {
@@ -269,6 +270,14 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
         "worker run; the study keeps the best); default: beside a journal file "
         "(OUTPUT/study.trials/STUDY), none with a database URL (every trial in the database); "
         "with several machines give a folder they all see",
+    )
+    p.add_argument(
+        "--commit-seconds",
+        type=float,
+        default=0.0,
+        help="commit the evaluated generations (trial store, study, heartbeat) at most this often [s]; "
+        "0: every generation (default: %(default)s); 1 keeps a GPU busy, a killed run redoing at most "
+        "that much",
     )
     p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
     p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
