@@ -96,7 +96,9 @@ def _on(device, a, dtype=wp.float64) -> wp.array:
     kernels write into it)."""
     if isinstance(a, wp.array):
         return wp.clone(a, device=device) if a.dtype == dtype else wp.array(a.numpy(), dtype=dtype, device=device)
-    return wp.array(np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32), dtype=dtype, device=device)
+    return wp.array(
+        np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32), dtype=dtype, device=device
+    )
 
 
 def _host(a) -> np.ndarray:
