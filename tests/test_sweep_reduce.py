@@ -1,0 +1,143 @@
+"""Reductions of a sweep computed on the device (tawarp.design.reductions) against NumPy's
+reductions of the raw values the same sweep wrote: exact for the counts, best values, the
+top K and the Pareto front; the quantiles within their bins."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from tawarp.design.reductions import QUANTILES, ordered_keys, parse_reduce
+from tawarp.design.samplers import pareto_mask
+from tawarp.design.space import DesignSpace, parse_variable
+from tawarp.design.sweep import sweep
+from tawarp.model.core import load_core
+
+ALL = "best,quantiles,histogram,pareto,top=25"
+SOBOL = ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08", "stack.porosity=0.7:0.95", "heat_input=1:18:log"]
+
+
+def _group(path, name):
+    with xr.open_dataset(path, engine="h5netcdf", group=name) as ds:
+        return ds.load()
+
+
+@pytest.fixture(scope="module")
+def sobol_sweep(tmp_path_factory):
+    """3000 Sobol points in chunks of 512 (six chunks: the merges across chunks are
+    exercised), raw values and every reduction."""
+    path = tmp_path_factory.mktemp("reduce") / "s.nc"
+    space = DesignSpace(load_core("rvc_foam"), SOBOL)
+    info = sweep(space, path, mode="sobol", n_samples=3000, chunk=512, seed=2, reduce=ALL)
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        raw = ds.load()
+    return path, space, info, raw
+
+
+def test_top_k_and_front_are_numpys(sobol_sweep):
+    path, _, info, raw = sobol_sweep
+    g = raw.gradient.values.astype(np.float64)
+    n = len(g)
+    top = _group(path, "top")
+    order = np.lexsort((np.arange(n), -g))[:25]  # maximized, ties by index
+    np.testing.assert_array_equal(top.point.values, order)
+    for k in ("gradient", "T_max", "heat_leak", "stack.length", "heat_input", "material"):
+        np.testing.assert_array_equal(
+            top[k].values,
+            raw[k].values[order]
+            if k != "material"
+            else np.array(["ceramic", "mesh", "rvc_foam"])[raw.material.values[order]],
+        )
+    assert info.reductions["best"]["point"] == order[0]
+    front = _group(path, "pareto")
+    F = np.stack([-g, raw.heat_leak.values.astype(np.float64)], axis=1)
+    assert set(front.point.values.tolist()) == set(np.flatnonzero(pareto_mask(F)).tolist())
+    np.testing.assert_array_equal(front.heat_leak.values, raw.heat_leak.values[front.point.values])
+
+
+def test_histograms_and_quantiles_are_numpys(sobol_sweep):
+    path, _, _, raw = sobol_sweep
+    hist, quant = _group(path, "histogram"), _group(path, "quantiles")
+    for o in ("gradient", "T_max", "heat_leak", "T_hot"):
+        v = raw[o].values
+        ok = ~np.isnan(v)
+        bins, counts = np.unique(ordered_keys(v[ok]) >> 12, return_counts=True)  # 20 leading bits
+        np.testing.assert_array_equal(hist[f"{o}_count"].values, counts)
+        assert int(hist[f"{o}_nan"]) == int((~ok).sum())
+        lo, hi = hist[f"{o}_lower"].values, hist[f"{o}_upper"].values
+        vv = np.sort(v[ok].astype(np.float64))
+        j = np.searchsorted(hi, vv)  # every value inside its bin's edges
+        assert np.all((lo[j] <= vv) & (vv <= hi[j]))
+        assert np.all(hi / lo - 1 < 2.0**-10)  # equal relative width 2^-11 (one ulp short)
+        q = np.quantile(v[ok].astype(np.float64), QUANTILES)
+        assert np.all(quant[f"{o}_lower"].values <= q) and np.all(q <= quant[f"{o}_upper"].values)
+
+
+def test_marginal_best_of_a_sobol_sweep(sobol_sweep):
+    """Per variable level (64 bins of each continuous range, of the logarithm for
+    heat_input; each material) the best gradient and where it is."""
+    path, space, _, raw = sobol_sweep
+    best = _group(path, "best")
+    g = raw.gradient.values.astype(np.float64)
+    for v in space.variables:
+        if v.categorical:
+            level = raw.material.values.astype(int)
+        else:
+            x, lo, hi = raw[v.name].values, v.low, v.high
+            if v.log:
+                x, lo, hi = np.log(x), np.log(lo), np.log(hi)
+            level = np.clip(np.floor((x - lo) / (hi - lo) * 64).astype(int), 0, 63)
+        for L in range(len(best[f"{v.name}_level"])):
+            at = np.flatnonzero(level == L)
+            if not at.size:
+                assert best[f"{v.name}_point"].values[L] == -1
+                continue
+            j = at[np.argmax(g[at])]
+            assert best[f"{v.name}_point"].values[L] == j and best[f"{v.name}_best"].values[L] == g[j]
+
+
+def test_marginal_best_of_a_grid_is_the_maximum_over_the_other_axes(tmp_path):
+    space = DesignSpace(
+        load_core("rvc_foam"),
+        [
+            parse_variable(s, grid=True)
+            for s in ["material=ceramic,rvc_foam", "stack.length=0.01:0.08:7", "heat_input=1:18:5"]
+        ],
+    )
+    sweep(space, tmp_path / "g.nc", chunk=8, reduce="best,top=3")
+    with xr.open_dataset(tmp_path / "g.nc", engine="h5netcdf") as ds:
+        G = ds.gradient.values
+    best = _group(tmp_path / "g.nc", "best")
+    for axis, v in enumerate(["material", "stack.length", "heat_input"]):
+        np.testing.assert_array_equal(
+            best[f"{v}_best"].values, np.moveaxis(G, axis, 0).reshape(G.shape[axis], -1).max(1)
+        )
+    top = _group(tmp_path / "g.nc", "top")
+    flat = np.argsort(-G.ravel().astype(np.float64), kind="stable")[:3]
+    np.testing.assert_array_equal(top.point.values, flat)
+    at = np.unravel_index(flat, G.shape)
+    np.testing.assert_array_equal(top["stack.length"].values, np.linspace(0.01, 0.08, 7)[at[1]])
+
+
+def test_reductions_without_raw_values_are_the_same(sobol_sweep, tmp_path):
+    path, space, _, _ = sobol_sweep
+    sweep(space, tmp_path / "r.nc", mode="sobol", n_samples=3000, chunk=1024, seed=2, reduce=ALL, raw=False)
+    with xr.open_dataset(tmp_path / "r.nc", engine="h5netcdf") as ds:
+        assert "gradient" not in ds and "stack.length" not in ds
+    for name in ("top", "pareto", "best", "histogram", "quantiles"):
+        a, b = _group(path, name), _group(tmp_path / "r.nc", name)
+        if name == "pareto":  # the same front; its order follows the objectives
+            assert set(a.point.values.tolist()) == set(b.point.values.tolist())
+        else:
+            xr.testing.assert_identical(a, b)
+
+
+def test_bad_reductions_are_named():
+    with pytest.raises(ValueError, match="top=K"):
+        parse_reduce("top=0")
+    with pytest.raises(ValueError, match="'median'"):
+        parse_reduce("best,median")
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08"])
+    with pytest.raises(ValueError, match="--reduce"):
+        sweep(space, "/nonexistent/x.nc", mode="sobol", n_samples=8, raw=False)
