@@ -12,7 +12,8 @@ the number of batches, over the wall time), the trial store's share (part of the
 storage's) and the trials the Optuna study holds. Optuna's own samplers (one ask per trial)
 are timed on a smaller run for comparison.
 
-Sweep: a Sobol sweep streamed to netCDF at two sizes, each in its own process so that
+Sweep: a Sobol sweep streamed to netCDF at two sizes, and the same sweep reduced on the
+device (``--reduce`` of :data:`REDUCE`, no raw values: mode ``sobol_reduced``), each in its own process so that
 its peak resident memory is its own: forward evaluations per hour and peak RSS (flat
 memory: the two peaks should match). ``--sweep-only`` runs grid and Sobol sweeps (the
 grid: the 4 materials times 2^k values of each continuous variable) at both sizes and
@@ -52,6 +53,10 @@ VARS = [
     "hot_hx.length=0.005:0.03",
     "heat_input=1:30",
 ]
+
+
+#: The reductions of the reduced sweep (tawarp.design.reductions): all of them.
+REDUCE = "best,quantiles,histogram,pareto,top=100"
 
 
 def _space():
@@ -182,20 +187,22 @@ def sweep_child(device, mode, n, chunk, path):
 
     space = _grid_space(n) if mode == "grid" else _space()
     settings = ForwardSettings(device=device)
+    kw = dict(reduce=REDUCE, raw=False) if mode == "sobol_reduced" else {}
+    mode = "sobol" if mode == "sobol_reduced" else mode
     warm = _grid_space(min(n, 4 * chunk)) if mode == "grid" else space
     # the warm-up writes another file: the sweep measured writes a new one, as a first run does
     # (replacing an existing file costs ext4's flush of the new one's data at the rename)
-    sweep(warm, path + ".warm", mode=mode, n_samples=min(n, 4 * chunk), chunk=chunk, settings=settings)
+    sweep(warm, path + ".warm", mode=mode, n_samples=min(n, 4 * chunk), chunk=chunk, settings=settings, **kw)
     os.remove(path + ".warm")
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    info = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)
+    info = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings, **kw)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings)  # over the file just written
+    again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings, **kw)  # over the file
     engine = _engine_rate(_grid_space(n), device, chunk)
     print(
         json.dumps(
             {
-                "mode": mode,
+                "mode": mode + (" reduced: " + REDUCE + ", no raw values" if kw else ""),
                 "points": info.n_points,
                 "chunk": chunk,
                 "chunks": info.chunks,
@@ -302,16 +309,17 @@ def main(argv=None):
     tag = _tag(device, out["device_name"])
     if args.sweep_only:
         with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
-            for mode in ("grid", "sobol"):
+            for mode in ("grid", "sobol", "sobol_reduced"):
                 out[f"sweep_{mode}"] = [bench_sweep(device, mode, n, cfg["chunk"], tmp) for n in cfg["sweep"]]
                 print(json.dumps(out[f"sweep_{mode}"]), flush=True)
         out["summary"] = {
             f"{mode}_evaluations_per_hour": out[f"sweep_{mode}"][-1]["evaluations_per_hour"]
-            for mode in ("grid", "sobol")
+            for mode in ("grid", "sobol", "sobol_reduced")
         }
         out["summary"].update(
             engine_evaluations_per_hour=out["sweep_grid"][-1]["engine_evaluations_per_hour"],
             target_per_hour=1e11,
+            reduced_target_per_hour=1e12,
             bench_seconds=time.perf_counter() - t_all,
         )
         print(json.dumps(out["summary"], indent=2))
@@ -330,6 +338,8 @@ def main(argv=None):
         print(json.dumps(out["search_optuna_cmaes"]), flush=True)
         out["sweep"] = [bench_sweep(device, "sobol", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
         print(json.dumps(out["sweep"]), flush=True)
+        out["sweep_reduced"] = [bench_sweep(device, "sobol_reduced", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
+        print(json.dumps(out["sweep_reduced"]), flush=True)
     s = out["sweep"]
     out["summary"] = {
         "search_evaluations_per_minute": out["search_cmaes"]["evaluations_per_minute"],
@@ -342,6 +352,7 @@ def main(argv=None):
         "nsga2_evaluations_per_minute": out["search_nsga2"]["evaluations_per_minute"],
         "optuna_samplers_evaluations_per_minute": out["search_optuna_cmaes"]["evaluations_per_minute"],
         "sweep_evaluations_per_hour": s[-1]["evaluations_per_hour"],
+        "reduced_sweep_evaluations_per_hour": out["sweep_reduced"][-1]["evaluations_per_hour"],
         "sweep_peak_rss_MiB": [x["peak_rss_MiB"] for x in s],
         "sweep_points": [x["points"] for x in s],
         "nsga2_sampler_share": out["search_nsga2"]["sampler_share"],
@@ -350,6 +361,7 @@ def main(argv=None):
             "search_sampler_share_at_most": 0.10,
             "nsga2_per_minute": 3e7,
             "sweep_per_hour": 1e9,
+            "reduced_sweep_per_hour": 1e12,
         },
         "bench_seconds": time.perf_counter() - t_all,
     }

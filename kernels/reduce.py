@@ -13,7 +13,8 @@ exact and independent of the order of the threads:
   the sign-adjusted objective times 2^32 plus the point index: better first, ties by
   index) by integer ``atomic_min``;
 - top-k and the Pareto front of two objectives: candidates better than a threshold
-  (:func:`top_candidates`), or not dominated within the chunk (:func:`pareto_bins`, a
+  (:func:`top_candidates`; the first chunk: its K first after a radix sort,
+  :func:`first_candidates`), or not dominated within the chunk (:func:`pareto_bins`, a
   prefix minimum by :func:`prefix_min_step`, :func:`pareto_candidates`), compacted by an
   atomic counter; the host sorts and merges them exactly.
 """
@@ -120,7 +121,8 @@ def marginal_best(
             x = wp.log(x)
         t = (x - low[v]) / span[v]
         level = wp.clamp(int(wp.floor(t * wp.float64(levels[v]))), 0, levels[v] - 1)
-    wp.atomic_min(best, first_level[v] + level, key)
+    if key < best[first_level[v] + level]:  # a plain read first: few atomics once the best are found
+        wp.atomic_min(best, first_level[v] + level, key)
 
 
 @wp.func
@@ -164,6 +166,40 @@ def top_candidates(
 
 
 @wp.kernel
+def chunk_rank_keys(
+    lo: wp.int64,
+    outputs: wp.array2d(dtype=wp.float32),
+    row: int,
+    sign: wp.float32,
+    keys: wp.array(dtype=wp.int64),
+    point: wp.array(dtype=wp.int32),
+):
+    """Rank keys of output ``row`` of a chunk's points, to be sorted with their places."""
+    i = wp.tid()
+    keys[i] = rank_key(outputs[row, i], sign, lo + wp.int64(i))
+    point[i] = i
+
+
+@wp.kernel
+def first_candidates(
+    keys: wp.array(dtype=wp.int64),
+    point: wp.array(dtype=wp.int32),
+    outputs: wp.array2d(dtype=wp.float32),
+    values: wp.array2d(dtype=wp.float64),
+    count: wp.array(dtype=wp.int32),
+    cand_key: wp.array(dtype=wp.int64),
+    cand_out: wp.array2d(dtype=wp.float32),
+    cand_val: wp.array2d(dtype=wp.float64),
+):
+    """The first places of sorted rank keys (``keys``, ``point``: the chunk's top) as
+    candidates, those with a key (not NaN)."""
+    j = wp.tid()
+    if keys[j] != NONE:
+        i = point[j]
+        keep_candidate(i, keys[j], outputs, values, count, cand_key, cand_out, cand_val)
+
+
+@wp.kernel
 def pareto_bins(
     outputs: wp.array2d(dtype=wp.float32),
     rows: wp.vec2i,
@@ -178,7 +214,9 @@ def pareto_bins(
     if wp.isnan(a) or wp.isnan(b):
         return
     bin = int((ordered_key(signs[0] * a) >> wp.int64(PARETO_SHIFT)) + wp.int64(PARETO_OFFSET))
-    wp.atomic_min(best1, bin, ordered_key(signs[1] * b))
+    k1 = ordered_key(signs[1] * b)
+    if k1 < best1[bin]:  # a plain read first: few atomics once the bin's best is found
+        wp.atomic_min(best1, bin, k1)
 
 
 @wp.kernel

@@ -133,6 +133,16 @@ def test_reductions_without_raw_values_are_the_same(sobol_sweep, tmp_path):
             xr.testing.assert_identical(a, b)
 
 
+def test_vectorized_two_objective_front_is_deb_front():
+    """front_2d (the host's merge of front candidates) keeps the rows of rank 0 of Deb's
+    sort, ties and duplicates included."""
+    from tawarp.design.reductions import front_2d
+
+    rng = np.random.default_rng(1)
+    for G in (rng.random((400, 2)), np.round(rng.random((400, 2)) * 12) / 12):
+        assert sorted(front_2d(G, np.arange(400)).tolist()) == np.flatnonzero(pareto_mask(G)).tolist()
+
+
 def test_bad_reductions_are_named():
     with pytest.raises(ValueError, match="top=K"):
         parse_reduce("top=0")
@@ -141,3 +151,22 @@ def test_bad_reductions_are_named():
     space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08"])
     with pytest.raises(ValueError, match="--reduce"):
         sweep(space, "/nonexistent/x.nc", mode="sobol", n_samples=8, raw=False)
+
+
+def test_command_line_reduced_sweep(tmp_path):
+    """tawarp sweep --reduce ... --no-raw: the file holds the groups, the summary the best
+    point, which is the top-1 of a raw sweep of the same points."""
+    import json
+
+    from tawarp.cli import main
+
+    args = ["sweep", "rvc_foam", "--var", "stack.length=0.01:0.08", "--var", "heat_input=1:18", "--samples", "700"]
+    out = tmp_path / "r.nc"
+    assert main([*args, "--reduce", "best,top=3,pareto", "--no-raw", "-o", str(out), "--quiet", "--device", "cpu"]) == 0
+    meta = json.loads(out.with_suffix(".json").read_text())
+    assert meta["raw"] is False and meta["reductions"]["pareto_points"] == len(_group(out, "pareto").point)
+    assert main([*args, "-o", str(tmp_path / "raw.nc"), "--quiet", "--device", "cpu"]) == 0
+    with xr.open_dataset(tmp_path / "raw.nc", engine="h5netcdf") as ds:
+        j = int(np.argmax(ds.gradient.values))
+    assert meta["reductions"]["best"]["point"] == j
+    assert main([*args, "--no-raw", "-o", str(tmp_path / "x.nc"), "--quiet", "--device", "cpu"]) == 2

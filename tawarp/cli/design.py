@@ -495,6 +495,9 @@ def cmd_sweep(args) -> int:
         seed=args.seed,
         settings=_settings(args),
         progress=not args.quiet,
+        reduce=args.reduce,
+        raw=not args.no_raw,
+        objectives=[o.strip() for o in args.objectives.split(",") if o.strip()],
     )
     meta = {
         "generator": f"{GENERATOR} sweep",
@@ -508,6 +511,10 @@ def cmd_sweep(args) -> int:
         "write_seconds": info.write_seconds,
         "variables": space.describe(),
     }
+    if info.reductions is not None:
+        meta["reduce"] = args.reduce
+        meta["raw"] = not args.no_raw
+        meta["reductions"] = info.reductions
     write_json(summary, meta)
     _say(args, f"{info.n_points} points in {info.seconds:.1f} s ({info.evaluations_per_hour:.3g}/h); wrote {info.path}")
     return 0
@@ -532,6 +539,24 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
         "for the launch in flight)",
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--reduce",
+        default=None,
+        help="reductions computed on the device while the sweep runs, written as groups of the file "
+        "(xarray.open_dataset(FILE, group=NAME)): any of best (per variable level), top=K, pareto, "
+        "histogram, quantiles, comma-separated, e.g. best,quantiles,histogram,pareto,top=100",
+    )
+    p.add_argument(
+        "--no-raw",
+        action="store_true",
+        help="write the reductions alone, not every point's outputs (needs --reduce)",
+    )
+    p.add_argument(
+        "--objectives",
+        default="gradient,heat_leak",
+        help="objectives that best and top rank (the first) and pareto (the first two), each in its "
+        "direction (default: %(default)s)",
+    )
     p.add_argument(
         "-o",
         "--output",

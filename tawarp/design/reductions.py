@@ -87,6 +87,21 @@ def ordered_keys(v: np.ndarray) -> np.ndarray:
     return np.where(bits < 0, -mag, mag)
 
 
+def front_2d(G: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Places of the rows of G (N, 2), both minimized, that no other row dominates, in
+    lexicographic order (then by ``index``), vectorized: in that order a row is dominated
+    exactly when an earlier, different row has a second objective <= its own; identical
+    rows share their first one's fate."""
+    order = np.lexsort((index, G[:, 1], G[:, 0]))
+    a, b = G[order, 0], G[order, 1]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])  # first of a run of identical rows
+    run = np.cumsum(new) - 1
+    firsts = np.flatnonzero(new)
+    before = np.concatenate([[np.inf], np.minimum.accumulate(b[firsts])[:-1]])  # over earlier runs
+    return order[(b[firsts] < before)[run]]
+
+
 class Reducer:
     """Accumulates a sweep's reductions chunk by chunk on ``device``.
 
@@ -213,13 +228,25 @@ class Reducer:
         if self.spec.top:
             count, key, co, cv = self._cand["top"][k % 2]
             count.zero_()
-            threshold = self.top[0][self.spec.top - 1] if len(self.top[0]) == self.spec.top else R.NONE_KEY
-            wp.launch(
-                R.top_candidates,
-                dim=m,
-                device=dev,
-                inputs=[lo, out, self.rows[0], float(self.signs[0]), wp.int64(threshold), vals, count, key, co, cv],
-            )
+            row, sign = self.rows[0], float(self.signs[0])
+            if len(self.top[0]) == self.spec.top:  # the K-th best so far bounds the candidates
+                wp.launch(
+                    R.top_candidates,
+                    dim=m,
+                    device=dev,
+                    inputs=[lo, out, row, sign, wp.int64(int(self.top[0][-1])), vals, count, key, co, cv],
+                )
+            else:  # no bound yet: the chunk's own K best, by a radix sort on the device
+                keys = wp.empty(2 * m, dtype=wp.int64, device=dev)
+                point = wp.empty(2 * m, dtype=wp.int32, device=dev)
+                wp.launch(R.chunk_rank_keys, dim=m, device=dev, inputs=[lo, out, row, sign, keys, point])
+                wp.utils.radix_sort_pairs(keys, point, m)
+                wp.launch(
+                    R.first_candidates,
+                    dim=min(self.spec.top, m),
+                    device=dev,
+                    inputs=[keys, point, out, vals, count, key, co, cv],
+                )
         if self.spec.pareto:
             rows, signs = wp.vec2i(*self.rows[:2]), wp.vec2f(*self.signs[:2])
             a, b = self._bins
@@ -259,13 +286,10 @@ class Reducer:
         )
 
     def _merge_front(self, cand):
-        from .samplers import pareto_mask
-
         idx = np.concatenate([self.front[0], cand[0]])
         out = np.concatenate([self.front[1], cand[1]], 1)
         G = np.stack([self.signs[j] * out[self.rows[j]].astype(np.float64) for j in range(2)], axis=1)
-        on = np.flatnonzero(pareto_mask(G))
-        on = on[np.lexsort((idx[on], G[on, 1], G[on, 0]))]
+        on = front_2d(G, idx)
         return idx[on], out[:, on], np.concatenate([self.front[2], cand[2]], 1)[:, on]
 
     # -- results ---------------------------------------------------------------------------
