@@ -41,6 +41,18 @@ TWO32 = wp.constant(wp.int64(4294967296))
 
 
 @wp.func
+def pow2(e: int):
+    """2^e as a float64, exactly, for |e| <= 186 (three shifts: cheaper than pow)."""
+    a = wp.abs(e)
+    p = wp.float64(wp.int64(1) << wp.int64(wp.min(a, 62)))
+    p *= wp.float64(wp.int64(1) << wp.int64(wp.clamp(a - 62, 0, 62)))
+    p *= wp.float64(wp.int64(1) << wp.int64(wp.clamp(a - 124, 0, 62)))
+    if e < 0:
+        return wp.float64(1.0) / p
+    return p
+
+
+@wp.func
 def ordered_key(v: wp.float32):
     """The float32 ``v``'s bit pattern as a signed magnitude (int64): +-(exponent field
     2^23 + mantissa field), computed exactly from the value (Warp has no bit cast):
@@ -54,11 +66,11 @@ def ordered_key(v: wp.float32):
     else:
         e = int(wp.floor(wp.log2(x)))
         # log2 may round across a power of two: correct e so that 2^e <= x < 2^(e + 1)
-        if wp.pow(wp.float64(2.0), wp.float64(e)) > x:
+        if pow2(e) > x:
             e -= 1
-        if wp.pow(wp.float64(2.0), wp.float64(e + 1)) <= x:
+        if pow2(e + 1) <= x:
             e += 1
-        m = (x / wp.pow(wp.float64(2.0), wp.float64(e)) - wp.float64(1.0)) * wp.float64(8388608.0)
+        m = (x / pow2(e) - wp.float64(1.0)) * wp.float64(8388608.0)
         mag = wp.int64(e + 127) * wp.int64(8388608) + wp.int64(m)
     if v < wp.float32(0.0):
         return -mag
@@ -106,23 +118,24 @@ def marginal_best(
     the C-order index with ``grid_stride``, ``grid_size``), else the value's bin among
     ``levels[v]`` equal bins of [low, low + span) (of its logarithm where ``log[v]``;
     ``span`` 0: the value is the level, a material index)."""
-    i, v = wp.tid()
+    i = wp.tid()
     key = rank_key(objective[i], sign, lo + wp.int64(i))
     if key == NONE:
         return
-    level = int(0)
-    if values.shape[0] == 0:
-        level = int(((lo + wp.int64(i)) // grid_stride[v]) % wp.int64(grid_size[v]))
-    elif span[v] == wp.float64(0.0):
-        level = int(values[v, i])
-    else:
-        x = values[v, i]
-        if log[v] != 0:
-            x = wp.log(x)
-        t = (x - low[v]) / span[v]
-        level = wp.clamp(int(wp.floor(t * wp.float64(levels[v]))), 0, levels[v] - 1)
-    if key < best[first_level[v] + level]:  # a plain read first: few atomics once the best are found
-        wp.atomic_min(best, first_level[v] + level, key)
+    for v in range(levels.shape[0]):
+        level = int(0)
+        if values.shape[0] == 0:
+            level = int(((lo + wp.int64(i)) // grid_stride[v]) % wp.int64(grid_size[v]))
+        elif span[v] == wp.float64(0.0):
+            level = int(values[v, i])
+        else:
+            x = values[v, i]
+            if log[v] != 0:
+                x = wp.log(x)
+            t = (x - low[v]) / span[v]
+            level = wp.clamp(int(wp.floor(t * wp.float64(levels[v]))), 0, levels[v] - 1)
+        if key < best[first_level[v] + level]:  # a plain read first: few atomics once the best are found
+            wp.atomic_min(best, first_level[v] + level, key)
 
 
 @wp.func

@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
 import xarray as xr
 
 from tawarp.design.reductions import QUANTILES, ordered_keys, parse_reduce
 from tawarp.design.samplers import pareto_mask
 from tawarp.design.space import DesignSpace, parse_variable
 from tawarp.design.sweep import sweep
+from tawarp.kernels.reduce import ordered_key
 from tawarp.model.core import load_core
 
 ALL = "best,quantiles,histogram,pareto,top=25"
@@ -131,6 +133,27 @@ def test_reductions_without_raw_values_are_the_same(sobol_sweep, tmp_path):
             assert set(a.point.values.tolist()) == set(b.point.values.tolist())
         else:
             xr.testing.assert_identical(a, b)
+
+
+@wp.kernel
+def _keys_of(x: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int64)):
+    i = wp.tid()
+    out[i] = ordered_key(x[i])
+
+
+def test_ordered_key_is_the_bit_pattern():
+    """The device's ordering key, computed from the value, equals the float32 bit pattern
+    as a signed magnitude (NumPy's view), over the whole range: subnormals, the smallest
+    normal, +-0, +-inf, the largest finite, and each value's neighbours."""
+    rng = np.random.default_rng(0)
+    x = rng.standard_normal(20000) * 10.0 ** rng.integers(-45, 39, 20000)
+    special = [0.0, -0.0, np.inf, -np.inf, 1.0, 2.0, 0.5, 3.4028235e38, 1e-45, -1e-45, 2.0**-126, 2.0**-149, 2.0**127]
+    x = np.concatenate([x, special]).astype(np.float32)
+    with np.errstate(over="ignore"):  # the largest finite's neighbour is inf: kept
+        x = np.concatenate([x, np.nextafter(x, np.float32(np.inf)), np.nextafter(x, np.float32(-np.inf))])
+    out = wp.zeros(len(x), dtype=wp.int64, device="cpu")
+    wp.launch(_keys_of, dim=len(x), inputs=[wp.array(x, dtype=wp.float32, device="cpu"), out], device="cpu")
+    np.testing.assert_array_equal(out.numpy(), ordered_keys(x))
 
 
 def test_vectorized_two_objective_front_is_deb_front():

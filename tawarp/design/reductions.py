@@ -221,7 +221,7 @@ class Reducer:
             args[2] = vals
             wp.launch(
                 R.marginal_best,
-                dim=(m, len(self.levels)),
+                dim=m,
                 device=dev,
                 inputs=[lo, out[self.rows[0]], float(self.signs[0]), *args, self.best],
             )
