@@ -1,8 +1,10 @@
 """Design search over a thermoacoustic core: the loop that asks, evaluates and stores.
 
-Generations of ``batch`` trials are asked as a whole (:mod:`tawarp.design.samplers`),
-evaluated in one kernel launch (:class:`tawarp.design.evaluate.Evaluator`) and stored
-(:mod:`tawarp.design.storage`). Objectives come from the table of
+Generations of ``batch`` trials are asked as a whole on the device
+(:mod:`tawarp.design.samplers`), evaluated in one kernel launch from a table built there
+(:class:`tawarp.design.evaluate.Evaluator`, :class:`tawarp.design.space.DeviceTable`),
+their values and metrics copied to the host once, and stored (:mod:`tawarp.design.storage`,
+committed every generation or every ``commit_seconds``). Objectives come from the table of
 :mod:`tawarp.design.objectives`; the optional constraint is ``T_max <= T_limit`` (the
 paper stops the RVC foam at 18 W for fear of combustion; 673 K is a typical limit for
 carbon in air).
