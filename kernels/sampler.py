@@ -17,7 +17,7 @@ told with the instance (category) they belong to.
   sigma and y y^T over the best mu = lambda / 2 members, in fixed slices summed in a fixed
   order (no atomics: the same seed gives the same numbers).
 - :func:`cma_update` (one thread per instance): mean, evolution paths, covariance (rank-one
-  and rank-mu) and step size (eqs. 41-47, 51), the stopping tests and the restart; then the
+  and rank-mu) and step size (eqs. 41-47), the stopping tests and the restart; then the
   covariance's eigendecomposition (:func:`tawarp.kernels.eigen.eigh_kernel`, one thread).
 
 NSGA-II (Deb et al., IEEE Trans. Evol. Comput. 6 (2002) 182): :func:`fronts_2d` ranks two
@@ -401,7 +401,7 @@ def fronts_2d(
     head: wp.array(dtype=wp.int32),
     tail: wp.array(dtype=wp.int32),
     prev: wp.array(dtype=wp.int32),
-    next: wp.array(dtype=wp.int32),
+    succ: wp.array(dtype=wp.int32),
 ):
     """Non-dominated fronts of two minimized objectives and the crowding distance, one
     thread (launch with dim 1, on the CPU: a sequential O(N log N) pass).
@@ -437,15 +437,15 @@ def fronts_2d(
             last[j] = F[i, 1]
         rank[i] = j
         prev[i] = tail[j]
-        next[i] = -1
+        succ[i] = -1
         if tail[j] >= 0:
-            next[tail[j]] = i
+            succ[tail[j]] = i
         tail[j] = i
     for t in range(N):
         i = order[t]
         j = rank[i]
         p = prev[i]
-        q = next[i]
+        q = succ[i]
         if p < 0 or q < 0:
             crowd[i] = wp.float64(wp.inf)
         else:
