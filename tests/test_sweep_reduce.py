@@ -193,3 +193,29 @@ def test_command_line_reduced_sweep(tmp_path):
         j = int(np.argmax(ds.gradient.values))
     assert meta["reductions"]["best"]["point"] == j
     assert main([*args, "--no-raw", "-o", str(tmp_path / "x.nc"), "--quiet", "--device", "cpu"]) == 2
+
+
+def test_reductions_of_a_host_objective(tmp_path):
+    """An output computed on the host (acoustic_loss, minimized) is reduced like a kernel
+    column: its top points and histogram are NumPy's of the raw values."""
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "heat_input=1:18"])
+    path = tmp_path / "a.nc"
+    outputs = ["gradient", "acoustic_loss"]
+    sweep(
+        space,
+        path,
+        mode="sobol",
+        n_samples=300,
+        chunk=128,
+        outputs=outputs,
+        reduce="top=4,histogram",
+        objectives=["acoustic_loss"],
+    )
+    with xr.open_dataset(path, engine="h5netcdf") as ds:
+        a = ds.acoustic_loss.values
+    top, hist = _group(path, "top"), _group(path, "histogram")
+    np.testing.assert_array_equal(top.point.values, np.lexsort((np.arange(len(a)), a.astype(np.float64)))[:4])
+    ok = ~np.isnan(a)
+    np.testing.assert_array_equal(
+        hist.acoustic_loss_count.values, np.unique(ordered_keys(a[ok]) >> 12, return_counts=True)[1]
+    )

@@ -325,7 +325,7 @@ class _Run:
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
             for g, keep, values, metrics, c, F in copies:
                 if len(self.objectives) > 1:  # members since dominated by a later generation's
-                    on = ~np.array([np.any(np.all(self.front <= f, 1) & np.any(self.front < f, 1)) for f in F])
+                    on = ~_dominated(F, self.front)
                     keep, values, metrics, F = keep[on], _rows_of(values, on), _rows_of(metrics, on), F[on]
                     c = None if c is None else c[on]
                 if len(keep):
@@ -452,6 +452,16 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
+
+
+def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarray:
+    """Rows of F (n, m) that a row of ``front`` dominates (all minimized), in blocks of
+    rows (an (n, len(front)) comparison at once would not fit)."""
+    out = np.zeros(len(F), dtype=bool)
+    for lo in range(0, len(F), block):
+        f = F[lo : lo + block, None, :]
+        out[lo : lo + block] = np.any(np.all(front <= f, axis=2) & np.any(front < f, axis=2), axis=1)
+    return out
 
 
 def _rows_of(columns: dict, rows) -> dict:
