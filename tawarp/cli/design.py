@@ -166,6 +166,7 @@ def cmd_design(args) -> int:
         progress=not args.quiet,
         onset=_onset_spec(args),
         store=args.trial_store,
+        commit_seconds=args.commit_seconds,
     )
     summary = study_summary(res.study)
     report = {
@@ -269,6 +270,14 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
         "worker run; the study keeps the best); default: beside a journal file "
         "(OUTPUT/study.trials/STUDY), none with a database URL (every trial in the database); "
         "with several machines give a folder they all see",
+    )
+    p.add_argument(
+        "--commit-seconds",
+        type=float,
+        default=0.0,
+        help="commit the evaluated generations (trial store, study, heartbeat) at most this often [s]; "
+        "0: every generation (default: %(default)s); 1 keeps a GPU busy, a killed run redoing at most "
+        "that much",
     )
     p.add_argument("--study", default="tawarp-design", help="study name (default: %(default)s)")
     p.add_argument("--worker", default="w0", help="this worker's name; several workers need distinct names")
@@ -486,6 +495,9 @@ def cmd_sweep(args) -> int:
         seed=args.seed,
         settings=_settings(args),
         progress=not args.quiet,
+        reduce=args.reduce,
+        raw=not args.no_raw,
+        objectives=[o.strip() for o in args.objectives.split(",") if o.strip()],
     )
     meta = {
         "generator": f"{GENERATOR} sweep",
@@ -499,6 +511,10 @@ def cmd_sweep(args) -> int:
         "write_seconds": info.write_seconds,
         "variables": space.describe(),
     }
+    if info.reductions is not None:
+        meta["reduce"] = args.reduce
+        meta["raw"] = not args.no_raw
+        meta["reductions"] = info.reductions
     write_json(summary, meta)
     _say(args, f"{info.n_points} points in {info.seconds:.1f} s ({info.evaluations_per_hour:.3g}/h); wrote {info.path}")
     return 0
@@ -523,6 +539,24 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
         "for the launch in flight)",
     )
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--reduce",
+        default=None,
+        help="reductions computed on the device while the sweep runs, written as groups of the file "
+        "(xarray.open_dataset(FILE, group=NAME)): any of best (per variable level), top=K, pareto, "
+        "histogram, quantiles, comma-separated, e.g. best,quantiles,histogram,pareto,top=100",
+    )
+    p.add_argument(
+        "--no-raw",
+        action="store_true",
+        help="write the reductions alone, not every point's outputs (needs --reduce)",
+    )
+    p.add_argument(
+        "--objectives",
+        default="gradient,heat_leak",
+        help="objectives that best and top rank (the first) and pareto (the first two), each in its "
+        "direction (default: %(default)s)",
+    )
     p.add_argument(
         "-o",
         "--output",

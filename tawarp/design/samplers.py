@@ -1,22 +1,25 @@
-"""Batched population samplers of the design search, behind one protocol.
+"""Batched population samplers of the design search, behind one protocol, on the device.
 
 A sampler works in sampler coordinates ``X`` (n, dim [+ 1]): the unit cube of the
 continuous variables, then, when there are ``categories`` (materials), the category
 index as a last column. ``ask(n)`` returns the next generation (n = the population
-size), ``tell(X, F, violation)`` gives it back with its minimized objectives ``F``
-(n, m) and constraint violations (n,) (feasible when <= 0; ``inf`` for a failed
-evaluation). Samplers are deterministic functions of their seed and of what they were
-told: a search resumes by asking and telling its stored generations again (no sampler
-state is stored).
+size) as a float64 Warp array on the sampler's device; ``tell(X, F, violation)`` gives it
+back (Warp arrays or NumPy) with its minimized objectives ``F`` (n, m) and constraint
+violations (n,) (feasible when <= 0; ``inf`` for a failed evaluation). Samplers are
+deterministic functions of their seed and of what they were told: a search resumes by
+asking and telling its stored generations again (no sampler state is stored).
 
-- :class:`BatchCmaEs` (one objective): CMA-ES (the ``cmaes`` library that Optuna's
-  ``CmaEsSampler`` wraps), one instance per category, the population split evenly
-  between them; generation 0 is a scrambled Sobol batch from which CMA-ES is
-  warm-started (``cmaes.get_warm_start_mgd``); constraints by Deb's rule; an instance
-  that has converged or degenerated is restarted (see :class:`BatchCmaEs`).
+- :class:`BatchCmaEs` (one objective): CMA-ES, one instance per category, the population
+  split evenly between them, its state and its ask/tell in Warp kernels
+  (:mod:`tawarp.kernels.sampler`); generation 0 is a scrambled Sobol batch whose best half
+  gives the first mean; constraints by Deb's rule; an instance that has converged or
+  degenerated is restarted (see :class:`BatchCmaEs`).
 - :class:`BatchNsga2` (several objectives): NSGA-II with constrained domination,
   crowding distance, binary tournament, SBX crossover and polynomial mutation;
-  generation 0 scrambled Sobol.
+  generation 0 scrambled Sobol; the children made on the device, the survivors chosen
+  on the host (one sequential pass for two objectives).
+
+Why a small Warp implementation rather than a GPU evolutionary library: docs/design.md.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from __future__ import annotations
 from typing import Protocol, runtime_checkable
 
 import numpy as np
+import warp as wp
 
 
 @runtime_checkable
@@ -32,18 +36,20 @@ class Sampler(Protocol):
 
     generation: int
 
-    def ask(self, n: int) -> np.ndarray:
-        """Sampler coordinates (n, dim [+ 1]) of the next generation."""
+    def ask(self, n: int):
+        """Sampler coordinates (n, dim [+ 1]) of the next generation (a Warp array)."""
 
-    def tell(self, X: np.ndarray, F: np.ndarray, violation: np.ndarray) -> None:
+    def tell(self, X, F, violation) -> None:
         """The generation last asked, evaluated: minimized objectives F (n, m), violations (n,)."""
 
 
-def make_sampler(dim: int, categories: int, batch: int, seed: int, n_objectives: int) -> Sampler:
-    """CMA-ES for one objective, NSGA-II for several."""
+def make_sampler(
+    dim: int, categories: int, batch: int, seed: int, n_objectives: int, device: str | None = None
+) -> Sampler:
+    """CMA-ES for one objective, NSGA-II for several, on ``device`` (default Warp's)."""
     if n_objectives > 1:
-        return BatchNsga2(dim, categories, batch, seed, n_objectives=n_objectives)
-    return BatchCmaEs(dim, categories, batch, seed)
+        return BatchNsga2(dim, categories, batch, seed, n_objectives=n_objectives, device=device)
+    return BatchCmaEs(dim, categories, batch, seed, device=device)
 
 
 def sobol_unit(n: int, d: int, seed: int, skip: int = 0) -> np.ndarray:
@@ -79,133 +85,185 @@ def sobol_directions(d: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
     return eng._sv.astype(np.int64), eng._shift.astype(np.int64), float(eng._scale)
 
 
-def _penalized(f: np.ndarray, violation: np.ndarray) -> np.ndarray:
-    """Deb's rule for a minimized scalar: infeasible points rank after every feasible one,
-    by their violation."""
-    f = np.where(np.isfinite(f), f, np.inf)
-    feas = (violation <= 0) & np.isfinite(f)
-    worst = np.max(f[feas]) if np.any(feas) else 0.0
-    big = np.where(np.isfinite(violation), violation, 1e300)
-    return np.where(feas, f, worst + 1.0 + np.abs(worst) + big)
+def _stream_seed(seed: int, generation: int, stream: int) -> int:
+    """A kernel's seed (int32) for ``stream`` of ``generation``: NumPy's SeedSequence of the
+    three, so that generations and streams never share random numbers."""
+    return int(np.random.SeedSequence([int(seed), int(generation), int(stream)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
-#: Initial step size of a CMA-ES (re)started without a warm start: a sixth of the unit
-#: box, so that +-3 sigma spans it.
-SIGMA0 = 1.0 / 6.0
+def _on(device, a, dtype=wp.float64) -> wp.array:
+    """``a`` (NumPy or Warp) as a new contiguous Warp array of ``dtype`` on ``device`` (the
+    kernels write into it)."""
+    if isinstance(a, wp.array):
+        return wp.clone(a, device=device) if a.dtype == dtype else wp.array(a.numpy(), dtype=dtype, device=device)
+    return wp.array(
+        np.ascontiguousarray(a, dtype=np.float64 if dtype == wp.float64 else np.int32), dtype=dtype, device=device
+    )
 
 
-def _degenerate(opt) -> bool:
-    """Whether a CMA-ES instance can no longer sample: its state is not finite, or
-    ``cmaes``' own stopping test holds (converged: step size or function values below
-    tolerance, a step with no effect on the mean, covariance condition number > 1e14).
-    Left running, such an instance divides by a vanishing step size and asks NaN points
-    (a quadratic with 256 trials per generation does so within 60 generations)."""
-    state = (opt.mean, np.asarray(opt._sigma), opt._C)  # cmaes has no public accessor
-    if not all(np.all(np.isfinite(a)) for a in state) or not opt._sigma > 0:
-        return True
-    with np.errstate(all="ignore"):
-        return bool(opt.should_stop())
+def _host(a) -> np.ndarray:
+    """A float64 NumPy array of ``a`` (Warp arrays copied from their device)."""
+    return np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=np.float64)
+
+
+#: Slices of the ranked members summed apart by :func:`tawarp.kernels.sampler.cma_moments`
+#: (parallel, and summed in a fixed order: reproducible).
+MOMENT_SLICES = 32
 
 
 class BatchCmaEs:
     """CMA-ES over ``dim`` unit-cube coordinates, one instance per category (``categories``
-    0 or 1: none), population = ``batch`` split between categories. Generation 0 is
-    scrambled Sobol; CMA-ES is warm-started from it. Constraints: Deb's rule.
+    0 or 1: none), population = ``batch`` split between categories (lambda each, mu =
+    lambda / 2 parents, the tutorial's default weights, c_sigma, d_sigma, c_c, c_1 and
+    c_mu), on ``device``. Generation 0 is scrambled Sobol; its best half (by category)
+    gives each instance's first mean, with sigma0 = :data:`SIGMA0` and C = I.
+    Constraints: Deb's rule (a feasible member ranks before every infeasible one, the
+    infeasible by their violation).
 
-    Points stay in the unit box (``cmaes`` resamples, then clips). An instance that has
-    converged or degenerated (:func:`_degenerate`) is restarted, before it asks, from a
-    random point of the box with step size :data:`SIGMA0` and the same population (the
-    batch is already far above CMA-ES's default 4 + 3 ln d, so IPOP's doubling of the
-    population buys nothing); ``restarts[m]`` counts them. Restarts depend only on what
-    was told, so a replay restarts alike. Points told that are not finite (none are asked;
-    a store may hold some) are told as the points asked, failed."""
+    Points stay in the unit box: resampled up to 10 dim times, then clipped (the told,
+    repaired point is the one the update reads). An instance restarts from a uniform
+    random point with sigma0, C = I when it stops (its step below 1e-11 of the box, the
+    covariance's condition number above 1e14, the objective flat to 1e-12 relative over
+    a generation and the last 10 + 30 dim / lambda ones) or when its state is not finite;
+    ``restarts[m]`` counts them. The population stays the batch's share: IPOP's doubling
+    of lambda at each restart is moot when lambda already is thousands (docs/design.md).
+    Restarts depend only on what was told, so a replay restarts alike. Rows told that are
+    not finite (none are asked; a store may hold some) are told as the rows asked, failed."""
 
-    def __init__(self, dim: int, categories: int, batch: int, seed: int):
+    def __init__(self, dim: int, categories: int, batch: int, seed: int, device: str | None = None):
+        from ..kernels.eigen import eigh_kernel
+
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
+        self.device = wp.get_device(device)
         self.n_cat = max(categories, 1)
+        if dim < 1:
+            raise ValueError("CMA-ES needs at least one continuous variable")
         if batch < 2 * self.n_cat:
             raise ValueError(
                 f"batch {batch} too small: CMA-ES needs at least 2 trials per material ({self.n_cat} materials)"
             )
-        self.d = max(dim, 2)  # cmaes needs >= 2 dimensions: pad a dummy one, kept internal
         self.sizes = [batch // self.n_cat + (1 if m < batch % self.n_cat else 0) for m in range(self.n_cat)]
-        self.opts = [None] * self.n_cat
-        self.restarts = [0] * self.n_cat
+        K, d, dev = self.n_cat, dim, self.device
+        eye = np.broadcast_to(np.eye(d), (K, d, d))
+
+        def put(a, dtype=wp.float64):
+            return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
+
+        # the Sobol start is told against m = 1/2, sigma = 1: its update sets the first mean
+        self.mean, self.sigma = put(np.full((K, d), 0.5)), put(np.ones(K))
+        self.C, self.B, self.eig = put(eye), put(eye), put(np.ones((K, d)))
+        self.p_sigma, self.p_c, self.yw = put(np.zeros((K, d))), put(np.zeros((K, d))), put(np.zeros((K, d)))
+        self.age, self._restarts = put(np.zeros(K), wp.int32), put(np.zeros(K), wp.int32)
+        horizon = 10 + int(np.ceil(30 * d / min(self.sizes)))
+        self.history = put(np.full((K, horizon), np.inf))
+        self.part = wp.zeros((K, MOMENT_SLICES, d + d * d), dtype=wp.float64, device=dev)
+        self.category = put(np.repeat(np.arange(K), self.sizes), wp.int32)
+        self._eigh = eigh_kernel(d)
+        self._w, self._V = (
+            wp.empty((K, d), dtype=wp.float64, device=dev),
+            wp.empty((K, d, d), dtype=wp.float64, device=dev),
+        )
+        n = batch
+        self._z = wp.empty((n, d), dtype=wp.float64, device=dev)
+        self._U = wp.empty((n, d), dtype=wp.float64, device=dev)
+        self._told_cat = wp.empty(n, dtype=wp.int32, device=dev)
+        self._counts = wp.zeros(K, dtype=wp.int32, device=dev)
+        self._key = wp.empty(2 * n, dtype=wp.float64, device=dev)
+        self._ckey = wp.empty(2 * n, dtype=wp.int32, device=dev)
+        self._member = wp.empty(2 * n, dtype=wp.int32, device=dev)
         self.generation = 0
-        self._asked = None  # (internal coordinates (batch, d), category (batch,)) of the last ask
+        self._asked = None  # the last generation asked (Warp, on the device)
 
-    def _start(self, m: int, mean, sigma: float, cov, seed: int) -> None:
-        import cmaes
+    @property
+    def restarts(self) -> list[int]:
+        """Restarts of each instance so far."""
+        return self._restarts.numpy().tolist()
 
-        self.opts[m] = cmaes.CMA(
-            mean=np.clip(mean, 0.0, 1.0),
-            sigma=max(float(sigma), 1e-8),
-            cov=cov,
-            bounds=np.tile([0.0, 1.0], (self.d, 1)),
-            seed=seed,
-            n_max_resampling=10 * self.d,
-            population_size=self.sizes[m],
-        )
+    def ask(self, n: int) -> wp.array:
+        from ..kernels.sampler import cma_sample
 
-    def _restart(self, m: int) -> None:
-        self.restarts[m] += 1
-        seq = np.random.SeedSequence([self.seed, m, self.restarts[m]])
-        self._start(
-            m, np.random.default_rng(seq).random(self.d), SIGMA0, None, int(seq.generate_state(1)[0] % (2**31 - 2)) + 1
-        )
-
-    def _population(self, m: int) -> np.ndarray:
-        """Instance m's next population (sizes[m], d), restarting it first if it degenerated."""
-        if _degenerate(self.opts[m]):
-            self._restart(m)
-        with np.errstate(all="ignore"):
-            u = np.array([self.opts[m].ask() for _ in range(self.sizes[m])])
-        if not np.all(np.isfinite(u)):  # a state finite yet too extreme to sample from
-            self._restart(m)
-            u = np.array([self.opts[m].ask() for _ in range(self.sizes[m])])
-        return u
-
-    def ask(self, n: int) -> np.ndarray:
         if n != self.batch:
             raise ValueError(f"CMA-ES asks whole populations of {self.batch}, not {n}")
+        cols = self.dim + (1 if self.categories else 0)
         if self.generation == 0:
-            u = sobol_unit(self.batch, self.d, self.seed)
-            cat = np.arange(self.batch) % self.n_cat
+            X = sobol_unit(self.batch, self.dim, self.seed)
+            if self.categories:
+                X = np.concatenate([X, (np.arange(self.batch) % self.n_cat)[:, None].astype(float)], axis=1)
+            X = wp.array(X, dtype=wp.float64, device=self.device)
         else:
-            u = np.concatenate([self._population(m) for m in range(self.n_cat)])
-            cat = np.concatenate([np.full(size, m) for m, size in enumerate(self.sizes)])
-        self._asked = (u, cat)
-        X = u[:, : self.dim]
-        return np.concatenate([X, cat[:, None].astype(float)], axis=1) if self.categories else X
+            X = wp.empty((self.batch, cols), dtype=wp.float64, device=self.device)
+            wp.launch(
+                cma_sample,
+                dim=self.batch,
+                device=self.device,
+                inputs=[
+                    _stream_seed(self.seed, self.generation, 0),
+                    self.mean,
+                    self.sigma,
+                    self.B,
+                    self.eig,
+                    self.category,
+                    10 * self.dim,
+                    self._z,
+                    X,
+                ],
+            )
+        self._asked = X
+        return X
 
-    def tell(self, X: np.ndarray, F: np.ndarray, violation: np.ndarray) -> None:
-        import cmaes
+    def tell(self, X, F, violation) -> None:
+        from ..kernels.sampler import class_keys, cma_moments, cma_update, eig_factor, rank_keys, told_rows
 
         if self._asked is None:
             raise RuntimeError("tell without ask: tell the generation last asked")
-        u_asked, cat_asked = self._asked
-        u = np.concatenate([X[:, : self.dim], u_asked[:, self.dim :]], axis=1)
-        cat = X[:, self.dim].astype(int) if self.categories else np.zeros(len(X), dtype=int)
-        f = np.asarray(F, dtype=float).reshape(len(X), -1)[:, 0]
-        bad = ~np.all(np.isfinite(u), axis=1)
-        u[bad], cat[bad] = u_asked[bad], cat_asked[bad]
-        f = _penalized(np.where(bad, np.inf, f), np.where(bad, np.inf, np.asarray(violation, dtype=float)))
-        if self.generation == 0:
-            for m in range(self.n_cat):
-                sols = [(u[i], f[i]) for i in np.flatnonzero(cat == m)]
-                gamma = min(1.0, max(0.1, 1.0001 / len(sols)))
-                try:
-                    mean, sigma, cov = cmaes.get_warm_start_mgd(sols, gamma=gamma, alpha=0.1)
-                    ok = np.all(np.isfinite(cov)) and np.isfinite(sigma) and sigma > 0
-                except (AssertionError, np.linalg.LinAlgError, ValueError):
-                    ok = False
-                if not ok:
-                    mean, sigma, cov = np.full(self.d, 0.5), SIGMA0, None
-                self._start(m, mean, sigma, cov, (self.seed + 1000 * m) % (2**31 - 1) + 1)
-        else:
-            with np.errstate(all="ignore"):  # a degenerating update is caught before the next ask
-                for m, opt in enumerate(self.opts):
-                    opt.tell([(u[i], float(f[i])) for i in np.flatnonzero(cat == m)])
+        dev, n, K = self.device, self.batch, self.n_cat
+        X = X if isinstance(X, wp.array) and X.device == dev else _on(dev, X)
+        F = _on(dev, F if isinstance(F, wp.array) and F.ndim == 1 else _host(F).reshape(n, -1)[:, 0])
+        viol = _on(dev, violation)
+        self._counts.zero_()
+        wp.launch(
+            told_rows,
+            dim=n,
+            device=dev,
+            inputs=[X, self._asked, self.n_cat, self.dim, F, viol, self._U, self._told_cat, self._counts],
+        )
+        wp.launch(rank_keys, dim=n, device=dev, inputs=[F, viol, self._key, self._member])
+        wp.utils.radix_sort_pairs(self._key, self._member, n)
+        wp.launch(class_keys, dim=n, device=dev, inputs=[self._member, F, viol, self._told_cat, self._ckey])
+        wp.utils.radix_sort_pairs(self._ckey, self._member, n)
+        wp.launch(
+            cma_moments,
+            dim=(K, MOMENT_SLICES),
+            device=dev,
+            inputs=[self._U, self._member, self._counts, self.mean, self.sigma, self.part],
+        )
+        wp.launch(
+            cma_update,
+            dim=K,
+            device=dev,
+            inputs=[
+                _stream_seed(self.seed, self.generation, 1),
+                int(self.generation == 0),
+                self.part,
+                self._member,
+                self._counts,
+                F,
+                viol,
+                self.yw,
+                self.mean,
+                self.sigma,
+                self.C,
+                self.B,
+                self.eig,
+                self.p_sigma,
+                self.p_c,
+                self.age,
+                self.history,
+                self._restarts,
+            ],
+        )
+        wp.launch(self._eigh, dim=K, device=dev, inputs=[self.C, self._w, self._V])
+        wp.launch(eig_factor, dim=(K, self.dim), device=dev, inputs=[self._w, self._V, self.eig, self.B])
         self._asked = None
         self.generation += 1
 
@@ -300,10 +358,39 @@ def constrained_objectives(F: np.ndarray, violation: np.ndarray) -> np.ndarray:
     return np.where(feas[:, None], F, top + span + v[:, None])
 
 
+def fronts_and_crowding(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(front index, crowding distance) of each row of G (N, M), all minimized: two
+    objectives in one sequential O(N log N) pass on the CPU
+    (:func:`tawarp.kernels.sampler.fronts_2d`), more by :func:`nondominated_ranks` and
+    :func:`crowding`."""
+    from ..kernels.sampler import fronts_2d
+
+    if G.shape[1] != 2:
+        rank = nondominated_ranks(G)
+        return rank, crowding(G, rank)
+    N = G.shape[0]
+    order = np.lexsort((G[:, 1], G[:, 0])).astype(np.int32)
+    cpu = "cpu"
+    rank, crowd = wp.empty(N, dtype=wp.int32, device=cpu), wp.empty(N, dtype=wp.float64, device=cpu)
+    scratch = [wp.empty(N, dtype=wp.float64, device=cpu)] + [wp.empty(N, dtype=wp.int32, device=cpu) for _ in range(4)]
+    wp.launch(
+        fronts_2d,
+        dim=1,
+        device=cpu,
+        inputs=[wp.array(order, dtype=wp.int32, device=cpu), wp.array(G, dtype=wp.float64, device=cpu), rank, crowd]
+        + scratch,
+    )
+    return rank.numpy().astype(np.int64), crowd.numpy()
+
+
 class BatchNsga2:
     """NSGA-II over ``dim`` unit-cube coordinates and ``categories`` (0: none; a category
-    is inherited from a parent and mutated with probability 1/(dim + 1)), population =
-    ``batch``; generation 0 scrambled Sobol."""
+    is inherited from a parent and redrawn with probability 1/(dim + 1)), population =
+    ``batch``; generation 0 scrambled Sobol. The children are made on ``device``
+    (:func:`tawarp.kernels.sampler.nsga_offspring`: binary tournament, SBX with ``eta_c``,
+    polynomial mutation with ``eta_m``); the survivors of parents and children are chosen
+    on the host by front, then crowding distance (:func:`fronts_and_crowding`) and the
+    parents sent to the device: one copy per generation each way."""
 
     def __init__(
         self,
@@ -314,73 +401,66 @@ class BatchNsga2:
         eta_c: float = 15.0,
         eta_m: float = 20.0,
         n_objectives: int = 2,
+        device: str | None = None,
     ):
         self.batch, self.seed, self.categories = batch, seed, categories
         if n_objectives > 2 and batch > 4096:
             raise ValueError("NSGA-II with more than two objectives: batch at most 4096 (O(batch^2) sorting memory)")
+        self.device = wp.get_device(device)
         self.n_mat = max(categories, 1)
         self.d = dim
         self.eta_c, self.eta_m = eta_c, eta_m
-        self.pop = None  # (u, mat, F, violation)
+        self.pop = None  # (u, mat, F, violation) of the parents, on the host
+        self._parents = None  # (u, mat, rank, crowding) of the parents, on the device
         self.generation = 0
 
     def _select(self, u, mat, F, viol):
-        G = constrained_objectives(F, viol)
-        rank = nondominated_ranks(G)
-        cd = crowding(G, rank)
+        rank, cd = fronts_and_crowding(constrained_objectives(F, viol))
         order = np.lexsort((-cd, rank))[: self.batch]
         self._rank, self._cd = rank[order], cd[order]
+        dev = self.device
+        self._parents = (
+            wp.array(np.ascontiguousarray(u[order]), dtype=wp.float64, device=dev),
+            wp.array(mat[order].astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(self._rank.astype(np.int32), dtype=wp.int32, device=dev),
+            wp.array(self._cd, dtype=wp.float64, device=dev),
+        )
         return u[order], mat[order], F[order], viol[order]
 
-    def ask(self, n: int) -> np.ndarray:
+    def ask(self, n: int) -> wp.array:
+        from ..kernels.sampler import nsga_offspring
+
         if n != self.batch:
             raise ValueError(f"NSGA-II asks whole populations of {self.batch}, not {n}")
-        u, cm = self._offspring()
-        return np.concatenate([u, cm[:, None].astype(float)], axis=1) if self.categories else u
+        cols = self.d + (1 if self.categories else 0)
+        if self.generation == 0:
+            X = sobol_unit(self.batch, self.d, self.seed)
+            if self.categories:
+                X = np.concatenate([X, (np.arange(self.batch) % self.n_mat)[:, None].astype(float)], axis=1)
+            return wp.array(X, dtype=wp.float64, device=self.device)
+        X = wp.empty((self.batch, cols), dtype=wp.float64, device=self.device)
+        wp.launch(
+            nsga_offspring,
+            dim=self.batch,
+            device=self.device,
+            inputs=[
+                _stream_seed(self.seed, self.generation, 0),
+                *self._parents,
+                float(self.eta_c),
+                float(self.eta_m),
+                self.n_mat,
+                X,
+            ],
+        )
+        return X
 
-    def _offspring(self) -> tuple[np.ndarray, np.ndarray]:
-        g = self.generation
-        if g == 0:
-            return sobol_unit(self.batch, self.d, self.seed), np.arange(self.batch) % self.n_mat
-        rng = np.random.default_rng([self.seed, g])
-        u, mat = self.pop[0], self.pop[1]
-        n, B = len(u), self.batch
-
-        def tournament(k):
-            a, b = rng.integers(0, n, k), rng.integers(0, n, k)
-            better = (self._rank[a] < self._rank[b]) | ((self._rank[a] == self._rank[b]) & (self._cd[a] > self._cd[b]))
-            return np.where(better, a, b)
-
-        p1, p2 = tournament(B), tournament(B)
-        x1, x2 = u[p1].copy(), u[p2].copy()
-        child = x1.copy()
-        if self.d:
-            # SBX crossover, probability 0.9 per pair, each gene with probability 0.5
-            do = (rng.random(B) < 0.9)[:, None] & (rng.random((B, self.d)) < 0.5)
-            r = rng.random((B, self.d))
-            beta = np.where(r <= 0.5, (2 * r) ** (1 / (self.eta_c + 1)), (1 / (2 * (1 - r))) ** (1 / (self.eta_c + 1)))
-            c1 = 0.5 * ((1 + beta) * x1 + (1 - beta) * x2)
-            c2 = 0.5 * ((1 - beta) * x1 + (1 + beta) * x2)
-            pick = rng.random((B, self.d)) < 0.5
-            child = np.where(do, np.where(pick, c1, c2), x1)
-            # polynomial mutation, probability 1/d per gene
-            mut = rng.random((B, self.d)) < 1.0 / max(self.d, 1)
-            r = rng.random((B, self.d))
-            delta = np.where(
-                r < 0.5, (2 * r) ** (1 / (self.eta_m + 1)) - 1, 1 - (2 * (1 - r)) ** (1 / (self.eta_m + 1))
-            )
-            child = np.clip(np.where(mut, child + delta, child), 0.0, 1.0)
-        cm = np.where(rng.random(B) < 0.5, mat[p1], mat[p2])
-        if self.n_mat > 1:
-            flip = rng.random(B) < 1.0 / (self.d + 1)
-            cm = np.where(flip, rng.integers(0, self.n_mat, B), cm)
-        return child, cm
-
-    def tell(self, X: np.ndarray, F: np.ndarray, violation: np.ndarray) -> None:
-        u = np.asarray(X[:, : self.d], dtype=float)
+    def tell(self, X, F, violation) -> None:
+        X = _host(X)
+        u = X[:, : self.d]
         mat = X[:, self.d].astype(int) if self.categories else np.zeros(len(X), dtype=int)
-        F = np.where(np.isfinite(F), np.asarray(F, dtype=float), np.inf)
-        viol = np.asarray(violation, dtype=float)
+        F = _host(F).reshape(len(X), -1)
+        F = np.where(np.isfinite(F), F, np.inf)
+        viol = _host(violation)
         if self.pop is None:
             self.pop = self._select(u, mat, F, viol)
         else:

@@ -1,8 +1,10 @@
 """Design search over a thermoacoustic core: the loop that asks, evaluates and stores.
 
-Generations of ``batch`` trials are asked as a whole (:mod:`tawarp.design.samplers`),
-evaluated in one kernel launch (:class:`tawarp.design.evaluate.Evaluator`) and stored
-(:mod:`tawarp.design.storage`). Objectives come from the table of
+Generations of ``batch`` trials are asked as a whole on the device
+(:mod:`tawarp.design.samplers`), evaluated in one kernel launch from a table built there
+(:class:`tawarp.design.evaluate.Evaluator`, :class:`tawarp.design.space.DeviceTable`),
+their values and metrics copied to the host once, and stored (:mod:`tawarp.design.storage`,
+committed every generation or every ``commit_seconds``). Objectives come from the table of
 :mod:`tawarp.design.objectives`; the optional constraint is ``T_max <= T_limit`` (the
 paper stops the RVC foam at 18 W for fear of combustion; 673 K is a typical limit for
 carbon in air).
@@ -41,11 +43,12 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
 from .samplers import make_sampler, pareto_mask
-from .space import DesignSpace
+from .space import DesignSpace, DeviceTable
 from .storage import (
     ATTR,
     COPY,
@@ -62,7 +65,8 @@ from .storage import (
     open_study,
 )
 from ..io import interrupt_guard
-from ..model.forward import ForwardSettings
+from ..model.forward import ForwardSettings, resolve_device
+from ..model.validity import ModelValidityError
 
 
 @dataclass
@@ -114,6 +118,7 @@ def search(
     onset=None,
     client=None,
     store=None,
+    commit_seconds: float = 0.0,
     _stop_after: int | None = None,
     _crash_after: int | None = None,
 ) -> SearchResult:
@@ -130,7 +135,11 @@ def search(
     for the columnar trial store; None: the study's own store, else the default beside a
     journal file, else none (a database URL or memory: every trial in the study); False:
     every trial in the study. The batched engine only: Optuna's own samplers keep every
-    trial in the study. ``_stop_after`` / ``_crash_after``: test hooks that interrupt
+    trial in the study. ``commit_seconds`` [s]: the evaluated generations are committed (the
+    trial store, the study's copies and the heartbeat, in one write each) at most this
+    often, and at the end; 0 commits every generation. A run killed between commits loses
+    the generations evaluated since the last one (a resume evaluates them again, the same);
+    committing once a second keeps a fast device busy (docs/design.md). ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
     from ..progress import progress_bar
 
@@ -149,7 +158,9 @@ def search(
     claim = WorkerClaim(st, study_name, worker, stale_after)
     run = None
     try:
-        run = _Run(space, objectives, study, st, worker, T_limit, freqs, settings, onset, client, trial_store)
+        run = _Run(
+            space, objectives, study, st, worker, T_limit, freqs, settings, onset, client, trial_store, commit_seconds
+        )
         n_target = -(-n_trials // batch) * batch
         bar = progress_bar(n_target, f"design ({worker})", progress, unit="trial")
         try:
@@ -162,7 +173,7 @@ def search(
             bar.close()
     finally:
         if run is not None:
-            run.close()
+            run.close(claim)
         claim.release()
     timing = run.timing
     timing["wall"] = time.perf_counter() - t_wall
@@ -184,26 +195,46 @@ class _Run:
     """What one search run shares between its engines: evaluation, timing, storage."""
 
     def __init__(
-        self, space, objectives, study, storage, worker, T_limit, freqs, settings, onset=None, client=None, store=None
+        self,
+        space,
+        objectives,
+        study,
+        storage,
+        worker,
+        T_limit,
+        freqs,
+        settings,
+        onset=None,
+        client=None,
+        store=None,
+        commit_seconds=0.0,
     ):
         self.space, self.objectives, self.study, self.storage = space, objectives, study, storage
         self.worker, self.T_limit, self.store = worker, T_limit, store
+        self.commit_seconds = float(commit_seconds)
         #: raises KeyboardInterrupt once Ctrl-C was pressed (:func:`tawarp.io.interrupt_guard`)
         self.interrupted = lambda: None
+        self.tables = None  # DeviceTable: a local evaluator's tables from device points
         if client is None:
             self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
+            self.tables = DeviceTable(space, self.evaluator.device)
+            self.device = self.evaluator.device
         else:
             from ..distributed import ClusterEvaluator
 
             self.evaluator = ClusterEvaluator(
                 client, space, extra=objectives, freqs=freqs, settings=settings, onset=onset
             )
+            self.device = resolve_device((settings or ForwardSettings()).device)
         self.dists = space.distributions()
         self.sign = signs(objectives)
         self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
         self.resumed = 0
         self.writer = None
         self.front = np.zeros((0, len(objectives)))  # the lineage's feasible front so far (minimized)
+        self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
+        self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
+        self.last_commit = time.perf_counter()
 
     def evaluate(self, values: dict):
         """(metrics {name: (n,)}, values (n, m) as objectives, minimized F (n, m),
@@ -211,6 +242,45 @@ class _Run:
         t = time.perf_counter()
         m = self.evaluator.evaluate(values)
         self.timing["evaluation"] += time.perf_counter() - t
+        return self._objectives(m)
+
+    def evaluate_asked(self, X):
+        """(design values {variable: (n,)}, then :meth:`evaluate`'s tuple) of the sampler
+        coordinates ``X`` (a Warp array on the device): a local evaluator builds the table
+        from them on the device (one launch) and copies back the metrics and the values
+        once; a cluster's gets the values."""
+        import warp as wp
+
+        from ..kernels.sampler import to_table_unit
+
+        t = time.perf_counter()
+        space = self.space
+        if self.tables is None:
+            values = space.values_from_unit(X.numpy())
+            m = self.evaluator.evaluate(values)
+        else:
+            U = wp.empty(X.shape, dtype=wp.float64, device=X.device)
+            bad = wp.zeros(1, dtype=wp.int32, device=X.device)
+            wp.launch(
+                to_table_unit,
+                dim=X.shape,
+                device=X.device,
+                inputs=[X, len(space.continuous), space.n_categories, U, bad],
+            )
+            if bad.numpy()[0]:  # as the host's table refuses them
+                raise ModelValidityError(
+                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): "
+                    "none is evaluated"
+                )
+            table, vals = self.tables.unit(U)
+            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
+            values = dict(zip(self.tables.names, vals.numpy()))
+            if space.material is not None:
+                values["material"] = values["material"].astype(np.int64)
+        self.timing["evaluation"] += time.perf_counter() - t
+        return (values, *self._objectives(m))
+
+    def _objectives(self, m: dict):
         n = len(next(iter(m.values())))
         self.timing["evaluations"] += n
         vals = np.stack([m[o] for o in self.objectives], axis=1)
@@ -219,21 +289,54 @@ class _Run:
         return m, vals, vals * self.sign, viol, failed
 
     def store_rows(self, g: int, index: np.ndarray, values: dict, metrics: dict, viol, failed) -> None:
-        """Evaluated members ``index`` of generation ``g``: into the trial store when the
-        run has one, else each into the study."""
-        t = time.perf_counter()
+        """Evaluated members ``index`` of generation ``g``: kept for the trial store's next
+        commit (:meth:`commit`) when the run has one, else each into the study."""
         if self.store is not None:
+            self.rows.append((g, index, values, metrics, viol, failed))
+            return
+        t = time.perf_counter()
+        self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
+        self.timing["storage"] += time.perf_counter() - t
+
+    def commit(self, claim=None) -> None:
+        """The generations evaluated since the last commit: their rows into the trial store
+        (one append), then the copies of their kept members that still are the lineage's
+        best (several objectives: on its front now) and ``claim``'s heartbeat into the study
+        (one journal lock and sync)."""
+        t = time.perf_counter()
+        rows, self.rows = self.rows, []
+        copies, self.copies = self.copies, []
+        if rows:
             if self.writer is None:
                 choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
-                self.writer = self.store.writer(self.worker, g, choices, len(index))
-            params = dict(values)
+                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
+            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
             if self.space.material is not None:
-                params["material"] = self.space.material_index(values["material"])
-            self.writer.append(g, index, params, metrics, viol, failed)
+                params["material"] = self.space.material_index(params["material"])
+            self.writer.append(
+                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
+                np.concatenate([r[1] for r in rows]),
+                params,
+                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
+                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
+                np.concatenate([r[5] for r in rows]),
+            )
             self.timing["trial_store"] += time.perf_counter() - t
-        else:
-            self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
+        with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
+            for g, keep, values, metrics, c, F in copies:
+                if len(self.objectives) > 1:  # members since dominated by a later generation's
+                    on = ~_dominated(F, self.front)
+                    keep, values, metrics, F = keep[on], _rows_of(values, on), _rows_of(metrics, on), F[on]
+                    c = None if c is None else c[on]
+                if len(keep):
+                    self.copy_to_study(g, keep, values, metrics, c, np.zeros(len(keep), bool))
+            if claim is not None and (rows or copies):
+                claim.heartbeat()
         self.timing["storage"] += time.perf_counter() - t
+        self.last_commit = time.perf_counter()
+
+    def commit_due(self) -> bool:
+        return time.perf_counter() - self.last_commit >= self.commit_seconds
 
     def copy_to_study(self, g, index, values, metrics, viol, failed, copies=True) -> None:
         """Members ``index`` of generation ``g`` as trials of the study (``copies``: of
@@ -269,9 +372,15 @@ class _Run:
         self.front = G[on]
         return feas[on[len(G) - len(feas) :]]
 
-    def close(self) -> None:
-        if self.writer is not None:
-            self.writer.close()
+    def close(self, claim=None) -> None:
+        """Commit what was evaluated (whole generations, whatever ended the run), close the
+        trial store's file."""
+        try:
+            if self.rows or self.copies:
+                self.commit(claim)
+        finally:
+            if self.writer is not None:
+                self.writer.close()
 
 
 def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):
@@ -291,76 +400,111 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
                 f"(> {rows['index'].max()}), not {batch}"
             )
     categories = len(space.material.choices) if space.material is not None else 0
-    sampler = make_sampler(len(space.continuous), categories, batch, worker_seed(seed, run.worker), len(run.objectives))
+    sampler = make_sampler(
+        len(space.continuous),
+        categories,
+        batch,
+        worker_seed(seed, run.worker),
+        len(run.objectives),
+        run.device,
+    )
     names = [v.name for v in space.variables]
     done, asked = 0, 0
     while done < n_target:
         run.interrupted()
         t = time.perf_counter()
         g = sampler.generation
-        values = space.values_from_unit(sampler.ask(batch))
+        X = sampler.ask(batch)
+        if not isinstance(X, wp.array):
+            X = wp.array(np.asarray(X, dtype=np.float64), dtype=wp.float64, device=run.device)
         stored = gens.get(g)
-        idx = stored["index"] if stored is not None else np.zeros(0, dtype=np.int64)
-        missing = np.setdiff1d(np.arange(batch), idx)
         run.timing["sampler"] += time.perf_counter() - t
         F = np.empty((batch, len(run.objectives)))
         viol = np.zeros(batch)
-        metrics: dict[str, np.ndarray] = {}  # of the whole generation, by member
-
-        def put(rows, cols):
-            for k, v in cols.items():
-                metrics.setdefault(k, np.full(batch, np.nan))[rows] = v
-
-        if stored is not None:  # the stored points are told, whatever the sampler asks now
-            for k in names:
-                values[k][idx] = (
-                    space.material_index(stored["param:material"])
-                    if k == "material"
-                    else stored["param:" + k].astype(np.float64)
-                )
-            bad = stored["failed"].astype(bool)
-            F[idx] = np.where(
-                bad[:, None],
-                np.inf,
-                np.stack([stored["metric:" + o].astype(np.float64) for o in run.objectives], 1) * run.sign,
-            )
-            c = np.nan_to_num(stored["constraint"].astype(np.float64), nan=0.0)
-            viol[idx] = np.where(bad, np.inf, c)
-            put(idx, {k[7:]: v.astype(np.float64) for k, v in stored.items() if k.startswith("metric:")})
-        if missing.size:
-            if stored is None:
-                asked += 1
-                _interruption_hooks(asked, stop_after, crash_after)
-            new = {k: v[missing] for k, v in values.items()}
-            m, _, Fm, vm, failed = run.evaluate(new)
-            run.store_rows(g, missing, new, m, vm, failed)
-            F[missing] = np.where(failed[:, None], np.inf, Fm)
-            viol[missing] = np.where(failed, np.inf, vm if vm is not None else 0.0)
-            put(missing, m)
-            if stored is not None:
-                run.resumed += len(missing)
+        if stored is None:  # a new generation, evaluated from the points on the device
+            asked += 1
+            _interruption_hooks(asked, stop_after, crash_after)
+            values, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
+            run.store_rows(g, np.arange(batch), values, metrics, vm, failed)
+            F[:] = np.where(failed[:, None], np.inf, Fm)
+            viol[:] = np.where(failed, np.inf, vm if vm is not None else 0.0)
+        else:  # stored (a resume): the stored points are told, whatever the sampler asks now
+            values, metrics = _stored_generation(run, g, stored, space.values_from_unit(X.numpy()), names, F, viol)
         t = time.perf_counter()
-        keep = [j for j in run.kept(F, viol) if (g, int(j)) not in copied] if run.store is not None else []
-        with journal_batch(run.storage):  # the copies and the heartbeat: one lock and one sync
-            if keep:  # copies of the generation's kept members that the study lacks
-                keep = np.array(keep)
-                c = viol[keep] if run.T_limit is not None else None
-                run.copy_to_study(
-                    g,
-                    keep,
-                    {k: v[keep] for k, v in values.items()},
-                    {k: v[keep] for k, v in metrics.items()},
-                    c,
-                    np.zeros(len(keep), bool),
+        if run.store is not None:
+            keep = np.array([j for j in run.kept(F, viol) if (g, int(j)) not in copied], dtype=np.int64)
+            if keep.size:  # copies of the generation's kept members that the study lacks
+                run.copies.append(
+                    (
+                        g,
+                        keep,
+                        _rows_of(values, keep),
+                        _rows_of(metrics, keep),
+                        viol[keep] if run.T_limit is not None else None,
+                        F[keep],
+                    )
                 )
-            if missing.size:
-                claim.heartbeat()
         run.timing["storage"] += time.perf_counter() - t
+        if run.commit_due():
+            run.commit(claim)
         t = time.perf_counter()
         sampler.tell(space.unit_from_values(values), F, viol)
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
+
+
+def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarray:
+    """Rows of F (n, m) that a row of ``front`` dominates (all minimized), in blocks of
+    rows (an (n, len(front)) comparison at once would not fit)."""
+    out = np.zeros(len(F), dtype=bool)
+    for lo in range(0, len(F), block):
+        f = F[lo : lo + block, None, :]
+        out[lo : lo + block] = np.any(np.all(front <= f, axis=2) & np.any(front < f, axis=2), axis=1)
+    return out
+
+
+def _rows_of(columns: dict, rows) -> dict:
+    return {k: v[rows] for k, v in columns.items()}
+
+
+def _stored_generation(run: _Run, g: int, stored: dict, values: dict, names, F, viol):
+    """(values, metrics) of a generation stored in part or whole: the stored members as
+    stored (filling ``F`` and ``viol`` at their places), the missing ones evaluated at the
+    points asked and stored."""
+    space, batch = run.space, len(F)
+    idx = stored["index"]
+    missing = np.setdiff1d(np.arange(batch), idx)
+    metrics: dict[str, np.ndarray] = {}  # of the whole generation, by member
+
+    def put(rows, cols):
+        for k, v in cols.items():
+            metrics.setdefault(k, np.full(batch, np.nan))[rows] = v
+
+    for k in names:
+        values[k][idx] = (
+            space.material_index(stored["param:material"])
+            if k == "material"
+            else stored["param:" + k].astype(np.float64)
+        )
+    bad = stored["failed"].astype(bool)
+    F[idx] = np.where(
+        bad[:, None],
+        np.inf,
+        np.stack([stored["metric:" + o].astype(np.float64) for o in run.objectives], 1) * run.sign,
+    )
+    c = np.nan_to_num(stored["constraint"].astype(np.float64), nan=0.0)
+    viol[idx] = np.where(bad, np.inf, c)
+    put(idx, {k[7:]: v.astype(np.float64) for k, v in stored.items() if k.startswith("metric:")})
+    if missing.size:
+        new = _rows_of(values, missing)
+        m, _, Fm, vm, failed = run.evaluate(new)
+        run.store_rows(g, missing, new, m, vm, failed)
+        F[missing] = np.where(failed[:, None], np.inf, Fm)
+        viol[missing] = np.where(failed, np.inf, vm if vm is not None else 0.0)
+        put(missing, m)
+        run.resumed += len(missing)
+    return values, metrics
 
 
 def _search_optuna(run: _Run, n_target, batch, seed, bar, claim, stop_after, crash_after):

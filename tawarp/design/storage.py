@@ -308,13 +308,14 @@ class StoreWriter:
         self._f = None
         self.rows = 0
 
-    def append(self, generation: int, index: np.ndarray, params: dict, metrics: dict, violation, failed) -> None:
-        """Rows of one generation: ``index`` (k,) members, ``params`` {name: (k,)} (a
-        categorical one as indices into its choices), ``metrics`` {name: (k,)},
-        ``violation`` (k,) or None, ``failed`` (k,)."""
+    def append(self, generation, index: np.ndarray, params: dict, metrics: dict, violation, failed) -> None:
+        """Rows of one generation, or of several whole ones at once (one resize, write and
+        sync for all: ``generation`` then is (k,), each row's): ``index`` (k,) members,
+        ``params`` {name: (k,)} (a categorical one as indices into its choices), ``metrics``
+        {name: (k,)}, ``violation`` (k,) or None, ``failed`` (k,)."""
         k = len(index)
         cols = {
-            "generation": np.full(k, generation, dtype=np.int64),
+            "generation": np.array(np.broadcast_to(np.asarray(generation, dtype=np.int64), (k,))),
             "index": np.asarray(index, dtype=np.int64),
             "failed": np.asarray(failed, dtype=bool),
             "constraint": np.full(k, np.nan) if violation is None else np.asarray(violation, dtype=np.float64),

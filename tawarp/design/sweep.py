@@ -29,6 +29,7 @@ half-written on failure or interruption, normal permissions).
 from __future__ import annotations
 
 import contextlib
+import functools
 import gc
 import itertools
 import time
@@ -56,7 +57,8 @@ GC_CHUNKS = 16
 class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
     ``evaluation_seconds`` (launches, transfers and waiting for the device: the device
-    time that the writing did not hide), ``write_seconds``."""
+    time that the writing did not hide), ``write_seconds``, ``reductions`` (a short summary
+    of those asked: :mod:`tawarp.design.reductions`)."""
 
     path: Path
     n_points: int
@@ -65,6 +67,7 @@ class SweepInfo:
     chunks: int
     evaluation_seconds: float
     write_seconds: float
+    reductions: dict | None = None
 
 
 def _units(space: DesignSpace, name: str) -> str:
@@ -114,6 +117,9 @@ def sweep(
     freqs=DEFAULT_FREQS,
     client=None,
     parts: bool = False,
+    reduce=None,
+    raw: bool = True,
+    objectives=("gradient", "heat_leak"),
 ) -> SweepInfo:
     """Evaluate ``space`` on a grid (every variable needs ``values``: ``NAME=LOW:HIGH:COUNT``)
     or on ``n_samples`` Sobol points (``mode="sobol"``, variables need ranges) and stream the
@@ -127,8 +133,12 @@ def sweep(
     files in the folder :func:`parts_path` (``<file name>.parts``) and the file maps them
     as HDF5 virtual datasets, read as one file (xarray, h5netcdf, netCDF-C) while the folder
     stays beside it: the writing, which bounds a one-file sweep on one GPU, runs on every
-    worker at once. The workers must see the client's file system. See the module
-    docstring."""
+    worker at once. The workers must see the client's file system. ``reduce``: reductions
+    computed on the device while the sweep runs and written as groups of the file
+    (``"best,quantiles,histogram,pareto,top=100"``, :mod:`tawarp.design.reductions`), of
+    ``objectives`` (best and top: the first; pareto: the first two); ``raw=False`` writes
+    them alone, without the raw outputs (nor a Sobol sweep's design values): nothing but
+    small candidate sets crosses to the host. See the module docstring."""
     import h5netcdf
     import h5py
 
@@ -164,13 +174,34 @@ def sweep(
         dims = ["sample"]
     if parts and client is None:
         raise ValueError("parts=True: the cluster's workers write the parts; give client=")
+    from .reductions import parse_reduce
+
+    spec = parse_reduce(reduce or "")
+    if spec and client is not None:
+        raise ValueError("reduce: the reductions run in one process; give no client=")
+    if not raw and not spec:
+        raise ValueError("raw=False (--no-raw) keeps only reductions: give reduce= (--reduce)")
     job = _Job(space, mode, seed, outputs, tuple(freqs), settings)
     t0 = time.perf_counter()
     t_eval = t_write = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
-    variables = _stored_variables(space, mode, rows)
+    variables = _stored_variables(space, mode, rows) if raw else {}
     ensure_free_space(path, n * sum(np.dtype(dtype).itemsize for dtype, _ in variables.values()))
+    reducer = None
+    if spec:
+        from .reductions import Reducer
+
+        reducer = Reducer(
+            spec,
+            space,
+            mode,
+            outputs,
+            objectives,
+            wp.get_device(resolve_device(settings.device)),
+            min(chunk, n),
+            [grids[d] for d in dims] if mode == "grid" else None,
+        )
     mapped = []  # parts=True: (chunk, index in the file, block shape) of each part written
     try:
         with atomic_path(path) as tmp, atomic_dir(parts_path(path)) if parts else contextlib.nullcontext() as pdir:
@@ -203,7 +234,7 @@ def sweep(
                 else:
                     blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
                 chunks = (
-                    _evaluated_here(job, blocks, chunk, n)
+                    _evaluated_here(job, blocks, chunk, n, reducer, raw)
                     if client is None
                     else _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
                 )
@@ -219,7 +250,7 @@ def sweep(
                     sub_shape = _block_shape(sl, shape)
                     if parts:
                         mapped.append((nchunks, full, sub_shape))
-                    else:
+                    elif raw:
                         for k in outputs:
                             f.variables[k][full] = res[k].reshape(sub_shape)
                         for name, v in (values or {}).items():
@@ -227,6 +258,8 @@ def sweep(
                     t_write += time.perf_counter() - t
                     nchunks += 1
                     bar.update(hi - lo)
+                if reducer is not None:
+                    reducer.write(f)
             if parts:
                 t = time.perf_counter()
                 _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
@@ -234,7 +267,8 @@ def sweep(
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write)
+    summary = reducer.results()["summary"] if reducer is not None else None
+    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, summary)
 
 
 def parts_path(path: str | Path) -> Path:
@@ -321,11 +355,14 @@ class _Job:
         return {name: v.astype(np.int8) if name == "material" else v for name, v in zip(tables.names, values)}
 
 
-def _evaluated_here(job: _Job, blocks, chunk: int, n: int):
+def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bool = True):
     """Yield (lo, hi, index, outputs, values) of each block, evaluated in this process on
     ``job.settings``'s device. Chunk k is launched; while the device works (Warp launches
     return at once on CUDA) the caller writes chunk k - 1; then chunk k is fetched: two
-    chunks at most on the host, one on the device."""
+    chunks at most on the host, one on the device. ``reducer``
+    (:class:`tawarp.design.reductions.Reducer`): chunk k's reductions are launched with it
+    and its candidates merged once it is done; without ``raw`` nothing else is fetched
+    (outputs and values None)."""
     ev = job.evaluator(job.settings)
     tables = DeviceTable(job.space, ev.device)
 
@@ -336,20 +373,25 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int):
         pinned = wp.get_device(ev.device).is_cuda
         return [wp.empty((rows, min(chunk, n)), dtype=dtype, device="cpu", pinned=pinned) for _ in range(2)]
 
-    host = host_buffers(len(job.outputs), wp.float32) if not ev.extra else None
+    host = host_buffers(len(job.outputs), wp.float32) if not ev.extra and raw else None
     # the same for a Sobol sweep's design values (made on the device with its points)
-    staged = job.mode == "sobol" and bool(tables.names)
+    staged = job.mode == "sobol" and bool(tables.names) and raw
     values_host = host_buffers(len(tables.names), wp.float64) if staged else None
     pending = None
     for k, (lo, hi, sl) in enumerate(blocks):
         table, values = job.table(tables, lo, hi)
-        finish = _launch(ev, table, job.outputs, host[k % 2] if host else None)
+        reduce = None if reducer is None else functools.partial(reducer.add, k, lo, values)
+        finish = _launch(ev, table, job.outputs, host[k % 2] if host else None, reduce, raw)
         if staged:  # queued behind the chunk's evaluation
             for j in range(len(tables.names)):
                 wp.copy(values_host[k % 2][j], values[j], count=hi - lo)
         if pending is not None:
             yield pending
         done = finish()
+        if reducer is not None:
+            reducer.collect(k)
+        if not raw:
+            values = None
         if staged:  # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
             wp.synchronize_device(ev.device)
             values = values_host[k % 2].numpy()[:, : hi - lo]
@@ -419,20 +461,31 @@ def _write_part(path: Path, res: dict, values: dict | None, block: tuple):
             h5.create_dataset(name, data=v)
 
 
-def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None):
+def _launch(ev: Evaluator, table, outputs: list, host: wp.array | None = None, reduce=None, raw: bool = True):
     """Start the evaluation of a chunk's device ``table``; returns the call that waits
     for its ``outputs`` and returns them as float32 arrays (what the file stores, rounded
     as NumPy rounds). When every output is a kernel column, the device rounds them (half
     the copy, no cast on the host) and copies them into the host buffer ``host``
     (len(outputs), >= chunk) in the same stream: the launches return at once (on CUDA) and
     the call waits for that copy and returns views of it, valid until the buffer's next
-    use; without ``host``, new arrays (a cluster worker's, handed to Dask)."""
+    use; without ``host``, new arrays (a cluster worker's, handed to Dask). ``reduce``
+    (with the outputs as a (len(outputs), m) float32 device array) launches reductions
+    of them; without ``raw`` the call returns None and nothing is copied."""
     out = ev.evaluate_device(table)
     if ev.extra:
-        return lambda: {
-            k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items() if k in outputs
-        }
+
+        def finish_extra():
+            res = {k: np.asarray(v, dtype=np.float32) for k, v in ev.objectives_of(out, table).items() if k in outputs}
+            if reduce is not None:  # host objectives: their values go to the device
+                reduce(wp.array(np.stack([res[k] for k in outputs]), dtype=wp.float32, device=ev.device))
+            return res if raw else None
+
+        return finish_extra
     f32 = ev.metric_columns(out, outputs)
+    if reduce is not None:
+        reduce(f32)
+    if not raw:
+        return lambda: None
     if host is None:
         return lambda: dict(zip(outputs, f32.numpy()))
     m = f32.shape[1]

@@ -1,0 +1,71 @@
+"""The design search with its generations committed in groups (``commit_seconds``): the
+same trials and the same study as committing every generation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from tawarp.design.samplers import pareto_mask
+from tawarp.design.search import SearchCrash, search
+from tawarp.design.space import DesignSpace
+from tawarp.design.storage import study_summary, trials_table
+from tawarp.model.core import load_core
+
+VARS = ["material=ceramic,rvc_foam", "stack.length=0.005:0.1", "heat_input=1:30"]
+NAMES = ["material", "stack.length", "heat_input", "gradient", "T_max", "heat_leak"]
+
+
+def _space():
+    return DesignSpace(load_core("rvc_foam"), VARS)
+
+
+def _table(study):
+    ds = trials_table(study)
+    order = np.lexsort((ds["index"].values, ds.generation.values))
+    return {k: ds[k].values[order] for k in NAMES + ["generation", "index"]}
+
+
+@pytest.mark.parametrize("objectives", [("gradient",), ("gradient", "heat_leak")])
+def test_grouped_commits_store_the_same_study(tmp_path, objectives):
+    """Everything committed once at the end (commit_seconds far above the run) gives the
+    trials of committing each generation, every one in the store; the study's copies:
+    one objective, each generation's best; two, exactly the feasible front of all trials
+    (copies that a later generation of the group dominates are not written)."""
+    kw = dict(n_trials=96, batch=16, seed=5, T_limit=450.0)
+    each = search(_space(), objectives, storage=str(tmp_path / "a.journal"), commit_seconds=0.0, **kw)
+    grouped = search(_space(), objectives, storage=str(tmp_path / "b.journal"), commit_seconds=1e9, **kw)
+    a, b = _table(each.study), _table(grouped.study)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+    assert study_summary(grouped.study)["trials"] == 96
+    if len(objectives) == 1:
+        assert grouped.study.best_trial.values == each.study.best_trial.values
+        assert len(grouped.study.trials) == len(each.study.trials) == 6
+    else:
+        ds = trials_table(grouped.study)
+        ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
+        F = np.stack([-ds.gradient.values[ok], ds.heat_leak.values[ok]], axis=1)
+        front = {tuple(f) for f in F[pareto_mask(F)]}
+        assert {(-t.values[0], t.values[1]) for t in grouped.study.best_trials} == front
+        assert len(grouped.study.trials) <= len(each.study.trials)
+
+
+def test_an_interrupted_grouped_run_commits_what_it_evaluated_and_resumes(tmp_path):
+    """A run stopped (an exception) after asking its 4th generation commits the three it
+    evaluated when it closes; the resumed run completes the lineage as an uninterrupted
+    one, each (generation, index) once."""
+    journal = str(tmp_path / "s.journal")
+    kw = dict(n_trials=96, batch=16, seed=2, commit_seconds=1e9)
+    with pytest.raises(SearchCrash):
+        search(_space(), storage=journal, _stop_after=4, **kw)
+    from tawarp.design.storage import open_study
+
+    assert study_summary(open_study(journal, "tawarp-design", ["gradient"]))["trials"] == 48
+    res = search(_space(), storage=journal, **kw)
+    ds = trials_table(res.study)
+    assert ds.sizes["trial"] == 96 and len(set(zip(ds.generation.values.tolist(), ds["index"].values.tolist()))) == 96
+    ref = _table(search(_space(), n_trials=96, batch=16, seed=2).study)
+    got = _table(res.study)
+    for k in ref:
+        np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
