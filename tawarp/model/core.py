@@ -23,7 +23,7 @@ import numpy as np
 from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, TRUSTED_RANGE, takes
 from .fields import field as field_spec
 from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
-from .gas import GASES
+from .gas import GASES, is_mixture, mixture_fractions, mixture_name
 from .prior import Prior, PriorError, declared_prior
 
 SEGMENT_KINDS = ("duct", "porous")
@@ -38,7 +38,8 @@ class CoreError(ValueError):
 
 @dataclass(frozen=True)
 class Gas:
-    """Working gas: ``name`` one of :data:`tawarp.model.gas.GASES`, mean pressure [Pa], cold temperature [K]."""
+    """Working gas: ``name`` a pure gas of :data:`tawarp.model.gas.GASES` or a binary mixture
+    ("helium=0.7,argon=0.3", a ``[gas.mixture]`` table), mean pressure [Pa], cold temperature [K]."""
 
     name: str = "air"
     p_mean: float = 101325.0
@@ -177,7 +178,11 @@ class Core:
     def to_dict(self) -> dict:
         """The TOML structure (docs/formats.md) of this core; a field with a declared prior as
         its inline table (:meth:`~tawarp.model.prior.Prior.toml_entry`)."""
-        out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
+        gas = dataclasses.asdict(self.gas)
+        if is_mixture(self.gas.name):
+            gas.pop("name")
+            gas["mixture"] = dict(mixture_fractions(self.gas.name))
+        out = {"gas": gas, "tube": {"radius": self.radius}, "segment": []}
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
             if s.is_porous:
@@ -249,8 +254,10 @@ def check_values(name: str, values, where: str) -> None:
 def validate(core: Core) -> None:
     """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
     src = core.source
-    if not isinstance(core.gas.name, str) or core.gas.name not in GASES:
-        raise CoreError(f"{src}: gas.name = {core.gas.name!r}; expected one of {sorted(GASES)}")
+    try:
+        GASES[core.gas.name]
+    except KeyError as e:
+        raise CoreError(f"{src}: gas.name: {e.args[0]}") from None
     check_values("p_mean", core.gas.p_mean, f"{src}: gas.p_mean")
     check_values("T_cold", core.gas.T_cold, f"{src}: gas.T_cold")
     check_values("radius", core.radius, f"{src}: tube.radius")
@@ -316,7 +323,10 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
     if not isinstance(pinned, list) or not all(isinstance(n, str) for n in pinned):
         raise CoreError(f"{source}: [fit] pinned must be a list of parameter names, got {pinned!r}")
     priors: dict = {}
-    gas_d = _declared(dict(data.get("gas", {})), "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
+    gas_d = dict(data.get("gas", {}))
+    if "mixture" in gas_d:
+        gas_d["name"] = _mixture_name(gas_d, source)
+    gas_d = _declared(gas_d, "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
     bad = set(gas_d) - {"name", "p_mean", "T_cold"}
     if bad:
         raise CoreError(f"{source}: unknown key(s) in [gas]: {sorted(bad)}")
@@ -357,6 +367,19 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             f"as a parameter (Core.parameter_names); write a plain value"
         )
     return core
+
+
+def _mixture_name(gas: dict, source: str) -> str:
+    """The gas name of a ``[gas.mixture]`` table {gas: mole fraction} (docs/formats.md)."""
+    table = gas.pop("mixture")
+    if "name" in gas:
+        raise CoreError(f"{source}: [gas] has both name and [gas.mixture]; a mixture takes no name")
+    if not isinstance(table, dict):
+        raise CoreError(f"{source}: [gas.mixture] must be a table of mole fractions, e.g. helium = 0.7, argon = 0.3")
+    try:
+        return mixture_name(table)
+    except ValueError as e:
+        raise CoreError(f"{source}: [gas.mixture]: {e}") from None
 
 
 def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dict:
