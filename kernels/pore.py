@@ -34,6 +34,10 @@ mpmath at 40 digits, see tests/test_pore.py):
 * plates, s >= 1: tanh(w) = (1 - q) / (1 + q) with q = exp(-2w), |q| = exp(-2s)
   <= exp(-2), so nothing overflows or cancels, and g = 1 - f with |f| <= 0.8.
 
+Rectangular channels (the section below :func:`pore_rectangular`) are summed from their
+series and, at large s, their boundary-layer form with the corners; their aspect ratio
+travels in the pore-model code (:func:`pore_model_code`).
+
 The kernels take circular f, g at real s from a Chebyshev table in ln s instead
 (:func:`pore_circular_tabulated`, built by :mod:`.pore_table` from :func:`pore_circular`):
 one short series instead of the recurrence, accurate to ~6e-15.
@@ -47,15 +51,23 @@ assert 1e-13.
 import math
 
 import warp as wp
+from scipy.special import zeta as hurwitz_zeta
 
-from .cmath import cabs, cdiv, cexp, cinv, cmul, cplx, cscale
+from .cmath import cabs, cdiv, cexp, cinv, cmul, cplx, cscale, csqrt
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
-#: Pore geometries by their name in a core file (``pore_model``) -> the kernels' constant.
-PORE_MODELS = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES}
+#: Pore geometries by their name in a core file (``pore_model``) -> the kernels' constant;
+#: a rectangular channel's constant carries its aspect ratio (:func:`pore_model_code`).
+PORE_MODELS = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES, "rectangular": None}
+# Rectangular channels: model = RECTANGULAR_BASE + round(ASPECT_UNITS * aspect ratio), so the
+# one int the kernels carry per segment also gives the channel's shape.
+RECTANGULAR_BASE = wp.constant(1000)
+ASPECT_UNITS = wp.constant(1000)
+#: Largest aspect ratio a rectangular channel may have (the int32 model code's range).
+ASPECT_MAX = 1.0e6
 
 # Above this s the Hankel expansion replaces the Bessel-ratio recurrence.
 CIRCULAR_ASYMPTOTIC_S = wp.constant(wp.float64(20.0))
@@ -213,10 +225,13 @@ def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64
 
 @wp.func
 def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
-    """f, g of the pore ``model`` (PORE_CIRCULAR or PORE_PLATES) at ``log_s`` = ln(r / delta);
+    """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's
+    :func:`pore_model_code`) at ``log_s`` = ln(r / delta);
     ``table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
+    if model >= RECTANGULAR_BASE:
+        return pore_rectangular(cplx(wp.exp(log_s), wp.float64(0.0)), rectangular_aspect(model))
     return pore_circular_tabulated(table, log_s)
 
 
@@ -233,7 +248,10 @@ def pore_log_derivative(model: int, log_s: wp.float64, f: wp.vec2d, g: wp.vec2d)
         df/d ln s = g + 2 i s^2 f^2
 
     The two terms cancel to O(f) at large s (f ~ 1/s): about s ulps are lost, 1e-12 at
-    s = 1e4 (tests/test_pore.py compares central differences)."""
+    s = 1e4 (tests/test_pore.py compares central differences). Rectangular channels:
+    :func:`_rectangular_log_derivative` (f, g are not needed)."""
+    if model >= RECTANGULAR_BASE:
+        return _rectangular_log_derivative(wp.exp(log_s), rectangular_aspect(model))
     s2 = wp.exp(wp.float64(2.0) * log_s)
     f2 = cmul(f, f)
     if model == PORE_PLATES:
@@ -319,6 +337,8 @@ def _plates_exponential_c(s: wp.vec2d):
 @wp.func
 def pore_functions_complex(model: int, s: wp.vec2d):
     """f, g of the pore ``model`` at complex s = r / delta (complex frequency)."""
+    if model >= RECTANGULAR_BASE:
+        return pore_rectangular(s, rectangular_aspect(model))
     reach = s[0] + s[1]  # Im z of the tube, Re w of the plates
     if model == PORE_PLATES:
         if reach < PLATES_EXPONENTIAL_S:
@@ -327,3 +347,163 @@ def pore_functions_complex(model: int, s: wp.vec2d):
     if reach < CIRCULAR_ASYMPTOTIC_S:
         return _circular_recurrence_c(s)
     return _circular_hankel_c(s)
+
+
+# -- rectangular channels (Stinson, JASA 89:550, 1991) ------------------------------------------
+# Half-widths a <= b, aspect ratio alpha = b/a >= 1, s = a/delta (``pore_radius`` is the
+# half-width of the narrow side, so alpha -> infinity is the parallel plates of half-spacing a).
+# Expanding the velocity in cos(m pi y / 2a) and solving across the wide side exactly
+# (exp(-iwt), k^2 a^2 = 2 i s^2, q_m = (m pi/2)^2, m odd)::
+#
+#     g = g_plates(s) - R,   R = sum_m 8/(m pi)^2 T(z_m) E_m,
+#     T(z) = tanh(z)/z,  z_m^2 = alpha^2 (q_m - 2 i s^2),  E_m = 2 s^2/(2 s^2 + i q_m)
+#
+# (at alpha -> infinity T -> 0 and g is the plates' g). The terms fall as m^-5: the first
+# RECT_TERMS are summed, the rest (tanh = 1 there to exp(-400)) in closed form,
+#
+#     sum_{m > 2 RECT_TERMS - 1} = 128 s^2/(i alpha pi^5) sum_j c_j (8 i s^2/pi^2)^j H_{5+2j},
+#
+# c_j the coefficients of (1 - e)^(-3/2), H_p = sum over those odd m of m^-p (RECT_TAIL_TERMS
+# of them: the neglected one is below 1e-17 of g at |s| <= 20). For large s the velocity is the
+# product of the two plates' boundary-layer profiles plus a correction at each of the four
+# corners, whose integral is (4/pi - 1) delta^2 / (2 i) (from the corner's double sine
+# transform); the rest is of order exp(-2 Re w), w = (1 - i) s::
+#
+#     g = g_plates(s) g_plates(alpha s) + i (4/pi - 1) / (2 alpha s^2)
+#
+# used from Re s + Im s >= RECT_ASYMPTOTIC_S (below 1e-15 there: tests/test_pore_geometries.py).
+
+RECT_TERMS = wp.constant(64)
+RECT_TAIL_TERMS = wp.constant(8)
+RECT_ASYMPTOTIC_S = wp.constant(wp.float64(20.0))
+PI = wp.constant(wp.float64(math.pi))
+CORNER = wp.constant(wp.float64((4.0 / math.pi - 1.0) / 2.0))
+
+
+def _rectangular_tail_coefficients() -> list[float]:
+    """c_j H_{5+2j} (8/pi^2)^j 128/pi^5 for j < RECT_TAIL_TERMS (the i^j and 1/(i alpha)
+    factors are applied in the kernel); H_p = 2^-p zeta(p, RECT_TERMS + 1/2) (Hurwitz)."""
+    out = []
+    c = 1.0
+    for j in range(RECT_TAIL_TERMS):
+        p = 5 + 2 * j
+        h = 2.0**-p * float(hurwitz_zeta(p, RECT_TERMS + 0.5))
+        out.append(c * h * (8.0 / math.pi**2) ** j * 128.0 / math.pi**5)
+        c *= (1.5 + j) / (j + 1.0)
+    return out
+
+
+_TAIL = _rectangular_tail_coefficients()
+RECT_TAIL = wp.constant(wp.types.vector(length=RECT_TAIL_TERMS, dtype=wp.float64)(*_TAIL))
+
+
+def pore_model_code(name: str, aspect_ratio: float = 1.0) -> int:
+    """The kernels' int for pore model ``name`` (``rectangular``: with its aspect ratio
+    >= 1, rounded to 1/ASPECT_UNITS)."""
+    if name == "rectangular":
+        return int(RECTANGULAR_BASE) + round(int(ASPECT_UNITS) * aspect_ratio)
+    return int(PORE_MODELS[name])
+
+
+@wp.func
+def rectangular_aspect(model: int):
+    """Aspect ratio b/a of the rectangular channel whose :func:`pore_model_code` is ``model``."""
+    return wp.float64(model - RECTANGULAR_BASE) / wp.float64(ASPECT_UNITS)
+
+
+@wp.func
+def _plates_c(s: wp.vec2d):
+    if s[0] + s[1] < PLATES_EXPONENTIAL_S:
+        return _plates_continued_fraction_c(s)
+    return _plates_exponential_c(s)
+
+
+@wp.func
+def _tanh_over(z: wp.vec2d):
+    # tanh(z)/z and tanh(z) for Re z > 1 (every z_m here: Re z_m >= alpha pi / (2 sqrt 2))
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    q = cexp(cscale(z, wp.float64(-2.0)))
+    t = cdiv(one - q, one + q)
+    return cdiv(t, z), t
+
+
+@wp.func
+def _rectangular_sum(s: wp.vec2d, alpha: wp.float64, derivative: int):
+    """R (and, when ``derivative`` != 0, dR/d ln s) of the series above."""
+    s2 = cmul(s, s)
+    two_s2 = cscale(s2, wp.float64(2.0))
+    minus_2i_s2 = cplx(two_s2[1], -two_s2[0])
+    alpha2 = alpha * alpha
+    r = cplx(wp.float64(0.0), wp.float64(0.0))
+    dr = r
+    pi = PI
+    for jj in range(RECT_TERMS):
+        j = RECT_TERMS - 1 - jj  # small terms first
+        m = wp.float64(2 * j + 1)
+        q = wp.float64(0.25) * (m * pi) * (m * pi)
+        w = wp.float64(8.0) / ((m * pi) * (m * pi))
+        z2 = cscale(cplx(q, wp.float64(0.0)) + minus_2i_s2, alpha2)
+        z = csqrt(z2)
+        T, th = _tanh_over(z)
+        E = cdiv(two_s2, two_s2 + cplx(wp.float64(0.0), q))
+        r = r + cscale(cmul(T, E), w)
+        if derivative != 0:
+            one = cplx(wp.float64(1.0), wp.float64(0.0))
+            # dT/d(z^2) = (1 - tanh^2 z - T)/(2 z^2), d(z^2)/d ln s = -4 i alpha^2 s^2
+            dT_dz2 = cdiv(one - cmul(th, th) - T, cscale(z2, wp.float64(2.0)))
+            dz2 = cscale(cplx(two_s2[1], -two_s2[0]), wp.float64(2.0) * alpha2)
+            dE = cscale(cmul(E, one - E), wp.float64(2.0))
+            dr = dr + cscale(cmul(cmul(dT_dz2, dz2), E) + cmul(T, dE), w)
+    # tail: (1/(i alpha)) s^2 sum_j C_j (i s^2)^j
+    i_s2 = cplx(-s2[1], s2[0])
+    term = cscale(s2, wp.float64(1.0) / alpha)
+    tail = cplx(wp.float64(0.0), wp.float64(0.0))
+    dtail = tail
+    for j in range(RECT_TAIL_TERMS):
+        t = cscale(term, RECT_TAIL[j])
+        tail = tail + t
+        dtail = dtail + cscale(t, wp.float64(2 * j + 2))
+        term = cmul(term, i_s2)
+    # 1/i = -i
+    r = r + cplx(tail[1], -tail[0])
+    dr = dr + cplx(dtail[1], -dtail[0])
+    return r, dr
+
+
+@wp.func
+def pore_rectangular(s: wp.vec2d, alpha: wp.float64):
+    """f, g of a rectangular channel of aspect ratio ``alpha`` >= 1 at complex s = a/delta
+    (a the narrow side's half-width)."""
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    if s[0] + s[1] < RECT_ASYMPTOTIC_S:
+        fa, ga = _plates_c(s)
+        r, dr = _rectangular_sum(s, alpha, 0)
+        g = ga - r
+        return one - g, g
+    fa, ga = _plates_c(s)
+    fb, gb = _plates_c(cscale(s, alpha))
+    s2 = cmul(s, s)
+    corner = cscale(cinv(s2), CORNER / alpha)
+    corner = cplx(-corner[1], corner[0])  # times i
+    # f = 1 - ga gb - corner = fa + fb - fa fb - corner: no cancellation when f is small
+    f = fa + fb - cmul(fa, fb) - corner
+    return f, one - f
+
+
+@wp.func
+def _rectangular_log_derivative(s: wp.float64, alpha: wp.float64):
+    """df/d ln s of a rectangular channel at real s (:func:`pore_rectangular`)."""
+    sc = cplx(s, wp.float64(0.0))
+    s2 = s * s
+    fa, ga = pore_plates(s)
+    dfa = ga + cplx(wp.float64(-2.0) * s2 * cmul(fa, fa)[1], wp.float64(2.0) * s2 * cmul(fa, fa)[0])
+    if s < RECT_ASYMPTOTIC_S:
+        r, dr = _rectangular_sum(sc, alpha, 1)
+        # f = 1 - g_plates + R
+        return dfa + dr
+    fb, gb = pore_plates(alpha * s)
+    sb2 = alpha * s * alpha * s
+    dfb = gb + cplx(wp.float64(-2.0) * sb2 * cmul(fb, fb)[1], wp.float64(2.0) * sb2 * cmul(fb, fb)[0])
+    # corner = i c/s^2: d/d ln s = -2 corner
+    c = CORNER / (alpha * s2)
+    return dfa + dfb - cmul(dfa, fb) - cmul(fa, dfb) - cplx(wp.float64(0.0), wp.float64(-2.0) * c)

@@ -22,7 +22,7 @@ import numpy as np
 
 from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, TRUSTED_RANGE, takes
 from .fields import field as field_spec
-from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
+from ..kernels.pore import ASPECT_MAX, PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES, is_mixture, mixture_fractions, mixture_name
 from .prior import Prior, PriorError, declared_prior
 
@@ -52,7 +52,8 @@ class Segment:
 
     A ``duct`` is an empty tube section (porosity 1, pore radius = tube radius,
     tortuosity 1). A ``porous`` segment has ``porosity`` [-], ``pore_radius`` [m]
-    (circular pores: radius; ``plates``: half the plate spacing), ``tortuosity`` q [-]
+    (circular pores: radius; ``plates``: half the plate spacing; ``rectangular``: half the
+    narrow side, the channel's sides in the ratio ``aspect_ratio`` >= 1), ``tortuosity`` q [-]
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
     the steady heat model). Exactly one thermal segment is the ``heater``. The effect
@@ -63,6 +64,7 @@ class Segment:
     kind: str
     length: float
     pore_model: str = "circular"
+    aspect_ratio: float = 1.0
     porosity: float = 1.0
     pore_radius: float = math.nan
     tortuosity: float = 1.0
@@ -186,8 +188,10 @@ class Core:
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
             if s.is_porous:
+                d["pore_model"] = s.pore_model
+                if s.pore_model == "rectangular":
+                    d["aspect_ratio"] = s.aspect_ratio
                 d.update(
-                    pore_model=s.pore_model,
                     porosity=s.porosity,
                     pore_radius=s.pore_radius,
                     tortuosity=s.tortuosity,
@@ -251,6 +255,22 @@ def check_values(name: str, values, where: str) -> None:
             )
 
 
+def _check_aspect_ratio(s: Segment, where: str) -> None:
+    """A rectangular channel's aspect ratio: a number in [1, ASPECT_MAX]; other pores take none."""
+    a = s.aspect_ratio
+    if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(a):
+        raise CoreError(f"{where}: aspect_ratio must be a finite number, got {a!r}")
+    if s.pore_model != "rectangular":
+        if a != 1.0:
+            raise CoreError(f"{where}: aspect_ratio applies only to pore_model = 'rectangular'")
+        return
+    if not 1.0 <= a <= ASPECT_MAX:
+        raise CoreError(
+            f"{where}: aspect_ratio = {a} must lie in [1, {ASPECT_MAX:g}] (long side / short side; "
+            f"pore_radius is half the short side)"
+        )
+
+
 def validate(core: Core) -> None:
     """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
     src = core.source
@@ -279,6 +299,7 @@ def validate(core: Core) -> None:
         if s.is_porous:
             if s.pore_model not in PORE_MODELS:
                 raise CoreError(f"{w}: pore_model = {s.pore_model!r}; expected one of {PORE_MODELS}")
+            _check_aspect_ratio(s, w)
             for fld in ("porosity", "pore_radius", "tortuosity", "solid_conductivity"):
                 check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if s.pore_radius > core.radius:
@@ -345,7 +366,9 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
         sd = _declared(sd, sd["name"], SEGMENT_FIELDS, f"{where} ({sd['name']!r})", priors)
         if sd["kind"] == "duct":
-            extra = ({"pore_model"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}) & set(sd)
+            extra = (
+                {"pore_model", "aspect_ratio"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}
+            ) & set(sd)
             if extra:
                 raise CoreError(f"{where} ({sd['name']!r}): a duct takes no {sorted(extra)}; use kind = 'porous'")
         elif "pore_radius" not in sd:

@@ -127,11 +127,16 @@ def base_table(core: Core) -> np.ndarray:
 
 def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
-    from ..kernels.pore import PORE_MODELS
+    from ..kernels.pore import pore_model_code
 
     return np.array(
         [
-            [s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater]
+            [
+                s.is_porous,
+                pore_model_code(s.pore_model if s.is_porous else "circular", s.aspect_ratio),
+                s.thermal,
+                s.heater,
+            ]
             for s in core.segments
         ],
         dtype=np.int32,

@@ -1,0 +1,286 @@
+"""Rectangular channels (kernels/pore.py, Stinson 1991): the kernels' functions against
+independent series, their published limits (Shah & London's Poiseuille numbers, the parallel
+plates, the boundary layer), their derivative and complex argument, and a rectangular stack
+through the parser, the forward model, the tangent cascade, the onset and the design
+evaluator."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+import warp as wp
+
+from tawarp.design.evaluate import Evaluator
+from tawarp.design.space import DesignSpace
+from tawarp.fit.estimate import is_log
+from tawarp.kernels.pore import (
+    ASPECT_MAX,
+    RECT_ASYMPTOTIC_S,
+    pore_functions_complex,
+    pore_functions_log,
+    pore_log_derivative,
+    pore_model_code,
+)
+from tawarp.kernels.pore_table import circular_table
+from tawarp.model.core import CoreError, core_from_dict, load_core
+from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
+from tawarp.model.onset import onset
+from tawarp.model.resonator import load_engine
+
+DEVICE = "cpu"
+
+
+@wp.kernel
+def _pore(
+    model: int,
+    s: wp.array(dtype=wp.vec2d),
+    table: wp.array(dtype=wp.float64),
+    f: wp.array(dtype=wp.vec2d),
+    g: wp.array(dtype=wp.vec2d),
+    df: wp.array(dtype=wp.vec2d),
+    fc: wp.array(dtype=wp.vec2d),
+    gc: wp.array(dtype=wp.vec2d),
+):
+    i = wp.tid()
+    log_s = wp.log(s[i][0])
+    fi, gi = pore_functions_log(model, log_s, table)
+    f[i] = fi
+    g[i] = gi
+    df[i] = pore_log_derivative(model, log_s, fi, gi)
+    a, b = pore_functions_complex(model, s[i])
+    fc[i] = a
+    gc[i] = b
+
+
+def kernel_pore(alpha: float, s):
+    """f, g, df/d ln s at real s (the cascade's path) and f, g by the complex path at s
+    (complex allowed; the real path then uses |s|)."""
+    s = np.asarray(s, dtype=complex)
+    sw = wp.array(np.stack([s.real, s.imag], 1), dtype=wp.vec2d, device=DEVICE)
+    out = [wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE) for _ in range(5)]
+    model = pore_model_code("rectangular", alpha)
+    wp.launch(_pore, dim=len(s), inputs=[model, sw, circular_table(DEVICE), *out], device=DEVICE)
+    return [o.numpy().view(np.complex128).ravel() for o in out]
+
+
+def g_double_series(s, alpha, M=801, N=None):
+    """g = 1 - f of a rectangular channel from Stinson's double series over odd m, n:
+    g = (64/pi^4) sum 1/(m^2 n^2) / (1 + i pi^2 (m^2 + n^2/alpha^2) / (8 s^2)), s = a/delta."""
+    N = N or int(M * alpha) | 1
+    m = np.arange(1, M + 1, 2, dtype=float)[:, None]
+    out = 0j
+    for n0 in range(1, N + 1, 2 * 2000):
+        n = np.arange(n0, min(n0 + 4000, N + 1), 2, dtype=float)[None, :]
+        lam = m**2 + n**2 / alpha**2
+        out += np.sum(64 / (np.pi**4 * m**2 * n**2) / (1 + 1j * np.pi**2 * lam / (8 * s * s)))
+    return out
+
+
+def cosine_series(s, alpha, M=200000):
+    """(f, g) from the cosine series across the narrow side, the wide side solved exactly
+    (the decomposition kernels/pore.py sums, here to M terms, without its closed-form tail or
+    its large-s form), q = (m pi/2)^2, z^2 = alpha^2 (q - 2 i s^2), E = 2 s^2/(2 s^2 + i q)::
+
+        g = sum_m 8/(m pi)^2 (1 - tanh(z)/z) E,    f = f_plates(s) + sum_m 8/(m pi)^2 tanh(z)/z E
+
+    each summed as written, so neither is 1 minus the other (g -> 0 for small s, f -> 0 for
+    large s). The terms fall as m^-5 once m > |s|: M = 2e5 leaves < 1e-19."""
+    m = np.arange(1, 2 * M, 2, dtype=float)
+    q = (m * np.pi / 2) ** 2
+    z = alpha * np.sqrt(q - 2j * s * s)
+    t = np.tanh(z) / z
+    w = 8 / (m * np.pi) ** 2 * (2 * s * s) / (2 * s * s + 1j * q)
+    return f_plates(s) + (w * t)[::-1].sum(), (w * (1 - t))[::-1].sum()
+
+
+def g_cosine_series(s, alpha):
+    return cosine_series(s, alpha)[1]
+
+
+def f_plates(s):
+    w = (1 - 1j) * s
+    return np.tanh(w) / w
+
+
+@pytest.mark.parametrize("alpha", [1.0, 2.5])
+@pytest.mark.parametrize("s", [0.3, 1.0, 3.0])
+def test_cosine_series_equals_stinson_double_series(alpha, s):
+    """The one-dimensional series the kernels sum is Stinson's double series (JASA 89:550,
+    1991, the rectangular duct) summed exactly over one index: equal to the double series'
+    truncation (odd m, n up to 801 and 801 alpha: 1e-7 of g)."""
+    assert g_cosine_series(s, alpha) == pytest.approx(g_double_series(s, alpha), rel=1e-7)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 3.0, 50.0])
+def test_rectangular_against_converged_series(alpha):
+    """f and g, each to 1e-13 of itself, against the converged cosine series over s in
+    [1e-3, 200] (both sides of the switch to the large-s form at s = 20), real and complex
+    paths."""
+    s = np.concatenate(
+        [np.geomspace(1e-3, 200, 40), [float(RECT_ASYMPTOTIC_S) * (1 - 1e-9), float(RECT_ASYMPTOTIC_S) * (1 + 1e-9)]]
+    )
+    f_ref, g_ref = np.array([cosine_series(x, alpha) for x in s]).T
+    f, g, _, fc, gc = kernel_pore(alpha, s)
+    for got, ref in ((f, f_ref), (g, g_ref), (fc, f_ref), (gc, g_ref)):
+        assert np.max(np.abs(got / ref - 1)) < 1e-13
+
+
+def test_rectangular_at_complex_s_against_converged_series():
+    """The complex-frequency path (onset) at s with |arg s| up to 0.3 rad against the
+    converged series evaluated at the same complex s (1e-13)."""
+    s = np.array([0.2 * np.exp(0.3j), 1.5 * np.exp(-0.2j), 7.0 * np.exp(0.1j), 35.0 * np.exp(-0.25j)])
+    for alpha in (1.0, 4.0):
+        _, _, _, fc, gc = kernel_pore(alpha, s)
+        f_ref, g_ref = np.array([cosine_series(x, alpha) for x in s]).T
+        assert np.max(np.abs(gc / g_ref - 1)) < 1e-13
+        assert np.max(np.abs(fc / f_ref - 1)) < 1e-13
+
+
+@pytest.mark.parametrize("alpha, fRe", [(1.0, 14.227), (2.0, 15.548), (4.0, 18.233), (8.0, 20.585)])
+def test_poiseuille_limit_against_shah_london(alpha, fRe):
+    """Low frequency (s -> 0): g -> -i k^2 D_h^2/(2 fRe) with the Fanning friction factor
+    times Reynolds number of fully developed laminar flow, fRe = 14.227, 15.548, 18.233,
+    20.585 for aspect ratios 1, 2, 4, 8 (Shah & London, *Laminar Flow Forced Convection in
+    Ducts*, 1978; five digits): g / (-i s^2) = 16 alpha^2 / ((1 + alpha)^2 fRe)."""
+    _, g, _, _, _ = kernel_pore(alpha, [1e-3])
+    assert (g[0] / (-1j * 1e-6)).real == pytest.approx(16 * alpha**2 / ((1 + alpha) ** 2 * fRe), rel=5e-5)
+
+
+def test_wide_aspect_tends_to_parallel_plates():
+    """alpha -> infinity: the channel is the plates of half-spacing a; the difference is the
+    narrow walls' share, O(1/alpha) (falls 1000-fold from alpha = 1e3 to 1e6)."""
+    s = np.array([0.05, 0.7, 4.0, 60.0])
+    diff = {a: np.abs(kernel_pore(a, s)[0] / f_plates(s) - 1) for a in (1e3, ASPECT_MAX)}
+    assert np.all(diff[ASPECT_MAX] < 2e-6)
+    np.testing.assert_allclose(diff[1e3] / diff[ASPECT_MAX], 1e3, rtol=0.01)
+
+
+def test_boundary_layer_limit():
+    """s -> infinity: f -> (1 + i) delta / (2 r_h) (Rott, boundary layer on the perimeter),
+    r_h = a alpha / (1 + alpha) the hydraulic radius: s f -> (1 + i)(1 + 1/alpha)/2,
+    approached as 1/s (the corners)."""
+    for alpha in (1.0, 3.0):
+        s = np.array([1e3, 1e4])
+        f = kernel_pore(alpha, s)[0]
+        limit = (1 + 1j) * (1 + 1 / alpha) / 2
+        err = np.abs(s * f - limit) / abs(limit)
+        assert err[1] < 1e-3 and err[0] / err[1] == pytest.approx(10, rel=0.01)
+
+
+@pytest.mark.parametrize("alpha", [1.0, 6.0])
+def test_log_derivative_against_central_differences(alpha):
+    """df/d ln s against Richardson-extrapolated central differences of -g (g = 1 - f keeps
+    its digits where f -> 1; steps 2e-4 and 1e-4 in ln s: 1e-10 of |df|) on both sides of
+    the large-s switch."""
+    s = np.array([1e-3, 0.05, 0.8, 5.0, 19.0, 21.0, 400.0])
+    df = kernel_pore(alpha, s)[2]
+
+    def central(h):
+        return -(kernel_pore(alpha, s * np.exp(h))[1] - kernel_pore(alpha, s * np.exp(-h))[1]) / (2 * h)
+
+    want = (4 * central(1e-4) - central(2e-4)) / 3
+    assert np.max(np.abs(df - want) / np.abs(want)) < 1e-10
+
+
+# -- a rectangular stack in the model ------------------------------------------------------------
+
+
+def rectangular(core, aspect_ratio: float, segment: str = "stack"):
+    segs = tuple(
+        dataclasses.replace(s, pore_model="rectangular", aspect_ratio=aspect_ratio) if s.name == segment else s
+        for s in core.segments
+    )
+    return type(core)(segs, core.gas, core.radius, core.source)
+
+
+def plates(core, segment: str = "stack"):
+    segs = tuple(dataclasses.replace(s, pore_model="plates") if s.name == segment else s for s in core.segments)
+    return type(core)(segs, core.gas, core.radius, core.source)
+
+
+def test_core_file_keys_and_errors():
+    data = load_core("ceramic").to_dict()
+    data["segment"][1].update(pore_model="rectangular", aspect_ratio=2.5)
+    core = core_from_dict(data, "rect.toml")
+    assert core.segment("stack").aspect_ratio == 2.5
+    assert core_from_dict(core.to_dict(), "again.toml").segments == core.segments
+    for value, match in ((0.5, r"must lie in \[1, "), ("2", "finite number"), (2e6, r"must lie in \[1, ")):
+        data["segment"][1]["aspect_ratio"] = value
+        with pytest.raises(CoreError, match=f"rect.toml: segment 'stack': aspect_ratio.*{match}"):
+            core_from_dict(data, "rect.toml")
+    data["segment"][1].update(pore_model="plates", aspect_ratio=2.0)
+    with pytest.raises(CoreError, match="aspect_ratio applies only to pore_model = 'rectangular'"):
+        core_from_dict(data, "rect.toml")
+
+
+def test_forward_model_of_a_wide_channel_is_the_plates_one():
+    """A stack of rectangular channels of aspect ratio 1e6 has the T-matrix of the plates
+    (heated: the gradient term too) to the O(1/alpha) of its pore functions."""
+    core = load_core("ceramic")
+    freqs = np.array([60.0, 180.0])
+    T_rect = transfer_matrices(rectangular(core, ASPECT_MAX), freqs, 40.0, device=DEVICE).T
+    T_plates = transfer_matrices(plates(core), freqs, 40.0, device=DEVICE).T
+    np.testing.assert_allclose(T_rect, T_plates, rtol=0, atol=1e-5 * np.abs(T_plates).max())
+    T_square = transfer_matrices(rectangular(core, 1.0), freqs, 40.0, device=DEVICE).T
+    assert np.abs(T_square - T_plates).max() > 1e-3 * np.abs(T_plates).max()  # the shape shows
+
+
+def test_cascade_tangents_of_a_rectangular_stack():
+    """dT/dz of the tangent cascade (the fit's Jacobian) against central differences of the
+    plain cascade at steps 2k and k (k = 1e-3), extrapolated, to 1e-8 of max |dT/dz|, as
+    tests/test_tangents.py checks the circular and plate pores."""
+    core = rectangular(load_core("ceramic"), 2.0)
+    names = ["stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.h", "gas.T_cold"]
+    v0 = np.array([core.get(k) for k in names]) * np.array([0.97, 1.2, 1.1, 0.8, 1.02])
+    log = np.array([is_log(k) for k in names])
+    P, heat = len(names), 40.0
+    eng = Engine(core, np.array([35.0, 160.0, 450.0]), names, ForwardSettings(cells=6, device=DEVICE, cpu_threads=1))
+
+    def table(zs):
+        return np.stack([np.r_[heat, np.where(log, v0 * np.exp(z), v0 + 0.05 * z)] for z in zs], axis=1)
+
+    step = eng.tangent_step
+    zs = [np.zeros(P)] + [s * step * e for e in np.eye(P) for s in (1, -1)]
+    out, tangent = (a.numpy() for a in eng.evaluate_tangents(table(zs), np.full((1, P), step), P))
+    k = 1e-3
+    ref = [np.zeros(P)] + [s * c * k * e for e in np.eye(P) for c in (2, 1) for s in (1, -1)]
+    T = eng.evaluate(table(ref))[0].numpy()
+    np.testing.assert_allclose(out[0], T[0], rtol=0, atol=1e-13 * np.abs(T[0]).max())
+    for a in range(P):
+        want = (4 * (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k) - (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)) / 3
+        err = np.abs(tangent[0, a] - want).max()
+        assert err < 1e-8 * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err)
+
+
+def test_onset_of_a_wide_channel_stack_is_the_plates_one():
+    """The onset heat input (complex-frequency path) of the bundled engine with its stack
+    as rectangular channels of aspect ratio 1e6 equals the plates' to 1e-5."""
+    eng = load_engine("standing_wave")
+    rect = dataclasses.replace(eng, core=rectangular(eng.core, ASPECT_MAX))
+    plate = dataclasses.replace(eng, core=plates(eng.core))
+    q_rect = onset(rect, Q_max=200.0, device=DEVICE).Q_onset[0]
+    q_plates = onset(plate, Q_max=200.0, device=DEVICE).Q_onset[0]
+    assert np.isfinite(q_plates) and q_rect == pytest.approx(q_plates, rel=1e-5)
+
+
+def test_design_evaluator_on_a_rectangular_stack():
+    """The design evaluator (sweeps, searches) on a rectangular stack: every objective of a
+    design batch, the acoustic loss included, equals the plates' at aspect ratio 1e6 (1e-5);
+    square channels change the acoustic loss."""
+    core = load_core("ceramic")
+    points = {"stack.pore_radius": np.array([0.3e-3, 0.5e-3]), "heat_input": np.array([20.0, 40.0])}
+    variables = ["stack.pore_radius=0.2e-3:0.8e-3", "heat_input=0:60"]
+
+    def objectives(c):
+        ev = Evaluator(DesignSpace(c, variables), extra=("acoustic_loss",), settings=ForwardSettings(device=DEVICE))
+        return ev.evaluate(points)
+
+    rect, plate, square = (
+        objectives(rectangular(core, ASPECT_MAX)),
+        objectives(plates(core)),
+        objectives(rectangular(core, 1.0)),
+    )
+    assert set(rect) == set(plate)
+    for name in plate:
+        np.testing.assert_allclose(rect[name], plate[name], rtol=1e-5, atol=1e-12)
+    assert np.all(np.abs(square["acoustic_loss"] / plate["acoustic_loss"] - 1) > 1e-3)
