@@ -1,11 +1,12 @@
-"""Rectangular channels (kernels/pore.py, Stinson 1991): the kernels' functions against
-independent series, their published limits (Shah & London's Poiseuille numbers, the parallel
-plates, the boundary layer), their derivative and complex argument, and a rectangular stack
-through the parser, the forward model, the tangent cascade, the onset and the design
-evaluator."""
+"""Rectangular channels (Stinson 1991) and pin arrays (Swift's pin-array stack) of
+kernels/pore.py: the kernels' functions against independent series and mpmath, their limits
+(Shah & London's Poiseuille numbers, the parallel plates, the boundary layer, Poiseuille flow in
+a pin's cell), their derivative and complex argument, and such stacks through the parser, the
+forward model, the tangent cascade, the onset and the design evaluator."""
 
 import dataclasses
 
+import mpmath
 import numpy as np
 import pytest
 import warp as wp
@@ -16,6 +17,7 @@ from tawarp.fit.estimate import is_log
 from tawarp.kernels.pore import (
     ASPECT_MAX,
     RECT_ASYMPTOTIC_S,
+    bessel_ik_scaled,
     pore_functions_complex,
     pore_functions_log,
     pore_log_derivative,
@@ -52,13 +54,14 @@ def _pore(
     gc[i] = b
 
 
-def kernel_pore(alpha: float, s):
+def kernel_pore(alpha: float, s, model: str = "rectangular"):
     """f, g, df/d ln s at real s (the cascade's path) and f, g by the complex path at s
-    (complex allowed; the real path then uses |s|)."""
+    (complex allowed; the real path then uses |s|); ``alpha``: the shape number (aspect
+    ratio, or a pin array's outer radius ratio)."""
     s = np.asarray(s, dtype=complex)
     sw = wp.array(np.stack([s.real, s.imag], 1), dtype=wp.vec2d, device=DEVICE)
     out = [wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE) for _ in range(5)]
-    model = pore_model_code("rectangular", alpha)
+    model = pore_model_code(model, alpha)
     wp.launch(_pore, dim=len(s), inputs=[model, sw, circular_table(DEVICE), *out], device=DEVICE)
     return [o.numpy().view(np.complex128).ravel() for o in out]
 
@@ -182,15 +185,120 @@ def test_log_derivative_against_central_differences(alpha):
     assert np.max(np.abs(df - want) / np.abs(want)) < 1e-10
 
 
+# -- pin arrays ---------------------------------------------------------------------------------
+
+
+@wp.kernel
+def _bessel(y: wp.array(dtype=wp.vec2d), out: wp.array2d(dtype=wp.vec2d)):
+    i = wp.tid()
+    a, b, c, d = bessel_ik_scaled(y[i])
+    out[i, 0] = a
+    out[i, 1] = b
+    out[i, 2] = c
+    out[i, 3] = d
+
+
+def mp_pins(s, R, derivative=False):
+    """f (or df/d ln s) of a pin array at 30 digits: f = 2/(x (R^2 - 1)) [I1(Rx) K1(x) -
+    K1(Rx) I1(x)] / [I1(Rx) K0(x) + K1(Rx) I0(x)], x = (1 - i) s."""
+    with mpmath.workdps(30):
+
+        def f(t):
+            x = (1 - 1j) * t
+            i, k = mpmath.besseli, mpmath.besselk
+            return (
+                2
+                / (x * (R * R - 1))
+                * (i(1, R * x) * k(1, x) - k(1, R * x) * i(1, x))
+                / (i(1, R * x) * k(0, x) + k(1, R * x) * i(0, x))
+            )
+
+        t = mpmath.mpc(s.real, s.imag)
+        return complex(t * mpmath.diff(f, t)) if derivative else complex(f(t))
+
+
+def test_scaled_bessel_functions_against_mpmath():
+    """exp(-y) I0, I1 and exp(y) K0, K1 at complex y over |y| in [1e-3, 300] and arg y in
+    -pi/4 +- 0.3 (real and complex frequencies' x = (1 - i) s), each to 5e-15 of itself:
+    through the power series, Steed's continued fraction and Hankel's expansions."""
+    y = np.array(
+        [np.sqrt(2) * r * np.exp(1j * a) for r in np.geomspace(1e-3, 200, 50) for a in (-0.485, -0.785, -1.085)]
+    )
+    out = wp.zeros((len(y), 4), dtype=wp.vec2d, device=DEVICE)
+    wp.launch(_bessel, dim=len(y), inputs=[wp.array(np.stack([y.real, y.imag], 1), dtype=wp.vec2d, device=DEVICE), out])
+    got = out.numpy().view(np.complex128)[..., 0]
+    with mpmath.workdps(30):
+        for k, v in enumerate(y):
+            z = mpmath.mpc(v.real, v.imag)
+            want = [mpmath.besseli(0, z) * mpmath.exp(-z), mpmath.besseli(1, z) * mpmath.exp(-z),
+                    mpmath.besselk(0, z) * mpmath.exp(z), mpmath.besselk(1, z) * mpmath.exp(z)]  # fmt: skip
+            assert np.max(np.abs(got[k] / np.array([complex(w) for w in want]) - 1)) < 5e-15, v
+
+
+@pytest.mark.parametrize("R", [1.05, 2.0, 5.0])
+def test_pins_against_mpmath(R):
+    """f of the kernels (real and complex paths) to 2e-14 of itself against the closed form
+    at 30 digits over s in [1e-3, 300]; g = 1 - f to 2e-14 absolute (it is 1 - f: a few eps
+    over |g| relative, 1e-11 at |g| ~ 1e-3); at complex s the same."""
+    s = np.geomspace(1e-3, 300, 12)
+    f, g, _, fc, gc = kernel_pore(R, s, "pins")
+    want = np.array([mp_pins(x, R) for x in s])
+    for got in (f, fc):
+        assert np.max(np.abs(got / want - 1)) < 2e-14
+    for got in (g, gc):
+        assert np.max(np.abs(got - (1 - want))) < 2e-14
+    sc = np.array([0.3 * np.exp(0.25j), 2.0 * np.exp(-0.2j), 40.0 * np.exp(0.1j)])
+    fc = kernel_pore(R, sc, "pins")[3]
+    assert np.max(np.abs(fc / np.array([mp_pins(x, R) for x in sc]) - 1)) < 2e-14
+
+
+def test_pins_log_derivative_against_mpmath():
+    """df/d ln s (the tangent cascade's) against mpmath's derivative of the closed form:
+    2e-14 of |df| + 2e-14 (the few eps of g's small-s end)."""
+    s = np.array([1e-2, 0.7, 60.0])
+    for R in (1.5, 3.0):
+        df = kernel_pore(R, s, "pins")[2]
+        want = np.array([mp_pins(x, R, derivative=True) for x in s])
+        assert np.all(np.abs(df - want) < 2e-14 * np.abs(want) + 2e-14)
+
+
+def test_pins_limits():
+    """Pins' limiting cases: (1) a thin cell, R -> 1, is the plates of half-spacing (R - 1) r_i
+    (no slip on the pin, no shear at the cell's edge), to O(R - 1); (2) small s is Poiseuille
+    flow in the cell, g -> 2 i s^2 P(R), P(R) = (R^2 - 1)/8 + R^2/4 - R^4 ln R / (2 (R^2 - 1))
+    (the mean of u = G/4 (r^2 - r_i^2) - G r_o^2/2 ln(r/r_i)); (3) large s is the boundary layer
+    on the pin: s f -> (1 + i)/(R^2 - 1), perimeter over gas area, approached as 1/s."""
+    s = np.array([0.05, 0.5, 3.0])
+    err = {}
+    for eps in (1e-2, 1e-3):
+        err[eps] = np.abs(kernel_pore(1 + eps, s / eps, "pins")[0] / f_plates(s) - 1)
+    assert np.all(err[1e-3] < 2e-3) and np.all(err[1e-2] / err[1e-3] > 8)
+    for R in (1.5, 3.0):
+        P = (R * R - 1) / 8 + R * R / 4 - R**4 * np.log(R) / (2 * (R * R - 1))
+        g = kernel_pore(R, [1e-3, 2e-3], "pins")[1]
+        ratio = g / (2j * np.array([1e-3, 2e-3]) ** 2 * P)
+        assert abs(ratio[0] - 1) < 1e-5 and abs(ratio[1] - 1) / abs(ratio[0] - 1) == pytest.approx(4, rel=0.05)
+        big = np.array([1e3, 1e4])
+        lim = (1 + 1j) / (R * R - 1)
+        e = np.abs(big * kernel_pore(R, big, "pins")[0] / lim - 1)
+        assert e[1] < 1e-4 and e[0] / e[1] == pytest.approx(10, rel=0.01)
+
+
 # -- a rectangular stack in the model ------------------------------------------------------------
 
 
-def rectangular(core, aspect_ratio: float, segment: str = "stack"):
+def with_pores(core, model: str, shape: float, segment: str = "stack"):
+    """``core`` with ``segment``'s pores of ``model`` (rectangular: aspect ratio ``shape``;
+    pins: outer radius ratio ``shape``)."""
+    key = {"rectangular": "aspect_ratio", "pins": "outer_radius_ratio"}[model]
     segs = tuple(
-        dataclasses.replace(s, pore_model="rectangular", aspect_ratio=aspect_ratio) if s.name == segment else s
-        for s in core.segments
+        dataclasses.replace(s, pore_model=model, **{key: shape}) if s.name == segment else s for s in core.segments
     )
     return type(core)(segs, core.gas, core.radius, core.source)
+
+
+def rectangular(core, aspect_ratio: float):
+    return with_pores(core, "rectangular", aspect_ratio)
 
 
 def plates(core, segment: str = "stack"):
@@ -211,6 +319,17 @@ def test_core_file_keys_and_errors():
     data["segment"][1].update(pore_model="plates", aspect_ratio=2.0)
     with pytest.raises(CoreError, match="aspect_ratio applies only to pore_model = 'rectangular'"):
         core_from_dict(data, "rect.toml")
+    data["segment"][1].pop("aspect_ratio")
+    data["segment"][1].update(pore_model="pins", outer_radius_ratio=2.2)
+    pins = core_from_dict(data, "pins.toml")
+    assert core_from_dict(pins.to_dict(), "again.toml").segments == pins.segments
+    for value in (1.0, float("nan")):
+        data["segment"][1]["outer_radius_ratio"] = value
+        with pytest.raises(CoreError, match="pins.toml: segment 'stack': outer_radius_ratio"):
+            core_from_dict(data, "pins.toml")
+    data["segment"][1].pop("outer_radius_ratio")
+    with pytest.raises(CoreError, match="outer_radius_ratio must be a finite number"):
+        core_from_dict(data, "pins.toml")
 
 
 def test_forward_model_of_a_wide_channel_is_the_plates_one():
@@ -225,11 +344,12 @@ def test_forward_model_of_a_wide_channel_is_the_plates_one():
     assert np.abs(T_square - T_plates).max() > 1e-3 * np.abs(T_plates).max()  # the shape shows
 
 
-def test_cascade_tangents_of_a_rectangular_stack():
+@pytest.mark.parametrize("model, shape", [("rectangular", 2.0), ("pins", 2.5)])
+def test_cascade_tangents_of_new_pores(model, shape):
     """dT/dz of the tangent cascade (the fit's Jacobian) against central differences of the
     plain cascade at steps 2k and k (k = 1e-3), extrapolated, to 1e-8 of max |dT/dz|, as
     tests/test_tangents.py checks the circular and plate pores."""
-    core = rectangular(load_core("ceramic"), 2.0)
+    core = with_pores(load_core("ceramic"), model, shape)
     names = ["stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.h", "gas.T_cold"]
     v0 = np.array([core.get(k) for k in names]) * np.array([0.97, 1.2, 1.1, 0.8, 1.02])
     log = np.array([is_log(k) for k in names])
@@ -250,6 +370,21 @@ def test_cascade_tangents_of_a_rectangular_stack():
         want = (4 * (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k) - (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)) / 3
         err = np.abs(tangent[0, a] - want).max()
         assert err < 1e-8 * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err)
+
+
+def test_onset_of_a_pin_stack_against_its_growth_rate():
+    """The bundled engine with a pin-array stack (outer radius ratio 3, porosity 1 - 1/9):
+    Im omega changes sign once over Q = 0..200 W and the onset found (complex-frequency
+    path of the pin functions) is where eigenfrequencies() says the growth rate is 0."""
+    from tawarp.model.onset import eigenfrequencies
+
+    eng = load_engine("standing_wave")
+    pins = dataclasses.replace(eng, core=with_pores(eng.core, "pins", 3.0).replace(**{"stack.porosity": 1 - 1 / 9}))
+    grid = eigenfrequencies(pins, np.linspace(0, 200, 9), device=DEVICE)
+    assert np.count_nonzero(np.diff(np.sign(grid.growth_rate))) == 1
+    res = onset(pins, Q_max=200.0, device=DEVICE)
+    at = eigenfrequencies(pins, res.Q_onset[0], device=DEVICE)
+    assert abs(at.growth_rate[0]) < 1e-8 * 2 * np.pi * at.frequency[0]
 
 
 def test_onset_of_a_wide_channel_stack_is_the_plates_one():

@@ -22,7 +22,7 @@ import numpy as np
 
 from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, TRUSTED_RANGE, takes
 from .fields import field as field_spec
-from ..kernels.pore import ASPECT_MAX, PORE_MODELS as KERNEL_PORE_MODELS
+from ..kernels.pore import ASPECT_MAX, PIN_RATIO_MAX, PORE_MODELS as KERNEL_PORE_MODELS
 from .gas import GASES, is_mixture, mixture_fractions, mixture_name
 from .prior import Prior, PriorError, declared_prior
 
@@ -53,7 +53,8 @@ class Segment:
     A ``duct`` is an empty tube section (porosity 1, pore radius = tube radius,
     tortuosity 1). A ``porous`` segment has ``porosity`` [-], ``pore_radius`` [m]
     (circular pores: radius; ``plates``: half the plate spacing; ``rectangular``: half the
-    narrow side, the channel's sides in the ratio ``aspect_ratio`` >= 1), ``tortuosity`` q [-]
+    narrow side, the channel's sides in the ratio ``aspect_ratio`` >= 1; ``pins``: the pin
+    radius, each pin's gas cell of outer radius ``outer_radius_ratio`` times it), ``tortuosity`` q [-]
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
     the steady heat model). Exactly one thermal segment is the ``heater``. The effect
@@ -65,6 +66,7 @@ class Segment:
     length: float
     pore_model: str = "circular"
     aspect_ratio: float = 1.0
+    outer_radius_ratio: float = math.nan
     porosity: float = 1.0
     pore_radius: float = math.nan
     tortuosity: float = 1.0
@@ -84,6 +86,14 @@ class Segment:
     @property
     def is_porous(self) -> bool:
         return self.kind == "porous"
+
+    @property
+    def pore_shape(self) -> float:
+        """The shape number of the pore model (:func:`tawarp.kernels.pore.pore_model_code`):
+        a rectangular channel's aspect ratio, a pin array's outer radius ratio, else 1."""
+        if self.pore_model == "pins":
+            return self.outer_radius_ratio
+        return self.aspect_ratio
 
 
 @dataclass(frozen=True)
@@ -191,6 +201,8 @@ class Core:
                 d["pore_model"] = s.pore_model
                 if s.pore_model == "rectangular":
                     d["aspect_ratio"] = s.aspect_ratio
+                if s.pore_model == "pins":
+                    d["outer_radius_ratio"] = s.outer_radius_ratio
                 d.update(
                     porosity=s.porosity,
                     pore_radius=s.pore_radius,
@@ -255,20 +267,29 @@ def check_values(name: str, values, where: str) -> None:
             )
 
 
-def _check_aspect_ratio(s: Segment, where: str) -> None:
-    """A rectangular channel's aspect ratio: a number in [1, ASPECT_MAX]; other pores take none."""
-    a = s.aspect_ratio
-    if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(a):
-        raise CoreError(f"{where}: aspect_ratio must be a finite number, got {a!r}")
-    if s.pore_model != "rectangular":
-        if a != 1.0:
-            raise CoreError(f"{where}: aspect_ratio applies only to pore_model = 'rectangular'")
-        return
-    if not 1.0 <= a <= ASPECT_MAX:
-        raise CoreError(
-            f"{where}: aspect_ratio = {a} must lie in [1, {ASPECT_MAX:g}] (long side / short side; "
-            f"pore_radius is half the short side)"
-        )
+def _check_pore_shape(s: Segment, where: str) -> None:
+    """A rectangular channel's ``aspect_ratio`` in [1, ASPECT_MAX], a pin array's
+    ``outer_radius_ratio`` in [1.01, PIN_RATIO_MAX]; other pores take neither."""
+    for key, model, default, lo, hi, meaning in (
+        (
+            "aspect_ratio",
+            "rectangular",
+            1.0,
+            1.0,
+            ASPECT_MAX,
+            "long side / short side; pore_radius is half the short side",
+        ),
+        ("outer_radius_ratio", "pins", math.nan, 1.01, PIN_RATIO_MAX, "gas cell's outer radius / pin radius"),
+    ):
+        a = getattr(s, key)
+        if s.pore_model != model:
+            if not (a == default or (math.isnan(default) and isinstance(a, float) and math.isnan(a))):
+                raise CoreError(f"{where}: {key} applies only to pore_model = {model!r}")
+            continue
+        if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(a):
+            raise CoreError(f"{where}: {key} must be a finite number ({meaning}), got {a!r}")
+        if not lo <= a <= hi:
+            raise CoreError(f"{where}: {key} = {a} must lie in [{lo:g}, {hi:g}] ({meaning})")
 
 
 def validate(core: Core) -> None:
@@ -299,7 +320,7 @@ def validate(core: Core) -> None:
         if s.is_porous:
             if s.pore_model not in PORE_MODELS:
                 raise CoreError(f"{w}: pore_model = {s.pore_model!r}; expected one of {PORE_MODELS}")
-            _check_aspect_ratio(s, w)
+            _check_pore_shape(s, w)
             for fld in ("porosity", "pore_radius", "tortuosity", "solid_conductivity"):
                 check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if s.pore_radius > core.radius:

@@ -127,13 +127,13 @@ def base_table(core: Core) -> np.ndarray:
 
 def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
-    from ..kernels.pore import pore_model_code
+    from ..kernels.pore import PORE_CIRCULAR, pore_model_code
 
     return np.array(
         [
             [
                 s.is_porous,
-                pore_model_code(s.pore_model if s.is_porous else "circular", s.aspect_ratio),
+                pore_model_code(s.pore_model, s.pore_shape) if s.is_porous else PORE_CIRCULAR,
                 s.thermal,
                 s.heater,
             ]
