@@ -332,6 +332,37 @@ def test_core_file_keys_and_errors():
         core_from_dict(data, "pins.toml")
 
 
+def test_reference_functions_against_series_and_mpmath():
+    """The NumPy reference's rectangular channels (its own truncated series) against the
+    converged series (1e-11), and its pins (SciPy's Bessel functions) against mpmath (1e-12)."""
+    from tawarp import reference
+
+    s = np.array([0.02, 0.4, 3.0, 40.0])
+    f, g = reference.thermoviscous_function("rectangular", s, np.ones_like(s), 2.5)
+    f_ref, g_ref = np.array([cosine_series(x, 2.5) for x in s]).T
+    assert np.max(np.abs(f / f_ref - 1)) < 1e-11 and np.max(np.abs(g / g_ref - 1)) < 1e-11
+    f, _ = reference.thermoviscous_function("pins", s, np.ones_like(s), 2.5)
+    assert np.max(np.abs(f / np.array([mp_pins(x, 2.5) for x in s]) - 1)) < 1e-12
+
+
+@pytest.mark.parametrize("model, shape", [("rectangular", 2.5), ("pins", 2.5)])
+def test_kernels_match_reference(model, shape):
+    """A heated core (helium at 3 bar, 30 W) whose stack has the new pores: the kernels'
+    T-matrices against the independent NumPy reference (adaptive ODE, its own series and
+    SciPy's Bessel functions) to 1e-8, as tests/test_forward.py holds the other pores."""
+    from tawarp import reference
+
+    d = load_core("nicr_foam").to_dict()
+    d["gas"].update(name="helium", p_mean=3e5)
+    d["segment"][1]["pore_model"] = model
+    d["segment"][1]["aspect_ratio" if model == "rectangular" else "outer_radius_ratio"] = shape
+    core = core_from_dict(d, f"<{model}>")
+    freqs = np.array([30.0, 120.0, 260.0, 500.0])
+    Y = transfer_matrices(core, freqs, 30.0, device=DEVICE, cells=48).dimensionless()[0]
+    Yref = reference.dimensionless_transfer(core, freqs, 30.0)
+    assert float((np.abs(Y - Yref).max(-1) / np.abs(Yref).max(-1)).max()) < 1e-8
+
+
 def test_forward_model_of_a_wide_channel_is_the_plates_one():
     """A stack of rectangular channels of aspect ratio 1e6 has the T-matrix of the plates
     (heated: the gradient term too) to the O(1/alpha) of its pore functions."""
@@ -370,6 +401,29 @@ def test_cascade_tangents_of_new_pores(model, shape):
         want = (4 * (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k) - (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)) / 3
         err = np.abs(tangent[0, a] - want).max()
         assert err < 1e-8 * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err)
+
+
+@pytest.mark.parametrize("model, shape", [("rectangular", 1.0), ("pins", 2.5)])
+def test_fit_round_trip_on_a_new_pore_stack(model, shape):
+    """Data made by the model of a stack of square channels (or of pins) at heat input 40 W,
+    0.5 % noise: the batched Levenberg-Marquardt fit (tangent Jacobian) from 15 % off brings
+    porosity, pore radius and h back to within 3 of its reported standard deviations."""
+    from tawarp.fit.estimate import fit
+    from tawarp.measure.synthetic import paper_frequencies
+
+    core = with_pores(load_core("ceramic"), model, shape)
+    names = ["stack.porosity", "stack.pore_radius", "stack.h"]
+    freqs = paper_frequencies("ceramic", 16)
+    Y0 = transfer_matrices(core, freqs, 40.0, cells=12, device=DEVICE).dimensionless()[0]
+    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
+    rng = np.random.default_rng(5)
+    Y = Y0 + sd * (rng.standard_normal(Y0.shape) + 1j * rng.standard_normal(Y0.shape))
+    truth = np.array([core.get(k) for k in names])
+    settings = ForwardSettings(cells=8, device=DEVICE)
+    r = fit(core, freqs, Y[None], names, truth * [0.9, 1.15, 0.85], heat_input=40.0, weights=1 / sd,
+            settings=settings, jacobian="tangent", warn=False)  # fmt: skip
+    assert r.converged.all()
+    assert np.all(np.abs(r.values[0] - truth) < 3 * r.std[0])
 
 
 def test_onset_of_a_pin_stack_against_its_growth_rate():
