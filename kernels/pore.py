@@ -192,21 +192,22 @@ TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
+# The table: the circular pieces, then a header of SHAPE_SLOTS pore-model codes (-1: empty),
+# then the pieces of each shaped pore (rectangular channels, pins) in the header's order.
+TABLE_BLOCK = wp.constant(PIECES * (1 + 2 * TERMS))
+SHAPE_SLOTS = wp.constant(16)
+SHAPE_HEADER = wp.constant(PIECES * (1 + 2 * TERMS))
+SHAPE_BLOCKS = wp.constant(PIECES * (1 + 2 * TERMS) + 16)
+TABLE_LENGTH = PIECES * (1 + 2 * TERMS) * 17 + 16
 
 
 @wp.func
-def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64):
-    """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
-    (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
-    that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
-    Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
-    Chebyshev coefficients."""
-    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
-        return pore_circular(wp.exp(log_s))
+def _tabulated(table: wp.array(dtype=wp.float64), offset: int, log_s: wp.float64):
+    # f, g from the pieces starting at ``offset``, for log_s inside the table's range
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
-    base = k * (2 * TABLE_TERMS + 1)
+    base = offset + k * (2 * TABLE_TERMS + 1)
     # Clenshaw's recurrence for sum c_j T_j(t), real and imaginary parts together
     two_t = t + t
     b1r = wp.float64(0.0)
@@ -229,16 +230,40 @@ def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64
 
 
 @wp.func
+def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
+    (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
+    that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
+    Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
+    Chebyshev coefficients."""
+    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
+        return pore_circular(wp.exp(log_s))
+    return _tabulated(table, 0, log_s)
+
+
+@wp.func
+def _shape_slot(table: wp.array(dtype=wp.float64), model: int):
+    # the slot of the shaped pore ``model`` in the table's header, -1 if it has none
+    for j in range(SHAPE_SLOTS):
+        if table[SHAPE_HEADER + j] == wp.float64(model):
+            return j
+    return -1
+
+
+@wp.func
 def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
-    """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's
-    :func:`pore_model_code`) at ``log_s`` = ln(r / delta);
-    ``table`` is :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
+    """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's or
+    pin array's :func:`pore_model_code`) at ``log_s`` = ln(r / delta); ``table`` is
+    :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device, which holds the
+    circular pieces and those of the shaped pores it was built for (others are computed)."""
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
-    if model >= PINS_BASE:
-        return pore_pins(cplx(wp.exp(log_s), wp.float64(0.0)), pin_ratio(model))
     if model >= RECTANGULAR_BASE:
-        return pore_rectangular(cplx(wp.exp(log_s), wp.float64(0.0)), rectangular_aspect(model))
+        if log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
+            slot = _shape_slot(table, model)
+            if slot >= 0:
+                return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_BLOCK, log_s)
+        return pore_functions_complex(model, cplx(wp.exp(log_s), wp.float64(0.0)))
     return pore_circular_tabulated(table, log_s)
 
 

@@ -17,6 +17,8 @@ from tawarp.fit.estimate import is_log
 from tawarp.kernels.pore import (
     ASPECT_MAX,
     RECT_ASYMPTOTIC_S,
+    SHAPE_HEADER,
+    SHAPE_SLOTS,
     bessel_ik_scaled,
     pore_functions_complex,
     pore_functions_log,
@@ -55,14 +57,14 @@ def _pore(
 
 
 def kernel_pore(alpha: float, s, model: str = "rectangular"):
-    """f, g, df/d ln s at real s (the cascade's path) and f, g by the complex path at s
-    (complex allowed; the real path then uses |s|); ``alpha``: the shape number (aspect
-    ratio, or a pin array's outer radius ratio)."""
+    """f, g, df/d ln s at real s (the cascade's path: tabulated for s in [1e-3, 1e4]) and
+    f, g by the complex path at s (computed; complex allowed, the real path then uses |s|);
+    ``alpha``: the shape number (aspect ratio, or a pin array's outer radius ratio)."""
     s = np.asarray(s, dtype=complex)
     sw = wp.array(np.stack([s.real, s.imag], 1), dtype=wp.vec2d, device=DEVICE)
     out = [wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE) for _ in range(5)]
     model = pore_model_code(model, alpha)
-    wp.launch(_pore, dim=len(s), inputs=[model, sw, circular_table(DEVICE), *out], device=DEVICE)
+    wp.launch(_pore, dim=len(s), inputs=[model, sw, circular_table(DEVICE, [model]), *out], device=DEVICE)
     return [o.numpy().view(np.complex128).ravel() for o in out]
 
 
@@ -168,6 +170,20 @@ def test_boundary_layer_limit():
         limit = (1 + 1j) * (1 + 1 / alpha) / 2
         err = np.abs(s * f - limit) / abs(limit)
         assert err[1] < 1e-3 and err[0] / err[1] == pytest.approx(10, rel=0.01)
+
+
+@pytest.mark.parametrize("model, shape", [("rectangular", 1.0), ("rectangular", 7.0), ("pins", 1.2), ("pins", 3.0)])
+def test_table_against_the_computed_functions(model, shape):
+    """The kernels' table (real s, the cascades' path) against the computed functions at 400
+    random log-spaced s in [1e-3, 1e4]: f to 1e-13 of itself, g to 1e-13 of itself plus the
+    computed pins' few eps absolute; an Engine on such a core tabulates its stack."""
+    s = np.exp(np.random.default_rng(1).uniform(np.log(1e-3), np.log(1e4), 400))
+    f, g, _, fc, gc = kernel_pore(shape, s, model)
+    assert np.max(np.abs(f / fc - 1)) < 1e-13
+    assert np.all(np.abs(g - gc) < 1e-13 * np.abs(gc) + (2e-14 if model == "pins" else 0.0))
+    core = with_pores(load_core("ceramic"), model, shape + 0.25)
+    table = Engine(core, [100.0], [], ForwardSettings(cells=4, device=DEVICE)).pore_table.numpy()
+    assert pore_model_code(model, shape + 0.25) in table[SHAPE_HEADER : SHAPE_HEADER + SHAPE_SLOTS]
 
 
 @pytest.mark.parametrize("alpha", [1.0, 6.0])

@@ -335,7 +335,7 @@ class Engine:
         )
         self.columns = self._columns(f, self.sample)  # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
-        self.pore_table = circular_table(dev)
+        self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
         self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
         self.point_kernel = _point_kernel(self.nonlinear)
