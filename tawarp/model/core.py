@@ -199,10 +199,8 @@ class Core:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
             if s.is_porous:
                 d["pore_model"] = s.pore_model
-                if s.pore_model == "rectangular":
-                    d["aspect_ratio"] = s.aspect_ratio
-                if s.pore_model == "pins":
-                    d["outer_radius_ratio"] = s.outer_radius_ratio
+                if s.pore_model in PORE_SHAPES:
+                    d[PORE_SHAPES[s.pore_model][0]] = s.pore_shape
                 d.update(
                     porosity=s.porosity,
                     pore_radius=s.pore_radius,
@@ -267,29 +265,28 @@ def check_values(name: str, values, where: str) -> None:
             )
 
 
+#: The shape number of each pore model that takes one: its key, range and meaning.
+PORE_SHAPES = {
+    "rectangular": ("aspect_ratio", 1.0, ASPECT_MAX, "long side / short side; pore_radius is half the short side"),
+    "pins": ("outer_radius_ratio", 1.01, PIN_RATIO_MAX, "gas cell's outer radius / pin radius"),
+}
+_SHAPE_DEFAULTS = {
+    f.name: f.default for f in dataclasses.fields(Segment) if f.name in ("aspect_ratio", "outer_radius_ratio")
+}
+
+
 def _check_pore_shape(s: Segment, where: str) -> None:
-    """A rectangular channel's ``aspect_ratio`` in [1, ASPECT_MAX], a pin array's
-    ``outer_radius_ratio`` in [1.01, PIN_RATIO_MAX]; other pores take neither."""
-    for key, model, default, lo, hi, meaning in (
-        (
-            "aspect_ratio",
-            "rectangular",
-            1.0,
-            1.0,
-            ASPECT_MAX,
-            "long side / short side; pore_radius is half the short side",
-        ),
-        ("outer_radius_ratio", "pins", math.nan, 1.01, PIN_RATIO_MAX, "gas cell's outer radius / pin radius"),
-    ):
-        a = getattr(s, key)
+    """The shape number of ``s``'s pore model (:data:`PORE_SHAPES`) within its range; the
+    other models' shape keys left out."""
+    for model, (key, lo, hi, meaning) in PORE_SHAPES.items():
+        value, default = getattr(s, key), _SHAPE_DEFAULTS[key]
         if s.pore_model != model:
-            if not (a == default or (math.isnan(default) and isinstance(a, float) and math.isnan(a))):
+            if not (value == default or (value != value and default != default)):  # NaN: unset
                 raise CoreError(f"{where}: {key} applies only to pore_model = {model!r}")
-            continue
-        if isinstance(a, bool) or not isinstance(a, (int, float)) or not math.isfinite(a):
-            raise CoreError(f"{where}: {key} must be a finite number ({meaning}), got {a!r}")
-        if not lo <= a <= hi:
-            raise CoreError(f"{where}: {key} = {a} must lie in [{lo:g}, {hi:g}] ({meaning})")
+        elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise CoreError(f"{where}: {key} must be a finite number ({meaning}), got {value!r}")
+        elif not lo <= value <= hi:
+            raise CoreError(f"{where}: {key} = {value} must lie in [{lo:g}, {hi:g}] ({meaning})")
 
 
 def validate(core: Core) -> None:

@@ -72,8 +72,7 @@ class GasConstants:
 
 
 #: Lennard-Jones (12-6) parameters (sigma [m], epsilon/k_B [K]) from viscosity data
-#: (Hirschfelder, Curtiss & Bird 1954, Table I-A, as Bird, Stewart & Lightfoot, *Transport
-#: Phenomena*, 2nd ed., Table E.1, list them); they set the unlike pair of a mixture.
+#: (Hirschfelder, Curtiss & Bird 1954, Table I-A); they set the unlike pair of a mixture.
 LENNARD_JONES = {
     "helium": (2.576e-10, 10.22),
     "neon": (2.789e-10, 35.7),

@@ -7,7 +7,7 @@ M [kg/mol], Lennard-Jones (12-6) parameters sigma [m] and epsilon/k_B [K], and t
 gases' viscosities mu_i(T) [Pa s] and conductivities k_i(T) [W/(m K)] at the same T.
 
 Viscosity, any binary pair: the first Chapman-Enskog approximation (Hirschfelder, Curtiss
-& Bird, *Molecular Theory of Gases and Liquids*, 1954, eq. 8.2-22), written with the pure
+& Bird, *Molecular Theory of Gases and Liquids*, 1954, Sect. 8.2), written with the pure
 viscosities and the interaction viscosity mu_12 of the unlike pair::
 
     1/mu = (X + Y) / (1 + Z)
@@ -16,7 +16,7 @@ viscosities and the interaction viscosity mu_12 of the unlike pair::
     Z = 3/5 A* [x1^2 M1/M2 + 2 x1 x2 ((M1+M2)^2/(4 M1 M2) (mu12/mu1 + mu12/mu2) - 1) + x2^2 M2/M1]
 
 Conductivity of two monatomic gases: the first Chapman-Enskog approximation (same book,
-eq. 8.2-36) with k12 = 15/4 R mu12 (M1+M2)/(2 M1 M2), R the molar gas constant::
+Sect. 8.2) with k12 = 15/4 R mu12 (M1+M2)/(2 M1 M2), R the molar gas constant::
 
     1/k = (X + Y) / (1 + Z),  X = x1^2/k1 + 2 x1 x2/k12 + x2^2/k2
     Y = x1^2/k1 U1 + 2 x1 x2/k12 UY + x2^2/k2 U2,   Z = x1^2 U1 + 2 x1 x2 UZ + x2^2 U2
@@ -31,14 +31,14 @@ Johnson, NASA/CR-2006-214394, after Singh 1992); viscosity's correction is below
 
 Conductivity with a polyatomic component (helium with nitrogen or air): Wassiljewa's form
 with the coefficients of Mason & Saxena (Phys. Fluids 1:361, 1958; Poling, Prausnitz &
-O'Connell, *The Properties of Gases and Liquids*, 5th ed., eq. 10-6.1 and 10-6.2), which
+O'Connell, *The Properties of Gases and Liquids*, 5th ed., Sect. 10-6), which
 carries the internal-energy transport of the pure gas's measured conductivity::
 
     k = sum_i x_i k_i / sum_j x_j Phi_ij
     Phi_ij = [1 + (mu_i/mu_j)^(1/2) (M_j/M_i)^(1/4)]^2 / [8 (1 + M_i/M_j)]^(1/2)
 
-Interaction viscosity (HCB eq. 8.2-18 with the combining rules sigma12 = (sigma1 +
-sigma2)/2, eps12 = sqrt(eps1 eps2), HCB eq. 8.6-1/2)::
+Interaction viscosity (HCB Sect. 8.2, the pure gas's formula at the reduced mass, with the
+combining rules sigma12 = (sigma1 + sigma2)/2, eps12 = sqrt(eps1 eps2))::
 
     mu12 = 5/16 sqrt(2 pi m12 k_B T) / (pi sigma12^2 Omega22*(T*)),   m12 = 2 m1 m2/(m1 + m2)
 
