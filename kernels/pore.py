@@ -395,7 +395,8 @@ def pore_functions_complex(model: int, s: wp.vec2d):
 #     T(z) = tanh(z)/z,  z_m^2 = alpha^2 (q_m - 2 i s^2),  E_m = 2 s^2/(2 s^2 + i q_m)
 #
 # (at alpha -> infinity T -> 0 and g is the plates' g). The terms fall as m^-5: the first
-# RECT_TERMS are summed, the rest (tanh = 1 there to exp(-400)) in closed form,
+# RECT_TERMS are summed, the rest (tanh = 1 there to exp(-100)) by its expansion in
+# e = 8 i s^2/(m pi)^2 (|e| < 0.3 for |s| < 20),
 #
 #     sum_{m > 2 RECT_TERMS - 1} = 128 s^2/(i alpha pi^5) sum_j c_j (8 i s^2/pi^2)^j H_{5+2j},
 #
@@ -409,8 +410,8 @@ def pore_functions_complex(model: int, s: wp.vec2d):
 #
 # used from Re s + Im s >= RECT_ASYMPTOTIC_S (below 1e-15 there: tests/test_pore_geometries.py).
 
-RECT_TERMS = wp.constant(64)
-RECT_TAIL_TERMS = wp.constant(8)
+RECT_TERMS = wp.constant(16)
+RECT_TAIL_TERMS = wp.constant(32)
 RECT_ASYMPTOTIC_S = wp.constant(wp.float64(20.0))
 PI = wp.constant(wp.float64(math.pi))
 CORNER = wp.constant(wp.float64((4.0 / math.pi - 1.0) / 2.0))

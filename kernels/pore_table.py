@@ -28,7 +28,8 @@ real axis (their modes decay with s^2 = -i lambda^2/2, as the tube's), so the sa
 terms serve them; their node values come from :func:`.pore.pore_functions_complex`, the
 table's error against the converged series or mpmath is tested in
 tests/test_pore_geometries.py. Tabulated, a cascade over such a stack runs at the circular
-pore's speed; computed, its pore functions cost 36 (pins) to 60 (rectangular) times more.
+pore's speed (ceramic core, 64 x 64 points, one CPU thread: 0.043 s for each); computed, one
+point costs about 1.1 us (rectangular) or 2 us (pins) against 0.07-0.2 us from the table.
 """
 
 import math
