@@ -562,12 +562,21 @@ _TANH_COEF = np.array(
 _BESSEL_COEF = np.array([(-1.0) ** k * k / ((k + 1) * math.factorial(k) ** 2) for k in range(1, 26)])
 
 
-def thermoviscous_function(pore_model: str, r, delta):
+def thermoviscous_function(pore_model: str, r, delta, shape: float = 1.0):
     """Rott's function f and 1 - f for pores of radius ``r`` [m] (``plates``: half
-    spacing) and penetration depth ``delta`` [m], convention exp(-i w t).
+    spacing; ``rectangular``: half the narrow side; ``pins``: the pin radius) and
+    penetration depth ``delta`` [m], convention exp(-i w t); ``shape`` a rectangular
+    channel's aspect ratio or a pin array's outer radius ratio.
 
     * circular: ``f = 2 J1(z)/(z J0(z))``, ``z = (1 + i) r/delta``;
-    * plates: ``f = tanh(w)/w``, ``w = (1 - i) r/delta``.
+    * plates: ``f = tanh(w)/w``, ``w = (1 - i) r/delta``;
+    * rectangular (Stinson 1991), s = r/delta: the cosine series across the narrow side
+      with the wide side solved exactly, its terms summed directly (docs/physics.md):
+      ``f = f_plates(s) + R``, ``1 - f = 1 - f_plates(s) - R``,
+      ``R = sum_m 8/(m pi)^2 tanh(z)/z E_m``, ``E_m = 2 s^2/(2 s^2 + i q_m)``,
+      ``q_m = (m pi/2)^2``, ``z^2 = alpha^2 (q_m - 2 i s^2)``;
+    * pins, x = (1 - i) s, R = ``shape``: ``f = 2/(x (R^2 - 1)) [I1(Rx) K1(x) - K1(Rx)
+      I1(x)] / [I1(Rx) K0(x) + K1(Rx) I0(x)]`` with SciPy's scaled ``ive``, ``kve``.
 
     Returns ``(f, one_minus_f)`` (complex arrays, shape of ``r/delta``), each to full
     relative precision (checked against mpmath): for small arguments (|z| < 2, |w| < 0.5)
@@ -614,23 +623,56 @@ def thermoviscous_function(pore_model: str, r, delta):
             e = np.exp(-2.0 * wl)  # Re w > 0: tanh(w) = (1 - e^{-2w})/(1 + e^{-2w}) never overflows
             f[~small] = (1.0 - e) / (1.0 + e) / wl
             one_minus[~small] = 1.0 - f[~small]
+    elif pore_model == "rectangular":
+        f, one_minus = _rectangular_function(x, shape)
+    elif pore_model == "pins":
+        xx = (1.0 - 1.0j) * x.astype(complex)
+        R = shape
+        e = np.exp(-2.0 * (R - 1.0) * xx)
+
+        def i_scaled(n, z):  # exp(-z) I_n(z): SciPy's ive scales by exp(-|Re z|) only
+            return sp.ive(n, z) * np.exp(-1j * z.imag)
+
+        i0, i1 = i_scaled(0, xx), i_scaled(1, xx)
+        k0, k1 = sp.kve(0, xx), sp.kve(1, xx)
+        i1o, k1o = i_scaled(1, R * xx), sp.kve(1, R * xx)
+        f = 2.0 / (xx * (R * R - 1.0)) * (i1o * k1 - e * k1o * i1) / (i1o * k0 + e * k1o * i0)
+        one_minus = 1.0 - f
     else:
-        raise ValueError(f"unknown pore_model {pore_model!r}; expected 'circular' or 'plates'")
+        raise ValueError(f"unknown pore_model {pore_model!r}; expected circular, plates, rectangular or pins")
     return f, one_minus
 
 
-# ======================================================================================
-# Acoustics
-# ======================================================================================
+#: Terms of the rectangular channel's series beyond 40 |s| (past |s| they fall as m^-5).
+_RECT_TERMS = 2000
+
+
+def _rectangular_function(s, alpha: float):
+    """(f, 1 - f) of rectangular channels of aspect ratio ``alpha`` at s (array):
+    f = f_plates + R, 1 - f = (1 - f_plates) - R with the plates' pair of
+    :func:`thermoviscous_function` and R = sum_m 8/(m pi)^2 tanh(z)/z E_m summed to
+    _RECT_TERMS + 40 |s| terms (its tail is below 1e-11 of f for |s| <= 100)."""
+    s = np.asarray(s)
+    flat = s.ravel()
+    f_pl, g_pl = thermoviscous_function("plates", flat, np.ones(flat.shape))
+    rest = np.empty(flat.shape, dtype=complex)
+    for k, sk in enumerate(flat):
+        m = np.arange(1, 2 * (_RECT_TERMS + 40 * int(abs(sk))), 2, dtype=float)[::-1]
+        q = (m * np.pi / 2) ** 2
+        z = alpha * np.sqrt(q - 2j * sk * sk)
+        rest[k] = np.sum(8.0 / (m * np.pi) ** 2 * (2 * sk * sk) / (2 * sk * sk + 1j * q) * np.tanh(z) / z)
+    return (f_pl + rest).reshape(s.shape), (g_pl - rest).reshape(s.shape)
 
 
 def _pore(core: Core, seg: Segment):
-    """(phi, r, q, pore_model, r_k) of a segment: ducts are one circular pore of the tube
-    radius; ``r_k`` is the radius of the thermal function, ``thermal_radius_ratio * r``
-    in a porous segment (JCA's Lambda'/Lambda; 1 = the paper's single radius)."""
+    """(phi, r, q, pore_model, r_k, shape) of a segment: ducts are one circular pore of the
+    tube radius; ``r_k`` is the radius of the thermal function, ``thermal_radius_ratio * r``
+    in a porous segment (JCA's Lambda'/Lambda; 1 = the paper's single radius); ``shape``
+    the pores' shape number (:attr:`Segment.pore_shape`)."""
     if seg.is_porous:
-        return seg.porosity, seg.pore_radius, seg.tortuosity, seg.pore_model, seg.thermal_radius_ratio * seg.pore_radius
-    return 1.0, core.radius, 1.0, "circular", core.radius
+        r_k = seg.thermal_radius_ratio * seg.pore_radius
+        return seg.porosity, seg.pore_radius, seg.tortuosity, seg.pore_model, r_k, seg.pore_shape
+    return 1.0, core.radius, 1.0, "circular", core.radius, 1.0
 
 
 def _coefficients(core: Core, seg: Segment, w, T, dTdx):
@@ -645,7 +687,7 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
 
     f_nu at the pore radius r, f_k at the thermal radius r_k (:func:`_pore`).
     """
-    phi, r, q, model, r_k = _pore(core, seg)
+    phi, r, q, model, r_k, shape = _pore(core, seg)
     S = core.area
     g = gas_properties(core.gas.name, T, core.gas.p_mean)
     d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
@@ -653,7 +695,7 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
     # one call for both depths (halves the per-call overhead inside the ODE right-hand side);
     # the thermal depth is scaled by r/r_k so that the one radius r serves both functions
     d_nu, d_k = np.broadcast_arrays(d_nu, d_k * (r / r_k))
-    f, omf = thermoviscous_function(model, r, np.stack([d_nu, d_k]))
+    f, omf = thermoviscous_function(model, r, np.stack([d_nu, d_k]), shape)
     f_nu, f_k, omf_nu, omf_k = f[0], f[1], omf[0], omf[1]
     a12 = 1j * q**2 * g.rho * w / (phi * S * omf_nu)
     a21 = 1j * phi * S * w * (1.0 + (g.gamma - 1.0) * f_k) / (g.rho * g.c**2)

@@ -307,5 +307,5 @@ def test_read_scattering_csv(tmp_path):
     no_radius = scattering_text(S, freq).replace("# tube_radius = 0.0167\n", "")
     with pytest.raises(m.MeasurementError, match=r"s2\.csv.*'tube_radius'"):
         m.read_scattering_csv(write(tmp_path, no_radius, "s2.csv"))
-    with pytest.raises(m.MeasurementError, match=r"s3\.csv, line 7: gas = 'xenon'"):
-        m.read_scattering_csv(write(tmp_path, scattering_text(S, freq, extra="# gas = xenon"), "s3.csv"))
+    with pytest.raises(m.MeasurementError, match=r"s3\.csv, line 7: gas = 'radon'"):
+        m.read_scattering_csv(write(tmp_path, scattering_text(S, freq, extra="# gas = radon"), "s3.csv"))

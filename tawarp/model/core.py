@@ -22,8 +22,8 @@ import numpy as np
 
 from .fields import EFFECT_OFF, GLOBAL_FIELD_TABLE, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS, TRUSTED_RANGE, takes
 from .fields import field as field_spec
-from ..kernels.pore import PORE_MODELS as KERNEL_PORE_MODELS
-from .gas import GASES
+from ..kernels.pore import ASPECT_MAX, PIN_RATIO_MAX, PORE_MODELS as KERNEL_PORE_MODELS
+from .gas import GASES, is_mixture, mixture_fractions, mixture_name
 from .prior import Prior, PriorError, declared_prior
 
 SEGMENT_KINDS = ("duct", "porous")
@@ -38,7 +38,8 @@ class CoreError(ValueError):
 
 @dataclass(frozen=True)
 class Gas:
-    """Working gas: ``name`` one of :data:`tawarp.model.gas.GASES`, mean pressure [Pa], cold temperature [K]."""
+    """Working gas: ``name`` a pure gas of :data:`tawarp.model.gas.GASES` or a binary mixture
+    ("helium=0.7,argon=0.3", a ``[gas.mixture]`` table), mean pressure [Pa], cold temperature [K]."""
 
     name: str = "air"
     p_mean: float = 101325.0
@@ -51,7 +52,9 @@ class Segment:
 
     A ``duct`` is an empty tube section (porosity 1, pore radius = tube radius,
     tortuosity 1). A ``porous`` segment has ``porosity`` [-], ``pore_radius`` [m]
-    (circular pores: radius; ``plates``: half the plate spacing), ``tortuosity`` q [-]
+    (circular pores: radius; ``plates``: half the plate spacing; ``rectangular``: half the
+    narrow side, the channel's sides in the ratio ``aspect_ratio`` >= 1; ``pins``: the pin
+    radius, each pin's gas cell of outer radius ``outer_radius_ratio`` times it), ``tortuosity`` q [-]
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
     the steady heat model). Exactly one thermal segment is the ``heater``. The effect
@@ -62,6 +65,8 @@ class Segment:
     kind: str
     length: float
     pore_model: str = "circular"
+    aspect_ratio: float = 1.0
+    outer_radius_ratio: float = math.nan
     porosity: float = 1.0
     pore_radius: float = math.nan
     tortuosity: float = 1.0
@@ -88,6 +93,14 @@ class Segment:
     def imposed(self) -> bool:
         """True when the segment's temperatures are imposed (``T_start``, ``T_end``)."""
         return not all(isinstance(t, float) and math.isnan(t) for t in (self.T_start, self.T_end))
+
+    @property
+    def pore_shape(self) -> float:
+        """The shape number of the pore model (:func:`tawarp.kernels.pore.pore_model_code`):
+        a rectangular channel's aspect ratio, a pin array's outer radius ratio, else 1."""
+        if self.pore_model == "pins":
+            return self.outer_radius_ratio
+        return self.aspect_ratio
 
 
 @dataclass(frozen=True)
@@ -184,12 +197,18 @@ class Core:
     def to_dict(self) -> dict:
         """The TOML structure (docs/formats.md) of this core; a field with a declared prior as
         its inline table (:meth:`~tawarp.model.prior.Prior.toml_entry`)."""
-        out = {"gas": dataclasses.asdict(self.gas), "tube": {"radius": self.radius}, "segment": []}
+        gas = dataclasses.asdict(self.gas)
+        if is_mixture(self.gas.name):
+            gas.pop("name")
+            gas["mixture"] = dict(mixture_fractions(self.gas.name))
+        out = {"gas": gas, "tube": {"radius": self.radius}, "segment": []}
         for s in self.segments:
             d = {"name": s.name, "kind": s.kind, "length": s.length}
             if s.is_porous:
+                d["pore_model"] = s.pore_model
+                if s.pore_model in PORE_SHAPES:
+                    d[PORE_SHAPES[s.pore_model][0]] = s.pore_shape
                 d.update(
-                    pore_model=s.pore_model,
                     porosity=s.porosity,
                     pore_radius=s.pore_radius,
                     tortuosity=s.tortuosity,
@@ -255,11 +274,37 @@ def check_values(name: str, values, where: str) -> None:
             )
 
 
+#: The shape number of each pore model that takes one: its key, range and meaning.
+PORE_SHAPES = {
+    "rectangular": ("aspect_ratio", 1.0, ASPECT_MAX, "long side / short side; pore_radius is half the short side"),
+    "pins": ("outer_radius_ratio", 1.01, PIN_RATIO_MAX, "gas cell's outer radius / pin radius"),
+}
+_SHAPE_DEFAULTS = {
+    f.name: f.default for f in dataclasses.fields(Segment) if f.name in ("aspect_ratio", "outer_radius_ratio")
+}
+
+
+def _check_pore_shape(s: Segment, where: str) -> None:
+    """The shape number of ``s``'s pore model (:data:`PORE_SHAPES`) within its range; the
+    other models' shape keys left out."""
+    for model, (key, lo, hi, meaning) in PORE_SHAPES.items():
+        value, default = getattr(s, key), _SHAPE_DEFAULTS[key]
+        if s.pore_model != model:
+            if not (value == default or (value != value and default != default)):  # NaN: unset
+                raise CoreError(f"{where}: {key} applies only to pore_model = {model!r}")
+        elif isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            raise CoreError(f"{where}: {key} must be a finite number ({meaning}), got {value!r}")
+        elif not lo <= value <= hi:
+            raise CoreError(f"{where}: {key} = {value} must lie in [{lo:g}, {hi:g}] ({meaning})")
+
+
 def validate(core: Core) -> None:
     """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
     src = core.source
-    if not isinstance(core.gas.name, str) or core.gas.name not in GASES:
-        raise CoreError(f"{src}: gas.name = {core.gas.name!r}; expected one of {sorted(GASES)}")
+    try:
+        GASES[core.gas.name]
+    except KeyError as e:
+        raise CoreError(f"{src}: gas.name: {e.args[0]}") from None
     check_values("p_mean", core.gas.p_mean, f"{src}: gas.p_mean")
     check_values("T_cold", core.gas.T_cold, f"{src}: gas.T_cold")
     check_values("radius", core.radius, f"{src}: tube.radius")
@@ -281,6 +326,7 @@ def validate(core: Core) -> None:
         if s.is_porous:
             if s.pore_model not in PORE_MODELS:
                 raise CoreError(f"{w}: pore_model = {s.pore_model!r}; expected one of {PORE_MODELS}")
+            _check_pore_shape(s, w)
             for fld in ("porosity", "pore_radius", "tortuosity", "solid_conductivity"):
                 check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if s.pore_radius > core.radius:
@@ -339,7 +385,10 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
     if not isinstance(pinned, list) or not all(isinstance(n, str) for n in pinned):
         raise CoreError(f"{source}: [fit] pinned must be a list of parameter names, got {pinned!r}")
     priors: dict = {}
-    gas_d = _declared(dict(data.get("gas", {})), "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
+    gas_d = dict(data.get("gas", {}))
+    if "mixture" in gas_d:
+        gas_d["name"] = _mixture_name(gas_d, source)
+    gas_d = _declared(gas_d, "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
     bad = set(gas_d) - {"name", "p_mean", "T_cold"}
     if bad:
         raise CoreError(f"{source}: unknown key(s) in [gas]: {sorted(bad)}")
@@ -359,7 +408,9 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         sd = _imposed_temperatures(sd, f"{where} ({sd['name']!r})")
         sd = _declared(sd, sd["name"], SEGMENT_FIELDS, f"{where} ({sd['name']!r})", priors)
         if sd["kind"] == "duct":
-            extra = ({"pore_model"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}) & set(sd)
+            extra = (
+                {"pore_model", "aspect_ratio"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}
+            ) & set(sd)
             if extra:
                 raise CoreError(f"{where} ({sd['name']!r}): a duct takes no {sorted(extra)}; use kind = 'porous'")
         elif "pore_radius" not in sd:
@@ -407,6 +458,19 @@ def _imposed_temperatures(table: dict, where: str) -> dict:
         )
     out.pop("thermal", None)
     return out
+
+
+def _mixture_name(gas: dict, source: str) -> str:
+    """The gas name of a ``[gas.mixture]`` table {gas: mole fraction} (docs/formats.md)."""
+    table = gas.pop("mixture")
+    if "name" in gas:
+        raise CoreError(f"{source}: [gas] has both name and [gas.mixture]; a mixture takes no name")
+    if not isinstance(table, dict):
+        raise CoreError(f"{source}: [gas.mixture] must be a table of mole fractions, e.g. helium = 0.7, argon = 0.3")
+    try:
+        return mixture_name(table)
+    except ValueError as e:
+        raise CoreError(f"{source}: [gas.mixture]: {e}") from None
 
 
 def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dict:

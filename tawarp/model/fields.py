@@ -115,7 +115,7 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         "porous",
         fit_range=(1e-7, 0.1),
         prior=(1e-5, 2e-3),
-        description="pore radius (plates: half the spacing)",
+        description="pore radius (plates: half the spacing; rectangular: half the narrow side)",
     ),
     Field(
         "tortuosity",

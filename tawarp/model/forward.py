@@ -128,11 +128,17 @@ def base_table(core: Core) -> np.ndarray:
 def structure_flags(core: Core) -> np.ndarray:
     """Per-segment structure (porous, pore model, thermal, heater, imposed temperatures) as
     int32 (nseg, layout.N_FLAGS)."""
-    from ..kernels.pore import PORE_MODELS
+    from ..kernels.pore import PORE_CIRCULAR, pore_model_code
 
     return np.array(
         [
-            [s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater, s.imposed]
+            [
+                s.is_porous,
+                pore_model_code(s.pore_model, s.pore_shape) if s.is_porous else PORE_CIRCULAR,
+                s.thermal,
+                s.heater,
+                s.imposed,
+            ]
             for s in core.segments
         ],
         dtype=np.int32,
@@ -333,7 +339,7 @@ class Engine:
         )
         self.columns = self._columns(f, self.sample)  # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
-        self.pore_table = circular_table(dev)
+        self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
         self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
         self.point_kernel = _point_kernel(self.nonlinear)
