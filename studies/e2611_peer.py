@@ -1,5 +1,5 @@
-"""The shared E2611 tube data processed by tawarp against the peer package's own two-load
-result (data/measured/e2611_tube beside the repository: its README; the peer is
+"""The bundled E2611 tube data processed by tawarp against the peer package's own two-load
+result (tawarp/data/measured/e2611_tube: its README; the peer is
 tjueterb/impedancetube, whose tests saved ``reference/transfer_matrix_*.npy``).
 
 Convention mapping. The peer's transfer functions are ``csm[:, n, ref] / csm[:, ref, ref]``
@@ -114,7 +114,7 @@ def main():
     }
     out = {
         "generator": "tawarp studies/e2611_peer.py",
-        "data": str(setup.files[0].parent),
+        "data": str(setup.files[0].parent.relative_to(ROOT)),
         "convention_mapping": "T = conj(M inv(T_peer) inv(M)), M = diag(1, S), S = 0.01 m^2: the peer maps "
         "(p, u) at the downstream face to the upstream one in exp(+iwt); tawarp maps (p, U = S u) upstream "
         "to downstream in exp(-iwt)",

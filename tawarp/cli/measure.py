@@ -19,7 +19,14 @@ def add_measure_parser(sub) -> None:
         "signal and calibration files, and write the measured T-matrix (E2611 methods) or surface "
         "impedance (ISO 10534-2) in the CSV format that fit and loop read, with a figure beside it.",
     )
-    p.add_argument("setup", help="measurement description TOML")
+    p.add_argument("setup", help="measurement description TOML, or a bundled one by name (e2611_two_load)")
+    p.add_argument(
+        "--data",
+        default=None,
+        metavar="DIR",
+        help="read each file the description names from DIR, by its file name (default: the names are "
+        "relative to the description's folder)",
+    )
     p.add_argument(
         "-o",
         "--output",
@@ -46,9 +53,10 @@ def add_measure_parser(sub) -> None:
 def cmd_measure(args) -> int:
     from ..tube.measure import measure, write_measurement
 
-    out = Path(args.output) if args.output else Path(args.setup).with_suffix(".csv")
+    out = Path(args.output) if args.output else Path(Path(args.setup).name).with_suffix(".csv")
     m = measure(
         args.setup,
+        data_dir=args.data,
         method=args.method,
         self_calibration=False if args.no_self_calibration else None,
         progress=not args.quiet,

@@ -265,13 +265,16 @@ def measure(
     method: str | None = None,
     self_calibration: bool | None = None,
     progress: bool = False,
+    data_dir: str | Path | None = None,
 ) -> Measurement:
-    """Run the description ``setup`` (a :class:`Setup` or its TOML path); ``method``
-    and ``self_calibration`` override the description's (module doc)."""
+    """Run the description ``setup`` (a :class:`Setup`, its TOML path or a bundled
+    description's name); ``method`` and ``self_calibration`` override the description's
+    (module doc); ``data_dir``: the folder its file names are relative to (default: the
+    description's)."""
     from ..progress import progress_bar
 
     if not isinstance(setup, Setup):
-        setup = load_setup(setup)
+        setup = load_setup(setup, data_dir)
     if method is not None and method != setup.method:
         raise setup.error("measurement.method", f"is {setup.method!r}; --method {method!r} needs a description for it")
     cal = setup.calibration

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from importlib import resources
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -183,12 +184,27 @@ def _unknown(src, table, known, where) -> None:
         raise _fail(src, f"{where}.{extra[0]}", f"unknown key; expected one of {sorted(known)}")
 
 
-def _file(src, base: Path, value, key) -> Path:
+class _Folder:
+    """Where a description's file names point: relative to the description's folder, or, with
+    a data folder given, the file of that name in it (the description's folders dropped)."""
+
+    def __init__(self, folder: Path, by_name: bool):
+        self.folder, self.by_name = folder, by_name
+
+    def __truediv__(self, value: str) -> Path:
+        return self.folder / (Path(value).name if self.by_name else value)
+
+
+def _file(src, base: _Folder, value, key) -> Path:
     if not isinstance(value, str) or not value:
         raise _fail(src, key, f"expected a file name, got {value!r}")
     path = (base / value).resolve()
     if not path.is_file():
-        raise _fail(src, key, f"file {value!r} not found (looked for {path}); paths are relative to the description")
+        raise _fail(
+            src,
+            key,
+            f"file {value!r} not found (looked for {path}); paths are relative to the description; --data DIR reads them by name from DIR",
+        )
     return path
 
 
@@ -329,9 +345,15 @@ def _sensor(src, data, base, tube, gas) -> tuple:
     return tuple(terms), PositionSet("sensor", channels, (0.0, 0.0), band), scale
 
 
-def load_setup(path: str | Path) -> Setup:
-    """Read and check the measurement description TOML ``path`` (module doc)."""
+def load_setup(path: str | Path, data_dir: str | Path | None = None) -> Setup:
+    """Read and check the measurement description TOML ``path`` (module doc; a bundled
+    description by name, e.g. ``e2611_two_load``). Its file names are relative to the
+    description's folder; with ``data_dir`` each is the file of that name in ``data_dir``."""
+    from ..model.core import bundled
+
     path = Path(path)
+    if not path.exists() and str(path) in bundled("tube"):
+        path = Path(str(resources.files("tawarp") / "data" / "tube" / f"{path}.toml"))
     src = str(path)
     try:
         data = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -345,7 +367,9 @@ def load_setup(path: str | Path) -> Setup:
         ("tube", "gas", "specimen", "microphones", "measurement", "calibration", "spectra", "sensor", "termination"),
         "description",
     )
-    base = path.resolve().parent
+    if data_dir is not None and not Path(data_dir).is_dir():
+        raise MeasurementError(f"{data_dir}: data folder does not exist")
+    base = _Folder(Path(data_dir).resolve(), True) if data_dir is not None else _Folder(path.resolve().parent, False)
     tube = _tube(src, _table(src, data, "tube"))
     gas = _gas(src, _table(src, data, "gas"))
     m = _table(src, data, "measurement")
