@@ -138,23 +138,41 @@ def marginal_best(
             wp.atomic_min(best, first_level[v] + level, key)
 
 
+@wp.struct
+class Candidates:
+    """A chunk's candidates, compacted from slot 0: ``count[0]`` of them, their rank keys
+    (or point indices), outputs (outputs, chunk) and values (variables, chunk)."""
+
+    count: wp.array(dtype=wp.int32)
+    key: wp.array(dtype=wp.int64)
+    out: wp.array2d(dtype=wp.float32)
+    val: wp.array2d(dtype=wp.float64)
+
+
 @wp.func
 def keep_candidate(
-    i: int,
-    key: wp.int64,
-    outputs: wp.array2d(dtype=wp.float32),
-    values: wp.array2d(dtype=wp.float64),
-    count: wp.array(dtype=wp.int32),
-    cand_key: wp.array(dtype=wp.int64),
-    cand_out: wp.array2d(dtype=wp.float32),
-    cand_val: wp.array2d(dtype=wp.float64),
+    i: int, key: wp.int64, outputs: wp.array2d(dtype=wp.float32), values: wp.array2d(dtype=wp.float64), cand: Candidates
 ):
-    slot = wp.atomic_add(count, 0, 1)
-    cand_key[slot] = key
+    """Append point i of the chunk (its rank key or index ``key``, outputs, values)."""
+    slot = wp.atomic_add(cand.count, 0, 1)
+    cand.key[slot] = key
     for o in range(outputs.shape[0]):
-        cand_out[o, slot] = outputs[o, i]
+        cand.out[o, slot] = outputs[o, i]
     for v in range(values.shape[0]):
-        cand_val[v, slot] = values[v, i]
+        cand.val[v, slot] = values[v, i]
+
+
+@wp.func
+def pareto_keys(outputs: wp.array2d(dtype=wp.float32), rows: wp.vec2i, signs: wp.vec2f, i: int):
+    """Point i's bin of the first objective (output ``rows[0]``) for the Pareto filter and
+    the ordered key of the second (both sign-adjusted: smaller is better); bin -1 where an
+    objective is NaN (the point is left out)."""
+    a = outputs[rows[0], i]
+    b = outputs[rows[1], i]
+    if wp.isnan(a) or wp.isnan(b):
+        return -1, NONE
+    bin = int((ordered_key(signs[0] * a) >> wp.int64(PARETO_SHIFT)) + wp.int64(PARETO_OFFSET))
+    return bin, ordered_key(signs[1] * b)
 
 
 @wp.kernel
@@ -165,17 +183,14 @@ def top_candidates(
     sign: wp.float32,
     threshold: wp.int64,
     values: wp.array2d(dtype=wp.float64),
-    count: wp.array(dtype=wp.int32),
-    cand_key: wp.array(dtype=wp.int64),
-    cand_out: wp.array2d(dtype=wp.float32),
-    cand_val: wp.array2d(dtype=wp.float64),
+    cand: Candidates,
 ):
     """Points whose rank key (output ``row``) is below ``threshold`` (the k-th best so
     far), with their outputs and values, compacted (in any order) from slot 0."""
     i = wp.tid()
     key = rank_key(outputs[row, i], sign, lo + wp.int64(i))
     if key < threshold:
-        keep_candidate(i, key, outputs, values, count, cand_key, cand_out, cand_val)
+        keep_candidate(i, key, outputs, values, cand)
 
 
 @wp.kernel
@@ -199,17 +214,14 @@ def first_candidates(
     point: wp.array(dtype=wp.int32),
     outputs: wp.array2d(dtype=wp.float32),
     values: wp.array2d(dtype=wp.float64),
-    count: wp.array(dtype=wp.int32),
-    cand_key: wp.array(dtype=wp.int64),
-    cand_out: wp.array2d(dtype=wp.float32),
-    cand_val: wp.array2d(dtype=wp.float64),
+    cand: Candidates,
 ):
     """The first places of sorted rank keys (``keys``, ``point``: the chunk's top) as
     candidates, those with a key (not NaN)."""
     j = wp.tid()
     if keys[j] != NONE:
         i = point[j]
-        keep_candidate(i, keys[j], outputs, values, count, cand_key, cand_out, cand_val)
+        keep_candidate(i, keys[j], outputs, values, cand)
 
 
 @wp.kernel
@@ -222,12 +234,9 @@ def pareto_bins(
     """best1[bin of the first objective's key] = the smallest key of the second objective
     among the chunk's points in that bin (points with a NaN objective left out)."""
     i = wp.tid()
-    a = outputs[rows[0], i]
-    b = outputs[rows[1], i]
-    if wp.isnan(a) or wp.isnan(b):
+    bin, k1 = pareto_keys(outputs, rows, signs, i)
+    if bin < 0:
         return
-    bin = int((ordered_key(signs[0] * a) >> wp.int64(PARETO_SHIFT)) + wp.int64(PARETO_OFFSET))
-    k1 = ordered_key(signs[1] * b)
     if k1 < best1[bin]:  # a plain read first: few atomics once the bin's best is found
         wp.atomic_min(best1, bin, k1)
 
@@ -250,21 +259,15 @@ def pareto_candidates(
     signs: wp.vec2f,
     before: wp.array(dtype=wp.int64),
     values: wp.array2d(dtype=wp.float64),
-    count: wp.array(dtype=wp.int32),
-    cand_key: wp.array(dtype=wp.int64),
-    cand_out: wp.array2d(dtype=wp.float32),
-    cand_val: wp.array2d(dtype=wp.float64),
+    cand: Candidates,
 ):
     """Points not dominated by a point of an earlier first-objective bin (``before[b]``:
     the smallest second-objective key over the bins before b; an earlier bin's first
     objective is strictly smaller, so a second objective <= this point's dominates it),
     compacted with their outputs and values. The exact front is the host's, from these."""
     i = wp.tid()
-    a = outputs[rows[0], i]
-    b = outputs[rows[1], i]
-    if wp.isnan(a) or wp.isnan(b):
+    bin, k1 = pareto_keys(outputs, rows, signs, i)
+    if bin < 0:
         return
-    bin = int((ordered_key(signs[0] * a) >> wp.int64(PARETO_SHIFT)) + wp.int64(PARETO_OFFSET))
-    k1 = ordered_key(signs[1] * b)
     if bin == 0 or before[bin - 1] > k1:
-        keep_candidate(i, lo + wp.int64(i), outputs, values, count, cand_key, cand_out, cand_val)
+        keep_candidate(i, lo + wp.int64(i), outputs, values, cand)

@@ -143,15 +143,7 @@ class Reducer:
         self._cand = {}
         for kind in ("top", "pareto"):
             if (kind == "top" and spec.top) or (kind == "pareto" and spec.pareto):
-                self._cand[kind] = [
-                    (
-                        wp.zeros(1, dtype=wp.int32, device=dev),
-                        wp.empty(chunk, dtype=wp.int64, device=dev),
-                        wp.empty((len(self.outputs), chunk), dtype=wp.float32, device=dev),
-                        wp.empty((n_val, chunk), dtype=wp.float64, device=dev),
-                    )
-                    for _ in range(2)
-                ]
+                self._cand[kind] = [self._candidates(chunk, n_val) for _ in range(2)]
         if spec.pareto:
             from ..kernels.reduce import PARETO_BINS
 
@@ -160,6 +152,16 @@ class Reducer:
         self.top, self.front = empty, empty  # (keys or indices, outputs, values) on the host
         self._front_G = np.zeros((0, 2))
         self._no_values = wp.empty((0, 0), dtype=wp.float64, device=dev)
+
+    def _candidates(self, chunk: int, n_val: int):
+        from ..kernels.reduce import Candidates
+
+        dev, c = self.device, Candidates()
+        c.count = wp.zeros(1, dtype=wp.int32, device=dev)
+        c.key = wp.empty(chunk, dtype=wp.int64, device=dev)
+        c.out = wp.empty((len(self.outputs), chunk), dtype=wp.float32, device=dev)
+        c.val = wp.empty((n_val, chunk), dtype=wp.float64, device=dev)
+        return c
 
     def _best_setup(self):
         from ..kernels.reduce import NONE_KEY
@@ -226,15 +228,15 @@ class Reducer:
                 inputs=[lo, out[self.rows[0]], float(self.signs[0]), *args, self.best],
             )
         if self.spec.top:
-            count, key, co, cv = self._cand["top"][k % 2]
-            count.zero_()
+            cand = self._cand["top"][k % 2]
+            cand.count.zero_()
             row, sign = self.rows[0], float(self.signs[0])
             if len(self.top[0]) == self.spec.top:  # the K-th best so far bounds the candidates
                 wp.launch(
                     R.top_candidates,
                     dim=m,
                     device=dev,
-                    inputs=[lo, out, row, sign, wp.int64(int(self.top[0][-1])), vals, count, key, co, cv],
+                    inputs=[lo, out, row, sign, wp.int64(int(self.top[0][-1])), vals, cand],
                 )
             else:  # no bound yet: the chunk's own K best, by a radix sort on the device
                 keys = wp.empty(2 * m, dtype=wp.int64, device=dev)
@@ -245,7 +247,7 @@ class Reducer:
                     R.first_candidates,
                     dim=min(self.spec.top, m),
                     device=dev,
-                    inputs=[keys, point, out, vals, count, key, co, cv],
+                    inputs=[keys, point, out, vals, cand],
                 )
         if self.spec.pareto:
             rows, signs = wp.vec2i(*self.rows[:2]), wp.vec2f(*self.signs[:2])
@@ -257,20 +259,18 @@ class Reducer:
                 wp.launch(R.prefix_min_step, dim=a.shape[0], device=dev, inputs=[a, step, b])
                 a, b = b, a
                 step *= 2
-            count, key, co, cv = self._cand["pareto"][k % 2]
-            count.zero_()
-            wp.launch(
-                R.pareto_candidates, dim=m, device=dev, inputs=[lo, out, rows, signs, a, vals, count, key, co, cv]
-            )
+            cand = self._cand["pareto"][k % 2]
+            cand.count.zero_()
+            wp.launch(R.pareto_candidates, dim=m, device=dev, inputs=[lo, out, rows, signs, a, vals, cand])
 
     def collect(self, k: int) -> None:
         """Merge chunk k's candidates into the top K and the front (waits for the device)."""
         for kind, sets in self._cand.items():
-            count, key, co, cv = sets[k % 2]
-            c = int(count.numpy()[0])
-            if not c:
+            c = sets[k % 2]
+            n = int(c.count.numpy()[0])
+            if not n:
                 continue
-            cand = (key[:c].numpy(), co.numpy()[:, :c], cv.numpy()[:, :c])
+            cand = (c.key[:n].numpy(), c.out.numpy()[:, :n], c.val.numpy()[:, :n])
             if kind == "top":
                 self.top = self._merge_top(cand)
             else:
