@@ -122,6 +122,12 @@ def told_rows(
     wp.atomic_add(counts, c, 1)
 
 
+@wp.func
+def feasible(f: wp.float64, violation: wp.float64):
+    """Deb's feasibility: no violation and an objective (a failed member has none)."""
+    return violation <= ZERO and f < wp.float64(wp.inf)
+
+
 @wp.kernel
 def rank_keys(
     F: wp.array(dtype=wp.float64),
@@ -132,7 +138,7 @@ def rank_keys(
     """First sort key: the objective of a feasible member (violation <= 0), the violation
     of an infeasible one (Deb's rule orders each group by these)."""
     i = wp.tid()
-    key[i] = F[i] if violation[i] <= ZERO and F[i] < wp.float64(wp.inf) else violation[i]
+    key[i] = F[i] if feasible(F[i], violation[i]) else violation[i]
     member[i] = i
 
 
@@ -149,7 +155,7 @@ def class_keys(
     j = wp.tid()
     i = member[j]
     infeasible = int(1)
-    if violation[i] <= ZERO and F[i] < wp.float64(wp.inf):
+    if feasible(F[i], violation[i]):
         infeasible = 0
     key[j] = 2 * category[i] + infeasible
 
@@ -170,6 +176,27 @@ def raw_weight(lam: int, r: int):
     if r >= lam // 2:
         return ZERO
     return wp.log(HALF * wp.float64(lam + 1)) - wp.log(wp.float64(r + 1))
+
+
+@wp.func
+def start_state(
+    k: int,
+    sigma: wp.array(dtype=wp.float64),
+    C: wp.array3d(dtype=wp.float64),
+    p_sigma: wp.array2d(dtype=wp.float64),
+    p_c: wp.array2d(dtype=wp.float64),
+    age: wp.array(dtype=wp.int32),
+):
+    """Instance k's state of a (re)start about its mean: sigma0, C = I, both evolution
+    paths zero, age 0."""
+    d = p_c.shape[1]
+    for a in range(d):
+        p_sigma[k, a] = ZERO
+        p_c[k, a] = ZERO
+        for b in range(d):
+            C[k, a, b] = ONE if a == b else ZERO
+    sigma[k] = SIGMA0
+    age[k] = 0
 
 
 @wp.kernel
@@ -260,15 +287,11 @@ def cma_update(
         for s in range(S):
             acc += part[k, s, a]
         yw[k, a] = acc / wsum
+    # the mean (eq. 41, c_m = 1) moves by sigma y_w; nothing below reads the mean
+    for a in range(d):
+        mean[k, a] = mean[k, a] + sigma[k] * yw[k, a]
     if first == 1:
-        for a in range(d):
-            mean[k, a] = mean[k, a] + sigma[k] * yw[k, a]
-            p_sigma[k, a] = ZERO
-            p_c[k, a] = ZERO
-            for b in range(d):
-                C[k, a, b] = ONE if a == b else ZERO
-        sigma[k] = SIGMA0
-        age[k] = 0
+        start_state(k, sigma, C, p_sigma, p_c, age)
     else:
         g = age[k] + 1
         age[k] = g
@@ -300,8 +323,6 @@ def cma_update(
                 c = (ONE + c1 * delta - c1 - cmu) * C[k, a, b] + c1 * p_c[k, a] * p_c[k, b] + cmu * ymu / wsum
                 C[k, a, b] = c
                 C[k, b, a] = c
-        for a in range(d):
-            mean[k, a] = mean[k, a] + sigma[k] * yw[k, a]
         sigma[k] = sigma[k] * wp.exp((cs / ds) * (ps_norm / chi - ONE))
     # stopping tests
     best = F[member[off]]
@@ -345,12 +366,7 @@ def cma_update(
         state = wp.rand_init(seed, k)
         for a in range(d):
             mean[k, a] = wp.float64(wp.randf(state))
-            p_sigma[k, a] = ZERO
-            p_c[k, a] = ZERO
-            for b in range(d):
-                C[k, a, b] = ONE if a == b else ZERO
-        sigma[k] = SIGMA0
-        age[k] = 0
+        start_state(k, sigma, C, p_sigma, p_c, age)
         for j in range(H):
             history[k, j] = wp.float64(wp.inf)
 

@@ -91,6 +91,16 @@ def _stream_seed(seed: int, generation: int, stream: int) -> int:
     return int(np.random.SeedSequence([int(seed), int(generation), int(stream)]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
+def _first_generation(batch: int, dim: int, categories: int, seed: int, device) -> wp.array:
+    """The space-filling generation both samplers start from: ``batch`` scrambled Sobol
+    points of the unit cube, with ``categories`` (when there are) dealt in turn in column
+    ``dim``."""
+    X = sobol_unit(batch, dim, seed)
+    if categories:
+        X = np.concatenate([X, (np.arange(batch) % categories)[:, None].astype(float)], axis=1)
+    return wp.array(X, dtype=wp.float64, device=device)
+
+
 def _on(device, a, dtype=wp.float64) -> wp.array:
     """``a`` (NumPy or Warp) as a new contiguous Warp array of ``dtype`` on ``device`` (the
     kernels write into it)."""
@@ -186,10 +196,7 @@ class BatchCmaEs:
             raise ValueError(f"CMA-ES asks whole populations of {self.batch}, not {n}")
         cols = self.dim + (1 if self.categories else 0)
         if self.generation == 0:
-            X = sobol_unit(self.batch, self.dim, self.seed)
-            if self.categories:
-                X = np.concatenate([X, (np.arange(self.batch) % self.n_cat)[:, None].astype(float)], axis=1)
-            X = wp.array(X, dtype=wp.float64, device=self.device)
+            X = _first_generation(self.batch, self.dim, self.categories, self.seed, self.device)
         else:
             X = wp.empty((self.batch, cols), dtype=wp.float64, device=self.device)
             wp.launch(
@@ -434,10 +441,7 @@ class BatchNsga2:
             raise ValueError(f"NSGA-II asks whole populations of {self.batch}, not {n}")
         cols = self.d + (1 if self.categories else 0)
         if self.generation == 0:
-            X = sobol_unit(self.batch, self.d, self.seed)
-            if self.categories:
-                X = np.concatenate([X, (np.arange(self.batch) % self.n_mat)[:, None].astype(float)], axis=1)
-            return wp.array(X, dtype=wp.float64, device=self.device)
+            return _first_generation(self.batch, self.d, self.categories, self.seed, self.device)
         X = wp.empty((self.batch, cols), dtype=wp.float64, device=self.device)
         wp.launch(
             nsga_offspring,
