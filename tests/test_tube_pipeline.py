@@ -86,6 +86,20 @@ def write_h5(path, x):
 FULL = np.fft.rfftfreq(N, 1 / FS)
 
 
+def z_scores(value, sigma, truth):
+    """Errors over their sd, real and imaginary parts apart (``sigma[..., 0]``, ``[..., 1]``),
+    stacked on a last axis."""
+    err = value - truth
+    return np.stack([err.real / sigma[..., 0], err.imag / sigma[..., 1]], -1)
+
+
+def assert_unit_spread(z):
+    """The sd holds the random error (and the calibration's): z-scores of unit spread and
+    no outliers (1 % beyond 4 sd)."""
+    assert 0.6 < np.std(z) < 1.5, np.std(z)
+    assert np.mean(np.abs(z) < 4) > 0.99, np.mean(np.abs(z) < 4)
+
+
 def calibration_files(tmp_path, rng, temperature=GAS.temperature, x_true=X):
     """Direct and switched empty-tube files (termination 0.2: nearly anechoic)."""
     p = pressures(FULL, x_true, 0.2, temperature=temperature)
@@ -155,30 +169,52 @@ def test_reader_errors_name_file_and_place(tmp_path, name, text, needle):
 
 
 # -- description ---------------------------------------------------------------------------
-def description(tmp_path, files, method="two_load", calibration=None, extra=""):
+def tube_and_gas(tube=TUBE, gas=GAS):
+    """The [tube] and [gas] tables of a setup description (a circular tube)."""
+    return f"""[tube]
+shape = "circular"
+diameter = {tube.width}
+[gas]
+temperature = {gas.temperature}
+pressure = {gas.pressure}
+"""
+
+
+def description(
+    tmp_path,
+    files,
+    method="two_load",
+    calibration=None,
+    extra="",
+    *,
+    tube=TUBE,
+    gas=GAS,
+    thickness=THICKNESS,
+    channels=(0, 1, 2, 3),
+    positions=X,
+    band=BAND,
+    block=BLOCK,
+):
+    """``setup.toml`` in ``tmp_path`` for a specimen measured with microphones ``channels``
+    at ``positions`` from the signal ``files``; ``calibration``: its direct and switched
+    files (``{"direct": path, 1: path, 2: path, 3: path}``)."""
     cal = ""
     if calibration:
         sw = ", ".join(f'{j} = "{calibration[j].name}"' for j in (1, 2, 3))
         cal = f'[calibration]\ndirect = "{calibration["direct"].name}"\nswitched = {{ {sw} }}\n'
     text = f"""
-[tube]
-shape = "circular"
-diameter = {TUBE.width}
-[gas]
-temperature = {GAS.temperature}
-pressure = {GAS.pressure}
-[specimen]
-thickness = {THICKNESS}
+{tube_and_gas(tube, gas)}[specimen]
+thickness = {thickness}
 [measurement]
 method = "{method}"
 files = {[f.name for f in files]!r}
 reference = 0
 [[microphones]]
-channels = [0, 1, 2, 3]
-positions = {X.tolist()!r}
-band = {list(BAND)!r}
+channels = {list(channels)!r}
+positions = {np.asarray(positions).tolist()!r}
+band = {list(band)!r}
 [spectra]
-block = {BLOCK}
+block = {block}
 {cal}{extra}"""
     path = tmp_path / "setup.toml"
     path.write_text(text.replace("'", '"'))
@@ -299,10 +335,7 @@ def test_measure_recovers_the_specimen_within_its_sd_and_round_trips(tmp_path):
     m = measure(path, self_calibration=False)
     d = m.data
     truth = np.conj(specimen(d.freq))  # tawarp stores exp(-iwt)
-    z = np.stack([(d.T - truth).real / d.sigma[..., 0], (d.T - truth).imag / d.sigma[..., 1]], -1)
-    # the sd holds the random error and the calibration's: z-scores of unit spread
-    assert 0.6 < np.std(z) < 1.5, np.std(z)
-    assert np.mean(np.abs(z) < 4) > 0.99
+    assert_unit_spread(z_scores(d.T, d.sigma, truth))
     assert np.median(np.abs(d.T - truth) / np.abs(truth)) < 0.03  # SNR 30: errors of 1.5 %
     out = tmp_path / "T.csv"
     write_measurement(m, out, figure=False)
@@ -393,17 +426,14 @@ def test_iso10534_surface_impedance_end_to_end(tmp_path):
     A, B = 1.0, (zin - z0) / (zin + z0)  # a unit incident wave and its reflection (bounded)
     P = np.stack([A * np.exp(-1j * k * x) + B * np.exp(1j * k * x) for x in X[:2]], -1)
     write_h5(tmp_path / "layer.h5", signals(P, np.ones(2), rng, snr=100.0))
-    path = description(tmp_path, [tmp_path / "layer.h5"], method="iso10534")
-    text = path.read_text().replace("channels = [0, 1, 2, 3]", "channels = [0, 1]")
-    path.write_text(text.replace(f"positions = {X.tolist()!r}", f"positions = {X[:2].tolist()!r}"))
+    path = description(tmp_path, [tmp_path / "layer.h5"], method="iso10534", channels=(0, 1), positions=X[:2])
     m = measure(path)
     d = m.data
     g = GASES["air"]
     rho_c = GAS.pressure * math.sqrt(g.gamma / (g.R_gas * GAS.temperature))
     T_f = specimen(d.freq)
     truth = np.conj(-T_f[:, 1, 1] / T_f[:, 1, 0] * TUBE.area / rho_c)
-    z = np.concatenate([(d.Zs - truth).real / d.sigma[:, 0], (d.Zs - truth).imag / d.sigma[:, 1]])
-    assert 0.6 < np.std(z) < 1.5 and np.mean(np.abs(z) < 4) > 0.99
+    assert_unit_spread(z_scores(d.Zs, d.sigma, truth))
     out = tmp_path / "Zs.csv"
     write_measurement(m, out, figure=False)
     back = read_impedance_csv(out)
@@ -440,28 +470,9 @@ def test_round_trip_forward_signals_measure_fit(tmp_path):
     for n, refl in enumerate((0.3, 0.8 * np.exp(1.2j))):
         p = pressures(FULL, x, refl, T, tube=tube, thickness=length)
         files.append(write_h5(tmp_path / f"foam{n}.h5", signals(p, np.ones(4), rng, 100.0)))
-    path = tmp_path / "foam.toml"
-    path.write_text(
-        f"""
-[tube]
-shape = "circular"
-diameter = {tube.width}
-[gas]
-temperature = {core.gas.T_cold}
-pressure = {core.gas.p_mean}
-[specimen]
-thickness = {length}
-[measurement]
-method = "two_load"
-files = ["foam0.h5", "foam1.h5"]
-reference = 0
-[[microphones]]
-channels = [0, 1, 2, 3]
-positions = {x.tolist()}
-band = [200.0, 1500.0]
-[spectra]
-block = 8192
-"""
+    gas = Gas("air", core.gas.T_cold, core.gas.p_mean, 0.0)
+    path = description(
+        tmp_path, files, tube=tube, gas=gas, thickness=length, positions=x, band=(200.0, 1500.0), block=8192
     )
     csv, fit = tmp_path / "T.csv", tmp_path / "fit.json"
     assert main(["measure", str(path), "-o", str(csv), "--quiet", "--no-plots"]) == 0
@@ -498,13 +509,7 @@ def test_terminations_core_tmatrix_at_each_heat_input(tmp_path):
         write_h5(tmp_path / f"t{n}.h5", x)
         tables.append(f'[[termination]]\nfile = "t{n}.h5"\nheat_input = {q}\nclosed_tube = {length}\n')
     path = tmp_path / "core.toml"
-    head = f"""[tube]
-shape = "circular"
-diameter = {tube.width}
-[gas]
-temperature = {GAS.temperature}
-pressure = {GAS.pressure}
-[measurement]
+    head = f"""{tube_and_gas(tube)}[measurement]
 method = "terminations"
 reference = 0
 [sensor]
@@ -518,8 +523,7 @@ block = {BLOCK}
     d = m.data
     assert sorted(set(d.heat_input)) == [0.0, 40.0]
     truth = np.stack([core(q)(np.array([f]))[0] for q, f in zip(d.heat_input, d.freq)])
-    z = np.stack([(d.T - truth).real / d.sigma[..., 0], (d.T - truth).imag / d.sigma[..., 1]], -1)
-    assert 0.6 < np.std(z) < 1.5 and np.mean(np.abs(z) < 4) > 0.99, np.std(z)
+    assert_unit_spread(z_scores(d.T, d.sigma, truth))
     out = tmp_path / "core.csv"
     write_measurement(m, out, figure=False)
     back = read_tmatrix_csv(out)
@@ -547,11 +551,11 @@ def test_one_load_and_two_source_through_measure(tmp_path, method):
             lambda f: np.conj(specimen(f)), THICKNESS, cfg, tube, X, FS, N, (300.0, 3500.0), 40.0, seed=30 + n
         )
         write_h5(tmp_path / f"c{n}.h5", x)
-    path = description(tmp_path, [tmp_path / f"c{n}.h5" for n in range(len(configs))], method=method)
-    path.write_text(path.read_text().replace("channels = [0, 1, 2, 3]", "channels = [1, 2, 3, 4]"))
+    files = [tmp_path / f"c{n}.h5" for n in range(len(configs))]
+    path = description(tmp_path, files, method=method, channels=(1, 2, 3, 4))
     d = measure(path).data
     truth = np.conj(specimen(d.freq))
-    z = np.stack([(d.T - truth).real / d.sigma[..., 0], (d.T - truth).imag / d.sigma[..., 1]], -1)
+    z = z_scores(d.T, d.sigma, truth)
     if method == "one_load":  # Tpp = Tuu and det T = 1 by construction: two of the eight parts are redundant
         z = z[:, [0, 0, 1], [0, 1, 0]]
-    assert 0.6 < np.std(z) < 1.5 and np.mean(np.abs(z) < 4) > 0.99, np.std(z)
+    assert_unit_spread(z)
