@@ -13,7 +13,6 @@ import warp as wp
 
 from tawarp.design.evaluate import Evaluator
 from tawarp.design.space import DesignSpace
-from tawarp.fit.estimate import is_log
 from tawarp.kernels.pore import (
     ASPECT_MAX,
     RECT_ASYMPTOTIC_S,
@@ -30,6 +29,8 @@ from tawarp.model.core import CoreError, core_from_dict, load_core
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from tawarp.model.onset import onset
 from tawarp.model.resonator import load_engine
+
+from cascade_differences import assert_tangents_match_differences
 
 DEVICE = "cpu"
 
@@ -393,30 +394,13 @@ def test_forward_model_of_a_wide_channel_is_the_plates_one():
 
 @pytest.mark.parametrize("model, shape", [("rectangular", 2.0), ("pins", 2.5)])
 def test_cascade_tangents_of_new_pores(model, shape):
-    """dT/dz of the tangent cascade (the fit's Jacobian) against central differences of the
-    plain cascade at steps 2k and k (k = 1e-3), extrapolated, to 1e-8 of max |dT/dz|, as
-    tests/test_tangents.py checks the circular and plate pores."""
+    """dT/dz of the tangent cascade (the fit's Jacobian) against extrapolated central
+    differences of the plain cascade (tests/cascade_differences.py), as tests/test_tangents.py
+    checks the circular and plate pores."""
     core = with_pores(load_core("ceramic"), model, shape)
     names = ["stack.porosity", "stack.pore_radius", "stack.tortuosity", "stack.h", "gas.T_cold"]
     v0 = np.array([core.get(k) for k in names]) * np.array([0.97, 1.2, 1.1, 0.8, 1.02])
-    log = np.array([is_log(k) for k in names])
-    P, heat = len(names), 40.0
-    eng = Engine(core, np.array([35.0, 160.0, 450.0]), names, ForwardSettings(cells=6, device=DEVICE, cpu_threads=1))
-
-    def table(zs):
-        return np.stack([np.r_[heat, np.where(log, v0 * np.exp(z), v0 + 0.05 * z)] for z in zs], axis=1)
-
-    step = eng.tangent_step
-    zs = [np.zeros(P)] + [s * step * e for e in np.eye(P) for s in (1, -1)]
-    out, tangent = (a.numpy() for a in eng.evaluate_tangents(table(zs), np.full((1, P), step), P))
-    k = 1e-3
-    ref = [np.zeros(P)] + [s * c * k * e for e in np.eye(P) for c in (2, 1) for s in (1, -1)]
-    T = eng.evaluate(table(ref))[0].numpy()
-    np.testing.assert_allclose(out[0], T[0], rtol=0, atol=1e-13 * np.abs(T[0]).max())
-    for a in range(P):
-        want = (4 * (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k) - (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)) / 3
-        err = np.abs(tangent[0, a] - want).max()
-        assert err < 1e-8 * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err)
+    assert_tangents_match_differences(core, names, v0, 40.0)
 
 
 @pytest.mark.parametrize("model, shape", [("rectangular", 1.0), ("pins", 2.5)])

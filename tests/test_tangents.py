@@ -13,6 +13,7 @@ from tawarp.kernels.pore import PORE_CIRCULAR, PORE_PLATES, pore_circular, pore_
 from tawarp.model.core import load_core
 from tawarp.model.forward import Engine, ForwardSettings
 
+from cascade_differences import assert_tangents_match_differences
 from imposed_cores import imposed_ceramic
 
 wp.config.quiet = True
@@ -247,21 +248,13 @@ EFFECTS = {
 }
 
 
-def _log(name, core):
-    from tawarp.fit.estimate import is_log
-
-    return is_log(name)
-
-
 @pytest.mark.parametrize("name, heat, names", CASES)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_cascade_tangents_against_extrapolated_differences(name, heat, names, seed):
-    """dT/dz from the tangent cascade against central differences of the plain cascade at
-    steps 2k and k (k = 1e-3 in z), extrapolated: at a point 10-30 % off the core's values in
-    every parameter (random signs), to 1e-8 of max |dT/dz| per parameter, plus 1e-11 of
-    max |T| for parameters of so small an effect that rounding over the differences' steps
-    (eps |T| / step) shows; 1e-7 when the heat solve iterates to its 1e-12 tolerance (step
-    1e-4). Forward differences with step 1e-6, the estimator's other Jacobian, reach ~1e-6."""
+    """dT/dz from the tangent cascade against extrapolated central differences of the plain
+    cascade (tolerances: tests/cascade_differences.py) at a point 10-30 % off the core's
+    values in every parameter (random signs). Forward differences with step 1e-6, the
+    estimator's other Jacobian, reach ~1e-6."""
     core = imposed_ceramic() if name == "ceramic:imposed" else load_core(name.split(":")[0])
     core = core.replace(**EFFECTS.get(name, {}))
     rng = np.random.default_rng(seed)
@@ -272,31 +265,7 @@ def test_cascade_tangents_against_extrapolated_differences(name, heat, names, se
             v0[a] = min(v0[a], 0.97)
         if k.endswith("tortuosity"):
             v0[a] = max(v0[a], 1.05)
-    log = np.array([_log(k, core) for k in names])
-    freqs = np.array([35.0, 160.0, 450.0])
-    P = len(names)
-    eng = Engine(core, freqs, names, ForwardSettings(cells=6, device="cpu", cpu_threads=1))
-
-    def values(z):
-        return np.where(log, v0 * np.exp(z), v0 + 0.05 * z)
-
-    def table(zs):
-        return np.stack([np.r_[heat, values(z)] for z in zs], axis=1)
-
-    step = eng.tangent_step
-    tol = 1e-8 if not eng.nonlinear else 1e-7
-    zs = [np.zeros(P)] + [s * step * e for e in np.eye(P) for s in (1, -1)]
-    out, tangent = (a.numpy() for a in eng.evaluate_tangents(table(zs), np.full((1, P), step), P))
-    k = 1e-3
-    ref = [np.zeros(P)] + [s * c * k * e for e in np.eye(P) for c in (2, 1) for s in (1, -1)]
-    T = eng.evaluate(table(ref))[0].numpy()
-    np.testing.assert_allclose(out[0], T[0], rtol=0, atol=1e-13 * np.abs(T[0]).max())
-    for a in range(P):
-        d2 = (T[1 + 4 * a] - T[2 + 4 * a]) / (4 * k)
-        d1 = (T[3 + 4 * a] - T[4 + 4 * a]) / (2 * k)
-        want = (4 * d1 - d2) / 3
-        err = np.abs(tangent[0, a] - want).max()
-        assert err < tol * np.abs(want).max() + 1e-11 * np.abs(T[0]).max(), (names[a], err / np.abs(want).max())
+    assert_tangents_match_differences(core, names, v0, heat)
 
 
 def test_tangents_need_fixed_cells():
