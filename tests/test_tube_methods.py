@@ -8,23 +8,10 @@ import pytest
 from tawarp.tube import e2611, iso10534, synthetic, terminations
 from tawarp.tube.spectra import Transfers
 
-TUBE = synthetic.Tube()
-MICS = e2611.FourMics(l1=0.15, s1=0.08, l2=0.2, s2=0.08, thickness=0.03)
-LOAD_A = synthetic.Setup(length_up=0.6, length_down=0.4, reflection_up=0.3, reflection_down=0.05)
-LOAD_B = synthetic.Setup(length_up=0.6, length_down=0.25, reflection_up=0.3, reflection_down=1.0)
-SOURCE_DOWN = synthetic.Setup(length_up=0.6, length_down=0.4, reflection_up=0.3, reflection_down=0.05, source="down")
+from tube_cases import BACKED, LOAD_A, LOAD_B, MICS, SOURCE_DOWN, TUBE, core, layer, nonreciprocal
+
 # inside the spacing band of s = 0.08 m: 0.05-0.45 wavelength is 215-1930 Hz
 F = np.linspace(250.0, 1900.0, 67)
-
-
-def layer(f):
-    """A symmetric, reciprocal specimen: 30 mm of a 20 kPa s/m^2 porous layer."""
-    return synthetic.porous_layer(f, MICS.thickness, 2e4, TUBE)
-
-
-def nonreciprocal(f):
-    """A passive non-reciprocal specimen: the layer followed by a 20 % volume-velocity sink."""
-    return layer(f) @ np.diag([1.0, 0.8])
 
 
 def exact(f, specimen, setup, positions=MICS.positions, thickness=MICS.thickness):
@@ -43,19 +30,14 @@ def constants(f):
     return TUBE.wavenumber(f), TUBE.impedance(f)
 
 
-def test_two_load_recovers_the_specimen_exactly():
+@pytest.mark.parametrize("method, second", [(e2611.two_load, LOAD_B), (e2611.two_source, SOURCE_DOWN)])
+def test_two_state_methods_recover_the_specimen_exactly(method, second):
+    """A non-reciprocal specimen from load A and load B, or from load A driven from either end."""
     k, z0 = constants(F)
-    r = e2611.two_load(exact(F, nonreciprocal, LOAD_A), exact(F, nonreciprocal, LOAD_B), MICS, k, z0)
+    r = method(exact(F, nonreciprocal, LOAD_A), exact(F, nonreciprocal, second), MICS, k, z0)
     assert r.valid.all()
     assert relative_error(r.values, nonreciprocal(F), z0) < 1e-9
     assert np.all(r.sd == 0)
-
-
-def test_two_source_recovers_the_specimen_exactly():
-    k, z0 = constants(F)
-    r = e2611.two_source(exact(F, nonreciprocal, LOAD_A), exact(F, nonreciprocal, SOURCE_DOWN), MICS, k, z0)
-    assert r.valid.all()
-    assert relative_error(r.values, nonreciprocal(F), z0) < 1e-9
 
 
 @pytest.mark.parametrize("setup", [LOAD_A, LOAD_B])
@@ -102,9 +84,8 @@ def test_surface_impedance_recovers_a_rigid_backed_layer_exactly():
     """ISO 10534-2 on a layer against a rigid wall: Zs = -S Tuu / Tup over rho0 c0, and the
     same number as ISO's own reflection-coefficient formula from H12."""
     k, z0 = constants(F)
-    backed = synthetic.Setup(length_up=0.6, length_down=0.0, reflection_up=0.3, reflection_down=1.0)
     x1, x2 = 0.2, 0.12
-    t = exact(F, layer, backed, positions=[-x1, -x2])
+    t = exact(F, layer, BACKED, positions=[-x1, -x2])
     rho_c = TUBE.density * TUBE.sound_speed
     r = iso10534.surface_impedance(t, x1, x2, k, z0 * TUBE.area / rho_c)
     truth = -TUBE.area * layer(F)[:, 1, 1] / layer(F)[:, 1, 0] / rho_c
@@ -215,7 +196,7 @@ def test_first_order_errors_match_monte_carlo(method):
     elif method is _one_load:
         ms = [with_covariance(exact(f, layer, LOAD_A), 1e-3, 2)]
     elif method is _surface_impedance:
-        ms = [with_covariance(exact(f, layer, synthetic.Setup(0.6, 0.0, 0.3, 1.0), positions=[-0.2, -0.12]), 1e-3, 3)]
+        ms = [with_covariance(exact(f, layer, BACKED, positions=[-0.2, -0.12]), 1e-3, 3)]
     else:
         ms = [
             with_covariance(
@@ -229,15 +210,6 @@ def test_first_order_errors_match_monte_carlo(method):
 
 
 # -- the multi-termination method ----------------------------------------------------------
-def core(f):
-    """A heated-core-like two-port: 0.2 m of a slower, lossier gas and a volume-velocity gain,
-    det T = 1.6 + 0.2i (not reciprocal)."""
-    k, z0 = TUBE.wavenumber(f) * 1.05, TUBE.impedance(f) * 1.2
-    c, s = np.cos(k * 0.2), np.sin(k * 0.2)
-    duct = np.conj(np.stack([np.stack([c, -1j * z0 * s], -1), np.stack([-1j * s / z0, c], -1)], -2))
-    return duct @ np.array([[1.0, 0.0], [0.0, 1.6 + 0.2j]])
-
-
 def test_closed_tube_is_the_wave_model_of_a_rigid_end():
     f = np.linspace(30.0, 500.0, 48)
     np.testing.assert_allclose(

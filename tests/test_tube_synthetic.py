@@ -16,26 +16,14 @@ from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings
 from tawarp.tube import e2611, iso10534, spectra, synthetic, terminations
 
+from tube_cases import BACKED, LOAD_A, LOAD_B, MICS, SOURCE_DOWN, TUBE, core, layer, nonreciprocal
+
 SEEDS = range(20)
-TUBE = synthetic.Tube()
-MICS = e2611.FourMics(l1=0.15, s1=0.08, l2=0.2, s2=0.08, thickness=0.03)
-LOAD_A = synthetic.Setup(length_up=0.6, length_down=0.4, reflection_up=0.3, reflection_down=0.05)  # near anechoic
-LOAD_B = synthetic.Setup(length_up=0.6, length_down=0.25, reflection_up=0.3, reflection_down=1.0)  # rigid end
-SOURCE_DOWN = synthetic.Setup(length_up=0.6, length_down=0.4, reflection_up=0.3, reflection_down=0.05, source="down")
-BACKED = synthetic.Setup(length_up=0.6, length_down=0.0, reflection_up=0.3, reflection_down=1.0)
 GAINS = np.array([1.05 * np.exp(0.05j), 0.95 * np.exp(-0.03j), 1.1 * np.exp(0.02j), 0.9])
 # 4096 Hz sampling, 512-sample blocks (8 Hz lines), 33 blocks at 50 % overlap: ~63 averages
 RATE, BLOCK, SAMPLES = 4096.0, 512, 512 * 33
 DRIVE, ANALYSIS = (100.0, 1950.0), (200.0, 1900.0)
 SNR_DB = 20.0
-
-
-def layer(f):
-    return synthetic.porous_layer(f, MICS.thickness, 2e4, TUBE)
-
-
-def nonreciprocal(f):
-    return layer(f) @ np.diag([1.0, 0.8])
 
 
 def spectra_of(specimen, setup, seed, positions=MICS.positions, gains=GAINS):
@@ -86,26 +74,18 @@ def nonreciprocal_runs():
     ]
 
 
-@pytest.mark.parametrize("reference", [0, 1])
-def test_two_load_is_calibrated(nonreciprocal_runs, reference):
-    """With the drive as the reference, and with microphone 1 (noisy, as in a tube whose
-    reference is its first microphone: the error of H1 is then not the output noise alone)."""
+@pytest.mark.parametrize(
+    "method, second, reference", [(e2611.two_load, 1, 0), (e2611.two_load, 1, 1), (e2611.two_source, 2, 0)]
+)
+def test_two_state_methods_are_calibrated(nonreciprocal_runs, method, second, reference):
+    """Two loads (A and B) and two sources (load A driven from either end); two loads also
+    with microphone 1 as the reference (noisy, as in a tube whose reference is its first
+    microphone: the error of H1 is then not the output noise alone)."""
     zs = []
     for runs in nonreciprocal_runs:
-        a, b, _ = (calibrated(cs, reference=reference) for cs in runs)
+        a, b = (calibrated(runs[j], reference=reference) for j in (0, second))
         f = a.frequencies
-        r = e2611.two_load(a, b, MICS, TUBE.wavenumber(f), TUBE.impedance(f))
-        assert r.valid.mean() > 0.9
-        zs.append(z_scores(r, nonreciprocal(f)))
-    assert_calibrated(zs)
-
-
-def test_two_source_is_calibrated(nonreciprocal_runs):
-    zs = []
-    for runs in nonreciprocal_runs:
-        a, _, down = (calibrated(cs) for cs in runs)
-        f = a.frequencies
-        r = e2611.two_source(a, down, MICS, TUBE.wavenumber(f), TUBE.impedance(f))
+        r = method(a, b, MICS, TUBE.wavenumber(f), TUBE.impedance(f))
         assert r.valid.mean() > 0.9
         zs.append(z_scores(r, nonreciprocal(f)))
     assert_calibrated(zs)
@@ -134,14 +114,6 @@ def test_surface_impedance_is_calibrated():
         truth = -TUBE.area * layer(f)[:, 1, 1] / layer(f)[:, 1, 0] / rho_c
         zs.append(z_scores(r, truth))
     assert_calibrated(zs)
-
-
-def core(f):
-    """A heated-core-like two-port, det T = 1.6 + 0.2i (as in test_tube_methods)."""
-    k, z0 = TUBE.wavenumber(f) * 1.05, TUBE.impedance(f) * 1.2
-    c, s = np.cos(k * 0.2), np.sin(k * 0.2)
-    duct = np.conj(np.stack([np.stack([c, -1j * z0 * s], -1), np.stack([-1j * s / z0, c], -1)], -2))
-    return duct @ np.array([[1.0, 0.0], [0.0, 1.6 + 0.2j]])
 
 
 def test_core_tmatrix_is_calibrated():
