@@ -231,6 +231,7 @@ block = {block}
         (("reference = 0", ""), "measurement.reference"),
         (("positions = [-0.3", "positions = [0.3"), "microphones[0].positions"),
         (("block = 2048", "block = 5.5"), "spectra.block"),
+        (("band = [400.0, 3000.0]", "band = [3000.0, 400.0]"), "microphones[0].band"),
     ],
 )
 def test_description_errors_name_file_and_key(tmp_path, edit, key):

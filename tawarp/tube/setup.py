@@ -255,6 +255,15 @@ def default_band(positions, tube: Tube, sound_speed: float) -> tuple[float, floa
     return lo, hi
 
 
+def _band(src, b, key) -> tuple[float, float]:
+    """A frequency band ``[lo, hi]`` [Hz], 0 < lo < hi."""
+    if not (isinstance(b, list) and len(b) == 2 and all(isinstance(v, (int, float)) for v in b)):
+        raise _fail(src, key, f"expected [lo, hi] in Hz, got {b!r}")
+    if not 0 < b[0] < b[1]:
+        raise _fail(src, key, f"expected 0 < lo < hi, got {b!r}")
+    return float(b[0]), float(b[1])
+
+
 def _position_sets(src, raw, method, thickness, tube, gas) -> tuple[PositionSet, ...]:
     mics, _, _ = METHODS[method]
     if not isinstance(raw, list) or not raw or not all(isinstance(s, dict) for s in raw):
@@ -289,12 +298,7 @@ def _position_sets(src, raw, method, thickness, tube, gas) -> tuple[PositionSet,
         if mics == 2 and not pos[1] < 0:
             raise _fail(src, f"{where}.positions", f"both microphones upstream of the layer (< 0), got {list(pos)}")
         if "band" in s:
-            b = s["band"]
-            if not (isinstance(b, list) and len(b) == 2 and all(isinstance(v, (int, float)) for v in b)):
-                raise _fail(src, f"{where}.band", f"expected [lo, hi] in Hz, got {b!r}")
-            if not 0 < b[0] < b[1]:
-                raise _fail(src, f"{where}.band", f"expected 0 < lo < hi, got {b!r}")
-            band = (float(b[0]), float(b[1]))
+            band = _band(src, s["band"], f"{where}.band")
         else:
             band = default_band(pos, tube, sound_speed(gas))
         sets.append(PositionSet(str(name), channels, pos, band))
@@ -310,9 +314,7 @@ def _sensor(src, data, base, tube, gas) -> tuple:
         raise _fail(src, "sensor.channels", f"expected the channels of [p(x1), p(x6)], got {ch!r}")
     channels = tuple(_channel(src, c, "sensor.channels") for c in ch)
     scale = _number(src, sensor, "scale", "sensor", default=1.0)
-    b = sensor.get("band")
-    if not (isinstance(b, list) and len(b) == 2 and all(isinstance(v, (int, float)) for v in b) and 0 < b[0] < b[1]):
-        raise _fail(src, "sensor.band", f"expected [lo, hi] in Hz with 0 < lo < hi, got {b!r}")
+    band = _band(src, sensor.get("band"), "sensor.band")
     raw = data.get("termination")
     if not isinstance(raw, list) or not all(isinstance(t, dict) for t in raw):
         raise _fail(src, "[[termination]]", "expected one [[termination]] table per file")
@@ -330,9 +332,11 @@ def _sensor(src, data, base, tube, gas) -> tuple:
             from ..model.resonator import read_impedance_csv
 
             table = read_impedance_csv(_file(src, base, t["impedance_csv"], f"{where}.impedance_csv"))
-            if not (table[0, 0] <= b[0] and table[-1, 0] >= b[1]):
+            if not (table[0, 0] <= band[0] and table[-1, 0] >= band[1]):
                 raise _fail(
-                    src, f"{where}.impedance_csv", f"covers {table[0, 0]:g}-{table[-1, 0]:g} Hz, not sensor.band {b}"
+                    src,
+                    f"{where}.impedance_csv",
+                    f"covers {table[0, 0]:g}-{table[-1, 0]:g} Hz, not sensor.band {list(band)}",
                 )
             terms.append(Termination(file, heat, impedance=table))
     per_q = {}
@@ -341,7 +345,6 @@ def _sensor(src, data, base, tube, gas) -> tuple:
     few = sorted(q for q, count in per_q.items() if count < 2)
     if few:
         raise _fail(src, "[[termination]]", f"heat input(s) {few} W have one termination; the method needs two or more")
-    band = (float(b[0]), float(b[1]))
     return tuple(terms), PositionSet("sensor", channels, (0.0, 0.0), band), scale
 
 

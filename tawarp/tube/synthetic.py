@@ -159,10 +159,7 @@ def sensor_signals(core_of_f, load_of_f, sample_rate, samples, band, snr_db, see
     at ``snr_db``. ``core_of_f``, ``load_of_f``: functions of frequencies (nf,) [Hz] giving the
     core's T-matrix (tawarp's convention) and the termination's impedance (exp(+i omega t))."""
     rng = np.random.default_rng(seed)
-    f = np.fft.rfftfreq(samples, 1.0 / sample_rate)
-    on = (f >= band[0]) & (f <= band[1])
-    drive = np.zeros(f.size, dtype=complex)
-    drive[on] = rng.standard_normal(on.sum()) + 1j * rng.standard_normal(on.sum())
+    f, on, drive = _drive(sample_rate, samples, band, rng)
     spectra = np.zeros((f.size, 3), dtype=complex)
     spectra[:, 0] = drive
     spectra[on, 1:] = sensor_pressures(core_of_f(f[on]), load_of_f(f[on])) * drive[on, None]
@@ -204,6 +201,16 @@ def sensor_measurement(
     return readings, loads
 
 
+def _drive(sample_rate: float, samples: int, band: tuple[float, float], rng):
+    """The drive's spectrum on the FFT lines ``f`` [Hz] of ``samples`` at ``sample_rate``:
+    complex Gaussian on the lines ``on`` within ``band`` [Hz], zero elsewhere."""
+    f = np.fft.rfftfreq(samples, 1.0 / sample_rate)
+    on = (f >= band[0]) & (f <= band[1])
+    drive = np.zeros(f.size, dtype=complex)
+    drive[on] = rng.standard_normal(on.sum()) + 1j * rng.standard_normal(on.sum())
+    return f, on, drive
+
+
 def _add_noise(out: np.ndarray, snr_db: float, rng) -> np.ndarray:
     """White Gaussian noise on every channel but the reference (0), ``snr_db`` below each one's power."""
     noise_sd = np.sqrt(np.var(out[:, 1:], axis=0) * 10 ** (-snr_db / 10))
@@ -231,10 +238,7 @@ def signals(
     errors (exp(+i omega t): a microphone reads ``g p``; None: 1); each microphone gets white
     Gaussian noise of variance ``10^(-snr_db/10)`` times its signal's."""
     rng = np.random.default_rng(seed)
-    f = np.fft.rfftfreq(samples, 1.0 / sample_rate)
-    on = (f >= band[0]) & (f <= band[1])
-    drive = np.zeros(f.size, dtype=complex)
-    drive[on] = rng.standard_normal(on.sum()) + 1j * rng.standard_normal(on.sum())
+    f, on, drive = _drive(sample_rate, samples, band, rng)
     n = len(positions)
     spectra = np.zeros((f.size, n), dtype=complex)
     p = pressures(f[on], specimen_of_f(f[on]), thickness, setup, tube, positions)
