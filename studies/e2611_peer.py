@@ -181,9 +181,7 @@ def main():
             out["runs"][run][name] = entry
             print(run, name, entry["median_relative_difference"], "left out", entry["left_out_ill_conditioned"])
     out["self_calibration"] = {k: v for k, v in fitted.summary.items() if k.startswith("self_calibration.")}
-    path = ROOT / "studies" / "out" / "e2611_peer.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, out)
+    path = write_json(ROOT / "studies" / "out" / "e2611_peer.json", out)  # makes the folder
     print(f"wrote {path}")
 
 

@@ -165,9 +165,7 @@ def main():
             key = name if mode or name != "self_calibration" else "self_calibration_off"
             out[key] = summary(np.concatenate(pooled[mode][0]), np.concatenate(pooled[mode][1]))
             print(key, out[key], flush=True)
-    path = Path(__file__).resolve().parent / "out" / "tube_pipeline_zscores.json"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    write_json(path, out)
+    path = write_json(Path(__file__).resolve().parent / "out" / "tube_pipeline_zscores.json", out)  # makes the folder
     print(f"wrote {path}")
 
 
