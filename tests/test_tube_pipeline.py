@@ -93,6 +93,12 @@ def z_scores(value, sigma, truth):
     return np.stack([err.real / sigma[..., 0], err.imag / sigma[..., 1]], -1)
 
 
+def written_and_read(m, path, read):
+    """The measurement ``m`` written by write_measurement to ``path`` and read back by ``read``."""
+    write_measurement(m, path, figure=False)
+    return read(path)
+
+
 def assert_unit_spread(z):
     """The sd holds the random error (and the calibration's): z-scores of unit spread and
     no outliers (1 % beyond 4 sd)."""
@@ -338,9 +344,7 @@ def test_measure_recovers_the_specimen_within_its_sd_and_round_trips(tmp_path):
     truth = np.conj(specimen(d.freq))  # tawarp stores exp(-iwt)
     assert_unit_spread(z_scores(d.T, d.sigma, truth))
     assert np.median(np.abs(d.T - truth) / np.abs(truth)) < 0.03  # SNR 30: errors of 1.5 %
-    out = tmp_path / "T.csv"
-    write_measurement(m, out, figure=False)
-    back = read_tmatrix_csv(out)
+    back = written_and_read(m, tmp_path / "T.csv", read_tmatrix_csv)
     np.testing.assert_array_equal(back.T, d.T)
     np.testing.assert_array_equal(back.sigma, d.sigma)
     assert back.metadata["method"] == "two_load" and "switched microphones" in back.metadata["calibration"]
@@ -435,9 +439,7 @@ def test_iso10534_surface_impedance_end_to_end(tmp_path):
     T_f = specimen(d.freq)
     truth = np.conj(-T_f[:, 1, 1] / T_f[:, 1, 0] * TUBE.area / rho_c)
     assert_unit_spread(z_scores(d.Zs, d.sigma, truth))
-    out = tmp_path / "Zs.csv"
-    write_measurement(m, out, figure=False)
-    back = read_impedance_csv(out)
+    back = written_and_read(m, tmp_path / "Zs.csv", read_impedance_csv)
     np.testing.assert_array_equal(back.Zs, d.Zs)
     np.testing.assert_array_equal(back.sigma, d.sigma)
     assert back.thickness == THICKNESS and back.T_ambient == GAS.temperature
@@ -525,9 +527,7 @@ block = {BLOCK}
     assert sorted(set(d.heat_input)) == [0.0, 40.0]
     truth = np.stack([core(q)(np.array([f]))[0] for q, f in zip(d.heat_input, d.freq)])
     assert_unit_spread(z_scores(d.T, d.sigma, truth))
-    out = tmp_path / "core.csv"
-    write_measurement(m, out, figure=False)
-    back = read_tmatrix_csv(out)
+    back = written_and_read(m, tmp_path / "core.csv", read_tmatrix_csv)
     np.testing.assert_array_equal(back.T, d.T)
     np.testing.assert_array_equal(back.heat_input, d.heat_input)
     path.write_text(head + "\n".join(tables[:4]))  # 40 W has one termination
