@@ -1,0 +1,260 @@
+"""Engine networks: the file format and its graph check, and the NumPy reference's
+eigenfrequencies against closed forms of ducts, T-junctions, loops and lumped elements."""
+
+from __future__ import annotations
+
+import copy
+import math
+
+import numpy as np
+import pytest
+import scipy.optimize as so
+
+from tawarp.model.core import CoreError
+from tawarp.model.network import bundled_networks, load_network, network_from_dict
+from tawarp.model import network_reference as nr
+from tawarp.model.resonator import load_engine
+from tawarp.reference import duct_waves, gas_properties
+
+AIR = {"name": "air", "p_mean": 101325.0, "T_cold": 293.15}
+
+
+def duct(name, length, radius, **kw):
+    return {"name": name, "kind": "duct", "length": length, "radius": radius, **kw}
+
+
+def two_ends(*branches, ends=("a", "b")):
+    return {"gas": AIR, "branch": list(branches), "end": [{"name": e, "kind": "closed"} for e in ends]}
+
+
+def tube(L=1.0, R=0.02):
+    return two_ends({"name": "tube", "from": "a", "to": "b", "segment": [duct("d", L, R)]})
+
+
+# -- format ---------------------------------------------------------------------------
+def test_bundled_networks_load_and_old_engines_still_do():
+    assert {"traveling_wave", "refrigerator"} <= set(bundled_networks())
+    for name in bundled_networks():
+        net = load_network(name)
+        assert net.branches
+    assert load_engine("standing_wave").core.segments  # a core-based engine file is unchanged
+    with pytest.raises(CoreError, match=r"standing_wave.toml: no \[\[branch\]\] tables"):
+        load_network("standing_wave")
+
+
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda d: d["branch"][0].pop("to"), r"t.toml: branch #1: missing key 'to'"),
+        (lambda d: d["branch"][0]["segment"][0].update(kind="pipe"), r"segment #1 \('d'\): kind = 'pipe'"),
+        (lambda d: d["branch"][0]["segment"][0].update(porosity=0.5), r"a duct takes no \['porosity'\]"),
+        (lambda d: d["branch"][0]["segment"][0].pop("radius"), r"\('d'\): give its cross-section"),
+        (lambda d: d["branch"][0]["segment"][0].update(T="T_warm"), r"\('d'\): T: 'T_warm'"),
+        (lambda d: d["branch"][0]["segment"][0].update(T="T_hot"), r"names 'T_hot' but \[network\] T_hot"),
+        (lambda d: d["branch"][0]["segment"][0].update(T_start=300.0), r"needs both T_start and T_end"),
+        (lambda d: (d["branch"][0].update({"to": "c"}), d["end"].pop()), r"ends at 'c', which nothing else touches"),
+        (lambda d: d["end"].append({"name": "c", "kind": "closed"}), r"\[\[end\]\] 'c' is not the from/to"),
+        (lambda d: d["end"][0].update(kind="open", flange="baffle"), r"flange = 'baffle'"),
+        (lambda d: d["end"][0].update(kind="load", resistance=1.0), r"a load needs resistance"),
+        (lambda d: d.update(extra=1), r"unknown top-level key\(s\) \['extra'\]"),
+    ],
+)
+def test_bad_files_name_file_and_key(edit, message):
+    d = copy.deepcopy(tube())
+    edit(d)
+    with pytest.raises(CoreError, match=message):
+        network_from_dict(d, "t.toml")
+
+
+def test_graph_check_ends_touched_once_and_one_piece():
+    d = two_ends(
+        {"name": "x", "from": "a", "to": "b", "segment": [duct("d1", 1.0, 0.02)]},
+        {"name": "y", "from": "b", "to": "j", "segment": [duct("d2", 1.0, 0.02)]},
+    )
+    with pytest.raises(CoreError, match=r"end 'b' is touched by 2 branch ends"):
+        network_from_dict(d, "t.toml")
+    d = two_ends(
+        {"name": "x", "from": "a", "to": "b", "segment": [duct("d1", 1.0, 0.02)]},
+        {"name": "ring", "from": "r", "to": "r", "segment": [duct("d2", 1.0, 0.02)]},
+    )
+    with pytest.raises(CoreError, match=r"separate pieces; nodes \['r'\]"):
+        network_from_dict(d, "t.toml")
+
+
+# -- eigenfrequencies against closed forms ----------------------------------------------
+def _k_zc(radius, w, T=293.15):
+    k, Zc = duct_waves("air", 101325.0, T, radius, np.atleast_1d(w))
+    return k[0], Zc[0]
+
+
+def _root(f, w0):
+    return complex(so.newton(f, w0, x1=w0 * (1 + 1e-4), tol=1e-12 * abs(w0), maxiter=100))
+
+
+def test_closed_closed_duct_is_half_wave_of_the_lossy_wavenumber():
+    """sin(k(omega) L) = 0: k(omega) L = pi, k from the reference's duct waves (Kirchhoff's
+    lossy wavenumber): the network's root agrees to 1e-10."""
+    net = network_from_dict(tube(1.0, 0.02), "t")
+    c = math.sqrt(1.4 * 287.05 * 293.15)
+    w = nr.eigenfrequency(net, math.pi * c)
+    exact = _root(lambda w: _k_zc(0.02, w)[0] * 1.0 - math.pi, math.pi * c)
+    assert abs(w - exact) < 1e-10 * abs(exact)
+    assert w.imag < 0  # a passive duct decays
+
+
+def test_a_plain_junction_changes_nothing():
+    """A degree-2 node joining two pieces (in either direction) is the same duct."""
+    one = nr.eigenfrequency(network_from_dict(tube(1.0, 0.02), "t"), 1070.0)
+    d = two_ends(
+        {"name": "x", "from": "a", "to": "j", "segment": [duct("d1", 0.37, 0.02)]},
+        {"name": "y", "from": "b", "to": "j", "segment": [duct("d2", 0.63, 0.02)]},
+    )
+    assert abs(nr.eigenfrequency(network_from_dict(d, "t"), 1070.0) - one) < 1e-10 * abs(one)
+
+
+def test_t_junction_closed_form():
+    """Three closed stubs of lengths L_i and radii R_i meeting at a tee: the admittances
+    into them sum to zero, sum_i tan(k_i L_i) / Zc_i = 0 (lossy k_i, Zc_i)."""
+    stubs = [(0.5, 0.02), (0.8, 0.02), (0.3, 0.01)]
+    d = {
+        "gas": AIR,
+        "branch": [
+            {"name": f"s{i}", "from": "tee", "to": f"e{i}", "segment": [duct(f"d{i}", L, R)]}
+            for i, (L, R) in enumerate(stubs)
+        ],
+        "end": [{"name": f"e{i}", "kind": "closed"} for i in range(3)],
+    }
+    net = network_from_dict(d, "t")
+
+    def char(w):
+        return sum(np.tan(k * L) / Zc for (L, R) in stubs for k, Zc in [_k_zc(R, w)])
+
+    for w0 in (2 * math.pi * 150, 2 * math.pi * 330):
+        exact = _root(char, complex(w0))
+        assert abs(nr.eigenfrequency(net, exact * (1 + 1e-3)) - exact) < 1e-9 * abs(exact)
+
+
+def test_loop_with_a_stub_closed_form():
+    """A ring of length Lr both of whose ends meet a closed stub of length Ls: the symmetric
+    modes satisfy 2 tan(k Lr / 2) / Zc_r + tan(k Ls) / Zc_s = 0."""
+    Lr, Rr, Ls, Rs = 1.2, 0.02, 0.7, 0.015
+    d = {
+        "gas": AIR,
+        "branch": [
+            {"name": "ring", "from": "j", "to": "j", "segment": [duct("r1", Lr, Rr)]},
+            {"name": "stub", "from": "j", "to": "e", "segment": [duct("s1", Ls, Rs)]},
+        ],
+        "end": [{"name": "e", "kind": "closed"}],
+    }
+    net = network_from_dict(d, "t")
+
+    def char(w):
+        kr, zr = _k_zc(Rr, w)
+        ks, zs = _k_zc(Rs, w)
+        return 2 * np.tan(kr * Lr / 2) / zr + np.tan(ks * Ls) / zs
+
+    exact = _root(char, complex(2 * math.pi * 200))
+    assert exact.real > 2 * math.pi * 100  # the first symmetric mode, not omega = 0
+    assert abs(nr.eigenfrequency(net, exact * (1 + 1e-3)) - exact) < 1e-9 * abs(exact)
+
+
+def test_helmholtz_resonator_of_lumped_elements():
+    """Inertance (neck l, S) into a compliance V closed behind, the neck's mouth at p = 0:
+    omega^2 = gamma p_m S / (rho l V) within the neck's viscous correction (|f_nu| ~ 2 %)."""
+    l, R, V = 0.05, 0.01, 1e-3
+    d = {
+        "gas": AIR,
+        "branch": [
+            {
+                "name": "h",
+                "from": "mouth",
+                "to": "back",
+                "segment": [
+                    {"name": "neck", "kind": "inertance", "length": l, "radius": R},
+                    {"name": "cavity", "kind": "compliance", "volume": V},
+                ],
+            }
+        ],
+        "end": [{"name": "mouth", "kind": "impedance", "impedance": [0.0, 0.0]}, {"name": "back", "kind": "closed"}],
+    }
+    g = gas_properties("air", 293.15, 101325.0)
+    w_h = math.sqrt(1.4 * 101325.0 * math.pi * R**2 / (g.rho * l * V))
+    w = nr.eigenfrequency(network_from_dict(d, "t"), w_h)
+    assert abs(w.real / w_h - 1) < 0.02
+    assert -0.02 < w.imag / w_h < 0
+
+
+@pytest.mark.parametrize("flange, correction", [("unflanged", 0.6133), ("flanged", 0.8216)])
+def test_open_end_radiates_with_its_end_correction(flange, correction):
+    """Closed-open pipe of length L, radius a: the network's root is that of
+    -i Zc cot(kL) = Z_rad (the closed form of a lossy duct ending on the radiation
+    impedance); Re omega that of k (L + delta a) = pi / 2 (delta: Levine & Schwinger's
+    0.6133 unflanged, 0.8216 flanged), and the radiation's share of the decay rate that of
+    the energy balance, Im omega_rad = -(c / L) r (ka)^2 (r = 1/4, 1/2), to 5 %."""
+    L, R = 1.0, 0.01
+    d = tube(L, R)
+    d["end"][1] = {"name": "b", "kind": "open", "flange": flange}
+    net = network_from_dict(d, "t")
+    w = nr.eigenfrequency(net, 500.0)
+    res_coef = nr.RADIATION[flange][0]
+    g = gas_properties("air", 293.15, 101325.0)
+    z0 = g.rho * g.c / (math.pi * R**2)
+
+    def closed_form(w, radiating=True):
+        k, Zc = _k_zc(R, w)
+        ka = w / g.c * R
+        return -1j * Zc / np.tan(k * L) - z0 * (res_coef * ka**2 * radiating - 1j * correction * ka)
+
+    full = _root(closed_form, complex(500.0))
+    assert abs(w - full) < 1e-9 * abs(full)
+    corrected = _root(lambda w: _k_zc(R, w)[0] * (L + correction * R) - math.pi / 2, complex(500.0))
+    assert abs(w.real / corrected.real - 1) < 2e-4
+    reactive = _root(lambda w: closed_form(w, radiating=False), complex(500.0))
+    ka = w.real / g.c * R
+    assert abs((w.imag - reactive.imag) / (-(g.c / L) * res_coef * ka**2) - 1) < 0.05
+
+
+def test_rc_load_absorbs():
+    """An RC load at the end of a duct damps the mode more than a closed end, and a load
+    of zero resistance and huge volume is a closed end."""
+    base = nr.eigenfrequency(network_from_dict(tube(1.0, 0.02), "t"), 1070.0)
+    d = tube(1.0, 0.02)
+    d["end"][1] = {"name": "b", "kind": "load", "resistance": 0.0, "volume": 1e3}
+    closed_like = nr.eigenfrequency(network_from_dict(d, "t"), 1070.0)
+    # a 1000 m^3 volume behind the end: the end is nearly open (p ~ 0), not closed
+    assert abs(closed_like.real / base.real - 0.5) < 0.01
+    d["end"][1] = {"name": "b", "kind": "load", "resistance": 3e5, "volume": 1e-4}
+    assert nr.eigenfrequency(network_from_dict(d, "t"), 1070.0).imag < base.imag
+
+
+# -- mode following and onset -----------------------------------------------------------
+def test_follow_reports_a_jump_instead_of_hiding_it():
+    """A synthetic root that switches branches at T = 500: the path records one jump between
+    the last point before and the first after, refined to the minimum step."""
+
+    def root_at(T, guess):
+        return complex(100.0 + 0.01 * T, -1 + 0.004 * T) if T < 500 else complex(150.0 + 0.01 * T, 1.0)
+
+    path = nr.follow(root_at, np.linspace(300, 700, 9), 0j, jump_tol=0.05)
+    assert len(path.jumps) == 1
+    j = path.jumps[0]
+    assert j.T_before < 500 <= j.T_after and j.T_after - j.T_before <= 50 / 64 + 1e-12
+    smooth = nr.follow(lambda T, g: complex(100 + 0.01 * T, 0.0), np.linspace(300, 700, 9), 0j)
+    assert smooth.jumps == []
+
+
+@pytest.fixture(scope="module")
+def tw_onset():
+    net = load_network("traveling_wave")
+    (w0,) = [w for w in nr.real_axis_modes(net, 40.0, 130.0, 90, T_hot=net.gas.T_cold)]
+    return net, nr.onset(net, w0, T_max=1000.0, n=12)
+
+
+def test_traveling_wave_onset_is_a_sign_change_of_the_growth_rate(tw_onset):
+    net, res = tw_onset
+    assert res.path.jumps == []
+    assert 1.0 < res.ratio < 3.0 and 70 < res.frequency < 100
+    assert abs(res.omega.imag) < 1e-7 * res.omega.real
+    below = nr.eigenfrequency(net, res.omega, res.T_onset - 1.0)
+    above = nr.eigenfrequency(net, res.omega, res.T_onset + 1.0)
+    assert below.imag < 0 < above.imag
