@@ -520,3 +520,39 @@ def _states(net: Network, seg: NetworkSegment, w: complex, T_hot: float, state: 
     if not sol.success:
         raise RuntimeError(f"segment {seg.name!r}, omega = {w}: {sol.message}")
     return np.stack([sol.y[0], sol.y[1] / Zs], axis=1)
+
+
+@dataclass
+class PowerBudget:
+    """Acoustic power budget of one segment [W] (Swift 2002, Eq. 5.21): ``viscous`` =
+    -int r_nu |U|^2 / 2 dx, ``thermal`` = -int |p|^2 / (2 r_k) dx (both <= 0), ``production``
+    = int Re(g p* U) / 2 dx (the thermoacoustic source, zero without a temperature gradient);
+    ``total`` their sum, Edot(out) - Edot(in)."""
+
+    viscous: float
+    thermal: float
+    production: float
+
+    @property
+    def total(self) -> float:
+        return self.viscous + self.thermal + self.production
+
+
+def power_budget(
+    net: Network, seg: NetworkSegment, omega: float, T_hot: float, p_in: complex, U_in: complex, points: int = 801
+) -> PowerBudget:
+    """:class:`PowerBudget` of the distributed segment ``seg`` entered by ``(p_in, U_in)`` at
+    real ``omega`` [rad/s]: with ``dp/dx = a12 U`` and ``dU/dx = a21 p + a22 U``,
+    d(1/2 Re p U*)/dx = 1/2 [Re(a12) |U|^2 + Re(a21) |p|^2 + Re(a22 p* U)], the three terms
+    being the viscous loss, the thermal-relaxation loss and the production (Simpson's rule
+    on ``points`` points)."""
+    from scipy.integrate import simpson
+
+    T0, T1 = seg.temperatures(net.gas.T_cold, T_hot)
+    xk = np.linspace(0.0, seg.length, points)
+    st = _states(net, seg, complex(omega), T_hot, np.array([p_in, U_in]), xk)
+    T, dT, S = (np.array(v) for v in zip(*(_profile(seg, T0, T1)(x) for x in xk), strict=True))
+    a12, a21, a22 = _A(net, seg, float(omega), T, dT, S)
+    p, U = st[:, 0], st[:, 1]
+    terms = (np.real(a12) * np.abs(U) ** 2, np.real(a21) * np.abs(p) ** 2, np.real(a22 * np.conj(p) * U))
+    return PowerBudget(*(0.5 * float(simpson(t, x=xk)) for t in terms))
