@@ -22,7 +22,18 @@ def add_onset_parser(sub) -> None:
         )
     )
     p.add_argument(
-        "engine", help="engine TOML (a core file with an [engine] table), or a bundled engine: standing_wave"
+        "engine",
+        help="engine TOML (a core file with an [engine] table, or a network with [[branch]] tables), "
+        "or a bundled engine: standing_wave, traveling_wave, refrigerator",
+    )
+    p.add_argument(
+        "--T-max", type=float, default=None, help="network: largest hot temperature searched [K] (default 4 T_cold)"
+    )
+    p.add_argument(
+        "--f-max", type=float, default=None, help="network: highest frequency searched for modes at T_cold [Hz]"
+    )
+    p.add_argument(
+        "--amplitude", type=float, default=1e4, help="network: |p| [Pa] of the profiles at onset (default: %(default)s)"
     )
     p.add_argument("--Q-max", type=float, default=100.0, help="largest heat input searched [W] (default: %(default)s)")
     p.add_argument("--mode", type=int, default=1, help="mode number, 1 = fundamental (default: %(default)s)")
@@ -30,7 +41,8 @@ def add_onset_parser(sub) -> None:
         "--bracket",
         type=int,
         default=21,
-        help="heat inputs on [0, Q-max] for the bracket and the growth-rate curve (default: %(default)s)",
+        help="heat inputs on [0, Q-max] (a network: hot temperatures on [T_cold, T-max]) for the bracket "
+        "and the growth-rate curve (default: %(default)s)",
     )
     p.add_argument(
         "--var",
@@ -60,9 +72,15 @@ def _finite(x: float):
 
 
 def cmd_onset(args) -> int:
+    from ..model.core import read_toml
+    from ..model.network import is_network_file
     from ..model.onset import onset
     from ..model.resonator import load_engine
 
+    if is_network_file(read_toml(args.engine, "engines")[1]):
+        from .network import cmd_network_onset
+
+        return cmd_network_onset(args)
     engine = load_engine(args.engine)
     axes = _parse_vars(args.var)
     names = list(axes)
