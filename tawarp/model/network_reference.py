@@ -365,15 +365,19 @@ def onset(
     T_min: float | None = None,
     xtol: float = 1e-9,
     jump_tol: float = 0.05,
+    det=None,
 ) -> NetworkOnset:
     """Onset temperature of the mode starting at ``guess`` [rad/s] (at ``T_min``, default
     T_cold): the mode is followed on ``n`` hot temperatures in [T_min, T_max] [K]
     (:func:`follow`); the first crossing of Im omega from < 0 to >= 0 is refined by Brent's
-    method on T_hot, each evaluation a root started from the path's linear interpolation."""
+    method on T_hot, each evaluation a root started from the path's linear interpolation.
+    ``det(omega, T_hot)``: the characteristic function (default :func:`determinant`; a
+    peer's segment matrices go in here)."""
     T_min = net.gas.T_cold if T_min is None else T_min
+    det = det if det is not None else (lambda w, T: determinant(net, w, T))
 
     def root_at(T, w):
-        return eigenfrequency(net, w, T)
+        return muller(lambda v: det(v, T), w)
 
     path = follow(root_at, np.linspace(T_min, T_max, n), guess, jump_tol)
     im = path.omega.imag
