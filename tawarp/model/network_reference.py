@@ -395,19 +395,57 @@ def onset(
     return NetworkOnset(float(T_on), float(T_on / net.gas.T_cold), w_on, path)
 
 
+def onset_newton(
+    net: Network, omega: float, T_hot: float, det=None, rtol: float = 1e-10, max_iter: int = 30
+) -> tuple[float, float]:
+    """Onset ``(omega [rad/s], T_hot [K])`` by Newton's method on det(omega, T_hot) = 0 with
+    omega real (two real equations, two real unknowns), started from a nearby onset (a
+    design's nominal one, for its perturbed draws): the omega-derivative is complex (det is
+    analytic), the T-derivative a forward difference. Raises RuntimeError unless the steps
+    fall below ``rtol`` relative within ``max_iter``."""
+    det = det if det is not None else (lambda w, T: determinant(net, w, T))
+    w, T = float(omega), float(T_hot)
+    for _ in range(max_iter):
+        F = det(w, T)
+        hw, hT = 1e-7 * w, 1e-7 * T
+        dw = (det(w + hw, T) - F) / hw
+        dT = (det(w, T + hT) - F) / hT
+        J = np.array([[dw.real, dT.real], [dw.imag, dT.imag]])
+        step = np.linalg.solve(J, [-F.real, -F.imag])
+        # damped: never more than a tenth of omega or of T_hot per step
+        scale = min(1.0, 0.1 * w / max(abs(step[0]), 1e-300), 0.1 * T / max(abs(step[1]), 1e-300))
+        w, T = w + scale * step[0], T + scale * step[1]
+        if abs(step[0]) < rtol * w and abs(step[1]) < rtol * T:
+            return w, T
+    raise RuntimeError(f"{net.source}: Newton's onset did not converge from omega = {omega}, T_hot = {T_hot}")
+
+
 # ======================================================================================
 # Mode shape and power flows
 # ======================================================================================
-def mode_start_states(net: Network, omega: complex, T_hot: float | None = None) -> np.ndarray:
+def mode_start_states(net: Network, omega: complex, T_hot: float | None = None, node: str | None = None) -> np.ndarray:
     """(B, 2) complex ``(p, U)`` at every branch's start for the mode at ``omega`` (the null
-    vector of :func:`boundary_matrix`, by SVD), scaled to |p| = 1 Pa at the first branch's start
-    (or the largest |p| if that is a node)."""
+    vector of :func:`boundary_matrix`, by SVD), scaled to p = 1 Pa (phase 0) at ``node``
+    (default: the first branch's start)."""
+    T_hot = net.T_hot if T_hot is None else T_hot
     Zs = reference_impedance(net)
     _, _, vh = np.linalg.svd(boundary_matrix(net, omega, T_hot))
     x = vh[-1].conj().reshape(-1, 2)
     x[:, 1] /= Zs
-    ref = x[0, 0] if abs(x[0, 0]) > 1e-8 * np.abs(x[:, 0]).max() else x[np.argmax(np.abs(x[:, 0])), 0]
-    return x / ref
+    if node is None:
+        return x / x[0, 0]
+    b, side = net.nodes()[node][0]
+    p = x[b, 0] if side == "start" else (branch_matrix(net, b, omega, T_hot) @ x[b])[0]
+    return x / p
+
+
+def segment_entry(net: Network, name: str, omega: complex, T_hot: float, starts: np.ndarray) -> np.ndarray:
+    """(p, U) entering segment ``name`` given the branches' start states ``starts``."""
+    b, s = net.segment(name)
+    state = starts[b].copy()
+    for seg in net.branches[b].segments[:s]:
+        state = segment_matrix(net, seg, omega, T_hot) @ state
+    return state
 
 
 @dataclass
@@ -456,14 +494,20 @@ def total_power(net: Network, seg: NetworkSegment, w: float, p, U, T, dTdx, S):
 
 
 def profiles(
-    net: Network, omega: complex, T_hot: float | None = None, amplitude: float = 1.0, points: int = 41
+    net: Network,
+    omega: complex,
+    T_hot: float | None = None,
+    amplitude: float = 1.0,
+    points: int = 41,
+    node: str | None = None,
 ) -> list[BranchProfile]:
     """p, U, T, Edot and Htot along every branch for the mode at ``omega`` [rad/s], scaled so
-    that |p| = ``amplitude`` [Pa] at the first branch's start (:func:`mode_start_states`).
+    that |p| = ``amplitude`` [Pa] at ``node`` (default the first branch's start;
+    :func:`mode_start_states`).
     Linear theory: the powers are exact second-order quantities at a real omega (the onset);
     at a complex root they are evaluated with Re omega. ``points`` per distributed segment."""
     T_hot = net.T_hot if T_hot is None else T_hot
-    starts = mode_start_states(net, omega, T_hot) * amplitude
+    starts = mode_start_states(net, omega, T_hot, node) * amplitude
     w = complex(omega)
     out = []
     for b, br in enumerate(net.branches):
