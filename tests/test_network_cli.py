@@ -26,3 +26,16 @@ def test_onset_of_the_traveling_wave_engine_from_the_command_line(tmp_path):
     res = [r for r in rows if r["branch"] == "resonator"]
     U = np.array([float(r["U_abs_m3_per_s"]) for r in res])
     assert U[-1] < 1e-9 * U.max()
+
+
+def test_rank_by_onset_in_a_network_from_the_command_line(tmp_path):
+    """``tawarp rank --by onset --engine traveling_wave``: the JSON ranks by the onset ratio,
+    its nominal a ratio above 1 where the engine starts; a wrong --segment names the porous ones."""
+    out = tmp_path / "rank.json"
+    base = ["rank", "--by", "onset", "--engine", "traveling_wave", "--materials", "mesh", "--samples", "2"]
+    assert main(base + ["--segment", "regenerator", "--T-max", "1000", "-o", str(out), "--quiet"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["ranked_by"].startswith("median onset temperature ratio")
+    (row,) = doc["ranking"]
+    assert row["material"] == "mesh" and 1.0 < row["T_ratio_nominal"] < 1000.0 / 325.0
+    assert main(base + ["-o", str(out), "--quiet"]) == 2  # no segment 'stack' in the network

@@ -324,6 +324,12 @@ def cmd_rank(args) -> int:
         missing = [m for m in mats if m not in cat]
         if missing:
             raise KeyError(f"materials {missing} not in the catalogue ({', '.join(cat)})")
+    if args.by == "onset":
+        from ..model.core import read_toml
+        from ..model.network import is_network_file
+
+        if is_network_file(read_toml(args.engine, "engines")[1]):
+            return _rank_network_onset(args, cat, mats, out)
     if args.samples is None:
         args.samples = 400 if args.by == "onset" else 4000
     if args.by == "onset":
@@ -400,6 +406,59 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
     return 0
 
 
+def _rank_network_onset(args, cat, mats, out: Path) -> int:
+    """``tawarp rank --by onset --engine NETWORK``: materials by the onset ratio T_hot / T_cold of
+    an engine network (the NumPy reference, one design at a time)."""
+    from ..io import write_json
+    from ..design.rank import rank_by_network_onset
+    from ..model.network import load_network
+
+    net = load_network(args.engine)
+    try:
+        net.segment(args.segment)
+    except KeyError:
+        porous = [s.name for br in net.branches for s in br.segments if s.kind == "porous"]
+        raise KeyError(f"{net.source}: no segment {args.segment!r}; give --segment, one of {porous}") from None
+    changes = {}
+    for t in args.set:
+        name, sep, value = t.partition("=")
+        if not sep:
+            raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
+        changes[name.strip()] = float(value)
+    if changes:
+        net = net.replace(**changes)
+    res = rank_by_network_onset(
+        mats,
+        net,
+        segment=args.segment,
+        n_samples=args.samples if args.samples is not None else 30,
+        seed=args.seed,
+        T_max=args.T_max,
+        amplitude=args.amplitude,
+        catalogue=cat,
+    )
+    d = res.to_dict()
+    d["engine_changes"] = changes
+    d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
+    write_json(out, d)
+    _say(
+        args, f"{'material':<12}{'T_hot/T_cold: nominal':>23}{'median':>9}{'5-95 %':>15}{'Edot [W]':>10}{'P(best)':>9}"
+    )
+
+    def fmt(v):
+        return f"{v:.4g}" if v is not None else "none"
+
+    for r in res.table:
+        _say(
+            args,
+            f"{r['material']:<12}{fmt(r['T_ratio_nominal']):>23}{fmt(r['T_ratio_median']):>9}"
+            f"{fmt(r['T_ratio_p05']) + '-' + fmt(r['T_ratio_p95']):>15}{fmt(r['Edot_produced_median_W']):>10}"
+            f"{r['p_best']:9.2f}",
+        )
+    _say(args, f"wrote {out}")
+    return 0
+
+
 def add_rank_parser(sub) -> argparse.ArgumentParser:
     from ..design.objectives import DEFAULT_T_LIMIT
 
@@ -420,7 +479,20 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
         "--engine",
         default="standing_wave",
         help="--by onset: reference engine (TOML or bundled name) whose stack takes each material "
-        "(default: %(default)s)",
+        "(default: %(default)s); a network (traveling_wave) ranks by the onset T_hot / T_cold",
+    )
+    p.add_argument(
+        "--T-max",
+        dest="T_max",
+        type=float,
+        default=None,
+        help="--by onset, network: largest hot temperature searched [K] (default 4 T_cold)",
+    )
+    p.add_argument(
+        "--amplitude",
+        type=float,
+        default=1e5,
+        help="--by onset, network: |p| [Pa] at the network's first end for the segment's Edot (default: %(default)s)",
     )
     p.add_argument(
         "--set",
