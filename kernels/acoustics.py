@@ -11,13 +11,38 @@ parts with a gradient are integrated with the sixth-order Magnus scheme on three
 points per cell. Both use :func:`expm2`, so one code path gives the closed form of
 docs/physics.md (``exp(A L) = [[cos kL, i Zc sin kL], [i sin kL / Zc, cos kL]]``) and the
 integrator.
+
+A's physics is one function, :func:`propagation_entries`, over real, complex or dual
+numbers (:mod:`.cmath`): A at real frequencies (:func:`propagation_at`, the forward
+cascade), its derivative along a parameter (:func:`propagation_tangent`, the tangent
+cascade) and A at complex frequencies (:func:`propagation_complex`, the onset) differ only in
+where the pore functions come from, so every effect of A is in all three.
 """
+
+from typing import Any
 
 import warp as wp
 
-from .cmath import cabs2, cconj, cdiv, cexp, cmul, cmuli, cplx, creal, cscale, csqrt
-from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared, viscosity
-from .pore import pore_functions_complex, pore_functions_log, pore_log_derivative
+from .cmath import (
+    ccomplex,
+    cre,
+    cabs2,
+    cconj,
+    cdiv,
+    cexp,
+    cmul,
+    cmuli,
+    cone,
+    creal,
+    cscale,
+    csqrt,
+    dual,
+    dual_real,
+    dual_tangent,
+    dual_value,
+)
+from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
+from .pore import PORE_CIRCULAR, pore_functions_complex, pore_functions_log, pore_log_derivative
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -184,215 +209,6 @@ def expm2(m: CMat2):
     return cscale2(e, cexp(tau))
 
 
-@wp.struct
-class PointCoefficients:
-    """The frequency-independent factors of A at one point of a part (SI units): A at
-    angular frequency w follows from them and the pore functions alone
-    (:func:`propagation_at`), so a parameter set's points are computed once for all of its
-    frequencies (:func:`tawarp.kernels.forward.make_point_kernel`).
-
-    ``log_nu`` = ln(r sqrt(rho/(2 mu))) and ``log_k`` = ln(r_k sqrt(rho cp/(2 kappa))):
-    ln(s/sqrt(w)) of the viscous and thermal s = r/delta; ``c12`` = q^2 rho/(phi S)
-    [kg/m^5]; ``c21`` = phi S/(rho c^2) [m^4 s^2/kg]; ``c22`` = (dT/dx)/(T (1 - Pr))
-    [1/m]; ``rho`` [kg/m^3] (the limp frame's density)."""
-
-    log_nu: wp.float64
-    log_k: wp.float64
-    c12: wp.float64
-    c21: wp.float64
-    c22: wp.float64
-    rho: wp.float64
-
-
-@wp.func
-def point_coefficients(
-    gas: wp.array(dtype=wp.float64),
-    p_mean: wp.float64,
-    T: wp.float64,
-    dTdx: wp.float64,
-    porosity: wp.float64,
-    pore_radius: wp.float64,
-    tortuosity: wp.float64,
-    area: wp.float64,
-    thermal_radius: wp.float64,
-):
-    """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
-    part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
-    for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
-    effect), ``tortuosity``, tube section ``area`` [m^2]."""
-    rho = density(gas, T, p_mean)
-    mu = viscosity(gas, T)
-    kappa = conductivity(gas, T)
-    cp = gas[G_CP]
-    pc = PointCoefficients()
-    pc.log_nu = wp.log(pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
-    pc.log_k = wp.log(thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
-    pc.c12 = tortuosity * tortuosity * rho / (porosity * area)
-    pc.c21 = porosity * area / (rho * sound_speed_squared(gas, T))
-    pc.c22 = dTdx / (T * (wp.float64(1.0) - mu * cp / kappa))
-    pc.rho = rho
-    return pc
-
-
-@wp.func
-def propagation_at(
-    pc: PointCoefficients,
-    omega: wp.float64,
-    half_log_omega: wp.float64,
-    gamma: wp.float64,
-    porosity: wp.float64,
-    tortuosity: wp.float64,
-    pore_model: int,
-    area: wp.float64,
-    frame_mobility: wp.float64,
-    shape_factor: wp.float64,
-    pore_table: wp.array(dtype=wp.float64),
-):
-    """A(x) of the two-port ODE at angular frequency omega [rad/s] (``half_log_omega`` =
-    ln(omega)/2, shared by a cascade's points) from the point's :class:`PointCoefficients`.
-    ``frame_mobility`` = 1/rho_1 [m^3/kg] (rho_1 the frame's bulk density) makes the frame
-    limp: 0 = rigid. ``shape_factor`` s != 1 (circular pores only) gives the viscous
-    function its own high-frequency length Lambda = r/s at the same flow resistivity
-    (:func:`shape_correction`). ``pore_table`` is
-    :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device."""
-    log_s_nu = pc.log_nu + half_log_omega
-    f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
-    f_k, g_k = pore_functions_log(pore_model, pc.log_k + half_log_omega, pore_table)
-    if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
-        g_nu = cdiv(g_nu, shape_correction(wp.exp(log_s_nu), shape_factor))
-    # one real division per point: a12 and a22 both divide by g_nu, and 1/g = conj(g)/|g|^2
-    # (|g_nu| ~ s^2/4 > 1e-9 at s > 1e-4: |g|^2 is far from underflow, Smith's scaling not needed)
-    inv_g_nu = cscale(cconj(g_nu), wp.float64(1.0) / cabs2(g_nu))
-    a12 = cmuli(cscale(inv_g_nu, pc.c12 * omega))
-    if frame_mobility > wp.float64(0.0):
-        a12 = cmuli(cscale(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega / area))
-    a21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), pc.c21 * omega))
-    # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
-    a22 = cscale(cmul(g_nu - g_k, inv_g_nu), pc.c22)
-    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return cmat2(zero, a12, a21, a22)
-
-
-@wp.struct
-class PropagationPartials:
-    """A at a point of a rigid-frame part with circular (shape factor 1) or slit pores, as
-    its partial derivatives in the :class:`PointCoefficients` (complex, SI units): A is
-    linear in c12, c21 and c22, so ``a12 = a12_c12 c12``, ``a21 = a21_c21 c21``,
-    ``a22 = a22_c22 c22``; ``a12_nu`` = d a12/d log_nu, ``a21_k`` = d a21/d log_k,
-    ``a22_nu``, ``a22_k`` likewise (:func:`propagation_partials`)."""
-
-    a12_c12: wp.vec2d
-    a12_nu: wp.vec2d
-    a21_c21: wp.vec2d
-    a21_k: wp.vec2d
-    a22_c22: wp.vec2d
-    a22_nu: wp.vec2d
-    a22_k: wp.vec2d
-
-
-@wp.func
-def propagation_partials(
-    pc: PointCoefficients,
-    omega: wp.float64,
-    half_log_omega: wp.float64,
-    gamma: wp.float64,
-    pore_model: int,
-    pore_table: wp.array(dtype=wp.float64),
-):
-    """:class:`PropagationPartials` at angular frequency omega [rad/s] (arguments as
-    :func:`propagation_at`, whose A they give for a rigid frame and shape factor 1): with
-    f' = df/d ln s (:func:`tawarp.kernels.pore.pore_log_derivative`) and dg = -df,
-    d(1/g_nu) = f_nu'/g_nu^2 d log_nu and d((g_nu - g_k)/g_nu) = (f_k' g_nu d log_k - g_k f_nu' d log_nu)/g_nu^2."""
-    log_s_nu = pc.log_nu + half_log_omega
-    log_s_k = pc.log_k + half_log_omega
-    f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
-    f_k, g_k = pore_functions_log(pore_model, log_s_k, pore_table)
-    df_nu = pore_log_derivative(pore_model, log_s_nu, f_nu, g_nu)
-    df_k = pore_log_derivative(pore_model, log_s_k, f_k, g_k)
-    inv_g_nu = cscale(cconj(g_nu), wp.float64(1.0) / cabs2(g_nu))
-    inv_g2 = cmul(inv_g_nu, inv_g_nu)
-    out = PropagationPartials()
-    out.a12_c12 = cmuli(cscale(inv_g_nu, omega))
-    out.a12_nu = cmuli(cscale(cmul(inv_g2, df_nu), pc.c12 * omega))
-    out.a21_c21 = cmuli(cscale(creal(wp.float64(1.0)) + cscale(f_k, gamma - wp.float64(1.0)), omega))
-    out.a21_k = cmuli(cscale(df_k, pc.c21 * omega * (gamma - wp.float64(1.0))))
-    out.a22_c22 = cmul(g_nu - g_k, inv_g_nu)
-    out.a22_nu = cscale(cmul(cmul(g_k, inv_g2), df_nu), -pc.c22)
-    out.a22_k = cscale(cmul(df_k, inv_g_nu), pc.c22)
-    return out
-
-
-@wp.func
-def propagation_value(d: PropagationPartials, pc: PointCoefficients):
-    """A from its :class:`PropagationPartials` at the point ``pc``."""
-    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return cmat2(zero, cscale(d.a12_c12, pc.c12), cscale(d.a21_c21, pc.c21), cscale(d.a22_c22, pc.c22))
-
-
-@wp.func
-def propagation_tangent(d: PropagationPartials, dpc: PointCoefficients):
-    """dA in the direction ``dpc`` of the point coefficients (their derivatives along one
-    parameter; ``rho`` is not used)."""
-    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return cmat2(
-        zero,
-        cscale(d.a12_c12, dpc.c12) + cscale(d.a12_nu, dpc.log_nu),
-        cscale(d.a21_c21, dpc.c21) + cscale(d.a21_k, dpc.log_k),
-        cscale(d.a22_c22, dpc.c22) + cscale(d.a22_nu, dpc.log_nu) + cscale(d.a22_k, dpc.log_k),
-    )
-
-
-@wp.func
-def point_difference(plus: PointCoefficients, minus: PointCoefficients, inv_two_step: wp.float64):
-    """(plus - minus) / (2 step) of every field: the central difference of a point's
-    coefficients along one parameter, ``inv_two_step`` = 1/(2 step)."""
-    d = PointCoefficients()
-    d.log_nu = (plus.log_nu - minus.log_nu) * inv_two_step
-    d.log_k = (plus.log_k - minus.log_k) * inv_two_step
-    d.c12 = (plus.c12 - minus.c12) * inv_two_step
-    d.c21 = (plus.c21 - minus.c21) * inv_two_step
-    d.c22 = (plus.c22 - minus.c22) * inv_two_step
-    d.rho = (plus.rho - minus.rho) * inv_two_step
-    return d
-
-
-@wp.func
-def johnson_factor(x: wp.float64, s: wp.float64):
-    """Johnson's dynamic tortuosity over alpha_inf for circular-pore resistivity
-    (sigma = 8 mu alpha_inf/(phi r^2)) and viscous length Lambda = r/s, exp(-iwt):
-    J = 1 + (4 i / x^2) sqrt(1 - i s^2 x^2 / 8), x = r/delta_nu."""
-    x2 = x * x
-    root = csqrt(cplx(wp.float64(1.0), -s * s * x2 / wp.float64(8.0)))
-    return creal(wp.float64(1.0)) + cscale(cmuli(root), wp.float64(4.0) / x2)
-
-
-@wp.func
-def shape_correction(x: wp.float64, s: wp.float64):
-    """J(s)/J(1): multiplies the exact circular-pore density q^2 rho/(1 - f_nu). Tends to 1
-    at low frequency (the flow resistivity of radius r is kept) and to
-    (1 + (1+i) s/x)/(1 + (1+i)/x) at high frequency: the viscous boundary layer then sees
-    Lambda = r/s (a Johnson-Champoux-Allard shape factor; s = 1 is the circular pore)."""
-    return cdiv(johnson_factor(x, s), johnson_factor(x, wp.float64(1.0)))
-
-
-@wp.func
-def limp_density(rho: wp.float64, phi: wp.float64, q: wp.float64, g_nu: wp.vec2d, m: wp.float64):
-    """Effective density [kg/m^3] per total volume flux of a porous layer whose frame is
-    limp (no stiffness) with bulk density 1/m: from the fluid and frame momentum balances
-    with the rigid-frame coupling A = phi (rho_e - rho), rho_e = q^2 rho / (1 - f_nu),
-
-        rho_w = (phi rho + A (phi rho m + 1)) / (phi^2 + phi (1 - phi)^2 rho m + A m),
-
-    which is rho_e / phi (rigid) at m = 0 and phi rho + 1/m (frame moving with the air)
-    as A grows."""
-    rho_e = cdiv(creal(q * q * rho), g_nu)
-    A = cscale(rho_e - creal(rho), phi)
-    one_m = wp.float64(1.0) - phi
-    num = creal(phi * rho) + cscale(A, phi * rho * m + wp.float64(1.0))
-    den = creal(phi * phi + phi * one_m * one_m * rho * m) + cscale(A, m)
-    return cdiv(num, den)
-
-
 @wp.func
 def axpy2(s: wp.float64, x: CMat2, y: CMat2):
     """s x + y."""
@@ -474,57 +290,362 @@ def scale2(m: CMat2, s: wp.float64):
     return cmat2(cscale(m.a, s), cscale(m.b, s), cscale(m.c, s), cscale(m.d, s))
 
 
-# -- complex angular frequency (tawarp.model.onset) ------------------------------------------
-# Every coefficient of A is analytic in omega: omega enters through s = r/delta ~ sqrt(omega)
-# (principal root) and as a factor of a12, a21. These are propagation_at and its helpers
-# with omega complex; at real omega they agree with them to rounding.
+# -- the propagation matrix A(x) ---------------------------------------------------------------
+# Its physics is written once, in propagation_entries, over a generic complex number: a
+# wp.vec2d gives A at a real or complex angular frequency, a dual one (wp.vec4d,
+# tawarp.kernels.cmath) its derivative along a parameter as well. propagation_at (the
+# forward cascade: real omega, tabulated pore functions), propagation_tangent (the tangent
+# cascade) and propagation_complex (the onset's complex omega) only differ in where the
+# pore functions come from.
+
+
+@wp.struct
+class PointCoefficients:
+    """The frequency-independent factors of A at one point of a part (SI units): A at
+    angular frequency w follows from them, the part's :class:`PartGeometry` and the pore
+    functions alone (:func:`propagation_at`), so a parameter set's points are computed once
+    for all of its frequencies (:func:`tawarp.kernels.forward.make_point_kernel`).
+
+    ``log_nu`` = ln(r sqrt(rho/(2 mu))) and ``log_k`` = ln(r_k sqrt(rho cp/(2 kappa))):
+    ln(s/sqrt(w)) of the viscous and thermal s = r/delta; ``c12`` = q^2 rho/(phi S)
+    [kg/m^5]; ``c21`` = phi S/(rho c^2) [m^4 s^2/kg]; ``c22`` = (dT/dx)/(T (1 - Pr))
+    [1/m]; ``rho`` [kg/m^3] (the limp frame's density)."""
+
+    log_nu: wp.float64
+    log_k: wp.float64
+    c12: wp.float64
+    c21: wp.float64
+    c22: wp.float64
+    rho: wp.float64
+
+
+@wp.struct
+class PartGeometry:
+    """What A takes from a part beyond its :class:`PointCoefficients`: ``porosity``,
+    ``tortuosity``, tube section ``area`` [m^2], ``frame_mobility`` = 1/rho_1 [m^3/kg]
+    (rho_1 the frame's bulk density; 0 = rigid frame) and the viscous ``shape_factor``
+    r/Lambda (1 = the circular pore's own; used by circular pores only)."""
+
+    porosity: wp.float64
+    tortuosity: wp.float64
+    area: wp.float64
+    frame_mobility: wp.float64
+    shape_factor: wp.float64
+
+
+@wp.struct
+class PorePoint:
+    """The pore functions at one point and frequency: f, g = 1 - f of the viscous and the
+    thermal s, and (tangent cascade only) their derivatives df/d ln s."""
+
+    f_nu: wp.vec2d
+    g_nu: wp.vec2d
+    f_k: wp.vec2d
+    g_k: wp.vec2d
+    df_nu: wp.vec2d
+    df_k: wp.vec2d
 
 
 @wp.func
-def johnson_factor_complex(x: wp.vec2d, s: wp.float64):
-    """:func:`johnson_factor` at complex x = r/delta_nu."""
-    x2 = cmul(x, x)
-    root = csqrt(creal(wp.float64(1.0)) - cmuli(cscale(x2, s * s / wp.float64(8.0))))
-    return creal(wp.float64(1.0)) + cscale(cdiv(cmuli(root), x2), wp.float64(4.0))
-
-
-@wp.func
-def propagation_matrix_complex(
+def point_coefficients(
     gas: wp.array(dtype=wp.float64),
     p_mean: wp.float64,
-    omega: wp.vec2d,
     T: wp.float64,
     dTdx: wp.float64,
     porosity: wp.float64,
     pore_radius: wp.float64,
     tortuosity: wp.float64,
-    pore_model: int,
     area: wp.float64,
     thermal_radius: wp.float64,
-    frame_mobility: wp.float64,
-    shape_factor: wp.float64,
 ):
-    """A(x) at complex angular frequency omega [rad/s] (re, im): :func:`propagation_at`'s
-    matrix from the same :class:`PointCoefficients` (arguments as :func:`point_coefficients`),
-    with s = r/delta = exp(log_nu) sqrt(omega) complex."""
-    pc = point_coefficients(gas, p_mean, T, dTdx, porosity, pore_radius, tortuosity, area, thermal_radius)
-    root_w = csqrt(omega)
-    s_nu = cscale(root_w, wp.exp(pc.log_nu))
-    s_k = cscale(root_w, wp.exp(pc.log_k))
-    f_nu, g_nu = pore_functions_complex(pore_model, s_nu)
-    f_k, g_k = pore_functions_complex(pore_model, s_k)
-    if shape_factor != wp.float64(1.0) and shape_factor > wp.float64(0.0) and pore_model == 0:
-        g_nu = cdiv(
-            g_nu, cdiv(johnson_factor_complex(s_nu, shape_factor), johnson_factor_complex(s_nu, wp.float64(1.0)))
-        )
-    a12 = cmuli(cscale(cdiv(omega, g_nu), pc.c12))
-    if frame_mobility > wp.float64(0.0):
-        a12 = cmuli(
-            cscale(
-                cmul(limp_density(pc.rho, porosity, tortuosity, g_nu, frame_mobility), omega), wp.float64(1.0) / area
-            )
-        )
-    a21 = cmuli(cscale(cmul(omega, creal(wp.float64(1.0)) + cscale(f_k, gas[G_GAMMA] - wp.float64(1.0))), pc.c21))
-    a22 = cscale(cdiv(g_nu - g_k, g_nu), pc.c22)
-    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
-    return cmat2(zero, a12, a21, a22)
+    """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
+    part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
+    for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
+    effect), ``tortuosity``, tube section ``area`` [m^2]."""
+    rho = density(gas, T, p_mean)
+    mu = viscosity(gas, T)
+    kappa = conductivity(gas, T)
+    cp = gas[G_CP]
+    pc = PointCoefficients()
+    pc.log_nu = wp.log(pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
+    pc.log_k = wp.log(thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    pc.c12 = tortuosity * tortuosity * rho / (porosity * area)
+    pc.c21 = porosity * area / (rho * sound_speed_squared(gas, T))
+    pc.c22 = dTdx / (T * (wp.float64(1.0) - mu * cp / kappa))
+    pc.rho = rho
+    return pc
+
+
+@wp.func
+def part_geometry(
+    porosity: wp.float64, tortuosity: wp.float64, area: wp.float64, frame_mobility: wp.float64, shape_factor: wp.float64
+):
+    geo = PartGeometry()
+    geo.porosity = porosity
+    geo.tortuosity = tortuosity
+    geo.area = area
+    geo.frame_mobility = frame_mobility
+    geo.shape_factor = shape_factor
+    return geo
+
+
+@wp.func
+def johnson_factor(x2: Any, s: Any):
+    """Johnson's dynamic tortuosity over alpha_inf for circular-pore resistivity
+    (sigma = 8 mu alpha_inf/(phi r^2)) and viscous length Lambda = r/s, exp(-iwt), at
+    x2 = (r/delta_nu)^2: J = 1 + (4 i / x2) sqrt(1 - i s^2 x2 / 8)."""
+    root = csqrt(cone(x2) - cmuli(cmul(cmul(s, s), x2)) * wp.float64(0.125))
+    return cone(x2) + cdiv(cmuli(root), x2) * wp.float64(4.0)
+
+
+@wp.func
+def shape_correction(x2: Any, s: Any):
+    """J(s)/J(1) at x2 = (r/delta_nu)^2: multiplies the exact circular-pore density
+    q^2 rho/(1 - f_nu). Tends to 1 at low frequency (the flow resistivity of radius r is
+    kept) and to (1 + (1+i) s/x)/(1 + (1+i)/x) at high frequency: the viscous boundary
+    layer then sees Lambda = r/s (a Johnson-Champoux-Allard shape factor; s = 1 is the
+    circular pore)."""
+    return cdiv(johnson_factor(x2, s), johnson_factor(x2, cone(s)))
+
+
+@wp.func
+def limp_density(rho: Any, phi: Any, q: Any, g_nu: Any, m: Any):
+    """Effective density [kg/m^3] per total volume flux of a porous layer whose frame is
+    limp (no stiffness) with bulk density 1/m: from the fluid and frame momentum balances
+    with the rigid-frame coupling A = phi (rho_e - rho), rho_e = q^2 rho / (1 - f_nu),
+
+        rho_w = (phi rho + A (phi rho m + 1)) / (phi^2 + phi (1 - phi)^2 rho m + A m),
+
+    which is rho_e / phi (rigid) at m = 0 and phi rho + 1/m (frame moving with the air)
+    as A grows. Complex or dual numbers, all of one kind."""
+    rho_e = cdiv(cmul(cmul(q, q), rho), g_nu)
+    coupling = cmul(rho_e - rho, phi)
+    solid = cone(phi) - phi
+    num = cmul(phi, rho) + cmul(coupling, cmul(cmul(phi, rho), m) + cone(m))
+    den = cmul(phi, phi) + cmul(cmul(phi, cmul(solid, solid)), cmul(rho, m)) + cmul(coupling, m)
+    return cdiv(num, den)
+
+
+@wp.func
+def pore_reciprocal(g: wp.vec2d):
+    # one real division: 1/g = conj(g)/|g|^2 (|g_nu| ~ s^2/4 > 1e-9 at s > 1e-4: |g|^2 is
+    # far from underflow, Smith's scaling is not needed)
+    return cscale(cconj(g), wp.float64(1.0) / cabs2(g))
+
+
+@wp.func
+def pore_reciprocal(g: wp.vec4d):  # noqa: F811 (a Warp overload)
+    r = pore_reciprocal(dual_value(g))
+    return dual(r, -cmul(cmul(r, r), dual_tangent(g)))
+
+
+@wp.func
+def propagation_entries(
+    omega: Any,
+    root_omega: Any,
+    log_nu: Any,
+    c12: Any,
+    c21: Any,
+    c22: Any,
+    rho: Any,
+    f_k: Any,
+    g_nu: Any,
+    g_k: Any,
+    porosity: Any,
+    tortuosity: Any,
+    area: Any,
+    frame_mobility: Any,
+    shape_factor: Any,
+    gamma: wp.float64,
+    pore_model: int,
+):
+    """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
+    (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
+    (``log_nu``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
+    ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
+    heats. The physics of A, written once for every kind of number
+    (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
+    (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
+    derivative (:func:`propagation_tangent`). The effects: a limp frame
+    (:func:`limp_density`, frame_mobility > 0) and a viscous shape factor
+    (:func:`shape_correction`, circular pores)."""
+    if pore_model == PORE_CIRCULAR and cre(shape_factor) != wp.float64(1.0) and cre(shape_factor) > wp.float64(0.0):
+        s_nu = cmul(root_omega, cexp(ccomplex(log_nu)))
+        g_nu = cdiv(g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
+    inv_g_nu = pore_reciprocal(g_nu)
+    density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
+    if cre(frame_mobility) > wp.float64(0.0):
+        rho_w = limp_density(ccomplex(rho), ccomplex(porosity), ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
+        density_per_area = cdiv(rho_w, ccomplex(area))
+    a12 = cmuli(cmul(omega, density_per_area))
+    a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))
+    # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
+    a22 = cmul(c22, cmul(g_nu - g_k, inv_g_nu))
+    return a12, a21, a22
+
+
+@wp.func
+def pore_point(
+    pc: PointCoefficients,
+    half_log_omega: wp.float64,
+    pore_model: int,
+    pore_table: wp.array(dtype=wp.float64),
+    derivatives: int,
+):
+    """:class:`PorePoint` at real angular frequency omega (``half_log_omega`` = ln(omega)/2,
+    shared by a cascade's points), from ``pore_table``
+    (:func:`tawarp.kernels.pore_table.circular_table` on the kernel's device); the
+    derivatives only where ``derivatives`` != 0."""
+    log_s_nu = pc.log_nu + half_log_omega
+    log_s_k = pc.log_k + half_log_omega
+    f_nu, g_nu = pore_functions_log(pore_model, log_s_nu, pore_table)
+    f_k, g_k = pore_functions_log(pore_model, log_s_k, pore_table)
+    pp = PorePoint()
+    pp.f_nu = f_nu
+    pp.g_nu = g_nu
+    pp.f_k = f_k
+    pp.g_k = g_k
+    if derivatives != 0:
+        pp.df_nu = pore_log_derivative(pore_model, log_s_nu, f_nu, g_nu)
+        pp.df_k = pore_log_derivative(pore_model, log_s_k, f_k, g_k)
+    return pp
+
+
+@wp.func
+def propagation_value(
+    pp: PorePoint, pc: PointCoefficients, geo: PartGeometry, omega: wp.float64, gamma: wp.float64, pore_model: int
+):
+    """A at real angular frequency omega [rad/s] from the point's pore functions ``pp``
+    (:func:`pore_point`), coefficients and part geometry (:func:`propagation_entries`)."""
+    a12, a21, a22 = propagation_entries(
+        omega,
+        wp.sqrt(omega),
+        pc.log_nu,
+        pc.c12,
+        pc.c21,
+        pc.c22,
+        pc.rho,
+        pp.f_k,
+        pp.g_nu,
+        pp.g_k,
+        geo.porosity,
+        geo.tortuosity,
+        geo.area,
+        geo.frame_mobility,
+        geo.shape_factor,
+        gamma,
+        pore_model,
+    )
+    return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
+
+
+@wp.func
+def propagation_at(
+    pc: PointCoefficients,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_model: int,
+    pore_table: wp.array(dtype=wp.float64),
+):
+    """A(x) of the two-port ODE at real angular frequency omega [rad/s]
+    (``half_log_omega`` = ln(omega)/2) at a point of a part (:func:`propagation_value`
+    of :func:`pore_point`)."""
+    pp = pore_point(pc, half_log_omega, pore_model, pore_table, 0)
+    return propagation_value(pp, pc, geo, omega, gamma, pore_model)
+
+
+@wp.func
+def propagation_tangent(
+    pp: PorePoint,
+    pc: PointCoefficients,
+    dpc: PointCoefficients,
+    geo: PartGeometry,
+    dgeo: PartGeometry,
+    omega: wp.float64,
+    gamma: wp.float64,
+    pore_model: int,
+):
+    """dA at real angular frequency omega [rad/s] in the direction in which the point's
+    coefficients move by ``dpc`` and its part's geometry by ``dgeo`` (the derivatives along
+    one parameter): :func:`propagation_entries` on dual numbers, the pore functions moving
+    by df/d ln s times d ln s (``pp`` with its derivatives, :func:`pore_point`)."""
+    a12, a21, a22 = propagation_entries(
+        omega,
+        wp.sqrt(omega),
+        dual_real(pc.log_nu, dpc.log_nu),
+        dual_real(pc.c12, dpc.c12),
+        dual_real(pc.c21, dpc.c21),
+        dual_real(pc.c22, dpc.c22),
+        dual_real(pc.rho, dpc.rho),
+        dual(pp.f_k, cscale(pp.df_k, dpc.log_k)),
+        dual(pp.g_nu, cscale(pp.df_nu, -dpc.log_nu)),
+        dual(pp.g_k, cscale(pp.df_k, -dpc.log_k)),
+        dual_real(geo.porosity, dgeo.porosity),
+        dual_real(geo.tortuosity, dgeo.tortuosity),
+        dual_real(geo.area, dgeo.area),
+        dual_real(geo.frame_mobility, dgeo.frame_mobility),
+        dual_real(geo.shape_factor, dgeo.shape_factor),
+        gamma,
+        pore_model,
+    )
+    return cmat2(creal(wp.float64(0.0)), dual_tangent(a12), dual_tangent(a21), dual_tangent(a22))
+
+
+@wp.func
+def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2d, gamma: wp.float64, pore_model: int):
+    """A(x) at complex angular frequency omega [rad/s] (re, im), with exp(-i omega t) (the
+    onset's eigenvalue problem, :mod:`tawarp.kernels.onset`). Every coefficient of A is
+    analytic in omega: it enters through s = r/delta = exp(log_nu) sqrt(omega) (principal
+    root) and as a factor of a12, a21; at real omega this is :func:`propagation_at` to
+    rounding (the pore functions computed instead of tabulated)."""
+    root = csqrt(omega)
+    f_nu, g_nu = pore_functions_complex(pore_model, cscale(root, wp.exp(pc.log_nu)))
+    f_k, g_k = pore_functions_complex(pore_model, cscale(root, wp.exp(pc.log_k)))
+    a12, a21, a22 = propagation_entries(
+        omega,
+        root,
+        pc.log_nu,
+        pc.c12,
+        pc.c21,
+        pc.c22,
+        pc.rho,
+        f_k,
+        g_nu,
+        g_k,
+        geo.porosity,
+        geo.tortuosity,
+        geo.area,
+        geo.frame_mobility,
+        geo.shape_factor,
+        gamma,
+        pore_model,
+    )
+    return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
+
+
+@wp.func
+def point_difference(plus: PointCoefficients, minus: PointCoefficients, inv_two_step: wp.float64):
+    """(plus - minus) / (2 step) of every field: the central difference of a point's
+    coefficients along one parameter, ``inv_two_step`` = 1/(2 step)."""
+    d = PointCoefficients()
+    d.log_nu = (plus.log_nu - minus.log_nu) * inv_two_step
+    d.log_k = (plus.log_k - minus.log_k) * inv_two_step
+    d.c12 = (plus.c12 - minus.c12) * inv_two_step
+    d.c21 = (plus.c21 - minus.c21) * inv_two_step
+    d.c22 = (plus.c22 - minus.c22) * inv_two_step
+    d.rho = (plus.rho - minus.rho) * inv_two_step
+    return d
+
+
+@wp.func
+def geometry_difference(plus: PartGeometry, minus: PartGeometry, inv_two_step: wp.float64):
+    """(plus - minus) / (2 step) of every field of a :class:`PartGeometry`."""
+    return part_geometry(
+        (plus.porosity - minus.porosity) * inv_two_step,
+        (plus.tortuosity - minus.tortuosity) * inv_two_step,
+        (plus.area - minus.area) * inv_two_step,
+        (plus.frame_mobility - minus.frame_mobility) * inv_two_step,
+        (plus.shape_factor - minus.shape_factor) * inv_two_step,
+    )

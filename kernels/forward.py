@@ -32,14 +32,16 @@ from .acoustics import (
     cscale2,
     expm2_tangent,
     expm2_traceless,
+    geometry_difference,
     identity2,
     magnus6_exponent,
     magnus6_tangent,
     matmul2,
+    part_geometry,
     point_coefficients,
     point_difference,
+    pore_point,
     propagation_at,
-    propagation_partials,
     propagation_tangent,
     propagation_value,
     scale2,
@@ -150,6 +152,16 @@ def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
     if flags[s, F_POROUS] == 0:
         return wp.float64(0.0)
     return seg_value(params, i, s, FRAME_MOBILITY)
+
+
+@wp.func
+def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i."""
+    phi, r, q = pore_geometry(params, flags, i, s)
+    radius = params[RADIUS, i]
+    return part_geometry(
+        phi, q, PI * radius * radius, frame_mobility(params, flags, i, s), shape_factor(params, flags, i, s)
+    )
 
 
 @wp.func
@@ -448,11 +460,11 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         points.shape[0] / (1 + 2P) m threads (no doubled grid: fixed cells), it writes the
         value at z to out[g, j] and dT/dz_a to tangent[g, a, j]. Only the cascade is
         differentiated (:func:`tawarp.kernels.acoustics.magnus6_tangent`,
-        :func:`tawarp.kernels.acoustics.expm2_tangent`, the pore functions'
-        :func:`tawarp.kernels.acoustics.propagation_partials`); the frequency-independent
-        point coefficients' derivatives are the central differences of the neighbours'
-        points (the heat solve and the point kernel, a few per cent of a set's cost). A limp
-        frame or a shape factor is not differentiated: their tangents are NaN."""
+        :func:`tawarp.kernels.acoustics.expm2_tangent`, and A by
+        :func:`tawarp.kernels.acoustics.propagation_tangent`: the same physics as the
+        value's, on dual numbers); the frequency-independent point coefficients' and part
+        geometries' derivatives are the central differences of the neighbours' (the heat
+        solve and the point kernel, a few per cent of a set's cost)."""
         t = wp.tid()
         n_freqs = out.shape[1]
         n_doubled = points.shape[0] * doubled.shape[1]
@@ -469,8 +481,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         omega = TWO_PI * freqs[j]
         half_log_omega = wp.float64(0.5) * wp.log(omega)
         gamma = gas[G_GAMMA]
-        radius = params[RADIUS, i]
-        area = PI * radius * radius
         n_seg = flags.shape[0]
         p = int(0)
         for column in range(grid * n_seg):  # the doubled grid's points follow the main grid's
@@ -479,12 +489,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # sum of the cells' tau (expm2_traceless)
         dm = tangent_rows()
         dlog = scale_rows()
-        undifferentiated = wp.float64(0.0)  # NaN where a part's A is not differentiated
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
-            phi, r, q = pore_geometry(params, flags, i, s)
-            mob = frame_mobility(params, flags, i, s)
-            sf = shape_factor(params, flags, i, s)
+            geo = segment_geometry(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
             uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
             n_cells = 1
@@ -493,55 +500,73 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 if wp.static(tangents == 0):
-                    a1 = propagation_at(
-                        points[li, p], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                    )
+                    a1 = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
                     if uniform:  # exp(A L) of a part at uniform temperature
                         e, tau = expm2_traceless(scale2(a1, length))
                     else:
-                        a2 = propagation_at(
-                            points[li, p + 1], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                        )
-                        a3 = propagation_at(
-                            points[li, p + 2], omega, half_log_omega, gamma, phi, q, model, area, mob, sf, pore_table
-                        )
+                        a2 = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+                        a3 = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
                         e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
                 else:
-                    s1 = propagation_partials(points[li, p], omega, half_log_omega, gamma, model, pore_table)
-                    a1 = propagation_value(s1, points[li, p])
+                    s1 = pore_point(points[li, p], half_log_omega, model, pore_table, 1)
+                    a1 = propagation_value(s1, points[li, p], geo, omega, gamma, model)
                     s2 = s1
                     s3 = s1
                     a2 = a1
                     a3 = a1
                     om = scale2(a1, length)
                     if not uniform:
-                        s2 = propagation_partials(points[li, p + 1], omega, half_log_omega, gamma, model, pore_table)
-                        s3 = propagation_partials(points[li, p + 2], omega, half_log_omega, gamma, model, pore_table)
-                        a2 = propagation_value(s2, points[li, p + 1])
-                        a3 = propagation_value(s3, points[li, p + 2])
+                        s2 = pore_point(points[li, p + 1], half_log_omega, model, pore_table, 1)
+                        s3 = pore_point(points[li, p + 2], half_log_omega, model, pore_table, 1)
+                        a2 = propagation_value(s2, points[li, p + 1], geo, omega, gamma, model)
+                        a3 = propagation_value(s3, points[li, p + 2], geo, omega, gamma, model)
                         om = magnus6_exponent(a1, a2, a3, h)
                     tau, na, delta = traceless_parts(om)
                     ch, sh = cosh_sinhc(delta)
                     dsh = sinhc_derivative(delta, ch, sh)
                     e = traceless_exp(om, na, ch, sh)
-                    if mob > wp.float64(0.0) or (sf != wp.float64(1.0) and model == 0):
-                        undifferentiated = wp.float64(wp.nan)
                     for a in range(P):
                         plus = li + 1 + 2 * a
                         inv_two_step = wp.float64(0.5) / step[group, a]
                         dlength = (
                             seg_value(params, i + 1 + 2 * a, s, LENGTH) - seg_value(params, i + 2 + 2 * a, s, LENGTH)
                         ) * inv_two_step
+                        dgeo = geometry_difference(
+                            segment_geometry(params, flags, i + 1 + 2 * a, s),
+                            segment_geometry(params, flags, i + 2 + 2 * a, s),
+                            inv_two_step,
+                        )
                         d1 = propagation_tangent(
-                            s1, point_difference(points[plus, p], points[plus + 1, p], inv_two_step)
+                            s1,
+                            points[li, p],
+                            point_difference(points[plus, p], points[plus + 1, p], inv_two_step),
+                            geo,
+                            dgeo,
+                            omega,
+                            gamma,
+                            model,
                         )
                         dom = axpy2(dlength, a1, scale2(d1, length))
                         if not uniform:
                             d2 = propagation_tangent(
-                                s2, point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step)
+                                s2,
+                                points[li, p + 1],
+                                point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step),
+                                geo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                model,
                             )
                             d3 = propagation_tangent(
-                                s3, point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step)
+                                s3,
+                                points[li, p + 2],
+                                point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step),
+                                geo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                model,
                             )
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
                         de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
@@ -572,14 +597,14 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             # T = e^S M: dT = e^S (dS M + dM)
             da = axpy2(wp.float64(1.0), cscale2(m, wp.vec2d(dlog[a, 0], dlog[a, 1])), tangent_row(dm, a))
             da = cscale2(da, scale)
-            tangent[group, a, j, 0] = da.a[0] + undifferentiated
-            tangent[group, a, j, 1] = da.a[1] + undifferentiated
-            tangent[group, a, j, 2] = da.b[0] + undifferentiated
-            tangent[group, a, j, 3] = da.b[1] + undifferentiated
-            tangent[group, a, j, 4] = da.c[0] + undifferentiated
-            tangent[group, a, j, 5] = da.c[1] + undifferentiated
-            tangent[group, a, j, 6] = da.d[0] + undifferentiated
-            tangent[group, a, j, 7] = da.d[1] + undifferentiated
+            tangent[group, a, j, 0] = da.a[0]
+            tangent[group, a, j, 1] = da.a[1]
+            tangent[group, a, j, 2] = da.b[0]
+            tangent[group, a, j, 3] = da.b[1]
+            tangent[group, a, j, 4] = da.c[0]
+            tangent[group, a, j, 5] = da.c[1]
+            tangent[group, a, j, 6] = da.d[0]
+            tangent[group, a, j, 7] = da.d[1]
 
     kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
     # a unique module does not inherit this file's module options

@@ -21,12 +21,22 @@ during the search and across a batch of heat inputs (no jump of a whole cell).
 
 import warp as wp
 
-from .acoustics import CMat2, expm2, magnus6_step, propagation_matrix_complex, scale2
+from .acoustics import (
+    CMat2,
+    PartGeometry,
+    expm2,
+    magnus6_step,
+    part_geometry,
+    point_coefficients,
+    propagation_complex,
+    scale2,
+)
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
-from .forward import GAUSS, PI, TWO_PI, frame_mobility, magnus_cell_count, pore_geometry, shape_factor, thermal_radius
-from .gas import sound_speed_squared
+from .forward import GAUSS, PI, TWO_PI, magnus_cell_count, pore_geometry, segment_geometry, thermal_radius
+from .gas import G_GAMMA, sound_speed_squared
+from .pore import PORE_CIRCULAR
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
-from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, RADIUS, T_COLD, seg_value
+from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, T_COLD, seg_value
 
 # no adjoint code: nothing differentiates through the eigenvalue search (it has runtime-count
 # loops), and generating it roughly doubles this large module's compile time
@@ -63,21 +73,9 @@ def duct_step(
     """(p, U) carried through an empty duct of ``length`` [m], ``radius`` [m] at uniform T [K]:
     exp(A L), the closed form of docs/physics.md."""
     area = PI * radius * radius
-    a = propagation_matrix_complex(
-        gas,
-        p_mean,
-        omega,
-        T,
-        wp.float64(0.0),
-        wp.float64(1.0),
-        radius,
-        wp.float64(1.0),
-        0,
-        area,
-        radius,
-        wp.float64(0.0),
-        wp.float64(1.0),
-    )
+    one = wp.float64(1.0)
+    pc = point_coefficients(gas, p_mean, T, wp.float64(0.0), one, radius, one, area, radius)
+    a = propagation_complex(pc, part_geometry(one, one, area, wp.float64(0.0), one), omega, gas[G_GAMMA], PORE_CIRCULAR)
     return mat_vec(expm2(scale2(a, length)), p, u)
 
 
@@ -98,21 +96,18 @@ def gradient_matrix_complex(
     p_mean: wp.float64,
     omega: wp.vec2d,
     T_cold: wp.float64,
-    phi: wp.float64,
     r: wp.float64,
-    q: wp.float64,
-    model: int,
-    area: wp.float64,
     r_k: wp.float64,
-    mob: wp.float64,
-    sf: wp.float64,
+    geo: PartGeometry,
+    model: int,
     nonlin: int,
 ):
     """A(x) at complex omega and local position xi [m] of thermal segment s whose heat cells
-    start at node0 (:func:`tawarp.kernels.acoustics.propagation_matrix_complex` at the
+    start at node0 (:func:`tawarp.kernels.acoustics.propagation_complex` at the
     segment's profile)."""
     th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
-    return propagation_matrix_complex(gas, p_mean, omega, T_cold + th, dth, phi, r, q, model, area, r_k, mob, sf)
+    pc = point_coefficients(gas, p_mean, T_cold + th, dth, geo.porosity, r, geo.tortuosity, geo.area, r_k)
+    return propagation_complex(pc, geo, omega, gas[G_GAMMA], model)
 
 
 @wp.func
@@ -135,8 +130,6 @@ def core_vector(
     segment walk of ``transfer_kernel`` (same cells, same Magnus scheme), applied to a vector.
     Adaptive cell counts use the real ``omega_ref`` [rad/s]."""
     p_mean = params[P_MEAN, i]
-    radius = params[RADIUS, i]
-    area = PI * radius * radius
     T_cold = params[T_COLD, i]
     # loop-carried state as fresh locals (Warp carries reassigned variables through dynamic loops)
     p = wp.vec2d(p_in[0], p_in[1])
@@ -145,13 +138,11 @@ def core_vector(
         length = seg_value(params, i, s, LENGTH)
         phi, r, q = pore_geometry(params, flags, i, s)
         r_k = thermal_radius(params, flags, i, s, r)
-        mob = frame_mobility(params, flags, i, s)
-        sf = shape_factor(params, flags, i, s)
+        geo = segment_geometry(params, flags, i, s)
         model = flags[s, F_PORE_MODEL]
         if flags[s, F_THERMAL] == 0:
-            a = propagation_matrix_complex(
-                gas, p_mean, omega, T_cold, wp.float64(0.0), phi, r, q, model, area, r_k, mob, sf
-            )
+            pc = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, geo.area, r_k)
+            a = propagation_complex(pc, geo, omega, gas[G_GAMMA], model)
             p, u = mat_vec(expm2(scale2(a, length)), p, u)
         else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
@@ -181,14 +172,10 @@ def core_vector(
                     p_mean,
                     omega,
                     T_cold,
-                    phi,
                     r,
-                    q,
-                    model,
-                    area,
                     r_k,
-                    mob,
-                    sf,
+                    geo,
+                    model,
                     nonlin,
                 )
                 a2 = gradient_matrix_complex(
@@ -207,14 +194,10 @@ def core_vector(
                     p_mean,
                     omega,
                     T_cold,
-                    phi,
                     r,
-                    q,
-                    model,
-                    area,
                     r_k,
-                    mob,
-                    sf,
+                    geo,
+                    model,
                     nonlin,
                 )
                 a3 = gradient_matrix_complex(
@@ -233,14 +216,10 @@ def core_vector(
                     p_mean,
                     omega,
                     T_cold,
-                    phi,
                     r,
-                    q,
-                    model,
-                    area,
                     r_k,
-                    mob,
-                    sf,
+                    geo,
+                    model,
                     nonlin,
                 )
                 m = magnus6_step(a1, a2, a3, h)

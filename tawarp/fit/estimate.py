@@ -42,8 +42,7 @@ one) the Jacobian is carried through the cascade with the value
 neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates) get their heat solve and Gauss-point
 coefficients, whose central differences seed the tangents of one cascade per frequency
 (the pore functions are shared; exact to ~1e-10 against a converged central difference
-of the whole model). A limp frame or a shape factor is not differentiated: such batches,
-``jacobian="difference"`` and the default on a GPU (where the tangent cascade is
+of the whole model). ``jacobian="difference"`` and the default on a GPU (where the tangent cascade is
 register-bound and slower) take forward differences, ``1 + p`` cascades per problem
 (step 1e-6 in z, towards the interior at a bound; ~1e-6). If the trial is accepted its
 Jacobian is already there; a rejected trial wastes its Jacobian but no launch.
@@ -107,8 +106,6 @@ from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z (``jacobian="difference"``).
 FD_STEP = 1e-6
-#: Fields whose effect on A the tangent cascade does not differentiate (limp frame, shape factor).
-UNDIFFERENTIATED_FIELDS = {"frame_mobility": 0.0, "viscous_shape_factor": 1.0}
 #: Margin on the heat model's decay rate k of the fixed cells :func:`fit` sizes at the
 #: starts (:func:`smooth_settings`): 1.25 leaves room for h to grow 1.56x; the counts are
 #: checked at the solutions, and problems re-run from them where the solutions need more
@@ -278,18 +275,17 @@ class Problems:
         self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
         self.w_row_src = wp.array(np.array(row_src, dtype=np.int32), dtype=wp.int32, device=dev)
         self.w_kind = wp.array(self.kind, dtype=wp.int32, device=dev)
-        self.tangents = self._use_tangents(jacobian, engine_names)
+        self.tangents = self._use_tangents(jacobian)
         self.normal = klm.normal_kernel(self.p, self.tangents)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self.evaluations = 0
         self.launches = 0
 
-    def _use_tangents(self, jacobian: str, engine_names) -> bool:
+    def _use_tangents(self, jacobian: str) -> bool:
         """Whether the Jacobians come from the tangent cascade (``jacobian`` "tangent", or
         "auto" on the CPU where it applies: the faster one there, forward differences on a
         GPU) or from forward differences ("difference"). The tangent cascade needs fixed
-        cells and a rigid frame with circular-pore shape factor 1 (or plates) everywhere:
-        the effects it does not differentiate."""
+        cells."""
         if jacobian not in ("auto", "tangent", "difference"):
             raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent' or 'difference'")
         if jacobian == "difference":
@@ -303,25 +299,13 @@ class Problems:
             # for the differences' 4; bench/results/ncu_tangent_kernel_h100.txt). On the CPU
             # they run 1.3x and 1.6x faster (bench/results/fit_cpu.json)
             return False
-        why = None
         if self.engine.estimating:
-            why = "the cell count adapts per set (pass fixed cells or let fit() pick them)"
-        for seg in self.core.segments:
-            for f, neutral in UNDIFFERENTIATED_FIELDS.items():
-                values = [getattr(seg, f, neutral)] + [self.fixed[k] for k in self.fixed if k == f"{seg.name}.{f}"]
-                if any(np.any(np.asarray(v) != neutral) for v in values) and not (
-                    f == "viscous_shape_factor" and seg.pore_model == "plates"
-                ):
-                    why = f"{seg.name}.{f} is on"
-        varied = [k for k in engine_names if field_of(k) in UNDIFFERENTIATED_FIELDS and k not in self.fixed]
-        if varied:
-            why = f"{varied[0]} is fitted"
-        if why is not None and jacobian == "tangent":
-            raise ValueError(
-                f"jacobian='tangent': {why}; the tangent cascade does not differentiate "
-                f"{sorted(UNDIFFERENTIATED_FIELDS)} (use 'difference' or 'auto')"
-            )
-        return why is None
+            if jacobian == "tangent":
+                raise ValueError(
+                    "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
+                )
+            return False
+        return True
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
