@@ -1,0 +1,707 @@
+"""Engine networks on Warp: the boundary determinant, complex eigenfrequencies and onsets of
+many designs at once, one thread per design (:mod:`tawarp.model.network_batch`).
+
+The equations are those of the NumPy reference (:mod:`tawarp.model.network_reference`),
+convention exp(-i omega t); the segments' A(x) is :func:`tawarp.kernels.acoustics.propagation_complex`
+(the one A of every path):
+
+* a distributed segment at uniform temperature and section is ``exp(A L)``
+  (:func:`~tawarp.kernels.acoustics.expm2`); with a linear temperature or a cone, ``cells``
+  sixth-order Magnus steps on three Gauss points each;
+* a compliance ``[[1, 0], [Y, 1]]``, ``Y = i omega V (1 + (gamma - 1) f_k) / (gamma p_m)``,
+  ``f_k = (1 + i) delta_k A_surface / (2 V)``; an inertance ``[[1, a12 l], [0, 1]]``;
+* the unknowns ``(p, Zs U)`` at every branch's start and the rows of the ends and junctions
+  (:func:`network_det`), in a complex matrix of at most :data:`MAX_ROWS` rows, whose
+  determinant comes from Gaussian elimination with partial pivoting.
+
+Tables (built by :func:`tawarp.model.network_batch.compile_network`):
+
+* per design ``seg[i, s, F]`` with the fields below (a temperature is ``T = a + b T_hot``)
+  and ``design[i, D]`` (p_mean, Zs);
+* shared: ``seg_kind``, ``seg_model`` (pore model) per segment, ``branch_first`` (B + 1),
+  and per node ``node_first`` into the incidence lists ``inc_branch``, ``inc_side``
+  (0 start, 1 end), ``node_kind`` (-1 junction, else an end kind), ``node_par`` (2 numbers
+  per node: the radiation coefficients of an open end, Z of an impedance end, R and V of a
+  load) and ``node_seg`` (the segment whose section and temperature the end sees).
+"""
+
+import warp as wp
+
+from .acoustics import CMat2, cmat2, expm2, identity2, magnus6_step, matmul2, part_geometry, point_coefficients
+from .acoustics import propagation_complex, scale2
+from .cmath import cabs, cdiv, cmul, cmuli, cplx, cscale, csqrt
+from .forward import GAUSS, PI
+from .gas import G_CP, G_GAMMA, conductivity, density, sound_speed_squared
+
+wp.set_module_options({"enable_backward": False})
+
+# segment fields
+(
+    F_LENGTH,
+    F_AREA0,
+    F_AREA1,
+    F_POROSITY,
+    F_PORE_RADIUS,
+    F_TORTUOSITY,
+    F_T0A,
+    F_T0B,
+    F_T1A,
+    F_T1B,
+    F_VOLUME,
+    F_SURFACE,
+) = range(12)
+N_FIELDS = 12
+# design fields
+D_P_MEAN, D_ZS = range(2)
+N_DESIGN = 2
+# segment kinds
+KIND_DISTRIBUTED = wp.constant(0)
+KIND_COMPLIANCE = wp.constant(1)
+KIND_INERTANCE = wp.constant(2)
+# node kinds (-1: junction)
+NODE_JUNCTION = wp.constant(-1)
+END_CLOSED = wp.constant(0)
+END_OPEN = wp.constant(1)
+END_IMPEDANCE = wp.constant(2)
+END_LOAD = wp.constant(3)
+END_KINDS = {"closed": 0, "open": 1, "impedance": 2, "load": 3}
+#: Most rows of the boundary matrix: two per branch, so at most 4 branches.
+MAX_ROWS = 8
+CMatN = wp.types.matrix(shape=(MAX_ROWS, MAX_ROWS), dtype=wp.float64)
+
+
+@wp.func
+def mat_vec(m: CMat2, p: wp.vec2d, u: wp.vec2d):
+    return cmul(m.a, p) + cmul(m.b, u), cmul(m.c, p) + cmul(m.d, u)
+
+
+@wp.func
+def seg_temperature(seg: wp.array3d(dtype=wp.float64), i: int, s: int, end: int, T_hot: wp.float64):
+    """T [K] at the start (end = 0) or end (1) of segment s at hot temperature T_hot."""
+    if end == 0:
+        return seg[i, s, F_T0A] + seg[i, s, F_T0B] * T_hot
+    return seg[i, s, F_T1A] + seg[i, s, F_T1B] * T_hot
+
+
+@wp.func
+def point_matrix(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    model: int,
+    i: int,
+    s: int,
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T: wp.float64,
+    dTdx: wp.float64,
+    area: wp.float64,
+    porous: int,
+):
+    """A at one point of a distributed segment: a duct is one circular pore of its radius."""
+    one = wp.float64(1.0)
+    phi = one
+    q = one
+    r = wp.sqrt(area / PI)
+    if porous != 0:
+        phi = seg[i, s, F_POROSITY]
+        q = seg[i, s, F_TORTUOSITY]
+        r = seg[i, s, F_PORE_RADIUS]
+    pc = point_coefficients(gas, p_mean, T, dTdx, phi, r, q, area, r)
+    return propagation_complex(pc, part_geometry(phi, q, area, wp.float64(0.0), one), omega, gas[G_GAMMA], model)
+
+
+@wp.func
+def segment_matrix(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    cells: int,
+    i: int,
+    s: int,
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T_hot: wp.float64,
+):
+    """Transfer matrix of segment s of design i at complex omega and hot temperature T_hot."""
+    T0 = seg_temperature(seg, i, s, 0, T_hot)
+    T1 = seg_temperature(seg, i, s, 1, T_hot)
+    kind = seg_kind[s]
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    zero = cplx(wp.float64(0.0), wp.float64(0.0))
+    if kind == KIND_COMPLIANCE:
+        gamma = gas[G_GAMMA]
+        V = seg[i, s, F_VOLUME]
+        fk = zero
+        if seg[i, s, F_SURFACE] > wp.float64(0.0):
+            rho = density(gas, T0, p_mean)
+            dk = csqrt(cdiv(cplx(wp.float64(2.0) * conductivity(gas, T0) / (rho * gas[G_CP]), wp.float64(0.0)), omega))
+            fk = cscale(cmul(cplx(wp.float64(1.0), wp.float64(1.0)), dk), seg[i, s, F_SURFACE] / (wp.float64(2.0) * V))
+        Y = cmuli(cscale(cmul(omega, one + cscale(fk, gamma - wp.float64(1.0))), V / (gamma * p_mean)))
+        return cmat2(one, zero, Y, one)
+    L = seg[i, s, F_LENGTH]
+    A0 = seg[i, s, F_AREA0]
+    if kind == KIND_INERTANCE:
+        a = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0, wp.float64(0.0), A0, 0)
+        return cmat2(one, cscale(a.b, L), zero, one)
+    A1 = seg[i, s, F_AREA1]
+    porous = seg_porous[s]
+    if T0 == T1 and A0 == A1:
+        a = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0, wp.float64(0.0), A0, porous)
+        return expm2(scale2(a, L))
+    # linear temperature and radius: Magnus steps on ``cells`` equal cells
+    h = L / wp.float64(cells)
+    dTdx = (T1 - T0) / L
+    r0 = wp.sqrt(A0 / PI)
+    r1 = wp.sqrt(A1 / PI)
+    m = identity2()
+    for c in range(cells):
+        x0 = wp.float64(c) * h
+        xa = x0 + GAUSS[0] * h
+        xb = x0 + GAUSS[1] * h
+        xc = x0 + GAUSS[2] * h
+        ra = r0 + (r1 - r0) * xa / L
+        rb = r0 + (r1 - r0) * xb / L
+        rc = r0 + (r1 - r0) * xc / L
+        a1 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xa, dTdx, PI * ra * ra, porous)
+        a2 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xb, dTdx, PI * rb * rb, porous)
+        a3 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xc, dTdx, PI * rc * rc, porous)
+        m = matmul2(magnus6_step(a1, a2, a3, h), m)
+    return m
+
+
+@wp.func
+def end_impedance(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    kind: int,
+    par0: wp.float64,
+    par1: wp.float64,
+    i: int,
+    s: int,
+    side: int,
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T_hot: wp.float64,
+):
+    """Z [Pa s/m^3] of an open, impedance or load end (not a closed one) that sees segment s
+    at its ``side`` (0 start, 1 end)."""
+    if kind == END_IMPEDANCE:
+        return cplx(par0, par1)
+    T = seg_temperature(seg, i, s, side, T_hot)
+    if kind == END_LOAD:
+        # R + i gamma p_m / (omega V)
+        return cplx(par0, wp.float64(0.0)) + cmuli(cdiv(cplx(gas[G_GAMMA] * p_mean / par1, wp.float64(0.0)), omega))
+    area = seg[i, s, F_AREA0]
+    if side == 1:
+        area = seg[i, s, F_AREA1]
+    c = wp.sqrt(sound_speed_squared(gas, T))
+    ka = cscale(omega, wp.sqrt(area / PI) / c)
+    z0 = density(gas, T, p_mean) * c / area
+    # (rho c / S) (res (ka)^2 - i corr ka)
+    return cscale(cscale(cmul(ka, ka), par0) - cmuli(cscale(ka, par1)), z0)
+
+
+@wp.func
+def branch_matrix(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    cells: int,
+    i: int,
+    b: int,
+    p_mean: wp.float64,
+    omega: wp.vec2d,
+    T_hot: wp.float64,
+):
+    m = identity2()
+    for s in range(branch_first[b], branch_first[b + 1]):
+        m = matmul2(segment_matrix(gas, seg, seg_kind, seg_model, seg_porous, cells, i, s, p_mean, omega, T_hot), m)
+    return m
+
+
+@wp.func
+def side_rows(m: CMat2, side: int, zs: wp.float64):
+    """(p row, Zs U row) coefficients on (p0, Zs U0) of a branch at its start or end."""
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    zero = cplx(wp.float64(0.0), wp.float64(0.0))
+    if side == 0:
+        return one, zero, zero, one
+    return m.a, cscale(m.b, wp.float64(1.0) / zs), cscale(m.c, zs), m.d
+
+
+@wp.func
+def put(re: CMatN, im: CMatN, r: int, c: int, v: wp.vec2d):
+    re[r, c] = re[r, c] + v[0]
+    im[r, c] = im[r, c] + v[1]
+    return re, im
+
+
+@wp.func
+def complex_det(re: CMatN, im: CMatN, n: int):
+    """Determinant of the leading n x n block of the complex matrix (re, im) by Gaussian
+    elimination with partial pivoting."""
+    det = cplx(wp.float64(1.0), wp.float64(0.0))
+    for k in range(n):
+        piv = k
+        best = wp.float64(-1.0)
+        for r in range(k, n):
+            a = re[r, k] * re[r, k] + im[r, k] * im[r, k]
+            if a > best:
+                best = a
+                piv = r
+        if piv != k:
+            for c in range(n):
+                t = re[k, c]
+                re[k, c] = re[piv, c]
+                re[piv, c] = t
+                t = im[k, c]
+                im[k, c] = im[piv, c]
+                im[piv, c] = t
+            det = -det
+        d = cplx(re[k, k], im[k, k])
+        det = cmul(det, d)
+        if best == wp.float64(0.0):
+            return det
+        for r in range(k + 1, n):
+            f = cdiv(cplx(re[r, k], im[r, k]), d)
+            for c in range(k, n):
+                v = cmul(f, cplx(re[k, c], im[k, c]))
+                re[r, c] = re[r, c] - v[0]
+                im[r, c] = im[r, c] - v[1]
+    return det
+
+
+@wp.func
+def network_det(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    design: wp.array2d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    node_first: wp.array(dtype=wp.int32),
+    inc_branch: wp.array(dtype=wp.int32),
+    inc_side: wp.array(dtype=wp.int32),
+    node_kind: wp.array(dtype=wp.int32),
+    node_par: wp.array2d(dtype=wp.float64),
+    node_seg: wp.array(dtype=wp.int32),
+    cells: int,
+    i: int,
+    omega: wp.vec2d,
+    T_hot: wp.float64,
+):
+    """det of the boundary matrix of design i (:mod:`tawarp.model.network_reference`)."""
+    p_mean = design[i, D_P_MEAN]
+    zs = design[i, D_ZS]
+    n_branch = branch_first.shape[0] - 1
+    re = CMatN()
+    im = CMatN()
+    # the branch matrices, four complex numbers each, kept in rows of a scratch matrix
+    bm = CMatN()
+    bi = CMatN()
+    for b in range(n_branch):
+        m = branch_matrix(gas, seg, seg_kind, seg_model, seg_porous, branch_first, cells, i, b, p_mean, omega, T_hot)
+        bm[b, 0] = m.a[0]
+        bi[b, 0] = m.a[1]
+        bm[b, 1] = m.b[0]
+        bi[b, 1] = m.b[1]
+        bm[b, 2] = m.c[0]
+        bi[b, 2] = m.c[1]
+        bm[b, 3] = m.d[0]
+        bi[b, 3] = m.d[1]
+    row = int(0)
+    for node in range(node_first.shape[0] - 1):
+        k0 = node_first[node]
+        kind = node_kind[node]
+        if kind != NODE_JUNCTION:
+            b = inc_branch[k0]
+            side = inc_side[k0]
+            m = cmat2(
+                cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3])
+            )
+            pp, pu, up, uu = side_rows(m, side, zs)
+            sign = wp.float64(1.0)  # flow out of the network into the end
+            if side == 0:
+                sign = wp.float64(-1.0)
+            up = cscale(up, sign)
+            uu = cscale(uu, sign)
+            if kind == END_CLOSED:
+                re, im = put(re, im, row, 2 * b, up)
+                re, im = put(re, im, row, 2 * b + 1, uu)
+            else:
+                z = end_impedance(
+                    gas, seg, kind, node_par[node, 0], node_par[node, 1], i, node_seg[node], side, p_mean, omega, T_hot
+                )
+                zr = cscale(z, wp.float64(1.0) / zs)
+                re, im = put(re, im, row, 2 * b, pp - cmul(zr, up))
+                re, im = put(re, im, row, 2 * b + 1, pu - cmul(zr, uu))
+            row += 1
+            continue
+        b0 = inc_branch[k0]
+        m0 = cmat2(
+            cplx(bm[b0, 0], bi[b0, 0]),
+            cplx(bm[b0, 1], bi[b0, 1]),
+            cplx(bm[b0, 2], bi[b0, 2]),
+            cplx(bm[b0, 3], bi[b0, 3]),
+        )
+        p0p, p0u, u0p, u0u = side_rows(m0, inc_side[k0], zs)
+        flow_row = row + node_first[node + 1] - k0 - 1
+        for k in range(k0, node_first[node + 1]):
+            b = inc_branch[k]
+            m = cmat2(
+                cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3])
+            )
+            pp, pu, up, uu = side_rows(m, inc_side[k], zs)
+            if k > k0:
+                # p of the first branch end minus p of this one
+                r = row + k - k0 - 1
+                re, im = put(re, im, r, 2 * b0, p0p)
+                re, im = put(re, im, r, 2 * b0 + 1, p0u)
+                re, im = put(re, im, r, 2 * b, -pp)
+                re, im = put(re, im, r, 2 * b + 1, -pu)
+            sign = wp.float64(1.0)  # flow into the node
+            if inc_side[k] == 0:
+                sign = wp.float64(-1.0)
+            re, im = put(re, im, flow_row, 2 * b, cscale(up, sign))
+            re, im = put(re, im, flow_row, 2 * b + 1, cscale(uu, sign))
+        row = flow_row + 1
+    return complex_det(re, im, 2 * n_branch)
+
+
+@wp.kernel
+def det_kernel(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    design: wp.array2d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    node_first: wp.array(dtype=wp.int32),
+    inc_branch: wp.array(dtype=wp.int32),
+    inc_side: wp.array(dtype=wp.int32),
+    node_kind: wp.array(dtype=wp.int32),
+    node_par: wp.array2d(dtype=wp.float64),
+    node_seg: wp.array(dtype=wp.int32),
+    cells: int,
+    omega: wp.array(dtype=wp.vec2d),
+    T_hot: wp.array(dtype=wp.float64),
+    out: wp.array(dtype=wp.vec2d),
+):
+    i = wp.tid()
+    out[i] = network_det(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        omega[i],
+        T_hot[i],
+    )
+
+
+@wp.func
+def muller_root(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    design: wp.array2d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    node_first: wp.array(dtype=wp.int32),
+    inc_branch: wp.array(dtype=wp.int32),
+    inc_side: wp.array(dtype=wp.int32),
+    node_kind: wp.array(dtype=wp.int32),
+    node_par: wp.array2d(dtype=wp.float64),
+    node_seg: wp.array(dtype=wp.int32),
+    cells: int,
+    i: int,
+    guess: wp.vec2d,
+    T_hot: wp.float64,
+    spread: wp.float64,
+    rtol: wp.float64,
+    max_iter: int,
+):
+    """Muller's method on det(omega) at T_hot from guess (1 -+ spread) and guess (the
+    reference's :func:`tawarp.model.network_reference.muller`): (omega, steps, -1 if not
+    converged)."""
+    x0 = cscale(guess, wp.float64(1.0) - spread)
+    x1 = cscale(guess, wp.float64(1.0) + spread)
+    x2 = guess
+    y0 = network_det(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        x0,
+        T_hot,
+    )
+    y1 = network_det(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        x1,
+        T_hot,
+    )
+    y2 = network_det(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        x2,
+        T_hot,
+    )
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    for it in range(max_iter):
+        q = cdiv(x2 - x1, x1 - x0)
+        qq = cmul(q, q)
+        A = cmul(q, y2) - cmul(cmul(q, one + q), y1) + cmul(qq, y0)
+        B = cmul(cscale(q, wp.float64(2.0)) + one, y2) - cmul(cmul(one + q, one + q), y1) + cmul(qq, y0)
+        C = cmul(one + q, y2)
+        disc = csqrt(cmul(B, B) - cscale(cmul(A, C), wp.float64(4.0)))
+        den = B + disc
+        if cabs(B - disc) > cabs(B + disc):
+            den = B - disc
+        if cabs(den) == wp.float64(0.0):
+            return x2, -1
+        step = -cdiv(cscale(cmul(x2 - x1, C), wp.float64(2.0)), den)
+        x0 = x1
+        x1 = x2
+        x2 = x2 + step
+        y0 = y1
+        y1 = y2
+        y2 = network_det(
+            gas,
+            seg,
+            design,
+            seg_kind,
+            seg_model,
+            seg_porous,
+            branch_first,
+            node_first,
+            inc_branch,
+            inc_side,
+            node_kind,
+            node_par,
+            node_seg,
+            cells,
+            i,
+            x2,
+            T_hot,
+        )
+        if cabs(step) < rtol * cabs(x2):
+            return x2, it + 1
+    return x2, -1
+
+
+@wp.kernel
+def eigen_kernel(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    design: wp.array2d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    node_first: wp.array(dtype=wp.int32),
+    inc_branch: wp.array(dtype=wp.int32),
+    inc_side: wp.array(dtype=wp.int32),
+    node_kind: wp.array(dtype=wp.int32),
+    node_par: wp.array2d(dtype=wp.float64),
+    node_seg: wp.array(dtype=wp.int32),
+    cells: int,
+    guess: wp.array(dtype=wp.vec2d),
+    T_hot: wp.array(dtype=wp.float64),
+    spread: wp.float64,
+    rtol: wp.float64,
+    max_iter: int,
+    omega: wp.array(dtype=wp.vec2d),
+    iterations: wp.array(dtype=wp.int32),
+):
+    i = wp.tid()
+    w, it = muller_root(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        guess[i],
+        T_hot[i],
+        spread,
+        rtol,
+        max_iter,
+    )
+    omega[i] = w
+    iterations[i] = it
+
+
+@wp.kernel
+def onset_kernel(
+    gas: wp.array(dtype=wp.float64),
+    seg: wp.array3d(dtype=wp.float64),
+    design: wp.array2d(dtype=wp.float64),
+    seg_kind: wp.array(dtype=wp.int32),
+    seg_model: wp.array(dtype=wp.int32),
+    seg_porous: wp.array(dtype=wp.int32),
+    branch_first: wp.array(dtype=wp.int32),
+    node_first: wp.array(dtype=wp.int32),
+    inc_branch: wp.array(dtype=wp.int32),
+    inc_side: wp.array(dtype=wp.int32),
+    node_kind: wp.array(dtype=wp.int32),
+    node_par: wp.array2d(dtype=wp.float64),
+    node_seg: wp.array(dtype=wp.int32),
+    cells: int,
+    omega0: wp.array(dtype=wp.float64),
+    T0: wp.array(dtype=wp.float64),
+    rtol: wp.float64,
+    max_iter: int,
+    omega: wp.array(dtype=wp.float64),
+    T_hot: wp.array(dtype=wp.float64),
+    iterations: wp.array(dtype=wp.int32),
+):
+    """Onset (real omega, T_hot) of design i where det = 0, by Newton's method from a nearby
+    onset (omega0, T0) (:func:`tawarp.model.network_reference.onset_newton`: the same damped
+    steps, the omega-derivative complex, the T-derivative a forward difference)."""
+    i = wp.tid()
+    w = omega0[i]
+    T = T0[i]
+    zero = wp.float64(0.0)
+    iterations[i] = -1
+    for it in range(max_iter):
+        F = network_det(
+            gas,
+            seg,
+            design,
+            seg_kind,
+            seg_model,
+            seg_porous,
+            branch_first,
+            node_first,
+            inc_branch,
+            inc_side,
+            node_kind,
+            node_par,
+            node_seg,
+            cells,
+            i,
+            cplx(w, zero),
+            T,
+        )
+        hw = wp.float64(1e-7) * w
+        hT = wp.float64(1e-7) * T
+        Fw = network_det(
+            gas,
+            seg,
+            design,
+            seg_kind,
+            seg_model,
+            seg_porous,
+            branch_first,
+            node_first,
+            inc_branch,
+            inc_side,
+            node_kind,
+            node_par,
+            node_seg,
+            cells,
+            i,
+            cplx(w + hw, zero),
+            T,
+        )
+        FT = network_det(
+            gas,
+            seg,
+            design,
+            seg_kind,
+            seg_model,
+            seg_porous,
+            branch_first,
+            node_first,
+            inc_branch,
+            inc_side,
+            node_kind,
+            node_par,
+            node_seg,
+            cells,
+            i,
+            cplx(w, zero),
+            T + hT,
+        )
+        dw = cscale(Fw - F, wp.float64(1.0) / hw)
+        dT = cscale(FT - F, wp.float64(1.0) / hT)
+        jac = dw[0] * dT[1] - dT[0] * dw[1]
+        sw = (-F[0] * dT[1] + dT[0] * F[1]) / jac
+        sT = (-dw[0] * F[1] + F[0] * dw[1]) / jac
+        scale = wp.float64(1.0)
+        if wp.abs(sw) > wp.float64(0.1) * w:
+            scale = wp.min(scale, wp.float64(0.1) * w / wp.abs(sw))
+        if wp.abs(sT) > wp.float64(0.1) * T:
+            scale = wp.min(scale, wp.float64(0.1) * T / wp.abs(sT))
+        w = w + scale * sw
+        T = T + scale * sT
+        if wp.abs(sw) < rtol * w and wp.abs(sT) < rtol * T:
+            iterations[i] = it + 1
+            break
+    omega[i] = w
+    T_hot[i] = T
