@@ -614,6 +614,8 @@ def onset_kernel(
     cells: int,
     omega0: wp.array(dtype=wp.float64),
     T0: wp.array(dtype=wp.float64),
+    T_lo: wp.float64,
+    T_hi: wp.float64,
     rtol: wp.float64,
     max_iter: int,
     omega: wp.array(dtype=wp.float64),
@@ -622,12 +624,40 @@ def onset_kernel(
 ):
     """Onset (real omega, T_hot) of design i where det = 0, by Newton's method from a nearby
     onset (omega0, T0) (:func:`tawarp.model.network_reference.onset_newton`: the same damped
-    steps, the omega-derivative complex, the T-derivative a forward difference)."""
+    steps, the omega-derivative complex, the T-derivative a forward difference), started at
+    the real part of the design's own eigenfrequency at T0 (Muller from omega0). An iterate
+    outside [T_lo, T_hi] or farther than omega0 / 2 from omega0 (another mode) stops it:
+    iterations -1."""
     i = wp.tid()
-    w = omega0[i]
     T = T0[i]
     zero = wp.float64(0.0)
     iterations[i] = -1
+    # this design's own mode at T0 first (Muller from omega0): its real part starts Newton
+    wc, mit = muller_root(
+        gas,
+        seg,
+        design,
+        seg_kind,
+        seg_model,
+        seg_porous,
+        branch_first,
+        node_first,
+        inc_branch,
+        inc_side,
+        node_kind,
+        node_par,
+        node_seg,
+        cells,
+        i,
+        cplx(omega0[i], zero),
+        T,
+        wp.float64(1e-3),
+        rtol,
+        max_iter,
+    )
+    w = wc[0]
+    if mit < 0:
+        w = omega0[i]
     for it in range(max_iter):
         F = network_det(
             gas,
@@ -700,6 +730,8 @@ def onset_kernel(
             scale = wp.min(scale, wp.float64(0.1) * T / wp.abs(sT))
         w = w + scale * sw
         T = T + scale * sT
+        if T < T_lo or T > T_hi or wp.abs(w - omega0[i]) > wp.float64(0.5) * omega0[i]:
+            break
         if wp.abs(sw) < rtol * w and wp.abs(sT) < rtol * T:
             iterations[i] = it + 1
             break

@@ -212,17 +212,20 @@ class NetworkBatch:
         )
         return omega.numpy().view(np.complex128).ravel(), its.numpy()
 
-    def onset(self, omega0, T0, rtol: float = 1e-10, max_iter: int = 30) -> BatchOnset:
+    def onset(self, omega0, T0, rtol: float = 1e-10, max_iter: int = 30, T_range=None) -> BatchOnset:
         """Onset of every design by Newton's method on (omega, T_hot) from (``omega0`` [rad/s],
         ``T0`` [K]) (scalars or (n,)): a nearby design's onset, e.g. the nominal one of
-        :func:`tawarp.model.network_reference.onset`."""
+        :func:`tawarp.model.network_reference.onset`. An iterate outside ``T_range`` [K]
+        (default T_cold to 10 T_cold) or half omega0 away ends a design unconverged."""
+        T_lo, T_hi = T_range if T_range is not None else (self.net.gas.T_cold, 10 * self.net.gas.T_cold)
         omega = wp.empty(self.n, dtype=wp.float64, device=self.device)
         T = wp.empty(self.n, dtype=wp.float64, device=self.device)
         its = wp.empty(self.n, dtype=wp.int32, device=self.device)
         wp.launch(
             kn.onset_kernel,
             dim=self.n,
-            inputs=self.tables() + [self._real(omega0), self._real(T0), float(rtol), int(max_iter), omega, T, its],
+            inputs=self.tables()
+            + [self._real(omega0), self._real(T0), float(T_lo), float(T_hi), float(rtol), int(max_iter), omega, T, its],
             device=self.device,
         )
         return BatchOnset(omega.numpy(), T.numpy(), its.numpy())

@@ -396,15 +396,22 @@ def onset(
 
 
 def onset_newton(
-    net: Network, omega: float, T_hot: float, det=None, rtol: float = 1e-10, max_iter: int = 30
+    net: Network, omega: float, T_hot: float, det=None, rtol: float = 1e-10, max_iter: int = 30, T_range=None
 ) -> tuple[float, float]:
     """Onset ``(omega [rad/s], T_hot [K])`` by Newton's method on det(omega, T_hot) = 0 with
     omega real (two real equations, two real unknowns), started from a nearby onset (a
-    design's nominal one, for its perturbed draws): the omega-derivative is complex (det is
+    design's nominal one, for its perturbed draws), omega first moved to the real part of
+    the design's own root at that T_hot (:func:`muller`): the omega-derivative is complex (det is
     analytic), the T-derivative a forward difference. Raises RuntimeError unless the steps
-    fall below ``rtol`` relative within ``max_iter``."""
+    fall below ``rtol`` relative within ``max_iter``, or where an iterate leaves ``T_range``
+    [K] (default T_cold to 10 T_cold) or moves half of omega away (another mode)."""
     det = det if det is not None else (lambda w, T: determinant(net, w, T))
-    w, T = float(omega), float(T_hot)
+    T_lo, T_hi = T_range if T_range is not None else (net.gas.T_cold, 10 * net.gas.T_cold)
+    T = float(T_hot)
+    try:  # this design's own mode at T_hot first: its real part starts Newton
+        w = muller(lambda v: det(v, T), complex(omega), rtol=1e-10).real
+    except RuntimeError:
+        w = float(omega)
     for _ in range(max_iter):
         F = det(w, T)
         hw, hT = 1e-7 * w, 1e-7 * T
@@ -415,6 +422,8 @@ def onset_newton(
         # damped: never more than a tenth of omega or of T_hot per step
         scale = min(1.0, 0.1 * w / max(abs(step[0]), 1e-300), 0.1 * T / max(abs(step[1]), 1e-300))
         w, T = w + scale * step[0], T + scale * step[1]
+        if not (T_lo <= T <= T_hi) or abs(w - omega) > 0.5 * omega:
+            break
         if abs(step[0]) < rtol * w and abs(step[1]) < rtol * T:
             return w, T
     raise RuntimeError(f"{net.source}: Newton's onset did not converge from omega = {omega}, T_hot = {T_hot}")
