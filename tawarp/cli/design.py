@@ -436,6 +436,7 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
         T_max=args.T_max,
         amplitude=args.amplitude,
         catalogue=cat,
+        device=args.device,
     )
     d = res.to_dict()
     d["engine_changes"] = changes
@@ -452,7 +453,7 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
         _say(
             args,
             f"{r['material']:<12}{fmt(r['T_ratio_nominal']):>23}{fmt(r['T_ratio_median']):>9}"
-            f"{fmt(r['T_ratio_p05']) + '-' + fmt(r['T_ratio_p95']):>15}{fmt(r['Edot_produced_median_W']):>10}"
+            f"{fmt(r['T_ratio_p05']) + '-' + fmt(r['T_ratio_p95']):>15}{fmt(r['Edot_produced_nominal_W']):>10}"
             f"{r['p_best']:9.2f}",
         )
     _say(args, f"wrote {out}")

@@ -260,8 +260,8 @@ def rank_by_onset(
 class NetworkRankResult:
     """Ranking in an engine network (:func:`rank_by_network_onset`). ``table``: rows per
     material (rank by median onset ratio T_hot / T_cold, nominal / median / p05 / p95 ratio
-    (None: no onset up to T_max), median f_onset [Hz], median acoustic power produced in the
-    segment at onset with |p| = ``amplitude`` at ``node`` [W], ``p_no_onset``, ``p_best``,
+    (None: no onset up to T_max), median f_onset [Hz], the acoustic power produced in the
+    nominal segment at onset with |p| = ``amplitude`` at ``node`` [W], ``p_no_onset``, ``p_best``,
     ``p_beats``); ``samples``: {material: (n_samples,) ratio draws, inf where no onset}."""
 
     engine: str
@@ -299,20 +299,23 @@ def rank_by_network_onset(
     T_max: float | None = None,
     amplitude: float = 1e5,
     catalogue: Catalogue | None = None,
+    device=None,
 ) -> NetworkRankResult:
     """Rank ``materials`` by the onset temperature ratio of the network ``engine`` (a
     :class:`~tawarp.model.network.Network` or a file / bundled name) with each in its porous
     ``segment`` (porosity, pore radius, tortuosity, solid conductivity; a network segment has
     no lateral h). Each material's parameters are drawn ``n_samples`` times from its
     N(mean, covariance) (:func:`draw_parameter_sets`); the nominal onset follows the lowest
-    mode from T_cold up to ``T_max`` (default 4 T_cold), each draw is refined from it by
-    Newton's method (:func:`tawarp.model.network_reference.onset_newton`), or follows its own
-    path where that fails or the nominal does not start but the draw grows at T_max; a draw
-    without onset up to T_max counts as ratio = inf. Also reported: the acoustic power the segment
-    produces at onset, |p| = ``amplitude`` [Pa] at the network's first end (Edot out minus in,
-    :func:`tawarp.model.network_reference.power_budget`). CPU reference: seconds per draw."""
+    mode from T_cold up to ``T_max`` (default 4 T_cold) (:func:`tawarp.model.network_reference.onset`);
+    the draws are refined from it all at once on ``device``, one thread each
+    (:meth:`tawarp.model.network_batch.NetworkBatch.onset`). A draw that Newton loses, or
+    that grows at T_max where the nominal does not start, follows its own path on the host;
+    a draw without onset up to T_max counts as ratio = inf. Also reported: the acoustic
+    power the segment produces at the nominal onset, |p| = ``amplitude`` [Pa] at the
+    network's first end (Edot out minus in, :func:`tawarp.model.network_reference.power_budget`)."""
     from ..model import network_reference as nr
     from ..model.network import load_network
+    from ..model.network_batch import NetworkBatch
 
     net = load_network(engine) if isinstance(engine, str) else engine
     b, s = net.segment(segment)
@@ -329,7 +332,7 @@ def rank_by_network_onset(
     w_cold = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)[0]
     ratio = np.full((M, N + 1), np.inf)
     freq = np.full((M, N + 1), np.nan)
-    edot = np.full((M, N + 1), np.nan)
+    edot = np.full(M, np.nan)
 
     def followed(d):
         """(omega, T) at onset by the followed path, or None; and the path's root at T_max."""
@@ -337,27 +340,29 @@ def rank_by_network_onset(
         return (None if not np.isfinite(res.T_onset) else (res.omega.real, res.T_onset)), res.path.omega[-1]
 
     for i in range(M):
-        nominal, w_top = followed(net.replace(**{k: float(sets[k][i, 0]) for k in fields}))
+        nom = net.replace(**{k: float(sets[k][i, 0]) for k in fields})
+        nominal, w_top = followed(nom)
+        # with imposed temperatures the solid's conductivity enters Htot only, not the onset
+        acoustic = [k for k in fields if not k.endswith(".solid_conductivity")]
+        batch = NetworkBatch(net, {k: sets[k][i, 1:] for k in acoustic}, device=device)
+        found: list = [None] * N
+        if nominal is not None:
+            on = batch.onset(*nominal, T_range=(net.gas.T_cold, T_max))
+            found = [(on.omega[j], on.T_hot[j]) if on.iterations[j] > 0 else "follow" for j in range(N)]
+        else:
+            w, _ = batch.eigenfrequencies(w_top, T_max)
+            found = [None if w[j].imag < 0 else "follow" for j in range(N)]  # decaying at T_max: no onset
         for j in range(N + 1):
-            d = net.replace(**{k: float(sets[k][i, j]) for k in fields})
-            try:
-                if j == 0:
-                    found = nominal
-                elif nominal is not None:
-                    found = nr.onset_newton(d, *nominal)
-                elif nr.eigenfrequency(d, w_top, T_max).imag < 0:
-                    found = None  # still decaying at T_max, like the nominal
-                else:
-                    found = followed(d)[0]
-            except RuntimeError:
-                found = followed(d)[0]
-            if found is None or found[1] > T_max:
-                continue
-            w, T = found
-            ratio[i, j], freq[i, j] = T / d.gas.T_cold, w / (2 * np.pi)
-            starts = nr.mode_start_states(d, w, T, node) * amplitude
-            p_in, U_in = nr.segment_entry(d, segment, w, T, starts)
-            edot[i, j] = nr.power_budget(d, d.branches[b].segments[s], w, T, p_in, U_in).total
+            f = nominal if j == 0 else found[j - 1]
+            if f == "follow":  # the batched Newton lost it, or it may start: its own followed path
+                f = followed(net.replace(**{k: float(sets[k][i, j]) for k in fields}))[0]
+            if f is not None and f[1] <= T_max:
+                ratio[i, j], freq[i, j] = f[1] / net.gas.T_cold, f[0] / (2 * np.pi)
+        if nominal is not None:
+            w, T = nominal
+            starts = nr.mode_start_states(nom, w, T, node) * amplitude
+            p_in, U_in = nr.segment_entry(nom, segment, w, T, starts)
+            edot[i] = nr.power_budget(nom, nom.branches[b].segments[s], w, T, p_in, U_in).total
     draws = ratio[:, 1:]
     with np.errstate(invalid="ignore"):
         p05, p95 = np.percentile(draws, [5, 95], axis=1)
@@ -379,7 +384,7 @@ def rank_by_network_onset(
                 "T_ratio_p05": _none_if_inf(p05[i]),
                 "T_ratio_p95": _none_if_inf(p95[i]),
                 "f_onset_median_Hz": float(np.median(freq[i, 1:][ok])) if ok.any() else None,
-                "Edot_produced_median_W": float(np.median(edot[i, 1:][ok])) if ok.any() else None,
+                "Edot_produced_nominal_W": None if np.isnan(edot[i]) else float(edot[i]),
                 "p_no_onset": float(np.mean(~ok)),
                 "p_best": float(np.mean((best == i) & ~all_inf)),
                 "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i},
