@@ -39,3 +39,22 @@ def test_rank_by_onset_in_a_network_from_the_command_line(tmp_path):
     (row,) = doc["ranking"]
     assert row["material"] == "mesh" and 1.0 < row["T_ratio_nominal"] < 1000.0 / 325.0
     assert main(base + ["-o", str(out), "--quiet"]) == 2  # no segment 'stack' in the network
+
+
+def test_design_on_a_network_lowers_the_onset_ratio(tmp_path):
+    """``tawarp design traveling_wave --var regenerator.length=...``: the search's best onset
+    ratio is at most the file's (a box holding the file's 7.3 cm), and each kept design's
+    ratio is the followed onset of the network with its values (1e-8)."""
+    from tawarp.model import network_reference as nr
+    from tawarp.model.network import load_network
+
+    out = tmp_path / "d"
+    args = ["design", "traveling_wave", "--var", "regenerator.length=0.04:0.09", "--trials", "48", "--batch", "16"]
+    assert main(args + ["--segment", "regenerator", "--keep", "2", "--T-max", "900", "-o", str(out), "--quiet"]) == 0
+    doc = json.loads((out / "design.json").read_text())
+    best = doc["best"][0]
+    assert best["T_ratio"] <= doc["file_design"]["T_ratio"] + 1e-9
+    net = load_network("traveling_wave").replace(**best["params"])
+    (w0, *_) = nr.real_axis_modes(net, 40.0, 130.0, 90, T_hot=net.gas.T_cold)
+    assert abs(nr.onset(net, w0, T_max=900.0, n=8).ratio / best["T_ratio"] - 1) < 1e-8
+    assert best["Edot_produced_W"] > 0

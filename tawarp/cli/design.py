@@ -57,7 +57,11 @@ def _settings(args):
 
 
 def _add_space_args(p):
-    p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
+    p.add_argument(
+        "core",
+        help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam; tawarp design also takes "
+        "a network engine file (traveling_wave): the lowest onset T_hot / T_cold",
+    )
     p.add_argument("--var", action="append", help=VAR_HELP)
     p.add_argument(
         "--heat-input",
@@ -133,12 +137,65 @@ def _add_onset_args(p):
     )
 
 
+def _is_network(path: str) -> bool:
+    """``path`` names a network engine file (``[[branch]]`` tables), bundled or not."""
+    from ..model.core import bundled, read_toml
+    from ..model.network import is_network_file
+
+    if not Path(path).exists() and path not in bundled("engines"):
+        return False
+    return is_network_file(read_toml(path, "engines")[1])
+
+
+def _design_network(args) -> int:
+    """``tawarp design NETWORK.toml --var SEGMENT.FIELD=LOW:HIGH[:log] ...``: the lowest onset
+    T_hot / T_cold (:func:`tawarp.design.network_design.search_network`)."""
+    from ..design.network_design import search_network
+    from ..design.space import parse_variable
+    from ..io import write_json
+    from ..model.network import load_network
+
+    net = load_network(args.core)
+    variables = [parse_variable(v) for v in (args.var or [])]
+    if not variables:
+        raise ValueError("give at least one --var SEGMENT.FIELD=LOW:HIGH[:log]")
+    out = Path(args.output)
+    claim_outputs(out / "design.json", why="the design report")
+    out.mkdir(parents=True, exist_ok=True)
+    has_segment = any(s.name == args.segment for br in net.branches for s in br.segments)
+    report = search_network(
+        net,
+        variables,
+        n_trials=args.trials,
+        batch=args.batch,
+        seed=args.seed,
+        T_max=args.T_max,
+        device=args.device,
+        segment=args.segment if has_segment else None,
+        amplitude=args.amplitude,
+        keep=args.keep,
+    )
+    report["generator"] = f"{GENERATOR} design"
+    write_json(out / "design.json", report)
+    if report["best"]:
+        b = report["best"][0]
+        _say(args, f"best: T_hot/T_cold = {b['T_ratio']:.6g}, f = {b['f_onset_Hz']:.6g} Hz at {b['params']}")
+    _say(
+        args,
+        f"{report['evaluated']} designs, {report['designs_per_minute']:.3g}/min; "
+        f"the file's design: T_hot/T_cold = {report['file_design']['T_ratio']:.6g}; wrote {out / 'design.json'}",
+    )
+    return 0
+
+
 def cmd_design(args) -> int:
     from ..io import write_json
     from ..design.search import objective_definitions, search
     from ..design.storage import study_summary
     from ..design.plots import plot_best_profiles, plot_history, plot_pareto
 
+    if _is_network(args.core):
+        return _design_network(args)
     space = _space(args)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
     out = Path(args.output)
@@ -291,6 +348,19 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
         help="frequencies [Hz] of acoustic_loss, list or start:stop:count",
     )
     _add_onset_args(p)
+    p.add_argument(
+        "--T-max",
+        dest="T_max",
+        type=float,
+        default=None,
+        help="a network engine file: largest hot temperature searched [K] (default 4 T_cold)",
+    )
+    p.add_argument(
+        "--amplitude",
+        type=float,
+        default=1e5,
+        help="a network engine file: |p| [Pa] at its first end for --segment's acoustic power (default: %(default)s)",
+    )
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
     p.add_argument(
         "-o",
