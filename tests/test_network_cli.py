@@ -12,11 +12,20 @@ from tawarp.cli import main
 
 def test_onset_of_the_traveling_wave_engine_from_the_command_line(tmp_path):
     """The JSON's ratio is T_onset / T_cold, the followed growth rate changes sign around
-    T_onset, and the profiles' closed end carries no volume flow (1e-9 of the largest)."""
+    T_onset, and the profiles' closed end carries no volume flow (1e-9 of the largest); a
+    --var design's onset (batched) is the reference's Newton onset of that design (1e-9)."""
+    from tawarp.model import network_reference as nr
+    from tawarp.model.network import load_network
+
     out = tmp_path / "tw"
     args = ["onset", "traveling_wave", "--T-max", "700", "--bracket", "6", "--f-max", "120", "-o", str(out)]
-    assert main(args + ["--quiet", "--no-plots"]) == 0
+    assert main(args + ["--var", "regenerator.pore_radius=7e-5,9e-5", "--device", "cpu", "--quiet", "--no-plots"]) == 0
     doc = json.loads((out / "onset.json").read_text())
+    net = load_network("traveling_wave")
+    for s in doc["sets"]:
+        design = net.replace(**s["params"])
+        _, T = nr.onset_newton(design, 2 * np.pi * doc["f_onset_Hz"], doc["T_onset_K"])
+        assert abs(s["T_ratio"] / (T / net.gas.T_cold) - 1) < 1e-9
     assert abs(doc["T_ratio"] - doc["T_onset_K"] / doc["T_cold_K"]) < 1e-12
     T, g = np.array(doc["path"]["T_hot_K"]), np.array(doc["path"]["growth_rate_1_per_s"])
     assert np.all(g[T < doc["T_onset_K"]] < 0) and np.all(g[T > doc["T_onset_K"]] > 0)
