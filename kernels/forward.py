@@ -55,6 +55,7 @@ from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve
 from .layout import (
     F_POROUS,
     F_PORE_MODEL,
+    F_IMPOSED,
     F_THERMAL,
     HEAT_INPUT,
     LENGTH,
@@ -63,6 +64,8 @@ from .layout import (
     POROSITY,
     RADIUS,
     T_COLD,
+    T_END,
+    T_START,
     FRAME_MOBILITY,
     THERMAL_RADIUS_RATIO,
     TORTUOSITY,
@@ -165,6 +168,44 @@ def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
 
 
 @wp.func
+def imposed_temperature(params: wp.array2d(dtype=wp.float64), i: int, s: int, xi: wp.float64):
+    """(T [K], dT/dx [K/m]) at local position xi [m] of segment s with imposed
+    temperatures: linear from T_start at its start to T_end at its end."""
+    t0 = seg_value(params, i, s, T_START)
+    slope = (seg_value(params, i, s, T_END) - t0) / seg_value(params, i, s, LENGTH)
+    return t0 + slope * xi, slope
+
+
+@wp.func
+def temperature_varies(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
+    """True when the temperature may vary along segment s of set i: a segment of the heat
+    model, or imposed temperatures that differ at its ends (it then takes Magnus cells)."""
+    if flags[s, F_THERMAL] != 0:
+        return True
+    return flags[s, F_IMPOSED] != 0 and seg_value(params, i, s, T_START) != seg_value(params, i, s, T_END)
+
+
+@wp.func
+def temperature_scale(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+):
+    """(k [1/m], c [m/s]) of :func:`magnus_cell_count` for segment s of set i: the rate k at
+    which its temperature profile varies (the heat model's decay rate; |ln(T_end/T_start)|/L
+    for imposed temperatures) and its slowest sound speed (at T_cold; at the colder end)."""
+    if flags[s, F_IMPOSED] != 0:
+        t0 = seg_value(params, i, s, T_START)
+        t1 = seg_value(params, i, s, T_END)
+        k = wp.abs(wp.log(t1 / t0)) / seg_value(params, i, s, LENGTH)
+        return k, wp.sqrt(sound_speed_squared(gas, wp.min(t0, t1)))
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    return k, wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
+
+
+@wp.func
 def store_matrix(out: wp.array3d(dtype=wp.float64), i: int, j: int, m: CMat2):
     """out[i, j] = (Tpp, Tpu, Tup, Tuu) of m as (re, im) pairs."""
     out[i, j, 0] = m.a[0]
@@ -263,24 +304,24 @@ def segment_cells(
     i: int,
     s: int,
 ):
-    """Magnus cells of thermal segment s of set i: ``seg_cells[s]``, or where that is 0
-    :func:`magnus_cell_count` at ``density`` and the batch's highest angular frequency
+    """Magnus cells of segment s of set i, whose temperature varies
+    (:func:`temperature_varies`): ``seg_cells[s]``, or where that is 0
+    :func:`magnus_cell_count` (:func:`temperature_scale`) at ``density`` and the batch's highest angular frequency
     ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
     points (:func:`make_point_kernel`); the count's omega term is small beside its k term in a
     stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
     n_cells = seg_cells[s]
     if n_cells == 0:
-        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-        c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
-        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c_cold)
+        k, c = temperature_scale(params, flags, gas, i, s)
+        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c)
     return n_cells
 
 
 @wp.func
 def segment_uniform(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.int32), i: int, column: int, s: int):
     """True when segment s of set i is at uniform temperature on the grid of ``column``: it
-    is not thermal, or it has no Magnus cells (no heat input); its matrix is exp(A L)."""
-    return flags[s, F_THERMAL] == 0 or cells[i, column] == 0
+    has no Magnus cells (:func:`cell_counts`); its matrix is exp(A L)."""
+    return cells[i, column] == 0
 
 
 @wp.func
@@ -317,10 +358,10 @@ def cell_counts(
     ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
     most[1] its largest count of point-kernel slots (:func:`segment_slots`), most[2] the
     largest cell count of a segment (above :data:`MAX_CELLS`: refused on the host).
-    0 for a segment at uniform temperature: one that is not thermal, and every segment of a
-    set without heat input (its heat model has no source, so theta = 0 exactly and exp(A L)
-    is the segment's exact matrix: a two-step characterization's first fits, at Q = 0,
-    need no Magnus cell)."""
+    0 for a segment at uniform temperature: one that is neither thermal nor imposed with
+    different end temperatures, and every thermal segment of a set without heat input (its
+    heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
+    matrix: a two-step characterization's first fits, at Q = 0, need no Magnus cell)."""
     i = wp.tid()
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
@@ -329,7 +370,7 @@ def cell_counts(
     for column in range(cells.shape[1]):
         s = column % n_seg
         cells[i, column] = 0
-        if flags[s, F_THERMAL] != 0 and heated:
+        if temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
             density = cell_density[i] * wp.float64(1 + column // n_seg)
             cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
             wp.atomic_max(most, 2, cells[i, column])
@@ -358,7 +399,7 @@ def make_point_kernel(nonlinear: bool):
         """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
         (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
         grids (``cells``' column blocks), and in each over the segments in order: one point
-        (the cold temperature) for a part at uniform temperature, the three Gauss points
+        (the cold or the imposed temperature) for a part at uniform temperature, the three Gauss points
         x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
         (length h) for a thermal segment, a thread per cell (they share its heat cell's
         coefficients)."""
@@ -389,7 +430,17 @@ def make_point_kernel(nonlinear: bool):
         phi, r, q = pore_geometry(params, flags, i, s)
         r_k = thermal_radius(params, flags, i, s, r)
         n_cells = cells[i, column]
-        if not segment_uniform(flags, cells, i, column, s):
+        if segment_uniform(flags, cells, i, column, s):
+            T = T_cold
+            if flags[s, F_IMPOSED] != 0:
+                T = seg_value(params, i, s, T_START)
+            points[li, p] = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, area, r_k)
+        elif flags[s, F_IMPOSED] != 0:
+            h = seg_value(params, i, s, LENGTH) / wp.float64(n_cells)
+            for g in range(3):
+                T, dT = imposed_temperature(params, i, s, (wp.float64(rest) + GAUSS[g]) * h)
+                points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T, dT, phi, r, q, area, r_k)
+        else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             length = seg_value(params, i, s, LENGTH)
             h = length / wp.float64(n_cells)
@@ -413,8 +464,6 @@ def make_point_kernel(nonlinear: bool):
                     (wp.float64(rest) + GAUSS[g]) * h,
                 )
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
-        else:
-            points[li, p] = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, area, r_k)
 
     # a unique module does not inherit this file's module options
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
@@ -624,7 +673,7 @@ def profile_kernel(
     dTdx: wp.array2d(dtype=wp.float64),
 ):
     """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
-    cold temperature outside the thermal segments)."""
+    cold temperature outside the thermal segments and those with imposed temperatures)."""
     i, j = wp.tid()
     start = wp.float64(0.0)
     T[i, j] = params[T_COLD, i]
@@ -632,8 +681,13 @@ def profile_kernel(
     for s in range(flags.shape[0]):
         length = seg_value(params, i, s, LENGTH)
         xi = x[j] - start
-        if flags[s, F_THERMAL] != 0 and xi >= wp.float64(0.0) and xi <= length:
-            t, dt = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, xi)
-            T[i, j] = t
-            dTdx[i, j] = dt
+        if xi >= wp.float64(0.0) and xi <= length:
+            if flags[s, F_THERMAL] != 0:
+                t, dt = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, xi)
+                T[i, j] = t
+                dTdx[i, j] = dt
+            elif flags[s, F_IMPOSED] != 0:
+                t, dt = imposed_temperature(params, i, s, xi)
+                T[i, j] = t
+                dTdx[i, j] = dt
         start = start + length

@@ -30,10 +30,13 @@ LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
     VISCOUS_SHAPE_FACTOR,
     END_CONDUCTANCE,
 ) = range(6, 14)
-N_FIELDS = 14
-# structure flags per segment
-F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER = range(4)
-N_FLAGS = 4
+# imposed temperatures [K] at the segment's start and end (read where F_IMPOSED is set)
+T_START, T_END = range(14, 16)
+N_FIELDS = 16
+# structure flags per segment: F_THERMAL a segment of the heat model, F_IMPOSED one whose
+# temperature profile is imposed (linear from T_START to T_END)
+F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER, F_IMPOSED = range(5)
+N_FLAGS = 5
 
 _NG = wp.constant(N_GLOBAL)
 _NF = wp.constant(N_FIELDS)

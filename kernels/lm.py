@@ -30,10 +30,9 @@ from the same Warp functions (no host copy of the physics to drift):
 
 import warp as wp
 
-from .forward import magnus_cell_count
-from .gas import conductivity, sound_speed_squared, viscosity
-from .heat import segment_heat_coeffs
-from .layout import F_THERMAL, LENGTH, T_COLD, seg_value
+from .forward import magnus_cell_count, temperature_scale, temperature_varies
+from .gas import conductivity, viscosity
+from .layout import LENGTH, seg_value
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -51,16 +50,15 @@ def magnus_cells(
     """cells[i, s]: the Magnus cells the cascade kernel (``kernels.forward.transfer_kernel``)
     gives thermal segment s of parameter set i at angular frequency ``omega`` [rad/s],
     ``ceil(cell_density[i] (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
-    rate k of :func:`segment_heat_coeffs` (wall conductance and every other term included);
+    rate k of :func:`segment_heat_coeffs` (wall conductance and every other term included;
+    an imposed profile's rate for imposed temperatures, :func:`temperature_scale`);
     ``k_factor = 1`` is the kernel's own count, > 1 leaves room for k to grow. 0 for
-    non-thermal segments."""
+    segments at uniform temperature."""
     i, s = wp.tid()
     cells[i, s] = 0
-    if flags[s, F_THERMAL] != 0:
-        lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-        length = seg_value(params, i, s, LENGTH)
-        c_cold = wp.sqrt(sound_speed_squared(gas, params[T_COLD, i]))
-        cells[i, s] = magnus_cell_count(cell_density[i], k_factor * k, length, omega, c_cold)
+    if temperature_varies(params, flags, i, s):
+        k, c = temperature_scale(params, flags, gas, i, s)
+        cells[i, s] = magnus_cell_count(cell_density[i], k_factor * k, seg_value(params, i, s, LENGTH), omega, c)
 
 
 @wp.kernel(enable_backward=False)

@@ -7,8 +7,9 @@ parameter set finds omega where the end condition holds:
   closed ``(0, 1)``, open ``(1, 0)``, an impedance Z of the termination (U into the
   termination): right end ``(1, -Z)``, left end ``(1, Z)``;
 * the state starts at the left end as ``(p, U) = (b_L, -a_L)`` and is carried through the
-  left duct, the core (:func:`core_vector`, the cascade of :func:`tawarp.kernels.forward.transfer_kernel`
-  at complex omega) and the right duct; the residual is ``a_R p + b_R U`` at the right end
+  left duct, the core (:func:`core_vector`: each segment's 2x2 matrix at complex omega,
+  :func:`segment_matrix_complex`, whose temperature is imposed or from the heat model) and
+  the right duct; the residual is ``a_R p + b_R U`` at the right end
   (closed-closed: the Tup entry of the whole resonator's matrix);
 * Muller's method from three points around the start value finds its zero
   (:func:`eigen_kernel`); :func:`residual_kernel` evaluates the residual at given points,
@@ -25,18 +26,31 @@ from .acoustics import (
     CMat2,
     PartGeometry,
     expm2,
+    identity2,
     magnus6_step,
+    matmul2,
     part_geometry,
     point_coefficients,
     propagation_complex,
     scale2,
 )
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
-from .forward import GAUSS, PI, TWO_PI, magnus_cell_count, pore_geometry, segment_geometry, thermal_radius
-from .gas import G_GAMMA, sound_speed_squared
+from .forward import (
+    GAUSS,
+    PI,
+    TWO_PI,
+    imposed_temperature,
+    magnus_cell_count,
+    pore_geometry,
+    segment_geometry,
+    temperature_scale,
+    temperature_varies,
+    thermal_radius,
+)
+from .gas import G_GAMMA
 from .pore import PORE_CIRCULAR
 from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, temperature_at
-from .layout import F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, T_COLD, seg_value
+from .layout import F_IMPOSED, F_PORE_MODEL, F_THERMAL, LENGTH, P_MEAN, T_COLD, T_START, T_END, seg_value
 
 # no adjoint code: nothing differentiates through the eigenvalue search (it has runtime-count
 # loops), and generating it roughly doubles this large module's compile time
@@ -80,6 +94,69 @@ def duct_step(
 
 
 @wp.func
+def segment_matrix_complex(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    seg_cells: wp.array(dtype=wp.int32),
+    cell_density: wp.float64,
+    first: int,
+    heat_cells: int,
+    i: int,
+    s: int,
+    omega: wp.vec2d,
+    omega_ref: wp.float64,
+):
+    """The 2x2 transfer matrix of segment s of parameter set i at complex angular frequency
+    omega [rad/s] (re, im), exp(-i omega t): (p, U) at its end = M (p, U) at its start.
+
+    Its temperature is its imposed profile (T_start to T_end), the heat model's (thermal
+    segments, from the nodal excess ``theta`` of :func:`tawarp.kernels.forward.heat_kernel`,
+    whose heat cells start at ``first``, ``heat_cells`` per segment) or T_cold. At uniform
+    temperature M = exp(A L) (the closed form of docs/physics.md); where it varies, the
+    sixth-order Magnus cells of the forward cascade: ``seg_cells[s]``, or where 0
+    :func:`tawarp.kernels.forward.magnus_cell_count` at ``cell_density`` and the real
+    ``omega_ref`` [rad/s] (not omega: M is then one analytic function of omega). Batched
+    engines of any topology build on this matrix."""
+    p_mean = params[P_MEAN, i]
+    T_cold = params[T_COLD, i]
+    gamma = gas[G_GAMMA]
+    length = seg_value(params, i, s, LENGTH)
+    phi, r, q = pore_geometry(params, flags, i, s)
+    r_k = thermal_radius(params, flags, i, s, r)
+    geo = segment_geometry(params, flags, i, s)
+    model = flags[s, F_PORE_MODEL]
+    if not temperature_varies(params, flags, i, s):
+        T = T_cold
+        if flags[s, F_IMPOSED] != 0:
+            T = seg_value(params, i, s, T_START)
+        pc = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, geo.area, r_k)
+        return expm2(scale2(propagation_complex(pc, geo, omega, gamma, model), length))
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    nonlin = segment_nonlinear(params, i, s)
+    n_cells = seg_cells[s]
+    if n_cells == 0:
+        k_T, c = temperature_scale(params, flags, gas, i, s)
+        n_cells = magnus_cell_count(cell_density, k_T, length, omega_ref, c)
+    h = length / wp.float64(n_cells)
+    m = identity2()
+    for c in range(n_cells):
+        x0 = wp.float64(c) * h
+        a1 = gradient_matrix_complex(
+            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[0] * h, omega, r, r_k, geo
+        )
+        a2 = gradient_matrix_complex(
+            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[1] * h, omega, r, r_k, geo
+        )
+        a3 = gradient_matrix_complex(
+            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[2] * h, omega, r, r_k, geo
+        )
+        m = matmul2(magnus6_step(a1, a2, a3, h), m)
+    return m
+
+
+@wp.func
 def gradient_matrix_complex(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -87,27 +164,33 @@ def gradient_matrix_complex(
     theta: wp.array2d(dtype=wp.float64),
     i: int,
     s: int,
-    node0: int,
+    first: int,
     heat_cells: int,
     k: wp.float64,
     sigma: wp.float64,
-    dh: wp.float64,
+    nonlin: int,
     xi: wp.float64,
-    p_mean: wp.float64,
     omega: wp.vec2d,
-    T_cold: wp.float64,
     r: wp.float64,
     r_k: wp.float64,
     geo: PartGeometry,
-    model: int,
-    nonlin: int,
 ):
-    """A(x) at complex omega and local position xi [m] of thermal segment s whose heat cells
-    start at node0 (:func:`tawarp.kernels.acoustics.propagation_complex` at the
-    segment's profile)."""
-    th, dth = segment_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
-    pc = point_coefficients(gas, p_mean, T_cold + th, dth, geo.porosity, r, geo.tortuosity, geo.area, r_k)
-    return propagation_complex(pc, geo, omega, gas[G_GAMMA], model)
+    """A(x) at complex omega and local position xi [m] of segment s whose temperature
+    varies (:func:`segment_matrix_complex`): its imposed profile, or the heat model's with
+    the segment's (k, sigma) and ``nonlin`` (:func:`tawarp.kernels.heat.segment_profile`)."""
+    T = wp.float64(0.0)
+    dT = wp.float64(0.0)
+    if flags[s, F_IMPOSED] != 0:
+        T, dT = imposed_temperature(params, i, s, xi)
+    else:
+        dh = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
+        th, dth = segment_profile(
+            params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells, k, sigma, dh, nonlin, xi
+        )
+        T = params[T_COLD, i] + th
+        dT = dth
+    pc = point_coefficients(gas, params[P_MEAN, i], T, dT, geo.porosity, r, geo.tortuosity, geo.area, r_k)
+    return propagation_complex(pc, geo, omega, gas[G_GAMMA], flags[s, F_PORE_MODEL])
 
 
 @wp.func
@@ -126,104 +209,17 @@ def core_vector(
     p_in: wp.vec2d,
     u_in: wp.vec2d,
 ):
-    """(p, U) at x6 from (p, U) at x1 through the core of set i at complex omega: the
-    segment walk of ``transfer_kernel`` (same cells, same Magnus scheme), applied to a vector.
+    """(p, U) at x6 from (p, U) at x1 through the core of set i at complex omega: each
+    segment's :func:`segment_matrix_complex` in turn (the cells of ``transfer_kernel``).
     Adaptive cell counts use the real ``omega_ref`` [rad/s]."""
-    p_mean = params[P_MEAN, i]
-    T_cold = params[T_COLD, i]
     # loop-carried state as fresh locals (Warp carries reassigned variables through dynamic loops)
     p = wp.vec2d(p_in[0], p_in[1])
     u = wp.vec2d(u_in[0], u_in[1])
     for s in range(flags.shape[0]):
-        length = seg_value(params, i, s, LENGTH)
-        phi, r, q = pore_geometry(params, flags, i, s)
-        r_k = thermal_radius(params, flags, i, s, r)
-        geo = segment_geometry(params, flags, i, s)
-        model = flags[s, F_PORE_MODEL]
-        if flags[s, F_THERMAL] == 0:
-            pc = point_coefficients(gas, p_mean, T_cold, wp.float64(0.0), phi, r, q, geo.area, r_k)
-            a = propagation_complex(pc, geo, omega, gas[G_GAMMA], model)
-            p, u = mat_vec(expm2(scale2(a, length)), p, u)
-        else:
-            lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-            dh = length / wp.float64(heat_cells)
-            node0 = (s - first) * heat_cells
-            nonlin = segment_nonlinear(params, i, s)
-            n_cells = seg_cells[s]
-            if n_cells == 0:
-                c_cold = wp.sqrt(sound_speed_squared(gas, T_cold))
-                n_cells = magnus_cell_count(cell_density, k, length, omega_ref, c_cold)
-            h = length / wp.float64(n_cells)
-            for c in range(n_cells):
-                x0 = wp.float64(c) * h
-                a1 = gradient_matrix_complex(
-                    params,
-                    flags,
-                    gas,
-                    theta,
-                    i,
-                    s,
-                    node0,
-                    heat_cells,
-                    k,
-                    sigma,
-                    dh,
-                    x0 + GAUSS[0] * h,
-                    p_mean,
-                    omega,
-                    T_cold,
-                    r,
-                    r_k,
-                    geo,
-                    model,
-                    nonlin,
-                )
-                a2 = gradient_matrix_complex(
-                    params,
-                    flags,
-                    gas,
-                    theta,
-                    i,
-                    s,
-                    node0,
-                    heat_cells,
-                    k,
-                    sigma,
-                    dh,
-                    x0 + GAUSS[1] * h,
-                    p_mean,
-                    omega,
-                    T_cold,
-                    r,
-                    r_k,
-                    geo,
-                    model,
-                    nonlin,
-                )
-                a3 = gradient_matrix_complex(
-                    params,
-                    flags,
-                    gas,
-                    theta,
-                    i,
-                    s,
-                    node0,
-                    heat_cells,
-                    k,
-                    sigma,
-                    dh,
-                    x0 + GAUSS[2] * h,
-                    p_mean,
-                    omega,
-                    T_cold,
-                    r,
-                    r_k,
-                    geo,
-                    model,
-                    nonlin,
-                )
-                m = magnus6_step(a1, a2, a3, h)
-                p, u = mat_vec(m, p, u)
+        m = segment_matrix_complex(
+            params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, i, s, omega, omega_ref
+        )
+        p, u = mat_vec(m, p, u)
     return p, u
 
 
@@ -448,13 +444,16 @@ def hot_kernel(
     heat_cells: int,
     out: wp.array(dtype=wp.float64),
 ):
-    """out[i]: the largest steady temperature [K] of set i. In each heat cell the profile
+    """out[i]: the largest steady temperature [K] of set i, imposed temperatures included. In
+    each heat cell the profile
     has at most one interior maximum (a cosh plus a constant, or the Kirchhoff cell's
     smooth profile): the cell's ends, and where dT/dx goes from > 0 to < 0 across the cell,
     the zero of dT/dx by bisection (60 halvings: the cell length times 1e-18)."""
     i = wp.tid()
     best = params[T_COLD, i]
     for s in range(flags.shape[0]):
+        if flags[s, F_IMPOSED] != 0:
+            best = wp.max(best, wp.max(seg_value(params, i, s, T_START), seg_value(params, i, s, T_END)))
         if flags[s, F_THERMAL] != 0:
             dh = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
             for c in range(heat_cells):

@@ -747,6 +747,9 @@ def _segment_matrices(
     core: Core, w: np.ndarray, heat_input: float, rtol: float, heat_tol: float, _force_ode: bool
 ) -> list[np.ndarray]:
     """:func:`segment_transfer_matrices` at angular frequencies ``w`` [rad/s], real or complex."""
+    imposed = [s.name for s in core.segments if s.imposed]
+    if imposed:
+        raise NotImplementedError(f"{core.source}: the reference has no imposed temperatures ({imposed})")
     hs = heat_profile(core, heat_input, heat_tol)
     heated = set(hs.indices) if heat_input != 0.0 else set()
     pos = core.positions()

@@ -68,7 +68,8 @@ def test_every_field_rejects_a_value_outside_its_range(f):
 
 def test_parameter_names_follow_the_table():
     """A duct has its length; a thermal duct h and the thermal effects; a porous
-    segment its geometry and the porous effects; in the table's order."""
+    segment its geometry and the porous effects; a segment with imposed temperatures
+    T_start and T_end; in the table's order."""
     duct = Segment("d", "duct", 0.03)
     hot_duct = Segment("t", "duct", 0.1, thermal=True, h=0.2)
     stack = Segment("s", "porous", 0.04, porosity=0.8, pore_radius=1e-4, thermal=True, h=50.0)
@@ -81,7 +82,9 @@ def test_parameter_names_follow_the_table():
         "wall_conductance",
         "end_conductance",
     )
-    assert segment_parameter_fields(stack) == tuple(f.name for f in SEGMENT_FIELD_TABLE)
+    assert segment_parameter_fields(stack) == tuple(f.name for f in SEGMENT_FIELD_TABLE if f.applies != "imposed")
+    imposed = Segment("i", "porous", 0.04, porosity=0.8, pore_radius=1e-4, T_start=300.0, T_end=600.0)
+    assert segment_parameter_fields(imposed)[-2:] == ("T_start", "T_end")
     passive = Segment("p", "porous", 0.04, porosity=0.8, pore_radius=1e-4)
     assert "radiative_conductivity" not in segment_parameter_fields(passive)
     assert all(takes(f, True, False) for f in SEGMENT_FIELD_TABLE if f.name in segment_parameter_fields(passive))

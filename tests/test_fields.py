@@ -34,7 +34,8 @@ def test_neutral_values_are_the_segment_defaults():
     s = Segment("s", "porous", 0.04, porosity=0.8, pore_radius=1e-4, thermal=True)
     assert EFFECT_OFF and all(getattr(s, k) == v for k, v in EFFECT_OFF.items())
     base = {f.name for f in SEGMENT_FIELD_TABLE if not f.is_effect}
-    assert base == {"length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h"}
+    assert base == {"length", "porosity", "pore_radius", "tortuosity", "solid_conductivity", "h", "T_start", "T_end"}
+    assert math.isnan(s.T_start) and math.isnan(s.T_end) and not s.imposed
     assert set(NONLINEAR_FIELDS) == {"conductivity_exponent", "radiative_conductivity", "h_convection"}
 
 

@@ -129,6 +129,47 @@ def test_core_cascade_complex_omega():
     assert np.max(np.abs(K - R) / np.abs(R)) < 1e-6
 
 
+def _imposed_ceramic():
+    """The ceramic core with its temperatures imposed instead of solved: 293.15 K -> 650 K
+    along the stack, 650 K in the hot exchanger, back to 293.15 K along the buffer tube."""
+    d = load_core("ceramic").to_dict()
+    hot = 650.0
+    for seg, (t0, t1) in zip(d["segment"][1:4], [(293.15, hot), (hot, hot), (hot, 293.15)]):
+        for k in ("thermal", "heater", "h"):
+            seg.pop(k, None)
+        seg.update(T_start=t0, T_end=t1)
+    return core_from_dict(d, "<imposed ceramic>")
+
+
+@pytest.mark.parametrize(
+    "core, Q",
+    [
+        # every effect of A at once: limp frame, shape factor, separate thermal radius
+        (
+            load_core("rvc_foam").replace(
+                **{
+                    "stack.frame_mobility": 0.03,
+                    "stack.viscous_shape_factor": 1.4,
+                    "stack.thermal_radius_ratio": 1.8,
+                }
+            ),
+            20.0,
+        ),
+        # imposed temperatures: a graded stack and buffer tube, a uniform hot exchanger
+        (_imposed_ceramic(), 0.0),
+    ],
+    ids=["effects", "imposed"],
+)
+def test_complex_walk_equals_the_cascade_at_real_omega(core, Q):
+    """The onset's segment matrices (A at complex omega) at real omega are transfer_matrices'
+    T (A at real omega, the tabulated pore functions) to 1e-13: both evaluate the one
+    propagation_entries, so every effect is in both."""
+    f = np.array([45.0, 320.0])
+    K = _core_matrix(core, Q, 2 * np.pi * f)
+    T = transfer_matrices(core, f, Q, cells=16, device=DEVICE).T[0]
+    assert np.max(np.abs(K - T) / np.abs(T)) < 1e-13
+
+
 def _tube(length=0.3, radius=0.0167):
     return core_from_dict(
         {

@@ -169,7 +169,7 @@ def _design_network(args) -> int:
         n_trials=args.trials,
         batch=args.batch,
         seed=args.seed,
-        T_max=args.T_max,
+        T_max=args.T_ratio_max * net.gas.T_cold,
         device=args.device,
         segment=args.segment if has_segment else None,
         amplitude=args.amplitude,
@@ -349,11 +349,11 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
     )
     _add_onset_args(p)
     p.add_argument(
-        "--T-max",
-        dest="T_max",
+        "--T-ratio-max",
+        dest="T_ratio_max",
         type=float,
-        default=None,
-        help="a network engine file: largest hot temperature searched [K] (default 4 T_cold)",
+        default=4.0,
+        help="a network engine file: largest T_hot/T_cold searched (default: %(default)s)",
     )
     p.add_argument(
         "--amplitude",
@@ -503,7 +503,7 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
         segment=args.segment,
         n_samples=args.samples if args.samples is not None else 30,
         seed=args.seed,
-        T_max=args.T_max,
+        T_max=args.T_ratio_max * net.gas.T_cold,
         amplitude=args.amplitude,
         catalogue=cat,
         device=args.device,
@@ -553,11 +553,11 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
         "(default: %(default)s); a network (traveling_wave) ranks by the onset T_hot / T_cold",
     )
     p.add_argument(
-        "--T-max",
-        dest="T_max",
+        "--T-ratio-max",
+        dest="T_ratio_max",
         type=float,
-        default=None,
-        help="--by onset, network: largest hot temperature searched [K] (default 4 T_cold)",
+        default=4.0,
+        help="--by onset, network: largest T_hot/T_cold searched (default: %(default)s)",
     )
     p.add_argument(
         "--amplitude",

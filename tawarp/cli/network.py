@@ -39,7 +39,7 @@ def cmd_network_onset(args) -> int:
     from ..model.network_reference import onset, profiles
 
     net = load_network(args.engine)
-    T_max = args.T_max if args.T_max is not None else 4.0 * net.gas.T_cold
+    T_max = args.T_ratio_max * net.gas.T_cold
     w0 = _start(net, args.mode, args.f_max)
     res = onset(net, w0, T_max=T_max, n=args.bracket)
     out = Path(args.output)
@@ -98,7 +98,7 @@ def _batched_sets(args, net, res, T_max: float) -> list[dict]:
     from .onset import _parse_vars
 
     if not math.isfinite(res.T_onset):
-        raise ValueError(f"{net.source}: the file's design does not start up to T_max; --var needs its onset")
+        raise ValueError(f"{net.source}: the file's design does not start up to --T-ratio-max; --var needs its onset")
     axes = _parse_vars(args.var)
     names = list(axes)
     combos = list(itertools.product(*axes.values()))

@@ -1,4 +1,5 @@
-"""``tawarp onset ENGINE.toml``: onset heat input, frequency and hot temperature of engines."""
+"""``tawarp onset ENGINE.toml``: onset heat input (or hot temperature), frequency and hot
+temperature of engines."""
 
 from __future__ import annotations
 
@@ -27,22 +28,33 @@ def add_onset_parser(sub) -> None:
         "or a bundled engine: standing_wave, traveling_wave, refrigerator",
     )
     p.add_argument(
-        "--T-max", type=float, default=None, help="network: largest hot temperature searched [K] (default 4 T_cold)"
-    )
-    p.add_argument(
         "--f-max", type=float, default=None, help="network: highest frequency searched for modes at T_cold [Hz]"
     )
     p.add_argument(
         "--amplitude", type=float, default=1e4, help="network: |p| [Pa] of the profiles at onset (default: %(default)s)"
     )
+    p.add_argument(
+        "--in",
+        dest="search",
+        choices=("heat_input", "T_hot"),
+        default="heat_input",
+        help="search the onset in the heat input, or in the hot temperature T_hot/T_cold of an engine "
+        "whose temperatures are imposed (T_start, T_end on its segments) (default: %(default)s)",
+    )
     p.add_argument("--Q-max", type=float, default=100.0, help="largest heat input searched [W] (default: %(default)s)")
+    p.add_argument(
+        "--T-ratio-max",
+        type=float,
+        default=4.0,
+        help="largest T_hot/T_cold searched with --in T_hot, or for a network (default: %(default)s)",
+    )
     p.add_argument("--mode", type=int, default=1, help="mode number, 1 = fundamental (default: %(default)s)")
     p.add_argument(
         "--bracket",
         type=int,
         default=21,
-        help="heat inputs on [0, Q-max] (a network: hot temperatures on [T_cold, T-max]) for the bracket "
-        "and the growth-rate curve (default: %(default)s)",
+        help="points of the searched range (heat input on [0, Q-max], or T_hot/T_cold on [1, T-ratio-max], "
+        "always so for a network) for the bracket and the growth-rate curve (default: %(default)s)",
     )
     p.add_argument(
         "--var",
@@ -86,42 +98,50 @@ def cmd_onset(args) -> int:
     names = list(axes)
     combos = list(itertools.product(*axes.values())) if names else [()]
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}
+    by_heat = args.search == "heat_input"
+    bound = {"Q_max": args.Q_max} if by_heat else {"T_ratio_max": args.T_ratio_max}
     res = onset(
         engine,
-        Q_max=args.Q_max,
         mode=args.mode,
         params=params,
         n_bracket=args.bracket,
         curve=True,
         cells=args.cells,
         device=args.device,
+        **bound,
     )
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     sets = []
-    head = "".join(f"{k:>22s}" for k in names) + f"{'Q_onset [W]':>14s}{'f_onset [Hz]':>14s}{'T_hot [K]':>12s}"
+    first = f"{'Q_onset [W]':>14s}" if by_heat else f"{'T_hot/T_cold':>14s}"
+    head = "".join(f"{k:>22s}" for k in names) + f"{first}{'f_onset [Hz]':>14s}{'T_hot [K]':>12s}"
     _say(args, head)
     for i, c in enumerate(combos):
         row = {
             "params": dict(zip(names, map(float, c))),
             "Q_onset_W": _finite(res.Q_onset[i]),
+            "T_ratio_onset": _finite(res.ratio_onset[i]),
             "f_onset_Hz": _finite(res.f_onset[i]),
             "T_hot_K": _finite(res.T_hot[i]),
             "growth_rate_1_per_s": res.omega_grid[i].imag,
             "frequency_Hz": res.omega_grid[i].real / (2 * math.pi),
         }
         sets.append(row)
-        _say(
-            args, "".join(f"{v:22.6g}" for v in c) + f"{res.Q_onset[i]:14.6g}{res.f_onset[i]:14.6g}{res.T_hot[i]:12.6g}"
-        )
+        onset_at = res.Q_onset[i] if by_heat else res.ratio_onset[i]
+        _say(args, "".join(f"{v:22.6g}" for v in c) + f"{onset_at:14.6g}{res.f_onset[i]:14.6g}{res.T_hot[i]:12.6g}")
+    grid = (
+        {"Q_max_W": args.Q_max, "Q_grid_W": res.grid}
+        if by_heat
+        else {"T_ratio_max": args.T_ratio_max, "T_ratio_grid": res.grid}
+    )
     write_json(
         out / "onset.json",
         {
             "engine": str(engine.source),
             "mode": args.mode,
-            "Q_max_W": args.Q_max,
-            "Q_grid_W": res.Q_grid,
-            "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; Q_onset null: no onset on [0, Q_max]",
+            "searched": res.searched,
+            **grid,
+            "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; an onset null: none on the range",
             "sets": sets,
         },
     )
@@ -141,11 +161,12 @@ def _plot_growth(res, combos, names, path, title):
     fig, ax = plt.subplots(figsize=(7, 4))
     for i, c in enumerate(combos):
         label = ", ".join(f"{k} = {v:g}" for k, v in zip(names, c)) or None
-        ax.plot(res.Q_grid, res.omega_grid[i].imag, "-o", ms=3, label=label)
-        if math.isfinite(res.Q_onset[i]):
-            ax.plot([res.Q_onset[i]], [0.0], "kx")
+        ax.plot(res.grid, res.omega_grid[i].imag, "-o", ms=3, label=label)
+        at = res.Q_onset[i] if res.searched == "heat_input" else res.ratio_onset[i]
+        if math.isfinite(at):
+            ax.plot([at], [0.0], "kx")
     ax.axhline(0.0, color="k", lw=0.6)
-    ax.set_xlabel("heat input Q [W]")
+    ax.set_xlabel(_axis(res))
     ax.set_ylabel("growth rate Im omega [1/s]")
     ax.set_title(f"{title}: growth rate (x: onset)")
     if names and len(combos) <= 12:
@@ -156,7 +177,7 @@ def _plot_growth(res, combos, names, path, title):
 def _plot_root_locus(res, combos, names, path, title):
     """Eigenfrequency in the complex plane (Re f [Hz], growth rate Im omega [1/s]) as the
     heat input goes from 0 to Q_max, points coloured by Q; the onset where a locus crosses
-    the real axis."""
+    the real axis (or as T_hot/T_cold rises, for a search in the hot temperature)."""
     import matplotlib.pyplot as plt
 
     from ..plots import save
@@ -167,14 +188,18 @@ def _plot_root_locus(res, combos, names, path, title):
     for i, c in enumerate(combos):
         label = ", ".join(f"{k} = {v:g}" for k, v in zip(names, c)) or None
         ax.plot(f[i], res.omega_grid[i].imag, "-", color=f"C{i % 10}", lw=1.0, label=label, zorder=1)
-        sc = ax.scatter(f[i], res.omega_grid[i].imag, c=res.Q_grid, cmap="viridis", s=14, zorder=2)
+        sc = ax.scatter(f[i], res.omega_grid[i].imag, c=res.grid, cmap="viridis", s=14, zorder=2)
         if math.isfinite(res.Q_onset[i]):
             ax.plot([res.f_onset[i]], [0.0], "kx", ms=8, zorder=3)
     ax.axhline(0.0, color="k", lw=0.6)
-    fig.colorbar(sc, ax=ax, label="heat input Q [W]")
+    fig.colorbar(sc, ax=ax, label=_axis(res))
     ax.set_xlabel("frequency Re omega / 2 pi [Hz]")
     ax.set_ylabel("growth rate Im omega [1/s] (> 0 grows)")
-    ax.set_title(f"{title}: root locus as Q rises (x: onset)")
+    ax.set_title(f"{title}: root locus as {'Q' if res.searched == 'heat_input' else 'T_hot'} rises (x: onset)")
     if names and len(combos) <= 12:
         ax.legend(fontsize=7)
     save(fig, path)
+
+
+def _axis(res) -> str:
+    return "heat input Q [W]" if res.searched == "heat_input" else "hot temperature T_hot / T_cold"

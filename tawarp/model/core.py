@@ -77,10 +77,17 @@ class Segment:
     frame_mobility: float = 0.0
     viscous_shape_factor: float = 1.0
     end_conductance: float = 0.0
+    T_start: float = math.nan
+    T_end: float = math.nan
 
     @property
     def is_porous(self) -> bool:
         return self.kind == "porous"
+
+    @property
+    def imposed(self) -> bool:
+        """True when the segment's temperatures are imposed (``T_start``, ``T_end``)."""
+        return not all(isinstance(t, float) and math.isnan(t) for t in (self.T_start, self.T_end))
 
 
 @dataclass(frozen=True)
@@ -192,6 +199,8 @@ class Core:
                 d.update(h=s.h, thermal=True)
             if s.heater:
                 d["heater"] = True
+            if s.imposed:
+                d.update(T_start=s.T_start, T_end=s.T_end)
             d.update({f: getattr(s, f) for f, off in EFFECT_OFF.items() if getattr(s, f) != off})
             out["segment"].append(d)
         tables = {"gas": out["gas"], "tube": out["tube"]} | {s["name"]: s for s in out["segment"]}
@@ -207,7 +216,7 @@ def segment_parameter_fields(s: Segment) -> tuple[str, ...]:
     """Fields of segment ``s`` that are parameters, in the table's order
     (:data:`tawarp.model.fields.SEGMENT_FIELD_TABLE`): a duct has its length (and ``h``
     and the thermal effects when thermal), a porous segment its geometry too."""
-    return tuple(f.name for f in SEGMENT_FIELD_TABLE if takes(f, s.is_porous, s.thermal))
+    return tuple(f.name for f in SEGMENT_FIELD_TABLE if takes(f, s.is_porous, s.thermal, s.imposed))
 
 
 def _split(name: str, source: str) -> tuple[str, str]:
@@ -276,6 +285,14 @@ def validate(core: Core) -> None:
                 check_values(fld, getattr(s, fld), f"{w}: {fld}")
             if s.pore_radius > core.radius:
                 raise CoreError(f"{w}: pore_radius {s.pore_radius} m exceeds the tube radius {core.radius} m")
+        if s.imposed:
+            for fld in ("T_start", "T_end"):
+                check_values(fld, getattr(s, fld), f"{w}: {fld}")
+            if s.thermal or s.heater:
+                raise CoreError(
+                    f"{w}: imposed temperatures (T_start, T_end) and {'heater' if s.heater else 'thermal'} = true: "
+                    f"a segment's temperature is imposed or solved by the heat model, not both"
+                )
         if s.heater and not s.thermal:
             raise CoreError(f"{w}: heater = true needs thermal = true")
         allowed = segment_parameter_fields(s)
@@ -291,8 +308,14 @@ def validate(core: Core) -> None:
         if thermal != list(range(thermal[0], thermal[-1] + 1)):
             raise CoreError(f"{src}: the thermal = true segments must be contiguous, got {[names[i] for i in thermal]}")
         heaters = [s.name for s in core.segments if s.heater]
+        if not heaters:
+            raise CoreError(
+                f"{src}: segment(s) {[names[i] for i in thermal]} are thermal without imposed temperatures: "
+                f"their profile needs the heat model, and then one of them with heater = true; or impose "
+                f"their temperatures with T_start and T_end (or T) [K]"
+            )
         if len(heaters) != 1:
-            raise CoreError(f"{src}: exactly one thermal segment must have heater = true, got {heaters or 'none'}")
+            raise CoreError(f"{src}: exactly one thermal segment must have heater = true, got {heaters}")
 
 
 # -- TOML ----------------------------------------------------------------------------
@@ -330,9 +353,10 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         for key in ("name", "kind", "length"):
             if key not in sd:
                 raise CoreError(f"{where}: missing key {key!r}")
-        bad = set(sd) - _SEGMENT_KEYS
+        bad = set(sd) - _SEGMENT_KEYS - {"T"}
         if bad:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")
+        sd = _imposed_temperatures(sd, f"{where} ({sd['name']!r})")
         sd = _declared(sd, sd["name"], SEGMENT_FIELDS, f"{where} ({sd['name']!r})", priors)
         if sd["kind"] == "duct":
             extra = ({"pore_model"} | {f.name for f in SEGMENT_FIELD_TABLE if "porous" in f.applies}) & set(sd)
@@ -357,6 +381,32 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
             f"as a parameter (Core.parameter_names); write a plain value"
         )
     return core
+
+
+def _imposed_temperatures(table: dict, where: str) -> dict:
+    """A [[segment]] table with its imposed temperatures as ``T_start`` and ``T_end``: ``T``
+    (uniform) gives both; ``thermal = true`` beside them is dropped (an imposed profile
+    replaces the heat model there). Errors name the key."""
+    out = dict(table)
+    keys = [k for k in ("T", "T_start", "T_end") if k in out]
+    if not keys:
+        return out
+    if "T" in out:
+        if len(keys) > 1:
+            raise CoreError(f"{where}: T (uniform) and {keys[1]} both given; write T, or T_start and T_end")
+        if isinstance(out["T"], dict):
+            raise CoreError(f"{where}: T takes a plain value [K]; declare priors on T_start and T_end")
+        out["T_start"] = out["T_end"] = out.pop("T")
+    elif len(keys) == 1:
+        missing = "T_end" if keys[0] == "T_start" else "T_start"
+        raise CoreError(f"{where}: {keys[0]} given without {missing}; a linear profile needs both (T: uniform) [K]")
+    if out.get("heater") is True:
+        raise CoreError(
+            f"{where}: heater = true with imposed temperatures; a heater heats the heat model's segments, "
+            f"whose temperatures are solved, not imposed"
+        )
+    out.pop("thermal", None)
+    return out
 
 
 def _declared(table: dict, owner: str, numeric, where: str, priors: dict) -> dict:

@@ -23,8 +23,9 @@ from ..kernels import layout
 if TYPE_CHECKING:  # numpy is imported where an array is made
     import numpy as np
 
-#: Which segments take a field: every segment, porous ones, thermal ones, thermal porous ones.
-APPLIES = ("all", "porous", "thermal", "thermal_porous")
+#: Which segments take a field: every segment, porous ones, thermal ones, thermal porous ones,
+#: those with imposed temperatures.
+APPLIES = ("all", "porous", "thermal", "thermal_porous", "imposed")
 
 
 @dataclass(frozen=True)
@@ -270,6 +271,28 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         description="heat flux H theta per section area drawn to T_cold at the heat model's end that lies in this "
         "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)",
     ),
+    Field(
+        "T_start",
+        layout.T_START,
+        "K",
+        0.0,
+        _INF,
+        True,
+        "imposed",
+        fit_range=(1.0, 1e4),
+        description="imposed temperature at the segment's start (a linear profile to T_end)",
+    ),
+    Field(
+        "T_end",
+        layout.T_END,
+        "K",
+        0.0,
+        _INF,
+        True,
+        "imposed",
+        fit_range=(1.0, 1e4),
+        description="imposed temperature at the segment's end",
+    ),
 )
 #: Core-wide fields, addressed ``gas.T_cold``, ``gas.p_mean``, ``tube.radius``.
 GLOBAL_FIELD_TABLE: dict[str, Field] = {
@@ -426,6 +449,8 @@ TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "h_convection": (0.0, 1e5),
     "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
+    "T_start": (1.0, 1e4),
+    "T_end": (1.0, 1e4),
 }
 
 SEGMENT_FIELDS: dict[str, Field] = {f.name: f for f in SEGMENT_FIELD_TABLE}
@@ -458,6 +483,12 @@ def field(name: str) -> Field:
     )
 
 
-def takes(f: Field, porous: bool, thermal: bool) -> bool:
+def takes(f: Field, porous: bool, thermal: bool, imposed: bool = False) -> bool:
     """True when a segment of that structure has field ``f``."""
-    return {"all": True, "porous": porous, "thermal": thermal, "thermal_porous": porous and thermal}[f.applies]
+    return {
+        "all": True,
+        "porous": porous,
+        "thermal": thermal,
+        "thermal_porous": porous and thermal,
+        "imposed": imposed,
+    }[f.applies]

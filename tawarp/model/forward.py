@@ -126,12 +126,13 @@ def base_table(core: Core) -> np.ndarray:
 
 
 def structure_flags(core: Core) -> np.ndarray:
-    """Per-segment structure (porous, pore model, thermal, heater) as int32 (nseg, 4)."""
+    """Per-segment structure (porous, pore model, thermal, heater, imposed temperatures) as
+    int32 (nseg, layout.N_FLAGS)."""
     from ..kernels.pore import PORE_MODELS
 
     return np.array(
         [
-            [s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater]
+            [s.is_porous, PORE_MODELS[s.pore_model if s.is_porous else "circular"], s.thermal, s.heater, s.imposed]
             for s in core.segments
         ],
         dtype=np.int32,
@@ -320,7 +321,9 @@ class Engine:
         self.seg_cells = wp.array(self.settings.cells_per_segment(core), dtype=wp.int32, device=dev)
         self.w_rows = wp.array(self.rows, dtype=wp.int32, device=dev)
         s = self.settings
-        self.estimating = s.cells is None and s.tolerance is not None and self.count > 0
+        # Magnus cells (and their error estimate) where a temperature varies along a segment
+        self.graded = self.count > 0 or any(seg.imposed for seg in core.segments)
+        self.estimating = s.cells is None and s.tolerance is not None and self.graded
         # the error estimate's frequencies: the grid's lowest, geometric middle and highest
         f = self.freqs
         self.sample = (
@@ -384,7 +387,7 @@ class Engine:
         if not wp.get_device(self.device).is_cpu:
             return 1
         threads = self.settings.cpu_threads or _usable_cores()
-        least = MIN_HEATED_MODELS_PER_THREAD if self.count else MIN_MODELS_PER_THREAD
+        least = MIN_HEATED_MODELS_PER_THREAD if self.graded else MIN_MODELS_PER_THREAD
         return max(1, min(threads, n, n * len(self.freqs) // least))
 
     def _threaded(self, one, table: np.ndarray, parts: int, stride: int = 1) -> list:

@@ -1,4 +1,4 @@
-"""Complex eigenfrequencies and onset heat input of engines, batched on Warp.
+"""Complex eigenfrequencies and onset heat input or hot temperature of engines, batched on Warp.
 
 >>> from tawarp.model.resonator import load_engine
 >>> from tawarp.model.onset import eigenfrequencies, onset
@@ -7,6 +7,11 @@
 >>> eig.frequency, eig.growth_rate          # Hz, 1/s (Im omega; > 0 grows)
 >>> res = onset(eng, Q_max=100.0, device="cpu")
 >>> res.Q_onset, res.f_onset, res.T_hot      # W, Hz, K
+
+An engine whose temperatures are imposed (segments with ``T_start``/``T_end``, docs/formats.md)
+has its onset in the hot temperature instead: ``onset(eng, T_ratio_max=3.0)`` scales every
+imposed temperature's excess over T_cold together, T_hot / T_cold from 1 to 3
+(:class:`TemperatureSearch`), and reports ``res.ratio_onset``.
 
 Convention exp(-i omega t): a mode grows when Im omega > 0 (docs/physics.md, "Onset"). One
 kernel thread per (parameter set, heat input) finds omega by Muller's method
@@ -68,28 +73,94 @@ class EigenResult:
 
 @dataclass
 class OnsetResult:
-    """Onset of a batch of n engines: ``Q_onset`` (n,) [W] (NaN where Im omega does not
-    cross 0 from below on [0, Q_max]), ``f_onset`` [Hz], ``T_hot`` [K] at onset,
-    ``omega_onset`` complex [rad/s]; the bracketing grid ``Q_grid`` (k,) [W] and
-    ``omega_grid`` (n, k) complex (NaN where not computed, see :func:`onset`);
-    ``refine_steps`` the refinement launches (Newton and fallback secant steps);
-    ``evaluations`` (n,) residual (cascade) evaluations spent on each set; ``fallback`` the
-    sets refined by the secant fallback instead of Newton."""
+    """Onset of a batch of n engines in the searched quantity (``searched``: "heat_input",
+    or "T_ratio" for imposed temperatures, :func:`onset`): ``Q_onset`` (n,) [W] (NaN where Im
+    omega does not cross 0 from below on the searched range, and for a search in the hot
+    temperature), ``ratio_onset`` (n,) T_hot / T_cold at onset, ``f_onset`` [Hz], ``T_hot``
+    [K] at onset, ``omega_onset`` complex [rad/s]; the bracketing ``grid`` (k,) of the
+    searched quantity (W, or T_hot / T_cold) and ``omega_grid`` (n, k) complex (NaN where
+    not computed, see :func:`onset`); ``refine_steps`` the refinement launches (Newton and
+    fallback secant steps); ``evaluations`` (n,) residual (cascade) evaluations spent on each
+    set; ``fallback`` the sets refined by the secant fallback instead of Newton."""
 
     Q_onset: np.ndarray
     f_onset: np.ndarray
     T_hot: np.ndarray
     omega_onset: np.ndarray
-    Q_grid: np.ndarray
+    grid: np.ndarray
     omega_grid: np.ndarray
     refine_steps: int
     evaluations: np.ndarray
     fallback: np.ndarray
+    ratio_onset: np.ndarray
+    searched: str = "heat_input"
+
+    @property
+    def Q_grid(self) -> np.ndarray:
+        """The heat inputs of the bracketing grid [W] (NaN for a search in the hot temperature)."""
+        return self.grid if self.searched == "heat_input" else np.full(self.grid.shape, np.nan)
 
     @property
     def mean_evaluations(self) -> float:
         """Residual (cascade) evaluations per onset, mean over the batch."""
         return float(np.mean(self.evaluations))
+
+
+class HeatSearch:
+    """Onset searched in the heat input Q [W] (row 0 of a batch table), from 0."""
+
+    name = "heat_input"
+    start = 0.0
+
+    def set(self, varying: np.ndarray, x: np.ndarray) -> None:
+        """Put the searched values ``x`` (one per column) into the batch table ``varying``."""
+        varying[0] = x
+
+
+class TemperatureSearch:
+    """Onset searched in the hot temperature of an engine whose temperatures are imposed:
+    at ratio x = T_hot / T_cold every imposed temperature T_k of the file becomes
+    T_cold (1 + e_k (x - 1)), e_k = (T_k - T_cold) / (T_hot - T_cold) its place in the file's
+    own profile (T_hot the file's largest imposed temperature, T_cold its gas.T_cold), so
+    that the largest is x T_cold; a set's own T_cold when the batch varies gas.T_cold. From
+    x = 1 (every part at T_cold)."""
+
+    name = "T_ratio"
+    start = 1.0
+
+    def __init__(self, engine: ThermoacousticEngine, params: dict):
+        core = engine.core
+        self.names = [f"{s.name}.{f}" for s in core.segments if s.imposed for f in ("T_start", "T_end")]
+        if not self.names:
+            raise CoreError(
+                f"{core.source}: onset in the hot temperature needs imposed temperatures (T_start, T_end or T "
+                f"on a [[segment]]); this engine has none (search in the heat input: Q_max)"
+            )
+        given = sorted(set(self.names) & set(params))
+        if given:
+            raise CoreError(
+                f"onset in the hot temperature sets the imposed temperatures itself; {given[0]} cannot vary in the batch"
+            )
+        values = np.array([core.get(k) for k in self.names])
+        t_cold = core.gas.T_cold
+        if not values.max() > t_cold:
+            raise CoreError(
+                f"{core.source}: no imposed temperature lies above gas.T_cold = {t_cold:g} K: the hot "
+                f"temperature has no profile to scale"
+            )
+        self.t_cold = t_cold
+        self.shape = (values - t_cold) / (values.max() - t_cold)
+        self.rows: np.ndarray | None = None
+        self.t_cold_row: int | None = None
+
+    def bind(self, names: list[str]) -> None:
+        """Rows of the batch table (row 0 heat input, then ``names``) the search writes and reads."""
+        self.rows = np.array([1 + names.index(k) for k in self.names])
+        self.t_cold_row = 1 + names.index("gas.T_cold") if "gas.T_cold" in names else None
+
+    def set(self, varying: np.ndarray, x: np.ndarray) -> None:
+        t_cold = varying[self.t_cold_row] if self.t_cold_row is not None else self.t_cold
+        varying[self.rows] = t_cold * (1 + self.shape[:, None] * (np.asarray(x) - 1))
 
 
 def _split_names(params: dict | None) -> tuple[dict, dict]:
@@ -121,7 +192,7 @@ class EigenSolver:
 
     def lossless_omega(self, params: np.ndarray, resonator: np.ndarray, mode: int) -> np.ndarray:
         """Start value [rad/s] per set: mode ``mode`` of the lossless resonator with the
-        same acoustic travel time tau (sum of q L / c at each part's cold temperature):
+        same acoustic travel time tau (sum of q L / c at each part's cold or imposed temperature):
         n pi / tau between ends of the same kind, (n - 1/2) pi / tau between a closed and
         an open end (an impedance end counts as closed)."""
         core = self.engine.core
@@ -132,7 +203,12 @@ class EigenSolver:
         for s, seg in enumerate(core.segments):
             row = layout.N_GLOBAL + s * layout.N_FIELDS
             q = params[row + layout.TORTUOSITY] if seg.is_porous else 1.0
-            tau = tau + q * params[row + layout.LENGTH] / c
+            if seg.imposed:  # int dx / c over a linear T(x): 2 L / (c(T_start) + c(T_end))
+                ends = np.sqrt(g.gamma * g.R_gas * params[row + layout.T_START])
+                ends = ends + np.sqrt(g.gamma * g.R_gas * params[row + layout.T_END])
+                tau = tau + 2 * q * params[row + layout.LENGTH] / ends
+            else:
+                tau = tau + q * params[row + layout.LENGTH] / c
         open_ends = (self.engine.left.kind == "open") + (self.engine.right.kind == "open")
         return (mode - 0.5 * (open_ends == 1)) * math.pi / tau
 
@@ -310,12 +386,13 @@ def eigenfrequencies(
     return res
 
 
-def _warn_unconverged(its: np.ndarray, q: np.ndarray) -> None:
+def _warn_unconverged(its: np.ndarray, q: np.ndarray, searched: str = HeatSearch.name) -> None:
     bad = np.flatnonzero(its < 0)
     if bad.size:
+        at = f"heat input {q[bad[0]]:g} W" if searched == HeatSearch.name else f"T_hot/T_cold {q[bad[0]]:g}"
         warnings.warn(
             f"eigenfrequency search did not converge for {bad.size} set(s), first: set {bad[0]} "
-            f"(heat input {q[bad[0]]:g} W); raise max_iter or give a closer guess",
+            f"({at}); raise max_iter or give a closer guess",
             RuntimeWarning,
             stacklevel=3,
         )
@@ -323,7 +400,7 @@ def _warn_unconverged(its: np.ndarray, q: np.ndarray) -> None:
 
 def onset(
     engine: ThermoacousticEngine,
-    Q_max: float,
+    Q_max: float | None = None,
     mode: int = 1,
     params: dict | None = None,
     n_bracket: int = 9,
@@ -333,13 +410,16 @@ def onset(
     grid_tol: float = 1e-6,
     newton_steps: int = 12,
     curve: bool = False,
+    T_ratio_max: float | None = None,
     **kw,
 ) -> OnsetResult:
-    """Onset heat input of mode ``mode`` for a batch of engines (``params`` as
-    :func:`eigenfrequencies`).
+    """Onset of mode ``mode`` for a batch of engines (``params`` as :func:`eigenfrequencies`)
+    in the heat input on [0, ``Q_max``] [W] or, for an engine with imposed temperatures, in
+    the hot temperature T_hot / T_cold on [1, ``T_ratio_max``] (:class:`TemperatureSearch`):
+    give one of the two. Below, Q is the searched quantity.
 
-    1. Bracket: Im omega on ``n_bracket`` heat inputs evenly spaced on [0, Q_max] [W],
-       marched from Q = 0 (the unheated mode), each point a Muller search to ``grid_tol``
+    1. Bracket: Im omega on ``n_bracket`` values of Q evenly spaced on its range,
+       marched from its start (the unheated mode), each point a Muller search to ``grid_tol``
        started from the linear extrapolation of the two before; a set stops at its first
        interval where Im omega goes from < 0 to >= 0 (``curve``: every set runs the whole
        grid, for the growth-rate curve).
@@ -350,14 +430,16 @@ def onset(
        that is not converged in ``newton_steps`` steps (0: every set) is refined by the
        Illinois secant on Q (a Muller search to 1e-13 per step, at most ``max_steps``).
 
-    Returns :class:`OnsetResult`; Q_onset is NaN where there is no such interval (already
-    growing at Q = 0, or stable up to Q_max). ``omega_grid`` holds the grid's eigenfrequencies
+    Returns :class:`OnsetResult`; its onset (Q_onset, or ratio_onset in the hot temperature) is
+    NaN where there is no such interval (already growing at the start, or stable up to the end). ``omega_grid`` holds the grid's eigenfrequencies
     to ``grid_tol`` |omega|; NaN past a set's bracket unless ``curve``."""
-    if not (Q_max > 0 and math.isfinite(Q_max)):
-        raise ValueError(f"Q_max [W] must be finite and > 0, got {Q_max}")
+    search, upper, params = _search(engine, Q_max, T_ratio_max, params)
     if n_bracket < 2:
         raise ValueError(f"n_bracket must be >= 2, got {n_bracket}")
     solver, varying, resonator = prepare(engine, 0.0, params, settings, **kw)
+    if isinstance(search, TemperatureSearch):
+        search.bind(solver.forward.names)
+    search.set(varying, search.start)
     n = varying.shape[1]
     base = solver.solve(varying, resonator, None, None, mode, tol=grid_tol, hot=False)
     _warn_unconverged(base.iterations, base.heat_input)
@@ -365,13 +447,13 @@ def onset(
     # the set (grid, Newton, secant) is then one analytic function of (omega, Q)
     w_ref = base.omega.real.copy()
     evals = base.evaluations.astype(np.int64)
-    Qg = np.linspace(0.0, Q_max, n_bracket)
+    Qg = np.linspace(search.start, upper, n_bracket)
 
     def at(idx: np.ndarray, Q: np.ndarray, guess: np.ndarray, tol: float) -> EigenResult:
         v = varying[:, idx].copy()
-        v[0] = Q
+        search.set(v, Q)
         r = solver.solve(v, resonator[idx], guess, w_ref[idx], tol=tol, hot=False)
-        _warn_unconverged(r.iterations, Q)
+        _warn_unconverged(r.iterations, np.broadcast_to(Q, idx.shape), search.name)
         evals[idx] += r.evaluations
         return r
 
@@ -393,7 +475,9 @@ def onset(
     Q_on = np.full(n, np.nan)
     w_on = np.full(n, np.nan + 0j)
     T_on = np.full(n, np.nan)
-    q, w, ok, steps = _newton_onset(solver, varying, resonator, w_ref, idx, br, rtol, newton_steps, grid_tol, evals)
+    q, w, ok, steps = _newton_onset(
+        solver, search, varying, resonator, w_ref, idx, br, rtol, newton_steps, grid_tol, evals
+    )
     Q_on[idx[ok]], w_on[idx[ok]] = q[ok], w[ok]
     fb = np.flatnonzero(~ok)
     if fb.size:
@@ -406,11 +490,33 @@ def onset(
                 RuntimeWarning,
                 stacklevel=2,
             )
+    ratio = np.full(n, np.nan)
     if idx.size:
         v = varying[:, idx].copy()
-        v[0] = Q_on[idx]
-        T_on[idx] = solver.hot_temperature(*solver.forward.heat(v))
-    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps, evals, idx[fb])
+        search.set(v, Q_on[idx])
+        table, theta = solver.forward.heat(v)
+        T_on[idx] = solver.hot_temperature(table, theta)
+        ratio[idx] = T_on[idx] / table.numpy()[layout.T_COLD]
+    if isinstance(search, TemperatureSearch):
+        Q_on = np.full(n, np.nan)
+    return OnsetResult(Q_on, w_on.real / (2 * math.pi), T_on, w_on, Qg, wg, steps, evals, idx[fb], ratio, search.name)
+
+
+def _search(engine: ThermoacousticEngine, Q_max, T_ratio_max, params: dict | None):
+    """(search, its upper end, the batch's params) of :func:`onset`, checked."""
+    params = dict(params or {})
+    if (Q_max is None) == (T_ratio_max is None):
+        raise ValueError("onset: give Q_max [W] (search in the heat input) or T_ratio_max (in T_hot/T_cold), one")
+    if Q_max is not None:
+        if not (Q_max > 0 and math.isfinite(Q_max)):
+            raise ValueError(f"Q_max [W] must be finite and > 0, got {Q_max}")
+        return HeatSearch(), float(Q_max), params
+    if not (T_ratio_max > 1 and math.isfinite(T_ratio_max)):
+        raise ValueError(f"T_ratio_max (T_hot/T_cold) must be finite and > 1, got {T_ratio_max}")
+    search = TemperatureSearch(engine, params)
+    # the imposed temperatures vary with the search: rows of the batch table
+    params.update({k: engine.core.get(k) for k in search.names})
+    return search, float(T_ratio_max), params
 
 
 @dataclass
@@ -445,6 +551,7 @@ CHORD_STEP = 1e-4
 
 def _newton_onset(
     solver: EigenSolver,
+    search,
     varying: np.ndarray,
     resonator: np.ndarray,
     w_ref: np.ndarray,
@@ -455,7 +562,8 @@ def _newton_onset(
     grid_tol: float,
     evals: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
-    """Onset of sets ``idx`` by Newton's method on the real unknowns (w = Re omega, Q): the
+    """Onset of sets ``idx`` by Newton's method on the real unknowns (w = Re omega, Q, the
+    quantity ``search`` puts into the batch, :class:`HeatSearch` or :class:`TemperatureSearch`): the
     complex residual R of :func:`tawarp.kernels.onset.engine_residual` is zero at real omega
     exactly at onset, two real equations. Jacobian: dR/dw (R is analytic in omega, a real
     step gives the complex derivative) and dR/dQ (a heat solve at Q + dQ) by forward
@@ -493,7 +601,7 @@ def _newton_onset(
         # heat solves at Q (all) and Q + dQ (new Jacobians); points: R(w, Q), R(w + dw, Q), R(w, Q + dQ)
         cols = np.concatenate([idx[a], idx[an]])
         v = varying[:, cols].copy()
-        v[0] = np.concatenate([Q[a], Q[an] + dQ])
+        search.set(v, np.concatenate([Q[a], Q[an] + dQ]))
         col = np.concatenate([np.arange(a.size), np.flatnonzero(need), a.size + np.arange(an.size)])
         pts = np.concatenate([w[a], w[an] + dw, w[an]]).astype(complex)
         out = solver.residuals(v, resonator[cols], w_ref[cols], col, pts)

@@ -184,11 +184,20 @@ def check_precision(
 ) -> None:
     """Warn (:class:`ValidityWarning`) for the unheated sets ``offset .. offset + k`` of
     ``T`` (k, m, 2, 2) whose :func:`precision_error` exceeds ``tolerance``; raise
-    :class:`PrecisionLostError` above :data:`PRECISION_LOST`. Heated sets are left to the
+    :class:`PrecisionLostError` above :data:`PRECISION_LOST`. Heated sets, and those with
+    imposed temperatures that vary along a segment, are left to the
     step-doubling estimate: their exact determinant is the cascade's own exp(integral of
     tr A), not known here; their products are those of the same kernels."""
     k = T.shape[0]
-    unheated = np.flatnonzero(heat_input[offset : offset + k] == 0)
+    uniform = heat_input[offset : offset + k] == 0
+    for seg in core.segments:  # imposed temperatures that differ at a segment's ends: det T != 1
+        if seg.imposed:
+            t0, t1 = (
+                np.broadcast_to(values.get(f"{seg.name}.{f}", getattr(seg, f)), heat_input.shape)
+                for f in ("T_start", "T_end")
+            )
+            uniform &= t0[offset : offset + k] == t1[offset : offset + k]
+    unheated = np.flatnonzero(uniform)
     if not unheated.size:
         return
     err = precision_error(T[unheated])
