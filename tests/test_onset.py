@@ -22,6 +22,8 @@ from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from tawarp.model.onset import eigenfrequencies, onset
 from tawarp.model.resonator import EndCondition, ResonatorDuct, ThermoacousticEngine, engine_from_dict, load_engine
 
+from imposed_cores import imposed_ceramic
+
 DEVICE = "cpu"
 
 
@@ -129,18 +131,6 @@ def test_core_cascade_complex_omega():
     assert np.max(np.abs(K - R) / np.abs(R)) < 1e-6
 
 
-def _imposed_ceramic():
-    """The ceramic core with its temperatures imposed instead of solved: 293.15 K -> 650 K
-    along the stack, 650 K in the hot exchanger, back to 293.15 K along the buffer tube."""
-    d = load_core("ceramic").to_dict()
-    hot = 650.0
-    for seg, (t0, t1) in zip(d["segment"][1:4], [(293.15, hot), (hot, hot), (hot, 293.15)]):
-        for k in ("thermal", "heater", "h"):
-            seg.pop(k, None)
-        seg.update(T_start=t0, T_end=t1)
-    return core_from_dict(d, "<imposed ceramic>")
-
-
 @pytest.mark.parametrize(
     "core, Q",
     [
@@ -156,7 +146,7 @@ def _imposed_ceramic():
             20.0,
         ),
         # imposed temperatures: a graded stack and buffer tube, a uniform hot exchanger
-        (_imposed_ceramic(), 0.0),
+        (imposed_ceramic(), 0.0),
     ],
     ids=["effects", "imposed"],
 )

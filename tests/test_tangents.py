@@ -13,6 +13,8 @@ from tawarp.kernels.pore import PORE_CIRCULAR, PORE_PLATES, pore_circular, pore_
 from tawarp.model.core import load_core
 from tawarp.model.forward import Engine, ForwardSettings
 
+from imposed_cores import imposed_ceramic
+
 wp.config.quiet = True
 wp.set_module_options({"enable_backward": False})
 
@@ -231,6 +233,12 @@ CASES = [
             "tube.radius",
         ],
     ),
+    # imposed temperatures (no heat model): the profile's ends and the geometry it acts on
+    (
+        "ceramic:imposed",
+        0.0,
+        ["stack.T_end", "hot_hx.T_start", "tbt.T_start", "stack.porosity", "gas.T_cold", "gas.p_mean"],
+    ),
 ]
 #: Cores of CASES beyond the bundled ones: the bundled core and the values that turn effects on.
 EFFECTS = {
@@ -254,7 +262,8 @@ def test_cascade_tangents_against_extrapolated_differences(name, heat, names, se
     max |T| for parameters of so small an effect that rounding over the differences' steps
     (eps |T| / step) shows; 1e-7 when the heat solve iterates to its 1e-12 tolerance (step
     1e-4). Forward differences with step 1e-6, the estimator's other Jacobian, reach ~1e-6."""
-    core = load_core(name.split(":")[0]).replace(**EFFECTS.get(name, {}))
+    core = imposed_ceramic() if name == "ceramic:imposed" else load_core(name.split(":")[0])
+    core = core.replace(**EFFECTS.get(name, {}))
     rng = np.random.default_rng(seed)
     v0 = np.array([core.get(k) for k in names])
     v0 = v0 * (1 + rng.uniform(0.1, 0.3, v0.size) * rng.choice([-1, 1], v0.size))
