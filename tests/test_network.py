@@ -358,3 +358,25 @@ def test_refrigerator_segments_reproduce_deltaec(name, given, expected):
     assert abs(abs(p) / abs(p_ref) - 1) < tol
     assert abs(abs(U) / abs(U_ref) - 1) < tol
     assert abs(np.degrees(np.angle(p / p_ref))) < 0.1 and abs(np.degrees(np.angle(U / U_ref))) < 0.1
+
+
+def test_a_core_engine_with_imposed_temperatures_has_the_same_onset_as_its_network():
+    """The bundled standing-wave engine with the ceramic core's temperatures imposed
+    (T_cold -> 650 K along the stack, 650 K in the hot exchanger, back along the buffer tube):
+    the core-engine onset in T_hot (tawarp.model.onset, the kernels' Magnus walk with adaptive
+    cells) and the network reference's (DOP853) are two implementations of one model; they
+    agree to 1e-6 in T_hot / T_cold and in frequency."""
+    import dataclasses
+
+    from imposed_cores import imposed_ceramic
+    from tawarp.model.network import network_from_engine
+    from tawarp.model.onset import onset as engine_onset
+
+    eng = dataclasses.replace(load_engine("standing_wave"), core=imposed_ceramic(650.0))
+    ours = engine_onset(eng, T_ratio_max=3.0, device="cpu")
+    net = network_from_engine(eng)
+    assert net.T_hot == 650.0 and [s.name for s in net.branches[0].segments][0] == "left_duct"
+    (w0, *_) = nr.real_axis_modes(net, 20.0, 400.0, 200, T_hot=net.gas.T_cold)
+    res = nr.onset(net, w0, T_max=3 * net.gas.T_cold, n=12)
+    assert abs(res.ratio / ours.ratio_onset[0] - 1) < 1e-6
+    assert abs(res.frequency / ours.f_onset[0] - 1) < 1e-6

@@ -445,3 +445,63 @@ def load_network(path: str | Path) -> Network:
 def bundled_networks() -> list[str]:
     """Names of the bundled engine files that are networks."""
     return [n for n in bundled("engines") if is_network_file(read_toml(n, "engines")[1])]
+
+
+def network_from_engine(engine) -> Network:
+    """The network of a core-based engine (:class:`tawarp.model.resonator.ThermoacousticEngine`)
+    whose temperatures are all imposed: one branch from the left end through the left duct,
+    the core's segments and the right duct to the right end. An imposed temperature equal to
+    the engine's highest is named ``"T_hot"`` (the onset search varies it), one equal to
+    T_cold ``"T_cold"``; any other stays a number. Refused: segments the heat model solves,
+    and effects a network segment does not have (the fields of
+    :data:`tawarp.model.fields.EFFECT_OFF` away from their off values), impedance ends given
+    as tables."""
+    from .fields import EFFECT_OFF
+
+    core, src = engine.core, engine.source
+    T_c = core.gas.T_cold
+    hot = max([T_c] + [t for s in core.segments if s.imposed for t in (s.T_start, s.T_end)])
+
+    def name(t: float):
+        return "T_hot" if t == hot and hot != T_c else "T_cold" if t == T_c else float(t)
+
+    segs = []
+    row = engine.resonator_row()
+    for side, (L, R, T) in (("left", row[:3]), ("core", (0.0, 0.0, 0.0)), ("right", row[3:])):
+        if side == "core":
+            for s in core.segments:
+                if s.thermal and not s.imposed:
+                    raise CoreError(
+                        f"{src}: segment {s.name!r} is solved by the heat model; a network needs T_start, T_end"
+                    )
+                on = [f for f, off in EFFECT_OFF.items() if getattr(s, f) != off]
+                if on:
+                    raise CoreError(f"{src}: segment {s.name!r} has {on}, which a network segment does not take")
+                T0, T1 = (s.T_start, s.T_end) if s.imposed else (T_c, T_c)
+                kw = {"pore_model": s.pore_model, "porosity": s.porosity, "pore_radius": s.pore_radius}
+                kw |= {"tortuosity": s.tortuosity, "solid_conductivity": s.solid_conductivity}
+                segs.append(
+                    NetworkSegment(
+                        s.name,
+                        s.kind,
+                        s.length,
+                        core.area,
+                        core.area,
+                        T_start=name(T0),
+                        T_end=name(T1),
+                        **(kw if s.is_porous else {}),
+                    )
+                )
+        elif L > 0:
+            area = math.pi * R * R
+            segs.append(NetworkSegment(f"{side}_duct", "duct", L, area, area, T_start=name(T), T_end=name(T)))
+    ends = {}
+    for side, e in (("left", engine.left), ("right", engine.right)):
+        if e.kind == "impedance" and len(e.impedance) > 1:
+            raise CoreError(f"{src}: the {side} end's impedance is a table; a network end takes [Z_re, Z_im]")
+        if e.kind == "open":  # the engine's ideal open end: p = 0
+            ends[f"{side}_end"] = NetworkEnd(f"{side}_end", "impedance", impedance=np.array([[1.0, 0.0, 0.0]]))
+        else:
+            ends[f"{side}_end"] = NetworkEnd(f"{side}_end", e.kind, impedance=e.impedance)
+    branch = Branch("resonator", "left_end", "right_end", tuple(segs))
+    return Network(core.gas, (branch,), ends, hot if hot != T_c else math.nan, src)
