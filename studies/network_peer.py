@@ -4,7 +4,9 @@ bundled examples against their published numbers.
     python studies/network_peer.py [--out studies/out/network_peer.json]
 
 Cases: the bundled ``traveling_wave`` (after Backhaus & Swift; a loop and a resonator
-branch) and ``refrigerator`` (Hofler's, DeltaEC's hofler1 inputs). For the peer, every
+branch), ``refrigerator`` (Hofler's, DeltaEC's hofler1 inputs) and the bundled
+``standing_wave`` engine with its core's temperatures imposed (also through tawarp's
+core-engine onset in T_hot: two implementations of one model). For the peer, every
 segment of the network is rebuilt from openthermoacoustics' own classes (Duct, Cone,
 Stack, HeatExchanger, StackDuct, Compliance: its gas properties and its thermoviscous
 functions), each branch's transfer matrix is read from two of its propagations (at
@@ -191,6 +193,45 @@ def traveling_wave(T_max: float, n: int) -> dict:
     return out
 
 
+def standing_wave() -> dict:
+    """The bundled standing-wave engine with its core's temperatures imposed (T_cold -> 650 K
+    along the stack, 650 K in the hot exchanger, back along the buffer tube; air, 1 atm): the
+    core-engine onset in T_hot (tawarp.model.onset), the network reference's, and
+    openthermoacoustics' segments in the network's rows."""
+    import dataclasses
+    import sys
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from imposed_cores import imposed_ceramic
+
+    from tawarp.model.network import network_from_engine
+    from tawarp.model.onset import onset as engine_onset
+    from tawarp.model.resonator import load_engine
+
+    eng = dataclasses.replace(load_engine("standing_wave"), core=imposed_ceramic(650.0))
+    core = engine_onset(eng, T_ratio_max=3.0, device="cpu")
+    net = network_from_engine(eng)
+    (w0, *_) = nr.real_axis_modes(net, 20.0, 400.0, 200, T_hot=net.gas.T_cold)
+    ours = nr.onset(net, w0, T_max=3 * net.gas.T_cold, n=12)
+    w0p = nr.muller(lambda w: peer_determinant(net, w, net.gas.T_cold), w0)
+    peer = nr.onset(net, w0p, T_max=3 * net.gas.T_cold, n=12, det=lambda w, T: peer_determinant(net, w, T))
+    out = {
+        "tawarp_core_engine": {"T_ratio": float(core.ratio_onset[0]), "f_onset_Hz": float(core.f_onset[0])},
+        "tawarp": {"T_ratio": ours.ratio, "f_onset_Hz": ours.frequency, "isothermal_f_Hz": w0.real / (2 * math.pi)},
+        "openthermoacoustics": {
+            "T_ratio": peer.ratio,
+            "f_onset_Hz": peer.frequency,
+            "isothermal_f_Hz": w0p.real / (2 * math.pi),
+        },
+    }
+    out["difference"] = {
+        "core_engine_T_ratio_relative": _rel(core.ratio_onset[0], ours.ratio),
+        "T_ratio_relative": _rel(peer.ratio, ours.ratio),
+        "f_onset_relative": _rel(peer.frequency, ours.frequency),
+    }
+    return out
+
+
 def refrigerator() -> dict:
     net = load_network("refrigerator")
     (w0, *_) = nr.real_axis_modes(net, 100.0, 1000.0, 200)
@@ -234,6 +275,9 @@ def differences_above(result: dict, limit: float = 5e-3) -> list[dict]:
         return next((text for key, text in CAUSES.items() if key in name), CAUSES["gas"])
 
     rows = [("traveling_wave", k, v, cause(k)) for k, v in result["traveling_wave"]["difference"].items()]
+    rows += [
+        ("standing_wave_imposed", k, v, CAUSES["gas"]) for k, v in result["standing_wave_imposed"]["difference"].items()
+    ]
     for r in result["traveling_wave"]["segments_at_onset"]:
         rows += [("traveling_wave", f"{r['segment']} {k}", r[k], cause(r["segment"])) for k in r if k != "segment"]
     rf = result["refrigerator"]
@@ -259,6 +303,7 @@ def main(argv=None):
         "openthermoacoustics_version": getattr(ota, "__version__", "?"),
         "convention": "tawarp exp(-i omega t): growth rate Im omega > 0 grows",
         "traveling_wave": traveling_wave(args.T_max, args.n),
+        "standing_wave_imposed": standing_wave(),
         "refrigerator": refrigerator(),
     }
     result["differences_above_0.5_percent"] = differences_above(result)
