@@ -70,157 +70,135 @@ MAX_ROWS = 8
 CMatN = wp.types.matrix(shape=(MAX_ROWS, MAX_ROWS), dtype=wp.float64)
 
 
-@wp.func
-def mat_vec(m: CMat2, p: wp.vec2d, u: wp.vec2d):
-    return cmul(m.a, p) + cmul(m.b, u), cmul(m.c, p) + cmul(m.d, u)
+@wp.struct
+class NetworkTables:
+    """The tables of a batch (module docstring) and the Magnus ``cells`` of a segment with a
+    gradient or a taper."""
+
+    gas: wp.array(dtype=wp.float64)
+    seg: wp.array3d(dtype=wp.float64)
+    design: wp.array2d(dtype=wp.float64)
+    seg_kind: wp.array(dtype=wp.int32)
+    seg_model: wp.array(dtype=wp.int32)
+    seg_porous: wp.array(dtype=wp.int32)
+    branch_first: wp.array(dtype=wp.int32)
+    node_first: wp.array(dtype=wp.int32)
+    inc_branch: wp.array(dtype=wp.int32)
+    inc_side: wp.array(dtype=wp.int32)
+    node_kind: wp.array(dtype=wp.int32)
+    node_par: wp.array2d(dtype=wp.float64)
+    node_seg: wp.array(dtype=wp.int32)
+    cells: int
 
 
 @wp.func
-def seg_temperature(seg: wp.array3d(dtype=wp.float64), i: int, s: int, end: int, T_hot: wp.float64):
+def seg_temperature(t: NetworkTables, i: int, s: int, end: int, T_hot: wp.float64):
     """T [K] at the start (end = 0) or end (1) of segment s at hot temperature T_hot."""
     if end == 0:
-        return seg[i, s, F_T0A] + seg[i, s, F_T0B] * T_hot
-    return seg[i, s, F_T1A] + seg[i, s, F_T1B] * T_hot
+        return t.seg[i, s, F_T0A] + t.seg[i, s, F_T0B] * T_hot
+    return t.seg[i, s, F_T1A] + t.seg[i, s, F_T1B] * T_hot
 
 
 @wp.func
 def point_matrix(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    model: int,
-    i: int,
-    s: int,
-    p_mean: wp.float64,
-    omega: wp.vec2d,
-    T: wp.float64,
-    dTdx: wp.float64,
-    area: wp.float64,
-    porous: int,
+    t: NetworkTables, i: int, s: int, omega: wp.vec2d, T: wp.float64, dTdx: wp.float64, area: wp.float64, porous: int
 ):
-    """A at one point of a distributed segment: a duct is one circular pore of its radius."""
+    """A at one point of segment s: a duct (or inertance) is one circular pore of its radius."""
     one = wp.float64(1.0)
     phi = one
     q = one
     r = wp.sqrt(area / PI)
     if porous != 0:
-        phi = seg[i, s, F_POROSITY]
-        q = seg[i, s, F_TORTUOSITY]
-        r = seg[i, s, F_PORE_RADIUS]
-    pc = point_coefficients(gas, p_mean, T, dTdx, phi, r, q, area, r)
-    return propagation_complex(pc, part_geometry(phi, q, area, wp.float64(0.0), one), omega, gas[G_GAMMA], model)
+        phi = t.seg[i, s, F_POROSITY]
+        q = t.seg[i, s, F_TORTUOSITY]
+        r = t.seg[i, s, F_PORE_RADIUS]
+    pc = point_coefficients(t.gas, t.design[i, D_P_MEAN], T, dTdx, phi, r, q, area, r)
+    geo = part_geometry(phi, q, area, wp.float64(0.0), one)
+    return propagation_complex(pc, geo, omega, t.gas[G_GAMMA], t.seg_model[s])
 
 
 @wp.func
-def segment_matrix(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    cells: int,
-    i: int,
-    s: int,
-    p_mean: wp.float64,
-    omega: wp.vec2d,
-    T_hot: wp.float64,
-):
+def segment_matrix(t: NetworkTables, i: int, s: int, omega: wp.vec2d, T_hot: wp.float64):
     """Transfer matrix of segment s of design i at complex omega and hot temperature T_hot."""
-    T0 = seg_temperature(seg, i, s, 0, T_hot)
-    T1 = seg_temperature(seg, i, s, 1, T_hot)
-    kind = seg_kind[s]
+    T0 = seg_temperature(t, i, s, 0, T_hot)
+    T1 = seg_temperature(t, i, s, 1, T_hot)
+    kind = t.seg_kind[s]
     one = cplx(wp.float64(1.0), wp.float64(0.0))
     zero = cplx(wp.float64(0.0), wp.float64(0.0))
     if kind == KIND_COMPLIANCE:
-        gamma = gas[G_GAMMA]
-        V = seg[i, s, F_VOLUME]
+        gamma = t.gas[G_GAMMA]
+        p_mean = t.design[i, D_P_MEAN]
+        V = t.seg[i, s, F_VOLUME]
         fk = zero
-        if seg[i, s, F_SURFACE] > wp.float64(0.0):
-            rho = density(gas, T0, p_mean)
-            dk = csqrt(cdiv(cplx(wp.float64(2.0) * conductivity(gas, T0) / (rho * gas[G_CP]), wp.float64(0.0)), omega))
-            fk = cscale(cmul(cplx(wp.float64(1.0), wp.float64(1.0)), dk), seg[i, s, F_SURFACE] / (wp.float64(2.0) * V))
+        if t.seg[i, s, F_SURFACE] > wp.float64(0.0):
+            rho = density(t.gas, T0, p_mean)
+            kappa = conductivity(t.gas, T0) / (rho * t.gas[G_CP])
+            dk = csqrt(cdiv(cplx(wp.float64(2.0) * kappa, wp.float64(0.0)), omega))
+            fk = cscale(
+                cmul(cplx(wp.float64(1.0), wp.float64(1.0)), dk), t.seg[i, s, F_SURFACE] / (wp.float64(2.0) * V)
+            )
         Y = cmuli(cscale(cmul(omega, one + cscale(fk, gamma - wp.float64(1.0))), V / (gamma * p_mean)))
         return cmat2(one, zero, Y, one)
-    L = seg[i, s, F_LENGTH]
-    A0 = seg[i, s, F_AREA0]
+    L = t.seg[i, s, F_LENGTH]
+    A0 = t.seg[i, s, F_AREA0]
     if kind == KIND_INERTANCE:
-        a = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0, wp.float64(0.0), A0, 0)
+        a = point_matrix(t, i, s, omega, T0, wp.float64(0.0), A0, 0)
         return cmat2(one, cscale(a.b, L), zero, one)
-    A1 = seg[i, s, F_AREA1]
-    porous = seg_porous[s]
+    A1 = t.seg[i, s, F_AREA1]
+    porous = t.seg_porous[s]
     if T0 == T1 and A0 == A1:
-        a = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0, wp.float64(0.0), A0, porous)
-        return expm2(scale2(a, L))
-    # linear temperature and radius: Magnus steps on ``cells`` equal cells
-    h = L / wp.float64(cells)
+        return expm2(scale2(point_matrix(t, i, s, omega, T0, wp.float64(0.0), A0, porous), L))
+    # linear temperature and radius: sixth-order Magnus steps on ``cells`` equal cells
+    h = L / wp.float64(t.cells)
     dTdx = (T1 - T0) / L
     r0 = wp.sqrt(A0 / PI)
-    r1 = wp.sqrt(A1 / PI)
+    dr = (wp.sqrt(A1 / PI) - r0) / L
     m = identity2()
-    for c in range(cells):
+    for c in range(t.cells):
         x0 = wp.float64(c) * h
         xa = x0 + GAUSS[0] * h
         xb = x0 + GAUSS[1] * h
         xc = x0 + GAUSS[2] * h
-        ra = r0 + (r1 - r0) * xa / L
-        rb = r0 + (r1 - r0) * xb / L
-        rc = r0 + (r1 - r0) * xc / L
-        a1 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xa, dTdx, PI * ra * ra, porous)
-        a2 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xb, dTdx, PI * rb * rb, porous)
-        a3 = point_matrix(gas, seg, seg_model[s], i, s, p_mean, omega, T0 + dTdx * xc, dTdx, PI * rc * rc, porous)
+        ra = r0 + dr * xa
+        rb = r0 + dr * xb
+        rc = r0 + dr * xc
+        a1 = point_matrix(t, i, s, omega, T0 + dTdx * xa, dTdx, PI * ra * ra, porous)
+        a2 = point_matrix(t, i, s, omega, T0 + dTdx * xb, dTdx, PI * rb * rb, porous)
+        a3 = point_matrix(t, i, s, omega, T0 + dTdx * xc, dTdx, PI * rc * rc, porous)
         m = matmul2(magnus6_step(a1, a2, a3, h), m)
     return m
 
 
 @wp.func
-def end_impedance(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    kind: int,
-    par0: wp.float64,
-    par1: wp.float64,
-    i: int,
-    s: int,
-    side: int,
-    p_mean: wp.float64,
-    omega: wp.vec2d,
-    T_hot: wp.float64,
-):
-    """Z [Pa s/m^3] of an open, impedance or load end (not a closed one) that sees segment s
-    at its ``side`` (0 start, 1 end)."""
+def end_impedance(t: NetworkTables, node: int, i: int, side: int, omega: wp.vec2d, T_hot: wp.float64):
+    """Z [Pa s/m^3] of an open, impedance or load end node (not a closed one) that sees its
+    segment at ``side`` (0 start, 1 end)."""
+    kind = t.node_kind[node]
+    par0 = t.node_par[node, 0]
+    par1 = t.node_par[node, 1]
     if kind == END_IMPEDANCE:
         return cplx(par0, par1)
-    T = seg_temperature(seg, i, s, side, T_hot)
+    p_mean = t.design[i, D_P_MEAN]
     if kind == END_LOAD:
         # R + i gamma p_m / (omega V)
-        return cplx(par0, wp.float64(0.0)) + cmuli(cdiv(cplx(gas[G_GAMMA] * p_mean / par1, wp.float64(0.0)), omega))
-    area = seg[i, s, F_AREA0]
+        return cplx(par0, wp.float64(0.0)) + cmuli(cdiv(cplx(t.gas[G_GAMMA] * p_mean / par1, wp.float64(0.0)), omega))
+    s = t.node_seg[node]
+    T = seg_temperature(t, i, s, side, T_hot)
+    area = t.seg[i, s, F_AREA0]
     if side == 1:
-        area = seg[i, s, F_AREA1]
-    c = wp.sqrt(sound_speed_squared(gas, T))
+        area = t.seg[i, s, F_AREA1]
+    c = wp.sqrt(sound_speed_squared(t.gas, T))
     ka = cscale(omega, wp.sqrt(area / PI) / c)
-    z0 = density(gas, T, p_mean) * c / area
+    z0 = density(t.gas, T, p_mean) * c / area
     # (rho c / S) (res (ka)^2 - i corr ka)
     return cscale(cscale(cmul(ka, ka), par0) - cmuli(cscale(ka, par1)), z0)
 
 
 @wp.func
-def branch_matrix(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    cells: int,
-    i: int,
-    b: int,
-    p_mean: wp.float64,
-    omega: wp.vec2d,
-    T_hot: wp.float64,
-):
+def branch_matrix(t: NetworkTables, i: int, b: int, omega: wp.vec2d, T_hot: wp.float64):
     m = identity2()
-    for s in range(branch_first[b], branch_first[b + 1]):
-        m = matmul2(segment_matrix(gas, seg, seg_kind, seg_model, seg_porous, cells, i, s, p_mean, omega, T_hot), m)
+    for s in range(t.branch_first[b], t.branch_first[b + 1]):
+        m = matmul2(segment_matrix(t, i, s, omega, T_hot), m)
     return m
 
 
@@ -256,12 +234,12 @@ def complex_det(re: CMatN, im: CMatN, n: int):
                 piv = r
         if piv != k:
             for c in range(n):
-                t = re[k, c]
+                x = re[k, c]
                 re[k, c] = re[piv, c]
-                re[piv, c] = t
-                t = im[k, c]
+                re[piv, c] = x
+                x = im[k, c]
                 im[k, c] = im[piv, c]
-                im[piv, c] = t
+                im[piv, c] = x
             det = -det
         d = cplx(re[k, k], im[k, k])
         det = cmul(det, d)
@@ -277,36 +255,23 @@ def complex_det(re: CMatN, im: CMatN, n: int):
 
 
 @wp.func
-def network_det(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    design: wp.array2d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    node_first: wp.array(dtype=wp.int32),
-    inc_branch: wp.array(dtype=wp.int32),
-    inc_side: wp.array(dtype=wp.int32),
-    node_kind: wp.array(dtype=wp.int32),
-    node_par: wp.array2d(dtype=wp.float64),
-    node_seg: wp.array(dtype=wp.int32),
-    cells: int,
-    i: int,
-    omega: wp.vec2d,
-    T_hot: wp.float64,
-):
+def stored(bm: CMatN, bi: CMatN, b: int):
+    """Branch b's matrix from the scratch rows (:func:`network_det`)."""
+    return cmat2(cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3]))
+
+
+@wp.func
+def network_det(t: NetworkTables, i: int, omega: wp.vec2d, T_hot: wp.float64):
     """det of the boundary matrix of design i (:mod:`tawarp.model.network_reference`)."""
-    p_mean = design[i, D_P_MEAN]
-    zs = design[i, D_ZS]
-    n_branch = branch_first.shape[0] - 1
+    zs = t.design[i, D_ZS]
+    n_branch = t.branch_first.shape[0] - 1
     re = CMatN()
     im = CMatN()
-    # the branch matrices, four complex numbers each, kept in rows of a scratch matrix
+    # the branch matrices, four complex numbers each, in the rows of two scratch matrices
     bm = CMatN()
     bi = CMatN()
     for b in range(n_branch):
-        m = branch_matrix(gas, seg, seg_kind, seg_model, seg_porous, branch_first, cells, i, b, p_mean, omega, T_hot)
+        m = branch_matrix(t, i, b, omega, T_hot)
         bm[b, 0] = m.a[0]
         bi[b, 0] = m.a[1]
         bm[b, 1] = m.b[0]
@@ -316,16 +281,13 @@ def network_det(
         bm[b, 3] = m.d[0]
         bi[b, 3] = m.d[1]
     row = int(0)
-    for node in range(node_first.shape[0] - 1):
-        k0 = node_first[node]
-        kind = node_kind[node]
+    for node in range(t.node_first.shape[0] - 1):
+        k0 = t.node_first[node]
+        kind = t.node_kind[node]
         if kind != NODE_JUNCTION:
-            b = inc_branch[k0]
-            side = inc_side[k0]
-            m = cmat2(
-                cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3])
-            )
-            pp, pu, up, uu = side_rows(m, side, zs)
+            b = t.inc_branch[k0]
+            side = t.inc_side[k0]
+            pp, pu, up, uu = side_rows(stored(bm, bi, b), side, zs)
             sign = wp.float64(1.0)  # flow out of the network into the end
             if side == 0:
                 sign = wp.float64(-1.0)
@@ -335,29 +297,17 @@ def network_det(
                 re, im = put(re, im, row, 2 * b, up)
                 re, im = put(re, im, row, 2 * b + 1, uu)
             else:
-                z = end_impedance(
-                    gas, seg, kind, node_par[node, 0], node_par[node, 1], i, node_seg[node], side, p_mean, omega, T_hot
-                )
-                zr = cscale(z, wp.float64(1.0) / zs)
+                zr = cscale(end_impedance(t, node, i, side, omega, T_hot), wp.float64(1.0) / zs)
                 re, im = put(re, im, row, 2 * b, pp - cmul(zr, up))
                 re, im = put(re, im, row, 2 * b + 1, pu - cmul(zr, uu))
             row += 1
             continue
-        b0 = inc_branch[k0]
-        m0 = cmat2(
-            cplx(bm[b0, 0], bi[b0, 0]),
-            cplx(bm[b0, 1], bi[b0, 1]),
-            cplx(bm[b0, 2], bi[b0, 2]),
-            cplx(bm[b0, 3], bi[b0, 3]),
-        )
-        p0p, p0u, u0p, u0u = side_rows(m0, inc_side[k0], zs)
-        flow_row = row + node_first[node + 1] - k0 - 1
-        for k in range(k0, node_first[node + 1]):
-            b = inc_branch[k]
-            m = cmat2(
-                cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3])
-            )
-            pp, pu, up, uu = side_rows(m, inc_side[k], zs)
+        b0 = t.inc_branch[k0]
+        p0p, p0u, u0p, u0u = side_rows(stored(bm, bi, b0), t.inc_side[k0], zs)
+        flow_row = row + t.node_first[node + 1] - k0 - 1
+        for k in range(k0, t.node_first[node + 1]):
+            b = t.inc_branch[k]
+            pp, pu, up, uu = side_rows(stored(bm, bi, b), t.inc_side[k], zs)
             if k > k0:
                 # p of the first branch end minus p of this one
                 r = row + k - k0 - 1
@@ -366,7 +316,7 @@ def network_det(
                 re, im = put(re, im, r, 2 * b, -pp)
                 re, im = put(re, im, r, 2 * b + 1, -pu)
             sign = wp.float64(1.0)  # flow into the node
-            if inc_side[k] == 0:
+            if t.inc_side[k] == 0:
                 sign = wp.float64(-1.0)
             re, im = put(re, im, flow_row, 2 * b, cscale(up, sign))
             re, im = put(re, im, flow_row, 2 * b + 1, cscale(uu, sign))
@@ -376,132 +326,25 @@ def network_det(
 
 @wp.kernel
 def det_kernel(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    design: wp.array2d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    node_first: wp.array(dtype=wp.int32),
-    inc_branch: wp.array(dtype=wp.int32),
-    inc_side: wp.array(dtype=wp.int32),
-    node_kind: wp.array(dtype=wp.int32),
-    node_par: wp.array2d(dtype=wp.float64),
-    node_seg: wp.array(dtype=wp.int32),
-    cells: int,
-    omega: wp.array(dtype=wp.vec2d),
-    T_hot: wp.array(dtype=wp.float64),
-    out: wp.array(dtype=wp.vec2d),
+    t: NetworkTables, omega: wp.array(dtype=wp.vec2d), T_hot: wp.array(dtype=wp.float64), out: wp.array(dtype=wp.vec2d)
 ):
     i = wp.tid()
-    out[i] = network_det(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        omega[i],
-        T_hot[i],
-    )
+    out[i] = network_det(t, i, omega[i], T_hot[i])
 
 
 @wp.func
 def muller_root(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    design: wp.array2d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    node_first: wp.array(dtype=wp.int32),
-    inc_branch: wp.array(dtype=wp.int32),
-    inc_side: wp.array(dtype=wp.int32),
-    node_kind: wp.array(dtype=wp.int32),
-    node_par: wp.array2d(dtype=wp.float64),
-    node_seg: wp.array(dtype=wp.int32),
-    cells: int,
-    i: int,
-    guess: wp.vec2d,
-    T_hot: wp.float64,
-    spread: wp.float64,
-    rtol: wp.float64,
-    max_iter: int,
+    t: NetworkTables, i: int, guess: wp.vec2d, T_hot: wp.float64, spread: wp.float64, rtol: wp.float64, max_iter: int
 ):
     """Muller's method on det(omega) at T_hot from guess (1 -+ spread) and guess (the
-    reference's :func:`tawarp.model.network_reference.muller`): (omega, steps, -1 if not
+    reference's :func:`tawarp.model.network_reference.muller`): (omega, steps; -1 if not
     converged)."""
     x0 = cscale(guess, wp.float64(1.0) - spread)
     x1 = cscale(guess, wp.float64(1.0) + spread)
     x2 = guess
-    y0 = network_det(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        x0,
-        T_hot,
-    )
-    y1 = network_det(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        x1,
-        T_hot,
-    )
-    y2 = network_det(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        x2,
-        T_hot,
-    )
+    y0 = network_det(t, i, x0, T_hot)
+    y1 = network_det(t, i, x1, T_hot)
+    y2 = network_det(t, i, x2, T_hot)
     one = cplx(wp.float64(1.0), wp.float64(0.0))
     for it in range(max_iter):
         q = cdiv(x2 - x1, x1 - x0)
@@ -521,25 +364,7 @@ def muller_root(
         x2 = x2 + step
         y0 = y1
         y1 = y2
-        y2 = network_det(
-            gas,
-            seg,
-            design,
-            seg_kind,
-            seg_model,
-            seg_porous,
-            branch_first,
-            node_first,
-            inc_branch,
-            inc_side,
-            node_kind,
-            node_par,
-            node_seg,
-            cells,
-            i,
-            x2,
-            T_hot,
-        )
+        y2 = network_det(t, i, x2, T_hot)
         if cabs(step) < rtol * cabs(x2):
             return x2, it + 1
     return x2, -1
@@ -547,20 +372,7 @@ def muller_root(
 
 @wp.kernel
 def eigen_kernel(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    design: wp.array2d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    node_first: wp.array(dtype=wp.int32),
-    inc_branch: wp.array(dtype=wp.int32),
-    inc_side: wp.array(dtype=wp.int32),
-    node_kind: wp.array(dtype=wp.int32),
-    node_par: wp.array2d(dtype=wp.float64),
-    node_seg: wp.array(dtype=wp.int32),
-    cells: int,
+    t: NetworkTables,
     guess: wp.array(dtype=wp.vec2d),
     T_hot: wp.array(dtype=wp.float64),
     spread: wp.float64,
@@ -570,156 +382,37 @@ def eigen_kernel(
     iterations: wp.array(dtype=wp.int32),
 ):
     i = wp.tid()
-    w, it = muller_root(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        guess[i],
-        T_hot[i],
-        spread,
-        rtol,
-        max_iter,
-    )
+    w, it = muller_root(t, i, guess[i], T_hot[i], spread, rtol, max_iter)
     omega[i] = w
     iterations[i] = it
 
 
-@wp.kernel
-def onset_kernel(
-    gas: wp.array(dtype=wp.float64),
-    seg: wp.array3d(dtype=wp.float64),
-    design: wp.array2d(dtype=wp.float64),
-    seg_kind: wp.array(dtype=wp.int32),
-    seg_model: wp.array(dtype=wp.int32),
-    seg_porous: wp.array(dtype=wp.int32),
-    branch_first: wp.array(dtype=wp.int32),
-    node_first: wp.array(dtype=wp.int32),
-    inc_branch: wp.array(dtype=wp.int32),
-    inc_side: wp.array(dtype=wp.int32),
-    node_kind: wp.array(dtype=wp.int32),
-    node_par: wp.array2d(dtype=wp.float64),
-    node_seg: wp.array(dtype=wp.int32),
-    cells: int,
-    omega0: wp.array(dtype=wp.float64),
-    T0: wp.array(dtype=wp.float64),
+@wp.func
+def newton_onset(
+    t: NetworkTables,
+    i: int,
+    w0: wp.float64,
+    T0: wp.float64,
+    w_ref: wp.float64,
     T_lo: wp.float64,
     T_hi: wp.float64,
     rtol: wp.float64,
     max_iter: int,
-    omega: wp.array(dtype=wp.float64),
-    T_hot: wp.array(dtype=wp.float64),
-    iterations: wp.array(dtype=wp.int32),
 ):
-    """Onset (real omega, T_hot) of design i where det = 0, by Newton's method from a nearby
-    onset (omega0, T0) (:func:`tawarp.model.network_reference.onset_newton`: the same damped
-    steps, the omega-derivative complex, the T-derivative a forward difference), started at
-    the real part of the design's own eigenfrequency at T0 (Muller from omega0). An iterate
-    outside [T_lo, T_hi] or farther than omega0 / 2 from omega0 (another mode) stops it:
-    iterations -1."""
-    i = wp.tid()
-    T = T0[i]
+    """Newton's method on det(omega, T_hot) = 0 with omega real from (w0, T0)
+    (:func:`tawarp.model.network_reference.onset_newton`: the same damped steps, the
+    omega-derivative complex, the T-derivative a forward difference): (omega, T_hot, steps;
+    -1 where an iterate leaves [T_lo, T_hi] or moves half of w_ref from w_ref, or no
+    convergence)."""
+    w = w0
+    T = T0
     zero = wp.float64(0.0)
-    iterations[i] = -1
-    # this design's own mode at T0 first (Muller from omega0): its real part starts Newton
-    wc, mit = muller_root(
-        gas,
-        seg,
-        design,
-        seg_kind,
-        seg_model,
-        seg_porous,
-        branch_first,
-        node_first,
-        inc_branch,
-        inc_side,
-        node_kind,
-        node_par,
-        node_seg,
-        cells,
-        i,
-        cplx(omega0[i], zero),
-        T,
-        wp.float64(1e-3),
-        rtol,
-        max_iter,
-    )
-    w = wc[0]
-    if mit < 0:
-        w = omega0[i]
     for it in range(max_iter):
-        F = network_det(
-            gas,
-            seg,
-            design,
-            seg_kind,
-            seg_model,
-            seg_porous,
-            branch_first,
-            node_first,
-            inc_branch,
-            inc_side,
-            node_kind,
-            node_par,
-            node_seg,
-            cells,
-            i,
-            cplx(w, zero),
-            T,
-        )
+        F = network_det(t, i, cplx(w, zero), T)
         hw = wp.float64(1e-7) * w
         hT = wp.float64(1e-7) * T
-        Fw = network_det(
-            gas,
-            seg,
-            design,
-            seg_kind,
-            seg_model,
-            seg_porous,
-            branch_first,
-            node_first,
-            inc_branch,
-            inc_side,
-            node_kind,
-            node_par,
-            node_seg,
-            cells,
-            i,
-            cplx(w + hw, zero),
-            T,
-        )
-        FT = network_det(
-            gas,
-            seg,
-            design,
-            seg_kind,
-            seg_model,
-            seg_porous,
-            branch_first,
-            node_first,
-            inc_branch,
-            inc_side,
-            node_kind,
-            node_par,
-            node_seg,
-            cells,
-            i,
-            cplx(w, zero),
-            T + hT,
-        )
-        dw = cscale(Fw - F, wp.float64(1.0) / hw)
-        dT = cscale(FT - F, wp.float64(1.0) / hT)
+        dw = cscale(network_det(t, i, cplx(w + hw, zero), T) - F, wp.float64(1.0) / hw)
+        dT = cscale(network_det(t, i, cplx(w, zero), T + hT) - F, wp.float64(1.0) / hT)
         jac = dw[0] * dT[1] - dT[0] * dw[1]
         sw = (-F[0] * dT[1] + dT[0] * F[1]) / jac
         sT = (-dw[0] * F[1] + F[0] * dw[1]) / jac
@@ -730,10 +423,111 @@ def onset_kernel(
             scale = wp.min(scale, wp.float64(0.1) * T / wp.abs(sT))
         w = w + scale * sw
         T = T + scale * sT
-        if T < T_lo or T > T_hi or wp.abs(w - omega0[i]) > wp.float64(0.5) * omega0[i]:
-            break
+        if T < T_lo or T > T_hi or wp.abs(w - w_ref) > wp.float64(0.5) * w_ref:
+            return w, T, -1
         if wp.abs(sw) < rtol * w and wp.abs(sT) < rtol * T:
-            iterations[i] = it + 1
-            break
+            return w, T, it + 1
+    return w, T, -1
+
+
+@wp.kernel
+def onset_kernel(
+    t: NetworkTables,
+    omega0: wp.array(dtype=wp.float64),
+    T0: wp.array(dtype=wp.float64),
+    T_lo: wp.float64,
+    T_hi: wp.float64,
+    rtol: wp.float64,
+    max_iter: int,
+    omega: wp.array(dtype=wp.float64),
+    T_hot: wp.array(dtype=wp.float64),
+    iterations: wp.array(dtype=wp.int32),
+):
+    """Onset (real omega, T_hot) of design i by :func:`newton_onset` from a nearby onset
+    (omega0, T0), started at the real part of the design's own eigenfrequency at T0 (Muller
+    from omega0)."""
+    i = wp.tid()
+    wc, mit = muller_root(t, i, cplx(omega0[i], wp.float64(0.0)), T0[i], wp.float64(1e-3), rtol, max_iter)
+    w = wc[0]
+    if mit < 0:
+        w = omega0[i]
+    w, T, its = newton_onset(t, i, w, T0[i], omega0[i], T_lo, T_hi, rtol, max_iter)
     omega[i] = w
     T_hot[i] = T
+    iterations[i] = its
+
+
+@wp.kernel
+def followed_onset_kernel(
+    t: NetworkTables,
+    guess: wp.array(dtype=wp.vec2d),
+    T_grid: wp.array(dtype=wp.float64),
+    jump_tol: wp.float64,
+    halvings: int,
+    rtol: wp.float64,
+    max_iter: int,
+    omega: wp.array(dtype=wp.vec2d),
+    T_hot: wp.array(dtype=wp.float64),
+    jumps: wp.array(dtype=wp.int32),
+    status: wp.array(dtype=wp.int32),
+):
+    """Onset of design i with its mode followed as T_hot rises
+    (:func:`tawarp.model.network_reference.onset`, on one thread): Muller's root at each
+    point of ``T_grid`` from the linear prediction of the last two, a step halved (at most
+    ``halvings`` times) where the root lands farther than ``jump_tol |omega|`` from the
+    prediction, a jump counted where that persists; the first crossing of Im omega from below
+    between two accepted points is refined by :func:`newton_onset` from their interpolation.
+    ``status``: 1 onset found, 0 none on the grid, -1 a root or Newton's method failed."""
+    i = wp.tid()
+    n = T_grid.shape[0]
+    T_a = T_grid[0]
+    w_a, it = muller_root(t, i, guess[i], T_a, wp.float64(1e-3), rtol, max_iter)
+    status[i] = 0
+    jumps[i] = 0
+    omega[i] = w_a
+    T_hot[i] = wp.float64(0.0)
+    if it < 0:
+        status[i] = -1
+        return
+    w_b = w_a  # the point before w_a (predictor), valid when have_two
+    T_b = T_a
+    have_two = int(0)
+    min_step = (T_grid[1] - T_grid[0]) / wp.pow(wp.float64(2.0), wp.float64(halvings))
+    for k in range(1, n):
+        while T_a < T_grid[k]:
+            step = T_grid[k] - T_a
+            T = T_a
+            w = w_a
+            while step > wp.float64(0.0):
+                T = T_a + step
+                pred = w_a
+                if have_two != 0:
+                    pred = w_a + cscale(w_a - w_b, (T - T_a) / (T_a - T_b))
+                w, it = muller_root(t, i, pred, T, wp.float64(1e-3), rtol, max_iter)
+                if it < 0:
+                    status[i] = -1
+                    return
+                if cabs(w - pred) <= jump_tol * cabs(w_a):
+                    break
+                if step / wp.float64(2.0) < min_step:
+                    jumps[i] = jumps[i] + 1
+                    have_two = -1  # the predictor restarts after the jump
+                    break
+                step = step / wp.float64(2.0)
+            if w_a[1] < wp.float64(0.0) and w[1] >= wp.float64(0.0):
+                f = -w_a[1] / (w[1] - w_a[1])
+                w0 = w_a[0] + f * (w[0] - w_a[0])
+                T0 = T_a + f * (T - T_a)
+                wn, Tn, its = newton_onset(t, i, w0, T0, w0, T_a - step, T + step, rtol, max_iter)
+                omega[i] = cplx(wn, wp.float64(0.0))
+                T_hot[i] = Tn
+                status[i] = 1
+                if its < 0:
+                    status[i] = -1
+                return
+            w_b = w_a
+            T_b = T_a
+            w_a = w
+            T_a = T
+            have_two = have_two + 1
+    omega[i] = w_a

@@ -158,23 +158,26 @@ class NetworkBatch:
         self.node_par = wp.array(np.array(pars, dtype=np.float64).reshape(-1, 2), dtype=wp.float64, device=dev)
         self.node_seg = wp.array(node_seg, **i32)
 
-    def tables(self) -> list:
-        return [
-            self.gas,
-            self.seg,
-            self.design,
-            self.seg_kind,
-            self.seg_model,
-            self.seg_porous,
-            self.branch_first,
-            self.node_first,
-            self.inc_branch,
-            self.inc_side,
-            self.node_kind,
-            self.node_par,
-            self.node_seg,
-            self.cells,
-        ]
+    def tables(self) -> kn.NetworkTables:
+        t = kn.NetworkTables()
+        for name in (
+            "gas",
+            "seg",
+            "design",
+            "seg_kind",
+            "seg_model",
+            "seg_porous",
+            "branch_first",
+            "node_first",
+            "inc_branch",
+            "inc_side",
+            "node_kind",
+            "node_par",
+            "node_seg",
+            "cells",
+        ):
+            setattr(t, name, getattr(self, name))
+        return t
 
     def _complex(self, z) -> wp.array:
         z = np.ascontiguousarray(np.broadcast_to(np.asarray(z, dtype=complex), (self.n,)))
@@ -192,7 +195,7 @@ class NetworkBatch:
         wp.launch(
             kn.det_kernel,
             dim=self.n,
-            inputs=self.tables() + [self._complex(omega), self._real(np.nan_to_num(T_hot)), out],
+            inputs=[self.tables(), self._complex(omega), self._real(np.nan_to_num(T_hot)), out],
             device=self.device,
         )
         return out.numpy().view(np.complex128).ravel()
@@ -206,8 +209,15 @@ class NetworkBatch:
         wp.launch(
             kn.eigen_kernel,
             dim=self.n,
-            inputs=self.tables()
-            + [self._complex(guess), self._real(np.nan_to_num(T_hot)), 1e-3, float(rtol), int(max_iter), omega, its],
+            inputs=[
+                self.tables(),
+                self._complex(guess),
+                self._real(np.nan_to_num(T_hot)),
+                1e-3,
+                float(rtol),
+                int(max_iter),
+            ]
+            + [omega, its],
             device=self.device,
         )
         return omega.numpy().view(np.complex128).ravel(), its.numpy()
@@ -224,8 +234,51 @@ class NetworkBatch:
         wp.launch(
             kn.onset_kernel,
             dim=self.n,
-            inputs=self.tables()
-            + [self._real(omega0), self._real(T0), float(T_lo), float(T_hi), float(rtol), int(max_iter), omega, T, its],
+            inputs=[
+                self.tables(),
+                self._real(omega0),
+                self._real(T0),
+                float(T_lo),
+                float(T_hi),
+                float(rtol),
+                int(max_iter),
+            ]
+            + [omega, T, its],
             device=self.device,
         )
         return BatchOnset(omega.numpy(), T.numpy(), its.numpy())
+
+    def followed_onset(
+        self, guess, T_max: float, n: int = 12, jump_tol: float = 0.05, halvings: int = 6, rtol: float = 1e-10
+    ) -> "FollowedOnset":
+        """Onset of every design with its own mode followed from T_cold to ``T_max`` [K] on
+        ``n`` hot temperatures, one thread each (:func:`tawarp.kernels.network.followed_onset_kernel`,
+        the reference's :func:`tawarp.model.network_reference.onset`): no start near an onset
+        needed, only ``guess`` [rad/s] (scalar or (n,), complex) of the mode at T_cold."""
+        grid = np.linspace(self.net.gas.T_cold, T_max, n)
+        omega = wp.empty(self.n, dtype=wp.vec2d, device=self.device)
+        T = wp.empty(self.n, dtype=wp.float64, device=self.device)
+        jumps = wp.empty(self.n, dtype=wp.int32, device=self.device)
+        status = wp.empty(self.n, dtype=wp.int32, device=self.device)
+        wp.launch(
+            kn.followed_onset_kernel,
+            dim=self.n,
+            inputs=[self.tables(), self._complex(guess), wp.array(grid, dtype=wp.float64, device=self.device)]
+            + [float(jump_tol), int(halvings), float(rtol), 60, omega, T, jumps, status],
+            device=self.device,
+        )
+        st = status.numpy()
+        w = omega.numpy().view(np.complex128).ravel()
+        return FollowedOnset(np.where(st == 1, w.real, np.nan), np.where(st == 1, T.numpy(), np.nan), jumps.numpy(), st)
+
+
+@dataclass
+class FollowedOnset:
+    """Onsets found by following each design's mode: ``omega`` (n,) [rad/s] and ``T_hot``
+    (n,) [K] (NaN without onset), ``jumps`` (n,) mode jumps met on the way, ``status`` (n,):
+    1 onset, 0 none up to T_max, -1 a root search failed."""
+
+    omega: np.ndarray
+    T_hot: np.ndarray
+    jumps: np.ndarray
+    status: np.ndarray
