@@ -305,12 +305,10 @@ def rank_by_network_onset(
     :class:`~tawarp.model.network.Network` or a file / bundled name) with each in its porous
     ``segment`` (porosity, pore radius, tortuosity, solid conductivity; a network segment has
     no lateral h). Each material's parameters are drawn ``n_samples`` times from its
-    N(mean, covariance) (:func:`draw_parameter_sets`); the nominal onset follows the lowest
-    mode from T_cold up to ``T_max`` (default 4 T_cold) (:func:`tawarp.model.network_reference.onset`);
-    the draws are refined from it all at once on ``device``, one thread each
-    (:meth:`tawarp.model.network_batch.NetworkBatch.onset`). A draw that Newton loses, or
-    that grows at T_max where the nominal does not start, follows its own path on the host;
-    a draw without onset up to T_max counts as ratio = inf. Also reported: the acoustic
+    N(mean, covariance) (:func:`draw_parameter_sets`); every draw (and the nominal) follows
+    its lowest mode from T_cold up to ``T_max`` (default 4 T_cold), all at once on ``device``,
+    one thread each (:meth:`tawarp.model.network_batch.NetworkBatch.followed_onset`); a draw
+    without onset up to T_max counts as ratio = inf. Also reported: the acoustic
     power the segment produces at the nominal onset, |p| = ``amplitude`` [Pa] at the
     network's first end (Edot out minus in, :func:`tawarp.model.network_reference.power_budget`)."""
     from ..model import network_reference as nr
@@ -333,35 +331,17 @@ def rank_by_network_onset(
     ratio = np.full((M, N + 1), np.inf)
     freq = np.full((M, N + 1), np.nan)
     edot = np.full(M, np.nan)
-
-    def followed(d):
-        """(omega, T) at onset by the followed path, or None; and the path's root at T_max."""
-        res = nr.onset(d, w_cold, T_max=T_max, n=12)
-        return (None if not np.isfinite(res.T_onset) else (res.omega.real, res.T_onset)), res.path.omega[-1]
-
+    # with imposed temperatures the solid's conductivity enters Htot only, not the onset
+    acoustic = [k for k in fields if not k.endswith(".solid_conductivity")]
     for i in range(M):
-        nom = net.replace(**{k: float(sets[k][i, 0]) for k in fields})
-        nominal, w_top = followed(nom)
-        # with imposed temperatures the solid's conductivity enters Htot only, not the onset
-        acoustic = [k for k in fields if not k.endswith(".solid_conductivity")]
-        batch = NetworkBatch(net, {k: sets[k][i, 1:] for k in acoustic}, device=device)
-        found: list = [None] * N
-        if nominal is not None:
-            on = batch.onset(*nominal, T_range=(net.gas.T_cold, T_max))
-            found = [(on.omega[j], on.T_hot[j]) if on.iterations[j] > 0 else "follow" for j in range(N)]
-        else:
-            w, _ = batch.eigenfrequencies(w_top, T_max)
-            found = [None if w[j].imag < 0 else "follow" for j in range(N)]  # decaying at T_max: no onset
-        for j in range(N + 1):
-            f = nominal if j == 0 else found[j - 1]
-            if f == "follow":  # the batched Newton lost it, or it may start: its own followed path
-                f = followed(net.replace(**{k: float(sets[k][i, j]) for k in fields}))[0]
-            if f is not None and f[1] <= T_max:
-                ratio[i, j], freq[i, j] = f[1] / net.gas.T_cold, f[0] / (2 * np.pi)
-        if nominal is not None:
-            w, T = nominal
-            starts = nr.mode_start_states(nom, w, T, node) * amplitude
-            p_in, U_in = nr.segment_entry(nom, segment, w, T, starts)
+        res = NetworkBatch(net, {k: sets[k][i] for k in acoustic}, device=device).followed_onset(w_cold, T_max, n=12)
+        ok = res.status == 1
+        ratio[i, ok] = res.T_hot[ok] / net.gas.T_cold
+        freq[i, ok] = res.omega[ok] / (2 * np.pi)
+        if ok[0]:
+            nom = net.replace(**{k: float(sets[k][i, 0]) for k in fields})
+            w, T = res.omega[0], res.T_hot[0]
+            p_in, U_in = nr.segment_entry(nom, segment, w, T, nr.mode_start_states(nom, w, T, node) * amplitude)
             edot[i] = nr.power_budget(nom, nom.branches[b].segments[s], w, T, p_in, U_in).total
     draws = ratio[:, 1:]
     with np.errstate(invalid="ignore"):
