@@ -23,6 +23,7 @@ Convention exp(-i omega t), as everywhere in tawarp.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -186,8 +187,6 @@ class Network:
     def replace(self, **values) -> "Network":
         """A copy with segment fields changed, keyed ``SEGMENT.FIELD`` (``regenerator.porosity``),
         or ``network.T_hot``, ``gas.p_mean``, ``gas.T_cold``."""
-        import dataclasses
-
         gas, T_hot = self.gas, self.T_hot
         branches = [list(br.segments) for br in self.branches]
         for name, value in values.items():

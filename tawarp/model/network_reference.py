@@ -111,23 +111,33 @@ def segment_matrix(net: Network, seg: NetworkSegment, omega: complex, T_hot: flo
     return _ode_matrix(net, seg, w, T0, T1, rtol)
 
 
-def _ode_matrix(net: Network, seg: NetworkSegment, w: complex, T0: float, T1: float, rtol: float) -> np.ndarray:
-    """dM/dx = A(x) M, M(0) = I, by DOP853 on the complex state scaled by Zs = rho c / S at
-    the segment's start (entries O(1), one absolute tolerance for all)."""
+def _integrate(net: Network, seg: NetworkSegment, w: complex, T0: float, T1: float, y0, rtol: float, t_eval=None):
+    """DOP853 on d(p, Zs U)/dx = A_s(x) (p, Zs U) along the segment, the state scaled by
+    Zs = rho c / S at its start so that the entries are O(1) and one absolute tolerance fits
+    all; ``y0`` (2, k) columns of start states. Returns (solution, Zs)."""
     prof = _profile(seg, T0, T1)
     g0 = gas_properties(net.gas.name, T0, net.gas.p_mean)
     Zs = float(g0.rho * g0.c) / seg.area
+    k = y0.shape[1]
 
     def rhs(x, y):
         T, dT, S = prof(x)
         a12, a21, a22 = _A(net, seg, w, T, dT, S)
         A = np.array([[0.0, a12 / Zs], [a21 * Zs, a22]], dtype=complex)
-        return (A @ y.reshape(2, 2)).ravel()
+        return (A @ y.reshape(2, k)).ravel()
 
-    sol = solve_ivp(rhs, (0.0, seg.length), np.eye(2, dtype=complex).ravel(), "DOP853", rtol=rtol, atol=rtol * 1e-2)
+    atol = rtol * 1e-2 * np.abs(y0).max()
+    sol = solve_ivp(rhs, (0.0, seg.length), y0.ravel(), "DOP853", t_eval=t_eval, rtol=rtol, atol=atol)
     if not sol.success:
         raise RuntimeError(f"segment {seg.name!r}, omega = {w}: {sol.message}")
+    return sol, Zs
+
+
+def _ode_matrix(net: Network, seg: NetworkSegment, w: complex, T0: float, T1: float, rtol: float) -> np.ndarray:
+    """dM/dx = A(x) M, M(0) = I (:func:`_integrate` on the identity's two columns)."""
+    sol, Zs = _integrate(net, seg, w, T0, T1, np.eye(2, dtype=complex), rtol)
     Ms = sol.y[:, -1].reshape(2, 2)
+    # back to (p, U): M = D^-1 Ms D with D = diag(1, Zs)
     return np.array([[Ms[0, 0], Ms[0, 1] * Zs], [Ms[1, 0] / Zs, Ms[1, 1]]])
 
 
@@ -563,19 +573,9 @@ def _states(net: Network, seg: NetworkSegment, w: complex, T_hot: float, state: 
     T0, T1 = seg.temperatures(net.gas.T_cold, T_hot)
     if T0 == T1 and seg.area == seg.area_end:
         return np.array([segment_matrix(net, dataclasses.replace(seg, length=x), w, T_hot) @ state for x in xk])
-    prof = _profile(seg, T0, T1)
     g0 = gas_properties(net.gas.name, T0, net.gas.p_mean)
-    Zs = float(g0.rho * g0.c) / seg.area
-
-    def rhs(x, y):
-        T, dT, S = prof(x)
-        a12, a21, a22 = _A(net, seg, w, T, dT, S)
-        return np.array([a12 / Zs * y[1], a21 * Zs * y[0] + a22 * y[1]])
-
-    y0 = np.array([state[0], Zs * state[1]], dtype=complex)
-    sol = solve_ivp(rhs, (0.0, seg.length), y0, "DOP853", t_eval=xk, rtol=rtol, atol=rtol * 1e-2 * np.abs(y0).max())
-    if not sol.success:
-        raise RuntimeError(f"segment {seg.name!r}, omega = {w}: {sol.message}")
+    y0 = np.array([[state[0]], [float(g0.rho * g0.c) / seg.area * state[1]]], dtype=complex)
+    sol, Zs = _integrate(net, seg, w, T0, T1, y0, rtol, t_eval=xk)
     return np.stack([sol.y[0], sol.y[1] / Zs], axis=1)
 
 
