@@ -70,3 +70,14 @@ def test_design_on_a_network_lowers_the_onset_ratio(tmp_path):
     (w0, *_) = nr.real_axis_modes(net, 40.0, 130.0, 90, T_hot=net.gas.T_cold)
     assert abs(nr.onset(net, w0, T_max=2.77 * 325.0, n=8).ratio / best["T_ratio"] - 1) < 1e-8
     assert best["Edot_produced_W"] > 0
+
+
+def test_onset_of_a_network_without_T_hot_reports_its_mode(tmp_path):
+    """The refrigerator names no T_hot: ``tawarp onset`` reports its lowest mode, which lies
+    within 1 % of the 500 Hz at which DeltaEC's hofler1 drives it, decaying (a passive
+    resonator), and writes its profiles."""
+    out = tmp_path / "rf"
+    assert main(["onset", "refrigerator", "-o", str(out), "--quiet", "--no-plots"]) == 0
+    doc = json.loads((out / "onset.json").read_text())
+    assert abs(doc["f_Hz"] / 500.0 - 1) < 0.01 and doc["growth_rate_1_per_s"] < 0 and doc["T_onset_K"] is None
+    assert (out / "profiles.csv").stat().st_size > 0

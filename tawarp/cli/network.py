@@ -41,6 +41,8 @@ def cmd_network_onset(args) -> int:
     net = load_network(args.engine)
     T_max = args.T_ratio_max * net.gas.T_cold
     w0 = _start(net, args.mode, args.f_max)
+    if not net.uses_T_hot():
+        return _passive(args, net, w0)
     res = onset(net, w0, T_max=T_max, n=args.bracket)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
@@ -85,6 +87,34 @@ def cmd_network_onset(args) -> int:
     write_json(out / "onset.json", doc)
     if not args.no_plots:
         _plot_locus(res, out / "root_locus.png", Path(str(net.source)).stem)
+    _say(args, f"wrote {out / 'onset.json'}")
+    return 0
+
+
+def _passive(args, net, w0: complex) -> int:
+    """A network that names no T_hot (a refrigerator, a resonator) has no onset to search:
+    its mode ``--mode`` at the file's temperatures, and the profiles of that mode (powers
+    evaluated with Re omega, :func:`tawarp.model.network_reference.profiles`)."""
+    from ..model.network_reference import profiles
+
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    f, g = w0.real / (2 * math.pi), w0.imag
+    _say(args, f"{net.source}: names no T_hot; mode {args.mode}: f = {f:.6g} Hz, growth rate Im omega = {g:.6g} 1/s")
+    prof = profiles(net, w0, net.T_hot, amplitude=args.amplitude)
+    write_text(out / "profiles.csv", _profiles_csv(prof, args.amplitude))
+    if not args.no_plots:
+        plot_profiles(prof, out / "profiles.png", f"{Path(str(net.source)).stem}: mode {args.mode}, {f:.4g} Hz")
+    doc = {
+        "engine": str(net.source),
+        "mode": args.mode,
+        "f_Hz": f,
+        "growth_rate_1_per_s": g,
+        "T_onset_K": None,
+        "profiles_amplitude_Pa": args.amplitude,
+        "convention": "exp(-i omega t); growth_rate = Im omega > 0 grows; no segment names T_hot: no onset search",
+    }
+    write_json(out / "onset.json", doc)
     _say(args, f"wrote {out / 'onset.json'}")
     return 0
 
