@@ -13,7 +13,7 @@ determinant vanishes with omega real, to 1e-10 relative, found two ways: Newton'
 the nominal design's onset (found once on the host by following the mode from T_cold, timed
 separately; :meth:`NetworkBatch.onset`), and each design's mode followed from T_cold on 12
 hot temperatures up to 700 K, Muller at each, the first crossing refined by Newton
-(:meth:`NetworkBatch.followed_onset`: no start needed). Every determinant walks 16 Magnus
+(:meth:`NetworkBatch.followed_onset`: no start needed). Every determinant walks 8 Magnus
 cells in the regenerator, the buffer tube and each cone. Timed: building the tables, the
 launch and the transfers, after a warm-up call; the designs without an onset are counted.
 """
