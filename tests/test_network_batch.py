@@ -116,8 +116,9 @@ def test_batch_parameters_are_checked():
 
 def test_followed_onsets_match_the_reference_without_a_start():
     """Each thread follows its design's mode from T_cold (as the reference's onset does, with
-    the same grid, predictor and jump test): onsets agree to 1e-9 from 40 um pores (ratio
-    1.63) to 200 um (3.02), and 500 um pores do not start below 4 T_cold in either."""
+    the same grid, predictor and jump test): onsets agree to 1e-7 (8 Magnus cells: 4e-8 at
+    200 um, T_hot = 980 K) from 40 um pores (ratio 1.63) to 200 um (3.02), and 500 um pores
+    do not start below 4 T_cold in either."""
     net = load_network("traveling_wave")
     radii = np.array([40e-6, 84.4e-6, 200e-6, 500e-6])
     res = NetworkBatch(net, {"regenerator.pore_radius": radii}, device="cpu").followed_onset(
@@ -126,5 +127,5 @@ def test_followed_onsets_match_the_reference_without_a_start():
     assert list(res.status) == [1, 1, 1, 0] and (res.jumps == 0).all()
     for k, r in enumerate(radii[:3]):
         ref = nr.onset(net.replace(**{"regenerator.pore_radius": r}), 2 * math.pi * 86.5, 4 * net.gas.T_cold, n=12)
-        assert abs(res.T_hot[k] / ref.T_onset - 1) < 1e-9 and abs(res.omega[k] / ref.omega.real - 1) < 1e-9
+        assert abs(res.T_hot[k] / ref.T_onset - 1) < 1e-7 and abs(res.omega[k] / ref.omega.real - 1) < 1e-7
     assert np.isnan(res.T_hot[3])
