@@ -110,6 +110,8 @@ def test_batch_parameters_are_checked():
     net = load_network("traveling_wave")
     with pytest.raises(KeyError, match=r"'regenerator.colour': not a batch parameter"):
         NetworkBatch(net, {"regenerator.colour": [1.0]}, device="cpu")
+    with pytest.raises(ValueError, match=r"regenerator.porosity\[1\] = 1.2: expected a finite value in \(0, 1\]"):
+        NetworkBatch(net, {"regenerator.porosity": [0.7, 1.2]}, device="cpu")
     with pytest.raises(ValueError, match=r"regenerator.porosity: 2 values; every parameter needs 1 or 3"):
         NetworkBatch(net, {"regenerator.porosity": [0.7, 0.8], "regenerator.pore_radius": [1e-4] * 3}, device="cpu")
 

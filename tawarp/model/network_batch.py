@@ -70,6 +70,15 @@ class NetworkBatch:
         for k, v in params.items():
             if len(v) not in (1, n):
                 raise ValueError(f"{k}: {len(v)} values; every parameter needs 1 or {n}")
+            # a porosity in (0, 1], a tortuosity >= 1, anything else > 0
+            hi, lo, span = (1.0, 0.0, "(0, 1]") if k.endswith(".porosity") else (np.inf, 0.0, "> 0")
+            if k.endswith(".tortuosity"):
+                lo, span = 1.0, ">= 1"
+            bad = np.flatnonzero(~(np.isfinite(v) & (v > 0) & (v >= lo) & (v <= hi)))
+            if bad.size:
+                raise ValueError(
+                    f"{k}[{bad[0]}] = {v[bad[0]]}: expected a finite value {'in ' * (span[0] == '(')}{span}"
+                )
         self.n = n
         segs = [s for br in net.branches for s in br.segments]
         if 2 * len(net.branches) > kn.MAX_ROWS:
