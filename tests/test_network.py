@@ -287,7 +287,7 @@ def test_acoustic_power_is_conserved_at_junctions_and_the_regenerator_produces_i
 
 def test_acoustic_power_changes_only_by_dissipation_and_production(tw_onset):
     """Along each distributed segment at onset, Edot(out) - Edot(in) from the mode's p and U
-    equals the integral of the local budget (Swift 2002, Eq. 5.21): viscous and thermal-
+    equals the integral of the local budget (Swift 2002, Ch. 5): viscous and thermal-
     relaxation losses (never positive) plus the thermoacoustic production (zero where the
     temperature is uniform), to 1e-6 of the segment's largest Edot."""
     net, res = tw_onset
@@ -308,7 +308,7 @@ def test_acoustic_power_changes_only_by_dissipation_and_production(tw_onset):
 
 
 def test_total_power_in_a_tight_regenerator_carries_no_acoustic_power():
-    """Swift (2002), Sect. 7.3: where r << delta (f_nu, f_k -> 1), the p U* term of Htot
+    """Swift (2002), Ch. 7: where r << delta (f_nu, f_k -> 1), the p U* term of Htot
     vanishes as (r / delta)^2: an ideal regenerator passes acoustic power without the
     enthalpy flux that would carry it. Checked at r / delta_k = 0.02: that term is below
     1e-3 of Edot."""

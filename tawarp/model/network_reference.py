@@ -21,8 +21,8 @@ its ``to`` node; ``(p, U)(end) = M (p, U)(start)``.
 * **Ends**: ``p = Z U`` with U flowing out of the network. Closed: U = 0. Open: the radiation
   impedance of a pipe end of radius a at low ka, ``Z = (rho c / S) ((ka)^2/4 - 0.6133 i ka)``
   unflanged (Levine & Schwinger, Phys. Rev. 73, 383 (1948)) or ``((ka)^2/2 - 0.8216 i ka)``
-  flanged (Rayleigh's baffled piston; Kinsler et al., *Fundamentals of Acoustics*, 4th ed.,
-  Sect. 10.8), written for exp(-i omega t) (a mass end correction is -i omega M). Impedance:
+  flanged (Rayleigh's baffled piston; Kinsler et al., *Fundamentals of Acoustics*),
+  written for exp(-i omega t) (a mass end correction is -i omega M). Impedance:
   the table of :func:`tawarp.model.resonator.read_impedance_csv`, linear in frequency. Load:
   ``Z = R + i / (omega C)``, ``C = V / (gamma p_m)`` (a resistance into a closed volume).
 * **Junctions**: equal pressure on every branch end that meets there, the volume flows into
@@ -241,7 +241,7 @@ def determinant(net: Network, omega: complex, T_hot: float | None = None) -> com
 # ======================================================================================
 def muller(f, guess: complex, rtol: float = 1e-11, maxiter: int = 100, spread: float = 1e-3) -> complex:
     """A root of the analytic ``f`` near ``guess`` by Muller's method (parabola through the
-    last three iterates; Press et al., *Numerical Recipes*, 3rd ed., Sect. 9.5.2), started
+    last three iterates; Muller, Math. Tables Aids Comput. 10, 208 (1956)), started
     from ``guess (1 -+ spread)`` and ``guess``. Raises RuntimeError unless the step falls
     below ``rtol |omega|`` within ``maxiter`` steps."""
     x = [complex(guess) * (1 - spread), complex(guess) * (1 + spread), complex(guess)]
@@ -471,7 +471,7 @@ def segment_entry(net: Network, name: str, omega: complex, T_hot: float, starts:
 class BranchProfile:
     """Along one branch, at positions ``x`` [m] from its start: ``p``, ``U`` complex [Pa],
     [m^3/s]; ``T`` [K]; ``Edot`` acoustic power 1/2 Re(p conj U) [W]; ``Htot`` total power
-    [W] (Swift 2002, Eq. 7.80, ideal solid); ``segment`` the segment name at each point.
+    [W] (Swift 2002, Ch. 7: the total power of a pore with an ideal solid); ``segment`` the segment name at each point.
     A lumped segment shows as two points at the same x."""
 
     branch: str
@@ -485,7 +485,7 @@ class BranchProfile:
 
 
 def total_power(net: Network, seg: NetworkSegment, w: float, p, U, T, dTdx, S):
-    """Htot [W] at points of ``seg`` (Swift 2002, Eq. 7.80 with T beta = 1 and an ideal
+    """Htot [W] at points of ``seg`` (Swift 2002, Ch. 7, with T beta = 1 and an ideal
     solid, eps_s = 0, written for exp(-i omega t)): ``1/2 Re[p U* (1 - (f_k - f_nu*) /
     ((1 + Pr)(1 - f_nu*)))] - rho cp |U|^2 / (2 A w (1 - Pr) |1 - f_nu|^2) Im[f_nu* +
     (f_k - f_nu*) / (1 + Pr)] dT/dx - (A k + A_solid k_solid) dT/dx``, A = phi S the gas area.
@@ -581,7 +581,7 @@ def _states(net: Network, seg: NetworkSegment, w: complex, T_hot: float, state: 
 
 @dataclass
 class PowerBudget:
-    """Acoustic power budget of one segment [W] (Swift 2002, Eq. 5.21): ``viscous`` =
+    """Acoustic power budget of one segment [W] (Swift 2002, Ch. 5: dissipation and source terms): ``viscous`` =
     -int r_nu |U|^2 / 2 dx, ``thermal`` = -int |p|^2 / (2 r_k) dx (both <= 0), ``production``
     = int Re(g p* U) / 2 dx (the thermoacoustic source, zero without a temperature gradient);
     ``total`` their sum, Edot(out) - Edot(in)."""
