@@ -18,8 +18,10 @@ comparison isolates the segments' physics, with the network assembly shared.
 
 Reported: the lowest mode at T_hot = T_cold (frequency, growth rate), the onset T_hot /
 T_cold and frequency of the traveling-wave engine, the refrigerator's resonance, each
-segment of the refrigerator against DeltaEC's hofler1 outputs (both codes), the time for
-one onset, and every difference above 0.5 % with its cause.
+segment of the refrigerator against DeltaEC's hofler1 outputs (both codes), each segment of
+the traveling-wave engine whose DeltaEC tashe1 states are public against them, the onset's
+sensitivity to the regenerator's equivalent friction, the time for one onset, and every
+difference above 0.5 % with its cause.
 """
 
 from __future__ import annotations
@@ -48,12 +50,88 @@ HOFLER1 = [
     ("bulb", (4526.5, -178.49, 8.3826e-3, -88.196), (4526.5, -178.49, 6.7549e-4, 86.866)),
 ]
 
+#: DeltaEC's tashe1 (Backhaus & Swift's engine, helium 3.103 MPa, 85.747 Hz, T_hot 829.21 K):
+#: segments of the bundled traveling-wave engine's geometry with DeltaEC's input and output
+#: states (exp(+i omega t)), as open-thermoacoustics copies them
+#: (examples/validation/validate_tashe_segments.py); output |U| None where not given there.
+TASHE1 = [
+    (
+        "compliance",
+        dict(kind="duct", length=0.354, area=8.15e-3, area_end=8.15e-3),
+        (3.1797e5, 0.0, 1.3773e-2, -143.0),
+        (3.1194e5, 0.2215, 0.10399, -96.081),
+    ),
+    (
+        "feedback_cone_out",
+        dict(kind="duct", length=0.102, area=8.107e-3, area_end=4.56e-3),
+        (3.1194e5, 0.2215, 0.10399, -96.081),
+        (3.0713e5, 0.31356, None, None),
+    ),
+    (
+        "main_ahx",
+        dict(
+            kind="porous",
+            length=2.04e-2,
+            area=6.658e-3,
+            area_end=6.658e-3,
+            porosity=0.2275,
+            pore_radius=1.27e-3,
+            T_start=300.0,
+            T_end=300.0,
+        ),
+        (3.0935e5, -1.9299, 1.1461e-2, 19.314),
+        (3.0944e5, -2.005, 1.104e-2, 14.234),
+    ),
+    (
+        "regenerator",
+        dict(
+            kind="porous",
+            length=7.3e-2,
+            area=6.207e-3,
+            area_end=6.207e-3,
+            porosity=0.719,
+            pore_radius=8.44e-5,
+            T_start="T_cold",
+            T_end="T_hot",
+        ),
+        (3.0945e5, -2.0081, 1.0903e-2, 11.652),
+        (2.6979e5, 1.5792, 3.244e-2, -38.53),
+    ),
+    (
+        "hot_hx",
+        dict(
+            kind="porous",
+            length=6.35e-3,
+            area=5.697e-3,
+            area_end=5.697e-3,
+            porosity=0.9867,
+            pore_model="plates",
+            pore_radius=7.94e-4,
+            T_start=921.2,
+            T_end=921.2,
+        ),
+        (2.6975e5, 1.5695, 3.3176e-2, -40.16),
+        (2.6971e5, 1.5642, 3.384e-2, -41.784),
+    ),
+    (
+        "tbt",
+        dict(kind="duct", length=0.24, area=7.0e-3, area_end=7.0e-3, T_start="T_hot", T_end="T_cold"),
+        (2.6970e5, 1.5608, 3.4229e-2, -42.477),
+        (2.6698e5, 1.2829, 7.4895e-2, -69.424),
+    ),
+]
+
 #: causes of the differences, by the segment kind or quantity they come from
 CAUSES = {
     "gas": "helium transport: tawarp mu = 1.865e-5 (T/273.15)^0.7, k = 0.1415 (T/273.15)^0.7; "
     "openthermoacoustics mu = 1.96e-5, k = 0.152 at its reference temperature (~2 % in mu at 300 K)",
     "stack": "stack plates' heat capacity: DeltaEC and openthermoacoustics' Stack carry eps_s (~0.07 "
     "for Kapton in helium at 500 Hz), tawarp's imposed-temperature segments an ideal solid (eps_s = 0)",
+    "regenerator": "the regenerator's stainless screens are an equivalent bed of circular pores of the same "
+    "hydraulic radius here: laminar tube friction is about half the screens' (DeltaEC uses Swift & Ward's "
+    "screen correlations, f = 129/Re + ... per hydraulic diameter against 64/Re for tubes), and tashe1 "
+    "runs at finite amplitude where the screens' nonlinear term adds more; the screen geometry replaces "
+    "this equivalence when it is available",
     "bulb": "DeltaEC's compliance has a surface area (thermal-relaxation loss, not given in the copied "
     "inputs); the bulb's output flow is the small difference of two large ones, so 0.15 % of the "
     "input flow is 2 % of the output",
@@ -232,6 +310,50 @@ def standing_wave() -> dict:
     return out
 
 
+def tashe1_segments() -> list[dict]:
+    """Each segment of :data:`TASHE1` driven by DeltaEC's input state against DeltaEC's output."""
+    from tawarp.model.core import Gas
+    from tawarp.model.network import Branch, Network, NetworkEnd, NetworkSegment
+
+    T_hot = 829.21
+    w = 2 * math.pi * 85.747
+    rows = []
+    for name, kw, given, expected in TASHE1:
+        seg = NetworkSegment(name, **kw)
+        net = Network(
+            Gas("helium", 3.103e6, 325.0),
+            (Branch("b", "a", "z", (seg,)),),
+            {"a": NetworkEnd("a", "closed"), "z": NetworkEnd("z", "closed")},
+            T_hot,
+            "tashe1",
+        )
+        state = np.conj([_polar(given[0], given[1]), _polar(given[2], given[3])])
+        p, U = np.conj(nr.segment_matrix(net, seg, w, T_hot) @ state)
+        row = {"segment": name, "p_relative": _rel(abs(p), expected[0])}
+        row["p_phase_deg"] = float(np.degrees(np.angle(p / _polar(expected[0], expected[1]))))
+        if expected[2] is not None:
+            row["U_relative"] = _rel(abs(U), expected[2])
+            row["U_phase_deg"] = float(np.degrees(np.angle(U / _polar(expected[2], expected[3]))))
+        rows.append(row)
+    return rows
+
+
+def regenerator_sensitivity() -> dict:
+    """The traveling-wave engine's onset with the equivalent regenerator's viscous resistance
+    doubled two ways (about the screens' low-Reynolds friction): the pore radius over sqrt(2)
+    (the thermal contact improves too), or the tortuosity sqrt(2) (the inertance doubles too)."""
+    net = load_network("traveling_wave")
+    out = {}
+    for key, change in (
+        ("as_bundled", {}),
+        ("pore_radius_over_sqrt2", {"regenerator.pore_radius": 8.44e-5 / math.sqrt(2.0)}),
+        ("tortuosity_sqrt2", {"regenerator.tortuosity": math.sqrt(2.0)}),
+    ):
+        res = nr.onset(net.replace(**change), 2 * math.pi * 86.5, T_max=1000.0, n=10)
+        out[key] = {"T_ratio": res.ratio, "f_onset_Hz": res.frequency}
+    return out
+
+
 def refrigerator() -> dict:
     net = load_network("refrigerator")
     (w0, *_) = nr.real_axis_modes(net, 100.0, 1000.0, 200)
@@ -282,6 +404,12 @@ def differences_above(result: dict, limit: float = 5e-3) -> list[dict]:
         rows += [("traveling_wave", f"{r['segment']} {k}", r[k], cause(r["segment"])) for k in r if k != "segment"]
     rf = result["refrigerator"]
     rows += [("refrigerator", k, v, CAUSES["gas"] + "; " + CAUSES["stack"]) for k, v in rf["difference"].items()]
+    for r in result["tashe1_segments"]:
+        rows += [
+            ("traveling_wave vs DeltaEC tashe1", f"{r['segment']} {k}", r[k], cause(r["segment"]))
+            for k in r
+            if k.endswith("relative")
+        ]
     for r in rf["hofler1_segments"]:
         rows += [
             ("refrigerator vs DeltaEC hofler1", f"{r['segment']} {k}", r[k], cause(r["segment"]))
@@ -305,6 +433,8 @@ def main(argv=None):
         "traveling_wave": traveling_wave(args.T_max, args.n),
         "standing_wave_imposed": standing_wave(),
         "refrigerator": refrigerator(),
+        "tashe1_segments": tashe1_segments(),
+        "regenerator_sensitivity": regenerator_sensitivity(),
     }
     result["differences_above_0.5_percent"] = differences_above(result)
     out = Path(args.out)
