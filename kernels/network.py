@@ -68,6 +68,8 @@ END_KINDS = {"closed": 0, "open": 1, "impedance": 2, "load": 3}
 #: Most rows of the boundary matrix: two per branch, so at most 4 branches.
 MAX_ROWS = 8
 CMatN = wp.types.matrix(shape=(MAX_ROWS, MAX_ROWS), dtype=wp.float64)
+#: The branch matrices' four entries, one row per branch (real or imaginary parts).
+CMatB = wp.types.matrix(shape=(MAX_ROWS // 2, 4), dtype=wp.float64)
 
 
 @wp.struct
@@ -255,7 +257,7 @@ def complex_det(re: CMatN, im: CMatN, n: int):
 
 
 @wp.func
-def stored(bm: CMatN, bi: CMatN, b: int):
+def stored(bm: CMatB, bi: CMatB, b: int):
     """Branch b's matrix from the scratch rows (:func:`network_det`)."""
     return cmat2(cplx(bm[b, 0], bi[b, 0]), cplx(bm[b, 1], bi[b, 1]), cplx(bm[b, 2], bi[b, 2]), cplx(bm[b, 3], bi[b, 3]))
 
@@ -268,8 +270,8 @@ def network_det(t: NetworkTables, i: int, omega: wp.vec2d, T_hot: wp.float64):
     re = CMatN()
     im = CMatN()
     # the branch matrices, four complex numbers each, in the rows of two scratch matrices
-    bm = CMatN()
-    bi = CMatN()
+    bm = CMatB()
+    bi = CMatB()
     for b in range(n_branch):
         m = branch_matrix(t, i, b, omega, T_hot)
         bm[b, 0] = m.a[0]
