@@ -11,6 +11,8 @@ from tawarp.model import network_reference as nr
 from tawarp.model.network import load_network, network_from_dict
 from tawarp.model.network_batch import NetworkBatch
 
+AIR_HOT = {"name": "air", "p_mean": 101325.0, "T_cold": 300.0}
+
 
 def test_determinant_matches_the_reference_on_every_end_and_segment_kind():
     """Ducts, a cone, a porous segment with a gradient, a compliance with surface loss, an
@@ -131,3 +133,28 @@ def test_followed_onsets_match_the_reference_without_a_start():
         ref = nr.onset(net.replace(**{"regenerator.pore_radius": r}), 2 * math.pi * 86.5, 4 * net.gas.T_cold, n=12)
         assert abs(res.T_hot[k] / ref.T_onset - 1) < 1e-7 and abs(res.omega[k] / ref.omega.real - 1) < 1e-7
     assert np.isnan(res.T_hot[3])
+
+
+def test_an_open_end_radiates_at_the_temperature_of_its_segment():
+    """A duct at "T_hot" ending open: the radiation impedance takes the gas at the T_hot of the
+    call (not the file's), in the kernel and the reference alike (1e-12); another T_hot moves
+    the determinant."""
+    d = {
+        "gas": AIR_HOT,
+        "network": {"T_hot": 400.0},
+        "branch": [
+            {
+                "name": "b",
+                "from": "a",
+                "to": "o",
+                "segment": [{"name": "hot", "kind": "duct", "length": 0.5, "radius": 0.03, "T": "T_hot"}],
+            }
+        ],
+        "end": [{"name": "a", "kind": "closed"}, {"name": "o", "kind": "open"}],
+    }
+    net = network_from_dict(d, "t")
+    batch = NetworkBatch(net, device="cpu")
+    w = 2 * math.pi * (200 + 2j)
+    for T in (400.0, 700.0):
+        assert abs(batch.determinants(w, T)[0] / nr.determinant(net, w, T) - 1) < 1e-12
+    assert abs(nr.determinant(net, w, 700.0) / nr.determinant(net, w, 400.0) - 1) > 1e-3

@@ -124,7 +124,7 @@ class NetworkBatch:
         nodes = net.nodes()
         node_first, inc_b, inc_s, kinds, pars, node_seg = [0], [], [], [], [], []
         starts = np.cumsum([0] + [len(br.segments) for br in net.branches])
-        from .network_reference import RADIATION, _end_segment
+        from .network_reference import RADIATION, end_segment
 
         for node, inc in nodes.items():
             for b, side in inc:
@@ -150,7 +150,7 @@ class NetworkBatch:
                 else (0.0, 0.0)
             )
             b, side = inc[0]
-            end_seg = _end_segment(net, b, side)[0]
+            end_seg = end_segment(net, b, side)
             node_seg.append(int(starts[b]) + list(net.branches[b].segments).index(end_seg))
         dev = self.device
         i32 = {"dtype": wp.int32, "device": dev}

@@ -152,14 +152,13 @@ def branch_matrix(net: Network, b: int, omega: complex, T_hot: float) -> np.ndar
 # ======================================================================================
 # Ends and the boundary determinant
 # ======================================================================================
-def _end_segment(net: Network, b: int, side: str) -> tuple[NetworkSegment, float, float]:
-    """The segment at ``side`` of branch ``b`` with a section, its area there and its temperature."""
+def end_segment(net: Network, b: int, side: str) -> NetworkSegment:
+    """The segment with a cross-section nearest ``side`` ("start" or "end") of branch ``b``:
+    what an end there sees (a compliance has no section)."""
     segs = net.branches[b].segments
-    order = segs if side == "start" else segs[::-1]
-    for seg in order:
+    for seg in segs if side == "start" else segs[::-1]:
         if seg.kind != "compliance":
-            T0, T1 = seg.temperatures(net.gas.T_cold, net.T_hot if math.isfinite(net.T_hot) else net.gas.T_cold)
-            return seg, (seg.area if side == "start" else seg.area_end), (T0 if side == "start" else T1)
+            return seg
     raise ValueError(f"{net.source}: branch {net.branches[b].name!r} has no segment with a cross-section")
 
 
@@ -188,7 +187,7 @@ def end_impedance(net: Network, name: str, omega: complex, area: float, T: float
 
 def reference_impedance(net: Network) -> float:
     """Zs = rho c / S [Pa s/m^3] of the first branch's first section, at T_cold."""
-    seg, area, _ = _end_segment(net, 0, "start")
+    area = end_segment(net, 0, "start").area
     g = gas_properties(net.gas.name, net.gas.T_cold, net.gas.p_mean)
     return float(g.rho * g.c) / area
 
@@ -218,7 +217,9 @@ def boundary_matrix(net: Network, omega: complex, T_hot: float | None = None, ma
             b, side = inc[0]
             p, u = rows(b, side)
             u_out = u if side == "end" else -u  # flow out of the network into the end
-            _, area, T = _end_segment(net, b, side)
+            seg = end_segment(net, b, side)
+            T0, T1 = seg.temperatures(net.gas.T_cold, T_hot)
+            area, T = (seg.area, T0) if side == "start" else (seg.area_end, T1)
             Z = end_impedance(net, node, omega, area, T)
             out.append(u_out if math.isinf(Z.real) else p - (Z / Zs) * u_out)
             continue
