@@ -12,13 +12,16 @@ convention exp(-i omega t); the segments' A(x) is :func:`tawarp.kernels.acoustic
   ``f_k = (1 + i) delta_k A_surface / (2 V)``; an inertance ``[[1, a12 l], [0, 1]]``;
 * the unknowns ``(p, Zs U)`` at every branch's start and the rows of the ends and junctions
   (:func:`network_det`), in a complex matrix of at most :data:`MAX_ROWS` rows, whose
-  determinant comes from Gaussian elimination with partial pivoting.
+  determinant comes from Gaussian elimination with partial pivoting;
+* Muller's method for an eigenfrequency, Newton's method on (omega, T_hot) for an onset, and
+  the onset with the mode followed from T_cold (:func:`followed_onset_kernel`).
 
-Tables (built by :func:`tawarp.model.network_batch.compile_network`):
+Tables (:class:`NetworkTables`, built by :class:`tawarp.model.network_batch.NetworkBatch`):
 
 * per design ``seg[i, s, F]`` with the fields below (a temperature is ``T = a + b T_hot``)
   and ``design[i, D]`` (p_mean, Zs);
-* shared: ``seg_kind``, ``seg_model`` (pore model) per segment, ``branch_first`` (B + 1),
+* shared: ``seg_kind``, ``seg_model`` (pore model), ``seg_porous`` per segment,
+  ``branch_first`` (B + 1),
   and per node ``node_first`` into the incidence lists ``inc_branch``, ``inc_side``
   (0 start, 1 end), ``node_kind`` (-1 junction, else an end kind), ``node_par`` (2 numbers
   per node: the radiation coefficients of an open end, Z of an impedance end, R and V of a
