@@ -146,31 +146,35 @@ def segment_matrix(t: NetworkTables, i: int, s: int, omega: wp.vec2d, T_hot: wp.
         return cmat2(one, zero, Y, one)
     L = t.seg[i, s, F_LENGTH]
     A0 = t.seg[i, s, F_AREA0]
-    if kind == KIND_INERTANCE:
-        a = point_matrix(t, i, s, omega, T0, wp.float64(0.0), A0, 0)
-        return cmat2(one, cscale(a.b, L), zero, one)
     A1 = t.seg[i, s, F_AREA1]
     porous = t.seg_porous[s]
-    if T0 == T1 and A0 == A1:
-        return expm2(scale2(point_matrix(t, i, s, omega, T0, wp.float64(0.0), A0, porous), L))
+    if kind == KIND_INERTANCE or (T0 == T1 and A0 == A1):
+        # one call site of A for both (the kernels' code size): an inertance is a tube
+        a = point_matrix(t, i, s, omega, T0, wp.float64(0.0), A0, porous * int(kind != KIND_INERTANCE))
+        if kind == KIND_INERTANCE:
+            return cmat2(one, cscale(a.b, L), zero, one)
+        return expm2(scale2(a, L))
     # linear temperature and radius: sixth-order Magnus steps on ``cells`` equal cells
     h = L / wp.float64(t.cells)
     dTdx = (T1 - T0) / L
     r0 = wp.sqrt(A0 / PI)
     dr = (wp.sqrt(A1 / PI) - r0) / L
     m = identity2()
-    for c in range(t.cells):
-        x0 = wp.float64(c) * h
-        xa = x0 + GAUSS[0] * h
-        xb = x0 + GAUSS[1] * h
-        xc = x0 + GAUSS[2] * h
-        ra = r0 + dr * xa
-        rb = r0 + dr * xb
-        rc = r0 + dr * xc
-        a1 = point_matrix(t, i, s, omega, T0 + dTdx * xa, dTdx, PI * ra * ra, porous)
-        a2 = point_matrix(t, i, s, omega, T0 + dTdx * xb, dTdx, PI * rb * rb, porous)
-        a3 = point_matrix(t, i, s, omega, T0 + dTdx * xc, dTdx, PI * rc * rc, porous)
-        m = matmul2(magnus6_step(a1, a2, a3, h), m)
+    a1 = m
+    a2 = m
+    for k in range(3 * t.cells):
+        # cell k // 3, Gauss point k % 3: one call site of A (the kernels' code size)
+        c = k // 3
+        g = k - 3 * c
+        x = (wp.float64(c) + GAUSS[g]) * h
+        r = r0 + dr * x
+        a = point_matrix(t, i, s, omega, T0 + dTdx * x, dTdx, PI * r * r, porous)
+        if g == 0:
+            a1 = a
+        elif g == 1:
+            a2 = a
+        else:
+            m = matmul2(magnus6_step(a1, a2, a, h), m)
     return m
 
 
@@ -347,11 +351,36 @@ def muller_root(
     x0 = cscale(guess, wp.float64(1.0) - spread)
     x1 = cscale(guess, wp.float64(1.0) + spread)
     x2 = guess
-    y0 = network_det(t, i, x0, T_hot)
-    y1 = network_det(t, i, x1, T_hot)
-    y2 = network_det(t, i, x2, T_hot)
+    zero = cplx(wp.float64(0.0), wp.float64(0.0))
+    y0 = zero
+    y1 = zero
+    y2 = zero
     one = cplx(wp.float64(1.0), wp.float64(0.0))
-    for it in range(max_iter):
+    xn = x0
+    step = zero
+    # one call site of the determinant (the kernels' code size): evaluations 0-2 are the start
+    # points, each later one the new iterate
+    for k in range(max_iter + 3):
+        yn = network_det(t, i, xn, T_hot)
+        if k == 0:
+            y0 = yn
+            xn = x1
+            continue
+        if k == 1:
+            y1 = yn
+            xn = x2
+            continue
+        if k == 2:
+            y2 = yn
+        else:
+            x0 = x1
+            x1 = x2
+            x2 = xn
+            y0 = y1
+            y1 = y2
+            y2 = yn
+            if cabs(step) < rtol * cabs(x2):
+                return x2, k - 2
         q = cdiv(x2 - x1, x1 - x0)
         qq = cmul(q, q)
         A = cmul(q, y2) - cmul(cmul(q, one + q), y1) + cmul(qq, y0)
@@ -364,14 +393,7 @@ def muller_root(
         if cabs(den) == wp.float64(0.0):
             return x2, -1
         step = -cdiv(cscale(cmul(x2 - x1, C), wp.float64(2.0)), den)
-        x0 = x1
-        x1 = x2
-        x2 = x2 + step
-        y0 = y1
-        y1 = y2
-        y2 = network_det(t, i, x2, T_hot)
-        if cabs(step) < rtol * cabs(x2):
-            return x2, it + 1
+        xn = x2 + step
     return x2, -1
 
 
@@ -412,12 +434,31 @@ def newton_onset(
     w = w0
     T = T0
     zero = wp.float64(0.0)
-    for it in range(max_iter):
-        F = network_det(t, i, cplx(w, zero), T)
-        hw = wp.float64(1e-7) * w
-        hT = wp.float64(1e-7) * T
-        dw = cscale(network_det(t, i, cplx(w + hw, zero), T) - F, wp.float64(1.0) / hw)
-        dT = cscale(network_det(t, i, cplx(w, zero), T + hT) - F, wp.float64(1.0) / hT)
+    F = cplx(zero, zero)
+    Fw = F
+    hw = wp.float64(1e-7) * w
+    hT = wp.float64(1e-7) * T
+    # one call site of the determinant (the kernels' code size): per step, det at (w, T),
+    # (w + hw, T) and (w, T + hT)
+    for k in range(3 * max_iter):
+        j = k - 3 * (k // 3)
+        wj = w
+        Tj = T
+        if j == 1:
+            wj = w + hw
+        if j == 2:
+            Tj = T + hT
+        d = network_det(t, i, cplx(wj, zero), Tj)
+        if j == 0:
+            F = d
+            hw = wp.float64(1e-7) * w
+            hT = wp.float64(1e-7) * T
+            continue
+        if j == 1:
+            Fw = d
+            continue
+        dw = cscale(Fw - F, wp.float64(1.0) / hw)
+        dT = cscale(d - F, wp.float64(1.0) / hT)
         jac = dw[0] * dT[1] - dT[0] * dw[1]
         sw = (-F[0] * dT[1] + dT[0] * F[1]) / jac
         sT = (-dw[0] * F[1] + F[0] * dw[1]) / jac
@@ -431,7 +472,7 @@ def newton_onset(
         if T < T_lo or T > T_hi or wp.abs(w - w_ref) > wp.float64(0.5) * w_ref:
             return w, T, -1
         if wp.abs(sw) < rtol * w and wp.abs(sT) < rtol * T:
-            return w, T, it + 1
+            return w, T, k // 3 + 1
     return w, T, -1
 
 
@@ -485,54 +526,62 @@ def followed_onset_kernel(
     ``status``: 1 onset found, 0 none on the grid, -1 a root or Newton's method failed."""
     i = wp.tid()
     n = T_grid.shape[0]
-    T_a = T_grid[0]
-    w_a, it = muller_root(t, i, guess[i], T_a, wp.float64(1e-3), rtol, max_iter)
     status[i] = 0
     jumps[i] = 0
-    omega[i] = w_a
     T_hot[i] = wp.float64(0.0)
-    if it < 0:
-        status[i] = -1
-        return
-    w_b = w_a  # the point before w_a (predictor), valid when have_two
-    T_b = T_a
-    have_two = int(0)
     min_step = (T_grid[1] - T_grid[0]) / wp.pow(wp.float64(2.0), wp.float64(halvings))
-    for k in range(1, n):
-        while T_a < T_grid[k]:
-            step = T_grid[k] - T_a
+    T_a = T_grid[0]
+    w_a = guess[i]
+    w_b = w_a  # the point before w_a, for the predictor once have_two > 0
+    T_b = T_a
+    have_two = int(-1)  # -1: the first root (at T_grid[0]) is still to be found
+    k = int(1)  # the grid point aimed at
+    step = T_grid[1] - T_grid[0]
+    # one call site of Muller's method (the kernels' code size): each pass tries one step
+    for attempt in range(4 * n * (halvings + 2)):
+        T = T_a + step
+        pred = w_a
+        if have_two < 0:
             T = T_a
-            w = w_a
-            while step > wp.float64(0.0):
-                T = T_a + step
-                pred = w_a
-                if have_two != 0:
-                    pred = w_a + cscale(w_a - w_b, (T - T_a) / (T_a - T_b))
-                w, it = muller_root(t, i, pred, T, wp.float64(1e-3), rtol, max_iter)
-                if it < 0:
-                    status[i] = -1
-                    return
-                if cabs(w - pred) <= jump_tol * cabs(w_a):
-                    break
-                if step / wp.float64(2.0) < min_step:
-                    jumps[i] = jumps[i] + 1
-                    have_two = -1  # the predictor restarts after the jump
-                    break
-                step = step / wp.float64(2.0)
-            if w_a[1] < wp.float64(0.0) and w[1] >= wp.float64(0.0):
-                f = -w_a[1] / (w[1] - w_a[1])
-                w0 = w_a[0] + f * (w[0] - w_a[0])
-                T0 = T_a + f * (T - T_a)
-                wn, Tn, its = newton_onset(t, i, w0, T0, w0, T_a - step, T + step, rtol, max_iter)
-                omega[i] = cplx(wn, wp.float64(0.0))
-                T_hot[i] = Tn
-                status[i] = 1
-                if its < 0:
-                    status[i] = -1
-                return
-            w_b = w_a
-            T_b = T_a
+        elif have_two > 0:
+            pred = w_a + cscale(w_a - w_b, step / (T_a - T_b))
+        w, it = muller_root(t, i, pred, T, wp.float64(1e-3), rtol, max_iter)
+        if it < 0:
+            status[i] = -1
+            omega[i] = w_a
+            return
+        if have_two < 0:
             w_a = w
-            T_a = T
-            have_two = have_two + 1
+            have_two = 0
+            continue
+        if cabs(w - pred) > jump_tol * cabs(w_a):
+            if step / wp.float64(2.0) >= min_step:
+                step = step / wp.float64(2.0)
+                continue
+            jumps[i] = jumps[i] + 1
+            have_two = -2  # the predictor restarts after the jump
+        if w_a[1] < wp.float64(0.0) and w[1] >= wp.float64(0.0):
+            f = -w_a[1] / (w[1] - w_a[1])
+            w0 = w_a[0] + f * (w[0] - w_a[0])
+            wn, Tn, its = newton_onset(t, i, w0, T_a + f * step, w0, T_a - step, T + step, rtol, max_iter)
+            omega[i] = cplx(wn, wp.float64(0.0))
+            T_hot[i] = Tn
+            status[i] = 1
+            if its < 0:
+                status[i] = -1
+            return
+        w_b = w_a
+        T_b = T_a
+        w_a = w
+        T_a = T
+        have_two = have_two + 1
+        if have_two < 0:
+            have_two = 0
+        if T_grid[k] - T_a <= wp.float64(1e-12) * T_grid[k]:  # the grid point reached (to rounding)
+            k = k + 1
+            if k == n:
+                omega[i] = w_a
+                return
+        step = T_grid[k] - T_a
+    status[i] = -1
     omega[i] = w_a
