@@ -13,7 +13,8 @@ from tawarp.cli import main
 def test_onset_of_the_traveling_wave_engine_from_the_command_line(tmp_path):
     """The JSON's ratio is T_onset / T_cold, the followed growth rate changes sign around
     T_onset, and the profiles' closed end carries no volume flow (1e-9 of the largest); a
-    --var design's onset (batched) is the reference's Newton onset of that design (1e-9)."""
+    --var design's onset (followed on the device) is the reference's Newton onset of that
+    design (1e-9)."""
     from tawarp.model import network_reference as nr
     from tawarp.model.network import load_network
 

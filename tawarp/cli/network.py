@@ -83,7 +83,7 @@ def cmd_network_onset(args) -> int:
                 prof, out / "profiles.png", f"{Path(str(net.source)).stem}: onset, |p| = {args.amplitude:g} Pa"
             )
     if args.var:
-        doc["sets"] = _batched_sets(args, net, res, T_max)
+        doc["sets"] = _batched_sets(args, net, w0, T_max)
     write_json(out / "onset.json", doc)
     if not args.no_plots:
         _plot_locus(res, out / "root_locus.png", Path(str(net.source)).stem)
@@ -119,28 +119,25 @@ def _passive(args, net, w0: complex) -> int:
     return 0
 
 
-def _batched_sets(args, net, res, T_max: float) -> list[dict]:
-    """The onset of every design of the --var grid, on the device: Newton's method from the
-    file's design's onset (:meth:`tawarp.model.network_batch.NetworkBatch.onset`)."""
+def _batched_sets(args, net, w0: complex, T_max: float) -> list[dict]:
+    """The onset of every design of the --var grid on the device, each design's mode followed
+    from T_cold (the file's mode at T_cold as the start, the same grid of --bracket hot
+    temperatures; :meth:`tawarp.model.network_batch.NetworkBatch.followed_onset`)."""
     import itertools
 
     from ..model.network_batch import NetworkBatch
     from .onset import _parse_vars
 
-    if not math.isfinite(res.T_onset):
-        raise ValueError(f"{net.source}: the file's design does not start up to --T-ratio-max; --var needs its onset")
     axes = _parse_vars(args.var)
     names = list(axes)
     combos = list(itertools.product(*axes.values()))
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}
-    on = NetworkBatch(net, params, device=args.device).onset(
-        res.omega.real, res.T_onset, T_range=(net.gas.T_cold, T_max)
-    )
+    on = NetworkBatch(net, params, device=args.device).followed_onset(w0, T_max, n=args.bracket)
     head = "".join(f"{k:>26s}" for k in names) + f"{'T_hot/T_cold':>14s}{'f_onset [Hz]':>14s}"
     _say(args, head)
     sets = []
     for i, c in enumerate(combos):
-        ok = bool(on.iterations[i] > 0)
+        ok = bool(on.status[i] == 1)
         ratio = on.T_hot[i] / net.gas.T_cold if ok else math.nan
         f = on.omega[i] / (2 * math.pi) if ok else math.nan
         sets.append(
@@ -148,6 +145,7 @@ def _batched_sets(args, net, res, T_max: float) -> list[dict]:
                 "params": dict(zip(names, map(float, c), strict=True)),
                 "T_ratio": _finite(ratio),
                 "f_onset_Hz": _finite(f),
+                "mode_jumps": int(on.jumps[i]),
             }
         )
         _say(args, "".join(f"{v:26.6g}" for v in c) + f"{ratio:14.6g}{f:14.6g}")
