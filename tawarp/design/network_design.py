@@ -7,8 +7,9 @@ design so far (a Gaussian of a tenth of the box, clipped to it). Each design's o
 Newton's method on (omega, T_hot) on the device (:meth:`tawarp.model.network_batch.NetworkBatch.onset`),
 started from the onset of the nearest design already solved (in the box's unit coordinates;
 at first the file's own, found by following its mode from T_cold on the host), so that the
-search walks away from the file's design by continuation. A design Newton loses is retried
-once from the then-nearest solved design, then counted as without onset up to T_max.
+search walks away from the file's design by continuation. A design Newton loses follows its
+own mode from T_cold (:meth:`~tawarp.model.network_batch.NetworkBatch.followed_onset`); one
+that does not start up to T_max is counted as without onset.
 """
 
 from __future__ import annotations
@@ -75,8 +76,7 @@ def search_network(
     archive_u = _unit(variables, x_home)
     archive = [(home.omega.real, home.T_onset)]
     done_x, done_T, done_w = [], [], []
-    retry = np.empty((0, len(names)))
-    evaluated = lost = 0
+    evaluated = without = 0
     while evaluated < n_trials:
         m = min(batch, n_trials - evaluated)
         u = rng.uniform(size=(m, len(names)))
@@ -84,24 +84,27 @@ def search_network(
             best = _unit(variables, done_x[int(np.argmin(done_T))][None, :])[0]
             h = m // 2
             u[:h] = np.clip(best + 0.1 * rng.standard_normal((h, len(names))), 0.0, 1.0)
-        x = np.concatenate([retry, _values(variables, u)])
-        u = _unit(variables, x)
+        x = _values(variables, u)
         nearest = np.argmin(((u[:, None, :] - archive_u[None, :, :]) ** 2).sum(axis=2), axis=1)
         starts = np.array([archive[k] for k in nearest])
-        res = NetworkBatch(net, {n: x[:, k] for k, n in enumerate(names)}, device=device).onset(
-            starts[:, 0], starts[:, 1], T_range=(net.gas.T_cold, T_max)
-        )
-        ok = res.iterations > 0
-        n_retry = len(retry)
-        lost += int((~ok[:n_retry]).sum())
-        retry = x[n_retry:][~ok[n_retry:]]
+        batch_x = NetworkBatch(net, {n: x[:, k] for k, n in enumerate(names)}, device=device)
+        res = batch_x.onset(starts[:, 0], starts[:, 1], T_range=(net.gas.T_cold, T_max))
+        w_on, T_on, ok = res.omega, res.T_hot, res.iterations > 0
+        if not ok.all():
+            # the designs Newton lost follow their own modes from T_cold (one more launch)
+            lost = np.flatnonzero(~ok)
+            sub = NetworkBatch(net, {n: x[lost, k] for k, n in enumerate(names)}, device=device)
+            fol = sub.followed_onset(w_cold, T_max, n=12)
+            found = fol.status == 1
+            w_on[lost[found]], T_on[lost[found]] = fol.omega[found], fol.T_hot[found]
+            ok[lost[found]] = True
+        without += int((~ok).sum())
         evaluated += m
         archive_u = np.concatenate([archive_u, u[ok]])
-        archive += list(zip(res.omega[ok], res.T_hot[ok], strict=True))
+        archive += list(zip(w_on[ok], T_on[ok], strict=True))
         done_x += list(x[ok])
-        done_T += list(res.T_hot[ok])
-        done_w += list(res.omega[ok])
-    lost += len(retry)
+        done_T += list(T_on[ok])
+        done_w += list(w_on[ok])
     seconds = time.perf_counter() - t0
     order = np.argsort(done_T)[:keep]
     b, s = net.segment(segment) if segment else (None, None)
@@ -128,7 +131,7 @@ def search_network(
         "file_design": {"T_ratio": home.ratio, "f_onset_Hz": home.frequency},
         "evaluated": evaluated,
         "with_onset": len(done_T),
-        "without_onset_or_lost": lost,
+        "without_onset": without,
         "seconds": seconds,
         "designs_per_minute": 60.0 * evaluated / seconds,
         "amplitude_Pa": amplitude if segment else None,
