@@ -25,6 +25,7 @@ from ..kernels import network as kn
 from ..kernels.pore import PORE_MODELS
 from .gas import GASES
 from .network import Network
+from .network_reference import RADIATION, end_segment
 
 _FIELD_COLUMN = {
     "length": kn.F_LENGTH,
@@ -124,8 +125,6 @@ class NetworkBatch:
         nodes = net.nodes()
         node_first, inc_b, inc_s, kinds, pars, node_seg = [0], [], [], [], [], []
         starts = np.cumsum([0] + [len(br.segments) for br in net.branches])
-        from .network_reference import RADIATION, end_segment
-
         for node, inc in nodes.items():
             for b, side in inc:
                 inc_b.append(b)
