@@ -48,6 +48,7 @@ __all__ = [
     "NonlinearHeatSolution",
     "heat_profile",
     "thermoviscous_function",
+    "rott_coefficients",
     "segment_transfer_matrices",
     "transfer_matrix",
     "transfer_matrix_omega",
@@ -675,27 +676,31 @@ def _pore(core: Core, seg: Segment):
     return 1.0, core.radius, 1.0, "circular", core.radius, 1.0
 
 
-def _coefficients(core: Core, seg: Segment, w, T, dTdx):
-    """Rott's ODE coefficients a12 [Pa s/m^4], a21 [m^3/(Pa s m)], a22 [1/m] at angular
-    frequency ``w`` [rad/s], temperature ``T`` [K] and gradient ``dTdx`` [K/m]
-    (all broadcast together):
+def rott_coefficients(
+    gas_name: str, p_mean: float, w, T, dTdx, phi, S, r, q, pore_model: str, r_k=None, shape: float = 1.0
+):
+    """Rott's ODE coefficients a12 [Pa s/m^4], a21 [m^3/(Pa s m)], a22 [1/m] of gas
+    ``gas_name`` at ``p_mean`` [Pa], angular frequency ``w`` [rad/s], temperature ``T`` [K]
+    and gradient ``dTdx`` [K/m], in pores of radius ``r`` [m] (``plates``: half spacing)
+    filling a fraction ``phi`` of the section ``S`` [m^2], tortuosity ``q`` (all broadcast
+    together):
 
         dp/dx = a12 U,  dU/dx = a21 p + a22 U
         a12 = i q^2 rho w / (phi S (1 - f_nu))
         a21 = i phi S w (1 + (gamma - 1) f_k) / (rho c^2)
         a22 = (dT/dx / T) (f_k - f_nu) / ((1 - f_nu)(1 - Pr))
 
-    f_nu at the pore radius r, f_k at the thermal radius r_k (:func:`_pore`).
+    f_nu at the pore radius r, f_k at the thermal radius ``r_k`` (None: r); ``shape`` the
+    pores' shape number (:attr:`tawarp.model.core.Segment.pore_shape`).
     """
-    phi, r, q, model, r_k, shape = _pore(core, seg)
-    S = core.area
-    g = gas_properties(core.gas.name, T, core.gas.p_mean)
+    r_k = r if r_k is None else r_k
+    g = gas_properties(gas_name, T, p_mean)
     d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
     d_k = np.sqrt(2.0 * g.k / (g.rho * g.cp * w))
     # one call for both depths (halves the per-call overhead inside the ODE right-hand side);
     # the thermal depth is scaled by r/r_k so that the one radius r serves both functions
     d_nu, d_k = np.broadcast_arrays(d_nu, d_k * (r / r_k))
-    f, omf = thermoviscous_function(model, r, np.stack([d_nu, d_k]), shape)
+    f, omf = thermoviscous_function(pore_model, r, np.stack([d_nu, d_k]), shape)
     f_nu, f_k, omf_nu, omf_k = f[0], f[1], omf[0], omf[1]
     a12 = 1j * q**2 * g.rho * w / (phi * S * omf_nu)
     a21 = 1j * phi * S * w * (1.0 + (g.gamma - 1.0) * f_k) / (g.rho * g.c**2)
@@ -704,6 +709,12 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
     diff = np.where(np.abs(omf_nu) < np.abs(f_nu), omf_nu - omf_k, f_k - f_nu)
     a22 = (dTdx / T) * diff / (omf_nu * (1.0 - g.Pr))
     return a12, a21, a22
+
+
+def _coefficients(core: Core, seg: Segment, w, T, dTdx):
+    """:func:`rott_coefficients` of segment ``seg`` of ``core`` (pores of :func:`_pore`)."""
+    phi, r, q, model, r_k, shape = _pore(core, seg)
+    return rott_coefficients(core.gas.name, core.gas.p_mean, w, T, dTdx, phi, core.area, r, q, model, r_k, shape)
 
 
 def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:

@@ -57,7 +57,11 @@ def _settings(args):
 
 
 def _add_space_args(p):
-    p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
+    p.add_argument(
+        "core",
+        help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam; tawarp design also takes "
+        "a network engine file (traveling_wave): the lowest onset T_hot / T_cold",
+    )
     p.add_argument("--var", action="append", help=VAR_HELP)
     p.add_argument(
         "--heat-input",
@@ -133,12 +137,65 @@ def _add_onset_args(p):
     )
 
 
+def _is_network(path: str) -> bool:
+    """``path`` names a network engine file (``[[branch]]`` tables), bundled or not."""
+    from ..model.core import bundled, read_toml
+    from ..model.network import is_network_file
+
+    if not Path(path).exists() and path not in bundled("engines"):
+        return False
+    return is_network_file(read_toml(path, "engines")[1])
+
+
+def _design_network(args) -> int:
+    """``tawarp design NETWORK.toml --var SEGMENT.FIELD=LOW:HIGH[:log] ...``: the lowest onset
+    T_hot / T_cold (:func:`tawarp.design.network_design.search_network`)."""
+    from ..design.network_design import search_network
+    from ..design.space import parse_variable
+    from ..io import write_json
+    from ..model.network import load_network
+
+    net = load_network(args.core)
+    variables = [parse_variable(v) for v in (args.var or [])]
+    if not variables:
+        raise ValueError("give at least one --var SEGMENT.FIELD=LOW:HIGH[:log]")
+    out = Path(args.output)
+    claim_outputs(out / "design.json", why="the design report")
+    out.mkdir(parents=True, exist_ok=True)
+    has_segment = any(s.name == args.segment for br in net.branches for s in br.segments)
+    report = search_network(
+        net,
+        variables,
+        n_trials=args.trials,
+        batch=args.batch,
+        seed=args.seed,
+        T_max=args.T_ratio_max * net.gas.T_cold,
+        device=args.device,
+        segment=args.segment if has_segment else None,
+        amplitude=args.amplitude,
+        keep=args.keep,
+    )
+    report["generator"] = f"{GENERATOR} design"
+    write_json(out / "design.json", report)
+    if report["best"]:
+        b = report["best"][0]
+        _say(args, f"best: T_hot/T_cold = {b['T_ratio']:.6g}, f = {b['f_onset_Hz']:.6g} Hz at {b['params']}")
+    _say(
+        args,
+        f"{report['evaluated']} designs, {report['designs_per_minute']:.3g}/min; "
+        f"the file's design: T_hot/T_cold = {report['file_design']['T_ratio']:.6g}; wrote {out / 'design.json'}",
+    )
+    return 0
+
+
 def cmd_design(args) -> int:
     from ..io import write_json
     from ..design.search import objective_definitions, search
     from ..design.storage import study_summary
     from ..design.plots import plot_best_profiles, plot_history, plot_pareto
 
+    if _is_network(args.core):
+        return _design_network(args)
     space = _space(args)
     objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
     out = Path(args.output)
@@ -300,6 +357,19 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
         help="frequencies [Hz] of acoustic_loss, list or start:stop:count",
     )
     _add_onset_args(p)
+    p.add_argument(
+        "--T-ratio-max",
+        dest="T_ratio_max",
+        type=float,
+        default=4.0,
+        help="a network engine file: largest T_hot/T_cold searched (default: %(default)s)",
+    )
+    p.add_argument(
+        "--amplitude",
+        type=float,
+        default=1e5,
+        help="a network engine file: |p| [Pa] at its first end for --segment's acoustic power (default: %(default)s)",
+    )
     p.add_argument("--keep", type=int, default=20, help="best designs kept in design.json (default: %(default)s)")
     p.add_argument(
         "-o",
@@ -333,6 +403,12 @@ def cmd_rank(args) -> int:
         missing = [m for m in mats if m not in cat]
         if missing:
             raise KeyError(f"materials {missing} not in the catalogue ({', '.join(cat)})")
+    if args.by == "onset":
+        from ..model.core import read_toml
+        from ..model.network import is_network_file
+
+        if is_network_file(read_toml(args.engine, "engines")[1]):
+            return _rank_network_onset(args, cat, mats, out)
     if args.samples is None:
         args.samples = 400 if args.by == "onset" else 4000
     if args.by == "onset":
@@ -409,6 +485,60 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
     return 0
 
 
+def _rank_network_onset(args, cat, mats, out: Path) -> int:
+    """``tawarp rank --by onset --engine NETWORK``: materials by the onset ratio T_hot / T_cold of
+    an engine network (the NumPy reference, one design at a time)."""
+    from ..io import write_json
+    from ..design.rank import rank_by_network_onset
+    from ..model.network import load_network
+
+    net = load_network(args.engine)
+    try:
+        net.segment(args.segment)
+    except KeyError:
+        porous = [s.name for br in net.branches for s in br.segments if s.kind == "porous"]
+        raise KeyError(f"{net.source}: no segment {args.segment!r}; give --segment, one of {porous}") from None
+    changes = {}
+    for t in args.set:
+        name, sep, value = t.partition("=")
+        if not sep:
+            raise ValueError(f"--set {t!r}: expected NAME=VALUE, e.g. gas.p_mean=1e6")
+        changes[name.strip()] = float(value)
+    if changes:
+        net = net.replace(**changes)
+    res = rank_by_network_onset(
+        mats,
+        net,
+        segment=args.segment,
+        n_samples=args.samples if args.samples is not None else 30,
+        seed=args.seed,
+        T_max=args.T_ratio_max * net.gas.T_cold,
+        amplitude=args.amplitude,
+        catalogue=cat,
+        device=args.device,
+    )
+    d = res.to_dict()
+    d["engine_changes"] = changes
+    d["materials_used"] = {m: cat[m].to_dict() for m in res.materials}
+    write_json(out, d)
+    _say(
+        args, f"{'material':<12}{'T_hot/T_cold: nominal':>23}{'median':>9}{'5-95 %':>15}{'Edot [W]':>10}{'P(best)':>9}"
+    )
+
+    def fmt(v):
+        return f"{v:.4g}" if v is not None else "none"
+
+    for r in res.table:
+        _say(
+            args,
+            f"{r['material']:<12}{fmt(r['T_ratio_nominal']):>23}{fmt(r['T_ratio_median']):>9}"
+            f"{fmt(r['T_ratio_p05']) + '-' + fmt(r['T_ratio_p95']):>15}{fmt(r['Edot_produced_nominal_W']):>10}"
+            f"{r['p_best']:9.2f}",
+        )
+    _say(args, f"wrote {out}")
+    return 0
+
+
 def add_rank_parser(sub) -> argparse.ArgumentParser:
     from ..design.objectives import DEFAULT_T_LIMIT
 
@@ -429,7 +559,20 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
         "--engine",
         default="standing_wave",
         help="--by onset: reference engine (TOML or bundled name) whose stack takes each material "
-        "(default: %(default)s)",
+        "(default: %(default)s); a network (traveling_wave) ranks by the onset T_hot / T_cold",
+    )
+    p.add_argument(
+        "--T-ratio-max",
+        dest="T_ratio_max",
+        type=float,
+        default=4.0,
+        help="--by onset, network: largest T_hot/T_cold searched (default: %(default)s)",
+    )
+    p.add_argument(
+        "--amplitude",
+        type=float,
+        default=1e5,
+        help="--by onset, network: |p| [Pa] at the network's first end for the segment's Edot (default: %(default)s)",
     )
     p.add_argument(
         "--set",

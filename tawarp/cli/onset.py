@@ -23,7 +23,15 @@ def add_onset_parser(sub) -> None:
         )
     )
     p.add_argument(
-        "engine", help="engine TOML (a core file with an [engine] table), or a bundled engine: standing_wave"
+        "engine",
+        help="engine TOML (a core file with an [engine] table, or a network with [[branch]] tables), "
+        "or a bundled engine: standing_wave, traveling_wave, refrigerator",
+    )
+    p.add_argument(
+        "--f-max", type=float, default=None, help="network: highest frequency searched for modes at T_cold [Hz]"
+    )
+    p.add_argument(
+        "--amplitude", type=float, default=1e4, help="network: |p| [Pa] of the profiles at onset (default: %(default)s)"
     )
     p.add_argument(
         "--in",
@@ -38,15 +46,15 @@ def add_onset_parser(sub) -> None:
         "--T-ratio-max",
         type=float,
         default=4.0,
-        help="largest T_hot/T_cold searched with --in T_hot (default: %(default)s)",
+        help="largest T_hot/T_cold searched with --in T_hot, or for a network (default: %(default)s)",
     )
     p.add_argument("--mode", type=int, default=1, help="mode number, 1 = fundamental (default: %(default)s)")
     p.add_argument(
         "--bracket",
         type=int,
         default=21,
-        help="points of the searched range (heat input on [0, Q-max], or T_hot/T_cold on [1, T-ratio-max]) "
-        "for the bracket and the growth-rate curve (default: %(default)s)",
+        help="points of the searched range (heat input on [0, Q-max], or T_hot/T_cold on [1, T-ratio-max], "
+        "always so for a network) for the bracket and the growth-rate curve (default: %(default)s)",
     )
     p.add_argument(
         "--var",
@@ -76,9 +84,15 @@ def _finite(x: float):
 
 
 def cmd_onset(args) -> int:
+    from ..model.core import read_toml
+    from ..model.network import is_network_file
     from ..model.onset import onset
     from ..model.resonator import load_engine
 
+    if is_network_file(read_toml(args.engine, "engines")[1]):
+        from .network import cmd_network_onset
+
+        return cmd_network_onset(args)
     engine = load_engine(args.engine)
     axes = _parse_vars(args.var)
     names = list(axes)

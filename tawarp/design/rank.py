@@ -254,3 +254,122 @@ def rank_by_onset(
         samples[m.name] = draws[i]
     rows.sort(key=lambda r: r["rank"])
     return OnsetRankResult(str(eng.source), float(Q_max), [m.name for m in mats], N, rows, samples)
+
+
+@dataclass
+class NetworkRankResult:
+    """Ranking in an engine network (:func:`rank_by_network_onset`). ``table``: rows per
+    material (rank by median onset ratio T_hot / T_cold, nominal / median / p05 / p95 ratio
+    (None: no onset up to T_max), median f_onset [Hz], the acoustic power produced in the
+    nominal segment at onset with |p| = ``amplitude`` at ``node`` [W], ``p_no_onset``, ``p_best``,
+    ``p_beats``); ``samples``: {material: (n_samples,) ratio draws, inf where no onset}."""
+
+    engine: str
+    segment: str
+    amplitude: float
+    node: str
+    materials: list
+    n_samples: int
+    table: list
+    samples: dict
+
+    def ordering(self) -> list[str]:
+        """Materials from the lowest median onset ratio to the highest."""
+        return [r["material"] for r in sorted(self.table, key=lambda r: r["rank"])]
+
+    def to_dict(self) -> dict:
+        return {
+            "engine": self.engine,
+            "segment": self.segment,
+            "amplitude_Pa": self.amplitude,
+            "amplitude_at": self.node,
+            "materials": self.materials,
+            "n_samples": self.n_samples,
+            "ranked_by": "median onset temperature ratio T_hot / T_cold (lower first)",
+            "ranking": self.table,
+        }
+
+
+def rank_by_network_onset(
+    materials=None,
+    engine="traveling_wave",
+    segment: str = "regenerator",
+    n_samples: int = 30,
+    seed: int = 0,
+    T_max: float | None = None,
+    amplitude: float = 1e5,
+    catalogue: Catalogue | None = None,
+    device=None,
+) -> NetworkRankResult:
+    """Rank ``materials`` by the onset temperature ratio of the network ``engine`` (a
+    :class:`~tawarp.model.network.Network` or a file / bundled name) with each in its porous
+    ``segment`` (porosity, pore radius, tortuosity, solid conductivity; a network segment has
+    no lateral h). Each material's parameters are drawn ``n_samples`` times from its
+    N(mean, covariance) (:func:`draw_parameter_sets`); every draw (and the nominal) follows
+    its lowest mode from T_cold up to ``T_max`` (default 4 T_cold), all at once on ``device``,
+    one thread each (:meth:`tawarp.model.network_batch.NetworkBatch.followed_onset`); a draw
+    without onset up to T_max counts as ratio = inf. Also reported: the acoustic
+    power the segment produces at the nominal onset, |p| = ``amplitude`` [Pa] at the
+    network's first end (Edot out minus in, :func:`tawarp.model.network_reference.power_budget`)."""
+    from ..model import network_reference as nr
+    from ..model.network import load_network
+    from ..model.network_batch import NetworkBatch
+
+    net = load_network(engine) if isinstance(engine, str) else engine
+    b, s = net.segment(segment)
+    if net.branches[b].segments[s].kind != "porous":
+        raise ValueError(f"{net.source}: segment {segment!r} is not porous; a material needs a porous segment")
+    if n_samples < 2:
+        raise ValueError("n_samples must be >= 2")
+    T_max = 4.0 * net.gas.T_cold if T_max is None else T_max
+    node = next(iter(net.ends)) if net.ends else net.branches[0].start
+    mats = _materials(materials, catalogue)
+    M, N = len(mats), n_samples
+    sets = draw_parameter_sets(mats, N, seed, segment)
+    fields = [k for k in sets if not k.endswith(".h")]
+    w_cold = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)[0]
+    ratio = np.full((M, N + 1), np.inf)
+    freq = np.full((M, N + 1), np.nan)
+    edot = np.full(M, np.nan)
+    # with imposed temperatures the solid's conductivity enters Htot only, not the onset
+    acoustic = [k for k in fields if not k.endswith(".solid_conductivity")]
+    for i in range(M):
+        res = NetworkBatch(net, {k: sets[k][i] for k in acoustic}, device=device).followed_onset(w_cold, T_max, n=12)
+        ok = res.status == 1
+        ratio[i, ok] = res.T_hot[ok] / net.gas.T_cold
+        freq[i, ok] = res.omega[ok] / (2 * np.pi)
+        if ok[0]:
+            nom = net.replace(**{k: float(sets[k][i, 0]) for k in fields})
+            w, T = res.omega[0], res.T_hot[0]
+            p_in, U_in = nr.segment_entry(nom, segment, w, T, nr.mode_start_states(nom, w, T, node) * amplitude)
+            edot[i] = nr.power_budget(nom, nom.branches[b].segments[s], w, T, p_in, U_in).total
+    draws = ratio[:, 1:]
+    with np.errstate(invalid="ignore"):
+        p05, p95 = np.percentile(draws, [5, 95], axis=1)
+    median = np.median(draws, axis=1)
+    order = np.argsort(median, kind="stable")
+    rank = np.empty(M, int)
+    rank[order] = np.arange(1, M + 1)
+    best = np.argmin(draws, axis=0)
+    all_inf = ~np.isfinite(draws).any(axis=0)
+    rows, samples = [], {}
+    for i, m in enumerate(mats):
+        ok = np.isfinite(draws[i])
+        rows.append(
+            {
+                "material": m.name,
+                "rank": int(rank[i]),
+                "T_ratio_nominal": _none_if_inf(ratio[i, 0]),
+                "T_ratio_median": _none_if_inf(median[i]),
+                "T_ratio_p05": _none_if_inf(p05[i]),
+                "T_ratio_p95": _none_if_inf(p95[i]),
+                "f_onset_median_Hz": float(np.median(freq[i, 1:][ok])) if ok.any() else None,
+                "Edot_produced_nominal_W": None if np.isnan(edot[i]) else float(edot[i]),
+                "p_no_onset": float(np.mean(~ok)),
+                "p_best": float(np.mean((best == i) & ~all_inf)),
+                "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i},
+            }
+        )
+        samples[m.name] = draws[i]
+    rows.sort(key=lambda r: r["rank"])
+    return NetworkRankResult(str(net.source), segment, float(amplitude), node, [m.name for m in mats], N, rows, samples)
