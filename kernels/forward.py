@@ -25,6 +25,7 @@ import warp as wp
 
 from .acoustics import (
     CMat2,
+    PartGeometry,
     PointCoefficients,
     axpy2,
     cmat2,
@@ -34,7 +35,9 @@ from .acoustics import (
     expm2_traceless,
     geometry_difference,
     identity2,
+    magnus6_accumulate,
     magnus6_exponent,
+    magnus6_omega,
     magnus6_tangent,
     matmul2,
     part_geometry,
@@ -48,6 +51,7 @@ from .acoustics import (
     sinhc_derivative,
     traceless_exp,
     traceless_parts,
+    zero2,
 )
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
@@ -469,6 +473,36 @@ def make_point_kernel(nonlinear: bool):
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
+@wp.func
+def cell_exponent(
+    points: wp.array2d(dtype=PointCoefficients),
+    li: int,
+    p: int,
+    uniform: bool,
+    h: wp.float64,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    model: int,
+    pore_table: wp.array(dtype=wp.float64),
+):
+    """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
+    the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
+    (only the b's are live between the points, not three A's besides them), or h A of the
+    one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
+    a = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
+    if uniform:
+        return scale2(a, h)
+    zero = zero2()
+    b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
+    a = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
+    a = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
+    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
+    return magnus6_omega(b1, b2, b3)
+
+
 def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
     (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
@@ -549,13 +583,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 if wp.static(tangents == 0):
-                    a1 = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
-                    if uniform:  # exp(A L) of a part at uniform temperature
-                        e, tau = expm2_traceless(scale2(a1, length))
-                    else:
-                        a2 = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
-                        a3 = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
-                        e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
+                    e, tau = expm2_traceless(
+                        cell_exponent(points, li, p, uniform, h, geo, omega, half_log_omega, gamma, model, pore_table)
+                    )
                 else:
                     s1 = pore_point(points[li, p], half_log_omega, model, pore_table, 1)
                     a1 = propagation_value(s1, points[li, p], geo, omega, gamma, model)

@@ -255,7 +255,18 @@ def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.f
     """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's or
     pin array's :func:`pore_model_code`) at ``log_s`` = ln(r / delta); ``table`` is
     :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device, which holds the
-    circular pieces and those of the shaped pores it was built for (others are computed)."""
+    circular pieces and those of the shaped pores it was built for (others are computed).
+    The circular pore inside the table is the cascade's usual case and is read here; every
+    other case is :func:`_pore_functions_other`, kept apart so that the GPU compiler inlines
+    this short path into the cascade and calls the long one (bench/README.md)."""
+    if model == PORE_CIRCULAR and log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
+        return _tabulated(table, 0, log_s)
+    return _pore_functions_other(model, log_s, table)
+
+
+@wp.func(inline=False)
+def _pore_functions_other(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+    # pore_functions_log's cases beyond a circular pore inside the table
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
     if model >= RECTANGULAR_BASE:
