@@ -274,13 +274,35 @@ def magnus6_omega(b1: CMat2, b2: CMat2, b3: CMat2):
 @wp.func
 def magnus6_accumulate(b1: CMat2, b2: CMat2, b3: CMat2, a: CMat2, g: int, h: wp.float64):
     """:func:`magnus6_b`'s b1, b2, b3 after adding A = ``a`` at Gauss point g (0, 1, 2) of a
-    cell of length h, for a caller that evaluates A one point at a time (one copy of A's
-    code, and only the b's live between the points); start from zero matrices."""
+    cell of length h, for a caller that evaluates A one point at a time (only the b's
+    are live between the points); start from :func:`zero2`. A's (1,1) entry is 0 (module
+    docstring) and is never read: the b's keep a literal zero there, which the compiler
+    folds through :func:`magnus6_omega`'s commutators."""
     if g == 0:
-        return b1, scale2(a, wp.float64(-1.2909944487358056) * h), scale2(a, wp.float64(3.3333333333333333) * h)
+        return (
+            b1,
+            scale_offdiagonal(a, wp.float64(-1.2909944487358056) * h),
+            scale_offdiagonal(a, wp.float64(3.3333333333333333) * h),
+        )
     if g == 1:
-        return scale2(a, h), b2, axpy2(wp.float64(-6.6666666666666667) * h, a, b3)
-    return b1, axpy2(wp.float64(1.2909944487358056) * h, a, b2), axpy2(wp.float64(3.3333333333333333) * h, a, b3)
+        return scale_offdiagonal(a, h), b2, add_offdiagonal(wp.float64(-6.6666666666666667) * h, a, b3)
+    return (
+        b1,
+        add_offdiagonal(wp.float64(1.2909944487358056) * h, a, b2),
+        add_offdiagonal(wp.float64(3.3333333333333333) * h, a, b3),
+    )
+
+
+@wp.func
+def scale_offdiagonal(a: CMat2, s: wp.float64):
+    """s A for A = [[0, b], [c, d]]: a literal 0 in the (1,1) entry."""
+    return cmat2(creal(wp.float64(0.0)), cscale(a.b, s), cscale(a.c, s), cscale(a.d, s))
+
+
+@wp.func
+def add_offdiagonal(s: wp.float64, a: CMat2, y: CMat2):
+    """s A + y for A and y of the form [[0, b], [c, d]]: a literal 0 in the (1,1) entry."""
+    return cmat2(creal(wp.float64(0.0)), cscale(a.b, s) + y.b, cscale(a.c, s) + y.c, cscale(a.d, s) + y.d)
 
 
 @wp.func
