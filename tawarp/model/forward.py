@@ -71,10 +71,8 @@ POINT_BUFFER_BYTES_GPU = 1 << 32
 #: ``picard_tol`` = 1e-12, which a difference divides by the step: 1e-4 there (~1e-8).
 TANGENT_STEP = 1e-5
 TANGENT_STEP_NONLINEAR = 1e-4
-#: Register cap of the tangent cascade's CUDA threads (None: none). It carries P more
-#: matrices than the plain cascade: on the H100 3-parameter heat fits ran 3.9x (cap 64)
-#: and 2.0x (cap 128) slower than uncapped, geometry fits 1.8x and 1.4x
-#: (bench/fit_registers.py, bench/results/fit_registers_h100.json).
+#: Register cap of the tangent cascade's CUDA threads (None: none; it carries P more
+#: matrices than the plain cascade: measurements in bench/README.md, "fits").
 TANGENT_MAX_REGISTERS = None
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
@@ -201,9 +199,8 @@ class ForwardSettings:
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values);
-    ``max_registers``: register cap of a CUDA thread of the plain cascade (None: none; 128
-    measured fastest on the H100 and H200, bench/forward.py ``--max-registers``, and in fits,
-    bench/fit_registers.py; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
+    ``max_registers``: register cap of a CUDA thread of the plain cascade (None: none;
+    measurements in bench/README.md; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
     ``cpu_threads``: on the CPU, Warp runs a kernel serially, so a batch is split into
     this many parts run in parallel threads (Warp's CPU launches release the GIL; None:
     every core this process may use; results are bit-for-bit those of one thread); ``device``.
