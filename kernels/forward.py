@@ -89,6 +89,17 @@ MAX_CELLS = 100_000
 CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
 
 
+@wp.struct
+class SetTable:
+    """A batch of parameter sets as the forward kernels read them: ``params`` (rows, n) the
+    parameter table, ``flags`` (segments, N_FLAGS) the core's structure
+    (:mod:`tawarp.kernels.layout`) and ``gas`` the gas constants (:mod:`tawarp.kernels.gas`)."""
+
+    params: wp.array2d(dtype=wp.float64)
+    flags: wp.array2d(dtype=wp.int32)
+    gas: wp.array(dtype=wp.float64)
+
+
 @wp.kernel
 def expand_parameters(
     base: wp.array(dtype=wp.float64),
@@ -106,9 +117,7 @@ def expand_parameters(
 
 @wp.kernel
 def heat_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     first: int,
     count: int,
     heat_cells: int,
@@ -119,6 +128,9 @@ def heat_kernel(
     scratch: wp.array2d(dtype=wp.float64),
 ):
     i = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch)
 
 
@@ -247,8 +259,7 @@ def dimensionless(out: wp.array3d(dtype=wp.float64), i: int, j: int, c: int, zc:
 
 @wp.kernel
 def step_doubling_error(
-    params: wp.array2d(dtype=wp.float64),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     out: wp.array3d(dtype=wp.float64),
     doubled: wp.array3d(dtype=wp.float64),
     sample: wp.array(dtype=wp.int32),
@@ -260,6 +271,8 @@ def step_doubling_error(
     impedance of set i. NaN where a coefficient is not finite (as NumPy's max): such a set
     is not refined, the validity checks name it."""
     i = wp.tid()
+    params = sets.params
+    gas = sets.gas
     radius = params[RADIUS, i]
     zc = params[P_MEAN, i] / wp.sqrt(gas[G_R] * params[T_COLD, i] / gas[G_GAMMA]) / (PI * radius * radius)
     worst = wp.float64(0.0)
@@ -348,9 +361,7 @@ def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.
 
 @wp.kernel
 def cell_counts(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     seg_cells: wp.array(dtype=wp.int32),
     cell_density: wp.array(dtype=wp.float64),
     omega_max: wp.float64,
@@ -367,6 +378,9 @@ def cell_counts(
     heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
     matrix: a two-step characterization's first fits, at Q = 0, need no Magnus cell)."""
     i = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
     points = int(0)
@@ -390,9 +404,7 @@ def make_point_kernel(nonlinear: bool):
     frees registers on the GPU) or for both."""
 
     def point_kernel(
-        params: wp.array2d(dtype=wp.float64),
-        flags: wp.array2d(dtype=wp.int32),
-        gas: wp.array(dtype=wp.float64),
+        sets: SetTable,
         theta: wp.array2d(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
         first: int,
@@ -408,6 +420,9 @@ def make_point_kernel(nonlinear: bool):
         (length h) for a thermal segment, a thread per cell (they share its heat cell's
         coefficients)."""
         li, slot = wp.tid()
+        params = sets.params
+        flags = sets.flags
+        gas = sets.gas
         i = set0 + li
         n_seg = flags.shape[0]
         p_mean = params[P_MEAN, i]
@@ -514,9 +529,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     scale_rows = wp.types.matrix(shape=(Q, 2), dtype=wp.float64)
 
     def transfer_kernel(
-        params: wp.array2d(dtype=wp.float64),
-        flags: wp.array2d(dtype=wp.int32),
-        gas: wp.array(dtype=wp.float64),
+        sets: SetTable,
         freqs: wp.array(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
@@ -549,6 +562,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         geometries' derivatives are the central differences of the neighbours' (the heat
         solve and the point kernel, a few per cent of a set's cost)."""
         t = wp.tid()
+        params = sets.params
+        flags = sets.flags
+        gas = sets.gas
         n_freqs = out.shape[1]
         n_doubled = points.shape[0] * doubled.shape[1]
         li = (t - n_doubled) // n_freqs
@@ -692,9 +708,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
 
 @wp.kernel
 def profile_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     theta: wp.array2d(dtype=wp.float64),
     first: int,
     heat_cells: int,
@@ -705,6 +719,9 @@ def profile_kernel(
     """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
     cold temperature outside the thermal segments and those with imposed temperatures)."""
     i, j = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     start = wp.float64(0.0)
     T[i, j] = params[T_COLD, i]
     dTdx[i, j] = wp.float64(0.0)

@@ -342,6 +342,14 @@ class Engine:
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
 
+    def _sets(self, params: wp.array) -> kf.SetTable:
+        """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
+        sets = kf.SetTable()
+        sets.params = params
+        sets.flags = self.flags
+        sets.gas = self.gas
+        return sets
+
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
@@ -357,9 +365,7 @@ class Engine:
                 kf.heat_kernel,
                 dim=n,
                 inputs=[
-                    params,
-                    self.flags,
-                    self.gas,
+                    self._sets(params),
                     self.first,
                     self.count,
                     self.heat_cells,
@@ -541,7 +547,7 @@ class Engine:
         wp.launch(
             kf.cell_counts,
             dim=n,
-            inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max, cells, most],
+            inputs=[self._sets(params), self.seg_cells, density, self.omega_max, cells, most],
             device=self.device,
         )
         n_points, n_slots, n_cells = (int(v) for v in most.numpy())
@@ -555,7 +561,7 @@ class Engine:
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part],
+                inputs=[self._sets(params), theta, cells, self.first, self.heat_cells, lo, part],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + doubled.shape[1])
@@ -569,9 +575,7 @@ class Engine:
                 kernel,
                 dim=threads,
                 inputs=[
-                    params,
-                    self.flags,
-                    self.gas,
+                    self._sets(params),
                     freqs,
                     cells,
                     part,
@@ -625,7 +629,7 @@ class Engine:
             return None
         err = wp.empty(n, dtype=wp.float64, device=self.device)
         wp.launch(
-            kf.step_doubling_error, dim=n, inputs=[params, self.gas, out, doubled, sample, err], device=self.device
+            kf.step_doubling_error, dim=n, inputs=[self._sets(params), out, doubled, sample, err], device=self.device
         )
         return err.numpy()
 
@@ -690,7 +694,7 @@ class Engine:
             kf.profile_kernel,
             dim=(n, x.shape[0]),
             device=self.device,
-            inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT],
+            inputs=[self._sets(params), theta, self.first, self.heat_cells, x, T, dT],
         )
         return T.numpy(), dT.numpy()
 
