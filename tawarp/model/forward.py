@@ -184,12 +184,13 @@ class ForwardSettings:
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
     ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
-    the error at d to 1/64, the scheme being sixth order) at the batch's highest
-    frequency, on the row-relative dimensionless error (:meth:`Engine._adaptive_cascade`:
-    the 2d cascade runs in the main launch, whose d values at that frequency it is
-    compared with on the device, and only the sets above target run again);
-    ``tolerance = None`` keeps d = ``cell_density`` (the rule alone meets 1e-6 on the
-    paper-like cores, README "Accuracy", but not on every core in the documented ranges). ``cells`` = an int,
+    the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
+    middle and highest frequency of the batch, on the row-relative dimensionless error
+    (:meth:`Engine._adaptive_cascade`: the 2d cascades run in the main launch, whose d
+    values at the sampled frequencies they are compared with on the device, and only the
+    sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
+    rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
+    core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
     convergence studies need (a set without heat input takes none: its parts are at the
     cold temperature, and exp(A L) is exact). The adaptive count jumps by whole cells as k (h, the
@@ -326,11 +327,13 @@ class Engine:
         # Magnus cells (and their error estimate) where a temperature varies along a segment
         self.graded = self.count > 0 or any(seg.imposed for seg in core.segments)
         self.estimating = s.cells is None and s.tolerance is not None and self.graded
-        # the error estimate's frequency: the grid's highest, for which the cells are sized;
-        # the step-doubling difference was largest there in 26 of 28 random sets, the two
-        # others below 1e-8 (bench/README.md: the lowest and middle frequency cost two 2d cascades)
+        # the error estimate's frequencies: the grid's lowest, geometric middle and highest
         f = self.freqs
-        self.sample = np.array([f.argmax()] if self.estimating else [], dtype=np.int64)
+        self.sample = (
+            np.unique(np.abs(f[:, None] - np.geomspace(f.min(), f.max(), 3)[None]).argmin(0))
+            if self.estimating
+            else np.zeros(0, dtype=np.int64)
+        )
         self.columns = self._columns(f, self.sample)  # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
@@ -636,10 +639,10 @@ class Engine:
     def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
         returned (n,) on the host (:class:`ForwardSettings`): ``cell_density``, raised where the
-        step-doubling estimate at the highest frequency exceeds ``tolerance``/2 (the factor 2
-        covers the other frequencies: bench/README.md). The first launch runs every set at d
-        on all m columns and at 2d on the sampled one (whose d values are the main cascade's
-        own); each later round gathers the sets still above target, raises their d by (estimate / target)^(1/6)
+        step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
+        between the three sampled). The first launch runs every set at d on all m columns and
+        at 2d on the sampled ones (whose d values are the main cascade's own); each later
+        round gathers the sets still above target, raises their d by (estimate / target)^(1/6)
         (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
         :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), runs them the same way and
         scatters their rows into ``out``. A set is accepted only on a measured estimate (after
