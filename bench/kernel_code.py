@@ -38,12 +38,12 @@ def disassembly_counts(cubin: Path, nvdisasm: str) -> dict:
     """Instruction counts per function of ``cubin`` (:data:`COUNTED` and ``total``)."""
     text = subprocess.run([nvdisasm, str(cubin)], capture_output=True, text=True, check=True).stdout
     counts = collections.defaultdict(collections.Counter)
-    name = "(unnamed)"
+    name = None  # the sections before the first function hold data, not instructions
     for line in text.splitlines():
         if "@function" in line:
             name = re.sub(r".*_cu_[0-9a-f]{8}\d+", "", line.split()[1].split(",")[0])
             name = re.sub(r"make_\w+__locals__(\w+?)_[0-9a-f]{8}_cuda_kernel_forward", r"\1", name)
-        elif re.match(r"^\s+/\*[0-9a-f]+\*/", line):
+        elif name is not None and re.match(r"^\s+/\*[0-9a-f]+\*/", line):
             counts[name]["total"] += 1
             for key, pattern in COUNTED.items():
                 if re.search(pattern, line):
