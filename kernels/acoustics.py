@@ -259,8 +259,8 @@ def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
 @wp.func
 def magnus6_omega(b1: CMat2, b2: CMat2, b3: CMat2):
     """Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2] with C1 = [b1, b2],
-    C2 = -1/60 [b1, 2 b3 + C1] (:func:`magnus6_exponent`). At b2 = b3 = 0 every commutator
-    vanishes and Omega = b1 exactly: a part at uniform temperature, b1 = A L."""
+    C2 = -1/60 [b1, 2 b3 + C1] (:func:`magnus6_exponent`), from the b's of :func:`magnus6_b`
+    or :func:`magnus6_accumulate`."""
     c1 = commutator2(b1, b2)
     c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
