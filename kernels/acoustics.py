@@ -68,6 +68,12 @@ def cmat2(a: wp.vec2d, b: wp.vec2d, c: wp.vec2d, d: wp.vec2d):
 
 
 @wp.func
+def zero2():
+    zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    return cmat2(zero, zero, zero, zero)
+
+
+@wp.func
 def identity2():
     one = wp.vec2d(wp.float64(1.0), wp.float64(0.0))
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
@@ -127,6 +133,12 @@ def cosh_sinhc(delta: wp.vec2d):
                     cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
                 )
         return ch, sh
+    return cosh_sinhc_exponentials(delta)
+
+
+@wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code
+def cosh_sinhc_exponentials(delta: wp.vec2d):
+    """:func:`cosh_sinhc` from exponentials of sqrt(delta), for |delta| >= 1."""
     r = csqrt(delta)
     ep = cexp(r)
     em = cexp(-r)
@@ -239,9 +251,16 @@ def magnus6_b(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
 def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
     """Omega of one cell of length h, sixth order, from A at the three Gauss points
     x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h (Blanes, Casas & Ros, BIT 40, 2000,
-    eq. 4.13): with b1, b2, b3 of :func:`magnus6_b`, C1 = [b1, b2], C2 = -1/60 [b1, 2 b3 + C1],
-    Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2]; the cell's matrix is exp(Omega)."""
+    eq. 4.13): :func:`magnus6_omega` of :func:`magnus6_b`'s b1, b2, b3; the cell's matrix is exp(Omega)."""
     b1, b2, b3 = magnus6_b(a1, a2, a3, h)
+    return magnus6_omega(b1, b2, b3)
+
+
+@wp.func
+def magnus6_omega(b1: CMat2, b2: CMat2, b3: CMat2):
+    """Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2] with C1 = [b1, b2],
+    C2 = -1/60 [b1, 2 b3 + C1] (:func:`magnus6_exponent`), from the b's of :func:`magnus6_b`
+    or :func:`magnus6_accumulate`."""
     c1 = commutator2(b1, b2)
     c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
@@ -250,6 +269,40 @@ def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
         commutator2(left, axpy2(wp.float64(1.0), b2, c2)),
         axpy2(wp.float64(1.0 / 12.0), b3, b1),
     )
+
+
+@wp.func
+def magnus6_accumulate(b1: CMat2, b2: CMat2, b3: CMat2, a: CMat2, g: int, h: wp.float64):
+    """:func:`magnus6_b`'s b1, b2, b3 after adding A = ``a`` at Gauss point g (0, 1, 2) of a
+    cell of length h, for a caller that evaluates A one point at a time (only the b's
+    are live between the points); start from :func:`zero2`. A's (1,1) entry is 0 (module
+    docstring) and is never read: the b's keep a literal zero there, which the compiler
+    folds through :func:`magnus6_omega`'s commutators."""
+    if g == 0:
+        return (
+            b1,
+            scale_offdiagonal(a, wp.float64(-1.2909944487358056) * h),
+            scale_offdiagonal(a, wp.float64(3.3333333333333333) * h),
+        )
+    if g == 1:
+        return scale_offdiagonal(a, h), b2, add_offdiagonal(wp.float64(-6.6666666666666667) * h, a, b3)
+    return (
+        b1,
+        add_offdiagonal(wp.float64(1.2909944487358056) * h, a, b2),
+        add_offdiagonal(wp.float64(3.3333333333333333) * h, a, b3),
+    )
+
+
+@wp.func
+def scale_offdiagonal(a: CMat2, s: wp.float64):
+    """s A for A = [[0, b], [c, d]]: a literal 0 in the (1,1) entry."""
+    return cmat2(creal(wp.float64(0.0)), cscale(a.b, s), cscale(a.c, s), cscale(a.d, s))
+
+
+@wp.func
+def add_offdiagonal(s: wp.float64, a: CMat2, y: CMat2):
+    """s A + y for A and y of the form [[0, b], [c, d]]: a literal 0 in the (1,1) entry."""
+    return cmat2(creal(wp.float64(0.0)), cscale(a.b, s) + y.b, cscale(a.c, s) + y.c, cscale(a.d, s) + y.d)
 
 
 @wp.func
@@ -398,7 +451,7 @@ def johnson_factor(x2: Any, s: Any):
     return cone(x2) + cdiv(cmuli(root), x2) * wp.float64(4.0)
 
 
-@wp.func
+@wp.func(inline=False)  # an effect's branch: kept out of the cascade's inlined code
 def shape_correction(x2: Any, s: Any):
     """J(s)/J(1) at x2 = (r/delta_nu)^2: multiplies the exact circular-pore density
     q^2 rho/(1 - f_nu). Tends to 1 at low frequency (the flow resistivity of radius r is
@@ -408,7 +461,7 @@ def shape_correction(x2: Any, s: Any):
     return cdiv(johnson_factor(x2, s), johnson_factor(x2, cone(s)))
 
 
-@wp.func
+@wp.func(inline=False)  # an effect's branch: kept out of the cascade's inlined code
 def limp_density(rho: Any, phi: Any, q: Any, g_nu: Any, m: Any):
     """Effective density [kg/m^3] per total volume flux of a porous layer whose frame is
     limp (no stiffness) with bulk density 1/m: from the fluid and frame momentum balances

@@ -25,6 +25,7 @@ import warp as wp
 
 from .acoustics import (
     CMat2,
+    PartGeometry,
     PointCoefficients,
     axpy2,
     cmat2,
@@ -34,7 +35,9 @@ from .acoustics import (
     expm2_traceless,
     geometry_difference,
     identity2,
+    magnus6_accumulate,
     magnus6_exponent,
+    magnus6_omega,
     magnus6_tangent,
     matmul2,
     part_geometry,
@@ -48,6 +51,7 @@ from .acoustics import (
     sinhc_derivative,
     traceless_exp,
     traceless_parts,
+    zero2,
 )
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
@@ -85,6 +89,17 @@ MAX_CELLS = 100_000
 CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
 
 
+@wp.struct
+class SetTable:
+    """A batch of parameter sets as the forward kernels read them: ``params`` (rows, n) the
+    parameter table, ``flags`` (segments, N_FLAGS) the core's structure
+    (:mod:`tawarp.kernels.layout`) and ``gas`` the gas constants (:mod:`tawarp.kernels.gas`)."""
+
+    params: wp.array2d(dtype=wp.float64)
+    flags: wp.array2d(dtype=wp.int32)
+    gas: wp.array(dtype=wp.float64)
+
+
 @wp.kernel
 def expand_parameters(
     base: wp.array(dtype=wp.float64),
@@ -102,9 +117,7 @@ def expand_parameters(
 
 @wp.kernel
 def heat_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     first: int,
     count: int,
     heat_cells: int,
@@ -115,6 +128,9 @@ def heat_kernel(
     scratch: wp.array2d(dtype=wp.float64),
 ):
     i = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch)
 
 
@@ -243,8 +259,7 @@ def dimensionless(out: wp.array3d(dtype=wp.float64), i: int, j: int, c: int, zc:
 
 @wp.kernel
 def step_doubling_error(
-    params: wp.array2d(dtype=wp.float64),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     out: wp.array3d(dtype=wp.float64),
     doubled: wp.array3d(dtype=wp.float64),
     sample: wp.array(dtype=wp.int32),
@@ -256,6 +271,8 @@ def step_doubling_error(
     impedance of set i. NaN where a coefficient is not finite (as NumPy's max): such a set
     is not refined, the validity checks name it."""
     i = wp.tid()
+    params = sets.params
+    gas = sets.gas
     radius = params[RADIUS, i]
     zc = params[P_MEAN, i] / wp.sqrt(gas[G_R] * params[T_COLD, i] / gas[G_GAMMA]) / (PI * radius * radius)
     worst = wp.float64(0.0)
@@ -344,9 +361,7 @@ def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.
 
 @wp.kernel
 def cell_counts(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     seg_cells: wp.array(dtype=wp.int32),
     cell_density: wp.array(dtype=wp.float64),
     omega_max: wp.float64,
@@ -363,6 +378,9 @@ def cell_counts(
     heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
     matrix: a two-step characterization's first fits, at Q = 0, need no Magnus cell)."""
     i = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
     points = int(0)
@@ -386,9 +404,7 @@ def make_point_kernel(nonlinear: bool):
     frees registers on the GPU) or for both."""
 
     def point_kernel(
-        params: wp.array2d(dtype=wp.float64),
-        flags: wp.array2d(dtype=wp.int32),
-        gas: wp.array(dtype=wp.float64),
+        sets: SetTable,
         theta: wp.array2d(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
         first: int,
@@ -404,6 +420,9 @@ def make_point_kernel(nonlinear: bool):
         (length h) for a thermal segment, a thread per cell (they share its heat cell's
         coefficients)."""
         li, slot = wp.tid()
+        params = sets.params
+        flags = sets.flags
+        gas = sets.gas
         i = set0 + li
         n_seg = flags.shape[0]
         p_mean = params[P_MEAN, i]
@@ -469,6 +488,36 @@ def make_point_kernel(nonlinear: bool):
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
+@wp.func
+def cell_exponent(
+    points: wp.array2d(dtype=PointCoefficients),
+    li: int,
+    p: int,
+    uniform: bool,
+    h: wp.float64,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    model: int,
+    pore_table: wp.array(dtype=wp.float64),
+):
+    """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
+    the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
+    (only the b's are live between the points, not three A's besides them), or h A of the
+    one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
+    a = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
+    if uniform:
+        return scale2(a, h)
+    zero = zero2()
+    b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
+    a = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
+    a = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
+    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
+    return magnus6_omega(b1, b2, b3)
+
+
 def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
     (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
@@ -480,9 +529,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
     scale_rows = wp.types.matrix(shape=(Q, 2), dtype=wp.float64)
 
     def transfer_kernel(
-        params: wp.array2d(dtype=wp.float64),
-        flags: wp.array2d(dtype=wp.int32),
-        gas: wp.array(dtype=wp.float64),
+        sets: SetTable,
         freqs: wp.array(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
@@ -515,6 +562,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         geometries' derivatives are the central differences of the neighbours' (the heat
         solve and the point kernel, a few per cent of a set's cost)."""
         t = wp.tid()
+        params = sets.params
+        flags = sets.flags
+        gas = sets.gas
         n_freqs = out.shape[1]
         n_doubled = points.shape[0] * doubled.shape[1]
         li = (t - n_doubled) // n_freqs
@@ -549,13 +599,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             h = length / wp.float64(n_cells)
             for c in range(n_cells):
                 if wp.static(tangents == 0):
-                    a1 = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
-                    if uniform:  # exp(A L) of a part at uniform temperature
-                        e, tau = expm2_traceless(scale2(a1, length))
-                    else:
-                        a2 = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
-                        a3 = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
-                        e, tau = expm2_traceless(magnus6_exponent(a1, a2, a3, h))
+                    e, tau = expm2_traceless(
+                        cell_exponent(points, li, p, uniform, h, geo, omega, half_log_omega, gamma, model, pore_table)
+                    )
                 else:
                     s1 = pore_point(points[li, p], half_log_omega, model, pore_table, 1)
                     a1 = propagation_value(s1, points[li, p], geo, omega, gamma, model)
@@ -662,9 +708,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
 
 @wp.kernel
 def profile_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     theta: wp.array2d(dtype=wp.float64),
     first: int,
     heat_cells: int,
@@ -675,6 +719,9 @@ def profile_kernel(
     """T(x) [K] and dT/dx [K/m] of set i at positions x[j] [m] from plane x1 (the
     cold temperature outside the thermal segments and those with imposed temperatures)."""
     i, j = wp.tid()
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
     start = wp.float64(0.0)
     T[i, j] = params[T_COLD, i]
     dTdx[i, j] = wp.float64(0.0)

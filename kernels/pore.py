@@ -208,21 +208,17 @@ def _tabulated(table: wp.array(dtype=wp.float64), offset: int, log_s: wp.float64
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
     base = offset + k * (2 * TABLE_TERMS + 1)
-    # Clenshaw's recurrence for sum c_j T_j(t), real and imaginary parts together
-    two_t = t + t
-    b1r = wp.float64(0.0)
-    b1i = wp.float64(0.0)
-    b2r = wp.float64(0.0)
-    b2i = wp.float64(0.0)
+    # Horner's rule on the series' power-basis coefficients in t (one fused multiply-add
+    # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
+    # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
+    top = base + 1 + 2 * (TABLE_TERMS - 1)
+    pr = table[top]
+    pi = table[top + 1]
     for jj in range(TABLE_TERMS - 1):
-        j = base + 1 + 2 * (TABLE_TERMS - 1 - jj)
-        br = table[j] + two_t * b1r - b2r
-        bi = table[j + 1] + two_t * b1i - b2i
-        b2r = b1r
-        b2i = b1i
-        b1r = br
-        b1i = bi
-    p = wp.vec2d(table[base + 1] + t * b1r - b2r, table[base + 2] + t * b1i - b2i)
+        j = top - 2 - 2 * jj
+        pr = table[j] + t * pr
+        pi = table[j + 1] + t * pi
+    p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
     if table[base] != wp.float64(0.0):
         return q, p
@@ -235,7 +231,7 @@ def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64
     (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
     that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
     Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
-    Chebyshev coefficients."""
+    coefficients of the series in powers of t, the piece's variable in [-1, 1]."""
     if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
         return pore_circular(wp.exp(log_s))
     return _tabulated(table, 0, log_s)
@@ -255,7 +251,18 @@ def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.f
     """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's or
     pin array's :func:`pore_model_code`) at ``log_s`` = ln(r / delta); ``table`` is
     :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device, which holds the
-    circular pieces and those of the shaped pores it was built for (others are computed)."""
+    circular pieces and those of the shaped pores it was built for (others are computed).
+    The circular pore inside the table is the cascade's usual case and is read here; every
+    other case is :func:`_pore_functions_other`, kept apart so that the GPU compiler inlines
+    this short path into the cascade and calls the long one (bench/README.md)."""
+    if model == PORE_CIRCULAR and log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
+        return _tabulated(table, 0, log_s)
+    return _pore_functions_other(model, log_s, table)
+
+
+@wp.func(inline=False)
+def _pore_functions_other(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+    # pore_functions_log's cases beyond a circular pore inside the table
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
     if model >= RECTANGULAR_BASE:

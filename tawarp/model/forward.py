@@ -71,10 +71,8 @@ POINT_BUFFER_BYTES_GPU = 1 << 32
 #: ``picard_tol`` = 1e-12, which a difference divides by the step: 1e-4 there (~1e-8).
 TANGENT_STEP = 1e-5
 TANGENT_STEP_NONLINEAR = 1e-4
-#: Register cap of the tangent cascade's CUDA threads (None: none). It carries P more
-#: matrices than the plain cascade: on the H100 3-parameter heat fits ran 3.9x (cap 64)
-#: and 2.0x (cap 128) slower than uncapped, geometry fits 1.8x and 1.4x
-#: (bench/fit_registers.py, bench/results/fit_registers_h100.json).
+#: Register cap of the tangent cascade's CUDA threads (None: none; it carries P more
+#: matrices than the plain cascade: measurements in bench/README.md, "fits").
 TANGENT_MAX_REGISTERS = None
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
@@ -202,9 +200,8 @@ class ForwardSettings:
     ``fitted``: exact (exponentially fitted) heat scheme, else plain second order;
     ``chunk``: parameter sets per launch (bounds device memory); ``block_dim``: GPU
     threads per block of the cascade kernel (bench/forward.py compares values);
-    ``max_registers``: register cap of a CUDA thread of the plain cascade (None: none; 128
-    measured fastest on the H100 and H200, bench/forward.py ``--max-registers``, and in fits,
-    bench/fit_registers.py; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
+    ``max_registers``: register cap of a CUDA thread of the plain cascade (None: none;
+    measurements in bench/README.md; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
     ``cpu_threads``: on the CPU, Warp runs a kernel serially, so a batch is split into
     this many parts run in parallel threads (Warp's CPU launches release the GIL; None:
     every core this process may use; results are bit-for-bit those of one thread); ``device``.
@@ -348,6 +345,14 @@ class Engine:
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
 
+    def _sets(self, params: wp.array) -> kf.SetTable:
+        """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
+        sets = kf.SetTable()
+        sets.params = params
+        sets.flags = self.flags
+        sets.gas = self.gas
+        return sets
+
     def heat(self, varying) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
@@ -363,9 +368,7 @@ class Engine:
                 kf.heat_kernel,
                 dim=n,
                 inputs=[
-                    params,
-                    self.flags,
-                    self.gas,
+                    self._sets(params),
                     self.first,
                     self.count,
                     self.heat_cells,
@@ -547,7 +550,7 @@ class Engine:
         wp.launch(
             kf.cell_counts,
             dim=n,
-            inputs=[params, self.flags, self.gas, self.seg_cells, density, self.omega_max, cells, most],
+            inputs=[self._sets(params), self.seg_cells, density, self.omega_max, cells, most],
             device=self.device,
         )
         n_points, n_slots, n_cells = (int(v) for v in most.numpy())
@@ -561,7 +564,7 @@ class Engine:
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[params, self.flags, self.gas, theta, cells, self.first, self.heat_cells, lo, part],
+                inputs=[self._sets(params), theta, cells, self.first, self.heat_cells, lo, part],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + doubled.shape[1])
@@ -575,9 +578,7 @@ class Engine:
                 kernel,
                 dim=threads,
                 inputs=[
-                    params,
-                    self.flags,
-                    self.gas,
+                    self._sets(params),
                     freqs,
                     cells,
                     part,
@@ -631,7 +632,7 @@ class Engine:
             return None
         err = wp.empty(n, dtype=wp.float64, device=self.device)
         wp.launch(
-            kf.step_doubling_error, dim=n, inputs=[params, self.gas, out, doubled, sample, err], device=self.device
+            kf.step_doubling_error, dim=n, inputs=[self._sets(params), out, doubled, sample, err], device=self.device
         )
         return err.numpy()
 
@@ -696,7 +697,7 @@ class Engine:
             kf.profile_kernel,
             dim=(n, x.shape[0]),
             device=self.device,
-            inputs=[params, self.flags, self.gas, theta, self.first, self.heat_cells, x, T, dT],
+            inputs=[self._sets(params), theta, self.first, self.heat_cells, x, T, dT],
         )
         return T.numpy(), dT.numpy()
 
