@@ -12,8 +12,8 @@ plane stays where it was), and the effect's one parameter is their *presence* s 
 tube radius), so the base model is nested in the augmented one like for every other effect.
 
 Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radius ratio,
-T-dependent conductivity, radiation, convection in the buffer tube, wall conduction,
-ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
+T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
+wall conduction, ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
 factor, thickness offset, limp frame, T_cold, p_mean).
 
 The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
@@ -263,10 +263,50 @@ def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
     return out
 
 
+def with_pore_model(core: Core, segment: str, pore_model: str, aspect_ratio: float = 1.0) -> Core:
+    """``core`` with the pores of ``segment`` of ``pore_model`` (rectangular channels of
+    ``aspect_ratio``), every value kept."""
+    segs = tuple(
+        dataclasses.replace(s, pore_model=pore_model, aspect_ratio=aspect_ratio) if s.name == segment else s
+        for s in core.segments
+    )
+    return Core(segs, core.gas, core.radius, core.source, core.pinned, core.priors)
+
+
+def pore_geometry_effects(core: Core, stack: str) -> list[Effect]:
+    """The stack's pores of another shape than the core file's circular ones, as structural
+    alternatives without parameters of their own (the base fit's porosity, pore radius and
+    tortuosity are refitted in each; :func:`tawarp.loop.evidence.effect_columns` takes the
+    residual change of the swap at the base solution): square channels (Stinson; half the
+    side a = r keeps the hydraulic radius r/2 and the flow resistivity within 12 %) and
+    parallel plates (half-spacing y0 = r/2 has the circular pore's hydraulic radius: the fit
+    moves the pore radius by that factor 2, 1.7 sd of its default prior). Their prior is the
+    model prior alone, as likely as any other single effect. Left out: pins (the pore radius
+    becomes the pin radius, another length) and wire screens (their correlations replace the
+    thermal radius on which the library's thermal_radius_ratio acts)."""
+    if core.segment(stack).pore_model != "circular":
+        return []
+    return [
+        Effect(
+            "square_channels",
+            "the stack's pores are square channels (pore_radius half the side), not circular",
+            (),
+            transform=lambda c: with_pore_model(c, stack, "rectangular", 1.0),
+        ),
+        Effect(
+            "plate_pores",
+            "the stack is parallel plates (pore_radius half the spacing), not circular pores",
+            (),
+            transform=lambda c: with_pore_model(c, stack, "plates"),
+        ),
+    ]
+
+
 def tmatrix_library(core: Core) -> list[Effect]:
     """Candidate effects for 2-port (T-matrix or scattering) data of ``core``: plane
     offsets, T_cold, p_mean, the calibration gain; for a heated core (docs/physics.md's list)
-    the stack's thermal radius ratio, T-dependent conductivity, radiation, convection in
+    the stack's thermal radius ratio, T-dependent conductivity, radiation, its pores as
+    square channels or plates (:func:`pore_geometry_effects`), convection in
     the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
     role; for a passive core (no thermal stack) the porous-layer effects of its porous
     segments, an elastic frame when it has one porous segment, and T_cold and p_mean
@@ -307,6 +347,7 @@ def tmatrix_library(core: Core) -> list[Effect]:
                 TYPICAL_RADIATIVE_CONDUCTIVITY,
             )
         )
+        lib += pore_geometry_effects(core, stack)
     else:
         porous = [s.name for s in segs if s.is_porous]
         if porous:
