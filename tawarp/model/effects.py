@@ -5,11 +5,11 @@ Every effect is an optional term of the *same* forward model: a few named parame
 (``SEGMENT.FIELD`` or ``gas.*``) that are off at their start value, evaluated in the same
 kernels. A :class:`Param` may set several model parameters to one value (``targets``):
 the wall conductance of all thermal segments; or map its value to several (``expand``).
-Only the ambient heat exchangers change the core's structure: :func:`with_ambient_exchangers`
-inserts two non-thermal porous segments (taking their length from the end ducts, so every
-plane stays where it was), and the effect's one parameter is their *presence* s in [0, 1]
-(:func:`ambient_presence`): at s = 0 they are exactly empty duct (porosity 1, pore radius =
-tube radius), so the base model is nested in the augmented one like for every other effect.
+Two kinds of effect change the core's structure. :func:`with_ambient_exchangers` inserts
+two non-thermal porous segments (taking their length from the end ducts, so every plane
+stays where it was), and the effect's parameter is their length: at 0 the base model bit
+for bit, so it is nested in the augmented one like every other effect. The stack's pore
+shape (:func:`pore_geometry_effects`) is not nested: the swap has no parameter of its own.
 
 Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radius ratio,
 T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
