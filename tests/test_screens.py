@@ -213,3 +213,25 @@ def test_complex_frequency_path_against_reference():
     K = _core_matrix(core, 30.0, w)
     R = reference.transfer_matrix_omega(core, w, 30.0, rtol=1e-11)
     assert np.max(np.abs(K - R) / np.abs(R)) < 1e-6
+
+
+def test_loop_library_leaves_out_the_thermal_radius_of_screens():
+    """A screen stack has no thermal radius of its own (A takes its Prandtl number from the
+    two radii): the loop's library offers no thermal_radius_ratio for it, heated or passive,
+    and keeps it for the other porous segments of a passive core."""
+    from tawarp.model.effects import tmatrix_library
+
+    heated = screens_core()
+    assert "thermal_radius_ratio" not in {e.name for e in tmatrix_library(heated)}
+    passive = type(heated)(
+        tuple(dataclasses.replace(s, thermal=False, heater=False, h=0.0) for s in heated.segments),
+        heated.gas,
+        heated.radius,
+        "<passive screens>",
+    )
+    lib = {e.name: e for e in tmatrix_library(passive)}
+    assert lib["thermal_radius_ratio"].params[0].targets == ("hot_hx.thermal_radius_ratio",)
+    assert lib["viscous_shape_factor"].params[0].targets == (
+        "stack.viscous_shape_factor",
+        "hot_hx.viscous_shape_factor",
+    )

@@ -233,24 +233,32 @@ def calibration_effect() -> Effect:
     )
 
 
-def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
+def porous_layer_effects(names: list[str], frame: bool = True, thermal: list[str] | None = None) -> list[Effect]:
     """Effects of the porous segments ``names`` (all together): a separate thermal length
-    (typical Lambda'/Lambda = 1.8), a viscous shape factor (typical 1.5), a limp frame
-    (typical frame bulk density 30 kg/m^3)."""
-    out = [
-        _field_effect(
-            "thermal_radius_ratio",
-            "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
-            [f"{n}.thermal_radius_ratio" for n in names],
-            1.8,
-        ),
+    (typical Lambda'/Lambda = 1.8; of the segments ``thermal``, default ``names``: wire
+    screens have none), a viscous shape factor (typical 1.5), a limp frame (typical frame
+    bulk density 30 kg/m^3)."""
+    thermal = names if thermal is None else thermal
+    out = (
+        [
+            _field_effect(
+                "thermal_radius_ratio",
+                "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
+                [f"{n}.thermal_radius_ratio" for n in thermal],
+                1.8,
+            )
+        ]
+        if thermal
+        else []
+    )
+    out.append(
         _field_effect(
             "viscous_shape_factor",
             "viscous length Lambda = r/s apart from the resistivity radius r (shape factor)",
             [f"{n}.viscous_shape_factor" for n in names],
             1.5,
-        ),
-    ]
+        )
+    )
     if frame:
         out.append(
             _field_effect(
@@ -321,7 +329,9 @@ def tmatrix_library(core: Core) -> list[Effect]:
     # a passive sample is measured at room conditions, known to +-15 K and +-5 % (as a layer's)
     lib += ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0))
     lib.append(calibration_effect())
-    if stack:
+    # wire screens have no thermal radius of their own (their heat-transfer correlation is on
+    # the hydraulic radius, and A takes their Prandtl number from the two radii)
+    if stack and core.segment(stack).pore_model != "screens":
         lib.append(
             _field_effect(
                 "thermal_radius_ratio",
@@ -330,6 +340,7 @@ def tmatrix_library(core: Core) -> list[Effect]:
                 1.8,
             )
         )
+    if stack:
         # stainless steel: 14.9 W/(m K) at 300 K, 19 at 600 K: b = ln(19/14.9)/ln 2 = 0.35
         lib.append(
             _field_effect(
@@ -351,7 +362,9 @@ def tmatrix_library(core: Core) -> list[Effect]:
     else:
         porous = [s.name for s in segs if s.is_porous]
         if porous:
-            lib += porous_layer_effects(porous)
+            lib += porous_layer_effects(
+                porous, thermal=[s.name for s in segs if s.is_porous and s.pore_model != "screens"]
+            )
         if len(porous) == 1:
             lib.append(two_port_frame_effect(porous[0]))
     if buffer:
