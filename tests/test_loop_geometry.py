@@ -3,7 +3,8 @@
 ceramic core from the independent reference (tawarp.reference, converged resolution)
 with test_loop's noise, its stack of square channels (a Celcor-like honeycomb), the core
 file saying circular pores and 10-30 % off on every base parameter, several seeds. The
-loop names the square channels; on the circular-pore data it claims no pore shape.
+loop names the square channels (and plates on the plates' data); on the circular-pore
+data it claims no pore shape.
 
 The ceramic stack's pores (0.47 mm in air, s = r/delta_nu from 1.3 to 4.3 over 40-400 Hz)
 sit where the pore functions' shapes differ; the mesh core's (40 um, s < 0.4) are in the
@@ -26,6 +27,7 @@ from test_loop import FREQS, NOISE, QS
 
 CERAMIC = load_core("ceramic")
 SQUARE = with_pore_model(CERAMIC, "stack", "rectangular", 1.0)
+PLATES = with_pore_model(CERAMIC, "stack", "plates")
 GEOMETRIES = ("square_channels", "plate_pores")
 SEEDS = (0, 1, 2)
 _REF: dict = {}
@@ -82,6 +84,14 @@ def test_square_channels_are_named(seed):
     rep = loop_on(SQUARE, seed)
     assert "square_channels" in supported(rep), rep["supported_effects"]
     assert rep["verdict"] == "explained" and "square_channels" in rep["best_model"], rep["verdict"]
+
+
+@pytest.mark.parametrize("seed", SEEDS[:2])
+def test_plates_are_named(seed):
+    """Plates of half-spacing = the core file's pore radius (twice the circular pore's
+    hydraulic radius): the base fit cannot follow, plate_pores is claimed alone."""
+    rep = loop_on(PLATES, seed)
+    assert rep["supported_effects"]["alone"] == ["plate_pores"], rep["supported_effects"]
 
 
 @pytest.mark.parametrize("seed", SEEDS)
