@@ -235,3 +235,13 @@ def test_loop_library_leaves_out_the_thermal_radius_of_screens():
         "stack.viscous_shape_factor",
         "hot_hx.viscous_shape_factor",
     )
+
+
+def test_thermal_radius_ratio_does_not_act_on_screens():
+    """The kernels read a screen stack's thermal radius as its hydraulic radius whatever
+    thermal_radius_ratio a fit hands them (the core file refuses one): its T-matrices at
+    ratio 1.8 and 1 are equal bit for bit, heated."""
+    core = screens_core()
+    eng = Engine(core, np.array([60.0, 300.0]), ["stack.thermal_radius_ratio"], ForwardSettings(cells=6, device=DEVICE))
+    T = eng.evaluate(np.array([[30.0, 30.0], [1.0, 1.8]]))[0].numpy()
+    assert np.array_equal(T[0], T[1])
