@@ -290,8 +290,9 @@ def pore_geometry_effects(core: Core, stack: str) -> list[Effect]:
     parallel plates (half-spacing y0 = r/2 has the circular pore's hydraulic radius: the fit
     moves the pore radius by that factor 2, 1.7 sd of its default prior). Their prior is the
     model prior alone, as likely as any other single effect. Left out: pins (the pore radius
-    becomes the pin radius, another length) and wire screens (their correlations replace the
-    thermal radius on which the library's thermal_radius_ratio acts)."""
+    becomes the pin radius, another length) and wire screens (correlations fitted on
+    porosities 0.60-0.77 with a friction factor of their own: a stack is screens by its
+    construction, which the core file states)."""
     if core.segment(stack).pore_model != "circular":
         return []
     return [
