@@ -6,6 +6,9 @@
     a21 = i phi S w / (rho c^2) (1 + (gamma - 1) f_k)
     a22 = (T'/T) (f_k - f_nu) / ((1 - f_nu)(1 - Pr))
 
+(stacked wire screens: Swift & Ward's correlations in place of f_nu and f_k, and
+``a22 = (T'/T) f_k``; :func:`screen_entries`.)
+
 Parts at uniform temperature have constant A and their exact matrix is ``exp(A L)``;
 parts with a gradient are integrated with the sixth-order Magnus scheme on three Gauss
 points per cell. Both use :func:`expm2`, so one code path gives the closed form of
@@ -42,7 +45,7 @@ from .cmath import (
     dual_value,
 )
 from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
-from .pore import PORE_CIRCULAR, pore_functions_complex, pore_functions_log, pore_log_derivative
+from .pore import PORE_CIRCULAR, PORE_SCREENS, pore_functions_complex, pore_functions_log, pore_log_derivative
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -493,10 +496,64 @@ def pore_reciprocal(g: wp.vec4d):  # noqa: F811 (a Warp overload)
 
 
 @wp.func
+def screen_entries(
+    omega: Any,
+    log_nu: Any,
+    log_k: Any,
+    c12: Any,
+    c21: Any,
+    c22: Any,
+    rho: Any,
+    porosity: Any,
+    tortuosity: Any,
+    area: Any,
+    frame_mobility: Any,
+    gamma: wp.float64,
+):
+    """(a12, a21, a22) of A in a stack of wire screens (docs/physics.md, "Stacked wire
+    screens"): the low-amplitude limit of Swift & Ward's correlations (J. Thermophys. Heat
+    Transfer 10, 652, 1996), as DeltaEC's STKSCREEN writes them, in exp(-iwt), with s the
+    viscous r_h/delta_nu and s_k the thermal one (one radius, r_h: s_k^2 = Pr s^2)::
+
+        1/(1 - f_nu) = K + i c1/(16 s^2),   K = 1 + (1 - phi)^2 / (2 (2 phi - 1))
+        f_k = 1/(1 - 8 i s_k^2/(b Pr^(1/3)))
+        a22 = (T'/T) f_k = c22 (1 - Pr) f_k
+
+    c1 = 1268 - 3545 phi + 2544 phi^2 (the friction factor's laminar term c1/Re),
+    b = 3.81 - 11.29 phi + 9.47 phi^2 (the heat transfer's). The Prandtl number comes from
+    the point's two logarithms, Pr = exp(2 (log_k - log_nu)), which holds because a screen
+    stack's thermal radius is its hydraulic radius. Arguments as
+    :func:`propagation_entries`'s; real, complex or dual numbers."""
+    phi = ccomplex(porosity)
+    one = cone(phi)
+    solid = one - phi
+    inertia = one + cdiv(cmul(solid, solid), phi * wp.float64(4.0) - one * wp.float64(2.0))
+    c1 = one * wp.float64(1268.0) - phi * wp.float64(3545.0) + cmul(phi, phi) * wp.float64(2544.0)
+    b = one * wp.float64(3.81) - phi * wp.float64(11.29) + cmul(phi, phi) * wp.float64(9.47)
+    ln_nu = ccomplex(log_nu)
+    ln_k = ccomplex(log_k)
+    s2 = cmul(omega, cexp(ln_nu * wp.float64(2.0)))  # (r_h/delta_nu)^2
+    inv_g_nu = inertia + cdiv(cmuli(c1), s2) * wp.float64(1.0 / 16.0)
+    density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
+    if cre(frame_mobility) > wp.float64(0.0):
+        g_nu = pore_reciprocal(inv_g_nu)
+        rho_w = limp_density(ccomplex(rho), phi, ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
+        density_per_area = cdiv(rho_w, ccomplex(area))
+    # s_k^2/Pr^(1/3) = Pr^(2/3) s^2
+    heat = cmul(omega, cexp(ln_nu * wp.float64(2.0 / 3.0) + ln_k * wp.float64(4.0 / 3.0)))
+    f_k = pore_reciprocal(cone(heat) - cdiv(cmuli(heat), b) * wp.float64(8.0))
+    a12 = cmuli(cmul(omega, density_per_area))
+    a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))
+    a22 = cmul(c22, cmul(f_k, cone(f_k) - cexp((ln_k - ln_nu) * wp.float64(2.0))))
+    return a12, a21, a22
+
+
+@wp.func
 def propagation_entries(
     omega: Any,
     root_omega: Any,
     log_nu: Any,
+    log_k: Any,
     c12: Any,
     c21: Any,
     c22: Any,
@@ -514,14 +571,19 @@ def propagation_entries(
 ):
     """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
     (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
-    (``log_nu``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
+    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
     ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
     heats. The physics of A, written once for every kind of number
     (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
     (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
     derivative (:func:`propagation_tangent`). The effects: a limp frame
     (:func:`limp_density`, frame_mobility > 0) and a viscous shape factor
-    (:func:`shape_correction`, circular pores)."""
+    (:func:`shape_correction`, circular pores). Wire screens take their own entries
+    (:func:`screen_entries`), not the pore functions."""
+    if pore_model == PORE_SCREENS:
+        return screen_entries(
+            omega, log_nu, log_k, c12, c21, c22, rho, porosity, tortuosity, area, frame_mobility, gamma
+        )
     if pore_model == PORE_CIRCULAR and cre(shape_factor) != wp.float64(1.0) and cre(shape_factor) > wp.float64(0.0):
         s_nu = cmul(root_omega, cexp(ccomplex(log_nu)))
         g_nu = cdiv(g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
@@ -573,6 +635,7 @@ def propagation_value(
         omega,
         wp.sqrt(omega),
         pc.log_nu,
+        pc.log_k,
         pc.c12,
         pc.c21,
         pc.c22,
@@ -627,6 +690,7 @@ def propagation_tangent(
         omega,
         wp.sqrt(omega),
         dual_real(pc.log_nu, dpc.log_nu),
+        dual_real(pc.log_k, dpc.log_k),
         dual_real(pc.c12, dpc.c12),
         dual_real(pc.c21, dpc.c21),
         dual_real(pc.c22, dpc.c22),
@@ -659,6 +723,7 @@ def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2
         omega,
         root,
         pc.log_nu,
+        pc.log_k,
         pc.c12,
         pc.c21,
         pc.c22,

@@ -76,6 +76,7 @@ from .layout import (
     VISCOUS_SHAPE_FACTOR,
     seg_value,
 )
+from .pore import PORE_SCREENS
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -148,8 +149,9 @@ def thermal_radius(
     params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int, r: wp.float64
 ):
     """Radius [m] of the thermal function f_k: r times ``thermal_radius_ratio`` in a porous
-    segment (a ratio <= 0 counts as 1), r in a duct."""
-    if flags[s, F_POROUS] == 0:
+    segment (a ratio <= 0 counts as 1), r in a duct and in wire screens (their Prandtl
+    number is read from the two radii, :func:`tawarp.kernels.acoustics.screen_entries`)."""
+    if flags[s, F_POROUS] == 0 or flags[s, F_PORE_MODEL] == PORE_SCREENS:
         return r
     ratio = seg_value(params, i, s, THERMAL_RADIUS_RATIO)
     if ratio <= wp.float64(0.0):

@@ -60,9 +60,19 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 PORE_CIRCULAR = wp.constant(0)
 PORE_PLATES = wp.constant(1)
+#: Stacked wire screens: Swift & Ward's correlations replace the pore functions in A(x)
+#: (:func:`tawarp.kernels.acoustics.screen_entries`); the functions here give the circular
+#: pore's for them, which A does not read.
+PORE_SCREENS = wp.constant(2)
 #: Pore geometries by their name in a core file (``pore_model``) -> the kernels' constant;
 #: a rectangular channel's constant carries its aspect ratio (:func:`pore_model_code`).
-PORE_MODELS = {"circular": PORE_CIRCULAR, "plates": PORE_PLATES, "rectangular": None, "pins": None}
+PORE_MODELS = {
+    "circular": PORE_CIRCULAR,
+    "plates": PORE_PLATES,
+    "rectangular": None,
+    "pins": None,
+    "screens": PORE_SCREENS,
+}
 # Rectangular channels: model = RECTANGULAR_BASE + round(SHAPE_UNITS * aspect ratio), pin
 # arrays: PINS_BASE + round(SHAPE_UNITS * outer radius ratio), so the one int the kernels
 # carry per segment also gives the pores' shape (to 1/SHAPE_UNITS).

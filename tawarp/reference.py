@@ -695,6 +695,8 @@ def rott_coefficients(
     """
     r_k = r if r_k is None else r_k
     g = gas_properties(gas_name, T, p_mean)
+    if pore_model == "screens":
+        return _screen_coefficients(g, phi, r, q, S, w, T, dTdx)
     d_nu = np.sqrt(2.0 * g.mu / (g.rho * w))
     d_k = np.sqrt(2.0 * g.k / (g.rho * g.cp * w))
     # one call for both depths (halves the per-call overhead inside the ODE right-hand side);
@@ -715,6 +717,36 @@ def _coefficients(core: Core, seg: Segment, w, T, dTdx):
     """:func:`rott_coefficients` of segment ``seg`` of ``core`` (pores of :func:`_pore`)."""
     phi, r, q, model, r_k, shape = _pore(core, seg)
     return rott_coefficients(core.gas.name, core.gas.p_mean, w, T, dTdx, phi, core.area, r, q, model, r_k, shape)
+
+
+def screen_correlations(phi):
+    """Swift & Ward's stacked-screen coefficients at porosity ``phi`` (J. Thermophys. Heat
+    Transfer 10, 652, 1996; DeltaEC's STKSCREEN): the friction factor's laminar and inertial
+    terms c1, c2 (dp/dx = -(f/r_h) rho u^2/2, f = c1/Re + c2, Re = 4 r_h |u| rho/mu, u the
+    mean pore velocity), the heat transfer's low-Reynolds Nusselt number Nu = 4 h r_h/k =
+    b Pr^(1/3) and the inertia factor K = 1 + (1 - phi)^2/(2 (2 phi - 1)); returns
+    (c1, c2, b, K)."""
+    c1 = 1268.0 - 3545.0 * phi + 2544.0 * phi**2
+    c2 = -2.82 + 10.7 * phi - 8.6 * phi**2
+    b = 3.81 - 11.29 * phi + 9.47 * phi**2
+    K = 1.0 + (1.0 - phi) ** 2 / (2.0 * (2.0 * phi - 1.0))
+    return c1, c2, b, K
+
+
+def _screen_coefficients(g, phi, r_h, q, S, w, T, dTdx):
+    """Rott's coefficients' counterparts in a stack of wire screens of hydraulic radius
+    ``r_h`` (DeltaEC's STKSCREEN at low amplitude, no solid heat capacity, in exp(-iwt)):
+    the momentum equation dp/dx = -(mu c1/(8 r_h^2) - i w rho K) U/(phi S) and the
+    continuity equation with the thermal relaxation eps_h = -8 i r_h^2/(b Pr^(1/3) delta_k^2):
+    dU/dx = i w phi S/(gamma p) (1 + (gamma - 1)/(1 + eps_h)) p + (dT/dx/T) U/(1 + eps_h)."""
+    c1, _, b, K = screen_correlations(phi)
+    a12 = (1j * w * g.rho * K - g.mu * c1 / (8.0 * r_h**2)) * q**2 / (phi * S)
+    delta_k2 = 2.0 * g.k / (g.rho * g.cp * w)
+    relaxed = 1.0 / (1.0 - 8j * r_h**2 / (b * g.Pr ** (1.0 / 3.0) * delta_k2))
+    p_mean = g.rho * g.c**2 / g.gamma
+    a21 = 1j * w * phi * S / (g.gamma * p_mean) * (1.0 + (g.gamma - 1.0) * relaxed)
+    a22 = (dTdx / T) * relaxed
+    return a12, a21, a22
 
 
 def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:

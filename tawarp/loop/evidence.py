@@ -206,7 +206,7 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
     """Sensitivity columns (2 rows, k) of every effect's parameters at the solution ``base``,
     forward differences from "off": the field effects in one launch (in ``base``'s structure),
     each structural effect in its own (none when ``base`` has one: two structures do not
-    combine)."""
+    combine); a structure without parameters has one column, its residual change there."""
     out = {}
     rows = np.arange(problem.y.size)
     fields = [e for e in library if e.transform is None]
@@ -216,6 +216,11 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
     for structure, effects in groups:
         extra = [par for e in effects for par in e.params]
         if not extra:
+            if structure is not None:
+                # a structure without parameters of its own (another pore shape): its one
+                # column is the residual change of the swap at the base solution
+                Y = problem.predict(param_values(base.params, base.x[:1], fixed), 1, structure)
+                out[structure.name] = (residual(problem, Y, rows)[0] - base.residuals[0])[:, None]
             continue
         allp = base.params + extra
         p0 = len(base.params)
@@ -238,6 +243,8 @@ def visible(effect: Effect, columns: np.ndarray, priors: list[XPrior]) -> bool:
     """Whether ``effect`` can change the data at all: its parameters moved by one prior sd
     change the weighted residuals by more than 1e-6 of the noise (a thermal effect on data
     without heat input cannot; such a model predicts the base's data and is the base)."""
+    if not effect.params:  # a structure without parameters: its residual change
+        return bool(np.linalg.norm(columns) > 1e-6)
     return bool(np.max(np.linalg.norm(columns, axis=0) * np.array([p.sd for p in priors]), initial=0.0) > 1e-6)
 
 
@@ -246,17 +253,20 @@ def linearized_evidence(
 ) -> list[tuple[float, np.ndarray]]:
     """ln Z of each model (its effects and their priors, appended to ``at``'s) from the
     quadratic model of ln posterior at ``at``'s solution: ``||r + J d||^2`` with the base
-    columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"), plus the priors.
+    columns of ``at``'s Jacobian and each effect's ``columns`` (from "off"; a structure
+    without parameters shifts r by its column instead), plus the priors.
     An effect parameter whose optimum leaves its bounds is held on the bound, and the
     Gaussian is cut to the ranges as in :func:`laplace_log_evidence` (``noise_scale`` as
     there).
     Returns (ln Z, x) per model, x the linearized optimum (``at``'s parameters, then the
     effects')."""
     fit = at.fit
-    r0, Jb, xb = fit.residuals[0], fit.jacobian[0], fit.x[0]
+    Jb, xb = fit.jacobian[0], fit.x[0]
     out = []
     for effects, priors in models:
-        C = np.hstack([Jb] + [columns[e.name] for e in effects]) if effects else Jb
+        # a structure without parameters moves the residuals by its column (effect_columns)
+        r0 = fit.residuals[0] + sum(columns[e.name][:, 0] for e in effects if not e.params)
+        C = np.hstack([Jb] + [columns[e.name] for e in effects if e.params])
         x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
         mu = np.array([p.mu for p in priors])
         isd2 = np.array([p.sd**-2 for p in priors])

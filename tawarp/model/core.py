@@ -54,7 +54,9 @@ class Segment:
     tortuosity 1). A ``porous`` segment has ``porosity`` [-], ``pore_radius`` [m]
     (circular pores: radius; ``plates``: half the plate spacing; ``rectangular``: half the
     narrow side, the channel's sides in the ratio ``aspect_ratio`` >= 1; ``pins``: the pin
-    radius, each pin's gas cell of outer radius ``outer_radius_ratio`` times it), ``tortuosity`` q [-]
+    radius, each pin's gas cell of outer radius ``outer_radius_ratio`` times it; ``screens``:
+    the hydraulic radius of stacked wire screens, whose porosity lies in (0.5, 1); a file may
+    give ``wire_diameter`` and ``mesh`` instead, :func:`screen_geometry`), ``tortuosity`` q [-]
     (q^2 = alpha_inf), ``solid_conductivity`` [W/(m K)]. ``h`` [W/(m^2 K)] is the lateral
     heat exchange with the wall, used when ``thermal`` is true (the segment is part of
     the steady heat model). Exactly one thermal segment is the ``heater``. The effect
@@ -298,6 +300,59 @@ def _check_pore_shape(s: Segment, where: str) -> None:
             raise CoreError(f"{where}: {key} = {value} must lie in [{lo:g}, {hi:g}] ({meaning})")
 
 
+def screen_geometry(wire_diameter: float, mesh: float | None = None, porosity: float | None = None):
+    """(porosity, hydraulic radius [m]) of stacked plain square-weave screens of
+    ``wire_diameter`` d_w [m] and ``mesh`` m [wires per m] or given ``porosity``:
+    phi = 1 - pi m d_w/4 (Swift, "Thermoacoustics", sec. 7.3) and r_h = d_w phi/(4 (1 - phi))
+    (the gas volume over the wires' wetted area)."""
+    if porosity is None:
+        porosity = 1.0 - math.pi * mesh * wire_diameter / 4.0
+    return porosity, wire_diameter * porosity / (4.0 * (1.0 - porosity))
+
+
+def _check_screens(s: Segment, where: str) -> None:
+    """A screen stack's porosity within the correlations' reach, and one radius for both
+    functions (their heat-transfer correlation carries its own Prandtl number)."""
+    if not 0.5 < s.porosity < 1.0:
+        raise CoreError(
+            f"{where}: porosity = {s.porosity} with pore_model = 'screens': the screens' correlations need "
+            f'0.5 < porosity < 1 (fitted on 0.60-0.77; docs/physics.md, "Stacked wire screens")'
+        )
+    if s.thermal_radius_ratio != 1.0:
+        raise CoreError(
+            f"{where}: thermal_radius_ratio applies to Rott's pore functions, not to pore_model = 'screens' "
+            f"(its heat-transfer correlation is on the hydraulic radius)"
+        )
+
+
+def _screen_keys(table: dict, where: str) -> dict:
+    """A [[segment]] table with ``wire_diameter`` [m] and ``mesh`` [1/m] (or ``porosity``) of a
+    screen stack replaced by its ``porosity`` and ``pore_radius`` (:func:`screen_geometry`)."""
+    out = dict(table)
+    if "wire_diameter" not in out and "mesh" not in out:
+        return out
+    if out.get("pore_model") != "screens":
+        raise CoreError(f"{where}: wire_diameter and mesh apply only to pore_model = 'screens'")
+    if "pore_radius" in out:
+        raise CoreError(f"{where}: give pore_radius (the hydraulic radius) or wire_diameter, not both")
+    d_w = out.pop("wire_diameter", None)
+    mesh = out.pop("mesh", None)
+    if "porosity" in out and mesh is not None:
+        raise CoreError(f"{where}: give mesh or porosity with wire_diameter, not both")
+    if d_w is None or (mesh is None and "porosity" not in out):
+        raise CoreError(f"{where}: a screen stack needs wire_diameter [m] and mesh [1/m] (or porosity)")
+    for key, value in (("wire_diameter", d_w), ("mesh", mesh), ("porosity", out.get("porosity"))):
+        if value is not None and (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0):
+            raise CoreError(f"{where}: {key} must be a positive number (a plain value), got {value!r}")
+    porosity, r_h = screen_geometry(float(d_w), mesh, out.get("porosity"))
+    if not 0.0 < porosity < 1.0:
+        raise CoreError(
+            f"{where}: wire_diameter {d_w} m and mesh {mesh} 1/m give porosity {porosity:.4g}, not in (0, 1)"
+        )
+    out.update(porosity=porosity, pore_radius=r_h)
+    return out
+
+
 def validate(core: Core) -> None:
     """Raise :class:`CoreError` naming the offending key if ``core`` is not physical."""
     src = core.source
@@ -329,6 +384,8 @@ def validate(core: Core) -> None:
             _check_pore_shape(s, w)
             for fld in ("porosity", "pore_radius", "tortuosity", "solid_conductivity"):
                 check_values(fld, getattr(s, fld), f"{w}: {fld}")
+            if s.pore_model == "screens":
+                _check_screens(s, w)
             if s.pore_radius > core.radius:
                 raise CoreError(f"{w}: pore_radius {s.pore_radius} m exceeds the tube radius {core.radius} m")
         if s.imposed:
@@ -402,6 +459,7 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
         for key in ("name", "kind", "length"):
             if key not in sd:
                 raise CoreError(f"{where}: missing key {key!r}")
+        sd = _screen_keys(sd, f"{where} ({sd['name']!r})")
         bad = set(sd) - _SEGMENT_KEYS - {"T"}
         if bad:
             raise CoreError(f"{where} ({sd['name']!r}): unknown key(s) {sorted(bad)}; allowed {sorted(_SEGMENT_KEYS)}")

@@ -5,15 +5,15 @@ Every effect is an optional term of the *same* forward model: a few named parame
 (``SEGMENT.FIELD`` or ``gas.*``) that are off at their start value, evaluated in the same
 kernels. A :class:`Param` may set several model parameters to one value (``targets``):
 the wall conductance of all thermal segments; or map its value to several (``expand``).
-Only the ambient heat exchangers change the core's structure: :func:`with_ambient_exchangers`
-inserts two non-thermal porous segments (taking their length from the end ducts, so every
-plane stays where it was), and the effect's one parameter is their *presence* s in [0, 1]
-(:func:`ambient_presence`): at s = 0 they are exactly empty duct (porosity 1, pore radius =
-tube radius), so the base model is nested in the augmented one like for every other effect.
+Two kinds of effect change the core's structure. :func:`with_ambient_exchangers` inserts
+two non-thermal porous segments (taking their length from the end ducts, so every plane
+stays where it was), and the effect's parameter is their length: at 0 the base model bit
+for bit, so it is nested in the augmented one like every other effect. The stack's pore
+shape (:func:`pore_geometry_effects`) is not nested: the swap has no parameter of its own.
 
 Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radius ratio,
-T-dependent conductivity, radiation, convection in the buffer tube, wall conduction,
-ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
+T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
+wall conduction, ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
 factor, thickness offset, limp frame, T_cold, p_mean).
 
 The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
@@ -233,24 +233,32 @@ def calibration_effect() -> Effect:
     )
 
 
-def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
+def porous_layer_effects(names: list[str], frame: bool = True, thermal: list[str] | None = None) -> list[Effect]:
     """Effects of the porous segments ``names`` (all together): a separate thermal length
-    (typical Lambda'/Lambda = 1.8), a viscous shape factor (typical 1.5), a limp frame
-    (typical frame bulk density 30 kg/m^3)."""
-    out = [
-        _field_effect(
-            "thermal_radius_ratio",
-            "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
-            [f"{n}.thermal_radius_ratio" for n in names],
-            1.8,
-        ),
+    (typical Lambda'/Lambda = 1.8; of the segments ``thermal``, default ``names``: wire
+    screens have none), a viscous shape factor (typical 1.5), a limp frame (typical frame
+    bulk density 30 kg/m^3)."""
+    thermal = names if thermal is None else thermal
+    out = (
+        [
+            _field_effect(
+                "thermal_radius_ratio",
+                "separate thermal and viscous pore radii (JCA Lambda'/Lambda)",
+                [f"{n}.thermal_radius_ratio" for n in thermal],
+                1.8,
+            )
+        ]
+        if thermal
+        else []
+    )
+    out.append(
         _field_effect(
             "viscous_shape_factor",
             "viscous length Lambda = r/s apart from the resistivity radius r (shape factor)",
             [f"{n}.viscous_shape_factor" for n in names],
             1.5,
-        ),
-    ]
+        )
+    )
     if frame:
         out.append(
             _field_effect(
@@ -263,10 +271,51 @@ def porous_layer_effects(names: list[str], frame: bool = True) -> list[Effect]:
     return out
 
 
+def with_pore_model(core: Core, segment: str, pore_model: str, aspect_ratio: float = 1.0) -> Core:
+    """``core`` with the pores of ``segment`` of ``pore_model`` (rectangular channels of
+    ``aspect_ratio``), every value kept."""
+    segs = tuple(
+        dataclasses.replace(s, pore_model=pore_model, aspect_ratio=aspect_ratio) if s.name == segment else s
+        for s in core.segments
+    )
+    return Core(segs, core.gas, core.radius, core.source, core.pinned, core.priors)
+
+
+def pore_geometry_effects(core: Core, stack: str) -> list[Effect]:
+    """The stack's pores of another shape than the core file's circular ones, as structural
+    alternatives without parameters of their own (the base fit's porosity, pore radius and
+    tortuosity are refitted in each; :func:`tawarp.loop.evidence.effect_columns` takes the
+    residual change of the swap at the base solution): square channels (Stinson; half the
+    side a = r keeps the hydraulic radius r/2 and the flow resistivity within 12 %) and
+    parallel plates (half-spacing y0 = r/2 has the circular pore's hydraulic radius: the fit
+    moves the pore radius by that factor 2, 1.7 sd of its default prior). Their prior is the
+    model prior alone, as likely as any other single effect. Left out: pins (the pore radius
+    becomes the pin radius, another length) and wire screens (correlations fitted on
+    porosities 0.60-0.77 with a friction factor of their own: a stack is screens by its
+    construction, which the core file states)."""
+    if core.segment(stack).pore_model != "circular":
+        return []
+    return [
+        Effect(
+            "square_channels",
+            "the stack's pores are square channels (pore_radius half the side), not circular",
+            (),
+            transform=lambda c: with_pore_model(c, stack, "rectangular", 1.0),
+        ),
+        Effect(
+            "plate_pores",
+            "the stack is parallel plates (pore_radius half the spacing), not circular pores",
+            (),
+            transform=lambda c: with_pore_model(c, stack, "plates"),
+        ),
+    ]
+
+
 def tmatrix_library(core: Core) -> list[Effect]:
     """Candidate effects for 2-port (T-matrix or scattering) data of ``core``: plane
     offsets, T_cold, p_mean, the calibration gain; for a heated core (docs/physics.md's list)
-    the stack's thermal radius ratio, T-dependent conductivity, radiation, convection in
+    the stack's thermal radius ratio, T-dependent conductivity, radiation, its pores as
+    square channels or plates (:func:`pore_geometry_effects`), convection in
     the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
     role; for a passive core (no thermal stack) the porous-layer effects of its porous
     segments, an elastic frame when it has one porous segment, and T_cold and p_mean
@@ -281,7 +330,9 @@ def tmatrix_library(core: Core) -> list[Effect]:
     # a passive sample is measured at room conditions, known to +-15 K and +-5 % (as a layer's)
     lib += ambient_effects(core) if stack else ambient_effects(core, (T0 - 15, T0 + 15), (0.95 * p0, 1.05 * p0))
     lib.append(calibration_effect())
-    if stack:
+    # wire screens have no thermal radius of their own (their heat-transfer correlation is on
+    # the hydraulic radius, and A takes their Prandtl number from the two radii)
+    if stack and core.segment(stack).pore_model != "screens":
         lib.append(
             _field_effect(
                 "thermal_radius_ratio",
@@ -290,6 +341,7 @@ def tmatrix_library(core: Core) -> list[Effect]:
                 1.8,
             )
         )
+    if stack:
         # stainless steel: 14.9 W/(m K) at 300 K, 19 at 600 K: b = ln(19/14.9)/ln 2 = 0.35
         lib.append(
             _field_effect(
@@ -307,10 +359,13 @@ def tmatrix_library(core: Core) -> list[Effect]:
                 TYPICAL_RADIATIVE_CONDUCTIVITY,
             )
         )
+        lib += pore_geometry_effects(core, stack)
     else:
         porous = [s.name for s in segs if s.is_porous]
         if porous:
-            lib += porous_layer_effects(porous)
+            lib += porous_layer_effects(
+                porous, thermal=[s.name for s in segs if s.is_porous and s.pore_model != "screens"]
+            )
         if len(porous) == 1:
             lib.append(two_port_frame_effect(porous[0]))
     if buffer:
