@@ -495,7 +495,7 @@ def pore_reciprocal(g: wp.vec4d):  # noqa: F811 (a Warp overload)
     return dual(r, -cmul(cmul(r, r), dual_tangent(g)))
 
 
-@wp.func
+@wp.func(inline=False)  # a geometry's branch: kept out of the cascade's inlined code
 def screen_entries(
     omega: Any,
     log_nu: Any,
