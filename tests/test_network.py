@@ -11,6 +11,7 @@ import pytest
 import scipy.optimize as so
 
 from tawarp.model.core import CoreError
+from tawarp.model.gas import GASES
 from tawarp.model.network import bundled_networks, load_network, network_from_dict
 from tawarp.model import network_reference as nr
 from tawarp.model.resonator import load_engine
@@ -100,6 +101,28 @@ def test_closed_closed_duct_is_half_wave_of_the_lossy_wavenumber():
     exact = _root(lambda w: _k_zc(0.02, w)[0] * 1.0 - math.pi, math.pi * c)
     assert abs(w - exact) < 1e-10 * abs(exact)
     assert w.imag < 0  # a passive duct decays
+
+
+def test_a_gas_mixture_network_rings_at_the_mixtures_lossy_half_wave():
+    """A [gas.mixture] network (helium-argon, a working gas of traveling-wave engines): its
+    closed-closed duct has k(omega) L = pi with the mixture's own wavenumber (the reference's
+    duct waves of the same mixture), and its frequency is the mixture's, not a pure gas's."""
+    data = tube(1.0, 0.02)
+    data["gas"] = {"mixture": {"helium": 0.7, "argon": 0.3}, "p_mean": 1e6, "T_cold": 300.0}
+    net = network_from_dict(data, "t")
+    name = net.gas.name
+    g = GASES[name]
+    c = math.sqrt(g.gamma * g.R_gas * 300.0)
+    w = nr.eigenfrequency(net, math.pi * c)
+    k = lambda w: duct_waves(name, 1e6, 300.0, 0.02, np.atleast_1d(w))[0][0]  # noqa: E731
+    exact = _root(lambda w: k(w) * 1.0 - math.pi, math.pi * c)
+    assert abs(w - exact) < 1e-10 * abs(exact)
+    assert abs(w.real / (math.pi * c) - 1) < 0.01
+    helium = GASES["helium"]
+    assert abs(w.real / (math.pi * math.sqrt(helium.gamma * helium.R_gas * 300.0)) - 1) > 0.2
+    data["gas"]["name"] = "helium"
+    with pytest.raises(CoreError, match="both name and"):
+        network_from_dict(data, "t")
 
 
 def test_a_plain_junction_changes_nothing():

@@ -444,7 +444,7 @@ def core_from_dict(data: dict, source: str = "<core>") -> Core:
     priors: dict = {}
     gas_d = dict(data.get("gas", {}))
     if "mixture" in gas_d:
-        gas_d["name"] = _mixture_name(gas_d, source)
+        gas_d["name"] = gas_mixture_name(gas_d, source)
     gas_d = _declared(gas_d, "gas", ("p_mean", "T_cold"), f"{source}: gas", priors)
     bad = set(gas_d) - {"name", "p_mean", "T_cold"}
     if bad:
@@ -518,7 +518,7 @@ def _imposed_temperatures(table: dict, where: str) -> dict:
     return out
 
 
-def _mixture_name(gas: dict, source: str) -> str:
+def gas_mixture_name(gas: dict, source: str) -> str:
     """The gas name of a ``[gas.mixture]`` table {gas: mole fraction} (docs/formats.md)."""
     table = gas.pop("mixture")
     if "name" in gas:

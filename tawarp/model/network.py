@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core import CoreError, Gas, bundled, check_values, read_toml
+from .core import CoreError, Gas, gas_mixture_name, bundled, check_values, read_toml
 from .gas import GASES
 from .resonator import read_impedance_csv
 
@@ -388,8 +388,11 @@ def network_from_dict(data: dict, source: str = "<network>", folder: Path | None
     if unknown:
         raise CoreError(f"{source}: unknown top-level key(s) {sorted(unknown)}; expected gas, network, branch, end")
     gas_d = data.get("gas", {})
-    if not isinstance(gas_d, dict) or set(gas_d) - {"name", "p_mean", "T_cold"}:
-        raise CoreError(f"{source}: [gas] takes name, p_mean, T_cold; got {gas_d!r}")
+    if not isinstance(gas_d, dict) or set(gas_d) - {"name", "p_mean", "T_cold", "mixture"}:
+        raise CoreError(f"{source}: [gas] takes name (or a [gas.mixture] table), p_mean, T_cold; got {gas_d!r}")
+    gas_d = dict(gas_d)
+    if "mixture" in gas_d:
+        gas_d["name"] = gas_mixture_name(gas_d, source)
     gas = Gas(**gas_d)
     if not isinstance(gas.name, str) or gas.name not in GASES:
         raise CoreError(f"{source}: gas.name = {gas.name!r}; expected one of {sorted(GASES)}")
