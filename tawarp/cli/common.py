@@ -159,3 +159,14 @@ def impedance_on_core(kind: ImpedanceKind, core_arg, settings) -> ImpedanceKind:
 def _say(args, *text):
     if not args.quiet:
         print(*text, flush=True)
+
+
+def parse_vars(texts: list[str]) -> dict[str, np.ndarray]:
+    """``--var NAME=LIST`` options as {name: values} (:func:`parse_list` for each LIST)."""
+    out = {}
+    for t in texts:
+        name, sep, values = t.partition("=")
+        if not sep or not name.strip():
+            raise ValueError(f"--var {t!r}: expected NAME=LIST, e.g. engine.left_duct=0.5:0.9:5")
+        out[name.strip()] = parse_list(values)
+    return out

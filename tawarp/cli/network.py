@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json, write_text
-from .common import _say
+from .common import _say, parse_vars
 
 
 def _finite(x: float):
@@ -126,9 +126,8 @@ def _batched_sets(args, net, w0: complex, T_max: float) -> list[dict]:
     import itertools
 
     from ..model.network_batch import NetworkBatch
-    from .onset import _parse_vars
 
-    axes = _parse_vars(args.var)
+    axes = parse_vars(args.var)
     names = list(axes)
     combos = list(itertools.product(*axes.values()))
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json
-from .common import _common, _say, parse_list
+from .common import _common, _say, parse_vars
 
 
 def add_onset_parser(sub) -> None:
@@ -69,16 +69,6 @@ def add_onset_parser(sub) -> None:
     p.set_defaults(func=cmd_onset)
 
 
-def _parse_vars(texts: list[str]) -> dict[str, np.ndarray]:
-    out = {}
-    for t in texts:
-        name, sep, values = t.partition("=")
-        if not sep or not name.strip():
-            raise ValueError(f"--var {t!r}: expected NAME=LIST, e.g. engine.left_duct=0.5:0.9:5")
-        out[name.strip()] = parse_list(values)
-    return out
-
-
 def _finite(x: float):
     return float(x) if math.isfinite(x) else None
 
@@ -94,7 +84,7 @@ def cmd_onset(args) -> int:
 
         return cmd_network_onset(args)
     engine = load_engine(args.engine)
-    axes = _parse_vars(args.var)
+    axes = parse_vars(args.var)
     names = list(axes)
     combos = list(itertools.product(*axes.values())) if names else [()]
     params = {k: np.array([c[j] for c in combos]) for j, k in enumerate(names)}

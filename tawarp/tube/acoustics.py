@@ -29,8 +29,55 @@ import math
 
 import numpy as np
 
+from dataclasses import dataclass
+
 from ..model.gas import GASES
-from .setup import HUMID_AIR, Gas, Tube
+
+#: The gas name of air with water vapour (Cramer 1993); the other names are tawarp's dry gases.
+HUMID_AIR = "air"
+
+
+@dataclass(frozen=True)
+class Tube:
+    """Cross-section of the tube: ``circular`` of ``width`` = diameter [m], or
+    ``rectangular`` of ``width`` x ``height`` [m]."""
+
+    shape: str
+    width: float
+    height: float
+
+    @property
+    def area(self) -> float:
+        """Cross-section S [m^2]."""
+        return math.pi * self.width**2 / 4 if self.shape == "circular" else self.width * self.height
+
+    @property
+    def perimeter(self) -> float:
+        """Wetted perimeter P [m]."""
+        return math.pi * self.width if self.shape == "circular" else 2 * (self.width + self.height)
+
+    @property
+    def wall_radius(self) -> float:
+        """``2 S / P`` [m]: the radius of a circular tube, ``w h / (w + h)`` of a
+        rectangular one; the length that scales its boundary-layer losses."""
+        return 2 * self.area / self.perimeter
+
+    @property
+    def largest(self) -> float:
+        """The diameter, or the largest side [m] (the first cross mode's length)."""
+        return max(self.width, self.height)
+
+
+@dataclass(frozen=True)
+class Gas:
+    """The tube's gas: ``name`` (``air``, with ``humidity`` [%] relative, or a dry tawarp
+    gas), ``temperature`` [K], ``pressure`` [Pa]."""
+
+    name: str = HUMID_AIR
+    temperature: float = 293.15
+    pressure: float = 101325.0
+    humidity: float = 0.0
+
 
 R_UNIVERSAL = 8.314462618  # J/(mol K)
 M_WATER = 0.01801528  # kg/mol

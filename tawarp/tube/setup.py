@@ -25,9 +25,8 @@ from pathlib import Path
 from ..measure.table import MeasurementError
 from ..model.gas import GASES
 from . import spectra
+from .acoustics import HUMID_AIR, Gas, Tube, sound_speed
 
-#: The gas name of air with water vapour (Cramer 1993); the other names are tawarp's dry gases.
-HUMID_AIR = "air"
 SHAPES = ("circular", "rectangular")
 #: method -> (microphones per position set, configurations (files) it needs, what they are)
 METHODS = {
@@ -44,48 +43,6 @@ METHODS = {
 LOW_SPACING = 0.05
 UPPER_SPACING = 0.8
 CUT_ON = {"rectangular": 0.5, "circular": 0.586}
-
-
-@dataclass(frozen=True)
-class Tube:
-    """Cross-section of the tube: ``circular`` of ``width`` = diameter [m], or
-    ``rectangular`` of ``width`` x ``height`` [m]."""
-
-    shape: str
-    width: float
-    height: float
-
-    @property
-    def area(self) -> float:
-        """Cross-section S [m^2]."""
-        return math.pi * self.width**2 / 4 if self.shape == "circular" else self.width * self.height
-
-    @property
-    def perimeter(self) -> float:
-        """Wetted perimeter P [m]."""
-        return math.pi * self.width if self.shape == "circular" else 2 * (self.width + self.height)
-
-    @property
-    def wall_radius(self) -> float:
-        """``2 S / P`` [m]: the radius of a circular tube, ``w h / (w + h)`` of a
-        rectangular one; the length that scales its boundary-layer losses."""
-        return 2 * self.area / self.perimeter
-
-    @property
-    def largest(self) -> float:
-        """The diameter, or the largest side [m] (the first cross mode's length)."""
-        return max(self.width, self.height)
-
-
-@dataclass(frozen=True)
-class Gas:
-    """The tube's gas: ``name`` (``air``, with ``humidity`` [%] relative, or a dry tawarp
-    gas), ``temperature`` [K], ``pressure`` [Pa]."""
-
-    name: str = HUMID_AIR
-    temperature: float = 293.15
-    pressure: float = 101325.0
-    humidity: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -268,8 +225,6 @@ def _position_sets(src, raw, method, thickness, tube, gas) -> tuple[PositionSet,
     mics, _, _ = METHODS[method]
     if not isinstance(raw, list) or not raw or not all(isinstance(s, dict) for s in raw):
         raise _fail(src, "[[microphones]]", "expected one or more [[microphones]] tables")
-    from .acoustics import sound_speed  # the band default needs the gas
-
     sets = []
     for n, s in enumerate(raw):
         where = f"microphones[{n}]"
