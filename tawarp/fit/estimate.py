@@ -291,13 +291,9 @@ class Problems:
         if jacobian == "difference":
             return False
         if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
-            # measured (bench/results/fit_cuda_h100.json, fit_cuda_h200.json, 1e4-1e5
-            # problems): the tangent cascade, which carries p more matrices per thread, is
-            # register-bound on a GPU; its heat fits ran at 0.71-0.84x of forward
-            # differences, its geometry fits at 0.94-1.10x (Nsight Compute: 255 registers,
-            # 12 % of warps resident, 4.85x the FP64 instructions of one plain cascade thread
-            # for the differences' 4; bench/results/ncu_tangent_kernel_h100.txt). On the CPU
-            # they run 1.3x and 1.6x faster (bench/results/fit_cpu.json)
+            # the tangent cascade carries p more matrices per thread and is register-bound on
+            # a GPU, slower there than forward differences; faster on the CPU (measurements:
+            # bench/README.md, "fits/s")
             return False
         if self.engine.estimating:
             if jacobian == "tangent":
