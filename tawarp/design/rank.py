@@ -165,6 +165,27 @@ def _none_if_inf(x: float):
     return float(x) if np.isfinite(x) else None
 
 
+def _onset_statistics(draws: np.ndarray, names: list[str]) -> tuple[np.ndarray, np.ndarray, list[dict]]:
+    """Of ``draws`` (materials x draws, lower is better, inf where no onset): each material's
+    median, rank by it (1 = lowest) and its shares ``p_no_onset``, ``p_best`` (lowest of its
+    draw, a draw where none starts counting for none) and ``p_beats`` {other: P(lower)}."""
+    M = len(names)
+    median = np.median(draws, axis=1)
+    rank = np.empty(M, int)
+    rank[np.argsort(median, kind="stable")] = np.arange(1, M + 1)
+    best = np.argmin(draws, axis=0)
+    all_inf = ~np.isfinite(draws).any(axis=0)
+    shares = [
+        {
+            "p_no_onset": float(np.mean(~np.isfinite(draws[i]))),
+            "p_best": float(np.mean((best == i) & ~all_inf)),
+            "p_beats": {o: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(names) if k != i},
+        }
+        for i in range(M)
+    ]
+    return median, rank, shares
+
+
 @dataclass
 class OnsetRankResult:
     """``table``: rows per material (rank by median Q_onset, nominal / median / p05 / p90 /
@@ -226,12 +247,7 @@ def rank_by_onset(
     draws = Q[:, 1:]
     with np.errstate(invalid="ignore"):  # inf - inf between two draws without onset: the point is inf
         p05, p90, p95 = np.percentile(draws, [5, 90, 95], axis=1)
-    median = np.median(draws, axis=1)
-    order = np.argsort(median, kind="stable")
-    rank = np.empty(M, int)
-    rank[order] = np.arange(1, M + 1)
-    best = np.argmin(draws, axis=0)
-    all_inf = ~np.isfinite(draws).any(axis=0)
+    median, rank, shares = _onset_statistics(draws, [m.name for m in mats])
     rows, samples = [], {}
     for i, m in enumerate(mats):
         ok = np.isfinite(draws[i])
@@ -246,9 +262,7 @@ def rank_by_onset(
                 "Q_onset_p95_W": _none_if_inf(p95[i]),
                 "f_onset_median_Hz": float(np.median(f[i, 1:][ok])) if ok.any() else None,
                 "T_ratio_median": float(np.median(ratio[i, 1:][ok])) if ok.any() else None,
-                "p_no_onset": float(np.mean(~ok)),
-                "p_best": float(np.mean((best == i) & ~all_inf)),
-                "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i},
+                **shares[i],
             }
         )
         samples[m.name] = draws[i]
@@ -346,12 +360,7 @@ def rank_by_network_onset(
     draws = ratio[:, 1:]
     with np.errstate(invalid="ignore"):
         p05, p95 = np.percentile(draws, [5, 95], axis=1)
-    median = np.median(draws, axis=1)
-    order = np.argsort(median, kind="stable")
-    rank = np.empty(M, int)
-    rank[order] = np.arange(1, M + 1)
-    best = np.argmin(draws, axis=0)
-    all_inf = ~np.isfinite(draws).any(axis=0)
+    median, rank, shares = _onset_statistics(draws, [m.name for m in mats])
     rows, samples = [], {}
     for i, m in enumerate(mats):
         ok = np.isfinite(draws[i])
@@ -365,9 +374,7 @@ def rank_by_network_onset(
                 "T_ratio_p95": _none_if_inf(p95[i]),
                 "f_onset_median_Hz": float(np.median(freq[i, 1:][ok])) if ok.any() else None,
                 "Edot_produced_nominal_W": None if np.isnan(edot[i]) else float(edot[i]),
-                "p_no_onset": float(np.mean(~ok)),
-                "p_best": float(np.mean((best == i) & ~all_inf)),
-                "p_beats": {o.name: float(np.mean(draws[i] < draws[k])) for k, o in enumerate(mats) if k != i},
+                **shares[i],
             }
         )
         samples[m.name] = draws[i]
