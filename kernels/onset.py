@@ -39,6 +39,7 @@ from .forward import (
     GAUSS,
     PI,
     TWO_PI,
+    SetTable,
     imposed_temperature,
     magnus_cell_count,
     pore_geometry,
@@ -65,6 +66,36 @@ END_KINDS = {"closed": END_CLOSED, "open": END_OPEN, "impedance": END_IMPEDANCE}
 # resonator table columns: left duct (length [m], radius [m], temperature [K]), right duct
 R_LEFT_LENGTH, R_LEFT_RADIUS, R_LEFT_T, R_RIGHT_LENGTH, R_RIGHT_RADIUS, R_RIGHT_T = range(6)
 N_RESONATOR = 6
+
+
+@wp.struct
+class HeatedCore:
+    """A batch of cores after their heat solve, as the complex-frequency kernels read it:
+    ``sets`` the parameter table (:class:`tawarp.kernels.forward.SetTable`), ``theta``
+    (n, nodes) the nodal excess temperatures [K] of :func:`tawarp.kernels.forward.heat_kernel`,
+    whose heat cells start at segment ``first``, ``heat_cells`` per thermal segment;
+    ``seg_cells`` (segments,) the Magnus cells of each segment whose temperature varies, 0
+    where :func:`tawarp.kernels.forward.magnus_cell_count` sizes them at ``cell_density``."""
+
+    sets: SetTable
+    theta: wp.array2d(dtype=wp.float64)
+    first: int
+    heat_cells: int
+    seg_cells: wp.array(dtype=wp.int32)
+    cell_density: wp.float64
+
+
+@wp.struct
+class Resonator:
+    """The resonator around a batch of cores: ``ducts`` (n, N_RESONATOR) the left and right
+    ducts of each set (columns R_*), ``ends`` the kinds (END_*) of the left and right end,
+    ``z_left``, ``z_right`` the impedance tables (freq [Hz], Z_re, Z_im) of impedance ends
+    (:func:`table_impedance`)."""
+
+    ducts: wp.array2d(dtype=wp.float64)
+    ends: wp.array(dtype=wp.int32)
+    z_left: wp.array2d(dtype=wp.float64)
+    z_right: wp.array2d(dtype=wp.float64)
 
 
 @wp.func
@@ -94,31 +125,20 @@ def duct_step(
 
 
 @wp.func
-def segment_matrix_complex(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    cell_density: wp.float64,
-    first: int,
-    heat_cells: int,
-    i: int,
-    s: int,
-    omega: wp.vec2d,
-    omega_ref: wp.float64,
-):
+def segment_matrix_complex(core: HeatedCore, i: int, s: int, omega: wp.vec2d, omega_ref: wp.float64):
     """The 2x2 transfer matrix of segment s of parameter set i at complex angular frequency
     omega [rad/s] (re, im), exp(-i omega t): (p, U) at its end = M (p, U) at its start.
 
     Its temperature is its imposed profile (T_start to T_end), the heat model's (thermal
-    segments, from the nodal excess ``theta`` of :func:`tawarp.kernels.forward.heat_kernel`,
-    whose heat cells start at ``first``, ``heat_cells`` per segment) or T_cold. At uniform
-    temperature M = exp(A L) (the closed form of docs/physics.md); where it varies, the
-    sixth-order Magnus cells of the forward cascade: ``seg_cells[s]``, or where 0
-    :func:`tawarp.kernels.forward.magnus_cell_count` at ``cell_density`` and the real
+    segments, from the nodal excess ``core.theta``) or T_cold. At uniform temperature
+    M = exp(A L) (the closed form of docs/physics.md); where it varies, the sixth-order
+    Magnus cells of the forward cascade: ``core.seg_cells[s]``, or where 0
+    :func:`tawarp.kernels.forward.magnus_cell_count` at ``core.cell_density`` and the real
     ``omega_ref`` [rad/s] (not omega: M is then one analytic function of omega). Batched
     engines of any topology build on this matrix."""
+    params = core.sets.params
+    flags = core.sets.flags
+    gas = core.sets.gas
     p_mean = params[P_MEAN, i]
     T_cold = params[T_COLD, i]
     gamma = gas[G_GAMMA]
@@ -135,37 +155,26 @@ def segment_matrix_complex(
         return expm2(scale2(propagation_complex(pc, geo, omega, gamma, model), length))
     lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
     nonlin = segment_nonlinear(params, i, s)
-    n_cells = seg_cells[s]
+    n_cells = core.seg_cells[s]
     if n_cells == 0:
         k_T, c = temperature_scale(params, flags, gas, i, s)
-        n_cells = magnus_cell_count(cell_density, k_T, length, omega_ref, c)
+        n_cells = magnus_cell_count(core.cell_density, k_T, length, omega_ref, c)
     h = length / wp.float64(n_cells)
     m = identity2()
     for c in range(n_cells):
         x0 = wp.float64(c) * h
-        a1 = gradient_matrix_complex(
-            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[0] * h, omega, r, r_k, geo
-        )
-        a2 = gradient_matrix_complex(
-            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[1] * h, omega, r, r_k, geo
-        )
-        a3 = gradient_matrix_complex(
-            params, flags, gas, theta, i, s, first, heat_cells, k, sigma, nonlin, x0 + GAUSS[2] * h, omega, r, r_k, geo
-        )
+        a1 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[0] * h, omega, r, r_k, geo)
+        a2 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[1] * h, omega, r, r_k, geo)
+        a3 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[2] * h, omega, r, r_k, geo)
         m = matmul2(magnus6_step(a1, a2, a3, h), m)
     return m
 
 
 @wp.func
 def gradient_matrix_complex(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
+    core: HeatedCore,
     i: int,
     s: int,
-    first: int,
-    heat_cells: int,
     k: wp.float64,
     sigma: wp.float64,
     nonlin: int,
@@ -178,15 +187,18 @@ def gradient_matrix_complex(
     """A(x) at complex omega and local position xi [m] of segment s whose temperature
     varies (:func:`segment_matrix_complex`): its imposed profile, or the heat model's with
     the segment's (k, sigma) and ``nonlin`` (:func:`tawarp.kernels.heat.segment_profile`)."""
+    params = core.sets.params
+    flags = core.sets.flags
+    gas = core.sets.gas
+    heat_cells = core.heat_cells
     T = wp.float64(0.0)
     dT = wp.float64(0.0)
     if flags[s, F_IMPOSED] != 0:
         T, dT = imposed_temperature(params, i, s, xi)
     else:
         dh = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
-        th, dth = segment_profile(
-            params, flags, gas, theta, i, s, (s - first) * heat_cells, heat_cells, k, sigma, dh, nonlin, xi
-        )
+        node0 = (s - core.first) * heat_cells
+        th, dth = segment_profile(params, flags, gas, core.theta, i, s, node0, heat_cells, k, sigma, dh, nonlin, xi)
         T = params[T_COLD, i] + th
         dT = dth
     pc = point_coefficients(gas, params[P_MEAN, i], T, dT, geo.porosity, r, geo.tortuosity, geo.area, r_k)
@@ -194,32 +206,15 @@ def gradient_matrix_complex(
 
 
 @wp.func
-def core_vector(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    cell_density: wp.float64,
-    first: int,
-    heat_cells: int,
-    i: int,
-    omega: wp.vec2d,
-    omega_ref: wp.float64,
-    p_in: wp.vec2d,
-    u_in: wp.vec2d,
-):
+def core_vector(core: HeatedCore, i: int, omega: wp.vec2d, omega_ref: wp.float64, p_in: wp.vec2d, u_in: wp.vec2d):
     """(p, U) at x6 from (p, U) at x1 through the core of set i at complex omega: each
     segment's :func:`segment_matrix_complex` in turn (the cells of ``transfer_kernel``).
     Adaptive cell counts use the real ``omega_ref`` [rad/s]."""
     # loop-carried state as fresh locals (Warp carries reassigned variables through dynamic loops)
     p = wp.vec2d(p_in[0], p_in[1])
     u = wp.vec2d(u_in[0], u_in[1])
-    for s in range(flags.shape[0]):
-        m = segment_matrix_complex(
-            params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, i, s, omega, omega_ref
-        )
-        p, u = mat_vec(m, p, u)
+    for s in range(core.sets.flags.shape[0]):
+        p, u = mat_vec(segment_matrix_complex(core, i, s, omega, omega_ref), p, u)
     return p, u
 
 
@@ -260,53 +255,25 @@ def end_row(kind: int, table: wp.array2d(dtype=wp.float64), omega: wp.vec2d, sig
 
 
 @wp.func
-def engine_residual(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    cell_density: wp.float64,
-    first: int,
-    heat_cells: int,
-    resonator: wp.array2d(dtype=wp.float64),
-    ends: wp.array(dtype=wp.int32),
-    z_left: wp.array2d(dtype=wp.float64),
-    z_right: wp.array2d(dtype=wp.float64),
-    i: int,
-    omega: wp.vec2d,
-    omega_ref: wp.float64,
-):
-    """a_R p + b_R U at the right end for the state that meets the left end condition."""
-    p_mean = params[P_MEAN, i]
-    a_l, b_l = end_row(ends[0], z_left, omega, wp.float64(1.0))
+def engine_residual(core: HeatedCore, res: Resonator, i: int, omega: wp.vec2d, omega_ref: wp.float64):
+    """a_R p + b_R U at the right end of set i for the state that meets the left end condition."""
+    gas = core.sets.gas
+    ducts = res.ducts
+    p_mean = core.sets.params[P_MEAN, i]
+    a_l, b_l = end_row(res.ends[0], res.z_left, omega, wp.float64(1.0))
     p = b_l
     u = -a_l
-    p, u = duct_step(
-        gas, p_mean, omega, resonator[i, R_LEFT_T], resonator[i, R_LEFT_RADIUS], resonator[i, R_LEFT_LENGTH], p, u
-    )
-    p, u = core_vector(params, flags, gas, theta, seg_cells, cell_density, first, heat_cells, i, omega, omega_ref, p, u)
-    p, u = duct_step(
-        gas, p_mean, omega, resonator[i, R_RIGHT_T], resonator[i, R_RIGHT_RADIUS], resonator[i, R_RIGHT_LENGTH], p, u
-    )
-    a_r, b_r = end_row(ends[1], z_right, omega, wp.float64(-1.0))
+    p, u = duct_step(gas, p_mean, omega, ducts[i, R_LEFT_T], ducts[i, R_LEFT_RADIUS], ducts[i, R_LEFT_LENGTH], p, u)
+    p, u = core_vector(core, i, omega, omega_ref, p, u)
+    p, u = duct_step(gas, p_mean, omega, ducts[i, R_RIGHT_T], ducts[i, R_RIGHT_RADIUS], ducts[i, R_RIGHT_LENGTH], p, u)
+    a_r, b_r = end_row(res.ends[1], res.z_right, omega, wp.float64(-1.0))
     return cmul(a_r, p) + cmul(b_r, u)
 
 
 @wp.kernel
 def eigen_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    cell_density: wp.float64,
-    first: int,
-    heat_cells: int,
-    resonator: wp.array2d(dtype=wp.float64),
-    ends: wp.array(dtype=wp.int32),
-    z_left: wp.array2d(dtype=wp.float64),
-    z_right: wp.array2d(dtype=wp.float64),
+    core: HeatedCore,
+    res: Resonator,
     guess: wp.array(dtype=wp.vec2d),
     omega_ref: wp.array(dtype=wp.float64),
     spread: wp.float64,
@@ -343,23 +310,7 @@ def eigen_kernel(
                 x = x0
             elif it == 1:
                 x = x1
-            fx = engine_residual(
-                params,
-                flags,
-                gas,
-                theta,
-                seg_cells,
-                cell_density,
-                first,
-                heat_cells,
-                resonator,
-                ends,
-                z_left,
-                z_right,
-                i,
-                x,
-                w_ref,
-            )
+            fx = engine_residual(core, res, i, x, w_ref)
             if it == 0:
                 f0 = fx
             elif it == 1:
@@ -393,18 +344,8 @@ def eigen_kernel(
 
 @wp.kernel
 def residual_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    cell_density: wp.float64,
-    first: int,
-    heat_cells: int,
-    resonator: wp.array2d(dtype=wp.float64),
-    ends: wp.array(dtype=wp.int32),
-    z_left: wp.array2d(dtype=wp.float64),
-    z_right: wp.array2d(dtype=wp.float64),
+    core: HeatedCore,
+    res: Resonator,
     column: wp.array(dtype=wp.int32),
     omega: wp.array(dtype=wp.vec2d),
     omega_ref: wp.array(dtype=wp.float64),
@@ -415,41 +356,23 @@ def residual_kernel(
     per thread, for the onset's Newton refinement (finite differences in omega and Q)."""
     j = wp.tid()
     i = column[j]
-    out[j] = engine_residual(
-        params,
-        flags,
-        gas,
-        theta,
-        seg_cells,
-        cell_density,
-        first,
-        heat_cells,
-        resonator,
-        ends,
-        z_left,
-        z_right,
-        i,
-        omega[j],
-        omega_ref[i],
-    )
+    out[j] = engine_residual(core, res, i, omega[j], omega_ref[i])
 
 
 @wp.kernel
-def hot_kernel(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    first: int,
-    heat_cells: int,
-    out: wp.array(dtype=wp.float64),
-):
+def hot_kernel(core: HeatedCore, out: wp.array(dtype=wp.float64)):
     """out[i]: the largest steady temperature [K] of set i, imposed temperatures included. In
     each heat cell the profile
     has at most one interior maximum (a cosh plus a constant, or the Kirchhoff cell's
     smooth profile): the cell's ends, and where dT/dx goes from > 0 to < 0 across the cell,
     the zero of dT/dx by bisection (60 halvings: the cell length times 1e-18)."""
     i = wp.tid()
+    params = core.sets.params
+    flags = core.sets.flags
+    gas = core.sets.gas
+    theta = core.theta
+    first = core.first
+    heat_cells = core.heat_cells
     best = params[T_COLD, i]
     for s in range(flags.shape[0]):
         if flags[s, F_IMPOSED] != 0:
@@ -470,8 +393,7 @@ def hot_kernel(
                             a = mid
                         else:
                             b = mid
-                    tm, dm = temperature_at(
-                        params, flags, gas, theta, i, s, first, heat_cells, wp.float64(0.5) * (a + b)
-                    )
+                    mid = wp.float64(0.5) * (a + b)
+                    tm, dm = temperature_at(params, flags, gas, theta, i, s, first, heat_cells, mid)
                     best = wp.max(best, tm)
     out[i] = best

@@ -15,11 +15,11 @@ import scipy.special as sp
 import warp as wp
 
 from tawarp import reference as ref
-from tawarp.kernels.onset import core_vector
+from tawarp.kernels.onset import HeatedCore, core_vector
 from tawarp.kernels.pore import PORE_CIRCULAR, PORE_PLATES, pore_functions_complex
 from tawarp.model.core import CoreError, core_from_dict, load_core
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
-from tawarp.model.onset import eigenfrequencies, onset
+from tawarp.model.onset import eigenfrequencies, heated_core, onset
 from tawarp.model.resonator import EndCondition, ResonatorDuct, ThermoacousticEngine, engine_from_dict, load_engine
 
 from imposed_cores import imposed_ceramic
@@ -69,25 +69,15 @@ def test_pore_functions_complex_argument(model):
 
 
 @wp.kernel
-def _core_columns(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
-    theta: wp.array2d(dtype=wp.float64),
-    seg_cells: wp.array(dtype=wp.int32),
-    first: int,
-    heat_cells: int,
-    omega: wp.array(dtype=wp.vec2d),
-    out: wp.array2d(dtype=wp.vec2d),
-):
+def _core_columns(core: HeatedCore, omega: wp.array(dtype=wp.vec2d), out: wp.array2d(dtype=wp.vec2d)):
     j = wp.tid()
     one = wp.vec2d(wp.float64(1.0), wp.float64(0.0))
     zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
     w = omega[j]
-    p, u = core_vector(params, flags, gas, theta, seg_cells, wp.float64(1.5), first, heat_cells, 0, w, w[0], one, zero)
+    p, u = core_vector(core, 0, w, w[0], one, zero)
     out[j, 0] = p
     out[j, 2] = u
-    p, u = core_vector(params, flags, gas, theta, seg_cells, wp.float64(1.5), first, heat_cells, 0, w, w[0], zero, one)
+    p, u = core_vector(core, 0, w, w[0], zero, one)
     out[j, 1] = p
     out[j, 3] = u
 
@@ -102,13 +92,7 @@ def _core_matrix(core, Q, omega):
         dim=w.size,
         device=DEVICE,
         inputs=[
-            params,
-            fe.flags,
-            fe.gas,
-            theta,
-            fe.seg_cells,
-            fe.first,
-            fe.heat_cells,
+            heated_core(fe, params, theta),
             wp.array(w.view(np.float64).reshape(-1, 2), dtype=wp.vec2d, device=DEVICE),
             out,
         ],

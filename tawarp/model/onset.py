@@ -175,6 +175,30 @@ def _split_names(params: dict | None) -> tuple[dict, dict]:
     return core_p, res_p
 
 
+def _complex(z, device) -> wp.array:
+    """Complex values ``z`` (n,) as the kernels' (re, im) vectors on ``device``."""
+    z = np.ascontiguousarray(z, dtype=np.complex128)
+    return wp.array(z.view(np.float64).reshape(-1, 2), dtype=wp.vec2d, device=device)
+
+
+def _real(x, device) -> wp.array:
+    """``x`` (any shape) as a float64 array on ``device``."""
+    return wp.array(np.ascontiguousarray(x, dtype=np.float64), dtype=wp.float64, device=device)
+
+
+def heated_core(fe: Engine, params: wp.array, theta: wp.array) -> ko.HeatedCore:
+    """The complex-frequency kernels' :class:`tawarp.kernels.onset.HeatedCore` of the batch
+    ``params`` (rows, n) whose heat solve on ``fe`` gave ``theta`` (:meth:`Engine.heat`)."""
+    core = ko.HeatedCore()
+    core.sets = fe._sets(params)
+    core.theta = theta
+    core.first = fe.first
+    core.heat_cells = fe.heat_cells
+    core.seg_cells = fe.seg_cells
+    core.cell_density = float(fe.settings.cell_density)
+    return core
+
+
 class EigenSolver:
     """A compiled engine layout: the core's forward :class:`~tawarp.model.forward.Engine`
     (its heat solve and tables) plus the resonator and ends; :meth:`solve` runs one
@@ -189,6 +213,16 @@ class EigenSolver:
         )
         self.z_left = wp.array(engine.left.table(), dtype=wp.float64, device=dev)
         self.z_right = wp.array(engine.right.table(), dtype=wp.float64, device=dev)
+
+    def resonator(self, ducts: np.ndarray) -> ko.Resonator:
+        """The kernels' :class:`tawarp.kernels.onset.Resonator` of the engine's ends with the
+        duct rows ``ducts`` (n, 6)."""
+        res = ko.Resonator()
+        res.ducts = _real(ducts, self.forward.device)
+        res.ends = self.ends
+        res.z_left = self.z_left
+        res.z_right = self.z_right
+        return res
 
     def lossless_omega(self, params: np.ndarray, resonator: np.ndarray, mode: int) -> np.ndarray:
         """Start value [rad/s] per set: mode ``mode`` of the lossless resonator with the
@@ -235,15 +269,6 @@ class EigenSolver:
             w0 = self.lossless_omega(params.numpy(), resonator, mode)
             guess = w0.astype(complex) if guess is None else guess
             omega_ref = w0 if omega_ref is None else omega_ref
-        w_guess = wp.array(
-            np.ascontiguousarray(np.broadcast_to(guess, (n,)), dtype=np.complex128).view(np.float64).reshape(n, 2),
-            dtype=wp.vec2d,
-            device=dev,
-        )
-        w_ref = wp.array(
-            np.ascontiguousarray(np.broadcast_to(omega_ref, (n,)), dtype=np.float64), dtype=wp.float64, device=dev
-        )
-        w_res = wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev)
         omega = wp.empty(n, dtype=wp.vec2d, device=dev)
         its = wp.empty(n, dtype=wp.int32, device=dev)
         evals = wp.empty(n, dtype=wp.int32, device=dev)
@@ -252,20 +277,10 @@ class EigenSolver:
             dim=n,
             device=dev,
             inputs=[
-                params,
-                fe.flags,
-                fe.gas,
-                theta,
-                fe.seg_cells,
-                float(fe.settings.cell_density),
-                fe.first,
-                fe.heat_cells,
-                w_res,
-                self.ends,
-                self.z_left,
-                self.z_right,
-                w_guess,
-                w_ref,
+                heated_core(fe, params, theta),
+                self.resonator(resonator),
+                _complex(np.broadcast_to(guess, (n,)), dev),
+                _real(np.broadcast_to(omega_ref, (n,)), dev),
                 MULLER_SPREAD,
                 float(tol),
                 int(max_iter),
@@ -298,25 +313,11 @@ class EigenSolver:
             dim=k,
             device=dev,
             inputs=[
-                params,
-                fe.flags,
-                fe.gas,
-                theta,
-                fe.seg_cells,
-                float(fe.settings.cell_density),
-                fe.first,
-                fe.heat_cells,
-                wp.array(np.ascontiguousarray(resonator, dtype=np.float64), dtype=wp.float64, device=dev),
-                self.ends,
-                self.z_left,
-                self.z_right,
+                heated_core(fe, params, theta),
+                self.resonator(resonator),
                 wp.array(np.asarray(column, dtype=np.int32), dtype=wp.int32, device=dev),
-                wp.array(
-                    np.ascontiguousarray(omega, dtype=np.complex128).view(np.float64).reshape(k, 2),
-                    dtype=wp.vec2d,
-                    device=dev,
-                ),
-                wp.array(np.ascontiguousarray(omega_ref, dtype=np.float64), dtype=wp.float64, device=dev),
+                _complex(omega, dev),
+                _real(omega_ref, dev),
                 out,
             ],
         )
@@ -326,12 +327,7 @@ class EigenSolver:
         """Largest steady temperature [K] in the core per set (:func:`tawarp.kernels.onset.hot_kernel`)."""
         fe = self.forward
         out = wp.empty(params.shape[1], dtype=wp.float64, device=fe.device)
-        wp.launch(
-            ko.hot_kernel,
-            dim=params.shape[1],
-            device=fe.device,
-            inputs=[params, fe.flags, fe.gas, theta, fe.first, fe.heat_cells, out],
-        )
+        wp.launch(ko.hot_kernel, dim=params.shape[1], device=fe.device, inputs=[heated_core(fe, params, theta), out])
         return out.numpy()
 
 
