@@ -79,14 +79,56 @@ KIND_LINEAR = wp.constant(0)  # v = o + s z
 KIND_LOG = wp.constant(1)  # v = s exp(z)
 
 
+@wp.struct
+class Scaling:
+    """The transform of each parameter a of problem (data index) pid between its natural
+    value v and its scaled variable z: ``kind[a]`` :data:`KIND_LOG` v = scale[pid, a] exp(z),
+    :data:`KIND_LINEAR` v = offset[pid, a] + scale[pid, a] z; ``kind`` (p,), ``scale`` and
+    ``offset`` (N, p)."""
+
+    kind: wp.array(dtype=wp.int32)
+    scale: wp.array2d(dtype=wp.float64)
+    offset: wp.array2d(dtype=wp.float64)
+
+
+@wp.struct
+class Slots:
+    """The problems of one launch, one per slot: ``ids`` (slots,) each one's data index,
+    ``z`` (slots, p) its scaled variables and ``step`` (slots, p) the step in z of its
+    Jacobian's neighbours."""
+
+    ids: wp.array(dtype=wp.int32)
+    z: wp.array2d(dtype=wp.float64)
+    step: wp.array2d(dtype=wp.float64)
+
+
+@wp.struct
+class Measured:
+    """What the problems fit, per data index: ``Y`` (N, m, 8) the measured dimensionless
+    values and ``W`` (N or 1, m, 8) their weights (re, im of Tpp, Tpu/Zc, Tup Zc, Tuu; one
+    row of W serves every problem), ``zc`` (N,) the duct impedance Zc that normalizes them."""
+
+    Y: wp.array3d(dtype=wp.float64)
+    W: wp.array3d(dtype=wp.float64)
+    zc: wp.array(dtype=wp.float64)
+
+
+@wp.struct
+class NormalEquations:
+    """The least-squares sums of evaluations, one row per slot: ``cost`` the weighted
+    ``r.r``, ``raw`` the unweighted ``sum |Y_model - Y_meas|^2``, ``g`` (slots, p) ``J^T r``
+    and ``H`` (slots, p, p) ``J^T J``."""
+
+    cost: wp.array(dtype=wp.float64)
+    raw: wp.array(dtype=wp.float64)
+    g: wp.array2d(dtype=wp.float64)
+    H: wp.array3d(dtype=wp.float64)
+
+
 @wp.kernel(enable_backward=False)
 def build_sets(
-    z: wp.array2d(dtype=wp.float64),
-    step: wp.array2d(dtype=wp.float64),
-    ids: wp.array(dtype=wp.int32),
-    scale: wp.array2d(dtype=wp.float64),
-    offset: wp.array2d(dtype=wp.float64),
-    kind: wp.array(dtype=wp.int32),
+    slots: Slots,
+    scaling: Scaling,
     fixed: wp.array2d(dtype=wp.float64),
     row_src: wp.array(dtype=wp.int32),
     central: int,
@@ -97,14 +139,17 @@ def build_sets(
     j = 1 + 2a, 2 + 2a is z +- step e_a (the tangent pass's neighbours,
     :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r] >= 0 names the free
     parameter a = row_src[r] (value from z, perturbed in its sets), row_src[r] < 0 the
-    per-problem fixed row -1 - row_src[r]. Log parameters: v = scale exp(z); linear ones:
-    v = offset + scale z."""
+    per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
     col = wp.tid()
+    z = slots.z
+    step = slots.step
+    scale = scaling.scale
+    offset = scaling.offset
     p = z.shape[1]
     sets = (1 + central) * p + 1
     slot = col // sets
     j = col - slot * sets
-    pid = ids[slot]
+    pid = slots.ids[slot]
     for r in range(row_src.shape[0]):
         a = row_src[r]
         if a < 0:
@@ -117,7 +162,7 @@ def build_sets(
                 zz = zz + step[slot, a]
             if central != 0 and j == 2 + 2 * a:
                 zz = zz - step[slot, a]
-            if kind[a] == KIND_LOG:
+            if scaling.kind[a] == KIND_LOG:
                 varying[r, col] = scale[pid, a] * wp.exp(zz)
             else:
                 varying[r, col] = offset[pid, a] + scale[pid, a] * zz
@@ -129,17 +174,13 @@ _NORMAL_KERNELS = {}
 def normal_kernel(p: int, tangents: bool = False):
     """The normal-equations kernel for ``p`` free parameters (cached per p and Jacobian).
 
-    Inputs: ``out`` the Engine's raw T-matrices, ``Y`` (N, m, 8) and ``W``
-    (N or 1, m, 8) measured dimensionless values and weights (re, im of the four coefficients;
-    one row of W serves every problem),
-    ``zc`` (N,) the duct impedance of each problem, ``ids`` (slots,) problem of each
-    slot, ``step`` (slots, p), ``tangent``. Forward differences (``tangents`` False):
+    Inputs: the launch's :class:`Slots` (``z`` is not read), the :class:`Measured` data,
+    ``out`` the Engine's raw T-matrices and ``tangent``. Forward differences (``tangents`` False):
     ``out`` (slots (1 + p), m, 8) holds a slot's point and its p neighbours, the Jacobian
     column a is ``w (Y(z + step_a e_a) - Y(z)) / step_a``, ``tangent`` is not read. Tangents:
     ``out`` (slots, m, 8) the points and ``tangent`` (slots, p, m, 8) their derivatives
     (:meth:`tawarp.model.forward.Engine.evaluate_tangents`), the column is ``w dY/dz_a``.
-    Outputs per slot: ``cost``, ``raw`` (unweighted squared misfit), ``g`` (slots, p),
-    ``H`` (slots, p, p).
+    Output: the slots' :class:`NormalEquations`.
     """
     key = (p, bool(tangents))
     if key in _NORMAL_KERNELS:
@@ -151,20 +192,18 @@ def normal_kernel(p: int, tangents: bool = False):
 
     @wp.kernel(enable_backward=False, module="unique")
     def normal_equations(
+        slots: Slots,
+        data: Measured,
         out: wp.array3d(dtype=wp.float64),
-        Y: wp.array3d(dtype=wp.float64),
-        W: wp.array3d(dtype=wp.float64),
-        zc: wp.array(dtype=wp.float64),
-        ids: wp.array(dtype=wp.int32),
-        step: wp.array2d(dtype=wp.float64),
         tangent: wp.array4d(dtype=wp.float64),
-        cost: wp.array(dtype=wp.float64),
-        raw: wp.array(dtype=wp.float64),
-        g: wp.array2d(dtype=wp.float64),
-        H: wp.array3d(dtype=wp.float64),
+        sums: NormalEquations,
     ):
         s = wp.tid()
-        pid = ids[s]
+        Y = data.Y
+        W = data.W
+        zc = data.zc
+        step = slots.step
+        pid = slots.ids[s]
         base = s
         if wp.static(not TANGENTS):
             base = s * (P + 1)
@@ -201,12 +240,12 @@ def normal_kernel(p: int, tangents: bool = False):
                     gv[a] += jr[a] * r
                     for b in range(P):
                         Hm[a, b] += jr[a] * jr[b]
-        cost[s] = c2
-        raw[s] = u2
+        sums.cost[s] = c2
+        sums.raw[s] = u2
         for a in range(P):
-            g[s, a] = gv[a]
+            sums.g[s, a] = gv[a]
             for b in range(P):
-                H[s, a, b] = Hm[a, b]
+                sums.H[s, a, b] = Hm[a, b]
 
     _NORMAL_KERNELS[key] = normal_equations
     return normal_equations

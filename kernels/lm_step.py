@@ -1,13 +1,13 @@
 """Kernels of one batched Levenberg-Marquardt iteration (:func:`tawarp.fit.lm.levenberg_marquardt`).
 
 The LM bookkeeping of every problem runs on the problems' device, one thread per
-problem, so the host only launches, evaluates and compacts the active set. The state
-lives in arrays indexed by the problem's slot ``q`` of the batch (Q slots; ``pid[q]`` its
-data index, which selects the rows of the bounds and of the change rule):
-
-``z`` (Q, p) scaled variables, ``cost`` (Q,) ``F = r^T r``, ``raw`` (Q,) unweighted misfit,
-``g`` (Q, p) ``J^T r``, ``H`` (Q, p, p) ``J^T J``, ``mu`` ``nu`` (Q,) damping, ``iterations``
-``reason`` ``converged`` (Q,) int32.
+problem, so the host only launches, evaluates and compacts the active set. Three records
+hold the arrays, indexed by the problem's slot ``q`` of the batch (Q slots):
+:class:`Setup` what stays fixed (``pid[q]`` the slot's data index, which selects the rows
+of the bounds and of the change rule; the options), :class:`Iterate` the state (``z``
+(Q, p) scaled variables, its :class:`~tawarp.kernels.lm.NormalEquations` ``F = r^T r``,
+``g = J^T r``, ``H = J^T J``, the damping ``mu``, ``nu``, ``iterations``, ``reason``,
+``converged``) and :class:`Trial` the step of each active slot.
 
 Three kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
 p x p matrices in registers):
@@ -24,7 +24,7 @@ p x p matrices in registers):
    order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
 
 The relative change of a step compared with ``xtol`` is the problem's own notion, given as
-data per parameter (``change_kind`` (p,), ``scale`` ``offset`` (N, p)):
+data per parameter (``Setup.change``: ``kind`` (p,), ``scale`` ``offset`` (N, p)):
 :data:`CHANGE_LINEAR` ``s |dz| / |o + s zt|`` (v = o + s z), :data:`CHANGE_LOG`
 ``|expm1(dz)|`` (v = s exp(z)), :data:`CHANGE_ABSOLUTE` ``|dz|`` (z already measures
 relative change). Everything is float64.
@@ -32,7 +32,7 @@ relative change). Everything is float64.
 
 import warp as wp
 
-from .lm import KIND_LINEAR, KIND_LOG
+from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -52,6 +52,54 @@ R_INVALID = wp.constant(6)
 #: damping rules
 DAMP_NIELSEN = wp.constant(0)
 DAMP_PAPER = wp.constant(1)
+
+
+@wp.struct
+class Setup:
+    """What stays fixed through a run: per slot q the problem's data index ``pid[q]``, which
+    selects the rows of the bounds ``zlo``, ``zhi`` (N, p) and of the ``change`` rule (its
+    ``kind`` a CHANGE_* code per parameter); the damping rule (DAMP_*), the initial damping
+    factor ``tau`` and the stopping tests' ``xtol``, ``gtol`` and ``max_iter``."""
+
+    pid: wp.array(dtype=wp.int32)
+    zlo: wp.array2d(dtype=wp.float64)
+    zhi: wp.array2d(dtype=wp.float64)
+    change: Scaling
+    damping: int
+    tau: wp.float64
+    xtol: wp.float64
+    gtol: wp.float64
+    max_iter: int
+
+
+@wp.struct
+class Iterate:
+    """The state of every slot q (Q,): ``z`` (Q, p) and its normal equations ``at_z``, the
+    damping ``mu``, ``nu``, the ``iterations`` made, the stopping ``reason`` (R_*; 0 while
+    iterating) and ``converged``."""
+
+    z: wp.array2d(dtype=wp.float64)
+    at_z: NormalEquations
+    mu: wp.array(dtype=wp.float64)
+    nu: wp.array(dtype=wp.float64)
+    iterations: wp.array(dtype=wp.int32)
+    reason: wp.array(dtype=wp.int32)
+    converged: wp.array(dtype=wp.int32)
+
+
+@wp.struct
+class Trial:
+    """The trial step of every active slot s: ``act[s]`` its slot q, the trial point ``zt``
+    (n, p), the step ``dz`` = zt - z, the predicted decrease ``pred``, ``chol_ok`` (0: the
+    damped matrix was not positive definite, no step) and the normal equations ``at_zt``
+    of the evaluated trial."""
+
+    act: wp.array(dtype=wp.int32)
+    zt: wp.array2d(dtype=wp.float64)
+    dz: wp.array2d(dtype=wp.float64)
+    pred: wp.array(dtype=wp.float64)
+    chol_ok: wp.array(dtype=wp.int32)
+    at_zt: NormalEquations
 
 
 @wp.func
@@ -97,99 +145,74 @@ def step_kernels(p: int):
     veci = wp.types.vector(length=p, dtype=wp.int32)
 
     @wp.func
-    def grad_cosine(
-        q: int,
-        b: int,
-        z: wp.array2d(dtype=wp.float64),
-        g: wp.array2d(dtype=wp.float64),
-        H: wp.array3d(dtype=wp.float64),
-        cost: wp.float64,
-        zlo: wp.array2d(dtype=wp.float64),
-        zhi: wp.array2d(dtype=wp.float64),
-    ):
-        """max over free a of |g_a| / sqrt(H_aa F) of slot q (data row b), and the number
-        of free components."""
+    def grad_cosine(setup: Setup, state: Iterate, q: int, cost: wp.float64):
+        """max over free a of |g_a| / sqrt(H_aa F) of slot q at cost F, and the number of
+        free components."""
+        b = setup.pid[q]
+        z = state.z
+        g = state.at_z.g
+        H = state.at_z.H
         tiny = wp.float64(1e-300)
         c = wp.float64(0.0)
         nfree = int(0)
         for a in range(P):
-            if is_free(z[q, a], g[q, a], zlo[b, a], zhi[b, a]) == 1:
+            if is_free(z[q, a], g[q, a], setup.zlo[b, a], setup.zhi[b, a]) == 1:
                 nfree += 1
                 ca = wp.abs(g[q, a]) / wp.sqrt(wp.max(H[q, a, a], tiny) * wp.max(cost, tiny))
                 c = nan_max(c, ca)
         return c, nfree
 
     @wp.func
-    def valid(c: wp.float64, q: int, g: wp.array2d(dtype=wp.float64), H: wp.array3d(dtype=wp.float64)):
-        """cost, or inf where the evaluation is not finite (cost, g or H)."""
+    def valid(sums: NormalEquations, q: int):
+        """cost of row q, or inf where the evaluation is not finite (cost, g or H)."""
+        c = sums.cost[q]
         ok = wp.isfinite(c)
         for a in range(P):
-            ok = ok and wp.isfinite(g[q, a])
+            ok = ok and wp.isfinite(sums.g[q, a])
             for b in range(P):
-                ok = ok and wp.isfinite(H[q, a, b])
+                ok = ok and wp.isfinite(sums.H[q, a, b])
         if ok:
             return c
         return wp.float64(wp.inf)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def init(
-        pid: wp.array(dtype=wp.int32),
-        zlo: wp.array2d(dtype=wp.float64),
-        zhi: wp.array2d(dtype=wp.float64),
-        tau: wp.float64,
-        gtol: wp.float64,
-        z: wp.array2d(dtype=wp.float64),
-        cost: wp.array(dtype=wp.float64),
-        g: wp.array2d(dtype=wp.float64),
-        H: wp.array3d(dtype=wp.float64),
-        mu: wp.array(dtype=wp.float64),
-        nu: wp.array(dtype=wp.float64),
-        reason: wp.array(dtype=wp.int32),
-        converged: wp.array(dtype=wp.int32),
-        done: wp.array(dtype=wp.int32),
-    ):
+    def init(setup: Setup, state: Iterate, done: wp.array(dtype=wp.int32)):
         q = wp.tid()
-        b = int(pid[q])
-        c = valid(cost[q], q, g, H)
-        cost[q] = c
+        H = state.at_z.H
+        c = valid(state.at_z, q)
+        state.at_z.cost[q] = c
         m = H[q, 0, 0]
         for a in range(1, P):
             m = nan_max(m, H[q, a, a])
-        m = tau * m
+        m = setup.tau * m
         if not (wp.isfinite(m) and m > wp.float64(0.0)):
             m = wp.float64(1e-3)
-        mu[q] = m
-        nu[q] = wp.float64(2.0)
-        reason[q] = 0
-        converged[q] = 0
+        state.mu[q] = m
+        state.nu[q] = wp.float64(2.0)
+        state.reason[q] = 0
+        state.converged[q] = 0
         done[q] = 0
-        gcos, nfree = grad_cosine(q, b, z, g, H, c, zlo, zhi)
+        gcos, nfree = grad_cosine(setup, state, q, c)
         if not wp.isfinite(c):
-            reason[q] = R_INVALID
+            state.reason[q] = R_INVALID
             done[q] = 1
-        elif gcos <= gtol or c == wp.float64(0.0):
-            reason[q] = R_GTOL
-            converged[q] = 1
+        elif gcos <= setup.gtol or c == wp.float64(0.0):
+            state.reason[q] = R_GTOL
+            state.converged[q] = 1
             done[q] = 1
 
     @wp.kernel(enable_backward=False, module="unique")
-    def propose(
-        act: wp.array(dtype=wp.int32),
-        pid: wp.array(dtype=wp.int32),
-        zlo: wp.array2d(dtype=wp.float64),
-        zhi: wp.array2d(dtype=wp.float64),
-        z: wp.array2d(dtype=wp.float64),
-        g: wp.array2d(dtype=wp.float64),
-        H: wp.array3d(dtype=wp.float64),
-        mu: wp.array(dtype=wp.float64),
-        zt: wp.array2d(dtype=wp.float64),
-        dz: wp.array2d(dtype=wp.float64),
-        pred: wp.array(dtype=wp.float64),
-        chol_ok: wp.array(dtype=wp.int32),
-    ):
+    def propose(setup: Setup, state: Iterate, trial: Trial):
         s = wp.tid()
-        q = int(act[s])
-        b = int(pid[q])
+        q = int(trial.act[s])
+        b = int(setup.pid[q])
+        zlo = setup.zlo
+        zhi = setup.zhi
+        z = state.z
+        g = state.at_z.g
+        H = state.at_z.H
+        zt = trial.zt
+        dz = trial.dz
         # A = H + mu I on the free components, identity rows/columns elsewhere, rhs -g
         fr = veci()
         for a in range(P):
@@ -203,7 +226,7 @@ def step_kernels(p: int):
                 if fr[i] == 1 and fr[j] == 1:
                     A[i, j] = H[q, i, j]
                     if i == j:
-                        A[i, j] = H[q, i, j] + mu[q]
+                        A[i, j] = H[q, i, j] + state.mu[q]
                 elif i == j:
                     A[i, j] = wp.float64(1.0)
         # Cholesky A = L L^T, sums in index order (the host's reductions); a pivot <= 0
@@ -259,64 +282,41 @@ def step_kernels(p: int):
         for a in range(P):
             for c in range(P):
                 dHd += dz[s, a] * H[q, a, c] * dz[s, c]
-        pred[s] = -(wp.float64(2.0) * gd + dHd)
-        chol_ok[s] = ok
+        trial.pred[s] = -(wp.float64(2.0) * gd + dHd)
+        trial.chol_ok[s] = ok
 
     @wp.kernel(enable_backward=False, module="unique")
-    def update(
-        act: wp.array(dtype=wp.int32),
-        pid: wp.array(dtype=wp.int32),
-        zlo: wp.array2d(dtype=wp.float64),
-        zhi: wp.array2d(dtype=wp.float64),
-        change_kind: wp.array(dtype=wp.int32),
-        scale: wp.array2d(dtype=wp.float64),
-        offset: wp.array2d(dtype=wp.float64),
-        zt: wp.array2d(dtype=wp.float64),
-        dz: wp.array2d(dtype=wp.float64),
-        pred: wp.array(dtype=wp.float64),
-        chol_ok: wp.array(dtype=wp.int32),
-        ct: wp.array(dtype=wp.float64),
-        rt: wp.array(dtype=wp.float64),
-        gt: wp.array2d(dtype=wp.float64),
-        Ht: wp.array3d(dtype=wp.float64),
-        damping: int,
-        xtol: wp.float64,
-        gtol: wp.float64,
-        max_iter: int,
-        z: wp.array2d(dtype=wp.float64),
-        cost: wp.array(dtype=wp.float64),
-        raw: wp.array(dtype=wp.float64),
-        g: wp.array2d(dtype=wp.float64),
-        H: wp.array3d(dtype=wp.float64),
-        mu: wp.array(dtype=wp.float64),
-        nu: wp.array(dtype=wp.float64),
-        iterations: wp.array(dtype=wp.int32),
-        reason: wp.array(dtype=wp.int32),
-        converged: wp.array(dtype=wp.int32),
-        done: wp.array(dtype=wp.int32),
-    ):
+    def update(setup: Setup, state: Iterate, trial: Trial, done: wp.array(dtype=wp.int32)):
         s = wp.tid()
-        q = int(act[s])
-        b = int(pid[q])
-        c_new = valid(ct[s], s, gt, Ht)
-        c_old = cost[q]
+        q = int(trial.act[s])
+        b = int(setup.pid[q])
+        now = state.at_z
+        new = trial.at_zt
+        nu = state.nu
+        zt = trial.zt
+        dz = trial.dz
+        pred = trial.pred
+        scale = setup.change.scale
+        offset = setup.change.offset
+        c_new = valid(new, s)
+        c_old = now.cost[q]
         rho = wp.float64(-1.0)
         if pred[s] > wp.float64(0.0):
             rho = (c_old - c_new) / pred[s]
-        acc = chol_ok[s] == 1 and wp.isfinite(c_new) and rho > wp.float64(0.0) and c_new < c_old
-        it = iterations[q] + 1
-        iterations[q] = it
+        acc = trial.chol_ok[s] == 1 and wp.isfinite(c_new) and rho > wp.float64(0.0) and c_new < c_old
+        it = state.iterations[q] + 1
+        state.iterations[q] = it
         # accepted: move, take the trial's Jacobian
         if acc:
             for a in range(P):
-                z[q, a] = zt[s, a]
-                g[q, a] = gt[s, a]
+                state.z[q, a] = zt[s, a]
+                now.g[q, a] = new.g[s, a]
                 for e in range(P):
-                    H[q, a, e] = Ht[s, a, e]
-            cost[q] = c_new
-            raw[q] = rt[s]
-        m = mu[q]
-        if damping == DAMP_NIELSEN:
+                    now.H[q, a, e] = new.H[s, a, e]
+            now.cost[q] = c_new
+            now.raw[q] = new.raw[s]
+        m = state.mu[q]
+        if setup.damping == DAMP_NIELSEN:
             if acc:
                 t = wp.float64(2.0) * rho - wp.float64(1.0)
                 m = m * wp.max(wp.float64(1.0) / wp.float64(3.0), wp.float64(1.0) - wp.pow(t, wp.float64(3.0)))
@@ -329,25 +329,25 @@ def step_kernels(p: int):
                 m = m * wp.float64(0.5)
             else:
                 m = m * wp.float64(2.0)
-        mu[q] = m
+        state.mu[q] = m
         # convergence tests
         rel = wp.float64(0.0)
         for a in range(P):
-            k = change_kind[a]
+            k = setup.change.kind[a]
             r = wp.abs(dz[s, a])
             if k == CHANGE_LOG:
                 r = wp.abs(expm1(dz[s, a]))
             elif k == CHANGE_LINEAR:
                 r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * zt[s, a]), wp.float64(1e-300))
             rel = nan_max(rel, r)
-        cq = cost[q]
-        gcos, nfree = grad_cosine(q, b, z, g, H, cq, zlo, zhi)
+        cq = now.cost[q]
+        gcos, nfree = grad_cosine(setup, state, q, cq)
         why = int(0)
         good = int(0)
-        if acc and rel < xtol:
+        if acc and rel < setup.xtol:
             why = R_XTOL
             good = 1
-        elif gcos <= gtol or cq == wp.float64(0.0):
+        elif gcos <= setup.gtol or cq == wp.float64(0.0):
             why = R_GTOL
             good = 1
         elif nfree == 0:
@@ -357,12 +357,12 @@ def step_kernels(p: int):
             why = R_STALLED
             if gcos <= wp.float64(1e-4):
                 good = 1
-        elif it >= max_iter:
+        elif it >= setup.max_iter:
             why = R_MAX_ITERATIONS
         done[s] = 0
         if why != 0:
-            reason[q] = why
-            converged[q] = good
+            state.reason[q] = why
+            state.converged[q] = good
             done[s] = 1
 
     _STEP_KERNELS[p] = (init, propose, update)

@@ -14,7 +14,7 @@ from tawarp.measure.synthetic import paper_frequencies
 from tawarp.model.core import load_core
 
 from lm_host_oracle import chol_solve, levenberg_marquardt as host_lm
-from tawarp.fit.lm import levenberg_marquardt
+from tawarp.fit.lm import levenberg_marquardt, normal_equations
 from tawarp.kernels import lm_step
 
 
@@ -166,27 +166,19 @@ def test_propose_is_the_cholesky_step():
     _, propose, _ = lm_step.step_kernels(p)
     for H, ok_expected in ((A, 1), (-A, 0)):
         arr = lambda x, dt=wp.float64: wp.array(np.ascontiguousarray(x), dtype=dt, device=dev)  # noqa: E731
-        zt, dz = wp.empty((n, p), dtype=wp.float64), wp.empty((n, p), dtype=wp.float64)
-        pred, ok = wp.empty(n, dtype=wp.float64), wp.empty(n, dtype=wp.int32)
-        wp.launch(
-            propose,
-            dim=n,
-            device=dev,
-            inputs=[
-                arr(np.arange(n, dtype=np.int32), wp.int32),
-                arr(np.arange(n, dtype=np.int32), wp.int32),
-                arr(np.full((n, p), -np.inf)),
-                arr(np.full((n, p), np.inf)),
-                arr(np.zeros((n, p))),
-                arr(-b),
-                arr(H),
-                arr(np.zeros(n)),
-                zt,
-                dz,
-                pred,
-                ok,
-            ],
-        )
+        setup = lm_step.Setup()
+        setup.pid = arr(np.arange(n, dtype=np.int32), wp.int32)
+        setup.zlo, setup.zhi = arr(np.full((n, p), -np.inf)), arr(np.full((n, p), np.inf))
+        state = lm_step.Iterate()
+        state.z = arr(np.zeros((n, p)))
+        state.at_z = normal_equations((np.zeros(n), np.zeros(n), -b, H), dev)
+        state.mu = arr(np.zeros(n))
+        trial = lm_step.Trial()
+        trial.act = setup.pid
+        trial.zt, trial.dz = wp.empty((n, p), dtype=wp.float64), wp.empty((n, p), dtype=wp.float64)
+        trial.pred, trial.chol_ok = wp.empty(n, dtype=wp.float64), wp.empty(n, dtype=wp.int32)
+        wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
+        zt, ok = trial.zt, trial.chol_ok
         assert np.all(ok.numpy() == ok_expected)
         if ok_expected:
             # 1e-10: well-conditioned SPD systems, double precision

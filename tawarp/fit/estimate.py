@@ -101,7 +101,7 @@ from ..kernels import covariance as kcov
 from ..kernels import eigen as keigen
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
-from .lm import levenberg_marquardt
+from .lm import levenberg_marquardt, measured, normal_equations, scaling, slots
 from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z (``jacobian="difference"``).
@@ -363,52 +363,25 @@ class Problems:
         w_g, w_H = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
         per = max(1, max_sets // sets)
         rows = self.w_row_src.shape[0]
+        scale = scaling(self.w_kind, self.w_scale, self.w_offset, dev)
+        data = measured(self.w_Y, self.w_W, self.w_zc, dev)
         for lo in range(0, n, per):
             hi = min(n, lo + per)
             k = hi - lo
-            w_z = wp.array(np.ascontiguousarray(z[lo:hi]), dtype=wp.float64, device=dev)
-            w_step = wp.array(np.ascontiguousarray(step[lo:hi]), dtype=wp.float64, device=dev)
-            w_ids = wp.array(pid[lo:hi].astype(np.int32), dtype=wp.int32, device=dev)
+            part = slots(pid[lo:hi], z[lo:hi], step[lo:hi], dev)
             varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
             wp.launch(
                 klm.build_sets,
                 dim=k * sets,
                 device=dev,
-                inputs=[
-                    w_z,
-                    w_step,
-                    w_ids,
-                    self.w_scale,
-                    self.w_offset,
-                    self.w_kind,
-                    self.w_fixed,
-                    self.w_row_src,
-                    int(self.tangents),
-                    varying,
-                ],
+                inputs=[part, scale, self.w_fixed, self.w_row_src, int(self.tangents), varying],
             )
             if self.tangents:
-                out, tangent = self.engine.evaluate_tangents(varying, w_step, p)
+                out, tangent = self.engine.evaluate_tangents(varying, part.step, p)
             else:
                 (out, _, _), tangent = self.engine.evaluate(varying), self._no_tangent
-            wp.launch(
-                self.normal,
-                dim=k,
-                device=dev,
-                inputs=[
-                    out,
-                    self.w_Y,
-                    self.w_W,
-                    self.w_zc,
-                    w_ids,
-                    w_step,
-                    tangent,
-                    w_cost[lo:hi],
-                    w_raw[lo:hi],
-                    w_g[lo:hi],
-                    w_H[lo:hi],
-                ],
-            )
+            sums = normal_equations((w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]), dev)
+            wp.launch(self.normal, dim=k, device=dev, inputs=[part, data, out, tangent, sums])
             self.launches += 1
         self.evaluations += n * sets
         return w_cost, w_raw, w_g, w_H

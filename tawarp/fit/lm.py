@@ -25,6 +25,7 @@ from typing import Protocol
 import numpy as np
 import warp as wp
 
+from ..kernels import lm as klm
 from ..kernels import lm_step
 from ..progress import progress_bar
 
@@ -71,15 +72,87 @@ class LMProblems(Protocol):
     def change_rule(self) -> tuple: ...
 
 
-def _on_device(arrays, device, own=False):
-    """The evaluation's arrays as float64 Warp arrays on ``device`` (NumPy ones copied there;
-    ``own``: Warp ones too, for the state the kernels overwrite)."""
-    return [
-        (wp.clone(a) if own else a)
-        if isinstance(a, wp.array)
-        else wp.array(np.ascontiguousarray(a, dtype=np.float64), dtype=wp.float64, device=device)
-        for a in arrays
-    ]
+def _device_array(a, device, dtype=wp.float64, own=False) -> wp.array:
+    """``a`` as a Warp array of ``dtype`` on ``device``: a NumPy array copied there, a Warp
+    one as it is (``own``: cloned, for the state the kernels overwrite)."""
+    if isinstance(a, wp.array):
+        return wp.clone(a) if own else a
+    return wp.array(np.ascontiguousarray(a, dtype=wp.dtype_to_numpy(dtype)), dtype=dtype, device=device)
+
+
+def normal_equations(sums, device, own=False) -> klm.NormalEquations:
+    """The kernels' :class:`tawarp.kernels.lm.NormalEquations` of an evaluation's
+    ``(cost, raw, g, H)`` (NumPy or Warp arrays) on ``device``."""
+    rec = klm.NormalEquations()
+    rec.cost, rec.raw, rec.g, rec.H = (_device_array(a, device, own=own) for a in sums)
+    return rec
+
+
+def scaling(kind, scale, offset, device) -> klm.Scaling:
+    """The kernels' :class:`tawarp.kernels.lm.Scaling` of ``kind`` (p,), ``scale`` and
+    ``offset`` (N, p) (NumPy or Warp arrays) on ``device``."""
+    rec = klm.Scaling()
+    rec.kind = _device_array(kind, device, wp.int32)
+    rec.scale = _device_array(scale, device)
+    rec.offset = _device_array(offset, device)
+    return rec
+
+
+def slots(ids, z, step, device) -> klm.Slots:
+    """The kernels' :class:`tawarp.kernels.lm.Slots` of a launch: data index ``ids``, scaled
+    variables ``z`` and Jacobian steps ``step`` per slot (NumPy or Warp arrays) on ``device``."""
+    rec = klm.Slots()
+    rec.ids = _device_array(ids, device, wp.int32)
+    rec.z = _device_array(z, device)
+    rec.step = _device_array(step, device)
+    return rec
+
+
+def measured(Y, W, zc, device) -> klm.Measured:
+    """The kernels' :class:`tawarp.kernels.lm.Measured` data ``Y``, weights ``W`` (N or 1,
+    m, 8) and duct impedances ``zc`` (N,) (NumPy or Warp arrays) on ``device``."""
+    rec = klm.Measured()
+    rec.Y = _device_array(Y, device)
+    rec.W = _device_array(W, device)
+    rec.zc = _device_array(zc, device)
+    return rec
+
+
+def _setup(prob: LMProblems, pid: np.ndarray, device, damping, tau, xtol, gtol, max_iter) -> lm_step.Setup:
+    """The kernels' :class:`tawarp.kernels.lm_step.Setup` of problems ``pid`` of ``prob``."""
+    rec = lm_step.Setup()
+    rec.pid = _device_array(pid, device, wp.int32)
+    rec.zlo = _device_array(prob.zlo, device)
+    rec.zhi = _device_array(prob.zhi, device)
+    rec.change = scaling(*prob.change_rule(), device)
+    rec.damping = lm_step.DAMP_NIELSEN if damping == "nielsen" else lm_step.DAMP_PAPER
+    rec.tau, rec.xtol, rec.gtol, rec.max_iter = float(tau), float(xtol), float(gtol), int(max_iter)
+    return rec
+
+
+def _iterate(z: np.ndarray, sums, device) -> lm_step.Iterate:
+    """The kernels' :class:`tawarp.kernels.lm_step.Iterate` at the starts ``z`` (Q, p) with
+    their evaluation ``sums``; the damping and flags are the ``init`` kernel's to set."""
+    Q = z.shape[0]
+    rec = lm_step.Iterate()
+    rec.z = _device_array(z, device)
+    rec.at_z = normal_equations(sums, device, own=True)
+    rec.mu, rec.nu = (wp.empty(Q, dtype=wp.float64, device=device) for _ in range(2))
+    rec.iterations = wp.zeros(Q, dtype=wp.int32, device=device)
+    rec.reason, rec.converged = (wp.empty(Q, dtype=wp.int32, device=device) for _ in range(2))
+    return rec
+
+
+def _trial(active: np.ndarray, p: int, device) -> lm_step.Trial:
+    """The kernels' :class:`tawarp.kernels.lm_step.Trial` of the slots ``active``, for
+    ``propose`` to fill (its ``at_zt`` is set once the trials are evaluated)."""
+    n = active.size
+    rec = lm_step.Trial()
+    rec.act = _device_array(active, device, wp.int32)
+    rec.zt, rec.dz = (wp.empty((n, p), dtype=wp.float64, device=device) for _ in range(2))
+    rec.pred = wp.empty(n, dtype=wp.float64, device=device)
+    rec.chol_ok = wp.empty(n, dtype=wp.int32, device=device)
+    return rec
 
 
 def levenberg_marquardt(
@@ -106,107 +179,32 @@ def levenberg_marquardt(
     dev = wp.get_device(getattr(prob, "device", "cpu"))
     init, propose, update = lm_step.step_kernels(p)
     pid = np.asarray(pid)
-
-    def put(a, dtype=wp.float64):
-        return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
-
-    kind, scale, offset = prob.change_rule()
-    w_pid = put(pid.astype(np.int32), wp.int32)
-    w_zlo, w_zhi = put(np.asarray(prob.zlo, dtype=float)), put(np.asarray(prob.zhi, dtype=float))
-    w_kind, w_scale, w_offset = put(np.asarray(kind, dtype=np.int32), wp.int32), put(scale), put(offset)
+    setup = _setup(prob, pid, dev, damping, tau, xtol, gtol, max_iter)
     z = np.clip(np.array(z0, dtype=float), prob.zlo[pid], prob.zhi[pid])
-    w_z = put(z)
-    w_cost, w_raw, w_g, w_H = _on_device(prob.evaluate(pid, z, max_sets), dev, own=True)
-    w_mu, w_nu = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
-    w_it = wp.zeros(Q, dtype=wp.int32, device=dev)
-    w_reason, w_conv = wp.empty(Q, dtype=wp.int32, device=dev), wp.empty(Q, dtype=wp.int32, device=dev)
-    w_done = wp.empty(Q, dtype=wp.int32, device=dev)
-    wp.launch(
-        init,
-        dim=Q,
-        device=dev,
-        inputs=[
-            w_pid,
-            w_zlo,
-            w_zhi,
-            float(tau),
-            float(gtol),
-            w_z,
-            w_cost,
-            w_g,
-            w_H,
-            w_mu,
-            w_nu,
-            w_reason,
-            w_conv,
-            w_done,
-        ],
-    )
-    active = np.flatnonzero(w_done.numpy() == 0)
+    state = _iterate(z, prob.evaluate(pid, z, max_sets), dev)
+    done = wp.empty(Q, dtype=wp.int32, device=dev)
+    wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
+    active = np.flatnonzero(done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
-    damp = lm_step.DAMP_NIELSEN if damping == "nielsen" else lm_step.DAMP_PAPER
     while active.size:
         n = active.size
-        w_act = put(active.astype(np.int32), wp.int32)
-        w_zt, w_dz = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p), dtype=wp.float64, device=dev)
-        w_pred, w_ok = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(
-            propose,
-            dim=n,
-            device=dev,
-            inputs=[w_act, w_pid, w_zlo, w_zhi, w_z, w_g, w_H, w_mu, w_zt, w_dz, w_pred, w_ok],
-        )
-        ct, rt, gt, Ht = _on_device(prob.evaluate(pid[active], w_zt.numpy(), max_sets), dev)
+        trial = _trial(active, p, dev)
+        wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
+        trial.at_zt = normal_equations(prob.evaluate(pid[active], trial.zt.numpy(), max_sets), dev)
         done = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(
-            update,
-            dim=n,
-            device=dev,
-            inputs=[
-                w_act,
-                w_pid,
-                w_zlo,
-                w_zhi,
-                w_kind,
-                w_scale,
-                w_offset,
-                w_zt,
-                w_dz,
-                w_pred,
-                w_ok,
-                ct,
-                rt,
-                gt,
-                Ht,
-                damp,
-                float(xtol),
-                float(gtol),
-                int(max_iter),
-                w_z,
-                w_cost,
-                w_raw,
-                w_g,
-                w_H,
-                w_mu,
-                w_nu,
-                w_it,
-                w_reason,
-                w_conv,
-                done,
-            ],
-        )
+        wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
         finished = done.numpy() != 0
         active = active[~finished]
         bar.update(int(finished.sum()))
     bar.close()
     return LMState(
-        w_z.numpy(),
-        w_cost.numpy(),
-        w_raw.numpy(),
-        w_g.numpy(),
-        w_H.numpy(),
-        w_it.numpy().astype(int),
-        np.array(REASONS, dtype=object)[w_reason.numpy()],
-        w_conv.numpy() != 0,
+        state.z.numpy(),
+        state.at_z.cost.numpy(),
+        state.at_z.raw.numpy(),
+        state.at_z.g.numpy(),
+        state.at_z.H.numpy(),
+        state.iterations.numpy().astype(int),
+        np.array(REASONS, dtype=object)[state.reason.numpy()],
+        state.converged.numpy() != 0,
     )
