@@ -30,7 +30,7 @@ from the same Warp functions (no host copy of the physics to drift):
 
 import warp as wp
 
-from .forward import magnus_cell_count, temperature_scale, temperature_varies
+from .forward import SetTable, magnus_cell_count, temperature_scale, temperature_varies
 from .gas import conductivity, viscosity
 from .layout import LENGTH, seg_value
 
@@ -39,9 +39,7 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 @wp.kernel(enable_backward=False)
 def magnus_cells(
-    params: wp.array2d(dtype=wp.float64),
-    flags: wp.array2d(dtype=wp.int32),
-    gas: wp.array(dtype=wp.float64),
+    sets: SetTable,
     omega: wp.float64,
     cell_density: wp.array(dtype=wp.float64),
     k_factor: wp.float64,
@@ -55,9 +53,11 @@ def magnus_cells(
     ``k_factor = 1`` is the kernel's own count, > 1 leaves room for k to grow. 0 for
     segments at uniform temperature."""
     i, s = wp.tid()
+    params = sets.params
+    flags = sets.flags
     cells[i, s] = 0
     if temperature_varies(params, flags, i, s):
-        k, c = temperature_scale(params, flags, gas, i, s)
+        k, c = temperature_scale(params, flags, sets.gas, i, s)
         cells[i, s] = magnus_cell_count(cell_density[i], k_factor * k, seg_value(params, i, s, LENGTH), omega, c)
 
 

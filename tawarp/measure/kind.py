@@ -186,9 +186,7 @@ def fit_cells(
         dim=(n, len(core.segments)),
         device=eng.device,
         inputs=[
-            params,
-            eng.flags,
-            eng.gas,
+            eng._sets(params),
             2 * math.pi * float(freq),
             eng.cell_densities(params, theta),
             float(k_factor),
