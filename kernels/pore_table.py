@@ -9,14 +9,12 @@ cascade kernel reads them from a table built once per process
 Table: the pieces split u = ln s over [ln S_MIN, ln S_MAX] into equal widths of a
 sixteenth of an octave; on each piece the stored function is a Chebyshev series of TERMS terms in
 t = 2 (u - u_k) / width - 1, stored in powers of t (the kernels' Horner rule takes half the
-instructions of Clenshaw's recurrence; one CPU thread: 13 % more forward models/s).
+instructions of Clenshaw's recurrence).
 In u the poles of f and g (the zeros of J0((1 + i) s)) lie
 at distance pi/4 from the real axis at every s, so the same piece width and term count
 hold over the whole range: a sixteenth of an octave gives a Bernstein ellipse of rho ~ 73
-and 8 terms reach ~6e-15. A quarter octave needed 12 terms for the same; the cascade
-reads two series per Gauss point, and the shorter one made the CPU cascade 27 % faster
-(bench/forward.py, one thread) for a table of 51 kB instead of 13 kB (both measured with
-studies/pore_table_accuracy.py). Each piece stores the smaller of the pair (g for small
+and 8 terms reach ~6e-15 (a quarter octave needs 12; measured: bench/README.md, section
+"kernels/pore_table.py"). Each piece stores the smaller of the pair (g for small
 s, where f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
 digits to cancellation. Outside [S_MIN, S_MAX] the functions of :mod:`.pore` are used.
 
@@ -30,8 +28,7 @@ real axis (their modes decay with s^2 = -i lambda^2/2, as the tube's), so the sa
 terms serve them; their node values come from :func:`.pore.pore_functions_complex`, the
 table's error against the converged series or mpmath is tested in
 tests/test_pore_geometries.py. Tabulated, a cascade over such a stack runs at the circular
-pore's speed (ceramic core, 64 x 64 points, one CPU thread: 0.043 s for each); computed, one
-point costs about 1.1 us (rectangular) or 2 us (pins) against 0.07-0.2 us from the table.
+pore's speed (measured: bench/README.md, section "kernels/pore_table.py").
 """
 
 import math

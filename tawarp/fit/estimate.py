@@ -36,15 +36,15 @@ thermal segments at uniform temperature in closed form (:func:`cold_batch`): the
 model to rounding, without the Magnus cascade.
 
 *One iteration = one forward launch* per active problem: the trial point and its
-Jacobian. With ``jacobian="tangent"`` (the default on the CPU, where it is also the faster
-one) the Jacobian is carried through the cascade with the value
-(:meth:`tawarp.model.forward.Engine.evaluate_tangents`): each problem's point and its 2p
-neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates) get their heat solve and Gauss-point
-coefficients, whose central differences seed the tangents of one cascade per frequency
-(the pore functions are shared; exact to ~1e-10 against a converged central difference
-of the whole model). ``jacobian="difference"`` and the default on a GPU (where the tangent cascade is
-register-bound and slower) take forward differences, ``1 + p`` cascades per problem
-(step 1e-6 in z, towards the interior at a bound; ~1e-6). If the trial is accepted its
+Jacobian. With ``jacobian="tangent"`` (the default on the CPU) the Jacobian is carried
+through the cascade with the value (:meth:`tawarp.model.forward.Engine.evaluate_tangents`):
+each problem's point and its 2p neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates)
+get their heat solve and Gauss-point coefficients, whose central differences seed the
+tangents of one cascade per frequency (the pore functions are shared; exact to ~1e-10
+against a converged central difference of the whole model). ``jacobian="difference"`` and
+the default on a GPU take forward differences, ``1 + p`` cascades per problem (step 1e-6 in
+z, towards the interior at a bound; ~1e-6). Each default is the faster on its device
+(measured: bench/README.md, section "tawarp/fit/estimate.py"). If the trial is accepted its
 Jacobian is already there; a rejected trial wastes its Jacobian but no launch.
 :mod:`tawarp.kernels.lm` builds the sets from z on the device and reduces the T-matrices
 to ``F``, ``g = J^T r`` and ``H = J^T J`` per problem, which stay there: the damped
@@ -109,8 +109,7 @@ FD_STEP = 1e-6
 #: Margin on the heat model's decay rate k of the fixed cells :func:`fit` sizes at the
 #: starts (:func:`smooth_settings`): 1.25 leaves room for h to grow 1.56x; the counts are
 #: checked at the solutions, and problems re-run from them where the solutions need more
-#: (:func:`_cells_at_solutions`). The margin of 2 that covered h up to 4x instead cost the
-#: heat workload of bench/fit.py 35 cells for 25 (1.4x the cascades).
+#: (:func:`_cells_at_solutions`). Measured: bench/README.md, section "tawarp/fit/estimate.py".
 FIT_K_FACTOR = 1.25
 REASONS = ("xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 
@@ -291,9 +290,8 @@ class Problems:
         if jacobian == "difference":
             return False
         if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
-            # the tangent cascade carries p more matrices per thread and is register-bound on
-            # a GPU, slower there than forward differences; faster on the CPU (measurements:
-            # bench/README.md, "fits/s")
+            # forward differences are the faster on a GPU, the tangent cascade on the CPU
+            # (measured: bench/README.md, section "tawarp/fit/estimate.py")
             return False
         if self.engine.estimating:
             if jacobian == "tangent":

@@ -12,9 +12,11 @@ for any measurement kind (:mod:`tawarp.measure`).
 
 The iteration's arithmetic (damped Cholesky step, projection onto the bounds, acceptance,
 damping, stopping tests) runs on the problems' device in the kernels of
-:mod:`tawarp.kernels.lm_step`, one thread per problem: with 1e5 problems the NumPy
-bookkeeping of (n, p, p) arrays cost the host more than the device's evaluations (issue
-#11). The host launches, calls ``evaluate`` and compacts the active set from the done flags.
+:mod:`tawarp.kernels.lm_step`, one thread per problem, on the records this module builds
+(:func:`normal_equations`, :func:`scaling`, :func:`slots`, :func:`measured` and the LM's
+state): with 1e5 problems the NumPy bookkeeping of (n, p, p) arrays cost the host more than
+the device's evaluations. The host launches, calls ``evaluate`` and compacts the active set
+from the done flags.
 """
 
 from __future__ import annotations
