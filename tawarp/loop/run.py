@@ -15,7 +15,7 @@ from ..fit.problems import fit_batch, fit_one
 from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
-from ..model.effects import Effect, Param, base_params, library_for_core
+from ..model.effects import Effect, Param, base_params
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
@@ -54,9 +54,9 @@ XTOL = 1e-8
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
-    """The candidate effects of a kind (:func:`tawarp.model.effects.library_for_core` of its
-    core and kind name: 2-port data, a rigid-backed layer's impedance; none for other kinds)."""
-    return library_for_core(problem.core, problem.name)
+    """The candidate effects of a kind (:meth:`MeasurementKind.effect_library`: 2-port data,
+    a rigid-backed layer's impedance; none for other kinds)."""
+    return problem.effect_library()
 
 
 def refit_starts(e: Effect) -> list[np.ndarray]:
@@ -71,7 +71,7 @@ def refit_starts(e: Effect) -> list[np.ndarray]:
 def base_names(problem: MeasurementKind) -> list[str]:
     """The paper's full base fit of the kind (:meth:`MeasurementKind.base_names`), less the
     names in the core's ``[fit] pinned`` list, which stay at their core values."""
-    return [n for n in problem.base_names() if n not in getattr(problem.core, "pinned", ())]
+    return [n for n in problem.base_names() if n not in problem.core.pinned]
 
 
 def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
@@ -410,7 +410,7 @@ def run_loop(
     base_params: list[Param] | None = None,
     library: list[Effect] | None = None,
     max_effects: int = MAX_EFFECTS,
-    drift_h: bool = True,
+    drift_h: bool | None = None,
     progress: bool = False,
     plans: bool = True,
 ) -> LoopReport:
@@ -418,8 +418,9 @@ def run_loop(
     Mapping of report.json's keys). ``base_params``: default :func:`default_base_params`;
     ``library``: candidate effects (default :func:`library_for` the kind); ``max_effects``:
     the largest set of effects compared; ``plans``: evaluate the next measurement when the
-    top models are close; ``drift_h``: refit the h's per heat input; ``progress``: a bar
-    over the :data:`STAGES` (on a terminal only)."""
+    top models are close; ``drift_h``: refit the h's per heat input (default: where the
+    kind's groups are heat inputs, :attr:`MeasurementKind.groups_are_heat_inputs`);
+    ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
     bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
     stages = iter(STAGES)
 
@@ -499,7 +500,7 @@ def run_loop(
         residual_structure_after=residual_structure(weighted, best.fit.model[0]),
         next_measurement=next_measurement(weighted, models, fixed) if plans else [],
     )
-    if drift_h:
+    if problem.groups_are_heat_inputs if drift_h is None else drift_h:
         before = drift(problem, base_params, base.fit, fixed, None)
         after = (
             drift(problem, base_params, best.fit, _effect_fixed(best.fit, base_params), best.fit.effect)
