@@ -226,6 +226,24 @@ def test_scattering_on_a_thermoacoustic_core(tmp_path):
     assert e["heat_input_W"] == 20.0 and abs(h["value"] - 150.0) < 3 * h["std"], h
 
 
+def test_loop_takes_impedance_on_a_passive_core(tmp_path):
+    # the loop takes the same --core as the fit: the passive core's porous segment starts
+    # the layer (10-30 % off the truth) and centres its priors; the data are the circular-pore
+    # model plus noise of known sigma, so the base fit reaches the noise and nothing is claimed
+    from tawarp.cli import main
+    from tawarp.model.core import Core, Segment, dump_core
+
+    seg = Segment("foam", "porous", 0.05, porosity=0.9 * 0.8, pore_radius=1.2e-4 * 1.25, tortuosity=1.3 * 1.15)
+    (tmp_path / "c.toml").write_text(dump_core(Core((seg,), radius=0.05, source="c")))
+    z = _impedance_file(tmp_path / "z.csv")
+    args = ["loop", str(z), "--core", str(tmp_path / "c.toml"), "--device", "cpu", "--quiet", "-o", str(tmp_path / "o")]
+    assert main(args) == 0
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["kind"] == "impedance" and rep["noise_source"] == "sigma"
+    assert rep["verdict"] == "adequate" and rep["accepted_steps"] == [], (rep["verdict"], rep["accepted_steps"])
+    assert rep["error_before"] <= 1.3 * rep["noise_floor"]
+
+
 def test_loop_refuses_impedance_on_a_thermoacoustic_core(tmp_path, capsys):
     from tawarp.cli import main
 

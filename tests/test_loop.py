@@ -332,6 +332,9 @@ def test_loop_on_measured_foams(name, tmp_path):
     u = rep["unexplained_residual"]
     assert u is not None and u["error"] > 3 * u["noise_floor"]
     js = write_report(prob, rep, tmp_path)
+    # report.json holds the report's public keys (and the figures' names) with their values
+    assert set(js) - {"figures"} == {k for k in rep if not k.startswith("_")}
+    assert js == {**rep.to_json(), "figures": js["figures"]}
     assert js["comparison"]["phi"]["reference"] == ref["phi"]
     best = set(rep["best_model"])
     # the loop's best model is at least as good as a rigid JCA model fitted to the same data
