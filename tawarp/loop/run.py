@@ -422,12 +422,6 @@ def run_loop(
     kind's groups are heat inputs, :attr:`MeasurementKind.groups_are_heat_inputs`);
     ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
     bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
-    stages = iter(STAGES)
-
-    def done() -> None:  # the bar's next stage is finished
-        bar.set_postfix_str(next(stages))
-        bar.update(1)
-
     base_params = list(base_params or default_base_params(problem))
     library = library_for(problem) if library is None else library
     fixed: dict = {}
@@ -446,9 +440,9 @@ def run_loop(
     base.log_evidence = laplace_log_evidence(
         base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors, estimated
     )
-    done()
+    _finished(bar, "base fit")
     models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
-    done()
+    _finished(bar, "evidence")
     names = [e.name for e in library]
     best = models[0]
     gof_before = goodness_of_fit(weighted, base.fit, sigma, source)
@@ -470,7 +464,7 @@ def run_loop(
         verdict = "unexplained_residual"
     claimed = verdict == "explained"
     accepted = alone if claimed else []
-    done()
+    _finished(bar, "checks")
     report = LoopReport(
         kind=problem.name,
         n_residuals=base.fit.n,
@@ -508,9 +502,15 @@ def run_loop(
             else before
         )
         report.drift = (before, after)
-    done()
+    _finished(bar, "drift")
     bar.close()
     return report
+
+
+def _finished(bar, stage: str) -> None:
+    """Advance the progress ``bar`` past ``stage`` (one of :data:`STAGES`)."""
+    bar.set_postfix_str(stage)
+    bar.update(1)
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
