@@ -1,8 +1,10 @@
 """``tawarp fit`` on a surface-impedance file (a kind with no T-matrix path): data from the
 independent NumPy reference with known noise, starts 5-30 % off; and the one result
-type's covariance algebra (tawarp.fit.result.FitResult)."""
+type's covariance algebra (tawarp.fit.result.FitResult), the same on the kind fit's and the
+T-matrix estimator's paths."""
 
 import argparse
+import dataclasses
 import json
 
 import numpy as np
@@ -224,9 +226,74 @@ def test_scattering_on_a_thermoacoustic_core(tmp_path):
     assert e["heat_input_W"] == 20.0 and abs(h["value"] - 150.0) < 3 * h["std"], h
 
 
+def test_loop_takes_impedance_on_a_passive_core(tmp_path):
+    # the loop takes the same --core as the fit: the passive core's porous segment starts
+    # the layer (10-30 % off the truth) and centres its priors; the data are the circular-pore
+    # model plus noise of known sigma, so the base fit reaches the noise and nothing is claimed
+    from tawarp.cli import main
+    from tawarp.model.core import Core, Segment, dump_core
+
+    seg = Segment("foam", "porous", 0.05, porosity=0.9 * 0.8, pore_radius=1.2e-4 * 1.25, tortuosity=1.3 * 1.15)
+    (tmp_path / "c.toml").write_text(dump_core(Core((seg,), radius=0.05, source="c")))
+    z = _impedance_file(tmp_path / "z.csv")
+    args = ["loop", str(z), "--core", str(tmp_path / "c.toml"), "--device", "cpu", "--quiet", "-o", str(tmp_path / "o")]
+    assert main(args) == 0
+    rep = json.loads((tmp_path / "o" / "report.json").read_text())
+    assert rep["kind"] == "impedance" and rep["noise_source"] == "sigma"
+    assert rep["verdict"] == "adequate" and rep["accepted_steps"] == [], (rep["verdict"], rep["accepted_steps"])
+    assert rep["error_before"] <= 1.3 * rep["noise_floor"]
+
+
 def test_loop_refuses_impedance_on_a_thermoacoustic_core(tmp_path, capsys):
     from tawarp.cli import main
 
     z = _impedance_file(tmp_path / "z.csv")
     assert main(["loop", str(z), "--core", "ceramic", "--device", "cpu", "--quiet", "-o", str(tmp_path / "o")]) == 2
     assert "--core ceramic: a thermoacoustic core" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("sigma", [True, False])
+def test_tmatrix_fit_has_one_covariance_on_both_paths(sigma):
+    # the same T-matrix problem (a passive foam sample: no heat model, so no cell counts
+    # differ between the paths) fitted by the kind fit (host LM, forward differences) and by
+    # the estimator (reduced on the device, forward differences with the same step in the
+    # same scaled variables): the same solution, and the same covariance
+    # (tawarp.fit.problem_model), s^2 = 1 with sigma columns (absolute_sigma) and the reduced
+    # chi^2 without, to 1e-8 of each entry's scale sqrt(C_ii C_kk)
+    from tawarp.fit import estimate
+    from tawarp.fit.problems import fit_kind
+    from tawarp.measure import TMatrixKind
+    from tawarp.measure.synthetic import synthetic_tmatrix
+    from tawarp.model.forward import ForwardSettings
+
+    core = load_core("foam_sample")
+    truth = {"foam.porosity": 0.95, "foam.pore_radius": 1.1e-4, "foam.tortuosity": 1.3}
+    data = synthetic_tmatrix(core, truth, np.linspace(100.0, 1600.0, 30), heat_inputs=(0.0,), noise=0.002, seed=1)
+    if not sigma:
+        data = dataclasses.replace(data, sigma=None)
+    kind = TMatrixKind(data, core, ForwardSettings(device="cpu"))
+    assert kind.has_sigma == sigma
+    names = kind.default_names()
+    a = fit_kind(kind, names, xtol=1e-14, gtol=1e-13, max_iter=200)
+    m = kind.freqs.size
+    b = estimate.fit(
+        core,
+        kind.freqs,
+        kind.y.reshape(m, 4),
+        names,
+        start={k: core.get(k) for k in names},
+        weights=kind.w.reshape(1, m, 4, 2),
+        absolute_sigma=sigma,
+        xtol=1e-14,
+        gtol=1e-14,
+        max_iter=200,
+        jacobian="difference",
+        settings=ForwardSettings(device="cpu"),
+        warn=False,
+    )
+    assert a.converged[0] and b.converged[0]
+    assert np.max(np.abs(a.values - b.values) / np.abs(b.values)) < 1e-8
+    assert a.dof == b.dof and np.isclose(a.s2[0], b.s2[0], rtol=1e-8) and (a.s2[0] == 1.0) == sigma
+    C = b.covariance[0]
+    scale = np.sqrt(np.outer(np.diag(C), np.diag(C)))
+    assert np.max(np.abs(a.covariance[0] - C) / scale) < 1e-8

@@ -100,3 +100,26 @@ def test_kind_fit_equals_normal_equations(seed):
     r = (A @ v - y) / sigma
     assert abs(res.cost[0] - r @ r) <= 1e-10 * (r @ r)
     assert abs(res.rms_error[0] - np.sqrt(np.mean((A @ v - y) ** 2) / np.mean(y**2))) <= 1e-8
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_map_fit_covariance_is_the_posterior_one(seed):
+    # a Gaussian prior (mu, sd) in x on each parameter of the linear model (x = (v - 0.5) /
+    # scale): the posterior is Gaussian with precision P = S (A^T W A) S + diag(1/sd^2) in x
+    # (S = diag(scale)), mean x* = P^-1 (S A^T W (y - A 0.5) + mu / sd^2), and in values
+    # C_v = S P^-1 S; the MAP fit's values and covariance are these to 1e-8
+    A, sigma, y, _, _ = linear_case(seed)
+    kind = LinearKind(A, sigma, y)
+    scale = np.array([1.0, 0.5, 2.0])
+    params = [Param(f"v{j}", (f"v{j}",), 0.5, scale[j]) for j in range(3)]
+    mu, sd = np.array([0.3, -1.0, 0.2]), np.array([0.4, 1.0, 0.05])
+    res = fit_batch(kind, [(params, None, None)], xtol=1e-14, gtol=1e-12, priors=[(mu, sd)])[0]
+    W, S = np.diag(1 / sigma**2), np.diag(scale)
+    P = S @ A.T @ W @ A @ S + np.diag(1 / sd**2)
+    x = np.linalg.solve(P, S @ A.T @ W @ (y - A @ np.full(3, 0.5)) + mu / sd**2)
+    C = S @ np.linalg.inv(P) @ S
+    assert res.converged[0]
+    assert np.max(np.abs(res.values[0] - (0.5 + scale * x))) <= 1e-8 * np.max(np.abs(0.5 + scale * x))
+    assert np.max(np.abs(res.covariance[0] - C)) <= 1e-8 * np.max(np.abs(C))
+    # the third prior is tight (sd 0.05 against the data's ~0.3): the posterior sd is near it
+    assert np.isclose(res.std[0, 2], np.sqrt(C[2, 2]), rtol=1e-8) and res.std[0, 2] < 0.05 * scale[2]

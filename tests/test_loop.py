@@ -231,14 +231,18 @@ def test_residual_structure_test():
 
 
 def test_rank_deficient_jacobian_gives_undetermined_std():
-    from tawarp.fit.problems import _covariance_x
+    from tawarp.fit.problem_model import ProblemModel
 
     rng = np.random.default_rng(1)
     a = rng.standard_normal(40)
     J = np.stack([a, 2 * a, rng.standard_normal(40)], 1)  # the first two columns are one direction
-    cov, und = _covariance_x(J)
-    assert und.tolist() == [True, True, False]
-    assert np.isclose(cov[2, 2], 1 / (J[:, 2] @ J[:, 2] - (J[:, 2] @ a) ** 2 / (a @ a)))
+    one = np.ones(3)
+    model = ProblemModel(["a", "b", "c"], np.zeros(3, dtype=bool), np.zeros(3), one, -np.inf * one, np.inf * one)
+    # the third parameter's variance: 1 over its column's part orthogonal to the first two's
+    expected = 1 / (J[:, 2] @ J[:, 2] - (J[:, 2] @ a) ** 2 / (a @ a))
+    for c in (model.covariance(np.zeros(3), 0.0, 37, J=J), model.covariance(np.zeros(3), 0.0, 37, H=J.T @ J)):
+        assert c.undetermined.tolist() == [True, True, False]
+        assert np.isnan(c.std[:2]).all() and np.isclose(c.cov[2, 2], expected, rtol=1e-10)
 
 
 def test_loop_cli_writes_report(tmp_path):
@@ -328,6 +332,9 @@ def test_loop_on_measured_foams(name, tmp_path):
     u = rep["unexplained_residual"]
     assert u is not None and u["error"] > 3 * u["noise_floor"]
     js = write_report(prob, rep, tmp_path)
+    # report.json holds the report's public keys (and the figures' names) with their values
+    assert set(js) - {"figures"} == {k for k in rep if not k.startswith("_")}
+    assert js == {**rep.to_json(), "figures": js["figures"]}
     assert js["comparison"]["phi"]["reference"] == ref["phi"]
     best = set(rep["best_model"])
     # the loop's best model is at least as good as a rigid JCA model fitted to the same data

@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
-from ..measure import ImpedanceKind, atalla_panneton_samples, load_atalla_panneton
+from ..measure import atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
 from .common import _common, add_measurement_options, load_data
 
@@ -23,7 +23,8 @@ def add_loop_parser(sub) -> None:
         "--core",
         default=None,
         help="core TOML (or bundled name) for T-matrix and scattering data "
-        "(default: the file's '# core = ...' metadata)",
+        "(default: the file's '# core = ...' metadata); for surface impedance, a passive core "
+        "of one porous segment whose values start the layer (as tawarp fit takes it)",
     )
     p.add_argument(
         "--fit",
@@ -60,15 +61,7 @@ def cmd_loop(args) -> int:
         prob, rep = impedance_loop(data, ref, settings, names)
     else:
         prob = load_data(args, settings)
-        if isinstance(prob, ImpedanceKind):
-            if args.core:
-                raise ValueError(
-                    f"--core does not apply to the surface impedance file {args.data} "
-                    "(layers use the circular-pore layer model)"
-                )
-            prob, rep = impedance_loop(prob.data, None, settings, names)
-        else:
-            rep = run_loop(prob, default_base_params(prob, names), progress=not args.quiet)
+        rep = run_loop(prob, default_base_params(prob, names), progress=not args.quiet)
     js = write_report(prob, rep, args.output)
     if not args.quiet:
         print(

@@ -65,9 +65,11 @@ grows past 1e16 without a decrease -> ``"stalled"`` (converged only if the gradi
 cosine is below 1e-4). Converged problems leave the active set: later launches contain
 only the problems still iterating.
 
-*Uncertainty.* ``cov_z = s^2 H^-1`` at the solution with ``s^2 = F / (8 m - p)`` (the
-residual variance; ``absolute_sigma=True`` takes s^2 = 1, for weights that are true
-1/sigma), transformed to natural units by the delta method, ``cov_v = D cov_z D`` with
+*Uncertainty.* The covariance of every fit of the package
+(:class:`tawarp.fit.problem_model.ProblemModel`, here without priors): ``cov_z = s^2 H^-1``
+at the solution with ``s^2 = F / (8 m - p)`` (the reduced chi^2: the weights are taken as
+relative; ``absolute_sigma=True`` takes s^2 = 1, for weights that are true 1/sigma),
+transformed to natural units by the delta method, ``cov_v = D cov_z D`` with
 ``D = diag(dv/dz)`` (= v for log parameters, the field's scale for linear ones). ``std`` is its diagonal's
 root, ``correlation`` the normalised matrix, ``condition`` the 2-norm condition number of H
 in the scaled variables. A warning names the parameter pairs with |correlation| above
@@ -102,6 +104,7 @@ from ..kernels import eigen as keigen
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
 from .lm import levenberg_marquardt, measured, normal_equations, scaling, slots
+from .problem_model import ProblemModel, noise_variance
 from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z (``jacobian="difference"``).
@@ -312,27 +315,22 @@ class Problems:
                 f"start values of {self.names} must be finite, and > 0 for the log-scaled ones "
                 f"({[k for k in self.names if is_log(k)]}); they set the scale of each parameter"
             )
-        self.scale = np.where(log, ref, self.step)
-        self.offset = np.where(log, 0.0, ref)
+        #: the problems' model (:class:`ProblemModel`): scaling and fit range, no priors
+        self.model = ProblemModel(self.names, log, ref, self.step, self.lo, self.hi)
+        self.scale, self.offset = self.model.scale, self.model.offset
         self.w_scale = wp.array(self.scale, dtype=wp.float64, device=self.engine.device)
         self.w_offset = wp.array(self.offset, dtype=wp.float64, device=self.engine.device)
-        with np.errstate(divide="ignore"):
-            self.zlo = np.where(log, np.log(self.lo / self.scale), (self.lo - self.offset) / self.scale)
-            self.zhi = np.where(log, np.log(self.hi / self.scale), (self.hi - self.offset) / self.scale)
+        self.zlo, self.zhi = self.model.bounds_x()
 
-    # -- transforms ----------------------------------------------------------------------
+    # -- transforms (:class:`ProblemModel`; ``pid`` the problem of each row) --------------
     def to_z(self, v, pid):
-        v = np.asarray(v, dtype=float)
-        s, o = self.scale[pid], self.offset[pid]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.where(self.kind == 1, np.log(v / s), (v - o) / s)
+        return self.model.x_of(v, pid)
 
     def to_v(self, z, pid):
-        s, o = self.scale[pid], self.offset[pid]
-        return np.where(self.kind == 1, s * np.exp(np.where(self.kind == 1, z, 0.0)), o + s * z)
+        return self.model.values(z, pid)
 
     def dv_dz(self, z, pid):
-        return np.where(self.kind == 1, self.to_v(z, pid), self.scale[pid])
+        return self.model.dv_dx(z, pid)
 
     def project(self, z, pid):
         return np.clip(z, self.zlo[pid], self.zhi[pid])
@@ -387,14 +385,16 @@ class Problems:
 
 # ----------------------------------------------------------------------------------------
 def covariance(prob: Problems, pid, z, H, cost, absolute_sigma=False):
-    """(cov_v, std, corr, cond, s2, V) at the solution, natural units (delta method); V
+    """(cov_v, std, corr, cond, s2, V) at the solution, natural units: the covariance of
+    :class:`tawarp.fit.problem_model.ProblemModel` (no priors: ``s^2 H^-1`` by the delta
+    method, s^2 = 1 with ``absolute_sigma``, else the reduced chi^2) for many problems; V
     (n, p, p) the eigenvectors of J^T J in scaled variables, weakest first. The
     eigendecomposition (Jacobi, :mod:`tawarp.kernels.eigen`) and the rest
     (:mod:`tawarp.kernels.covariance`) run on ``prob.device``, one thread per problem."""
     n, p = z.shape
     dev = prob.device
     dof = max(8 * prob.freqs.size - p, 1)
-    s2 = np.ones(n) if absolute_sigma else cost / dof
+    s2 = noise_variance(cost, dof, not absolute_sigma)
     D = prob.dv_dz(z, pid) if n else np.zeros((0, p))
 
     def put(a):
@@ -543,7 +543,8 @@ def fit(
     damping : "nielsen" (default) or "paper" (halve on success, double on failure).
     xtol, gtol, max_iter : stopping rule (module doc).
     restarts : extra problems per problem from the solution ± ``restart_spread``.
-    absolute_sigma : covariance H^-1 instead of s^2 H^-1.
+    absolute_sigma : covariance H^-1 instead of s^2 H^-1 (the weights are 1/sigma of the
+        noise, not relative ones).
     warn : also issue the batch warnings as :class:`FitWarning`.
     jacobian : "auto" (default: "tangent" on the CPU unless a limp frame or a shape factor
         is on or fitted, "difference" on a GPU: the faster of the two on each, measured),

@@ -12,12 +12,14 @@ Residuals: ``w (Y_model - y)`` (re, im) on the fitted rows, w the kind's weights
 names, bounds and scaling from :mod:`tawarp.model.fields`.
 
 The T-matrix estimator (:func:`tawarp.fit.estimate.fit`) reduces its residuals on the
-device instead (many problems, long frequency grids); both return :class:`FitResult`.
+device instead (many problems, long frequency grids); both describe their problem by a
+:class:`tawarp.fit.problem_model.ProblemModel` (scaling, priors, the one covariance: the
+posterior one, s^2 = 1 with the kind's sigma, else the reduced chi^2) and return
+:class:`FitResult`.
 """
 
 from __future__ import annotations
 
-import math
 import time
 
 import numpy as np
@@ -26,6 +28,7 @@ from ..kernels import lm_step
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
 from .lm import levenberg_marquardt
+from .problem_model import ProblemModel
 from .result import FitResult
 
 #: Forward-difference step in the scaled variables x.
@@ -93,19 +96,22 @@ class KindProblems:
                 for par in self.specs[c][0]:
                     par.assign(par.start, v)
             self.base_vals[key] = v
+        priors = list(priors or [])
+        #: each fit's problem model: scaling, fit range, priors, noise (s^2 = 1 with sigma)
+        self.models = [
+            ProblemModel.from_params(params, priors[c] if c < len(priors) else None, not kind.has_sigma)
+            for c, (params, _, _) in enumerate(self.specs)
+        ]
         #: free parameters per fit; z is padded to the largest
-        self.p = np.array([len(sp[0]) for sp in self.specs], dtype=int)
+        self.p = np.array([m.p for m in self.models], dtype=int)
         P = int(self.p.max(initial=0))
         self.zlo, self.zhi = np.zeros((len(self.specs), P)), np.zeros((len(self.specs), P))
-        for c, (params, _, _) in enumerate(self.specs):
-            for j, par in enumerate(params):
-                self.zlo[c, j], self.zhi[c, j] = par.bounds_x()
         #: Gaussian priors in x per fit, padded like z: mean and 1/sd (0 where a fit has none)
         self.prior_mu, self.prior_isd = np.zeros_like(self.zlo), np.zeros_like(self.zlo)
-        for c, pr in enumerate(priors or []):
-            if pr is not None:
-                mu, sd = (np.asarray(a, dtype=float) for a in pr)
-                self.prior_mu[c, : mu.size], self.prior_isd[c, : sd.size] = mu, 1.0 / sd
+        for c, m in enumerate(self.models):
+            self.zlo[c, : m.p], self.zhi[c, : m.p] = m.bounds_x()
+            if m.prior_mu is not None:
+                self.prior_mu[c, : m.p], self.prior_isd[c, : m.p] = m.prior_mu, 1.0 / m.prior_sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
 
@@ -183,33 +189,10 @@ class KindProblems:
         return cost, raw, g, H
 
 
-#: Singular values of the column-normalized Jacobian below this fraction of the largest
-#: are null directions: forward differences with step FD_STEP resolve J to about 1e-6
-#: relative, so such directions are set by the differencing error, not by the data.
-NULL_RCOND = 1e-6
-
-
-def _covariance_x(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(J^T J)^+ in x on the determined directions, and which parameters are undetermined
-    (a null direction of J, :data:`NULL_RCOND`, has a component > 0.1 on them)."""
-    p = J.shape[1]
-    if p == 0:
-        return np.zeros((0, 0)), np.zeros(0, dtype=bool)
-    norm = np.linalg.norm(J, axis=0)
-    norm[norm == 0] = 1.0
-    # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
-    _, sv, Vt = np.linalg.svd(J / norm, full_matrices=J.shape[0] < p)
-    sv = np.concatenate([sv, np.zeros(p - sv.size)])
-    null = sv <= NULL_RCOND * sv.max() if sv.max() > 0 else np.ones(p, dtype=bool)
-    keep = ~null
-    inv = (Vt[keep].T / sv[keep] ** 2) @ Vt[keep]
-    undetermined = np.any(np.abs(Vt[null]) > 0.1, axis=0) if null.any() else np.zeros(p, dtype=bool)
-    return inv / norm[:, None] / norm[None, :], undetermined
-
-
 def kind_result(
     kind: MeasurementKind,
     params: list[Param],
+    model: ProblemModel,
     x,
     J,
     Y,
@@ -222,42 +205,28 @@ def kind_result(
     seconds: float = 0.0,
 ) -> FitResult:
     """:class:`FitResult` (one problem) of a kind fit at x with Jacobian J (n, p) in x and
-    model values Y: covariance ``s^2 (J^T J)^-1`` (s^2 = 1 with the kind's sigma, else
-    cost / (n - p)) carried to natural units by the delta method (dv/dx = v for log
-    parameters, ``scale`` otherwise)."""
+    model values Y; its covariance is ``model``'s (:meth:`ProblemModel.covariance`: the
+    posterior covariance, s^2 = 1 with the kind's sigma, else the reduced chi^2)."""
     r = residual(kind, Y, rows)
     cost = float(r @ r)
     n, p = r.size, len(params)
     dof = max(n - p, 1)
-    s2 = 1.0 if kind.has_sigma else cost / dof
-    JtJ = J.T @ J
-    cov_x, undetermined = _covariance_x(J)
+    c = model.covariance(np.asarray(x, dtype=float), cost, dof, J=J)
     values = np.array([float(par.value(x[j])) for j, par in enumerate(params)])
-    D = np.array([abs(v) if par.log else par.scale for v, par in zip(values, params)])
-    unit = cov_x * D[:, None] * D[None, :]
-    cov = s2 * unit
-    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-    std[undetermined] = np.nan  # undetermined: None in JSON, never +-tiny
-    su = np.sqrt(np.maximum(np.diag(unit), 0.0))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        corr = unit / (su[:, None] * su[None, :])
-    corr[np.arange(p), np.arange(p)] = 1.0
-    w = np.linalg.eigvalsh(JtJ) if p else np.ones(1)
-    cond = float(w[-1] / w[0]) if w[0] > 0 else math.inf
     one = lambda a, dt=float: np.array([a], dtype=dt)  # noqa: E731
     return FitResult(
         names=[par.label for par in params],
         values=values[None],
-        std=std[None],
-        covariance=cov[None],
-        correlation=corr[None],
-        condition=one(cond),
+        std=c.std[None],
+        covariance=c.cov[None],
+        correlation=c.corr[None],
+        condition=one(c.cond),
         iterations=one(iterations, int),
         converged=one(converged, bool),
         reason=one(reason, object).astype(str),
         cost=one(cost),
         rms_error=one(kind.error(Y, rows)),
-        s2=one(s2),
+        s2=one(c.s2),
         dof=dof,
         start=np.array([[par.start for par in params]]),
         problem_warnings=[[]],
@@ -311,6 +280,7 @@ def fit_batch(
         kind_result(
             kind,
             params,
+            lm.models[c],
             z[c, : lm.p[c]],
             lm.last[c][0],
             lm.last[c][1],

@@ -19,11 +19,14 @@ ADEQUATE_P = 1e-3
 class FitResult:
     """Result of a batched fit; arrays have the problem axis first (N problems, p params).
 
-    ``values``, ``std`` (N, p) natural units; ``covariance``, ``correlation`` (N, p, p);
-    ``condition`` (N,) of J^T J in the scaled variables; ``iterations`` (N,);
+    ``values``, ``std`` (N, p) natural units (std NaN or inf: undetermined); ``covariance``,
+    ``correlation`` (N, p, p): the posterior covariance of
+    :meth:`tawarp.fit.problem_model.ProblemModel.covariance` (s^2 (J^T W J + s^2 Lambda)^-1
+    by the delta method, Lambda the priors' precision, 0 for a least-squares fit);
+    ``condition`` (N,) of the matrix it inverts, in the scaled variables; ``iterations`` (N,);
     ``converged`` (N,) bool; ``reason`` (N,) str (:data:`REASONS`); ``cost`` (N,) weighted
     sum of squares; ``rms_error`` (N,) the error measure of docs/formats.md; ``s2`` (N,) the
-    residual variance used in the covariance; ``dof`` = 8 m - p; ``start`` (N, p);
+    s^2 of the covariance (1 with weights 1/sigma, else the reduced chi^2); ``dof`` = 8 m - p; ``start`` (N, p);
     ``warnings`` (batch summary) and ``problem_warnings`` (one list per problem, formatted
     when read: :class:`ProblemWarnings`);
     ``distinct_minima`` (N,) bool; ``restart_values`` (N, k, p), ``restart_cost`` (N, k)

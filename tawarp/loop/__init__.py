@@ -22,10 +22,12 @@ Steps of :func:`run_loop` (docs/loop.md states the rules with their numbers):
    of the h's refitted per heat input.
 
 Modules: :mod:`.evidence`, :mod:`.goodness` (the checks and the residual's structure),
-:mod:`.plans`, :mod:`.run`, :mod:`.report` (report.json/md and figures).
+:mod:`.plans`, :mod:`.run`, :mod:`.records` (the report as a record, :class:`LoopReport`),
+:mod:`.report` (report.json/md and figures).
 """
 
 from .goodness import goodness_of_fit, noise_sigma, residual_location, residual_structure
+from .records import LoopReport
 from .report import write_report
 from .run import (
     MAX_EFFECTS,
@@ -40,6 +42,7 @@ from .run import (
 )
 
 __all__ = [
+    "LoopReport",
     "goodness_of_fit",
     "noise_sigma",
     "residual_location",

@@ -104,7 +104,7 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict)
     # "off"): it is the same model for any measurement of this kind, not one to decide against
     distinct = [m.label for m in rivals if max(p[5][m.label] for p in plans) >= MIN_GAIN]
     out = []
-    key = "heat_inputs_W" if problem.group_name == "Q_W" else problem.group_name
+    key = "heat_inputs_W" if problem.groups_are_heat_inputs else problem.group_name
     for text, groups, freqs, kind, pred, gains in plans:
         if not distinct:
             break

@@ -2,32 +2,12 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from ..measure.kind import MeasurementKind
-
-
-def _public(v):
-    """``v`` without the keys that start with "_" (fits and arrays kept for the figures), at any depth."""
-    if isinstance(v, dict):
-        return {k: _public(x) for k, x in v.items() if not k.startswith("_")}
-    if isinstance(v, list):
-        return [_public(x) for x in v]
-    return v
-
-
-def _jsonable(report: dict) -> dict:
-    return json.loads(
-        json.dumps(
-            _public(report),
-            default=lambda o: (
-                o.tolist() if isinstance(o, np.ndarray) else (o.item() if isinstance(o, np.generic) else str(o))
-            ),
-        )
-    )
+from .records import LoopReport
 
 
 def _steps(report: dict) -> list[str]:
@@ -35,13 +15,13 @@ def _steps(report: dict) -> list[str]:
     return report["accepted_steps"]
 
 
-def residual_figure(problem: MeasurementKind, report: dict, path: Path) -> Path:
+def residual_figure(problem: MeasurementKind, report: LoopReport, path: Path) -> Path:
     """The residual per coefficient against frequency, one line per group (real part solid,
     imaginary part dashed), before (top row) and after (bottom row), in units of rms|y|
     with the noise floor shaded: a narrow feature such as a resonance dip stays visible."""
     from ..plots import plt, save
 
-    fits = report["_fits"]
+    fits = {"before": report.base.fit, "after": report.best.fit}
     nc = len(problem.coef_names)
     groups = np.unique(problem.group)
     scale = np.sqrt(np.mean(np.abs(problem.y) ** 2))
@@ -251,13 +231,14 @@ def report_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def write_report(problem: MeasurementKind, report: dict, outdir: str | Path) -> dict:
-    """OUTDIR/report.json, report.md, residuals.png (and drift.png); returns the JSON dict."""
+def write_report(problem: MeasurementKind, report: LoopReport, outdir: str | Path) -> dict:
+    """OUTDIR/report.json, report.md, residuals.png (and drift.png, next_measurement.png);
+    returns the JSON dict (:meth:`LoopReport.to_json` with the figures' names)."""
     from ..io import write_json, write_text
 
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
-    js = _jsonable(report)
+    js = report.to_json()
     figs = [
         residual_figure(problem, report, outdir / "residuals.png"),
         drift_figure(report, outdir / "drift.png"),

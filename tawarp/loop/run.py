@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import copy
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -14,7 +15,7 @@ from ..fit.problems import fit_batch, fit_one
 from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
-from ..model.effects import Effect, Param, base_params, library_for_core
+from ..model.effects import Effect, Param, base_params
 from ..model.forward import ForwardSettings
 from ..model.layer import jca_equivalent
 from ..progress import progress_bar
@@ -38,6 +39,7 @@ from .evidence import (
     visible,
 )
 from .plans import next_measurement
+from .records import Candidate, LoopReport, ModelsCompared, step_label
 
 #: Effects per model: every subset of the library up to this size is compared.
 MAX_EFFECTS = 3
@@ -52,9 +54,9 @@ XTOL = 1e-8
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
-    """The candidate effects of a kind (:func:`tawarp.model.effects.library_for_core` of its
-    core and kind name: 2-port data, a rigid-backed layer's impedance; none for other kinds)."""
-    return library_for_core(problem.core, problem.name)
+    """The candidate effects of a kind (:meth:`MeasurementKind.effect_library`: 2-port data,
+    a rigid-backed layer's impedance; none for other kinds)."""
+    return problem.effect_library()
 
 
 def refit_starts(e: Effect) -> list[np.ndarray]:
@@ -69,7 +71,7 @@ def refit_starts(e: Effect) -> list[np.ndarray]:
 def base_names(problem: MeasurementKind) -> list[str]:
     """The paper's full base fit of the kind (:meth:`MeasurementKind.base_names`), less the
     names in the core's ``[fit] pinned`` list, which stay at their core values."""
-    return [n for n in problem.base_names() if n not in getattr(problem.core, "pinned", ())]
+    return [n for n in problem.base_names() if n not in problem.core.pinned]
 
 
 def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
@@ -108,21 +110,6 @@ def noise_weighted(problem: MeasurementKind, sigma: np.ndarray) -> MeasurementKi
     out.w = problem.w / np.stack([sigma[:n], sigma[n:]], -1)
     out.has_sigma = True
     return out
-
-
-def step_label(group: list[str]) -> str:
-    """A claim's name in the report: the effect, or "A+B" for a group of effects that the
-    data cannot tell apart (at least one of them is in the model)."""
-    return "+".join(group)
-
-
-def _param_report(f: FitResult, z: dict | None = None) -> dict:
-    """{name: {value, std (None: undetermined), prior_z (shift from the prior in prior sds)}}."""
-    z = z or {}
-    return {
-        k: {"value": v, "std": float(s) if np.isfinite(s) else None, "prior_z": z.get(k)}
-        for (k, v), s in zip(f.value_dict().items(), f.std[0])
-    }
 
 
 def drift(
@@ -250,6 +237,64 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     return out
 
 
+@dataclass
+class Comparison:
+    """What the rounds of :func:`compare_models` share: the problem (residuals in units of
+    the noise), the base parameters, the fixed values, the visible ``library``, the number
+    of models of each size ``sizes`` (the model prior) and ``noise_scale`` (the noise is an
+    estimate, :func:`laplace_log_evidence`)."""
+
+    problem: MeasurementKind
+    base_params: list[Param]
+    fixed: dict
+    library: list[Effect]
+    sizes: dict[int, int]
+    noise_scale: bool
+
+    @property
+    def n_base(self) -> int:
+        return len(self.base_params)
+
+    def effect(self, name: str) -> Effect:
+        return next(e for e in self.library if e.name == name)
+
+    def linearize(self, at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None) -> list[Candidate]:
+        """Each of ``candidates`` (sets of effects that contain ``at``'s) scored at ``at``'s
+        solution (a structural effect only at a model without one); ``cols`` the effects'
+        sensitivity columns there, when known."""
+        structure = at.fit.effect
+        cand = [c for c in candidates if structure is None or not any(e.transform is not None for e in c)]
+        cols = cols or effect_columns(
+            self.problem, at.fit, self.fixed, [e for e in self.library if e.name not in at.effects]
+        )
+        extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
+        pri = [at.priors + model_priors(self.problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
+        lin = linearized_evidence(at, cols, list(zip(extra, pri)), self.noise_scale)
+        out = []
+        for c, ex, (logz, x) in zip(cand, extra, lin):
+            # x holds at's parameters, then the extra effects': taken to the model's own order
+            parts = _effect_parts(x, self.n_base, [self.effect(n) for n in at.effects] + list(ex))
+            names = tuple(e.name for e in c)
+            out.append(
+                Candidate(
+                    names,
+                    logz + log_model_prior(self.sizes, len(names)),
+                    np.concatenate([x[: self.n_base]] + [parts[n] for n in names]),
+                )
+            )
+        return out
+
+    def request(self, at: Model, names: tuple[str, ...], x_lin: np.ndarray | None) -> tuple:
+        """The refit of the model ``names`` from :func:`_starts` at ``at``."""
+        return names, _starts(at, self.n_base, tuple(self.effect(n) for n in names), x_lin)
+
+    def refit(self, requests: list) -> list[Model]:
+        """:func:`fit_models` of ``requests``."""
+        return fit_models(
+            self.problem, self.base_params, self.fixed, self.library, requests, self.sizes, self.noise_scale
+        )
+
+
 def compare_models(
     problem: MeasurementKind,
     base: Model,
@@ -259,15 +304,14 @@ def compare_models(
     max_effects: int = MAX_EFFECTS,
     refits: int = REFITS,
     noise_scale: bool = False,
-) -> tuple[list[Model], dict]:
+) -> tuple[list[Model], ModelsCompared]:
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
     the most probable refitted model and at the most probable single effect, and the most
     probable supersets of each refitted (``noise_scale``: the noise is an estimate, known up
-    to a factor). Returns the refitted
-    models (posterior probabilities set) and counts of what was linearized and refitted."""
-    n_base = len(base_params)
+    to a factor). Returns the refitted models (posterior probabilities set, most probable
+    first) and what was compared."""
     at_base = effect_columns(problem, base.fit, fixed, library)
     hidden = [
         e.name for e in library if not visible(e, at_base[e.name], model_priors(problem.core, list(e.params), (e,)))
@@ -278,40 +322,19 @@ def compare_models(
     for s_ in sets:
         sizes[len(s_)] = sizes.get(len(s_), 0) + 1
     base.log_model_prior = log_model_prior(sizes, 0)
-    by_name = {e.name: e for e in library}
+    cmp = Comparison(problem, list(base_params), fixed, library, sizes, noise_scale)
 
-    def linearize(at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None):
-        """(names, linearized ln Z + ln P(M), x) of each candidate at ``at``'s solution."""
-        structure = at.fit.effect
-        cand = [c for c in candidates if structure is None or not any(e.transform is not None for e in c)]
-        cols = cols or effect_columns(problem, at.fit, fixed, [e for e in library if e.name not in at.effects])
-        extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
-        pri = [at.priors + model_priors(problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
-        lin = linearized_evidence(at, cols, list(zip(extra, pri)), noise_scale)
-        out = []
-        for c, ex, (logz, x) in zip(cand, extra, lin):
-            # x holds at's parameters, then the extra effects': taken to the model's own order
-            parts = _effect_parts(x, n_base, [by_name[n] for n in at.effects] + list(ex))
-            names = tuple(e.name for e in c)
-            out.append(
-                (
-                    names,
-                    logz + log_model_prior(sizes, len(names)),
-                    np.concatenate([x[:n_base]] + [parts[n] for n in names]),
-                )
-            )
-        return out
-
-    lin = linearize(base, [s_ for s_ in sets if s_], at_base)
-    lin.sort(key=lambda t: -t[1])
+    # first round: every subset linearized at the base solution; the base, every single
+    # effect and the most probable others (inside Occam's window) refitted
+    lin = sorted(cmp.linearize(base, [s_ for s_ in sets if s_], at_base), key=lambda c: -c.log_posterior)
     singles = {(e.name,) for e in library}
-    best_lin = max((t[1] for t in lin), default=-math.inf)
-    top = [t for t in lin if t[0] not in singles and t[1] >= best_lin + math.log(WINDOW)][:refits]
-    lin_x = {t[0]: t[2] for t in lin}
-    requests = [((e.name,), _starts(base, n_base, (e,), lin_x.get((e.name,)))) for e in library]
-    requests += [(names, _starts(base, n_base, tuple(by_name[n] for n in names), x)) for names, _, x in top]
-    models = [base] + fit_models(problem, base_params, fixed, library, requests, sizes, noise_scale)
-    counts = {"subsets": len(sets), "linearized": len(lin) + 1, "refitted": len(models), "not_visible": hidden}
+    best_lin = max((c.log_posterior for c in lin), default=-math.inf)
+    top = [c for c in lin if c.effects not in singles and c.log_posterior >= best_lin + math.log(WINDOW)][:refits]
+    lin_x = {c.effects: c.x for c in lin}
+    requests = [cmp.request(base, (e.name,), lin_x.get((e.name,))) for e in library]
+    requests += [cmp.request(base, c.effects, c.x) for c in top]
+    models = [base] + cmp.refit(requests)
+    counts = ModelsCompared(len(sets), len(lin) + 1, len(models), hidden)
     posterior(models)
     # second round: linearized again at the most probable model and at the most probable
     # single effect (far from the base, as a strong effect leaves it, the first round's
@@ -327,15 +350,17 @@ def compare_models(
     requests = []
     for at in anchors:
         supersets = [s_ for s_ in sets if set(at.effects) < {e.name for e in s_}]
-        counts["linearized"] += len(supersets)
-        lin2 = sorted((t for t in linearize(at, supersets) if t[0] not in done), key=lambda t: -t[1])
-        for names, _, x in [t for t in lin2 if t[1] >= at.log_posterior + math.log(WINDOW)][:refits]:
-            done.add(names)
-            requests.append((names, _starts(at, n_base, tuple(by_name[n] for n in names), x)))
+        counts.linearized += len(supersets)
+        lin2 = sorted(
+            (c for c in cmp.linearize(at, supersets) if c.effects not in done), key=lambda c: -c.log_posterior
+        )
+        for c in [c for c in lin2 if c.log_posterior >= at.log_posterior + math.log(WINDOW)][:refits]:
+            done.add(c.effects)
+            requests.append(cmp.request(at, c.effects, c.x))
     if requests:
-        more = fit_models(problem, base_params, fixed, library, requests, sizes, noise_scale)
+        more = cmp.refit(requests)
         models += more
-        counts["refitted"] += len(more)
+        counts.refitted += len(more)
         posterior(models)
     models.sort(key=lambda m: -m.probability)
     return models, counts
@@ -385,21 +410,18 @@ def run_loop(
     base_params: list[Param] | None = None,
     library: list[Effect] | None = None,
     max_effects: int = MAX_EFFECTS,
-    drift_h: bool = True,
+    drift_h: bool | None = None,
     progress: bool = False,
     plans: bool = True,
-) -> dict:
-    """The loop of the package docstring; returns the report dict (report.json).
-    ``base_params``: default :func:`default_base_params`; ``library``: candidate effects
-    (default :func:`library_for` the kind); ``max_effects``: the largest set of effects
-    compared; ``plans``: evaluate the next measurement when the top models are close;
+) -> LoopReport:
+    """The loop of the package docstring; returns its report (:class:`LoopReport`, a
+    Mapping of report.json's keys). ``base_params``: default :func:`default_base_params`;
+    ``library``: candidate effects (default :func:`library_for` the kind); ``max_effects``:
+    the largest set of effects compared; ``plans``: evaluate the next measurement when the
+    top models are close; ``drift_h``: refit the h's per heat input (default: where the
+    kind's groups are heat inputs, :attr:`MeasurementKind.groups_are_heat_inputs`);
     ``progress``: a bar over the :data:`STAGES` (on a terminal only)."""
     bar = progress_bar(len(STAGES), "closing the loop", progress, unit="stage")
-
-    def stage(name: str) -> None:
-        bar.set_postfix_str(name)
-        bar.update(1)
-
     base_params = list(base_params or default_base_params(problem))
     library = library_for(problem) if library is None else library
     fixed: dict = {}
@@ -418,9 +440,9 @@ def run_loop(
     base.log_evidence = laplace_log_evidence(
         base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors, estimated
     )
-    stage("base fit")
+    _finished(bar, "base fit")
     models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
-    stage("evidence")
+    _finished(bar, "evidence")
     names = [e.name for e in library]
     best = models[0]
     gof_before = goodness_of_fit(weighted, base.fit, sigma, source)
@@ -429,7 +451,6 @@ def run_loop(
     tension = prior_tension(weighted, [base] + [m for m in models if m is not base][:5])
     best_tension = [t for t in tension if t["model"] == best.label]
     alone, groups = claims(models, names)
-    inc = inclusion(models, names)
     passes = gof["adequate"] and gof["white"] and not best_tension
     if passes and not best.effects:
         verdict = "adequate"
@@ -443,69 +464,53 @@ def run_loop(
         verdict = "unexplained_residual"
     claimed = verdict == "explained"
     accepted = alone if claimed else []
-    accepted_groups = ([[n] for n in alone] + groups) if claimed else []
-    stage("checks")
-    report = {
-        "kind": problem.name,
-        "n_residuals": base.fit.n,
-        "verdict": verdict,
-        "noise_floor": floor,
-        "noise_source": source,
-        "error_before": float(base.fit.rms_error[0]),
-        "error_after": float(best.fit.rms_error[0]),
-        "accepted_effects": accepted,
-        "accepted_groups": accepted_groups,
-        "accepted_steps": [step_label(g) for g in accepted_groups],
-        "chosen_effect": accepted[0] if accepted else None,
-        "chosen_description": next((e.description for e in library if accepted and e.name == accepted[0]), None),
-        "best_model": list(best.effects),
-        "model_probabilities": [_model_row(m) for m in models[:20]],
-        "inclusion_probabilities": inc,
-        "group_probabilities": {step_label(g): any_of(models, g) for g in groups},
-        "supported_effects": {"alone": alone, "groups": groups},
-        "prior_tension": tension,
-        "models_compared": counts,
-        "goodness_of_fit_before": gof_before,
-        "goodness_of_fit_after": gof,
-        "unexplained_residual": None
+    _finished(bar, "checks")
+    report = LoopReport(
+        kind=problem.name,
+        n_residuals=base.fit.n,
+        verdict=verdict,
+        noise_floor=floor,
+        noise_source=source,
+        base=base,
+        models=models,
+        accepted_effects=accepted,
+        accepted_groups=([[n] for n in alone] + groups) if claimed else [],
+        chosen_description=next((e.description for e in library if accepted and e.name == accepted[0]), None),
+        inclusion_probabilities=inclusion(models, names),
+        group_probabilities={step_label(g): any_of(models, g) for g in groups},
+        supported_alone=alone,
+        supported_groups=groups,
+        prior_tension=tension,
+        counts=counts,
+        goodness_of_fit_before=gof_before,
+        goodness_of_fit_after=gof,
+        unexplained_residual=None
         if verdict in ("adequate", "explained", "indistinguishable")
         else residual_location(problem, best.fit.model[0], floor),
-        "indistinguishable": groups,
-        "base_parameters": [par.label for par in base_params],
-        "pinned": list(getattr(problem.core, "pinned", ())),
-        "method": METHOD,
-        "parameters_before": _param_report(base.fit, base.z()),
-        "parameters_after": _param_report(best.fit, best.z()),
-        "base_converged": bool(base.fit.converged[0]),
-        "residual_structure_before": residual_structure(weighted, base.fit.model[0]),
-        "residual_structure_after": residual_structure(weighted, best.fit.model[0]),
-        "next_measurement": next_measurement(weighted, models, fixed) if plans else [],
-    }
-    if drift_h:
-        report["drift_before"] = drift(problem, base_params, base.fit, fixed, None)
-        report["drift_after"] = (
+        base_parameters=[par.label for par in base_params],
+        pinned=list(problem.core.pinned),
+        method=METHOD,
+        residual_structure_before=residual_structure(weighted, base.fit.model[0]),
+        residual_structure_after=residual_structure(weighted, best.fit.model[0]),
+        next_measurement=next_measurement(weighted, models, fixed) if plans else [],
+    )
+    if problem.groups_are_heat_inputs if drift_h is None else drift_h:
+        before = drift(problem, base_params, base.fit, fixed, None)
+        after = (
             drift(problem, base_params, best.fit, _effect_fixed(best.fit, base_params), best.fit.effect)
             if best.effects
-            else report["drift_before"]
+            else before
         )
-    stage("drift")
+        report.drift = (before, after)
+    _finished(bar, "drift")
     bar.close()
-    report["_fits"] = {"before": base.fit, "after": best.fit}
-    report["_models"] = models
     return report
 
 
-def _model_row(m: Model) -> dict:
-    return {
-        "effects": list(m.effects),
-        "label": m.label,
-        "probability": m.probability,
-        "log_evidence": m.log_evidence,
-        "log_model_prior": m.log_model_prior,
-        "error": float(m.fit.rms_error[0]),
-        "chi2": float(m.fit.cost[0]),
-        "n_parameters": len(m.fit.names),
-    }
+def _finished(bar, stage: str) -> None:
+    """Advance the progress ``bar`` past ``stage`` (one of :data:`STAGES`)."""
+    bar.set_postfix_str(stage)
+    bar.update(1)
 
 
 def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
@@ -518,7 +523,7 @@ def _effect_fixed(f: FitResult, base_params: list[Param]) -> dict:
 
 def impedance_loop(
     data: list, reference: dict | None = None, settings=None, names=None
-) -> tuple[MeasurementKind, dict]:
+) -> tuple[MeasurementKind, LoopReport]:
     """Fit the circular-pore model (porosity, pore radius, tortuosity, or ``names``) to all
     layers of one material together, then let the loop find what it lacks. ``reference``:
     the paper's values (``phi``, ``alpha_inf``, ``Lambda``, ``Lambda_prime``, ``sigma``)
@@ -526,13 +531,13 @@ def impedance_loop(
     prob = ImpedanceKind(data, settings or ForwardSettings(device="cpu"))
     rep = run_loop(prob, default_base_params(prob, names), drift_h=False)
     if reference:
-        before = jca_equivalent(rep["_fits"]["before"].value_dict(), prob.core)
-        after = jca_equivalent(rep["_fits"]["after"].value_dict(), prob.core)
-        rep["comparison"] = {
+        before = jca_equivalent(rep.base.fit.value_dict(), prob.core)
+        after = jca_equivalent(rep.best.fit.value_dict(), prob.core)
+        rep.comparison = {
             k: {"before": before[k], "after": after[k], "reference": reference[k]}
             for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")
         }
-        rep["comparison_note"] = (
+        rep.comparison_note = (
             "circular pores: Lambda = Lambda' = r (Lambda' = ratio r with the thermal radius "
             "effect), alpha_inf = q^2, sigma = 8 mu q^2 / (phi r^2)"
         )

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_surface_impedance
-from ..model.effects import FRAME_COMPLIANCE, FRAME_DENSITY, FRAME_LOSS_FACTOR
+from ..model.effects import FRAME_COMPLIANCE, FRAME_DENSITY, FRAME_LOSS_FACTOR, impedance_library
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
 from ..model.layer import LAYER_BASE, characteristic_impedance, layer_core, surface_impedance_from_T
@@ -67,6 +67,10 @@ class ImpedanceKind(MeasurementKind):
 
     def default_names(self) -> list[str]:
         return list(LAYER_BASE)
+
+    def effect_library(self) -> list:
+        """A rigid-backed layer: :func:`tawarp.model.effects.impedance_library` of the core."""
+        return impedance_library(self.core)
 
     def extra_groups(self) -> list[float]:
         """A second sample length: twice and half the thickest layer's."""

@@ -7,7 +7,11 @@ predicts the same observables for a batch of parameter sets (:meth:`MeasurementK
 The estimator (:mod:`tawarp.fit`) and the loop (:mod:`tawarp.loop`) need nothing else.
 
 Adding a kind: subclass :class:`MeasurementKind` (set ``name``, ``group_name``,
-``coef_names``, the row arrays, and :meth:`predict`), and register it with
+``coef_names``, the row arrays, and :meth:`predict`; the loop's choices for the kind are its
+hooks: :meth:`~MeasurementKind.base_names`, :meth:`~MeasurementKind.effect_library`,
+:meth:`~MeasurementKind.first_step_rows`, :meth:`~MeasurementKind.heat_groups`,
+:meth:`~MeasurementKind.extra_groups`, :meth:`~MeasurementKind.at_rows`,
+``groups_are_heat_inputs``), and register it with
 :func:`register_kind` (``detect`` tells its CSV header, ``load`` builds it from a file), so
 that :func:`load_measurement`, ``tawarp fit`` and ``tawarp loop`` take its files.
 """
@@ -51,6 +55,10 @@ class MeasurementKind:
     coef: np.ndarray
     has_sigma: bool = False
     core: Core
+    #: the groups are heat inputs [W]: the loop refits the h's per heat input (report.json's
+    #: ``drift_before``/``drift_after``) and names a planned measurement's groups
+    #: ``heat_inputs_W``; else ``group_name``
+    groups_are_heat_inputs: bool = False
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}
@@ -66,6 +74,11 @@ class MeasurementKind:
         """The loop's base fit (the paper's full method for this kind): by default
         :meth:`default_names`."""
         return self.default_names()
+
+    def effect_library(self) -> list:
+        """The loop's candidate effects (:class:`tawarp.model.effects.Effect`) for this
+        kind's data on its core: none by default."""
+        return []
 
     def first_step_rows(self) -> np.ndarray:
         """Rows of the paper's first step, fitted alone before everything together (a core's

@@ -15,7 +15,7 @@ import numpy as np
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
 from ..model.core import Core, load_core
-from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, stack_and_heater
+from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, stack_and_heater, tmatrix_library
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
@@ -39,6 +39,7 @@ class TMatrixKind(MeasurementKind):
     name = "tmatrix"
     group_name = "Q_W"
     coef_names = COEFFICIENTS
+    groups_are_heat_inputs = True
 
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
         self.data, self.core = data, core
@@ -98,6 +99,10 @@ class TMatrixKind(MeasurementKind):
         if np.any(self.group > 0):
             names += [f"{s.name}.h" for s in self.core.segments if s.thermal]
         return names
+
+    def effect_library(self) -> list:
+        """2-port data: :func:`tawarp.model.effects.tmatrix_library` of the core."""
+        return tmatrix_library(self.core)
 
     def first_step_rows(self) -> np.ndarray:
         """The Q = 0 rows, where the h's do not act (the paper's step 1)."""

@@ -1,0 +1,204 @@
+"""The problem a fit solves, one description for every fit of the package: the T-matrix
+estimator (:class:`tawarp.fit.estimate.Problems`) and the fits of any measurement kind
+(:class:`tawarp.fit.problems.KindProblems`, the loop's maximum a posteriori fits).
+
+:class:`ProblemModel` holds the parameters' scaling (the fit variables x and the values v),
+their fit ranges, their Gaussian priors as (centre, sd) pairs in x, and whether the noise is
+estimated; :meth:`ProblemModel.covariance` is the one covariance of a fit's result
+(:class:`tawarp.fit.result.FitResult`), meaning the same wherever it is computed.
+
+**Scaling.** ``v = ref exp(x)`` for log parameters (positive quantities), ``v = ref + step x``
+for the others: x = 0 is the start ``ref``, and a unit step in x is a relative change of
+order one or one typical ``step`` of the field (:mod:`tawarp.model.fields`).
+
+**Covariance.** At the solution x*, with ``H = J^T W J`` the Gauss-Newton matrix of the
+weighted residuals (J their Jacobian in x, W the weights squared) and ``Lambda =
+diag(1/sd^2)`` the priors' precision (0 for a parameter without prior), the covariance of x
+is the posterior one of the linearized model,
+
+    C_x = s^2 (H + s^2 Lambda)^-1 = (H / s^2 + Lambda)^-1,
+
+with s^2 = 1 when the weights are 1/sigma of the noise (``noise_estimated`` False: the
+``absolute_sigma`` of :func:`tawarp.fit.estimate.fit`) and s^2 = cost / (n - p), the
+reduced chi^2 of the data's residuals, where the noise level is estimated from the fit. In
+values, by the delta method, ``C_v = D C_x D``, ``D = diag(dv/dx)`` (v for log parameters,
+``step`` otherwise). Without priors it is ``s^2 H^-1``, the least-squares covariance.
+The correlation is that of ``(H + s^2 Lambda)^-1`` (defined for exact data, s^2 = 0).
+
+**Undetermined directions.** The columns of ``A = H + s^2 Lambda`` are scaled to unit
+diagonal; directions whose eigenvalue is at most :data:`RCOND` times the largest are
+undetermined (the forward-difference Jacobians, step 1e-6 in x, resolve J to about 1e-6
+relative, so such directions are set by the differencing error, not by the data). The
+covariance is the pseudo-inverse on the determined directions, and a parameter on which an
+undetermined direction has a component above :data:`UNDETERMINED_SHARE` is reported
+undetermined: std NaN (None in JSON), never a tiny number. A parameter with a prior is never
+undetermined: its prior bounds it.
+
+The T-matrix estimator computes the same C on the device for many problems
+(:func:`tawarp.fit.estimate.covariance`, :mod:`tawarp.kernels.covariance`), with its own
+cut for undetermined directions (eigenvalues of the unscaled matrix at most 1e-14 of the
+largest mark every entry they touch infinite); ``tests/test_fit_kinds.py`` checks that a
+T-matrix fit through :func:`tawarp.fit.problems.fit_kind` and through
+:func:`tawarp.fit.estimate.fit` give the same covariance.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Eigenvalues of the column-scaled ``H + s^2 Lambda`` at or below this fraction of the
+#: largest are undetermined directions: singular values of the scaled Jacobian below 1e-6 of
+#: the largest, what forward differences with step 1e-6 resolve.
+RCOND = 1e-12
+#: A parameter on which an undetermined direction has a component above this is undetermined.
+UNDETERMINED_SHARE = 0.1
+
+
+def noise_variance(cost, dof: int, estimated: bool):
+    """s^2 of the covariance: 1 where the weights are 1/sigma, else the reduced chi^2
+    ``cost / dof`` (``cost`` scalar or array)."""
+    cost = np.asarray(cost, dtype=float)
+    return cost / dof if estimated else np.ones_like(cost)
+
+
+@dataclass
+class Covariance:
+    """A fit's uncertainty at its solution (one problem): ``cov`` (p, p) and ``std`` (p,)
+    in natural units (std NaN where ``undetermined``), ``corr`` (p, p), ``cond`` the 2-norm
+    condition number of ``H + s^2 Lambda`` in x, ``s2`` the s^2 it used."""
+
+    cov: np.ndarray
+    std: np.ndarray
+    corr: np.ndarray
+    cond: float
+    s2: float
+    undetermined: np.ndarray
+
+
+@dataclass
+class ProblemModel:
+    """The parameters of a fit (module doc): ``names`` (p,), ``log`` (p,) bool, ``ref`` (..., p)
+    the values at x = 0 (the starts; a leading axis: one row per problem of a batch),
+    ``step`` (p,) dv/dx of the linear parameters, ``lower``/``upper`` (p,) the fit range in
+    natural units, ``prior_mu``/``prior_sd`` (p,) Gaussian priors in x (None: none; an
+    infinite sd: none for that parameter), ``noise_estimated``: s^2 is the reduced chi^2
+    rather than 1."""
+
+    names: list[str]
+    log: np.ndarray
+    ref: np.ndarray
+    step: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    prior_mu: np.ndarray | None = None
+    prior_sd: np.ndarray | None = None
+    noise_estimated: bool = False
+
+    @classmethod
+    def from_params(cls, params, prior=None, noise_estimated: bool = False) -> "ProblemModel":
+        """The model of :class:`tawarp.model.effects.Param` ``params`` (their ``start``,
+        ``scale``, ``lower``, ``upper``, ``log``); ``prior`` None or (mu, sd) (p,) in x."""
+        mu, sd = (None, None) if prior is None else (np.asarray(a, dtype=float) for a in prior)
+        return cls(
+            [par.label for par in params],
+            np.array([par.log for par in params], dtype=bool),
+            np.array([par.start for par in params], dtype=float),
+            np.array([par.scale for par in params], dtype=float),
+            np.array([par.lower for par in params], dtype=float),
+            np.array([par.upper for par in params], dtype=float),
+            mu,
+            sd,
+            noise_estimated,
+        )
+
+    @property
+    def p(self) -> int:
+        return len(self.names)
+
+    def _ref(self, rows):
+        return self.ref if rows is None else self.ref[rows]
+
+    @property
+    def scale(self) -> np.ndarray:
+        """dv/dx at x = 0: ``ref`` for log parameters, ``step`` for linear ones."""
+        return np.where(self.log, self.ref, self.step)
+
+    @property
+    def offset(self) -> np.ndarray:
+        """v at x = 0 of the linear parameters (0 for log ones): v = offset + scale x."""
+        return np.where(self.log, 0.0, self.ref)
+
+    def values(self, x, rows=None) -> np.ndarray:
+        """v of fit variables x (..., p); ``rows``: the rows of ``ref`` they belong to."""
+        ref, x = self._ref(rows), np.asarray(x, dtype=float)
+        return np.where(self.log, ref * np.exp(np.where(self.log, x, 0.0)), ref + self.step * x)
+
+    def x_of(self, v, rows=None) -> np.ndarray:
+        """Fit variables of values v (..., p)."""
+        ref, v = self._ref(rows), np.asarray(v, dtype=float)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return np.where(self.log, np.log(v / ref), (v - ref) / self.step)
+
+    def dv_dx(self, x, rows=None) -> np.ndarray:
+        """dv/dx at x: v for log parameters, ``step`` for linear ones (the delta method's D)."""
+        return np.where(self.log, self.values(x, rows), np.broadcast_to(self.step, np.shape(x)))
+
+    def bounds_x(self, rows=None) -> tuple[np.ndarray, np.ndarray]:
+        """The fit range in x (a log parameter's lower bound 0 is -inf)."""
+        ref = self._ref(rows)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            lo = np.where(self.log, np.log(np.maximum(self.lower, 0.0) / ref), (self.lower - ref) / self.step)
+            hi = np.where(self.log, np.log(self.upper / ref), (self.upper - ref) / self.step)
+        return lo, hi
+
+    def precision(self) -> np.ndarray:
+        """Lambda's diagonal (p,): 1/sd^2 of the priors, 0 without."""
+        if self.prior_sd is None:
+            return np.zeros(self.p)
+        return 1.0 / np.asarray(self.prior_sd, dtype=float) ** 2
+
+    def covariance(self, x, cost: float, dof: int, J: np.ndarray | None = None, H: np.ndarray | None = None):
+        """:class:`Covariance` at the solution x (p,) of one problem (module doc), from the
+        Jacobian ``J`` (n, p) of its weighted residuals in x (the more accurate: singular
+        values of J are resolved to its rounding, eigenvalues of J^T J only to their square's)
+        or from ``H`` = J^T J (p, p); ``cost`` the data's weighted sum of squares."""
+        p = self.p
+        s2 = float(noise_variance(cost, dof, self.noise_estimated))
+        if p == 0:
+            empty = np.zeros((0, 0))
+            return Covariance(empty, np.zeros(0), empty, 1.0, s2, np.zeros(0, dtype=bool))
+        lam = s2 * self.precision()
+        if J is not None:
+            # A = R^T R with R the Jacobian and the priors' rows
+            R = np.vstack([J, np.diag(np.sqrt(lam))[lam > 0]])
+            A = R.T @ R
+            norm = np.linalg.norm(R, axis=0)
+            norm[norm == 0] = 1.0
+            # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
+            _, sv, Vt = np.linalg.svd(R / norm, full_matrices=R.shape[0] < p)
+            ev = np.concatenate([sv, np.zeros(p - sv.size)]) ** 2
+        else:
+            A = np.asarray(H, dtype=float) + np.diag(lam)
+            norm = np.sqrt(np.abs(np.diag(A)))
+            norm[norm == 0] = 1.0
+            ev, V = np.linalg.eigh(A / norm[:, None] / norm[None, :])
+            Vt = V.T
+        null = ev <= RCOND * ev.max() if ev.max() > 0 else np.ones(p, dtype=bool)
+        keep = ~null
+        unit_x = (Vt[keep].T / ev[keep]) @ Vt[keep] / norm[:, None] / norm[None, :]
+        undetermined = np.any(np.abs(Vt[null]) > UNDETERMINED_SHARE, axis=0) if null.any() else np.zeros(p, dtype=bool)
+        D = self.dv_dx(x)
+        unit = unit_x * D[:, None] * D[None, :]
+        cov = s2 * unit
+        std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+        std[undetermined] = np.nan  # undetermined: None in JSON, never +-tiny
+        su = np.sqrt(np.maximum(np.diag(unit), 0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            corr = unit / (su[:, None] * su[None, :])
+        corr[np.arange(p), np.arange(p)] = 1.0
+        w = np.linalg.eigvalsh(A)
+        cond = float(w[-1] / w[0]) if w[0] > 0 else math.inf
+        return Covariance(cov, std, corr, cond, s2, undetermined)
