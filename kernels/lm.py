@@ -132,23 +132,25 @@ def build_sets(
     fixed: wp.array2d(dtype=wp.float64),
     row_src: wp.array(dtype=wp.int32),
     central: int,
+    first: int,
     varying: wp.array2d(dtype=wp.float64),
 ):
-    """varying[r, col]: slot = col // (1 + p) and j = col % (1 + p) (forward differences:
-    set j = 1 + a is z + step e_a), or with ``central`` = 1 slot = col // (1 + 2p) and set
-    j = 1 + 2a, 2 + 2a is z +- step e_a (the tangent pass's neighbours,
-    :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r] >= 0 names the free
-    parameter a = row_src[r] (value from z, perturbed in its sets), row_src[r] < 0 the
-    per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
+    """varying[r, col]: each slot has ``sets`` = columns / slots consecutive sets, slot =
+    col // sets and set j = first + col % sets of its group: forward differences (set j =
+    1 + a is z + step e_a; the point and its p neighbours with ``first`` = 0 and 1 + p sets,
+    the point alone with 1 set, the neighbours alone with ``first`` = 1 and p sets), or with
+    ``central`` = 1 set j = 1 + 2a, 2 + 2a is z +- step e_a (1 + 2p sets: the tangent
+    pass's neighbours, :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r]
+    >= 0 names the free parameter a = row_src[r] (value from z, perturbed in its sets),
+    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
     col = wp.tid()
     z = slots.z
     step = slots.step
     scale = scaling.scale
     offset = scaling.offset
-    p = z.shape[1]
-    sets = (1 + central) * p + 1
+    sets = varying.shape[1] // slots.ids.shape[0]
     slot = col // sets
-    j = col - slot * sets
+    j = col - slot * sets + first
     pid = slots.ids[slot]
     for r in range(row_src.shape[0]):
         a = row_src[r]
@@ -249,3 +251,177 @@ def normal_kernel(p: int, tangents: bool = False):
 
     _NORMAL_KERNELS[key] = normal_equations
     return normal_equations
+
+
+# -- secant (Broyden) Jacobians ------------------------------------------------------------
+@wp.struct
+class Secant:
+    """The model of every slot q (Q slots) of a secant LM run, kept on the device between
+    its iterations: ``T`` (8m, Q) the raw T-matrix values at the slot's z (row 8 f + k: re,
+    im of the four entries at frequency f) and ``dT`` (8m p, Q) their Jacobian in z (row
+    (8 f + k) p + a), rows first so that neighbouring slots' threads read neighbouring
+    words; ``fresh`` (Q,) 1 while ``dT`` is the forward-difference Jacobian at z, 0 once a
+    rank-one update made it; ``trial`` (8m, Q) the values at the trial of the launch's
+    slot s (column s)."""
+
+    T: wp.array2d(dtype=wp.float64)
+    dT: wp.array2d(dtype=wp.float64)
+    fresh: wp.array(dtype=wp.int32)
+    trial: wp.array2d(dtype=wp.float64)
+
+
+@wp.kernel(enable_backward=False)
+def difference_steps(
+    slots: Slots,
+    zhi: wp.array2d(dtype=wp.float64),
+    h: wp.float64,
+    step: wp.array2d(dtype=wp.float64),
+):
+    """step[s, a] = h, or -h where z + h would pass the upper bound ``zhi`` of the slot's
+    problem (forward differences towards the interior)."""
+    s, a = wp.tid()
+    step[s, a] = h
+    if slots.z[s, a] + h > zhi[slots.ids[s], a]:
+        step[s, a] = -h
+
+
+@wp.kernel(enable_backward=False)
+def gather_rows(src: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int32), dst: wp.array2d(dtype=wp.float64)):
+    """dst[s] = src[index[s]]."""
+    s, a = wp.tid()
+    dst[s, a] = src[index[s], a]
+
+
+_SECANT_KERNELS = {}
+
+
+def secant_kernels(p: int):
+    """(differences, sums, trial_sums, broyden_row) for ``p`` free parameters (cached per p).
+
+    ``differences`` (one thread per slot s of a launch, its slot q = ``act[s]``): the
+    forward-difference Jacobian of slot q into the :class:`Secant` store from the launch's
+    T-matrices ``out``: slot s's group starts at set ``group[s]`` (slots with the same
+    sets share a group), with ``point`` = 1 the group is the point and its p neighbours
+    (``T`` is written too), with 0 the neighbours alone (``T`` is read).
+    ``sums`` / ``trial_sums`` (one thread per slot s): the :class:`NormalEquations` (row
+    ``dest[s]``) of the slot at its z from the store, or at its trial point from the launch's
+    T-matrices ``out`` (s, m, 8) with the Jacobian updated by the step ``dz`` (s, p)
+    (Broyden's rank-one update, ``broyden_row``; the trial's values are kept in column
+    ``dest[s]`` of ``Secant.trial``). The residuals are those of :func:`normal_kernel`.
+    """
+    if p in _SECANT_KERNELS:
+        return _SECANT_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+
+    @wp.func
+    def broyden_row(jr: vecp, dt: wp.float64, dz: vecp, inv_dz2: wp.float64):
+        """One row of Broyden's update J + (dT - J dz) dz^T / (dz.dz): ``jr`` the row of J,
+        ``dt`` the change of the row's value over the step ``dz`` (inv_dz2 = 1 / dz.dz, 0
+        for no step)."""
+        return jr + (dt - wp.dot(jr, dz)) * inv_dz2 * dz
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def differences(
+        act: wp.array(dtype=wp.int32),
+        group: wp.array(dtype=wp.int32),
+        step: wp.array2d(dtype=wp.float64),
+        point: int,
+        out: wp.array3d(dtype=wp.float64),
+        store: Secant,
+    ):
+        s = wp.tid()
+        q = act[s]
+        g0 = group[s]
+        inv_step = vecp()
+        for a in range(P):
+            inv_step[a] = wp.float64(1.0) / step[s, a]
+        for f in range(out.shape[1]):
+            for k in range(8):
+                row = f * 8 + k
+                t0 = wp.float64(0.0)
+                if point == 1:
+                    t0 = out[g0, f, k]
+                    store.T[row, q] = t0
+                else:
+                    t0 = store.T[row, q]
+                for a in range(P):
+                    store.dT[row * P + a, q] = (out[g0 + point + a, f, k] - t0) * inv_step[a]
+        store.fresh[q] = 1
+
+    def make_sums(trial: bool):
+        TRIAL = wp.constant(trial)
+
+        @wp.kernel(enable_backward=False, module="unique")
+        def sums_kernel(
+            act: wp.array(dtype=wp.int32),
+            ids: wp.array(dtype=wp.int32),
+            data: Measured,
+            store: Secant,
+            out: wp.array3d(dtype=wp.float64),
+            step: wp.array2d(dtype=wp.float64),
+            dest: wp.array(dtype=wp.int32),
+            sums: NormalEquations,
+        ):
+            s = wp.tid()
+            q = act[s]
+            pid = ids[s]
+            e = dest[s]
+            Y = data.Y
+            W = data.W
+            zc = data.zc
+            m = Y.shape[1]
+            dz = vecp()
+            inv_dz2 = wp.float64(0.0)
+            if wp.static(TRIAL):
+                for a in range(P):
+                    dz[a] = step[s, a]
+                d2 = wp.dot(dz, dz)
+                if d2 > wp.float64(0.0):
+                    inv_dz2 = wp.float64(1.0) / d2
+            gv = vecp()
+            Hm = matp()
+            c2 = wp.float64(0.0)
+            u2 = wp.float64(0.0)
+            wrow = pid
+            if W.shape[0] == 1:  # one weight row shared by every problem
+                wrow = 0
+            for f in range(m):
+                for k in range(8):
+                    row = f * 8 + k
+                    fac = wp.float64(1.0)
+                    if k == 2 or k == 3:
+                        fac = wp.float64(1.0) / zc[pid]
+                    if k == 4 or k == 5:
+                        fac = zc[pid]
+                    jr = vecp()
+                    for a in range(P):
+                        jr[a] = store.dT[row * P + a, q]
+                    t = store.T[row, q]
+                    if wp.static(TRIAL):
+                        t_new = out[s, f, k]
+                        store.trial[row, e] = t_new
+                        jr = broyden_row(jr, t_new - t, dz, inv_dz2)
+                        t = t_new
+                    w = W[wrow, f, k]
+                    d = t * fac - Y[pid, f, k]
+                    r = w * d
+                    c2 += r * r
+                    u2 += d * d
+                    jw = (w * fac) * jr
+                    for a in range(P):
+                        gv[a] += jw[a] * r
+                        for b in range(P):
+                            Hm[a, b] += jw[a] * jw[b]
+            sums.cost[e] = c2
+            sums.raw[e] = u2
+            for a in range(P):
+                sums.g[e, a] = gv[a]
+                for b in range(P):
+                    sums.H[e, a, b] = Hm[a, b]
+
+        return sums_kernel
+
+    _SECANT_KERNELS[p] = (differences, make_sums(False), make_sums(True), broyden_row)
+    return _SECANT_KERNELS[p]

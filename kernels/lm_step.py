@@ -32,7 +32,7 @@ relative change). Everything is float64.
 
 import warp as wp
 
-from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling
+from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling, Secant, secant_kernels
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -91,8 +91,8 @@ class Iterate:
 class Trial:
     """The trial step of every active slot s: ``act[s]`` its slot q, the trial point ``zt``
     (n, p), the step ``dz`` = zt - z, the predicted decrease ``pred``, ``chol_ok`` (0: the
-    damped matrix was not positive definite, no step) and the normal equations ``at_zt``
-    of the evaluated trial."""
+    damped matrix was not positive definite, no step), the normal equations ``at_zt``
+    of the evaluated trial and ``accepted`` (1: the slot moved to it)."""
 
     act: wp.array(dtype=wp.int32)
     zt: wp.array2d(dtype=wp.float64)
@@ -100,6 +100,7 @@ class Trial:
     pred: wp.array(dtype=wp.float64)
     chol_ok: wp.array(dtype=wp.int32)
     at_zt: NormalEquations
+    accepted: wp.array(dtype=wp.int32)
 
 
 @wp.func
@@ -174,6 +175,24 @@ def step_kernels(p: int):
         if ok:
             return c
         return wp.float64(wp.inf)
+
+    @wp.func
+    def relative_change(setup: Setup, b: int, trial: Trial, s: int):
+        """The largest relative change of the parameters of trial s (problem b) over its
+        step, by the change rule (module doc)."""
+        scale = setup.change.scale
+        offset = setup.change.offset
+        dz = trial.dz
+        rel = wp.float64(0.0)
+        for a in range(P):
+            k = setup.change.kind[a]
+            r = wp.abs(dz[s, a])
+            if k == CHANGE_LOG:
+                r = wp.abs(expm1(dz[s, a]))
+            elif k == CHANGE_LINEAR:
+                r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * trial.zt[s, a]), wp.float64(1e-300))
+            rel = nan_max(rel, r)
+        return rel
 
     @wp.kernel(enable_backward=False, module="unique")
     def init(setup: Setup, state: Iterate, done: wp.array(dtype=wp.int32)):
@@ -294,10 +313,7 @@ def step_kernels(p: int):
         new = trial.at_zt
         nu = state.nu
         zt = trial.zt
-        dz = trial.dz
         pred = trial.pred
-        scale = setup.change.scale
-        offset = setup.change.offset
         c_new = valid(new, s)
         c_old = now.cost[q]
         rho = wp.float64(-1.0)
@@ -306,6 +322,7 @@ def step_kernels(p: int):
         acc = trial.chol_ok[s] == 1 and wp.isfinite(c_new) and rho > wp.float64(0.0) and c_new < c_old
         it = state.iterations[q] + 1
         state.iterations[q] = it
+        trial.accepted[s] = int(acc)
         # accepted: move, take the trial's Jacobian
         if acc:
             for a in range(P):
@@ -331,15 +348,7 @@ def step_kernels(p: int):
                 m = m * wp.float64(2.0)
         state.mu[q] = m
         # convergence tests
-        rel = wp.float64(0.0)
-        for a in range(P):
-            k = setup.change.kind[a]
-            r = wp.abs(dz[s, a])
-            if k == CHANGE_LOG:
-                r = wp.abs(expm1(dz[s, a]))
-            elif k == CHANGE_LINEAR:
-                r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * zt[s, a]), wp.float64(1e-300))
-            rel = nan_max(rel, r)
+        rel = relative_change(setup, b, trial, s)
         cq = now.cost[q]
         gcos, nfree = grad_cosine(setup, state, q, cq)
         why = int(0)
@@ -365,5 +374,63 @@ def step_kernels(p: int):
             state.converged[q] = good
             done[s] = 1
 
-    _STEP_KERNELS[p] = (init, propose, update)
+    @wp.kernel(enable_backward=False, module="unique")
+    def confirm(setup: Setup, state: Iterate, trial: Trial, again: wp.array(dtype=wp.int32)):
+        """Slots that stopped on ``xtol`` with a secant Jacobian, after the fresh one at z
+        replaced it (``trial``: ``propose``'s step with it): the stop stands where that step
+        is below ``xtol`` too, else the slot iterates again (``again[s]`` = 1)."""
+        s = wp.tid()
+        q = int(trial.act[s])
+        again[s] = 0
+        if not (relative_change(setup, int(setup.pid[q]), trial, s) < setup.xtol):
+            state.reason[q] = 0
+            state.converged[q] = 0
+            again[s] = 1
+
+    _STEP_KERNELS[p] = (init, propose, update, confirm)
     return _STEP_KERNELS[p]
+
+
+_SECANT_STEP_KERNELS = {}
+
+
+def secant_accept_kernel(p: int):
+    """The kernel (cached per p) that follows ``update`` in a secant LM run (one thread per
+    active slot s): an accepted trial's values and its rank-one updated Jacobian
+    (:func:`tawarp.kernels.lm.secant_kernels`' ``broyden_row``, the update the trial's sums
+    were made with) become the slot's in the :class:`~tawarp.kernels.lm.Secant` store; a
+    rejected trial from a secant Jacobian sets ``done[s]`` = 2: the slot's Jacobian is to be
+    refreshed by differences before its next step (the rejection may be the secant's fault)."""
+    if p in _SECANT_STEP_KERNELS:
+        return _SECANT_STEP_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    broyden_row = secant_kernels(p)[3]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accept(store: Secant, trial: Trial, done: wp.array(dtype=wp.int32)):
+        s = wp.tid()
+        q = int(trial.act[s])
+        if trial.accepted[s] == 1:
+            dz = vecp()
+            for a in range(P):
+                dz[a] = trial.dz[s, a]
+            d2 = wp.dot(dz, dz)
+            inv_dz2 = wp.float64(0.0)
+            if d2 > wp.float64(0.0):
+                inv_dz2 = wp.float64(1.0) / d2
+            for row in range(store.T.shape[0]):
+                jr = vecp()
+                for a in range(P):
+                    jr[a] = store.dT[row * P + a, q]
+                t_new = store.trial[row, s]
+                jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
+                for a in range(P):
+                    store.dT[row * P + a, q] = jr[a]
+                store.T[row, q] = t_new
+            store.fresh[q] = 0
+        elif done[s] == 0 and store.fresh[q] == 0:
+            done[s] = 2
+
+    _SECANT_STEP_KERNELS[p] = accept
+    return accept

@@ -274,32 +274,34 @@ class Problems:
         self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
         self.w_row_src = wp.array(np.array(row_src, dtype=np.int32), dtype=wp.int32, device=dev)
         self.w_kind = wp.array(self.kind, dtype=wp.int32, device=dev)
-        self.tangents = self._use_tangents(jacobian)
+        #: how the Jacobians are made: "tangent", "difference" or "broyden" (:meth:`_jacobian_kind`)
+        self.jacobian = self._jacobian_kind(jacobian)
+        self.tangents = self.jacobian == "tangent"
+        #: :func:`levenberg_marquardt` runs the secant iteration (:class:`~tawarp.fit.lm.SecantProblems`)
+        self.secant = self.jacobian == "broyden"
         self.normal = klm.normal_kernel(self.p, self.tangents)
+        self.fixed_table = fixed_table
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
+        self._no_out, self._no_step = (
+            wp.zeros((1, 1, 1), dtype=wp.float64, device=dev),
+            wp.zeros((1, 1), dtype=wp.float64, device=dev),
+        )
         self.evaluations = 0
         self.launches = 0
 
-    def _use_tangents(self, jacobian: str) -> bool:
-        """Whether the Jacobians come from the tangent cascade (``jacobian`` "tangent", or
-        "auto" on the CPU where it applies: the faster one there, forward differences on a
-        GPU) or from forward differences ("difference"). The tangent cascade needs fixed
-        cells."""
-        if jacobian not in ("auto", "tangent", "difference"):
-            raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent' or 'difference'")
-        if jacobian == "difference":
-            return False
-        if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
-            # forward differences are the faster on a GPU, the tangent cascade on the CPU
-            # (measured: bench/README.md, section "tawarp/fit/estimate.py")
-            return False
-        if self.engine.estimating:
-            if jacobian == "tangent":
-                raise ValueError(
-                    "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
-                )
-            return False
-        return True
+    def _jacobian_kind(self, jacobian: str) -> str:
+        """How the Jacobians are made: ``jacobian`` "tangent" (the tangent cascade, which
+        needs fixed cells), "difference" (forward differences at every trial), "broyden"
+        (forward differences at the start, where a step fails and at the solution, rank-one
+        updates between), or "auto": "broyden", the fewest cascades per fit on every device
+        (measured: bench/README.md, section "tawarp/fit/estimate.py")."""
+        if jacobian not in ("auto", "tangent", "difference", "broyden"):
+            raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent', 'difference' or 'broyden'")
+        if jacobian == "tangent" and self.engine.estimating:
+            raise ValueError(
+                "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
+            )
+        return "broyden" if jacobian == "auto" else jacobian
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
@@ -343,46 +345,208 @@ class Problems:
         for linear ones (:mod:`tawarp.kernels.lm_step`)."""
         return self.kind, self.scale, self.offset
 
-    # -- one launch ----------------------------------------------------------------------
-    def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
-        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``, as
-        Warp arrays on the device: :func:`levenberg_marquardt` keeps them there (a
-        non-finite cost, g or H counts as an invalid evaluation there). The Jacobian comes
-        from the tangent cascade (each problem's point and its 2p neighbours z +- Engine.tangent_step
-        give the point coefficients' derivatives, one cascade carries the T-matrix's) or from
-        forward differences (1 + p cascades, step FD_STEP towards the interior at a bound)."""
+    # -- launches ------------------------------------------------------------------------
+    def _cascade(self, part: klm.Slots, first: int, sets: int):
+        """The T-matrices (k sets, m, 8) of ``sets`` sets per slot of ``part`` (``first`` and
+        the set layout: :func:`tawarp.kernels.lm.build_sets`) by plain cascades; counts the
+        launch and its sets."""
+        k = part.ids.shape[0]
+        varying = wp.empty((self.w_row_src.shape[0], k * sets), dtype=wp.float64, device=self.device)
+        wp.launch(
+            klm.build_sets,
+            dim=k * sets,
+            device=self.device,
+            inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, 0, first, varying],
+        )
+        self.launches += 1
+        self.evaluations += k * sets
+        return self.engine.evaluate(varying)[0]
+
+    def _scaling(self) -> klm.Scaling:
+        return scaling(self.w_kind, self.w_scale, self.w_offset, self.device)
+
+    def _data(self) -> klm.Measured:
+        return measured(self.w_Y, self.w_W, self.w_zc, self.device)
+
+    def _difference_steps(self, ids: wp.array, z: wp.array) -> wp.array:
+        """The forward-difference steps (n, p) at ``z`` (n, p) of problems ``ids``, on the
+        device: FD_STEP towards the interior at an upper bound."""
+        step = wp.empty(z.shape, dtype=wp.float64, device=self.device)
+        if z.shape[0]:
+            zhi = wp.array(self.zhi, dtype=wp.float64, device=self.device)
+            wp.launch(
+                klm.difference_steps,
+                dim=z.shape,
+                device=self.device,
+                inputs=[slots(ids, z, step, self.device), zhi, FD_STEP, step],
+            )
+        return step
+
+    def evaluate(self, pid: np.ndarray, z, max_sets: int = 1 << 20):
+        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z`` (NumPy, or
+        a Warp array on the device: the LM's trial points stay there), as Warp arrays on the
+        device: :func:`levenberg_marquardt` keeps them there (a non-finite cost, g or H counts
+        as an invalid evaluation there). The Jacobian comes from the tangent cascade (each
+        problem's point and its 2p neighbours z +- Engine.tangent_step give the point
+        coefficients' derivatives, one cascade carries the T-matrix's) or from forward
+        differences (1 + p cascades, step FD_STEP towards the interior at a bound)."""
         p, dev = self.p, self.device
         n = len(pid)
+        ids = wp.array(np.asarray(pid, dtype=np.int32), dtype=wp.int32, device=dev)
+        z = (
+            z
+            if isinstance(z, wp.array)
+            else wp.array(np.ascontiguousarray(z, dtype=np.float64), dtype=wp.float64, device=dev)
+        )
         if self.tangents:
-            sets, step = 1 + 2 * p, np.full(z.shape, self.engine.tangent_step)
+            sets, step = 1 + 2 * p, wp.full(z.shape, self.engine.tangent_step, dtype=wp.float64, device=dev)
         else:
-            sets, step = 1 + p, np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+            sets, step = 1 + p, self._difference_steps(ids, z)
         w_cost, w_raw = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
         w_g, w_H = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
         per = max(1, max_sets // sets)
         rows = self.w_row_src.shape[0]
-        scale = scaling(self.w_kind, self.w_scale, self.w_offset, dev)
-        data = measured(self.w_Y, self.w_W, self.w_zc, dev)
+        data = self._data()
         for lo in range(0, n, per):
             hi = min(n, lo + per)
             k = hi - lo
-            part = slots(pid[lo:hi], z[lo:hi], step[lo:hi], dev)
-            varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
-            wp.launch(
-                klm.build_sets,
-                dim=k * sets,
-                device=dev,
-                inputs=[part, scale, self.w_fixed, self.w_row_src, int(self.tangents), varying],
-            )
+            part = slots(ids[lo:hi], z[lo:hi], step[lo:hi], dev)
             if self.tangents:
+                varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
+                wp.launch(
+                    klm.build_sets,
+                    dim=k * sets,
+                    device=dev,
+                    inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, 1, 0, varying],
+                )
                 out, tangent = self.engine.evaluate_tangents(varying, part.step, p)
+                self.launches += 1
+                self.evaluations += k * sets
             else:
-                (out, _, _), tangent = self.engine.evaluate(varying), self._no_tangent
+                out, tangent = self._cascade(part, 0, sets), self._no_tangent
             sums = normal_equations((w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]), dev)
             wp.launch(self.normal, dim=k, device=dev, inputs=[part, data, out, tangent, sums])
-            self.launches += 1
-        self.evaluations += n * sets
         return w_cost, w_raw, w_g, w_H
+
+    # -- the secant iteration (:class:`tawarp.fit.lm.SecantProblems`) ---------------------
+    def secant_store(self, Q: int) -> klm.Secant:
+        """The device store of Q slots' T-matrices and Jacobians (:class:`tawarp.kernels.lm.Secant`)."""
+        rows, dev = 8 * self.freqs.size, self.device
+        rec = klm.Secant()
+        rec.T = wp.empty((rows, Q), dtype=wp.float64, device=dev)
+        rec.dT = wp.empty((rows * self.p, Q), dtype=wp.float64, device=dev)
+        rec.fresh = wp.zeros(Q, dtype=wp.int32, device=dev)
+        rec.trial = wp.empty((rows, Q), dtype=wp.float64, device=dev)
+        return rec
+
+    def evaluate_start(self, pid: np.ndarray, z: np.ndarray, store: klm.Secant, max_sets: int = 1 << 20):
+        """cost, raw, g, H (Warp arrays) of the Q slots (problems ``pid``) at their starts ``z``
+        (Q, p), whose T-matrices and forward-difference Jacobians fill ``store``. Slots whose
+        sets are the same (the same start, heat input and fixed values: a batch fitted from
+        one start) share one evaluation: the model does not depend on the data."""
+        p, dev = self.p, self.device
+        Q = len(pid)
+        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        key = np.concatenate([self.to_v(z, pid), self.fixed_table[:, pid].T, step], axis=1)
+        _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        group = group.reshape(-1)
+        differences, sums = klm.secant_kernels(p)[:2]
+        sets = 1 + p
+        per = max(1, max_sets // sets)
+        rep = slots(pid[first], z[first], step[first], dev)
+        for lo in range(0, first.size, per):
+            hi = min(first.size, lo + per)
+            out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 0, sets)
+            mine = np.flatnonzero((group >= lo) & (group < hi)).astype(np.int32)
+            wp.launch(
+                differences,
+                dim=mine.size,
+                device=dev,
+                inputs=[
+                    _ints(mine, dev),
+                    _ints((group[mine] - lo) * sets, dev),
+                    wp.array(step[mine], dtype=wp.float64, device=dev),
+                    1,
+                    out,
+                    store,
+                ],
+            )
+        cost, raw = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
+        g, H = wp.empty((Q, p), dtype=wp.float64, device=dev), wp.empty((Q, p, p), dtype=wp.float64, device=dev)
+        every = _ints(np.arange(Q), dev)
+        wp.launch(
+            sums,
+            dim=Q,
+            device=dev,
+            inputs=[
+                every,
+                _ints(pid, dev),
+                self._data(),
+                store,
+                self._no_out,
+                self._no_step,
+                every,
+                normal_equations((cost, raw, g, H), dev),
+            ],
+        )
+        return cost, raw, g, H
+
+    def evaluate_trial(self, ids: wp.array, trial, store: klm.Secant, max_sets: int = 1 << 20):
+        """The trials' normal equations into ``trial.at_zt`` (:class:`tawarp.kernels.lm_step.Trial`
+        of problems ``ids``): one cascade per trial point, the Jacobian the slot's updated by
+        the step (Broyden's rank-one update); the values kept in ``store.trial``."""
+        n, dev = ids.shape[0], self.device
+        trial_sums = klm.secant_kernels(self.p)[2]
+        rows = _ints(np.arange(n), dev)
+        for lo in range(0, n, max(1, max_sets)):
+            hi = min(n, lo + max(1, max_sets))
+            # the point alone: build_sets reads no step (the trial's dz stands in)
+            out = self._cascade(slots(ids[lo:hi], trial.zt[lo:hi], trial.dz[lo:hi], dev), 0, 1)
+            wp.launch(
+                trial_sums,
+                dim=hi - lo,
+                device=dev,
+                inputs=[
+                    trial.act[lo:hi],
+                    ids[lo:hi],
+                    self._data(),
+                    store,
+                    out,
+                    trial.dz[lo:hi],
+                    rows[lo:hi],
+                    trial.at_zt,
+                ],
+            )
+
+    def refresh(self, slots_q: np.ndarray, pid: np.ndarray, state, store: klm.Secant, max_sets: int = 1 << 20):
+        """Forward-difference Jacobians (p cascades each: the point's T-matrices are in
+        ``store``) of the LM slots ``slots_q`` (problems ``pid[slots_q]``) at their z of
+        ``state`` (:class:`tawarp.kernels.lm_step.Iterate`), into ``store`` and the
+        state's normal equations."""
+        p, dev = self.p, self.device
+        n = slots_q.size
+        act = _ints(slots_q, dev)
+        ids = _ints(pid[slots_q], dev)
+        z = wp.empty((n, p), dtype=wp.float64, device=dev)
+        wp.launch(klm.gather_rows, dim=(n, p), device=dev, inputs=[state.z, act, z])
+        step = self._difference_steps(ids, z)
+        differences, sums = klm.secant_kernels(p)[:2]
+        per = max(1, max_sets // p)
+        for lo in range(0, n, per):
+            hi = min(n, lo + per)
+            out = self._cascade(slots(ids[lo:hi], z[lo:hi], step[lo:hi], dev), 1, p)
+            group = _ints(np.arange(hi - lo) * p, dev)
+            wp.launch(differences, dim=hi - lo, device=dev, inputs=[act[lo:hi], group, step[lo:hi], 0, out, store])
+        wp.launch(
+            sums,
+            dim=n,
+            device=dev,
+            inputs=[act, ids, self._data(), store, self._no_out, self._no_step, act, state.at_z],
+        )
+
+
+def _ints(a, device) -> wp.array:
+    return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=device)
 
 
 # ----------------------------------------------------------------------------------------

@@ -145,15 +145,26 @@ def _iterate(z: np.ndarray, sums, device) -> lm_step.Iterate:
     return rec
 
 
-def _trial(active: np.ndarray, p: int, device) -> lm_step.Trial:
+def _trial(active: np.ndarray, p: int, device, sums: bool = False) -> lm_step.Trial:
     """The kernels' :class:`tawarp.kernels.lm_step.Trial` of the slots ``active``, for
-    ``propose`` to fill (its ``at_zt`` is set once the trials are evaluated)."""
+    ``propose`` to fill; with ``sums`` its ``at_zt`` too, for a secant evaluation to fill
+    (else the evaluation's arrays become it)."""
     n = active.size
     rec = lm_step.Trial()
     rec.act = _device_array(active, device, wp.int32)
     rec.zt, rec.dz = (wp.empty((n, p), dtype=wp.float64, device=device) for _ in range(2))
     rec.pred = wp.empty(n, dtype=wp.float64, device=device)
-    rec.chol_ok = wp.empty(n, dtype=wp.int32, device=device)
+    rec.chol_ok, rec.accepted = (wp.empty(n, dtype=wp.int32, device=device) for _ in range(2))
+    if sums:
+        rec.at_zt = normal_equations(
+            (
+                wp.empty(n, dtype=wp.float64, device=device),
+                wp.empty(n, dtype=wp.float64, device=device),
+                wp.empty((n, p), dtype=wp.float64, device=device),
+                wp.empty((n, p, p), dtype=wp.float64, device=device),
+            ),
+            device,
+        )
     return rec
 
 
@@ -172,33 +183,74 @@ def levenberg_marquardt(
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
-    ``prob``: any :class:`LMProblems`."""
+    ``prob``: any :class:`LMProblems`; a :class:`SecantProblems` with ``secant`` set runs
+    the secant iteration (module doc)."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
     if p == 0:
         raise ValueError("levenberg_marquardt: no free parameters")
     dev = wp.get_device(getattr(prob, "device", "cpu"))
-    init, propose, update = lm_step.step_kernels(p)
+    init, propose, update, confirm = lm_step.step_kernels(p)
+    secant = bool(getattr(prob, "secant", False))
     pid = np.asarray(pid)
     setup = _setup(prob, pid, dev, damping, tau, xtol, gtol, max_iter)
     z = np.clip(np.array(z0, dtype=float), prob.zlo[pid], prob.zhi[pid])
-    state = _iterate(z, prob.evaluate(pid, z, max_sets), dev)
+    if secant:
+        store = prob.secant_store(Q)
+        state = _iterate(z, prob.evaluate_start(pid, z, store, max_sets), dev)
+    else:
+        state = _iterate(z, prob.evaluate(pid, z, max_sets), dev)
     done = wp.empty(Q, dtype=wp.int32, device=dev)
     wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
     active = np.flatnonzero(done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
-    while active.size:
-        n = active.size
-        trial = _trial(active, p, dev)
-        wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
-        trial.at_zt = normal_equations(prob.evaluate(pid[active], trial.zt.numpy(), max_sets), dev)
-        done = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
-        finished = done.numpy() != 0
-        active = active[~finished]
-        bar.update(int(finished.sum()))
+    while True:
+        trial = None
+        while active.size:
+            n = active.size
+            if trial is None or trial.act.shape[0] != n:  # the slots changed: their records
+                trial = _trial(active, p, dev, secant)
+                ids = _device_array(pid[active], dev, wp.int32)
+                done = wp.empty(n, dtype=wp.int32, device=dev)
+            wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
+            if secant:
+                prob.evaluate_trial(ids, trial, store, max_sets)
+            else:
+                # the trial points stay on a GPU (a NumPy view of them on the CPU)
+                zt = trial.zt.numpy() if dev.is_cpu else trial.zt
+                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
+            wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
+            if secant:
+                wp.launch(lm_step.secant_accept_kernel(p), dim=n, device=dev, inputs=[store, trial, done])
+            flags = done.numpy()  # the one host round trip of an iteration
+            if secant and np.any(flags == 2):
+                prob.refresh(active[flags == 2], pid, state, store, max_sets)
+            finished = flags == 1
+            if finished.any():
+                active = active[~finished]
+                bar.update(int(finished.sum()))
+                trial = None
+        if not secant:
+            break
+        # Each solution's Jacobian (whose J^T J gives the covariance) is a fresh
+        # forward-difference one at the solution, never a secant one: the slots that ended
+        # on a rank-one updated Jacobian get theirs, and those that stopped on xtol stop
+        # only if the step from it is below xtol too (else they iterate on from it).
+        stale = np.flatnonzero(store.fresh.numpy() == 0)
+        if not stale.size:
+            break
+        prob.refresh(stale, pid, state, store, max_sets)
+        ended = stale[state.reason.numpy()[stale] == lm_step.R_XTOL]
+        if not ended.size:
+            break
+        check = _trial(ended, p, dev)
+        again = wp.empty(ended.size, dtype=wp.int32, device=dev)
+        wp.launch(propose, dim=ended.size, device=dev, inputs=[setup, state, check])
+        wp.launch(confirm, dim=ended.size, device=dev, inputs=[setup, state, check, again])
+        active = ended[again.numpy() == 1]
+        bar.update(-active.size)
     bar.close()
     return LMState(
         state.z.numpy(),
