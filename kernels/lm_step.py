@@ -59,7 +59,8 @@ class Setup:
     """What stays fixed through a run: per slot q the problem's data index ``pid[q]``, which
     selects the rows of the bounds ``zlo``, ``zhi`` (N, p) and of the ``change`` rule (its
     ``kind`` a CHANGE_* code per parameter); the damping rule (DAMP_*), the initial damping
-    factor ``tau`` and the stopping tests' ``xtol``, ``gtol`` and ``max_iter``."""
+    factor ``tau``, the stopping tests' ``xtol``, ``gtol`` and ``max_iter``, and a secant
+    run's ``confirm`` (``confirm`` kernel)."""
 
     pid: wp.array(dtype=wp.int32)
     zlo: wp.array2d(dtype=wp.float64)
@@ -70,6 +71,7 @@ class Setup:
     xtol: wp.float64
     gtol: wp.float64
     max_iter: int
+    confirm: wp.float64
 
 
 @wp.struct
@@ -378,11 +380,13 @@ def step_kernels(p: int):
     def confirm(setup: Setup, state: Iterate, trial: Trial, again: wp.array(dtype=wp.int32)):
         """Slots that stopped on ``xtol`` with a secant Jacobian, after the fresh one at z
         replaced it (``trial``: ``propose``'s step with it): the stop stands where that step
-        is below ``xtol`` too, else the slot iterates again (``again[s]`` = 1)."""
+        is below ``xtol`` too and its predicted decrease of the cost below ``confirm`` F,
+        else the slot iterates again (``again[s]`` = 1)."""
         s = wp.tid()
         q = int(trial.act[s])
         again[s] = 0
-        if not (relative_change(setup, int(setup.pid[q]), trial, s) < setup.xtol):
+        small = relative_change(setup, int(setup.pid[q]), trial, s) < setup.xtol
+        if not (small and trial.pred[s] <= setup.confirm * state.at_z.cost[q]):
             state.reason[q] = 0
             state.converged[q] = 0
             again[s] = 1

@@ -226,9 +226,9 @@ class Problems:
             if device is not None
             else (settings or ForwardSettings())
         )
-        self.engine = get_engine(
-            _cold_core(core) if cold_batch(q, engine_names) else core, self.freqs, engine_names, self.settings
-        )
+        #: every problem unheated: the closed form instead of the cascade (:func:`cold_batch`)
+        self.cold = cold_batch(q, engine_names)
+        self.engine = get_engine(_cold_core(core) if self.cold else core, self.freqs, engine_names, self.settings)
         self.device = self.engine.device
         dev = self.device
         fixed_table = np.stack([q] + [fixed[k] for k in fixed])
@@ -279,6 +279,8 @@ class Problems:
         self.tangents = self.jacobian == "tangent"
         #: :func:`levenberg_marquardt` runs the secant iteration (:class:`~tawarp.fit.lm.SecantProblems`)
         self.secant = self.jacobian == "broyden"
+        #: degrees of freedom of a problem's residuals (8 m real values, p parameters)
+        self.dof = max(8 * m - self.p, 1)
         self.normal = klm.normal_kernel(self.p, self.tangents)
         self.fixed_table = fixed_table
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
@@ -292,16 +294,23 @@ class Problems:
     def _jacobian_kind(self, jacobian: str) -> str:
         """How the Jacobians are made: ``jacobian`` "tangent" (the tangent cascade, which
         needs fixed cells), "difference" (forward differences at every trial), "broyden"
-        (forward differences at the start, where a step fails and at the solution, rank-one
-        updates between), or "auto": "broyden", the fewest cascades per fit on every device
-        (measured: bench/README.md, section "tawarp/fit/estimate.py")."""
+        (forward differences at the start, where a secant step fails and at the solution,
+        rank-one updates between: one cascade per trial), or "auto": "broyden" where the
+        problems cascade (the fewest cascades per fit, on every device); at Q = 0 (the
+        closed form, :func:`cold_batch`), where an evaluation costs little and the secant's
+        extra iterations would cost more, the tangent cascade on the CPU and forward
+        differences on a GPU (measured: bench/README.md, section "tawarp/fit/estimate.py")."""
         if jacobian not in ("auto", "tangent", "difference", "broyden"):
             raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent', 'difference' or 'broyden'")
         if jacobian == "tangent" and self.engine.estimating:
             raise ValueError(
                 "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
             )
-        return "broyden" if jacobian == "auto" else jacobian
+        if jacobian != "auto":
+            return jacobian
+        if not self.cold:
+            return "broyden"
+        return "tangent" if wp.get_device(self.device).is_cpu and not self.engine.estimating else "difference"
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by

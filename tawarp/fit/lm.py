@@ -31,6 +31,14 @@ from ..kernels import lm as klm
 from ..kernels import lm_step
 from ..progress import progress_bar
 
+#: A secant run's solution stands where the Gauss-Newton step from the fresh Jacobian at
+#: it is below xtol and moves the parameters by less than this many standard deviations
+#: (its predicted decrease of the cost below SECANT_CONFIRM^2 F / dof, the Mahalanobis
+#: length of the step in the covariance s^2 (J^T J)^-1, s^2 = F / dof): the rank-one updates
+#: converge superlinearly, not quadratically, and xtol alone left geometry fits 0.4 std
+#: from the minimum (bench/README.md, section "tawarp/fit/estimate.py").
+SECANT_CONFIRM = 0.1
+
 #: names of the reason codes of :mod:`tawarp.kernels.lm_step` (code 0: still iterating)
 REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 
@@ -129,6 +137,8 @@ def _setup(prob: LMProblems, pid: np.ndarray, device, damping, tau, xtol, gtol, 
     rec.change = scaling(*prob.change_rule(), device)
     rec.damping = lm_step.DAMP_NIELSEN if damping == "nielsen" else lm_step.DAMP_PAPER
     rec.tau, rec.xtol, rec.gtol, rec.max_iter = float(tau), float(xtol), float(gtol), int(max_iter)
+    if getattr(prob, "secant", False):
+        rec.confirm = SECANT_CONFIRM**2 / prob.dof
     return rec
 
 
