@@ -288,6 +288,7 @@ class Problems:
             wp.zeros((1, 1, 1), dtype=wp.float64, device=dev),
             wp.zeros((1, 1), dtype=wp.float64, device=dev),
         )
+        self._rows = _ints(np.zeros(0), dev)
         self.evaluations = 0
         self.launches = 0
 
@@ -370,6 +371,12 @@ class Problems:
         self.launches += 1
         self.evaluations += k * sets
         return self.engine.evaluate(varying)[0]
+
+    def _arange(self, n: int) -> wp.array:
+        """0, 1, ..., n - 1 on the device (kept: no upload per iteration)."""
+        if self._rows.shape[0] < n:
+            self._rows = _ints(np.arange(n), self.device)
+        return self._rows[:n]
 
     def _scaling(self) -> klm.Scaling:
         return scaling(self.w_kind, self.w_scale, self.w_offset, self.device)
@@ -506,7 +513,7 @@ class Problems:
         the step (Broyden's rank-one update); the values kept in ``store.trial``."""
         n, dev = ids.shape[0], self.device
         trial_sums = klm.secant_kernels(self.p)[2]
-        rows = _ints(np.arange(n), dev)
+        rows = self._arange(n)
         for lo in range(0, n, max(1, max_sets)):
             hi = min(n, lo + max(1, max_sets))
             # the point alone: build_sets reads no step (the trial's dz stands in)
