@@ -6,6 +6,7 @@ spends a stated number of cascades per fit."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 from tawarp import reference
 from tawarp.fit.estimate import fit
@@ -72,3 +73,59 @@ def test_secant_cascades_per_fit_of_the_heat_workload():
     assert difference.evaluations == 20 * n
     assert secant.evaluations / n < 7.5
     assert np.max(np.abs(secant.values - difference.values) / difference.std) < 1.2 * SECANT_CONFIRM
+
+
+def _heat_problems(n, seed, freqs, cells=12):
+    """n noise draws of the mesh core at 40 W (model data on ``cells`` Magnus cells), two
+    starts shared by half of the problems each (shared and distinct evaluations)."""
+    core = load_core("mesh")
+    Y0 = transfer_matrices(core, freqs, Q, cells=cells, device="cpu").dimensionless()[0]
+    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
+    rng = np.random.default_rng(seed)
+    Y = Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape))
+    truth = np.array([core.get(k) for k in HEAT])
+    start = truth * np.where(np.arange(n)[:, None] % 2 == 0, [1.3, 0.7, 1.3], [0.8, 1.2, 0.9])
+    return core, Y, sd, start
+
+
+def test_secant_launches_split_by_max_sets_give_the_same_fits():
+    # at most 5 sets per launch: the start's shared groups, the trials and the refreshes
+    # run in several launches each; every slot's arithmetic is its own, so the fits are
+    # the same to the bit, and so is the number of sets evaluated
+    freqs = paper_frequencies("mesh", 12)
+    core, Y, sd, start = _heat_problems(7, 4, freqs)
+    kw = dict(heat_input=Q, weights=1 / sd, settings=ForwardSettings(cells=8, device="cpu"), warn=False)
+    one = fit(core, freqs, Y, HEAT, start, jacobian="broyden", **kw)
+    split = fit(core, freqs, Y, HEAT, start, jacobian="broyden", max_sets=5, **kw)
+    assert one.converged.all() and split.launches > one.launches
+    for f in ("values", "std", "cost", "iterations"):
+        assert np.array_equal(getattr(split, f), getattr(one, f)), f
+    assert split.evaluations == one.evaluations
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device")
+def test_secant_fits_on_cuda_match_the_cpu():
+    # the same problems on both devices: the same decisions (iterations, cascades) and
+    # values to 1e-6 std (the cascades agree to rounding)
+    freqs = paper_frequencies("mesh", 16)
+    core, Y, sd, start = _heat_problems(64, 5, freqs)
+    res = {
+        dev: fit(
+            core,
+            freqs,
+            Y,
+            HEAT,
+            start,
+            heat_input=Q,
+            weights=1 / sd,
+            jacobian="broyden",
+            warn=False,
+            settings=ForwardSettings(cells=8, device=dev),
+        )
+        for dev in ("cpu", "cuda")
+    }
+    cpu, gpu = res["cpu"], res["cuda"]
+    assert cpu.converged.all() and gpu.converged.all()
+    assert np.array_equal(cpu.iterations, gpu.iterations) and cpu.evaluations == gpu.evaluations
+    assert np.max(np.abs(gpu.values - cpu.values) / cpu.std) < 1e-6
+    assert np.max(np.abs(gpu.std / cpu.std - 1)) < 1e-6
