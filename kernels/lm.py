@@ -22,6 +22,13 @@ launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
 The kernels of step 2 are specialised per ``p`` (a closure with compile-time loop
 bounds), so the Jacobian row and ``H`` live in registers. Everything is float64.
 
+The secant iteration (``jacobian="broyden"``) keeps each problem's T-matrices and their
+Jacobian in a :class:`Secant` store on the device: :func:`build_sets` lays out the point
+alone (a trial), the neighbours alone (a refresh at a point whose values are stored) or
+both (the start), and the kernels of :func:`secant_kernels` make the forward differences
+into the store and the normal equations from it, at a trial point with the Jacobian
+moved by Broyden's rank-one update.
+
 Two small kernels give the host side of the fits what the forward kernels compute,
 from the same Warp functions (no host copy of the physics to drift):
 :func:`magnus_cells` (the cascade's adaptive cell count of each thermal segment) and

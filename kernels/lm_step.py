@@ -9,7 +9,7 @@ of the bounds and of the change rule; the options), :class:`Iterate` the state (
 ``g = J^T r``, ``H = J^T J``, the damping ``mu``, ``nu``, ``iterations``, ``reason``,
 ``converged``) and :class:`Trial` the step of each active slot.
 
-Three kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
+Four kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
 p x p matrices in registers):
 
 1. ``init`` (one thread per slot): invalid evaluations (a non-finite cost, g or H) become
@@ -20,8 +20,12 @@ p x p matrices in registers):
    pushing outward takes no part), by Cholesky; the trial ``zt = clip(z + d, zlo, zhi)``,
    ``dz = zt - z`` and the predicted decrease ``pred = -(2 g.dz + dz.H.dz)``.
 3. ``update`` (one thread per active slot, after the problems evaluated the trials):
-   acceptance, damping (Nielsen's or the paper's), the stopping tests and reasons in the
-   order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
+   acceptance (``accepted``), damping (Nielsen's or the paper's), the stopping tests and
+   reasons in the order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
+4. ``confirm`` (a secant run, :mod:`tawarp.fit.lm`): whether a stop on ``xtol`` stands on
+   the fresh Jacobian at the solution.
+
+and, in a secant run, :func:`secant_accept_kernel` after ``update``.
 
 The relative change of a step compared with ``xtol`` is the problem's own notion, given as
 data per parameter (``Setup.change``: ``kind`` (p,), ``scale`` ``offset`` (N, p)):

@@ -16,7 +16,18 @@ damping, stopping tests) runs on the problems' device in the kernels of
 (:func:`normal_equations`, :func:`scaling`, :func:`slots`, :func:`measured` and the LM's
 state): with 1e5 problems the NumPy bookkeeping of (n, p, p) arrays cost the host more than
 the device's evaluations. The host launches, calls ``evaluate`` and compacts the active set
-from the done flags.
+from the done flags, its one read of an iteration (the trial points stay on the device).
+
+*The secant iteration* (:class:`SecantProblems` with ``secant`` set: the T-matrix problems'
+``jacobian="broyden"``): the problems keep each slot's model values and Jacobian on the
+device; a trial costs the evaluation of its point alone, and its Jacobian is the slot's
+moved by Broyden's rank-one update along the step (the ``update`` kernel's acceptance
+then makes it the slot's, :func:`tawarp.kernels.lm_step.secant_accept_kernel`). A rejected
+step from a secant Jacobian has the slot's Jacobian refreshed (forward differences) before
+the next. When every slot has stopped, those that stopped on a secant Jacobian get the
+fresh one at their solution, whose ``J^T J`` the returned ``H`` is (the covariance's);
+those that stopped on ``xtol`` stop only if the step from it is below ``xtol`` and
+:data:`SECANT_CONFIRM` standard deviations (the ``confirm`` kernel), else they iterate on.
 """
 
 from __future__ import annotations
@@ -64,7 +75,8 @@ class LMProblems(Protocol):
     ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none); every z the LM tries
     is clipped onto them. ``device`` (optional, default the CPU): where the iteration runs.
     ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` of problems ``pid`` (n,) at z
-    (n, p) (NumPy), cost (n,) the weighted sum of squared residuals ``r^T r`` (inf where the
+    (n, p) (NumPy on the CPU; on another device the trial points come as a Warp array
+    there), cost (n,) the weighted sum of squared residuals ``r^T r`` (inf where the
     model fails; a non-finite cost, g or H makes it so), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
     Jacobian in z; NumPy arrays or Warp arrays on ``device``.
@@ -80,6 +92,33 @@ class LMProblems(Protocol):
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = ...) -> tuple: ...
 
     def change_rule(self) -> tuple: ...
+
+
+class SecantProblems(LMProblems, Protocol):
+    """:class:`LMProblems` that run the secant iteration (module doc) where ``secant`` is
+    True (:class:`tawarp.fit.estimate.Problems`). ``dof``: the residuals' degrees of
+    freedom (s^2 = F / dof). ``secant_store(Q)``: the device store of Q slots' model values
+    and Jacobians (:class:`tawarp.kernels.lm.Secant`). ``evaluate_start(pid, z, store,
+    max_sets)``: ``(cost, raw, g, H)`` at the starts with forward-difference Jacobians, into
+    the store. ``evaluate_trial(ids, trial, store, max_sets)``: the trials'
+    (:class:`tawarp.kernels.lm_step.Trial`, ``ids`` their data indices on the device) normal
+    equations into ``trial.at_zt``, with the Jacobians updated by the steps.
+    ``refresh(slots, pid, state, store, max_sets)``: forward-difference Jacobians of the
+    slots at their z of ``state`` (:class:`tawarp.kernels.lm_step.Iterate`), into the store
+    and the state's normal equations."""
+
+    secant: bool
+    dof: int
+
+    def secant_store(self, Q: int): ...
+
+    def evaluate_start(self, pid: np.ndarray, z: np.ndarray, store, max_sets: int = ...) -> tuple: ...
+
+    def evaluate_trial(self, ids: wp.array, trial: lm_step.Trial, store, max_sets: int = ...) -> None: ...
+
+    def refresh(
+        self, slots: np.ndarray, pid: np.ndarray, state: lm_step.Iterate, store, max_sets: int = ...
+    ) -> None: ...
 
 
 def _device_array(a, device, dtype=wp.float64, own=False) -> wp.array:
