@@ -226,27 +226,23 @@ def step_kernels(p: int):
             state.converged[q] = 1
             done[q] = 1
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def propose(setup: Setup, state: Iterate, trial: Trial):
-        s = wp.tid()
-        q = int(trial.act[s])
+    @wp.func
+    def damped_solve(setup: Setup, state: Iterate, q: int, rhs_in: vecp):
+        """x solving (H + mu I) x = rhs_in on the free components of slot q (x = 0 on the
+        others; identity rows and columns there), by Cholesky with sums in index order (the
+        host's reductions); ok = 0 where a pivot is <= 0 (or NaN): not positive definite."""
         b = int(setup.pid[q])
-        zlo = setup.zlo
-        zhi = setup.zhi
         z = state.z
         g = state.at_z.g
         H = state.at_z.H
-        zt = trial.zt
-        dz = trial.dz
-        # A = H + mu I on the free components, identity rows/columns elsewhere, rhs -g
         fr = veci()
         for a in range(P):
-            fr[a] = is_free(z[q, a], g[q, a], zlo[b, a], zhi[b, a])
+            fr[a] = is_free(z[q, a], g[q, a], setup.zlo[b, a], setup.zhi[b, a])
         A = matp()
         rhs = vecp()
         for i in range(P):
             if fr[i] == 1:
-                rhs[i] = -g[q, i]
+                rhs[i] = rhs_in[i]
             for j in range(P):
                 if fr[i] == 1 and fr[j] == 1:
                     A[i, j] = H[q, i, j]
@@ -254,8 +250,6 @@ def step_kernels(p: int):
                         A[i, j] = H[q, i, j] + state.mu[q]
                 elif i == j:
                     A[i, j] = wp.float64(1.0)
-        # Cholesky A = L L^T, sums in index order (the host's reductions); a pivot <= 0
-        # (or NaN) marks A as not positive definite and the step as 0
         L = matp()
         ok = int(1)
         for j in range(P):
@@ -285,18 +279,26 @@ def step_kernels(p: int):
             for k in range(i + 1, P):
                 acc += L[k, i] * x[k]
             x[i] = (y[i] - acc) / L[i, i]
-        gd = wp.float64(0.0)
-        dHd = wp.float64(0.0)
+        return x, ok
+
+    @wp.func
+    def take_step(setup: Setup, state: Iterate, trial: Trial, s: int, q: int, step: vecp):
+        """Trial s of slot q at z + step projected onto the bounds: its zt, dz and the
+        predicted decrease -(2 g.dz + dz.H.dz)."""
+        b = int(setup.pid[q])
+        z = state.z
+        g = state.at_z.g
+        H = state.at_z.H
+        zt = trial.zt
+        dz = trial.dz
         for a in range(P):
-            step = x[a]
-            if ok == 0:
-                step = wp.float64(0.0)
-            t = wp.min(wp.max(z[q, a] + step, zlo[b, a]), zhi[b, a])
+            t = wp.min(wp.max(z[q, a] + step[a], setup.zlo[b, a]), setup.zhi[b, a])
             zt[s, a] = t
             dz[s, a] = t - z[q, a]
         # g.dz in two interleaved partial sums, even and odd components (NumPy einsum's
         # order: the device takes the same decisions as the host LM it replaced, to the bit
         # on the CPU for p < 8)
+        gd = wp.float64(0.0)
         gd_odd = wp.float64(0.0)
         for a in range(P):
             if a % 2 == 0:
@@ -304,11 +306,49 @@ def step_kernels(p: int):
             else:
                 gd_odd += g[q, a] * dz[s, a]
         gd = gd + gd_odd
+        dHd = wp.float64(0.0)
         for a in range(P):
             for c in range(P):
                 dHd += dz[s, a] * H[q, a, c] * dz[s, c]
         trial.pred[s] = -(wp.float64(2.0) * gd + dHd)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def propose(setup: Setup, state: Iterate, trial: Trial):
+        s = wp.tid()
+        q = int(trial.act[s])
+        g = state.at_z.g
+        minus_g = vecp()
+        for a in range(P):
+            minus_g[a] = -g[q, a]
+        x, ok = damped_solve(setup, state, q, minus_g)
+        if ok == 0:
+            x = vecp()
+        take_step(setup, state, trial, s, q, x)
         trial.chol_ok[s] = ok
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accelerate(setup: Setup, state: Iterate, trial: Trial, curvature: wp.array2d(dtype=wp.float64)):
+        """Geodesic acceleration of ``propose``'s step v (Transtrum & Sethna 2012): with
+        ``curvature[s]`` = J^T r_vv (r_vv the residuals' second derivative along v), the
+        trial moves to z + v + a / 2, a = -(H + mu I)^-1 J^T r_vv; slots with no curvature
+        (all 0) or no step keep theirs."""
+        s = wp.tid()
+        q = int(trial.act[s])
+        c = vecp()
+        some = int(0)
+        for a in range(P):
+            c[a] = -curvature[s, a]
+            if curvature[s, a] != wp.float64(0.0):
+                some = 1
+        if some == 0 or trial.chol_ok[s] == 0:
+            return
+        x, ok = damped_solve(setup, state, q, c)
+        if ok == 0:
+            return
+        step = vecp()
+        for a in range(P):
+            step[a] = trial.dz[s, a] + wp.float64(0.5) * x[a]
+        take_step(setup, state, trial, s, q, step)
 
     @wp.kernel(enable_backward=False, module="unique")
     def update(setup: Setup, state: Iterate, trial: Trial, done: wp.array(dtype=wp.int32)):
@@ -395,7 +435,7 @@ def step_kernels(p: int):
             state.converged[q] = 0
             again[s] = 1
 
-    _STEP_KERNELS[p] = (init, propose, update, confirm)
+    _STEP_KERNELS[p] = (init, propose, update, confirm, accelerate)
     return _STEP_KERNELS[p]
 
 

@@ -240,7 +240,7 @@ def levenberg_marquardt(
     if p == 0:
         raise ValueError("levenberg_marquardt: no free parameters")
     dev = wp.get_device(getattr(prob, "device", "cpu"))
-    init, propose, update, confirm = lm_step.step_kernels(p)
+    init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
     secant = bool(getattr(prob, "secant", False))
     pid = np.asarray(pid)
     setup = _setup(prob, pid, dev, damping, tau, xtol, gtol, max_iter)
