@@ -132,6 +132,21 @@ class NormalEquations:
     H: wp.array3d(dtype=wp.float64)
 
 
+@wp.func
+def second_pair(k: int, p: int):
+    """The parameters (a, b) that the set k of a second-difference group moves: k < p is
+    z + h e_k (a = k, b = -1), then z + h (e_a + e_b) for a <= b in row order (p (p + 1) / 2
+    sets; a = b is z + 2 h e_a)."""
+    if k < p:
+        return k, -1
+    r = k - p
+    for a in range(p):
+        if r < p - a:
+            return a, a + r
+        r -= p - a
+    return -1, -1
+
+
 @wp.kernel(enable_backward=False)
 def build_sets(
     slots: Slots,
@@ -147,7 +162,9 @@ def build_sets(
     1 + a is z + step e_a; the point and its p neighbours with ``first`` = 0 and 1 + p sets,
     the point alone with 1 set, the neighbours alone with ``first`` = 1 and p sets), or with
     ``central`` = 1 set j = 1 + 2a, 2 + 2a is z +- step e_a (1 + 2p sets: the tangent
-    pass's neighbours, :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r]
+    pass's neighbours, :meth:`tawarp.model.forward.Engine.evaluate_tangents`), or with
+    ``central`` = 2 set j >= 1 is the point of second differences k = j - 1
+    (:func:`second_pair`: z + step e_a, then z + step (e_a + e_b), a <= b). row_src[r]
     >= 0 names the free parameter a = row_src[r] (value from z, perturbed in its sets),
     row_src[r] < 0 the per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
     col = wp.tid()
@@ -155,6 +172,7 @@ def build_sets(
     step = slots.step
     scale = scaling.scale
     offset = scaling.offset
+    p = z.shape[1]
     sets = varying.shape[1] // slots.ids.shape[0]
     slot = col // sets
     j = col - slot * sets + first
@@ -167,10 +185,16 @@ def build_sets(
             zz = z[slot, a]
             if central == 0 and j == a + 1:
                 zz = zz + step[slot, a]
-            if central != 0 and j == 1 + 2 * a:
+            if central == 1 and j == 1 + 2 * a:
                 zz = zz + step[slot, a]
-            if central != 0 and j == 2 + 2 * a:
+            if central == 1 and j == 2 + 2 * a:
                 zz = zz - step[slot, a]
+            if central == 2 and j >= 1:
+                pa, pb = second_pair(j - 1, p)
+                if pa == a:
+                    zz = zz + step[slot, a]
+                if pb == a:
+                    zz = zz + step[slot, a]
             if scaling.kind[a] == KIND_LOG:
                 varying[r, col] = scale[pid, a] * wp.exp(zz)
             else:
@@ -269,12 +293,17 @@ class Secant:
     (8 f + k) p + a), rows first so that neighbouring slots' threads read neighbouring
     words; ``fresh`` (Q,) 1 while ``dT`` is the forward-difference Jacobian at z, 0 once a
     rank-one update made it; ``trial`` (8m, Q) the values at the trial of the launch's
-    slot s (column s)."""
+    slot s (column s); ``second`` (Q,) the column of ``d2T`` (8m p (p + 1) / 2, G) that
+    holds the second derivatives of the T-matrices at the slot's start (row (8 f + k) p
+    (p + 1) / 2 + c, c the pair a <= b in row order), -1 for none or once its first trial
+    used them."""
 
     T: wp.array2d(dtype=wp.float64)
     dT: wp.array2d(dtype=wp.float64)
     fresh: wp.array(dtype=wp.int32)
     trial: wp.array2d(dtype=wp.float64)
+    second: wp.array(dtype=wp.int32)
+    d2T: wp.array2d(dtype=wp.float64)
 
 
 @wp.kernel(enable_backward=False)
@@ -321,6 +350,26 @@ def secant_kernels(p: int):
     P = wp.constant(p)
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+
+    NPAIR = wp.constant(p * (p + 1) // 2)
+
+    @wp.func
+    def pair_index(a: int, b: int):
+        """The column c of the pair (a, b) (either order) among the p (p + 1) / 2 second
+        derivatives (a <= b in row order)."""
+        lo = wp.min(a, b)
+        return lo * P - lo * (lo - 1) // 2 + wp.max(a, b) - lo
+
+    @wp.func
+    def taylor_row(store: Secant, row: int, q: int, jr: vecp, dz: vecp):
+        """One row of the Jacobian at z + dz from the slot's second derivatives at z:
+        J + d2T dz."""
+        g = store.second[q]
+        out = jr
+        for a in range(P):
+            for b in range(P):
+                out[a] += store.d2T[row * NPAIR + pair_index(a, b), g] * dz[b]
+        return out
 
     @wp.func
     def broyden_row(jr: vecp, dt: wp.float64, dz: vecp, inv_dz2: wp.float64):
@@ -409,7 +458,10 @@ def secant_kernels(p: int):
                     if wp.static(TRIAL):
                         t_new = out[s, f, k]
                         store.trial[row, e] = t_new
-                        jr = broyden_row(jr, t_new - t, dz, inv_dz2)
+                        if store.second[q] >= 0:
+                            jr = taylor_row(store, row, q, jr, dz)
+                        else:
+                            jr = broyden_row(jr, t_new - t, dz, inv_dz2)
                         t = t_new
                     w = W[wrow, f, k]
                     d = t * fac - Y[pid, f, k]
@@ -430,5 +482,84 @@ def secant_kernels(p: int):
 
         return sums_kernel
 
-    _SECANT_KERNELS[p] = (differences, make_sums(False), make_sums(True), broyden_row)
+    @wp.kernel(enable_backward=False, module="unique")
+    def second_differences(
+        rep: wp.array(dtype=wp.int32),
+        col0: int,
+        h: wp.float64,
+        out: wp.array3d(dtype=wp.float64),
+        store: Secant,
+    ):
+        """Column col0 + g of ``store.d2T``: the second derivatives of the T-matrices at the
+        point of slot ``rep[g]`` (its values in ``store.T``) from the launch's group g of
+        ``second_pair``'s p + p (p + 1) / 2 sets at step h (forward second differences,
+        (T(z + h e_a + h e_b) - T(z + h e_a) - T(z + h e_b) + T(z)) / h^2)."""
+        i = wp.tid()
+        q = rep[i]
+        g = col0 + i
+        g0 = i * (P + NPAIR)
+        inv_h2 = wp.float64(1.0) / (h * h)
+        for f in range(out.shape[1]):
+            for k in range(8):
+                row = f * 8 + k
+                t0 = store.T[row, q]
+                for a in range(P):
+                    for b in range(a, P):
+                        c = pair_index(a, b)
+                        d = out[g0 + P + c, f, k] - out[g0 + a, f, k] - out[g0 + b, f, k] + t0
+                        store.d2T[row * NPAIR + c, g] = d * inv_h2
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def curvature(
+        act: wp.array(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        data: Measured,
+        store: Secant,
+        v: wp.array2d(dtype=wp.float64),
+        jv: wp.array2d(dtype=wp.float64),
+    ):
+        """jv[s] = J^T r_vv of slot act[s] along its step v[s], r_vv = sum_ab v_a v_b
+        d2r/dz_a dz_b from the slot's second derivatives (0 where it has none): the
+        right-hand side of the geodesic acceleration (:mod:`tawarp.kernels.lm_step`)."""
+        s = wp.tid()
+        q = act[s]
+        acc = vecp()
+        g = store.second[q]
+        if g >= 0:
+            pid = ids[s]
+            W = data.W
+            zc = data.zc
+            wrow = pid
+            if W.shape[0] == 1:
+                wrow = 0
+            vs = vecp()
+            for a in range(P):
+                vs[a] = v[s, a]
+            for f in range(data.Y.shape[1]):
+                for k in range(8):
+                    row = f * 8 + k
+                    fac = wp.float64(1.0)
+                    if k == 2 or k == 3:
+                        fac = wp.float64(1.0) / zc[pid]
+                    if k == 4 or k == 5:
+                        fac = zc[pid]
+                    rvv = wp.float64(0.0)
+                    for a in range(P):
+                        for b in range(P):
+                            rvv += vs[a] * vs[b] * store.d2T[row * NPAIR + pair_index(a, b), g]
+                    wf = W[wrow, f, k] * fac
+                    for a in range(P):
+                        acc[a] += (wf * store.dT[row * P + a, q]) * (wf * rvv)
+        for a in range(P):
+            jv[s, a] = acc[a]
+
+    _SECANT_KERNELS[p] = (
+        differences,
+        make_sums(False),
+        make_sums(True),
+        broyden_row,
+        taylor_row,
+        second_differences,
+        curvature,
+    )
     return _SECANT_KERNELS[p]

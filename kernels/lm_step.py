@@ -453,7 +453,7 @@ def secant_accept_kernel(p: int):
         return _SECANT_STEP_KERNELS[p]
     P = wp.constant(p)
     vecp = wp.types.vector(length=p, dtype=wp.float64)
-    broyden_row = secant_kernels(p)[3]
+    broyden_row, taylor_row = secant_kernels(p)[3:5]
 
     @wp.kernel(enable_backward=False, module="unique")
     def accept(store: Secant, trial: Trial, done: wp.array(dtype=wp.int32)):
@@ -472,13 +472,17 @@ def secant_accept_kernel(p: int):
                 for a in range(P):
                     jr[a] = store.dT[row * P + a, q]
                 t_new = store.trial[row, s]
-                jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
+                if store.second[q] >= 0:
+                    jr = taylor_row(store, row, q, jr, dz)
+                else:
+                    jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
                 for a in range(P):
                     store.dT[row * P + a, q] = jr[a]
                 store.T[row, q] = t_new
             store.fresh[q] = 0
         elif done[s] == 0 and store.fresh[q] == 0:
             done[s] = 2
+        store.second[q] = -1  # the second derivatives serve the first trial alone
 
     _SECANT_STEP_KERNELS[p] = accept
     return accept

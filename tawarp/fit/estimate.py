@@ -120,6 +120,9 @@ from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z (``jacobian="difference"``).
 FD_STEP = 1e-6
+#: Step in z of the second differences at a start shared by many problems
+#: (``jacobian="broyden"``): truncation ~1e-4 relative, rounding ~1e-16 / 1e-8.
+SECOND_STEP = 1e-4
 #: Margin on the heat model's decay rate k of the fixed cells :func:`fit` sizes at the
 #: starts (:func:`smooth_settings`): 1.25 leaves room for h to grow 1.56x; the counts are
 #: checked at the solutions, and problems re-run from them where the solutions need more
@@ -370,7 +373,7 @@ class Problems:
         return self.kind, self.scale, self.offset
 
     # -- launches ------------------------------------------------------------------------
-    def _cascade(self, part: klm.Slots, first: int, sets: int):
+    def _cascade(self, part: klm.Slots, first: int, sets: int, layout: int = 0):
         """The T-matrices (k sets, m, 8) of ``sets`` sets per slot of ``part`` (``first`` and
         the set layout: :func:`tawarp.kernels.lm.build_sets`) by plain cascades; counts the
         launch and its sets."""
@@ -380,7 +383,7 @@ class Problems:
             klm.build_sets,
             dim=k * sets,
             device=self.device,
-            inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, 0, first, varying],
+            inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, layout, first, varying],
         )
         self.launches += 1
         self.evaluations += k * sets
@@ -467,6 +470,8 @@ class Problems:
         rec.dT = wp.empty((rows * self.p, Q), dtype=wp.float64, device=dev)
         rec.fresh = wp.zeros(Q, dtype=wp.int32, device=dev)
         rec.trial = wp.empty((rows, Q), dtype=wp.float64, device=dev)
+        rec.second = wp.full(Q, -1, dtype=wp.int32, device=dev)
+        rec.d2T = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         return rec
 
     def evaluate_start(self, pid: np.ndarray, z: np.ndarray, store: klm.Secant, max_sets: int = 1 << 20):
@@ -501,6 +506,7 @@ class Problems:
                     store,
                 ],
             )
+        self._second_derivatives(pid, z, first, group, store, max_sets)
         cost, raw = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
         g, H = wp.empty((Q, p), dtype=wp.float64, device=dev), wp.empty((Q, p, p), dtype=wp.float64, device=dev)
         every = _ints(np.arange(Q), dev)
@@ -520,6 +526,52 @@ class Problems:
             ],
         )
         return cost, raw, g, H
+
+    def _second_derivatives(self, pid, z, first, group, store: klm.Secant, max_sets: int):
+        """The second derivatives of the T-matrices at the starts shared by at least
+        ``2 (p + p (p + 1) / 2)`` slots (``first`` the representative slot of each group of
+        slots with the same sets, ``group`` each slot's), into ``store`` (``d2T``, ``second``):
+        their p + p (p + 1) / 2 extra cascades at step :data:`SECOND_STEP` cost less than
+        the trial that the first step's geodesic acceleration and the Jacobian's Taylor
+        update at the first trial point save each slot (:func:`tawarp.fit.lm.levenberg_marquardt`)."""
+        p, dev = self.p, self.device
+        sets = p + p * (p + 1) // 2
+        size = np.bincount(group, minlength=first.size)
+        shared = np.flatnonzero(size >= 2 * sets)
+        if not shared.size:
+            return
+        reps = first[shared]
+        store.d2T = wp.empty((8 * self.freqs.size * (sets - p), shared.size), dtype=wp.float64, device=dev)
+        column = np.full(first.size, -1, dtype=np.int32)
+        column[shared] = np.arange(shared.size)
+        store.second = _ints(column[group], dev)
+        second_differences = klm.secant_kernels(p)[5]
+        step = np.full((reps.size, p), SECOND_STEP)
+        rep = slots(pid[reps], z[reps], step, dev)
+        per = max(1, max_sets // sets)
+        for lo in range(0, reps.size, per):
+            hi = min(reps.size, lo + per)
+            out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 1, sets, layout=2)
+            wp.launch(
+                second_differences,
+                dim=hi - lo,
+                device=dev,
+                inputs=[_ints(reps[lo:hi], dev), lo, SECOND_STEP, out, store],
+            )
+
+    def curvature(self, ids: wp.array, trial, store: klm.Secant) -> wp.array:
+        """J^T r_vv (n, p) of the trials' slots along their steps v (``trial.dz``), from the
+        second derivatives at their starts (0 for slots without): the geodesic acceleration's
+        right-hand side (:func:`tawarp.kernels.lm.secant_kernels`)."""
+        n, dev = ids.shape[0], self.device
+        jv = wp.empty((n, self.p), dtype=wp.float64, device=dev)
+        wp.launch(
+            klm.secant_kernels(self.p)[6],
+            dim=n,
+            device=dev,
+            inputs=[trial.act, ids, self._data(), store, trial.dz, jv],
+        )
+        return jv
 
     def evaluate_trial(self, ids: wp.array, trial, store: klm.Secant, max_sets: int = 1 << 20):
         """The trials' normal equations into ``trial.at_zt`` (:class:`tawarp.kernels.lm_step.Trial`

@@ -255,6 +255,7 @@ def levenberg_marquardt(
     active = np.flatnonzero(done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
+    first = True
     while True:
         trial = None
         while active.size:
@@ -265,6 +266,10 @@ def levenberg_marquardt(
                 done = wp.empty(n, dtype=wp.int32, device=dev)
             wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
             if secant:
+                if first:  # the starts' second derivatives, where the problems have them
+                    curvature = prob.curvature(ids, trial, store)
+                    wp.launch(accelerate, dim=n, device=dev, inputs=[setup, state, trial, curvature])
+                    first = False
                 prob.evaluate_trial(ids, trial, store, max_sets)
             else:
                 # the trial points stay on a GPU (a NumPy view of them on the CPU)
