@@ -9,7 +9,7 @@ of the bounds and of the change rule; the options), :class:`Iterate` the state (
 ``g = J^T r``, ``H = J^T J``, the damping ``mu``, ``nu``, ``iterations``, ``reason``,
 ``converged``) and :class:`Trial` the step of each active slot.
 
-Four kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
+Five kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
 p x p matrices in registers):
 
 1. ``init`` (one thread per slot): invalid evaluations (a non-finite cost, g or H) become
@@ -24,6 +24,7 @@ p x p matrices in registers):
    reasons in the order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
 4. ``confirm`` (a secant run, :mod:`tawarp.fit.lm`): whether a stop on ``xtol`` stands on
    the fresh Jacobian at the solution.
+5. ``accelerate`` (a secant run's first trials): the geodesic acceleration of the step.
 
 and, in a secant run, :func:`secant_accept_kernel` after ``update``.
 
@@ -143,7 +144,8 @@ _STEP_KERNELS = {}
 
 
 def step_kernels(p: int):
-    """(init, propose, update) kernels for ``p`` parameters per problem (cached per p)."""
+    """(init, propose, update, confirm, accelerate) kernels for ``p`` parameters per problem
+    (cached per p)."""
     if p in _STEP_KERNELS:
         return _STEP_KERNELS[p]
     P = wp.constant(p)

@@ -24,7 +24,10 @@ device; a trial costs the evaluation of its point alone, and its Jacobian is the
 moved by Broyden's rank-one update along the step (the ``update`` kernel's acceptance
 then makes it the slot's, :func:`tawarp.kernels.lm_step.secant_accept_kernel`). A rejected
 step from a secant Jacobian has the slot's Jacobian refreshed (forward differences) before
-the next. When every slot has stopped, those that stopped on a secant Jacobian get the
+the next. A slot whose start's second derivatives the problems made (a start shared by
+many) takes a geodesically accelerated first step (the ``accelerate`` kernel on the
+problems' ``curvature``) and a Taylor-updated Jacobian at its first trial. When every
+slot has stopped, those that stopped on a secant Jacobian get the
 fresh one at their solution, whose ``J^T J`` the returned ``H`` is (the covariance's);
 those that stopped on ``xtol`` stop only if the step from it is below ``xtol`` and
 :data:`SECANT_CONFIRM` standard deviations (the ``confirm`` kernel), else they iterate on.
@@ -105,7 +108,8 @@ class SecantProblems(LMProblems, Protocol):
     equations into ``trial.at_zt``, with the Jacobians updated by the steps.
     ``refresh(slots, pid, state, store, max_sets)``: forward-difference Jacobians of the
     slots at their z of ``state`` (:class:`tawarp.kernels.lm_step.Iterate`), into the store
-    and the state's normal equations."""
+    and the state's normal equations. ``curvature(ids, trial, store)``: J^T r_vv (n, p) of
+    the first trials' steps v (0 where the store has no second derivatives)."""
 
     secant: bool
     dof: int
@@ -119,6 +123,8 @@ class SecantProblems(LMProblems, Protocol):
     def refresh(
         self, slots: np.ndarray, pid: np.ndarray, state: lm_step.Iterate, store, max_sets: int = ...
     ) -> None: ...
+
+    def curvature(self, ids: wp.array, trial: lm_step.Trial, store) -> wp.array: ...
 
 
 def _device_array(a, device, dtype=wp.float64, own=False) -> wp.array:
