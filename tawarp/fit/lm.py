@@ -297,7 +297,8 @@ def levenberg_marquardt(
         # Each solution's Jacobian (whose J^T J gives the covariance) is a fresh
         # forward-difference one at the solution, never a secant one: the slots that ended
         # on a rank-one updated Jacobian get theirs, and those that stopped on xtol stop
-        # only if the step from it is below xtol too (else they iterate on from it).
+        # only if the step from it is below xtol and SECANT_CONFIRM std too (else they
+        # iterate on from it, on the fresh Jacobian).
         stale = np.flatnonzero(store.fresh.numpy() == 0)
         if not stale.size:
             break
