@@ -322,6 +322,17 @@ def difference_steps(
 
 
 @wp.kernel(enable_backward=False)
+def squared_norms(Y: wp.array3d(dtype=wp.float64), y2: wp.array(dtype=wp.float64)):
+    """y2[i] = the sum of Y[i]'s squares (the measured values' sum |Y|^2 of the error measure)."""
+    i = wp.tid()
+    acc = wp.float64(0.0)
+    for f in range(Y.shape[1]):
+        for k in range(Y.shape[2]):
+            acc += Y[i, f, k] * Y[i, f, k]
+    y2[i] = acc
+
+
+@wp.kernel(enable_backward=False)
 def gather_rows(src: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int32), dst: wp.array2d(dtype=wp.float64)):
     """dst[s] = src[index[s]]."""
     s, a = wp.tid()

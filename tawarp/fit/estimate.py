@@ -203,12 +203,6 @@ class Problems:
         if Y.ndim != 3 or Y.shape[1:] != (m, 4):
             raise ValueError(f"Y: shape {Y.shape}; expected (N, {m}, 4) dimensionless coefficients")
         self.N = N = Y.shape[0]
-        # error-measure denominator per problem; one pass over the data that also finds a
-        # NaN or infinity (it makes its problem's sum so)
-        flat = np.ascontiguousarray(Y).view(np.float64).reshape(N, -1)
-        self.y2 = np.einsum("ij,ij->i", flat, flat)
-        if not np.all(np.isfinite(self.y2)) and not np.all(np.isfinite(Y)):
-            raise ValueError("Y: NaN or infinite values")
         self.Y = Y
         self.names = list(names)
         if not self.names or len(set(self.names)) != len(self.names):
@@ -290,6 +284,13 @@ class Problems:
         self.lo, self.hi = lo, hi
         self.set_scale(scale if scale is not None else np.broadcast_to([core.get(k) for k in self.names], (N, self.p)))
         self.w_Y = wp.array(np.ascontiguousarray(Y).view(np.float64).reshape(N, m, 8), dtype=wp.float64, device=dev)
+        # error-measure denominator per problem, summed on the device (on the host it took
+        # longer than the upload); a NaN or infinity makes its problem's sum so
+        w_y2 = wp.empty(N, dtype=wp.float64, device=dev)
+        wp.launch(klm.squared_norms, dim=N, device=dev, inputs=[self.w_Y, w_y2])
+        self.y2 = w_y2.numpy()
+        if not np.all(np.isfinite(self.y2)) and not np.all(np.isfinite(Y)):
+            raise ValueError("Y: NaN or infinite values")
         self.w_W = wp.array(W, dtype=wp.float64, device=dev)
         self.w_zc = wp.array(zc, dtype=wp.float64, device=dev)
         self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
@@ -487,8 +488,11 @@ class Problems:
         Q = len(pid)
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
         key = np.concatenate([self.to_v(z, pid), self.fixed_table[:, pid].T, step], axis=1)
-        _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
-        group = group.reshape(-1)
+        if Q and np.all(key == key[:1]):  # one start for the batch: no sort
+            first, group = np.zeros(1, dtype=np.int64), np.zeros(Q, dtype=np.int64)
+        else:
+            _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+            group = group.reshape(-1)
         differences, sums = klm.secant_kernels(p)[:2]
         sets = 1 + p
         per = max(1, max_sets // sets)
