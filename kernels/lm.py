@@ -22,6 +22,13 @@ launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
 The kernels of step 2 are specialised per ``p`` (a closure with compile-time loop
 bounds), so the Jacobian row and ``H`` live in registers. Everything is float64.
 
+The secant iteration (``jacobian="broyden"``) keeps each problem's T-matrices and their
+Jacobian in a :class:`Secant` store on the device: :func:`build_sets` lays out the point
+alone (a trial), the neighbours alone (a refresh at a point whose values are stored) or
+both (the start), and the kernels of :func:`secant_kernels` make the forward differences
+into the store and the normal equations from it, at a trial point with the Jacobian
+moved by Broyden's rank-one update.
+
 Two small kernels give the host side of the fits what the forward kernels compute,
 from the same Warp functions (no host copy of the physics to drift):
 :func:`magnus_cells` (the cascade's adaptive cell count of each thermal segment) and
@@ -125,6 +132,21 @@ class NormalEquations:
     H: wp.array3d(dtype=wp.float64)
 
 
+@wp.func
+def second_pair(k: int, p: int):
+    """The parameters (a, b) that the set k of a second-difference group moves: k < p is
+    z + h e_k (a = k, b = -1), then z + h (e_a + e_b) for a <= b in row order (p (p + 1) / 2
+    sets; a = b is z + 2 h e_a)."""
+    if k < p:
+        return k, -1
+    r = k - p
+    for a in range(p):
+        if r < p - a:
+            return a, a + r
+        r -= p - a
+    return -1, -1
+
+
 @wp.kernel(enable_backward=False)
 def build_sets(
     slots: Slots,
@@ -132,23 +154,28 @@ def build_sets(
     fixed: wp.array2d(dtype=wp.float64),
     row_src: wp.array(dtype=wp.int32),
     central: int,
+    first: int,
     varying: wp.array2d(dtype=wp.float64),
 ):
-    """varying[r, col]: slot = col // (1 + p) and j = col % (1 + p) (forward differences:
-    set j = 1 + a is z + step e_a), or with ``central`` = 1 slot = col // (1 + 2p) and set
-    j = 1 + 2a, 2 + 2a is z +- step e_a (the tangent pass's neighbours,
-    :meth:`tawarp.model.forward.Engine.evaluate_tangents`). row_src[r] >= 0 names the free
-    parameter a = row_src[r] (value from z, perturbed in its sets), row_src[r] < 0 the
-    per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
+    """varying[r, col]: each slot has ``sets`` = columns / slots consecutive sets, slot =
+    col // sets and set j = first + col % sets of its group: forward differences (set j =
+    1 + a is z + step e_a; the point and its p neighbours with ``first`` = 0 and 1 + p sets,
+    the point alone with 1 set, the neighbours alone with ``first`` = 1 and p sets), or with
+    ``central`` = 1 set j = 1 + 2a, 2 + 2a is z +- step e_a (1 + 2p sets: the tangent
+    pass's neighbours, :meth:`tawarp.model.forward.Engine.evaluate_tangents`), or with
+    ``central`` = 2 set j >= 1 is the point of second differences k = j - 1
+    (:func:`second_pair`: z + step e_a, then z + step (e_a + e_b), a <= b). row_src[r]
+    >= 0 names the free parameter a = row_src[r] (value from z, perturbed in its sets),
+    row_src[r] < 0 the per-problem fixed row -1 - row_src[r]; ``scaling`` gives v from z."""
     col = wp.tid()
     z = slots.z
     step = slots.step
     scale = scaling.scale
     offset = scaling.offset
     p = z.shape[1]
-    sets = (1 + central) * p + 1
+    sets = varying.shape[1] // slots.ids.shape[0]
     slot = col // sets
-    j = col - slot * sets
+    j = col - slot * sets + first
     pid = slots.ids[slot]
     for r in range(row_src.shape[0]):
         a = row_src[r]
@@ -158,10 +185,16 @@ def build_sets(
             zz = z[slot, a]
             if central == 0 and j == a + 1:
                 zz = zz + step[slot, a]
-            if central != 0 and j == 1 + 2 * a:
+            if central == 1 and j == 1 + 2 * a:
                 zz = zz + step[slot, a]
-            if central != 0 and j == 2 + 2 * a:
+            if central == 1 and j == 2 + 2 * a:
                 zz = zz - step[slot, a]
+            if central == 2 and j >= 1:
+                pa, pb = second_pair(j - 1, p)
+                if pa == a:
+                    zz = zz + step[slot, a]
+                if pb == a:
+                    zz = zz + step[slot, a]
             if scaling.kind[a] == KIND_LOG:
                 varying[r, col] = scale[pid, a] * wp.exp(zz)
             else:
@@ -249,3 +282,295 @@ def normal_kernel(p: int, tangents: bool = False):
 
     _NORMAL_KERNELS[key] = normal_equations
     return normal_equations
+
+
+# -- secant (Broyden) Jacobians ------------------------------------------------------------
+@wp.struct
+class Secant:
+    """The model of every slot q (Q slots) of a secant LM run, kept on the device between
+    its iterations: ``T`` (8m, Q) the raw T-matrix values at the slot's z (row 8 f + k: re,
+    im of the four entries at frequency f) and ``dT`` (8m p, Q) their Jacobian in z (row
+    (8 f + k) p + a), rows first so that neighbouring slots' threads read neighbouring
+    words; ``fresh`` (Q,) 1 while ``dT`` is the forward-difference Jacobian at z, 0 once a
+    rank-one update made it; ``trial`` (8m, Q) the values at the trial of the launch's
+    slot s (column s); ``second`` (Q,) the column of ``d2T`` (8m p (p + 1) / 2, G) that
+    holds the second derivatives of the T-matrices at the slot's start (row (8 f + k) p
+    (p + 1) / 2 + c, c the pair a <= b in row order), -1 for none or once its first trial
+    used them."""
+
+    T: wp.array2d(dtype=wp.float64)
+    dT: wp.array2d(dtype=wp.float64)
+    fresh: wp.array(dtype=wp.int32)
+    trial: wp.array2d(dtype=wp.float64)
+    second: wp.array(dtype=wp.int32)
+    d2T: wp.array2d(dtype=wp.float64)
+
+
+@wp.kernel(enable_backward=False)
+def difference_steps(
+    slots: Slots,
+    zhi: wp.array2d(dtype=wp.float64),
+    h: wp.float64,
+    step: wp.array2d(dtype=wp.float64),
+):
+    """step[s, a] = h, or -h where z + h would pass the upper bound ``zhi`` of the slot's
+    problem (forward differences towards the interior)."""
+    s, a = wp.tid()
+    step[s, a] = h
+    if slots.z[s, a] + h > zhi[slots.ids[s], a]:
+        step[s, a] = -h
+
+
+@wp.kernel(enable_backward=False)
+def squared_norms(Y: wp.array3d(dtype=wp.float64), y2: wp.array(dtype=wp.float64)):
+    """y2[i] = the sum of Y[i]'s squares (the measured values' sum |Y|^2 of the error measure)."""
+    i = wp.tid()
+    acc = wp.float64(0.0)
+    for f in range(Y.shape[1]):
+        for k in range(Y.shape[2]):
+            acc += Y[i, f, k] * Y[i, f, k]
+    y2[i] = acc
+
+
+@wp.kernel(enable_backward=False)
+def gather_rows(src: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int32), dst: wp.array2d(dtype=wp.float64)):
+    """dst[s] = src[index[s]]."""
+    s, a = wp.tid()
+    dst[s, a] = src[index[s], a]
+
+
+_SECANT_KERNELS = {}
+
+
+def secant_kernels(p: int):
+    """(differences, sums, trial_sums, broyden_row) for ``p`` free parameters (cached per p).
+
+    ``differences`` (one thread per slot s of a launch, its slot q = ``act[s]``): the
+    forward-difference Jacobian of slot q into the :class:`Secant` store from the launch's
+    T-matrices ``out``: slot s's group starts at set ``group[s]`` (slots with the same
+    sets share a group), with ``point`` = 1 the group is the point and its p neighbours
+    (``T`` is written too), with 0 the neighbours alone (``T`` is read).
+    ``sums`` / ``trial_sums`` (one thread per slot s): the :class:`NormalEquations` (row
+    ``dest[s]``) of the slot at its z from the store, or at its trial point from the launch's
+    T-matrices ``out`` (s, m, 8) with the Jacobian updated by the step ``dz`` (s, p)
+    (Broyden's rank-one update, ``broyden_row``; the trial's values are kept in column
+    ``dest[s]`` of ``Secant.trial``). The residuals are those of :func:`normal_kernel`.
+    """
+    if p in _SECANT_KERNELS:
+        return _SECANT_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+
+    NPAIR = wp.constant(p * (p + 1) // 2)
+
+    @wp.func
+    def pair_index(a: int, b: int):
+        """The column c of the pair (a, b) (either order) among the p (p + 1) / 2 second
+        derivatives (a <= b in row order)."""
+        lo = wp.min(a, b)
+        return lo * P - lo * (lo - 1) // 2 + wp.max(a, b) - lo
+
+    @wp.func
+    def taylor_row(store: Secant, row: int, q: int, jr: vecp, dz: vecp):
+        """One row of the Jacobian at z + dz from the slot's second derivatives at z:
+        J + d2T dz."""
+        g = store.second[q]
+        out = jr
+        for a in range(P):
+            for b in range(P):
+                out[a] += store.d2T[row * NPAIR + pair_index(a, b), g] * dz[b]
+        return out
+
+    @wp.func
+    def broyden_row(jr: vecp, dt: wp.float64, dz: vecp, inv_dz2: wp.float64):
+        """One row of Broyden's update J + (dT - J dz) dz^T / (dz.dz): ``jr`` the row of J,
+        ``dt`` the change of the row's value over the step ``dz`` (inv_dz2 = 1 / dz.dz, 0
+        for no step)."""
+        return jr + (dt - wp.dot(jr, dz)) * inv_dz2 * dz
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def differences(
+        act: wp.array(dtype=wp.int32),
+        group: wp.array(dtype=wp.int32),
+        step: wp.array2d(dtype=wp.float64),
+        point: int,
+        out: wp.array3d(dtype=wp.float64),
+        store: Secant,
+    ):
+        s = wp.tid()
+        q = act[s]
+        g0 = group[s]
+        inv_step = vecp()
+        for a in range(P):
+            inv_step[a] = wp.float64(1.0) / step[s, a]
+        for f in range(out.shape[1]):
+            for k in range(8):
+                row = f * 8 + k
+                t0 = wp.float64(0.0)
+                if point == 1:
+                    t0 = out[g0, f, k]
+                    store.T[row, q] = t0
+                else:
+                    t0 = store.T[row, q]
+                for a in range(P):
+                    store.dT[row * P + a, q] = (out[g0 + point + a, f, k] - t0) * inv_step[a]
+        store.fresh[q] = 1
+
+    def make_sums(trial: bool):
+        TRIAL = wp.constant(trial)
+
+        @wp.kernel(enable_backward=False, module="unique")
+        def sums_kernel(
+            act: wp.array(dtype=wp.int32),
+            ids: wp.array(dtype=wp.int32),
+            data: Measured,
+            store: Secant,
+            out: wp.array3d(dtype=wp.float64),
+            step: wp.array2d(dtype=wp.float64),
+            dest: wp.array(dtype=wp.int32),
+            sums: NormalEquations,
+        ):
+            s = wp.tid()
+            q = act[s]
+            pid = ids[s]
+            e = dest[s]
+            Y = data.Y
+            W = data.W
+            zc = data.zc
+            m = Y.shape[1]
+            dz = vecp()
+            inv_dz2 = wp.float64(0.0)
+            if wp.static(TRIAL):
+                for a in range(P):
+                    dz[a] = step[s, a]
+                d2 = wp.dot(dz, dz)
+                if d2 > wp.float64(0.0):
+                    inv_dz2 = wp.float64(1.0) / d2
+            gv = vecp()
+            Hm = matp()
+            c2 = wp.float64(0.0)
+            u2 = wp.float64(0.0)
+            wrow = pid
+            if W.shape[0] == 1:  # one weight row shared by every problem
+                wrow = 0
+            for f in range(m):
+                for k in range(8):
+                    row = f * 8 + k
+                    fac = wp.float64(1.0)
+                    if k == 2 or k == 3:
+                        fac = wp.float64(1.0) / zc[pid]
+                    if k == 4 or k == 5:
+                        fac = zc[pid]
+                    jr = vecp()
+                    for a in range(P):
+                        jr[a] = store.dT[row * P + a, q]
+                    t = store.T[row, q]
+                    if wp.static(TRIAL):
+                        t_new = out[s, f, k]
+                        store.trial[row, e] = t_new
+                        if store.second[q] >= 0:
+                            jr = taylor_row(store, row, q, jr, dz)
+                        else:
+                            jr = broyden_row(jr, t_new - t, dz, inv_dz2)
+                        t = t_new
+                    w = W[wrow, f, k]
+                    d = t * fac - Y[pid, f, k]
+                    r = w * d
+                    c2 += r * r
+                    u2 += d * d
+                    jw = (w * fac) * jr
+                    for a in range(P):
+                        gv[a] += jw[a] * r
+                        for b in range(P):
+                            Hm[a, b] += jw[a] * jw[b]
+            sums.cost[e] = c2
+            sums.raw[e] = u2
+            for a in range(P):
+                sums.g[e, a] = gv[a]
+                for b in range(P):
+                    sums.H[e, a, b] = Hm[a, b]
+
+        return sums_kernel
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def second_differences(
+        rep: wp.array(dtype=wp.int32),
+        col0: int,
+        h: wp.float64,
+        out: wp.array3d(dtype=wp.float64),
+        store: Secant,
+    ):
+        """Column col0 + g of ``store.d2T``: the second derivatives of the T-matrices at the
+        point of slot ``rep[g]`` (its values in ``store.T``) from the launch's group g of
+        ``second_pair``'s p + p (p + 1) / 2 sets at step h (forward second differences,
+        (T(z + h e_a + h e_b) - T(z + h e_a) - T(z + h e_b) + T(z)) / h^2)."""
+        i = wp.tid()
+        q = rep[i]
+        g = col0 + i
+        g0 = i * (P + NPAIR)
+        inv_h2 = wp.float64(1.0) / (h * h)
+        for f in range(out.shape[1]):
+            for k in range(8):
+                row = f * 8 + k
+                t0 = store.T[row, q]
+                for a in range(P):
+                    for b in range(a, P):
+                        c = pair_index(a, b)
+                        d = out[g0 + P + c, f, k] - out[g0 + a, f, k] - out[g0 + b, f, k] + t0
+                        store.d2T[row * NPAIR + c, g] = d * inv_h2
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def curvature(
+        act: wp.array(dtype=wp.int32),
+        ids: wp.array(dtype=wp.int32),
+        data: Measured,
+        store: Secant,
+        v: wp.array2d(dtype=wp.float64),
+        jv: wp.array2d(dtype=wp.float64),
+    ):
+        """jv[s] = J^T r_vv of slot act[s] along its step v[s], r_vv = sum_ab v_a v_b
+        d2r/dz_a dz_b from the slot's second derivatives (0 where it has none): the
+        right-hand side of the geodesic acceleration (:mod:`tawarp.kernels.lm_step`)."""
+        s = wp.tid()
+        q = act[s]
+        acc = vecp()
+        g = store.second[q]
+        if g >= 0:
+            pid = ids[s]
+            W = data.W
+            zc = data.zc
+            wrow = pid
+            if W.shape[0] == 1:
+                wrow = 0
+            vs = vecp()
+            for a in range(P):
+                vs[a] = v[s, a]
+            for f in range(data.Y.shape[1]):
+                for k in range(8):
+                    row = f * 8 + k
+                    fac = wp.float64(1.0)
+                    if k == 2 or k == 3:
+                        fac = wp.float64(1.0) / zc[pid]
+                    if k == 4 or k == 5:
+                        fac = zc[pid]
+                    rvv = wp.float64(0.0)
+                    for a in range(P):
+                        for b in range(P):
+                            rvv += vs[a] * vs[b] * store.d2T[row * NPAIR + pair_index(a, b), g]
+                    wf = W[wrow, f, k] * fac
+                    for a in range(P):
+                        acc[a] += (wf * store.dT[row * P + a, q]) * (wf * rvv)
+        for a in range(P):
+            jv[s, a] = acc[a]
+
+    _SECANT_KERNELS[p] = (
+        differences,
+        make_sums(False),
+        make_sums(True),
+        broyden_row,
+        taylor_row,
+        second_differences,
+        curvature,
+    )
+    return _SECANT_KERNELS[p]

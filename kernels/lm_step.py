@@ -9,7 +9,7 @@ of the bounds and of the change rule; the options), :class:`Iterate` the state (
 ``g = J^T r``, ``H = J^T J``, the damping ``mu``, ``nu``, ``iterations``, ``reason``,
 ``converged``) and :class:`Trial` the step of each active slot.
 
-Three kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
+Five kernels per ``p`` (:func:`step_kernels`, closures with compile-time loop bounds, the
 p x p matrices in registers):
 
 1. ``init`` (one thread per slot): invalid evaluations (a non-finite cost, g or H) become
@@ -20,8 +20,13 @@ p x p matrices in registers):
    pushing outward takes no part), by Cholesky; the trial ``zt = clip(z + d, zlo, zhi)``,
    ``dz = zt - z`` and the predicted decrease ``pred = -(2 g.dz + dz.H.dz)``.
 3. ``update`` (one thread per active slot, after the problems evaluated the trials):
-   acceptance, damping (Nielsen's or the paper's), the stopping tests and reasons in the
-   order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
+   acceptance (``accepted``), damping (Nielsen's or the paper's), the stopping tests and
+   reasons in the order ``xtol``, ``gtol``, ``bound``, ``stalled``, ``max_iterations``.
+4. ``confirm`` (a secant run, :mod:`tawarp.fit.lm`): whether a stop on ``xtol`` stands on
+   the fresh Jacobian at the solution.
+5. ``accelerate`` (a secant run's first trials): the geodesic acceleration of the step.
+
+and, in a secant run, :func:`secant_accept_kernel` after ``update``.
 
 The relative change of a step compared with ``xtol`` is the problem's own notion, given as
 data per parameter (``Setup.change``: ``kind`` (p,), ``scale`` ``offset`` (N, p)):
@@ -32,7 +37,7 @@ relative change). Everything is float64.
 
 import warp as wp
 
-from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling
+from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling, Secant, secant_kernels
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -59,7 +64,8 @@ class Setup:
     """What stays fixed through a run: per slot q the problem's data index ``pid[q]``, which
     selects the rows of the bounds ``zlo``, ``zhi`` (N, p) and of the ``change`` rule (its
     ``kind`` a CHANGE_* code per parameter); the damping rule (DAMP_*), the initial damping
-    factor ``tau`` and the stopping tests' ``xtol``, ``gtol`` and ``max_iter``."""
+    factor ``tau``, the stopping tests' ``xtol``, ``gtol`` and ``max_iter``, and a secant
+    run's ``confirm`` (``confirm`` kernel)."""
 
     pid: wp.array(dtype=wp.int32)
     zlo: wp.array2d(dtype=wp.float64)
@@ -70,6 +76,7 @@ class Setup:
     xtol: wp.float64
     gtol: wp.float64
     max_iter: int
+    confirm: wp.float64
 
 
 @wp.struct
@@ -91,8 +98,8 @@ class Iterate:
 class Trial:
     """The trial step of every active slot s: ``act[s]`` its slot q, the trial point ``zt``
     (n, p), the step ``dz`` = zt - z, the predicted decrease ``pred``, ``chol_ok`` (0: the
-    damped matrix was not positive definite, no step) and the normal equations ``at_zt``
-    of the evaluated trial."""
+    damped matrix was not positive definite, no step), the normal equations ``at_zt``
+    of the evaluated trial and ``accepted`` (1: the slot moved to it)."""
 
     act: wp.array(dtype=wp.int32)
     zt: wp.array2d(dtype=wp.float64)
@@ -100,6 +107,7 @@ class Trial:
     pred: wp.array(dtype=wp.float64)
     chol_ok: wp.array(dtype=wp.int32)
     at_zt: NormalEquations
+    accepted: wp.array(dtype=wp.int32)
 
 
 @wp.func
@@ -136,7 +144,8 @@ _STEP_KERNELS = {}
 
 
 def step_kernels(p: int):
-    """(init, propose, update) kernels for ``p`` parameters per problem (cached per p)."""
+    """(init, propose, update, confirm, accelerate) kernels for ``p`` parameters per problem
+    (cached per p)."""
     if p in _STEP_KERNELS:
         return _STEP_KERNELS[p]
     P = wp.constant(p)
@@ -175,6 +184,24 @@ def step_kernels(p: int):
             return c
         return wp.float64(wp.inf)
 
+    @wp.func
+    def relative_change(setup: Setup, b: int, trial: Trial, s: int):
+        """The largest relative change of the parameters of trial s (problem b) over its
+        step, by the change rule (module doc)."""
+        scale = setup.change.scale
+        offset = setup.change.offset
+        dz = trial.dz
+        rel = wp.float64(0.0)
+        for a in range(P):
+            k = setup.change.kind[a]
+            r = wp.abs(dz[s, a])
+            if k == CHANGE_LOG:
+                r = wp.abs(expm1(dz[s, a]))
+            elif k == CHANGE_LINEAR:
+                r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * trial.zt[s, a]), wp.float64(1e-300))
+            rel = nan_max(rel, r)
+        return rel
+
     @wp.kernel(enable_backward=False, module="unique")
     def init(setup: Setup, state: Iterate, done: wp.array(dtype=wp.int32)):
         q = wp.tid()
@@ -201,27 +228,23 @@ def step_kernels(p: int):
             state.converged[q] = 1
             done[q] = 1
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def propose(setup: Setup, state: Iterate, trial: Trial):
-        s = wp.tid()
-        q = int(trial.act[s])
+    @wp.func
+    def damped_solve(setup: Setup, state: Iterate, q: int, rhs_in: vecp):
+        """x solving (H + mu I) x = rhs_in on the free components of slot q (x = 0 on the
+        others; identity rows and columns there), by Cholesky with sums in index order (the
+        host's reductions); ok = 0 where a pivot is <= 0 (or NaN): not positive definite."""
         b = int(setup.pid[q])
-        zlo = setup.zlo
-        zhi = setup.zhi
         z = state.z
         g = state.at_z.g
         H = state.at_z.H
-        zt = trial.zt
-        dz = trial.dz
-        # A = H + mu I on the free components, identity rows/columns elsewhere, rhs -g
         fr = veci()
         for a in range(P):
-            fr[a] = is_free(z[q, a], g[q, a], zlo[b, a], zhi[b, a])
+            fr[a] = is_free(z[q, a], g[q, a], setup.zlo[b, a], setup.zhi[b, a])
         A = matp()
         rhs = vecp()
         for i in range(P):
             if fr[i] == 1:
-                rhs[i] = -g[q, i]
+                rhs[i] = rhs_in[i]
             for j in range(P):
                 if fr[i] == 1 and fr[j] == 1:
                     A[i, j] = H[q, i, j]
@@ -229,8 +252,6 @@ def step_kernels(p: int):
                         A[i, j] = H[q, i, j] + state.mu[q]
                 elif i == j:
                     A[i, j] = wp.float64(1.0)
-        # Cholesky A = L L^T, sums in index order (the host's reductions); a pivot <= 0
-        # (or NaN) marks A as not positive definite and the step as 0
         L = matp()
         ok = int(1)
         for j in range(P):
@@ -260,18 +281,26 @@ def step_kernels(p: int):
             for k in range(i + 1, P):
                 acc += L[k, i] * x[k]
             x[i] = (y[i] - acc) / L[i, i]
-        gd = wp.float64(0.0)
-        dHd = wp.float64(0.0)
+        return x, ok
+
+    @wp.func
+    def take_step(setup: Setup, state: Iterate, trial: Trial, s: int, q: int, step: vecp):
+        """Trial s of slot q at z + step projected onto the bounds: its zt, dz and the
+        predicted decrease -(2 g.dz + dz.H.dz)."""
+        b = int(setup.pid[q])
+        z = state.z
+        g = state.at_z.g
+        H = state.at_z.H
+        zt = trial.zt
+        dz = trial.dz
         for a in range(P):
-            step = x[a]
-            if ok == 0:
-                step = wp.float64(0.0)
-            t = wp.min(wp.max(z[q, a] + step, zlo[b, a]), zhi[b, a])
+            t = wp.min(wp.max(z[q, a] + step[a], setup.zlo[b, a]), setup.zhi[b, a])
             zt[s, a] = t
             dz[s, a] = t - z[q, a]
         # g.dz in two interleaved partial sums, even and odd components (NumPy einsum's
         # order: the device takes the same decisions as the host LM it replaced, to the bit
         # on the CPU for p < 8)
+        gd = wp.float64(0.0)
         gd_odd = wp.float64(0.0)
         for a in range(P):
             if a % 2 == 0:
@@ -279,11 +308,49 @@ def step_kernels(p: int):
             else:
                 gd_odd += g[q, a] * dz[s, a]
         gd = gd + gd_odd
+        dHd = wp.float64(0.0)
         for a in range(P):
             for c in range(P):
                 dHd += dz[s, a] * H[q, a, c] * dz[s, c]
         trial.pred[s] = -(wp.float64(2.0) * gd + dHd)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def propose(setup: Setup, state: Iterate, trial: Trial):
+        s = wp.tid()
+        q = int(trial.act[s])
+        g = state.at_z.g
+        minus_g = vecp()
+        for a in range(P):
+            minus_g[a] = -g[q, a]
+        x, ok = damped_solve(setup, state, q, minus_g)
+        if ok == 0:
+            x = vecp()
+        take_step(setup, state, trial, s, q, x)
         trial.chol_ok[s] = ok
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accelerate(setup: Setup, state: Iterate, trial: Trial, curvature: wp.array2d(dtype=wp.float64)):
+        """Geodesic acceleration of ``propose``'s step v (Transtrum & Sethna 2012): with
+        ``curvature[s]`` = J^T r_vv (r_vv the residuals' second derivative along v), the
+        trial moves to z + v + a / 2, a = -(H + mu I)^-1 J^T r_vv; slots with no curvature
+        (all 0) or no step keep theirs."""
+        s = wp.tid()
+        q = int(trial.act[s])
+        c = vecp()
+        some = int(0)
+        for a in range(P):
+            c[a] = -curvature[s, a]
+            if curvature[s, a] != wp.float64(0.0):
+                some = 1
+        if some == 0 or trial.chol_ok[s] == 0:
+            return
+        x, ok = damped_solve(setup, state, q, c)
+        if ok == 0:
+            return
+        step = vecp()
+        for a in range(P):
+            step[a] = trial.dz[s, a] + wp.float64(0.5) * x[a]
+        take_step(setup, state, trial, s, q, step)
 
     @wp.kernel(enable_backward=False, module="unique")
     def update(setup: Setup, state: Iterate, trial: Trial, done: wp.array(dtype=wp.int32)):
@@ -294,10 +361,7 @@ def step_kernels(p: int):
         new = trial.at_zt
         nu = state.nu
         zt = trial.zt
-        dz = trial.dz
         pred = trial.pred
-        scale = setup.change.scale
-        offset = setup.change.offset
         c_new = valid(new, s)
         c_old = now.cost[q]
         rho = wp.float64(-1.0)
@@ -306,6 +370,7 @@ def step_kernels(p: int):
         acc = trial.chol_ok[s] == 1 and wp.isfinite(c_new) and rho > wp.float64(0.0) and c_new < c_old
         it = state.iterations[q] + 1
         state.iterations[q] = it
+        trial.accepted[s] = int(acc)
         # accepted: move, take the trial's Jacobian
         if acc:
             for a in range(P):
@@ -331,15 +396,7 @@ def step_kernels(p: int):
                 m = m * wp.float64(2.0)
         state.mu[q] = m
         # convergence tests
-        rel = wp.float64(0.0)
-        for a in range(P):
-            k = setup.change.kind[a]
-            r = wp.abs(dz[s, a])
-            if k == CHANGE_LOG:
-                r = wp.abs(expm1(dz[s, a]))
-            elif k == CHANGE_LINEAR:
-                r = scale[b, a] * r / wp.max(wp.abs(offset[b, a] + scale[b, a] * zt[s, a]), wp.float64(1e-300))
-            rel = nan_max(rel, r)
+        rel = relative_change(setup, b, trial, s)
         cq = now.cost[q]
         gcos, nfree = grad_cosine(setup, state, q, cq)
         why = int(0)
@@ -365,5 +422,69 @@ def step_kernels(p: int):
             state.converged[q] = good
             done[s] = 1
 
-    _STEP_KERNELS[p] = (init, propose, update)
+    @wp.kernel(enable_backward=False, module="unique")
+    def confirm(setup: Setup, state: Iterate, trial: Trial, again: wp.array(dtype=wp.int32)):
+        """Slots that stopped on ``xtol`` with a secant Jacobian, after the fresh one at z
+        replaced it (``trial``: ``propose``'s step with it): the stop stands where that step
+        is below ``xtol`` too and its predicted decrease of the cost below ``confirm`` F,
+        else the slot iterates again (``again[s]`` = 1)."""
+        s = wp.tid()
+        q = int(trial.act[s])
+        again[s] = 0
+        small = relative_change(setup, int(setup.pid[q]), trial, s) < setup.xtol
+        if not (small and trial.pred[s] <= setup.confirm * state.at_z.cost[q]):
+            state.reason[q] = 0
+            state.converged[q] = 0
+            again[s] = 1
+
+    _STEP_KERNELS[p] = (init, propose, update, confirm, accelerate)
     return _STEP_KERNELS[p]
+
+
+_SECANT_STEP_KERNELS = {}
+
+
+def secant_accept_kernel(p: int):
+    """The kernel (cached per p) that follows ``update`` in a secant LM run (one thread per
+    active slot s): an accepted trial's values and its rank-one updated Jacobian
+    (:func:`tawarp.kernels.lm.secant_kernels`' ``broyden_row``, the update the trial's sums
+    were made with) become the slot's in the :class:`~tawarp.kernels.lm.Secant` store; a
+    rejected trial from a secant Jacobian sets ``done[s]`` = 2: the slot's Jacobian is to be
+    refreshed by differences before its next step (the rejection may be the secant's fault)."""
+    if p in _SECANT_STEP_KERNELS:
+        return _SECANT_STEP_KERNELS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    broyden_row, taylor_row = secant_kernels(p)[3:5]
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accept(store: Secant, trial: Trial, done: wp.array(dtype=wp.int32)):
+        s = wp.tid()
+        q = int(trial.act[s])
+        if trial.accepted[s] == 1:
+            dz = vecp()
+            for a in range(P):
+                dz[a] = trial.dz[s, a]
+            d2 = wp.dot(dz, dz)
+            inv_dz2 = wp.float64(0.0)
+            if d2 > wp.float64(0.0):
+                inv_dz2 = wp.float64(1.0) / d2
+            for row in range(store.T.shape[0]):
+                jr = vecp()
+                for a in range(P):
+                    jr[a] = store.dT[row * P + a, q]
+                t_new = store.trial[row, s]
+                if store.second[q] >= 0:
+                    jr = taylor_row(store, row, q, jr, dz)
+                else:
+                    jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
+                for a in range(P):
+                    store.dT[row * P + a, q] = jr[a]
+                store.T[row, q] = t_new
+            store.fresh[q] = 0
+        elif done[s] == 0 and store.fresh[q] == 0:
+            done[s] = 2
+        store.second[q] = -1  # the second derivatives serve the first trial alone
+
+    _SECANT_STEP_KERNELS[p] = accept
+    return accept

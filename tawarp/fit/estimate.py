@@ -35,21 +35,39 @@ treats r ~ 1e-4 m and h ~ 1e2 W/(m^2 K) alike.
 thermal segments at uniform temperature in closed form (:func:`cold_batch`): the same
 model to rounding, without the Magnus cascade.
 
-*One iteration = one forward launch* per active problem: the trial point and its
-Jacobian. With ``jacobian="tangent"`` (the default on the CPU) the Jacobian is carried
-through the cascade with the value (:meth:`tawarp.model.forward.Engine.evaluate_tangents`):
-each problem's point and its 2p neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates)
+*One iteration = one forward launch* per active problem. The default where the problems
+cascade, ``jacobian="broyden"``, evaluates the trial point alone (one cascade) and moves
+the problem's Jacobian by Broyden's rank-one update along the step (a secant method:
+Broyden 1965; Madsen, Nielsen & Tingleff 2004, Sect. 3.4); the T-matrices and Jacobian of
+every problem stay on the device between iterations (:class:`tawarp.kernels.lm.Secant`).
+Forward differences (p cascades beside the point's, step 1e-6 in z, towards the interior at
+a bound; ~1e-6) make the Jacobian at the start (once for problems that start from the same
+set: a batch with one start shares the evaluation), after a rejected secant step, and at
+every solution: the covariance is computed from a fresh forward-difference Jacobian, never
+a secant one, and a solution found on secant steps stands only where the Gauss-Newton step
+from that fresh Jacobian is below xtol and under 0.1 standard deviations long
+(:data:`tawarp.fit.lm.SECANT_CONFIRM`), else the problem iterates on from it. A start
+shared by many problems also gets its second derivatives (forward second differences,
+step :data:`SECOND_STEP`, p + p (p + 1) / 2 cascades once), which give each problem's
+first step a geodesic acceleration (Transtrum & Sethna 2012) and its Jacobian at the
+first trial a Taylor update. The heat workload of ``bench/fit.py`` takes 6.2 cascades per
+fit this way (64 problems; 6.0 for 1e5) and 3 iterations, instead of 20 and 4.
+``jacobian="difference"`` (the default at Q = 0 on a GPU, where the closed form makes an
+evaluation cheap and the secant's extra iterations cost more) evaluates each trial with
+its forward-difference Jacobian, ``1 + p`` cascades per problem; with
+``jacobian="tangent"`` (the default at Q = 0 on the CPU) the Jacobian is carried through
+the cascade with the value (:meth:`tawarp.model.forward.Engine.evaluate_tangents`): each
+problem's point and its 2p neighbours z +- 1e-5 e_a (1e-4 when the heat solve iterates)
 get their heat solve and Gauss-point coefficients, whose central differences seed the
 tangents of one cascade per frequency (the pore functions are shared; exact to ~1e-10
-against a converged central difference of the whole model). ``jacobian="difference"`` and
-the default on a GPU take forward differences, ``1 + p`` cascades per problem (step 1e-6 in
-z, towards the interior at a bound; ~1e-6). Each default is the faster on its device
-(measured: bench/README.md, section "tawarp/fit/estimate.py"). If the trial is accepted its
-Jacobian is already there; a rejected trial wastes its Jacobian but no launch.
-:mod:`tawarp.kernels.lm` builds the sets from z on the device and reduces the T-matrices
-to ``F``, ``g = J^T r`` and ``H = J^T J`` per problem, which stay there: the damped
-solves (Cholesky), acceptance, damping updates and stopping tests run on the device too
-(:mod:`tawarp.kernels.lm_step`).
+against a converged central difference of the whole model). Measured: bench/README.md,
+section "tawarp/fit/estimate.py". With both, an accepted trial's Jacobian is already
+there; a rejected trial wastes its Jacobian but no launch. :mod:`tawarp.kernels.lm` builds
+the sets from z on the device and reduces the T-matrices to ``F``, ``g = J^T r`` and
+``H = J^T J`` per problem, which stay there: the damped solves (Cholesky), acceptance,
+damping updates and stopping tests run on the device too (:mod:`tawarp.kernels.lm_step`),
+and the trial points are not read back: an iteration's one host round trip reads the
+problems' done flags (beside the cascade's own read of its largest point count).
 
 *Damping.* ``damping="nielsen"`` (default): mu *= max(1/3, 1 - (2 rho - 1)^3) on success,
 mu *= nu, nu *= 2 on failure (Nielsen 1999; Madsen, Nielsen & Tingleff 2004).
@@ -109,6 +127,9 @@ from .result import FitResult, ProblemWarnings
 
 #: Forward-difference step in the scaled variable z (``jacobian="difference"``).
 FD_STEP = 1e-6
+#: Step in z of the second differences at a start shared by many problems
+#: (``jacobian="broyden"``): truncation ~1e-4 relative, rounding ~1e-16 / 1e-8.
+SECOND_STEP = 1e-4
 #: Margin on the heat model's decay rate k of the fixed cells :func:`fit` sizes at the
 #: starts (:func:`smooth_settings`): 1.25 leaves room for h to grow 1.56x; the counts are
 #: checked at the solutions, and problems re-run from them where the solutions need more
@@ -185,12 +206,6 @@ class Problems:
         if Y.ndim != 3 or Y.shape[1:] != (m, 4):
             raise ValueError(f"Y: shape {Y.shape}; expected (N, {m}, 4) dimensionless coefficients")
         self.N = N = Y.shape[0]
-        # error-measure denominator per problem; one pass over the data that also finds a
-        # NaN or infinity (it makes its problem's sum so)
-        flat = np.ascontiguousarray(Y).view(np.float64).reshape(N, -1)
-        self.y2 = np.einsum("ij,ij->i", flat, flat)
-        if not np.all(np.isfinite(self.y2)) and not np.all(np.isfinite(Y)):
-            raise ValueError("Y: NaN or infinite values")
         self.Y = Y
         self.names = list(names)
         if not self.names or len(set(self.names)) != len(self.names):
@@ -229,9 +244,9 @@ class Problems:
             if device is not None
             else (settings or ForwardSettings())
         )
-        self.engine = get_engine(
-            _cold_core(core) if cold_batch(q, engine_names) else core, self.freqs, engine_names, self.settings
-        )
+        #: every problem unheated: the closed form instead of the cascade (:func:`cold_batch`)
+        self.cold = cold_batch(q, engine_names)
+        self.engine = get_engine(_cold_core(core) if self.cold else core, self.freqs, engine_names, self.settings)
         self.device = self.engine.device
         dev = self.device
         fixed_table = np.stack([q] + [fixed[k] for k in fixed])
@@ -272,37 +287,56 @@ class Problems:
         self.lo, self.hi = lo, hi
         self.set_scale(scale if scale is not None else np.broadcast_to([core.get(k) for k in self.names], (N, self.p)))
         self.w_Y = wp.array(np.ascontiguousarray(Y).view(np.float64).reshape(N, m, 8), dtype=wp.float64, device=dev)
+        # error-measure denominator per problem, summed on the device (on the host it took
+        # longer than the upload); a NaN or infinity makes its problem's sum so
+        w_y2 = wp.empty(N, dtype=wp.float64, device=dev)
+        wp.launch(klm.squared_norms, dim=N, device=dev, inputs=[self.w_Y, w_y2])
+        self.y2 = w_y2.numpy()
+        if not np.all(np.isfinite(self.y2)) and not np.all(np.isfinite(Y)):
+            raise ValueError("Y: NaN or infinite values")
         self.w_W = wp.array(W, dtype=wp.float64, device=dev)
         self.w_zc = wp.array(zc, dtype=wp.float64, device=dev)
         self.w_fixed = wp.array(np.ascontiguousarray(fixed_table), dtype=wp.float64, device=dev)
         self.w_row_src = wp.array(np.array(row_src, dtype=np.int32), dtype=wp.int32, device=dev)
         self.w_kind = wp.array(self.kind, dtype=wp.int32, device=dev)
-        self.tangents = self._use_tangents(jacobian)
+        #: how the Jacobians are made: "tangent", "difference" or "broyden" (:meth:`_jacobian_kind`)
+        self.jacobian = self._jacobian_kind(jacobian)
+        self.tangents = self.jacobian == "tangent"
+        #: :func:`levenberg_marquardt` runs the secant iteration (:class:`~tawarp.fit.lm.SecantProblems`)
+        self.secant = self.jacobian == "broyden"
+        #: degrees of freedom of a problem's residuals (8 m real values, p parameters)
+        self.dof = max(8 * m - self.p, 1)
         self.normal = klm.normal_kernel(self.p, self.tangents)
+        self.fixed_table = fixed_table
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
+        self._no_out, self._no_step = (
+            wp.zeros((1, 1, 1), dtype=wp.float64, device=dev),
+            wp.zeros((1, 1), dtype=wp.float64, device=dev),
+        )
+        self._rows = _ints(np.zeros(0), dev)
         self.evaluations = 0
         self.launches = 0
 
-    def _use_tangents(self, jacobian: str) -> bool:
-        """Whether the Jacobians come from the tangent cascade (``jacobian`` "tangent", or
-        "auto" on the CPU where it applies: the faster one there, forward differences on a
-        GPU) or from forward differences ("difference"). The tangent cascade needs fixed
-        cells."""
-        if jacobian not in ("auto", "tangent", "difference"):
-            raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent' or 'difference'")
-        if jacobian == "difference":
-            return False
-        if jacobian == "auto" and not wp.get_device(self.device).is_cpu:
-            # forward differences are the faster on a GPU, the tangent cascade on the CPU
-            # (measured: bench/README.md, section "tawarp/fit/estimate.py")
-            return False
-        if self.engine.estimating:
-            if jacobian == "tangent":
-                raise ValueError(
-                    "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
-                )
-            return False
-        return True
+    def _jacobian_kind(self, jacobian: str) -> str:
+        """How the Jacobians are made: ``jacobian`` "tangent" (the tangent cascade, which
+        needs fixed cells), "difference" (forward differences at every trial), "broyden"
+        (forward differences at the start, where a secant step fails and at the solution,
+        rank-one updates between: one cascade per trial), or "auto": "broyden" where the
+        problems cascade (the fewest cascades per fit, on every device); at Q = 0 (the
+        closed form, :func:`cold_batch`), where an evaluation costs little and the secant's
+        extra iterations would cost more, the tangent cascade on the CPU and forward
+        differences on a GPU (measured: bench/README.md, section "tawarp/fit/estimate.py")."""
+        if jacobian not in ("auto", "tangent", "difference", "broyden"):
+            raise ValueError(f"jacobian: {jacobian!r}; expected 'auto', 'tangent', 'difference' or 'broyden'")
+        if jacobian == "tangent" and self.engine.estimating:
+            raise ValueError(
+                "jacobian='tangent': the cell count adapts per set (pass fixed cells or let fit() pick them)"
+            )
+        if jacobian != "auto":
+            return jacobian
+        if not self.cold:
+            return "broyden"
+        return "tangent" if wp.get_device(self.device).is_cpu and not self.engine.estimating else "difference"
 
     def set_scale(self, ref):
         """Reference values ``ref`` (N, p) of z = 0 (the starts): log parameters scale by
@@ -341,46 +375,266 @@ class Problems:
         for linear ones (:mod:`tawarp.kernels.lm_step`)."""
         return self.kind, self.scale, self.offset
 
-    # -- one launch ----------------------------------------------------------------------
-    def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = 1 << 20):
-        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z``, as
-        Warp arrays on the device: :func:`levenberg_marquardt` keeps them there (a
-        non-finite cost, g or H counts as an invalid evaluation there). The Jacobian comes
-        from the tangent cascade (each problem's point and its 2p neighbours z +- Engine.tangent_step
-        give the point coefficients' derivatives, one cascade carries the T-matrix's) or from
-        forward differences (1 + p cascades, step FD_STEP towards the interior at a bound)."""
+    # -- launches ------------------------------------------------------------------------
+    def _cascade(self, part: klm.Slots, first: int, sets: int, layout: int = 0):
+        """The T-matrices (k sets, m, 8) of ``sets`` sets per slot of ``part`` (``first`` and
+        the set layout: :func:`tawarp.kernels.lm.build_sets`) by plain cascades; counts the
+        launch and its sets."""
+        k = part.ids.shape[0]
+        varying = wp.empty((self.w_row_src.shape[0], k * sets), dtype=wp.float64, device=self.device)
+        wp.launch(
+            klm.build_sets,
+            dim=k * sets,
+            device=self.device,
+            inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, layout, first, varying],
+        )
+        self.launches += 1
+        self.evaluations += k * sets
+        return self.engine.evaluate(varying)[0]
+
+    def _arange(self, n: int) -> wp.array:
+        """0, 1, ..., n - 1 on the device (kept: no upload per iteration)."""
+        if self._rows.shape[0] < n:
+            self._rows = _ints(np.arange(n), self.device)
+        return self._rows[:n]
+
+    def _scaling(self) -> klm.Scaling:
+        return scaling(self.w_kind, self.w_scale, self.w_offset, self.device)
+
+    def _data(self) -> klm.Measured:
+        return measured(self.w_Y, self.w_W, self.w_zc, self.device)
+
+    def _difference_steps(self, ids: wp.array, z: wp.array) -> wp.array:
+        """The forward-difference steps (n, p) at ``z`` (n, p) of problems ``ids``, on the
+        device: FD_STEP towards the interior at an upper bound."""
+        step = wp.empty(z.shape, dtype=wp.float64, device=self.device)
+        if z.shape[0]:
+            zhi = wp.array(self.zhi, dtype=wp.float64, device=self.device)
+            wp.launch(
+                klm.difference_steps,
+                dim=z.shape,
+                device=self.device,
+                inputs=[slots(ids, z, step, self.device), zhi, FD_STEP, step],
+            )
+        return step
+
+    def evaluate(self, pid: np.ndarray, z, max_sets: int = 1 << 20):
+        """cost, raw, g, H of problems ``pid`` (data index per slot) at scaled ``z`` (NumPy, or
+        a Warp array on the device: the LM's trial points stay there), as Warp arrays on the
+        device: :func:`levenberg_marquardt` keeps them there (a non-finite cost, g or H counts
+        as an invalid evaluation there). The Jacobian comes from the tangent cascade (each
+        problem's point and its 2p neighbours z +- Engine.tangent_step give the point
+        coefficients' derivatives, one cascade carries the T-matrix's) or from forward
+        differences (1 + p cascades, step FD_STEP towards the interior at a bound)."""
         p, dev = self.p, self.device
         n = len(pid)
+        ids = wp.array(np.asarray(pid, dtype=np.int32), dtype=wp.int32, device=dev)
+        z = (
+            z
+            if isinstance(z, wp.array)
+            else wp.array(np.ascontiguousarray(z, dtype=np.float64), dtype=wp.float64, device=dev)
+        )
         if self.tangents:
-            sets, step = 1 + 2 * p, np.full(z.shape, self.engine.tangent_step)
+            sets, step = 1 + 2 * p, wp.full(z.shape, self.engine.tangent_step, dtype=wp.float64, device=dev)
         else:
-            sets, step = 1 + p, np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+            sets, step = 1 + p, self._difference_steps(ids, z)
         w_cost, w_raw = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
         w_g, w_H = wp.empty((n, p), dtype=wp.float64, device=dev), wp.empty((n, p, p), dtype=wp.float64, device=dev)
         per = max(1, max_sets // sets)
         rows = self.w_row_src.shape[0]
-        scale = scaling(self.w_kind, self.w_scale, self.w_offset, dev)
-        data = measured(self.w_Y, self.w_W, self.w_zc, dev)
+        data = self._data()
         for lo in range(0, n, per):
             hi = min(n, lo + per)
             k = hi - lo
-            part = slots(pid[lo:hi], z[lo:hi], step[lo:hi], dev)
-            varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
-            wp.launch(
-                klm.build_sets,
-                dim=k * sets,
-                device=dev,
-                inputs=[part, scale, self.w_fixed, self.w_row_src, int(self.tangents), varying],
-            )
+            part = slots(ids[lo:hi], z[lo:hi], step[lo:hi], dev)
             if self.tangents:
+                varying = wp.empty((rows, k * sets), dtype=wp.float64, device=dev)
+                wp.launch(
+                    klm.build_sets,
+                    dim=k * sets,
+                    device=dev,
+                    inputs=[part, self._scaling(), self.w_fixed, self.w_row_src, 1, 0, varying],
+                )
                 out, tangent = self.engine.evaluate_tangents(varying, part.step, p)
+                self.launches += 1
+                self.evaluations += k * sets
             else:
-                (out, _, _), tangent = self.engine.evaluate(varying), self._no_tangent
+                out, tangent = self._cascade(part, 0, sets), self._no_tangent
             sums = normal_equations((w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]), dev)
             wp.launch(self.normal, dim=k, device=dev, inputs=[part, data, out, tangent, sums])
-            self.launches += 1
-        self.evaluations += n * sets
         return w_cost, w_raw, w_g, w_H
+
+    # -- the secant iteration (:class:`tawarp.fit.lm.SecantProblems`) ---------------------
+    def secant_store(self, Q: int) -> klm.Secant:
+        """The device store of Q slots' T-matrices and Jacobians (:class:`tawarp.kernels.lm.Secant`)."""
+        rows, dev = 8 * self.freqs.size, self.device
+        rec = klm.Secant()
+        rec.T = wp.empty((rows, Q), dtype=wp.float64, device=dev)
+        rec.dT = wp.empty((rows * self.p, Q), dtype=wp.float64, device=dev)
+        rec.fresh = wp.zeros(Q, dtype=wp.int32, device=dev)
+        rec.trial = wp.empty((rows, Q), dtype=wp.float64, device=dev)
+        rec.second = wp.full(Q, -1, dtype=wp.int32, device=dev)
+        rec.d2T = wp.zeros((1, 1), dtype=wp.float64, device=dev)
+        return rec
+
+    def evaluate_start(self, pid: np.ndarray, z: np.ndarray, store: klm.Secant, max_sets: int = 1 << 20):
+        """cost, raw, g, H (Warp arrays) of the Q slots (problems ``pid``) at their starts ``z``
+        (Q, p), whose T-matrices and forward-difference Jacobians fill ``store``. Slots whose
+        sets are the same (the same start, heat input and fixed values: a batch fitted from
+        one start) share one evaluation: the model does not depend on the data."""
+        p, dev = self.p, self.device
+        Q = len(pid)
+        step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
+        key = np.concatenate([self.to_v(z, pid), self.fixed_table[:, pid].T, step], axis=1)
+        if Q and np.all(key == key[:1]):  # one start for the batch: no sort
+            first, group = np.zeros(1, dtype=np.int64), np.zeros(Q, dtype=np.int64)
+        else:
+            _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
+            group = group.reshape(-1)
+        differences, sums = klm.secant_kernels(p)[:2]
+        sets = 1 + p
+        per = max(1, max_sets // sets)
+        rep = slots(pid[first], z[first], step[first], dev)
+        for lo in range(0, first.size, per):
+            hi = min(first.size, lo + per)
+            out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 0, sets)
+            mine = np.flatnonzero((group >= lo) & (group < hi)).astype(np.int32)
+            wp.launch(
+                differences,
+                dim=mine.size,
+                device=dev,
+                inputs=[
+                    _ints(mine, dev),
+                    _ints((group[mine] - lo) * sets, dev),
+                    wp.array(step[mine], dtype=wp.float64, device=dev),
+                    1,
+                    out,
+                    store,
+                ],
+            )
+        self._second_derivatives(pid, z, first, group, store, max_sets)
+        cost, raw = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
+        g, H = wp.empty((Q, p), dtype=wp.float64, device=dev), wp.empty((Q, p, p), dtype=wp.float64, device=dev)
+        every = _ints(np.arange(Q), dev)
+        wp.launch(
+            sums,
+            dim=Q,
+            device=dev,
+            inputs=[
+                every,
+                _ints(pid, dev),
+                self._data(),
+                store,
+                self._no_out,
+                self._no_step,
+                every,
+                normal_equations((cost, raw, g, H), dev),
+            ],
+        )
+        return cost, raw, g, H
+
+    def _second_derivatives(self, pid, z, first, group, store: klm.Secant, max_sets: int):
+        """The second derivatives of the T-matrices at the starts shared by at least
+        ``2 (p + p (p + 1) / 2)`` slots (``first`` the representative slot of each group of
+        slots with the same sets, ``group`` each slot's), into ``store`` (``d2T``, ``second``):
+        their p + p (p + 1) / 2 extra cascades at step :data:`SECOND_STEP` cost less than
+        the trial that the first step's geodesic acceleration and the Jacobian's Taylor
+        update at the first trial point save each slot (:func:`tawarp.fit.lm.levenberg_marquardt`)."""
+        p, dev = self.p, self.device
+        sets = p + p * (p + 1) // 2
+        size = np.bincount(group, minlength=first.size)
+        shared = np.flatnonzero(size >= 2 * sets)
+        if not shared.size:
+            return
+        reps = first[shared]
+        store.d2T = wp.empty((8 * self.freqs.size * (sets - p), shared.size), dtype=wp.float64, device=dev)
+        column = np.full(first.size, -1, dtype=np.int32)
+        column[shared] = np.arange(shared.size)
+        store.second = _ints(column[group], dev)
+        second_differences = klm.secant_kernels(p)[5]
+        step = np.full((reps.size, p), SECOND_STEP)
+        rep = slots(pid[reps], z[reps], step, dev)
+        per = max(1, max_sets // sets)
+        for lo in range(0, reps.size, per):
+            hi = min(reps.size, lo + per)
+            out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 1, sets, layout=2)
+            wp.launch(
+                second_differences,
+                dim=hi - lo,
+                device=dev,
+                inputs=[_ints(reps[lo:hi], dev), lo, SECOND_STEP, out, store],
+            )
+
+    def curvature(self, ids: wp.array, trial, store: klm.Secant) -> wp.array:
+        """J^T r_vv (n, p) of the trials' slots along their steps v (``trial.dz``), from the
+        second derivatives at their starts (0 for slots without): the geodesic acceleration's
+        right-hand side (:func:`tawarp.kernels.lm.secant_kernels`)."""
+        n, dev = ids.shape[0], self.device
+        jv = wp.empty((n, self.p), dtype=wp.float64, device=dev)
+        wp.launch(
+            klm.secant_kernels(self.p)[6],
+            dim=n,
+            device=dev,
+            inputs=[trial.act, ids, self._data(), store, trial.dz, jv],
+        )
+        return jv
+
+    def evaluate_trial(self, ids: wp.array, trial, store: klm.Secant, max_sets: int = 1 << 20):
+        """The trials' normal equations into ``trial.at_zt`` (:class:`tawarp.kernels.lm_step.Trial`
+        of problems ``ids``): one cascade per trial point, the Jacobian the slot's updated by
+        the step (Broyden's rank-one update); the values kept in ``store.trial``."""
+        n, dev = ids.shape[0], self.device
+        trial_sums = klm.secant_kernels(self.p)[2]
+        rows = self._arange(n)
+        for lo in range(0, n, max(1, max_sets)):
+            hi = min(n, lo + max(1, max_sets))
+            # the point alone: build_sets reads no step (the trial's dz stands in)
+            out = self._cascade(slots(ids[lo:hi], trial.zt[lo:hi], trial.dz[lo:hi], dev), 0, 1)
+            wp.launch(
+                trial_sums,
+                dim=hi - lo,
+                device=dev,
+                inputs=[
+                    trial.act[lo:hi],
+                    ids[lo:hi],
+                    self._data(),
+                    store,
+                    out,
+                    trial.dz[lo:hi],
+                    rows[lo:hi],
+                    trial.at_zt,
+                ],
+            )
+
+    def refresh(self, slots_q: np.ndarray, pid: np.ndarray, state, store: klm.Secant, max_sets: int = 1 << 20):
+        """Forward-difference Jacobians (p cascades each: the point's T-matrices are in
+        ``store``) of the LM slots ``slots_q`` (problems ``pid[slots_q]``) at their z of
+        ``state`` (:class:`tawarp.kernels.lm_step.Iterate`), into ``store`` and the
+        state's normal equations."""
+        p, dev = self.p, self.device
+        n = slots_q.size
+        act = _ints(slots_q, dev)
+        ids = _ints(pid[slots_q], dev)
+        z = wp.empty((n, p), dtype=wp.float64, device=dev)
+        wp.launch(klm.gather_rows, dim=(n, p), device=dev, inputs=[state.z, act, z])
+        step = self._difference_steps(ids, z)
+        differences, sums = klm.secant_kernels(p)[:2]
+        per = max(1, max_sets // p)
+        for lo in range(0, n, per):
+            hi = min(n, lo + per)
+            out = self._cascade(slots(ids[lo:hi], z[lo:hi], step[lo:hi], dev), 1, p)
+            group = _ints(np.arange(hi - lo) * p, dev)
+            wp.launch(differences, dim=hi - lo, device=dev, inputs=[act[lo:hi], group, step[lo:hi], 0, out, store])
+        wp.launch(
+            sums,
+            dim=n,
+            device=dev,
+            inputs=[act, ids, self._data(), store, self._no_out, self._no_step, act, state.at_z],
+        )
+
+
+def _ints(a, device) -> wp.array:
+    return wp.array(np.ascontiguousarray(a, dtype=np.int32), dtype=wp.int32, device=device)
 
 
 # ----------------------------------------------------------------------------------------
@@ -546,10 +800,12 @@ def fit(
     absolute_sigma : covariance H^-1 instead of s^2 H^-1 (the weights are 1/sigma of the
         noise, not relative ones).
     warn : also issue the batch warnings as :class:`FitWarning`.
-    jacobian : "auto" (default: "tangent" on the CPU unless a limp frame or a shape factor
-        is on or fitted, "difference" on a GPU: the faster of the two on each, measured),
-        "tangent" (derivatives carried through the cascade, ~1e-10 relative) or
-        "difference" (forward differences, step 1e-6 in z, ~1e-6 relative).
+    jacobian : "auto" (default: "broyden" where the problems cascade; at Q = 0 "tangent"
+        on the CPU unless the cells adapt per set, "difference" on a GPU: measured),
+        "broyden" (secant updates between forward differences; the covariance from forward
+        differences at the solution), "tangent" (derivatives carried through the cascade,
+        ~1e-10 relative) or "difference" (forward differences, step 1e-6 in z, ~1e-6
+        relative). Module doc.
 
     Returns a :class:`FitResult`.
     """

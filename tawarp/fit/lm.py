@@ -16,7 +16,21 @@ damping, stopping tests) runs on the problems' device in the kernels of
 (:func:`normal_equations`, :func:`scaling`, :func:`slots`, :func:`measured` and the LM's
 state): with 1e5 problems the NumPy bookkeeping of (n, p, p) arrays cost the host more than
 the device's evaluations. The host launches, calls ``evaluate`` and compacts the active set
-from the done flags.
+from the done flags, its one read of an iteration (the trial points stay on the device).
+
+*The secant iteration* (:class:`SecantProblems` with ``secant`` set: the T-matrix problems'
+``jacobian="broyden"``): the problems keep each slot's model values and Jacobian on the
+device; a trial costs the evaluation of its point alone, and its Jacobian is the slot's
+moved by Broyden's rank-one update along the step (the ``update`` kernel's acceptance
+then makes it the slot's, :func:`tawarp.kernels.lm_step.secant_accept_kernel`). A rejected
+step from a secant Jacobian has the slot's Jacobian refreshed (forward differences) before
+the next. A slot whose start's second derivatives the problems made (a start shared by
+many) takes a geodesically accelerated first step (the ``accelerate`` kernel on the
+problems' ``curvature``) and a Taylor-updated Jacobian at its first trial. When every
+slot has stopped, those that stopped on a secant Jacobian get the
+fresh one at their solution, whose ``J^T J`` the returned ``H`` is (the covariance's);
+those that stopped on ``xtol`` stop only if the step from it is below ``xtol`` and
+:data:`SECANT_CONFIRM` standard deviations (the ``confirm`` kernel), else they iterate on.
 """
 
 from __future__ import annotations
@@ -30,6 +44,14 @@ import warp as wp
 from ..kernels import lm as klm
 from ..kernels import lm_step
 from ..progress import progress_bar
+
+#: A secant run's solution stands where the Gauss-Newton step from the fresh Jacobian at
+#: it is below xtol and moves the parameters by less than this many standard deviations
+#: (its predicted decrease of the cost below SECANT_CONFIRM^2 F / dof, the Mahalanobis
+#: length of the step in the covariance s^2 (J^T J)^-1, s^2 = F / dof): the rank-one updates
+#: converge superlinearly, not quadratically, and xtol alone left geometry fits 0.4 std
+#: from the minimum (bench/README.md, section "tawarp/fit/estimate.py").
+SECANT_CONFIRM = 0.1
 
 #: names of the reason codes of :mod:`tawarp.kernels.lm_step` (code 0: still iterating)
 REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
@@ -56,7 +78,8 @@ class LMProblems(Protocol):
     ``zlo``, ``zhi`` (N, p): bounds of z per problem (+-inf for none); every z the LM tries
     is clipped onto them. ``device`` (optional, default the CPU): where the iteration runs.
     ``evaluate(pid, z, max_sets)``: ``(cost, raw, g, H)`` of problems ``pid`` (n,) at z
-    (n, p) (NumPy), cost (n,) the weighted sum of squared residuals ``r^T r`` (inf where the
+    (n, p) (NumPy on the CPU; on another device the trial points come as a Warp array
+    there), cost (n,) the weighted sum of squared residuals ``r^T r`` (inf where the
     model fails; a non-finite cost, g or H makes it so), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
     Jacobian in z; NumPy arrays or Warp arrays on ``device``.
@@ -72,6 +95,36 @@ class LMProblems(Protocol):
     def evaluate(self, pid: np.ndarray, z: np.ndarray, max_sets: int = ...) -> tuple: ...
 
     def change_rule(self) -> tuple: ...
+
+
+class SecantProblems(LMProblems, Protocol):
+    """:class:`LMProblems` that run the secant iteration (module doc) where ``secant`` is
+    True (:class:`tawarp.fit.estimate.Problems`). ``dof``: the residuals' degrees of
+    freedom (s^2 = F / dof). ``secant_store(Q)``: the device store of Q slots' model values
+    and Jacobians (:class:`tawarp.kernels.lm.Secant`). ``evaluate_start(pid, z, store,
+    max_sets)``: ``(cost, raw, g, H)`` at the starts with forward-difference Jacobians, into
+    the store. ``evaluate_trial(ids, trial, store, max_sets)``: the trials'
+    (:class:`tawarp.kernels.lm_step.Trial`, ``ids`` their data indices on the device) normal
+    equations into ``trial.at_zt``, with the Jacobians updated by the steps.
+    ``refresh(slots, pid, state, store, max_sets)``: forward-difference Jacobians of the
+    slots at their z of ``state`` (:class:`tawarp.kernels.lm_step.Iterate`), into the store
+    and the state's normal equations. ``curvature(ids, trial, store)``: J^T r_vv (n, p) of
+    the first trials' steps v (0 where the store has no second derivatives)."""
+
+    secant: bool
+    dof: int
+
+    def secant_store(self, Q: int): ...
+
+    def evaluate_start(self, pid: np.ndarray, z: np.ndarray, store, max_sets: int = ...) -> tuple: ...
+
+    def evaluate_trial(self, ids: wp.array, trial: lm_step.Trial, store, max_sets: int = ...) -> None: ...
+
+    def refresh(
+        self, slots: np.ndarray, pid: np.ndarray, state: lm_step.Iterate, store, max_sets: int = ...
+    ) -> None: ...
+
+    def curvature(self, ids: wp.array, trial: lm_step.Trial, store) -> wp.array: ...
 
 
 def _device_array(a, device, dtype=wp.float64, own=False) -> wp.array:
@@ -129,6 +182,8 @@ def _setup(prob: LMProblems, pid: np.ndarray, device, damping, tau, xtol, gtol, 
     rec.change = scaling(*prob.change_rule(), device)
     rec.damping = lm_step.DAMP_NIELSEN if damping == "nielsen" else lm_step.DAMP_PAPER
     rec.tau, rec.xtol, rec.gtol, rec.max_iter = float(tau), float(xtol), float(gtol), int(max_iter)
+    if getattr(prob, "secant", False):
+        rec.confirm = SECANT_CONFIRM**2 / prob.dof
     return rec
 
 
@@ -145,15 +200,26 @@ def _iterate(z: np.ndarray, sums, device) -> lm_step.Iterate:
     return rec
 
 
-def _trial(active: np.ndarray, p: int, device) -> lm_step.Trial:
+def _trial(active: np.ndarray, p: int, device, sums: bool = False) -> lm_step.Trial:
     """The kernels' :class:`tawarp.kernels.lm_step.Trial` of the slots ``active``, for
-    ``propose`` to fill (its ``at_zt`` is set once the trials are evaluated)."""
+    ``propose`` to fill; with ``sums`` its ``at_zt`` too, for a secant evaluation to fill
+    (else the evaluation's arrays become it)."""
     n = active.size
     rec = lm_step.Trial()
     rec.act = _device_array(active, device, wp.int32)
     rec.zt, rec.dz = (wp.empty((n, p), dtype=wp.float64, device=device) for _ in range(2))
     rec.pred = wp.empty(n, dtype=wp.float64, device=device)
-    rec.chol_ok = wp.empty(n, dtype=wp.int32, device=device)
+    rec.chol_ok, rec.accepted = (wp.empty(n, dtype=wp.int32, device=device) for _ in range(2))
+    if sums:
+        rec.at_zt = normal_equations(
+            (
+                wp.empty(n, dtype=wp.float64, device=device),
+                wp.empty(n, dtype=wp.float64, device=device),
+                wp.empty((n, p), dtype=wp.float64, device=device),
+                wp.empty((n, p, p), dtype=wp.float64, device=device),
+            ),
+            device,
+        )
     return rec
 
 
@@ -172,33 +238,80 @@ def levenberg_marquardt(
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
-    ``prob``: any :class:`LMProblems`."""
+    ``prob``: any :class:`LMProblems`; a :class:`SecantProblems` with ``secant`` set runs
+    the secant iteration (module doc)."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
     if p == 0:
         raise ValueError("levenberg_marquardt: no free parameters")
     dev = wp.get_device(getattr(prob, "device", "cpu"))
-    init, propose, update = lm_step.step_kernels(p)
+    init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
+    secant = bool(getattr(prob, "secant", False))
     pid = np.asarray(pid)
     setup = _setup(prob, pid, dev, damping, tau, xtol, gtol, max_iter)
     z = np.clip(np.array(z0, dtype=float), prob.zlo[pid], prob.zhi[pid])
-    state = _iterate(z, prob.evaluate(pid, z, max_sets), dev)
+    if secant:
+        store = prob.secant_store(Q)
+        state = _iterate(z, prob.evaluate_start(pid, z, store, max_sets), dev)
+    else:
+        state = _iterate(z, prob.evaluate(pid, z, max_sets), dev)
     done = wp.empty(Q, dtype=wp.int32, device=dev)
     wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
     active = np.flatnonzero(done.numpy() == 0)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
-    while active.size:
-        n = active.size
-        trial = _trial(active, p, dev)
-        wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
-        trial.at_zt = normal_equations(prob.evaluate(pid[active], trial.zt.numpy(), max_sets), dev)
-        done = wp.empty(n, dtype=wp.int32, device=dev)
-        wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
-        finished = done.numpy() != 0
-        active = active[~finished]
-        bar.update(int(finished.sum()))
+    first = True
+    while True:
+        trial = None
+        while active.size:
+            n = active.size
+            if trial is None or trial.act.shape[0] != n:  # the slots changed: their records
+                trial = _trial(active, p, dev, secant)
+                ids = _device_array(pid[active], dev, wp.int32)
+                done = wp.empty(n, dtype=wp.int32, device=dev)
+            wp.launch(propose, dim=n, device=dev, inputs=[setup, state, trial])
+            if secant:
+                if first:  # the starts' second derivatives, where the problems have them
+                    curvature = prob.curvature(ids, trial, store)
+                    wp.launch(accelerate, dim=n, device=dev, inputs=[setup, state, trial, curvature])
+                    first = False
+                prob.evaluate_trial(ids, trial, store, max_sets)
+            else:
+                # the trial points stay on a GPU (a NumPy view of them on the CPU)
+                zt = trial.zt.numpy() if dev.is_cpu else trial.zt
+                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
+            wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
+            if secant:
+                wp.launch(lm_step.secant_accept_kernel(p), dim=n, device=dev, inputs=[store, trial, done])
+            flags = done.numpy()  # the one host round trip of an iteration
+            if secant and np.any(flags == 2):
+                prob.refresh(active[flags == 2], pid, state, store, max_sets)
+            finished = flags == 1
+            if finished.any():
+                active = active[~finished]
+                bar.update(int(finished.sum()))
+                trial = None
+        if not secant:
+            break
+        # Each solution's Jacobian (whose J^T J gives the covariance) is a fresh
+        # forward-difference one at the solution, never a secant one: the slots that ended
+        # on a rank-one updated Jacobian get theirs, and those that stopped on xtol stop
+        # only if the step from it is below xtol and SECANT_CONFIRM std too (else they
+        # iterate on from it, on the fresh Jacobian).
+        stale = np.flatnonzero(store.fresh.numpy() == 0)
+        if not stale.size:
+            break
+        prob.refresh(stale, pid, state, store, max_sets)
+        ended = stale[state.reason.numpy()[stale] == lm_step.R_XTOL]
+        if not ended.size:
+            break
+        check = _trial(ended, p, dev)
+        again = wp.empty(ended.size, dtype=wp.int32, device=dev)
+        wp.launch(propose, dim=ended.size, device=dev, inputs=[setup, state, check])
+        wp.launch(confirm, dim=ended.size, device=dev, inputs=[setup, state, check, again])
+        active = ended[again.numpy() == 1]
+        bar.update(-active.size)
     bar.close()
     return LMState(
         state.z.numpy(),
