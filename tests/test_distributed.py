@@ -256,3 +256,31 @@ def test_interrupted_parts_sweep_keeps_the_older_one(client, tmp_path, monkeypat
     assert len(list((tmp_path / "s.nc.parts").iterdir())) == 4
     with xr.open_dataset(tmp_path / "s.nc", engine="h5netcdf") as ds:
         xr.testing.assert_identical(ds.load(), before)
+
+
+@pytest.mark.parametrize("mode", ["sobol", "grid"])
+def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
+    # each worker reduces its share of the chunks on its device and sends back its
+    # reductions; merged here they are one process's, value for value (counts summed, best
+    # keys minimized, top K and front merged with the point index as tie-break)
+    import xarray as xr
+
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(
+        load_core("rvc_foam"),
+        ["stack.length=0.01:0.08:5", "material=ceramic,mesh,rvc_foam", "heat_input=1:18:4"],
+    )
+    kw = dict(mode=mode, n_samples=300, seed=3, chunk=24, reduce="best,quantiles,histogram,pareto,top=7", raw=False)
+    one = sweep(space, tmp_path / "one.nc", **kw)
+    many = sweep(space, tmp_path / "many.nc", client=client, **kw)
+    assert many.chunks == one.chunks > 2 and many.n_points == one.n_points
+    assert many.reductions == one.reductions
+    for group in ("best", "top", "pareto", "histogram", "quantiles"):
+        with (
+            xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf", group=group) as x,
+            xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf", group=group) as y,
+        ):
+            xr.testing.assert_identical(x.load(), y.load())
+    with pytest.raises(ValueError, match="raw=False"):
+        sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})
