@@ -332,6 +332,31 @@ def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
     return worker_state(key, build).evaluate_table(table)
 
 
+def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict) -> dict:
+    """Objectives of the Sobol points ``task`` = (lo, hi, seed) of the design space, drawn
+    on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`)."""
+    from .design.evaluate import Evaluator
+    from .design.space import DeviceTable
+
+    def build():
+        ev = Evaluator(
+            spec["space"],
+            extra=spec["extra"],
+            freqs=spec["freqs"],
+            settings=worker_settings(spec["settings"]),
+            onset=spec["onset"],
+        )
+        tables = DeviceTable(spec["space"], ev.device)
+        table = tables.sobol(0, 1, task[2])[0]
+        ev.objectives_of(ev.evaluate_device(table), table)  # loads the modules (worker_state)
+        return ev, tables
+
+    ev, tables = worker_state(key, build)
+    lo, hi, seed = task
+    table = tables.sobol(lo, hi, seed)[0]
+    return ev.objectives_of(ev.evaluate_device(table), table)
+
+
 class ClusterEvaluator:
     """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
     cluster's workers: a table is cut into chunks of ``chunk`` points (default: the table
@@ -363,24 +388,45 @@ class ClusterEvaluator:
         }
         self.key = uuid.uuid4().hex
 
-    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
-        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
-        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
-        n = table.shape[1]
+    def _starts(self, n: int) -> range:
+        """First points of the chunks of n points."""
         workers = max(1, len(self.client.scheduler_info()["workers"]))
-        starts = range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
-        # the client thread copies each chunk out of the table (Dask pickles a column block,
-        # which is not contiguous, element by element: seconds for 1e7 points) and each result
-        # into place while the workers evaluate the others: only the first copy and the last
-        # result's are not hidden
-        chunks = (np.ascontiguousarray(table[:, lo : lo + starts.step]) for lo in starts)
+        return range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
+
+    def _gather(self, n: int, starts: range, parts) -> dict[str, np.ndarray]:
+        """The chunks' objectives ``parts`` (in order) as (n,) arrays, each copied into
+        place while the workers evaluate the next ones."""
         out = {}
-        for lo, part in zip(starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec)):
+        for lo, part in zip(starts, parts):
             for k, v in part.items():
                 if k not in out:
                     out[k] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
                 out[k][lo : lo + len(v)] = v
         return out
+
+    def evaluate_sobol(self, n: int, seed: int = 0, first: int = 0) -> dict[str, np.ndarray]:
+        """Objectives of the points ``first`` .. ``first + n - 1`` of the space's scrambled
+        Sobol sequence (``seed``; the points of a Sobol sweep and of
+        :meth:`tawarp.design.space.DeviceTable.sobol`): a task is a chunk's point range,
+        its points drawn and its table built on the worker's device, so no table travels;
+        only the objectives come back."""
+        starts = self._starts(n)
+        tasks = ((first + lo, first + min(n, lo + starts.step), seed) for lo in starts)
+        return self._gather(
+            n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key + "-sobol", self.spec)
+        )
+
+    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
+        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
+        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
+        n = table.shape[1]
+        starts = self._starts(n)
+        # the client thread copies each chunk out of the table (Dask pickles a column block,
+        # which is not contiguous, element by element: seconds for 1e7 points) and each result
+        # into place while the workers evaluate the others: only the first copy and the last
+        # result's are not hidden
+        chunks = (np.ascontiguousarray(table[:, lo : lo + starts.step]) for lo in starts)
+        return self._gather(n, starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec))
 
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""

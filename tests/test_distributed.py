@@ -85,6 +85,19 @@ def test_design_evaluations_on_cluster_equal_one_process(client):
         np.testing.assert_allclose(many[k], one[k], rtol=1e-12, atol=0, err_msg=k)
 
 
+def test_sobol_evaluations_drawn_on_the_workers_equal_one_process(client):
+    # the workers draw the points of their chunks on their devices: the objectives of
+    # points 5 .. 54 of the space's Sobol sequence, as one process evaluates them
+    from tawarp.design.space import DeviceTable
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "material=ceramic,mesh", "heat_input=1:9"])
+    ev = Evaluator(space, extra=["acoustic_loss"])
+    one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
+    many = ClusterEvaluator(client, space, extra=["acoustic_loss"], chunk=16).evaluate_sobol(50, seed=7, first=5)
+    assert set(many) == set(one) and all(np.array_equal(many[k], one[k], equal_nan=True) for k in one)
+    assert np.isfinite(one["gradient"]).all()
+
+
 def test_search_on_cluster_equals_one_process(client):
     one = search(_space(), n_trials=32, batch=16, seed=4)
     many = search(_space(), n_trials=32, batch=16, seed=4, client=client)
