@@ -106,6 +106,36 @@ def test_search_on_cluster_equals_one_process(client):
     assert a == b
 
 
+@pytest.mark.parametrize("objectives", [("gradient",), ("gradient", "heat_leak")])
+def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objectives):
+    # an island per worker, each its own lineage of the one study: the same trials (points,
+    # values, generation and member) and the same best as running island0 then island1 in
+    # one process; CMA-ES and NSGA-II
+    from tawarp.design.storage import best_designs, trials_table
+    from tawarp.distributed import search_islands
+
+    kw = dict(objectives=objectives, n_trials=48, batch=16, seed=4)
+    for name in ("island0", "island1"):
+        search(_space(), worker=name, storage=str(tmp_path / "one.journal"), **kw)
+    many = search_islands(client, _space(), storage=str(tmp_path / "many.journal"), **kw)
+    assert [t["worker"] for t in many.timing["islands"]] == ["island0", "island1"]
+    assert many.timing["evaluations"] == 2 * 48
+    from tawarp.design.storage import open_study
+
+    one = open_study(str(tmp_path / "one.journal"), "tawarp-design", objectives, _space().binding())
+
+    def rows(study):
+        t = trials_table(study)
+        keys = zip(t["worker"].values.tolist(), t["generation"].values.tolist(), t["index"].values.tolist())
+        cols = [t[c].values.tolist() for c in [*t.attrs["parameters"], *t.attrs["metrics"]]]
+        return sorted((k, tuple(c[j] for c in cols)) for j, k in enumerate(keys))
+
+    a, b = rows(one), rows(many.study)
+    assert len(a) == 2 * 48 and a == b
+    best = best_designs(one, objectives, 673.0)
+    assert [d["values"] for d in best] == [d["values"] for d in many.best] and best
+
+
 @pytest.mark.parametrize(
     "mode, outputs, parts",
     [
