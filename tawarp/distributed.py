@@ -480,7 +480,7 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
     }
     timing.update(wall=wall, evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12))
     timing["islands"] = [dict(r["timing"], worker=r["worker"]) for r in runs]
-    best = best_designs(study, objectives, kw.get("T_limit", DEFAULT_T_LIMIT))
+    best = best_designs(study, objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True)
     return SearchResult(
         study, tuple(objectives), best, timing, sum(r["resumed"] for r in runs), ",".join(r["worker"] for r in runs)
     )

@@ -180,7 +180,10 @@ def search(
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
     for k in ("sampler", "evaluation", "storage", "trial_store"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
-    return SearchResult(study, objectives, best_designs(study, objectives, T_limit), timing, run.resumed, worker)
+    # the best from the study's copies of each generation's best: reading a trial store of
+    # millions of rows back would cost a fast device's search seconds
+    best = best_designs(study, objectives, T_limit, copies=True)
+    return SearchResult(study, objectives, best, timing, run.resumed, worker)
 
 
 def worker_seed(seed: int, worker: str) -> int:
