@@ -476,7 +476,10 @@ def _rows(study, store=None, copies: bool = False) -> dict[str, np.ndarray]:
     stored = ts.read() if ts is not None else {}
     if stored:
         stored["number"] = np.array(
-            [numbers.get(k, -1) for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())],
+            [
+                numbers.get(k, -1)
+                for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())
+            ],
             dtype=np.int64,
         )
     cols = _concat([stored, own])
