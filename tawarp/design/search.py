@@ -229,6 +229,9 @@ class _Run:
                 client, space, extra=objectives, freqs=freqs, settings=settings, onset=onset
             )
             self.device = resolve_device((settings or ForwardSettings()).device)
+        # the coordinates told to the sampler, made on the device from the design values:
+        # by one kernel whether the values are a new generation's or stored ones (a resume)
+        self.coords = self.tables or DeviceTable(space, self.device)
         self.dists = space.distributions()
         self.sign = signs(objectives)
         self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
@@ -248,7 +251,8 @@ class _Run:
         return self._objectives(m)
 
     def evaluate_asked(self, X):
-        """(design values {variable: (n,)}, then :meth:`evaluate`'s tuple) of the sampler
+        """(design values {variable: (n,)}, the coordinates to tell the sampler (a Warp
+        array on the device: :meth:`told`), then :meth:`evaluate`'s tuple) of the sampler
         coordinates ``X`` (a Warp array on the device): a local evaluator builds the table
         from them on the device (one launch) and copies back the metrics and the values
         once; a cluster's gets the values."""
@@ -261,6 +265,7 @@ class _Run:
         if self.tables is None:
             values = space.values_from_unit(X.numpy())
             m = self.evaluator.evaluate(values)
+            told = None
         else:
             U = wp.empty(X.shape, dtype=wp.float64, device=X.device)
             bad = wp.zeros(1, dtype=wp.int32, device=X.device)
@@ -270,18 +275,29 @@ class _Run:
                 device=X.device,
                 inputs=[X, len(space.continuous), space.n_categories, U, bad],
             )
+            table, vals = self.tables.unit(U)
+            told = self.tables.coordinates(vals)
+            # read with the metrics: no round trip to the device before the evaluation
+            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
             if bad.numpy()[0]:  # as the host's table refuses them
                 raise ModelValidityError(
-                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): "
-                    "none is evaluated"
+                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): none is stored"
                 )
-            table, vals = self.tables.unit(U)
-            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
             values = dict(zip(self.tables.names, vals.numpy()))
             if space.material is not None:
                 values["material"] = values["material"].astype(np.int64)
         self.timing["evaluation"] += time.perf_counter() - t
-        return (values, *self._objectives(m))
+        if told is None:
+            told = self.told(values)
+        return (values, told, *self._objectives(m))
+
+    def told(self, values: dict):
+        """The sampler coordinates (a Warp array on the device) of design ``values``
+        {variable: (n,)} (the material as its index): :meth:`DeviceTable.coordinates`."""
+        t = time.perf_counter()
+        told = self.coords.coordinates(np.stack([np.asarray(values[k], dtype=np.float64) for k in self.coords.names]))
+        self.timing["sampler"] += time.perf_counter() - t
+        return told
 
     def _objectives(self, m: dict):
         n = len(next(iter(m.values())))
@@ -427,12 +443,13 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if stored is None:  # a new generation, evaluated from the points on the device
             asked += 1
             _interruption_hooks(asked, stop_after, crash_after)
-            values, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
+            values, told, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
             run.store_rows(g, np.arange(batch), values, metrics, vm, failed)
             F[:] = np.where(failed[:, None], np.inf, Fm)
             viol[:] = np.where(failed, np.inf, vm if vm is not None else 0.0)
         else:  # stored (a resume): the stored points are told, whatever the sampler asks now
             values, metrics = _stored_generation(run, g, stored, space.values_from_unit(X.numpy()), names, F, viol)
+            told = run.told(values)
         t = time.perf_counter()
         if run.store is not None:
             keep = np.array([j for j in run.kept(F, viol) if (g, int(j)) not in copied], dtype=np.int64)
@@ -451,7 +468,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if run.commit_due():
             run.commit(claim)
         t = time.perf_counter()
-        sampler.tell(space.unit_from_values(values), F, viol)
+        sampler.tell(told, F, viol)
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
