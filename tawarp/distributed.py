@@ -437,10 +437,13 @@ class ClusterEvaluator:
 def _island(name: str, kw: dict) -> dict:
     """One island's :func:`tawarp.design.search.search` (lineage ``name``) on this worker's
     device: its timing, best and resumed count (the study stays in the shared storage)."""
+    from .design.objectives import DEFAULT_T_LIMIT
     from .design.search import search
+    from .design.storage import best_designs
 
     res = search(worker=name, **dict(kw, settings=worker_settings(kw.get("settings"))))
-    return {"worker": name, "timing": res.timing, "best": res.best, "resumed": res.resumed}
+    best = best_designs(res.study, res.objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True, worker=name)
+    return {"worker": name, "timing": res.timing, "best": [d["values"] for d in best], "resumed": res.resumed}
 
 
 def search_islands(client, space, objectives=("gradient",), *, storage, islands: int | None = None, **kw):
@@ -454,7 +457,8 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
     islands' fronts meet in the study's front. Returns a
     :class:`~tawarp.design.search.SearchResult`: the study opened here, the best of all
     islands, ``timing`` summed over the islands (``wall`` and ``evaluations_per_minute``
-    here; ``islands``: each one's timing). Other keywords go to ``search``."""
+    here; ``islands``: each one's timing and the objectives of its own best). Other
+    keywords go to ``search``."""
     import time
 
     from .design.objectives import DEFAULT_T_LIMIT
@@ -479,7 +483,7 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
         for k in ("sampler", "evaluation", "storage", "trial_store", "evaluations", "trials_in_study")
     }
     timing.update(wall=wall, evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12))
-    timing["islands"] = [dict(r["timing"], worker=r["worker"]) for r in runs]
+    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"]) for r in runs]
     best = best_designs(study, objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True)
     return SearchResult(
         study, tuple(objectives), best, timing, sum(r["resumed"] for r in runs), ",".join(r["worker"] for r in runs)

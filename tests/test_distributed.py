@@ -134,6 +134,9 @@ def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objec
     assert len(a) == 2 * 48 and a == b
     best = best_designs(one, objectives, 673.0)
     assert [d["values"] for d in best] == [d["values"] for d in many.best] and best
+    for island in many.timing["islands"]:  # each island's own best: its lineage's
+        mine = best_designs(one, objectives, 673.0, worker=island["worker"])
+        assert island["best"] == [d["values"] for d in mine] and mine
 
 
 @pytest.mark.parametrize(

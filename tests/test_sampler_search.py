@@ -69,3 +69,26 @@ def test_an_interrupted_grouped_run_commits_what_it_evaluated_and_resumes(tmp_pa
     got = _table(res.study)
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+
+
+def test_a_large_front_is_copied_spread_along_it(tmp_path, monkeypatch):
+    """Several objectives: a lineage front larger than FRONT_COPIES puts that many of its
+    members in the study, the two ends of each objective among them, every one on the
+    front of all trials (which the trial store holds whole)."""
+    from tawarp.design import search as search_module
+
+    monkeypatch.setattr(search_module, "FRONT_COPIES", 5)
+    objectives = ("gradient", "heat_leak")
+    res = search(
+        _space(), objectives, n_trials=96, batch=16, seed=5, T_limit=450.0, storage=str(tmp_path / "s.journal")
+    )
+    ds = trials_table(res.study)
+    ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
+    F = np.stack([-ds.gradient.values[ok], ds.heat_leak.values[ok]], axis=1)
+    front = F[pareto_mask(F)]
+    assert len(front) > 5
+    copied = np.array([(-t.values[0], t.values[1]) for t in res.study.trials])
+    assert len(copied) == 5 and {tuple(f) for f in copied} <= {tuple(f) for f in front}
+    for j in range(2):
+        assert front[:, j].min() in copied[:, j] and front[:, j].max() in copied[:, j]
+    assert len(res.best) == 5

@@ -325,10 +325,24 @@ def nondominated_ranks(F: np.ndarray) -> np.ndarray:
 
 
 def pareto_mask(F: np.ndarray) -> np.ndarray:
-    """Rows of F (N, M), all minimized, that no other row dominates. O(N x front size)."""
+    """Rows of F (N, M), all minimized, that no other row dominates: two objectives
+    vectorized, O(N log N) (in lexicographic order a row is dominated exactly when an
+    earlier, different row has a second objective <= its own; identical rows share their
+    first one's fate); more, O(N x front size)."""
     F = np.asarray(F, dtype=float)
     if F.shape[1] == 2:
-        return nondominated_ranks(F) == 0
+        mask = np.zeros(len(F), dtype=bool)
+        if not len(F):
+            return mask
+        order = np.lexsort((F[:, 1], F[:, 0]))
+        a, b = F[order, 0], F[order, 1]
+        new = np.ones(len(order), dtype=bool)
+        new[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
+        firsts = np.flatnonzero(new)
+        on = np.ones(len(firsts), dtype=bool)  # the first row: nothing before it
+        on[1:] = b[firsts[1:]] < np.minimum.accumulate(b[firsts])[:-1]
+        mask[order] = on[np.cumsum(new) - 1]
+        return mask
     order = np.lexsort(F.T[::-1])
     front: list[int] = []
     for i in order:

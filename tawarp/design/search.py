@@ -72,7 +72,8 @@ from ..model.validity import ModelValidityError
 @dataclass
 class SearchResult:
     """``study`` (Optuna), ``best`` (list of dicts: the best feasible trial, or the
-    feasible Pareto front for several objectives), ``timing`` (seconds: ``sampler``,
+    feasible Pareto front for several objectives, as the study holds it: at most
+    :data:`FRONT_COPIES` members per lineage), ``timing`` (seconds: ``sampler``,
     ``evaluation``, ``storage`` (reads, the trial store, the study, the heartbeat),
     ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
     ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
@@ -136,8 +137,9 @@ def search(
     journal file, else none (a database URL or memory: every trial in the study); False:
     every trial in the study. The batched engine only: Optuna's own samplers keep every
     trial in the study. ``commit_seconds`` [s]: the evaluated generations are committed (the
-    trial store, the study's copies and the heartbeat, in one write each) at most this
-    often, and at the end; 0 commits every generation. A run killed between commits loses
+    trial store and the heartbeat, in one write each) at most this often, and at the end;
+    0 commits every generation; the study's copies are written once, at the end
+    (:meth:`_Run.commit`). A run killed between commits loses
     the generations evaluated since the last one (a resume evaluates them again, the same);
     committing once a second keeps a fast device busy (docs/design.md). ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
@@ -180,10 +182,19 @@ def search(
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
     for k in ("sampler", "evaluation", "storage", "trial_store"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
-    # the best from the study's copies of each generation's best: reading a trial store of
-    # millions of rows back would cost a fast device's search seconds
+    # the best from the study's copies (each generation's best; several objectives: the
+    # front, spread to FRONT_COPIES per lineage): reading a trial store of millions of rows
+    # back would cost a fast device's search seconds
     best = best_designs(study, objectives, T_limit, copies=True)
     return SearchResult(study, objectives, best, timing, run.resumed, worker)
+
+
+#: Members of a lineage's front (several objectives) copied into the study at a run's end,
+#: spread along it (:func:`_spread`): the study is the summary that Optuna's tools open,
+#: and each Optuna trial costs a journal entry and its read-back (about a millisecond),
+#: while a fast device's front holds tens of thousands; the trial store holds every one
+#: (:func:`tawarp.design.storage.best_designs` reads the whole front there).
+FRONT_COPIES = 256
 
 
 def worker_seed(seed: int, worker: str) -> int:
@@ -317,14 +328,22 @@ class _Run:
         self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
         self.timing["storage"] += time.perf_counter() - t
 
-    def commit(self, claim=None) -> None:
+    def commit(self, claim=None, final: bool = False) -> None:
         """The generations evaluated since the last commit: their rows into the trial store
-        (one append), then the copies of their kept members that still are the lineage's
-        best (several objectives: on its front now) and ``claim``'s heartbeat into the study
-        (one journal lock and sync)."""
+        (one append) and ``claim``'s heartbeat into the study; ``final`` (the run's end,
+        whatever ended it): also the copies of the run's kept members that still are the
+        lineage's best (several objectives: on its front now), in one journal lock and
+        sync. The copies wait for the end because each Optuna trial costs the study a
+        journal entry and a read-back (about a millisecond): several objectives' fronts
+        change every generation; a run killed before its end leaves them to its resume,
+        which keeps them again from the stored generations."""
         t = time.perf_counter()
         rows, self.rows = self.rows, []
-        copies, self.copies = self.copies, []
+        if len(self.objectives) > 1:  # members since dominated by a later generation's
+            self.copies = _undominated(self.copies, self.front)
+        copies, self.copies = (self.copies, []) if final else ([], self.copies)
+        if len(self.objectives) > 1:
+            copies = _spread(copies, FRONT_COPIES)
         if rows:
             if self.writer is None:
                 choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
@@ -342,11 +361,7 @@ class _Run:
             )
             self.timing["trial_store"] += time.perf_counter() - t
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
-            for g, keep, values, metrics, c, F in copies:
-                if len(self.objectives) > 1:  # members since dominated by a later generation's
-                    on = ~_dominated(F, self.front)
-                    keep, values, metrics, F = keep[on], _rows_of(values, on), _rows_of(metrics, on), F[on]
-                    c = None if c is None else c[on]
+            for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
                     self.copy_to_study(g, keep, values, metrics, c, np.zeros(len(keep), bool))
             if claim is not None and (rows or copies):
@@ -396,7 +411,7 @@ class _Run:
         trial store's file."""
         try:
             if self.rows or self.copies:
-                self.commit(claim)
+                self.commit(claim, final=True)
         finally:
             if self.writer is not None:
                 self.writer.close()
@@ -474,9 +489,57 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         bar.update(batch)
 
 
+def _spread(copies: list, k: int) -> list:
+    """At most ``k`` of the front members ``copies`` (per generation: (g, index, values,
+    metrics, violations, F)): all when they are no more, else the two ends of each
+    objective and the members of largest crowding distance (ties: in order), so that the
+    ones kept spread along the front."""
+    from .samplers import crowding
+
+    F = np.concatenate([c[5] for c in copies]) if copies else np.zeros((0, 0))
+    if len(F) <= k:
+        return copies
+    keep = np.zeros(len(F), dtype=bool)
+    keep[np.argsort(-crowding(F, np.zeros(len(F), dtype=int)), kind="stable")[:k]] = True
+    return _select_rows(copies, keep)
+
+
+def _undominated(copies: list, front: np.ndarray) -> list:
+    """Generations' kept members (per generation: (g, index, values, metrics,
+    violations, F)) less those that a row of ``front`` dominates."""
+    if not copies:
+        return copies
+    on = ~_dominated(np.concatenate([c[5] for c in copies]), front)
+    return _select_rows(copies, on)
+
+
+def _select_rows(copies: list, on: np.ndarray) -> list:
+    """``copies`` (see :func:`_undominated`) less the members where ``on`` (over all of
+    them, in order) is False; generations left empty are dropped."""
+    out, lo = [], 0
+    for g, index, values, metrics, c, F in copies:
+        m = on[lo : lo + len(F)]
+        lo += len(F)
+        if m.any():
+            out.append((g, index[m], _rows_of(values, m), _rows_of(metrics, m), None if c is None else c[m], F[m]))
+    return out
+
+
 def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarray:
-    """Rows of F (n, m) that a row of ``front`` dominates (all minimized), in blocks of
-    rows (an (n, len(front)) comparison at once would not fit)."""
+    """Rows of F (n, m) that a row of ``front`` dominates (all minimized): two objectives
+    by bisection in ``front`` sorted by the first (with the least second so far), more in
+    blocks of rows (an (n, len(front)) comparison at once would not fit)."""
+    if F.shape[1] == 2 and len(front):
+        order = np.lexsort((front[:, 1], front[:, 0]))
+        a, b = front[order, 0], np.minimum.accumulate(front[order, 1])
+
+        def least_second(k):  # the least second objective of the first k sorted rows
+            return np.where(k > 0, b[np.maximum(k - 1, 0)], np.inf)
+
+        # a row with a smaller first and a second <= F's, or a first <= F's and a smaller second
+        k = np.searchsorted(a, F[:, 0], side="left")
+        below = (k > 0) & (least_second(k) <= F[:, 1])
+        return below | (least_second(np.searchsorted(a, F[:, 0], side="right")) < F[:, 1])
     out = np.zeros(len(F), dtype=bool)
     for lo in range(0, len(F), block):
         f = F[lo : lo + block, None, :]

@@ -604,7 +604,14 @@ def journal_batch(storage):
 
 
 def best_designs(
-    study, objectives, T_limit, k: int = 1, store=None, per: str | None = None, copies: bool = False
+    study,
+    objectives,
+    T_limit,
+    k: int = 1,
+    store=None,
+    per: str | None = None,
+    copies: bool = False,
+    worker: str | None = None,
 ) -> list[dict]:
     """Best feasible trials of all (:func:`trials_table`): the ``k`` best for one
     objective (``per``: the best of each value of that parameter, e.g. ``"material"``),
@@ -614,7 +621,8 @@ def best_designs(
     copies alone, without reading the trial store: the same best (``k = 1``, no ``per``)
     and front for a study of batched searches with ``T_limit`` theirs, whose copies are
     every generation's best feasible member (several objectives: the members that joined
-    their lineage's front), so every other trial is beaten by one of them."""
+    their lineage's front), so every other trial is beaten by one of them. ``worker``:
+    among that worker's trials alone (its lineage)."""
     from .objectives import signs
     from .samplers import pareto_mask
 
@@ -622,6 +630,8 @@ def best_designs(
     if not cols:
         return []
     ok = ~cols["failed"].astype(bool)
+    if worker is not None:
+        ok &= cols["worker"] == worker
     if T_limit is not None:
         ok &= np.nan_to_num(cols["constraint"].astype(np.float64), nan=0.0) <= 0
     sel = np.flatnonzero(ok)
