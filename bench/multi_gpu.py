@@ -235,12 +235,12 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", default=None, help="the devices in order (default cuda:0, cuda:1, ...)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma list of {', '.join(CASES)}")
     ap.add_argument("--small", action="store_true", help="CPU-sized defaults (a smoke check)")
-    ap.add_argument("--fits", type=int, default=None, help="fit problems (default 60000; --small 8)")
+    ap.add_argument("--fits", type=int, default=None, help="fit problems (default 100000; --small 8)")
     ap.add_argument("--fit-chunks", type=int, default=2, help="fit chunks per worker")
     ap.add_argument("--points", type=int, default=None, help="design evaluations (default 2^24; --small 2^14)")
     ap.add_argument("--sweep-points", type=int, default=None, help="reduced sweep points (default 2^28; --small 2^15)")
     ap.add_argument("--sweep-chunk", type=int, default=None, help="sweep chunk (default 2^22; --small 2^12)")
-    ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^20; --small 2048)")
+    ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^21; --small 2048)")
     ap.add_argument("--island-batch", type=int, default=None, help="island population (default 8192; --small 256)")
     ap.add_argument("--repeats", type=int, default=None, help="timings per case, the best kept (default 2; --small 1)")
     ap.add_argument(
@@ -253,11 +253,11 @@ def main(argv=None) -> int:
     args = ap.parse_args(argv)
     small = args.small
     for name, big, little in (
-        ("fits", 60000, 8),
+        ("fits", 100000, 8),
         ("points", 1 << 24, 1 << 14),
         ("sweep_points", 1 << 28, 1 << 15),
         ("sweep_chunk", 1 << 22, 1 << 12),
-        ("island_trials", 1 << 20, 2048),
+        ("island_trials", 1 << 21, 2048),
         ("island_batch", 8192, 256),
         ("repeats", 2, 1),
     ):
@@ -327,13 +327,14 @@ def main(argv=None) -> int:
             print(json.dumps({key: v for key, v in row.items() if not key.startswith("_")}), flush=True)
             result["rows"].append(row)
     base = result["rows"][0]
+    v0 = base.get("_values")
     rates = ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "island_evaluations_per_minute")
     for r in result["rows"]:
         for key in rates:
             if key in r:
                 r[f"speedup_{key}"] = r[key] / base[key]
         if "_values" in r:
-            v, v0 = r.pop("_values"), base["_values"]
+            v = r.pop("_values")
             r["fits_max_relative_difference_to_first_row"] = float(np.max(np.abs(v - v0) / np.abs(v0)))
         if "evaluations_digest" in r:
             r["evaluations_equal_first_row"] = r["evaluations_digest"] == base["evaluations_digest"]
@@ -341,7 +342,6 @@ def main(argv=None) -> int:
             r["sweep_reductions_equal_first_row"] = r["sweep_reductions"] == base["sweep_reductions"]
         if "island0_best" in r:
             r["island0_equals_first_row"] = r["island0_best"] == base["island0_best"]
-    base.pop("_values", None)
     result["summary"] = {
         f"{k}_gpus": {key: r[f"speedup_{key}"] for key in rates if f"speedup_{key}" in r}
         for k, r in zip(ks, result["rows"])
