@@ -252,6 +252,8 @@ class _Run:
         self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
+        self._appender = None  # the thread of the trial store's appends (commit_seconds > 0)
+        self._appending = None  # the append in flight (a Future)
 
     def evaluate(self, values: dict):
         """(metrics {name: (n,)}, values (n, m) as objectives, minimized F (n, m),
@@ -330,7 +332,11 @@ class _Run:
 
     def commit(self, claim=None, final: bool = False) -> None:
         """The generations evaluated since the last commit: their rows into the trial store
-        (one append) and ``claim``'s heartbeat into the study; ``final`` (the run's end,
+        (one append) and ``claim``'s heartbeat into the study. With ``commit_seconds`` > 0
+        the append runs in a thread while the search goes on (h5py's writes and the sync
+        to disk release the GIL), the next commit waiting for it: a run killed meanwhile
+        loses that commit's generations too, which its resume evaluates again; at 0 each
+        generation is stored before the next is asked. ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the
         lineage's best (several objectives: on its front now), in one journal lock and
         sync. The copies wait for the end because each Optuna trial costs the study a
@@ -351,7 +357,7 @@ class _Run:
             params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
             if self.space.material is not None:
                 params["material"] = self.space.material_index(params["material"])
-            self.writer.append(
+            args = (
                 rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
                 np.concatenate([r[1] for r in rows]),
                 params,
@@ -359,7 +365,18 @@ class _Run:
                 None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
                 np.concatenate([r[5] for r in rows]),
             )
+            self.wait_store()
+            if self.commit_seconds > 0 and not final:
+                if self._appender is None:
+                    from concurrent.futures import ThreadPoolExecutor
+
+                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
+                self._appending = self._appender.submit(self.writer.append, *args)
+            else:
+                self.writer.append(*args)
             self.timing["trial_store"] += time.perf_counter() - t
+        if final:
+            self.wait_store()  # the store before the copies
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
             for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
@@ -368,6 +385,13 @@ class _Run:
                 claim.heartbeat()
         self.timing["storage"] += time.perf_counter() - t
         self.last_commit = time.perf_counter()
+
+    def wait_store(self) -> None:
+        """Wait for the trial store's append in flight (:meth:`commit`); its error, if any,
+        is raised here."""
+        if self._appending is not None:
+            appending, self._appending = self._appending, None
+            appending.result()
 
     def commit_due(self) -> bool:
         return time.perf_counter() - self.last_commit >= self.commit_seconds
@@ -412,7 +436,12 @@ class _Run:
         try:
             if self.rows or self.copies:
                 self.commit(claim, final=True)
+            self.wait_store()
         finally:
+            if self._appending is not None:  # an earlier error: the append still ends before the close
+                self._appending.exception()
+            if self._appender is not None:
+                self._appender.shutdown()
             if self.writer is not None:
                 self.writer.close()
 
