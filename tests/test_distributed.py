@@ -198,11 +198,16 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     )
     values = space.from_unit(np.random.default_rng(3).random((40, 2)))
     values["material"] = np.arange(40) % 3
+    from tawarp.distributed import search_islands
+
+    reduced = dict(mode="sobol", n_samples=96, chunk=20, seed=2, reduce="best,quantiles,pareto,top=5", raw=False)
     procs = local_cluster(["cpu", "cpu"], processes=True)
     try:
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
+        reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
+        islands = search_islands(procs, _space(), storage=str(tmp_path / "islands.journal"), n_trials=32, batch=16)
     finally:
         cluster = procs.cluster
         procs.close()
@@ -216,6 +221,11 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
             xr.open_dataset(tmp_path / name, engine="h5netcdf") as y,
         ):
             xr.testing.assert_identical(x, y)
+    # the reductions' states and the islands' results pickled back from the processes
+    assert reduced_many.reductions == sweep(space, tmp_path / "reduced_one.nc", **reduced).reductions
+    for name, island in zip(("island0", "island1"), islands.timing["islands"]):
+        alone = search(_space(), n_trials=32, batch=16, worker=name)
+        assert island["worker"] == name and island["best"] == [d["values"] for d in alone.best]
     with pytest.raises(ValueError, match="parts=True.*client="):
         sweep(space, tmp_path / "no.nc", mode="sobol", n_samples=8, parts=True)
     assert not (tmp_path / "no.nc").exists()
