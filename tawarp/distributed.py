@@ -457,8 +457,9 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
     islands' fronts meet in the study's front. Returns a
     :class:`~tawarp.design.search.SearchResult`: the study opened here, the best of all
     islands, ``timing`` summed over the islands (``wall`` and ``evaluations_per_minute``
-    here; ``islands``: each one's timing and the objectives of its own best). Other
-    keywords go to ``search``."""
+    here; ``islands``: each one's timing and the objectives of its own best). ``islands``:
+    how many (default: one per worker; more take turns on the workers). Other keywords go
+    to ``search``."""
     import time
 
     from .design.objectives import DEFAULT_T_LIMIT
