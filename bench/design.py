@@ -25,6 +25,12 @@ device's completion) for comparison.
     python bench/design.py --device cuda                # < 3 min on one H100
     python bench/design.py --device cuda --sweep-only   # sweeps alone
     python bench/design.py --device cpu --small         # < 2 min on a laptop CPU
+    python bench/design.py --device cuda --cases cmaes,nsga2 --trials 4194304 --batch 32768 \
+        --mo-trials 1048576 --mo-batch 8192             # the two batched searches alone
+
+``--cases`` picks the parts (cmaes, nsga2, optuna, sweep, sweep_reduced); the JSON file
+is rewritten after each part (``"complete": false`` until the last), so a run stopped by
+a time limit keeps what it measured.
 """
 
 from __future__ import annotations
@@ -55,6 +61,8 @@ VARS = [
 ]
 
 
+#: The parts of a run (--cases), in the order they run.
+CASES = ("cmaes", "nsga2", "optuna", "sweep", "sweep_reduced")
 #: The reductions of the reduced sweep (tawarp.design.reductions): all of them.
 REDUCE = "best,quantiles,histogram,pareto,top=100"
 
@@ -254,6 +262,15 @@ def main(argv=None):
     )
     ap.add_argument("--batch", type=int, default=None, help="its population (default: 1024 --small, else 8192)")
     ap.add_argument(
+        "--mo-trials", type=int, default=None, help="trials of the NSGA-II search (default: 4096 --small, else 262144)"
+    )
+    ap.add_argument("--mo-batch", type=int, default=None, help="its population (default: 512 --small, else 8192)")
+    ap.add_argument(
+        "--cases",
+        default=",".join(CASES),
+        help=f"comma list of {', '.join(CASES)} (not with --sweep-only)",
+    )
+    ap.add_argument(
         "--sweep-only",
         action="store_true",
         help="only the sweeps (grid and Sobol, two sizes each): design_sweep_<device>.json",
@@ -293,9 +310,12 @@ def main(argv=None):
             sweep=(1 << 24, 1 << 26),
             chunk=1 << 22,
         )
-    cfg.update(
-        {k: v for k, v in (("trials", args.trials), ("batch", args.batch), ("chunk", args.chunk)) if v is not None}
-    )
+    given = {"trials": args.trials, "batch": args.batch, "chunk": args.chunk}
+    given.update(mo_trials=args.mo_trials, mo_batch=args.mo_batch)
+    cfg.update({k: v for k, v in given.items() if v is not None})
+    cases = [c for c in args.cases.split(",") if c]
+    if not cases or set(cases) - set(CASES):
+        ap.error(f"--cases {args.cases!r}: choose among {', '.join(CASES)}")
     t_all = time.perf_counter()
     out = {
         "device": device,
@@ -325,46 +345,59 @@ def main(argv=None):
         print(json.dumps(out["summary"], indent=2))
         write_result(out, f"design_sweep_{tag}.json", args.output)
         return 0
-    with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
-        out["search_cmaes"] = bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp)
-        print(json.dumps(out["search_cmaes"]), flush=True)
-        out["search_nsga2"] = bench_search(
+    out["command"] = "python bench/design.py " + " ".join(sys.argv[1:] if argv is None else argv)
+    out["complete"] = False
+    runs = {
+        "search_cmaes": lambda tmp: bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp),
+        "search_nsga2": lambda tmp: bench_search(
             device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp
-        )
-        print(json.dumps(out["search_nsga2"]), flush=True)
-        out["search_optuna_cmaes"] = bench_search(
+        ),
+        "search_optuna_cmaes": lambda tmp: bench_search(
             device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",), engine="optuna", tmp=tmp
-        )
-        print(json.dumps(out["search_optuna_cmaes"]), flush=True)
-        out["sweep"] = [bench_sweep(device, "sobol", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
-        print(json.dumps(out["sweep"]), flush=True)
-        out["sweep_reduced"] = [bench_sweep(device, "sobol_reduced", n, cfg["chunk"], tmp) for n in cfg["sweep"]]
-        print(json.dumps(out["sweep_reduced"]), flush=True)
-    s = out["sweep"]
-    out["summary"] = {
-        "search_evaluations_per_minute": out["search_cmaes"]["evaluations_per_minute"],
-        "search_sampler_share": out["search_cmaes"]["sampler_share"],
-        "search_storage_share": out["search_cmaes"]["storage_share"],
-        "search_trial_store_share": out["search_cmaes"]["trial_store_share"],
-        "search_trials_in_study": out["search_cmaes"]["trials_in_study"],
-        "search_evaluation_share": out["search_cmaes"]["evaluation_share"],
-        "search_device_busy_share": out["search_cmaes"]["device_busy_share"],
-        "nsga2_evaluations_per_minute": out["search_nsga2"]["evaluations_per_minute"],
-        "optuna_samplers_evaluations_per_minute": out["search_optuna_cmaes"]["evaluations_per_minute"],
-        "sweep_evaluations_per_hour": s[-1]["evaluations_per_hour"],
-        "reduced_sweep_evaluations_per_hour": out["sweep_reduced"][-1]["evaluations_per_hour"],
-        "sweep_peak_rss_MiB": [x["peak_rss_MiB"] for x in s],
-        "sweep_points": [x["points"] for x in s],
-        "nsga2_sampler_share": out["search_nsga2"]["sampler_share"],
-        "targets": {
-            "search_per_minute": 1e8,
-            "search_sampler_share_at_most": 0.10,
-            "nsga2_per_minute": 3e7,
-            "sweep_per_hour": 1e9,
-            "reduced_sweep_per_hour": 1e12,
-        },
-        "bench_seconds": time.perf_counter() - t_all,
+        ),
+        "sweep": lambda tmp: [bench_sweep(device, "sobol", n, cfg["chunk"], tmp) for n in cfg["sweep"]],
+        "sweep_reduced": lambda tmp: [bench_sweep(device, "sobol_reduced", n, cfg["chunk"], tmp) for n in cfg["sweep"]],
     }
+    with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
+        for case, key in zip(CASES, runs):
+            if case in cases:
+                out[key] = runs[key](tmp)
+                print(json.dumps(out[key]), flush=True)
+                write_result(out, f"design_{tag}.json", args.output)  # what is measured so far
+    summary = {
+        "search_cmaes": {
+            "search_evaluations_per_minute": "evaluations_per_minute",
+            "search_sampler_share": "sampler_share",
+            "search_storage_share": "storage_share",
+            "search_trial_store_share": "trial_store_share",
+            "search_trials_in_study": "trials_in_study",
+            "search_evaluation_share": "evaluation_share",
+            "search_device_busy_share": "device_busy_share",
+        },
+        "search_nsga2": {
+            "nsga2_evaluations_per_minute": "evaluations_per_minute",
+            "nsga2_sampler_share": "sampler_share",
+        },
+        "search_optuna_cmaes": {"optuna_samplers_evaluations_per_minute": "evaluations_per_minute"},
+    }
+    out["summary"] = {k: out[part][v] for part, keys in summary.items() if part in out for k, v in keys.items()}
+    if "sweep" in out:
+        out["summary"].update(
+            sweep_evaluations_per_hour=out["sweep"][-1]["evaluations_per_hour"],
+            sweep_peak_rss_MiB=[x["peak_rss_MiB"] for x in out["sweep"]],
+            sweep_points=[x["points"] for x in out["sweep"]],
+        )
+    if "sweep_reduced" in out:
+        out["summary"]["reduced_sweep_evaluations_per_hour"] = out["sweep_reduced"][-1]["evaluations_per_hour"]
+    out["summary"]["targets"] = {
+        "search_per_minute": 1e8,
+        "search_sampler_share_at_most": 0.10,
+        "nsga2_per_minute": 3e7,
+        "sweep_per_hour": 1e9,
+        "reduced_sweep_per_hour": 1e12,
+    }
+    out["summary"]["bench_seconds"] = time.perf_counter() - t_all
+    out["complete"] = True
     print(json.dumps(out["summary"], indent=2))
     write_result(out, f"design_{tag}.json", args.output)
     return 0

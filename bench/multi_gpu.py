@@ -1,51 +1,55 @@
-"""Scaling over several devices through Dask distributed (tawarp.distributed): batched
-fits, design evaluations and a sweep on 1, 2, ... workers (one per device). Writes JSON.
+"""Scaling over the GPUs of one machine through Dask distributed (tawarp.distributed):
+batched fits, design evaluations, a reduced sweep and the island design search on 1, 2,
+... GPUs. One command per machine, one JSON:
 
-    python bench/multi_gpu.py --devices cuda:0,cuda:1 --out bench/results/multi_gpu_h200x2.json
-    python bench/multi_gpu.py --devices cpu,cpu --fits 8 --points 16384 --sweep-points 65536 \
-        --sweep-chunk 16384 --repeats 1   # CPU workers: a smoke check
+    python bench/multi_gpu.py --gpus 1,2 --out bench/results/multi_gpu_h100x2.json
+    python bench/multi_gpu.py --gpus 1,2,4 --out bench/results/multi_gpu_h100x4.json
+    python bench/multi_gpu.py --devices cpu,cpu --gpus 1,2 --small   # CPU workers: a smoke check
 
-For each kind of local cluster (``--cluster``: worker processes, worker threads of this
-process, or both) and k = 1 .. len(devices), a cluster of the first k devices (one
-single-threaded worker each) runs, after a warm-up that compiles and loads the kernels
-on every worker:
+For each k of ``--gpus`` a local cluster of one single-threaded Dask worker on each of
+the devices 0 .. k-1 (``--devices``: cuda:0, cuda:1, ... by default) runs, after a
+warm-up that loads the kernels on every worker (compiled once beforehand in this process):
 
 * ``fits``: :func:`tawarp.distributed.fit_on_cluster`, the heat workload of bench/fit.py
-  (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits`` problems
-  in ``--fit-chunks`` chunks per worker;
-* ``evaluations``: :class:`tawarp.distributed.ClusterEvaluator` on ``--points`` design
-  points of the rvc_foam space of bench/design.py (kernel metrics);
-* ``sweep``: :func:`tawarp.design.sweep.sweep` of ``--sweep-points`` Sobol points to
-  netCDF with ``client=``, tasks of ``--sweep-chunk`` points: the outputs sent back and
-  written by this process (one file), then written by the workers to part files that the
-  file maps (``parts=True``: ``sweep_parts_*``).
+  (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits``
+  problems in ``--fit-chunks`` chunks per worker; the data are the client's (they travel);
+* ``evaluations``: :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` of
+  ``--points`` Sobol points of the rvc_foam space: each worker draws its chunks' points
+  and builds their tables on its device, the objectives come back;
+* ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
+  (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
+  worker reduces its share of the chunks, only the reductions come back and merge;
+* ``islands``: :func:`tawarp.distributed.search_islands`, a batched CMA-ES island per
+  worker (``--island-trials`` trials of ``--island-batch`` each, one journal study with
+  its trial store, committed once a second), worker processes (the search's host work
+  per generation is Python: threads of one process would share the GIL).
 
-Speed-up = rate on k workers / rate on 1 worker of the same kind of cluster (the target:
->= 1.8 on 2 GPUs). Each row also says whether its evaluations and its sweep
-file equal those of one process on the first device (bit for bit: same device kind, same
-code), which checks Warp driving several devices from threads; ``one_process`` holds
-that process's sweep rate (no Dask).
+Fits, evaluations and the sweep run on worker threads of this process
+(``local_cluster(processes=False)``: arrays pass by reference; ``--cluster processes``
+to compare), the islands on worker processes. Speed-up = rate on k GPUs / rate on the
+first k of ``--gpus`` (the targets: >= 1.8 on 2 GPUs, >= 3.5 on 4). Each row also says
+whether its results equal those of that first row (the evaluations and the sweep's
+reductions bit for bit, the fits' largest relative difference, island0's best).
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import platform
-import shutil
 import sys
 import tempfile
 import time
 import warnings
 
-import h5py
 import numpy as np
 
-from tawarp.design.evaluate import Evaluator
+from tawarp.design.search import search
 from tawarp.design.space import DesignSpace
-from tawarp.design.sweep import parts_path, sweep
-from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
+from tawarp.design.sweep import sweep
+from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, search_islands
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices
@@ -53,6 +57,9 @@ from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
+#: The reductions of the sweep (tawarp.design.reductions): all of them.
+REDUCE = "best,quantiles,histogram,pareto,top=100"
+CASES = ("fits", "evaluations", "sweep", "islands")
 
 
 def fit_data(n: int, seed: int = 0):
@@ -69,171 +76,141 @@ def fit_data(n: int, seed: int = 0):
 def design_space() -> DesignSpace:
     return DesignSpace(
         load_core("rvc_foam"),
-        ["stack.length=0.004:0.1", "heat_input=1:9", "hot_hx.length=0.005:0.03", "stack.porosity=0.6:0.98"],
+        [
+            "material=ceramic,mesh,nicr_foam,rvc_foam",
+            "stack.length=0.004:0.1",
+            "heat_input=1:9",
+            "hot_hx.length=0.005:0.03",
+            "stack.porosity=0.6:0.98",
+        ],
     )
 
 
-def timed(fn, repeats: int = 2) -> float:
-    """Best wall time of ``repeats`` calls [s]."""
-    best = np.inf
+def timed(fn, repeats: int):
+    """(best wall time of ``repeats`` calls [s], the last call's result)."""
+    best, out = np.inf, None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        fn()
+        out = fn()
         best = min(best, time.perf_counter() - t0)
-    return best
+    return best, out
 
 
-def same_file(a: str, b: str) -> bool:
-    """Whether the netCDF files ``a`` and ``b`` hold the same variables, value for value."""
-    with h5py.File(a, "r") as x, h5py.File(b, "r") as y:
-        names = [k for k in x if isinstance(x[k], h5py.Dataset)]
-        return sorted(names) == sorted(k for k in y if isinstance(y[k], h5py.Dataset)) and all(
-            np.array_equal(x[k][()], y[k][()], equal_nan=True) for k in names
-        )
+def digest(arrays: dict) -> str:
+    """A hash of named arrays' bytes: equal results, equal digests."""
+    h = hashlib.sha256()
+    for k in sorted(arrays):
+        h.update(k.encode())
+        h.update(np.ascontiguousarray(arrays[k]).tobytes())
+    return h.hexdigest()
 
 
-def measure(client, k: int, args, data, table, reference: dict, tmp) -> dict:
-    core, Y, w, start = data
-    space = design_space()
-    ev = ClusterEvaluator(client, space)
-    path = os.path.join(tmp, f"sweep{k}.nc")
+def closed(client) -> None:
+    cluster = client.cluster
+    client.close()
+    cluster.close()
 
-    def fits(per_worker=args.fit_chunks[0]):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", FitWarning)
-            return fit_on_cluster(
-                client,
-                core,
-                FREQS,
-                Y,
-                FIT_NAMES,
-                start,
-                heat_input=40.0,
-                weights=w,
-                warn=False,
-                chunk=-(-len(Y) // (per_worker * k)),
+
+class Bench:
+    """The cases on a cluster of k workers (see the module docstring)."""
+
+    def __init__(self, args, tmp):
+        self.args, self.tmp = args, tmp
+        self.space = design_space()
+        self.data = fit_data(args.fits)
+
+    def fits(self, client, k: int) -> dict:
+        core, Y, w, start = self.data
+        chunks = self.args.fit_chunks
+
+        def run(n=None):
+            n = len(Y) if n is None else n
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", FitWarning)
+                return fit_on_cluster(
+                    client,
+                    core,
+                    FREQS,
+                    Y[:n],
+                    FIT_NAMES,
+                    start,
+                    heat_input=40.0,
+                    weights=w[:n],
+                    warn=False,
+                    chunk=-(-n // (chunks * k)),
+                )
+
+        run(2 * k * chunks)  # warm-up: every worker loads the kernels
+        t, res = timed(run, self.args.repeats)
+        return {
+            "fits": len(Y),
+            "fit_seconds": t,
+            "fits_per_s": len(Y) / t,
+            "fits_converged": float(res.converged.mean()),
+            "_values": res.values,
+        }
+
+    def evaluations(self, client, k: int) -> dict:
+        ev = ClusterEvaluator(client, self.space)
+        n = self.args.points
+        ev.evaluate_sobol(64 * k)  # warm-up
+        t, out = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
+        return {
+            "evaluation_points": n,
+            "evaluation_seconds": t,
+            "evaluations_per_s": n / t,
+            "evaluations_digest": digest(out),
+        }
+
+    def sweep(self, client, k: int) -> dict:
+        a = self.args
+        path = os.path.join(self.tmp, f"sweep{k}.nc")
+
+        def run(n=a.sweep_points, chunk=a.sweep_chunk):
+            return sweep(
+                self.space, path, mode="sobol", n_samples=n, chunk=chunk, client=client, reduce=REDUCE, raw=False
             )
 
-    def sweep_once(n=args.sweep_points, chunk=args.sweep_chunk, parts=False):
-        return sweep(space, path, mode="sobol", n_samples=n, chunk=chunk, client=client, parts=parts)
+        run(64 * k, 64)  # warm-up
+        t, info = timed(run, self.args.repeats)
+        os.remove(path)
+        return {
+            "sweep_points": a.sweep_points,
+            "sweep_chunk": a.sweep_chunk,
+            "sweep_seconds": t,
+            "sweep_points_per_hour": 3600.0 * a.sweep_points / t,
+            "sweep_reductions": info.reductions,
+        }
 
-    # warm-up on every worker: compile/load the kernels (one small chunk per worker)
-    fit_on_cluster(
-        client, core, FREQS, Y[: 2 * k], FIT_NAMES, start, heat_input=40.0, weights=w[: 2 * k], warn=False, chunk=1
-    )
-    ev.evaluate_table(table[:, : 64 * k])
-    sweep_once(64 * k, 64)
-    sweep_once(64 * k, 64, parts=True)
-    res = fits()
-    t_fits = {c: timed(lambda: fits(c), args.repeats) for c in args.fit_chunks}
-    t_fit = t_fits[args.fit_chunks[0]]
-    t_ev = timed(lambda: ev.evaluate_table(table), args.repeats)
-    values = ev.evaluate_table(table)
-    t_sw = timed(sweep_once, 1)
-    sweep_same = same_file(path, reference["sweep_path"])
-    t_parts = timed(lambda: sweep_once(parts=True), 1)
-    row = {
-        "workers": k,
-        "fits": len(Y),
-        "fit_seconds": t_fit,
-        "fits_per_s": len(Y) / t_fit,
-        "fits_converged": float(res.converged.mean()),
-        "fits_per_s_by_chunks_per_worker": {c: len(Y) / t for c, t in t_fits.items()},
-        "evaluation_points": table.shape[1],
-        "evaluation_seconds": t_ev,
-        "evaluations_per_s": table.shape[1] / t_ev,
-        "evaluations_equal_one_process": all(
-            np.array_equal(values[key], v, equal_nan=True) for key, v in reference["evaluations"].items()
-        ),
-        "sweep_points": args.sweep_points,
-        "sweep_seconds": t_sw,
-        "sweep_points_per_hour": 3600.0 * args.sweep_points / t_sw,
-        "sweep_equals_one_process": sweep_same,
-        "sweep_parts_seconds": t_parts,
-        "sweep_parts_points_per_hour": 3600.0 * args.sweep_points / t_parts,
-        "sweep_parts_equals_one_process": same_file(path, reference["sweep_path"]),
-    }
-    os.remove(path)
-    shutil.rmtree(parts_path(path))
-    return row
+    def islands(self, client, k: int) -> dict:
+        a = self.args
+        kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
+        warm = os.path.join(self.tmp, f"warm{k}.journal")
+        search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
+        res = search_islands(
+            client, self.space, storage=os.path.join(self.tmp, f"islands{k}.journal"), n_trials=a.island_trials, **kw
+        )
+        tm = res.timing
+        wall = tm["wall"]
+        return {
+            "island_trials": a.island_trials,
+            "island_batch": a.island_batch,
+            "islands": k,
+            "island_seconds": wall,
+            "island_evaluations_per_minute": tm["evaluations_per_minute"],
+            "island_sampler_share": tm["sampler"] / (k * wall),
+            "island_storage_share": tm["storage"] / (k * wall),
+            "island_evaluation_share": tm["evaluation"] / (k * wall),
+            "island_walls": [i["wall"] for i in tm["islands"]],
+            "island0_best": tm["islands"][0]["best"],
+            "best": res.best[0]["values"] if res.best else None,
+        }
 
 
-def one_process(args, space, table, tmp, device: str) -> dict:
-    """Evaluations of ``table`` and a sweep in this process on ``device``, no Dask: the
-    reference of every row's results, and the one-process sweep rate."""
-    settings = ForwardSettings(device=device)
-    path = os.path.join(tmp, "one_process.nc")
-    evaluations = Evaluator(space, settings=settings).evaluate_table(table)
-    info = sweep(space, path, mode="sobol", n_samples=args.sweep_points, chunk=args.sweep_chunk, settings=settings)
-    return {
-        "evaluations": evaluations,
-        "sweep_path": path,
-        "summary": {
-            "device": device,
-            "sweep_points": args.sweep_points,
-            "sweep_seconds": info.seconds,
-            "sweep_points_per_hour": info.evaluations_per_hour,
-        },
-    }
-
-
-def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--devices", default="cuda:0,cuda:1", help="comma list, one worker each (cuda:N or cpu)")
-    ap.add_argument("--fits", type=int, default=20000, help="fit problems per timing")
-    ap.add_argument("--points", type=int, default=1 << 22, help="design points per evaluation timing")
-    ap.add_argument("--sweep-points", type=int, default=1 << 24, help="Sobol points of the sweep")
-    ap.add_argument("--sweep-chunk", type=int, default=1 << 21, help="sweep points per task")
-    ap.add_argument(
-        "--fit-chunks",
-        default="2",
-        help="fit chunks per worker (comma list: each timed; the first is the row's fits_per_s)",
-    )
-    ap.add_argument("--repeats", type=int, default=2)
-    ap.add_argument(
-        "--cluster",
-        choices=("processes", "threads", "both"),
-        default="both",
-        help="workers as processes, as threads of this process (local_cluster(processes=False)), or both",
-    )
-    ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
-    args = ap.parse_args(argv)
-    try:
-        fit_chunks = [int(c) for c in args.fit_chunks.split(",")]
-    except ValueError:
-        fit_chunks = []
-    if not fit_chunks or min(fit_chunks) < 1:
-        ap.error(f"--fit-chunks: {args.fit_chunks!r}; expected positive integers, comma separated")
-    args.fit_chunks = fit_chunks
-    devices = args.devices.split(",")
-    for d in devices:
-        try:
-            resolve_device(d)
-        except ValueError as e:
-            ap.error(f"--devices: {e}")
-    kinds = ("processes", "threads") if args.cluster == "both" else (args.cluster,)
-    import warp as wp
-
-    wp.config.quiet = True
-    wp.init()
-    data = fit_data(args.fits)
-    space = design_space()
-    rng = np.random.default_rng(0)
-    table = space.varying_table(space.from_unit(rng.random((args.points, len(space.continuous)))))
-    result = {
-        "devices": devices,
-        "device_names": [wp.get_device(d).name for d in devices],
-        "host": platform.node(),
-        "cpu": platform.processor() or platform.machine(),
-        "cpu_count": os.cpu_count(),
-        "warp": wp.config.version,
-        "python": sys.version.split()[0],
-        "load_average_at_start": list(os.getloadavg()),
-        "sweep_chunk": args.sweep_chunk,
-        "rows": [],
-    }
-    # compile the kernels once here, so the workers only load them from Warp's cache
-    core, Y, w, start = data
+def compile_here(bench: Bench, device: str) -> None:
+    """Every kernel the cases use, compiled (or loaded) once in this process, so that the
+    workers only load them from Warp's cache."""
+    core, Y, w, start = bench.data
     fit_on_cluster(
         None,
         core,
@@ -244,38 +221,134 @@ def main(argv=None) -> int:
         heat_input=40.0,
         weights=w[:2],
         warn=False,
-        settings=ForwardSettings(device=devices[0]),
+        settings=ForwardSettings(device=device),
     )
-    with tempfile.TemporaryDirectory() as tmp:
-        reference = one_process(args, space, table, tmp, devices[0])
-        result["one_process"] = reference["summary"]
-        print(
-            f"one process on {devices[0]}: {reference['summary']['sweep_points_per_hour']:.3e} sweep points/h",
-            flush=True,
-        )
-        for kind in kinds:
-            for k in range(1, len(devices) + 1):
-                client = local_cluster(devices[:k], processes=kind == "processes", cpu_threads=1)  # CPU: a core each
+    settings = ForwardSettings(device=device)
+    path = os.path.join(bench.tmp, "compile.nc")
+    sweep(bench.space, path, mode="sobol", n_samples=256, chunk=128, settings=settings, reduce=REDUCE, raw=False)
+    search(bench.space, n_trials=64, batch=32, settings=settings, storage=os.path.join(bench.tmp, "compile.journal"))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gpus", default="1,2", help="worker counts to measure, comma separated (default 1,2)")
+    ap.add_argument("--devices", default=None, help="the devices in order (default cuda:0, cuda:1, ...)")
+    ap.add_argument("--cases", default=",".join(CASES), help=f"comma list of {', '.join(CASES)}")
+    ap.add_argument("--small", action="store_true", help="CPU-sized defaults (a smoke check)")
+    ap.add_argument("--fits", type=int, default=None, help="fit problems (default 100000; --small 8)")
+    ap.add_argument("--fit-chunks", type=int, default=2, help="fit chunks per worker")
+    ap.add_argument("--points", type=int, default=None, help="design evaluations (default 2^24; --small 2^14)")
+    ap.add_argument("--sweep-points", type=int, default=None, help="reduced sweep points (default 2^28; --small 2^15)")
+    ap.add_argument("--sweep-chunk", type=int, default=None, help="sweep chunk (default 2^22; --small 2^12)")
+    ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^21; --small 2048)")
+    ap.add_argument("--island-batch", type=int, default=None, help="island population (default 8192; --small 256)")
+    ap.add_argument("--repeats", type=int, default=None, help="timings per case, the best kept (default 2; --small 1)")
+    ap.add_argument(
+        "--cluster",
+        choices=("threads", "processes"),
+        default="threads",
+        help="workers of fits, evaluations and sweep (the islands always run on processes)",
+    )
+    ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
+    args = ap.parse_args(argv)
+    small = args.small
+    for name, big, little in (
+        ("fits", 100000, 8),
+        ("points", 1 << 24, 1 << 14),
+        ("sweep_points", 1 << 28, 1 << 15),
+        ("sweep_chunk", 1 << 22, 1 << 12),
+        ("island_trials", 1 << 21, 2048),
+        ("island_batch", 8192, 256),
+        ("repeats", 2, 1),
+    ):
+        if getattr(args, name) is None:
+            setattr(args, name, little if small else big)
+    try:
+        ks = sorted({int(g) for g in args.gpus.split(",")})
+    except ValueError:
+        ks = []
+    if not ks or ks[0] < 1:
+        ap.error(f"--gpus {args.gpus!r}: give worker counts >= 1, comma separated")
+    cases = [c for c in args.cases.split(",") if c]
+    if not cases or set(cases) - set(CASES):
+        ap.error(f"--cases {args.cases!r}: choose among {', '.join(CASES)}")
+    import warp as wp
+
+    wp.config.quiet = True
+    wp.init()
+    devices = args.devices.split(",") if args.devices else [f"cuda:{i}" for i in range(ks[-1])]
+    if len(devices) < ks[-1]:
+        ap.error(f"--gpus {args.gpus}: {ks[-1]} workers but {len(devices)} devices ({','.join(devices)})")
+    for d in devices:
+        try:
+            resolve_device(d)
+        except ValueError as e:
+            ap.error(f"--devices: {e}")
+    t_all = time.perf_counter()
+    result = {
+        "command": "python bench/multi_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "devices": devices[: ks[-1]],
+        "device_names": [wp.get_device(d).name for d in devices[: ks[-1]]],
+        "host": platform.node(),
+        "cpu_count": os.cpu_count(),
+        "warp": wp.config.version,
+        "python": sys.version.split()[0],
+        "cluster": {"fits, evaluations, sweep": args.cluster, "islands": "processes"},
+        "sizes": {
+            k: getattr(args, k)
+            for k in ("fits", "fit_chunks", "points", "sweep_points", "sweep_chunk", "island_trials", "island_batch")
+        },
+        "repeats": args.repeats,
+        "rows": [],
+    }
+    with tempfile.TemporaryDirectory(prefix="tawarp_multi_gpu_") as tmp:
+        bench = Bench(args, tmp)
+        t = time.perf_counter()
+        compile_here(bench, devices[0])
+        result["compile_seconds"] = time.perf_counter() - t
+        print(f"kernels ready in {result['compile_seconds']:.1f} s", flush=True)
+        for k in ks:
+            row = {"workers": k}
+            plain = [c for c in cases if c != "islands"]
+            if plain:
+                client = local_cluster(devices[:k], processes=args.cluster == "processes", cpu_threads=1)
                 try:
-                    row = {"cluster": kind, **measure(client, k, args, data, table, reference, tmp)}
+                    for c in plain:
+                        row.update(getattr(bench, c)(client, k))
                 finally:
-                    cluster = client.cluster
-                    client.close()
-                    cluster.close()
-                print(
-                    f"{kind}, {k} workers: {row['fits_per_s']:.3e} fits/s, {row['evaluations_per_s']:.3e} "
-                    f"evaluations/s, {row['sweep_points_per_hour']:.3e} sweep points/h ({row['sweep_parts_points_per_hour']:.3e} "
-                    f"with parts); equal to one process: evaluations {row['evaluations_equal_one_process']}, "
-                    f"sweep {row['sweep_equals_one_process']}, parts {row['sweep_parts_equals_one_process']}",
-                    flush=True,
-                )
-                result["rows"].append(row)
+                    closed(client)
+            if "islands" in cases:
+                client = local_cluster(devices[:k], processes=True, cpu_threads=1)
+                try:
+                    row.update(bench.islands(client, k))
+                finally:
+                    closed(client)
+            row["elapsed_s"] = time.perf_counter() - t_all
+            print(json.dumps({key: v for key, v in row.items() if not key.startswith("_")}), flush=True)
+            result["rows"].append(row)
+    base = result["rows"][0]
+    v0 = base.get("_values")
+    rates = ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "island_evaluations_per_minute")
     for r in result["rows"]:
-        base = next(b for b in result["rows"] if b["cluster"] == r["cluster"])
-        for key in ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "sweep_parts_points_per_hour"):
-            r[f"speedup_{key}"] = r[key] / base[key]
-    result["load_average_at_end"] = list(os.getloadavg())
-    print(json.dumps(result["rows"], indent=1))
+        for key in rates:
+            if key in r:
+                r[f"speedup_{key}"] = r[key] / base[key]
+        if "_values" in r:
+            v = r.pop("_values")
+            r["fits_max_relative_difference_to_first_row"] = float(np.max(np.abs(v - v0) / np.abs(v0)))
+        if "evaluations_digest" in r:
+            r["evaluations_equal_first_row"] = r["evaluations_digest"] == base["evaluations_digest"]
+        if "sweep_reductions" in r:
+            r["sweep_reductions_equal_first_row"] = r["sweep_reductions"] == base["sweep_reductions"]
+        if "island0_best" in r:
+            r["island0_equals_first_row"] = r["island0_best"] == base["island0_best"]
+    result["summary"] = {
+        f"{k}_gpus": {key: r[f"speedup_{key}"] for key in rates if f"speedup_{key}" in r}
+        for k, r in zip(ks, result["rows"])
+    }
+    result["summary"]["targets"] = {"2_gpus": 1.8, "4_gpus": 3.5}
+    result["bench_seconds"] = time.perf_counter() - t_all
+    print(json.dumps(result["summary"], indent=1))
     write_result(result, "multi_gpu.json", args.out)
     return 0
 

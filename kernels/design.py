@@ -237,3 +237,28 @@ def design_table(
             table[row[v], i] = x
             if values.shape[0] > 0:
                 values[v, i] = x
+
+
+@wp.kernel
+def sampler_coordinates(
+    values: wp.array2d(dtype=wp.float64),
+    kind: wp.array(dtype=wp.int32),
+    low: wp.array(dtype=wp.float64),
+    span: wp.array(dtype=wp.float64),
+    X: wp.array2d(dtype=wp.float64),
+):
+    """The sampler coordinates X[i, v] of design values ``values[v, i]`` (one thread per
+    point and variable): a continuous variable's unit coordinate (v - low) / span (of
+    log v for LOG; 0 when the range is one value), a material its index. The inverse of
+    :func:`design_coordinate`'s scaling, written once so that a generation told from the
+    device's values and one told again from stored values are told alike."""
+    i, v = wp.tid()
+    x = values[v, i]
+    if kind[v] == MATERIAL:
+        X[i, v] = x
+    elif span[v] == wp.float64(0.0):
+        X[i, v] = wp.float64(0.0)
+    elif kind[v] == LOG:
+        X[i, v] = (wp.log(x) - low[v]) / span[v]
+    else:
+        X[i, v] = (x - low[v]) / span[v]

@@ -332,6 +332,31 @@ def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
     return worker_state(key, build).evaluate_table(table)
 
 
+def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict) -> dict:
+    """Objectives of the Sobol points ``task`` = (lo, hi, seed) of the design space, drawn
+    on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`)."""
+    from .design.evaluate import Evaluator
+    from .design.space import DeviceTable
+
+    def build():
+        ev = Evaluator(
+            spec["space"],
+            extra=spec["extra"],
+            freqs=spec["freqs"],
+            settings=worker_settings(spec["settings"]),
+            onset=spec["onset"],
+        )
+        tables = DeviceTable(spec["space"], ev.device)
+        table = tables.sobol(0, 1, task[2])[0]
+        ev.objectives_of(ev.evaluate_device(table), table)  # loads the modules (worker_state)
+        return ev, tables
+
+    ev, tables = worker_state(key, build)
+    lo, hi, seed = task
+    table = tables.sobol(lo, hi, seed)[0]
+    return ev.objectives_of(ev.evaluate_device(table), table)
+
+
 class ClusterEvaluator:
     """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
     cluster's workers: a table is cut into chunks of ``chunk`` points (default: the table
@@ -363,25 +388,104 @@ class ClusterEvaluator:
         }
         self.key = uuid.uuid4().hex
 
-    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
-        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
-        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
-        n = table.shape[1]
+    def _starts(self, n: int) -> range:
+        """First points of the chunks of n points."""
         workers = max(1, len(self.client.scheduler_info()["workers"]))
-        starts = range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
-        # the client thread copies each chunk out of the table (Dask pickles a column block,
-        # which is not contiguous, element by element: seconds for 1e7 points) and each result
-        # into place while the workers evaluate the others: only the first copy and the last
-        # result's are not hidden
-        chunks = (np.ascontiguousarray(table[:, lo : lo + starts.step]) for lo in starts)
+        return range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
+
+    def _gather(self, n: int, starts: range, parts) -> dict[str, np.ndarray]:
+        """The chunks' objectives ``parts`` (in order) as (n,) arrays, each copied into
+        place while the workers evaluate the next ones."""
         out = {}
-        for lo, part in zip(starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec)):
+        for lo, part in zip(starts, parts):
             for k, v in part.items():
                 if k not in out:
                     out[k] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
                 out[k][lo : lo + len(v)] = v
         return out
 
+    def evaluate_sobol(self, n: int, seed: int = 0, first: int = 0) -> dict[str, np.ndarray]:
+        """Objectives of the points ``first`` .. ``first + n - 1`` of the space's scrambled
+        Sobol sequence (``seed``; the points of a Sobol sweep and of
+        :meth:`tawarp.design.space.DeviceTable.sobol`): a task is a chunk's point range,
+        its points drawn and its table built on the worker's device, so no table travels;
+        only the objectives come back."""
+        starts = self._starts(n)
+        tasks = ((first + lo, first + min(n, lo + starts.step), seed) for lo in starts)
+        return self._gather(
+            n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key + "-sobol", self.spec)
+        )
+
+    def evaluate_table(self, varying) -> dict[str, np.ndarray]:
+        """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
+        table = varying.numpy() if hasattr(varying, "numpy") else np.asarray(varying, dtype=np.float64)
+        n = table.shape[1]
+        starts = self._starts(n)
+        # the client thread copies each chunk out of the table (Dask pickles a column block,
+        # which is not contiguous, element by element: seconds for 1e7 points) and each result
+        # into place while the workers evaluate the others: only the first copy and the last
+        # result's are not hidden
+        chunks = (np.ascontiguousarray(table[:, lo : lo + starts.step]) for lo in starts)
+        return self._gather(n, starts, ordered_map(self.client, _evaluate_chunk, chunks, self.key, self.spec))
+
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""
         return self.evaluate_table(self.space.varying_table(values))
+
+
+# -- the design search, an island per worker -----------------------------------------------
+def _island(name: str, kw: dict) -> dict:
+    """One island's :func:`tawarp.design.search.search` (lineage ``name``) on this worker's
+    device: its timing, best and resumed count (the study stays in the shared storage)."""
+    from .design.objectives import DEFAULT_T_LIMIT
+    from .design.search import search
+    from .design.storage import best_designs
+
+    res = search(worker=name, **dict(kw, settings=worker_settings(kw.get("settings"))))
+    best = best_designs(res.study, res.objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True, worker=name)
+    return {"worker": name, "timing": res.timing, "best": [d["values"] for d in best], "resumed": res.resumed}
+
+
+def search_islands(client, space, objectives=("gradient",), *, storage, islands: int | None = None, **kw):
+    """The batched design search as islands, one per worker of ``client``: island i runs
+    :func:`tawarp.design.search.search` as worker ``island{i}`` (its own sampler stream,
+    :func:`tawarp.design.search.worker_seed`) on its device, ``n_trials`` of its own, all
+    storing into the one study ``storage`` (a journal file or database URL the workers
+    reach). The islands are independent (no migration): each is what it is run alone, so
+    the study equals running them one after another, resumes per island, and nothing waits
+    on the slowest island; CMA-ES islands are parallel restarts from other streams, NSGA-II
+    islands' fronts meet in the study's front. Returns a
+    :class:`~tawarp.design.search.SearchResult`: the study opened here, the best of all
+    islands, ``timing`` summed over the islands (``wall`` and ``evaluations_per_minute``
+    here; ``islands``: each one's timing and the objectives of its own best). ``islands``:
+    how many (default: one per worker; more take turns on the workers). Other keywords go
+    to ``search``."""
+    import time
+
+    from .design.objectives import DEFAULT_T_LIMIT
+    from .design.search import SearchResult
+    from .design.storage import best_designs, open_study
+
+    if storage is None:
+        raise ValueError("search_islands: the islands share one study; give storage= (a journal file or database URL)")
+    t0 = time.perf_counter()
+    workers = list(client.scheduler_info()["workers"])
+    islands = len(workers) if islands is None else int(islands)
+    kw = dict(kw, space=space, objectives=tuple(objectives), storage=storage)
+    futures = [
+        client.submit(_island, f"island{i}", kw, workers=[workers[i % len(workers)]], pure=False)
+        for i in range(islands)
+    ]
+    runs = client.gather(futures)
+    wall = time.perf_counter() - t0
+    study = open_study(storage, kw.get("study_name", "tawarp-design"), objectives, space.binding())
+    timing = {
+        k: sum(r["timing"][k] for r in runs)
+        for k in ("sampler", "evaluation", "storage", "trial_store", "evaluations", "trials_in_study")
+    }
+    timing.update(wall=wall, evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12))
+    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"]) for r in runs]
+    best = best_designs(study, objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True)
+    return SearchResult(
+        study, tuple(objectives), best, timing, sum(r["resumed"] for r in runs), ",".join(r["worker"] for r in runs)
+    )

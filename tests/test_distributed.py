@@ -85,12 +85,58 @@ def test_design_evaluations_on_cluster_equal_one_process(client):
         np.testing.assert_allclose(many[k], one[k], rtol=1e-12, atol=0, err_msg=k)
 
 
+def test_sobol_evaluations_drawn_on_the_workers_equal_one_process(client):
+    # the workers draw the points of their chunks on their devices: the objectives of
+    # points 5 .. 54 of the space's Sobol sequence, as one process evaluates them
+    from tawarp.design.space import DeviceTable
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.004:0.1", "material=ceramic,mesh", "heat_input=1:9"])
+    ev = Evaluator(space, extra=["acoustic_loss"])
+    one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
+    many = ClusterEvaluator(client, space, extra=["acoustic_loss"], chunk=16).evaluate_sobol(50, seed=7, first=5)
+    assert set(many) == set(one) and all(np.array_equal(many[k], one[k], equal_nan=True) for k in one)
+    assert np.isfinite(one["gradient"]).all()
+
+
 def test_search_on_cluster_equals_one_process(client):
     one = search(_space(), n_trials=32, batch=16, seed=4)
     many = search(_space(), n_trials=32, batch=16, seed=4, client=client)
     a = [(t.params, t.values) for t in one.study.trials]
     b = [(t.params, t.values) for t in many.study.trials]
     assert a == b
+
+
+@pytest.mark.parametrize("objectives", [("gradient",), ("gradient", "heat_leak")])
+def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objectives):
+    # an island per worker, each its own lineage of the one study: the same trials (points,
+    # values, generation and member) and the same best as running island0 then island1 in
+    # one process; CMA-ES and NSGA-II
+    from tawarp.design.storage import best_designs, trials_table
+    from tawarp.distributed import search_islands
+
+    kw = dict(objectives=objectives, n_trials=48, batch=16, seed=4)
+    for name in ("island0", "island1"):
+        search(_space(), worker=name, storage=str(tmp_path / "one.journal"), **kw)
+    many = search_islands(client, _space(), storage=str(tmp_path / "many.journal"), **kw)
+    assert [t["worker"] for t in many.timing["islands"]] == ["island0", "island1"]
+    assert many.timing["evaluations"] == 2 * 48
+    from tawarp.design.storage import open_study
+
+    one = open_study(str(tmp_path / "one.journal"), "tawarp-design", objectives, _space().binding())
+
+    def rows(study):
+        t = trials_table(study)
+        keys = zip(t["worker"].values.tolist(), t["generation"].values.tolist(), t["index"].values.tolist())
+        cols = [t[c].values.tolist() for c in [*t.attrs["parameters"], *t.attrs["metrics"]]]
+        return sorted((k, tuple(c[j] for c in cols)) for j, k in enumerate(keys))
+
+    a, b = rows(one), rows(many.study)
+    assert len(a) == 2 * 48 and a == b
+    best = best_designs(one, objectives, 673.0)
+    assert [d["values"] for d in best] == [d["values"] for d in many.best] and best
+    for island in many.timing["islands"]:  # each island's own best: its lineage's
+        mine = best_designs(one, objectives, 673.0, worker=island["worker"])
+        assert island["best"] == [d["values"] for d in mine] and mine
 
 
 @pytest.mark.parametrize(
@@ -152,11 +198,16 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     )
     values = space.from_unit(np.random.default_rng(3).random((40, 2)))
     values["material"] = np.arange(40) % 3
+    from tawarp.distributed import search_islands
+
+    reduced = dict(mode="sobol", n_samples=96, chunk=20, seed=2, reduce="best,quantiles,pareto,top=5", raw=False)
     procs = local_cluster(["cpu", "cpu"], processes=True)
     try:
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
+        reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
+        islands = search_islands(procs, _space(), storage=str(tmp_path / "islands.journal"), n_trials=32, batch=16)
     finally:
         cluster = procs.cluster
         procs.close()
@@ -170,6 +221,11 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
             xr.open_dataset(tmp_path / name, engine="h5netcdf") as y,
         ):
             xr.testing.assert_identical(x, y)
+    # the reductions' states and the islands' results pickled back from the processes
+    assert reduced_many.reductions == sweep(space, tmp_path / "reduced_one.nc", **reduced).reductions
+    for name, island in zip(("island0", "island1"), islands.timing["islands"]):
+        alone = search(_space(), n_trials=32, batch=16, worker=name)
+        assert island["worker"] == name and island["best"] == [d["values"] for d in alone.best]
     with pytest.raises(ValueError, match="parts=True.*client="):
         sweep(space, tmp_path / "no.nc", mode="sobol", n_samples=8, parts=True)
     assert not (tmp_path / "no.nc").exists()
@@ -256,3 +312,31 @@ def test_interrupted_parts_sweep_keeps_the_older_one(client, tmp_path, monkeypat
     assert len(list((tmp_path / "s.nc.parts").iterdir())) == 4
     with xr.open_dataset(tmp_path / "s.nc", engine="h5netcdf") as ds:
         xr.testing.assert_identical(ds.load(), before)
+
+
+@pytest.mark.parametrize("mode", ["sobol", "grid"])
+def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
+    # each worker reduces its share of the chunks on its device and sends back its
+    # reductions; merged here they are one process's, value for value (counts summed, best
+    # keys minimized, top K and front merged with the point index as tie-break)
+    import xarray as xr
+
+    from tawarp.design.sweep import sweep
+
+    space = DesignSpace(
+        load_core("rvc_foam"),
+        ["stack.length=0.01:0.08:5", "material=ceramic,mesh,rvc_foam", "heat_input=1:18:4"],
+    )
+    kw = dict(mode=mode, n_samples=300, seed=3, chunk=24, reduce="best,quantiles,histogram,pareto,top=7", raw=False)
+    one = sweep(space, tmp_path / "one.nc", **kw)
+    many = sweep(space, tmp_path / "many.nc", client=client, **kw)
+    assert many.chunks == one.chunks > 2 and many.n_points == one.n_points
+    assert many.reductions == one.reductions
+    for group in ("best", "top", "pareto", "histogram", "quantiles"):
+        with (
+            xr.open_dataset(tmp_path / "one.nc", engine="h5netcdf", group=group) as x,
+            xr.open_dataset(tmp_path / "many.nc", engine="h5netcdf", group=group) as y,
+        ):
+            xr.testing.assert_identical(x.load(), y.load())
+    with pytest.raises(ValueError, match="raw=False"):
+        sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})

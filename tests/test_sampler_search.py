@@ -35,9 +35,12 @@ def test_grouped_commits_store_the_same_study(tmp_path, objectives):
     kw = dict(n_trials=96, batch=16, seed=5, T_limit=450.0)
     each = search(_space(), objectives, storage=str(tmp_path / "a.journal"), commit_seconds=0.0, **kw)
     grouped = search(_space(), objectives, storage=str(tmp_path / "b.journal"), commit_seconds=1e9, **kw)
-    a, b = _table(each.study), _table(grouped.study)
+    # every generation committed, each append in the store's thread while the next runs
+    overlapped = search(_space(), objectives, storage=str(tmp_path / "c.journal"), commit_seconds=1e-9, **kw)
+    a, b, c = _table(each.study), _table(grouped.study), _table(overlapped.study)
     for k in a:
         np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+        np.testing.assert_array_equal(a[k], c[k], err_msg=k)
     assert study_summary(grouped.study)["trials"] == 96
     if len(objectives) == 1:
         assert grouped.study.best_trial.values == each.study.best_trial.values
@@ -69,3 +72,48 @@ def test_an_interrupted_grouped_run_commits_what_it_evaluated_and_resumes(tmp_pa
     got = _table(res.study)
     for k in ref:
         np.testing.assert_array_equal(got[k], ref[k], err_msg=k)
+
+
+def test_a_large_front_is_copied_spread_along_it(tmp_path, monkeypatch):
+    """Several objectives: a lineage front larger than FRONT_COPIES puts that many of its
+    members in the study, the two ends of each objective among them, every one on the
+    front of all trials (which the trial store holds whole)."""
+    from tawarp.design import search as search_module
+
+    monkeypatch.setattr(search_module, "FRONT_COPIES", 5)
+    objectives = ("gradient", "heat_leak")
+    res = search(
+        _space(), objectives, n_trials=96, batch=16, seed=5, T_limit=450.0, storage=str(tmp_path / "s.journal")
+    )
+    ds = trials_table(res.study)
+    ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
+    F = np.stack([-ds.gradient.values[ok], ds.heat_leak.values[ok]], axis=1)
+    front = F[pareto_mask(F)]
+    assert len(front) > 5
+    copied = np.array([(-t.values[0], t.values[1]) for t in res.study.trials])
+    assert len(copied) == 5 and {tuple(f) for f in copied} <= {tuple(f) for f in front}
+    for j in range(2):
+        assert front[:, j].min() in copied[:, j] and front[:, j].max() in copied[:, j]
+    assert len(res.best) == 5
+
+
+def test_a_failed_overlapped_append_stops_the_search(tmp_path, monkeypatch):
+    """An append to the trial store that fails in the store's thread (a full disk) is
+    raised by the search at its next commit, and what was stored before stays."""
+    from tawarp.design.storage import StoreWriter
+
+    append, calls = StoreWriter.append, []
+
+    def failing(self, *a, **k):
+        calls.append(1)
+        if len(calls) == 3:
+            raise OSError(28, "trial store: no space left on device")
+        return append(self, *a, **k)
+
+    monkeypatch.setattr(StoreWriter, "append", failing)
+    journal = str(tmp_path / "s.journal")
+    with pytest.raises(OSError, match="no space left"):
+        search(_space(), storage=journal, n_trials=96, batch=16, seed=2, commit_seconds=1e-9)
+    from tawarp.design.storage import open_study
+
+    assert study_summary(open_study(journal, "tawarp-design", ["gradient"]))["trials"] == 2 * 16

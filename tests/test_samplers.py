@@ -44,6 +44,26 @@ def test_nondominated_ranks_of_a_hand_made_set():
     assert list(pareto_mask(three)) == [r == 0 for r in RANKS]
 
 
+def test_two_objective_front_and_domination_are_the_definitions():
+    # the vectorized two-objective front (pareto_mask) and the search's "dominated by the
+    # front" test against Pareto domination row by row, on integer points full of ties,
+    # with infinite objectives (failed members) among them
+    from tawarp.design.search import _dominated
+
+    def dominates(p, q):
+        return np.all(p <= q) and np.any(p < q)
+
+    rng = np.random.default_rng(3)
+    for trial in range(200):
+        F = rng.integers(0, 6, (rng.integers(1, 40), 2)).astype(float)
+        F[rng.random(len(F)) < 0.1, trial % 2] = np.inf
+        mask = [not any(dominates(p, q) for p in F) for q in F]
+        assert list(pareto_mask(F)) == mask
+        front = F[mask]
+        G = rng.integers(0, 7, (rng.integers(1, 30), 2)).astype(float)
+        assert list(_dominated(G, front)) == [any(dominates(p, q) for p in front) for q in G]
+
+
 def test_crowding_distance_by_hand():
     F = np.array([[0.0, 4.0], [1.0, 2.0], [3.0, 1.0], [4.0, 0.0]])
     d = crowding(F, np.zeros(4, dtype=int))

@@ -182,3 +182,23 @@ def test_cuda_sweep_equals_the_cpu_sweep(tmp_path, mode):
                 np.testing.assert_allclose(b[k].values, a[k].values, rtol=1e-12, atol=0, err_msg=k)
             else:
                 np.testing.assert_array_equal(b[k].values, a[k].values, err_msg=k)
+
+
+def test_device_sampler_coordinates_invert_the_table():
+    # the coordinates told to a sampler, made on the device from design values: the host's
+    # unit_from_values to rounding (a log variable's logarithm: a few ulp), the material
+    # index exact, a one-value range 0; and the unit points the values came from
+    space = DesignSpace(
+        load_core("rvc_foam"),
+        ["material=ceramic,mesh,rvc_foam", "stack.length=0.01:0.08", "heat_input=1:18:log", "hot_hx.length=0.01:0.01"],
+    )
+    tables = DeviceTable(space, "cpu")
+    u = np.random.default_rng(4).random((500, len(tables.names)))
+    _, values = tables.unit(u)
+    X = tables.coordinates(values).numpy()
+    host = dict(zip(tables.names, values.numpy()))
+    host["material"] = host["material"].astype(int)
+    np.testing.assert_allclose(X, space.unit_from_values(host), rtol=0, atol=4e-16)
+    np.testing.assert_allclose(X[:, :2], u[:, :2], rtol=0, atol=4e-16)
+    assert not X[:, 2].any() and np.array_equal(X[:, 3], np.floor(u[:, 3] * 3))
+    assert np.array_equal(tables.coordinates(values.numpy()).numpy(), X)  # from the host: the same kernel

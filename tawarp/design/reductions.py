@@ -19,7 +19,10 @@
 
 Counts, best values, the top K and the front are exact (integer atomics on an ordering
 key, candidates merged on the host): the same as NumPy's reductions of the raw float32
-values (``tests/test_sweep_reduce.py``). Points whose objective is NaN (a failed
+values (``tests/test_sweep_reduce.py``). They merge exactly too: reductions of disjoint
+point ranges (a sweep's workers, :meth:`Reducer.state`, :meth:`Reducer.merge`) fold into
+those of the whole (counts summed, best keys minimized, top and front re-merged: each key
+or tie-break holds the point index, so the order of the folds does not matter). Points whose objective is NaN (a failed
 evaluation) are left out of best, top and front; NaN outputs are counted apart in the
 histograms.
 """
@@ -150,7 +153,7 @@ class Reducer:
             self._bins = [wp.empty(PARETO_BINS, dtype=wp.int64, device=dev) for _ in range(2)]
         empty = (np.zeros(0, np.int64), np.zeros((len(self.outputs), 0), np.float32), np.zeros((n_val, 0)))
         self.top, self.front = empty, empty  # (keys or indices, outputs, values) on the host
-        self._front_G = np.zeros((0, 2))
+        self._folded = None  # merge(): other ranges' counts, nan counts and best keys (host)
         self._no_values = wp.empty((0, 0), dtype=wp.float64, device=dev)
 
     def _candidates(self, chunk: int, n_val: int):
@@ -292,6 +295,36 @@ class Reducer:
         on = front_2d(G, idx)
         return idx[on], out[:, on], np.concatenate([self.front[2], cand[2]], 1)[:, on]
 
+    # -- merging -------------------------------------------------------------------------
+    def state(self) -> dict:
+        """What this reducer holds, on the host (a few arrays: the candidates, the counts,
+        the best keys; no point's raw values): what a sweep's worker sends back, folded
+        into another reducer by :meth:`merge`."""
+        st = {"n": self.n, "top": self.top, "front": self.front}
+        if self.spec.histogram or self.spec.quantiles:
+            st["counts"], st["nan"] = self.counts.numpy().copy(), self.nan.numpy().copy()
+        if self.spec.best:
+            st["best"] = self.best.numpy().copy()
+        if self._folded is not None:
+            for k, v in self._folded.items():
+                st[k] = np.minimum(st[k], v) if k == "best" else st[k] + v
+        return st
+
+    def merge(self, other: dict) -> None:
+        """Fold the :meth:`state` of a reducer of the same sweep over other points into
+        this one: exact (see the module docstring)."""
+        self.n += other["n"]
+        if other["top"][0].size:
+            self.top = self._merge_top(other["top"])
+        if other["front"][0].size:
+            self.front = self._merge_front(other["front"])
+        folded = {k: other[k] for k in ("counts", "nan", "best") if k in other}
+        if self._folded is None:
+            self._folded = folded
+        else:
+            for k, v in folded.items():
+                self._folded[k] = np.minimum(self._folded[k], v) if k == "best" else self._folded[k] + v
+
     # -- results ---------------------------------------------------------------------------
     def _coordinates(self, index: np.ndarray, values: np.ndarray) -> dict:
         """Design values of points ``index``: a grid's from the index, a Sobol sweep's as
@@ -313,6 +346,7 @@ class Reducer:
         from ..kernels.reduce import HIST_OFFSET_BINS, HIST_SHIFT_BITS, NONE_KEY
 
         res, summary = {}, {}
+        st = self.state()
         if self.spec.top:
             keys, out, vals = self.top
             idx = keys & 0xFFFFFFFF
@@ -323,7 +357,7 @@ class Reducer:
             if len(idx):
                 summary["best"] = {k: _json(v[1][0]) for k, v in g.items()}
         if self.spec.best:
-            best = self.best.numpy()
+            best = st["best"]
             g = {}
             for j, v in enumerate(self.variables):
                 sel = best[self.first_level[j] : self.first_level[j] + self.levels[j]]
@@ -342,7 +376,7 @@ class Reducer:
             res["pareto"] = g
             summary["pareto_points"] = int(len(idx))
         if self.spec.histogram or self.spec.quantiles:
-            counts, nan = self.counts.numpy(), self.nan.numpy()
+            counts, nan = st["counts"], st["nan"]
             hist, quant = {}, {"probability": (("probability",), np.array(QUANTILES))}
             for j, o in enumerate(self.outputs):
                 nz = np.flatnonzero(counts[j])

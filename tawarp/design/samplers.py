@@ -111,6 +111,14 @@ def _on(device, a, dtype=wp.float64) -> wp.array:
     )
 
 
+def _into(buffer: wp.array, a) -> None:
+    """Copy ``a`` (NumPy or Warp, of ``buffer``'s length) into the float64 ``buffer``."""
+    if isinstance(a, wp.array) and a.dtype == wp.float64:
+        wp.copy(buffer, a)
+    else:
+        buffer.assign(np.ascontiguousarray(_host(a), dtype=np.float64))
+
+
 def _host(a) -> np.ndarray:
     """A float64 NumPy array of ``a`` (Warp arrays copied from their device)."""
     return np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=np.float64)
@@ -181,8 +189,49 @@ class BatchCmaEs:
         self._key = wp.empty(2 * n, dtype=wp.float64, device=dev)
         self._ckey = wp.empty(2 * n, dtype=wp.int32, device=dev)
         self._member = wp.empty(2 * n, dtype=wp.int32, device=dev)
+        self._X = wp.empty((n, dim + (1 if categories else 0)), dtype=wp.float64, device=dev)
+        self._F, self._viol = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
         self.generation = 0
         self._asked = None  # the last generation asked (Warp, on the device)
+        self._launches = self._record()
+
+    def _record(self) -> dict:
+        """The generation's launches with their arguments packed once (Warp's recorded
+        launch commands): a generation sets its seeds and the arrays asked and told
+        (the seeds' and arrays' places in the kernels' signatures), so that the host's work per generation does not grow with the
+        kernels' arguments."""
+        from ..kernels.sampler import class_keys, cma_moments, cma_sample, cma_update, eig_factor, rank_keys, told_rows
+
+        dev, n, K = self.device, self.batch, self.n_cat
+
+        def rec(kernel, dim, inputs):
+            return wp.launch(kernel, dim=dim, device=dev, inputs=inputs, record_cmd=True)
+
+        return {
+            "sample": rec(
+                cma_sample,
+                n,
+                [0, self.mean, self.sigma, self.B, self.eig, self.category, 10 * self.dim, self._z, self._X],
+            ),
+            "told": rec(
+                told_rows,
+                n,
+                [self._X, self._X, K, self.dim, self._F, self._viol, self._U, self._told_cat, self._counts],
+            ),
+            "rank": rec(rank_keys, n, [self._F, self._viol, self._key, self._member]),
+            "class": rec(class_keys, n, [self._member, self._F, self._viol, self._told_cat, self._ckey]),
+            "moments": rec(
+                cma_moments, (K, MOMENT_SLICES), [self._U, self._member, self._counts, self.mean, self.sigma, self.part]
+            ),
+            "update": rec(
+                cma_update,
+                K,
+                [0, 0, self.part, self._member, self._counts, self._F, self._viol, self.yw, self.mean, self.sigma]
+                + [self.C, self.B, self.eig, self.p_sigma, self.p_c, self.age, self.history, self._restarts],
+            ),
+            "eigh": rec(self._eigh, K, [self.C, self._w, self._V]),
+            "factor": rec(eig_factor, (K, self.dim), [self._w, self._V, self.eig, self.B]),
+        }
 
     @property
     def restarts(self) -> list[int]:
@@ -190,87 +239,42 @@ class BatchCmaEs:
         return self._restarts.numpy().tolist()
 
     def ask(self, n: int) -> wp.array:
-        from ..kernels.sampler import cma_sample
-
         if n != self.batch:
             raise ValueError(f"CMA-ES asks whole populations of {self.batch}, not {n}")
-        cols = self.dim + (1 if self.categories else 0)
         if self.generation == 0:
             X = _first_generation(self.batch, self.dim, self.categories, self.seed, self.device)
         else:
-            X = wp.empty((self.batch, cols), dtype=wp.float64, device=self.device)
-            wp.launch(
-                cma_sample,
-                dim=self.batch,
-                device=self.device,
-                inputs=[
-                    _stream_seed(self.seed, self.generation, 0),
-                    self.mean,
-                    self.sigma,
-                    self.B,
-                    self.eig,
-                    self.category,
-                    10 * self.dim,
-                    self._z,
-                    X,
-                ],
-            )
+            X = wp.empty_like(self._X)
+            cmd = self._launches["sample"]
+            cmd.set_param_at_index(0, _stream_seed(self.seed, self.generation, 0))
+            cmd.set_param_at_index(8, X)
+            cmd.launch()
         self._asked = X
         return X
 
     def tell(self, X, F, violation) -> None:
-        from ..kernels.sampler import class_keys, cma_moments, cma_update, eig_factor, rank_keys, told_rows
-
         if self._asked is None:
             raise RuntimeError("tell without ask: tell the generation last asked")
-        dev, n, K = self.device, self.batch, self.n_cat
-        X = X if isinstance(X, wp.array) and X.device == dev else _on(dev, X)
-        F = _on(dev, F if isinstance(F, wp.array) and F.ndim == 1 else _host(F).reshape(n, -1)[:, 0])
-        viol = _on(dev, violation)
+        n, cmds = self.batch, self._launches
+        if not (isinstance(X, wp.array) and X.device == self.device):
+            X = _on(self.device, X)
+        # the kernels mark failed members in F and the violations: copies, not the caller's
+        _into(self._F, F if isinstance(F, wp.array) and F.ndim == 1 else _host(F).reshape(n, -1)[:, 0])
+        _into(self._viol, violation)
         self._counts.zero_()
-        wp.launch(
-            told_rows,
-            dim=n,
-            device=dev,
-            inputs=[X, self._asked, self.n_cat, self.dim, F, viol, self._U, self._told_cat, self._counts],
-        )
-        wp.launch(rank_keys, dim=n, device=dev, inputs=[F, viol, self._key, self._member])
+        cmds["told"].set_param_at_index(0, X)
+        cmds["told"].set_param_at_index(1, self._asked)
+        cmds["told"].launch()
+        cmds["rank"].launch()
         wp.utils.radix_sort_pairs(self._key, self._member, n)
-        wp.launch(class_keys, dim=n, device=dev, inputs=[self._member, F, viol, self._told_cat, self._ckey])
+        cmds["class"].launch()
         wp.utils.radix_sort_pairs(self._ckey, self._member, n)
-        wp.launch(
-            cma_moments,
-            dim=(K, MOMENT_SLICES),
-            device=dev,
-            inputs=[self._U, self._member, self._counts, self.mean, self.sigma, self.part],
-        )
-        wp.launch(
-            cma_update,
-            dim=K,
-            device=dev,
-            inputs=[
-                _stream_seed(self.seed, self.generation, 1),
-                int(self.generation == 0),
-                self.part,
-                self._member,
-                self._counts,
-                F,
-                viol,
-                self.yw,
-                self.mean,
-                self.sigma,
-                self.C,
-                self.B,
-                self.eig,
-                self.p_sigma,
-                self.p_c,
-                self.age,
-                self.history,
-                self._restarts,
-            ],
-        )
-        wp.launch(self._eigh, dim=K, device=dev, inputs=[self.C, self._w, self._V])
-        wp.launch(eig_factor, dim=(K, self.dim), device=dev, inputs=[self._w, self._V, self.eig, self.B])
+        cmds["moments"].launch()
+        cmds["update"].set_param_at_index(0, _stream_seed(self.seed, self.generation, 1))
+        cmds["update"].set_param_at_index(1, int(self.generation == 0))
+        cmds["update"].launch()
+        cmds["eigh"].launch()
+        cmds["factor"].launch()
         self._asked = None
         self.generation += 1
 
@@ -321,10 +325,24 @@ def nondominated_ranks(F: np.ndarray) -> np.ndarray:
 
 
 def pareto_mask(F: np.ndarray) -> np.ndarray:
-    """Rows of F (N, M), all minimized, that no other row dominates. O(N x front size)."""
+    """Rows of F (N, M), all minimized, that no other row dominates: two objectives
+    vectorized, O(N log N) (in lexicographic order a row is dominated exactly when an
+    earlier, different row has a second objective <= its own; identical rows share their
+    first one's fate); more, O(N x front size)."""
     F = np.asarray(F, dtype=float)
     if F.shape[1] == 2:
-        return nondominated_ranks(F) == 0
+        mask = np.zeros(len(F), dtype=bool)
+        if not len(F):
+            return mask
+        order = np.lexsort((F[:, 1], F[:, 0]))
+        a, b = F[order, 0], F[order, 1]
+        new = np.ones(len(order), dtype=bool)
+        new[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
+        firsts = np.flatnonzero(new)
+        on = np.ones(len(firsts), dtype=bool)  # the first row: nothing before it
+        on[1:] = b[firsts[1:]] < np.minimum.accumulate(b[firsts])[:-1]
+        mask[order] = on[np.cumsum(new) - 1]
+        return mask
     order = np.lexsort(F.T[::-1])
     front: list[int] = []
     for i in order:

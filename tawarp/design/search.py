@@ -72,7 +72,8 @@ from ..model.validity import ModelValidityError
 @dataclass
 class SearchResult:
     """``study`` (Optuna), ``best`` (list of dicts: the best feasible trial, or the
-    feasible Pareto front for several objectives), ``timing`` (seconds: ``sampler``,
+    feasible Pareto front for several objectives, as the study holds it: at most
+    :data:`FRONT_COPIES` members per lineage), ``timing`` (seconds: ``sampler``,
     ``evaluation``, ``storage`` (reads, the trial store, the study, the heartbeat),
     ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
     ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
@@ -136,8 +137,9 @@ def search(
     journal file, else none (a database URL or memory: every trial in the study); False:
     every trial in the study. The batched engine only: Optuna's own samplers keep every
     trial in the study. ``commit_seconds`` [s]: the evaluated generations are committed (the
-    trial store, the study's copies and the heartbeat, in one write each) at most this
-    often, and at the end; 0 commits every generation. A run killed between commits loses
+    trial store and the heartbeat, in one write each) at most this often, and at the end;
+    0 commits every generation; the study's copies are written once, at the end
+    (:meth:`_Run.commit`). A run killed between commits loses
     the generations evaluated since the last one (a resume evaluates them again, the same);
     committing once a second keeps a fast device busy (docs/design.md). ``_stop_after`` / ``_crash_after``: test hooks that interrupt
     after asking that many batches (raise :class:`SearchCrash` / ``os._exit``)."""
@@ -180,7 +182,19 @@ def search(
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
     for k in ("sampler", "evaluation", "storage", "trial_store"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
-    return SearchResult(study, objectives, best_designs(study, objectives, T_limit), timing, run.resumed, worker)
+    # the best from the study's copies (each generation's best; several objectives: the
+    # front, spread to FRONT_COPIES per lineage): reading a trial store of millions of rows
+    # back would cost a fast device's search seconds
+    best = best_designs(study, objectives, T_limit, copies=True)
+    return SearchResult(study, objectives, best, timing, run.resumed, worker)
+
+
+#: Members of a lineage's front (several objectives) copied into the study at a run's end,
+#: spread along it (:func:`_spread`): the study is the summary that Optuna's tools open,
+#: and each Optuna trial costs a journal entry and its read-back (about a millisecond),
+#: while a fast device's front holds tens of thousands; the trial store holds every one
+#: (:func:`tawarp.design.storage.best_designs` reads the whole front there).
+FRONT_COPIES = 256
 
 
 def worker_seed(seed: int, worker: str) -> int:
@@ -226,6 +240,9 @@ class _Run:
                 client, space, extra=objectives, freqs=freqs, settings=settings, onset=onset
             )
             self.device = resolve_device((settings or ForwardSettings()).device)
+        # the coordinates told to the sampler, made on the device from the design values:
+        # by one kernel whether the values are a new generation's or stored ones (a resume)
+        self.coords = self.tables or DeviceTable(space, self.device)
         self.dists = space.distributions()
         self.sign = signs(objectives)
         self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
@@ -235,6 +252,8 @@ class _Run:
         self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
+        self._appender = None  # the thread of the trial store's appends (commit_seconds > 0)
+        self._appending = None  # the append in flight (a Future)
 
     def evaluate(self, values: dict):
         """(metrics {name: (n,)}, values (n, m) as objectives, minimized F (n, m),
@@ -245,7 +264,8 @@ class _Run:
         return self._objectives(m)
 
     def evaluate_asked(self, X):
-        """(design values {variable: (n,)}, then :meth:`evaluate`'s tuple) of the sampler
+        """(design values {variable: (n,)}, the coordinates to tell the sampler (a Warp
+        array on the device: :meth:`told`), then :meth:`evaluate`'s tuple) of the sampler
         coordinates ``X`` (a Warp array on the device): a local evaluator builds the table
         from them on the device (one launch) and copies back the metrics and the values
         once; a cluster's gets the values."""
@@ -258,6 +278,7 @@ class _Run:
         if self.tables is None:
             values = space.values_from_unit(X.numpy())
             m = self.evaluator.evaluate(values)
+            told = None
         else:
             U = wp.empty(X.shape, dtype=wp.float64, device=X.device)
             bad = wp.zeros(1, dtype=wp.int32, device=X.device)
@@ -267,18 +288,29 @@ class _Run:
                 device=X.device,
                 inputs=[X, len(space.continuous), space.n_categories, U, bad],
             )
+            table, vals = self.tables.unit(U)
+            told = self.tables.coordinates(vals)
+            # read with the metrics: no round trip to the device before the evaluation
+            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
             if bad.numpy()[0]:  # as the host's table refuses them
                 raise ModelValidityError(
-                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): "
-                    "none is evaluated"
+                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): none is stored"
                 )
-            table, vals = self.tables.unit(U)
-            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
             values = dict(zip(self.tables.names, vals.numpy()))
             if space.material is not None:
                 values["material"] = values["material"].astype(np.int64)
         self.timing["evaluation"] += time.perf_counter() - t
-        return (values, *self._objectives(m))
+        if told is None:
+            told = self.told(values)
+        return (values, told, *self._objectives(m))
+
+    def told(self, values: dict):
+        """The sampler coordinates (a Warp array on the device) of design ``values``
+        {variable: (n,)} (the material as its index): :meth:`DeviceTable.coordinates`."""
+        t = time.perf_counter()
+        told = self.coords.coordinates(np.stack([np.asarray(values[k], dtype=np.float64) for k in self.coords.names]))
+        self.timing["sampler"] += time.perf_counter() - t
+        return told
 
     def _objectives(self, m: dict):
         n = len(next(iter(m.values())))
@@ -298,14 +330,26 @@ class _Run:
         self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
         self.timing["storage"] += time.perf_counter() - t
 
-    def commit(self, claim=None) -> None:
+    def commit(self, claim=None, final: bool = False) -> None:
         """The generations evaluated since the last commit: their rows into the trial store
-        (one append), then the copies of their kept members that still are the lineage's
-        best (several objectives: on its front now) and ``claim``'s heartbeat into the study
-        (one journal lock and sync)."""
+        (one append) and ``claim``'s heartbeat into the study. With ``commit_seconds`` > 0
+        the append runs in a thread while the search goes on (h5py's writes and the sync
+        to disk release the GIL), the next commit waiting for it: a run killed meanwhile
+        loses that commit's generations too, which its resume evaluates again; at 0 each
+        generation is stored before the next is asked. ``final`` (the run's end,
+        whatever ended it): also the copies of the run's kept members that still are the
+        lineage's best (several objectives: on its front now), in one journal lock and
+        sync. The copies wait for the end because each Optuna trial costs the study a
+        journal entry and a read-back (about a millisecond): several objectives' fronts
+        change every generation; a run killed before its end leaves them to its resume,
+        which keeps them again from the stored generations."""
         t = time.perf_counter()
         rows, self.rows = self.rows, []
-        copies, self.copies = self.copies, []
+        if len(self.objectives) > 1:  # members since dominated by a later generation's
+            self.copies = _undominated(self.copies, self.front)
+        copies, self.copies = (self.copies, []) if final else ([], self.copies)
+        if len(self.objectives) > 1:
+            copies = _spread(copies, FRONT_COPIES)
         if rows:
             if self.writer is None:
                 choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
@@ -313,7 +357,7 @@ class _Run:
             params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
             if self.space.material is not None:
                 params["material"] = self.space.material_index(params["material"])
-            self.writer.append(
+            args = (
                 rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
                 np.concatenate([r[1] for r in rows]),
                 params,
@@ -321,19 +365,33 @@ class _Run:
                 None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
                 np.concatenate([r[5] for r in rows]),
             )
+            self.wait_store()
+            if self.commit_seconds > 0 and not final:
+                if self._appender is None:
+                    from concurrent.futures import ThreadPoolExecutor
+
+                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
+                self._appending = self._appender.submit(self.writer.append, *args)
+            else:
+                self.writer.append(*args)
             self.timing["trial_store"] += time.perf_counter() - t
+        if final:
+            self.wait_store()  # the store before the copies
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
-            for g, keep, values, metrics, c, F in copies:
-                if len(self.objectives) > 1:  # members since dominated by a later generation's
-                    on = ~_dominated(F, self.front)
-                    keep, values, metrics, F = keep[on], _rows_of(values, on), _rows_of(metrics, on), F[on]
-                    c = None if c is None else c[on]
+            for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
                     self.copy_to_study(g, keep, values, metrics, c, np.zeros(len(keep), bool))
             if claim is not None and (rows or copies):
                 claim.heartbeat()
         self.timing["storage"] += time.perf_counter() - t
         self.last_commit = time.perf_counter()
+
+    def wait_store(self) -> None:
+        """Wait for the trial store's append in flight (:meth:`commit`); its error, if any,
+        is raised here."""
+        if self._appending is not None:
+            appending, self._appending = self._appending, None
+            appending.result()
 
     def commit_due(self) -> bool:
         return time.perf_counter() - self.last_commit >= self.commit_seconds
@@ -377,8 +435,13 @@ class _Run:
         trial store's file."""
         try:
             if self.rows or self.copies:
-                self.commit(claim)
+                self.commit(claim, final=True)
+            self.wait_store()
         finally:
+            if self._appending is not None:  # an earlier error: the append still ends before the close
+                self._appending.exception()
+            if self._appender is not None:
+                self._appender.shutdown()
             if self.writer is not None:
                 self.writer.close()
 
@@ -424,12 +487,13 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if stored is None:  # a new generation, evaluated from the points on the device
             asked += 1
             _interruption_hooks(asked, stop_after, crash_after)
-            values, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
+            values, told, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
             run.store_rows(g, np.arange(batch), values, metrics, vm, failed)
             F[:] = np.where(failed[:, None], np.inf, Fm)
             viol[:] = np.where(failed, np.inf, vm if vm is not None else 0.0)
         else:  # stored (a resume): the stored points are told, whatever the sampler asks now
             values, metrics = _stored_generation(run, g, stored, space.values_from_unit(X.numpy()), names, F, viol)
+            told = run.told(values)
         t = time.perf_counter()
         if run.store is not None:
             keep = np.array([j for j in run.kept(F, viol) if (g, int(j)) not in copied], dtype=np.int64)
@@ -448,15 +512,63 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if run.commit_due():
             run.commit(claim)
         t = time.perf_counter()
-        sampler.tell(space.unit_from_values(values), F, viol)
+        sampler.tell(told, F, viol)
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
 
 
+def _spread(copies: list, k: int) -> list:
+    """At most ``k`` of the front members ``copies`` (per generation: (g, index, values,
+    metrics, violations, F)): all when they are no more, else the two ends of each
+    objective and the members of largest crowding distance (ties: in order), so that the
+    ones kept spread along the front."""
+    from .samplers import crowding
+
+    F = np.concatenate([c[5] for c in copies]) if copies else np.zeros((0, 0))
+    if len(F) <= k:
+        return copies
+    keep = np.zeros(len(F), dtype=bool)
+    keep[np.argsort(-crowding(F, np.zeros(len(F), dtype=int)), kind="stable")[:k]] = True
+    return _select_rows(copies, keep)
+
+
+def _undominated(copies: list, front: np.ndarray) -> list:
+    """Generations' kept members (per generation: (g, index, values, metrics,
+    violations, F)) less those that a row of ``front`` dominates."""
+    if not copies:
+        return copies
+    on = ~_dominated(np.concatenate([c[5] for c in copies]), front)
+    return _select_rows(copies, on)
+
+
+def _select_rows(copies: list, on: np.ndarray) -> list:
+    """``copies`` (see :func:`_undominated`) less the members where ``on`` (over all of
+    them, in order) is False; generations left empty are dropped."""
+    out, lo = [], 0
+    for g, index, values, metrics, c, F in copies:
+        m = on[lo : lo + len(F)]
+        lo += len(F)
+        if m.any():
+            out.append((g, index[m], _rows_of(values, m), _rows_of(metrics, m), None if c is None else c[m], F[m]))
+    return out
+
+
 def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarray:
-    """Rows of F (n, m) that a row of ``front`` dominates (all minimized), in blocks of
-    rows (an (n, len(front)) comparison at once would not fit)."""
+    """Rows of F (n, m) that a row of ``front`` dominates (all minimized): two objectives
+    by bisection in ``front`` sorted by the first (with the least second so far), more in
+    blocks of rows (an (n, len(front)) comparison at once would not fit)."""
+    if F.shape[1] == 2 and len(front):
+        order = np.lexsort((front[:, 1], front[:, 0]))
+        a, b = front[order, 0], np.minimum.accumulate(front[order, 1])
+
+        def least_second(k):  # the least second objective of the first k sorted rows
+            return np.where(k > 0, b[np.maximum(k - 1, 0)], np.inf)
+
+        # a row with a smaller first and a second <= F's, or a first <= F's and a smaller second
+        k = np.searchsorted(a, F[:, 0], side="left")
+        below = (k > 0) & (least_second(k) <= F[:, 1])
+        return below | (least_second(np.searchsorted(a, F[:, 0], side="right")) < F[:, 1])
     out = np.zeros(len(F), dtype=bool)
     for lo in range(0, len(F), block):
         f = F[lo : lo + block, None, :]

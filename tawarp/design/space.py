@@ -453,6 +453,26 @@ class DeviceTable:
             )
         return self.unit(u)
 
+    def coordinates(self, values):
+        """Sampler coordinates (m, len(names)) on the device of design ``values``
+        (len(names), m) (a Warp array on the device or NumPy, the material as its index):
+        the unit cube's coordinates of the continuous variables, then the material index
+        (:func:`tawarp.kernels.design.sampler_coordinates`; what
+        :meth:`DesignSpace.unit_from_values` computes on the host, to rounding)."""
+        import warp as wp
+
+        from ..kernels.design import sampler_coordinates
+
+        if not isinstance(values, wp.array):
+            values = wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=self.device)
+        m = values.shape[1]
+        X = wp.empty((m, len(self.names)), dtype=wp.float64, device=self.device)
+        p = self._inputs
+        wp.launch(
+            sampler_coordinates, dim=X.shape, device=self.device, inputs=[values, p["kind"], p["low"], p["span"], X]
+        )
+        return X
+
     def unit(self, u):
         """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)),
         a NumPy array or a float64 Warp array on the device: ``values`` (len(names), m) the

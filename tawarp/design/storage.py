@@ -429,9 +429,9 @@ def store_of(study, store=None) -> TrialStore | None:
     return TrialStore(path, study.study_name) if path else None
 
 
-def _study_rows(study) -> tuple[dict, dict]:
+def _study_rows(study, copies_as_rows: bool = False) -> tuple[dict, dict]:
     """(rows of the study's own finished trials, {(worker, generation, index): number} of
-    its copies of store rows)."""
+    its copies of store rows); ``copies_as_rows``: the copies are rows too."""
     from optuna.trial import TrialState
 
     rows, copies = [], {}
@@ -440,7 +440,7 @@ def _study_rows(study) -> tuple[dict, dict]:
         key = (sa.get(ATTR + "worker"), int(sa.get(ATTR + "generation", -1)), int(sa.get(ATTR + "index", -1)))
         if sa.get(COPY):
             copies[key] = t.number
-        else:
+        if copies_as_rows or not sa.get(COPY):
             rows.append((key, t))
     if not rows:
         return {}, copies
@@ -467,14 +467,19 @@ def copies_in_study(study) -> dict[tuple, int]:
     return _study_rows(study)[1]
 
 
-def _rows(study, store=None) -> dict[str, np.ndarray]:
-    """Every evaluated trial of ``study`` as columns (see :func:`trials_table`)."""
-    own, copies = _study_rows(study)
-    ts = store_of(study, store)
+def _rows(study, store=None, copies: bool = False) -> dict[str, np.ndarray]:
+    """Every evaluated trial of ``study`` as columns (see :func:`trials_table`); with
+    ``copies``, the study's own trials and its copies of trial-store rows alone (the
+    trial store is not read)."""
+    own, numbers = _study_rows(study, copies_as_rows=copies)
+    ts = None if copies else store_of(study, store)
     stored = ts.read() if ts is not None else {}
     if stored:
         stored["number"] = np.array(
-            [copies.get(k, -1) for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())],
+            [
+                numbers.get(k, -1)
+                for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())
+            ],
             dtype=np.int64,
         )
     cols = _concat([stored, own])
@@ -598,19 +603,35 @@ def journal_batch(storage):
     return journal.batch() if journal is not None else contextlib.nullcontext()
 
 
-def best_designs(study, objectives, T_limit, k: int = 1, store=None, per: str | None = None) -> list[dict]:
+def best_designs(
+    study,
+    objectives,
+    T_limit,
+    k: int = 1,
+    store=None,
+    per: str | None = None,
+    copies: bool = False,
+    worker: str | None = None,
+) -> list[dict]:
     """Best feasible trials of all (:func:`trials_table`): the ``k`` best for one
     objective (``per``: the best of each value of that parameter, e.g. ``"material"``),
     the Pareto front for several. Each: ``number`` (Optuna's, None for a trial with no
     copy in the study), ``params``, ``values`` {objective: value}, ``metrics``,
-    ``worker``, ``generation``, ``index``."""
+    ``worker``, ``generation``, ``index``. ``copies``: among the study's trials and its
+    copies alone, without reading the trial store: the same best (``k = 1``, no ``per``)
+    and front for a study of batched searches with ``T_limit`` theirs, whose copies are
+    every generation's best feasible member (several objectives: the members that joined
+    their lineage's front), so every other trial is beaten by one of them. ``worker``:
+    among that worker's trials alone (its lineage)."""
     from .objectives import signs
     from .samplers import pareto_mask
 
-    cols = _rows(study, store)
+    cols = _rows(study, store, copies)
     if not cols:
         return []
     ok = ~cols["failed"].astype(bool)
+    if worker is not None:
+        ok &= cols["worker"] == worker
     if T_limit is not None:
         ok &= np.nan_to_num(cols["constraint"].astype(np.float64), nan=0.0) <= 0
     sel = np.flatnonzero(ok)

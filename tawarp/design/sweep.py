@@ -21,7 +21,10 @@ Dask cluster (``client=``) each worker does the same for whole chunks on its dev
 task is a chunk's point range, and only what the file stores comes back (a few chunks in
 flight per worker), so no table crosses between processes; with ``parts=True`` nothing
 comes back: the workers write their chunks to part files that the file maps as HDF5
-virtual datasets (:func:`parts_path`), so the writing runs on every worker. The file is written to a temporary name
+virtual datasets (:func:`parts_path`), so the writing runs on every worker. A reduced
+sweep without raw values (``reduce=..., raw=False``) sends each worker one contiguous share
+of the chunks (their ranges) and gets back that share's reductions alone, merged exactly
+(:meth:`tawarp.design.reductions.Reducer.merge`). The file is written to a temporary name
 beside the target and renamed at the end (:func:`tawarp.io.atomic_path`: nothing
 half-written on failure or interruption, normal permissions).
 """
@@ -138,7 +141,9 @@ def sweep(
     (``"best,quantiles,histogram,pareto,top=100"``, :mod:`tawarp.design.reductions`), of
     ``objectives`` (best and top: the first; pareto: the first two); ``raw=False`` writes
     them alone, without the raw outputs (nor a Sobol sweep's design values): nothing but
-    small candidate sets crosses to the host. See the module docstring."""
+    small candidate sets crosses to the host; with ``client`` (and ``raw=False``) every
+    worker reduces its share of the chunks and the reductions are merged here, the same as
+    one process's. See the module docstring."""
     import h5netcdf
     import h5py
 
@@ -177,8 +182,11 @@ def sweep(
     from .reductions import parse_reduce
 
     spec = parse_reduce(reduce or "")
-    if spec and client is not None:
-        raise ValueError("reduce: the reductions run in one process; give no client=")
+    if spec and client is not None and (raw or parts):
+        raise ValueError(
+            "reduce with client=: the workers reduce their own points and send back the reductions alone; "
+            "give raw=False (--no-raw) and no parts"
+        )
     if not raw and not spec:
         raise ValueError("raw=False (--no-raw) keeps only reductions: give reduce= (--reduce)")
     job = _Job(space, mode, seed, outputs, tuple(freqs), settings)
@@ -198,8 +206,9 @@ def sweep(
             mode,
             outputs,
             objectives,
-            wp.get_device(resolve_device(settings.device)),
-            min(chunk, n),
+            # with a client this one only merges the workers' reductions, on the host
+            wp.get_device("cpu" if client is not None else resolve_device(settings.device)),
+            1 if client is not None else min(chunk, n),
             [grids[d] for d in dims] if mode == "grid" else None,
         )
     mapped = []  # parts=True: (chunk, index in the file, block shape) of each part written
@@ -233,11 +242,12 @@ def sweep(
                     blocks = _blocks(shape, chunk)
                 else:
                     blocks = ((lo, min(n, lo + chunk), (slice(lo, min(n, lo + chunk)),)) for lo in range(0, n, chunk))
-                chunks = (
-                    _evaluated_here(job, blocks, chunk, n, reducer, raw)
-                    if client is None
-                    else _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
-                )
+                if client is None:
+                    chunks = _evaluated_here(job, blocks, chunk, n, reducer, raw)
+                elif reducer is not None:
+                    chunks = _reduced_on(client, job, list(blocks), chunk, reducer)
+                else:
+                    chunks = _evaluated_on(client, job, blocks, shape, None if pdir is None else str(pdir))
                 while True:
                     t = time.perf_counter()
                     done = next(chunks, None)
@@ -418,6 +428,56 @@ def _evaluated_on(client, job: _Job, blocks, shape: tuple, parts: str | None = N
     results = ordered_map(client, _cluster_chunk, tasks, uuid.uuid4().hex, job, parts)
     for (lo, hi, sl), (res, values) in zip(mine, results):
         yield lo, hi, sl, res, values
+
+
+def _reduced_on(client, job: _Job, blocks: list, chunk: int, reducer):
+    """Reduce the ``blocks`` on the workers of a Dask ``client``: each worker gets one
+    contiguous share of them (their point ranges and the job: no table, no point), runs
+    the one-process pipeline over it on its device with its own reducer
+    (:func:`_reduce_share`) and sends back that reducer's state alone, merged into
+    ``reducer`` here (exactly: :meth:`tawarp.design.reductions.Reducer.merge`). Yields
+    (lo, hi, index, None, None) of each block once its worker's share is merged."""
+    import distributed
+
+    workers = list(client.scheduler_info()["workers"])
+    share = -(-len(blocks) // max(1, len(workers)))
+    args = (reducer.spec, reducer.objectives, reducer.grids, chunk, uuid.uuid4().hex)
+    futures = {
+        client.submit(_reduce_share, blocks[i * share : (i + 1) * share], job, *args, workers=[w], pure=False): i
+        for i, w in enumerate(workers)
+        if blocks[i * share : (i + 1) * share]
+    }
+    for fut in distributed.as_completed(futures):
+        reducer.merge(fut.result())
+        i = futures[fut]
+        yield from ((lo, hi, sl, None, None) for lo, hi, sl in blocks[i * share : (i + 1) * share])
+
+
+def _reduce_share(blocks: list, job: _Job, spec, objectives, grids, chunk: int, key: str) -> dict:
+    """The reductions (:meth:`Reducer.state`) of ``blocks`` evaluated on this Dask worker's
+    device, as :func:`_evaluated_here` evaluates and reduces them in one process."""
+    import dataclasses
+
+    from .reductions import Reducer
+    from ..distributed import worker_settings, worker_state
+
+    job = dataclasses.replace(job, settings=worker_settings(job.settings))
+    device = wp.get_device(resolve_device(job.settings.device))
+
+    def reducer(m):
+        return Reducer(spec, job.space, job.mode, job.outputs, objectives, device, m, grids)
+
+    def load():  # one point through every kernel, under worker_state's lock (module loads)
+        for _ in _evaluated_here(job, [(0, 1, (slice(0, 1),))], 1, 1, reducer(1), raw=False):
+            pass
+        return True
+
+    worker_state(key, load)
+    n = sum(hi - lo for lo, hi, _ in blocks)
+    mine = reducer(min(chunk, n))
+    for _ in _evaluated_here(job, blocks, chunk, n, mine, raw=False):
+        pass
+    return mine.state()
 
 
 def _cluster_chunk(task: tuple, key: str, job: _Job, parts: str | None):
