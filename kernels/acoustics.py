@@ -45,7 +45,14 @@ from .cmath import (
     dual_value,
 )
 from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
-from .pore import PORE_CIRCULAR, PORE_SCREENS, pore_functions_complex, pore_functions_log, pore_log_derivative
+from .pore import (
+    PORE_CIRCULAR,
+    PORE_SCREENS,
+    PoreTable,
+    pore_functions_complex,
+    pore_functions_log,
+    pore_log_derivative,
+)
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -604,7 +611,7 @@ def pore_point(
     pc: PointCoefficients,
     half_log_omega: wp.float64,
     pore_model: int,
-    pore_table: wp.array(dtype=wp.float64),
+    pore_table: PoreTable,
     derivatives: int,
 ):
     """:class:`PorePoint` at real angular frequency omega (``half_log_omega`` = ln(omega)/2,
@@ -662,7 +669,7 @@ def propagation_at(
     half_log_omega: wp.float64,
     gamma: wp.float64,
     pore_model: int,
-    pore_table: wp.array(dtype=wp.float64),
+    pore_table: PoreTable,
 ):
     """A(x) of the two-port ODE at real angular frequency omega [rad/s]
     (``half_log_omega`` = ln(omega)/2) at a point of a part (:func:`propagation_value`

@@ -76,7 +76,7 @@ from .layout import (
     VISCOUS_SHAPE_FACTOR,
     seg_value,
 )
-from .pore import PORE_SCREENS
+from .pore import PORE_SCREENS, PoreTable
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -502,7 +502,7 @@ def cell_exponent(
     half_log_omega: wp.float64,
     gamma: wp.float64,
     model: int,
-    pore_table: wp.array(dtype=wp.float64),
+    pore_table: PoreTable,
 ):
     """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
     the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
@@ -536,7 +536,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
         set0: int,
-        pore_table: wp.array(dtype=wp.float64),
+        pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
         doubled: wp.array3d(dtype=wp.float64),
         step: wp.array2d(dtype=wp.float64),

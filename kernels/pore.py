@@ -202,62 +202,72 @@ TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
-# The table: the circular pieces, then a header of SHAPE_SLOTS pore-model codes (-1: empty),
-# then the pieces of each shaped pore (rectangular channels, pins) in the header's order.
-TABLE_BLOCK = wp.constant(PIECES * (1 + 2 * TERMS))
+#: One piece of the table, read as one record: a flag (1: the series is g, 0: it is f), then
+#: TERMS (re, im) coefficients of the series in powers of t. A record is one index into the
+#: table and its coefficients constant offsets from it: one address per piece, where a
+#: flat float64 array took a 64-bit address (and Warp's negative-index check) per coefficient.
+TABLE_RECORD = 1 + 2 * TERMS
+TablePiece = wp.types.vector(length=TABLE_RECORD, dtype=wp.float64)
+#: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`), in records:
+#: the circular pieces, then a header record whose first SHAPE_SLOTS entries are pore-model
+#: codes (-1: empty), then the pieces of each shaped pore (rectangular channels, pins) in the
+#: header's order.
+PoreTable = wp.array(dtype=TablePiece)
 SHAPE_SLOTS = wp.constant(16)
-SHAPE_HEADER = wp.constant(PIECES * (1 + 2 * TERMS))
-SHAPE_BLOCKS = wp.constant(PIECES * (1 + 2 * TERMS) + 16)
-TABLE_LENGTH = PIECES * (1 + 2 * TERMS) * 17 + 16
+SHAPE_HEADER = wp.constant(PIECES)
+SHAPE_BLOCKS = wp.constant(PIECES + 1)
+#: Records in the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
+TABLE_LENGTH = PIECES * (1 + 16) + 1
+assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one record
 
 
 @wp.func
-def _tabulated(table: wp.array(dtype=wp.float64), offset: int, log_s: wp.float64):
-    # f, g from the pieces starting at ``offset``, for log_s inside the table's range
+def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
+    # f, g from the pieces starting at record ``offset``, for log_s inside the table's range
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
-    base = offset + k * (2 * TABLE_TERMS + 1)
+    piece = table[offset + k]
     # Horner's rule on the series' power-basis coefficients in t (one fused multiply-add
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
-    top = base + 1 + 2 * (TABLE_TERMS - 1)
-    pr = table[top]
-    pi = table[top + 1]
+    top = 1 + 2 * (TABLE_TERMS - 1)
+    pr = piece[top]
+    pi = piece[top + 1]
     for jj in range(TABLE_TERMS - 1):
         j = top - 2 - 2 * jj
-        pr = table[j] + t * pr
-        pi = table[j + 1] + t * pi
+        pr = piece[j] + t * pr
+        pi = piece[j + 1] + t * pi
     p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if table[base] != wp.float64(0.0):
+    if piece[0] != wp.float64(0.0):
         return q, p
     return p, q
 
 
 @wp.func
-def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64):
+def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
     """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
     (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
     that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
-    Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
-    coefficients of the series in powers of t, the piece's variable in [-1, 1]."""
+    Layout: :data:`TablePiece` records, the circular pieces first."""
     if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
         return pore_circular(wp.exp(log_s))
     return _tabulated(table, 0, log_s)
 
 
 @wp.func
-def _shape_slot(table: wp.array(dtype=wp.float64), model: int):
+def _shape_slot(table: PoreTable, model: int):
     # the slot of the shaped pore ``model`` in the table's header, -1 if it has none
+    header = table[SHAPE_HEADER]
     for j in range(SHAPE_SLOTS):
-        if table[SHAPE_HEADER + j] == wp.float64(model):
+        if header[j] == wp.float64(model):
             return j
     return -1
 
 
 @wp.func
-def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+def pore_functions_log(model: int, log_s: wp.float64, table: PoreTable):
     """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's or
     pin array's :func:`pore_model_code`) at ``log_s`` = ln(r / delta); ``table`` is
     :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device, which holds the
@@ -271,7 +281,7 @@ def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.f
 
 
 @wp.func(inline=False)
-def _pore_functions_other(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+def _pore_functions_other(model: int, log_s: wp.float64, table: PoreTable):
     # pore_functions_log's cases beyond a circular pore inside the table
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
@@ -279,7 +289,7 @@ def _pore_functions_other(model: int, log_s: wp.float64, table: wp.array(dtype=w
         if log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
             slot = _shape_slot(table, model)
             if slot >= 0:
-                return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_BLOCK, log_s)
+                return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_PIECES, log_s)
         return pore_functions_complex(model, cplx(wp.exp(log_s), wp.float64(0.0)))
     return pore_circular_tabulated(table, log_s)
 

@@ -15,6 +15,7 @@ from tawarp.kernels.pore import (
     PIECES_PER_OCTAVE,
     S_MAX,
     S_MIN,
+    PoreTable,
     pore_circular,
     pore_functions_log,
     pore_plates,
@@ -32,7 +33,7 @@ S_GRID = np.concatenate([np.geomspace(1e-3, 1e3, 300), [1e-4, 3e-4, 3e3, 1e4]])
 def _eval_model(
     model: int,
     s: wp.array(dtype=wp.float64),
-    table: wp.array(dtype=wp.float64),
+    table: PoreTable,
     f: wp.array(dtype=wp.vec2d),
     g: wp.array(dtype=wp.vec2d),
 ):
