@@ -33,6 +33,7 @@ from .cmath import (
     cconj,
     cdiv,
     cexp,
+    cinv,
     cmul,
     cmuli,
     cone,
@@ -49,6 +50,8 @@ from .pore import (
     PORE_CIRCULAR,
     PORE_SCREENS,
     PoreTable,
+    circular_from_table,
+    inside_table,
     pore_functions_complex,
     pore_functions_log,
     pore_log_derivative,
@@ -143,16 +146,21 @@ def cosh_sinhc(delta: wp.vec2d):
                     cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
                 )
         return ch, sh
-    return cosh_sinhc_exponentials(delta)
+    both = cosh_sinhc_exponentials(delta)
+    return wp.vec2d(both[0], both[1]), wp.vec2d(both[2], both[3])
 
 
 @wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code
 def cosh_sinhc_exponentials(delta: wp.vec2d):
-    """:func:`cosh_sinhc` from exponentials of sqrt(delta), for |delta| >= 1."""
+    """:func:`cosh_sinhc` from exponentials of sqrt(delta), for |delta| >= 1, as one
+    (ch, sh) wp.vec4d: a function called out of line returns one value in registers, where
+    two would pass through the stack. e^-r = 1/e^r: one exponential, sine and cosine."""
     r = csqrt(delta)
     ep = cexp(r)
-    em = cexp(-r)
-    return cscale(ep + em, wp.float64(0.5)), cdiv(cscale(ep - em, wp.float64(0.5)), r)
+    em = cinv(ep)
+    ch = cscale(ep + em, wp.float64(0.5))
+    sh = cdiv(cscale(ep - em, wp.float64(0.5)), r)
+    return wp.vec4d(ch[0], ch[1], sh[0], sh[1])
 
 
 @wp.func
@@ -662,6 +670,13 @@ def propagation_value(
 
 
 @wp.func
+def plain_part(geo: PartGeometry, pore_model: int):
+    """True for the cascade's usual part: circular pores (or a duct), a rigid frame and no
+    viscous shape factor, whose A needs no effect's branch of :func:`propagation_entries`."""
+    return pore_model == PORE_CIRCULAR and geo.frame_mobility <= wp.float64(0.0) and geo.shape_factor == wp.float64(1.0)
+
+
+@wp.func
 def propagation_at(
     pc: PointCoefficients,
     geo: PartGeometry,
@@ -673,7 +688,51 @@ def propagation_at(
 ):
     """A(x) of the two-port ODE at real angular frequency omega [rad/s]
     (``half_log_omega`` = ln(omega)/2) at a point of a part (:func:`propagation_value`
-    of :func:`pore_point`)."""
+    of :func:`pore_point`). A :func:`plain_part` with both s inside the pore table (the
+    cascade's usual point) is computed here, :func:`propagation_entries` with its effects'
+    neutral values as constants, which the compiler folds; any other point is
+    :func:`propagation_other`, out of line, so that its code and registers stay off the
+    cascade's path (bench/README.md)."""
+    log_s_nu = pc.log_nu + half_log_omega
+    log_s_k = pc.log_k + half_log_omega
+    if plain_part(geo, pore_model) and inside_table(log_s_nu) and inside_table(log_s_k):
+        f_nu, g_nu = circular_from_table(pore_table, log_s_nu)
+        f_k, g_k = circular_from_table(pore_table, log_s_k)
+        a12, a21, a22 = propagation_entries(
+            omega,
+            omega,  # the root is read by the shape factor alone
+            pc.log_nu,
+            pc.log_k,
+            pc.c12,
+            pc.c21,
+            pc.c22,
+            pc.rho,
+            f_k,
+            g_nu,
+            g_k,
+            geo.porosity,
+            geo.tortuosity,
+            geo.area,
+            wp.float64(0.0),
+            wp.float64(1.0),
+            gamma,
+            PORE_CIRCULAR,
+        )
+        return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
+    return propagation_other(pc, geo, omega, half_log_omega, gamma, pore_model, pore_table)
+
+
+@wp.func(inline=False)  # the rare points of a cascade: kept out of its inlined code
+def propagation_other(
+    pc: PointCoefficients,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_model: int,
+    pore_table: PoreTable,
+):
+    """:func:`propagation_at` at any point: :func:`propagation_value` of :func:`pore_point`."""
     pp = pore_point(pc, half_log_omega, pore_model, pore_table, 0)
     return propagation_value(pp, pc, geo, omega, gamma, pore_model)
 

@@ -202,66 +202,79 @@ TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
-#: One piece of the table, read as one record: a flag (1: the series is g, 0: it is f), then
-#: TERMS (re, im) coefficients of the series in powers of t. A record is one index into the
-#: table and its coefficients constant offsets from it: one address per piece, where a
-#: flat float64 array took a 64-bit address (and Warp's negative-index check) per coefficient.
+#: Rows of the table: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
+#: coefficients of the series in powers of t.
 TABLE_RECORD = 1 + 2 * TERMS
-TablePiece = wp.types.vector(length=TABLE_RECORD, dtype=wp.float64)
-#: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`), in records:
-#: the circular pieces, then a header record whose first SHAPE_SLOTS entries are pore-model
-#: codes (-1: empty), then the pieces of each shaped pore (rectangular channels, pins) in the
-#: header's order.
-PoreTable = wp.array(dtype=TablePiece)
+#: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`): column k is
+#: one piece, row r its field r. Columns: the circular pieces, then a header column whose
+#: first SHAPE_SLOTS rows are pore-model codes (-1: empty), then the pieces of each shaped
+#: pore (rectangular channels, pins) in the header's order. A field's row keeps neighbouring
+#: pieces at neighbouring addresses: a warp's threads (neighbouring frequencies, a few pieces
+#: apart) read each coefficient from one or two cache lines, where records of a piece's
+#: fields spread them over as many lines as pieces.
+PoreTable = wp.array2d(dtype=wp.float64)
 SHAPE_SLOTS = wp.constant(16)
 SHAPE_HEADER = wp.constant(PIECES)
 SHAPE_BLOCKS = wp.constant(PIECES + 1)
-#: Records in the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
+#: Columns of the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
 TABLE_LENGTH = PIECES * (1 + 16) + 1
-assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one record
+assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one column
 
 
 @wp.func
 def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
-    # f, g from the pieces starting at record ``offset``, for log_s inside the table's range
+    # f, g from the pieces starting at column ``offset``, for log_s inside the table's range
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
-    piece = table[offset + k]
+    col = offset + k
     # Horner's rule on the series' power-basis coefficients in t (one fused multiply-add
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
     top = 1 + 2 * (TABLE_TERMS - 1)
-    pr = piece[top]
-    pi = piece[top + 1]
+    pr = table[top, col]
+    pi = table[top + 1, col]
     for jj in range(TABLE_TERMS - 1):
         j = top - 2 - 2 * jj
-        pr = piece[j] + t * pr
-        pi = piece[j + 1] + t * pi
+        pr = table[j, col] + t * pr
+        pi = table[j + 1, col] + t * pi
     p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if piece[0] != wp.float64(0.0):
+    if table[0, col] != wp.float64(0.0):
         return q, p
     return p, q
 
 
 @wp.func
-def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
-    """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
-    (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
-    that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
-    Layout: :data:`TablePiece` records, the circular pieces first."""
-    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
-        return pore_circular(wp.exp(log_s))
+def inside_table(log_s: wp.float64):
+    """True when ``log_s`` = ln(r / delta) lies in the table's range (False for NaN: never
+    an index from it)."""
+    return log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX
+
+
+@wp.func
+def circular_from_table(table: PoreTable, log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta) inside the table's range
+    (:func:`inside_table`), from ``table`` (:func:`tawarp.kernels.pore_table.circular_table`);
+    the series is in ln s, so a caller that has the logarithm
+    (:func:`tawarp.kernels.acoustics.propagation_at`) takes none."""
     return _tabulated(table, 0, log_s)
+
+
+@wp.func
+def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta): :func:`circular_from_table`
+    inside the table's range, :func:`pore_circular` outside it."""
+    if not inside_table(log_s):
+        return pore_circular(wp.exp(log_s))
+    return circular_from_table(table, log_s)
 
 
 @wp.func
 def _shape_slot(table: PoreTable, model: int):
     # the slot of the shaped pore ``model`` in the table's header, -1 if it has none
-    header = table[SHAPE_HEADER]
     for j in range(SHAPE_SLOTS):
-        if header[j] == wp.float64(model):
+        if table[j, SHAPE_HEADER] == wp.float64(model):
             return j
     return -1
 
@@ -275,8 +288,8 @@ def pore_functions_log(model: int, log_s: wp.float64, table: PoreTable):
     The circular pore inside the table is the cascade's usual case and is read here; every
     other case is :func:`_pore_functions_other`, kept apart so that the GPU compiler inlines
     this short path into the cascade and calls the long one (bench/README.md)."""
-    if model == PORE_CIRCULAR and log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
-        return _tabulated(table, 0, log_s)
+    if model == PORE_CIRCULAR and inside_table(log_s):
+        return circular_from_table(table, log_s)
     return _pore_functions_other(model, log_s, table)
 
 
@@ -286,7 +299,7 @@ def _pore_functions_other(model: int, log_s: wp.float64, table: PoreTable):
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
     if model >= RECTANGULAR_BASE:
-        if log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
+        if inside_table(log_s):
             slot = _shape_slot(table, model)
             if slot >= 0:
                 return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_PIECES, log_s)

@@ -52,7 +52,6 @@ from .pore import (
     TABLE_PIECE_WIDTH,
     TABLE_RECORD,
     TERMS,
-    TablePiece,
     pore_circular,
     pore_functions_complex,
 )
@@ -73,7 +72,8 @@ def _nodes(model: int, s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d
 
 def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
-    as a (PIECES, 1 + 2 TERMS) float64 array of :data:`.pore.TablePiece` records, from f, g at the TERMS Chebyshev points of the
+    as a (PIECES, 1 + 2 TERMS) float64 array, a piece's fields in a row (the table's columns,
+    :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
     first kind of each piece (a discrete cosine transform gives the Chebyshev coefficients,
     stored in powers of the piece's variable t)."""
     k = np.arange(TERMS)
@@ -113,7 +113,7 @@ _TABLES: dict = {}
 
 
 def circular_table(device, models=()) -> wp.array:
-    """The pore table on ``device`` (:data:`.pore.PoreTable`, :data:`.pore.TABLE_LENGTH` records): the circular pieces,
+    """The pore table on ``device`` (:data:`.pore.PoreTable`, :data:`.pore.TABLE_LENGTH` columns): the circular pieces,
     built once per process, and those of every shaped pore (rectangular channel, pin array)
     among the pore-model codes ``models`` or asked for before, while SHAPE_SLOTS last. An
     array handed out earlier stays valid: a shape it lacks is computed instead."""
@@ -132,5 +132,6 @@ def circular_table(device, models=()) -> wp.array:
         _HOST.update(table=table, shapes=len(_SHAPES))
     key = str(wp.get_device(device))
     if _TABLES.get(key, (None, -1))[1] != len(_SHAPES):
-        _TABLES[key] = (wp.array(_HOST["table"], dtype=TablePiece, device=device), len(_SHAPES))
+        columns = np.ascontiguousarray(_HOST["table"].T)
+        _TABLES[key] = (wp.array(columns, dtype=wp.float64, device=device), len(_SHAPES))
     return _TABLES[key][0]
