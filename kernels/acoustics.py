@@ -50,8 +50,7 @@ from .pore import (
     PORE_CIRCULAR,
     PORE_SCREENS,
     PoreTable,
-    circular_from_table,
-    inside_table,
+    pore_circular_tabulated,
     pore_functions_complex,
     pore_functions_log,
     pore_log_derivative,
@@ -672,8 +671,53 @@ def propagation_value(
 @wp.func
 def plain_part(geo: PartGeometry, pore_model: int):
     """True for the cascade's usual part: circular pores (or a duct), a rigid frame and no
-    viscous shape factor, whose A needs no effect's branch of :func:`propagation_entries`."""
-    return pore_model == PORE_CIRCULAR and geo.frame_mobility <= wp.float64(0.0) and geo.shape_factor == wp.float64(1.0)
+    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular),
+    whose A needs no effect's branch of :func:`propagation_entries`."""
+    shape = geo.shape_factor
+    return (
+        pore_model == PORE_CIRCULAR
+        and geo.frame_mobility <= wp.float64(0.0)
+        and (shape == wp.float64(1.0) or shape <= wp.float64(0.0))
+    )
+
+
+@wp.func
+def propagation_circular(
+    pc: PointCoefficients,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_table: PoreTable,
+):
+    """A(x) at real angular frequency omega [rad/s] (``half_log_omega`` = ln(omega)/2) at a
+    point of a :func:`plain_part`: the circular pore functions from the table
+    (:func:`tawarp.kernels.pore.pore_circular_tabulated`) and :func:`propagation_entries`
+    with the effects' neutral values as constants, which the compiler folds. No call: the
+    cascade that takes only such parts compiles to registers alone (bench/README.md)."""
+    f_nu, g_nu = pore_circular_tabulated(pore_table, pc.log_nu + half_log_omega)
+    f_k, g_k = pore_circular_tabulated(pore_table, pc.log_k + half_log_omega)
+    a12, a21, a22 = propagation_entries(
+        omega,
+        omega,  # the root is read by the shape factor alone
+        pc.log_nu,
+        pc.log_k,
+        pc.c12,
+        pc.c21,
+        pc.c22,
+        pc.rho,
+        f_k,
+        g_nu,
+        g_k,
+        geo.porosity,
+        geo.tortuosity,
+        geo.area,
+        wp.float64(0.0),
+        wp.float64(1.0),
+        gamma,
+        PORE_CIRCULAR,
+    )
+    return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
 
 
 @wp.func
@@ -687,38 +731,11 @@ def propagation_at(
     pore_table: PoreTable,
 ):
     """A(x) of the two-port ODE at real angular frequency omega [rad/s]
-    (``half_log_omega`` = ln(omega)/2) at a point of a part (:func:`propagation_value`
-    of :func:`pore_point`). A :func:`plain_part` with both s inside the pore table (the
-    cascade's usual point) is computed here, :func:`propagation_entries` with its effects'
-    neutral values as constants, which the compiler folds; any other point is
-    :func:`propagation_other`, out of line, so that its code and registers stay off the
-    cascade's path (bench/README.md)."""
-    log_s_nu = pc.log_nu + half_log_omega
-    log_s_k = pc.log_k + half_log_omega
-    if plain_part(geo, pore_model) and inside_table(log_s_nu) and inside_table(log_s_k):
-        f_nu, g_nu = circular_from_table(pore_table, log_s_nu)
-        f_k, g_k = circular_from_table(pore_table, log_s_k)
-        a12, a21, a22 = propagation_entries(
-            omega,
-            omega,  # the root is read by the shape factor alone
-            pc.log_nu,
-            pc.log_k,
-            pc.c12,
-            pc.c21,
-            pc.c22,
-            pc.rho,
-            f_k,
-            g_nu,
-            g_k,
-            geo.porosity,
-            geo.tortuosity,
-            geo.area,
-            wp.float64(0.0),
-            wp.float64(1.0),
-            gamma,
-            PORE_CIRCULAR,
-        )
-        return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
+    (``half_log_omega`` = ln(omega)/2) at a point of any part: :func:`propagation_circular`
+    in a :func:`plain_part`, else :func:`propagation_other`, out of line, so that its code
+    stays off the usual part's path."""
+    if plain_part(geo, pore_model):
+        return propagation_circular(pc, geo, omega, half_log_omega, gamma, pore_table)
     return propagation_other(pc, geo, omega, half_log_omega, gamma, pore_model, pore_table)
 
 

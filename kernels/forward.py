@@ -45,6 +45,8 @@ from .acoustics import (
     point_difference,
     pore_point,
     propagation_at,
+    propagation_circular,
+    plain_part,
     propagation_tangent,
     propagation_value,
     scale2,
@@ -490,41 +492,62 @@ def make_point_kernel(nonlinear: bool):
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
-@wp.func
-def cell_exponent(
-    points: wp.array2d(dtype=PointCoefficients),
-    li: int,
-    p: int,
-    uniform: bool,
-    h: wp.float64,
-    geo: PartGeometry,
-    omega: wp.float64,
-    half_log_omega: wp.float64,
-    gamma: wp.float64,
-    model: int,
-    pore_table: PoreTable,
-):
-    """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
-    the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
-    (only the b's are live between the points, not three A's besides them), or h A of the
-    one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
-    a = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
-    if uniform:
-        return scale2(a, h)
-    zero = zero2()
-    b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
-    a = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
-    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
-    a = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
-    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
-    return magnus6_omega(b1, b2, b3)
-
-
-def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
+def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, plain: bool = False):
     """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
     (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
-    of each T-matrix along P parameters, carried through the cascade with the value."""
+    of each T-matrix along P parameters, carried through the cascade with the value.
+    ``plain`` compiles a value cascade for cores whose parts are all plain
+    (:func:`tawarp.kernels.acoustics.plain_part`: circular pores, rigid frame, no shape
+    factor): A is :func:`tawarp.kernels.acoustics.propagation_circular` alone, with no call
+    to the other parts' out-of-line code, whose presence in a loop makes the GPU compiler
+    keep the loop's values clear of the callee's registers (bench/README.md: 252 registers
+    instead of 128); a part that is not plain gives NaN."""
     P = wp.constant(tangents)
+
+    @wp.func
+    def point_propagation(
+        pc: PointCoefficients,
+        geo: PartGeometry,
+        omega: wp.float64,
+        half_log_omega: wp.float64,
+        gamma: wp.float64,
+        model: int,
+        pore_table: PoreTable,
+    ):
+        # A at one point of a part (make_transfer_kernel's ``plain``)
+        if wp.static(plain):
+            return propagation_circular(pc, geo, omega, half_log_omega, gamma, pore_table)
+        return propagation_at(pc, geo, omega, half_log_omega, gamma, model, pore_table)
+
+    @wp.func
+    def cell_exponent(
+        points: wp.array2d(dtype=PointCoefficients),
+        li: int,
+        p: int,
+        uniform: bool,
+        h: wp.float64,
+        geo: PartGeometry,
+        omega: wp.float64,
+        half_log_omega: wp.float64,
+        gamma: wp.float64,
+        model: int,
+        pore_table: PoreTable,
+    ):
+        """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
+        the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
+        (only the b's are live between the points, not three A's besides them), or h A of the
+        one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
+        a = point_propagation(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
+        if uniform:
+            return scale2(a, h)
+        zero = zero2()
+        b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
+        a = point_propagation(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
+        a = point_propagation(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
+        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
+        return magnus6_omega(b1, b2, b3)
+
     Q = max(tangents, 1)  # local sizes must be > 0; the P = 0 kernel never touches them
     stride = wp.constant(1 + 2 * tangents)
     tangent_rows = wp.types.matrix(shape=(Q, 8), dtype=wp.float64)
@@ -594,6 +617,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             length = seg_value(params, i, s, LENGTH)
             geo = segment_geometry(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
+            if wp.static(plain):
+                if not plain_part(geo, model):  # a part this kernel does not compute: NaN, never a wrong A
+                    log_scale = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
             uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
             n_cells = 1
             if not uniform:

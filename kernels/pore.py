@@ -261,12 +261,42 @@ def circular_from_table(table: PoreTable, log_s: wp.float64):
     return _tabulated(table, 0, log_s)
 
 
+@wp.func(inline=False)  # outside the table: rare, kept out of the cascade's inlined code
+def _circular_tails(log_s: wp.float64):
+    # f, g of a circular pore outside the table's range from the leading terms of the series
+    # pore_circular sums in full. Below S_MIN the power series of J0 and J2 in
+    # w = -z^2/4 = -i s^2/2 give g = -J2/J0 = (w/2)(1 - 2w/3 + 11 w^2/24) (the omitted
+    # term, of order w^3 < 1.3e-19, is below 1e-19 of g); from S_MAX the Hankel ratio
+    # S_1/S_0 of _circular_hankel, as one series 1 + 4v - 8v^2 + 64v^3 in
+    # v = -(1 + i)/(16 s) (the omitted term below 5e-18 of f). A few multiplications, no
+    # division, in a function of few registers: (f, g) as one wp.vec4d (an out-of-line
+    # function's second return value would pass through the stack).
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    if log_s < TABLE_LOG_S_MIN:
+        s = wp.exp(log_s)
+        w = cplx(wp.float64(0.0), wp.float64(-0.5) * s * s)
+        series = one + cmul(w, cplx(wp.float64(-2.0 / 3.0), wp.float64(0.0)) + cscale(w, wp.float64(11.0 / 24.0)))
+        g = cscale(cmul(w, series), wp.float64(0.5))
+        return wp.vec4d(wp.float64(1.0) - g[0], -g[1], g[0], g[1])
+    inv_s = wp.exp(-log_s)
+    v = cplx(wp.float64(-0.0625) * inv_s, wp.float64(-0.0625) * inv_s)
+    ratio = one + cmul(
+        v,
+        cplx(wp.float64(4.0), wp.float64(0.0))
+        + cmul(v, cplx(wp.float64(-8.0), wp.float64(0.0)) + cscale(v, wp.float64(64.0))),
+    )
+    f = cscale(cmul(cplx(wp.float64(1.0), wp.float64(1.0)), ratio), inv_s)
+    return wp.vec4d(f[0], f[1], wp.float64(1.0) - f[0], -f[1])
+
+
 @wp.func
 def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
     """f, g of a circular pore at ``log_s`` = ln(r / delta): :func:`circular_from_table`
-    inside the table's range, :func:`pore_circular` outside it."""
+    inside the table's range, the leading terms of :func:`pore_circular`'s series outside
+    it (below 1e-17 relative there, tests/test_pore.py); NaN for a NaN ``log_s``."""
     if not inside_table(log_s):
-        return pore_circular(wp.exp(log_s))
+        fg = _circular_tails(log_s)
+        return wp.vec2d(fg[0], fg[1]), wp.vec2d(fg[2], fg[3])
     return circular_from_table(table, log_s)
 
 

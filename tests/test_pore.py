@@ -169,6 +169,15 @@ def test_table_matches_direct_functions_and_plates_dispatch():
     np.testing.assert_allclose(evaluate(PORE_PLATES, S_GRID)[0], fp, rtol=TOL, atol=0)
 
 
+def test_circular_outside_the_table_against_mpmath():
+    # the series' leading terms the kernels take below S_MIN and from S_MAX on
+    s = [1e-8, 1e-6, 1e-4, np.nextafter(S_MIN, 0.0), S_MAX, 3e4, 1e6]
+    f, g = evaluate(PORE_CIRCULAR, s)
+    err_f, err_g = max_rel_err(PORE_CIRCULAR, s, f, g)
+    assert err_f <= TOL
+    assert err_g <= TOL
+
+
 def test_nan_argument_does_not_index_the_table():
     f, g = evaluate(PORE_CIRCULAR, [np.nan])
     assert np.isnan(f[0]) or np.isnan(g[0])
