@@ -18,7 +18,8 @@ reads two series per Gauss point, and the shorter one made the CPU cascade 27 % 
 (bench/forward.py, one thread) for a table of 51 kB instead of 13 kB (both measured with
 studies/pore_table_accuracy.py). Each piece stores the smaller of the pair (g for small
 s, where f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
-digits to cancellation. Outside [S_MIN, S_MAX] the functions of :mod:`.pore` are used.
+digits to cancellation. Outside [S_MIN, S_MAX] the leading terms of their series are used
+(:func:`.pore.pore_circular_tabulated`).
 
 The node values come from :func:`.pore.pore_circular` (below 1e-15 relative, checked
 against mpmath in tests/test_pore.py); the table is exact to ~6e-15 relative to |f| and
