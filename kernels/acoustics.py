@@ -126,27 +126,39 @@ def taylor_terms(size: wp.float64):
 def cosh_sinhc(delta: wp.vec2d):
     """(cosh(sqrt delta), sinh(sqrt delta)/sqrt(delta)) of a complex delta: both entire in
     delta, a Taylor series for |delta| < 1 (no square root, no cancellation, the usual case
-    of a Magnus cell), exponentials beyond."""
+    of a Magnus cell), exponentials beyond. The series takes 5, 7 or 9 terms
+    (:func:`taylor_terms` at the top of each tier's |delta|): a fixed count per tier
+    compiles to straight Horner steps, where a count per term put a branch and the merge of
+    both series' values after every step (16 instructions a term, bench/README.md)."""
     size = cabs2(delta)
+    if size < wp.float64(1.68e-3):
+        return cosh_sinhc_series(delta, 5)
+    if size < wp.float64(0.120):
+        return cosh_sinhc_series(delta, 7)
     if size < wp.float64(1.0):
-        # Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= terms: the first
-        # omitted term |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 (a Magnus cell's
-        # |delta| is mostly far below 1: few of the 9 terms |delta| near 1 needs)
-        terms = taylor_terms(size)
-        ch = creal(wp.float64(1.0))
-        sh = creal(wp.float64(1.0))
-        for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
-            if 9 - jj <= terms:
-                j = wp.float64(9 - jj)
-                ch = creal(wp.float64(1.0)) + cscale(
-                    cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
-                )
-                sh = creal(wp.float64(1.0)) + cscale(
-                    cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
-                )
-        return ch, sh
+        return cosh_sinhc_series(delta, 9)
     both = cosh_sinhc_exponentials(delta)
     return wp.vec2d(both[0], both[1]), wp.vec2d(both[2], both[3])
+
+
+@wp.func
+def cosh_sinhc_series(delta: wp.vec2d, terms: int):
+    """:func:`cosh_sinhc` by Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= ``terms``
+    (at most 9; a literal at each call, which the compiler folds): the first omitted term
+    |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 where :func:`taylor_terms` gives at
+    most ``terms``."""
+    ch = creal(wp.float64(1.0))
+    sh = creal(wp.float64(1.0))
+    for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
+        if 9 - jj <= terms:
+            j = wp.float64(9 - jj)
+            ch = creal(wp.float64(1.0)) + cscale(
+                cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
+            )
+            sh = creal(wp.float64(1.0)) + cscale(
+                cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
+            )
+    return ch, sh
 
 
 @wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code
