@@ -318,8 +318,8 @@ def pore_functions_log(model: int, log_s: wp.float64, table: PoreTable):
     The circular pore inside the table is the cascade's usual case and is read here; every
     other case is :func:`_pore_functions_other`, kept apart so that the GPU compiler inlines
     this short path into the cascade and calls the long one (bench/README.md)."""
-    if model == PORE_CIRCULAR and inside_table(log_s):
-        return circular_from_table(table, log_s)
+    if model == PORE_CIRCULAR:
+        return pore_circular_tabulated(table, log_s)
     return _pore_functions_other(model, log_s, table)
 
 

@@ -360,7 +360,8 @@ class Engine:
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
-        self.transfer_kernel = _transfer_kernel(self.settings.max_registers, 0, plain_parts(core, self.names))
+        self.plain = plain_parts(core, self.names)
+        self.transfer_kernel = _transfer_kernel(self.settings.max_registers, 0, self.plain)
         self.point_kernel = _point_kernel(self.nonlinear)
         # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
@@ -563,7 +564,9 @@ class Engine:
             return
         tangents = 0 if tangent is None else tangent.shape[1]
         stride = 1 + 2 * tangents
-        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(TANGENT_MAX_REGISTERS, tangents)
+        kernel = (
+            self.transfer_kernel if tangents == 0 else _transfer_kernel(TANGENT_MAX_REGISTERS, tangents, self.plain)
+        )
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
