@@ -285,18 +285,27 @@ def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
     return magnus6_omega(b1, b2, b3)
 
 
+# Magnus and screen coefficients as float64 constants: in a kernel, wp.float64(1.0 / 60.0)
+# divides two float32 literals (1e-8 relative) before the conversion
+MAGNUS_C2 = wp.constant(wp.float64(-1.0 / 60.0))
+MAGNUS_BRACKET = wp.constant(wp.float64(1.0 / 240.0))
+MAGNUS_B3 = wp.constant(wp.float64(1.0 / 12.0))
+TWO_THIRDS = wp.constant(wp.float64(2.0 / 3.0))
+FOUR_THIRDS = wp.constant(wp.float64(4.0 / 3.0))
+
+
 @wp.func
 def magnus6_omega(b1: CMat2, b2: CMat2, b3: CMat2):
     """Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2] with C1 = [b1, b2],
     C2 = -1/60 [b1, 2 b3 + C1] (:func:`magnus6_exponent`), from the b's of :func:`magnus6_b`
     or :func:`magnus6_accumulate`."""
     c1 = commutator2(b1, b2)
-    c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
+    c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), MAGNUS_C2)
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
     return axpy2(
-        wp.float64(1.0 / 240.0),
+        MAGNUS_BRACKET,
         commutator2(left, axpy2(wp.float64(1.0), b2, c2)),
-        axpy2(wp.float64(1.0 / 12.0), b3, b1),
+        axpy2(MAGNUS_B3, b3, b1),
     )
 
 
@@ -351,14 +360,14 @@ def magnus6_tangent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64, d1: CMat2, d
     dc1 = axpy2(wp.float64(1.0), commutator2(db1, b2), commutator2(b1, db2))
     w = axpy2(wp.float64(2.0), b3, c1)
     dw = axpy2(wp.float64(2.0), db3, dc1)
-    c2 = scale2(commutator2(b1, w), wp.float64(-1.0 / 60.0))
-    dc2 = scale2(axpy2(wp.float64(1.0), commutator2(db1, w), commutator2(b1, dw)), wp.float64(-1.0 / 60.0))
+    c2 = scale2(commutator2(b1, w), MAGNUS_C2)
+    dc2 = scale2(axpy2(wp.float64(1.0), commutator2(db1, w), commutator2(b1, dw)), MAGNUS_C2)
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
     dleft = axpy2(wp.float64(-20.0), db1, axpy2(wp.float64(-1.0), db3, dc1))
     right = axpy2(wp.float64(1.0), b2, c2)
     dright = axpy2(wp.float64(1.0), db2, dc2)
     bracket = axpy2(wp.float64(1.0), commutator2(dleft, right), commutator2(left, dright))
-    return axpy2(wp.float64(1.0 / 240.0), bracket, axpy2(wp.float64(1.0 / 12.0), db3, db1))
+    return axpy2(MAGNUS_BRACKET, bracket, axpy2(MAGNUS_B3, db3, db1))
 
 
 @wp.func
@@ -559,14 +568,14 @@ def screen_entries(
     ln_nu = ccomplex(log_nu)
     ln_k = ccomplex(log_k)
     s2 = cmul(omega, cexp(ln_nu * wp.float64(2.0)))  # (r_h/delta_nu)^2
-    inv_g_nu = inertia + cdiv(cmuli(c1), s2) * wp.float64(1.0 / 16.0)
+    inv_g_nu = inertia + cdiv(cmuli(c1), s2) * wp.float64(0.0625)
     density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
     if cre(frame_mobility) > wp.float64(0.0):
         g_nu = pore_reciprocal(inv_g_nu)
         rho_w = limp_density(ccomplex(rho), phi, ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
         density_per_area = cdiv(rho_w, ccomplex(area))
     # s_k^2/Pr^(1/3) = Pr^(2/3) s^2
-    heat = cmul(omega, cexp(ln_nu * wp.float64(2.0 / 3.0) + ln_k * wp.float64(4.0 / 3.0)))
+    heat = cmul(omega, cexp(ln_nu * TWO_THIRDS + ln_k * FOUR_THIRDS))
     f_k = pore_reciprocal(cone(heat) - cdiv(cmuli(heat), b) * wp.float64(8.0))
     a12 = cmuli(cmul(omega, density_per_area))
     a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))

@@ -261,6 +261,12 @@ def circular_from_table(table: PoreTable, log_s: wp.float64):
     return _tabulated(table, 0, log_s)
 
 
+# the small-s series' coefficients -2/3, 11/24 (float64 constants: a quotient of literals in a
+# kernel would be taken in float32)
+TAIL_W1 = wp.constant(wp.float64(-2.0 / 3.0))
+TAIL_W2 = wp.constant(wp.float64(11.0 / 24.0))
+
+
 @wp.func(inline=False)  # outside the table: rare, kept out of the cascade's inlined code
 def _circular_tails(log_s: wp.float64):
     # f, g of a circular pore outside the table's range from the leading terms of the series
@@ -275,7 +281,7 @@ def _circular_tails(log_s: wp.float64):
     if log_s < TABLE_LOG_S_MIN:
         s = wp.exp(log_s)
         w = cplx(wp.float64(0.0), wp.float64(-0.5) * s * s)
-        series = one + cmul(w, cplx(wp.float64(-2.0 / 3.0), wp.float64(0.0)) + cscale(w, wp.float64(11.0 / 24.0)))
+        series = one + cmul(w, cplx(TAIL_W1, wp.float64(0.0)) + cscale(w, TAIL_W2))
         g = cscale(cmul(w, series), wp.float64(0.5))
         return wp.vec4d(wp.float64(1.0) - g[0], -g[1], g[0], g[1])
     inv_s = wp.exp(-log_s)
@@ -400,7 +406,7 @@ def _circular_recurrence_c(s: wp.vec2d):
 def _circular_hankel_c(s: wp.vec2d):
     # as _circular_hankel: v = -i/(8 z) = -(1 + i)/(16 s), f = (1 + i)/s S_1/S_0
     inv_s = cinv(s)
-    v = cscale(cmul(cplx(wp.float64(-1.0), wp.float64(-1.0)), inv_s), wp.float64(1.0 / 16.0))
+    v = cscale(cmul(cplx(wp.float64(-1.0), wp.float64(-1.0)), inv_s), wp.float64(0.0625))
     one = cplx(wp.float64(1.0), wp.float64(0.0))
     t0 = one
     t1 = one
