@@ -83,7 +83,12 @@ def main(argv=None):
     wp.init()
     from tawarp.model import forward
 
-    kernels = {f"cascade/cap {c}": forward._transfer_kernel(int(c) or None) for c in args.caps.split(",")}
+    kernels = {}
+    for c in args.caps.split(","):
+        # the cascade of a core with plain parts alone (circular pores, rigid frames, no shape
+        # factor: the bench's and the bundled cores'), and of any core
+        kernels[f"cascade plain/cap {c}"] = forward._transfer_kernel(int(c) or None, 0, True)
+        kernels[f"cascade/cap {c}"] = forward._transfer_kernel(int(c) or None)
     kernels["points"] = forward._point_kernel(False)
     result = {"arch": f"sm_{args.arch}", "warp": wp.config.version, "kernels": {}}
     with tempfile.TemporaryDirectory() as tmp:

@@ -33,6 +33,7 @@ from .cmath import (
     cconj,
     cdiv,
     cexp,
+    cinv,
     cmul,
     cmuli,
     cone,
@@ -45,7 +46,15 @@ from .cmath import (
     dual_value,
 )
 from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
-from .pore import PORE_CIRCULAR, PORE_SCREENS, pore_functions_complex, pore_functions_log, pore_log_derivative
+from .pore import (
+    PORE_CIRCULAR,
+    PORE_SCREENS,
+    PoreTable,
+    pore_circular_tabulated,
+    pore_functions_complex,
+    pore_functions_log,
+    pore_log_derivative,
+)
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -117,35 +126,52 @@ def taylor_terms(size: wp.float64):
 def cosh_sinhc(delta: wp.vec2d):
     """(cosh(sqrt delta), sinh(sqrt delta)/sqrt(delta)) of a complex delta: both entire in
     delta, a Taylor series for |delta| < 1 (no square root, no cancellation, the usual case
-    of a Magnus cell), exponentials beyond."""
+    of a Magnus cell), exponentials beyond. The series takes 5, 7 or 9 terms
+    (:func:`taylor_terms` at the top of each tier's |delta|): a fixed count per tier
+    compiles to straight Horner steps, where a count per term put a branch and the merge of
+    both series' values after every step (16 instructions a term, bench/README.md)."""
     size = cabs2(delta)
+    if size < wp.float64(1.68e-3):
+        return cosh_sinhc_series(delta, 5)
+    if size < wp.float64(0.120):
+        return cosh_sinhc_series(delta, 7)
     if size < wp.float64(1.0):
-        # Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= terms: the first
-        # omitted term |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 (a Magnus cell's
-        # |delta| is mostly far below 1: few of the 9 terms |delta| near 1 needs)
-        terms = taylor_terms(size)
-        ch = creal(wp.float64(1.0))
-        sh = creal(wp.float64(1.0))
-        for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
-            if 9 - jj <= terms:
-                j = wp.float64(9 - jj)
-                ch = creal(wp.float64(1.0)) + cscale(
-                    cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
-                )
-                sh = creal(wp.float64(1.0)) + cscale(
-                    cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
-                )
-        return ch, sh
-    return cosh_sinhc_exponentials(delta)
+        return cosh_sinhc_series(delta, 9)
+    both = cosh_sinhc_exponentials(delta)
+    return wp.vec2d(both[0], both[1]), wp.vec2d(both[2], both[3])
+
+
+@wp.func
+def cosh_sinhc_series(delta: wp.vec2d, terms: int):
+    """:func:`cosh_sinhc` by Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= ``terms``
+    (at most 9; a literal at each call, which the compiler folds): the first omitted term
+    |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 where :func:`taylor_terms` gives at
+    most ``terms``."""
+    ch = creal(wp.float64(1.0))
+    sh = creal(wp.float64(1.0))
+    for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
+        if 9 - jj <= terms:
+            j = wp.float64(9 - jj)
+            ch = creal(wp.float64(1.0)) + cscale(
+                cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
+            )
+            sh = creal(wp.float64(1.0)) + cscale(
+                cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
+            )
+    return ch, sh
 
 
 @wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code
 def cosh_sinhc_exponentials(delta: wp.vec2d):
-    """:func:`cosh_sinhc` from exponentials of sqrt(delta), for |delta| >= 1."""
+    """:func:`cosh_sinhc` from exponentials of sqrt(delta), for |delta| >= 1, as one
+    (ch, sh) wp.vec4d: a function called out of line returns one value in registers, where
+    two would pass through the stack. e^-r = 1/e^r: one exponential, sine and cosine."""
     r = csqrt(delta)
     ep = cexp(r)
-    em = cexp(-r)
-    return cscale(ep + em, wp.float64(0.5)), cdiv(cscale(ep - em, wp.float64(0.5)), r)
+    em = cinv(ep)
+    ch = cscale(ep + em, wp.float64(0.5))
+    sh = cdiv(cscale(ep - em, wp.float64(0.5)), r)
+    return wp.vec4d(ch[0], ch[1], sh[0], sh[1])
 
 
 @wp.func
@@ -259,18 +285,27 @@ def magnus6_exponent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64):
     return magnus6_omega(b1, b2, b3)
 
 
+# Magnus and screen coefficients as float64 constants: in a kernel, wp.float64(1.0 / 60.0)
+# divides two float32 literals (1e-8 relative) before the conversion
+MAGNUS_C2 = wp.constant(wp.float64(-1.0 / 60.0))
+MAGNUS_BRACKET = wp.constant(wp.float64(1.0 / 240.0))
+MAGNUS_B3 = wp.constant(wp.float64(1.0 / 12.0))
+TWO_THIRDS = wp.constant(wp.float64(2.0 / 3.0))
+FOUR_THIRDS = wp.constant(wp.float64(4.0 / 3.0))
+
+
 @wp.func
 def magnus6_omega(b1: CMat2, b2: CMat2, b3: CMat2):
     """Omega = b1 + b3/12 + 1/240 [-20 b1 - b3 + C1, b2 + C2] with C1 = [b1, b2],
     C2 = -1/60 [b1, 2 b3 + C1] (:func:`magnus6_exponent`), from the b's of :func:`magnus6_b`
     or :func:`magnus6_accumulate`."""
     c1 = commutator2(b1, b2)
-    c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), wp.float64(-1.0 / 60.0))
+    c2 = scale2(commutator2(b1, axpy2(wp.float64(2.0), b3, c1)), MAGNUS_C2)
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
     return axpy2(
-        wp.float64(1.0 / 240.0),
+        MAGNUS_BRACKET,
         commutator2(left, axpy2(wp.float64(1.0), b2, c2)),
-        axpy2(wp.float64(1.0 / 12.0), b3, b1),
+        axpy2(MAGNUS_B3, b3, b1),
     )
 
 
@@ -325,14 +360,14 @@ def magnus6_tangent(a1: CMat2, a2: CMat2, a3: CMat2, h: wp.float64, d1: CMat2, d
     dc1 = axpy2(wp.float64(1.0), commutator2(db1, b2), commutator2(b1, db2))
     w = axpy2(wp.float64(2.0), b3, c1)
     dw = axpy2(wp.float64(2.0), db3, dc1)
-    c2 = scale2(commutator2(b1, w), wp.float64(-1.0 / 60.0))
-    dc2 = scale2(axpy2(wp.float64(1.0), commutator2(db1, w), commutator2(b1, dw)), wp.float64(-1.0 / 60.0))
+    c2 = scale2(commutator2(b1, w), MAGNUS_C2)
+    dc2 = scale2(axpy2(wp.float64(1.0), commutator2(db1, w), commutator2(b1, dw)), MAGNUS_C2)
     left = axpy2(wp.float64(-20.0), b1, axpy2(wp.float64(-1.0), b3, c1))
     dleft = axpy2(wp.float64(-20.0), db1, axpy2(wp.float64(-1.0), db3, dc1))
     right = axpy2(wp.float64(1.0), b2, c2)
     dright = axpy2(wp.float64(1.0), db2, dc2)
     bracket = axpy2(wp.float64(1.0), commutator2(dleft, right), commutator2(left, dright))
-    return axpy2(wp.float64(1.0 / 240.0), bracket, axpy2(wp.float64(1.0 / 12.0), db3, db1))
+    return axpy2(MAGNUS_BRACKET, bracket, axpy2(MAGNUS_B3, db3, db1))
 
 
 @wp.func
@@ -533,14 +568,14 @@ def screen_entries(
     ln_nu = ccomplex(log_nu)
     ln_k = ccomplex(log_k)
     s2 = cmul(omega, cexp(ln_nu * wp.float64(2.0)))  # (r_h/delta_nu)^2
-    inv_g_nu = inertia + cdiv(cmuli(c1), s2) * wp.float64(1.0 / 16.0)
+    inv_g_nu = inertia + cdiv(cmuli(c1), s2) * wp.float64(0.0625)
     density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
     if cre(frame_mobility) > wp.float64(0.0):
         g_nu = pore_reciprocal(inv_g_nu)
         rho_w = limp_density(ccomplex(rho), phi, ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
         density_per_area = cdiv(rho_w, ccomplex(area))
     # s_k^2/Pr^(1/3) = Pr^(2/3) s^2
-    heat = cmul(omega, cexp(ln_nu * wp.float64(2.0 / 3.0) + ln_k * wp.float64(4.0 / 3.0)))
+    heat = cmul(omega, cexp(ln_nu * TWO_THIRDS + ln_k * FOUR_THIRDS))
     f_k = pore_reciprocal(cone(heat) - cdiv(cmuli(heat), b) * wp.float64(8.0))
     a12 = cmuli(cmul(omega, density_per_area))
     a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))
@@ -604,7 +639,7 @@ def pore_point(
     pc: PointCoefficients,
     half_log_omega: wp.float64,
     pore_model: int,
-    pore_table: wp.array(dtype=wp.float64),
+    pore_table: PoreTable,
     derivatives: int,
 ):
     """:class:`PorePoint` at real angular frequency omega (``half_log_omega`` = ln(omega)/2,
@@ -655,6 +690,58 @@ def propagation_value(
 
 
 @wp.func
+def plain_part(geo: PartGeometry, pore_model: int):
+    """True for the cascade's usual part: circular pores (or a duct), a rigid frame and no
+    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular),
+    whose A needs no effect's branch of :func:`propagation_entries`."""
+    shape = geo.shape_factor
+    return (
+        pore_model == PORE_CIRCULAR
+        and geo.frame_mobility <= wp.float64(0.0)
+        and (shape == wp.float64(1.0) or shape <= wp.float64(0.0))
+    )
+
+
+@wp.func
+def propagation_circular(
+    pc: PointCoefficients,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_table: PoreTable,
+):
+    """A(x) at real angular frequency omega [rad/s] (``half_log_omega`` = ln(omega)/2) at a
+    point of a :func:`plain_part`: the circular pore functions from the table
+    (:func:`tawarp.kernels.pore.pore_circular_tabulated`) and :func:`propagation_entries`
+    with the effects' neutral values as constants, which the compiler folds. No call: the
+    cascade that takes only such parts compiles to registers alone (bench/README.md)."""
+    f_nu, g_nu = pore_circular_tabulated(pore_table, pc.log_nu + half_log_omega)
+    f_k, g_k = pore_circular_tabulated(pore_table, pc.log_k + half_log_omega)
+    a12, a21, a22 = propagation_entries(
+        omega,
+        omega,  # the root is read by the shape factor alone
+        pc.log_nu,
+        pc.log_k,
+        pc.c12,
+        pc.c21,
+        pc.c22,
+        pc.rho,
+        f_k,
+        g_nu,
+        g_k,
+        geo.porosity,
+        geo.tortuosity,
+        geo.area,
+        wp.float64(0.0),
+        wp.float64(1.0),
+        gamma,
+        PORE_CIRCULAR,
+    )
+    return cmat2(creal(wp.float64(0.0)), a12, a21, a22)
+
+
+@wp.func
 def propagation_at(
     pc: PointCoefficients,
     geo: PartGeometry,
@@ -662,11 +749,28 @@ def propagation_at(
     half_log_omega: wp.float64,
     gamma: wp.float64,
     pore_model: int,
-    pore_table: wp.array(dtype=wp.float64),
+    pore_table: PoreTable,
 ):
     """A(x) of the two-port ODE at real angular frequency omega [rad/s]
-    (``half_log_omega`` = ln(omega)/2) at a point of a part (:func:`propagation_value`
-    of :func:`pore_point`)."""
+    (``half_log_omega`` = ln(omega)/2) at a point of any part: :func:`propagation_circular`
+    in a :func:`plain_part`, else :func:`propagation_other`, out of line, so that its code
+    stays off the usual part's path."""
+    if plain_part(geo, pore_model):
+        return propagation_circular(pc, geo, omega, half_log_omega, gamma, pore_table)
+    return propagation_other(pc, geo, omega, half_log_omega, gamma, pore_model, pore_table)
+
+
+@wp.func(inline=False)  # the rare points of a cascade: kept out of its inlined code
+def propagation_other(
+    pc: PointCoefficients,
+    geo: PartGeometry,
+    omega: wp.float64,
+    half_log_omega: wp.float64,
+    gamma: wp.float64,
+    pore_model: int,
+    pore_table: PoreTable,
+):
+    """:func:`propagation_at` at any point: :func:`propagation_value` of :func:`pore_point`."""
     pp = pore_point(pc, half_log_omega, pore_model, pore_table, 0)
     return propagation_value(pp, pc, geo, omega, gamma, pore_model)
 

@@ -45,6 +45,8 @@ from .acoustics import (
     point_difference,
     pore_point,
     propagation_at,
+    propagation_circular,
+    plain_part,
     propagation_tangent,
     propagation_value,
     scale2,
@@ -76,7 +78,7 @@ from .layout import (
     VISCOUS_SHAPE_FACTOR,
     seg_value,
 )
-from .pore import PORE_SCREENS
+from .pore import PORE_CIRCULAR, PORE_SCREENS, PoreTable
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -490,41 +492,79 @@ def make_point_kernel(nonlinear: bool):
     return wp.kernel(point_kernel, module="unique", enable_backward=False)
 
 
-@wp.func
-def cell_exponent(
-    points: wp.array2d(dtype=PointCoefficients),
-    li: int,
-    p: int,
-    uniform: bool,
-    h: wp.float64,
-    geo: PartGeometry,
-    omega: wp.float64,
-    half_log_omega: wp.float64,
-    gamma: wp.float64,
-    model: int,
-    pore_table: wp.array(dtype=wp.float64),
-):
-    """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
-    the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
-    (only the b's are live between the points, not three A's besides them), or h A of the
-    one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
-    a = propagation_at(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
-    if uniform:
-        return scale2(a, h)
-    zero = zero2()
-    b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
-    a = propagation_at(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
-    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
-    a = propagation_at(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
-    b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
-    return magnus6_omega(b1, b2, b3)
-
-
-def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
+def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, plain: bool = False):
     """The cascade kernel (below); ``max_registers`` caps the registers of a CUDA thread
     (``__maxnreg__``). ``tangents`` = P > 0 compiles the tangent cascade: the derivatives
-    of each T-matrix along P parameters, carried through the cascade with the value."""
+    of each T-matrix along P parameters, carried through the cascade with the value.
+    ``plain`` compiles a cascade for cores whose parts are all plain
+    (:func:`tawarp.kernels.acoustics.plain_part`: circular pores, rigid frame, no shape
+    factor): A is :func:`tawarp.kernels.acoustics.propagation_circular` alone (the tangents':
+    the pore model and the effects as constants), with no call to the other parts'
+    out-of-line code, whose presence in a loop makes the GPU compiler keep the loop's values
+    clear of the callee's registers (bench/README.md: 250 registers instead of 128); a part
+    that is not plain gives NaN."""
     P = wp.constant(tangents)
+
+    @wp.func
+    def point_propagation(
+        pc: PointCoefficients,
+        geo: PartGeometry,
+        omega: wp.float64,
+        half_log_omega: wp.float64,
+        gamma: wp.float64,
+        model: int,
+        pore_table: PoreTable,
+    ):
+        # A at one point of a part (make_transfer_kernel's ``plain``)
+        if wp.static(plain):
+            return propagation_circular(pc, geo, omega, half_log_omega, gamma, pore_table)
+        return propagation_at(pc, geo, omega, half_log_omega, gamma, model, pore_table)
+
+    @wp.func
+    def cell_exponent(
+        points: wp.array2d(dtype=PointCoefficients),
+        li: int,
+        p: int,
+        uniform: bool,
+        h: wp.float64,
+        geo: PartGeometry,
+        omega: wp.float64,
+        half_log_omega: wp.float64,
+        gamma: wp.float64,
+        model: int,
+        pore_table: PoreTable,
+    ):
+        """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
+        the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
+        (only the b's are live between the points, not three A's besides them), or h A of the
+        one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
+        a = point_propagation(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
+        if uniform:
+            return scale2(a, h)
+        zero = zero2()
+        b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
+        a = point_propagation(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
+        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
+        a = point_propagation(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
+        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
+        return magnus6_omega(b1, b2, b3)
+
+    @wp.func
+    def part_model(model: int):
+        # a plain cascade's parts are circular pores (make_transfer_kernel's ``plain``): a
+        # constant, whose branches the compiler folds
+        if wp.static(plain):
+            return PORE_CIRCULAR
+        return model
+
+    @wp.func
+    def part_effects(geo: PartGeometry):
+        # a plain cascade's parts have a rigid frame and no shape factor: constants, whose
+        # branches the compiler folds (and their derivatives are 0)
+        if wp.static(plain):
+            return part_geometry(geo.porosity, geo.tortuosity, geo.area, wp.float64(0.0), wp.float64(1.0))
+        return geo
+
     Q = max(tangents, 1)  # local sizes must be > 0; the P = 0 kernel never touches them
     stride = wp.constant(1 + 2 * tangents)
     tangent_rows = wp.types.matrix(shape=(Q, 8), dtype=wp.float64)
@@ -536,7 +576,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
         set0: int,
-        pore_table: wp.array(dtype=wp.float64),
+        pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
         doubled: wp.array3d(dtype=wp.float64),
         step: wp.array2d(dtype=wp.float64),
@@ -594,6 +634,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
             length = seg_value(params, i, s, LENGTH)
             geo = segment_geometry(params, flags, i, s)
             model = flags[s, F_PORE_MODEL]
+            if wp.static(plain):
+                if not plain_part(geo, model):  # a part this kernel does not compute: NaN, never a wrong A
+                    log_scale = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
             uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
             n_cells = 1
             if not uniform:
@@ -605,18 +648,20 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                         cell_exponent(points, li, p, uniform, h, geo, omega, half_log_omega, gamma, model, pore_table)
                     )
                 else:
-                    s1 = pore_point(points[li, p], half_log_omega, model, pore_table, 1)
-                    a1 = propagation_value(s1, points[li, p], geo, omega, gamma, model)
+                    cmodel = part_model(model)
+                    cgeo = part_effects(geo)
+                    s1 = pore_point(points[li, p], half_log_omega, cmodel, pore_table, 1)
+                    a1 = propagation_value(s1, points[li, p], cgeo, omega, gamma, cmodel)
                     s2 = s1
                     s3 = s1
                     a2 = a1
                     a3 = a1
                     om = scale2(a1, length)
                     if not uniform:
-                        s2 = pore_point(points[li, p + 1], half_log_omega, model, pore_table, 1)
-                        s3 = pore_point(points[li, p + 2], half_log_omega, model, pore_table, 1)
-                        a2 = propagation_value(s2, points[li, p + 1], geo, omega, gamma, model)
-                        a3 = propagation_value(s3, points[li, p + 2], geo, omega, gamma, model)
+                        s2 = pore_point(points[li, p + 1], half_log_omega, cmodel, pore_table, 1)
+                        s3 = pore_point(points[li, p + 2], half_log_omega, cmodel, pore_table, 1)
+                        a2 = propagation_value(s2, points[li, p + 1], cgeo, omega, gamma, cmodel)
+                        a3 = propagation_value(s3, points[li, p + 2], cgeo, omega, gamma, cmodel)
                         om = magnus6_exponent(a1, a2, a3, h)
                     tau, na, delta = traceless_parts(om)
                     ch, sh = cosh_sinhc(delta)
@@ -637,11 +682,11 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                             s1,
                             points[li, p],
                             point_difference(points[plus, p], points[plus + 1, p], inv_two_step),
-                            geo,
+                            cgeo,
                             dgeo,
                             omega,
                             gamma,
-                            model,
+                            cmodel,
                         )
                         dom = axpy2(dlength, a1, scale2(d1, length))
                         if not uniform:
@@ -649,21 +694,21 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0):
                                 s2,
                                 points[li, p + 1],
                                 point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step),
-                                geo,
+                                cgeo,
                                 dgeo,
                                 omega,
                                 gamma,
-                                model,
+                                cmodel,
                             )
                             d3 = propagation_tangent(
                                 s3,
                                 points[li, p + 2],
                                 point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step),
-                                geo,
+                                cgeo,
                                 dgeo,
                                 omega,
                                 gamma,
-                                model,
+                                cmodel,
                             )
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
                         de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)

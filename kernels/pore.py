@@ -202,62 +202,121 @@ TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
-# The table: the circular pieces, then a header of SHAPE_SLOTS pore-model codes (-1: empty),
-# then the pieces of each shaped pore (rectangular channels, pins) in the header's order.
-TABLE_BLOCK = wp.constant(PIECES * (1 + 2 * TERMS))
+#: Rows of the table: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
+#: coefficients of the series in powers of t.
+TABLE_RECORD = 1 + 2 * TERMS
+#: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`): column k is
+#: one piece, row r its field r. Columns: the circular pieces, then a header column whose
+#: first SHAPE_SLOTS rows are pore-model codes (-1: empty), then the pieces of each shaped
+#: pore (rectangular channels, pins) in the header's order. A field's row keeps neighbouring
+#: pieces at neighbouring addresses: a warp's threads (neighbouring frequencies, a few pieces
+#: apart) read each coefficient from one or two cache lines, where records of a piece's
+#: fields spread them over as many lines as pieces.
+PoreTable = wp.array2d(dtype=wp.float64)
 SHAPE_SLOTS = wp.constant(16)
-SHAPE_HEADER = wp.constant(PIECES * (1 + 2 * TERMS))
-SHAPE_BLOCKS = wp.constant(PIECES * (1 + 2 * TERMS) + 16)
-TABLE_LENGTH = PIECES * (1 + 2 * TERMS) * 17 + 16
+SHAPE_HEADER = wp.constant(PIECES)
+SHAPE_BLOCKS = wp.constant(PIECES + 1)
+#: Columns of the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
+TABLE_LENGTH = PIECES * (1 + 16) + 1
+assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one column
 
 
 @wp.func
-def _tabulated(table: wp.array(dtype=wp.float64), offset: int, log_s: wp.float64):
-    # f, g from the pieces starting at ``offset``, for log_s inside the table's range
+def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
+    # f, g from the pieces starting at column ``offset``, for log_s inside the table's range
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
-    base = offset + k * (2 * TABLE_TERMS + 1)
+    col = offset + k
     # Horner's rule on the series' power-basis coefficients in t (one fused multiply-add
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
-    top = base + 1 + 2 * (TABLE_TERMS - 1)
-    pr = table[top]
-    pi = table[top + 1]
+    top = 1 + 2 * (TABLE_TERMS - 1)
+    pr = table[top, col]
+    pi = table[top + 1, col]
     for jj in range(TABLE_TERMS - 1):
         j = top - 2 - 2 * jj
-        pr = table[j] + t * pr
-        pi = table[j + 1] + t * pi
+        pr = table[j, col] + t * pr
+        pi = table[j + 1, col] + t * pi
     p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if table[base] != wp.float64(0.0):
+    if table[0, col] != wp.float64(0.0):
         return q, p
     return p, q
 
 
 @wp.func
-def pore_circular_tabulated(table: wp.array(dtype=wp.float64), log_s: wp.float64):
-    """f, g of a circular pore at ``log_s`` = ln(r / delta), from ``table``
-    (:func:`tawarp.kernels.pore_table.circular_table`); the series is in ln s, so a caller
-    that has the logarithm (:func:`tawarp.kernels.acoustics.propagation_at`) takes none.
-    Layout: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
-    coefficients of the series in powers of t, the piece's variable in [-1, 1]."""
-    if not (log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX):  # also NaN: never an index from it
-        return pore_circular(wp.exp(log_s))
-    return _tabulated(table, 0, log_s)
+def inside_table(log_s: wp.float64):
+    """True when ``log_s`` = ln(r / delta) lies in the table's range (False for NaN: never
+    an index from it)."""
+    return log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX
 
 
 @wp.func
-def _shape_slot(table: wp.array(dtype=wp.float64), model: int):
+def circular_from_table(table: PoreTable, log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta) inside the table's range
+    (:func:`inside_table`), from ``table`` (:func:`tawarp.kernels.pore_table.circular_table`);
+    the series is in ln s, so a caller that has the logarithm
+    (:func:`tawarp.kernels.acoustics.propagation_at`) takes none."""
+    return _tabulated(table, 0, log_s)
+
+
+# the small-s series' coefficients -2/3, 11/24 (float64 constants: a quotient of literals in a
+# kernel would be taken in float32)
+TAIL_W1 = wp.constant(wp.float64(-2.0 / 3.0))
+TAIL_W2 = wp.constant(wp.float64(11.0 / 24.0))
+
+
+@wp.func(inline=False)  # outside the table: rare, kept out of the cascade's inlined code
+def _circular_tails(log_s: wp.float64):
+    # f, g of a circular pore outside the table's range from the leading terms of the series
+    # pore_circular sums in full. Below S_MIN the power series of J0 and J2 in
+    # w = -z^2/4 = -i s^2/2 give g = -J2/J0 = (w/2)(1 - 2w/3 + 11 w^2/24) (the omitted
+    # term, of order w^3 < 1.3e-19, is below 1e-19 of g); from S_MAX the Hankel ratio
+    # S_1/S_0 of _circular_hankel, as one series 1 + 4v - 8v^2 + 64v^3 in
+    # v = -(1 + i)/(16 s) (the omitted term below 5e-18 of f). A few multiplications, no
+    # division, in a function of few registers: (f, g) as one wp.vec4d (an out-of-line
+    # function's second return value would pass through the stack).
+    one = cplx(wp.float64(1.0), wp.float64(0.0))
+    if log_s < TABLE_LOG_S_MIN:
+        s = wp.exp(log_s)
+        w = cplx(wp.float64(0.0), wp.float64(-0.5) * s * s)
+        series = one + cmul(w, cplx(TAIL_W1, wp.float64(0.0)) + cscale(w, TAIL_W2))
+        g = cscale(cmul(w, series), wp.float64(0.5))
+        return wp.vec4d(wp.float64(1.0) - g[0], -g[1], g[0], g[1])
+    inv_s = wp.exp(-log_s)
+    v = cplx(wp.float64(-0.0625) * inv_s, wp.float64(-0.0625) * inv_s)
+    ratio = one + cmul(
+        v,
+        cplx(wp.float64(4.0), wp.float64(0.0))
+        + cmul(v, cplx(wp.float64(-8.0), wp.float64(0.0)) + cscale(v, wp.float64(64.0))),
+    )
+    f = cscale(cmul(cplx(wp.float64(1.0), wp.float64(1.0)), ratio), inv_s)
+    return wp.vec4d(f[0], f[1], wp.float64(1.0) - f[0], -f[1])
+
+
+@wp.func
+def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
+    """f, g of a circular pore at ``log_s`` = ln(r / delta): :func:`circular_from_table`
+    inside the table's range, the leading terms of :func:`pore_circular`'s series outside
+    it (below 1e-17 relative there, tests/test_pore.py); NaN for a NaN ``log_s``."""
+    if not inside_table(log_s):
+        fg = _circular_tails(log_s)
+        return wp.vec2d(fg[0], fg[1]), wp.vec2d(fg[2], fg[3])
+    return circular_from_table(table, log_s)
+
+
+@wp.func
+def _shape_slot(table: PoreTable, model: int):
     # the slot of the shaped pore ``model`` in the table's header, -1 if it has none
     for j in range(SHAPE_SLOTS):
-        if table[SHAPE_HEADER + j] == wp.float64(model):
+        if table[j, SHAPE_HEADER] == wp.float64(model):
             return j
     return -1
 
 
 @wp.func
-def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+def pore_functions_log(model: int, log_s: wp.float64, table: PoreTable):
     """f, g of the pore ``model`` (PORE_CIRCULAR, PORE_PLATES or a rectangular channel's or
     pin array's :func:`pore_model_code`) at ``log_s`` = ln(r / delta); ``table`` is
     :func:`tawarp.kernels.pore_table.circular_table` on the kernel's device, which holds the
@@ -265,21 +324,21 @@ def pore_functions_log(model: int, log_s: wp.float64, table: wp.array(dtype=wp.f
     The circular pore inside the table is the cascade's usual case and is read here; every
     other case is :func:`_pore_functions_other`, kept apart so that the GPU compiler inlines
     this short path into the cascade and calls the long one (bench/README.md)."""
-    if model == PORE_CIRCULAR and log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
-        return _tabulated(table, 0, log_s)
+    if model == PORE_CIRCULAR:
+        return pore_circular_tabulated(table, log_s)
     return _pore_functions_other(model, log_s, table)
 
 
 @wp.func(inline=False)
-def _pore_functions_other(model: int, log_s: wp.float64, table: wp.array(dtype=wp.float64)):
+def _pore_functions_other(model: int, log_s: wp.float64, table: PoreTable):
     # pore_functions_log's cases beyond a circular pore inside the table
     if model == PORE_PLATES:
         return pore_plates(wp.exp(log_s))
     if model >= RECTANGULAR_BASE:
-        if log_s >= TABLE_LOG_S_MIN and log_s < TABLE_LOG_S_MAX:
+        if inside_table(log_s):
             slot = _shape_slot(table, model)
             if slot >= 0:
-                return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_BLOCK, log_s)
+                return _tabulated(table, SHAPE_BLOCKS + slot * TABLE_PIECES, log_s)
         return pore_functions_complex(model, cplx(wp.exp(log_s), wp.float64(0.0)))
     return pore_circular_tabulated(table, log_s)
 
@@ -347,7 +406,7 @@ def _circular_recurrence_c(s: wp.vec2d):
 def _circular_hankel_c(s: wp.vec2d):
     # as _circular_hankel: v = -i/(8 z) = -(1 + i)/(16 s), f = (1 + i)/s S_1/S_0
     inv_s = cinv(s)
-    v = cscale(cmul(cplx(wp.float64(-1.0), wp.float64(-1.0)), inv_s), wp.float64(1.0 / 16.0))
+    v = cscale(cmul(cplx(wp.float64(-1.0), wp.float64(-1.0)), inv_s), wp.float64(0.0625))
     one = cplx(wp.float64(1.0), wp.float64(0.0))
     t0 = one
     t1 = one

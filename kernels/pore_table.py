@@ -16,7 +16,8 @@ hold over the whole range: a sixteenth of an octave gives a Bernstein ellipse of
 and 8 terms reach ~6e-15 (a quarter octave needs 12; measured: bench/README.md, section
 "kernels/pore_table.py"). Each piece stores the smaller of the pair (g for small
 s, where f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
-digits to cancellation. Outside [S_MIN, S_MAX] the functions of :mod:`.pore` are used.
+digits to cancellation. Outside [S_MIN, S_MAX] the leading terms of their series are used
+(:func:`.pore.pore_circular_tabulated`).
 
 The node values come from :func:`.pore.pore_circular` (below 1e-15 relative, checked
 against mpmath in tests/test_pore.py); the table is exact to ~6e-15 relative to |f| and
@@ -45,9 +46,9 @@ from .pore import (
     SHAPE_BLOCKS,
     SHAPE_HEADER,
     SHAPE_SLOTS,
-    TABLE_BLOCK,
     TABLE_LENGTH,
     TABLE_PIECE_WIDTH,
+    TABLE_RECORD,
     TERMS,
     pore_circular,
     pore_functions_complex,
@@ -69,8 +70,8 @@ def _nodes(model: int, s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d
 
 def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
-    as float64 numbers: PIECES records of 1 + 2 TERMS (see
-    :func:`.pore.pore_circular_tabulated`), from f, g at the TERMS Chebyshev points of the
+    as a (PIECES, 1 + 2 TERMS) float64 array, a piece's fields in a row (the table's columns,
+    :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
     first kind of each piece (a discrete cosine transform gives the Chebyshev coefficients,
     stored in powers of the piece's variable t)."""
     k = np.arange(TERMS)
@@ -99,7 +100,7 @@ def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     table[:, 0] = use_g
     table[:, 1::2] = coeffs.real
     table[:, 2::2] = coeffs.imag
-    return table.ravel()
+    return table
 
 
 #: pore-model codes of the shaped pores tabulated so far, in slot order (at most SHAPE_SLOTS;
@@ -110,7 +111,7 @@ _TABLES: dict = {}
 
 
 def circular_table(device, models=()) -> wp.array:
-    """The pore table on ``device`` (layout: :data:`.pore.TABLE_LENGTH`): the circular pieces,
+    """The pore table on ``device`` (:data:`.pore.PoreTable`, :data:`.pore.TABLE_LENGTH` columns): the circular pieces,
     built once per process, and those of every shaped pore (rectangular channel, pin array)
     among the pore-model codes ``models`` or asked for before, while SHAPE_SLOTS last. An
     array handed out earlier stays valid: a shape it lacks is computed instead."""
@@ -120,14 +121,15 @@ def circular_table(device, models=()) -> wp.array:
     if _HOST.get("shapes") != len(_SHAPES):
         table = _HOST.get("table")
         if table is None:
-            table = np.zeros(TABLE_LENGTH)
-            table[:TABLE_BLOCK] = pore_coefficients()
-            table[SHAPE_HEADER : SHAPE_HEADER + int(SHAPE_SLOTS)] = -1.0
+            table = np.zeros((TABLE_LENGTH, TABLE_RECORD))
+            table[:PIECES] = pore_coefficients()
+            table[SHAPE_HEADER, : int(SHAPE_SLOTS)] = -1.0
         for j in range(_HOST.get("shapes", 0), len(_SHAPES)):
-            table[SHAPE_HEADER + j] = _SHAPES[j]
-            table[SHAPE_BLOCKS + j * TABLE_BLOCK : SHAPE_BLOCKS + (j + 1) * TABLE_BLOCK] = pore_coefficients(_SHAPES[j])
+            table[SHAPE_HEADER, j] = _SHAPES[j]
+            table[SHAPE_BLOCKS + j * PIECES : SHAPE_BLOCKS + (j + 1) * PIECES] = pore_coefficients(_SHAPES[j])
         _HOST.update(table=table, shapes=len(_SHAPES))
     key = str(wp.get_device(device))
     if _TABLES.get(key, (None, -1))[1] != len(_SHAPES):
-        _TABLES[key] = (wp.array(_HOST["table"], dtype=wp.float64, device=device), len(_SHAPES))
+        columns = np.ascontiguousarray(_HOST["table"].T)
+        _TABLES[key] = (wp.array(columns, dtype=wp.float64, device=device), len(_SHAPES))
     return _TABLES[key][0]

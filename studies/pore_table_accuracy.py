@@ -21,14 +21,22 @@ import numpy as np
 import warp as wp
 
 from tawarp.io import write_json
-from tawarp.kernels.pore import PIECES, PIECES_PER_OCTAVE, S_MAX, S_MIN, pore_circular, pore_circular_tabulated
+from tawarp.kernels.pore import (
+    PIECES,
+    PIECES_PER_OCTAVE,
+    S_MAX,
+    S_MIN,
+    PoreTable,
+    pore_circular,
+    pore_circular_tabulated,
+)
 from tawarp.kernels.pore_table import circular_table
 
 
 @wp.kernel
 def _evaluate(
     s: wp.array(dtype=wp.float64),
-    table: wp.array(dtype=wp.float64),
+    table: PoreTable,
     tabulated: int,
     f: wp.array(dtype=wp.vec2d),
     g: wp.array(dtype=wp.vec2d),

@@ -269,3 +269,33 @@ def test_unheated_sets_take_the_closed_form():
         T = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", **kw).T
         np.testing.assert_array_equal(T[0], transfer_matrices(cold(core), FREQS, 0.0, device="cpu").T[0])
         assert np.abs(T[1] - T[0]).max() > 1e-3 * np.abs(T[0]).max()
+
+
+def test_plain_cascade_equals_the_general_one():
+    """A batch whose parts are all plain (circular pores, rigid frames, no shape factor)
+    takes the cascade compiled without the other parts' code: the general cascade's numbers
+    (to 1e-14 of each row's largest entry: the same arithmetic, compiled apart). A batch
+    that varies an effect takes the general one, and the plain cascade given a part it does
+    not compute returns NaN, never a wrong T."""
+    from tawarp.model import forward
+
+    core = load_core("ceramic")
+    freqs = np.linspace(30.0, 500.0, 20)
+    rng = np.random.default_rng(7)
+    table = np.stack([rng.uniform(0, 80, 6), rng.uniform(50, 250, 6)])
+    settings = forward.ForwardSettings(device="cpu", cpu_threads=1)
+    engine = forward.Engine(core, freqs, ["stack.h"], settings)
+    assert forward.plain_parts(core, ["stack.h"])
+    plain = engine.evaluate(table)[0].numpy()
+    engine.transfer_kernel = forward._transfer_kernel(settings.max_registers)
+    general = engine.evaluate(table)[0].numpy()
+    scale = np.abs(general).max(axis=-1, keepdims=True)
+    assert np.abs(plain - general).max() <= 1e-14 * scale.max()
+    assert np.all(np.abs(plain - general) <= 1e-14 * scale)
+
+    for name in ("stack.frame_mobility", "stack.viscous_shape_factor"):
+        assert not forward.plain_parts(core, [name])
+    limp = forward.Engine(core, freqs, ["stack.frame_mobility"], settings)
+    limp.transfer_kernel = forward._transfer_kernel(settings.max_registers, 0, True)
+    out = limp.evaluate(np.stack([table[0], np.full(6, 1e-3)]))[0].numpy()
+    assert np.isnan(out).all()

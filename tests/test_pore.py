@@ -15,6 +15,7 @@ from tawarp.kernels.pore import (
     PIECES_PER_OCTAVE,
     S_MAX,
     S_MIN,
+    PoreTable,
     pore_circular,
     pore_functions_log,
     pore_plates,
@@ -32,7 +33,7 @@ S_GRID = np.concatenate([np.geomspace(1e-3, 1e3, 300), [1e-4, 3e-4, 3e3, 1e4]])
 def _eval_model(
     model: int,
     s: wp.array(dtype=wp.float64),
-    table: wp.array(dtype=wp.float64),
+    table: PoreTable,
     f: wp.array(dtype=wp.vec2d),
     g: wp.array(dtype=wp.vec2d),
 ):
@@ -166,6 +167,16 @@ def test_table_matches_direct_functions_and_plates_dispatch():
     np.testing.assert_allclose(gt, gc, rtol=TOL, atol=0)
     # the kernels' plates path takes ln s (exp(ln s) is s to a few ulps)
     np.testing.assert_allclose(evaluate(PORE_PLATES, S_GRID)[0], fp, rtol=TOL, atol=0)
+
+
+def test_circular_outside_the_table_against_mpmath():
+    # the series' leading terms the kernels take below S_MIN and from S_MAX on: exact to
+    # 1e-17, the rest is the rounding of s = exp(ln s) (a few ulps of s at |ln s| < 20)
+    s = [1e-8, 1e-6, 1e-4, 3e-4, 6e-4, np.nextafter(S_MIN, 0.0), S_MAX, 3e4, 1e6]
+    f, g = evaluate(PORE_CIRCULAR, s)
+    err_f, err_g = max_rel_err(PORE_CIRCULAR, s, f, g)
+    assert err_f <= 5e-15
+    assert err_g <= 5e-15
 
 
 def test_nan_argument_does_not_index_the_table():

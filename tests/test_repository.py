@@ -96,3 +96,17 @@ def test_ruff_format_is_clean():
         timeout=120,
     )
     assert done.returncode == 0, done.stdout + done.stderr
+
+
+def test_kernels_write_no_float32_quotient_as_float64():
+    """In a Warp function ``wp.float64(1.0 / 60.0)`` divides two float32 literals (1e-8
+    relative) before the conversion: the kernels write such constants as module-level
+    ``wp.constant`` values (a Python float64) instead."""
+    quotient = re.compile(r"wp\.float64\(\s*-?[0-9.]+\s*/\s*[0-9.]+\s*\)")
+    offenders = [
+        f"{path.name}:{n}"
+        for path in sorted((ROOT / "kernels").glob("*.py"))
+        for n, line in enumerate(path.read_text().splitlines(), 1)
+        if quotient.search(line) and not line.lstrip().startswith("#") and "wp.constant(" not in line
+    ]
+    assert not offenders, f"float32 quotients in float64 constants at {offenders}"

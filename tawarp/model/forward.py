@@ -287,6 +287,28 @@ def nonlinear_heat(core: Core, names=()) -> bool:
     return any(getattr(core.segments[i], f) != 0.0 for i in core.thermal_indices for f in NONLINEAR_FIELDS)
 
 
+def plain_parts(core: Core, names=()) -> bool:
+    """True when every part of a batch of ``core`` varying ``names`` is plain
+    (:func:`tawarp.kernels.acoustics.plain_part`: circular pores or a duct, a rigid frame, no
+    viscous shape factor): its value cascade compiles without the other parts' code
+    (:func:`tawarp.kernels.forward.make_transfer_kernel`'s ``plain``)."""
+    from ..kernels.pore import PORE_CIRCULAR
+
+    base = base_table(core)
+    models = structure_flags(core)[:, layout.F_PORE_MODEL]
+    varied = {parameter_row(core, name) for name in names}
+    for s, seg in enumerate(core.segments):
+        if not seg.is_porous:
+            continue
+        row = layout.N_GLOBAL + s * layout.N_FIELDS
+        mobility, shape = row + layout.FRAME_MOBILITY, row + layout.VISCOUS_SHAPE_FACTOR
+        if models[s] != PORE_CIRCULAR or mobility in varied or shape in varied:
+            return False
+        if not (base[mobility] <= 0.0 and (base[shape] == 1.0 or base[shape] <= 0.0)):
+            return False
+    return True
+
+
 class Engine:
     """A compiled batch layout: one core structure, one frequency grid, a fixed list of
     varying parameters; evaluates device-resident batches with no host round trip.
@@ -338,7 +360,8 @@ class Engine:
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
         self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
-        self.transfer_kernel = _transfer_kernel(self.settings.max_registers)
+        self.plain = plain_parts(core, self.names)
+        self.transfer_kernel = _transfer_kernel(self.settings.max_registers, 0, self.plain)
         self.point_kernel = _point_kernel(self.nonlinear)
         # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
@@ -541,7 +564,9 @@ class Engine:
             return
         tangents = 0 if tangent is None else tangent.shape[1]
         stride = 1 + 2 * tangents
-        kernel = self.transfer_kernel if tangents == 0 else _transfer_kernel(TANGENT_MAX_REGISTERS, tangents)
+        kernel = (
+            self.transfer_kernel if tangents == 0 else _transfer_kernel(TANGENT_MAX_REGISTERS, tangents, self.plain)
+        )
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
@@ -727,9 +752,10 @@ def _point_kernel(nonlinear: bool):
 
 
 @functools.cache
-def _transfer_kernel(max_registers: int | None, tangents: int = 0):
-    """The cascade kernel for this register cap (and number of tangents), compiled once per process."""
-    return kf.make_transfer_kernel(max_registers, tangents)
+def _transfer_kernel(max_registers: int | None, tangents: int = 0, plain: bool = False):
+    """The cascade kernel for this register cap (number of tangents, plain parts alone),
+    compiled once per process."""
+    return kf.make_transfer_kernel(max_registers, tangents, plain)
 
 
 def batch_table(core: Core, heat_input, params: dict | None) -> tuple[list[str], np.ndarray]:
