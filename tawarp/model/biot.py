@@ -261,8 +261,10 @@ def rigid_surface_impedance(
 
 
 def _waves(w, b, fl: JCAFluid) -> BiotWaves:
-    """The coefficients and the compressional waves (``mu1, mu2, delta3, mu3`` are None:
-    the boundary-value problems need only the modes; :func:`biot_waves` adds them)."""
+    """The coefficients and the compressional waves as the boundary-value problems need
+    them: ``modes`` two (u^s, u^f) pairs, not normalized (the closed forms are homogeneous
+    in each wave's amplitude), ``mu1, mu2, delta3`` None and ``mu3`` holding
+    ``rho11 rho22 - rho12^2`` (:func:`biot_waves` makes the public record)."""
     phi = b["phi"]
     rho22 = phi * phi * fl.rho_eq
     rho12 = phi * fl.rho0 - rho22
@@ -279,25 +281,20 @@ def _waves(w, b, fl: JCAFluid) -> BiotWaves:
     Bc = P_hat * rho22 + R * (beta * beta * rho22 + rho11 - 2.0 * beta * rho12)
     C = b["rho_1"] * rho22 - phi * fl.rho0 * rho12
     s = np.sqrt(Bc * Bc - 4.0 * A * C)
-    plus = np.abs(Bc + s) >= np.abs(Bc - s)
-    big = np.where(plus, Bc + s, Bc - s) / (2.0 * A)  # the root without cancellation
+    plus = Bc.real * s.real + Bc.imag * s.imag >= 0  # |Bc + s| >= |Bc - s|
+    big = (Bc + np.where(plus, s, -s)) / (2.0 * A)  # the root without cancellation
     small = C / (A * big)
     x1, x2 = np.where(plus, small, big), np.where(plus, big, small)  # x1 = (B - s)/(2A): Allard's delta_1^2
-    deltas = [w * np.sqrt(x) for x in (x1, x2)]
-    deltas = [np.where(d.imag < 0, -d, d) for d in deltas]
-    modes = []
+    deltas, modes = [], []
     for x in (x1, x2):
+        delta = w * np.sqrt(x)
+        deltas.append(np.where(delta.imag < 0, -delta, delta))
         # null vector (u^s, u^f) of [[P x - rho11, Q x - rho12], [Q x - rho12, R x - rho22]] (x = d^2/w^2)
         # from its larger row: accurate when the frame or the fluid barely moves
-        r1 = (P * x - rho11, Q * x - rho12)
-        r2 = (r1[1], R * x - rho22)
-        use1 = np.abs(r1[0]) + np.abs(r1[1]) >= np.abs(r2[0]) + np.abs(r2[1])
-        us = np.where(use1, -r1[1], r2[1])
-        uf = np.where(use1, r1[0], -r2[0])
-        n = np.sqrt(us.real**2 + us.imag**2 + uf.real**2 + uf.imag**2)
-        modes.append(np.stack([us / n, uf / n], axis=-1))
-    modes = np.stack(modes, axis=-2)
-    return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], None, None, None, None, P_hat, modes)
+        a11, a12, a22 = P * x - rho11, Q * x - rho12, R * x - rho22
+        use1 = np.abs(a11) >= np.abs(a22)
+        modes.append((np.where(use1, -a12, a22), np.where(use1, a11, -a12)))
+    return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], None, None, None, C, P_hat, modes)
 
 
 def biot_waves(
@@ -321,36 +318,33 @@ def biot_waves(
     w = 2 * np.pi * f
     fl = _jca(w, b, gas)
     wv = _waves(w, b, fl)
+    modes = np.stack([np.stack(m, axis=-1) for m in wv.modes], axis=-2)
+    modes = modes / np.linalg.norm(modes, axis=-1, keepdims=True)
     with np.errstate(divide="ignore", invalid="ignore"):
-        mu = [
-            np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (wv.modes[..., 0, :], wv.modes[..., 1, :])
-        ]
+        mu = [np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (modes[..., 0, :], modes[..., 1, :])]
     N = b["E"] * (1.0 - 1j * b["eta"]) / (2.0 * (1.0 + b["nu"]))
-    C = b["rho_1"] * wv.rho22 - b["phi"] * fl.rho0 * wv.rho12
-    delta3 = w * np.sqrt(C / (N * wv.rho22))
+    delta3 = w * np.sqrt(wv.mu3 / (N * wv.rho22))  # mu3 holds rho11 rho22 - rho12^2 (_waves)
     delta3 = np.where(delta3.imag < 0, -delta3, delta3)
-    full = wv._replace(mu1=mu[0], mu2=mu[1], delta3=delta3, mu3=-wv.rho12 / wv.rho22)
+    full = wv._replace(mu1=mu[0], mu2=mu[1], delta3=delta3, mu3=-wv.rho12 / wv.rho22, modes=modes)
     shape = np.broadcast_shapes(*(a.shape for a in b.values()))[:-1] + (f.size,)
     return BiotWaves(*(np.broadcast_to(a, shape + ((2, 2) if k == "modes" else ())) for k, a in full._asdict().items()))
 
 
 def _interface(w, b, fl: JCAFluid):
     """What the air interface sees of the two compressional waves (module doc): ``N``,
-    the splits ``(g_1, g_2)``, the volume displacements ``(q_1, q_2)`` and the wavenumbers
-    ``(delta_1, delta_2)``, each on the batch shape of the fluid and frame parameters
-    (the thickness enters only through the decays)."""
+    ``a``, ``c`` times ``delta_1 delta_2`` (the closed forms are homogeneous in them),
+    and ``(delta_1, delta_2)``, on the batch shape of the fluid and frame parameters (the
+    thickness enters only through the decays). ``N = (rho11 rho22 - rho12^2)
+    (u^s_1 u^f_2 - u^s_2 u^f_1) / (delta_1 delta_2)`` and ``g_i = ((phi rho_1 - rho12) u^s_i
+    + (phi^2 rho0 - rho22) u^f_i) / delta_i`` are the module doc's, expanded."""
     wv = _waves(w, b, fl)
     phi = b["phi"]
-    S, g, q = [], [], []
-    for i, delta in enumerate((wv.delta1, wv.delta2)):
-        us, uf = wv.modes[..., i, 0], wv.modes[..., i, 1]
-        Ss = (wv.rho11 * us + wv.rho12 * uf) / delta
-        Sf = (wv.rho12 * us + wv.rho22 * uf) / delta
-        S.append((Ss, Sf))
-        g.append(phi * Ss - (1.0 - phi) * Sf)
-        q.append((1.0 - phi) * us + phi * uf)
-    N = S[0][0] * S[1][1] - S[1][0] * S[0][1]
-    return N, g, q, (wv.delta1, wv.delta2)
+    (us1, uf1), (us2, uf2) = wv.modes
+    split_s, split_f = phi * b["rho_1"] - wv.rho12, phi * phi * fl.rho0 - wv.rho22
+    g1, g2 = split_s * us1 + split_f * uf1, split_s * us2 + split_f * uf2  # times delta_i
+    q1, q2 = (1.0 - phi) * us1 + phi * uf1, (1.0 - phi) * us2 + phi * uf2
+    N = wv.mu3 * (us1 * uf2 - us2 * uf1)  # mu3 holds rho11 rho22 - rho12^2 (_waves)
+    return N, g2 * q1 * wv.delta1, g1 * q2 * wv.delta2, (wv.delta1, wv.delta2)
 
 
 def _params(freq, **params):
@@ -406,11 +400,11 @@ def fluid_surface_impedance(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu
 
 
 def _surface_impedance(w, b, fl: JCAFluid) -> np.ndarray:
-    N, (g1, g2), (q1, q2), deltas = _interface(w, b, fl)
+    N, a, c, deltas = _interface(w, b, fl)
     two_id = 2j * b["thickness"]
     u1, u2 = (-np.expm1(two_id * delta) for delta in deltas)  # 1 - e_i^2
     s1, s2 = 2.0 - u1, 2.0 - u2  # 1 + e_i^2
-    return w * N * (s1 * s2) / ((s1 * u2) * (g1 * q2) - (s2 * u1) * (g2 * q1)) / (fl.rho0 * fl.c0)
+    return (w / (fl.rho0 * fl.c0)) * N * (s1 * s2) / ((s1 * u2) * c - (s2 * u1) * a)
 
 
 def transfer_matrix(
@@ -462,8 +456,7 @@ def fluid_transfer_matrix(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, 
 
 
 def _transfer_matrix(w, b, fl: JCAFluid) -> np.ndarray:
-    N, (g1, g2), (q1, q2), (delta1, delta2) = _interface(w, b, fl)
-    a, c = g2 * q1, g1 * q2
+    N, a, c, (delta1, delta2) = _interface(w, b, fl)
     i_d = 1j * b["thickness"]
     e1, e2 = np.exp(i_d * delta1), np.exp(i_d * delta2)
     u1, u2 = -np.expm1(2.0 * i_d * delta1), -np.expm1(2.0 * i_d * delta2)  # 1 - e_i^2
