@@ -126,8 +126,10 @@ class ImpedanceKind(MeasurementKind):
         Z = np.empty((n, L, len(self.freqs)), dtype=complex)
         Z[rigid] = surface_impedance_from_T(T[column[: rigid.size * L].reshape(rigid.size, L)], self.core)
         if elastic.size:
+            slices, slice_of = np.unique(column[rigid.size * L :], return_inverse=True)
             Z[elastic] = self._elastic(
-                T[column[rigid.size * L :]],
+                T[slices],
+                slice_of,
                 d[elastic],
                 {k: per_set(k, None)[elastic] for k in names},
                 C[elastic],
@@ -136,14 +138,17 @@ class ImpedanceKind(MeasurementKind):
             )
         return np.concatenate([Z[:, k, self._index[k]] for k in range(L)], axis=1)
 
-    def _elastic(self, T_slice, d, vals, C, eta, rho_1) -> np.ndarray:
+    def _elastic(self, T_slice, slice_of, d, vals, C, eta, rho_1) -> np.ndarray:
         """Zs (k, L, freqs) of an elastic frame (compliance C, loss factor eta, density rho_1,
-        Poisson ratio :data:`FRAME_POISSON_RATIO`) in the fluid of the thin slices ``T_slice``."""
+        Poisson ratio :data:`FRAME_POISSON_RATIO`) in the fluid of the thin slices ``T_slice``
+        (set i's is ``T_slice[slice_of[i]]``)."""
         g = GASES[self.core.gas.name]
         T0 = vals.get("gas.T_cold", np.full(C.size, self.core.gas.T_cold))[:, None]
         p0 = vals.get("gas.p_mean", np.full(C.size, self.core.gas.p_mean))[:, None]
         rho0, c0 = p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0)
-        rho_eq, K_eq = equivalent_fluid(T_slice, FLUID_SLICE, 2 * np.pi * self.freqs, self.core.area)
+        rho_eq, K_eq = (
+            a[slice_of] for a in equivalent_fluid(T_slice, FLUID_SLICE, 2 * np.pi * self.freqs, self.core.area)
+        )
         fl = JCAFluid(rho_eq, K_eq, rho0, c0)
         phi = vals.get("layer.porosity", np.full(C.size, self.core.segments[0].porosity))
         Zs = fluid_surface_impedance(

@@ -399,10 +399,22 @@ def fluid_surface_impedance(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu
     return _surface_impedance(w, b, fluid)
 
 
+def _decays(i_delta_d) -> tuple[np.ndarray, np.ndarray]:
+    """``(e, 1 - e^2)`` with ``e = exp(i delta d)`` (``Im delta >= 0``): ``1 - e^2`` by
+    ``expm1`` where ``|delta d| < 1/4`` (a thin layer or a low frequency, where ``1 - e^2``
+    would cancel), from ``e`` elsewhere (one transcendental pass instead of two)."""
+    e = np.exp(i_delta_d)
+    u = 1.0 - e * e
+    thin = np.abs(i_delta_d) < 0.25
+    if thin.any():
+        u[thin] = -np.expm1(2.0 * i_delta_d[thin])
+    return e, u
+
+
 def _surface_impedance(w, b, fl: JCAFluid) -> np.ndarray:
-    N, a, c, deltas = _interface(w, b, fl)
-    two_id = 2j * b["thickness"]
-    u1, u2 = (-np.expm1(two_id * delta) for delta in deltas)  # 1 - e_i^2
+    N, a, c, (delta1, delta2) = _interface(w, b, fl)
+    i_d = 1j * b["thickness"]
+    u1, u2 = _decays(i_d * delta1)[1], _decays(i_d * delta2)[1]  # 1 - e_i^2
     s1, s2 = 2.0 - u1, 2.0 - u2  # 1 + e_i^2
     return (w / (fl.rho0 * fl.c0)) * N * (s1 * s2) / ((s1 * u2) * c - (s2 * u1) * a)
 
@@ -458,8 +470,7 @@ def fluid_transfer_matrix(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, 
 def _transfer_matrix(w, b, fl: JCAFluid) -> np.ndarray:
     N, a, c, (delta1, delta2) = _interface(w, b, fl)
     i_d = 1j * b["thickness"]
-    e1, e2 = np.exp(i_d * delta1), np.exp(i_d * delta2)
-    u1, u2 = -np.expm1(2.0 * i_d * delta1), -np.expm1(2.0 * i_d * delta2)  # 1 - e_i^2
+    (e1, u1), (e2, u2) = _decays(i_d * delta1), _decays(i_d * delta2)  # e_i, 1 - e_i^2
     # +-(e1 - e2) without the cancellation of a thin layer: the slower decay factored out
     slow = delta1.imag <= delta2.imag
     lead, other = np.where(slow, delta1, delta2), np.where(slow, delta2, delta1)
