@@ -1,10 +1,13 @@
 """Loop benchmark: the wall time of one :func:`tawarp.loop.run_loop` (base fit, the Bayesian
 comparison of every model up to three effects, checks, next measurement, drift), warm (after
-one loop that compiles the kernels), on two classes of data. Writes JSON.
+one loop that compiles the kernels), on two classes of data. Writes JSON: per case the wall
+time ``seconds`` and the process's CPU time ``cpu_seconds`` (all its threads; on a shared
+machine the wall time grows with the others' load, the CPU time much less).
 
     python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
     taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
     python bench/loop.py --device cuda
+    python bench/loop.py --device cpu --cases impedance --out /tmp/loop.json   # one class of data
 
 * ``tmatrix``: the validation study's core T-matrix cases (``studies/loop_validation.py``,
   the independent reference, core file 10-30 % off, 37 frequencies 40-400 Hz, Q = 0/20/40 W),
@@ -43,7 +46,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
         arrays = lv.load_or_generate(case, cache)
         core = lv.load_core(case.core_material).replace(**case.prior)
         prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         rep = run_loop(prob)
         out.append(
             {
@@ -52,6 +55,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
                 "material": case.material,
                 "rows": int(prob.y.size),
                 "seconds": time.perf_counter() - t0,
+                "cpu_seconds": time.process_time() - c0,
                 "verdict": rep["verdict"],
                 "claimed": rep["accepted_steps"],
                 "models": rep["models_compared"],
@@ -71,12 +75,13 @@ def impedance_case(n: int, device: str) -> dict:
         data.append(
             ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies")
         )
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
     out = {
         "frequencies": n,
         "rows": int(prob.y.size),
         "seconds": time.perf_counter() - t0,
+        "cpu_seconds": time.process_time() - c0,
         "verdict": rep["verdict"],
         "best_model": rep["best_model"],
         "models": rep["models_compared"],
@@ -91,6 +96,7 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list)")
     ap.add_argument("--impedance-freqs", type=int, default=2694)
+    ap.add_argument("--cases", default="tmatrix,impedance", help="which classes of data (comma list)")
     ap.add_argument(
         "--cache",
         default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "loop_bench" / "cache"),
@@ -102,23 +108,31 @@ def main(argv=None) -> int:
         seeds = [int(s) for s in args.seeds.split(",")]
     except ValueError:
         ap.error(f"--seeds: {args.seeds!r}; expected integers, comma separated")
+    cases = set(args.cases.split(","))
+    if not cases or not cases <= {"tmatrix", "impedance"}:
+        ap.error(f"--cases: {args.cases!r}; expected tmatrix, impedance or both, comma separated")
     wp.config.quiet = True
     wp.init()
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
-    tmatrix_cases(seeds[:1], args.device, cache)  # warm-up: compiles the kernels
-    impedance_case(64, args.device)
+    # warm-up: compiles the kernels
+    if "tmatrix" in cases:
+        tmatrix_cases(seeds[:1], args.device, cache)
+    if "impedance" in cases:
+        impedance_case(64, args.device)
     result = {
         "benchmark": "loop",
         "device": args.device,
         "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
         "cpu_cores": len(os.sched_getaffinity(0)),
         "host": platform.node(),
-        "tmatrix": tmatrix_cases(seeds, args.device, cache),
-        "impedance": impedance_case(args.impedance_freqs, args.device),
     }
-    t = [c["seconds"] for c in result["tmatrix"]]
-    result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
+    if "tmatrix" in cases:
+        result["tmatrix"] = tmatrix_cases(seeds, args.device, cache)
+        t = [c["seconds"] for c in result["tmatrix"]]
+        result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
+    if "impedance" in cases:
+        result["impedance"] = impedance_case(args.impedance_freqs, args.device)
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
     write_result(
         result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json", args.out
