@@ -13,8 +13,9 @@ machine the wall time grows with the others' load, the CPU time much less).
   the independent reference, core file 10-30 % off, 37 frequencies 40-400 Hz, Q = 0/20/40 W),
   one case per category in ``--seeds`` (default: clean, plane offsets, convection, a pair);
 * ``impedance``: a rigid-backed layer's surface impedance at ``--impedance-freqs`` frequencies
-  (default 2694, 116-4316 Hz): the measured foam2 layers (both thicknesses) interpolated onto
-  that grid, with 0.5 % noise.
+  (default 2694): the measured foam2 layers (both thicknesses) interpolated onto that many
+  frequencies over their measured band (200-1600 Hz; outside it ``np.interp`` would hold the
+  end values, data no layer gives), with 0.5 % noise.
 """
 
 from __future__ import annotations
@@ -67,9 +68,10 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
 
 def impedance_case(n: int, device: str) -> dict:
     rng = np.random.default_rng(0)
-    f = np.linspace(116.0, 4316.0, n)
+    layers = load_atalla_panneton("foam2")
+    f = np.linspace(max(d.freq.min() for d in layers), min(d.freq.max() for d in layers), n)
     data = []
-    for d in load_atalla_panneton("foam2"):
+    for d in layers:
         Zs = np.interp(f, d.freq, d.Zs.real) + 1j * np.interp(f, d.freq, d.Zs.imag)
         Zs = Zs * (1 + 0.005 * (rng.standard_normal(n) + 1j * rng.standard_normal(n)))
         data.append(
