@@ -178,6 +178,24 @@ class BiotWaves(NamedTuple):
     modes: np.ndarray
 
 
+class _Waves(NamedTuple):
+    """What the boundary-value problems need of the waves (:func:`_waves`): the
+    coefficients, ``det = rho11 rho22 - rho12^2``, and per compressional wave its
+    wavenumber and (u^s, u^f) displacement, not normalized (the closed forms are
+    homogeneous in each wave's amplitude)."""
+
+    P: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    rho11: np.ndarray
+    rho12: np.ndarray
+    rho22: np.ndarray
+    P_hat: np.ndarray
+    det: np.ndarray
+    deltas: tuple
+    modes: tuple
+
+
 def _check(name: str, value) -> np.ndarray:
     """``value`` as a float array, or ValueError naming ``name`` and the first bad value."""
     a = np.asarray(value, dtype=float)
@@ -260,11 +278,9 @@ def rigid_surface_impedance(
     return 1j * Zc / np.tan(k * d) / (fl.rho0 * fl.c0)
 
 
-def _waves(w, b, fl: JCAFluid) -> BiotWaves:
-    """The coefficients and the compressional waves as the boundary-value problems need
-    them: ``modes`` two (u^s, u^f) pairs, not normalized (the closed forms are homogeneous
-    in each wave's amplitude), ``mu1, mu2, delta3`` None and ``mu3`` holding
-    ``rho11 rho22 - rho12^2`` (:func:`biot_waves` makes the public record)."""
+def _waves(w, b, fl: JCAFluid) -> _Waves:
+    """The coefficients and the compressional waves (:class:`_Waves`; :func:`biot_waves`
+    makes the public record)."""
     phi = b["phi"]
     rho22 = phi * phi * fl.rho_eq
     rho12 = phi * fl.rho0 - rho22
@@ -294,7 +310,7 @@ def _waves(w, b, fl: JCAFluid) -> BiotWaves:
         a11, a12, a22 = P * x - rho11, Q * x - rho12, R * x - rho22
         use1 = np.abs(a11) >= np.abs(a22)
         modes.append((np.where(use1, -a12, a22), np.where(use1, a11, -a12)))
-    return BiotWaves(P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], None, None, None, C, P_hat, modes)
+    return _Waves(P, Q, R, rho11, rho12, rho22, P_hat, C, tuple(deltas), tuple(modes))
 
 
 def biot_waves(
@@ -323,11 +339,11 @@ def biot_waves(
     with np.errstate(divide="ignore", invalid="ignore"):
         mu = [np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (modes[..., 0, :], modes[..., 1, :])]
     N = b["E"] * (1.0 - 1j * b["eta"]) / (2.0 * (1.0 + b["nu"]))
-    delta3 = w * np.sqrt(wv.mu3 / (N * wv.rho22))  # mu3 holds rho11 rho22 - rho12^2 (_waves)
+    delta3 = w * np.sqrt(wv.det / (N * wv.rho22))
     delta3 = np.where(delta3.imag < 0, -delta3, delta3)
-    full = wv._replace(mu1=mu[0], mu2=mu[1], delta3=delta3, mu3=-wv.rho12 / wv.rho22, modes=modes)
+    out = (wv.P, wv.Q, wv.R, wv.rho11, wv.rho12, wv.rho22, *wv.deltas, *mu, delta3, -wv.rho12 / wv.rho22, wv.P_hat)
     shape = np.broadcast_shapes(*(a.shape for a in b.values()))[:-1] + (f.size,)
-    return BiotWaves(*(np.broadcast_to(a, shape + ((2, 2) if k == "modes" else ())) for k, a in full._asdict().items()))
+    return BiotWaves(*(np.broadcast_to(a, shape) for a in out), np.broadcast_to(modes, shape + (2, 2)))
 
 
 def _interface(w, b, fl: JCAFluid):
@@ -343,8 +359,8 @@ def _interface(w, b, fl: JCAFluid):
     split_s, split_f = phi * b["rho_1"] - wv.rho12, phi * phi * fl.rho0 - wv.rho22
     g1, g2 = split_s * us1 + split_f * uf1, split_s * us2 + split_f * uf2  # times delta_i
     q1, q2 = (1.0 - phi) * us1 + phi * uf1, (1.0 - phi) * us2 + phi * uf2
-    N = wv.mu3 * (us1 * uf2 - us2 * uf1)  # mu3 holds rho11 rho22 - rho12^2 (_waves)
-    return N, g2 * q1 * wv.delta1, g1 * q2 * wv.delta2, (wv.delta1, wv.delta2)
+    delta1, delta2 = wv.deltas
+    return wv.det * (us1 * uf2 - us2 * uf1), g2 * q1 * delta1, g1 * q2 * delta2, wv.deltas
 
 
 def _params(freq, **params):
