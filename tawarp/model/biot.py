@@ -140,7 +140,8 @@ _FIELD_OF = {
 
 
 class JCAFluid(NamedTuple):
-    """Johnson-Champoux-Allard equivalent fluid, shape ``B + (m,)`` (rho0, c0: ``B + (1,)``).
+    """Johnson-Champoux-Allard equivalent fluid, shape ``B + (m,)`` (rho0, c0: the shape of T
+    and P0 + ``(1,)``, broadcasting to it).
 
     ``rho_eq`` [kg/m^3] = rho0 alpha(w) / phi, ``K_eq`` [Pa] = K_f(w) / phi (exp(-iwt));
     ``rho0`` [kg/m^3], ``c0`` [m/s] of the air."""
