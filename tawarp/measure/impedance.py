@@ -96,7 +96,11 @@ class ImpedanceKind(MeasurementKind):
         kernels' equivalent fluid of the same parameters (:func:`equivalent_fluid`, from a
         thin slice in the same launch) under the Biot frame of
         :func:`tawarp.model.biot.fluid_surface_impedance`. At compliance 0 the set is the
-        rigid model bit for bit (the frame fields are then not read).
+        rigid model bit for bit (the frame fields are then not read). The limp frame
+        (``layer.frame_mobility`` > 0) is the kernels' and applies at compliance 0 only: the
+        elastic frame's fluid is the rigid frame's, and Biot's frame at E -> 0 is itself the
+        limp frame, so a set with both jumps where the compliance leaves 0 (5 % in Zs on
+        foam2); the two effects describe one frame's motion.
 
         One launch for the distinct columns alone: a rigid set needs its layers, an elastic
         set only its slice, and the sets of one LM iteration (a trial point and its
