@@ -303,3 +303,57 @@ def test_wide_parameter_ranges_stay_passive_and_reciprocal(seed):
     z0 = 413.0  # rho0 c0 scale, only to balance the entries
     a, b, c, d = T[..., 0, 0], T[..., 0, 1] / z0, T[..., 1, 0] * z0, T[..., 1, 1]
     assert np.max(np.abs(a * d - b * c - 1) / (np.abs(a * d) + np.abs(b * c))) < 1e-12
+
+
+def _four_by_four(rho_eq, K_eq, rho0, c0, freq, d, phi, E, eta, nu, rho_1):
+    """(Zs / (rho0 c0), specific 2-port) of one frequency from the 4x4 boundary-value problem
+    of Allard & Atalla ch. 11 at normal incidence, written plainly: the textbook Biot
+    coefficients, the waves from the 2x2 eigenproblem K u delta^2 = w^2 M u, the stresses from
+    the constitutive law sigma = i k (P u^s + Q u^f, Q u^s + R u^f), each wave's amplitude
+    referred to the face it decays from, and the air interface's four conditions solved with
+    np.linalg.solve."""
+    w = 2 * np.pi * freq
+    rho22 = phi**2 * rho_eq
+    rho12 = phi * rho0 - rho22
+    rho11 = rho_1 - rho12
+    R, Q = phi**2 * K_eq, (1 - phi) * phi * K_eq
+    P = E * (1 - 1j * eta) * (1 - nu) / ((1 + nu) * (1 - 2 * nu)) + Q**2 / R
+    x, modes = np.linalg.eig(np.linalg.solve([[P, Q], [Q, R]], [[rho11, rho12], [rho12, rho22]]))
+    at0, atd = [], []  # columns (v^s, v^f, sigma^s, sigma^f) at x = 0 and x = d
+    for j in range(2):
+        delta = w * np.sqrt(x[j])
+        delta = -delta if delta.imag < 0 else delta
+        us, uf = modes[:, j]
+        for k, start in ((delta, 0.0), (-delta, d)):
+            state = np.array([-1j * w * us, -1j * w * uf, 1j * k * (P * us + Q * uf), 1j * k * (Q * us + R * uf)])
+            at0.append(state * np.exp(1j * k * (0.0 - start)))
+            atd.append(state * np.exp(1j * k * (d - start)))
+    at0, atd = np.array(at0).T, np.array(atd).T
+    split0, splitd = phi * at0[2] - (1 - phi) * at0[3], phi * atd[2] - (1 - phi) * atd[3]
+    p0, pd = -at0[3] / phi, -atd[3] / phi
+    v0, vd = (1 - phi) * at0[0] + phi * at0[1], (1 - phi) * atd[0] + phi * atd[1]
+    a = np.linalg.solve([atd[0], atd[1], split0, p0], [0, 0, 0, 1])
+    Zs = 1 / (v0 @ a) / (rho0 * c0)
+    a = np.linalg.solve([split0, splitd, p0, v0], [[0, 0], [0, 0], [1, 0], [0, 1]])
+    return Zs, np.array([pd @ a, vd @ a])
+
+
+def test_closed_forms_equal_the_four_by_four_system():
+    """The closed forms of the rigid-backed Zs and of the 2-port equal the 4x4 system solved
+    frequency by frequency to 1e-10 relative (each entry of T against its own size), across
+    frame stiffness (soft to stiff), both fluids and thicknesses, on one fluid given to both."""
+    rho, K, rho0, c0 = _jca_oracle(FREQ, **FLUID)
+    fluid = biot.JCAFluid(rho, K, rho0, c0)
+    E = np.array([1e3, 1e5, 1e7, 1e9])[:, None]
+    params = dict(thickness=THICKNESS, phi=FLUID["phi"], E=E, eta=0.1, nu=0.3, rho_1=30.0)
+    Z = biot.fluid_surface_impedance(FREQ, fluid, **params)
+    T = biot.fluid_transfer_matrix(FREQ, fluid, **params)
+    assert Z.shape == (4, 2, FREQ.size) and T.shape == (4, 2, FREQ.size, 2, 2)
+    for i, e in enumerate(E[:, 0]):
+        for s in range(2):
+            for m, f in enumerate(FREQ):
+                Z_ref, T_ref = _four_by_four(
+                    rho[s, m], K[s, m], rho0, c0, f, THICKNESS[s], FLUID["phi"][s], e, 0.1, 0.3, 30.0
+                )
+                assert abs(Z[i, s, m] - Z_ref) < 1e-10 * abs(Z_ref)
+                assert np.all(np.abs(T[i, s, m] - T_ref) < 1e-10 * np.abs(T_ref))

@@ -283,6 +283,36 @@ def test_elastic_frame_effect_limits_and_biot_on_the_closed_form_fluid():
     assert np.abs(Z - Z0[0]).max() > 1e-3 * np.abs(Z0).max()
 
 
+def test_impedance_batch_equals_each_set_alone():
+    """Two layers; rigid and elastic sets mixed, with repeated fluids, frames and thickness
+    offsets (the columns an LM iteration's trial point and its neighbours share): each set
+    of the batch equals its own prediction alone, a rigid set bit for bit (one launch
+    computes each column on its own), an elastic one to 1e-13 (Biot's closed forms run
+    elementwise; NumPy's vector loops may round a batch's elements apart from one's)."""
+    f = np.geomspace(100.0, 4000.0, 9)
+    kind = ImpedanceKind(
+        [ImpedanceData(f, np.ones(f.size, complex), d) for d in (0.03, 0.06)], ForwardSettings(device="cpu")
+    )
+    n = 7
+    values = {
+        "layer.porosity": np.array([0.95, 0.95, 0.95, 0.97, 0.95, 0.97, 0.95]),
+        "layer.pore_radius": np.full(n, 1.5e-4),
+        "layer.tortuosity": np.full(n, 1.1),
+        "layer.frame_compliance": np.array([0.0, 5e-6, 5e-6, 5e-6, 0.0, 1e-6, 5e-6]),
+        "layer.frame_loss_factor": np.array([0.1, 0.1, 0.2, 0.1, 0.1, 0.1, 0.1]),
+        "layer.frame_density": np.full(n, 30.0),
+        "layer.length_offset": np.array([0.0, 0.0, 0.0, 0.0, 1e-3, 0.0, 1e-3]),
+    }
+    Z = kind.predict(values, n)
+    for i in range(n):
+        alone = kind.predict({k: v[i : i + 1] for k, v in values.items()}, 1)[0]
+        if values["layer.frame_compliance"][i] == 0:
+            np.testing.assert_array_equal(Z[i], alone)
+        else:
+            assert np.max(np.abs(Z[i] - alone) / np.abs(alone)) < 1e-13
+    assert np.all(Z[1] != Z[0]) and np.all(Z[2] != Z[1]) and np.all(Z[6] != Z[1])
+
+
 def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     """Real data (Atalla & Panneton foam2, both layers): the elastic frame fitted as an
     effect on top of the loop's base (porosity, pore radius, tortuosity, circular pores)

@@ -48,22 +48,41 @@ Physics (Allard & Atalla ch. 5-6):
   and the shear wave ``delta_3`` (``mu_3 = -rho12/rho22``), which normal incidence does
   not excite (:func:`biot_waves`).
 
-Boundary-value problem (both geometries are solved numerically as a 4x4 linear system per
-frequency and parameter set, the normal-incidence reduction of Allard & Atalla's
-ch. 11 transfer-matrix method). The layer occupies ``0 <= x <= d``; the air is at
-``x < 0`` (front); the state is (frame velocity v^s, fluid velocity v^f, frame stress
-sigma^s, fluid stress sigma^f), the field a sum of the four waves ``+-delta_1,
-+-delta_2``, each written as decaying from the face it starts at (``exp(i delta x)`` and
-``exp(i delta (d - x))``, ``Im delta >= 0``), so nothing overflows in thick or soft
-layers. Interface with air (pressure p, normal velocity v): ``sigma^s = -(1 - phi) p``,
-``sigma^f = -phi p``, ``v = (1 - phi) v^s + phi v^f`` (continuity of pressure, of total
-normal stress and of volume velocity).
+Boundary-value problem, in closed form (the normal-incidence reduction of Allard &
+Atalla's ch. 11 transfer-matrix method: its 4x4 system per frequency reduces, by the
+rigid backing or by the layer's mirror symmetry, to 2x2 determinants written out below;
+``tests/test_biot.py`` checks them against the 4x4 system solved frequency by
+frequency). The layer occupies ``0 <= x <= d``; the air is at ``x < 0`` (front); the
+field is a sum of the four waves ``+-delta_1, +-delta_2``. Wave i has the frame and
+fluid displacements ``(u^s_i, u^f_i)`` (:attr:`BiotWaves.modes`), velocities
+``-i w u`` and, travelling along ``+-x``, stresses ``+-i w^2 S_i`` with
+``S_i = (rho11 u^s + rho12 u^f, rho12 u^s + rho22 u^f) / delta_i`` (from the equations
+of motion: exact given the dispersion relation, and free of the cancellation in
+``P u^s + Q u^f`` when the frame is soft). Interface with air (pressure p, normal
+velocity v): ``sigma^s = -(1 - phi) p``, ``sigma^f = -phi p``,
+``v = (1 - phi) v^s + phi v^f`` (continuity of pressure, of total normal stress and of
+volume velocity). Per wave the interface sees the stress split
+``g_i = phi S^s_i - (1 - phi) S^f_i`` (zero in air) and the volume displacement
+``q_i = (1 - phi) u^s_i + phi u^f_i``; with ``N = S^s_1 S^f_2 - S^s_2 S^f_1``,
+``a = g_2 q_1``, ``c = g_1 q_2`` and the decays ``e_i = exp(i delta_i d)``
+(``Im delta >= 0``, ``|e_i| <= 1``: only decaying exponentials, so nothing overflows
+in thick or soft layers; ``1 - e^2`` by ``expm1`` for thin ones):
 
 * :func:`surface_impedance`: rigid backing with the frame bonded to it
-  (``v^s = v^f = 0`` at ``x = d``); ``Zs = p / v`` at ``x = 0`` normalized by ``rho0 c0``.
+  (``v^s = v^f = 0`` at ``x = d``: each wave is the standing wave
+  ``exp(i delta x) - e exp(i delta (d - x))``), the split and ``p`` at ``x = 0`` give
+  ``Zs = p / v = w (1 + e_1^2)(1 + e_2^2) N / ((1 + e_1^2)(1 - e_2^2) c - (1 - e_1^2)(1 + e_2^2) a)``,
+  normalized by ``rho0 c0``.
 * :func:`transfer_matrix`: the layer in a tube between two air spaces, a 2-port
   ``(p, U)(d) = T (p, U)(0)`` (``U = S v``, the tube area ``S``; the same front-to-back
-  direction as :mod:`tawarp.model.layer`). **Edge condition: the frame slides freely at
+  direction as :mod:`tawarp.model.layer`). The standing waves symmetric and
+  antisymmetric about the mid-plane, each with a zero split at both faces, map ``(p, v)``
+  at ``x = 0`` to ``(-p, v)`` and ``(p, -v)`` at ``x = d``; with
+  ``D = a e_1 (1 - e_2^2) - c e_2 (1 - e_1^2)``, in ``(p, v)``:
+  ``T11 = T22 = (a (1 - e_2^2)(1 + e_1^2) - c (1 - e_1^2)(1 + e_2^2)) / (2 D)``,
+  ``T12 = w (1 - e_1^2)(1 - e_2^2) N / (2 D)``,
+  ``T21 = ((a - c)^2 (1 - e_1^2)(1 - e_2^2) - 4 a c (e_1 - e_2)^2) / (2 w N D)``
+  (``det T = 1`` identically). **Edge condition: the frame slides freely at
   the tube wall**, so the problem is exactly 1-D (Biot at normal incidence). A frame
   clamped or glued at its edge bends and is not 1-D: it is not modelled. With free edges
   the frame can move as a rigid body, so an infinitely stiff frame of finite mass is
@@ -121,7 +140,8 @@ _FIELD_OF = {
 
 
 class JCAFluid(NamedTuple):
-    """Johnson-Champoux-Allard equivalent fluid, shape ``B + (m,)`` (rho0, c0: ``B + (1,)``).
+    """Johnson-Champoux-Allard equivalent fluid, shape ``B + (m,)`` (rho0, c0: the shape of T
+    and P0 + ``(1,)``, broadcasting to it).
 
     ``rho_eq`` [kg/m^3] = rho0 alpha(w) / phi, ``K_eq`` [Pa] = K_f(w) / phi (exp(-iwt));
     ``rho0`` [kg/m^3], ``c0`` [m/s] of the air."""
@@ -159,6 +179,24 @@ class BiotWaves(NamedTuple):
     modes: np.ndarray
 
 
+class _Waves(NamedTuple):
+    """What the boundary-value problems need of the waves (:func:`_waves`): the
+    coefficients, ``det = rho11 rho22 - rho12^2``, and per compressional wave its
+    wavenumber and (u^s, u^f) displacement, not normalized (the closed forms are
+    homogeneous in each wave's amplitude)."""
+
+    P: np.ndarray
+    Q: np.ndarray
+    R: np.ndarray
+    rho11: np.ndarray
+    rho12: np.ndarray
+    rho22: np.ndarray
+    P_hat: np.ndarray
+    det: np.ndarray
+    deltas: tuple
+    modes: tuple
+
+
 def _check(name: str, value) -> np.ndarray:
     """``value`` as a float array, or ValueError naming ``name`` and the first bad value."""
     a = np.asarray(value, dtype=float)
@@ -182,10 +220,12 @@ def _frequencies(freq) -> np.ndarray:
 
 
 def _batch(**params) -> dict[str, np.ndarray]:
-    """Checked parameters broadcast to one batch shape, with a trailing axis for frequency."""
+    """Checked parameters, broadcastable to one batch shape, with a trailing axis for
+    frequency. Each keeps its own shape: what depends on some parameters only (the fluid,
+    the waves) is computed on their batch shape, not on the whole batch's."""
     arrays = {k: _check(k, v) for k, v in params.items()}
-    shape = np.broadcast_shapes(*(a.shape for a in arrays.values()))
-    return {k: np.broadcast_to(a, shape)[..., None] for k, a in arrays.items()}
+    np.broadcast_shapes(*(a.shape for a in arrays.values()))  # a clear error if they do not broadcast
+    return {k: a[..., None] for k, a in arrays.items()}
 
 
 def flow_resistivity(pore_radius, phi, alpha_inf, T=293.15, gas: str = "air") -> np.ndarray:
@@ -239,16 +279,17 @@ def rigid_surface_impedance(
     return 1j * Zc / np.tan(k * d) / (fl.rho0 * fl.c0)
 
 
-def _waves(w, b, fl: JCAFluid) -> BiotWaves:
+def _waves(w, b, fl: JCAFluid) -> _Waves:
+    """The coefficients and the compressional waves (:class:`_Waves`; :func:`biot_waves`
+    makes the public record)."""
     phi = b["phi"]
     rho22 = phi * phi * fl.rho_eq
     rho12 = phi * fl.rho0 - rho22
     rho11 = b["rho_1"] - rho12
     R = phi * phi * fl.K_eq
     Q = (1.0 - phi) * phi * fl.K_eq
-    Em = b["E"] * (1.0 - 1j * b["eta"])
     nu = b["nu"]
-    P_hat = Em * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
+    P_hat = b["E"] * (1.0 - 1j * b["eta"]) * ((1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu)))
     P = P_hat + (1.0 - phi) ** 2 * fl.K_eq  # P_hat + Q^2/R
     # dispersion (P R - Q^2) d^4 - w^2 B d^2 + w^4 C = 0, written without the cancellations
     # of its textbook form: P R - Q^2 = P_hat R, rho11 rho22 - rho12^2 = rho_1 rho22 - phi rho0 rho12
@@ -257,32 +298,20 @@ def _waves(w, b, fl: JCAFluid) -> BiotWaves:
     Bc = P_hat * rho22 + R * (beta * beta * rho22 + rho11 - 2.0 * beta * rho12)
     C = b["rho_1"] * rho22 - phi * fl.rho0 * rho12
     s = np.sqrt(Bc * Bc - 4.0 * A * C)
-    plus = np.abs(Bc + s) >= np.abs(Bc - s)
-    big = np.where(plus, Bc + s, Bc - s) / (2.0 * A)  # the root without cancellation
+    plus = Bc.real * s.real + Bc.imag * s.imag >= 0  # |Bc + s| >= |Bc - s|
+    big = (Bc + np.where(plus, s, -s)) / (2.0 * A)  # the root without cancellation
     small = C / (A * big)
     x1, x2 = np.where(plus, small, big), np.where(plus, big, small)  # x1 = (B - s)/(2A): Allard's delta_1^2
-    deltas = [w * np.sqrt(x) for x in (x1, x2)]
-    deltas = [np.where(d.imag < 0, -d, d) for d in deltas]
-    modes = []
+    deltas, modes = [], []
     for x in (x1, x2):
+        delta = w * np.sqrt(x)
+        deltas.append(np.where(delta.imag < 0, -delta, delta))
         # null vector (u^s, u^f) of [[P x - rho11, Q x - rho12], [Q x - rho12, R x - rho22]] (x = d^2/w^2)
         # from its larger row: accurate when the frame or the fluid barely moves
-        r1 = (P * x - rho11, Q * x - rho12)
-        r2 = (Q * x - rho12, R * x - rho22)
-        use1 = np.abs(r1[0]) + np.abs(r1[1]) >= np.abs(r2[0]) + np.abs(r2[1])
-        us = np.where(use1, -r1[1], r2[1])
-        uf = np.where(use1, r1[0], -r2[0])
-        n = np.sqrt(np.abs(us) ** 2 + np.abs(uf) ** 2)
-        modes.append(np.stack([us / n, uf / n], axis=-1))
-    modes = np.stack(modes, axis=-2)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mu12 = [np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (modes[..., 0, :], modes[..., 1, :])]
-    N = Em / (2.0 * (1.0 + nu))
-    delta3 = w * np.sqrt(C / (N * rho22))
-    delta3 = np.where(delta3.imag < 0, -delta3, delta3)
-    return BiotWaves(
-        P, Q, R, rho11, rho12, rho22, deltas[0], deltas[1], mu12[0], mu12[1], delta3, -rho12 / rho22, P_hat, modes
-    )
+        a11, a12, a22 = P * x - rho11, Q * x - rho12, R * x - rho22
+        use1 = np.abs(a11) >= np.abs(a22)
+        modes.append((np.where(use1, -a12, a22), np.where(use1, a11, -a12)))
+    return _Waves(P, Q, R, rho11, rho12, rho22, P_hat, C, tuple(deltas), tuple(modes))
 
 
 def biot_waves(
@@ -304,45 +333,35 @@ def biot_waves(
         P0=P0,
     )
     w = 2 * np.pi * f
-    return _waves(w, b, _jca(w, b, gas))
-
-
-def _face_states(w, b, fl: JCAFluid):
-    """State matrices at both faces: ``V(x) = M(x) a`` for x = 0 and d, with V = (v^s,
-    v^f, sigma^s/(rho0 c0), sigma^f/(rho0 c0)) and a the amplitudes of the waves
-    (+delta1, -delta1, +delta2, -delta2), each column scaled to unit size.
-    Returns (M0, Md), M of shape B + (m, 4, 4)."""
+    fl = _jca(w, b, gas)
     wv = _waves(w, b, fl)
-    z0 = fl.rho0 * fl.c0
-    d = b["thickness"]
-    cols0, colsd = [], []
-    for i, delta in enumerate((wv.delta1, wv.delta2)):
-        us, uf = wv.modes[..., i, 0], wv.modes[..., i, 1]
-        # stresses from the equations of motion, d sigma/dx = -w^2 (rho u): sigma = i s w^2/delta (rho u)
-        # for exp(i s delta x); exact given the dispersion relation, and free of the
-        # cancellation in P u^s + Q u^f when the frame is soft (u^f ~ -(Q/R) u^s)
-        ss = w * w / delta * (wv.rho11 * us + wv.rho12 * uf) / z0
-        sf = w * w / delta * (wv.rho12 * us + wv.rho22 * uf) / z0
-        decay = np.exp(1j * delta * d)  # |decay| <= 1
-        for sign in (1.0, -1.0):
-            col = np.stack([-1j * w * us, -1j * w * uf, 1j * sign * ss, 1j * sign * sf], axis=-1)
-            col = col / np.max(np.abs(col), axis=-1, keepdims=True)
-            # forward wave starts at x = 0, backward wave at x = d
-            cols0.append(col if sign > 0 else col * decay[..., None])
-            colsd.append(col * decay[..., None] if sign > 0 else col)
-    return np.stack(cols0, axis=-1), np.stack(colsd, axis=-1)
+    modes = np.stack([np.stack(m, axis=-1) for m in wv.modes], axis=-2)
+    modes = modes / np.linalg.norm(modes, axis=-1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mu = [np.where(m[..., 0] != 0, m[..., 1] / m[..., 0], np.inf) for m in (modes[..., 0, :], modes[..., 1, :])]
+    N = b["E"] * (1.0 - 1j * b["eta"]) / (2.0 * (1.0 + b["nu"]))
+    delta3 = w * np.sqrt(wv.det / (N * wv.rho22))
+    delta3 = np.where(delta3.imag < 0, -delta3, delta3)
+    out = (wv.P, wv.Q, wv.R, wv.rho11, wv.rho12, wv.rho22, *wv.deltas, *mu, delta3, -wv.rho12 / wv.rho22, wv.P_hat)
+    shape = np.broadcast_shapes(*(a.shape for a in b.values()))[:-1] + (f.size,)
+    return BiotWaves(*(np.broadcast_to(a, shape) for a in out), np.broadcast_to(modes, shape + (2, 2)))
 
 
-def _split_row(M, phi):
-    """Row of the air interface's stress split: phi sigma^s - (1 - phi) sigma^f = 0."""
-    return phi[..., None] * M[..., 2, :] - (1.0 - phi[..., None]) * M[..., 3, :]
-
-
-def _pv_rows(M, phi):
-    """Rows giving (p / (rho0 c0), v) at a face: p = -sigma^f / phi, v = (1-phi) v^s + phi v^f."""
-    p = -M[..., 3, :] / phi[..., None]
-    v = (1.0 - phi[..., None]) * M[..., 0, :] + phi[..., None] * M[..., 1, :]
-    return p, v
+def _interface(w, b, fl: JCAFluid):
+    """What the air interface sees of the two compressional waves (module doc): ``N``,
+    ``a``, ``c`` times ``delta_1 delta_2`` (the closed forms are homogeneous in them),
+    and ``(delta_1, delta_2)``, on the batch shape of the fluid and frame parameters (the
+    thickness enters only through the decays). ``N = (rho11 rho22 - rho12^2)
+    (u^s_1 u^f_2 - u^s_2 u^f_1) / (delta_1 delta_2)`` and ``g_i = ((phi rho_1 - rho12) u^s_i
+    + (phi^2 rho0 - rho22) u^f_i) / delta_i`` are the module doc's, expanded."""
+    wv = _waves(w, b, fl)
+    phi = b["phi"]
+    (us1, uf1), (us2, uf2) = wv.modes
+    split_s, split_f = phi * b["rho_1"] - wv.rho12, phi * phi * fl.rho0 - wv.rho22
+    g1, g2 = split_s * us1 + split_f * uf1, split_s * us2 + split_f * uf2  # times delta_i
+    q1, q2 = (1.0 - phi) * us1 + phi * uf1, (1.0 - phi) * us2 + phi * uf2
+    delta1, delta2 = wv.deltas
+    return wv.det * (us1 * uf2 - us2 * uf1), g2 * q1 * delta1, g1 * q2 * delta2, wv.deltas
 
 
 def _params(freq, **params):
@@ -397,16 +416,24 @@ def fluid_surface_impedance(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu
     return _surface_impedance(w, b, fluid)
 
 
+def _decays(i_delta_d) -> tuple[np.ndarray, np.ndarray]:
+    """``(e, 1 - e^2)`` with ``e = exp(i delta d)`` (``Im delta >= 0``): ``1 - e^2`` by
+    ``expm1`` where ``|delta d| < 1/4`` (a thin layer or a low frequency, where ``1 - e^2``
+    would cancel), from ``e`` elsewhere (one transcendental pass instead of two)."""
+    e = np.exp(i_delta_d)
+    u = 1.0 - e * e
+    thin = np.abs(i_delta_d) < 0.25
+    if thin.any():
+        u[thin] = -np.expm1(2.0 * i_delta_d[thin])
+    return e, u
+
+
 def _surface_impedance(w, b, fl: JCAFluid) -> np.ndarray:
-    M0, Md = _face_states(w, b, fl)
-    phi_ = b["phi"]
-    p0, v0 = _pv_rows(M0, phi_)
-    # rows: v^s(d) = 0, v^f(d) = 0, stress split at x = 0, p(0) = rho0 c0
-    A = np.stack([Md[..., 0, :], Md[..., 1, :], _split_row(M0, phi_), p0], axis=-2)
-    rhs = np.zeros(A.shape[:-1], dtype=complex)
-    rhs[..., 3] = 1.0
-    a = np.linalg.solve(A, rhs[..., None])[..., 0]
-    return 1.0 / np.sum(v0 * a, axis=-1)
+    N, a, c, (delta1, delta2) = _interface(w, b, fl)
+    i_d = 1j * b["thickness"]
+    u1, u2 = _decays(i_d * delta1)[1], _decays(i_d * delta2)[1]  # 1 - e_i^2
+    s1, s2 = 2.0 - u1, 2.0 - u2  # 1 + e_i^2
+    return (w / (fl.rho0 * fl.c0)) * N * (s1 * s2) / ((s1 * u2) * c - (s2 * u1) * a)
 
 
 def transfer_matrix(
@@ -458,22 +485,22 @@ def fluid_transfer_matrix(freq, fluid: JCAFluid, *, thickness, phi, E, eta, nu, 
 
 
 def _transfer_matrix(w, b, fl: JCAFluid) -> np.ndarray:
-    M0, Md = _face_states(w, b, fl)
-    phi_ = b["phi"]
-    p0, v0 = _pv_rows(M0, phi_)
-    pd, vd = _pv_rows(Md, phi_)
-    # rows: stress split at both faces, then (p, v) at x = 0 for the two unit inputs
-    A = np.stack([_split_row(M0, phi_), _split_row(Md, phi_), p0, v0], axis=-2)
-    rhs = np.zeros(A.shape[:-1] + (2,), dtype=complex)
-    rhs[..., 2, 0] = 1.0
-    rhs[..., 3, 1] = 1.0
-    a = np.linalg.solve(A, rhs)  # (..., 4 amplitudes, 2 inputs)
-    Tn = np.stack([np.einsum("...k,...kj->...j", pd, a), np.einsum("...k,...kj->...j", vd, a)], axis=-2)
-    # (p/(rho0 c0), v) -> (p, U = S v)
-    z_per_S = fl.rho0 * fl.c0 / b["area"]
-    Tn[..., 0, 1] *= z_per_S
-    Tn[..., 1, 0] /= z_per_S
-    return Tn
+    N, a, c, (delta1, delta2) = _interface(w, b, fl)
+    i_d = 1j * b["thickness"]
+    (e1, u1), (e2, u2) = _decays(i_d * delta1), _decays(i_d * delta2)  # e_i, 1 - e_i^2
+    # +-(e1 - e2) without the cancellation of a thin layer: the slower decay factored out
+    slow = delta1.imag <= delta2.imag
+    lead, other = np.where(slow, delta1, delta2), np.where(slow, delta2, delta1)
+    e_diff = np.exp(i_d * lead) * np.expm1(i_d * (other - lead))
+    D2 = 2.0 * (a * e1 * u2 - c * e2 * u1)
+    area = b["area"]
+    T11 = (a * u2 * (2.0 - u1) - c * u1 * (2.0 - u2)) / D2
+    T12 = w * u1 * u2 * N / (D2 * area)
+    T21 = ((a - c) ** 2 * (u1 * u2) - 4.0 * (a * c) * e_diff**2) * area / (w * N * D2)
+    T = np.empty(np.broadcast_shapes(T11.shape, T12.shape, T21.shape) + (2, 2), dtype=complex)
+    T[..., 0, 0] = T[..., 1, 1] = T11
+    T[..., 0, 1], T[..., 1, 0] = T12, T21
+    return T
 
 
 #: Thickness [m] of the slice whose 2-port gives the layer's equivalent fluid: |k d| << 1
