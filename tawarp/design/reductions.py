@@ -162,8 +162,8 @@ class Reducer:
         dev, c = self.device, Candidates()
         c.count = wp.zeros(1, dtype=wp.int32, device=dev)
         c.key = wp.empty(chunk, dtype=wp.int64, device=dev)
-        c.out = wp.empty((len(self.outputs), chunk), dtype=wp.float32, device=dev)
-        c.val = wp.empty((n_val, chunk), dtype=wp.float64, device=dev)
+        c.out = wp.empty((chunk, len(self.outputs)), dtype=wp.float32, device=dev)
+        c.val = wp.empty((chunk, n_val), dtype=wp.float64, device=dev)
         return c
 
     def _best_setup(self):
@@ -273,7 +273,10 @@ class Reducer:
             n = int(c.count.numpy()[0])
             if not n:
                 continue
-            cand = (c.key[:n].numpy(), c.out.numpy()[:, :n], c.val.numpy()[:, :n])
+            # the n filled slots alone: the buffers hold a whole chunk (on a GPU, copying them
+            # whole was most of a reduced sweep's time)
+            val = c.val[:n].numpy().T if c.val.shape[1] else np.zeros((0, n))  # (a grid's: none)
+            cand = (c.key[:n].numpy(), c.out[:n].numpy().T, val)
             if kind == "top":
                 self.top = self._merge_top(cand)
             else:
