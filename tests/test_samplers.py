@@ -76,7 +76,7 @@ def test_search_front_kept_and_merged_is_the_front_of_all():
     for trial in range(60):
         m = 2 + trial % 2
         run = _Run.__new__(_Run)
-        run.front, run.front_id, run.joined = np.zeros((m, 0)), np.zeros(0, dtype=np.int64), []
+        run.front, run.front_id, run.joined, run.merges = np.zeros((m, 0)), np.zeros(0, dtype=np.int64), [], 0
         rows, ids = np.zeros((0, m)), np.zeros(0, dtype=np.int64)
         for g in range(8):
             F = rng.integers(0, 8, (rng.integers(1, 25), m)).astype(float)

@@ -47,7 +47,7 @@ import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import make_sampler, pareto_mask
+from .samplers import lexsorted_front, make_sampler, pareto_mask
 from .space import DesignSpace, DeviceTable
 from .storage import (
     ATTR,
@@ -255,7 +255,8 @@ class _Run:
         self.front = np.zeros((len(objectives), 0))
         self.front_id = np.zeros(0, dtype=np.int64)
         self.joined = []  # members joined since the front's last merge: (F rows, ids)
-        self.copies_pruned = 0  # copies left by their last pruning (:meth:`commit`)
+        self.merges = 0  # of the front
+        self.copies_pruned = 0  # the merges that the copies were last pruned after (:meth:`commit`)
         self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
@@ -352,16 +353,17 @@ class _Run:
         which keeps them again from the stored generations."""
         t = time.perf_counter()
         rows, self.rows = self.rows, []
-        n_copies = sum(len(c[1]) for c in self.copies)
-        if len(self.objectives) > 1 and n_copies and (final or n_copies > 2 * max(self.copies_pruned, FRONT_COPIES)):
-            # members since dominated by a later generation's (as the copies grow: their
-            # memory bounded, the time amortized)
-            self.merge_front()
-            ids = np.concatenate([_member_ids(c[0], c[1]) for c in self.copies])
-            on = np.sort(self.front_id)  # a bisection: NumPy's isin hashes, several times slower here
-            at = np.minimum(np.searchsorted(on, ids), len(on) - 1)
-            self.copies = _select_rows(self.copies, (on[at] == ids) if len(on) else np.zeros(len(ids), bool))
-            self.copies_pruned = sum(len(c[1]) for c in self.copies)
+        if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
+            if final:  # exactly: those off the whole front
+                self.merge_front()
+                ids = np.concatenate([_member_ids(c[0], c[1]) for c in self.copies])
+                on = np.sort(self.front_id)  # a bisection: NumPy's isin hashes, several times slower here
+                at = np.minimum(np.searchsorted(on, ids), len(on) - 1)
+                self.copies = _select_rows(self.copies, (on[at] == ids) if len(on) else np.zeros(len(ids), bool))
+            elif self.merges > self.copies_pruned:  # those the front merged since dominates (memory bounded)
+                F = np.concatenate([c[5] for c in self.copies])
+                self.copies = _select_rows(self.copies, ~_front_dominates(self.front, F))
+                self.copies_pruned = self.merges
         copies, self.copies = (self.copies, []) if final else ([], self.copies)
         if len(self.objectives) > 1:
             copies = _spread(copies, FRONT_COPIES)
@@ -447,10 +449,7 @@ class _Run:
         # that many behind (so kept members may still leave at the merge, which the copies
         # follow), and a front that grows by thousands a generation is not sorted again
         # each time (the merges cost about 1.5 sorts of the last front in all)
-        if F.shape[1] == 2:
-            on[on] = ~_staircase_dominates(self.front[0], self.front[1], X[on])
-        else:
-            on[on] = ~_dominated(X[on], self.front.T)
+        on[on] = ~_front_dominates(self.front, X[on])
         self.joined.append((X[on], ids[on]))
         if sum(len(j[1]) for j in self.joined) > max(2 * self.front.shape[1], MERGE_AT_LEAST):
             self.merge_front()
@@ -462,6 +461,7 @@ class _Run:
             X, ids = (np.concatenate(c) for c in zip(*self.joined))
             self.front, self.front_id = _merged_front(self.front, self.front_id, X, ids)
             self.joined = []
+            self.merges += 1
 
     def close(self, claim=None) -> None:
         """Commit what was evaluated (whole generations, whatever ended the run), close the
@@ -623,9 +623,21 @@ def _merged_front(front: np.ndarray, ids: np.ndarray, X: np.ndarray, xids: np.nd
     X (n, objectives) with ids ``xids``, its columns in lexicographic order (two
     objectives: a staircase for :func:`_staircase_dominates`)."""
     G, gid = np.concatenate([front.T, X]), np.concatenate([ids, xids])
-    on = np.flatnonzero(pareto_mask(G))
-    on = on[np.lexsort(G[on].T[::-1])]
+    if G.shape[1] == 2:
+        order, on = lexsorted_front(G)
+        on = order[on]
+    else:
+        on = np.flatnonzero(pareto_mask(G))
+        on = on[np.lexsort(G[on].T[::-1])]
     return np.ascontiguousarray(G[on].T), gid[on]
+
+
+def _front_dominates(front: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Rows of X (n, objectives) that a row of ``front`` ((objectives, F), in
+    lexicographic order: :func:`_merged_front`) dominates."""
+    if X.shape[1] == 2:
+        return _staircase_dominates(front[0], front[1], X)
+    return _dominated(X, front.T)
 
 
 def _rows_of(columns: dict, rows) -> dict:
