@@ -256,7 +256,7 @@ class _Run:
         self.front_id = np.zeros(0, dtype=np.int64)
         self.joined = []  # members joined since the front's last merge: (F rows, ids)
         self.merges = 0  # of the front
-        self.copies_pruned = 0  # the merges that the copies were last pruned after (:meth:`commit`)
+        self.copies_pruned = (0, 0)  # the merges the copies were last pruned after, the copies left (:meth:`commit`)
         self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
@@ -360,10 +360,13 @@ class _Run:
                 on = np.sort(self.front_id)  # a bisection: NumPy's isin hashes, several times slower here
                 at = np.minimum(np.searchsorted(on, ids), len(on) - 1)
                 self.copies = _select_rows(self.copies, (on[at] == ids) if len(on) else np.zeros(len(ids), bool))
-            elif self.merges > self.copies_pruned:  # those the front merged since dominates (memory bounded)
+            elif (
+                self.merges > self.copies_pruned[0] and sum(len(c[1]) for c in self.copies) > 2 * self.copies_pruned[1]
+            ):
+                # those the front merged since dominates, once they doubled: memory bounded, time amortized
                 F = np.concatenate([c[5] for c in self.copies])
                 self.copies = _select_rows(self.copies, ~_front_dominates(self.front, F))
-                self.copies_pruned = self.merges
+                self.copies_pruned = (self.merges, sum(len(c[1]) for c in self.copies))
         copies, self.copies = (self.copies, []) if final else ([], self.copies)
         if len(self.objectives) > 1:
             copies = _spread(copies, FRONT_COPIES)
