@@ -439,7 +439,9 @@ class _Run:
     def kept(self, g: int, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
         """Members of a whole generation ``g`` (minimized F (batch, m), violations) whose
         copies the study keeps: one objective, the best feasible; several, those that join
-        the lineage's feasible Pareto front (which this updates)."""
+        the lineage's feasible Pareto front (which this updates; a member of a later
+        generation may dominate one joined before the front's next merge: :meth:`commit`
+        drops those copies)."""
         feas = np.flatnonzero((viol <= 0) & np.all(np.isfinite(F), axis=1))
         if not feas.size:
             return feas
