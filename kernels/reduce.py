@@ -141,7 +141,8 @@ def marginal_best(
 @wp.struct
 class Candidates:
     """A chunk's candidates, compacted from slot 0: ``count[0]`` of them, their rank keys
-    (or point indices), outputs (outputs, chunk) and values (variables, chunk)."""
+    (or point indices), outputs (chunk, outputs) and values (chunk, variables): a row per
+    slot, so that the filled slots are one contiguous block to copy to the host."""
 
     count: wp.array(dtype=wp.int32)
     key: wp.array(dtype=wp.int64)
@@ -157,9 +158,9 @@ def keep_candidate(
     slot = wp.atomic_add(cand.count, 0, 1)
     cand.key[slot] = key
     for o in range(outputs.shape[0]):
-        cand.out[o, slot] = outputs[o, i]
+        cand.out[slot, o] = outputs[o, i]
     for v in range(values.shape[0]):
-        cand.val[v, slot] = values[v, i]
+        cand.val[slot, v] = values[v, i]
 
 
 @wp.func

@@ -64,6 +64,39 @@ def test_two_objective_front_and_domination_are_the_definitions():
         assert list(_dominated(G, front)) == [any(dominates(p, q) for p in front) for q in G]
 
 
+def test_search_front_kept_and_merged_is_the_front_of_all():
+    # the search's lineage front (_Run.kept against a front merged only now and then,
+    # _merged_front) against pareto_mask of every row so far: after each merge the front
+    # and its ids are exactly those of all rows; between merges the members kept are at
+    # least those that join the front (the copies are pruned to the front later);
+    # integer points full of ties and duplicates, two and three objectives
+    from tawarp.design.search import _member_ids, _merged_front, _Run
+
+    rng = np.random.default_rng(5)
+    for trial in range(60):
+        m = 2 + trial % 2
+        run = _Run.__new__(_Run)
+        run.front, run.front_id, run.joined, run.merges = np.zeros((m, 0)), np.zeros(0, dtype=np.int64), [], 0
+        rows, ids = np.zeros((0, m)), np.zeros(0, dtype=np.int64)
+        for g in range(8):
+            F = rng.integers(0, 8, (rng.integers(1, 25), m)).astype(float)
+            viol = np.where(rng.random(len(F)) < 0.1, 1.0, 0.0)
+            feas = np.flatnonzero(viol <= 0)
+            rows, ids = np.concatenate([rows, F[feas]]), np.concatenate([ids, _member_ids(g, feas)])
+            joins = feas[pareto_mask(rows)[len(rows) - len(feas) :]]
+            kept = run.kept(g, F, viol)
+            assert set(joins) <= set(kept) <= set(feas[pareto_mask(F[feas])])
+            if g % 3 == 2:
+                run.merge_front()
+                on = pareto_mask(rows)
+                assert sorted(run.front_id) == sorted(ids[on])
+                assert np.array_equal(run.front, np.ascontiguousarray(rows[on][np.lexsort(rows[on].T[::-1])].T))
+    front, fid = _merged_front(
+        np.zeros((2, 0)), np.zeros(0, dtype=np.int64), np.array([[1.0, 2.0], [2.0, 1.0], [2.0, 2.0]]), np.arange(3)
+    )
+    assert list(fid) == [0, 1] and front.tolist() == [[1.0, 2.0], [2.0, 1.0]]
+
+
 def test_crowding_distance_by_hand():
     F = np.array([[0.0, 4.0], [1.0, 2.0], [3.0, 1.0], [4.0, 0.0]])
     d = crowding(F, np.zeros(4, dtype=int))

@@ -135,6 +135,20 @@ def test_reductions_without_raw_values_are_the_same(sobol_sweep, tmp_path):
             xr.testing.assert_identical(a, b)
 
 
+def test_candidates_beyond_the_staged_copy_are_read_from_the_device(sobol_sweep, tmp_path, monkeypatch):
+    # a chunk's candidates past the STAGED slots copied with its reductions are read from
+    # the device: with 2 slots staged (fewer than the top's 25 or the front's candidates)
+    # the reductions are the same
+    from tawarp.design import reductions
+
+    path, space, _, _ = sobol_sweep
+    monkeypatch.setattr(reductions, "STAGED", 2)
+    sweep(space, tmp_path / "r.nc", mode="sobol", n_samples=3000, chunk=512, seed=2, reduce=ALL, raw=False)
+    xr.testing.assert_identical(_group(path, "top"), _group(tmp_path / "r.nc", "top"))
+    a, b = _group(path, "pareto"), _group(tmp_path / "r.nc", "pareto")
+    assert set(a.point.values.tolist()) == set(b.point.values.tolist())
+
+
 @wp.kernel
 def _keys_of(x: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int64)):
     i = wp.tid()

@@ -38,6 +38,9 @@ from .objectives import objective
 
 #: Levels of a Sobol sweep's continuous variable for ``best``.
 LEVELS = 64
+#: Candidate slots of a chunk (top and pareto each) copied to the host with the chunk's
+#: reductions; more wait for the device (a Sobol chunk's Pareto filter leaves a few hundred).
+STAGED = 1 << 14
 #: Probabilities of ``quantiles``.
 QUANTILES = (0.001, 0.01, 0.05, 0.1, 0.25, 0.5, 0.75, 0.9, 0.95, 0.99, 0.999)
 
@@ -142,11 +145,15 @@ class Reducer:
             self.nan = wp.zeros(len(self.outputs), dtype=wp.int64, device=dev)
         if spec.best:
             self._best_setup()
-        # candidates of top and pareto, two sets: chunk k + 1 is launched before chunk k is read
-        self._cand = {}
+        # candidates of top and pareto, two sets: chunk k + 1 is launched before chunk k is
+        # read (:meth:`collect`), each with its first STAGED slots' host copy, queued with the
+        # chunk's kernels, and the event that says it landed
+        self._cand, self._staged, self._landed = {}, {}, [None, None]
+        self._cuda = wp.get_device(dev).is_cuda
         for kind in ("top", "pareto"):
             if (kind == "top" and spec.top) or (kind == "pareto" and spec.pareto):
                 self._cand[kind] = [self._candidates(chunk, n_val) for _ in range(2)]
+                self._staged[kind] = [self._candidates(min(chunk, STAGED), n_val, "cpu") for _ in range(2)]
         if spec.pareto:
             from ..kernels.reduce import PARETO_BINS
 
@@ -156,14 +163,16 @@ class Reducer:
         self._folded = None  # merge(): other ranges' counts, nan counts and best keys (host)
         self._no_values = wp.empty((0, 0), dtype=wp.float64, device=dev)
 
-    def _candidates(self, chunk: int, n_val: int):
+    def _candidates(self, chunk: int, n_val: int, device=None):
+        """Candidate slots on the device (or their page-locked host copy: ``device`` cpu)."""
         from ..kernels.reduce import Candidates
 
-        dev, c = self.device, Candidates()
-        c.count = wp.zeros(1, dtype=wp.int32, device=dev)
-        c.key = wp.empty(chunk, dtype=wp.int64, device=dev)
-        c.out = wp.empty((len(self.outputs), chunk), dtype=wp.float32, device=dev)
-        c.val = wp.empty((n_val, chunk), dtype=wp.float64, device=dev)
+        dev, c = device or self.device, Candidates()
+        pinned = device == "cpu" and self._cuda
+        c.count = wp.zeros(1, dtype=wp.int32, device=dev, pinned=pinned)
+        c.key = wp.empty(chunk, dtype=wp.int64, device=dev, pinned=pinned)
+        c.out = wp.empty((chunk, len(self.outputs)), dtype=wp.float32, device=dev, pinned=pinned)
+        c.val = wp.empty((chunk, n_val), dtype=wp.float64, device=dev, pinned=pinned)
         return c
 
     def _best_setup(self):
@@ -265,15 +274,30 @@ class Reducer:
             cand = self._cand["pareto"][k % 2]
             cand.count.zero_()
             wp.launch(R.pareto_candidates, dim=m, device=dev, inputs=[lo, out, rows, signs, a, vals, cand])
+        for kind, sets in self._cand.items():  # queued: the host reads them without waiting for chunk k + 1
+            c, h = sets[k % 2], self._staged[kind][k % 2]
+            for name in ("count", "key", "out", "val"):
+                if getattr(h, name).size:
+                    wp.copy(getattr(h, name), getattr(c, name), count=getattr(h, name).size)
+        if self._cand and self._cuda:
+            self._landed[k % 2] = wp.get_stream(dev).record_event()
 
     def collect(self, k: int) -> None:
-        """Merge chunk k's candidates into the top K and the front (waits for the device)."""
+        """Merge chunk k's candidates into the top K and the front: waits for chunk k's
+        reductions alone (not for a chunk launched after it) unless it has more than
+        :data:`STAGED` candidates."""
+        if self._landed[k % 2] is not None:
+            wp.synchronize_event(self._landed[k % 2])
         for kind, sets in self._cand.items():
-            c = sets[k % 2]
-            n = int(c.count.numpy()[0])
+            h = self._staged[kind][k % 2]
+            n = int(h.count.numpy()[0])
             if not n:
                 continue
-            cand = (c.key[:n].numpy(), c.out.numpy()[:, :n], c.val.numpy()[:, :n])
+            # the n filled slots alone: the buffers hold a whole chunk (on a GPU, copying them
+            # whole was most of a reduced sweep's time)
+            c = h if n <= h.key.shape[0] else sets[k % 2]
+            val = c.val[:n].numpy().T if c.val.shape[1] else np.zeros((0, n))  # (a grid's: none)
+            cand = (c.key[:n].numpy(), c.out[:n].numpy().T, val)  # merged into new arrays
             if kind == "top":
                 self.top = self._merge_top(cand)
             else:

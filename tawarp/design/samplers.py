@@ -332,16 +332,8 @@ def pareto_mask(F: np.ndarray) -> np.ndarray:
     F = np.asarray(F, dtype=float)
     if F.shape[1] == 2:
         mask = np.zeros(len(F), dtype=bool)
-        if not len(F):
-            return mask
-        order = np.lexsort((F[:, 1], F[:, 0]))
-        a, b = F[order, 0], F[order, 1]
-        new = np.ones(len(order), dtype=bool)
-        new[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
-        firsts = np.flatnonzero(new)
-        on = np.ones(len(firsts), dtype=bool)  # the first row: nothing before it
-        on[1:] = b[firsts[1:]] < np.minimum.accumulate(b[firsts])[:-1]
-        mask[order] = on[np.cumsum(new) - 1]
+        order, on = lexsorted_front(F)
+        mask[order] = on
         return mask
     order = np.lexsort(F.T[::-1])
     front: list[int] = []
@@ -354,6 +346,22 @@ def pareto_mask(F: np.ndarray) -> np.ndarray:
     mask = np.zeros(F.shape[0], dtype=bool)
     mask[front] = True
     return mask
+
+
+def lexsorted_front(F: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, on) of two-objective rows F (N, 2), both minimized: ``order`` sorts them
+    lexicographically, ``on`` (over the sorted rows) marks those no other row dominates
+    (:func:`pareto_mask`): ``order[on]`` is the front in lexicographic order."""
+    order = np.lexsort((F[:, 1], F[:, 0]))
+    if not len(F):
+        return order, np.zeros(0, dtype=bool)
+    a, b = F[order, 0], F[order, 1]
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (a[1:] != a[:-1]) | (b[1:] != b[:-1])
+    firsts = np.flatnonzero(new)
+    on = np.ones(len(firsts), dtype=bool)  # the first row: nothing before it
+    on[1:] = b[firsts[1:]] < np.minimum.accumulate(b[firsts])[:-1]
+    return order, on[np.cumsum(new) - 1]
 
 
 def crowding(F: np.ndarray, rank: np.ndarray) -> np.ndarray:

@@ -47,7 +47,7 @@ import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import make_sampler, pareto_mask
+from .samplers import lexsorted_front, make_sampler, pareto_mask
 from .space import DesignSpace, DeviceTable
 from .storage import (
     ATTR,
@@ -195,6 +195,8 @@ def search(
 #: while a fast device's front holds tens of thousands; the trial store holds every one
 #: (:func:`tawarp.design.storage.best_designs` reads the whole front there).
 FRONT_COPIES = 256
+#: Members joined since the front's last merge that make a merge in any case (:meth:`_Run.kept`).
+MERGE_AT_LEAST = 1 << 14
 
 
 def worker_seed(seed: int, worker: str) -> int:
@@ -248,7 +250,13 @@ class _Run:
         self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
         self.resumed = 0
         self.writer = None
-        self.front = np.zeros((0, len(objectives)))  # the lineage's feasible front so far (minimized)
+        # the lineage's feasible front so far (minimized, (objectives, members), in
+        # lexicographic order, :meth:`kept`) and its members' ids (:func:`_member_ids`)
+        self.front = np.zeros((len(objectives), 0))
+        self.front_id = np.zeros(0, dtype=np.int64)
+        self.joined = []  # members joined since the front's last merge: (F rows, ids)
+        self.merges = 0  # of the front
+        self.copies_pruned = (0, 0)  # the merges the copies were last pruned after, the copies left (:meth:`commit`)
         self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
@@ -345,8 +353,20 @@ class _Run:
         which keeps them again from the stored generations."""
         t = time.perf_counter()
         rows, self.rows = self.rows, []
-        if len(self.objectives) > 1:  # members since dominated by a later generation's
-            self.copies = _undominated(self.copies, self.front)
+        if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
+            if final:  # exactly: those off the whole front
+                self.merge_front()
+                ids = np.concatenate([_member_ids(c[0], c[1]) for c in self.copies])
+                on = np.sort(self.front_id)  # a bisection: NumPy's isin hashes, several times slower here
+                at = np.minimum(np.searchsorted(on, ids), len(on) - 1)
+                self.copies = _select_rows(self.copies, (on[at] == ids) if len(on) else np.zeros(len(ids), bool))
+            elif (
+                self.merges > self.copies_pruned[0] and sum(len(c[1]) for c in self.copies) > 2 * self.copies_pruned[1]
+            ):
+                # those the front merged since dominates, once they doubled: memory bounded, time amortized
+                F = np.concatenate([c[5] for c in self.copies])
+                self.copies = _select_rows(self.copies, ~_front_dominates(self.front, F))
+                self.copies_pruned = (self.merges, sum(len(c[1]) for c in self.copies))
         copies, self.copies = (self.copies, []) if final else ([], self.copies)
         if len(self.objectives) > 1:
             copies = _spread(copies, FRONT_COPIES)
@@ -416,19 +436,37 @@ class _Run:
         )
         self.timing["trials_in_study"] += len(index)
 
-    def kept(self, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
-        """Members of a whole generation (minimized F (batch, m), violations) whose copies
-        the study keeps: one objective, the best feasible; several, those that join the
-        lineage's feasible Pareto front (which this updates)."""
+    def kept(self, g: int, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
+        """Members of a whole generation ``g`` (minimized F (batch, m), violations) whose
+        copies the study keeps: one objective, the best feasible; several, those that join
+        the lineage's feasible Pareto front (which this updates; a member of a later
+        generation may dominate one joined before the front's next merge: :meth:`commit`
+        drops those copies)."""
         feas = np.flatnonzero((viol <= 0) & np.all(np.isfinite(F), axis=1))
         if not feas.size:
             return feas
         if F.shape[1] == 1:
             return feas[[int(np.argmin(F[feas, 0]))]]
-        G = np.concatenate([self.front, F[feas]])
-        on = pareto_mask(G)
-        self.front = G[on]
-        return feas[on[len(G) - len(feas) :]]
+        X, ids = F[feas], _member_ids(g, feas)
+        on = pareto_mask(X)
+        # the front of the generations before, merged with the members since joined once
+        # these are twice as many: each member joined is compared with a front at most
+        # that many behind (so kept members may still leave at the merge, which the copies
+        # follow), and a front that grows by thousands a generation is not sorted again
+        # each time (the merges cost about 1.5 sorts of the last front in all)
+        on[on] = ~_front_dominates(self.front, X[on])
+        self.joined.append((X[on], ids[on]))
+        if sum(len(j[1]) for j in self.joined) > max(2 * self.front.shape[1], MERGE_AT_LEAST):
+            self.merge_front()
+        return feas[on]
+
+    def merge_front(self) -> None:
+        """The members joined since the last merge into the front (:meth:`kept`)."""
+        if self.joined:
+            X, ids = (np.concatenate(c) for c in zip(*self.joined))
+            self.front, self.front_id = _merged_front(self.front, self.front_id, X, ids)
+            self.joined = []
+            self.merges += 1
 
     def close(self, claim=None) -> None:
         """Commit what was evaluated (whole generations, whatever ended the run), close the
@@ -452,7 +490,10 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
     space = run.space
     t = time.perf_counter()
     gens = lineage(run.study, run.worker)
-    copied = {(g, j) for (w, g, j) in copies_in_study(run.study) if w == run.worker} if run.store is not None else set()
+    copied = {}  # generation: members whose copies the study holds
+    for w, g, j in copies_in_study(run.study) if run.store is not None else ():
+        if w == run.worker:
+            copied.setdefault(g, []).append(j)
     bind_worker(run.study, run.worker, bool(gens), seed=seed, batch=batch)
     run.timing["storage"] += time.perf_counter() - t
     for g, rows in gens.items():  # a lineage stored before its seed and batch were recorded
@@ -496,7 +537,9 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
             told = run.told(values)
         t = time.perf_counter()
         if run.store is not None:
-            keep = np.array([j for j in run.kept(F, viol) if (g, int(j)) not in copied], dtype=np.int64)
+            keep = run.kept(g, F, viol)
+            if g in copied:
+                keep = keep[~np.isin(keep, copied[g])]
             if keep.size:  # copies of the generation's kept members that the study lacks
                 run.copies.append(
                     (
@@ -533,17 +576,8 @@ def _spread(copies: list, k: int) -> list:
     return _select_rows(copies, keep)
 
 
-def _undominated(copies: list, front: np.ndarray) -> list:
-    """Generations' kept members (per generation: (g, index, values, metrics,
-    violations, F)) less those that a row of ``front`` dominates."""
-    if not copies:
-        return copies
-    on = ~_dominated(np.concatenate([c[5] for c in copies]), front)
-    return _select_rows(copies, on)
-
-
 def _select_rows(copies: list, on: np.ndarray) -> list:
-    """``copies`` (see :func:`_undominated`) less the members where ``on`` (over all of
+    """``copies`` (per generation: (g, index, values, metrics, violations, F)) less the members where ``on`` (over all of
     them, in order) is False; generations left empty are dropped."""
     out, lo = [], 0
     for g, index, values, metrics, c, F in copies:
@@ -554,26 +588,61 @@ def _select_rows(copies: list, on: np.ndarray) -> list:
     return out
 
 
+def _member_ids(g: int, index: np.ndarray) -> np.ndarray:
+    """Ids of members ``index`` of generation ``g``, unique in a lineage: g 2^32 + index."""
+    return (np.int64(g) << np.int64(32)) + np.asarray(index, dtype=np.int64)
+
+
+def _staircase_dominates(a: np.ndarray, b: np.ndarray, F: np.ndarray) -> np.ndarray:
+    """Rows of F (n, 2) that a row of a two-objective set dominates (all minimized), the
+    set given sorted by its first objective ``a`` with ``b`` the least second objective
+    of its rows so far: a row with a smaller first and a second <= F's, or a first <= F's
+    and a smaller second, found by bisection."""
+
+    def least_second(side):  # the least second objective of the sorted rows before F's
+        k = np.empty(len(F), dtype=np.int64)
+        k[order] = np.searchsorted(a, F[order, 0], side=side)  # sorted queries: a large set's cache
+        return np.where(k > 0, b[np.maximum(k - 1, 0)], np.inf) if len(b) else np.full(len(k), np.inf)
+
+    order = np.argsort(F[:, 0], kind="stable")
+    return (least_second("left") <= F[:, 1]) | (least_second("right") < F[:, 1])
+
+
 def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarray:
     """Rows of F (n, m) that a row of ``front`` dominates (all minimized): two objectives
-    by bisection in ``front`` sorted by the first (with the least second so far), more in
-    blocks of rows (an (n, len(front)) comparison at once would not fit)."""
-    if F.shape[1] == 2 and len(front):
+    by :func:`_staircase_dominates`, more in blocks of rows (an (n, len(front)) comparison
+    at once would not fit)."""
+    if F.shape[1] == 2:
         order = np.lexsort((front[:, 1], front[:, 0]))
-        a, b = front[order, 0], np.minimum.accumulate(front[order, 1])
-
-        def least_second(k):  # the least second objective of the first k sorted rows
-            return np.where(k > 0, b[np.maximum(k - 1, 0)], np.inf)
-
-        # a row with a smaller first and a second <= F's, or a first <= F's and a smaller second
-        k = np.searchsorted(a, F[:, 0], side="left")
-        below = (k > 0) & (least_second(k) <= F[:, 1])
-        return below | (least_second(np.searchsorted(a, F[:, 0], side="right")) < F[:, 1])
+        return _staircase_dominates(front[order, 0], np.minimum.accumulate(front[order, 1]), F)
     out = np.zeros(len(F), dtype=bool)
     for lo in range(0, len(F), block):
         f = F[lo : lo + block, None, :]
         out[lo : lo + block] = np.any(np.all(front <= f, axis=2) & np.any(front < f, axis=2), axis=1)
     return out
+
+
+def _merged_front(front: np.ndarray, ids: np.ndarray, X: np.ndarray, xids: np.ndarray):
+    """(front, ids) of the Pareto front (all minimized; duplicates kept, as
+    :func:`pareto_mask` keeps them) of ``front`` (objectives, F) with ids ``ids`` and rows
+    X (n, objectives) with ids ``xids``, its columns in lexicographic order (two
+    objectives: a staircase for :func:`_staircase_dominates`)."""
+    G, gid = np.concatenate([front.T, X]), np.concatenate([ids, xids])
+    if G.shape[1] == 2:
+        order, on = lexsorted_front(G)
+        on = order[on]
+    else:
+        on = np.flatnonzero(pareto_mask(G))
+        on = on[np.lexsort(G[on].T[::-1])]
+    return np.ascontiguousarray(G[on].T), gid[on]
+
+
+def _front_dominates(front: np.ndarray, X: np.ndarray) -> np.ndarray:
+    """Rows of X (n, objectives) that a row of ``front`` ((objectives, F), in
+    lexicographic order: :func:`_merged_front`) dominates."""
+    if X.shape[1] == 2:
+        return _staircase_dominates(front[0], front[1], X)
+    return _dominated(X, front.T)
 
 
 def _rows_of(columns: dict, rows) -> dict:

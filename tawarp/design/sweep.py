@@ -371,8 +371,8 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bo
     return at once on CUDA) the caller writes chunk k - 1; then chunk k is fetched: two
     chunks at most on the host, one on the device. ``reducer``
     (:class:`tawarp.design.reductions.Reducer`): chunk k's reductions are launched with it
-    and its candidates merged once it is done; without ``raw`` nothing else is fetched
-    (outputs and values None)."""
+    and chunk k - 1's candidates merged meanwhile (the device is not left waiting for the
+    host between chunks); without ``raw`` nothing else is fetched (outputs and values None)."""
     ev = job.evaluator(job.settings)
     tables = DeviceTable(job.space, ev.device)
 
@@ -395,11 +395,11 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bo
         if staged:  # queued behind the chunk's evaluation
             for j in range(len(tables.names)):
                 wp.copy(values_host[k % 2][j], values[j], count=hi - lo)
+        if reducer is not None and k > 0:  # chunk k - 1's candidates, while the device works on chunk k
+            reducer.collect(k - 1)
         if pending is not None:
             yield pending
         done = finish()
-        if reducer is not None:
-            reducer.collect(k)
         if not raw:
             values = None
         if staged:  # (finish() of a chunk with objectives outside the kernel may not wait for the copy)
@@ -411,6 +411,8 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bo
         del table, values, finish
         if k % GC_CHUNKS == GC_CHUNKS - 1:
             gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
+    if reducer is not None and pending is not None:
+        reducer.collect(k)
     if pending is not None:
         yield pending
 
