@@ -81,6 +81,45 @@ def test_evidence_with_an_unknown_noise_scale_is_the_exact_marginal(seed):
     )
 
 
+def stacked_noise_scale_evidence(r, J, x, priors):
+    """The noise-scale marginal of laplace_log_evidence (without the range cut), written
+    independently: at each s the quadratic model's minimum by least squares on the stacked
+    system [J/s; diag(1/sd)], its log det from that system's QR."""
+    mu = np.array([p.mu for p in priors])
+    sd = np.array([p.sd for p in priors])
+    u = np.linspace(-math.log(NOISE_SCALE_RANGE), math.log(NOISE_SCALE_RANGE), 401)
+    terms = []
+    for v in u:
+        s = math.exp(v)
+        M = np.vstack([J / s, np.diag(1 / sd)])
+        b = -np.concatenate([r / s, (x - mu) / sd])
+        d, *_ = np.linalg.lstsq(M, b, rcond=None)
+        logdet = 2 * np.sum(np.log(np.abs(np.diag(np.linalg.qr(M * sd[None, :], mode="r")))))
+        terms.append(-0.5 * float(np.sum((M @ d - b) ** 2)) - len(r) * v - 0.5 * logdet)
+    norm = sum(p.log_norm() for p in priors) + 0.5 * len(x) * math.log(2 * math.pi) + float(np.sum(np.log(sd)))
+    return norm + special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1])
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_noise_scale_evidence_at_a_bound_with_a_large_gradient(seed):
+    # a fit stopped with one parameter at its bound (a variable in small units: its column
+    # 3.6e8, its data gradient 4.5e8) beside two the data do not see: every term is a
+    # square, so the marginal stays the stacked least squares' (an eigenvector form of the
+    # same algebra returned ln Z of order +1e12 here, through cancellation)
+    rng = np.random.default_rng(seed)
+    n = 2000
+    J = rng.standard_normal((n, 8))
+    J[:, 5] *= 3.6e8 / math.sqrt(n)
+    J[:, 6:] = 0.0
+    r = 20 * rng.standard_normal(n) + 4.5e8 * J[:, 5] / np.sum(J[:, 5] ** 2)
+    sd = np.array([0.2, 0.4, 0.22, 8.0, 6.7, 200.0, 2.2, 1.1])
+    x = rng.uniform(-1, 1, 8) * sd
+    x[5] = 0.0
+    priors = [XPrior(0.0, s) for s in sd]
+    got = laplace_log_evidence(r, J, x, priors, noise_scale=True)
+    assert got == pytest.approx(stacked_noise_scale_evidence(r, J, x, priors), abs=1e-6)
+
+
 @pytest.mark.parametrize("seed", range(3))
 def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
     # the base model holds the first two columns (at its MAP); the "effect" adds the third,

@@ -136,18 +136,23 @@ def laplace_log_evidence(
         _, logdet = np.linalg.slogdet(H)
         phi = float(r @ r) + float(np.sum((x - mu) ** 2 * isd2))
         return norm - 0.5 * phi - 0.5 * logdet + inside_mass(x, H, priors)
-    # in the prior-whitened variables the Hessian at noise s is I + Lambda / s^2 (Lambda the
-    # eigenvalues of sd J^T J sd), so each s costs only vector operations
+    # In the prior-whitened variables d = dx/sd, with J = Q R and R sd = U S W^T, each
+    # direction i of W is a one-dimensional problem: at noise s the minimum over d_i of
+    # (a_i + S_i d_i)^2 / s^2 + (g_i + d_i)^2 is (a_i - S_i g_i)^2 / (s^2 + S_i^2), with
+    # a = U^T Q^T r and g = W^T (x - mu)/sd; the rest of r, outside J's range, adds |r_perp|^2/s^2.
+    # Written this way every term is a square: no cancellation when a parameter sits at a
+    # bound with a large gradient (the eigenvector form lost the data term's sign there).
     sd = 1.0 / np.sqrt(isd2)
-    lam, V = np.linalg.eigh((J.T @ J) * sd[:, None] * sd[None, :])
-    lam = np.clip(lam, 0.0, None)
-    bt = V.T @ (sd * (J.T @ r))  # data gradient at x, whitened
-    gt = V.T @ ((x - mu) / sd)  # prior gradient at x, whitened
+    Q, R = np.linalg.qr(J)
+    z = Q.T @ r
+    r_perp2 = float(np.sum((r - Q @ z) ** 2))
+    U, S, Wt = np.linalg.svd(R * sd[None, :])
+    a = U.T @ z
+    g = Wt @ ((x - mu) / sd)
     u = np.linspace(-math.log(NOISE_SCALE_RANGE), math.log(NOISE_SCALE_RANGE), 401)[:, None]
     s2 = np.exp(2 * u)
-    c = bt / s2 + gt
-    phi = float(r @ r) / s2[:, 0] + float(gt @ gt) - np.sum(c * c / (1.0 + lam / s2), axis=1)
-    terms = -0.5 * phi - len(r) * u[:, 0] - 0.5 * np.sum(np.log1p(lam / s2), axis=1)
+    phi = r_perp2 / s2[:, 0] + np.sum((a - S * g) ** 2 / (s2 + S**2), axis=1)
+    terms = -0.5 * phi - len(r) * u[:, 0] - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
     H = J.T @ J / s2[int(np.argmax(terms)), 0] + np.diag(isd2)
     return (
         norm
