@@ -13,7 +13,7 @@ shape (:func:`pore_geometry_effects`) is not nested: the swap has no parameter o
 
 Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radius ratio,
 T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
-wall conduction, ambient exchangers) and :func:`impedance_library` (thermal radius ratio, viscous shape
+wall conduction, ambient exchangers, a contact resistance between stack and hot exchanger) and :func:`impedance_library` (thermal radius ratio, viscous shape
 factor, thickness offset, limp frame, T_cold, p_mean).
 
 The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
@@ -160,6 +160,12 @@ CONVECTION_COEFFICIENT = 1.32
 #: in 1 mm pores over the wetted area 2 phi l / r ~ 16 per section area (10 mm, porosity 0.8):
 #: about 1e3, tenfold the conductance lam_s / L of a stack, so the end is nearly held at T_cold.
 TYPICAL_END_CONDUCTANCE = 1e3
+#: Typical thermal contact resistance of a stack pressed against its hot exchanger [m^2 K/W]:
+#: Incropera, DeWitt, Bergman & Lavine, Fundamentals of Heat and Mass Transfer (6th ed.,
+#: Wiley 2007), Table 3.1: 0.6-25e-4 for metallic interfaces in vacuum at 1e5-1e7 Pa of
+#: contact pressure, 2.75e-4 for aluminium at 1e5 Pa with air in the gaps. A ceramic or foam
+#: stack held by a light axial load against a metal exchanger sits in that band.
+TYPICAL_CONTACT_RESISTANCE = 3e-4
 #: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
 CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
 
@@ -317,7 +323,8 @@ def tmatrix_library(core: Core) -> list[Effect]:
     the stack's thermal radius ratio, T-dependent conductivity, radiation, its pores as
     square channels or plates (:func:`pore_geometry_effects`), convection in
     the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
-    role; for a passive core (no thermal stack) the porous-layer effects of its porous
+    role, a thermal contact resistance between stack and hot exchanger
+    (:func:`contact_effect`); for a passive core (no thermal stack) the porous-layer effects of its porous
     segments, an elastic frame when it has one porous segment, and T_cold and p_mean
     within room conditions (+-15 K, +-5 %)."""
     segs = core.segments
@@ -403,7 +410,30 @@ def tmatrix_library(core: Core) -> list[Effect]:
                 label="ambient_hx.end_conductance",
             )
         )
+        contact = contact_effect(core)
+        if contact is not None:
+            lib.append(contact)
     return lib
+
+
+def contact_effect(core: Core) -> Effect | None:
+    """A thermal contact resistance R_c [m^2 K/W] between the stack and the hot exchanger
+    (``contact_resistance`` of whichever of the two comes second in the heat model, at its
+    start, :mod:`tawarp.kernels.heat`): the temperature jumps by R_c times the heat flux
+    density crossing the interface. Off at 0 (perfect contact, bit for bit); typical
+    :data:`TYPICAL_CONTACT_RESISTANCE` (Incropera et al., Table 3.1). None when the two are
+    not adjacent thermal segments."""
+    stack, heater = stack_and_heater(core)
+    names = [core.segments[i].name for i in core.thermal_indices]
+    if stack is None or heater is None or abs(names.index(stack) - names.index(heater)) != 1:
+        return None
+    second = names[max(names.index(stack), names.index(heater))]
+    return _field_effect(
+        "contact_resistance",
+        "thermal contact resistance between the stack and the hot exchanger (temperature jump R_c q)",
+        [f"{second}.contact_resistance"],
+        TYPICAL_CONTACT_RESISTANCE,
+    )
 
 
 #: Typical ambient exchangers: 10 mm long, porosity 0.8, pore radius 1 mm (a copper fin

@@ -272,6 +272,21 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)",
     ),
     Field(
+        "contact_resistance",
+        layout.CONTACT_RESISTANCE,
+        "m^2 K/W",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        log=False,
+        scale=1e-4,
+        fit_range=(0.0, 0.1),
+        description="thermal contact resistance at the segment's start against the previous thermal segment: "
+        "theta jumps by R_c times the heat flux density there (0: perfect contact; no effect on the first)",
+    ),
+    Field(
         "T_start",
         layout.T_START,
         "K",
@@ -449,6 +464,7 @@ TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "h_convection": (0.0, 1e5),
     "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
+    "contact_resistance": (0.0, 1.0),
     "T_start": (1.0, 1e4),
     "T_end": (1.0, 1e4),
 }
