@@ -29,6 +29,7 @@ from typing import Callable
 import numpy as np
 
 from .core import Core, Segment
+from .gas import GASES
 from .fields import field as field_spec
 
 
@@ -166,6 +167,13 @@ TYPICAL_END_CONDUCTANCE = 1e3
 #: contact pressure, 2.75e-4 for aluminium at 1e5 Pa with air in the gaps. A ceramic or foam
 #: stack held by a light axial load against a metal exchanger sits in that band.
 TYPICAL_CONTACT_RESISTANCE = 3e-4
+#: Typical porosity gradient g along a stack (phi(x) = phi (1 + g (x/L - 1/2))): a wound or
+#: stacked-screen stack compressed unevenly, a foam's density varying along its rise, 10 %
+#: end to end.
+TYPICAL_POROSITY_GRADIENT = 0.1
+#: Parts of a graded stack (:func:`graded_parts`): the porosity piecewise constant, the
+#: 2-port's error second order in the parts' size (2.5 % of a g = 0.2 gradient's effect).
+GRADED_PARTS = 8
 #: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
 CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
 
@@ -413,7 +421,101 @@ def tmatrix_library(core: Core) -> list[Effect]:
         contact = contact_effect(core)
         if contact is not None:
             lib.append(contact)
+        lib.append(porosity_gradient_effect(stack))
     return lib
+
+
+def porosity_gradient_effect(stack: str) -> Effect:
+    """The porosity of ``stack`` varying linearly along it, phi(x) = phi (1 + g (x/L - 1/2))
+    (``STACK.porosity_gradient`` g, a host field: :func:`graded_parts` splits the stack into
+    :data:`GRADED_PARTS` parts of their own porosity, pore radius and tortuosity held, in the
+    acoustics and in the heat model's conductivity phi lam_gas + (1 - phi) lam_solid). Off at
+    g = 0, exactly: the stack is then not split. Typical :data:`TYPICAL_POROSITY_GRADIENT`."""
+    label = f"{stack}.porosity_gradient"
+    f = field_spec(label)
+    return Effect(
+        "porosity_gradient",
+        "the stack's porosity varying linearly along it (g end to end)",
+        (Param(label, (label,), 0.0, f.scale, *f.fit_range),),
+        typical={label: TYPICAL_POROSITY_GRADIENT},
+    )
+
+
+def _log_mean(a, b):
+    """(b - a) / ln(b / a), a where a = b: the harmonic mean of a quantity linear between a
+    and b, as a x / ln(1 + x) with x = (b - a)/a (the same x above and below: no cancellation
+    when b is close to a)."""
+    a, b = np.broadcast_arrays(np.asarray(a, dtype=float), np.asarray(b, dtype=float))
+    x = (b - a) / a
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(x == 0.0, a, a * x / np.log1p(x))
+
+
+def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) -> tuple[Core, dict]:
+    """``core`` and the model values ``values`` {name: scalar or (n,)} of ``n`` sets with every
+    segment ``SEG`` whose ``SEG.porosity_gradient`` g is in ``values`` and not 0 in every set
+    split into ``parts`` parts ``SEG_part1`` ..., each with every value of SEG (the contact
+    resistance at its start on the first part only) but three:
+
+    - length: the parts' ends step the law's conductivity phi lam_gas + (1 - phi) lam_s
+      (linear in x, gas at T_cold) geometrically from one end to the other: where it is
+      small the temperature turns within a short length, and the parts are short there (a
+      ceramic stack of porosity 0.9 with g = 0.2 conducts ten times less at its open end);
+    - porosity: the law's value at the part's middle (clipped to [1e-3, 0.999]);
+    - solid conductivity: such that the part's conductivity is the harmonic mean of the
+      law's over the part (its thermal resistance exact).
+
+    Against the independent reference's graded stack (tawarp.reference_effects) the
+    T-matrix's error falls as parts^-2: 4 % of the effect with 6 parts, 1 % with 12
+    (tests/test_effects_library.py). The gradient keys are removed; where g is 0 in every
+    set the segment stays whole (the model bit for bit)."""
+    values = dict(values)
+    grads = {
+        k.rpartition(".")[0]: np.broadcast_to(np.asarray(values.pop(k), dtype=float), (n,))
+        for k in [k for k in values if k.endswith(".porosity_gradient")]
+    }
+    segs = []
+    for seg in core.segments:
+        g = grads.get(seg.name)
+        if g is None or not np.any(g):
+            segs.append(seg)
+            continue
+        if seg.heater or not seg.is_porous:
+            raise ValueError(f"{core.source}: a porosity gradient needs a porous segment that is not the heater")
+        own = {k.partition(".")[2]: values.pop(k) for k in [k for k in values if k.partition(".")[0] == seg.name]}
+        phi = np.asarray(own.pop("porosity", seg.porosity), dtype=float)
+        length = np.asarray(own.pop("length", seg.length), dtype=float)
+        lam_s = np.asarray(own.pop("solid_conductivity", seg.solid_conductivity), dtype=float)
+        k_gas = GASES[core.gas.name].transport(values.get("gas.T_cold", core.gas.T_cold))[1]
+
+        def porosity(t):
+            return np.clip(phi * (1.0 + g * (t - 0.5)), 1e-3, 0.999)
+
+        def lam(t):
+            return porosity(t) * k_gas + (1.0 - porosity(t)) * lam_s
+
+        # part ends t_j (x/L): the conductivity in geometric steps from one end to the other
+        # (where it is small the profile turns within a short length: the parts are short)
+        log_ratio = np.log(lam(1.0) / lam(0.0))
+        small = np.abs(log_ratio) < 1e-9
+        safe = np.where(small, 1.0, log_ratio)
+        ends = [np.where(small, j / parts, np.expm1(safe * j / parts) / np.expm1(safe)) for j in range(parts + 1)]
+        for j in range(parts):
+            name = f"{seg.name}_part{j + 1}"
+            first = j == 0
+            segs.append(
+                dataclasses.replace(
+                    seg, name=name, length=seg.length / parts, contact_resistance=seg.contact_resistance * first
+                )
+            )
+            phi_j = porosity(0.5 * (ends[j] + ends[j + 1]))
+            lam_j = _log_mean(lam(ends[j]), lam(ends[j + 1]))
+            values[f"{name}.porosity"] = phi_j
+            values[f"{name}.solid_conductivity"] = (lam_j - phi_j * k_gas) / (1.0 - phi_j)
+            values[f"{name}.length"] = length * (ends[j + 1] - ends[j])
+            for fld, v in own.items():
+                values[f"{name}.{fld}"] = v if (first or fld != "contact_resistance") else 0.0 * np.asarray(v)
+    return Core(tuple(segs), core.gas, core.radius, core.source, core.pinned, core.priors), values
 
 
 def contact_effect(core: Core) -> Effect | None:

@@ -385,6 +385,22 @@ HOST_FIELD_TABLE: dict[str, Field] = {
         fit_range=(1.0, 1e3),
         description="frame bulk density rho_1 (frame mass per layer volume)",
     ),
+    "porosity_gradient": Field(
+        "porosity_gradient",
+        -1,
+        "-",
+        -2.0,
+        2.0,
+        True,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=0.1,
+        fit_range=(-1.0, 1.0),
+        upper_open=True,
+        description="g in phi(x) = phi (1 + g (x/L - 1/2)) along a thermal stack (its parts' porosities, "
+        "tawarp.model.effects.graded_parts)",
+    ),
     "poisson_ratio": Field(
         "poisson_ratio",
         -1,
