@@ -569,8 +569,8 @@ def contact_start_nonlinear(
 ):
     """:func:`contact_start_linear` for a Kirchhoff cell (:func:`nonlinear_cell`): t_l
     solves t_l = theta_l + Rc F_l(t_l) by Newton (dF_l/dt_l = -b lam(t_l)); exact in
-    one step when the cell's law is linear (no temperature-dependent effect in s), to
-    1e-12 K of the jump otherwise."""
+    one step when the cell's law is linear (no temperature-dependent effect in s), else
+    until a step is below 1e-12 (1 + |t_l|) K."""
     law = conductivity_law(params, flags, gas, i, s)
     t = theta_l
     done = int(0)

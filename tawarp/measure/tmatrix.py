@@ -15,7 +15,7 @@ import numpy as np
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
 from ..model.core import Core, load_core
-from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, graded_parts, stack_and_heater
+from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, graded_cells, graded_parts, stack_and_heater
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
@@ -133,9 +133,13 @@ class TMatrixKind(MeasurementKind):
         phase = values.pop(CALIBRATION_PHASE, None)
         frame = {k: values.pop(k) for k in list(values) if k.endswith((".frame_modulus", ".frame_loss_factor"))}
         core = effect.transform(self.core) if effect is not None and effect.transform else self.core
-        core, values = graded_parts(core, values, n)
+        whole = core
+        core, values = graded_parts(whole, values, n)
+        settings = self.settings
+        if isinstance(settings.cells, dict) and len(core.segments) != len(whole.segments):
+            settings = dataclasses.replace(settings, cells=graded_cells(settings.cells, core))
         names = tuple(sorted(values))
-        eng = get_engine(core, self.freqs, list(names), self.settings)
+        eng = get_engine(core, self.freqs, list(names), settings)
         nq = len(self.Qs)
         table = np.empty((1 + len(names), n * nq))
         table[0] = np.tile(self.Qs, n)

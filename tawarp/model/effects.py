@@ -518,6 +518,23 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
     return Core(tuple(segs), core.gas, core.radius, core.source, core.pinned, core.priors), values
 
 
+def graded_cells(cells: dict, core: Core) -> dict:
+    """Fixed Magnus cells {segment: count} (:class:`tawarp.model.forward.ForwardSettings`)
+    for ``core`` split by :func:`graded_parts`: a part ``SEG_partJ`` gets half the count of the
+    whole ``SEG`` (at least 1), 4x the stack's cells over its 8 parts: the parts are an
+    eighth of its length on average, but the short ones sit where its conductivity is
+    smallest and the heat decay rate sqrt(2 h/(R lam)) largest (3x the whole stack's at
+    g = 0.2 on the ceramic)."""
+    out = {}
+    for seg in core.segments:
+        whole = seg.name.rpartition("_part")[0]
+        if seg.name in cells:
+            out[seg.name] = cells[seg.name]
+        elif whole in cells:
+            out[seg.name] = max(1, -(-int(cells[whole]) // 2))
+    return out
+
+
 def contact_effect(core: Core) -> Effect | None:
     """A thermal contact resistance R_c [m^2 K/W] between the stack and the hot exchanger
     (``contact_resistance`` of whichever of the two comes second in the heat model, at its
