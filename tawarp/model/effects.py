@@ -515,6 +515,8 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
             values[f"{name}.length"] = length * (ends[j + 1] - ends[j])
             for fld, v in own.items():
                 values[f"{name}.{fld}"] = v if (first or fld != "contact_resistance") else 0.0 * np.asarray(v)
+    if len(segs) == len(core.segments):
+        return core, values
     return Core(tuple(segs), core.gas, core.radius, core.source, core.pinned, core.priors), values
 
 
