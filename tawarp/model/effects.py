@@ -437,8 +437,19 @@ def porosity_gradient_effect(stack: str) -> Effect:
         "porosity_gradient",
         "the stack's porosity varying linearly along it (g end to end)",
         (Param(label, (label,), 0.0, f.scale, *f.fit_range),),
+        transform=graded_structure,
         typical={label: TYPICAL_POROSITY_GRADIENT},
     )
+
+
+def graded_structure(core: Core) -> Core:
+    """The structure of a graded stack's models: the core as it stands, its stack split
+    into parts by the T-matrix kind per set's gradient (:func:`graded_parts`). Declared a
+    structure so that its fits launch apart: a launch on the split stack costs 4x the
+    stack's cells, which the models without the gradient then do not pay. A model holds at
+    most one structure, so the gradient is not combined with the pore shapes or the
+    ambient exchangers' acoustics."""
+    return core
 
 
 def _log_mean(a, b):
