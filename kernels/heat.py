@@ -6,7 +6,10 @@ In each thermal segment ``lam theta'' - lam k^2 theta = -lam sigma`` with
 ``end_conductance`` H [W/(m^2 K)] of the first (last) thermal segment, its outer end loses
 ``H theta`` per section area to an exchanger at T_cold (``lam theta' = H theta`` at the left
 end, ``-lam theta' = H theta`` at the right): the ambient exchangers' thermal role,
-adiabatic at H = 0 (the paper's model), T_cold held there as H -> inf.
+adiabatic at H = 0 (the paper's model), T_cold held there as H -> inf. With the effect
+``contact_resistance`` R_c [m^2 K/W] of a thermal segment other than the first, the
+temperature jumps at its start by R_c times the heat flux density through it (a thermal
+contact resistance against the previous segment; :func:`contact_rows`).
 
 Discretisation: nodes on a uniform grid in each segment, interfaces on nodes. Each cell
 couples its two nodes through the *exact* two-point relation of a constant-coefficient
@@ -36,6 +39,7 @@ import warp as wp
 
 from .layout import (
     CONDUCTIVITY_EXPONENT,
+    CONTACT_RESISTANCE,
     END_CONDUCTANCE,
     F_HEATER,
     F_POROUS,
@@ -479,6 +483,109 @@ def end_sink(params: wp.array2d(dtype=wp.float64), i: int, first: int, count: in
 
 
 @wp.func
+def contact_at(params: wp.array2d(dtype=wp.float64), i: int, s: int, node0: int, c: int):
+    """R_c [m^2 K/W] of the contact at the left node of cell c of segment s, whose first
+    node is node0: the segment's ``contact_resistance`` at its first cell unless it is the
+    first thermal segment (node0 = 0: an end, not an interface), else 0."""
+    if c != 0 or node0 == 0:
+        return wp.float64(0.0)
+    return seg_value(params, i, s, CONTACT_RESISTANCE)
+
+
+@wp.func
+def contact_rows(
+    a: wp.float64,
+    b: wp.float64,
+    e: wp.float64,
+    lam_l: wp.float64,
+    lam_r: wp.float64,
+    c_l: wp.float64,
+    c_r: wp.float64,
+    Rc: wp.float64,
+):
+    """Rows of a heat cell in the nodal flux balance, with a contact resistance Rc
+    [m^2 K/W] between its left node and its left end.
+
+    The cell gives its end nodes the fluxes [W/m^2] F_l = a U(t_r) - b U(t_l) + e and
+    F_r = a U(t_l) - b U(t_r) + e, t_l and t_r its end temperatures, U linearised as U = c + lam t (Kirchhoff cells; the linear model has lam = 1, c = 0 and
+    (a, b, e) from the segment's conductivity). Its right end is the right node,
+    t_r = theta_r; its left end sits behind the contact, t_l = theta_l + Rc F_l (the
+    temperature jumps by Rc times the flux density crossing it), so with beta = b lam_l Rc:
+
+        F_l = (a lam_r theta_r - b lam_l theta_l + E) / (1 + beta),   E = e + a c_r - b c_l
+        F_r = a lam_l/(1 + beta) theta_l - (b lam_r - a^2 lam_l lam_r Rc/(1 + beta)) theta_r
+              + e + a c_l - b c_r + a lam_l Rc E/(1 + beta)
+
+    (Rc = 0: the plain cell, the same arithmetic as without the effect). Returns (diag_r, sup, rhs_r) of the left node's row and (sub_next,
+    diag_next, rhs_next) of the right node's, flux into the node = 0 as
+    ``sub theta_{r-1} + diag theta_r + sup theta_{r+1} = rhs``."""
+    E = e + a * c_r - b * c_l
+    if Rc == wp.float64(0.0):
+        return -b * lam_l, a * lam_r, -E, a * lam_l, -b * lam_r, -(e + a * c_l - b * c_r)
+    den = wp.float64(1.0) + b * lam_l * Rc
+    return (
+        -b * lam_l / den,
+        a * lam_r / den,
+        -E / den,
+        a * lam_l / den,
+        -b * lam_r + a * a * lam_l * lam_r * Rc / den,
+        -(e + a * c_l - b * c_r + a * lam_l * Rc * E / den),
+    )
+
+
+@wp.func
+def contact_start_linear(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    Rc: wp.float64,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+    d: wp.float64,
+):
+    """Temperature excess [K] at the left end of the first cell (length d [m], nodal
+    excesses theta_l, theta_r [K]) of segment s behind a contact Rc [m^2 K/W], in the
+    linear model: t_l = theta_l + Rc F_l = (theta_l + Rc (a theta_r + e)) / (1 + b Rc)
+    with the exact cell's (a, b, e)."""
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    a, b, e = cell_coupling(lam, k, sigma, d, 1)
+    return (theta_l + Rc * (a * theta_r + e)) / (wp.float64(1.0) + b * Rc)
+
+
+@wp.func
+def contact_start_nonlinear(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    Rc: wp.float64,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+    d: wp.float64,
+    fitted: int,
+):
+    """:func:`contact_start_linear` for a Kirchhoff cell (:func:`nonlinear_cell`): t_l
+    solves t_l = theta_l + Rc F_l(t_l) by Newton (dF_l/dt_l = -b lam(t_l)); exact in
+    one step when the cell's law is linear (no temperature-dependent effect in s), else
+    until a step is below 1e-12 (1 + |t_l|) K."""
+    law = conductivity_law(params, flags, gas, i, s)
+    t = theta_l
+    done = int(0)
+    for _it in range(20):
+        if done == 0:
+            U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(params, flags, gas, i, s, law, t, theta_r, d)
+            a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
+            step = (t - theta_l - Rc * (a * U_r - b * U_l + e)) / (wp.float64(1.0) + Rc * b * lam_l)
+            t = t - step
+            if wp.abs(step) <= wp.float64(1.0e-12) * (wp.float64(1.0) + wp.abs(t)):
+                done = 1
+    return t
+
+
+@wp.func
 def solve_heat_nonlinear(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -523,22 +630,21 @@ def solve_heat_nonlinear(
                 if r < n_nodes - 1:
                     s = first + r // cells
                     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+                    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
                     tl = scratch[i, n_nodes + r]
                     tr = scratch[i, n_nodes + r + 1]
+                    if Rc != wp.float64(0.0):
+                        # the cell's left end behind the contact, at the previous iterate
+                        tl = contact_start_nonlinear(params, flags, gas, i, s, Rc, tl, tr, d, fitted)
                     U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(
                         params, flags, gas, i, s, conductivity_law(params, flags, gas, i, s), tl, tr, d
                     )
                     a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
-                    c_l = U_l - lam_l * tl
-                    c_r = U_r - lam_r * tr
-                    # flux into the cell at its left node: a U_r - b U_l + e (row r)
-                    diag_r = -b * lam_l
-                    sup = a * lam_r
-                    rhs_r = -(e + a * c_r - b * c_l)
-                    # at its right node: a U_l - b U_r + e (row r + 1)
-                    sub_next = a * lam_l
-                    diag_next = -b * lam_r
-                    rhs_next = -(e + a * c_l - b * c_r)
+                    # the flux into the cell at its left node a U_r - b U_l + e (row r), at its
+                    # right node a U_l - b U_r + e (row r + 1)
+                    diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_rows(
+                        a, b, e, lam_l, lam_r, U_l - lam_l * tl, U_r - lam_r * tr, Rc
+                    )
                 # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
                 diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
                 c_prev = sup / diag
@@ -591,29 +697,39 @@ def solve_heat(
     if nonlin != 0:
         solve_heat_nonlinear(params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch)
     else:
-        # forward sweep: row r is a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r)
-        a_l = wp.float64(0.0)
-        b_l = wp.float64(0.0)
-        e_l = wp.float64(0.0)
+        # forward sweep: row r is sub theta_{r-1} + (diag_l + diag_r) theta_r + sup theta_{r+1}
+        # = rhs_l + rhs_r, the left cell's terms carried from the previous row (without a
+        # contact a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r))
+        sub = wp.float64(0.0)
+        diag_l = wp.float64(0.0)
+        rhs_l = wp.float64(0.0)
         c_prev = wp.float64(0.0)
         d_prev = wp.float64(0.0)
+        zero = wp.float64(0.0)
+        one = wp.float64(1.0)
         for r in range(n_nodes):
-            a_r = wp.float64(0.0)
-            b_r = wp.float64(0.0)
-            e_r = wp.float64(0.0)
+            diag_r = wp.float64(0.0)
+            sup = wp.float64(0.0)
+            rhs_r = wp.float64(0.0)
+            sub_next = wp.float64(0.0)
+            diag_next = wp.float64(0.0)
+            rhs_next = wp.float64(0.0)
             if r < n_nodes - 1:
                 s = first + r // cells
                 lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
                 d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                a_r, b_r, e_r = cell_coupling(lam, k, sigma, d, fitted)
-            diag = -(b_l + b_r) - end_sink(params, i, first, count, r, n_nodes) - a_l * c_prev
-            c_prev = a_r / diag
-            d_prev = (-(e_l + e_r) - a_l * d_prev) / diag
+                a, b, e = cell_coupling(lam, k, sigma, d, fitted)
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_rows(
+                    a, b, e, one, one, zero, zero, contact_at(params, i, s, (s - first) * cells, r % cells)
+                )
+            diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
+            c_prev = sup / diag
+            d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
             scratch[i, r] = c_prev
             theta[i, r] = d_prev
-            a_l = a_r
-            b_l = b_r
-            e_l = e_r
+            sub = sub_next
+            diag_l = diag_next
+            rhs_l = rhs_next
         for rr in range(n_nodes - 1):
             r = n_nodes - 2 - rr
             theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
@@ -658,13 +774,20 @@ def segment_profile(
     """(theta [K], dtheta/dx [K/m]) at local position xi [m] of thermal segment s, whose
     heat cells (length d) start at node0; (k, sigma) are the segment's, unused when
     ``nonlin`` (a temperature-dependent effect is on: the Kirchhoff cell,
-    :func:`nonlinear_profile`)."""
+    :func:`nonlinear_profile`). Behind a contact resistance at the segment's start the
+    first cell starts from its own end temperature (:func:`contact_start_linear`), not
+    the interface node's (the previous segment's end)."""
     c = wp.min(int(xi / d), cells - 1)
+    theta_l = theta[i, node0 + c]
+    theta_r = theta[i, node0 + c + 1]
+    Rc = contact_at(params, i, s, node0, c)
     if nonlin != 0:
-        return nonlinear_profile(
-            params, flags, gas, i, s, theta[i, node0 + c], theta[i, node0 + c + 1], d, xi - wp.float64(c) * d
-        )
-    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
+        if Rc != wp.float64(0.0):
+            theta_l = contact_start_nonlinear(params, flags, gas, i, s, Rc, theta_l, theta_r, d, 1)
+        return nonlinear_profile(params, flags, gas, i, s, theta_l, theta_r, d, xi - wp.float64(c) * d)
+    if Rc != wp.float64(0.0):
+        theta_l = contact_start_linear(params, flags, gas, i, s, Rc, theta_l, theta_r, d)
+    return cell_profile(theta_l, theta_r, k, sigma, d, xi - wp.float64(c) * d)
 
 
 @wp.func

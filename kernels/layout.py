@@ -32,7 +32,10 @@ LENGTH, POROSITY, PORE_RADIUS, TORTUOSITY, SOLID_CONDUCTIVITY, H = range(6)
 ) = range(6, 14)
 # imposed temperatures [K] at the segment's start and end (read where F_IMPOSED is set)
 T_START, T_END = range(14, 16)
-N_FIELDS = 16
+# thermal contact resistance [m^2 K/W] at the segment's start, against the previous thermal
+# segment (0: none)
+CONTACT_RESISTANCE = 16
+N_FIELDS = 17
 # structure flags per segment: F_THERMAL a segment of the heat model, F_IMPOSED one whose
 # temperature profile is imposed (linear from T_START to T_END)
 F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER, F_IMPOSED = range(5)

@@ -81,6 +81,7 @@ def test_parameter_names_follow_the_table():
         "h_convection",
         "wall_conductance",
         "end_conductance",
+        "contact_resistance",
     )
     assert segment_parameter_fields(stack) == tuple(f.name for f in SEGMENT_FIELD_TABLE if f.applies != "imposed")
     imposed = Segment("i", "porous", 0.04, porosity=0.8, pore_radius=1e-4, T_start=300.0, T_end=600.0)

@@ -415,6 +415,7 @@ HALF_NORMAL = {
     "convection": "tbt.h_convection",
     "wall_conduction": "wall_conductance",
     "ambient_exchanger_thermal": "ambient_hx.end_conductance",
+    "contact_resistance": "hot_hx.contact_resistance",
     "ambient_exchangers": "ambient_hx.length",
 }
 

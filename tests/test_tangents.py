@@ -220,6 +220,10 @@ CASES = [
     ),
     # a temperature-dependent effect: the heat solve iterates (Picard)
     ("nicr_foam", 40.0, ["stack.conductivity_exponent", "stack.h", "stack.porosity", "tbt.length"]),
+    # a contact resistance between stack and hot exchanger: the temperature jump it makes,
+    # with the linear heat model and with the Kirchhoff cells (conductivity exponent on)
+    ("ceramic:contact", 40.0, ["hot_hx.contact_resistance", "stack.h", "hot_hx.h", "stack.porosity", "tbt.h"]),
+    ("nicr_foam:contact", 40.0, ["hot_hx.contact_resistance", "stack.conductivity_exponent", "stack.h"]),
     # the effects of A beyond the rigid circular pore: a limp frame (1/rho_1 of a 30 kg/m^3
     # foam) and a viscous shape factor, each with the geometry they enter with
     (
@@ -244,6 +248,8 @@ CASES = [
 #: Cores of CASES beyond the bundled ones: the bundled core and the values that turn effects on.
 EFFECTS = {
     "nicr_foam": {"stack.conductivity_exponent": 0.5},
+    "ceramic:contact": {"hot_hx.contact_resistance": 3e-4},
+    "nicr_foam:contact": {"stack.conductivity_exponent": 0.5, "hot_hx.contact_resistance": 3e-4},
     "rvc_foam:limp": {"stack.frame_mobility": 0.03, "stack.viscous_shape_factor": 1.4},
 }
 

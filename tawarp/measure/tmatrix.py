@@ -15,7 +15,14 @@ import numpy as np
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
 from ..model.core import Core, load_core
-from ..model.effects import CALIBRATION_GAIN, CALIBRATION_PHASE, stack_and_heater, tmatrix_library
+from ..model.effects import (
+    CALIBRATION_GAIN,
+    CALIBRATION_PHASE,
+    graded_cells,
+    graded_parts,
+    stack_and_heater,
+    tmatrix_library,
+)
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
@@ -131,14 +138,20 @@ class TMatrixKind(MeasurementKind):
         """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
         effect's gain g (``calibration.gain`` exp(i ``calibration.phase``), see
         :func:`tawarp.model.effects.calibration_effect`) multiplies all four (g = 1 + 0i:
-        exactly the uncalibrated values)."""
+        exactly the uncalibrated values); a stack's ``porosity_gradient`` splits it into
+        parts (:func:`tawarp.model.effects.graded_parts`)."""
         values = dict(values)
         gain = values.pop(CALIBRATION_GAIN, None)
         phase = values.pop(CALIBRATION_PHASE, None)
         frame = {k: values.pop(k) for k in list(values) if k.endswith((".frame_modulus", ".frame_loss_factor"))}
-        names = tuple(sorted(values))
         core = effect.transform(self.core) if effect is not None and effect.transform else self.core
-        eng = get_engine(core, self.freqs, list(names), self.settings)
+        whole = core
+        core, values = graded_parts(whole, values, n)
+        settings = self.settings
+        if isinstance(settings.cells, dict) and len(core.segments) != len(whole.segments):
+            settings = dataclasses.replace(settings, cells=graded_cells(settings.cells, core))
+        names = tuple(sorted(values))
+        eng = get_engine(core, self.freqs, list(names), settings)
         nq = len(self.Qs)
         table = np.empty((1 + len(names), n * nq))
         table[0] = np.tile(self.Qs, n)

@@ -84,6 +84,7 @@ class Segment:
     frame_mobility: float = 0.0
     viscous_shape_factor: float = 1.0
     end_conductance: float = 0.0
+    contact_resistance: float = 0.0
     T_start: float = math.nan
     T_end: float = math.nan
 

@@ -272,6 +272,21 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         "segment (the ambient exchangers' thermal contact; 0: adiabatic end, inf: held at T_cold)",
     ),
     Field(
+        "contact_resistance",
+        layout.CONTACT_RESISTANCE,
+        "m^2 K/W",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        log=False,
+        scale=1e-4,
+        fit_range=(0.0, 0.1),
+        description="thermal contact resistance at the segment's start against the previous thermal segment: "
+        "theta jumps by R_c times the heat flux density there (0: perfect contact; no effect on the first)",
+    ),
+    Field(
         "T_start",
         layout.T_START,
         "K",
@@ -370,6 +385,22 @@ HOST_FIELD_TABLE: dict[str, Field] = {
         fit_range=(1.0, 1e3),
         description="frame bulk density rho_1 (frame mass per layer volume)",
     ),
+    "porosity_gradient": Field(
+        "porosity_gradient",
+        -1,
+        "-",
+        -2.0,
+        2.0,
+        True,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=0.1,
+        fit_range=(-1.0, 1.0),
+        upper_open=True,
+        description="g in phi(x) = phi (1 + g (x/L - 1/2)) along a thermal stack (its parts' porosities, "
+        "tawarp.model.effects.graded_parts)",
+    ),
     "poisson_ratio": Field(
         "poisson_ratio",
         -1,
@@ -449,6 +480,7 @@ TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "h_convection": (0.0, 1e5),
     "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
+    "contact_resistance": (0.0, 1.0),
     "T_start": (1.0, 1e4),
     "T_end": (1.0, 1e4),
 }
