@@ -19,7 +19,7 @@ warm-up that loads the kernels on every worker (compiled once beforehand in this
 * ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
-* ``islands``: :func:`tawarp.distributed.search_islands`, a batched CMA-ES island per
+* ``islands``: :func:`tawarp.design.islands.search_islands`, a batched CMA-ES island per
   worker (``--island-trials`` trials of ``--island-batch`` each, one journal study with
   its trial store, committed once a second), worker processes (the search's host work
   per generation is Python: threads of one process would share the GIL).
@@ -49,7 +49,8 @@ import numpy as np
 from tawarp.design.search import search
 from tawarp.design.space import DesignSpace
 from tawarp.design.sweep import sweep
-from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, search_islands
+from tawarp.design.islands import search_islands
+from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices

@@ -112,7 +112,7 @@ def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objec
     # values, generation and member) and the same best as running island0 then island1 in
     # one process; CMA-ES and NSGA-II
     from tawarp.design.storage import best_designs, trials_table
-    from tawarp.distributed import search_islands
+    from tawarp.design.islands import search_islands
 
     kw = dict(objectives=objectives, n_trials=48, batch=16, seed=4)
     for name in ("island0", "island1"):
@@ -198,7 +198,7 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     )
     values = space.from_unit(np.random.default_rng(3).random((40, 2)))
     values["material"] = np.arange(40) % 3
-    from tawarp.distributed import search_islands
+    from tawarp.design.islands import search_islands
 
     reduced = dict(mode="sobol", n_samples=96, chunk=20, seed=2, reduce="best,quantiles,pareto,top=5", raw=False)
     procs = local_cluster(["cpu", "cpu"], processes=True)
