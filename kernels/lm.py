@@ -133,6 +133,48 @@ class NormalEquations:
 
 
 @wp.func
+def coefficient_scale(k: int, zc: wp.float64):
+    """The factor that makes raw value k (re, im of Tpp, Tpu, Tup, Tuu) dimensionless:
+    1/Zc for Tpu, Zc for Tup, 1 for the others."""
+    if k == 2 or k == 3:
+        return wp.float64(1.0) / zc
+    if k == 4 or k == 5:
+        return zc
+    return wp.float64(1.0)
+
+
+_SUM_FUNCS = {}
+
+
+def normal_sums(p: int):
+    """(add_row, store_sums) @wp.funcs of the normal equations for ``p`` parameters (cached
+    per p), shared by the difference, tangent and secant kernels: ``add_row(g, H, jr, r)``
+    adds the residual r with Jacobian row jr to g = J^T r and H = J^T J; ``store_sums(sums,
+    s, cost, raw, g, H)`` writes row s of a :class:`NormalEquations`."""
+    if p in _SUM_FUNCS:
+        return _SUM_FUNCS[p]
+    P = wp.constant(p)
+    vecp = wp.types.vector(length=p, dtype=wp.float64)
+    matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+
+    @wp.func
+    def add_row(gv: vecp, Hm: matp, jr: vecp, r: wp.float64):
+        return gv + r * jr, Hm + wp.outer(jr, jr)
+
+    @wp.func
+    def store_sums(sums: NormalEquations, s: int, c2: wp.float64, u2: wp.float64, gv: vecp, Hm: matp):
+        sums.cost[s] = c2
+        sums.raw[s] = u2
+        for a in range(P):
+            sums.g[s, a] = gv[a]
+            for b in range(P):
+                sums.H[s, a, b] = Hm[a, b]
+
+    _SUM_FUNCS[p] = (add_row, store_sums)
+    return _SUM_FUNCS[p]
+
+
+@wp.func
 def second_pair(k: int, p: int):
     """The parameters (a, b) that the set k of a second-difference group moves: k < p is
     z + h e_k (a = k, b = -1), then z + h (e_a + e_b) for a <= b in row order (p (p + 1) / 2
@@ -222,6 +264,7 @@ def normal_kernel(p: int, tangents: bool = False):
     TANGENTS = wp.constant(bool(tangents))
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+    add_row, store_sums = normal_sums(p)
 
     @wp.kernel(enable_backward=False, module="unique")
     def normal_equations(
@@ -252,11 +295,7 @@ def normal_kernel(p: int, tangents: bool = False):
             wrow = 0
         for f in range(out.shape[1]):
             for k in range(8):
-                fac = wp.float64(1.0)
-                if k == 2 or k == 3:
-                    fac = wp.float64(1.0) / zc[pid]
-                if k == 4 or k == 5:
-                    fac = zc[pid]
+                fac = coefficient_scale(k, zc[pid])
                 w = W[wrow, f, k]
                 y0 = out[base, f, k] * fac
                 d = y0 - Y[pid, f, k]
@@ -269,16 +308,8 @@ def normal_kernel(p: int, tangents: bool = False):
                         jr[a] = w * tangent[s, a, f, k] * fac
                     else:
                         jr[a] = w * (out[base + 1 + a, f, k] * fac - y0) * inv_step[a]
-                for a in range(P):
-                    gv[a] += jr[a] * r
-                    for b in range(P):
-                        Hm[a, b] += jr[a] * jr[b]
-        sums.cost[s] = c2
-        sums.raw[s] = u2
-        for a in range(P):
-            sums.g[s, a] = gv[a]
-            for b in range(P):
-                sums.H[s, a, b] = Hm[a, b]
+                gv, Hm = add_row(gv, Hm, jr, r)
+        store_sums(sums, s, c2, u2, gv, Hm)
 
     _NORMAL_KERNELS[key] = normal_equations
     return normal_equations
@@ -361,6 +392,7 @@ def secant_kernels(p: int):
     P = wp.constant(p)
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
+    add_row, store_sums = normal_sums(p)
 
     NPAIR = wp.constant(p * (p + 1) // 2)
 
@@ -457,11 +489,7 @@ def secant_kernels(p: int):
             for f in range(m):
                 for k in range(8):
                     row = f * 8 + k
-                    fac = wp.float64(1.0)
-                    if k == 2 or k == 3:
-                        fac = wp.float64(1.0) / zc[pid]
-                    if k == 4 or k == 5:
-                        fac = zc[pid]
+                    fac = coefficient_scale(k, zc[pid])
                     jr = vecp()
                     for a in range(P):
                         jr[a] = store.dT[row * P + a, q]
@@ -479,17 +507,8 @@ def secant_kernels(p: int):
                     r = w * d
                     c2 += r * r
                     u2 += d * d
-                    jw = (w * fac) * jr
-                    for a in range(P):
-                        gv[a] += jw[a] * r
-                        for b in range(P):
-                            Hm[a, b] += jw[a] * jw[b]
-            sums.cost[e] = c2
-            sums.raw[e] = u2
-            for a in range(P):
-                sums.g[e, a] = gv[a]
-                for b in range(P):
-                    sums.H[e, a, b] = Hm[a, b]
+                    gv, Hm = add_row(gv, Hm, (w * fac) * jr, r)
+            store_sums(sums, e, c2, u2, gv, Hm)
 
         return sums_kernel
 
@@ -549,11 +568,7 @@ def secant_kernels(p: int):
             for f in range(data.Y.shape[1]):
                 for k in range(8):
                     row = f * 8 + k
-                    fac = wp.float64(1.0)
-                    if k == 2 or k == 3:
-                        fac = wp.float64(1.0) / zc[pid]
-                    if k == 4 or k == 5:
-                        fac = zc[pid]
+                    fac = coefficient_scale(k, zc[pid])
                     rvv = wp.float64(0.0)
                     for a in range(P):
                         for b in range(P):
