@@ -74,6 +74,26 @@ def test_fit_on_cluster_equals_one_process(client):
     assert many.problem_warnings == one.problem_warnings
 
 
+def test_fit_of_data_on_the_workers_equals_one_process(client):
+    # chunks of data made on the workers (futures): each fitted where it lies, in the
+    # list's order; the start and the weights given once hold for every problem
+    core = load_core("mesh")
+    names = ["stack.porosity", "stack.pore_radius"]
+    Y0 = reference.dimensionless_transfer(core, FREQS, 0.0)
+    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
+    Y = Y0 + sd * np.random.default_rng(2).standard_normal((5,) + Y0.shape)
+    start = np.array([core.get(k) for k in names]) * [1.2, 0.8]
+    one = fit(core, FREQS, Y, names, start, weights=1 / sd, device="cpu", warn=False)
+    workers = list(client.scheduler_info()["workers"])
+    chunks = [client.scatter([{"Y": Y[lo:hi]}], workers=[w])[0] for (lo, hi), w in zip([(0, 3), (3, 5)], workers)]
+    many = fit_on_cluster(client, core, FREQS, chunks, names, start, weights=1 / sd, warn=False)
+    for f in ("values", "std", "cost", "covariance"):
+        np.testing.assert_allclose(getattr(many, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
+    assert np.array_equal(many.iterations, one.iterations) and many.converged.all()
+    with pytest.raises(ValueError, match="every problem"):
+        fit_on_cluster(client, core, FREQS, chunks, names, np.tile(start, (5, 1)))
+
+
 def test_design_evaluations_on_cluster_equal_one_process(client):
     space = _space()
     rng = np.random.default_rng(1)
@@ -189,7 +209,12 @@ def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs, pa
 def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     # the path of GPU workers: tasks and results pickled between processes (the job, the
     # int8 material of a Sobol file, float32 outputs, float64 objectives); ~5 s here
+    import os
+    from pathlib import Path
+
     import xarray as xr
+
+    from tawarp.design.space import DeviceTable
 
     from tawarp.design.sweep import sweep
 
@@ -203,7 +228,16 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     reduced = dict(mode="sobol", n_samples=96, chunk=20, seed=2, reduce="best,quantiles,pareto,top=5", raw=False)
     procs = local_cluster(["cpu", "cpu"], processes=True)
     try:
+        # each worker a process of its own that sees no GPU (a GPU worker: its GPU alone)
+        seen = procs.run(lambda: (os.getpid(), os.environ["CUDA_VISIBLE_DEVICES"]))
+        assert len({pid for pid, _ in seen.values()} | {os.getpid()}) == 3
+        assert [v for _, v in seen.values()] == ["", ""]
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
+        # Sobol points drawn on the workers, their objectives written in shared memory
+        drawn = ClusterEvaluator(procs, space, extra=["acoustic_loss"], chunk=16)
+        assert drawn.shared
+        drawn.warm_up()
+        sobol = drawn.evaluate_sobol(50, seed=7, first=5)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
@@ -214,6 +248,10 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         cluster.close()
     one = Evaluator(space).evaluate(values)
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k]) for k in one)
+    ev = Evaluator(space, extra=["acoustic_loss"])
+    one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
+    assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
+    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared file went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
         with (
