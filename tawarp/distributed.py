@@ -11,16 +11,23 @@ those of one process (the tests check 1e-12 on a local CPU cluster).
 >>> client = local_cluster(["cuda:0", "cuda:1"])          # or ["cpu", "cpu"]
 >>> res = fit_on_cluster(client, core, freqs, Y, names, start)  # doctest: +SKIP
 
-Workers are processes by default (``processes=True``): a chunk's arrays are pickled and
-sent over TCP, which costs more than the device time of a design point. With
-``local_cluster(devices, processes=False)`` the workers are threads of this process, each
-driving its own device: Dask hands them contiguous arrays by reference (pickle protocol
-5 passes their buffers; a strided view is copied, under the GIL, so what travels here is
-contiguous) and nothing crosses between processes (Warp's launches and copies release the
-GIL; the first launches of a worker, which load Warp modules, run one worker at a time:
-:func:`worker_state`).
-A sweep sends no table either way (each worker makes its chunks' tables on its device,
-:func:`tawarp.design.sweep.sweep`).
+Workers are processes by default (``processes=True``), each seeing its own GPU alone
+(``CUDA_VISIBLE_DEVICES``) and running its host work (the fit's Levenberg-Marquardt
+steps, a reducer's merges, a sampler) under its own GIL: what scales. What crosses
+between processes is pickled and sent over TCP, which costs more than the device time of
+a fit or a design point, so the work that scales makes its inputs where it runs and sends
+back little: a sweep's and :meth:`ClusterEvaluator.evaluate_sobol`'s tasks are point
+ranges (each worker draws its points and builds its tables on its device), a reduced
+sweep returns its reductions, an island its best, a fit of data already on the workers
+(:func:`fit_on_cluster` of futures) its results, and the objectives of
+``evaluate_sobol`` are written by the worker processes of this host into shared memory
+(:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
+are threads of this process, each driving its own device: Dask hands them contiguous
+arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
+under the GIL, so what travels here is contiguous), which suits one GPU fed from this
+process's arrays (a table, data in memory); their host work shares one GIL (Warp's
+launches and copies release it; the first launches of a worker, which load Warp modules,
+run one worker at a time: :func:`worker_state`).
 
 Other clusters (several machines): start one ``dask worker --nthreads 1`` per GPU with
 ``CUDA_VISIBLE_DEVICES`` set (each then sees its GPU as ``cuda``), connect a
@@ -338,8 +345,9 @@ def fit_on_cluster(
         settings = smooth_settings(
             core, freqs, settings, {**_sized_starts(core, names, start, kw), **(fixed or {})}, heat_input
         )
-        parts = list(ordered_map(client, _fit_chunk, Y, core, freqs, names, dict(kw, settings=settings), common))
-        res = concatenate_results(parts)
+        n = sum(client.gather([client.submit(_problems, y, pure=False) for y in Y]))  # (where each lies)
+        parts = ordered_map(client, _fit_chunk, Y, core, freqs, names, dict(kw, settings=settings), common)
+        res = concatenate_results(parts, n)
         res.seconds = time.perf_counter() - t0
         return res
     Y = np.asarray(Y)
@@ -371,10 +379,14 @@ def fit_on_cluster(
         }
         for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))
     ]
-    parts = list(ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings)))
-    res = concatenate_results(parts)
+    parts = ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings))
+    res = concatenate_results(parts, N)
     res.seconds = time.perf_counter() - t0
     return res
+
+
+def _problems(chunk: dict) -> int:
+    return len(chunk["Y"])
 
 
 def _sized_starts(core, names: list, start, kw: dict) -> dict:
@@ -396,18 +408,45 @@ def _is_future(a) -> bool:
     return distributed is not None and isinstance(a, distributed.Future)
 
 
-def concatenate_results(parts):
+def concatenate_results(parts, n: int | None = None):
     """One :class:`~tawarp.fit.result.FitResult` from results of consecutive problem chunks:
     arrays with the problem axis first and per-problem lists are joined in order,
     ``evaluations`` and ``launches`` summed, batch ``warnings`` joined without repeats,
-    everything else (names, dof, bounds, ...) taken from the first part."""
+    everything else (names, dof, bounds, ...) taken from the first part. With ``n`` (the
+    problems of all parts) ``parts`` may be an iterator: each part's arrays are copied into
+    place as it comes (while the workers fit the next ones) and then dropped."""
     from .fit.result import ProblemWarnings
 
-    first = parts[0]
+    if n is None:
+        parts = list(parts)
+        if len(parts) == 1:
+            return parts[0]
+        n = sum(len(p.values) for p in parts)
+    joined, rest, at = {}, [], 0
+    for part in parts:
+        m = len(part.values)
+        arrays = {}
+        for f in dataclasses.fields(part):
+            v = getattr(part, f.name)
+            if isinstance(v, np.ndarray) and v.ndim >= 1 and f.name not in ("lower", "upper"):
+                if not rest:
+                    joined[f.name] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
+                if f.name in joined:
+                    joined[f.name][at : at + m] = v
+                    arrays[f.name] = None
+        if arrays.keys() != joined.keys():
+            raise ValueError(f"concatenate_results: per-problem arrays {sorted(joined)} not in every part")
+        at += m
+        rest.append(dataclasses.replace(part, **arrays))
+    if at != n:
+        raise ValueError(f"concatenate_results: the parts hold {at} problems, not {n}")
+    first = rest[0]
     out = {}
     for f in dataclasses.fields(first):
-        vals = [getattr(p, f.name) for p in parts]
-        if f.name in ("evaluations", "launches"):
+        vals = [getattr(p, f.name) for p in rest]
+        if f.name in joined:
+            out[f.name] = joined[f.name]
+        elif f.name in ("evaluations", "launches"):
             out[f.name] = sum(vals)
         elif f.name == "seconds":
             out[f.name] = max(vals)
@@ -415,14 +454,6 @@ def concatenate_results(parts):
             out[f.name] = list(dict.fromkeys(w for v in vals for w in v))
         elif f.name == "problem_warnings":
             out[f.name] = ProblemWarnings.concatenate(vals)
-        elif (
-            isinstance(vals[0], np.ndarray)
-            and vals[0].ndim >= 1
-            and f.name not in ("lower", "upper")
-            and all(isinstance(v, np.ndarray) for v in vals)
-            and len(parts) > 1
-        ):
-            out[f.name] = np.concatenate(vals)
         else:
             out[f.name] = vals[0]
     return type(first)(**out)
