@@ -59,9 +59,10 @@ import warnings
 
 import numpy as np
 
+from tawarp.design.evaluate import Evaluator
 from tawarp.design.islands import search_islands
 from tawarp.design.search import search
-from tawarp.design.space import DesignSpace
+from tawarp.design.space import DesignSpace, DeviceTable
 from tawarp.design.sweep import sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
@@ -282,6 +283,9 @@ def compile_here(bench: Bench, device: str) -> None:
         warn=False,
         settings=settings,
     )
+    ev = Evaluator(bench.space, settings=settings)
+    table = DeviceTable(bench.space, ev.device).sobol(0, 64, 0)[0]
+    ev.objectives_of(ev.evaluate_device(table), table)
     path = os.path.join(bench.tmp, "compile.nc")
     sweep(bench.space, path, mode="sobol", n_samples=256, chunk=128, settings=settings, reduce=REDUCE, raw=False)
     search(bench.space, n_trials=64, batch=32, settings=settings, storage=os.path.join(bench.tmp, "compile.journal"))
@@ -299,7 +303,11 @@ class Watchdog:
         self.timer.start()
 
     def watch(self, client) -> None:
-        self.pids.update(client.run(os.getpid).values())
+        """Stop the worker processes of ``client`` (until :meth:`closed`) if time runs out."""
+        self.pids = {pid for pid in client.run(os.getpid).values() if pid != os.getpid()}  # (not threads)
+
+    def closed(self) -> None:
+        self.pids = set()  # (their ids may be another process's by now)
 
     def fire(self) -> None:
         print("multi_gpu: --timeout passed; stacks follow, the worker processes are stopped", file=sys.stderr)
@@ -448,6 +456,7 @@ def main(argv=None) -> int:
                             failed = True
                 finally:
                     closed(client)
+                    dog.closed()
             row["elapsed_s"] = time.perf_counter() - t_all
             print(json.dumps({key: v for key, v in row.items() if not key.startswith("_")}), flush=True)
             result["rows"].append(row)

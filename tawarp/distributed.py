@@ -68,9 +68,10 @@ class DevicePlugin:
     the device ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU
     batches. Workers without an integer name keep the default device."""
 
-    def __init__(self, devices, cpu_threads: int = 1):
+    def __init__(self, devices, cpu_threads: int = 1, pinned: bool = False):
         self.devices = list(devices)
         self.cpu_threads = int(cpu_threads)
+        self.pinned = pinned
 
     def setup(self, worker):
         try:
@@ -78,6 +79,17 @@ class DevicePlugin:
         except (TypeError, ValueError):
             worker.tawarp_device = None
         worker.tawarp_cpu_threads = self.cpu_threads
+        if self.pinned and str(worker.tawarp_device).startswith("cuda"):
+            # CUDA reads CUDA_VISIBLE_DEVICES once, when it starts: had something started it
+            # before the variable was set, every worker would drive the first GPU
+            import warp as wp
+
+            wp.init()
+            if wp.get_cuda_device_count() != 1:
+                raise RuntimeError(
+                    f"tawarp worker {worker.name}: sees {wp.get_cuda_device_count()} GPUs, not the one of "
+                    f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r} (CUDA started before it was set)"
+                )
 
 
 #: Seconds :func:`local_cluster` waits for its workers (a worker process imports Warp and
@@ -121,7 +133,8 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
     try:
         client = distributed.Client(cluster, timeout=timeout)
         client.wait_for_workers(len(devices), timeout=timeout)
-        client.register_plugin(_as_worker_plugin(DevicePlugin(seen, cpu_threads or max(1, cores // max(1, n_cpu)))))
+        threads = cpu_threads or max(1, cores // max(1, n_cpu))
+        client.register_plugin(_as_worker_plugin(DevicePlugin(seen, threads, pinned=processes)))
     except BaseException:
         cluster.close()
         raise
@@ -516,11 +529,11 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns 
 
 @dataclasses.dataclass(frozen=True)
 class SharedColumns:
-    """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``): each
-    worker process of this host writes its rows in place, and the client maps the file
-    once, so that the results of a local process cluster cross no socket and are copied
-    nowhere. ``layout``: {name: (dtype, shape of a row)}; the columns follow each other,
-    each at an offset aligned to 64 bytes."""
+    """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``, else the
+    temporary folder): each worker process of this host writes its rows in place, and the
+    client maps the file once and unlinks it, so that the results of a local process
+    cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
+    row)}; the columns follow each other, each at an offset aligned to 64 bytes."""
 
     path: str
     n: int
@@ -551,24 +564,26 @@ class SharedColumns:
             cols[k][at : at + len(v)] = v
 
     @classmethod
-    def create(cls, n: int, layout: dict, folder: str = "/dev/shm") -> SharedColumns | None:
-        """A new file of these columns in ``folder``, or None when the folder is missing or
-        lacks the room (a worker writing past the end of a full tmpfs would be killed)."""
+    def create(cls, n: int, layout: dict, folders=None) -> SharedColumns | None:
+        """A new file of these columns in the first of ``folders`` (default ``/dev/shm``,
+        then the temporary folder) with twice its size free, or None (a worker writing past
+        the end of a full tmpfs would be killed)."""
         import tempfile
 
-        shared = cls("", n, layout)
-        try:
-            st = os.statvfs(folder)
-        except OSError:
-            return None
-        if st.f_bavail * st.f_frsize < 2 * shared.nbytes():  # (room for the rest of the host)
-            return None
-        fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
-        try:
-            os.ftruncate(fd, shared.nbytes())
-        finally:
-            os.close(fd)
-        return cls(path, n, layout)
+        size = cls("", n, layout).nbytes()
+        for folder in folders or ("/dev/shm", tempfile.gettempdir()):
+            try:
+                st = os.statvfs(folder)
+            except OSError:
+                continue
+            if st.f_bavail * st.f_frsize >= 2 * size:  # (room left for the rest of the host)
+                fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
+                try:
+                    os.ftruncate(fd, size)
+                finally:
+                    os.close(fd)
+                return cls(path, n, layout)
+        return None
 
 
 class ClusterEvaluator:
