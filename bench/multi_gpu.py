@@ -112,13 +112,17 @@ def design_space() -> DesignSpace:
 
 
 def timed(fn, repeats: int):
-    """(best wall time of ``repeats`` calls [s], the last call's result)."""
-    best, out = np.inf, None
+    """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
+    this process (client, scheduler, nannies: every thread) in the best call [s]): a CPU
+    time near the wall time says the client is the serial part."""
+    best, out, cpu = np.inf, None, None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+        t, c = time.perf_counter() - t0, time.process_time() - c0
+        if t < best:
+            best, cpu = t, c
+    return best, out, cpu
 
 
 def digest(arrays: dict) -> str:
@@ -196,12 +200,13 @@ class Bench:
                 self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
             data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
         t_data = time.perf_counter() - t0
-        t, res = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats)
+        t, res, cpu = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats)
         return {
             "fits": n,
             "fit_data": self.args.fit_data,
             "fit_data_seconds": t_data,
             "fit_seconds": t,
+            "fit_client_cpu_seconds": cpu,
             "fits_per_s": n / t,
             "fits_converged": float(res.converged.mean()),
             "_values": res.values,
@@ -212,10 +217,11 @@ class Bench:
         n = self.args.points
         ev.warm_up()
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
-        t, out = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
+        t, out, cpu = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
         return {
             "evaluation_points": n,
             "evaluation_seconds": t,
+            "evaluation_client_cpu_seconds": cpu,
             "evaluations_per_s": n / t,
             "evaluations_shared_memory": ev.shared,
             "evaluations_digest": digest(out),
@@ -231,12 +237,13 @@ class Bench:
             )
 
         run(64 * k, 64)  # warm-up
-        t, info = timed(run, self.args.repeats)
+        t, info, cpu = timed(run, self.args.repeats)
         os.remove(path)
         return {
             "sweep_points": a.sweep_points,
             "sweep_chunk": a.sweep_chunk,
             "sweep_seconds": t,
+            "sweep_client_cpu_seconds": cpu,
             "sweep_points_per_hour": 3600.0 * a.sweep_points / t,
             "sweep_reductions": info.reductions,
         }
@@ -246,8 +253,9 @@ class Bench:
         kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
         warm = os.path.join(self.tmp, f"warm{k}.journal")
         search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
-        res = search_islands(
-            client, self.space, storage=os.path.join(self.tmp, f"islands{k}.journal"), n_trials=a.island_trials, **kw
+        storage = os.path.join(self.tmp, f"islands{k}.journal")
+        _, res, cpu = timed(
+            lambda: search_islands(client, self.space, storage=storage, n_trials=a.island_trials, **kw), 1
         )
         tm = res.timing
         wall = tm["wall"]
@@ -256,6 +264,7 @@ class Bench:
             "island_batch": a.island_batch,
             "islands": k,
             "island_seconds": wall,
+            "island_client_cpu_seconds": cpu,
             "island_evaluations_per_minute": tm["evaluations_per_minute"],
             "island_sampler_share": tm["sampler"] / (k * wall),
             "island_storage_share": tm["storage"] / (k * wall),
