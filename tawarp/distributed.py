@@ -102,8 +102,8 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
     entry of ``devices`` (``"cuda:0"``, ``"cpu"``, ...; default: every GPU Warp sees,
     else two CPU workers). ``processes``: each worker a process of its own (its own GIL,
     so the host work of one worker never waits on another's), which sees its GPU alone
-    (``CUDA_VISIBLE_DEVICES``, set before the process starts: it makes no context on the
-    other GPUs), and CPU workers none; arrays sent to a process are pickled, so the work
+    (``CUDA_VISIBLE_DEVICES``, set as the process starts, before CUDA does: it makes no
+    context on the other GPUs; checked as it joins), and CPU workers none; arrays sent to a process are pickled, so the work
     that scales keeps them where they are made (:func:`fit_on_cluster` of data on the
     workers, :meth:`ClusterEvaluator.evaluate_sobol`, reduced sweeps, islands). Else each
     worker is a thread of this process (arrays passed by reference, one GIL: see the
