@@ -113,8 +113,9 @@ def design_space() -> DesignSpace:
 
 def timed(fn, repeats: int):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
-    this process (client, scheduler, nannies: every thread) in the best call [s]): a CPU
-    time near the wall time says the client is the serial part."""
+    this process (client, scheduler, nannies: every thread; worker threads too, with
+    ``--cluster threads``) in the best call [s]): with worker processes, a CPU time near
+    the wall time says the client is the serial part."""
     best, out, cpu = np.inf, None, None
     for _ in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
