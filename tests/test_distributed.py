@@ -392,3 +392,23 @@ def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
             xr.testing.assert_identical(x.load(), y.load())
     with pytest.raises(ValueError, match="raw=False"):
         sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})
+
+
+def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
+    # columns of several dtypes and row shapes in one file, each at a 64-byte offset; two
+    # writers' row ranges read back exactly through the client's one mapping
+    from tawarp.distributed import SharedColumns
+
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ())}
+    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)])
+    assert all(v % 64 == 0 for v in cols.offsets().values())
+    rows = {
+        "gradient": np.arange(5.0) / 3,
+        "window": np.arange(15, dtype=np.float32).reshape(5, 3),
+        "material": [1, 0, 2, 2, 1],
+    }
+    cols.write(2, {k: np.asarray(v)[2:] for k, v in rows.items()})
+    cols.write(0, {k: np.asarray(v)[:2] for k, v in rows.items()})
+    back = cols.columns()
+    assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
+    assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
