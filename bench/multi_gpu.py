@@ -1,55 +1,69 @@
 """Scaling over the GPUs of one machine through Dask distributed (tawarp.distributed):
 batched fits, design evaluations, a reduced sweep and the island design search on 1, 2,
-... GPUs. One command per machine, one JSON:
+4 ... GPUs. One command per machine, one JSON:
 
     python bench/multi_gpu.py --gpus 1,2 --out bench/results/multi_gpu_h100x2.json
     python bench/multi_gpu.py --gpus 1,2,4 --out bench/results/multi_gpu_h100x4.json
     python bench/multi_gpu.py --devices cpu,cpu --gpus 1,2 --small   # CPU workers: a smoke check
 
-For each k of ``--gpus`` a local cluster of one single-threaded Dask worker on each of
-the devices 0 .. k-1 (``--devices``: cuda:0, cuda:1, ... by default) runs, after a
-warm-up that loads the kernels on every worker (compiled once beforehand in this process):
+For each k of ``--gpus`` a local cluster of one single-threaded Dask worker process on
+each of the devices 0 .. k-1 (``--devices``: cuda:0, cuda:1, ... by default; each process
+sees its GPU alone) is started (``start_seconds``, not in any rate), and every case warms
+each worker up (its kernels loaded, compiled once beforehand in this process) before it
+is timed:
 
 * ``fits``: :func:`tawarp.distributed.fit_on_cluster`, the heat workload of bench/fit.py
   (mesh core, h_s, h_h, h_a at 40 W, 100 frequencies, starts 30 % off), ``--fits``
-  problems in ``--fit-chunks`` chunks per worker; the data are the client's (they travel);
+  problems in chunks of ``--fit-chunk``, dealt to the workers in turn (GPU memory bounds
+  a chunk; the last round of results is what the client waits for). The data are made
+  on the workers before
+  the timing (``--fit-data workers``, as each worker would read its own files: problem i's
+  noise is drawn from its block's stream, the same data whatever the chunks;
+  ``fit_data_seconds``), or sent by the client (``--fit-data client``);
 * ``evaluations``: :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` of
   ``--points`` Sobol points of the rvc_foam space: each worker draws its chunks' points
-  and builds their tables on its device, the objectives come back;
+  and builds their tables on its device; the objectives come back through shared memory
+  (worker processes of this host) or Dask;
 * ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
 * ``islands``: :func:`tawarp.design.islands.search_islands`, a batched CMA-ES island per
   worker (``--island-trials`` trials of ``--island-batch`` each, one journal study with
-  its trial store, committed once a second), worker processes (the search's host work
-  per generation is Python: threads of one process would share the GIL).
+  its trial store, committed once a second).
 
-Fits, evaluations and the sweep run on worker threads of this process
-(``local_cluster(processes=False)``: arrays pass by reference; ``--cluster processes``
-to compare), the islands on worker processes. Speed-up = rate on k GPUs / rate on the
-first k of ``--gpus`` (the targets: >= 1.8 on 2 GPUs, >= 3.5 on 4). Each row also says
-whether its results equal those of that first row (the evaluations and the sweep's
-reductions bit for bit, the fits' largest relative difference, island0's best).
+``--cluster threads`` runs fits, evaluations and the sweep on worker threads of this
+process instead (``local_cluster(processes=False)``: one GIL; the islands stay on
+processes). Speed-up = rate on k GPUs / rate on the first k of ``--gpus`` (the targets:
+>= 1.8 on 2 GPUs, >= 3.5 on 4). Each row also says whether its results equal those of
+that first row (the evaluations and the sweep's reductions bit for bit, the fits' largest
+relative difference, island0's best). The JSON is written after every row; a run that
+passes ``--timeout`` seconds (a worker stuck) prints every thread's stack, stops the
+worker processes, keeps the rows done and exits with status 3; a case that fails (a
+worker killed) is recorded in its row (``errors``) and the run exits with status 1.
 """
 
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import hashlib
 import json
 import os
 import platform
+import signal
 import sys
 import tempfile
+import threading
 import time
 import warnings
 
 import numpy as np
 
-from tawarp.design.search import search
-from tawarp.design.space import DesignSpace
-from tawarp.design.sweep import sweep
+from tawarp.design.evaluate import Evaluator
 from tawarp.design.islands import search_islands
+from tawarp.design.search import search
+from tawarp.design.space import DesignSpace, DeviceTable
+from tawarp.design.sweep import sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
@@ -58,20 +72,30 @@ from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
+#: Problems per block of the fit data's noise (one seeded stream each).
+FIT_BLOCK = 4096
 #: The reductions of the sweep (tawarp.design.reductions): all of them.
 REDUCE = "best,quantiles,histogram,pareto,top=100"
 CASES = ("fits", "evaluations", "sweep", "islands")
 
 
-def fit_data(n: int, seed: int = 0):
-    """Noisy data (0.5 %) of the mesh core at 40 W from 48 fixed cells, starts 30 % off."""
+def fit_model():
+    """(core, noise-free data Y0 (m, 4), its noise sd (0.5 %), start 30 % off) of the
+    mesh core at 40 W from 48 fixed cells."""
     core = load_core("mesh")
     Y0 = transfer_matrices(core, FREQS, 40.0, cells=48, device="cpu").dimensionless()[0]
-    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
-    rng = np.random.default_rng(seed)
-    Y = Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape))
     start = np.array([core.get(k) for k in FIT_NAMES]) * [1.3, 0.7, 1.3]
-    return core, Y, np.broadcast_to(1.0 / sd, Y.shape), start
+    return core, Y0, 0.005 * np.abs(Y0) / np.sqrt(2), start
+
+
+def noisy_data(lo: int, hi: int, Y0, sd, seed: int = 0) -> dict:
+    """Problems lo .. hi - 1 of the fit data: Y0 plus noise of ``sd``, problem i's drawn
+    from the stream (seed, i // FIT_BLOCK), so the data do not depend on the chunks."""
+    b0, b1 = lo // FIT_BLOCK, -(-hi // FIT_BLOCK)
+    noise = np.concatenate(
+        [np.random.default_rng([seed, b]).standard_normal((FIT_BLOCK, 2) + Y0.shape) for b in range(b0, b1)]
+    )[lo - b0 * FIT_BLOCK : hi - b0 * FIT_BLOCK]
+    return {"Y": Y0 + sd * (noise[:, 0] + 1j * noise[:, 1])}
 
 
 def design_space() -> DesignSpace:
@@ -88,13 +112,18 @@ def design_space() -> DesignSpace:
 
 
 def timed(fn, repeats: int):
-    """(best wall time of ``repeats`` calls [s], the last call's result)."""
-    best, out = np.inf, None
+    """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
+    this process (client, scheduler, nannies: every thread; worker threads too, with
+    ``--cluster threads``) in the best call [s]): with worker processes, a CPU time near
+    the wall time says the client is the serial part."""
+    best, out, cpu = np.inf, None, None
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+        t, c = time.perf_counter() - t0, time.process_time() - c0
+        if t < best:
+            best, cpu = t, c
+    return best, out, cpu
 
 
 def digest(arrays: dict) -> str:
@@ -112,54 +141,90 @@ def closed(client) -> None:
     cluster.close()
 
 
+def even_ranges(n: int, parts: int) -> list[tuple[int, int]]:
+    """``parts`` consecutive ranges covering 0 .. n - 1, their lengths within one."""
+    edges = [n * i // parts for i in range(parts + 1)]
+    return [(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+
 class Bench:
     """The cases on a cluster of k workers (see the module docstring)."""
 
     def __init__(self, args, tmp):
         self.args, self.tmp = args, tmp
         self.space = design_space()
-        self.data = fit_data(args.fits)
+        self.core, self.Y0, self.sd, self.start = fit_model()
+        self.client_data = None
+
+    def _fit(self, client, Y, weights, chunk=None):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FitWarning)
+            return fit_on_cluster(
+                client,
+                self.core,
+                FREQS,
+                Y,
+                FIT_NAMES,
+                self.start,
+                heat_input=40.0,
+                weights=weights,
+                warn=False,
+                chunk=chunk or 4096,
+            )
+
+    def _data_on_workers(self, client, n: int, workers: list, chunk: int) -> list:
+        """Futures of the chunks of n problems (``chunk`` each), dealt to the workers in
+        turn and made there."""
+        import distributed
+
+        ranges = even_ranges(n, -(-n // chunk))
+        futures = [
+            client.submit(noisy_data, lo, hi, self.Y0, self.sd, workers=[workers[i % len(workers)]], pure=False)
+            for i, (lo, hi) in enumerate(ranges)
+        ]
+        distributed.wait(futures)
+        for f in futures:
+            f.result()  # (a worker's error raised here)
+        return futures
 
     def fits(self, client, k: int) -> dict:
-        core, Y, w, start = self.data
-        chunks = self.args.fit_chunks
-
-        def run(n=None):
-            n = len(Y) if n is None else n
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", FitWarning)
-                return fit_on_cluster(
-                    client,
-                    core,
-                    FREQS,
-                    Y[:n],
-                    FIT_NAMES,
-                    start,
-                    heat_input=40.0,
-                    weights=w[:n],
-                    warn=False,
-                    chunk=-(-n // (chunks * k)),
-                )
-
-        run(2 * k * chunks)  # warm-up: every worker loads the kernels
-        t, res = timed(run, self.args.repeats)
+        n, chunk = self.args.fits, self.args.fit_chunk
+        w = (1.0 / self.sd)[None]  # one row: every problem's
+        workers = list(client.scheduler_info()["workers"])
+        # warm-up: every worker fits a few problems of its own (its fit kernels load)
+        self._fit(client, self._data_on_workers(client, 2 * len(workers), workers, 2), w)
+        t0 = time.perf_counter()
+        if self.args.fit_data == "workers":
+            data, weights = self._data_on_workers(client, n, workers, chunk), w
+        else:
+            if self.client_data is None:
+                self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
+            data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
+        t_data = time.perf_counter() - t0
+        t, res, cpu = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats)
         return {
-            "fits": len(Y),
+            "fits": n,
+            "fit_data": self.args.fit_data,
+            "fit_data_seconds": t_data,
             "fit_seconds": t,
-            "fits_per_s": len(Y) / t,
+            "fit_client_cpu_seconds": cpu,
+            "fits_per_s": n / t,
             "fits_converged": float(res.converged.mean()),
             "_values": res.values,
         }
 
     def evaluations(self, client, k: int) -> dict:
-        ev = ClusterEvaluator(client, self.space)
+        ev = ClusterEvaluator(client, self.space, chunk=self.args.eval_chunk)
         n = self.args.points
-        ev.evaluate_sobol(64 * k)  # warm-up
-        t, out = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
+        ev.warm_up()
+        ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
+        t, out, cpu = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
         return {
             "evaluation_points": n,
             "evaluation_seconds": t,
+            "evaluation_client_cpu_seconds": cpu,
             "evaluations_per_s": n / t,
+            "evaluations_shared_memory": ev.shared,
             "evaluations_digest": digest(out),
         }
 
@@ -173,12 +238,13 @@ class Bench:
             )
 
         run(64 * k, 64)  # warm-up
-        t, info = timed(run, self.args.repeats)
+        t, info, cpu = timed(run, self.args.repeats)
         os.remove(path)
         return {
             "sweep_points": a.sweep_points,
             "sweep_chunk": a.sweep_chunk,
             "sweep_seconds": t,
+            "sweep_client_cpu_seconds": cpu,
             "sweep_points_per_hour": 3600.0 * a.sweep_points / t,
             "sweep_reductions": info.reductions,
         }
@@ -188,8 +254,9 @@ class Bench:
         kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
         warm = os.path.join(self.tmp, f"warm{k}.journal")
         search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
-        res = search_islands(
-            client, self.space, storage=os.path.join(self.tmp, f"islands{k}.journal"), n_trials=a.island_trials, **kw
+        storage = os.path.join(self.tmp, f"islands{k}.journal")
+        _, res, cpu = timed(
+            lambda: search_islands(client, self.space, storage=storage, n_trials=a.island_trials, **kw), 1
         )
         tm = res.timing
         wall = tm["wall"]
@@ -198,6 +265,7 @@ class Bench:
             "island_batch": a.island_batch,
             "islands": k,
             "island_seconds": wall,
+            "island_client_cpu_seconds": cpu,
             "island_evaluations_per_minute": tm["evaluations_per_minute"],
             "island_sampler_share": tm["sampler"] / (k * wall),
             "island_storage_share": tm["storage"] / (k * wall),
@@ -211,23 +279,58 @@ class Bench:
 def compile_here(bench: Bench, device: str) -> None:
     """Every kernel the cases use, compiled (or loaded) once in this process, so that the
     workers only load them from Warp's cache."""
-    core, Y, w, start = bench.data
+    data = noisy_data(0, 2, bench.Y0, bench.sd)["Y"]
+    settings = ForwardSettings(device=device)
     fit_on_cluster(
         None,
-        core,
+        bench.core,
         FREQS,
-        Y[:2],
+        data,
         FIT_NAMES,
-        start,
+        bench.start,
         heat_input=40.0,
-        weights=w[:2],
+        weights=(1.0 / bench.sd)[None],
         warn=False,
-        settings=ForwardSettings(device=device),
+        settings=settings,
     )
-    settings = ForwardSettings(device=device)
+    ev = Evaluator(bench.space, settings=settings)
+    table = DeviceTable(bench.space, ev.device).sobol(0, 64, 0)[0]
+    ev.objectives_of(ev.evaluate_device(table), table)
     path = os.path.join(bench.tmp, "compile.nc")
     sweep(bench.space, path, mode="sobol", n_samples=256, chunk=128, settings=settings, reduce=REDUCE, raw=False)
     search(bench.space, n_trials=64, batch=32, settings=settings, storage=os.path.join(bench.tmp, "compile.journal"))
+
+
+class Watchdog:
+    """After ``seconds``: every thread's stack to stderr, the worker processes killed (by
+    their ids, as the clusters report them), the rows done written, exit status 3."""
+
+    def __init__(self, seconds: float, save):
+        self.pids: set[int] = set()
+        self.save = save
+        self.timer = threading.Timer(seconds, self.fire)
+        self.timer.daemon = True
+        self.timer.start()
+
+    def watch(self, client) -> None:
+        """Stop the worker processes of ``client`` (until :meth:`closed`) if time runs out."""
+        self.pids = {pid for pid in client.run(os.getpid).values() if pid != os.getpid()}  # (not threads)
+
+    def closed(self) -> None:
+        self.pids = set()  # (their ids may be another process's by now)
+
+    def fire(self) -> None:
+        print("multi_gpu: --timeout passed; stacks follow, the worker processes are stopped", file=sys.stderr)
+        faulthandler.dump_traceback(all_threads=True)
+        for pid in self.pids:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except OSError:
+                pass
+        try:
+            self.save(timed_out=True)
+        finally:
+            os._exit(3)
 
 
 def main(argv=None) -> int:
@@ -236,29 +339,39 @@ def main(argv=None) -> int:
     ap.add_argument("--devices", default=None, help="the devices in order (default cuda:0, cuda:1, ...)")
     ap.add_argument("--cases", default=",".join(CASES), help=f"comma list of {', '.join(CASES)}")
     ap.add_argument("--small", action="store_true", help="CPU-sized defaults (a smoke check)")
-    ap.add_argument("--fits", type=int, default=None, help="fit problems (default 100000; --small 8)")
-    ap.add_argument("--fit-chunks", type=int, default=2, help="fit chunks per worker")
-    ap.add_argument("--points", type=int, default=None, help="design evaluations (default 2^24; --small 2^14)")
-    ap.add_argument("--sweep-points", type=int, default=None, help="reduced sweep points (default 2^28; --small 2^15)")
+    ap.add_argument("--fits", type=int, default=None, help="fit problems (default 400000; --small 8)")
+    ap.add_argument("--fit-chunk", type=int, default=None, help="fit problems per chunk (default 50000; --small 4)")
+    ap.add_argument(
+        "--fit-data",
+        choices=("workers", "client"),
+        default="workers",
+        help="where the fit data are made (default workers)",
+    )
+    ap.add_argument("--points", type=int, default=None, help="design evaluations (default 2^26; --small 2^14)")
+    ap.add_argument("--eval-chunk", type=int, default=None, help="evaluation chunk (default 2^22; --small 2^11)")
+    ap.add_argument("--sweep-points", type=int, default=None, help="reduced sweep points (default 2^30; --small 2^15)")
     ap.add_argument("--sweep-chunk", type=int, default=None, help="sweep chunk (default 2^22; --small 2^12)")
-    ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^21; --small 2048)")
+    ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^22; --small 2048)")
     ap.add_argument("--island-batch", type=int, default=None, help="island population (default 8192; --small 256)")
     ap.add_argument("--repeats", type=int, default=None, help="timings per case, the best kept (default 2; --small 1)")
     ap.add_argument(
         "--cluster",
-        choices=("threads", "processes"),
-        default="threads",
-        help="workers of fits, evaluations and sweep (the islands always run on processes)",
+        choices=("processes", "threads"),
+        default="processes",
+        help="workers of fits, evaluations and sweep (default processes; the islands always run on processes)",
     )
+    ap.add_argument("--timeout", type=float, default=570.0, help="seconds before the run is stopped (default 570)")
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/multi_gpu.json)")
     args = ap.parse_args(argv)
     small = args.small
     for name, big, little in (
-        ("fits", 100000, 8),
-        ("points", 1 << 24, 1 << 14),
-        ("sweep_points", 1 << 28, 1 << 15),
+        ("fits", 400000, 8),
+        ("fit_chunk", 50000, 4),
+        ("points", 1 << 26, 1 << 14),
+        ("eval_chunk", 1 << 22, 1 << 11),
+        ("sweep_points", 1 << 30, 1 << 15),
         ("sweep_chunk", 1 << 22, 1 << 12),
-        ("island_trials", 1 << 21, 2048),
+        ("island_trials", 1 << 22, 2048),
         ("island_batch", 8192, 256),
         ("repeats", 2, 1),
     ):
@@ -285,23 +398,47 @@ def main(argv=None) -> int:
             resolve_device(d)
         except ValueError as e:
             ap.error(f"--devices: {e}")
+    import dask
+
+    dask.config.set({"distributed.scheduler.allowed-failures": 0})  # a killed worker fails its case at once
     t_all = time.perf_counter()
+    shm = os.statvfs("/dev/shm") if os.path.isdir("/dev/shm") else None
     result = {
         "command": "python bench/multi_gpu.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "devices": devices[: ks[-1]],
         "device_names": [wp.get_device(d).name for d in devices[: ks[-1]]],
         "host": platform.node(),
         "cpu_count": os.cpu_count(),
+        "dev_shm_free_gb": None if shm is None else shm.f_bavail * shm.f_frsize / 2**30,
         "warp": wp.config.version,
         "python": sys.version.split()[0],
         "cluster": {"fits, evaluations, sweep": args.cluster, "islands": "processes"},
         "sizes": {
             k: getattr(args, k)
-            for k in ("fits", "fit_chunks", "points", "sweep_points", "sweep_chunk", "island_trials", "island_batch")
+            for k in (
+                "fits",
+                "fit_chunk",
+                "fit_data",
+                "points",
+                "eval_chunk",
+                "sweep_points",
+                "sweep_chunk",
+                "island_trials",
+                "island_batch",
+            )
         },
         "repeats": args.repeats,
         "rows": [],
     }
+
+    def save(timed_out=False):
+        out = dict(result, rows=[{k: v for k, v in r.items() if not k.startswith("_")} for r in result["rows"]])
+        out["timed_out"] = timed_out
+        out["bench_seconds"] = time.perf_counter() - t_all
+        write_result(out, "multi_gpu.json", args.out)
+
+    dog = Watchdog(args.timeout, save)
+    failed = False
     with tempfile.TemporaryDirectory(prefix="tawarp_multi_gpu_") as tmp:
         bench = Bench(args, tmp)
         t = time.perf_counter()
@@ -309,49 +446,60 @@ def main(argv=None) -> int:
         result["compile_seconds"] = time.perf_counter() - t
         print(f"kernels ready in {result['compile_seconds']:.1f} s", flush=True)
         for k in ks:
-            row = {"workers": k}
-            plain = [c for c in cases if c != "islands"]
-            if plain:
-                client = local_cluster(devices[:k], processes=args.cluster == "processes", cpu_threads=1)
+            row = {"workers": k, "errors": {}}
+            groups = [[c for c in cases if c != "islands"], [c for c in cases if c == "islands"]]
+            if args.cluster == "processes":
+                groups = [cases]
+            for group in (g for g in groups if g):
+                t = time.perf_counter()
+                processes = args.cluster == "processes" or group == ["islands"]
+                client = local_cluster(devices[:k], processes=processes, cpu_threads=1)
+                row["start_seconds"] = row.get("start_seconds", 0.0) + time.perf_counter() - t
                 try:
-                    for c in plain:
-                        row.update(getattr(bench, c)(client, k))
+                    dog.watch(client)
+                    for c in group:
+                        try:
+                            row.update(getattr(bench, c)(client, k))
+                        except Exception as e:  # a worker killed, out of memory: recorded, the rest goes on
+                            row["errors"][c] = f"{type(e).__name__}: {e}"
+                            print(f"multi_gpu: {c} on {k} workers failed: {row['errors'][c]}", file=sys.stderr)
+                            failed = True
                 finally:
                     closed(client)
-            if "islands" in cases:
-                client = local_cluster(devices[:k], processes=True, cpu_threads=1)
-                try:
-                    row.update(bench.islands(client, k))
-                finally:
-                    closed(client)
+                    dog.closed()
             row["elapsed_s"] = time.perf_counter() - t_all
             print(json.dumps({key: v for key, v in row.items() if not key.startswith("_")}), flush=True)
             result["rows"].append(row)
+            summarize(result, ks)
+            save()
+    dog.timer.cancel()
+    print(json.dumps(result["summary"], indent=1))
+    save()
+    return 1 if failed else 0
+
+
+def summarize(result: dict, ks: list) -> None:
+    """Speed-ups over the first row and whether each row's results equal the first's."""
     base = result["rows"][0]
     v0 = base.get("_values")
     rates = ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "island_evaluations_per_minute")
     for r in result["rows"]:
         for key in rates:
-            if key in r:
+            if key in r and key in base:
                 r[f"speedup_{key}"] = r[key] / base[key]
-        if "_values" in r:
-            v = r.pop("_values")
-            r["fits_max_relative_difference_to_first_row"] = float(np.max(np.abs(v - v0) / np.abs(v0)))
+        if "_values" in r and v0 is not None:
+            r["fits_max_relative_difference_to_first_row"] = float(np.max(np.abs(r["_values"] - v0) / np.abs(v0)))
         if "evaluations_digest" in r:
-            r["evaluations_equal_first_row"] = r["evaluations_digest"] == base["evaluations_digest"]
+            r["evaluations_equal_first_row"] = r["evaluations_digest"] == base.get("evaluations_digest")
         if "sweep_reductions" in r:
-            r["sweep_reductions_equal_first_row"] = r["sweep_reductions"] == base["sweep_reductions"]
+            r["sweep_reductions_equal_first_row"] = r["sweep_reductions"] == base.get("sweep_reductions")
         if "island0_best" in r:
-            r["island0_equals_first_row"] = r["island0_best"] == base["island0_best"]
+            r["island0_equals_first_row"] = r["island0_best"] == base.get("island0_best")
     result["summary"] = {
         f"{k}_gpus": {key: r[f"speedup_{key}"] for key in rates if f"speedup_{key}" in r}
         for k, r in zip(ks, result["rows"])
     }
     result["summary"]["targets"] = {"2_gpus": 1.8, "4_gpus": 3.5}
-    result["bench_seconds"] = time.perf_counter() - t_all
-    print(json.dumps(result["summary"], indent=1))
-    write_result(result, "multi_gpu.json", args.out)
-    return 0
 
 
 if __name__ == "__main__":

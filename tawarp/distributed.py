@@ -11,16 +11,23 @@ those of one process (the tests check 1e-12 on a local CPU cluster).
 >>> client = local_cluster(["cuda:0", "cuda:1"])          # or ["cpu", "cpu"]
 >>> res = fit_on_cluster(client, core, freqs, Y, names, start)  # doctest: +SKIP
 
-Workers are processes by default (``processes=True``): a chunk's arrays are pickled and
-sent over TCP, which costs more than the device time of a design point. With
-``local_cluster(devices, processes=False)`` the workers are threads of this process, each
-driving its own device: Dask hands them contiguous arrays by reference (pickle protocol
-5 passes their buffers; a strided view is copied, under the GIL, so what travels here is
-contiguous) and nothing crosses between processes (Warp's launches and copies release the
-GIL; the first launches of a worker, which load Warp modules, run one worker at a time:
-:func:`worker_state`).
-A sweep sends no table either way (each worker makes its chunks' tables on its device,
-:func:`tawarp.design.sweep.sweep`).
+Workers are processes by default (``processes=True``), each seeing its own GPU alone
+(``CUDA_VISIBLE_DEVICES``) and running its host work (the fit's Levenberg-Marquardt
+steps, a reducer's merges, a sampler) under its own GIL: what scales. What crosses
+between processes is pickled and sent over TCP, which costs more than the device time of
+a fit or a design point, so the work that scales makes its inputs where it runs and sends
+back little: a sweep's and :meth:`ClusterEvaluator.evaluate_sobol`'s tasks are point
+ranges (each worker draws its points and builds its tables on its device), a reduced
+sweep returns its reductions, an island its best, a fit of data already on the workers
+(:func:`fit_on_cluster` of futures) its results, and the objectives of
+``evaluate_sobol`` are written by the worker processes of this host into shared memory
+(:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
+are threads of this process, each driving its own device: Dask hands them contiguous
+arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
+under the GIL, so what travels here is contiguous), which suits one GPU fed from this
+process's arrays (a table, data in memory); their host work shares one GIL (Warp's
+launches and copies release it; the first launches of a worker, which load Warp modules,
+run one worker at a time: :func:`worker_state`).
 
 Other clusters (several machines): start one ``dask worker --nthreads 1`` per GPU with
 ``CUDA_VISIBLE_DEVICES`` set (each then sees its GPU as ``cuda``), connect a
@@ -34,6 +41,8 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import re
+import sys
 import threading
 import uuid
 from collections import deque
@@ -55,13 +64,14 @@ def _distributed():
 
 
 class DevicePlugin:
-    """Worker plugin giving worker ``name`` (an int, as LocalCluster names them) the device
-    ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU batches. Workers
-    without an integer name keep the default device."""
+    """Worker plugin giving worker ``name`` (an int, as :func:`local_cluster` names them)
+    the device ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU
+    batches. Workers without an integer name keep the default device."""
 
-    def __init__(self, devices, cpu_threads: int = 1):
+    def __init__(self, devices, cpu_threads: int = 1, pinned: bool = False):
         self.devices = list(devices)
         self.cpu_threads = int(cpu_threads)
+        self.pinned = pinned
 
     def setup(self, worker):
         try:
@@ -69,15 +79,37 @@ class DevicePlugin:
         except (TypeError, ValueError):
             worker.tawarp_device = None
         worker.tawarp_cpu_threads = self.cpu_threads
+        if self.pinned and str(worker.tawarp_device).startswith("cuda"):
+            # CUDA reads CUDA_VISIBLE_DEVICES once, when it starts: had something started it
+            # before the variable was set, every worker would drive the first GPU
+            import warp as wp
+
+            wp.init()
+            if wp.get_cuda_device_count() != 1:
+                raise RuntimeError(
+                    f"tawarp worker {worker.name}: sees {wp.get_cuda_device_count()} GPUs, not the one of "
+                    f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r} (CUDA started before it was set)"
+                )
 
 
-def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None = None):
+#: Seconds :func:`local_cluster` waits for its workers (a worker process imports Warp and
+#: NumPy: seconds) before it stops them and raises.
+START_TIMEOUT = 120.0
+
+
+def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None = None, timeout: float = START_TIMEOUT):
     """A :class:`distributed.Client` on a local cluster of one single-threaded worker per
     entry of ``devices`` (``"cuda:0"``, ``"cpu"``, ...; default: every GPU Warp sees,
-    else two CPU workers). ``processes``: each worker a process (arrays pickled and sent
-    over TCP), else a thread of this process (arrays passed by reference: what design
-    evaluations need, see the module docstring). CPU workers split their batches over
-    ``cpu_threads`` threads (default: an equal share of the cores this process may use)."""
+    else two CPU workers). ``processes``: each worker a process of its own (its own GIL,
+    so the host work of one worker never waits on another's), which sees its GPU alone
+    (``CUDA_VISIBLE_DEVICES``, set as the process starts, before CUDA does: it makes no
+    context on the other GPUs; checked as it joins), and CPU workers none; arrays sent to a process are pickled, so the work
+    that scales keeps them where they are made (:func:`fit_on_cluster` of data on the
+    workers, :meth:`ClusterEvaluator.evaluate_sobol`, reduced sweeps, islands). Else each
+    worker is a thread of this process (arrays passed by reference, one GIL: see the
+    module docstring). CPU workers split their batches over ``cpu_threads`` threads
+    (default: an equal share of the cores this process may use). Raises
+    :class:`TimeoutError` if the workers are not all up within ``timeout`` seconds."""
     import warp as wp
 
     distributed = _distributed()
@@ -85,17 +117,74 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
         wp.init()
         n_gpu = wp.get_cuda_device_count()
         devices = [f"cuda:{i}" for i in range(n_gpu)] if n_gpu else ["cpu", "cpu"]
-    devices = list(devices)
+    devices = [_device_name(d) for d in devices]
     if not devices:
         raise ValueError("local_cluster: give at least one device")
     n_cpu = sum(d == "cpu" for d in devices)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    cluster = distributed.LocalCluster(
-        n_workers=len(devices), threads_per_worker=1, processes=processes, dashboard_address=None
-    )
-    client = distributed.Client(cluster)
-    client.register_plugin(_as_worker_plugin(DevicePlugin(devices, cpu_threads or max(1, cores // max(1, n_cpu)))))
+    if processes:
+        cluster = _process_cluster([_pinned_env(d) for d in devices])
+        seen = ["cpu" if d == "cpu" else "cuda:0" for d in devices]  # each process sees its own GPU alone
+    else:
+        cluster = distributed.LocalCluster(
+            n_workers=len(devices), threads_per_worker=1, processes=False, dashboard_address=None
+        )
+        seen = devices
+    try:
+        client = distributed.Client(cluster, timeout=timeout)
+        client.wait_for_workers(len(devices), timeout=timeout)
+        threads = cpu_threads or max(1, cores // max(1, n_cpu))
+        client.register_plugin(_as_worker_plugin(DevicePlugin(seen, threads, pinned=processes)))
+    except BaseException:
+        cluster.close()
+        raise
     return client
+
+
+def _device_name(device: str) -> str:
+    """``cpu`` or ``cuda:N`` (``cuda`` is ``cuda:0``); anything else raises."""
+    if device == "cpu" or re.fullmatch(r"cuda:\d+", device):
+        return device
+    if device == "cuda":
+        return "cuda:0"
+    raise ValueError(f"local_cluster: device {device!r}: expected cpu, cuda or cuda:N")
+
+
+def _pinned_env(device: str) -> dict:
+    """The environment of the worker process of ``device``: ``CUDA_VISIBLE_DEVICES`` the
+    one GPU it drives (the N-th of those this process sees), none for a CPU worker."""
+    if device == "cpu":
+        return {"CUDA_VISIBLE_DEVICES": ""}
+    i = int(device.partition(":")[2])
+    visible = os.environ.get("CUDA_VISIBLE_DEVICES")
+    if visible is not None:
+        ids = [v.strip() for v in visible.split(",") if v.strip()]
+        if i >= len(ids):
+            raise ValueError(f"local_cluster: {device} but CUDA_VISIBLE_DEVICES={visible!r} shows {len(ids)} GPUs")
+        return {"CUDA_VISIBLE_DEVICES": ids[i]}
+    return {"CUDA_VISIBLE_DEVICES": str(i)}
+
+
+def _process_cluster(envs: list[dict]):
+    """A local :class:`distributed.SpecCluster` of one single-threaded worker process per
+    entry of ``envs``, worker i named i with the environment ``envs[i]`` (what
+    :class:`distributed.LocalCluster` makes, less its one environment for all workers)."""
+    import logging
+
+    distributed = _distributed()
+    from distributed.worker_memory import parse_memory_limit
+
+    memory = parse_memory_limit("auto", 1, len(envs), logger=logging.getLogger("distributed"))
+    common = dict(nthreads=1, host="127.0.0.1", protocol="tcp://", dashboard=False, silence_logs=logging.WARN)
+    workers = {
+        i: {"cls": distributed.Nanny, "options": dict(common, env=env, memory_limit=memory)}
+        for i, env in enumerate(envs)
+    }
+    scheduler = {
+        "cls": distributed.Scheduler,
+        "options": dict(host="127.0.0.1", protocol="tcp://", dashboard=False, dashboard_address=None),
+    }
+    return distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.WARN)
 
 
 def _as_worker_plugin(plugin: DevicePlugin):
@@ -190,9 +279,12 @@ def _is_large(a) -> bool:
 
 
 # -- batched fits ---------------------------------------------------------------------
-def _fit_chunk(chunk: dict, core, freqs, names, kw: dict):
+def _fit_chunk(chunk: dict, core, freqs, names, kw: dict, common: dict | None = None):
+    """The fit of one chunk of problems: ``chunk`` (``Y``, and ``weights``, ``start``,
+    ``heat_input``, ``fixed`` where it has its own) over the entries of ``common``."""
     from .fit.estimate import fit
 
+    chunk = {"start": None, "heat_input": 0.0, "fixed": None, "weights": None, **(common or {}), **chunk}
     kw = dict(kw, settings=worker_settings(kw.get("settings")))
     if getattr(_worker(), "tawarp_device", None) is not None:
         kw["device"] = None  # the worker's device, in its settings
@@ -232,25 +324,50 @@ def fit_on_cluster(
     fits a different model; with the margin of 2 on the heat model's k (h up to 4x), as
     the chunks cannot re-size at their solutions together the way one call does
     (:data:`tawarp.fit.estimate.FIT_K_FACTOR`): where cells are sized the results equal
-    one call's with ``settings`` of these cells. Other keywords go to ``fit``."""
+    one call's with ``settings`` of these cells. Other keywords go to ``fit``.
+
+    ``Y`` may also be data already on the workers: a list of Dask futures, each of a
+    chunk's ``{"Y": (n, m, 4), "weights": ...}`` (made or read by a task on a worker:
+    ``client.submit(load, ...)``), fitted in the list's order by the worker that holds it,
+    so that no data travel and only the results come back; ``start``, ``heat_input``,
+    ``fixed`` and ``weights`` given here then hold for every problem (the cells are sized
+    on them), a chunk's own ``weights`` for its problems."""
     import time
 
-    from .fit.estimate import spread_starts, with_ties
     from .measure.kind import smooth_settings
 
     t0 = time.perf_counter()
     names = list(names)
     freqs = np.asarray(freqs, dtype=float)
+    on_workers = isinstance(Y, (list, tuple)) and bool(Y) and all(_is_future(y) for y in Y)
+    if on_workers:
+        w = None if weights is None else np.asarray(weights)
+        lead = () if w is None else w.shape[: -2 if w.shape[-1] == 4 else -3]
+        if np.ndim(start) > 1 or np.ndim(heat_input) or int(np.prod(lead)) > 1:
+            raise ValueError(
+                "fit_on_cluster: with the data on the workers, start (p,), heat_input (a scalar) and "
+                "weights (m, 4) hold for every problem: put per-problem values in the chunks' dicts"
+            )
+        if (
+            isinstance(start, dict)
+            and any(np.ndim(v) for v in start.values())
+            or any(np.ndim(v) for v in (fixed or {}).values())
+        ):
+            raise ValueError("fit_on_cluster: with the data on the workers, start and fixed values are scalars")
+        common = {"start": start, "heat_input": heat_input, "fixed": fixed, "weights": weights}
+        settings = smooth_settings(
+            core, freqs, settings, {**_sized_starts(core, names, start, kw), **(fixed or {})}, heat_input
+        )
+        n = sum(client.gather([client.submit(_problems, y, pure=False) for y in Y]))  # (where each lies)
+        parts = ordered_map(client, _fit_chunk, Y, core, freqs, names, dict(kw, settings=settings), common)
+        res = concatenate_results(parts, n)
+        res.seconds = time.perf_counter() - t0
+        return res
     Y = np.asarray(Y)
     N = 1 if Y.ndim == 2 else Y.shape[0]
-    if isinstance(start, dict):
-        sized = {k: np.asarray(v, dtype=float) for k, v in start.items()}
-    elif start is not None:
-        sized = dict(zip(names, np.asarray(start, dtype=float).reshape(-1, len(names)).T))
-    else:
-        sized = dict(zip(names, spread_starts(core, names, kw.get("n_starts", 8), kw.get("seed", 0)).T))
-    sized = with_ties(sized, kw.get("ties"))
-    settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input)
+    settings = smooth_settings(
+        core, freqs, settings, {**_sized_starts(core, names, start, kw), **(fixed or {})}, heat_input
+    )
 
     def take(a, sl, ndim):
         """Problems ``sl`` of ``a`` where it has a problem axis (``ndim`` dimensions)."""
@@ -275,24 +392,74 @@ def fit_on_cluster(
         }
         for sl in (slice(lo, min(N, lo + chunk)) for lo in range(0, N, chunk))
     ]
-    parts = list(ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings)))
-    res = concatenate_results(parts)
+    parts = ordered_map(client, _fit_chunk, chunks, core, freqs, names, dict(kw, settings=settings))
+    res = concatenate_results(parts, N)
     res.seconds = time.perf_counter() - t0
     return res
 
 
-def concatenate_results(parts):
+def _problems(chunk: dict) -> int:
+    return len(chunk["Y"])
+
+
+def _sized_starts(core, names: list, start, kw: dict) -> dict:
+    """The starts the cells are sized on: ``start`` as {name: values}, or the spread of
+    starts ``fit`` draws (``n_starts``, ``seed``), with ``ties`` applied."""
+    from .fit.estimate import spread_starts, with_ties
+
+    if isinstance(start, dict):
+        sized = {k: np.asarray(v, dtype=float) for k, v in start.items()}
+    elif start is not None:
+        sized = dict(zip(names, np.asarray(start, dtype=float).reshape(-1, len(names)).T))
+    else:
+        sized = dict(zip(names, spread_starts(core, names, kw.get("n_starts", 8), kw.get("seed", 0)).T))
+    return with_ties(sized, kw.get("ties"))
+
+
+def _is_future(a) -> bool:
+    distributed = sys.modules.get("distributed")  # (a future means Dask is imported)
+    return distributed is not None and isinstance(a, distributed.Future)
+
+
+def concatenate_results(parts, n: int | None = None):
     """One :class:`~tawarp.fit.result.FitResult` from results of consecutive problem chunks:
     arrays with the problem axis first and per-problem lists are joined in order,
     ``evaluations`` and ``launches`` summed, batch ``warnings`` joined without repeats,
-    everything else (names, dof, bounds, ...) taken from the first part."""
+    everything else (names, dof, bounds, ...) taken from the first part. With ``n`` (the
+    problems of all parts) ``parts`` may be an iterator: each part's arrays are copied into
+    place as it comes (while the workers fit the next ones) and then dropped."""
     from .fit.result import ProblemWarnings
 
-    first = parts[0]
+    if n is None:
+        parts = list(parts)
+        if len(parts) == 1:
+            return parts[0]
+        n = sum(len(p.values) for p in parts)
+    joined, rest, at = {}, [], 0
+    for part in parts:
+        m = len(part.values)
+        arrays = {}
+        for f in dataclasses.fields(part):
+            v = getattr(part, f.name)
+            if isinstance(v, np.ndarray) and v.ndim >= 1 and f.name not in ("lower", "upper"):
+                if not rest:
+                    joined[f.name] = np.empty((n,) + v.shape[1:], dtype=v.dtype)
+                if f.name in joined:
+                    joined[f.name][at : at + m] = v
+                    arrays[f.name] = None
+        if arrays.keys() != joined.keys():
+            raise ValueError(f"concatenate_results: per-problem arrays {sorted(joined)} not in every part")
+        at += m
+        rest.append(dataclasses.replace(part, **arrays))
+    if at != n:
+        raise ValueError(f"concatenate_results: the parts hold {at} problems, not {n}")
+    first = rest[0]
     out = {}
     for f in dataclasses.fields(first):
-        vals = [getattr(p, f.name) for p in parts]
-        if f.name in ("evaluations", "launches"):
+        vals = [getattr(p, f.name) for p in rest]
+        if f.name in joined:
+            out[f.name] = joined[f.name]
+        elif f.name in ("evaluations", "launches"):
             out[f.name] = sum(vals)
         elif f.name == "seconds":
             out[f.name] = max(vals)
@@ -300,41 +467,16 @@ def concatenate_results(parts):
             out[f.name] = list(dict.fromkeys(w for v in vals for w in v))
         elif f.name == "problem_warnings":
             out[f.name] = ProblemWarnings.concatenate(vals)
-        elif (
-            isinstance(vals[0], np.ndarray)
-            and vals[0].ndim >= 1
-            and f.name not in ("lower", "upper")
-            and all(isinstance(v, np.ndarray) for v in vals)
-            and len(parts) > 1
-        ):
-            out[f.name] = np.concatenate(vals)
         else:
             out[f.name] = vals[0]
     return type(first)(**out)
 
 
 # -- design evaluations -----------------------------------------------------------------
-def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
-    """Objectives of one chunk of a design table, on this worker's Evaluator for ``key``."""
-    from .design.evaluate import Evaluator
-
-    def build():
-        ev = Evaluator(
-            spec["space"],
-            extra=spec["extra"],
-            freqs=spec["freqs"],
-            settings=worker_settings(spec["settings"]),
-            onset=spec["onset"],
-        )
-        ev.evaluate_table(table[:, :1])  # loads the modules of every objective asked for
-        return ev
-
-    return worker_state(key, build).evaluate_table(table)
-
-
-def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict) -> dict:
-    """Objectives of the Sobol points ``task`` = (lo, hi, seed) of the design space, drawn
-    on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`)."""
+def _worker_evaluator(key: str, spec: dict):
+    """This worker's (Evaluator, DeviceTable) of the evaluations ``key``, built by its first
+    task (:func:`worker_state`) with one Sobol point through every objective asked for (the
+    modules load then)."""
     from .design.evaluate import Evaluator
     from .design.space import DeviceTable
 
@@ -347,14 +489,101 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict) -> dict:
             onset=spec["onset"],
         )
         tables = DeviceTable(spec["space"], ev.device)
-        table = tables.sobol(0, 1, task[2])[0]
-        ev.objectives_of(ev.evaluate_device(table), table)  # loads the modules (worker_state)
+        table = tables.sobol(0, 1, 0)[0]
+        ev.objectives_of(ev.evaluate_device(table), table)
         return ev, tables
 
-    ev, tables = worker_state(key, build)
-    lo, hi, seed = task
+    return worker_state(key, build)
+
+
+def _warm_evaluator(key: str, spec: dict) -> None:
+    _worker_evaluator(key, spec)
+
+
+def _objective_layout(key: str, spec: dict) -> dict:
+    """{objective: (dtype, shape of one point's value)} of the evaluations ``key``."""
+    ev, tables = _worker_evaluator(key, spec)
+    table = tables.sobol(0, 1, 0)[0]
+    return {k: (v.dtype.str, v.shape[1:]) for k, v in ev.objectives_of(ev.evaluate_device(table), table).items()}
+
+
+def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
+    """Objectives of one chunk of a design table, on this worker's Evaluator for ``key``."""
+    ev, _ = _worker_evaluator(key, spec)
+    return ev.evaluate_table(table)
+
+
+def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns | None = None):
+    """Objectives of the Sobol points ``task`` = (lo, hi, seed, at) of the design space,
+    drawn on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`);
+    written to rows ``at`` .. of the shared ``out`` where given (and None returned)."""
+    ev, tables = _worker_evaluator(key, spec)
+    lo, hi, seed, at = task
     table = tables.sobol(lo, hi, seed)[0]
-    return ev.objectives_of(ev.evaluate_device(table), table)
+    res = ev.objectives_of(ev.evaluate_device(table), table)
+    if out is None:
+        return res
+    out.write(at, res)
+    return None
+
+
+@dataclasses.dataclass(frozen=True)
+class SharedColumns:
+    """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``, else the
+    temporary folder): each worker process of this host writes its rows in place, and the
+    client maps the file once and unlinks it, so that the results of a local process
+    cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
+    row)}; the columns follow each other, each at an offset aligned to 64 bytes."""
+
+    path: str
+    n: int
+    layout: dict
+
+    def offsets(self) -> dict:
+        out, at = {}, 0
+        for k, (dtype, shape) in self.layout.items():
+            out[k] = at
+            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // 64) * 64
+        out[None] = at
+        return out
+
+    def nbytes(self) -> int:
+        return self.offsets()[None]
+
+    def columns(self, mode: str = "r+") -> dict[str, np.ndarray]:
+        off = self.offsets()
+        return {
+            k: np.asarray(np.memmap(self.path, dtype=dtype, mode=mode, offset=off[k], shape=(self.n,) + tuple(shape)))
+            for k, (dtype, shape) in self.layout.items()
+            if self.n
+        }
+
+    def write(self, at: int, res: dict) -> None:
+        cols = self.columns()
+        for k, v in res.items():
+            cols[k][at : at + len(v)] = v
+
+    @classmethod
+    def create(cls, n: int, layout: dict, folders=None) -> SharedColumns | None:
+        """A new file of these columns in the first of ``folders`` (default ``/dev/shm``,
+        then the temporary folder) with twice its size free, or None (a worker writing past
+        the end of a full tmpfs would be killed)."""
+        import tempfile
+
+        size = cls("", n, layout).nbytes()
+        for folder in folders or ("/dev/shm", tempfile.gettempdir()):
+            try:
+                st = os.statvfs(folder)
+            except OSError:
+                continue
+            if st.f_bavail * st.f_frsize >= 2 * size:  # (room left for the rest of the host)
+                fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
+                try:
+                    os.ftruncate(fd, size)
+                finally:
+                    os.close(fd)
+                return cls(path, n, layout)
+        return None
 
 
 class ClusterEvaluator:
@@ -363,7 +592,9 @@ class ClusterEvaluator:
     in :data:`CHUNKS_IN_FLIGHT` chunks per worker), each evaluated by the worker's own
     Evaluator on its device. The chunks and the results (float64) travel through Dask:
     pickled between worker processes, by reference to worker threads
-    (``local_cluster(..., processes=False)``)."""
+    (``local_cluster(..., processes=False)``); :meth:`evaluate_sobol` sends no table, and
+    worker processes of this host write its results in shared memory (``shared``: None
+    decides so for a cluster of such processes, False always sends them through Dask)."""
 
     def __init__(
         self,
@@ -374,6 +605,7 @@ class ClusterEvaluator:
         settings: ForwardSettings | None = None,
         chunk: int | None = None,
         onset=None,
+        shared: bool | None = None,
     ):
         from .design.evaluate import DEFAULT_FREQS
 
@@ -387,6 +619,16 @@ class ClusterEvaluator:
             "onset": onset,
         }
         self.key = uuid.uuid4().hex
+        self.shared = _local_processes(client) if shared is None else bool(shared)
+        self._layout = None
+
+    def warm_up(self) -> None:
+        """Build every worker's Evaluator now (its kernels loaded, one point evaluated), so
+        that the first evaluations do not wait for it."""
+        workers = list(self.client.scheduler_info()["workers"])
+        self.client.gather(
+            [self.client.submit(_warm_evaluator, self.key, self.spec, workers=[w], pure=False) for w in workers]
+        )
 
     def _starts(self, n: int) -> range:
         """First points of the chunks of n points."""
@@ -409,12 +651,23 @@ class ClusterEvaluator:
         Sobol sequence (``seed``; the points of a Sobol sweep and of
         :meth:`tawarp.design.space.DeviceTable.sobol`): a task is a chunk's point range,
         its points drawn and its table built on the worker's device, so no table travels;
-        only the objectives come back."""
+        only the objectives come back, written by worker processes of this host into
+        shared memory (:class:`SharedColumns`) where it has the room."""
         starts = self._starts(n)
-        tasks = ((first + lo, first + min(n, lo + starts.step), seed) for lo in starts)
-        return self._gather(
-            n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key + "-sobol", self.spec)
-        )
+        tasks = [(first + lo, first + min(n, lo + starts.step), seed, lo) for lo in starts]
+        out = None
+        if self.shared and n:
+            if self._layout is None:
+                self._layout = self.client.submit(_objective_layout, self.key, self.spec, pure=False).result()
+            out = SharedColumns.create(n, self._layout)
+        if out is None:
+            return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
+        try:
+            for _ in ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out):
+                pass
+            return out.columns()  # (the file goes; its pages stay mapped here)
+        finally:
+            os.unlink(out.path)
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
@@ -431,3 +684,12 @@ class ClusterEvaluator:
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""
         return self.evaluate_table(self.space.varying_table(values))
+
+
+def _local_processes(client) -> bool:
+    """Whether every worker of ``client`` is another process of this host."""
+    import socket
+
+    here = (socket.gethostname(), os.getpid())
+    seen = client.run(lambda: (socket.gethostname(), os.getpid()))
+    return bool(seen) and all(host == here[0] and pid != here[1] for host, pid in seen.values())

@@ -74,6 +74,32 @@ def test_fit_on_cluster_equals_one_process(client):
     assert many.problem_warnings == one.problem_warnings
 
 
+def _geometry_problems(n: int):
+    """(core, names, Y (n, m, 4), sd, start): noisy reference data of the mesh core at
+    Q = 0 (real noise, 0.5 %), the start 20 % off."""
+    core = load_core("mesh")
+    names = ["stack.porosity", "stack.pore_radius"]
+    Y0 = reference.dimensionless_transfer(core, FREQS, 0.0)
+    sd = 0.005 * np.abs(Y0) / np.sqrt(2)
+    Y = Y0 + sd * np.random.default_rng(2).standard_normal((n,) + Y0.shape)
+    return core, names, Y, sd, np.array([core.get(k) for k in names]) * [1.2, 0.8]
+
+
+def test_fit_of_data_on_the_workers_equals_one_process(client):
+    # chunks of data made on the workers (futures): each fitted where it lies, in the
+    # list's order; the start and the weights given once hold for every problem
+    core, names, Y, sd, start = _geometry_problems(5)
+    one = fit(core, FREQS, Y, names, start, weights=1 / sd, device="cpu", warn=False)
+    workers = list(client.scheduler_info()["workers"])
+    chunks = [client.scatter([{"Y": Y[lo:hi]}], workers=[w])[0] for (lo, hi), w in zip([(0, 3), (3, 5)], workers)]
+    many = fit_on_cluster(client, core, FREQS, chunks, names, start, weights=1 / sd, warn=False)
+    for f in ("values", "std", "cost", "covariance"):
+        np.testing.assert_allclose(getattr(many, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
+    assert np.array_equal(many.iterations, one.iterations) and many.converged.all()
+    with pytest.raises(ValueError, match="every problem"):
+        fit_on_cluster(client, core, FREQS, chunks, names, np.tile(start, (5, 1)))
+
+
 def test_design_evaluations_on_cluster_equal_one_process(client):
     space = _space()
     rng = np.random.default_rng(1)
@@ -189,7 +215,12 @@ def test_sweep_on_cluster_equals_one_process(client, tmp_path, mode, outputs, pa
 def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     # the path of GPU workers: tasks and results pickled between processes (the job, the
     # int8 material of a Sobol file, float32 outputs, float64 objectives); ~5 s here
+    import os
+    from pathlib import Path
+
     import xarray as xr
+
+    from tawarp.design.space import DeviceTable
 
     from tawarp.design.sweep import sweep
 
@@ -203,17 +234,35 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     reduced = dict(mode="sobol", n_samples=96, chunk=20, seed=2, reduce="best,quantiles,pareto,top=5", raw=False)
     procs = local_cluster(["cpu", "cpu"], processes=True)
     try:
+        # each worker a process of its own that sees no GPU (a GPU worker: its GPU alone)
+        seen = procs.run(lambda: (os.getpid(), os.environ["CUDA_VISIBLE_DEVICES"]))
+        assert len({pid for pid, _ in seen.values()} | {os.getpid()}) == 3
+        assert [v for _, v in seen.values()] == ["", ""]
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
+        # Sobol points drawn on the workers, their objectives written in shared memory
+        drawn = ClusterEvaluator(procs, space, extra=["acoustic_loss"], chunk=16)
+        assert drawn.shared
+        drawn.warm_up()
+        sobol = drawn.evaluate_sobol(50, seed=7, first=5)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
         islands = search_islands(procs, _space(), storage=str(tmp_path / "islands.journal"), n_trials=32, batch=16)
+        # fits of data made on the worker processes: the results pickled back and joined
+        core, names, Y, sd, start = _geometry_problems(4)
+        workers = list(procs.scheduler_info()["workers"])
+        chunks = [procs.scatter([{"Y": Y[lo:hi]}], workers=[w])[0] for (lo, hi), w in zip([(0, 1), (1, 4)], workers)]
+        fitted = fit_on_cluster(procs, core, FREQS, chunks, names, start, weights=1 / sd, warn=False)
     finally:
         cluster = procs.cluster
         procs.close()
         cluster.close()
     one = Evaluator(space).evaluate(values)
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k]) for k in one)
+    ev = Evaluator(space, extra=["acoustic_loss"])
+    one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
+    assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
+    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared file went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
         with (
@@ -223,6 +272,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
             xr.testing.assert_identical(x, y)
     # the reductions' states and the islands' results pickled back from the processes
     assert reduced_many.reductions == sweep(space, tmp_path / "reduced_one.nc", **reduced).reductions
+    one = fit(core, FREQS, Y, names, start, weights=1 / sd, device="cpu", warn=False)
+    for f in ("values", "std", "cost", "covariance"):
+        np.testing.assert_allclose(getattr(fitted, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
     for name, island in zip(("island0", "island1"), islands.timing["islands"]):
         alone = search(_space(), n_trials=32, batch=16, worker=name)
         assert island["worker"] == name and island["best"] == [d["values"] for d in alone.best]
@@ -340,3 +392,23 @@ def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
             xr.testing.assert_identical(x.load(), y.load())
     with pytest.raises(ValueError, match="raw=False"):
         sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})
+
+
+def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
+    # columns of several dtypes and row shapes in one file, each at a 64-byte offset; two
+    # writers' row ranges read back exactly through the client's one mapping
+    from tawarp.distributed import SharedColumns
+
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ())}
+    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)])
+    assert all(v % 64 == 0 for v in cols.offsets().values())
+    rows = {
+        "gradient": np.arange(5.0) / 3,
+        "window": np.arange(15, dtype=np.float32).reshape(5, 3),
+        "material": [1, 0, 2, 2, 1],
+    }
+    cols.write(2, {k: np.asarray(v)[2:] for k, v in rows.items()})
+    cols.write(0, {k: np.asarray(v)[:2] for k, v in rows.items()})
+    back = cols.columns()
+    assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
+    assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
