@@ -158,6 +158,24 @@ def test_bypass_gap_heat_model_is_the_references(g):
     assert T.max() > T0.max()
 
 
+def test_bypass_gap_energy_balance_with_a_nonlinear_conductivity():
+    """Q = int (2 h / R) theta S dx over the thermal segments (adiabatic ends) to 1e-9 of Q
+    with a gap of 0.5 mm and the Kirchhoff cells (conductivity exponent on): the gap's gas
+    changes where the heat goes, not how much."""
+    Q, cells = 40.0, 32
+    params = {"stack.bypass_gap": 5e-4, "stack.conductivity_exponent": 0.5}
+    pos = CORE.positions()
+    nodes, weights = np.polynomial.legendre.leggauss(12)
+    lost = 0.0
+    for i in CORE.thermal_indices:
+        edges = np.linspace(pos[i], pos[i + 1], cells + 1)
+        x = (0.5 * np.diff(edges)[:, None] * nodes + 0.5 * (edges[1:] + edges[:-1])[:, None]).ravel()
+        w = (0.5 * np.diff(edges)[:, None] * weights).ravel()
+        theta = steady_temperature(CORE, x, Q, params=params, device="cpu")[0][0] - CORE.gas.T_cold
+        lost += np.sum(w * theta * 2 * CORE.segments[i].h / CORE.radius * CORE.area)
+    assert abs(lost - Q) < 1e-9 * Q
+
+
 @pytest.mark.parametrize("g", [1e-9, 1e-4, 1e-3, 0.99 * CORE.radius])
 def test_bypass_gap_unheated_stack_is_reciprocal_and_passive(g):
     """At Q = 0 a stack with its gap is a reciprocal passive 2-port, from a gap of 1 nm to
