@@ -48,6 +48,7 @@ from .cmath import (
 from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
 from .pore import (
     PORE_CIRCULAR,
+    PORE_PLATES,
     PORE_SCREENS,
     PoreTable,
     pore_circular_tabulated,
@@ -414,14 +415,20 @@ class PointCoefficients:
 class PartGeometry:
     """What A takes from a part beyond its :class:`PointCoefficients`: ``porosity``,
     ``tortuosity``, tube section ``area`` [m^2], ``frame_mobility`` = 1/rho_1 [m^3/kg]
-    (rho_1 the frame's bulk density; 0 = rigid frame) and the viscous ``shape_factor``
-    r/Lambda (1 = the circular pore's own; used by circular pores only)."""
+    (rho_1 the frame's bulk density; 0 = rigid frame), the viscous ``shape_factor``
+    r/Lambda (1 = the circular pore's own; used by circular pores only) and an annular
+    bypass gap beside the pores (:func:`bypass_entries`): its share ``gap_share`` of the
+    tube section (0: no gap) and ``gap_log_nu``, ``gap_log_k`` = ln(y0/r), ln(y0/r_k) of its
+    half-spacing y0 over the pores' viscous and thermal radii."""
 
     porosity: wp.float64
     tortuosity: wp.float64
     area: wp.float64
     frame_mobility: wp.float64
     shape_factor: wp.float64
+    gap_share: wp.float64
+    gap_log_nu: wp.float64
+    gap_log_k: wp.float64
 
 
 @wp.struct
@@ -477,7 +484,21 @@ def part_geometry(
     geo.area = area
     geo.frame_mobility = frame_mobility
     geo.shape_factor = shape_factor
+    geo.gap_share = wp.float64(0.0)
+    geo.gap_log_nu = wp.float64(0.0)
+    geo.gap_log_k = wp.float64(0.0)
     return geo
+
+
+@wp.func
+def with_bypass(geo: PartGeometry, share: wp.float64, log_nu: wp.float64, log_k: wp.float64):
+    """``geo`` with a bypass gap of section share ``share`` and ln(y0/r) = ``log_nu``,
+    ln(y0/r_k) = ``log_k`` (:class:`PartGeometry`)."""
+    out = part_geometry(geo.porosity, geo.tortuosity, geo.area, geo.frame_mobility, geo.shape_factor)
+    out.gap_share = share
+    out.gap_log_nu = log_nu
+    out.gap_log_k = log_k
+    return out
 
 
 @wp.func
@@ -584,7 +605,169 @@ def screen_entries(
 
 
 @wp.func
+def plate_functions(s: wp.vec2d):
+    """(f, g) of parallel plates at complex s = y0/delta (:func:`tawarp.kernels.pore.pore_functions_complex`)."""
+    return pore_functions_complex(PORE_PLATES, s)
+
+
+@wp.func
+def plate_functions(s: wp.vec4d):  # noqa: F811 (a Warp overload)
+    """(f, g) of parallel plates at a dual s: df = (df/d ln s) ds/s with
+    df/d ln s = g + 2 i s^2 f^2 (:func:`tawarp.kernels.pore.pore_log_derivative`, analytic in s)."""
+    s0 = dual_value(s)
+    f, g = pore_functions_complex(PORE_PLATES, s0)
+    d = g + cmuli(cmul(cmul(s0, s0), cmul(f, f))) * wp.float64(2.0)
+    df = cmul(d, cdiv(dual_tangent(s), s0))
+    return dual(f, df), dual(g, -df)
+
+
+@wp.func(inline=False)  # an effect's branch: kept out of the cascade's inlined code
+def bypass_entries(
+    a12: Any,
+    a21: Any,
+    a22: Any,
+    omega: Any,
+    root_omega: Any,
+    log_nu: Any,
+    log_k: Any,
+    c12: Any,
+    c21: Any,
+    c22: Any,
+    porosity: Any,
+    tortuosity: Any,
+    share: Any,
+    gap_log_nu: Any,
+    gap_log_k: Any,
+    gamma: wp.float64,
+):
+    """(a12, a21, a22) of a porous part with an annular bypass gap, from the pores' own
+    entries (a12, a21, a22) as if they filled the tube: two families of pores side by side
+    under one pressure p(x). Where the pores connect sideways (foams, screens: the gas
+    crosses the section within a sound crossing time, R/c << 1/omega) both see the same p
+    and dp/dx, and their volume flows add, U = U_p + U_g, with dp/dx = a12_j U_j in each.
+    Per unit length:
+
+    * the flow admittances add: 1/a12 = 1/a12_p + 1/a12_g;
+    * the compliances add: a21 = a21_p + a21_g;
+    * each family's thermoacoustic term acts on its own flow, U_j = (a12/a12_j) U:
+      a22 = (a22_p a12_g + a22_g a12_p)/(a12_p + a12_g).
+
+    The pores fill the share 1 - x of the section (x = ``share``): a12_p = a12/(1 - x),
+    a21_p = (1 - x) a21. The gap is a slit between parallel plates (the narrow annulus
+    unrolled; curvature corrections O(g/R)) of half-spacing y0 = g/2, porosity x of the
+    section and tortuosity 1, at the pores' temperature: c12_g = rho/(x S) = c12 phi/(q^2 x),
+    c21_g = x S/(rho c^2) = c21 x/phi, the pores' c22, its s = y0/delta from the pores'
+    through ln(y0/r) = ``gap_log_nu`` and ln(y0/r_k) = ``gap_log_k``. The local sum is the
+    limit of the two 2-ports in parallel cell by cell (their admittance matrices adding).
+    A honeycomb with a closed skin joins the two channels at the part's ends only: at one
+    temperature the two forms differ by the gap's diffusion across the part, (L/l)^2 with
+    l = y0 sqrt(p/(3 mu omega)) (0.3 % of the gap's effect at 0.4 mm); along a temperature
+    gradient each separate channel carries its own gas expansion and the flow's split
+    drifts from the one kept here (13 % at 40 W, tests/test_bypass_gap.py). One form for
+    both keeps the gap a field of A (the cascade, its tangents and the onset at once).
+    Real, complex or dual numbers."""
+    one = cone(a12)
+    x = ccomplex(share)
+    phi = ccomplex(porosity)
+    q = ccomplex(tortuosity)
+    inner = one - x
+    a12_p = cdiv(a12, inner)
+    a21_p = cmul(a21, inner)
+    f_nu, g_nu = plate_functions(cmul(root_omega, cexp(ccomplex(log_nu + gap_log_nu))))
+    f_k, g_k = plate_functions(cmul(root_omega, cexp(ccomplex(log_k + gap_log_k))))
+    c12_g = cdiv(cmul(ccomplex(c12), phi), cmul(cmul(q, q), x))
+    c21_g = cdiv(cmul(ccomplex(c21), x), phi)
+    a12_g = cmuli(cmul(omega, cdiv(c12_g, g_nu)))
+    a21_g = cmuli(cmul(omega, cmul(c21_g, one + f_k * (gamma - wp.float64(1.0)))))
+    a22_g = cmul(ccomplex(c22), cdiv(g_nu - g_k, g_nu))
+    total = a12_p + a12_g
+    return (
+        cdiv(cmul(a12_p, a12_g), total),
+        a21_p + a21_g,
+        cdiv(cmul(a22, a12_g) + cmul(a22_g, a12_p), total),
+    )
+
+
+@wp.func
 def propagation_entries(
+    omega: Any,
+    root_omega: Any,
+    log_nu: Any,
+    log_k: Any,
+    c12: Any,
+    c21: Any,
+    c22: Any,
+    rho: Any,
+    f_k: Any,
+    g_nu: Any,
+    g_k: Any,
+    porosity: Any,
+    tortuosity: Any,
+    area: Any,
+    frame_mobility: Any,
+    shape_factor: Any,
+    gap_share: Any,
+    gap_log_nu: Any,
+    gap_log_k: Any,
+    gamma: wp.float64,
+    pore_model: int,
+):
+    """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
+    (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
+    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
+    ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
+    heats. The physics of A, written once for every kind of number
+    (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
+    (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
+    derivative (:func:`propagation_tangent`). The effects: a limp frame
+    (:func:`limp_density`, frame_mobility > 0), a viscous shape factor
+    (:func:`shape_correction`, circular pores) and a bypass gap beside the pores
+    (:func:`bypass_entries`, gap_share > 0). Wire screens take their own entries
+    (:func:`screen_entries`), not the pore functions."""
+    a12, a21, a22 = pore_entries(
+        omega,
+        root_omega,
+        log_nu,
+        log_k,
+        c12,
+        c21,
+        c22,
+        rho,
+        f_k,
+        g_nu,
+        g_k,
+        porosity,
+        tortuosity,
+        area,
+        frame_mobility,
+        shape_factor,
+        gamma,
+        pore_model,
+    )
+    if cre(gap_share) > wp.float64(0.0):
+        return bypass_entries(
+            a12,
+            a21,
+            a22,
+            omega,
+            root_omega,
+            log_nu,
+            log_k,
+            c12,
+            c21,
+            c22,
+            porosity,
+            tortuosity,
+            gap_share,
+            gap_log_nu,
+            gap_log_k,
+            gamma,
+        )
+    return a12, a21, a22
+
+
+@wp.func
+def pore_entries(
     omega: Any,
     root_omega: Any,
     log_nu: Any,
@@ -604,17 +787,7 @@ def propagation_entries(
     gamma: wp.float64,
     pore_model: int,
 ):
-    """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
-    (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
-    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
-    ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
-    heats. The physics of A, written once for every kind of number
-    (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
-    (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
-    derivative (:func:`propagation_tangent`). The effects: a limp frame
-    (:func:`limp_density`, frame_mobility > 0) and a viscous shape factor
-    (:func:`shape_correction`, circular pores). Wire screens take their own entries
-    (:func:`screen_entries`), not the pore functions."""
+    """(a12, a21, a22) of the pores alone (:func:`propagation_entries` without a gap)."""
     if pore_model == PORE_SCREENS:
         return screen_entries(
             omega, log_nu, log_k, c12, c21, c22, rho, porosity, tortuosity, area, frame_mobility, gamma
@@ -683,6 +856,9 @@ def propagation_value(
         geo.area,
         geo.frame_mobility,
         geo.shape_factor,
+        geo.gap_share,
+        geo.gap_log_nu,
+        geo.gap_log_k,
         gamma,
         pore_model,
     )
@@ -699,6 +875,7 @@ def plain_part(geo: PartGeometry, pore_model: int):
         pore_model == PORE_CIRCULAR
         and geo.frame_mobility <= wp.float64(0.0)
         and (shape == wp.float64(1.0) or shape <= wp.float64(0.0))
+        and geo.gap_share <= wp.float64(0.0)
     )
 
 
@@ -735,6 +912,9 @@ def propagation_circular(
         geo.area,
         wp.float64(0.0),
         wp.float64(1.0),
+        wp.float64(0.0),
+        wp.float64(0.0),
+        wp.float64(0.0),
         gamma,
         PORE_CIRCULAR,
     )
@@ -807,6 +987,9 @@ def propagation_tangent(
         dual_real(geo.area, dgeo.area),
         dual_real(geo.frame_mobility, dgeo.frame_mobility),
         dual_real(geo.shape_factor, dgeo.shape_factor),
+        dual_real(geo.gap_share, dgeo.gap_share),
+        dual_real(geo.gap_log_nu, dgeo.gap_log_nu),
+        dual_real(geo.gap_log_k, dgeo.gap_log_k),
         gamma,
         pore_model,
     )
@@ -840,6 +1023,9 @@ def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2
         geo.area,
         geo.frame_mobility,
         geo.shape_factor,
+        geo.gap_share,
+        geo.gap_log_nu,
+        geo.gap_log_k,
         gamma,
         pore_model,
     )
@@ -863,10 +1049,15 @@ def point_difference(plus: PointCoefficients, minus: PointCoefficients, inv_two_
 @wp.func
 def geometry_difference(plus: PartGeometry, minus: PartGeometry, inv_two_step: wp.float64):
     """(plus - minus) / (2 step) of every field of a :class:`PartGeometry`."""
-    return part_geometry(
-        (plus.porosity - minus.porosity) * inv_two_step,
-        (plus.tortuosity - minus.tortuosity) * inv_two_step,
-        (plus.area - minus.area) * inv_two_step,
-        (plus.frame_mobility - minus.frame_mobility) * inv_two_step,
-        (plus.shape_factor - minus.shape_factor) * inv_two_step,
+    return with_bypass(
+        part_geometry(
+            (plus.porosity - minus.porosity) * inv_two_step,
+            (plus.tortuosity - minus.tortuosity) * inv_two_step,
+            (plus.area - minus.area) * inv_two_step,
+            (plus.frame_mobility - minus.frame_mobility) * inv_two_step,
+            (plus.shape_factor - minus.shape_factor) * inv_two_step,
+        ),
+        (plus.gap_share - minus.gap_share) * inv_two_step,
+        (plus.gap_log_nu - minus.gap_log_nu) * inv_two_step,
+        (plus.gap_log_k - minus.gap_log_k) * inv_two_step,
     )

@@ -53,12 +53,14 @@ from .acoustics import (
     sinhc_derivative,
     traceless_exp,
     traceless_parts,
+    with_bypass,
     zero2,
 )
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
-from .heat import segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
+from .heat import gap_share, segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
 from .layout import (
+    BYPASS_GAP,
     F_POROUS,
     F_PORE_MODEL,
     F_IMPOSED,
@@ -179,12 +181,25 @@ def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 
 @wp.func
 def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
-    """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i."""
+    """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i; a porous segment
+    with a ``bypass_gap`` g > 0 [m] has the gap's section share g (2R - g)/R^2 and its
+    half-spacing g/2 over the pores' radii (:func:`tawarp.kernels.acoustics.bypass_entries`)."""
     phi, r, q = pore_geometry(params, flags, i, s)
     radius = params[RADIUS, i]
-    return part_geometry(
+    geo = part_geometry(
         phi, q, PI * radius * radius, frame_mobility(params, flags, i, s), shape_factor(params, flags, i, s)
     )
+    if flags[s, F_POROUS] != 0:
+        gap = seg_value(params, i, s, BYPASS_GAP)
+        if gap > wp.float64(0.0):
+            half = wp.float64(0.5) * gap
+            geo = with_bypass(
+                geo,
+                gap_share(gap, radius),
+                wp.log(half / r),
+                wp.log(half / thermal_radius(params, flags, i, s, r)),
+            )
+    return geo
 
 
 @wp.func

@@ -38,6 +38,7 @@ approximation (lam at the cell's mean temperature) that the design metrics use.
 import warp as wp
 
 from .layout import (
+    BYPASS_GAP,
     CONDUCTIVITY_EXPONENT,
     CONTACT_RESISTANCE,
     END_CONDUCTANCE,
@@ -168,6 +169,13 @@ def segment_lambda(
 
 
 @wp.func
+def gap_share(gap: wp.float64, radius: wp.float64):
+    """Share of the tube section [-] of an annular gap of width ``gap`` [m] at the wall of a
+    tube of ``radius`` [m]: (R^2 - (R - g)^2)/R^2 = g (2R - g)/R^2."""
+    return gap * (wp.float64(2.0) * radius - gap) / (radius * radius)
+
+
+@wp.func
 def material_lambda(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -175,12 +183,18 @@ def material_lambda(
     i: int,
     s: int,
 ):
-    """Conductivity of the gas and solid of segment s at T_cold [W/(m K)]."""
+    """Conductivity of the gas and solid of segment s at T_cold [W/(m K)]; a bypass gap's
+    gas replaces its share of the section (:func:`gap_share`)."""
     lam_gas = conductivity(gas, params[T_COLD, i])
     if flags[s, F_POROUS] == 0:
         return lam_gas
     phi = seg_value(params, i, s, POROSITY)
-    return phi * lam_gas + (wp.float64(1.0) - phi) * seg_value(params, i, s, SOLID_CONDUCTIVITY)
+    lam = phi * lam_gas + (wp.float64(1.0) - phi) * seg_value(params, i, s, SOLID_CONDUCTIVITY)
+    gap = seg_value(params, i, s, BYPASS_GAP)
+    if gap > wp.float64(0.0):
+        x = gap_share(gap, params[RADIUS, i])
+        lam = (wp.float64(1.0) - x) * lam + x * lam_gas
+    return lam
 
 
 @wp.func

@@ -35,7 +35,9 @@ T_START, T_END = range(14, 16)
 # thermal contact resistance [m^2 K/W] at the segment's start, against the previous thermal
 # segment (0: none)
 CONTACT_RESISTANCE = 16
-N_FIELDS = 17
+# width [m] of an annular gap between a porous segment and the tube wall (0: none)
+BYPASS_GAP = 17
+N_FIELDS = 18
 # structure flags per segment: F_THERMAL a segment of the heat model, F_IMPOSED one whose
 # temperature profile is imposed (linear from T_START to T_END)
 F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER, F_IMPOSED = range(5)

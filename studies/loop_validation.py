@@ -65,12 +65,13 @@ the upstream or downstream pair, 0.1 and 0.2 m from the face); a porosity varyin
 stack (a = 0.1-0.3 end to end, limited so that phi <= 0.99); and buffer-tube convection
 (the reference's nonlinear heat model, ``effect:convection``), beside clean data. The core
 file is 10-20 % off (:data:`LAB_PRIOR_OFF`; ``--prior-off`` sets any range). The wall field
-is the physical version of the library's ``wall_conduction``; the contact resistance and the
-porosity gradient are the reference's own versions (a jump in its heat BVP; a continuous
-porosity law in its ODE and BVP) of the library's ``contact_resistance`` and
-``porosity_gradient``; convection is in the library: they are scored as those effects. The
-other three (bypass gap, leak, microphone mismatch) are outside the library: visible, they
-must be flagged (``unexplained_residual`` or ``wrong_model``; ``explained`` is wrong).
+is the physical version of the library's ``wall_conduction``; the contact resistance, the
+porosity gradient and the bypass gap are the reference's own versions (a jump in its heat
+BVP; a continuous porosity law in its ODE and BVP; a slit 2-port in parallel with the stack's,
+joined at its ends) of the library's ``contact_resistance``, ``porosity_gradient`` and
+``bypass_gap``; convection is in the library: they are scored as those effects. The other two
+(leak, microphone mismatch) are outside the library: visible, they must be flagged
+(``unexplained_residual`` or ``wrong_model``; ``explained`` is wrong).
 
 **Absorbed effects are scored, not skipped** (:func:`score`): an effect the base fit
 explains (chi^2 at 1 %) must not be claimed as a false effect, and no case may be judged
@@ -264,7 +265,7 @@ LAB = {
     ),
     "bypass_gap": LabEffect(
         lambda rng, truth, core: {"bypass_gap": _u(rng, 0.1e-3, 0.5e-3)},
-        None,
+        "bypass_gap",
         "stack cut or wound 0.1-0.5 mm under the tube's diameter",
     ),
     "leak": LabEffect(

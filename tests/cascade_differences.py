@@ -15,17 +15,20 @@ from tawarp.model.forward import Engine, ForwardSettings
 FREQUENCIES = np.array([35.0, 160.0, 450.0])
 
 
-def assert_tangents_match_differences(core, names, v0, heat_input):
+def assert_tangents_match_differences(core, names, v0, heat_input, scales=None):
     """dT/dz at ``v0`` (of parameters ``names``) to 1e-8 of max |dT/dz| per parameter, plus
     1e-11 of max |T| for parameters of so small an effect that rounding over the
     differences' steps (eps |T| / step) shows; 1e-7 when the heat solve iterates to its
-    1e-12 tolerance (step 1e-4). The cascade's own T at v0 matches the plain one to 1e-13."""
+    1e-12 tolerance (step 1e-4). The cascade's own T at v0 matches the plain one to 1e-13.
+    ``scales`` {name: s}: v = v0 + s z for a linear parameter whose effect turns on a scale
+    below 0.05 (default 0.05)."""
     log = np.array([is_log(k) for k in names])
+    unit = np.array([(scales or {}).get(k, 0.05) for k in names])
     P = len(names)
     eng = Engine(core, FREQUENCIES, names, ForwardSettings(cells=6, device="cpu", cpu_threads=1))
 
     def table(zs):
-        return np.stack([np.r_[heat_input, np.where(log, v0 * np.exp(z), v0 + 0.05 * z)] for z in zs], axis=1)
+        return np.stack([np.r_[heat_input, np.where(log, v0 * np.exp(z), v0 + unit * z)] for z in zs], axis=1)
 
     step = eng.tangent_step
     tol = 1e-8 if not eng.nonlinear else 1e-7

@@ -93,6 +93,7 @@ STABLE_NAMES = {
     "ambient_exchanger_thermal",
     "contact_resistance",
     "porosity_gradient",
+    "bypass_gap",
 }
 
 
@@ -134,6 +135,7 @@ def test_library_for_core_names_typical_sizes_and_passive_cores():
         "ambient_exchanger_thermal",
         "contact_resistance",
         "porosity_gradient",
+        "bypass_gap",
     }
     passive = {e.name for e in library_for_core(PASSIVE, "scattering")}
     assert passive == {

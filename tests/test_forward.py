@@ -293,7 +293,7 @@ def test_plain_cascade_equals_the_general_one():
     assert np.abs(plain - general).max() <= 1e-14 * scale.max()
     assert np.all(np.abs(plain - general) <= 1e-14 * scale)
 
-    for name in ("stack.frame_mobility", "stack.viscous_shape_factor"):
+    for name in ("stack.frame_mobility", "stack.viscous_shape_factor", "stack.bypass_gap"):
         assert not forward.plain_parts(core, [name])
     limp = forward.Engine(core, freqs, ["stack.frame_mobility"], settings)
     limp.transfer_kernel = forward._transfer_kernel(settings.max_registers, 0, True)

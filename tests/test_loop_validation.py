@@ -335,13 +335,13 @@ def test_outside_lab_effects_must_be_flagged_not_explained():
         "accepted_effects": ["thermal_radius_ratio"],
         "accepted_groups": [["thermal_radius_ratio"]],
     }
-    rec = _lab_record("lab:bypass_gap", *vis, explained)
+    rec = _lab_record("lab:leak", *vis, explained)
     assert rec["expected"]["verdict"] == "unexplained_residual" and not rec["right"]
-    assert _lab_record("lab:bypass_gap", *vis, {"verdict": "unexplained_residual"})["right"]
+    assert _lab_record("lab:leak", *vis, {"verdict": "unexplained_residual"})["right"]
     # absorbed by the base fit: a false claim is wrong, flagging is right
-    rec = _lab_record("lab:bypass_gap", *absorbed, explained)
+    rec = _lab_record("lab:leak", *absorbed, explained)
     assert rec["expected"]["verdict"] == "absorbed" and rec["expected"]["scored"] and not rec["right"]
-    assert _lab_record("lab:bypass_gap", *absorbed, {"verdict": "unexplained_residual"})["right"]
+    assert _lab_record("lab:leak", *absorbed, {"verdict": "unexplained_residual"})["right"]
 
 
 def test_absorbed_effect_adequate_only_within_the_prior():
@@ -402,6 +402,18 @@ def test_contact_resistance_is_scored_as_the_library_contact_resistance():
     assert not _lab_record("lab:contact_resistance", 5.0, 3.0, {"verdict": "unexplained_residual"})["right"]
     assert not _lab_record(
         "lab:contact_resistance", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["thermal_radius_ratio"]}
+    )["right"]
+
+
+def test_bypass_gap_is_scored_as_the_library_bypass_gap():
+    # the reference's gap (a slit 2-port in parallel with the stack's, joined at its ends) is
+    # the library's bypass_gap: visible, it must be named, not flagged nor taken for another
+    good = {"verdict": "explained", "accepted_steps": ["bypass_gap"]}
+    rec = _lab_record("lab:bypass_gap", 5.0, 3.0, good)
+    assert rec["expected"]["effects"] == ["bypass_gap"] and rec["right"]
+    assert not _lab_record("lab:bypass_gap", 5.0, 3.0, {"verdict": "unexplained_residual"})["right"]
+    assert not _lab_record(
+        "lab:bypass_gap", 5.0, 3.0, {"verdict": "explained", "accepted_steps": ["plane_offsets", "square_channels"]}
     )["right"]
 
 

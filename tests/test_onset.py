@@ -118,13 +118,15 @@ def test_core_cascade_complex_omega():
 @pytest.mark.parametrize(
     "core, Q",
     [
-        # every effect of A at once: limp frame, shape factor, separate thermal radius
+        # every effect of A at once: limp frame, shape factor, separate thermal radius, a
+        # bypass gap
         (
             load_core("rvc_foam").replace(
                 **{
                     "stack.frame_mobility": 0.03,
                     "stack.viscous_shape_factor": 1.4,
                     "stack.thermal_radius_ratio": 1.8,
+                    "stack.bypass_gap": 3e-4,
                 }
             ),
             20.0,

@@ -85,6 +85,7 @@ class Segment:
     viscous_shape_factor: float = 1.0
     end_conductance: float = 0.0
     contact_resistance: float = 0.0
+    bypass_gap: float = 0.0
     T_start: float = math.nan
     T_end: float = math.nan
 
@@ -407,6 +408,11 @@ def validate(core: Core) -> None:
                     f"{w}: {fld} = {getattr(s, fld)} applies only to "
                     f"{SEGMENT_FIELDS[fld].applies.replace('_', ' ')} segments"
                 )
+        if s.bypass_gap >= core.radius:
+            raise CoreError(
+                f"{w}: bypass_gap {s.bypass_gap} m must be narrower than the tube radius {core.radius} m "
+                f"(the gap is an annulus between the segment and the wall)"
+            )
     thermal = core.thermal_indices
     if thermal:
         if thermal != list(range(thermal[0], thermal[-1] + 1)):

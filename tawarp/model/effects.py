@@ -13,7 +13,8 @@ shape (:func:`pore_geometry_effects`) is not nested: the swap has no parameter o
 
 Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radius ratio,
 T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
-wall conduction, ambient exchangers, a contact resistance between stack and hot exchanger) and :func:`impedance_library` (thermal radius ratio, viscous shape
+wall conduction, ambient exchangers, a contact resistance between stack and hot exchanger, a
+porosity gradient, a bypass gap) and :func:`impedance_library` (thermal radius ratio, viscous shape
 factor, thickness offset, limp frame, T_cold, p_mean).
 
 The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
@@ -174,6 +175,10 @@ TYPICAL_POROSITY_GRADIENT = 0.1
 #: Parts of a graded stack (:func:`graded_parts`): the porosity piecewise constant, the
 #: 2-port's error second order in the parts' size (2.5 % of a g = 0.2 gradient's effect).
 GRADED_PARTS = 8
+#: Typical annular bypass gap between a stack and its tube [m]: a ceramic or foam stack cut,
+#: or a screen stack punched or wound, 0.1-0.5 mm under the tube's diameter (a stack sliding
+#: into its tube needs that clearance; a stack pressed or glued in has none).
+TYPICAL_BYPASS_GAP = 2e-4
 #: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
 CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
 
@@ -332,7 +337,8 @@ def tmatrix_library(core: Core) -> list[Effect]:
     square channels or plates (:func:`pore_geometry_effects`), convection in
     the buffer tube, wall conduction, the ambient exchangers' acoustics and their thermal
     role, a thermal contact resistance between stack and hot exchanger
-    (:func:`contact_effect`); for a passive core (no thermal stack) the porous-layer effects of its porous
+    (:func:`contact_effect`), a porosity gradient along the stack and an annular bypass
+    gap around it (:func:`bypass_gap_effect`); for a passive core (no thermal stack) the porous-layer effects of its porous
     segments, an elastic frame when it has one porous segment, and T_cold and p_mean
     within room conditions (+-15 K, +-5 %)."""
     segs = core.segments
@@ -422,7 +428,27 @@ def tmatrix_library(core: Core) -> list[Effect]:
         if contact is not None:
             lib.append(contact)
         lib.append(porosity_gradient_effect(stack))
+        lib.append(bypass_gap_effect(core, stack))
     return lib
+
+
+def bypass_gap_effect(core: Core, stack: str) -> Effect:
+    """An annular gap of width g [m] between ``stack`` and the tube wall
+    (``STACK.bypass_gap``, a field of the kernels): beside the pores a parallel-plate channel
+    of spacing g and section share g (2R - g)/R^2, under the same pressure, at the stack's
+    temperature (:func:`tawarp.kernels.acoustics.bypass_entries`), its gas replacing that
+    share of the stack's solid in the heat model. Off at 0, exactly (no gap: the same
+    arithmetic as before). Typical :data:`TYPICAL_BYPASS_GAP`; bounded by the fields table's
+    fit range and half the tube radius (a wider gap is a missing stack, not a clearance)."""
+    label = f"{stack}.bypass_gap"
+    f = field_spec(label)
+    lo, hi = f.fit_range
+    return Effect(
+        "bypass_gap",
+        "an annular gap between the stack and the tube wall (a slit of width g beside the pores)",
+        (Param(label, (label,), 0.0, f.scale, lo, min(hi, 0.5 * core.radius)),),
+        typical={label: TYPICAL_BYPASS_GAP},
+    )
 
 
 def porosity_gradient_effect(stack: str) -> Effect:

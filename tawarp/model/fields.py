@@ -287,6 +287,21 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         "theta jumps by R_c times the heat flux density there (0: perfect contact; no effect on the first)",
     ),
     Field(
+        "bypass_gap",
+        layout.BYPASS_GAP,
+        "m",
+        0.0,
+        _INF,
+        False,
+        "porous",
+        neutral=0.0,
+        log=False,
+        scale=1e-4,
+        fit_range=(0.0, 5e-3),
+        description="width g of an annular gap between the segment and the tube wall: a parallel-plate channel "
+        "of spacing g beside the pores, area share g (2R - g)/R^2 (0: none; below the tube radius)",
+    ),
+    Field(
         "T_start",
         layout.T_START,
         "K",
@@ -481,6 +496,7 @@ TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "wall_conductance": (0.0, 1e4),
     "end_conductance": (0.0, 1e9),
     "contact_resistance": (0.0, 1.0),
+    "bypass_gap": (0.0, 10.0),
     "T_start": (1.0, 1e4),
     "T_end": (1.0, 1e4),
 }

@@ -290,7 +290,7 @@ def nonlinear_heat(core: Core, names=()) -> bool:
 def plain_parts(core: Core, names=()) -> bool:
     """True when every part of a batch of ``core`` varying ``names`` is plain
     (:func:`tawarp.kernels.acoustics.plain_part`: circular pores or a duct, a rigid frame, no
-    viscous shape factor): its value cascade compiles without the other parts' code
+    viscous shape factor, no bypass gap): its value cascade compiles without the other parts' code
     (:func:`tawarp.kernels.forward.make_transfer_kernel`'s ``plain``)."""
     from ..kernels.pore import PORE_CIRCULAR
 
@@ -302,9 +302,10 @@ def plain_parts(core: Core, names=()) -> bool:
             continue
         row = layout.N_GLOBAL + s * layout.N_FIELDS
         mobility, shape = row + layout.FRAME_MOBILITY, row + layout.VISCOUS_SHAPE_FACTOR
-        if models[s] != PORE_CIRCULAR or mobility in varied or shape in varied:
+        gap = row + layout.BYPASS_GAP
+        if models[s] != PORE_CIRCULAR or mobility in varied or shape in varied or gap in varied:
             return False
-        if not (base[mobility] <= 0.0 and (base[shape] == 1.0 or base[shape] <= 0.0)):
+        if not (base[mobility] <= 0.0 and (base[shape] == 1.0 or base[shape] <= 0.0) and base[gap] <= 0.0):
             return False
     return True
 

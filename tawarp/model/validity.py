@@ -112,6 +112,14 @@ def check_sets(
                     f"{core.source}: {describe_set(i, heat_input, values)}: {s.name}.pore_radius = {r[i]:.4g} m is "
                     f"wider than the tube (radius {R[i]:.4g} m); {bad.size} of {n} sets"
                 )
+            gap = _value(core, values, f"{s.name}.bypass_gap", n)
+            bad = np.flatnonzero(gap >= R)
+            if bad.size:
+                i = int(bad[0])
+                raise ModelValidityError(
+                    f"{core.source}: {describe_set(i, heat_input, values)}: {s.name}.bypass_gap = {gap[i]:.4g} m is "
+                    f"not narrower than the tube (radius {R[i]:.4g} m); {bad.size} of {n} sets"
+                )
     thermal = [core.segments[k] for k in core.thermal_indices]
     if thermal:
         sink = sum(
