@@ -349,13 +349,39 @@ class _Run:
         generation is stored before the next is asked. ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the
         lineage's best (several objectives: on its front now), in one journal lock and
-        sync. The copies wait for the end because each Optuna trial costs the study a
+        sync, chosen while the last append runs and written after it ends. The copies wait for the end because each Optuna trial costs the study a
         journal entry and a read-back (about a millisecond): several objectives' fronts
         change every generation; a run killed before its end leaves them to its resume,
         which keeps them again from the stored generations."""
         t = time.perf_counter()
         self.wait_kept()
         rows, self.rows = self.rows, []
+        if rows:
+            if self.writer is None:
+                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
+                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
+            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
+            if self.space.material is not None:
+                params["material"] = self.space.material_index(params["material"])
+            args = (
+                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
+                np.concatenate([r[1] for r in rows]),
+                params,
+                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
+                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
+                np.concatenate([r[5] for r in rows]),
+            )
+            self.wait_store()
+            # the final append too, while the copies below are chosen (it ends before they are written)
+            if self.commit_seconds > 0:
+                if self._appender is None:
+                    from concurrent.futures import ThreadPoolExecutor
+
+                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
+                self._appending = self._appender.submit(self.writer.append, *args)
+            else:
+                self.writer.append(*args)
+            self.timing["trial_store"] += time.perf_counter() - t
         if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
             if final:  # exactly: those off the whole front
                 self.merge_front()
@@ -373,33 +399,10 @@ class _Run:
         copies, self.copies = (self.copies, []) if final else ([], self.copies)
         if len(self.objectives) > 1:
             copies = _spread(copies, FRONT_COPIES)
-        if rows:
-            if self.writer is None:
-                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
-                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
-            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
-            if self.space.material is not None:
-                params["material"] = self.space.material_index(params["material"])
-            args = (
-                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
-                np.concatenate([r[1] for r in rows]),
-                params,
-                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
-                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
-                np.concatenate([r[5] for r in rows]),
-            )
-            self.wait_store()
-            if self.commit_seconds > 0 and not final:
-                if self._appender is None:
-                    from concurrent.futures import ThreadPoolExecutor
-
-                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
-                self._appending = self._appender.submit(self.writer.append, *args)
-            else:
-                self.writer.append(*args)
-            self.timing["trial_store"] += time.perf_counter() - t
         if final:
+            t_store = time.perf_counter()
             self.wait_store()  # the store before the copies
+            self.timing["trial_store"] += time.perf_counter() - t_store
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
             for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
@@ -599,8 +602,10 @@ def _spread(copies: list, k: int) -> list:
     # two objectives: the members are the front, whose crowding is one sequential pass
     # (the per-objective sorts of crowding() cost a fast device's search 0.3 s at 1M trials)
     dist = fronts_and_crowding(F)[1] if F.shape[1] == 2 else crowding(F, np.zeros(len(F), dtype=int))
-    keep = np.zeros(len(F), dtype=bool)
-    keep[np.argsort(-dist, kind="stable")[:k]] = True
+    # the k largest, ties in order: those above the k-th largest, then the first at it
+    kth = np.partition(dist, len(dist) - k)[len(dist) - k]
+    keep = dist > kth
+    keep[np.flatnonzero(dist == kth)[: k - int(keep.sum())]] = True
     return _select_rows(copies, keep)
 
 
