@@ -510,9 +510,11 @@ class _Run:
         """Commit what was evaluated (whole generations, whatever ended the run), close the
         trial store's file."""
         try:
-            self.wait_kept()
-            if self.rows or self.copies:
-                self.commit(claim, final=True)
+            try:
+                self.wait_kept()
+            finally:  # the rows are stored whatever the copies' thread raised
+                if self.rows or self.copies:
+                    self.commit(claim, final=True)
             self.wait_store()
         finally:
             if self._keeper is not None:  # (an earlier error: its generations end first)
