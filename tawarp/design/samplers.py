@@ -422,18 +422,21 @@ def fronts_and_crowding(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rank = nondominated_ranks(G)
         return rank, crowding(G, rank)
     N = G.shape[0]
+    G = np.ascontiguousarray(G, dtype=np.float64)
     order = lexsort_2(G[:, 0], G[:, 1]).astype(np.int32)
-    cpu = "cpu"
-    rank, crowd = wp.empty(N, dtype=wp.int32, device=cpu), wp.empty(N, dtype=wp.float64, device=cpu)
-    scratch = [wp.empty(N, dtype=wp.float64, device=cpu)] + [wp.empty(N, dtype=wp.int32, device=cpu) for _ in range(4)]
+    rank, crowd, last = np.empty(N, np.int32), np.empty(N), np.empty(N)
+    links = np.empty((4, N), np.int32)  # head, tail, prev, succ
+
+    def on_cpu(a):  # NumPy's memory seen by the kernel: no copies each generation
+        return wp.array(a, dtype=wp.float64 if a.dtype == np.float64 else wp.int32, device="cpu", copy=False)
+
     wp.launch(
         fronts_2d,
         dim=1,
-        device=cpu,
-        inputs=[wp.array(order, dtype=wp.int32, device=cpu), wp.array(G, dtype=wp.float64, device=cpu), rank, crowd]
-        + scratch,
+        device="cpu",
+        inputs=[on_cpu(a) for a in (order, G, rank, crowd, last, *links)],
     )
-    return rank.numpy().astype(np.int64), crowd.numpy()
+    return rank.astype(np.int64), crowd
 
 
 def survivors(rank: np.ndarray, crowd: np.ndarray, k: int) -> np.ndarray:
