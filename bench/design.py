@@ -250,8 +250,10 @@ def _engine_rate(space, device, chunk, mode="grid", reduce=None):
     def one(k):
         table, values = (tables.grid(0, chunk), None) if mode == "grid" else tables.sobol(0, chunk, 0)
         f32 = ev.metric_columns(ev.evaluate_device(table), outputs)
-        if reducer is not None:
-            reducer.add(k, 0, values, f32)
+        if reducer is not None:  # as the sweep: chunk k - 1's candidates merged while chunk k runs
+            reducer.add(k, k * chunk, values, f32)
+            if k > 0:
+                reducer.collect(k - 1)
 
     one(0)
     wp.synchronize_device(ev.device)
