@@ -349,10 +349,11 @@ class _Run:
         generation is stored before the next is asked. ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the
         lineage's best (several objectives: on its front now), in one journal lock and
-        sync, chosen while the last append runs and written after it ends. The copies wait for the end because each Optuna trial costs the study a
-        journal entry and a read-back (about a millisecond): several objectives' fronts
-        change every generation; a run killed before its end leaves them to its resume,
-        which keeps them again from the stored generations."""
+        sync, chosen while the last append runs and written after it ends. The copies
+        wait for the end because each Optuna trial costs the study a journal entry and a
+        read-back (about a millisecond): several objectives' fronts change every
+        generation; a run killed before its end leaves them to its resume, which keeps
+        them again from the stored generations."""
         t = time.perf_counter()
         self.wait_kept()
         rows, self.rows = self.rows, []
@@ -423,10 +424,10 @@ class _Run:
         """Copies of generation ``g``'s members that the study keeps (:meth:`kept`; less
         those ``copied`` already), for the commit at the run's end. With ``commit_seconds``
         > 0 in a thread of its own, generations in order, while the sampler and the device
-        go on (NumPy's sorts and searches release the GIL): on a fast device this
-        bookkeeping of the lineage front was a third of the wall time; :meth:`commit`
-        waits for it. The arguments are the generation's own arrays, which nothing
-        changes later."""
+        go on (NumPy's sorts and searches release the GIL): on a fast device the host's
+        storage work, this bookkeeping of the lineage front included, was over half of
+        the wall time; :meth:`commit` waits for it. The arguments are the generation's
+        own arrays, which nothing changes later."""
         if self.commit_seconds <= 0:
             self._keep(g, F, viol, values, metrics, copied)
             return
