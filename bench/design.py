@@ -28,6 +28,13 @@ device's completion) for comparison.
     python bench/design.py --device cuda --cases cmaes,nsga2 --trials 4194304 --batch 32768 \
         --mo-trials 1048576 --mo-batch 8192             # the two batched searches alone
 
+``--surrogate`` replaces the searches' design evaluation by an analytic stand-in computed
+with NumPy (:func:`surrogate_metrics`; the tables, transfers and every other step as in a
+real run): the wall time is then the host's own work, sampler and storage, which is what a
+fast device leaves of a search; measured on a CPU it tells that work's cost without a GPU.
+
+    python bench/design.py --device cpu --surrogate --cases nsga2 --mo-trials 1048576 --mo-batch 8192
+
 ``--cases`` picks the parts (cmaes, nsga2, optuna, sweep, sweep_reduced); the JSON file
 is rewritten after each part (``"complete": false`` until the last), so a run stopped by
 a time limit keeps what it measured.
@@ -36,6 +43,7 @@ a time limit keeps what it measured.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -74,7 +82,52 @@ def _space():
     return DesignSpace(load_core("rvc_foam"), VARS)
 
 
-def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None, commit_seconds=1.0):
+def surrogate_metrics(table: np.ndarray) -> np.ndarray:
+    """Stand-in kernel metrics (n, 4: gradient [K/m], T_max [K], heat_leak [W], T_hot [K])
+    of a varying table (heat input, then :data:`VARS`' core parameters as
+    ``DesignSpace.varying_table`` orders them): smooth, of the real metrics' magnitudes,
+    gradient and heat leak in conflict (both grow with the heat input and the solid
+    fraction, the leak falls with the stack's length) and the temperature limit active
+    for some, so that NSGA-II's lineage front grows as on the real space."""
+    Q, phi, k_s, length, hx = table[0], table[1], table[4], table[6], table[7]
+    solid = 1.25 - phi
+    gradient = 40.0 * Q * solid / (length + 0.003) / (1.0 + 0.05 * k_s)
+    heat_leak = 0.2 * Q * (1.0 + phi) + 0.01 * k_s * solid / length + 20.0 * hx
+    T_max = 300.0 + 12.0 * Q * (1.0 + 20.0 * hx) * solid
+    return np.stack([gradient, T_max, heat_leak, T_max - 10.0], axis=1)
+
+
+@contextlib.contextmanager
+def surrogate_evaluation(on: bool):
+    """Inside, every ``Evaluator.evaluate_device`` returns :func:`surrogate_metrics` (when ``on``)."""
+    if not on:
+        yield
+        return
+    import warp as wp
+
+    from tawarp.design.evaluate import Evaluator
+
+    real = Evaluator.evaluate_device
+
+    def evaluate_device(self, varying, out=None):
+        table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
+        return wp.array(surrogate_metrics(table), dtype=wp.float64, device=self.device)
+
+    Evaluator.evaluate_device = evaluate_device
+    try:
+        yield
+    finally:
+        Evaluator.evaluate_device = real
+
+
+def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None, commit_seconds=1.0, surrogate=False):
+    with surrogate_evaluation(surrogate):
+        res = _bench_search(device, n_trials, batch, objectives, engine, tmp, commit_seconds)
+    res["evaluation"] = "surrogate (NumPy on the host)" if surrogate else "the design kernels"
+    return res
+
+
+def _bench_search(device, n_trials, batch, objectives, engine, tmp, commit_seconds):
     import warp as wp
 
     from tawarp.design.evaluate import Evaluator
@@ -95,7 +148,7 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
         engine=engine,
         storage=os.path.join(tmp, f"warmup_{engine}_{len(objectives)}.journal"),
     )
-    t = time.perf_counter()
+    t, cpu, main = time.perf_counter(), time.process_time(), time.thread_time()
     res = search(
         space,
         objectives,
@@ -107,6 +160,7 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
         commit_seconds=commit_seconds,
     )
     wall = time.perf_counter() - t
+    cpu, main = time.process_time() - cpu, time.thread_time() - main
     # kernel time of one batch on a device-resident table
     ev = Evaluator(space, settings=settings)
     import numpy as np
@@ -144,6 +198,10 @@ def bench_search(device, n_trials, batch, objectives, engine="batched", tmp=None
         "storage_share": tm["storage"] / wall,
         "evaluation_share": tm["evaluation"] / wall,
         "trial_store_s": tm["trial_store"],
+        # CPU time of the process (every thread) and of the search's own thread: on a
+        # shared host the wall time varies with the other load, these much less
+        "process_cpu_s": cpu,
+        "main_thread_cpu_s": main,
         "trial_store_share": tm["trial_store"] / wall,
         "trials_in_study": summary["in_study"],
         "trials_queryable": summary["trials"],
@@ -165,25 +223,44 @@ def _grid_space(n):
     return DesignSpace(load_core("rvc_foam"), spec)
 
 
-def _engine_rate(space, device, chunk):
-    """Points per second of the engine alone on one chunk: the table built on the device,
-    the heat solve and the metrics kernel, timed to the device's completion (no transfers,
-    no file): the rate a sweep would reach if nothing else cost."""
+def _engine_rate(space, device, chunk, mode="grid", reduce=None):
+    """Points per second of the engine alone on one chunk: the table built on the device
+    (``mode`` grid: from the point index; sobol: the sweep's Sobol points drawn there), the
+    heat solve and the metrics kernel, timed to the device's completion (no transfers,
+    no file): the rate a sweep would reach if nothing else cost. ``reduce``: with the
+    reduced sweep's reductions of each chunk launched too (their device time; a Sobol
+    chunk)."""
     import warp as wp
 
     from tawarp.design.evaluate import Evaluator
+    from tawarp.design.objectives import kernel_metrics
+    from tawarp.design.reductions import Reducer, parse_reduce
     from tawarp.design.space import DeviceTable
     from tawarp.model.forward import ForwardSettings
 
     ev = Evaluator(space, settings=ForwardSettings(device=device))
     tables = DeviceTable(space, ev.device)
-    chunk = min(chunk, int(np.prod([len(v.grid()) for v in space.variables])))
-    ev.metric_columns(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+    if mode == "grid":
+        chunk = min(chunk, int(np.prod([len(v.grid()) for v in space.variables])))
+    outputs = kernel_metrics()
+    reducer = None
+    if reduce:
+        reducer = Reducer(parse_reduce(reduce), space, mode, outputs, ("gradient", "heat_leak"), ev.device, chunk)
+
+    def one(k):
+        table, values = (tables.grid(0, chunk), None) if mode == "grid" else tables.sobol(0, chunk, 0)
+        f32 = ev.metric_columns(ev.evaluate_device(table), outputs)
+        if reducer is not None:  # as the sweep: chunk k - 1's candidates merged while chunk k runs
+            reducer.add(k, k * chunk, values, f32)
+            if k > 0:
+                reducer.collect(k - 1)
+
+    one(0)
     wp.synchronize_device(ev.device)
     reps = 5
     t = time.perf_counter()
-    for _ in range(reps):
-        ev.metric_columns(ev.evaluate_device(tables.grid(0, chunk)), ev.columns)
+    for k in range(1, reps + 1):
+        one(k)
     wp.synchronize_device(ev.device)
     return reps * chunk / (time.perf_counter() - t)
 
@@ -207,6 +284,10 @@ def sweep_child(device, mode, n, chunk, path):
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings, **kw)  # over the file
     engine = _engine_rate(_grid_space(n), device, chunk)
+    sobol_engine = reduced_engine = None
+    if mode == "sobol":
+        sobol_engine = 3600.0 * _engine_rate(space, device, chunk, "sobol")
+        reduced_engine = 3600.0 * _engine_rate(space, device, chunk, "sobol", REDUCE) if kw else None
     print(
         json.dumps(
             {
@@ -220,6 +301,12 @@ def sweep_child(device, mode, n, chunk, path):
                 "write_s": info.write_seconds,
                 "engine_evaluations_per_hour": 3600.0 * engine,
                 "share_of_engine_rate": info.evaluations_per_hour / (3600.0 * engine),
+                # the same engine on the sweep's own Sobol points, then with the reductions:
+                # what the device costs; the rest of ``seconds`` is the host's
+                "engine_sobol_evaluations_per_hour": sobol_engine,
+                "engine_reduced_evaluations_per_hour": reduced_engine,
+                # outside the chunks' loop: setup, the reductions' writing, the file's close
+                "other_s": info.seconds - info.evaluation_seconds - info.write_seconds,
                 "overwrite_seconds": again.seconds,
                 "overwrite_evaluations_per_hour": again.evaluations_per_hour,
                 "peak_rss_MiB": rss / 1024.0,
@@ -275,6 +362,11 @@ def main(argv=None):
         action="store_true",
         help="only the sweeps (grid and Sobol, two sizes each): design_sweep_<device>.json",
     )
+    ap.add_argument(
+        "--surrogate",
+        action="store_true",
+        help="searches evaluate an analytic stand-in on the host: their wall time is the host's work",
+    )
     ap.add_argument("--chunk", type=int, default=None, help="sweep chunk in points (default: 2^14 --small, else 2^22)")
     ap.add_argument("--sweep-child", nargs=4, metavar=("MODE", "N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
@@ -313,6 +405,7 @@ def main(argv=None):
     given = {"trials": args.trials, "batch": args.batch, "chunk": args.chunk}
     given.update(mo_trials=args.mo_trials, mo_batch=args.mo_batch)
     cfg.update({k: v for k, v in given.items() if v is not None})
+    cfg["surrogate"] = args.surrogate
     cases = [c for c in args.cases.split(",") if c]
     if not cases or set(cases) - set(CASES):
         ap.error(f"--cases {args.cases!r}: choose among {', '.join(CASES)}")
@@ -326,7 +419,7 @@ def main(argv=None):
         "config": cfg,
         "design_space": VARS,
     }
-    tag = _tag(device, out["device_name"])
+    tag = _tag(device, out["device_name"]) + ("_surrogate" if args.surrogate else "")
     if args.sweep_only:
         with tempfile.TemporaryDirectory(prefix="tawarp_bench_") as tmp:
             for mode in ("grid", "sobol", "sobol_reduced"):
@@ -348,9 +441,11 @@ def main(argv=None):
     out["command"] = "python bench/design.py " + " ".join(sys.argv[1:] if argv is None else argv)
     out["complete"] = False
     runs = {
-        "search_cmaes": lambda tmp: bench_search(device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp),
+        "search_cmaes": lambda tmp: bench_search(
+            device, cfg["trials"], cfg["batch"], ("gradient",), tmp=tmp, surrogate=args.surrogate
+        ),
         "search_nsga2": lambda tmp: bench_search(
-            device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp
+            device, cfg["mo_trials"], cfg["mo_batch"], ("gradient", "heat_leak"), tmp=tmp, surrogate=args.surrogate
         ),
         "search_optuna_cmaes": lambda tmp: bench_search(
             device, cfg["opt_trials"], cfg["opt_batch"], ("gradient",), engine="optuna", tmp=tmp

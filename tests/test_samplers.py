@@ -13,9 +13,11 @@ from tawarp.design.samplers import (
     constrained_objectives,
     crowding,
     fronts_and_crowding,
+    lexsort_2,
     make_sampler,
     nondominated_ranks,
     pareto_mask,
+    survivors,
 )
 
 CPU = "cpu"
@@ -97,6 +99,36 @@ def test_search_front_kept_and_merged_is_the_front_of_all():
     assert list(fid) == [0, 1] and front.tolist() == [[1.0, 2.0], [2.0, 1.0]]
 
 
+def test_lexsort_2_is_numpys_lexsort():
+    """The sort of two keys (one argsort, the runs of ties put in order) gives exactly
+    np.lexsort((b, a)): by a, then b, then place; on keys full of ties, NaN (last, in
+    place order), infinities and signed zeros, and on distinct keys."""
+    rng = np.random.default_rng(11)
+    for _ in range(2000):
+        n = int(rng.integers(0, 60))
+        a = rng.integers(0, 5, n).astype(float)
+        b = rng.integers(0, 4, n).astype(float)
+        a[rng.random(n) < 0.1] = np.nan
+        a[rng.random(n) < 0.1] = -0.0
+        b[rng.random(n) < 0.1] = np.inf
+        b[rng.random(n) < 0.1] = np.nan
+        assert np.array_equal(lexsort_2(a, b), np.lexsort((b, a)))
+    a, b = rng.random(20000), rng.random(20000)
+    assert np.array_equal(lexsort_2(a, b), np.lexsort((b, a)))
+
+
+def test_survivors_are_the_best_by_front_then_crowding():
+    """NSGA-II's truncation without a full sort: the same rows as the first k of the rows
+    sorted by front, then crowding distance (larger first), ties by place."""
+    rng = np.random.default_rng(12)
+    for _ in range(2000):
+        n, k = int(rng.integers(1, 80)), int(rng.integers(1, 60))
+        rank = rng.integers(0, 6, n)
+        cd = rng.integers(0, 4, n).astype(float)
+        cd[rng.random(n) < 0.2] = np.inf
+        assert np.array_equal(survivors(rank, cd, k), np.sort(np.lexsort((-cd, rank))[:k]))
+
+
 def test_crowding_distance_by_hand():
     F = np.array([[0.0, 4.0], [1.0, 2.0], [3.0, 1.0], [4.0, 0.0]])
     d = crowding(F, np.zeros(4, dtype=int))
@@ -111,6 +143,12 @@ def test_constrained_domination():
     F = np.array([[5.0, 5.0], [0.0, 0.0], [0.0, 0.0], [1.0, 1.0]])
     viol = np.array([0.0, 2.0, 1.0, 0.0])
     assert list(nondominated_ranks(constrained_objectives(F, viol))) == [1, 3, 2, 0]
+    # an objective that is not finite makes a member infeasible (ranked by its violation,
+    # none here: first of the infeasible); a violation that is not finite (inf, NaN) ranks
+    # behind every finite one, the two alike; -inf is no violation
+    F = np.array([[0.0, 0.0], [np.nan, 1.0], [1.0, 1.0], [2.0, 2.0], [3.0, 0.5]])
+    viol = np.array([np.inf, -1.0, 0.5, np.nan, -np.inf])
+    assert list(nondominated_ranks(constrained_objectives(F, viol))) == [3, 1, 2, 3, 0]
 
 
 def test_both_samplers_follow_one_protocol():

@@ -47,7 +47,7 @@ import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import lexsorted_front, make_sampler, pareto_mask
+from .samplers import fronts_and_crowding, lexsort_2, lexsorted_front, make_sampler, pareto_mask
 from .space import DesignSpace, DeviceTable
 from .storage import (
     ATTR,
@@ -262,6 +262,8 @@ class _Run:
         self.last_commit = time.perf_counter()
         self._appender = None  # the thread of the trial store's appends (commit_seconds > 0)
         self._appending = None  # the append in flight (a Future)
+        self._keeper = None  # the thread that keeps the copies (:meth:`keep`, commit_seconds > 0)
+        self._keeping = []  # its generations in flight (Futures), in order
 
     def evaluate(self, values: dict):
         """(metrics {name: (n,)}, values (n, m) as objectives, minimized F (n, m),
@@ -347,12 +349,40 @@ class _Run:
         generation is stored before the next is asked. ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the
         lineage's best (several objectives: on its front now), in one journal lock and
-        sync. The copies wait for the end because each Optuna trial costs the study a
-        journal entry and a read-back (about a millisecond): several objectives' fronts
-        change every generation; a run killed before its end leaves them to its resume,
-        which keeps them again from the stored generations."""
+        sync, chosen while the last append runs and written after it ends. The copies
+        wait for the end because each Optuna trial costs the study a journal entry and a
+        read-back (about a millisecond): several objectives' fronts change every
+        generation; a run killed before its end leaves them to its resume, which keeps
+        them again from the stored generations."""
         t = time.perf_counter()
+        self.wait_kept()
         rows, self.rows = self.rows, []
+        if rows:
+            if self.writer is None:
+                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
+                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
+            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
+            if self.space.material is not None:
+                params["material"] = self.space.material_index(params["material"])
+            args = (
+                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
+                np.concatenate([r[1] for r in rows]),
+                params,
+                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
+                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
+                np.concatenate([r[5] for r in rows]),
+            )
+            self.wait_store()
+            # the final append too, while the copies below are chosen (it ends before they are written)
+            if self.commit_seconds > 0:
+                if self._appender is None:
+                    from concurrent.futures import ThreadPoolExecutor
+
+                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
+                self._appending = self._appender.submit(self.writer.append, *args)
+            else:
+                self.writer.append(*args)
+            self.timing["trial_store"] += time.perf_counter() - t
         if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
             if final:  # exactly: those off the whole front
                 self.merge_front()
@@ -370,33 +400,10 @@ class _Run:
         copies, self.copies = (self.copies, []) if final else ([], self.copies)
         if len(self.objectives) > 1:
             copies = _spread(copies, FRONT_COPIES)
-        if rows:
-            if self.writer is None:
-                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
-                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
-            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
-            if self.space.material is not None:
-                params["material"] = self.space.material_index(params["material"])
-            args = (
-                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
-                np.concatenate([r[1] for r in rows]),
-                params,
-                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
-                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
-                np.concatenate([r[5] for r in rows]),
-            )
-            self.wait_store()
-            if self.commit_seconds > 0 and not final:
-                if self._appender is None:
-                    from concurrent.futures import ThreadPoolExecutor
-
-                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
-                self._appending = self._appender.submit(self.writer.append, *args)
-            else:
-                self.writer.append(*args)
-            self.timing["trial_store"] += time.perf_counter() - t
         if final:
+            t_store = time.perf_counter()
             self.wait_store()  # the store before the copies
+            self.timing["trial_store"] += time.perf_counter() - t_store
         with journal_batch(self.storage):  # the copies and the heartbeat: one lock and one sync
             for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
@@ -412,6 +419,38 @@ class _Run:
         if self._appending is not None:
             appending, self._appending = self._appending, None
             appending.result()
+
+    def keep(self, g: int, F: np.ndarray, viol: np.ndarray, values: dict, metrics: dict, copied=None) -> None:
+        """Copies of generation ``g``'s members that the study keeps (:meth:`kept`; less
+        those ``copied`` already), for the commit at the run's end. With ``commit_seconds``
+        > 0 in a thread of its own, generations in order, while the sampler and the device
+        go on (NumPy's sorts and searches release the GIL): on a fast device the host's
+        storage work, this bookkeeping of the lineage front included, was over half of
+        the wall time; :meth:`commit` waits for it. The arguments are the generation's
+        own arrays, which nothing changes later."""
+        if self.commit_seconds <= 0:
+            self._keep(g, F, viol, values, metrics, copied)
+            return
+        if self._keeper is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._keeper = ThreadPoolExecutor(1, thread_name_prefix="tawarp-front")
+        self._keeping.append(self._keeper.submit(self._keep, g, F, viol, values, metrics, copied))
+
+    def _keep(self, g, F, viol, values, metrics, copied) -> None:
+        keep = self.kept(g, F, viol)
+        if copied is not None:
+            keep = keep[~np.isin(keep, copied)]
+        if keep.size:  # copies of the generation's kept members that the study lacks
+            c = viol[keep] if self.T_limit is not None else None
+            self.copies.append((g, keep, _rows_of(values, keep), _rows_of(metrics, keep), c, F[keep]))
+
+    def wait_kept(self) -> None:
+        """Wait for the generations :meth:`keep` has in flight; the first error, if any,
+        is raised here."""
+        keeping, self._keeping = self._keeping, []
+        for f in keeping:
+            f.result()
 
     def commit_due(self) -> bool:
         return time.perf_counter() - self.last_commit >= self.commit_seconds
@@ -472,10 +511,15 @@ class _Run:
         """Commit what was evaluated (whole generations, whatever ended the run), close the
         trial store's file."""
         try:
-            if self.rows or self.copies:
-                self.commit(claim, final=True)
+            try:
+                self.wait_kept()
+            finally:  # the rows are stored whatever the copies' thread raised
+                if self.rows or self.copies:
+                    self.commit(claim, final=True)
             self.wait_store()
         finally:
+            if self._keeper is not None:  # (an earlier error: its generations end first)
+                self._keeper.shutdown()
             if self._appending is not None:  # an earlier error: the append still ends before the close
                 self._appending.exception()
             if self._appender is not None:
@@ -537,20 +581,7 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
             told = run.told(values)
         t = time.perf_counter()
         if run.store is not None:
-            keep = run.kept(g, F, viol)
-            if g in copied:
-                keep = keep[~np.isin(keep, copied[g])]
-            if keep.size:  # copies of the generation's kept members that the study lacks
-                run.copies.append(
-                    (
-                        g,
-                        keep,
-                        _rows_of(values, keep),
-                        _rows_of(metrics, keep),
-                        viol[keep] if run.T_limit is not None else None,
-                        F[keep],
-                    )
-                )
+            run.keep(g, F, viol, values, metrics, copied.get(g))
         run.timing["storage"] += time.perf_counter() - t
         if run.commit_due():
             run.commit(claim)
@@ -571,8 +602,13 @@ def _spread(copies: list, k: int) -> list:
     F = np.concatenate([c[5] for c in copies]) if copies else np.zeros((0, 0))
     if len(F) <= k:
         return copies
-    keep = np.zeros(len(F), dtype=bool)
-    keep[np.argsort(-crowding(F, np.zeros(len(F), dtype=int)), kind="stable")[:k]] = True
+    # two objectives: the members are the front, whose crowding is one sequential pass
+    # (the per-objective sorts of crowding() cost a fast device's search 0.3 s at 1M trials)
+    dist = fronts_and_crowding(F)[1] if F.shape[1] == 2 else crowding(F, np.zeros(len(F), dtype=int))
+    # the k largest, ties in order: those above the k-th largest, then the first at it
+    kth = np.partition(dist, len(dist) - k)[len(dist) - k]
+    keep = dist > kth
+    keep[np.flatnonzero(dist == kth)[: k - int(keep.sum())]] = True
     return _select_rows(copies, keep)
 
 
@@ -613,7 +649,7 @@ def _dominated(F: np.ndarray, front: np.ndarray, block: int = 1024) -> np.ndarra
     by :func:`_staircase_dominates`, more in blocks of rows (an (n, len(front)) comparison
     at once would not fit)."""
     if F.shape[1] == 2:
-        order = np.lexsort((front[:, 1], front[:, 0]))
+        order = lexsort_2(front[:, 0], front[:, 1])
         return _staircase_dominates(front[order, 0], np.minimum.accumulate(front[order, 1]), F)
     out = np.zeros(len(F), dtype=bool)
     for lo in range(0, len(F), block):

@@ -196,7 +196,7 @@ def sweep(
     bar = progress_bar(n, "sweep", progress, unit="pt")
     variables = _stored_variables(space, mode, rows) if raw else {}
     ensure_free_space(path, n * sum(np.dtype(dtype).itemsize for dtype, _ in variables.values()))
-    reducer = None
+    reducer, summary = None, None
     if spec:
         from .reductions import Reducer
 
@@ -269,7 +269,7 @@ def sweep(
                     nchunks += 1
                     bar.update(hi - lo)
                 if reducer is not None:
-                    reducer.write(f)
+                    summary = reducer.write(f)["summary"]
             if parts:
                 t = time.perf_counter()
                 _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
@@ -277,7 +277,6 @@ def sweep(
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    summary = reducer.results()["summary"] if reducer is not None else None
     return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, summary)
 
 
