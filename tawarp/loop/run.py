@@ -222,15 +222,25 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     """Starts of the refit of the model of ``effects``, which extends ``at`` (the base, or
     the best model so far): ``at``'s solution with its own effects at their fitted values and
     the others off (for a single effect also its further ``starts`` and, where it has
-    several parameters, its typical size: at "off" the others can be undetermined); the base
+    several parameters, its typical size: at "off" the others can be undetermined; beside
+    others, each new effect's own ``starts``); the base
     parameters at the core file's values with every effect at its typical size (a strong
     effect pulls the base fit away from where the augmented optimum lies, and a descent
     from there can stay in that valley); and the linearized optimum."""
     own = _effect_parts(at.fit.x[0], n_base, [e for e in effects if e.name in at.effects])
     base_x = at.fit.x[0][:n_base]
-    out = [np.concatenate([base_x] + [own.get(e.name, np.zeros(len(e.params))) for e in effects])]
+    parts = [own.get(e.name, np.zeros(len(e.params))) for e in effects]
+    out = [np.concatenate([base_x] + parts)]
     if len(effects) == 1:
         out += [np.concatenate([base_x, x]) for x in refit_starts(effects[0])[1:]]
+    else:
+        # an effect whose descent from "off" stays at its bound does so beside others too
+        for k, e in enumerate(effects):
+            if e.starts and e.name not in at.effects:
+                out += [
+                    np.concatenate([base_x] + parts[:k] + [x] + parts[k + 1 :])
+                    for x in refit_starts(e)[-len(e.starts) :]
+                ]
     out.append(np.concatenate([np.zeros(n_base)] + [_typical_x(e) for e in effects]))
     if x_lin is not None:
         out.append(x_lin)

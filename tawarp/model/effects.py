@@ -300,7 +300,10 @@ def porous_layer_effects(
             limp = dataclasses.replace(
                 limp, params=(dataclasses.replace(par, targets=par.targets + tuple(zero), expand=without_stiffness),)
             )
-        out.append(dataclasses.replace(limp, mechanism=FRAME_MOTION))
+        # a limp frame's descent from "off" can stay there: starts at a light and a typical
+        # frame (not beyond the typical 1/30 m^3/kg: the starts span the prior's width)
+        starts = tuple({limp.params[0].label: 1.0 / rho} for rho in (100.0, TYPICAL_FRAME["rho_1"]))
+        out.append(dataclasses.replace(limp, mechanism=FRAME_MOTION, starts=starts))
     return out
 
 
