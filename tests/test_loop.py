@@ -439,20 +439,7 @@ def loop_choice(rep) -> set[str]:
     return {k for k, p in inc.items() if p > 0.5}
 
 
-@pytest.mark.parametrize(
-    "name",
-    [
-        pytest.param(
-            "foam1",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="on 9 frequencies a moving frame (limp or elastic, 0.99 together) lowers "
-                "the error from 0.031 to 0.021; on the full grid no refit reaches it",
-            ),
-        ),
-        "foam2",
-    ],
-)
+@pytest.mark.parametrize("name", ["foam1", "foam2"])
 def test_loop_foam_choice_survives_every_8th_frequency(name):
     # both layers at every 8th frequency (9 each, 160 Hz apart): the same effects chosen as
     # on the full grid, and an error after at or below a rigid JCA fit's on the same points

@@ -346,16 +346,16 @@ def compare_models(
     models = [base] + cmp.refit(requests)
     counts = ModelsCompared(len(sets), len(lin) + 1, len(models), hidden)
     posterior(models)
-    # second round: linearized again at the most probable model and at the most probable
-    # single effect (far from the base, as a strong effect leaves it, the first round's
-    # quadratic model is poor, and a weaker second effect is found only beside the strong one)
-    best = max(models, key=lambda m: m.probability)
-    single = max((m for m in models if len(m.effects) == 1), key=lambda m: m.probability, default=None)
-    anchors = [
-        m
-        for k, m in enumerate([best, single])
-        if m is not None and m.effects and len(m.effects) < max_effects and not (k == 1 and m is best)
-    ]
+    # second round: linearized again at the most probable model that can take another
+    # effect and at the most probable single effect (far from the base, as a strong effect
+    # leaves it, the first round's quadratic model is poor, and a weaker effect is found
+    # only beside the strong ones; a best model already of the largest size has no
+    # supersets, and the one just below it is where a third effect is looked for)
+    growable = [m for m in models if 0 < len(m.effects) < max_effects]
+    best = max(growable, key=lambda m: m.probability, default=None)
+    single = max((m for m in growable if len(m.effects) == 1), key=lambda m: m.probability, default=None)
+    anchors = [m for m in (best, single) if m is not None]
+    anchors = [m for k, m in enumerate(anchors) if m not in anchors[:k]]
     done = {m.effects for m in models}
     requests = []
     for at in anchors:
