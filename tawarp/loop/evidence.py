@@ -35,8 +35,8 @@ the log posterior at the base solution (:func:`linearized_evidence`: one batched
 every effect's sensitivity columns, then only linear algebra per model); the base model,
 every single effect and the most probable subsets are then refitted (nonlinear MAP fits, one
 lockstep batch), and the posterior is taken over the refitted models, those far outside the
-window having negligible mass. A second round linearizes at the best refitted model and
-refits its most probable supersets.
+window having negligible mass. A second round linearizes at the most probable refitted
+model that can take another effect and refits its most probable supersets.
 """
 
 from __future__ import annotations

@@ -318,7 +318,8 @@ def compare_models(
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
-    the most probable refitted model and at the most probable single effect, and the most
+    the most probable refitted model that can take another effect and at the most probable
+    single effect, and the most
     probable supersets of each refitted (``noise_scale``: the noise is an estimate, known up
     to a factor). Returns the refitted models (posterior probabilities set, most probable
     first) and what was compared."""
