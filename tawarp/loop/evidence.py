@@ -3,8 +3,9 @@ Laplace log-evidence, posterior model and inclusion probabilities, groups the da
 separate.
 
 A *model* is the base fit plus a set of effects (at most one that changes the core's
-structure, at most one per physical mechanism: one frame model). Every parameter carries a Gaussian prior in its scaled fit variable x
-(:class:`tawarp.model.effects.Param`; log-normal for log fields), truncated to the fit
+structure, at most one per physical mechanism: one frame model). Every parameter carries a
+Gaussian prior in its scaled fit variable x (:class:`tawarp.model.effects.Param`;
+log-normal for log fields), truncated to the fit
 bounds: the base fields' priors come from the core file or the documented defaults
 (:func:`tawarp.model.priors.prior_for`), an effect's parameters sit around "off" with twice
 the effect's typical size as one sd (:func:`tawarp.model.priors.effect_priors`).

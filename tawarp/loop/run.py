@@ -223,8 +223,7 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     the best model so far): ``at``'s solution with its own effects at their fitted values and
     the others off (for a single effect also its further ``starts`` and, where it has
     several parameters, its typical size: at "off" the others can be undetermined; beside
-    others, each new effect's own ``starts``); the base
-    parameters at the core file's values with every effect at its typical size (a strong
+    others, each new effect's own ``starts``); the base parameters at the core file's values with every effect at its typical size (a strong
     effect pulls the base fit away from where the augmented optimum lies, and a descent
     from there can stay in that valley); and the linearized optimum."""
     own = _effect_parts(at.fit.x[0], n_base, [e for e in effects if e.name in at.effects])
@@ -319,9 +318,8 @@ def compare_models(
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
     the most probable refitted model that can take another effect and at the most probable
-    single effect, and the most
-    probable supersets of each refitted (``noise_scale``: the noise is an estimate, known up
-    to a factor). Returns the refitted models (posterior probabilities set, most probable
+    single effect, and the most probable supersets of each refitted (``noise_scale``: the
+    noise is an estimate, known up to a factor). Returns the refitted models (posterior probabilities set, most probable
     first) and what was compared."""
     at_base = effect_columns(problem, base.fit, fixed, library)
     hidden = [

@@ -99,9 +99,9 @@ class ImpedanceKind(MeasurementKind):
         segment, and so is a limp frame (``layer.frame_mobility`` m > 0, frame wave speed
         ``layer.frame_wave_speed`` c 0 or not given: Biot's frame at E -> 0, the kernels' limp
         frame). A set with an elastic frame (m > 0, c > 0: Young's modulus
-        E = c^2 / (m (1 - nu)/((1 + nu)(1 - 2 nu)))) takes the kernels' equivalent fluid of the same parameters
-        (:func:`equivalent_fluid`, from a thin slice of the rigid frame in the same launch)
-        under the Biot frame of :func:`tawarp.model.biot.fluid_surface_impedance` of density
+        E = c^2 / (m (1 - nu)/((1 + nu)(1 - 2 nu)))) takes the kernels' equivalent fluid of
+        the same parameters (:func:`equivalent_fluid`, from a thin slice of the rigid frame in
+        the same launch) under the Biot frame of :func:`tawarp.model.biot.fluid_surface_impedance` of density
         1/m. At m = 0 the set is the rigid model bit for bit (the frame's other fields are
         then not read): an infinitely heavy frame does not move.
 

@@ -301,7 +301,8 @@ def porous_layer_effects(
                 limp, params=(dataclasses.replace(par, targets=par.targets + tuple(zero), expand=without_stiffness),)
             )
         # a limp frame's descent from "off" can stay there: starts at a light and a typical
-        # frame (not beyond the typical 1/30 m^3/kg: the starts span the prior's width)
+        # frame, none beyond the typical 1/30 m^3/kg (the starts also set the prior's width,
+        # tawarp.model.priors.effect_priors)
         starts = tuple({limp.params[0].label: 1.0 / rho} for rho in (100.0, TYPICAL_FRAME["rho_1"]))
         out.append(dataclasses.replace(limp, mechanism=FRAME_MOTION, starts=starts))
     return out
@@ -670,8 +671,9 @@ TYPICAL_FRAME = {"E": 2e5, "eta": 0.1, "rho_1": 30.0}
 #: P-wave modulus over Young's modulus, (1 - nu)/((1 + nu)(1 - 2 nu)), at the frame's fixed
 #: Poisson ratio nu: normal incidence sees P = E times this alone.
 P_WAVE_FACTOR = (1 - FRAME_POISSON_RATIO) / ((1 + FRAME_POISSON_RATIO) * (1 - 2 * FRAME_POISSON_RATIO))
-#: In-vacuo compressional wave speed sqrt(P / rho_1) of foam and fibre frames [m/s]: Young's moduli from 1e4 Pa (soft fibres) to 1e7 Pa (a
-#: stiff foam's apparent modulus in a tube, its edge held by the wall; Allard & Atalla,
+#: In-vacuo compressional wave speed sqrt(P / rho_1) of foam and fibre frames [m/s]: Young's
+#: moduli from 1e4 Pa (soft fibres) to 1e7 Pa (a stiff foam's apparent modulus in a tube,
+#: its edge held by the wall; Allard & Atalla,
 #: *Propagation of Sound in Porous Media*, 2nd ed., the materials of ch. 6 and 11) over frame
 #: densities of 100 to 10 kg/m^3: two decades, the central 95 % of the layer frame's prior.
 FRAME_WAVE_SPEED_RANGE = (math.sqrt(1e4 * P_WAVE_FACTOR / 100.0), math.sqrt(1e7 * P_WAVE_FACTOR / 10.0))
@@ -698,10 +700,11 @@ def elastic_frame_effect() -> Effect:
     (:data:`FRAME_WAVE_SPEED_RANGE`): a log Param, its prior log-normal with that span as
     the central 95 % (:func:`tawarp.model.priors.effect_priors`), even per decade. It is
     also what such data fix: a resonance's frequency, E and rho_1 apart far less
-    (correlation 0.995 in ``docs/elastic_frame.md``). A switch on the compliance 1/E (its
-    earlier form) put a half-normal on 1/E that had to reach the softest frames: its density
-    per decade of E falls as 1/E, and a foam of 3e6 Pa paid several units of ln Z for its
-    stiffness alone, enough to lose a frame resonance that a coarse grid samples twice.
+    (correlation 0.995 in ``docs/elastic_frame.md``). A switch on the compliance 1/E would
+    need a half-normal on 1/E reaching the softest frames: its density per decade of E
+    falls as 1/E, and a foam of 3e6 Pa would pay about 4 units of ln Z for its stiffness
+    alone, enough to lose a frame resonance that a coarse grid samples twice (foam2 at every
+    8th frequency, docs/loop.md).
 
     **One frame per model.** The limp frame is this frame's c -> 0 end (Biot's frame without
     stiffness, ``tests/test_effects_library.py``), which a log-normal prior does not hold at

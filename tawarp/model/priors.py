@@ -184,11 +184,11 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
       :attr:`Effect.typical` and of the effect's extra refit ``starts`` (the elastic
       frame's E from 1e4 to 1e7 Pa is such a stated span). "Off" on the field's physical bound (radiation, convection, wall
       conduction, frame mobility >= 0) makes it a half-normal;
-    - a log Param with such a span (the layer frame's Young's modulus): a scale, not a
+    - a log Param with such a span (the layer frame's wave speed, 12-1200 m/s): a scale, not a
       switch (its start is no "off"), whose value is known to decades: log-normal around the
       start with the span as its central 95 % (the ``range`` of a declared prior);
     - a Param whose typical value is its start (the ambient exchangers' porosity and pore
-      radius, a frame's loss factor and density: shape parameters of an effect another
+      radius, a frame's loss factor: shape parameters of an effect another
       Param switches on): its field's default around the start.
 
     A prior that ``core``'s file declares for the label wins."""
