@@ -17,6 +17,7 @@ from tawarp.model.core import Core, Segment
 from tawarp.model.effects import (
     AMBIENT_HX,
     GRADED_PARTS,
+    P_WAVE_FACTOR,
     Param,
     ambient_exchanger_effect,
     base_params,
@@ -234,11 +235,12 @@ def test_calibration_gain_is_a_gain_of_the_downstream_microphones():
     np.testing.assert_allclose(kind.predict(on, 1), g * base, rtol=1e-14)
 
 
-def _frame(C, eta=0.1, rho_1=30.0):
+def _frame(E, eta=0.1, rho_1=30.0):
+    """The layer's elastic frame of Young's modulus E [Pa], loss factor eta, density rho_1."""
     return {
-        "layer.frame_compliance": np.array([C]),
+        "layer.frame_mobility": np.array([1.0 / rho_1]),
+        "layer.frame_wave_speed": np.array([np.sqrt(E * P_WAVE_FACTOR / rho_1)]),
         "layer.frame_loss_factor": np.array([eta]),
-        "layer.frame_density": np.array([rho_1]),
     }
 
 
@@ -260,21 +262,26 @@ def test_equivalent_fluid_of_the_kernels_equals_the_circular_pore_closed_form():
 
 
 def test_elastic_frame_effect_limits_and_biot_on_the_closed_form_fluid():
-    """Compliance 0: the rigid model bit for bit; 1/E -> 0 converges to it linearly; E -> 0
-    gives the kernels' own limp frame (an independent implementation, Panneton's limp
-    model); a typical foam frame equals Biot (tawarp.model.biot) on the closed-form
-    circular-pore fluid."""
+    """Mobility 0 (an infinitely heavy frame): the rigid model bit for bit; m -> 0 converges
+    to it linearly; E -> 0 gives the kernels' own limp frame (an independent
+    implementation, Panneton's limp model), and so does a wave speed of 0 exactly; a
+    typical foam frame equals Biot (tawarp.model.biot) on the closed-form circular-pore
+    fluid."""
     f = np.geomspace(100.0, 4000.0, 9)
     kind = _impedance_kind(f)
     base = _start_values(kind, [])
     Z0 = kind.predict(base, 1)
-    np.testing.assert_array_equal(kind.predict(dict(base, **_frame(0.0)), 1), Z0)
-    d = [np.abs(kind.predict(dict(base, **_frame(C)), 1) - Z0).max() / np.abs(Z0).max() for C in (1e-12, 1e-13)]
-    assert 1e-10 < d[1] < 1e-7 and d[0] / d[1] == pytest.approx(10.0, rel=1e-2)
+    np.testing.assert_array_equal(kind.predict({**base, **_frame(2e5), "layer.frame_mobility": np.zeros(1)}, 1), Z0)
+    d = [
+        np.abs(kind.predict(dict(base, **_frame(2e5, rho_1=1 / m)), 1) - Z0).max() / np.abs(Z0).max()
+        for m in (1e-7, 1e-8)
+    ]
+    assert 1e-11 < d[1] < 1e-8 and d[0] / d[1] == pytest.approx(10.0, rel=1e-2)
     Zl = kind.predict(dict(base, **{"layer.frame_mobility": np.array([1 / 30.0])}), 1)
-    assert np.abs(kind.predict(dict(base, **_frame(1e3, eta=0.0)), 1) - Zl).max() < 1e-8 * np.abs(Zl).max()
+    assert np.abs(kind.predict(dict(base, **_frame(1e-3, eta=0.0)), 1) - Zl).max() < 1e-8 * np.abs(Zl).max()
+    np.testing.assert_array_equal(kind.predict(dict(base, **_frame(0.0)), 1), Zl)
     # typical frame E = 2e5 Pa, eta = 0.1 against Biot in the closed-form fluid
-    Z = kind.predict(dict(base, **_frame(5e-6)), 1)[0]
+    Z = kind.predict(dict(base, **_frame(2e5)), 1)[0]
     phi, r, q = (kind.core.get(f"layer.{k}") for k in ("porosity", "pore_radius", "tortuosity"))
     w = 2 * np.pi * f
     g = reference.gas_properties("air", kind.core.gas.T_cold, kind.core.gas.p_mean)
@@ -308,15 +315,15 @@ def test_impedance_batch_equals_each_set_alone():
         "layer.porosity": np.array([0.95, 0.95, 0.95, 0.97, 0.95, 0.97, 0.95]),
         "layer.pore_radius": np.full(n, 1.5e-4),
         "layer.tortuosity": np.full(n, 1.1),
-        "layer.frame_compliance": np.array([0.0, 5e-6, 5e-6, 5e-6, 0.0, 1e-6, 5e-6]),
+        "layer.frame_mobility": np.array([0.0, 1, 1, 1, 0.0, 1, 1]) / 30.0,
+        "layer.frame_wave_speed": np.sqrt(np.array([2e5, 2e5, 2e5, 2e5, 2e5, 1e6, 2e5]) * P_WAVE_FACTOR / 30.0),
         "layer.frame_loss_factor": np.array([0.1, 0.1, 0.2, 0.1, 0.1, 0.1, 0.1]),
-        "layer.frame_density": np.full(n, 30.0),
         "layer.length_offset": np.array([0.0, 0.0, 0.0, 0.0, 1e-3, 0.0, 1e-3]),
     }
     Z = kind.predict(values, n)
     for i in range(n):
         alone = kind.predict({k: v[i : i + 1] for k, v in values.items()}, 1)[0]
-        if values["layer.frame_compliance"][i] == 0:
+        if values["layer.frame_mobility"][i] == 0:
             np.testing.assert_array_equal(Z[i], alone)
         else:
             assert np.max(np.abs(Z[i] - alone) / np.abs(alone)) < 1e-13
@@ -330,8 +337,8 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     0.17 to 0.034; with the JCA lengths freed too (thermal radius ratio, shape factor) it
     reaches 0.034, below a rigid JCA fit (0.0581, studies/elastic_frame.py) and at the
     direct Biot fit's 0.0332. Fitted frame as the direct fit's: E 3.1e6 Pa, eta 0.15,
-    rho_1 33 kg/m^3. Starts: the base solution with the frame off (compliance 0: the fit
-    stays there) and the effect's ``starts`` (E = 1e4..1e7 Pa)."""
+    rho_1 33 kg/m^3. Starts: the base solution with the frame off (mobility 0: the fit
+    stays there) and the effect's ``starts`` (frame wave speeds 12-1200 m/s)."""
     from shared_data import measured_folder
 
     from tawarp.fit.problems import fit_batch, fit_one
@@ -361,8 +368,9 @@ def test_elastic_frame_effect_explains_the_foam2_frame_resonance():
     frame = fit(["elastic_frame"])
     assert float(frame.rms_error[0]) < 0.052 and prob.error(frame.model[0], band) < 0.04
     v = frame.value_dict()
-    assert 2e6 < 1 / v["layer.frame_compliance"] < 4.5e6 and 0.1 < v["layer.frame_loss_factor"] < 0.2
-    assert 25 < v["layer.frame_density"] < 45
+    E = v["layer.frame_wave_speed"] ** 2 / v["layer.frame_mobility"] / P_WAVE_FACTOR
+    assert 2e6 < E < 4.5e6 and 0.1 < v["layer.frame_loss_factor"] < 0.2
+    assert 25 < 1 / v["layer.frame_mobility"] < 45
     full = fit(["thermal_radius_ratio", "viscous_shape_factor", "elastic_frame"])
     assert float(full.rms_error[0]) < 0.036  # rigid JCA: 0.0581
 

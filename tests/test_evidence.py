@@ -171,13 +171,17 @@ def test_truncated_prior_normalisation(lo, hi):
 
 def test_model_prior_sums_to_one_and_is_uniform_over_sizes():
     class E:
-        def __init__(self, name, structural=False):
+        def __init__(self, name, structural=False, mechanism=None):
             self.name, self.transform = name, (lambda c: c) if structural else None
+            self.mechanism = mechanism
 
-    lib = [E("a"), E("b"), E("c"), E("s1", True), E("s2", True)]
+    # two frame models of one mechanism never share a model (a layer has one frame)
+    lib = [E("a"), E("b"), E("c"), E("s1", True), E("s2", True), E("limp", mechanism="f"), E("elastic", mechanism="f")]
     sets = subsets(lib, 3)
     assert all(sum(e.transform is not None for e in s) <= 1 for s in sets)
     assert not any({"s1", "s2"} <= {e.name for e in s} for s in sets)
+    assert not any({"limp", "elastic"} <= {e.name for e in s} for s in sets)
+    assert ("limp",) in [tuple(e.name for e in s) for s in sets]
     sizes = {}
     for s in sets:
         sizes[len(s)] = sizes.get(len(s), 0) + 1

@@ -464,6 +464,27 @@ def test_elastic_frame_prior_spans_its_stated_starts():
     assert prior.sd == EFFECT_WIDTH * 1e7 and abs(prior.z(3e6)) < TENSION_SD
 
 
+def test_layer_frame_prior_is_even_per_decade_of_its_wave_speed():
+    """The layer's elastic frame: its mobility switch has the limp frame's half-normal prior
+    (one frame, two models), its wave speed is a scale whose stated span (12-1200 m/s: E
+    1e4-1e7 Pa over 10-100 kg/m^3) is the log-normal's central 95 %; foam2's fitted frame
+    (349 m/s, docs/elastic_frame.md's direct Biot fit 351 m/s) is inside it."""
+    from tawarp.model.effects import FRAME_WAVE_SPEED_RANGE, P_WAVE_FACTOR, impedance_library
+    from tawarp.model.layer import layer_core
+    from tawarp.model.prior import Z95
+
+    lib = {e.name: e for e in impedance_library(layer_core(0.03))}
+    frame = effect_priors(lib["elastic_frame"])
+    assert frame["layer.frame_mobility"] == effect_priors(lib["limp_frame"])["layer.frame_mobility"]
+    c = frame["layer.frame_wave_speed"]
+    lo, hi = FRAME_WAVE_SPEED_RANGE
+    assert c.log and c.z(lo) == pytest.approx(-Z95, rel=1e-12) and c.z(hi) == pytest.approx(Z95, rel=1e-12)
+    assert lo == pytest.approx(math.sqrt(1e4 * P_WAVE_FACTOR / 100)) and hi == pytest.approx(
+        math.sqrt(1e6 * P_WAVE_FACTOR)
+    )
+    assert abs(c.z(349.0)) < TENSION_SD
+
+
 # -- the documentation --------------------------------------------------------------------
 DOCS = Path(__file__).resolve().parents[1] / "docs" / "priors.md"
 #: each default row as docs/priors.md states it: (row text, sd, log)

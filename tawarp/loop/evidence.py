@@ -3,8 +3,9 @@ Laplace log-evidence, posterior model and inclusion probabilities, groups the da
 separate.
 
 A *model* is the base fit plus a set of effects (at most one that changes the core's
-structure). Every parameter carries a Gaussian prior in its scaled fit variable x
-(:class:`tawarp.model.effects.Param`; log-normal for log fields), truncated to the fit
+structure, at most one per physical mechanism: one frame model). Every parameter carries a
+Gaussian prior in its scaled fit variable x (:class:`tawarp.model.effects.Param`;
+log-normal for log fields), truncated to the fit
 bounds: the base fields' priors come from the core file or the documented defaults
 (:func:`tawarp.model.priors.prior_for`), an effect's parameters sit around "off" with twice
 the effect's typical size as one sd (:func:`tawarp.model.priors.effect_priors`).
@@ -35,8 +36,8 @@ the log posterior at the base solution (:func:`linearized_evidence`: one batched
 every effect's sensitivity columns, then only linear algebra per model); the base model,
 every single effect and the most probable subsets are then refitted (nonlinear MAP fits, one
 lockstep batch), and the posterior is taken over the refitted models, those far outside the
-window having negligible mass. A second round linearizes at the best refitted model and
-refits its most probable supersets.
+window having negligible mass. A second round linearizes at the most probable refitted
+model that can take another effect and refits its most probable supersets.
 """
 
 from __future__ import annotations
@@ -192,12 +193,20 @@ class Model:
         return dict(zip(self.fit.names, prior_z(self.fit.x[0], self.priors).tolist()))
 
 
+def combinable(effects: tuple[Effect, ...]) -> bool:
+    """Whether ``effects`` make one model: at most one changes the core's structure (two
+    structures cannot be combined) and at most one models each physical mechanism
+    (:attr:`Effect.mechanism`: a layer has one frame, limp or elastic, not both)."""
+    mechanisms = [e.mechanism for e in effects if e.mechanism is not None]
+    return sum(e.transform is not None for e in effects) <= 1 and len(set(mechanisms)) == len(mechanisms)
+
+
 def subsets(library: list[Effect], max_effects: int) -> list[tuple[Effect, ...]]:
-    """Every set of at most ``max_effects`` effects of ``library`` with at most one that
-    changes the core's structure (two structures cannot be combined), the empty set first."""
+    """Every set of at most ``max_effects`` effects of ``library`` that makes one model
+    (:func:`combinable`), the empty set first."""
     out = [()]
     for k in range(1, max_effects + 1):
-        out += [s for s in itertools.combinations(library, k) if sum(e.transform is not None for e in s) <= 1]
+        out += [s for s in itertools.combinations(library, k) if combinable(s)]
     return out
 
 
@@ -209,13 +218,22 @@ def log_model_prior(sizes: dict[int, int], k: int) -> float:
 
 def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, library: list[Effect]) -> dict:
     """Sensitivity columns (2 rows, k) of every effect's parameters at the solution ``base``,
-    forward differences from "off": the field effects in one launch (in ``base``'s structure),
+    forward differences from "off": the field effects in one launch (in ``base``'s structure;
+    one more for each further model of a mechanism),
     each structural effect in its own (none when ``base`` has one: two structures do not
     combine); a structure without parameters has one column, its residual change there."""
     out = {}
     rows = np.arange(problem.y.size)
-    fields = [e for e in library if e.transform is None]
-    groups = [(base.effect, fields)]
+    # the field effects in as few launches as hold at most one effect per mechanism (two
+    # frame models set one field: each needs its own launch)
+    launches: list[list[Effect]] = []
+    for e in (e for e in library if e.transform is None):
+        into = next((g for g in launches if combinable(tuple(g) + (e,))), None)
+        if into is None:
+            launches.append([e])
+        else:
+            into.append(e)
+    groups = [(base.effect, fields) for fields in launches or [[]]]
     if base.effect is None:
         groups += [(e, [e]) for e in library if e.transform is not None]
     for structure, effects in groups:

@@ -222,15 +222,24 @@ def _starts(at: Model, n_base: int, effects: tuple[Effect, ...], x_lin: np.ndarr
     """Starts of the refit of the model of ``effects``, which extends ``at`` (the base, or
     the best model so far): ``at``'s solution with its own effects at their fitted values and
     the others off (for a single effect also its further ``starts`` and, where it has
-    several parameters, its typical size: at "off" the others can be undetermined); the base
-    parameters at the core file's values with every effect at its typical size (a strong
+    several parameters, its typical size: at "off" the others can be undetermined; beside
+    others, each new effect's own ``starts``); the base parameters at the core file's values with every effect at its typical size (a strong
     effect pulls the base fit away from where the augmented optimum lies, and a descent
     from there can stay in that valley); and the linearized optimum."""
     own = _effect_parts(at.fit.x[0], n_base, [e for e in effects if e.name in at.effects])
     base_x = at.fit.x[0][:n_base]
-    out = [np.concatenate([base_x] + [own.get(e.name, np.zeros(len(e.params))) for e in effects])]
+    parts = [own.get(e.name, np.zeros(len(e.params))) for e in effects]
+    out = [np.concatenate([base_x] + parts)]
     if len(effects) == 1:
         out += [np.concatenate([base_x, x]) for x in refit_starts(effects[0])[1:]]
+    else:
+        # an effect whose descent from "off" stays at its bound does so beside others too
+        for k, e in enumerate(effects):
+            if e.starts and e.name not in at.effects:
+                out += [
+                    np.concatenate([base_x] + parts[:k] + [x] + parts[k + 1 :])
+                    for x in refit_starts(e)[-len(e.starts) :]
+                ]
     out.append(np.concatenate([np.zeros(n_base)] + [_typical_x(e) for e in effects]))
     if x_lin is not None:
         out.append(x_lin)
@@ -308,9 +317,9 @@ def compare_models(
     """The models of the library up to ``max_effects`` effects compared by their evidence
     (module :mod:`.evidence`): linearized at the base solution for every subset, the base,
     every single effect and the ``refits`` most probable others refitted; then linearized at
-    the most probable refitted model and at the most probable single effect, and the most
-    probable supersets of each refitted (``noise_scale``: the noise is an estimate, known up
-    to a factor). Returns the refitted models (posterior probabilities set, most probable
+    the most probable refitted model that can take another effect and at the most probable
+    single effect, and the most probable supersets of each refitted (``noise_scale``: the
+    noise is an estimate, known up to a factor). Returns the refitted models (posterior probabilities set, most probable
     first) and what was compared."""
     at_base = effect_columns(problem, base.fit, fixed, library)
     hidden = [
@@ -336,16 +345,16 @@ def compare_models(
     models = [base] + cmp.refit(requests)
     counts = ModelsCompared(len(sets), len(lin) + 1, len(models), hidden)
     posterior(models)
-    # second round: linearized again at the most probable model and at the most probable
-    # single effect (far from the base, as a strong effect leaves it, the first round's
-    # quadratic model is poor, and a weaker second effect is found only beside the strong one)
-    best = max(models, key=lambda m: m.probability)
-    single = max((m for m in models if len(m.effects) == 1), key=lambda m: m.probability, default=None)
-    anchors = [
-        m
-        for k, m in enumerate([best, single])
-        if m is not None and m.effects and len(m.effects) < max_effects and not (k == 1 and m is best)
-    ]
+    # second round: linearized again at the most probable model that can take another
+    # effect and at the most probable single effect (far from the base, as a strong effect
+    # leaves it, the first round's quadratic model is poor, and a weaker effect is found
+    # only beside the strong ones; a best model already of the largest size has no
+    # supersets, and the one just below it is where a third effect is looked for)
+    growable = [m for m in models if 0 < len(m.effects) < max_effects]
+    best = max(growable, key=lambda m: m.probability, default=None)
+    single = max((m for m in growable if len(m.effects) == 1), key=lambda m: m.probability, default=None)
+    anchors = [m for m in (best, single) if m is not None]
+    anchors = [m for k, m in enumerate(anchors) if m not in anchors[:k]]
     done = {m.effects for m in models}
     requests = []
     for at in anchors:

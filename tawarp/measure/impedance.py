@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_surface_impedance
-from ..model.effects import FRAME_COMPLIANCE, FRAME_DENSITY, FRAME_LOSS_FACTOR, impedance_library
+from ..model.effects import FRAME_LOSS_FACTOR, FRAME_MOBILITY, FRAME_WAVE_SPEED, P_WAVE_FACTOR, impedance_library
 from ..model.forward import ForwardSettings
 from ..model.gas import GASES
 from ..model.layer import LAYER_BASE, characteristic_impedance, layer_core, surface_impedance_from_T
@@ -96,27 +96,27 @@ class ImpedanceKind(MeasurementKind):
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Zs (n, rows) of ``n`` parameter sets. The rigid-frame layer is the kernels' porous
-        segment; a set with an elastic frame (``layer.frame_compliance`` > 0) takes the
-        kernels' equivalent fluid of the same parameters (:func:`equivalent_fluid`, from a
-        thin slice in the same launch) under the Biot frame of
-        :func:`tawarp.model.biot.fluid_surface_impedance`. At compliance 0 the set is the
-        rigid model bit for bit (the frame fields are then not read). The limp frame
-        (``layer.frame_mobility`` > 0) is the kernels' and applies at compliance 0 only: the
-        elastic frame's fluid is the rigid frame's, and Biot's frame at E -> 0 is itself the
-        limp frame, so a set with both jumps where the compliance leaves 0 (5 % in Zs on
-        foam2); the two effects describe one frame's motion.
+        segment, and so is a limp frame (``layer.frame_mobility`` m > 0, frame wave speed
+        ``layer.frame_wave_speed`` c 0 or not given: Biot's frame at E -> 0, the kernels' limp
+        frame). A set with an elastic frame (m > 0, c > 0: Young's modulus
+        E = c^2 / (m (1 - nu)/((1 + nu)(1 - 2 nu)))) takes the kernels' equivalent fluid of
+        the same parameters (:func:`equivalent_fluid`, from a thin slice of the rigid frame in
+        the same launch) under the Biot frame of :func:`tawarp.model.biot.fluid_surface_impedance` of density
+        1/m. At m = 0 the set is the rigid model bit for bit (the frame's other fields are
+        then not read): an infinitely heavy frame does not move.
 
         One launch for the distinct columns alone: a rigid set needs its layers, an elastic
         set only its slice, and the sets of one LM iteration (a trial point and its
         forward-difference neighbours) differing in the host-side fields share their
         columns (the kernels compute each column on its own, so sharing changes no bit)."""
-        host = (FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY, "layer.length_offset", "layer.length")
+        host = (FRAME_WAVE_SPEED, FRAME_LOSS_FACTOR, "layer.length_offset", "layer.length")
         names = sorted(k for k in values if k not in host)
         eng = get_engine(self.core, self.freqs, names + ["layer.length"], self.settings)
         per_set = lambda k, default: np.broadcast_to(np.asarray(values.get(k, default), dtype=float), (n,))  # noqa: E731
-        C = per_set(FRAME_COMPLIANCE, 0.0)
-        elastic = np.flatnonzero(C > 0)
-        rigid = np.flatnonzero(~(C > 0))
+        m = per_set(FRAME_MOBILITY, 0.0)
+        c = per_set(FRAME_WAVE_SPEED, 0.0)
+        elastic = np.flatnonzero((m > 0) & (c > 0))
+        rigid = np.setdiff1d(np.arange(n), elastic)
         L = len(self.data)
         d = self.thickness[None, :] + per_set("layer.length_offset", 0.0)[:, None]
         # columns: every rigid set's L layers, then every elastic set's slice of the rigid frame
@@ -125,7 +125,7 @@ class ImpedanceKind(MeasurementKind):
         table[0] = 0.0
         for j, name in enumerate(names):
             table[1 + j] = per_set(name, None)[sets]
-            if name == "layer.frame_mobility":
+            if name == FRAME_MOBILITY:
                 table[1 + j, rigid.size * L :] = 0.0
         table[-1] = np.concatenate([d[rigid].reshape(-1), np.full(elastic.size, FLUID_SLICE)])
         distinct, column = np.unique(table, axis=1, return_inverse=True)
@@ -140,31 +140,31 @@ class ImpedanceKind(MeasurementKind):
                 slice_of,
                 d[elastic],
                 {k: per_set(k, None)[elastic] for k in names},
-                C[elastic],
+                c[elastic] ** 2 / m[elastic] / P_WAVE_FACTOR,
                 per_set(FRAME_LOSS_FACTOR, 0.0)[elastic],
-                per_set(FRAME_DENSITY, 30.0)[elastic],
+                1.0 / m[elastic],
             )
         return np.concatenate([Z[:, k, self._index[k]] for k in range(L)], axis=1)
 
-    def _elastic(self, T_slice, slice_of, d, vals, C, eta, rho_1) -> np.ndarray:
-        """Zs (k, L, freqs) of an elastic frame (compliance C, loss factor eta, density rho_1,
+    def _elastic(self, T_slice, slice_of, d, vals, E, eta, rho_1) -> np.ndarray:
+        """Zs (k, L, freqs) of an elastic frame (Young's modulus E, loss factor eta, density rho_1,
         Poisson ratio :data:`FRAME_POISSON_RATIO`) in the fluid of the thin slices ``T_slice``
         (set i's is ``T_slice[slice_of[i]]``)."""
         g = GASES[self.core.gas.name]
-        T0 = vals.get("gas.T_cold", np.full(C.size, self.core.gas.T_cold))[:, None]
-        p0 = vals.get("gas.p_mean", np.full(C.size, self.core.gas.p_mean))[:, None]
+        T0 = vals.get("gas.T_cold", np.full(E.size, self.core.gas.T_cold))[:, None]
+        p0 = vals.get("gas.p_mean", np.full(E.size, self.core.gas.p_mean))[:, None]
         rho0, c0 = p0 / (g.R_gas * T0), np.sqrt(g.gamma * g.R_gas * T0)
         rho_eq, K_eq = (
             a[slice_of] for a in equivalent_fluid(T_slice, FLUID_SLICE, 2 * np.pi * self.freqs, self.core.area)
         )
         fl = JCAFluid(rho_eq, K_eq, rho0, c0)
-        phi = vals.get("layer.porosity", np.full(C.size, self.core.segments[0].porosity))
+        phi = vals.get("layer.porosity", np.full(E.size, self.core.segments[0].porosity))
         Zs = fluid_surface_impedance(
             self.freqs,
             JCAFluid(*(a[:, None] for a in fl)),
             thickness=d,
             phi=phi[:, None],
-            E=1.0 / C[:, None],
+            E=E[:, None],
             eta=eta[:, None],
             nu=FRAME_POISSON_RATIO,
             rho_1=rho_1[:, None],

@@ -15,7 +15,7 @@ Libraries: :func:`tmatrix_library` (plane offsets, T_cold, p_mean, thermal radiu
 T-dependent conductivity, radiation, the stack's pore shape, convection in the buffer tube,
 wall conduction, ambient exchangers, a contact resistance between stack and hot exchanger, a
 porosity gradient, a bypass gap) and :func:`impedance_library` (thermal radius ratio, viscous shape
-factor, thickness offset, limp frame, T_cold, p_mean).
+factor, thickness offset, limp frame, elastic frame, T_cold, p_mean).
 
 The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`.
 """
@@ -29,6 +29,7 @@ from typing import Callable
 
 import numpy as np
 
+from .biot import FRAME_POISSON_RATIO
 from .core import Core, Segment
 from .gas import GASES
 from .fields import field as field_spec
@@ -105,7 +106,9 @@ class Effect:
     params' ``start`` values are the effect's "off"); ``starts`` further {param label:
     value} points a refit should also start from, for an effect whose fit from "off" stays
     in a local minimum at its bound (the elastic frame: a frame resonance inside the band
-    is not reached by descending from an infinitely stiff frame)."""
+    is not reached by descending from an infinitely stiff frame); ``mechanism``: the physical
+    degree of freedom the effect models, shared by alternative models of it (the frame's
+    motion: :data:`FRAME_MOTION`): a model holds at most one effect per mechanism."""
 
     name: str
     description: str
@@ -113,6 +116,7 @@ class Effect:
     transform: Callable[[Core], Core] | None = field(default=None, compare=False)
     typical: dict = field(default_factory=dict, compare=False)
     starts: tuple = field(default=(), compare=False)
+    mechanism: str | None = field(default=None, compare=False)
 
     def model_values(self, values: dict | None = None) -> dict:
         """Model parameters {name: value} of the effect at ``values`` {param label: value}
@@ -252,11 +256,15 @@ def calibration_effect() -> Effect:
     )
 
 
-def porous_layer_effects(names: list[str], frame: bool = True, thermal: list[str] | None = None) -> list[Effect]:
+def porous_layer_effects(
+    names: list[str], frame: bool = True, thermal: list[str] | None = None, stiffness: str | None = None
+) -> list[Effect]:
     """Effects of the porous segments ``names`` (all together): a separate thermal length
     (typical Lambda'/Lambda = 1.8; of the segments ``thermal``, default ``names``: wire
     screens have none), a viscous shape factor (typical 1.5), a limp frame (typical frame
-    bulk density 30 kg/m^3)."""
+    bulk density 30 kg/m^3; one model of the frame's motion, :data:`FRAME_MOTION`), which
+    sets the elastic frame's field ``stiffness`` (a wave speed or modulus whose start is not
+    0) to 0."""
     thermal = names if thermal is None else thermal
     out = (
         [
@@ -279,14 +287,29 @@ def porous_layer_effects(names: list[str], frame: bool = True, thermal: list[str
         )
     )
     if frame:
-        out.append(
-            _field_effect(
-                "limp_frame",
-                "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk density)",
-                [f"{n}.frame_mobility" for n in names],
-                1.0 / 30.0,
-            )
+        limp = _field_effect(
+            "limp_frame",
+            "non-rigid (limp) frame moving with the air; parameter 1/(frame bulk density)",
+            [f"{n}.frame_mobility" for n in names],
+            1.0 / TYPICAL_FRAME["rho_1"],
         )
+        if stiffness is not None:
+            # a limp frame is an elastic frame without stiffness: 0 in its own sets, whatever
+            # an elastic frame fitted beside it in one batch starts from
+            (par,) = limp.params
+            zero = [f"{n}.{stiffness}" for n in names]
+
+            def without_stiffness(v, targets=par.targets):
+                return {**{t: v for t in targets}, **{t: 0.0 * v for t in zero}}
+
+            limp = dataclasses.replace(
+                limp, params=(dataclasses.replace(par, targets=par.targets + tuple(zero), expand=without_stiffness),)
+            )
+        # a limp frame's descent from "off" can stay there: starts at a light and a typical
+        # frame, none beyond the typical 1/30 m^3/kg (the starts also set the prior's width,
+        # tawarp.model.priors.effect_priors)
+        starts = tuple({limp.params[0].label: 1.0 / rho} for rho in (100.0, TYPICAL_FRAME["rho_1"]))
+        out.append(dataclasses.replace(limp, mechanism=FRAME_MOTION, starts=starts))
     return out
 
 
@@ -662,43 +685,75 @@ def ambient_exchanger_effect(core: Core) -> Effect:
     )
 
 
-#: Names of the elastic-frame effect of a layer (host-side fields, :data:`tawarp.model.fields.HOST_FIELD_TABLE`).
-FRAME_COMPLIANCE, FRAME_LOSS_FACTOR, FRAME_DENSITY = (
-    "layer.frame_compliance",
+#: Names of the elastic-frame effect of a layer: the limp frame's kernel field (1/rho_1) and
+#: the host-side fields of the frame's stiffness (:data:`tawarp.model.fields.HOST_FIELD_TABLE`).
+FRAME_MOBILITY, FRAME_WAVE_SPEED, FRAME_LOSS_FACTOR = (
+    "layer.frame_mobility",
+    "layer.frame_wave_speed",
     "layer.frame_loss_factor",
-    "layer.frame_density",
 )
 #: Typical foam frame: E = 2e5 Pa, loss factor 0.1, bulk density 30 kg/m^3.
 TYPICAL_FRAME = {"E": 2e5, "eta": 0.1, "rho_1": 30.0}
+#: P-wave modulus over Young's modulus, (1 - nu)/((1 + nu)(1 - 2 nu)), at the frame's fixed
+#: Poisson ratio nu: normal incidence sees P = E times this alone.
+P_WAVE_FACTOR = (1 - FRAME_POISSON_RATIO) / ((1 + FRAME_POISSON_RATIO) * (1 - 2 * FRAME_POISSON_RATIO))
+#: In-vacuo compressional wave speed sqrt(P / rho_1) of foam and fibre frames [m/s]: Young's
+#: moduli from 1e4 Pa (soft fibres) to 1e7 Pa (a stiff foam's apparent modulus in a tube,
+#: its edge held by the wall; Allard & Atalla,
+#: *Propagation of Sound in Porous Media*, 2nd ed., the materials of ch. 6 and 11) over frame
+#: densities of 100 to 10 kg/m^3: two decades, the central 95 % of the layer frame's prior.
+FRAME_WAVE_SPEED_RANGE = (math.sqrt(1e4 * P_WAVE_FACTOR / 100.0), math.sqrt(1e7 * P_WAVE_FACTOR / 10.0))
+#: The one physical mechanism of both frame models: a model holds at most one of them.
+FRAME_MOTION = "frame motion"
 
 
 def elastic_frame_effect() -> Effect:
-    """An elastic frame (Biot-Allard, :mod:`tawarp.model.biot`) of a rigid-backed layer:
-    frame compliance ``1/E`` [1/Pa] (off at 0: an infinitely stiff frame bonded to the
-    backing does not move, which is exactly the rigid model), loss factor ``eta`` and bulk
-    density ``rho_1`` [kg/m^3] fitted; Poisson ratio fixed (only ``E (1 - nu)/((1 + nu)(1 - 2 nu))``
-    enters at normal incidence: ``E`` is then the modulus at that ``nu``)."""
-    c = field_spec(FRAME_COMPLIANCE)
-    e = field_spec(FRAME_LOSS_FACTOR)
-    d = field_spec(FRAME_DENSITY)
+    """An elastic frame (Biot-Allard, :mod:`tawarp.model.biot`) of a rigid-backed layer, the
+    frame bonded to the backing: its mobility ``layer.frame_mobility`` m = 1/rho_1 [m^3/kg]
+    (the limp frame's field), its in-vacuo compressional wave speed ``layer.frame_wave_speed``
+    c = sqrt(P / rho_1) [m/s] (P = E (1 - nu)/((1 + nu)(1 - 2 nu)), the only modulus normal
+    incidence sees; Poisson ratio fixed) and loss factor ``layer.frame_loss_factor`` eta.
+
+    **Why these parameters.** m = 0 is an infinitely heavy frame, which does not move
+    whatever its stiffness: exactly the rigid model (the kernels' layer, bit for bit, as
+    "off" must be). Frame densities of foams and fibres lie within a decade (10-100
+    kg/m^3), so a half-normal from "off" of twice the typical 1/30 m^3/kg, the limp frame's
+    own prior, is a fair prior of m. At fixed c, m moves the frame's coupling to the air and
+    not its resonances (c / 4d for a layer of thickness d): a fit that lowers m to shrink a
+    misplaced resonance does not move it, and one that moves c does not switch the frame
+    off, unlike (1/E, rho_1) or (m, E), where the way to the rigid model also shifts the
+    resonance. The wave speed is no switch but a scale over two decades
+    (:data:`FRAME_WAVE_SPEED_RANGE`): a log Param, its prior log-normal with that span as
+    the central 95 % (:func:`tawarp.model.priors.effect_priors`), even per decade. It is
+    also what such data fix: a resonance's frequency, E and rho_1 apart far less
+    (correlation 0.995 in ``docs/elastic_frame.md``). A switch on the compliance 1/E would
+    need a half-normal on 1/E reaching the softest frames: its density per decade of E
+    falls as 1/E, and a foam of 3e6 Pa would pay about 4 units of ln Z for its stiffness
+    alone, enough to lose a frame resonance that a coarse grid samples twice (foam2 at every
+    8th frequency, docs/loop.md).
+
+    **One frame per model.** The limp frame is this frame's c -> 0 end (Biot's frame without
+    stiffness, ``tests/test_effects_library.py``), which a log-normal prior does not hold at
+    a finite value; so the limp frame stays its own effect, an alternative model of the
+    same mechanism (:data:`FRAME_MOTION`), never combined with this one
+    (:func:`tawarp.loop.evidence.subsets`): both set the frame's mobility, and a layer has
+    one frame. Where the data cannot tell a limp from a stiff frame, the inclusion splits
+    between the two and the comparison names the frame's motion as their group."""
+    fm, fc, fe = (field_spec(n) for n in (FRAME_MOBILITY, FRAME_WAVE_SPEED, FRAME_LOSS_FACTOR))
+    lo, hi = FRAME_WAVE_SPEED_RANGE
+    frame = {FRAME_MOBILITY: 1.0 / TYPICAL_FRAME["rho_1"], FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"]}
     return Effect(
         "elastic_frame",
-        "elastic frame (Biot-Allard): frame resonance; compliance 1/E, loss factor, frame density",
+        "elastic frame (Biot-Allard): frame resonance; 1/frame density, frame wave speed, loss factor",
         (
-            Param(FRAME_COMPLIANCE, (FRAME_COMPLIANCE,), c.neutral, c.scale, *c.fit_range),
-            Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], e.scale, *e.fit_range),
-            Param(FRAME_DENSITY, (FRAME_DENSITY,), TYPICAL_FRAME["rho_1"], 1.0, *d.fit_range, log=True),
+            Param(FRAME_MOBILITY, (FRAME_MOBILITY,), fm.neutral, fm.scale, *fm.fit_range),
+            Param(FRAME_WAVE_SPEED, (FRAME_WAVE_SPEED,), math.sqrt(lo * hi), 1.0, *fc.fit_range, log=True),
+            Param(FRAME_LOSS_FACTOR, (FRAME_LOSS_FACTOR,), TYPICAL_FRAME["eta"], fe.scale, *fe.fit_range),
         ),
-        typical={
-            FRAME_COMPLIANCE: 1.0 / TYPICAL_FRAME["E"],
-            FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"],
-            FRAME_DENSITY: TYPICAL_FRAME["rho_1"],
-        },
-        # foams and fibres: E from 1e4 to 1e7 Pa (Allard & Atalla's tables), one start a decade
-        starts=tuple(
-            {FRAME_COMPLIANCE: 1.0 / E, FRAME_LOSS_FACTOR: TYPICAL_FRAME["eta"], FRAME_DENSITY: TYPICAL_FRAME["rho_1"]}
-            for E in (1e4, 1e5, 1e6, 1e7)
-        ),
+        typical={**frame, FRAME_WAVE_SPEED: math.sqrt(TYPICAL_FRAME["E"] * P_WAVE_FACTOR / TYPICAL_FRAME["rho_1"])},
+        # the span of c, one start per factor sqrt(10) (a frame resonance's basin is narrow)
+        starts=tuple({**frame, FRAME_WAVE_SPEED: c} for c in np.geomspace(lo, hi, 5)),
+        mechanism=FRAME_MOTION,
     )
 
 
@@ -709,8 +764,8 @@ def two_port_frame_effect(sample: str) -> Effect:
     1/rho_1 [m^3/kg], the kernels' field) given a Young's modulus ``SAMPLE.frame_modulus``
     E [Pa] and loss factor ``SAMPLE.frame_loss_factor``. A free frame of infinite stiffness
     still moves as a rigid body, so "off" is infinite frame density, mobility 0 (exact);
-    E = 0 is exactly the limp frame, so :func:`porous_layer_effects`' ``limp_frame`` is
-    nested in it and the two share fits without interfering (E at its start 0).
+    E = 0 is exactly the limp frame, :func:`porous_layer_effects`' ``limp_frame``: the two
+    model one mechanism (:data:`FRAME_MOTION`) and a model holds at most one of them.
     :class:`tawarp.measure.tmatrix.TMatrixKind` evaluates the Biot 2-port where both are > 0."""
     m, E, eta = (f"{sample}.{f}" for f in ("frame_mobility", "frame_modulus", "frame_loss_factor"))
     fm, fE, fe = field_spec(m), field_spec(E), field_spec(eta)
@@ -725,6 +780,7 @@ def two_port_frame_effect(sample: str) -> Effect:
         ),
         typical=typical,
         starts=tuple({**typical, E: v} for v in (1e4, 1e5, 1e6, 1e7)),
+        mechanism=FRAME_MOTION,
     )
 
 
@@ -735,7 +791,7 @@ def impedance_library(core: Core) -> list[Effect]:
     off = field_spec("layer.length_offset")
     T0, p0 = core.gas.T_cold, core.gas.p_mean
     return (
-        porous_layer_effects(["layer"])
+        porous_layer_effects(["layer"], stiffness=FRAME_WAVE_SPEED.partition(".")[2])
         + [elastic_frame_effect()]
         + [
             Effect(

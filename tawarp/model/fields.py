@@ -349,19 +349,17 @@ GLOBAL_FIELD_TABLE: dict[str, Field] = {
 #: thickness offset of :mod:`tawarp.measure.impedance`) or by their full name (the 2-port
 #: calibration of :mod:`tawarp.measure.tmatrix`).
 HOST_FIELD_TABLE: dict[str, Field] = {
-    "frame_compliance": Field(
-        "frame_compliance",
+    "frame_wave_speed": Field(
+        "frame_wave_speed",
         -1,
-        "1/Pa",
+        "m/s",
         0.0,
         _INF,
         False,
         "porous",
-        neutral=0.0,
-        log=False,
-        scale=1e-6,
-        fit_range=(0.0, 1e-3),
-        description="1/E of the elastic frame (Biot): 0 is a rigid frame",
+        fit_range=(0.0, 1e4),
+        description="in-vacuo compressional wave speed of a layer's elastic frame, sqrt(P-wave modulus / rho_1) "
+        "(Biot): the frame's resonances",
     ),
     "frame_modulus": Field(
         "frame_modulus",

@@ -28,7 +28,7 @@ from .core import Core
 from .effects import Effect, Param, stack_and_heater
 from .fields import GLOBAL_FIELD_TABLE, Field
 from .fields import field as field_spec
-from .prior import Prior
+from .prior import Z95, Prior
 
 
 @dataclass(frozen=True)
@@ -184,8 +184,11 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
       :attr:`Effect.typical` and of the effect's extra refit ``starts`` (the elastic
       frame's E from 1e4 to 1e7 Pa is such a stated span). "Off" on the field's physical bound (radiation, convection, wall
       conduction, frame mobility >= 0) makes it a half-normal;
+    - a log Param with such a span (the layer frame's wave speed, 12-1200 m/s): a scale, not a
+      switch (its start is no "off"), whose value is known to decades: log-normal around the
+      start with the span as its central 95 % (the ``range`` of a declared prior);
     - a Param whose typical value is its start (the ambient exchangers' porosity and pore
-      radius, a frame's loss factor and density: shape parameters of an effect another
+      radius, a frame's loss factor: shape parameters of an effect another
       Param switches on): its field's default around the start.
 
     A prior that ``core``'s file declares for the label wins."""
@@ -198,8 +201,12 @@ def effect_priors(effect: Effect, core: Core | None = None) -> dict[str, Prior]:
         spread = [
             v[par.label] for v in (effect.typical, *effect.starts) if par.label in v and v[par.label] != par.start
         ]
-        if spread and not _frees_base_parameter(par):
-            sd = EFFECT_WIDTH * max(abs(float(par.x_of(v))) for v in spread) * (1.0 if par.log else par.scale)
+        if spread and par.log:
+            # a scale, never "off" (x = 0 switches nothing): its stated span is the central 95 %
+            sd = max(abs(float(par.x_of(v))) for v in spread) / Z95
+            prior = Prior(par.start, sd, True, f.lower, f.upper, source=f"effect {effect.name}: its stated span")
+        elif spread and not _frees_base_parameter(par):
+            sd = EFFECT_WIDTH * max(abs(float(par.x_of(v))) for v in spread) * par.scale
             prior = Prior(
                 par.start,
                 sd,
