@@ -210,7 +210,7 @@ def test_effects_that_substitute_for_each_other_are_claimed_as_a_group(tmp_path)
     assert "conductivity_T+radiation" in (tmp_path / "report.md").read_text()
 
 
-def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path):
+def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path, monkeypatch):
     # a wrong core: the ceramic's data (stack 48 mm, hot exchanger 10 mm) fitted with
     # the NiCr foam's core (40 mm, 13 mm). At its drawn noise (0.8 %) the NiCr core with plane
     # offsets (and a second library effect) makes the noise-free data to within 0.15 (0.10)
@@ -225,11 +225,19 @@ def test_wrong_core_flagged_when_the_data_can_show_it(tmp_path):
     arrays = lv.load_or_generate(case, tmp_path)
     core = lv.load_core(case.core_material).replace(**case.prior)
     settings = lv.ForwardSettings(device="cpu")
-    assert lv.wrong_core_visibility(case, arrays, core, settings, None) < lv.INVISIBLE
+    visibility = lv.wrong_core_visibility(case, arrays, core, settings, None)
+    assert visibility < lv.INVISIBLE
 
     lower = lv.make_case(69, noise=0.001)
-    assert lower.prior == case.prior and lower.truth == case.truth
-    rec = lv.run_case(lower, lv.load_or_generate(lower, tmp_path))
+    assert lower.prior == case.prior and lower.truth == case.truth and lower.with_sigma == case.with_sigma
+    low = lv.load_or_generate(lower, tmp_path)
+    # the visibility is the best misfit to the noise-free data (the same at both noise levels;
+    # sigma only scales every weight alike) over the case's noise floor: run_case takes the
+    # misfit found above rather than repeating its fits
+    np.testing.assert_array_equal(low["Y_clean"], arrays["Y_clean"])
+    misfit = visibility * lv.noise_floor(arrays, lv.rig_Zc(case))
+    monkeypatch.setattr(lv, "wrong_core_visibility", lambda c, a, *_: misfit / lv.noise_floor(a, lv.rig_Zc(c)))
+    rec = lv.run_case(lower, low)
     assert rec["visibility"] >= lv.INVISIBLE and rec["expected"]["scored"]
     assert rec["outcome"]["verdict"] in lv.FLAGGED and rec["right"], (rec["outcome"]["verdict"], rec["visibility"])
 
