@@ -1,8 +1,12 @@
 """Loop benchmark: the wall time of one :func:`tawarp.loop.run_loop` (base fit, the Bayesian
 comparison of every model up to three effects, checks, next measurement, drift), warm (after
 one loop that compiles the kernels), on two classes of data. Writes JSON: per case the wall
-time ``seconds`` and the process's CPU time ``cpu_seconds`` (all its threads; on a shared
-machine the wall time grows with the others' load, the CPU time much less).
+time ``seconds``, the process's CPU time ``cpu_seconds`` (all its threads) and the main
+thread's ``main_thread_cpu_seconds`` (the host's work and its share of each CPU launch, which
+:meth:`tawarp.model.forward.Engine.evaluate` splits over the cores: a lower bound of the wall
+time on an idle machine), and the machine's ``load_average`` (1, 5, 15 min) before and after
+the timed cases (on a shared machine the wall time grows with the others' load, the CPU times
+much less).
 
     python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
     taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
@@ -40,6 +44,17 @@ from tawarp.measure.files import ImpedanceData  # noqa: E402
 from tawarp.model.forward import ForwardSettings  # noqa: E402
 
 
+def _clocks() -> tuple[float, float, float]:
+    return time.perf_counter(), time.process_time(), time.thread_time()
+
+
+def _elapsed(start: tuple[float, float, float]) -> dict:
+    """The case's ``seconds``, ``cpu_seconds`` and ``main_thread_cpu_seconds`` since ``start``."""
+    now = _clocks()
+    keys = ("seconds", "cpu_seconds", "main_thread_cpu_seconds")
+    return {k: b - a for k, a, b in zip(keys, start, now)}
+
+
 def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     out = []
     for seed in seeds:
@@ -47,7 +62,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
         arrays = lv.load_or_generate(case, cache)
         core = lv.load_core(case.core_material).replace(**case.prior)
         prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
-        t0, c0 = time.perf_counter(), time.process_time()
+        clock = _clocks()
         rep = run_loop(prob)
         out.append(
             {
@@ -55,8 +70,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
                 "category": case.category,
                 "material": case.material,
                 "rows": int(prob.y.size),
-                "seconds": time.perf_counter() - t0,
-                "cpu_seconds": time.process_time() - c0,
+                **_elapsed(clock),
                 "verdict": rep["verdict"],
                 "claimed": rep["accepted_steps"],
                 "models": rep["models_compared"],
@@ -77,13 +91,12 @@ def impedance_case(n: int, device: str) -> dict:
         data.append(
             ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies")
         )
-    t0, c0 = time.perf_counter(), time.process_time()
+    clock = _clocks()
     prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
     out = {
         "frequencies": n,
         "rows": int(prob.y.size),
-        "seconds": time.perf_counter() - t0,
-        "cpu_seconds": time.process_time() - c0,
+        **_elapsed(clock),
         "verdict": rep["verdict"],
         "best_model": rep["best_model"],
         "models": rep["models_compared"],
@@ -128,6 +141,7 @@ def main(argv=None) -> int:
         "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
         "cpu_cores": len(os.sched_getaffinity(0)),
         "host": platform.node(),
+        "load_average": {"before": list(os.getloadavg())},
     }
     if "tmatrix" in cases:
         result["tmatrix"] = tmatrix_cases(seeds, args.device, cache)
@@ -135,6 +149,7 @@ def main(argv=None) -> int:
         result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
     if "impedance" in cases:
         result["impedance"] = impedance_case(args.impedance_freqs, args.device)
+    result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
     write_result(
         result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json", args.out

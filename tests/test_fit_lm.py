@@ -123,3 +123,57 @@ def test_map_fit_covariance_is_the_posterior_one(seed):
     assert np.max(np.abs(res.covariance[0] - C)) <= 1e-8 * np.max(np.abs(C))
     # the third prior is tight (sd 0.05 against the data's ~0.3): the posterior sd is near it
     assert np.isclose(res.std[0, 2], np.sqrt(C[2, 2]), rtol=1e-8) and res.std[0, 2] < 0.05 * scale[2]
+
+
+class ExpKind(LinearKind):
+    """y = A exp(v): a nonlinear kind (its LM takes several damped steps)."""
+
+    def predict(self, values, n, effect=None):
+        V = np.stack([np.broadcast_to(values[f"v{j}"], (n,)) for j in range(self.A.shape[1])], axis=1)
+        self.calls = getattr(self, "calls", 0) + 1
+        return (np.exp(V) @ self.A.T).astype(complex)
+
+
+def _exp_case():
+    A, sigma, y, _, _ = linear_case(3)
+    kind = ExpKind(A, sigma, A @ np.exp([0.3, -0.2, 0.5]) + sigma * 0.01)
+    params = [Param(f"v{j}", (f"v{j}",), 0.5, 1.0) for j in range(3)]
+    specs = [(params, None, np.zeros(3)), (params[:2], None, np.full(2, 0.8)), (params, None, np.full(3, -1.0))]
+    return kind, specs
+
+
+def test_kind_fit_results_are_the_evaluation_at_the_solution():
+    # fit_batch takes each fit's Jacobian and model values from the iterations' evaluation at
+    # its solution, not from one more evaluation: the same numbers, bit for bit, as a fresh
+    # one there, with one predict call per LM iteration and the start's
+    from tawarp.fit.problems import KindProblems
+
+    kind, specs = _exp_case()
+    res = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    assert kind.calls == 1 + max(int(r.iterations[0]) for r in res)
+    lm = KindProblems(kind, specs)
+    z = np.zeros((len(specs), 3))
+    for c, r in enumerate(res):
+        z[c, : r.x.shape[1]] = r.x[0]
+    lm.evaluate(np.arange(len(specs)), z)
+    for c, r in enumerate(res):
+        assert np.array_equal(r.jacobian[0], lm.last[c][0]) and np.array_equal(r.model[0], lm.last[c][1])
+
+
+def test_dropped_starts_leave_the_others_alone():
+    # levenberg_marquardt's drop: a start dropped after its first iteration stops there
+    # (reason "dropped", not converged); the other fits run as they would without it
+    kind, specs = _exp_case()
+    alone = fit_batch(kind, specs[:2], xtol=1e-12, gtol=1e-10)
+    seen = []
+
+    def drop(slots, cost):
+        seen.append(cost.size)
+        return slots == 2
+
+    raced = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10, drop=drop)
+    assert seen[0] == 3
+    assert raced[2].reason[0] == "dropped" and not raced[2].converged[0] and raced[2].iterations[0] == 1
+    for a, b in zip(alone, raced[:2]):
+        assert a.reason[0] == b.reason[0] != "dropped" and a.converged[0] and b.converged[0]
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)

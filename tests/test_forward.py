@@ -299,3 +299,38 @@ def test_plain_cascade_equals_the_general_one():
     limp.transfer_kernel = forward._transfer_kernel(settings.max_registers, 0, True)
     out = limp.evaluate(np.stack([table[0], np.full(6, 1e-3)]))[0].numpy()
     assert np.isnan(out).all()
+
+
+@pytest.mark.parametrize("name", ["ceramic", "mesh", "nicr_foam", "rvc_foam"])
+def test_heat_only_fields_are_inert_without_heat_input(name):
+    # Engine.evaluate_distinct shares one column between sets at zero heat input that differ
+    # only in HEAT_ONLY_FIELDS: with no heat the temperature rise is zero whatever they are, and
+    # the kernels read them nowhere else. Every such field of every thermal segment moved
+    # (x 1/e .. e, the temperature-dependent effects switched on: the heat solve iterates) must
+    # leave the T-matrices bit for bit, and must change them with heat input.
+    from tawarp.measure.kind import smooth_settings
+    from tawarp.model.forward import HEAT_ONLY_FIELDS, Engine, ForwardSettings
+
+    core = load_core(name)
+    names = [n for n in core.parameter_names() if n.partition(".")[2] in HEAT_ONLY_FIELDS]
+    on = {
+        "conductivity_exponent": 0.5,
+        "radiative_conductivity": 1e-9,
+        "h_convection": 5.0,
+        "wall_conductance": 0.01,
+        "end_conductance": 10.0,
+        "contact_resistance": 1e-4,
+    }
+    base = np.array([core.get(n) for n in names])
+    moved = np.array([v if v else on.get(n.partition(".")[2], 0.0) for n, v in zip(names, base)])
+    moved *= np.exp(np.random.default_rng(0).uniform(-1.0, 1.0, base.size))
+    settings = smooth_settings(core, FREQS, ForwardSettings(device="cpu"), heat_input=max(HEAT[name]))
+    eng = Engine(core, FREQS, names, settings)
+    Q = max(HEAT[name])
+    table = np.column_stack([np.r_[0.0, base], np.r_[0.0, moved], np.r_[Q, base], np.r_[Q, moved]])
+    T = eng.evaluate(table)[0].numpy()
+    assert np.array_equal(T[0], T[1])
+    assert relative_error(T[3], T[2]) > 1e-6
+    # the shared columns: each set's own T-matrices, bit for bit
+    shared = eng.evaluate_distinct(table[:, [0, 1, 2, 3, 1, 2]])
+    assert np.array_equal(shared.reshape(6, -1), T.view(complex).reshape(4, -1)[[0, 1, 2, 3, 1, 2]])

@@ -477,3 +477,21 @@ def test_loop_foam_choice_survives_every_8th_frequency(name):
     assert "thermal_radius_ratio" in choices[0]
     for after, rigid in errors:
         assert after <= rigid
+
+
+def test_starts_race_only_in_hopeless_models():
+    # fit_models' race (run.start_race): two single-effect models of two starts each; model 0
+    # leads its size, model 1 is 900 behind it. Before RACE_AFTER iterations nothing stops;
+    # then model 1's second start (20 above its best, not descending) stops, model 0's stays
+    # however far behind its own best it is (a leader keeps its starts), and a start whose
+    # last decrease kept up for RACE_PACE iterations closes its gap stays too.
+    from tawarp.loop.run import RACE_AFTER, RACE_PACE, start_race
+
+    drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 1]))
+    slots = np.arange(5)
+    cost = np.array([100.0, 400.0, 1000.0, 1020.0, 1100.0])
+    for _ in range(RACE_AFTER - 1):
+        assert not drop(slots, cost).any()
+    fast = cost.copy()
+    fast[4] -= 100.0 / RACE_PACE + 1.0  # it fell by more than (gap)/RACE_PACE last iteration
+    assert drop(slots, fast).tolist() == [False, False, False, True, False]

@@ -55,6 +55,8 @@ SECANT_CONFIRM = 0.1
 
 #: names of the reason codes of :mod:`tawarp.kernels.lm_step` (code 0: still iterating)
 REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
+#: reason of a problem that :func:`levenberg_marquardt`'s ``drop`` stopped
+DROPPED = "dropped"
 
 
 @dataclass
@@ -235,11 +237,15 @@ def levenberg_marquardt(
     tau: float = 1e-3,
     progress: bool = False,
     max_sets: int = 1 << 20,
+    drop=None,
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
     ``prob``: any :class:`LMProblems`; a :class:`SecantProblems` with ``secant`` set runs
-    the secant iteration (module doc)."""
+    the secant iteration (module doc). ``drop``: None, or ``drop(slots, cost) -> bool``
+    called after every iteration with the slots still iterating and every slot's cost
+    (Q,) at its current z: the slots it marks stop there (reason ``"dropped"``, not
+    converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`)."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
@@ -259,6 +265,7 @@ def levenberg_marquardt(
     done = wp.empty(Q, dtype=wp.int32, device=dev)
     wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
     active = np.flatnonzero(done.numpy() == 0)
+    dropped = np.zeros(Q, dtype=bool)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
     first = True
@@ -288,6 +295,11 @@ def levenberg_marquardt(
             if secant and np.any(flags == 2):
                 prob.refresh(active[flags == 2], pid, state, store, max_sets)
             finished = flags == 1
+            if drop is not None and (~finished).any():
+                cut = np.zeros_like(finished)
+                cut[~finished] = drop(active[~finished], state.at_z.cost.numpy())
+                dropped[active[cut]] = True
+                finished |= cut
             if finished.any():
                 active = active[~finished]
                 bar.update(int(finished.sum()))
@@ -303,7 +315,7 @@ def levenberg_marquardt(
         if not stale.size:
             break
         prob.refresh(stale, pid, state, store, max_sets)
-        ended = stale[state.reason.numpy()[stale] == lm_step.R_XTOL]
+        ended = stale[(state.reason.numpy()[stale] == lm_step.R_XTOL) & ~dropped[stale]]
         if not ended.size:
             break
         check = _trial(ended, p, dev)
@@ -313,6 +325,8 @@ def levenberg_marquardt(
         active = ended[again.numpy() == 1]
         bar.update(-active.size)
     bar.close()
+    reason = np.array(REASONS, dtype=object)[state.reason.numpy()]
+    reason[dropped] = DROPPED
     return LMState(
         state.z.numpy(),
         state.at_z.cost.numpy(),
@@ -320,6 +334,6 @@ def levenberg_marquardt(
         state.at_z.g.numpy(),
         state.at_z.H.numpy(),
         state.iterations.numpy().astype(int),
-        np.array(REASONS, dtype=object)[state.reason.numpy()],
-        state.converged.numpy() != 0,
+        reason,
+        (state.converged.numpy() != 0) & ~dropped,
     )

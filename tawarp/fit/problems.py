@@ -114,6 +114,9 @@ class KindProblems:
                 self.prior_mu[c, : m.p], self.prior_isd[c, : m.p] = m.prior_mu, 1.0 / m.prior_sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
+        #: per fit, its evaluation of lowest cost so far: (cost, padded z, J, model values); the
+        #: LM accepts a trial only where it lowers the cost, so this is the one at its solution
+        self.best: dict = {}
 
     def start(self) -> np.ndarray:
         """The specs' x0, padded (K, P)."""
@@ -186,7 +189,25 @@ class KindProblems:
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf
+        for i, c in enumerate(pid):
+            if c not in self.best or cost[i] < self.best[c][0]:
+                self.best[c] = (cost[i], z[i].copy(), *self.last[i])
         return cost, raw, g, H
+
+    def at_solutions(self, z: np.ndarray) -> list:
+        """(J, model values) of every fit at its solution z (K, P): the evaluation there
+        where the LM's iterations made it (:attr:`best`, the same numbers), one more
+        :meth:`evaluate` for the others."""
+        out = [
+            self.best[c][2:] if c in self.best and np.array_equal(self.best[c][1], z[c]) else None
+            for c in range(len(z))
+        ]
+        stale = np.array([c for c, v in enumerate(out) if v is None], dtype=int)
+        if stale.size:
+            self.evaluate(stale, z[stale])
+            for i, c in enumerate(stale):
+                out[c] = self.last[i]
+        return out
 
 
 def kind_result(
@@ -254,14 +275,17 @@ def fit_batch(
     xtol: float = XTOL,
     gtol: float = GTOL,
     priors: list | None = None,
+    drop=None,
 ) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
     others at ``fixed`` {name: value} or the core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
     damping ``mu I``, steps projected onto the bounds) on :class:`KindProblems`; the
-    Jacobians and model values at the solutions take one more evaluation. ``priors``: per
+    Jacobians and model values at the solutions are those the iterations evaluated there
+    (:meth:`KindProblems.at_solutions`). ``priors``: per
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
-    then the maximum a posteriori (the result's cost and residuals stay the data's)."""
+    then the maximum a posteriori (the result's cost and residuals stay the data's).
+    ``drop``: :func:`levenberg_marquardt`'s, the fits by their index in ``specs``."""
     t0 = time.perf_counter()
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     lm = KindProblems(kind, specs, fixed, rows, priors)
@@ -270,11 +294,11 @@ def fit_batch(
         return []
     pid = np.arange(K)
     if lm.zlo.shape[1]:
-        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter)
+        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop)
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
-    lm.evaluate(pid, z)
+    at = lm.at_solutions(z)
     dt = time.perf_counter() - t0
     return [
         kind_result(
@@ -282,8 +306,8 @@ def fit_batch(
             params,
             lm.models[c],
             z[c, : lm.p[c]],
-            lm.last[c][0],
-            lm.last[c][1],
+            at[c][0],
+            at[c][1],
             lm.rows[c],
             effect,
             bool(converged[c]),

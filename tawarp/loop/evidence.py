@@ -47,7 +47,7 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import special, stats
+from scipy import special
 
 from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
@@ -83,8 +83,18 @@ class XPrior:
 
     def log_norm(self) -> float:
         """ln of the density's normalisation: -ln sd - ln(2 pi)/2 - ln(prior mass inside the bounds)."""
-        mass = stats.norm.cdf((self.hi - self.mu) / self.sd) - stats.norm.cdf((self.lo - self.mu) / self.sd)
-        return -math.log(self.sd) - 0.5 * math.log(2 * math.pi) - math.log(max(mass, 1e-300))
+        return float(log_norms(*prior_arrays([self]))[0])
+
+
+def prior_arrays(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(mu, sd, lo, hi) of ``priors``, each (k,)."""
+    return tuple(np.array([getattr(p, f) for p in priors], dtype=float).reshape(-1) for f in ("mu", "sd", "lo", "hi"))
+
+
+def log_norms(mu, sd, lo, hi) -> np.ndarray:
+    """:meth:`XPrior.log_norm` of priors given as arrays (:func:`prior_arrays`)."""
+    mass = special.ndtr((hi - mu) / sd) - special.ndtr((lo - mu) / sd)
+    return -np.log(sd) - 0.5 * math.log(2 * math.pi) - np.log(np.maximum(mass, 1e-300))
 
 
 def x_prior(core, par: Param, declared=None) -> XPrior:
@@ -110,10 +120,25 @@ def inside_mass(x: np.ndarray, H: np.ndarray, priors: list[XPrior]) -> float:
     one-sided effect fitted at "off"), about 1 far inside. Without it a one-sided effect the
     data barely see would gain ln 2 from its half-normal's normalisation alone."""
     s = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 1e-300))
-    lo = np.array([p.lo for p in priors])
-    hi = np.array([p.hi for p in priors])
-    mass = stats.norm.cdf((hi - x) / s) - stats.norm.cdf((lo - x) / s)
+    _, _, lo, hi = prior_arrays(priors)
+    mass = special.ndtr((hi - x) / s) - special.ndtr((lo - x) / s)
     return float(np.sum(np.log(np.maximum(mass, 1e-300))))
+
+
+#: Rows per block of :func:`r_factor`.
+QR_BLOCK = 256
+
+
+def r_factor(A: np.ndarray) -> np.ndarray:
+    """The triangular factor R of ``A`` = Q R (n, k), n >> k, up to the signs of its rows:
+    the factors of blocks of :data:`QR_BLOCK` rows stacked and factored again (Q is never
+    formed; the same R to rounding, as every step is orthogonal). LAPACK's QR of the whole
+    tall matrix runs threaded and was 10-100x slower on a loaded 2-core machine."""
+    if A.shape[0] <= QR_BLOCK:
+        return np.linalg.qr(A, mode="r")
+    return np.linalg.qr(
+        np.vstack([np.linalg.qr(A[i : i + QR_BLOCK], mode="r") for i in range(0, len(A), QR_BLOCK)]), mode="r"
+    )
 
 
 def laplace_log_evidence(
@@ -129,9 +154,9 @@ def laplace_log_evidence(
     from the data (second differences of a misfitting base fit's residual) is too large
     where the frequency grid is coarse: with it fixed, every misfit below it looks like
     noise, and the choice of model changes with the grid."""
-    mu = np.array([p.mu for p in priors])
-    isd2 = np.array([p.sd**-2 for p in priors])
-    norm = sum(p.log_norm() for p in priors) + 0.5 * len(x) * math.log(2 * math.pi)
+    mu, sd, lo, hi = prior_arrays(priors)
+    isd2 = sd**-2
+    norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * len(x) * math.log(2 * math.pi)
     if not noise_scale:
         H = J.T @ J + np.diag(isd2)
         _, logdet = np.linalg.slogdet(H)
@@ -143,10 +168,12 @@ def laplace_log_evidence(
     # a = U^T Q^T r and g = W^T (x - mu)/sd; the rest of r, outside J's range, adds |r_perp|^2/s^2.
     # Written this way every term is a square: no cancellation when a parameter sits at a
     # bound with a large gradient (the eigenvector form lost the data term's sign there).
-    sd = 1.0 / np.sqrt(isd2)
-    Q, R = np.linalg.qr(J)
-    z = Q.T @ r
-    r_perp2 = float(np.sum((r - Q @ z) ** 2))
+    # J = Q R and z = Q^T r from the triangular factor of [J r] alone (its last diagonal
+    # entry is |r_perp|)
+    k = J.shape[1]
+    Ra = r_factor(np.column_stack([J, r]))
+    R, z = Ra[:k, :k], Ra[:k, k]
+    r_perp2 = float(Ra[k, k] ** 2) if Ra.shape[0] > k else 0.0
     U, S, Wt = np.linalg.svd(R * sd[None, :])
     a = U.T @ z
     g = Wt @ ((x - mu) / sd)
@@ -291,10 +318,8 @@ def linearized_evidence(
         r0 = fit.residuals[0] + sum(columns[e.name][:, 0] for e in effects if not e.params)
         C = np.hstack([Jb] + [columns[e.name] for e in effects if e.params])
         x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
-        mu = np.array([p.mu for p in priors])
-        isd2 = np.array([p.sd**-2 for p in priors])
-        lo = np.array([p.lo for p in priors])
-        hi = np.array([p.hi for p in priors])
+        mu, sd, lo, hi = prior_arrays(priors)
+        isd2 = sd**-2
         G = C.T @ C + np.diag(isd2)
         b = C.T @ r0 + isd2 * (x0 - mu)
         free = np.ones(len(x0), dtype=bool)

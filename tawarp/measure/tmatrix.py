@@ -157,8 +157,9 @@ class TMatrixKind(MeasurementKind):
         table[0] = np.tile(self.Qs, n)
         for j, k in enumerate(names):
             table[1 + j] = np.repeat(np.broadcast_to(np.asarray(values[k], dtype=float), (n,)), nq)
-        out, _, _ = eng.evaluate(table)
-        T = out.numpy().view(np.complex128).reshape(n, nq, len(self.freqs), 2, 2)
+        # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
+        # input of 0 does not read share one column
+        T = eng.evaluate_distinct(table).reshape(n, nq, len(self.freqs), 2, 2)
         if frame:
             T = self._with_elastic_frame(T, values, frame, n)
         Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)

@@ -74,6 +74,19 @@ TANGENT_STEP_NONLINEAR = 1e-4
 #: Register cap of the tangent cascade's CUDA threads (None: none; it carries P more
 #: matrices than the plain cascade: measurements in bench/README.md, "fits").
 TANGENT_MAX_REGISTERS = None
+#: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
+#: temperature rise is zero whatever their values, and with fixed cells a set's T-matrices do
+#: not depend on them (:meth:`Engine.evaluate_distinct`; tests/test_forward.py guards it).
+HEAT_ONLY_FIELDS = (
+    "h",
+    "solid_conductivity",
+    "conductivity_exponent",
+    "radiative_conductivity",
+    "h_convection",
+    "wall_conductance",
+    "end_conductance",
+    "contact_resistance",
+)
 #: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
 
@@ -368,6 +381,12 @@ class Engine:
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
+        # rows of the varying table that a set without heat input does not read (fixed cells:
+        # no count adapts to them; no imposed temperatures)
+        inert = s.cells is not None and not any(seg.imposed for seg in core.segments)
+        self.heat_only = np.array(
+            [1 + j for j, k in enumerate(self.names) if inert and k.partition(".")[2] in HEAT_ONLY_FIELDS], dtype=int
+        )
 
     def _sets(self, params: wp.array) -> kf.SetTable:
         """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
@@ -413,6 +432,20 @@ class Engine:
         if parts > 1:
             return self._evaluate_threaded(varying, parts, out)
         return self.evaluate_serial(varying, out)
+
+    def evaluate_distinct(self, varying: np.ndarray) -> np.ndarray:
+        """T-matrices (n, m, 2, 2) complex of a host table ``varying`` (1 + len(names), n),
+        each distinct set computed once and shared by its copies: sets that differ only in
+        fields the model does not read for them count as copies (at zero heat input the
+        :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
+        fields told apart. The kernels compute each set on its own, so sharing changes no bit."""
+        key = np.array(varying, dtype=np.float64)
+        cold = key[0] == 0.0
+        if self.heat_only.size and cold.any():
+            key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
+        _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
+        out, _, _ = self.evaluate(np.ascontiguousarray(np.asarray(varying, dtype=np.float64)[:, first]))
+        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column.reshape(-1)]
 
     def _cpu_parts(self, n: int) -> int:
         """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
