@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from scipy import special, stats
+from scipy import integrate, special, stats
 
 from tawarp.fit.result import FitResult
 from tawarp.loop.evidence import (
@@ -229,3 +229,70 @@ def test_an_effect_the_data_do_not_see_changes_nothing():
         Ja = np.hstack([A, np.zeros((len(y), 1))])
         got = laplace_log_evidence(A @ x - y, Ja, np.append(x, 0.0), base + [XPrior(0.0, width, 0.0, math.inf)])
         assert got == pytest.approx(want, abs=1e-10)
+
+
+def one_sided_exact(A, a, y, mu, sd, width, scale=1.0):
+    """ln Z of the linear model y = A theta + a b + noise (sd ``scale``), theta ~ N(mu, sd^2),
+    b >= 0 half-normal of ``width``: the theta-marginal N(y - a b; A mu, scale^2 I + A S A^T)
+    integrated over b by quadrature (plus (n/2) ln 2 pi, as the evidence leaves out
+    the noise's normalisation)."""
+    cov = scale**2 * np.eye(len(y)) + A @ np.diag(sd**2) @ A.T
+    dist = stats.multivariate_normal(A @ mu, cov)
+    ref = dist.logpdf(y)
+
+    def f(b):
+        return math.exp(dist.logpdf(y - a * b) - ref) * 2 * stats.norm.pdf(b, 0.0, width)
+
+    # the integrand falls off over about 1/(|slope| + sqrt(curvature)) of its logarithm at 0
+    Sa = np.linalg.solve(cov, a)
+    decay = 1.0 / (abs(Sa @ (y - A @ mu)) + math.sqrt(a @ Sa) + 1.0 / width)
+    val, _ = integrate.quad(f, 0.0, 60 * decay, limit=200, epsabs=0.0, epsrel=1e-11)
+    return ref + math.log(val) + 0.5 * len(y) * math.log(2 * math.pi)
+
+
+@pytest.mark.parametrize("seed", range(4))
+@pytest.mark.parametrize("pull", [-3.0, 0.0, 3.0])
+def test_a_parameter_on_its_bound_is_integrated_over_its_side(seed, pull):
+    # a one-sided effect b >= 0 fitted on its bound "off" beside three free parameters, the
+    # data pulling b out of its range (pull < 0: the unconstrained optimum at b < 0), not at
+    # all, or in (then the MAP is inside and b is free): the evidence equals the exact
+    # integral over b >= 0; with the pull outward it stays below the model without b (an
+    # effect at "off" earns no evidence from the data's wish to go beyond it)
+    A, y, mu, sd = linear_gaussian(seed)
+    rng = np.random.default_rng(100 + seed)
+    a = rng.standard_normal(len(y))
+    width = 0.5
+    y = y + pull * a / math.sqrt(len(y))
+    M = np.hstack([A, a[:, None]])
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)] + [XPrior(0.0, width, 0.0, math.inf)]
+    full = map_estimate(M, y, np.append(mu, 0.0), np.append(sd, width))
+    x = full if full[-1] > 0 else np.append(map_estimate(A, y, mu, sd), 0.0)
+    got = laplace_log_evidence(M @ x - y, M, x, priors)
+    exact = one_sided_exact(A, a, y, mu, sd, width)
+    if full[-1] <= 0:
+        assert got == pytest.approx(exact, abs=1e-8)
+        without = laplace_log_evidence(A @ x[:-1] - y, A, x[:-1], priors[:-1])
+        assert got < without
+    else:  # inside: the Laplace Gaussian cut at the bound, exact up to the cut's shape
+        assert got == pytest.approx(exact, abs=0.05)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_parameter_on_its_bound_with_an_unknown_noise_scale(seed):
+    # the same with the noise 3x its estimate and the data pulling b out of its range: the
+    # marginal over the noise scale of the one-sided integrals equals the quadrature of the
+    # exact ones
+    A, y, mu, sd = linear_gaussian(seed)
+    rng = np.random.default_rng(200 + seed)
+    a = rng.standard_normal(len(y))
+    width = 0.5
+    y = A @ mu + 3.0 * (y - A @ mu) - 4.0 * a / math.sqrt(len(y))
+    M = np.hstack([A, a[:, None]])
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)] + [XPrior(0.0, width, 0.0, math.inf)]
+    x = np.append(map_estimate(A, y, mu, sd), 0.0)
+    R = NOISE_SCALE_RANGE
+    u = np.linspace(-math.log(R), math.log(R), 801)
+    terms = [one_sided_exact(A, a, y, mu, sd, width, math.exp(v)) for v in u]
+    exact = special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * math.log(R))
+    got = laplace_log_evidence(M @ x - y, M, x, priors, noise_scale=True)
+    assert got == pytest.approx(exact, abs=2e-3)

@@ -141,13 +141,29 @@ def r_factor(A: np.ndarray) -> np.ndarray:
     )
 
 
+def log_erfcx(w: np.ndarray) -> np.ndarray:
+    """ln erfcx(w) = w^2 + ln erfc(w), without overflow on either side."""
+    w = np.asarray(w, dtype=float)
+    return np.where(w >= 0, np.log(special.erfcx(np.maximum(w, 0.0))), w**2 + np.log(special.erfc(np.minimum(w, 0.0))))
+
+
+#: A parameter within this of a bound (in its scaled fit variable x, of order 1) is on it.
+ON_BOUND = 1e-9
+
+
 def laplace_log_evidence(
     r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior], noise_scale: bool = False
 ) -> float:
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
     (in units of the noise) and their Jacobian ``J`` in x, the Gaussian cut to the parameters'
-    ranges (:func:`inside_mass`). ``noise_scale``: the noise is an estimate known up to a
-    factor s, marginalized with a flat prior in ln s over
+    ranges (:func:`inside_mass`). A parameter on a bound (:data:`ON_BOUND`) is integrated over
+    its own side alone, with the others at their optimum for each of its values: the fit's
+    gradient need not vanish there, and the Gaussian of the quadratic model, centred where the
+    data would take the parameter beyond its bound, would credit the model with a misfit it
+    cannot reach (an effect fitted at "off" gaining evidence from the data's pull away from
+    it). That one-sided integral is exact for a linear model with one parameter on its bound;
+    with several, each is taken given the free ones only. ``noise_scale``: the noise is an
+    estimate known up to a factor s, marginalized with a flat prior in ln s over
     [1/:data:`NOISE_SCALE_RANGE`, :data:`NOISE_SCALE_RANGE`]: ``Z = int Z(s) p(ln s) dln s``,
     each ``Z(s)`` the Laplace evidence at the optimum for that noise (from the quadratic
     model at ``x``; exact for a linear model, ``tests/test_evidence.py``). A noise estimate
@@ -155,39 +171,49 @@ def laplace_log_evidence(
     where the frequency grid is coarse: with it fixed, every misfit below it looks like
     noise, and the choice of model changes with the grid."""
     mu, sd, lo, hi = prior_arrays(priors)
-    isd2 = sd**-2
-    norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * len(x) * math.log(2 * math.pi)
-    if not noise_scale:
-        H = J.T @ J + np.diag(isd2)
-        _, logdet = np.linalg.slogdet(H)
-        phi = float(r @ r) + float(np.sum((x - mu) ** 2 * isd2))
-        return norm - 0.5 * phi - 0.5 * logdet + inside_mass(x, H, priors)
-    # In the prior-whitened variables d = dx/sd, with J = Q R and R sd = U S W^T, each
+    x = np.asarray(x, dtype=float)
+    # +1 on a lower bound, -1 on an upper one: the direction into the range
+    side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
+    on, free = side != 0, side == 0
+    k, m = int(free.sum()), int(on.sum())
+    # In the prior-whitened variables d = dx/sd, with J_free = Q R and R = U S W^T, each
     # direction i of W is a one-dimensional problem: at noise s the minimum over d_i of
     # (a_i + S_i d_i)^2 / s^2 + (g_i + d_i)^2 is (a_i - S_i g_i)^2 / (s^2 + S_i^2), with
-    # a = U^T Q^T r and g = W^T (x - mu)/sd; the rest of r, outside J's range, adds |r_perp|^2/s^2.
-    # Written this way every term is a square: no cancellation when a parameter sits at a
-    # bound with a large gradient (the eigenvector form lost the data term's sign there).
-    # J = Q R and z = Q^T r from the triangular factor of [J r] alone (its last diagonal
-    # entry is |r_perp|)
-    k = J.shape[1]
-    Ra = r_factor(np.column_stack([J, r]))
-    R, z = Ra[:k, :k], Ra[:k, k]
-    r_perp2 = float(Ra[k, k] ** 2) if Ra.shape[0] > k else 0.0
-    U, S, Wt = np.linalg.svd(R * sd[None, :])
-    a = U.T @ z
-    g = Wt @ ((x - mu) / sd)
-    u = np.linspace(-math.log(NOISE_SCALE_RANGE), math.log(NOISE_SCALE_RANGE), 401)[:, None]
-    s2 = np.exp(2 * u)
-    phi = r_perp2 / s2[:, 0] + np.sum((a - S * g) ** 2 / (s2 + S**2), axis=1)
-    terms = -0.5 * phi - len(r) * u[:, 0] - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
-    H = J.T @ J / s2[int(np.argmax(terms)), 0] + np.diag(isd2)
-    return (
-        norm
-        - 0.5 * float(np.sum(np.log(isd2)))
-        + float(special.logsumexp(terms) + math.log(u[1, 0] - u[0, 0]) - math.log(2 * u[-1, 0]))
-        + inside_mass(x, H, priors)
-    )
+    # a = U^T Q^T r and g = W^T (x - mu)/sd; the rest of r, outside J_free's range, adds
+    # |r_perp|^2/s^2. Written this way every term is a square: no cancellation when a
+    # parameter sits at a bound with a large gradient. The triangular factor of
+    # [J_free, J_on, r] gives Q^T J_on, Q^T r and, below them, the parts of J_on and r
+    # outside J_free's range (whose inner products are all that is needed of them).
+    Jw = J * sd[None, :]
+    g0 = (x - mu) / sd
+    Ra = r_factor(np.column_stack([Jw[:, free], Jw[:, on] * side[on], r]))
+    R, B, z = Ra[:k, :k], Ra[:k, k : k + m], Ra[:k, k + m]
+    rest = np.zeros((1, m + 1)) if Ra.shape[0] <= k else Ra[k:, k:]
+    U, S, Wt = np.linalg.svd(R) if k else (np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)))
+    alpha = U.T @ z - S * (Wt @ g0[free])
+    v = U.T @ B  # (k, m)
+    if noise_scale:
+        u = np.linspace(-math.log(NOISE_SCALE_RANGE), math.log(NOISE_SCALE_RANGE), 401)
+    else:
+        u = np.zeros(1)
+    s2 = np.exp(2 * u)[:, None]
+    den = s2 + S**2  # (ns, k)
+    phi = float(rest[:, m] @ rest[:, m]) / s2[:, 0] + np.sum(alpha**2 / den, axis=1) + float(np.sum(g0[on] ** 2))
+    terms = -0.5 * phi - len(r) * u - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
+    for j in range(m):
+        # the quadratic model along parameter j into its range, t >= 0 (whitened), the free
+        # ones at their optimum for each t: phi(t) = phi(0) + 2 G t + C t^2, and
+        # int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
+        G = float(rest[:, j] @ rest[:, m]) / s2[:, 0] + np.sum(alpha * v[:, j] / den, axis=1) + side[on][j] * g0[on][j]
+        C = float(rest[:, j] @ rest[:, j]) / s2[:, 0] + np.sum(v[:, j] ** 2 / den, axis=1) + 1.0
+        terms = terms + 0.5 * np.log(math.pi / (2 * C)) + log_erfcx(G / np.sqrt(2 * C))
+    norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * k * math.log(2 * math.pi) + float(np.sum(np.log(sd)))
+    best = int(np.argmax(terms))
+    H = (J[:, free].T @ J[:, free]) / s2[best, 0] + np.diag(sd[free] ** -2)
+    inside = inside_mass(x[free], H, [p for p, f in zip(priors, free) if f]) if k else 0.0
+    if not noise_scale:
+        return norm + float(terms[0]) + inside
+    return norm + float(special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1])) + inside
 
 
 def prior_z(x: np.ndarray, priors: list[XPrior]) -> np.ndarray:
