@@ -163,6 +163,55 @@ def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objec
     for island in many.timing["islands"]:  # each island's own best: its lineage's
         mine = best_designs(one, objectives, 673.0, worker=island["worker"])
         assert island["best"] == [d["values"] for d in mine] and mine
+        # and in the study, where its summary was merged
+        merged = best_designs(many.study, objectives, 673.0, copies=True, worker=island["worker"])
+        if len(objectives) == 1:
+            assert [d["values"] for d in merged] == island["best"]
+        else:  # the study's front of both islands' fronts: this island's members on it
+            assert all(d["values"] in island["best"] for d in merged)
+
+
+def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_path):
+    # each island keeps its claim, heartbeat and copies in a journal of its own: the study's
+    # journal holds no island's claim (the companion studies "STUDY#worker=...") and, once
+    # merged, each island's improvements of its best, strictly better generation after
+    # generation, ending at its best; run again with more trials, the islands resume from
+    # their journals and the merge adds what is new, nothing twice; the trials are those of
+    # the islands run one after another
+    import optuna
+
+    from tawarp.design.islands import island_journal, search_islands
+    from tawarp.design.storage import copies_in_study, lineage, make_storage, open_study, trials_table
+
+    storage = str(tmp_path / "study.journal")
+    kw = dict(n_trials=64, batch=16, seed=4)
+    first = search_islands(client, _space(), storage=storage, **kw)
+    assert optuna.get_all_study_names(make_storage(storage)) == ["tawarp-design"]
+    for name in ("island0", "island1"):
+        own = make_storage(str(island_journal(storage, "tawarp-design", name)))
+        assert f"tawarp-design#worker={name}" in optuna.get_all_study_names(own)
+    again = search_islands(client, _space(), storage=storage, **dict(kw, n_trials=128))
+    assert again.timing["evaluations"] == 2 * 64 and first.timing["merged"] > 0
+    copies = copies_in_study(again.study)
+    assert len(set(copies)) == len(copies) == len(again.study.trials)
+    for island in again.timing["islands"]:
+        name = island["worker"]
+        gens = lineage(again.study, name)
+        assert sorted(gens) == list(range(128 // 16))
+        bests = [np.nanmax(np.where(g["constraint"] <= 0, g["metric:gradient"], np.nan)) for g in gens.values()]
+        mine = sorted((g, j) for w, g, j in copies if w == name)
+        kept = [bests[g] for g, _ in mine]
+        assert kept and np.all(np.diff(kept) > 0) and kept[-1] == max(bests) == island["best"][0]["gradient"]
+        assert [g for g, _ in mine] == [g for g in range(len(bests)) if bests[g] > max(bests[:g], default=-np.inf)]
+    for name in ("island0", "island1"):
+        search(_space(), worker=name, storage=str(tmp_path / "one.journal"), **dict(kw, n_trials=128))
+    one = trials_table(open_study(str(tmp_path / "one.journal"), "tawarp-design", ("gradient",), _space().binding()))
+    many = trials_table(again.study)
+    key = ["worker", "generation", "index"]
+    a = one.sortby([one[k] for k in key])
+    b = many.sortby([many[k] for k in key])
+    for v in ["worker", "generation", "index", *one.attrs["parameters"], *one.attrs["metrics"]]:
+        assert a[v].values.tolist() == b[v].values.tolist(), v
 
 
 @pytest.mark.parametrize(

@@ -1,61 +1,236 @@
 """The batched design search as islands, one per worker of a Dask cluster (one per GPU):
-each island is :func:`tawarp.design.search.search` on its worker's device, all storing into
-one study. Apart from :mod:`tawarp.distributed`, which serves the search itself (the
-search's ``client=`` evaluates a batch across the workers), so that neither imports the
-other."""
+each island is :func:`tawarp.design.search.search` on its worker's device. Apart from
+:mod:`tawarp.distributed`, which serves the search itself (the search's ``client=``
+evaluates a batch across the workers), so that neither imports the other.
+
+Where the islands write. With a journal file ``storage`` each island keeps its own
+journal, ``<journal>.islands/<study name>/<island>.journal`` (its claim, heartbeat,
+binding and copies of its best), and appends its trials to the study's trial store
+(one file per island run there already): nothing of one island waits on another's lock
+or reads another's log. The client then merges the islands' summaries
+(:func:`island_summary`) into the study, in one journal lock, once all are done. A
+journal's lock serializes every writer of the file, and each Optuna trial written costs
+its writer a read-back of everything the others wrote since (about a millisecond a
+trial): with one journal for all, four islands each writing its generations' bests at
+its end spent longer waiting for the lock and replaying each other's copies than a fast
+device spent evaluating (``bench/multi_gpu.py``). A database URL serves concurrent
+writers itself: there the islands store into the one study as :func:`search` does.
+"""
 
 from __future__ import annotations
 
+import os
 import time
+from pathlib import Path
+from urllib.parse import quote
+
+import numpy as np
 
 from ..distributed import worker_settings
-from .objectives import DEFAULT_T_LIMIT
-from .search import SearchResult, search
-from .storage import best_designs, open_study
+from .objectives import DEFAULT_T_LIMIT, signs
+from .search import FRONT_COPIES, SearchResult, search
+from .storage import (
+    ATTR,
+    COPY,
+    _rows,
+    add_evaluated,
+    best_designs,
+    bind_store,
+    copies_in_study,
+    journal_batch,
+    make_storage,
+    open_study,
+)
+
+#: Improvements of an island's best (one objective) its summary keeps at most, the latest.
+SUMMARY_COPIES = FRONT_COPIES
 
 
-def _island(name: str, kw: dict) -> dict:
+def island_journal(storage, study_name: str, island: str) -> Path:
+    """The journal of ``island`` of the study ``study_name`` in the journal file ``storage``:
+    ``<journal>.islands/<study name>/<island>.journal`` beside it."""
+    folder = Path(storage).with_suffix(".islands") / quote(study_name, safe="")
+    return folder / f"{quote(island, safe='')}.journal"
+
+
+def island_summary(study, worker: str, objectives, T_limit) -> dict[str, np.ndarray]:
+    """The copies of ``worker``'s trials in ``study`` that the islands' study keeps, as
+    columns (those of :func:`tawarp.design.storage.trials_table`'s rows): one objective,
+    the generations' bests that improved the island's best so far, in generation order
+    (the last :data:`SUMMARY_COPIES`; the last is the island's best); several, the
+    island's copies on its feasible front (its runs' fronts, spread along them)."""
+    cols = _rows(study, copies=True)
+    if not cols:
+        return {}
+    mine = np.flatnonzero(cols["worker"] == worker)
+    mine = mine[np.lexsort((cols["index"][mine], cols["generation"][mine]))]
+    F = _minimized(cols, mine, objectives, T_limit)
+    ok = np.all(np.isfinite(F), axis=1)
+    if len(objectives) == 1:
+        f = np.where(ok, F[:, 0], np.inf)
+        before = np.minimum.accumulate(np.concatenate([[np.inf], f[:-1]]))
+        keep = np.flatnonzero(f < before)[-SUMMARY_COPIES:]
+    else:
+        from .samplers import pareto_mask
+
+        keep = np.flatnonzero(ok)
+        keep = keep[pareto_mask(F[keep])]
+    return {k: v[mine[keep]] for k, v in cols.items()}
+
+
+def _minimized(cols: dict, rows: np.ndarray, objectives, T_limit) -> np.ndarray:
+    """The objectives of ``rows`` minimized (n, m); inf where a trial failed or is infeasible."""
+    F = np.stack([cols["metric:" + o][rows].astype(np.float64) for o in objectives], axis=1) * signs(objectives)
+    bad = cols["failed"][rows].astype(bool)
+    if T_limit is not None:
+        bad |= np.nan_to_num(cols["constraint"][rows].astype(np.float64), nan=0.0) > 0
+    F[bad] = np.inf
+    return F
+
+
+def _island(name: str, kw: dict, own_journal: str | None) -> dict:
     """One island's :func:`~tawarp.design.search.search` (lineage ``name``) on this
-    worker's device: its timing, best and resumed count (the study stays in the shared storage)."""
-    res = search(worker=name, **dict(kw, settings=worker_settings(kw.get("settings"))))
-    best = best_designs(res.study, res.objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True, worker=name)
-    return {"worker": name, "timing": res.timing, "best": [d["values"] for d in best], "resumed": res.resumed}
+    worker's device, in its own journal ``own_journal`` where given: its timing, best,
+    resumed count, and (own journal) its summary and binding for the islands' study."""
+    kw = dict(kw, settings=worker_settings(kw.get("settings")))
+    if own_journal is not None:
+        kw["storage"] = own_journal
+    res = search(worker=name, **kw)
+    T_limit = kw.get("T_limit", DEFAULT_T_LIMIT)
+    best = best_designs(res.study, res.objectives, T_limit, copies=True, worker=name)
+    out = {"worker": name, "timing": res.timing, "best": [d["values"] for d in best], "resumed": res.resumed}
+    if own_journal is not None:
+        t = time.perf_counter()
+        out["summary"] = island_summary(res.study, name, res.objectives, T_limit)
+        out["binding"] = res.study.user_attrs.get(f"tawarp_worker:{name}")
+        out["timing"] = dict(res.timing, summary=time.perf_counter() - t)
+    return out
 
 
 def search_islands(client, space, objectives=("gradient",), *, storage, islands: int | None = None, **kw):
     """The batched design search as islands, one per worker of ``client``: island i runs
     :func:`~tawarp.design.search.search` as worker ``island{i}`` (its own sampler stream,
-    :func:`tawarp.design.search.worker_seed`) on its device, ``n_trials`` of its own, all
-    storing into the one study ``storage`` (a journal file or database URL the workers
-    reach). The islands are independent (no migration): each is what it is run alone, so
-    the study equals running them one after another, resumes per island, and nothing waits
-    on the slowest island; CMA-ES islands are parallel restarts from other streams, NSGA-II
-    islands' fronts meet in the study's front. Returns a
-    :class:`~tawarp.design.search.SearchResult`: the study opened here, the best of all
-    islands, ``timing`` summed over the islands (``wall`` and ``evaluations_per_minute``
-    here; ``islands``: each one's timing and the objectives of its own best). ``islands``:
-    how many (default: one per worker; more take turns on the workers). Other keywords go
-    to ``search``."""
+    :func:`tawarp.design.search.worker_seed`) on its device, ``n_trials`` of its own, into
+    the one study ``storage`` (a journal file or database URL the workers reach). The
+    islands are independent (no migration): each is what it is run alone, so the study's
+    trials equal running them one after another, an island resumes alone, and nothing
+    waits on the slowest island; CMA-ES islands are parallel restarts from other streams,
+    NSGA-II islands' fronts meet in the study's front.
+
+    With a journal file (and a trial store: ``store`` not False) each island writes its
+    own journal and the study's trial store (see the module docstring); once all are done
+    the study gets, in one write, each island's summary (:func:`island_summary`: one
+    objective, the improvements of its best; several, the study's feasible front of the
+    islands' fronts, at most :data:`~tawarp.design.search.FRONT_COPIES` spread along it)
+    and each lineage's binding (seed, batch). Every trial is in the trial store either way
+    (:func:`tawarp.design.storage.trials_table`, :func:`~tawarp.design.storage.best_designs`).
+
+    Returns a :class:`~tawarp.design.search.SearchResult`: the study opened here, the best
+    of all islands, ``timing`` summed over the islands (``wall``, ``evaluations_per_minute``,
+    ``merge`` (the summaries written here) and ``client`` (this process's time outside the
+    islands: opening, merging, the best) here; ``islands``: each one's timing and the
+    objectives of its own best). ``islands``: how many (default: one per worker; more take
+    turns on the workers). Other keywords go to ``search``."""
     if storage is None:
         raise ValueError("search_islands: the islands share one study; give storage= (a journal file or database URL)")
     t0 = time.perf_counter()
     workers = list(client.scheduler_info()["workers"])
     islands = len(workers) if islands is None else int(islands)
-    kw = dict(kw, space=space, objectives=tuple(objectives), storage=storage)
+    objectives = tuple(objectives)
+    study_name = kw.get("study_name", "tawarp-design")
+    T_limit = kw.get("T_limit", DEFAULT_T_LIMIT)
+    st = make_storage(storage)
+    study = open_study(st, study_name, objectives, space.binding())
+    separate = _journal_path(storage) and kw.get("store") is not False and kw.get("engine", "batched") == "batched"
+    kw = dict(kw, space=space, objectives=objectives, storage=storage)
+    if separate:  # every island into the study's trial store, bound here once
+        kw["store"] = str(bind_store(study, storage, kw.get("store")).path)
+    names = [f"island{i}" for i in range(islands)]
+    journals = [str(island_journal(storage, study_name, n)) if separate else None for n in names]
+    t_client = time.perf_counter() - t0
     futures = [
-        client.submit(_island, f"island{i}", kw, workers=[workers[i % len(workers)]], pure=False)
-        for i in range(islands)
+        client.submit(_island, name, kw, own, workers=[workers[i % len(workers)]], pure=False)
+        for i, (name, own) in enumerate(zip(names, journals))
     ]
     runs = client.gather(futures)
+    t = time.perf_counter()
+    merged = _merge(study, st, space, runs, objectives, T_limit) if separate else 0
+    t_merge = time.perf_counter() - t
+    best = best_designs(study, objectives, T_limit, copies=True)
     wall = time.perf_counter() - t0
-    study = open_study(storage, kw.get("study_name", "tawarp-design"), objectives, space.binding())
     timing = {
         k: sum(r["timing"][k] for r in runs)
         for k in ("sampler", "evaluation", "storage", "trial_store", "evaluations", "trials_in_study")
     }
-    timing.update(wall=wall, evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12))
-    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"]) for r in runs]
-    best = best_designs(study, objectives, kw.get("T_limit", DEFAULT_T_LIMIT), copies=True)
-    return SearchResult(
-        study, tuple(objectives), best, timing, sum(r["resumed"] for r in runs), ",".join(r["worker"] for r in runs)
+    timing.update(
+        wall=wall,
+        evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12),
+        merge=t_merge,
+        merged=merged,
+        client=t_client + time.perf_counter() - t,
     )
+    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"]) for r in runs]
+    return SearchResult(study, objectives, best, timing, sum(r["resumed"] for r in runs), ",".join(names))
+
+
+def _journal_path(storage) -> bool:
+    return isinstance(storage, (str, os.PathLike)) and "://" not in str(storage)
+
+
+def _merge(study, storage, space, runs: list, objectives, T_limit) -> int:
+    """The islands' summaries and bindings into ``study`` (in ``storage``), in one journal
+    lock: one objective, every island's summary; several, the feasible front of all
+    islands' summaries, at most FRONT_COPIES spread along it; none the study holds already
+    (a resumed run's). Returns the trials added."""
+    from .samplers import crowding, pareto_mask
+    from .storage import _concat
+
+    cols = _concat([r["summary"] for r in runs])
+    n = len(cols.get("generation", ()))
+    keep = np.arange(n)
+    if n and len(objectives) > 1:
+        F = _minimized(cols, keep, objectives, T_limit)
+        keep = keep[pareto_mask(F)]
+        if len(keep) > FRONT_COPIES:  # the widest spread: largest crowding distances, ties in order
+            dist = crowding(F[keep], np.zeros(len(keep), dtype=int))
+            keep = np.sort(keep[np.argsort(-dist, kind="stable")[:FRONT_COPIES]])
+    held = copies_in_study(study)
+    keys = zip(cols["worker"][keep], cols["generation"][keep].tolist(), cols["index"][keep].tolist()) if n else ()
+    keep = np.array([i for i, k in zip(keep, keys) if k not in held], dtype=np.int64)
+    bindings = {
+        f"tawarp_worker:{r['worker']}": r["binding"]
+        for r in runs
+        if r["binding"] is not None and study.user_attrs.get(f"tawarp_worker:{r['worker']}") != r["binding"]
+    }
+    if not keep.size and not bindings:
+        return 0
+    with journal_batch(storage):
+        for key, value in bindings.items():
+            study.set_user_attr(key, value)
+        if keep.size:
+            params = [c for c in cols if c.startswith("param:")]
+            metrics = [c for c in cols if c.startswith("metric:")]
+            points = [
+                {c[6:]: (v if isinstance(v, str) else float(v)) for c in params if (v := cols[c][i]) is not None}
+                for i in keep
+            ]
+            add_evaluated(
+                study,
+                storage,
+                points,
+                space.distributions(),
+                np.stack([cols["metric:" + o][keep].astype(np.float64) for o in objectives], axis=1),
+                [{c[7:]: float(cols[c][i]) for c in metrics} for i in keep],
+                None if T_limit is None else cols["constraint"][keep].astype(np.float64),
+                cols["failed"][keep].astype(bool),
+                [
+                    {
+                        ATTR + "worker": str(cols["worker"][i]),
+                        ATTR + "generation": int(cols["generation"][i]),
+                        ATTR + "index": int(cols["index"][i]),
+                        COPY: True,
+                    }
+                    for i in keep
+                ],
+            )
+    return int(keep.size)
