@@ -461,3 +461,35 @@ def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
     back = cols.columns()
     assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
     assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
+
+
+def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
+    # worker processes write each chunk's per-problem numeric arrays into one shared file
+    # and send the rest; a chunk that could not (no room, the file gone) sends them all and
+    # the client copies them in: either way the result is the one of joining the chunks'
+    # results, array for array; a longer reason string in a later chunk is kept whole
+    import dataclasses
+
+    from tawarp.distributed import SharedColumns, _joined_parts, _shared_part, concatenate_results
+
+    core, names, Y, sd, start = _geometry_problems(5)
+    parts = [
+        fit(core, FREQS, Y[lo:hi], names, start, weights=1 / sd, device="cpu", warn=False)
+        for lo, hi in ((0, 2), (2, 5))
+    ]
+    parts[1] = dataclasses.replace(parts[1], reason=np.array(["max_iterations", "gtol", "xtol"]))
+    joined = concatenate_results(parts)
+    assert joined.reason.tolist() == [*parts[0].reason.tolist(), "max_iterations", "gtol", "xtol"]
+    out = SharedColumns.create(5, None, folders=[str(tmp_path)])
+    sent = [_shared_part(parts[0], out, 0), (parts[1], None)]
+    assert sent[0][1] is not None and sent[0][0].values is None and sent[0][0].reason is not None
+    many = _joined_parts(iter(sent), 5, [0, 2], out)
+    for f in dataclasses.fields(joined):
+        a, b = getattr(joined, f.name), getattr(many, f.name)
+        if isinstance(a, np.ndarray):
+            assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f"), f.name
+    assert list(many.problem_warnings) == list(joined.problem_warnings)
+    assert (many.evaluations, many.launches) == (joined.evaluations, joined.launches)
+    gone = SharedColumns(str(tmp_path / "gone"), 5, None)
+    back, layout = _shared_part(parts[0], gone, 0)
+    assert back is parts[0] and layout is None
