@@ -28,8 +28,18 @@ is timed:
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
 * ``islands``: :func:`tawarp.design.islands.search_islands`, a batched CMA-ES island per
-  worker (``--island-trials`` trials of ``--island-batch`` each, one journal study with
-  its trial store, committed once a second).
+  worker (``--island-trials`` trials of ``--island-batch`` each, committed once a second;
+  one journal study with its trial store, each island its own journal, their summaries
+  merged into the study at the end).
+
+Each case's ``*_phases`` say where its best call's wall time went (:func:`phases`, from
+the scheduler's task stream): ``head`` (the client before the first task computes),
+``tail`` (after the last one ends: the results' transfer and the client's merging, what
+one client does for all workers), each worker's ``compute`` and ``tasks``, ``idle_share``
+and ``imbalance``; the islands add ``island_client_seconds`` (opening the study, merging
+the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
+the shares of the islands' own timing (``island_trial_store_share``: the trial store's
+appends, on the disk of ``--study-dir``, default a temporary folder).
 
 ``--cluster threads`` runs fits, evaluations and the sweep on worker threads of this
 process instead (``local_cluster(processes=False)``: one GIL; the islands stay on
@@ -111,19 +121,60 @@ def design_space() -> DesignSpace:
     )
 
 
-def timed(fn, repeats: int):
+def timed(fn, repeats: int, client=None):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
     this process (client, scheduler, nannies: every thread; worker threads too, with
-    ``--cluster threads``) in the best call [s]): with worker processes, a CPU time near
-    the wall time says the client is the serial part."""
-    best, out, cpu = np.inf, None, None
+    ``--cluster threads``) in the best call [s], the best call's :func:`phases` with
+    ``client``): with worker processes, a CPU time near the wall time says the client is
+    the serial part."""
+    best, out, cpu, ph = np.inf, None, None, None
     for _ in range(repeats):
-        t0, c0 = time.perf_counter(), time.process_time()
+        t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
         out = fn()
-        t, c = time.perf_counter() - t0, time.process_time() - c0
+        t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
         if t < best:
             best, cpu = t, c
-    return best, out, cpu
+            ph = phases(client, w0, w1) if client is not None else None
+    return best, out, cpu, ph
+
+
+def phases(client, t0: float, t1: float) -> dict:
+    """Where the wall time ``t0`` .. ``t1`` (``time.time()``) of a call went, from the
+    scheduler's task stream (the tasks' compute intervals on the workers, clocks of this
+    host): ``head`` [s] from the call to the first task computing (the client's work
+    before, the dispatch), ``tail`` from the last task's end to the call's (the results'
+    transfer and the client's work after: what one client does for all workers),
+    ``compute`` each worker's computing time [s] and ``tasks`` its task count,
+    ``transfer`` [s] between workers, ``idle_share`` of the workers within the call's
+    wall, ``imbalance`` [s] the most computing of a worker less the least."""
+    records = [r for r in client.get_task_stream(start=t0) if r.get("startstops")]
+    compute, tasks, transfer, starts, stops = {}, {}, 0.0, [], []
+    for r in records:
+        for ss in r["startstops"]:
+            if ss["start"] < t0 or ss["stop"] > t1 + 1.0:
+                continue
+            if ss["action"] == "compute":
+                w = r["worker"]
+                compute[w] = compute.get(w, 0.0) + ss["stop"] - ss["start"]
+                tasks[w] = tasks.get(w, 0) + 1
+                starts.append(ss["start"])
+                stops.append(ss["stop"])
+            elif ss["action"] == "transfer":
+                transfer += ss["stop"] - ss["start"]
+    if not starts:
+        return {}
+    workers = sorted(compute)
+    busy = [compute[w] for w in workers]
+    wall = t1 - t0
+    return {
+        "head": min(starts) - t0,
+        "tail": max(0.0, t1 - max(stops)),
+        "compute": busy,
+        "tasks": [tasks[w] for w in workers],
+        "transfer": transfer,
+        "idle_share": 1.0 - sum(busy) / (len(client.scheduler_info()["workers"]) * wall),
+        "imbalance": max(busy) - min(busy),
+    }
 
 
 def digest(arrays: dict) -> str:
@@ -201,8 +252,9 @@ class Bench:
                 self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
             data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
         t_data = time.perf_counter() - t0
-        t, res, cpu = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats)
+        t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats, client)
         return {
+            "fit_phases": ph,
             "fits": n,
             "fit_data": self.args.fit_data,
             "fit_data_seconds": t_data,
@@ -218,8 +270,9 @@ class Bench:
         n = self.args.points
         ev.warm_up()
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
-        t, out, cpu = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats)
+        t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
         return {
+            "evaluation_phases": ph,
             "evaluation_points": n,
             "evaluation_seconds": t,
             "evaluation_client_cpu_seconds": cpu,
@@ -238,9 +291,10 @@ class Bench:
             )
 
         run(64 * k, 64)  # warm-up
-        t, info, cpu = timed(run, self.args.repeats)
+        t, info, cpu, ph = timed(run, self.args.repeats, client)
         os.remove(path)
         return {
+            "sweep_phases": ph,
             "sweep_points": a.sweep_points,
             "sweep_chunk": a.sweep_chunk,
             "sweep_seconds": t,
@@ -252,15 +306,25 @@ class Bench:
     def islands(self, client, k: int) -> dict:
         a = self.args
         kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
-        warm = os.path.join(self.tmp, f"warm{k}.journal")
+        folder = a.study_dir or self.tmp
+        warm = os.path.join(folder, f"warm{k}.journal")
         search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
-        storage = os.path.join(self.tmp, f"islands{k}.journal")
-        _, res, cpu = timed(
-            lambda: search_islands(client, self.space, storage=storage, n_trials=a.island_trials, **kw), 1
+        storage = os.path.join(folder, f"islands{k}.journal")
+        _, res, cpu, ph = timed(
+            lambda: search_islands(client, self.space, storage=storage, n_trials=a.island_trials, **kw), 1, client
         )
+        if a.study_dir:  # (the temporary folder goes by itself)
+            for f in (warm, storage):
+                _remove_study(f)
         tm = res.timing
         wall = tm["wall"]
         return {
+            "island_phases": ph,
+            "island_study_dir": folder,
+            "island_client_seconds": tm["client"],
+            "island_merge_seconds": tm["merge"],
+            "island_merged_trials": tm["merged"],
+            "island_trial_store_share": tm["trial_store"] / (k * wall),
             "island_trials": a.island_trials,
             "island_batch": a.island_batch,
             "islands": k,
@@ -274,6 +338,18 @@ class Bench:
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,
         }
+
+
+def _remove_study(journal: str) -> None:
+    """A journal study and what lies beside it (its trial store, the islands' journals)."""
+    import shutil
+
+    for p in (journal, journal + ".lock"):
+        if os.path.exists(p):
+            os.remove(p)
+    stem = os.path.splitext(journal)[0]
+    for d in (stem + ".trials", stem + ".islands"):
+        shutil.rmtree(d, ignore_errors=True)
 
 
 def compile_here(bench: Bench, device: str) -> None:
@@ -353,6 +429,11 @@ def main(argv=None) -> int:
     ap.add_argument("--sweep-chunk", type=int, default=None, help="sweep chunk (default 2^22; --small 2^12)")
     ap.add_argument("--island-trials", type=int, default=None, help="trials per island (default 2^22; --small 2048)")
     ap.add_argument("--island-batch", type=int, default=None, help="island population (default 8192; --small 256)")
+    ap.add_argument(
+        "--study-dir",
+        default=None,
+        help="folder of the islands' study, journals and trial store (default: a temporary folder)",
+    )
     ap.add_argument("--repeats", type=int, default=None, help="timings per case, the best kept (default 2; --small 1)")
     ap.add_argument(
         "--cluster",
@@ -457,6 +538,7 @@ def main(argv=None) -> int:
                 row["start_seconds"] = row.get("start_seconds", 0.0) + time.perf_counter() - t
                 try:
                     dog.watch(client)
+                    client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:
                             row.update(getattr(bench, c)(client, k))
