@@ -18,10 +18,10 @@ between processes is pickled and sent over TCP, which costs more than the device
 a fit or a design point, so the work that scales makes its inputs where it runs and sends
 back little: a sweep's and :meth:`ClusterEvaluator.evaluate_sobol`'s tasks are point
 ranges (each worker draws its points and builds its tables on its device), a reduced
-sweep returns its reductions, an island its best, a fit of data already on the workers
-(:func:`fit_on_cluster` of futures) its results, and the objectives of
-``evaluate_sobol`` are written by the worker processes of this host into shared memory
-(:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
+sweep returns its reductions, an island its best and summary, a fit of data already on
+the workers (:func:`fit_on_cluster` of futures) its results, and the objectives of
+``evaluate_sobol`` and a fit's per-problem arrays are written by the worker processes of
+this host into shared memory (:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
 are threads of this process, each driving its own device: Dask hands them contiguous
 arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
 under the GIL, so what travels here is contiguous), which suits one GPU fed from this
