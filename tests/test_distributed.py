@@ -171,7 +171,7 @@ def test_islands_equal_the_islands_run_one_after_another(client, tmp_path, objec
             assert all(d["values"] in island["best"] for d in merged)
 
 
-def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_path):
+def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_path, monkeypatch):
     # each island keeps its claim, heartbeat and copies in a journal of its own: the study's
     # journal holds no island's claim (the companion studies "STUDY#worker=...") and, once
     # merged, each island's improvements of its best, strictly better generation after
@@ -180,6 +180,7 @@ def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_
     # the islands run one after another
     import optuna
 
+    from tawarp.design import islands
     from tawarp.design.islands import island_journal, search_islands
     from tawarp.design.storage import copies_in_study, lineage, make_storage, open_study, trials_table
 
@@ -202,7 +203,13 @@ def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_
         mine = sorted((g, j) for w, g, j in copies if w == name)
         kept = [bests[g] for g, _ in mine]
         assert kept and np.all(np.diff(kept) > 0) and kept[-1] == max(bests) == island["best"][0]["gradient"]
-        assert [g for g, _ in mine] == [g for g in range(len(bests)) if bests[g] > max(bests[:g], default=-np.inf)]
+        improved = [g for g in range(len(bests)) if bests[g] > max(bests[:g], default=-np.inf)]
+        assert [g for g, _ in mine] == improved and len(improved) > 2
+        # at most SUMMARY_COPIES of them, the latest (read from the island's own journal)
+        monkeypatch.setattr(islands, "SUMMARY_COPIES", 2)
+        own = open_study(str(island_journal(storage, "tawarp-design", name)), "tawarp-design", ("gradient",))
+        assert islands.island_summary(own, name, ("gradient",), 673.0)["generation"].tolist() == improved[-2:]
+        monkeypatch.undo()
     for name in ("island0", "island1"):
         search(_space(), worker=name, storage=str(tmp_path / "one.journal"), **dict(kw, n_trials=128))
     one = trials_table(open_study(str(tmp_path / "one.journal"), "tawarp-design", ("gradient",), _space().binding()))
