@@ -500,3 +500,27 @@ def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
     gone = SharedColumns(str(tmp_path / "gone"), 5, None)
     back, layout = _shared_part(parts[0], gone, 0)
     assert back is parts[0] and layout is None
+
+
+def test_islands_go_on_from_lineages_searched_into_the_study(client, tmp_path):
+    # a lineage searched into the study itself (search(worker="island0")) goes on as an
+    # island in its own journal: with another seed it is refused as search refuses it; with
+    # its own, the trials are those of one uninterrupted search, none stored twice
+    from tawarp.design.islands import search_islands
+    from tawarp.design.storage import StudyConflict, lineage
+
+    storage = str(tmp_path / "study.journal")
+    kw = dict(n_trials=32, batch=16)
+    for name in ("island0", "island1"):
+        search(_space(), worker=name, storage=storage, seed=4, **kw)
+    with pytest.raises(StudyConflict, match="seed 4"):
+        search_islands(client, _space(), storage=storage, seed=5, **dict(kw, n_trials=64))
+    res = search_islands(client, _space(), storage=storage, seed=4, **dict(kw, n_trials=64))
+    assert res.timing["evaluations"] == 2 * 32
+    ref = search(_space(), worker="island1", seed=4, **dict(kw, n_trials=64))
+    got, want = lineage(res.study, "island1"), lineage(ref.study, "island1")
+    assert sorted(got) == sorted(want) == list(range(4))
+    for g in want:
+        assert got[g]["index"].tolist() == want[g]["index"].tolist()
+        for k in ("param:stack.length", "param:heat_input", "metric:gradient"):
+            assert got[g][k].astype(float).tolist() == want[g][k].astype(float).tolist(), (g, k)

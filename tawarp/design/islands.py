@@ -151,6 +151,13 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
         kw["store"] = str(bind_store(study, storage, kw.get("store")).path)
     names = [f"island{i}" for i in range(islands)]
     journals = [str(island_journal(storage, study_name, n)) if separate else None for n in names]
+    for name, own in zip(names, journals):
+        bound = study.user_attrs.get(f"tawarp_worker:{name}")
+        if own is not None and bound is not None and not os.path.exists(own):
+            # a lineage searched into the study itself (as search(worker=...) does) goes on in
+            # its own journal bound to the same seed and batch, so that a resume with others is
+            # refused as search refuses it
+            open_study(own, study_name, objectives, space.binding()).set_user_attr(f"tawarp_worker:{name}", bound)
     t_client = time.perf_counter() - t0
     futures = [
         client.submit(_island, name, kw, own, workers=[workers[i % len(workers)]], pure=False)
