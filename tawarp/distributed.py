@@ -606,14 +606,38 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns 
     """Objectives of the Sobol points ``task`` = (lo, hi, seed, at) of the design space,
     drawn on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`);
     written to rows ``at`` .. of the shared ``out`` where given (and None returned)."""
+    import warp as wp
+
     ev, tables = _worker_evaluator(key, spec)
     lo, hi, seed, at = task
     table = tables.sobol(lo, hi, seed)[0]
-    res = ev.objectives_of(ev.evaluate_device(table), table)
-    if out is None:
-        return res
-    out.write(at, res)
+    metrics = ev.evaluate_device(table)
+    if out is None or ev.extra:  # (objectives computed on the host need the host table)
+        res = ev.objectives_of(metrics, table)
+        if out is None:
+            return res
+        out.write(at, res)
+        return None
+    columns = ev.metric_columns(metrics, ev.columns, wp.float64)
+    out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
     return None
+
+
+def _on_host(key: str, columns):
+    """The (k, n) device array ``columns`` copied into this worker's host buffer of the
+    job ``key`` (page-locked beside a GPU, kept between its chunks, grown when a chunk is
+    longer): one DMA, where a fresh host array would be paged in per chunk and filled
+    through the driver's staging buffer, twice the host's memory traffic of the copy."""
+    import warp as wp
+
+    held = worker_state(key + ":host", dict)
+    buf = held.get("buffer")
+    if buf is None or buf.size < columns.size:
+        cuda = wp.get_device(columns.device).is_cuda
+        buf = held["buffer"] = wp.empty(columns.size, dtype=columns.dtype, device="cpu", pinned=cuda)
+    wp.copy(buf, columns, count=columns.size)
+    wp.synchronize_device(columns.device)
+    return buf.numpy()[: columns.size].reshape(columns.shape)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -524,3 +524,25 @@ def test_islands_go_on_from_lineages_searched_into_the_study(client, tmp_path):
         assert got[g]["index"].tolist() == want[g]["index"].tolist()
         for k in ("param:stack.length", "param:heat_input", "metric:gradient"):
             assert got[g][k].astype(float).tolist() == want[g][k].astype(float).tolist(), (g, k)
+
+
+def test_sobol_chunks_written_to_shared_memory_equal_one_process(tmp_path):
+    # what a worker process does with a chunk of evaluate_sobol: the kernel's columns
+    # copied into its host buffer (kept, grown for a longer chunk) and written to its rows
+    # of the shared file; chunks of 20, 30 and 10 points: the objectives of one process
+    import uuid
+
+    from tawarp.design.evaluate import DEFAULT_FREQS
+    from tawarp.design.space import DeviceTable
+    from tawarp.distributed import SharedColumns, _evaluate_sobol_chunk, _objective_layout
+
+    space = _space()
+    spec = {"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None}
+    key = uuid.uuid4().hex
+    out = SharedColumns.create(60, _objective_layout(key, spec), folders=[str(tmp_path)])
+    for lo, hi in ((0, 20), (30, 60), (20, 30)):
+        assert _evaluate_sobol_chunk((5 + lo, 5 + hi, 7, lo), key, spec, out) is None
+    ev = Evaluator(space)
+    one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 65, 7)[0])
+    many = out.columns()
+    assert set(many) == set(one) and all(np.array_equal(many[k], one[k], equal_nan=True) for k in one)
