@@ -308,6 +308,8 @@ class Bench:
         kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
         folder = a.study_dir or self.tmp
         warm = os.path.join(folder, f"warm{k}.journal")
+        for f in (warm, os.path.join(folder, f"islands{k}.journal")):
+            _remove_study(f)  # (an earlier run's, which the search would resume)
         search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
         storage = os.path.join(folder, f"islands{k}.journal")
         _, res, cpu, ph = timed(
