@@ -243,7 +243,9 @@ def segment_heat_coeffs(
     own (:func:`wall_field_on`) lam and sigma are the gas/solid's and k bounds the faster of
     the two fields' decay rates (:func:`wall_modes`; the Magnus cell count reads it), the
     profile being :func:`wall_cell_profile`'s."""
-    lam, k, sigma = heat_coeffs(params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H))
+    lam, k, sigma = heat_coeffs(
+        params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H)
+    )
     if wall_field_on(params, i, s) != 0:
         c = wp.float64(2.0) / (params[RADIUS, i] * seg_value(params, i, s, WALL_RESISTANCE))
         k = wp.sqrt(k * k + c / lam + c / seg_value(params, i, s, WALL_CONDUCTANCE))

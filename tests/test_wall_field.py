@@ -120,10 +120,14 @@ def test_without_the_wall_field_the_model_is_unchanged_bit_for_bit():
     x = np.linspace(pos[1], pos[4], 51)
     added = {f"{s.name}.wall_conductance": LAM_W for s in THERMAL}
     a = steady_temperature(CORE, x, Q, params=added, device="cpu")
-    b = steady_temperature(CORE, x, Q, params={**added, **{f"{s.name}.wall_resistance": 0.0 for s in THERMAL}}, device="cpu")
+    b = steady_temperature(
+        CORE, x, Q, params={**added, **{f"{s.name}.wall_resistance": 0.0 for s in THERMAL}}, device="cpu"
+    )
     np.testing.assert_array_equal(a[0], b[0])
     off = steady_temperature(CORE, x, Q, device="cpu")[0]
-    np.testing.assert_array_equal(off, steady_temperature(CORE, x, Q, params={"tbt.wall_resistance": 0.3}, device="cpu")[0])
+    np.testing.assert_array_equal(
+        off, steady_temperature(CORE, x, Q, params={"tbt.wall_resistance": 0.3}, device="cpu")[0]
+    )
 
 
 def test_heat_balance():

@@ -478,7 +478,9 @@ def wall_conduction_effect(core: Core) -> Effect:
     k_gas = float(GASES[core.gas.name].transport(core.gas.T_cold)[1])
     f = field_spec("wall_conductance")
     params = [
-        Param("wall_conductance", tuple(f"{s.name}.wall_conductance" for s in thermal), f.neutral, f.scale, *f.fit_range)
+        Param(
+            "wall_conductance", tuple(f"{s.name}.wall_conductance" for s in thermal), f.neutral, f.scale, *f.fit_range
+        )
     ]
     for names, start in (
         ([s.name for s in thermal if s.is_porous], WALL_FILM / k_gas),
