@@ -793,19 +793,22 @@ def wall_modes(
 ):
     """Modes of a two-field heat cell of segment s (see the comment block above): returns
     (P = Lam^(1/2) V, M = Lam^(-1/2) V, k = (k1, k2) [1/m], sigma [W/m^3 / sqrt(W/(m K))]),
-    Y = M w, w = P^T Y. With ``nonlin`` the gas/solid's lam and h at the cell's mean
-    excess ``theta_mean`` [K] (:func:`cell_law`), else at T_cold."""
-    lam = material_lambda(params, flags, gas, i, s)
-    h = seg_value(params, i, s, H)
-    if nonlin != 0:
-        lam, h = cell_law(params, flags, gas, i, s, theta_mean)
+    Y = M w, w = P^T Y. With ``nonlin`` the gas/solid's lam at the cell's mean excess
+    ``theta_mean`` [K] (:func:`cell_law`) and its sink to the room (:func:`wall_sink`) by
+    its tangent there (a slope and a source), else the segment's constants."""
     R = params[RADIUS, i]
-    lam_w = seg_value(params, i, s, WALL_CONDUCTANCE)
-    a = wp.float64(2.0) * h / R
-    c = wp.float64(2.0) / (R * seg_value(params, i, s, WALL_RESISTANCE))
+    lam = material_lambda(params, flags, gas, i, s)
+    a = wp.float64(2.0) * seg_value(params, i, s, H) / R
     q = wp.float64(0.0)
     if flags[s, F_HEATER] != 0:
         q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
+    if nonlin != 0:
+        # lam at the mean; the sink (2/R)(h + h_c theta^(1/4)) theta by its tangent there
+        lam, _h = cell_law(params, flags, gas, i, s, theta_mean)
+        sink, a = wall_sink(seg_value(params, i, s, H), seg_value(params, i, s, H_CONVECTION), R, theta_mean)
+        q = q - (sink - a * theta_mean)
+    lam_w = seg_value(params, i, s, WALL_CONDUCTANCE)
+    c = wp.float64(2.0) / (R * seg_value(params, i, s, WALL_RESISTANCE))
     sl = wp.sqrt(lam)
     sw = wp.sqrt(lam_w)
     n11 = (a + c) / lam
