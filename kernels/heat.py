@@ -9,7 +9,10 @@ end, ``-lam theta' = H theta`` at the right): the ambient exchangers' thermal ro
 adiabatic at H = 0 (the paper's model), T_cold held there as H -> inf. With the effect
 ``contact_resistance`` R_c [m^2 K/W] of a thermal segment other than the first, the
 temperature jumps at its start by R_c times the heat flux density through it (a thermal
-contact resistance against the previous segment; :func:`contact_rows`).
+contact resistance against the previous segment; :func:`contact_rows`). With a
+``wall_conductance`` lam_w and a ``wall_resistance`` R_w = 1/h_w > 0 the tube wall of a
+segment is a temperature field of its own, coupled by 2 h_w/R (:func:`solve_heat_wall`,
+block-tridiagonal in (theta, theta_w)); R_w = 0 adds lam_w to the segment's conductivity.
 
 Discretisation: nodes on a uniform grid in each segment, interfaces on nodes. Each cell
 couples its two nodes through the *exact* two-point relation of a constant-coefficient

@@ -108,6 +108,12 @@ def test_strong_coupling_is_the_added_conductivity():
             )[0]
             gap.append(np.abs(strong - tied).max() / rise)
         assert gap[1] < 1e-7 and gap[0] / gap[1] == pytest.approx(100.0, rel=0.01), (h_duct, gap)
+    # the other end of the trusted range, R_w = 1e6 m^2 K/W: a wall all but decoupled, the
+    # bare gas/solid's profile within 1e-5 of the peak rise (its exchange 2/(R R_w) is 5e-6
+    # of the buffer tube's h sink)
+    bare = steady_temperature(CORE, x, Q, device="cpu")[0]
+    loose = steady_temperature(CORE, x, Q, params=wall_values(h_porous=1e-6, h_duct=1e-6), device="cpu")[0]
+    assert np.abs(loose - bare).max() < 1e-5 * (bare - CORE.gas.T_cold).max()
     xn, gas, wall = nodal(CORE, Q, wall_values(h_porous=np.inf), 2)
     porous = segment_of(CORE, xn) != CORE.thermal_indices[-1]
     np.testing.assert_allclose(wall[porous], gas[porous], rtol=1e-12)  # the tied nodes: theta_w = theta
