@@ -494,7 +494,8 @@ def wall_conduction_effect(core: Core) -> Effect:
         "axial heat conduction in the tube wall (all thermal parts), the wall a temperature field coupled "
         "laterally by h_w = 1/wall_resistance",
         tuple(params),
-        typical={"wall_conductance": wall},
+        # the couplings sit at their physical values: the typical wall is the 1 mm steel one
+        typical={"wall_conductance": wall, **{p.label: p.start for p in params[1:]}},
     )
 
 
