@@ -9,7 +9,10 @@ end, ``-lam theta' = H theta`` at the right): the ambient exchangers' thermal ro
 adiabatic at H = 0 (the paper's model), T_cold held there as H -> inf. With the effect
 ``contact_resistance`` R_c [m^2 K/W] of a thermal segment other than the first, the
 temperature jumps at its start by R_c times the heat flux density through it (a thermal
-contact resistance against the previous segment; :func:`contact_rows`).
+contact resistance against the previous segment; :func:`contact_rows`). With a
+``wall_conductance`` lam_w and a ``wall_resistance`` R_w = 1/h_w > 0 the tube wall of a
+segment is a temperature field of its own, coupled by 2 h_w/R (:func:`solve_heat_wall`,
+block-tridiagonal in (theta, theta_w)); R_w = 0 adds lam_w to the segment's conductivity.
 
 Discretisation: nodes on a uniform grid in each segment, interfaces on nodes. Each cell
 couples its two nodes through the *exact* two-point relation of a constant-coefficient
@@ -54,6 +57,7 @@ from .layout import (
     SOLID_CONDUCTIVITY,
     T_COLD,
     WALL_CONDUCTANCE,
+    WALL_RESISTANCE,
     seg_value,
 )
 from .gas import conductivity
@@ -160,12 +164,26 @@ def segment_lambda(
     s: int,
 ):
     """Axial conductivity [W/(m K)]: phi lam_gas + (1 - phi) lam_solid, gas at T_cold,
-    plus the wall's axial conductance (``wall_conductance`` = lam_wall A_wall / S, 0 = off)."""
+    plus the wall's axial conductance (``wall_conductance`` = lam_wall A_wall / S, 0 = off)
+    where the wall is in perfect contact (``wall_resistance`` 0; else the wall is a field of
+    its own, :func:`wall_field_on`)."""
     lam = material_lambda(params, flags, gas, i, s)
     wall = seg_value(params, i, s, WALL_CONDUCTANCE)
-    if wall != wp.float64(0.0):
+    if wall != wp.float64(0.0) and seg_value(params, i, s, WALL_RESISTANCE) == wp.float64(0.0):
         lam = lam + wall
     return lam
+
+
+@wp.func
+def wall_field_on(params: wp.array2d(dtype=wp.float64), i: int, s: int):
+    """1 when the wall of segment s is a temperature field of its own: a conducting wall
+    (``wall_conductance`` > 0) behind a finite lateral coupling (``wall_resistance`` = 1/h_w
+    > 0); else 0 (no wall, or a wall at the gas temperature: its conductance is added to
+    the segment's, :func:`segment_lambda`)."""
+    if seg_value(params, i, s, WALL_CONDUCTANCE) > wp.float64(0.0):
+        if seg_value(params, i, s, WALL_RESISTANCE) > wp.float64(0.0):
+            return 1
+    return 0
 
 
 @wp.func
@@ -224,8 +242,17 @@ def segment_heat_coeffs(
     s: int,
 ):
     """(lam, k, sigma) of thermal segment s: k = sqrt(2 h/(R lam)) [1/m], sigma [K/m^2]
-    (the linear model: temperature-dependent effects off)."""
-    return heat_coeffs(params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H))
+    (the linear model: temperature-dependent effects off). Where the wall is a field of its
+    own (:func:`wall_field_on`) lam and sigma are the gas/solid's and k bounds the faster of
+    the two fields' decay rates (:func:`wall_modes`; the Magnus cell count reads it), the
+    profile being :func:`wall_cell_profile`'s."""
+    lam, k, sigma = heat_coeffs(
+        params, flags, i, s, segment_lambda(params, flags, gas, i, s), seg_value(params, i, s, H)
+    )
+    if wall_field_on(params, i, s) != 0:
+        c = wp.float64(2.0) / (params[RADIUS, i] * seg_value(params, i, s, WALL_RESISTANCE))
+        k = wp.sqrt(k * k + c / lam + c / seg_value(params, i, s, WALL_CONDUCTANCE))
+    return lam, k, sigma
 
 
 @wp.func
@@ -259,18 +286,36 @@ def cell_heat_coeffs(
     """
     if segment_nonlinear(params, i, s) == 0:
         return segment_heat_coeffs(params, flags, gas, i, s)
+    lam, h = cell_law(params, flags, gas, i, s, theta_mean)
+    if wall_field_on(params, i, s) == 0:
+        lam = lam + seg_value(params, i, s, WALL_CONDUCTANCE)
+    return heat_coeffs(params, flags, i, s, lam, h)
+
+
+@wp.func
+def cell_law(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    theta_mean: wp.float64,
+):
+    """(lam [W/(m K)], h [W/(m^2 K)]) of the gas/solid of segment s at the temperature excess
+    theta_mean [K] (T = T_cold + theta_mean): lam_material (T/T_cold)^conductivity_exponent +
+    radiative_conductivity (T/T_cold)^3 (no wall) and h + h_convection max(theta_mean, 0)^(1/4)."""
     Tc = params[T_COLD, i]
     t = (Tc + wp.max(theta_mean, wp.float64(0.0))) / Tc
     lam = material_lambda(params, flags, gas, i, s)
     b = seg_value(params, i, s, CONDUCTIVITY_EXPONENT)
     if b != wp.float64(0.0):
         lam = lam * wp.pow(t, b)
-    lam = lam + seg_value(params, i, s, RADIATIVE_CONDUCTIVITY) * t * t * t + seg_value(params, i, s, WALL_CONDUCTANCE)
+    lam = lam + seg_value(params, i, s, RADIATIVE_CONDUCTIVITY) * t * t * t
     h = seg_value(params, i, s, H)
     hc = seg_value(params, i, s, H_CONVECTION)
     if hc != wp.float64(0.0):
         h = h + hc * wp.sqrt(wp.sqrt(wp.max(theta_mean, wp.float64(0.0))))
-    return heat_coeffs(params, flags, i, s, lam, h)
+    return lam, h
 
 
 # --- temperature-dependent conductivity: Kirchhoff transform on fitted cells -------------
@@ -600,6 +645,54 @@ def contact_start_nonlinear(
 
 
 @wp.func
+def linear_rows(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    d: wp.float64,
+    fitted: int,
+    Rc: wp.float64,
+):
+    """:func:`contact_rows` of a heat cell of length d [m] of segment s in the linear model
+    (the segment's constants; contact Rc [m^2 K/W] at its left end)."""
+    lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
+    a, b, e = cell_coupling(lam, k, sigma, d, fitted)
+    zero = wp.float64(0.0)
+    one = wp.float64(1.0)
+    return contact_rows(a, b, e, one, one, zero, zero, Rc)
+
+
+@wp.func
+def kirchhoff_rows(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    d: wp.float64,
+    fitted: int,
+    Rc: wp.float64,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+):
+    """:func:`contact_rows` of a Kirchhoff heat cell (:func:`nonlinear_cell`) of length d [m]
+    of segment s, U linearised at the previous iterate's nodal excesses theta_l, theta_r [K]
+    (behind a contact Rc, at the cell's own left-end temperature)."""
+    tl = theta_l
+    if Rc != wp.float64(0.0):
+        tl = contact_start_nonlinear(params, flags, gas, i, s, Rc, theta_l, theta_r, d, fitted)
+    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(
+        params, flags, gas, i, s, conductivity_law(params, flags, gas, i, s), tl, theta_r, d
+    )
+    a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
+    # the flux into the cell at its left node a U_r - b U_l + e (row r), at its right node
+    # a U_l - b U_r + e (row r + 1)
+    return contact_rows(a, b, e, lam_l, lam_r, U_l - lam_l * tl, U_r - lam_r * theta_r, Rc)
+
+
+@wp.func
 def solve_heat_nonlinear(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -645,19 +738,8 @@ def solve_heat_nonlinear(
                     s = first + r // cells
                     d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
                     Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-                    tl = scratch[i, n_nodes + r]
-                    tr = scratch[i, n_nodes + r + 1]
-                    if Rc != wp.float64(0.0):
-                        # the cell's left end behind the contact, at the previous iterate
-                        tl = contact_start_nonlinear(params, flags, gas, i, s, Rc, tl, tr, d, fitted)
-                    U_l, U_r, lam_l, lam_r, k, sigma = nonlinear_cell(
-                        params, flags, gas, i, s, conductivity_law(params, flags, gas, i, s), tl, tr, d
-                    )
-                    a, b, e = cell_coupling(wp.float64(1.0), k, sigma, d, fitted)
-                    # the flux into the cell at its left node a U_r - b U_l + e (row r), at its
-                    # right node a U_l - b U_r + e (row r + 1)
-                    diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_rows(
-                        a, b, e, lam_l, lam_r, U_l - lam_l * tl, U_r - lam_r * tr, Rc
+                    diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
+                        params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
                     )
                 # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
                 diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
@@ -678,6 +760,238 @@ def solve_heat_nonlinear(
                 size = wp.max(size, wp.abs(theta[i, r]))
             if change <= tol * size:
                 done = 1
+
+
+# --- the wall as a temperature field of its own ---------------------------------------
+#
+# Where a segment's wall conducts (lam_w = wall_conductance > 0) behind a finite lateral
+# coupling h_w = 1/wall_resistance, the wall's excess theta_w is a second field:
+#     lam theta''   = (a + c) theta - c theta_w - q,   a = 2 h/R, c = 2 h_w/R
+#     lam_w theta_w'' = -c theta + c theta_w,
+# i.e. Lam Y'' = K Y - (q, 0) for Y = (theta, theta_w), Lam = diag(lam, lam_w), K symmetric.
+# With Z = Lam^(1/2) Y and N = Lam^(-1/2) K Lam^(-1/2) = V diag(k1^2, k2^2) V^T (V orthogonal)
+# the modes w = V^T Z = P^T Y (P = Lam^(1/2) V) obey w'' = k_j^2 w_j - sigma_j, each the
+# scalar fitted cell (cell_coupling with lam = 1), and the fluxes Lam Y' = P w': a
+# constant-coefficient cell couples its nodes exactly through 2x2 blocks
+# A = P diag(a_j) P^T, B = P diag(b_j) P^T, e = P (e_j), and the heat model is
+# block-tridiagonal (block Thomas). Where the coupling is perfect (wall_resistance 0) the
+# wall is at the gas temperature, its conductance added to the segment's (the scalar cell
+# in the gas rows); a node such a cell touches carries one balance of both fields and
+# theta_w = theta (the limit h_w -> inf of the two-field cell). The wall is adiabatic at the
+# ends of the heat model; an end's exchanger (end_conductance) and a contact resistance act
+# on the gas/solid. A temperature-dependent effect in a two-field segment takes its cells'
+# coefficients at their mean gas temperature (second order in the cell size, the iterations
+# of the nonlinear model; the Kirchhoff cells stay the single field's).
+
+
+@wp.func
+def wall_modes(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    s: int,
+    theta_mean: wp.float64,
+    nonlin: int,
+):
+    """Modes of a two-field heat cell of segment s (see the comment block above): returns
+    (P = Lam^(1/2) V, M = Lam^(-1/2) V, k = (k1, k2) [1/m], sigma [W/m^3 / sqrt(W/(m K))]),
+    Y = M w, w = P^T Y. With ``nonlin`` the gas/solid's lam at the cell's mean excess
+    ``theta_mean`` [K] (:func:`cell_law`) and its sink to the room (:func:`wall_sink`) by
+    its tangent there (a slope and a source), else the segment's constants."""
+    R = params[RADIUS, i]
+    lam = material_lambda(params, flags, gas, i, s)
+    a = wp.float64(2.0) * seg_value(params, i, s, H) / R
+    q = wp.float64(0.0)
+    if flags[s, F_HEATER] != 0:
+        q = params[HEAT_INPUT, i] / (seg_value(params, i, s, LENGTH) * PI * R * R)
+    if nonlin != 0:
+        # lam at the mean; the sink (2/R)(h + h_c theta^(1/4)) theta by its tangent there
+        lam, _h = cell_law(params, flags, gas, i, s, theta_mean)
+        sink, a = wall_sink(seg_value(params, i, s, H), seg_value(params, i, s, H_CONVECTION), R, theta_mean)
+        q = q - (sink - a * theta_mean)
+    lam_w = seg_value(params, i, s, WALL_CONDUCTANCE)
+    c = wp.float64(2.0) / (R * seg_value(params, i, s, WALL_RESISTANCE))
+    sl = wp.sqrt(lam)
+    sw = wp.sqrt(lam_w)
+    n11 = (a + c) / lam
+    n22 = c / lam_w
+    n12 = -c / (sl * sw)
+    half = wp.float64(0.5) * (n11 - n22)
+    rad = wp.sqrt(half * half + n12 * n12)
+    mu2 = wp.float64(0.5) * (n11 + n22) + rad
+    mu1 = a * c / (lam * lam_w) / mu2  # det N / mu2: no cancellation when mu1 << mu2
+    # eigenvector of mu2 from the row without cancellation: (half + rad, n12) or (n12, rad - half)
+    v0 = n12
+    v1 = rad - half
+    if half >= wp.float64(0.0):
+        v0 = half + rad
+        v1 = n12
+    norm = wp.sqrt(v0 * v0 + v1 * v1)
+    v0 = v0 / norm
+    v1 = v1 / norm
+    # columns: mode 1 (-v1, v0), mode 2 (v0, v1)
+    P = wp.mat22d(-sl * v1, sl * v0, sw * v0, sw * v1)
+    M = wp.mat22d(-v1 / sl, v0 / sl, v0 / sw, v1 / sw)
+    k = wp.vec2d(wp.sqrt(mu1), wp.sqrt(mu2))
+    sigma = wp.vec2d(-v1 * q / sl, v0 * q / sl)
+    return P, M, k, sigma
+
+
+@wp.func
+def wall_cell_blocks(P: wp.mat22d, k: wp.vec2d, sigma: wp.vec2d, d: wp.float64, fitted: int):
+    """(A, B, e) of a two-field cell of length d [m] with modes (P, k, sigma)
+    (:func:`wall_modes`): the flux [W/m^2] into the cell at its left node is
+    A Y_r - B Y_l + e, at its right node A Y_l - B Y_r + e (Y = (theta, theta_w))."""
+    a1, b1, e1 = cell_coupling(wp.float64(1.0), k[0], sigma[0], d, fitted)
+    a2, b2, e2 = cell_coupling(wp.float64(1.0), k[1], sigma[1], d, fitted)
+    Pt = wp.transpose(P)
+    A = P @ wp.diag(wp.vec2d(a1, a2)) @ Pt
+    B = P @ wp.diag(wp.vec2d(b1, b2)) @ Pt
+    return A, B, P @ wp.vec2d(e1, e2)
+
+
+@wp.func
+def contact_gain(B: wp.mat22d, Rc: wp.float64):
+    """(D, G): D = diag(Rc, 0) (the contact jumps the gas/solid's temperature alone, the wall
+    runs through) and G = (I + B D)^-1, the factor of the flux through a contact Rc
+    [m^2 K/W] at a two-field cell's left end, F_l = G (A Y_r - B Y_l + e)."""
+    D = wp.diag(wp.vec2d(Rc, wp.float64(0.0)))
+    return D, wp.inverse(wp.identity(n=2, dtype=wp.float64) + B @ D)
+
+
+@wp.func
+def contact_blocks(A: wp.mat22d, B: wp.mat22d, e: wp.vec2d, Rc: wp.float64):
+    """Block rows of a two-field cell (:func:`contact_rows` with Y = (theta, theta_w)): its
+    left end behind a contact, Y_l' = Y_l + D F_l (:func:`contact_gain`), so
+    F_l = G (A Y_r - B Y_l + e) and F_r = (A - A D G B) Y_l + (A D G A - B) Y_r + (I + A D G) e.
+    Returns (diag_r, sup, rhs_r, sub_next, diag_next, rhs_next)."""
+    if Rc == wp.float64(0.0):
+        return -B, A, -e, A, -B, -e
+    D, G = contact_gain(B, Rc)
+    ADG = A @ D @ G
+    return -(G @ B), G @ A, -(G @ e), A - ADG @ B, ADG @ A - B, -(e + ADG @ e)
+
+
+@wp.func
+def gas_block(x: wp.float64):
+    """A 2x2 block with x in its gas/solid entry alone (a single-field cell's row term)."""
+    return wp.mat22d(x, wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+
+
+@wp.func
+def solve_heat_wall(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    nonlin: int,
+    max_iter: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+):
+    """Nodal theta [K] (columns 0..nodes-1) and theta_w [K] (columns nodes..2 nodes-1) of a
+    set whose wall is a field of its own in some segment (the comment block above): block
+    Thomas on the two fields; ``scratch`` (6 x nodes columns) holds the modified
+    super-diagonal blocks and the previous iterate. One solve for a linear set; with a
+    temperature-dependent effect (``nonlin``), iterations as :func:`solve_heat_nonlinear`'s
+    on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
+    cells' coefficients at their mean gas temperature)."""
+    n = count * cells + 1
+    zero = wp.float64(0.0)
+    for r in range(2 * n):
+        theta[i, r] = zero
+    done = int(0)
+    for it in range(max_iter):
+        if done == 0:
+            for r in range(2 * n):
+                scratch[i, 4 * n + r] = theta[i, r]
+            # row r: Sub Y_{r-1} + Diag Y_r + Sup Y_{r+1} = Rhs, the left cell's terms carried
+            sub = wp.mat22d()
+            diag_l = wp.mat22d()
+            rhs_l = wp.vec2d()
+            c_prev = wp.mat22d()
+            d_prev = wp.vec2d()
+            tied_l = int(0)
+            for r in range(n):
+                diag_r = wp.mat22d()
+                sup = wp.mat22d()
+                rhs_r = wp.vec2d()
+                sub_next = wp.mat22d()
+                diag_next = wp.mat22d()
+                rhs_next = wp.vec2d()
+                tied_r = int(0)
+                if r < n - 1:
+                    s = first + r // cells
+                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+                    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
+                    tl = scratch[i, 4 * n + r]
+                    tr = scratch[i, 4 * n + r + 1]
+                    seg_nonlin = segment_nonlinear(params, i, s)
+                    if wall_field_on(params, i, s) != 0:
+                        P, M, k, sigma = wall_modes(params, flags, gas, i, s, wp.float64(0.5) * (tl + tr), seg_nonlin)
+                        A, B, e = wall_cell_blocks(P, k, sigma, d, fitted)
+                        diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_blocks(A, B, e, Rc)
+                    else:
+                        tied_r = 1
+                        x0 = zero
+                        x1 = zero
+                        x2 = zero
+                        x3 = zero
+                        x4 = zero
+                        x5 = zero
+                        if seg_nonlin != 0:
+                            x0, x1, x2, x3, x4, x5 = kirchhoff_rows(params, flags, gas, i, s, d, fitted, Rc, tl, tr)
+                        else:
+                            x0, x1, x2, x3, x4, x5 = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
+                        diag_r = gas_block(x0)
+                        sup = gas_block(x1)
+                        rhs_r = wp.vec2d(x2, zero)
+                        sub_next = gas_block(x3)
+                        diag_next = gas_block(x4)
+                        rhs_next = wp.vec2d(x5, zero)
+                sb = sub
+                dg = diag_l + diag_r - gas_block(end_sink(params, i, first, count, r, n))
+                sp = sup
+                rh = rhs_l + rhs_r
+                if tied_l + tied_r != 0:
+                    # the wall at the gas temperature here: one balance of both fields (the
+                    # wall's row added to the gas's) and theta_w = theta
+                    sb = wp.mat22d(sb[0, 0] + sb[1, 0], sb[0, 1] + sb[1, 1], zero, zero)
+                    sp = wp.mat22d(sp[0, 0] + sp[1, 0], sp[0, 1] + sp[1, 1], zero, zero)
+                    dg = wp.mat22d(dg[0, 0] + dg[1, 0], dg[0, 1] + dg[1, 1], wp.float64(-1.0), wp.float64(1.0))
+                    rh = wp.vec2d(rh[0] + rh[1], zero)
+                inv = wp.inverse(dg - sb @ c_prev)
+                c_prev = inv @ sp
+                d_prev = inv @ (rh - sb @ d_prev)
+                for j in range(4):
+                    scratch[i, 4 * r + j] = c_prev[j // 2, j % 2]
+                theta[i, r] = d_prev[0]
+                theta[i, n + r] = d_prev[1]
+                sub = sub_next
+                diag_l = diag_next
+                rhs_l = rhs_next
+                tied_l = tied_r
+            for rr in range(n - 1):
+                r = n - 2 - rr
+                c = wp.mat22d(scratch[i, 4 * r], scratch[i, 4 * r + 1], scratch[i, 4 * r + 2], scratch[i, 4 * r + 3])
+                y = wp.vec2d(theta[i, r], theta[i, n + r]) - c @ wp.vec2d(theta[i, r + 1], theta[i, n + r + 1])
+                theta[i, r] = y[0]
+                theta[i, n + r] = y[1]
+            done = 1
+            if nonlin != 0:
+                change = zero
+                size = zero
+                for r in range(2 * n):
+                    change = wp.max(change, wp.abs(theta[i, r] - scratch[i, 4 * n + r]))
+                    size = wp.max(size, wp.abs(theta[i, r]))
+                if change > tol * size:
+                    done = 0
 
 
 @wp.func
@@ -702,13 +1016,25 @@ def solve_heat(
 
     With a temperature-dependent effect on (:func:`segment_nonlinear`), the iterations
     of :func:`solve_heat_nonlinear` (at most ``max_iter`` solves, relative nodal change
-    ``tol``); with every effect off, one linear solve."""
+    ``tol``); with every effect off, one linear solve. Where the wall is a field of its own
+    in a segment (:func:`wall_field_on`), :func:`solve_heat_wall`: theta then needs 2 x nodes
+    columns (the wall's excess in the second half) and scratch 6 x nodes, else the set's
+    theta is NaN."""
     n_nodes = count * cells + 1
     nonlin = int(0)
+    wall = int(0)
     for s in range(first, first + count):
         if segment_nonlinear(params, i, s) != 0:
             nonlin = 1
-    if nonlin != 0:
+        if wall_field_on(params, i, s) != 0:
+            wall = 1
+    if wall != 0:
+        if theta.shape[1] < 2 * n_nodes or scratch.shape[1] < 6 * n_nodes:
+            for r in range(theta.shape[1]):
+                theta[i, r] = wp.float64(wp.nan)
+        else:
+            solve_heat_wall(params, flags, gas, i, first, count, cells, fitted, nonlin, max_iter, tol, theta, scratch)
+    elif nonlin != 0:
         solve_heat_nonlinear(params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch)
     else:
         # forward sweep: row r is sub theta_{r-1} + (diag_l + diag_r) theta_r + sup theta_{r+1}
@@ -719,8 +1045,6 @@ def solve_heat(
         rhs_l = wp.float64(0.0)
         c_prev = wp.float64(0.0)
         d_prev = wp.float64(0.0)
-        zero = wp.float64(0.0)
-        one = wp.float64(1.0)
         for r in range(n_nodes):
             diag_r = wp.float64(0.0)
             sup = wp.float64(0.0)
@@ -730,11 +1054,9 @@ def solve_heat(
             rhs_next = wp.float64(0.0)
             if r < n_nodes - 1:
                 s = first + r // cells
-                lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
                 d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                a, b, e = cell_coupling(lam, k, sigma, d, fitted)
-                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_rows(
-                    a, b, e, one, one, zero, zero, contact_at(params, i, s, (s - first) * cells, r % cells)
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = linear_rows(
+                    params, flags, gas, i, s, d, fitted, contact_at(params, i, s, (s - first) * cells, r % cells)
                 )
             diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
             c_prev = sup / diag
@@ -770,6 +1092,47 @@ def cell_coeffs_at(
 
 
 @wp.func
+def wall_cell_profile(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node0: int,
+    cells: int,
+    d: wp.float64,
+    xi: wp.float64,
+):
+    """(theta [K], dtheta/dx [K/m]) of the gas/solid at local position xi [m] of a segment
+    whose wall is a field of its own (:func:`solve_heat_wall`; its heat cells of length d
+    start at node0): each mode's exact cell profile (:func:`cell_profile`) between the nodal
+    (theta, theta_w), the first cell's left end behind a contact resistance at
+    Y_l + D F_l (:func:`contact_blocks`). theta holds the wall in its second half; NaN
+    where it has no room for it (the heat solve's NaN)."""
+    n = theta.shape[1] // 2
+    c = wp.min(int(xi / d), cells - 1)
+    if n + node0 + c + 1 >= theta.shape[1]:
+        return wp.float64(wp.nan), wp.float64(wp.nan)
+    Y_l = wp.vec2d(theta[i, node0 + c], theta[i, n + node0 + c])
+    Y_r = wp.vec2d(theta[i, node0 + c + 1], theta[i, n + node0 + c + 1])
+    P, M, k, sigma = wall_modes(
+        params, flags, gas, i, s, wp.float64(0.5) * (Y_l[0] + Y_r[0]), segment_nonlinear(params, i, s)
+    )
+    Rc = contact_at(params, i, s, node0, c)
+    if Rc != wp.float64(0.0):
+        A, B, e = wall_cell_blocks(P, k, sigma, d, 1)
+        D, G = contact_gain(B, Rc)
+        Y_l = Y_l + D @ (G @ (A @ Y_r - B @ Y_l + e))
+    w_l = wp.transpose(P) @ Y_l
+    w_r = wp.transpose(P) @ Y_r
+    x = xi - wp.float64(c) * d
+    w1, dw1 = cell_profile(w_l[0], w_r[0], k[0], sigma[0], d, x)
+    w2, dw2 = cell_profile(w_l[1], w_r[1], k[1], sigma[1], d, x)
+    return M[0, 0] * w1 + M[0, 1] * w2, M[0, 0] * dw1 + M[0, 1] * dw2
+
+
+@wp.func
 def segment_profile(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -790,7 +1153,10 @@ def segment_profile(
     ``nonlin`` (a temperature-dependent effect is on: the Kirchhoff cell,
     :func:`nonlinear_profile`). Behind a contact resistance at the segment's start the
     first cell starts from its own end temperature (:func:`contact_start_linear`), not
-    the interface node's (the previous segment's end)."""
+    the interface node's (the previous segment's end). Where the wall is a field of its own
+    (:func:`wall_field_on`), :func:`wall_cell_profile` (k, sigma and ``nonlin`` unused)."""
+    if wall_field_on(params, i, s) != 0:
+        return wall_cell_profile(params, flags, gas, theta, i, s, node0, cells, d, xi)
     c = wp.min(int(xi / d), cells - 1)
     theta_l = theta[i, node0 + c]
     theta_r = theta[i, node0 + c + 1]

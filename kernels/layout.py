@@ -37,7 +37,11 @@ T_START, T_END = range(14, 16)
 CONTACT_RESISTANCE = 16
 # width [m] of an annular gap between a porous segment and the tube wall (0: none)
 BYPASS_GAP = 17
-N_FIELDS = 18
+# lateral thermal resistance [m^2 K/W] between the segment's gas/solid and its tube wall, 1/h_w
+# (0: perfect contact, the wall at the gas temperature; > 0 with a wall_conductance: the wall
+# a temperature field of its own, kernels/heat.py)
+WALL_RESISTANCE = 18
+N_FIELDS = 19
 # structure flags per segment: F_THERMAL a segment of the heat model, F_IMPOSED one whose
 # temperature profile is imposed (linear from T_START to T_END)
 F_POROUS, F_PORE_MODEL, F_THERMAL, F_HEATER, F_IMPOSED = range(5)

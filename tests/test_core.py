@@ -80,6 +80,7 @@ def test_parameter_names_follow_the_table():
         "conductivity_exponent",
         "h_convection",
         "wall_conductance",
+        "wall_resistance",
         "end_conductance",
         "contact_resistance",
     )

@@ -32,7 +32,8 @@ def test_effect_off_is_bit_for_bit_the_base_model(field):
     base = transfer_matrices(core, FREQS, [0.0, 40.0], **kw)
     off = transfer_matrices(core, FREQS, [0.0, 40.0], params={name: EFFECT_OFF[field]}, **kw)
     np.testing.assert_array_equal(base.T, off.T)
-    np.testing.assert_array_equal(base.theta, off.theta)
+    # a batch that varies wall_resistance keeps room for the wall's nodes after the gas's
+    np.testing.assert_array_equal(base.theta, off.theta[:, : base.theta.shape[1]])
 
 
 def test_effect_fields_in_toml_round_trip_and_validation():

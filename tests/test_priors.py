@@ -496,6 +496,7 @@ DOC_ROWS = {
     ("pore_radius", None): ("`pore_radius` | log-normal, factor 1.5 per sd", math.log(1.5), True),
     ("tortuosity", None): ("`tortuosity` | log-normal, sd 0.2 in ln, >= 1", 0.2, True),
     ("length", None): ("`length` | normal, sd 2 mm", 2e-3, False),
+    ("wall_resistance", None): ("`wall_resistance` | log-normal, factor 2 per sd", math.log(2.0), True),
     ("T_cold", None): ("`gas.T_cold` | normal, sd 5 K", 5.0, False),
     ("p_mean", None): ("`gas.p_mean` | log-normal, sd 0.03 in ln", 0.03, True),
     ("radius", None): ("`tube.radius` | log-normal, sd 0.02 in ln", 0.02, True),

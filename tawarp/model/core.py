@@ -81,6 +81,7 @@ class Segment:
     radiative_conductivity: float = 0.0
     h_convection: float = 0.0
     wall_conductance: float = 0.0
+    wall_resistance: float = 0.0
     frame_mobility: float = 0.0
     viscous_shape_factor: float = 1.0
     end_conductance: float = 0.0

@@ -422,17 +422,7 @@ def tmatrix_library(core: Core) -> list[Effect]:
             )
         )
     if thermal:
-        R = core.radius
-        wall = WALL_CONDUCTIVITY * ((R + WALL_THICKNESS) ** 2 - R * R) / (R * R)
-        lib.append(
-            _field_effect(
-                "wall_conduction",
-                "axial heat conduction in the tube wall (all thermal parts)",
-                [f"{s.name}.wall_conductance" for s in thermal],
-                wall,
-                label="wall_conductance",
-            )
-        )
+        lib.append(wall_conduction_effect(core))
     if ducts and stack and min(segs[0].length, segs[-1].length) > AMBIENT_HX_MIN_DUCT:
         lib.append(ambient_exchanger_effect(core))
     if stack:
@@ -453,6 +443,60 @@ def tmatrix_library(core: Core) -> list[Effect]:
         lib.append(porosity_gradient_effect(stack))
         lib.append(bypass_gap_effect(core, stack))
     return lib
+
+
+#: Laminar Nusselt number h_w D / k_gas of the gas in a thermal duct (the buffer tube)
+#: against its wall: fully developed pipe flow has 3.66 at a wall of uniform temperature and
+#: 4.36 at a uniform wall flux (Incropera et al., Fundamentals of Heat and Mass Transfer, 6th
+#: ed., Eqs. 8.55 and 8.53); the mean of the two.
+WALL_NUSSELT = 4.0
+#: Gas film [m] between a porous part (stack, exchanger) and its tube wall: a part that slides
+#: into its tube touches the wall at points across a clearance of about 0.1 mm (the bypass
+#: gap's order, :data:`TYPICAL_BYPASS_GAP`), h_w ~ k_gas / film ~ 260 W/(m^2 K) in air.
+WALL_FILM = 1e-4
+
+
+def wall_conduction_effect(core: Core) -> Effect:
+    """Axial conduction in the tube wall along the thermal parts, the wall a temperature
+    field of its own (:mod:`tawarp.kernels.heat`, :func:`~tawarp.kernels.heat.solve_heat_wall`):
+    its conductance ``wall_conductance`` lam_w A_w / S [W/(m K)] in every thermal segment
+    (the switch: off at 0, bit for bit; typical a 1 mm steel wall) and the lateral
+    resistance ``wall_resistance`` R_w = 1/h_w [m^2 K/W] between the wall and the porous
+    parts (one value for all of them, labelled by the first) and between the wall and the gas
+    of the thermal ducts (the buffer tube; labelled by the first). The resistances are log
+    Params whose start is the physical value: the ducts' laminar conduction
+    D / (:data:`WALL_NUSSELT` k_gas), the porous parts' gas film :data:`WALL_FILM` / k_gas
+    (k_gas at T_cold), each with the default prior of the field
+    (:data:`tawarp.model.priors.DEFAULT_PRIORS`, a factor 2 per sd): shape parameters
+    of the effect that ``wall_conductance`` switches on. The buffer tube's coupling length
+    sqrt(lam_w R / (2 h_w)) (about 4 cm, as long as the tube) is why the wall is a field and
+    not an added conductivity (its R_w -> 0 limit); the porous parts' (5-10 mm at
+    h_w ~ 100-500) is that of the hot exchanger, so theirs is finite as well."""
+    thermal = [core.segments[i] for i in core.thermal_indices]
+    R = core.radius
+    wall = WALL_CONDUCTIVITY * ((R + WALL_THICKNESS) ** 2 - R * R) / (R * R)
+    k_gas = float(GASES[core.gas.name].transport(core.gas.T_cold)[1])
+    f = field_spec("wall_conductance")
+    params = [
+        Param(
+            "wall_conductance", tuple(f"{s.name}.wall_conductance" for s in thermal), f.neutral, f.scale, *f.fit_range
+        )
+    ]
+    for names, start in (
+        ([s.name for s in thermal if s.is_porous], WALL_FILM / k_gas),
+        ([s.name for s in thermal if not s.is_porous], 2.0 * R / (WALL_NUSSELT * k_gas)),
+    ):
+        if names:
+            targets = tuple(f"{n}.wall_resistance" for n in names)
+            params.append(Param(targets[0], targets, start, 1.0, start * 1e-3, start * 1e3, log=True))
+    return Effect(
+        "wall_conduction",
+        "axial heat conduction in the tube wall (all thermal parts), the wall a temperature field coupled "
+        "laterally by h_w = 1/wall_resistance",
+        tuple(params),
+        # the couplings sit at their physical values: the typical wall is the 1 mm steel one
+        typical={"wall_conductance": wall, **{p.label: p.start for p in params[1:]}},
+    )
 
 
 def bypass_gap_effect(core: Core, stack: str) -> Effect:

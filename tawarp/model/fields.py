@@ -257,6 +257,22 @@ SEGMENT_FIELD_TABLE: tuple[Field, ...] = (
         description="axial conduction of the tube wall, lam_wall A_wall/S",
     ),
     Field(
+        "wall_resistance",
+        layout.WALL_RESISTANCE,
+        "m^2 K/W",
+        0.0,
+        _INF,
+        False,
+        "thermal",
+        neutral=0.0,
+        log=False,
+        scale=0.1,
+        fit_range=(0.0, 1e3),
+        description="lateral thermal resistance 1/h_w between the gas/solid and the tube wall per wall area: > 0 "
+        "with a wall_conductance makes the wall a temperature field of its own (0: perfect contact, the wall at "
+        "the gas temperature, its conductance added to the segment's)",
+    ),
+    Field(
         "end_conductance",
         layout.END_CONDUCTANCE,
         "W/(m^2 K)",
@@ -492,6 +508,7 @@ TRUSTED_RANGE: dict[str, tuple[float, float]] = {
     "radiative_conductivity": (0.0, 1e4),
     "h_convection": (0.0, 1e5),
     "wall_conductance": (0.0, 1e4),
+    "wall_resistance": (0.0, 1e6),
     "end_conductance": (0.0, 1e9),
     "contact_resistance": (0.0, 1.0),
     "bypass_gap": (0.0, 10.0),

@@ -84,6 +84,7 @@ HEAT_ONLY_FIELDS = (
     "radiative_conductivity",
     "h_convection",
     "wall_conductance",
+    "wall_resistance",
     "end_conductance",
     "contact_resistance",
 )
@@ -162,7 +163,8 @@ class ForwardResult:
 
     ``T`` (n, m, 2, 2) complex: core T-matrices, exp(-iwt), ``(p, U)(x6) = T (p, U)(x1)``.
     ``freqs`` (m,) [Hz]; ``heat_input`` (n,) [W]; ``theta`` (n, nodes) nodal temperature
-    excess [K] of the heat grid; ``params`` (rows, n) the table the kernels read.
+    excess [K] of the heat grid (n, 2 nodes where the wall may be a field of its own,
+    :func:`wall_field`: the wall's excess in the second half); ``params`` (rows, n) the table the kernels read.
     """
 
     core: Core
@@ -300,6 +302,16 @@ def nonlinear_heat(core: Core, names=()) -> bool:
     return any(getattr(core.segments[i], f) != 0.0 for i in core.thermal_indices for f in NONLINEAR_FIELDS)
 
 
+def wall_field(core: Core, names=()) -> bool:
+    """True when the wall may be a temperature field of its own in a set of a batch of
+    ``core`` varying ``names`` (a ``wall_resistance`` varies or is not 0 in a thermal
+    segment): the heat solve then stores the wall's nodal excess beside the gas's
+    (kernels/heat.py, :func:`tawarp.kernels.heat.solve_heat_wall`)."""
+    if any(n.partition(".")[2] == "wall_resistance" for n in names):
+        return True
+    return any(core.segments[i].wall_resistance != 0.0 for i in core.thermal_indices)
+
+
 def plain_parts(core: Core, names=()) -> bool:
     """True when every part of a batch of ``core`` varying ``names`` is plain
     (:func:`tawarp.kernels.acoustics.plain_part`: circular pores or a duct, a rigid frame, no
@@ -330,7 +342,8 @@ class Engine:
     ``names`` are the parameters that vary across the batch (``heat_input`` is always
     the first varying row). :meth:`evaluate` takes a (1 + len(names), n) float64 array
     (NumPy or a Warp array on the engine's device) and returns Warp arrays on the device:
-    ``out`` (n, m, 8) float64 = (Tpp, Tpu, Tup, Tuu) as (re, im), and ``theta`` (n, nodes).
+    ``out`` (n, m, 8) float64 = (Tpp, Tpu, Tup, Tuu) as (re, im), and ``theta`` (n, ``theta_columns``): the nodal
+    excesses, the wall's after the gas's where it may be a field of its own (:func:`wall_field`).
     ``out.numpy().view(complex).reshape(n, m, 2, 2)`` gives the T-matrices; Warp arrays
     share memory with PyTorch/CuPy through ``__cuda_array_interface__``.
     """
@@ -353,6 +366,8 @@ class Engine:
         if self.nonlinear:
             self.heat_cells = max(self.heat_cells, int(self.settings.nonlinear_heat_cells))
         self.nodes = self.count * self.heat_cells + 1
+        # nodal excesses per set: the gas's, then the wall's where it is a field of its own
+        self.theta_columns = self.nodes * (2 if wall_field(core, self.names) else 1)
         dev = self.device
         self.base = wp.array(base_table(core), dtype=wp.float64, device=dev)
         self.flags = wp.array(structure_flags(core), dtype=wp.int32, device=dev)
@@ -403,10 +418,12 @@ class Engine:
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
         params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
-        theta = wp.zeros((n, self.nodes), dtype=wp.float64, device=self.device)
+        theta = wp.zeros((n, self.theta_columns), dtype=wp.float64, device=self.device)
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
-            scratch = wp.empty((n, 2 * self.nodes), dtype=wp.float64, device=self.device)
+            # the Thomas sweep's super-diagonal and the previous iterate: 2 per node, 6 with the wall
+            width = (6 if self.theta_columns > self.nodes else 2) * self.nodes
+            scratch = wp.empty((n, width), dtype=wp.float64, device=self.device)
             wp.launch(
                 kf.heat_kernel,
                 dim=n,
@@ -836,7 +853,7 @@ def transfer_matrices(
     check_sets(core, varying[0], values, engine.freqs, settings.cell_density if settings.cells is None else None)
     n, m = varying.shape[1], len(engine.freqs)
     T = np.empty((n, m, 2, 2), dtype=np.complex128)
-    theta = np.empty((n, engine.nodes))
+    theta = np.empty((n, engine.theta_columns))
     table = np.empty((engine.base.shape[0], n))
     bar = progress_bar(n, "forward models", progress, unit="set")
     for lo in range(0, n, settings.chunk):

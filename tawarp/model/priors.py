@@ -102,6 +102,14 @@ DEFAULT_PRIORS: dict[tuple[str, str | None], DefaultPrior] = {
         "a length is a plane position or a cut: known to a couple of millimetres (microphone spacers, the "
         "sample's faces)",
     ),
+    ("wall_resistance", None): DefaultPrior(
+        math.log(2.0),
+        True,
+        "the lateral resistance 1/h_w between the tube wall and the gas of a laminar duct (Nu = 3.66-4.36 over "
+        "D: h_w ~ 4 k_gas/D, its gas warmer than T_cold and stirred by convection) or a porous part touching "
+        "the wall across a gas film of ~0.1 mm (h_w ~ k_gas/0.1 mm): an order of magnitude known from the "
+        "physics, a factor of 2 per sd",
+    ),
     ("T_cold", None): DefaultPrior(5.0, False, "the room or cold-end temperature is known to a few kelvin (+-5 K)"),
     ("p_mean", None): DefaultPrior(0.03, True, "the static pressure from a barometer or the altitude: +-3 %"),
     ("radius", None): DefaultPrior(
