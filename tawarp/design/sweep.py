@@ -268,8 +268,9 @@ def sweep(
                     t_write += time.perf_counter() - t
                     nchunks += 1
                     bar.update(hi - lo)
-                if reducer is not None:
-                    summary = reducer.write(f)["summary"]
+            if reducer is not None:  # the groups, written by h5py (Reducer.write) on the closed file
+                with hdf5_writing(h5py.File(tmp, "r+")) as h5:
+                    summary = reducer.write(h5)["summary"]
             if parts:
                 t = time.perf_counter()
                 _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
