@@ -467,7 +467,9 @@ def netcdf_group(h5, name: str, variables: dict, units: dict, dimid: int) -> int
     def dataset(var, a):
         a = np.asarray(a)
         if a.dtype.kind in "OUS":
-            return grp.create_dataset(var, data=a.astype(str).astype(object), dtype=h5py.string_dtype(), track_order=True)
+            return grp.create_dataset(
+                var, data=a.astype(str).astype(object), dtype=h5py.string_dtype(), track_order=True
+            )
         return grp.create_dataset(var, data=a, track_order=True)
 
     scales, ids = {}, {}
