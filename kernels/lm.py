@@ -10,9 +10,11 @@ launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
    (``1 + 2p`` sets, of which only the point is cascaded: the neighbours give the
    central differences of its Gauss points' coefficients,
    :meth:`tawarp.model.forward.Engine.evaluate_tangents`).
-2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem)
-   reads its problem's T-matrices and Jacobian at every frequency, normalizes them
-   with the problem's ``Zc``, and accumulates over the ``8 m`` real residuals
+2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem
+   and block of :data:`ROW_BLOCK` frequencies, whose partial sums :func:`normal_sums`'
+   ``reduce_sums`` adds in order per problem) reads its problem's T-matrices and
+   Jacobian at those frequencies, normalizes them with the problem's ``Zc``, and
+   accumulates over their real residuals (``8 m`` in all)
    ``r = w (Y_model - Y_meas)`` (re and im of Tpp, Tpu/Zc, Tup*Zc, Tuu):
    ``cost = r.r``, ``g = J^T r``, ``H = J^T J`` (p x p) and the unweighted
    ``sum |Y_model - Y_meas|^2`` of the error measure; the Jacobian column ``a`` is
