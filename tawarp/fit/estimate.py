@@ -355,6 +355,7 @@ class Problems:
         self.w_scale = wp.array(self.scale, dtype=wp.float64, device=self.engine.device)
         self.w_offset = wp.array(self.offset, dtype=wp.float64, device=self.engine.device)
         self.zlo, self.zhi = self.model.bounds_x()
+        self.w_zhi = wp.array(self.zhi, dtype=wp.float64, device=self.engine.device)
 
     # -- transforms (:class:`ProblemModel`; ``pid`` the problem of each row) --------------
     def to_z(self, v, pid):
@@ -421,12 +422,11 @@ class Problems:
         device: FD_STEP towards the interior at an upper bound."""
         step = wp.empty(z.shape, dtype=wp.float64, device=self.device)
         if z.shape[0]:
-            zhi = wp.array(self.zhi, dtype=wp.float64, device=self.device)
             wp.launch(
                 klm.difference_steps,
                 dim=z.shape,
                 device=self.device,
-                inputs=[slots(ids, z, step, self.device), zhi, FD_STEP, step],
+                inputs=[slots(ids, z, step, self.device), self.w_zhi, FD_STEP, step],
             )
         return step
 
