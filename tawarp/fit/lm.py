@@ -290,9 +290,10 @@ def levenberg_marquardt(
                 trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
             wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
             if secant:
-                rows, flags = lm_step.secant_accept_kernels(p)
-                wp.launch(rows, dim=(klm.row_blocks(store.T.shape[0] // 8), n), device=dev, inputs=[store, trial])
-                wp.launch(flags, dim=n, device=dev, inputs=[store, trial, done])
+                accept_rows, accept_flags = lm_step.secant_accept_kernels(p)
+                blocks = klm.row_blocks(store.T.shape[0] // 8)
+                wp.launch(accept_rows, dim=(blocks, n), device=dev, inputs=[store, trial])
+                wp.launch(accept_flags, dim=n, device=dev, inputs=[store, trial, done])
             flags = done.numpy()  # the one host round trip of an iteration
             if secant and np.any(flags == 2):
                 prob.refresh(active[flags == 2], pid, state, store, max_sets)
