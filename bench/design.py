@@ -25,6 +25,7 @@ device's completion) for comparison.
     python bench/design.py --device cuda                # < 3 min on one H100
     python bench/design.py --device cuda --sweep-only   # sweeps alone
     python bench/design.py --device cpu --small         # < 2 min on a laptop CPU
+    python bench/design.py --device cuda --cases sweep_reduced --sweep-points 67108864,268435456
     python bench/design.py --device cuda --cases cmaes,nsga2 --trials 4194304 --batch 32768 \
         --mo-trials 1048576 --mo-batch 8192             # the two batched searches alone
 
@@ -368,6 +369,11 @@ def main(argv=None):
         help="searches evaluate an analytic stand-in on the host: their wall time is the host's work",
     )
     ap.add_argument("--chunk", type=int, default=None, help="sweep chunk in points (default: 2^14 --small, else 2^22)")
+    ap.add_argument(
+        "--sweep-points",
+        default=None,
+        help="comma list of the sweeps' sizes in points (default: 2^16,2^18 --small, else 2^24,2^26)",
+    )
     ap.add_argument("--sweep-child", nargs=4, metavar=("MODE", "N", "CHUNK", "PATH"), help=argparse.SUPPRESS)
     ap.add_argument("-o", "--output", default=None)
     args = ap.parse_args(argv)
@@ -403,6 +409,8 @@ def main(argv=None):
             chunk=1 << 22,
         )
     given = {"trials": args.trials, "batch": args.batch, "chunk": args.chunk}
+    if args.sweep_points:
+        given["sweep"] = tuple(int(float(v)) for v in args.sweep_points.split(","))
     given.update(mo_trials=args.mo_trials, mo_batch=args.mo_batch)
     cfg.update({k: v for k, v in given.items() if v is not None})
     cfg["surrogate"] = args.surrogate

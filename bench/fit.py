@@ -36,10 +36,14 @@ far their values and std are from the headline's. Every row has the cascades (se
 evaluated) per fit and the forward launches of its batch, which do not depend on the device.
 
 Heat fits on one GPU in about three minutes (the secant iteration, the default, against
-forward differences; the kernels' first compilation included):
+forward differences; the kernels' first compilation included; 1e6 problems take about
+55 GB of an 80 GB GPU's memory, 6.4 GB of it the data):
 
-    python bench/fit.py --device cuda --workloads heat --sizes 1000,10000,100000 \
+    python bench/fit.py --device cuda --workloads heat --sizes 10000,100000,1000000 \
         --jacobians broyden,difference --cpu-sizes "" --kernel-fits 0 --scipy-fits 0
+
+``--pool-keep 0`` runs them with CUDA's own memory-pool threshold, for comparison
+(:func:`tawarp.model.forward.keep_pool_memory`).
 """
 
 from __future__ import annotations
@@ -59,7 +63,8 @@ from tawarp.fit.estimate import FitWarning, fit, is_log
 from tawarp.measure.kind import smooth_settings
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core
-from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
+from tawarp.model import forward
+from tawarp.model.forward import POOL_KEEP, Engine, ForwardSettings, transfer_matrices
 from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
@@ -195,12 +200,21 @@ def main(argv=None) -> int:
         "the headline; the others are timed on the same batches (default: auto,difference: fit()'s "
         "default, the secant iteration for heat fits, and forward differences at every step)",
     )
+    ap.add_argument(
+        "--pool-keep",
+        type=float,
+        default=None,
+        help="fraction of a GPU's memory its memory pool keeps in freed blocks (tawarp.model.forward.POOL_KEEP, "
+        "default %g; 0: CUDA's own, which returns them to the driver at every synchronization)" % POOL_KEEP,
+    )
     ap.add_argument("--out", default=None, help="JSON output (default: bench/results/fit_<device>.json)")
     args = ap.parse_args(argv)
     jacobians = (args.jacobians or "auto,difference").split(",")
     bad = [j for j in jacobians if j not in ("auto", "broyden", "tangent", "difference")]
     if bad:
         ap.error(f"--jacobians: {bad[0]!r} is not one of auto, broyden, tangent, difference")
+    if args.pool_keep is not None:
+        forward.POOL_KEEP = args.pool_keep
     wp.config.quiet = True
     wp.init()
     device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")
@@ -220,6 +234,7 @@ def main(argv=None) -> int:
         "freqs": {"min": FREQS[0], "max": FREQS[-1], "count": FREQS.size},
         "xtol": 1e-3,
         "cells": args.cells,
+        "pool_keep": forward.POOL_KEEP,
         "workloads": {},
     }
     for wname in args.workloads.split(","):

@@ -10,9 +10,11 @@ launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
    (``1 + 2p`` sets, of which only the point is cascaded: the neighbours give the
    central differences of its Gauss points' coefficients,
    :meth:`tawarp.model.forward.Engine.evaluate_tangents`).
-2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem)
-   reads its problem's T-matrices and Jacobian at every frequency, normalizes them
-   with the problem's ``Zc``, and accumulates over the ``8 m`` real residuals
+2. the normal-equations kernel of :func:`normal_kernel` (one thread per active problem
+   and block of :data:`ROW_BLOCK` frequencies, whose partial sums :func:`normal_sums`'
+   ``reduce_sums`` adds in order per problem) reads its problem's T-matrices and
+   Jacobian at those frequencies, normalizes them with the problem's ``Zc``, and
+   accumulates over their real residuals (``8 m`` in all)
    ``r = w (Y_model - Y_meas)`` (re and im of Tpp, Tpu/Zc, Tup*Zc, Tuu):
    ``cost = r.r``, ``g = J^T r``, ``H = J^T J`` (p x p) and the unweighted
    ``sum |Y_model - Y_meas|^2`` of the error measure; the Jacobian column ``a`` is
@@ -34,6 +36,8 @@ from the same Warp functions (no host copy of the physics to drift):
 :func:`magnus_cells` (the cascade's adaptive cell count of each thermal segment) and
 :func:`gas_transport` (viscosity and conductivity of the gas laws).
 """
+
+from typing import Any, NamedTuple
 
 import warp as wp
 
@@ -143,14 +147,30 @@ def coefficient_scale(k: int, zc: wp.float64):
     return wp.float64(1.0)
 
 
+#: frequencies per thread of the kernels that run over a problem's 8 m rows (the
+#: normal equations, the secant store's updates): a problem's rows are spread over
+#: ceil(m / ROW_BLOCK) threads, whose partial sums :func:`normal_sums`' ``reduce_sums``
+#: adds in order (one thread per problem over all its rows left the device at 1e5
+#: problems with a few threads per SM, each a serial chain of 8 m dependent loads)
+ROW_BLOCK = wp.constant(4)
+
+
+def row_blocks(m: int) -> int:
+    """Threads per problem of the row kernels for m frequencies (:data:`ROW_BLOCK`)."""
+    return -(-m // int(ROW_BLOCK))
+
+
 _SUM_FUNCS = {}
 
 
 def normal_sums(p: int):
-    """(add_row, store_sums) @wp.funcs of the normal equations for ``p`` parameters (cached
-    per p), shared by the difference, tangent and secant kernels: ``add_row(g, H, jr, r)``
-    adds the residual r with Jacobian row jr to g = J^T r and H = J^T J; ``store_sums(sums,
-    s, cost, raw, g, H)`` writes row s of a :class:`NormalEquations`."""
+    """(add_row, store_partial, reduce_sums) of the normal equations for ``p`` parameters
+    (cached per p), shared by the difference, tangent and secant kernels: ``add_row(g, H,
+    jr, r)`` adds the residual r with Jacobian row jr to g = J^T r and H = J^T J;
+    ``store_partial(partial, b, s, cost, raw, g, H)`` writes the sums of row block b of
+    slot s into ``partial`` (2 + p + p^2, blocks, slots); the kernel ``reduce_sums``
+    (one thread per slot s) adds a slot's blocks in order into row ``dest[s]`` of a
+    :class:`NormalEquations`."""
     if p in _SUM_FUNCS:
         return _SUM_FUNCS[p]
     P = wp.constant(p)
@@ -162,15 +182,43 @@ def normal_sums(p: int):
         return gv + r * jr, Hm + wp.outer(jr, jr)
 
     @wp.func
-    def store_sums(sums: NormalEquations, s: int, c2: wp.float64, u2: wp.float64, gv: vecp, Hm: matp):
-        sums.cost[s] = c2
-        sums.raw[s] = u2
+    def store_partial(
+        partial: wp.array3d(dtype=wp.float64), b: int, s: int, c2: wp.float64, u2: wp.float64, gv: vecp, Hm: matp
+    ):
+        partial[0, b, s] = c2
+        partial[1, b, s] = u2
         for a in range(P):
-            sums.g[s, a] = gv[a]
-            for b in range(P):
-                sums.H[s, a, b] = Hm[a, b]
+            partial[2 + a, b, s] = gv[a]
+            for c in range(P):
+                partial[2 + P + a * P + c, b, s] = Hm[a, c]
 
-    _SUM_FUNCS[p] = (add_row, store_sums)
+    @wp.kernel(enable_backward=False, module="unique")
+    def reduce_sums(partial: wp.array3d(dtype=wp.float64), dest: wp.array(dtype=wp.int32), sums: NormalEquations):
+        s = wp.tid()
+        c2 = wp.float64(0.0)
+        u2 = wp.float64(0.0)
+        gv = vecp()
+        Hm = matp()
+        for b in range(partial.shape[1]):
+            c2 += partial[0, b, s]
+            u2 += partial[1, b, s]
+            pg = vecp()
+            pH = matp()
+            for a in range(P):
+                pg[a] = partial[2 + a, b, s]
+                for c in range(P):
+                    pH[a, c] = partial[2 + P + a * P + c, b, s]
+            gv = gv + pg
+            Hm = Hm + pH
+        e = dest[s]
+        sums.cost[e] = c2
+        sums.raw[e] = u2
+        for a in range(P):
+            sums.g[e, a] = gv[a]
+            for c in range(P):
+                sums.H[e, a, c] = Hm[a, c]
+
+    _SUM_FUNCS[p] = (add_row, store_partial, reduce_sums)
     return _SUM_FUNCS[p]
 
 
@@ -247,7 +295,9 @@ _NORMAL_KERNELS = {}
 
 
 def normal_kernel(p: int, tangents: bool = False):
-    """The normal-equations kernel for ``p`` free parameters (cached per p and Jacobian).
+    """The normal-equations kernel for ``p`` free parameters (cached per p and Jacobian),
+    one thread per row block b (:data:`ROW_BLOCK` frequencies) and slot s (``dim =
+    (row_blocks(m), slots)``); :func:`normal_sums`' ``reduce_sums`` adds the blocks.
 
     Inputs: the launch's :class:`Slots` (``z`` is not read), the :class:`Measured` data,
     ``out`` the Engine's raw T-matrices and ``tangent``. Forward differences (``tangents`` False):
@@ -255,7 +305,7 @@ def normal_kernel(p: int, tangents: bool = False):
     column a is ``w (Y(z + step_a e_a) - Y(z)) / step_a``, ``tangent`` is not read. Tangents:
     ``out`` (slots, m, 8) the points and ``tangent`` (slots, p, m, 8) their derivatives
     (:meth:`tawarp.model.forward.Engine.evaluate_tangents`), the column is ``w dY/dz_a``.
-    Output: the slots' :class:`NormalEquations`.
+    Output: ``partial`` (2 + p + p^2, blocks, slots) (``store_partial``).
     """
     key = (p, bool(tangents))
     if key in _NORMAL_KERNELS:
@@ -264,7 +314,7 @@ def normal_kernel(p: int, tangents: bool = False):
     TANGENTS = wp.constant(bool(tangents))
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
-    add_row, store_sums = normal_sums(p)
+    add_row, store_partial = normal_sums(p)[:2]
 
     @wp.kernel(enable_backward=False, module="unique")
     def normal_equations(
@@ -272,14 +322,14 @@ def normal_kernel(p: int, tangents: bool = False):
         data: Measured,
         out: wp.array3d(dtype=wp.float64),
         tangent: wp.array4d(dtype=wp.float64),
-        sums: NormalEquations,
+        partial: wp.array3d(dtype=wp.float64),
     ):
-        s = wp.tid()
+        b, s = wp.tid()
         Y = data.Y
         W = data.W
-        zc = data.zc
         step = slots.step
         pid = slots.ids[s]
+        zc = data.zc[pid]
         base = s
         if wp.static(not TANGENTS):
             base = s * (P + 1)
@@ -293,9 +343,9 @@ def normal_kernel(p: int, tangents: bool = False):
         wrow = pid
         if W.shape[0] == 1:  # one weight row shared by every problem
             wrow = 0
-        for f in range(out.shape[1]):
+        for f in range(b * ROW_BLOCK, wp.min(out.shape[1], (b + 1) * ROW_BLOCK)):
             for k in range(8):
-                fac = coefficient_scale(k, zc[pid])
+                fac = coefficient_scale(k, zc)
                 w = W[wrow, f, k]
                 y0 = out[base, f, k] * fac
                 d = y0 - Y[pid, f, k]
@@ -309,7 +359,7 @@ def normal_kernel(p: int, tangents: bool = False):
                     else:
                         jr[a] = w * (out[base + 1 + a, f, k] * fac - y0) * inv_step[a]
                 gv, Hm = add_row(gv, Hm, jr, r)
-        store_sums(sums, s, c2, u2, gv, Hm)
+        store_partial(partial, b, s, c2, u2, gv, Hm)
 
     _NORMAL_KERNELS[key] = normal_equations
     return normal_equations
@@ -370,29 +420,53 @@ def gather_rows(src: wp.array2d(dtype=wp.float64), index: wp.array(dtype=wp.int3
     dst[s, a] = src[index[s], a]
 
 
+@wp.kernel(enable_backward=False)
+def reduce_rows(partial: wp.array3d(dtype=wp.float64), out: wp.array2d(dtype=wp.float64)):
+    """out[s, a] = the sum over row blocks b, in order, of partial[a, b, s]."""
+    s, a = wp.tid()
+    acc = wp.float64(0.0)
+    for b in range(partial.shape[1]):
+        acc += partial[a, b, s]
+    out[s, a] = acc
+
+
+class SecantKernels(NamedTuple):
+    """The secant iteration's kernels and functions for p parameters (:func:`secant_kernels`)."""
+
+    differences: Any
+    sums: Any
+    trial_sums: Any
+    broyden_row: Any
+    taylor_row: Any
+    second_differences: Any
+    curvature: Any
+
+
 _SECANT_KERNELS = {}
 
 
-def secant_kernels(p: int):
-    """(differences, sums, trial_sums, broyden_row) for ``p`` free parameters (cached per p).
+def secant_kernels(p: int) -> SecantKernels:
+    """The :class:`SecantKernels` for ``p`` free parameters (cached per p). Every kernel
+    runs one thread per row block b (:data:`ROW_BLOCK` frequencies) and slot s of its
+    launch (``dim = (row_blocks(m), slots)``, the slot q = ``act[s]`` of the store).
 
-    ``differences`` (one thread per slot s of a launch, its slot q = ``act[s]``): the
-    forward-difference Jacobian of slot q into the :class:`Secant` store from the launch's
-    T-matrices ``out``: slot s's group starts at set ``group[s]`` (slots with the same
-    sets share a group), with ``point`` = 1 the group is the point and its p neighbours
-    (``T`` is written too), with 0 the neighbours alone (``T`` is read).
-    ``sums`` / ``trial_sums`` (one thread per slot s): the :class:`NormalEquations` (row
-    ``dest[s]``) of the slot at its z from the store, or at its trial point from the launch's
-    T-matrices ``out`` (s, m, 8) with the Jacobian updated by the step ``dz`` (s, p)
-    (Broyden's rank-one update, ``broyden_row``; the trial's values are kept in column
-    ``dest[s]`` of ``Secant.trial``). The residuals are those of :func:`normal_kernel`.
+    ``differences``: the forward-difference Jacobian of slot q into the :class:`Secant`
+    store from the launch's T-matrices ``out``: slot s's group starts at set ``group[s]``
+    (slots with the same sets share a group), with ``point`` = 1 the group is the point and
+    its p neighbours (``T`` is written too), with 0 the neighbours alone (``T`` is read).
+    ``sums`` / ``trial_sums``: the partial sums (:func:`normal_sums`' ``store_partial``,
+    added by its ``reduce_sums``) of the slot at its z from the store, or at its trial
+    point from the launch's T-matrices ``out`` (s, m, 8) with the Jacobian updated by the
+    step ``dz`` (s, p) (Broyden's rank-one update, ``broyden_row``; the trial's values are
+    kept in column ``dest[s]`` of ``Secant.trial``). The residuals are those of
+    :func:`normal_kernel`. ``second_differences`` and ``curvature``: their own docs.
     """
     if p in _SECANT_KERNELS:
         return _SECANT_KERNELS[p]
     P = wp.constant(p)
     vecp = wp.types.vector(length=p, dtype=wp.float64)
     matp = wp.types.matrix(shape=(p, p), dtype=wp.float64)
-    add_row, store_sums = normal_sums(p)
+    add_row, store_partial = normal_sums(p)[:2]
 
     NPAIR = wp.constant(p * (p + 1) // 2)
 
@@ -430,13 +504,13 @@ def secant_kernels(p: int):
         out: wp.array3d(dtype=wp.float64),
         store: Secant,
     ):
-        s = wp.tid()
+        b, s = wp.tid()
         q = act[s]
         g0 = group[s]
         inv_step = vecp()
         for a in range(P):
             inv_step[a] = wp.float64(1.0) / step[s, a]
-        for f in range(out.shape[1]):
+        for f in range(b * ROW_BLOCK, wp.min(out.shape[1], (b + 1) * ROW_BLOCK)):
             for k in range(8):
                 row = f * 8 + k
                 t0 = wp.float64(0.0)
@@ -447,7 +521,8 @@ def secant_kernels(p: int):
                     t0 = store.T[row, q]
                 for a in range(P):
                     store.dT[row * P + a, q] = (out[g0 + point + a, f, k] - t0) * inv_step[a]
-        store.fresh[q] = 1
+        if b == 0:
+            store.fresh[q] = 1
 
     def make_sums(trial: bool):
         TRIAL = wp.constant(trial)
@@ -461,24 +536,26 @@ def secant_kernels(p: int):
             out: wp.array3d(dtype=wp.float64),
             step: wp.array2d(dtype=wp.float64),
             dest: wp.array(dtype=wp.int32),
-            sums: NormalEquations,
+            partial: wp.array3d(dtype=wp.float64),
         ):
-            s = wp.tid()
+            b, s = wp.tid()
             q = act[s]
             pid = ids[s]
             e = dest[s]
             Y = data.Y
             W = data.W
-            zc = data.zc
-            m = Y.shape[1]
+            zc = data.zc[pid]
             dz = vecp()
             inv_dz2 = wp.float64(0.0)
+            taylor = int(0)
             if wp.static(TRIAL):
                 for a in range(P):
                     dz[a] = step[s, a]
                 d2 = wp.dot(dz, dz)
                 if d2 > wp.float64(0.0):
                     inv_dz2 = wp.float64(1.0) / d2
+                if store.second[q] >= 0:
+                    taylor = 1
             gv = vecp()
             Hm = matp()
             c2 = wp.float64(0.0)
@@ -486,10 +563,10 @@ def secant_kernels(p: int):
             wrow = pid
             if W.shape[0] == 1:  # one weight row shared by every problem
                 wrow = 0
-            for f in range(m):
+            for f in range(b * ROW_BLOCK, wp.min(Y.shape[1], (b + 1) * ROW_BLOCK)):
                 for k in range(8):
                     row = f * 8 + k
-                    fac = coefficient_scale(k, zc[pid])
+                    fac = coefficient_scale(k, zc)
                     jr = vecp()
                     for a in range(P):
                         jr[a] = store.dT[row * P + a, q]
@@ -497,7 +574,7 @@ def secant_kernels(p: int):
                     if wp.static(TRIAL):
                         t_new = out[s, f, k]
                         store.trial[row, e] = t_new
-                        if store.second[q] >= 0:
+                        if taylor == 1:
                             jr = taylor_row(store, row, q, jr, dz)
                         else:
                             jr = broyden_row(jr, t_new - t, dz, inv_dz2)
@@ -508,7 +585,7 @@ def secant_kernels(p: int):
                     c2 += r * r
                     u2 += d * d
                     gv, Hm = add_row(gv, Hm, (w * fac) * jr, r)
-            store_sums(sums, e, c2, u2, gv, Hm)
+            store_partial(partial, b, s, c2, u2, gv, Hm)
 
         return sums_kernel
 
@@ -524,12 +601,12 @@ def secant_kernels(p: int):
         point of slot ``rep[g]`` (its values in ``store.T``) from the launch's group g of
         ``second_pair``'s p + p (p + 1) / 2 sets at step h (forward second differences,
         (T(z + h e_a + h e_b) - T(z + h e_a) - T(z + h e_b) + T(z)) / h^2)."""
-        i = wp.tid()
+        bl, i = wp.tid()
         q = rep[i]
         g = col0 + i
         g0 = i * (P + NPAIR)
         inv_h2 = wp.float64(1.0) / (h * h)
-        for f in range(out.shape[1]):
+        for f in range(bl * ROW_BLOCK, wp.min(out.shape[1], (bl + 1) * ROW_BLOCK)):
             for k in range(8):
                 row = f * 8 + k
                 t0 = store.T[row, q]
@@ -546,40 +623,41 @@ def secant_kernels(p: int):
         data: Measured,
         store: Secant,
         v: wp.array2d(dtype=wp.float64),
-        jv: wp.array2d(dtype=wp.float64),
+        partial: wp.array3d(dtype=wp.float64),
     ):
-        """jv[s] = J^T r_vv of slot act[s] along its step v[s], r_vv = sum_ab v_a v_b
-        d2r/dz_a dz_b from the slot's second derivatives (0 where it has none): the
-        right-hand side of the geodesic acceleration (:mod:`tawarp.kernels.lm_step`)."""
-        s = wp.tid()
+        """partial[:, b, s]: row block b's part of J^T r_vv of slot act[s] along its step
+        v[s], r_vv = sum_ab v_a v_b d2r/dz_a dz_b from the slot's second derivatives (0
+        where it has none; :func:`reduce_rows` adds the blocks): the right-hand side of the
+        geodesic acceleration (:mod:`tawarp.kernels.lm_step`)."""
+        b, s = wp.tid()
         q = act[s]
         acc = vecp()
         g = store.second[q]
         if g >= 0:
             pid = ids[s]
             W = data.W
-            zc = data.zc
+            zc = data.zc[pid]
             wrow = pid
             if W.shape[0] == 1:
                 wrow = 0
             vs = vecp()
             for a in range(P):
                 vs[a] = v[s, a]
-            for f in range(data.Y.shape[1]):
+            for f in range(b * ROW_BLOCK, wp.min(data.Y.shape[1], (b + 1) * ROW_BLOCK)):
                 for k in range(8):
                     row = f * 8 + k
-                    fac = coefficient_scale(k, zc[pid])
+                    fac = coefficient_scale(k, zc)
                     rvv = wp.float64(0.0)
                     for a in range(P):
-                        for b in range(P):
-                            rvv += vs[a] * vs[b] * store.d2T[row * NPAIR + pair_index(a, b), g]
+                        for c in range(P):
+                            rvv += vs[a] * vs[c] * store.d2T[row * NPAIR + pair_index(a, c), g]
                     wf = W[wrow, f, k] * fac
                     for a in range(P):
                         acc[a] += (wf * store.dT[row * P + a, q]) * (wf * rvv)
         for a in range(P):
-            jv[s, a] = acc[a]
+            partial[a, b, s] = acc[a]
 
-    _SECANT_KERNELS[p] = (
+    _SECANT_KERNELS[p] = SecantKernels(
         differences,
         make_sums(False),
         make_sums(True),

@@ -26,7 +26,7 @@ p x p matrices in registers):
    the fresh Jacobian at the solution.
 5. ``accelerate`` (a secant run's first trials): the geodesic acceleration of the step.
 
-and, in a secant run, :func:`secant_accept_kernel` after ``update``.
+and, in a secant run, :func:`secant_accept_kernels` after ``update``.
 
 The relative change of a step compared with ``xtol`` is the problem's own notion, given as
 data per parameter (``Setup.change``: ``kind`` (p,), ``scale`` ``offset`` (N, p)):
@@ -37,7 +37,7 @@ relative change). Everything is float64.
 
 import warp as wp
 
-from .lm import KIND_LINEAR, KIND_LOG, NormalEquations, Scaling, Secant, secant_kernels
+from .lm import KIND_LINEAR, KIND_LOG, ROW_BLOCK, NormalEquations, Scaling, Secant, secant_kernels
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -444,47 +444,60 @@ def step_kernels(p: int):
 _SECANT_STEP_KERNELS = {}
 
 
-def secant_accept_kernel(p: int):
-    """The kernel (cached per p) that follows ``update`` in a secant LM run (one thread per
-    active slot s): an accepted trial's values and its rank-one updated Jacobian
-    (:func:`tawarp.kernels.lm.secant_kernels`' ``broyden_row``, the update the trial's sums
-    were made with) become the slot's in the :class:`~tawarp.kernels.lm.Secant` store; a
-    rejected trial from a secant Jacobian sets ``done[s]`` = 2: the slot's Jacobian is to be
-    refreshed by differences before its next step (the rejection may be the secant's fault)."""
+def secant_accept_kernels(p: int):
+    """The kernels (rows, flags) (cached per p) that follow ``update`` in a secant LM run.
+    ``rows`` (one thread per row block b and active slot s, ``dim = (row_blocks(m), n)``,
+    :func:`tawarp.kernels.lm.row_blocks`): an accepted trial's values and its rank-one
+    updated Jacobian (:func:`tawarp.kernels.lm.secant_kernels`' ``broyden_row``, the
+    update the trial's sums were made with) become the slot's in the
+    :class:`~tawarp.kernels.lm.Secant` store. ``flags`` (one thread per active slot, after
+    ``rows``): an accepted slot's Jacobian is no longer fresh; a rejected trial from a
+    secant Jacobian sets ``done[s]`` = 2: the slot's Jacobian is to be refreshed by
+    differences before its next step (the rejection may be the secant's fault); the
+    second derivatives serve the first trial alone."""
     if p in _SECANT_STEP_KERNELS:
         return _SECANT_STEP_KERNELS[p]
     P = wp.constant(p)
     vecp = wp.types.vector(length=p, dtype=wp.float64)
-    broyden_row, taylor_row = secant_kernels(p)[3:5]
+    kernels = secant_kernels(p)
+    broyden_row, taylor_row = kernels.broyden_row, kernels.taylor_row
 
     @wp.kernel(enable_backward=False, module="unique")
-    def accept(store: Secant, trial: Trial, done: wp.array(dtype=wp.int32)):
+    def accept_rows(store: Secant, trial: Trial):
+        b, s = wp.tid()
+        if trial.accepted[s] != 1:
+            return
+        q = int(trial.act[s])
+        dz = vecp()
+        for a in range(P):
+            dz[a] = trial.dz[s, a]
+        d2 = wp.dot(dz, dz)
+        inv_dz2 = wp.float64(0.0)
+        if d2 > wp.float64(0.0):
+            inv_dz2 = wp.float64(1.0) / d2
+        taylor = store.second[q] >= 0
+        for row in range(b * ROW_BLOCK * 8, wp.min(store.T.shape[0], (b + 1) * ROW_BLOCK * 8)):
+            jr = vecp()
+            for a in range(P):
+                jr[a] = store.dT[row * P + a, q]
+            t_new = store.trial[row, s]
+            if taylor:
+                jr = taylor_row(store, row, q, jr, dz)
+            else:
+                jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
+            for a in range(P):
+                store.dT[row * P + a, q] = jr[a]
+            store.T[row, q] = t_new
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accept_flags(store: Secant, trial: Trial, done: wp.array(dtype=wp.int32)):
         s = wp.tid()
         q = int(trial.act[s])
         if trial.accepted[s] == 1:
-            dz = vecp()
-            for a in range(P):
-                dz[a] = trial.dz[s, a]
-            d2 = wp.dot(dz, dz)
-            inv_dz2 = wp.float64(0.0)
-            if d2 > wp.float64(0.0):
-                inv_dz2 = wp.float64(1.0) / d2
-            for row in range(store.T.shape[0]):
-                jr = vecp()
-                for a in range(P):
-                    jr[a] = store.dT[row * P + a, q]
-                t_new = store.trial[row, s]
-                if store.second[q] >= 0:
-                    jr = taylor_row(store, row, q, jr, dz)
-                else:
-                    jr = broyden_row(jr, t_new - store.T[row, q], dz, inv_dz2)
-                for a in range(P):
-                    store.dT[row * P + a, q] = jr[a]
-                store.T[row, q] = t_new
             store.fresh[q] = 0
         elif done[s] == 0 and store.fresh[q] == 0:
             done[s] = 2
-        store.second[q] = -1  # the second derivatives serve the first trial alone
+        store.second[q] = -1
 
-    _SECANT_STEP_KERNELS[p] = accept
-    return accept
+    _SECANT_STEP_KERNELS[p] = (accept_rows, accept_flags)
+    return _SECANT_STEP_KERNELS[p]

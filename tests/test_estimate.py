@@ -25,23 +25,30 @@ def noisy(core, freqs, Q, n, seed, noise=0.005, cells=12):
     return Y0 + sd * (rng.standard_normal((n,) + Y0.shape) + 1j * rng.standard_normal((n,) + Y0.shape)), sd
 
 
-@pytest.mark.parametrize("jacobian, tol", [("difference", 1e-5), ("tangent", 1e-8)])
-def test_normal_equations_match_central_differences(jacobian, tol):
-    """The kernels' Jacobian (forward differences, or the tangent cascade), reduced to
-    H = J^T J and g = J^T r, against Richardson-extrapolated central differences of the
-    forward model (transfer_matrices) in the same scaled variables."""
+@pytest.mark.parametrize("m", [12, 13])
+@pytest.mark.parametrize("jacobian, tol", [("difference", 1e-5), ("tangent", 1e-8), ("broyden", 1e-5)])
+def test_normal_equations_match_central_differences(jacobian, tol, m):
+    """The kernels' Jacobian (forward differences, the tangent cascade, or the secant
+    store's forward differences at a start), reduced to H = J^T J and g = J^T r, against
+    Richardson-extrapolated central differences of the forward model (transfer_matrices)
+    in the same scaled variables; m = 13 frequencies is not a multiple of the kernels'
+    row block (ROW_BLOCK frequencies per thread, the last block shorter)."""
     core = load_core("mesh")
-    freqs = paper_frequencies("mesh", 12)
+    freqs = paper_frequencies("mesh", m)
     names = GEOM + ["stack.h"]
     Y, sd = noisy(core, freqs, 40.0, 1, seed=3)
     rng = np.random.default_rng(0)
-    w = rng.uniform(0.5, 2.0, (1, 12, 4, 2)) / sd[None, ..., None]
+    w = rng.uniform(0.5, 2.0, (1, m, 4, 2)) / sd[None, ..., None]
     start = np.array([0.7, 4.4e-5, 1.1, 40.0])
     prob = Problems(
         core, freqs, Y, names, heat_input=40.0, weights=w, settings=FIT, scale=start[None], jacobian=jacobian
     )
     z = prob.to_z(start * np.array([1.02, 0.97, 1.01, 1.1]), 0)
-    cost, raw, g, H = [a.numpy() for a in prob.evaluate(np.array([0]), z[None])]
+    if jacobian == "broyden":
+        sums = prob.evaluate_start(np.array([0]), z[None], prob.secant_store(1))
+    else:
+        sums = prob.evaluate(np.array([0]), z[None])
+    cost, raw, g, H = [a.numpy() for a in sums]
     # host reference: central differences at steps 2h and h in z, extrapolated (the h^2
     # terms cancel: ~1e-11 relative, rounding included)
     h = 1e-4

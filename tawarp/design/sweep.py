@@ -268,8 +268,9 @@ def sweep(
                     t_write += time.perf_counter() - t
                     nchunks += 1
                     bar.update(hi - lo)
-                if reducer is not None:
-                    summary = reducer.write(f)["summary"]
+            if reducer is not None:  # the groups, written by h5py (Reducer.write) on the closed file
+                with hdf5_writing(h5py.File(tmp, "r+")) as h5:
+                    summary = reducer.write(h5)["summary"]
             if parts:
                 t = time.perf_counter()
                 _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
@@ -388,6 +389,8 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bo
     values_host = host_buffers(len(tables.names), wp.float64) if staged else None
     pending = None
     for k, (lo, hi, sl) in enumerate(blocks):
+        if k % GC_CHUNKS == 0 and k:  # before a chunk, not after the last: nothing left to keep flat then
+            gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
         table, values = job.table(tables, lo, hi)
         reduce = None if reducer is None else functools.partial(reducer.add, k, lo, values)
         finish = _launch(ev, table, job.outputs, host[k % 2] if host else None, reduce, raw)
@@ -408,8 +411,6 @@ def _evaluated_here(job: _Job, blocks, chunk: int, n: int, reducer=None, raw: bo
             values = values.numpy()
         pending = (lo, hi, sl, done, job.stored_values(tables, values))
         del table, values, finish
-        if k % GC_CHUNKS == GC_CHUNKS - 1:
-            gc.collect()  # launches leave reference cycles (ctypes structs): keep memory flat
     if reducer is not None and pending is not None:
         reducer.collect(k)
     if pending is not None:

@@ -355,6 +355,7 @@ class Problems:
         self.w_scale = wp.array(self.scale, dtype=wp.float64, device=self.engine.device)
         self.w_offset = wp.array(self.offset, dtype=wp.float64, device=self.engine.device)
         self.zlo, self.zhi = self.model.bounds_x()
+        self.w_zhi = wp.array(self.zhi, dtype=wp.float64, device=self.engine.device)
 
     # -- transforms (:class:`ProblemModel`; ``pid`` the problem of each row) --------------
     def to_z(self, v, pid):
@@ -404,17 +405,28 @@ class Problems:
     def _data(self) -> klm.Measured:
         return measured(self.w_Y, self.w_W, self.w_zc, self.device)
 
+    def _sums(self, kernel, inputs: list, dest: wp.array, sums: klm.NormalEquations):
+        """Launch the row kernel ``kernel`` (:func:`tawarp.kernels.lm.normal_kernel`, the
+        secant ``sums``) on ``inputs`` for the n = ``dest.shape[0]`` slots of a launch and
+        add its row blocks' partial sums into the rows ``dest`` of ``sums``."""
+        n, p, dev = dest.shape[0], self.p, self.device
+        if not n:
+            return
+        blocks = klm.row_blocks(self.freqs.size)
+        partial = wp.empty((2 + p + p * p, blocks, n), dtype=wp.float64, device=dev)
+        wp.launch(kernel, dim=(blocks, n), device=dev, inputs=inputs + [partial])
+        wp.launch(klm.normal_sums(p)[2], dim=n, device=dev, inputs=[partial, dest, sums])
+
     def _difference_steps(self, ids: wp.array, z: wp.array) -> wp.array:
         """The forward-difference steps (n, p) at ``z`` (n, p) of problems ``ids``, on the
         device: FD_STEP towards the interior at an upper bound."""
         step = wp.empty(z.shape, dtype=wp.float64, device=self.device)
         if z.shape[0]:
-            zhi = wp.array(self.zhi, dtype=wp.float64, device=self.device)
             wp.launch(
                 klm.difference_steps,
                 dim=z.shape,
                 device=self.device,
-                inputs=[slots(ids, z, step, self.device), zhi, FD_STEP, step],
+                inputs=[slots(ids, z, step, self.device), self.w_zhi, FD_STEP, step],
             )
         return step
 
@@ -461,7 +473,7 @@ class Problems:
             else:
                 out, tangent = self._cascade(part, 0, sets), self._no_tangent
             sums = normal_equations((w_cost[lo:hi], w_raw[lo:hi], w_g[lo:hi], w_H[lo:hi]), dev)
-            wp.launch(self.normal, dim=k, device=dev, inputs=[part, data, out, tangent, sums])
+            self._sums(self.normal, [part, data, out, tangent], self._arange(k), sums)
         return w_cost, w_raw, w_g, w_H
 
     # -- the secant iteration (:class:`tawarp.fit.lm.SecantProblems`) ---------------------
@@ -491,7 +503,8 @@ class Problems:
         else:
             _, first, group = np.unique(key, axis=0, return_index=True, return_inverse=True)
             group = group.reshape(-1)
-        differences, sums = klm.secant_kernels(p)[:2]
+        kernels = klm.secant_kernels(p)
+        blocks = klm.row_blocks(self.freqs.size)
         sets = 1 + p
         per = max(1, max_sets // sets)
         rep = slots(pid[first], z[first], step[first], dev)
@@ -500,8 +513,8 @@ class Problems:
             out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 0, sets)
             mine = np.flatnonzero((group >= lo) & (group < hi)).astype(np.int32)
             wp.launch(
-                differences,
-                dim=mine.size,
+                kernels.differences,
+                dim=(blocks, mine.size),
                 device=dev,
                 inputs=[
                     _ints(mine, dev),
@@ -516,20 +529,11 @@ class Problems:
         cost, raw = wp.empty(Q, dtype=wp.float64, device=dev), wp.empty(Q, dtype=wp.float64, device=dev)
         g, H = wp.empty((Q, p), dtype=wp.float64, device=dev), wp.empty((Q, p, p), dtype=wp.float64, device=dev)
         every = _ints(np.arange(Q), dev)
-        wp.launch(
-            sums,
-            dim=Q,
-            device=dev,
-            inputs=[
-                every,
-                _ints(pid, dev),
-                self._data(),
-                store,
-                self._no_out,
-                self._no_step,
-                every,
-                normal_equations((cost, raw, g, H), dev),
-            ],
+        self._sums(
+            kernels.sums,
+            [every, _ints(pid, dev), self._data(), store, self._no_out, self._no_step, every],
+            every,
+            normal_equations((cost, raw, g, H), dev),
         )
         return cost, raw, g, H
 
@@ -551,7 +555,7 @@ class Problems:
         column = np.full(first.size, -1, dtype=np.int32)
         column[shared] = np.arange(shared.size)
         store.second = _ints(column[group], dev)
-        second_differences = klm.secant_kernels(p)[5]
+        second_differences = klm.secant_kernels(p).second_differences
         step = np.full((reps.size, p), SECOND_STEP)
         rep = slots(pid[reps], z[reps], step, dev)
         per = max(1, max_sets // sets)
@@ -560,7 +564,7 @@ class Problems:
             out = self._cascade(slots(rep.ids[lo:hi], rep.z[lo:hi], rep.step[lo:hi], dev), 1, sets, layout=2)
             wp.launch(
                 second_differences,
-                dim=hi - lo,
+                dim=(klm.row_blocks(self.freqs.size), hi - lo),
                 device=dev,
                 inputs=[_ints(reps[lo:hi], dev), lo, SECOND_STEP, out, store],
             )
@@ -569,14 +573,17 @@ class Problems:
         """J^T r_vv (n, p) of the trials' slots along their steps v (``trial.dz``), from the
         second derivatives at their starts (0 for slots without): the geodesic acceleration's
         right-hand side (:func:`tawarp.kernels.lm.secant_kernels`)."""
-        n, dev = ids.shape[0], self.device
-        jv = wp.empty((n, self.p), dtype=wp.float64, device=dev)
+        n, p, dev = ids.shape[0], self.p, self.device
+        blocks = klm.row_blocks(self.freqs.size)
+        partial = wp.empty((p, blocks, n), dtype=wp.float64, device=dev)
         wp.launch(
-            klm.secant_kernels(self.p)[6],
-            dim=n,
+            klm.secant_kernels(p).curvature,
+            dim=(blocks, n),
             device=dev,
-            inputs=[trial.act, ids, self._data(), store, trial.dz, jv],
+            inputs=[trial.act, ids, self._data(), store, trial.dz, partial],
         )
+        jv = wp.empty((n, p), dtype=wp.float64, device=dev)
+        wp.launch(klm.reduce_rows, dim=(n, p), device=dev, inputs=[partial, jv])
         return jv
 
     def evaluate_trial(self, ids: wp.array, trial, store: klm.Secant, max_sets: int = 1 << 20):
@@ -584,26 +591,17 @@ class Problems:
         of problems ``ids``): one cascade per trial point, the Jacobian the slot's updated by
         the step (Broyden's rank-one update); the values kept in ``store.trial``."""
         n, dev = ids.shape[0], self.device
-        trial_sums = klm.secant_kernels(self.p)[2]
+        trial_sums = klm.secant_kernels(self.p).trial_sums
         rows = self._arange(n)
         for lo in range(0, n, max(1, max_sets)):
             hi = min(n, lo + max(1, max_sets))
             # the point alone: build_sets reads no step (the trial's dz stands in)
             out = self._cascade(slots(ids[lo:hi], trial.zt[lo:hi], trial.dz[lo:hi], dev), 0, 1)
-            wp.launch(
+            self._sums(
                 trial_sums,
-                dim=hi - lo,
-                device=dev,
-                inputs=[
-                    trial.act[lo:hi],
-                    ids[lo:hi],
-                    self._data(),
-                    store,
-                    out,
-                    trial.dz[lo:hi],
-                    rows[lo:hi],
-                    trial.at_zt,
-                ],
+                [trial.act[lo:hi], ids[lo:hi], self._data(), store, out, trial.dz[lo:hi], rows[lo:hi]],
+                rows[lo:hi],
+                trial.at_zt,
             )
 
     def refresh(self, slots_q: np.ndarray, pid: np.ndarray, state, store: klm.Secant, max_sets: int = 1 << 20):
@@ -618,19 +616,20 @@ class Problems:
         z = wp.empty((n, p), dtype=wp.float64, device=dev)
         wp.launch(klm.gather_rows, dim=(n, p), device=dev, inputs=[state.z, act, z])
         step = self._difference_steps(ids, z)
-        differences, sums = klm.secant_kernels(p)[:2]
+        kernels = klm.secant_kernels(p)
+        blocks = klm.row_blocks(self.freqs.size)
         per = max(1, max_sets // p)
         for lo in range(0, n, per):
             hi = min(n, lo + per)
             out = self._cascade(slots(ids[lo:hi], z[lo:hi], step[lo:hi], dev), 1, p)
             group = _ints(np.arange(hi - lo) * p, dev)
-            wp.launch(differences, dim=hi - lo, device=dev, inputs=[act[lo:hi], group, step[lo:hi], 0, out, store])
-        wp.launch(
-            sums,
-            dim=n,
-            device=dev,
-            inputs=[act, ids, self._data(), store, self._no_out, self._no_step, act, state.at_z],
-        )
+            wp.launch(
+                kernels.differences,
+                dim=(blocks, hi - lo),
+                device=dev,
+                inputs=[act[lo:hi], group, step[lo:hi], 0, out, store],
+            )
+        self._sums(kernels.sums, [act, ids, self._data(), store, self._no_out, self._no_step, act], act, state.at_z)
 
 
 def _ints(a, device) -> wp.array:

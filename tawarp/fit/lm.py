@@ -22,7 +22,7 @@ from the done flags, its one read of an iteration (the trial points stay on the 
 ``jacobian="broyden"``): the problems keep each slot's model values and Jacobian on the
 device; a trial costs the evaluation of its point alone, and its Jacobian is the slot's
 moved by Broyden's rank-one update along the step (the ``update`` kernel's acceptance
-then makes it the slot's, :func:`tawarp.kernels.lm_step.secant_accept_kernel`). A rejected
+then makes it the slot's, :func:`tawarp.kernels.lm_step.secant_accept_kernels`). A rejected
 step from a secant Jacobian has the slot's Jacobian refreshed (forward differences) before
 the next. A slot whose start's second derivatives the problems made (a start shared by
 many) takes a geodesically accelerated first step (the ``accelerate`` kernel on the
@@ -290,7 +290,10 @@ def levenberg_marquardt(
                 trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
             wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
             if secant:
-                wp.launch(lm_step.secant_accept_kernel(p), dim=n, device=dev, inputs=[store, trial, done])
+                accept_rows, accept_flags = lm_step.secant_accept_kernels(p)
+                blocks = klm.row_blocks(store.T.shape[0] // 8)
+                wp.launch(accept_rows, dim=(blocks, n), device=dev, inputs=[store, trial])
+                wp.launch(accept_flags, dim=n, device=dev, inputs=[store, trial, done])
             flags = done.numpy()  # the one host round trip of an iteration
             if secant and np.any(flags == 2):
                 prob.refresh(active[flags == 2], pid, state, store, max_sets)

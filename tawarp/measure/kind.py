@@ -191,7 +191,7 @@ def fit_cells(
     names = list(values or {})
     cols = [np.asarray(values[k], dtype=float) for k in names]
     n = max([c.size for c in cols if c.ndim], default=1)
-    eng = Engine(core, [freq] if freqs is None else freqs, names, dataclasses.replace(settings, cells=None))
+    eng = get_engine(core, [freq] if freqs is None else freqs, names, dataclasses.replace(settings, cells=None))
     params, theta = eng.heat(np.stack([np.full(n, float(heat_input))] + [np.broadcast_to(c, (n,)) for c in cols]))
     cells = wp.empty((n, len(core.segments)), dtype=wp.int32, device=eng.device)
     wp.launch(

@@ -112,6 +112,24 @@ def resolve_device(device: str | None) -> str:
     return device
 
 
+#: Freed device memory a CUDA memory pool keeps for reuse across synchronizations, as a
+#: fraction of the device's memory (:func:`keep_pool_memory`; 0: CUDA's default).
+POOL_KEEP = 0.25
+
+
+def keep_pool_memory(device: str) -> None:
+    """Let ``device``'s memory pool keep up to :data:`POOL_KEEP` of its memory in freed
+    blocks. An evaluation allocates its tables and T-matrices anew (GBs for 1e5 sets), and
+    with CUDA's default threshold of 0 every host read (a synchronization) hands the freed
+    blocks back to the driver, so the next evaluation maps its memory again. A threshold
+    set higher elsewhere is kept; nothing on the CPU or without a pool."""
+    dev = wp.get_device(device)
+    if dev.is_cuda and wp.is_mempool_enabled(dev):
+        keep = int(POOL_KEEP * dev.total_memory)
+        if wp.get_mempool_release_threshold(dev) < keep:
+            wp.set_mempool_release_threshold(dev, keep)
+
+
 def parameter_row(core: Core, name: str) -> int:
     """Row of parameter ``name`` in the kernels' parameter table."""
     if name in GLOBAL_FIELD_TABLE:
@@ -351,6 +369,7 @@ class Engine:
     def __init__(self, core: Core, freqs, names=(), settings: ForwardSettings | None = None):
         self.settings = settings or ForwardSettings()
         self.device = resolve_device(self.settings.device)
+        keep_pool_memory(self.device)
         self.core = core
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
         if self.freqs.ndim != 1 or not np.all(np.isfinite(self.freqs)) or np.any(self.freqs <= 0):
