@@ -450,13 +450,16 @@ def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
         sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})
 
 
-def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
+@pytest.mark.parametrize("writers", [1, 2])
+def test_shared_columns_hold_what_each_writer_wrote(tmp_path, writers):
     # columns of several dtypes and row shapes in one file, each at a 64-byte offset; two
-    # writers' row ranges read back exactly through the client's one mapping
+    # writers' row ranges (by the write call, or through populated mappings) read back
+    # exactly through the client's one mapping
     from tawarp.distributed import SharedColumns
 
     layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ())}
-    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)])
+    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)], writers=writers)
+    assert cols.writers == writers
     assert all(v % 64 == 0 for v in cols.offsets().values())
     rows = {
         "gradient": np.arange(5.0) / 3,
@@ -468,6 +471,40 @@ def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
     back = cols.columns()
     assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
     assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
+
+
+def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
+    # byte ranges that start inside a page past the first mapping granule and cross page
+    # boundaries, written through populated mappings, leave the file byte for byte as the
+    # write call does, the bytes around them untouched
+    import mmap
+    import os
+
+    from tawarp.distributed import write_at
+
+    page = mmap.ALLOCATIONGRANULARITY
+    rng = np.random.default_rng(3)
+    size = 5 * page
+    pieces = [
+        (page + 7, rng.integers(0, 256, 2 * page + 100, dtype=np.uint8)),
+        (3 * page + 200, np.arange(9, dtype=np.uint8)),
+    ]
+    files = {}
+    for mapped in (False, True):
+        path = tmp_path / f"mapped{mapped}"
+        path.write_bytes(b"\xab" * size)
+        fd = os.open(path, os.O_RDWR)
+        try:
+            for at, data in pieces:
+                write_at(fd, data, at, mapped=mapped)
+            write_at(fd, np.empty(0, dtype=np.uint8), 0, mapped=mapped)
+        finally:
+            os.close(fd)
+        files[mapped] = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    want = np.full(size, 0xAB, dtype=np.uint8)
+    for at, data in pieces:
+        want[at : at + data.size] = data
+    assert np.array_equal(files[False], want) and np.array_equal(files[True], want)
 
 
 def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
