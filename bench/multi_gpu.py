@@ -41,6 +41,9 @@ the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_tria
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
 appends, on the disk of ``--study-dir``, default a temporary folder).
 
+Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
+NUMA node where the host says (:func:`tawarp.distributed.near_gpu`).
+
 ``--cluster threads`` runs fits, evaluations and the sweep on worker threads of this
 process instead (``local_cluster(processes=False)``: one GIL; the islands stay on
 processes). Speed-up = rate on k GPUs / rate on the first k of ``--gpus`` (the targets:
@@ -342,6 +345,12 @@ class Bench:
         }
 
 
+def _worker_cpus(client) -> list[int]:
+    """How many CPUs each worker may run on (those of its GPU's NUMA node where the host
+    says: :func:`tawarp.distributed.near_gpu`)."""
+    return [len(c) for c in client.run(os.sched_getaffinity, 0).values()]
+
+
 def _remove_study(journal: str) -> None:
     """A journal study and what lies beside it (its trial store, the islands' journals)."""
     import shutil
@@ -540,6 +549,7 @@ def main(argv=None) -> int:
                 row["start_seconds"] = row.get("start_seconds", 0.0) + time.perf_counter() - t
                 try:
                     dog.watch(client)
+                    row["worker_cpus"] = _worker_cpus(client)
                     client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:

@@ -91,6 +91,42 @@ class DevicePlugin:
                     f"tawarp worker {worker.name}: sees {wp.get_cuda_device_count()} GPUs, not the one of "
                     f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r} (CUDA started before it was set)"
                 )
+            near_gpu(wp.get_device("cuda:0").pci_bus_id)
+
+
+def gpu_cpus(pci_bus_id: str | None, devices: str = "/sys/bus/pci/devices") -> set[int] | None:
+    """The CPUs of the NUMA node of the GPU ``pci_bus_id`` (Warp's ``Device.pci_bus_id``,
+    ``domain:bus:device`` in hexadecimal), as the kernel lists them (``local_cpulist``
+    under ``devices``); None where it does not say."""
+    try:
+        domain, bus, dev = pci_bus_id.split(":")
+        with open(f"{devices}/{int(domain, 16):04x}:{int(bus, 16):02x}:{int(dev, 16):02x}.0/local_cpulist") as f:
+            text = f.read().strip()
+    except (AttributeError, ValueError, OSError):
+        return None
+    cpus = set()
+    for part in filter(None, text.split(",")):
+        lo, _, hi = part.partition("-")
+        cpus.update(range(int(lo), int(hi or lo) + 1))
+    return cpus or None
+
+
+def near_gpu(pci_bus_id: str | None) -> None:
+    """Every thread of this process (and those it starts later) on the CPUs of its GPU's
+    NUMA node (:func:`gpu_cpus`), where that is fewer than it may use now: its host work,
+    its pages (placed where they are first touched) and its copies to and from the GPU
+    then stay on the GPU's side of the host, as dask-cuda's workers do; else unchanged."""
+    if not hasattr(os, "sched_setaffinity"):
+        return
+    mine = os.sched_getaffinity(0)
+    near = (gpu_cpus(pci_bus_id) or set()) & mine
+    if not near or near == mine:
+        return
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), near)
+        except OSError:  # (a thread that ended meanwhile)
+            pass
 
 
 #: Seconds :func:`local_cluster` waits for its workers (a worker process imports Warp and
@@ -476,7 +512,11 @@ def _fit_parts(client, chunks: list, sizes: list, args: tuple):
     if client is not None and n and _local_processes(client):
         out = SharedColumns.create(n, None, writers=_workers(client))
     try:
-        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts)), *args, out)
+        # chunks already on the workers all go at once: each worker then has its next one
+        # queued whatever order the others finish in (a window would hold a worker's next
+        # chunk until every chunk before it is fitted), and they hold no more memory
+        window = len(chunks) if chunks and all(_is_future(c) for c in chunks) else None
+        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts)), *args, out, window=window)
         return _joined_parts(parts, n, starts, out)
     finally:
         if out is not None:

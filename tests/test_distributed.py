@@ -4,6 +4,8 @@ worker processes, the same code that runs one worker per GPU."""
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -478,7 +480,6 @@ def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
     # boundaries, written through populated mappings, leave the file byte for byte as the
     # write call does, the bytes around them untouched
     import mmap
-    import os
 
     from tawarp.distributed import write_at
 
@@ -505,6 +506,23 @@ def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
     for at, data in pieces:
         want[at : at + data.size] = data
     assert np.array_equal(files[False], want) and np.array_equal(files[True], want)
+
+
+def test_a_gpus_cpus_are_those_its_numa_node_lists(tmp_path):
+    # the kernel's cpulist format (ranges and single CPUs, comma separated) under the PCI
+    # address that Warp's pci_bus_id names (domain of 8 hex digits there, 4 in sysfs); an
+    # unknown device, or none, leaves the workers where they are
+    from tawarp.distributed import gpu_cpus, near_gpu
+
+    node = tmp_path / "0000:1b:00.0"
+    node.mkdir()
+    (node / "local_cpulist").write_text("0-3,8,10-11\n")
+    assert gpu_cpus("00000000:1B:00", str(tmp_path)) == {0, 1, 2, 3, 8, 10, 11}
+    assert gpu_cpus("00000000:1C:00", str(tmp_path)) is None
+    assert gpu_cpus(None, str(tmp_path)) is None
+    before = os.sched_getaffinity(0)
+    near_gpu(None)
+    assert os.sched_getaffinity(0) == before
 
 
 def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
