@@ -520,7 +520,7 @@ def _fit_parts(client, chunks: list, sizes: list, args: tuple):
         return _joined_parts(parts, n, starts, out)
     finally:
         if out is not None:
-            os.unlink(out.path)  # (its pages stay mapped by the result)
+            out.remove()  # (its pages stay mapped by the result)
 
 
 def _problems(chunk: dict) -> int:
@@ -729,6 +729,70 @@ def write_at(fd: int, data: np.ndarray, at: int, mapped: bool = False) -> None:
         view, at = view[done:], at + done
 
 
+class AddressRange:
+    """A range of this process's addresses (Linux), reserved whole, into which pieces of
+    files are mapped back to back (``MAP_FIXED``, which Python's :mod:`mmap` does not
+    offer), and unmapped whole when the last array on it goes."""
+
+    def __init__(self, size: int):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.mmap.restype = ctypes.c_void_p
+        libc.mmap.argtypes = (
+            ctypes.c_void_p,
+            ctypes.c_size_t,
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.c_int64,
+        )
+        libc.munmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+        self._libc, self.size = libc, max(size, mmap.PAGESIZE)
+        self.addr = self._mmap(None, self.size, _PROT_NONE, mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
+
+    def _mmap(self, addr, size: int, prot: int, flags: int, fd: int = -1, offset: int = 0) -> int:
+        import ctypes
+
+        out = self._libc.mmap(addr, size, prot, flags, fd, offset)
+        if out in (None, ctypes.c_void_p(-1).value):
+            err = ctypes.get_errno()
+            raise OSError(err, f"mmap of {size} bytes: {os.strerror(err)}")
+        return out
+
+    def map(self, at: int, fd: int, offset: int, size: int) -> None:
+        """Bytes ``offset`` .. ``offset + size`` of the file ``fd`` (a page multiple each)
+        at byte ``at`` of the range, shared with the file."""
+        if at < 0 or at + size > self.size:
+            raise ValueError(f"AddressRange.map: bytes {at} .. {at + size} outside the range's {self.size}")
+        self._mmap(self.addr + at, size, mmap.PROT_READ | mmap.PROT_WRITE, mmap.MAP_SHARED | _MAP_FIXED, fd, offset)
+
+    def array(self, at: int, dtype, shape: tuple) -> np.ndarray:
+        """An array on the bytes from ``at`` on, which keeps the range mapped."""
+        return np.asarray(_OnRange(self, at, np.dtype(dtype), shape))
+
+    def __del__(self):
+        if getattr(self, "addr", None):
+            self._libc.munmap(self.addr, self.size)
+
+
+class _OnRange:
+    """What :meth:`AddressRange.array` hands NumPy: the array's base, which holds the range."""
+
+    def __init__(self, space: AddressRange, at: int, dtype: np.dtype, shape: tuple):
+        self.space = space
+        self.__array_interface__ = {
+            "data": (space.addr + at, False),
+            "shape": tuple(shape),
+            "typestr": dtype.str,
+            "version": 3,
+        }
+
+
+#: Linux's mmap protection and flags that Python's mmap module does not name.
+_PROT_NONE, _MAP_FIXED, _MAP_NORESERVE = 0, 0x10, 0x4000
+
+
 @dataclasses.dataclass(frozen=True)
 class SharedColumns:
     """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``, else the
@@ -738,25 +802,38 @@ class SharedColumns:
     row)}; the columns follow each other, each at an offset aligned to 64 bytes.
     ``writers``: the processes that write it at once (:func:`write_at`: with one, the
     write call, the cheapest; with several, populated mappings, which they fill in
-    parallel)."""
+    parallel). ``chunks``: where given, the first rows of chunks that each writer writes
+    whole into a file of its own (``path.ROW``, its columns at page-aligned offsets), with
+    the write call and no lock shared with another writer, which the reader maps back to
+    back into one range of its addresses (:class:`AddressRange`: Linux): each chunk but the
+    last a whole number of pages in every column (a multiple of the page size in rows)."""
 
     path: str
     n: int
     layout: dict
     writers: int = 1
+    chunks: tuple = ()
 
-    def offsets(self) -> dict:
+    def offsets(self, align: int = 64) -> dict:
         out, at = {}, 0
         for k, (dtype, shape) in self.layout.items():
             out[k] = at
-            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // 64) * 64
+            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // align) * align
         out[None] = at
         return out
 
     def nbytes(self) -> int:
         return self.offsets()[None]
 
+    def _chunk(self, at: int) -> SharedColumns:
+        """The chunk of ``chunks`` that starts at row ``at``, as columns of its own file."""
+        i = self.chunks.index(at)
+        end = self.chunks[i + 1] if i + 1 < len(self.chunks) else self.n
+        return SharedColumns(f"{self.path}.{at}", end - at, self.layout)
+
     def columns(self, mode: str = "r+") -> dict[str, np.ndarray]:
+        if self.chunks:
+            return self._stitched()
         off = self.offsets()
         return {
             k: np.asarray(np.memmap(self.path, dtype=dtype, mode=mode, offset=off[k], shape=(self.n,) + tuple(shape)))
@@ -764,21 +841,56 @@ class SharedColumns:
             if self.n
         }
 
+    def _stitched(self) -> dict[str, np.ndarray]:
+        """The columns, each chunk file's part of a column mapped where its rows go."""
+        page = mmap.PAGESIZE
+        off = self.offsets(page)
+        space = AddressRange(off[None])
+        for at in self.chunks:
+            part = self._chunk(at)
+            sections = part.offsets(page)
+            fd = os.open(part.path, os.O_RDWR)
+            try:
+                for k, (dtype, shape) in self.layout.items():
+                    row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+                    space.map(off[k] + at * row, fd, sections[k], -(-part.n * row // page) * page)
+            finally:
+                os.close(fd)
+        return {k: space.array(off[k], dtype, (self.n,) + tuple(shape)) for k, (dtype, shape) in self.layout.items()}
+
     def write(self, at: int, res: dict) -> None:
-        """Rows ``at`` .. of the columns ``res`` {name: array} (:func:`write_at`)."""
-        off = self.offsets()
-        fd = os.open(self.path, os.O_RDWR)
+        """Rows ``at`` .. of the columns ``res`` {name: array} (:func:`write_at`); with
+        ``chunks``, the whole chunk that starts there, into its own file."""
+        if self.chunks:
+            part = self._chunk(at)
+            off, first = part.offsets(mmap.PAGESIZE), 0
+            fd = os.open(part.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        else:
+            off, first = self.offsets(), at
+            fd = os.open(self.path, os.O_RDWR)
         try:
+            if self.chunks:
+                os.ftruncate(fd, off[None])
             for k, v in res.items():
                 dtype, shape = self.layout[k]
                 row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
                 data = np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)
-                write_at(fd, data, off[k] + at * row, mapped=self.writers > 1)
+                write_at(fd, data, off[k] + first * row, mapped=self.writers > 1 and not self.chunks)
         finally:
             os.close(fd)
 
+    def remove(self) -> None:
+        """The file and the chunks' files, those there are (their pages stay where mapped)."""
+        for path in [self.path] + [f"{self.path}.{at}" for at in self.chunks]:
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+
     @classmethod
-    def create(cls, n: int, layout: dict | None, folders=None, writers: int = 1) -> SharedColumns | None:
+    def create(
+        cls, n: int, layout: dict | None, folders=None, writers: int = 1, chunks: tuple = ()
+    ) -> SharedColumns | None:
         """A new file of these columns in the first of ``folders`` (default ``/dev/shm``,
         then the temporary folder) with twice its size free, or None (a worker writing past
         the end of a full tmpfs would be killed). ``layout`` None: an empty file, which the
@@ -797,7 +909,7 @@ class SharedColumns:
                     os.ftruncate(fd, size)
                 finally:
                     os.close(fd)
-                return cls(path, n, layout, writers)
+                return cls(path, n, layout, writers, tuple(chunks))
         return None
 
     def sized(self, layout: dict, rows: int) -> SharedColumns | None:
@@ -867,8 +979,12 @@ class ClusterEvaluator:
         )
 
     def _starts(self, n: int) -> range:
-        """First points of the chunks of n points."""
-        return range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * _workers(self.client)))))
+        """First points of the chunks of n points (by default a multiple of the page size
+        where longer than a page: :func:`_chunk_files`)."""
+        step = max(1, -(-n // (CHUNKS_IN_FLIGHT * _workers(self.client))))
+        if step > mmap.PAGESIZE:
+            step = -(-step // mmap.PAGESIZE) * mmap.PAGESIZE
+        return range(0, max(n, 1), self.chunk or step)
 
     def _gather(self, n: int, starts: range, parts) -> dict[str, np.ndarray]:
         """The chunks' objectives ``parts`` (in order) as (n,) arrays, each copied into
@@ -894,15 +1010,17 @@ class ClusterEvaluator:
         if self.shared and n:
             if self._layout is None:
                 self._layout = self.client.submit(_objective_layout, self.key, self.spec, pure=False).result()
-            out = SharedColumns.create(n, self._layout, writers=_workers(self.client))
+            out = SharedColumns.create(
+                n, self._layout, writers=_workers(self.client), chunks=_chunk_files(starts, self._layout)
+            )
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         try:
             for _ in ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out):
                 pass
-            return out.columns()  # (the file goes; its pages stay mapped here)
+            return out.columns()  # (the files go; their pages stay mapped here)
         finally:
-            os.unlink(out.path)
+            out.remove()
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
@@ -919,6 +1037,19 @@ class ClusterEvaluator:
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""
         return self.evaluate_table(self.space.varying_table(values))
+
+
+#: At most this many pieces (chunks x columns) mapped into one range: a process has at
+#: most ``vm.max_map_count`` (65530 by default) mappings.
+MAPPED_PIECES = 4096
+
+
+def _chunk_files(starts: range, layout: dict) -> tuple:
+    """``starts`` where each chunk of evaluations may go into a file of its own
+    (:class:`SharedColumns`: on Linux, chunks of a multiple of the page size in points,
+    not too many pieces to map), else ()."""
+    ok = sys.platform == "linux" and starts.step % mmap.PAGESIZE == 0 and len(starts) * len(layout) <= MAPPED_PIECES
+    return tuple(starts) if ok else ()
 
 
 def _local_processes(client) -> bool:

@@ -5,6 +5,7 @@ worker processes, the same code that runs one worker per GPU."""
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 import pytest
@@ -302,6 +303,8 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         assert drawn.shared
         drawn.warm_up()
         sobol = drawn.evaluate_sobol(50, seed=7, first=5)
+        # chunks of two pages of points and a shorter last one: a file each, mapped as one
+        paged = ClusterEvaluator(procs, space, chunk=2 * 4096).evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
@@ -320,7 +323,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     ev = Evaluator(space, extra=["acoustic_loss"])
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
     assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
-    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared file went at once
+    one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, 3)[0])
+    assert set(paged) == set(one) and all(np.array_equal(paged[k], one[k], equal_nan=True) for k in one)
+    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared files went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
         with (
@@ -473,6 +478,42 @@ def test_shared_columns_hold_what_each_writer_wrote(tmp_path, writers):
     back = cols.columns()
     assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
     assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="chunk files are mapped back to back on Linux")
+def test_chunk_files_read_back_as_one_column_each(tmp_path):
+    # three chunks of a page multiple in rows and a shorter last one, each written whole
+    # into its own file in any order: the reader sees one column each, exactly what was
+    # written, still there once the files are removed and the columns' owner gone
+    import gc
+    import mmap
+
+    from tawarp.distributed import SharedColumns
+
+    page = mmap.PAGESIZE
+    n = 3 * page + 77
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ()), "ok": ("|b1", ())}
+    rng = np.random.default_rng(5)
+    rows = {
+        "gradient": rng.standard_normal(n),
+        "window": rng.standard_normal((n, 3)).astype(np.float32),
+        "material": rng.integers(-3, 4, n).astype(np.int8),
+        "ok": rng.random(n) < 0.5,
+    }
+    starts = (0, page, 2 * page, 3 * page)
+    cols = SharedColumns.create(n, layout, folders=[str(tmp_path)], writers=2, chunks=starts)
+    for lo in (2 * page, 3 * page, 0, page):
+        hi = min(n, lo + page)
+        cols.write(lo, {k: v[lo:hi] for k, v in rows.items()})
+    back = cols.columns()
+    cols.remove()
+    del cols
+    gc.collect()
+    assert not list(tmp_path.iterdir())
+    for k, v in rows.items():
+        assert back[k].dtype == np.dtype(layout[k][0]) and np.array_equal(back[k], v), k
+    back["gradient"][:2] = 0.0  # (writable, as the one file's mapping is)
+    assert np.array_equal(back["gradient"][2:], rows["gradient"][2:])
 
 
 def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
