@@ -697,14 +697,13 @@ def write_at(fd: int, data: np.ndarray, at: int, mapped: bool = False) -> None:
     """The bytes ``data`` (uint8, contiguous) at byte ``at`` of the tmpfs file ``fd``
     (its size already past them). ``mapped``: copied through a mapping of those bytes
     whose pages the kernel makes present in one call first, else with the write call.
-    The write call costs a process least (the pages' allocation and one copy: 2.3 GB per
-    CPU second on the 2-core test host, against 1.3 through a populated mapping, which
-    zeroes each page before the copy and unmaps it after), but tmpfs holds the file's
-    inode lock through it: processes writing one file write one at a time (four GPUs'
-    workers wrote it no faster than one), while they fill populated mappings in parallel.
-    A mapping left to fault page by page costs a fault per 4 kB (slower than a GPU's
-    evaluation of the rows). Where the kernel cannot populate (before Linux 5.14, or no
-    room left: an OSError, not the SIGBUS of a fault) the write call does it."""
+    The write call costs a process least (the pages' allocation and one copy; a populated
+    mapping zeroes each page before the copy and unmaps it after: 1.5x the CPU time), but
+    tmpfs holds the file's inode lock through it, so processes writing one file take
+    turns, while they fill populated mappings in parallel; a mapping left to fault page by
+    page costs a fault per 4 kB (measured: bench/README.md, section Several GPUs). Where
+    the kernel cannot populate (before Linux 5.14, or no room left: an OSError, not the
+    SIGBUS of a fault) the write call does it."""
     if not data.size:
         return
     if mapped:
@@ -795,10 +794,10 @@ _PROT_NONE, _MAP_FIXED, _MAP_NORESERVE = 0, 0x10, 0x4000
 
 @dataclasses.dataclass(frozen=True)
 class SharedColumns:
-    """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``, else the
-    temporary folder): each worker process of this host writes its rows in place, and the
-    client maps the file once and unlinks it, so that the results of a local process
-    cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
+    """Columns of ``n`` rows laid out in shared memory (``/dev/shm``, else the temporary
+    folder), in the file ``path`` or in a file per chunk: each worker process of this host
+    writes its rows in place, and the client maps the files and unlinks them, so that the
+    results of a local process cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
     row)}; the columns follow each other, each at an offset aligned to 64 bytes.
     ``writers``: the processes that write it at once (:func:`write_at`: with one, the
     write call, the cheapest; with several, populated mappings, which they fill in
@@ -853,7 +852,8 @@ class SharedColumns:
             try:
                 for k, (dtype, shape) in self.layout.items():
                     row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
-                    space.map(off[k] + at * row, fd, sections[k], -(-part.n * row // page) * page)
+                    if size := -(-part.n * row // page) * page:  # (a row of no bytes maps nothing)
+                        space.map(off[k] + at * row, fd, sections[k], size)
             finally:
                 os.close(fd)
         return {k: space.array(off[k], dtype, (self.n,) + tuple(shape)) for k, (dtype, shape) in self.layout.items()}
