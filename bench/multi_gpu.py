@@ -19,7 +19,10 @@ is timed:
   on the workers before
   the timing (``--fit-data workers``, as each worker would read its own files: problem i's
   noise is drawn from its block's stream, the same data whatever the chunks;
-  ``fit_data_seconds``), or sent by the client (``--fit-data client``);
+  ``fit_data_seconds``), there in page-locked host memory (``--fit-data pinned``, as a
+  loader reading into page-locked buffers: each chunk's upload to its GPU one DMA, no
+  copy through the driver's staging buffer; pageable on CPU workers), or sent by the
+  client (``--fit-data client``);
 * ``evaluations``: :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` of
   ``--points`` Sobol points of the rvc_foam space: each worker draws its chunks' points
   and builds their tables on its device; the objectives come back through shared memory
@@ -40,6 +43,9 @@ and ``imbalance``; the islands add ``island_client_seconds`` (opening the study,
 the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
 appends, on the disk of ``--study-dir``, default a temporary folder).
+
+Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
+NUMA node where the host says (:func:`tawarp.distributed.near_gpu`).
 
 ``--cluster threads`` runs fits, evaluations and the sweep on worker threads of this
 process instead (``local_cluster(processes=False)``: one GIL; the islands stay on
@@ -98,14 +104,23 @@ def fit_model():
     return core, Y0, 0.005 * np.abs(Y0) / np.sqrt(2), start
 
 
-def noisy_data(lo: int, hi: int, Y0, sd, seed: int = 0) -> dict:
+def noisy_data(lo: int, hi: int, Y0, sd, seed: int = 0, pinned: bool = False) -> dict:
     """Problems lo .. hi - 1 of the fit data: Y0 plus noise of ``sd``, problem i's drawn
-    from the stream (seed, i // FIT_BLOCK), so the data do not depend on the chunks."""
+    from the stream (seed, i // FIT_BLOCK), so the data do not depend on the chunks;
+    ``pinned``: in page-locked host memory where this process sees a GPU."""
+    import warp as wp
+
     b0, b1 = lo // FIT_BLOCK, -(-hi // FIT_BLOCK)
     noise = np.concatenate(
         [np.random.default_rng([seed, b]).standard_normal((FIT_BLOCK, 2) + Y0.shape) for b in range(b0, b1)]
     )[lo - b0 * FIT_BLOCK : hi - b0 * FIT_BLOCK]
-    return {"Y": Y0 + sd * (noise[:, 0] + 1j * noise[:, 1])}
+    Y = Y0 + sd * (noise[:, 0] + 1j * noise[:, 1])
+    if pinned and wp.get_cuda_device_count():
+        held = wp.empty(2 * Y.size, dtype=wp.float64, device="cpu", pinned=True).numpy()  # (its base holds it)
+        held = held.view(np.complex128).reshape(Y.shape)
+        held[...] = Y
+        Y = held
+    return {"Y": Y}
 
 
 def design_space() -> DesignSpace:
@@ -230,7 +245,16 @@ class Bench:
 
         ranges = even_ranges(n, -(-n // chunk))
         futures = [
-            client.submit(noisy_data, lo, hi, self.Y0, self.sd, workers=[workers[i % len(workers)]], pure=False)
+            client.submit(
+                noisy_data,
+                lo,
+                hi,
+                self.Y0,
+                self.sd,
+                pinned=self.args.fit_data == "pinned",
+                workers=[workers[i % len(workers)]],
+                pure=False,
+            )
             for i, (lo, hi) in enumerate(ranges)
         ]
         distributed.wait(futures)
@@ -245,7 +269,7 @@ class Bench:
         # warm-up: every worker fits a few problems of its own (its fit kernels load)
         self._fit(client, self._data_on_workers(client, 2 * len(workers), workers, 2), w)
         t0 = time.perf_counter()
-        if self.args.fit_data == "workers":
+        if self.args.fit_data in ("workers", "pinned"):
             data, weights = self._data_on_workers(client, n, workers, chunk), w
         else:
             if self.client_data is None:
@@ -342,6 +366,12 @@ class Bench:
         }
 
 
+def _worker_cpus(client) -> list[int]:
+    """How many CPUs each worker may run on (those of its GPU's NUMA node where the host
+    says: :func:`tawarp.distributed.near_gpu`)."""
+    return [len(c) for c in client.run(os.sched_getaffinity, 0).values()]
+
+
 def _remove_study(journal: str) -> None:
     """A journal study and what lies beside it (its trial store, the islands' journals)."""
     import shutil
@@ -421,9 +451,9 @@ def main(argv=None) -> int:
     ap.add_argument("--fit-chunk", type=int, default=None, help="fit problems per chunk (default 50000; --small 4)")
     ap.add_argument(
         "--fit-data",
-        choices=("workers", "client"),
+        choices=("workers", "pinned", "client"),
         default="workers",
-        help="where the fit data are made (default workers)",
+        help="where the fit data are made (default workers; pinned: there, in page-locked memory)",
     )
     ap.add_argument("--points", type=int, default=None, help="design evaluations (default 2^26; --small 2^14)")
     ap.add_argument("--eval-chunk", type=int, default=None, help="evaluation chunk (default 2^22; --small 2^11)")
@@ -540,6 +570,7 @@ def main(argv=None) -> int:
                 row["start_seconds"] = row.get("start_seconds", 0.0) + time.perf_counter() - t
                 try:
                     dog.watch(client)
+                    row["worker_cpus"] = _worker_cpus(client)
                     client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:

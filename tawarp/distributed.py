@@ -40,6 +40,7 @@ Other clusters (several machines): start one ``dask worker --nthreads 1`` per GP
 from __future__ import annotations
 
 import dataclasses
+import mmap
 import os
 import re
 import sys
@@ -90,6 +91,42 @@ class DevicePlugin:
                     f"tawarp worker {worker.name}: sees {wp.get_cuda_device_count()} GPUs, not the one of "
                     f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r} (CUDA started before it was set)"
                 )
+            near_gpu(wp.get_device("cuda:0").pci_bus_id)
+
+
+def gpu_cpus(pci_bus_id: str | None, devices: str = "/sys/bus/pci/devices") -> set[int] | None:
+    """The CPUs of the NUMA node of the GPU ``pci_bus_id`` (Warp's ``Device.pci_bus_id``,
+    ``domain:bus:device`` in hexadecimal), as the kernel lists them (``local_cpulist``
+    under ``devices``); None where it does not say."""
+    try:
+        domain, bus, dev = pci_bus_id.split(":")
+        with open(f"{devices}/{int(domain, 16):04x}:{int(bus, 16):02x}:{int(dev, 16):02x}.0/local_cpulist") as f:
+            text = f.read().strip()
+    except (AttributeError, ValueError, OSError):
+        return None
+    cpus = set()
+    for part in filter(None, text.split(",")):
+        lo, _, hi = part.partition("-")
+        cpus.update(range(int(lo), int(hi or lo) + 1))
+    return cpus or None
+
+
+def near_gpu(pci_bus_id: str | None) -> None:
+    """Every thread of this process (and those it starts later) on the CPUs of its GPU's
+    NUMA node (:func:`gpu_cpus`), where that is fewer than it may use now: its host work,
+    its pages (placed where they are first touched) and its copies to and from the GPU
+    then stay on the GPU's side of the host, as dask-cuda's workers do; else unchanged."""
+    if not hasattr(os, "sched_setaffinity"):
+        return
+    mine = os.sched_getaffinity(0)
+    near = (gpu_cpus(pci_bus_id) or set()) & mine
+    if not near or near == mine:
+        return
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            os.sched_setaffinity(int(tid), near)
+        except OSError:  # (a thread that ended meanwhile)
+            pass
 
 
 #: Seconds :func:`local_cluster` waits for its workers (a worker process imports Warp and
@@ -263,7 +300,7 @@ def ordered_map(client, func, items, *args, window: int | None = None):
         for item in items:
             yield func(item, *args)
         return
-    window = window or CHUNKS_IN_FLIGHT * max(1, len(client.scheduler_info()["workers"]))
+    window = window or CHUNKS_IN_FLIGHT * _workers(client)
     shared = [client.scatter(a, broadcast=True) if _is_large(a) else a for a in args]
     pending = deque()
     for item in items:
@@ -272,6 +309,10 @@ def ordered_map(client, func, items, *args, window: int | None = None):
             yield pending.popleft().result()
     while pending:
         yield pending.popleft().result()
+
+
+def _workers(client) -> int:
+    return max(1, len(client.scheduler_info()["workers"]))
 
 
 def _is_large(a) -> bool:
@@ -467,13 +508,19 @@ def _fit_parts(client, chunks: list, sizes: list, args: tuple):
     several GPUs (a microsecond per problem)."""
     n = int(sum(sizes))
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int).tolist()
-    out = SharedColumns.create(n, None) if client is not None and n and _local_processes(client) else None
+    out = None
+    if client is not None and n and _local_processes(client):
+        out = SharedColumns.create(n, None, writers=_workers(client))
     try:
-        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts)), *args, out)
+        # chunks already on the workers all go at once: each worker then has its next one
+        # queued whatever order the others finish in (a window would hold a worker's next
+        # chunk until every chunk before it is fitted), and they hold no more memory
+        window = len(chunks) if chunks and all(_is_future(c) for c in chunks) else None
+        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts)), *args, out, window=window)
         return _joined_parts(parts, n, starts, out)
     finally:
         if out is not None:
-            os.unlink(out.path)  # (its pages stay mapped by the result)
+            out.remove()  # (its pages stay mapped by the result)
 
 
 def _problems(chunk: dict) -> int:
@@ -640,30 +687,152 @@ def _on_host(key: str, columns):
     return buf.numpy()[: columns.size].reshape(columns.shape)
 
 
+#: ``madvise`` advice that makes a writable mapping's pages present, as a write fault each
+#: would (Linux 5.14; Python names it from 3.13 on), failing with an error where a fault
+#: would raise SIGBUS (a full tmpfs).
+MADV_POPULATE_WRITE = getattr(mmap, "MADV_POPULATE_WRITE", 23)
+
+
+def write_at(fd: int, data: np.ndarray, at: int, mapped: bool = False) -> None:
+    """The bytes ``data`` (uint8, contiguous) at byte ``at`` of the tmpfs file ``fd``
+    (its size already past them). ``mapped``: copied through a mapping of those bytes
+    whose pages the kernel makes present in one call first, else with the write call.
+    The write call costs a process least (the pages' allocation and one copy; a populated
+    mapping zeroes each page before the copy and unmaps it after: 1.5x the CPU time), but
+    tmpfs holds the file's inode lock through it, so processes writing one file take
+    turns, while they fill populated mappings in parallel; a mapping left to fault page by
+    page costs a fault per 4 kB (measured: bench/README.md, section Several GPUs). Where
+    the kernel cannot populate (before Linux 5.14, or no room left: an OSError, not the
+    SIGBUS of a fault) the write call does it."""
+    if not data.size:
+        return
+    if mapped:
+        lo = at - at % mmap.ALLOCATIONGRANULARITY
+        try:
+            m = mmap.mmap(fd, at + data.size - lo, offset=lo)
+        except OSError:
+            m = None
+        if m is not None:
+            try:
+                m.madvise(MADV_POPULATE_WRITE)
+            except OSError:
+                pass
+            else:
+                m[at - lo :] = memoryview(data)
+                return
+            finally:
+                m.close()
+    view = memoryview(data)
+    while view:  # (a call writes at most 2 GB)
+        done = os.pwrite(fd, view, at)
+        view, at = view[done:], at + done
+
+
+class AddressRange:
+    """A range of this process's addresses (Linux), reserved whole, into which pieces of
+    files are mapped back to back (``MAP_FIXED``, which Python's :mod:`mmap` does not
+    offer), and unmapped whole when the last array on it goes."""
+
+    def __init__(self, size: int):
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.mmap.restype = ctypes.c_void_p
+        libc.mmap.argtypes = (
+            ctypes.c_void_p,
+            ctypes.c_size_t,
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.c_int,
+            ctypes.c_int64,
+        )
+        libc.munmap.argtypes = (ctypes.c_void_p, ctypes.c_size_t)
+        self._libc, self.size = libc, max(size, mmap.PAGESIZE)
+        self.addr = self._mmap(None, self.size, _PROT_NONE, mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS | _MAP_NORESERVE)
+
+    def _mmap(self, addr, size: int, prot: int, flags: int, fd: int = -1, offset: int = 0) -> int:
+        import ctypes
+
+        out = self._libc.mmap(addr, size, prot, flags, fd, offset)
+        if out in (None, ctypes.c_void_p(-1).value):
+            err = ctypes.get_errno()
+            raise OSError(err, f"mmap of {size} bytes: {os.strerror(err)}")
+        return out
+
+    def map(self, at: int, fd: int, offset: int, size: int) -> None:
+        """Bytes ``offset`` .. ``offset + size`` of the file ``fd`` (a page multiple each)
+        at byte ``at`` of the range, shared with the file."""
+        if at < 0 or at + size > self.size:
+            raise ValueError(f"AddressRange.map: bytes {at} .. {at + size} outside the range's {self.size}")
+        self._mmap(self.addr + at, size, mmap.PROT_READ | mmap.PROT_WRITE, mmap.MAP_SHARED | _MAP_FIXED, fd, offset)
+
+    def array(self, at: int, dtype, shape: tuple) -> np.ndarray:
+        """An array on the bytes from ``at`` on, which keeps the range mapped."""
+        return np.asarray(_OnRange(self, at, np.dtype(dtype), shape))
+
+    def __del__(self):
+        if getattr(self, "addr", None):
+            self._libc.munmap(self.addr, self.size)
+
+
+class _OnRange:
+    """What :meth:`AddressRange.array` hands NumPy: the array's base, which holds the range."""
+
+    def __init__(self, space: AddressRange, at: int, dtype: np.dtype, shape: tuple):
+        self.space = space
+        self.__array_interface__ = {
+            "data": (space.addr + at, False),
+            "shape": tuple(shape),
+            "typestr": dtype.str,
+            "version": 3,
+        }
+
+
+#: Linux's mmap protection and flags that Python's mmap module does not name.
+_PROT_NONE, _MAP_FIXED, _MAP_NORESERVE = 0, 0x10, 0x4000
+
+
 @dataclasses.dataclass(frozen=True)
 class SharedColumns:
-    """Columns of ``n`` rows laid out in one file in shared memory (``/dev/shm``, else the
-    temporary folder): each worker process of this host writes its rows in place, and the
-    client maps the file once and unlinks it, so that the results of a local process
-    cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
-    row)}; the columns follow each other, each at an offset aligned to 64 bytes."""
+    """Columns of ``n`` rows laid out in shared memory (``/dev/shm``, else the temporary
+    folder), in the file ``path`` or in a file per chunk: each worker process of this host
+    writes its rows in place, and the client maps the files and unlinks them, so that the
+    results of a local process cluster cross no socket and are copied nowhere. ``layout``: {name: (dtype, shape of a
+    row)}; the columns follow each other, each at an offset aligned to 64 bytes.
+    ``writers``: the processes that write it at once (:func:`write_at`: with one, the
+    write call, the cheapest; with several, populated mappings, which they fill in
+    parallel). ``chunks``: where given, the first rows of chunks that each writer writes
+    whole into a file of its own (``path.ROW``, its columns at page-aligned offsets), with
+    the write call and no lock shared with another writer, which the reader maps back to
+    back into one range of its addresses (:class:`AddressRange`: Linux): each chunk but the
+    last a whole number of pages in every column (a multiple of the page size in rows)."""
 
     path: str
     n: int
     layout: dict
+    writers: int = 1
+    chunks: tuple = ()
 
-    def offsets(self) -> dict:
+    def offsets(self, align: int = 64) -> dict:
         out, at = {}, 0
         for k, (dtype, shape) in self.layout.items():
             out[k] = at
-            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // 64) * 64
+            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // align) * align
         out[None] = at
         return out
 
     def nbytes(self) -> int:
         return self.offsets()[None]
 
+    def _chunk(self, at: int) -> SharedColumns:
+        """The chunk of ``chunks`` that starts at row ``at``, as columns of its own file."""
+        i = self.chunks.index(at)
+        end = self.chunks[i + 1] if i + 1 < len(self.chunks) else self.n
+        return SharedColumns(f"{self.path}.{at}", end - at, self.layout)
+
     def columns(self, mode: str = "r+") -> dict[str, np.ndarray]:
+        if self.chunks:
+            return self._stitched()
         off = self.offsets()
         return {
             k: np.asarray(np.memmap(self.path, dtype=dtype, mode=mode, offset=off[k], shape=(self.n,) + tuple(shape)))
@@ -671,28 +840,57 @@ class SharedColumns:
             if self.n
         }
 
+    def _stitched(self) -> dict[str, np.ndarray]:
+        """The columns, each chunk file's part of a column mapped where its rows go."""
+        page = mmap.PAGESIZE
+        off = self.offsets(page)
+        space = AddressRange(off[None])
+        for at in self.chunks:
+            part = self._chunk(at)
+            sections = part.offsets(page)
+            fd = os.open(part.path, os.O_RDWR)
+            try:
+                for k, (dtype, shape) in self.layout.items():
+                    row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+                    if size := -(-part.n * row // page) * page:  # (a row of no bytes maps nothing)
+                        space.map(off[k] + at * row, fd, sections[k], size)
+            finally:
+                os.close(fd)
+        return {k: space.array(off[k], dtype, (self.n,) + tuple(shape)) for k, (dtype, shape) in self.layout.items()}
+
     def write(self, at: int, res: dict) -> None:
-        """Rows ``at`` .. of the columns ``res`` {name: array}, written with ``pwrite``: a
-        page of a fresh shared-memory file written through a mapping is a page fault
-        each (4 kB), which made the write of a GPU's chunk slower than its evaluation,
-        and serialized the worker processes writing one file; a write call fills the
-        pages in bulk (4x as fast on one process here)."""
-        off = self.offsets()
-        fd = os.open(self.path, os.O_RDWR)
+        """Rows ``at`` .. of the columns ``res`` {name: array} (:func:`write_at`); with
+        ``chunks``, the whole chunk that starts there, into its own file."""
+        if self.chunks:
+            part = self._chunk(at)
+            off, first = part.offsets(mmap.PAGESIZE), 0
+            fd = os.open(part.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+        else:
+            off, first = self.offsets(), at
+            fd = os.open(self.path, os.O_RDWR)
         try:
+            if self.chunks:
+                os.ftruncate(fd, off[None])
             for k, v in res.items():
                 dtype, shape = self.layout[k]
                 row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
                 data = np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)
-                view, at_byte = memoryview(data), off[k] + at * row
-                while view:  # (a call writes at most 2 GB)
-                    done = os.pwrite(fd, view, at_byte)
-                    view, at_byte = view[done:], at_byte + done
+                write_at(fd, data, off[k] + first * row, mapped=self.writers > 1 and not self.chunks)
         finally:
             os.close(fd)
 
+    def remove(self) -> None:
+        """The file and the chunks' files, those there are (their pages stay where mapped)."""
+        for path in [self.path] + [f"{self.path}.{at}" for at in self.chunks]:
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+
     @classmethod
-    def create(cls, n: int, layout: dict | None, folders=None) -> SharedColumns | None:
+    def create(
+        cls, n: int, layout: dict | None, folders=None, writers: int = 1, chunks: tuple = ()
+    ) -> SharedColumns | None:
         """A new file of these columns in the first of ``folders`` (default ``/dev/shm``,
         then the temporary folder) with twice its size free, or None (a worker writing past
         the end of a full tmpfs would be killed). ``layout`` None: an empty file, which the
@@ -711,7 +909,7 @@ class SharedColumns:
                     os.ftruncate(fd, size)
                 finally:
                     os.close(fd)
-                return cls(path, n, layout)
+                return cls(path, n, layout, writers, tuple(chunks))
         return None
 
     def sized(self, layout: dict, rows: int) -> SharedColumns | None:
@@ -781,9 +979,12 @@ class ClusterEvaluator:
         )
 
     def _starts(self, n: int) -> range:
-        """First points of the chunks of n points."""
-        workers = max(1, len(self.client.scheduler_info()["workers"]))
-        return range(0, max(n, 1), self.chunk or max(1, -(-n // (CHUNKS_IN_FLIGHT * workers))))
+        """First points of the chunks of n points (by default a multiple of the page size
+        where longer than a page: :func:`_chunk_files`)."""
+        step = max(1, -(-n // (CHUNKS_IN_FLIGHT * _workers(self.client))))
+        if step > mmap.PAGESIZE:
+            step = -(-step // mmap.PAGESIZE) * mmap.PAGESIZE
+        return range(0, max(n, 1), self.chunk or step)
 
     def _gather(self, n: int, starts: range, parts) -> dict[str, np.ndarray]:
         """The chunks' objectives ``parts`` (in order) as (n,) arrays, each copied into
@@ -809,15 +1010,17 @@ class ClusterEvaluator:
         if self.shared and n:
             if self._layout is None:
                 self._layout = self.client.submit(_objective_layout, self.key, self.spec, pure=False).result()
-            out = SharedColumns.create(n, self._layout)
+            out = SharedColumns.create(
+                n, self._layout, writers=_workers(self.client), chunks=_chunk_files(starts, self._layout)
+            )
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         try:
             for _ in ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out):
                 pass
-            return out.columns()  # (the file goes; its pages stay mapped here)
+            return out.columns()  # (the files go; their pages stay mapped here)
         finally:
-            os.unlink(out.path)
+            out.remove()
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""
@@ -834,6 +1037,19 @@ class ClusterEvaluator:
     def evaluate(self, values: dict) -> dict[str, np.ndarray]:
         """Objectives of design points ``{variable: (n,) array}``."""
         return self.evaluate_table(self.space.varying_table(values))
+
+
+#: At most this many pieces (chunks x columns) mapped into one range: a process has at
+#: most ``vm.max_map_count`` (65530 by default) mappings.
+MAPPED_PIECES = 4096
+
+
+def _chunk_files(starts: range, layout: dict) -> tuple:
+    """``starts`` where each chunk of evaluations may go into a file of its own
+    (:class:`SharedColumns`: on Linux, chunks of a multiple of the page size in points,
+    not too many pieces to map), else ()."""
+    ok = sys.platform == "linux" and starts.step % mmap.PAGESIZE == 0 and len(starts) * len(layout) <= MAPPED_PIECES
+    return tuple(starts) if ok else ()
 
 
 def _local_processes(client) -> bool:

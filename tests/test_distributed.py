@@ -4,6 +4,9 @@ worker processes, the same code that runs one worker per GPU."""
 
 from __future__ import annotations
 
+import os
+import sys
+
 import numpy as np
 import pytest
 
@@ -300,6 +303,8 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         assert drawn.shared
         drawn.warm_up()
         sobol = drawn.evaluate_sobol(50, seed=7, first=5)
+        # chunks of two pages of points and a shorter last one: a file each, mapped as one
+        paged = ClusterEvaluator(procs, space, chunk=2 * 4096).evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
@@ -318,7 +323,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     ev = Evaluator(space, extra=["acoustic_loss"])
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
     assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
-    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared file went at once
+    one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, 3)[0])
+    assert set(paged) == set(one) and all(np.array_equal(paged[k], one[k], equal_nan=True) for k in one)
+    assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared files went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
         with (
@@ -450,13 +457,16 @@ def test_reduced_sweep_on_cluster_equals_one_process(client, tmp_path, mode):
         sweep(space, tmp_path / "no.nc", client=client, **{**kw, "raw": True})
 
 
-def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
+@pytest.mark.parametrize("writers", [1, 2])
+def test_shared_columns_hold_what_each_writer_wrote(tmp_path, writers):
     # columns of several dtypes and row shapes in one file, each at a 64-byte offset; two
-    # writers' row ranges read back exactly through the client's one mapping
+    # writers' row ranges (by the write call, or through populated mappings) read back
+    # exactly through the client's one mapping
     from tawarp.distributed import SharedColumns
 
     layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ())}
-    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)])
+    cols = SharedColumns.create(5, layout, folders=[str(tmp_path)], writers=writers)
+    assert cols.writers == writers
     assert all(v % 64 == 0 for v in cols.offsets().values())
     rows = {
         "gradient": np.arange(5.0) / 3,
@@ -468,6 +478,92 @@ def test_shared_columns_hold_what_each_writer_wrote(tmp_path):
     back = cols.columns()
     assert all(np.array_equal(back[k], np.asarray(v, dtype=layout[k][0])) for k, v in rows.items())
     assert SharedColumns.create(5, layout, folders=[str(tmp_path / "missing")]) is None
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="chunk files are mapped back to back on Linux")
+def test_chunk_files_read_back_as_one_column_each(tmp_path):
+    # three chunks of a page multiple in rows and a shorter last one, each written whole
+    # into its own file in any order: the reader sees one column each, exactly what was
+    # written, still there once the files are removed and the columns' owner gone
+    import gc
+    import mmap
+
+    from tawarp.distributed import SharedColumns
+
+    page = mmap.PAGESIZE
+    n = 3 * page + 77
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,)), "material": ("|i1", ()), "ok": ("|b1", ())}
+    rng = np.random.default_rng(5)
+    rows = {
+        "gradient": rng.standard_normal(n),
+        "window": rng.standard_normal((n, 3)).astype(np.float32),
+        "material": rng.integers(-3, 4, n).astype(np.int8),
+        "ok": rng.random(n) < 0.5,
+    }
+    starts = (0, page, 2 * page, 3 * page)
+    cols = SharedColumns.create(n, layout, folders=[str(tmp_path)], writers=2, chunks=starts)
+    for lo in (2 * page, 3 * page, 0, page):
+        hi = min(n, lo + page)
+        cols.write(lo, {k: v[lo:hi] for k, v in rows.items()})
+    back = cols.columns()
+    cols.remove()
+    del cols
+    gc.collect()
+    assert not list(tmp_path.iterdir())
+    for k, v in rows.items():
+        assert back[k].dtype == np.dtype(layout[k][0]) and np.array_equal(back[k], v), k
+    back["gradient"][:2] = 0.0  # (writable, as the one file's mapping is)
+    assert np.array_equal(back["gradient"][2:], rows["gradient"][2:])
+
+
+def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
+    # byte ranges that start inside a page past the first mapping granule and cross page
+    # boundaries, written through populated mappings, leave the file byte for byte as the
+    # write call does, the bytes around them untouched
+    import mmap
+
+    from tawarp.distributed import write_at
+
+    page = mmap.ALLOCATIONGRANULARITY
+    rng = np.random.default_rng(3)
+    size = 5 * page
+    pieces = [
+        (page + 7, rng.integers(0, 256, 2 * page + 100, dtype=np.uint8)),
+        (3 * page + 200, np.arange(9, dtype=np.uint8)),
+    ]
+    files = {}
+    for mapped in (False, True):
+        path = tmp_path / f"mapped{mapped}"
+        path.write_bytes(b"\xab" * size)
+        fd = os.open(path, os.O_RDWR)
+        try:
+            for at, data in pieces:
+                write_at(fd, data, at, mapped=mapped)
+            write_at(fd, np.empty(0, dtype=np.uint8), 0, mapped=mapped)
+        finally:
+            os.close(fd)
+        files[mapped] = np.frombuffer(path.read_bytes(), dtype=np.uint8)
+    want = np.full(size, 0xAB, dtype=np.uint8)
+    for at, data in pieces:
+        want[at : at + data.size] = data
+    assert np.array_equal(files[False], want) and np.array_equal(files[True], want)
+
+
+def test_a_gpus_cpus_are_those_its_numa_node_lists(tmp_path):
+    # the kernel's cpulist format (ranges and single CPUs, comma separated) under the PCI
+    # address that Warp's pci_bus_id names (domain of 8 hex digits there, 4 in sysfs); an
+    # unknown device, or none, leaves the workers where they are
+    from tawarp.distributed import gpu_cpus, near_gpu
+
+    node = tmp_path / "0000:1b:00.0"
+    node.mkdir()
+    (node / "local_cpulist").write_text("0-3,8,10-11\n")
+    assert gpu_cpus("00000000:1B:00", str(tmp_path)) == {0, 1, 2, 3, 8, 10, 11}
+    assert gpu_cpus("00000000:1C:00", str(tmp_path)) is None
+    assert gpu_cpus(None, str(tmp_path)) is None
+    before = os.sched_getaffinity(0)
+    near_gpu(None)
+    assert os.sched_getaffinity(0) == before
 
 
 def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
