@@ -351,8 +351,9 @@ def sweep_child(device, mode, n, chunk, path):
                 # the evaluation alone on one Sobol chunk: as drawn, grouped by material, sorted
                 # by every value (a warp's designs alike: what their differences cost)
                 **evaluation,
-                # outside the chunks' loop: setup, the reductions' writing, the file's close
+                # outside the chunks' loop: setup, the reductions' results and writing, the file's close
                 "other_s": info.seconds - info.evaluation_seconds - info.write_seconds,
+                "reduction_write_s": info.reduction_write_seconds,
                 "overwrite_seconds": again.seconds,
                 "overwrite_evaluations_per_hour": again.evaluations_per_hour,
                 "peak_rss_MiB": rss / 1024.0,

@@ -204,14 +204,19 @@ def sobol_points(
     the set bits j of the point's Gray code i ^ (i >> 1), times ``scale`` = 2^-bits. This is
     the construction of scipy.stats.qmc.Sobol, whose points it gives bit for bit from that
     engine's numbers (:func:`tawarp.design.samplers.sobol_directions`): any point is made
-    where it is used, without the sequence's recurrence."""
+    where it is used, without the sequence's recurrence. The sequence's 2^30 points and
+    30-bit numbers fit int32 (half the integer instructions of int64); the loop ends at
+    the Gray code's highest set bit."""
     k, d = wp.tid()
-    i = first + wp.int64(k)
-    gray = i ^ (i >> wp.int64(1))
-    q = shift[d]
-    for j in range(directions.shape[1]):
-        if ((gray >> wp.int64(j)) & wp.int64(1)) != wp.int64(0):
-            q = q ^ directions[d, j]
+    i = wp.int32(first + wp.int64(k))
+    gray = i ^ (i >> 1)
+    q = wp.int32(shift[d])
+    j = int(0)
+    while gray != 0:
+        if (gray & 1) != 0:
+            q = q ^ wp.int32(directions[d, j])
+        gray = gray >> 1
+        j = j + 1
     unit[k, d] = wp.float64(q) * scale
 
 
