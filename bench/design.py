@@ -20,7 +20,10 @@ grid: the 4 materials times 2^k values of each continuous variable) at both size
 writes bench/results/design_sweep_<device>.json: per sweep the evaluations per hour, the
 seconds waiting on the device (evaluation_s) and writing (write_s), the same sweep again over
 the file it wrote (overwrite_*: ext4 writes the new file's data out at the rename), and the engine's own rate on one chunk (table, heat solve, metrics, to the
-device's completion) for comparison.
+device's completion) for comparison: a chunk that is a whole coarser grid (every material,
+each variable's full range), the sweep's own Sobol points, those with the reductions, and
+the evaluation alone on those points as drawn, grouped by material and sorted by every
+value (what a warp's differing designs cost).
 
     python bench/design.py --device cuda                # < 3 min on one H100
     python bench/design.py --device cuda --sweep-only   # sweeps alone
@@ -266,6 +269,38 @@ def _engine_rate(space, device, chunk, mode="grid", reduce=None):
     return reps * chunk / (time.perf_counter() - t)
 
 
+def _evaluation_rate(space, device, chunk, order=None):
+    """Points per second of the evaluation alone (heat solve, metrics, their float32
+    columns; no table made, no reduction) on one chunk of the sweep's Sobol points, whose
+    table is made once and, with ``order``, its columns sorted on the host first:
+    ``"material"`` grouped by material (stable: Sobol order within each), ``"values"`` by
+    every design value (material first): the most coherent order the same points have.
+    Against the unsorted rate: what a warp's 32 differing designs cost (divergent branches,
+    the math functions' own value-dependent paths)."""
+    import warp as wp
+
+    from tawarp.design.evaluate import Evaluator
+    from tawarp.design.objectives import kernel_metrics
+    from tawarp.design.space import DeviceTable
+    from tawarp.model.forward import ForwardSettings
+
+    ev = Evaluator(space, settings=ForwardSettings(device=device))
+    table, values = DeviceTable(space, ev.device).sobol(0, chunk, 0)
+    if order is not None:
+        v = values.numpy()  # rows: the continuous variables, then the material (lexsort's first key)
+        perm = np.lexsort(v[-1:] if order == "material" else v)
+        table = wp.array(table.numpy()[:, perm], dtype=wp.float64, device=ev.device)
+    outputs = kernel_metrics()
+    ev.metric_columns(ev.evaluate_device(table), outputs)
+    wp.synchronize_device(ev.device)
+    reps = 5
+    t = time.perf_counter()
+    for _ in range(reps):
+        ev.metric_columns(ev.evaluate_device(table), outputs)
+    wp.synchronize_device(ev.device)
+    return reps * chunk / (time.perf_counter() - t)
+
+
 def sweep_child(device, mode, n, chunk, path):
     """Run one sweep in this process and print its numbers (peak RSS of this process)."""
     from tawarp.model.forward import ForwardSettings
@@ -284,11 +319,18 @@ def sweep_child(device, mode, n, chunk, path):
     info = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings, **kw)
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     again = sweep(space, path, mode=mode, n_samples=n, chunk=chunk, settings=settings, **kw)  # over the file
-    engine = _engine_rate(_grid_space(n), device, chunk)
+    # one chunk that is a whole (coarser) grid: every material, each variable's full range
+    # (the sweep's own first chunk is one material and a quarter of the stack lengths)
+    engine = _engine_rate(_grid_space(chunk), device, chunk)
     sobol_engine = reduced_engine = None
+    evaluation = {}
     if mode == "sobol":
         sobol_engine = 3600.0 * _engine_rate(space, device, chunk, "sobol")
         reduced_engine = 3600.0 * _engine_rate(space, device, chunk, "sobol", REDUCE) if kw else None
+        evaluation = {
+            f"evaluation_{name}_evaluations_per_hour": 3600.0 * _evaluation_rate(space, device, chunk, order)
+            for name, order in (("sobol", None), ("by_material", "material"), ("by_values", "values"))
+        }
     print(
         json.dumps(
             {
@@ -306,8 +348,12 @@ def sweep_child(device, mode, n, chunk, path):
                 # what the device costs; the rest of ``seconds`` is the host's
                 "engine_sobol_evaluations_per_hour": sobol_engine,
                 "engine_reduced_evaluations_per_hour": reduced_engine,
-                # outside the chunks' loop: setup, the reductions' writing, the file's close
+                # the evaluation alone on one Sobol chunk: as drawn, grouped by material, sorted
+                # by every value (a warp's designs alike: what their differences cost)
+                **evaluation,
+                # outside the chunks' loop: setup, the reductions' results and writing, the file's close
                 "other_s": info.seconds - info.evaluation_seconds - info.write_seconds,
+                "reduction_write_s": info.reduction_write_seconds,
                 "overwrite_seconds": again.seconds,
                 "overwrite_evaluations_per_hour": again.evaluations_per_hour,
                 "peak_rss_MiB": rss / 1024.0,

@@ -5,7 +5,7 @@ Per parameter set i (one thread), from the nodal temperatures of
 
 - ``out[i, GRADIENT]`` gradient across the stack ``(T(x3) - T(x2)) / l_s`` [K/m];
 - ``out[i, T_MAX]`` maximum temperature over the thermal domain [K]: the nodes, and inside
-  each cell with a source (the heater) the zero of dtheta/dx, found by bisection on the
+  each cell with a source (the heater) the zero of dtheta/dx, in closed form on the
   exact cell profile (theta' has at most one zero in a constant-coefficient cell);
 - ``out[i, HEAT_LEAK]`` heat leaked to the wall in the stack ``∫ (2 h_s/R) theta S dx`` [W],
   exact per cell: ``∫ theta = d [mean tanh(v)/v + sigma (1 - tanh(v)/v) / k^2]``,
@@ -48,22 +48,39 @@ PI = wp.constant(wp.float64(3.141592653589793))
 
 
 @wp.func
+def atanhx_x(z: wp.float64):
+    """artanh(z) / z for |z| < 1 (-> 1 at 0)."""
+    if wp.abs(z) < wp.float64(1.0e-3):
+        z2 = z * z
+        return wp.float64(1.0) + z2 / wp.float64(3.0) * (wp.float64(1.0) + wp.float64(0.6) * z2)
+    return wp.float64(0.5) * wp.log((wp.float64(1.0) + z) / (wp.float64(1.0) - z)) / z
+
+
+@wp.func
 def cell_max(theta_l: wp.float64, theta_r: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float64):
-    """Largest theta in a cell (ends or interior stationary point)."""
+    """Largest theta in a cell (ends or interior stationary point).
+
+    About the cell centre (m = xi - d/2, u = k m, v = k d/2) the profile of
+    :func:`cell_profile` is (mean - sigma/k^2) cosh(u)/cosh(v) + half sinh(u)/sinh(v) +
+    sigma/k^2, so theta' = 0 where tanh(k m) = z = 2 half k / (d tanh(v)/v (sigma - mean k^2)):
+    m = artanh(z)/k, written with artanh(z)/z and tanh(v)/v so that k -> 0 (the parabola,
+    m = 2 half / (d sigma)) is the same expression. One stationary point at most, inside
+    when theta' > 0 at the left end and < 0 at the right; the value there is the profile's
+    own (flat at a stationary point: the rounding of m costs nothing to first order)."""
     best = wp.max(theta_l, theta_r)
     t0, g0 = cell_profile(theta_l, theta_r, k, sigma, d, wp.float64(0.0))
     t1, g1 = cell_profile(theta_l, theta_r, k, sigma, d, d)
     if g0 > wp.float64(0.0) and g1 < wp.float64(0.0):
-        a = wp.float64(0.0)
-        b = d
-        for _it in range(60):
-            m = wp.float64(0.5) * (a + b)
-            tm, gm = cell_profile(theta_l, theta_r, k, sigma, d, m)
-            if gm > wp.float64(0.0):
-                a = m
-            else:
-                b = m
-        tm, gm = cell_profile(theta_l, theta_r, k, sigma, d, wp.float64(0.5) * (a + b))
+        mean = wp.float64(0.5) * (theta_l + theta_r)
+        half = wp.float64(0.5) * (theta_r - theta_l)
+        slope = wp.float64(2.0) * half / (d * tanhx_x(wp.float64(0.5) * k * d) * (sigma - mean * k * k))
+        z = k * slope
+        m = wp.float64(0.5) * d
+        if z < wp.float64(0.0):
+            m = -m
+        if wp.abs(z) < wp.float64(1.0):
+            m = wp.clamp(atanhx_x(z) * slope, wp.float64(-0.5) * d, wp.float64(0.5) * d)
+        tm, gm = cell_profile(theta_l, theta_r, k, sigma, d, m + wp.float64(0.5) * d)
         best = wp.max(best, tm)
     return best
 
@@ -187,14 +204,19 @@ def sobol_points(
     the set bits j of the point's Gray code i ^ (i >> 1), times ``scale`` = 2^-bits. This is
     the construction of scipy.stats.qmc.Sobol, whose points it gives bit for bit from that
     engine's numbers (:func:`tawarp.design.samplers.sobol_directions`): any point is made
-    where it is used, without the sequence's recurrence."""
+    where it is used, without the sequence's recurrence. The sequence's 2^30 points and
+    30-bit numbers fit int32 (half the integer instructions of int64); the loop ends at
+    the Gray code's highest set bit."""
     k, d = wp.tid()
-    i = first + wp.int64(k)
-    gray = i ^ (i >> wp.int64(1))
-    q = shift[d]
-    for j in range(directions.shape[1]):
-        if ((gray >> wp.int64(j)) & wp.int64(1)) != wp.int64(0):
-            q = q ^ directions[d, j]
+    i = wp.int32(first + wp.int64(k))
+    gray = i ^ (i >> 1)
+    q = wp.int32(shift[d])
+    j = int(0)
+    while gray != 0:
+        if (gray & 1) != 0:
+            q = q ^ wp.int32(directions[d, j])
+        gray = gray >> 1
+        j = j + 1
     unit[k, d] = wp.float64(q) * scale
 
 

@@ -54,6 +54,61 @@ def test_metrics_match_the_heat_model():
         assert m["heat_leak"][j] == pytest.approx(leak, rel=1e-7)
 
 
+def _cell_max_40_digits(theta_l, theta_r, k, sigma, d):
+    """Largest theta of the exact constant-coefficient cell (ends, or the root of theta'
+    found by a bracketing solver) to 40 digits: the cell's ODE solution written directly,
+    theta = A cosh(k m)/cosh(v) + half sinh(k m)/sinh(v) + sigma/k^2 about the centre m."""
+    import mpmath as mp
+
+    with mp.workdps(40):
+        tl, tr, k, s, d = (mp.mpf(float(x)) for x in (theta_l, theta_r, k, sigma, d))
+        mean, half = (tl + tr) / 2, (tr - tl) / 2
+        if k == 0:  # the parabola
+            th = lambda m: mean + 2 * half * m / d + s * (d * d / 4 - m * m) / 2
+            dth = lambda m: 2 * half / d - s * m
+        else:
+            v, A = k * d / 2, mean - s / k**2
+            th = lambda m: A * mp.cosh(k * m) / mp.cosh(v) + half * mp.sinh(k * m) / mp.sinh(v) + s / k**2
+            dth = lambda m: k * (A * mp.sinh(k * m) / mp.cosh(v) + half * mp.cosh(k * m) / mp.sinh(v))
+        best = max(tl, tr)
+        if dth(-d / 2) > 0 and dth(d / 2) < 0:
+            m = mp.findroot(dth, (-d / 2, d / 2), solver="illinois", tol=mp.mpf(10) ** -60, maxsteps=400)
+            best = max(best, th(m))
+        return float(best)
+
+
+def test_cell_max_is_the_cell_profiles_maximum():
+    """The T_max kernel's closed-form stationary point (design.cell_max) against a 40-digit
+    root of theta' of the same cell, from k d = 0 (the parabola) and 1e-5 (series branches)
+    to 50 (exponential profile), with and without an interior maximum: to rel 1e-14 (a few
+    ulp)."""
+    import warp as wp
+
+    from tawarp.kernels.design import cell_max
+
+    @wp.kernel
+    def maxima(c: wp.array2d(dtype=wp.float64), out: wp.array(dtype=wp.float64)):
+        i = wp.tid()
+        out[i] = cell_max(c[i, 0], c[i, 1], c[i, 2], c[i, 3], c[i, 4])
+
+    rng = np.random.default_rng(3)
+    n = 400
+    d = 10 ** rng.uniform(-3, -1, n)
+    kd = 10 ** rng.uniform(-5, 1.7, n)
+    kd[:8] = 0.0
+    theta_l, theta_r = rng.uniform(0, 500, n), rng.uniform(0, 500, n)
+    # from a source too weak for an interior maximum to one that dominates the ends
+    sigma = 10 ** rng.uniform(-1, 2, n) * (np.abs(theta_l - theta_r) + 50) * (8 / d**2 + (kd / d) ** 2)
+    cells = np.stack([theta_l, theta_r, kd / d, sigma, d], axis=1)
+    out = wp.empty(n, dtype=wp.float64, device="cpu")
+    wp.launch(maxima, dim=n, inputs=[wp.array(cells, dtype=wp.float64, device="cpu"), out], device="cpu")
+    got = out.numpy()
+    ref = np.array([_cell_max_40_digits(*c) for c in cells])
+    interior = ref > np.maximum(theta_l, theta_r)
+    assert 0.2 * n < interior.sum() < 0.95 * n  # both kinds of cell are tested
+    np.testing.assert_allclose(got, ref, rtol=1e-14, atol=0)
+
+
 def test_acoustic_loss_is_a_passive_absorbed_fraction():
     core = load_core("ceramic")
     res = transfer_matrices(core, [50, 200, 500], heat_input=0.0)

@@ -61,7 +61,8 @@ class SweepInfo:
     """``path``, ``n_points``, ``seconds`` (wall), ``evaluations_per_hour``, ``chunks``,
     ``evaluation_seconds`` (launches, transfers and waiting for the device: the device
     time that the writing did not hide), ``write_seconds``, ``reductions`` (a short summary
-    of those asked: :mod:`tawarp.design.reductions`)."""
+    of those asked: :mod:`tawarp.design.reductions`) and ``reduction_write_seconds`` (their
+    results computed from the device's state and written, after the last chunk)."""
 
     path: Path
     n_points: int
@@ -71,6 +72,7 @@ class SweepInfo:
     evaluation_seconds: float
     write_seconds: float
     reductions: dict | None = None
+    reduction_write_seconds: float = 0.0
 
 
 def _units(space: DesignSpace, name: str) -> str:
@@ -191,7 +193,7 @@ def sweep(
         raise ValueError("raw=False (--no-raw) keeps only reductions: give reduce= (--reduce)")
     job = _Job(space, mode, seed, outputs, tuple(freqs), settings)
     t0 = time.perf_counter()
-    t_eval = t_write = 0.0
+    t_eval = t_write = t_reduce = 0.0
     nchunks = 0
     bar = progress_bar(n, "sweep", progress, unit="pt")
     variables = _stored_variables(space, mode, rows) if raw else {}
@@ -269,8 +271,10 @@ def sweep(
                     nchunks += 1
                     bar.update(hi - lo)
             if reducer is not None:  # the groups, written by h5py (Reducer.write) on the closed file
+                t = time.perf_counter()
                 with hdf5_writing(h5py.File(tmp, "r+")) as h5:
                     summary = reducer.write(h5)["summary"]
+                t_reduce = time.perf_counter() - t
             if parts:
                 t = time.perf_counter()
                 _map_parts(tmp, parts_path(path).name, mapped, variables, dims, shape)
@@ -278,7 +282,7 @@ def sweep(
     finally:
         bar.close()
     wall = time.perf_counter() - t0
-    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, summary)
+    return SweepInfo(path, n, wall, 3600.0 * n / max(wall, 1e-12), nchunks, t_eval, t_write, summary, t_reduce)
 
 
 def parts_path(path: str | Path) -> Path:
