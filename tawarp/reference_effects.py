@@ -243,6 +243,11 @@ class LabHeatSolution(NonlinearHeatSolution):
     there and one balance of both fluxes (the limit h_w -> inf of that neighbour); where it
     meets a wall that conducts nothing behind a finite coupling (``wall_resistance`` > 0,
     ``wall_conductance`` 0), no flux passes: its end is adiabatic.
+
+    Attributes beside :class:`tawarp.reference.NonlinearHeatSolution`'s (``wall``: the
+    conductances of the walls at the gas temperature): ``wall_field`` lam_w [W/(m K)] of each
+    thermal segment's wall field (0: none), ``coupling`` 2 h_w/R [W/(m^3 K)], ``wall_rows``
+    {segment's position among the thermal ones: its wall's row in the BVP state}.
     """
 
     def __init__(self, core: Core, lab: LabEffects, heat_input: float, tol: float = HEAT_TOL):
@@ -271,7 +276,7 @@ class LabHeatSolution(NonlinearHeatSolution):
         n = len(self.indices)
         names = [s.name for s in segs]
         # state rows of each wall field, after the gas/solid's
-        field = {j: 2 * n + 2 * k for k, j in enumerate(np.flatnonzero(self.wall_field > 0.0))}
+        field = {int(j): 2 * n + 2 * k for k, j in enumerate(np.flatnonzero(self.wall_field > 0.0))}
         self.wall_rows = field
         self.contact = None
         if lab.contact_resistance:
