@@ -27,7 +27,13 @@ A case (:func:`make_case`, a pure function of its seed):
   all): ``clean`` (twice per cycle), ``effect:NAME`` for every effect of the library at a
   physically typical size (:data:`TYPICAL`), ``two`` (a pair of them, :data:`PAIRS`),
   ``outside`` (an effect outside the library, :func:`calibration_drift`), ``wrong_core``
-  (data of another material fitted with this core; :func:`wrong_cores`).
+  (data of another material fitted with this core; :func:`wrong_cores`);
+* the library's ``wall_conduction`` is drawn as a real wall (:func:`_wall`, the lab suite's
+  draw): lam_w A_w/S 0.2-1 W/(m K) behind the couplings h_w 100-500 W/(m^2 K) of the porous
+  parts and 2.9-3.4 of the buffer tube's laminar gas, each thermal segment's
+  ``wall_resistance`` = 1/h_w (:func:`wall_params`), which the reference solves as the wall's
+  own temperature field (its two-field BVP); a wall in perfect contact with a laminar gas,
+  the library field's ``wall_resistance`` 0, is no rig's.
 
 The outside effect is a **frequency-dependent calibration drift**: every coefficient
 multiplied by ``1 + (a + i b) (f - f_mid)/(f_max - f_min)`` with |a|, |b| in 3-5 %. It is a
@@ -172,6 +178,31 @@ def _signed(rng, lo, hi):
     return float(rng.choice((-1.0, 1.0)) * rng.uniform(lo, hi))
 
 
+def _wall(rng, couplings=None) -> dict:
+    """A tube wall as a temperature field of its own (:class:`tawarp.reference_effects.LabEffects`
+    fields): stainless 0.5-1 mm thick on R = 16.7 mm, lam_w A_w/S = lam_w 2 t/R 0.2-1 W/(m K);
+    coupled by h_w 100-500 W/(m^2 K) where the porous parts touch it (a gas film of ~0.1 mm) and
+    2.9-3.4 in the buffer tube (laminar gas, Nu 3.7-4.4 over D = 33 mm). The couplings come
+    from the generator ``couplings`` (default ``rng``)."""
+    couplings = rng if couplings is None else couplings
+    return {
+        "wall_conductance": _u(rng, 0.2, 1.0),
+        "wall_coupling_porous": _u(couplings, 100.0, 500.0),
+        "wall_coupling_duct": _u(couplings, 2.9, 3.4),
+    }
+
+
+def wall_params(core: Core, wall: dict) -> dict:
+    """The core fields of a :func:`_wall` draw: every thermal segment's ``wall_conductance`` and
+    its ``wall_resistance`` 1/h_w (the porous parts' coupling or the ducts')."""
+    out = {}
+    for i in core.thermal_indices:
+        s = core.segments[i]
+        out[f"{s.name}.wall_conductance"] = wall["wall_conductance"]
+        out[f"{s.name}.wall_resistance"] = 1.0 / wall["wall_coupling_porous" if s.is_porous else "wall_coupling_duct"]
+    return out
+
+
 #: Typical size of every library effect: a function rng -> {"params": {name: value}} or
 #: {"ambient": geometry}, and why that size.
 TYPICAL = {
@@ -194,8 +225,10 @@ TYPICAL = {
     "radiation": lambda rng: {"params": {"stack.radiative_conductivity": _u(rng, 0.01, 0.05)}},
     # natural convection in a 10 cm tube: h_c ~ 1.3 / L^(1/4) ~ 1-3 W/(m^2 K^1.25)
     "convection": lambda rng: {"params": {"tbt.h_convection": _u(rng, 1.0, 3.0)}},
-    # stainless wall 0.5-1 mm thick on R = 16.7 mm: lam_w 2 t / R ~ 0.2-1 W/(m K)
-    "wall_conduction": lambda rng: {"wall": _u(rng, 0.2, 1.0)},
+    # a conducting tube wall as a field of its own, behind the physical couplings of :func:`_wall`;
+    # those from a child stream (spawning leaves the parent's stream where it is), so that the
+    # case's draws after its effects (noise, sigma columns) are those of a wall in perfect contact
+    "wall_conduction": lambda rng: {"wall": _wall(rng, rng.spawn(1)[0])},
     # ambient exchangers: 5-15 mm of fins or mesh, porosity 0.6-0.85, pore radius 0.3-1.2 mm
     "ambient_exchangers": lambda rng: {
         "ambient": {
@@ -254,11 +287,7 @@ LAB = {
         "stack pressed against the hot exchanger: contact conductance 1e3-1e4 W/(m^2 K), R_c 1e-4..1e-3 m^2 K/W",
     ),
     "wall_field": LabEffect(
-        lambda rng, truth, core: {
-            "wall_conductance": _u(rng, 0.2, 1.0),
-            "wall_coupling_porous": _u(rng, 100.0, 500.0),
-            "wall_coupling_duct": _u(rng, 2.9, 3.4),
-        },
+        lambda rng, truth, core: _wall(rng),
         "wall_conduction",
         "stainless wall 0.5-1 mm (lam_w A_w/S 0.2-1 W/(m K)); h_w 100-500 W/(m^2 K) where the porous parts touch "
         "it, 2.9-3.4 in the buffer tube (laminar gas, Nu 3.7-4.4 over D = 33 mm)",
@@ -438,9 +467,7 @@ def true_core(case: Case, effects: list[str] | None = None) -> Core:
         if "params" in draw:
             core = core.replace(**draw["params"])
         if "wall" in draw:
-            core = core.replace(
-                **{f"{core.segments[i].name}.wall_conductance": draw["wall"] for i in core.thermal_indices}
-            )
+            core = core.replace(**wall_params(core, draw["wall"]))
         if "ambient" in draw:
             core = with_ambient_exchangers(core, **draw["ambient"])
     return core

@@ -19,7 +19,9 @@ Physics:
 * gas: ideal gas, ``rho = p_m/(R_gas T)``, ``c^2 = gamma R_gas T``, transport law
   ``X(T) = X0 (T/T0)^a (1 + S/T0)/(1 + S/T)``, ``T0 = 273.15 K`` (:mod:`tawarp.model.gas`);
 * steady heat model (paper Eqs. 10-12) on the contiguous ``thermal`` segments, solved
-  exactly (:func:`heat_profile_exact`);
+  exactly (:func:`heat_profile_exact`); with a temperature-dependent effect, or a wall that
+  is a temperature field of its own (``wall_resistance`` > 0 with a ``wall_conductance``),
+  by collocation (:func:`heat_profile`);
 * acoustics: Rott's two-port ODE ``d(p,U)/dx = A(x) (p,U)``, closed form where the
   temperature is uniform, DOP853 on the 2x2 fundamental matrix where it is not
   (:func:`transfer_matrix`).
@@ -47,6 +49,8 @@ __all__ = [
     "energy_balance",
     "NonlinearHeatSolution",
     "heat_profile",
+    "wall_field_indices",
+    "tied_walls",
     "thermoviscous_function",
     "rott_coefficients",
     "segment_transfer_matrices",
@@ -106,12 +110,41 @@ def segment_conductivity(core: Core, seg) -> float:
     (a :class:`Segment`, its index or its name).
 
     Porous: ``phi k_gas(T_cold) + (1 - phi) solid_conductivity``; duct: ``k_gas(T_cold)``;
-    plus the wall's ``wall_conductance`` (0 = off). The gas conductivity is taken at the
-    cold temperature and held constant (the heat model is linear; the temperature-dependent
-    effects are :class:`NonlinearHeatSolution`'s).
+    plus the wall's ``wall_conductance`` (0 = off) where the wall is at the gas temperature
+    (``wall_resistance`` 0). The gas conductivity is taken at the cold temperature and held
+    constant (the heat model is linear; the temperature-dependent effects are
+    :class:`NonlinearHeatSolution`'s). A thermal segment whose wall is a field of its own
+    (:func:`wall_field_indices`) has no such single conductivity: ValueError.
     """
     s = _segment_of(core, seg)
+    if _wall_is_field(s):
+        raise ValueError(
+            f"{core.source}: segment {s.name!r}: wall_resistance = {s.wall_resistance} m^2 K/W with "
+            f"wall_conductance = {s.wall_conductance} W/(m K) makes the wall a temperature field of its own, "
+            "which the closed-form heat solution (heat_profile_exact, energy_balance) does not model: "
+            "use heat_profile"
+        )
     return _material_conductivity(core, s) + s.wall_conductance
+
+
+def _wall_is_field(s: Segment) -> bool:
+    return s.thermal and s.wall_conductance > 0.0 and s.wall_resistance > 0.0
+
+
+def wall_field_indices(core: Core) -> list[int]:
+    """Core indices of the thermal segments whose tube wall is a temperature field of its own:
+    a ``wall_conductance`` lam_w > 0 behind a finite lateral coupling ``wall_resistance``
+    R_w = 1/h_w > 0 (docs/physics.md, "The wall as a second temperature field"). Elsewhere
+    the wall is at the gas temperature, its conductance added to the segment's
+    (:func:`segment_conductivity`)."""
+    return [i for i in core.thermal_indices if _wall_is_field(core.segments[i])]
+
+
+def tied_walls(core: Core) -> Core:
+    """``core`` with every wall at the gas temperature (``wall_resistance`` 0 where it is a
+    field of its own): the same model at Q = 0, and the two-field BVP's first guess."""
+    own = wall_field_indices(core)
+    return core.replace(**{f"{core.segments[i].name}.wall_resistance": 0.0 for i in own}) if own else core
 
 
 def _material_conductivity(core: Core, s: Segment) -> float:
@@ -529,7 +562,18 @@ def nonlinear_effects_on(core: Core) -> bool:
 def heat_profile(core: Core, heat_input: float, tol: float = 1e-8):
     """Steady temperature for heat input ``heat_input`` [W]: the exact linear solution
     (:func:`heat_profile_exact`) or, with a temperature-dependent effect on, the BVP
-    solution :class:`NonlinearHeatSolution` (residual tolerance ``tol``)."""
+    solution :class:`NonlinearHeatSolution` (residual tolerance ``tol``). Where a wall is a
+    temperature field of its own (:func:`wall_field_indices`), the two-field BVP of the lab
+    heat model with no lab effect (:class:`tawarp.reference_effects.LabHeatSolution`, the
+    same temperature laws; residual tolerance ``max(tol, HEAT_TOL)``: its collocation
+    reaches no tighter); at Q = 0 the cold core, wall or not."""
+    if wall_field_indices(core):
+        if heat_input == 0.0:
+            return heat_profile_exact(tied_walls(core), 0.0)
+        # the lab module builds on this one: imported here, where it is needed
+        from .reference_effects import HEAT_TOL, LabEffects, LabHeatSolution
+
+        return LabHeatSolution(core, LabEffects(), heat_input, max(tol, HEAT_TOL))
     if heat_input != 0.0 and nonlinear_effects_on(core):
         return NonlinearHeatSolution(core, heat_input, tol)
     return heat_profile_exact(core, heat_input)

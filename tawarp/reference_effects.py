@@ -20,7 +20,10 @@ The reference (:mod:`tawarp.reference`) models the paper's core. A built rig als
       lam_w theta_w''             + (2 h_w/R)(theta - theta_w)     = 0
 
   (lam_w = 0: the paper's model; h_w -> infinity: theta_w = theta, the sum of the two is
-  the library's "added conductivity" ``lam + wall_conductance``);
+  the library's "added conductivity" ``lam + wall_conductance``). The core's own wall field
+  (``SEGMENT.wall_resistance`` = 1/h_w > 0 with a ``wall_conductance``, per segment) is the
+  same BVP (:class:`LabHeatSolution`, :func:`wall_fields`); the reference's
+  :func:`tawarp.reference.heat_profile` solves it there;
 * **an annular bypass gap** of width ``g`` between the stack and the tube: the stack of
   radius R - g and a parallel-plate channel of spacing g and area S g (2R - g)/R^2 (the
   narrow annulus unrolled; curvature corrections O(g/R)), at the stack's temperature, side
@@ -66,8 +69,9 @@ from .reference import (
     duct_waves,
     gas_properties,
     heat_profile,
-    heat_profile_exact,
     thermoviscous_function,
+    tied_walls,
+    wall_field_indices,
 )
 
 __all__ = [
@@ -79,6 +83,7 @@ __all__ = [
     "microphone_error",
     "parallel",
     "side_branch_impedance",
+    "wall_fields",
 ]
 
 #: Residual tolerance of the first, loose solve of :class:`LabHeatSolution`'s BVP.
@@ -198,36 +203,81 @@ def material_conductivity(core: Core, lab: LabEffects, index: int):
     return lam
 
 
+def wall_fields(core: Core, lab: LabEffects) -> tuple[np.ndarray, np.ndarray]:
+    """Per thermal segment of ``core``, the wall's axial conductance lam_w [W/(m K)] and its
+    lateral coupling h_w [W/(m^2 K)] where the wall is a temperature field of its own, 0 where
+    it is not: the lab's wall (``LabEffects.wall_conductance``, coupled by
+    ``wall_coupling_porous`` / ``wall_coupling_duct``) in every thermal segment, else the
+    core's (``SEGMENT.wall_conductance`` behind ``wall_resistance`` = 1/h_w > 0,
+    :func:`tawarp.reference.wall_field_indices`). Both walls at once are refused: the lab's
+    is the core's written from the physics, not a second one."""
+    segs = [core.segments[i] for i in core.thermal_indices]
+    if lab.wall_conductance > 0.0:
+        own = [core.segments[i].name for i in wall_field_indices(core)]
+        if own:
+            raise ValueError(
+                f"{core.source}: LabEffects.wall_conductance = {lab.wall_conductance} beside the core's own wall "
+                f"field (wall_resistance > 0 in {own}): give the wall once, in the lab effects or in the core"
+            )
+        h_w = [lab.wall_coupling_porous if s.is_porous else lab.wall_coupling_duct for s in segs]
+        return np.full(len(segs), lab.wall_conductance), np.array(h_w)
+    own = set(wall_field_indices(core))
+    lam_w = [core.segments[i].wall_conductance if i in own else 0.0 for i in core.thermal_indices]
+    h_w = [1.0 / core.segments[i].wall_resistance if i in own else 0.0 for i in core.thermal_indices]
+    return np.array(lam_w), np.array(h_w)
+
+
 class LabHeatSolution(NonlinearHeatSolution):
     """Steady temperature with the lab effects' heat physics (contact resistance, wall
-    field, porosity gradient, bypass gap) and every temperature law of
-    :class:`tawarp.reference.NonlinearHeatSolution` (its evaluators, ``lost()`` included).
+    field, porosity gradient, bypass gap), the core's own wall fields (``wall_resistance``)
+    and every temperature law of :class:`tawarp.reference.NonlinearHeatSolution` (its
+    evaluators, ``lost()`` included).
 
     Solved on the state (theta_j, F_j = lam theta'_j) of every thermal segment j, plus
-    (theta_w, F_w = lam_w theta_w') of the wall when it is on, mapped to s in [0, 1], by
-    scipy.integrate.solve_bvp (residual tolerance ``tol``, reached from a solve at
-    :data:`LOOSE_TOL`). Interfaces: F, theta_w and F_w
-    continuous; theta continuous but at the contact, where it jumps by R_c F.
+    (theta_w, F_w = lam_w theta_w') in every segment whose wall is a field of its own
+    (:func:`wall_fields`), mapped to s in [0, 1], by scipy.integrate.solve_bvp (residual
+    tolerance ``tol``, reached from a solve at :data:`LOOSE_TOL`). Interfaces: F, theta_w
+    and F_w continuous; theta continuous but at the contact, where it jumps by R_c F. Where
+    a wall field meets a segment whose wall is in perfect contact (``wall_resistance`` 0,
+    with a conductance or none), the wall runs on at the gas temperature: theta_w = theta
+    there and one balance of both fluxes (the limit h_w -> inf of that neighbour); where it
+    meets a wall that conducts nothing behind a finite coupling (``wall_resistance`` > 0,
+    ``wall_conductance`` 0), no flux passes: its end is adiabatic.
+
+    Attributes beside :class:`tawarp.reference.NonlinearHeatSolution`'s (``wall``: the
+    conductances of the walls at the gas temperature): ``wall_field`` lam_w [W/(m K)] of each
+    thermal segment's wall field (0: none), ``coupling`` 2 h_w/R [W/(m^3 K)], ``wall_rows``
+    {segment's position among the thermal ones: its wall's row in the BVP state}.
     """
 
     def __init__(self, core: Core, lab: LabEffects, heat_input: float, tol: float = HEAT_TOL):
         from scipy.integrate import solve_bvp
 
-        lin = HeatSolution(core, heat_input)
-        for k in ("core", "heat_input", "T_cold", "indices", "x_left", "x_right", "length", "h", "q"):
+        # the first guess: the paper model's exact profile, every wall at the gas temperature
+        lin = HeatSolution(tied_walls(core), heat_input)
+        for k in ("heat_input", "T_cold", "indices", "x_left", "x_right", "length", "h", "q"):
             setattr(self, k, getattr(lin, k))
-        self.lab = lab
+        self.core, self.lab = core, lab
         segs = [core.segments[i] for i in self.indices]
         self.material = [material_conductivity(core, lab, i) for i in self.indices]
         self.lam_m = np.array([lam((a + b) / 2) for lam, a, b in zip(self.material, self.x_left, self.x_right)])
-        self.wall = np.array([s.wall_conductance for s in segs])
+        self.wall_field, h_w = wall_fields(core, lab)
+        own = set(wall_field_indices(core))
+        # the walls at the gas temperature: their conductance added to the segment's
+        self.wall = np.array([0.0 if i in own else core.segments[i].wall_conductance for i in self.indices])
         self.lam = self.lam_m + self.wall
+        # a wall in perfect contact (wall_resistance 0, any conductance, 0 included) is at the
+        # gas temperature up to its ends: a wall field beside it is tied to the gas there
+        tied = [core.segments[i].wall_resistance == 0.0 for i in self.indices]
         self.exponent = np.array([s.conductivity_exponent for s in segs])
         self.radiative = np.array([s.radiative_conductivity for s in segs])
         self.h_conv = np.array([s.h_convection for s in segs])
         self.R, self.S, self.tol = core.radius, core.area, tol
         n = len(self.indices)
         names = [s.name for s in segs]
+        # state rows of each wall field, after the gas/solid's
+        field = {int(j): 2 * n + 2 * k for k, j in enumerate(np.flatnonzero(self.wall_field > 0.0))}
+        self.wall_rows = field
         self.contact = None
         if lab.contact_resistance:
             if lab.contact_left not in names[:-1]:
@@ -236,17 +286,14 @@ class LabHeatSolution(NonlinearHeatSolution):
                     f"by another (thermal: {names})"
                 )
             self.contact = names.index(lab.contact_left)
-        wall_on = lab.wall_conductance > 0.0
+            if (self.contact in field) != (self.contact + 1 in field):
+                raise ValueError(
+                    f"{core.source}: a contact resistance after {lab.contact_left!r}, where a wall field meets a "
+                    "segment without one, is not modelled: give both segments a wall_resistance or neither"
+                )
         # lateral coupling to the wall per unit volume of tube, 2 h_w / R [W/(m^3 K)]
-        self.coupling = (
-            np.array(
-                [2.0 * (lab.wall_coupling_porous if s.is_porous else lab.wall_coupling_duct) / self.R for s in segs]
-            )
-            if wall_on
-            else np.zeros(n)
-        )
+        self.coupling = 2.0 * h_w / self.R
         L, xl = self.length, self.x_left
-        lam_w = lab.wall_conductance
 
         def fun(s, y):
             out = np.empty_like(y)
@@ -255,37 +302,49 @@ class LabHeatSolution(NonlinearHeatSolution):
                 lam = self._conductivity_at(th, j, xl[j] + s * L[j])
                 out[2 * j] = L[j] * F / lam
                 exchange = 2.0 * self._h(th, j) / self.R * th - self.q[j]
-                if wall_on:
-                    to_wall = self.coupling[j] * (th - y[2 * n + 2 * j])
+                if j in field:
+                    o = field[j]
+                    to_wall = self.coupling[j] * (th - y[o])
                     exchange = exchange + to_wall
-                    out[2 * n + 2 * j] = L[j] * y[2 * n + 2 * j + 1] / lam_w
-                    out[2 * n + 2 * j + 1] = -L[j] * to_wall
+                    out[o] = L[j] * y[o + 1] / self.wall_field[j]
+                    out[o + 1] = -L[j] * to_wall
                 out[2 * j + 1] = L[j] * exchange
             return out
 
         def bc(ya, yb):
-            r = [ya[1]]
+            r, walls = [ya[1]], []
             for j in range(n - 1):
+                k = j + 1
                 jump = lab.contact_resistance * yb[2 * j + 1] if j == self.contact else 0.0
-                r += [ya[2 * j + 2] - yb[2 * j] - jump, yb[2 * j + 1] - ya[2 * j + 3]]
+                r.append(ya[2 * k] - yb[2 * j] - jump)
+                a, b = field.get(j), field.get(k)
+                if (a is None) == (b is None):
+                    r.append(yb[2 * j + 1] - ya[2 * k + 1])
+                    if a is not None:
+                        walls += [yb[a] - ya[b], yb[a + 1] - ya[b + 1]]
+                    continue
+                # one side's wall is a field: tied to the other's wall in perfect contact
+                # (theta_w = theta, one balance of the fluxes), or its end adiabatic
+                if a is not None:
+                    r.append(yb[2 * j + 1] + (yb[a + 1] if tied[k] else 0.0) - ya[2 * k + 1])
+                    walls.append(yb[a] - ya[2 * k] if tied[k] else yb[a + 1])
+                else:
+                    r.append(yb[2 * j + 1] - ya[2 * k + 1] - (ya[b + 1] if tied[j] else 0.0))
+                    walls.append(ya[b] - yb[2 * j] if tied[j] else ya[b + 1])
             r.append(yb[2 * n - 1])
-            if wall_on:
-                o = 2 * n
-                r.append(ya[o + 1])
-                for j in range(n - 1):
-                    r += [yb[o + 2 * j] - ya[o + 2 * j + 2], yb[o + 2 * j + 1] - ya[o + 2 * j + 3]]
-                r.append(yb[o + 2 * n - 1])
-            return np.array(r)
+            # the wall adiabatic at the ends of the thermal domain
+            first, last = ([ya[field[0] + 1]] if 0 in field else []), ([yb[field[n - 1] + 1]] if n - 1 in field else [])
+            return np.array(r + first + walls + last)
 
         s = np.linspace(0.0, 1.0, 201)
-        y0 = np.empty(((4 if wall_on else 2) * n, s.size))
+        y0 = np.empty((2 * n + 2 * len(field), s.size))
         for j, idx in enumerate(self.indices):
             x = self.x_left[j] + s * self.length[j]
             y0[2 * j] = lin.theta_in(idx, x)
             y0[2 * j + 1] = lin.lam[j] * lin.dtheta_in(idx, x)
-            if wall_on:
-                y0[2 * n + 2 * j] = y0[2 * j]
-                y0[2 * n + 2 * j + 1] = lam_w * lin.dtheta_in(idx, x)
+            if j in field:
+                y0[field[j]] = y0[2 * j]
+                y0[field[j] + 1] = self.wall_field[j] * lin.dtheta_in(idx, x)
         # continuation in the tolerance: from the paper model's profile, a loose solve first
         # (a direct tight one can wander off to the node limit when the wall field is on)
         for t in dict.fromkeys((max(tol, LOOSE_TOL), tol)):
@@ -308,13 +367,16 @@ class LabHeatSolution(NonlinearHeatSolution):
         return F / self._conductivity_at(th, j, np.asarray(x, dtype=float))
 
     def wall_theta_in(self, index: int, x):
-        """The wall's temperature excess theta_w [K] in thermal segment ``index`` at ``x`` [m]."""
+        """The wall's temperature excess theta_w [K] in thermal segment ``index`` at ``x`` [m],
+        where the wall is a field of its own."""
         j = self._j(index)
-        if not self.lab.wall_conductance:
-            raise ValueError("no wall field: LabEffects.wall_conductance = 0")
-        n = len(self.indices)
+        if j not in self.wall_rows:
+            raise ValueError(
+                f"segment {self.core.segments[index].name!r}: its wall is no field of its own "
+                "(LabEffects.wall_conductance 0 and no wall_resistance > 0 with a wall_conductance)"
+            )
         s = (np.asarray(x, dtype=float) - self.x_left[j]) / self.length[j]
-        return self.bvp.sol(np.clip(s, 0.0, 1.0))[2 * n + 2 * j]
+        return self.bvp.sol(np.clip(s, 0.0, 1.0))[self.wall_rows[j]]
 
 
 def lab_heat_profile(core: Core, lab: LabEffects, heat_input: float, tol: float = HEAT_TOL):
@@ -322,7 +384,7 @@ def lab_heat_profile(core: Core, lab: LabEffects, heat_input: float, tol: float 
     acts on the heat model and Q != 0, else the reference's :func:`tawarp.reference.heat_profile`."""
     if heat_input != 0.0 and lab.heat_on:
         return LabHeatSolution(core, lab, heat_input, tol)
-    return heat_profile(core, heat_input, tol) if heat_input != 0.0 else heat_profile_exact(core, 0.0)
+    return heat_profile(core, heat_input, tol)
 
 
 def side_branch_impedance(
