@@ -856,9 +856,10 @@ def propagation_value(
 
 @wp.func
 def plain_part(geo: PartGeometry, pore_model: int):
-    """True for the cascade's usual part: circular pores (or a duct), a rigid frame and no
-    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular),
-    whose A needs no effect's branch of :func:`propagation_entries`."""
+    """True for the cascade's usual part: circular pores (or a duct), a rigid frame, no
+    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular)
+    and no bypass gap, whose A needs no effect's branch of :func:`propagation_entries` and
+    whose matrix is its own cascade's (a gap's slit is a second one, :func:`slit_point`)."""
     shape = geo.shape_factor
     return (
         pore_model == PORE_CIRCULAR

@@ -197,7 +197,7 @@ def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
     """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i; a porous segment
     with a ``bypass_gap`` g > 0 [m] has the gap's section share g (2R - g)/R^2 and its
     half-spacing g/2 over the pores' radii: the slit beside its pores
-    (:func:`tawarp.kernels.acoustics.slit_point`, the cascade's :func:`gap_channels`)."""
+    (:func:`tawarp.kernels.acoustics.slit_point`, the cascade's ``gap_segment``)."""
     phi, r, q = pore_geometry(params, flags, i, s)
     radius = params[RADIUS, i]
     geo = part_geometry(
