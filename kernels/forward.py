@@ -822,10 +822,17 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                             )
                             dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
                         de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
-                        # d(E M) = dE M + E dM; the cells' tau are summed like the value's
-                        dm = with_tangent_row(
-                            dm, a, axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
-                        )
+                        # d(E M) = dE M + E dM; the cells' tau are summed like the value's. Row a
+                        # in place (not with_tangent_row: no copy of the P rows in the loop)
+                        dma = axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
+                        dm[a, 0] = dma.a[0]
+                        dm[a, 1] = dma.a[1]
+                        dm[a, 2] = dma.b[0]
+                        dm[a, 3] = dma.b[1]
+                        dm[a, 4] = dma.c[0]
+                        dm[a, 5] = dma.c[1]
+                        dm[a, 6] = dma.d[0]
+                        dm[a, 7] = dma.d[1]
                         dlog[a, 0] = dlog[a, 0] + dtau[0]
                         dlog[a, 1] = dlog[a, 1] + dtau[1]
                 m = matmul2(e, m)
