@@ -867,9 +867,14 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         omega: wp.float64,
         half_log_omega: wp.float64,
         gamma: wp.float64,
+        m: CMat2,
+        dm: tangent_rows,
     ):
-        """(T, dT): the T-matrix of segment s with a bypass gap and (P > 0) its derivatives
-        along the P parameters. Two 2-ports side by side between the segment's end planes:
+        """(T m, d(T m)): the cascade's m and its derivatives dm along the P parameters
+        carried through segment s, T its T-matrix with a bypass gap (which carries its own
+        scale: the cascade's log_scale and its derivatives stay). The whole step is out of
+        line, so that the cascade's loop holds one call for it. T: two 2-ports side by side
+        between the segment's end planes:
         its pores (the segment without its gap, porosity phi (1 - x): :func:`pore_geometry`)
         and the gap's slit (:func:`tawarp.kernels.acoustics.slit_point`), each cascaded over
         the segment's cells from the same points (the same temperature profile), joined
@@ -932,25 +937,22 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         gp = sp * wp.float64(2.0)
         gg = sg * wp.float64(2.0)
         t = parallel2(mp, lp, gp, mg, lg, gg)
-        dt = tangent_rows()
         for a in range(P):
-            dt = with_tangent_row(
-                dt,
-                a,
-                parallel2_tangent(
-                    mp,
-                    tangent_row(dmp, a),
-                    lp,
-                    gp,
-                    wp.vec2d(dsp[a, 0], dsp[a, 1]),
-                    mg,
-                    tangent_row(dmg, a),
-                    lg,
-                    gg,
-                    wp.vec2d(dsg[a, 0], dsg[a, 1]),
-                ),
+            dt = parallel2_tangent(
+                mp,
+                tangent_row(dmp, a),
+                lp,
+                gp,
+                wp.vec2d(dsp[a, 0], dsp[a, 1]),
+                mg,
+                tangent_row(dmg, a),
+                lg,
+                gg,
+                wp.vec2d(dsg[a, 0], dsg[a, 1]),
             )
-        return t, dt
+            # d(T m) = dT m + T dm
+            dm = with_tangent_row(dm, a, axpy2(wp.float64(1.0), matmul2(dt, m), matmul2(t, tangent_row(dm, a))))
+        return matmul2(t, m), dm
 
     def transfer_kernel(
         sets: SetTable,
@@ -1052,7 +1054,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                 )
             else:
                 if geo.gap_share > wp.float64(0.0):
-                    t_seg, dt_seg = gap_segment(
+                    m, dm = gap_segment(
                         sets,
                         points,
                         step,
@@ -1070,17 +1072,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                         omega,
                         half_log_omega,
                         gamma,
+                        m,
+                        dm,
                     )
-                    for a in range(P):
-                        # d(T M) = dT M + T dM; T carries its own scale
-                        dm = with_tangent_row(
-                            dm,
-                            a,
-                            axpy2(
-                                wp.float64(1.0), matmul2(tangent_row(dt_seg, a), m), matmul2(t_seg, tangent_row(dm, a))
-                            ),
-                        )
-                    m = matmul2(t_seg, m)
                     p = p + segment_points(flags, cells, i, grid * n_seg + s, s)
                 else:
                     m, log_scale, sigma, dm, dlog, p = part_cells(
