@@ -22,6 +22,7 @@ from tawarp.model.validity import ModelValidityError
 from tawarp.reference_effects import LabEffects, gap_area_fraction, lab_heat_profile, lab_transfer_matrix
 
 from cascade_differences import assert_tangents_match_differences
+from test_onset import _core_matrix
 
 CORE = load_core("ceramic")
 FREQS = np.array([30.0, 120.0, 300.0, 500.0])
@@ -265,6 +266,20 @@ def test_bypass_gap_tangent_cascade_against_extrapolated_differences(name, Q, g)
     names = ["stack.bypass_gap", "stack.porosity", "stack.pore_radius", "stack.h", "tube.radius"]
     v0 = np.array([core.get(k) for k in names])
     assert_tangents_match_differences(core, names, v0, Q, {"stack.bypass_gap": g / 30})
+
+
+@pytest.mark.parametrize("name, g", [("mesh", 2e-4), ("ceramic", 1e-8)])
+def test_bypass_gap_onset_walk_is_the_cascade(name, g):
+    """The onset's complex-frequency walk takes the gap as the cascade does (its pores and
+    slit over the same cells, their admittance matrices added at the ends,
+    tawarp.kernels.onset.gap_matrix_complex): at real omega and 40 W its core matrix is
+    transfer_matrices' T to 1e-13, for a wide slit and for one of 10^4 decay lengths
+    (scaled exponentials)."""
+    core = load_core(name).replace(**{"stack.bypass_gap": g})
+    f = np.array([45.0, 320.0])
+    K = _core_matrix(core, 40.0, 2 * np.pi * f)
+    T = transfer_matrices(core, f, 40.0, cells=16, device="cpu").T[0]
+    assert np.max(np.abs(K - T) / np.abs(T)) < 1e-13
 
 
 def test_bypass_gap_is_validated_naming_the_key():
