@@ -3,7 +3,7 @@ the stack's pores joined to them at the stack's ends (tawarp.kernels.acoustics.p
 Off bit for bit; against the independent reference's lab gap (its own ODE, heat BVP and
 admittance sum) at uniform temperature and along a heated stack; down to gaps whose slit
 overflows a T-matrix; its heat model, a passive reciprocal 2-port, its Jacobian columns
-(the loop's differences and the tangent cascade), and its validation."""
+(the loop's differences and the tangent cascade), the onset's walk, and its validation."""
 
 import dataclasses
 
