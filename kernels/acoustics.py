@@ -48,7 +48,6 @@ from .cmath import (
 from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
 from .pore import (
     PORE_CIRCULAR,
-    PORE_PLATES,
     PORE_SCREENS,
     PoreTable,
     pore_circular_tabulated,
@@ -176,6 +175,31 @@ def cosh_sinhc_exponentials(delta: wp.vec2d):
 
 
 @wp.func
+def cosh_sinhc_scaled(delta: wp.vec2d):
+    """(e^-sigma ch, e^-sigma sh, sigma) of :func:`cosh_sinhc`'s ch and sh: sigma = Re sqrt(delta)
+    (principal root) for |delta| >= 1, where cosh and sinh grow as e^sigma and overflow
+    beyond sigma ~ 710 (a slit far narrower than the viscous depth is a diffusion path of
+    many decay lengths), and sigma = 0 below (:func:`cosh_sinhc` itself). The derivatives
+    of :func:`sinhc_derivative` and :func:`expm2_tangent` are linear in (ch, sh): given
+    the scaled pair they come scaled alike, sigma held fixed."""
+    if cabs2(delta) < wp.float64(1.0):
+        ch, sh = cosh_sinhc(delta)
+        return ch, sh, wp.float64(0.0)
+    return cosh_sinhc_scaled_exponentials(delta)
+
+
+@wp.func(inline=False)  # the rare |delta| >= 1 of a bypass gap's cell: out of line
+def cosh_sinhc_scaled_exponentials(delta: wp.vec2d):
+    """:func:`cosh_sinhc_scaled` for |delta| >= 1, r = sqrt(delta): e^(r - sigma) = e^(i Im r)
+    and e^(-r - sigma) = e^(-2 sigma) / e^(i Im r), neither above 1."""
+    r = csqrt(delta)
+    sigma = r[0]
+    ep = cexp(wp.vec2d(wp.float64(0.0), r[1]))
+    em = cscale(cinv(ep), wp.exp(wp.float64(-2.0) * sigma))
+    return cscale(ep + em, wp.float64(0.5)), cdiv(cscale(ep - em, wp.float64(0.5)), r), sigma
+
+
+@wp.func
 def sinhc_derivative(delta: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d):
     """d/d(delta) of sh = sinh(sqrt delta)/sqrt(delta), given ch and sh at delta
     (:func:`cosh_sinhc`): sum (k+1) delta^k/(2k+3)! for |delta| < 1 (the closed form
@@ -249,6 +273,16 @@ def expm2(m: CMat2):
     """exp(m) of a 2x2 complex matrix (:func:`expm2_traceless`)."""
     e, tau = expm2_traceless(m)
     return cscale2(e, cexp(tau))
+
+
+@wp.func
+def expm2_scaled(m: CMat2):
+    """exp(m) of a 2x2 complex matrix as (E, tau, sigma) with exp(m) = e^(tau + sigma) E and
+    det E = e^(-2 sigma): :func:`expm2_traceless` with :func:`cosh_sinhc_scaled`'s pair,
+    finite wherever exp(m) overflows."""
+    tau, na, delta = traceless_parts(m)
+    ch, sh, sigma = cosh_sinhc_scaled(delta)
+    return traceless_exp(m, na, ch, sh), tau, sigma
 
 
 @wp.func
@@ -382,6 +416,80 @@ def scale2(m: CMat2, s: wp.float64):
     return cmat2(cscale(m.a, s), cscale(m.b, s), cscale(m.c, s), cscale(m.d, s))
 
 
+# -- two 2-ports side by side -------------------------------------------------------------------
+
+
+@wp.func
+def parallel_entries(
+    a1: Any, b1: Any, c1: Any, d1: Any, l1: Any, g1: Any, a2: Any, b2: Any, c2: Any, d2: Any, l2: Any, g2: Any
+):
+    """(A, B, C, D) of two 2-ports side by side between the same two planes: the same p
+    at each plane, the volume velocities adding, so their admittance matrices
+    [U_in, U_out] = Y [p_in, p_out], Y = [[-A/B, 1/B], [-det T/B, D/B]] of
+    T = [[A, B], [C, D]], add. Each 2-port comes scaled, T_j = e^(l_j) [[a_j, b_j], [c_j, d_j]]
+    with det T_j = e^(g_j) (:func:`expm2_scaled`'s form); eliminating the summed Y:
+
+        A = (a1 b2 + a2 b1) / n,  B = b1 b2 / n,  D = (d1 b2 + d2 b1) / n,
+        C = (c1 b2 + c2 b1 + a1 d2 + a2 d1 - e^(g1 - l1 - l2) - e^(g2 - l1 - l2)) / n,
+        n = e^(-l2) b1 + e^(-l1) b2.
+
+    Written so, neither the scales nor a 2-port of huge entries (a slit many decay lengths
+    long: its entries ~ e^(|k| L), its coupling 1/B ~ e^(-|k| L)) overflows or cancels:
+    C takes the determinants as given instead of the difference C - D A/B of two
+    products of that size. Needs b1, b2 != 0 (2-ports that let flow through). Complex or
+    dual numbers, all of one kind (:func:`parallel2`, :func:`parallel2_tangent`)."""
+    n = cmul(cexp(-l2), b1) + cmul(cexp(-l1), b2)
+    ends = cexp(g1 - l1 - l2) + cexp(g2 - l1 - l2)
+    return (
+        cdiv(cmul(a1, b2) + cmul(a2, b1), n),
+        cdiv(cmul(b1, b2), n),
+        cdiv(cmul(c1, b2) + cmul(c2, b1) + cmul(a1, d2) + cmul(a2, d1) - ends, n),
+        cdiv(cmul(d1, b2) + cmul(d2, b1), n),
+    )
+
+
+@wp.func
+def parallel2(m1: CMat2, l1: wp.vec2d, g1: wp.vec2d, m2: CMat2, l2: wp.vec2d, g2: wp.vec2d):
+    """The T-matrix of the 2-ports e^(l1) m1 (det e^(g1)) and e^(l2) m2 (det e^(g2)) side by
+    side (:func:`parallel_entries`)."""
+    a, b, c, d = parallel_entries(m1.a, m1.b, m1.c, m1.d, l1, g1, m2.a, m2.b, m2.c, m2.d, l2, g2)
+    return cmat2(a, b, c, d)
+
+
+@wp.func
+def parallel2_tangent(
+    m1: CMat2,
+    dm1: CMat2,
+    l1: wp.vec2d,
+    g1: wp.vec2d,
+    dl1: wp.vec2d,
+    m2: CMat2,
+    dm2: CMat2,
+    l2: wp.vec2d,
+    g2: wp.vec2d,
+    dl2: wp.vec2d,
+):
+    """The derivative of :func:`parallel2` along a direction in which m_j, l_j and g_j move
+    by dm_j, dl_j and 2 dl_j (a cascade's T = e^(S + sigma) E, det T = e^(2 S): only S
+    moves, :func:`cosh_sinhc_scaled`'s sigma is held): :func:`parallel_entries` on dual
+    numbers."""
+    a, b, c, d = parallel_entries(
+        dual(m1.a, dm1.a),
+        dual(m1.b, dm1.b),
+        dual(m1.c, dm1.c),
+        dual(m1.d, dm1.d),
+        dual(l1, dl1),
+        dual(g1, dl1 * wp.float64(2.0)),
+        dual(m2.a, dm2.a),
+        dual(m2.b, dm2.b),
+        dual(m2.c, dm2.c),
+        dual(m2.d, dm2.d),
+        dual(l2, dl2),
+        dual(g2, dl2 * wp.float64(2.0)),
+    )
+    return cmat2(dual_tangent(a), dual_tangent(b), dual_tangent(c), dual_tangent(d))
+
+
 # -- the propagation matrix A(x) ---------------------------------------------------------------
 # Its physics is written once, in propagation_entries, over generic numbers
 # (tawarp.kernels.cmath): float64 reals and wp.vec2d complex numbers give A at a real or
@@ -417,9 +525,12 @@ class PartGeometry:
     ``tortuosity``, tube section ``area`` [m^2], ``frame_mobility`` = 1/rho_1 [m^3/kg]
     (rho_1 the frame's bulk density; 0 = rigid frame), the viscous ``shape_factor``
     r/Lambda (1 = the circular pore's own; used by circular pores only) and an annular
-    bypass gap beside the pores (:func:`bypass_entries`): its share ``gap_share`` of the
-    tube section (0: no gap) and ``gap_log_nu``, ``gap_log_k`` = ln(y0/r), ln(y0/r_k) of its
-    half-spacing y0 over the pores' viscous and thermal radii."""
+    bypass gap beside the pores: its share ``gap_share`` of the tube section (0: no gap)
+    and ``gap_log_nu``, ``gap_log_k`` = ln(y0/r), ln(y0/r_k) of its half-spacing y0 over the
+    pores' viscous and thermal radii. A is the pores' alone (``porosity``: their share of
+    the section, phi (1 - gap_share) beside a gap); the gap is a second 2-port beside
+    them, a slit of its own A (:func:`slit_point`, :func:`slit_geometry`), joined to them
+    at the part's ends (:func:`parallel2`)."""
 
     porosity: wp.float64
     tortuosity: wp.float64
@@ -498,6 +609,38 @@ def with_bypass(geo: PartGeometry, share: wp.float64, log_nu: wp.float64, log_k:
     out.gap_share = share
     out.gap_log_nu = log_nu
     out.gap_log_k = log_k
+    return out
+
+
+@wp.func
+def without_bypass(geo: PartGeometry):
+    """``geo`` without its bypass gap: the pores' own part (:class:`PartGeometry`)."""
+    return part_geometry(geo.porosity, geo.tortuosity, geo.area, geo.frame_mobility, geo.shape_factor)
+
+
+@wp.func
+def slit_geometry(geo: PartGeometry):
+    """:class:`PartGeometry` of the bypass gap of ``geo``: a slit between parallel plates
+    (the narrow annulus unrolled; curvature corrections O(g/R)) filling the share
+    ``gap_share`` of the section, tortuosity 1, rigid walls."""
+    return part_geometry(geo.gap_share, wp.float64(1.0), geo.area, wp.float64(0.0), wp.float64(1.0))
+
+
+@wp.func
+def slit_point(pc: PointCoefficients, geo: PartGeometry):
+    """:class:`PointCoefficients` of the bypass gap of ``geo`` (:func:`slit_geometry`) at a
+    point whose pores' coefficients are ``pc``: the same gas at the same temperature and
+    gradient (c22, rho), its s = y0/delta from the pores' through ln(y0/r) = ``gap_log_nu``
+    and ln(y0/r_k) = ``gap_log_k``, and its section x S in place of the pores' phi S:
+    c12 = rho/(x S) = c12_pores phi/(q^2 x), c21 = x S/(rho c^2) = c21_pores x/phi."""
+    ratio = geo.gap_share / geo.porosity
+    out = PointCoefficients()
+    out.log_nu = pc.log_nu + geo.gap_log_nu
+    out.log_k = pc.log_k + geo.gap_log_k
+    out.c12 = pc.c12 / (geo.tortuosity * geo.tortuosity * ratio)
+    out.c21 = pc.c21 * ratio
+    out.c22 = pc.c22
+    out.rho = pc.rho
     return out
 
 
@@ -605,90 +748,6 @@ def screen_entries(
 
 
 @wp.func
-def plate_functions(s: wp.vec2d):
-    """(f, g) of parallel plates at complex s = y0/delta (:func:`tawarp.kernels.pore.pore_functions_complex`)."""
-    return pore_functions_complex(PORE_PLATES, s)
-
-
-@wp.func
-def plate_functions(s: wp.vec4d):  # noqa: F811 (a Warp overload)
-    """(f, g) of parallel plates at a dual s: df = (df/d ln s) ds/s with
-    df/d ln s = g + 2 i s^2 f^2 (:func:`tawarp.kernels.pore.pore_log_derivative`, analytic in s)."""
-    s0 = dual_value(s)
-    f, g = pore_functions_complex(PORE_PLATES, s0)
-    d = g + cmuli(cmul(cmul(s0, s0), cmul(f, f))) * wp.float64(2.0)
-    df = cmul(d, cdiv(dual_tangent(s), s0))
-    return dual(f, df), dual(g, -df)
-
-
-@wp.func(inline=False)  # an effect's branch: kept out of the cascade's inlined code
-def bypass_entries(
-    a12: Any,
-    a21: Any,
-    a22: Any,
-    omega: Any,
-    root_omega: Any,
-    log_nu: Any,
-    log_k: Any,
-    c12: Any,
-    c21: Any,
-    c22: Any,
-    porosity: Any,
-    tortuosity: Any,
-    share: Any,
-    gap_log_nu: Any,
-    gap_log_k: Any,
-    gamma: wp.float64,
-):
-    """(a12, a21, a22) of a porous part with an annular bypass gap, from the pores' own
-    entries (a12, a21, a22) as if they filled the tube: two families of pores side by side
-    under one pressure p(x). Where the pores connect sideways (foams, screens: the gas
-    crosses the section within a sound crossing time, R/c << 1/omega) both see the same p
-    and dp/dx, and their volume flows add, U = U_p + U_g, with dp/dx = a12_j U_j in each.
-    Per unit length:
-
-    * the flow admittances add: 1/a12 = 1/a12_p + 1/a12_g;
-    * the compliances add: a21 = a21_p + a21_g;
-    * each family's thermoacoustic term acts on its own flow, U_j = (a12/a12_j) U:
-      a22 = (a22_p a12_g + a22_g a12_p)/(a12_p + a12_g).
-
-    The pores fill the share 1 - x of the section (x = ``share``): a12_p = a12/(1 - x),
-    a21_p = (1 - x) a21. The gap is a slit between parallel plates (the narrow annulus
-    unrolled; curvature corrections O(g/R)) of half-spacing y0 = g/2, porosity x of the
-    section and tortuosity 1, at the pores' temperature: c12_g = rho/(x S) = c12 phi/(q^2 x),
-    c21_g = x S/(rho c^2) = c21 x/phi, the pores' c22, its s = y0/delta from the pores'
-    through ln(y0/r) = ``gap_log_nu`` and ln(y0/r_k) = ``gap_log_k``. The local sum is the
-    limit of the two 2-ports in parallel cell by cell (their admittance matrices adding).
-    A honeycomb with a closed skin joins the two channels at the part's ends only: at one
-    temperature the two forms differ by the gap's diffusion across the part, (L/l)^2 with
-    l = y0 sqrt(p/(3 mu omega)) (0.3 % of the gap's effect at 0.4 mm); along a temperature
-    gradient each separate channel carries its own gas expansion and the flow's split
-    drifts from the one kept here (13 % at 40 W, tests/test_bypass_gap.py). One form for
-    both keeps the gap a field of A (the cascade, its tangents and the onset at once).
-    Real, complex or dual numbers."""
-    one = cone(a12)
-    x = ccomplex(share)
-    phi = ccomplex(porosity)
-    q = ccomplex(tortuosity)
-    inner = one - x
-    a12_p = cdiv(a12, inner)
-    a21_p = cmul(a21, inner)
-    f_nu, g_nu = plate_functions(cmul(root_omega, cexp(ccomplex(log_nu + gap_log_nu))))
-    f_k, g_k = plate_functions(cmul(root_omega, cexp(ccomplex(log_k + gap_log_k))))
-    c12_g = cdiv(cmul(ccomplex(c12), phi), cmul(cmul(q, q), x))
-    c21_g = cdiv(cmul(ccomplex(c21), x), phi)
-    a12_g = cmuli(cmul(omega, cdiv(c12_g, g_nu)))
-    a21_g = cmuli(cmul(omega, cmul(c21_g, one + f_k * (gamma - wp.float64(1.0)))))
-    a22_g = cmul(ccomplex(c22), cdiv(g_nu - g_k, g_nu))
-    total = a12_p + a12_g
-    return (
-        cdiv(cmul(a12_p, a12_g), total),
-        a21_p + a21_g,
-        cdiv(cmul(a22, a12_g) + cmul(a22_g, a12_p), total),
-    )
-
-
-@wp.func
 def propagation_entries(
     omega: Any,
     root_omega: Any,
@@ -706,9 +765,6 @@ def propagation_entries(
     area: Any,
     frame_mobility: Any,
     shape_factor: Any,
-    gap_share: Any,
-    gap_log_nu: Any,
-    gap_log_k: Any,
     gamma: wp.float64,
     pore_model: int,
 ):
@@ -720,74 +776,10 @@ def propagation_entries(
     (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
     (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
     derivative (:func:`propagation_tangent`). The effects: a limp frame
-    (:func:`limp_density`, frame_mobility > 0), a viscous shape factor
-    (:func:`shape_correction`, circular pores) and a bypass gap beside the pores
-    (:func:`bypass_entries`, gap_share > 0). Wire screens take their own entries
-    (:func:`screen_entries`), not the pore functions."""
-    a12, a21, a22 = pore_entries(
-        omega,
-        root_omega,
-        log_nu,
-        log_k,
-        c12,
-        c21,
-        c22,
-        rho,
-        f_k,
-        g_nu,
-        g_k,
-        porosity,
-        tortuosity,
-        area,
-        frame_mobility,
-        shape_factor,
-        gamma,
-        pore_model,
-    )
-    if cre(gap_share) > wp.float64(0.0):
-        return bypass_entries(
-            a12,
-            a21,
-            a22,
-            omega,
-            root_omega,
-            log_nu,
-            log_k,
-            c12,
-            c21,
-            c22,
-            porosity,
-            tortuosity,
-            gap_share,
-            gap_log_nu,
-            gap_log_k,
-            gamma,
-        )
-    return a12, a21, a22
-
-
-@wp.func
-def pore_entries(
-    omega: Any,
-    root_omega: Any,
-    log_nu: Any,
-    log_k: Any,
-    c12: Any,
-    c21: Any,
-    c22: Any,
-    rho: Any,
-    f_k: Any,
-    g_nu: Any,
-    g_k: Any,
-    porosity: Any,
-    tortuosity: Any,
-    area: Any,
-    frame_mobility: Any,
-    shape_factor: Any,
-    gamma: wp.float64,
-    pore_model: int,
-):
-    """(a12, a21, a22) of the pores alone (:func:`propagation_entries` without a gap)."""
+    (:func:`limp_density`, frame_mobility > 0) and a viscous shape factor
+    (:func:`shape_correction`, circular pores). Wire screens take their own entries
+    (:func:`screen_entries`), not the pore functions. (A bypass gap is no part of A: it is
+    a second 2-port beside the part's, :func:`slit_point`.)"""
     if pore_model == PORE_SCREENS:
         return screen_entries(
             omega, log_nu, log_k, c12, c21, c22, rho, porosity, tortuosity, area, frame_mobility, gamma
@@ -856,9 +848,6 @@ def propagation_value(
         geo.area,
         geo.frame_mobility,
         geo.shape_factor,
-        geo.gap_share,
-        geo.gap_log_nu,
-        geo.gap_log_k,
         gamma,
         pore_model,
     )
@@ -867,9 +856,10 @@ def propagation_value(
 
 @wp.func
 def plain_part(geo: PartGeometry, pore_model: int):
-    """True for the cascade's usual part: circular pores (or a duct), a rigid frame and no
-    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular),
-    whose A needs no effect's branch of :func:`propagation_entries`."""
+    """True for the cascade's usual part: circular pores (or a duct), a rigid frame, no
+    viscous shape factor (1, or <= 0: :func:`propagation_entries` reads both as circular)
+    and no bypass gap, whose A needs no effect's branch of :func:`propagation_entries` and
+    whose matrix is its own cascade's (a gap's slit is a second one, :func:`slit_point`)."""
     shape = geo.shape_factor
     return (
         pore_model == PORE_CIRCULAR
@@ -912,9 +902,6 @@ def propagation_circular(
         geo.area,
         wp.float64(0.0),
         wp.float64(1.0),
-        wp.float64(0.0),
-        wp.float64(0.0),
-        wp.float64(0.0),
         gamma,
         PORE_CIRCULAR,
     )
@@ -987,9 +974,6 @@ def propagation_tangent(
         dual_real(geo.area, dgeo.area),
         dual_real(geo.frame_mobility, dgeo.frame_mobility),
         dual_real(geo.shape_factor, dgeo.shape_factor),
-        dual_real(geo.gap_share, dgeo.gap_share),
-        dual_real(geo.gap_log_nu, dgeo.gap_log_nu),
-        dual_real(geo.gap_log_k, dgeo.gap_log_k),
         gamma,
         pore_model,
     )
@@ -1023,9 +1007,6 @@ def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2
         geo.area,
         geo.frame_mobility,
         geo.shape_factor,
-        geo.gap_share,
-        geo.gap_log_nu,
-        geo.gap_log_k,
         gamma,
         pore_model,
     )

@@ -30,7 +30,9 @@ from .acoustics import (
     axpy2,
     cmat2,
     cosh_sinhc,
+    cosh_sinhc_scaled,
     cscale2,
+    expm2_scaled,
     expm2_tangent,
     expm2_traceless,
     geometry_difference,
@@ -40,6 +42,8 @@ from .acoustics import (
     magnus6_omega,
     magnus6_tangent,
     matmul2,
+    parallel2,
+    parallel2_tangent,
     part_geometry,
     point_coefficients,
     point_difference,
@@ -51,9 +55,12 @@ from .acoustics import (
     propagation_value,
     scale2,
     sinhc_derivative,
+    slit_geometry,
+    slit_point,
     traceless_exp,
     traceless_parts,
     with_bypass,
+    without_bypass,
     zero2,
 )
 from .cmath import cabs, cexp
@@ -80,7 +87,7 @@ from .layout import (
     VISCOUS_SHAPE_FACTOR,
     seg_value,
 )
-from .pore import PORE_CIRCULAR, PORE_SCREENS, PoreTable
+from .pore import PORE_CIRCULAR, PORE_PLATES, PORE_SCREENS, PoreTable
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
@@ -142,10 +149,16 @@ def heat_kernel(
 @wp.func
 def pore_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
     """(porosity, pore radius [m], tortuosity) of segment s; a duct is one circular pore
-    of the tube's radius."""
+    of the tube's radius. Beside a ``bypass_gap`` g > 0 the pores fill phi (1 - x) of the
+    section, x = g (2R - g)/R^2 the gap's share (:func:`tawarp.kernels.heat.gap_share`):
+    the stack of radius R - g."""
     if flags[s, F_POROUS] == 0:
         return wp.float64(1.0), params[RADIUS, i], wp.float64(1.0)
-    return seg_value(params, i, s, POROSITY), seg_value(params, i, s, PORE_RADIUS), seg_value(params, i, s, TORTUOSITY)
+    phi = seg_value(params, i, s, POROSITY)
+    gap = seg_value(params, i, s, BYPASS_GAP)
+    if gap > wp.float64(0.0):
+        phi = phi * (wp.float64(1.0) - gap_share(gap, params[RADIUS, i]))
+    return phi, seg_value(params, i, s, PORE_RADIUS), seg_value(params, i, s, TORTUOSITY)
 
 
 @wp.func
@@ -183,7 +196,8 @@ def frame_mobility(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype
 def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dtype=wp.int32), i: int, s: int):
     """:class:`tawarp.kernels.acoustics.PartGeometry` of segment s of set i; a porous segment
     with a ``bypass_gap`` g > 0 [m] has the gap's section share g (2R - g)/R^2 and its
-    half-spacing g/2 over the pores' radii (:func:`tawarp.kernels.acoustics.bypass_entries`)."""
+    half-spacing g/2 over the pores' radii: the slit beside its pores
+    (:func:`tawarp.kernels.acoustics.slit_point`, the cascade's ``gap_segment``)."""
     phi, r, q = pore_geometry(params, flags, i, s)
     radius = params[RADIUS, i]
     geo = part_geometry(
@@ -200,6 +214,43 @@ def segment_geometry(params: wp.array2d(dtype=wp.float64), flags: wp.array2d(dty
                 wp.log(half / thermal_radius(params, flags, i, s, r)),
             )
     return geo
+
+
+# the 2-ports of a segment with a bypass gap (make_transfer_kernel's gap_segment,
+# tawarp.kernels.onset.gap_matrix_complex): the segment as it stands (no gap), its pores
+# beside the gap, the gap's slit
+CHANNEL_PART = wp.constant(0)
+CHANNEL_PORES = wp.constant(1)
+CHANNEL_SLIT = wp.constant(2)
+
+
+@wp.func
+def channel_geometry(geo: PartGeometry, channel: int):
+    """The :class:`tawarp.kernels.acoustics.PartGeometry` of ``channel`` of a segment of
+    geometry ``geo``: the slit's (:func:`tawarp.kernels.acoustics.slit_geometry`), the pores'
+    without the gap, or ``geo`` itself."""
+    if channel == CHANNEL_SLIT:
+        return slit_geometry(geo)
+    if channel == CHANNEL_PORES:
+        return without_bypass(geo)
+    return geo
+
+
+@wp.func
+def channel_point(pc: PointCoefficients, geo: PartGeometry, channel: int):
+    """The point coefficients of ``channel`` at a point whose pores' are ``pc``
+    (:func:`tawarp.kernels.acoustics.slit_point` for the slit, else ``pc``)."""
+    if channel == CHANNEL_SLIT:
+        return slit_point(pc, geo)
+    return pc
+
+
+@wp.func
+def channel_model(model: int, channel: int):
+    """The pore model of ``channel`` of a segment of pore model ``model``: plates for the slit."""
+    if channel == CHANNEL_SLIT:
+        return PORE_PLATES
+    return model
 
 
 @wp.func
@@ -262,6 +313,20 @@ def tangent_row(rows: Any, a: int):
         wp.vec2d(rows[a, 4], rows[a, 5]),
         wp.vec2d(rows[a, 6], rows[a, 7]),
     )
+
+
+@wp.func
+def with_tangent_row(rows: Any, a: int, m: CMat2):
+    """``rows`` with row a set to m (:func:`tangent_row`'s inverse)."""
+    rows[a, 0] = m.a[0]
+    rows[a, 1] = m.a[1]
+    rows[a, 2] = m.b[0]
+    rows[a, 3] = m.b[1]
+    rows[a, 4] = m.c[0]
+    rows[a, 5] = m.c[1]
+    rows[a, 6] = m.d[0]
+    rows[a, 7] = m.d[1]
+    return rows
 
 
 @wp.func
@@ -513,11 +578,12 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
     of each T-matrix along P parameters, carried through the cascade with the value.
     ``plain`` compiles a cascade for cores whose parts are all plain
     (:func:`tawarp.kernels.acoustics.plain_part`: circular pores, rigid frame, no shape
-    factor): A is :func:`tawarp.kernels.acoustics.propagation_circular` alone (the tangents':
-    the pore model and the effects as constants), with no call to the other parts'
-    out-of-line code, whose presence in a loop makes the GPU compiler keep the loop's values
-    clear of the callee's registers (bench/README.md: 250 registers instead of 128); a part
-    that is not plain gives NaN."""
+    factor, no bypass gap): A is :func:`tawarp.kernels.acoustics.propagation_circular` alone
+    (the tangents': the pore model and the effects as constants), with no call to the other
+    parts' out-of-line code, whose presence in a loop makes the GPU compiler keep the loop's
+    values clear of the callee's registers (bench/README.md: 250 registers instead of 128);
+    a part that is not plain gives NaN. The other cascade takes a segment with a bypass gap
+    as two 2-ports side by side, out of line (``gap_segment`` below)."""
     P = wp.constant(tangents)
 
     @wp.func
@@ -534,35 +600,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         if wp.static(plain):
             return propagation_circular(pc, geo, omega, half_log_omega, gamma, pore_table)
         return propagation_at(pc, geo, omega, half_log_omega, gamma, model, pore_table)
-
-    @wp.func
-    def cell_exponent(
-        points: wp.array2d(dtype=PointCoefficients),
-        li: int,
-        p: int,
-        uniform: bool,
-        h: wp.float64,
-        geo: PartGeometry,
-        omega: wp.float64,
-        half_log_omega: wp.float64,
-        gamma: wp.float64,
-        model: int,
-        pore_table: PoreTable,
-    ):
-        """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
-        the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
-        (only the b's are live between the points, not three A's besides them), or h A of the
-        one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
-        a = point_propagation(points[li, p], geo, omega, half_log_omega, gamma, model, pore_table)
-        if uniform:
-            return scale2(a, h)
-        zero = zero2()
-        b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
-        a = point_propagation(points[li, p + 1], geo, omega, half_log_omega, gamma, model, pore_table)
-        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
-        a = point_propagation(points[li, p + 2], geo, omega, half_log_omega, gamma, model, pore_table)
-        b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
-        return magnus6_omega(b1, b2, b3)
 
     @wp.func
     def part_model(model: int):
@@ -584,6 +621,338 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
     stride = wp.constant(1 + 2 * tangents)
     tangent_rows = wp.types.matrix(shape=(Q, 8), dtype=wp.float64)
     scale_rows = wp.types.matrix(shape=(Q, 2), dtype=wp.float64)
+
+    def make_cells(channel: bool):
+        """The cells of one segment (``segment_cells`` below), compiled for a part as it
+        stands (``channel`` False) or for a channel of a segment with a bypass gap (True):
+        its points the channel's (:func:`channel_point`), each cell's exponential scaled
+        (:func:`tawarp.kernels.acoustics.expm2_scaled`: a slit far narrower than the viscous
+        depth grows as e^(|k| L), beyond float64 over a stack)."""
+
+        @wp.func
+        def cell_point(points: wp.array2d(dtype=PointCoefficients), li: int, p: int, segment: PartGeometry, kind: int):
+            # point p of set li: the channel ``kind``'s of a segment of geometry ``segment``
+            if wp.static(channel):
+                return channel_point(points[li, p], segment, kind)
+            return points[li, p]
+
+        @wp.func
+        def point_tangent(
+            points: wp.array2d(dtype=PointCoefficients),
+            plus: int,
+            p: int,
+            segment_plus: PartGeometry,
+            segment_minus: PartGeometry,
+            kind: int,
+            inv_two_step: wp.float64,
+        ):
+            # the central difference of point p between the neighbour sets plus and plus + 1
+            if wp.static(channel):
+                return point_difference(
+                    channel_point(points[plus, p], segment_plus, kind),
+                    channel_point(points[plus + 1, p], segment_minus, kind),
+                    inv_two_step,
+                )
+            return point_difference(points[plus, p], points[plus + 1, p], inv_two_step)
+
+        @wp.func
+        def cell_exponent(
+            points: wp.array2d(dtype=PointCoefficients),
+            li: int,
+            p: int,
+            uniform: bool,
+            h: wp.float64,
+            geo: PartGeometry,
+            segment: PartGeometry,
+            kind: int,
+            omega: wp.float64,
+            half_log_omega: wp.float64,
+            gamma: wp.float64,
+            model: int,
+            pore_table: PoreTable,
+        ):
+            """Magnus exponent of one cell of length h [m] whose points start at points[li, p]:
+            the three Gauss points' A added into :func:`magnus6_omega`'s b's as each is evaluated
+            (only the b's are live between the points, not three A's besides them), or h A of the
+            one point of a part at uniform temperature (``uniform``; its matrix is exp(A h))."""
+            a = point_propagation(
+                cell_point(points, li, p, segment, kind), geo, omega, half_log_omega, gamma, model, pore_table
+            )
+            if uniform:
+                return scale2(a, h)
+            zero = zero2()
+            b1, b2, b3 = magnus6_accumulate(zero, zero, zero, a, 0, h)
+            a = point_propagation(
+                cell_point(points, li, p + 1, segment, kind), geo, omega, half_log_omega, gamma, model, pore_table
+            )
+            b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 1, h)
+            a = point_propagation(
+                cell_point(points, li, p + 2, segment, kind), geo, omega, half_log_omega, gamma, model, pore_table
+            )
+            b1, b2, b3 = magnus6_accumulate(b1, b2, b3, a, 2, h)
+            return magnus6_omega(b1, b2, b3)
+
+        @wp.func
+        def segment_cells(
+            sets: SetTable,
+            points: wp.array2d(dtype=PointCoefficients),
+            step: wp.array2d(dtype=wp.float64),
+            pore_table: PoreTable,
+            li: int,
+            i: int,
+            group: int,
+            s: int,
+            p: int,
+            uniform: bool,
+            n_cells: int,
+            length: wp.float64,
+            segment: PartGeometry,
+            segment_model: int,
+            kind: int,
+            omega: wp.float64,
+            half_log_omega: wp.float64,
+            gamma: wp.float64,
+            m: CMat2,
+            log_scale: wp.vec2d,
+            sigma: wp.float64,
+            dm: tangent_rows,
+            dlog: scale_rows,
+        ):
+            """(m, log_scale, sigma, dm, dlog, p) after the ``n_cells`` cells of segment s
+            (length [m], geometry ``segment``, pore model ``segment_model``) of set i
+            (the launch's set li), whose points start at points[li, p]: each cell's exp(Omega) =
+            e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and sigma the
+            sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the derivatives of m and
+            log_scale along the tangents' P parameters (``transfer_kernel``'s docstring).
+            ``kind``: the channel (read by a ``channel`` cascade only)."""
+            params = sets.params
+            flags = sets.flags
+            geo = segment
+            model = segment_model
+            if wp.static(channel):
+                geo = channel_geometry(segment, kind)
+                model = channel_model(segment_model, kind)
+            h = length / wp.float64(n_cells)
+            for c in range(n_cells):
+                if wp.static(tangents == 0):
+                    om = cell_exponent(
+                        points, li, p, uniform, h, geo, segment, kind, omega, half_log_omega, gamma, model, pore_table
+                    )
+                    if wp.static(channel):
+                        e, tau, cell_sigma = expm2_scaled(om)
+                        sigma = sigma + cell_sigma
+                    else:
+                        e, tau = expm2_traceless(om)
+                else:
+                    cmodel = part_model(model)
+                    cgeo = part_effects(geo)
+                    pc1 = cell_point(points, li, p, segment, kind)
+                    s1 = pore_point(pc1, half_log_omega, cmodel, pore_table, 1)
+                    a1 = propagation_value(s1, pc1, cgeo, omega, gamma, cmodel)
+                    pc2 = pc1
+                    pc3 = pc1
+                    s2 = s1
+                    s3 = s1
+                    a2 = a1
+                    a3 = a1
+                    om = scale2(a1, length)
+                    if not uniform:
+                        pc2 = cell_point(points, li, p + 1, segment, kind)
+                        pc3 = cell_point(points, li, p + 2, segment, kind)
+                        s2 = pore_point(pc2, half_log_omega, cmodel, pore_table, 1)
+                        s3 = pore_point(pc3, half_log_omega, cmodel, pore_table, 1)
+                        a2 = propagation_value(s2, pc2, cgeo, omega, gamma, cmodel)
+                        a3 = propagation_value(s3, pc3, cgeo, omega, gamma, cmodel)
+                        om = magnus6_exponent(a1, a2, a3, h)
+                    tau, na, delta = traceless_parts(om)
+                    if wp.static(channel):
+                        ch, sh, cell_sigma = cosh_sinhc_scaled(delta)
+                        sigma = sigma + cell_sigma
+                    else:
+                        ch, sh = cosh_sinhc(delta)
+                    dsh = sinhc_derivative(delta, ch, sh)
+                    e = traceless_exp(om, na, ch, sh)
+                    for a in range(P):
+                        plus = li + 1 + 2 * a
+                        inv_two_step = wp.float64(0.5) / step[group, a]
+                        dlength = (
+                            seg_value(params, i + 1 + 2 * a, s, LENGTH) - seg_value(params, i + 2 + 2 * a, s, LENGTH)
+                        ) * inv_two_step
+                        segment_plus = segment_geometry(params, flags, i + 1 + 2 * a, s)
+                        segment_minus = segment_geometry(params, flags, i + 2 + 2 * a, s)
+                        if wp.static(channel):
+                            dgeo = geometry_difference(
+                                channel_geometry(segment_plus, kind),
+                                channel_geometry(segment_minus, kind),
+                                inv_two_step,
+                            )
+                        else:
+                            dgeo = geometry_difference(segment_plus, segment_minus, inv_two_step)
+                        d1 = propagation_tangent(
+                            s1,
+                            pc1,
+                            point_tangent(points, plus, p, segment_plus, segment_minus, kind, inv_two_step),
+                            cgeo,
+                            dgeo,
+                            omega,
+                            gamma,
+                            cmodel,
+                        )
+                        dom = axpy2(dlength, a1, scale2(d1, length))
+                        if not uniform:
+                            d2 = propagation_tangent(
+                                s2,
+                                pc2,
+                                point_tangent(points, plus, p + 1, segment_plus, segment_minus, kind, inv_two_step),
+                                cgeo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                cmodel,
+                            )
+                            d3 = propagation_tangent(
+                                s3,
+                                pc3,
+                                point_tangent(points, plus, p + 2, segment_plus, segment_minus, kind, inv_two_step),
+                                cgeo,
+                                dgeo,
+                                omega,
+                                gamma,
+                                cmodel,
+                            )
+                            dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
+                        de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
+                        # d(E M) = dE M + E dM; the cells' tau are summed like the value's. Row a
+                        # in place (not with_tangent_row: no copy of the P rows in the loop)
+                        dma = axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
+                        dm[a, 0] = dma.a[0]
+                        dm[a, 1] = dma.a[1]
+                        dm[a, 2] = dma.b[0]
+                        dm[a, 3] = dma.b[1]
+                        dm[a, 4] = dma.c[0]
+                        dm[a, 5] = dma.c[1]
+                        dm[a, 6] = dma.d[0]
+                        dm[a, 7] = dma.d[1]
+                        dlog[a, 0] = dlog[a, 0] + dtau[0]
+                        dlog[a, 1] = dlog[a, 1] + dtau[1]
+                m = matmul2(e, m)
+                log_scale = log_scale + tau
+                if uniform:
+                    p = p + 1
+                else:
+                    p = p + 3
+            return m, log_scale, sigma, dm, dlog, p
+
+        return segment_cells
+
+    part_cells = make_cells(False)
+    channel_cells = make_cells(True)
+
+    @wp.func(inline=False)  # a bypass gap's segment: kept out of the cascade's inlined code
+    def gap_segment(
+        sets: SetTable,
+        points: wp.array2d(dtype=PointCoefficients),
+        step: wp.array2d(dtype=wp.float64),
+        pore_table: PoreTable,
+        li: int,
+        i: int,
+        group: int,
+        s: int,
+        p: int,
+        uniform: bool,
+        n_cells: int,
+        length: wp.float64,
+        segment: PartGeometry,
+        model: int,
+        omega: wp.float64,
+        half_log_omega: wp.float64,
+        gamma: wp.float64,
+        m: CMat2,
+        dm: tangent_rows,
+    ):
+        """(T m, d(T m)): the cascade's m and its derivatives dm along the P parameters
+        carried through segment s, T its T-matrix with a bypass gap (which carries its own
+        scale: the cascade's log_scale and its derivatives stay). The whole step is out of
+        line, so that the cascade's loop holds one call for it. T: two 2-ports side by side
+        between the segment's end planes:
+        its pores (the segment without its gap, porosity phi (1 - x): :func:`pore_geometry`)
+        and the gap's slit (:func:`tawarp.kernels.acoustics.slit_point`), each cascaded over
+        the segment's cells from the same points (the same temperature profile), joined
+        at the ends only, where their admittance matrices add
+        (:func:`tawarp.kernels.acoustics.parallel2`)."""
+        zero = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+        mp, sp, sigma_p, dmp, dsp, q = channel_cells(
+            sets,
+            points,
+            step,
+            pore_table,
+            li,
+            i,
+            group,
+            s,
+            p,
+            uniform,
+            n_cells,
+            length,
+            segment,
+            model,
+            CHANNEL_PORES,
+            omega,
+            half_log_omega,
+            gamma,
+            identity2(),
+            zero,
+            wp.float64(0.0),
+            tangent_rows(),
+            scale_rows(),
+        )
+        mg, sg, sigma_g, dmg, dsg, q = channel_cells(
+            sets,
+            points,
+            step,
+            pore_table,
+            li,
+            i,
+            group,
+            s,
+            p,
+            uniform,
+            n_cells,
+            length,
+            segment,
+            model,
+            CHANNEL_SLIT,
+            omega,
+            half_log_omega,
+            gamma,
+            identity2(),
+            zero,
+            wp.float64(0.0),
+            tangent_rows(),
+            scale_rows(),
+        )
+        # each channel is e^(S + sigma) M with det e^(2 S)
+        lp = sp + wp.vec2d(sigma_p, wp.float64(0.0))
+        lg = sg + wp.vec2d(sigma_g, wp.float64(0.0))
+        gp = sp * wp.float64(2.0)
+        gg = sg * wp.float64(2.0)
+        t = parallel2(mp, lp, gp, mg, lg, gg)
+        for a in range(P):
+            dt = parallel2_tangent(
+                mp,
+                tangent_row(dmp, a),
+                lp,
+                gp,
+                wp.vec2d(dsp[a, 0], dsp[a, 1]),
+                mg,
+                tangent_row(dmg, a),
+                lg,
+                gg,
+                wp.vec2d(dsg[a, 0], dsg[a, 1]),
+            )
+            # d(T m) = dT m + T dm
+            dm = with_tangent_row(dm, a, axpy2(wp.float64(1.0), matmul2(dt, m), matmul2(t, tangent_row(dm, a))))
+        return matmul2(t, m), dm
 
     def transfer_kernel(
         sets: SetTable,
@@ -645,6 +1014,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # sum of the cells' tau (expm2_traceless)
         dm = tangent_rows()
         dlog = scale_rows()
+        sigma = wp.float64(0.0)  # part_cells' scaled exponentials' (none: no channel)
         for s in range(n_seg):
             length = seg_value(params, i, s, LENGTH)
             geo = segment_geometry(params, flags, i, s)
@@ -656,95 +1026,82 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             n_cells = 1
             if not uniform:
                 n_cells = cells[i, grid * n_seg + s]
-            h = length / wp.float64(n_cells)
-            for c in range(n_cells):
-                if wp.static(tangents == 0):
-                    e, tau = expm2_traceless(
-                        cell_exponent(points, li, p, uniform, h, geo, omega, half_log_omega, gamma, model, pore_table)
+            if wp.static(plain):
+                m, log_scale, sigma, dm, dlog, p = part_cells(
+                    sets,
+                    points,
+                    step,
+                    pore_table,
+                    li,
+                    i,
+                    group,
+                    s,
+                    p,
+                    uniform,
+                    n_cells,
+                    length,
+                    geo,
+                    model,
+                    CHANNEL_PART,
+                    omega,
+                    half_log_omega,
+                    gamma,
+                    m,
+                    log_scale,
+                    sigma,
+                    dm,
+                    dlog,
+                )
+            else:
+                if geo.gap_share > wp.float64(0.0):
+                    m, dm = gap_segment(
+                        sets,
+                        points,
+                        step,
+                        pore_table,
+                        li,
+                        i,
+                        group,
+                        s,
+                        p,
+                        uniform,
+                        n_cells,
+                        length,
+                        geo,
+                        model,
+                        omega,
+                        half_log_omega,
+                        gamma,
+                        m,
+                        dm,
                     )
+                    p = p + segment_points(flags, cells, i, grid * n_seg + s, s)
                 else:
-                    cmodel = part_model(model)
-                    cgeo = part_effects(geo)
-                    s1 = pore_point(points[li, p], half_log_omega, cmodel, pore_table, 1)
-                    a1 = propagation_value(s1, points[li, p], cgeo, omega, gamma, cmodel)
-                    s2 = s1
-                    s3 = s1
-                    a2 = a1
-                    a3 = a1
-                    om = scale2(a1, length)
-                    if not uniform:
-                        s2 = pore_point(points[li, p + 1], half_log_omega, cmodel, pore_table, 1)
-                        s3 = pore_point(points[li, p + 2], half_log_omega, cmodel, pore_table, 1)
-                        a2 = propagation_value(s2, points[li, p + 1], cgeo, omega, gamma, cmodel)
-                        a3 = propagation_value(s3, points[li, p + 2], cgeo, omega, gamma, cmodel)
-                        om = magnus6_exponent(a1, a2, a3, h)
-                    tau, na, delta = traceless_parts(om)
-                    ch, sh = cosh_sinhc(delta)
-                    dsh = sinhc_derivative(delta, ch, sh)
-                    e = traceless_exp(om, na, ch, sh)
-                    for a in range(P):
-                        plus = li + 1 + 2 * a
-                        inv_two_step = wp.float64(0.5) / step[group, a]
-                        dlength = (
-                            seg_value(params, i + 1 + 2 * a, s, LENGTH) - seg_value(params, i + 2 + 2 * a, s, LENGTH)
-                        ) * inv_two_step
-                        dgeo = geometry_difference(
-                            segment_geometry(params, flags, i + 1 + 2 * a, s),
-                            segment_geometry(params, flags, i + 2 + 2 * a, s),
-                            inv_two_step,
-                        )
-                        d1 = propagation_tangent(
-                            s1,
-                            points[li, p],
-                            point_difference(points[plus, p], points[plus + 1, p], inv_two_step),
-                            cgeo,
-                            dgeo,
-                            omega,
-                            gamma,
-                            cmodel,
-                        )
-                        dom = axpy2(dlength, a1, scale2(d1, length))
-                        if not uniform:
-                            d2 = propagation_tangent(
-                                s2,
-                                points[li, p + 1],
-                                point_difference(points[plus, p + 1], points[plus + 1, p + 1], inv_two_step),
-                                cgeo,
-                                dgeo,
-                                omega,
-                                gamma,
-                                cmodel,
-                            )
-                            d3 = propagation_tangent(
-                                s3,
-                                points[li, p + 2],
-                                point_difference(points[plus, p + 2], points[plus + 1, p + 2], inv_two_step),
-                                cgeo,
-                                dgeo,
-                                omega,
-                                gamma,
-                                cmodel,
-                            )
-                            dom = magnus6_tangent(a1, a2, a3, h, d1, d2, d3, dlength / wp.float64(n_cells))
-                        de, dtau = expm2_tangent(om, na, ch, sh, dsh, dom)
-                        # d(E M) = dE M + E dM; the cells' tau are summed like the value's
-                        dma = axpy2(wp.float64(1.0), matmul2(de, m), matmul2(e, tangent_row(dm, a)))
-                        dm[a, 0] = dma.a[0]
-                        dm[a, 1] = dma.a[1]
-                        dm[a, 2] = dma.b[0]
-                        dm[a, 3] = dma.b[1]
-                        dm[a, 4] = dma.c[0]
-                        dm[a, 5] = dma.c[1]
-                        dm[a, 6] = dma.d[0]
-                        dm[a, 7] = dma.d[1]
-                        dlog[a, 0] = dlog[a, 0] + dtau[0]
-                        dlog[a, 1] = dlog[a, 1] + dtau[1]
-                m = matmul2(e, m)
-                log_scale = log_scale + tau
-                if uniform:
-                    p = p + 1
-                else:
-                    p = p + 3
+                    m, log_scale, sigma, dm, dlog, p = part_cells(
+                        sets,
+                        points,
+                        step,
+                        pore_table,
+                        li,
+                        i,
+                        group,
+                        s,
+                        p,
+                        uniform,
+                        n_cells,
+                        length,
+                        geo,
+                        model,
+                        CHANNEL_PART,
+                        omega,
+                        half_log_omega,
+                        gamma,
+                        m,
+                        log_scale,
+                        sigma,
+                        dm,
+                        dlog,
+                    )
         scale = cexp(log_scale)
         if j < n_freqs:
             store_matrix(out, group, j, cscale2(m, scale))

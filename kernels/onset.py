@@ -26,9 +26,11 @@ from .acoustics import (
     CMat2,
     PartGeometry,
     expm2,
+    expm2_scaled,
     identity2,
-    magnus6_step,
+    magnus6_exponent,
     matmul2,
+    parallel2,
     part_geometry,
     point_coefficients,
     propagation_complex,
@@ -36,10 +38,16 @@ from .acoustics import (
 )
 from .cmath import cabs, cdiv, cmul, cplx, csqrt
 from .forward import (
+    CHANNEL_PART,
+    CHANNEL_PORES,
+    CHANNEL_SLIT,
     GAUSS,
     PI,
     TWO_PI,
     SetTable,
+    channel_geometry,
+    channel_model,
+    channel_point,
     imposed_temperature,
     magnus_cell_count,
     pore_geometry,
@@ -134,8 +142,51 @@ def segment_matrix_complex(core: HeatedCore, i: int, s: int, omega: wp.vec2d, om
     M = exp(A L) (the closed form of docs/physics.md); where it varies, the sixth-order
     Magnus cells of the forward cascade: ``core.seg_cells[s]``, or where 0
     :func:`tawarp.kernels.forward.magnus_cell_count` at ``core.cell_density`` and the real
-    ``omega_ref`` [rad/s] (not omega: M is then one analytic function of omega). Batched
-    engines of any topology build on this matrix."""
+    ``omega_ref`` [rad/s] (not omega: M is then one analytic function of omega). A segment
+    with a bypass gap is its pores and its slit side by side (:func:`gap_matrix_complex`).
+    Batched engines of any topology build on this matrix."""
+    geo = segment_geometry(core.sets.params, core.sets.flags, i, s)
+    if geo.gap_share > wp.float64(0.0):
+        return gap_matrix_complex(core, i, s, omega, omega_ref, geo)
+    m, tau, sigma = channel_matrix_complex(core, i, s, omega, omega_ref, geo, CHANNEL_PART)
+    return m
+
+
+@wp.func(inline=False)  # a bypass gap's segment: kept out of the walk's inlined code
+def gap_matrix_complex(core: HeatedCore, i: int, s: int, omega: wp.vec2d, omega_ref: wp.float64, geo: PartGeometry):
+    """:func:`segment_matrix_complex` of a segment with a bypass gap (geometry ``geo``): its
+    pores and its slit (:func:`tawarp.kernels.forward.channel_geometry`), each over the
+    segment's cells, their admittance matrices added at its ends
+    (:func:`tawarp.kernels.acoustics.parallel2`), as the forward cascade's ``gap_segment``."""
+    mp, tp, sp = channel_matrix_complex(core, i, s, omega, omega_ref, geo, CHANNEL_PORES)
+    mg, tg, sg = channel_matrix_complex(core, i, s, omega, omega_ref, geo, CHANNEL_SLIT)
+    return parallel2(
+        mp,
+        tp + wp.vec2d(sp, wp.float64(0.0)),
+        tp * wp.float64(2.0),
+        mg,
+        tg + wp.vec2d(sg, wp.float64(0.0)),
+        tg * wp.float64(2.0),
+    )
+
+
+@wp.func
+def cell_matrix_complex(om: CMat2, channel: int):
+    """(E, tau, sigma) of one cell's exponent ``om``, exp(om) = e^(tau + sigma) E: a part as
+    it stands takes exp(om) itself (tau = sigma = 0), a channel beside a bypass gap its
+    scaled form (:func:`tawarp.kernels.acoustics.expm2_scaled`: the slit's never overflows)."""
+    if channel == CHANNEL_PART:
+        return expm2(om), wp.vec2d(wp.float64(0.0), wp.float64(0.0)), wp.float64(0.0)
+    return expm2_scaled(om)
+
+
+@wp.func
+def channel_matrix_complex(
+    core: HeatedCore, i: int, s: int, omega: wp.vec2d, omega_ref: wp.float64, geo: PartGeometry, channel: int
+):
+    """(M, tau, sigma) of ``channel`` of segment s (geometry ``geo``; CHANNEL_PART: the
+    segment as it stands) at complex omega, its matrix e^(tau + sigma) M with det e^(2 tau)
+    (:func:`cell_matrix_complex`)."""
     params = core.sets.params
     flags = core.sets.flags
     gas = core.sets.gas
@@ -145,14 +196,14 @@ def segment_matrix_complex(core: HeatedCore, i: int, s: int, omega: wp.vec2d, om
     length = seg_value(params, i, s, LENGTH)
     phi, r, q = pore_geometry(params, flags, i, s)
     r_k = thermal_radius(params, flags, i, s, r)
-    geo = segment_geometry(params, flags, i, s)
-    model = flags[s, F_PORE_MODEL]
+    cgeo = channel_geometry(geo, channel)
+    model = channel_model(flags[s, F_PORE_MODEL], channel)
     if not temperature_varies(params, flags, i, s):
         T = T_cold
         if flags[s, F_IMPOSED] != 0:
             T = seg_value(params, i, s, T_START)
-        pc = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, geo.area, r_k)
-        return expm2(scale2(propagation_complex(pc, geo, omega, gamma, model), length))
+        pc = channel_point(point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, geo.area, r_k), geo, channel)
+        return cell_matrix_complex(scale2(propagation_complex(pc, cgeo, omega, gamma, model), length), channel)
     lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
     nonlin = segment_nonlinear(params, i, s)
     n_cells = core.seg_cells[s]
@@ -161,13 +212,18 @@ def segment_matrix_complex(core: HeatedCore, i: int, s: int, omega: wp.vec2d, om
         n_cells = magnus_cell_count(core.cell_density, k_T, length, omega_ref, c)
     h = length / wp.float64(n_cells)
     m = identity2()
+    tau = wp.vec2d(wp.float64(0.0), wp.float64(0.0))
+    scale = wp.float64(0.0)
     for c in range(n_cells):
         x0 = wp.float64(c) * h
-        a1 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[0] * h, omega, r, r_k, geo)
-        a2 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[1] * h, omega, r, r_k, geo)
-        a3 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[2] * h, omega, r, r_k, geo)
-        m = matmul2(magnus6_step(a1, a2, a3, h), m)
-    return m
+        a1 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[0] * h, omega, r, r_k, geo, channel)
+        a2 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[1] * h, omega, r, r_k, geo, channel)
+        a3 = gradient_matrix_complex(core, i, s, k, sigma, nonlin, x0 + GAUSS[2] * h, omega, r, r_k, geo, channel)
+        e, cell_tau, cell_sigma = cell_matrix_complex(magnus6_exponent(a1, a2, a3, h), channel)
+        m = matmul2(e, m)
+        tau = tau + cell_tau
+        scale = scale + cell_sigma
+    return m, tau, scale
 
 
 @wp.func
@@ -183,10 +239,12 @@ def gradient_matrix_complex(
     r: wp.float64,
     r_k: wp.float64,
     geo: PartGeometry,
+    channel: int,
 ):
-    """A(x) at complex omega and local position xi [m] of segment s whose temperature
-    varies (:func:`segment_matrix_complex`): its imposed profile, or the heat model's with
-    the segment's (k, sigma) and ``nonlin`` (:func:`tawarp.kernels.heat.segment_profile`)."""
+    """A(x) of ``channel`` (:func:`channel_matrix_complex`) at complex omega and local
+    position xi [m] of segment s whose temperature varies: its imposed profile, or the heat
+    model's with the segment's (k, sigma) and ``nonlin``
+    (:func:`tawarp.kernels.heat.segment_profile`)."""
     params = core.sets.params
     flags = core.sets.flags
     gas = core.sets.gas
@@ -202,7 +260,13 @@ def gradient_matrix_complex(
         T = params[T_COLD, i] + th
         dT = dth
     pc = point_coefficients(gas, params[P_MEAN, i], T, dT, geo.porosity, r, geo.tortuosity, geo.area, r_k)
-    return propagation_complex(pc, geo, omega, gas[G_GAMMA], flags[s, F_PORE_MODEL])
+    return propagation_complex(
+        channel_point(pc, geo, channel),
+        channel_geometry(geo, channel),
+        omega,
+        gas[G_GAMMA],
+        channel_model(flags[s, F_PORE_MODEL], channel),
+    )
 
 
 @wp.func

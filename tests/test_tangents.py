@@ -238,8 +238,8 @@ CASES = [
             "tube.radius",
         ],
     ),
-    # an annular bypass gap beside the stack's pores: a second pore family in A (plates, its
-    # pore functions on dual numbers) and the gap's gas in the heat model
+    # an annular bypass gap beside the stack's pores: a slit joined to them at the stack's
+    # ends (both channels' tangents combined on dual numbers) and the gap's gas in the heat model
     (
         "ceramic:gap",
         40.0,

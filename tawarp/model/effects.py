@@ -501,12 +501,14 @@ def wall_conduction_effect(core: Core) -> Effect:
 
 def bypass_gap_effect(core: Core, stack: str) -> Effect:
     """An annular gap of width g [m] between ``stack`` and the tube wall
-    (``STACK.bypass_gap``, a field of the kernels): beside the pores a parallel-plate channel
-    of spacing g and section share g (2R - g)/R^2, under the same pressure, at the stack's
-    temperature (:func:`tawarp.kernels.acoustics.bypass_entries`), its gas replacing that
-    share of the stack's solid in the heat model. Off at 0, exactly (no gap: the same
-    arithmetic as before). Typical :data:`TYPICAL_BYPASS_GAP`; bounded by the fields table's
-    fit range and half the tube radius (a wider gap is a missing stack, not a clearance)."""
+    (``STACK.bypass_gap``, a field of the kernels): a parallel-plate slit of spacing g and
+    section share x = g (2R - g)/R^2 beside the pores (which keep phi (1 - x) of the
+    section), at the stack's temperature, joined to them at the stack's two end planes,
+    where their admittance matrices add (:func:`tawarp.kernels.acoustics.parallel2`); its
+    gas replaces that share of the stack's solid in the heat model. Off at 0, exactly (no
+    gap: the same arithmetic as without the field). Typical :data:`TYPICAL_BYPASS_GAP`;
+    bounded by the fields table's fit range and half the tube radius (a wider gap is a
+    missing stack, not a clearance)."""
     label = f"{stack}.bypass_gap"
     f = field_spec(label)
     lo, hi = f.fit_range
