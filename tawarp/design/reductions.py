@@ -515,8 +515,8 @@ def netcdf_group(h5, name: str, variables: dict, units: dict, dimid: int) -> int
     for var, (dims, a) in variables.items():
         ds = scales[var] if var in scales else dataset(var, a)
         for j, d in enumerate(dims):
-            if var not in scales:
-                ds.dims[j].attach_scale(scales[d])
+            if var not in scales:  # (HDF5's call: h5py's ds.dims[j] reads the dataspace again each time)
+                h5py.h5ds.attach_scale(ds.id, scales[d].id, j)
         if dims:
             ds.attrs["_Netcdf4Coordinates"] = np.array([ids[d] for d in dims], dtype=np.int32)
             if var not in scales:  # netCDF-C marks a written variable with its first dimension's id
