@@ -8,7 +8,8 @@ exact and independent of the order of the threads:
 
 - histograms (:func:`histogram`): bins of equal relative width, the key's top 20 bits
   (sign, exponent and 11 mantissa bits: a bin spans 2^-11 of its values), counted with
-  integer atomics;
+  integer atomics, their occupied bins compacted in order for the host
+  (:func:`occupied_bins`, :func:`compact_bins`);
 - best, per variable level (:func:`marginal_best`): the smallest *rank key* (the key of
   the sign-adjusted objective times 2^32 plus the point index: better first, ties by
   index) by integer ``atomic_min``;
@@ -30,6 +31,9 @@ HIST_SHIFT = wp.constant(HIST_SHIFT_BITS)
 HIST_BINS = 1 << 20
 HIST_OFFSET_BINS = 1 << 19
 HIST_OFFSET = wp.constant(HIST_OFFSET_BINS)
+#: histogram bins per block of the compaction (:func:`occupied_bins`, :func:`compact_bins`)
+HIST_BLOCK_BINS = 256
+HIST_BLOCK = wp.constant(HIST_BLOCK_BINS)
 #: key bits dropped for a Pareto filter bin (2^16 bins of the first objective)
 PARETO_SHIFT = wp.constant(16)
 PARETO_BINS = 1 << 16
@@ -96,6 +100,40 @@ def histogram(values: wp.array2d(dtype=wp.float32), counts: wp.array2d(dtype=wp.
     else:
         b = int((ordered_key(v) >> wp.int64(HIST_SHIFT)) + wp.int64(HIST_OFFSET))
         wp.atomic_add(counts, o, b, wp.int64(1))
+
+
+@wp.kernel
+def occupied_bins(counts: wp.array2d(dtype=wp.int64), occupied: wp.array2d(dtype=wp.int32)):
+    """occupied[o, b // HIST_BLOCK] += 1 for each bin b of output o that holds a count
+    (``occupied`` zeroed first; once per sweep, not per chunk: the histogram's own atomics
+    stay ones whose value is not read back)."""
+    o, b = wp.tid()
+    if counts[o, b] != wp.int64(0):
+        wp.atomic_add(occupied, o, b // HIST_BLOCK, 1)
+
+
+@wp.kernel
+def compact_bins(
+    counts: wp.array2d(dtype=wp.int64),
+    occupied: wp.array2d(dtype=wp.int32),
+    start: wp.array2d(dtype=wp.int32),
+    bins: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int64),
+):
+    """The histogram's occupied bins in order, those of output o's block j of HIST_BLOCK
+    bins (``occupied[o, j]`` of them, :func:`occupied_bins`) from place start[o, j]: ``bins``
+    the bin, ``count`` its count, so that the host reads the few occupied bins instead of
+    every one."""
+    o, j = wp.tid()
+    if occupied[o, j] == 0:
+        return
+    k = start[o, j]
+    for b in range(j * HIST_BLOCK, (j + 1) * HIST_BLOCK):
+        c = counts[o, b]
+        if c != wp.int64(0):
+            bins[k] = b
+            count[k] = c
+            k += 1
 
 
 @wp.kernel

@@ -228,6 +228,52 @@ def test_point_blocks_equal_one_launch(monkeypatch):
     np.testing.assert_array_equal(blocks.T, whole.T)
 
 
+def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
+    """With fixed cells the cascade sizes its Gauss points from counts known on the host
+    (no read-back): the device's (cell_counts) for a batch with heat input, 3 points per
+    Magnus cell and one per duct (mesh core: 2 + 3 (6 + 9 + 10) = 77 points, 27 slots), and
+    a bound of an unheated batch's (one point per segment); sized either way, the same
+    T-matrices to the bit."""
+    import warp as wp
+
+    from tawarp.kernels import forward as kf
+    from tawarp.model.forward import Engine, ForwardSettings
+
+    core = load_core("mesh")
+    settings = ForwardSettings(device="cpu", cells={"stack": 6, "hot_hx": 9, "tbt": 10}, cpu_threads=1)
+    eng = Engine(core, FREQS, ["stack.h"], settings)
+    n_seg = len(core.segments)
+
+    def device_counts(table):
+        params, _ = eng.heat(table)
+        n = params.shape[1]
+        most = wp.zeros(3, dtype=wp.int32, device="cpu")
+        wp.launch(
+            kf.cell_counts,
+            dim=n,
+            inputs=[
+                eng._sets(params),
+                eng.seg_cells,
+                wp.full(n, 1.0, dtype=wp.float64, device="cpu"),
+                eng.omega_max,
+                wp.empty((n, n_seg), dtype=wp.int32, device="cpu"),
+                most,
+            ],
+            device="cpu",
+        )
+        return tuple(int(v) for v in most.numpy()[:2])
+
+    heated, unheated = np.array([[0.0, 40.0], [100.0, 150.0]]), np.array([[0.0, 0.0], [100.0, 150.0]])
+    assert eng._fixed_point_counts(n_seg) == device_counts(heated) == (77, 27)
+    assert device_counts(unheated) == (n_seg, n_seg)
+    for table in (heated, unheated):
+        ref = eng.evaluate(table)[0].numpy()
+        with monkeypatch.context() as m:
+            counts = device_counts(table)
+            m.setattr(Engine, "_fixed_point_counts", lambda self, columns: counts)
+            np.testing.assert_array_equal(eng.evaluate(table)[0].numpy(), ref)
+
+
 @pytest.mark.parametrize("scale", [1e-6, 1e-3, 3e-2, 0.2, 0.5, 0.9, 3.0])
 def test_matrix_exponential_against_scipy(scale):
     """expm2 (a series whose length follows |delta|, exponentials beyond |delta| = 1)

@@ -149,6 +149,41 @@ def test_candidates_beyond_the_staged_copy_are_read_from_the_device(sobol_sweep,
     assert set(a.point.values.tolist()) == set(b.point.values.tolist())
 
 
+def test_histograms_compacted_on_the_device_and_merged_are_numpys():
+    """Each output's occupied bins, compacted on the device, and those of two reducers of
+    disjoint point ranges merged (Reducer.state, Reducer.merge) equal NumPy's counts of the
+    values' 20 leading key bits: values over the whole float32 range (bins in many blocks),
+    one bin hit 50 times, NaN counted apart, +-0, +-inf and subnormals."""
+    from tawarp.design.reductions import Reducer, ReduceSpec
+    from tawarp.kernels.reduce import HIST_OFFSET_BINS
+
+    space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08"])
+    rng = np.random.default_rng(4)
+    x = rng.standard_normal((3, 5000)) * 10.0 ** rng.integers(-44, 38, (3, 5000))
+    x = x.astype(np.float32)
+    x[:, :50] = 1.5
+    x[1, 100:120] = np.nan
+    x[2, 200:208] = [0.0, -0.0, np.inf, -np.inf, 1e-45, -1e-45, 3.4028235e38, 2.0**-126]
+    outputs = ["gradient", "T_max", "heat_leak"]
+
+    def state(lo, hi, other=None):
+        r = Reducer(ReduceSpec(histogram=True), space, "sobol", outputs, [], "cpu", 1000)
+        for k, a in enumerate(range(lo, hi, 1000)):
+            r.add(k, a, None, wp.array(x[:, a : min(a + 1000, hi)], dtype=wp.float32, device="cpu"))
+        if other is not None:
+            r.merge(other)
+        return r.state()
+
+    whole, merged = state(0, 5000), state(0, 2000, state(2000, 5000))
+    for j in range(3):
+        ok = ~np.isnan(x[j])
+        bins, counts = np.unique((ordered_keys(x[j, ok]) >> 12) + HIST_OFFSET_BINS, return_counts=True)
+        for st in (whole, merged):
+            np.testing.assert_array_equal(st["histograms"][j][0], bins)
+            np.testing.assert_array_equal(st["histograms"][j][1], counts)
+            assert st["nan"][j] == np.count_nonzero(~ok)
+
+
 @wp.kernel
 def _keys_of(x: wp.array(dtype=wp.float32), out: wp.array(dtype=wp.int64)):
     i = wp.tid()

@@ -160,7 +160,7 @@ class Reducer:
             self._bins = [wp.empty(PARETO_BINS, dtype=wp.int64, device=dev) for _ in range(2)]
         empty = (np.zeros(0, np.int64), np.zeros((len(self.outputs), 0), np.float32), np.zeros((n_val, 0)))
         self.top, self.front = empty, empty  # (keys or indices, outputs, values) on the host
-        self._folded = None  # merge(): other ranges' counts, nan counts and best keys (host)
+        self._folded = None  # merge(): other ranges' histograms, nan counts and best keys (host)
         self._no_values = wp.empty((0, 0), dtype=wp.float64, device=dev)
 
     def _candidates(self, chunk: int, n_val: int, device=None):
@@ -320,22 +320,47 @@ class Reducer:
         return idx[on], out[:, on], np.concatenate([self.front[2], cand[2]], 1)[:, on]
 
     # -- merging -------------------------------------------------------------------------
+    def _histograms(self) -> list:
+        """Per output, its histogram's occupied bins (increasing) and their counts,
+        compacted on the device (:func:`tawarp.kernels.reduce.compact_bins`): the host
+        reads these and the blocks' occupied counts, not every bin (tens of MB)."""
+        from ..kernels import reduce as R
+
+        dev = self.device
+        occupied = wp.zeros((len(self.outputs), R.HIST_BINS // R.HIST_BLOCK_BINS), dtype=wp.int32, device=dev)
+        wp.launch(R.occupied_bins, dim=self.counts.shape, device=dev, inputs=[self.counts, occupied])
+        occ = occupied.numpy().astype(np.int64)
+        start = (np.cumsum(occ) - occ.ravel()).reshape(occ.shape)  # each block's first place
+        bins = wp.empty(int(occ.sum()), dtype=wp.int32, device=dev)
+        count = wp.empty(bins.shape[0], dtype=wp.int64, device=dev)
+        if bins.shape[0]:
+            start_dev = wp.array(start.astype(np.int32), dtype=wp.int32, device=dev)
+            wp.launch(
+                R.compact_bins,
+                dim=occ.shape,
+                device=dev,
+                inputs=[self.counts, occupied, start_dev, bins, count],
+            )
+        b, c = bins.numpy().astype(np.int64), np.array(count.numpy())  # (copies: the device arrays go)
+        ends = np.cumsum(occ.sum(1))
+        return [(b[lo:hi], c[lo:hi]) for lo, hi in zip(ends - occ.sum(1), ends)]
+
     def state(self) -> dict:
-        """What this reducer holds, on the host (a few arrays: the candidates, the counts,
-        the best keys; no point's raw values): what a sweep's worker sends back, folded
-        into another reducer by :meth:`merge`."""
+        """What this reducer holds, on the host (a few arrays: the candidates, the
+        histograms' occupied bins, the best keys; no point's raw values): what a sweep's
+        worker sends back, folded into another reducer by :meth:`merge`."""
         st = {"n": self.n, "top": self.top, "front": self.front}
 
         def host(a):  # a CUDA array's numpy() is a new host array; a CPU one's is a view
             return a.numpy() if self._cuda else a.numpy().copy()
 
         if self.spec.histogram or self.spec.quantiles:
-            st["counts"], st["nan"] = host(self.counts), host(self.nan)
+            st["histograms"], st["nan"] = self._histograms(), host(self.nan)
         if self.spec.best:
             st["best"] = host(self.best)
         if self._folded is not None:
             for k, v in self._folded.items():
-                st[k] = np.minimum(st[k], v) if k == "best" else st[k] + v
+                st[k] = _fold(k, st[k], v)
         return st
 
     def merge(self, other: dict) -> None:
@@ -346,12 +371,12 @@ class Reducer:
             self.top = self._merge_top(other["top"])
         if other["front"][0].size:
             self.front = self._merge_front(other["front"])
-        folded = {k: other[k] for k in ("counts", "nan", "best") if k in other}
+        folded = {k: other[k] for k in ("histograms", "nan", "best") if k in other}
         if self._folded is None:
             self._folded = folded
         else:
             for k, v in folded.items():
-                self._folded[k] = np.minimum(self._folded[k], v) if k == "best" else self._folded[k] + v
+                self._folded[k] = _fold(k, self._folded[k], v)
 
     # -- results ---------------------------------------------------------------------------
     def _coordinates(self, index: np.ndarray, values: np.ndarray) -> dict:
@@ -404,18 +429,18 @@ class Reducer:
             res["pareto"] = g
             summary["pareto_points"] = int(len(idx))
         if self.spec.histogram or self.spec.quantiles:
-            counts, nan = st["counts"], st["nan"]
+            nan = st["nan"]
             hist, quant = {}, {"probability": (("probability",), np.array(QUANTILES))}
             for j, o in enumerate(self.outputs):
-                nz = np.flatnonzero(counts[j])
-                first = (nz.astype(np.int64) - HIST_OFFSET_BINS) << HIST_SHIFT_BITS
+                nz, counts = st["histograms"][j]
+                first = (nz - HIST_OFFSET_BINS) << HIST_SHIFT_BITS
                 lower, upper = key_values(first), key_values(first + (1 << HIST_SHIFT_BITS) - 1)
                 dim = f"{o}_bin"
                 hist[f"{o}_lower"] = ((dim,), lower)
                 hist[f"{o}_upper"] = ((dim,), upper)
-                hist[f"{o}_count"] = ((dim,), counts[j, nz])
+                hist[f"{o}_count"] = ((dim,), counts)
                 hist[f"{o}_nan"] = ((), np.int64(nan[j]))
-                c = np.cumsum(counts[j, nz])
+                c = np.cumsum(counts)
                 total = int(c[-1]) if len(c) else 0
                 if total:
                     h = (total - 1) * np.asarray(QUANTILES)
@@ -438,7 +463,7 @@ class Reducer:
         """The reductions as netCDF-4 groups of the open ``h5py.File`` ``h5`` (``best``,
         ``top``, ``pareto``, ``histogram``, ``quantiles``; ``xarray.open_dataset(path,
         group=...)``), written by :func:`netcdf_group`; returns :meth:`results` (computed
-        once: the histograms' state is tens of MB)."""
+        once: it reads the device's state)."""
         results = self.results()
         dimid = 1 + max((int(d.attrs.get("_Netcdf4Dimid", -1)) for d in h5.values()), default=-1)
         for name, g in results.items():
@@ -485,20 +510,54 @@ def netcdf_group(h5, name: str, variables: dict, units: dict, dimid: int) -> int
                 scales[d] = ds = grp.create_dataset(d, shape=(size,), dtype=">f4", track_order=True, **kw)
                 ds.make_scale(NOT_A_VARIABLE % size)
             ids[d] = dimid
-            ds.attrs["_Netcdf4Dimid"] = np.int32(dimid)
+            _new_attribute(ds, "_Netcdf4Dimid", np.int32(dimid))
             dimid += 1
     for var, (dims, a) in variables.items():
         ds = scales[var] if var in scales else dataset(var, a)
         for j, d in enumerate(dims):
-            if var not in scales:
-                ds.dims[j].attach_scale(scales[d])
+            if var not in scales:  # (HDF5's call: h5py's ds.dims[j] reads the dataspace again each time)
+                h5py.h5ds.attach_scale(ds.id, scales[d].id, j)
         if dims:
-            ds.attrs["_Netcdf4Coordinates"] = np.array([ids[d] for d in dims], dtype=np.int32)
+            _new_attribute(ds, "_Netcdf4Coordinates", np.array([ids[d] for d in dims], dtype=np.int32))
             if var not in scales:  # netCDF-C marks a written variable with its first dimension's id
-                ds.attrs["_Netcdf4Dimid"] = np.int32(ids[dims[0]])
+                _new_attribute(ds, "_Netcdf4Dimid", np.int32(ids[dims[0]]))
         if var in units:
-            ds.attrs["units"] = units[var]
+            _new_attribute(ds, "units", units[var])
     return dimid
+
+
+def _new_attribute(obj, name: str, value) -> None:
+    """The attribute ``name`` of the new h5py object ``obj``: ``value`` an int32 (scalar
+    or 1-D) or a str (a variable-length UTF-8 scalar), as h5py's ``obj.attrs[name] = value``
+    writes it, by HDF5's calls (h5py's checks for an existing attribute to replace took a
+    quarter of a reduced sweep's group writing)."""
+    import h5py
+
+    a = np.array(value, dtype=h5py.string_dtype() if isinstance(value, str) else np.int32)
+    attr = h5py.h5a.create(
+        obj.id, name.encode(), h5py.h5t.py_create(a.dtype, logical=True), h5py.h5s.create_simple(a.shape)
+    )
+    attr.write(a)
+
+
+def merge_histograms(a: list, b: list) -> list:
+    """Per output, the sum of two compacted histograms [(bins increasing, counts)]: the
+    union of their bins, the counts of a bin in both added (exact integers)."""
+    out = []
+    for (bins_a, counts_a), (bins_b, counts_b) in zip(a, b):
+        bins, at = np.unique(np.concatenate([bins_a, bins_b]), return_inverse=True)
+        counts = np.zeros(len(bins), dtype=np.int64)
+        np.add.at(counts, at, np.concatenate([counts_a, counts_b]))
+        out.append((bins, counts))
+    return out
+
+
+def _fold(key: str, a, b):
+    """Two reducers' ``key`` of :meth:`Reducer.state` as one: best keys minimized,
+    histograms merged, NaN counts summed."""
+    if key == "best":
+        return np.minimum(a, b)
+    return merge_histograms(a, b) if key == "histograms" else a + b
 
 
 def _json(v):

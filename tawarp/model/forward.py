@@ -624,7 +624,8 @@ class Engine:
     ):
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
         ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
-        counted first and the largest point count read back (the one host round trip); then
+        counted first and the largest point count read back (the one host round trip; none
+        with fixed cells: :meth:`_fixed_point_counts`); then
         blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
         (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch.
         With ``tangent`` (g, P, m, 8) the sets are g groups of 1 + 2P (:meth:`evaluate_tangents`),
@@ -648,9 +649,12 @@ class Engine:
             inputs=[self._sets(params), self.seg_cells, density, self.omega_max, cells, most],
             device=self.device,
         )
-        n_points, n_slots, n_cells = (int(v) for v in most.numpy())
-        if n_cells > MAX_CELLS:
-            self._refuse_cells(params, cells.numpy())
+        if self.settings.cells is not None:
+            n_points, n_slots = self._fixed_point_counts(columns)
+        else:
+            n_points, n_slots, n_cells = (int(v) for v in most.numpy())
+            if n_cells > MAX_CELLS:
+                self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         for lo in range(0, n, block):
@@ -687,6 +691,21 @@ class Engine:
                 device=self.device,
                 block_dim=self.settings.block_dim,
             )
+
+    def _fixed_point_counts(self, columns: int) -> tuple[int, int]:
+        """(points, point-kernel slots) of a set over ``columns`` // n_seg grids with fixed
+        cells (:func:`tawarp.kernels.forward.cell_counts`), known on the host: a set takes
+        the most when every segment whose temperature may vary (thermal, or imposed) does, so
+        these bound ``most`` of :meth:`_cascade` and equal it when a set of the batch has heat
+        input and its imposed ends differ (a fit's heated sets: no host round trip per
+        evaluation). Slots beyond a set's own return at once, so the T-matrices are the same
+        bit for bit (tests/test_forward.py). The fixed counts lie in [1, MAX_CELLS]
+        (:meth:`ForwardSettings.cells_per_segment`): nothing to refuse."""
+        flags = structure_flags(self.core)
+        varies = (flags[:, layout.F_THERMAL] != 0) | (flags[:, layout.F_IMPOSED] != 0)
+        cells = self.settings.cells_per_segment(self.core).astype(np.int64)
+        grids = columns // len(self.core.segments)
+        return grids * int(np.where(varies, 3 * cells, 1).sum()), grids * int(np.where(varies, cells, 1).sum())
 
     def _refuse_cells(self, params: wp.array, cells: np.ndarray):
         """Raise :class:`~tawarp.model.validity.ModelValidityError` for the first set whose
