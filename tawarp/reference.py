@@ -25,6 +25,11 @@ Physics:
 * acoustics: Rott's two-port ODE ``d(p,U)/dx = A(x) (p,U)``, closed form where the
   temperature is uniform, DOP853 on the 2x2 fundamental matrix where it is not
   (:func:`transfer_matrix`).
+
+A core field the reference does not model (a limp frame, a viscous shape factor, a bypass
+gap, a contact resistance, an end conductance, imposed temperatures) is refused with a
+ValueError that names it wherever it would change the answer, never ignored
+(:data:`_UNMODELLED`); :mod:`tawarp.reference_effects` has the reference's own gap and contact.
 """
 
 from __future__ import annotations
@@ -38,6 +43,7 @@ from scipy.integrate import solve_ivp
 
 from .model.coefficients import duct_impedance, normalize
 from .model.core import Core, Segment
+from .model.fields import EFFECT_OFF, SEGMENT_FIELDS
 from .model.gas import GASES, T_REF
 
 __all__ = [
@@ -105,6 +111,65 @@ def _segment_of(core: Core, seg) -> Segment:
     return core.segment(seg)
 
 
+#: Core fields the reference does not model: {field: (parts, what it models instead)}. The
+#: parts of an answer a field changes: "acoustics" (a segment's T-matrix, at any heat input),
+#: "conductivity" (a thermal segment's conductivity in the heat model), "heated" (the steady
+#: temperature with heat input: at Q = 0 the core is at T_cold whatever the field) and
+#: "temperature" (the mean temperature at any heat input). An entry point refuses such a
+#: field, set away from its neutral value, where it computes a part the field changes
+#: (:func:`_refuse_unmodelled`); tests/test_reference_fields.py checks every kernel field
+#: is read here or refused.
+_IMPOSED = (
+    frozenset({"temperature"}),
+    "T_cold and the heat model's temperatures, no imposed ones ({name}.T_start = {seg.T_start:g} K, "
+    "{name}.T_end = {seg.T_end:g} K)",
+)
+_UNMODELLED: dict[str, tuple[frozenset, str]] = {
+    "frame_mobility": (frozenset({"acoustics"}), "a rigid frame (frame_mobility 0)"),
+    "viscous_shape_factor": (
+        frozenset({"acoustics"}),
+        "the viscous function at the pore radius (viscous_shape_factor 1)",
+    ),
+    "bypass_gap": (
+        frozenset({"acoustics", "conductivity"}),
+        "no gap; use tawarp.reference_effects.LabEffects(bypass_gap={value}, gap_segment={name!r}) for the "
+        "reference's own gap",
+    ),
+    "contact_resistance": (
+        frozenset({"heated"}),
+        "perfect contact; use tawarp.reference_effects.LabEffects(contact_resistance={value}, "
+        "contact_left={previous!r}) for the reference's own contact",
+    ),
+    "end_conductance": (
+        frozenset({"heated"}),
+        "adiabatic ends of the heat model (theta' = 0; no lab effect has an end conductance)",
+    ),
+    "T_start": _IMPOSED,
+    "T_end": _IMPOSED,
+}
+
+
+def _refuse_unmodelled(core: Core, parts: set, segments=None) -> None:
+    """Raise ValueError naming the first field of ``segments`` (default: all of ``core``'s)
+    that the reference does not model and that changes one of the answer's ``parts``
+    (:data:`_UNMODELLED`), with its value and what the reference models instead."""
+    for s in core.segments if segments is None else segments:
+        for name, (acts, instead) in _UNMODELLED.items():
+            value = getattr(s, name)
+            # set: an effect away from its neutral value, an imposed temperature not NaN (unset)
+            if not (acts & parts) or value != value or value == EFFECT_OFF.get(name):
+                continue
+            thermal = [core.segments[i].name for i in core.thermal_indices]
+            k = thermal.index(s.name) if s.name in thermal else 0
+            previous = thermal[k - 1] if k > 0 else "none: no thermal segment before it"
+            unit = SEGMENT_FIELDS[name].unit
+            raise ValueError(
+                f"{core.source}: tawarp.reference does not model {s.name}.{name} = {value:g}"
+                f"{'' if unit == '-' else ' ' + unit}; it models "
+                + instead.format(value=f"{value:g}", name=s.name, previous=previous, seg=s)
+            )
+
+
 def segment_conductivity(core: Core, seg) -> float:
     """Axial conductivity ``lam`` [W/(m K)] of the heat model for segment ``seg``
     (a :class:`Segment`, its index or its name).
@@ -114,9 +179,11 @@ def segment_conductivity(core: Core, seg) -> float:
     (``wall_resistance`` 0). The gas conductivity is taken at the cold temperature and held
     constant (the heat model is linear; the temperature-dependent effects are
     :class:`NonlinearHeatSolution`'s). A thermal segment whose wall is a field of its own
-    (:func:`wall_field_indices`) has no such single conductivity: ValueError.
+    (:func:`wall_field_indices`) has no such single conductivity: ValueError. A field the
+    reference does not model (a bypass gap) is refused.
     """
     s = _segment_of(core, seg)
+    _refuse_unmodelled(core, {"conductivity"}, [s])
     if _wall_is_field(s):
         raise ValueError(
             f"{core.source}: segment {s.name!r}: wall_resistance = {s.wall_resistance} m^2 K/W with "
@@ -222,9 +289,16 @@ class HeatSolution:
     indices of the thermal segments), ``x_left``/``x_right`` [m] (their end planes),
     ``lam`` [W/(m K)], ``h`` [W/(m^2 K)], ``m`` [1/m] (= sqrt(2h/(R lam))), ``q`` [W/m^3]
     (volumetric source), ``alpha`` [K], ``beta`` [K/m] (coefficients of E and O).
+
+    A core field the heat model here does not have (imposed temperatures; in a thermal
+    segment a bypass gap, and with heat input a contact resistance or an end conductance)
+    is a ValueError that names it (:data:`_UNMODELLED`).
     """
 
     def __init__(self, core: Core, heat_input: float):
+        _refuse_unmodelled(core, {"temperature"})
+        thermal = [core.segments[i] for i in core.thermal_indices]
+        _refuse_unmodelled(core, {"conductivity", "heated"} if heat_input != 0.0 else {"conductivity"}, thermal)
         self.core = core
         self.heat_input = float(heat_input)
         self.T_cold = float(core.gas.T_cold)
@@ -799,6 +873,7 @@ def _uniform_matrix(core: Core, seg: Segment, w: np.ndarray) -> np.ndarray:
     k^2 = -a12 a21 (Im k > 0), Zc = a12/(i k) (this keeps the branches of k and Zc
     consistent whatever sqrt returns); T = [[cos kL, i Zc sin kL], [i sin kL/Zc, cos kL]].
     """
+    _refuse_unmodelled(core, {"acoustics"}, [seg])
     a12, a21, _ = _coefficients(core, seg, w, core.gas.T_cold, 0.0)
     k = np.sqrt(-a12 * a21)
     k = np.where(k.imag < 0, -k, k)
@@ -822,6 +897,7 @@ def _ode_matrix(core: Core, seg: Segment, x0: float, w: float, profile, rtol: fl
     along the segment, the pore radius and tortuosity held: the flow area phi S enters
     a12 as 1/phi and a21 as phi, a22 not at all.
     """
+    _refuse_unmodelled(core, {"acoustics"}, [seg])
     g0 = gas_properties(core.gas.name, core.gas.T_cold, core.gas.p_mean)
     Z0 = float(g0.rho * g0.c) / core.area
 
@@ -855,7 +931,9 @@ def segment_transfer_matrices(
     (not thermal, or Q = 0) uses the closed form; a heated thermal segment is integrated
     by DOP853 with relative tolerance ``rtol`` using the exact heat profile, or with a
     temperature-dependent effect on, the BVP solution of tolerance ``heat_tol``
-    (:func:`heat_profile`).
+    (:func:`heat_profile`). A core field the reference does not model (a limp frame, a
+    viscous shape factor, a bypass gap, imposed temperatures; with heat input a contact
+    resistance or an end conductance) is a ValueError that names it.
     ``_force_ode`` (private, for tests): integrate every segment numerically.
     """
     f = np.atleast_1d(np.asarray(freqs, dtype=float))
@@ -868,9 +946,6 @@ def _segment_matrices(
     core: Core, w: np.ndarray, heat_input: float, rtol: float, heat_tol: float, _force_ode: bool
 ) -> list[np.ndarray]:
     """:func:`segment_transfer_matrices` at angular frequencies ``w`` [rad/s], real or complex."""
-    imposed = [s.name for s in core.segments if s.imposed]
-    if imposed:
-        raise NotImplementedError(f"{core.source}: the reference has no imposed temperatures ({imposed})")
     hs = heat_profile(core, heat_input, heat_tol)
     heated = set(hs.indices) if heat_input != 0.0 else set()
     pos = core.positions()
