@@ -138,7 +138,8 @@ def test_warp_prints_its_own_lines_only_with_verbose(tmp_path):
     assert "wrote" in plain
     for line in ("Warp", "Module ", "initialized"):
         assert line not in plain, plain
-    assert "Warp" in run("--verbose") and "initialized" in run("--verbose")
+    verbose = run("--verbose")
+    assert "Warp" in verbose and "initialized" in verbose
 
 
 def test_a_ctrl_c_that_python_drops_is_raised_again():

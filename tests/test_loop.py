@@ -9,6 +9,7 @@ foams (Atalla & Panneton) the loop lowers the error of the circular-pore model b
 fitted rigid JCA model's."""
 
 import dataclasses
+import functools
 import json
 
 import numpy as np
@@ -314,10 +315,29 @@ def test_loop_cli_writes_report(tmp_path, monkeypatch):
     assert (tmp_path / "out" / "residuals.png").stat().st_size > 1000
 
 
-def rigid_jca_error(data, name: str) -> float:
-    """The error of a rigid JCA model (phi, sigma, alpha_inf, Lambda, Lambda') fitted to the
-    layers ``data`` by studies/elastic_frame.py's least squares (its start and 8 starts 30 %
-    off it)."""
+@functools.cache
+def foam_layers(name: str, every: int) -> tuple:
+    """Both measured layers of foam ``name`` (Atalla & Panneton) at every ``every``-th frequency."""
+    data = load_atalla_panneton(name, measured_folder("atalla_panneton_2005"))
+    return tuple(dataclasses.replace(d, freq=d.freq[::every], Zs=d.Zs[::every]) for d in data)
+
+
+@functools.cache
+def foam_loop(name: str, every: int):
+    """impedance_loop on foam_layers(name, every) with the paper's values for the comparison:
+    (problem, report), run once per module (the tests only read the report; the reference
+    values only add the comparison table, the loop is the same)."""
+    s = atalla_panneton_samples()[name]
+    ref = {k: s[k] for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")}
+    return impedance_loop(list(foam_layers(name, every)), ref)
+
+
+@functools.cache
+def rigid_jca_error(name: str, every: int) -> float:
+    """The error of a rigid JCA model (phi, sigma, alpha_inf, Lambda, Lambda') fitted to
+    foam_layers(name, every) by studies/elastic_frame.py's least squares (its start and 8
+    starts 30 % off it)."""
+    data = foam_layers(name, every)
     import sys
     from pathlib import Path
 
@@ -327,7 +347,7 @@ def rigid_jca_error(data, name: str) -> float:
     from tawarp.model import biot
 
     start = {k: atalla_panneton_samples()[name][k] for k in biot.JCA_PARAMETERS}
-    rigid = ef.Fit(data, ef.RIGID, biot.rigid_surface_impedance, {})
+    rigid = ef.Fit(list(data), ef.RIGID, biot.rigid_surface_impedance, {})
     rng = np.random.default_rng(0)
     starts = [start] + [
         {k: v * f for (k, v), f in zip(start.items(), rng.choice([0.7, 1.3], len(start)))} for _ in range(8)
@@ -336,18 +356,11 @@ def rigid_jca_error(data, name: str) -> float:
     return ef.error(np.concatenate([d.Zs for d in data]), np.concatenate(rigid.predict(x)))
 
 
-def _foam(name):
-    data = load_atalla_panneton(name, measured_folder("atalla_panneton_2005"))
-    s = atalla_panneton_samples()[name]
-    return data, {k: s[k] for k in ("phi", "alpha_inf", "Lambda", "Lambda_prime", "sigma")}
-
-
 @pytest.mark.parametrize("name", ["foam1", "foam2"])
 def test_loop_on_measured_foams(name, tmp_path):
     # the rigid circular-pore model does not fit measured foams to their noise (estimated
     # from the data): the loop says so and says where the misfit lives.
-    data, ref = _foam(name)
-    prob, rep = impedance_loop(data, ref)
+    prob, rep = foam_loop(name, 1)
     assert not rep["goodness_of_fit_before"]["adequate"]
     assert rep["goodness_of_fit_before"]["noise_source"].startswith("estimated")
     u = rep["unexplained_residual"]
@@ -356,10 +369,10 @@ def test_loop_on_measured_foams(name, tmp_path):
     # report.json holds the report's public keys (and the figures' names) with their values
     assert set(js) - {"figures"} == {k for k in rep if not k.startswith("_")}
     assert js == {**rep.to_json(), "figures": js["figures"]}
-    assert js["comparison"]["phi"]["reference"] == ref["phi"]
+    assert js["comparison"]["phi"]["reference"] == atalla_panneton_samples()[name]["phi"]
     best = set(rep["best_model"])
     # the loop's best model is at least as good as a rigid JCA model fitted to the same data
-    assert rep["error_after"] <= rigid_jca_error(data, name)
+    assert rep["error_after"] <= rigid_jca_error(name, 1)
     # neither foam is the rigid circular-pore model: the Lambda'/Lambda of JCA (a separate
     # thermal radius) is in the best model with certainty, and the fit stays above the noise,
     # so nothing is claimed (verdict wrong_model)
@@ -466,13 +479,12 @@ def loop_choice(rep) -> set[str]:
 def test_loop_foam_choice_survives_every_8th_frequency(name):
     # both layers at every 8th frequency (9 each, 160 Hz apart): the same effects chosen as
     # on the full grid, and an error after at or below a rigid JCA fit's on the same points
-    data, _ = _foam(name)
-    coarse = [dataclasses.replace(d, freq=d.freq[::8], Zs=d.Zs[::8]) for d in data]
+    # (the full grid's loop and fit are test_loop_on_measured_foams')
     choices, errors = [], []
-    for layers in (data, coarse):
-        _, rep = impedance_loop(layers)
+    for every in (1, 8):
+        _, rep = foam_loop(name, every)
         choices.append(loop_choice(rep))
-        errors.append((rep["error_after"], rigid_jca_error(layers, name)))
+        errors.append((rep["error_after"], rigid_jca_error(name, every)))
     assert choices[0] == choices[1], choices
     assert "thermal_radius_ratio" in choices[0]
     for after, rigid in errors:
