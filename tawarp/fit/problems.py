@@ -288,6 +288,7 @@ def kind_result(
         weighted=kind.has_sigma,
         lower=np.array([par.lower for par in params]),
         upper=np.array([par.upper for par in params]),
+        problem_model=model,
     )
 
 

@@ -253,9 +253,15 @@ def fit_models(
         own = [f for f, o in zip(fits, owner) if o == k]
         # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
         kept = [f for f in own if f.reason[0] != DROPPED] or own
-        scored = [(laplace_log_evidence(f.residuals[0], f.jacobian[0], f.x[0], m.priors, noise_scale), f) for f in kept]
+        scored = [(_log_evidence(f, noise_scale), f) for f in kept]
         m.log_evidence, m.fit = max(scored, key=lambda t: t[0])
     return out
+
+
+def _log_evidence(f: FitResult, noise_scale: bool) -> float:
+    """:func:`laplace_log_evidence` of the MAP fit ``f`` on its own problem model (the priors
+    it was fitted under, its covariance)."""
+    return laplace_log_evidence(f.problem_model, f.residuals[0], f.jacobian[0], f.x[0], noise_scale)
 
 
 def _typical_x(e: Effect) -> np.ndarray:
@@ -501,9 +507,7 @@ def run_loop(
     base = Model((), priors=base_priors)
     base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
     estimated = source == NOISE_ESTIMATE
-    base.log_evidence = laplace_log_evidence(
-        base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors, estimated
-    )
+    base.log_evidence = _log_evidence(base.fit, estimated)
     _finished(bar, "base fit")
     models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
     _finished(bar, "evidence")
