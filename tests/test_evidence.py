@@ -303,3 +303,33 @@ def test_a_parameter_on_its_bound_with_an_unknown_noise_scale(seed):
     exact = special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * math.log(R))
     got = laplace_log_evidence(x_model(priors), M @ x - y, M, x, noise_scale=True)
     assert got == pytest.approx(exact, abs=2e-3)
+
+
+def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
+    # one covariance: ProblemModel.covariance_x at noise variance s2 is (J^T J / s2 +
+    # diag(1/sd^2))^-1 in x, from J or from J^T J alike, and the covariance a fit reports
+    # (ProblemModel.covariance, sigma known: s2 = 1) is that one taken to values by the delta
+    # method (v for a log parameter, its step for a linear one)
+    from tawarp.fit.problem_model import ProblemModel
+
+    A, y, mu, sd = linear_gaussian(3)
+    model = ProblemModel(
+        ["a", "b", "c"],
+        np.array([True, False, True]),
+        np.array([2.0, 0.5, 30.0]),
+        np.array([1.0, 0.1, 1.0]),
+        np.array([0.0, -np.inf, 0.0]),
+        np.full(3, np.inf),
+        mu,
+        sd,
+    )
+    x = map_estimate(A, y, mu, sd)
+    for s2 in (1.0, 2.5):
+        want = np.linalg.inv(A.T @ A / s2 + np.diag(sd**-2))
+        assert np.allclose(model.covariance_x(s2, J=A), want, rtol=1e-10, atol=1e-15)
+        assert np.allclose(model.covariance_x(s2, H=A.T @ A), want, rtol=1e-10, atol=1e-15)
+    D = np.array([2.0 * math.exp(x[0]), 0.1, 30.0 * math.exp(x[2])])
+    got = model.covariance(x, cost=float(np.sum((A @ x - y) ** 2)), dof=len(y) - 3, J=A)
+    assert np.allclose(
+        got.cov, D[:, None] * np.linalg.inv(A.T @ A + np.diag(sd**-2)) * D[None, :], rtol=1e-10, atol=1e-15
+    )
