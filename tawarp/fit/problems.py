@@ -6,7 +6,8 @@ a unit step is a relative change of order one, or one ``scale`` of
 :mod:`tawarp.model.fields`), the effect whose structure it needs (None: the kind's core)
 and the start x0. :func:`fit_batch` runs several fits of one kind in lockstep
 (:class:`KindProblems`: every iteration is one :meth:`MeasurementKind.predict` call per
-structure for every active fit's trial point and its forward-difference neighbours).
+structure for every active fit's trial point, and one for the forward-difference
+neighbours of the trials that lower their fit's cost).
 Residuals: ``w (Y_model - y)`` (re, im) on the fitted rows, w the kind's weights.
 :func:`fit_kind` is the estimator's entry point for a kind (``tawarp fit``): parameter
 names, bounds and scaling from :mod:`tawarp.model.fields`.
@@ -65,9 +66,9 @@ class KindProblems:
 
     z is x padded with zeros to the largest p of the batch, the padding pinned by the bounds
     ``zlo = zhi = 0`` (zero Jacobian columns: it never moves and adds nothing to the step
-    and gradient tests). :meth:`evaluate` forms the trial point and its forward-difference
-    neighbours (step ``FD_STEP`` in x, towards the interior at an upper bound) of every
-    fit asked for in one :meth:`MeasurementKind.predict` call per structure: fits whose
+    and gradient tests). :meth:`evaluate` forms the trial points and the forward-difference
+    neighbours (step ``FD_STEP`` in x, towards the interior at an upper bound) of the fits
+    asked for, each in one :meth:`MeasurementKind.predict` call per structure: fits whose
     effects change no structure share one launch (the union of their parameters, each
     fit's others at their start values), a structural effect has its own.
     """
