@@ -303,7 +303,6 @@ def fit_batch(
     gtol: float = GTOL,
     priors: list | None = None,
     drop=None,
-    tau: float = 1e-3,
 ) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
@@ -313,8 +312,7 @@ def fit_batch(
     (:meth:`KindProblems.at_solutions`). ``priors``: per
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
     then the maximum a posteriori (the result's cost and residuals stay the data's).
-    ``drop``: :func:`levenberg_marquardt`'s, the fits by their index in ``specs``; ``tau``
-    its initial damping (times the largest diagonal of J^T J)."""
+    ``drop``: :func:`levenberg_marquardt`'s, the fits by their index in ``specs``."""
     t0 = time.perf_counter()
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     lm = KindProblems(kind, specs, fixed, rows, priors)
@@ -323,7 +321,7 @@ def fit_batch(
         return []
     pid = np.arange(K)
     if lm.zlo.shape[1]:
-        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop, tau=tau)
+        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop)
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K

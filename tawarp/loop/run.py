@@ -77,15 +77,6 @@ RACE_HOPELESS = 50.0
 #: reported at the point where it stopped. A data set with one strong effect left every
 #: other single effect 2000 below it, each crawling to MAX_ITER.
 RACE_OUT = 250.0
-#: Initial damping of the refits (:func:`fit_models`), times the largest diagonal of J^T J
-#: (the LM's default 1e-3 is made for starts far from any solution). A refit starts at or
-#: next to the solution of a model it extends, where the sensitive base parameters set that
-#: diagonal: at 1e-3 the steps along an effect's weakly determined parameters were 100x
-#: short, and its first five to seven iterations barely moved (a trial that fails costs one
-#: parameter set, :meth:`tawarp.fit.problems.KindProblems.evaluate`). 1e-5 evaluated 17-28 %
-#: fewer sets on the bench's cases; models with several optima may end at another one
-#: (plane offsets beside a bypass gap: ln Z -487.25 then, -486.96 now).
-REFIT_TAU = 1e-5
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
@@ -257,7 +248,7 @@ def fit_models(
             priors.append(_as_pairs(pri))
             owner.append(k)
     race = start_race(np.array(owner), np.array([len(names) for names, _ in requests]), 2 * problem.y.size)
-    fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors, drop=race, tau=REFIT_TAU)
+    fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors, drop=race)
     for k, m in enumerate(out):
         own = [f for f, o in zip(fits, owner) if o == k]
         # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
