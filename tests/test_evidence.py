@@ -19,6 +19,7 @@ from tawarp.loop.evidence import (
     claims,
     inclusion,
     laplace_log_evidence,
+    x_model,
     linearized_evidence,
     log_model_prior,
     posterior,
@@ -52,7 +53,7 @@ def test_laplace_evidence_is_exact_for_a_linear_gaussian_model(seed):
     A, y, mu, sd = linear_gaussian(seed)
     x = map_estimate(A, y, mu, sd)
     priors = [XPrior(m, s) for m, s in zip(mu, sd)]
-    got = laplace_log_evidence(A @ x - y, A, x, priors)
+    got = laplace_log_evidence(x_model(priors), A @ x - y, A, x)
     assert got == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
 
 
@@ -73,11 +74,11 @@ def test_evidence_with_an_unknown_noise_scale_is_the_exact_marginal(seed):
     exact = special.logsumexp(logpdf) + math.log(u[1] - u[0]) - math.log(2 * math.log(R))
     exact += 0.5 * len(y) * math.log(2 * math.pi)
     for x in (map_estimate(A, y, mu, sd), mu + sd):
-        got = laplace_log_evidence(A @ x - y, A, x, priors, noise_scale=True)
+        got = laplace_log_evidence(x_model(priors), A @ x - y, A, x, noise_scale=True)
         assert got == pytest.approx(exact, abs=2e-3)
     # against the estimate taken as exact, the marginal prefers the scale the data show
-    assert laplace_log_evidence(A @ x - y, A, x, priors, noise_scale=True) > laplace_log_evidence(
-        A @ x - y, A, x, priors
+    assert laplace_log_evidence(x_model(priors), A @ x - y, A, x, noise_scale=True) > laplace_log_evidence(
+        x_model(priors), A @ x - y, A, x
     )
 
 
@@ -116,7 +117,7 @@ def test_noise_scale_evidence_at_a_bound_with_a_large_gradient(seed):
     x = rng.uniform(-1, 1, 8) * sd
     x[5] = 0.0
     priors = [XPrior(0.0, s) for s in sd]
-    got = laplace_log_evidence(r, J, x, priors, noise_scale=True)
+    got = laplace_log_evidence(x_model(priors), r, J, x, noise_scale=True)
     assert got == pytest.approx(stacked_noise_scale_evidence(r, J, x, priors), abs=1e-6)
 
 
@@ -224,10 +225,12 @@ def test_an_effect_the_data_do_not_see_changes_nothing():
     A, y, mu, sd = linear_gaussian(0)
     x = map_estimate(A, y, mu, sd)
     base = [XPrior(m, s) for m, s in zip(mu, sd)]
-    want = laplace_log_evidence(A @ x - y, A, x, base)
+    want = laplace_log_evidence(x_model(base), A @ x - y, A, x)
     for width in (0.1, 1.0, 30.0):
         Ja = np.hstack([A, np.zeros((len(y), 1))])
-        got = laplace_log_evidence(A @ x - y, Ja, np.append(x, 0.0), base + [XPrior(0.0, width, 0.0, math.inf)])
+        got = laplace_log_evidence(
+            x_model(base + [XPrior(0.0, width, 0.0, math.inf)]), A @ x - y, Ja, np.append(x, 0.0)
+        )
         assert got == pytest.approx(want, abs=1e-10)
 
 
@@ -271,11 +274,11 @@ def test_a_parameter_on_its_bound_is_integrated_over_its_side(seed, pull):
     priors = [XPrior(m, s) for m, s in zip(mu, sd)] + [XPrior(0.0, width, 0.0, math.inf)]
     full = map_estimate(M, y, np.append(mu, 0.0), np.append(sd, width))
     x = full if full[-1] > 0 else np.append(map_estimate(A, y, mu, sd), 0.0)
-    got = laplace_log_evidence(M @ x - y, M, x, priors)
+    got = laplace_log_evidence(x_model(priors), M @ x - y, M, x)
     exact = one_sided_exact(A, a, y, mu, sd, width)
     if full[-1] <= 0:
         assert got == pytest.approx(exact, abs=1e-8)
-        without = laplace_log_evidence(A @ x[:-1] - y, A, x[:-1], priors[:-1])
+        without = laplace_log_evidence(x_model(priors[:-1]), A @ x[:-1] - y, A, x[:-1])
         assert got < without
     else:  # inside: the Laplace Gaussian cut at the bound, exact up to the cut's shape
         assert got == pytest.approx(exact, abs=0.05)
@@ -298,5 +301,35 @@ def test_a_parameter_on_its_bound_with_an_unknown_noise_scale(seed):
     u = np.linspace(-math.log(R), math.log(R), 801)
     terms = [one_sided_exact(A, a, y, mu, sd, width, math.exp(v)) for v in u]
     exact = special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * math.log(R))
-    got = laplace_log_evidence(M @ x - y, M, x, priors, noise_scale=True)
+    got = laplace_log_evidence(x_model(priors), M @ x - y, M, x, noise_scale=True)
     assert got == pytest.approx(exact, abs=2e-3)
+
+
+def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
+    # one covariance: ProblemModel.covariance_x at noise variance s2 is (J^T J / s2 +
+    # diag(1/sd^2))^-1 in x, from J or from J^T J alike, and the covariance a fit reports
+    # (ProblemModel.covariance, sigma known: s2 = 1) is that one taken to values by the delta
+    # method (v for a log parameter, its step for a linear one)
+    from tawarp.fit.problem_model import ProblemModel
+
+    A, y, mu, sd = linear_gaussian(3)
+    model = ProblemModel(
+        ["a", "b", "c"],
+        np.array([True, False, True]),
+        np.array([2.0, 0.5, 30.0]),
+        np.array([1.0, 0.1, 1.0]),
+        np.array([0.0, -np.inf, 0.0]),
+        np.full(3, np.inf),
+        mu,
+        sd,
+    )
+    x = map_estimate(A, y, mu, sd)
+    for s2 in (1.0, 2.5):
+        want = np.linalg.inv(A.T @ A / s2 + np.diag(sd**-2))
+        assert np.allclose(model.covariance_x(s2, J=A), want, rtol=1e-10, atol=1e-15)
+        assert np.allclose(model.covariance_x(s2, H=A.T @ A), want, rtol=1e-10, atol=1e-15)
+    D = np.array([2.0 * math.exp(x[0]), 0.1, 30.0 * math.exp(x[2])])
+    got = model.covariance(x, cost=float(np.sum((A @ x - y) ** 2)), dof=len(y) - 3, J=A)
+    assert np.allclose(
+        got.cov, D[:, None] * np.linalg.inv(A.T @ A + np.diag(sd**-2)) * D[None, :], rtol=1e-10, atol=1e-15
+    )

@@ -499,7 +499,8 @@ def test_starts_race_only_in_hopeless_models():
     # last decrease kept up for RACE_PACE iterations closes its gap stays too.
     from tawarp.loop.run import RACE_AFTER, RACE_PACE, start_race
 
-    drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 1]))
+    # 100 residuals: (n/2) ln(1000/100) = 115, model 1 is within reach (RACE_OUT)
+    drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 1]), 100)
     slots = np.arange(5)
     cost = np.array([100.0, 400.0, 1000.0, 1020.0, 1100.0])
     for _ in range(RACE_AFTER - 1):
@@ -507,3 +508,36 @@ def test_starts_race_only_in_hopeless_models():
     fast = cost.copy()
     fast[4] -= 100.0 / RACE_PACE + 1.0  # it fell by more than (gap)/RACE_PACE last iteration
     assert drop(slots, fast).tolist() == [False, False, False, True, False]
+
+
+def test_models_out_of_reach_stop_whole():
+    # run.RACE_OUT: the same batch on 1000 residuals, where model 1's best cost 1000 against
+    # the batch's 100 is (n/2) ln 10 = 1151 > RACE_OUT in log-likelihood: every start of it
+    # stops, its best too, unless one of them, at its last pace for RACE_PACE iterations,
+    # would come within reach; model 0, its size's leader, keeps its starts; and a model of
+    # another size that leads its size keeps them however far behind it is.
+    from tawarp.loop.run import RACE_AFTER, RACE_OUT, RACE_PACE, start_race
+
+    n = 1000
+    slots = np.arange(5)
+    cost = np.array([100.0, 400.0, 1000.0, 1020.0, 1100.0])
+    drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 1]), n)
+    for _ in range(RACE_AFTER - 1):
+        assert not drop(slots, cost).any()
+    assert drop(slots, cost).tolist() == [False, False, True, True, True]
+    # slot 4 falls so fast that RACE_PACE more such iterations end just inside RACE_OUT
+    # (it stays, model 1's best now, while its other two, above it and not descending,
+    # stop in the hopeless model's race), or just outside it (all stop)
+    edge = 100.0 * np.exp(2 * RACE_OUT / n)
+    for share, stops in ((0.99, False), (1.01, True)):
+        drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 1]), n)
+        for _ in range(RACE_AFTER - 1):
+            drop(slots, cost)
+        fast = cost.copy()
+        fast[4] = (RACE_PACE * cost[4] + share * edge) / (RACE_PACE + 1)
+        assert drop(slots, fast).tolist() == [False, False, True, True, stops]
+    # model 1 alone of its size (two effects) leads it: nothing stops
+    drop = start_race(np.array([0, 0, 1, 1, 1]), np.array([1, 2]), n)
+    for _ in range(RACE_AFTER):
+        got = drop(slots, cost)
+    assert not got.any()

@@ -160,16 +160,26 @@ class ProblemModel:
             return np.zeros(self.p)
         return 1.0 / np.asarray(self.prior_sd, dtype=float) ** 2
 
-    def covariance(self, x, cost: float, dof: int, J: np.ndarray | None = None, H: np.ndarray | None = None):
-        """:class:`Covariance` at the solution x (p,) of one problem (module doc), from the
-        Jacobian ``J`` (n, p) of its weighted residuals in x (the more accurate: singular
-        values of J are resolved to its rounding, eigenvalues of J^T J only to their square's)
-        or from ``H`` = J^T J (p, p); ``cost`` the data's weighted sum of squares."""
+    def select(self, keep: np.ndarray) -> "ProblemModel":
+        """The model of the parameters where the mask ``keep`` (p,) is True."""
+        keep = np.asarray(keep, dtype=bool)
+        pick = lambda a: None if a is None else np.asarray(a)[..., keep]  # noqa: E731
+        return ProblemModel(
+            [n for n, k in zip(self.names, keep) if k],
+            self.log[keep],
+            pick(self.ref),
+            self.step[keep],
+            self.lower[keep],
+            self.upper[keep],
+            pick(self.prior_mu),
+            pick(self.prior_sd),
+            self.noise_estimated,
+        )
+
+    def _inverse(self, s2: float, J: np.ndarray | None, H: np.ndarray | None):
+        """(A^-1 on the determined directions, undetermined (p,), A) of ``A = J^T J + s2
+        Lambda`` (module doc), from ``J`` (n, p) or ``H`` = J^T J (p, p)."""
         p = self.p
-        s2 = float(noise_variance(cost, dof, self.noise_estimated))
-        if p == 0:
-            empty = np.zeros((0, 0))
-            return Covariance(empty, np.zeros(0), empty, 1.0, s2, np.zeros(0, dtype=bool))
         lam = s2 * self.precision()
         if J is not None:
             # A = R^T R with R the Jacobian and the priors' rows
@@ -190,6 +200,29 @@ class ProblemModel:
         keep = ~null
         unit_x = (Vt[keep].T / ev[keep]) @ Vt[keep] / norm[:, None] / norm[None, :]
         undetermined = np.any(np.abs(Vt[null]) > UNDETERMINED_SHARE, axis=0) if null.any() else np.zeros(p, dtype=bool)
+        return unit_x, undetermined, A
+
+    def covariance_x(self, s2: float = 1.0, J: np.ndarray | None = None, H: np.ndarray | None = None) -> np.ndarray:
+        """The posterior covariance of x (p, p) at noise variance ``s2``, ``C_x = (H / s^2 +
+        Lambda)^-1`` on the determined directions (module doc), from the Jacobian ``J`` (n, p)
+        of the weighted residuals or ``H`` = J^T J: the one of :meth:`covariance` before
+        the delta method, and the Gaussian of the Laplace evidence
+        (:func:`tawarp.loop.evidence.laplace_log_evidence`)."""
+        if self.p == 0:
+            return np.zeros((0, 0))
+        return s2 * self._inverse(s2, J, H)[0]
+
+    def covariance(self, x, cost: float, dof: int, J: np.ndarray | None = None, H: np.ndarray | None = None):
+        """:class:`Covariance` at the solution x (p,) of one problem (module doc), from the
+        Jacobian ``J`` (n, p) of its weighted residuals in x (the more accurate: singular
+        values of J are resolved to its rounding, eigenvalues of J^T J only to their square's)
+        or from ``H`` = J^T J (p, p); ``cost`` the data's weighted sum of squares."""
+        p = self.p
+        s2 = float(noise_variance(cost, dof, self.noise_estimated))
+        if p == 0:
+            empty = np.zeros((0, 0))
+            return Covariance(empty, np.zeros(0), empty, 1.0, s2, np.zeros(0, dtype=bool))
+        unit_x, undetermined, A = self._inverse(s2, J, H)
         D = self.dv_dx(x)
         unit = unit_x * D[:, None] * D[None, :]
         cov = s2 * unit

@@ -74,6 +74,9 @@ class FitResult:
     weighted: bool = False
     lower: np.ndarray | None = None
     upper: np.ndarray | None = None
+    #: the :class:`tawarp.fit.problem_model.ProblemModel` of a kind fit (scaling, priors,
+    #: covariance): the one its ``covariance`` came from, and its evidence's (the loop)
+    problem_model: object = None
 
     def at_bounds(self, i: int = 0) -> list[str]:
         """Parameters of problem ``i`` that ended on a bound of their fit range (to 1e-9

@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
+from ..fit.problem_model import ProblemModel
 from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
@@ -114,13 +115,23 @@ def model_priors(core, params: list[Param], effects: tuple[Effect, ...]) -> list
     return [x_prior(core, par, declared.get(par.label)) for par in params]
 
 
-def inside_mass(x: np.ndarray, H: np.ndarray, priors: list[XPrior]) -> float:
-    """ln of the share of the Laplace Gaussian (mean ``x``, covariance ``H^-1``) that lies in
-    each parameter's range, parameter by parameter: 1/2 for a parameter on its bound (a
+def x_model(priors: list[XPrior]) -> ProblemModel:
+    """The :class:`ProblemModel` of parameters that are their own fit variables (v = x),
+    with ``priors`` (their ranges the fit ranges): a model known only in x, as the
+    linearized one of :func:`linearized_evidence`."""
+    mu, sd, lo, hi = prior_arrays(priors)
+    k = mu.size
+    return ProblemModel([f"x{j}" for j in range(k)], np.zeros(k, dtype=bool), np.zeros(k), np.ones(k), lo, hi, mu, sd)
+
+
+def inside_mass(model: ProblemModel, x: np.ndarray, JtJ: np.ndarray, s2: float) -> float:
+    """ln of the share of the Laplace Gaussian (mean ``x``, the posterior covariance
+    :meth:`ProblemModel.covariance_x` of ``JtJ`` = J^T J at noise variance ``s2``) that lies
+    in each parameter's range, parameter by parameter: 1/2 for a parameter on its bound (a
     one-sided effect fitted at "off"), about 1 far inside. Without it a one-sided effect the
     data barely see would gain ln 2 from its half-normal's normalisation alone."""
-    s = np.sqrt(np.maximum(np.diag(np.linalg.inv(H)), 1e-300))
-    _, _, lo, hi = prior_arrays(priors)
+    s = np.sqrt(np.maximum(np.diag(model.covariance_x(s2, H=JtJ)), 1e-300))
+    lo, hi = model.bounds_x()
     mass = special.ndtr((hi - x) / s) - special.ndtr((lo - x) / s)
     return float(np.sum(np.log(np.maximum(mass, 1e-300))))
 
@@ -152,10 +163,12 @@ ON_BOUND = 1e-9
 
 
 def laplace_log_evidence(
-    r: np.ndarray, J: np.ndarray, x: np.ndarray, priors: list[XPrior], noise_scale: bool = False
+    model: ProblemModel, r: np.ndarray, J: np.ndarray, x: np.ndarray, noise_scale: bool = False
 ) -> float:
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
-    (in units of the noise) and their Jacobian ``J`` in x, the Gaussian cut to the parameters'
+    (in units of the noise) and their Jacobian ``J`` in x, of the fit whose problem is
+    ``model`` (:class:`ProblemModel`: its Gaussian priors in x, its fit ranges, and its
+    posterior covariance as the Laplace Gaussian's), the Gaussian cut to the parameters'
     ranges (:func:`inside_mass`). A parameter on a bound (:data:`ON_BOUND`) is integrated over
     its own side alone, with the others at their optimum for each of its values: the fit's
     gradient need not vanish there, and the Gaussian of the quadratic model, centred where the
@@ -170,7 +183,10 @@ def laplace_log_evidence(
     from the data (second differences of a misfitting base fit's residual) is too large
     where the frequency grid is coarse: with it fixed, every misfit below it looks like
     noise, and the choice of model changes with the grid."""
-    mu, sd, lo, hi = prior_arrays(priors)
+    if model.prior_sd is None or not np.all(np.isfinite(model.prior_sd)):
+        raise ValueError(f"laplace_log_evidence: {model.names}: every parameter needs a proper prior")
+    mu, sd = np.asarray(model.prior_mu, dtype=float), np.asarray(model.prior_sd, dtype=float)
+    lo, hi = model.bounds_x()
     x = np.asarray(x, dtype=float)
     # +1 on a lower bound, -1 on an upper one: the direction into the range
     side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
@@ -209,8 +225,10 @@ def laplace_log_evidence(
         terms = terms + 0.5 * np.log(math.pi / (2 * C)) + log_erfcx(G / np.sqrt(2 * C))
     norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * k * math.log(2 * math.pi) + float(np.sum(np.log(sd)))
     best = int(np.argmax(terms))
-    H = (J[:, free].T @ J[:, free]) / s2[best, 0] + np.diag(sd[free] ** -2)
-    inside = inside_mass(x[free], H, [p for p, f in zip(priors, free) if f]) if k else 0.0
+    # J_free^T J_free in x from R (whitened: R = Q^T J_free diag(sd_free))
+    inside = (
+        inside_mass(model.select(free), x[free], (R.T @ R) / np.outer(sd[free], sd[free]), s2[best, 0]) if k else 0.0
+    )
     if not noise_scale:
         return norm + float(terms[0]) + inside
     return norm + float(special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1])) + inside
@@ -362,7 +380,7 @@ def linearized_evidence(
         x = np.clip(x, lo, hi)
         d = x - x0
         # the columns are linear, so the quadratic model at x is this model's own: its Laplace ln Z
-        out.append((laplace_log_evidence(r0 + C @ d, C, x, priors, noise_scale), x))
+        out.append((laplace_log_evidence(x_model(priors), r0 + C @ d, C, x, noise_scale), x))
     return out
 
 

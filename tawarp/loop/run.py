@@ -67,6 +67,16 @@ RACE_AFTER = 5
 RACE_MARGIN = 10.0
 RACE_PACE = 5.0
 RACE_HOPELESS = 50.0
+#: A whole model stops, its best start too, when it is out of reach: not its size's leader,
+#: and even after RACE_PACE more iterations at its best start's last pace the log-likelihood
+#: ratio of its cost to the batch's best cost F*, ``(n/2) ln(F / F*)`` (n residuals: the
+#: likelihood with the noise level free, the smaller of the two readings of a cost gap)
+#: would exceed RACE_OUT. The Occam factors of models of at most three effects differ by
+#: far less (each well determined parameter costs about ln(prior sd / posterior sd), ~10),
+#: so such a model's posterior probability is 0 to double precision; its evidence is
+#: reported at the point where it stopped. A data set with one strong effect left every
+#: other single effect 2000 below it, each crawling to MAX_ITER.
+RACE_OUT = 250.0
 
 
 def library_for(problem: MeasurementKind) -> list[Effect]:
@@ -178,10 +188,10 @@ def _as_pairs(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p.mu for p in priors]), np.array([p.sd for p in priors])
 
 
-def start_race(owner: np.ndarray, sizes: np.ndarray):
+def start_race(owner: np.ndarray, sizes: np.ndarray, n_residuals: int):
     """The ``drop`` of :func:`tawarp.fit.lm.levenberg_marquardt` for a batch of starts (fit i
-    a start of model ``owner[i]``, which has ``sizes[owner[i]]`` effects): the race of
-    :data:`RACE_AFTER`."""
+    a start of model ``owner[i]``, which has ``sizes[owner[i]]`` effects) on ``n_residuals``
+    real residuals: the race of :data:`RACE_AFTER` and :data:`RACE_OUT`."""
     state = {"calls": 0, "last": None}
 
     def drop(slots: np.ndarray, cost: np.ndarray) -> np.ndarray:
@@ -194,9 +204,15 @@ def start_race(owner: np.ndarray, sizes: np.ndarray):
         leader = np.array([best[sizes == k].min() for k in sizes])
         m = owner[slots]
         gap = cost[slots] - best[m]
-        with np.errstate(invalid="ignore"):  # inf - inf: a start whose every trial failed
-            slow = (last[slots] - cost[slots]) * RACE_PACE < gap
-        return (gap > RACE_MARGIN) & slow & (best[m] > leader[m] + RACE_HOPELESS)
+        # inf - inf: a start whose every trial failed (NaN: never dropped for it)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pace = (last - cost) * RACE_PACE
+            # a model is within reach while any of its starts, at its pace, would get there
+            reach = np.full(sizes.size, np.nan)
+            np.fmin.at(reach, owner, cost - pace)
+            out = 0.5 * n_residuals * np.log(reach / best.min()) > RACE_OUT
+            hopeless = (gap > RACE_MARGIN) & (pace[slots] < gap) & (best[m] > leader[m] + RACE_HOPELESS)
+        return hopeless | (out[m] & (best[m] > leader[m]))
 
     return drop
 
@@ -231,16 +247,21 @@ def fit_models(
             specs.append((params, structure, np.clip(x0, lo, hi)))
             priors.append(_as_pairs(pri))
             owner.append(k)
-    race = start_race(np.array(owner), np.array([len(names) for names, _ in requests]))
+    race = start_race(np.array(owner), np.array([len(names) for names, _ in requests]), 2 * problem.y.size)
     fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors, drop=race)
     for k, m in enumerate(out):
-        scored = [
-            (laplace_log_evidence(f.residuals[0], f.jacobian[0], f.x[0], m.priors, noise_scale), f)
-            for f, o in zip(fits, owner)
-            if o == k and f.reason[0] != DROPPED
-        ]
+        own = [f for f, o in zip(fits, owner) if o == k]
+        # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
+        kept = [f for f in own if f.reason[0] != DROPPED] or own
+        scored = [(_log_evidence(f, noise_scale), f) for f in kept]
         m.log_evidence, m.fit = max(scored, key=lambda t: t[0])
     return out
+
+
+def _log_evidence(f: FitResult, noise_scale: bool) -> float:
+    """:func:`laplace_log_evidence` of the MAP fit ``f`` on its own problem model (the priors
+    it was fitted under, its covariance)."""
+    return laplace_log_evidence(f.problem_model, f.residuals[0], f.jacobian[0], f.x[0], noise_scale)
 
 
 def _typical_x(e: Effect) -> np.ndarray:
@@ -486,9 +507,7 @@ def run_loop(
     base = Model((), priors=base_priors)
     base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
     estimated = source == NOISE_ESTIMATE
-    base.log_evidence = laplace_log_evidence(
-        base.fit.residuals[0], base.fit.jacobian[0], base.fit.x[0], base_priors, estimated
-    )
+    base.log_evidence = _log_evidence(base.fit, estimated)
     _finished(bar, "base fit")
     models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
     _finished(bar, "evidence")

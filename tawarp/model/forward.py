@@ -26,7 +26,7 @@ import numpy as np
 import warp as wp
 
 from .coefficients import duct_impedance, normalize
-from .core import Core, CoreError, check_values
+from .core import Core, CoreError, check_values, segment_parameter_fields
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
 from .validity import (
@@ -134,12 +134,14 @@ def parameter_row(core: Core, name: str) -> int:
     """Row of parameter ``name`` in the kernels' parameter table."""
     if name in GLOBAL_FIELD_TABLE:
         return GLOBAL_FIELD_TABLE[name].row
-    if name not in core.parameter_names():
+    seg, _, fld = name.partition(".")
+    s = next((i for i, x in enumerate(core.segments) if x.name == seg), None)
+    # the segment's own fields (the core's whole list of names, built per call, was most
+    # of an engine's construction)
+    if s is None or fld not in segment_parameter_fields(core.segments[s]):
         raise KeyError(
             f"{name!r} is not a parameter of core {core.source}; parameters are {', '.join(core.parameter_names())}"
         )
-    seg, _, fld = name.partition(".")
-    s = [x.name for x in core.segments].index(seg)
     return layout.N_GLOBAL + s * layout.N_FIELDS + SEGMENT_FIELDS[fld].row
 
 
