@@ -13,16 +13,24 @@ extra parameters' Occam factor is at most 1 (:func:`tawarp.loop.evidence.laplace
 priors' squares; one :meth:`MeasurementKind.predict` launch per structure for all of them) and
 refits each model from the best point that beats its own optimum, keeping the refit where its
 Laplace ln Z is higher (the rule by which :func:`tawarp.loop.run.fit_models` chooses between
-a model's starts). ``tests/test_nesting.py`` guards the bound this gives.
+a model's starts). The search fits only some subsets of a probable model: those it left out
+are fitted first, from that model's projected solution (:func:`missing_subsets`), so that a
+model with an effect at "off" always has its nested model beside it. ``tests/test_nesting.py``
+guards the bound this gives.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+
 import numpy as np
 
 from ..fit.problems import KindProblems, residual
+from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
-from .evidence import Model, XPrior, prior_arrays
+from ..model.effects import Param
+from .evidence import WINDOW, Model, XPrior, prior_arrays
 
 #: A relative's point is a better start only when it lowers a model's MAP cost (chi^2 plus the
 #: priors' squares) by more than this: 0.05 in ln posterior, the odds within 5 %; below it a
@@ -41,12 +49,12 @@ def map_cost(r: np.ndarray, x: np.ndarray, priors: list[XPrior]) -> float:
     return float(r @ r + np.sum(((np.asarray(x) - mu) / sd) ** 2))
 
 
-def relative_point(source: Model, target: Model) -> np.ndarray:
-    """``source``'s solution as a point of ``target``'s parameters: the parameters they share at
-    ``source``'s values, ``target``'s others off (x = 0), within ``target``'s bounds."""
-    at = dict(zip(source.fit.names, source.fit.x[0]))
-    x = np.array([at.get(n, 0.0) for n in target.fit.names])
-    lo, hi = np.array([par.bounds_x() for par in target.fit.params]).reshape(-1, 2).T
+def relative_point(source: FitResult, params: list[Param]) -> np.ndarray:
+    """The solution ``source`` as a point of a relative's ``params``: the parameters they share
+    at ``source``'s values, the others off (x = 0), within ``params``' bounds."""
+    at = dict(zip(source.names, source.x[0]))
+    x = np.array([at.get(par.label, 0.0) for par in params])
+    lo, hi = np.array([par.bounds_x() for par in params]).reshape(-1, 2).T
     return np.clip(x, lo, hi)
 
 
@@ -65,7 +73,7 @@ def nested_starts(
     ]
     if not pairs:
         return {}
-    points = [relative_point(models[j], models[i]) for i, j in pairs]
+    points = [relative_point(models[j].fit, models[i].fit.params) for i, j in pairs]
     lm = KindProblems(
         problem, [(models[i].fit.params, models[i].fit.effect, x) for (i, _), x in zip(pairs, points)], fixed
     )
@@ -81,12 +89,35 @@ def nested_starts(
     return {i: x for i, (_, x) in best.items()}
 
 
+def missing_subsets(comparison, models: list[Model]) -> list[Model]:
+    """The subsets of the models inside Occam's window (ln P(M | data) within ln
+    :data:`tawarp.loop.evidence.WINDOW` of the best) that the search did not fit, fitted from
+    the projection of that model's solution (one batch): a model the window holds is not
+    credited with its effects before its own submodels had their chance (Madigan & Raftery's
+    Occam's razor compares a model with its submodels)."""
+    best = max(m.log_posterior for m in models)
+    fitted = {frozenset(m.effects) for m in models}
+    requests: dict[tuple[str, ...], list[np.ndarray]] = {}
+    for m in sorted(models, key=lambda m: -m.log_posterior):
+        if m.log_posterior < best + math.log(WINDOW):
+            break
+        for k in range(len(m.effects)):
+            for sub in itertools.combinations(m.effects, k):
+                if frozenset(sub) not in fitted and sub not in requests:
+                    params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
+                    requests[sub] = [relative_point(m.fit, params)]
+    return comparison.refit(list(requests.items())) if requests else []
+
+
 def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
-    """Refit each of ``models`` (fitted, of one comparison: its problem, fixed values and
-    ``refit``, :class:`tawarp.loop.run.Comparison`) from its :func:`nested_starts`, in one
-    batch per pass, and keep each refit whose Laplace ln Z is higher, in place; a further pass
-    offers the models that changed to their relatives. Returns the number of refits."""
-    sources, done = None, 0
+    """Add the :func:`missing_subsets` to ``models`` (fitted, of one comparison: its problem,
+    fixed values, library and ``refit``, :class:`tawarp.loop.run.Comparison`), then refit each
+    model from its :func:`nested_starts`, in one batch per pass, and keep each refit whose
+    Laplace ln Z is higher, in place; a further pass offers the models that changed to their
+    relatives. Returns the number of refits."""
+    added = missing_subsets(comparison, models)
+    models += added
+    sources, done = None, len(added)
     for _ in range(passes):
         starts = nested_starts(comparison.problem, comparison.fixed, models, sources)
         order = sorted(starts)
