@@ -39,6 +39,7 @@ from .evidence import (
     subsets,
     visible,
 )
+from .nesting import share_optima
 from .plans import next_measurement
 from .records import Candidate, LoopReport, ModelsCompared, step_label
 
@@ -432,6 +433,9 @@ def compare_models(
         models += more
         counts.refitted += len(more)
         posterior(models)
+    # nested models share their optima (.nesting): each from its subsets' and supersets' solutions
+    share_optima(cmp, models)
+    posterior(models)
     models.sort(key=lambda m: -m.probability)
     return models, counts
 

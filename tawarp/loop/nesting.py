@@ -1,0 +1,132 @@
+"""Nested models share their optima.
+
+A model M and a superset M' = M + effects are nested: M' with its extra effects' parameters
+at "off" (x = 0, their :attr:`Param.start`) is M. The projection of M''s solution onto M
+(the extras dropped, the rest kept) is therefore a point of M, and M's solution with the
+extras off a point of M'. Each model's MAP fit descends from its own starts and can end in a
+worse local optimum than a relative's solution gives it; the evidence comparison would then
+weigh two descents instead of two models: a superset whose extra effect ends at "off" would
+beat its own nested model by the depth of that model's poorer optimum, though at "off" the
+extra parameters' Occam factor is at most 1 (:func:`tawarp.loop.evidence.laplace_log_evidence`).
+
+:func:`share_optima` evaluates every such point in its model's MAP objective (chi^2 plus the
+priors' squares; one :meth:`MeasurementKind.predict` launch per structure for all of them) and
+refits each model from the best point that beats its own optimum, keeping the refit where its
+Laplace ln Z is higher (the rule by which :func:`tawarp.loop.run.fit_models` chooses between
+a model's starts). The search fits only some subsets of a probable model: those it left out
+are fitted first, from that model's projected solution (:func:`missing_subsets`), so that a
+model with an effect at "off" always has its nested model beside it. ``tests/test_nesting.py``
+guards the bound this gives.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import numpy as np
+
+from ..fit.problems import KindProblems, residual
+from ..fit.result import FitResult
+from ..measure.kind import MeasurementKind
+from ..model.effects import Param
+from .evidence import WINDOW, Model, XPrior, prior_arrays
+
+#: A relative's point is a better start only when it lowers a model's MAP cost (chi^2 plus the
+#: priors' squares) by more than this: 0.05 in ln posterior, the odds within 5 %; below it a
+#: refit changes no comparison and costs a batch.
+GAIN = 0.1
+#: Passes of :func:`share_optima`: a solution found by a refit reaches the models one effect
+#: away in the next pass (its subsets all in the first); three reach from the base to a
+#: three-effect model (:data:`tawarp.loop.run.MAX_EFFECTS`).
+PASSES = 3
+
+
+def map_cost(r: np.ndarray, x: np.ndarray, priors: list[XPrior]) -> float:
+    """The MAP objective the loop's fits minimize: ``r^T r`` of the residuals (in units of the
+    noise) plus ``sum ((x - mu) / sd)^2`` of the priors."""
+    mu, sd, _, _ = prior_arrays(priors)
+    return float(r @ r + np.sum(((np.asarray(x) - mu) / sd) ** 2))
+
+
+def relative_point(source: FitResult, params: list[Param]) -> np.ndarray:
+    """The solution ``source`` as a point of a relative's ``params``: the parameters they share
+    at ``source``'s values, the others off (x = 0), within ``params``' bounds."""
+    at = dict(zip(source.names, source.x[0]))
+    x = np.array([at.get(par.label, 0.0) for par in params])
+    lo, hi = np.array([par.bounds_x() for par in params]).reshape(-1, 2).T
+    return np.clip(x, lo, hi)
+
+
+def nested_starts(
+    problem: MeasurementKind, fixed: dict, models: list[Model], sources: set[int] | None = None
+) -> dict[int, np.ndarray]:
+    """{index in ``models``: the point from a nested relative (a subset or a superset; among
+    ``sources``, default all) of lowest MAP cost}, for the models where that point beats their
+    own optimum by more than :data:`GAIN`; all points in one evaluation (one launch per
+    structure)."""
+    pairs = [
+        (i, j)
+        for i, a in enumerate(models)
+        for j, b in enumerate(models)
+        if (sources is None or j in sources) and (set(a.effects) < set(b.effects) or set(b.effects) < set(a.effects))
+    ]
+    if not pairs:
+        return {}
+    points = [relative_point(models[j].fit, models[i].fit.params) for i, j in pairs]
+    lm = KindProblems(
+        problem, [(models[i].fit.params, models[i].fit.effect, x) for (i, _), x in zip(pairs, points)], fixed
+    )
+    Y = lm.predict([(c, x[None]) for c, x in enumerate(points)])
+    rows = np.arange(problem.y.size)
+    own = [map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models]
+    best: dict[int, tuple[float, np.ndarray]] = {}
+    for (i, _), x, y in zip(pairs, points, Y):
+        with np.errstate(over="ignore", invalid="ignore"):  # a point where the model diverges
+            cost = map_cost(residual(problem, y, rows)[0], x, models[i].priors)
+        if np.isfinite(cost) and cost < own[i] - GAIN and cost < best.get(i, (np.inf,))[0]:
+            best[i] = (cost, x)
+    return {i: x for i, (_, x) in best.items()}
+
+
+def missing_subsets(comparison, models: list[Model]) -> list[Model]:
+    """The subsets of the models inside Occam's window (ln P(M | data) within ln
+    :data:`tawarp.loop.evidence.WINDOW` of the best) that the search did not fit, fitted from
+    the projection of that model's solution (one batch): a model the window holds is not
+    credited with its effects before its own submodels had their chance (Madigan & Raftery's
+    Occam's razor compares a model with its submodels)."""
+    best = max(m.log_posterior for m in models)
+    fitted = {frozenset(m.effects) for m in models}
+    requests: dict[tuple[str, ...], list[np.ndarray]] = {}
+    for m in sorted(models, key=lambda m: -m.log_posterior):
+        if m.log_posterior < best + math.log(WINDOW):
+            break
+        for k in range(len(m.effects)):
+            for sub in itertools.combinations(m.effects, k):
+                if frozenset(sub) not in fitted and sub not in requests:
+                    params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
+                    requests[sub] = [relative_point(m.fit, params)]
+    return comparison.refit(list(requests.items())) if requests else []
+
+
+def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
+    """Add the :func:`missing_subsets` to ``models`` (fitted, of one comparison: its problem,
+    fixed values, library and ``refit``, :class:`tawarp.loop.run.Comparison`), then refit each
+    model from its :func:`nested_starts`, in one batch per pass, and keep each refit whose
+    Laplace ln Z is higher, in place; a further pass offers the models that changed to their
+    relatives. Returns the number of refits."""
+    added = missing_subsets(comparison, models)
+    models += added
+    sources, done = None, len(added)
+    for _ in range(passes):
+        starts = nested_starts(comparison.problem, comparison.fixed, models, sources)
+        order = sorted(starts)
+        sources = set()
+        for i, new in zip(order, comparison.refit([(models[i].effects, [starts[i]]) for i in order])):
+            if new.log_evidence > models[i].log_evidence:
+                models[i].fit, models[i].log_evidence = new.fit, new.log_evidence
+                sources.add(i)
+        done += len(order)
+        if not sources:
+            break
+    return done
