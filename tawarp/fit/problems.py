@@ -156,69 +156,44 @@ class KindProblems:
                 k0 += n
         return out
 
-    def evaluate(self, pid, z, max_sets: int = 0, lazy: bool = True):
+    def evaluate(self, pid, z, max_sets: int = 0):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
         weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
         H = J^T J with the forward-difference J (``max_sets`` is not used: the batches
         are small). A fit with a prior adds its rows ``(z - mu) / sd`` to r (and 1/sd to J):
-        the LM then finds the maximum a posteriori.
-
-        A fit's first evaluation (its start) is the point and its forward-difference
-        neighbours in one launch; a trial's neighbours are evaluated only where the point
-        lowers the fit's cost (:attr:`best`): the LM accepts a trial only where it does,
-        and of a rejected trial it reads the cost alone, returned here as inf (with g = H
-        = 0). About one trial in eight is rejected; each saved p of its p + 1 sets.
-        ``lazy`` False: every fit's neighbours (:meth:`at_solutions`)."""
+        the LM then finds the maximum a posteriori."""
         n, P = z.shape
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
-        cost, raw = np.full(n, np.inf), np.zeros(n)
+        requests = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
+            x, h = z[i, :p], step[i, :p]
+            requests.append((c, np.vstack([x[None], x[None] + np.diag(h)])))
+        got = self.predict(requests)
+        cost, raw = np.empty(n), np.empty(n)
         g, H = np.zeros((n, P)), np.zeros((n, P, P))
-        d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
-        prior_cost = np.sum(d**2, axis=1)
-        self.last = [None] * n
-        whole = [i for i, c in enumerate(pid) if not lazy or c not in self.best]
-        trial = [i for i, c in enumerate(pid) if lazy and c in self.best]
-        got = self.predict(
-            [(pid[i], self._stencil(z[i, : self.p[pid[i]]], step[i, : self.p[pid[i]]])) for i in whole]
-            + [(pid[i], z[i, None, : self.p[pid[i]]]) for i in trial]
-        )
-        at_point = dict(zip(whole + trial, got))
-        with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf
-            lower = [i for i in trial if self._cost(pid[i], at_point[i][0]) + prior_cost[i] < self.best[pid[i]][0]]
-        more = self.predict(
-            [(pid[i], self._stencil(z[i, : self.p[pid[i]]], step[i, : self.p[pid[i]]])[1:]) for i in lower]
-        )
-        for i, Y in zip(lower, more):
-            at_point[i] = np.vstack([at_point[i], Y])
-        for i in sorted(whole + lower):
-            c, p = pid[i], self.p[pid[i]]
+        self.last = []
+        for i, c in enumerate(pid):
+            p = self.p[c]
             rows = self.rows[c]
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                R = residual(self.kind, at_point[i], rows)
+                R = residual(self.kind, got[i], rows)
                 r = R[0]
                 J = ((R[1:] - r) / step[i, :p, None]).T
-                cost[i] = r @ r + prior_cost[i]
-                raw[i] = np.sum(np.abs(at_point[i][0, rows] - self.kind.y[rows]) ** 2)
+                cost[i] = r @ r
+                raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
                 g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
-            self.last[i] = (J, at_point[i][0])
+            self.last.append((J, got[i][0]))
+        d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
+        cost += np.sum(d**2, axis=1)
         g += d * isd
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf
         for i, c in enumerate(pid):
-            if self.last[i] is not None and (c not in self.best or cost[i] < self.best[c][0]):
+            if c not in self.best or cost[i] < self.best[c][0]:
                 self.best[c] = (cost[i], z[i].copy(), *self.last[i])
         return cost, raw, g, H
-
-    @staticmethod
-    def _stencil(x: np.ndarray, h: np.ndarray) -> np.ndarray:
-        """x and its forward-difference neighbours (p + 1, p), steps ``h``."""
-        return np.vstack([x[None], x[None] + np.diag(h)])
-
-    def _cost(self, c: int, Y: np.ndarray) -> float:
-        """The data's r^T r of fit ``c`` with model values Y (rows,)."""
-        r = residual(self.kind, Y, self.rows[c])
-        return float(r @ r)
 
     def at_solutions(self, z: np.ndarray) -> list:
         """(J, model values) of every fit at its solution z (K, P): the evaluation there
@@ -230,7 +205,7 @@ class KindProblems:
         ]
         stale = np.array([c for c, v in enumerate(out) if v is None], dtype=int)
         if stale.size:
-            self.evaluate(stale, z[stale], lazy=False)
+            self.evaluate(stale, z[stale])
             for i, c in enumerate(stale):
                 out[c] = self.last[i]
         return out
