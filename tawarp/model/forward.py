@@ -505,7 +505,7 @@ class Engine:
         if stride not in self._modules_loaded:
             one(slice(0, stride))
             self._modules_loaded.add(stride)
-        rest = [_thread_pool(parts).submit(one, b) for b in blocks[1:]]
+        rest = [_thread_pool().submit(one, b) for b in blocks[1:]]
         return [one(blocks[0])] + [f.result() for f in rest]
 
     def _evaluate_threaded(self, varying, parts: int, out):
@@ -831,9 +831,12 @@ MIN_HEATED_MODELS_PER_THREAD = 64
 
 
 @functools.cache
-def _thread_pool(workers: int) -> ThreadPoolExecutor:
-    """One pool per size for the CPU batches (threads live as long as the process)."""
-    return ThreadPoolExecutor(max_workers=workers, thread_name_prefix="tawarp-cpu")
+def _thread_pool() -> ThreadPoolExecutor:
+    """One pool for the CPU batches of the process, as wide as its cores: its threads start
+    as batches need them and live as long as the process. (A pool per batch width left up to
+    a core count's triangular number of idle threads in every process, and a study running
+    one loop per core of a 64-core host ran out of threads.)"""
+    return ThreadPoolExecutor(max_workers=_usable_cores(), thread_name_prefix="tawarp-cpu")
 
 
 @functools.cache
