@@ -61,16 +61,16 @@ import numpy as np
 
 from .model.core import Core, Segment
 from .reference import (
-    HeatSolution,
-    NonlinearHeatSolution,
+    HEAT_TOL,
+    FieldHeatSolution,
     _material_conductivity,
+    core_wall_fields,
     _ode_matrix,
     _uniform_matrix,
     duct_waves,
     gas_properties,
     heat_profile,
     thermoviscous_function,
-    tied_walls,
     wall_field_indices,
 )
 
@@ -86,13 +86,6 @@ __all__ = [
     "wall_fields",
 ]
 
-#: Residual tolerance of the first, loose solve of :class:`LabHeatSolution`'s BVP.
-LOOSE_TOL = 1e-6
-#: Default residual tolerance of :class:`LabHeatSolution`: theta is converged to ~1e-10 of its
-#: maximum there (a 10x looser solve moves it by less than 1e-8, test_wall_field_tends_to_the_
-#: added_conductivity); tighter, the wall field's collocation runs into round-off and the
-#: mesh refinement may not end.
-HEAT_TOL = 1e-7
 #: Rayleigh's end correction of a flanged opening, 8 a/(3 pi) per end (a the hole's radius).
 END_CORRECTION = 8.0 / (3.0 * math.pi)
 
@@ -221,162 +214,35 @@ def wall_fields(core: Core, lab: LabEffects) -> tuple[np.ndarray, np.ndarray]:
             )
         h_w = [lab.wall_coupling_porous if s.is_porous else lab.wall_coupling_duct for s in segs]
         return np.full(len(segs), lab.wall_conductance), np.array(h_w)
-    own = set(wall_field_indices(core))
-    lam_w = [core.segments[i].wall_conductance if i in own else 0.0 for i in core.thermal_indices]
-    h_w = [1.0 / core.segments[i].wall_resistance if i in own else 0.0 for i in core.thermal_indices]
-    return np.array(lam_w), np.array(h_w)
+    return core_wall_fields(core)
 
 
-class LabHeatSolution(NonlinearHeatSolution):
+class LabHeatSolution(FieldHeatSolution):
     """Steady temperature with the lab effects' heat physics (contact resistance, wall
-    field, porosity gradient, bypass gap), the core's own wall fields (``wall_resistance``)
-    and every temperature law of :class:`tawarp.reference.NonlinearHeatSolution` (its
-    evaluators, ``lost()`` included).
-
-    Solved on the state (theta_j, F_j = lam theta'_j) of every thermal segment j, plus
-    (theta_w, F_w = lam_w theta_w') in every segment whose wall is a field of its own
-    (:func:`wall_fields`), mapped to s in [0, 1], by scipy.integrate.solve_bvp (residual
-    tolerance ``tol``, reached from a solve at :data:`LOOSE_TOL`). Interfaces: F, theta_w
-    and F_w continuous; theta continuous but at the contact, where it jumps by R_c F. Where
-    a wall field meets a segment whose wall is in perfect contact (``wall_resistance`` 0,
-    with a conductance or none), the wall runs on at the gas temperature: theta_w = theta
-    there and one balance of both fluxes (the limit h_w -> inf of that neighbour); where it
-    meets a wall that conducts nothing behind a finite coupling (``wall_resistance`` > 0,
-    ``wall_conductance`` 0), no flux passes: its end is adiabatic.
-
-    Attributes beside :class:`tawarp.reference.NonlinearHeatSolution`'s (``wall``: the
-    conductances of the walls at the gas temperature): ``wall_field`` lam_w [W/(m K)] of each
-    thermal segment's wall field (0: none), ``coupling`` 2 h_w/R [W/(m^3 K)], ``wall_rows``
-    {segment's position among the thermal ones: its wall's row in the BVP state}.
-    """
+    field, porosity gradient, bypass gap) and the core's own wall fields: the reference's
+    two-field BVP :class:`tawarp.reference.FieldHeatSolution` given the lab's material
+    conductivities (:func:`material_conductivity`), walls (:func:`wall_fields`) and
+    contact; ``lab`` kept as an attribute."""
 
     def __init__(self, core: Core, lab: LabEffects, heat_input: float, tol: float = HEAT_TOL):
-        from scipy.integrate import solve_bvp
-
-        # the first guess: the paper model's exact profile, every wall at the gas temperature
-        lin = HeatSolution(tied_walls(core), heat_input)
-        for k in ("heat_input", "T_cold", "indices", "x_left", "x_right", "length", "h", "q"):
-            setattr(self, k, getattr(lin, k))
-        self.core, self.lab = core, lab
-        segs = [core.segments[i] for i in self.indices]
-        self.material = [material_conductivity(core, lab, i) for i in self.indices]
-        self.lam_m = np.array([lam((a + b) / 2) for lam, a, b in zip(self.material, self.x_left, self.x_right)])
-        self.wall_field, h_w = wall_fields(core, lab)
-        own = set(wall_field_indices(core))
-        # the walls at the gas temperature: their conductance added to the segment's
-        self.wall = np.array([0.0 if i in own else core.segments[i].wall_conductance for i in self.indices])
-        self.lam = self.lam_m + self.wall
-        # a wall in perfect contact (wall_resistance 0, any conductance, 0 included) is at the
-        # gas temperature up to its ends: a wall field beside it is tied to the gas there
-        tied = [core.segments[i].wall_resistance == 0.0 for i in self.indices]
-        self.exponent = np.array([s.conductivity_exponent for s in segs])
-        self.radiative = np.array([s.radiative_conductivity for s in segs])
-        self.h_conv = np.array([s.h_convection for s in segs])
-        self.R, self.S, self.tol = core.radius, core.area, tol
-        n = len(self.indices)
-        names = [s.name for s in segs]
-        # state rows of each wall field, after the gas/solid's
-        field = {int(j): 2 * n + 2 * k for k, j in enumerate(np.flatnonzero(self.wall_field > 0.0))}
-        self.wall_rows = field
-        self.contact = None
+        self.lab = lab
+        names = [core.segments[i].name for i in core.thermal_indices]
+        contact = None
         if lab.contact_resistance:
             if lab.contact_left not in names[:-1]:
                 raise ValueError(
                     f"{core.source}: contact_left = {lab.contact_left!r} is not a thermal segment followed "
                     f"by another (thermal: {names})"
                 )
-            self.contact = names.index(lab.contact_left)
-            if (self.contact in field) != (self.contact + 1 in field):
-                raise ValueError(
-                    f"{core.source}: a contact resistance after {lab.contact_left!r}, where a wall field meets a "
-                    "segment without one, is not modelled: give both segments a wall_resistance or neither"
-                )
-        # lateral coupling to the wall per unit volume of tube, 2 h_w / R [W/(m^3 K)]
-        self.coupling = 2.0 * h_w / self.R
-        L, xl = self.length, self.x_left
-
-        def fun(s, y):
-            out = np.empty_like(y)
-            for j in range(n):
-                th, F = y[2 * j], y[2 * j + 1]
-                lam = self._conductivity_at(th, j, xl[j] + s * L[j])
-                out[2 * j] = L[j] * F / lam
-                exchange = 2.0 * self._h(th, j) / self.R * th - self.q[j]
-                if j in field:
-                    o = field[j]
-                    to_wall = self.coupling[j] * (th - y[o])
-                    exchange = exchange + to_wall
-                    out[o] = L[j] * y[o + 1] / self.wall_field[j]
-                    out[o + 1] = -L[j] * to_wall
-                out[2 * j + 1] = L[j] * exchange
-            return out
-
-        def bc(ya, yb):
-            r, walls = [ya[1]], []
-            for j in range(n - 1):
-                k = j + 1
-                jump = lab.contact_resistance * yb[2 * j + 1] if j == self.contact else 0.0
-                r.append(ya[2 * k] - yb[2 * j] - jump)
-                a, b = field.get(j), field.get(k)
-                if (a is None) == (b is None):
-                    r.append(yb[2 * j + 1] - ya[2 * k + 1])
-                    if a is not None:
-                        walls += [yb[a] - ya[b], yb[a + 1] - ya[b + 1]]
-                    continue
-                # one side's wall is a field: tied to the other's wall in perfect contact
-                # (theta_w = theta, one balance of the fluxes), or its end adiabatic
-                if a is not None:
-                    r.append(yb[2 * j + 1] + (yb[a + 1] if tied[k] else 0.0) - ya[2 * k + 1])
-                    walls.append(yb[a] - ya[2 * k] if tied[k] else yb[a + 1])
-                else:
-                    r.append(yb[2 * j + 1] - ya[2 * k + 1] - (ya[b + 1] if tied[j] else 0.0))
-                    walls.append(ya[b] - yb[2 * j] if tied[j] else ya[b + 1])
-            r.append(yb[2 * n - 1])
-            # the wall adiabatic at the ends of the thermal domain
-            first, last = ([ya[field[0] + 1]] if 0 in field else []), ([yb[field[n - 1] + 1]] if n - 1 in field else [])
-            return np.array(r + first + walls + last)
-
-        s = np.linspace(0.0, 1.0, 201)
-        y0 = np.empty((2 * n + 2 * len(field), s.size))
-        for j, idx in enumerate(self.indices):
-            x = self.x_left[j] + s * self.length[j]
-            y0[2 * j] = lin.theta_in(idx, x)
-            y0[2 * j + 1] = lin.lam[j] * lin.dtheta_in(idx, x)
-            if j in field:
-                y0[field[j]] = y0[2 * j]
-                y0[field[j] + 1] = self.wall_field[j] * lin.dtheta_in(idx, x)
-        # continuation in the tolerance: from the paper model's profile, a loose solve first
-        # (a direct tight one can wander off to the node limit when the wall field is on)
-        for t in dict.fromkeys((max(tol, LOOSE_TOL), tol)):
-            self.bvp = solve_bvp(fun, bc, s, y0, tol=t, bc_tol=t, max_nodes=100000)
-            if not self.bvp.success:
-                break
-            s, y0 = self.bvp.x, self.bvp.y
-        if not self.bvp.success:
-            raise RuntimeError(f"{core.source}: heat BVP with lab effects (Q = {heat_input} W): {self.bvp.message}")
-
-    def _conductivity_at(self, theta, j: int, x):
-        """lam(x, T) [W/(m K)] of thermal segment j (position x [m] from x1)."""
-        t = 1.0 + np.asarray(theta) / self.T_cold
-        return self.material[j](x) * t ** self.exponent[j] + self.radiative[j] * t**3 + self.wall[j]
-
-    def dtheta_in(self, index: int, x):
-        """dtheta/dx [K/m] of thermal segment ``index`` at ``x`` [m]: F / lam(x, T)."""
-        j = self._j(index)
-        th, F = self._state(j, x)
-        return F / self._conductivity_at(th, j, np.asarray(x, dtype=float))
-
-    def wall_theta_in(self, index: int, x):
-        """The wall's temperature excess theta_w [K] in thermal segment ``index`` at ``x`` [m],
-        where the wall is a field of its own."""
-        j = self._j(index)
-        if j not in self.wall_rows:
-            raise ValueError(
-                f"segment {self.core.segments[index].name!r}: its wall is no field of its own "
-                "(LabEffects.wall_conductance 0 and no wall_resistance > 0 with a wall_conductance)"
-            )
-        s = (np.asarray(x, dtype=float) - self.x_left[j]) / self.length[j]
-        return self.bvp.sol(np.clip(s, 0.0, 1.0))[self.wall_rows[j]]
+            contact = (names.index(lab.contact_left), lab.contact_resistance)
+        super().__init__(
+            core,
+            heat_input,
+            tol,
+            material=[material_conductivity(core, lab, i) for i in core.thermal_indices],
+            walls=wall_fields(core, lab),
+            contact=contact,
+        )
 
 
 def lab_heat_profile(core: Core, lab: LabEffects, heat_input: float, tol: float = HEAT_TOL):

@@ -144,6 +144,7 @@ CALLS = {
     "heat_profile_exact": lambda c: ref.heat_profile_exact(c, Q),
     "energy_balance": lambda c: ref.energy_balance(c, Q),
     "NonlinearHeatSolution": lambda c: ref.NonlinearHeatSolution(c, Q),
+    "FieldHeatSolution": lambda c: ref.FieldHeatSolution(c, Q),
     "heat_profile": lambda c: ref.heat_profile(c, Q),
     "segment_transfer_matrices": lambda c: ref.segment_transfer_matrices(c, FREQS, 0.0),
     "transfer_matrix": lambda c: ref.transfer_matrix(c, FREQS, 0.0),
@@ -151,7 +152,7 @@ CALLS = {
     "dimensionless_transfer": lambda c: ref.dimensionless_transfer(c, FREQS, 0.0),
 }
 #: entry points that take a core but answer about its structure, not with the model
-STRUCTURAL = {"wall_field_indices", "tied_walls"}
+STRUCTURAL = {"wall_field_indices", "tied_walls", "core_wall_fields"}
 
 
 def _takes_a_core(obj) -> bool:
