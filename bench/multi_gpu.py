@@ -140,17 +140,41 @@ def timed(fn, repeats: int, client=None):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
     this process (client, scheduler, nannies: every thread; worker threads too, with
     ``--cluster threads``) in the best call [s], the best call's :func:`phases` with
-    ``client``): with worker processes, a CPU time near the wall time says the client is
-    the serial part."""
+    ``client``, and each worker's :func:`usage` in it): with worker processes, a CPU time
+    near the wall time says the client is the serial part. The result of a call is let go
+    before the next starts (freeing 2 GB of objectives took 0.15 s of a call's tail)."""
     best, out, cpu, ph = np.inf, None, None, None
     for _ in range(repeats):
+        out = None
+        u0 = client.run(usage) if client is not None else None
         t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
         out = fn()
         t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
         if t < best:
             best, cpu = t, c
-            ph = phases(client, w0, w1) if client is not None else None
+            if client is not None:
+                u1 = client.run(usage)
+                ph = phases(client, w0, w1)
+                ph["workers"] = {w: {k: u1[w][k] - v for k, v in u0[w].items()} for w in sorted(u0)}
     return best, out, cpu, ph
+
+
+def usage() -> dict:
+    """This process's CPU seconds in user and kernel mode, page faults (``minflt``: a page
+    made present without reading a disk) and context switches (``nivcsw``: taken off its
+    CPU), summed over its threads: over a call, from each worker, the kernel's share of
+    its host work (allocating and zeroing pages) and whether it waited for a CPU."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return {
+        "user": r.ru_utime,
+        "sys": r.ru_stime,
+        "minflt": r.ru_minflt,
+        "majflt": r.ru_majflt,
+        "nvcsw": r.ru_nvcsw,
+        "nivcsw": r.ru_nivcsw,
+    }
 
 
 def phases(client, t0: float, t1: float) -> dict:
@@ -192,6 +216,84 @@ def phases(client, t0: float, t1: float) -> dict:
     }
 
 
+def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
+    """Each worker's parts of one chunk of ``ev.evaluate_sobol`` (``chunk`` points), every
+    worker at once, as the timed call runs them: ``device`` [s] (its points drawn, the
+    kernels, the objective columns made, to the device's end), ``copy`` (into the
+    worker's host buffer), ``write`` (into a shared-memory file of its own) with the
+    kernel's CPU time of the write (``write_sys``) and its page faults; the best of three.
+    Their growth with the workers says which part of a chunk does not scale."""
+    workers = list(ev.client.scheduler_info()["workers"])
+    futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
+    return dict(zip(workers, ev.client.gather(futures)))
+
+
+def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
+    import resource
+
+    import warp as wp
+
+    from tawarp.distributed import SharedColumns, _on_host, _worker_evaluator
+
+    ev, tables = _worker_evaluator(key, spec)
+    best = {}
+    for _ in range(3):
+        t0 = time.perf_counter()
+        table = tables.sobol(0, chunk, 0)[0]
+        columns = ev.metric_columns(ev.evaluate_device(table), ev.columns, wp.float64)
+        wp.synchronize_device(ev.device)
+        t1 = time.perf_counter()
+        host = dict(zip(ev.columns, _on_host(key, columns)))
+        t2, r0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+        out = SharedColumns.create(chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
+        try:
+            out.write(0, host)
+        finally:
+            out.remove()
+        t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+        now = {
+            "device": t1 - t0,
+            "copy": t2 - t1,
+            "write": t3 - t2,
+            "write_sys": r1.ru_stime - r0.ru_stime,
+            "write_minflt": r1.ru_minflt - r0.ru_minflt,
+            "bytes": sum(v.nbytes for v in host.values()),
+        }
+        best = {k: min(v, best.get(k, np.inf)) for k, v in now.items()}
+    return best
+
+
+def upload_probe(client, futures: list) -> dict:
+    """Each worker's upload of one chunk of its fit data (``Y``, as it lies: pageable, or
+    page-locked with ``--fit-data pinned``) to its device, every worker at once: seconds
+    and GB/s, the best of three. Its growth with the workers says whether the copies to
+    the GPUs share a link or the host's copying."""
+    where = client.who_has(futures)
+    mine = {}
+    for f in futures:
+        for w in where.get(f.key, ()):
+            mine.setdefault(w, f)
+    tasks = [client.submit(_probe_upload, f, workers=[w], pure=False) for w, f in mine.items()]
+    return dict(zip(mine, client.gather(tasks)))
+
+
+def _probe_upload(chunk: dict) -> dict:
+    import warp as wp
+
+    from tawarp.distributed import worker_settings
+
+    device = worker_settings(None).device
+    Y = np.ascontiguousarray(chunk["Y"]).view(np.float64)
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        a = wp.array(Y, dtype=wp.float64, device=device)
+        wp.synchronize_device(device)
+        best = min(best, time.perf_counter() - t0)
+        del a
+    return {"seconds": best, "GB_per_s": Y.nbytes / best / 1e9}
+
+
 def digest(arrays: dict) -> str:
     """A hash of named arrays' bytes: equal results, equal digests."""
     h = hashlib.sha256()
@@ -222,7 +324,7 @@ class Bench:
         self.core, self.Y0, self.sd, self.start = fit_model()
         self.client_data = None
 
-    def _fit(self, client, Y, weights, chunk=None):
+    def _fit(self, client, Y, weights, chunk=None, sizes=None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FitWarning)
             return fit_on_cluster(
@@ -236,11 +338,12 @@ class Bench:
                 weights=weights,
                 warn=False,
                 chunk=chunk or 4096,
+                sizes=sizes,
             )
 
-    def _data_on_workers(self, client, n: int, workers: list, chunk: int) -> list:
-        """Futures of the chunks of n problems (``chunk`` each), dealt to the workers in
-        turn and made there."""
+    def _data_on_workers(self, client, n: int, workers: list, chunk: int) -> tuple[list, list]:
+        """(futures of the chunks of n problems (``chunk`` each), dealt to the workers in
+        turn and made there, their sizes)."""
         import distributed
 
         ranges = even_ranges(n, -(-n // chunk))
@@ -260,25 +363,28 @@ class Bench:
         distributed.wait(futures)
         for f in futures:
             f.result()  # (a worker's error raised here)
-        return futures
+        return futures, [hi - lo for lo, hi in ranges]
 
     def fits(self, client, k: int) -> dict:
         n, chunk = self.args.fits, self.args.fit_chunk
         w = (1.0 / self.sd)[None]  # one row: every problem's
         workers = list(client.scheduler_info()["workers"])
         # warm-up: every worker fits a few problems of its own (its fit kernels load)
-        self._fit(client, self._data_on_workers(client, 2 * len(workers), workers, 2), w)
+        self._fit(client, *self._data_on_workers(client, 2 * len(workers), workers, 2)[:1], w)
         t0 = time.perf_counter()
+        sizes = None
         if self.args.fit_data in ("workers", "pinned"):
-            data, weights = self._data_on_workers(client, n, workers, chunk), w
+            (data, sizes), weights = self._data_on_workers(client, n, workers, chunk), w
         else:
             if self.client_data is None:
                 self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
             data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
         t_data = time.perf_counter() - t0
-        t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats, client)
+        probe = upload_probe(client, data) if sizes else None
+        t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk, sizes), self.args.repeats, client)
         return {
             "fit_phases": ph,
+            "fit_upload_probe": probe,
             "fits": n,
             "fit_data": self.args.fit_data,
             "fit_data_seconds": t_data,
@@ -294,9 +400,12 @@ class Bench:
         n = self.args.points
         ev.warm_up()
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
+        # (each worker's host buffer grown to a chunk before the timing, by the probe)
+        probe = evaluation_probe(ev, min(n, self.args.eval_chunk)) if ev.shared else None
         t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
         return {
             "evaluation_phases": ph,
+            "evaluation_probe": probe,
             "evaluation_points": n,
             "evaluation_seconds": t,
             "evaluation_client_cpu_seconds": cpu,
