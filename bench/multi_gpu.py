@@ -146,7 +146,10 @@ def timed(fn, repeats: int, client=None):
     best, out, cpu, ph = np.inf, None, None, None
     for _ in range(repeats):
         out = None
-        u0 = client.run(usage) if client is not None else None
+        if client is not None:
+            u0 = client.run(usage)
+            # (tasks just before: the task stream's times carry the workers' clock offsets)
+            done = {r["key"] for r in client.get_task_stream(start=time.time() - 60)}
         t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
         out = fn()
         t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
@@ -154,7 +157,7 @@ def timed(fn, repeats: int, client=None):
             best, cpu = t, c
             if client is not None:
                 u1 = client.run(usage)
-                ph = phases(client, w0, w1)
+                ph = phases(client, w0, w1, done)
                 ph["workers"] = {w: {k: u1[w][k] - v for k, v in u0[w].items()} for w in sorted(u0)}
     return best, out, cpu, ph
 
@@ -177,7 +180,7 @@ def usage() -> dict:
     }
 
 
-def phases(client, t0: float, t1: float) -> dict:
+def phases(client, t0: float, t1: float, done=frozenset()) -> dict:
     """Where the wall time ``t0`` .. ``t1`` (``time.time()``) of a call went, from the
     scheduler's task stream (the tasks' compute intervals on the workers, clocks of this
     host): ``head`` [s] from the call to the first task computing (the client's work
@@ -185,12 +188,18 @@ def phases(client, t0: float, t1: float) -> dict:
     transfer and the client's work after: what one client does for all workers),
     ``compute`` each worker's computing time [s] and ``tasks`` its task count,
     ``transfer`` [s] between workers, ``idle_share`` of the workers within the call's
-    wall, ``imbalance`` [s] the most computing of a worker less the least."""
-    records = [r for r in client.get_task_stream(start=t0) if r.get("startstops")]
+    wall, ``imbalance`` [s] the most computing of a worker less the least; the tasks of
+    keys ``done`` (those before the call) left out. The workers run on this host's clock:
+    the scheduler's estimate of their offset (tens of milliseconds on a busy host), which
+    the stream adds to their times, is taken off."""
+    records = [r for r in client.get_task_stream(start=t0 - 1.0) if r.get("startstops") and r["key"] not in done]
+    offset = client.run(lambda dask_worker: dask_worker.scheduler_delay)
     compute, tasks, transfer, starts, stops = {}, {}, 0.0, [], []
     for r in records:
         for ss in r["startstops"]:
-            if ss["start"] < t0 or ss["stop"] > t1 + 1.0:
+            shift = offset.get(ss.get("worker", r["worker"]), 0.0)
+            ss = dict(ss, start=ss["start"] - shift, stop=ss["stop"] - shift)
+            if ss["stop"] > t1 + 1.0:
                 continue
             if ss["action"] == "compute":
                 w = r["worker"]
@@ -475,6 +484,42 @@ class Bench:
         }
 
 
+def _worker_gpus(client) -> dict:
+    """Each worker's GPU, as its PCI bus id (None on a CPU worker): with the host's
+    ``gpu_topology``, which workers' GPUs share a PCIe switch."""
+
+    def bus():
+        import warp as wp
+
+        return wp.get_device("cuda:0").pci_bus_id if wp.get_cuda_device_count() else None
+
+    return client.run(bus)
+
+
+def host_topology() -> dict:
+    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings) and the
+    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share."""
+    import shutil
+    import subprocess
+
+    out = {"threads_per_core": None, "gpu_topology": None}
+    try:
+        with open("/sys/devices/system/cpu/cpu0/topology/thread_siblings_list") as f:
+            out["threads_per_core"] = sum(
+                int(b or a) - int(a) + 1 for a, _, b in (p.partition("-") for p in f.read().strip().split(","))
+            )
+    except (OSError, ValueError):
+        pass
+    if smi := shutil.which("nvidia-smi"):
+        try:
+            out["gpu_topology"] = subprocess.run(
+                [smi, "topo", "-m"], capture_output=True, text=True, timeout=20
+            ).stdout.splitlines()
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return out
+
+
 def _worker_cpus(client) -> list[int]:
     """How many CPUs each worker may run on (those of its GPU's NUMA node where the host
     says: :func:`tawarp.distributed.near_gpu`)."""
@@ -635,6 +680,7 @@ def main(argv=None) -> int:
         "warp": wp.config.version,
         "python": sys.version.split()[0],
         "cluster": {"fits, evaluations, sweep": args.cluster, "islands": "processes"},
+        **host_topology(),
         "sizes": {
             k: getattr(args, k)
             for k in (
@@ -680,6 +726,7 @@ def main(argv=None) -> int:
                 try:
                     dog.watch(client)
                     row["worker_cpus"] = _worker_cpus(client)
+                    row["worker_gpus"] = _worker_gpus(client)
                     client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:

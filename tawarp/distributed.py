@@ -1025,7 +1025,12 @@ class ClusterEvaluator:
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         try:
-            for _ in ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out):
+            # every chunk at once (a task is a point range, a result None): the scheduler hands
+            # each worker its next chunk as it frees, where a window would hold a worker's next
+            # chunk until the chunks before it, on other workers, are done
+            for _ in ordered_map(
+                self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out, window=len(tasks)
+            ):
                 pass
             return out.columns()  # (the files go; their pages stay mapped here)
         finally:
