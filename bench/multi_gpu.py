@@ -39,7 +39,16 @@ Each case's ``*_phases`` say where its best call's wall time went (:func:`phases
 the scheduler's task stream): ``head`` (the client before the first task computes),
 ``tail`` (after the last one ends: the results' transfer and the client's merging, what
 one client does for all workers), each worker's ``compute`` and ``tasks``, ``idle_share``
-and ``imbalance``; the islands add ``island_client_seconds`` (opening the study, merging
+and ``imbalance``, and under ``workers`` each worker process's :func:`usage` in the call
+(CPU seconds in user and kernel mode, page faults, context switches: per chunk, what
+grows with the workers). A call's result is let go before the next is timed, and every
+worker has fitted a chunk and evaluated one (its memory and host buffer grown) before.
+Two probes run every worker at once before the timing: ``evaluation_probe`` times one
+chunk's parts on each (``device``, ``copy`` to its host buffer, ``write`` into
+``/dev/shm``, with the write's kernel time), ``fit_upload_probe`` each worker's upload of
+a chunk of its fit data (GB/s): which part of a chunk slows when several run. Each row
+has its workers' GPUs (``worker_gpus``, PCI bus ids), the JSON the host's
+``threads_per_core`` and ``gpu_topology`` (``nvidia-smi topo -m``). The islands add ``island_client_seconds`` (opening the study, merging
 the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
 appends, on the disk of ``--study-dir``, default a temporary folder).
@@ -389,7 +398,13 @@ class Bench:
                 self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
             data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
         t_data = time.perf_counter() - t0
-        probe = upload_probe(client, data) if sizes else None
+        if sizes:
+            probe = upload_probe(client, data)
+            # a chunk fitted on each worker (dealt in turn: the first k), so that no timed
+            # call grows a worker's memory for a chunk's size first
+            self._fit(client, data[: len(workers)], weights, chunk, sizes[: len(workers)])
+        else:
+            probe = None
         t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk, sizes), self.args.repeats, client)
         return {
             "fit_phases": ph,
