@@ -322,15 +322,18 @@ def _is_large(a) -> bool:
 # -- batched fits ---------------------------------------------------------------------
 def _fit_chunk(task: tuple, core, freqs, names, kw: dict, common: dict | None = None, out=None):
     """The fit of one chunk of problems, ``task`` = (chunk, its first problem, its problem
-    count): ``chunk`` (``Y``, and ``weights``, ``start``, ``heat_input``, ``fixed`` where it
-    has its own) over the entries of ``common``. With ``out`` (:class:`SharedColumns`, its layout
-    unset) the per-problem numeric arrays are written to its rows and (the result without
-    them, their layout) comes back, else (the result, None)."""
+    count): ``chunk`` (``Y``, and ``weights``, ``start``, ``heat_input``, ``fixed`` where
+    it has its own) over the entries of ``common``. With ``out`` (:class:`SharedColumns`,
+    its layout unset) the per-problem numeric arrays are written to its rows and (the
+    result without them, their layout) comes back, else (the result, None)."""
     from .fit.estimate import fit
 
     chunk, at, n = task
     if len(chunk["Y"]) != n:  # (its rows of a shared result would overlap another's)
-        raise ValueError(f"fit_on_cluster: the chunk of problems {at} .. holds {len(chunk['Y'])} problems, not {n}")
+        raise ValueError(
+            f"fit_on_cluster: the chunk from problem {at} on holds {len(chunk['Y'])} problems, not {n}: "
+            "give sizes the problems of each future, in order"
+        )
     chunk = {"start": None, "heat_input": 0.0, "fixed": None, "weights": None, **(common or {}), **chunk}
     kw = dict(kw, settings=worker_settings(kw.get("settings")))
     if getattr(_worker(), "tawarp_device", None) is not None:
