@@ -39,7 +39,16 @@ Each case's ``*_phases`` say where its best call's wall time went (:func:`phases
 the scheduler's task stream): ``head`` (the client before the first task computes),
 ``tail`` (after the last one ends: the results' transfer and the client's merging, what
 one client does for all workers), each worker's ``compute`` and ``tasks``, ``idle_share``
-and ``imbalance``; the islands add ``island_client_seconds`` (opening the study, merging
+and ``imbalance``, and under ``workers`` each worker process's :func:`usage` in the call
+(CPU seconds in user and kernel mode, page faults, context switches: per chunk, what
+grows with the workers). A call's result is let go before the next is timed, and every
+worker has fitted a chunk and evaluated one (its memory and host buffer grown) before.
+Two probes run every worker at once before the timing: ``evaluation_probe`` times one
+chunk's parts on each (``device``, ``copy`` to its host buffer, ``write`` into
+``/dev/shm``, with the write's kernel time), ``fit_upload_probe`` each worker's upload of
+a chunk of its fit data (GB/s): which part of a chunk slows when several run. Each row
+has its workers' GPUs (``worker_gpus``, PCI bus ids), the JSON the host's
+``threads_per_core`` and ``gpu_topology`` (``nvidia-smi topo -m``). The islands add ``island_client_seconds`` (opening the study, merging
 the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
 appends, on the disk of ``--study-dir``, default a temporary folder).
@@ -107,19 +116,25 @@ def fit_model():
 def noisy_data(lo: int, hi: int, Y0, sd, seed: int = 0, pinned: bool = False) -> dict:
     """Problems lo .. hi - 1 of the fit data: Y0 plus noise of ``sd``, problem i's drawn
     from the stream (seed, i // FIT_BLOCK), so the data do not depend on the chunks;
-    ``pinned``: in page-locked host memory where this process sees a GPU."""
+    ``pinned``: in page-locked host memory where this process sees a GPU. Made block by
+    block in place (no joined copies: this making is what a run's rows wait for)."""
     import warp as wp
 
-    b0, b1 = lo // FIT_BLOCK, -(-hi // FIT_BLOCK)
-    noise = np.concatenate(
-        [np.random.default_rng([seed, b]).standard_normal((FIT_BLOCK, 2) + Y0.shape) for b in range(b0, b1)]
-    )[lo - b0 * FIT_BLOCK : hi - b0 * FIT_BLOCK]
-    Y = Y0 + sd * (noise[:, 0] + 1j * noise[:, 1])
+    shape = (hi - lo,) + Y0.shape
     if pinned and wp.get_cuda_device_count():
-        held = wp.empty(2 * Y.size, dtype=wp.float64, device="cpu", pinned=True).numpy()  # (its base holds it)
-        held = held.view(np.complex128).reshape(Y.shape)
-        held[...] = Y
-        Y = held
+        held = wp.empty(2 * int(np.prod(shape)), dtype=wp.float64, device="cpu", pinned=True).numpy()
+        Y = held.view(np.complex128).reshape(shape)  # (its base holds the page-locked buffer)
+    else:
+        Y = np.empty(shape, dtype=np.complex128)
+    for b in range(lo // FIT_BLOCK, -(-hi // FIT_BLOCK)):
+        noise = np.random.default_rng([seed, b]).standard_normal((FIT_BLOCK, 2) + Y0.shape)
+        i0, i1 = max(lo, b * FIT_BLOCK), min(hi, (b + 1) * FIT_BLOCK)
+        noise, out = noise[i0 - b * FIT_BLOCK : i1 - b * FIT_BLOCK], Y[i0 - lo : i1 - lo]
+        # Y0 + sd * (real + 1j * imaginary noise), a part at a time
+        np.multiply(sd, noise[:, 0], out=out.real)
+        out.real += Y0.real
+        np.multiply(sd, noise[:, 1], out=out.imag)
+        out.imag += Y0.imag
     return {"Y": Y}
 
 
@@ -140,20 +155,47 @@ def timed(fn, repeats: int, client=None):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
     this process (client, scheduler, nannies: every thread; worker threads too, with
     ``--cluster threads``) in the best call [s], the best call's :func:`phases` with
-    ``client``): with worker processes, a CPU time near the wall time says the client is
-    the serial part."""
+    ``client``, and each worker's :func:`usage` in it): with worker processes, a CPU time
+    near the wall time says the client is the serial part. The result of a call is let go
+    before the next starts (freeing 2 GB of objectives took 0.15 s of a call's tail)."""
     best, out, cpu, ph = np.inf, None, None, None
     for _ in range(repeats):
+        out = None
+        if client is not None:
+            u0 = client.run(usage)
+            # (tasks just before: the task stream's times carry the workers' clock offsets)
+            done = {r["key"] for r in client.get_task_stream(start=time.time() - 60)}
         t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
         out = fn()
         t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
         if t < best:
             best, cpu = t, c
-            ph = phases(client, w0, w1) if client is not None else None
+            if client is not None:
+                u1 = client.run(usage)
+                ph = phases(client, w0, w1, done)
+                ph["workers"] = {w: {k: u1[w][k] - v for k, v in u0[w].items()} for w in sorted(u0)}
     return best, out, cpu, ph
 
 
-def phases(client, t0: float, t1: float) -> dict:
+def usage() -> dict:
+    """This process's CPU seconds in user and kernel mode, page faults (``minflt``: a page
+    made present without reading a disk) and context switches (``nivcsw``: taken off its
+    CPU), summed over its threads: over a call, from each worker, the kernel's share of
+    its host work (allocating and zeroing pages) and whether it waited for a CPU."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return {
+        "user": r.ru_utime,
+        "sys": r.ru_stime,
+        "minflt": r.ru_minflt,
+        "majflt": r.ru_majflt,
+        "nvcsw": r.ru_nvcsw,
+        "nivcsw": r.ru_nivcsw,
+    }
+
+
+def phases(client, t0: float, t1: float, done=frozenset()) -> dict:
     """Where the wall time ``t0`` .. ``t1`` (``time.time()``) of a call went, from the
     scheduler's task stream (the tasks' compute intervals on the workers, clocks of this
     host): ``head`` [s] from the call to the first task computing (the client's work
@@ -161,12 +203,18 @@ def phases(client, t0: float, t1: float) -> dict:
     transfer and the client's work after: what one client does for all workers),
     ``compute`` each worker's computing time [s] and ``tasks`` its task count,
     ``transfer`` [s] between workers, ``idle_share`` of the workers within the call's
-    wall, ``imbalance`` [s] the most computing of a worker less the least."""
-    records = [r for r in client.get_task_stream(start=t0) if r.get("startstops")]
+    wall, ``imbalance`` [s] the most computing of a worker less the least; the tasks of
+    keys ``done`` (those before the call) left out. The workers run on this host's clock:
+    the scheduler's estimate of their offset (tens of milliseconds on a busy host), which
+    the stream adds to their times, is taken off."""
+    records = [r for r in client.get_task_stream(start=t0 - 1.0) if r.get("startstops") and r["key"] not in done]
+    offset = client.run(lambda dask_worker: dask_worker.scheduler_delay)
     compute, tasks, transfer, starts, stops = {}, {}, 0.0, [], []
     for r in records:
         for ss in r["startstops"]:
-            if ss["start"] < t0 or ss["stop"] > t1 + 1.0:
+            shift = offset.get(ss.get("worker", r["worker"]), 0.0)
+            ss = dict(ss, start=ss["start"] - shift, stop=ss["stop"] - shift)
+            if ss["stop"] > t1 + 1.0:
                 continue
             if ss["action"] == "compute":
                 w = r["worker"]
@@ -190,6 +238,86 @@ def phases(client, t0: float, t1: float) -> dict:
         "idle_share": 1.0 - sum(busy) / (len(client.scheduler_info()["workers"]) * wall),
         "imbalance": max(busy) - min(busy),
     }
+
+
+def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
+    """Each worker's parts of one chunk of ``ev.evaluate_sobol`` (``chunk`` points), every
+    worker at once, as the timed call runs them: ``device`` [s] (its points drawn, the
+    kernels, the objective columns made, to the device's end), ``copy`` (into the
+    worker's host buffer), ``write`` (into a shared-memory file of its own) with the
+    kernel's CPU time of the write (``write_sys``) and its page faults; the best of three.
+    Their growth with the workers says which part of a chunk does not scale."""
+    workers = list(ev.client.scheduler_info()["workers"])
+    futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
+    return dict(zip(workers, ev.client.gather(futures)))
+
+
+def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
+    import resource
+
+    import warp as wp
+
+    from tawarp.distributed import SharedColumns, _on_host, _worker_evaluator
+
+    ev, tables = _worker_evaluator(key, spec)
+    best = {}
+    for _ in range(3):
+        t0 = time.perf_counter()
+        table = tables.sobol(0, chunk, 0)[0]
+        columns = ev.metric_columns(ev.evaluate_device(table), ev.columns, wp.float64)
+        wp.synchronize_device(ev.device)
+        t1 = time.perf_counter()
+        host = dict(zip(ev.columns, _on_host(key, columns)))
+        t2, r0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+        out = SharedColumns.create(chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
+        if out is None:  # (no room in /dev/shm: the timed calls send the objectives through Dask too)
+            return {"device": t1 - t0, "copy": t2 - t1, "write": None}
+        try:
+            out.write(0, host)
+        finally:
+            out.remove()
+        t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+        now = {
+            "device": t1 - t0,
+            "copy": t2 - t1,
+            "write": t3 - t2,
+            "write_sys": r1.ru_stime - r0.ru_stime,
+            "write_minflt": r1.ru_minflt - r0.ru_minflt,
+            "bytes": sum(v.nbytes for v in host.values()),
+        }
+        best = {k: min(v, best.get(k, np.inf)) for k, v in now.items()}
+    return best
+
+
+def upload_probe(client, futures: list) -> dict:
+    """Each worker's upload of one chunk of its fit data (``Y``, as it lies: pageable, or
+    page-locked with ``--fit-data pinned``) to its device, every worker at once: seconds
+    and GB/s, the best of three. Its growth with the workers says whether the copies to
+    the GPUs share a link or the host's copying."""
+    where = client.who_has(futures)
+    mine = {}
+    for f in futures:
+        for w in where.get(f.key, ()):
+            mine.setdefault(w, f)
+    tasks = [client.submit(_probe_upload, f, workers=[w], pure=False) for w, f in mine.items()]
+    return dict(zip(mine, client.gather(tasks)))
+
+
+def _probe_upload(chunk: dict) -> dict:
+    import warp as wp
+
+    from tawarp.distributed import worker_settings
+
+    device = worker_settings(None).device
+    Y = np.ascontiguousarray(chunk["Y"]).view(np.float64)
+    best = np.inf
+    for _ in range(3):
+        t0 = time.perf_counter()
+        a = wp.array(Y, dtype=wp.float64, device=device)
+        wp.synchronize_device(device)
+        best = min(best, time.perf_counter() - t0)
+        del a
+    return {"seconds": best, "GB_per_s": Y.nbytes / best / 1e9}
 
 
 def digest(arrays: dict) -> str:
@@ -222,7 +350,7 @@ class Bench:
         self.core, self.Y0, self.sd, self.start = fit_model()
         self.client_data = None
 
-    def _fit(self, client, Y, weights, chunk=None):
+    def _fit(self, client, Y, weights, chunk=None, sizes=None):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", FitWarning)
             return fit_on_cluster(
@@ -236,11 +364,12 @@ class Bench:
                 weights=weights,
                 warn=False,
                 chunk=chunk or 4096,
+                sizes=sizes,
             )
 
-    def _data_on_workers(self, client, n: int, workers: list, chunk: int) -> list:
-        """Futures of the chunks of n problems (``chunk`` each), dealt to the workers in
-        turn and made there."""
+    def _data_on_workers(self, client, n: int, workers: list, chunk: int) -> tuple[list, list]:
+        """(futures of the chunks of n problems (``chunk`` each), dealt to the workers in
+        turn and made there, their sizes)."""
         import distributed
 
         ranges = even_ranges(n, -(-n // chunk))
@@ -260,25 +389,34 @@ class Bench:
         distributed.wait(futures)
         for f in futures:
             f.result()  # (a worker's error raised here)
-        return futures
+        return futures, [hi - lo for lo, hi in ranges]
 
     def fits(self, client, k: int) -> dict:
         n, chunk = self.args.fits, self.args.fit_chunk
         w = (1.0 / self.sd)[None]  # one row: every problem's
         workers = list(client.scheduler_info()["workers"])
         # warm-up: every worker fits a few problems of its own (its fit kernels load)
-        self._fit(client, self._data_on_workers(client, 2 * len(workers), workers, 2), w)
+        self._fit(client, *self._data_on_workers(client, 2 * len(workers), workers, 2)[:1], w)
         t0 = time.perf_counter()
+        sizes = None
         if self.args.fit_data in ("workers", "pinned"):
-            data, weights = self._data_on_workers(client, n, workers, chunk), w
+            (data, sizes), weights = self._data_on_workers(client, n, workers, chunk), w
         else:
             if self.client_data is None:
                 self.client_data = noisy_data(0, n, self.Y0, self.sd)["Y"]
             data, weights = self.client_data, np.broadcast_to(w, self.client_data.shape)
         t_data = time.perf_counter() - t0
-        t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk), self.args.repeats, client)
+        if sizes:
+            probe = upload_probe(client, data)
+            # a chunk fitted on each worker (dealt in turn: the first k), so that no timed
+            # call grows a worker's memory for a chunk's size first
+            self._fit(client, data[: len(workers)], weights, chunk, sizes[: len(workers)])
+        else:
+            probe = None
+        t, res, cpu, ph = timed(lambda: self._fit(client, data, weights, chunk, sizes), self.args.repeats, client)
         return {
             "fit_phases": ph,
+            "fit_upload_probe": probe,
             "fits": n,
             "fit_data": self.args.fit_data,
             "fit_data_seconds": t_data,
@@ -294,9 +432,12 @@ class Bench:
         n = self.args.points
         ev.warm_up()
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
+        # (each worker's host buffer grown to a chunk before the timing, by the probe)
+        probe = evaluation_probe(ev, min(n, self.args.eval_chunk)) if ev.shared else None
         t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
         return {
             "evaluation_phases": ph,
+            "evaluation_probe": probe,
             "evaluation_points": n,
             "evaluation_seconds": t,
             "evaluation_client_cpu_seconds": cpu,
@@ -364,6 +505,42 @@ class Bench:
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,
         }
+
+
+def _worker_gpus(client) -> dict:
+    """Each worker's GPU, as its PCI bus id (None on a CPU worker): with the host's
+    ``gpu_topology``, which workers' GPUs share a PCIe switch."""
+
+    def bus():
+        import warp as wp
+
+        return wp.get_device("cuda:0").pci_bus_id if wp.get_cuda_device_count() else None
+
+    return client.run(bus)
+
+
+def host_topology() -> dict:
+    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings) and the
+    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share."""
+    import shutil
+    import subprocess
+
+    out = {"threads_per_core": None, "gpu_topology": None}
+    try:
+        with open("/sys/devices/system/cpu/cpu0/topology/thread_siblings_list") as f:
+            out["threads_per_core"] = sum(
+                int(b or a) - int(a) + 1 for a, _, b in (p.partition("-") for p in f.read().strip().split(","))
+            )
+    except (OSError, ValueError):
+        pass
+    if smi := shutil.which("nvidia-smi"):
+        try:
+            out["gpu_topology"] = subprocess.run(
+                [smi, "topo", "-m"], capture_output=True, text=True, timeout=20
+            ).stdout.splitlines()
+        except (OSError, subprocess.SubprocessError):
+            pass
+    return out
 
 
 def _worker_cpus(client) -> list[int]:
@@ -526,6 +703,7 @@ def main(argv=None) -> int:
         "warp": wp.config.version,
         "python": sys.version.split()[0],
         "cluster": {"fits, evaluations, sweep": args.cluster, "islands": "processes"},
+        **host_topology(),
         "sizes": {
             k: getattr(args, k)
             for k in (
@@ -571,6 +749,7 @@ def main(argv=None) -> int:
                 try:
                     dog.watch(client)
                     row["worker_cpus"] = _worker_cpus(client)
+                    row["worker_gpus"] = _worker_gpus(client)
                     client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:

@@ -321,14 +321,19 @@ def _is_large(a) -> bool:
 
 # -- batched fits ---------------------------------------------------------------------
 def _fit_chunk(task: tuple, core, freqs, names, kw: dict, common: dict | None = None, out=None):
-    """The fit of one chunk of problems, ``task`` = (chunk, its first problem): ``chunk``
-    (``Y``, and ``weights``, ``start``, ``heat_input``, ``fixed`` where it has its own)
-    over the entries of ``common``. With ``out`` (:class:`SharedColumns`, its layout
-    unset) the per-problem numeric arrays are written to its rows and (the result without
-    them, their layout) comes back, else (the result, None)."""
+    """The fit of one chunk of problems, ``task`` = (chunk, its first problem, its problem
+    count): ``chunk`` (``Y``, and ``weights``, ``start``, ``heat_input``, ``fixed`` where
+    it has its own) over the entries of ``common``. With ``out`` (:class:`SharedColumns`,
+    its layout unset) the per-problem numeric arrays are written to its rows and (the
+    result without them, their layout) comes back, else (the result, None)."""
     from .fit.estimate import fit
 
-    chunk, at = task
+    chunk, at, n = task
+    if len(chunk["Y"]) != n:  # (its rows of a shared result would overlap another's)
+        raise ValueError(
+            f"fit_on_cluster: the chunk from problem {at} on holds {len(chunk['Y'])} problems, not {n}: "
+            "give sizes the problems of each future, in order"
+        )
     chunk = {"start": None, "heat_input": 0.0, "fixed": None, "weights": None, **(common or {}), **chunk}
     kw = dict(kw, settings=worker_settings(kw.get("settings")))
     if getattr(_worker(), "tawarp_device", None) is not None:
@@ -415,6 +420,7 @@ def fit_on_cluster(
     fixed=None,
     weights=None,
     settings: ForwardSettings | None = None,
+    sizes=None,
     **kw,
 ):
     """:func:`tawarp.fit.estimate.fit` of N problems split into chunks of ``chunk``
@@ -432,7 +438,9 @@ def fit_on_cluster(
     ``client.submit(load, ...)``), fitted in the list's order by the worker that holds it,
     so that no data travel and only the results come back; ``start``, ``heat_input``,
     ``fixed`` and ``weights`` given here then hold for every problem (the cells are sized
-    on them), a chunk's own ``weights`` for its problems."""
+    on them), a chunk's own ``weights`` for its problems. ``sizes``: the problems of each
+    future, where the caller knows them (else asked of the workers first: a round trip
+    before any fit starts, tens of milliseconds); each chunk is checked against its size."""
     import time
 
     from .measure.kind import smooth_settings
@@ -459,7 +467,11 @@ def fit_on_cluster(
         settings = smooth_settings(
             core, freqs, settings, {**_sized_starts(core, names, start, kw), **(fixed or {})}, heat_input
         )
-        sizes = client.gather([client.submit(_problems, y, pure=False) for y in Y])  # (where each lies)
+        if sizes is None:
+            sizes = client.gather([client.submit(_problems, y, pure=False) for y in Y])  # (where each lies)
+        elif len(sizes) != len(Y):
+            raise ValueError(f"fit_on_cluster: {len(sizes)} sizes for {len(Y)} chunks of data")
+        sizes = [int(m) for m in sizes]
         res = _fit_parts(client, Y, sizes, (core, freqs, names, dict(kw, settings=settings), common))
         res.seconds = time.perf_counter() - t0
         return res
@@ -516,7 +528,7 @@ def _fit_parts(client, chunks: list, sizes: list, args: tuple):
         # queued whatever order the others finish in (a window would hold a worker's next
         # chunk until every chunk before it is fitted), and they hold no more memory
         window = len(chunks) if chunks and all(_is_future(c) for c in chunks) else None
-        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts)), *args, out, window=window)
+        parts = ordered_map(client, _fit_chunk, list(zip(chunks, starts, sizes)), *args, out, window=window)
         return _joined_parts(parts, n, starts, out)
     finally:
         if out is not None:
@@ -1016,7 +1028,12 @@ class ClusterEvaluator:
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         try:
-            for _ in ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out):
+            # every chunk at once (a task is a point range, a result None): the scheduler hands
+            # each worker its next chunk as it frees, where a window would hold a worker's next
+            # chunk until the chunks before it, on other workers, are done
+            for _ in ordered_map(
+                self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out, window=len(tasks)
+            ):
                 pass
             return out.columns()  # (the files go; their pages stay mapped here)
         finally:

@@ -99,6 +99,11 @@ def test_fit_of_data_on_the_workers_equals_one_process(client):
     for f in ("values", "std", "cost", "covariance"):
         np.testing.assert_allclose(getattr(many, f), getattr(one, f), rtol=1e-12, atol=0, err_msg=f)
     assert np.array_equal(many.iterations, one.iterations) and many.converged.all()
+    # the chunks' sizes given, as the caller that made the data knows them: no query first
+    sized = fit_on_cluster(client, core, FREQS, chunks, names, start, weights=1 / sd, warn=False, sizes=[3, 2])
+    assert np.array_equal(sized.values, many.values) and np.array_equal(sized.cost, many.cost)
+    with pytest.raises(ValueError, match="holds 3 problems, not 2"):
+        fit_on_cluster(client, core, FREQS, chunks, names, start, weights=1 / sd, warn=False, sizes=[2, 3])
     with pytest.raises(ValueError, match="every problem"):
         fit_on_cluster(client, core, FREQS, chunks, names, np.tile(start, (5, 1)))
 
