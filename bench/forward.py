@@ -8,7 +8,7 @@ the same run on the same machine. Writes JSON.
 
 Accuracy: the max relative error (row-wise, on the four dimensionless coefficients)
 of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default settings
-(cells from the step-doubling error estimate) against the adaptive NumPy reference at
+(cells from the error estimate) against the adaptive NumPy reference at
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
 same batch, its cost fraction, and the mean cell density it chose. ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
