@@ -142,32 +142,42 @@ def cosh_sinhc(delta: wp.vec2d):
 def cosh_sinhc_series(delta: wp.vec2d, size: wp.float64):
     """:func:`cosh_sinhc` at |delta|^2 = ``size`` < 1 as sum delta^j/(2j)! and
     sum delta^j/(2j+1)! over j <= 5, 7 or 9 (:func:`taylor_terms` at the top of each tier's
-    |delta|), on the powers of delta that both sums share: a complex product per term and a
-    real multiply-add per part and sum, where Horner's rule took a complex product per sum
-    (bench/README.md). Terms 6-7 and 8-9 are added where |delta| needs them, after the
-    first five: one code path, no copy per tier. The terms fall by
+    |delta|), on the powers of delta that both sums share (:func:`series_term`: a complex
+    product per term and a real multiply-add per part and sum, where Horner's rule took a
+    complex product per sum, bench/README.md). Terms 6-7 and 8-9 are added where |delta|
+    needs them, after the first five: one code path, no copy per tier. The terms fall by
     |delta|/((2j)(2j+1)) < 1/12 from the second on, so summing from the largest loses no
     digit; the first omitted term is below 1e-17."""
-    extra = 0  # terms beyond the fifth
-    if size >= wp.float64(1.68e-3):
-        extra = 2
-    if size >= wp.float64(0.120):
-        extra = 4
     power = delta
-    c_ch = wp.float64(0.5)  # 1/(2j)! and 1/(2j+1)! at j = 1; the divisions below fold
-    c_sh = SIXTH
-    ch = creal(wp.float64(1.0)) + cscale(delta, c_ch)
-    sh = creal(wp.float64(1.0)) + cscale(delta, c_sh)
-    for jj in range(8):  # a fixed count: unrolled, j = 2 ... 9
-        j = wp.float64(jj + 2)
-        c_ch = c_ch / ((wp.float64(2.0) * j - wp.float64(1.0)) * (wp.float64(2.0) * j))
-        c_sh = c_sh / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
-        # terms 2-5 always (-2, 0 <= extra), 6 and 7 under one test, 8 and 9 under another
-        if 2 * (jj // 2) - 2 <= extra:
-            power = cmul(power, delta)
-            ch = ch + cscale(power, c_ch)
-            sh = sh + cscale(power, c_sh)
+    ch = creal(wp.float64(1.0)) + cscale(delta, wp.float64(0.5))
+    sh = creal(wp.float64(1.0)) + cscale(delta, SIXTH)
+    for j in range(2, 6):  # unrolled: j a literal
+        power, ch, sh = series_term(delta, power, ch, sh, j)
+    if size >= wp.float64(1.68e-3):
+        for j in range(6, 8):
+            power, ch, sh = series_term(delta, power, ch, sh, j)
+        if size >= wp.float64(0.120):
+            for j in range(8, 10):
+                power, ch, sh = series_term(delta, power, ch, sh, j)
     return ch, sh
+
+
+@wp.func
+def series_term(delta: wp.vec2d, power: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d, j: int):
+    """(delta^j, ch + delta^j/(2j)!, sh + delta^j/(2j+1)!) from power = delta^(j-1), for a
+    literal j (the coefficients fold to constants): a term of :func:`cosh_sinhc_series`."""
+    power = cmul(power, delta)
+    return power, ch + cscale(power, inverse_factorial(2 * j)), sh + cscale(power, inverse_factorial(2 * j + 1))
+
+
+@wp.func
+def inverse_factorial(n: int):
+    """1/n! for a literal n < 20: an unrolled product of constants, which the compiler folds."""
+    c = wp.float64(1.0)
+    for k in range(2, 20):
+        if k <= n:
+            c = c / wp.float64(k)
+    return c
 
 
 @wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code
