@@ -470,8 +470,9 @@ def cell_counts(
     """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g: at density
     cell_density[i] (g = 0) and on the error estimate's refined grid (g = 1, where ``cells``
     has its columns: :func:`refined_cells` of grid 0's); most[0] = the largest point count
-    of a set over the grids, most[1] its largest count of point-kernel slots (:func:`segment_slots`), most[2] the
-    largest cell count of a segment (above :data:`MAX_CELLS`: refused on the host).
+    of a set over the grids, most[1] its largest count of point-kernel slots
+    (:func:`segment_slots`), most[2] the largest cell count of a segment (above
+    :data:`MAX_CELLS`: refused on the host).
     0 for a segment at uniform temperature: one that is neither thermal nor imposed with
     different end temperatures, and every thermal segment of a set without heat input (its
     heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact

@@ -206,8 +206,8 @@ TABLE_TERMS = wp.constant(TERMS)
 #: then TERMS (re, im) coefficients of the series in powers of t, each one row.
 TABLE_RECORD = 1 + TERMS
 #: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`): column k is
-#: one piece, row r its field r, a (re, im) pair (wp.vec2d: one 16-byte load per coefficient,
-#: where two float64 rows took two loads and two address computations). Columns: the circular
+#: one piece, row r its field r, a (re, im) pair (wp.vec2d: one address computation per
+#: coefficient, where two float64 rows took two, bench/README.md). Columns: the circular
 #: pieces, then a header column whose first SHAPE_SLOTS components (row j // 2, component
 #: j % 2) are pore-model codes (-1: empty), then the pieces of each shaped pore (rectangular
 #: channels, pins) in the header's order. A field's row keeps neighbouring pieces at

@@ -71,9 +71,9 @@ def _nodes(model: int, s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d
 def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
     as a (PIECES, 2 TABLE_RECORD) float64 array, a piece's fields in a row as (re, im) pairs:
-    its flag and a 0, then the TERMS coefficients (a column of :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
-    first kind of each piece (a discrete cosine transform gives the Chebyshev coefficients,
-    stored in powers of the piece's variable t)."""
+    its flag and a 0, then the TERMS coefficients (a column of :data:`.pore.PoreTable`), from
+    f, g at the TERMS Chebyshev points of the first kind of each piece (a discrete cosine
+    transform gives the Chebyshev coefficients, stored in powers of the piece's variable t)."""
     k = np.arange(TERMS)
     angles = np.pi * (k + 0.5) / TERMS
     t = np.cos(angles)

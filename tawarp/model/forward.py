@@ -219,8 +219,8 @@ class ForwardSettings:
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
     ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
-    refined grid's, n + ceil(n/2) cells where it has n, whose difference is the error on
-    the n cells to within 1/(1.5^6 - 1), the scheme being sixth order:
+    refined grid's, n + ceil(n/2) cells where it has n, whose difference times
+    1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
     (:meth:`Engine._adaptive_cascade`: the refined cascades run in the main launch, whose
