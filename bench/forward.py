@@ -8,7 +8,7 @@ the same run on the same machine. Writes JSON.
 
 Accuracy: the max relative error (row-wise, on the four dimensionless coefficients)
 of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default settings
-(cells from the step-doubling error estimate) against the adaptive NumPy reference at
+(cells from the error estimate) against the adaptive NumPy reference at
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
 same batch, its cost fraction, and the mean cell density it chose. ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
@@ -107,6 +107,7 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     the same batch, timed alternately (best of ``repeats``: a shared machine's load
     drifts); ``cost_fraction``: the default's time over the rule's, less 1 (the estimate
     runs inside the main launch, so only the whole evaluation measures its cost);
+    ``work``: :func:`cascade_work` of both, ``work_ratio`` the estimate's over the rule's;
     ``estimate_alone``: :meth:`Engine.cell_densities` (the sampled frequencies alone, for
     callers that need only the densities); the densities it chose."""
     core = load_core("ceramic")
@@ -125,8 +126,11 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         d = engines["estimate"].cell_densities(params, theta).numpy()
         wp.synchronize_device(device)
         best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
+    work = {label: cascade_work(engine, table) for label, engine in engines.items()}
     return {
         "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
+        "work": work,
+        "work_ratio": {k: work["estimate"][k] / work["rule"][k] for k in ("cell_steps_per_model", "points_per_set")},
         "seconds_best": best,
         "cost_fraction": best["estimate"] / best["rule"] - 1.0,
         "cpu_threads": 1,
@@ -134,6 +138,46 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         "density_max": float(d.max()),
         "sets_raised": float(np.mean(d > ForwardSettings().cell_density)),
         "sets": n,
+    }
+
+
+def cascade_work(engine: Engine, table: np.ndarray) -> dict:
+    """What one evaluate() of ``table`` computes, counted on the host from each launch's
+    inputs (a device-independent cost of the error estimate): Magnus cell steps per forward
+    model (each cascade thread's cells, a part at uniform temperature one step), points per
+    set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
+    cascade launches (the first, then one per round of reruns) with their sets. Warp's
+    ``launch`` is wrapped for the call."""
+    n_seg = len(engine.core.segments)
+    work = {"cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
+    launch = wp.launch
+
+    def counted(kernel, dim=None, inputs=None, **kw):
+        if kernel is engine.transfer_kernel:
+            cells, part, lo, out, refined = inputs[2].numpy(), inputs[3], inputs[4], inputs[6], inputs[7]
+            steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
+            work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
+            work["cell_steps"] += int(steps[:, n_seg:].sum()) * refined.shape[1]
+            work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
+            work["launch_sets"].append(part.shape[0])
+        elif kernel is engine.point_kernel:
+            cells, lo, part = inputs[2].numpy(), inputs[5], inputs[6]
+            work["points"] += int(
+                np.where(cells[lo : lo + part.shape[0]] > 0, 3 * cells[lo : lo + part.shape[0]], 1).sum()
+            )
+        return launch(kernel, dim=dim, inputs=inputs, **kw)
+
+    wp.launch = counted
+    try:
+        engine.evaluate(table)
+    finally:
+        wp.launch = launch
+    models = table.shape[1] * len(engine.freqs)
+    return {
+        "cell_steps_per_model": work["cell_steps"] / models,
+        "threads_per_model": work["threads"] / models,
+        "points_per_set": work["points"] / table.shape[1],
+        "cascade_launch_sets": work["launch_sets"],
     }
 
 

@@ -34,9 +34,8 @@ from _results import write_result
 COUNTED = {"fp64": r" (DFMA|DMUL|DADD)\b", "ldl": r" LDL\b", "stl": r" STL\b", "call": r" CALL\b"}
 
 
-def disassembly_counts(cubin: Path, nvdisasm: str) -> dict:
-    """Instruction counts per function of ``cubin`` (:data:`COUNTED` and ``total``)."""
-    text = subprocess.run([nvdisasm, str(cubin)], capture_output=True, text=True, check=True).stdout
+def disassembly_counts(text: str) -> dict:
+    """Instruction counts per function of the disassembly ``text`` (:data:`COUNTED` and ``total``)."""
     counts = collections.defaultdict(collections.Counter)
     name = None  # the sections before the first function hold data, not instructions
     for line in text.splitlines():
@@ -51,6 +50,51 @@ def disassembly_counts(cubin: Path, nvdisasm: str) -> dict:
     return {k: dict(v) for k, v in counts.items()}
 
 
+def loop_counts(text: str, kernel: str) -> list[dict]:
+    """Instruction counts of each loop of function ``kernel`` in the disassembly ``text``: a
+    backward branch and the instructions from its target to it (address range, ``total``,
+    :data:`COUNTED`, ``ldg``: global loads). A cascade's cell loop is the loop of the most
+    float64 instructions that holds no other such loop: the one executed once per Magnus
+    cell (bench/README.md)."""
+    name, labels, pending, body = None, {}, [], []
+    for line in text.splitlines():
+        if "@function" in line:
+            name = line.split()[1].split(",")[0]
+            continue
+        label = re.match(r"^\.(L_x_\d+):", line)
+        if label:
+            pending.append(label.group(1))
+            continue
+        code = re.match(r"^\s+/\*([0-9a-f]+)\*/\s+(.*)", line)
+        if code and name and kernel in name and not name.startswith("$"):
+            address = int(code.group(1), 16)
+            labels.update(dict.fromkeys(pending, address))
+            body.append((address, code.group(2)))
+        pending = [] if code else pending
+    patterns = {**COUNTED, "ldg": r" LDG\b"}
+    loops = []
+    for address, text_ in body:
+        branch = re.search(r"BRA .*\(\.(L_x_\d+)\)", text_)
+        if branch and labels.get(branch.group(1), address) < address:
+            start = labels[branch.group(1)]
+            inside = [" " + t for a, t in body if start <= a <= address]
+            counts = {k: sum(bool(re.search(p, t)) for t in inside) for k, p in patterns.items()}
+            loops.append({"start": start, "end": address, "total": len(inside), **counts})
+    return loops
+
+
+def cell_loop(loops: list[dict]) -> dict | None:
+    """The cell loop among :func:`loop_counts`' loops (None without one of 100 float64
+    instructions)."""
+    heavy = [lp for lp in loops if lp["fp64"] >= 100]
+    inner = [
+        lp
+        for lp in heavy
+        if not any(o is not lp and lp["start"] <= o["start"] and o["end"] <= lp["end"] for o in heavy)
+    ]
+    return max(inner, key=lambda lp: lp["fp64"], default=None)
+
+
 def assemble(ptx: Path, arch: int, ptx_version: str, nvdisasm: str) -> dict:
     """ptxas -v of ``ptx`` (registers, stack, spills of the kernel) and its disassembly counts."""
     src = re.sub(r"\.version \d+\.\d+", f".version {ptx_version}", ptx.read_text()).rstrip("\0")
@@ -61,12 +105,14 @@ def assemble(ptx: Path, arch: int, ptx_version: str, nvdisasm: str) -> dict:
     ).stderr
     entry = log[log.index("Compiling entry function") :]
     spills = re.search(r"(\d+) bytes stack frame, (\d+) bytes spill stores, (\d+) bytes spill loads", entry)
+    text = subprocess.run([nvdisasm, str(cubin)], capture_output=True, text=True, check=True).stdout
     return {
         "registers": int(re.search(r"Used (\d+) registers", entry).group(1)),
         "stack_frame_bytes": int(spills.group(1)),
         "spill_store_bytes": int(spills.group(2)),
         "spill_load_bytes": int(spills.group(3)),
-        "functions": disassembly_counts(cubin, nvdisasm),
+        "functions": disassembly_counts(text),
+        "cell_loop": cell_loop(loop_counts(text, "transfer_kernel")),
     }
 
 
@@ -101,9 +147,12 @@ def main(argv=None):
             )
             ptx = next(Path(p) for p in paths if str(p).endswith(".ptx"))
             result["kernels"][label] = r = assemble(ptx, args.arch, args.ptx_version, nvdisasm)
+            loop = r["cell_loop"]
             print(
                 f"{label}: {r['registers']} registers, stack {r['stack_frame_bytes']} B, spills "
-                f"{r['spill_store_bytes']}/{r['spill_load_bytes']} B; functions "
+                f"{r['spill_store_bytes']}/{r['spill_load_bytes']} B; "
+                + (f"cell loop {loop['total']} / {loop['fp64']} float64, {loop['ldg']} loads; " if loop else "")
+                + "functions "
                 + ", ".join(
                     f"{k[:40]} {v.get('total', 0)}" for k, v in r["functions"].items() if v.get("total", 0) > 300
                 ),

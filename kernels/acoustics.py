@@ -122,43 +122,62 @@ def taylor_terms(size: wp.float64):
     return 9
 
 
+#: 1/3! (a float64 constant: a quotient of literals in a kernel is taken in float32)
+SIXTH = wp.constant(wp.float64(1.0 / 6.0))
+
+
 @wp.func
 def cosh_sinhc(delta: wp.vec2d):
     """(cosh(sqrt delta), sinh(sqrt delta)/sqrt(delta)) of a complex delta: both entire in
     delta, a Taylor series for |delta| < 1 (no square root, no cancellation, the usual case
-    of a Magnus cell), exponentials beyond. The series takes 5, 7 or 9 terms
-    (:func:`taylor_terms` at the top of each tier's |delta|): a fixed count per tier
-    compiles to straight Horner steps, where a count per term put a branch and the merge of
-    both series' values after every step (16 instructions a term, bench/README.md)."""
+    of a Magnus cell, :func:`cosh_sinhc_series`), exponentials beyond."""
     size = cabs2(delta)
-    if size < wp.float64(1.68e-3):
-        return cosh_sinhc_series(delta, 5)
-    if size < wp.float64(0.120):
-        return cosh_sinhc_series(delta, 7)
     if size < wp.float64(1.0):
-        return cosh_sinhc_series(delta, 9)
+        return cosh_sinhc_series(delta, size)
     both = cosh_sinhc_exponentials(delta)
     return wp.vec2d(both[0], both[1]), wp.vec2d(both[2], both[3])
 
 
 @wp.func
-def cosh_sinhc_series(delta: wp.vec2d, terms: int):
-    """:func:`cosh_sinhc` by Horner on sum delta^j/(2j)! and sum delta^j/(2j+1)!, j <= ``terms``
-    (at most 9; a literal at each call, which the compiler folds): the first omitted term
-    |delta|^(terms+1)/(2 terms + 2)! is below 1e-17 where :func:`taylor_terms` gives at
-    most ``terms``."""
-    ch = creal(wp.float64(1.0))
-    sh = creal(wp.float64(1.0))
-    for jj in range(9):  # a fixed count: unrolled, its divisions folded to constants
-        if 9 - jj <= terms:
-            j = wp.float64(9 - jj)
-            ch = creal(wp.float64(1.0)) + cscale(
-                cmul(delta, ch), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j - wp.float64(1.0)))
-            )
-            sh = creal(wp.float64(1.0)) + cscale(
-                cmul(delta, sh), wp.float64(1.0) / ((wp.float64(2.0) * j) * (wp.float64(2.0) * j + wp.float64(1.0)))
-            )
+def cosh_sinhc_series(delta: wp.vec2d, size: wp.float64):
+    """:func:`cosh_sinhc` at |delta|^2 = ``size`` < 1 as sum delta^j/(2j)! and
+    sum delta^j/(2j+1)! over j <= 5, 7 or 9 (:func:`taylor_terms` at the top of each tier's
+    |delta|), on the powers of delta that both sums share (:func:`series_term`: a complex
+    product per term and a real multiply-add per part and sum, where Horner's rule took a
+    complex product per sum, bench/README.md). Terms 6-7 and 8-9 are added where |delta|
+    needs them, after the first five: one code path, no copy per tier. The terms fall by
+    |delta|/((2j)(2j+1)) < 1/12 from the second on, so summing from the largest loses no
+    digit; the first omitted term is below 1e-17."""
+    power = delta
+    ch = creal(wp.float64(1.0)) + cscale(delta, wp.float64(0.5))
+    sh = creal(wp.float64(1.0)) + cscale(delta, SIXTH)
+    for j in range(2, 6):  # unrolled: j a literal
+        power, ch, sh = series_term(delta, power, ch, sh, j)
+    if size >= wp.float64(1.68e-3):
+        for j in range(6, 8):
+            power, ch, sh = series_term(delta, power, ch, sh, j)
+        if size >= wp.float64(0.120):
+            for j in range(8, 10):
+                power, ch, sh = series_term(delta, power, ch, sh, j)
     return ch, sh
+
+
+@wp.func
+def series_term(delta: wp.vec2d, power: wp.vec2d, ch: wp.vec2d, sh: wp.vec2d, j: int):
+    """(delta^j, ch + delta^j/(2j)!, sh + delta^j/(2j+1)!) from power = delta^(j-1), for a
+    literal j (the coefficients fold to constants): a term of :func:`cosh_sinhc_series`."""
+    power = cmul(power, delta)
+    return power, ch + cscale(power, inverse_factorial(2 * j)), sh + cscale(power, inverse_factorial(2 * j + 1))
+
+
+@wp.func
+def inverse_factorial(n: int):
+    """1/n! for a literal n < 20: an unrolled product of constants, which the compiler folds."""
+    c = wp.float64(1.0)
+    for k in range(2, 20):
+        if k <= n:
+            c = c / wp.float64(k)
+    return c
 
 
 @wp.func(inline=False)  # the rare |delta| >= 1 of a cell: kept out of the cascade's inlined code

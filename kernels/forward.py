@@ -14,9 +14,9 @@ Launch order for a batch of n parameter sets and m frequencies:
 4. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
    thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
    points, adding only what depends on the frequency (pore functions, Magnus steps).
-5. :func:`step_doubling_error` (n threads) compares the s sampled frequencies at the
-   chosen and at twice the cell density; only the sets above the target are gathered
-   (``kernels/batch.py``) and run again, at a raised density.
+5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
+   and on the refined grid (:func:`refined_cells`); only the sets above the target are
+   gathered (``kernels/batch.py``) and run again, at a raised density.
 """
 
 from typing import Any
@@ -99,6 +99,13 @@ GAUSS = wp.constant(wp.vec3d(0.1127016653792583, 0.5, 0.8872983346207417))
 #: end, and a larger count overflows the int32 point indices).
 MAX_CELLS = 100_000
 CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
+#: The error estimate's refinement: a segment of n Magnus cells has n + ceil(n/2) on the
+#: refined grid (:func:`refined_cells`), at least 1.5 times as many, so the sixth-order
+#: scheme's error on the n cells is at most 1/(1 - 1.5^-6) times the difference of the two
+#: grids' results (Richardson). A ratio of 2 (step doubling) estimated the error as well on
+#: random cores and cost a third more points and refined cascades (bench/README.md).
+REFINEMENT = 1.5
+REFINED_ERROR_FACTOR = wp.constant(wp.float64(1.0 / (1.0 - REFINEMENT**-6)))
 
 
 @wp.struct
@@ -341,17 +348,25 @@ def dimensionless(out: wp.array3d(dtype=wp.float64), i: int, j: int, c: int, zc:
     return y
 
 
+@wp.func
+def refined_cells(n: int):
+    """Magnus cells on the error estimate's refined grid of a segment of n cells: n + ceil(n/2)
+    (:data:`REFINEMENT`)."""
+    return n + (n + 1) // 2
+
+
 @wp.kernel
-def step_doubling_error(
+def refined_error(
     sets: SetTable,
     out: wp.array3d(dtype=wp.float64),
-    doubled: wp.array3d(dtype=wp.float64),
+    refined: wp.array3d(dtype=wp.float64),
     sample: wp.array(dtype=wp.int32),
     err: wp.array(dtype=wp.float64),
 ):
-    """err[i] = max over k of max_c |Y_c - Y2_c| / max_c |Y2_c| (dimensionless), Y the
-    coefficients (Tpp, Tpu/Zc, Tup Zc, Tuu) of out[i, sample[k]] (cell density d) and Y2
-    those of doubled[i, k] (2d), Zc = p_mean / (c_cold S) [Pa s/m^3] the cold duct's
+    """err[i] = :data:`REFINED_ERROR_FACTOR` times the max over k of
+    max_c |Y_c - Y2_c| / max_c |Y2_c| (dimensionless), Y the coefficients (Tpp, Tpu/Zc,
+    Tup Zc, Tuu) of out[i, sample[k]] (the set's cells) and Y2 those of refined[i, k] (the
+    refined grid, :func:`refined_cells`), Zc = p_mean / (c_cold S) [Pa s/m^3] the cold duct's
     impedance of set i. NaN where a coefficient is not finite (as NumPy's max): such a set
     is not refined, the validity checks name it."""
     i = wp.tid()
@@ -365,7 +380,7 @@ def step_doubling_error(
         gap = wp.float64(0.0)
         size = wp.float64(0.0)
         for c in range(4):
-            y2 = dimensionless(doubled, i, k, c, zc)
+            y2 = dimensionless(refined, i, k, c, zc)
             dy = cabs(dimensionless(out, i, sample[k], c, zc) - y2)
             a2 = cabs(y2)
             if wp.isnan(dy) or wp.isnan(a2):
@@ -375,7 +390,7 @@ def step_doubling_error(
         worst = wp.max(worst, gap / size)
     if finite == 0:
         worst = wp.float64(wp.nan)
-    err[i] = worst
+    err[i] = REFINED_ERROR_FACTOR * worst
 
 
 @wp.func
@@ -452,11 +467,12 @@ def cell_counts(
     cells: wp.array2d(dtype=wp.int32),
     most: wp.array(dtype=wp.int32),
 ):
-    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, at density
-    cell_density[i] (g = 0) and twice it (g = 1, the step-doubling estimate's, where
-    ``cells`` has its columns); most[0] = the largest point count of a set over the grids,
-    most[1] its largest count of point-kernel slots (:func:`segment_slots`), most[2] the
-    largest cell count of a segment (above :data:`MAX_CELLS`: refused on the host).
+    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g: at density
+    cell_density[i] (g = 0) and on the error estimate's refined grid (g = 1, where ``cells``
+    has its columns: :func:`refined_cells` of grid 0's); most[0] = the largest point count
+    of a set over the grids, most[1] its largest count of point-kernel slots
+    (:func:`segment_slots`), most[2] the largest cell count of a segment (above
+    :data:`MAX_CELLS`: refused on the host).
     0 for a segment at uniform temperature: one that is neither thermal nor imposed with
     different end temperatures, and every thermal segment of a set without heat input (its
     heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
@@ -472,10 +488,11 @@ def cell_counts(
     for column in range(cells.shape[1]):
         s = column % n_seg
         cells[i, column] = 0
-        if temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
-            density = cell_density[i] * wp.float64(1 + column // n_seg)
-            cells[i, column] = segment_cells(params, flags, gas, seg_cells, density, omega_max, i, s)
-            wp.atomic_max(most, 2, cells[i, column])
+        if column >= n_seg:  # grid 0's count of the segment is known: its refined grid
+            cells[i, column] = refined_cells(cells[i, s])
+        elif temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
+            cells[i, column] = segment_cells(params, flags, gas, seg_cells, cell_density[i], omega_max, i, s)
+        wp.atomic_max(most, 2, cells[i, column])
         points = points + segment_points(flags, cells, i, column, s)
         slots = slots + segment_slots(flags, cells, i, column, s)
     wp.atomic_max(most, 0, points)
@@ -962,16 +979,16 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         set0: int,
         pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
-        doubled: wp.array3d(dtype=wp.float64),
+        refined: wp.array3d(dtype=wp.float64),
         step: wp.array2d(dtype=wp.float64),
         tangent: wp.array4d(dtype=wp.float64),
     ):
         """out[i, j] = (Tpp, Tpu, Tup, Tuu) as (re, im) pairs: the core T-matrix of set i at
-        frequency freqs[j] [Hz], j < m = out.shape[1]; doubled[i, k] the same at frequency
-        freqs[m + k] on the grid of twice the cell density (the step-doubling error estimate,
-        k < doubled.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
+        frequency freqs[j] [Hz], j < m = out.shape[1]; refined[i, k] the same at frequency
+        freqs[m + k] on the refined grid (the error estimate's, :func:`refined_cells`;
+        k < refined.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
         :func:`make_point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
-        Launched on points.shape[0] (m + doubled.shape[1]) threads, the doubled ones first:
+        Launched on points.shape[0] (m + refined.shape[1]) threads, the refined ones first:
         they run longest, and in warps of their own they hold up no short thread.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
         device.
@@ -979,7 +996,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         Tangent kernel (P > 0): the sets come in groups of 1 + 2P, a point z and z +- step[g, a] e_a
         of its P scaled parameters (group g = set i / (1 + 2P), local to the launch: ``out`` and
         ``tangent`` are indexed by it, ``params`` by set0 + i). Launched on
-        points.shape[0] / (1 + 2P) m threads (no doubled grid: fixed cells), it writes the
+        points.shape[0] / (1 + 2P) m threads (no refined grid: fixed cells), it writes the
         value at z to out[g, j] and dT/dz_a to tangent[g, a, j]. Only the cascade is
         differentiated (:func:`tawarp.kernels.acoustics.magnus6_tangent`,
         :func:`tawarp.kernels.acoustics.expm2_tangent`, and A by
@@ -992,13 +1009,13 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         flags = sets.flags
         gas = sets.gas
         n_freqs = out.shape[1]
-        n_doubled = points.shape[0] * doubled.shape[1]
-        li = (t - n_doubled) // n_freqs
-        j = (t - n_doubled) % n_freqs
+        n_refined = points.shape[0] * refined.shape[1]
+        li = (t - n_refined) // n_freqs
+        j = (t - n_refined) % n_freqs
         grid = 0
-        if t < n_doubled:
-            li = t // doubled.shape[1]
-            j = n_freqs + t % doubled.shape[1]
+        if t < n_refined:
+            li = t // refined.shape[1]
+            j = n_freqs + t % refined.shape[1]
             grid = 1
         group = li
         li = li * stride
@@ -1008,7 +1025,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         gamma = gas[G_GAMMA]
         n_seg = flags.shape[0]
         p = int(0)
-        for column in range(grid * n_seg):  # the doubled grid's points follow the main grid's
+        for column in range(grid * n_seg):  # the refined grid's points follow the main grid's
             p = p + segment_points(flags, cells, i, column, column % n_seg)
         m = identity2()
         log_scale = wp.vec2d(wp.float64(0.0), wp.float64(0.0))  # sum of the cells' tau (expm2_traceless)
@@ -1106,7 +1123,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         if j < n_freqs:
             store_matrix(out, group, j, cscale2(m, scale))
         else:
-            store_matrix(doubled, group, j - n_freqs, cscale2(m, scale))
+            store_matrix(refined, group, j - n_freqs, cscale2(m, scale))
         for a in range(P):
             # T = e^S M: dT = e^S (dS M + dM)
             da = axpy2(wp.float64(1.0), cscale2(m, wp.vec2d(dlog[a, 0], dlog[a, 1])), tangent_row(dm, a))

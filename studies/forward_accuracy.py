@@ -3,7 +3,7 @@
 Makes studies/out/forward_accuracy.{json,png}: the max relative error of the four
 dimensionless coefficients against the adaptive NumPy reference (DOP853, rtol 1e-12)
 for fixed Magnus cells, for the adaptive cell density (the bare rule, ``tolerance=None``)
-and for the default settings (cells from the step-doubling error estimate), on the four bundled cores at
+and for the default settings (cells from the error estimate), on the four bundled cores at
 their largest heat input; and the error of the heat model's plain second-order scheme
 against the exact solution, beside the exponentially fitted scheme on one cell.
 

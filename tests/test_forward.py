@@ -215,7 +215,7 @@ def test_cpu_threads_split_the_batch_bit_for_bit():
 def test_point_blocks_equal_one_launch(monkeypatch):
     """A batch whose Gauss points exceed the point buffer runs in blocks of sets (each its
     points and its cascade launch): the same numbers, to the bit, as one block; and a
-    doubled (error-estimate) grid's points follow the main grid's in each set's row."""
+    refined (error-estimate) grid's points follow the main grid's in each set's row."""
     from tawarp.model import forward
 
     core = load_core("mesh")

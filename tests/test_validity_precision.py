@@ -63,7 +63,7 @@ def test_beyond_the_tolerance_warns_and_beyond_any_digit_raises():
         r"tolerance 1e-06 .*1 of 3 sets",
     ):
         check_precision(RVC, q, values, P, 1e-6)
-    P[2] *= 1 + 1.0  # a heated set: its exact det is not 1; left to the step-doubling estimate
+    P[2] *= 1 + 1.0  # a heated set: its exact det is not 1; left to the cells' error estimate
     with warnings.catch_warnings():
         warnings.simplefilter("error", ValidityWarning)
         check_precision(RVC, q, values, P, 1e-2)

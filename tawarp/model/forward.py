@@ -54,7 +54,7 @@ DEFAULT_CELL_DENSITY = 1.5
 DEFAULT_TOLERANCE = 1e-6
 #: Order of the Magnus scheme: a cell's error falls as (its length)^6 (tests/test_forward.py).
 MAGNUS_ORDER = 6
-#: Most rounds of the step-doubling estimate (each raises a set's density by 1.25x to 4x).
+#: Most rounds of the error estimate (each raises a set's density by 1.25x to 4x).
 MAX_ESTIMATE_ROUNDS = 8
 #: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
 MAX_DENSITY_FACTOR = 64.0
@@ -218,10 +218,12 @@ class ForwardSettings:
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
-    ``tolerance``/2: step doubling (the cascade at d against 2d, whose difference is
-    the error at d to 1/64, the scheme being sixth order) at the lowest, geometric
-    middle and highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine._adaptive_cascade`: the 2d cascades run in the main launch, whose d
+    ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
+    refined grid's, n + ceil(n/2) cells where it has n, whose difference times
+    1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
+    :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
+    highest frequency of the batch, on the row-relative dimensionless error
+    (:meth:`Engine._adaptive_cascade`: the refined cascades run in the main launch, whose
     values at the sampled frequencies they are compared with on the device, and only the
     sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
@@ -545,7 +547,7 @@ class Engine:
 
     def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
         """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
-        again (run at twice the density: the error estimate), and ``sample`` as int32."""
+        again (run on the refined grid: the error estimate), and ``sample`` as int32."""
         return (
             wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
             wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device),
@@ -609,8 +611,8 @@ class Engine:
         out = wp.empty((groups, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         tangent = wp.empty((groups, tangents, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         density = wp.full(n, float(self.settings.cell_density), dtype=wp.float64, device=self.device)
-        doubled = wp.empty((groups, 0, 8), dtype=wp.float64, device=self.device)
-        self._cascade(params, theta, self.columns[0], density, out, doubled, step, tangent)
+        refined = wp.empty((groups, 0, 8), dtype=wp.float64, device=self.device)
+        self._cascade(params, theta, self.columns[0], density, out, refined, step, tangent)
         return out, tangent
 
     def _cascade(
@@ -620,18 +622,19 @@ class Engine:
         freqs: wp.array,
         density: wp.array,
         out: wp.array,
-        doubled: wp.array,
+        refined: wp.array,
         step: wp.array | None = None,
         tangent: wp.array | None = None,
     ):
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
-        ``doubled`` (n, s, 8) at ``freqs[m:]`` and twice the density. The sets' cells are
+        ``refined`` (n, s, 8) at ``freqs[m:]`` on the refined grid
+        (:func:`tawarp.kernels.forward.refined_cells`). The sets' cells are
         counted first and the largest point count read back (the one host round trip; none
         with fixed cells: :meth:`_fixed_point_counts`); then
         blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
         (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch.
         With ``tangent`` (g, P, m, 8) the sets are g groups of 1 + 2P (:meth:`evaluate_tangents`),
-        ``out`` and ``doubled`` have a row per group, and a block holds whole groups."""
+        ``out`` and ``refined`` have a row per group, and a block holds whole groups."""
         n = params.shape[1]
         if n == 0:
             return
@@ -642,7 +645,7 @@ class Engine:
         )
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
-        columns = len(self.core.segments) * (2 if doubled.shape[1] else 1)
+        columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
         most = wp.zeros(3, dtype=wp.int32, device=self.device)
         wp.launch(
@@ -668,10 +671,10 @@ class Engine:
                 inputs=[self._sets(params), theta, cells, self.first, self.heat_cells, lo, part],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
-            threads = (g1 - g0) * (out.shape[1] + doubled.shape[1])
+            threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
             if threads >= 2**31:  # a 1-D launch's thread index is an int32
                 raise ValueError(
-                    f"{part.shape[0]} sets x {out.shape[1] + doubled.shape[1]} frequencies is over 2^31 "
+                    f"{part.shape[0]} sets x {out.shape[1] + refined.shape[1]} frequencies is over 2^31 "
                     f"threads in one launch: split the batch (ForwardSettings.chunk)"
                 )
             rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
@@ -686,7 +689,7 @@ class Engine:
                     lo,
                     self.pore_table,
                     rows(out),
-                    rows(doubled),
+                    rows(refined),
                     rows(step) if tangents else step,
                     rows(tangent) if tangents else tangent,
                 ],
@@ -736,28 +739,26 @@ class Engine:
     def _estimated_cascade(
         self, params: wp.array, theta: wp.array, columns, density: wp.array, out: wp.array
     ) -> np.ndarray | None:
-        """The cascade into ``out`` at ``density`` and, in the same launch, at twice it on the
-        sampled columns; the step-doubling estimate (n,) of each set, compared on the device
-        (:func:`tawarp.kernels.forward.step_doubling_error`) and read back, the one host round
+        """The cascade into ``out`` at ``density`` and, in the same launch, on the refined
+        grid at the sampled columns; the error estimate (n,) of each set, compared on the device
+        (:func:`tawarp.kernels.forward.refined_error`) and read back, the one host round
         trip of a round (None where the estimate is off)."""
         freqs, sample = columns
         n = params.shape[1]
-        doubled = wp.empty((n, sample.shape[0], 8), dtype=wp.float64, device=self.device)
-        self._cascade(params, theta, freqs, density, out, doubled)
+        refined = wp.empty((n, sample.shape[0], 8), dtype=wp.float64, device=self.device)
+        self._cascade(params, theta, freqs, density, out, refined)
         if not self.estimating or n == 0:
             return None
         err = wp.empty(n, dtype=wp.float64, device=self.device)
-        wp.launch(
-            kf.step_doubling_error, dim=n, inputs=[self._sets(params), out, doubled, sample, err], device=self.device
-        )
+        wp.launch(kf.refined_error, dim=n, inputs=[self._sets(params), out, refined, sample, err], device=self.device)
         return err.numpy()
 
     def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
         returned (n,) on the host (:class:`ForwardSettings`): ``cell_density``, raised where the
-        step-doubling estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
+        error estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
         between the three sampled). The first launch runs every set at d on all m columns and
-        at 2d on the sampled ones (whose d values are the main cascade's own); each later
+        on the refined grid at the sampled ones (whose d values are the main cascade's own); each later
         round gathers the sets still above target, raises their d by (estimate / target)^(1/6)
         (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
         :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), runs them the same way and

@@ -194,7 +194,7 @@ def check_precision(
     ``T`` (k, m, 2, 2) whose :func:`precision_error` exceeds ``tolerance``; raise
     :class:`PrecisionLostError` above :data:`PRECISION_LOST`. Heated sets, and those with
     imposed temperatures that vary along a segment, are left to the
-    step-doubling estimate: their exact determinant is the cascade's own exp(integral of
+    cells' error estimate: their exact determinant is the cascade's own exp(integral of
     tr A), not known here; their products are those of the same kernels."""
     k = T.shape[0]
     uniform = heat_input[offset : offset + k] == 0
