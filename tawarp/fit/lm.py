@@ -85,6 +85,10 @@ class LMProblems(Protocol):
     model fails; a non-finite cost, g or H makes it so), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
     Jacobian in z; NumPy arrays or Warp arrays on ``device``.
+    ``jacobian_if_below`` (optional, default False): ``evaluate`` of the trials then takes
+    ``below`` (n,), the cost each problem's trial must beat to be accepted, and may leave g
+    and H non-finite where it does not beat it (such a trial is rejected whatever its
+    Jacobian: its forward differences need not be evaluated).
     ``change_rule()``: ``(kind (p,), scale (N, p), offset (N, p))``, how the size of a step
     dz that ended at z is measured against ``xtol`` (:mod:`tawarp.kernels.lm_step`:
     ``CHANGE_LINEAR`` ``s |dz| / |o + s z|``, ``CHANGE_LOG`` ``|expm1(dz)|``,
@@ -287,7 +291,8 @@ def levenberg_marquardt(
             else:
                 # the trial points stay on a GPU (a NumPy view of them on the CPU)
                 zt = trial.zt.numpy() if dev.is_cpu else trial.zt
-                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
+                beat = {"below": state.at_z.cost.numpy()[active]} if getattr(prob, "jacobian_if_below", False) else {}
+                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets, **beat), dev)
             wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
             if secant:
                 accept_rows, accept_flags = lm_step.secant_accept_kernels(p)
