@@ -185,6 +185,21 @@ def test_rejected_trials_cost_no_jacobian(monkeypatch):
     assert lazy_points < kind.points
 
 
+def test_decrement_stops_within_its_cost_of_the_minimum():
+    # levenberg_marquardt's decrement: a fit stops (converged, reason "decrement") where the
+    # Gauss-Newton step would lower its cost by less than eps, before the tight gradient
+    # test; near the minimum the quadratic model holds, so its cost is within eps (and a
+    # little rounding) of the gtol-converged fit's from the same start, in fewer iterations
+    kind, specs = _exp_case()
+    tight = fit_batch(kind, specs, xtol=1e-14, gtol=1e-12)
+    for eps in (1e-2, 1e-4):
+        early = fit_batch(kind, specs, xtol=1e-14, gtol=1e-12, decrement=eps)
+        for a, b in zip(early, tight):
+            assert b.converged[0] and a.converged[0] and a.reason[0] == "decrement"
+            assert a.iterations[0] < b.iterations[0]
+            assert b.cost[0] - 1e-12 <= a.cost[0] <= b.cost[0] + eps
+
+
 def test_dropped_starts_leave_the_others_alone():
     # levenberg_marquardt's drop: a start dropped after its first iteration stops there
     # (reason "dropped", not converged); the other fits run as they would without it

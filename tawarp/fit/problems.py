@@ -299,6 +299,7 @@ def fit_batch(
     gtol: float = GTOL,
     priors: list | None = None,
     drop=None,
+    decrement: float = 0.0,
 ) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
@@ -308,7 +309,8 @@ def fit_batch(
     (:meth:`KindProblems.at_solutions`). ``priors``: per
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
     then the maximum a posteriori (the result's cost and residuals stay the data's).
-    ``drop``: :func:`levenberg_marquardt`'s, the fits by their index in ``specs``."""
+    ``drop`` and ``decrement``: :func:`levenberg_marquardt`'s, the fits by their index in
+    ``specs``."""
     t0 = time.perf_counter()
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     lm = KindProblems(kind, specs, fixed, rows, priors)
@@ -317,7 +319,9 @@ def fit_batch(
         return []
     pid = np.arange(K)
     if lm.zlo.shape[1]:
-        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop)
+        st = levenberg_marquardt(
+            lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop, decrement=decrement
+        )
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
