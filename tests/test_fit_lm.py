@@ -168,13 +168,12 @@ def test_kind_fit_results_are_the_evaluation_at_the_solution():
 def test_rejected_trials_cost_no_jacobian(monkeypatch):
     # KindProblems.evaluate forms the forward differences of an LM trial only where the
     # trial beats its fit's cost (the LM rejects the others whatever their Jacobian): the
-    # same fits, bit for bit, as with every trial's Jacobian evaluated, on fewer points
-    from tawarp.fit.problems import KindProblems
-
+    # same fits, bit for bit, as with every trial's Jacobian evaluated (a kind whose
+    # neighbours share their point's columns), on fewer points
     kind, specs = _exp_case()
     lazy = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
     lazy_points = kind.points
-    monkeypatch.setattr(KindProblems, "jacobian_if_below", False)
+    monkeypatch.setattr(ExpKind, "neighbours_share_columns", True)
     kind.points = 0
     full = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
     for a, b in zip(lazy, full):

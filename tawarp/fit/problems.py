@@ -82,6 +82,10 @@ class KindProblems:
         priors: list | None = None,
     ):
         self.kind = kind
+        #: :func:`levenberg_marquardt` passes :meth:`evaluate` the costs the trials must beat,
+        #: unless a trial's neighbours share its launch's columns
+        #: (:attr:`MeasurementKind.neighbours_share_columns`: apart they would cost more)
+        self.jacobian_if_below = not kind.neighbours_share_columns
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
         self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
@@ -155,9 +159,6 @@ class KindProblems:
                 out[i] = Y[k0 : k0 + n]
                 k0 += n
         return out
-
-    #: :func:`levenberg_marquardt` passes :meth:`evaluate` the costs the trials must beat
-    jacobian_if_below = True
 
     def evaluate(self, pid, z, max_sets: int = 0, below=None):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
