@@ -126,12 +126,15 @@ def test_map_fit_covariance_is_the_posterior_one(seed):
 
 
 class ExpKind(LinearKind):
-    """y = A exp(v): a nonlinear kind (its LM takes several damped steps)."""
+    """y = A exp(v): a nonlinear kind (its LM takes several damped steps), each parameter
+    set's prediction the same numbers in any batch (no matrix product, whose blocking
+    depends on the batch: the forward kernels give each set its own thread)."""
 
     def predict(self, values, n, effect=None):
         V = np.stack([np.broadcast_to(values[f"v{j}"], (n,)) for j in range(self.A.shape[1])], axis=1)
         self.calls = getattr(self, "calls", 0) + 1
-        return (np.exp(V) @ self.A.T).astype(complex)
+        self.points = getattr(self, "points", 0) + n
+        return np.sum(np.exp(V)[:, None, :] * self.A[None], axis=-1).astype(complex)
 
 
 def _exp_case():
@@ -145,12 +148,14 @@ def _exp_case():
 def test_kind_fit_results_are_the_evaluation_at_the_solution():
     # fit_batch takes each fit's Jacobian and model values from the iterations' evaluation at
     # its solution, not from one more evaluation: the same numbers, bit for bit, as a fresh
-    # one there, with one predict call per LM iteration and the start's
+    # one there, with one predict call for the starts and at most two per LM iteration (the
+    # trials, then the neighbours of those that lower their fit's cost)
     from tawarp.fit.problems import KindProblems
 
     kind, specs = _exp_case()
     res = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
-    assert kind.calls == 1 + max(int(r.iterations[0]) for r in res)
+    iterations = max(int(r.iterations[0]) for r in res)
+    assert 1 + iterations <= kind.calls <= 1 + 2 * iterations
     lm = KindProblems(kind, specs)
     z = np.zeros((len(specs), 3))
     for c, r in enumerate(res):
@@ -158,6 +163,40 @@ def test_kind_fit_results_are_the_evaluation_at_the_solution():
     lm.evaluate(np.arange(len(specs)), z)
     for c, r in enumerate(res):
         assert np.array_equal(r.jacobian[0], lm.last[c][0]) and np.array_equal(r.model[0], lm.last[c][1])
+
+
+def test_rejected_trials_cost_no_jacobian(monkeypatch):
+    # KindProblems.evaluate forms the forward differences of an LM trial only where the
+    # trial beats its fit's cost (the LM rejects the others whatever their Jacobian): the
+    # same fits, bit for bit, as with every trial's Jacobian evaluated (a kind whose
+    # neighbours share their point's columns), on fewer points
+    kind, specs = _exp_case()
+    lazy = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    lazy_points = kind.points
+    monkeypatch.setattr(ExpKind, "neighbours_share_columns", True)
+    kind.points = 0
+    full = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    for a, b in zip(lazy, full):
+        assert a.reason[0] == b.reason[0] and a.iterations[0] == b.iterations[0]
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
+    # precondition: some trial was rejected (a damped LM on this nonlinear model rejects
+    # steps), and each rejected one saved its fit's p neighbours
+    assert lazy_points < kind.points
+
+
+def test_decrement_stops_within_its_cost_of_the_minimum():
+    # levenberg_marquardt's decrement: a fit stops (converged, reason "decrement") where the
+    # Gauss-Newton step would lower its cost by less than eps, before the tight gradient
+    # test; near the minimum the quadratic model holds, so its cost is within eps (and a
+    # little rounding) of the gtol-converged fit's from the same start, in fewer iterations
+    kind, specs = _exp_case()
+    tight = fit_batch(kind, specs, xtol=1e-14, gtol=1e-12)
+    for eps in (1e-2, 1e-4):
+        early = fit_batch(kind, specs, xtol=1e-14, gtol=1e-12, decrement=eps)
+        for a, b in zip(early, tight):
+            assert b.converged[0] and a.converged[0] and a.reason[0] == "decrement"
+            assert a.iterations[0] < b.iterations[0]
+            assert b.cost[0] - 1e-12 <= a.cost[0] <= b.cost[0] + eps
 
 
 def test_dropped_starts_leave_the_others_alone():

@@ -541,3 +541,19 @@ def test_models_out_of_reach_stop_whole():
     for _ in range(RACE_AFTER):
         got = drop(slots, cost)
     assert not got.any()
+
+
+def test_refits_race_against_the_models_already_compared():
+    # start_race's reference (the refits of the nesting step, run.race_reference): a batch
+    # of one single-effect model at cost 1000 on 1000 residuals leads its size and the
+    # batch, and goes on; beside a single effect fitted before at 100 ((n/2) ln 10 = 1151 >
+    # RACE_OUT in log-likelihood) it is out of reach and stops after RACE_AFTER iterations;
+    # beside a two-effect model at 100 it still leads its own size, and goes on.
+    from tawarp.loop.run import RACE_AFTER, start_race
+
+    slots, cost = np.arange(1), np.array([1000.0])
+    for known, stops in ((None, False), ({1: 100.0}, True), ({2: 100.0}, False)):
+        drop = start_race(np.array([0]), np.array([1]), 1000, known)
+        for _ in range(RACE_AFTER - 1):
+            assert not drop(slots, cost).any()
+        assert drop(slots, cost).tolist() == [stops]

@@ -57,6 +57,8 @@ SECANT_CONFIRM = 0.1
 REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 #: reason of a problem that :func:`levenberg_marquardt`'s ``drop`` stopped
 DROPPED = "dropped"
+#: reason of a problem that :func:`levenberg_marquardt`'s ``decrement`` test stopped
+DECREMENT = "decrement"
 
 
 @dataclass
@@ -85,6 +87,10 @@ class LMProblems(Protocol):
     model fails; a non-finite cost, g or H makes it so), raw (n,) its unweighted
     counterpart (passed through), ``g = J^T r`` (n, p), ``H = J^T J`` (n, p, p), J the
     Jacobian in z; NumPy arrays or Warp arrays on ``device``.
+    ``jacobian_if_below`` (optional, default False): ``evaluate`` of the trials then takes
+    ``below`` (n,), the cost each problem's trial must beat to be accepted, and may leave g
+    and H non-finite where it does not beat it (such a trial is rejected whatever its
+    Jacobian: its forward differences need not be evaluated).
     ``change_rule()``: ``(kind (p,), scale (N, p), offset (N, p))``, how the size of a step
     dz that ended at z is measured against ``xtol`` (:mod:`tawarp.kernels.lm_step`:
     ``CHANGE_LINEAR`` ``s |dz| / |o + s z|``, ``CHANGE_LOG`` ``|expm1(dz)|``,
@@ -225,6 +231,28 @@ def _trial(active: np.ndarray, p: int, device, sums: bool = False) -> lm_step.Tr
     return rec
 
 
+def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:
+    """``g^T H^-1 g`` of ``slots`` of ``state`` (bounds ``zlo``, ``zhi`` (n, p) each), the
+    decrease of the cost ``F`` that the Gauss-Newton step from their z predicts (F(z + d) =
+    F + 2 g.d + d.H.d), on the components free of their bounds (the kernels' ``is_free``; a
+    component pinned by ``zlo = zhi`` takes no part); inf where that H is not positive
+    definite or the step would reach a bound (the iteration would put that component on it,
+    where a caller may treat it apart: the loop's evidence integrates it one-sided)."""
+    z, g, H = (a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H))
+    free = (zhi > zlo) & ~((z <= zlo) & (g > 0)) & ~((z >= zhi) & (g < 0))
+    out = np.full(len(slots), np.inf)
+    for i, f in enumerate(free):
+        try:
+            c = np.linalg.cholesky(H[i][np.ix_(f, f)])
+        except np.linalg.LinAlgError:
+            continue
+        y = np.linalg.solve(c, g[i, f])
+        to = z[i, f] - np.linalg.solve(c.T, y)
+        if np.all((to > zlo[i, f]) & (to < zhi[i, f])):
+            out[i] = y @ y
+    return out
+
+
 def levenberg_marquardt(
     prob: LMProblems,
     pid: np.ndarray,
@@ -238,6 +266,7 @@ def levenberg_marquardt(
     progress: bool = False,
     max_sets: int = 1 << 20,
     drop=None,
+    decrement: float = 0.0,
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
@@ -245,7 +274,12 @@ def levenberg_marquardt(
     the secant iteration (module doc). ``drop``: None, or ``drop(slots, cost) -> bool``
     called after every iteration with the slots still iterating and every slot's cost
     (Q,) at its current z: the slots it marks stop there (reason ``"dropped"``, not
-    converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`)."""
+    converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`).
+    ``decrement`` > 0: a problem also stops, converged (reason ``"decrement"``), where the
+    Gauss-Newton step from its z would lower the cost by less than this (the Newton
+    decrement ``g^T H^-1 g`` on the components free of their bounds, :func:`newton_decrement`):
+    a caller that needs the minimum's cost to that much (the loop's evidence) need not iterate
+    on to ``gtol``, whose cosine test can take many more steps each worth far less."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
@@ -266,6 +300,7 @@ def levenberg_marquardt(
     wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
     active = np.flatnonzero(done.numpy() == 0)
     dropped = np.zeros(Q, dtype=bool)
+    small = np.zeros(Q, dtype=bool)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
     first = True
@@ -287,7 +322,8 @@ def levenberg_marquardt(
             else:
                 # the trial points stay on a GPU (a NumPy view of them on the CPU)
                 zt = trial.zt.numpy() if dev.is_cpu else trial.zt
-                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets), dev)
+                beat = {"below": state.at_z.cost.numpy()[active]} if getattr(prob, "jacobian_if_below", False) else {}
+                trial.at_zt = normal_equations(prob.evaluate(pid[active], zt, max_sets, **beat), dev)
             wp.launch(update, dim=n, device=dev, inputs=[setup, state, trial, done])
             if secant:
                 accept_rows, accept_flags = lm_step.secant_accept_kernels(p)
@@ -303,6 +339,11 @@ def levenberg_marquardt(
                 cut[~finished] = drop(active[~finished], state.at_z.cost.numpy())
                 dropped[active[cut]] = True
                 finished |= cut
+            if decrement > 0 and (~finished).any():
+                rest = active[~finished]
+                near = newton_decrement(state, rest, prob.zlo[pid[rest]], prob.zhi[pid[rest]]) < decrement
+                small[rest[near]] = True
+                finished[np.flatnonzero(~finished)[near]] = True
             if finished.any():
                 active = active[~finished]
                 bar.update(int(finished.sum()))
@@ -330,6 +371,7 @@ def levenberg_marquardt(
     bar.close()
     reason = np.array(REASONS, dtype=object)[state.reason.numpy()]
     reason[dropped] = DROPPED
+    reason[small] = DECREMENT
     return LMState(
         state.z.numpy(),
         state.at_z.cost.numpy(),
@@ -338,5 +380,5 @@ def levenberg_marquardt(
         state.at_z.H.numpy(),
         state.iterations.numpy().astype(int),
         reason,
-        (state.converged.numpy() != 0) & ~dropped,
+        ((state.converged.numpy() != 0) | small) & ~dropped,
     )

@@ -82,6 +82,10 @@ class KindProblems:
         priors: list | None = None,
     ):
         self.kind = kind
+        #: :func:`levenberg_marquardt` passes :meth:`evaluate` the costs the trials must beat,
+        #: unless a trial's neighbours share its launch's columns
+        #: (:attr:`MeasurementKind.neighbours_share_columns`: apart they would cost more)
+        self.jacobian_if_below = not kind.neighbours_share_columns
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
         self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
@@ -156,22 +160,39 @@ class KindProblems:
                 k0 += n
         return out
 
-    def evaluate(self, pid, z, max_sets: int = 0):
+    def evaluate(self, pid, z, max_sets: int = 0, below=None):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
         weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
         H = J^T J with the forward-difference J (``max_sets`` is not used: the batches
         are small). A fit with a prior adds its rows ``(z - mu) / sd`` to r (and 1/sd to J):
-        the LM then finds the maximum a posteriori."""
+        the LM then finds the maximum a posteriori. ``below`` (n,): the cost each fit's
+        point must beat to be taken (the LM's trials); where it does not, its
+        forward-difference neighbours are not evaluated and g, H are NaN (the LM rejects
+        such a trial whatever its Jacobian, so the steps are the same): the points first,
+        in one launch per structure, then the neighbours of those that beat it (the same
+        numbers as in one launch where the kind predicts each parameter set alike in any
+        batch, as the forward kernels do: one thread per set)."""
         n, P = z.shape
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
-        requests = []
-        for i, c in enumerate(pid):
-            p = self.p[c]
-            x, h = z[i, :p], step[i, :p]
-            requests.append((c, np.vstack([x[None], x[None] + np.diag(h)])))
-        got = self.predict(requests)
+        d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
+        prior_cost = np.sum(d**2, axis=1)
+
+        def neighbours(i):
+            p = self.p[pid[i]]
+            return z[i, None, :p] + np.diag(step[i, :p])
+
+        if below is None:
+            got = self.predict([(c, np.vstack([z[i, None, : self.p[c]], neighbours(i)])) for i, c in enumerate(pid)])
+        else:
+            got = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
+            with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
+                point_cost = [r @ r for r in (residual(self.kind, got[i], self.rows[c])[0] for i, c in enumerate(pid))]
+            point_cost = np.array(point_cost) + prior_cost
+            taken = [i for i in range(n) if point_cost[i] < below[i]]
+            for i, Yn in zip(taken, self.predict([(pid[i], neighbours(i)) for i in taken])):
+                got[i] = np.vstack([got[i], Yn])
         cost, raw = np.empty(n), np.empty(n)
-        g, H = np.zeros((n, P)), np.zeros((n, P, P))
+        g, H = np.full((n, P), np.nan), np.full((n, P, P), np.nan)
         self.last = []
         for i, c in enumerate(pid):
             p = self.p[c]
@@ -179,13 +200,14 @@ class KindProblems:
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
                 R = residual(self.kind, got[i], rows)
                 r = R[0]
-                J = ((R[1:] - r) / step[i, :p, None]).T
                 cost[i] = r @ r
                 raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
-                g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
+                J = ((R[1:] - r) / step[i, :p, None]).T if len(R) > 1 else None
+                if J is not None:
+                    g[i], H[i] = 0.0, 0.0
+                    g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
             self.last.append((J, got[i][0]))
-        d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
-        cost += np.sum(d**2, axis=1)
+        cost += prior_cost
         g += d * isd
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
@@ -278,6 +300,7 @@ def fit_batch(
     gtol: float = GTOL,
     priors: list | None = None,
     drop=None,
+    decrement: float = 0.0,
 ) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
@@ -287,7 +310,8 @@ def fit_batch(
     (:meth:`KindProblems.at_solutions`). ``priors``: per
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
     then the maximum a posteriori (the result's cost and residuals stay the data's).
-    ``drop``: :func:`levenberg_marquardt`'s, the fits by their index in ``specs``."""
+    ``drop`` and ``decrement``: :func:`levenberg_marquardt`'s, the fits by their index in
+    ``specs``."""
     t0 = time.perf_counter()
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     lm = KindProblems(kind, specs, fixed, rows, priors)
@@ -296,7 +320,9 @@ def fit_batch(
         return []
     pid = np.arange(K)
     if lm.zlo.shape[1]:
-        st = levenberg_marquardt(lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop)
+        st = levenberg_marquardt(
+            lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop, decrement=decrement
+        )
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K

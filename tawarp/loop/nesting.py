@@ -17,6 +17,12 @@ a model's starts). The search fits only some subsets of a probable model: those 
 are fitted first, from that model's projected solution (:func:`missing_subsets`), so that a
 model with an effect at "off" always has its nested model beside it. ``tests/test_nesting.py``
 guards the bound this gives.
+
+Every refit races against all the models compared (:func:`tawarp.loop.run.start_race` with
+their costs as its reference): most relatives of a probable model are far out of reach (its
+subsets without the effect the data need), and a refit of such a model stops after a few
+iterations where it cannot come within :data:`tawarp.loop.run.RACE_OUT` of the best, as in
+the search's own batches (its posterior probability is 0 to double precision either way).
 """
 
 from __future__ import annotations
@@ -106,7 +112,7 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
                 if frozenset(sub) not in fitted and sub not in requests:
                     params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
                     requests[sub] = [relative_point(m.fit, params)]
-    return comparison.refit(list(requests.items())) if requests else []
+    return comparison.refit(list(requests.items()), models) if requests else []
 
 
 def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
@@ -122,7 +128,7 @@ def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
         starts = nested_starts(comparison.problem, comparison.fixed, models, sources)
         order = sorted(starts)
         sources = set()
-        for i, new in zip(order, comparison.refit([(models[i].effects, [starts[i]]) for i in order])):
+        for i, new in zip(order, comparison.refit([(models[i].effects, [starts[i]]) for i in order], models)):
             if new.log_evidence > models[i].log_evidence:
                 models[i].fit, models[i].log_evidence = new.fit, new.log_evidence
                 sources.add(i)

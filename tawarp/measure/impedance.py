@@ -31,6 +31,8 @@ class ImpedanceKind(MeasurementKind):
     name = "impedance"
     group_name = "thickness_m"
     coef_names = ("Zs",)
+    #: the frame's wave speed and loss factor and the thickness are host-side (:meth:`predict`)
+    neighbours_share_columns = True
 
     def __init__(
         self,

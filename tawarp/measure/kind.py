@@ -59,6 +59,10 @@ class MeasurementKind:
     #: ``drift_before``/``drift_after``) and names a planned measurement's groups
     #: ``heat_inputs_W``; else ``group_name``
     groups_are_heat_inputs: bool = False
+    #: a parameter set's forward-difference neighbours in host-side fields share its kernel
+    #: columns within one :meth:`predict` call: the fits evaluate an LM trial and its
+    #: neighbours in one call (:class:`tawarp.fit.problems.KindProblems`), not the trial first
+    neighbours_share_columns: bool = False
 
     def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
         """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}
