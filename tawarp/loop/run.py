@@ -331,10 +331,15 @@ class Comparison:
 
     def linearize(self, at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None) -> list[Candidate]:
         """Each of ``candidates`` (sets of effects that contain ``at``'s) scored at ``at``'s
-        solution (a structural effect only at a model without one); ``cols`` the effects'
-        sensitivity columns there, when known."""
+        solution (a structural effect added only at a model without one; a model with one
+        takes field effects beside it); ``cols`` the effects' sensitivity columns there, when
+        known."""
         structure = at.fit.effect
-        cand = [c for c in candidates if structure is None or not any(e.transform is not None for e in c)]
+        cand = [
+            c
+            for c in candidates
+            if structure is None or not any(e.transform is not None and e.name not in at.effects for e in c)
+        ]
         cols = cols or effect_columns(
             self.problem, at.fit, self.fixed, [e for e in self.library if e.name not in at.effects]
         )
