@@ -8,9 +8,12 @@ stopped it."""
 import math
 
 import numpy as np
+import pytest
 
 from tawarp import reference
-from tawarp.loop.run import Comparison, default_base_params, library_for
+from tawarp.loop import run as loop_run
+from tawarp.loop.nesting import map_cost
+from tawarp.loop.run import Comparison, converge_window, default_base_params, library_for
 from tawarp.measure import TMatrixKind
 from tawarp.measure.files import TMatrixData
 from tawarp.model.coefficients import duct_impedance
@@ -69,3 +72,23 @@ def cmp_base(cmp: Comparison):
     """The base model of ``cmp`` fitted from the core file (its MAP fit)."""
     (base,) = cmp.refit([((), [np.zeros(cmp.n_base)])])
     return base
+
+
+def test_a_probable_fit_is_continued_to_its_optimum(monkeypatch):
+    # the exchangers alone, fitted with the iteration cap cut to 8: the fit stops on its way
+    # down the valley; converge_window continues it, with the loop's own cap, to the optimum
+    # of a fit that ran to convergence (the same MAP cost)
+    cmp = comparison(0.0, ("ambient_exchangers",))
+    base = cmp_base(cmp)
+    request = cmp.request(base, ("ambient_exchangers",), None)
+    (full,) = cmp.refit([request])
+    assert full.fit.reason[0] != "max_iterations"
+    with monkeypatch.context() as m:
+        m.setattr(loop_run, "MAX_ITER", 8)
+        (cut,) = cmp.refit([request])
+    assert cut.fit.reason[0] == "max_iterations"
+    converge_window(cmp, [base, cut])
+    assert cut.fit.reason[0] != "max_iterations"
+    cost = [map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in (cut, full)]
+    assert cost[0] == pytest.approx(cost[1], rel=1e-6)
+    assert cut.probability > 0.99
