@@ -91,22 +91,36 @@ def nested_starts(
 
 def missing_subsets(comparison, models: list[Model]) -> list[Model]:
     """The subsets of the models inside Occam's window (ln P(M | data) within ln
-    :data:`tawarp.loop.evidence.WINDOW` of the best) that the search did not fit, fitted from
-    the projection of that model's solution (one batch): a model the window holds is not
-    credited with its effects before its own submodels had their chance (Madigan & Raftery's
-    Occam's razor compares a model with its submodels)."""
+    :data:`tawarp.loop.evidence.WINDOW` of the best) fitted from the projection of that
+    model's solution (one batch): those the search did not fit, returned, and those it fitted
+    that the window's model beats, each keeping the refit where its Laplace ln Z is higher, in
+    place. A model the window holds is not credited with its effects before its own submodels
+    had their chance (Madigan & Raftery's Occam's razor compares a model with its submodels)
+    in the basin it found: where the misfit has several minima in a submodel's parameters (a
+    bypass gap absorbed by the base fit), a submodel's own descents can all end above the
+    one its superset reached with an extra effect near "off", and the nested point, its
+    parameters tuned to that effect, need not be lower than its own optimum to lead there."""
     best = max(m.log_posterior for m in models)
-    fitted = {frozenset(m.effects) for m in models}
+    fitted = {frozenset(m.effects): m for m in models}
     requests: dict[tuple[str, ...], list[np.ndarray]] = {}
     for m in sorted(models, key=lambda m: -m.log_posterior):
         if m.log_posterior < best + math.log(WINDOW):
             break
         for k in range(len(m.effects)):
             for sub in itertools.combinations(m.effects, k):
-                if frozenset(sub) not in fitted and sub not in requests:
-                    params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
-                    requests[sub] = [relative_point(m.fit, params)]
-    return comparison.refit(list(requests.items())) if requests else []
+                own = fitted.get(frozenset(sub))
+                if sub in requests or (own is not None and own.log_posterior >= m.log_posterior):
+                    continue
+                params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
+                requests[sub] = [relative_point(m.fit, params)]
+    added = []
+    for sub, new in zip(requests, comparison.refit(list(requests.items())) if requests else []):
+        own = fitted.get(frozenset(sub))
+        if own is None:
+            added.append(new)
+        elif new.log_evidence > own.log_evidence:
+            own.fit, own.log_evidence = new.fit, new.log_evidence
+    return added
 
 
 def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
