@@ -69,3 +69,11 @@ def test_a_submodel_beaten_by_the_window_is_refitted_in_its_basin():
     assert sup.log_posterior > base.log_posterior and cost(base) > cost(sup) + 10 * GAIN
     assert missing_subsets(cmp, [base, sup]) == []
     assert cost(base) <= cost(sup) + GAIN
+    # now in the radiation model's basin, the base is not refitted again even where radiation
+    # were the more probable: what it takes beyond the base is noise (poorer_basin's
+    # likelihood-ratio test)
+    sup.log_evidence = base.log_evidence + 10.0
+    refits = []
+    refit, cmp.refit = cmp.refit, lambda requests: refits.append(requests) or refit(requests)
+    missing_subsets(cmp, [base, sup])
+    assert refits == []

@@ -25,6 +25,7 @@ import itertools
 import math
 
 import numpy as np
+from scipy import stats
 
 from ..fit.problems import KindProblems, residual
 from ..fit.result import FitResult
@@ -89,6 +90,26 @@ def nested_starts(
     return {i: x for i, (_, x) in best.items()}
 
 
+#: Level of :func:`poorer_basin`'s test.
+BASIN_P = 0.01
+
+
+def poorer_basin(sub: Model, model: Model) -> bool:
+    """Whether the fitted submodel ``sub`` of ``model`` may sit in a poorer basin than
+    ``model`` found: ``model`` is the more probable, and its MAP cost is below ``sub``'s by
+    more than its extra parameters take from noise alone (the chi^2 quantile of their number
+    at 1 - :data:`BASIN_P`: a likelihood-ratio test of the extras, each removing one chi^2
+    of noise on average). Below that, the extras fit noise in the same basin, and a refit
+    of ``sub`` from ``model``'s solution would end where ``sub`` is."""
+    if sub.log_posterior >= model.log_posterior:
+        return False
+    extra = len(model.fit.names) - len(sub.fit.names)
+    gap = map_cost(sub.fit.residuals[0], sub.fit.x[0], sub.priors) - map_cost(
+        model.fit.residuals[0], model.fit.x[0], model.priors
+    )
+    return gap > stats.chi2.ppf(1 - BASIN_P, max(extra, 1))
+
+
 def missing_subsets(comparison, models: list[Model]) -> list[Model]:
     """The subsets of the models inside Occam's window (ln P(M | data) within ln
     :data:`tawarp.loop.evidence.WINDOW` of the best) fitted from the projection of that
@@ -109,7 +130,7 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
         for k in range(len(m.effects)):
             for sub in itertools.combinations(m.effects, k):
                 own = fitted.get(frozenset(sub))
-                if sub in requests or (own is not None and own.log_posterior >= m.log_posterior):
+                if sub in requests or (own is not None and not poorer_basin(own, m)):
                     continue
                 params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
                 requests[sub] = [relative_point(m.fit, params)]

@@ -39,7 +39,7 @@ from .evidence import (
     subsets,
     visible,
 )
-from .nesting import share_optima
+from .nesting import GAIN, map_cost, share_optima
 from .plans import next_measurement
 from .records import Candidate, LoopReport, ModelsCompared, step_label
 
@@ -458,20 +458,28 @@ def converge_window(cmp: Comparison, models: list[Model], rounds: int = CONTINUA
     length, porosity and pore radius descend along a long valley, and a fit stopped on it
     leaves a misfit that fails the posterior predictive check though the model's optimum is
     at the noise (and its Laplace ln Z, from the quadratic model at the stopped point, is
-    that of another optimum). Only the probable models are continued: the others' fits
-    change no probability. Returns the number of fits continued."""
-    done = 0
+    that of another optimum). Only the probable models are continued (the others' fits
+    change no probability), and a fit whose continuation lowered its MAP cost by less than
+    :data:`tawarp.loop.nesting.GAIN` is not continued again (it crawls along a direction
+    the data barely see: no comparison changes). Returns the number of fits continued."""
+
+    def cost(m: Model) -> float:
+        return map_cost(m.fit.residuals[0], m.fit.x[0], m.priors)
+
+    done, crawling = 0, set()
     for _ in range(rounds):
         posterior(models)
         best = max(m.log_posterior for m in models)
         todo = [
             i
             for i, m in enumerate(models)
-            if m.log_posterior >= best + math.log(WINDOW) and m.fit.reason[0] == "max_iterations"
+            if m.log_posterior >= best + math.log(WINDOW) and m.fit.reason[0] == "max_iterations" and i not in crawling
         ]
         if not todo:
             break
         for i, new in zip(todo, cmp.refit([(models[i].effects, [models[i].fit.x[0]]) for i in todo])):
+            if map_cost(new.fit.residuals[0], new.fit.x[0], new.priors) > cost(models[i]) - GAIN:
+                crawling.add(i)
             models[i].fit, models[i].log_evidence = new.fit, new.log_evidence
         done += len(todo)
     posterior(models)
