@@ -305,6 +305,27 @@ def test_a_parameter_on_its_bound_with_an_unknown_noise_scale(seed):
     assert got == pytest.approx(exact, abs=2e-3)
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_correlated_parameters_on_their_bounds_away_from_the_optimum(seed):
+    # a fit stopped with two one-sided effects at "off" whose columns are nearly the same,
+    # the data pulling both far into their range: the posterior lies deep inside the orthant,
+    # so the evidence is the whole space's (the Gaussian marginal, each half-normal's density
+    # twice the normal's); one-dimensional integrals taken one by one would each credit the
+    # whole misfit (ln Z hundreds above it here)
+    A, y, mu, sd = linear_gaussian(seed)
+    rng = np.random.default_rng(300 + seed)
+    a1 = rng.standard_normal(len(y))
+    a2 = a1 + 0.05 * rng.standard_normal(len(y))
+    width = 0.5
+    y = y + 5.0 * (a1 + a2)
+    M = np.column_stack([A, a1, a2])
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)] + [XPrior(0.0, width, 0.0, math.inf)] * 2
+    x = np.append(map_estimate(A, y, mu, sd), [0.0, 0.0])
+    got = laplace_log_evidence(x_model(priors), M @ x - y, M, x)
+    whole = exact_log_evidence(M, y, np.append(mu, [0.0, 0.0]), np.append(sd, [width, width])) + 2 * math.log(2)
+    assert got == pytest.approx(whole, abs=1e-6)
+
+
 def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
     # one covariance: ProblemModel.covariance_x at noise variance s2 is (J^T J / s2 +
     # diag(1/sd^2))^-1 in x, from J or from J^T J alike, and the covariance a fit reports

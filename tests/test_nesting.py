@@ -17,7 +17,7 @@ import math
 import numpy as np
 
 from tawarp.loop.evidence import ON_BOUND
-from tawarp.loop.nesting import GAIN
+from tawarp.loop.nesting import GAIN, map_cost, missing_subsets
 from tawarp.loop.run import Comparison, compare_models, default_base_params, library_for
 from tawarp.measure import TMatrixKind
 from tawarp.model.forward import ForwardSettings
@@ -49,3 +49,31 @@ def test_a_superset_at_off_never_beats_its_nested_model_beyond_its_occam_factor(
     assert sup.log_evidence - base.log_evidence <= GAIN / 2
     odds, prior_odds = sup.probability / base.probability, math.exp(sup.log_model_prior - base.log_model_prior)
     assert odds <= prior_odds * math.exp(GAIN / 2)
+
+
+def test_a_submodel_beaten_by_the_window_is_refitted_in_its_basin():
+    # the base's own descent stopped far above the optimum (the poor start above) and the
+    # radiation model, which holds it, leads the window: missing_subsets refits the base from
+    # the radiation model's solution, in place, and the base then reaches the optimum the
+    # radiation model found with its effect at "off" (the same MAP cost up to GAIN)
+    seed = 1
+    prob = TMatrixKind(reference_data({}, seed), prior(seed), ForwardSettings(device="cpu"))
+    params = default_base_params(prob)
+    library = [e for e in library_for(prob) if e.name == "radiation"]
+    start = np.zeros(len(params))
+    start[[p.label for p in params].index("stack.h")] = POOR_H_START
+    cmp = Comparison(prob, params, {}, library, {0: 1, 1: 1}, False)
+    base = cmp.refit([((), [start])])[0]
+    sup = cmp.refit([cmp.request(base, ("radiation",), None)])[0]
+    cost = lambda m: map_cost(m.fit.residuals[0], m.fit.x[0], m.priors)
+    assert sup.log_posterior > base.log_posterior and cost(base) > cost(sup) + 10 * GAIN
+    assert missing_subsets(cmp, [base, sup]) == []
+    assert cost(base) <= cost(sup) + GAIN
+    # now in the radiation model's basin, the base is not refitted again even where radiation
+    # were the more probable: what it takes beyond the base is noise (poorer_basin's
+    # likelihood-ratio test)
+    sup.log_evidence = base.log_evidence + 10.0
+    refits = []
+    refit, cmp.refit = cmp.refit, lambda requests: refits.append(requests) or refit(requests)
+    missing_subsets(cmp, [base, sup])
+    assert refits == []

@@ -175,7 +175,10 @@ def laplace_log_evidence(
     data would take the parameter beyond its bound, would credit the model with a misfit it
     cannot reach (an effect fitted at "off" gaining evidence from the data's pull away from
     it). That one-sided integral is exact for a linear model with one parameter on its bound;
-    with several, each is taken given the free ones only. ``noise_scale``: the noise is an
+    with several, each is taken given the free ones only, their product capped by the
+    quadratic model's integral over the whole space (a fit stopped away from its optimum is
+    otherwise credited with one misfit once per correlated parameter on a bound; at an optimum
+    the cap never binds). ``noise_scale``: the noise is an
     estimate known up to a factor s, marginalized with a flat prior in ln s over
     [1/:data:`NOISE_SCALE_RANGE`, :data:`NOISE_SCALE_RANGE`]: ``Z = int Z(s) p(ln s) dln s``,
     each ``Z(s)`` the Laplace evidence at the optimum for that noise (from the quadratic
@@ -216,13 +219,30 @@ def laplace_log_evidence(
     den = s2 + S**2  # (ns, k)
     phi = float(rest[:, m] @ rest[:, m]) / s2[:, 0] + np.sum(alpha**2 / den, axis=1) + float(np.sum(g0[on] ** 2))
     terms = -0.5 * phi - len(r) * u - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
-    for j in range(m):
-        # the quadratic model along parameter j into its range, t >= 0 (whitened), the free
-        # ones at their optimum for each t: phi(t) = phi(0) + 2 G t + C t^2, and
-        # int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
-        G = float(rest[:, j] @ rest[:, m]) / s2[:, 0] + np.sum(alpha * v[:, j] / den, axis=1) + side[on][j] * g0[on][j]
-        C = float(rest[:, j] @ rest[:, j]) / s2[:, 0] + np.sum(v[:, j] ** 2 / den, axis=1) + 1.0
-        terms = terms + 0.5 * np.log(math.pi / (2 * C)) + log_erfcx(G / np.sqrt(2 * C))
+    if m:
+        # the quadratic model along each parameter j on its bound into its range, t_j >= 0
+        # (whitened), the free ones at their optimum: phi(t) = phi(0) + 2 G.t + t^T C t
+        G = (rest[:, :m].T @ rest[:, m])[None] / s2 + (alpha / den) @ v + side[on] * g0[on]  # (ns, m)
+        C = (
+            (rest[:, :m].T @ rest[:, :m])[None] / s2[:, :, None]
+            + np.einsum("sk,kj,kl->sjl", 1.0 / den, v, v)
+            + np.eye(m)[None]
+        )
+        Cjj = np.diagonal(C, axis1=1, axis2=2)
+        # each alone: int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
+        one_sided = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + log_erfcx(G / np.sqrt(2 * Cjj)), axis=1)
+        # an integral over the orthant never exceeds the one over the whole space; the
+        # product of the one-dimensional ones can, where parameters on their bounds share
+        # a pull into the range (a fit stopped away from its optimum: two correlated
+        # columns each credited with the whole of one misfit). At an optimum (every G >= 0)
+        # the product is below 2^-m times the whole (Hadamard: det C <= prod C_jj)
+        _, logdet = np.linalg.slogdet(C)
+        whole = (
+            0.5 * m * math.log(2 * math.pi)
+            - 0.5 * logdet
+            + 0.5 * np.einsum("sj,sj->s", G, np.linalg.solve(C, G[:, :, None])[:, :, 0])
+        )
+        terms = terms + np.minimum(one_sided, whole)
     norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * k * math.log(2 * math.pi) + float(np.sum(np.log(sd)))
     best = int(np.argmax(terms))
     # J_free^T J_free in x from R (whitened: R = Q^T J_free diag(sd_free))

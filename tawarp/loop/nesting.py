@@ -31,6 +31,7 @@ import itertools
 import math
 
 import numpy as np
+from scipy import stats
 
 from ..fit.problems import KindProblems, residual
 from ..fit.result import FitResult
@@ -95,24 +96,58 @@ def nested_starts(
     return {i: x for i, (_, x) in best.items()}
 
 
+#: Level of :func:`poorer_basin`'s test.
+BASIN_P = 0.01
+
+
+def poorer_basin(sub: Model, model: Model) -> bool:
+    """Whether the fitted submodel ``sub`` of ``model`` may sit in a poorer basin than
+    ``model`` found: ``model`` is the more probable, and its MAP cost is below ``sub``'s by
+    more than its extra parameters take from noise alone (the chi^2 quantile of their number
+    at 1 - :data:`BASIN_P`: a likelihood-ratio test of the extras, each removing one chi^2
+    of noise on average). Below that, the extras fit noise in the same basin, and a refit
+    of ``sub`` from ``model``'s solution would end where ``sub`` is."""
+    if sub.log_posterior >= model.log_posterior:
+        return False
+    extra = len(model.fit.names) - len(sub.fit.names)
+    gap = map_cost(sub.fit.residuals[0], sub.fit.x[0], sub.priors) - map_cost(
+        model.fit.residuals[0], model.fit.x[0], model.priors
+    )
+    return gap > stats.chi2.ppf(1 - BASIN_P, max(extra, 1))
+
+
 def missing_subsets(comparison, models: list[Model]) -> list[Model]:
     """The subsets of the models inside Occam's window (ln P(M | data) within ln
-    :data:`tawarp.loop.evidence.WINDOW` of the best) that the search did not fit, fitted from
-    the projection of that model's solution (one batch): a model the window holds is not
-    credited with its effects before its own submodels had their chance (Madigan & Raftery's
-    Occam's razor compares a model with its submodels)."""
+    :data:`tawarp.loop.evidence.WINDOW` of the best) fitted from the projection of that
+    model's solution (one batch): those the search did not fit, returned, and those it fitted
+    that the window's model beats, each keeping the refit where its Laplace ln Z is higher, in
+    place. A model the window holds is not credited with its effects before its own submodels
+    had their chance (Madigan & Raftery's Occam's razor compares a model with its submodels)
+    in the basin it found: where the misfit has several minima in a submodel's parameters (a
+    bypass gap absorbed by the base fit), a submodel's own descents can all end above the
+    one its superset reached with an extra effect near "off", and the nested point, its
+    parameters tuned to that effect, need not be lower than its own optimum to lead there."""
     best = max(m.log_posterior for m in models)
-    fitted = {frozenset(m.effects) for m in models}
+    fitted = {frozenset(m.effects): m for m in models}
     requests: dict[tuple[str, ...], list[np.ndarray]] = {}
     for m in sorted(models, key=lambda m: -m.log_posterior):
         if m.log_posterior < best + math.log(WINDOW):
             break
         for k in range(len(m.effects)):
             for sub in itertools.combinations(m.effects, k):
-                if frozenset(sub) not in fitted and sub not in requests:
-                    params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
-                    requests[sub] = [relative_point(m.fit, params)]
-    return comparison.refit(list(requests.items()), models) if requests else []
+                own = fitted.get(frozenset(sub))
+                if sub in requests or (own is not None and not poorer_basin(own, m)):
+                    continue
+                params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
+                requests[sub] = [relative_point(m.fit, params)]
+    added = []
+    for sub, new in zip(requests, comparison.refit(list(requests.items()), models) if requests else []):
+        own = fitted.get(frozenset(sub))
+        if own is None:
+            added.append(new)
+        elif new.log_evidence > own.log_evidence:
+            own.fit, own.log_evidence = new.fit, new.log_evidence
+    return added
 
 
 def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:

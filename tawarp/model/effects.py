@@ -183,6 +183,12 @@ GRADED_PARTS = 8
 #: or a screen stack punched or wound, 0.1-0.5 mm under the tube's diameter (a stack sliding
 #: into its tube needs that clearance; a stack pressed or glued in has none).
 TYPICAL_BYPASS_GAP = 2e-4
+#: The widest of those clearances [m], a further start of the gap's refits: the slit's flow
+#: grows as g^3 and its section share as g, so the misfit is far from quadratic in g, and a
+#: descent from below a wide gap (from "off" or the typical size) can stop at a small g where
+#: the share alone compensates the base fit's error (an RVC foam with a 0.39 mm gap: 0.14 mm
+#: at 26 noise floors); from above, the flow term leads it down to the gap.
+WIDE_BYPASS_GAP = 5e-4
 #: Names of the 2-port calibration effect (not kernel fields: the T-matrix kind applies them).
 CALIBRATION_GAIN, CALIBRATION_PHASE = "calibration.gain", "calibration.phase"
 
@@ -506,7 +512,8 @@ def bypass_gap_effect(core: Core, stack: str) -> Effect:
     section), at the stack's temperature, joined to them at the stack's two end planes,
     where their admittance matrices add (:func:`tawarp.kernels.acoustics.parallel2`); its
     gas replaces that share of the stack's solid in the heat model. Off at 0, exactly (no
-    gap: the same arithmetic as without the field). Typical :data:`TYPICAL_BYPASS_GAP`;
+    gap: the same arithmetic as without the field). Typical :data:`TYPICAL_BYPASS_GAP`,
+    refitted from :data:`WIDE_BYPASS_GAP` too (its prior spans that: :func:`tawarp.model.priors.effect_priors`);
     bounded by the fields table's fit range and half the tube radius (a wider gap is a
     missing stack, not a clearance)."""
     label = f"{stack}.bypass_gap"
@@ -517,6 +524,7 @@ def bypass_gap_effect(core: Core, stack: str) -> Effect:
         "an annular gap between the stack and the tube wall (a slit of width g beside the pores)",
         (Param(label, (label,), 0.0, f.scale, lo, min(hi, 0.5 * core.radius)),),
         typical={label: TYPICAL_BYPASS_GAP},
+        starts=({label: WIDE_BYPASS_GAP},),
     )
 
 
