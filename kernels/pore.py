@@ -202,25 +202,23 @@ TABLE_LOG_S_MAX = wp.constant(wp.float64(math.log(S_MAX)))
 TABLE_PIECES_PER_UNIT = wp.constant(wp.float64(1.0 / TABLE_PIECE_WIDTH))
 TABLE_PIECES = wp.constant(PIECES)
 TABLE_TERMS = wp.constant(TERMS)
-#: Rows of the table: per piece a flag (its first component 1: the series is g, 0: it is f),
-#: then TERMS (re, im) coefficients of the series in powers of t, each one row.
-TABLE_RECORD = 1 + TERMS
+#: Rows of the table: per piece a flag (1: the series is g, 0: it is f), then TERMS (re, im)
+#: coefficients of the series in powers of t.
+TABLE_RECORD = 1 + 2 * TERMS
 #: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`): column k is
-#: one piece, row r its field r, a (re, im) pair (wp.vec2d: one address computation per
-#: coefficient, where two float64 rows took two, bench/README.md). Columns: the circular
-#: pieces, then a header column whose first SHAPE_SLOTS components (row j // 2, component
-#: j % 2) are pore-model codes (-1: empty), then the pieces of each shaped pore (rectangular
-#: channels, pins) in the header's order. A field's row keeps neighbouring pieces at
-#: neighbouring addresses: a warp's threads (neighbouring frequencies, a few pieces apart)
-#: read each coefficient from a few cache lines, where records of a piece's fields spread
-#: them over as many lines as pieces.
-PoreTable = wp.array2d(dtype=wp.vec2d)
+#: one piece, row r its field r. Columns: the circular pieces, then a header column whose
+#: first SHAPE_SLOTS rows are pore-model codes (-1: empty), then the pieces of each shaped
+#: pore (rectangular channels, pins) in the header's order. A field's row keeps neighbouring
+#: pieces at neighbouring addresses: a warp's threads (neighbouring frequencies, a few pieces
+#: apart) read each coefficient from one or two cache lines, where records of a piece's
+#: fields spread them over as many lines as pieces.
+PoreTable = wp.array2d(dtype=wp.float64)
 SHAPE_SLOTS = wp.constant(16)
 SHAPE_HEADER = wp.constant(PIECES)
 SHAPE_BLOCKS = wp.constant(PIECES + 1)
 #: Columns of the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
 TABLE_LENGTH = PIECES * (1 + 16) + 1
-assert int(SHAPE_SLOTS) <= 2 * TABLE_RECORD  # the header's codes fit one column
+assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one column
 
 
 @wp.func
@@ -233,12 +231,16 @@ def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
     # Horner's rule on the series' power-basis coefficients in t (one fused multiply-add
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
-    p = table[TABLE_TERMS, col]
+    top = 1 + 2 * (TABLE_TERMS - 1)
+    pr = table[top, col]
+    pi = table[top + 1, col]
     for jj in range(TABLE_TERMS - 1):
-        c = table[TABLE_TERMS - 1 - jj, col]
-        p = wp.vec2d(c[0] + t * p[0], c[1] + t * p[1])
+        j = top - 2 - 2 * jj
+        pr = table[j, col] + t * pr
+        pi = table[j + 1, col] + t * pi
+    p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if table[0, col][0] != wp.float64(0.0):
+    if table[0, col] != wp.float64(0.0):
         return q, p
     return p, q
 
@@ -308,7 +310,7 @@ def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
 def _shape_slot(table: PoreTable, model: int):
     # the slot of the shaped pore ``model`` in the table's header, -1 if it has none
     for j in range(SHAPE_SLOTS):
-        if table[j // 2, SHAPE_HEADER][j % 2] == wp.float64(model):
+        if table[j, SHAPE_HEADER] == wp.float64(model):
             return j
     return -1
 

@@ -70,10 +70,10 @@ def _nodes(model: int, s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d
 
 def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
-    as a (PIECES, 2 TABLE_RECORD) float64 array, a piece's fields in a row as (re, im) pairs:
-    its flag and a 0, then the TERMS coefficients (a column of :data:`.pore.PoreTable`), from
-    f, g at the TERMS Chebyshev points of the first kind of each piece (a discrete cosine
-    transform gives the Chebyshev coefficients, stored in powers of the piece's variable t)."""
+    as a (PIECES, 1 + 2 TERMS) float64 array, a piece's fields in a row (the table's columns,
+    :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
+    first kind of each piece (a discrete cosine transform gives the Chebyshev coefficients,
+    stored in powers of the piece's variable t)."""
     k = np.arange(TERMS)
     angles = np.pi * (k + 0.5) / TERMS
     t = np.cos(angles)
@@ -96,10 +96,10 @@ def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
     for j in k:
         to_powers[: j + 1, j] = chebyshev.cheb2poly(np.eye(j + 1)[j])
     coeffs = coeffs @ to_powers.T
-    table = np.zeros((PIECES, 2 * TABLE_RECORD))
+    table = np.empty((PIECES, 1 + 2 * TERMS))
     table[:, 0] = use_g
-    table[:, 2::2] = coeffs.real
-    table[:, 3::2] = coeffs.imag
+    table[:, 1::2] = coeffs.real
+    table[:, 2::2] = coeffs.imag
     return table
 
 
@@ -121,7 +121,7 @@ def circular_table(device, models=()) -> wp.array:
     if _HOST.get("shapes") != len(_SHAPES):
         table = _HOST.get("table")
         if table is None:
-            table = np.zeros((TABLE_LENGTH, 2 * TABLE_RECORD))
+            table = np.zeros((TABLE_LENGTH, TABLE_RECORD))
             table[:PIECES] = pore_coefficients()
             table[SHAPE_HEADER, : int(SHAPE_SLOTS)] = -1.0
         for j in range(_HOST.get("shapes", 0), len(_SHAPES)):
@@ -130,7 +130,6 @@ def circular_table(device, models=()) -> wp.array:
         _HOST.update(table=table, shapes=len(_SHAPES))
     key = str(wp.get_device(device))
     if _TABLES.get(key, (None, -1))[1] != len(_SHAPES):
-        # a record's reals in pairs, each pair a row: (TABLE_RECORD, TABLE_LENGTH) wp.vec2d
-        columns = np.ascontiguousarray(_HOST["table"].reshape(TABLE_LENGTH, TABLE_RECORD, 2).transpose(1, 0, 2))
-        _TABLES[key] = (wp.array(columns, dtype=wp.vec2d, device=device), len(_SHAPES))
+        columns = np.ascontiguousarray(_HOST["table"].T)
+        _TABLES[key] = (wp.array(columns, dtype=wp.float64, device=device), len(_SHAPES))
     return _TABLES[key][0]
