@@ -29,15 +29,21 @@ from test_loop import prior, reference_data
 POOR_H_START = -3.0
 
 
-def test_a_superset_at_off_never_beats_its_nested_model_beyond_its_occam_factor():
-    seed = 1  # clean data on which the radiation effect's fit ends on its bound, "off"
+def poorly_started_base():
+    """The radiation-only comparison on clean data (seed 1: the radiation effect's fit ends on
+    its bound, "off") and its base model fitted from :data:`POOR_H_START`."""
+    seed = 1
     prob = TMatrixKind(reference_data({}, seed), prior(seed), ForwardSettings(device="cpu"))
     params = default_base_params(prob)
     library = [e for e in library_for(prob) if e.name == "radiation"]
     start = np.zeros(len(params))
     start[[p.label for p in params].index("stack.h")] = POOR_H_START
     cmp = Comparison(prob, params, {}, library, {0: 1, 1: 1}, False)
-    base = cmp.refit([((), [start])])[0]
+    return prob, params, library, cmp, cmp.refit([((), [start])])[0]
+
+
+def test_a_superset_at_off_never_beats_its_nested_model_beyond_its_occam_factor():
+    prob, params, library, cmp, base = poorly_started_base()
     poor_cost = base.fit.cost[0]
     models, _ = compare_models(prob, base, params, {}, library, max_effects=1)
     sup = next(m for m in models if m.effects == ("radiation",))
@@ -56,14 +62,7 @@ def test_a_submodel_beaten_by_the_window_is_refitted_in_its_basin():
     # radiation model, which holds it, leads the window: missing_subsets refits the base from
     # the radiation model's solution, in place, and the base then reaches the optimum the
     # radiation model found with its effect at "off" (the same MAP cost up to GAIN)
-    seed = 1
-    prob = TMatrixKind(reference_data({}, seed), prior(seed), ForwardSettings(device="cpu"))
-    params = default_base_params(prob)
-    library = [e for e in library_for(prob) if e.name == "radiation"]
-    start = np.zeros(len(params))
-    start[[p.label for p in params].index("stack.h")] = POOR_H_START
-    cmp = Comparison(prob, params, {}, library, {0: 1, 1: 1}, False)
-    base = cmp.refit([((), [start])])[0]
+    _, _, _, cmp, base = poorly_started_base()
     sup = cmp.refit([cmp.request(base, ("radiation",), None)])[0]
     cost = lambda m: map_cost(m.fit.residuals[0], m.fit.x[0], m.priors)
     assert sup.log_posterior > base.log_posterior and cost(base) > cost(sup) + 10 * GAIN
@@ -74,6 +73,6 @@ def test_a_submodel_beaten_by_the_window_is_refitted_in_its_basin():
     # likelihood-ratio test)
     sup.log_evidence = base.log_evidence + 10.0
     refits = []
-    refit, cmp.refit = cmp.refit, lambda requests: refits.append(requests) or refit(requests)
+    refit, cmp.refit = cmp.refit, lambda *args: refits.append(args) or refit(*args)
     missing_subsets(cmp, [base, sup])
     assert refits == []
