@@ -117,11 +117,14 @@ def test_device_lm_equals_host_lm(p, kw):
 def test_device_lm_equals_host_lm_on_tmatrix_problems(heat, jacobian):
     """The T-matrix problems (:class:`Problems`: log and linear parameters, Warp arrays from
     evaluate) from starts spread around the truth, some at the porosity bound. Both loops
-    see the same evaluations; their steps agree to the last bit on these forward-difference
-    runs. With the tangent Jacobians one step of one problem came out one ulp apart
-    (LAPACK's solve against the device's Cholesky, iteration 7 of problem 3 at 40 W), and
-    the later iterations spread that to 1e-11 relative: the same iterations, reasons and
-    results to 1e-9 (the gradients to 1e-9 of sqrt(F H_aa), the gradient test's scale)."""
+    see the same evaluations, but a step can come out one ulp apart (LAPACK's solve against
+    the device's Cholesky: iteration 7 of problem 3 at 40 W with the tangent Jacobians,
+    iteration 6 of problem 3 at 0 W with differences), and the later iterations along a flat
+    valley spread that, to 2e-10 in the scaled variables z by the xtol stop (1e-6; z is near
+    0 at the truth, so its relative difference reads 4e-8): the same iterations, reasons and
+    results to 1e-9 (z absolute, in its scaled units; the gradients to 1e-9 of
+    sqrt(F H_aa), the gradient test's scale; H to 1e-8 of sqrt(H_aa H_bb): the difference
+    quotients' Gauss-Newton matrix at those z moved by 1.4e-9 of it)."""
     core = load_core("mesh")
     freqs = paper_frequencies("mesh", 12)
     Y, sd = noisy(core, freqs, heat, 12, seed=5)
@@ -135,11 +138,16 @@ def test_device_lm_equals_host_lm_on_tmatrix_problems(heat, jacobian):
     got = levenberg_marquardt(prob, pid, z0, xtol=1e-6, gtol=1e-10)
     assert got.reason.tolist() == ref.reason.tolist()
     assert np.array_equal(got.iterations, ref.iterations) and np.array_equal(got.converged, ref.converged)
-    rtol = 1e-12 if jacobian == "difference" else 1e-9
+    rtol = 1e-9
     for name in ("z", "cost", "raw", "g", "H"):
         a, b = getattr(got, name), getattr(ref, name)
-        # g -> 0 at the solution: compared on the scale of the gradient test, sqrt(F H_aa)
-        atol = 0 if name != "g" else rtol * np.sqrt(ref.cost.max() * np.einsum("nii->ni", ref.H).max())
+        # g -> 0 at the solution: compared on the scale of the gradient test, sqrt(F H_aa);
+        # z on its own scale, the scaled variables' unit
+        atol = {"g": rtol * np.sqrt(ref.cost.max() * np.einsum("nii->ni", ref.H).max()), "z": rtol}.get(name, 0)
+        if name == "H":
+            diag = np.einsum("nii->ni", b)
+            assert np.all(np.abs(a - b) <= 10 * rtol * np.sqrt(diag[:, :, None] * diag[:, None, :])), name
+            continue
         assert np.allclose(a, b, rtol=rtol, atol=atol), name
 
 
