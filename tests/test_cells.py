@@ -113,45 +113,29 @@ wp.init()
 DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device"))]
 
 
-def cascade(engine, params, theta, freqs, d):
-    """T-matrices (n, len(freqs), 2, 2) of a plain cascade launch at densities d (n,)."""
+def cascade(engine, params, theta, freqs, d, refined: bool = False):
+    """T-matrices (n, len(freqs), 2, 2) of a plain cascade launch at densities d (n,): on the
+    sets' cells, or with ``refined`` on the error estimate's refined grid (a launch whose
+    refined columns are ``freqs``)."""
     dev = engine.device
     n = params.shape[1]
     out = wp.empty((n, len(freqs), 8), dtype=wp.float64, device=dev)
+    fine = wp.empty((n, len(freqs) if refined else 0, 8), dtype=wp.float64, device=dev)
     engine._cascade(
         params,
         theta,
-        wp.array(freqs, dtype=wp.float64, device=dev),
+        wp.array(np.concatenate([freqs, freqs]) if refined else freqs, dtype=wp.float64, device=dev),
         wp.array(d, dtype=wp.float64, device=dev),
         out,
-        wp.empty((n, 0, 8), dtype=wp.float64, device=dev),
+        fine,
     )
-    return out.numpy().view(np.complex128).reshape(n, len(freqs), 2, 2)
+    return (fine if refined else out).numpy().view(np.complex128).reshape(n, len(freqs), 2, 2)
 
 
 #: Richardson's factor of the estimate's refined grid (n + ceil(n/2) cells where the sets'
 #: densities give n, at least 1.5 times as many: a sixth-order scheme's error on the n cells
 #: is the grids' difference times at most 1/(1 - 1.5^-6))
 RICHARDSON = 1.0 / (1.0 - 1.5**-6)
-
-
-def refined_cascade(engine, params, theta, freqs, d):
-    """T-matrices (n, len(freqs), 2, 2) on the refined grid of densities d (n,): a launch
-    whose refined columns are ``freqs``."""
-    dev = engine.device
-    n = params.shape[1]
-    out = wp.empty((n, len(freqs), 8), dtype=wp.float64, device=dev)
-    refined = wp.empty((n, len(freqs), 8), dtype=wp.float64, device=dev)
-    f = np.concatenate([freqs, freqs])
-    engine._cascade(
-        params,
-        theta,
-        wp.array(f, dtype=wp.float64, device=dev),
-        wp.array(d, dtype=wp.float64, device=dev),
-        out,
-        refined,
-    )
-    return refined.numpy().view(np.complex128).reshape(n, len(freqs), 2, 2)
 
 
 def refined_estimate(engine, params, theta, d):
@@ -161,7 +145,7 @@ def refined_estimate(engine, params, theta, d):
     f = engine.freqs[engine.sample]
     Zc = duct_impedance(engine.core)
     Y = normalize(cascade(engine, params, theta, f, d), Zc)
-    Y2 = normalize(refined_cascade(engine, params, theta, f, d), Zc)
+    Y2 = normalize(cascade(engine, params, theta, f, d, refined=True), Zc)
     return RICHARDSON * (np.abs(Y - Y2).max(-1) / np.abs(Y2).max(-1)).max(-1)
 
 
