@@ -26,7 +26,10 @@ is timed:
 * ``evaluations``: :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` of
   ``--points`` Sobol points of the rvc_foam space: each worker draws its chunks' points
   and builds their tables on its device; the objectives come back through shared memory
-  (worker processes of this host) or Dask;
+  (worker processes of this host) or Dask. The first call (``evaluation_first_seconds``)
+  writes fresh ``/dev/shm`` pages; the timed calls after it write the files of the call
+  before, let go (``tawarp.distributed.ChunkFiles``), as a caller evaluating batch after
+  batch;
 * ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
@@ -70,6 +73,7 @@ worker killed) is recorded in its row (``errors``) and the run exits with status
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import faulthandler
 import hashlib
 import json
@@ -242,11 +246,14 @@ def phases(client, t0: float, t1: float, done=frozenset()) -> dict:
 
 def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
     """Each worker's parts of one chunk of ``ev.evaluate_sobol`` (``chunk`` points), every
-    worker at once, as the timed call runs them: ``device`` [s] (its points drawn, the
+    worker at once, as the timed calls run them: ``device`` [s] (its points drawn, the
     kernels, the objective columns made, to the device's end), ``copy`` (into the
-    worker's host buffer), ``write`` (into a shared-memory file of its own) with the
-    kernel's CPU time of the write (``write_sys``) and its page faults; the best of three.
-    Their growth with the workers says which part of a chunk does not scale."""
+    worker's host buffer), ``write`` (into a fresh shared-memory file of its own, as the
+    first call) with the kernel's CPU time of the write (``write_sys``) and its page
+    faults, ``remap`` (into that file again: the worker's mapping of it made, as a later
+    call's first write of a pooled file) and ``rewrite`` (once more, through the kept
+    mapping: a later call's writes); the best of three. Their growth with the workers
+    says which part of a chunk does not scale."""
     workers = list(ev.client.scheduler_info()["workers"])
     futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
     return dict(zip(workers, ev.client.gather(futures)))
@@ -257,7 +264,7 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
 
     import warp as wp
 
-    from tawarp.distributed import SharedColumns, _on_host, _worker_evaluator
+    from tawarp.distributed import ChunkFiles, SharedColumns, _drop_written_mappings, _on_host, _worker_evaluator
 
     ev, tables = _worker_evaluator(key, spec)
     best = {}
@@ -269,20 +276,30 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
         t1 = time.perf_counter()
         host = dict(zip(ev.columns, _on_host(key, columns)))
         t2, r0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
-        out = SharedColumns.create(chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
-        if out is None:  # (no room in /dev/shm: the timed calls send the objectives through Dask too)
+        out = SharedColumns("", chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
+        pool = ChunkFiles()
+        files = pool.take(out.chunk_sizes())
+        if files is None:  # (no room in /dev/shm: the timed calls send the objectives through Dask too)
             return {"device": t1 - t0, "copy": t2 - t1, "write": None}
+        out = dataclasses.replace(out, files=files)
         try:
             out.write(0, host)
+            t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+            out.write(0, host)
+            t4 = time.perf_counter()
+            out.write(0, host)
+            t5 = time.perf_counter()
         finally:
-            out.remove()
-        t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+            pool.close()
+            _drop_written_mappings()
         now = {
             "device": t1 - t0,
             "copy": t2 - t1,
             "write": t3 - t2,
             "write_sys": r1.ru_stime - r0.ru_stime,
             "write_minflt": r1.ru_minflt - r0.ru_minflt,
+            "remap": t4 - t3,
+            "rewrite": t5 - t4,
             "bytes": sum(v.nbytes for v in host.values()),
         }
         best = {k: min(v, best.get(k, np.inf)) for k, v in now.items()}
@@ -434,17 +451,27 @@ class Bench:
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
         # (each worker's host buffer grown to a chunk before the timing, by the probe)
         probe = evaluation_probe(ev, min(n, self.args.eval_chunk)) if ev.shared else None
+        # the first call writes fresh shared memory; the later ones, timed, write the files
+        # of the call before, let go (ChunkFiles), as a caller evaluating batch after batch
+        first, out, _, first_ph = timed(lambda: ev.evaluate_sobol(n, seed=1), 1, client)
+        del out
         t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
-        return {
+        row = {
             "evaluation_phases": ph,
             "evaluation_probe": probe,
             "evaluation_points": n,
+            "evaluation_first_seconds": first,
+            "evaluation_first_phases": first_ph,
             "evaluation_seconds": t,
             "evaluation_client_cpu_seconds": cpu,
             "evaluations_per_s": n / t,
+            "evaluations_first_call_per_s": n / first,
             "evaluations_shared_memory": ev.shared,
             "evaluations_digest": digest(out),
         }
+        del out
+        ev.close()
+        return row
 
     def sweep(self, client, k: int) -> dict:
         a = self.args
@@ -520,12 +547,19 @@ def _worker_gpus(client) -> dict:
 
 
 def host_topology() -> dict:
-    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings) and the
-    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share."""
+    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings), the
+    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share; and
+    the kernel's transparent huge page settings (anonymous memory, tmpfs)."""
     import shutil
     import subprocess
 
-    out = {"threads_per_core": None, "gpu_topology": None}
+    out = {"threads_per_core": None, "gpu_topology": None, "transparent_hugepage": {}}
+    for name in ("enabled", "shmem_enabled"):  # (huge pages: a fault per 2 MB, not per 4 kB)
+        try:
+            with open(f"/sys/kernel/mm/transparent_hugepage/{name}") as f:
+                out["transparent_hugepage"][name] = f.read().strip()
+        except OSError:
+            pass
     try:
         with open("/sys/devices/system/cpu/cpu0/topology/thread_siblings_list") as f:
             out["threads_per_core"] = sum(

@@ -40,12 +40,14 @@ Other clusters (several machines): start one ``dask worker --nthreads 1`` per GP
 from __future__ import annotations
 
 import dataclasses
+import functools
 import mmap
 import os
 import re
 import sys
 import threading
 import uuid
+import weakref
 from collections import deque
 
 import numpy as np
@@ -817,13 +819,17 @@ class SharedColumns:
     whole into a file of its own (``path.ROW``, its columns at page-aligned offsets), with
     the write call and no lock shared with another writer, which the reader maps back to
     back into one range of its addresses (:class:`AddressRange`: Linux): each chunk but the
-    last a whole number of pages in every column (a multiple of the page size in rows)."""
+    last a whole number of pages in every column (a multiple of the page size in rows).
+    ``files``: the chunks' files where a :class:`ChunkFiles` pool lends them (made by the
+    client, kept between calls: a writer finds the pages of one written before there and
+    copies into them through a mapping it keeps, :func:`_written_mapping`)."""
 
     path: str
     n: int
     layout: dict
     writers: int = 1
     chunks: tuple = ()
+    files: tuple = ()
 
     def offsets(self, align: int = 64) -> dict:
         out, at = {}, 0
@@ -840,11 +846,18 @@ class SharedColumns:
         """The chunk of ``chunks`` that starts at row ``at``, as columns of its own file."""
         i = self.chunks.index(at)
         end = self.chunks[i + 1] if i + 1 < len(self.chunks) else self.n
-        return SharedColumns(f"{self.path}.{at}", end - at, self.layout)
+        return SharedColumns(self.files[i] if self.files else f"{self.path}.{at}", end - at, self.layout)
 
-    def columns(self, mode: str = "r+") -> dict[str, np.ndarray]:
+    def chunk_sizes(self) -> list[int]:
+        """Bytes of each chunk's file (``chunks``)."""
+        return [self._chunk(at).offsets(mmap.PAGESIZE)[None] for at in self.chunks]
+
+    def columns(self, mode: str = "r+", on_release=None) -> dict[str, np.ndarray]:
+        """The columns, mapped from the file or the chunks' files; ``on_release()`` is
+        called once the last array on the chunks' files has gone (their pool's cue that
+        they may be written again)."""
         if self.chunks:
-            return self._stitched()
+            return self._stitched(on_release)
         off = self.offsets()
         return {
             k: np.asarray(np.memmap(self.path, dtype=dtype, mode=mode, offset=off[k], shape=(self.n,) + tuple(shape)))
@@ -852,11 +865,13 @@ class SharedColumns:
             if self.n
         }
 
-    def _stitched(self) -> dict[str, np.ndarray]:
+    def _stitched(self, on_release=None) -> dict[str, np.ndarray]:
         """The columns, each chunk file's part of a column mapped where its rows go."""
         page = mmap.PAGESIZE
         off = self.offsets(page)
         space = AddressRange(off[None])
+        if on_release is not None:
+            weakref.finalize(space, on_release)  # (after the range's unmapping: its __del__)
         for at in self.chunks:
             part = self._chunk(at)
             sections = part.offsets(page)
@@ -872,28 +887,41 @@ class SharedColumns:
 
     def write(self, at: int, res: dict) -> None:
         """Rows ``at`` .. of the columns ``res`` {name: array} (:func:`write_at`); with
-        ``chunks``, the whole chunk that starts there, into its own file."""
+        ``chunks``, the whole chunk that starts there, into its own file: a pooled file
+        (``files``) written before through this process's mapping of it, one copy."""
+        pieces = []
+        for k, v in res.items():
+            dtype, shape = self.layout[k]
+            row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+            pieces.append((k, row, np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)))
         if self.chunks:
             part = self._chunk(at)
             off, first = part.offsets(mmap.PAGESIZE), 0
-            fd = os.open(part.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+            if self.files and (held := _written_mapping(part.path, off[None])) is not None:
+                for k, _, data in pieces:
+                    np.frombuffer(held, dtype=np.uint8, count=data.size, offset=off[k])[:] = data
+                return
+            # a pooled file is the client's: one it dropped (its call failed) stays gone
+            flags = os.O_RDWR if self.files else os.O_RDWR | os.O_CREAT | os.O_TRUNC
+            fd = os.open(part.path, flags, 0o600)
         else:
             off, first = self.offsets(), at
             fd = os.open(self.path, os.O_RDWR)
         try:
-            if self.chunks:
+            if self.chunks and os.fstat(fd).st_size != off[None]:
                 os.ftruncate(fd, off[None])
-            for k, v in res.items():
-                dtype, shape = self.layout[k]
-                row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
-                data = np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)
+            for k, row, data in pieces:
                 write_at(fd, data, off[k] + first * row, mapped=self.writers > 1 and not self.chunks)
         finally:
             os.close(fd)
 
     def remove(self) -> None:
-        """The file and the chunks' files, those there are (their pages stay where mapped)."""
-        for path in [self.path] + [f"{self.path}.{at}" for at in self.chunks]:
+        """The file and the chunks' files, those there are (their pages stay where
+        mapped); not the pooled ``files``, which their :class:`ChunkFiles` keeps."""
+        paths = [self.path] if self.path else []
+        if not self.files:
+            paths += [f"{self.path}.{at}" for at in self.chunks]
+        for path in paths:
             try:
                 os.unlink(path)
             except FileNotFoundError:
@@ -907,22 +935,9 @@ class SharedColumns:
         then the temporary folder) with twice its size free, or None (a worker writing past
         the end of a full tmpfs would be killed). ``layout`` None: an empty file, which the
         writers size (:meth:`sized`) once they know the columns."""
-        import tempfile
-
         size = cls("", n, layout or {}).nbytes()
-        for folder in folders or ("/dev/shm", tempfile.gettempdir()):
-            try:
-                st = os.statvfs(folder)
-            except OSError:
-                continue
-            if st.f_bavail * st.f_frsize >= 2 * size:  # (room left for the rest of the host)
-                fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
-                try:
-                    os.ftruncate(fd, size)
-                finally:
-                    os.close(fd)
-                return cls(path, n, layout, writers, tuple(chunks))
-        return None
+        folder = _shared_folder(size, folders)
+        return None if folder is None else cls(_new_file(folder, size), n, layout, writers, tuple(chunks))
 
     def sized(self, layout: dict, rows: int) -> SharedColumns | None:
         """This file with the columns ``layout``, made its size by the first writer (the
@@ -946,6 +961,151 @@ class SharedColumns:
         return cols
 
 
+def _shared_folder(size: int, folders=None) -> str | None:
+    """The first of ``folders`` (default ``/dev/shm``, then the temporary folder) with
+    twice ``size`` bytes free, or None (a worker writing past the end of a full tmpfs
+    would be killed; the rest of the host keeps room)."""
+    import tempfile
+
+    for folder in folders or ("/dev/shm", tempfile.gettempdir()):
+        try:
+            st = os.statvfs(folder)
+        except OSError:
+            continue
+        if st.f_bavail * st.f_frsize >= 2 * size:
+            return folder
+    return None
+
+
+def _new_file(folder: str, size: int) -> str:
+    """A new file of ``size`` bytes (no pages yet) in ``folder``: its path."""
+    import tempfile
+
+    fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
+    try:
+        os.ftruncate(fd, size)
+    finally:
+        os.close(fd)
+    return path
+
+
+class ChunkFiles:
+    """Shared-memory files for the chunks of one caller's results (:class:`SharedColumns`
+    ``files``), kept between its calls. A fresh tmpfs page costs its writer an allocation
+    and a zeroing in the kernel, which several worker processes do no faster together than
+    one alone (bench/README.md, section Several GPUs): a file written before has its pages,
+    and a worker copies into them through the mapping it keeps (:func:`_written_mapping`).
+    A file is lent with a result and comes back when the last array on it has gone
+    (:meth:`SharedColumns.columns` ``on_release``), so a result still held is never
+    written again; :meth:`take` keeps at most one call's files free beside those lent and
+    unlinks the rest; :meth:`close` unlinks them all (the pages of a result still held
+    stay with its mapping). The files lie in ``/dev/shm`` (``folders``) while kept, named
+    ``tawarp-*.columns``: a process killed before :meth:`close` leaves them there."""
+
+    def __init__(self, folders=None):
+        self.folders = folders
+        self._free: deque = deque()  # (size, path); appended by finalizers in any thread
+        self._files: dict = {}  # {path: size} of every file kept, free or lent
+        self.closed = False
+
+    def take(self, sizes: list[int]) -> tuple | None:
+        """Files of ``sizes`` bytes, free ones reused and the others made, or None where
+        the new ones would not leave twice their size free; free files not taken go."""
+        free: dict = {}
+        while self._free:
+            size, path = self._free.popleft()
+            free.setdefault(size, []).append(path)
+        taken = [free[s].pop() if free.get(s) else None for s in sizes]
+        folder = _shared_folder(sum(s for s, p in zip(sizes, taken) if p is None), self.folders)
+        self._unlink([p for paths in free.values() for p in paths])
+        if folder is None:
+            self._unlink([p for p in taken if p is not None])
+            return None
+        taken = [p or _new_file(folder, s) for s, p in zip(sizes, taken)]
+        self._files.update(zip(taken, sizes))
+        return tuple(taken)
+
+    def give_back(self, files) -> None:
+        """``files`` free again (their result has gone): written by the next call."""
+        if self.closed:
+            return
+        for path in files:
+            self._free.append((self._files[path], path))
+
+    def discard(self, files) -> None:
+        """``files`` unlinked (a call that failed: a task may still write them)."""
+        self._unlink(files)
+
+    def close(self) -> None:
+        self.closed = True
+        self._unlink(list(self._files))
+        self._free.clear()
+
+    def _unlink(self, paths) -> None:
+        for path in paths:
+            self._files.pop(path, None)
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+
+
+#: At most this many files' mappings kept per process (:func:`_written_mapping`).
+MAPPED_FILES = 64
+#: {path: (fd, mmap)} of the pooled files this process has written (:func:`_written_mapping`).
+_WRITTEN: dict = {}
+_WRITTEN_LOCK = threading.Lock()
+
+
+def _written_mapping(path: str, size: int) -> mmap.mmap | None:
+    """A writable mapping of the ``size`` bytes of the pooled file ``path`` with its pages
+    present, where the file has all of them already (written by an earlier call: a copy
+    into the mapping is then all a write costs, its mapping and page tables made once and
+    kept), else None (a fresh file: the write call allocates its pages the cheapest way).
+    Mappings of files their pool has unlinked are dropped here (their pages with them);
+    at most :data:`MAPPED_FILES` are kept."""
+    with _WRITTEN_LOCK:
+        for p, (fd, m) in list(_WRITTEN.items()):
+            if os.fstat(fd).st_nlink == 0 or (p == path and len(m) != size):
+                _drop_mapping(p)
+        held = _WRITTEN.get(path)
+        if held is not None:
+            return held[1]
+        try:
+            fd = os.open(path, os.O_RDWR)
+        except FileNotFoundError:
+            return None
+        st = os.fstat(fd)
+        if st.st_size != size or st.st_blocks * 512 < size:
+            os.close(fd)
+            return None
+        m = mmap.mmap(fd, size)
+        try:
+            m.madvise(MADV_POPULATE_WRITE)  # (page tables in one call, not a fault per page)
+        except OSError:
+            pass
+        while len(_WRITTEN) >= MAPPED_FILES:
+            _drop_mapping(next(iter(_WRITTEN)))
+        _WRITTEN[path] = (fd, m)
+        return m
+
+
+def _drop_mapping(path: str) -> None:
+    fd, m = _WRITTEN.pop(path)
+    try:
+        m.close()
+    except BufferError:  # (an array on it still alive: the mapping goes with it)
+        pass
+    os.close(fd)
+
+
+def _drop_written_mappings() -> None:
+    """Every mapping :func:`_written_mapping` keeps in this process, dropped."""
+    with _WRITTEN_LOCK:
+        for p in list(_WRITTEN):
+            _drop_mapping(p)
+
+
 class ClusterEvaluator:
     """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
     cluster's workers: a table is cut into chunks of ``chunk`` points (default: the table
@@ -954,7 +1114,10 @@ class ClusterEvaluator:
     pickled between worker processes, by reference to worker threads
     (``local_cluster(..., processes=False)``); :meth:`evaluate_sobol` sends no table, and
     worker processes of this host write its results in shared memory (``shared``: None
-    decides so for a cluster of such processes, False always sends them through Dask)."""
+    decides so for a cluster of such processes, False always sends them through Dask),
+    into files kept for the next calls once a result has gone (:class:`ChunkFiles`:
+    ``/dev/shm`` holds up to one call's results beside those held, until :meth:`close`
+    or until the evaluator goes)."""
 
     def __init__(
         self,
@@ -981,6 +1144,15 @@ class ClusterEvaluator:
         self.key = uuid.uuid4().hex
         self.shared = _local_processes(client) if shared is None else bool(shared)
         self._layout = None
+        self._files = ChunkFiles()
+        weakref.finalize(self, self._files.close)
+
+    def close(self) -> None:
+        """The shared-memory files kept for later calls unlinked, and the workers' mappings
+        of them dropped (a result still held keeps its pages)."""
+        self._files.close()
+        if self.shared:
+            self.client.run(_drop_written_mappings)
 
     def warm_up(self) -> None:
         """Build every worker's Evaluator now (its kernels loaded, one point evaluated), so
@@ -1015,18 +1187,26 @@ class ClusterEvaluator:
         :meth:`tawarp.design.space.DeviceTable.sobol`): a task is a chunk's point range,
         its points drawn and its table built on the worker's device, so no table travels;
         only the objectives come back, written by worker processes of this host into
-        shared memory (:class:`SharedColumns`) where it has the room."""
+        shared memory (:class:`SharedColumns`) where it has the room: the files of an
+        earlier call's result that has gone are written again (their pages there, each
+        worker copying into its kept mapping), never those of a result still held."""
         starts = self._starts(n)
         tasks = [(first + lo, first + min(n, lo + starts.step), seed, lo) for lo in starts]
         out = None
         if self.shared and n:
             if self._layout is None:
                 self._layout = self.client.submit(_objective_layout, self.key, self.spec, pure=False).result()
-            out = SharedColumns.create(
-                n, self._layout, writers=_workers(self.client), chunks=_chunk_files(starts, self._layout)
-            )
+            if chunks := _chunk_files(starts, self._layout):
+                # a file per chunk from the pool: those of an earlier call's result let go
+                # are written again, their pages already there
+                out = SharedColumns("", n, self._layout, chunks=chunks)
+                files = self._files.take(out.chunk_sizes())
+                out = None if files is None else dataclasses.replace(out, files=files)
+            else:
+                out = SharedColumns.create(n, self._layout, writers=_workers(self.client))
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
+        lent = False
         try:
             # every chunk at once (a task is a point range, a result None): the scheduler hands
             # each worker its next chunk as it frees, where a window would hold a worker's next
@@ -1035,9 +1215,13 @@ class ClusterEvaluator:
                 self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out, window=len(tasks)
             ):
                 pass
-            return out.columns()  # (the files go; their pages stay mapped here)
+            cols = out.columns(on_release=functools.partial(self._files.give_back, out.files))
+            lent = True
+            return cols
         finally:
-            out.remove()
+            out.remove()  # (the one file goes; its pages stay mapped here)
+            if out.files and not lent:
+                self._files.discard(out.files)
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""

@@ -308,8 +308,15 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         assert drawn.shared
         drawn.warm_up()
         sobol = drawn.evaluate_sobol(50, seed=7, first=5)
-        # chunks of two pages of points and a shorter last one: a file each, mapped as one
-        paged = ClusterEvaluator(procs, space, chunk=2 * 4096).evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
+        # chunks of two pages of points and a shorter last one: a file each, mapped as one;
+        # the files of a result let go are written again by a later call (the workers copy
+        # into their kept mappings), never those of a result still held
+        pooled = ClusterEvaluator(procs, space, chunk=2 * 4096)
+        paged = pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
+        pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=4, first=1)  # (let go at once)
+        again = pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=5, first=1)
+        assert len(pooled._files._files) == 2 * 3  # (three chunks a call: the second's files reused)
+        pooled.close()
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
@@ -328,8 +335,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     ev = Evaluator(space, extra=["acoustic_loss"])
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
     assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
-    one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, 3)[0])
-    assert set(paged) == set(one) and all(np.array_equal(paged[k], one[k], equal_nan=True) for k in one)
+    for got, seed in ((paged, 3), (again, 5)):
+        one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, seed)[0])
+        assert set(got) == set(one) and all(np.array_equal(got[k], one[k], equal_nan=True) for k in one)
     assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared files went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
@@ -519,6 +527,58 @@ def test_chunk_files_read_back_as_one_column_each(tmp_path):
         assert back[k].dtype == np.dtype(layout[k][0]) and np.array_equal(back[k], v), k
     back["gradient"][:2] = 0.0  # (writable, as the one file's mapping is)
     assert np.array_equal(back["gradient"][2:], rows["gradient"][2:])
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
+def test_pooled_chunk_files_are_written_again_only_once_let_go():
+    # the files of a result still held are never lent again: a second call gets files of
+    # its own; once the first result has gone its files come back and a third call's
+    # chunks are copied into their pages (through the writer's kept mapping), read back
+    # exactly; files beyond one call's go, and closing the pool unlinks every file
+    import gc
+    import mmap
+    import tempfile
+
+    from tawarp.distributed import _WRITTEN, ChunkFiles, SharedColumns
+
+    page = mmap.PAGESIZE
+    n = 2 * page + 5
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,))}
+    starts = (0, page, 2 * page)
+    rng = np.random.default_rng(11)
+
+    def call(pool, seed):
+        rows = {
+            "gradient": np.random.default_rng(seed).standard_normal(n),
+            "window": np.random.default_rng(seed + 1).standard_normal((n, 3)).astype(np.float32),
+        }
+        out = SharedColumns("", n, layout, chunks=starts)
+        out = SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+        for lo in rng.permutation(starts):
+            out.write(int(lo), {k: v[lo : lo + page] for k, v in rows.items()})
+        back = out.columns(on_release=lambda: pool.give_back(out.files))
+        return rows, back, out.files
+
+    with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
+        pool = ChunkFiles(folders=[folder])
+        rows1, back1, files1 = call(pool, 1)
+        rows2, back2, files2 = call(pool, 2)
+        assert not set(files1) & set(files2)
+        del back2
+        gc.collect()
+        rows3, back3, files3 = call(pool, 3)  # (the files of the second call again)
+        assert set(files3) == set(files2) and all(f in _WRITTEN for f in files3)
+        for rows, back in ((rows1, back1), (rows3, back3)):
+            for k, v in rows.items():
+                assert np.array_equal(back[k], v), k
+        del back1, back3, back
+        gc.collect()
+        rows4, back4, files4 = call(pool, 4)
+        assert len(os.listdir(folder)) == len(starts)  # (one call's: the others' went)
+        assert all(np.array_equal(back4[k], v) for k, v in rows4.items())
+        pool.close()
+        assert not os.listdir(folder)
+        assert all(np.array_equal(back4[k], v) for k, v in rows4.items())  # (its pages stay mapped)
 
 
 def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
