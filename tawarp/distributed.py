@@ -70,8 +70,9 @@ class DevicePlugin:
     """Worker plugin giving worker ``name`` (an int, as :func:`local_cluster` names them)
     the device ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU
     batches. Workers without an integer name keep the default device. ``pinned``: each
-    worker a process of its own (:func:`local_cluster`), its GPU checked and its memory
-    kept between chunks (:func:`keep_freed_memory`)."""
+    worker a process of its own (:func:`local_cluster`), its GPU checked, its memory
+    kept between chunks (:func:`keep_freed_memory`) and its mappings of shared files
+    that were unlinked dropped (:func:`drop_unlinked_mappings`)."""
 
     def __init__(self, devices, cpu_threads: int = 1, pinned: bool = False):
         self.devices = list(devices)
@@ -86,6 +87,13 @@ class DevicePlugin:
         worker.tawarp_cpu_threads = self.cpu_threads
         if self.pinned:
             keep_freed_memory()
+            # a pool's files unlinked while no task writes (the evaluator gone): their pages
+            # go once this process drops its mappings of them
+            from tornado.ioloop import PeriodicCallback
+
+            check = PeriodicCallback(drop_unlinked_mappings, 1000 * UNLINKED_CHECK)
+            worker.periodic_callbacks["tawarp-unlinked-mappings"] = check
+            check.start()
         if self.pinned and str(worker.tawarp_device).startswith("cuda"):
             # CUDA reads CUDA_VISIBLE_DEVICES once, when it starts: had something started it
             # before the variable was set, every worker would drive the first GPU
@@ -1059,7 +1067,8 @@ class ChunkFiles:
         if self.closed:
             return
         for path in files:
-            self._free.append((self._files[path], path))
+            if (size := self._files.get(path)) is not None:  # (else unlinked by a close meanwhile)
+                self._free.append((size, path))
 
     def discard(self, files) -> None:
         """``files`` unlinked (a call that failed: a task may still write them)."""
@@ -1091,13 +1100,15 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
     present, where the file has all of them already (written by an earlier call: a copy
     into the mapping is then all a write costs, its mapping and page tables made once and
     kept), else None (a fresh file: the write call allocates its pages the cheapest way).
-    Mappings of files their pool has unlinked are dropped here (their pages with them);
-    at most :data:`MAPPED_FILES` are kept."""
+    Mappings of files their pool has unlinked are dropped here and every
+    :data:`UNLINKED_CHECK` seconds (:func:`drop_unlinked_mappings`); at most
+    :data:`MAPPED_FILES` are kept."""
     with _WRITTEN_LOCK:
-        for p, (fd, m) in list(_WRITTEN.items()):
-            if os.fstat(fd).st_nlink == 0 or (p == path and len(m) != size):
-                _drop_mapping(p)
+        _drop_unlinked()
         held = _WRITTEN.get(path)
+        if held is not None and len(held[1]) != size:
+            _drop_mapping(path)
+            held = None
         if held is not None:
             return held[1]
         try:
@@ -1117,6 +1128,24 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
             _drop_mapping(next(iter(_WRITTEN)))
         _WRITTEN[path] = (fd, m)
         return m
+
+
+#: Seconds between a worker's checks for mappings of unlinked files (:class:`DevicePlugin`):
+#: the tmpfs pages of a file stay while a mapping holds them.
+UNLINKED_CHECK = 2.0
+
+
+def drop_unlinked_mappings() -> None:
+    """The mappings :func:`_written_mapping` keeps of files since unlinked (their pool
+    closed, or the files beyond one call's), dropped with their pages."""
+    with _WRITTEN_LOCK:
+        _drop_unlinked()
+
+
+def _drop_unlinked() -> None:
+    for p, (fd, _) in list(_WRITTEN.items()):
+        if os.fstat(fd).st_nlink == 0:
+            _drop_mapping(p)
 
 
 def _drop_mapping(path: str) -> None:

@@ -315,6 +315,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         # fault their 256 pages in once, not twenty times (Dask's 64 kB trim threshold)
         if sys.platform == "linux":
             assert all(f < 5 * 256 for f in procs.run(faults).values())
+        # and drops its mappings of shared files once their pool has unlinked them
+        checks = procs.run(lambda dask_worker: dask_worker.periodic_callbacks["tawarp-unlinked-mappings"].is_running())
+        assert list(checks.values()) == [True, True]
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         # Sobol points drawn on the workers, their objectives written in shared memory
         drawn = ClusterEvaluator(procs, space, extra=["acoustic_loss"], chunk=16)
@@ -552,7 +555,7 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
     import mmap
     import tempfile
 
-    from tawarp.distributed import _WRITTEN, ChunkFiles, SharedColumns
+    from tawarp.distributed import _WRITTEN, ChunkFiles, SharedColumns, drop_unlinked_mappings
 
     page = mmap.PAGESIZE
     n = 2 * page + 5
@@ -592,6 +595,10 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
         pool.close()
         assert not os.listdir(folder)
         assert all(np.array_equal(back4[k], v) for k, v in rows4.items())  # (its pages stay mapped)
+        # the writer's kept mappings of the unlinked files go (a worker checks every few seconds)
+        assert any(f in _WRITTEN for f in files4)
+        drop_unlinked_mappings()
+        assert not any(f in _WRITTEN for f in files1 + files2 + files4)
 
 
 def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
