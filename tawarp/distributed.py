@@ -1052,7 +1052,9 @@ class ChunkFiles:
         while self._free:
             size, path = self._free.popleft()
             free.setdefault(size, []).append(path)
-        taken = [free[s].pop() if free.get(s) else None for s in sizes]
+        # (in the order they were lent and given back: chunk i of a call gets the file of
+        # chunk i of the call whose result went, which the same worker wrote)
+        taken = [free[s].pop(0) if free.get(s) else None for s in sizes]
         folder = _shared_folder(sum(s for s, p in zip(sizes, taken) if p is None), self.folders)
         self._unlink([p for paths in free.values() for p in paths])
         if folder is None:
@@ -1266,13 +1268,24 @@ class ClusterEvaluator:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         lent = False
         try:
-            # every chunk at once (a task is a point range, a result None): the scheduler hands
-            # each worker its next chunk as it frees, where a window would hold a worker's next
-            # chunk until the chunks before it, on other workers, are done
-            for _ in ordered_map(
-                self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out, window=len(tasks)
-            ):
-                pass
+            # every chunk at once (a task is a point range, a result None), chunk i to worker
+            # i mod k where it is free (else another takes it): each worker writes the same
+            # pooled files call after call, through the mappings it keeps
+            workers = sorted(self.client.scheduler_info()["workers"])
+            futures = [
+                self.client.submit(
+                    _evaluate_sobol_chunk,
+                    task,
+                    self.key,
+                    self.spec,
+                    out,
+                    workers=[workers[i % len(workers)]],
+                    allow_other_workers=True,
+                    pure=False,
+                )
+                for i, task in enumerate(tasks)
+            ]
+            self.client.gather(futures)
             cols = out.columns(on_release=functools.partial(self._files.give_back, out.files))
             lent = True
             return cols

@@ -583,7 +583,7 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
         del back2
         gc.collect()
         rows3, back3, files3 = call(pool, 3)  # (the files of the second call again)
-        assert set(files3) == set(files2) and all(f in _WRITTEN for f in files3)
+        assert files3 == files2 and all(f in _WRITTEN for f in files3)  # (chunk i: the same file)
         for rows, back in ((rows1, back1), (rows3, back3)):
             for k, v in rows.items():
                 assert np.array_equal(back[k], v), k
