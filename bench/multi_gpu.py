@@ -264,7 +264,7 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
 
     import warp as wp
 
-    from tawarp.distributed import ChunkFiles, SharedColumns, _drop_written_mappings, _on_host, _worker_evaluator
+    from tawarp.distributed import ChunkFiles, SharedColumns, _on_host, _worker_evaluator, drop_unlinked_mappings
 
     ev, tables = _worker_evaluator(key, spec)
     best = {}
@@ -291,7 +291,7 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
             t5 = time.perf_counter()
         finally:
             pool.close()
-            _drop_written_mappings()
+            drop_unlinked_mappings()
         now = {
             "device": t1 - t0,
             "copy": t2 - t1,

@@ -127,7 +127,7 @@ def keep_freed_memory() -> bool:
 
     try:
         mallopt = ctypes.CDLL(None).mallopt
-    except (AttributeError, OSError):
+    except (AttributeError, OSError, TypeError):  # (not glibc; TypeError: Windows' CDLL(None))
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return all(mallopt(k, v) == 1 for k, v in WORKER_MALLOC.items())
@@ -1121,7 +1121,11 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
         if st.st_size != size or st.st_blocks * 512 < size:
             os.close(fd)
             return None
-        m = mmap.mmap(fd, size)
+        try:
+            m = mmap.mmap(fd, size)
+        except OSError:  # (no address space or mappings left: the write call instead)
+            os.close(fd)
+            return None
         try:
             m.madvise(MADV_POPULATE_WRITE)  # (page tables in one call, not a fault per page)
         except OSError:
@@ -1157,13 +1161,6 @@ def _drop_mapping(path: str) -> None:
     except BufferError:  # (an array on it still alive: the mapping goes with it)
         pass
     os.close(fd)
-
-
-def _drop_written_mappings() -> None:
-    """Every mapping :func:`_written_mapping` keeps in this process, dropped."""
-    with _WRITTEN_LOCK:
-        for p in list(_WRITTEN):
-            _drop_mapping(p)
 
 
 class ClusterEvaluator:
@@ -1212,7 +1209,7 @@ class ClusterEvaluator:
         of them dropped (a result still held keeps its pages)."""
         self._files.close()
         if self.shared:
-            self.client.run(_drop_written_mappings)
+            self.client.run(drop_unlinked_mappings)
 
     def warm_up(self) -> None:
         """Build every worker's Evaluator now (its kernels loaded, one point evaluated), so
