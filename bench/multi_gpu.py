@@ -251,9 +251,12 @@ def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
     worker's host buffer), ``write`` (into a fresh shared-memory file of its own, as the
     first call) with the kernel's CPU time of the write (``write_sys``) and its page
     faults, ``remap`` (into that file again: the worker's mapping of it made, as a later
-    call's first write of a pooled file) and ``rewrite`` (once more, through the kept
-    mapping: a later call's writes); the best of three. Their growth with the workers
-    says which part of a chunk does not scale."""
+    call's first write of a pooled file), ``rewrite`` (once more, through the kept
+    mapping), ``register`` and ``direct`` (the device's columns copied straight into the
+    kept mapping, as a later call's chunks are: the first time a GPU's driver page-locks
+    the mapping; None where it would not, and the chunks go through ``copy`` and
+    ``rewrite``); the best of three. Their growth with the workers says which part of a
+    chunk does not scale."""
     workers = list(ev.client.scheduler_info()["workers"])
     futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
     return dict(zip(workers, ev.client.gather(futures)))
@@ -289,6 +292,10 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
             t4 = time.perf_counter()
             out.write(0, host)
             t5 = time.perf_counter()
+            direct = out.write_device(0, ev.columns, columns)  # (a GPU's driver page-locks the mapping first)
+            t6 = time.perf_counter()
+            direct = direct and out.write_device(0, ev.columns, columns)
+            t7 = time.perf_counter()
         finally:
             pool.close()
             drop_unlinked_mappings()
@@ -300,9 +307,11 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
             "write_minflt": r1.ru_minflt - r0.ru_minflt,
             "remap": t4 - t3,
             "rewrite": t5 - t4,
+            "register": t6 - t5 if direct else None,
+            "direct": t7 - t6 if direct else None,
             "bytes": sum(v.nbytes for v in host.values()),
         }
-        best = {k: min(v, best.get(k, np.inf)) for k, v in now.items()}
+        best = {k: min((x for x in (v, best.get(k)) if x is not None), default=None) for k, v in now.items()}
     return best
 
 

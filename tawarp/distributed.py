@@ -717,7 +717,8 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns 
         out.write(at, res)
         return None
     columns = ev.metric_columns(metrics, ev.columns, wp.float64)
-    out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
+    if not out.write_device(at, ev.columns, columns):
+        out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
     return None
 
 
@@ -952,6 +953,32 @@ class SharedColumns:
         finally:
             os.close(fd)
 
+    def write_device(self, at: int, names: list, columns) -> bool:
+        """The rows of the (len(names), m) float64 Warp array ``columns`` (on its device),
+        one per column of ``names``, copied straight into the pooled file of the chunk
+        that starts at row ``at``, where this process keeps its mapping and the device
+        copies into it (:func:`_device_address`: one DMA per column from a GPU); False
+        where not (a fresh file, a driver that would not page-lock it: the caller copies
+        through its host buffer and :meth:`write`)."""
+        import warp as wp
+
+        if not self.files or any(self.layout[k] != ("<f8", ()) for k in names):
+            return False
+        part = self._chunk(at)
+        off, n = part.offsets(mmap.PAGESIZE), part.n
+        if tuple(columns.shape) != (len(names), n) or not n:
+            return False
+        with _WRITTEN_LOCK:  # (held while the copies run: no mapping dropped under them)
+            m = _written_mapping(part.path, off[None])
+            address = None if m is None else _device_address(part.path, columns.device)
+            if address is None:
+                return False
+            dest = wp.array(ptr=address, dtype=wp.float64, shape=(len(m) // 8,), device="cpu")
+            for j, k in enumerate(names):
+                wp.copy(dest, columns, dest_offset=off[k] // 8, src_offset=j * n, count=n)
+            wp.synchronize_device(columns.device)
+        return True
+
     def remove(self) -> None:
         """The file and the chunks' files, those there are (their pages stay where
         mapped); not the pooled ``files``, which their :class:`ChunkFiles` keeps."""
@@ -1092,9 +1119,23 @@ class ChunkFiles:
 
 #: At most this many files' mappings kept per process (:func:`_written_mapping`).
 MAPPED_FILES = 64
-#: {path: (fd, mmap)} of the pooled files this process has written (:func:`_written_mapping`).
+
+
+@dataclasses.dataclass
+class _Kept:
+    """A pooled file's mapping kept by a writer: its descriptor, the mapping and, once a
+    device has asked (:func:`_device_address`), that device and the mapping's address for
+    its copies (None: a GPU's driver would not page-lock it)."""
+
+    fd: int
+    mapping: mmap.mmap
+    device: str | None = None
+    address: int | None = None
+
+
+#: {path: _Kept} of the pooled files this process has written (:func:`_written_mapping`).
 _WRITTEN: dict = {}
-_WRITTEN_LOCK = threading.Lock()
+_WRITTEN_LOCK = threading.RLock()
 
 
 def _written_mapping(path: str, size: int) -> mmap.mmap | None:
@@ -1108,11 +1149,11 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
     with _WRITTEN_LOCK:
         _drop_unlinked()
         held = _WRITTEN.get(path)
-        if held is not None and len(held[1]) != size:
+        if held is not None and len(held.mapping) != size:
             _drop_mapping(path)
             held = None
         if held is not None:
-            return held[1]
+            return held.mapping
         try:
             fd = os.open(path, os.O_RDWR)
         except FileNotFoundError:
@@ -1132,8 +1173,51 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
             pass
         while len(_WRITTEN) >= MAPPED_FILES:
             _drop_mapping(next(iter(_WRITTEN)))
-        _WRITTEN[path] = (fd, m)
+        _WRITTEN[path] = _Kept(fd, m)
         return m
+
+
+#: cuMemHostRegister's flag: the memory page-locked for every CUDA context.
+_CU_MEMHOSTREGISTER_PORTABLE = 1
+
+
+def _cuda_driver():
+    """The CUDA driver library with the signatures of the two calls used here."""
+    import ctypes
+
+    lib = ctypes.CDLL("libcuda.so.1")
+    lib.cuMemHostRegister_v2.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint)
+    lib.cuMemHostUnregister.argtypes = (ctypes.c_void_p,)
+    return lib
+
+
+def _device_address(path: str, device) -> int | None:
+    """The address of this process's kept mapping of ``path`` (:func:`_written_mapping`,
+    held) into which ``device`` copies: a CPU's copy is a memcpy into it; a GPU's driver
+    page-locks it once (``cuMemHostRegister``) so that a copy is one DMA into the file's
+    pages, as into the worker's page-locked buffer, without the copy from there. None
+    where the driver refuses (the caller copies through its buffer)."""
+    import ctypes
+
+    import warp as wp
+
+    held = _WRITTEN[path]
+    name = str(wp.get_device(device))
+    if held.device != name:
+        if held.device is not None:  # (another device: not here, one device per worker)
+            return None
+        held.device = name
+        address = ctypes.addressof(ctypes.c_char.from_buffer(held.mapping))
+        if name == "cpu":
+            held.address = address
+        else:
+            try:
+                with wp.get_device(name).context_guard:  # (its context current in this thread alone)
+                    ok = _cuda_driver().cuMemHostRegister_v2(address, len(held.mapping), _CU_MEMHOSTREGISTER_PORTABLE)
+            except (OSError, AttributeError):
+                ok = -1
+            held.address = address if ok == 0 else None
+    return held.address
 
 
 #: Seconds between a worker's checks for mappings of unlinked files (:class:`DevicePlugin`):
@@ -1149,18 +1233,23 @@ def drop_unlinked_mappings() -> None:
 
 
 def _drop_unlinked() -> None:
-    for p, (fd, _) in list(_WRITTEN.items()):
-        if os.fstat(fd).st_nlink == 0:
+    for p, held in list(_WRITTEN.items()):
+        if os.fstat(held.fd).st_nlink == 0:
             _drop_mapping(p)
 
 
 def _drop_mapping(path: str) -> None:
-    fd, m = _WRITTEN.pop(path)
+    held = _WRITTEN.pop(path)
+    if held.address is not None and held.device != "cpu":  # (page-locked: unlocked before it is unmapped)
+        import warp as wp
+
+        with wp.get_device(held.device).context_guard:
+            _cuda_driver().cuMemHostUnregister(held.address)
     try:
-        m.close()
+        held.mapping.close()
     except BufferError:  # (an array on it still alive: the mapping goes with it)
         pass
-    os.close(fd)
+    os.close(held.fd)
 
 
 class ClusterEvaluator:

@@ -727,3 +727,44 @@ def test_sobol_chunks_written_to_shared_memory_equal_one_process(tmp_path):
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 65, 7)[0])
     many = out.columns()
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k], equal_nan=True) for k in one)
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
+def test_sobol_chunks_copied_straight_into_pooled_files_equal_one_process(monkeypatch):
+    # a pooled chunk file written before (its pages there, the worker's mapping kept) takes
+    # the device's columns straight, without the worker's host buffer: three chunks of
+    # two pages of points and a shorter one, a first call (seed 7) then a second (seed 8)
+    # into the same files, each equal to one process's objectives
+    import gc
+    import mmap
+    import tempfile
+    import uuid
+
+    import tawarp.distributed as dist
+    from tawarp.design.evaluate import DEFAULT_FREQS
+    from tawarp.design.space import DeviceTable
+
+    space = _space()
+    spec = {"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None}
+    key = uuid.uuid4().hex
+    step = 2 * mmap.PAGESIZE
+    n = 2 * step + 10
+    starts = (0, step, 2 * step)
+    ev = Evaluator(space)
+    with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
+        pool = dist.ChunkFiles(folders=[folder])
+        layout = dist._objective_layout(key, spec)
+        for seed in (7, 8):
+            out = dist.SharedColumns("", n, layout, chunks=starts)
+            out = dist.SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+            for lo in starts:
+                assert dist._evaluate_sobol_chunk((5 + lo, 5 + min(n, lo + step), seed, lo), key, spec, out) is None
+            got = out.columns(on_release=lambda: pool.give_back(out.files))
+            one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 5 + n, seed)[0])
+            assert set(got) == set(one) and all(np.array_equal(got[k], one[k], equal_nan=True) for k in one)
+            del got
+            gc.collect()
+            # the second call's chunks go straight into the kept mappings
+            monkeypatch.setattr(dist, "_on_host", lambda *a: pytest.fail("copied through the host buffer"))
+        pool.close()
+        dist.drop_unlinked_mappings()
