@@ -21,7 +21,9 @@ ranges (each worker draws its points and builds its tables on its device), a red
 sweep returns its reductions, an island its best and summary, a fit of data already on
 the workers (:func:`fit_on_cluster` of futures) its results, and the objectives of
 ``evaluate_sobol`` and a fit's per-problem arrays are written by the worker processes of
-this host into shared memory (:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
+this host into shared memory (:class:`SharedColumns`; ``evaluate_sobol``'s files kept for
+the next call once its result has gone, :class:`ChunkFiles`), and each worker process
+keeps the memory it frees for its next chunk (:func:`keep_freed_memory`). With ``local_cluster(devices, processes=False)`` the workers
 are threads of this process, each driving its own device: Dask hands them contiguous
 arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
 under the GIL, so what travels here is contiguous), which suits one GPU fed from this
@@ -1117,7 +1119,8 @@ class ChunkFiles:
                 pass
 
 
-#: At most this many files' mappings kept per process (:func:`_written_mapping`).
+#: At most this many files' mappings kept per process (:func:`_written_mapping`); on a GPU
+#: worker each is page-locked (:func:`_device_address`), host memory the kernel cannot swap.
 MAPPED_FILES = 64
 
 
