@@ -22,7 +22,7 @@ later call writes again: tawarp.distributed.ChunkFiles):
 * ``kept``: the copy into a populated mapping made before the start: a worker's later
   writes of that file (tawarp.distributed._written_mapping).
 
-    python bench/shared_write.py --processes 1,2 --mb 512
+    python bench/shared_write.py --processes 1,2 --mb 512 [--out bench/results/NAME.json]
 """
 
 from __future__ import annotations
@@ -39,6 +39,7 @@ import time
 import numpy as np
 
 from tawarp.distributed import MADV_POPULATE_WRITE
+from _results import write_result
 
 WAYS = ("pwrite", "mapped", "populated", "files", "rewrite", "remap", "kept")
 #: The ways that write a file of each process's own.
@@ -113,6 +114,7 @@ def main(argv=None) -> int:
     ap.add_argument("--processes", default="1,2", help="writer counts, comma separated (default 1,2)")
     ap.add_argument("--mb", type=int, default=512, help="MB per process (default 512)")
     ap.add_argument("--repeats", type=int, default=3, help="runs per case, the best kept (default 3)")
+    ap.add_argument("--out", default=None, help="JSON output (default: print it only)")
     args = ap.parse_args(argv)
     size = args.mb << 20
     out = {
@@ -128,6 +130,8 @@ def main(argv=None) -> int:
         out["gb_per_cpu_s"][k] = {w: max(c for _, c in v) for w, v in runs.items()}
         print(k, json.dumps(out["gb_per_s"][k]), json.dumps(out["gb_per_cpu_s"][k]), flush=True)
     print(json.dumps(out, indent=1))
+    if args.out:
+        write_result(dict(out, command="python bench/shared_write.py " + " ".join(sys.argv[1:])), "", args.out)
     return 0
 
 
