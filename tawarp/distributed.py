@@ -73,8 +73,8 @@ class DevicePlugin:
     the device ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU
     batches. Workers without an integer name keep the default device. ``pinned``: each
     worker a process of its own (:func:`local_cluster`), its GPU checked, its memory
-    kept between chunks (:func:`keep_freed_memory`) and its mappings of shared files
-    that were unlinked dropped (:func:`drop_unlinked_mappings`)."""
+    kept between chunks (:func:`keep_freed_memory`) and its :func:`housekeeping` done
+    every :data:`HOUSEKEEPING_SECONDS` seconds."""
 
     def __init__(self, devices, cpu_threads: int = 1, pinned: bool = False):
         self.devices = list(devices)
@@ -93,8 +93,8 @@ class DevicePlugin:
             # go once this process drops its mappings of them
             from tornado.ioloop import PeriodicCallback
 
-            check = PeriodicCallback(drop_unlinked_mappings, 1000 * UNLINKED_CHECK)
-            worker.periodic_callbacks["tawarp-unlinked-mappings"] = check
+            check = PeriodicCallback(lambda: housekeeping(worker), 1000 * HOUSEKEEPING_SECONDS)
+            worker.periodic_callbacks["tawarp-housekeeping"] = check
             check.start()
         if self.pinned and str(worker.tawarp_device).startswith("cuda"):
             # CUDA reads CUDA_VISIBLE_DEVICES once, when it starts: had something started it
@@ -124,7 +124,8 @@ def keep_freed_memory() -> bool:
     every array above it is then a fresh mapping, its pages faulted in and zeroed again at
     every chunk, and the faults of several workers at once contend in the kernel (an
     island on each of four H100s: 115k faults and 0.5-0.7 s of kernel time in 2.4 s).
-    A worker then holds its peak heap between chunks, as it needs it for the next."""
+    A worker then holds its peak heap between chunks, as it needs it for the next, unless
+    that nears its memory limit (:func:`housekeeping`)."""
     import ctypes
 
     try:
@@ -133,6 +134,30 @@ def keep_freed_memory() -> bool:
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
     return all(mallopt(k, v) == 1 for k, v in WORKER_MALLOC.items())
+
+
+#: Share of a worker's memory limit past which it gives its freed heap back to the kernel
+#: (:func:`housekeeping`): below Dask's pause (0.8 of the limit by default), which a heap
+#: kept whole could hold a worker in with no task running.
+TRIM_SHARE = 0.6
+
+
+def housekeeping(worker) -> bool:
+    """What a worker process of :func:`local_cluster` does every :data:`HOUSEKEEPING_SECONDS`
+    seconds: its mappings of unlinked shared files dropped (:func:`drop_unlinked_mappings`),
+    and the heap it keeps (:func:`keep_freed_memory`) given back to the kernel where the
+    process's memory passes :data:`TRIM_SHARE` of its limit. Returns whether it did so."""
+    import ctypes
+
+    drop_unlinked_mappings()
+    limit = getattr(getattr(worker, "memory_manager", None), "memory_limit", None)
+    if not limit or worker.monitor.get_process_memory() <= TRIM_SHARE * limit:
+        return False
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError, TypeError):  # (not glibc)
+        return False
+    return True
 
 
 def gpu_cpus(pci_bus_id: str | None, devices: str = "/sys/bus/pci/devices") -> set[int] | None:
@@ -1147,7 +1172,7 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
     into the mapping is then all a write costs, its mapping and page tables made once and
     kept), else None (a fresh file: the write call allocates its pages the cheapest way).
     Mappings of files their pool has unlinked are dropped here and every
-    :data:`UNLINKED_CHECK` seconds (:func:`drop_unlinked_mappings`); at most
+    :data:`HOUSEKEEPING_SECONDS` seconds (:func:`drop_unlinked_mappings`); at most
     :data:`MAPPED_FILES` are kept."""
     with _WRITTEN_LOCK:
         _drop_unlinked()
@@ -1223,9 +1248,9 @@ def _device_address(path: str, device) -> int | None:
     return held.address
 
 
-#: Seconds between a worker's checks for mappings of unlinked files (:class:`DevicePlugin`):
-#: the tmpfs pages of a file stay while a mapping holds them.
-UNLINKED_CHECK = 2.0
+#: Seconds between a worker's :func:`housekeeping` (:class:`DevicePlugin`): the tmpfs pages
+#: of an unlinked file stay while a mapping holds them.
+HOUSEKEEPING_SECONDS = 2.0
 
 
 def drop_unlinked_mappings() -> None:

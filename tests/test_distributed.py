@@ -316,7 +316,7 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         if sys.platform == "linux":
             assert all(f < 5 * 256 for f in procs.run(faults).values())
         # and drops its mappings of shared files once their pool has unlinked them
-        checks = procs.run(lambda dask_worker: dask_worker.periodic_callbacks["tawarp-unlinked-mappings"].is_running())
+        checks = procs.run(lambda dask_worker: dask_worker.periodic_callbacks["tawarp-housekeeping"].is_running())
         assert list(checks.values()) == [True, True]
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         # Sobol points drawn on the workers, their objectives written in shared memory
@@ -768,3 +768,39 @@ def test_sobol_chunks_copied_straight_into_pooled_files_equal_one_process(monkey
             monkeypatch.setattr(dist, "_on_host", lambda *a: pytest.fail("copied through the host buffer"))
         pool.close()
         dist.drop_unlinked_mappings()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="glibc's malloc")
+def test_a_worker_near_its_memory_limit_gives_its_kept_heap_back():
+    # a worker process keeps the heap it frees (keep_freed_memory) until its memory passes
+    # TRIM_SHARE of its limit: then housekeeping returns it to the kernel. In a process of
+    # its own: 64 MB of 1 MB arrays freed stay resident, and go under a limit they pass
+    import subprocess
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        import types
+        import numpy as np
+        import psutil
+        from tawarp.distributed import TRIM_SHARE, housekeeping, keep_freed_memory
+
+        def worker(limit):
+            memory = psutil.Process().memory_info().rss
+            return types.SimpleNamespace(
+                memory_manager=types.SimpleNamespace(memory_limit=limit),
+                monitor=types.SimpleNamespace(get_process_memory=lambda: memory),
+            )
+
+        assert keep_freed_memory()
+        arrays = [np.ones(1 << 17) for _ in range(64)]
+        del arrays
+        kept = psutil.Process().memory_info().rss
+        assert not housekeeping(worker(None)) and not housekeeping(worker(2 * kept / TRIM_SHARE))
+        assert psutil.Process().memory_info().rss > kept - (8 << 20)
+        assert housekeeping(worker(kept / TRIM_SHARE - 1))
+        assert psutil.Process().memory_info().rss < kept - (48 << 20)
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ})
+    assert run.returncode == 0, run.stderr
