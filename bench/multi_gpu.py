@@ -54,7 +54,9 @@ has its workers' GPUs (``worker_gpus``, PCI bus ids), the JSON the host's
 ``threads_per_core`` and ``gpu_topology`` (``nvidia-smi topo -m``). The islands add ``island_client_seconds`` (opening the study, merging
 the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
-appends, on the disk of ``--study-dir``, default a temporary folder).
+appends, on the disk of ``--study-dir``, default a temporary folder), and each island's
+own seconds of each part (``island_sampler_seconds``, ``island_evaluation_seconds``,
+``island_storage_seconds``, ``island_trial_store_seconds``).
 
 Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
 NUMA node where the host says (:func:`tawarp.distributed.near_gpu`).
@@ -538,6 +540,11 @@ class Bench:
             "island_storage_share": tm["storage"] / (k * wall),
             "island_evaluation_share": tm["evaluation"] / (k * wall),
             "island_walls": [i["wall"] for i in tm["islands"]],
+            # each island's own split: which part spreads or grows with the islands
+            **{
+                f"island_{part}_seconds": [i.get(part) for i in tm["islands"]]
+                for part in ("sampler", "evaluation", "storage", "trial_store")
+            },
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,
         }
