@@ -962,10 +962,12 @@ class SharedColumns:
         if self.chunks:
             part = self._chunk(at)
             off, first = part.offsets(mmap.PAGESIZE), 0
-            if self.files and (held := _written_mapping(part.path, off[None])) is not None:
-                for k, _, data in pieces:
-                    np.frombuffer(held, dtype=np.uint8, count=data.size, offset=off[k])[:] = data
-                return
+            if self.files:
+                with _WRITTEN_LOCK:  # (no mapping dropped under the copies)
+                    if (held := _written_mapping(part.path, off[None])) is not None:
+                        for k, _, data in pieces:
+                            np.frombuffer(held, dtype=np.uint8, count=data.size, offset=off[k])[:] = data
+                        return
             # a pooled file is the client's: one it dropped (its call failed) stays gone
             flags = os.O_RDWR if self.files else os.O_RDWR | os.O_CREAT | os.O_TRUNC
             fd = os.open(part.path, flags, 0o600)
