@@ -26,14 +26,18 @@ is timed:
 * ``evaluations``: :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` of
   ``--points`` Sobol points of the rvc_foam space: each worker draws its chunks' points
   and builds their tables on its device; the objectives come back through shared memory
-  (worker processes of this host) or Dask;
+  (worker processes of this host) or Dask. The first call (``evaluation_first_seconds``)
+  writes fresh ``/dev/shm`` pages; the timed calls after it write the files of the call
+  before, let go (``tawarp.distributed.ChunkFiles``), as a caller evaluating batch after
+  batch;
 * ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
 * ``islands``: :func:`tawarp.design.islands.search_islands`, a batched CMA-ES island per
   worker (``--island-trials`` trials of ``--island-batch`` each, committed once a second;
   one journal study with its trial store, each island its own journal, their summaries
-  merged into the study at the end).
+  merged into the study at the end); ``--repeats`` runs, each into a new study, the
+  fastest kept (``island_call_seconds``: every run's).
 
 Each case's ``*_phases`` say where its best call's wall time went (:func:`phases`, from
 the scheduler's task stream): ``head`` (the client before the first task computes),
@@ -51,7 +55,9 @@ has its workers' GPUs (``worker_gpus``, PCI bus ids), the JSON the host's
 ``threads_per_core`` and ``gpu_topology`` (``nvidia-smi topo -m``). The islands add ``island_client_seconds`` (opening the study, merging
 the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_trials``) and
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
-appends, on the disk of ``--study-dir``, default a temporary folder).
+appends, on the disk of ``--study-dir``, default a temporary folder), and each island's
+own seconds of each part (``island_sampler_seconds``, ``island_evaluation_seconds``,
+``island_storage_seconds``, ``island_trial_store_seconds``).
 
 Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
 NUMA node where the host says (:func:`tawarp.distributed.near_gpu`).
@@ -70,6 +76,7 @@ worker killed) is recorded in its row (``errors``) and the run exits with status
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import faulthandler
 import hashlib
 import json
@@ -242,11 +249,17 @@ def phases(client, t0: float, t1: float, done=frozenset()) -> dict:
 
 def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
     """Each worker's parts of one chunk of ``ev.evaluate_sobol`` (``chunk`` points), every
-    worker at once, as the timed call runs them: ``device`` [s] (its points drawn, the
+    worker at once, as the timed calls run them: ``device`` [s] (its points drawn, the
     kernels, the objective columns made, to the device's end), ``copy`` (into the
-    worker's host buffer), ``write`` (into a shared-memory file of its own) with the
-    kernel's CPU time of the write (``write_sys``) and its page faults; the best of three.
-    Their growth with the workers says which part of a chunk does not scale."""
+    worker's host buffer), ``write`` (into a fresh shared-memory file of its own, as the
+    first call) with the kernel's CPU time of the write (``write_sys``) and its page
+    faults, ``remap`` (into that file again: the worker's mapping of it made, as a later
+    call's first write of a pooled file), ``rewrite`` (once more, through the kept
+    mapping), ``register`` and ``direct`` (the device's columns copied straight into the
+    kept mapping, as a later call's chunks are: the first time a GPU's driver page-locks
+    the mapping; None where it would not, and the chunks go through ``copy`` and
+    ``rewrite``); the best of three. Their growth with the workers says which part of a
+    chunk does not scale."""
     workers = list(ev.client.scheduler_info()["workers"])
     futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
     return dict(zip(workers, ev.client.gather(futures)))
@@ -257,7 +270,7 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
 
     import warp as wp
 
-    from tawarp.distributed import SharedColumns, _on_host, _worker_evaluator
+    from tawarp.distributed import ChunkFiles, SharedColumns, _on_host, _worker_evaluator, drop_unlinked_mappings
 
     ev, tables = _worker_evaluator(key, spec)
     best = {}
@@ -269,23 +282,39 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
         t1 = time.perf_counter()
         host = dict(zip(ev.columns, _on_host(key, columns)))
         t2, r0 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
-        out = SharedColumns.create(chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
-        if out is None:  # (no room in /dev/shm: the timed calls send the objectives through Dask too)
+        out = SharedColumns("", chunk, {k: (v.dtype.str, v.shape[1:]) for k, v in host.items()}, chunks=(0,))
+        pool = ChunkFiles()
+        files = pool.take(out.chunk_sizes())
+        if files is None:  # (no room in /dev/shm: the timed calls send the objectives through Dask too)
             return {"device": t1 - t0, "copy": t2 - t1, "write": None}
+        out = dataclasses.replace(out, files=files)
         try:
             out.write(0, host)
+            t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+            out.write(0, host)
+            t4 = time.perf_counter()
+            out.write(0, host)
+            t5 = time.perf_counter()
+            direct = out.write_device(0, ev.columns, columns)  # (a GPU's driver page-locks the mapping first)
+            t6 = time.perf_counter()
+            direct = direct and out.write_device(0, ev.columns, columns)
+            t7 = time.perf_counter()
         finally:
-            out.remove()
-        t3, r1 = time.perf_counter(), resource.getrusage(resource.RUSAGE_THREAD)
+            pool.close()
+            drop_unlinked_mappings()
         now = {
             "device": t1 - t0,
             "copy": t2 - t1,
             "write": t3 - t2,
             "write_sys": r1.ru_stime - r0.ru_stime,
             "write_minflt": r1.ru_minflt - r0.ru_minflt,
+            "remap": t4 - t3,
+            "rewrite": t5 - t4,
+            "register": t6 - t5 if direct else None,
+            "direct": t7 - t6 if direct else None,
             "bytes": sum(v.nbytes for v in host.values()),
         }
-        best = {k: min(v, best.get(k, np.inf)) for k, v in now.items()}
+        best = {k: min((x for x in (v, best.get(k)) if x is not None), default=None) for k, v in now.items()}
     return best
 
 
@@ -434,17 +463,27 @@ class Bench:
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
         # (each worker's host buffer grown to a chunk before the timing, by the probe)
         probe = evaluation_probe(ev, min(n, self.args.eval_chunk)) if ev.shared else None
+        # the first call writes fresh shared memory; the later ones, timed, write the files
+        # of the call before, let go (ChunkFiles), as a caller evaluating batch after batch
+        first, out, _, first_ph = timed(lambda: ev.evaluate_sobol(n, seed=1), 1, client)
+        del out
         t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
-        return {
+        row = {
             "evaluation_phases": ph,
             "evaluation_probe": probe,
             "evaluation_points": n,
+            "evaluation_first_seconds": first,
+            "evaluation_first_phases": first_ph,
             "evaluation_seconds": t,
             "evaluation_client_cpu_seconds": cpu,
             "evaluations_per_s": n / t,
+            "evaluations_first_call_per_s": n / first,
             "evaluations_shared_memory": ev.shared,
             "evaluations_digest": digest(out),
         }
+        del out
+        ev.close()
+        return row
 
     def sweep(self, client, k: int) -> dict:
         a = self.args
@@ -473,15 +512,19 @@ class Bench:
         kw = dict(objectives=("gradient",), batch=a.island_batch, seed=0, commit_seconds=1.0)
         folder = a.study_dir or self.tmp
         warm = os.path.join(folder, f"warm{k}.journal")
-        for f in (warm, os.path.join(folder, f"islands{k}.journal")):
+        studies = [os.path.join(folder, f"islands{k}.{r}.journal") for r in range(a.repeats)]
+        for f in [warm] + studies:
             _remove_study(f)  # (an earlier run's, which the search would resume)
         search_islands(client, self.space, storage=warm, n_trials=2 * a.island_batch, **kw)
-        storage = os.path.join(folder, f"islands{k}.journal")
-        _, res, cpu, ph = timed(
-            lambda: search_islands(client, self.space, storage=storage, n_trials=a.island_trials, **kw), 1, client
-        )
+        # each repeat a study of its own (the same one again would resume it), the fastest kept
+        runs = [
+            timed(lambda: search_islands(client, self.space, storage=s, n_trials=a.island_trials, **kw), 1, client)
+            for s in studies
+        ]
+        walls = [t for t, *_ in runs]
+        _, res, cpu, ph = min(runs, key=lambda run: run[0])
         if a.study_dir:  # (the temporary folder goes by itself)
-            for f in (warm, storage):
+            for f in [warm] + studies:
                 _remove_study(f)
         tm = res.timing
         wall = tm["wall"]
@@ -502,6 +545,12 @@ class Bench:
             "island_storage_share": tm["storage"] / (k * wall),
             "island_evaluation_share": tm["evaluation"] / (k * wall),
             "island_walls": [i["wall"] for i in tm["islands"]],
+            "island_call_seconds": walls,
+            # each island's own split: which part spreads or grows with the islands
+            **{
+                f"island_{part}_seconds": [i.get(part) for i in tm["islands"]]
+                for part in ("sampler", "evaluation", "storage", "trial_store")
+            },
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,
         }
@@ -520,12 +569,19 @@ def _worker_gpus(client) -> dict:
 
 
 def host_topology() -> dict:
-    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings) and the
-    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share."""
+    """How many CPUs share a core (``threads_per_core``, from CPU 0's siblings), the
+    GPUs' links (``nvidia-smi topo -m``, where there is one): what the workers share; and
+    the kernel's transparent huge page settings (anonymous memory, tmpfs)."""
     import shutil
     import subprocess
 
-    out = {"threads_per_core": None, "gpu_topology": None}
+    out = {"threads_per_core": None, "gpu_topology": None, "transparent_hugepage": {}}
+    for name in ("enabled", "shmem_enabled"):  # (huge pages: a fault per 2 MB, not per 4 kB)
+        try:
+            with open(f"/sys/kernel/mm/transparent_hugepage/{name}") as f:
+                out["transparent_hugepage"][name] = f.read().strip()
+        except OSError:
+            pass
     try:
         with open("/sys/devices/system/cpu/cpu0/topology/thread_siblings_list") as f:
             out["threads_per_core"] = sum(

@@ -21,7 +21,9 @@ ranges (each worker draws its points and builds its tables on its device), a red
 sweep returns its reductions, an island its best and summary, a fit of data already on
 the workers (:func:`fit_on_cluster` of futures) its results, and the objectives of
 ``evaluate_sobol`` and a fit's per-problem arrays are written by the worker processes of
-this host into shared memory (:class:`SharedColumns`). With ``local_cluster(devices, processes=False)`` the workers
+this host into shared memory (:class:`SharedColumns`; ``evaluate_sobol``'s files kept for
+the next call once its result has gone, :class:`ChunkFiles`), and each worker process
+keeps the memory it frees for its next chunk (:func:`keep_freed_memory`). With ``local_cluster(devices, processes=False)`` the workers
 are threads of this process, each driving its own device: Dask hands them contiguous
 arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
 under the GIL, so what travels here is contiguous), which suits one GPU fed from this
@@ -40,12 +42,14 @@ Other clusters (several machines): start one ``dask worker --nthreads 1`` per GP
 from __future__ import annotations
 
 import dataclasses
+import functools
 import mmap
 import os
 import re
 import sys
 import threading
 import uuid
+import weakref
 from collections import deque
 
 import numpy as np
@@ -67,7 +71,10 @@ def _distributed():
 class DevicePlugin:
     """Worker plugin giving worker ``name`` (an int, as :func:`local_cluster` names them)
     the device ``devices[name % len(devices)]`` and ``cpu_threads`` threads for CPU
-    batches. Workers without an integer name keep the default device."""
+    batches. Workers without an integer name keep the default device. ``pinned``: each
+    worker a process of its own (:func:`local_cluster`), its GPU checked, its memory
+    kept between chunks (:func:`keep_freed_memory`) and its :func:`housekeeping` done
+    every :data:`HOUSEKEEPING_SECONDS` seconds."""
 
     def __init__(self, devices, cpu_threads: int = 1, pinned: bool = False):
         self.devices = list(devices)
@@ -80,6 +87,15 @@ class DevicePlugin:
         except (TypeError, ValueError):
             worker.tawarp_device = None
         worker.tawarp_cpu_threads = self.cpu_threads
+        if self.pinned:
+            keep_freed_memory()
+            # a pool's files unlinked while no task writes (the evaluator gone): their pages
+            # go once this process drops its mappings of them
+            from tornado.ioloop import PeriodicCallback
+
+            check = PeriodicCallback(lambda: housekeeping(worker), 1000 * HOUSEKEEPING_SECONDS)
+            worker.periodic_callbacks["tawarp-housekeeping"] = check
+            check.start()
         if self.pinned and str(worker.tawarp_device).startswith("cuda"):
             # CUDA reads CUDA_VISIBLE_DEVICES once, when it starts: had something started it
             # before the variable was set, every worker would drive the first GPU
@@ -92,6 +108,56 @@ class DevicePlugin:
                     f"CUDA_VISIBLE_DEVICES={os.environ.get('CUDA_VISIBLE_DEVICES')!r} (CUDA started before it was set)"
                 )
             near_gpu(wp.get_device("cuda:0").pci_bus_id)
+
+
+#: glibc's ``mallopt`` parameters (malloc.h) and the values a worker process sets:
+#: blocks up to 32 MB (the most glibc allows) from its heap, and the top of the heap
+#: returned to the kernel only past 2 GB.
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
+WORKER_MALLOC = {M_MMAP_THRESHOLD: 32 << 20, M_TRIM_THRESHOLD: (1 << 31) - 1}
+
+
+def keep_freed_memory() -> bool:
+    """This process's C heap keeps the memory it frees for the next allocations (glibc:
+    :data:`WORKER_MALLOC`; False elsewhere). Dask's nanny starts a worker with
+    ``MALLOC_TRIM_THRESHOLD_=65536``, which also fixes glibc's mmap threshold at 128 kB:
+    every array above it is then a fresh mapping, its pages faulted in and zeroed again at
+    every chunk, and the faults of several workers at once contend in the kernel (an
+    island on each of four H100s: 115k faults and 0.5-0.7 s of kernel time in 2.4 s).
+    A worker then holds its peak heap between chunks, as it needs it for the next, unless
+    that nears its memory limit (:func:`housekeeping`)."""
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (AttributeError, OSError, TypeError):  # (not glibc; TypeError: Windows' CDLL(None))
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return all(mallopt(k, v) == 1 for k, v in WORKER_MALLOC.items())
+
+
+#: Share of a worker's memory limit past which it gives its freed heap back to the kernel
+#: (:func:`housekeeping`): below Dask's pause (0.8 of the limit by default), which a heap
+#: kept whole could hold a worker in with no task running.
+TRIM_SHARE = 0.6
+
+
+def housekeeping(worker) -> bool:
+    """What a worker process of :func:`local_cluster` does every :data:`HOUSEKEEPING_SECONDS`
+    seconds: its mappings of unlinked shared files dropped (:func:`drop_unlinked_mappings`),
+    and the heap it keeps (:func:`keep_freed_memory`) given back to the kernel where the
+    process's memory passes :data:`TRIM_SHARE` of its limit. Returns whether it did so."""
+    import ctypes
+
+    drop_unlinked_mappings()
+    limit = getattr(getattr(worker, "memory_manager", None), "memory_limit", None)
+    if not limit or worker.monitor.get_process_memory() <= TRIM_SHARE * limit:
+        return False
+    try:
+        ctypes.CDLL(None).malloc_trim(0)
+    except (AttributeError, OSError, TypeError):  # (not glibc)
+        return False
+    return True
 
 
 def gpu_cpus(pci_bus_id: str | None, devices: str = "/sys/bus/pci/devices") -> set[int] | None:
@@ -678,7 +744,8 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns 
         out.write(at, res)
         return None
     columns = ev.metric_columns(metrics, ev.columns, wp.float64)
-    out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
+    if not out.write_device(at, ev.columns, columns):
+        out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
     return None
 
 
@@ -817,13 +884,17 @@ class SharedColumns:
     whole into a file of its own (``path.ROW``, its columns at page-aligned offsets), with
     the write call and no lock shared with another writer, which the reader maps back to
     back into one range of its addresses (:class:`AddressRange`: Linux): each chunk but the
-    last a whole number of pages in every column (a multiple of the page size in rows)."""
+    last a whole number of pages in every column (a multiple of the page size in rows).
+    ``files``: the chunks' files where a :class:`ChunkFiles` pool lends them (made by the
+    client, kept between calls: a writer finds the pages of one written before there and
+    copies into them through a mapping it keeps, :func:`_written_mapping`)."""
 
     path: str
     n: int
     layout: dict
     writers: int = 1
     chunks: tuple = ()
+    files: tuple = ()
 
     def offsets(self, align: int = 64) -> dict:
         out, at = {}, 0
@@ -840,11 +911,18 @@ class SharedColumns:
         """The chunk of ``chunks`` that starts at row ``at``, as columns of its own file."""
         i = self.chunks.index(at)
         end = self.chunks[i + 1] if i + 1 < len(self.chunks) else self.n
-        return SharedColumns(f"{self.path}.{at}", end - at, self.layout)
+        return SharedColumns(self.files[i] if self.files else f"{self.path}.{at}", end - at, self.layout)
 
-    def columns(self, mode: str = "r+") -> dict[str, np.ndarray]:
+    def chunk_sizes(self) -> list[int]:
+        """Bytes of each chunk's file (``chunks``)."""
+        return [self._chunk(at).offsets(mmap.PAGESIZE)[None] for at in self.chunks]
+
+    def columns(self, mode: str = "r+", on_release=None) -> dict[str, np.ndarray]:
+        """The columns, mapped from the file or the chunks' files; ``on_release()`` is
+        called once the last array on the chunks' files has gone (their pool's cue that
+        they may be written again)."""
         if self.chunks:
-            return self._stitched()
+            return self._stitched(on_release)
         off = self.offsets()
         return {
             k: np.asarray(np.memmap(self.path, dtype=dtype, mode=mode, offset=off[k], shape=(self.n,) + tuple(shape)))
@@ -852,11 +930,13 @@ class SharedColumns:
             if self.n
         }
 
-    def _stitched(self) -> dict[str, np.ndarray]:
+    def _stitched(self, on_release=None) -> dict[str, np.ndarray]:
         """The columns, each chunk file's part of a column mapped where its rows go."""
         page = mmap.PAGESIZE
         off = self.offsets(page)
         space = AddressRange(off[None])
+        if on_release is not None:
+            weakref.finalize(space, on_release)  # (after the range's unmapping: its __del__)
         for at in self.chunks:
             part = self._chunk(at)
             sections = part.offsets(page)
@@ -872,28 +952,69 @@ class SharedColumns:
 
     def write(self, at: int, res: dict) -> None:
         """Rows ``at`` .. of the columns ``res`` {name: array} (:func:`write_at`); with
-        ``chunks``, the whole chunk that starts there, into its own file."""
+        ``chunks``, the whole chunk that starts there, into its own file: a pooled file
+        (``files``) written before through this process's mapping of it, one copy."""
+        pieces = []
+        for k, v in res.items():
+            dtype, shape = self.layout[k]
+            row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+            pieces.append((k, row, np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)))
         if self.chunks:
             part = self._chunk(at)
             off, first = part.offsets(mmap.PAGESIZE), 0
-            fd = os.open(part.path, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o600)
+            if self.files:
+                with _WRITTEN_LOCK:  # (no mapping dropped under the copies)
+                    if (held := _written_mapping(part.path, off[None])) is not None:
+                        for k, _, data in pieces:
+                            np.frombuffer(held, dtype=np.uint8, count=data.size, offset=off[k])[:] = data
+                        return
+            # a pooled file is the client's: one it dropped (its call failed) stays gone
+            flags = os.O_RDWR if self.files else os.O_RDWR | os.O_CREAT | os.O_TRUNC
+            fd = os.open(part.path, flags, 0o600)
         else:
             off, first = self.offsets(), at
             fd = os.open(self.path, os.O_RDWR)
         try:
-            if self.chunks:
+            if self.chunks and os.fstat(fd).st_size != off[None]:
                 os.ftruncate(fd, off[None])
-            for k, v in res.items():
-                dtype, shape = self.layout[k]
-                row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
-                data = np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)
+            for k, row, data in pieces:
                 write_at(fd, data, off[k] + first * row, mapped=self.writers > 1 and not self.chunks)
         finally:
             os.close(fd)
 
+    def write_device(self, at: int, names: list, columns) -> bool:
+        """The rows of the (len(names), m) float64 Warp array ``columns`` (on its device),
+        one per column of ``names``, copied straight into the pooled file of the chunk
+        that starts at row ``at``, where this process keeps its mapping and the device
+        copies into it (:func:`_device_address`: one DMA per column from a GPU); False
+        where not (a fresh file, a driver that would not page-lock it: the caller copies
+        through its host buffer and :meth:`write`)."""
+        import warp as wp
+
+        if not self.files or any(self.layout[k] != ("<f8", ()) for k in names):
+            return False
+        part = self._chunk(at)
+        off, n = part.offsets(mmap.PAGESIZE), part.n
+        if tuple(columns.shape) != (len(names), n) or not n:
+            return False
+        with _WRITTEN_LOCK:  # (held while the copies run: no mapping dropped under them)
+            m = _written_mapping(part.path, off[None])
+            address = None if m is None else _device_address(part.path, columns.device)
+            if address is None:
+                return False
+            dest = wp.array(ptr=address, dtype=wp.float64, shape=(len(m) // 8,), device="cpu")
+            for j, k in enumerate(names):
+                wp.copy(dest, columns, dest_offset=off[k] // 8, src_offset=j * n, count=n)
+            wp.synchronize_device(columns.device)
+        return True
+
     def remove(self) -> None:
-        """The file and the chunks' files, those there are (their pages stay where mapped)."""
-        for path in [self.path] + [f"{self.path}.{at}" for at in self.chunks]:
+        """The file and the chunks' files, those there are (their pages stay where
+        mapped); not the pooled ``files``, which their :class:`ChunkFiles` keeps."""
+        paths = [self.path] if self.path else []
+        if not self.files:
+            paths += [f"{self.path}.{at}" for at in self.chunks]
+        for path in paths:
             try:
                 os.unlink(path)
             except FileNotFoundError:
@@ -907,22 +1028,9 @@ class SharedColumns:
         then the temporary folder) with twice its size free, or None (a worker writing past
         the end of a full tmpfs would be killed). ``layout`` None: an empty file, which the
         writers size (:meth:`sized`) once they know the columns."""
-        import tempfile
-
         size = cls("", n, layout or {}).nbytes()
-        for folder in folders or ("/dev/shm", tempfile.gettempdir()):
-            try:
-                st = os.statvfs(folder)
-            except OSError:
-                continue
-            if st.f_bavail * st.f_frsize >= 2 * size:  # (room left for the rest of the host)
-                fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
-                try:
-                    os.ftruncate(fd, size)
-                finally:
-                    os.close(fd)
-                return cls(path, n, layout, writers, tuple(chunks))
-        return None
+        folder = _shared_folder(size, folders)
+        return None if folder is None else cls(_new_file(folder, size), n, layout, writers, tuple(chunks))
 
     def sized(self, layout: dict, rows: int) -> SharedColumns | None:
         """This file with the columns ``layout``, made its size by the first writer (the
@@ -946,6 +1054,234 @@ class SharedColumns:
         return cols
 
 
+def _shared_folder(size: int, folders=None) -> str | None:
+    """The first of ``folders`` (default ``/dev/shm``, then the temporary folder) with
+    twice ``size`` bytes free, or None (a worker writing past the end of a full tmpfs
+    would be killed; the rest of the host keeps room)."""
+    import tempfile
+
+    for folder in folders or ("/dev/shm", tempfile.gettempdir()):
+        try:
+            st = os.statvfs(folder)
+        except OSError:
+            continue
+        if st.f_bavail * st.f_frsize >= 2 * size:
+            return folder
+    return None
+
+
+def _new_file(folder: str, size: int) -> str:
+    """A new file of ``size`` bytes (no pages yet) in ``folder``: its path."""
+    import tempfile
+
+    fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
+    try:
+        os.ftruncate(fd, size)
+    finally:
+        os.close(fd)
+    return path
+
+
+class ChunkFiles:
+    """Shared-memory files for the chunks of one caller's results (:class:`SharedColumns`
+    ``files``), kept between its calls. A fresh tmpfs page costs its writer an allocation
+    and a zeroing in the kernel, which several worker processes do no faster together than
+    one alone (bench/README.md, section Several GPUs): a file written before has its pages,
+    and a worker copies into them through the mapping it keeps (:func:`_written_mapping`).
+    A file is lent with a result and comes back when the last array on it has gone
+    (:meth:`SharedColumns.columns` ``on_release``), so a result still held is never
+    written again; :meth:`take` keeps at most one call's files free beside those lent and
+    unlinks the rest; :meth:`close` unlinks them all (the pages of a result still held
+    stay with its mapping). The files lie in ``/dev/shm`` (``folders``) while kept, named
+    ``tawarp-*.columns``: a process killed before :meth:`close` leaves them there."""
+
+    def __init__(self, folders=None):
+        self.folders = folders
+        self._free: deque = deque()  # (size, path); appended by finalizers in any thread
+        self._files: dict = {}  # {path: size} of every file kept, free or lent
+        self.closed = False
+
+    def take(self, sizes: list[int]) -> tuple | None:
+        """Files of ``sizes`` bytes, free ones reused and the others made, or None where
+        the new ones would not leave twice their size free; free files not taken go."""
+        free: dict = {}
+        while self._free:
+            size, path = self._free.popleft()
+            free.setdefault(size, []).append(path)
+        # (in the order they were lent and given back: chunk i of a call gets the file of
+        # chunk i of the call whose result went, which the same worker wrote)
+        taken = [free[s].pop(0) if free.get(s) else None for s in sizes]
+        folder = _shared_folder(sum(s for s, p in zip(sizes, taken) if p is None), self.folders)
+        self._unlink([p for paths in free.values() for p in paths])
+        if folder is None:
+            self._unlink([p for p in taken if p is not None])
+            return None
+        taken = [p or _new_file(folder, s) for s, p in zip(sizes, taken)]
+        self._files.update(zip(taken, sizes))
+        return tuple(taken)
+
+    def give_back(self, files) -> None:
+        """``files`` free again (their result has gone): written by the next call."""
+        if self.closed:
+            return
+        for path in files:
+            if (size := self._files.get(path)) is not None:  # (else unlinked by a close meanwhile)
+                self._free.append((size, path))
+
+    def discard(self, files) -> None:
+        """``files`` unlinked (a call that failed: a task may still write them)."""
+        self._unlink(files)
+
+    def close(self) -> None:
+        self.closed = True
+        self._unlink(list(self._files))
+        self._free.clear()
+
+    def _unlink(self, paths) -> None:
+        for path in paths:
+            self._files.pop(path, None)
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+
+
+#: At most this many files' mappings kept per process (:func:`_written_mapping`); on a GPU
+#: worker each is page-locked (:func:`_device_address`), host memory the kernel cannot swap.
+MAPPED_FILES = 64
+
+
+@dataclasses.dataclass
+class _Kept:
+    """A pooled file's mapping kept by a writer: its descriptor, the mapping and, once a
+    device has asked (:func:`_device_address`), that device and the mapping's address for
+    its copies (None: a GPU's driver would not page-lock it)."""
+
+    fd: int
+    mapping: mmap.mmap
+    device: str | None = None
+    address: int | None = None
+
+
+#: {path: _Kept} of the pooled files this process has written (:func:`_written_mapping`).
+_WRITTEN: dict = {}
+_WRITTEN_LOCK = threading.RLock()
+
+
+def _written_mapping(path: str, size: int) -> mmap.mmap | None:
+    """A writable mapping of the ``size`` bytes of the pooled file ``path`` with its pages
+    present, where the file has all of them already (written by an earlier call: a copy
+    into the mapping is then all a write costs, its mapping and page tables made once and
+    kept), else None (a fresh file: the write call allocates its pages the cheapest way).
+    Mappings of files their pool has unlinked are dropped here and every
+    :data:`HOUSEKEEPING_SECONDS` seconds (:func:`drop_unlinked_mappings`); at most
+    :data:`MAPPED_FILES` are kept."""
+    with _WRITTEN_LOCK:
+        _drop_unlinked()
+        held = _WRITTEN.get(path)
+        if held is not None and len(held.mapping) != size:
+            _drop_mapping(path)
+            held = None
+        if held is not None:
+            return held.mapping
+        try:
+            fd = os.open(path, os.O_RDWR)
+        except FileNotFoundError:
+            return None
+        st = os.fstat(fd)
+        if st.st_size != size or st.st_blocks * 512 < size:
+            os.close(fd)
+            return None
+        try:
+            m = mmap.mmap(fd, size)
+        except OSError:  # (no address space or mappings left: the write call instead)
+            os.close(fd)
+            return None
+        try:
+            m.madvise(MADV_POPULATE_WRITE)  # (page tables in one call, not a fault per page)
+        except OSError:
+            pass
+        while len(_WRITTEN) >= MAPPED_FILES:
+            _drop_mapping(next(iter(_WRITTEN)))
+        _WRITTEN[path] = _Kept(fd, m)
+        return m
+
+
+#: cuMemHostRegister's flag: the memory page-locked for every CUDA context.
+_CU_MEMHOSTREGISTER_PORTABLE = 1
+
+
+def _cuda_driver():
+    """The CUDA driver library with the signatures of the two calls used here."""
+    import ctypes
+
+    lib = ctypes.CDLL("libcuda.so.1")
+    lib.cuMemHostRegister_v2.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint)
+    lib.cuMemHostUnregister.argtypes = (ctypes.c_void_p,)
+    return lib
+
+
+def _device_address(path: str, device) -> int | None:
+    """The address of this process's kept mapping of ``path`` (:func:`_written_mapping`,
+    held) into which ``device`` copies: a CPU's copy is a memcpy into it; a GPU's driver
+    page-locks it once (``cuMemHostRegister``) so that a copy is one DMA into the file's
+    pages, as into the worker's page-locked buffer, without the copy from there. None
+    where the driver refuses (the caller copies through its buffer)."""
+    import ctypes
+
+    import warp as wp
+
+    held = _WRITTEN[path]
+    name = str(wp.get_device(device))
+    if held.device != name:
+        if held.device is not None:  # (another device: not here, one device per worker)
+            return None
+        held.device = name
+        address = ctypes.addressof(ctypes.c_char.from_buffer(held.mapping))
+        if name == "cpu":
+            held.address = address
+        else:
+            try:
+                with wp.get_device(name).context_guard:  # (its context current in this thread alone)
+                    ok = _cuda_driver().cuMemHostRegister_v2(address, len(held.mapping), _CU_MEMHOSTREGISTER_PORTABLE)
+            except (OSError, AttributeError):
+                ok = -1
+            held.address = address if ok == 0 else None
+    return held.address
+
+
+#: Seconds between a worker's :func:`housekeeping` (:class:`DevicePlugin`): the tmpfs pages
+#: of an unlinked file stay while a mapping holds them.
+HOUSEKEEPING_SECONDS = 2.0
+
+
+def drop_unlinked_mappings() -> None:
+    """The mappings :func:`_written_mapping` keeps of files since unlinked (their pool
+    closed, or the files beyond one call's), dropped with their pages."""
+    with _WRITTEN_LOCK:
+        _drop_unlinked()
+
+
+def _drop_unlinked() -> None:
+    for p, held in list(_WRITTEN.items()):
+        if os.fstat(held.fd).st_nlink == 0:
+            _drop_mapping(p)
+
+
+def _drop_mapping(path: str) -> None:
+    held = _WRITTEN.pop(path)
+    if held.address is not None and held.device != "cpu":  # (page-locked: unlocked before it is unmapped)
+        import warp as wp
+
+        with wp.get_device(held.device).context_guard:
+            _cuda_driver().cuMemHostUnregister(held.address)
+    try:
+        held.mapping.close()
+    except BufferError:  # (an array on it still alive: the mapping goes with it)
+        pass
+    os.close(held.fd)
+
+
 class ClusterEvaluator:
     """:class:`tawarp.design.evaluate.Evaluator`'s ``evaluate`` / ``evaluate_table`` over the
     cluster's workers: a table is cut into chunks of ``chunk`` points (default: the table
@@ -954,7 +1290,10 @@ class ClusterEvaluator:
     pickled between worker processes, by reference to worker threads
     (``local_cluster(..., processes=False)``); :meth:`evaluate_sobol` sends no table, and
     worker processes of this host write its results in shared memory (``shared``: None
-    decides so for a cluster of such processes, False always sends them through Dask)."""
+    decides so for a cluster of such processes, False always sends them through Dask),
+    into files kept for the next calls once a result has gone (:class:`ChunkFiles`:
+    ``/dev/shm`` holds up to one call's results beside those held, until :meth:`close`
+    or until the evaluator goes)."""
 
     def __init__(
         self,
@@ -981,6 +1320,15 @@ class ClusterEvaluator:
         self.key = uuid.uuid4().hex
         self.shared = _local_processes(client) if shared is None else bool(shared)
         self._layout = None
+        self._files = ChunkFiles()
+        weakref.finalize(self, self._files.close)
+
+    def close(self) -> None:
+        """The shared-memory files kept for later calls unlinked, and the workers' mappings
+        of them dropped (a result still held keeps its pages)."""
+        self._files.close()
+        if self.shared:
+            self.client.run(drop_unlinked_mappings)
 
     def warm_up(self) -> None:
         """Build every worker's Evaluator now (its kernels loaded, one point evaluated), so
@@ -1015,29 +1363,52 @@ class ClusterEvaluator:
         :meth:`tawarp.design.space.DeviceTable.sobol`): a task is a chunk's point range,
         its points drawn and its table built on the worker's device, so no table travels;
         only the objectives come back, written by worker processes of this host into
-        shared memory (:class:`SharedColumns`) where it has the room."""
+        shared memory (:class:`SharedColumns`) where it has the room: the files of an
+        earlier call's result that has gone are written again (their pages there, each
+        worker copying into its kept mapping), never those of a result still held."""
         starts = self._starts(n)
         tasks = [(first + lo, first + min(n, lo + starts.step), seed, lo) for lo in starts]
         out = None
         if self.shared and n:
             if self._layout is None:
                 self._layout = self.client.submit(_objective_layout, self.key, self.spec, pure=False).result()
-            out = SharedColumns.create(
-                n, self._layout, writers=_workers(self.client), chunks=_chunk_files(starts, self._layout)
-            )
+            if chunks := _chunk_files(starts, self._layout):
+                # a file per chunk from the pool: those of an earlier call's result let go
+                # are written again, their pages already there
+                out = SharedColumns("", n, self._layout, chunks=chunks)
+                files = self._files.take(out.chunk_sizes())
+                out = None if files is None else dataclasses.replace(out, files=files)
+            else:
+                out = SharedColumns.create(n, self._layout, writers=_workers(self.client))
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
+        lent = False
         try:
-            # every chunk at once (a task is a point range, a result None): the scheduler hands
-            # each worker its next chunk as it frees, where a window would hold a worker's next
-            # chunk until the chunks before it, on other workers, are done
-            for _ in ordered_map(
-                self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec, out, window=len(tasks)
-            ):
-                pass
-            return out.columns()  # (the files go; their pages stay mapped here)
+            # every chunk at once (a task is a point range, a result None), chunk i to worker
+            # i mod k where it is free (else another takes it): each worker writes the same
+            # pooled files call after call, through the mappings it keeps
+            workers = sorted(self.client.scheduler_info()["workers"])
+            futures = [
+                self.client.submit(
+                    _evaluate_sobol_chunk,
+                    task,
+                    self.key,
+                    self.spec,
+                    out,
+                    workers=[workers[i % len(workers)]],
+                    allow_other_workers=True,
+                    pure=False,
+                )
+                for i, task in enumerate(tasks)
+            ]
+            self.client.gather(futures)
+            cols = out.columns(on_release=functools.partial(self._files.give_back, out.files))
+            lent = True
+            return cols
         finally:
-            out.remove()
+            out.remove()  # (the one file goes; its pages stay mapped here)
+            if out.files and not lent:
+                self._files.discard(out.files)
 
     def evaluate_table(self, varying) -> dict[str, np.ndarray]:
         """Objectives of a (1 + len(names), n) table (NumPy, or Warp on any device)."""

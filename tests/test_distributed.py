@@ -302,14 +302,37 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         seen = procs.run(lambda: (os.getpid(), os.environ["CUDA_VISIBLE_DEVICES"]))
         assert len({pid for pid, _ in seen.values()} | {os.getpid()}) == 3
         assert [v for _, v in seen.values()] == ["", ""]
+
+        def faults():
+            import resource
+
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+            for _ in range(20):
+                np.ones(1 << 17)  # (1 MB, freed before the next)
+            return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+        # a worker keeps the memory it frees (keep_freed_memory): twenty 1 MB arrays in turn
+        # fault their 256 pages in once, not twenty times (Dask's 64 kB trim threshold)
+        if sys.platform == "linux":
+            assert all(f < 5 * 256 for f in procs.run(faults).values())
+        # and drops its mappings of shared files once their pool has unlinked them
+        checks = procs.run(lambda dask_worker: dask_worker.periodic_callbacks["tawarp-housekeeping"].is_running())
+        assert list(checks.values()) == [True, True]
         many = ClusterEvaluator(procs, space, chunk=16).evaluate(values)
         # Sobol points drawn on the workers, their objectives written in shared memory
         drawn = ClusterEvaluator(procs, space, extra=["acoustic_loss"], chunk=16)
         assert drawn.shared
         drawn.warm_up()
         sobol = drawn.evaluate_sobol(50, seed=7, first=5)
-        # chunks of two pages of points and a shorter last one: a file each, mapped as one
-        paged = ClusterEvaluator(procs, space, chunk=2 * 4096).evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
+        # chunks of two pages of points and a shorter last one: a file each, mapped as one;
+        # the files of a result let go are written again by a later call (the workers copy
+        # into their kept mappings), never those of a result still held
+        pooled = ClusterEvaluator(procs, space, chunk=2 * 4096)
+        paged = pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=3, first=1)
+        pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=4, first=1)  # (let go at once)
+        again = pooled.evaluate_sobol(2 * 2 * 4096 + 50, seed=5, first=1)
+        assert len(pooled._files._files) == 2 * 3  # (three chunks a call: the second's files reused)
+        pooled.close()
         sweep(space, tmp_path / "many.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs)
         sweep(space, tmp_path / "parts.nc", mode="sobol", n_samples=96, chunk=20, seed=2, client=procs, parts=True)
         reduced_many = sweep(space, tmp_path / "reduced_many.nc", client=procs, **reduced)
@@ -328,8 +351,9 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
     ev = Evaluator(space, extra=["acoustic_loss"])
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 55, 7)[0])
     assert set(sobol) == set(one) and all(np.array_equal(sobol[k], one[k], equal_nan=True) for k in one)
-    one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, 3)[0])
-    assert set(paged) == set(one) and all(np.array_equal(paged[k], one[k], equal_nan=True) for k in one)
+    for got, seed in ((paged, 3), (again, 5)):
+        one = Evaluator(space).evaluate_table(DeviceTable(space, ev.device).sobol(1, 1 + 4 * 4096 + 50, seed)[0])
+        assert set(got) == set(one) and all(np.array_equal(got[k], one[k], equal_nan=True) for k in one)
     assert not list(Path("/dev/shm").glob("tawarp-*"))  # the shared files went at once
     sweep(space, tmp_path / "one.nc", mode="sobol", n_samples=96, chunk=20, seed=2)
     for name in ("many.nc", "parts.nc"):  # parts: written by the worker processes
@@ -521,6 +545,62 @@ def test_chunk_files_read_back_as_one_column_each(tmp_path):
     assert np.array_equal(back["gradient"][2:], rows["gradient"][2:])
 
 
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
+def test_pooled_chunk_files_are_written_again_only_once_let_go():
+    # the files of a result still held are never lent again: a second call gets files of
+    # its own; once the first result has gone its files come back and a third call's
+    # chunks are copied into their pages (through the writer's kept mapping), read back
+    # exactly; files beyond one call's go, and closing the pool unlinks every file
+    import gc
+    import mmap
+    import tempfile
+
+    from tawarp.distributed import _WRITTEN, ChunkFiles, SharedColumns, drop_unlinked_mappings
+
+    page = mmap.PAGESIZE
+    n = 2 * page + 5
+    layout = {"gradient": ("<f8", ()), "window": ("<f4", (3,))}
+    starts = (0, page, 2 * page)
+    rng = np.random.default_rng(11)
+
+    def call(pool, seed):
+        rows = {
+            "gradient": np.random.default_rng(seed).standard_normal(n),
+            "window": np.random.default_rng(seed + 1).standard_normal((n, 3)).astype(np.float32),
+        }
+        out = SharedColumns("", n, layout, chunks=starts)
+        out = SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+        for lo in rng.permutation(starts):
+            out.write(int(lo), {k: v[lo : lo + page] for k, v in rows.items()})
+        back = out.columns(on_release=lambda: pool.give_back(out.files))
+        return rows, back, out.files
+
+    with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
+        pool = ChunkFiles(folders=[folder])
+        rows1, back1, files1 = call(pool, 1)
+        rows2, back2, files2 = call(pool, 2)
+        assert not set(files1) & set(files2)
+        del back2
+        gc.collect()
+        rows3, back3, files3 = call(pool, 3)  # (the files of the second call again)
+        assert files3 == files2 and all(f in _WRITTEN for f in files3)  # (chunk i: the same file)
+        for rows, back in ((rows1, back1), (rows3, back3)):
+            for k, v in rows.items():
+                assert np.array_equal(back[k], v), k
+        del back1, back3, back
+        gc.collect()
+        rows4, back4, files4 = call(pool, 4)
+        assert len(os.listdir(folder)) == len(starts)  # (one call's: the others' went)
+        assert all(np.array_equal(back4[k], v) for k, v in rows4.items())
+        pool.close()
+        assert not os.listdir(folder)
+        assert all(np.array_equal(back4[k], v) for k, v in rows4.items())  # (its pages stay mapped)
+        # the writer's kept mappings of the unlinked files go (a worker checks every few seconds)
+        assert any(f in _WRITTEN for f in files4)
+        drop_unlinked_mappings()
+        assert not any(f in _WRITTEN for f in files1 + files2 + files4)
+
+
 def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
     # byte ranges that start inside a page past the first mapping granule and cross page
     # boundaries, written through populated mappings, leave the file byte for byte as the
@@ -647,3 +727,80 @@ def test_sobol_chunks_written_to_shared_memory_equal_one_process(tmp_path):
     one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 65, 7)[0])
     many = out.columns()
     assert set(many) == set(one) and all(np.array_equal(many[k], one[k], equal_nan=True) for k in one)
+
+
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
+def test_sobol_chunks_copied_straight_into_pooled_files_equal_one_process(monkeypatch):
+    # a pooled chunk file written before (its pages there, the worker's mapping kept) takes
+    # the device's columns straight, without the worker's host buffer: three chunks of
+    # two pages of points and a shorter one, a first call (seed 7) then a second (seed 8)
+    # into the same files, each equal to one process's objectives
+    import gc
+    import mmap
+    import tempfile
+    import uuid
+
+    import tawarp.distributed as dist
+    from tawarp.design.evaluate import DEFAULT_FREQS
+    from tawarp.design.space import DeviceTable
+
+    space = _space()
+    spec = {"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None}
+    key = uuid.uuid4().hex
+    step = 2 * mmap.PAGESIZE
+    n = 2 * step + 10
+    starts = (0, step, 2 * step)
+    ev = Evaluator(space)
+    with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
+        pool = dist.ChunkFiles(folders=[folder])
+        layout = dist._objective_layout(key, spec)
+        for seed in (7, 8):
+            out = dist.SharedColumns("", n, layout, chunks=starts)
+            out = dist.SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+            for lo in starts:
+                assert dist._evaluate_sobol_chunk((5 + lo, 5 + min(n, lo + step), seed, lo), key, spec, out) is None
+            got = out.columns(on_release=lambda: pool.give_back(out.files))
+            one = ev.evaluate_table(DeviceTable(space, ev.device).sobol(5, 5 + n, seed)[0])
+            assert set(got) == set(one) and all(np.array_equal(got[k], one[k], equal_nan=True) for k in one)
+            del got
+            gc.collect()
+            # the second call's chunks go straight into the kept mappings
+            monkeypatch.setattr(dist, "_on_host", lambda *a: pytest.fail("copied through the host buffer"))
+        pool.close()
+        dist.drop_unlinked_mappings()
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="glibc's malloc")
+def test_a_worker_near_its_memory_limit_gives_its_kept_heap_back():
+    # a worker process keeps the heap it frees (keep_freed_memory) until its memory passes
+    # TRIM_SHARE of its limit: then housekeeping returns it to the kernel. In a process of
+    # its own: 64 MB of 1 MB arrays freed stay resident, and go under a limit they pass
+    import subprocess
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        import types
+        import numpy as np
+        import psutil
+        from tawarp.distributed import TRIM_SHARE, housekeeping, keep_freed_memory
+
+        def worker(limit):
+            memory = psutil.Process().memory_info().rss
+            return types.SimpleNamespace(
+                memory_manager=types.SimpleNamespace(memory_limit=limit),
+                monitor=types.SimpleNamespace(get_process_memory=lambda: memory),
+            )
+
+        assert keep_freed_memory()
+        arrays = [np.ones(1 << 17) for _ in range(64)]
+        del arrays
+        kept = psutil.Process().memory_info().rss
+        assert not housekeeping(worker(None)) and not housekeeping(worker(2 * kept / TRIM_SHARE))
+        assert psutil.Process().memory_info().rss > kept - (8 << 20)
+        assert housekeeping(worker(kept / TRIM_SHARE - 1))
+        assert psutil.Process().memory_info().rss < kept - (48 << 20)
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ})
+    assert run.returncode == 0, run.stderr
