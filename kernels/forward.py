@@ -393,6 +393,36 @@ def refined_error(
     err[i] = REFINED_ERROR_FACTOR * worst
 
 
+#: The most cell steps a cascade order's key tells apart (:func:`cascade_keys`); a set with
+#: more (only ever refused: :data:`MAX_CELLS`) sorts with those at the cap.
+ORDER_KEY_CAP = wp.constant(2**30)
+
+
+@wp.kernel
+def cascade_keys(
+    cells: wp.array2d(dtype=wp.int32),
+    set0: int,
+    stride: int,
+    keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+):
+    """keys[g] and order[g] = g for group g (sets set0 + g stride ... of ``stride`` sets) of
+    a cascade launch: a radix sort of the pairs on ``keys`` orders the groups by decreasing
+    cell steps over ``cells``' columns (a part at uniform temperature one step), the
+    launch's ``order`` (:func:`make_transfer_kernel`). A warp's threads are a few
+    neighbouring groups (three sampled frequencies of each of ~11 sets on the refined grid, a
+    set's frequencies on the main one), and it runs each segment's cell loop for as long as its
+    longest thread: sets drawn at random lost a fifth of the refined grid's warp time to
+    shorter neighbours (bench/README.md)."""
+    g = wp.tid()
+    i = set0 + g * stride
+    steps = int(0)
+    for c in range(cells.shape[1]):
+        steps = steps + wp.max(cells[i, c], 1)
+    keys[g] = ORDER_KEY_CAP - wp.min(steps, ORDER_KEY_CAP)
+    order[g] = g
+
+
 @wp.func
 def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, omega: wp.float64, c_cold: wp.float64):
     """Magnus cells of a thermal segment of length ``length`` [m] at cell density ``density``:
@@ -977,6 +1007,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
         set0: int,
+        order: wp.array(dtype=wp.int32),
         pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
         refined: wp.array3d(dtype=wp.float64),
@@ -989,7 +1020,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         k < refined.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
         :func:`make_point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
         Launched on points.shape[0] (m + refined.shape[1]) threads, the refined ones first:
-        they run longest, and in warps of their own they hold up no short thread.
+        they run longest, and in warps of their own they hold up no short thread. Each grid's
+        threads take the sets in ``order`` (local indices, :func:`cascade_keys`: warps of
+        sets with alike cells), or in their own order where ``order`` is empty.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
         device.
 
@@ -1017,6 +1050,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             li = t // refined.shape[1]
             j = n_freqs + t % refined.shape[1]
             grid = 1
+        if order.shape[0] > 0:
+            li = order[li]
         group = li
         li = li * stride
         i = set0 + li

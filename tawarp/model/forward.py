@@ -418,6 +418,7 @@ class Engine:
         # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
+        self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         # rows of the varying table that a set without heat input does not read (fixed cells:
         # no count adapts to them; no imposed temperatures)
@@ -678,6 +679,8 @@ class Engine:
                     f"threads in one launch: split the batch (ForwardSettings.chunk)"
                 )
             rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
+            # fixed cells: every heated set takes the same, nothing to sort
+            order = self._no_order if self.settings.cells is not None else self._order(cells, lo, g1 - g0, stride)
             wp.launch(
                 kernel,
                 dim=threads,
@@ -687,6 +690,7 @@ class Engine:
                     cells,
                     part,
                     lo,
+                    order,
                     self.pore_table,
                     rows(out),
                     rows(refined),
@@ -696,6 +700,16 @@ class Engine:
                 device=self.device,
                 block_dim=self.settings.block_dim,
             )
+
+    def _order(self, cells: wp.array, set0: int, groups: int, stride: int) -> wp.array:
+        """The cascade launch's order of its ``groups`` groups of ``stride`` sets from set
+        ``set0``: by decreasing cell steps (:func:`tawarp.kernels.forward.cascade_keys`),
+        sorted on the device."""
+        keys = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
+        order = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
+        wp.launch(kf.cascade_keys, dim=groups, inputs=[cells, set0, stride, keys, order], device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, groups)
+        return order[:groups]
 
     def _fixed_point_counts(self, columns: int) -> tuple[int, int]:
         """(points, point-kernel slots) of a set over ``columns`` // n_seg grids with fixed
