@@ -158,8 +158,8 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
 
     def counted(kernel, dim=None, inputs=None, **kw):
         if kernel is engine.transfer_kernel:
-            cells, part, lo, order = inputs[2].numpy(), inputs[3], inputs[4], inputs[5].numpy()
-            out, refined = inputs[7], inputs[8]
+            cells, part, lo, order = inputs[2].numpy(), inputs[4], inputs[5], inputs[6].numpy()
+            out, refined = inputs[8], inputs[9]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
             work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
             work["cell_steps"] += int(steps[:, n_seg:].sum()) * refined.shape[1]
@@ -167,7 +167,7 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
             work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
             work["launch_sets"].append(part.shape[0])
         elif kernel is engine.point_kernel:
-            cells, lo, part = inputs[2].numpy(), inputs[5], inputs[6]
+            cells, lo, part = inputs[2].numpy(), inputs[6], inputs[7]
             work["points"] += int(
                 np.where(cells[lo : lo + part.shape[0]] > 0, 3 * cells[lo : lo + part.shape[0]], 1).sum()
             )

@@ -235,7 +235,6 @@ def test_cascade_runs_sets_by_decreasing_cells():
     in place (test_point_blocks_equal_one_launch: one set per launch, the same bits)."""
     import warp as wp
 
-    from tawarp.kernels import forward as kf
     from tawarp.model.forward import Engine, ForwardSettings
 
     core = load_core("mesh")
@@ -243,22 +242,9 @@ def test_cascade_runs_sets_by_decreasing_cells():
     table = np.stack([rng.uniform(0, 80, 40), rng.uniform(50, 250, 40)])
     table[0, :5] = 0.0  # unheated: one step per segment
     engine = Engine(core, FREQS, ["stack.h"], ForwardSettings(device="cpu"))
-    params, _ = engine.heat(table)
-    n_seg = len(core.segments)
-    cells = wp.empty((40, 2 * n_seg), dtype=wp.int32, device="cpu")
-    wp.launch(
-        kf.cell_counts,
-        dim=40,
-        inputs=[
-            engine._sets(params),
-            engine.seg_cells,
-            wp.full(40, 1.5, dtype=wp.float64, device="cpu"),
-            engine.omega_max,
-            cells,
-            wp.zeros(3, dtype=wp.int32, device="cpu"),
-        ],
-        device="cpu",
-    )
+    params, theta = engine.heat(table)
+    density = wp.full(40, 1.5, dtype=wp.float64, device="cpu")
+    cells = engine._cell_counts(params, theta, density, 2 * len(core.segments))[0]
     steps = np.maximum(cells.numpy(), 1).sum(1)
     for set0, groups in ((0, 40), (10, 25)):
         order = engine._order(cells, set0, groups, 1).numpy()
@@ -275,7 +261,6 @@ def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
     T-matrices to the bit."""
     import warp as wp
 
-    from tawarp.kernels import forward as kf
     from tawarp.model.forward import Engine, ForwardSettings
 
     core = load_core("mesh")
@@ -284,23 +269,9 @@ def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
     n_seg = len(core.segments)
 
     def device_counts(table):
-        params, _ = eng.heat(table)
-        n = params.shape[1]
-        most = wp.zeros(3, dtype=wp.int32, device="cpu")
-        wp.launch(
-            kf.cell_counts,
-            dim=n,
-            inputs=[
-                eng._sets(params),
-                eng.seg_cells,
-                wp.full(n, 1.0, dtype=wp.float64, device="cpu"),
-                eng.omega_max,
-                wp.empty((n, n_seg), dtype=wp.int32, device="cpu"),
-                most,
-            ],
-            device="cpu",
-        )
-        return tuple(int(v) for v in most.numpy()[:2])
+        params, theta = eng.heat(table)
+        density = wp.full(params.shape[1], 1.0, dtype=wp.float64, device="cpu")
+        return tuple(int(v) for v in eng._cell_counts(params, theta, density, n_seg)[2].numpy()[:2])
 
     heated, unheated = np.array([[0.0, 40.0], [100.0, 150.0]]), np.array([[0.0, 0.0], [100.0, 150.0]])
     assert eng._fixed_point_counts(n_seg) == device_counts(heated) == (77, 27)

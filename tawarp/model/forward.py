@@ -647,14 +647,7 @@ class Engine:
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
-        cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
-        most = wp.zeros(3, dtype=wp.int32, device=self.device)
-        wp.launch(
-            kf.cell_counts,
-            dim=n,
-            inputs=[self._sets(params), self.seg_cells, density, self.omega_max, cells, most],
-            device=self.device,
-        )
+        cells, grids, most = self._cell_counts(params, theta, density, columns)
         if self.settings.cells is not None:
             n_points, n_slots = self._fixed_point_counts(columns)
         else:
@@ -669,7 +662,7 @@ class Engine:
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[self._sets(params), theta, cells, self.first, self.heat_cells, lo, part],
+                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
@@ -688,6 +681,7 @@ class Engine:
                     self._sets(params),
                     freqs,
                     cells,
+                    grids,
                     part,
                     lo,
                     order,
@@ -700,6 +694,35 @@ class Engine:
                 device=self.device,
                 block_dim=self.settings.block_dim,
             )
+
+    def _cell_counts(
+        self, params: wp.array, theta: wp.array, density: wp.array, columns: int
+    ) -> tuple[wp.array, wp.array, wp.array]:
+        """(cells, grids, most) of :func:`tawarp.kernels.forward.cell_counts` for the sets of
+        ``params`` (their heat solve ``theta``) at densities ``density`` (n,), over ``columns``
+        (the segments, or the segments of both grids)."""
+        n = params.shape[1]
+        cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
+        grids = wp.empty((n, columns), dtype=wp.vec4d, device=self.device)
+        most = wp.zeros(3, dtype=wp.int32, device=self.device)
+        wp.launch(
+            kf.cell_counts,
+            dim=n,
+            inputs=[
+                self._sets(params),
+                theta,
+                self.first,
+                self.heat_cells,
+                self.seg_cells,
+                density,
+                self.omega_max,
+                cells,
+                grids,
+                most,
+            ],
+            device=self.device,
+        )
+        return cells, grids, most
 
     def _order(self, cells: wp.array, set0: int, groups: int, stride: int) -> wp.array:
         """The cascade launch's order of its ``groups`` groups of ``stride`` sets from set
