@@ -158,7 +158,7 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
 
     def counted(kernel, dim=None, inputs=None, **kw):
         if kernel is engine.transfer_kernel:
-            cells, part, lo, order = inputs[2].numpy(), inputs[4], inputs[5], inputs[6].numpy()
+            cells, part, lo, order = inputs[2].numpy(), inputs[3], inputs[5], inputs[6].numpy()
             out, refined = inputs[8], inputs[9]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
             work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]

@@ -538,23 +538,22 @@ def cell_edge(grid: wp.vec4d, n: int, c: int):
 
 
 @wp.func
-def cell_length(grid: wp.vec4d, x0: wp.float64, x1: wp.float64):
-    """Length [m] of a cell of :func:`cell_grid`'s grid between its :func:`cell_edge` x0 and
-    x1: their difference, a uniform grid's h itself (a cascade's h, bit for bit)."""
+def cell_span(grid: wp.vec4d, n: int, c: int):
+    """Length [m] of cell c of :func:`cell_grid`'s grid of n cells: the difference of its
+    :func:`cell_edge`'s, a uniform grid's h itself (a cascade's h, bit for bit)."""
     if graded(grid):
-        return x1 - x0
+        return cell_edge(grid, n, c + 1) - cell_edge(grid, n, c)
     return grid[0]
 
 
 @wp.func
 def gauss_point(grid: wp.vec4d, n: int, c: int, g: int):
     """Local position [m] of Gauss point g (:data:`GAUSS`) of cell c of :func:`cell_grid`'s
-    grid of n cells: x_c + GAUSS[g] h_c (:func:`cell_edge`, :func:`cell_length`); on a
+    grid of n cells: x_c + GAUSS[g] h_c (:func:`cell_edge`, :func:`cell_span`); on a
     uniform grid (c + GAUSS[g]) h."""
     if not graded(grid):
         return (wp.float64(c) + GAUSS[g]) * grid[0]
-    x0 = cell_edge(grid, n, c)
-    return x0 + GAUSS[g] * cell_length(grid, x0, cell_edge(grid, n, c + 1))
+    return cell_edge(grid, n, c) + GAUSS[g] * cell_span(grid, n, c)
 
 
 @wp.func
@@ -689,8 +688,12 @@ def make_point_kernel(nonlinear: bool):
         heat_cells: int,
         set0: int,
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
     ):
-        """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
+        """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, and spans[i, p]
+        the length [m] of the cell whose first point p is (a part at uniform temperature: its
+        length), the cascade's h (:func:`cell_span`: a graded cell's length is a log's
+        difference, computed here once per set, not per frequency); launched on
         (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
         grids (``cells``' column blocks, ``grids`` their :func:`cell_grid`), and in each over
         the segments in order: one point (the cold or the imposed temperature) for a part at
@@ -732,7 +735,10 @@ def make_point_kernel(nonlinear: bool):
             if flags[s, F_IMPOSED] != 0:
                 T = seg_value(params, i, s, T_START)
             points[li, p] = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, area, r_k)
-        elif flags[s, F_IMPOSED] != 0:
+            spans[li, p] = grid[0]
+            return
+        spans[li, p + 3 * rest] = cell_span(grid, cells[i, column], rest)
+        if flags[s, F_IMPOSED] != 0:
             for g in range(3):
                 T, dT = imposed_temperature(params, i, s, gauss_point(grid, cells[i, column], rest, g))
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T, dT, phi, r, q, area, r_k)
@@ -888,6 +894,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         def segment_cells(
             sets: SetTable,
             points: wp.array2d(dtype=PointCoefficients),
+            spans: wp.array2d(dtype=wp.float64),
             step: wp.array2d(dtype=wp.float64),
             pore_table: PoreTable,
             li: int,
@@ -897,7 +904,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             p: int,
             uniform: bool,
             n_cells: int,
-            spacing: wp.vec4d,
             length: wp.float64,
             segment: PartGeometry,
             segment_model: int,
@@ -913,8 +919,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         ):
             """(m, log_scale, sigma, dm, dlog, p) after the ``n_cells`` cells of segment s
             (length [m], geometry ``segment``, pore model ``segment_model``) of set i
-            (the launch's set li), on the grid ``spacing`` (:func:`cell_grid`; the tangents'
-            d h = d length / n_cells: fixed cells, a uniform grid),
+            (the launch's set li), each cell of length spans[li, p] at its first point p
+            (:func:`make_point_kernel`; the tangents' d h = d length / n_cells: fixed cells,
+            a uniform grid),
             whose points start at points[li, p]: each cell's exp(Omega) =
             e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and sigma the
             sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the derivatives of m and
@@ -927,11 +934,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             if wp.static(channel):
                 geo = channel_geometry(segment, kind)
                 model = channel_model(segment_model, kind)
-            edge = cell_edge(spacing, n_cells, 0)
             for c in range(n_cells):
-                next_edge = cell_edge(spacing, n_cells, c + 1)
-                h = cell_length(spacing, edge, next_edge)
-                edge = next_edge
+                h = spans[li, p]
                 if wp.static(tangents == 0):
                     om = cell_exponent(
                         points, li, p, uniform, h, geo, segment, kind, omega, half_log_omega, gamma, model, pore_table
@@ -1050,6 +1054,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
     def gap_segment(
         sets: SetTable,
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
         step: wp.array2d(dtype=wp.float64),
         pore_table: PoreTable,
         li: int,
@@ -1059,7 +1064,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         p: int,
         uniform: bool,
         n_cells: int,
-        spacing: wp.vec4d,
         length: wp.float64,
         segment: PartGeometry,
         model: int,
@@ -1083,6 +1087,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         mp, sp, sigma_p, dmp, dsp, q = channel_cells(
             sets,
             points,
+            spans,
             step,
             pore_table,
             li,
@@ -1092,7 +1097,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             p,
             uniform,
             n_cells,
-            spacing,
             length,
             segment,
             model,
@@ -1109,6 +1113,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         mg, sg, sigma_g, dmg, dsg, q = channel_cells(
             sets,
             points,
+            spans,
             step,
             pore_table,
             li,
@@ -1118,7 +1123,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             p,
             uniform,
             n_cells,
-            spacing,
             length,
             segment,
             model,
@@ -1159,8 +1163,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         sets: SetTable,
         freqs: wp.array(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
-        grids: wp.array2d(dtype=wp.vec4d),
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
         set0: int,
         order: wp.array(dtype=wp.int32),
         pore_table: PoreTable,
@@ -1173,8 +1177,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         frequency freqs[j] [Hz], j < m = out.shape[1]; refined[i, k] the same at frequency
         freqs[m + k] on the refined grid (the error estimate's, :func:`refined_cells`;
         k < refined.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
-        :func:`make_point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``
-        on the grids ``grids``.
+        :func:`make_point_kernel` points ``points`` (and cell lengths ``spans``) holds and
+        :func:`cell_counts` cells ``cells``.
         Launched on points.shape[0] (m + refined.shape[1]) threads, the refined ones first:
         they run longest, and in warps of their own they hold up no short thread. Each grid's
         threads take the sets in ``order`` (local indices, :func:`cascade_keys`: warps of
@@ -1231,7 +1235,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                 if not plain_part(geo, model):  # a part this kernel does not compute: NaN, never a wrong A
                     log_scale = wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
             uniform = segment_uniform(flags, cells, i, grid * n_seg + s, s)
-            spacing = grids[i, grid * n_seg + s]
             n_cells = 1
             if not uniform:
                 n_cells = cells[i, grid * n_seg + s]
@@ -1239,6 +1242,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                 m, log_scale, sigma, dm, dlog, p = part_cells(
                     sets,
                     points,
+                    spans,
                     step,
                     pore_table,
                     li,
@@ -1248,7 +1252,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     p,
                     uniform,
                     n_cells,
-                    spacing,
                     length,
                     geo,
                     model,
@@ -1267,6 +1270,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     m, dm = gap_segment(
                         sets,
                         points,
+                        spans,
                         step,
                         pore_table,
                         li,
@@ -1276,7 +1280,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                         p,
                         uniform,
                         n_cells,
-                        spacing,
                         length,
                         geo,
                         model,
@@ -1291,6 +1294,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     m, log_scale, sigma, dm, dlog, p = part_cells(
                         sets,
                         points,
+                        spans,
                         step,
                         pore_table,
                         li,
@@ -1300,7 +1304,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                         p,
                         uniform,
                         n_cells,
-                        spacing,
                         length,
                         geo,
                         model,

@@ -88,8 +88,9 @@ HEAT_ONLY_FIELDS = (
     "end_conductance",
     "contact_resistance",
 )
-#: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
-POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
+#: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64) and
+#: its cell's length (the point kernel's ``spans``: one float64).
+POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients) + 8
 
 
 def default_device() -> str:
@@ -656,13 +657,15 @@ class Engine:
                 self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
+        spans = wp.empty((block, n_points), dtype=wp.float64, device=self.device)
         for lo in range(0, n, block):
             part = points if lo + block <= n else points[: n - lo]
+            part_spans = spans if lo + block <= n else spans[: n - lo]
             wp.launch(
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part],
+                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
@@ -681,8 +684,8 @@ class Engine:
                     self._sets(params),
                     freqs,
                     cells,
-                    grids,
                     part,
+                    part_spans,
                     lo,
                     order,
                     self.pore_table,
