@@ -7,11 +7,13 @@ Launch order for a batch of n parameter sets and m frequencies:
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
-3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and
-   :func:`make_point_kernel` (n C threads, C a set's cells) computes the frequency-independent factors of A
+3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and grades their grids to
+   the heat model's excess (:func:`cell_grid`), and :func:`make_point_kernel` (n C threads,
+   C a set's cells) computes the frequency-independent factors of A
    (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
    properties, pore scales) at every Gauss point of the set once, for all its frequencies.
-4. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
+4. :func:`cascade_keys` and a radix sort order the sets by their cells, and
+   :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
    thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
    points, adding only what depends on the frequency (pore functions, Magnus steps).
 5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
@@ -460,8 +462,8 @@ def excess_grading(
     end, lam = min(k, ln(theta_hot/theta_cold)/L): two hot ends decay less), and a Magnus
     cell's error with h^7 e^(-lam y), so cells of length h e^(lam y / 7) spread the error
     evenly: kappa = lam L / 7, positive where the hotter end is the segment's start,
-    negative where it is its end. 0 (uniform) for gradings below :data:`MIN_GRADING` or a
-    non-finite excess; at most :data:`MAX_GRADING`."""
+    negative where it is its end. 0 (uniform) for gradings below :data:`MIN_GRADING` (or
+    NaN); at most :data:`MAX_GRADING`."""
     start = wp.abs(theta[i, node0])
     end = wp.abs(theta[i, node0 + heat_cells])
     hot = wp.max(start, end)
@@ -477,6 +479,7 @@ def excess_grading(
     return kappa
 
 
+#: 1/6 (a float64 constant: a quotient of literals in a kernel is taken in float32)
 SIXTH_ROOT = wp.constant(wp.float64(1.0 / 6.0))
 
 
@@ -581,9 +584,10 @@ def segment_cells(
     is not one decaying piece: a heater's segment (its source makes the profile concave),
     imposed temperatures (linear), a heat grid of several cells (the temperature-dependent
     effects' profile, in pieces whose joins the cells straddle: graded, its error fell
-    irregularly as the cells were refined, tests/test_nonlinear_heat.py). One count for all of a set's frequencies, so that they share its points
-    (:func:`make_point_kernel`); the count's omega term is small beside its k term in a
-    stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
+    irregularly as the cells were refined, tests/test_nonlinear_heat.py). One count for all
+    of a set's frequencies, so that they share its points (:func:`make_point_kernel`); the
+    count's omega term is small beside its k term in a stack (3 % more cells than
+    per-frequency counts on bench/forward.py's sets)."""
     n_cells = seg_cells[s]
     kappa = wp.float64(0.0)
     if n_cells == 0:
@@ -633,10 +637,11 @@ def cell_counts(
     grids: wp.array2d(dtype=wp.vec4d),
     most: wp.array(dtype=wp.int32),
 ):
-    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, and grids[i, g n_seg + s]
-    their :func:`cell_grid` (h0, r): at density cell_density[i] (g = 0, :func:`segment_cells`)
-    and on the error estimate's refined grid (g = 1, where ``cells`` has its columns:
-    :func:`refined_cells` of grid 0's on the same grading); most[0] = the largest point count
+    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, and
+    grids[i, g n_seg + s] where they lie (:func:`cell_grid`): at density cell_density[i]
+    (g = 0, :func:`segment_cells`) and on the error estimate's refined grid (g = 1, where
+    ``cells`` has its columns: :func:`refined_cells` of grid 0's on the same grading);
+    most[0] = the largest point count
     of a set over the grids, most[1] its largest count of point-kernel slots
     (:func:`segment_slots`), most[2] the largest cell count of a segment (above
     :data:`MAX_CELLS`: refused on the host). ``theta``, ``first``, ``heat_cells``: the
@@ -919,13 +924,13 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         ):
             """(m, log_scale, sigma, dm, dlog, p) after the ``n_cells`` cells of segment s
             (length [m], geometry ``segment``, pore model ``segment_model``) of set i
-            (the launch's set li), each cell of length spans[li, p] at its first point p
-            (:func:`make_point_kernel`; the tangents' d h = d length / n_cells: fixed cells,
-            a uniform grid),
-            whose points start at points[li, p]: each cell's exp(Omega) =
-            e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and sigma the
-            sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the derivatives of m and
-            log_scale along the tangents' P parameters (``transfer_kernel``'s docstring).
+            (the launch's set li), whose points start at points[li, p], each cell of
+            length spans[li, q] at its first point q (:func:`make_point_kernel`; the
+            tangents' d h = d length / n_cells: fixed cells, a uniform grid): each cell's
+            exp(Omega) = e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and
+            sigma the sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the
+            derivatives of m and log_scale along the tangents' P parameters
+            (``transfer_kernel``'s docstring).
             ``kind``: the channel (read by a ``channel`` cascade only)."""
             params = sets.params
             flags = sets.flags

@@ -214,8 +214,11 @@ class ForwardSettings:
     """Numerical settings.
 
     ``cells = None`` (default): the Magnus cells of a thermal segment are
-    ``ceil(d (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
-    wavenumber at the batch's highest frequency), adapted per parameter set: one grid
+    ``ceil(d s (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
+    wavenumber at the batch's highest frequency; s <= 1 the share of them a grid graded to
+    the heat model's excess needs for the same error,
+    :func:`tawarp.kernels.forward.graded_share`, 1 on a uniform grid), adapted per
+    parameter set: one grid
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
