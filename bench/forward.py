@@ -130,7 +130,10 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     return {
         "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
         "work": work,
-        "work_ratio": {k: work["estimate"][k] / work["rule"][k] for k in ("cell_steps_per_model", "points_per_set")},
+        "work_ratio": {
+            k: work["estimate"][k] / work["rule"][k]
+            for k in ("cell_steps_per_model", "warp_cell_steps_per_model", "points_per_set")
+        },
         "seconds_best": best,
         "cost_fraction": best["estimate"] / best["rule"] - 1.0,
         "cpu_threads": 1,
@@ -144,24 +147,27 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
 def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     """What one evaluate() of ``table`` computes, counted on the host from each launch's
     inputs (a device-independent cost of the error estimate): Magnus cell steps per forward
-    model (each cascade thread's cells, a part at uniform temperature one step), points per
+    model (each cascade thread's cells, a part at uniform temperature one step; and as
+    warps run them, :func:`warp_cell_steps`), points per
     set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
     cascade launches (the first, then one per round of reruns) with their sets. Warp's
     ``launch`` is wrapped for the call."""
     n_seg = len(engine.core.segments)
-    work = {"cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
+    work = {"cell_steps": 0, "warp_cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
     launch = wp.launch
 
     def counted(kernel, dim=None, inputs=None, **kw):
         if kernel is engine.transfer_kernel:
-            cells, part, lo, out, refined = inputs[2].numpy(), inputs[3], inputs[4], inputs[6], inputs[7]
+            cells, part, lo, order = inputs[2].numpy(), inputs[3], inputs[5], inputs[6].numpy()
+            out, refined = inputs[8], inputs[9]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
             work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
             work["cell_steps"] += int(steps[:, n_seg:].sum()) * refined.shape[1]
+            work["warp_cell_steps"] += warp_cell_steps(steps, order, out.shape[1], refined.shape[1])
             work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
             work["launch_sets"].append(part.shape[0])
         elif kernel is engine.point_kernel:
-            cells, lo, part = inputs[2].numpy(), inputs[5], inputs[6]
+            cells, lo, part = inputs[2].numpy(), inputs[6], inputs[7]
             work["points"] += int(
                 np.where(cells[lo : lo + part.shape[0]] > 0, 3 * cells[lo : lo + part.shape[0]], 1).sum()
             )
@@ -175,10 +181,29 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     models = table.shape[1] * len(engine.freqs)
     return {
         "cell_steps_per_model": work["cell_steps"] / models,
+        "warp_cell_steps_per_model": work["warp_cell_steps"] / models,
         "threads_per_model": work["threads"] / models,
         "points_per_set": work["points"] / table.shape[1],
         "cascade_launch_sets": work["launch_sets"],
     }
+
+
+def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: int = 32) -> int:
+    """Cell steps of a cascade launch counted as a GPU runs them: its threads in launch order
+    (:func:`tawarp.kernels.forward.make_transfer_kernel`: the s refined ones of each set, then
+    its m main ones, the sets in ``order`` or as they come), each warp of ``warp`` threads
+    taking each segment's loop as long as its longest thread; ``steps`` (sets, columns) the
+    launch's cells (a part at uniform temperature one step). Its excess over the threads' own
+    steps (``cell_steps``) is the time lost to mixed cell counts within a warp."""
+    n_seg = steps.shape[1] // (2 if s else 1)
+    sets = order if order.size else np.arange(steps.shape[0])
+    total = 0
+    for grid, per_set in ((1, s), (0, m)):
+        threads = steps[np.repeat(sets, per_set), grid * n_seg : (grid + 1) * n_seg]
+        if threads.size:
+            pad = np.zeros((-len(threads) % warp, n_seg), dtype=threads.dtype)
+            total += warp * int(np.concatenate([threads, pad]).reshape(-1, warp, n_seg).max(1).sum())
+    return total
 
 
 def cpu_scaling(threads, n: int, min_time: float) -> dict:

@@ -7,11 +7,13 @@ Launch order for a batch of n parameter sets and m frequencies:
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
    (set, frequency) thread, see bench/forward.py).
-3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and
-   :func:`make_point_kernel` (n C threads, C a set's cells) computes the frequency-independent factors of A
+3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and grades their grids to
+   the heat model's excess (:func:`cell_grid`), and :func:`make_point_kernel` (n C threads,
+   C a set's cells) computes the frequency-independent factors of A
    (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
    properties, pore scales) at every Gauss point of the set once, for all its frequencies.
-4. :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
+4. :func:`cascade_keys` and a radix sort order the sets by their cells, and
+   :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
    thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
    points, adding only what depends on the frequency (pore functions, Magnus steps).
 5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
@@ -70,6 +72,7 @@ from .layout import (
     BYPASS_GAP,
     F_POROUS,
     F_PORE_MODEL,
+    F_HEATER,
     F_IMPOSED,
     F_THERMAL,
     HEAT_INPUT,
@@ -393,6 +396,36 @@ def refined_error(
     err[i] = REFINED_ERROR_FACTOR * worst
 
 
+#: The most cell steps a cascade order's key tells apart (:func:`cascade_keys`); a set with
+#: more (only ever refused: :data:`MAX_CELLS`) sorts with those at the cap.
+ORDER_KEY_CAP = wp.constant(2**30)
+
+
+@wp.kernel
+def cascade_keys(
+    cells: wp.array2d(dtype=wp.int32),
+    set0: int,
+    stride: int,
+    keys: wp.array(dtype=wp.int32),
+    order: wp.array(dtype=wp.int32),
+):
+    """keys[g] and order[g] = g for group g (sets set0 + g stride ... of ``stride`` sets) of
+    a cascade launch: a radix sort of the pairs on ``keys`` orders the groups by decreasing
+    cell steps over ``cells``' columns (a part at uniform temperature one step), the
+    launch's ``order`` (:func:`make_transfer_kernel`). A warp's threads are a few
+    neighbouring groups (three sampled frequencies of each of ~11 sets on the refined grid, a
+    set's frequencies on the main one), and it runs each segment's cell loop for as long as its
+    longest thread: sets drawn at random lost a fifth of the refined grid's warp time to
+    shorter neighbours (bench/README.md)."""
+    g = wp.tid()
+    i = set0 + g * stride
+    steps = int(0)
+    for c in range(cells.shape[1]):
+        steps = steps + wp.max(cells[i, c], 1)
+    keys[g] = ORDER_KEY_CAP - wp.min(steps, ORDER_KEY_CAP)
+    order[g] = g
+
+
 @wp.func
 def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, omega: wp.float64, c_cold: wp.float64):
     """Magnus cells of a thermal segment of length ``length`` [m] at cell density ``density``:
@@ -409,28 +442,161 @@ def magnus_cell_count(density: wp.float64, k: wp.float64, length: wp.float64, om
     return int(n)
 
 
+#: A Magnus cell's local error grows as its length to this power (a sixth-order scheme).
+LOCAL_ORDER = wp.constant(wp.float64(7.0))
+#: Gradings below this (:func:`excess_grading`) are taken as none: the uniform grid, on which
+#: the cells' share of :func:`graded_share` is within 1e-3 of 1.
+MIN_GRADING = wp.constant(wp.float64(1.0e-3))
+#: The steepest grading (:func:`excess_grading`): cells e^100 times longer at the cold end
+#: than at the hot one, beyond which the excess is far below rounding; e^-kappa stays normal.
+MAX_GRADING = wp.constant(wp.float64(100.0))
+
+
+@wp.func
+def excess_grading(
+    theta: wp.array2d(dtype=wp.float64), i: int, node0: int, heat_cells: int, k: wp.float64, length: wp.float64
+):
+    """kappa of :func:`cell_grid` for a thermal segment of decay rate k [1/m] and ``length``
+    [m] whose heat-model nodes node0 ... node0 + heat_cells hold set i's temperature
+    excess: the excess decays from the segment's hotter end as e^(-lam y) (y [m] from that
+    end, lam = min(k, ln(theta_hot/theta_cold)/L): two hot ends decay less), and a Magnus
+    cell's error with h^7 e^(-lam y), so cells of length h e^(lam y / 7) spread the error
+    evenly: kappa = lam L / 7, positive where the hotter end is the segment's start,
+    negative where it is its end. 0 (uniform) for gradings below :data:`MIN_GRADING` (or
+    NaN); at most :data:`MAX_GRADING`."""
+    start = wp.abs(theta[i, node0])
+    end = wp.abs(theta[i, node0 + heat_cells])
+    hot = wp.max(start, end)
+    cold = wp.min(start, end)
+    decay = k * length
+    if cold > wp.float64(0.0):
+        decay = wp.min(decay, wp.log(hot / cold))
+    kappa = wp.min(decay / LOCAL_ORDER, MAX_GRADING)
+    if not (kappa >= MIN_GRADING):
+        return wp.float64(0.0)
+    if end > start:
+        return -kappa
+    return kappa
+
+
+#: 1/6 (a float64 constant: a quotient of literals in a kernel is taken in float32)
+SIXTH_ROOT = wp.constant(wp.float64(1.0 / 6.0))
+
+
+@wp.func
+def graded_share(kappa: wp.float64):
+    """Cells on :func:`cell_grid`'s graded grid over those on a uniform one of the same
+    error, for an excess that decays as e^(-lam y) along the segment (|kappa| = lam L/7,
+    :func:`excess_grading`): with g = 7 (1 - e^(-|kappa|)) over lam L = 7 |kappa|, the graded
+    cells' length at the hot end is the uniform one's times (g / (1 - e^(-lam L)))^(-1/6),
+    for the same sum of h^6 e^(-lam y) (the error), so the share is
+    g (g / (1 - e^(-lam L)))^(1/6) / (lam L): 0.64 at lam L = 12, 1 at kappa = 0 (measured:
+    bench/README.md, "Cells graded to the excess")."""
+    a = wp.abs(kappa)
+    if a == wp.float64(0.0):
+        return wp.float64(1.0)
+    g = LOCAL_ORDER * (wp.float64(1.0) - wp.exp(-a))
+    decay = LOCAL_ORDER * a
+    return g * wp.pow(g / (wp.float64(1.0) - wp.exp(-decay)), SIXTH_ROOT) / decay
+
+
+@wp.func
+def cell_grid(kappa: wp.float64, length: wp.float64, n: int):
+    """The grid of a segment of ``length`` L [m] in n Magnus cells graded by ``kappa``
+    (:func:`excess_grading`), as :func:`cell_edge` reads it: (L/n, 0, 0, 0) uniform
+    (kappa = 0); else the boundaries y_m = (L/K) ln(1/w_m) from the hot end,
+    w_m = e^-K + (n - m) (1 - e^-K)/n (K = |kappa|, m counted from the hot end), so that
+    the cells' lengths grow as e^(K y / L): (-L/K, (1 - e^-K)/n, e^-K, 0) where the hot end
+    is the segment's start (x = y), (L/K, ..., L) where it is its end (x = L - y). A grid of
+    more cells on the same kappa (the error estimate's refined grid) is the same map cut
+    more finely."""
+    if kappa == wp.float64(0.0):
+        return wp.vec4d(length / wp.float64(n), wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
+    big = wp.abs(kappa)
+    floor = wp.exp(-big)
+    scale = length / big
+    offset = wp.float64(0.0)
+    if kappa > wp.float64(0.0):
+        scale = -scale
+    else:
+        offset = length
+    return wp.vec4d(scale, (wp.float64(1.0) - floor) / wp.float64(n), floor, offset)
+
+
+@wp.func
+def graded(grid: wp.vec4d):
+    """True for :func:`cell_grid`'s graded grids (False: uniform)."""
+    return grid[1] != wp.float64(0.0)
+
+
+@wp.func
+def cell_edge(grid: wp.vec4d, n: int, c: int):
+    """x [m] of the start of cell c (c = n: the end) of :func:`cell_grid`'s grid of n cells."""
+    if not graded(grid):
+        return wp.float64(c) * grid[0]
+    beyond = c  # cells between the edge and the cold end: here the segment's start
+    if grid[0] < wp.float64(0.0):  # the hot end is the segment's start
+        beyond = n - c
+    return grid[3] + grid[0] * wp.log(grid[2] + wp.float64(beyond) * grid[1])
+
+
+@wp.func
+def cell_span(grid: wp.vec4d, n: int, c: int):
+    """Length [m] of cell c of :func:`cell_grid`'s grid of n cells: the difference of its
+    :func:`cell_edge`'s, a uniform grid's h itself (a cascade's h, bit for bit)."""
+    if graded(grid):
+        return cell_edge(grid, n, c + 1) - cell_edge(grid, n, c)
+    return grid[0]
+
+
+@wp.func
+def gauss_point(grid: wp.vec4d, n: int, c: int, g: int):
+    """Local position [m] of Gauss point g (:data:`GAUSS`) of cell c of :func:`cell_grid`'s
+    grid of n cells: x_c + GAUSS[g] h_c (:func:`cell_edge`, :func:`cell_span`); on a
+    uniform grid (c + GAUSS[g]) h."""
+    if not graded(grid):
+        return (wp.float64(c) + GAUSS[g]) * grid[0]
+    return cell_edge(grid, n, c) + GAUSS[g] * cell_span(grid, n, c)
+
+
 @wp.func
 def segment_cells(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
     gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    first: int,
+    heat_cells: int,
     seg_cells: wp.array(dtype=wp.int32),
     density: wp.float64,
     omega_max: wp.float64,
     i: int,
     s: int,
 ):
-    """Magnus cells of segment s of set i, whose temperature varies
-    (:func:`temperature_varies`): ``seg_cells[s]``, or where that is 0
-    :func:`magnus_cell_count` (:func:`temperature_scale`) at ``density`` and the batch's highest angular frequency
-    ``omega_max`` [rad/s]. One count for all of a set's frequencies, so that they share its
-    points (:func:`make_point_kernel`); the count's omega term is small beside its k term in a
-    stack (3 % more cells than per-frequency counts on bench/forward.py's sets)."""
+    """(n, kappa): Magnus cells of segment s of set i, whose temperature varies
+    (:func:`temperature_varies`), and the grading of their grid (:func:`cell_grid`):
+    ``seg_cells[s]`` on a uniform grid (fixed cells: a fit's tangent cascade differences
+    neighbours' points at the same places), or where that is 0 :func:`magnus_cell_count`
+    (:func:`temperature_scale`) at ``density`` and the batch's highest angular frequency
+    ``omega_max`` [rad/s], on a grid graded to the heat model's excess in ``theta``
+    (:func:`excess_grading`; nodes of the thermal segments from ``first``, ``heat_cells``
+    each) with :func:`graded_share` of the uniform grid's cells. Uniform where the excess
+    is not one decaying piece: a heater's segment (its source makes the profile concave),
+    imposed temperatures (linear), a heat grid of several cells (the temperature-dependent
+    effects' profile, in pieces whose joins the cells straddle: graded, its error fell
+    irregularly as the cells were refined, tests/test_nonlinear_heat.py). One count for all
+    of a set's frequencies, so that they share its points (:func:`make_point_kernel`); the
+    count's omega term is small beside its k term in a stack (3 % more cells than
+    per-frequency counts on bench/forward.py's sets)."""
     n_cells = seg_cells[s]
+    kappa = wp.float64(0.0)
     if n_cells == 0:
         k, c = temperature_scale(params, flags, gas, i, s)
-        n_cells = magnus_cell_count(density, k, seg_value(params, i, s, LENGTH), omega_max, c)
-    return n_cells
+        length = seg_value(params, i, s, LENGTH)
+        if flags[s, F_IMPOSED] == 0 and flags[s, F_HEATER] == 0 and heat_cells == 1:
+            kappa = excess_grading(theta, i, (s - first) * heat_cells, heat_cells, k, length)
+        n_cells = magnus_cell_count(density * graded_share(kappa), k, length, omega_max, c)
+    return n_cells, kappa
 
 
 @wp.func
@@ -461,22 +627,30 @@ def segment_slots(flags: wp.array2d(dtype=wp.int32), cells: wp.array2d(dtype=wp.
 @wp.kernel
 def cell_counts(
     sets: SetTable,
+    theta: wp.array2d(dtype=wp.float64),
+    first: int,
+    heat_cells: int,
     seg_cells: wp.array(dtype=wp.int32),
     cell_density: wp.array(dtype=wp.float64),
     omega_max: wp.float64,
     cells: wp.array2d(dtype=wp.int32),
+    grids: wp.array2d(dtype=wp.vec4d),
     most: wp.array(dtype=wp.int32),
 ):
-    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g: at density
-    cell_density[i] (g = 0) and on the error estimate's refined grid (g = 1, where ``cells``
-    has its columns: :func:`refined_cells` of grid 0's); most[0] = the largest point count
+    """cells[i, g n_seg + s]: Magnus cells of segment s of set i on grid g, and
+    grids[i, g n_seg + s] where they lie (:func:`cell_grid`): at density cell_density[i]
+    (g = 0, :func:`segment_cells`) and on the error estimate's refined grid (g = 1, where
+    ``cells`` has its columns: :func:`refined_cells` of grid 0's on the same grading);
+    most[0] = the largest point count
     of a set over the grids, most[1] its largest count of point-kernel slots
     (:func:`segment_slots`), most[2] the largest cell count of a segment (above
-    :data:`MAX_CELLS`: refused on the host).
-    0 for a segment at uniform temperature: one that is neither thermal nor imposed with
-    different end temperatures, and every thermal segment of a set without heat input (its
-    heat model has no source, so theta = 0 exactly and exp(A L) is the segment's exact
-    matrix: a two-step characterization's first fits, at Q = 0, need no Magnus cell)."""
+    :data:`MAX_CELLS`: refused on the host). ``theta``, ``first``, ``heat_cells``: the
+    heat solve's excess (:func:`excess_grading`).
+    0 for a segment at uniform temperature (its grid one step of its length): one that is
+    neither thermal nor imposed with different end temperatures, and every thermal segment
+    of a set without heat input (its heat model has no source, so theta = 0 exactly and
+    exp(A L) is the segment's exact matrix: a two-step characterization's first fits, at
+    Q = 0, need no Magnus cell)."""
     i = wp.tid()
     params = sets.params
     flags = sets.flags
@@ -485,16 +659,22 @@ def cell_counts(
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
     points = int(0)
     slots = int(0)
-    for column in range(cells.shape[1]):
-        s = column % n_seg
-        cells[i, column] = 0
-        if column >= n_seg:  # grid 0's count of the segment is known: its refined grid
-            cells[i, column] = refined_cells(cells[i, s])
-        elif temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
-            cells[i, column] = segment_cells(params, flags, gas, seg_cells, cell_density[i], omega_max, i, s)
-        wp.atomic_max(most, 2, cells[i, column])
-        points = points + segment_points(flags, cells, i, column, s)
-        slots = slots + segment_slots(flags, cells, i, column, s)
+    for s in range(n_seg):
+        length = seg_value(params, i, s, LENGTH)
+        n = int(0)
+        kappa = wp.float64(0.0)
+        if temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
+            n, kappa = segment_cells(
+                params, flags, gas, theta, first, heat_cells, seg_cells, cell_density[i], omega_max, i, s
+            )
+        for g in range(cells.shape[1] // n_seg):
+            column = g * n_seg + s
+            cells[i, column] = n
+            grids[i, column] = cell_grid(kappa, length, wp.max(n, 1))
+            wp.atomic_max(most, 2, n)
+            points = points + segment_points(flags, cells, i, column, s)
+            slots = slots + segment_slots(flags, cells, i, column, s)
+            n = refined_cells(n)
     wp.atomic_max(most, 0, points)
     wp.atomic_max(most, 1, slots)
 
@@ -508,18 +688,23 @@ def make_point_kernel(nonlinear: bool):
         sets: SetTable,
         theta: wp.array2d(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
+        grids: wp.array2d(dtype=wp.vec4d),
         first: int,
         heat_cells: int,
         set0: int,
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
     ):
-        """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, launched on
+        """points[i, p]: :class:`PointCoefficients` of point p of set set0 + i, and spans[i, p]
+        the length [m] of the cell whose first point p is (a part at uniform temperature: its
+        length), the cascade's h (:func:`cell_span`: a graded cell's length is a log's
+        difference, computed here once per set, not per frequency); launched on
         (sets, the most slots of a set, :func:`segment_slots`). A set's points run over its
-        grids (``cells``' column blocks), and in each over the segments in order: one point
-        (the cold or the imposed temperature) for a part at uniform temperature, the three Gauss points
-        x + (1/2 - sqrt(15)/10, 1/2, 1/2 + sqrt(15)/10) h of each of its Magnus cells
-        (length h) for a thermal segment, a thread per cell (they share its heat cell's
-        coefficients)."""
+        grids (``cells``' column blocks, ``grids`` their :func:`cell_grid`), and in each over
+        the segments in order: one point (the cold or the imposed temperature) for a part at
+        uniform temperature, the three Gauss points x + (1/2 - sqrt(15)/10, 1/2,
+        1/2 + sqrt(15)/10) h of each of its Magnus cells [x, x + h] for a thermal segment, a
+        thread per cell (they share its heat cell's coefficients)."""
         li, slot = wp.tid()
         params = sets.params
         flags = sets.flags
@@ -549,21 +734,22 @@ def make_point_kernel(nonlinear: bool):
         s = column % n_seg
         phi, r, q = pore_geometry(params, flags, i, s)
         r_k = thermal_radius(params, flags, i, s, r)
-        n_cells = cells[i, column]
+        grid = grids[i, column]
         if segment_uniform(flags, cells, i, column, s):
             T = T_cold
             if flags[s, F_IMPOSED] != 0:
                 T = seg_value(params, i, s, T_START)
             points[li, p] = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, area, r_k)
-        elif flags[s, F_IMPOSED] != 0:
-            h = seg_value(params, i, s, LENGTH) / wp.float64(n_cells)
+            spans[li, p] = grid[0]
+            return
+        spans[li, p + 3 * rest] = cell_span(grid, cells[i, column], rest)
+        if flags[s, F_IMPOSED] != 0:
             for g in range(3):
-                T, dT = imposed_temperature(params, i, s, (wp.float64(rest) + GAUSS[g]) * h)
+                T, dT = imposed_temperature(params, i, s, gauss_point(grid, cells[i, column], rest, g))
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T, dT, phi, r, q, area, r_k)
         else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             length = seg_value(params, i, s, LENGTH)
-            h = length / wp.float64(n_cells)
             nonlin = 0
             if wp.static(nonlinear):  # compiled out of the linear kernel: fewer registers on the GPU
                 nonlin = segment_nonlinear(params, i, s)
@@ -581,7 +767,7 @@ def make_point_kernel(nonlinear: bool):
                     sigma,
                     length / wp.float64(heat_cells),
                     nonlin,
-                    (wp.float64(rest) + GAUSS[g]) * h,
+                    gauss_point(grid, cells[i, column], rest, g),
                 )
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
 
@@ -713,6 +899,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         def segment_cells(
             sets: SetTable,
             points: wp.array2d(dtype=PointCoefficients),
+            spans: wp.array2d(dtype=wp.float64),
             step: wp.array2d(dtype=wp.float64),
             pore_table: PoreTable,
             li: int,
@@ -737,10 +924,13 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         ):
             """(m, log_scale, sigma, dm, dlog, p) after the ``n_cells`` cells of segment s
             (length [m], geometry ``segment``, pore model ``segment_model``) of set i
-            (the launch's set li), whose points start at points[li, p]: each cell's exp(Omega) =
-            e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and sigma the
-            sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the derivatives of m and
-            log_scale along the tangents' P parameters (``transfer_kernel``'s docstring).
+            (the launch's set li), whose points start at points[li, p], each cell of
+            length spans[li, q] at its first point q (:func:`make_point_kernel`; the
+            tangents' d h = d length / n_cells: fixed cells, a uniform grid): each cell's
+            exp(Omega) = e^(tau + sigma_c) E multiplies m by E, log_scale sums the tau and
+            sigma the sigma_c (0 unless ``channel``), dm (P, 8) and dlog (P, 2) the
+            derivatives of m and log_scale along the tangents' P parameters
+            (``transfer_kernel``'s docstring).
             ``kind``: the channel (read by a ``channel`` cascade only)."""
             params = sets.params
             flags = sets.flags
@@ -749,8 +939,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             if wp.static(channel):
                 geo = channel_geometry(segment, kind)
                 model = channel_model(segment_model, kind)
-            h = length / wp.float64(n_cells)
             for c in range(n_cells):
+                h = spans[li, p]
                 if wp.static(tangents == 0):
                     om = cell_exponent(
                         points, li, p, uniform, h, geo, segment, kind, omega, half_log_omega, gamma, model, pore_table
@@ -869,6 +1059,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
     def gap_segment(
         sets: SetTable,
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
         step: wp.array2d(dtype=wp.float64),
         pore_table: PoreTable,
         li: int,
@@ -901,6 +1092,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         mp, sp, sigma_p, dmp, dsp, q = channel_cells(
             sets,
             points,
+            spans,
             step,
             pore_table,
             li,
@@ -926,6 +1118,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         mg, sg, sigma_g, dmg, dsg, q = channel_cells(
             sets,
             points,
+            spans,
             step,
             pore_table,
             li,
@@ -976,7 +1169,9 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         freqs: wp.array(dtype=wp.float64),
         cells: wp.array2d(dtype=wp.int32),
         points: wp.array2d(dtype=PointCoefficients),
+        spans: wp.array2d(dtype=wp.float64),
         set0: int,
+        order: wp.array(dtype=wp.int32),
         pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
         refined: wp.array3d(dtype=wp.float64),
@@ -987,9 +1182,12 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         frequency freqs[j] [Hz], j < m = out.shape[1]; refined[i, k] the same at frequency
         freqs[m + k] on the refined grid (the error estimate's, :func:`refined_cells`;
         k < refined.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
-        :func:`make_point_kernel` points ``points`` holds and :func:`cell_counts` cells ``cells``.
+        :func:`make_point_kernel` points ``points`` (and cell lengths ``spans``) holds and
+        :func:`cell_counts` cells ``cells``.
         Launched on points.shape[0] (m + refined.shape[1]) threads, the refined ones first:
-        they run longest, and in warps of their own they hold up no short thread.
+        they run longest, and in warps of their own they hold up no short thread. Each grid's
+        threads take the sets in ``order`` (local indices, :func:`cascade_keys`: warps of
+        sets with alike cells), or in their own order where ``order`` is empty.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
         device.
 
@@ -1017,6 +1215,8 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             li = t // refined.shape[1]
             j = n_freqs + t % refined.shape[1]
             grid = 1
+        if order.shape[0] > 0:
+            li = order[li]
         group = li
         li = li * stride
         i = set0 + li
@@ -1047,6 +1247,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                 m, log_scale, sigma, dm, dlog, p = part_cells(
                     sets,
                     points,
+                    spans,
                     step,
                     pore_table,
                     li,
@@ -1074,6 +1275,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     m, dm = gap_segment(
                         sets,
                         points,
+                        spans,
                         step,
                         pore_table,
                         li,
@@ -1097,6 +1299,7 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     m, log_scale, sigma, dm, dlog, p = part_cells(
                         sets,
                         points,
+                        spans,
                         step,
                         pore_table,
                         li,

@@ -228,6 +228,31 @@ def test_point_blocks_equal_one_launch(monkeypatch):
     np.testing.assert_array_equal(blocks.T, whole.T)
 
 
+def test_cascade_runs_sets_by_decreasing_cells():
+    """The cascade launch takes a batch's sets by decreasing cell steps (warps of alike
+    cells): its order is a permutation of the launch's sets, each set's steps over both
+    grids at least its successor's, sets of equal steps in their own order; the rows land
+    in place (test_point_blocks_equal_one_launch: one set per launch, the same bits)."""
+    import warp as wp
+
+    from tawarp.model.forward import Engine, ForwardSettings
+
+    core = load_core("mesh")
+    rng = np.random.default_rng(7)
+    table = np.stack([rng.uniform(0, 80, 40), rng.uniform(50, 250, 40)])
+    table[0, :5] = 0.0  # unheated: one step per segment
+    engine = Engine(core, FREQS, ["stack.h"], ForwardSettings(device="cpu"))
+    params, theta = engine.heat(table)
+    density = wp.full(40, 1.5, dtype=wp.float64, device="cpu")
+    cells = engine._cell_counts(params, theta, density, 2 * len(core.segments))[0]
+    steps = np.maximum(cells.numpy(), 1).sum(1)
+    for set0, groups in ((0, 40), (10, 25)):
+        order = engine._order(cells, set0, groups, 1).numpy()
+        np.testing.assert_array_equal(np.sort(order), np.arange(groups))
+        np.testing.assert_array_equal(order, np.argsort(-steps[set0 : set0 + groups], kind="stable"))
+    assert len(set(steps)) >= 4  # the batch's sets differ in cells (and tie: the stable order)
+
+
 def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
     """With fixed cells the cascade sizes its Gauss points from counts known on the host
     (no read-back): the device's (cell_counts) for a batch with heat input, 3 points per
@@ -236,7 +261,6 @@ def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
     T-matrices to the bit."""
     import warp as wp
 
-    from tawarp.kernels import forward as kf
     from tawarp.model.forward import Engine, ForwardSettings
 
     core = load_core("mesh")
@@ -245,23 +269,9 @@ def test_fixed_cells_size_the_points_on_the_host(monkeypatch):
     n_seg = len(core.segments)
 
     def device_counts(table):
-        params, _ = eng.heat(table)
-        n = params.shape[1]
-        most = wp.zeros(3, dtype=wp.int32, device="cpu")
-        wp.launch(
-            kf.cell_counts,
-            dim=n,
-            inputs=[
-                eng._sets(params),
-                eng.seg_cells,
-                wp.full(n, 1.0, dtype=wp.float64, device="cpu"),
-                eng.omega_max,
-                wp.empty((n, n_seg), dtype=wp.int32, device="cpu"),
-                most,
-            ],
-            device="cpu",
-        )
-        return tuple(int(v) for v in most.numpy()[:2])
+        params, theta = eng.heat(table)
+        density = wp.full(params.shape[1], 1.0, dtype=wp.float64, device="cpu")
+        return tuple(int(v) for v in eng._cell_counts(params, theta, density, n_seg)[2].numpy()[:2])
 
     heated, unheated = np.array([[0.0, 40.0], [100.0, 150.0]]), np.array([[0.0, 0.0], [100.0, 150.0]])
     assert eng._fixed_point_counts(n_seg) == device_counts(heated) == (77, 27)

@@ -184,9 +184,11 @@ def fit_cells(
 ) -> np.ndarray:
     """Magnus cells (n_segments,) the cascade kernel's adaptive rule gives each thermal
     segment at frequency ``freq`` [Hz] with parameter ``values`` {name: scalar} (0 for
-    non-thermal segments), at the cell density the error estimate of ``settings.tolerance``
-    asks for over the frequencies ``freqs`` (default ``[freq]``: then the counts are the
-    cascade's own at ``freq`` and ``heat_input`` [W], which only the estimate sees);
+    non-thermal segments) on the uniform grid of fixed cells, at the cell density the error
+    estimate of ``settings.tolerance`` asks for over the frequencies ``freqs`` (default
+    ``[freq]``: then the density is the cascade's own at ``freq`` and ``heat_input`` [W],
+    which only the estimate sees; the cascade's own grid is graded, fewer cells for the same
+    error);
     ``k_factor`` > 1 sizes for a heat decay rate k that many times larger
     (:mod:`tawarp.kernels.lm`'s ``magnus_cells``). With (n,) arrays among the values:
     (n, n_segments), one row per parameter set (each at its own estimated density), from

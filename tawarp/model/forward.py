@@ -88,8 +88,9 @@ HEAT_ONLY_FIELDS = (
     "end_conductance",
     "contact_resistance",
 )
-#: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64).
-POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients)
+#: Bytes of one point (:class:`tawarp.kernels.acoustics.PointCoefficients`: six float64) and
+#: its cell's length (the point kernel's ``spans``: one float64).
+POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients) + 8
 
 
 def default_device() -> str:
@@ -213,8 +214,11 @@ class ForwardSettings:
     """Numerical settings.
 
     ``cells = None`` (default): the Magnus cells of a thermal segment are
-    ``ceil(d (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
-    wavenumber at the batch's highest frequency), adapted per parameter set: one grid
+    ``ceil(d s (1 + k L + w L / c))`` (k the heat model's decay rate, w/c the cold
+    wavenumber at the batch's highest frequency; s <= 1 the share of them a grid graded to
+    the heat model's excess needs for the same error,
+    :func:`tawarp.kernels.forward.graded_share`, 1 on a uniform grid), adapted per
+    parameter set: one grid
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at ``cell_density`` and is raised until an error estimate is below
@@ -418,6 +422,7 @@ class Engine:
         # the plain cascade's stand-ins for the tangent kernel's step and tangent arrays
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
+        self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         # rows of the varying table that a set without heat input does not read (fixed cells:
         # no count adapts to them; no imposed temperatures)
@@ -646,14 +651,7 @@ class Engine:
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
-        cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
-        most = wp.zeros(3, dtype=wp.int32, device=self.device)
-        wp.launch(
-            kf.cell_counts,
-            dim=n,
-            inputs=[self._sets(params), self.seg_cells, density, self.omega_max, cells, most],
-            device=self.device,
-        )
+        cells, grids, most = self._cell_counts(params, theta, density, columns)
         if self.settings.cells is not None:
             n_points, n_slots = self._fixed_point_counts(columns)
         else:
@@ -662,13 +660,15 @@ class Engine:
                 self._refuse_cells(params, cells.numpy())
         block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
+        spans = wp.empty((block, n_points), dtype=wp.float64, device=self.device)
         for lo in range(0, n, block):
             part = points if lo + block <= n else points[: n - lo]
+            part_spans = spans if lo + block <= n else spans[: n - lo]
             wp.launch(
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[self._sets(params), theta, cells, self.first, self.heat_cells, lo, part],
+                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
@@ -678,6 +678,8 @@ class Engine:
                     f"threads in one launch: split the batch (ForwardSettings.chunk)"
                 )
             rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
+            # fixed cells: every heated set takes the same, nothing to sort
+            order = self._no_order if self.settings.cells is not None else self._order(cells, lo, g1 - g0, stride)
             wp.launch(
                 kernel,
                 dim=threads,
@@ -686,7 +688,9 @@ class Engine:
                     freqs,
                     cells,
                     part,
+                    part_spans,
                     lo,
+                    order,
                     self.pore_table,
                     rows(out),
                     rows(refined),
@@ -696,6 +700,45 @@ class Engine:
                 device=self.device,
                 block_dim=self.settings.block_dim,
             )
+
+    def _cell_counts(
+        self, params: wp.array, theta: wp.array, density: wp.array, columns: int
+    ) -> tuple[wp.array, wp.array, wp.array]:
+        """(cells, grids, most) of :func:`tawarp.kernels.forward.cell_counts` for the sets of
+        ``params`` (their heat solve ``theta``) at densities ``density`` (n,), over ``columns``
+        (the segments, or the segments of both grids)."""
+        n = params.shape[1]
+        cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
+        grids = wp.empty((n, columns), dtype=wp.vec4d, device=self.device)
+        most = wp.zeros(3, dtype=wp.int32, device=self.device)
+        wp.launch(
+            kf.cell_counts,
+            dim=n,
+            inputs=[
+                self._sets(params),
+                theta,
+                self.first,
+                self.heat_cells,
+                self.seg_cells,
+                density,
+                self.omega_max,
+                cells,
+                grids,
+                most,
+            ],
+            device=self.device,
+        )
+        return cells, grids, most
+
+    def _order(self, cells: wp.array, set0: int, groups: int, stride: int) -> wp.array:
+        """The cascade launch's order of its ``groups`` groups of ``stride`` sets from set
+        ``set0``: by decreasing cell steps (:func:`tawarp.kernels.forward.cascade_keys`),
+        sorted on the device."""
+        keys = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
+        order = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
+        wp.launch(kf.cascade_keys, dim=groups, inputs=[cells, set0, stride, keys, order], device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, groups)
+        return order[:groups]
 
     def _fixed_point_counts(self, columns: int) -> tuple[int, int]:
         """(points, point-kernel slots) of a set over ``columns`` // n_seg grids with fixed
