@@ -1243,7 +1243,35 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             n_cells = 1
             if not uniform:
                 n_cells = cells[i, grid * n_seg + s]
-            if wp.static(plain):
+            # the plain kernel is compiled without the gap: its flag is a constant False there
+            gap = False
+            if wp.static(not plain):
+                gap = geo.gap_share > wp.float64(0.0)
+            if gap:
+                m, dm = gap_segment(
+                    sets,
+                    points,
+                    spans,
+                    step,
+                    pore_table,
+                    li,
+                    i,
+                    group,
+                    s,
+                    p,
+                    uniform,
+                    n_cells,
+                    length,
+                    geo,
+                    model,
+                    omega,
+                    half_log_omega,
+                    gamma,
+                    m,
+                    dm,
+                )
+                p = p + segment_points(flags, cells, i, grid * n_seg + s, s)
+            else:
                 m, log_scale, sigma, dm, dlog, p = part_cells(
                     sets,
                     points,
@@ -1270,58 +1298,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                     dm,
                     dlog,
                 )
-            else:
-                if geo.gap_share > wp.float64(0.0):
-                    m, dm = gap_segment(
-                        sets,
-                        points,
-                        spans,
-                        step,
-                        pore_table,
-                        li,
-                        i,
-                        group,
-                        s,
-                        p,
-                        uniform,
-                        n_cells,
-                        length,
-                        geo,
-                        model,
-                        omega,
-                        half_log_omega,
-                        gamma,
-                        m,
-                        dm,
-                    )
-                    p = p + segment_points(flags, cells, i, grid * n_seg + s, s)
-                else:
-                    m, log_scale, sigma, dm, dlog, p = part_cells(
-                        sets,
-                        points,
-                        spans,
-                        step,
-                        pore_table,
-                        li,
-                        i,
-                        group,
-                        s,
-                        p,
-                        uniform,
-                        n_cells,
-                        length,
-                        geo,
-                        model,
-                        CHANNEL_PART,
-                        omega,
-                        half_log_omega,
-                        gamma,
-                        m,
-                        log_scale,
-                        sigma,
-                        dm,
-                        dlog,
-                    )
         scale = cexp(log_scale)
         if j < n_freqs:
             store_matrix(out, group, j, cscale2(m, scale))
