@@ -693,6 +693,64 @@ def kirchhoff_rows(
 
 
 @wp.func
+def heat_sweep(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    nonlin: int,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+):
+    """One Thomas solve of the single-field heat model's nodal theta [K] into theta[i, :],
+    the modified super-diagonal in scratch[i, :n_nodes]: the linear model's rows
+    (:func:`linear_rows`), or with ``nonlin`` the Kirchhoff cells' (:func:`kirchhoff_rows`)
+    linearised at the previous iterate in scratch[i, n_nodes:]. Row r is sub theta_{r-1} +
+    (diag_l + diag_r) theta_r + sup theta_{r+1} = rhs_l + rhs_r, the left cell's terms
+    carried from the previous row (without a contact, linear: a_l theta_{r-1} - (b_l + b_r)
+    theta_r + a_r theta_{r+1} = -(e_l + e_r))."""
+    n_nodes = count * cells + 1
+    sub = wp.float64(0.0)
+    diag_l = wp.float64(0.0)
+    rhs_l = wp.float64(0.0)
+    c_prev = wp.float64(0.0)
+    d_prev = wp.float64(0.0)
+    for r in range(n_nodes):
+        diag_r = wp.float64(0.0)
+        sup = wp.float64(0.0)
+        rhs_r = wp.float64(0.0)
+        sub_next = wp.float64(0.0)
+        diag_next = wp.float64(0.0)
+        rhs_next = wp.float64(0.0)
+        if r < n_nodes - 1:
+            s = first + r // cells
+            d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+            Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
+            if nonlin != 0:
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
+                    params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
+                )
+            else:
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
+        # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
+        diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
+        c_prev = sup / diag
+        d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
+        scratch[i, r] = c_prev
+        theta[i, r] = d_prev
+        sub = sub_next
+        diag_l = diag_next
+        rhs_l = rhs_next
+    for rr in range(n_nodes - 1):
+        r = n_nodes - 2 - rr
+        theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+
+
+@wp.func
 def solve_heat_nonlinear(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -720,39 +778,7 @@ def solve_heat_nonlinear(
         if done == 0:
             for r in range(n_nodes):
                 scratch[i, n_nodes + r] = theta[i, r]
-            # row r: sub theta_{r-1} + diag theta_r + sup theta_{r+1} = rhs; the left cell's
-            # terms are carried from the previous row
-            sub = wp.float64(0.0)
-            diag_l = wp.float64(0.0)
-            rhs_l = wp.float64(0.0)
-            c_prev = wp.float64(0.0)
-            d_prev = wp.float64(0.0)
-            for r in range(n_nodes):
-                diag_r = wp.float64(0.0)
-                sup = wp.float64(0.0)
-                rhs_r = wp.float64(0.0)
-                sub_next = wp.float64(0.0)
-                diag_next = wp.float64(0.0)
-                rhs_next = wp.float64(0.0)
-                if r < n_nodes - 1:
-                    s = first + r // cells
-                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-                    diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
-                        params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
-                    )
-                # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
-                diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
-                c_prev = sup / diag
-                d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
-                scratch[i, r] = c_prev
-                theta[i, r] = d_prev
-                sub = sub_next
-                diag_l = diag_next
-                rhs_l = rhs_next
-            for rr in range(n_nodes - 1):
-                r = n_nodes - 2 - rr
-                theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+            heat_sweep(params, flags, gas, i, first, count, cells, fitted, 1, theta, scratch)
             change = wp.float64(0.0)
             size = wp.float64(0.0)
             for r in range(n_nodes):
@@ -1037,38 +1063,7 @@ def solve_heat(
     elif nonlin != 0:
         solve_heat_nonlinear(params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch)
     else:
-        # forward sweep: row r is sub theta_{r-1} + (diag_l + diag_r) theta_r + sup theta_{r+1}
-        # = rhs_l + rhs_r, the left cell's terms carried from the previous row (without a
-        # contact a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} = -(e_l + e_r))
-        sub = wp.float64(0.0)
-        diag_l = wp.float64(0.0)
-        rhs_l = wp.float64(0.0)
-        c_prev = wp.float64(0.0)
-        d_prev = wp.float64(0.0)
-        for r in range(n_nodes):
-            diag_r = wp.float64(0.0)
-            sup = wp.float64(0.0)
-            rhs_r = wp.float64(0.0)
-            sub_next = wp.float64(0.0)
-            diag_next = wp.float64(0.0)
-            rhs_next = wp.float64(0.0)
-            if r < n_nodes - 1:
-                s = first + r // cells
-                d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = linear_rows(
-                    params, flags, gas, i, s, d, fitted, contact_at(params, i, s, (s - first) * cells, r % cells)
-                )
-            diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
-            c_prev = sup / diag
-            d_prev = (rhs_l + rhs_r - sub * d_prev) / diag
-            scratch[i, r] = c_prev
-            theta[i, r] = d_prev
-            sub = sub_next
-            diag_l = diag_next
-            rhs_l = rhs_next
-        for rr in range(n_nodes - 1):
-            r = n_nodes - 2 - rr
-            theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+        heat_sweep(params, flags, gas, i, first, count, cells, fitted, 0, theta, scratch)
 
 
 @wp.func
