@@ -484,8 +484,16 @@ class Engine:
         if self.heat_only.size and cold.any():
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
         _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
+        # the distinct sets in the caller's order, not np.unique's: sorted, the sets without
+        # heat input (a fraction of a heated set's work) would fill the first of the CPU
+        # threads' equal blocks; a caller that varies the heat input fastest (the T-matrix
+        # kind) gives every block the same mix
+        order = np.argsort(first)
+        rank = np.empty_like(order)
+        rank[order] = np.arange(order.size)
+        first, column = first[order], rank[column.reshape(-1)]
         out, _, _ = self.evaluate(np.ascontiguousarray(np.asarray(varying, dtype=np.float64)[:, first]))
-        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column.reshape(-1)]
+        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column]
 
     def _cpu_parts(self, n: int) -> int:
         """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
