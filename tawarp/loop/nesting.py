@@ -91,26 +91,31 @@ def nested_cost(model: Model, names: list[str]) -> float:
     return float(map_cost(r, x, model.priors) + 2 * g @ d + d @ H @ d - prior_held)
 
 
-def futile(comparison, models: list[Model], names: list[str], own: Model | None, source: Model) -> bool:
+def map_costs(models: list[Model]) -> dict[int, float]:
+    """{id of each of ``models``: its :func:`map_cost` at its solution}."""
+    return {id(m): map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models}
+
+
+def futile(comparison, costs: dict[int, float], names: list[str], own: Model | None, source: Model) -> bool:
     """Whether a refit of the model of the parameters ``names`` (``own``: its fit, None where
     it has none) from the solution of its nested relative ``source`` can change no posterior
-    probability: its own fit is out of reach of the best of ``models``
-    (:meth:`tawarp.loop.run.Comparison.out_of_reach`: the race's RACE_OUT, a probability of 0
-    to double precision) and so is the relative's basin for it: for a submodel of
-    ``source``, :func:`nested_cost` (in that basin it fits no better than ``source`` with the
-    extra effects off); for a supermodel, ``source``'s own cost (a point out of reach with
-    the extra effects off, as the supermodel's own descents started from the base solution).
-    The base model is always refitted: its fit is the report's "before" (its error, goodness
-    of fit and drift, and the wrong-model test of a best model that fails its checks)."""
+    probability: its own fit is out of reach of the best of the models compared (``costs``:
+    their :func:`map_costs`; :meth:`tawarp.loop.run.Comparison.out_of_reach`: the race's
+    RACE_OUT, a probability of 0 to double precision) and so is the relative's basin for it:
+    for a submodel of ``source``, :func:`nested_cost` (in that basin it fits no better than
+    ``source`` with the extra effects off); for a supermodel, ``source``'s own cost (a point
+    out of reach with the extra effects off, as the supermodel's own descents started from
+    the base solution). The base model is always refitted: its fit is the report's "before"
+    (its error, goodness of fit and drift, and the wrong-model test of a best model that
+    fails its checks)."""
+    best = min(costs.values())
     if not set(names) - {p.label for p in comparison.base_params}:
         return False
-    if own is not None and not comparison.out_of_reach(
-        map_cost(own.fit.residuals[0], own.fit.x[0], own.priors), models
-    ):
+    if own is not None and not comparison.out_of_reach(costs[id(own)], best):
         return False
     if set(names) <= set(source.fit.names):
-        return comparison.out_of_reach(nested_cost(source, names), models)
-    return comparison.out_of_reach(map_cost(source.fit.residuals[0], source.fit.x[0], source.priors), models)
+        return comparison.out_of_reach(nested_cost(source, names), best)
+    return comparison.out_of_reach(costs[id(source)], best)
 
 
 def nested_starts(comparison, models: list[Model], sources: set[int] | None = None) -> dict[int, np.ndarray]:
@@ -119,13 +124,14 @@ def nested_starts(comparison, models: list[Model], sources: set[int] | None = No
     own optimum by more than :data:`GAIN` and the refit is not :func:`futile`; all points in one
     evaluation (one launch per structure)."""
     problem = comparison.problem
+    costs = map_costs(models)
     pairs = [
         (i, j)
         for i, a in enumerate(models)
         for j, b in enumerate(models)
         if (sources is None or j in sources)
         and (set(a.effects) < set(b.effects) or set(b.effects) < set(a.effects))
-        and not futile(comparison, models, a.fit.names, a, b)
+        and not futile(comparison, costs, a.fit.names, a, b)
     ]
     if not pairs:
         return {}
@@ -137,7 +143,7 @@ def nested_starts(comparison, models: list[Model], sources: set[int] | None = No
     )
     Y = lm.predict([(c, x[None]) for c, x in enumerate(points)])
     rows = np.arange(problem.y.size)
-    own = [map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models]
+    own = [costs[id(m)] for m in models]
     best: dict[int, tuple[float, np.ndarray]] = {}
     for (i, _), x, y in zip(pairs, points, Y):
         with np.errstate(over="ignore", invalid="ignore"):  # a point where the model diverges
@@ -182,6 +188,7 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
     effect the window's model needs) is left out."""
     best = max(m.log_posterior for m in models)
     fitted = {frozenset(m.effects): m for m in models}
+    costs = map_costs(models)
     requests: dict[tuple[str, ...], list[np.ndarray]] = {}
     for m in sorted(models, key=lambda m: -m.log_posterior):
         if m.log_posterior < best + math.log(WINDOW):
@@ -192,7 +199,7 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
                 if sub in requests or (own is not None and not poorer_basin(own, m)):
                     continue
                 params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
-                if futile(comparison, models, [p.label for p in params], own, m):
+                if futile(comparison, costs, [p.label for p in params], own, m):
                     continue
                 requests[sub] = [relative_point(m.fit, params)]
     added = []

@@ -366,10 +366,9 @@ class Comparison:
     def effect(self, name: str) -> Effect:
         return next(e for e in self.library if e.name == name)
 
-    def out_of_reach(self, cost: float, models: list[Model]) -> bool:
-        """:func:`out_of_reach` of the MAP cost ``cost`` against the lowest of the fitted
-        ``models``' (:func:`tawarp.loop.nesting.map_cost`), on this problem's residuals."""
-        best = min(map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models)
+    def out_of_reach(self, cost: float, best: float) -> bool:
+        """:func:`out_of_reach` of the MAP cost ``cost`` against the best ``best``, on this
+        problem's residuals."""
         return bool(out_of_reach(cost, best, 2 * self.problem.y.size))
 
     def linearize(self, at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None) -> list[Candidate]:
