@@ -484,16 +484,8 @@ class Engine:
         if self.heat_only.size and cold.any():
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
         _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
-        # the distinct sets in the caller's order, not np.unique's: sorted, the sets without
-        # heat input (a fraction of a heated set's work) would fill the first of the CPU
-        # threads' equal blocks; a caller that varies the heat input fastest (the T-matrix
-        # kind) gives every block the same mix
-        order = np.argsort(first)
-        rank = np.empty_like(order)
-        rank[order] = np.arange(order.size)
-        first, column = first[order], rank[column.reshape(-1)]
         out, _, _ = self.evaluate(np.ascontiguousarray(np.asarray(varying, dtype=np.float64)[:, first]))
-        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column]
+        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column.reshape(-1)]
 
     def _cpu_parts(self, n: int) -> int:
         """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
@@ -520,11 +512,18 @@ class Engine:
 
     def _evaluate_threaded(self, varying, parts: int, out):
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
-        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, b])))  # noqa: E731
+        # the sets dealt to the threads' blocks like cards (block b takes sets b, b + parts, ...):
+        # a caller's batch groups sets of unequal work (without heat input a fraction of a
+        # heated set's, a temperature-dependent heat solve several times it), and equal runs of
+        # it left one thread idle for up to half of a launch; each set is computed on its own,
+        # so the T-matrices are the same bit for bit
+        deal = np.concatenate([np.arange(b, table.shape[1], parts) for b in range(parts)])
+        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, deal[b]])))  # noqa: E731
         done = self._threaded(one, table, parts)
-        T = np.concatenate([r[0] for r in done])
-        params = np.concatenate([r[1] for r in done], axis=1)
-        theta = np.concatenate([r[2] for r in done])
+        back = np.argsort(deal)
+        T = np.concatenate([r[0] for r in done])[back]
+        params = np.concatenate([r[1] for r in done], axis=1)[:, back]
+        theta = np.concatenate([r[2] for r in done])[back]
         if out is None:
             out = wp.array(T, dtype=wp.float64, device=self.device)
         else:
