@@ -6,7 +6,9 @@ thread's ``main_thread_cpu_seconds`` (the host's work and its share of each CPU 
 :meth:`tawarp.model.forward.Engine.evaluate` splits over the cores: a lower bound of the wall
 time on an idle machine), and the machine's ``load_average`` (1, 5, 15 min) before and after
 the timed cases (on a shared machine the wall time grows with the others' load, the CPU times
-much less).
+much less), and ``forward_sets``, the parameter sets the kind predicted (every stage of the
+loop predicts through it, the planned measurements too): a measure of the loop's work that no
+load changes.
 
     python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
     taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
@@ -25,6 +27,7 @@ much less).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import sys
@@ -39,7 +42,7 @@ import loop_validation as lv  # noqa: E402
 from _results import write_result  # noqa: E402
 
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
-from tawarp.measure import load_atalla_panneton  # noqa: E402
+from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
 from tawarp.model.forward import ForwardSettings  # noqa: E402
 
@@ -55,6 +58,23 @@ def _elapsed(start: tuple[float, float, float]) -> dict:
     return {k: b - a for k, a, b in zip(keys, start, now)}
 
 
+@contextlib.contextmanager
+def counting_sets(kind: type):
+    """Count the parameter sets every instance of the measurement kind ``kind`` predicts
+    while inside: yields a dict whose ``sets`` grows."""
+    count, predict = {"sets": 0}, kind.predict
+
+    def counted(self, values, n, effect=None):
+        count["sets"] += n
+        return predict(self, values, n, effect)
+
+    kind.predict = counted
+    try:
+        yield count
+    finally:
+        kind.predict = predict
+
+
 def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     out = []
     for seed in seeds:
@@ -62,15 +82,18 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
         arrays = lv.load_or_generate(case, cache)
         core = lv.load_core(case.core_material).replace(**case.prior)
         prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
-        clock = _clocks()
-        rep = run_loop(prob)
+        with counting_sets(TMatrixKind) as count:
+            clock = _clocks()
+            rep = run_loop(prob)
+            elapsed = _elapsed(clock)
         out.append(
             {
                 "seed": seed,
                 "category": case.category,
                 "material": case.material,
                 "rows": int(prob.y.size),
-                **_elapsed(clock),
+                **elapsed,
+                "forward_sets": count["sets"],
                 "verdict": rep["verdict"],
                 "claimed": rep["accepted_steps"],
                 "models": rep["models_compared"],
@@ -91,12 +114,15 @@ def impedance_case(n: int, device: str) -> dict:
         data.append(
             ImpedanceData(f, Zs, d.thickness, d.T_ambient, d.p_ambient, source=f"{d.source} on {n} frequencies")
         )
-    clock = _clocks()
-    prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
+    with counting_sets(ImpedanceKind) as count:
+        clock = _clocks()
+        prob, rep = impedance_loop(data, settings=ForwardSettings(device=device))
+        elapsed = _elapsed(clock)
     out = {
         "frequencies": n,
         "rows": int(prob.y.size),
-        **_elapsed(clock),
+        **elapsed,
+        "forward_sets": count["sets"],
         "verdict": rep["verdict"],
         "best_model": rep["best_model"],
         "models": rep["models_compared"],

@@ -57,6 +57,23 @@ def test_laplace_evidence_is_exact_for_a_linear_gaussian_model(seed):
     assert got == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
 
 
+@pytest.mark.parametrize("noise_scale", [False, True])
+def test_laplace_evidence_is_exact_on_rotated_columns(noise_scale):
+    # the same linear Gaussian model given as Q^T J, Q^T r (Q of the thin QR of [J, r], as
+    # linearized_evidence rotates its columns) with the number of residuals beside them: the
+    # closed-form evidence, with the noise known and with it estimated
+    A, y, mu, sd = linear_gaussian(7)
+    x = map_estimate(A, y, mu, sd)
+    priors = [XPrior(m, s) for m, s in zip(mu, sd)]
+    r = A @ x - y
+    Q, _ = np.linalg.qr(np.column_stack([A, r]))
+    got = laplace_log_evidence(x_model(priors), Q.T @ r, Q.T @ A, x, noise_scale, len(r))
+    want = laplace_log_evidence(x_model(priors), r, A, x, noise_scale)
+    assert got == pytest.approx(want, abs=1e-9)
+    if not noise_scale:
+        assert got == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_evidence_with_an_unknown_noise_scale_is_the_exact_marginal(seed):
     # noise 3x its estimate: ln Z marginalized over the scale s (flat in ln s) equals the

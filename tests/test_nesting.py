@@ -13,11 +13,12 @@ The posterior odds P(M')/P(M) are then at most the model prior's ratio, up to th
 :data:`tawarp.loop.nesting.GAIN`/2 in ln Z of a refit that is not taken."""
 
 import math
+from types import SimpleNamespace
 
 import numpy as np
 
-from tawarp.loop.evidence import ON_BOUND
-from tawarp.loop.nesting import GAIN, map_cost, missing_subsets
+from tawarp.loop.evidence import ON_BOUND, Model, XPrior
+from tawarp.loop.nesting import GAIN, map_cost, missing_subsets, nested_cost
 from tawarp.loop.run import Comparison, compare_models, default_base_params, library_for
 from tawarp.measure import TMatrixKind
 from tawarp.model.forward import ForwardSettings
@@ -76,3 +77,22 @@ def test_a_submodel_beaten_by_the_window_is_refitted_in_its_basin():
     refit, cmp.refit = cmp.refit, lambda *args: refits.append(args) or refit(*args)
     missing_subsets(cmp, [base, sup])
     assert refits == []
+
+
+def test_nested_cost_is_the_submodels_optimum_on_a_linear_model():
+    # nested_cost's quadratic model of the MAP objective is exact where the residuals are
+    # linear in x: a superset of four parameters fitted at its MAP optimum predicts the
+    # optimum of its submodel of the first two (the others held off, x = 0, and their prior
+    # terms, which the submodel has not, left out) as the closed-form least squares gives it
+    rng = np.random.default_rng(3)
+    A, y = rng.normal(size=(40, 4)), rng.normal(size=40)
+    mu, sd = np.array([0.1, -0.2, 0.3, 0.05]), np.array([1.0, 0.5, 2.0, 0.7])
+    P = np.diag(sd**-2.0)
+    x = np.linalg.solve(A.T @ A + P, A.T @ y + P @ mu)
+    names = ["a", "b", "c", "d"]
+    fit = SimpleNamespace(x=x[None], residuals=(A @ x - y)[None], jacobian=A[None], names=names)
+    sup = Model(("c", "d"), fit=fit, priors=[XPrior(m, s) for m, s in zip(mu, sd)])
+    k = slice(0, 2)
+    xk = np.linalg.solve(A[:, k].T @ A[:, k] + P[k, k], A[:, k].T @ y + P[k, k] @ mu[k])
+    want = float(np.sum((A[:, k] @ xk - y) ** 2) + np.sum(((xk - mu[k]) / sd[k]) ** 2))
+    assert abs(nested_cost(sup, names[:2]) - want) <= 1e-10 * want

@@ -163,7 +163,12 @@ ON_BOUND = 1e-9
 
 
 def laplace_log_evidence(
-    model: ProblemModel, r: np.ndarray, J: np.ndarray, x: np.ndarray, noise_scale: bool = False
+    model: ProblemModel,
+    r: np.ndarray,
+    J: np.ndarray,
+    x: np.ndarray,
+    noise_scale: bool = False,
+    n_residuals: int | None = None,
 ) -> float:
     """ln Z of the module doc at the maximum a posteriori ``x`` with weighted residuals ``r``
     (in units of the noise) and their Jacobian ``J`` in x, of the fit whose problem is
@@ -185,7 +190,10 @@ def laplace_log_evidence(
     model at ``x``; exact for a linear model, ``tests/test_evidence.py``). A noise estimate
     from the data (second differences of a misfitting base fit's residual) is too large
     where the frequency grid is coarse: with it fixed, every misfit below it looks like
-    noise, and the choice of model changes with the grid."""
+    noise, and the choice of model changes with the grid. Only the inner products of ``J``'s
+    columns and ``r`` enter: they may be given rotated, ``Q^T J`` and ``Q^T r`` for any Q of
+    orthonormal columns whose span holds them (:func:`linearized_evidence`: as many rows as
+    columns), with ``n_residuals`` the number of residuals (default ``len(r)``)."""
     if model.prior_sd is None or not np.all(np.isfinite(model.prior_sd)):
         raise ValueError(f"laplace_log_evidence: {model.names}: every parameter needs a proper prior")
     mu, sd = np.asarray(model.prior_mu, dtype=float), np.asarray(model.prior_sd, dtype=float)
@@ -218,7 +226,7 @@ def laplace_log_evidence(
     s2 = np.exp(2 * u)[:, None]
     den = s2 + S**2  # (ns, k)
     phi = float(rest[:, m] @ rest[:, m]) / s2[:, 0] + np.sum(alpha**2 / den, axis=1) + float(np.sum(g0[on] ** 2))
-    terms = -0.5 * phi - len(r) * u - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
+    terms = -0.5 * phi - (n_residuals or len(r)) * u - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
     if m:
         # the quadratic model along each parameter j on its bound into its range, t_j >= 0
         # (whitened), the free ones at their optimum: phi(t) = phi(0) + 2 G.t + t^T C t
@@ -375,12 +383,23 @@ def linearized_evidence(
     Returns (ln Z, x) per model, x the linearized optimum (``at``'s parameters, then the
     effects')."""
     fit = at.fit
-    Jb, xb = fit.jacobian[0], fit.x[0]
+    xb = fit.x[0]
+    # The base columns, every effect's and the residual rotated once onto their span (Q^T of
+    # their thin QR, Q never formed): the models' evidence takes only inner products of them,
+    # each model's algebra then on as many rows as there are columns instead of residuals.
+    names = list(dict.fromkeys(e.name for effects, _ in models for e in effects))
+    R = r_factor(np.hstack([fit.jacobian[0], fit.residuals[0][:, None]] + [columns[n] for n in names]))
+    n_base = len(xb)
+    rotated, k = {}, n_base + 1
+    for n in names:
+        rotated[n] = R[:, k : k + columns[n].shape[1]]
+        k += columns[n].shape[1]
+    Jb, rb = R[:, :n_base], R[:, n_base]
     out = []
     for effects, priors in models:
         # a structure without parameters moves the residuals by its column (effect_columns)
-        r0 = fit.residuals[0] + sum(columns[e.name][:, 0] for e in effects if not e.params)
-        C = np.hstack([Jb] + [columns[e.name] for e in effects if e.params])
+        r0 = rb + sum(rotated[e.name][:, 0] for e in effects if not e.params)
+        C = np.hstack([Jb] + [rotated[e.name] for e in effects if e.params])
         x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
         mu, sd, lo, hi = prior_arrays(priors)
         isd2 = sd**-2
@@ -400,7 +419,8 @@ def linearized_evidence(
         x = np.clip(x, lo, hi)
         d = x - x0
         # the columns are linear, so the quadratic model at x is this model's own: its Laplace ln Z
-        out.append((laplace_log_evidence(x_model(priors), r0 + C @ d, C, x, noise_scale), x))
+        logz = laplace_log_evidence(x_model(priors), r0 + C @ d, C, x, noise_scale, len(fit.residuals[0]))
+        out.append((logz, x))
     return out
 
 

@@ -23,6 +23,10 @@ their costs as its reference): most relatives of a probable model are far out of
 subsets without the effect the data need), and a refit of such a model stops after a few
 iterations where it cannot come within :data:`tawarp.loop.run.RACE_OUT` of the best, as in
 the search's own batches (its posterior probability is 0 to double precision either way).
+Where the model's own fit and the relative's basin are both that far out (:func:`futile`),
+the refit is not made at all: on a case with two strong effects the passes otherwise refitted
+some twenty such models each, every one that improved offering its point to its relatives in
+the next pass, a quarter of the loop's forward evaluations.
 """
 
 from __future__ import annotations
@@ -35,7 +39,6 @@ from scipy import stats
 
 from ..fit.problems import KindProblems, residual
 from ..fit.result import FitResult
-from ..measure.kind import MeasurementKind
 from ..model.effects import Param
 from .evidence import WINDOW, Model, XPrior, prior_arrays
 
@@ -65,28 +68,82 @@ def relative_point(source: FitResult, params: list[Param]) -> np.ndarray:
     return np.clip(x, lo, hi)
 
 
-def nested_starts(
-    problem: MeasurementKind, fixed: dict, models: list[Model], sources: set[int] | None = None
-) -> dict[int, np.ndarray]:
+def nested_cost(model: Model, names: list[str]) -> float:
+    """The MAP cost (:func:`map_cost`) of ``model``'s submodel of the parameters ``names`` near
+    ``model``'s solution, from the quadratic model of ``model``'s MAP objective there (its
+    gradient and Gauss-Newton Hessian ``J^T J`` plus the priors' precisions): the other
+    parameters held at their nested values (:func:`relative_point`: off, inside their
+    bounds), ``names`` at that quadratic model's minimum, and the held parameters' prior terms,
+    which the submodel has not, taken out. A refit of the submodel from ``model``'s projected
+    solution descends in this basin."""
+    f = model.fit
+    x, r, J = f.x[0], f.residuals[0], f.jacobian[0]
+    mu, sd, lo, hi = prior_arrays(model.priors)
+    keep = np.isin(f.names, names)
+    held = np.clip(0.0, lo, hi)[~keep]
+    # F(x + d) = F + 2 g.d + d.H.d
+    g = J.T @ r + (x - mu) / sd**2
+    H = J.T @ J + np.diag(sd**-2.0)
+    d = np.zeros_like(x)
+    d[~keep] = held - x[~keep]
+    d[keep] = -np.linalg.solve(H[np.ix_(keep, keep)], g[keep] + H[np.ix_(keep, ~keep)] @ d[~keep])
+    prior_held = np.sum(((held - mu[~keep]) / sd[~keep]) ** 2)
+    return float(map_cost(r, x, model.priors) + 2 * g @ d + d @ H @ d - prior_held)
+
+
+def map_costs(models: list[Model]) -> dict[int, float]:
+    """{id of each of ``models``: its :func:`map_cost` at its solution}."""
+    return {id(m): map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models}
+
+
+def futile(comparison, costs: dict[int, float], names: list[str], own: Model | None, source: Model) -> bool:
+    """Whether a refit of the model of the parameters ``names`` (``own``: its fit, None where
+    it has none) from the solution of its nested relative ``source`` can change no posterior
+    probability: its own fit is out of reach of the best of the models compared (``costs``:
+    their :func:`map_costs`; :meth:`tawarp.loop.run.Comparison.out_of_reach`: the race's
+    RACE_OUT, a probability of 0 to double precision) and so is the relative's basin for it:
+    for a submodel of ``source``, :func:`nested_cost` (in that basin it fits no better than
+    ``source`` with the extra effects off); for a supermodel, ``source``'s own cost (a point
+    out of reach with the extra effects off, as the supermodel's own descents started from
+    the base solution). The base model is always refitted: its fit is the report's "before"
+    (its error, goodness of fit and drift, and the wrong-model test of a best model that
+    fails its checks)."""
+    best = min(costs.values())
+    if not set(names) - {p.label for p in comparison.base_params}:
+        return False
+    if own is not None and not comparison.out_of_reach(costs[id(own)], best):
+        return False
+    if set(names) <= set(source.fit.names):
+        return comparison.out_of_reach(nested_cost(source, names), best)
+    return comparison.out_of_reach(costs[id(source)], best)
+
+
+def nested_starts(comparison, models: list[Model], sources: set[int] | None = None) -> dict[int, np.ndarray]:
     """{index in ``models``: the point from a nested relative (a subset or a superset; among
     ``sources``, default all) of lowest MAP cost}, for the models where that point beats their
-    own optimum by more than :data:`GAIN`; all points in one evaluation (one launch per
-    structure)."""
+    own optimum by more than :data:`GAIN` and the refit is not :func:`futile`; all points in one
+    evaluation (one launch per structure)."""
+    problem = comparison.problem
+    costs = map_costs(models)
     pairs = [
         (i, j)
         for i, a in enumerate(models)
         for j, b in enumerate(models)
-        if (sources is None or j in sources) and (set(a.effects) < set(b.effects) or set(b.effects) < set(a.effects))
+        if (sources is None or j in sources)
+        and (set(a.effects) < set(b.effects) or set(b.effects) < set(a.effects))
+        and not futile(comparison, costs, a.fit.names, a, b)
     ]
     if not pairs:
         return {}
     points = [relative_point(models[j].fit, models[i].fit.params) for i, j in pairs]
     lm = KindProblems(
-        problem, [(models[i].fit.params, models[i].fit.effect, x) for (i, _), x in zip(pairs, points)], fixed
+        problem,
+        [(models[i].fit.params, models[i].fit.effect, x) for (i, _), x in zip(pairs, points)],
+        comparison.fixed,
     )
     Y = lm.predict([(c, x[None]) for c, x in enumerate(points)])
     rows = np.arange(problem.y.size)
-    own = [map_cost(m.fit.residuals[0], m.fit.x[0], m.priors) for m in models]
+    own = [costs[id(m)] for m in models]
     best: dict[int, tuple[float, np.ndarray]] = {}
     for (i, _), x, y in zip(pairs, points, Y):
         with np.errstate(over="ignore", invalid="ignore"):  # a point where the model diverges
@@ -126,9 +183,12 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
     in the basin it found: where the misfit has several minima in a submodel's parameters (a
     bypass gap absorbed by the base fit), a submodel's own descents can all end above the
     one its superset reached with an extra effect near "off", and the nested point, its
-    parameters tuned to that effect, need not be lower than its own optimum to lead there."""
+    parameters tuned to that effect, need not be lower than its own optimum to lead there.
+    A subset out of reach both on its own and in that basin (:func:`futile`: it lacks an
+    effect the window's model needs) is left out."""
     best = max(m.log_posterior for m in models)
     fitted = {frozenset(m.effects): m for m in models}
+    costs = map_costs(models)
     requests: dict[tuple[str, ...], list[np.ndarray]] = {}
     for m in sorted(models, key=lambda m: -m.log_posterior):
         if m.log_posterior < best + math.log(WINDOW):
@@ -139,6 +199,8 @@ def missing_subsets(comparison, models: list[Model]) -> list[Model]:
                 if sub in requests or (own is not None and not poorer_basin(own, m)):
                     continue
                 params = list(comparison.base_params) + [p for n in sub for p in comparison.effect(n).params]
+                if futile(comparison, costs, [p.label for p in params], own, m):
+                    continue
                 requests[sub] = [relative_point(m.fit, params)]
     added = []
     for sub, new in zip(requests, comparison.refit(list(requests.items()), models) if requests else []):
@@ -160,7 +222,7 @@ def share_optima(comparison, models: list[Model], passes: int = PASSES) -> int:
     models += added
     sources, done = None, len(added)
     for _ in range(passes):
-        starts = nested_starts(comparison.problem, comparison.fixed, models, sources)
+        starts = nested_starts(comparison, models, sources)
         order = sorted(starts)
         sources = set()
         for i, new in zip(order, comparison.refit([(models[i].effects, [starts[i]]) for i in order], models)):

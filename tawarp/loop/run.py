@@ -197,6 +197,15 @@ def _as_pairs(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray]:
     return np.array([p.mu for p in priors]), np.array([p.sd for p in priors])
 
 
+def out_of_reach(cost, best, n_residuals: int):
+    """Whether the MAP cost ``cost`` (or each of an array) is out of reach of the best cost
+    ``best`` on ``n_residuals`` real residuals: their log-likelihood ratio
+    ``(n/2) ln(cost / best)`` exceeds :data:`RACE_OUT` (never where it is undefined: a cost
+    extrapolated below 0)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return 0.5 * n_residuals * np.log(np.asarray(cost) / best) > RACE_OUT
+
+
 def start_race(owner: np.ndarray, sizes: np.ndarray, n_residuals: int, reference: dict | None = None):
     """The ``drop`` of :func:`tawarp.fit.lm.levenberg_marquardt` for a batch of starts (fit i
     a start of model ``owner[i]``, which has ``sizes[owner[i]]`` effects) on ``n_residuals``
@@ -224,7 +233,7 @@ def start_race(owner: np.ndarray, sizes: np.ndarray, n_residuals: int, reference
             # a model is within reach while any of its starts, at its pace, would get there
             reach = np.full(sizes.size, np.nan)
             np.fmin.at(reach, owner, cost - pace)
-            out = 0.5 * n_residuals * np.log(reach / top) > RACE_OUT
+            out = out_of_reach(reach, top, n_residuals)
             hopeless = (gap > RACE_MARGIN) & (pace[slots] < gap) & (best[m] > leader[m] + RACE_HOPELESS)
         return hopeless | (out[m] & (best[m] > leader[m]))
 
@@ -356,6 +365,11 @@ class Comparison:
 
     def effect(self, name: str) -> Effect:
         return next(e for e in self.library if e.name == name)
+
+    def out_of_reach(self, cost: float, best: float) -> bool:
+        """:func:`out_of_reach` of the MAP cost ``cost`` against the best ``best``, on this
+        problem's residuals."""
+        return bool(out_of_reach(cost, best, 2 * self.problem.y.size))
 
     def linearize(self, at: Model, candidates: list[tuple[Effect, ...]], cols: dict | None = None) -> list[Candidate]:
         """Each of ``candidates`` (sets of effects that contain ``at``'s) scored at ``at``'s

@@ -517,11 +517,18 @@ class Engine:
 
     def _evaluate_threaded(self, varying, parts: int, out):
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
-        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, b])))  # noqa: E731
+        # the sets dealt to the threads' blocks like cards (block b takes sets b, b + parts, ...):
+        # a caller's batch groups sets of unequal work (without heat input a fraction of a
+        # heated set's, a temperature-dependent heat solve several times it), and equal runs of
+        # it left one thread idle for up to half of a launch; each set is computed on its own,
+        # so the T-matrices are the same bit for bit
+        deal = np.concatenate([np.arange(b, table.shape[1], parts) for b in range(parts)])
+        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, deal[b]])))  # noqa: E731
         done = self._threaded(one, table, parts)
-        T = np.concatenate([r[0] for r in done])
-        params = np.concatenate([r[1] for r in done], axis=1)
-        theta = np.concatenate([r[2] for r in done])
+        back = np.argsort(deal)
+        T = np.concatenate([r[0] for r in done])[back]
+        params = np.concatenate([r[1] for r in done], axis=1)[:, back]
+        theta = np.concatenate([r[2] for r in done])[back]
         if out is None:
             out = wp.array(T, dtype=wp.float64, device=self.device)
         else:
