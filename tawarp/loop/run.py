@@ -77,10 +77,11 @@ RACE_MARGIN = 10.0
 RACE_PACE = 5.0
 RACE_HOPELESS = 50.0
 #: A whole model stops, its best start too, when it is out of reach: not its size's leader,
-#: and even after RACE_PACE more iterations at its best start's last pace the log-likelihood
-#: ratio of its cost to the batch's best cost F*, ``(n/2) ln(F / F*)`` (n residuals: the
-#: likelihood with the noise level free, the smaller of the two readings of a cost gap)
-#: would exceed RACE_OUT. The Occam factors of models of at most three effects differ by
+#: and no start of it, after RACE_PACE more iterations at that start's last pace, would
+#: bring the log-likelihood ratio of its cost to the batch's best cost F*,
+#: ``(n/2) ln(F / F*)``, within RACE_OUT (n residuals: the
+#: likelihood with the noise level free, the smaller of the two readings of a cost gap).
+#: The Occam factors of models of at most three effects differ by
 #: far less (each well determined parameter costs about ln(prior sd / posterior sd), ~10),
 #: so such a model's posterior probability is 0 to double precision; its evidence is
 #: reported at the point where it stopped. A data set with one strong effect left every
