@@ -685,8 +685,10 @@ class Engine:
                     f"threads in one launch: split the batch (ForwardSettings.chunk)"
                 )
             rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
-            # fixed cells: every heated set takes the same, nothing to sort
-            order = self._no_order if self.settings.cells is not None else self._order(cells, lo, g1 - g0, stride)
+            # warps of alike cells: nothing to gain with fixed cells (every heated set takes the
+            # same) or on the CPU (a thread runs its sets one by one)
+            alike = self.settings.cells is not None or not wp.get_device(self.device).is_cuda
+            order = self._no_order if alike else self._order(cells, lo, g1 - g0, stride)
             wp.launch(
                 kernel,
                 dim=threads,
