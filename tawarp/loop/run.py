@@ -79,13 +79,12 @@ RACE_HOPELESS = 50.0
 #: A whole model stops, its best start too, when it is out of reach: not its size's leader,
 #: and no start of it, after RACE_PACE more iterations at that start's last pace, would
 #: bring the log-likelihood ratio of its cost to the batch's best cost F*,
-#: ``(n/2) ln(F / F*)``, within RACE_OUT (n residuals: the
-#: likelihood with the noise level free, the smaller of the two readings of a cost gap).
-#: The Occam factors of models of at most three effects differ by
-#: far less (each well determined parameter costs about ln(prior sd / posterior sd), ~10),
-#: so such a model's posterior probability is 0 to double precision; its evidence is
-#: reported at the point where it stopped. A data set with one strong effect left every
-#: other single effect 2000 below it, each crawling to MAX_ITER.
+#: ``(n/2) ln(F / F*)``, within RACE_OUT (n residuals: the likelihood with the noise level
+#: free, the smaller of the two readings of a cost gap). The Occam factors of models of at
+#: most three effects differ by far less (each well determined parameter costs about
+#: ln(prior sd / posterior sd), ~10), so such a model's posterior probability is 0 to double
+#: precision; its evidence is reported at the point where it stopped. A data set with one
+#: strong effect left every other single effect 2000 below it, each crawling to MAX_ITER.
 RACE_OUT = 250.0
 
 
