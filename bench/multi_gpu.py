@@ -29,7 +29,10 @@ is timed:
   (worker processes of this host) or Dask. The first call (``evaluation_first_seconds``)
   writes fresh ``/dev/shm`` pages; the timed calls after it write the files of the call
   before, let go (``tawarp.distributed.ChunkFiles``), as a caller evaluating batch after
-  batch;
+  batch; ``evaluation_back_to_back_seconds``: :data:`BACK_TO_BACK` calls one right
+  after the other (nothing between them, as such a caller's loop; the timed calls have
+  the probes of the phases between them), ``evaluations_back_to_back_per_s`` at their
+  median;
 * ``sweep``: a Sobol sweep of ``--sweep-points`` points reduced on the workers
   (:data:`REDUCE`, no raw values: ``sweep(..., client=, reduce=, raw=False)``): each
   worker reduces its share of the chunks, only the reductions come back and merge;
@@ -45,7 +48,8 @@ the scheduler's task stream): ``head`` (the client before the first task compute
 one client does for all workers), each worker's ``compute`` and ``tasks``, ``idle_share``
 and ``imbalance``, and under ``workers`` each worker process's :func:`usage` in the call
 (CPU seconds in user and kernel mode, page faults, context switches: per chunk, what
-grows with the workers). A call's result is let go before the next is timed, and every
+grows with the workers), under ``client`` the client's own (:class:`ClientClock`: its
+round trips to the scheduler, its submission, its wait, the rest). A call's result is let go before the next is timed, and every
 worker has fitted a chunk and evaluated one (its memory and host buffer grown) before.
 Two probes run every worker at once before the timing: ``evaluation_probe`` times one
 chunk's parts on each (``device``, ``copy`` to its host buffer, ``write`` into
@@ -109,6 +113,8 @@ FIT_BLOCK = 4096
 #: The reductions of the sweep (tawarp.design.reductions): all of them.
 REDUCE = "best,quantiles,histogram,pareto,top=100"
 CASES = ("fits", "evaluations", "sweep", "islands")
+#: Evaluation calls timed one after the other (``evaluation_back_to_back_seconds``).
+BACK_TO_BACK = 8
 
 
 def fit_model():
@@ -162,9 +168,10 @@ def timed(fn, repeats: int, client=None):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
     this process (client, scheduler, nannies: every thread; worker threads too, with
     ``--cluster threads``) in the best call [s], the best call's :func:`phases` with
-    ``client``, and each worker's :func:`usage` in it): with worker processes, a CPU time
-    near the wall time says the client is the serial part. The result of a call is let go
-    before the next starts (freeing 2 GB of objectives took 0.15 s of a call's tail)."""
+    ``client``, with each worker's :func:`usage` and the client's :class:`ClientClock`
+    in it): with worker processes, a CPU time near the wall time says the client is the
+    serial part. The result of a call is let go before the next starts (freeing 2 GB of
+    objectives took 0.15 s of a call's tail)."""
     best, out, cpu, ph = np.inf, None, None, None
     for _ in range(repeats):
         out = None
@@ -172,16 +179,85 @@ def timed(fn, repeats: int, client=None):
             u0 = client.run(usage)
             # (tasks just before: the task stream's times carry the workers' clock offsets)
             done = {r["key"] for r in client.get_task_stream(start=time.time() - 60)}
-        t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
-        out = fn()
-        t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
+        with ClientClock(client) as clock:
+            t0, c0, w0 = time.perf_counter(), time.process_time(), time.time()
+            out = fn()
+            t, c, w1 = time.perf_counter() - t0, time.process_time() - c0, time.time()
         if t < best:
             best, cpu = t, c
             if client is not None:
                 u1 = client.run(usage)
                 ph = phases(client, w0, w1, done)
                 ph["workers"] = {w: {k: u1[w][k] - v for k, v in u0[w].items()} for w in sorted(u0)}
+                ph["client"] = clock.summary(t, ph.get("head"))
     return best, out, cpu, ph
+
+
+class ClientClock:
+    """The client's Dask calls timed while on (``with ClientClock(client) as clock:``):
+    for each of :data:`CALLS` its count and seconds, and when the last task was handed to
+    the scheduler. :meth:`summary` says where a call's wall went on the client's side:
+    ``round_trips`` (``scheduler_info`` and ``run``, each a message to the scheduler and
+    its answer), ``submit`` (the tasks sent), ``wait`` (``gather`` or ``wait``: until the
+    results are in, the workers' time included), ``own`` (the rest: the client's own work
+    before and after) and ``dispatch`` (from the last task sent to the first computing,
+    with the phases' head: the scheduler's and the messages' part of the head). With
+    ``client`` None it times nothing."""
+
+    CALLS = ("scheduler_info", "run", "submit", "map", "gather", "compute")
+
+    def __init__(self, client):
+        self.client = client
+        self.calls: dict = {}
+        self.submitted = None
+
+    def __enter__(self):
+        import distributed
+
+        self.t0 = time.perf_counter()
+        if self.client is None:
+            return self
+        for name in self.CALLS:
+            setattr(self.client, name, self._timed(name, getattr(self.client, name)))
+        self._wait = distributed.wait
+        distributed.wait = self._timed("wait", distributed.wait)
+        return self
+
+    def __exit__(self, *exc):
+        import distributed
+
+        if self.client is not None:
+            for name in self.CALLS:
+                delattr(self.client, name)  # (the class's method again)
+            distributed.wait = self._wait
+
+    def _timed(self, name, fn):
+        def call(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                now = time.perf_counter()
+                n, s = self.calls.get(name, (0, 0.0))
+                self.calls[name] = (n + 1, s + now - t)
+                if name in ("submit", "map", "compute"):
+                    self.submitted = now - self.t0
+
+        return call
+
+    def summary(self, wall: float, head: float | None = None) -> dict:
+        def part(*names):
+            return [sum(self.calls.get(k, (0, 0.0))[i] for k in names) for i in (0, 1)]
+
+        out = {
+            "round_trips": part("scheduler_info", "run"),
+            "submit": part("submit", "map", "compute"),
+            "wait": part("gather", "wait"),
+        }
+        out["own"] = wall - sum(v[1] for v in out.values())
+        out["submitted"] = self.submitted
+        out["dispatch"] = None if head is None or self.submitted is None else head - self.submitted
+        return out
 
 
 def usage() -> dict:
@@ -468,6 +544,15 @@ class Bench:
         first, out, _, first_ph = timed(lambda: ev.evaluate_sobol(n, seed=1), 1, client)
         del out
         t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
+        del out
+        # as a caller evaluating batch after batch: calls one after the other, nothing
+        # between them but letting the result before go
+        walls = []
+        for _ in range(max(BACK_TO_BACK, self.args.repeats)):
+            out = None
+            t0 = time.perf_counter()
+            out = ev.evaluate_sobol(n, seed=1)
+            walls.append(time.perf_counter() - t0)
         row = {
             "evaluation_phases": ph,
             "evaluation_probe": probe,
@@ -475,6 +560,8 @@ class Bench:
             "evaluation_first_seconds": first,
             "evaluation_first_phases": first_ph,
             "evaluation_seconds": t,
+            "evaluation_back_to_back_seconds": walls,
+            "evaluations_back_to_back_per_s": n / float(np.median(walls)),
             "evaluation_client_cpu_seconds": cpu,
             "evaluations_per_s": n / t,
             "evaluations_first_call_per_s": n / first,
@@ -832,7 +919,13 @@ def summarize(result: dict, ks: list) -> None:
     """Speed-ups over the first row and whether each row's results equal the first's."""
     base = result["rows"][0]
     v0 = base.get("_values")
-    rates = ("fits_per_s", "evaluations_per_s", "sweep_points_per_hour", "island_evaluations_per_minute")
+    rates = (
+        "fits_per_s",
+        "evaluations_per_s",
+        "evaluations_back_to_back_per_s",
+        "sweep_points_per_hour",
+        "island_evaluations_per_minute",
+    )
     for r in result["rows"]:
         for key in rates:
             if key in r and key in base:

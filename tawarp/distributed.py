@@ -368,6 +368,10 @@ def ordered_map(client, func, items, *args, window: int | None = None):
         return
     window = window or CHUNKS_IN_FLIGHT * _workers(client)
     shared = [client.scatter(a, broadcast=True) if _is_large(a) else a for a in args]
+    if isinstance(items, (list, tuple)) and len(items) <= window:  # all in flight at once: one message
+        for future in submit_all(client, func, items, *shared):
+            yield future.result()
+        return
     pending = deque()
     for item in items:
         pending.append(client.submit(func, item, *shared, pure=False))
@@ -377,8 +381,63 @@ def ordered_map(client, func, items, *args, window: int | None = None):
         yield pending.popleft().result()
 
 
+def submit_all(client, func, items, *args, workers=None) -> list:
+    """Futures of ``func(item, *args)`` for each of ``items``, sent to the scheduler in one
+    message. The client sends its messages in batches, the first at once and the next no
+    sooner than 10 ms after it (Dask's batched stream): tasks submitted one by one reach the
+    scheduler as the first alone, then the others 10 ms later, so that one worker starts
+    while the others wait (a fifth of a 4-GPU evaluation call). ``workers``: the worker each
+    item goes to where it is there (else another takes it), for a worker that keeps
+    something of that item's from a call before; None: the scheduler's choice (where the
+    item's data lie)."""
+    import dask
+
+    items = list(items)
+    if not items:
+        return []
+    keys = [f"{func.__name__}-{uuid.uuid4().hex}" for _ in items]
+    columns = [items] + [[a] * len(items) for a in args]
+    if workers is None:
+        return client.map(func, *columns, key=keys, pure=False)
+    # a worker per key: an annotation that maps each key to its worker (dask.annotate holds
+    # it for this thread's submission alone)
+    where = {k: [w] for k, w in zip(keys, workers)}
+    with dask.annotate(workers=where.get, allow_other_workers=True):
+        return client.map(func, *columns, key=keys, pure=False)
+
+
+def wait_all(futures) -> None:
+    """Return once every future of ``futures`` is done, raising the first one's error: for
+    tasks whose results are not needed here (None; written where the client reads them),
+    so none is gathered (a round trip to the scheduler and on to the workers)."""
+    _distributed().wait(futures)
+    for future in futures:
+        if future.status != "finished":
+            future.result()  # (its error, raised here)
+
+
+#: Seconds a client's list of workers is kept (:func:`worker_addresses`) before it is
+#: asked of the scheduler again.
+WORKERS_SECONDS = 1.0
+
+
+def worker_addresses(client) -> list[str]:
+    """The addresses of ``client``'s workers, sorted, asked of the scheduler at most every
+    :data:`WORKERS_SECONDS` (a round trip, a millisecond or more, which two per call made
+    a tenth of a 4-GPU evaluation call's head): for what a list a second old serves, the
+    chunks' sizes and the workers they go to first (a task for a worker gone goes to
+    another)."""
+    import time
+
+    now = time.monotonic()
+    held = getattr(client, "_tawarp_workers", None)
+    if held is None or now - held[0] > WORKERS_SECONDS:
+        held = client._tawarp_workers = (now, sorted(client.scheduler_info()["workers"]))
+    return held[1]
+
+
 def _workers(client) -> int:
-    return max(1, len(client.scheduler_info()["workers"]))
+    return max(1, len(worker_addresses(client)))
 
 
 def _is_large(a) -> bool:
@@ -1321,11 +1380,13 @@ class ClusterEvaluator:
         self.shared = _local_processes(client) if shared is None else bool(shared)
         self._layout = None
         self._files = ChunkFiles()
+        self._futures = []  # the last call's tasks (evaluate_sobol)
         weakref.finalize(self, self._files.close)
 
     def close(self) -> None:
         """The shared-memory files kept for later calls unlinked, and the workers' mappings
         of them dropped (a result still held keeps its pages)."""
+        self._futures = []
         self._files.close()
         if self.shared:
             self.client.run(drop_unlinked_mappings)
@@ -1385,23 +1446,23 @@ class ClusterEvaluator:
         lent = False
         try:
             # every chunk at once (a task is a point range, a result None), chunk i to worker
-            # i mod k where it is free (else another takes it): each worker writes the same
-            # pooled files call after call, through the mappings it keeps
-            workers = sorted(self.client.scheduler_info()["workers"])
-            futures = [
-                self.client.submit(
-                    _evaluate_sobol_chunk,
-                    task,
-                    self.key,
-                    self.spec,
-                    out,
-                    workers=[workers[i % len(workers)]],
-                    allow_other_workers=True,
-                    pure=False,
-                )
-                for i, task in enumerate(tasks)
-            ]
-            self.client.gather(futures)
+            # i mod k (else another takes it): each worker writes the same pooled files call
+            # after call, through the mappings it keeps
+            workers = worker_addresses(self.client)
+            futures = submit_all(
+                self.client,
+                _evaluate_sobol_chunk,
+                tasks,
+                self.key,
+                self.spec,
+                out,
+                workers=[workers[i % len(workers)] for i in range(len(tasks))],
+            )
+            # the last call's tasks let go only now: letting them go as that call returned
+            # sent a message, which held this call's submission back until the client's next
+            # send (10 ms: submit_all)
+            self._futures = futures
+            wait_all(futures)
             cols = out.columns(on_release=functools.partial(self._files.give_back, out.files))
             lent = True
             return cols
@@ -1445,7 +1506,7 @@ def _local_processes(client) -> bool:
     per set of workers: a round trip to each)."""
     import socket
 
-    workers = frozenset(client.scheduler_info()["workers"])
+    workers = frozenset(worker_addresses(client))
     known = getattr(client, "_tawarp_local_processes", None)
     if known is not None and known[0] == workers:
         return known[1]

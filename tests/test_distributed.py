@@ -413,6 +413,31 @@ def test_worker_threads_keep_their_own_state(client):
     assert all(a[2] is b[2] for a, b in zip(built, again))  # kept between tasks
 
 
+def _here(i, scale):
+    from distributed import get_worker
+
+    if i < 0:
+        raise ValueError(f"task {i} failed")
+    return i * scale, get_worker().address
+
+
+def test_tasks_sent_at_once_go_to_their_workers_and_their_errors_are_raised(client):
+    # submit_all: every task in one message, each on the worker given for it, in order; a
+    # worker not there: another takes its task; wait_all raises a task's error
+    from tawarp.distributed import submit_all, wait_all, worker_addresses
+
+    workers = worker_addresses(client)
+    assert workers == sorted(client.scheduler_info()["workers"]) and len(workers) == 2
+    where = [workers[i % 2] for i in range(6)] + ["tcp://127.0.0.1:9"]  # (no worker listens there)
+    futures = submit_all(client, _here, range(7), 10, workers=where)
+    wait_all(futures)
+    done = client.gather(futures)
+    assert [v for v, _ in done] == [10 * i for i in range(7)] and [w for _, w in done[:6]] == where[:6]
+    assert done[6][1] in workers
+    with pytest.raises(ValueError, match="task -1 failed"):
+        wait_all(submit_all(client, _here, [1, -1, 2], 1))
+
+
 def test_task_arguments_pickle():
     # worker processes receive the chunks' arguments pickled: core, space, settings
     import pickle
