@@ -100,7 +100,7 @@ from tawarp.design.islands import search_islands
 from tawarp.design.search import search
 from tawarp.design.space import DesignSpace, DeviceTable
 from tawarp.design.sweep import sweep
-from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster
+from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, worker_addresses
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices
@@ -197,14 +197,14 @@ class ClientClock:
     """The client's Dask calls timed while on (``with ClientClock(client) as clock:``):
     for each of :data:`CALLS` its count and seconds, and when the last task was handed to
     the scheduler. :meth:`summary` says where a call's wall went on the client's side:
-    ``round_trips`` (``scheduler_info`` and ``run``, each a message to the scheduler and
-    its answer), ``submit`` (the tasks sent), ``wait`` (``gather`` or ``wait``: until the
+    ``round_trips`` (``scheduler_info``, ``nthreads`` and ``run``, each a message to the
+    scheduler and its answer), ``submit`` (the tasks sent), ``wait`` (``gather`` or ``wait``: until the
     results are in, the workers' time included), ``own`` (the rest: the client's own work
     before and after) and ``dispatch`` (from the last task sent to the first computing,
     with the phases' head: the scheduler's and the messages' part of the head). With
     ``client`` None it times nothing."""
 
-    CALLS = ("scheduler_info", "run", "submit", "map", "gather", "compute")
+    CALLS = ("scheduler_info", "nthreads", "run", "submit", "map", "gather", "compute")
 
     def __init__(self, client):
         self.client = client
@@ -250,7 +250,7 @@ class ClientClock:
             return [sum(self.calls.get(k, (0, 0.0))[i] for k in names) for i in (0, 1)]
 
         out = {
-            "round_trips": part("scheduler_info", "run"),
+            "round_trips": part("scheduler_info", "nthreads", "run"),
             "submit": part("submit", "map", "compute"),
             "wait": part("gather", "wait"),
         }
@@ -318,7 +318,7 @@ def phases(client, t0: float, t1: float, done=frozenset()) -> dict:
         "compute": busy,
         "tasks": [tasks[w] for w in workers],
         "transfer": transfer,
-        "idle_share": 1.0 - sum(busy) / (len(client.scheduler_info()["workers"]) * wall),
+        "idle_share": 1.0 - sum(busy) / (len(worker_addresses(client, fresh=True)) * wall),
         "imbalance": max(busy) - min(busy),
     }
 
@@ -336,7 +336,7 @@ def evaluation_probe(ev: ClusterEvaluator, chunk: int) -> dict:
     the mapping; None where it would not, and the chunks go through ``copy`` and
     ``rewrite``); the best of three. Their growth with the workers says which part of a
     chunk does not scale."""
-    workers = list(ev.client.scheduler_info()["workers"])
+    workers = worker_addresses(ev.client, fresh=True)
     futures = [ev.client.submit(_probe_chunk, ev.key, ev.spec, chunk, workers=[w], pure=False) for w in workers]
     return dict(zip(workers, ev.client.gather(futures)))
 
@@ -499,7 +499,7 @@ class Bench:
     def fits(self, client, k: int) -> dict:
         n, chunk = self.args.fits, self.args.fit_chunk
         w = (1.0 / self.sd)[None]  # one row: every problem's
-        workers = list(client.scheduler_info()["workers"])
+        workers = worker_addresses(client, fresh=True)
         # warm-up: every worker fits a few problems of its own (its fit kernels load)
         self._fit(client, *self._data_on_workers(client, 2 * len(workers), workers, 2)[:1], w)
         t0 = time.perf_counter()

@@ -421,18 +421,30 @@ def wait_all(futures) -> None:
 WORKERS_SECONDS = 1.0
 
 
-def worker_addresses(client) -> list[str]:
-    """The addresses of ``client``'s workers, sorted, asked of the scheduler at most every
+def worker_addresses(client, fresh: bool = False) -> list[str]:
+    """The addresses of ``client``'s workers, sorted: asked of the scheduler at most every
     :data:`WORKERS_SECONDS` (a round trip, a millisecond or more, which two per call made
-    a tenth of a 4-GPU evaluation call's head): for what a list a second old serves, the
-    chunks' sizes and the workers they go to first (a task for a worker gone goes to
-    another)."""
+    a tenth of a 4-GPU evaluation call's head), for what a list a second old serves (the
+    chunks' sizes, the workers they go to first: a task for a worker gone goes to
+    another); ``fresh``: asked now, for tasks bound to each worker. Raises RuntimeError
+    where the cluster has none.
+
+    Asked with ``Client.nthreads``, whose answer is its own: ``Client.scheduler_info()``
+    returns the client's copy of the scheduler's identity, which the client's periodic
+    refresh (every 2 s, asking for no worker's) may overwrite between the answer and the
+    return, so that it lists no workers (then :func:`tawarp.design.islands.search_islands`
+    ran no island, and a reduced sweep reduced nothing)."""
     import time
 
     now = time.monotonic()
     held = getattr(client, "_tawarp_workers", None)
-    if held is None or now - held[0] > WORKERS_SECONDS:
-        held = client._tawarp_workers = (now, sorted(client.scheduler_info()["workers"]))
+    if fresh or held is None or now - held[0] > WORKERS_SECONDS:
+        workers = sorted(client.nthreads())
+        if not workers:
+            raise RuntimeError(
+                "the Dask cluster has no workers: start some (client.wait_for_workers(n) waits for them)"
+            )
+        held = client._tawarp_workers = (now, workers)
     return held[1]
 
 
@@ -1394,7 +1406,7 @@ class ClusterEvaluator:
     def warm_up(self) -> None:
         """Build every worker's Evaluator now (its kernels loaded, one point evaluated), so
         that the first evaluations do not wait for it."""
-        workers = list(self.client.scheduler_info()["workers"])
+        workers = worker_addresses(self.client, fresh=True)
         self.client.gather(
             [self.client.submit(_warm_evaluator, self.key, self.spec, workers=[w], pure=False) for w in workers]
         )

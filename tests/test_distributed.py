@@ -16,7 +16,13 @@ from tawarp import reference  # noqa: E402
 from tawarp.design.evaluate import Evaluator  # noqa: E402
 from tawarp.design.search import search  # noqa: E402
 from tawarp.design.space import DesignSpace  # noqa: E402
-from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, ordered_map  # noqa: E402
+from tawarp.distributed import (  # noqa: E402
+    ClusterEvaluator,
+    fit_on_cluster,
+    local_cluster,
+    ordered_map,
+    worker_addresses,
+)
 from tawarp.fit.estimate import fit  # noqa: E402
 from tawarp.model.core import load_core  # noqa: E402
 
@@ -42,7 +48,7 @@ def _space():
 def test_workers_get_their_devices_and_results_come_in_order(client):
     from tawarp.distributed import worker_settings
 
-    workers = list(client.scheduler_info()["workers"])
+    workers = worker_addresses(client, fresh=True)
     settings = client.gather([client.submit(worker_settings, None, workers=[w], pure=False) for w in workers])
     assert [s.device for s in settings] == ["cpu", "cpu"] and all(s.cpu_threads >= 1 for s in settings)
     assert worker_settings(None).device is None  # outside a worker: unchanged
@@ -93,7 +99,7 @@ def test_fit_of_data_on_the_workers_equals_one_process(client):
     # list's order; the start and the weights given once hold for every problem
     core, names, Y, sd, start = _geometry_problems(5)
     one = fit(core, FREQS, Y, names, start, weights=1 / sd, device="cpu", warn=False)
-    workers = list(client.scheduler_info()["workers"])
+    workers = worker_addresses(client, fresh=True)
     chunks = [client.scatter([{"Y": Y[lo:hi]}], workers=[w])[0] for (lo, hi), w in zip([(0, 3), (3, 5)], workers)]
     many = fit_on_cluster(client, core, FREQS, chunks, names, start, weights=1 / sd, warn=False)
     for f in ("values", "std", "cost", "covariance"):
@@ -199,8 +205,11 @@ def test_islands_write_their_own_journals_and_merge_their_summaries(client, tmp_
     for name in ("island0", "island1"):
         own = make_storage(str(island_journal(storage, "tawarp-design", name)))
         assert f"tawarp-design#worker={name}" in optuna.get_all_study_names(own)
+    stored = {name: sorted(lineage(first.study, name)) for name in ("island0", "island1")}
     again = search_islands(client, _space(), storage=storage, **dict(kw, n_trials=128))
-    assert again.timing["evaluations"] == 2 * 64 and first.timing["merged"] > 0
+    ran = {i["worker"]: {k: i[k] for k in ("evaluations", "resumed")} for i in again.timing["islands"]}
+    assert again.timing["evaluations"] == 2 * 64, f"islands run {ran}; generations stored before {stored}"
+    assert first.timing["merged"] > 0
     copies = copies_in_study(again.study)
     assert len(set(copies)) == len(copies) == len(again.study.trials)
     for island in again.timing["islands"]:
@@ -339,7 +348,7 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
         islands = search_islands(procs, _space(), storage=str(tmp_path / "islands.journal"), n_trials=32, batch=16)
         # fits of data made on the worker processes: the results pickled back and joined
         core, names, Y, sd, start = _geometry_problems(4)
-        workers = list(procs.scheduler_info()["workers"])
+        workers = worker_addresses(procs, fresh=True)
         chunks = [procs.scatter([{"Y": Y[lo:hi]}], workers=[w])[0] for (lo, hi), w in zip([(0, 1), (1, 4)], workers)]
         fitted = fit_on_cluster(procs, core, FREQS, chunks, names, start, weights=1 / sd, warn=False)
     finally:
@@ -406,7 +415,7 @@ def test_worker_threads_keep_their_own_state(client):
     def state(key):
         return worker_state(key, lambda: (worker_settings(None).device, threading.get_ident(), object()))
 
-    workers = list(client.scheduler_info()["workers"])
+    workers = worker_addresses(client, fresh=True)
     built = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
     again = client.gather([client.submit(state, "job", workers=[w], pure=False) for w in workers])
     assert built[0][1] != built[1][1] and built[0][2] is not built[1][2]  # two threads, two objects
@@ -424,10 +433,10 @@ def _here(i, scale):
 def test_tasks_sent_at_once_go_to_their_workers_and_their_errors_are_raised(client):
     # submit_all: every task in one message, each on the worker given for it, in order; a
     # worker not there: another takes its task; wait_all raises a task's error
-    from tawarp.distributed import submit_all, wait_all, worker_addresses
+    from tawarp.distributed import submit_all, wait_all
 
     workers = worker_addresses(client)
-    assert workers == sorted(client.scheduler_info()["workers"]) and len(workers) == 2
+    assert len(workers) == 2 and workers == sorted(client.nthreads())
     where = [workers[i % 2] for i in range(6)] + ["tcp://127.0.0.1:9"]  # (no worker listens there)
     futures = submit_all(client, _here, range(7), 10, workers=where)
     wait_all(futures)
@@ -436,6 +445,23 @@ def test_tasks_sent_at_once_go_to_their_workers_and_their_errors_are_raised(clie
     assert done[6][1] in workers
     with pytest.raises(ValueError, match="task -1 failed"):
         wait_all(submit_all(client, _here, [1, -1, 2], 1))
+
+
+def test_the_workers_are_all_listed_while_the_client_refreshes_its_scheduler_info(client):
+    # the client's periodic refresh of its copy of the scheduler's identity asks for no
+    # worker's and may overwrite the copy scheduler_info() is about to return, listing no
+    # workers (search_islands then ran no island); worker_addresses asks its own question.
+    # Refreshed every millisecond here, as a busy host may delay the caller's thread
+    import dask
+    from distributed import Client
+
+    with dask.config.set({"distributed.client.scheduler-info-interval": "1ms"}):
+        busy = Client(client.scheduler.address, timeout=30)
+    try:
+        listed = [len(worker_addresses(busy, fresh=True)) for _ in range(200)]
+    finally:
+        busy.close()
+    assert listed == [2] * 200
 
 
 def test_task_arguments_pickle():

@@ -26,7 +26,7 @@ from urllib.parse import quote
 
 import numpy as np
 
-from ..distributed import worker_settings
+from ..distributed import worker_addresses, worker_settings
 from .objectives import DEFAULT_T_LIMIT, signs
 from .search import FRONT_COPIES, SearchResult, search
 from .storage import (
@@ -132,13 +132,13 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
     Returns a :class:`~tawarp.design.search.SearchResult`: the study opened here, the best
     of all islands, ``timing`` summed over the islands (``wall``, ``evaluations_per_minute``,
     ``merge`` (the summaries written here; ``merged``: the trials they added) and ``client``
-    (this process's time outside the islands: opening, merging, the best) here; ``islands``: each one's timing and the
-    objectives of its own best). ``islands``: how many (default: one per worker; more take
+    (this process's time outside the islands: opening, merging, the best) here; ``islands``: each one's timing, the
+    objectives of its own best and its ``resumed`` count). ``islands``: how many (default: one per worker; more take
     turns on the workers). Other keywords go to ``search``."""
     if storage is None:
         raise ValueError("search_islands: the islands share one study; give storage= (a journal file or database URL)")
     t0 = time.perf_counter()
-    workers = list(client.scheduler_info()["workers"])
+    workers = worker_addresses(client, fresh=True)
     islands = len(workers) if islands is None else int(islands)
     objectives = tuple(objectives)
     study_name = kw.get("study_name", "tawarp-design")
@@ -180,7 +180,7 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
         merged=merged,
         client=t_client + time.perf_counter() - t,
     )
-    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"]) for r in runs]
+    timing["islands"] = [dict(r["timing"], worker=r["worker"], best=r["best"], resumed=r["resumed"]) for r in runs]
     return SearchResult(study, objectives, best, timing, sum(r["resumed"] for r in runs), ",".join(names))
 
 

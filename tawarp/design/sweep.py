@@ -445,8 +445,10 @@ def _reduced_on(client, job: _Job, blocks: list, chunk: int, reducer):
     (lo, hi, index, None, None) of each block once its worker's share is merged."""
     import distributed
 
-    workers = list(client.scheduler_info()["workers"])
-    share = -(-len(blocks) // max(1, len(workers)))
+    from ..distributed import worker_addresses
+
+    workers = worker_addresses(client, fresh=True)
+    share = -(-len(blocks) // len(workers))
     args = (reducer.spec, reducer.objectives, reducer.grids, chunk, uuid.uuid4().hex)
     futures = {
         client.submit(_reduce_share, blocks[i * share : (i + 1) * share], job, *args, workers=[w], pure=False): i
