@@ -464,6 +464,25 @@ def test_the_workers_are_all_listed_while_the_client_refreshes_its_scheduler_inf
     assert listed == [2] * 200
 
 
+def test_fit_data_is_known_again_by_its_memory_while_it_lives():
+    # what lock_for_uploads page-locks on a GPU worker: the memory of data fitted a second
+    # time (a worker's own data, fitted again), not data that arrives anew with each fit
+    import gc
+
+    from tawarp.distributed import _FITTED, fitted_again
+
+    a = np.zeros((4, 3), dtype=complex)
+    assert fitted_again(a[1:]) is None  # the first fit of this memory
+    assert fitted_again(a[:2]) is a and fitted_again(a) is a  # again, through any view
+    assert fitted_again(a.copy()) is None  # the same values in other memory: new
+    key = id(a)
+    del a
+    gc.collect()
+    assert key not in _FITTED  # forgotten with the memory
+    not_owned = np.frombuffer(bytearray(64), dtype=complex)  # (a buffer NumPy does not own)
+    assert fitted_again(not_owned) is None and fitted_again(not_owned) is None
+
+
 def test_task_arguments_pickle():
     # worker processes receive the chunks' arguments pickled: core, space, settings
     import pickle
