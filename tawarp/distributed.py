@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 import mmap
 import os
 import re
@@ -1025,6 +1026,11 @@ class _OnRange:
         }
 
 
+def _row_bytes(dtype, shape) -> int:
+    """Bytes of one row of a column of ``dtype`` whose rows are of ``shape``."""
+    return np.dtype(dtype).itemsize * math.prod(shape)  # (np.prod: 5 us a call, 200 a call of 16 chunks)
+
+
 #: Linux's mmap protection and flags that Python's mmap module does not name.
 _PROT_NONE, _MAP_FIXED, _MAP_NORESERVE = 0, 0x10, 0x4000
 
@@ -1058,7 +1064,7 @@ class SharedColumns:
         out, at = {}, 0
         for k, (dtype, shape) in self.layout.items():
             out[k] = at
-            at += -(-self.n * np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int)) // align) * align
+            at += -(-self.n * _row_bytes(dtype, shape) // align) * align
         out[None] = at
         return out
 
@@ -1101,7 +1107,7 @@ class SharedColumns:
             fd = os.open(part.path, os.O_RDWR)
             try:
                 for k, (dtype, shape) in self.layout.items():
-                    row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+                    row = _row_bytes(dtype, shape)
                     if size := -(-part.n * row // page) * page:  # (a row of no bytes maps nothing)
                         space.map(off[k] + at * row, fd, sections[k], size)
             finally:
@@ -1115,7 +1121,7 @@ class SharedColumns:
         pieces = []
         for k, v in res.items():
             dtype, shape = self.layout[k]
-            row = np.dtype(dtype).itemsize * int(np.prod(shape, dtype=int))
+            row = _row_bytes(dtype, shape)
             pieces.append((k, row, np.ascontiguousarray(v, dtype=dtype).reshape(-1).view(np.uint8)))
         if self.chunks:
             part = self._chunk(at)
@@ -1202,7 +1208,7 @@ class SharedColumns:
             return None
         try:
             st = os.statvfs(self.path)
-            need = rows * sum(np.dtype(d).itemsize * int(np.prod(s, dtype=int)) for d, s in layout.values())
+            need = rows * sum(_row_bytes(d, s) for d, s in layout.values())
             if st.f_bavail * st.f_frsize < 2 * need:
                 return None
             if os.fstat(fd).st_size < cols.nbytes():
