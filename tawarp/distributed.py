@@ -369,7 +369,9 @@ def ordered_map(client, func, items, *args, window: int | None = None):
         return
     window = window or CHUNKS_IN_FLIGHT * _workers(client)
     shared = [client.scatter(a, broadcast=True) if _is_large(a) else a for a in args]
-    if isinstance(items, (list, tuple)) and len(items) <= window:  # all in flight at once: one message
+    if isinstance(items, (list, tuple)) and len(items) <= window and not _holds_large(items):
+        # all in flight at once, in one message (not one of arrays: the scheduler starts no
+        # task before it has the whole message)
         for future in submit_all(client, func, items, *shared):
             yield future.result()
         return
@@ -455,6 +457,15 @@ def _workers(client) -> int:
 
 def _is_large(a) -> bool:
     return isinstance(a, np.ndarray) and a.nbytes > 1 << 20
+
+
+def _holds_large(a) -> bool:
+    """Whether ``a`` (an array, or lists, tuples and dicts of them) holds a large array."""
+    if isinstance(a, dict):
+        return any(_holds_large(v) for v in a.values())
+    if isinstance(a, (list, tuple)):
+        return any(_holds_large(v) for v in a)
+    return _is_large(a)
 
 
 # -- batched fits ---------------------------------------------------------------------
@@ -693,7 +704,7 @@ def fit_on_cluster(
             core, freqs, settings, {**_sized_starts(core, names, start, kw), **(fixed or {})}, heat_input
         )
         if sizes is None:
-            sizes = client.gather([client.submit(_problems, y, pure=False) for y in Y])  # (where each lies)
+            sizes = client.gather(submit_all(client, _problems, Y))  # (where each lies)
         elif len(sizes) != len(Y):
             raise ValueError(f"fit_on_cluster: {len(sizes)} sizes for {len(Y)} chunks of data")
         sizes = [int(m) for m in sizes]
