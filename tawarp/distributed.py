@@ -23,7 +23,12 @@ the workers (:func:`fit_on_cluster` of futures) its results, and the objectives 
 ``evaluate_sobol`` and a fit's per-problem arrays are written by the worker processes of
 this host into shared memory (:class:`SharedColumns`; ``evaluate_sobol``'s files kept for
 the next call once its result has gone, :class:`ChunkFiles`), and each worker process
-keeps the memory it frees for its next chunk (:func:`keep_freed_memory`). With ``local_cluster(devices, processes=False)`` the workers
+keeps the memory it frees for its next chunk (:func:`keep_freed_memory`). The client's
+part of a call is kept to a few messages: its tasks go to the scheduler in one
+(:func:`submit_all`), results written to shared memory are waited for, not gathered
+(:func:`wait_all`), and the workers' list is asked at most once a second
+(:func:`worker_addresses`); a GPU worker page-locks the fit data it keeps and fits again
+(:func:`lock_for_uploads`). With ``local_cluster(devices, processes=False)`` the workers
 are threads of this process, each driving its own device: Dask hands them contiguous
 arrays by reference (pickle protocol 5 passes their buffers; a strided view is copied,
 under the GIL, so what travels here is contiguous), which suits one GPU fed from this
