@@ -51,6 +51,7 @@ import functools
 import math
 import mmap
 import os
+import pickle
 import re
 import sys
 import threading
@@ -862,22 +863,23 @@ def concatenate_results(parts, n: int | None = None):
 
 
 # -- design evaluations -----------------------------------------------------------------
-def _worker_evaluator(key: str, spec: dict):
+def _worker_evaluator(key: str, spec: bytes):
     """This worker's (Evaluator, DeviceTable) of the evaluations ``key``, built by its first
-    task (:func:`worker_state`) with one Sobol point through every objective asked for (the
-    modules load then)."""
+    task (:func:`worker_state`) from ``spec`` (:class:`ClusterEvaluator`'s, pickled) with
+    one Sobol point through every objective asked for (the modules load then)."""
     from .design.evaluate import Evaluator
     from .design.space import DeviceTable
 
     def build():
+        job = pickle.loads(spec)
         ev = Evaluator(
-            spec["space"],
-            extra=spec["extra"],
-            freqs=spec["freqs"],
-            settings=worker_settings(spec["settings"]),
-            onset=spec["onset"],
+            job["space"],
+            extra=job["extra"],
+            freqs=job["freqs"],
+            settings=worker_settings(job["settings"]),
+            onset=job["onset"],
         )
-        tables = DeviceTable(spec["space"], ev.device)
+        tables = DeviceTable(job["space"], ev.device)
         table = tables.sobol(0, 1, 0)[0]
         ev.objectives_of(ev.evaluate_device(table), table)
         return ev, tables
@@ -885,24 +887,24 @@ def _worker_evaluator(key: str, spec: dict):
     return worker_state(key, build)
 
 
-def _warm_evaluator(key: str, spec: dict) -> None:
+def _warm_evaluator(key: str, spec: bytes) -> None:
     _worker_evaluator(key, spec)
 
 
-def _objective_layout(key: str, spec: dict) -> dict:
+def _objective_layout(key: str, spec: bytes) -> dict:
     """{objective: (dtype, shape of one point's value)} of the evaluations ``key``."""
     ev, tables = _worker_evaluator(key, spec)
     table = tables.sobol(0, 1, 0)[0]
     return {k: (v.dtype.str, v.shape[1:]) for k, v in ev.objectives_of(ev.evaluate_device(table), table).items()}
 
 
-def _evaluate_chunk(table: np.ndarray, key: str, spec: dict) -> dict:
+def _evaluate_chunk(table: np.ndarray, key: str, spec: bytes) -> dict:
     """Objectives of one chunk of a design table, on this worker's Evaluator for ``key``."""
     ev, _ = _worker_evaluator(key, spec)
     return ev.evaluate_table(table)
 
 
-def _evaluate_sobol_chunk(task: tuple, key: str, spec: dict, out: SharedColumns | None = None):
+def _evaluate_sobol_chunk(task: tuple, key: str, spec: bytes, out: SharedColumns | None = None):
     """Objectives of the Sobol points ``task`` = (lo, hi, seed, at) of the design space,
     drawn on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`);
     written to rows ``at`` .. of the shared ``out`` where given (and None returned)."""
@@ -1490,13 +1492,19 @@ class ClusterEvaluator:
 
         self.client, self.space, self.chunk = client, space, chunk
         self.settings = settings or ForwardSettings()
-        self.spec = {
-            "space": space,
-            "extra": list(extra),
-            "settings": self.settings,
-            "freqs": DEFAULT_FREQS if freqs is None else freqs,
-            "onset": onset,
-        }
+        # what a worker builds its Evaluator from, pickled once here: each task carries its
+        # bytes, which a worker unpickles only to build (:func:`_worker_evaluator`), where
+        # the scheduler pickled and each worker unpickled the space and its core per chunk
+        self.spec = pickle.dumps(
+            {
+                "space": space,
+                "extra": list(extra),
+                "settings": self.settings,
+                "freqs": DEFAULT_FREQS if freqs is None else freqs,
+                "onset": onset,
+            },
+            protocol=pickle.HIGHEST_PROTOCOL,
+        )
         self.key = uuid.uuid4().hex
         self.shared = _local_processes(client) if shared is None else bool(shared)
         self._layout = None

@@ -5,6 +5,7 @@ worker processes, the same code that runs one worker per GPU."""
 from __future__ import annotations
 
 import os
+import pickle
 import sys
 
 import numpy as np
@@ -387,7 +388,6 @@ def test_worker_processes_sweep_and_evaluate_as_one_process(tmp_path):
 def test_cluster_sweep_sends_no_table(client, tmp_path, monkeypatch):
     # a sweep task's arguments are its point range and the job (space, outputs, settings: a
     # few kB), whatever the chunk: a table of 2048 points (3 rows, float64) would be 48 kB
-    import pickle
 
     from tawarp.design.sweep import sweep
 
@@ -485,7 +485,6 @@ def test_fit_data_is_known_again_by_its_memory_while_it_lives():
 
 def test_task_arguments_pickle():
     # worker processes receive the chunks' arguments pickled: core, space, settings
-    import pickle
 
     from tawarp.measure.kind import smooth_settings
 
@@ -788,7 +787,7 @@ def test_sobol_chunks_written_to_shared_memory_equal_one_process(tmp_path):
     from tawarp.distributed import SharedColumns, _evaluate_sobol_chunk, _objective_layout
 
     space = _space()
-    spec = {"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None}
+    spec = pickle.dumps({"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None})
     key = uuid.uuid4().hex
     out = SharedColumns.create(60, _objective_layout(key, spec), folders=[str(tmp_path)])
     for lo, hi in ((0, 20), (30, 60), (20, 30)):
@@ -815,7 +814,7 @@ def test_sobol_chunks_copied_straight_into_pooled_files_equal_one_process(monkey
     from tawarp.design.space import DeviceTable
 
     space = _space()
-    spec = {"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None}
+    spec = pickle.dumps({"space": space, "extra": [], "settings": None, "freqs": DEFAULT_FREQS, "onset": None})
     key = uuid.uuid4().hex
     step = 2 * mmap.PAGESIZE
     n = 2 * step + 10
