@@ -1236,13 +1236,18 @@ class SharedColumns:
         return cols
 
 
+#: Where the shared-memory files go by default, the first with room (:func:`_shared_folder`),
+#: then the temporary folder: Linux's tmpfs, whose pages the worker processes map.
+SHARED_FOLDERS = ("/dev/shm",)
+
+
 def _shared_folder(size: int, folders=None) -> str | None:
-    """The first of ``folders`` (default ``/dev/shm``, then the temporary folder) with
-    twice ``size`` bytes free, or None (a worker writing past the end of a full tmpfs
+    """The first of ``folders`` (default :data:`SHARED_FOLDERS`, then the temporary folder)
+    with twice ``size`` bytes free, or None (a worker writing past the end of a full tmpfs
     would be killed; the rest of the host keeps room)."""
     import tempfile
 
-    for folder in folders or ("/dev/shm", tempfile.gettempdir()):
+    for folder in folders or (*SHARED_FOLDERS, tempfile.gettempdir()):
         try:
             st = os.statvfs(folder)
         except OSError:
