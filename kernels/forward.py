@@ -786,13 +786,12 @@ def make_point_kernel(nonlinear: bool):
         p = int(0)
         column = int(-1)
         for c in range(cells.shape[1]):
-            if column < 0:
-                slots = segment_slots(flags, cells, i, c, c % n_seg)
-                if rest < slots:
-                    column = c
-                else:
-                    rest = rest - slots
-                    p = p + segment_points(flags, cells, i, c, c % n_seg)
+            slots = segment_slots(flags, cells, i, c, c % n_seg)
+            if rest < slots:
+                column = c
+                break
+            rest = rest - slots
+            p = p + segment_points(flags, cells, i, c, c % n_seg)
         if column < 0:  # beyond this set's slots
             return
         s = column % n_seg
