@@ -109,7 +109,8 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     runs inside the main launch, so only the whole evaluation measures its cost);
     ``work``: :func:`cascade_work` of both, ``work_ratio`` the estimate's over the rule's;
     ``estimate_alone``: :meth:`Engine.cell_densities` (the sampled frequencies alone, for
-    callers that need only the densities); the densities it chose."""
+    callers that need only the densities); the densities it chose; ``kernel_seconds``:
+    :func:`kernel_seconds` of both (where the estimate's time goes)."""
     core = load_core("ceramic")
     names, table = random_batch(n, np.random.default_rng(1))
     varying = wp.array(table, dtype=wp.float64, device=device)
@@ -128,6 +129,7 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
     work = {label: cascade_work(engine, table) for label, engine in engines.items()}
     return {
+        "kernel_seconds": {label: kernel_seconds(engine, varying) for label, engine in engines.items()},
         "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
         "work": work,
         "work_ratio": {
@@ -186,6 +188,43 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
         "points_per_set": work["points"] / table.shape[1],
         "cascade_launch_sets": work["launch_sets"],
     }
+
+
+def kernel_seconds(engine: Engine, varying: wp.array) -> dict:
+    """Seconds of each kernel in one evaluate() of ``varying``, summed over its launches: on
+    a GPU the device time between CUDA events recorded around every launch, on the CPU
+    (whose launches return when done) the wall time of each; ``launches``: each launch's
+    seconds (the first round's, then the reruns'); ``evaluate``: the whole call, whose rest
+    is the host's work, the radix sort of the cascade order and the waits for read-backs.
+    Warp's ``launch`` is wrapped for the call (run it warm: a first launch compiles)."""
+    gpu = wp.get_device(engine.device).is_cuda
+    marks = []
+    launch = wp.launch
+
+    def timed(kernel, dim=None, inputs=None, **kw):
+        if gpu:
+            start, end = wp.Event(engine.device, enable_timing=True), wp.Event(engine.device, enable_timing=True)
+            wp.record_event(start)
+            launch(kernel, dim=dim, inputs=inputs, **kw)
+            wp.record_event(end)
+        else:
+            start = time.perf_counter()
+            launch(kernel, dim=dim, inputs=inputs, **kw)
+            end = time.perf_counter()
+        marks.append((kernel.key.split("__")[-1], start, end))
+
+    wp.launch = timed
+    try:
+        t0 = time.perf_counter()
+        engine.evaluate(varying)
+        wp.synchronize_device(engine.device)
+        total = time.perf_counter() - t0
+    finally:
+        wp.launch = launch
+    each = {}
+    for name, start, end in marks:
+        each.setdefault(name, []).append(wp.get_event_elapsed_time(start, end) / 1e3 if gpu else end - start)
+    return {"evaluate": total, "kernels": {k: sum(v) for k, v in each.items()}, "launches": each}
 
 
 def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: int = 32) -> int:
