@@ -34,6 +34,7 @@ import warp as wp
 
 from tawarp import reference
 from tawarp.model.core import load_core, paper_cores
+from tawarp.model import forward
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from _results import write_result
 
@@ -371,11 +372,14 @@ def main(argv=None):
     ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
     ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
     ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
+    ap.add_argument(
+        "--point-registers", default="128,80,64", help="the points section's register caps (comma list; 0: none)"
+    )
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, threads",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, threads, points",
     )
     ap.add_argument("--threads", default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
@@ -398,7 +402,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads", "points"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -444,6 +448,17 @@ def main(argv=None):
                 )
         result["block_dim/max_registers_models_per_s"] = blocks
 
+    if "points" in sections:
+        # the default settings (error estimate) with the point kernel under each register cap
+        names, table = random_batch(n, rng)
+        varying = wp.array(table, dtype=wp.float64, device=device)
+        points = {}
+        for r in (int(v) for v in args.point_registers.split(",")):
+            engine = Engine(core, FREQS, names, ForwardSettings(device=device))
+            engine.point_kernel = forward._point_kernel(engine.nonlinear, r or None)
+            points[str(r)] = rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
+            print(f"point kernel max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
+        result["point_registers_models_per_s"] = points
     if "peers" in sections and throughput:
         peers = {
             "numpy_reference_models_per_s": numpy_reference_rate(),

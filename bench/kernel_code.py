@@ -121,7 +121,7 @@ def assemble(ptx: Path, arch: int, ptx_version: str, nvdisasm: str) -> dict:
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arch", type=int, default=90)
-    ap.add_argument("--caps", default="128", help="register caps of the cascade (comma list; 0: none)")
+    ap.add_argument("--caps", default="128", help="register caps of the kernels (comma list; 0: none)")
     ap.add_argument("--ptx-version", default="9.0", help="the .version the local ptxas reads")
     ap.add_argument(
         "--kernels",
@@ -147,8 +147,8 @@ def main(argv=None):
             kernels[f"cascade plain/cap {c}"] = forward._transfer_kernel(int(c) or None, 0, True)
         if "general" in chosen:
             kernels[f"cascade/cap {c}"] = forward._transfer_kernel(int(c) or None)
-    if "points" in chosen:
-        kernels["points"] = forward._point_kernel(False)
+        if "points" in chosen:  # the point kernel of the linear heat model
+            kernels[f"points/cap {c}"] = forward._point_kernel(False, int(c) or None)
     result = {"arch": f"sm_{args.arch}", "warp": wp.config.version, "kernels": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for label, kernel in kernels.items():

@@ -743,10 +743,11 @@ def gauss_profile(
     return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
 
 
-def make_point_kernel(nonlinear: bool):
+def make_point_kernel(nonlinear: bool, max_registers: int | None = POINT_MAX_REGISTERS):
     """The point kernel (below), compiled for a linear heat model only (``nonlinear``
     False: the Kirchhoff profile of the temperature-dependent effects is left out, which
-    frees registers on the GPU) or for both."""
+    frees registers on the GPU) or for both; ``max_registers`` caps the registers of a CUDA
+    thread (``__maxnreg__``; None: uncapped)."""
 
     def point_kernel(
         sets: SetTable,
@@ -825,13 +826,8 @@ def make_point_kernel(nonlinear: bool):
 
     # a unique module does not inherit this file's module options; the Gauss points' loops
     # stay loops (max_unroll 1): unrolled, their profile and coefficients' code came three times
-    return wp.kernel(
-        point_kernel,
-        module="unique",
-        enable_backward=False,
-        cuda_max_registers=POINT_MAX_REGISTERS,
-        module_options={"max_unroll": 1},
-    )
+    kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
+    return wp.kernel(point_kernel, module="unique", enable_backward=False, module_options={"max_unroll": 1}, **kw)
 
 
 def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, plain: bool = False):
