@@ -34,6 +34,7 @@ import warp as wp
 
 from tawarp import reference
 from tawarp.model.core import load_core, paper_cores
+from tawarp.model import forward
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
 from _results import write_result
 
@@ -109,7 +110,8 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     runs inside the main launch, so only the whole evaluation measures its cost);
     ``work``: :func:`cascade_work` of both, ``work_ratio`` the estimate's over the rule's;
     ``estimate_alone``: :meth:`Engine.cell_densities` (the sampled frequencies alone, for
-    callers that need only the densities); the densities it chose."""
+    callers that need only the densities); the densities it chose; ``kernel_seconds``:
+    :func:`kernel_seconds` of both (where the estimate's time goes)."""
     core = load_core("ceramic")
     names, table = random_batch(n, np.random.default_rng(1))
     varying = wp.array(table, dtype=wp.float64, device=device)
@@ -128,6 +130,7 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
     work = {label: cascade_work(engine, table) for label, engine in engines.items()}
     return {
+        "kernel_seconds": {label: kernel_seconds(engine, varying) for label, engine in engines.items()},
         "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
         "work": work,
         "work_ratio": {
@@ -186,6 +189,43 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
         "points_per_set": work["points"] / table.shape[1],
         "cascade_launch_sets": work["launch_sets"],
     }
+
+
+def kernel_seconds(engine: Engine, varying: wp.array) -> dict:
+    """Seconds of each kernel in one evaluate() of ``varying``, summed over its launches: on
+    a GPU the device time between CUDA events recorded around every launch, on the CPU
+    (whose launches return when done) the wall time of each; ``launches``: each launch's
+    seconds (the first round's, then the reruns'); ``evaluate``: the whole call, whose rest
+    is the host's work, the radix sort of the cascade order and the waits for read-backs.
+    Warp's ``launch`` is wrapped for the call (run it warm: a first launch compiles)."""
+    gpu = wp.get_device(engine.device).is_cuda
+    marks = []
+    launch = wp.launch
+
+    def timed(kernel, dim=None, inputs=None, **kw):
+        if gpu:
+            start, end = wp.Event(engine.device, enable_timing=True), wp.Event(engine.device, enable_timing=True)
+            wp.record_event(start)
+            launch(kernel, dim=dim, inputs=inputs, **kw)
+            wp.record_event(end)
+        else:
+            start = time.perf_counter()
+            launch(kernel, dim=dim, inputs=inputs, **kw)
+            end = time.perf_counter()
+        marks.append((kernel.key.split("__")[-1], start, end))
+
+    wp.launch = timed
+    try:
+        t0 = time.perf_counter()
+        engine.evaluate(varying)
+        wp.synchronize_device(engine.device)
+        total = time.perf_counter() - t0
+    finally:
+        wp.launch = launch
+    each = {}
+    for name, start, end in marks:
+        each.setdefault(name, []).append(wp.get_event_elapsed_time(start, end) / 1e3 if gpu else end - start)
+    return {"evaluate": total, "kernels": {k: sum(v) for k, v in each.items()}, "launches": each}
 
 
 def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: int = 32) -> int:
@@ -332,11 +372,14 @@ def main(argv=None):
     ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
     ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
     ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
+    ap.add_argument(
+        "--point-registers", default="128,80,64", help="the points section's register caps (comma list; 0: none)"
+    )
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, threads",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, threads, points",
     )
     ap.add_argument("--threads", default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
@@ -359,7 +402,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads", "points"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -405,6 +448,17 @@ def main(argv=None):
                 )
         result["block_dim/max_registers_models_per_s"] = blocks
 
+    if "points" in sections:
+        # the default settings (error estimate) with the point kernel under each register cap
+        names, table = random_batch(n, rng)
+        varying = wp.array(table, dtype=wp.float64, device=device)
+        points = {}
+        for r in (int(v) for v in args.point_registers.split(",")):
+            engine = Engine(core, FREQS, names, ForwardSettings(device=device))
+            engine.point_kernel = forward._point_kernel(engine.nonlinear, r or None)
+            points[str(r)] = rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
+            print(f"point kernel max_registers={r} models={n * len(FREQS):>10d}  {rate:.3e} models/s", flush=True)
+        result["point_registers_models_per_s"] = points
     if "peers" in sections and throughput:
         peers = {
             "numpy_reference_models_per_s": numpy_reference_rate(),

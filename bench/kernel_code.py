@@ -85,7 +85,8 @@ def loop_counts(text: str, kernel: str) -> list[dict]:
 
 def cell_loop(loops: list[dict]) -> dict | None:
     """The cell loop among :func:`loop_counts`' loops (None without one of 100 float64
-    instructions)."""
+    instructions); of the point kernel's, its loop over a Magnus cell's three Gauss points
+    (executed once per point; None where the loop is unrolled)."""
     heavy = [lp for lp in loops if lp["fp64"] >= 100]
     inner = [
         lp
@@ -113,14 +114,20 @@ def assemble(ptx: Path, arch: int, ptx_version: str, nvdisasm: str) -> dict:
         "spill_load_bytes": int(spills.group(3)),
         "functions": disassembly_counts(text),
         "cell_loop": cell_loop(loop_counts(text, "transfer_kernel")),
+        "gauss_loop": cell_loop(loop_counts(text, "point_kernel")),
     }
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--arch", type=int, default=90)
-    ap.add_argument("--caps", default="128", help="register caps of the cascade (comma list; 0: none)")
+    ap.add_argument("--caps", default="128", help="register caps of the kernels (comma list; 0: none)")
     ap.add_argument("--ptx-version", default="9.0", help="the .version the local ptxas reads")
+    ap.add_argument(
+        "--kernels",
+        default="plain,general,points",
+        help="comma list of plain (the plain cascade), general (the general cascade), points (the point kernel)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     nvdisasm = os.environ.get("NVDISASM") or shutil.which("nvdisasm")
@@ -129,13 +136,19 @@ def main(argv=None):
     wp.init()
     from tawarp.model import forward
 
+    chosen = set(args.kernels.split(","))
+    if chosen - {"plain", "general", "points"}:
+        ap.error(f"--kernels: unknown {sorted(chosen - {'plain', 'general', 'points'})}")
     kernels = {}
     for c in args.caps.split(","):
         # the cascade of a core with plain parts alone (circular pores, rigid frames, no shape
         # factor: the bench's and the bundled cores'), and of any core
-        kernels[f"cascade plain/cap {c}"] = forward._transfer_kernel(int(c) or None, 0, True)
-        kernels[f"cascade/cap {c}"] = forward._transfer_kernel(int(c) or None)
-    kernels["points"] = forward._point_kernel(False)
+        if "plain" in chosen:
+            kernels[f"cascade plain/cap {c}"] = forward._transfer_kernel(int(c) or None, 0, True)
+        if "general" in chosen:
+            kernels[f"cascade/cap {c}"] = forward._transfer_kernel(int(c) or None)
+        if "points" in chosen:  # the point kernel of the linear heat model
+            kernels[f"points/cap {c}"] = forward._point_kernel(False, int(c) or None)
     result = {"arch": f"sm_{args.arch}", "warp": wp.config.version, "kernels": {}}
     with tempfile.TemporaryDirectory() as tmp:
         for label, kernel in kernels.items():
@@ -147,11 +160,16 @@ def main(argv=None):
             )
             ptx = next(Path(p) for p in paths if str(p).endswith(".ptx"))
             result["kernels"][label] = r = assemble(ptx, args.arch, args.ptx_version, nvdisasm)
-            loop = r["cell_loop"]
+            loop = r["cell_loop"] or r["gauss_loop"]
             print(
                 f"{label}: {r['registers']} registers, stack {r['stack_frame_bytes']} B, spills "
                 f"{r['spill_store_bytes']}/{r['spill_load_bytes']} B; "
-                + (f"cell loop {loop['total']} / {loop['fp64']} float64, {loop['ldg']} loads; " if loop else "")
+                + (
+                    f"{'cell' if r['cell_loop'] else 'Gauss point'} loop {loop['total']} / {loop['fp64']} float64, "
+                    f"{loop['ldg']} loads, {loop['ldl']}/{loop['stl']} local loads/stores; "
+                    if loop
+                    else ""
+                )
                 + "functions "
                 + ", ".join(
                     f"{k[:40]} {v.get('total', 0)}" for k, v in r["functions"].items() if v.get("total", 0) > 300

@@ -67,7 +67,17 @@ from .acoustics import (
 )
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
-from .heat import gap_share, segment_heat_coeffs, segment_nonlinear, segment_profile, solve_heat, temperature_at
+from .heat import (
+    cell_profile,
+    contact_at,
+    gap_share,
+    segment_heat_coeffs,
+    segment_nonlinear,
+    segment_profile,
+    solve_heat,
+    temperature_at,
+    wall_field_on,
+)
 from .layout import (
     BYPASS_GAP,
     F_POROUS,
@@ -109,6 +119,9 @@ CELL_CAP = wp.constant(wp.float64(MAX_CELLS + 1))
 #: random cores and cost a third more points and refined cascades (bench/README.md).
 REFINEMENT = 1.5
 REFINED_ERROR_FACTOR = wp.constant(wp.float64(1.0 / (1.0 - REFINEMENT**-6)))
+#: Register cap of the point kernel (``__maxnreg__``): two blocks of 256 threads per SM, no
+#: spill in its Gauss points' loop (bench/README.md).
+POINT_MAX_REGISTERS = 128
 
 
 @wp.struct
@@ -550,13 +563,15 @@ def cell_span(grid: wp.vec4d, n: int, c: int):
 
 
 @wp.func
-def gauss_point(grid: wp.vec4d, n: int, c: int, g: int):
-    """Local position [m] of Gauss point g (:data:`GAUSS`) of cell c of :func:`cell_grid`'s
-    grid of n cells: x_c + GAUSS[g] h_c (:func:`cell_edge`, :func:`cell_span`); on a
-    uniform grid (c + GAUSS[g]) h."""
+def gauss_points(grid: wp.vec4d, n: int, c: int):
+    """Local positions [m] of the three Gauss points (:data:`GAUSS`) of cell c of
+    :func:`cell_grid`'s grid of n cells: x_c + GAUSS h_c (:func:`cell_edge`,
+    :func:`cell_span`, whose logs are taken once for the three); on a uniform grid
+    (c + GAUSS) h."""
     if not graded(grid):
-        return (wp.float64(c) + GAUSS[g]) * grid[0]
-    return cell_edge(grid, n, c) + GAUSS[g] * cell_span(grid, n, c)
+        return (wp.vec3d(wp.float64(c)) + GAUSS) * grid[0]
+    x = cell_edge(grid, n, c)
+    return wp.vec3d(x) + GAUSS * (cell_edge(grid, n, c + 1) - x)
 
 
 @wp.func
@@ -679,10 +694,60 @@ def cell_counts(
     wp.atomic_max(most, 1, slots)
 
 
-def make_point_kernel(nonlinear: bool):
+@wp.func(inline=False)  # the rare profiles: kept out of the point kernel's inlined code
+def rare_profile(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node0: int,
+    cells: int,
+    k: wp.float64,
+    sigma: wp.float64,
+    d: wp.float64,
+    nonlin: int,
+    xi: wp.float64,
+):
+    """:func:`tawarp.kernels.heat.segment_profile`, out of line (:func:`gauss_profile`)."""
+    return segment_profile(params, flags, gas, theta, i, s, node0, cells, k, sigma, d, nonlin, xi)
+
+
+@wp.func
+def gauss_profile(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    theta: wp.array2d(dtype=wp.float64),
+    i: int,
+    s: int,
+    node0: int,
+    cells: int,
+    k: wp.float64,
+    sigma: wp.float64,
+    d: wp.float64,
+    nonlin: int,
+    xi: wp.float64,
+):
+    """:func:`tawarp.kernels.heat.segment_profile` (the same values, bit for bit:
+    tests/test_forward.py) with its usual case inline, the exact profile of the heat cell
+    at xi (:func:`tawarp.kernels.heat.cell_profile`), and its rare ones out of line
+    (:func:`rare_profile`): a wall that is a field of its own, a contact resistance at the
+    segment's start, the Kirchhoff cells of ``nonlin``. Inlined, their code took the point
+    kernel to 255 registers (one block of 256 threads per SM) and 33k instructions
+    (bench/README.md)."""
+    c = wp.min(int(xi / d), cells - 1)
+    if nonlin != 0 or wall_field_on(params, i, s) != 0 or contact_at(params, i, s, node0, c) != wp.float64(0.0):
+        return rare_profile(params, flags, gas, theta, i, s, node0, cells, k, sigma, d, nonlin, xi)
+    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
+
+
+def make_point_kernel(nonlinear: bool, max_registers: int | None = POINT_MAX_REGISTERS):
     """The point kernel (below), compiled for a linear heat model only (``nonlinear``
     False: the Kirchhoff profile of the temperature-dependent effects is left out, which
-    frees registers on the GPU) or for both."""
+    frees registers on the GPU) or for both; ``max_registers`` caps the registers of a CUDA
+    thread (``__maxnreg__``; None: uncapped)."""
 
     def point_kernel(
         sets: SetTable,
@@ -722,13 +787,12 @@ def make_point_kernel(nonlinear: bool):
         p = int(0)
         column = int(-1)
         for c in range(cells.shape[1]):
-            if column < 0:
-                slots = segment_slots(flags, cells, i, c, c % n_seg)
-                if rest < slots:
-                    column = c
-                else:
-                    rest = rest - slots
-                    p = p + segment_points(flags, cells, i, c, c % n_seg)
+            slots = segment_slots(flags, cells, i, c, c % n_seg)
+            if rest < slots:
+                column = c
+                break
+            rest = rest - slots
+            p = p + segment_points(flags, cells, i, c, c % n_seg)
         if column < 0:  # beyond this set's slots
             return
         s = column % n_seg
@@ -742,37 +806,28 @@ def make_point_kernel(nonlinear: bool):
             points[li, p] = point_coefficients(gas, p_mean, T, wp.float64(0.0), phi, r, q, area, r_k)
             spans[li, p] = grid[0]
             return
-        spans[li, p + 3 * rest] = cell_span(grid, cells[i, column], rest)
+        n_cells = cells[i, column]
+        xs = gauss_points(grid, n_cells, rest)
+        spans[li, p + 3 * rest] = cell_span(grid, n_cells, rest)
         if flags[s, F_IMPOSED] != 0:
             for g in range(3):
-                T, dT = imposed_temperature(params, i, s, gauss_point(grid, cells[i, column], rest, g))
+                T, dT = imposed_temperature(params, i, s, xs[g])
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T, dT, phi, r, q, area, r_k)
         else:
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
-            length = seg_value(params, i, s, LENGTH)
+            d = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
+            node0 = (s - first) * heat_cells
             nonlin = 0
             if wp.static(nonlinear):  # compiled out of the linear kernel: fewer registers on the GPU
                 nonlin = segment_nonlinear(params, i, s)
             for g in range(3):
-                th, dth = segment_profile(
-                    params,
-                    flags,
-                    gas,
-                    theta,
-                    i,
-                    s,
-                    (s - first) * heat_cells,
-                    heat_cells,
-                    k,
-                    sigma,
-                    length / wp.float64(heat_cells),
-                    nonlin,
-                    gauss_point(grid, cells[i, column], rest, g),
-                )
+                th, dth = gauss_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, d, nonlin, xs[g])
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
 
-    # a unique module does not inherit this file's module options
-    return wp.kernel(point_kernel, module="unique", enable_backward=False)
+    # a unique module does not inherit this file's module options; the Gauss points' loops
+    # stay loops (max_unroll 1): unrolled, their profile and coefficients' code came three times
+    kw = {} if max_registers is None else {"cuda_max_registers": int(max_registers)}
+    return wp.kernel(point_kernel, module="unique", enable_backward=False, module_options={"max_unroll": 1}, **kw)
 
 
 def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, plain: bool = False):

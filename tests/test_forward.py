@@ -390,3 +390,77 @@ def test_heat_only_fields_are_inert_without_heat_input(name):
     # the shared columns: each set's own T-matrices, bit for bit
     shared = eng.evaluate_distinct(table[:, [0, 1, 2, 3, 1, 2]])
     assert np.array_equal(shared.reshape(6, -1), T.view(complex).reshape(4, -1)[[0, 1, 2, 3, 1, 2]])
+
+
+def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
+    """The point kernel's profile (its usual heat cell inline, the rare cases out of line)
+    gives tawarp.kernels.heat.segment_profile's values bit for bit at points all along every
+    thermal segment: plain cells, a wall that is a field of its own, contact resistances at
+    the segments' starts, the Kirchhoff cells of a temperature-dependent conductivity (a
+    heat grid of several cells)."""
+    import warp as wp
+
+    from tawarp.kernels import forward as kf
+    from tawarp.kernels.heat import segment_heat_coeffs, segment_nonlinear, segment_profile
+    from tawarp.kernels.layout import LENGTH, seg_value
+    from tawarp.model.forward import Engine, ForwardSettings
+
+    @wp.kernel
+    def profiles(
+        sets: kf.SetTable,
+        theta: wp.array2d(dtype=wp.float64),
+        first: int,
+        heat_cells: int,
+        segments: wp.array(dtype=wp.int32),
+        share: wp.array(dtype=wp.float64),
+        ours: wp.array3d(dtype=wp.float64),
+        theirs: wp.array3d(dtype=wp.float64),
+    ):
+        i, a, b = wp.tid()
+        params = sets.params
+        s = segments[a]
+        lam, k, sigma = segment_heat_coeffs(params, sets.flags, sets.gas, i, s)
+        d = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
+        nonlin = segment_nonlinear(params, i, s)
+        xi = share[b] * seg_value(params, i, s, LENGTH)
+        node0 = (s - first) * heat_cells
+        th, dth = kf.gauss_profile(
+            params, sets.flags, sets.gas, theta, i, s, node0, heat_cells, k, sigma, d, nonlin, xi
+        )
+        ours[i, a, 2 * b] = th
+        ours[i, a, 2 * b + 1] = dth
+        th, dth = segment_profile(params, sets.flags, sets.gas, theta, i, s, node0, heat_cells, k, sigma, d, nonlin, xi)
+        theirs[i, a, 2 * b] = th
+        theirs[i, a, 2 * b + 1] = dth
+
+    core = load_core("ceramic")
+    thermal = [j for j, seg in enumerate(core.segments) if seg.thermal]
+    share = np.linspace(0.0, 1.0, 41)
+    wall = {f"{core.segments[j].name}.wall_conductance": 5.0 for j in thermal}
+    wall.update({f"{core.segments[j].name}.wall_resistance": 1e-3 for j in thermal})
+    contact = {f"{core.segments[j].name}.contact_resistance": 3e-4 for j in thermal}
+    kirchhoff = {f"{core.segments[j].name}.conductivity_exponent": 0.7 for j in thermal}
+    for values in ({}, contact, {**wall, **contact}, {**kirchhoff, **contact}):
+        names = list(values)
+        engine = Engine(core, FREQS, names, ForwardSettings(device="cpu"))
+        table = np.array([[20.0, 80.0]] + [[v, v] for v in values.values()])
+        params, theta = engine.heat(table)
+        ours = wp.zeros((2, len(thermal), 2 * share.size), dtype=wp.float64, device="cpu")
+        theirs = wp.zeros_like(ours)
+        wp.launch(
+            profiles,
+            dim=ours.shape[:2] + (share.size,),
+            inputs=[
+                engine._sets(params),
+                theta,
+                engine.first,
+                engine.heat_cells,
+                wp.array(thermal, dtype=wp.int32, device="cpu"),
+                wp.array(share, dtype=wp.float64, device="cpu"),
+                ours,
+                theirs,
+            ],
+            device="cpu",
+        )
+        assert np.isfinite(theirs.numpy()).all() and np.abs(theirs.numpy()).max() > 1.0
+        np.testing.assert_array_equal(ours.numpy(), theirs.numpy())

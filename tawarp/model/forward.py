@@ -893,9 +893,10 @@ def _thread_pool() -> ThreadPoolExecutor:
 
 
 @functools.cache
-def _point_kernel(nonlinear: bool):
-    """The point kernel for this heat model, compiled once per process."""
-    return kf.make_point_kernel(nonlinear)
+def _point_kernel(nonlinear: bool, max_registers: int | None = kf.POINT_MAX_REGISTERS):
+    """The point kernel for this heat model under a register cap (None: uncapped), compiled
+    once per process."""
+    return kf.make_point_kernel(nonlinear, max_registers)
 
 
 @functools.cache
