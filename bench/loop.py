@@ -6,9 +6,11 @@ thread's ``main_thread_cpu_seconds`` (the host's work and its share of each CPU 
 :meth:`tawarp.model.forward.Engine.evaluate` splits over the cores: a lower bound of the wall
 time on an idle machine), and the machine's ``load_average`` (1, 5, 15 min) before and after
 the timed cases (on a shared machine the wall time grows with the others' load, the CPU times
-much less), and ``forward_sets``, the parameter sets the kind predicted (every stage of the
-loop predicts through it, the planned measurements too): a measure of the loop's work that no
-load changes.
+less: on a 2-core VM shared with other jobs the main thread's CPU time of one loop varied by up
+to 30 % from run to run), and ``forward_sets``, the parameter sets the kind predicted (every
+stage of the loop predicts through it, the planned measurements too), and
+``forward_columns``, the T-matrix columns the engines computed for them (a T-matrix set at one
+heat input, a layer's set at one thickness): measures of the loop's work that no load changes.
 
     python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
     taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
@@ -44,7 +46,7 @@ from _results import write_result  # noqa: E402
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
-from tawarp.model.forward import ForwardSettings  # noqa: E402
+from tawarp.model.forward import Engine, ForwardSettings  # noqa: E402
 
 
 def _clocks() -> tuple[float, float, float]:
@@ -61,18 +63,24 @@ def _elapsed(start: tuple[float, float, float]) -> dict:
 @contextlib.contextmanager
 def counting_sets(kind: type):
     """Count the parameter sets every instance of the measurement kind ``kind`` predicts
-    while inside: yields a dict whose ``sets`` grows."""
-    count, predict = {"sets": 0}, kind.predict
+    while inside, and the columns the forward engines compute for them (:meth:`Engine.evaluate`:
+    the distinct ones, less those a CPU engine served from its memo): yields a dict whose
+    ``sets`` and ``columns`` grow."""
+    count, predict, evaluate = {"sets": 0, "columns": 0}, kind.predict, Engine.evaluate
 
     def counted(self, values, n, effect=None):
         count["sets"] += n
         return predict(self, values, n, effect)
 
-    kind.predict = counted
+    def computed(self, varying, out=None):
+        count["columns"] += varying.shape[1]
+        return evaluate(self, varying, out)
+
+    kind.predict, Engine.evaluate = counted, computed
     try:
         yield count
     finally:
-        kind.predict = predict
+        kind.predict, Engine.evaluate = predict, evaluate
 
 
 def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
@@ -94,6 +102,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
                 "rows": int(prob.y.size),
                 **elapsed,
                 "forward_sets": count["sets"],
+                "forward_columns": count["columns"],
                 "verdict": rep["verdict"],
                 "claimed": rep["accepted_steps"],
                 "models": rep["models_compared"],
@@ -123,6 +132,7 @@ def impedance_case(n: int, device: str) -> dict:
         "rows": int(prob.y.size),
         **elapsed,
         "forward_sets": count["sets"],
+        "forward_columns": count["columns"],
         "verdict": rep["verdict"],
         "best_model": rep["best_model"],
         "models": rep["models_compared"],

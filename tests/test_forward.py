@@ -464,3 +464,26 @@ def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
         )
         assert np.isfinite(theirs.numpy()).all() and np.abs(theirs.numpy()).max() > 1.0
         np.testing.assert_array_equal(ours.numpy(), theirs.numpy())
+
+
+def test_evaluate_distinct_serves_the_columns_it_computed_before_bit_for_bit(monkeypatch):
+    # a CPU engine keeps the columns it computed (forward.MEMO_BYTES): a later batch that
+    # shares some computes only the others, and its T-matrices are those of an engine that
+    # computes them all (the kernels compute each set on its own)
+    from tawarp.model.forward import Engine, ForwardSettings
+
+    core = load_core("ceramic")
+    names = ["stack.porosity", "stack.h"]
+    settings = ForwardSettings(device="cpu", cells=8)
+    eng = Engine(core, FREQS, names, settings)
+    first = np.array([[0.0, 40.0, 40.0], [0.8, 0.8, 0.85], [150.0, 150.0, 150.0]])
+    eng.evaluate_distinct(first)
+    computed = []
+    compute = Engine._computed
+    monkeypatch.setattr(
+        Engine, "_computed", lambda self, table: computed.append(table.shape[1]) or compute(self, table)
+    )
+    later = np.column_stack([first[:, [2, 0]], [40.0, 0.9, 150.0]])
+    T = eng.evaluate_distinct(later)
+    assert computed == [1]
+    np.testing.assert_array_equal(T, Engine(core, FREQS, names, settings).evaluate_distinct(later))

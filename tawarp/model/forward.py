@@ -18,7 +18,9 @@ import dataclasses
 import functools
 import math
 import os
+import threading
 import warnings
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -74,6 +76,46 @@ TANGENT_STEP_NONLINEAR = 1e-4
 #: Register cap of the tangent cascade's CUDA threads (None: none; it carries P more
 #: matrices than the plain cascade: measurements in bench/README.md, "fits").
 TANGENT_MAX_REGISTERS = None
+#: Bytes of T-matrices that :meth:`Engine.evaluate_distinct` keeps of a CPU engine's columns,
+#: the least recently asked for given up first: a loop's later batches ask again for parameter
+#: sets an earlier one computed (a fit continued from where it stopped, a start at a relative's
+#: solution; 4 % of the columns of the loop bench's T-matrix cases), and on the CPU a column
+#: costs about a millisecond, its look-up microseconds.
+MEMO_BYTES = 32 << 20
+
+
+class ColumnMemo:
+    """A least-recently-used store {key: T-matrices (m, 2, 2)} of at most ``limit`` bytes,
+    safe to share between threads."""
+
+    def __init__(self, limit: int):
+        self.limit, self.size = limit, 0
+        self.items: OrderedDict = OrderedDict()
+        self.lock = threading.Lock()
+
+    def get(self, keys: list) -> list:
+        """The stored value of each of ``keys``, None where there is none."""
+        with self.lock:
+            out = [self.items.get(k) for k in keys]
+            for k, v in zip(keys, out):
+                if v is not None:
+                    self.items.move_to_end(k)
+            return out
+
+    def put(self, keys: list, values) -> None:
+        """Store ``values`` (copies) under ``keys``."""
+        with self.lock:
+            for k, v in zip(keys, values):
+                if k not in self.items:
+                    self.items[k] = v = np.array(v)
+                    self.size += v.nbytes
+            while self.size > self.limit:
+                self.size -= self.items.popitem(last=False)[1].nbytes
+
+
+_MEMO = ColumnMemo(MEMO_BYTES)
+
+
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
 #: temperature rise is zero whatever their values, and with fixed cells a set's T-matrices do
 #: not depend on them (:meth:`Engine.evaluate_distinct`; tests/test_forward.py guards it).
@@ -483,14 +525,34 @@ class Engine:
         each distinct set computed once and shared by its copies: sets that differ only in
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
-        fields told apart. The kernels compute each set on its own, so sharing changes no bit."""
+        fields told apart, and on the CPU each set this engine computed before (:data:`MEMO_BYTES`).
+        The kernels compute each set on its own, so sharing changes no bit."""
         key = np.array(varying, dtype=np.float64)
         cold = key[0] == 0.0
         if self.heat_only.size and cold.any():
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
         _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
-        out, _, _ = self.evaluate(np.ascontiguousarray(np.asarray(varying, dtype=np.float64)[:, first]))
-        return out.numpy().view(np.complex128).reshape(first.size, len(self.freqs), 2, 2)[column.reshape(-1)]
+        table = np.asarray(varying, dtype=np.float64)[:, first]
+        if not wp.get_device(self.device).is_cpu:
+            return self._computed(table)[column.reshape(-1)]
+        # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
+        ids = [(self, key[:, j].tobytes()) for j in first]
+        T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
+        todo = []
+        for j, known in enumerate(_MEMO.get(ids)):
+            if known is None:
+                todo.append(j)
+            else:
+                T[j] = known
+        if todo:
+            T[todo] = self._computed(table[:, todo])
+            _MEMO.put([ids[j] for j in todo], T[todo])
+        return T[column.reshape(-1)]
+
+    def _computed(self, table: np.ndarray) -> np.ndarray:
+        """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n)."""
+        out, _, _ = self.evaluate(np.ascontiguousarray(table))
+        return out.numpy().view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
 
     def _cpu_parts(self, n: int) -> int:
         """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
