@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import itertools
 import math
 import os
 import threading
@@ -114,6 +115,10 @@ class ColumnMemo:
 
 
 _MEMO = ColumnMemo(MEMO_BYTES)
+#: Each engine's key in the memo: a number never given twice, so that the memo holds no
+#: engine alive (an engine's entries age out after it goes) and a later engine never reads
+#: an earlier one's columns.
+_ENGINE_NUMBERS = itertools.count()
 
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
@@ -419,6 +424,7 @@ class Engine:
     def __init__(self, core: Core, freqs, names=(), settings: ForwardSettings | None = None):
         self.settings = settings or ForwardSettings()
         self.device = resolve_device(self.settings.device)
+        self.number = next(_ENGINE_NUMBERS)  # (its key in the memo of computed columns)
         keep_pool_memory(self.device)
         self.core = core
         self.freqs = np.atleast_1d(np.asarray(freqs, dtype=np.float64))
@@ -536,7 +542,7 @@ class Engine:
         if not wp.get_device(self.device).is_cpu:
             return self._computed(table)[column.reshape(-1)]
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
-        ids = [(self, key[:, j].tobytes()) for j in first]
+        ids = [(self.number, key[:, j].tobytes()) for j in first]
         T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
         todo = []
         for j, known in enumerate(_MEMO.get(ids)):
