@@ -365,15 +365,41 @@ def openthermoacoustics_rate(n_freqs: int = 8) -> dict:
     }
 
 
+def _numbers(kind):
+    """An argparse type: a comma list of numbers read by ``kind`` (int: "1e3" allowed)."""
+
+    def parse(text: str) -> list:
+        try:
+            return [int(float(v)) if kind is int else kind(v) for v in text.split(",") if v.strip()]
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r}: expected a comma list of numbers") from None
+
+    return parse
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--device", default=None)
-    ap.add_argument("--sizes", default=None, help="comma list of batch sizes in forward models (n * 100)")
-    ap.add_argument("--densities", default="0.5,0.75,1,1.5,2,3", help="cell_density settings (ForwardSettings)")
-    ap.add_argument("--block-dims", default="256", help="GPU block sizes to compare at the default density")
-    ap.add_argument("--max-registers", default="", help="register caps to compare (comma list; empty: none)")
     ap.add_argument(
-        "--point-registers", default="128,80,64", help="the points section's register caps (comma list; 0: none)"
+        "--sizes", type=_numbers(int), default=None, help="comma list of batch sizes in forward models (n * 100)"
+    )
+    ap.add_argument(
+        "--densities",
+        type=_numbers(float),
+        default="0.5,0.75,1,1.5,2,3",
+        help="cell_density settings (ForwardSettings)",
+    )
+    ap.add_argument(
+        "--block-dims", type=_numbers(int), default="256", help="GPU block sizes to compare at the default density"
+    )
+    ap.add_argument(
+        "--max-registers", type=_numbers(int), default="", help="register caps to compare (comma list; empty: none)"
+    )
+    ap.add_argument(
+        "--point-registers",
+        type=_numbers(int),
+        default="128,80,64",
+        help="the points section's register caps (comma list; 0: none)",
     )
     ap.add_argument("--min-time", type=float, default=0.5, help="seconds of repeats per timing")
     ap.add_argument(
@@ -381,14 +407,14 @@ def main(argv=None):
         default="accuracy,throughput,blocks,peers,estimate",
         help="comma list of accuracy, throughput, blocks, peers, estimate, threads, points",
     )
-    ap.add_argument("--threads", default="1,2", help="CPU thread counts of the threads section")
+    ap.add_argument("--threads", type=_numbers(int), default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     wp.init()
     device = args.device or ("cuda" if wp.is_cuda_available() else "cpu")
     gpu = device.startswith("cuda")
-    sizes = [int(float(s)) for s in (args.sizes or ("1e3,1e4,1e5,1e6,1e7" if gpu else "1e2,1e3,1e4")).split(",")]
-    densities = [float(c) for c in args.densities.split(",")]
+    sizes = args.sizes or ([10**k for k in range(3, 8)] if gpu else [100, 1000, 10000])
+    densities = args.densities
     rng = np.random.default_rng(0)
     core = load_core("ceramic")
     result = {
@@ -429,13 +455,13 @@ def main(argv=None):
         result["estimate"] = estimate_cost(device, n, args.min_time)
         print(f"error estimate: {result['estimate']}", flush=True)
     if "threads" in sections:
-        result["cpu_scaling"] = cpu_scaling([int(t) for t in args.threads.split(",")], n, args.min_time)
+        result["cpu_scaling"] = cpu_scaling(args.threads, n, args.min_time)
     if "blocks" in sections:
         names, table = random_batch(n, rng)
         varying = wp.array(table, dtype=wp.float64, device=device)
         blocks = {}
-        for b in (int(v) for v in args.block_dims.split(",")):
-            for r in [None] + [int(v) for v in args.max_registers.split(",") if v]:
+        for b in args.block_dims:
+            for r in [None] + args.max_registers:
                 engine = Engine(core, FREQS, names, ForwardSettings(block_dim=b, max_registers=r, device=device))
                 try:
                     rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
@@ -453,7 +479,7 @@ def main(argv=None):
         names, table = random_batch(n, rng)
         varying = wp.array(table, dtype=wp.float64, device=device)
         points = {}
-        for r in (int(v) for v in args.point_registers.split(",")):
+        for r in args.point_registers:
             engine = Engine(core, FREQS, names, ForwardSettings(device=device))
             engine.point_kernel = forward._point_kernel(engine.nonlinear, r or None)
             points[str(r)] = rate = n * len(FREQS) / time_engine(engine, varying, args.min_time)
