@@ -48,13 +48,32 @@ MAX_CONDITION = wp.constant(wp.float64(1e14))
 TOLFUN = wp.constant(wp.float64(1e-12))
 
 
+@wp.struct
+class CmaState:
+    """The state of ``K`` CMA-ES instances, a leading instance axis (the tutorial's names):
+    ``mean`` m (K, d) in the unit box, step size ``sigma`` (K,), covariance ``C`` (K, d, d)
+    and its eigendecomposition ``B`` (K, d, d), ``eig`` (K, d) kept for sampling, evolution
+    paths ``p_sigma`` and ``p_c`` (K, d), the last step's weighted mean ``yw`` (K, d),
+    ``age`` (K,) generations since the (re)start, ``history`` (K, H) a ring of the best
+    feasible objective of the last generations (tolfun), ``restarts`` (K,) so far."""
+
+    mean: wp.array2d(dtype=wp.float64)
+    sigma: wp.array(dtype=wp.float64)
+    C: wp.array3d(dtype=wp.float64)
+    B: wp.array3d(dtype=wp.float64)
+    eig: wp.array2d(dtype=wp.float64)
+    p_sigma: wp.array2d(dtype=wp.float64)
+    p_c: wp.array2d(dtype=wp.float64)
+    yw: wp.array2d(dtype=wp.float64)
+    age: wp.array(dtype=wp.int32)
+    history: wp.array2d(dtype=wp.float64)
+    restarts: wp.array(dtype=wp.int32)
+
+
 @wp.kernel
 def cma_sample(
     seed: int,
-    mean: wp.array2d(dtype=wp.float64),
-    sigma: wp.array(dtype=wp.float64),
-    B: wp.array3d(dtype=wp.float64),
-    eig: wp.array2d(dtype=wp.float64),
+    cma: CmaState,
     category: wp.array(dtype=wp.int32),
     resample: int,
     z: wp.array2d(dtype=wp.float64),
@@ -65,20 +84,20 @@ def cma_sample(
     category column (X has d + 1 columns) X[i, d] = category[i]."""
     i = wp.tid()
     k = category[i]
-    d = mean.shape[1]
+    d = cma.mean.shape[1]
     state = wp.rand_init(seed, i)
     inside = bool(False)
     tries = int(0)
     while not inside and tries < resample:
         tries += 1
         for a in range(d):
-            z[i, a] = wp.float64(wp.randn(state)) * wp.sqrt(wp.max(eig[k, a], ZERO))
+            z[i, a] = wp.float64(wp.randn(state)) * wp.sqrt(wp.max(cma.eig[k, a], ZERO))
         inside = bool(True)
         for a in range(d):
             y = ZERO
             for b in range(d):
-                y += B[k, a, b] * z[i, b]
-            x = mean[k, a] + sigma[k] * y
+                y += cma.B[k, a, b] * z[i, b]
+            x = cma.mean[k, a] + cma.sigma[k] * y
             X[i, a] = x
             if not (x >= ZERO and x <= ONE):
                 inside = bool(False)
@@ -179,24 +198,17 @@ def raw_weight(lam: int, r: int):
 
 
 @wp.func
-def start_state(
-    k: int,
-    sigma: wp.array(dtype=wp.float64),
-    C: wp.array3d(dtype=wp.float64),
-    p_sigma: wp.array2d(dtype=wp.float64),
-    p_c: wp.array2d(dtype=wp.float64),
-    age: wp.array(dtype=wp.int32),
-):
+def start_state(k: int, cma: CmaState):
     """Instance k's state of a (re)start about its mean: sigma0, C = I, both evolution
     paths zero, age 0."""
-    d = p_c.shape[1]
+    d = cma.p_c.shape[1]
     for a in range(d):
-        p_sigma[k, a] = ZERO
-        p_c[k, a] = ZERO
+        cma.p_sigma[k, a] = ZERO
+        cma.p_c[k, a] = ZERO
         for b in range(d):
-            C[k, a, b] = ONE if a == b else ZERO
-    sigma[k] = SIGMA0
-    age[k] = 0
+            cma.C[k, a, b] = ONE if a == b else ZERO
+    cma.sigma[k] = SIGMA0
+    cma.age[k] = 0
 
 
 @wp.kernel
@@ -204,15 +216,14 @@ def cma_moments(
     U: wp.array2d(dtype=wp.float64),
     member: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
-    mean: wp.array2d(dtype=wp.float64),
-    sigma: wp.array(dtype=wp.float64),
+    cma: CmaState,
     part: wp.array3d(dtype=wp.float64),
 ):
     """Slice s of instance k: sum over ranks r = s, s + S, ... < mu of w_r y and w_r y y^T
     (raw weights), y = (x - m) / sigma; part[k, s] = (y_w (d), y y^T (d x d) row-major)."""
     k, s = wp.tid()
     S = part.shape[1]
-    d = mean.shape[1]
+    d = cma.mean.shape[1]
     for c in range(part.shape[2]):
         part[k, s, c] = ZERO
     lam = counts[k]
@@ -222,10 +233,10 @@ def cma_moments(
         i = member[off + r]
         w = raw_weight(lam, r)
         for a in range(d):
-            ya = (U[i, a] - mean[k, a]) / sigma[k]
+            ya = (U[i, a] - cma.mean[k, a]) / cma.sigma[k]
             part[k, s, a] += w * ya
             for b in range(a + 1):
-                yb = (U[i, b] - mean[k, b]) / sigma[k]
+                yb = (U[i, b] - cma.mean[k, b]) / cma.sigma[k]
                 part[k, s, d + a * d + b] += w * ya * yb
         r += S
 
@@ -239,17 +250,7 @@ def cma_update(
     counts: wp.array(dtype=wp.int32),
     F: wp.array(dtype=wp.float64),
     violation: wp.array(dtype=wp.float64),
-    yw: wp.array2d(dtype=wp.float64),
-    mean: wp.array2d(dtype=wp.float64),
-    sigma: wp.array(dtype=wp.float64),
-    C: wp.array3d(dtype=wp.float64),
-    B: wp.array3d(dtype=wp.float64),
-    eig: wp.array2d(dtype=wp.float64),
-    p_sigma: wp.array2d(dtype=wp.float64),
-    p_c: wp.array2d(dtype=wp.float64),
-    age: wp.array(dtype=wp.int32),
-    history: wp.array2d(dtype=wp.float64),
-    restarts: wp.array(dtype=wp.int32),
+    cma: CmaState,
 ):
     """One CMA-ES update of instance k from its ranked members (eqs. 41-47 with c_m = 1,
     positive weights), then its stopping tests; a stopped (or not finite) instance restarts
@@ -259,7 +260,7 @@ def cma_update(
     ``age[k]``: generations since the (re)start; ``history[k]``: ring of the best feasible
     objective of the last generations (tolfun)."""
     k = wp.tid()
-    d = mean.shape[1]
+    d = cma.mean.shape[1]
     lam = counts[k]
     mu = lam // 2
     if mu < 1:
@@ -286,15 +287,15 @@ def cma_update(
         acc = ZERO
         for s in range(S):
             acc += part[k, s, a]
-        yw[k, a] = acc / wsum
+        cma.yw[k, a] = acc / wsum
     # the mean (eq. 41, c_m = 1) moves by sigma y_w; nothing below reads the mean
     for a in range(d):
-        mean[k, a] = mean[k, a] + sigma[k] * yw[k, a]
+        cma.mean[k, a] = cma.mean[k, a] + cma.sigma[k] * cma.yw[k, a]
     if first == 1:
-        start_state(k, sigma, C, p_sigma, p_c, age)
+        start_state(k, cma)
     else:
-        g = age[k] + 1
-        age[k] = g
+        g = cma.age[k] + 1
+        cma.age[k] = g
         # p_sigma (eq. 43): C^-1/2 y_w = B diag(eig^-1/2) B^T y_w
         norm2 = ZERO
         for a in range(d):
@@ -302,10 +303,10 @@ def cma_update(
             for j in range(d):
                 bt = ZERO
                 for b in range(d):
-                    bt += B[k, b, j] * yw[k, b]
-                acc += B[k, a, j] * bt / wp.sqrt(wp.max(eig[k, j], wp.float64(1e-300)))
-            ps = (ONE - cs) * p_sigma[k, a] + wp.sqrt(cs * (TWO - cs) * mueff) * acc
-            p_sigma[k, a] = ps
+                    bt += cma.B[k, b, j] * cma.yw[k, b]
+                acc += cma.B[k, a, j] * bt / wp.sqrt(wp.max(cma.eig[k, j], wp.float64(1e-300)))
+            ps = (ONE - cs) * cma.p_sigma[k, a] + wp.sqrt(cs * (TWO - cs) * mueff) * acc
+            cma.p_sigma[k, a] = ps
             norm2 += ps * ps
         ps_norm = wp.sqrt(norm2)
         hsig = ZERO
@@ -313,77 +314,80 @@ def cma_update(
             hsig = ONE
         delta = (ONE - hsig) * cc * (TWO - cc)
         for a in range(d):
-            p_c[k, a] = (ONE - cc) * p_c[k, a] + hsig * wp.sqrt(cc * (TWO - cc) * mueff) * yw[k, a]
+            cma.p_c[k, a] = (ONE - cc) * cma.p_c[k, a] + hsig * wp.sqrt(cc * (TWO - cc) * mueff) * cma.yw[k, a]
         # covariance (eq. 47; sum of the normalized weights = 1)
         for a in range(d):
             for b in range(a + 1):
                 ymu = ZERO
                 for s in range(S):
                     ymu += part[k, s, d + a * d + b]
-                c = (ONE + c1 * delta - c1 - cmu) * C[k, a, b] + c1 * p_c[k, a] * p_c[k, b] + cmu * ymu / wsum
-                C[k, a, b] = c
-                C[k, b, a] = c
-        sigma[k] = sigma[k] * wp.exp((cs / ds) * (ps_norm / chi - ONE))
+                c = (
+                    (ONE + c1 * delta - c1 - cmu) * cma.C[k, a, b]
+                    + c1 * cma.p_c[k, a] * cma.p_c[k, b]
+                    + cmu * ymu / wsum
+                )
+                cma.C[k, a, b] = c
+                cma.C[k, b, a] = c
+        cma.sigma[k] = cma.sigma[k] * wp.exp((cs / ds) * (ps_norm / chi - ONE))
     # stopping tests
     best = F[member[off]]
     worst = F[member[off + lam - 1]]
     feasible_all = violation[member[off + lam - 1]] <= ZERO
-    H = history.shape[1]
-    history[k, age[k] % H] = best
+    H = cma.history.shape[1]
+    cma.history[k, cma.age[k] % H] = best
     stop = bool(False)
-    finite = wp.isfinite(sigma[k]) and sigma[k] > ZERO
+    finite = wp.isfinite(cma.sigma[k]) and cma.sigma[k] > ZERO
     emax = ZERO
     emin = wp.float64(wp.inf)
     cmax = ZERO
     for a in range(d):
-        finite = finite and wp.isfinite(mean[k, a]) and wp.isfinite(p_c[k, a])
-        emax = wp.max(emax, eig[k, a])
-        emin = wp.min(emin, eig[k, a])
-        cmax = wp.max(cmax, wp.sqrt(wp.abs(C[k, a, a])))
+        finite = finite and wp.isfinite(cma.mean[k, a]) and wp.isfinite(cma.p_c[k, a])
+        emax = wp.max(emax, cma.eig[k, a])
+        emin = wp.min(emin, cma.eig[k, a])
+        cmax = wp.max(cmax, wp.sqrt(wp.abs(cma.C[k, a, a])))
         for b in range(d):
-            finite = finite and wp.isfinite(C[k, a, b])
+            finite = finite and wp.isfinite(cma.C[k, a, b])
     if not finite:
         stop = bool(True)
     elif first == 0:
         step = ZERO
         for a in range(d):
-            step = wp.max(step, wp.abs(p_c[k, a]))
-        if sigma[k] * wp.max(cmax, step) < TOLX:
+            step = wp.max(step, wp.abs(cma.p_c[k, a]))
+        if cma.sigma[k] * wp.max(cmax, step) < TOLX:
             stop = bool(True)
         if emin > ZERO and emax / emin > MAX_CONDITION:
             stop = bool(True)
-        if feasible_all and age[k] >= H:
+        if feasible_all and cma.age[k] >= H:
             lo = best
             hi = best
             for j in range(H):
-                lo = wp.min(lo, history[k, j])
-                hi = wp.max(hi, history[k, j])
+                lo = wp.min(lo, cma.history[k, j])
+                hi = wp.max(hi, cma.history[k, j])
             tol = TOLFUN * (ONE + wp.abs(best))
             if worst - best < tol and hi - lo < tol:
                 stop = bool(True)
     if stop:
-        restarts[k] = restarts[k] + 1
+        cma.restarts[k] = cma.restarts[k] + 1
         state = wp.rand_init(seed, k)
         for a in range(d):
-            mean[k, a] = wp.float64(wp.randf(state))
-        start_state(k, sigma, C, p_sigma, p_c, age)
+            cma.mean[k, a] = wp.float64(wp.randf(state))
+        start_state(k, cma)
         for j in range(H):
-            history[k, j] = wp.float64(wp.inf)
+            cma.history[k, j] = wp.float64(wp.inf)
 
 
 @wp.kernel
 def eig_factor(
     w: wp.array2d(dtype=wp.float64),
     V: wp.array3d(dtype=wp.float64),
-    eig: wp.array2d(dtype=wp.float64),
-    B: wp.array3d(dtype=wp.float64),
+    cma: CmaState,
 ):
     """The eigendecomposition C = B diag(eig) B^T kept for sampling (eigenvalues clipped at
     0: rounding may leave a tiny negative one)."""
     k, a = wp.tid()
-    eig[k, a] = wp.max(w[k, a], ZERO)
+    cma.eig[k, a] = wp.max(w[k, a], ZERO)
     for b in range(V.shape[2]):
-        B[k, a, b] = V[k, a, b]
+        cma.B[k, a, b] = V[k, a, b]
 
 
 @wp.kernel

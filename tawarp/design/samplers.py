@@ -150,6 +150,7 @@ class BatchCmaEs:
 
     def __init__(self, dim: int, categories: int, batch: int, seed: int, device: str | None = None):
         from ..kernels.eigen import eigh_kernel
+        from ..kernels.sampler import CmaState
 
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
         self.device = wp.get_device(device)
@@ -167,13 +168,15 @@ class BatchCmaEs:
         def put(a, dtype=wp.float64):
             return wp.array(np.ascontiguousarray(a), dtype=dtype, device=dev)
 
+        self.state = CmaState()
         # the Sobol start is told against m = 1/2, sigma = 1: its update sets the first mean
-        self.mean, self.sigma = put(np.full((K, d), 0.5)), put(np.ones(K))
-        self.C, self.B, self.eig = put(eye), put(eye), put(np.ones((K, d)))
-        self.p_sigma, self.p_c, self.yw = put(np.zeros((K, d))), put(np.zeros((K, d))), put(np.zeros((K, d)))
-        self.age, self._restarts = put(np.zeros(K), wp.int32), put(np.zeros(K), wp.int32)
+        self.state.mean, self.state.sigma = put(np.full((K, d), 0.5)), put(np.ones(K))
+        self.state.C, self.state.B, self.state.eig = put(eye), put(eye), put(np.ones((K, d)))
+        for path in ("p_sigma", "p_c", "yw"):
+            setattr(self.state, path, put(np.zeros((K, d))))
+        self.state.age, self.state.restarts = put(np.zeros(K), wp.int32), put(np.zeros(K), wp.int32)
         horizon = 10 + int(np.ceil(30 * d / min(self.sizes)))
-        self.history = put(np.full((K, horizon), np.inf))
+        self.state.history = put(np.full((K, horizon), np.inf))
         self.part = wp.zeros((K, MOMENT_SLICES, d + d * d), dtype=wp.float64, device=dev)
         self.category = put(np.repeat(np.arange(K), self.sizes), wp.int32)
         self._eigh = eigh_kernel(d)
@@ -208,11 +211,7 @@ class BatchCmaEs:
             return wp.launch(kernel, dim=dim, device=dev, inputs=inputs, record_cmd=True)
 
         return {
-            "sample": rec(
-                cma_sample,
-                n,
-                [0, self.mean, self.sigma, self.B, self.eig, self.category, 10 * self.dim, self._z, self._X],
-            ),
+            "sample": rec(cma_sample, n, [0, self.state, self.category, 10 * self.dim, self._z, self._X]),
             "told": rec(
                 told_rows,
                 n,
@@ -221,22 +220,19 @@ class BatchCmaEs:
             "rank": rec(rank_keys, n, [self._F, self._viol, self._key, self._member]),
             "class": rec(class_keys, n, [self._member, self._F, self._viol, self._told_cat, self._ckey]),
             "moments": rec(
-                cma_moments, (K, MOMENT_SLICES), [self._U, self._member, self._counts, self.mean, self.sigma, self.part]
+                cma_moments, (K, MOMENT_SLICES), [self._U, self._member, self._counts, self.state, self.part]
             ),
             "update": rec(
-                cma_update,
-                K,
-                [0, 0, self.part, self._member, self._counts, self._F, self._viol, self.yw, self.mean, self.sigma]
-                + [self.C, self.B, self.eig, self.p_sigma, self.p_c, self.age, self.history, self._restarts],
+                cma_update, K, [0, 0, self.part, self._member, self._counts, self._F, self._viol, self.state]
             ),
-            "eigh": rec(self._eigh, K, [self.C, self._w, self._V]),
-            "factor": rec(eig_factor, (K, self.dim), [self._w, self._V, self.eig, self.B]),
+            "eigh": rec(self._eigh, K, [self.state.C, self._w, self._V]),
+            "factor": rec(eig_factor, (K, self.dim), [self._w, self._V, self.state]),
         }
 
     @property
     def restarts(self) -> list[int]:
         """Restarts of each instance so far."""
-        return self._restarts.numpy().tolist()
+        return self.state.restarts.numpy().tolist()
 
     def ask(self, n: int) -> wp.array:
         if n != self.batch:
@@ -247,7 +243,7 @@ class BatchCmaEs:
             X = wp.empty_like(self._X)
             cmd = self._launches["sample"]
             cmd.set_param_at_index(0, _stream_seed(self.seed, self.generation, 0))
-            cmd.set_param_at_index(8, X)
+            cmd.set_param_at_index(5, X)
             cmd.launch()
         self._asked = X
         return X
