@@ -157,19 +157,34 @@ LOG = wp.constant(1)
 MATERIAL = wp.constant(2)
 
 
+@wp.struct
+class DesignVariables:
+    """A design space's variables on the device (:class:`tawarp.design.space.DeviceTable`),
+    variable v of ``kind[v]`` (LINEAR, LOG or MATERIAL): on the grid, ``size[v]`` values
+    ``grid[start[v]:]`` (a material's choices: their indices) at C-order ``stride[v]``; from
+    a unit coordinate u, ``low[v] + u span[v]`` (in logs for LOG). ``row[v]``: its row of
+    the varying table; ``materials`` (choices, parameters) the material parameters written
+    into the rows ``material_rows``."""
+
+    grid: wp.array(dtype=wp.float64)
+    kind: wp.array(dtype=wp.int32)
+    stride: wp.array(dtype=wp.int64)
+    size: wp.array(dtype=wp.int32)
+    start: wp.array(dtype=wp.int32)
+    low: wp.array(dtype=wp.float64)
+    span: wp.array(dtype=wp.float64)
+    row: wp.array(dtype=wp.int32)
+    materials: wp.array2d(dtype=wp.float64)
+    material_rows: wp.array(dtype=wp.int32)
+
+
 @wp.func
 def design_coordinate(
     lo: wp.int64,
     i: int,
     v: int,
     unit: wp.array2d(dtype=wp.float64),
-    grid: wp.array(dtype=wp.float64),
-    kind: wp.array(dtype=wp.int32),
-    stride: wp.array(dtype=wp.int64),
-    size: wp.array(dtype=wp.int32),
-    start: wp.array(dtype=wp.int32),
-    low: wp.array(dtype=wp.float64),
-    span: wp.array(dtype=wp.float64),
+    dv: DesignVariables,
 ):
     """(value, material index) of variable v at point lo + i: on the grid when ``unit`` is
     empty (C-order index ((lo + i) // stride) % size into the variable's grid values at
@@ -177,16 +192,16 @@ def design_coordinate(
     scales it (clipped to [0, 1]; low + u span, for LOG the exp of the log-scale values)
     and, for the material, min(floor(u size), size - 1) as the sweep's Sobol points."""
     if unit.shape[0] == 0:
-        k = int(((lo + wp.int64(i)) // stride[v]) % wp.int64(size[v]))
-        if kind[v] == MATERIAL:
+        k = int(((lo + wp.int64(i)) // dv.stride[v]) % wp.int64(dv.size[v]))
+        if dv.kind[v] == MATERIAL:
             return wp.float64(k), k
-        return grid[start[v] + k], k
+        return dv.grid[dv.start[v] + k], k
     u = unit[i, v]
-    if kind[v] == MATERIAL:
-        k = wp.min(int(u * wp.float64(size[v])), size[v] - 1)
+    if dv.kind[v] == MATERIAL:
+        k = wp.min(int(u * wp.float64(dv.size[v])), dv.size[v] - 1)
         return wp.float64(k), k
-    x = low[v] + wp.clamp(u, wp.float64(0.0), wp.float64(1.0)) * span[v]
-    if kind[v] == LOG:
+    x = dv.low[v] + wp.clamp(u, wp.float64(0.0), wp.float64(1.0)) * dv.span[v]
+    if dv.kind[v] == LOG:
         x = wp.exp(x)
     return x, 0
 
@@ -224,16 +239,7 @@ def sobol_points(
 def design_table(
     lo: wp.int64,
     unit: wp.array2d(dtype=wp.float64),
-    grid: wp.array(dtype=wp.float64),
-    kind: wp.array(dtype=wp.int32),
-    stride: wp.array(dtype=wp.int64),
-    size: wp.array(dtype=wp.int32),
-    start: wp.array(dtype=wp.int32),
-    low: wp.array(dtype=wp.float64),
-    span: wp.array(dtype=wp.float64),
-    row: wp.array(dtype=wp.int32),
-    materials: wp.array2d(dtype=wp.float64),
-    material_rows: wp.array(dtype=wp.int32),
+    dv: DesignVariables,
     heat_input: wp.float64,
     table: wp.array2d(dtype=wp.float64),
     values: wp.array2d(dtype=wp.float64),
@@ -246,17 +252,17 @@ def design_table(
     variable's value (the material as its index)."""
     i = wp.tid()
     table[0, i] = heat_input
-    for v in range(kind.shape[0]):
-        if kind[v] == MATERIAL:
-            x, k = design_coordinate(lo, i, v, unit, grid, kind, stride, size, start, low, span)
-            for p in range(material_rows.shape[0]):
-                table[material_rows[p], i] = materials[k, p]
+    for v in range(dv.kind.shape[0]):
+        if dv.kind[v] == MATERIAL:
+            x, k = design_coordinate(lo, i, v, unit, dv)
+            for p in range(dv.material_rows.shape[0]):
+                table[dv.material_rows[p], i] = dv.materials[k, p]
             if values.shape[0] > 0:
                 values[v, i] = x
-    for v in range(kind.shape[0]):
-        if kind[v] != MATERIAL:
-            x, k = design_coordinate(lo, i, v, unit, grid, kind, stride, size, start, low, span)
-            table[row[v], i] = x
+    for v in range(dv.kind.shape[0]):
+        if dv.kind[v] != MATERIAL:
+            x, k = design_coordinate(lo, i, v, unit, dv)
+            table[dv.row[v], i] = x
             if values.shape[0] > 0:
                 values[v, i] = x
 
@@ -264,9 +270,7 @@ def design_table(
 @wp.kernel
 def sampler_coordinates(
     values: wp.array2d(dtype=wp.float64),
-    kind: wp.array(dtype=wp.int32),
-    low: wp.array(dtype=wp.float64),
-    span: wp.array(dtype=wp.float64),
+    dv: DesignVariables,
     X: wp.array2d(dtype=wp.float64),
 ):
     """The sampler coordinates X[i, v] of design values ``values[v, i]`` (one thread per
@@ -276,11 +280,11 @@ def sampler_coordinates(
     device's values and one told again from stored values are told alike."""
     i, v = wp.tid()
     x = values[v, i]
-    if kind[v] == MATERIAL:
+    if dv.kind[v] == MATERIAL:
         X[i, v] = x
-    elif span[v] == wp.float64(0.0):
+    elif dv.span[v] == wp.float64(0.0):
         X[i, v] = wp.float64(0.0)
-    elif kind[v] == LOG:
-        X[i, v] = (wp.log(x) - low[v]) / span[v]
+    elif dv.kind[v] == LOG:
+        X[i, v] = (wp.log(x) - dv.low[v]) / dv.span[v]
     else:
-        X[i, v] = (x - low[v]) / span[v]
+        X[i, v] = (x - dv.low[v]) / dv.span[v]

@@ -337,7 +337,7 @@ class DeviceTable:
     def __init__(self, space: DesignSpace, device):
         import warp as wp
 
-        from ..kernels.design import LINEAR, LOG, MATERIAL
+        from ..kernels.design import LINEAR, LOG, MATERIAL, DesignVariables
 
         self.space, self.device = space, device
         self.variables = space.continuous + ([space.material] if space.material is not None else [])
@@ -375,18 +375,17 @@ class DeviceTable:
         def up(a, dtype):
             return wp.array(np.asarray(a), dtype=dtype, device=device)
 
-        self._inputs = dict(
-            grid=up(np.concatenate(grids) if grids else np.zeros(0), wp.float64),
-            kind=up(kinds, wp.int32),
-            stride=up([strides[v.name] for v in self.variables], wp.int64),
-            size=up(sizes, wp.int32),
-            start=up(starts, wp.int32),
-            low=up(lows, wp.float64),
-            span=up(spans, wp.float64),
-            row=up(rows, wp.int32),
-            materials=wp.array2d(materials, dtype=wp.float64, device=device),
-            material_rows=up(np.asarray(material_rows, dtype=np.int32), wp.int32),
-        )
+        dv = self._variables = DesignVariables()
+        dv.grid = up(np.concatenate(grids) if grids else np.zeros(0), wp.float64)
+        dv.kind = up(kinds, wp.int32)
+        dv.stride = up([strides[v.name] for v in self.variables], wp.int64)
+        dv.size = up(sizes, wp.int32)
+        dv.start = up(starts, wp.int32)
+        dv.low = up(lows, wp.float64)
+        dv.span = up(spans, wp.float64)
+        dv.row = up(rows, wp.int32)
+        dv.materials = wp.array2d(materials, dtype=wp.float64, device=device)
+        dv.material_rows = up(np.asarray(material_rows, dtype=np.int32), wp.int32)
         self.rows = 1 + len(params)
         self._sobol = None  # (seed, directions, shift, scale) on the device, made by the first sobol()
 
@@ -396,28 +395,11 @@ class DeviceTable:
         from ..kernels.design import design_table
 
         table = wp.empty((self.rows, m), dtype=wp.float64, device=self.device)
-        p = self._inputs
         wp.launch(
             design_table,
             dim=m,
             device=self.device,
-            inputs=[
-                wp.int64(lo),
-                unit,
-                p["grid"],
-                p["kind"],
-                p["stride"],
-                p["size"],
-                p["start"],
-                p["low"],
-                p["span"],
-                p["row"],
-                p["materials"],
-                p["material_rows"],
-                float(self.space.heat_input),
-                table,
-                values,
-            ],
+            inputs=[wp.int64(lo), unit, self._variables, float(self.space.heat_input), table, values],
         )
         return table
 
@@ -467,10 +449,7 @@ class DeviceTable:
             values = wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=self.device)
         m = values.shape[1]
         X = wp.empty((m, len(self.names)), dtype=wp.float64, device=self.device)
-        p = self._inputs
-        wp.launch(
-            sampler_coordinates, dim=X.shape, device=self.device, inputs=[values, p["kind"], p["low"], p["span"], X]
-        )
+        wp.launch(sampler_coordinates, dim=X.shape, device=self.device, inputs=[values, self._variables, X])
         return X
 
     def unit(self, u):
