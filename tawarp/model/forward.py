@@ -753,6 +753,8 @@ class Engine:
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
         cells, grids, most = self._cell_counts(params, theta, density, columns, most)
+        # the host's share of the launches before a read-back, while the device counts cells
+        budget, sets = self._point_buffer_bytes(), self._sets(params)
         counts = None
         if self.settings.cells is not None:
             n_points, n_slots = self._fixed_point_counts(columns)
@@ -761,7 +763,7 @@ class Engine:
         else:
             counts = self._checked_counts(params, cells, most.numpy())
             n_points, n_slots = int(counts[0]), int(counts[1])
-        block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
+        block = stride * max(1, min(n, budget // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         spans = wp.empty((block, n_points), dtype=wp.float64, device=self.device)
         for lo in range(0, n, block):
@@ -771,7 +773,7 @@ class Engine:
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
+                inputs=[sets, theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
@@ -789,7 +791,7 @@ class Engine:
                 kernel,
                 dim=threads,
                 inputs=[
-                    self._sets(params),
+                    sets,
                     freqs,
                     cells,
                     part,
