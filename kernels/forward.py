@@ -18,7 +18,8 @@ Launch order for a batch of n parameter sets and m frequencies:
    points, adding only what depends on the frequency (pore functions, Magnus steps).
 5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
    and on the refined grid (:func:`refined_cells`); only the sets above the target are
-   gathered (``kernels/batch.py``) and run again, at a raised density.
+   raised (:func:`raise_density`), gathered (``kernels/batch.py``) and run again, and
+   :func:`count_above` tells the host whether another rerun is needed.
 """
 
 from typing import Any
