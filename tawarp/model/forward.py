@@ -493,6 +493,10 @@ class Engine:
         self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         self._raised_share = INITIAL_RAISED_SHARE  # of the last evaluation's first rerun (RERUN_ROOM)
+        # queue each rerun of the error estimate before its count is read back (_adapted): a
+        # GPU's launches run behind the host, which would wait on each read; a CPU's launch has
+        # ended when it returns, so there the count costs nothing and a rerun takes its sets alone
+        self.queue_ahead = wp.get_device(dev).is_cuda
         # rows of the varying table that a set without heat input does not read (fixed cells:
         # no count adapts to them; no imposed temperatures)
         inert = s.cells is not None and not any(seg.imposed for seg in core.segments)
@@ -935,10 +939,10 @@ class Engine:
         (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
         :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), gathers them, runs them
         the same way and scatters their rows into ``out``, all on the device
-        (:meth:`_rerun`); the first rerun is queued behind the first launch before any read-back,
-        sized by the share of sets the engine's last evaluation raised
-        (:data:`RERUN_ROOM`), and the host reads a few counts per rerun, the one round trip
-        of each. A set is accepted only on a measured estimate (after
+        (:meth:`_rerun`); on a GPU (``queue_ahead``) the first rerun is queued behind the first
+        launch before any read-back, sized by the share of sets the engine's last evaluation
+        raised (:data:`RERUN_ROOM`), and the host reads a few counts per rerun, the one round
+        trip of each. A set is accepted only on a measured estimate (after
         :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still
         above; a rerun too small for the sets above is run again and not counted)."""
         n = params.shape[1]
@@ -949,7 +953,7 @@ class Engine:
         if err is None:
             return density
         target = 0.5 * self.settings.tolerance
-        capacity = min(n, math.ceil(RERUN_ROOM * self._raised_share * n) + RERUN_SLOTS)
+        capacity = min(n, math.ceil(RERUN_ROOM * self._raised_share * n) + RERUN_SLOTS) if self.queue_ahead else n
         reruns = 0
         while reruns < MAX_ESTIMATE_ROUNDS - 1:
             tally, part, cells = self._rerun(params, theta, columns, out, err, density, target, capacity, seen)
@@ -993,9 +997,11 @@ class Engine:
         run again, their points sized from the largest counts ``seen`` of any earlier launch
         (:func:`point_room`), and their rows of ``out`` and ``err`` scattered back. The slots
         beyond the sets above are empty: set 0 at density 0, which takes no cells and is not
-        scattered. Returns (tally, params, cells): tally (5,) int32 on the device, the rerun's
-        ``most`` (:func:`tawarp.kernels.forward.cell_counts`), the sets above target before it
-        and after it; the rerun's parameter table and cells (:meth:`_checked_counts`)."""
+        scattered. Without ``queue_ahead`` the count is read first and the rerun takes its sets
+        alone, its points sized from their own counts. Returns (tally, params, cells): tally (5,)
+        int32 on the device, the rerun's ``most`` (:func:`tawarp.kernels.forward.cell_counts`),
+        the sets above target before it and after it; the rerun's parameter table and cells
+        (:meth:`_checked_counts`; None where no set was above target)."""
         n, dev = params.shape[1], self.device
         tally = wp.zeros(5, dtype=wp.int32, device=dev)
         index = wp.zeros(capacity, dtype=wp.int32, device=dev)
@@ -1004,13 +1010,17 @@ class Engine:
         wp.launch(
             kf.raise_density, dim=n, inputs=[err, density, target, most_density, tally[3:4], index, d], device=dev
         )
+        room = (float(kf.RAISE_MOST), seen)
+        if not self.queue_ahead:
+            capacity = min(capacity, int(tally.numpy()[3]))
+            if capacity == 0:  # no set above target: none after either
+                return tally, None, None
+            index, d, room = index[:capacity], d[:capacity], None
         p = wp.empty((params.shape[0], capacity), dtype=wp.float64, device=dev)
         t = wp.empty((capacity, theta.shape[1]), dtype=wp.float64, device=dev)
         wp.launch(kbatch.gather_sets, dim=capacity, inputs=[params, theta, index, p, t], device=dev)
         part = wp.empty((capacity, out.shape[1], 8), dtype=wp.float64, device=dev)
-        part_err, cells, _ = self._estimated_cascade(
-            p, t, columns, d, part, room=(float(kf.RAISE_MOST), seen), most=tally[0:3]
-        )
+        part_err, cells, _ = self._estimated_cascade(p, t, columns, d, part, room=room, most=tally[0:3])
         above = tally[3:4]
         wp.launch(kbatch.scatter_sets, dim=(capacity, out.shape[1]), inputs=[part, index, above, out], device=dev)
         wp.launch(
