@@ -431,7 +431,7 @@ def raise_density(
     and while there is a slot k < index.shape[0] left (the slots taken in no set order), its
     density[i] raised by RAISE_MARGIN (err / target)^(1/6) clipped to [RAISE_LEAST, RAISE_MOST]
     (at most ``most_density``), index[k] = i and part_density[k] the raised density: the
-    rerun's sets (Engine._adaptive_cascade). A set beyond the slots keeps its density and
+    rerun's sets (Engine._adapted). A set beyond the slots keeps its density and
     estimate for a later rerun."""
     i = wp.tid()
     if err[i] > target:
