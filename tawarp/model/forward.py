@@ -294,7 +294,7 @@ class ForwardSettings:
     1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine._adaptive_cascade`: the refined cascades run in the main launch, whose
+    (:meth:`Engine._adapted`: the refined cascades run in the main launch, whose
     values at the sampled frequencies they are compared with on the device, and only the
     sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
@@ -642,7 +642,7 @@ class Engine:
         return out, params, theta
 
     def cell_densities(self, params: wp.array, theta: wp.array) -> wp.array:
-        """Adaptive cell density (n,) of each set (:meth:`_adaptive_cascade`), from the
+        """Adaptive cell density (n,) of each set (:meth:`_adapted`), from the
         cascade at the sampled frequencies alone (for callers that need the density, not
         the T-matrices); ``cell_density`` for every set where the estimate is off."""
         out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
