@@ -10,7 +10,9 @@ Accuracy: the max relative error (row-wise, on the four dimensionless coefficien
 of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default settings
 (cells from the error estimate) against the adaptive NumPy reference at
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
-same batch, its cost fraction, and the mean cell density it chose. ``threads``: CPU
+same batch, its cost fraction, and the mean cell density it chose; ``work``: what the
+estimate's evaluation computes and asks of the host, counted without timing (a CPU gives the
+GPU's counts). ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
 (a shared machine's numbers are only as good as its idle cores).
 
@@ -112,13 +114,9 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     ``estimate_alone``: :meth:`Engine.cell_densities` (the sampled frequencies alone, for
     callers that need only the densities); the densities it chose; ``kernel_seconds``:
     :func:`kernel_seconds` of both (where the estimate's time goes)."""
-    core = load_core("ceramic")
     names, table = random_batch(n, np.random.default_rng(1))
     varying = wp.array(table, dtype=wp.float64, device=device)
-    engines = {
-        label: Engine(core, FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
-        for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))
-    }
+    engines = estimate_engines(device, names)
     params, theta = engines["estimate"].heat(varying)
     best = {"rule": np.inf, "estimate": np.inf, "estimate_alone": np.inf}
     for _ in range(repeats):
@@ -128,15 +126,10 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         d = engines["estimate"].cell_densities(params, theta).numpy()
         wp.synchronize_device(device)
         best["estimate_alone"] = min(best["estimate_alone"], time.perf_counter() - t0)
-    work = {label: cascade_work(engine, table) for label, engine in engines.items()}
     return {
         "kernel_seconds": {label: kernel_seconds(engine, varying) for label, engine in engines.items()},
         "models_per_s": {k: n * len(FREQS) / best[k] for k in ("rule", "estimate")},
-        "work": work,
-        "work_ratio": {
-            k: work["estimate"][k] / work["rule"][k]
-            for k in ("cell_steps_per_model", "warp_cell_steps_per_model", "points_per_set")
-        },
+        **estimate_work(device, n, engines),
         "seconds_best": best,
         "cost_fraction": best["estimate"] / best["rule"] - 1.0,
         "cpu_threads": 1,
@@ -147,21 +140,61 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
     }
 
 
+def estimate_engines(device: str, names: list[str]) -> dict:
+    """The bare rule's and the default settings' (error estimate) engines of the bench's core."""
+    return {
+        label: Engine(load_core("ceramic"), FREQS, names, ForwardSettings(tolerance=tol, cpu_threads=1, device=device))
+        for label, tol in (("rule", None), ("estimate", ForwardSettings().tolerance))
+    }
+
+
+def estimate_work(device: str, n: int, engines: dict | None = None) -> dict:
+    """``work``: :func:`cascade_work` of the rule and of the estimate on the ``estimate``
+    section's batch of n sets (no timing: the ``work`` section alone runs this on a CPU), and
+    ``work_ratio`` the estimate's over the rule's."""
+    names, table = random_batch(n, np.random.default_rng(1))
+    engines = engines or estimate_engines(device, names)
+    work = {label: cascade_work(engine, table) for label, engine in engines.items()}
+    keys = ("cell_steps_per_model", "warp_cell_steps_per_model", "points_per_set", "idle_ops", "host_reads")
+    return {"work": work, "work_ratio": {k: work["estimate"][k] / work["rule"][k] for k in keys}}
+
+
 def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     """What one evaluate() of ``table`` computes, counted on the host from each launch's
     inputs (a device-independent cost of the error estimate): Magnus cell steps per forward
     model (each cascade thread's cells, a part at uniform temperature one step; and as
     warps run them, :func:`warp_cell_steps`), points per
     set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
-    cascade launches (the first, then one per round of reruns) with their sets. Warp's
-    ``launch`` is wrapped for the call."""
+    cascade launches (the first, then one per round of reruns) with their sets; and what the
+    host does, which a GPU waits for: ``host_reads`` (read-backs of device arrays, each a
+    synchronization), ``device_ops`` (launches and radix sorts) and ``idle_ops``: the ops
+    issued while the device has nothing long queued, from the call's start or a read-back up
+    to the next cascade launch (the ops after a cascade launch run behind it). Warp's
+    ``launch``, ``array.numpy`` and ``radix_sort_pairs`` are wrapped for the second of two
+    calls, both with the reruns queued as a GPU queues them (``Engine.queue_ahead``)."""
     n_seg = len(engine.core.segments)
     work = {"cell_steps": 0, "warp_cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
-    launch = wp.launch
+    host = {"host_reads": 0, "device_ops": 0, "idle_ops": 0, "idle": True}
+    launch, numpy, sort = wp.launch, wp.array.numpy, wp.utils.radix_sort_pairs
+
+    def op(long: bool = False):
+        host["device_ops"] += 1
+        host["idle_ops"] += host["idle"]
+        host["idle"] = host["idle"] and not long
+
+    def read(array):
+        host["host_reads"] += 1
+        host["idle"] = True
+        return numpy(array)
+
+    def sorted_pairs(*args, **kw):
+        op()
+        return sort(*args, **kw)
 
     def counted(kernel, dim=None, inputs=None, **kw):
+        op(long=kernel is engine.transfer_kernel)
         if kernel is engine.transfer_kernel:
-            cells, part, lo, order = inputs[2].numpy(), inputs[3], inputs[5], inputs[6].numpy()
+            cells, part, lo, order = numpy(inputs[2]), inputs[3], inputs[5], numpy(inputs[6])
             out, refined = inputs[8], inputs[9]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
             work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
@@ -170,17 +203,21 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
             work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
             work["launch_sets"].append(part.shape[0])
         elif kernel is engine.point_kernel:
-            cells, lo, part = inputs[2].numpy(), inputs[6], inputs[7]
+            cells, lo, part = numpy(inputs[2]), inputs[6], inputs[7]
             work["points"] += int(
                 np.where(cells[lo : lo + part.shape[0]] > 0, 3 * cells[lo : lo + part.shape[0]], 1).sum()
             )
         return launch(kernel, dim=dim, inputs=inputs, **kw)
 
-    wp.launch = counted
+    varying = wp.array(table, dtype=wp.float64, device=engine.device)  # device-resident, as timed
+    ahead, engine.queue_ahead = engine.queue_ahead, True  # the GPU's reruns, on a CPU too
     try:
-        engine.evaluate(table)
+        engine.evaluate(varying)  # warm, as timed: the engine sizes its first rerun from its last evaluation
+        wp.launch, wp.array.numpy, wp.utils.radix_sort_pairs = counted, read, sorted_pairs
+        engine.evaluate(varying)
     finally:
-        wp.launch = launch
+        wp.launch, wp.array.numpy, wp.utils.radix_sort_pairs = launch, numpy, sort
+        engine.queue_ahead = ahead
     models = table.shape[1] * len(engine.freqs)
     return {
         "cell_steps_per_model": work["cell_steps"] / models,
@@ -188,6 +225,7 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
         "threads_per_model": work["threads"] / models,
         "points_per_set": work["points"] / table.shape[1],
         "cascade_launch_sets": work["launch_sets"],
+        **{k: host[k] for k in ("host_reads", "device_ops", "idle_ops")},
     }
 
 
@@ -405,7 +443,7 @@ def main(argv=None):
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, threads, points",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, work, threads, points",
     )
     ap.add_argument("--threads", type=_numbers(int), default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
@@ -428,7 +466,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "threads", "points"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -454,6 +492,9 @@ def main(argv=None):
     if "estimate" in sections:
         result["estimate"] = estimate_cost(device, n, args.min_time)
         print(f"error estimate: {result['estimate']}", flush=True)
+    if "work" in sections:
+        result["work"] = estimate_work(device, n)
+        print(f"work: {result['work']}", flush=True)
     if "threads" in sections:
         result["cpu_scaling"] = cpu_scaling(args.threads, n, args.min_time)
     if "blocks" in sections:

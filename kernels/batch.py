@@ -27,9 +27,15 @@ def gather_sets(
 
 @wp.kernel
 def scatter_sets(
-    part: wp.array3d(dtype=wp.float64), index: wp.array(dtype=wp.int32), out: wp.array3d(dtype=wp.float64)
+    part: wp.array3d(dtype=wp.float64),
+    index: wp.array(dtype=wp.int32),
+    count: wp.array(dtype=wp.int32),
+    out: wp.array3d(dtype=wp.float64),
 ):
-    """Row k of ``part`` (k, m, c) as row ``index[k]`` of ``out`` (n, m, c); launched on (k, m)."""
+    """Row k of ``part`` (k, m, c) as row ``index[k]`` of ``out`` (n, m, c) for k < count[0]
+    (a part sized before its count was known: the slots beyond are empty); launched on (k, m)."""
     k, j = wp.tid()
+    if k >= count[0]:
+        return
     for c in range(part.shape[2]):
         out[index[k], j, c] = part[k, j, c]

@@ -18,7 +18,8 @@ Launch order for a batch of n parameter sets and m frequencies:
    points, adding only what depends on the frequency (pore functions, Magnus steps).
 5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
    and on the refined grid (:func:`refined_cells`); only the sets above the target are
-   gathered (``kernels/batch.py``) and run again, at a raised density.
+   raised (:func:`raise_density`), gathered (``kernels/batch.py``) and run again, and
+   :func:`count_above` tells the host whether another rerun is needed.
 """
 
 from typing import Any
@@ -409,6 +410,48 @@ def refined_error(
     err[i] = REFINED_ERROR_FACTOR * worst
 
 
+#: A rerun's raise of a set's density: (estimate / target)^(1/6) (the scheme's order) times
+#: RAISE_MARGIN, clipped to [RAISE_LEAST, RAISE_MOST] (:func:`raise_density`).
+RAISE_MARGIN = wp.constant(wp.float64(1.1))
+RAISE_LEAST = wp.constant(wp.float64(1.25))
+RAISE_MOST = wp.constant(wp.float64(4.0))
+
+
+@wp.kernel
+def raise_density(
+    err: wp.array(dtype=wp.float64),
+    density: wp.array(dtype=wp.float64),
+    target: wp.float64,
+    most_density: wp.float64,
+    count: wp.array(dtype=wp.int32),
+    index: wp.array(dtype=wp.int32),
+    part_density: wp.array(dtype=wp.float64),
+):
+    """For each set i whose error estimate err[i] exceeds ``target`` (not NaN): count[0] + 1,
+    and while there is a slot k < index.shape[0] left (the slots taken in no set order), its
+    density[i] raised by RAISE_MARGIN (err / target)^(1/6) clipped to [RAISE_LEAST, RAISE_MOST]
+    (at most ``most_density``), index[k] = i and part_density[k] the raised density: the
+    rerun's sets (Engine._adapted). A set beyond the slots keeps its density and
+    estimate for a later rerun."""
+    i = wp.tid()
+    if err[i] > target:
+        k = wp.atomic_add(count, 0, 1)
+        if k < index.shape[0]:
+            factor = wp.min(wp.max(RAISE_MARGIN * wp.pow(err[i] / target, SIXTH_ROOT), RAISE_LEAST), RAISE_MOST)
+            d = wp.min(density[i] * factor, most_density)
+            density[i] = d
+            index[k] = i
+            part_density[k] = d
+
+
+@wp.kernel
+def count_above(err: wp.array(dtype=wp.float64), target: wp.float64, count: wp.array(dtype=wp.int32)):
+    """count[0] += the sets whose error estimate err[i] exceeds ``target``."""
+    i = wp.tid()
+    if err[i] > target:
+        wp.atomic_add(count, 0, 1)
+
+
 #: The most cell steps a cascade order's key tells apart (:func:`cascade_keys`); a set with
 #: more (only ever refused: :data:`MAX_CELLS`) sorts with those at the cap.
 ORDER_KEY_CAP = wp.constant(2**30)
@@ -665,20 +708,22 @@ def cell_counts(
     neither thermal nor imposed with different end temperatures, and every thermal segment
     of a set without heat input (its heat model has no source, so theta = 0 exactly and
     exp(A L) is the segment's exact matrix: a two-step characterization's first fits, at
-    Q = 0, need no Magnus cell)."""
+    Q = 0, need no Magnus cell), and every segment of a set at density 0 (an empty slot of a
+    rerun, :func:`raise_density`: cheap, its results unread)."""
     i = wp.tid()
     params = sets.params
     flags = sets.flags
     gas = sets.gas
     n_seg = flags.shape[0]
     heated = params[HEAT_INPUT, i] != wp.float64(0.0)
+    counted = cell_density[i] > wp.float64(0.0)
     points = int(0)
     slots = int(0)
     for s in range(n_seg):
         length = seg_value(params, i, s, LENGTH)
         n = int(0)
         kappa = wp.float64(0.0)
-        if temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
+        if counted and temperature_varies(params, flags, i, s) and (heated or flags[s, F_THERMAL] == 0):
             n, kappa = segment_cells(
                 params, flags, gas, theta, first, heat_cells, seg_cells, cell_density[i], omega_max, i, s
             )

@@ -219,6 +219,40 @@ def test_set_above_target_is_raised_and_scattered_back(device):
     np.testing.assert_array_equal(T, cascade(engine, params, theta, engine.freqs, d))
 
 
+def queued_ahead(engine):
+    """``engine`` with its reruns queued before their counts are read (a GPU's way)."""
+    engine.queue_ahead = True
+    return engine
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_rerun_without_room_for_every_raised_set_gives_the_same_bits(device, monkeypatch):
+    # A GPU's first rerun is queued on the device before the host knows how many sets it
+    # takes (Engine.queue_ahead, on here for the CPU too). With room for one set where
+    # several are above target, the others wait for the next rerun at the same raised
+    # density: the densities and the T-matrices are those of the CPU's reruns sized to their
+    # sets, bit for bit, and the empty slots of a rerun with room to spare write nothing (the
+    # sets below target keep the first launch's rows).
+    core = load_core("ceramic")
+    Q = np.array([0.0, 80.0, 10.0, 40.0, 0.0, 20.0, 60.0])
+    settings = ForwardSettings(device=device, cpu_threads=1, tolerance=1e-8)
+    engine = Engine(core, FREQS, [], settings)
+    engine.queue_ahead = False
+    params, theta, d, T, _ = fused(engine, Q[None])
+    _, _, d_ample, T_ample, _ = fused(queued_ahead(Engine(core, FREQS, [], settings)), Q[None])
+    monkeypatch.setattr(forward, "INITIAL_RAISED_SHARE", 0.0)
+    monkeypatch.setattr(forward, "RERUN_SLOTS", 1)
+    _, _, d_tight, T_tight, _ = fused(queued_ahead(Engine(core, FREQS, [], settings)), Q[None])
+    cd = settings.cell_density
+    np.testing.assert_array_equal(d_ample, d)
+    np.testing.assert_array_equal(T_ample, T)
+    assert (d > cd).sum() >= 3 and (d == cd).sum() >= 2, d
+    np.testing.assert_array_equal(d_tight, d)
+    np.testing.assert_array_equal(T_tight, T)
+    rule = cascade(engine, params, theta, engine.freqs, np.full(Q.size, cd))
+    np.testing.assert_array_equal(T[d == cd], rule[d == cd])
+
+
 def test_estimate_is_the_error_at_the_sampled_frequencies():
     # The estimate at the rule's density (the refined grid's difference times Richardson's
     # factor) is the error of the sets' cells at the sampled frequencies against the converged

@@ -140,6 +140,26 @@ HEAT_ONLY_FIELDS = (
 POINT_BYTES = wp.types.type_size_in_bytes(PointCoefficients) + 8
 
 
+#: The first rerun of the error estimate (:meth:`Engine._adapted`) is queued before the
+#: host knows how many sets it takes: room for RERUN_ROOM times the share of sets the
+#: engine's last evaluation raised (INITIAL_RAISED_SHARE before any) plus RERUN_SLOTS. An
+#: empty slot costs a set without cells; a set beyond the room waits for the next rerun
+#: (bench/README.md, "The estimate's reruns on the device").
+RERUN_ROOM = 1.25
+RERUN_SLOTS = 32
+INITIAL_RAISED_SHARE = 1.0 / 16.0
+
+
+def point_room(factor: float, counts: np.ndarray, columns: int) -> tuple[int, int]:
+    """(points, point-kernel slots) room for a set of ``columns`` cell columns whose density
+    is at most ``factor`` times what it was in a launch whose largest counts (``most`` of
+    :func:`tawarp.kernels.forward.cell_counts`) were ``counts``: a column's n = ceil(d s X)
+    cells become at most factor n + 1, its refined grid's n + ceil(n/2) at most factor
+    times its own + 2, so each column adds at most 6 points and 2 slots to factor times the
+    old counts (8 and 3 allowed: a product's rounding)."""
+    return int(factor * counts[0]) + 8 * columns, int(factor * counts[1]) + 3 * columns
+
+
 def default_device() -> str:
     """``"cuda"`` when Warp sees a GPU, else ``"cpu"``."""
     wp.init()
@@ -274,7 +294,7 @@ class ForwardSettings:
     1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine._adaptive_cascade`: the refined cascades run in the main launch, whose
+    (:meth:`Engine._adapted`: the refined cascades run in the main launch, whose
     values at the sampled frequencies they are compared with on the device, and only the
     sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
@@ -472,6 +492,11 @@ class Engine:
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
+        self._raised_share = INITIAL_RAISED_SHARE  # of the last evaluation's first rerun (RERUN_ROOM)
+        # queue each rerun of the error estimate before its count is read back (_adapted): a
+        # GPU's launches run behind the host, which would wait on each read; a CPU's launch has
+        # ended when it returns, so there the count costs nothing and a rerun takes its sets alone
+        self.queue_ahead = wp.get_device(dev).is_cuda
         # rows of the varying table that a set without heat input does not read (fixed cells:
         # no count adapts to them; no imposed temperatures)
         inert = s.cells is not None and not any(seg.imposed for seg in core.segments)
@@ -613,17 +638,15 @@ class Engine:
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)
-        self._adaptive_cascade(params, theta, self.columns, out)
+        self._adapted(params, theta, self.columns, out)
         return out, params, theta
 
     def cell_densities(self, params: wp.array, theta: wp.array) -> wp.array:
-        """Adaptive cell density (n,) of each set (:meth:`_adaptive_cascade`), from the
+        """Adaptive cell density (n,) of each set (:meth:`_adapted`), from the
         cascade at the sampled frequencies alone (for callers that need the density, not
         the T-matrices); ``cell_density`` for every set where the estimate is off."""
         out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
-        return wp.array(
-            self._adaptive_cascade(params, theta, self.sample_columns, out), dtype=wp.float64, device=self.device
-        )
+        return self._adapted(params, theta, self.sample_columns, out)
 
     def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
         """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
@@ -705,19 +728,26 @@ class Engine:
         refined: wp.array,
         step: wp.array | None = None,
         tangent: wp.array | None = None,
-    ):
+        room: tuple[float, np.ndarray] | None = None,
+        most: wp.array | None = None,
+    ) -> tuple[wp.array | None, wp.array | None, np.ndarray | None]:
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
         ``refined`` (n, s, 8) at ``freqs[m:]`` on the refined grid
         (:func:`tawarp.kernels.forward.refined_cells`). The sets' cells are
         counted first and the largest point count read back (the one host round trip; none
-        with fixed cells: :meth:`_fixed_point_counts`); then
+        with fixed cells: :meth:`_fixed_point_counts`, nor with ``room`` = (r, counts): no
+        set's density is more than r times what it was in a launch whose largest counts were
+        ``counts``, :func:`point_room`, and the caller checks ``most`` at its next read,
+        :meth:`_checked_counts`); then
         blocks of sets whose points fit in :data:`POINT_BUFFER_BYTES` get their points
         (:func:`tawarp.kernels.forward.make_point_kernel`) and their cascade launch.
         With ``tangent`` (g, P, m, 8) the sets are g groups of 1 + 2P (:meth:`evaluate_tangents`),
-        ``out`` and ``refined`` have a row per group, and a block holds whole groups."""
+        ``out`` and ``refined`` have a row per group, and a block holds whole groups.
+        Returns (cells, most) of :meth:`_cell_counts` (``most`` there if given) and the counts
+        read back (None where none were)."""
         n = params.shape[1]
         if n == 0:
-            return
+            return None, None, None
         tangents = 0 if tangent is None else tangent.shape[1]
         stride = 1 + 2 * tangents
         kernel = (
@@ -726,14 +756,18 @@ class Engine:
         step = self._no_step if step is None else step
         tangent = self._no_tangent if tangent is None else tangent
         columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
-        cells, grids, most = self._cell_counts(params, theta, density, columns)
+        cells, grids, most = self._cell_counts(params, theta, density, columns, most)
+        # the host's share of the launches before a read-back, while the device counts cells
+        budget, sets = self._point_buffer_bytes(), self._sets(params)
+        counts = None
         if self.settings.cells is not None:
             n_points, n_slots = self._fixed_point_counts(columns)
+        elif room is not None:
+            n_points, n_slots = point_room(*room, columns)
         else:
-            n_points, n_slots, n_cells = (int(v) for v in most.numpy())
-            if n_cells > MAX_CELLS:
-                self._refuse_cells(params, cells.numpy())
-        block = stride * max(1, min(n, self._point_buffer_bytes() // (n_points * POINT_BYTES)) // stride)
+            counts = self._checked_counts(params, cells, most.numpy())
+            n_points, n_slots = int(counts[0]), int(counts[1])
+        block = stride * max(1, min(n, budget // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         spans = wp.empty((block, n_points), dtype=wp.float64, device=self.device)
         for lo in range(0, n, block):
@@ -743,7 +777,7 @@ class Engine:
                 self.point_kernel,
                 dim=(part.shape[0], n_slots),
                 device=self.device,
-                inputs=[self._sets(params), theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
+                inputs=[sets, theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
             threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
@@ -761,7 +795,7 @@ class Engine:
                 kernel,
                 dim=threads,
                 inputs=[
-                    self._sets(params),
+                    sets,
                     freqs,
                     cells,
                     part,
@@ -777,17 +811,19 @@ class Engine:
                 device=self.device,
                 block_dim=self.settings.block_dim,
             )
+        return cells, most, counts
 
     def _cell_counts(
-        self, params: wp.array, theta: wp.array, density: wp.array, columns: int
+        self, params: wp.array, theta: wp.array, density: wp.array, columns: int, most: wp.array | None = None
     ) -> tuple[wp.array, wp.array, wp.array]:
         """(cells, grids, most) of :func:`tawarp.kernels.forward.cell_counts` for the sets of
         ``params`` (their heat solve ``theta``) at densities ``density`` (n,), over ``columns``
-        (the segments, or the segments of both grids)."""
+        (the segments, or the segments of both grids); ``most`` (3,) zeros to count into (a
+        new array where None)."""
         n = params.shape[1]
         cells = wp.empty((n, columns), dtype=wp.int32, device=self.device)
         grids = wp.empty((n, columns), dtype=wp.vec4d, device=self.device)
-        most = wp.zeros(3, dtype=wp.int32, device=self.device)
+        most = wp.zeros(3, dtype=wp.int32, device=self.device) if most is None else most
         wp.launch(
             kf.cell_counts,
             dim=n,
@@ -849,6 +885,14 @@ class Engine:
             f"docs/trusted_ranges.md); {bad.size} of {len(cells)} sets"
         )
 
+    def _checked_counts(self, params: wp.array, cells: wp.array, counts: np.ndarray) -> np.ndarray:
+        """``counts``, the read-back ``most`` of a launch of ``params`` whose cells are ``cells``
+        (:func:`tawarp.kernels.forward.cell_counts`), as int64, after :meth:`_refuse_cells`
+        where a segment would need more than :data:`MAX_CELLS` cells."""
+        if counts[2] > MAX_CELLS:
+            self._refuse_cells(params, cells.numpy())
+        return counts.astype(np.int64)
+
     def _point_buffer_bytes(self) -> int:
         """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
         device = wp.get_device(self.device)
@@ -857,72 +901,136 @@ class Engine:
         return int(min(POINT_BUFFER_BYTES_GPU, device.free_memory // 4))
 
     def _estimated_cascade(
-        self, params: wp.array, theta: wp.array, columns, density: wp.array, out: wp.array
-    ) -> np.ndarray | None:
+        self,
+        params: wp.array,
+        theta: wp.array,
+        columns,
+        density: wp.array,
+        out: wp.array,
+        room: tuple[float, np.ndarray] | None = None,
+        most: wp.array | None = None,
+    ) -> tuple[wp.array | None, wp.array | None, np.ndarray | None]:
         """The cascade into ``out`` at ``density`` and, in the same launch, on the refined
-        grid at the sampled columns; the error estimate (n,) of each set, compared on the device
-        (:func:`tawarp.kernels.forward.refined_error`) and read back, the one host round
-        trip of a round (None where the estimate is off)."""
+        grid at the sampled columns (:meth:`_cascade`, ``room`` and ``most`` passed on); the
+        error estimate (n,) of each set compared on the device
+        (:func:`tawarp.kernels.forward.refined_error`), left there (None where the estimate is
+        off), the launch's cells and the counts :meth:`_cascade` read back."""
         freqs, sample = columns
         n = params.shape[1]
         refined = wp.empty((n, sample.shape[0], 8), dtype=wp.float64, device=self.device)
-        self._cascade(params, theta, freqs, density, out, refined)
+        cells, _, counts = self._cascade(params, theta, freqs, density, out, refined, room=room, most=most)
         if not self.estimating or n == 0:
-            return None
+            return None, cells, counts
         err = wp.empty(n, dtype=wp.float64, device=self.device)
         wp.launch(kf.refined_error, dim=n, inputs=[self._sets(params), out, refined, sample, err], device=self.device)
-        return err.numpy()
+        return err, cells, counts
 
     def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
+        """:meth:`_adapted`'s densities on the host."""
+        return self._adapted(params, theta, columns, out).numpy()
+
+    def _adapted(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> wp.array:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
-        returned (n,) on the host (:class:`ForwardSettings`): ``cell_density``, raised where the
-        error estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
+        returned (n,) on the device (:class:`ForwardSettings`): ``cell_density``, raised where
+        the error estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
         between the three sampled). The first launch runs every set at d on all m columns and
-        on the refined grid at the sampled ones (whose d values are the main cascade's own); each later
-        round gathers the sets still above target, raises their d by (estimate / target)^(1/6)
+        on the refined grid at the sampled ones (whose d values are the main cascade's own);
+        each rerun raises the d of the sets still above target by (estimate / target)^(1/6)
         (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
-        :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), runs them the same way and
-        scatters their rows into ``out``. A set is accepted only on a measured estimate (after
-        :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still above)."""
+        :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), gathers them, runs them
+        the same way and scatters their rows into ``out``, all on the device
+        (:meth:`_rerun`); on a GPU (``queue_ahead``) the first rerun is queued behind the first
+        launch before any read-back, sized by the share of sets the engine's last evaluation
+        raised (:data:`RERUN_ROOM`), and the host reads a few counts per rerun, the one round
+        trip of each. A set is accepted only on a measured estimate (after
+        :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still
+        above; a rerun too small for the sets above is run again and not counted)."""
         n = params.shape[1]
-        d = np.full(n, float(self.settings.cell_density))
+        cd = float(self.settings.cell_density)
         # filled on the device: no host copy before the main launch
-        density = wp.full(n, d[0] if n else 0.0, dtype=wp.float64, device=self.device)
-        err = self._estimated_cascade(params, theta, columns, density, out)
+        density = wp.full(n, cd if n else 0.0, dtype=wp.float64, device=self.device)
+        err, _, seen = self._estimated_cascade(params, theta, columns, density, out)
         if err is None:
-            return d
-        active = np.arange(n)
+            return density
         target = 0.5 * self.settings.tolerance
-        for rounds in range(MAX_ESTIMATE_ROUNDS):
-            above = err > target
-            if not above.any():
-                break
-            if rounds == MAX_ESTIMATE_ROUNDS - 1:
-                warnings.warn(
-                    f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
-                    f"still {err[above].max():.2g} > {target:.2g} at cell density {d[active[above]].max():.3g} "
-                    f"(cell_density {self.settings.cell_density:g}); pass ForwardSettings(cells=...) "
-                    f"for a fixed count",
-                    ValidityWarning,
-                    stacklevel=4,
-                )
-                break
-            raise_by = np.clip(1.1 * (err[above] / target) ** (1.0 / MAGNUS_ORDER), 1.25, 4.0)
-            active = active[above]
-            d[active] = np.minimum(d[active] * raise_by, MAX_DENSITY_FACTOR * self.settings.cell_density)
-            # the sets still above target only, gathered on the device, their rows scattered back
-            index = wp.array(active.astype(np.int32), dtype=wp.int32, device=self.device)
-            p = wp.empty((params.shape[0], active.size), dtype=wp.float64, device=self.device)
-            t = wp.empty((active.size, theta.shape[1]), dtype=wp.float64, device=self.device)
-            wp.launch(kbatch.gather_sets, dim=active.size, inputs=[params, theta, index, p, t], device=self.device)
-            part = wp.empty((active.size, out.shape[1], 8), dtype=wp.float64, device=self.device)
-            err = self._estimated_cascade(
-                p, t, columns, wp.array(d[active], dtype=wp.float64, device=self.device), part
+        capacity = min(n, math.ceil(RERUN_ROOM * self._raised_share * n) + RERUN_SLOTS) if self.queue_ahead else n
+        reruns = 0
+        while reruns < MAX_ESTIMATE_ROUNDS - 1:
+            tally, part, cells = self._rerun(params, theta, columns, out, err, density, target, capacity, seen)
+            counts = tally.numpy()  # the rerun's one host round trip
+            seen = np.maximum(seen, self._checked_counts(part, cells, counts[:3]))
+            above, still = int(counts[3]), int(counts[4])
+            if reruns == 0:
+                self._raised_share = above / n
+            if above <= capacity:
+                reruns += 1
+            if still == 0:
+                return density
+            capacity = still
+        errors, d = err.numpy(), density.numpy()
+        above = errors > target
+        if above.any():
+            warnings.warn(
+                f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
+                f"still {errors[above].max():.2g} > {target:.2g} at cell density {d[above].max():.3g} "
+                f"(cell_density {cd:g}); pass ForwardSettings(cells=...) for a fixed count",
+                ValidityWarning,
+                stacklevel=4,
             )
-            wp.launch(
-                kbatch.scatter_sets, dim=(active.size, out.shape[1]), inputs=[part, index, out], device=self.device
-            )
-        return d
+        return density
+
+    def _rerun(
+        self,
+        params: wp.array,
+        theta: wp.array,
+        columns,
+        out: wp.array,
+        err: wp.array,
+        density: wp.array,
+        target: float,
+        capacity: int,
+        seen: np.ndarray,
+    ) -> tuple[wp.array, wp.array, wp.array]:
+        """Queue one rerun of :meth:`_adapted` on the device, with no host round trip: the sets
+        whose estimate ``err`` (n,) exceeds ``target``, up to ``capacity`` of them, get their
+        ``density`` raised (:func:`tawarp.kernels.forward.raise_density`), are gathered and
+        run again, their points sized from the largest counts ``seen`` of any earlier launch
+        (:func:`point_room`), and their rows of ``out`` and ``err`` scattered back. The slots
+        beyond the sets above are empty: set 0 at density 0, which takes no cells and is not
+        scattered. Without ``queue_ahead`` the count is read first and the rerun takes its sets
+        alone, its points sized from their own counts. Returns (tally, params, cells): tally (5,)
+        int32 on the device, the rerun's ``most`` (:func:`tawarp.kernels.forward.cell_counts`),
+        the sets above target before it and after it; the rerun's parameter table and cells
+        (:meth:`_checked_counts`; None where no set was above target)."""
+        n, dev = params.shape[1], self.device
+        tally = wp.zeros(5, dtype=wp.int32, device=dev)
+        index = wp.zeros(capacity, dtype=wp.int32, device=dev)
+        d = wp.zeros(capacity, dtype=wp.float64, device=dev)
+        most_density = MAX_DENSITY_FACTOR * float(self.settings.cell_density)
+        wp.launch(
+            kf.raise_density, dim=n, inputs=[err, density, target, most_density, tally[3:4], index, d], device=dev
+        )
+        room = (float(kf.RAISE_MOST), seen)
+        if not self.queue_ahead:
+            capacity = min(capacity, int(tally.numpy()[3]))
+            if capacity == 0:  # no set above target: none after either
+                return tally, None, None
+            index, d, room = index[:capacity], d[:capacity], None
+        p = wp.empty((params.shape[0], capacity), dtype=wp.float64, device=dev)
+        t = wp.empty((capacity, theta.shape[1]), dtype=wp.float64, device=dev)
+        wp.launch(kbatch.gather_sets, dim=capacity, inputs=[params, theta, index, p, t], device=dev)
+        part = wp.empty((capacity, out.shape[1], 8), dtype=wp.float64, device=dev)
+        part_err, cells, _ = self._estimated_cascade(p, t, columns, d, part, room=room, most=tally[0:3])
+        above = tally[3:4]
+        wp.launch(kbatch.scatter_sets, dim=(capacity, out.shape[1]), inputs=[part, index, above, out], device=dev)
+        wp.launch(
+            kbatch.scatter_sets,
+            dim=(capacity, 1),
+            inputs=[part_err.reshape((capacity, 1, 1)), index, above, err.reshape((n, 1, 1))],
+            device=dev,
+        )
+        wp.launch(kf.count_above, dim=n, inputs=[err, target, tally[4:5]], device=dev)
+        return tally, p, cells
 
     def temperature(self, params: wp.array, theta: wp.array, x) -> tuple[np.ndarray, np.ndarray]:
         """T(x) [K] and dT/dx [K/m], each (n, len(x)), at positions x [m] from plane x1."""
