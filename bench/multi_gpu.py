@@ -383,8 +383,10 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
             out.write(0, host)
             t5 = time.perf_counter()
             direct = out.write_device(0, ev.columns, columns)  # (a GPU's driver page-locks the mapping first)
+            wp.synchronize_device(ev.device)  # (the copies are queued)
             t6 = time.perf_counter()
             direct = direct and out.write_device(0, ev.columns, columns)
+            wp.synchronize_device(ev.device)
             t7 = time.perf_counter()
         finally:
             pool.close()

@@ -907,23 +907,43 @@ def _evaluate_chunk(table: np.ndarray, key: str, spec: bytes) -> dict:
 def _evaluate_sobol_chunk(task: tuple, key: str, spec: bytes, out: SharedColumns | None = None):
     """Objectives of the Sobol points ``task`` = (lo, hi, seed, at) of the design space,
     drawn on this worker's device (:meth:`tawarp.design.space.DeviceTable.sobol`);
-    written to rows ``at`` .. of the shared ``out`` where given (and None returned)."""
+    written to rows ``at`` .. of the shared ``out`` where given (and None returned:
+    :func:`_evaluate_sobol_chunks`)."""
+    if out is not None:
+        return _evaluate_sobol_chunks([task], key, spec, out)
+    ev, tables = _worker_evaluator(key, spec)
+    lo, hi, seed, _ = task
+    table = tables.sobol(lo, hi, seed)[0]
+    return ev.objectives_of(ev.evaluate_device(table), table)
+
+
+def _evaluate_sobol_chunks(tasks: list, key: str, spec: bytes, out: SharedColumns) -> None:
+    """The chunks ``tasks`` (each (lo, hi, seed, at): :func:`_evaluate_sobol_chunk`) of
+    one call, written to the shared ``out``, in one task: a worker's share of a call.
+    Each chunk's copies into its pooled file are queued behind its kernels
+    (:meth:`SharedColumns.write_device`) and the device is waited for once, at the end,
+    so the host launches chunk i + 1 while the device runs chunk i; and Dask's cost per
+    task (its messages, the worker's bookkeeping: about a millisecond between two
+    chunks of a 4-GPU call) is paid once per worker and call."""
     import warp as wp
 
     ev, tables = _worker_evaluator(key, spec)
-    lo, hi, seed, at = task
-    table = tables.sobol(lo, hi, seed)[0]
-    metrics = ev.evaluate_device(table)
-    if out is None or ev.extra:  # (objectives computed on the host need the host table)
-        res = ev.objectives_of(metrics, table)
-        if out is None:
-            return res
-        out.write(at, res)
-        return None
-    columns = ev.metric_columns(metrics, ev.columns, wp.float64)
-    if not out.write_device(at, ev.columns, columns):
-        out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
-    return None
+    queued = False
+    try:
+        for lo, hi, seed, at in tasks:
+            table = tables.sobol(lo, hi, seed)[0]
+            metrics = ev.evaluate_device(table)
+            if ev.extra:  # (objectives computed on the host need the host table)
+                out.write(at, ev.objectives_of(metrics, table))
+                continue
+            columns = ev.metric_columns(metrics, ev.columns, wp.float64)
+            if out.write_device(at, ev.columns, columns):
+                queued = True
+            else:
+                out.write(at, dict(zip(ev.columns, _on_host(key, columns))))
+    finally:
+        if queued:  # (also on an error: no copy left running into the files)
+            wp.synchronize_device(ev.device)
 
 
 def _on_host(key: str, columns):
@@ -1168,9 +1188,12 @@ class SharedColumns:
         """The rows of the (len(names), m) float64 Warp array ``columns`` (on its device),
         one per column of ``names``, copied straight into the pooled file of the chunk
         that starts at row ``at``, where this process keeps its mapping and the device
-        copies into it (:func:`_device_address`: one DMA per column from a GPU); False
-        where not (a fresh file, a driver that would not page-lock it: the caller copies
-        through its host buffer and :meth:`write`)."""
+        copies into it (:func:`_device_address`: one DMA per column from a GPU), queued on
+        the device's stream: they are in the file once the caller has waited for the
+        device (``wp.synchronize_device``; a kept mapping is dropped only after its device
+        is waited for: :func:`_drop_mapping`); False where not (a fresh file, a driver
+        that would not page-lock it: the caller copies through its host buffer and
+        :meth:`write`)."""
         import warp as wp
 
         if not self.files or any(self.layout[k] != ("<f8", ()) for k in names):
@@ -1179,7 +1202,7 @@ class SharedColumns:
         off, n = part.offsets(mmap.PAGESIZE), part.n
         if tuple(columns.shape) != (len(names), n) or not n:
             return False
-        with _WRITTEN_LOCK:  # (held while the copies run: no mapping dropped under them)
+        with _WRITTEN_LOCK:  # (held while the copies are queued: no mapping dropped under them)
             m = _written_mapping(part.path, off[None])
             address = None if m is None else _device_address(part.path, columns.device)
             if address is None:
@@ -1187,7 +1210,6 @@ class SharedColumns:
             dest = wp.array(ptr=address, dtype=wp.float64, shape=(len(m) // 8,), device="cpu")
             for j, k in enumerate(names):
                 wp.copy(dest, columns, dest_offset=off[k] // 8, src_offset=j * n, count=n)
-            wp.synchronize_device(columns.device)
         return True
 
     def remove(self) -> None:
@@ -1460,6 +1482,7 @@ def _drop_mapping(path: str) -> None:
     if held.address is not None and held.device != "cpu":  # (page-locked: unlocked before it is unmapped)
         import warp as wp
 
+        wp.synchronize_device(held.device)  # (copies queued into it by write_device done first)
         with wp.get_device(held.device).context_guard:
             _cuda_driver().cuMemHostUnregister(held.address)
     try:
@@ -1579,18 +1602,13 @@ class ClusterEvaluator:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
         lent = False
         try:
-            # every chunk at once (a task is a point range, a result None), chunk i to worker
-            # i mod k (else another takes it): each worker writes the same pooled files call
-            # after call, through the mappings it keeps
+            # one task per worker (its chunks' point ranges, its result None): chunks i,
+            # i + k, ... to worker i (else another takes them), so each worker writes the
+            # same pooled files call after call, through the mappings it keeps
             workers = worker_addresses(self.client)
+            shares = [tasks[i :: len(workers)] for i in range(min(len(workers), len(tasks)))]
             futures = submit_all(
-                self.client,
-                _evaluate_sobol_chunk,
-                tasks,
-                self.key,
-                self.spec,
-                out,
-                workers=[workers[i % len(workers)] for i in range(len(tasks))],
+                self.client, _evaluate_sobol_chunks, shares, self.key, self.spec, out, workers=workers[: len(shares)]
             )
             # the last call's tasks let go only now: letting them go as that call returned
             # sent a message, which held this call's submission back until the client's next
