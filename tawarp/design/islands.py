@@ -30,7 +30,7 @@ from urllib.parse import quote
 
 import numpy as np
 
-from ..distributed import worker_addresses, worker_settings
+from ..distributed import submit_all, worker_addresses, worker_settings
 from .objectives import DEFAULT_T_LIMIT, signs
 from .search import FRONT_COPIES, SearchResult, search
 from .storage import (
@@ -96,10 +96,12 @@ def _minimized(cols: dict, rows: np.ndarray, objectives, T_limit) -> np.ndarray:
     return F
 
 
-def _island(name: str, kw: dict, own_journal: str | None) -> dict:
-    """One island's :func:`~tawarp.design.search.search` (lineage ``name``) on this
-    worker's device, in its own journal ``own_journal`` where given: its timing, best,
-    resumed count, and (own journal) its summary and binding for the islands' study."""
+def _island(island: tuple, kw: dict) -> dict:
+    """One island's :func:`~tawarp.design.search.search`, ``island`` = (its lineage
+    ``name``, ``own_journal``), on this worker's device, in its own journal where given:
+    its timing, best, resumed count, and (own journal) its summary and binding for the
+    islands' study."""
+    name, own_journal = island
     kw = dict(kw, settings=worker_settings(kw.get("settings")))
     if own_journal is not None:
         kw["storage"] = own_journal
@@ -164,10 +166,11 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
             # refused as search refuses it
             open_study(own, study_name, objectives, space.binding()).set_user_attr(f"tawarp_worker:{name}", bound)
     t_client = time.perf_counter() - t0
-    futures = [
-        client.submit(_island, name, kw, own, workers=[workers[i % len(workers)]], pure=False)
-        for i, (name, own) in enumerate(zip(names, journals))
-    ]
+    # in one message (submit_all): submitted one by one, the first island started 10 ms
+    # before the others
+    futures = submit_all(
+        client, _island, list(zip(names, journals)), kw, workers=[workers[i % len(workers)] for i in range(islands)]
+    )
     runs, merged, t_merge = [], 0, 0.0
     if separate and len(objectives) == 1:  # each island's summary its own: merged as it comes, in order
         for future in futures:
