@@ -46,7 +46,9 @@ Other clusters (several machines): start one ``dask worker --nthreads 1`` per GP
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import errno
 import functools
 import math
 import mmap
@@ -55,6 +57,7 @@ import pickle
 import re
 import sys
 import threading
+import time
 import uuid
 import weakref
 from collections import deque
@@ -443,7 +446,6 @@ def worker_addresses(client, fresh: bool = False) -> list[str]:
     refresh (every 2 s, asking for no worker's) may overwrite between the answer and the
     return, so that it lists no workers (then :func:`tawarp.design.islands.search_islands`
     ran no island, and a reduced sweep reduced nothing)."""
-    import time
 
     now = time.monotonic()
     held = getattr(client, "_tawarp_workers", None)
@@ -683,7 +685,6 @@ def fit_on_cluster(
     on them), a chunk's own ``weights`` for its problems. ``sizes``: the problems of each
     future, where the caller knows them (else asked of the workers first: a round trip
     before any fit starts, tens of milliseconds); each chunk is checked against its size."""
-    import time
 
     from .measure.kind import smooth_settings
 
@@ -910,23 +911,26 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: bytes, out: SharedColumns
     written to rows ``at`` .. of the shared ``out`` where given (and None returned:
     :func:`_evaluate_sobol_chunks`)."""
     if out is not None:
-        return _evaluate_sobol_chunks([task], key, spec, out)
+        return _evaluate_sobol_chunks(([task], None), key, spec, out)
     ev, tables = _worker_evaluator(key, spec)
     lo, hi, seed, _ = task
     table = tables.sobol(lo, hi, seed)[0]
     return ev.objectives_of(ev.evaluate_device(table), table)
 
 
-def _evaluate_sobol_chunks(tasks: list, key: str, spec: bytes, out: SharedColumns) -> None:
-    """The chunks ``tasks`` (each (lo, hi, seed, at): :func:`_evaluate_sobol_chunk`) of
-    one call, written to the shared ``out``, in one task: a worker's share of a call.
+def _evaluate_sobol_chunks(share: tuple, key: str, spec: bytes, out: SharedColumns) -> None:
+    """The chunks ``tasks`` of ``share`` = (tasks, done) (each (lo, hi, seed, at):
+    :func:`_evaluate_sobol_chunk`) of one call, written to the shared ``out``, in one
+    task: a worker's share of a call.
     Each chunk's copies into its pooled file are queued behind its kernels
     (:meth:`SharedColumns.write_device`) and the device is waited for once, at the end,
     so the host launches chunk i + 1 while the device runs chunk i; and Dask's cost per
     task (its messages, the worker's bookkeeping: about a millisecond between two
-    chunks of a 4-GPU call) is paid once per worker and call."""
+    chunks of a 4-GPU call) is paid once per worker and call. ``done``: (board, slot)
+    where the share, once written, says so (:class:`DoneBoard`), or None."""
     import warp as wp
 
+    tasks, done = share
     ev, tables = _worker_evaluator(key, spec)
     queued = False
     try:
@@ -944,6 +948,8 @@ def _evaluate_sobol_chunks(tasks: list, key: str, spec: bytes, out: SharedColumn
     finally:
         if queued:  # (also on an error: no copy left running into the files)
             wp.synchronize_device(ev.device)
+    if done is not None:
+        DoneBoard.post(*done)
 
 
 def _on_host(key: str, columns):
@@ -1291,6 +1297,64 @@ def _new_file(folder: str, size: int) -> str:
     return path
 
 
+#: Seconds between two looks of a client at its :class:`DoneBoard`.
+DONE_POLL_SECONDS = 2e-4
+
+
+class DoneBoard:
+    """A small shared-memory file of ``slots`` bytes, made for one call, in which each of
+    its tasks sets its slot once its results are in shared memory (:meth:`post`), and
+    which the client reads through its mapping (:meth:`wait`): a call returns once its
+    results are in place, without waiting for the messages that tell Dask a task is done
+    (worker to scheduler to client, the scheduler sending the client a batch at most
+    every 2 ms: 4.5 ms of the tail of a 4-GPU evaluation call, 2.6 ms on one GPU). The
+    file lies in ``/dev/shm`` (``folders``) until :meth:`close`."""
+
+    def __init__(self, slots: int, folders=None):
+        folder = _shared_folder(slots, folders)
+        if folder is None:
+            raise OSError(errno.ENOSPC, "no room for a DoneBoard in shared memory")
+        self.path = _new_file(folder, slots)
+        with open(self.path, "r+b") as f:
+            f.write(bytes(slots))  # (its page there: the writers' and this mapping's the same)
+            f.flush()
+            self._map = mmap.mmap(f.fileno(), slots)
+        self.board = np.frombuffer(self._map, dtype=np.uint8)
+
+    @staticmethod
+    def post(path: str, slot: int) -> None:
+        """Share ``slot`` of the call of the board ``path`` is written (by a worker process
+        of this host); nothing where the call has ended without it (its board gone)."""
+        try:
+            fd = os.open(path, os.O_RDWR)
+        except FileNotFoundError:
+            return
+        try:
+            os.pwrite(fd, b"\x01", slot)
+        finally:
+            os.close(fd)
+
+    def wait(self, futures) -> None:
+        """Return once every slot of ``futures`` (share i in slot i) is set or every future
+        is done, raising the first error of one."""
+        board = self.board[: len(futures)]
+        while not board.all():
+            states = [f.status for f in futures]
+            if "error" in states or "cancelled" in states or all(s == "finished" for s in states):
+                wait_all(futures)  # (its error raised)
+                return
+            time.sleep(DONE_POLL_SECONDS)
+
+    def close(self) -> None:
+        if self.board is None:
+            return
+        self.board = None
+        with contextlib.suppress(BufferError):  # (a view still alive: the mapping goes with it)
+            self._map.close()
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(self.path)
+
+
 class ChunkFiles:
     """Shared-memory files for the chunks of one caller's results (:class:`SharedColumns`
     ``files``), kept between its calls. A fresh tmpfs page costs its writer an allocation
@@ -1545,6 +1609,7 @@ class ClusterEvaluator:
         of them dropped (a result still held keeps its pages)."""
         self._futures = []
         self._files.close()
+
         if self.shared:
             self.client.run(drop_unlinked_mappings)
 
@@ -1600,25 +1665,35 @@ class ClusterEvaluator:
                 out = SharedColumns.create(n, self._layout, writers=_workers(self.client))
         if out is None:
             return self._gather(n, starts, ordered_map(self.client, _evaluate_sobol_chunk, tasks, self.key, self.spec))
-        lent = False
+        lent, board = False, None
         try:
             # one task per worker (its chunks' point ranges, its result None): chunks i,
             # i + k, ... to worker i (else another takes them), so each worker writes the
             # same pooled files call after call, through the mappings it keeps
             workers = worker_addresses(self.client)
             shares = [tasks[i :: len(workers)] for i in range(min(len(workers), len(tasks)))]
+            board = DoneBoard(len(shares))  # (a call's own: no file left between calls)
+            done = [(board.path, i) for i in range(len(shares))]
             futures = submit_all(
-                self.client, _evaluate_sobol_chunks, shares, self.key, self.spec, out, workers=workers[: len(shares)]
+                self.client,
+                _evaluate_sobol_chunks,
+                list(zip(shares, done)),
+                self.key,
+                self.spec,
+                out,
+                workers=workers[: len(shares)],
             )
             # the last call's tasks let go only now: letting them go as that call returned
             # sent a message, which held this call's submission back until the client's next
             # send (10 ms: submit_all)
             self._futures = futures
-            wait_all(futures)
+            board.wait(futures)
             cols = out.columns(on_release=functools.partial(self._files.give_back, out.files))
             lent = True
             return cols
         finally:
+            if board is not None:
+                board.close()
             out.remove()  # (the one file goes; its pages stay mapped here)
             if out.files and not lent:
                 self._files.discard(out.files)
