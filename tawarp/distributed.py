@@ -26,7 +26,8 @@ the next call once its result has gone, :class:`ChunkFiles`), and each worker pr
 keeps the memory it frees for its next chunk (:func:`keep_freed_memory`). The client's
 part of a call is kept to a few messages: its tasks go to the scheduler in one
 (:func:`submit_all`), results written to shared memory are waited for, not gathered
-(:func:`wait_all`), and the workers' list is asked at most once a second
+(:func:`wait_all`; ``evaluate_sobol``'s returns on its workers' posts in shared memory,
+:class:`DoneBoard`), and the workers' list is asked at most once a second
 (:func:`worker_addresses`); a GPU worker page-locks the fit data it keeps and fits again
 (:func:`lock_for_uploads`). With ``local_cluster(devices, processes=False)`` the workers
 are threads of this process, each driving its own device: Dask hands them contiguous
@@ -446,7 +447,6 @@ def worker_addresses(client, fresh: bool = False) -> list[str]:
     refresh (every 2 s, asking for no worker's) may overwrite between the answer and the
     return, so that it lists no workers (then :func:`tawarp.design.islands.search_islands`
     ran no island, and a reduced sweep reduced nothing)."""
-
     now = time.monotonic()
     held = getattr(client, "_tawarp_workers", None)
     if fresh or held is None or now - held[0] > WORKERS_SECONDS:
@@ -685,7 +685,6 @@ def fit_on_cluster(
     on them), a chunk's own ``weights`` for its problems. ``sizes``: the problems of each
     future, where the caller knows them (else asked of the workers first: a round trip
     before any fit starts, tens of milliseconds); each chunk is checked against its size."""
-
     from .measure.kind import smooth_settings
 
     t0 = time.perf_counter()
@@ -921,13 +920,12 @@ def _evaluate_sobol_chunk(task: tuple, key: str, spec: bytes, out: SharedColumns
 def _evaluate_sobol_chunks(share: tuple, key: str, spec: bytes, out: SharedColumns) -> None:
     """The chunks ``tasks`` of ``share`` = (tasks, done) (each (lo, hi, seed, at):
     :func:`_evaluate_sobol_chunk`) of one call, written to the shared ``out``, in one
-    task: a worker's share of a call.
-    Each chunk's copies into its pooled file are queued behind its kernels
-    (:meth:`SharedColumns.write_device`) and the device is waited for once, at the end,
-    so the host launches chunk i + 1 while the device runs chunk i; and Dask's cost per
-    task (its messages, the worker's bookkeeping: about a millisecond between two
-    chunks of a 4-GPU call) is paid once per worker and call. ``done``: (board, slot)
-    where the share, once written, says so (:class:`DoneBoard`), or None."""
+    task: a worker's share of a call. Each chunk's copies into its pooled file are queued
+    behind its kernels (:meth:`SharedColumns.write_device`) and the device is waited for
+    once, at the end, so the host launches chunk i + 1 while the device runs chunk i; and
+    Dask's cost per task (its messages, the worker's bookkeeping: about a millisecond
+    between two chunks of a 4-GPU call) is paid once per worker and call. ``done``:
+    (board, slot) where the share, once written, says so (:class:`DoneBoard`), or None."""
     import warp as wp
 
     tasks, done = share
@@ -1609,7 +1607,6 @@ class ClusterEvaluator:
         of them dropped (a result still held keeps its pages)."""
         self._futures = []
         self._files.close()
-
         if self.shared:
             self.client.run(drop_unlinked_mappings)
 
