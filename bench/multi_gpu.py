@@ -166,7 +166,7 @@ def design_space() -> DesignSpace:
     )
 
 
-def timed(fn, repeats: int, client=None):
+def timed(fn, repeats: int, client=None, settle=None):
     """(best wall time of ``repeats`` calls [s], the last call's result, the CPU time of
     this process (client, scheduler, nannies: every thread; worker threads too, with
     ``--cluster threads``) in the best call [s], the best call's :func:`phases` with
@@ -174,7 +174,9 @@ def timed(fn, repeats: int, client=None):
     in it, and under ``calls`` every call's wall, head, tail and submission time): with
     worker processes, a CPU time near the wall time says the client is the serial part.
     The result of a call is let go before the next starts (freeing 2 GB of
-    objectives took 0.15 s of a call's tail)."""
+    objectives took 0.15 s of a call's tail). ``settle()``, after each call's timing and
+    before its phases: waits until Dask has recorded the call's tasks as done (a call
+    that returns on its workers' posts in shared memory, ``DoneBoard``, ends first)."""
     best, out, cpu, ph = np.inf, None, None, None
     calls = {"wall": [], "head": [], "tail": [], "submitted": []}
     for _ in range(repeats):
@@ -191,6 +193,8 @@ def timed(fn, repeats: int, client=None):
             if t < best:
                 best, cpu = t, c
             continue
+        if settle is not None:
+            settle()
         u1 = client.run(usage)
         now = phases(client, w0, w1, done)
         for k, v in (("wall", t), ("head", now.get("head")), ("tail", now.get("tail")), ("submitted", clock.submitted)):
@@ -383,8 +387,10 @@ def _probe_chunk(key: str, spec: dict, chunk: int) -> dict:
             out.write(0, host)
             t5 = time.perf_counter()
             direct = out.write_device(0, ev.columns, columns)  # (a GPU's driver page-locks the mapping first)
+            wp.synchronize_device(ev.device)  # (the copies are queued)
             t6 = time.perf_counter()
             direct = direct and out.write_device(0, ev.columns, columns)
+            wp.synchronize_device(ev.device)
             t7 = time.perf_counter()
         finally:
             pool.close()
@@ -551,11 +557,17 @@ class Bench:
         ev.evaluate_sobol(64 * k)  # (and the objectives' layout, for shared memory)
         # (each worker's host buffer grown to a chunk before the timing, by the probe)
         probe = evaluation_probe(ev, min(n, self.args.eval_chunk)) if ev.shared else None
+
         # the first call writes fresh shared memory; the later ones, timed, write the files
         # of the call before, let go (ChunkFiles), as a caller evaluating batch after batch
-        first, out, _, first_ph = timed(lambda: ev.evaluate_sobol(n, seed=1), 1, client)
+        def settle():
+            import distributed
+
+            distributed.wait(ev._futures)
+
+        first, out, _, first_ph = timed(lambda: ev.evaluate_sobol(n, seed=1), 1, client, settle)
         del out
-        t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client)
+        t, out, cpu, ph = timed(lambda: ev.evaluate_sobol(n, seed=1), self.args.repeats, client, settle)
         del out
         # as a caller evaluating batch after batch: calls one after the other, nothing
         # between them but letting the result before go

@@ -848,6 +848,43 @@ def test_sobol_chunks_copied_straight_into_pooled_files_equal_one_process(monkey
         dist.drop_unlinked_mappings()
 
 
+def test_a_done_board_returns_once_every_share_is_posted_and_raises_a_failed_one(client, tmp_path):
+    # each task sets its slot once its results are written: the client returns on the
+    # posts (tasks that then sleep are still running), and on a failed task's error where
+    # it posted nothing
+    import time
+
+    from tawarp.distributed import DoneBoard
+
+    def share(slot, path, gate=None):
+        DoneBoard.post(path, slot)
+        end = time.monotonic() + 60.0  # (held until the client has returned, a minute at most)
+        while gate is not None and not os.path.exists(gate) and time.monotonic() < end:
+            time.sleep(0.01)
+
+    def fails(slot):
+        raise ValueError(f"share {slot} failed")
+
+    board = DoneBoard(3, folders=[str(tmp_path)])
+    try:
+        gate = tmp_path / "gate"
+        futures = [client.submit(share, i, board.path, str(gate), pure=False) for i in range(2)]
+        board.wait(futures)
+        assert board.board.tolist() == [1, 1, 0]
+        assert all(f.status == "pending" for f in futures)  # (held at the gate: returned on the posts)
+    finally:
+        gate.touch()
+        board.close()
+    assert not os.path.exists(board.path)
+    DoneBoard.post(board.path, 0)  # (a share ending after its call: nothing)
+    board = DoneBoard(2, folders=[str(tmp_path)])
+    try:
+        with pytest.raises(ValueError, match="share 1 failed"):
+            board.wait([client.submit(share, 0, board.path, pure=False), client.submit(fails, 1)])
+    finally:
+        board.close()
+
+
 @pytest.mark.skipif(sys.platform != "linux", reason="glibc's malloc")
 def test_a_worker_near_its_memory_limit_gives_its_kept_heap_back():
     # a worker process keeps the heap it frees (keep_freed_memory) until its memory passes

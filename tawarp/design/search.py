@@ -343,8 +343,8 @@ class _Run:
     def commit(self, claim=None, final: bool = False) -> None:
         """The generations evaluated since the last commit: their rows into the trial store
         (one append) and ``claim``'s heartbeat into the study. With ``commit_seconds`` > 0
-        the append runs in a thread while the search goes on (h5py's writes and the sync
-        to disk release the GIL), the next commit waiting for it: a run killed meanwhile
+        the append runs in a thread while the search goes on (h5py's writes release the
+        GIL), the next commit waiting for it: a run killed meanwhile
         loses that commit's generations too, which its resume evaluates again; at 0 each
         generation is stored before the next is asked. ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the

@@ -243,8 +243,13 @@ class TrialStore:
     ``constraint``, ``time`` [s since the epoch], ``params/NAME``, ``metrics/NAME``; the
     material as an index into the ``choices`` attribute) and ``committed``, the number of
     rows of complete generations. A generation is appended as: columns resized and
-    written, file flushed, then ``committed`` advanced, flushed and synced to disk.
-    Readers read ``committed`` rows only, so they never see a generation in part.
+    written, file flushed, then ``committed`` advanced and flushed. Readers read
+    ``committed`` rows only, so they never see a generation in part. A flush hands the
+    bytes to the kernel, which keeps them whatever becomes of the writer (a killed
+    process loses no committed generation) and writes them to disk in its own time: the
+    store does not wait for the disk (a sync per commit made islands writing on one disk
+    wait for each other's syncs: bench/README.md, section Several GPUs), so a crash of
+    the machine itself may lose the generations of its last seconds.
 
     Why HDF5 (h5py) and not netCDF: HDF5's single-writer/multiple-reader mode (SWMR)
     orders the file's metadata writes so that the file is consistent at every moment;
@@ -310,7 +315,7 @@ class StoreWriter:
 
     def append(self, generation, index: np.ndarray, params: dict, metrics: dict, violation, failed) -> None:
         """Rows of one generation, or of several whole ones at once (one resize, write and
-        sync for all: ``generation`` then is (k,), each row's): ``index`` (k,) members,
+        flush for all: ``generation`` then is (k,), each row's): ``index`` (k,) members,
         ``params`` {name: (k,)} (a categorical one as indices into its choices), ``metrics``
         {name: (k,)}, ``violation`` (k,) or None, ``failed`` (k,)."""
         k = len(index)
@@ -339,7 +344,6 @@ class StoreWriter:
             f.flush()  # the rows reach the file before the count that makes them visible
             f["committed"][0] = n0 + k
             f.flush()
-            os.fsync(f.id.get_vfd_handle())
         except (OSError, RuntimeError) as e:  # a full disk: the committed generations stay readable (SWMR)
             reason = io_failure(e)
             if reason is None:
