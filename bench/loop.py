@@ -11,6 +11,9 @@ to 30 % from run to run), and ``forward_sets``, the parameter sets the kind pred
 stage of the loop predicts through it, the planned measurements too), and
 ``forward_columns``, the T-matrix columns the engines computed for them (a T-matrix set at one
 heat input, a layer's set at one thickness): measures of the loop's work that no load changes.
+Each case also records what the loop decided (:func:`decisions`: the verdict, the claims and
+groups, the best model, ``error_after``, the inclusion probabilities), so that two runs of
+different code can be checked to decide the same.
 
     python bench/loop.py --device cpu                 # on a 2-core machine: the CPU target
     taskset -c 0,1 python bench/loop.py --device cpu  # two cores of a larger host
@@ -83,6 +86,21 @@ def counting_sets(kind: type):
         kind.predict, Engine.evaluate = predict, evaluate
 
 
+def decisions(rep) -> dict:
+    """What the loop decided, in report.json's keys: two runs of different code compare by
+    these (the verdict, the claims, the groups and the best model the same, error_after and
+    the inclusion probabilities within the fits' stopping rules)."""
+    return {
+        "verdict": rep["verdict"],
+        "claimed": rep["accepted_steps"],
+        "accepted_groups": rep["accepted_groups"],
+        "best_model": rep["best_model"],
+        "error_after": rep["error_after"],
+        "inclusion_probabilities": rep["inclusion_probabilities"],
+        "models": rep["models_compared"],
+    }
+
+
 def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     out = []
     for seed in seeds:
@@ -103,9 +121,7 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
                 **elapsed,
                 "forward_sets": count["sets"],
                 "forward_columns": count["columns"],
-                "verdict": rep["verdict"],
-                "claimed": rep["accepted_steps"],
-                "models": rep["models_compared"],
+                **decisions(rep),
             }
         )
         print(f"tmatrix seed {seed} ({case.category}): {out[-1]['seconds']:.1f} s, {rep['verdict']}")
@@ -133,10 +149,7 @@ def impedance_case(n: int, device: str) -> dict:
         **elapsed,
         "forward_sets": count["sets"],
         "forward_columns": count["columns"],
-        "verdict": rep["verdict"],
-        "best_model": rep["best_model"],
-        "models": rep["models_compared"],
-        "error_after": rep["error_after"],
+        **decisions(rep),
     }
     print(f"impedance, {n} frequencies: {out['seconds']:.1f} s, best {'+'.join(rep['best_model']) or 'base'}")
     return out

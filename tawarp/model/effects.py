@@ -636,18 +636,20 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
 
 def graded_cells(cells: dict, core: Core) -> dict:
     """Fixed Magnus cells {segment: count} (:class:`tawarp.model.forward.ForwardSettings`)
-    for ``core`` split by :func:`graded_parts`: a part ``SEG_partJ`` gets half the count of the
-    whole ``SEG`` (at least 1), 4x the stack's cells over its 8 parts: the parts are an
-    eighth of its length on average, but the short ones sit where its conductivity is
-    smallest and the heat decay rate sqrt(2 h/(R lam)) largest (3x the whole stack's at
-    g = 0.2 on the ceramic)."""
+    for ``core`` split by :func:`graded_parts`: a part ``SEG_partJ`` gets a quarter of the
+    count of the whole ``SEG`` (at least 1), twice the stack's cells over its 8 parts: the
+    parts are an eighth of its length on average, but the short ones sit where its
+    conductivity is smallest and the heat decay rate sqrt(2 h/(R lam)) largest (3x the whole
+    stack's at g = 0.2 on the ceramic). The split stack's Magnus error then stays below the
+    whole stack's at its own count (tests/test_effects_library.py): each further cell costs
+    every heated column of a graded fit, the loop's most expensive ones."""
     out = {}
     for seg in core.segments:
         whole = seg.name.rpartition("_part")[0]
         if seg.name in cells:
             out[seg.name] = cells[seg.name]
         elif whole in cells:
-            out[seg.name] = max(1, -(-int(cells[whole]) // 2))
+            out[seg.name] = max(1, -(-int(cells[whole]) // 4))
     return out
 
 
