@@ -779,9 +779,9 @@ def gauss_profile(
     tests/test_forward.py) with its usual case inline, the exact profile of the heat cell
     at xi (:func:`tawarp.kernels.heat.cell_profile`), and its rare ones out of line
     (:func:`rare_profile`): a wall that is a field of its own, a contact resistance at the
-    segment's start, the Kirchhoff cells of ``nonlin``. Inlined, their code took the point
-    kernel to 255 registers (one block of 256 threads per SM) and 33k instructions
-    (bench/README.md)."""
+    segment's start, the Kirchhoff cells of ``nonlin``: inlined, their code crowded the
+    point kernel's registers (bench/README.md, "The error estimate's points: the point kernel at 128
+    registers")."""
     c = wp.min(int(xi / d), cells - 1)
     if nonlin != 0 or wall_field_on(params, i, s) != 0 or contact_at(params, i, s, node0, c) != wp.float64(0.0):
         return rare_profile(params, flags, gas, theta, i, s, node0, cells, k, sigma, d, nonlin, xi)
