@@ -780,8 +780,7 @@ def gauss_profile(
     at xi (:func:`tawarp.kernels.heat.cell_profile`), and its rare ones out of line
     (:func:`rare_profile`): a wall that is a field of its own, a contact resistance at the
     segment's start, the Kirchhoff cells of ``nonlin``: inlined, their code crowded the
-    point kernel's registers (bench/README.md, "The error estimate's points: the point kernel at 128
-    registers")."""
+    point kernel's registers (bench/README.md, "The error estimate's points")."""
     c = wp.min(int(xi / d), cells - 1)
     if nonlin != 0 or wall_field_on(params, i, s) != 0 or contact_at(params, i, s, node0, c) != wp.float64(0.0):
         return rare_profile(params, flags, gas, theta, i, s, node0, cells, k, sigma, d, nonlin, xi)
