@@ -172,7 +172,7 @@ def fused(engine, table):
     densities of :meth:`Engine.cell_densities` (the sampled frequencies alone) on the same sets."""
     params, theta = engine.heat(table)
     out = wp.empty((table.shape[1], len(engine.freqs), 8), dtype=wp.float64, device=engine.device)
-    d = engine._adaptive_cascade(params, theta, engine.columns, out)
+    d = engine._adapted(params, theta, engine.columns, out).numpy()
     T = out.numpy().view(np.complex128).reshape(table.shape[1], len(engine.freqs), 2, 2)
     return params, theta, d, T, engine.cell_densities(params, theta).numpy()
 

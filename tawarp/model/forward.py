@@ -925,10 +925,6 @@ class Engine:
         wp.launch(kf.refined_error, dim=n, inputs=[self._sets(params), out, refined, sample, err], device=self.device)
         return err, cells, counts
 
-    def _adaptive_cascade(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> np.ndarray:
-        """:meth:`_adapted`'s densities on the host."""
-        return self._adapted(params, theta, columns, out).numpy()
-
     def _adapted(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> wp.array:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
         returned (n,) on the device (:class:`ForwardSettings`): ``cell_density``, raised where
