@@ -294,9 +294,11 @@ def _process_cluster(envs: list[dict]):
         i: {"cls": distributed.Nanny, "options": dict(common, env=env, memory_limit=memory)}
         for i, env in enumerate(envs)
     }
+    # the scheduler serves its HTTP routes (health, metrics) even without a dashboard: on a
+    # free port (":0"), not on 8787 with a warning when another cluster of the host has it
     scheduler = {
         "cls": distributed.Scheduler,
-        "options": dict(host="127.0.0.1", protocol="tcp://", dashboard=False, dashboard_address=None),
+        "options": dict(host="127.0.0.1", protocol="tcp://", dashboard=False, dashboard_address=":0"),
     }
     return distributed.SpecCluster(workers=workers, scheduler=scheduler, silence_logs=logging.WARN)
 

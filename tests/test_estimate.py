@@ -4,6 +4,8 @@ Sizes are small (16 frequencies, 8 Magnus cells in the fits, 12 in the data so t
 fit is not an inverse crime at Q > 0) so the file runs in well under a minute.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -118,14 +120,17 @@ def test_lam_s_with_h_s_gives_the_warning():
     freqs = paper_frequencies("nicr_foam", 16)
     Y, sd = noisy(core, freqs, 40.0, 1, seed=5)
     names = ["stack.h", "stack.solid_conductivity", "hot_hx.h", "hot_hx.solid_conductivity", "tbt.h"]
-    with pytest.warns(FitWarning, match="stack.h and stack.solid_conductivity are too correlated"):
+    # every correlated pair is named (and the restarts' minima): all caught, this one asserted
+    with pytest.warns(FitWarning) as caught:
         r = fit(
             core, freqs, Y, names, [core.get(k) * 1.2 for k in names], heat_input=40.0, weights=1 / sd, settings=FIT
         )
+    assert any("stack.h and stack.solid_conductivity are too correlated" in str(w.message) for w in caught)
     assert abs(r.correlation[0, 0, 1]) > 0.95
     Y0, sd0 = noisy(core, freqs, 0.0, 1, seed=6)
-    with pytest.warns(FitWarning, match="ill-conditioned.*mostly along stack.h"):
+    with pytest.warns(FitWarning) as caught:
         r = fit(core, freqs, Y0, ["stack.porosity", "stack.h"], [0.9, 30.0], weights=1 / sd0, settings=FIT, restarts=2)
+    assert any(re.search("ill-conditioned.*mostly along stack.h", str(w.message)) for w in caught)
     assert not np.isfinite(r.std[0, 1])  # h has no effect at Q = 0: infinite std, not a number
     # a flat direction is a continuum of minima: the ±20 % restarts stay where they start
     assert r.distinct_minima[0]

@@ -48,6 +48,8 @@ def test_figures_are_written_atomically(tmp_path):
     assert sorted(x.name for x in tmp_path.iterdir()) == ["t.png"]
 
 
+# the swallowed Ctrl-C is the case under test: Python reports it as "Exception ignored"
+@pytest.mark.filterwarnings("ignore::pytest.PytestUnraisableExceptionWarning")
 def test_interrupt_guard_remembers_a_ctrl_c_that_a_callback_swallowed():
     """Python drops an exception raised inside a weakref callback ("Exception ignored in"):
     a Ctrl-C landing there was lost and a design search went on. The guard remembers it and

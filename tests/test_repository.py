@@ -27,8 +27,10 @@ def test_version_is_the_one_of_pyproject(capsys):
 
 
 def test_licence_file_is_the_declared_one():
-    """pyproject declares MIT; the LICENSE file is the MIT text."""
-    assert tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["license"] == {"text": "MIT"}
+    """pyproject declares MIT (an SPDX expression, with the file it ships); the LICENSE
+    file is the MIT text."""
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
     text = (ROOT / "LICENSE").read_text()
     assert text.startswith("MIT License") and "Permission is hereby granted, free of charge" in text
 
