@@ -132,3 +132,22 @@ def test_fit_cells_are_the_kernels_adaptive_counts(values):
     assert (np.abs(Y_fixed - Y_adaptive).max(-1) / np.abs(Y_adaptive).max(-1)).max() < CPU.tolerance
     # the fit's counts leave room for k twice as large
     assert np.all(fit_cells(CORE, 480.0, values, CPU, k_factor=2.0, heat_input=40.0) >= cells)
+
+
+def test_engine_cache_lets_the_least_recently_used_go(monkeypatch):
+    """get_engine keeps ENGINES_KEPT engines and lets the least recently used go, not all
+    of them at once: a loop cycling through its models keeps the ones it uses."""
+    from tawarp.measure import kind
+
+    monkeypatch.setattr(kind, "ENGINES_KEPT", 3)
+    monkeypatch.setattr(kind, "_ENGINES", {})
+    core, settings = load_core("mesh"), ForwardSettings(device="cpu")
+
+    def engine(f):
+        return kind.get_engine(core, [f], ["stack.h"], settings)
+
+    a, b, c = engine(100.0), engine(200.0), engine(300.0)
+    assert engine(100.0) is a  # used again: now the most recent
+    engine(400.0)  # a fourth: b, the least recently used, goes
+    assert engine(100.0) is a and engine(300.0) is c
+    assert engine(200.0) is not b and len(kind._ENGINES) == 3

@@ -215,18 +215,23 @@ def fit_cells(
     return cells.numpy() if any(c.ndim for c in cols) else cells.numpy()[0]
 
 
-_ENGINES: dict = {}
+#: Engines :func:`get_engine` keeps, the least recently used let go first (a loop's fits
+#: cycle through a few dozen cores, names and settings; each engine holds its kernels'
+#: arrays).
+ENGINES_KEPT = 32
+_ENGINES: dict = {}  # in the order of their last use
 
 
 def get_engine(core: Core, freqs, names, settings: ForwardSettings) -> Engine:
     """A cached :class:`Engine` per (core, frequencies, varying names, settings): the
     package's one cache (estimator, kinds, loop)."""
     key = (core, tuple(np.asarray(freqs, dtype=float).tolist()), tuple(names), repr(settings))
-    eng = _ENGINES.get(key)
+    eng = _ENGINES.pop(key, None)
     if eng is None:
-        if len(_ENGINES) > 32:
-            _ENGINES.clear()
-        eng = _ENGINES[key] = Engine(core, freqs, names, settings)
+        while len(_ENGINES) >= ENGINES_KEPT:
+            _ENGINES.pop(next(iter(_ENGINES)))
+        eng = Engine(core, freqs, names, settings)
+    _ENGINES[key] = eng
     return eng
 
 
