@@ -165,7 +165,9 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     model (each cascade thread's cells, a part at uniform temperature one step; and as
     warps run them, :func:`warp_cell_steps`), points per
     set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
-    cascade launches (the first, then one per round of reruns) with their sets; and what the
+    cascade launches with their sets (two per round of the estimate, the first and one per
+    rerun: the sampled columns of the round's sets, then the other columns of those within
+    target; one at the rule); and what the
     host does, which a GPU waits for: ``host_reads`` (read-backs of device arrays, each a
     synchronization), ``device_ops`` (launches and radix sorts) and ``idle_ops``: the ops
     issued while the device has nothing long queued, from the call's start or a read-back up
@@ -194,14 +196,16 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     def counted(kernel, dim=None, inputs=None, **kw):
         op(long=kernel is engine.transfer_kernel)
         if kernel is engine.transfer_kernel:
-            cells, part, lo, order = numpy(inputs[2]), inputs[3], inputs[5], numpy(inputs[6])
-            out, refined = inputs[8], inputs[9]
+            cells, part, lo, order, columns = numpy(inputs[2]), inputs[3], inputs[5], numpy(inputs[6]), inputs[7]
+            out, refined = inputs[9], inputs[10]
+            m = columns.shape[0] or out.shape[1]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
-            work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
-            work["cell_steps"] += int(steps[:, n_seg:].sum()) * refined.shape[1]
-            work["warp_cell_steps"] += warp_cell_steps(steps, order, out.shape[1], refined.shape[1])
-            work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
-            work["launch_sets"].append(part.shape[0])
+            kept = order[order >= 0] if order.size else np.arange(part.shape[0])  # -1: a set left out
+            work["cell_steps"] += int(steps[kept, :n_seg].sum()) * m
+            work["cell_steps"] += int(steps[kept, n_seg:].sum()) * refined.shape[1]
+            work["warp_cell_steps"] += warp_cell_steps(steps, kept, n_seg, m, refined.shape[1])
+            work["threads"] += kept.size * (m + refined.shape[1])
+            work["launch_sets"].append(int(kept.size))
         elif kernel is engine.point_kernel:
             cells, lo, part = numpy(inputs[2]), inputs[6], inputs[7]
             work["points"] += int(
@@ -266,15 +270,14 @@ def kernel_seconds(engine: Engine, varying: wp.array) -> dict:
     return {"evaluate": total, "kernels": {k: sum(v) for k, v in each.items()}, "launches": each}
 
 
-def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: int = 32) -> int:
+def warp_cell_steps(steps: np.ndarray, sets: np.ndarray, n_seg: int, m: int, s: int, warp: int = 32) -> int:
     """Cell steps of a cascade launch counted as a GPU runs them: its threads in launch order
     (:func:`tawarp.kernels.forward.make_transfer_kernel`: the s refined ones of each set, then
-    its m main ones, the sets in ``order`` or as they come), each warp of ``warp`` threads
-    taking each segment's loop as long as its longest thread; ``steps`` (sets, columns) the
+    its m main ones, the sets in the launch's order, ``sets``, those left out of it not
+    counted: their warps end at once), each warp of ``warp`` threads taking each of the
+    ``n_seg`` segments' loops as long as its longest thread; ``steps`` (sets, columns) the
     launch's cells (a part at uniform temperature one step). Its excess over the threads' own
     steps (``cell_steps``) is the time lost to mixed cell counts within a warp."""
-    n_seg = steps.shape[1] // (2 if s else 1)
-    sets = order if order.size else np.arange(steps.shape[0])
     total = 0
     for grid, per_set in ((1, s), (0, m)):
         threads = steps[np.repeat(sets, per_set), grid * n_seg : (grid + 1) * n_seg]
