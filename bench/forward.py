@@ -12,7 +12,8 @@ of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default 
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
 same batch, its cost fraction, and the mean cell density it chose; ``work``: what the
 estimate's evaluation computes and asks of the host, counted without timing (a CPU gives the
-GPU's counts). ``threads``: CPU
+GPU's counts); ``start``: the same counts and the largest error over 40 frequencies for each
+start density of the estimate on four bundled cores. ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
 (a shared machine's numbers are only as good as its idle cores).
 
@@ -35,6 +36,7 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
+from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core, paper_cores
 from tawarp.model import forward
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
@@ -100,7 +102,7 @@ def accuracy_table(device: str, densities) -> dict:
     out["estimate"] = {
         "max_relative_error": max(errs.values()),
         "per_core": errs,
-        "settings": "default: cell_density 1.5, tolerance 1e-6",
+        "settings": "default: tolerance 1e-6, the estimate from 1.2 (cell_density 1.5 times ESTIMATE_START)",
     }
     return out
 
@@ -135,9 +137,43 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         "cpu_threads": 1,
         "density_mean": float(d.mean()),
         "density_max": float(d.max()),
-        "sets_raised": float(np.mean(d > ForwardSettings().cell_density)),
+        "sets_raised": float(np.mean(d > engines["estimate"].start_density)),
         "sets": n,
     }
+
+
+#: The start section's cores (each with the bench's batch of its stack) and frequencies of
+#: its accuracy check: 40 geometric ones over the band, of which the estimate samples three.
+START_CORES = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
+START_FREQS = np.geomspace(30.0, 500.0, 40)
+
+
+def start_density(device: str, n: int, starts) -> dict:
+    """The error estimate's start density (``forward.ESTIMATE_START`` times ``cell_density``)
+    on the bench's batch of n sets (its stack varied as :func:`random_batch` draws it) on each
+    of :data:`START_CORES`: for each start d0, :func:`cascade_work` of the default settings
+    started at d0 (100 frequencies: cell steps per model, points per set, the launches'
+    sets, round by round), and the largest error of a set over :data:`START_FREQS` against
+    the cascade at density 10 (the estimate samples three of them; its target is 5e-7, the
+    factor 2 to 1e-6 covers the frequencies between): the cost a start density saves and
+    what it leaves of the 1e-6."""
+    rows = []
+    for name in START_CORES:
+        core = load_core(name)
+        names, table = random_batch(n, np.random.default_rng(1))
+        varying = wp.array(table, dtype=wp.float64, device=device)
+        dense = Engine(core, START_FREQS, names, ForwardSettings(tolerance=None, cell_density=10.0, device=device))
+        zc = duct_impedance(core)
+        ref = normalize(dense.evaluate(varying)[0].numpy().view(np.complex128).reshape(n, -1, 2, 2), zc)
+        for d0 in starts:
+            settings = ForwardSettings(cell_density=d0 / forward.ESTIMATE_START, cpu_threads=1, device=device)
+            work = cascade_work(Engine(core, FREQS, names, settings), table)
+            out = Engine(core, START_FREQS, names, settings).evaluate(varying)[0]
+            Y = normalize(out.numpy().view(np.complex128).reshape(n, -1, 2, 2), zc)
+            err = (np.abs(Y - ref).max(-1) / np.abs(ref).max(-1)).max(-1)
+            rows.append({"core": name, "start_density": d0, **work, "max_error": float(err.max())})
+            print(f"start: {rows[-1]}", flush=True)
+    return {"sets": n, "rows": rows}
 
 
 def estimate_engines(device: str, names: list[str]) -> dict:
@@ -446,7 +482,10 @@ def main(argv=None):
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, work, threads, points",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, work, start, threads, points",
+    )
+    ap.add_argument(
+        "--starts", type=_numbers(float), default="1,1.1,1.2,1.3,1.5", help="the start section's start densities"
     )
     ap.add_argument("--threads", type=_numbers(int), default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
@@ -469,7 +508,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "start", "threads", "points"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -498,6 +537,8 @@ def main(argv=None):
     if "work" in sections:
         result["work"] = estimate_work(device, n)
         print(f"work: {result['work']}", flush=True)
+    if "start" in sections:
+        result["start"] = start_density(device, n, args.starts)
     if "threads" in sections:
         result["cpu_scaling"] = cpu_scaling(args.threads, n, args.min_time)
     if "blocks" in sections:
