@@ -198,8 +198,9 @@ def estimate_work(device: str, n: int, engines: dict | None = None) -> dict:
 def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     """What one evaluate() of ``table`` computes, counted on the host from each launch's
     inputs (a device-independent cost of the error estimate): Magnus cell steps per forward
-    model (each cascade thread's cells, a part at uniform temperature one step; and as
-    warps run them, :func:`warp_cell_steps`), points per
+    model (each cascade thread's cells, a part at uniform temperature one step; those of the
+    launches of a round's sampled columns on both grids, whose warps hold ~11 sets each; and
+    as warps run them, :func:`warp_cell_steps`), points per
     set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
     cascade launches with their sets (two per round of the estimate, the first and one per
     rerun: the sampled columns of the round's sets, then the other columns of those within
@@ -211,7 +212,14 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     ``launch``, ``array.numpy`` and ``radix_sort_pairs`` are wrapped for the second of two
     calls, both with the reruns queued as a GPU queues them (``Engine.queue_ahead``)."""
     n_seg = len(engine.core.segments)
-    work = {"cell_steps": 0, "warp_cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
+    work = {
+        "cell_steps": 0,
+        "sampled_cell_steps": 0,
+        "warp_cell_steps": 0,
+        "threads": 0,
+        "points": 0,
+        "launch_sets": [],
+    }
     host = {"host_reads": 0, "device_ops": 0, "idle_ops": 0, "idle": True}
     launch, numpy, sort = wp.launch, wp.array.numpy, wp.utils.radix_sort_pairs
 
@@ -237,8 +245,10 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
             m = columns.shape[0] or out.shape[1]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
             kept = order[order >= 0] if order.size else np.arange(part.shape[0])  # -1: a set left out
-            work["cell_steps"] += int(steps[kept, :n_seg].sum()) * m
-            work["cell_steps"] += int(steps[kept, n_seg:].sum()) * refined.shape[1]
+            launch_steps = int(steps[kept, :n_seg].sum()) * m + int(steps[kept, n_seg:].sum()) * refined.shape[1]
+            work["cell_steps"] += launch_steps
+            if refined.shape[1] and columns.shape[0]:  # a round's sampled columns beside the refined grid's
+                work["sampled_cell_steps"] += launch_steps
             work["warp_cell_steps"] += warp_cell_steps(steps, kept, n_seg, m, refined.shape[1])
             work["threads"] += kept.size * (m + refined.shape[1])
             work["launch_sets"].append(int(kept.size))
@@ -261,6 +271,7 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     models = table.shape[1] * len(engine.freqs)
     return {
         "cell_steps_per_model": work["cell_steps"] / models,
+        "sampled_cell_steps_per_model": work["sampled_cell_steps"] / models,
         "warp_cell_steps_per_model": work["warp_cell_steps"] / models,
         "threads_per_model": work["threads"] / models,
         "points_per_set": work["points"] / table.shape[1],
