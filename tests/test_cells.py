@@ -257,6 +257,25 @@ def test_rerun_without_room_for_every_raised_set_gives_the_same_bits(device, mon
     np.testing.assert_array_equal(T[d == cd], rule[d == cd])
 
 
+@pytest.mark.parametrize("rounds", [1, 2])
+@pytest.mark.parametrize("ahead", [False, True])
+def test_sets_above_target_after_the_last_round_hold_their_cascade(monkeypatch, rounds, ahead):
+    # A round runs a set's columns beyond the sampled ones only where its estimate is within
+    # target (a set above leaves them to its rerun), but the last round runs them whatever
+    # the estimate: a set still above target after MAX_ESTIMATE_ROUNDS (a tolerance below
+    # rounding) holds the cascade at its last density in every column, bit for bit, beside
+    # a set without heat input (within target from the start), with the GPU's queued reruns
+    # (``ahead``) or the CPU's.
+    monkeypatch.setattr(forward, "MAX_ESTIMATE_ROUNDS", rounds)
+    core = load_core("ceramic")
+    engine = Engine(core, FREQS, [], ForwardSettings(device="cpu", cpu_threads=1, tolerance=1e-20))
+    engine.queue_ahead = ahead
+    with pytest.warns(ValidityWarning, match="still"):
+        params, theta, d, T, _ = fused(engine, np.array([[40.0, 0.0, 80.0]]))
+    assert (d[0] > engine.start_density) == (rounds > 1) and d[1] == engine.start_density
+    np.testing.assert_array_equal(T, cascade(engine, params, theta, engine.freqs, d))
+
+
 def test_estimate_is_the_error_at_the_sampled_frequencies():
     # The estimate at the start density (the refined grid's difference times Richardson's
     # factor) is the error of the sets' cells at the sampled frequencies against the converged
