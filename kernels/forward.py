@@ -13,13 +13,16 @@ Launch order for a batch of n parameter sets and m frequencies:
    (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
    properties, pore scales) at every Gauss point of the set once, for all its frequencies.
 4. :func:`cascade_keys` and a radix sort order the sets by their cells, and
-   :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
-   thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
-   points, adding only what depends on the frequency (pore functions, Magnus steps).
-5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
-   and on the refined grid (:func:`refined_cells`); only the sets above the target are
-   raised (:func:`raise_density`), gathered (``kernels/batch.py``) and run again, and
-   :func:`count_above` tells the host whether another rerun is needed.
+   :func:`make_transfer_kernel` (n m threads): one thread per (set, frequency) cascades
+   the segment matrices from x1 to x6 from those points, adding only what depends on the
+   frequency (pore functions, Magnus steps).
+5. With the error estimate, step 4 is two launches from the same points: the s sampled
+   frequencies on the set's cells and on the refined grid (:func:`refined_cells`, 2 n s
+   threads), which :func:`refined_error` (n threads) compares, then the other m - s
+   frequencies of the sets within target (:func:`cascade_keys` leaves the others out).
+   Only the sets above the target are raised (:func:`raise_density`), gathered
+   (``kernels/batch.py``) and run again the same way, and :func:`count_above` tells the
+   host whether another rerun is needed.
 """
 
 from typing import Any

@@ -294,15 +294,15 @@ class ForwardSettings:
     parameter set: one grid
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
-    starts at ``cell_density`` and is raised until an error estimate is below
-    ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
+    starts at :data:`ESTIMATE_START` times ``cell_density`` (1.2) and is raised until an
+    error estimate is below ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
     refined grid's, n + ceil(n/2) cells where it has n, whose difference times
     1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine._adapted`: the refined cascades run in the main launch, whose
-    values at the sampled frequencies they are compared with on the device, and only the
-    sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
+    (:meth:`Engine._adapted`: the sampled frequencies run first on both grids and are
+    compared on the device, the other frequencies of the sets within target next, and only
+    the sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
     core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
