@@ -1034,7 +1034,7 @@ class Engine:
             warnings.warn(
                 f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
                 f"still {errors[above].max():.2g} > {target:.2g} at cell density {d[above].max():.3g} "
-                f"(cell_density {cd:g}); pass ForwardSettings(cells=...) for a fixed count",
+                f"(started at {cd:g}); pass ForwardSettings(cells=...) for a fixed count",
                 ValidityWarning,
                 stacklevel=4,
             )
