@@ -295,9 +295,9 @@ class ForwardSettings:
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
     starts at :data:`ESTIMATE_START` times ``cell_density`` (1.2) and is raised until an
-    error estimate is below ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
-    refined grid's, n + ceil(n/2) cells where it has n, whose difference times
-    1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
+    error estimate is below ``tolerance``/2: Richardson's estimate (the cascade on the
+    set's cells against the refined grid's, n + ceil(n/2) cells where it has n, whose
+    difference times 1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
     (:meth:`Engine._adapted`: the sampled frequencies run first on both grids and are
