@@ -12,8 +12,7 @@ of each ``cell_density`` (the bare rule, ``tolerance=None``) and of the default 
 80 W (RVC 18 W). ``estimate``: throughput with and without the error estimate on the
 same batch, its cost fraction, and the mean cell density it chose; ``work``: what the
 estimate's evaluation computes and asks of the host, counted without timing (a CPU gives the
-GPU's counts); ``start``: the same counts and the largest error over 40 frequencies for each
-start density of the estimate on four bundled cores. ``threads``: CPU
+GPU's counts). ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
 (a shared machine's numbers are only as good as its idle cores).
 
@@ -36,7 +35,6 @@ import numpy as np
 import warp as wp
 
 from tawarp import reference
-from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core, paper_cores
 from tawarp.model import forward
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
@@ -102,7 +100,7 @@ def accuracy_table(device: str, densities) -> dict:
     out["estimate"] = {
         "max_relative_error": max(errs.values()),
         "per_core": errs,
-        "settings": "default: tolerance 1e-6, the estimate from 1.2 (cell_density 1.5 times ESTIMATE_START)",
+        "settings": "default: cell_density 1.5, tolerance 1e-6",
     }
     return out
 
@@ -137,58 +135,9 @@ def estimate_cost(device: str, n: int, min_time: float, repeats: int = 7) -> dic
         "cpu_threads": 1,
         "density_mean": float(d.mean()),
         "density_max": float(d.max()),
-        "sets_raised": float(np.mean(d > engines["estimate"].start_density)),
+        "sets_raised": float(np.mean(d > ForwardSettings().cell_density)),
         "sets": n,
     }
-
-
-#: The start section's cores (each with the bench's batch of its stack) and frequencies of
-#: its accuracy check: 40 geometric ones over the band, of which the estimate samples three.
-START_CORES = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
-START_FREQS = np.geomspace(30.0, 500.0, 40)
-
-
-def start_density(device: str, n: int, starts) -> dict:
-    """The error estimate's start density (``forward.ESTIMATE_START`` times ``cell_density``)
-    on the bench's batch of n sets (its stack varied as :func:`random_batch` draws it) on each
-    of :data:`START_CORES`: for each start d0, :func:`cascade_work` of the default settings
-    started at d0 (100 frequencies: cell steps per model, points per set, the launches'
-    sets, round by round), and the largest error of a set over :data:`START_FREQS` against
-    the cascade at density 10 (the estimate samples three of them; its target is 5e-7, the
-    factor 2 to 1e-6 covers the frequencies between): the cost a start density saves and
-    what it leaves of the 1e-6; and at the default start, the estimate sampled at the band's
-    lowest and highest frequencies alone (``sampled`` "ends", not the default's three)."""
-    rows = []
-    for name in START_CORES:
-        core = load_core(name)
-        names, table = random_batch(n, np.random.default_rng(1))
-        varying = wp.array(table, dtype=wp.float64, device=device)
-        dense = Engine(core, START_FREQS, names, ForwardSettings(tolerance=None, cell_density=10.0, device=device))
-        zc = duct_impedance(core)
-        ref = normalize(dense.evaluate(varying)[0].numpy().view(np.complex128).reshape(n, -1, 2, 2), zc)
-        default = ForwardSettings().cell_density * forward.ESTIMATE_START
-        for d0, sampled in [(d0, "three") for d0 in starts] + [(default, "ends")]:
-            settings = ForwardSettings(cell_density=d0 / forward.ESTIMATE_START, cpu_threads=1, device=device)
-            engines = [Engine(core, f, names, settings) for f in (FREQS, START_FREQS)]
-            if sampled == "ends":  # the band's lowest and highest frequencies alone
-                for e in engines:
-                    e.sample = e.sample[[0, -1]]
-                    e.columns = e._columns(e.freqs, e.sample)
-            work = cascade_work(engines[0], table)
-            Y = normalize(engines[1].evaluate(varying)[0].numpy().view(np.complex128).reshape(n, -1, 2, 2), zc)
-            err = (np.abs(Y - ref).max(-1) / np.abs(ref).max(-1)).max(-1)
-            rows.append(
-                {
-                    "core": name,
-                    "start_density": d0,
-                    "sampled": sampled,
-                    **work,
-                    "max_error": float(err.max()),
-                    "sets_above_5e-7": int((err > 5e-7).sum()),
-                }
-            )
-            print(f"start: {rows[-1]}", flush=True)
-    return {"sets": n, "rows": rows}
 
 
 def estimate_engines(device: str, names: list[str]) -> dict:
@@ -213,13 +162,10 @@ def estimate_work(device: str, n: int, engines: dict | None = None) -> dict:
 def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     """What one evaluate() of ``table`` computes, counted on the host from each launch's
     inputs (a device-independent cost of the error estimate): Magnus cell steps per forward
-    model (each cascade thread's cells, a part at uniform temperature one step; those of the
-    launches of a round's sampled columns on both grids, whose warps hold ~11 sets each; and
-    as warps run them, :func:`warp_cell_steps`), points per
+    model (each cascade thread's cells, a part at uniform temperature one step; and as
+    warps run them, :func:`warp_cell_steps`), points per
     set (:func:`tawarp.kernels.forward.make_point_kernel`), cascade threads per model and the
-    cascade launches with their sets (two per round of the estimate, the first and one per
-    rerun: the sampled columns of the round's sets, then the other columns of those within
-    target; one at the rule); and what the
+    cascade launches (the first, then one per round of reruns) with their sets; and what the
     host does, which a GPU waits for: ``host_reads`` (read-backs of device arrays, each a
     synchronization), ``device_ops`` (launches and radix sorts) and ``idle_ops``: the ops
     issued while the device has nothing long queued, from the call's start or a read-back up
@@ -227,14 +173,7 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     ``launch``, ``array.numpy`` and ``radix_sort_pairs`` are wrapped for the second of two
     calls, both with the reruns queued as a GPU queues them (``Engine.queue_ahead``)."""
     n_seg = len(engine.core.segments)
-    work = {
-        "cell_steps": 0,
-        "sampled_cell_steps": 0,
-        "warp_cell_steps": 0,
-        "threads": 0,
-        "points": 0,
-        "launch_sets": [],
-    }
+    work = {"cell_steps": 0, "warp_cell_steps": 0, "threads": 0, "points": 0, "launch_sets": []}
     host = {"host_reads": 0, "device_ops": 0, "idle_ops": 0, "idle": True}
     launch, numpy, sort = wp.launch, wp.array.numpy, wp.utils.radix_sort_pairs
 
@@ -255,18 +194,14 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     def counted(kernel, dim=None, inputs=None, **kw):
         op(long=kernel is engine.transfer_kernel)
         if kernel is engine.transfer_kernel:
-            cells, part, lo, order, columns = numpy(inputs[2]), inputs[3], inputs[5], numpy(inputs[6]), inputs[7]
-            out, refined = inputs[9], inputs[10]
-            m = columns.shape[0] or out.shape[1]
+            cells, part, lo, order = numpy(inputs[2]), inputs[3], inputs[5], numpy(inputs[6])
+            out, refined = inputs[8], inputs[9]
             steps = np.maximum(cells[lo : lo + part.shape[0]], 1)
-            kept = order[order >= 0] if order.size else np.arange(part.shape[0])  # -1: a set left out
-            launch_steps = int(steps[kept, :n_seg].sum()) * m + int(steps[kept, n_seg:].sum()) * refined.shape[1]
-            work["cell_steps"] += launch_steps
-            if refined.shape[1] and columns.shape[0]:  # a round's sampled columns beside the refined grid's
-                work["sampled_cell_steps"] += launch_steps
-            work["warp_cell_steps"] += warp_cell_steps(steps, kept, n_seg, m, refined.shape[1])
-            work["threads"] += kept.size * (m + refined.shape[1])
-            work["launch_sets"].append(int(kept.size))
+            work["cell_steps"] += int(steps[:, :n_seg].sum()) * out.shape[1]
+            work["cell_steps"] += int(steps[:, n_seg:].sum()) * refined.shape[1]
+            work["warp_cell_steps"] += warp_cell_steps(steps, order, out.shape[1], refined.shape[1])
+            work["threads"] += part.shape[0] * (out.shape[1] + refined.shape[1])
+            work["launch_sets"].append(part.shape[0])
         elif kernel is engine.point_kernel:
             cells, lo, part = numpy(inputs[2]), inputs[6], inputs[7]
             work["points"] += int(
@@ -286,7 +221,6 @@ def cascade_work(engine: Engine, table: np.ndarray) -> dict:
     models = table.shape[1] * len(engine.freqs)
     return {
         "cell_steps_per_model": work["cell_steps"] / models,
-        "sampled_cell_steps_per_model": work["sampled_cell_steps"] / models,
         "warp_cell_steps_per_model": work["warp_cell_steps"] / models,
         "threads_per_model": work["threads"] / models,
         "points_per_set": work["points"] / table.shape[1],
@@ -332,14 +266,15 @@ def kernel_seconds(engine: Engine, varying: wp.array) -> dict:
     return {"evaluate": total, "kernels": {k: sum(v) for k, v in each.items()}, "launches": each}
 
 
-def warp_cell_steps(steps: np.ndarray, sets: np.ndarray, n_seg: int, m: int, s: int, warp: int = 32) -> int:
+def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: int = 32) -> int:
     """Cell steps of a cascade launch counted as a GPU runs them: its threads in launch order
     (:func:`tawarp.kernels.forward.make_transfer_kernel`: the s refined ones of each set, then
-    its m main ones, the sets in the launch's order, ``sets``, those left out of it not
-    counted: their warps end at once), each warp of ``warp`` threads taking each of the
-    ``n_seg`` segments' loops as long as its longest thread; ``steps`` (sets, columns) the
+    its m main ones, the sets in ``order`` or as they come), each warp of ``warp`` threads
+    taking each segment's loop as long as its longest thread; ``steps`` (sets, columns) the
     launch's cells (a part at uniform temperature one step). Its excess over the threads' own
     steps (``cell_steps``) is the time lost to mixed cell counts within a warp."""
+    n_seg = steps.shape[1] // (2 if s else 1)
+    sets = order if order.size else np.arange(steps.shape[0])
     total = 0
     for grid, per_set in ((1, s), (0, m)):
         threads = steps[np.repeat(sets, per_set), grid * n_seg : (grid + 1) * n_seg]
@@ -508,10 +443,7 @@ def main(argv=None):
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, work, start, threads, points",
-    )
-    ap.add_argument(
-        "--starts", type=_numbers(float), default="1,1.1,1.2,1.3,1.5", help="the start section's start densities"
+        help="comma list of accuracy, throughput, blocks, peers, estimate, work, threads, points",
     )
     ap.add_argument("--threads", type=_numbers(int), default="1,2", help="CPU thread counts of the threads section")
     ap.add_argument("--out", default=None)
@@ -534,7 +466,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "start", "threads", "points"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -563,8 +495,6 @@ def main(argv=None):
     if "work" in sections:
         result["work"] = estimate_work(device, n)
         print(f"work: {result['work']}", flush=True)
-    if "start" in sections:
-        result["start"] = start_density(device, n, args.starts)
     if "threads" in sections:
         result["cpu_scaling"] = cpu_scaling(args.threads, n, args.min_time)
     if "blocks" in sections:

@@ -13,16 +13,13 @@ Launch order for a batch of n parameter sets and m frequencies:
    (:class:`tawarp.kernels.acoustics.PointCoefficients`: temperature profile, gas
    properties, pore scales) at every Gauss point of the set once, for all its frequencies.
 4. :func:`cascade_keys` and a radix sort order the sets by their cells, and
-   :func:`make_transfer_kernel` (n m threads): one thread per (set, frequency) cascades
-   the segment matrices from x1 to x6 from those points, adding only what depends on the
-   frequency (pore functions, Magnus steps).
-5. With the error estimate, step 4 is two launches from the same points: the s sampled
-   frequencies on the set's cells and on the refined grid (:func:`refined_cells`, 2 n s
-   threads), which :func:`refined_error` (n threads) compares, then the other m - s
-   frequencies of the sets within target (:func:`cascade_keys` leaves the others out).
-   Only the sets above the target are raised (:func:`raise_density`), gathered
-   (``kernels/batch.py``) and run again the same way, and :func:`count_above` tells the
-   host whether another rerun is needed.
+   :func:`make_transfer_kernel` (n m threads, and n s more for the error estimate): one
+   thread per (set, frequency) cascades the segment matrices from x1 to x6 from those
+   points, adding only what depends on the frequency (pore functions, Magnus steps).
+5. :func:`refined_error` (n threads) compares the s sampled frequencies on the set's cells
+   and on the refined grid (:func:`refined_cells`); only the sets above the target are
+   raised (:func:`raise_density`), gathered (``kernels/batch.py``) and run again, and
+   :func:`count_above` tells the host whether another rerun is needed.
 """
 
 from typing import Any
@@ -378,25 +375,18 @@ def refined_cells(n: int):
 @wp.kernel
 def refined_error(
     sets: SetTable,
-    set0: int,
     out: wp.array3d(dtype=wp.float64),
     refined: wp.array3d(dtype=wp.float64),
     sample: wp.array(dtype=wp.int32),
-    density: wp.array(dtype=wp.float64),
     err: wp.array(dtype=wp.float64),
 ):
     """err[i] = :data:`REFINED_ERROR_FACTOR` times the max over k of
     max_c |Y_c - Y2_c| / max_c |Y2_c| (dimensionless), Y the coefficients (Tpp, Tpu/Zc,
     Tup Zc, Tuu) of out[i, sample[k]] (the set's cells) and Y2 those of refined[i, k] (the
     refined grid, :func:`refined_cells`), Zc = p_mean / (c_cold S) [Pa s/m^3] the cold duct's
-    impedance of set i, for the sets i = set0 + tid. NaN where a coefficient is not finite
-    (as NumPy's max): such a set is not refined, the validity checks name it. Infinite for a
-    set at density[i] 0, an empty slot of a rerun (:func:`raise_density`): its other
-    columns are not run (:func:`cascade_keys`)."""
-    i = set0 + wp.tid()
-    if density[i] == wp.float64(0.0):
-        err[i] = wp.float64(wp.inf)
-        return
+    impedance of set i. NaN where a coefficient is not finite (as NumPy's max): such a set
+    is not refined, the validity checks name it."""
+    i = wp.tid()
     params = sets.params
     gas = sets.gas
     radius = params[RADIUS, i]
@@ -472,8 +462,6 @@ def cascade_keys(
     cells: wp.array2d(dtype=wp.int32),
     set0: int,
     stride: int,
-    err: wp.array(dtype=wp.float64),
-    target: wp.float64,
     keys: wp.array(dtype=wp.int32),
     order: wp.array(dtype=wp.int32),
 ):
@@ -484,9 +472,7 @@ def cascade_keys(
     neighbouring groups (three sampled frequencies of each of ~11 sets on the refined grid, a
     set's frequencies on the main one), and it runs each segment's cell loop for as long as its
     longest thread: sets drawn at random lost a fifth of the refined grid's warp time to
-    shorter neighbours (bench/README.md). Where ``err`` has a row per set, a set whose error
-    estimate err[i] exceeds ``target`` (not NaN) is left out of the launch: order[g] = -1,
-    sorted last (a rerun raises it, :func:`raise_density`)."""
+    shorter neighbours (bench/README.md)."""
     g = wp.tid()
     i = set0 + g * stride
     steps = int(0)
@@ -494,10 +480,6 @@ def cascade_keys(
         steps = steps + wp.max(cells[i, c], 1)
     keys[g] = ORDER_KEY_CAP - wp.min(steps, ORDER_KEY_CAP)
     order[g] = g
-    if err.shape[0] > 0:
-        if err[i] > target:
-            keys[g] = ORDER_KEY_CAP
-            order[g] = -1
 
 
 @wp.func
@@ -1289,7 +1271,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         spans: wp.array2d(dtype=wp.float64),
         set0: int,
         order: wp.array(dtype=wp.int32),
-        columns: wp.array(dtype=wp.int32),
         pore_table: PoreTable,
         out: wp.array3d(dtype=wp.float64),
         refined: wp.array3d(dtype=wp.float64),
@@ -1301,13 +1282,11 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         freqs[m + k] on the refined grid (the error estimate's, :func:`refined_cells`;
         k < refined.shape[1]); for the sets i = set0 ... set0 + points.shape[0] - 1, whose
         :func:`make_point_kernel` points ``points`` (and cell lengths ``spans``) holds and
-        :func:`cell_counts` cells ``cells``. Where ``columns`` is not empty, m is its length
-        and frequency freqs[j] goes to out[i, columns[j]] (a launch of some of out's columns).
+        :func:`cell_counts` cells ``cells``.
         Launched on points.shape[0] (m + refined.shape[1]) threads, the refined ones first:
         they run longest, and in warps of their own they hold up no short thread. Each grid's
         threads take the sets in ``order`` (local indices, :func:`cascade_keys`: warps of
-        sets with alike cells; -1 a set left out), or in their own order where ``order`` is
-        empty.
+        sets with alike cells), or in their own order where ``order`` is empty.
         ``pore_table``: :func:`tawarp.kernels.pore_table.circular_table` on the kernel's
         device.
 
@@ -1327,8 +1306,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
         flags = sets.flags
         gas = sets.gas
         n_freqs = out.shape[1]
-        if columns.shape[0] > 0:
-            n_freqs = columns.shape[0]
         n_refined = points.shape[0] * refined.shape[1]
         li = (t - n_refined) // n_freqs
         j = (t - n_refined) % n_freqs
@@ -1339,8 +1316,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
             grid = 1
         if order.shape[0] > 0:
             li = order[li]
-            if li < 0:  # a set left out of the launch (cascade_keys)
-                return
         group = li
         li = li * stride
         i = set0 + li
@@ -1424,8 +1399,6 @@ def make_transfer_kernel(max_registers: int | None = None, tangents: int = 0, pl
                 )
         scale = cexp(log_scale)
         if j < n_freqs:
-            if columns.shape[0] > 0:
-                j = columns[j]
             store_matrix(out, group, j, cscale2(m, scale))
         else:
             store_matrix(refined, group, j - n_freqs, cscale2(m, scale))

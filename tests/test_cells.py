@@ -90,13 +90,10 @@ def test_tighter_tolerance_gives_tighter_error():
 
 
 def test_estimate_only_raises_cells():
-    # A set whose estimate is already below target keeps the start density's cells (the
-    # rule's at ESTIMATE_START times cell_density), bit for bit: its sampled columns and its
-    # other columns, cascaded in two launches, are the rule's single launch.
+    # A set whose estimate is already below target keeps the rule's cells: bit for bit.
     core = load_core("ceramic")
-    start = forward.ESTIMATE_START * forward.DEFAULT_CELL_DENSITY
     a = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", tolerance=1e-2).T
-    b = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", tolerance=None, cell_density=start).T
+    b = transfer_matrices(core, FREQS, [0.0, 40.0], device="cpu", tolerance=None).T
     assert np.array_equal(a, b)
 
 
@@ -153,12 +150,11 @@ def refined_estimate(engine, params, theta, d):
 
 
 def two_phase(engine, params, theta):
-    """The densities of the documented procedure (ForwardSettings: from the engine's start
-    density, rounds of the estimate on the sets above tolerance/2, each raising d by
-    1.1 (err/target)^(1/6) clipped to [1.25, 4]), then the main cascade at them:
-    (d (n,), T (n, m, 2, 2))."""
+    """The densities of the documented procedure (ForwardSettings: rounds of the estimate on
+    the sets above tolerance/2, each raising d by 1.1 (err/target)^(1/6) clipped to
+    [1.25, 4]), then the main cascade at them: (d (n,), T (n, m, 2, 2))."""
     cd = engine.settings.cell_density
-    d = np.full(params.shape[1], engine.start_density)
+    d = np.full(params.shape[1], cd)
     target = 0.5 * engine.settings.tolerance
     active = np.arange(d.size)
     for _ in range(forward.MAX_ESTIMATE_ROUNDS - 1):
@@ -196,7 +192,7 @@ def test_fused_estimate_equals_two_phase(name, seed, device):
     engine = Engine(core, np.linspace(30.0, 500.0, 12), names, ForwardSettings(device=device, cpu_threads=1))
     params, theta, d, T, d_alone = fused(engine, table)
     d_ref, T_ref = two_phase(engine, params, theta)
-    raised = d_ref > engine.start_density
+    raised = d_ref > engine.settings.cell_density
     assert raised.any() and not raised.all(), d_ref
     np.testing.assert_allclose(d, d_ref, rtol=1e-12, atol=0)
     np.testing.assert_allclose(d_alone, d_ref, rtol=1e-12, atol=0)
@@ -207,7 +203,7 @@ def test_fused_estimate_equals_two_phase(name, seed, device):
 @pytest.mark.parametrize("device", DEVICES)
 def test_set_above_target_is_raised_and_scattered_back(device):
     # Heated sets interleaved with unheated ones at a tight tolerance: at uniform temperature
-    # the Magnus cells are exact (estimate ~ rounding), so Q = 0 keeps the start density, while
+    # the Magnus cells are exact (estimate ~ rounding), so Q = 0 keeps cell_density, while
     # every heated set is measured above target at the rule's density, raised until its
     # measured estimate is <= tolerance/2, and its row of the result is the cascade at the
     # raised density (the gathered rerun lands in its own row).
@@ -215,7 +211,7 @@ def test_set_above_target_is_raised_and_scattered_back(device):
     Q = np.array([0.0, 80.0, 0.0, 40.0, 0.0, 20.0])
     engine = Engine(core, FREQS, [], ForwardSettings(device=device, cpu_threads=1, tolerance=1e-9))
     params, theta, d, T, _ = fused(engine, Q[None])
-    cd = engine.start_density
+    cd = engine.settings.cell_density
     heated = Q > 0
     assert np.all(refined_estimate(engine, params, theta, np.full(Q.size, cd))[heated] > 0.5e-9)
     assert np.all(d[~heated] == cd) and np.all(d[heated] > cd), d
@@ -247,7 +243,7 @@ def test_rerun_without_room_for_every_raised_set_gives_the_same_bits(device, mon
     monkeypatch.setattr(forward, "INITIAL_RAISED_SHARE", 0.0)
     monkeypatch.setattr(forward, "RERUN_SLOTS", 1)
     _, _, d_tight, T_tight, _ = fused(queued_ahead(Engine(core, FREQS, [], settings)), Q[None])
-    cd = engine.start_density
+    cd = settings.cell_density
     np.testing.assert_array_equal(d_ample, d)
     np.testing.assert_array_equal(T_ample, T)
     assert (d > cd).sum() >= 3 and (d == cd).sum() >= 2, d
@@ -257,32 +253,12 @@ def test_rerun_without_room_for_every_raised_set_gives_the_same_bits(device, mon
     np.testing.assert_array_equal(T[d == cd], rule[d == cd])
 
 
-@pytest.mark.parametrize("rounds", [1, 2])
-@pytest.mark.parametrize("ahead", [False, True])
-def test_sets_above_target_after_the_last_round_hold_their_cascade(monkeypatch, rounds, ahead):
-    # A round runs a set's columns beyond the sampled ones only where its estimate is within
-    # target (a set above leaves them to its rerun), but the last round runs them whatever
-    # the estimate: a set still above target after MAX_ESTIMATE_ROUNDS (a tolerance below
-    # rounding) holds the cascade at its last density in every column, bit for bit, beside
-    # a set without heat input (within target from the start), with the GPU's queued reruns
-    # (``ahead``) or the CPU's.
-    monkeypatch.setattr(forward, "MAX_ESTIMATE_ROUNDS", rounds)
-    core = load_core("ceramic")
-    engine = Engine(core, FREQS, [], ForwardSettings(device="cpu", cpu_threads=1, tolerance=1e-20))
-    engine.queue_ahead = ahead
-    with pytest.warns(ValidityWarning, match="still"):
-        params, theta, d, T, _ = fused(engine, np.array([[40.0, 0.0, 80.0]]))
-    assert (d[0] > engine.start_density) == (rounds > 1) and d[1] == engine.start_density
-    np.testing.assert_array_equal(T, cascade(engine, params, theta, engine.freqs, d))
-
-
 def test_estimate_is_the_error_at_the_sampled_frequencies():
-    # The estimate at the start density (the refined grid's difference times Richardson's
+    # The estimate at the rule's density (the refined grid's difference times Richardson's
     # factor) is the error of the sets' cells at the sampled frequencies against the converged
     # reference, set by set on random cores: within [0.8, 1.25] of it (0.83-1.14 over 255
-    # such sets at the rule's density against a 32x denser cascade; a step-doubling
-    # estimate, 2n cells, gave 0.87-1.03). Sets within 1e-9 of the reference are left out
-    # (its own error is ~1e-11).
+    # such sets against a 32x denser cascade; a step-doubling estimate, 2n cells, gave
+    # 0.87-1.03). Sets within 1e-9 of the reference are left out (its own error is ~1e-11).
     ratios = []
     for name, seed in [("ceramic", 8), ("mesh", 9)]:
         core = load_core(name)
@@ -291,7 +267,7 @@ def test_estimate_is_the_error_at_the_sampled_frequencies():
         table = np.array([[q] + [v[k] for k in names] for q, v in sets]).T
         engine = Engine(core, FREQS, names, ForwardSettings(device="cpu", cpu_threads=1))
         params, theta = engine.heat(table)
-        d = np.full(len(sets), engine.start_density)
+        d = np.full(len(sets), engine.settings.cell_density)
         f = engine.freqs[engine.sample]
         Y = normalize(cascade(engine, params, theta, f, d), duct_impedance(core))
         true = np.array(

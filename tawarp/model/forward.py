@@ -59,12 +59,6 @@ DEFAULT_TOLERANCE = 1e-6
 MAGNUS_ORDER = 6
 #: Most rounds of the error estimate (each raises a set's density by 1.25x to 4x).
 MAX_ESTIMATE_ROUNDS = 8
-#: With the error estimate a set's density starts at this share of ``cell_density`` (the
-#: bare rule's): each round runs a set's other frequencies only once its sampled ones are
-#: within target (:meth:`Engine._cascade`), so a set that needs more cells costs its
-#: estimate at the start density, not a whole cascade there, and most sets need fewer cells
-#: than the rule gives them (bench/README.md, "The estimate before the cascade").
-ESTIMATE_START = 0.8
 #: Largest raise of a set's density over ``cell_density`` (64^6 ~ 7e10 times less error).
 MAX_DENSITY_FACTOR = 64.0
 #: Memory [bytes] for the Gauss points of a cascade launch on the CPU, and the most on a
@@ -294,15 +288,15 @@ class ForwardSettings:
     parameter set: one grid
     serves all of a set's frequencies, whose Gauss-point factors are computed once
     (:func:`tawarp.kernels.forward.make_point_kernel`). The density d of each set
-    starts at :data:`ESTIMATE_START` times ``cell_density`` (1.2) and is raised until an
-    error estimate is below ``tolerance``/2: Richardson's estimate (the cascade on the
-    set's cells against the refined grid's, n + ceil(n/2) cells where it has n, whose
-    difference times 1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
+    starts at ``cell_density`` and is raised until an error estimate is below
+    ``tolerance``/2: Richardson's estimate (the cascade on the set's cells against the
+    refined grid's, n + ceil(n/2) cells where it has n, whose difference times
+    1/(1 - 1.5^-6) is the error on the n cells, the scheme being sixth order:
     :func:`tawarp.kernels.forward.refined_cells`) at the lowest, geometric middle and
     highest frequency of the batch, on the row-relative dimensionless error
-    (:meth:`Engine._adapted`: the sampled frequencies run first on both grids and are
-    compared on the device, the other frequencies of the sets within target next, and only
-    the sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
+    (:meth:`Engine._adapted`: the refined cascades run in the main launch, whose
+    values at the sampled frequencies they are compared with on the device, and only the
+    sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
     rule alone meets 1e-6 on the paper-like cores, README "Accuracy", but not on every
     core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
@@ -488,8 +482,6 @@ class Engine:
         )
         self.columns = self._columns(f, self.sample)  # evaluate
         self.sample_columns = self._columns(f[self.sample], np.arange(self.sample.size))  # cell_densities
-        # the density each set starts at (ESTIMATE_START with the estimate, the rule's without)
-        self.start_density = float(s.cell_density) * (ESTIMATE_START if self.estimating else 1.0)
         self.pore_table = circular_table(dev, structure_flags(core)[:, 1])
         self.omega_max = 2.0 * math.pi * float(self.freqs.max())
         self.plain = plain_parts(core, self.names)
@@ -499,8 +491,6 @@ class Engine:
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
-        self._no_refined = wp.zeros((0, 0, 8), dtype=wp.float64, device=dev)
-        self._no_error = wp.zeros(0, dtype=wp.float64, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         self._raised_share = INITIAL_RAISED_SHARE  # of the last evaluation's first rerun (RERUN_ROOM)
         # queue each rerun of the error estimate before its count is read back (_adapted): a
@@ -658,20 +648,12 @@ class Engine:
         out = wp.empty((params.shape[1], self.sample.size, 8), dtype=wp.float64, device=self.device)
         return self._adapted(params, theta, self.sample_columns, out)
 
-    def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array, wp.array, wp.array]:
-        """The columns of ``freqs`` [Hz] for the cascade's two launches (:meth:`_cascade`), on
-        the device: the sampled ones' frequencies twice (on the sets' cells and on the refined
-        grid: the error estimate) and their indices ``sample`` (int32), then the other
-        columns' frequencies and indices."""
-        rest = np.setdiff1d(np.arange(freqs.size), sample)
-        return tuple(
-            wp.array(a, dtype=t, device=self.device)
-            for a, t in (
-                (np.concatenate([freqs[sample], freqs[sample]]), wp.float64),
-                (sample.astype(np.int32), wp.int32),
-                (freqs[rest], wp.float64),
-                (rest.astype(np.int32), wp.int32),
-            )
+    def _columns(self, freqs: np.ndarray, sample: np.ndarray) -> tuple[wp.array, wp.array]:
+        """The cascade's frequency columns [Hz] on the device: ``freqs``, then ``freqs[sample]``
+        again (run on the refined grid: the error estimate), and ``sample`` as int32."""
+        return (
+            wp.array(np.concatenate([freqs, freqs[sample]]), dtype=wp.float64, device=self.device),
+            wp.array(sample.astype(np.int32), dtype=wp.int32, device=self.device),
         )
 
     @property
@@ -733,7 +715,7 @@ class Engine:
         tangent = wp.empty((groups, tangents, len(self.freqs), 8), dtype=wp.float64, device=self.device)
         density = wp.full(n, float(self.settings.cell_density), dtype=wp.float64, device=self.device)
         refined = wp.empty((groups, 0, 8), dtype=wp.float64, device=self.device)
-        self._cascade(params, theta, self.columns[2], density, out, refined, step, tangent)
+        self._cascade(params, theta, self.columns[0], density, out, refined, step, tangent)
         return out, tangent
 
     def _cascade(
@@ -748,17 +730,10 @@ class Engine:
         tangent: wp.array | None = None,
         room: tuple[float, np.ndarray] | None = None,
         most: wp.array | None = None,
-        estimate: tuple | None = None,
     ) -> tuple[wp.array | None, wp.array | None, np.ndarray | None]:
         """The cascade: ``out`` (n, m, 8) at ``freqs[:m]`` and density ``density`` (n,),
         ``refined`` (n, s, 8) at ``freqs[m:]`` on the refined grid
-        (:func:`tawarp.kernels.forward.refined_cells`). With ``estimate`` = (columns, err,
-        skip), ``columns`` those of :meth:`_columns`, ``freqs`` is unused and each block of
-        sets takes two launches from its points: the sampled columns of ``out`` and of the
-        refined grid, whose error estimate goes to ``err`` (n,)
-        (:func:`tawarp.kernels.forward.refined_error`), then the other columns of ``out`` for
-        the sets whose estimate is within ``skip`` (the others' rows there are left unwritten
-        for a rerun, :meth:`_adapted`). The sets' cells are
+        (:func:`tawarp.kernels.forward.refined_cells`). The sets' cells are
         counted first and the largest point count read back (the one host round trip; none
         with fixed cells: :meth:`_fixed_point_counts`, nor with ``room`` = (r, counts): no
         set's density is more than r times what it was in a launch whose largest counts were
@@ -805,53 +780,37 @@ class Engine:
                 inputs=[sets, theta, cells, grids, self.first, self.heat_cells, lo, part, part_spans],
             )
             g0, g1 = lo // stride, (lo + part.shape[0]) // stride
+            threads = (g1 - g0) * (out.shape[1] + refined.shape[1])
+            if threads >= 2**31:  # a 1-D launch's thread index is an int32
+                raise ValueError(
+                    f"{part.shape[0]} sets x {out.shape[1] + refined.shape[1]} frequencies is over 2^31 "
+                    f"threads in one launch: split the batch (ForwardSettings.chunk)"
+                )
             rows = lambda a: a[g0:g1] if a.size else a  # noqa: E731 (Warp will not slice an empty array)
             # warps of alike cells: nothing to gain with fixed cells (every heated set takes the
             # same) or on the CPU (a thread runs its sets one by one)
             alike = self.settings.cells is not None or not wp.get_device(self.device).is_cuda
             order = self._no_order if alike else self._order(cells, lo, g1 - g0, stride)
-
-            def launch(launch_freqs, launch_order, launch_columns, launch_refined):
-                columns = launch_columns.shape[0] or out.shape[1]
-                threads = (g1 - g0) * (columns + launch_refined.shape[1])
-                if threads >= 2**31:  # a 1-D launch's thread index is an int32
-                    raise ValueError(
-                        f"{part.shape[0]} sets x {columns + launch_refined.shape[1]} frequencies is over 2^31 "
-                        f"threads in one launch: split the batch (ForwardSettings.chunk)"
-                    )
-                wp.launch(
-                    kernel,
-                    dim=threads,
-                    inputs=[
-                        sets,
-                        launch_freqs,
-                        cells,
-                        part,
-                        part_spans,
-                        lo,
-                        launch_order,
-                        launch_columns,
-                        self.pore_table,
-                        rows(out),
-                        rows(launch_refined),
-                        rows(step) if tangents else step,
-                        rows(tangent) if tangents else tangent,
-                    ],
-                    device=self.device,
-                    block_dim=self.settings.block_dim,
-                )
-
-            if estimate is None:
-                launch(freqs, order, self._no_order, refined)
-                continue
-            (sample_freqs, sample, rest_freqs, rest), err, skip = estimate
-            launch(sample_freqs, order, sample, refined)
             wp.launch(
-                kf.refined_error, dim=g1 - g0, inputs=[sets, lo, out, refined, sample, density, err], device=self.device
+                kernel,
+                dim=threads,
+                inputs=[
+                    sets,
+                    freqs,
+                    cells,
+                    part,
+                    part_spans,
+                    lo,
+                    order,
+                    self.pore_table,
+                    rows(out),
+                    rows(refined),
+                    rows(step) if tangents else step,
+                    rows(tangent) if tangents else tangent,
+                ],
+                device=self.device,
+                block_dim=self.settings.block_dim,
             )
-            if rest.shape[0]:
-                kept = self._order(cells, lo, g1 - g0, stride, err, skip, sort=not alike)
-                launch(rest_freqs, kept, rest, self._no_refined)
         return cells, most, counts
 
     def _cell_counts(
@@ -884,26 +843,14 @@ class Engine:
         )
         return cells, grids, most
 
-    def _order(
-        self,
-        cells: wp.array,
-        set0: int,
-        groups: int,
-        stride: int,
-        err: wp.array | None = None,
-        skip: float = 0.0,
-        sort: bool = True,
-    ) -> wp.array:
+    def _order(self, cells: wp.array, set0: int, groups: int, stride: int) -> wp.array:
         """The cascade launch's order of its ``groups`` groups of ``stride`` sets from set
         ``set0``: by decreasing cell steps (:func:`tawarp.kernels.forward.cascade_keys`),
-        sorted on the device (``sort``; else as they come), the sets whose error estimate
-        ``err`` (n,) exceeds ``skip`` left out."""
+        sorted on the device."""
         keys = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
         order = wp.empty(2 * groups, dtype=wp.int32, device=self.device)
-        err = self._no_error if err is None else err
-        wp.launch(kf.cascade_keys, dim=groups, inputs=[cells, set0, stride, err, skip, keys, order], device=self.device)
-        if sort:
-            wp.utils.radix_sort_pairs(keys, order, groups)
+        wp.launch(kf.cascade_keys, dim=groups, inputs=[cells, set0, stride, keys, order], device=self.device)
+        wp.utils.radix_sort_pairs(keys, order, groups)
         return order[:groups]
 
     def _fixed_point_counts(self, columns: int) -> tuple[int, int]:
@@ -962,40 +909,32 @@ class Engine:
         out: wp.array,
         room: tuple[float, np.ndarray] | None = None,
         most: wp.array | None = None,
-        skip: float = math.inf,
     ) -> tuple[wp.array | None, wp.array | None, np.ndarray | None]:
-        """The cascade into ``out`` at ``density``, its sampled columns first beside the
-        refined grid's, whose error estimate (n,) of each set is compared on the device
-        (:func:`tawarp.kernels.forward.refined_error`) and left there, then its other columns
-        for the sets whose estimate is within ``skip`` (:meth:`_cascade`, ``room`` and ``most``
-        passed on); where the estimate is off, every column in one launch and no estimate
-        (None). Returns the estimate, the launch's cells and the counts :meth:`_cascade` read
-        back."""
+        """The cascade into ``out`` at ``density`` and, in the same launch, on the refined
+        grid at the sampled columns (:meth:`_cascade`, ``room`` and ``most`` passed on); the
+        error estimate (n,) of each set compared on the device
+        (:func:`tawarp.kernels.forward.refined_error`), left there (None where the estimate is
+        off), the launch's cells and the counts :meth:`_cascade` read back."""
+        freqs, sample = columns
         n = params.shape[1]
+        refined = wp.empty((n, sample.shape[0], 8), dtype=wp.float64, device=self.device)
+        cells, _, counts = self._cascade(params, theta, freqs, density, out, refined, room=room, most=most)
         if not self.estimating or n == 0:
-            cells, _, counts = self._cascade(
-                params, theta, columns[2], density, out, self._no_refined, room=room, most=most
-            )
             return None, cells, counts
-        refined = wp.empty((n, columns[1].shape[0], 8), dtype=wp.float64, device=self.device)
         err = wp.empty(n, dtype=wp.float64, device=self.device)
-        cells, _, counts = self._cascade(
-            params, theta, columns[0], density, out, refined, room=room, most=most, estimate=(columns, err, skip)
-        )
+        wp.launch(kf.refined_error, dim=n, inputs=[self._sets(params), out, refined, sample, err], device=self.device)
         return err, cells, counts
 
     def _adapted(self, params: wp.array, theta: wp.array, columns, out: wp.array) -> wp.array:
         """T-matrices of every set into ``out`` (n, m, 8) at the set's adaptive cell density,
-        returned (n,) on the device (:class:`ForwardSettings`): :data:`ESTIMATE_START` times
-        ``cell_density`` (``start_density``), raised where the error estimate exceeds
-        ``tolerance``/2 (the factor 2 covers the frequencies between the three sampled). The
-        first round runs every set at d on the sampled columns and on the refined grid there,
-        compares them, and runs the other columns of the sets within target
-        (:meth:`_estimated_cascade`); each rerun raises the d of the sets still above target
-        by (estimate / target)^(1/6) (the scheme's order) times 1.1, clipped to [1.25, 4] (and
-        to :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), gathers them, runs them
-        the same way (the last rerun every column of its sets, whatever their estimate) and
-        scatters their rows into ``out``, all on the device
+        returned (n,) on the device (:class:`ForwardSettings`): ``cell_density``, raised where
+        the error estimate exceeds ``tolerance``/2 (the factor 2 covers the frequencies
+        between the three sampled). The first launch runs every set at d on all m columns and
+        on the refined grid at the sampled ones (whose d values are the main cascade's own);
+        each rerun raises the d of the sets still above target by (estimate / target)^(1/6)
+        (the scheme's order) times 1.1, clipped to [1.25, 4] (and to
+        :data:`MAX_DENSITY_FACTOR` times ``cell_density`` in all), gathers them, runs them
+        the same way and scatters their rows into ``out``, all on the device
         (:meth:`_rerun`); on a GPU (``queue_ahead``) the first rerun is queued behind the first
         launch before any read-back, sized by the share of sets the engine's last evaluation
         raised (:data:`RERUN_ROOM`), and the host reads a few counts per rerun, the one round
@@ -1003,26 +942,22 @@ class Engine:
         :data:`MAX_ESTIMATE_ROUNDS` rounds a :class:`ValidityWarning` names the sets still
         above; a rerun too small for the sets above is run again and not counted)."""
         n = params.shape[1]
-        cd = self.start_density
+        cd = float(self.settings.cell_density)
         # filled on the device: no host copy before the main launch
         density = wp.full(n, cd if n else 0.0, dtype=wp.float64, device=self.device)
-        target = math.inf if self.settings.tolerance is None else 0.5 * self.settings.tolerance
-        # the last round runs every column of its sets: their rows hold the T-matrices at the
-        # densities returned, within target or not
-        last = MAX_ESTIMATE_ROUNDS - 1
-        err, _, seen = self._estimated_cascade(params, theta, columns, density, out, skip=target if last else math.inf)
+        err, _, seen = self._estimated_cascade(params, theta, columns, density, out)
         if err is None:
             return density
+        target = 0.5 * self.settings.tolerance
         capacity = min(n, math.ceil(RERUN_ROOM * self._raised_share * n) + RERUN_SLOTS) if self.queue_ahead else n
-        reruns, first = 0, True
-        while reruns < last:
-            skip = target if reruns + 1 < last else math.inf
-            tally, part, cells = self._rerun(params, theta, columns, out, err, density, target, capacity, seen, skip)
+        reruns = 0
+        while reruns < MAX_ESTIMATE_ROUNDS - 1:
+            tally, part, cells = self._rerun(params, theta, columns, out, err, density, target, capacity, seen)
             counts = tally.numpy()  # the rerun's one host round trip
             seen = np.maximum(seen, self._checked_counts(part, cells, counts[:3]))
             above, still = int(counts[3]), int(counts[4])
-            if first:  # (not a later rerun's, which a first one too small leaves at reruns 0)
-                self._raised_share, first = above / n, False
+            if reruns == 0:
+                self._raised_share = above / n
             if above <= capacity:
                 reruns += 1
             if still == 0:
@@ -1034,7 +969,7 @@ class Engine:
             warnings.warn(
                 f"{self.core.source}: the Magnus cells' error estimate of {above.sum()} of {n} sets is "
                 f"still {errors[above].max():.2g} > {target:.2g} at cell density {d[above].max():.3g} "
-                f"(started at {cd:g}); pass ForwardSettings(cells=...) for a fixed count",
+                f"(cell_density {cd:g}); pass ForwardSettings(cells=...) for a fixed count",
                 ValidityWarning,
                 stacklevel=4,
             )
@@ -1051,15 +986,12 @@ class Engine:
         target: float,
         capacity: int,
         seen: np.ndarray,
-        skip: float,
     ) -> tuple[wp.array, wp.array, wp.array]:
         """Queue one rerun of :meth:`_adapted` on the device, with no host round trip: the sets
         whose estimate ``err`` (n,) exceeds ``target``, up to ``capacity`` of them, get their
         ``density`` raised (:func:`tawarp.kernels.forward.raise_density`), are gathered and
         run again, their points sized from the largest counts ``seen`` of any earlier launch
-        (:func:`point_room`; the columns beyond the sampled ones of the sets whose estimate is
-        within ``skip``, :meth:`_estimated_cascade`), and their rows of ``out`` and ``err``
-        scattered back. The slots
+        (:func:`point_room`), and their rows of ``out`` and ``err`` scattered back. The slots
         beyond the sets above are empty: set 0 at density 0, which takes no cells and is not
         scattered. Without ``queue_ahead`` the count is read first and the rerun takes its sets
         alone, its points sized from their own counts. Returns (tally, params, cells): tally (5,)
@@ -1084,7 +1016,7 @@ class Engine:
         t = wp.empty((capacity, theta.shape[1]), dtype=wp.float64, device=dev)
         wp.launch(kbatch.gather_sets, dim=capacity, inputs=[params, theta, index, p, t], device=dev)
         part = wp.empty((capacity, out.shape[1], 8), dtype=wp.float64, device=dev)
-        part_err, cells, _ = self._estimated_cascade(p, t, columns, d, part, room=room, most=tally[0:3], skip=skip)
+        part_err, cells, _ = self._estimated_cascade(p, t, columns, d, part, room=room, most=tally[0:3])
         above = tally[3:4]
         wp.launch(kbatch.scatter_sets, dim=(capacity, out.shape[1]), inputs=[part, index, above, out], device=dev)
         wp.launch(
