@@ -950,14 +950,14 @@ class Engine:
             return density
         target = 0.5 * self.settings.tolerance
         capacity = min(n, math.ceil(RERUN_ROOM * self._raised_share * n) + RERUN_SLOTS) if self.queue_ahead else n
-        reruns = 0
+        reruns, first = 0, True
         while reruns < MAX_ESTIMATE_ROUNDS - 1:
             tally, part, cells = self._rerun(params, theta, columns, out, err, density, target, capacity, seen)
             counts = tally.numpy()  # the rerun's one host round trip
             seen = np.maximum(seen, self._checked_counts(part, cells, counts[:3]))
             above, still = int(counts[3]), int(counts[4])
-            if reruns == 0:
-                self._raised_share = above / n
+            if first:  # (a first rerun too small is run again at reruns 0: its count, not the next's)
+                self._raised_share, first = above / n, False
             if above <= capacity:
                 reruns += 1
             if still == 0:
