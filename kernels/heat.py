@@ -768,11 +768,10 @@ def solve_heat_nonlinear(
     """Nodal theta [K] of the nonlinear model (Kirchhoff cells, :func:`nonlinear_cell`):
     iterations that re-solve the tridiagonal flux balance with each cell's (k, sigma) and
     U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the previous iterate
-    theta_p (Newton for the conduction term, k and sigma lagged), from theta = 0, until
-    the largest nodal change is below ``tol`` times the largest theta (or ``max_iter``)."""
+    theta_p (Newton for the conduction term, k and sigma lagged), from the start iterate in
+    theta[i, :] (:func:`solve_heat`), until the largest nodal change is below ``tol`` times
+    the largest theta (or ``max_iter``)."""
     n_nodes = count * cells + 1
-    for r in range(n_nodes):
-        theta[i, r] = wp.float64(0.0)
     done = int(0)
     for it in range(max_iter):
         if done == 0:
@@ -926,12 +925,10 @@ def solve_heat_wall(
     Thomas on the two fields; ``scratch`` (6 x nodes columns) holds the modified
     super-diagonal blocks and the previous iterate. One solve for a linear set; with a
     temperature-dependent effect (``nonlin``), iterations as :func:`solve_heat_nonlinear`'s
-    on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
+    from the start iterate in theta[i, :2 nodes] on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
     cells' coefficients at their mean gas temperature)."""
     n = count * cells + 1
     zero = wp.float64(0.0)
-    for r in range(2 * n):
-        theta[i, r] = zero
     done = int(0)
     for it in range(max_iter):
         if done == 0:
@@ -1042,7 +1039,12 @@ def solve_heat(
 
     With a temperature-dependent effect on (:func:`segment_nonlinear`), the iterations
     of :func:`solve_heat_nonlinear` (at most ``max_iter`` solves, relative nodal change
-    ``tol``); with every effect off, one linear solve. Where the wall is a field of its own
+    ``tol``) from the start iterate that theta[i, :] holds on entry: zeros (the cold start,
+    whose first solve is the model linearised at T_cold) or the converged excess of a
+    nearby set (a warm start: a finite-difference neighbour's takes a few solves where the
+    cold start takes about ten; the fixed point and the stopping rule are the same,
+    tests/test_heat_warm_start.py); with every effect off, one linear solve (the start
+    is not read). Where the wall is a field of its own
     in a segment (:func:`wall_field_on`), :func:`solve_heat_wall`: theta then needs 2 x nodes
     columns (the wall's excess in the second half) and scratch 6 x nodes, else the set's
     theta is NaN."""
