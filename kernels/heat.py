@@ -709,7 +709,10 @@ def heat_sweep(
     """One Thomas solve of the single-field heat model's nodal theta [K] into theta[i, :],
     the modified super-diagonal in scratch[i, :n_nodes]: the linear model's rows
     (:func:`linear_rows`), or with ``nonlin`` the Kirchhoff cells' (:func:`kirchhoff_rows`)
-    linearised at the previous iterate in scratch[i, n_nodes:]. Row r is sub theta_{r-1} +
+    linearised at the previous iterate in scratch[i, n_nodes:] in the segments with a
+    temperature-dependent effect on (:func:`segment_nonlinear`; a Kirchhoff cell of constant
+    conductivity and h is the linear cell to rounding, at several times its cost, and the
+    acoustic profile of such a segment is the linear cell's, :func:`segment_profile`). Row r is sub theta_{r-1} +
     (diag_l + diag_r) theta_r + sup theta_{r+1} = rhs_l + rhs_r, the left cell's terms
     carried from the previous row (without a contact, linear: a_l theta_{r-1} - (b_l + b_r)
     theta_r + a_r theta_{r+1} = -(e_l + e_r))."""
@@ -730,7 +733,7 @@ def heat_sweep(
             s = first + r // cells
             d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
             Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-            if nonlin != 0:
+            if nonlin != 0 and segment_nonlinear(params, i, s) != 0:
                 diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
                     params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
                 )
