@@ -6,8 +6,9 @@ neither stops early nor on another solution."""
 import numpy as np
 import pytest
 
-from tawarp.model.core import load_core
+from tawarp.model.core import load_core, segment_parameter_fields
 from tawarp.model.effects import graded_parts
+from tawarp.model.fields import NONLINEAR_FIELDS, field
 from tawarp.model.forward import WARM_RADIUS, Engine, ForwardSettings
 
 FREQS = np.array([40.0, 130.0, 400.0])
@@ -130,3 +131,30 @@ def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
     start = eng.warm.starts(cases)
     assert np.any(start[0] != 0.0)
     assert not np.any(start[1:])
+
+
+def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on():
+    # every field of the ceramic core's stack moved off its core value, one per set (the
+    # first set the core's own): the heat solve iterates (one solve is not its converged
+    # result) exactly in the sets whose moved field is in NONLINEAR_FIELDS, and those are the
+    # sets the engine warm-starts (WarmStarts.iterating): a field the kernel reads at the
+    # local temperature without the fields' table saying so fails here
+    core = load_core("ceramic")
+    seg = next(s for s in core.segments if s.name == "stack")
+    names = [f"stack.{f}" for f in segment_parameter_fields(seg)]
+    table = np.tile(np.r_[Q, [core.get(n) for n in names]][:, None], (1, 1 + len(names)))
+    for j, name in enumerate(names):
+        f = field(name)
+        v = table[1 + j, 0]
+        moved = v * 1.1 if f.log else (v + 0.1 * f.scale if v else 0.1 * f.scale)
+        assert f.check(moved), name
+        table[1 + j, 1 + j] = moved
+    one, full = (
+        Engine(core, FREQS, names, ForwardSettings(device="cpu", cells=12, cpu_threads=1, picard_iterations=k))
+        for k in (1, 100)
+    )
+    theta_one, theta_full = (e.heat(table)[1].numpy() for e in (one, full))
+    iterates = [i for i in range(table.shape[1]) if not np.array_equal(theta_one[i], theta_full[i], equal_nan=True)]
+    expected = [1 + j for j, n in enumerate(names) if n.partition(".")[2] in NONLINEAR_FIELDS]
+    assert sorted(expected) and iterates == sorted(expected)
+    assert full.warm.iterating(table).tolist() == iterates

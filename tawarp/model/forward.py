@@ -136,23 +136,30 @@ WARM_RADIUS = 0.1
 
 
 class WarmStarts:
-    """The converged nodal excesses (``theta_columns`` each) of the last ``limit`` heated sets
-    of an engine whose heat solve iterates, as starts for later sets near them (a warm start,
+    """The converged nodal excesses (``theta_columns`` each) of the last ``limit`` sets whose
+    heat solve iterates, of one engine, as starts for later sets near them (a warm start,
     :func:`tawarp.kernels.heat.solve_heat`): a finite-difference neighbour that starts from
-    its point's excess takes two or three solves where the cold start takes six or more, to
-    the same fixed point and stopping rule (tests/test_heat_warm_start.py)."""
+    its point's excess takes two or three solves where the cold start takes four to six, to
+    the same fixed point and stopping rule (tests/test_heat_warm_start.py). A set iterates
+    where it is heated and a temperature-dependent field is on: one of the varying table's
+    rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary)."""
 
-    def __init__(self, limit: int, columns: int):
-        self.limit = limit
+    def __init__(self, limit: int, columns: int, switches: np.ndarray, always: bool):
+        self.limit, self.switches, self.always = limit, switches, always
         self.table = np.zeros((0, 0))  # (rows, K) the kept sets' varying values
         self.theta = np.zeros((0, columns))  # (K, columns) their excesses
+
+    def iterating(self, table: np.ndarray) -> np.ndarray:
+        """Indices of the sets of ``table`` (rows, n) whose heat solve iterates."""
+        on = np.any(table[self.switches] != 0.0, axis=0) | self.always
+        return np.flatnonzero((table[0] > 0.0) & on)
 
     def starts(self, table: np.ndarray) -> np.ndarray | None:
         """Start iterates (n, columns) of the sets ``table`` (rows, n): the excess of the
         nearest kept set within :data:`WARM_RADIUS` (in the largest of the values' distances,
-        at the same heat input), zeros where there is none or the set is not heated; None
+        at the same heat input), zeros where there is none or the set does not iterate; None
         where no set has one."""
-        heated = np.flatnonzero(table[0] > 0.0)
+        heated = self.iterating(table)
         if not heated.size or not self.theta.shape[0]:
             return None
         both = np.concatenate([self.table, table[:, heated]], axis=1)
@@ -178,9 +185,9 @@ class WarmStarts:
         return start
 
     def put(self, table: np.ndarray, theta: np.ndarray) -> None:
-        """Keep the heated sets of ``table`` (rows, n) with their converged excesses ``theta``
-        (n, columns), the oldest kept ones given up beyond ``limit``."""
-        heated = np.flatnonzero(table[0] > 0.0)
+        """Keep the sets of ``table`` (rows, n) that iterate with their converged excesses
+        ``theta`` (n, columns), the oldest kept ones given up beyond ``limit``."""
+        heated = self.iterating(table)
         if not heated.size:
             return
         if self.table.shape[0] != table.shape[0]:
@@ -573,11 +580,17 @@ class Engine:
         )
         # on the CPU a temperature-dependent set's heat solve costs about as much as its cascade
         # (evaluate_distinct keeps the converged excesses as warm starts)
-        self.warm = (
-            WarmStarts(WARM_SETS, self.theta_columns)
-            if self.nonlinear and self.count and wp.get_device(dev).is_cpu
-            else None
-        )
+        self.warm = None
+        if self.nonlinear and self.count and wp.get_device(dev).is_cpu:
+            thermal = {core.segments[k].name for k in core.thermal_indices}
+            switch = [n.partition(".") for n in self.names]
+            switches = [1 + j for j, (seg, _, f) in enumerate(switch) if seg in thermal and f in NONLINEAR_FIELDS]
+            always = any(
+                getattr(core.segments[k], f) != 0.0 and f"{core.segments[k].name}.{f}" not in self.names
+                for k in core.thermal_indices
+                for f in NONLINEAR_FIELDS
+            )
+            self.warm = WarmStarts(WARM_SETS, self.theta_columns, np.array(switches, dtype=int), always)
 
     def _sets(self, params: wp.array) -> kf.SetTable:
         """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
