@@ -142,12 +142,14 @@ class WarmStarts:
     its point's excess takes two or three solves where the cold start takes four to six, to
     the same fixed point and stopping rule (tests/test_heat_warm_start.py). A set iterates
     where it is heated and a temperature-dependent field is on: one of the varying table's
-    rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary)."""
+    rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary).
+    Safe to share between threads (an engine is: :func:`tawarp.measure.kind.get_engine`)."""
 
     def __init__(self, limit: int, columns: int, switches: np.ndarray, always: bool):
         self.limit, self.switches, self.always = limit, switches, always
         self.table = np.zeros((0, 0))  # (rows, K) the kept sets' varying values
         self.theta = np.zeros((0, columns))  # (K, columns) their excesses
+        self.lock = threading.Lock()
 
     def iterating(self, table: np.ndarray) -> np.ndarray:
         """Indices of the sets of ``table`` (rows, n) whose heat solve iterates."""
@@ -160,9 +162,11 @@ class WarmStarts:
         at the same heat input), zeros where there is none or the set does not iterate; None
         where no set has one."""
         heated = self.iterating(table)
-        if not heated.size or not self.theta.shape[0]:
+        with self.lock:
+            kept_table, kept_theta = self.table, self.theta
+        if not heated.size or not kept_theta.shape[0]:
             return None
-        both = np.concatenate([self.table, table[:, heated]], axis=1)
+        both = np.concatenate([kept_table, table[:, heated]], axis=1)
         positive = np.all(both > 0.0, axis=1)
         scale = np.max(np.abs(both), axis=1)
         u = np.where(
@@ -171,7 +175,7 @@ class WarmStarts:
             both / np.where(scale > 0, scale, 1.0)[:, None],
         )
         u = u[np.ptp(u, axis=1) > 0.0].T  # (kept + heated, rows that differ)
-        kept = self.theta.shape[0]
+        kept = kept_theta.shape[0]
         if u.shape[1] == 0:  # every set alike: any kept one is the set itself
             nearest = np.zeros(heated.size, dtype=int)
         else:
@@ -180,8 +184,8 @@ class WarmStarts:
         near = nearest < kept
         if not near.any():
             return None
-        start = np.zeros((table.shape[1], self.theta.shape[1]))
-        start[heated[near]] = self.theta[nearest[near]]
+        start = np.zeros((table.shape[1], kept_theta.shape[1]))
+        start[heated[near]] = kept_theta[nearest[near]]
         return start
 
     def put(self, table: np.ndarray, theta: np.ndarray) -> None:
@@ -190,10 +194,10 @@ class WarmStarts:
         heated = self.iterating(table)
         if not heated.size:
             return
-        if self.table.shape[0] != table.shape[0]:
-            self.table = np.zeros((table.shape[0], 0))
-        self.table = np.concatenate([self.table, table[:, heated]], axis=1)[:, -self.limit :]
-        self.theta = np.concatenate([self.theta, theta[heated]])[-self.limit :]
+        with self.lock:
+            kept = self.table if self.table.shape[0] == table.shape[0] else np.zeros((table.shape[0], 0))
+            self.table = np.concatenate([kept, table[:, heated]], axis=1)[:, -self.limit :]
+            self.theta = np.concatenate([self.theta, theta[heated]])[-self.limit :]
 
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
