@@ -158,3 +158,18 @@ def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on()
     expected = [1 + j for j, n in enumerate(names) if n.partition(".")[2] in NONLINEAR_FIELDS]
     assert sorted(expected) and iterates == sorted(expected)
     assert full.warm.iterating(table).tolist() == iterates
+
+
+def test_threads_take_each_sets_own_start():
+    # a batch split over two CPU threads (its sets dealt like cards) gives each set its own
+    # start: the same bits as one thread, where every set starts from a different excess
+    core = convection_core()
+    eng, table = batch(core)
+    table = np.tile(table, (1, 10))
+    table[1] *= np.linspace(1.0, 1.05, table.shape[1])
+    theta = eng.evaluate(table)[2].numpy()
+    start = theta * np.linspace(0.9, 1.1, table.shape[1])[:, None]
+    two = Engine(core, FREQS, eng.names, ForwardSettings(device="cpu", cells=12, cpu_threads=2))
+    assert two._cpu_parts(table.shape[1]) == 2
+    T_one, T_two = (e.evaluate(table, start=start)[0].numpy() for e in (eng, two))
+    assert np.array_equal(T_one, T_two)
