@@ -75,9 +75,9 @@ def counting_sets(kind: type):
         count["sets"] += n
         return predict(self, values, n, effect)
 
-    def computed(self, varying, out=None):
+    def computed(self, varying, *args, **kw):
         count["columns"] += varying.shape[1]
-        return evaluate(self, varying, out)
+        return evaluate(self, varying, *args, **kw)
 
     kind.predict, Engine.evaluate = counted, computed
     try:

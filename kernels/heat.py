@@ -709,7 +709,10 @@ def heat_sweep(
     """One Thomas solve of the single-field heat model's nodal theta [K] into theta[i, :],
     the modified super-diagonal in scratch[i, :n_nodes]: the linear model's rows
     (:func:`linear_rows`), or with ``nonlin`` the Kirchhoff cells' (:func:`kirchhoff_rows`)
-    linearised at the previous iterate in scratch[i, n_nodes:]. Row r is sub theta_{r-1} +
+    linearised at the previous iterate in scratch[i, n_nodes:] in the segments with a
+    temperature-dependent effect on (:func:`segment_nonlinear`; a Kirchhoff cell of constant
+    conductivity and h is the linear cell to rounding, at several times its cost, and the
+    acoustic profile of such a segment is the linear cell's, :func:`segment_profile`). Row r is sub theta_{r-1} +
     (diag_l + diag_r) theta_r + sup theta_{r+1} = rhs_l + rhs_r, the left cell's terms
     carried from the previous row (without a contact, linear: a_l theta_{r-1} - (b_l + b_r)
     theta_r + a_r theta_{r+1} = -(e_l + e_r))."""
@@ -730,7 +733,7 @@ def heat_sweep(
             s = first + r // cells
             d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
             Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-            if nonlin != 0:
+            if nonlin != 0 and segment_nonlinear(params, i, s) != 0:
                 diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
                     params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
                 )
@@ -768,11 +771,10 @@ def solve_heat_nonlinear(
     """Nodal theta [K] of the nonlinear model (Kirchhoff cells, :func:`nonlinear_cell`):
     iterations that re-solve the tridiagonal flux balance with each cell's (k, sigma) and
     U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the previous iterate
-    theta_p (Newton for the conduction term, k and sigma lagged), from theta = 0, until
-    the largest nodal change is below ``tol`` times the largest theta (or ``max_iter``)."""
+    theta_p (Newton for the conduction term, k and sigma lagged), from the start iterate in
+    theta[i, :] (:func:`solve_heat`), until the largest nodal change is below ``tol`` times
+    the largest theta (or ``max_iter``)."""
     n_nodes = count * cells + 1
-    for r in range(n_nodes):
-        theta[i, r] = wp.float64(0.0)
     done = int(0)
     for it in range(max_iter):
         if done == 0:
@@ -926,12 +928,10 @@ def solve_heat_wall(
     Thomas on the two fields; ``scratch`` (6 x nodes columns) holds the modified
     super-diagonal blocks and the previous iterate. One solve for a linear set; with a
     temperature-dependent effect (``nonlin``), iterations as :func:`solve_heat_nonlinear`'s
-    on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
+    from the start iterate in theta[i, :2 nodes] on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
     cells' coefficients at their mean gas temperature)."""
     n = count * cells + 1
     zero = wp.float64(0.0)
-    for r in range(2 * n):
-        theta[i, r] = zero
     done = int(0)
     for it in range(max_iter):
         if done == 0:
@@ -1042,7 +1042,12 @@ def solve_heat(
 
     With a temperature-dependent effect on (:func:`segment_nonlinear`), the iterations
     of :func:`solve_heat_nonlinear` (at most ``max_iter`` solves, relative nodal change
-    ``tol``); with every effect off, one linear solve. Where the wall is a field of its own
+    ``tol``) from the start iterate that theta[i, :] holds on entry: zeros (the cold start,
+    whose first solve is the model linearised at T_cold) or the converged excess of a
+    nearby set (a warm start: a finite-difference neighbour's takes a few solves where the
+    cold start takes about ten; the fixed point and the stopping rule are the same,
+    tests/test_heat_warm_start.py); with every effect off, one linear solve (the start
+    is not read). Where the wall is a field of its own
     in a segment (:func:`wall_field_on`), :func:`solve_heat_wall`: theta then needs 2 x nodes
     columns (the wall's excess in the second half) and scratch 6 x nodes, else the set's
     theta is NaN."""

@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
+from scipy.spatial import cKDTree
 
 from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values, segment_parameter_fields
@@ -115,10 +116,88 @@ class ColumnMemo:
 
 
 _MEMO = ColumnMemo(MEMO_BYTES)
+
 #: Each engine's key in the memo: a number never given twice, so that the memo holds no
 #: engine alive (an engine's entries age out after it goes) and a later engine never reads
 #: an earlier one's columns.
 _ENGINE_NUMBERS = itertools.count()
+
+
+#: Heated parameter sets whose converged heat-model excess a CPU engine with a
+#: temperature-dependent effect keeps (:class:`WarmStarts`): a loop's batch of
+#: finite-difference neighbours follows the batch of their points, and its trial points
+#: lie near the fits' current points, computed in the batches before.
+WARM_SETS = 1024
+#: A set starts its heat solve from a kept set's excess when each value of the set is
+#: within this relative distance of the kept set's (|ln(v/v_kept)| for positive values,
+#: the change in units of the largest |v| of the batch and the kept sets otherwise), the
+#: heat input equal; others start cold.
+WARM_RADIUS = 0.1
+
+
+class WarmStarts:
+    """The converged nodal excesses (``theta_columns`` each) of the last ``limit`` sets whose
+    heat solve iterates, of one engine, as starts for later sets near them (a warm start,
+    :func:`tawarp.kernels.heat.solve_heat`): a finite-difference neighbour that starts from
+    its point's excess takes two or three solves where the cold start takes four to six, to
+    the same fixed point and stopping rule (tests/test_heat_warm_start.py). A set iterates
+    where it is heated and a temperature-dependent field is on: one of the varying table's
+    rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary).
+    Safe to share between threads (an engine is: :func:`tawarp.measure.kind.get_engine`)."""
+
+    def __init__(self, limit: int, columns: int, switches: np.ndarray, always: bool):
+        self.limit, self.switches, self.always = limit, switches, always
+        self.table = np.zeros((0, 0))  # (rows, K) the kept sets' varying values
+        self.theta = np.zeros((0, columns))  # (K, columns) their excesses
+        self.lock = threading.Lock()
+
+    def iterating(self, table: np.ndarray) -> np.ndarray:
+        """Indices of the sets of ``table`` (rows, n) whose heat solve iterates."""
+        on = np.any(table[self.switches] != 0.0, axis=0) | self.always
+        return np.flatnonzero((table[0] > 0.0) & on)
+
+    def starts(self, table: np.ndarray) -> np.ndarray | None:
+        """Start iterates (n, columns) of the sets ``table`` (rows, n): the excess of the
+        nearest kept set within :data:`WARM_RADIUS` (in the largest of the values' distances,
+        at the same heat input), zeros where there is none or the set does not iterate; None
+        where no set has one."""
+        heated = self.iterating(table)
+        with self.lock:
+            kept_table, kept_theta = self.table, self.theta
+        if not heated.size or not kept_theta.shape[0]:
+            return None
+        both = np.concatenate([kept_table, table[:, heated]], axis=1)
+        positive = np.all(both > 0.0, axis=1)
+        scale = np.max(np.abs(both), axis=1)
+        u = np.where(
+            positive[:, None],
+            np.log(np.where(positive[:, None], both, 1.0)),
+            both / np.where(scale > 0, scale, 1.0)[:, None],
+        )
+        u = u[np.ptp(u, axis=1) > 0.0].T  # (kept + heated, rows that differ)
+        kept = kept_theta.shape[0]
+        if u.shape[1] == 0:  # every set alike: any kept one is the set itself
+            nearest = np.zeros(heated.size, dtype=int)
+        else:
+            distance, nearest = cKDTree(u[:kept]).query(u[kept:], p=np.inf, distance_upper_bound=WARM_RADIUS)
+            nearest[~np.isfinite(distance)] = kept
+        near = nearest < kept
+        if not near.any():
+            return None
+        start = np.zeros((table.shape[1], kept_theta.shape[1]))
+        start[heated[near]] = kept_theta[nearest[near]]
+        return start
+
+    def put(self, table: np.ndarray, theta: np.ndarray) -> None:
+        """Keep the sets of ``table`` (rows, n) that iterate with their converged excesses
+        ``theta`` (n, columns), the oldest kept ones given up beyond ``limit``."""
+        heated = self.iterating(table)
+        if not heated.size:
+            return
+        with self.lock:
+            kept = self.table if self.table.shape[0] == table.shape[0] else np.zeros((table.shape[0], 0))
+            self.table = np.concatenate([kept, table[:, heated]], axis=1)[:, -self.limit :]
+            self.theta = np.concatenate([self.theta, theta[heated]])[-self.limit :]
 
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
@@ -503,6 +582,19 @@ class Engine:
         self.heat_only = np.array(
             [1 + j for j, k in enumerate(self.names) if inert and k.partition(".")[2] in HEAT_ONLY_FIELDS], dtype=int
         )
+        # on the CPU a temperature-dependent set's heat solve costs about as much as its cascade
+        # (evaluate_distinct keeps the converged excesses as warm starts)
+        self.warm = None
+        if self.nonlinear and self.count and wp.get_device(dev).is_cpu:
+            thermal = {core.segments[k].name for k in core.thermal_indices}
+            switch = [n.partition(".") for n in self.names]
+            switches = [1 + j for j, (seg, _, f) in enumerate(switch) if seg in thermal and f in NONLINEAR_FIELDS]
+            always = any(
+                getattr(core.segments[k], f) != 0.0 and f"{core.segments[k].name}.{f}" not in self.names
+                for k in core.thermal_indices
+                for f in NONLINEAR_FIELDS
+            )
+            self.warm = WarmStarts(WARM_SETS, self.theta_columns, np.array(switches, dtype=int), always)
 
     def _sets(self, params: wp.array) -> kf.SetTable:
         """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
@@ -512,14 +604,20 @@ class Engine:
         sets.gas = self.gas
         return sets
 
-    def heat(self, varying) -> tuple[wp.array, wp.array]:
-        """Expand the parameter table and solve the heat model: (params, theta) on the device."""
+    def heat(self, varying, start: np.ndarray | None = None) -> tuple[wp.array, wp.array]:
+        """Expand the parameter table and solve the heat model: (params, theta) on the device.
+        ``start`` (n, ``theta_columns``): the iterations' start per set where the heat solve
+        iterates (:func:`tawarp.kernels.heat.solve_heat`; rows of zeros: the cold start, the
+        default; a row of a set without heat input must be zeros)."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
             check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
         params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
-        theta = wp.zeros((n, self.theta_columns), dtype=wp.float64, device=self.device)
+        if start is None:
+            theta = wp.zeros((n, self.theta_columns), dtype=wp.float64, device=self.device)
+        else:
+            theta = wp.array(np.ascontiguousarray(start, dtype=np.float64), dtype=wp.float64, device=self.device)
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
             # the Thomas sweep's super-diagonal and the previous iterate: 2 per node, 6 with the wall
@@ -543,13 +641,16 @@ class Engine:
             )
         return params, theta
 
-    def evaluate(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
+    def evaluate(
+        self, varying, out: wp.array | None = None, start: np.ndarray | None = None
+    ) -> tuple[wp.array, wp.array, wp.array]:
         """T-matrices of one device batch: returns (out, params, theta), see the class doc.
-        A large batch on the CPU runs split over ``settings.cpu_threads`` threads."""
+        A large batch on the CPU runs split over ``settings.cpu_threads`` threads.
+        ``start``: the heat solve's start per set (:meth:`heat`)."""
         parts = self._cpu_parts(varying.shape[1])
         if parts > 1:
-            return self._evaluate_threaded(varying, parts, out)
-        return self.evaluate_serial(varying, out)
+            return self._evaluate_threaded(varying, parts, out, start)
+        return self.evaluate_serial(varying, out, start)
 
     def evaluate_distinct(self, varying: np.ndarray) -> np.ndarray:
         """T-matrices (n, m, 2, 2) complex of a host table ``varying`` (1 + len(names), n),
@@ -557,7 +658,10 @@ class Engine:
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
         fields told apart, and on the CPU each set this engine computed before (:data:`MEMO_BYTES`).
-        The kernels compute each set on its own, so sharing changes no bit."""
+        The kernels compute each set on its own, so sharing changes no bit. On the CPU a set
+        whose heat solve iterates starts it from the converged excess of a set computed
+        before near it (:attr:`warm`, :class:`WarmStarts`): the same fixed point, to the
+        solve's tolerance."""
         key = np.array(varying, dtype=np.float64)
         cold = key[0] == 0.0
         if self.heat_only.size and cold.any():
@@ -576,7 +680,13 @@ class Engine:
             else:
                 T[j] = known
         if todo:
-            T[todo] = self._computed(table[:, todo])
+            part = table[:, todo]
+            if self.warm is None:
+                T[todo] = self._computed(part)
+            else:
+                out, _, theta = self.evaluate(np.ascontiguousarray(part), start=self.warm.starts(part))
+                T[todo] = out.numpy().view(np.complex128).reshape(len(todo), len(self.freqs), 2, 2)
+                self.warm.put(part, theta.numpy())
             _MEMO.put([ids[j] for j in todo], T[todo])
         return T[column.reshape(-1)]
 
@@ -608,7 +718,7 @@ class Engine:
         rest = [_thread_pool().submit(one, b) for b in blocks[1:]]
         return [one(blocks[0])] + [f.result() for f in rest]
 
-    def _evaluate_threaded(self, varying, parts: int, out):
+    def _evaluate_threaded(self, varying, parts: int, out, start: np.ndarray | None = None):
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         # the sets dealt to the threads' blocks like cards (block b takes sets b, b + parts, ...):
         # a caller's batch groups sets of unequal work (without heat input a fraction of a
@@ -616,7 +726,12 @@ class Engine:
         # it left one thread idle for up to half of a launch; each set is computed on its own,
         # so the T-matrices are the same bit for bit
         deal = np.concatenate([np.arange(b, table.shape[1], parts) for b in range(parts)])
-        one = lambda b: tuple(a.numpy() for a in self.evaluate_serial(np.ascontiguousarray(table[:, deal[b]])))  # noqa: E731
+        one = lambda b: tuple(  # noqa: E731
+            a.numpy()
+            for a in self.evaluate_serial(
+                np.ascontiguousarray(table[:, deal[b]]), start=None if start is None else start[deal[b]]
+            )
+        )
         done = self._threaded(one, table, parts)
         back = np.argsort(deal)
         T = np.concatenate([r[0] for r in done])[back]
@@ -632,9 +747,11 @@ class Engine:
             wp.array(theta, dtype=wp.float64, device=self.device),
         )
 
-    def evaluate_serial(self, varying, out: wp.array | None = None) -> tuple[wp.array, wp.array, wp.array]:
+    def evaluate_serial(
+        self, varying, out: wp.array | None = None, start: np.ndarray | None = None
+    ) -> tuple[wp.array, wp.array, wp.array]:
         """:meth:`evaluate` in the calling thread alone."""
-        params, theta = self.heat(varying)
+        params, theta = self.heat(varying, start)
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, len(self.freqs), 8), dtype=wp.float64, device=self.device)

@@ -1,0 +1,175 @@
+"""Warm starts of the temperature-dependent heat solve (kernels/heat.py, ``solve_heat``;
+:class:`tawarp.model.forward.WarmStarts`): a set whose iterations start from a nearby set's
+converged excess reaches the cold start's fixed point to the solve's own tolerance, and
+neither stops early nor on another solution."""
+
+import numpy as np
+import pytest
+
+from tawarp.model.core import load_core, segment_parameter_fields
+from tawarp.model.effects import graded_parts
+from tawarp.model.fields import NONLINEAR_FIELDS, field
+from tawarp.model.forward import WARM_RADIUS, Engine, ForwardSettings
+
+FREQS = np.array([40.0, 130.0, 400.0])
+Q = 40.0
+#: the cold start's fixed point, to which every start must converge (the iterations stop
+#: at a nodal change of picard_tol = 1e-12 of the largest excess; they contract ~1e3-fold
+#: per solve near the solution, so a converged excess is within ~1e-14 of it)
+AGREE = 1e-10
+SETTINGS = ForwardSettings(device="cpu", cells=12, cpu_threads=1)
+
+
+def convection_core():
+    """The ceramic core with natural convection on its buffer tube and a temperature-dependent
+    stack conductivity: the single-field Kirchhoff cells."""
+    return load_core("ceramic").replace(**{"tbt.h_convection": 3.0, "stack.conductivity_exponent": 0.5})
+
+
+def wall_core():
+    """:func:`convection_core` with the buffer tube's wall a temperature field of its own:
+    the two-field iterations (``solve_heat_wall``)."""
+    return convection_core().replace(**{"tbt.wall_conductance": 2e-3, "tbt.wall_resistance": 0.05})
+
+
+def graded_core():
+    """The ceramic stack graded in porosity (8 parts, ten thermal segments) with a
+    temperature-dependent conductivity, as a loop's porosity-gradient fits compute it."""
+    core = load_core("ceramic").replace(**{"stack.conductivity_exponent": 0.5})
+    return graded_parts(core, {"stack.porosity_gradient": np.array([0.1])}, 1)
+
+
+def batch(core, values=None):
+    """(engine, table): the point of ``values`` {name: value} at Q = 40 W, its forward-difference
+    neighbours (each value 1e-6 relative up) and a set 5 % off in every value, all varying."""
+    values = dict(values or {})
+    for name in ("tbt.h", "stack.porosity", "stack.pore_radius", "tbt.h_convection", "stack.conductivity_exponent"):
+        if name in core.parameter_names():
+            values.setdefault(name, core.get(name))
+    names = sorted(values)
+    point = np.array([Q] + [float(np.ravel(values[k])[0]) for k in names])
+    sets = [point]
+    for j in range(1, point.size):
+        sets.append(point.copy())
+        sets[-1][j] *= 1.0 + 1e-6
+    sets.append(point * np.r_[1.0, np.full(len(names), 1.05)])
+    return Engine(core, FREQS, names, SETTINGS), np.array(sets).T
+
+
+def relative(a, b):
+    return float(np.abs(a - b).max() / np.abs(b).max())
+
+
+CORES = {"convection": lambda: (convection_core(), None), "wall": lambda: (wall_core(), None), "graded": graded_core}
+
+
+@pytest.mark.parametrize("name", sorted(CORES))
+def test_warm_start_reaches_the_cold_fixed_point(name):
+    # every set of the batch started from the point's converged excess (the neighbours as a
+    # loop's fits start them; the 5 % set from farther than a loop would) and from that excess
+    # 10 % too high (a start the first solve does not confirm): the T-matrices and the excess
+    # of the cold start within AGREE, set by set
+    eng, table = batch(*CORES[name]())
+    assert eng.nonlinear
+    T_cold, _, theta_cold = (a.numpy() for a in eng.evaluate(table))
+    for factor in (1.0, 1.1):
+        start = np.repeat(factor * theta_cold[:1], table.shape[1], axis=0)
+        T_warm, _, theta_warm = (a.numpy() for a in eng.evaluate(table, start=start))
+        for i in range(table.shape[1]):
+            assert relative(theta_warm[i], theta_cold[i]) < AGREE, (factor, i)
+            assert relative(T_warm[i], T_cold[i]) < AGREE, (factor, i)
+
+
+@pytest.mark.parametrize("name", sorted(CORES))
+def test_warm_start_takes_fewer_solves(name):
+    # the neighbours started from their point's excess converge within two solves (the
+    # cold start's two are > 1e-6 off: it takes four to six), so the warm start is what
+    # saves the solves
+    core, values = CORES[name]()
+    eng, table = batch(core, values)
+    _, _, theta = (a.numpy() for a in eng.evaluate(table))
+    short = Engine(core, FREQS, eng.names, ForwardSettings(device="cpu", cells=12, cpu_threads=1, picard_iterations=2))
+    neighbours = table[:, 1:-1]
+    start = np.repeat(theta[:1], neighbours.shape[1], axis=0)
+    warm = short.heat(neighbours, start)[1].numpy()
+    cold = short.heat(neighbours)[1].numpy()
+    assert relative(warm, theta[1:-1]) < AGREE
+    assert relative(cold, theta[1:-1]) > 1e-6
+
+
+def test_evaluate_distinct_starts_neighbours_from_their_point():
+    # the loop's order: the points, then their neighbours; the engine keeps the points'
+    # excesses and starts each neighbour from its own point's (a second point's neighbours
+    # must not take the first's), and the T-matrices are the cold engine's within AGREE
+    core = convection_core()
+    eng, table = batch(core)
+    other = table.copy()
+    other[1:] *= 1.03  # a second point, 3 % away: within WARM_RADIUS of the first
+    assert 0.03 < WARM_RADIUS
+    points = np.concatenate([table[:, :1], other[:, :1]], axis=1)
+    neighbours = np.concatenate([table[:, 1:-1], other[:, 1:-1]], axis=1)
+    eng.evaluate_distinct(points)
+    start = eng.warm.starts(neighbours)
+    half = neighbours.shape[1] // 2
+    theta_points = Engine(core, FREQS, eng.names, SETTINGS).evaluate(points)[2].numpy()
+    assert np.array_equal(start[:half], np.repeat(theta_points[:1], half, axis=0))
+    assert np.array_equal(start[half:], np.repeat(theta_points[1:], half, axis=0))
+    T = eng.evaluate_distinct(neighbours)
+    cold = Engine(core, FREQS, eng.names, SETTINGS).evaluate_distinct(neighbours)
+    assert relative(T, cold) < AGREE
+
+
+def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
+    # a kept set starts only sets at its own heat input within WARM_RADIUS: others, and every
+    # set without heat input (its excess is 0 exactly, from a zero start), start cold
+    eng, table = batch(convection_core())
+    eng.evaluate_distinct(table[:, :1])
+    cases = np.repeat(table[:, 1:2], 4, axis=1)
+    cases[0, 1] = 20.0  # another heat input
+    cases[1:, 2] *= 1.0 + 2 * WARM_RADIUS  # far in every value
+    cases[0, 3] = 0.0  # no heat input
+    start = eng.warm.starts(cases)
+    assert np.any(start[0] != 0.0)
+    assert not np.any(start[1:])
+
+
+def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on():
+    # every field of the ceramic core's stack moved off its core value, one per set (the
+    # first set the core's own): the heat solve iterates (one solve is not its converged
+    # result) exactly in the sets whose moved field is in NONLINEAR_FIELDS, and those are the
+    # sets the engine warm-starts (WarmStarts.iterating): a field the kernel reads at the
+    # local temperature without the fields' table saying so fails here
+    core = load_core("ceramic")
+    seg = next(s for s in core.segments if s.name == "stack")
+    names = [f"stack.{f}" for f in segment_parameter_fields(seg)]
+    table = np.tile(np.r_[Q, [core.get(n) for n in names]][:, None], (1, 1 + len(names)))
+    for j, name in enumerate(names):
+        f = field(name)
+        v = table[1 + j, 0]
+        moved = v * 1.1 if f.log else (v + 0.1 * f.scale if v else 0.1 * f.scale)
+        assert f.check(moved), name
+        table[1 + j, 1 + j] = moved
+    one, full = (
+        Engine(core, FREQS, names, ForwardSettings(device="cpu", cells=12, cpu_threads=1, picard_iterations=k))
+        for k in (1, 100)
+    )
+    theta_one, theta_full = (e.heat(table)[1].numpy() for e in (one, full))
+    iterates = [i for i in range(table.shape[1]) if not np.array_equal(theta_one[i], theta_full[i], equal_nan=True)]
+    expected = [1 + j for j, n in enumerate(names) if n.partition(".")[2] in NONLINEAR_FIELDS]
+    assert sorted(expected) and iterates == sorted(expected)
+    assert full.warm.iterating(table).tolist() == iterates
+
+
+def test_threads_take_each_sets_own_start():
+    # a batch split over two CPU threads (its sets dealt like cards) gives each set its own
+    # start: the same bits as one thread, where every set starts from a different excess
+    core = convection_core()
+    eng, table = batch(core)
+    table = np.tile(table, (1, 10))
+    table[1] *= np.linspace(1.0, 1.05, table.shape[1])
+    theta = eng.evaluate(table)[2].numpy()
+    start = theta * np.linspace(0.9, 1.1, table.shape[1])[:, None]
+    two = Engine(core, FREQS, eng.names, ForwardSettings(device="cpu", cells=12, cpu_threads=2))
+    assert two._cpu_parts(table.shape[1]) == 2
+    T_one, T_two = (e.evaluate(table, start=start)[0].numpy() for e in (eng, two))
+    assert np.array_equal(T_one, T_two)
