@@ -101,3 +101,19 @@ def test_cuda_design_evaluations_match_cpu():
         np.testing.assert_allclose(b[k], a[k], rtol=1e-12, atol=1e-12 * np.abs(a[k]).max())
     f32 = gpu.metric_columns(gpu.evaluate_device(table), gpu.columns).numpy()
     assert np.array_equal(f32, np.array([b[k] for k in gpu.columns], dtype=np.float32))
+
+
+@pytest.mark.gpu
+@pytest.mark.parametrize("fields", [("tbt.h_convection", 3.0), ("tbt.wall_conductance", 2e-3)])
+def test_cuda_temperature_dependent_heat_matches_cpu(fields):
+    # the iterated heat solve (Kirchhoff cells, and the wall's second field) with its linear
+    # cells in the segments without a temperature-dependent field: 1e-12 relative, as above
+    core = load_core("ceramic").replace(**{"stack.conductivity_exponent": 0.5, "tbt.h_convection": 3.0})
+    core = core.replace(**{fields[0]: fields[1]})
+    if fields[0] == "tbt.wall_conductance":
+        core = core.replace(**{"tbt.wall_resistance": 0.05})
+    f = np.linspace(30, 500, 7)
+    q = [0.0, 20.0, 40.0]
+    cpu = transfer_matrices(core, f, q, device="cpu", cells=12).dimensionless()
+    gpu = transfer_matrices(core, f, q, device="cuda", cells=12).dimensionless()
+    assert np.abs(gpu - cpu).max() / np.abs(cpu).max() < 1e-12
