@@ -145,9 +145,9 @@ class WarmStarts:
     rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary).
     Safe to share between threads (an engine is: :func:`tawarp.measure.kind.get_engine`)."""
 
-    def __init__(self, limit: int, columns: int, switches: np.ndarray, always: bool):
+    def __init__(self, limit: int, rows: int, columns: int, switches: np.ndarray, always: bool):
         self.limit, self.switches, self.always = limit, switches, always
-        self.table = np.zeros((0, 0))  # (rows, K) the kept sets' varying values
+        self.table = np.zeros((rows, 0))  # (rows, K) the kept sets' varying values
         self.theta = np.zeros((0, columns))  # (K, columns) their excesses
         self.lock = threading.Lock()
 
@@ -195,8 +195,7 @@ class WarmStarts:
         if not heated.size:
             return
         with self.lock:
-            kept = self.table if self.table.shape[0] == table.shape[0] else np.zeros((table.shape[0], 0))
-            self.table = np.concatenate([kept, table[:, heated]], axis=1)[:, -self.limit :]
+            self.table = np.concatenate([self.table, table[:, heated]], axis=1)[:, -self.limit :]
             self.theta = np.concatenate([self.theta, theta[heated]])[-self.limit :]
 
 
@@ -594,7 +593,8 @@ class Engine:
                 for k in core.thermal_indices
                 for f in NONLINEAR_FIELDS
             )
-            self.warm = WarmStarts(WARM_SETS, self.theta_columns, np.array(switches, dtype=int), always)
+            rows = 1 + len(self.names)
+            self.warm = WarmStarts(WARM_SETS, rows, self.theta_columns, np.array(switches, dtype=int), always)
 
     def _sets(self, params: wp.array) -> kf.SetTable:
         """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
@@ -680,19 +680,19 @@ class Engine:
             else:
                 T[j] = known
         if todo:
-            part = table[:, todo]
-            if self.warm is None:
-                T[todo] = self._computed(part)
-            else:
-                out, _, theta = self.evaluate(np.ascontiguousarray(part), start=self.warm.starts(part))
-                T[todo] = out.numpy().view(np.complex128).reshape(len(todo), len(self.freqs), 2, 2)
-                self.warm.put(part, theta.numpy())
+            T[todo] = self._computed(table[:, todo])
             _MEMO.put([ids[j] for j in todo], T[todo])
         return T[column.reshape(-1)]
 
     def _computed(self, table: np.ndarray) -> np.ndarray:
-        """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n)."""
-        out, _, _ = self.evaluate(np.ascontiguousarray(table))
+        """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n);
+        with warm starts (:attr:`warm`) the sets' heat solves start from the kept excesses
+        near them, and their converged excesses are kept."""
+        table = np.ascontiguousarray(table)
+        start = None if self.warm is None else self.warm.starts(table)
+        out, _, theta = self.evaluate(table, start=start)
+        if self.warm is not None:
+            self.warm.put(table, theta.numpy())
         return out.numpy().view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
 
     def _cpu_parts(self, n: int) -> int:
