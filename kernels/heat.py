@@ -928,8 +928,9 @@ def solve_heat_wall(
     Thomas on the two fields; ``scratch`` (6 x nodes columns) holds the modified
     super-diagonal blocks and the previous iterate. One solve for a linear set; with a
     temperature-dependent effect (``nonlin``), iterations as :func:`solve_heat_nonlinear`'s
-    from the start iterate in theta[i, :2 nodes] on both fields (Kirchhoff cells where the wall is at the gas temperature, the two-field
-    cells' coefficients at their mean gas temperature)."""
+    from the start iterate in theta[i, :2 nodes] on both fields (Kirchhoff cells where the
+    wall is at the gas temperature, the two-field cells' coefficients at their mean gas
+    temperature)."""
     n = count * cells + 1
     zero = wp.float64(0.0)
     done = int(0)
