@@ -221,6 +221,16 @@ TABLE_LENGTH = PIECES * (1 + 16) + 1
 assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one column
 
 
+@wp.func_native(f"return reinterpret_cast<const double*>(table.data)[row * {TABLE_LENGTH} + column];")
+def table_entry(table: PoreTable, row: int, column: int) -> wp.float64:
+    """table[row, column] of :func:`tawarp.kernels.pore_table.circular_table`'s contiguous
+    (TABLE_RECORD, TABLE_LENGTH) array, its row length a compile-time constant: a literal
+    row's offset is then an immediate of the GPU's load, where the array's own indexing
+    reads the row stride at run time and took two 64-bit address instructions per load
+    (sm_90: 192 of the cascade's 1351 instructions a cell, bench/README.md)."""
+    ...
+
+
 @wp.func
 def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
     # f, g from the pieces starting at column ``offset``, for log_s inside the table's range
@@ -232,15 +242,15 @@ def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
     top = 1 + 2 * (TABLE_TERMS - 1)
-    pr = table[top, col]
-    pi = table[top + 1, col]
+    pr = table_entry(table, top, col)
+    pi = table_entry(table, top + 1, col)
     for jj in range(TABLE_TERMS - 1):
         j = top - 2 - 2 * jj
-        pr = table[j, col] + t * pr
-        pi = table[j + 1, col] + t * pi
+        pr = table_entry(table, j, col) + t * pr
+        pi = table_entry(table, j + 1, col) + t * pi
     p = wp.vec2d(pr, pi)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if table[0, col] != wp.float64(0.0):
+    if table_entry(table, 0, col) != wp.float64(0.0):
         return q, p
     return p, q
 
