@@ -50,6 +50,7 @@ from .pore import (
     PORE_CIRCULAR,
     PORE_SCREENS,
     PoreTable,
+    circular_inverse_g,
     pore_circular_tabulated,
     pore_functions_complex,
     pore_functions_log,
@@ -777,7 +778,7 @@ def propagation_entries(
     c22: Any,
     rho: Any,
     f_k: Any,
-    g_nu: Any,
+    inv_g_nu: Any,
     g_k: Any,
     porosity: Any,
     tortuosity: Any,
@@ -789,8 +790,10 @@ def propagation_entries(
 ):
     """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
     (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
-    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
-    ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
+    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``,
+    ``inv_g_nu`` = 1/g_nu = 1/(1 - f_nu), ``g_k``: A takes g_nu only through its
+    reciprocal, which the plain cascade reads from the pore table,
+    :func:`propagation_circular`) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
     heats. The physics of A, written once for every kind of number
     (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
     (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
@@ -805,16 +808,19 @@ def propagation_entries(
         )
     if pore_model == PORE_CIRCULAR and cre(shape_factor) != wp.float64(1.0) and cre(shape_factor) > wp.float64(0.0):
         s_nu = cmul(root_omega, cexp(ccomplex(log_nu)))
-        g_nu = cdiv(g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
-    inv_g_nu = pore_reciprocal(g_nu)
+        # g_nu / J: its reciprocal times J
+        inv_g_nu = cmul(inv_g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
     density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
     if cre(frame_mobility) > wp.float64(0.0):
+        g_nu = pore_reciprocal(inv_g_nu)
         rho_w = limp_density(ccomplex(rho), ccomplex(porosity), ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
         density_per_area = cdiv(rho_w, ccomplex(area))
     a12 = cmuli(cmul(omega, density_per_area))
     a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))
-    # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
-    a22 = cmul(c22, cmul(g_nu - g_k, inv_g_nu))
+    # (f_k - f_nu)/(1 - f_nu) = 1 - g_k/g_nu: no difference of two f close to 1 (narrow
+    # pores); where both g are close to 1 (wide pores) the difference's rounding is an
+    # absolute 1e-16 of c22, |T'/T|/(1 - Pr), which a cell's h takes to ~1e-16 of the T-matrix
+    a22 = cmul(c22, cone(g_k) - cmul(g_k, inv_g_nu))
     return a12, a21, a22
 
 
@@ -860,7 +866,7 @@ def propagation_value(
         pc.c22,
         pc.rho,
         pp.f_k,
-        pp.g_nu,
+        pore_reciprocal(pp.g_nu),
         pp.g_k,
         geo.porosity,
         geo.tortuosity,
@@ -899,10 +905,12 @@ def propagation_circular(
 ):
     """A(x) at real angular frequency omega [rad/s] (``half_log_omega`` = ln(omega)/2) at a
     point of a :func:`plain_part`: the circular pore functions from the table
-    (:func:`tawarp.kernels.pore.pore_circular_tabulated`) and :func:`propagation_entries`
-    with the effects' neutral values as constants, which the compiler folds. No call: the
-    cascade that takes only such parts compiles to registers alone (bench/README.md)."""
-    f_nu, g_nu = pore_circular_tabulated(pore_table, pc.log_nu + half_log_omega)
+    (:func:`tawarp.kernels.pore.pore_circular_tabulated`; the viscous one as 1/g_nu,
+    :func:`tawarp.kernels.pore.circular_inverse_g`, which spares the cell's three Gauss
+    points a division each) and :func:`propagation_entries` with the effects' neutral values
+    as constants, which the compiler folds. No call: the cascade that takes only such parts
+    compiles to registers alone (bench/README.md)."""
+    inv_g_nu = circular_inverse_g(pore_table, pc.log_nu + half_log_omega)
     f_k, g_k = pore_circular_tabulated(pore_table, pc.log_k + half_log_omega)
     a12, a21, a22 = propagation_entries(
         omega,
@@ -914,7 +922,7 @@ def propagation_circular(
         pc.c22,
         pc.rho,
         f_k,
-        g_nu,
+        inv_g_nu,
         g_k,
         geo.porosity,
         geo.tortuosity,
@@ -986,7 +994,7 @@ def propagation_tangent(
         dual_real(pc.c22, dpc.c22),
         dual_real(pc.rho, dpc.rho),
         dual(pp.f_k, cscale(pp.df_k, dpc.log_k)),
-        dual(pp.g_nu, cscale(pp.df_nu, -dpc.log_nu)),
+        pore_reciprocal(dual(pp.g_nu, cscale(pp.df_nu, -dpc.log_nu))),
         dual(pp.g_k, cscale(pp.df_k, -dpc.log_k)),
         dual_real(geo.porosity, dgeo.porosity),
         dual_real(geo.tortuosity, dgeo.tortuosity),
@@ -1019,7 +1027,7 @@ def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2
         pc.c22,
         pc.rho,
         f_k,
-        g_nu,
+        pore_reciprocal(g_nu),
         g_k,
         geo.porosity,
         geo.tortuosity,
