@@ -45,7 +45,7 @@ from .cmath import (
     dual_tangent,
     dual_value,
 )
-from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
+from .gas import G_CP, G_GAMMA, G_K0, G_KA, G_KS, G_MU0, G_MUA, G_MUS, G_R, transport_scale
 from .pore import (
     PORE_CIRCULAR,
     PORE_SCREENS,
@@ -590,17 +590,36 @@ def point_coefficients(
     """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
     part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
     for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
-    effect), ``tortuosity``, tube section ``area`` [m^2]."""
-    rho = density(gas, T, p_mean)
-    mu = viscosity(gas, T)
-    kappa = conductivity(gas, T)
+    effect), ``tortuosity``, tube section ``area`` [m^2]. The gas laws (:mod:`.gas`) are
+    combined over one common denominator: with mu = q_mu T / (T + S_mu) and kappa likewise
+    (:func:`.gas.transport_scale`), rho = p / (R T) and rho c^2 = gamma p, every
+    coefficient is a product of the laws' factors and one reciprocal, where the laws taken
+    one by one cost fifteen divisions and four square roots a point (a float64 division is
+    a reciprocal seed and its Newton steps on the GPU; the point kernel runs this at every
+    Gauss point, bench/README.md)."""
+    R = gas[G_R]
     cp = gas[G_CP]
+    q_mu = transport_scale(T, gas[G_MU0], gas[G_MUA], gas[G_MUS])
+    q_k = transport_scale(T, gas[G_K0], gas[G_KA], gas[G_KS])
+    t_mu = T + gas[G_MUS]
+    t_k = T + gas[G_KS]
+    # 1 - Pr = 1 - mu cp / kappa = (q_k t_mu - cp q_mu t_k) / (q_k t_mu)
+    prandtl_gap = q_k * t_mu - cp * q_mu * t_k
+    laws = R * T * T * q_mu * q_k  # rho / p = q_mu q_k T / laws
+    heat = T * prandtl_gap  # c22 = dTdx q_k t_mu / heat
+    inv = wp.float64(1.0) / (laws * heat)
+    inv_laws = heat * inv
+    rho = p_mean * T * q_mu * q_k * inv_laws
     pc = PointCoefficients()
-    pc.log_nu = wp.log(pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
-    pc.log_k = wp.log(thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    # ln(r sqrt(x)) = ln(r^2 x) / 2, x = rho / (2 mu) = p t_mu q_k / (2 laws), and likewise
+    # rho cp / (2 kappa) = p cp t_k q_mu / (2 laws)
+    pc.log_nu = wp.float64(0.5) * wp.log(wp.float64(0.5) * pore_radius * pore_radius * p_mean * t_mu * q_k * inv_laws)
+    pc.log_k = wp.float64(0.5) * wp.log(
+        wp.float64(0.5) * thermal_radius * thermal_radius * p_mean * cp * t_k * q_mu * inv_laws
+    )
     pc.c12 = tortuosity * tortuosity * rho / (porosity * area)
-    pc.c21 = porosity * area / (rho * sound_speed_squared(gas, T))
-    pc.c22 = dTdx / (T * (wp.float64(1.0) - mu * cp / kappa))
+    pc.c21 = porosity * area / (gas[G_GAMMA] * p_mean)
+    pc.c22 = dTdx * q_k * t_mu * laws * inv
     pc.rho = rho
     return pc
 
