@@ -45,11 +45,12 @@ from .cmath import (
     dual_tangent,
     dual_value,
 )
-from .gas import G_CP, conductivity, density, sound_speed_squared, viscosity
+from .gas import G_CP, G_GAMMA, G_K0, G_KA, G_KS, G_MU0, G_MUA, G_MUS, G_R, transport_scale
 from .pore import (
     PORE_CIRCULAR,
     PORE_SCREENS,
     PoreTable,
+    circular_inverse_g,
     pore_circular_tabulated,
     pore_functions_complex,
     pore_functions_log,
@@ -589,17 +590,36 @@ def point_coefficients(
     """:class:`PointCoefficients` at local temperature T [K] and gradient dTdx [K/m] in a
     part of ``porosity``, ``pore_radius`` [m] (f_nu), ``thermal_radius`` [m] (f_k; the same
     for the one-radius model, a separate one is the Johnson-Champoux-Allard Lambda'/Lambda
-    effect), ``tortuosity``, tube section ``area`` [m^2]."""
-    rho = density(gas, T, p_mean)
-    mu = viscosity(gas, T)
-    kappa = conductivity(gas, T)
+    effect), ``tortuosity``, tube section ``area`` [m^2]. The gas laws (:mod:`.gas`) are
+    combined over one common denominator: with mu = q_mu T / (T + S_mu) and kappa likewise
+    (:func:`.gas.transport_scale`), rho = p / (R T) and rho c^2 = gamma p, every
+    coefficient is a product of the laws' factors and one reciprocal, where the laws taken
+    one by one cost fifteen divisions and four square roots a point (a float64 division is
+    a reciprocal seed and its Newton steps on the GPU; the point kernel runs this at every
+    Gauss point, bench/README.md)."""
+    R = gas[G_R]
     cp = gas[G_CP]
+    q_mu = transport_scale(T, gas[G_MU0], gas[G_MUA], gas[G_MUS])
+    q_k = transport_scale(T, gas[G_K0], gas[G_KA], gas[G_KS])
+    t_mu = T + gas[G_MUS]
+    t_k = T + gas[G_KS]
+    # 1 - Pr = 1 - mu cp / kappa = (q_k t_mu - cp q_mu t_k) / (q_k t_mu)
+    prandtl_gap = q_k * t_mu - cp * q_mu * t_k
+    laws = R * T * T * q_mu * q_k  # rho / p = q_mu q_k T / laws
+    heat = T * prandtl_gap  # c22 = dTdx q_k t_mu / heat
+    inv = wp.float64(1.0) / (laws * heat)
+    inv_laws = heat * inv
+    rho = p_mean * T * q_mu * q_k * inv_laws
     pc = PointCoefficients()
-    pc.log_nu = wp.log(pore_radius * wp.sqrt(rho / (wp.float64(2.0) * mu)))
-    pc.log_k = wp.log(thermal_radius * wp.sqrt(rho * cp / (wp.float64(2.0) * kappa)))
+    # ln(r sqrt(x)) = ln(r^2 x) / 2, x = rho / (2 mu) = p t_mu q_k / (2 laws), and likewise
+    # rho cp / (2 kappa) = p cp t_k q_mu / (2 laws)
+    pc.log_nu = wp.float64(0.5) * wp.log(wp.float64(0.5) * pore_radius * pore_radius * p_mean * t_mu * q_k * inv_laws)
+    pc.log_k = wp.float64(0.5) * wp.log(
+        wp.float64(0.5) * thermal_radius * thermal_radius * p_mean * cp * t_k * q_mu * inv_laws
+    )
     pc.c12 = tortuosity * tortuosity * rho / (porosity * area)
-    pc.c21 = porosity * area / (rho * sound_speed_squared(gas, T))
-    pc.c22 = dTdx / (T * (wp.float64(1.0) - mu * cp / kappa))
+    pc.c21 = porosity * area / (gas[G_GAMMA] * p_mean)
+    pc.c22 = dTdx * q_k * t_mu * laws * inv
     pc.rho = rho
     return pc
 
@@ -777,7 +797,7 @@ def propagation_entries(
     c22: Any,
     rho: Any,
     f_k: Any,
-    g_nu: Any,
+    inv_g_nu: Any,
     g_k: Any,
     porosity: Any,
     tortuosity: Any,
@@ -789,8 +809,10 @@ def propagation_entries(
 ):
     """(a12, a21, a22) of A (module docstring) at angular frequency ``omega`` [rad/s]
     (``root_omega`` its principal square root) from a point's :class:`PointCoefficients`
-    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``, ``g_nu``,
-    ``g_k``) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
+    (``log_nu``, ``log_k``, ``c12``, ``c21``, ``c22``, ``rho``), its pore functions (``f_k``,
+    ``inv_g_nu`` = 1/g_nu = 1/(1 - f_nu), ``g_k``: A takes g_nu only through its
+    reciprocal, which the plain cascade reads from the pore table,
+    :func:`propagation_circular`) and its part's :class:`PartGeometry`; ``gamma`` is the gas's ratio of specific
     heats. The physics of A, written once for every kind of number
     (:mod:`tawarp.kernels.cmath`): real or complex omega with real coefficients
     (:func:`propagation_value`, :func:`propagation_complex`), or duals that carry a
@@ -805,16 +827,19 @@ def propagation_entries(
         )
     if pore_model == PORE_CIRCULAR and cre(shape_factor) != wp.float64(1.0) and cre(shape_factor) > wp.float64(0.0):
         s_nu = cmul(root_omega, cexp(ccomplex(log_nu)))
-        g_nu = cdiv(g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
-    inv_g_nu = pore_reciprocal(g_nu)
+        # g_nu / J: its reciprocal times J
+        inv_g_nu = cmul(inv_g_nu, shape_correction(cmul(s_nu, s_nu), ccomplex(shape_factor)))
     density_per_area = cmul(c12, inv_g_nu)  # [kg/m^5]
     if cre(frame_mobility) > wp.float64(0.0):
+        g_nu = pore_reciprocal(inv_g_nu)
         rho_w = limp_density(ccomplex(rho), ccomplex(porosity), ccomplex(tortuosity), g_nu, ccomplex(frame_mobility))
         density_per_area = cdiv(rho_w, ccomplex(area))
     a12 = cmuli(cmul(omega, density_per_area))
     a21 = cmuli(cmul(omega, cmul(c21, cone(f_k) + f_k * (gamma - wp.float64(1.0)))))
-    # f_k - f_nu = g_nu - g_k: no cancellation when both f are close to 1 (narrow pores)
-    a22 = cmul(c22, cmul(g_nu - g_k, inv_g_nu))
+    # (f_k - f_nu)/(1 - f_nu) = 1 - g_k/g_nu: no difference of two f close to 1 (narrow
+    # pores); where both g are close to 1 (wide pores) the difference's rounding is an
+    # absolute 1e-16 of c22, |T'/T|/(1 - Pr), which a cell's h takes to ~1e-16 of the T-matrix
+    a22 = cmul(c22, cone(g_k) - cmul(g_k, inv_g_nu))
     return a12, a21, a22
 
 
@@ -860,7 +885,7 @@ def propagation_value(
         pc.c22,
         pc.rho,
         pp.f_k,
-        pp.g_nu,
+        pore_reciprocal(pp.g_nu),
         pp.g_k,
         geo.porosity,
         geo.tortuosity,
@@ -899,10 +924,12 @@ def propagation_circular(
 ):
     """A(x) at real angular frequency omega [rad/s] (``half_log_omega`` = ln(omega)/2) at a
     point of a :func:`plain_part`: the circular pore functions from the table
-    (:func:`tawarp.kernels.pore.pore_circular_tabulated`) and :func:`propagation_entries`
-    with the effects' neutral values as constants, which the compiler folds. No call: the
-    cascade that takes only such parts compiles to registers alone (bench/README.md)."""
-    f_nu, g_nu = pore_circular_tabulated(pore_table, pc.log_nu + half_log_omega)
+    (:func:`tawarp.kernels.pore.pore_circular_tabulated`; the viscous one as 1/g_nu,
+    :func:`tawarp.kernels.pore.circular_inverse_g`, which spares the cell's three Gauss
+    points a division each) and :func:`propagation_entries` with the effects' neutral values
+    as constants, which the compiler folds. No call: the cascade that takes only such parts
+    compiles to registers alone (bench/README.md)."""
+    inv_g_nu = circular_inverse_g(pore_table, pc.log_nu + half_log_omega)
     f_k, g_k = pore_circular_tabulated(pore_table, pc.log_k + half_log_omega)
     a12, a21, a22 = propagation_entries(
         omega,
@@ -914,7 +941,7 @@ def propagation_circular(
         pc.c22,
         pc.rho,
         f_k,
-        g_nu,
+        inv_g_nu,
         g_k,
         geo.porosity,
         geo.tortuosity,
@@ -986,7 +1013,7 @@ def propagation_tangent(
         dual_real(pc.c22, dpc.c22),
         dual_real(pc.rho, dpc.rho),
         dual(pp.f_k, cscale(pp.df_k, dpc.log_k)),
-        dual(pp.g_nu, cscale(pp.df_nu, -dpc.log_nu)),
+        pore_reciprocal(dual(pp.g_nu, cscale(pp.df_nu, -dpc.log_nu))),
         dual(pp.g_k, cscale(pp.df_k, -dpc.log_k)),
         dual_real(geo.porosity, dgeo.porosity),
         dual_real(geo.tortuosity, dgeo.tortuosity),
@@ -1019,7 +1046,7 @@ def propagation_complex(pc: PointCoefficients, geo: PartGeometry, omega: wp.vec2
         pc.c22,
         pc.rho,
         f_k,
-        g_nu,
+        pore_reciprocal(g_nu),
         g_k,
         geo.porosity,
         geo.tortuosity,

@@ -69,9 +69,10 @@ from .acoustics import (
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import (
-    cell_profile,
+    cell_shape,
     contact_at,
     gap_share,
+    profile_at,
     segment_heat_coeffs,
     segment_nonlinear,
     segment_profile,
@@ -772,19 +773,22 @@ def gauss_profile(
     k: wp.float64,
     sigma: wp.float64,
     d: wp.float64,
+    shape: wp.vec4d,
     nonlin: int,
     xi: wp.float64,
 ):
     """:func:`tawarp.kernels.heat.segment_profile` (the same values, bit for bit:
     tests/test_forward.py) with its usual case inline, the exact profile of the heat cell
-    at xi (:func:`tawarp.kernels.heat.cell_profile`), and its rare ones out of line
+    at xi (:func:`tawarp.kernels.heat.profile_at`, given ``shape`` =
+    :func:`tawarp.kernels.heat.cell_shape` of (k, d), which the segment's cells share: the
+    caller takes it once for its points), and its rare ones out of line
     (:func:`rare_profile`): a wall that is a field of its own, a contact resistance at the
     segment's start, the Kirchhoff cells of ``nonlin``: inlined, their code crowded the
     point kernel's registers (bench/README.md, "The error estimate's points")."""
     c = wp.min(int(xi / d), cells - 1)
     if nonlin != 0 or wall_field_on(params, i, s) != 0 or contact_at(params, i, s, node0, c) != wp.float64(0.0):
         return rare_profile(params, flags, gas, theta, i, s, node0, cells, k, sigma, d, nonlin, xi)
-    return cell_profile(theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
+    return profile_at(shape, theta[i, node0 + c], theta[i, node0 + c + 1], k, sigma, d, xi - wp.float64(c) * d)
 
 
 def make_point_kernel(nonlinear: bool, max_registers: int | None = POINT_MAX_REGISTERS):
@@ -861,11 +865,14 @@ def make_point_kernel(nonlinear: bool, max_registers: int | None = POINT_MAX_REG
             lam, k, sigma = segment_heat_coeffs(params, flags, gas, i, s)
             d = seg_value(params, i, s, LENGTH) / wp.float64(heat_cells)
             node0 = (s - first) * heat_cells
+            shape = cell_shape(k, d)
             nonlin = 0
             if wp.static(nonlinear):  # compiled out of the linear kernel: fewer registers on the GPU
                 nonlin = segment_nonlinear(params, i, s)
             for g in range(3):
-                th, dth = gauss_profile(params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, d, nonlin, xs[g])
+                th, dth = gauss_profile(
+                    params, flags, gas, theta, i, s, node0, heat_cells, k, sigma, d, shape, nonlin, xs[g]
+                )
                 points[li, p + 3 * rest + g] = point_coefficients(gas, p_mean, T_cold + th, dth, phi, r, q, area, r_k)
 
     # a unique module does not inherit this file's module options; the Gauss points' loops

@@ -12,16 +12,26 @@ wp.set_module_options({"enable_backward": False})  # nothing here is differentia
 
 G_R, G_CP, G_GAMMA, G_MU0, G_MUA, G_MUS, G_K0, G_KA, G_KS = range(9)
 T_REF = wp.constant(wp.float64(273.15))
+INV_T_REF = wp.constant(wp.float64(1.0 / 273.15))
 
 
 @wp.func
-def transport_law(T: wp.float64, x0: wp.float64, a: wp.float64, s: wp.float64):
-    t = T / T_REF
+def transport_scale(T: wp.float64, x0: wp.float64, a: wp.float64, s: wp.float64):
+    """q of a transport law X(T) = q T / (T + S) (module docstring): q = X0 (1 + S/T0) (T/T0)^a,
+    in the units of X0. Written apart from the ratio T / (T + S), so that a caller that
+    combines several laws (:func:`tawarp.kernels.acoustics.point_coefficients`) takes one
+    division for all of them; no division here (1/T0 is a constant)."""
+    t = T * INV_T_REF
     # a = 1/2 is Sutherland's law: sqrt is far cheaper than pow on the GPU
     power = wp.sqrt(t)
     if a != wp.float64(0.5):
         power = wp.pow(t, a)
-    return x0 * power * (wp.float64(1.0) + s / T_REF) / (wp.float64(1.0) + s / T)
+    return x0 * power * (wp.float64(1.0) + s * INV_T_REF)
+
+
+@wp.func
+def transport_law(T: wp.float64, x0: wp.float64, a: wp.float64, s: wp.float64):
+    return transport_scale(T, x0, a, s) * T / (T + s)
 
 
 @wp.func

@@ -105,19 +105,83 @@ def cell_coupling(lam: wp.float64, k: wp.float64, sigma: wp.float64, d: wp.float
 
 
 @wp.func
-def hyperbolic_ratios(u: wp.float64, v: wp.float64):
-    """(cosh(u)/cosh(v), sinh(u)/cosh(v), tanh(v)) for |u| <= v, without overflow, from
-    the three exponentials they share (the cell profile needs all three at each point)."""
+def hyperbolic_ratios(u: wp.float64, v: wp.float64, inv: wp.float64):
+    """(cosh(u)/cosh(v), sinh(u)/cosh(v)) for |u| <= v, without overflow, from the two
+    exponentials they share and ``inv`` = 1/(1 + e^(-2v)) (:func:`cell_shape`)."""
     au = wp.abs(u)
     e = wp.exp(au - v)
     eu = wp.exp(wp.float64(-2.0) * au)
-    ev = wp.exp(wp.float64(-2.0) * v)
-    inv = wp.float64(1.0) / (wp.float64(1.0) + ev)
     cr = e * (wp.float64(1.0) + eu) * inv
     sr = e * (wp.float64(1.0) - eu) * inv
     if u < wp.float64(0.0):
         sr = -sr
-    return cr, sr, (wp.float64(1.0) - ev) * inv
+    return cr, sr
+
+
+@wp.func
+def cell_shape(k: wp.float64, d: wp.float64):
+    """The factors of :func:`profile_at` that depend on the cell alone (decay rate k
+    [1/m], length d [m]), as a wp.vec4d: for v = k d/2 < 1/2, (1/cosh v, 1/(d/2 shx(v)),
+    0, 0); else (e^(-2v), 1/(1 + e^(-2v)), 1/tanh v, 1/k). Their divisions and
+    exponential are taken once for all the points of a cell (the point kernel's three
+    Gauss points, :func:`tawarp.kernels.forward.gauss_profile`), not at each."""
+    v = wp.float64(0.5) * k * d
+    if v < wp.float64(0.5):
+        return wp.vec4d(
+            wp.float64(1.0) / wp.cosh(v),
+            wp.float64(1.0) / (wp.float64(0.5) * d * shx(v)),
+            wp.float64(0.0),
+            wp.float64(0.0),
+        )
+    ev = wp.exp(wp.float64(-2.0) * v)
+    return wp.vec4d(
+        ev,
+        wp.float64(1.0) / (wp.float64(1.0) + ev),
+        (wp.float64(1.0) + ev) / (wp.float64(1.0) - ev),
+        wp.float64(1.0) / k,
+    )
+
+
+@wp.func
+def profile_at(
+    shape: wp.vec4d,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+    k: wp.float64,
+    sigma: wp.float64,
+    d: wp.float64,
+    xi: wp.float64,
+):
+    """:func:`cell_profile` given the cell's :func:`cell_shape` ``shape`` of (k, d)."""
+    m = xi - wp.float64(0.5) * d
+    v = wp.float64(0.5) * k * d
+    u = k * m
+    mean = wp.float64(0.5) * (theta_l + theta_r)
+    half = wp.float64(0.5) * (theta_r - theta_l)
+    if v < wp.float64(0.5):
+        # small k d: series-safe forms of the same expressions
+        inv_ch = shape[0]
+        inv_span = shape[1]
+        theta = mean * wp.cosh(u) * inv_ch + half * (m * shx(u)) * inv_span
+        dtheta = mean * k * k * m * shx(u) * inv_ch + half * wp.cosh(u) * inv_span
+        # particular part w = (cosh v - cosh u)/(k^2 cosh v), w' = -sinh(u)/(k cosh v)
+        w = (
+            wp.float64(0.5)
+            * (wp.float64(0.25) * d * d - m * m)
+            * shx(wp.float64(0.5) * (v + u))
+            * shx(wp.float64(0.5) * (v - u))
+            * inv_ch
+        )
+        theta = theta + sigma * w
+        dtheta = dtheta - sigma * m * shx(u) * inv_ch
+        return theta, dtheta
+    cr, sr = hyperbolic_ratios(u, v, shape[1])
+    inv_th = shape[2]
+    inv_k = shape[3]
+    # sinh(u)/sinh(v) = (sinh(u)/cosh(v)) / tanh(v), cosh(u)/sinh(v) likewise
+    theta = mean * cr + half * sr * inv_th + sigma * (wp.float64(1.0) - cr) * (inv_k * inv_k)
+    dtheta = k * (mean * sr + half * cr * inv_th) - sigma * sr * inv_k
+    return theta, dtheta
 
 
 @wp.func
@@ -126,33 +190,9 @@ def cell_profile(
 ):
     """Exact solution (theta, dtheta/dx) inside a constant-coefficient cell [0, d] at xi,
     given its end values. Written about the cell centre (m = xi - d/2) so that every
-    ratio stays bounded for large k d and every small-k limit is taken analytically."""
-    m = xi - wp.float64(0.5) * d
-    v = wp.float64(0.5) * k * d
-    u = k * m
-    mean = wp.float64(0.5) * (theta_l + theta_r)
-    half = wp.float64(0.5) * (theta_r - theta_l)
-    if v < wp.float64(0.5):
-        # small k d: series-safe forms of the same expressions
-        ch = wp.cosh(v)
-        theta = mean * wp.cosh(u) / ch + half * (m * shx(u)) / (wp.float64(0.5) * d * shx(v))
-        dtheta = mean * k * k * m * shx(u) / ch + half * wp.cosh(u) / (wp.float64(0.5) * d * shx(v))
-        # particular part w = (cosh v - cosh u)/(k^2 cosh v), w' = -sinh(u)/(k cosh v)
-        w = (
-            wp.float64(0.5)
-            * (wp.float64(0.25) * d * d - m * m)
-            * shx(wp.float64(0.5) * (v + u))
-            * shx(wp.float64(0.5) * (v - u))
-            / ch
-        )
-        theta = theta + sigma * w
-        dtheta = dtheta - sigma * m * shx(u) / ch
-        return theta, dtheta
-    cr, sr, th = hyperbolic_ratios(u, v)
-    # sinh(u)/sinh(v) = (sinh(u)/cosh(v)) / tanh(v), cosh(u)/sinh(v) likewise
-    theta = mean * cr + half * sr / th + sigma * (wp.float64(1.0) - cr) / (k * k)
-    dtheta = k * (mean * sr + half * cr / th) - sigma * sr / k
-    return theta, dtheta
+    ratio stays bounded for large k d and every small-k limit is taken analytically
+    (:func:`profile_at` on :func:`cell_shape`)."""
+    return profile_at(cell_shape(k, d), theta_l, theta_r, k, sigma, d, xi)
 
 
 @wp.func

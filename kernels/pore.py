@@ -208,22 +208,38 @@ TABLE_RECORD = 1 + 2 * TERMS
 #: The table the kernels take (:func:`tawarp.kernels.pore_table.circular_table`): column k is
 #: one piece, row r its field r. Columns: the circular pieces, then a header column whose
 #: first SHAPE_SLOTS rows are pore-model codes (-1: empty), then the pieces of each shaped
-#: pore (rectangular channels, pins) in the header's order. A field's row keeps neighbouring
+#: pore (rectangular channels, pins) in the header's order, then the circular pore's pieces
+#: of 1/g (:func:`circular_inverse_g`, flag 0). A field's row keeps neighbouring
 #: pieces at neighbouring addresses: a warp's threads (neighbouring frequencies, a few pieces
 #: apart) read each coefficient from one or two cache lines, where records of a piece's
-#: fields spread them over as many lines as pieces.
+#: fields spread them over as many lines as pieces. The kernels read it as contiguous rows of
+#: TABLE_LENGTH columns (:func:`table_entry`): only circular_table's array is a PoreTable.
 PoreTable = wp.array2d(dtype=wp.float64)
 SHAPE_SLOTS = wp.constant(16)
 SHAPE_HEADER = wp.constant(PIECES)
 SHAPE_BLOCKS = wp.constant(PIECES + 1)
-#: Columns of the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks.
-TABLE_LENGTH = PIECES * (1 + 16) + 1
+#: The first column of the circular pore's pieces of 1/g (:func:`circular_inverse_g`).
+INVERSE_BLOCK = wp.constant(PIECES * (1 + 16) + 1)
+#: Columns of the table: the circular pieces, the header, SHAPE_SLOTS shaped blocks, the
+#: circular pore's 1/g.
+TABLE_LENGTH = PIECES * (1 + 16 + 1) + 1
 assert int(SHAPE_SLOTS) <= TABLE_RECORD  # the header's codes fit one column
 
 
+@wp.func_native(f"return reinterpret_cast<const double*>(table.data)[row * {TABLE_LENGTH} + column];")
+def table_entry(table: PoreTable, row: int, column: int) -> wp.float64:
+    """table[row, column] of :func:`tawarp.kernels.pore_table.circular_table`'s contiguous
+    (TABLE_RECORD, TABLE_LENGTH) array, its row length a compile-time constant: a literal
+    row's offset is then an immediate of the GPU's load, where the array's own indexing
+    reads the row stride at run time and took two 64-bit address instructions per load
+    (sm_90: 192 of the cascade's 1351 instructions a cell, bench/README.md)."""
+    ...
+
+
 @wp.func
-def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
-    # f, g from the pieces starting at column ``offset``, for log_s inside the table's range
+def _piece_series(table: PoreTable, offset: int, log_s: wp.float64):
+    # (the series of the piece of log_s among the pieces from column ``offset``, its column),
+    # for log_s inside the table's range
     u = (log_s - TABLE_LOG_S_MIN) * TABLE_PIECES_PER_UNIT
     k = wp.min(int(u), TABLE_PIECES - 1)
     t = wp.float64(2.0) * (u - wp.float64(k)) - wp.float64(1.0)
@@ -232,15 +248,21 @@ def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
     # per term and part: half the instructions of Clenshaw's recurrence on the Chebyshev
     # coefficients they were converted from, :func:`tawarp.kernels.pore_table.pore_coefficients`)
     top = 1 + 2 * (TABLE_TERMS - 1)
-    pr = table[top, col]
-    pi = table[top + 1, col]
+    pr = table_entry(table, top, col)
+    pi = table_entry(table, top + 1, col)
     for jj in range(TABLE_TERMS - 1):
         j = top - 2 - 2 * jj
-        pr = table[j, col] + t * pr
-        pi = table[j + 1, col] + t * pi
-    p = wp.vec2d(pr, pi)
+        pr = table_entry(table, j, col) + t * pr
+        pi = table_entry(table, j + 1, col) + t * pi
+    return wp.vec2d(pr, pi), col
+
+
+@wp.func
+def _tabulated(table: PoreTable, offset: int, log_s: wp.float64):
+    # f, g from the pieces starting at column ``offset``, for log_s inside the table's range
+    p, col = _piece_series(table, offset, log_s)
     q = wp.vec2d(wp.float64(1.0) - p[0], -p[1])
-    if table[0, col] != wp.float64(0.0):
+    if table_entry(table, 0, col) != wp.float64(0.0):
         return q, p
     return p, q
 
@@ -304,6 +326,26 @@ def pore_circular_tabulated(table: PoreTable, log_s: wp.float64):
         fg = _circular_tails(log_s)
         return wp.vec2d(fg[0], fg[1]), wp.vec2d(fg[2], fg[3])
     return circular_from_table(table, log_s)
+
+
+@wp.func
+def circular_inverse_g(table: PoreTable, log_s: wp.float64):
+    """1/g = 1/(1 - f) of a circular pore at ``log_s`` = ln(r / delta): the table's pieces
+    of 1/g inside its range (:func:`tawarp.kernels.pore_table.inverse_coefficients`; no
+    division: the plain cascade's viscous function,
+    :func:`tawarp.kernels.acoustics.propagation_circular`), the tails' g inverted outside it
+    (:func:`pore_circular_tabulated`); NaN for a NaN ``log_s``."""
+    if not inside_table(log_s):
+        return _circular_inverse_tails(log_s)
+    g_inverse, col = _piece_series(table, INVERSE_BLOCK, log_s)
+    return g_inverse
+
+
+@wp.func(inline=False)  # outside the table: rare, kept out of the cascade's inlined code
+def _circular_inverse_tails(log_s: wp.float64):
+    # 1/g of a circular pore outside the table's range, from _circular_tails' g
+    fg = _circular_tails(log_s)
+    return cinv(wp.vec2d(fg[2], fg[3]))
 
 
 @wp.func

@@ -17,7 +17,9 @@ and 8 terms reach ~6e-15 (a quarter octave needs 12; measured: bench/README.md, 
 "kernels/pore_table.py"). Each piece stores the smaller of the pair (g for small
 s, where f -> 1; f for large s, where g -> 1) and the other is 1 minus it, so neither loses
 digits to cancellation. Outside [S_MIN, S_MAX] the leading terms of their series are used
-(:func:`.pore.pore_circular_tabulated`).
+(:func:`.pore.pore_circular_tabulated`). The circular pore's 1/g, all that A takes of the
+viscous function, has pieces of its own (:func:`inverse_coefficients`): the plain cascade
+reads it without a division (:func:`.pore.circular_inverse_g`).
 
 The node values come from :func:`.pore.pore_circular` (below 1e-15 relative, checked
 against mpmath in tests/test_pore.py); the table is exact to ~6e-15 relative to |f| and
@@ -39,6 +41,7 @@ import warp as wp
 from numpy.polynomial import chebyshev
 
 from .pore import (
+    INVERSE_BLOCK,
     PIECES,
     PORE_CIRCULAR,
     RECTANGULAR_BASE,
@@ -68,25 +71,28 @@ def _nodes(model: int, s: wp.array(dtype=wp.float64), f: wp.array(dtype=wp.vec2d
     g[i] = gi
 
 
-def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
-    """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
-    as a (PIECES, 1 + 2 TERMS) float64 array, a piece's fields in a row (the table's columns,
-    :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
-    first kind of each piece (a discrete cosine transform gives the Chebyshev coefficients,
-    stored in powers of the piece's variable t)."""
-    k = np.arange(TERMS)
-    angles = np.pi * (k + 0.5) / TERMS
-    t = np.cos(angles)
-    u = math.log(S_MIN) + TABLE_PIECE_WIDTH * (np.arange(PIECES)[:, None] + (t[None, :] + 1.0) / 2.0)
+def _node_values(model: int) -> tuple[np.ndarray, np.ndarray]:
+    """f, g of pore ``model`` at the TERMS Chebyshev points of the first kind of each piece,
+    (PIECES, TERMS) complex each."""
+    angles = np.pi * (np.arange(TERMS) + 0.5) / TERMS
+    u = math.log(S_MIN) + TABLE_PIECE_WIDTH * (np.arange(PIECES)[:, None] + (np.cos(angles)[None, :] + 1.0) / 2.0)
     s = wp.array(np.exp(u).ravel(), dtype=wp.float64, device="cpu")
     f = wp.empty(s.shape[0], dtype=wp.vec2d, device="cpu")
     g = wp.empty(s.shape[0], dtype=wp.vec2d, device="cpu")
     wp.launch(_nodes, dim=s.shape[0], inputs=[int(model), s, f, g], device="cpu")
-    f = f.numpy().view(np.complex128).reshape(PIECES, TERMS)
-    g = g.numpy().view(np.complex128).reshape(PIECES, TERMS)
-    # per piece the smaller of the two (compared at the piece's nodes)
-    use_g = np.abs(g).max(axis=1) < np.abs(f).max(axis=1)
-    values = np.where(use_g[:, None], g, f)
+    return (
+        f.numpy().view(np.complex128).reshape(PIECES, TERMS),
+        g.numpy().view(np.complex128).reshape(PIECES, TERMS),
+    )
+
+
+def _pieces(values: np.ndarray, flags: np.ndarray) -> np.ndarray:
+    """The table's pieces (PIECES, 1 + 2 TERMS) of a function whose values at each piece's
+    Chebyshev points are ``values`` (PIECES, TERMS), with a piece's flag (row 0) ``flags``:
+    a discrete cosine transform gives the Chebyshev coefficients, stored in powers of the
+    piece's variable t."""
+    k = np.arange(TERMS)
+    angles = np.pi * (k + 0.5) / TERMS
     # c_j = (2 / n) sum_k v_k cos(j angle_k), c_0 halved
     coeffs = (2.0 / TERMS) * values @ np.cos(np.outer(angles, k))
     coeffs[:, 0] /= 2.0
@@ -97,10 +103,31 @@ def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
         to_powers[: j + 1, j] = chebyshev.cheb2poly(np.eye(j + 1)[j])
     coeffs = coeffs @ to_powers.T
     table = np.empty((PIECES, 1 + 2 * TERMS))
-    table[:, 0] = use_g
+    table[:, 0] = flags
     table[:, 1::2] = coeffs.real
     table[:, 2::2] = coeffs.imag
     return table
+
+
+def pore_coefficients(model: int = int(PORE_CIRCULAR)) -> np.ndarray:
+    """The pieces of pore ``model`` (circular, or a shaped pore's :func:`.pore.pore_model_code`)
+    as a (PIECES, 1 + 2 TERMS) float64 array, a piece's fields in a row (the table's columns,
+    :data:`.pore.PoreTable`), from f, g at the TERMS Chebyshev points of the
+    first kind of each piece (:func:`_pieces`)."""
+    f, g = _node_values(model)
+    # per piece the smaller of the two (compared at the piece's nodes)
+    use_g = np.abs(g).max(axis=1) < np.abs(f).max(axis=1)
+    return _pieces(np.where(use_g[:, None], g, f), use_g)
+
+
+def inverse_coefficients() -> np.ndarray:
+    """The pieces of 1/g = 1/(1 - f) of a circular pore, as :func:`pore_coefficients`'
+    (flag 0): :func:`.pore.circular_inverse_g`. Its poles in u = ln s, the zeros of
+    J2((1 + i) s), lie at distance pi/4 from the real axis as f's do (the zeros of
+    J0((1 + i) s)), so the same pieces and terms hold; no difference is taken, so no
+    digit is lost where |1/g| is large (4/s^2 at small s)."""
+    _, g = _node_values(int(PORE_CIRCULAR))
+    return _pieces(1.0 / g, np.zeros(PIECES))
 
 
 #: pore-model codes of the shaped pores tabulated so far, in slot order (at most SHAPE_SLOTS;
@@ -123,6 +150,7 @@ def circular_table(device, models=()) -> wp.array:
         if table is None:
             table = np.zeros((TABLE_LENGTH, TABLE_RECORD))
             table[:PIECES] = pore_coefficients()
+            table[INVERSE_BLOCK : INVERSE_BLOCK + PIECES] = inverse_coefficients()
             table[SHAPE_HEADER, : int(SHAPE_SLOTS)] = -1.0
         for j in range(_HOST.get("shapes", 0), len(_SHAPES)):
             table[SHAPE_HEADER, j] = _SHAPES[j]

@@ -401,7 +401,7 @@ def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
     import warp as wp
 
     from tawarp.kernels import forward as kf
-    from tawarp.kernels.heat import segment_heat_coeffs, segment_nonlinear, segment_profile
+    from tawarp.kernels.heat import cell_shape, segment_heat_coeffs, segment_nonlinear, segment_profile
     from tawarp.kernels.layout import LENGTH, seg_value
     from tawarp.model.forward import Engine, ForwardSettings
 
@@ -425,7 +425,7 @@ def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
         xi = share[b] * seg_value(params, i, s, LENGTH)
         node0 = (s - first) * heat_cells
         th, dth = kf.gauss_profile(
-            params, sets.flags, sets.gas, theta, i, s, node0, heat_cells, k, sigma, d, nonlin, xi
+            params, sets.flags, sets.gas, theta, i, s, node0, heat_cells, k, sigma, d, cell_shape(k, d), nonlin, xi
         )
         ours[i, a, 2 * b] = th
         ours[i, a, 2 * b + 1] = dth

@@ -16,6 +16,7 @@ from tawarp.kernels.pore import (
     S_MAX,
     S_MIN,
     PoreTable,
+    circular_inverse_g,
     pore_circular,
     pore_functions_log,
     pore_plates,
@@ -41,6 +42,12 @@ def _eval_model(
     fi, gi = pore_functions_log(model, wp.log(s[i]), table)
     f[i] = fi
     g[i] = gi
+
+
+@wp.kernel
+def _eval_inverse(s: wp.array(dtype=wp.float64), table: PoreTable, inv_g: wp.array(dtype=wp.vec2d)):
+    i = wp.tid()
+    inv_g[i] = circular_inverse_g(table, wp.log(s[i]))
 
 
 @wp.kernel
@@ -235,3 +242,16 @@ def test_circular_and_plates_agree_for_equal_hydraulic_radius():
     limit = (1 + 1j) / s_r
     assert np.all(np.abs(fc - fp) <= np.abs(limit) / s_r)
     np.testing.assert_allclose(fp, limit, rtol=TOL, atol=0)
+
+
+def test_circular_inverse_g_against_mpmath():
+    """1/g = 1/(1 - f) of a circular pore as the plain cascade reads it (the table's own
+    pieces of 1/g inside [S_MIN, S_MAX], the tails' g inverted outside) within TOL of
+    mpmath's, over the grid and at the table's ends, where |1/g| spans 4/s^2 ~ 4e8 to 1."""
+    s = np.concatenate([S_GRID, [S_MIN, S_MIN * (1 + 1e-12), S_MAX * (1 - 1e-12), S_MAX]])
+    s_wp = wp.array(s, dtype=wp.float64, device=DEVICE)
+    inv_g = wp.zeros(len(s), dtype=wp.vec2d, device=DEVICE)
+    wp.launch(_eval_inverse, dim=len(s), inputs=[s_wp, circular_table(DEVICE), inv_g], device=DEVICE)
+    err = max(rel_err(v, 1 / reference(PORE_CIRCULAR, si)[1]) for si, v in zip(s, _to_complex(inv_g)))
+    print(f"1/g: max relative error {err:.2e}")
+    assert err < TOL
