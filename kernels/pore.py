@@ -232,7 +232,7 @@ def table_entry(table: PoreTable, row: int, column: int) -> wp.float64:
     (TABLE_RECORD, TABLE_LENGTH) array, its row length a compile-time constant: a literal
     row's offset is then an immediate of the GPU's load, where the array's own indexing
     reads the row stride at run time and took two 64-bit address instructions per load
-    (sm_90: 192 of the cascade's 1351 instructions a cell, bench/README.md)."""
+    (bench/README.md, "Fewer instructions per cell and per point")."""
     ...
 
 
