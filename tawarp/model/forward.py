@@ -697,7 +697,7 @@ class Engine:
         if not wp.get_device(self.device).is_cpu:
             return self._computed(table)[column.reshape(-1)]
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
-        ids = [(self.number, key[:, j].tobytes()) for j in first]
+        ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(key[:, first].T)]
         T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
         todo = []
         for j, known in enumerate(_MEMO.get(ids)):
@@ -718,7 +718,7 @@ class Engine:
         start = None if self.warm is None else self.warm.starts(table)
         parts = self._cpu_parts(table.shape[1])
         if parts > 1:  # the threads' host arrays as they are (no device arrays made of them)
-            T, _, theta = self._host_threaded(table, parts, start)
+            T, _, theta = self._host_threaded(table, parts, start, params=False)
         else:
             out, _, w_theta = self.evaluate_serial(table, start=start)
             T, theta = out.numpy(), w_theta.numpy()
@@ -749,9 +749,11 @@ class Engine:
         rest = [_thread_pool().submit(one, b) for b in blocks[1:]]
         return [one(blocks[0])] + [f.result() for f in rest]
 
-    def _host_threaded(self, varying, parts: int, start: np.ndarray | None = None) -> tuple:
+    def _host_threaded(self, varying, parts: int, start: np.ndarray | None = None, params: bool = True) -> tuple:
         """(T (n, m, 8), params, theta) of :meth:`evaluate` as host arrays, the batch split
-        over ``parts`` threads."""
+        over ``parts`` threads; ``params`` False: None for them (a set's expanded parameters,
+        about 40 rows a segment, are the largest of the three and a caller of T alone does
+        not read them)."""
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         # the sets dealt to the threads' blocks like cards (block b takes sets b, b + parts, ...):
         # a caller's batch groups sets of unequal work (without heat input a fraction of a
@@ -759,18 +761,20 @@ class Engine:
         # it left one thread idle for up to half of a launch; each set is computed on its own,
         # so the T-matrices are the same bit for bit
         deal = np.concatenate([np.arange(b, table.shape[1], parts) for b in range(parts)])
-        one = lambda b: tuple(  # noqa: E731
-            a.numpy()
-            for a in self.evaluate_serial(
+
+        def one(b):
+            out, w_params, theta = self.evaluate_serial(
                 np.ascontiguousarray(table[:, deal[b]]), start=None if start is None else start[deal[b]]
             )
-        )
+            return out.numpy(), w_params.numpy() if params else None, theta.numpy()
+
         done = self._threaded(one, table, parts)
         back = np.argsort(deal)
         T = np.concatenate([r[0] for r in done])[back]
-        params = np.concatenate([r[1] for r in done], axis=1)[:, back]
         theta = np.concatenate([r[2] for r in done])[back]
-        return T, params, theta
+        if not params:
+            return T, None, theta
+        return T, np.concatenate([r[1] for r in done], axis=1)[:, back], theta
 
     def evaluate_serial(
         self, varying, out: wp.array | None = None, start: np.ndarray | None = None
