@@ -66,24 +66,33 @@ def _elapsed(start: tuple[float, float, float]) -> dict:
 @contextlib.contextmanager
 def counting_sets(kind: type):
     """Count the parameter sets every instance of the measurement kind ``kind`` predicts
-    while inside, and the columns the forward engines compute for them (:meth:`Engine.evaluate`:
-    the distinct ones, less those a CPU engine served from its memo): yields a dict whose
-    ``sets`` and ``columns`` grow."""
-    count, predict, evaluate = {"sets": 0, "columns": 0}, kind.predict, Engine.evaluate
+    while inside, and the columns the forward engines compute for them (:meth:`Engine.evaluate`
+    and, under :meth:`Engine.evaluate_distinct`, :meth:`Engine._computed`: the distinct ones,
+    less those a CPU engine served from its memo): yields a dict whose ``sets`` and
+    ``columns`` grow."""
+    count, predict = {"sets": 0, "columns": 0}, kind.predict
+    engine = {name: getattr(Engine, name) for name in ("evaluate", "_computed")}
 
-    def counted(self, values, n, effect=None):
+    def counted(self, values, n, effect=None, **kw):
         count["sets"] += n
-        return predict(self, values, n, effect)
+        return predict(self, values, n, effect, **kw)
 
-    def computed(self, varying, *args, **kw):
-        count["columns"] += varying.shape[1]
-        return evaluate(self, varying, *args, **kw)
+    def computing(method):
+        def computed(self, varying, *args, **kw):
+            count["columns"] += varying.shape[1]
+            return method(self, varying, *args, **kw)
 
-    kind.predict, Engine.evaluate = counted, computed
+        return computed
+
+    kind.predict = counted
+    for name, method in engine.items():
+        setattr(Engine, name, computing(method))
     try:
         yield count
     finally:
-        kind.predict, Engine.evaluate = predict, evaluate
+        kind.predict = predict
+        for name, method in engine.items():
+            setattr(Engine, name, method)
 
 
 def decisions(rep) -> dict:

@@ -22,6 +22,7 @@ from tawarp.loop.evidence import (
     x_model,
     linearized_evidence,
     log_model_prior,
+    log_sum_exp,
     posterior,
     subsets,
 )
@@ -177,6 +178,16 @@ def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
     # and with no effect it is the base model's own evidence
     ((logz0, _),) = linearized_evidence(at, {}, [((), base_priors)])
     assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_log_sum_exp_is_scipys_bit_for_bit(seed):
+    # a noise marginal's terms: spread over tens to thousands, some tied at the largest
+    rng = np.random.default_rng(seed)
+    a = rng.normal(-1e3, 10.0 ** (seed + 1), 401)
+    a[rng.integers(0, 401, 3)] = a.max()
+    assert log_sum_exp(a) == float(special.logsumexp(a))
+    assert log_sum_exp(np.array([2.5])) == 2.5
 
 
 @pytest.mark.parametrize("lo, hi", [(0.0, math.inf), (-1.0, 2.5), (-math.inf, 0.3)])

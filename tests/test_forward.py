@@ -9,7 +9,7 @@ import pytest
 from tawarp import reference
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import Core, CoreError, core_from_dict, load_core
-from tawarp.model.forward import steady_temperature, transfer_matrices
+from tawarp.model.forward import distinct_columns, steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
 HEAT = {
@@ -487,3 +487,17 @@ def test_evaluate_distinct_serves_the_columns_it_computed_before_bit_for_bit(mon
     T = eng.evaluate_distinct(later)
     assert computed == [1]
     np.testing.assert_array_equal(T, Engine(core, FREQS, names, settings).evaluate_distinct(later))
+
+
+def test_distinct_columns_are_numpys_unique_columns():
+    # a batch's columns: repeats (a set asked for twice), -0.0 beside 0.0 (equal values),
+    # and columns that differ in a late row only; against np.unique along the axis
+    rng = np.random.default_rng(3)
+    base = rng.integers(0, 3, (5, 40)).astype(float)
+    base[:, 7] = 0.0
+    base[:, 8] = -0.0
+    key = base[:, rng.integers(0, 40, 120)]
+    _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
+    got_first, got_column = distinct_columns(key)
+    np.testing.assert_array_equal(got_first, first)
+    np.testing.assert_array_equal(got_column, column.reshape(-1))

@@ -51,6 +51,21 @@ def test_tmatrix_kind_predicts_the_reference():
     assert kind.coef.tolist()[:8] == [0, 1, 2, 3, 0, 1, 2, 3] and kind.group[-1] == 40.0 and kind.freq[4] == F[1]
 
 
+def test_tmatrix_kind_computes_only_the_heat_inputs_of_the_rows_asked_for():
+    # a set whose rows are the Q = 0 ones alone gets no heated T-matrix (NaN at Q = 40 W):
+    # its Q = 0 values, and every value of a set that asks for all rows, are those of the
+    # full prediction bit for bit (each column is computed on its own)
+    kind = TMatrixKind(tmatrix_data(CORE, F, (0.0, 40.0)), CORE, CPU)
+    vals = {"stack.porosity": np.array([0.85, 0.9, 0.88]), "stack.h": np.array([80.0, 200.0, 120.0])}
+    cold = kind.first_step_rows()
+    full = kind.predict(vals, 3)
+    part = kind.predict(vals, 3, rows=[cold, None, cold])
+    heated = np.flatnonzero(kind.group > 0)
+    np.testing.assert_array_equal(part[:, cold], full[:, cold])
+    np.testing.assert_array_equal(part[1], full[1])
+    assert np.isnan(part[[0, 2]][:, heated]).all() and np.isfinite(full).all()
+
+
 def test_impedance_kind_predicts_the_reference(tmp_path):
     # Zs = -Tuu/Tup S/(rho0 c0) of the reference's one-segment layer, two thicknesses
     data = [ImpedanceData(F, np.ones(F.size), L, 293.15, 101325.0, {}, f"<{L}>") for L in (0.02, 0.05)]

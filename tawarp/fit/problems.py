@@ -62,7 +62,9 @@ class KindProblems:
     """The fits ``specs`` = [(params, effect, x0), ...] of one kind as one batch of
     :class:`tawarp.fit.lm.LMProblems`; a spec may carry its own rows as a fourth item
     ((params, effect, x0, rows): held-out and resampled refits in the same batch; rows may
-    repeat, a bootstrap's weights), the others fit ``rows``.
+    repeat, a bootstrap's weights), the others fit ``rows``. A fit that sees some rows alone
+    asks a kind with :attr:`MeasurementKind.predicts_rows` for those (its model values at
+    the others may then be NaN: a core's Q = 0 rows alone cost no heated T-matrices).
 
     z is x padded with zeros to the largest p of the batch, the padding pinned by the bounds
     ``zlo = zhi = 0`` (zero Jacobian columns: it never moves and adds nothing to the step
@@ -89,6 +91,9 @@ class KindProblems:
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
         self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
+        #: per fit, the rows its predictions need where the kind leaves out the others'
+        #: work (:attr:`MeasurementKind.predicts_rows`) and the fit sees some rows alone
+        self.needed = [r if kind.predicts_rows and np.unique(r).size < kind.y.size else None for r in self.rows]
         self.specs = [tuple(sp[:3]) for sp in specs]
         fixed = dict(fixed or {})
         self.groups: dict = {}
@@ -143,19 +148,28 @@ class KindProblems:
             todo = [i for i, (c, _) in enumerate(requests) if c in members]
             if not todo:
                 continue
-            blocks = []
-            for i in todo:
-                c, X = requests[i]
-                n = X.shape[0]
-                arr = {k: np.full(n, float(v)) for k, v in self.base_vals[key].items()}
-                for j, par in enumerate(self.specs[c][0]):
-                    par.assign(par.value(X[:, j]), arr)
-                blocks.append((i, n, arr))
-            values = {k: np.concatenate([b[2][k] for b in blocks]) for k in blocks[0][2]}
-            effect = self.specs[requests[todo[0]][0]][1] if key is not None else None
-            Y = self.kind.predict(values, sum(b[1] for b in blocks), effect)
+            # every set at the structure's base values, each fit's block then at its own
+            sizes = [requests[i][1].shape[0] for i in todo]
+            total = sum(sizes)
+            values = {k: np.full(total, float(v)) for k, v in self.base_vals[key].items()}
             k0 = 0
-            for i, n, _ in blocks:
+            for i, n in zip(todo, sizes):
+                c, X = requests[i]
+                own: dict = {}
+                for j, par in enumerate(self.specs[c][0]):
+                    par.assign(par.value(X[:, j]), own)
+                for k, v in own.items():
+                    values[k][k0 : k0 + n] = v
+                k0 += n
+            effect = self.specs[requests[todo[0]][0]][1] if key is not None else None
+            needed = [self.needed[requests[i][0]] for i in todo]
+            if any(r is not None for r in needed):
+                rows = [r for n, r in zip(sizes, needed) for _ in range(n)]
+                Y = self.kind.predict(values, total, effect, rows=rows)
+            else:
+                Y = self.kind.predict(values, total, effect)
+            k0 = 0
+            for i, n in zip(todo, sizes):
                 out[i] = Y[k0 : k0 + n]
                 k0 += n
         return out

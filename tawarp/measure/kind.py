@@ -63,11 +63,17 @@ class MeasurementKind:
     #: columns within one :meth:`predict` call: the fits evaluate an LM trial and its
     #: neighbours in one call (:class:`tawarp.fit.problems.KindProblems`), not the trial first
     neighbours_share_columns: bool = False
+    #: :meth:`predict` takes ``rows``, the rows of each set that are needed, and leaves out
+    #: the work of the others (the fits on some rows alone pass them,
+    #: :class:`tawarp.fit.problems.KindProblems`)
+    predicts_rows: bool = False
 
-    def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
+    def predict(self, values: dict, n: int, effect=None, rows: list | None = None) -> np.ndarray:
         """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}
         (missing names take the core's values); ``effect`` an
-        :class:`tawarp.model.effects.Effect` whose ``transform`` changes the structure."""
+        :class:`tawarp.model.effects.Effect` whose ``transform`` changes the structure.
+        ``rows`` (kinds with :attr:`predicts_rows`): None, or per set the row indices whose
+        values are needed (None: all); a set's other values may then be NaN."""
         raise NotImplementedError
 
     def default_names(self) -> list[str]:

@@ -9,6 +9,7 @@ T-matrices for every (parameter set, heat input). Files: :func:`read_tmatrix_csv
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 
@@ -39,6 +40,14 @@ def core_for(data, core: Core | str | None, path) -> Core:
     return load_core(name)
 
 
+@functools.lru_cache(maxsize=64)
+def structure_of(transform, core: Core) -> Core:
+    """``transform(core)``, a structural effect's core (:attr:`Effect.transform`), kept per
+    (transform, core): a fit's every launch asks for the same one, and building a core (its
+    checks) costs more than a launch's host work."""
+    return transform(core)
+
+
 class TMatrixKind(MeasurementKind):
     """Core T-matrix data ``data`` (:class:`TMatrixData`) of ``core``; ``settings`` of the
     forward model (adaptive cells are fixed per segment: :func:`smooth_settings`)."""
@@ -47,6 +56,7 @@ class TMatrixKind(MeasurementKind):
     group_name = "Q_W"
     coef_names = COEFFICIENTS
     groups_are_heat_inputs = True
+    predicts_rows = True
 
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
         self.data, self.core = data, core
@@ -61,6 +71,7 @@ class TMatrixKind(MeasurementKind):
         self.group = np.repeat(data.heat_input, 4)
         self.coef = np.tile(np.arange(4), nr)
         self._qi = np.searchsorted(self.Qs, data.heat_input)
+        self._row_qi = np.repeat(self._qi, 4)  # each row's heat input, an index into Qs
         self._fi = np.searchsorted(self.freqs, data.freq)
         if data.sigma is not None:
             scale = np.array([[1.0, 1.0 / self.Zc], [self.Zc, 1.0]])  # sigma of the dimensionless values
@@ -134,17 +145,21 @@ class TMatrixKind(MeasurementKind):
             dataclasses.replace(self.settings, cells=None) if self.settings.cells is None else self.settings,
         )
 
-    def predict(self, values: dict, n: int, effect=None) -> np.ndarray:
+    def predict(self, values: dict, n: int, effect=None, rows: list | None = None) -> np.ndarray:
         """Dimensionless coefficients (n, rows) of ``n`` parameter sets; the calibration
         effect's gain g (``calibration.gain`` exp(i ``calibration.phase``), see
         :func:`tawarp.model.effects.calibration_effect`) multiplies all four (g = 1 + 0i:
         exactly the uncalibrated values); a stack's ``porosity_gradient`` splits it into
-        parts (:func:`tawarp.model.effects.graded_parts`)."""
+        parts (:func:`tawarp.model.effects.graded_parts`). ``rows``
+        (:meth:`MeasurementKind.predict`): a set's T-matrices at the heat inputs none of its
+        rows reads are not computed (NaN there): the loop's fits of the Q = 0 rows alone and
+        of one heat input each (each column is computed on its own: the others' values are
+        the same bit for bit)."""
         values = dict(values)
         gain = values.pop(CALIBRATION_GAIN, None)
         phase = values.pop(CALIBRATION_PHASE, None)
         frame = {k: values.pop(k) for k in list(values) if k.endswith((".frame_modulus", ".frame_loss_factor"))}
-        core = effect.transform(self.core) if effect is not None and effect.transform else self.core
+        core = structure_of(effect.transform, self.core) if effect is not None and effect.transform else self.core
         whole = core
         core, values = graded_parts(whole, values, n)
         settings = self.settings
@@ -153,13 +168,21 @@ class TMatrixKind(MeasurementKind):
         names = tuple(sorted(values))
         eng = get_engine(core, self.freqs, list(names), settings)
         nq = len(self.Qs)
+        per_set = np.empty((len(names), n))
+        for j, k in enumerate(names):
+            per_set[j] = values[k]
         table = np.empty((1 + len(names), n * nq))
         table[0] = np.tile(self.Qs, n)
-        for j, k in enumerate(names):
-            table[1 + j] = np.repeat(np.broadcast_to(np.asarray(values[k], dtype=float), (n,)), nq)
+        table[1:] = np.repeat(per_set, nq, axis=1)
         # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
         # input of 0 does not read share one column
-        T = eng.evaluate_distinct(table).reshape(n, nq, len(self.freqs), 2, 2)
+        needed = self._needed_heat_inputs(rows, n).reshape(-1)
+        if needed.all():
+            T = eng.evaluate_distinct(table)
+        else:
+            T = np.full((n * nq, len(self.freqs), 2, 2), np.nan, dtype=np.complex128)
+            T[needed] = eng.evaluate_distinct(table[:, needed])
+        T = T.reshape(n, nq, len(self.freqs), 2, 2)
         if frame:
             T = self._with_elastic_frame(T, values, frame, n)
         Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
@@ -168,6 +191,20 @@ class TMatrixKind(MeasurementKind):
             ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
             Y = Y * (g * np.exp(1j * ph))[:, None]
         return Y
+
+    def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:
+        """(n, heat inputs) bool: the heat inputs whose rows each set's ``rows`` (None: all,
+        the default of every set) holds."""
+        out = np.ones((n, len(self.Qs)), dtype=bool)
+        if rows is None:
+            return out
+        seen: dict = {}  # a fit's sets share its rows' array
+        for i, r in enumerate(rows):
+            if r is not None:
+                if id(r) not in seen:
+                    seen[id(r)] = np.bincount(self._row_qi[r], minlength=len(self.Qs)) > 0
+                out[i] = seen[id(r)]
+        return out
 
     def _with_elastic_frame(self, T: np.ndarray, values: dict, frame: dict, n: int) -> np.ndarray:
         """``T`` (n, nq, m, 2, 2) with the sample's 2-port replaced by the Biot 2-port

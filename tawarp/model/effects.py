@@ -23,6 +23,7 @@ The kernel-level fields are documented at :data:`tawarp.model.fields.EFFECT_OFF`
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -588,12 +589,12 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
         k.rpartition(".")[0]: np.broadcast_to(np.asarray(values.pop(k), dtype=float), (n,))
         for k in [k for k in values if k.endswith(".porosity_gradient")]
     }
-    segs = []
+    split = []
     for seg in core.segments:
         g = grads.get(seg.name)
         if g is None or not np.any(g):
-            segs.append(seg)
             continue
+        split.append(seg.name)
         if seg.heater or not seg.is_porous:
             raise ValueError(f"{core.source}: a porosity gradient needs a porous segment that is not the heater")
         own = {k.partition(".")[2]: values.pop(k) for k in [k for k in values if k.partition(".")[0] == seg.name]}
@@ -617,11 +618,6 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
         for j in range(parts):
             name = f"{seg.name}_part{j + 1}"
             first = j == 0
-            segs.append(
-                dataclasses.replace(
-                    seg, name=name, length=seg.length / parts, contact_resistance=seg.contact_resistance * first
-                )
-            )
             phi_j = porosity(0.5 * (ends[j] + ends[j + 1]))
             lam_j = _log_mean(lam(ends[j]), lam(ends[j + 1]))
             values[f"{name}.porosity"] = phi_j
@@ -629,9 +625,33 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
             values[f"{name}.length"] = length * (ends[j + 1] - ends[j])
             for fld, v in own.items():
                 values[f"{name}.{fld}"] = v if (first or fld != "contact_resistance") else 0.0 * np.asarray(v)
-    if len(segs) == len(core.segments):
+    if not split:
         return core, values
-    return Core(tuple(segs), core.gas, core.radius, core.source, core.pinned, core.priors), values
+    return split_core(core, tuple(split), parts), values
+
+
+@functools.lru_cache(maxsize=64)
+def split_core(core: Core, names: tuple[str, ...], parts: int) -> Core:
+    """``core`` with each segment of ``names`` split into ``parts`` parts ``SEG_part1`` ...
+    of equal length, each with every value of SEG (the contact resistance on the first part
+    only): :func:`graded_parts`' structure, whose own values set the parts' lengths and
+    fields. Kept per (core, names, parts): a fit's every launch asks for the same one, and a
+    core's checks cost more than its launch's host work."""
+    segs = []
+    for seg in core.segments:
+        if seg.name not in names:
+            segs.append(seg)
+            continue
+        for j in range(parts):
+            segs.append(
+                dataclasses.replace(
+                    seg,
+                    name=f"{seg.name}_part{j + 1}",
+                    length=seg.length / parts,
+                    contact_resistance=seg.contact_resistance * (j == 0),
+                )
+            )
+    return Core(tuple(segs), core.gas, core.radius, core.source, core.pinned, core.priors)
 
 
 def graded_cells(cells: dict, core: Core) -> dict:

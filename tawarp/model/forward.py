@@ -135,6 +135,22 @@ WARM_SETS = 1024
 WARM_RADIUS = 0.1
 
 
+def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(first, column) of the distinct columns of ``key`` (rows, n), as ``np.unique(key,
+    axis=1, return_index=True, return_inverse=True)`` gives them (sorted by their rows, the
+    first row leading; ``first`` each one's first column, ``column`` (n,) which one each
+    column is), from one stable lexicographic sort: ``np.unique`` along an axis sorts the
+    columns as records, several times slower on a fit's batch."""
+    n = key.shape[1]
+    order = np.lexsort(key[::-1]) if key.shape[0] else np.arange(n)
+    ranked = key[:, order]
+    new = np.ones(n, dtype=bool)
+    new[1:] = np.any(ranked[:, 1:] != ranked[:, :-1], axis=0)
+    column = np.empty(n, dtype=np.int64)
+    column[order] = np.cumsum(new) - 1
+    return order[new], column
+
+
 class WarmStarts:
     """The converged nodal excesses (``theta_columns`` each) of the last ``limit`` sets whose
     heat solve iterates, of one engine, as starts for later sets near them (a warm start,
@@ -571,6 +587,7 @@ class Engine:
         self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         self._raised_share = INITIAL_RAISED_SHARE  # of the last evaluation's first rerun (RERUN_ROOM)
+        self._point_counts: dict = {}  # _fixed_point_counts per number of grid columns
         # queue each rerun of the error estimate before its count is read back (_adapted): a
         # GPU's launches run behind the host, which would wait on each read; a CPU's launch has
         # ended when it returns, so there the count costs nothing and a rerun takes its sets alone
@@ -649,7 +666,16 @@ class Engine:
         ``start``: the heat solve's start per set (:meth:`heat`)."""
         parts = self._cpu_parts(varying.shape[1])
         if parts > 1:
-            return self._evaluate_threaded(varying, parts, out, start)
+            T, params, theta = self._host_threaded(varying, parts, start)
+            if out is None:
+                out = wp.array(T, dtype=wp.float64, device=self.device)
+            else:
+                out.assign(T)
+            return (
+                out,
+                wp.array(params, dtype=wp.float64, device=self.device),
+                wp.array(theta, dtype=wp.float64, device=self.device),
+            )
         return self.evaluate_serial(varying, out, start)
 
     def evaluate_distinct(self, varying: np.ndarray) -> np.ndarray:
@@ -666,12 +692,12 @@ class Engine:
         cold = key[0] == 0.0
         if self.heat_only.size and cold.any():
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
-        _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
+        first, column = distinct_columns(key)
         table = np.asarray(varying, dtype=np.float64)[:, first]
         if not wp.get_device(self.device).is_cpu:
             return self._computed(table)[column.reshape(-1)]
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
-        ids = [(self.number, key[:, j].tobytes()) for j in first]
+        ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(key[:, first].T)]
         T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
         todo = []
         for j, known in enumerate(_MEMO.get(ids)):
@@ -690,10 +716,15 @@ class Engine:
         near them, and their converged excesses are kept."""
         table = np.ascontiguousarray(table)
         start = None if self.warm is None else self.warm.starts(table)
-        out, _, theta = self.evaluate(table, start=start)
+        parts = self._cpu_parts(table.shape[1])
+        if parts > 1:  # the threads' host arrays as they are (no device arrays made of them)
+            T, _, theta = self._host_threaded(table, parts, start, params=False)
+        else:
+            out, _, w_theta = self.evaluate_serial(table, start=start)
+            T, theta = out.numpy(), w_theta.numpy()
         if self.warm is not None:
-            self.warm.put(table, theta.numpy())
-        return out.numpy().view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
+            self.warm.put(table, theta)
+        return T.view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
 
     def _cpu_parts(self, n: int) -> int:
         """How many threads a CPU batch of n sets is split over (1 on a GPU or for small
@@ -718,7 +749,11 @@ class Engine:
         rest = [_thread_pool().submit(one, b) for b in blocks[1:]]
         return [one(blocks[0])] + [f.result() for f in rest]
 
-    def _evaluate_threaded(self, varying, parts: int, out, start: np.ndarray | None = None):
+    def _host_threaded(self, varying, parts: int, start: np.ndarray | None = None, params: bool = True) -> tuple:
+        """(T (n, m, 8), params, theta) of :meth:`evaluate` as host arrays, the batch split
+        over ``parts`` threads; ``params`` False: None for them (a set's expanded parameters,
+        about 40 rows a segment, are the largest of the three and a caller of T alone does
+        not read them)."""
         table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
         # the sets dealt to the threads' blocks like cards (block b takes sets b, b + parts, ...):
         # a caller's batch groups sets of unequal work (without heat input a fraction of a
@@ -726,26 +761,20 @@ class Engine:
         # it left one thread idle for up to half of a launch; each set is computed on its own,
         # so the T-matrices are the same bit for bit
         deal = np.concatenate([np.arange(b, table.shape[1], parts) for b in range(parts)])
-        one = lambda b: tuple(  # noqa: E731
-            a.numpy()
-            for a in self.evaluate_serial(
+
+        def one(b):
+            out, w_params, theta = self.evaluate_serial(
                 np.ascontiguousarray(table[:, deal[b]]), start=None if start is None else start[deal[b]]
             )
-        )
+            return out.numpy(), w_params.numpy() if params else None, theta.numpy()
+
         done = self._threaded(one, table, parts)
         back = np.argsort(deal)
         T = np.concatenate([r[0] for r in done])[back]
-        params = np.concatenate([r[1] for r in done], axis=1)[:, back]
         theta = np.concatenate([r[2] for r in done])[back]
-        if out is None:
-            out = wp.array(T, dtype=wp.float64, device=self.device)
-        else:
-            out.assign(T)
-        return (
-            out,
-            wp.array(params, dtype=wp.float64, device=self.device),
-            wp.array(theta, dtype=wp.float64, device=self.device),
-        )
+        if not params:
+            return T, None, theta
+        return T, np.concatenate([r[1] for r in done], axis=1)[:, back], theta
 
     def evaluate_serial(
         self, varying, out: wp.array | None = None, start: np.ndarray | None = None
@@ -978,12 +1007,16 @@ class Engine:
         input and its imposed ends differ (a fit's heated sets: no host round trip per
         evaluation). Slots beyond a set's own return at once, so the T-matrices are the same
         bit for bit (tests/test_forward.py). The fixed counts lie in [1, MAX_CELLS]
-        (:meth:`ForwardSettings.cells_per_segment`): nothing to refuse."""
-        flags = structure_flags(self.core)
-        varies = (flags[:, layout.F_THERMAL] != 0) | (flags[:, layout.F_IMPOSED] != 0)
-        cells = self.settings.cells_per_segment(self.core).astype(np.int64)
-        grids = columns // len(self.core.segments)
-        return grids * int(np.where(varies, 3 * cells, 1).sum()), grids * int(np.where(varies, cells, 1).sum())
+        (:meth:`ForwardSettings.cells_per_segment`): nothing to refuse. Kept per ``columns``
+        (every launch of the engine asks for the same)."""
+        if columns not in self._point_counts:
+            flags = structure_flags(self.core)
+            varies = (flags[:, layout.F_THERMAL] != 0) | (flags[:, layout.F_IMPOSED] != 0)
+            cells = self.settings.cells_per_segment(self.core).astype(np.int64)
+            grids = columns // len(self.core.segments)
+            points, slots = np.where(varies, 3 * cells, 1).sum(), np.where(varies, cells, 1).sum()
+            self._point_counts[columns] = grids * int(points), grids * int(slots)
+        return self._point_counts[columns]
 
     def _refuse_cells(self, params: wp.array, cells: np.ndarray):
         """Raise :class:`~tawarp.model.validity.ModelValidityError` for the first set whose
