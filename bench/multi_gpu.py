@@ -66,7 +66,11 @@ own seconds of each part (``island_sampler_seconds``, ``island_evaluation_second
 ``island_storage_seconds``, ``island_trial_store_seconds``).
 
 Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
-NUMA node where the host says (:func:`tawarp.distributed.near_gpu`).
+NUMA node where the host says (:func:`tawarp.distributed.near_gpu`). Each case's
+``<case>_gpu_clocks`` has, per GPU, its SM clock while busy, its highest power and
+temperature and the clock event reasons that held it (``bench/_gpu_clocks.py``, sampled by
+``nvidia-smi`` every 50 ms over the whole case, warm-up included): whether the GPUs of a
+row run at one GPU's clocks.
 
 ``--cluster threads`` runs fits, evaluations and the sweep on worker threads of this
 process instead (``local_cluster(processes=False)``: one GIL; the islands stay on
@@ -106,6 +110,7 @@ from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, 
 from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices
+from _gpu_clocks import GpuClocks
 from _results import write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
@@ -897,7 +902,7 @@ def main(argv=None) -> int:
 
     dog = Watchdog(args.timeout, save)
     failed = False
-    with tempfile.TemporaryDirectory(prefix="tawarp_multi_gpu_") as tmp:
+    with tempfile.TemporaryDirectory(prefix="tawarp_multi_gpu_") as tmp, GpuClocks() as clocks:
         bench = Bench(args, tmp)
         t = time.perf_counter()
         compile_here(bench, devices[0])
@@ -920,7 +925,9 @@ def main(argv=None) -> int:
                     client.get_task_stream()  # the scheduler records the tasks from now on (phases())
                     for c in group:
                         try:
+                            w0 = time.time()
                             row.update(getattr(bench, c)(client, k))
+                            row[f"{c}_gpu_clocks"] = clocks.between(w0, time.time())
                         except Exception as e:  # a worker killed, out of memory: recorded, the rest goes on
                             row["errors"][c] = f"{type(e).__name__}: {e}"
                             print(f"multi_gpu: {c} on {k} workers failed: {row['errors'][c]}", file=sys.stderr)
