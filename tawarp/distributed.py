@@ -513,8 +513,9 @@ def _fit_chunk(task: tuple, core, freqs, names, kw: dict, common: dict | None = 
     return (res, None) if out is None else _shared_part(res, out, at)
 
 
-#: Share of a worker's memory limit that the fit data it page-locks may take at most
-#: (:func:`lock_for_uploads`): memory the kernel cannot swap.
+#: Share of a worker's memory limit that the fit data it page-locks (:func:`lock_for_uploads`)
+#: and its kept mappings of pooled result files (:func:`mapping_budget`) may take at most:
+#: memory the kernel cannot swap.
 LOCKED_SHARE = 0.5
 
 _FITTED: dict = {}  # {id(owner): weak reference} of the data arrays fitted here once
@@ -557,7 +558,8 @@ def lock_for_uploads(Y: np.ndarray, device) -> bool:
     fitted again so; data sent with each fit is new memory each time, never locked, and a
     fit done once pays nothing. Returns whether ``Y``'s memory is page-locked now: not for
     data the fit copies first (other than contiguous complex128), past :data:`LOCKED_SHARE`
-    of the worker's memory limit, or where the driver refuses."""
+    of the worker's memory limit (with the kept mappings of :func:`mapping_budget`), or
+    where the driver refuses."""
     import ctypes
 
     import warp as wp
@@ -572,7 +574,7 @@ def lock_for_uploads(Y: np.ndarray, device) -> bool:
     with _LOCKS:
         if key in _LOCKED:
             return True
-        if sum(_LOCKED.values()) + owner.nbytes > LOCKED_SHARE * limit:
+        if sum(_LOCKED.values()) + _MAPPED_BYTES + owner.nbytes > LOCKED_SHARE * limit:
             return False
         name = str(wp.get_device(device))
         address = owner.ctypes.data
@@ -1419,9 +1421,10 @@ class ChunkFiles:
                 pass
 
 
-#: At most this many files' mappings kept per process (:func:`_written_mapping`); on a GPU
-#: worker each is page-locked (:func:`_device_address`), host memory the kernel cannot swap.
-MAPPED_FILES = 64
+#: At most this many files' mappings kept per process (:func:`_written_mapping`): a bound
+#: on its count of mappings, which the kernel limits (``vm.max_map_count``). Their bytes
+#: are bounded by :func:`mapping_budget`.
+MAPPED_FILES = 4096
 
 
 @dataclasses.dataclass
@@ -1439,6 +1442,24 @@ class _Kept:
 #: {path: _Kept} of the pooled files this process has written (:func:`_written_mapping`).
 _WRITTEN: dict = {}
 _WRITTEN_LOCK = threading.RLock()
+_MAPPED_BYTES = 0  # the bytes of the mappings in _WRITTEN (read without the lock: an int)
+
+
+def mapping_budget() -> float:
+    """The bytes this process's kept mappings of pooled files may hold: on a GPU worker
+    each is page-locked (:func:`_device_address`), memory the kernel cannot swap, so they
+    share :data:`LOCKED_SHARE` of the worker's memory limit (of the machine's memory
+    outside a worker) with the fit data locked for uploads (:func:`lock_for_uploads`).
+    A worker's chunks of one call should all fit: where they do not, each call maps,
+    page-locks, unlocks and unmaps a file per chunk again (with room for 64 files, a
+    one-GPU call of 2^29 design points, 128 chunks and 17 GB, ran at half the rate of one
+    of 2^28: bench/README.md, section Several GPUs)."""
+    limit = getattr(getattr(_worker(), "memory_manager", None), "memory_limit", None)
+    if not limit:
+        limit = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    with _LOCKS:
+        locked = sum(_LOCKED.values())
+    return LOCKED_SHARE * limit - locked
 
 
 def _written_mapping(path: str, size: int) -> mmap.mmap | None:
@@ -1448,7 +1469,9 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
     kept), else None (a fresh file: the write call allocates its pages the cheapest way).
     Mappings of files their pool has unlinked are dropped here and every
     :data:`HOUSEKEEPING_SECONDS` seconds (:func:`drop_unlinked_mappings`); at most
-    :data:`MAPPED_FILES` are kept."""
+    :data:`MAPPED_FILES` are kept, holding at most :func:`mapping_budget` bytes (the longest
+    kept dropped first; None for a file larger than that)."""
+    global _MAPPED_BYTES
     with _WRITTEN_LOCK:
         _drop_unlinked()
         held = _WRITTEN.get(path)
@@ -1457,6 +1480,11 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
             held = None
         if held is not None:
             return held.mapping
+        budget = mapping_budget()
+        if size > budget:
+            return None
+        while len(_WRITTEN) >= MAPPED_FILES or _MAPPED_BYTES + size > budget:
+            _drop_mapping(next(iter(_WRITTEN)))  # (the longest kept)
         try:
             fd = os.open(path, os.O_RDWR)
         except FileNotFoundError:
@@ -1474,9 +1502,8 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
             m.madvise(MADV_POPULATE_WRITE)  # (page tables in one call, not a fault per page)
         except OSError:
             pass
-        while len(_WRITTEN) >= MAPPED_FILES:
-            _drop_mapping(next(iter(_WRITTEN)))
         _WRITTEN[path] = _Kept(fd, m)
+        _MAPPED_BYTES += size
         return m
 
 
@@ -1542,7 +1569,9 @@ def _drop_unlinked() -> None:
 
 
 def _drop_mapping(path: str) -> None:
+    global _MAPPED_BYTES
     held = _WRITTEN.pop(path)
+    _MAPPED_BYTES -= len(held.mapping)
     if held.address is not None and held.device != "cpu":  # (page-locked: unlocked before it is unmapped)
         import warp as wp
 

@@ -679,6 +679,53 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
         assert not any(f in _WRITTEN for f in files1 + files2 + files4)
 
 
+@pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
+def test_kept_mappings_hold_at_most_their_budget_and_every_chunk_is_written(monkeypatch):
+    # with room for two of a call's three chunk files, a writer keeps the mappings of two
+    # (page-locked memory on a GPU worker: mapping_budget) and writes the third through the
+    # write call; with room for none, every chunk goes through the write call; the results
+    # read back exactly either way
+    import gc
+    import mmap
+    import tempfile
+
+    import tawarp.distributed as dist
+
+    page = mmap.PAGESIZE
+    n = 3 * page
+    layout = {"gradient": ("<f8", ())}
+    starts = (0, page, 2 * page)
+    chunk_bytes = 8 * page
+    memory = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+
+    def call(pool, seed):
+        rows = {"gradient": np.random.default_rng(seed).standard_normal(n)}
+        out = dist.SharedColumns("", n, layout, chunks=starts)
+        out = dist.SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+        for lo in starts:
+            out.write(int(lo), {k: v[lo : lo + page] for k, v in rows.items()})
+        back = out.columns(on_release=lambda: pool.give_back(out.files))
+        assert np.array_equal(back["gradient"], rows["gradient"])
+        return back, out.files
+
+    for room, kept in ((2.5, 2), (0.5, 0)):
+        dist.drop_unlinked_mappings()
+        monkeypatch.setattr(dist, "LOCKED_SHARE", room * chunk_bytes / memory)
+        with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
+            pool = dist.ChunkFiles(folders=[folder])
+            back, _ = call(pool, 1)  # (fresh files: the write call)
+            del back
+            gc.collect()
+            back, files = call(pool, 2)  # (the same files again: through kept mappings where they fit)
+            assert sum(f in dist._WRITTEN for f in files) == kept, room
+            assert dist._MAPPED_BYTES <= dist.mapping_budget() + 1e-9
+            del back
+            gc.collect()
+            pool.close()
+        dist.drop_unlinked_mappings()
+        assert not any(f in dist._WRITTEN for f in files)
+
+
 def test_a_populated_mapping_writes_the_bytes_the_write_call_writes(tmp_path):
     # byte ranges that start inside a page past the first mapping granule and cross page
     # boundaries, written through populated mappings, leave the file byte for byte as the
