@@ -129,6 +129,7 @@ S.search(space, n_trials=64, batch=8, storage=journal, seed=7)
 
 
 @pytest.mark.parametrize("where,gen", [("store", 1), ("store", 3), ("study", 2)])
+@pytest.mark.filterwarnings("ignore:The value of `grace_period` might be too small:UserWarning")  # (1 s on purpose)
 def test_a_crash_mid_generation_loses_only_that_generation(tmp_path, monkeypatch, where, gen):
     """A process dies inside the write of generation ``gen`` (after its first column
     reached the file, the file never closed) or, at the run's end, while copying the
