@@ -812,26 +812,29 @@ def fit(
     names = list(names)
     Yarr = np.asarray(Y)
     N = 1 if Yarr.ndim == 2 else Yarr.shape[0]
+    # the starts, and z's scale from them (Problems.set_scale): a spread's geometric mean
     if start is None:
-        sized = dict(zip(names, spread_starts(core, names, n_starts, seed).T))
+        starts = spread_starts(core, names, n_starts, seed)  # (n_starts, p)
+        sized = dict(zip(names, starts.T))
+        scale = np.exp(np.mean(np.log(starts), axis=0))[None].repeat(N, 0)
     else:
-        sized = dict(zip(names, _as_start(start, names, N).T))
+        start_v = _as_start(start, names, N)
+        sized = dict(zip(names, start_v.T))
+        scale = start_v
     sized = with_ties(sized, ties)
     chosen = settings
     settings = smooth_settings(core, freqs, settings, {**sized, **(fixed or {})}, heat_input, FIT_K_FACTOR)
     problem_kw = dict(
         heat_input=heat_input, fixed=fixed, weights=weights, ties=ties, bounds=bounds, device=device, jacobian=jacobian
     )
-    prob = Problems(core, freqs, Y, names, settings=settings, **problem_kw)
+    prob = Problems(core, freqs, Y, names, settings=settings, scale=scale, **problem_kw)
     p = prob.p
     lm_kw = dict(damping=damping, xtol=xtol, gtol=gtol, max_iter=max_iter, progress=progress, max_sets=max_sets)
     data = np.arange(N)
     alt_v, alt_cost, alt_conv, alt_spread = [], [], [], []  # other runs per problem, for distinct minima
     if start is None:
-        starts = spread_starts(core, names, n_starts, seed)  # (n_starts, p)
         pid = np.repeat(data, n_starts)
         v0 = np.tile(starts, (N, 1))
-        prob.set_scale(np.exp(np.mean(np.log(starts), axis=0))[None].repeat(N, 0))
         st = levenberg_marquardt(prob, pid, prob.to_z(v0, pid), **lm_kw)
         cost_rank = np.where(st.converged, st.cost, np.inf)
         cost_rank = np.where(np.isfinite(cost_rank), cost_rank, np.where(np.isfinite(st.cost), st.cost * 1e30, np.inf))
@@ -844,8 +847,6 @@ def fit(
         alt_spread.append(np.ones((N, n_starts), dtype=bool))
         sel = best
     else:
-        start_v = _as_start(start, names, N)
-        prob.set_scale(start_v)
         pid = data
         st = levenberg_marquardt(prob, pid, prob.to_z(start_v, pid), **lm_kw)
         sel = data
