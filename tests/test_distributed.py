@@ -623,6 +623,21 @@ def test_chunk_files_read_back_as_one_column_each(tmp_path):
     assert np.array_equal(back["gradient"][2:], rows["gradient"][2:])
 
 
+def _pooled_call(pool, rows: dict, layout: dict, starts: tuple, chunk: int, order) -> tuple:
+    """A call's result ``rows`` written chunk by chunk (``chunk`` rows from each of
+    ``starts``, in ``order``) into files that ``pool`` lends, as
+    :meth:`tawarp.distributed.ClusterEvaluator.evaluate_sobol` writes them: (its columns,
+    whose files go back to the pool once they are let go; the files)."""
+    from tawarp.distributed import SharedColumns
+
+    n = len(next(iter(rows.values())))
+    out = SharedColumns("", n, layout, chunks=starts)
+    out = SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
+    for lo in order:
+        out.write(int(lo), {k: v[lo : lo + chunk] for k, v in rows.items()})
+    return out.columns(on_release=lambda: pool.give_back(out.files)), out.files
+
+
 @pytest.mark.skipif(not os.path.isdir("/dev/shm"), reason="pooled chunk files are reused in tmpfs")
 def test_pooled_chunk_files_are_written_again_only_once_let_go():
     # the files of a result still held are never lent again: a second call gets files of
@@ -633,7 +648,7 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
     import mmap
     import tempfile
 
-    from tawarp.distributed import _WRITTEN, ChunkFiles, SharedColumns, drop_unlinked_mappings
+    from tawarp.distributed import _WRITTEN, ChunkFiles, drop_unlinked_mappings
 
     page = mmap.PAGESIZE
     n = 2 * page + 5
@@ -646,12 +661,7 @@ def test_pooled_chunk_files_are_written_again_only_once_let_go():
             "gradient": np.random.default_rng(seed).standard_normal(n),
             "window": np.random.default_rng(seed + 1).standard_normal((n, 3)).astype(np.float32),
         }
-        out = SharedColumns("", n, layout, chunks=starts)
-        out = SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
-        for lo in rng.permutation(starts):
-            out.write(int(lo), {k: v[lo : lo + page] for k, v in rows.items()})
-        back = out.columns(on_release=lambda: pool.give_back(out.files))
-        return rows, back, out.files
+        return (rows, *_pooled_call(pool, rows, layout, starts, page, rng.permutation(starts)))
 
     with tempfile.TemporaryDirectory(dir="/dev/shm") as folder:
         pool = ChunkFiles(folders=[folder])
@@ -700,13 +710,9 @@ def test_kept_mappings_hold_at_most_their_budget_and_every_chunk_is_written(monk
 
     def call(pool, seed):
         rows = {"gradient": np.random.default_rng(seed).standard_normal(n)}
-        out = dist.SharedColumns("", n, layout, chunks=starts)
-        out = dist.SharedColumns("", n, layout, chunks=starts, files=pool.take(out.chunk_sizes()))
-        for lo in starts:
-            out.write(int(lo), {k: v[lo : lo + page] for k, v in rows.items()})
-        back = out.columns(on_release=lambda: pool.give_back(out.files))
+        back, files = _pooled_call(pool, rows, layout, starts, page, starts)
         assert np.array_equal(back["gradient"], rows["gradient"])
-        return back, out.files
+        return back, files
 
     for room, kept in ((2.5, 2), (0.5, 0)):
         dist.drop_unlinked_mappings()
