@@ -3,6 +3,10 @@ closed-form optima."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+import textwrap
+
 import numpy as np
 import pytest
 
@@ -378,3 +382,44 @@ def test_a_search_is_reproducible_from_its_seed(objectives):
     a, b = (search(space, objectives, n_trials=96, batch=16, seed=11, T_limit=450.0).best for _ in range(2))
     assert len(a) >= 1 and [x["params"] for x in a] == [x["params"] for x in b]
     assert [x["values"] for x in a] == [x["values"] for x in b]
+
+
+_TWO_THREADS = textwrap.dedent(
+    """
+    import threading
+    import numpy as np
+    import warp as wp
+    from tawarp.design.samplers import make_sampler
+
+    wp.config.quiet = True
+    wp.init()  # (in this thread, as a cluster does before its workers run)
+
+    def run(seed, out):
+        # CMA-ES on f = sum (x - 0.4)^2: its best after 20 generations of 16
+        s = make_sampler(3, 0, 16, seed, 1, device="cpu")
+        best = np.inf
+        for _ in range(20):
+            X = s.ask(16).numpy()
+            f = np.sum((X - 0.4) ** 2, axis=1)
+            s.tell(X, f[:, None], np.zeros(16))
+            best = min(best, float(f.min()))
+        out[seed] = best
+
+    together, alone = {}, {}
+    threads = [threading.Thread(target=run, args=(seed, together)) for seed in (0, 1)]
+    [t.start() for t in threads]
+    [t.join() for t in threads]
+    for seed in (0, 1):
+        run(seed, alone)
+    print(together == alone, together)
+    """
+)
+
+
+def test_samplers_made_in_two_threads_of_a_fresh_process_run_as_alone():
+    # the first samplers of a process load the kernels' modules as they record their
+    # launches; two made at once in threads (islands of a thread cluster) crashed the
+    # process (samplers._RECORD_LOCK); in a fresh process, so that the modules load there
+    p = subprocess.run([sys.executable, "-c", _TWO_THREADS], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr[-2000:]
+    assert p.stdout.splitlines()[-1].startswith("True"), p.stdout

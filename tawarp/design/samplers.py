@@ -24,6 +24,7 @@ Why a small Warp implementation rather than a GPU evolutionary library: docs/des
 
 from __future__ import annotations
 
+import threading
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -129,6 +130,15 @@ def _host(a) -> np.ndarray:
 MOMENT_SLICES = 32
 
 
+#: Held while a CMA-ES sampler makes its kernels and records its launches. Warp builds and
+#: loads a kernel's module at its first launch in the process, and a recorded launch keeps
+#: the code it was recorded with: two samplers made at once in threads of one process (the
+#: islands of a thread cluster) each built and loaded the modules, and the launches
+#: recorded against a copy that the other replaced crashed the process
+#: (``tests/test_samplers.py``, two samplers made in two threads of a fresh process).
+_KERNELS_LOCK = threading.Lock()
+
+
 class BatchCmaEs:
     """CMA-ES over ``dim`` unit-cube coordinates, one instance per category (``categories``
     0 or 1: none), population = ``batch`` split between categories (lambda each, mu =
@@ -179,7 +189,6 @@ class BatchCmaEs:
         self.state.history = put(np.full((K, horizon), np.inf))
         self.part = wp.zeros((K, MOMENT_SLICES, d + d * d), dtype=wp.float64, device=dev)
         self.category = put(np.repeat(np.arange(K), self.sizes), wp.int32)
-        self._eigh = eigh_kernel(d)
         self._w, self._V = (
             wp.empty((K, d), dtype=wp.float64, device=dev),
             wp.empty((K, d, d), dtype=wp.float64, device=dev),
@@ -196,7 +205,9 @@ class BatchCmaEs:
         self._F, self._viol = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
         self.generation = 0
         self._asked = None  # the last generation asked (Warp, on the device)
-        self._launches = self._record()
+        with _KERNELS_LOCK:
+            self._eigh = eigh_kernel(d)
+            self._launches = self._record()
 
     def _record(self) -> dict:
         """The generation's launches with their arguments packed once (Warp's recorded
