@@ -240,6 +240,9 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
         cluster = _process_cluster([_pinned_env(d) for d in devices])
         seen = ["cpu" if d == "cpu" else "cuda:0" for d in devices]  # each process sees its own GPU alone
     else:
+        # the worker threads share this process's Warp runtime: started here, once, before
+        # them (two threads starting it lazily at once can disturb a module load)
+        wp.init()
         cluster = distributed.LocalCluster(
             n_workers=len(devices), threads_per_worker=1, processes=False, dashboard_address=None
         )

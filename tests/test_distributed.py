@@ -972,3 +972,29 @@ def test_a_worker_near_its_memory_limit_gives_its_kept_heap_back():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ})
     assert run.returncode == 0, run.stderr
+
+
+def test_a_thread_cluster_starts_warp_before_its_workers():
+    # worker threads share one Warp runtime; two of them starting it lazily at once (their
+    # first launches) can disturb a module load, so local_cluster starts it first. In a
+    # process of its own, where nothing has started Warp yet
+    import subprocess
+    import textwrap
+
+    code = textwrap.dedent(
+        """
+        from warp._src import context
+        from tawarp.distributed import local_cluster
+
+        assert context.runtime is None
+        client = local_cluster(["cpu", "cpu"], processes=False)
+        try:
+            assert context.runtime is not None
+        finally:
+            cluster = client.cluster
+            client.close()
+            cluster.close()
+        """
+    )
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ})
+    assert run.returncode == 0, run.stderr
