@@ -51,6 +51,7 @@ import contextlib
 import dataclasses
 import errno
 import functools
+import glob
 import math
 import mmap
 import os
@@ -62,6 +63,11 @@ import time
 import uuid
 import weakref
 from collections import deque
+
+try:
+    import fcntl
+except ImportError:  # (Windows: no advisory locks; a killed process's files stay)
+    fcntl = None
 
 import numpy as np
 
@@ -1230,10 +1236,7 @@ class SharedColumns:
         if not self.files:
             paths += [f"{self.path}.{at}" for at in self.chunks]
         for path in paths:
-            try:
-                os.unlink(path)
-            except FileNotFoundError:
-                pass
+            unlink_owned(path)
 
     @classmethod
     def create(
@@ -1290,16 +1293,84 @@ def _shared_folder(size: int, folders=None) -> str | None:
     return None
 
 
+#: Names of the shared-memory files this package makes (:func:`_new_file`): ``PREFIX*.columns``.
+OWNED_PREFIX = "tawarp-held-"
+#: A file whose owner has gone is swept (:func:`sweep_orphans`) only when unchanged for this
+#: many seconds: a file another process has only just made may not hold its lock yet.
+ORPHAN_SECONDS = 60.0
+#: {path: descriptor} of the files this process made and keeps, each descriptor holding a
+#: shared advisory lock (``flock``) on its file until :func:`unlink_owned`: the kernel
+#: drops it when the process ends, however it ends, which tells :func:`sweep_orphans` so.
+_OWNED: dict[str, int] = {}
+_SWEPT: set[str] = set()  # the folders this process has swept
+_OWNED_LOCK = threading.Lock()
+
+
 def _new_file(folder: str, size: int) -> str:
-    """A new file of ``size`` bytes (no pages yet) in ``folder``: its path."""
+    """A new file of ``size`` bytes (no pages yet) in ``folder``, locked as this process's
+    until :func:`unlink_owned`: its path. The first file of a process in a folder sweeps
+    that folder's orphans first (:func:`sweep_orphans`)."""
     import tempfile
 
-    fd, path = tempfile.mkstemp(prefix="tawarp-", suffix=".columns", dir=folder)
+    with _OWNED_LOCK:
+        sweep = folder not in _SWEPT
+        _SWEPT.add(folder)
+    if sweep:
+        sweep_orphans(folder)
+    fd, path = tempfile.mkstemp(prefix=OWNED_PREFIX, suffix=".columns", dir=folder)
     try:
+        if fcntl is not None:
+            fcntl.flock(fd, fcntl.LOCK_SH)
         os.ftruncate(fd, size)
-    finally:
+    except BaseException:
         os.close(fd)
+        os.unlink(path)
+        raise
+    with _OWNED_LOCK:
+        _OWNED[path] = fd
     return path
+
+
+def unlink_owned(path: str) -> None:
+    """Unlink ``path`` where it is there (its pages stay where mapped) and, where this
+    process made it (:func:`_new_file`), let its lock go."""
+    with contextlib.suppress(FileNotFoundError):
+        os.unlink(path)
+    with _OWNED_LOCK:
+        fd = _OWNED.pop(path, None)
+    if fd is not None:
+        os.close(fd)
+
+
+def sweep_orphans(folder: str, unchanged: float = ORPHAN_SECONDS) -> list[str]:
+    """Unlink the files of ``folder`` that a process of this package made
+    (:func:`_new_file`) and that no living process keeps: those whose owner was killed
+    before it could unlink them (a client stopped by SIGKILL or the out-of-memory killer
+    mid-call leaves up to a call's results in ``/dev/shm``, memory no one frees until the
+    machine restarts). A file is an orphan when no process holds its lock (a lock, unlike a
+    process id, means the same in every PID namespace that shares the folder) and it has
+    not changed for ``unchanged`` seconds. Returns the paths unlinked."""
+    if fcntl is None:
+        return []
+    gone = []
+    for path in glob.glob(os.path.join(glob.escape(folder), OWNED_PREFIX + "*.columns")):
+        try:
+            fd = os.open(path, os.O_RDONLY)
+        except OSError:
+            continue
+        try:
+            if time.time() - os.fstat(fd).st_mtime < unchanged:
+                continue
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:  # its owner lives
+                continue
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+                gone.append(path)
+        finally:
+            os.close(fd)
+    return gone
 
 
 #: Seconds between two looks of a client at its :class:`DoneBoard`.
@@ -1356,8 +1427,7 @@ class DoneBoard:
         self.board = None
         with contextlib.suppress(BufferError):  # (a view still alive: the mapping goes with it)
             self._map.close()
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(self.path)
+        unlink_owned(self.path)
 
 
 class ChunkFiles:
@@ -1371,7 +1441,8 @@ class ChunkFiles:
     written again; :meth:`take` keeps at most one call's files free beside those lent and
     unlinks the rest; :meth:`close` unlinks them all (the pages of a result still held
     stay with its mapping). The files lie in ``/dev/shm`` (``folders``) while kept, named
-    ``tawarp-*.columns``: a process killed before :meth:`close` leaves them there."""
+    ``tawarp-held-*.columns``: a process killed before :meth:`close` leaves them there,
+    for the next process that makes such files to sweep (:func:`sweep_orphans`)."""
 
     def __init__(self, folders=None):
         self.folders = folders
@@ -1418,10 +1489,7 @@ class ChunkFiles:
     def _unlink(self, paths) -> None:
         for path in paths:
             self._files.pop(path, None)
-            try:
-                os.unlink(path)
-            except FileNotFoundError:
-                pass
+            unlink_owned(path)
 
 
 #: At most this many files' mappings kept per process (:func:`_written_mapping`): a bound

@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import pickle
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -998,3 +999,58 @@ def test_a_thread_cluster_starts_warp_before_its_workers():
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env={**os.environ})
     assert run.returncode == 0, run.stderr
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="advisory locks on a tmpfs")
+def test_files_of_a_killed_process_are_swept_and_a_living_ones_kept(tmp_path):
+    # a client killed mid-call leaves its shared-memory files; the next process's first
+    # file in that folder sweeps them (sweep_orphans), never those of a process alive, nor
+    # a file made so recently that its maker may not hold its lock yet
+    import signal
+    import subprocess
+    import textwrap
+
+    from tawarp.distributed import ChunkFiles, sweep_orphans
+
+    code = textwrap.dedent(
+        """
+        import os, signal, sys
+        from tawarp.distributed import ChunkFiles, DoneBoard
+        pool, board = ChunkFiles(folders=[sys.argv[1]]), DoneBoard(2, folders=[sys.argv[1]])
+        print(*pool.take([4096, 8192]), board.path, flush=True)
+        if sys.argv[2] == "kill":
+            os.kill(os.getpid(), signal.SIGKILL)
+        sys.stdin.read()  # alive until the test closes its input
+        pool.close()
+        board.close()
+        """
+    )
+    folder = str(tmp_path)
+
+    def start(how):
+        p = subprocess.Popen(
+            [sys.executable, "-c", code, folder, how], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True
+        )
+        return p, p.stdout.readline().split()
+
+    killed, dead = start("kill")
+    assert killed.wait(60) == -signal.SIGKILL
+    living, alive = start("live")
+    try:
+        assert len(dead) == len(alive) == 3 and all(os.path.exists(f) for f in dead + alive)
+        assert sweep_orphans(folder) == []  # all of them just made
+        for f in dead + alive:
+            os.utime(f, (time.time() - 3600, time.time() - 3600))
+        assert sorted(sweep_orphans(folder)) == sorted(dead)
+        assert not any(os.path.exists(f) for f in dead) and all(os.path.exists(f) for f in alive)
+        # a file of this process is its own, however old
+        pool = ChunkFiles(folders=[folder])
+        (mine,) = pool.take([4096])
+        os.utime(mine, (time.time() - 3600, time.time() - 3600))
+        assert sweep_orphans(folder) == [] and os.path.exists(mine)
+        pool.close()
+        assert not os.path.exists(mine)
+    finally:
+        living.stdin.close()
+        assert living.wait(60) == 0
+    assert os.listdir(folder) == []
