@@ -1,7 +1,7 @@
 """Warp kernel of the design objectives, evaluated on the heat grid after the heat solve.
 
 Per parameter set i (one thread), from the nodal temperatures of
-:meth:`tawarp.forward.Engine.heat` (exact at the nodes: exponentially fitted scheme):
+:meth:`tawarp.model.forward.Engine.heat` (exact at the nodes: exponentially fitted scheme):
 
 - ``out[i, GRADIENT]`` gradient across the stack ``(T(x3) - T(x2)) / l_s`` [K/m];
 - ``out[i, T_MAX]`` maximum temperature over the thermal domain [K]: the nodes, and inside

@@ -1,7 +1,7 @@
 """Gas laws as Warp functions.
 
 The constants come in a float64 array in the order of
-:meth:`tawarp.gas.GasConstants.as_tuple`: R_gas, cp, gamma, mu0, mu_exponent,
+:meth:`tawarp.model.gas.GasConstants.as_tuple`: R_gas, cp, gamma, mu0, mu_exponent,
 mu_sutherland, k0, k_exponent, k_sutherland. Transport laws:
 ``X(T) = X0 (T/T0)^a (1 + S/T0) / (1 + S/T)``, ``T0 = 273.15 K``.
 """

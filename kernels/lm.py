@@ -1,7 +1,7 @@
-"""Kernels of the batched Levenberg-Marquardt estimator (:mod:`tawarp.estimate`).
+"""Kernels of the batched Levenberg-Marquardt estimator (:mod:`tawarp.fit.estimate`).
 
 One LM iteration of a batch of independent least-squares problems is one forward
-launch (:class:`tawarp.forward.Engine`) framed by two kernels of this module:
+launch (:class:`tawarp.model.forward.Engine`) framed by two kernels of this module:
 
 1. :func:`build_sets` (one thread per parameter set) writes the Engine's varying table
    from the scaled variables ``z`` of the active problems: per problem its point and
@@ -56,7 +56,7 @@ def magnus_cells(
     k_factor: wp.float64,
     cells: wp.array2d(dtype=wp.int32),
 ):
-    """cells[i, s]: the Magnus cells the cascade kernel (``kernels.forward.transfer_kernel``)
+    """cells[i, s]: the Magnus cells the cascade kernel (:func:`tawarp.kernels.forward.make_transfer_kernel`'s)
     gives thermal segment s of parameter set i at angular frequency ``omega`` [rad/s],
     ``ceil(cell_density[i] (1 + k_factor k L + omega L / c_cold))`` with the heat model's decay
     rate k of :func:`segment_heat_coeffs` (wall conductance and every other term included;

@@ -1,7 +1,7 @@
 """Rank stack materials by the temperature gradient they reach, or by the heat input at
 which they start an engine, with uncertainty.
 
-Each material of a :class:`tawarp.catalogue.Catalogue` is put in the stack of one
+Each material of a :class:`tawarp.design.catalogue.Catalogue` is put in the stack of one
 reference core (default: the bundled ``rvc_foam`` layout: 4 cm stack, 1.3 cm hot
 exchanger, 10 cm buffer tube, so that only the material differs). Its uncertain
 parameters (porosity, pore radius, tortuosity, solid conductivity, h_s) are drawn

@@ -172,7 +172,7 @@ class DesignSpace:
         return out
 
     def varying_table(self, values: dict) -> np.ndarray:
-        """(1 + len(param_names), n) table for :class:`tawarp.forward.Engine`: row 0 the heat
+        """(1 + len(param_names), n) table for :class:`tawarp.model.forward.Engine`: row 0 the heat
         input. ``values``: variable name -> (n,) array; ``material`` as names or indices."""
         n = max(len(np.atleast_1d(a)) for a in values.values()) if values else 1
         names = self.param_names

@@ -80,7 +80,7 @@ def step_label(group: list[str]) -> str:
 @dataclass(eq=False)
 class LoopReport(Mapping):
     """The loop's answer (:func:`tawarp.loop.run_loop`). Its fields are report.json's keys
-    (docs/loop.md, "report.json"), except these, derived from them: ``error_before`` and
+    (docs/loop.md, "The report"), except these, derived from them: ``error_before`` and
     ``error_after``, ``accepted_steps``, ``chosen_effect``, ``best_model``,
     ``model_probabilities`` (the 20 most probable), ``group_probabilities``,
     ``supported_effects`` and ``indistinguishable``, ``parameters_before`` and

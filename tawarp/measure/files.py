@@ -300,7 +300,7 @@ def _write_matrix_csv(path, meta: dict, leading: dict, entries: dict, M: np.ndar
 
 # -- surface impedance -----------------------------------------------------------------
 def read_impedance_csv(path: str | os.PathLike) -> ImpedanceData:
-    """Read the surface impedance of a rigid-backed layer (docs/formats.md "Other measurement kinds").
+    """Read the surface impedance of a rigid-backed layer (docs/formats.md, "Surface impedance: CSV").
 
     Columns ``freq_Hz`` [Hz], ``Zs_re``, ``Zs_im`` (normalized by rho0 c0). Metadata:
     ``thickness`` [m] (required), ``convention`` (default exp(-iwt); exp(+iwt) is

@@ -12,7 +12,7 @@ W/(m^2 K)), the hot exchanger's length of each run. ``truth=`` overrides any val
 
 * Frequencies: 50-200 Hz for the ceramic, 30-500 Hz otherwise (``n_freqs`` = 60 points).
 * Heat inputs: 0, 10, 20, 40, 60, 80 W (RVC foam: 0, 4.5, 9, 13.5, 18 W).
-* Model: :func:`tawarp.forward.transfer_matrices` with ``cells`` = 48 Magnus cells per
+* Model: :func:`tawarp.model.forward.transfer_matrices` with ``cells`` = 48 Magnus cells per
   thermal segment, more than a fit uses (default 16), so fitting is not an inverse crime.
 * Noise (``noise`` = relative size, default 0.5 %): on each dimensionless coefficient
   ``Y`` (Tpp, Tpu/Zc, Tup*Zc, Tuu) at each row, complex Gaussian with independent real
