@@ -47,6 +47,7 @@ well conditioned, and how many frequencies it left out. Run: ``python studies/e2
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 from pathlib import Path
 
@@ -95,7 +96,10 @@ def peer_in_tawarp(T_peer, area):
     return np.conj(M @ np.linalg.inv(T_peer) @ np.linalg.inv(M))
 
 
-def main():
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=str(ROOT / "studies" / "out" / "e2611_peer.json"), help="JSON output")
+    args = ap.parse_args(argv)
     setup = load_setup(SETUP)
     ref_dir = setup.files[0].parent / "reference"
     area = setup.tube.area
@@ -181,7 +185,7 @@ def main():
             out["runs"][run][name] = entry
             print(run, name, entry["median_relative_difference"], "left out", entry["left_out_ill_conditioned"])
     out["self_calibration"] = {k: v for k, v in fitted.summary.items() if k.startswith("self_calibration.")}
-    path = write_json(ROOT / "studies" / "out" / "e2611_peer.json", out)  # makes the folder
+    path = write_json(args.out, out)  # makes the folder
     print(f"wrote {path}")
 
 

@@ -12,6 +12,7 @@ frequencies 50-500 Hz, Q = 0, 40, 80 W, sigma columns give the noise.
     python studies/make_demo_data.py   # writes tawarp/data/measured/ceramic_hidden_effect.csv
 """
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -22,9 +23,13 @@ from tawarp.measure.synthetic import synthetic_tmatrix
 from tawarp.measure.files import write_tmatrix_csv
 
 TRUTH = {"tbt.h_convection": 3.0}
+BUNDLED = Path(__file__).resolve().parents[1] / "tawarp" / "data" / "measured" / "ceramic_hidden_effect.csv"
 
 
-def main():
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default=str(BUNDLED), help="CSV output (default: the bundled file)")
+    args = ap.parse_args(argv)
     data = synthetic_tmatrix(
         load_core("ceramic"),
         TRUTH,
@@ -34,11 +39,10 @@ def main():
         seed=7,
         settings=ForwardSettings(device="cpu", cells=24),
     )
-    out = Path(__file__).resolve().parents[1] / "tawarp" / "data" / "measured" / "ceramic_hidden_effect.csv"
     write_tmatrix_csv(
-        out, data, metadata={"core": "ceramic", "hidden_effect": "none declared (see studies/make_demo_data.py)"}
+        args.out, data, metadata={"core": "ceramic", "hidden_effect": "none declared (see studies/make_demo_data.py)"}
     )
-    print(f"wrote {out}")
+    print(f"wrote {args.out}")
 
 
 if __name__ == "__main__":

@@ -29,6 +29,7 @@ without the self-calibration the warmer gas and the moved microphones bias the r
 
 from __future__ import annotations
 
+import argparse
 import tempfile
 from pathlib import Path
 
@@ -138,7 +139,12 @@ def summary(z, rel) -> dict:
     }
 
 
-def main():
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument(
+        "--out", default=str(Path(__file__).resolve().parent / "out" / "tube_pipeline_zscores.json"), help="JSON output"
+    )
+    args = ap.parse_args(argv)
     warm = Gas("air", 298.15, NOMINAL.pressure, 0.0)
     shifted = X + np.array([0.0, 0.002, -0.0015, 0.0])
     cases = {
@@ -165,7 +171,7 @@ def main():
             key = name if mode or name != "self_calibration" else "self_calibration_off"
             out[key] = summary(np.concatenate(pooled[mode][0]), np.concatenate(pooled[mode][1]))
             print(key, out[key], flush=True)
-    path = write_json(Path(__file__).resolve().parent / "out" / "tube_pipeline_zscores.json", out)  # makes the folder
+    path = write_json(args.out, out)  # makes the folder
     print(f"wrote {path}")
 
 
