@@ -25,6 +25,20 @@ def test_parse_variable_forms():
         parse_variable("Q=a:b")
 
 
+@pytest.mark.parametrize(
+    "text, say",
+    [
+        ("stack.h=1:nan:8", "upper bound of stack.h is nan"),
+        ("stack.length=0.01:nan", "upper bound of stack.length is nan"),
+        ("Q=-inf:3", "lower bound of heat_input is -inf"),
+        ("stack.porosity=0.9,nan", "value of stack.porosity is nan"),
+    ],
+)
+def test_a_bound_that_is_not_finite_is_refused(text, say):
+    with pytest.raises(ValueError, match=f"'{text}': the {say}; expected a finite number"):
+        parse_variable(text, grid=text.count(":") == 2)
+
+
 def test_unit_cube_round_trip_and_log_scale():
     space = DesignSpace(
         load_core("rvc_foam"), ["material=ceramic,rvc_foam", "stack.pore_radius=1e-5:1e-3:log", "heat_input=1:9"]

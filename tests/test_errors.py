@@ -264,3 +264,29 @@ def test_a_database_in_a_missing_folder_is_named(tmp_path, capsys):
     assert not (tmp_path / "missing").exists()
     with pytest.raises(ValueError, match="not a database URL"):
         make_storage("sqlite://x:y:z//")
+
+
+# -- command-line arguments ---------------------------------------------------------------------
+def _refused(argv, capsys) -> str:
+    """The error line of a command that must end with exit status 2 and one line on stderr."""
+    from tawarp.cli import main
+
+    assert main([*argv, "--device", "cpu", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err, err
+    return err
+
+
+@pytest.mark.parametrize(
+    "argv, say",
+    [
+        (["sweep", "rvc_foam", "--var", "stack.h=1:nan:8"], "upper bound of stack.h is nan"),
+        (["design", "rvc_foam", "--var", "stack.length=0.01:nan"], "upper bound of stack.length is nan"),
+        (["design", "rvc_foam", "--var", "Q=1:18", "--var", "stack.length=0.01:nan"], "stack.length is nan"),
+    ],
+)
+def test_a_range_bound_that_is_not_finite_is_named(argv, say, tmp_path, capsys):
+    out = tmp_path / ("s.nc" if argv[0] == "sweep" else "d")
+    err = _refused([*argv, "-o", str(out)], capsys)
+    assert err.startswith(f"tawarp {argv[0]}: error:") and say in err
+    assert list(tmp_path.iterdir()) == []

@@ -59,6 +59,7 @@ def parse_variable(text: str, grid: bool = False) -> Variable:
             if log:
                 parts = parts[:-1]
             lo, hi = float(parts[0]), float(parts[1])
+            _finite_bounds(text, name, [("lower bound", lo), ("upper bound", hi)])
             if len(parts) == 3:
                 n = int(parts[2])
                 vals = np.geomspace(lo, hi, n) if log else np.linspace(lo, hi, n)
@@ -69,6 +70,7 @@ def parse_variable(text: str, grid: bool = False) -> Variable:
                 raise ValueError(f"{text!r}: a sweep grid needs LOW:HIGH:COUNT")
             return Variable(name, min(lo, hi), max(lo, hi), log)
         vals = [float(v) for v in spec.split(",") if v.strip()]
+        _finite_bounds(text, name, [("value", v) for v in vals])
         return Variable(name, min(vals), max(vals), values=tuple(vals))
     except ValueError as e:
         if str(e).startswith(repr(text)):
@@ -76,6 +78,14 @@ def parse_variable(text: str, grid: bool = False) -> Variable:
         raise ValueError(
             f"{text!r}: expected NAME=LOW:HIGH[:log], NAME=LOW:HIGH:COUNT[:log] or NAME=v1,v2,..."
         ) from None
+
+
+def _finite_bounds(text: str, name: str, bounds: list[tuple[str, float]]) -> None:
+    """Refuse a NaN or infinite bound: min and max would drop a NaN or pass it on (a range
+    read as one fixed value, a grid with a NaN coordinate)."""
+    for which, v in bounds:
+        if not math.isfinite(v):
+            raise ValueError(f"{text!r}: the {which} of {name} is {v}; expected a finite number")
 
 
 class DesignSpace:
