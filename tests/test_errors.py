@@ -290,3 +290,22 @@ def test_a_range_bound_that_is_not_finite_is_named(argv, say, tmp_path, capsys):
     err = _refused([*argv, "-o", str(out)], capsys)
     assert err.startswith(f"tawarp {argv[0]}: error:") and say in err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("column, value", [(1, "-50"), (0, "-5"), (10, "-0.01")])
+def test_a_bad_value_of_a_file_is_shown_as_a_plain_number(column, value, tmp_path, capsys):
+    lines = _bundled_text().splitlines()
+    h = _header_index(lines)
+    fields = lines[h + 1].split(",")
+    fields[column] = value
+    lines[h + 1] = ",".join(fields)
+    (tmp_path / "bad.csv").write_text("\n".join(lines) + "\n")
+    name = lines[h].split(",")[column]
+    err = _refused(["fit", str(tmp_path / "bad.csv"), "-o", str(tmp_path / "f.json")], capsys)
+    assert f"bad.csv, line {h + 2}: {name} = {float(value)!r}: expected" in err and "np." not in err
+
+
+def test_a_repeated_heat_input_of_synth_is_shown_as_a_plain_number(tmp_path, capsys):
+    err = _refused(["synth", "ceramic", "--Q", "10,10", "-o", str(tmp_path / "s.csv")], capsys)
+    assert "(Q = 10.0 W, freq = 50.0 Hz): duplicate of row 0" in err and "np." not in err
+    assert list(tmp_path.iterdir()) == []

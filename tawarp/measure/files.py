@@ -44,6 +44,7 @@ from .table import (
     _needs_conjugate,
     _read_table,
     _Table,
+    number,
 )
 
 #: The four raw coefficients and their (row, column) in the 2x2 T-matrix.
@@ -127,7 +128,7 @@ class TMatrixData:
 
         def fail(i, what):
             raise MeasurementError(
-                f"{self.source}: row {i} (Q = {self.heat_input[i]!r} W, freq = {self.freq[i]!r} Hz): {what}"
+                f"{self.source}: row {i} (Q = {number(self.heat_input[i])} W, freq = {number(self.freq[i])} Hz): {what}"
             )
 
         for i in range(len(self)):
@@ -203,7 +204,7 @@ def read_tmatrix_csv(path: str | os.PathLike) -> TMatrixData:
     conj = _needs_conjugate(t)
     for v, n in zip(t.values["Q_W"], t.lines):
         if v < 0:
-            raise _fail(t.source, n, f"Q_W = {v!r}: expected a heat input >= 0 W")
+            raise _fail(t.source, n, f"Q_W = {number(v)}: expected a heat input >= 0 W")
     _check_positive_unique(t, "freq_Hz", others=("Q_W",))
     rows = len(t.lines)
     T = np.empty((rows, 2, 2), dtype=np.complex128)
@@ -258,7 +259,9 @@ def _read_sigma(t: _Table, entries) -> np.ndarray:
             bad = np.flatnonzero(t.values[name] <= 0)
             if bad.size:
                 raise _fail(
-                    t.source, t.lines[bad[0]], f"{name} = {t.values[name][bad[0]]!r}: expected a standard deviation > 0"
+                    t.source,
+                    t.lines[bad[0]],
+                    f"{name} = {number(t.values[name][bad[0]])}: expected a standard deviation > 0",
                 )
     return sigma
 

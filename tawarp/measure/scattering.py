@@ -47,6 +47,7 @@ from ..model.core import Core
 from ..model.gas import GASES
 from ..model.layer import gas_transport
 from .files import MeasurementError, ScatteringData, TMatrixData, propagated_sigma, read_scattering
+from .table import number
 from .tmatrix import TMatrixKind, core_for
 
 #: Plane distance [m] below which an empty tube carries no propagation (k_t = w / c0).
@@ -121,7 +122,7 @@ def _check_pair(sample: ScatteringData, empty: ScatteringData, length: float) ->
         )
     zero = np.flatnonzero(empty.S[:, 1, 0] == 0)
     if zero.size:
-        raise MeasurementError(f"{src}: S21 = 0 at {empty.freq[zero[0]]!r} Hz: an empty tube transmits")
+        raise MeasurementError(f"{src}: S21 = 0 at {number(empty.freq[zero[0]])} Hz: an empty tube transmits")
     refl = float(np.max(np.abs(empty.S[:, [0, 1], [0, 1]])))
     if refl > MAX_EMPTY_REFLECTION:
         raise MeasurementError(

@@ -36,6 +36,12 @@ class _Table:
     lines: np.ndarray  # file line of each data row
 
 
+def number(v) -> str:
+    """A value of a file or data set as messages show it: ``-50.0`` (round-trip exact), not
+    NumPy's ``np.float64(-50.0)``, which ``!r`` gives for an element of an array."""
+    return repr(float(v))
+
+
 def _fail(source, line, what) -> MeasurementError:
     return MeasurementError(f"{source}, line {line}: {what}")
 
@@ -249,7 +255,7 @@ def _check_positive_unique(t: _Table, col: str, others=()) -> None:
     stable sort of the keys, so linear-logarithmic in the rows and no per-row objects."""
     bad = np.flatnonzero(t.values[col] <= 0)
     if bad.size:
-        raise _fail(t.source, t.lines[bad[0]], f"{col} = {t.values[col][bad[0]]!r}: expected a number > 0")
+        raise _fail(t.source, t.lines[bad[0]], f"{col} = {number(t.values[col][bad[0]])}: expected a number > 0")
     keys = [t.values[c] for c in (*others, col)]
     order = np.lexsort(keys[::-1])  # stable: equal keys stay in file order
     same = np.ones(order.size - 1, dtype=bool)
