@@ -309,3 +309,34 @@ def test_a_repeated_heat_input_of_synth_is_shown_as_a_plain_number(tmp_path, cap
     err = _refused(["synth", "ceramic", "--Q", "10,10", "-o", str(tmp_path / "s.csv")], capsys)
     assert "(Q = 10.0 W, freq = 50.0 Hz): duplicate of row 0" in err and "np." not in err
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv, say",
+    [
+        (["standing_wave", "--mode", "0"], "--mode 0: expected a mode number >= 1"),
+        (["traveling_wave", "--mode", "-2"], "--mode -2: expected a mode number >= 1"),
+        (["traveling_wave", "--T-ratio-max", "0.5"], "--T-ratio-max 0.5: expected a ratio T_hot/T_cold > 1"),
+        (["traveling_wave", "--amplitude", "-5"], "--amplitude -5: expected |p| > 0 Pa"),
+        (["standing_wave", "--bracket", "1"], "--bracket 1: expected at least 2 points"),
+    ],
+)
+def test_onset_names_an_impossible_option(argv, say, tmp_path, capsys):
+    err = _refused(["onset", *argv, "-o", str(tmp_path / "o")], capsys)
+    assert err.startswith(f"tawarp onset: error: {say}")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_onset_functions_refuse_impossible_arguments():
+    from tawarp.model import network_reference as nr
+    from tawarp.model.network import load_network
+    from tawarp.model.onset import onset
+    from tawarp.model.resonator import load_engine
+
+    with pytest.raises(ValueError, match="mode must be >= 1, got 0"):
+        onset(load_engine("standing_wave"), Q_max=10.0, mode=0)
+    net = load_network("traveling_wave")
+    with pytest.raises(ValueError, match=r"T_max \[K\] must be finite and above T_min"):
+        nr.onset(net, 600.0 + 0j, T_max=0.5 * net.gas.T_cold)
+    with pytest.raises(ValueError, match=r"amplitude \[Pa\] must be finite and > 0, got -5.0"):
+        nr.profiles(net, 600.0 + 0j, amplitude=-5.0)

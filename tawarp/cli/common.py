@@ -156,6 +156,14 @@ def impedance_on_core(kind: ImpedanceKind, core_arg, settings) -> ImpedanceKind:
     return ImpedanceKind(kind.data, settings, start=start, gas=core.gas.name)
 
 
+def check_option(ok: bool, option: str, value, need: str) -> None:
+    """Refuse ``option``'s ``value`` unless ``ok``, naming the option as it was typed: the
+    library's own check names its parameter (``n_samples``), which the command line
+    user never saw."""
+    if not ok:
+        raise ValueError(f"{option} {f'{value:g}' if isinstance(value, float) else value}: {need}")
+
+
 def _say(args, *text):
     if not args.quiet:
         print(*text, flush=True)

@@ -385,6 +385,10 @@ def onset(
     ``det(omega, T_hot)``: the characteristic function (default :func:`determinant`; a
     peer's segment matrices go in here)."""
     T_min = net.gas.T_cold if T_min is None else T_min
+    if not (math.isfinite(T_max) and T_max > T_min):
+        raise ValueError(f"T_max [K] must be finite and above T_min = {T_min:g} K, got {T_max}")
+    if n < 2:
+        raise ValueError(f"n must be >= 2, got {n}")
     det = det if det is not None else (lambda w, T: determinant(net, w, T))
 
     def root_at(T, w):
@@ -526,6 +530,8 @@ def profiles(
     :func:`mode_start_states`).
     Linear theory: the powers are exact second-order quantities at a real omega (the onset);
     at a complex root they are evaluated with Re omega. ``points`` per distributed segment."""
+    if not (math.isfinite(amplitude) and amplitude > 0):
+        raise ValueError(f"amplitude [Pa] must be finite and > 0, got {amplitude}")
     T_hot = net.T_hot if T_hot is None else T_hot
     starts = mode_start_states(net, omega, T_hot, node) * amplitude
     w = complex(omega)

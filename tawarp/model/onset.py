@@ -429,6 +429,8 @@ def onset(
     Returns :class:`OnsetResult`; its onset (Q_onset, or ratio_onset in the hot temperature) is
     NaN where there is no such interval (already growing at the start, or stable up to the end). ``omega_grid`` holds the grid's eigenfrequencies
     to ``grid_tol`` |omega|; NaN past a set's bracket unless ``curve``."""
+    if int(mode) < 1:
+        raise ValueError(f"mode must be >= 1, got {mode}")
     search, upper, params = _search(engine, Q_max, T_ratio_max, params)
     if n_bracket < 2:
         raise ValueError(f"n_bracket must be >= 2, got {n_bracket}")
