@@ -60,10 +60,14 @@ def test_a_worker_whose_sampler_degenerated_resumes(tmp_path, monkeypatch):
 BUNDLED = "ceramic_hidden_effect.csv"  # T-matrices of the model, exp(-iwt), heat inputs from 0 W
 
 
-def _bundled_text() -> str:
+def _bundled_path():
     from importlib import resources
 
-    return (resources.files("tawarp") / "data" / "measured" / BUNDLED).read_text()
+    return resources.files("tawarp") / "data" / "measured" / BUNDLED
+
+
+def _bundled_text() -> str:
+    return _bundled_path().read_text()
 
 
 def _header_index(lines) -> int:
@@ -340,3 +344,14 @@ def test_onset_functions_refuse_impossible_arguments():
         nr.onset(net, 600.0 + 0j, T_max=0.5 * net.gas.T_cold)
     with pytest.raises(ValueError, match=r"amplitude \[Pa\] must be finite and > 0, got -5.0"):
         nr.profiles(net, 600.0 + 0j, amplitude=-5.0)
+
+
+def test_a_negative_number_of_restarts_is_refused(tmp_path, capsys):
+    from tawarp.fit.estimate import fit
+
+    data = str(_bundled_path())
+    err = _refused(["fit", data, "--restarts", "-3", "-o", str(tmp_path / "f.json")], capsys)
+    assert err.startswith("tawarp fit: error: --restarts -3: expected a number of restarts >= 0")
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="restarts must be >= 0, got -3"):
+        fit(load_core("ceramic"), [100.0], np.eye(2).reshape(1, 4), ["stack.h"], restarts=-3)

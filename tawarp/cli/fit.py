@@ -14,7 +14,7 @@ from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
 from ..model.core import CoreError
 from ..model.forward import ForwardSettings
 from ..model.layer import LAYER_BASE
-from .common import _common, add_measurement_options, load_data
+from .common import _common, add_measurement_options, check_option, load_data
 
 
 def add_fit_parser(subparsers):
@@ -71,6 +71,7 @@ def add_fit_parser(subparsers):
 
 
 def cmd_fit(args) -> int:
+    check_option(args.restarts >= 0, "--restarts", args.restarts, "expected a number of restarts >= 0")
     settings = ForwardSettings(cells=args.cells, device=args.device)
     kind = load_data(args, settings)
     names = [s.strip() for s in args.fit.split(",") if s.strip()] if args.fit else None

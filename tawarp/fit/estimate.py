@@ -809,6 +809,8 @@ def fit(
     Returns a :class:`FitResult`.
     """
     t0 = time.perf_counter()
+    if restarts < 0:
+        raise ValueError(f"restarts must be >= 0, got {restarts}")
     names = list(names)
     Yarr = np.asarray(Y)
     N = 1 if Yarr.ndim == 2 else Yarr.shape[0]
