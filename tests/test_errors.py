@@ -355,3 +355,42 @@ def test_a_negative_number_of_restarts_is_refused(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ValueError, match="restarts must be >= 0, got -3"):
         fit(load_core("ceramic"), [100.0], np.eye(2).reshape(1, 4), ["stack.h"], restarts=-3)
+
+
+DESIGN_Q = ["design", "rvc_foam", "--var", "Q=1:18"]
+NETWORK = ["design", "traveling_wave", "--var", "regenerator.length=0.05:0.07"]
+OUTPUT = {"design": "d", "rank": "r.json", "sweep": "s.nc"}
+
+
+def _refused_before_writing(argv, say, tmp_path, capsys) -> str:
+    err = _refused([*argv, "-o", str(tmp_path / OUTPUT[argv[0]])], capsys)
+    assert err.startswith(f"tawarp {argv[0]}: error: {say}")
+    assert list(tmp_path.iterdir()) == []
+    return err
+
+
+@pytest.mark.parametrize(
+    "argv, say",
+    [
+        ([*DESIGN_Q, "--trials", "0"], "--trials 0: expected a number of trials >= 1"),
+        ([*DESIGN_Q, "--batch", "-5"], "--batch -5: expected a population of at least 1 trial"),
+        ([*DESIGN_Q, "--objectives", "gradient,foo"], "--objectives gradient,foo: unknown objective 'foo'; choose"),
+        ([*DESIGN_Q, "--T-limit", "-5"], "--T-limit -5: expected a temperature limit > 0 K"),
+        ([*NETWORK, "--trials", "0"], "--trials 0: expected a number of trials >= 1"),
+        ([*NETWORK, "--T-ratio-max", "0.5"], "--T-ratio-max 0.5: expected a ratio T_hot/T_cold > 1"),
+    ],
+)
+def test_design_names_an_impossible_option_and_leaves_no_folder(argv, say, tmp_path, capsys):
+    _refused_before_writing(argv, say, tmp_path, capsys)
+
+
+def test_design_functions_refuse_impossible_arguments():
+    from tawarp.design.network_design import search_network
+    from tawarp.design.space import parse_variable
+    from tawarp.model.network import load_network
+
+    with pytest.raises(ValueError, match=r"T_limit \[K\] must be finite and > 0 \(None: no limit\), got -5"):
+        search(_space(), n_trials=8, batch=8, T_limit=-5.0)
+    net = load_network("traveling_wave")
+    with pytest.raises(ValueError, match="batch and n_trials must be >= 1"):
+        search_network(net, [parse_variable("regenerator.length=0.05:0.07")], n_trials=0)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import CLAIM_HELP, GENERATOR, claim_outputs
-from .common import _common, _say, parse_list
+from .common import _common, _say, check_option, parse_list
 
 VAR_HELP = (
     "design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
@@ -24,6 +24,28 @@ VAR_HELP = (
 
 def _floats(text: str) -> np.ndarray:
     return parse_list(text)
+
+
+def _objectives(text: str) -> list[str]:
+    """The ``--objectives`` comma list; an unknown name is refused naming the option."""
+    from ..design.objectives import OBJECTIVES
+
+    names = [o.strip() for o in text.split(",") if o.strip()]
+    check_option(bool(names), "--objectives", repr(text), f"give one or more of {', '.join(OBJECTIVES)}")
+    for o in names:
+        check_option(
+            o in OBJECTIVES, "--objectives", text, f"unknown objective {o!r}; choose from {', '.join(OBJECTIVES)}"
+        )
+    return names
+
+
+def _check_T_limit(args) -> None:
+    check_option(
+        getattr(args, "no_T_limit", False) or (np.isfinite(args.T_limit) and args.T_limit > 0),
+        "--T-limit",
+        args.T_limit,
+        "expected a temperature limit > 0 K",
+    )
 
 
 def _space(args, grid: bool = False):
@@ -137,6 +159,19 @@ def _add_onset_args(p):
     )
 
 
+def _check_network_options(args) -> None:
+    """--T-ratio-max and --amplitude of a network engine, refused naming the option."""
+    check_option(
+        np.isfinite(args.T_ratio_max) and args.T_ratio_max > 1,
+        "--T-ratio-max",
+        args.T_ratio_max,
+        "expected a ratio T_hot/T_cold > 1",
+    )
+    check_option(
+        np.isfinite(args.amplitude) and args.amplitude > 0, "--amplitude", args.amplitude, "expected |p| > 0 Pa"
+    )
+
+
 def _is_network(path: str) -> bool:
     """``path`` names a network engine file (``[[branch]]`` tables), bundled or not."""
     from ..model.core import bundled, read_toml
@@ -159,6 +194,7 @@ def _design_network(args) -> int:
     variables = [parse_variable(v) for v in (args.var or [])]
     if not variables:
         raise ValueError("give at least one --var SEGMENT.FIELD=LOW:HIGH[:log]")
+    _check_network_options(args)
     out = Path(args.output)
     claim_outputs(out / "design.json", why="the design report")
     out.mkdir(parents=True, exist_ok=True)
@@ -194,10 +230,15 @@ def cmd_design(args) -> int:
     from ..design.storage import study_summary
     from ..design.plots import plot_best_profiles, plot_history, plot_pareto
 
+    # every check before the output folder is made: a refused command leaves nothing behind
+    check_option(args.trials >= 1, "--trials", args.trials, "expected a number of trials >= 1")
+    check_option(args.batch >= 1, "--batch", args.batch, "expected a population of at least 1 trial")
     if _is_network(args.core):
         return _design_network(args)
     space = _space(args)
-    objectives = [o.strip() for o in args.objectives.split(",") if o.strip()]
+    objectives = _objectives(args.objectives)
+    _check_T_limit(args)
+    onset = _onset_spec(args)
     out = Path(args.output)
     claim_outputs(
         out / "design.json",
@@ -221,7 +262,7 @@ def cmd_design(args) -> int:
         settings=_settings(args),
         freqs=args.freqs,
         progress=not args.quiet,
-        onset=_onset_spec(args),
+        onset=onset,
         store=args.trial_store,
         commit_seconds=args.commit_seconds,
     )

@@ -60,6 +60,8 @@ def search_network(
     lowest mode (module docstring). Returns the report: the ``keep`` best designs (their
     values, T_ratio, f_onset_Hz, and, with ``segment``, the acoustic power it produces at
     onset with |p| = ``amplitude`` [Pa] at the network's first end), the counts and the timing."""
+    if batch < 1 or n_trials < 1:
+        raise ValueError("batch and n_trials must be >= 1")
     for v in variables:
         if v.choices or (v.log and v.low <= 0):
             raise ValueError(f"--var {v.name}: a network design takes numeric ranges (log ones > 0)")
@@ -71,7 +73,7 @@ def search_network(
     (w_cold, *_) = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)
     home = nr.onset(net, w_cold, T_max=T_max, n=12)
     if not np.isfinite(home.T_onset):
-        raise ValueError(f"{net.source}: the file's design does not start up to T_max = {T_max:g} K; raise --T-max")
+        raise ValueError(f"{net.source}: the file's design does not start up to T_max = {T_max:g} K; raise --T-ratio-max")
     x_home = np.array([[net.gas.p_mean if n == "gas.p_mean" else _field(net, n) for n in names]])
     archive_u = _unit(variables, x_home)
     archive = [(home.omega.real, home.T_onset)]

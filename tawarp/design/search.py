@@ -38,6 +38,7 @@ counts the worker's own trials.
 
 from __future__ import annotations
 
+import math
 import os
 import time
 from dataclasses import dataclass
@@ -151,6 +152,8 @@ def search(
         raise ValueError(f"engine must be 'batched' or 'optuna', got {engine!r}")
     if batch < 1 or n_trials < 1:
         raise ValueError("batch and n_trials must be >= 1")
+    if T_limit is not None and not (math.isfinite(T_limit) and T_limit > 0):
+        raise ValueError(f"T_limit [K] must be finite and > 0 (None: no limit), got {T_limit}")
     if not space.continuous:
         raise ValueError("the design space needs at least one continuous variable")
     t_wall = time.perf_counter()
