@@ -359,6 +359,7 @@ def test_a_negative_number_of_restarts_is_refused(tmp_path, capsys):
 
 DESIGN_Q = ["design", "rvc_foam", "--var", "Q=1:18"]
 NETWORK = ["design", "traveling_wave", "--var", "regenerator.length=0.05:0.07"]
+RANK = ["rank", "--materials", "ceramic,mesh", "--samples", "4"]
 OUTPUT = {"design": "d", "rank": "r.json", "sweep": "s.nc"}
 
 
@@ -394,3 +395,27 @@ def test_design_functions_refuse_impossible_arguments():
     net = load_network("traveling_wave")
     with pytest.raises(ValueError, match="batch and n_trials must be >= 1"):
         search_network(net, [parse_variable("regenerator.length=0.05:0.07")], n_trials=0)
+
+
+@pytest.mark.parametrize(
+    "argv, say",
+    [
+        ([*RANK, "--T-limit", "-5"], "--T-limit -5: expected a temperature limit > 0 K"),
+        ([*RANK, "--segment", "nosuch"], "--segment nosuch: not a segment of "),
+        ([*RANK, "--by", "onset", "--segment", "nosuch"], "--segment nosuch: not a segment of "),
+        ([*RANK, "--samples", "0"], "--samples 0: expected at least 2 draws per material"),
+    ],
+)
+def test_rank_names_an_impossible_option(argv, say, tmp_path, capsys):
+    err = _refused_before_writing(argv, say, tmp_path, capsys)
+    if "--segment" in argv:
+        assert err.endswith("; one of duct_left, stack, hot_hx, tbt, duct_right\n")
+
+
+def test_rank_materials_refuses_impossible_arguments():
+    from tawarp.design.rank import rank_materials
+
+    with pytest.raises(ValueError, match=r"T_limit \[K\] must be finite and > 0, got -5"):
+        rank_materials(["ceramic"], n_samples=4, T_limit=-5.0)
+    with pytest.raises(KeyError, match="no segment 'nosuch' for the materials; one of duct_left, stack"):
+        rank_materials(["ceramic"], n_samples=4, segment="nosuch")

@@ -430,12 +430,17 @@ def cmd_rank(args) -> int:
     from ..io import write_json
     from ..design.plots import plot_ranking
     from ..design.rank import rank_materials
+    from ..model.core import load_core
 
     out = Path(args.output)
     if out.suffix.lower() != ".json":
         raise ValueError(
             f"-o {out}: the ranking is written as JSON and its figure beside it as .png; give a .json file name"
         )
+    check_option(
+        args.samples is None or args.samples >= 2, "--samples", args.samples, "expected at least 2 draws per material"
+    )
+    _check_T_limit(args)
     if not args.no_plots and args.by != "onset":
         claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
     cat = load_catalogue(args.catalogue or [])
@@ -454,10 +459,12 @@ def cmd_rank(args) -> int:
         args.samples = 400 if args.by == "onset" else 4000
     if args.by == "onset":
         return _rank_onset(args, cat, mats, out)
+    core = load_core(args.core)
+    _check_segment(args.segment, core)
     res = rank_materials(
         mats,
         args.Q,
-        core=args.core,
+        core=core,
         segment=args.segment,
         n_samples=args.samples,
         seed=args.seed,
@@ -476,6 +483,11 @@ def cmd_rank(args) -> int:
     return 0
 
 
+def _check_segment(segment: str, core) -> None:
+    names = [s.name for s in core.segments]
+    check_option(segment in names, "--segment", segment, f"not a segment of {core.source}; one of {', '.join(names)}")
+
+
 def _rank_onset(args, cat, mats, out: Path) -> int:
     """``tawarp rank --by onset``: materials by the onset heat input of a reference engine."""
     import dataclasses
@@ -486,6 +498,7 @@ def _rank_onset(args, cat, mats, out: Path) -> int:
     from ..model.resonator import load_engine
 
     engine = load_engine(args.engine)
+    _check_segment(args.segment, engine.core)
     changes = {}
     for t in args.set:
         name, sep, value = t.partition("=")
@@ -533,6 +546,7 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
     from ..design.rank import rank_by_network_onset
     from ..model.network import load_network
 
+    _check_network_options(args)
     net = load_network(args.engine)
     try:
         net.segment(args.segment)

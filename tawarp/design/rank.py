@@ -28,6 +28,7 @@ material (draws paired by index; a draw that does not start counts as Q_onset = 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -114,7 +115,11 @@ def rank_materials(
         raise ValueError(f"heat inputs [W] must be finite and >= 0, got {qs}")
     if n_samples < 2:
         raise ValueError("n_samples must be >= 2")
+    if not (math.isfinite(T_limit) and T_limit > 0):
+        raise ValueError(f"T_limit [K] must be finite and > 0, got {T_limit}")
     seg_names = [s.name for s in core.segments]
+    if segment not in seg_names:
+        raise KeyError(f"{core.source}: no segment {segment!r} for the materials; one of {', '.join(seg_names)}")
     stack_index = seg_names.index(segment)
     M, Nq, N = len(mats), len(qs), n_samples
     # one batch: material-major, then heat input, then draw; draw 0 is the nominal material
