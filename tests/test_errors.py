@@ -360,6 +360,7 @@ def test_a_negative_number_of_restarts_is_refused(tmp_path, capsys):
 DESIGN_Q = ["design", "rvc_foam", "--var", "Q=1:18"]
 NETWORK = ["design", "traveling_wave", "--var", "regenerator.length=0.05:0.07"]
 RANK = ["rank", "--materials", "ceramic,mesh", "--samples", "4"]
+SWEEP = ["sweep", "rvc_foam", "--var", "stack.length=0.01:0.1:3"]
 OUTPUT = {"design": "d", "rank": "r.json", "sweep": "s.nc"}
 
 
@@ -419,3 +420,24 @@ def test_rank_materials_refuses_impossible_arguments():
         rank_materials(["ceramic"], n_samples=4, T_limit=-5.0)
     with pytest.raises(KeyError, match="no segment 'nosuch' for the materials; one of duct_left, stack"):
         rank_materials(["ceramic"], n_samples=4, segment="nosuch")
+
+
+@pytest.mark.parametrize(
+    "argv, say",
+    [
+        ([*SWEEP, "--objectives", "foo"], "--objectives foo: unknown objective 'foo'; choose from gradient"),
+        ([*SWEEP, "--objectives", "gradient,foo", "--reduce", "best"], "--objectives gradient,foo: unknown objective"),
+        ([*SWEEP[:3], "stack.length=0.01:0.1", "--samples", "0"], "--samples 0: expected a number of Sobol points"),
+        ([*SWEEP, "--chunk", "0"], "--chunk 0: expected at least 1 point per launch"),
+    ],
+)
+def test_sweep_names_an_impossible_option(argv, say, tmp_path, capsys):
+    _refused_before_writing(argv, say, tmp_path, capsys)
+
+
+def test_sweep_refuses_an_unknown_objective_without_reductions(tmp_path):
+    from tawarp.design.sweep import sweep
+
+    with pytest.raises(KeyError, match="unknown objective 'foo'"):
+        sweep(DesignSpace(load_core("rvc_foam"), ["Q=1:18:3"]), tmp_path / "s.nc", objectives=["foo"])
+    assert list(tmp_path.iterdir()) == []

@@ -680,6 +680,11 @@ def cmd_sweep(args) -> int:
         raise ValueError(
             f"-o {args.output}: the sweep is written as netCDF and its JSON summary beside it; give a .nc file name"
         )
+    check_option(
+        args.samples is None or args.samples >= 1, "--samples", args.samples, "expected a number of Sobol points >= 1"
+    )
+    check_option(args.chunk is None or args.chunk >= 1, "--chunk", args.chunk, "expected at least 1 point per launch")
+    objectives = _objectives(args.objectives)
     summary = Path(args.output).with_suffix(".json")
     claim_outputs(summary, why="the sweep's summary")
     space = _space(args, grid=args.samples is None)
@@ -695,7 +700,7 @@ def cmd_sweep(args) -> int:
         progress=not args.quiet,
         reduce=args.reduce,
         raw=not args.no_raw,
-        objectives=[o.strip() for o in args.objectives.split(",") if o.strip()],
+        objectives=objectives,
     )
     meta = {
         "generator": f"{GENERATOR} sweep",
@@ -752,8 +757,8 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--objectives",
         default="gradient,heat_leak",
-        help="objectives that best and top rank (the first) and pareto (the first two), each in its "
-        "direction (default: %(default)s)",
+        help="with --reduce: the objectives that best and top rank (the first) and pareto (the first two), "
+        "each in its direction (default: %(default)s)",
     )
     p.add_argument(
         "-o",

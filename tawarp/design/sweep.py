@@ -153,6 +153,8 @@ def sweep(
 
     if mode not in ("grid", "sobol"):
         raise ValueError(f"mode must be 'grid' or 'sobol', got {mode!r}")
+    for o in objectives or ():
+        objective(o)  # a KeyError naming the known ones, with reduce= or not
     settings = settings or ForwardSettings()
     if chunk is None:
         chunk = CHUNK_CPU if client is None and resolve_device(settings.device) == "cpu" else CHUNK_GPU
