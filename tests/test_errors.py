@@ -441,3 +441,20 @@ def test_sweep_refuses_an_unknown_objective_without_reductions(tmp_path):
     with pytest.raises(KeyError, match="unknown objective 'foo'"):
         sweep(DesignSpace(load_core("rvc_foam"), ["Q=1:18:3"]), tmp_path / "s.nc", objectives=["foo"])
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "argv",
+    [
+        ["synth", "ceramic", "-o", "s.csv"],
+        ["synth", "ceramic", "--scattering=-0.05,0.04", "-o", "s.csv"],
+        [*DESIGN_Q, "-o", "d"],
+        [*RANK, "-o", "r.json"],
+        [*SWEEP, "-o", "s.nc"],
+    ],
+)
+def test_a_negative_seed_is_named(argv, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    err = _refused([*argv, "--seed", "-1"], capsys)
+    assert err.startswith(f"tawarp {argv[0]}: error: --seed -1: expected an integer >= 0")
+    assert list(tmp_path.iterdir()) == []

@@ -164,6 +164,11 @@ def check_option(ok: bool, option: str, value, need: str) -> None:
         raise ValueError(f"{option} {f'{value:g}' if isinstance(value, float) else value}: {need}")
 
 
+def check_seed(args) -> None:
+    """``--seed``: NumPy's own refusal of a negative seed names no option."""
+    check_option(args.seed >= 0, "--seed", args.seed, "expected an integer >= 0")
+
+
 def _say(args, *text):
     if not args.quiet:
         print(*text, flush=True)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import CLAIM_HELP, GENERATOR, claim_outputs
-from .common import _common, _say, check_option, parse_list
+from .common import _common, _say, check_option, check_seed, parse_list
 
 VAR_HELP = (
     "design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
@@ -233,6 +233,7 @@ def cmd_design(args) -> int:
     # every check before the output folder is made: a refused command leaves nothing behind
     check_option(args.trials >= 1, "--trials", args.trials, "expected a number of trials >= 1")
     check_option(args.batch >= 1, "--batch", args.batch, "expected a population of at least 1 trial")
+    check_seed(args)
     if _is_network(args.core):
         return _design_network(args)
     space = _space(args)
@@ -440,6 +441,7 @@ def cmd_rank(args) -> int:
     check_option(
         args.samples is None or args.samples >= 2, "--samples", args.samples, "expected at least 2 draws per material"
     )
+    check_seed(args)
     _check_T_limit(args)
     if not args.no_plots and args.by != "onset":
         claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
@@ -684,6 +686,7 @@ def cmd_sweep(args) -> int:
         args.samples is None or args.samples >= 1, "--samples", args.samples, "expected a number of Sobol points >= 1"
     )
     check_option(args.chunk is None or args.chunk >= 1, "--chunk", args.chunk, "expected at least 1 point per launch")
+    check_seed(args)
     objectives = _objectives(args.objectives)
     summary = Path(args.output).with_suffix(".json")
     claim_outputs(summary, why="the sweep's summary")

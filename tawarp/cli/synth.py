@@ -12,7 +12,7 @@ from ..measure.scattering import sample_length
 from ..measure.synthetic import MATERIALS, make_paper_data, paper_frequencies, scattering_measurement
 from ..model.core import load_core
 from ..model.forward import transfer_matrices
-from .common import _common, parse_list
+from .common import _common, check_seed, parse_list
 
 
 def add_synth_parser(subparsers):
@@ -76,6 +76,7 @@ def add_synth_parser(subparsers):
 
 
 def cmd_synth(args) -> int:
+    check_seed(args)
     if args.scattering is not None:
         return synth_scattering(args)
     if args.material not in MATERIALS:
