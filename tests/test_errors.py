@@ -458,3 +458,17 @@ def test_a_negative_seed_is_named(argv, tmp_path, capsys, monkeypatch):
     err = _refused([*argv, "--seed", "-1"], capsys)
     assert err.startswith(f"tawarp {argv[0]}: error: --seed -1: expected an integer >= 0")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_relative_humidity_over_100_per_cent_is_named(tmp_path, capsys, monkeypatch):
+    from importlib import resources
+
+    text = (resources.files("tawarp") / "data" / "tube" / "e2611_two_load.toml").read_text()
+    assert "\nhumidity = 0.0" in text
+    (tmp_path / "wet.toml").write_text(text.replace("\nhumidity = 0.0", "\nhumidity = 140.0"))
+    monkeypatch.chdir(tmp_path)
+    err = _refused(["measure", "wet.toml", "-o", "w.csv"], capsys)
+    assert (
+        err == "tawarp measure: error: wet.toml: gas.humidity: expected a relative humidity in [0, 100] %, got 140.0\n"
+    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["wet.toml"]

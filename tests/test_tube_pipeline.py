@@ -238,6 +238,7 @@ block = {block}
         (("positions = [-0.3", "positions = [0.3"), "microphones[0].positions"),
         (("block = 2048", "block = 5.5"), "spectra.block"),
         (("band = [400.0, 3000.0]", "band = [3000.0, 400.0]"), "microphones[0].band"),
+        (("pressure =", "humidity = 140.0\npressure ="), "gas.humidity: expected a relative humidity in [0, 100] %"),
     ],
 )
 def test_description_errors_name_file_and_key(tmp_path, edit, key):

@@ -193,12 +193,10 @@ def _gas(src, g) -> Gas:
         raise _fail(src, "gas.name", f"expected one of {sorted(GASES)}, got {name!r}")
     if "humidity" in g and name != HUMID_AIR:
         raise _fail(src, "gas.humidity", f"humidity applies to air only (gas.name = {name!r})")
-    return Gas(
-        name,
-        _number(src, g, "temperature", "gas"),
-        _number(src, g, "pressure", "gas"),
-        _number(src, g, "humidity", "gas", default=0.0, positive=False, minimum=0.0),
-    )
+    humidity = _number(src, g, "humidity", "gas", default=0.0, positive=False, minimum=0.0)
+    if humidity > 100.0:
+        raise _fail(src, "gas.humidity", f"expected a relative humidity in [0, 100] %, got {humidity!r}")
+    return Gas(name, _number(src, g, "temperature", "gas"), _number(src, g, "pressure", "gas"), humidity)
 
 
 def default_band(positions, tube: Tube, sound_speed: float) -> tuple[float, float]:
