@@ -99,8 +99,14 @@ def _umask() -> int:
 
 #: Marks tawarp's own outputs: the ``generator`` key of a JSON object, a netCDF file's
 #: ``title`` or ``generator`` attribute, a CSV's ``# generator = ...`` line, a PNG's
-#: ``Software`` text (:func:`written_by_tawarp`).
+#: ``Software`` text, a Markdown file's :func:`markdown_mark` line (:func:`written_by_tawarp`).
 GENERATOR = "tawarp"
+
+
+def markdown_mark(generator: str) -> str:
+    """The line that marks a Markdown file as written by ``generator`` (``"tawarp loop"``):
+    an HTML comment, which the rendered text does not show."""
+    return f"<!-- generator = {generator} -->"
 
 
 #: The help text of an output written beside a named one (:func:`claim_outputs`).
@@ -130,9 +136,10 @@ def written_by_tawarp(path: str | Path) -> bool:
 
             with h5py.File(path, "r") as f:
                 return any(str(f.attrs.get(k, "")).startswith(GENERATOR) for k in ("generator", "title"))
-        if suffix == ".csv":
+        if suffix in (".csv", ".md"):
+            mark = "#generator=" if suffix == ".csv" else "<!--generator="
             with open(path, encoding="utf-8", errors="replace") as f:
-                return any(line.replace(" ", "").startswith(f"#generator={GENERATOR}") for line in f.readlines(4096))
+                return any(line.replace(" ", "").startswith(mark + GENERATOR) for line in f.readlines(4096))
     except Exception:  # unreadable, not of its suffix's format: not ours
         return False
     return False

@@ -323,3 +323,23 @@ def test_a_full_disk_leaves_no_half_line_in_the_study_journal(tmp_path, monkeypa
     monkeypatch.setattr(os, "write", write)
     assert (tmp_path / "study.journal").read_bytes() == before
     assert len(list(journal.read_logs(0))) == 1
+
+
+def test_the_loop_keeps_a_users_files_and_replaces_its_own(tmp_path, capsys):
+    """``tawarp loop -o OUT`` replaced a report.md of the user's in OUT."""
+    from tawarp.io import written_by_tawarp
+
+    loop = ["loop", "atalla:foam1", "--device", "cpu", "--quiet", "-o", str(tmp_path)]
+    assert main(loop) == 0
+    written = sorted(p.name for p in tmp_path.iterdir())
+    assert {"report.json", "report.md", "residuals.png"} <= set(written)
+    assert all(written_by_tawarp(tmp_path / name) for name in written)
+    assert (tmp_path / "report.md").read_text().startswith("# tawarp loop report\n<!-- generator = tawarp loop -->\n")
+    assert main(loop) == 0  # its own outputs are replaced
+    (tmp_path / "report.md").write_text("mine\n")
+    (tmp_path / "notes.md").write_text("# tawarp loop report\n")
+    assert not written_by_tawarp(tmp_path / "notes.md")
+    assert main(loop) == 2
+    err = capsys.readouterr().err
+    assert f"tawarp loop: error: {tmp_path / 'report.md'}: exists and tawarp did not write it" in err
+    assert (tmp_path / "report.md").read_text() == "mine\n"

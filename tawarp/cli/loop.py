@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..io import CLAIM_HELP, claim_outputs
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
 from ..measure import atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
@@ -35,13 +36,25 @@ def add_loop_parser(sub) -> None:
         "porosity, pore radius, tortuosity)",
     )
     p.add_argument("--cells", type=int, default=None, help="fixed Magnus cells per thermal segment (default adaptive)")
-    p.add_argument("-o", "--output", default="tawarp-loop", help="output folder (default: %(default)s)")
+    p.add_argument(
+        "-o",
+        "--output",
+        default="tawarp-loop",
+        help="output folder (default: %(default)s): report.json, report.md and figures residuals.png, "
+        "drift.png, next_measurement.png" + CLAIM_HELP,
+    )
     _common(p)
     add_measurement_options(p)
     p.set_defaults(func=cmd_loop)
 
 
+#: What ``tawarp loop`` writes in its output folder (:func:`tawarp.loop.write_report`).
+OUTPUTS = ("report.json", "report.md", "residuals.png", "drift.png", "next_measurement.png")
+
+
 def cmd_loop(args) -> int:
+    # before the fits, which take a while: a file of the user's there is never replaced
+    claim_outputs(*(Path(args.output) / name for name in OUTPUTS), why="the loop's report")
     settings = ForwardSettings(device=args.device, cells=args.cells)
     names = [s.strip() for s in args.fit.split(",")] if args.fit else None
     if args.data.startswith("atalla:"):

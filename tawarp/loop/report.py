@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..io import GENERATOR, markdown_mark, write_json, write_text
 from ..measure.kind import MeasurementKind
 from .records import LoopReport
 
@@ -136,6 +137,7 @@ def report_markdown(report: dict) -> str:
 
     lines = [
         "# tawarp loop report",
+        markdown_mark(f"{GENERATOR} loop"),
         "",
         f"- verdict: **{r['verdict']}**",
         f"- measurement kind: {r['kind']}, {r['n_residuals']} real residuals",
@@ -233,9 +235,9 @@ def report_markdown(report: dict) -> str:
 
 def write_report(problem: MeasurementKind, report: LoopReport, outdir: str | Path) -> dict:
     """OUTDIR/report.json, report.md, residuals.png (and drift.png, next_measurement.png);
-    returns the JSON dict (:meth:`LoopReport.to_json` with the figures' names)."""
-    from ..io import write_json, write_text
-
+    returns the JSON dict (:meth:`LoopReport.to_json` with the figures' names). report.json
+    and report.md carry tawarp's mark (:func:`tawarp.io.written_by_tawarp`): ``generator``,
+    and a :func:`tawarp.io.markdown_mark` line under the title."""
     outdir = Path(outdir)
     outdir.mkdir(parents=True, exist_ok=True)
     js = report.to_json()
@@ -245,6 +247,6 @@ def write_report(problem: MeasurementKind, report: LoopReport, outdir: str | Pat
         plan_figure(problem, report, outdir / "next_measurement.png"),
     ]
     js["figures"] = [f.name for f in figs if f is not None]
-    write_json(outdir / "report.json", js)
+    write_json(outdir / "report.json", {"generator": f"{GENERATOR} loop", **js})
     write_text(outdir / "report.md", report_markdown(js) + "".join(f"\n![{f[:-4]}]({f})\n" for f in js["figures"]))
     return js
