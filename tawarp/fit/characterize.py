@@ -35,12 +35,10 @@ import numpy as np
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
 from ..model.fields import field as field_spec
 from ..model.core import Core, load_core
+from ..model.effects import same_material_ties
 from .estimate import FitResult, fit, predict
 from ..model.forward import ForwardSettings
 from ..measure.files import TMatrixData
-
-GEOMETRY_FIELDS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity")
-
 
 def stack_and_heater(core: Core) -> tuple[str, str]:
     """Names of the stack (the porous thermal segment that is not the heater) and of the
@@ -53,12 +51,12 @@ def stack_and_heater(core: Core) -> tuple[str, str]:
 
 
 def default_geometry(core: Core) -> tuple[list[str], dict[str, list[str]]]:
-    """Step-1 free parameters and ties (module doc)."""
-    stack, hx = stack_and_heater(core)
-    s, h = core.segment(stack), core.segment(hx)
-    if h.is_porous and all(getattr(s, f) == getattr(h, f) for f in GEOMETRY_FIELDS):
-        names = [f"{stack}.porosity", f"{stack}.pore_radius"]
-        return names, {k: [k.replace(stack + ".", hx + ".", 1)] for k in names}
+    """Step-1 free parameters and ties (module doc;
+    :func:`tawarp.model.effects.same_material_ties`)."""
+    stack, _ = stack_and_heater(core)
+    ties = same_material_ties(core, ("porosity", "pore_radius"))  # (the tortuosity fixed)
+    if ties:
+        return list(ties), ties
     return [f"{stack}.porosity", f"{stack}.pore_radius", f"{stack}.tortuosity"], {}
 
 

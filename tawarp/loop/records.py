@@ -118,6 +118,8 @@ class LoopReport(Mapping):
     unexplained_residual: dict | None
     base_parameters: list[str]
     pinned: list[str]
+    #: {base parameter: [the model parameters it also sets]} (one material in two segments)
+    ties: dict[str, list[str]]
     method: str
     residual_structure_before: dict
     residual_structure_after: dict
@@ -176,6 +178,7 @@ class LoopReport(Mapping):
             "indistinguishable": self.supported_groups,
             "base_parameters": self.base_parameters,
             "pinned": self.pinned,
+            "ties": self.ties,
             "method": self.method,
             "parameters_before": parameter_report(self.base.fit, self.base.z()),
             "parameters_after": parameter_report(self.best.fit, self.best.z()),

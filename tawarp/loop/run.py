@@ -111,8 +111,11 @@ def base_names(problem: MeasurementKind) -> list[str]:
 
 def default_base_params(problem: MeasurementKind, names=None) -> list[Param]:
     """Fit parameters for ``names`` (default :func:`base_names`), scaling and bounds from
-    :mod:`tawarp.model.fields`."""
-    return base_params(problem.core, names if names is not None else base_names(problem))
+    :mod:`tawarp.model.fields`, each also setting the parameters the kind ties to it
+    (:meth:`MeasurementKind.ties`) that are not fitted on their own."""
+    names = list(names if names is not None else base_names(problem))
+    ties = {k: v for k, v in problem.ties().items() if k in names and not set(v) & set(names)}
+    return base_params(problem.core, names, ties)
 
 
 def fit_base(
@@ -649,6 +652,7 @@ def run_loop(
         else residual_location(problem, best.fit.model[0], floor),
         base_parameters=[par.label for par in base_params],
         pinned=list(problem.core.pinned),
+        ties={par.label: list(par.targets[1:]) for par in base_params if len(par.targets) > 1},
         method=METHOD,
         residual_structure_before=residual_structure(weighted, base.fit.model[0]),
         residual_structure_after=residual_structure(weighted, best.fit.model[0]),

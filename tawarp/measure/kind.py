@@ -85,6 +85,11 @@ class MeasurementKind:
         :meth:`default_names`."""
         return self.default_names()
 
+    def ties(self) -> dict[str, list[str]]:
+        """{parameter: [model parameters]} that the loop's base fit sets to that parameter's
+        value where it fits it alone (one material in two segments): none by default."""
+        return {}
+
     def effect_library(self) -> list:
         """The loop's candidate effects (:class:`tawarp.model.effects.Effect`) for this
         kind's data on its core: none by default."""

@@ -21,6 +21,7 @@ from ..model.effects import (
     CALIBRATION_PHASE,
     graded_cells,
     graded_parts,
+    same_material_ties,
     stack_and_heater,
     tmatrix_library,
 )
@@ -107,7 +108,8 @@ class TMatrixKind(MeasurementKind):
         passive sample: the material under test) and, with heat input in the data, every
         thermal segment's h, whatever its size. The hot exchanger's geometry is part of the
         rig, as in the paper: freeing it lets it bend towards the bounds to take up an
-        effect's misfit (add it with ``--fit``)."""
+        effect's misfit (add it with ``--fit``); where it is the stack's material it moves
+        with the stack's (:meth:`ties`)."""
         names = [
             f"{s.name}.{f}"
             for s in self.core.segments
@@ -117,6 +119,14 @@ class TMatrixKind(MeasurementKind):
         if np.any(self.group > 0):
             names += [f"{s.name}.h" for s in self.core.segments if s.thermal]
         return names
+
+    def ties(self) -> dict[str, list[str]]:
+        """The hot exchanger's geometry with the stack's where the core file gives both one
+        material (:func:`tawarp.model.effects.same_material_ties`): fitted as one, as the
+        paper's first step and ``tawarp fit`` do. Left at the file's values while the
+        stack's moved, a file's nominal geometry became a misfit that the loop's effects
+        took up."""
+        return same_material_ties(self.core)
 
     def effect_library(self) -> list:
         """2-port data: :func:`tawarp.model.effects.tmatrix_library` of the core."""
@@ -185,11 +195,13 @@ class TMatrixKind(MeasurementKind):
         T = T.reshape(n, nq, len(self.freqs), 2, 2)
         if frame:
             T = self._with_elastic_frame(T, values, frame, n)
-        Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
-        if gain is not None or phase is not None:
-            g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
-            ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
-            Y = Y * (g * np.exp(1j * ph))[:, None]
+        # a diverging trial's T-matrices hold infinities: its cost is inf, which the LM rejects
+        with np.errstate(over="ignore", invalid="ignore"):
+            Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+            if gain is not None or phase is not None:
+                g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
+                ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
+                Y = Y * (g * np.exp(1j * ph))[:, None]
         return Y
 
     def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:

@@ -82,20 +82,23 @@ class Param:
         return dataclasses.replace(self, start=float(v))
 
 
-def base_params(core: Core, names) -> list[Param]:
+def base_params(core: Core, names, ties: dict | None = None) -> list[Param]:
     """:class:`Param` of each model parameter ``names`` starting at the core's value, its
     scaling and bounds from :mod:`tawarp.model.fields`: log fields fitted as ln(v/start)
     within their ``fit_range`` and 1e-3..1e3 times the start, the others as
-    (v - start)/``scale`` within ``fit_range``."""
+    (v - start)/``scale`` within ``fit_range``. ``ties`` {name: [model parameters]}: those
+    set to the value of ``name`` too (:func:`same_material_ties`)."""
     out = []
+    ties = ties or {}
     for name in names:
         v = core.get(name)
         f = field_spec(name)
         lo, hi = f.fit_range
+        targets = (name, *ties.get(name, ()))
         if f.log and v > 0:
-            out.append(Param(name, (name,), v, 1.0, max(lo, v * 1e-3), min(hi, v * 1e3), log=True))
+            out.append(Param(name, targets, v, 1.0, max(lo, v * 1e-3), min(hi, v * 1e3), log=True))
         else:
-            out.append(Param(name, (name,), v, f.scale, lo, hi))
+            out.append(Param(name, targets, v, f.scale, lo, hi))
     return out
 
 
@@ -152,6 +155,25 @@ def stack_and_heater(core: Core) -> tuple[str | None, str | None]:
     heater = next((s.name for s in thermal if s.heater), None)
     stack = next((s.name for s in thermal if s.is_porous and not s.heater), None)
     return stack, heater
+
+
+#: The fields that make a porous segment's material: a core file that gives the stack and
+#: the hot exchanger the same values of all of them describes one material in both.
+MATERIAL_FIELDS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity")
+
+
+def same_material_ties(core: Core, fields=("porosity", "pore_radius", "tortuosity")) -> dict[str, list[str]]:
+    """{stack field: [the hot exchanger's field]} of ``fields`` where the core file gives
+    the stack and a porous hot exchanger one material (every :data:`MATERIAL_FIELDS`
+    equal, as the paper's ceramic core): a fit of the stack's geometry moves the
+    exchanger's with it, as the paper's first step does; else {}."""
+    stack, heater = stack_and_heater(core)
+    if stack is None or heater is None:
+        return {}
+    s, h = core.segment(stack), core.segment(heater)
+    if not h.is_porous or any(getattr(s, f) != getattr(h, f) for f in MATERIAL_FIELDS):
+        return {}
+    return {f"{stack}.{f}": [f"{heater}.{f}"] for f in fields}
 
 
 #: Wall of the typical wall-conduction effect: 1 mm of stainless steel, 15 W/(m K).
