@@ -278,3 +278,34 @@ def test_an_inadequate_fit_says_so(tmp_path, capsys):
     )
     out = capsys.readouterr().out
     assert "INADEQUATE FIT: reduced chi^2 = " in out
+
+
+def _help(command, capsys) -> str:
+    with pytest.raises(SystemExit):
+        main([command, "--help"])
+    return " ".join(capsys.readouterr().out.split())
+
+
+def test_help_names_the_bundled_data_each_command_takes(tmp_path, capsys):
+    from tawarp.measure import atalla_panneton_samples
+    from tawarp.model.core import bundled, bundled_cores
+
+    assert f"a bundled core: {', '.join(bundled_cores())}" in _help("forward", capsys)
+    assert "foam_sample" in bundled_cores()
+    assert f"atalla:NAME ({', '.join(sorted(atalla_panneton_samples()))})" in _help("loop", capsys)
+    assert "fibrous2" in atalla_panneton_samples()
+    assert f"a bundled engine: {', '.join(bundled('engines'))}" in _help("onset", capsys)
+    # design takes a network engine file, sweep does not (it refuses traveling_wave)
+    assert "network engine file (traveling_wave)" in _help("design", capsys)
+    assert "network" not in _help("sweep", capsys).split("options:")[0]
+    assert main(["sweep", "traveling_wave", "--var", "stack.length=0.01:0.1:3", "-o", str(tmp_path / "s.nc")]) == 2
+
+
+def test_every_option_has_help():
+    import argparse
+
+    from tawarp.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    silent = [f"{name} {a.option_strings}" for name, p in sub.choices.items() for a in p._actions if not a.help]
+    assert silent == []

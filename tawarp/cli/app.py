@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import CLAIM_HELP, claim_outputs
+from ..model.core import bundled_cores
 from .common import _common, _say, init_warp, interrupts_honoured, parse_list
 from .design import add_design_parser, add_rank_parser, add_sweep_parser
 from .fit import add_fit_parser
@@ -88,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_demo)
 
     p = _common(sub.add_parser("forward", help="T-matrices of a core (CSV as the measurement format) and plots"))
-    p.add_argument("core", help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam")
+    p.add_argument("core", help=f"core TOML file, or a bundled core: {', '.join(bundled_cores())}")
     p.add_argument(
         "--freqs", type=parse_list, default="30:500:100", help="Hz, list or start:stop:count (default: %(default)s)"
     )

@@ -78,11 +78,14 @@ def _settings(args):
     return ForwardSettings(device=args.device)
 
 
-def _add_space_args(p):
+def _add_space_args(p, network: bool = False):
+    """The design space's arguments; ``network``: the command also takes a network engine."""
+    from ..model.core import paper_cores
+
     p.add_argument(
         "core",
-        help="core TOML file, or a bundled core: ceramic, mesh, nicr_foam, rvc_foam; tawarp design also takes "
-        "a network engine file (traveling_wave): the lowest onset T_hot / T_cold",
+        help=f"core TOML file, or a bundled core: {', '.join(paper_cores())}"
+        + ("; or a network engine file (traveling_wave): the lowest onset T_hot / T_cold" if network else ""),
     )
     p.add_argument("--var", action="append", help=VAR_HELP)
     p.add_argument(
@@ -341,7 +344,7 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
             + "; ".join(f"{o.name} [{o.unit}] ({o.direction}d): {o.long_name}" for o in OBJECTIVES.values()),
         )
     )
-    _add_space_args(p)
+    _add_space_args(p, network=True)
     p.add_argument(
         "--objectives",
         default="gradient",
@@ -655,20 +658,32 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
     p.add_argument(
         "--core", default="rvc_foam", help="reference core whose stack takes each material (default: %(default)s)"
     )
-    p.add_argument("--segment", default="stack")
+    p.add_argument(
+        "--segment",
+        default="stack",
+        help="the segment that takes each material (default: %(default)s; a network engine: its porous one, "
+        "e.g. regenerator)",
+    )
     p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
     p.add_argument(
-        "--samples", type=int, default=None, help="draws per material (default: 4000 by gradient, 400 by onset)"
+        "--samples", type=int, default=None, help="draws per material (default: 4000 by gradient, 400 by onset, 30 by a network's onset)"
     )
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help="[K] (default: %(default)s)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the material draws (default: %(default)s)")
+    p.add_argument(
+        "--T-limit",
+        dest="T_limit",
+        type=float,
+        default=DEFAULT_T_LIMIT,
+        help="temperature limit [K]: each material's share of draws whose T_max exceeds it is "
+        "reported (default: %(default)s)",
+    )
     p.add_argument(
         "-o",
         "--output",
         default="rank.json",
         help="output JSON (default: %(default)s); its figure STEM.png beside it" + CLAIM_HELP,
     )
-    p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--no-plots", action="store_true", help="skip the figure")
     p.set_defaults(func=cmd_rank)
     return p
 
@@ -744,7 +759,9 @@ def add_sweep_parser(sub) -> argparse.ArgumentParser:
         help="points per launch and write (default: 2^20 on a GPU, 2^16 on the CPU, where a Ctrl-C waits "
         "for the launch in flight)",
     )
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--seed", type=int, default=0, help="seed of the scrambled Sobol points, with --samples (default: %(default)s)"
+    )
     p.add_argument(
         "--reduce",
         default=None,

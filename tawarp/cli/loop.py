@@ -18,7 +18,7 @@ def add_loop_parser(sub) -> None:
         "data",
         help="T-matrix CSV (docs/formats.md), scattering-matrix CSV (freq_Hz,S11_re,...), "
         "surface impedance CSV (freq_Hz,Zs_re,Zs_im), "
-        "or atalla:NAME (foam1, foam2, fibrous1) for the bundled Atalla & Panneton data",
+        f"or atalla:NAME ({', '.join(sorted(atalla_panneton_samples()))}) for the bundled Atalla & Panneton data",
     )
     p.add_argument(
         "--core",

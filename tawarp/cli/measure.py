@@ -10,6 +10,7 @@ from .common import _common, _say
 
 def add_measure_parser(sub) -> None:
     """Register ``tawarp measure`` on an argparse sub-parsers object."""
+    from ..model.core import bundled
     from ..tube.setup import METHODS
 
     p = sub.add_parser(
@@ -19,7 +20,9 @@ def add_measure_parser(sub) -> None:
         "signal and calibration files, and write the measured T-matrix (E2611 methods) or surface "
         "impedance (ISO 10534-2) in the CSV format that fit and loop read, with a figure beside it.",
     )
-    p.add_argument("setup", help="measurement description TOML, or a bundled one by name (e2611_two_load)")
+    p.add_argument(
+        "setup", help=f"measurement description TOML, or a bundled one by name ({', '.join(bundled('tube'))})"
+    )
     p.add_argument(
         "--data",
         default=None,

@@ -15,6 +15,8 @@ from .common import _common, _say, check_option, parse_vars
 
 def add_onset_parser(sub) -> None:
     """Register ``tawarp onset`` on an argparse sub-parsers object."""
+    from ..model.core import bundled
+
     p = _common(
         sub.add_parser(
             "onset",
@@ -25,7 +27,7 @@ def add_onset_parser(sub) -> None:
     p.add_argument(
         "engine",
         help="engine TOML (a core file with an [engine] table, or a network with [[branch]] tables), "
-        "or a bundled engine: standing_wave, traveling_wave, refrigerator",
+        f"or a bundled engine: {', '.join(bundled('engines'))}",
     )
     p.add_argument(
         "--f-max", type=float, default=None, help="network: highest frequency searched for modes at T_cold [Hz]"
