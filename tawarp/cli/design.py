@@ -666,7 +666,10 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("--catalogue", action="append", help="extra materials: a TOML catalogue or a fit.json (repeatable)")
     p.add_argument(
-        "--samples", type=int, default=None, help="draws per material (default: 4000 by gradient, 400 by onset, 30 by a network's onset)"
+        "--samples",
+        type=int,
+        default=None,
+        help="draws per material (default: 4000 by gradient, 400 by onset, 30 by a network's onset)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the material draws (default: %(default)s)")
     p.add_argument(

@@ -73,7 +73,9 @@ def search_network(
     (w_cold, *_) = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)
     home = nr.onset(net, w_cold, T_max=T_max, n=12)
     if not np.isfinite(home.T_onset):
-        raise ValueError(f"{net.source}: the file's design does not start up to T_max = {T_max:g} K; raise --T-ratio-max")
+        raise ValueError(
+            f"{net.source}: the file's design does not start up to T_max = {T_max:g} K; raise --T-ratio-max"
+        )
     x_home = np.array([[net.gas.p_mean if n == "gas.p_mean" else _field(net, n) for n in names]])
     archive_u = _unit(variables, x_home)
     archive = [(home.omega.real, home.T_onset)]
