@@ -40,6 +40,7 @@ from .estimate import FitResult, fit, predict
 from ..model.forward import ForwardSettings
 from ..measure.files import TMatrixData
 
+
 def stack_and_heater(core: Core) -> tuple[str, str]:
     """Names of the stack (the porous thermal segment that is not the heater) and of the
     hot exchanger (the heater)."""
