@@ -51,6 +51,20 @@ def test_tmatrix_kind_predicts_the_reference():
     assert kind.coef.tolist()[:8] == [0, 1, 2, 3, 0, 1, 2, 3] and kind.group[-1] == 40.0 and kind.freq[4] == F[1]
 
 
+def test_heated_rows_on_a_passive_core_are_refused():
+    # a passive core's model reads no heat input: rows at 0, 20 and 40 W were fitted as one
+    # problem, silently
+    passive = load_core("foam_sample")
+    data = tmatrix_data(passive, F, (0.0,))
+    T3 = np.tile(data.T, (3, 1, 1))
+    heated = TMatrixData(np.repeat([0.0, 20.0, 40.0], F.size), np.tile(F, 3), T3, None, {}, "lab.csv")
+    with pytest.raises(
+        MeasurementError, match=r"lab.csv: rows at Q = 20, 40 W, but the core .*foam_sample\.toml has no"
+    ):
+        TMatrixKind(heated, passive, CPU)
+    assert TMatrixKind(data, passive, CPU).y.size == 4 * F.size  # Q = 0 alone: as before
+
+
 def test_tmatrix_kind_computes_only_the_heat_inputs_of_the_rows_asked_for():
     # a set whose rows are the Q = 0 ones alone gets no heated T-matrix (NaN at Q = 40 W):
     # its Q = 0 values, and every value of a set that asks for all rows, are those of the

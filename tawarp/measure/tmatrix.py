@@ -60,6 +60,13 @@ class TMatrixKind(MeasurementKind):
     predicts_rows = True
 
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
+        heated = sorted({float(q) for q in data.heat_input if q != 0.0})
+        if heated and not any(s.heater for s in core.segments):
+            # a passive core's model reads no heat input: rows at several would be fitted as one
+            raise MeasurementError(
+                f"{data.source}: rows at Q = {', '.join(f'{q:g}' for q in heated)} W, but the core "
+                f"{core.source} has no heater (a passive core: its data are at Q = 0 only)"
+            )
         self.data, self.core = data, core
         # fixed cells: finite-difference Jacobians need a model smooth in the parameters
         self.settings = smooth_settings(core, data.frequencies, settings, heat_input=data.heat_inputs)
