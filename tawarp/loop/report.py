@@ -142,7 +142,8 @@ def report_markdown(report: dict) -> str:
         f"- verdict: **{r['verdict']}**",
         f"- measurement kind: {r['kind']}, {r['n_residuals']} real residuals",
         f"- base parameters: {', '.join(r['base_parameters'])}"
-        + (f"; pinned: {', '.join(r['pinned'])}" if r["pinned"] else ""),
+        + (f"; pinned: {', '.join(r['pinned'])}" if r["pinned"] else "")
+        + (f"; tied: {', '.join(f'{t} to {k}' for k, ts in r['ties'].items() for t in ts)}" if r["ties"] else ""),
         f"- noise floor: {r['noise_floor']:.4g} ({r['noise_source']})",
         f"- base fit: {gof(g0)}",
         f"- final fit: {gof(g1)}",
