@@ -27,6 +27,9 @@ def test_forward_writes_measurement_csv(tmp_path):
     # rows are (Q, freq) in Q-major order; repr() round trip is exact
     np.testing.assert_array_equal(data.T, expected.reshape(-1, 2, 2))
     np.testing.assert_array_equal(data.heat_input, [0, 0, 20, 20])
+    # the core as named (a bundled name, not this installation's path: the file stays
+    # readable without --core where tawarp is installed elsewhere)
+    assert data.metadata["core"] == "mesh" and data.metadata["cells"] == "adaptive"
     assert (tmp_path / "T_coefficients.png").stat().st_size > 0
     assert (tmp_path / "T_temperature.png").stat().st_size > 0
 

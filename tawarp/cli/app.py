@@ -46,7 +46,12 @@ def cmd_forward(args) -> int:
         np.repeat(Q, m),
         np.tile(args.freqs, len(Q)),
         res.T.reshape(-1, 2, 2),
-        metadata={"core": str(core.source), "generator": "tawarp forward", "cells": str(args.cells)},
+        # the core as the user named it: a bundled name stays one, not this installation's path
+        metadata={
+            "core": args.core,
+            "generator": "tawarp forward",
+            "cells": "adaptive" if args.cells is None else str(args.cells),
+        },
         source=str(args.output),
     )
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)
