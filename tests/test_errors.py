@@ -405,6 +405,9 @@ def test_design_functions_refuse_impossible_arguments():
         ([*RANK, "--segment", "nosuch"], "--segment nosuch: not a segment of "),
         ([*RANK, "--by", "onset", "--segment", "nosuch"], "--segment nosuch: not a segment of "),
         ([*RANK, "--samples", "0"], "--samples 0: expected at least 2 draws per material"),
+        ([*RANK, "--by", "onset", "--Q-max", "-5"], "--Q-max -5: expected a heat input > 0 W"),
+        ([*RANK, "--by", "onset", "--Q-max", "nan"], "--Q-max nan: expected a heat input > 0 W"),
+        ([*RANK, "--by", "onset", "--bracket", "1"], "--bracket 1: expected at least 2 points of the searched range"),
     ],
 )
 def test_rank_names_an_impossible_option(argv, say, tmp_path, capsys):

@@ -162,6 +162,12 @@ def _add_onset_args(p):
     )
 
 
+def _check_bracket(args) -> None:
+    """--Q-max and --bracket of the onset search, refused naming the option."""
+    check_option(np.isfinite(args.Q_max) and args.Q_max > 0, "--Q-max", args.Q_max, "expected a heat input > 0 W")
+    check_option(args.bracket >= 2, "--bracket", args.bracket, "expected at least 2 points of the searched range")
+
+
 def _check_network_options(args) -> None:
     """--T-ratio-max and --amplitude of a network engine, refused naming the option."""
     check_option(
@@ -446,6 +452,7 @@ def cmd_rank(args) -> int:
     )
     check_seed(args)
     _check_T_limit(args)
+    _check_bracket(args)
     if not args.no_plots and args.by != "onset":
         claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
     cat = load_catalogue(args.catalogue or [])
