@@ -242,6 +242,9 @@ def cmd_design(args) -> int:
     # every check before the output folder is made: a refused command leaves nothing behind
     check_option(args.trials >= 1, "--trials", args.trials, "expected a number of trials >= 1")
     check_option(args.batch >= 1, "--batch", args.batch, "expected a population of at least 1 trial")
+    check_option(args.keep >= 1, "--keep", args.keep, "expected a number of best designs >= 1")
+    check_option(args.draws >= 1, "--draws", args.draws, "expected a number of parameter sets >= 1")
+    _check_bracket(args)
     check_seed(args)
     if _is_network(args.core):
         return _design_network(args)
