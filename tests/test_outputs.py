@@ -343,3 +343,42 @@ def test_the_loop_keeps_a_users_files_and_replaces_its_own(tmp_path, capsys):
     err = capsys.readouterr().err
     assert f"tawarp loop: error: {tmp_path / 'report.md'}: exists and tawarp did not write it" in err
     assert (tmp_path / "report.md").read_text() == "mine\n"
+
+
+def test_the_demo_keeps_a_users_files_and_replaces_its_own(tmp_path, monkeypatch, capsys):
+    """``tawarp demo -o OUT`` replaced a summary.json of the user's in OUT, and its own files
+    carried no mark that a later demo could recognise."""
+    from tawarp.cli import demo
+    from tawarp.io import written_by_tawarp
+
+    # the fits, the loop and the onset are slow: their files are checked on their own below
+    for step in ("demo_fit", "demo_loop", "demo_onset"):
+        monkeypatch.setattr(demo, step, lambda *a, **k: None)
+    run = ["demo", "--device", "cpu", "--quiet", "-o", str(tmp_path)]
+    assert main(run) == 0
+    written = set(tmp_path.iterdir())
+    assert tmp_path / "summary.json" in written and written <= set(demo.demo_outputs(tmp_path))
+    assert all(written_by_tawarp(p) for p in written)
+    assert main(run) == 0  # its own outputs are replaced
+    (tmp_path / "loop").mkdir()
+    (tmp_path / "loop" / "report.md").write_text("mine\n")
+
+    def no_work(*a, **k):
+        raise AssertionError("the demo started before it claimed its outputs")
+
+    monkeypatch.setattr(demo, "transfer_matrices", no_work)
+    assert main(run) == 2
+    err = capsys.readouterr().err
+    assert f"tawarp demo: error: {tmp_path / 'loop' / 'report.md'}: exists and tawarp did not write it" in err
+    assert (tmp_path / "loop" / "report.md").read_text() == "mine\n"
+
+
+def test_the_demos_fits_and_onset_are_its_own_outputs(tmp_path):
+    from tawarp.cli.demo import demo_fit, demo_onset, demo_outputs
+    from tawarp.io import written_by_tawarp
+
+    demo_fit(tmp_path / "fit", device="cpu", quiet=True, n_freqs=8, cells=8)
+    demo_onset(tmp_path / "onset.json", device="cpu", quiet=True)
+    written = {*(tmp_path / "fit").iterdir(), tmp_path / "onset.json"}
+    assert tmp_path / "fit" / "fit_summary.json" in written and written <= set(demo_outputs(tmp_path))
+    assert [p.name for p in written if not written_by_tawarp(p)] == []

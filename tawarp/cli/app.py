@@ -90,7 +90,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     p = _common(sub.add_parser("demo", help="the main job on the bundled paper-like data, end to end"))
-    p.add_argument("-o", "--output", default="tawarp-demo", help="output folder (default: %(default)s)")
+    p.add_argument("-o", "--output", default="tawarp-demo", help="output folder (default: %(default)s)" + CLAIM_HELP)
     p.set_defaults(func=cmd_demo)
 
     p = _common(sub.add_parser("forward", help="T-matrices of a core (CSV as the measurement format) and plots"))

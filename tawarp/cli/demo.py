@@ -10,9 +10,9 @@ import math
 import warnings
 from importlib import resources
 
-from ..fit.characterize import characterize, default_geometry, default_heat_names, write_figures
+from ..fit.characterize import characterize, default_geometry, default_heat_names, figure_paths, write_figures
 from ..fit.estimate import FitWarning
-from ..io import write_json
+from ..io import GENERATOR, claim_outputs, write_json
 from ..loop import default_base_params, run_loop, write_report
 from ..measure.tmatrix import TMatrixKind
 from ..measure.files import TMatrixData, read_tmatrix_csv, write_tmatrix_csv
@@ -20,15 +20,38 @@ from ..measure.synthetic import MATERIALS, make_paper_data, true_values
 from ..model.core import load_core, paper_cores
 from ..model.forward import DEFAULT_CELL_DENSITY, ForwardSettings, transfer_matrices
 from ..plots import plot_coefficients, plot_temperature
+from .loop import OUTPUTS as LOOP_OUTPUTS
 
 #: Heat inputs of the demo [W]; the RVC foam stops at 18 W as in the paper (combustion risk).
 DEMO_HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}
 DEFAULT_HEAT = [0.0, 20.0, 40.0, 80.0]
 
+#: The mark of the demo's own files (:func:`tawarp.io.written_by_tawarp`): a later demo
+#: into the same folder replaces them.
+MARK = f"{GENERATOR} demo"
+
+
+def demo_outputs(out: Path) -> list[Path]:
+    """Every file ``tawarp demo -o OUT`` may write."""
+    out = Path(out)
+    files = [
+        out / f"{name}{end}" for name in paper_cores() for end in ("_T.csv", "_coefficients.png", "_temperature.png")
+    ]
+    files += [out / "summary.json", *demo_fit_outputs(out / "fit"), out / "onset.json"]
+    return files + [out / "loop" / name for name in LOOP_OUTPUTS]
+
+
+def demo_fit_outputs(out_dir) -> list[Path]:
+    """Every file :func:`demo_fit` may write in ``out_dir``."""
+    stems = [Path(out_dir) / f"fit_{mat}" for mat in MATERIALS]
+    files = [Path(f"{stem}{end}") for stem in stems for end in (".csv", ".json")]
+    return files + [p for stem in stems for p in figure_paths(stem)] + [Path(out_dir) / "fit_summary.json"]
+
 
 def run_demo(args) -> int:
-
     out = Path(args.output)
+    # before the minute of work: a file of the user's in the folder is never replaced
+    claim_outputs(*demo_outputs(out), why="the demo's outputs")
     out.mkdir(parents=True, exist_ok=True)
     freqs = np.linspace(30.0, 500.0, 48)
     summary = {}
@@ -43,7 +66,7 @@ def run_demo(args) -> int:
                 np.repeat(Q, len(freqs)),
                 np.tile(freqs, len(Q)),
                 res.T.reshape(-1, 2, 2),
-                metadata={"core": name},
+                metadata={"core": name, "generator": MARK},
                 source=str(out / f"{name}_T.csv"),
             ),
         )
@@ -67,7 +90,10 @@ def run_demo(args) -> int:
         summary[name] = {"heat_input_W": Q, "T_max_K": T.max(axis=1), "det_T_minus_1_max": np.abs(det - 1).max(axis=1)}
         for k, q in enumerate(Q):
             rows.append((name, q, T[k].max(), np.abs(det[k] - 1).max()))
-    write_json(out / "summary.json", {"cell_density": DEFAULT_CELL_DENSITY, "freqs_Hz": freqs, "cores": summary})
+    write_json(
+        out / "summary.json",
+        {"generator": MARK, "cell_density": DEFAULT_CELL_DENSITY, "freqs_Hz": freqs, "cores": summary},
+    )
     if not args.quiet:
         print(f"{'core':<10} {'Q [W]':>6} {'T_max [K]':>10} {'max|det T - 1|':>15}")
         for name, q, tmax, d in rows:
@@ -138,6 +164,7 @@ def demo_fit(
     out.mkdir(parents=True, exist_ok=True)
     settings = ForwardSettings(cells=cells, device=device)
     summary = {
+        "generator": MARK,
         "noise": noise,
         "seed": seed,
         "n_freqs": n_freqs,
@@ -158,7 +185,7 @@ def demo_fit(
                 s1 = {k: truth[k] * f for k, f in zip(default_geometry(load_core(mat))[0], (0.8, 1.2, 1.1))}
                 s2 = {k: truth[k] * 1.5 for k in default_heat_names(load_core(mat))}
             ch = characterize(data, mat, start1=s1, start2=s2, settings=settings)
-        obj = ch.to_json()
+        obj = {"generator": MARK, **ch.to_json()}
         obj["figures"] = [str(p) for p in write_figures(ch, out / f"fit_{mat}", label=mat)]
         write_json(out / f"fit_{mat}.json", obj)
         ent = {"rms_error": obj["rms_error"], "converged": obj["converged"], "step1": {}, "step2": {}}
@@ -194,6 +221,7 @@ def demo_onset(path: Path, device=None, quiet=False) -> dict:
 
     res = onset(load_engine("standing_wave"), Q_max=100.0, n_bracket=9, curve=True, device=device)
     summary = {
+        "generator": MARK,
         "engine": "standing_wave",
         "Q_onset_W": res.Q_onset[0],
         "f_onset_Hz": res.f_onset[0],
