@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 import os
 import sys
 import tempfile
@@ -162,6 +163,25 @@ def check_option(ok: bool, option: str, value, need: str) -> None:
     user never saw."""
     if not ok:
         raise ValueError(f"{option} {f'{value:g}' if isinstance(value, float) else value}: {need}")
+
+
+def check_onset_search(args) -> None:
+    """``--Q-max`` and ``--bracket`` of an onset search (onset, design, rank)."""
+    check_option(math.isfinite(args.Q_max) and args.Q_max > 0, "--Q-max", args.Q_max, "expected a heat input > 0 W")
+    check_option(args.bracket >= 2, "--bracket", args.bracket, "expected at least 2 points of the searched range")
+
+
+def check_network_options(args) -> None:
+    """``--T-ratio-max`` and ``--amplitude`` of a network engine (onset, design)."""
+    check_option(
+        math.isfinite(args.T_ratio_max) and args.T_ratio_max > 1,
+        "--T-ratio-max",
+        args.T_ratio_max,
+        "expected a ratio T_hot/T_cold > 1",
+    )
+    check_option(
+        math.isfinite(args.amplitude) and args.amplitude > 0, "--amplitude", args.amplitude, "expected |p| > 0 Pa"
+    )
 
 
 def check_seed(args) -> None:

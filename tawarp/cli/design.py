@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import CLAIM_HELP, GENERATOR, claim_outputs
-from .common import _common, _say, check_option, check_seed, parse_list
+from .common import _common, _say, check_network_options, check_onset_search, check_option, check_seed, parse_list
 
 VAR_HELP = (
     "design variable, repeatable: NAME=LOW:HIGH[:log] (NAME: heat_input or Q, SEGMENT.FIELD such as "
@@ -158,26 +158,7 @@ def _add_onset_args(p):
         "--draws",
         type=int,
         default=64,
-        help="Q_onset_p90 / rank --by onset: parameter sets drawn per design (default: %(default)s)",
-    )
-
-
-def _check_bracket(args) -> None:
-    """--Q-max and --bracket of the onset search, refused naming the option."""
-    check_option(np.isfinite(args.Q_max) and args.Q_max > 0, "--Q-max", args.Q_max, "expected a heat input > 0 W")
-    check_option(args.bracket >= 2, "--bracket", args.bracket, "expected at least 2 points of the searched range")
-
-
-def _check_network_options(args) -> None:
-    """--T-ratio-max and --amplitude of a network engine, refused naming the option."""
-    check_option(
-        np.isfinite(args.T_ratio_max) and args.T_ratio_max > 1,
-        "--T-ratio-max",
-        args.T_ratio_max,
-        "expected a ratio T_hot/T_cold > 1",
-    )
-    check_option(
-        np.isfinite(args.amplitude) and args.amplitude > 0, "--amplitude", args.amplitude, "expected |p| > 0 Pa"
+        help="Q_onset_p90: parameter sets drawn per design (default: %(default)s)",
     )
 
 
@@ -203,7 +184,7 @@ def _design_network(args) -> int:
     variables = [parse_variable(v) for v in (args.var or [])]
     if not variables:
         raise ValueError("give at least one --var SEGMENT.FIELD=LOW:HIGH[:log]")
-    _check_network_options(args)
+    check_network_options(args)
     out = Path(args.output)
     claim_outputs(out / "design.json", why="the design report")
     out.mkdir(parents=True, exist_ok=True)
@@ -244,7 +225,7 @@ def cmd_design(args) -> int:
     check_option(args.batch >= 1, "--batch", args.batch, "expected a population of at least 1 trial")
     check_option(args.keep >= 1, "--keep", args.keep, "expected a number of best designs >= 1")
     check_option(args.draws >= 1, "--draws", args.draws, "expected a number of parameter sets >= 1")
-    _check_bracket(args)
+    check_onset_search(args)
     check_seed(args)
     if _is_network(args.core):
         return _design_network(args)
@@ -455,7 +436,7 @@ def cmd_rank(args) -> int:
     )
     check_seed(args)
     _check_T_limit(args)
-    _check_bracket(args)
+    check_onset_search(args)
     if not args.no_plots and args.by != "onset":
         claim_outputs(out.with_suffix(".png"), why="the ranking's figure")
     cat = load_catalogue(args.catalogue or [])
@@ -561,7 +542,7 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
     from ..design.rank import rank_by_network_onset
     from ..model.network import load_network
 
-    _check_network_options(args)
+    check_network_options(args)
     net = load_network(args.engine)
     try:
         net.segment(args.segment)

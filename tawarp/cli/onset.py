@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import write_json
-from .common import _common, _say, check_option, parse_vars
+from .common import _common, _say, check_network_options, check_onset_search, check_option, parse_vars
 
 
 def add_onset_parser(sub) -> None:
@@ -79,17 +79,8 @@ def _check_options(args) -> None:
     """Refuse impossible values of the numeric options, naming the option, before anything
     is read or written; whether or not the engine uses an option: no engine can use them."""
     check_option(args.mode >= 1, "--mode", args.mode, "expected a mode number >= 1 (1: the fundamental)")
-    check_option(args.bracket >= 2, "--bracket", args.bracket, "expected at least 2 points of the searched range")
-    check_option(math.isfinite(args.Q_max) and args.Q_max > 0, "--Q-max", args.Q_max, "expected a heat input > 0 W")
-    check_option(
-        math.isfinite(args.T_ratio_max) and args.T_ratio_max > 1,
-        "--T-ratio-max",
-        args.T_ratio_max,
-        "expected a ratio T_hot/T_cold > 1",
-    )
-    check_option(
-        math.isfinite(args.amplitude) and args.amplitude > 0, "--amplitude", args.amplitude, "expected |p| > 0 Pa"
-    )
+    check_onset_search(args)
+    check_network_options(args)
 
 
 def cmd_onset(args) -> int:
