@@ -14,13 +14,13 @@ from ..fit.characterize import characterize, default_geometry, default_heat_name
 from ..fit.estimate import FitWarning
 from ..io import GENERATOR, claim_outputs, write_json
 from ..loop import default_base_params, run_loop, write_report
+from ..loop.report import OUTPUTS as LOOP_OUTPUTS
 from ..measure.tmatrix import TMatrixKind
 from ..measure.files import TMatrixData, read_tmatrix_csv, write_tmatrix_csv
 from ..measure.synthetic import MATERIALS, make_paper_data, true_values
 from ..model.core import load_core, paper_cores
 from ..model.forward import DEFAULT_CELL_DENSITY, ForwardSettings, transfer_matrices
 from ..plots import plot_coefficients, plot_temperature
-from .loop import OUTPUTS as LOOP_OUTPUTS
 
 #: Heat inputs of the demo [W]; the RVC foam stops at 18 W as in the paper (combustion risk).
 DEMO_HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}

@@ -6,6 +6,7 @@ from pathlib import Path
 
 from ..io import CLAIM_HELP, claim_outputs
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
+from ..loop.report import OUTPUTS
 from ..measure import atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
 from .common import _common, add_measurement_options, load_data
@@ -46,10 +47,6 @@ def add_loop_parser(sub) -> None:
     _common(p)
     add_measurement_options(p)
     p.set_defaults(func=cmd_loop)
-
-
-#: What ``tawarp loop`` writes in its output folder (:func:`tawarp.loop.write_report`).
-OUTPUTS = ("report.json", "report.md", "residuals.png", "drift.png", "next_measurement.png")
 
 
 def cmd_loop(args) -> int:

@@ -234,6 +234,11 @@ def report_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: Every file :func:`write_report` may write in its folder (a command claims them first:
+#: :func:`tawarp.io.claim_outputs`).
+OUTPUTS = ("report.json", "report.md", "residuals.png", "drift.png", "next_measurement.png")
+
+
 def write_report(problem: MeasurementKind, report: LoopReport, outdir: str | Path) -> dict:
     """OUTDIR/report.json, report.md, residuals.png (and drift.png, next_measurement.png);
     returns the JSON dict (:meth:`LoopReport.to_json` with the figures' names). report.json
