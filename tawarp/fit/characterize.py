@@ -35,6 +35,7 @@ import numpy as np
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, rms_error
 from ..model.fields import field as field_spec
 from ..model.core import Core, load_core
+from ..model import effects
 from ..model.effects import same_material_ties
 from .estimate import FitResult, fit, predict
 from ..model.forward import ForwardSettings
@@ -43,12 +44,13 @@ from ..measure.files import TMatrixData
 
 def stack_and_heater(core: Core) -> tuple[str, str]:
     """Names of the stack (the porous thermal segment that is not the heater) and of the
-    hot exchanger (the heater)."""
-    heater = core.segments[core.heater_index].name
-    stacks = [s.name for s in core.segments if s.thermal and s.is_porous and not s.heater]
-    if not stacks:
+    hot exchanger (the heater): :func:`tawarp.model.effects.stack_and_heater`, raising
+    where the core has none (a passive core, a core without a stack)."""
+    heater = core.segments[core.heater_index].name  # (a CoreError for a passive core)
+    stack, _ = effects.stack_and_heater(core)
+    if stack is None:
         raise ValueError(f"{core.source}: no porous thermal segment besides the heater (the stack)")
-    return stacks[0], heater
+    return stack, heater
 
 
 def default_geometry(core: Core) -> tuple[list[str], dict[str, list[str]]]:

@@ -391,8 +391,8 @@ class ForwardSettings:
     (:meth:`Engine._adapted`: the refined cascades run in the main launch, whose
     values at the sampled frequencies they are compared with on the device, and only the
     sets above target run again); ``tolerance = None`` keeps d = ``cell_density`` (the
-    rule alone meets 1e-6 on the paper-like cores, README, "How the forward model works", but not on every
-    core in the documented ranges). ``cells`` = an int,
+    rule alone meets 1e-6 on the paper-like cores, README, "How the forward model works",
+    but not on every core in the documented ranges). ``cells`` = an int,
     or a dict segment name -> int, fixes the count per thermal segment instead, as
     convergence studies need (a set without heat input takes none: its parts are at the
     cold temperature, and exp(A L) is exact). The adaptive count jumps by whole cells as k (h, the
