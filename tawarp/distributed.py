@@ -72,6 +72,7 @@ except ImportError:  # (Windows: no advisory locks; a killed process's files sta
 import numpy as np
 
 from .model.forward import ForwardSettings
+from .rng import checked_seed
 
 #: Chunks in flight per worker: one running, one queued, so a worker never waits on the client.
 CHUNKS_IN_FLIGHT = 2
@@ -1748,6 +1749,7 @@ class ClusterEvaluator:
         shared memory (:class:`SharedColumns`) where it has the room: the files of an
         earlier call's result that has gone are written again (their pages there, each
         worker copying into its kept mapping), never those of a result still held."""
+        checked_seed(seed, "ClusterEvaluator.evaluate_sobol")
         starts = self._starts(n)
         tasks = [(first + lo, first + min(n, lo + starts.step), seed, lo) for lo in starts]
         out = None

@@ -468,6 +468,87 @@ def test_a_negative_seed_is_named(argv, tmp_path, capsys, monkeypatch):
     assert list(tmp_path.iterdir()) == []
 
 
+def _seeded_calls(tmp_path):
+    """{name the error gives: a call of a public function with the seed given}: each checks
+    its seed before any work (the arguments that the check precedes are placeholders)."""
+    from tawarp.cli.demo import demo_fit
+    from tawarp.design.catalogue import default_catalogue
+    from tawarp.design.network_design import search_network
+    from tawarp.design.objectives import OnsetSpec
+    from tawarp.design.rank import draw_parameter_sets, rank_by_network_onset, rank_by_onset, rank_materials
+    from tawarp.design.samplers import BatchCmaEs, BatchNsga2, sobol_directions, sobol_unit
+    from tawarp.design.search import worker_seed
+    from tawarp.design.space import parse_variable
+    from tawarp.design.sweep import sweep
+    from tawarp.distributed import ClusterEvaluator
+    from tawarp.fit.characterize import characterize
+    from tawarp.fit.estimate import fit, spread_starts
+    from tawarp.measure.synthetic import make_paper_data, scattering_measurement, synthetic_tmatrix
+    from tawarp.model.network import load_network
+    from tawarp.tube.synthetic import sensor_measurement, sensor_signals, signals
+
+    core = load_core("ceramic")
+    net_var = [parse_variable("regenerator.length=0.05:0.07")]
+    planes = dict(tube_radius=0.01, plane_upstream=-0.05, plane_downstream=0.05, length=0.1)
+    return {
+        "fit": lambda s: fit(core, [100.0], np.eye(2).reshape(1, 4), ["stack.h"], seed=s),
+        "spread_starts": lambda s: spread_starts(core, ["stack.h"], 4, seed=s),
+        "characterize": lambda s: characterize(None, core, seed=s),
+        "search": lambda s: search(_space(), n_trials=8, batch=8, seed=s),
+        "worker_seed": lambda s: worker_seed(s, "w0"),
+        "search_network": lambda s: search_network(load_network("traveling_wave"), net_var, seed=s),
+        "OnsetSpec": lambda s: OnsetSpec(seed=s),
+        "draw_parameter_sets": lambda s: draw_parameter_sets([], 4, s),
+        "rank_materials": lambda s: rank_materials(["ceramic"], n_samples=4, seed=s),
+        "rank_by_onset": lambda s: rank_by_onset(["ceramic"], n_samples=4, seed=s),
+        "rank_by_network_onset": lambda s: rank_by_network_onset(["ceramic"], n_samples=4, seed=s),
+        "Material.sample: rng": lambda s: default_catalogue()["ceramic"].sample(4, s),
+        "sobol_unit": lambda s: sobol_unit(4, 2, s),
+        "sobol_directions": lambda s: sobol_directions(2, s),
+        "BatchCmaEs": lambda s: BatchCmaEs(2, 0, 8, s, device="cpu"),
+        "BatchNsga2": lambda s: BatchNsga2(2, 0, 8, s, device="cpu"),
+        "sweep": lambda s: sweep(_space(), tmp_path / "s.nc", mode="sobol", n_samples=4, seed=s),
+        "ClusterEvaluator.evaluate_sobol": lambda s: ClusterEvaluator.evaluate_sobol(None, 4, seed=s),
+        "sensor_signals": lambda s: sensor_signals(None, None, 1024.0, 1024, (10.0, 100.0), 30.0, seed=s),
+        "sensor_measurement": lambda s: sensor_measurement(None, [0.1], None, (10.0, 100.0), seed=s),
+        "signals": lambda s: signals(None, 0.01, None, None, [0.1], 1024.0, 1024, (10.0, 100.0), 30.0, seed=s),
+        "make_paper_data": lambda s: make_paper_data("ceramic", seed=s),
+        "synthetic_tmatrix": lambda s: synthetic_tmatrix(core, seed=s),
+        "scattering_measurement": lambda s: scattering_measurement(None, [100.0], seed=s, **planes),
+        "demo_fit": lambda s: demo_fit(tmp_path / "demo", seed=s),
+    }
+
+
+@pytest.mark.parametrize("bad", [-1, 0.5])
+def test_a_bad_seed_is_named_by_the_function_that_took_it(bad, tmp_path):
+    """A negative or fractional seed given to a library function (the command line checks
+    its own) is refused before any work by a ValueError naming the function and the
+    argument, not NumPy's "expected non-negative integer"; nothing is written."""
+    for name, call in _seeded_calls(tmp_path).items():
+        where, _, argument = name.partition(": ")
+        say = f"{where}: {argument or 'seed'} must be a non-negative integer, got {bad!r}"
+        with pytest.raises(ValueError) as refused:
+            call(bad)
+        assert str(refused.value) == say, name
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_valid_seed_gives_numpys_own_stream():
+    """The shared check passes a valid seed through: its generator draws what
+    ``np.random.default_rng`` draws, a Generator is used as it is, and None (fresh entropy)
+    is allowed except where the seed must be an integer."""
+    from tawarp.rng import checked_seed, generator
+
+    for seed in (0, 7, np.int64(12345)):
+        assert generator(seed, "f").random(5).tolist() == np.random.default_rng(seed).random(5).tolist()
+    g = np.random.default_rng(3)
+    assert generator(g, "f") is g
+    assert checked_seed(None, "f") is None and checked_seed(np.uint32(4), "f", integer=True) == 4
+    for bad in (None, g, True, "3"):
+        with pytest.raises(ValueError, match="^f: seed must be a non-negative integer, got "):
+            checked_seed(bad, "f", integer=True)
+
+
 def test_a_relative_humidity_over_100_per_cent_is_named(tmp_path, capsys, monkeypatch):
     from importlib import resources
 

@@ -21,6 +21,7 @@ from ..measure.synthetic import MATERIALS, make_paper_data, true_values
 from ..model.core import load_core, paper_cores
 from ..model.forward import DEFAULT_CELL_DENSITY, ForwardSettings, transfer_matrices
 from ..plots import plot_coefficients, plot_temperature
+from ..rng import checked_seed
 
 #: Heat inputs of the demo [W]; the RVC foam stops at 18 W as in the paper (combustion risk).
 DEMO_HEAT = {"rvc_foam": [0.0, 9.0, 18.0]}
@@ -160,6 +161,7 @@ def demo_fit(
     (default), or a Sobol spread with no prior in both steps (``spread=True``); 2 restarts
     at ±20 % either way. On the 2-core CPU the default takes about 10 s, ``spread=True``
     about 120 s (8 starts per problem)."""
+    checked_seed(seed, "demo_fit")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     settings = ForwardSettings(cells=cells, device=device)

@@ -44,6 +44,7 @@ import numpy as np
 
 from ..model.core import Core, CoreError, check_values
 from ..model.fields import field as parameter_field
+from ..rng import generator
 
 #: Uncertain parameters of a material, in the order of :attr:`Material.covariance`.
 PARAMS = ("porosity", "pore_radius", "tortuosity", "solid_conductivity", "h_s")
@@ -131,7 +132,7 @@ class Material:
     def sample(self, n: int, rng: np.random.Generator | int | None = None) -> dict[str, np.ndarray]:
         """n draws from N(mean, covariance), clipped to the ranges a fit may reach (the
         parameter table's ``fit_range``, :mod:`tawarp.model.fields`): {param: (n,)}."""
-        rng = np.random.default_rng(rng)
+        rng = generator(rng, "Material.sample", argument="rng")
         cov = self.covariance()
         mean = self.values()
         active = np.flatnonzero(np.diag(cov) > 0)

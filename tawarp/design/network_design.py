@@ -21,6 +21,7 @@ import numpy as np
 from ..model import network_reference as nr
 from ..model.network import Network
 from ..model.network_batch import NetworkBatch
+from ..rng import generator
 
 
 def _unit(variables, x: np.ndarray) -> np.ndarray:
@@ -62,12 +63,12 @@ def search_network(
     onset with |p| = ``amplitude`` [Pa] at the network's first end), the counts and the timing."""
     if batch < 1 or n_trials < 1:
         raise ValueError("batch and n_trials must be >= 1")
+    rng = generator(seed, "search_network")
     for v in variables:
         if v.choices or (v.log and v.low <= 0):
             raise ValueError(f"--var {v.name}: a network design takes numeric ranges (log ones > 0)")
         NetworkBatch(net, {v.name: [v.low]}, device="cpu")  # a KeyError naming a wrong name
     T_max = 4.0 * net.gas.T_cold if T_max is None else T_max
-    rng = np.random.default_rng(seed)
     names = [v.name for v in variables]
     t0 = time.perf_counter()
     (w_cold, *_) = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)

@@ -46,6 +46,7 @@ import numpy as np
 
 from ..kernels import design as _kernel
 from ..model.coefficients import duct_impedance, normalize
+from ..rng import checked_seed
 
 
 @dataclass(frozen=True)
@@ -118,6 +119,9 @@ class OnsetSpec:
     n_draws: int = 64
     seed: int = 0
     segment: str = "stack"
+
+    def __post_init__(self):
+        checked_seed(self.seed, "OnsetSpec")
 
 
 def _Q_onset(evaluator, table, metrics):

@@ -39,6 +39,7 @@ from .evaluate import Evaluator
 from .objectives import DEFAULT_T_LIMIT
 from ..model.forward import ForwardSettings
 from ..model.resonator import ThermoacousticEngine, load_engine
+from ..rng import generator
 
 
 @dataclass
@@ -85,7 +86,7 @@ def draw_parameter_sets(
     """``{"SEGMENT.FIELD": (M, n_samples + 1)}``: per material, column 0 its nominal values
     and columns 1.. ``n_samples`` draws from N(mean, covariance) (:meth:`Material.sample`:
     a fit.json's covariance, clipped to the fit ranges), one generator for all materials."""
-    rng = np.random.default_rng(seed)
+    rng = generator(seed, "draw_parameter_sets")
     out = {f"{segment}.{CORE_FIELD[p]}": np.empty((len(materials), n_samples + 1)) for p in PARAMS}
     for i, m in enumerate(materials):
         draws = m.sample(n_samples, rng)
@@ -107,6 +108,7 @@ def rank_materials(
 ) -> RankResult:
     """Rank ``materials`` (Material objects or catalogue names; default: the whole catalogue)
     at each heat input [W]; see the module docstring."""
+    rng = generator(seed, "rank_materials")
     mats = _materials(materials, catalogue)
     if isinstance(core, str):
         core = load_core(core)
@@ -123,7 +125,7 @@ def rank_materials(
     stack_index = seg_names.index(segment)
     M, Nq, N = len(mats), len(qs), n_samples
     # one batch: material-major, then heat input, then draw; draw 0 is the nominal material
-    sets = draw_parameter_sets(mats, N, seed, segment)
+    sets = draw_parameter_sets(mats, N, rng, segment)
     names = list(sets)
     Q = np.broadcast_to(qs[None, :, None], (M, Nq, N + 1))
     table = np.stack([Q.ravel()] + [np.broadcast_to(sets[n][:, None, :], (M, Nq, N + 1)).ravel() for n in names])
@@ -235,6 +237,7 @@ def rank_by_onset(
     see the module docstring. ``Q_max`` [W] and ``n_bracket``: :func:`tawarp.model.onset.onset`."""
     from ..model.onset import onset
 
+    rng = generator(seed, "rank_by_onset")
     mats = _materials(materials, catalogue)
     eng = load_engine(engine) if isinstance(engine, str) else engine
     if not eng.core.segment(segment).is_porous:
@@ -242,7 +245,7 @@ def rank_by_onset(
     if n_samples < 2:
         raise ValueError("n_samples must be >= 2")
     M, N = len(mats), n_samples
-    sets = draw_parameter_sets(mats, N, seed, segment)
+    sets = draw_parameter_sets(mats, N, rng, segment)
     res = onset(
         eng, Q_max=Q_max, params={k: v.ravel() for k, v in sets.items()}, n_bracket=n_bracket, settings=settings
     )
@@ -334,6 +337,7 @@ def rank_by_network_onset(
     from ..model.network import load_network
     from ..model.network_batch import NetworkBatch
 
+    rng = generator(seed, "rank_by_network_onset")
     net = load_network(engine) if isinstance(engine, str) else engine
     b, s = net.segment(segment)
     if net.branches[b].segments[s].kind != "porous":
@@ -344,7 +348,7 @@ def rank_by_network_onset(
     node = next(iter(net.ends)) if net.ends else net.branches[0].start
     mats = _materials(materials, catalogue)
     M, N = len(mats), n_samples
-    sets = draw_parameter_sets(mats, N, seed, segment)
+    sets = draw_parameter_sets(mats, N, rng, segment)
     fields = [k for k in sets if not k.endswith(".h")]
     w_cold = nr.real_axis_modes(net, 1.0, 2e3, 400, T_hot=net.gas.T_cold)[0]
     ratio = np.full((M, N + 1), np.inf)

@@ -30,6 +30,8 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 import warp as wp
 
+from ..rng import checked_seed
+
 
 @runtime_checkable
 class Sampler(Protocol):
@@ -57,6 +59,7 @@ def sobol_unit(n: int, d: int, seed: int, skip: int = 0) -> np.ndarray:
     """n scrambled Sobol points in [0, 1)^d (points skip.. of the seeded sequence)."""
     from scipy.stats import qmc
 
+    seed = checked_seed(seed, "sobol_unit")
     if d == 0:
         return np.zeros((n, 0))
     import warnings
@@ -82,7 +85,7 @@ def sobol_directions(d: int, seed: int) -> tuple[np.ndarray, np.ndarray, float]:
     At most ``1 / scale`` = :data:`SOBOL_MAX_POINTS` points."""
     from scipy.stats import qmc
 
-    eng = qmc.Sobol(d, scramble=True, seed=seed)
+    eng = qmc.Sobol(d, scramble=True, seed=checked_seed(seed, "sobol_directions"))
     return eng._sv.astype(np.int64), eng._shift.astype(np.int64), float(eng._scale)
 
 
@@ -163,6 +166,7 @@ class BatchCmaEs:
         from ..kernels.sampler import CmaState
 
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
+        checked_seed(seed, "BatchCmaEs", integer=True)
         self.device = wp.get_device(device)
         self.n_cat = max(categories, 1)
         if dim < 1:
@@ -484,6 +488,7 @@ class BatchNsga2:
         device: str | None = None,
     ):
         self.batch, self.seed, self.categories = batch, seed, categories
+        checked_seed(seed, "BatchNsga2", integer=True)
         if n_objectives > 2 and batch > 4096:
             raise ValueError("NSGA-II with more than two objectives: batch at most 4096 (O(batch^2) sorting memory)")
         self.device = wp.get_device(device)

@@ -68,6 +68,7 @@ from .storage import (
 from ..io import interrupt_guard
 from ..model.forward import ForwardSettings, resolve_device
 from ..model.validity import ModelValidityError
+from ..rng import checked_seed
 
 
 @dataclass
@@ -152,6 +153,7 @@ def search(
         raise ValueError(f"engine must be 'batched' or 'optuna', got {engine!r}")
     if batch < 1 or n_trials < 1:
         raise ValueError("batch and n_trials must be >= 1")
+    checked_seed(seed, "search", integer=True)
     if T_limit is not None and not (math.isfinite(T_limit) and T_limit > 0):
         raise ValueError(f"T_limit [K] must be finite and > 0 (None: no limit), got {T_limit}")
     if not space.continuous:
@@ -206,6 +208,7 @@ def worker_seed(seed: int, worker: str) -> int:
     """Seed of ``worker``'s sampler stream: ``seed`` and the worker name mixed by NumPy's
     SeedSequence, so that workers of different names sample different points whatever
     ``seed``, and a rerun of one worker samples the same."""
+    seed = checked_seed(seed, "worker_seed", integer=True)
     name = np.frombuffer(worker.encode("utf-8"), dtype=np.uint8).astype(np.uint32)
     return int(np.random.SeedSequence([int(seed), *name.tolist()]).generate_state(1)[0] % (2**31 - 2))
 

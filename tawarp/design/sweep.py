@@ -49,6 +49,7 @@ from .samplers import SOBOL_MAX_POINTS
 from .space import DesignSpace, DeviceTable
 from ..io import atomic_dir, atomic_path, ensure_free_space, hdf5_writing
 from ..model.forward import ForwardSettings, resolve_device
+from ..rng import checked_seed
 
 
 #: Chunks between two collections of reference cycles (launches leave some, holding
@@ -153,6 +154,7 @@ def sweep(
 
     if mode not in ("grid", "sobol"):
         raise ValueError(f"mode must be 'grid' or 'sobol', got {mode!r}")
+    checked_seed(seed, "sweep")
     for o in objectives or ():
         objective(o)  # a KeyError naming the known ones, with reduce= or not
     settings = settings or ForwardSettings()

@@ -40,6 +40,7 @@ from ..model.effects import same_material_ties
 from .estimate import FitResult, fit, predict
 from ..model.forward import ForwardSettings
 from ..measure.files import TMatrixData
+from ..rng import checked_seed
 
 
 def stack_and_heater(core: Core) -> tuple[str, str]:
@@ -218,6 +219,7 @@ def characterize(
     step-1 geometry uncertainty to the step-2 covariance (:func:`geometry_propagation`;
     the statistical part stays in ``step2.std_statistical``). Returns a
     :class:`Characterization`."""
+    seed = checked_seed(seed, "characterize")
     core = load_core(core) if isinstance(core, (str, Path)) else core
     settings = settings or ForwardSettings()
     if device is not None:

@@ -121,6 +121,7 @@ from ..kernels import covariance as kcov
 from ..kernels import eigen as keigen
 from ..kernels import lm as klm
 from ..measure.kind import get_engine, smooth_settings  # noqa: F401 (smooth_settings: public API)
+from ..rng import checked_seed, generator
 from .lm import levenberg_marquardt, measured, normal_equations, scaling, slots
 from .problem_model import ProblemModel, noise_variance
 from .result import FitResult, ProblemWarnings
@@ -703,7 +704,7 @@ def _problem_warnings(names, corr, cond, V, converged, reason, corr_limit, cond_
 
 
 def _sign_patterns(k: int, p: int, seed: int) -> np.ndarray:
-    rng = np.random.default_rng(seed)
+    rng = generator(seed, "fit")
     pats = [np.ones(p), -np.ones(p)] + [rng.choice([-1.0, 1.0], size=p) for _ in range(max(0, k - 2))]
     return np.array(pats[:k])
 
@@ -714,6 +715,7 @@ def spread_starts(core: Core, names, n: int, seed: int = 0, ranges: dict | None 
 
     ranges = dict(ranges or {})
     p = len(names)
+    seed = checked_seed(seed, "spread_starts")
     u = qmc.Sobol(d=p, scramble=True, seed=seed).random(n) if n > 1 else np.full((1, p), 0.5)
     out = np.empty((n, p))
     for a, k in enumerate(names):
@@ -811,6 +813,7 @@ def fit(
     t0 = time.perf_counter()
     if restarts < 0:
         raise ValueError(f"restarts must be >= 0, got {restarts}")
+    seed = checked_seed(seed, "fit")
     names = list(names)
     Yarr = np.asarray(Y)
     N = 1 if Yarr.ndim == 2 else Yarr.shape[0]

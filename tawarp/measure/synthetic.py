@@ -39,6 +39,7 @@ import numpy as np
 from ..model.coefficients import denormalize, duct_impedance, normalize
 from ..model.core import Core, load_core
 from ..model.forward import ForwardSettings, transfer_matrices
+from ..rng import generator
 from .files import ScatteringData, TMatrixData, transfer_to_scattering
 
 MATERIALS = ("ceramic", "mesh", "nicr_foam", "rvc_foam")
@@ -117,6 +118,7 @@ def make_paper_data(
         raise KeyError(f"unknown material {material!r}; expected one of {MATERIALS}")
     if not (noise >= 0 and math.isfinite(noise)):
         raise ValueError(f"noise must be a finite number >= 0, got {noise}")
+    rng = generator(seed, "make_paper_data")
     core = load_core(material)
     if truth:
         core = core.replace(**truth)
@@ -125,7 +127,6 @@ def make_paper_data(
     res = transfer_matrices(core, f, heat_input=Q, cells=cells, device=device)
     Y = res.dimensionless()  # (nQ, m, 4)
     Y = Y * bias_factors(bias)
-    rng = np.random.default_rng(seed)
     sd = noise * np.abs(Y) / math.sqrt(2.0)
     Yn = Y + sd * (rng.standard_normal(Y.shape) + 1j * rng.standard_normal(Y.shape))
     zc = duct_impedance(core)
@@ -182,6 +183,7 @@ def synthetic_tmatrix(
     (``ambient_hx.length``, ``.porosity``, ``.pore_radius``; {} its typical size): made with them."""
     from ..model.effects import ambient_exchanger_effect
 
+    rng = generator(seed, "synthetic_tmatrix")
     freqs = np.linspace(50.0, 500.0, 12) if freqs is None else np.asarray(freqs, dtype=float)
     truth = dict(truth or {})
     model = core
@@ -198,7 +200,6 @@ def synthetic_tmatrix(
     Zc = duct_impedance(core)
     s = noise * np.sqrt(np.mean(np.abs(normalize(T, Zc)) ** 2))
     scale = np.array([[1.0, Zc], [1.0 / Zc, 1.0]])
-    rng = np.random.default_rng(seed)
     Tn = T + s * scale * (rng.standard_normal(T.shape) + 1j * rng.standard_normal(T.shape))
     sigma = np.broadcast_to(s * scale, T.shape).copy()
     meta = {"generator": "tawarp.measure.synthetic.synthetic_tmatrix", "noise": str(noise), "seed": str(seed)}
@@ -240,6 +241,7 @@ def scattering_measurement(
     of both matrices (independent streams from ``seed``), written as sigma columns unless
     ``write_sigma=False``. Returns ``(sample, empty)``.
     """
+    rng = generator(seed, "scattering_measurement")
     f = np.asarray(freqs, dtype=float)
     meta = {"generator": "tawarp.measure.synthetic.scattering_measurement", "noise": repr(noise), "seed": str(seed)}
     base = ScatteringData(
@@ -264,7 +266,6 @@ def scattering_measurement(
     e = np.exp(1j * k * (length + plane_downstream - plane_upstream))
     SE = np.zeros_like(S)
     SE[:, 0, 1], SE[:, 1, 0] = e, e
-    rng = np.random.default_rng(seed)
     out = []
     for M, name in ((S, source), (SE, f"{source}:empty")):
         M = M.copy()

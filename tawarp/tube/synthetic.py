@@ -27,6 +27,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..rng import checked_seed, generator
 from .spectra import Transfers, welch
 
 
@@ -158,7 +159,7 @@ def sensor_signals(core_of_f, load_of_f, sample_rate, samples, band, snr_db, see
     ``U(x1)`` (channel 0, noise-free, the reference), ``p(x1)`` and ``p(x6)`` with white noise
     at ``snr_db``. ``core_of_f``, ``load_of_f``: functions of frequencies (nf,) [Hz] giving the
     core's T-matrix (tawarp's convention) and the termination's impedance (exp(+i omega t))."""
-    rng = np.random.default_rng(seed)
+    rng = generator(seed, "sensor_signals")
     f, on, drive = _drive(sample_rate, samples, band, rng)
     spectra = np.zeros((f.size, 3), dtype=complex)
     spectra[:, 0] = drive
@@ -184,6 +185,7 @@ def sensor_measurement(
     terminations' impedances there (exp(+i omega t)). ``blocks`` non-overlapping block
     lengths of signal (~2 ``blocks`` averages at 50 % overlap); 1 Hz lines by default, fine
     enough for the closed tubes' resonances."""
+    checked_seed(seed, "sensor_measurement", integer=True)
     drive = (0.5 * band[0], 0.49 * sample_rate)
     readings, loads = [], []
     for j, length in enumerate(lengths):
@@ -237,7 +239,7 @@ def signals(
     Gaussian over ``band`` [Hz] and zero elsewhere; ``gains`` (n,) complex microphone gain
     errors (exp(+i omega t): a microphone reads ``g p``; None: 1); each microphone gets white
     Gaussian noise of variance ``10^(-snr_db/10)`` times its signal's."""
-    rng = np.random.default_rng(seed)
+    rng = generator(seed, "signals")
     f, on, drive = _drive(sample_rate, samples, band, rng)
     n = len(positions)
     spectra = np.zeros((f.size, n), dtype=complex)
