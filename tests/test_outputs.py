@@ -293,6 +293,29 @@ def test_a_users_figure_beside_the_fit_is_refused_before_fitting(tmp_path, capsy
     assert sorted(p.name for p in tmp_path.iterdir()) == ["fit_h.png"]
 
 
+def test_fit_json_carries_tawarps_mark_and_is_still_read(tmp_path):
+    """``tawarp fit -o fit.json`` marks its JSON as tawarp's (``"generator": "tawarp fit"``),
+    as the loop's report.json and the demo's fits carry theirs; the reader of a fit.json
+    (a catalogue material) takes the marked file, its values the file's."""
+    import json
+    from importlib import resources
+
+    import pytest
+
+    from tawarp.design.catalogue import Material
+    from tawarp.io import written_by_tawarp
+
+    data = resources.files("tawarp") / "data" / "measured" / "ceramic_hidden_effect.csv"
+    out = tmp_path / "fit.json"
+    assert main(["fit", str(data), "--device", "cpu", "--quiet", "--no-plots", "-o", str(out)]) == 0
+    obj = json.loads(out.read_text())
+    assert obj.get("generator") == "tawarp fit", "fit.json carries no generator mark"
+    assert written_by_tawarp(out)
+    material = Material.from_fit_json(out)
+    assert material.porosity == pytest.approx(obj["parameters"]["stack.porosity"]["value"], rel=1e-12)
+    assert material.pore_radius == pytest.approx(obj["parameters"]["stack.pore_radius"]["value"], rel=1e-12)
+
+
 def test_a_full_disk_leaves_no_half_line_in_the_study_journal(tmp_path, monkeypatch):
     """A journal append cut short by a full disk left a partial JSON line: every later
     reader of the study, and every worker resuming it, would stop on it."""

@@ -9,12 +9,15 @@ from pathlib import Path
 from ..fit.characterize import characterize, figure_paths, fit_each_heat_input, write_figures
 from ..fit.estimate import FitWarning
 from ..fit.problems import fit_kind
-from ..io import CLAIM_HELP, claim_outputs, write_json
+from ..io import CLAIM_HELP, GENERATOR, claim_outputs, write_json
 from ..measure import ImpedanceKind, MeasurementKind, TMatrixKind
 from ..model.core import CoreError
 from ..model.forward import ForwardSettings
 from ..model.layer import LAYER_BASE
 from .common import _common, add_measurement_options, check_option, load_data
+
+#: The mark of fit.json (:func:`tawarp.io.written_by_tawarp`), as the loop's and the demo's JSON carry theirs.
+MARK = f"{GENERATOR} fit"
 
 
 def add_fit_parser(subparsers):
@@ -131,7 +134,7 @@ def cmd_fit(args) -> int:
     calibration = {k: v for k, v in getattr(data, "metadata", {}).items() if k.startswith("empty_tube")}
     if calibration:
         obj["empty_tube"] = calibration
-    write_json(out, obj)
+    write_json(out, {"generator": MARK, **obj})
     if not args.quiet:
         print(summary_text(obj))
         for w in obj.get("warnings", []):
