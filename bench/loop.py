@@ -26,17 +26,26 @@ different code can be checked to decide the same.
 * ``impedance``: a rigid-backed layer's surface impedance at ``--impedance-freqs`` frequencies
   (default 2694): the measured foam2 layers (both thicknesses) interpolated onto that many
   frequencies over their measured band (200-1600 Hz; outside it ``np.interp`` would hold the
-  end values, data no layer gives), with 0.5 % noise.
+  end values, data no layer gives), with 0.5 % noise;
+* ``study``: loop cases per second of a study on this machine, the T-matrix cases run in
+  each of P processes for each P of ``--processes`` (``--repeats`` times each), spawned after
+  the warm-up compiled the kernels (:func:`study`): how a study that runs many cases is
+  best spread over a host's cores and its GPU.
+
+    python bench/loop.py --device cuda --cases study --processes 1,4,16
+    python bench/loop.py --device cpu --cases study --processes 16
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import multiprocessing
 import os
 import platform
 import sys
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -137,6 +146,54 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     return out
 
 
+def _study_worker(job: tuple) -> dict:
+    """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each."""
+    seeds, device, cache, repeats, cpu_threads = job
+    wp.config.quiet = True
+    clock = _clocks()
+    verdicts = []
+    for _ in range(repeats):
+        for seed in seeds:
+            case = lv.make_case(seed)
+            arrays = lv.load_or_generate(case, Path(cache))
+            core = lv.load_core(case.core_material).replace(**case.prior)
+            settings = ForwardSettings(device=device, cpu_threads=cpu_threads)
+            verdicts.append(run_loop(lv.TMatrixKind(lv.measurement(case, arrays), core, settings))["verdict"])
+    return {**_elapsed(clock), "verdicts": verdicts}
+
+
+def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> list[dict]:
+    """Loop cases per second of a study on this machine: for each count P of ``processes``, P
+    processes (each its own Warp context, on the CPU or sharing the GPU) each running the
+    T-matrix cases ``seeds`` ``repeats`` times; on the CPU each process's launches split
+    over its share of the cores."""
+    cores = len(os.sched_getaffinity(0))
+    out = []
+    for P in processes:
+        threads = max(1, cores // P) if device == "cpu" else None
+        jobs = [(seeds, device, str(cache), repeats, threads)] * P
+        start = time.perf_counter()
+        # spawned: this process has started CUDA, which a forked child cannot use
+        with ProcessPoolExecutor(P, mp_context=multiprocessing.get_context("spawn")) as pool:
+            runs = list(pool.map(_study_worker, jobs))
+        wall = time.perf_counter() - start
+        n = sum(len(r["verdicts"]) for r in runs)
+        out.append(
+            {
+                "processes": P,
+                "cpu_threads_per_process": threads,
+                "cases": n,
+                "seconds": wall,
+                "cases_per_second": n / wall,
+                "process_seconds": [r["seconds"] for r in runs],
+                "process_cpu_seconds": [r["cpu_seconds"] for r in runs],
+                "verdicts": runs[0]["verdicts"][: len(seeds)],
+            }
+        )
+        print(f"study, {P} processes on {device}: {n} cases in {wall:.1f} s, {n / wall:.3f} cases/s")
+    return out
+
+
 def impedance_case(n: int, device: str) -> dict:
     rng = np.random.default_rng(0)
     layers = load_atalla_panneton("foam2")
@@ -175,6 +232,12 @@ def main(argv=None) -> int:
         default=str(Path(__file__).resolve().parents[1] / "studies" / "out" / "loop_bench" / "cache"),
         help="where the reference data of the cases are kept (git-ignored)",
     )
+    ap.add_argument(
+        "--processes",
+        default="1,16",
+        help="the study's process counts (comma list): each process runs the T-matrix cases --repeats times",
+    )
+    ap.add_argument("--repeats", type=int, default=1, help="times each study process runs the T-matrix cases")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
@@ -182,15 +245,24 @@ def main(argv=None) -> int:
     except ValueError:
         ap.error(f"--seeds: {args.seeds!r}; expected integers, comma separated")
     cases = set(args.cases.split(","))
-    if not cases or not cases <= {"tmatrix", "impedance"}:
-        ap.error(f"--cases: {args.cases!r}; expected tmatrix, impedance or both, comma separated")
+    if not cases or not cases <= {"tmatrix", "impedance", "study"}:
+        ap.error(f"--cases: {args.cases!r}; expected tmatrix, impedance, study or several, comma separated")
+    try:
+        processes = [int(p) for p in args.processes.split(",")]
+    except ValueError:
+        processes = []
+    if not processes or min(processes) < 1:
+        ap.error(f"--processes: {args.processes!r}; expected positive integers, comma separated")
+    if args.repeats < 1:
+        ap.error(f"--repeats: {args.repeats}; expected a positive integer")
     wp.config.quiet = True
     wp.init()
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     # warm-up: compiles the kernels
-    if "tmatrix" in cases:
-        tmatrix_cases(seeds[:1], args.device, cache)
+    if cases & {"tmatrix", "study"}:
+        # a study's processes load the kernels every case compiles, from Warp's cache
+        tmatrix_cases(seeds if "study" in cases else seeds[:1], args.device, cache)
     if "impedance" in cases:
         impedance_case(64, args.device)
     result = {
@@ -207,10 +279,13 @@ def main(argv=None) -> int:
         result["tmatrix_seconds_mean_max"] = [float(np.mean(t)), float(np.max(t))]
     if "impedance" in cases:
         result["impedance"] = impedance_case(args.impedance_freqs, args.device)
+    if "study" in cases:
+        result["study"] = study(seeds, args.device, cache, processes, args.repeats)
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
+    name = f"loop_{tag}_{result['cpu_cores']}core" if args.device == "cpu" else f"loop_{tag}"
     write_result(
-        result, f"loop_{tag}_{result['cpu_cores']}core.json" if args.device == "cpu" else f"loop_{tag}.json", args.out
+        result, name.replace("loop_", "loop_study_") + ".json" if cases == {"study"} else name + ".json", args.out
     )
     return 0
 
