@@ -1,9 +1,9 @@
 """Validation of the loop on data the model did not make.
 
     python studies/loop_validation.py --cases 14 --device cpu --out studies/out/loop_validation
-    python studies/loop_validation.py --cases 70 --seed0 70 --append --device cuda --workers 16 --out DIR   # in chunks
-    python studies/loop_validation.py --suite lab --cases 48 --device cuda --out studies/out/loop_validation_lab
-    python studies/loop_validation.py --suite lab --split heldout --cases 48 --device cuda --out DIR   # rules frozen
+    python studies/loop_validation.py --cases 70 --seed0 70 --append --workers 16 --loop-workers 16 --out DIR   # in chunks
+    python studies/loop_validation.py --suite lab --cases 48 --loop-workers 16 --out studies/out/loop_validation_lab
+    python studies/loop_validation.py --suite lab --split heldout --cases 48 --loop-workers 16 --out DIR   # rules frozen
 
 Every case is a core T-matrix data set made by the independent NumPy oracle
 (:mod:`tawarp.reference`: exact heat solution, DOP853 at rtol 1e-12, i.e. converged
@@ -98,8 +98,9 @@ report without the newer keys.
 
 Generation (the expensive part: one ODE integration per heated segment and frequency) runs
 in ``--workers`` processes and is cached in ``OUT/cache/case_SEED_HASH.npz`` (HASH: the case
-description, so a changed case is regenerated). The loops then run one after the other on
-``--device``. Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
+description, so a changed case is regenerated). The loops then run on ``--device`` in
+``--loop-workers`` processes, on the CPU each with its share of the cores (on a GPU host
+the cores run a study's loops faster than the GPU they would share: docs/loop.md, Speed). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
 summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/residual_ratio.png``,
 ``OUT/calibration.png``.
 """
@@ -695,12 +696,21 @@ def expected(case: Case, status: dict) -> dict:
     return {"label": label, "effects": [], "verdict": "explained", "scored": False}
 
 
-def run_case(case: Case, arrays: dict, device: str = "cpu", base: str = "loop", cells: int | None = None) -> dict:
+def run_case(
+    case: Case,
+    arrays: dict,
+    device: str = "cpu",
+    base: str = "loop",
+    cells: int | None = None,
+    cpu_threads: int | None = None,
+) -> dict:
     """The loop on one case; the record of the study (JSON-ready). ``base``: "loop" (its
     default parameters) or "paper" (:func:`paper_names`); ``cells``: fixed cells of the
-    forward model (default: the package's adaptive setting)."""
+    forward model (default: the package's adaptive setting); ``cpu_threads``: the threads a
+    CPU launch splits over (default: every core; a process's share of them where several
+    run loops)."""
     core = load_core(case.core_material).replace(**case.prior)
-    settings = ForwardSettings(device=device, cells=cells)
+    settings = ForwardSettings(device=device, cells=cells, cpu_threads=cpu_threads)
     prob = TMatrixKind(measurement(case, arrays), core, settings)
     floor = noise_floor(arrays, rig_Zc(case))
     names = paper_names(case.core_material) if base == "paper" else None
@@ -1282,10 +1292,13 @@ def main(argv=None) -> int:
     bar = progress_bar(len(cases), "closing the loop", not a.quiet, unit="case")
     t1 = time.perf_counter()
     # each case's loop is independent: with --loop-workers they run in processes of their own
-    # (each its own Warp context, on the CPU or sharing the GPU)
+    # (each its own Warp context, on the CPU or sharing the GPU), on the CPU each with its
+    # share of the cores
+    threads = max(1, len(os.sched_getaffinity(0)) // a.loop_workers) if a.device == "cpu" else None
     with ProcessPoolExecutor(a.loop_workers) as pool:
+        n = len(cases)
         runs = pool.map(
-            run_case, cases, [arrays[c.seed] for c in cases], [a.device] * len(cases), [a.base] * len(cases)
+            run_case, cases, [arrays[c.seed] for c in cases], [a.device] * n, [a.base] * n, [None] * n, [threads] * n
         )
         for case, rec in zip(cases, runs):
             records.append(rec)
