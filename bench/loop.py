@@ -119,13 +119,21 @@ def decisions(rep) -> dict:
     }
 
 
+def tmatrix_case(seed: int, device: str, cache: Path, cpu_threads: int | None = None) -> tuple:
+    """(the study's case ``seed``, its T-matrix problem with the case's core file) on
+    ``device`` (a CPU launch split over ``cpu_threads``, default every core), the reference
+    data from ``cache``."""
+    case = lv.make_case(seed)
+    arrays = lv.load_or_generate(case, cache)
+    core = lv.load_core(case.core_material).replace(**case.prior)
+    settings = ForwardSettings(device=device, cpu_threads=cpu_threads)
+    return case, lv.TMatrixKind(lv.measurement(case, arrays), core, settings)
+
+
 def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     out = []
     for seed in seeds:
-        case = lv.make_case(seed)
-        arrays = lv.load_or_generate(case, cache)
-        core = lv.load_core(case.core_material).replace(**case.prior)
-        prob = lv.TMatrixKind(lv.measurement(case, arrays), core, ForwardSettings(device=device))
+        case, prob = tmatrix_case(seed, device, cache)
         with counting_sets(TMatrixKind) as count:
             clock = _clocks()
             rep = run_loop(prob)
@@ -154,11 +162,8 @@ def _study_worker(job: tuple) -> dict:
     verdicts = []
     for _ in range(repeats):
         for seed in seeds:
-            case = lv.make_case(seed)
-            arrays = lv.load_or_generate(case, Path(cache))
-            core = lv.load_core(case.core_material).replace(**case.prior)
-            settings = ForwardSettings(device=device, cpu_threads=cpu_threads)
-            verdicts.append(run_loop(lv.TMatrixKind(lv.measurement(case, arrays), core, settings))["verdict"])
+            _, prob = tmatrix_case(seed, device, Path(cache), cpu_threads)
+            verdicts.append(run_loop(prob)["verdict"])
     return {**_elapsed(clock), "verdicts": verdicts}
 
 
