@@ -55,6 +55,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
 from _results import write_result  # noqa: E402
 
+from tawarp.distributed import cuda_mps_running  # noqa: E402
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
@@ -277,6 +278,8 @@ def main(argv=None) -> int:
         "cpu_cores": len(os.sched_getaffinity(0)),
         "host": platform.node(),
         "load_average": {"before": list(os.getloadavg())},
+        # processes that share a GPU run side by side under NVIDIA's MPS daemon, else take turns
+        "cuda_mps": cuda_mps_running(),
     }
     if "tmatrix" in cases:
         result["tmatrix"] = tmatrix_cases(seeds, args.device, cache)

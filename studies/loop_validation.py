@@ -2,6 +2,7 @@
 
     python studies/loop_validation.py --cases 14 --device cpu --out studies/out/loop_validation
     python studies/loop_validation.py --cases 70 --seed0 70 --append --workers 16 --loop-workers 16 --out DIR   # in chunks
+    nvidia-cuda-mps-control -d; python studies/loop_validation.py --cases 70 --device cuda --loop-workers 16 --out DIR
     python studies/loop_validation.py --suite lab --cases 48 --loop-workers 16 --out studies/out/loop_validation_lab
     python studies/loop_validation.py --suite lab --split heldout --cases 48 --loop-workers 16 --out DIR   # rules frozen
 
@@ -99,8 +100,10 @@ report without the newer keys.
 Generation (the expensive part: one ODE integration per heated segment and frequency) runs
 in ``--workers`` processes and is cached in ``OUT/cache/case_SEED_HASH.npz`` (HASH: the case
 description, so a changed case is regenerated). The loops then run on ``--device`` in
-``--loop-workers`` processes, on the CPU each with its share of the cores (on a GPU host
-the cores run a study's loops faster than the GPU they would share: docs/loop.md, Speed). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
+``--loop-workers`` processes, on the CPU each with its share of the cores; processes that
+share a GPU take turns on it unless NVIDIA's MPS daemon runs (docs/loop.md, Speed: on one
+H100 host 16 processes ran 1.62 cases/s on the GPU under MPS, 0.24 without it, 0.62 on the
+CPU's 16 cores). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
 summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/residual_ratio.png``,
 ``OUT/calibration.png``.
 """
@@ -122,6 +125,7 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
+from tawarp.distributed import cuda_mps_running
 from tawarp.fit.problems import fit_batch
 from tawarp.io import atomic_path, write_json, write_text
 from tawarp.loop import default_base_params, fit_base, library_for, run_loop
@@ -1295,6 +1299,12 @@ def main(argv=None) -> int:
     # (each its own Warp context, on the CPU or sharing the GPU), on the CPU each with its
     # share of the cores
     threads = max(1, len(os.sched_getaffinity(0)) // a.loop_workers) if a.device == "cpu" else None
+    if a.device != "cpu" and a.loop_workers > 1 and not cuda_mps_running():
+        print(
+            f"note: {a.loop_workers} loop processes share the GPU without NVIDIA's MPS daemon and take turns "
+            "on it (docs/loop.md, Speed: nvidia-cuda-mps-control -d, or --device cpu)",
+            file=sys.stderr,
+        )
     with ProcessPoolExecutor(a.loop_workers) as pool:
         n = len(cases)
         runs = pool.map(

@@ -195,6 +195,14 @@ def gpu_cpus(pci_bus_id: str | None, devices: str = "/sys/bus/pci/devices") -> s
     return cpus or None
 
 
+def cuda_mps_running() -> bool:
+    """Whether NVIDIA's Multi-Process Service daemon runs (its control pipe, in
+    ``CUDA_MPS_PIPE_DIRECTORY`` or the default folder): under it the kernels of processes
+    that share a GPU run side by side, else the processes take turns on it, which small
+    launches (a loop's fits) pay for (docs/loop.md, Speed)."""
+    return os.path.exists(os.path.join(os.environ.get("CUDA_MPS_PIPE_DIRECTORY", "/tmp/nvidia-mps"), "control"))
+
+
 def near_gpu(pci_bus_id: str | None) -> None:
     """Every thread of this process (and those it starts later) on the CPUs of its GPU's
     NUMA node (:func:`gpu_cpus`), where that is fewer than it may use now: its host work,

@@ -783,6 +783,19 @@ def test_a_gpus_cpus_are_those_its_numa_node_lists(tmp_path):
     assert os.sched_getaffinity(0) == before
 
 
+def test_the_mps_daemon_is_seen_by_its_control_pipe(tmp_path, monkeypatch):
+    # NVIDIA's MPS daemon makes the control pipe in its pipe folder (CUDA_MPS_PIPE_DIRECTORY,
+    # else /tmp/nvidia-mps): there it runs, and nowhere else
+    from tawarp.distributed import cuda_mps_running
+
+    monkeypatch.setenv("CUDA_MPS_PIPE_DIRECTORY", str(tmp_path))
+    assert not cuda_mps_running()
+    (tmp_path / "log").write_text("")
+    assert not cuda_mps_running()
+    os.mkfifo(tmp_path / "control")
+    assert cuda_mps_running()
+
+
 def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):
     # worker processes write each chunk's per-problem numeric arrays into one shared file
     # and send the rest; a chunk that could not (no room, the file gone) sends them all and
