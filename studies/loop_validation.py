@@ -1268,6 +1268,9 @@ def main(argv=None) -> int:
     )
     ap.add_argument("--quiet", action="store_true")
     a = ap.parse_args(argv)
+    for option, value in (("--workers", a.workers), ("--loop-workers", a.loop_workers)):
+        if value < 1:
+            ap.error(f"{option}: {value}; expected a positive number of processes")
     out = Path(a.out)
     if a.rescore:
         old = json.loads((out / "loop_validation.json").read_text())

@@ -537,3 +537,14 @@ def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
     md = (tmp_path / "loop_validation.md").read_text()
     assert "Calibration of the inclusion probabilities" in md and "| 0.95-1 | 1 | 0.99 | 1 | 1.00 |" in md
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
+
+
+@pytest.mark.parametrize("option", ["--workers", "--loop-workers"])
+def test_a_study_without_processes_is_refused_before_any_work(option, tmp_path, capsys):
+    # no process pool of zero or fewer processes, nor a share of the cores for none: the
+    # option named, exit 2 (argparse's), and nothing generated or written
+    with pytest.raises(SystemExit) as stop:
+        lv.main([option, "0", "--cases", "1", "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2
+    assert f"{option}: 0; expected a positive number of processes" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
