@@ -59,7 +59,7 @@ from tawarp.distributed import cuda_mps_running  # noqa: E402
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
-from tawarp.model.forward import Engine, ForwardSettings  # noqa: E402
+from tawarp.model.forward import Engine, ForwardSettings, cpu_share  # noqa: E402
 
 
 def _clocks() -> tuple[float, float, float]:
@@ -173,10 +173,9 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
     processes (each its own Warp context, on the CPU or sharing the GPU) each running the
     T-matrix cases ``seeds`` ``repeats`` times; on the CPU each process's launches split
     over its share of the cores."""
-    cores = len(os.sched_getaffinity(0))
     out = []
     for P in processes:
-        threads = max(1, cores // P) if device == "cpu" else None
+        threads = cpu_share(P) if device == "cpu" else None
         jobs = [(seeds, device, str(cache), repeats, threads)] * P
         start = time.perf_counter()
         # spawned: this process has started CUDA, which a forked child cannot use

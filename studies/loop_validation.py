@@ -136,7 +136,7 @@ from tawarp.measure.synthetic import MATERIALS, PAPER_TABLE1
 from tawarp.model.coefficients import denormalize, duct_impedance, normalize, rms_error
 from tawarp.model.core import Core, load_core
 from tawarp.model.effects import with_ambient_exchangers
-from tawarp.model.forward import ForwardSettings
+from tawarp.model.forward import ForwardSettings, cpu_share
 from tawarp.progress import progress_bar
 from tawarp.reference_effects import LabEffects, lab_transfer_matrix
 
@@ -1301,7 +1301,7 @@ def main(argv=None) -> int:
     # each case's loop is independent: with --loop-workers they run in processes of their own
     # (each its own Warp context, on the CPU or sharing the GPU), on the CPU each with its
     # share of the cores
-    threads = max(1, len(os.sched_getaffinity(0)) // a.loop_workers) if a.device == "cpu" else None
+    threads = cpu_share(a.loop_workers) if a.device == "cpu" else None
     if a.device != "cpu" and a.loop_workers > 1 and not cuda_mps_running():
         print(
             f"note: {a.loop_workers} loop processes share the GPU without NVIDIA's MPS daemon and take turns "

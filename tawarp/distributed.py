@@ -71,7 +71,7 @@ except ImportError:  # (Windows: no advisory locks; a killed process's files sta
 
 import numpy as np
 
-from .model.forward import ForwardSettings
+from .model.forward import ForwardSettings, cpu_share
 from .rng import checked_seed
 
 #: Chunks in flight per worker: one running, one queued, so a worker never waits on the client.
@@ -250,7 +250,6 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
     if not devices:
         raise ValueError("local_cluster: give at least one device")
     n_cpu = sum(d == "cpu" for d in devices)
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     if processes:
         cluster = _process_cluster([_pinned_env(d) for d in devices])
         seen = ["cpu" if d == "cpu" else "cuda:0" for d in devices]  # each process sees its own GPU alone
@@ -265,7 +264,7 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
     try:
         client = distributed.Client(cluster, timeout=timeout)
         client.wait_for_workers(len(devices), timeout=timeout)
-        threads = cpu_threads or max(1, cores // max(1, n_cpu))
+        threads = cpu_threads or cpu_share(n_cpu)
         client.register_plugin(_as_worker_plugin(DevicePlugin(seen, threads, pinned=processes)))
     except BaseException:
         cluster.close()

@@ -9,7 +9,7 @@ import pytest
 from tawarp import reference
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import Core, CoreError, core_from_dict, load_core
-from tawarp.model.forward import distinct_columns, steady_temperature, transfer_matrices
+from tawarp.model.forward import cpu_share, distinct_columns, steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
 HEAT = {
@@ -186,6 +186,13 @@ def test_bad_batch_values():
     no_heater = cold(core)
     with pytest.raises(CoreError, match="heater"):
         transfer_matrices(no_heater, FREQS, 10.0, device="cpu")
+
+
+def test_processes_share_the_cores_this_one_may_use(monkeypatch):
+    # each of P processes splits its launches over cores // P threads, never none: on 16
+    # cores 16 loop processes take one each, 3 take 5, and 20 still take one
+    monkeypatch.setattr("tawarp.model.forward._usable_cores", lambda: 16)
+    assert [cpu_share(p) for p in (1, 3, 16, 20, 0)] == [16, 5, 1, 1, 16]
 
 
 def test_cpu_threads_split_the_batch_bit_for_bit():

@@ -1198,6 +1198,14 @@ def _usable_cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
+def cpu_share(processes: int) -> int:
+    """The threads (:attr:`ForwardSettings.cpu_threads`) each of ``processes`` processes or
+    CPU workers started from this one splits its CPU launches over: an equal share of the
+    cores this process may use, at least one (each over all of them would run several
+    times as many threads as cores)."""
+    return max(1, _usable_cores() // max(1, processes))
+
+
 #: Fewest forward models (set x frequency) worth a CPU thread of their own: a thread's
 #: hand-off and copies cost about as much as 2000 unheated models (~3 us each, closed
 #: form) or a few dozen heated ones (a Magnus cascade, 50-150 us each).
