@@ -129,6 +129,15 @@ def _onset_spec(args):
     )
 
 
+def _add_T_limit(p, what: str) -> None:
+    """``--T-limit`` [K], ``what`` it limits, default :data:`DEFAULT_T_LIMIT`."""
+    from ..design.objectives import DEFAULT_T_LIMIT
+
+    p.add_argument(
+        "--T-limit", dest="T_limit", type=float, default=DEFAULT_T_LIMIT, help=what + " (default: %(default)s)"
+    )
+
+
 def _add_onset_args(p):
     p.add_argument(
         "--onset-engine",
@@ -324,7 +333,7 @@ def _profile_designs(study, objectives, best, space, T_limit, n=5):
 
 def add_design_parser(sub) -> argparse.ArgumentParser:
     from ..design.evaluate import DEFAULT_FREQS
-    from ..design.objectives import DEFAULT_T_LIMIT, OBJECTIVES
+    from ..design.objectives import OBJECTIVES
 
     p = _common(
         sub.add_parser(
@@ -342,13 +351,7 @@ def add_design_parser(sub) -> argparse.ArgumentParser:
     )
     p.add_argument("--trials", type=int, default=4096, help="trials of this worker (default: %(default)s)")
     p.add_argument("--batch", type=int, default=256, help="population = trials per launch (default: %(default)s)")
-    p.add_argument(
-        "--T-limit",
-        dest="T_limit",
-        type=float,
-        default=DEFAULT_T_LIMIT,
-        help="constraint T_max <= T_LIMIT [K] (default: %(default)s)",
-    )
+    _add_T_limit(p, "constraint T_max <= T_LIMIT [K]")
     p.add_argument("--no-T-limit", action="store_true", help="no temperature constraint")
     p.add_argument(
         "--storage",
@@ -591,8 +594,6 @@ def _rank_network_onset(args, cat, mats, out: Path) -> int:
 
 
 def add_rank_parser(sub) -> argparse.ArgumentParser:
-    from ..design.objectives import DEFAULT_T_LIMIT
-
     p = _common(
         sub.add_parser(
             "rank",
@@ -663,14 +664,7 @@ def add_rank_parser(sub) -> argparse.ArgumentParser:
         help="draws per material (default: 4000 by gradient, 400 by onset, 30 by a network's onset)",
     )
     p.add_argument("--seed", type=int, default=0, help="seed of the material draws (default: %(default)s)")
-    p.add_argument(
-        "--T-limit",
-        dest="T_limit",
-        type=float,
-        default=DEFAULT_T_LIMIT,
-        help="temperature limit [K]: each material's share of draws whose T_max exceeds it is "
-        "reported (default: %(default)s)",
-    )
+    _add_T_limit(p, "temperature limit [K]: each material's share of draws whose T_max exceeds it is reported")
     p.add_argument(
         "-o",
         "--output",
