@@ -281,6 +281,57 @@ def test_residual_structure_test():
     assert smooth_fraction(prob, w)["p_value"] < 1e-6
 
 
+def test_drift_score_test_is_the_likelihood_ratio_of_a_linear_model():
+    # a linear model with Gaussian priors on its own parameters: at the MAP fit, Rao's score
+    # statistic for one column split by level equals the drop in the penalized misfit when
+    # the split columns join the fit (the score, Wald and likelihood-ratio tests coincide for
+    # a linear Gaussian model), so p is that drop's chi^2 tail on len(levels) - 1 degrees
+    from scipy.stats import chi2
+
+    from tawarp.loop.run import split_score_p
+
+    rng = np.random.default_rng(11)
+    n, levels = 90, [20.0, 40.0, 80.0]
+    labels = np.repeat([0.0] + levels, n // 4 + 1)[:n]  # (level 0: the column does not act)
+    X = rng.standard_normal((n, 3))
+    X[labels == 0.0, 2] = 0.0
+    precision, s2 = np.array([0.5, 2.0, 0.0]), 0.7
+    y = X @ [1.0, -2.0, 0.5] + 1.5 * (labels == 80.0) * X[:, 2] + np.sqrt(s2) * rng.standard_normal(n)
+
+    def penalized_fit(A, prec):
+        aug = np.vstack([A / np.sqrt(s2), np.diag(np.sqrt(prec))])
+        rhs = np.concatenate([y / np.sqrt(s2), np.zeros(len(prec))])
+        beta = np.linalg.lstsq(aug, rhs, rcond=None)[0]
+        return beta, float(np.sum((aug @ beta - rhs) ** 2))
+
+    beta, restricted = penalized_fit(X, precision)
+    split = np.stack([X[:, 2] * (labels == q) for q in levels[1:]], 1)
+    _, full = penalized_fit(np.hstack([X, split]), np.concatenate([precision, [0.0, 0.0]]))
+    r = y - X @ beta  # (the sign of the residuals does not matter)
+    expected = chi2.sf(restricted - full, 2)
+    assert 1e-6 < expected < 0.01  # (a split the test finds)
+    assert split_score_p(X, r, s2, precision, labels, levels, 2) == pytest.approx(expected, rel=1e-8)
+    # a level where the column never acts, or a single level: no test
+    assert split_score_p(X, r, s2, precision, labels, [0.0, 20.0], 2) is None
+    assert split_score_p(X, r, s2, precision, labels, [20.0], 2) is None
+
+
+def test_drift_p_is_calibrated_on_independent_clean_data():
+    # h does not change with the heat input in clean reference data: the drift's p of each h
+    # (the score test of one h per heat input at the base fit) is near uniform over noise
+    # draws and starts 10-30 % off. 40 draws of 3 h's: below 0.05 at most 12 % (5 % expected;
+    # the sd of the share is about 3 %), the median 0.5 +- 0.15
+    from tawarp.loop.run import drift, fit_base
+
+    ps = []
+    for seed in range(40):
+        prob = TMatrixKind(reference_data({}, seed), prior(seed), ForwardSettings(device="cpu"))
+        params = default_base_params(prob)
+        ps += drift(prob, params, fit_base(prob, params), {}, None)["consistency_p"].values()
+    ps = np.array(ps)
+    assert np.mean(ps < 0.05) <= 0.12 and abs(np.median(ps) - 0.5) <= 0.15, (np.mean(ps < 0.05), np.median(ps))
+
+
 def test_rank_deficient_jacobian_gives_undetermined_std():
     from tawarp.fit.problem_model import ProblemModel
 

@@ -115,6 +115,10 @@ def _value_std(d: dict) -> str:
 DEMO_MEASUREMENT = "ceramic_hidden_effect.csv"
 
 
+def _p(p: float | None) -> str:
+    return "" if p is None else f" (p {p:.2g})"
+
+
 def demo_loop(out: Path, device=None, quiet=False) -> dict:
     """Close the loop on the bundled measurement: fit, diagnose, choose an effect, and
     print the error and the parameters before and after, with the drift of h with Q."""
@@ -134,11 +138,17 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
             b = _value_std(before[name]) if name in before else "-"
             a = _value_std(after[name])
             print(f"  {name:<30} {b:>22} {a:>22}")
-        for tag in ("before", "after"):
-            drift = report.get(f"drift_{tag}")
+        drifts = {tag: report.get(f"drift_{tag}") for tag in ("before", "after")}
+        for tag, drift in drifts.items():
             if drift:
-                spread = ", ".join(f"{k} {v:.1%}" for k, v in drift["relative_spread"].items())
+                spread = ", ".join(
+                    f"{k} {v:.1%}" + _p(drift["consistency_p"][k]) for k, v in drift["relative_spread"].items()
+                )
                 print(f"  spread of h refitted per Q, {tag}: {spread}")
+        if any(drifts.values()):
+            print(
+                "  (p: of each h as one value at every Q, the rest refitted; small: the model misses what changes with Q)"
+            )
         print(f"  report: {out / 'report.md'}")
     return report
 

@@ -67,7 +67,8 @@ def residual_figure(problem: MeasurementKind, report: LoopReport, path: Path) ->
 
 
 def drift_figure(report: dict, path: Path) -> Path | None:
-    """The h's refitted per heat input, before and after (None without drift data)."""
+    """The h's refitted per heat input with one standard deviation, before and after, each
+    with its p of one value at every heat input (None without drift data)."""
     db, da = report.get("drift_before"), report.get("drift_after")
     if not db:
         return None
@@ -75,14 +76,21 @@ def drift_figure(report: dict, path: Path) -> Path | None:
 
     names = list(db["values"])
     fig, axes = plt.subplots(1, len(names), figsize=(3.6 * len(names), 3.4), squeeze=False, layout="constrained")
+
+    def p(d, k):  # the drift's score test of one value (docs/loop.md)
+        return "" if d["consistency_p"][k] is None else f", p {d['consistency_p'][k]:.2g}"
+
     for ax, k in zip(axes[0], names):
-        ax.plot(db["Q_W"], db["values"][k], "o-", label="before")
+        ax.errorbar(db["Q_W"], db["values"][k], db["std"][k], fmt="o-", capsize=3, label=f"before{p(db, k)}")
         if da:
-            ax.plot(da["Q_W"], da["values"][k], "s--", label=f"after ({'; '.join(_steps(report))})")
+            after = f"after ({'; '.join(_steps(report))}{p(da, k)})"
+            ax.errorbar(da["Q_W"], da["values"][k], da["std"][k], fmt="s--", capsize=3, label=after)
         ax.set_xlabel("Q [W]")
         ax.set_ylabel(f"{k} [W/(m^2 K)]")
         ax.legend(fontsize=8)
-    fig.suptitle("heat-exchange coefficients refitted per heat input", fontsize=10)
+    fig.suptitle(
+        "heat-exchange coefficients refitted per heat input (p: each h one value at every heat input)", fontsize=10
+    )
     return save(fig, path)
 
 
@@ -216,11 +224,22 @@ def report_markdown(report: dict) -> str:
                 "",
                 f"## h refitted per heat input ({key.split('_')[1]})",
                 "",
-                "| parameter | " + " | ".join(f"Q = {q:g} W" for q in d["Q_W"]) + " | spread |",
-                "|---|" + "---|" * (len(d["Q_W"]) + 1),
+                "| parameter | " + " | ".join(f"Q = {q:g} W" for q in d["Q_W"]) + " | spread | p (one value) |",
+                "|---|" + "---|" * (len(d["Q_W"]) + 2),
             ]
             for k, v in d["values"].items():
-                lines.append(f"| {k} | " + " | ".join(f"{x:.4g}" for x in v) + f" | {d['relative_spread'][k]:.2%} |")
+                p = d["consistency_p"][k]
+                lines.append(
+                    f"| {k} | "
+                    + " | ".join(f"{x:.4g} ± {sd:.2g}" for x, sd in zip(v, d["std"][k]))
+                    + f" | {d['relative_spread'][k]:.2%} | {'-' if p is None else f'{p:.2g}'} |"
+                )
+            lines += [
+                "",
+                "p: the score test of the h as one value at every heat input against one value per heat "
+                "input, everything else refitted. Small: the model misses something that changes with the "
+                "heat input (several h's may share one cause).",
+            ]
     if r.get("comparison"):
         lines += [
             "",

@@ -153,8 +153,10 @@ def noise_weighted(problem: MeasurementKind, sigma: np.ndarray) -> MeasurementKi
 def drift(
     problem: MeasurementKind, base_params: list[Param], sol: FitResult, fixed: dict, effect: Effect | None
 ) -> dict | None:
-    """h's refitted at each heat input > 0 alone (all heat inputs in one batch), the rest
-    fixed at ``sol``."""
+    """h's refitted at each heat input alone (all heat inputs in one batch), the rest fixed
+    at ``sol``: their ``values`` and ``std`` per heat input, ``relative_spread`` (range over
+    mean) and ``consistency_p``, whether each h is one value at every heat input
+    (:func:`split_score_p` at ``sol``), per h."""
     hp = [par for par in base_params if par.label.endswith(".h")]
     Qs = problem.heat_groups()
     if not hp or len(Qs) < 2:
@@ -172,9 +174,51 @@ def drift(
         xtol=XTOL,
     )
     out = {par.label: [f.value_dict()[par.label] for f in fits] for par in hp}
-    res = {"Q_W": [float(q) for q in Qs], "values": out}
+    std = {k: [f.std_dict()[k] for f in fits] for k in out}
+    res = {"Q_W": [float(q) for q in Qs], "values": out, "std": std}
     res["relative_spread"] = {k: float(np.ptp(v) / np.mean(v)) if np.mean(v) else None for k, v in out.items()}
+    labels = np.concatenate([problem.group, problem.group])  # (the residuals: real parts, then imaginary)
+    res["consistency_p"] = {
+        k: split_score_p(
+            sol.jacobian[0],
+            sol.residuals[0],
+            float(sol.s2[0]),
+            sol.problem_model.precision(),
+            labels,
+            Qs,
+            sol.names.index(k),
+        )
+        for k in out
+    }
     return res
+
+
+def split_score_p(
+    J: np.ndarray, r: np.ndarray, s2: float, precision: np.ndarray, labels: np.ndarray, levels, column: int
+) -> float | None:
+    """The p-value of Rao's score test (Rao 1948; Buse 1982) of a fit's parameter ``column``
+    taking one value at every level of ``labels`` against one value per level, at the fit:
+    ``J`` (n, p) the Jacobian of its weighted residuals ``r`` (n,) in x, ``s2`` their
+    variance scale, ``precision`` (p,) the priors' (0: none), ``labels`` (n,) each
+    residual's level, ``levels`` those to split (the first the reference). The statistic
+    g^T S^-1 g, with g the gradient of the misfit in the split parameters and S their
+    information after the fit's own parameters take their share, is chi^2 with
+    len(levels) - 1 degrees of freedom when the value is one. None where the split is not
+    determined (a level without residuals the parameter moves, or fewer than two)."""
+    from scipy.stats import chi2
+
+    add = np.stack([J[:, column] * (labels == q) for q in levels[1:]], 1) if len(levels) > 1 else None
+    if add is None or not np.all(np.any(add != 0.0, axis=0)) or not np.any(J[labels == levels[0], column]):
+        return None
+    info = J.T @ J / s2 + np.diag(precision)
+    cross = J.T @ add / s2
+    schur = add.T @ add / s2 - cross.T @ np.linalg.lstsq(info, cross, rcond=None)[0]
+    g = add.T @ r / s2
+    try:
+        stat = float(g @ np.linalg.solve(schur, g))
+    except np.linalg.LinAlgError:
+        return None
+    return float(chi2.sf(stat, len(levels) - 1)) if np.isfinite(stat) and stat >= 0.0 else None
 
 
 #: What the report's ``method`` says of the comparison.
