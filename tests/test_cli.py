@@ -64,6 +64,12 @@ def test_demo_loop_finds_the_bundled_hidden_effect(tmp_path):
     # its uncertainty; modelled, every h is one value at both heat inputs within it
     assert rep["drift_before"]["consistency_p"]["tbt.h"] < 0.05
     assert min(rep["drift_after"]["consistency_p"].values()) > 0.05
+    # report.md names an h of the final model that drifts: none here, tbt.h had the base won
+    from tawarp.loop.report import report_markdown
+
+    assert "changing with the heat input" not in report_markdown(rep)
+    line = next(x for x in report_markdown(dict(rep, drift_after=rep["drift_before"])).splitlines() if "changing" in x)
+    assert "tbt.h (p = " in line
     assert (tmp_path / "loop" / "report.json").exists() and (tmp_path / "loop" / "report.md").exists()
 
 

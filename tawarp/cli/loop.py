@@ -6,7 +6,7 @@ from pathlib import Path
 
 from ..io import CLAIM_HELP, claim_outputs
 from ..loop import default_base_params, impedance_loop, run_loop, write_report
-from ..loop.report import OUTPUTS
+from ..loop.report import OUTPUTS, drifting
 from ..measure import atalla_panneton_samples, load_atalla_panneton
 from ..model.forward import ForwardSettings
 from .common import _common, add_measurement_options, load_data
@@ -77,6 +77,9 @@ def cmd_loop(args) -> int:
         print(
             f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
             f"(noise floor {js['noise_floor']:.4g}); accepted: {'; '.join(js['accepted_steps']) or 'none'}; "
-            f"wrote {Path(args.output) / 'report.json'}"
+            + "".join(
+                f"{k} changes with the heat input (p {p:.2g}); " for k, p in drifting(js.get("drift_after")).items()
+            )
+            + f"wrote {Path(args.output) / 'report.json'}"
         )
     return 0

@@ -130,6 +130,17 @@ def plan_figure(problem: MeasurementKind, report: dict, path: Path) -> Path | No
     return save(fig, path)
 
 
+#: report.md names an h of the final model whose drift p (docs/loop.md) is below this: on
+#: clean data one h in a thousand.
+DRIFT_P = 1e-3
+
+
+def drifting(drift: dict | None) -> dict[str, float]:
+    """{h: p} of the h's of ``drift`` whose p of one value at every heat input is below
+    :data:`DRIFT_P`."""
+    return {k: p for k, p in ((drift or {}).get("consistency_p") or {}).items() if p is not None and p < DRIFT_P}
+
+
 def report_markdown(report: dict) -> str:
     r = report
     g0, g1 = r["goodness_of_fit_before"], r["goodness_of_fit_after"]
@@ -169,6 +180,15 @@ def report_markdown(report: dict) -> str:
                 f"{u['noise_floor']:.4g})"
             ]
             if (u := r.get("unexplained_residual"))
+            else []
+        ),
+        *(
+            [
+                "- changing with the heat input in the final model: "
+                + ", ".join(f"{k} (p = {p:.2g})" for k, p in moving.items())
+                + ": it misses something that changes with the heat input (section h refitted per heat input)"
+            ]
+            if (moving := drifting(r.get("drift_after")))
             else []
         ),
         f"- models compared: {r['models_compared']['subsets']} subsets of the library linearized, "
