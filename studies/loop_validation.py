@@ -118,6 +118,7 @@ import math
 import os
 import sys
 import time
+from collections import Counter
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -129,6 +130,7 @@ from tawarp.distributed import cuda_mps_running
 from tawarp.fit.problems import fit_batch
 from tawarp.io import atomic_path, write_json, write_text
 from tawarp.loop import default_base_params, fit_base, library_for, run_loop
+from tawarp.loop.report import DRIFT_P, drifting
 from tawarp.loop.run import MAX_ITER, XTOL, refit_starts
 from tawarp.measure import TMatrixKind
 from tawarp.measure.files import TMatrixData
@@ -737,6 +739,8 @@ def run_case(
         "ratio_after": got["error_after"] / floor,
         "ratio_before": got["error_before"] / floor,
         "wall_s": wall,
+        # the h's of the final model that change with the heat input (p < DRIFT_P)
+        "drifting": drifting(report.drift[1]) if report.drift else {},
         "case": asdict(case),
     }
     if case.category == "wrong_core":
@@ -951,6 +955,15 @@ def summarize(records: list[dict], by_split: bool = True) -> dict:
         "wrong_core_flagged_all": rate(r for r in records if r["category"] == "wrong_core"),
         "ratio_after_visible_median": float(np.median([r["ratio_after"] for r in visible])) if visible else None,
         "confusion": confusion,
+        "drifting": {
+            c: rate(({"flag": bool(r["drifting"])} for r in records if r["category"] == c and "drifting" in r), "flag")
+            | {
+                "by_verdict": dict(
+                    Counter(r["outcome"]["verdict"] for r in records if r["category"] == c and r.get("drifting"))
+                )
+            }
+            for c in sorted({r["category"] for r in records if "drifting" in r})
+        },
         "calibration": calibration(records),
         "loop_wall_s": {"mean": float(np.mean(walls)), "median": float(np.median(walls)), "max": float(np.max(walls))},
         "targets": TARGETS,
@@ -1060,6 +1073,19 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
     lines += ["| truth \\ loop | " + " | ".join(cols) + " |", "| --- |" + " --- |" * len(cols)]
     for a, row in s["confusion"].items():
         lines.append(f"| {a} | " + " | ".join(str(row[c]) if row[c] else "." for c in cols) + " |")
+    if s.get("drifting"):
+        lines += [
+            "",
+            f"Cases whose final model has an h that changes with the heat input (drift p < {DRIFT_P:g}, "
+            "docs/loop.md; their verdicts):",
+            "",
+            "| category | cases | verdicts |",
+            "| --- | --- | --- |",
+        ]
+        for c, d in s["drifting"].items():
+            lines.append(
+                f"| {c} | {_fmt_rate(d)} | {', '.join(f'{v} {n}' for v, n in d['by_verdict'].items()) or '-'} |"
+            )
     lab = sorted({r["category"].split(":", 1)[1] for r in records if r["category"].startswith("lab:")})
     if lab:
         lines += ["", "Lab effects (tawarp.reference_effects) and their sizes:", ""]

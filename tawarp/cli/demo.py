@@ -146,9 +146,7 @@ def demo_loop(out: Path, device=None, quiet=False) -> dict:
                 )
                 print(f"  spread of h refitted per Q, {tag}: {spread}")
         if any(drifts.values()):
-            print(
-                "  (p: of each h as one value at every Q, the rest refitted; small: the model misses what changes with Q)"
-            )
+            print("  (p: of each h as one value at every Q, the rest refitted; small: the model misses something)")
         print(f"  report: {out / 'report.md'}")
     return report
 

@@ -78,7 +78,7 @@ def cmd_loop(args) -> int:
             f"verdict {js['verdict']}: error before {js['error_before']:.4g}, after {js['error_after']:.4g} "
             f"(noise floor {js['noise_floor']:.4g}); accepted: {'; '.join(js['accepted_steps']) or 'none'}; "
             + "".join(
-                f"{k} changes with the heat input (p {p:.2g}); " for k, p in drifting(js.get("drift_after")).items()
+                f"{k} drifts with the heat input (p {p:.2g}); " for k, p in drifting(js.get("drift_after")).items()
             )
             + f"wrote {Path(args.output) / 'report.json'}"
         )

@@ -186,7 +186,7 @@ def report_markdown(report: dict) -> str:
             [
                 "- changing with the heat input in the final model: "
                 + ", ".join(f"{k} (p = {p:.2g})" for k, p in moving.items())
-                + ": it misses something that changes with the heat input (section h refitted per heat input)"
+                + ": it misses something (section h refitted per heat input)"
             ]
             if (moving := drifting(r.get("drift_after")))
             else []
@@ -257,8 +257,8 @@ def report_markdown(report: dict) -> str:
             lines += [
                 "",
                 "p: the score test of the h as one value at every heat input against one value per heat "
-                "input, everything else refitted. Small: the model misses something that changes with the "
-                "heat input (several h's may share one cause).",
+                "input, everything else refitted. Small: the model misses something, and would fit better "
+                "with an h per heat input (several h's may share one cause, not always a thermal one).",
             ]
     if r.get("comparison"):
         lines += [
