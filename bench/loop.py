@@ -290,10 +290,9 @@ def main(argv=None) -> int:
         result["study"] = study(seeds, args.device, cache, processes, args.repeats)
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
-    name = f"loop_{tag}_{result['cpu_cores']}core" if args.device == "cpu" else f"loop_{tag}"
-    write_result(
-        result, name.replace("loop_", "loop_study_") + ".json" if cases == {"study"} else name + ".json", args.out
-    )
+    prefix = "loop_study" if cases == {"study"} else "loop"
+    name = f"{prefix}_{tag}_{result['cpu_cores']}core" if args.device == "cpu" else f"{prefix}_{tag}"
+    write_result(result, name + ".json", args.out)
     return 0
 
 

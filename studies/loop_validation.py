@@ -111,6 +111,7 @@ summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/
 from __future__ import annotations
 
 import argparse
+import functools
 import hashlib
 import itertools
 import json
@@ -1335,10 +1336,8 @@ def main(argv=None) -> int:
             file=sys.stderr,
         )
     with ProcessPoolExecutor(a.loop_workers) as pool:
-        n = len(cases)
-        runs = pool.map(
-            run_case, cases, [arrays[c.seed] for c in cases], [a.device] * n, [a.base] * n, [None] * n, [threads] * n
-        )
+        loop = functools.partial(run_case, device=a.device, base=a.base, cpu_threads=threads)
+        runs = pool.map(loop, cases, [arrays[c.seed] for c in cases])
         for case, rec in zip(cases, runs):
             records.append(rec)
             bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
