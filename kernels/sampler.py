@@ -28,12 +28,17 @@ children (binary tournament, SBX, polynomial mutation) one thread each.
 Random numbers: ``wp.rand_init(seed, thread)`` (PCG), the seed of a generation drawn on the
 host from the sampler's seed; normal deviates are Warp's float32 ``randn`` widened to
 float64 (the update uses the told x, so the deviates' resolution only shapes the sample).
+CMA-ES's kernels read their seeds from a device array (:data:`SEEDS`), so that one captured
+sequence of launches serves every generation.
 """
 
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
+#: The int32 device array of CMA-ES's seeds: (the sample's, the update's restarts', whether
+#: the told generation is the first).
+SEEDS = 3
 ZERO = wp.constant(wp.float64(0.0))
 ONE = wp.constant(wp.float64(1.0))
 HALF = wp.constant(wp.float64(0.5))
@@ -72,7 +77,7 @@ class CmaState:
 
 @wp.kernel
 def cma_sample(
-    seed: int,
+    seeds: wp.array(dtype=wp.int32),
     cma: CmaState,
     category: wp.array(dtype=wp.int32),
     resample: int,
@@ -81,11 +86,12 @@ def cma_sample(
 ):
     """Member i of instance ``category[i]``: X[i, :d] = m + sigma B diag(sqrt(eig)) z,
     resampled while outside [0, 1]^d (at most ``resample`` draws), then clipped; with a
-    category column (X has d + 1 columns) X[i, d] = category[i]."""
+    category column (X has d + 1 columns) X[i, d] = category[i]. The seed is
+    ``seeds[0]`` (:data:`SEEDS`)."""
     i = wp.tid()
     k = category[i]
     d = cma.mean.shape[1]
-    state = wp.rand_init(seed, i)
+    state = wp.rand_init(seeds[0], i)
     inside = bool(False)
     tries = int(0)
     while not inside and tries < resample:
@@ -243,8 +249,7 @@ def cma_moments(
 
 @wp.kernel
 def cma_update(
-    seed: int,
-    first: int,
+    seeds: wp.array(dtype=wp.int32),
     part: wp.array3d(dtype=wp.float64),
     member: wp.array(dtype=wp.int32),
     counts: wp.array(dtype=wp.int32),
@@ -255,11 +260,14 @@ def cma_update(
     """One CMA-ES update of instance k from its ranked members (eqs. 41-47 with c_m = 1,
     positive weights), then its stopping tests; a stopped (or not finite) instance restarts
     from a uniform point of the box with sigma0, C = I (a restart keeps the population,
-    which is the batch's share). ``first`` (1): the told generation is the space-filling
-    start: the mean is set to the weighted mean of its best half, sigma0, C = I.
+    which is the batch's share). The restart seed is ``seeds[1]`` and ``first`` = ``seeds[2]``
+    (:data:`SEEDS`); ``first`` (1): the told generation is the space-filling start: the
+    mean is set to the weighted mean of its best half, sigma0, C = I.
     ``age[k]``: generations since the (re)start; ``history[k]``: ring of the best feasible
     objective of the last generations (tolfun)."""
     k = wp.tid()
+    seed = seeds[1]
+    first = seeds[2]
     d = cma.mean.shape[1]
     lam = counts[k]
     mu = lam // 2

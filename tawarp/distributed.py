@@ -129,10 +129,13 @@ class DevicePlugin:
 
 
 #: glibc's ``mallopt`` parameters (malloc.h) and the values a worker process sets:
-#: blocks up to 32 MB (the most glibc allows) from its heap, and the top of the heap
-#: returned to the kernel only past 2 GB.
-M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-WORKER_MALLOC = {M_MMAP_THRESHOLD: 32 << 20, M_TRIM_THRESHOLD: (1 << 31) - 1}
+#: blocks up to 32 MB (the most glibc allows) from its heap, the top of the heap
+#: returned to the kernel only past 2 GB, and one heap for all its threads (a thread's
+#: own arena gives its heaps back to the kernel whatever the trim threshold: the design
+#: search's trial-store thread, which joins each commit's rows, faulted them in again at
+#: every commit, 270k faults per island on four GPUs at once).
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD, M_ARENA_MAX = -1, -3, -8
+WORKER_MALLOC = {M_MMAP_THRESHOLD: 32 << 20, M_TRIM_THRESHOLD: (1 << 31) - 1, M_ARENA_MAX: 1}
 
 
 def keep_freed_memory() -> bool:

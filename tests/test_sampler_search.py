@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import warp as wp
+from study_copies import improving_generations
 
-from tawarp.design.samplers import pareto_mask
+from tawarp.design.samplers import BatchCmaEs, pareto_mask
 from tawarp.design.search import SearchCrash, search
 from tawarp.design.space import DesignSpace
 from tawarp.design.storage import study_summary, trials_table
@@ -30,8 +32,9 @@ def _table(study):
 def test_grouped_commits_store_the_same_study(tmp_path, objectives):
     """Everything committed once at the end (commit_seconds far above the run) gives the
     trials of committing each generation, every one in the store; the study's copies:
-    one objective, each generation's best; two, exactly the feasible front of all trials
-    (copies that a later generation of the group dominates are not written)."""
+    one objective, the best of each generation that improves on the generations before;
+    two, exactly the feasible front of all trials (copies that a later generation of the
+    group dominates are not written)."""
     kw = dict(n_trials=96, batch=16, seed=5, T_limit=450.0)
     each = search(_space(), objectives, storage=str(tmp_path / "a.journal"), commit_seconds=0.0, **kw)
     grouped = search(_space(), objectives, storage=str(tmp_path / "b.journal"), commit_seconds=1e9, **kw)
@@ -44,7 +47,9 @@ def test_grouped_commits_store_the_same_study(tmp_path, objectives):
     assert study_summary(grouped.study)["trials"] == 96
     if len(objectives) == 1:
         assert grouped.study.best_trial.values == each.study.best_trial.values
-        assert len(grouped.study.trials) == len(each.study.trials) == 6
+        improving = improving_generations(trials_table(grouped.study))
+        for res in (each, grouped):
+            assert sorted(t.system_attrs["tawarp:generation"] for t in res.study.trials) == improving
     else:
         ds = trials_table(grouped.study)
         ok = (ds.constraint.values <= 0) & (ds.state.values == "COMPLETE")
@@ -117,3 +122,22 @@ def test_a_failed_overlapped_append_stops_the_search(tmp_path, monkeypatch):
     from tawarp.design.storage import open_study
 
     assert study_summary(open_study(journal, "tawarp-design", ["gradient"]))["trials"] == 2 * 16
+
+
+@pytest.mark.parametrize(
+    "device",
+    ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device"))],
+)
+def test_launched_generations_are_the_generations_asked_and_told(monkeypatch, device):
+    """CMA-ES's generations launched with their update and evaluation in one sequence (on
+    a GPU one CUDA graph, replayed from the third generation on) store the trials that
+    the sampler's ask and tell store with the evaluation between them, bit for bit, over
+    40 generations with the temperature limit active."""
+    from tawarp.model.forward import ForwardSettings
+
+    kw = dict(n_trials=40 * 16, batch=16, seed=11, T_limit=420.0, settings=ForwardSettings(device=device))
+    launched = _table(search(_space(), **kw).study)
+    monkeypatch.delattr(BatchCmaEs, "launch_generation")
+    asked = _table(search(_space(), **kw).study)
+    for k in launched:
+        np.testing.assert_array_equal(launched[k], asked[k], err_msg=k)

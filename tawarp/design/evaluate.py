@@ -121,19 +121,24 @@ class Evaluator:
         # contiguous columns (transposed on the device): a strided column view costs Dask a
         # copy under the GIL to pass (0.15 s per 16.8M points), serialising worker threads
         res = self.metric_columns(out, self.columns, wp.float64).numpy()
-        metrics = dict(zip(self.columns, res))
+        return self.with_host_objectives(dict(zip(self.columns, res)), varying)
+
+    def with_host_objectives(self, metrics: dict, varying) -> dict[str, np.ndarray]:
+        """``metrics`` (the kernel columns, host arrays) with the objectives computed on the
+        host from them and the table ``varying`` (NumPy, or Warp, copied where one is asked)."""
         if self.extra:
             table = varying.numpy() if isinstance(varying, wp.array) else np.asarray(varying, dtype=np.float64)
             for o in self.extra:
                 metrics[o.name] = np.asarray(o.compute(self, table, dict(metrics)), dtype=np.float64)
         return metrics
 
-    def evaluate_device(self, varying, out: wp.array | None = None) -> wp.array:
-        """Kernel metrics (n, N_METRICS) on the device, no host copy."""
+    def evaluate_device(self, varying, out: wp.array | None = None, work: tuple | None = None) -> wp.array:
+        """Kernel metrics (n, N_METRICS) on the device, no host copy; into ``out`` where
+        given, the heat solve into ``work`` (:meth:`tawarp.model.forward.Engine.heat_buffers`)."""
         from ..kernels.design import design_metrics
 
         eng = self.engine
-        params, theta = eng.heat(varying)
+        params, theta = eng.heat(varying, out=work)
         n = params.shape[1]
         if out is None:
             out = wp.empty((n, self.n_metrics), dtype=wp.float64, device=self.device)
@@ -145,10 +150,11 @@ class Evaluator:
         )
         return out
 
-    def metric_columns(self, out: wp.array, names, dtype=wp.float32) -> wp.array:
+    def metric_columns(self, out: wp.array, names, dtype=wp.float32, res: wp.array | None = None) -> wp.array:
         """Kernel columns ``names`` of the metrics ``out`` (n, N_METRICS) of
-        :meth:`evaluate_device` as a (len(names), n) array of ``dtype`` on the device:
-        float32 is rounded as NumPy rounds a float64 (what a sweep file stores)."""
+        :meth:`evaluate_device` as a (len(names), n) array of ``dtype`` on the device (into
+        ``res`` where given): float32 is rounded as NumPy rounds a float64 (what a sweep
+        file stores)."""
         from ..kernels.design import metric_columns
 
         key = tuple(names)
@@ -157,7 +163,8 @@ class Evaluator:
                 [self.columns.index(k) for k in names], dtype=wp.int32, device=self.device
             )
         cols = self._column_index[key]
-        res = wp.empty((len(names), out.shape[0]), dtype=dtype, device=self.device)
+        if res is None:
+            res = wp.empty((len(names), out.shape[0]), dtype=dtype, device=self.device)
         wp.launch(metric_columns, dim=(len(names), out.shape[0]), inputs=[out, cols, res], device=self.device)
         return res
 

@@ -49,8 +49,8 @@ from .storage import (
 #: Improvements of an island's best (one objective) its summary keeps at most, the latest:
 #: each trial the client adds to the study costs it about half a millisecond (a journal
 #: entry and its read-back), and a CMA-ES island improves its best in most generations
-#: until it converges (every trial stays in the trial store, every generation's best in
-#: the island's journal).
+#: until it converges (every trial stays in the trial store, every improvement in the
+#: island's journal).
 SUMMARY_COPIES = 32
 
 

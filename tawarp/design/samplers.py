@@ -115,14 +115,6 @@ def _on(device, a, dtype=wp.float64) -> wp.array:
     )
 
 
-def _into(buffer: wp.array, a) -> None:
-    """Copy ``a`` (NumPy or Warp, of ``buffer``'s length) into the float64 ``buffer``."""
-    if isinstance(a, wp.array) and a.dtype == wp.float64:
-        wp.copy(buffer, a)
-    else:
-        buffer.assign(np.ascontiguousarray(_host(a), dtype=np.float64))
-
-
 def _host(a) -> np.ndarray:
     """A float64 NumPy array of ``a`` (Warp arrays copied from their device)."""
     return np.asarray(a.numpy() if isinstance(a, wp.array) else a, dtype=np.float64)
@@ -163,7 +155,7 @@ class BatchCmaEs:
 
     def __init__(self, dim: int, categories: int, batch: int, seed: int, device: str | None = None):
         from ..kernels.eigen import eigh_kernel
-        from ..kernels.sampler import CmaState
+        from ..kernels.sampler import SEEDS, CmaState
 
         self.dim, self.categories, self.batch, self.seed = dim, categories, batch, seed
         checked_seed(seed, "BatchCmaEs", integer=True)
@@ -205,19 +197,33 @@ class BatchCmaEs:
         self._key = wp.empty(2 * n, dtype=wp.float64, device=dev)
         self._ckey = wp.empty(2 * n, dtype=wp.int32, device=dev)
         self._member = wp.empty(2 * n, dtype=wp.int32, device=dev)
-        self._X = wp.empty((n, dim + (1 if categories else 0)), dtype=wp.float64, device=dev)
+        cols = dim + (1 if categories else 0)
+        self._X = wp.empty((n, cols), dtype=wp.float64, device=dev)  # the generation asked
+        self._told = wp.empty((n, cols), dtype=wp.float64, device=dev)
         self._F, self._viol = wp.empty(n, dtype=wp.float64, device=dev), wp.empty(n, dtype=wp.float64, device=dev)
+        self._seeds = wp.zeros(SEEDS, dtype=wp.int32, device=dev)
+        # what the device reads from the host each generation, page-locked on a GPU (the
+        # launches that copy them may be a CUDA graph's, which reads them when it runs);
+        # written again once the device has read them (``_staged``)
+        pinned = self.device.is_cuda
+        self._F_host = wp.empty(n, dtype=wp.float64, device="cpu", pinned=pinned)
+        self._viol_host = wp.empty(n, dtype=wp.float64, device="cpu", pinned=pinned)
+        self._seeds_host = wp.zeros(SEEDS, dtype=wp.int32, device="cpu", pinned=pinned)
+        self._staged = None  # the event after the last launches that read them (CUDA)
+        self._pending = False  # a generation staged by stage_told, its update not launched yet
+        self._updated = False  # whether an update ran (its sorts' scratch sized: capture may follow)
+        self._graph = None  # launch_generation's steady state as one CUDA graph
         self.generation = 0
-        self._asked = None  # the last generation asked (Warp, on the device)
+        self._asked = False  # whether a generation was asked and not told yet
         with _KERNELS_LOCK:
             self._eigh = eigh_kernel(d)
             self._launches = self._record()
 
     def _record(self) -> dict:
         """The generation's launches with their arguments packed once (Warp's recorded
-        launch commands): a generation sets its seeds and the arrays asked and told
-        (the seeds' and arrays' places in the kernels' signatures), so that the host's work per generation does not grow with the
-        kernels' arguments."""
+        launch commands) on the sampler's own buffers, the seeds read on the device: the
+        same launches every generation, so that the host's work per generation does not
+        grow with the kernels' arguments and the sequence can be one CUDA graph."""
         from ..kernels.sampler import class_keys, cma_moments, cma_sample, cma_update, eig_factor, rank_keys, told_rows
 
         dev, n, K = self.device, self.batch, self.n_cat
@@ -226,11 +232,11 @@ class BatchCmaEs:
             return wp.launch(kernel, dim=dim, device=dev, inputs=inputs, record_cmd=True)
 
         return {
-            "sample": rec(cma_sample, n, [0, self.state, self.category, 10 * self.dim, self._z, self._X]),
+            "sample": rec(cma_sample, n, [self._seeds, self.state, self.category, 10 * self.dim, self._z, self._X]),
             "told": rec(
                 told_rows,
                 n,
-                [self._X, self._X, K, self.dim, self._F, self._viol, self._U, self._told_cat, self._counts],
+                [self._told, self._X, K, self.dim, self._F, self._viol, self._U, self._told_cat, self._counts],
             ),
             "rank": rec(rank_keys, n, [self._F, self._viol, self._key, self._member]),
             "class": rec(class_keys, n, [self._member, self._F, self._viol, self._told_cat, self._ckey]),
@@ -238,7 +244,7 @@ class BatchCmaEs:
                 cma_moments, (K, MOMENT_SLICES), [self._U, self._member, self._counts, self.state, self.part]
             ),
             "update": rec(
-                cma_update, K, [0, 0, self.part, self._member, self._counts, self._F, self._viol, self.state]
+                cma_update, K, [self._seeds, self.part, self._member, self._counts, self._F, self._viol, self.state]
             ),
             "eigh": rec(self._eigh, K, [self.state.C, self._w, self._V]),
             "factor": rec(eig_factor, (K, self.dim), [self._w, self._V, self.state]),
@@ -249,45 +255,129 @@ class BatchCmaEs:
         """Restarts of each instance so far."""
         return self.state.restarts.numpy().tolist()
 
+    @property
+    def told_buffer(self) -> wp.array:
+        """The device array (batch, dim [+ 1]) that :meth:`stage_told` tells: the caller of
+        :meth:`launch_generation` writes the evaluated generation's coordinates there."""
+        return self._told
+
     def ask(self, n: int) -> wp.array:
         if n != self.batch:
             raise ValueError(f"CMA-ES asks whole populations of {self.batch}, not {n}")
+        if self._pending:
+            raise RuntimeError("ask with a generation staged: launch_generation tells it")
         if self.generation == 0:
             X = _first_generation(self.batch, self.dim, self.categories, self.seed, self.device)
+            wp.copy(self._X, X)
         else:
-            X = wp.empty_like(self._X)
-            cmd = self._launches["sample"]
-            cmd.set_param_at_index(0, _stream_seed(self.seed, self.generation, 0))
-            cmd.set_param_at_index(5, X)
-            cmd.launch()
-        self._asked = X
+            self._stage_sample()
+            self._upload()
+            self._launches["sample"].launch()
+            self._record_staged()
+            # a copy: a caller may keep it (a CPU array's NumPy view is the array itself)
+            X = wp.clone(self._X)
+        self._asked = True
         return X
 
     def tell(self, X, F, violation) -> None:
-        if self._asked is None:
+        if not self._asked:
             raise RuntimeError("tell without ask: tell the generation last asked")
-        n, cmds = self.batch, self._launches
-        if not (isinstance(X, wp.array) and X.device == self.device):
-            X = _on(self.device, X)
+        wp.copy(self._told, X if isinstance(X, wp.array) and X.device == self.device else _on(self.device, X))
+        self.stage_told(F, violation)
+        self._upload()
+        self._update_launches()
+        self._record_staged()
+        self._pending = False
+
+    def stage_told(self, F, violation) -> None:
+        """Tell the generation asked, its coordinates in :attr:`told_buffer`: minimized F
+        (n,) or (n, 1) and violations (n,) staged on the host; the device's update runs with
+        the next :meth:`launch_generation` (or at :meth:`tell`, which calls this)."""
+        if not self._asked:
+            raise RuntimeError("tell without ask: tell the generation last asked")
+        self._wait_staged()
+        n = self.batch
         # the kernels mark failed members in F and the violations: copies, not the caller's
-        _into(self._F, F if isinstance(F, wp.array) and F.ndim == 1 else _host(F).reshape(n, -1)[:, 0])
-        _into(self._viol, violation)
+        self._F_host.numpy()[:] = _host(F).reshape(n, -1)[:, 0]
+        self._viol_host.numpy()[:] = _host(violation).reshape(n)
+        seeds = self._seeds_host.numpy()
+        seeds[1], seeds[2] = _stream_seed(self.seed, self.generation, 1), int(self.generation == 0)
+        self._pending, self._asked = True, False
+        self.generation += 1
+
+    def launch_generation(self, launch_evaluation) -> None:
+        """The staged generation's update (:meth:`stage_told`, if one is staged), the next
+        generation asked into its buffer, then ``launch_evaluation(asked)`` (launches on the
+        device that evaluate it and write its coordinates into :attr:`told_buffer`): one
+        sequence of launches with no host round trip, from generation 1 on. On a GPU the
+        steady state (a staged update) is one CUDA graph, captured once an update has run
+        (its sorts' scratch sized): a generation's dozen launches, two sorts and copies
+        cost the host far more than the device's work on them (bench/README.md, "A
+        generation as one graph"); ``launch_evaluation`` must launch the same work on the
+        same arrays every call. The CPU launches them one by one (Warp's CPU capture is
+        global to the process). The host reads the evaluation's results after a
+        synchronization."""
+        if self.generation == 0:
+            raise RuntimeError("launch_generation asks from generation 1 on: ask the space-filling start")
+        self._wait_staged()
+        self._stage_sample()
+
+        def launches():
+            self._upload()
+            if self._pending:
+                self._update_launches()
+            self._launches["sample"].launch()
+            launch_evaluation(self._X)
+
+        if self._pending and self._updated and self.device.is_cuda:
+            if self._graph is None:
+                with _KERNELS_LOCK, wp.ScopedCapture(self.device) as capture:
+                    launches()
+                self._graph = capture.graph
+            wp.capture_launch(self._graph)
+        else:
+            launches()
+        self._record_staged()
+        self._pending, self._asked = False, True
+
+    def flush(self) -> None:
+        """Launch the update of a generation staged by :meth:`stage_told` (a search's last)."""
+        if self._pending:
+            self._wait_staged()
+            self._upload()
+            self._update_launches()
+            self._record_staged()
+            self._pending = False
+
+    def _stage_sample(self) -> None:
+        self._seeds_host.numpy()[0] = _stream_seed(self.seed, self.generation, 0)
+
+    def _upload(self) -> None:
+        wp.copy(self._F, self._F_host)
+        wp.copy(self._viol, self._viol_host)
+        wp.copy(self._seeds, self._seeds_host)
+
+    def _record_staged(self) -> None:
+        if self.device.is_cuda:
+            self._staged = self.device.stream.record_event()
+
+    def _wait_staged(self) -> None:
+        if self._staged is not None:  # the last launches read the staged values
+            wp.synchronize_event(self._staged)
+
+    def _update_launches(self) -> None:
+        n, cmds = self.batch, self._launches
         self._counts.zero_()
-        cmds["told"].set_param_at_index(0, X)
-        cmds["told"].set_param_at_index(1, self._asked)
         cmds["told"].launch()
         cmds["rank"].launch()
         wp.utils.radix_sort_pairs(self._key, self._member, n)
         cmds["class"].launch()
         wp.utils.radix_sort_pairs(self._ckey, self._member, n)
         cmds["moments"].launch()
-        cmds["update"].set_param_at_index(0, _stream_seed(self.seed, self.generation, 1))
-        cmds["update"].set_param_at_index(1, int(self.generation == 0))
         cmds["update"].launch()
         cmds["eigh"].launch()
         cmds["factor"].launch()
-        self._asked = None
-        self.generation += 1
+        self._updated = True
 
 
 def nondominated_ranks(F: np.ndarray) -> np.ndarray:

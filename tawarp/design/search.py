@@ -47,6 +47,7 @@ import numpy as np
 import warp as wp
 
 from .evaluate import DEFAULT_FREQS, Evaluator
+from .generation import DeviceGeneration
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
 from .samplers import fronts_and_crowding, lexsort_2, lexsorted_front, make_sampler, pareto_mask
 from .space import DesignSpace, DeviceTable
@@ -67,7 +68,6 @@ from .storage import (
 )
 from ..io import interrupt_guard
 from ..model.forward import ForwardSettings, resolve_device
-from ..model.validity import ModelValidityError
 from ..rng import checked_seed
 
 
@@ -76,7 +76,9 @@ class SearchResult:
     """``study`` (Optuna), ``best`` (list of dicts: the best feasible trial, or the
     feasible Pareto front for several objectives, as the study holds it: at most
     :data:`FRONT_COPIES` members per lineage), ``timing`` (seconds: ``sampler``,
-    ``evaluation``, ``storage`` (reads, the trial store, the study, the heartbeat),
+    ``evaluation`` (a generation launched with its sampler's update and sample, CMA-ES on
+    a local device: those too; ``sampler`` then is the host's staging), ``storage``
+    (reads, the trial store, the study, the heartbeat),
     ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
     ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
     study, copies included), ``*_share``: each over ``wall``), ``resumed``: trials of a
@@ -187,7 +189,7 @@ def search(
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
     for k in ("sampler", "evaluation", "storage", "trial_store"):
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
-    # the best from the study's copies (each generation's best; several objectives: the
+    # the best from the study's copies (the improvements of the best; several objectives: the
     # front, spread to FRONT_COPIES per lineage): reading a trial store of millions of rows
     # back would cost a fast device's search seconds
     best = best_designs(study, objectives, T_limit, copies=True)
@@ -237,6 +239,7 @@ class _Run:
         #: raises KeyboardInterrupt once Ctrl-C was pressed (:func:`tawarp.io.interrupt_guard`)
         self.interrupted = lambda: None
         self.tables = None  # DeviceTable: a local evaluator's tables from device points
+        self._generation = None  # DeviceGeneration: its arrays and launches (device_generation)
         if client is None:
             self.evaluator = Evaluator(space, extra=objectives, freqs=freqs, settings=settings, onset=onset)
             self.tables = DeviceTable(space, self.evaluator.device)
@@ -260,6 +263,7 @@ class _Run:
         # lexicographic order, :meth:`kept`) and its members' ids (:func:`_member_ids`)
         self.front = np.zeros((len(objectives), 0))
         self.front_id = np.zeros(0, dtype=np.int64)
+        self.best_value = np.inf  # one objective: the lineage's best feasible F so far (:meth:`kept`)
         self.joined = []  # members joined since the front's last merge: (F rows, ids)
         self.merges = 0  # of the front
         self.copies_pruned = (0, 0)  # the merges the copies were last pruned after, the copies left (:meth:`commit`)
@@ -283,42 +287,40 @@ class _Run:
         """(design values {variable: (n,)}, the coordinates to tell the sampler (a Warp
         array on the device: :meth:`told`), then :meth:`evaluate`'s tuple) of the sampler
         coordinates ``X`` (a Warp array on the device): a local evaluator builds the table
-        from them on the device (one launch) and copies back the metrics and the values
-        once; a cluster's gets the values."""
-        import warp as wp
-
-        from ..kernels.sampler import to_table_unit
-
+        from them on the device and copies back the metrics and the values once
+        (:class:`~tawarp.design.generation.DeviceGeneration`); a cluster's gets the values."""
         t = time.perf_counter()
-        space = self.space
         if self.tables is None:
-            values = space.values_from_unit(X.numpy())
+            values = self.space.values_from_unit(X.numpy())
             m = self.evaluator.evaluate(values)
             told = None
         else:
-            U = wp.empty(X.shape, dtype=wp.float64, device=X.device)
-            bad = wp.zeros(1, dtype=wp.int32, device=X.device)
-            wp.launch(
-                to_table_unit,
-                dim=X.shape,
-                device=X.device,
-                inputs=[X, len(space.continuous), space.n_categories, U, bad],
-            )
-            table, vals = self.tables.unit(U)
-            told = self.tables.coordinates(vals)
-            # read with the metrics: no round trip to the device before the evaluation
-            m = self.evaluator.objectives_of(self.evaluator.evaluate_device(table), table)
-            if bad.numpy()[0]:  # as the host's table refuses them
-                raise ModelValidityError(
-                    f"the sampler asked {bad.numpy()[0]} coordinates that are not finite (nan or inf): none is stored"
-                )
-            values = dict(zip(self.tables.names, vals.numpy()))
-            if space.material is not None:
-                values["material"] = values["material"].astype(np.int64)
+            gen = self.device_generation(X.shape[0])
+            gen.launches(X)
+            values, m = gen.read()
+            told = gen.told
         self.timing["evaluation"] += time.perf_counter() - t
         if told is None:
             told = self.told(values)
         return (values, told, *self._objectives(m))
+
+    def device_generation(self, batch: int) -> DeviceGeneration:
+        """The arrays and launches of a local evaluator's generations of ``batch`` (made once)."""
+        if self._generation is None or self._generation.batch != batch:
+            self._generation = DeviceGeneration(self.evaluator, self.tables, batch)
+        return self._generation
+
+    def launch_generation(self, sampler, n: int):
+        """:meth:`evaluate_asked`'s tuple, less the told coordinates, of the next generation of
+        ``sampler`` asked and evaluated on the device in one sequence of launches, the
+        generation staged before it told in the same sequence
+        (:meth:`tawarp.design.samplers.BatchCmaEs.launch_generation`)."""
+        t = time.perf_counter()
+        gen = self.device_generation(n)
+        sampler.launch_generation(lambda X: gen.launches(X, told=sampler.told_buffer))
+        values, m = gen.read()
+        self.timing["evaluation"] += time.perf_counter() - t
+        return (values, *self._objectives(m))
 
     def told(self, values: dict):
         """The sampler coordinates (a Warp array on the device) of design ``values``
@@ -367,27 +369,18 @@ class _Run:
             if self.writer is None:
                 choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
                 self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
-            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
-            if self.space.material is not None:
-                params["material"] = self.space.material_index(params["material"])
-            args = (
-                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
-                np.concatenate([r[1] for r in rows]),
-                params,
-                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
-                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
-                np.concatenate([r[5] for r in rows]),
-            )
             self.wait_store()
-            # the final append too, while the copies below are chosen (it ends before they are written)
+            # the final append too, while the copies below are chosen (it ends before they are
+            # written); the rows are joined in that thread as well (NumPy's copies release the
+            # GIL: on the main thread they were a fast device's largest host cost)
             if self.commit_seconds > 0:
                 if self._appender is None:
                     from concurrent.futures import ThreadPoolExecutor
 
                     self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
-                self._appending = self._appender.submit(self.writer.append, *args)
+                self._appending = self._appender.submit(self._append, rows)
             else:
-                self.writer.append(*args)
+                self._append(rows)
             self.timing["trial_store"] += time.perf_counter() - t
         if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
             if final:  # exactly: those off the whole front
@@ -418,6 +411,20 @@ class _Run:
                 claim.heartbeat()
         self.timing["storage"] += time.perf_counter() - t
         self.last_commit = time.perf_counter()
+
+    def _append(self, rows: list) -> None:
+        """Generations' ``rows`` (:meth:`store_rows`) into the trial store, in one append."""
+        params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
+        if self.space.material is not None:
+            params["material"] = self.space.material_index(params["material"])
+        self.writer.append(
+            rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
+            np.concatenate([r[1] for r in rows]),
+            params,
+            {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
+            None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
+            np.concatenate([r[5] for r in rows]),
+        )
 
     def wait_store(self) -> None:
         """Wait for the trial store's append in flight (:meth:`commit`); its error, if any,
@@ -483,15 +490,22 @@ class _Run:
 
     def kept(self, g: int, F: np.ndarray, viol: np.ndarray) -> np.ndarray:
         """Members of a whole generation ``g`` (minimized F (batch, m), violations) whose
-        copies the study keeps: one objective, the best feasible; several, those that join
-        the lineage's feasible Pareto front (which this updates; a member of a later
-        generation may dominate one joined before the front's next merge: :meth:`commit`
-        drops those copies)."""
+        copies the study keeps: one objective, the best feasible where it improves the
+        lineage's best so far (which this updates); several, those that join the lineage's
+        feasible Pareto front (which this updates; a member of a later generation may
+        dominate one joined before the front's next merge: :meth:`commit` drops those
+        copies). Generations come in order, a resume's stored ones too."""
         feas = np.flatnonzero((viol <= 0) & np.all(np.isfinite(F), axis=1))
         if not feas.size:
             return feas
         if F.shape[1] == 1:
-            return feas[[int(np.argmin(F[feas, 0]))]]
+            # only improvements: each Optuna trial costs the run's end about a millisecond,
+            # and a converged CMA-ES lineage's later generations rarely beat its best
+            best = feas[int(np.argmin(F[feas, 0]))]
+            if not F[best, 0] < self.best_value:
+                return feas[:0]
+            self.best_value = F[best, 0]
+            return np.array([best])
         X, ids = F[feas], _member_ids(g, feas)
         on = pareto_mask(X)
         # the front of the generations before, merged with the members since joined once
@@ -563,22 +577,34 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         run.device,
     )
     names = [v.name for v in space.variables]
+    # a sampler that launches its own generations (CMA-ES) is told, asked and evaluated in
+    # one sequence of launches from its generation 1 on, where the evaluator is this device's
+    on_device = run.tables is not None and hasattr(sampler, "launch_generation")
     done, asked = 0, 0
     while done < n_target:
         run.interrupted()
-        t = time.perf_counter()
         g = sampler.generation
-        X = sampler.ask(batch)
-        if not isinstance(X, wp.array):
-            X = wp.array(np.asarray(X, dtype=np.float64), dtype=wp.float64, device=run.device)
         stored = gens.get(g)
-        run.timing["sampler"] += time.perf_counter() - t
         F = np.empty((batch, len(run.objectives)))
         viol = np.zeros(batch)
-        if stored is None:  # a new generation, evaluated from the points on the device
+        told = None
+        if stored is None and on_device and g > 0:
             asked += 1
             _interruption_hooks(asked, stop_after, crash_after)
-            values, told, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
+            values, metrics, _, Fm, vm, failed = run.launch_generation(sampler, batch)
+        else:
+            t = time.perf_counter()
+            if on_device:
+                sampler.flush()
+            X = sampler.ask(batch)
+            if not isinstance(X, wp.array):
+                X = wp.array(np.asarray(X, dtype=np.float64), dtype=wp.float64, device=run.device)
+            run.timing["sampler"] += time.perf_counter() - t
+            if stored is None:  # a new generation, evaluated from the points on the device
+                asked += 1
+                _interruption_hooks(asked, stop_after, crash_after)
+                values, told, metrics, _, Fm, vm, failed = run.evaluate_asked(X)
+        if stored is None:
             run.store_rows(g, np.arange(batch), values, metrics, vm, failed)
             F[:] = np.where(failed[:, None], np.inf, Fm)
             viol[:] = np.where(failed, np.inf, vm if vm is not None else 0.0)
@@ -592,10 +618,15 @@ def _search_batched(run: _Run, n_target, batch, seed, bar, claim, stop_after, cr
         if run.commit_due():
             run.commit(claim)
         t = time.perf_counter()
-        sampler.tell(told, F, viol)
+        if told is None:  # its coordinates are on the device: told with the next launches
+            sampler.stage_told(F, viol)
+        else:
+            sampler.tell(told, F, viol)
         run.timing["sampler"] += time.perf_counter() - t
         done += batch
         bar.update(batch)
+    if on_device:
+        sampler.flush()
 
 
 def _spread(copies: list, k: int) -> list:

@@ -399,12 +399,13 @@ class DeviceTable:
         self.rows = 1 + len(params)
         self._sobol = None  # (seed, directions, shift, scale) on the device, made by the first sobol()
 
-    def _launch(self, lo: int, m: int, unit, values):
+    def _launch(self, lo: int, m: int, unit, values, table=None):
         import warp as wp
 
         from ..kernels.design import design_table
 
-        table = wp.empty((self.rows, m), dtype=wp.float64, device=self.device)
+        if table is None:
+            table = wp.empty((self.rows, m), dtype=wp.float64, device=self.device)
         wp.launch(
             design_table,
             dim=m,
@@ -445,12 +446,13 @@ class DeviceTable:
             )
         return self.unit(u)
 
-    def coordinates(self, values):
+    def coordinates(self, values, out=None):
         """Sampler coordinates (m, len(names)) on the device of design ``values``
         (len(names), m) (a Warp array on the device or NumPy, the material as its index):
         the unit cube's coordinates of the continuous variables, then the material index
         (:func:`tawarp.kernels.design.sampler_coordinates`; what
-        :meth:`DesignSpace.unit_from_values` computes on the host, to rounding)."""
+        :meth:`DesignSpace.unit_from_values` computes on the host, to rounding); into
+        ``out`` where given."""
         import warp as wp
 
         from ..kernels.design import sampler_coordinates
@@ -458,17 +460,21 @@ class DeviceTable:
         if not isinstance(values, wp.array):
             values = wp.array(np.ascontiguousarray(values, dtype=np.float64), dtype=wp.float64, device=self.device)
         m = values.shape[1]
-        X = wp.empty((m, len(self.names)), dtype=wp.float64, device=self.device)
+        X = wp.empty((m, len(self.names)), dtype=wp.float64, device=self.device) if out is None else out
         wp.launch(sampler_coordinates, dim=X.shape, device=self.device, inputs=[values, self._variables, X])
         return X
 
-    def unit(self, u):
+    def unit(self, u, out=None):
         """(varying table, values) on the device of unit-cube points ``u`` (m, len(names)),
         a NumPy array or a float64 Warp array on the device: ``values`` (len(names), m) the
-        variables' values (the material as its index)."""
+        variables' values (the material as its index); into ``out`` = (table, values)
+        where given."""
         import warp as wp
 
         if not isinstance(u, wp.array):
             u = wp.array(np.ascontiguousarray(u, dtype=np.float64), dtype=wp.float64, device=self.device)
+        if out is not None:
+            table, values = out
+            return self._launch(0, u.shape[0], u, values, table), values
         values = wp.empty((len(self.names), u.shape[0]), dtype=wp.float64, device=self.device)
         return self._launch(0, u.shape[0], u, values), values

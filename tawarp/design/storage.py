@@ -7,7 +7,8 @@ Where trials live. A study with a *trial store* (the default beside a journal fi
 a worker (:class:`TrialStore`); the study's user attribute ``tawarp_trials`` names the
 folder. The study itself keeps, through ``study.add_trials``, copies of the trials
 people ask Optuna for (system attribute ``tawarp:copy``): with one objective each
-generation's best feasible trial (so ``study.best_trial`` is the best of all), with
+generation's best feasible trial where it improves on its lineage's generations before
+(so ``study.best_trial`` is the best of all), with
 several each trial that joins its lineage's feasible Pareto front when evaluated (so
 ``study.best_trials`` is the front of all). A study without a store (a database URL or
 memory, unless a store folder is given: with several machines it must be a folder they
@@ -624,8 +625,9 @@ def best_designs(
     ``worker``, ``generation``, ``index``. ``copies``: among the study's trials and its
     copies alone, without reading the trial store: the same best (``k = 1``, no ``per``)
     and front for a study of batched searches with ``T_limit`` theirs, whose copies are
-    every generation's best feasible member (several objectives: the members that joined
-    their lineage's front), so every other trial is beaten by one of them. ``worker``:
+    the best feasible member of every generation that improved its lineage's best
+    (several objectives: the members that joined their lineage's front), so every other
+    trial is beaten by one of them. ``worker``:
     among that worker's trials alone (its lineage)."""
     from .objectives import signs
     from .samplers import pareto_mask

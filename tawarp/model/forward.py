@@ -621,25 +621,37 @@ class Engine:
         sets.gas = self.gas
         return sets
 
-    def heat(self, varying, start: np.ndarray | None = None) -> tuple[wp.array, wp.array]:
+    def heat_buffers(self, n: int) -> tuple[wp.array, wp.array, wp.array | None]:
+        """(params, theta, scratch) for :meth:`heat` of ``n`` sets, on the device: a caller that
+        solves batches of one size again and again keeps them (no allocation per batch)."""
+        params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
+        theta = wp.empty((n, self.theta_columns), dtype=wp.float64, device=self.device)
+        # the Thomas sweep's super-diagonal and the previous iterate: 2 per node, 6 with the wall
+        width = (6 if self.theta_columns > self.nodes else 2) * self.nodes
+        scratch = wp.empty((n, width), dtype=wp.float64, device=self.device) if self.count else None
+        return params, theta, scratch
+
+    def heat(self, varying, start: np.ndarray | None = None, out: tuple | None = None) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device.
         ``start`` (n, ``theta_columns``): the iterations' start per set where the heat solve
         iterates (:func:`tawarp.kernels.heat.solve_heat`; rows of zeros: the cold start, the
-        default; a row of a set without heat input must be zeros)."""
+        default; a row of a set without heat input must be zeros). ``out``: the arrays of
+        :meth:`heat_buffers` to solve into (the cold start), else new ones."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
             check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
-        params = wp.empty((self.base.shape[0], n), dtype=wp.float64, device=self.device)
-        if start is None:
-            theta = wp.zeros((n, self.theta_columns), dtype=wp.float64, device=self.device)
+        if out is not None:
+            params, theta, scratch = out
+            theta.zero_()
         else:
-            theta = wp.array(np.ascontiguousarray(start, dtype=np.float64), dtype=wp.float64, device=self.device)
+            params, theta, scratch = self.heat_buffers(n)
+            if start is None:
+                theta.zero_()
+            else:
+                theta.assign(np.ascontiguousarray(start, dtype=np.float64))
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
-            # the Thomas sweep's super-diagonal and the previous iterate: 2 per node, 6 with the wall
-            width = (6 if self.theta_columns > self.nodes else 2) * self.nodes
-            scratch = wp.empty((n, width), dtype=wp.float64, device=self.device)
             wp.launch(
                 kf.heat_kernel,
                 dim=n,
