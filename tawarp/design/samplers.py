@@ -271,7 +271,7 @@ class BatchCmaEs:
             wp.copy(self._X, X)
         else:
             self._stage_sample()
-            self._upload()
+            wp.copy(self._seeds, self._seeds_host)
             self._launches["sample"].launch()
             self._record_staged()
             # a copy: a caller may keep it (a CPU array's NumPy view is the array itself)
@@ -284,10 +284,7 @@ class BatchCmaEs:
             raise RuntimeError("tell without ask: tell the generation last asked")
         wp.copy(self._told, X if isinstance(X, wp.array) and X.device == self.device else _on(self.device, X))
         self.stage_told(F, violation)
-        self._upload()
-        self._update_launches()
-        self._record_staged()
-        self._pending = False
+        self.flush()
 
     def stage_told(self, F, violation) -> None:
         """Tell the generation asked, its coordinates in :attr:`told_buffer`: minimized F
@@ -341,7 +338,8 @@ class BatchCmaEs:
         self._pending, self._asked = False, True
 
     def flush(self) -> None:
-        """Launch the update of a generation staged by :meth:`stage_told` (a search's last)."""
+        """Launch the update of a generation staged by :meth:`stage_told` (a search's last;
+        :meth:`tell`'s own)."""
         if self._pending:
             self._wait_staged()
             self._upload()

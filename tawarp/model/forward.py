@@ -636,20 +636,16 @@ class Engine:
         ``start`` (n, ``theta_columns``): the iterations' start per set where the heat solve
         iterates (:func:`tawarp.kernels.heat.solve_heat`; rows of zeros: the cold start, the
         default; a row of a set without heat input must be zeros). ``out``: the arrays of
-        :meth:`heat_buffers` to solve into (the cold start), else new ones."""
+        :meth:`heat_buffers` to solve into, else new ones."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
             check_heat_inputs(np.asarray(varying)[0])
             varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
         n = varying.shape[1]
-        if out is not None:
-            params, theta, scratch = out
+        params, theta, scratch = self.heat_buffers(n) if out is None else out
+        if start is None:
             theta.zero_()
         else:
-            params, theta, scratch = self.heat_buffers(n)
-            if start is None:
-                theta.zero_()
-            else:
-                theta.assign(np.ascontiguousarray(start, dtype=np.float64))
+            theta.assign(np.ascontiguousarray(start, dtype=np.float64))
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
             wp.launch(
