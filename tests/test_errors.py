@@ -296,6 +296,25 @@ def test_a_range_bound_that_is_not_finite_is_named(argv, say, tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("materials, batch", [(None, "1"), ("ceramic,mesh,rvc_foam", "5")])
+def test_a_population_too_small_for_cma_es_is_refused_before_any_output(materials, batch, tmp_path, capsys):
+    # CMA-ES runs one instance per material, each needing a parent: 2 trials per material
+    var = ["--var", f"material={materials}"] if materials else []
+    argv = ["design", "rvc_foam", "--var", "Q=1:18", *var, "--batch", batch, "-o", str(tmp_path / "d")]
+    err = _refused(argv, capsys)
+    n = len(materials.split(",")) if materials else 1
+    assert f"--batch {batch} too small: CMA-ES needs at least 2 trials per material ({n} materials)" in err
+    assert list(tmp_path.iterdir()) == []
+    from tawarp.design.search import search
+    from tawarp.design.space import DesignSpace
+    from tawarp.model.core import load_core
+
+    space = DesignSpace(load_core("rvc_foam"), ["Q=1:18", *var[1:]])
+    with pytest.raises(ValueError, match=f"batch {batch} too small"):
+        search(space, batch=int(batch), storage=str(tmp_path / "s.journal"))
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("column, value", [(1, "-50"), (0, "-5"), (10, "-0.01")])
 def test_a_bad_value_of_a_file_is_shown_as_a_plain_number(column, value, tmp_path, capsys):
     lines = _bundled_text().splitlines()

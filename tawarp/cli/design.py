@@ -225,6 +225,7 @@ def _design_network(args) -> int:
 
 def cmd_design(args) -> int:
     from ..io import write_json
+    from ..design.samplers import check_batch
     from ..design.search import objective_definitions, search
     from ..design.storage import study_summary
     from ..design.plots import plot_best_profiles, plot_history, plot_pareto
@@ -240,6 +241,10 @@ def cmd_design(args) -> int:
         return _design_network(args)
     space = _space(args)
     objectives = _objectives(args.objectives)
+    if args.engine == "batched":
+        check_batch(
+            args.batch, len(space.material.choices) if space.material is not None else 0, len(objectives), "--batch"
+        )
     _check_T_limit(args)
     onset = _onset_spec(args)
     out = Path(args.output)

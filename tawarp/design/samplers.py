@@ -46,6 +46,16 @@ class Sampler(Protocol):
         """The generation last asked, evaluated: minimized objectives F (n, m), violations (n,)."""
 
 
+def check_batch(batch: int, categories: int, n_objectives: int, name: str = "batch") -> None:
+    """Refuse a population :func:`make_sampler` cannot take (``name``: the parameter as the
+    caller knows it): CMA-ES (one objective) needs two trials per category (one CMA-ES per
+    material, each with at least one parent)."""
+    if n_objectives == 1 and batch < 2 * max(categories, 1):
+        raise ValueError(
+            f"{name} {batch} too small: CMA-ES needs at least 2 trials per material ({max(categories, 1)} materials)"
+        )
+
+
 def make_sampler(
     dim: int, categories: int, batch: int, seed: int, n_objectives: int, device: str | None = None
 ) -> Sampler:
@@ -163,10 +173,7 @@ class BatchCmaEs:
         self.n_cat = max(categories, 1)
         if dim < 1:
             raise ValueError("CMA-ES needs at least one continuous variable")
-        if batch < 2 * self.n_cat:
-            raise ValueError(
-                f"batch {batch} too small: CMA-ES needs at least 2 trials per material ({self.n_cat} materials)"
-            )
+        check_batch(batch, categories, 1)
         self.sizes = [batch // self.n_cat + (1 if m < batch % self.n_cat else 0) for m in range(self.n_cat)]
         K, d, dev = self.n_cat, dim, self.device
         eye = np.broadcast_to(np.eye(d), (K, d, d))

@@ -49,7 +49,7 @@ import warp as wp
 from .evaluate import DEFAULT_FREQS, Evaluator
 from .generation import DeviceGeneration
 from .objectives import DEFAULT_T_LIMIT, directions, objective, signs
-from .samplers import fronts_and_crowding, lexsort_2, lexsorted_front, make_sampler, pareto_mask
+from .samplers import fronts_and_crowding, lexsort_2, lexsorted_front, make_sampler, pareto_mask, check_batch
 from .space import DesignSpace, DeviceTable
 from .storage import (
     ATTR,
@@ -160,6 +160,8 @@ def search(
         raise ValueError(f"T_limit [K] must be finite and > 0 (None: no limit), got {T_limit}")
     if not space.continuous:
         raise ValueError("the design space needs at least one continuous variable")
+    if engine == "batched":  # before the study is made: a refused search leaves nothing behind
+        check_batch(batch, len(space.material.choices) if space.material is not None else 0, len(objectives))
     t_wall = time.perf_counter()
     st = make_storage(storage)
     study = open_study(st, study_name, objectives, space.binding())
