@@ -187,44 +187,47 @@ _WRITER = """
 import sys
 import numpy as np
 from tawarp.design.storage import TrialStore
-store, start = TrialStore(sys.argv[1], "s"), int(sys.argv[2])
+store, start, per_commit = TrialStore(sys.argv[1], "s"), int(sys.argv[2]), int(sys.argv[3])
 w = store.writer("w", start, {"material": ["a", "b"]}, 512)
 for g in range(start, start + 10**6):
     k = np.arange(512)
-    w.append(g, k, {"x": g + k / 512.0, "material": k % 2}, {"y": np.full(512, float(g))}, -k / 1.0, k == 7)
-    print(g, flush=True)
+    commit = (g - start + 1) % per_commit == 0
+    w.append(g, k, {"x": g + k / 512.0, "material": k % 2}, {"y": np.full(512, float(g))}, -k / 1.0, k == 7, commit)
+    if commit:
+        print(g, flush=True)
 """
 
 
-@pytest.mark.parametrize("delay", [0.3, 0.7, 1.3])
-def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
+@pytest.mark.parametrize("delay,per_commit", [(0.3, 1), (0.7, 1), (1.3, 1), (0.7, 3)])
+def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay, per_commit):
     """SIGKILL at an arbitrary moment of a writer appending generations of known content
-    as fast as it can (most of its time inside HDF5 writes): what readers see, while it
-    writes and after, is whole generations 0..G-1, every value exact, every generation
-    whose append had returned among them (the store does not sync to disk: what it
-    flushed is the kernel's); a second run of the worker continues in a new file from G;
-    the union has each (generation, index) once."""
+    as fast as it can (most of its time inside HDF5 writes), committing every
+    ``per_commit``-th: what readers see, while it writes and after, is whole generations
+    0..G-1 up to the last commit, every value exact, every generation whose commit had
+    returned among them (the store does not sync to disk: what it flushed is the
+    kernel's) and none appended since; a second run of the worker continues in a new
+    file from G; the union has each (generation, index) once."""
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
 
     def run(start, wait):
         with reaped(
             subprocess.Popen(
-                [sys.executable, "-c", _WRITER, str(tmp_path), str(start)],
+                [sys.executable, "-c", _WRITER, str(tmp_path), str(start), str(per_commit)],
                 env=env,
                 stdout=subprocess.PIPE,
                 stderr=subprocess.STDOUT,
                 text=True,
             )
         ) as (p,):
-            first = p.stdout.readline()  # the first generation is stored: the writer is under way
-            assert first.strip() == str(start), first
+            first = p.stdout.readline()  # the first commit returned: the writer is under way
+            assert first.strip() == str(start + per_commit - 1), first
             time.sleep(wait)
             while_writing = check()  # a reader beside the live writer
             p.send_signal(signal.SIGKILL)
             p.wait()
-            appended = int(([first] + p.stdout.read().split())[-1])  # the last append that returned
-        assert while_writing >= start + 1
-        assert check() >= appended + 1
+            committed = int(([first] + p.stdout.read().split())[-1])  # the last commit that returned
+        assert while_writing >= start + per_commit
+        assert check() >= committed + 1
 
     def check():
         cols = TrialStore(tmp_path, "s").read()
@@ -238,6 +241,7 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
         np.testing.assert_array_equal(cols["metric:y"], g.astype(float))
         np.testing.assert_array_equal(cols["constraint"], -k / 1.0)
         np.testing.assert_array_equal(cols["failed"], k == 7)
+        assert len(gens) % per_commit == 0  # (each run starts at a commit)
         return len(gens)
 
     run(0, delay)
@@ -245,6 +249,64 @@ def test_a_store_killed_at_any_moment_keeps_whole_generations(tmp_path, delay):
     run(n1, delay / 2)
     n2 = check()
     assert n2 > n1 >= 1
+
+
+def test_rows_written_between_commits_are_invisible_until_the_commit(tmp_path, monkeypatch):
+    """A search whose trial store is written as rows are gathered (every two generations
+    here) and committed once, at its end: each append leaves the committed count where the
+    last commit put it, so readers see none of those rows until the commit; the store then
+    holds the trials of a search that stores every generation as it goes, bit for bit."""
+    import tawarp.design.search as S
+    from tawarp.design.storage import StoreWriter
+
+    append, seen = StoreWriter.append, []
+
+    def recorded(self, *a, commit=True, **k):
+        append(self, *a, commit=commit, **k)
+        seen.append((len(a[1]), commit, int(self._f["committed"][0])))
+
+    monkeypatch.setattr(S, "WRITE_ROWS", 16)
+    monkeypatch.setattr(StoreWriter, "append", recorded)
+    kw = dict(n_trials=12 * 8, batch=8, seed=5)
+    res = search(_space(), storage=str(tmp_path / "a.journal"), commit_seconds=1e9, **kw)
+    assert seen == [(16, False, 0)] * 6
+    seen.clear()
+    ref = search(_space(), storage=str(tmp_path / "b.journal"), commit_seconds=0, **kw)
+    assert seen == [(8, True, 8 * (g + 1)) for g in range(12)]
+    a, b = trials_table(res.study), trials_table(ref.study)
+    assert a.sizes["trial"] == 96
+    for k in a.data_vars:
+        if k != "time":
+            np.testing.assert_array_equal(a[k].values, b[k].values, err_msg=k)
+
+
+def test_a_segment_whose_write_failed_is_closed_and_keeps_its_commits(tmp_path, monkeypatch):
+    """A full disk during an append: the error names the segment, the generations
+    committed before stay readable, and the writer refuses every later append or commit
+    (reopening the segment would truncate it)."""
+    import errno
+
+    import h5py
+
+    w = TrialStore(tmp_path, "s").writer("w", 0, {}, 64)
+    k = np.arange(64)
+    w.append(0, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3)
+    setitem = h5py.Dataset.__setitem__
+
+    def full(self, *a):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(h5py.Dataset, "__setitem__", full)
+    with pytest.raises(OSError, match=r"w-g0000000-\w+\.h5: the trial store could not be written \(No space"):
+        w.append(1, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3, commit=False)
+    monkeypatch.setattr(h5py.Dataset, "__setitem__", setitem)
+    for later in (lambda: w.append(2, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3), w.commit):
+        with pytest.raises(OSError, match="could not be written"):
+            later()
+    w.close()
+    cols = TrialStore(tmp_path, "s").read()
+    np.testing.assert_array_equal(cols["generation"], np.zeros(64))
+    np.testing.assert_array_equal(cols["metric:y"], k * 2.0)
 
 
 def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):

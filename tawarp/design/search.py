@@ -206,6 +206,9 @@ def search(
 FRONT_COPIES = 256
 #: Members joined since the front's last merge that make a merge in any case (:meth:`_Run.kept`).
 MERGE_AT_LEAST = 1 << 14
+#: Rows gathered before the trial store's thread writes them (:meth:`_Run.store_gathered`):
+#: about 30 MB of a typical space's columns, a few HDF5 chunks of each.
+WRITE_ROWS = 1 << 18
 
 
 def worker_seed(seed: int, worker: str) -> int:
@@ -269,11 +272,13 @@ class _Run:
         self.joined = []  # members joined since the front's last merge: (F rows, ids)
         self.merges = 0  # of the front
         self.copies_pruned = (0, 0)  # the merges the copies were last pruned after, the copies left (:meth:`commit`)
-        self.rows = []  # evaluated generations' rows not committed yet: (g, index, values, metrics, viol, failed)
+        self.rows = []  # evaluated generations' rows not written yet: (g, index, values, metrics, viol, failed)
+        self.rows_gathered = 0  # their number
+        self.uncommitted = False  # rows written to the trial store since its last commit
         self.copies = []  # their kept members: (g, index, values, metrics, viol, F minimized)
         self.last_commit = time.perf_counter()
         self._appender = None  # the thread of the trial store's appends (commit_seconds > 0)
-        self._appending = None  # the append in flight (a Future)
+        self._appending = []  # its appends in flight (Futures), in order
         self._keeper = None  # the thread that keeps the copies (:meth:`keep`, commit_seconds > 0)
         self._keeping = []  # its generations in flight (Futures), in order
 
@@ -341,10 +346,16 @@ class _Run:
         return m, vals, vals * self.sign, viol, failed
 
     def store_rows(self, g: int, index: np.ndarray, values: dict, metrics: dict, viol, failed) -> None:
-        """Evaluated members ``index`` of generation ``g``: kept for the trial store's next
-        commit (:meth:`commit`) when the run has one, else each into the study."""
+        """Evaluated members ``index`` of generation ``g``: gathered for the trial store when
+        the run has one (written once ``WRITE_ROWS`` are gathered, visible at the next
+        commit, :meth:`commit`), else each into the study."""
         if self.store is not None:
             self.rows.append((g, index, values, metrics, viol, failed))
+            self.rows_gathered += len(index)
+            if self.commit_seconds > 0 and self.rows_gathered >= WRITE_ROWS:
+                t = time.perf_counter()
+                self.store_gathered(commit=False)
+                self.timing["trial_store"] += time.perf_counter() - t
             return
         t = time.perf_counter()
         self.copy_to_study(g, index, values, metrics, viol, failed, copies=False)
@@ -352,11 +363,11 @@ class _Run:
 
     def commit(self, claim=None, final: bool = False) -> None:
         """The generations evaluated since the last commit: their rows into the trial store
-        (one append) and ``claim``'s heartbeat into the study. With ``commit_seconds`` > 0
-        the append runs in a thread while the search goes on (h5py's writes release the
-        GIL), the next commit waiting for it: a run killed meanwhile
-        loses that commit's generations too, which its resume evaluates again; at 0 each
-        generation is stored before the next is asked. ``final`` (the run's end,
+        and ``claim``'s heartbeat into the study. With ``commit_seconds`` > 0 the appends
+        run in a thread while the search goes on (:meth:`store_gathered`): a run killed
+        before the commit's append ends loses that commit's generations too, which its
+        resume evaluates again; at 0 each generation is stored before the next is asked.
+        ``final`` (the run's end,
         whatever ended it): also the copies of the run's kept members that still are the
         lineage's best (several objectives: on its front now), in one journal lock and
         sync, chosen while the last append runs and written after it ends. The copies
@@ -366,24 +377,8 @@ class _Run:
         them again from the stored generations."""
         t = time.perf_counter()
         self.wait_kept()
-        rows, self.rows = self.rows, []
-        if rows:
-            if self.writer is None:
-                choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
-                self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
-            self.wait_store()
-            # the final append too, while the copies below are chosen (it ends before they are
-            # written); the rows are joined in that thread as well (NumPy's copies release the
-            # GIL: on the main thread they were a fast device's largest host cost)
-            if self.commit_seconds > 0:
-                if self._appender is None:
-                    from concurrent.futures import ThreadPoolExecutor
-
-                    self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
-                self._appending = self._appender.submit(self._append, rows)
-            else:
-                self._append(rows)
-            self.timing["trial_store"] += time.perf_counter() - t
+        stored = self.store_gathered(commit=True)
+        self.timing["trial_store"] += time.perf_counter() - t
         if len(self.objectives) > 1 and self.copies:  # members since dominated by a later generation's
             if final:  # exactly: those off the whole front
                 self.merge_front()
@@ -409,13 +404,47 @@ class _Run:
             for g, keep, values, metrics, c, _ in copies:
                 if len(keep):
                     self.copy_to_study(g, keep, values, metrics, c, np.zeros(len(keep), bool))
-            if claim is not None and (rows or copies):
+            if claim is not None and (stored or copies):
                 claim.heartbeat()
         self.timing["storage"] += time.perf_counter() - t
         self.last_commit = time.perf_counter()
 
-    def _append(self, rows: list) -> None:
-        """Generations' ``rows`` (:meth:`store_rows`) into the trial store, in one append."""
+    def store_gathered(self, commit: bool) -> bool:
+        """The rows gathered since the last write into the trial store in one append and,
+        with ``commit``, every row written made visible to readers; whether anything was
+        stored. With ``commit_seconds`` > 0 in a thread of their own, in order, while the
+        search goes on (h5py's writes release the GIL; the rows are joined there too: on
+        the main thread NumPy's copies were a fast device's largest host cost). Rows are
+        written once ``WRITE_ROWS`` are gathered, not only at commits, so that the run's
+        last commit waits for those rows alone: on a fast device it waited for a whole
+        commit's, which took islands on four GPUs a fifth of their time (bench/README.md,
+        section Several GPUs). At most one append waits behind the one running, which
+        bounds the rows held; an earlier append's error is raised here."""
+        rows, self.rows, self.rows_gathered = self.rows, [], 0
+        commit = commit and (bool(rows) or self.uncommitted)
+        if not rows and not commit:
+            return False
+        if self.writer is None:
+            choices = {"material": list(self.space.material.choices)} if self.space.material is not None else {}
+            self.writer = self.store.writer(self.worker, rows[0][0], choices, len(rows[0][1]))
+        self.uncommitted = not commit
+        if self.commit_seconds <= 0:
+            self._append(rows, commit)
+            return True
+        self.wait_store(in_flight=1)
+        if self._appender is None:
+            from concurrent.futures import ThreadPoolExecutor
+
+            self._appender = ThreadPoolExecutor(1, thread_name_prefix="tawarp-trial-store")
+        self._appending.append(self._appender.submit(self._append, rows, commit))
+        return True
+
+    def _append(self, rows: list, commit: bool) -> None:
+        """Generations' ``rows`` (:meth:`store_rows`) into the trial store, in one append
+        (none: a commit alone)."""
+        if not rows:
+            self.writer.commit()
+            return
         params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
         if self.space.material is not None:
             params["material"] = self.space.material_index(params["material"])
@@ -426,14 +455,14 @@ class _Run:
             {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
             None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
             np.concatenate([r[5] for r in rows]),
+            commit=commit,
         )
 
-    def wait_store(self) -> None:
-        """Wait for the trial store's append in flight (:meth:`commit`); its error, if any,
-        is raised here."""
-        if self._appending is not None:
-            appending, self._appending = self._appending, None
-            appending.result()
+    def wait_store(self, in_flight: int = 0) -> None:
+        """Wait until at most ``in_flight`` trial-store appends are in flight
+        (:meth:`store_gathered`); the first error of those ended is raised here."""
+        while self._appending and (len(self._appending) > in_flight or self._appending[0].done()):
+            self._appending.pop(0).result()
 
     def keep(self, g: int, F: np.ndarray, viol: np.ndarray, values: dict, metrics: dict, copied=None) -> None:
         """Copies of generation ``g``'s members that the study keeps (:meth:`kept`; less
@@ -542,8 +571,8 @@ class _Run:
         finally:
             if self._keeper is not None:  # (an earlier error: its generations end first)
                 self._keeper.shutdown()
-            if self._appending is not None:  # an earlier error: the append still ends before the close
-                self._appending.exception()
+            for appending in self._appending:  # an earlier error: the appends still end before the close
+                appending.exception()
             if self._appender is not None:
                 self._appender.shutdown()
             if self.writer is not None:

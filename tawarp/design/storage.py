@@ -243,9 +243,10 @@ class TrialStore:
     A segment has one dataset per column (``generation``, ``index``, ``failed``,
     ``constraint``, ``time`` [s since the epoch], ``params/NAME``, ``metrics/NAME``; the
     material as an index into the ``choices`` attribute) and ``committed``, the number of
-    rows of complete generations. A generation is appended as: columns resized and
-    written, file flushed, then ``committed`` advanced and flushed. Readers read
-    ``committed`` rows only, so they never see a generation in part. A flush hands the
+    rows of complete generations. Generations are appended as: columns resized and
+    written; at a commit, file flushed, then ``committed`` advanced and flushed. Readers
+    read ``committed`` rows only, so they never see a generation in part, nor rows
+    written since the last commit. A flush hands the
     bytes to the kernel, which keeps them whatever becomes of the writer (a killed
     process loses no committed generation) and writes them to disk in its own time: the
     store does not wait for the disk (a sync per commit made islands writing on one disk
@@ -312,13 +313,19 @@ class StoreWriter:
         self.chunk = int(min(max(rows_per_chunk, 64), 1 << 16))
         self.name = f"{quote(worker, safe='')}-g{first_generation:07d}-{uuid.uuid4().hex[:8]}.h5"
         self._f = None
-        self.rows = 0
+        self.rows = 0  # written, committed or not
+        self.failure = None  # why a write failed: the segment was closed, nothing more is written
 
-    def append(self, generation, index: np.ndarray, params: dict, metrics: dict, violation, failed) -> None:
-        """Rows of one generation, or of several whole ones at once (one resize, write and
-        flush for all: ``generation`` then is (k,), each row's): ``index`` (k,) members,
+    def append(
+        self, generation, index: np.ndarray, params: dict, metrics: dict, violation, failed, commit: bool = True
+    ) -> None:
+        """Rows of one generation, or of several whole ones at once (one resize and write
+        for all: ``generation`` then is (k,), each row's): ``index`` (k,) members,
         ``params`` {name: (k,)} (a categorical one as indices into its choices), ``metrics``
-        {name: (k,)}, ``violation`` (k,) or None, ``failed`` (k,)."""
+        {name: (k,)}, ``violation`` (k,) or None, ``failed`` (k,); then, with ``commit``,
+        :meth:`commit`."""
+        if self.failure is not None:
+            raise OSError(errno.EIO, self.failure)
         k = len(index)
         cols = {
             "generation": np.array(np.broadcast_to(np.asarray(generation, dtype=np.int64), (k,))),
@@ -337,26 +344,43 @@ class StoreWriter:
         if self._f is None:
             self._open(cols)
         f, n0 = self._f, self.rows
-        try:
+        with self._failing():
             for name, v in cols.items():
                 ds = f[name]
                 ds.resize((n0 + k,))
                 ds[n0:] = v
+        self.rows = n0 + k
+        if commit:
+            self.commit()
+
+    def commit(self) -> None:
+        """Every row appended so far made visible to readers."""
+        if self.failure is not None:
+            raise OSError(errno.EIO, self.failure)
+        f = self._f
+        with self._failing():
             f.flush()  # the rows reach the file before the count that makes them visible
-            f["committed"][0] = n0 + k
+            f["committed"][0] = self.rows
             f.flush()
-        except (OSError, RuntimeError) as e:  # a full disk: the committed generations stay readable (SWMR)
+
+    @contextlib.contextmanager
+    def _failing(self):
+        """A write to the segment: a full disk closes it (the committed generations stay
+        readable: SWMR) and is raised as an OSError naming the file; nothing more is
+        written to it (reopened, it would be truncated)."""
+        try:
+            yield
+        except (OSError, RuntimeError) as e:
             reason = io_failure(e)
             if reason is None:
                 raise
-            discard_hdf5(f)
+            discard_hdf5(self._f)
             self._f = None
-            raise OSError(
-                getattr(e, "errno", None) or errno.EIO,
+            self.failure = (
                 f"{self.store.path / self.name}: the trial store could not be written ({reason}); the "
-                f"generations stored before are kept",
-            ) from None
-        self.rows = n0 + k
+                f"generations stored before are kept"
+            )
+            raise OSError(getattr(e, "errno", None) or errno.EIO, self.failure) from None
 
     def _open(self, cols: dict) -> None:
         """Create the segment under a temporary name, then rename it and open it for SWMR
