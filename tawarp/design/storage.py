@@ -313,6 +313,7 @@ class StoreWriter:
         self.chunk = int(min(max(rows_per_chunk, 64), 1 << 16))
         self.name = f"{quote(worker, safe='')}-g{first_generation:07d}-{uuid.uuid4().hex[:8]}.h5"
         self._f = None
+        self._columns = None  # the segment's open datasets
         self.rows = 0  # written, committed or not
         self.failure = None  # why a write failed: the segment was closed, nothing more is written
 
@@ -343,10 +344,10 @@ class StoreWriter:
         ensure_free_space(self.store.path / self.name, sum(self.chunk * v.dtype.itemsize for v in cols.values()))
         if self._f is None:
             self._open(cols)
-        f, n0 = self._f, self.rows
+        n0 = self.rows
         with self._failing():
             for name, v in cols.items():
-                ds = f[name]
+                ds = self._columns[name]
                 ds.resize((n0 + k,))
                 ds[n0:] = v
         self.rows = n0 + k
@@ -360,7 +361,7 @@ class StoreWriter:
         f = self._f
         with self._failing():
             f.flush()  # the rows reach the file before the count that makes them visible
-            f["committed"][0] = self.rows
+            self._columns["committed"][0] = self.rows
             f.flush()
 
     @contextlib.contextmanager
@@ -374,6 +375,7 @@ class StoreWriter:
             reason = io_failure(e)
             if reason is None:
                 raise
+            self._columns = None
             discard_hdf5(self._f)
             self._f = None
             self.failure = (
@@ -401,11 +403,16 @@ class StoreWriter:
                     ds.attrs["choices"] = list(self.choices[base])
             f.create_dataset("committed", data=np.zeros(1, dtype=np.int64))
         os.replace(tmp, path)
-        self._f = h5py.File(path, "a", libver="latest", locking=False)
+        # no chunk cache: every write appends whole chunks but the last, so a cache only
+        # adds a copy; and the datasets stay open, because closing one writes its chunks
+        # and metadata out: reopened for every append, the writes cost twice as much
+        self._f = h5py.File(path, "a", libver="latest", locking=False, rdcc_nbytes=0)
         self._f.swmr_mode = True
+        self._columns = {name: self._f[name] for name in [*cols, "committed"]}
 
     def close(self) -> None:
         if self._f is not None:
+            self._columns = None
             self._f.close()
             self._f = None
 
