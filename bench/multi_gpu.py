@@ -64,7 +64,8 @@ the islands' summaries, the best: ``island_merge_seconds``, ``island_merged_tria
 the shares of the islands' own timing (``island_trial_store_share``: the trial store's
 appends, on the disk of ``--study-dir``, default a temporary folder), and each island's
 own seconds of each part (``island_sampler_seconds``, ``island_evaluation_seconds``,
-``island_storage_seconds``, ``island_trial_store_seconds``).
+``island_storage_seconds``, ``island_trial_store_seconds``; ``island_trial_store_thread_seconds``:
+the appends' own time in the trial store's thread, beside the island's main thread).
 
 Each row's ``worker_cpus`` says how many CPUs each worker may run on: those of its GPU's
 NUMA node where the host says (:func:`tawarp.distributed.near_gpu`). Each case's
@@ -671,7 +672,7 @@ class Bench:
             # each island's own split: which part spreads or grows with the islands
             **{
                 f"island_{part}_seconds": [i.get(part) for i in tm["islands"]]
-                for part in ("sampler", "evaluation", "storage", "trial_store")
+                for part in ("sampler", "evaluation", "storage", "trial_store", "trial_store_thread")
             },
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,

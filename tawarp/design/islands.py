@@ -187,7 +187,15 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
     wall = time.perf_counter() - t0
     timing = {
         k: sum(r["timing"][k] for r in runs)
-        for k in ("sampler", "evaluation", "storage", "trial_store", "evaluations", "trials_in_study")
+        for k in (
+            "sampler",
+            "evaluation",
+            "storage",
+            "trial_store",
+            "trial_store_thread",
+            "evaluations",
+            "trials_in_study",
+        )
     }
     timing.update(
         wall=wall,

@@ -79,7 +79,9 @@ class SearchResult:
     ``evaluation`` (a generation launched with its sampler's update and sample, CMA-ES on
     a local device: those too; ``sampler`` then is the host's staging), ``storage``
     (reads, the trial store, the study, the heartbeat),
-    ``trial_store`` (its part appending to the trial store), ``wall``; ``evaluations``,
+    ``trial_store`` (its part appending to the trial store), ``wall``;
+    ``trial_store_thread`` (the appends' own time in the trial store's thread, beside the
+    search: with ``commit_seconds`` > 0 outside the parts of ``wall``); ``evaluations``,
     ``evaluations_per_minute``, ``trials_in_study`` (trials this run added to the Optuna
     study, copies included), ``*_share``: each over ``wall``), ``resumed``: trials of a
     generation cut short (or asked and never told, Optuna engine) evaluated at start."""
@@ -261,7 +263,15 @@ class _Run:
         self.coords = self.tables or DeviceTable(space, self.device)
         self.dists = space.distributions()
         self.sign = signs(objectives)
-        self.timing = dict(sampler=0.0, evaluation=0.0, storage=0.0, trial_store=0.0, evaluations=0, trials_in_study=0)
+        self.timing = dict(
+            sampler=0.0,
+            evaluation=0.0,
+            storage=0.0,
+            trial_store=0.0,
+            trial_store_thread=0.0,
+            evaluations=0,
+            trials_in_study=0,
+        )
         self.resumed = 0
         self.writer = None
         # the lineage's feasible front so far (minimized, (objectives, members), in
@@ -442,6 +452,13 @@ class _Run:
     def _append(self, rows: list, commit: bool) -> None:
         """Generations' ``rows`` (:meth:`store_rows`) into the trial store, in one append
         (none: a commit alone)."""
+        t = time.perf_counter()
+        try:
+            self._append_rows(rows, commit)
+        finally:
+            self.timing["trial_store_thread"] += time.perf_counter() - t
+
+    def _append_rows(self, rows: list, commit: bool) -> None:
         if not rows:
             self.writer.commit()
             return
