@@ -16,7 +16,7 @@ processes over the wall time from the start to the last one done (the best of
 The rows have the columns of the bench's islands (five design values, four metrics, one
 objective): about 100 bytes a row, so 512 generations of 8192 are 0.4 GB a process.
 
-    python bench/trial_store_write.py --processes 1,2 [--folder DIR] [--out bench/results/NAME.json]
+    python bench/trial_store_write.py --processes 1,2 [--ways flush] [--folder DIR] [--out bench/results/NAME.json]
 """
 
 from __future__ import annotations
@@ -91,8 +91,12 @@ def main(argv=None) -> int:
     ap.add_argument("--batch", type=int, default=8192, help="rows per generation (default 8192)")
     ap.add_argument("--per-commit", type=int, default=128, help="generations per append (default 128)")
     ap.add_argument("--repeats", type=int, default=3, help="runs per case, the best kept (default 3)")
+    ap.add_argument("--ways", default=",".join(WAYS), help=f"comma list of {', '.join(WAYS)} (default all)")
     ap.add_argument("--out", default=None, help="JSON output (default: print it only)")
     args = ap.parse_args(argv)
+    unknown = set(args.ways.split(",")) - set(WAYS)
+    if unknown:
+        ap.error(f"--ways: unknown {', '.join(sorted(unknown))} (known: {', '.join(WAYS)})")
     out = {
         "folder": args.folder or tempfile.gettempdir(),
         "generations": args.generations,
@@ -106,7 +110,7 @@ def main(argv=None) -> int:
     for k in (int(p) for p in args.processes.split(",")):
         runs = {
             w: [rate(w, k, args.folder, args.generations, args.batch, args.per_commit) for _ in range(args.repeats)]
-            for w in WAYS
+            for w in args.ways.split(",")
         }
         best = {w: max(v, key=lambda r: r[0]) for w, v in runs.items()}
         out["rows_per_s"][k] = {w: r for w, (r, _) in best.items()}

@@ -142,8 +142,9 @@ def search(
     for the columnar trial store; None: the study's own store, else the default beside a
     journal file, else none (a database URL or memory: every trial in the study); False:
     every trial in the study. The batched engine only: Optuna's own samplers keep every
-    trial in the study. ``commit_seconds`` [s]: the evaluated generations are committed (the
-    trial store and the heartbeat, in one write each) at most this often, and at the end;
+    trial in the study. ``commit_seconds`` [s]: the evaluated generations are committed (made
+    visible in the trial store, their rows written as they gather, and the heartbeat) at
+    most this often, and at the end;
     0 commits every generation; the study's copies are written once, at the end
     (:meth:`_Run.commit`). A run killed between commits loses
     the generations evaluated since the last one (a resume evaluates them again, the same);
