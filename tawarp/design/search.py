@@ -429,7 +429,7 @@ class _Run:
         written once ``WRITE_ROWS`` are gathered, not only at commits, so that the run's
         last commit waits for those rows alone: on a fast device it waited for a whole
         commit's, which took islands on four GPUs a fifth of their time (bench/README.md,
-        section Several GPUs). At most one append waits behind the one running, which
+        "The trial store written as rows gather"). At most one append waits behind the one running, which
         bounds the rows held; an earlier append's error is raised here."""
         rows, self.rows, self.rows_gathered = self.rows, [], 0
         commit = commit and (bool(rows) or self.uncommitted)
