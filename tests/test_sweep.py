@@ -55,17 +55,22 @@ def test_grid_and_sobol_sweeps_match_direct_evaluation(tmp_path):
 
 
 def test_sweep_memory_is_flat(tmp_path):
+    """The sweep's peak of Python memory does not grow with its points: 112 more chunks
+    of 1024 add less than a tenth of one float64 column of the points they add (92 kB).
+    Peaks measured on the CPU: 142-154 kB and 165-182 kB, with two sweeps at once too; a
+    ratio of the peaks was the test before, and its 1.25 failed now and then under load
+    (1.16-1.23 measured)."""
     from tawarp.design.sweep import sweep
 
     space = DesignSpace(load_core("rvc_foam"), ["stack.length=0.01:0.08", "heat_input=1:18"])
     sweep(space, tmp_path / "warm.nc", mode="sobol", n_samples=100, chunk=1024)
-    peaks = []
-    for n in (16384, 131072):  # 16 and 128 chunks
+    sizes, peaks = (16384, 131072), []  # 16 and 128 chunks
+    for n in sizes:
         tracemalloc.start()
         sweep(space, tmp_path / f"s{n}.nc", mode="sobol", n_samples=n, chunk=1024)
         peaks.append(tracemalloc.get_traced_memory()[1])
         tracemalloc.stop()
-    assert peaks[1] < 1.25 * peaks[0], peaks
+    assert peaks[1] - peaks[0] < 0.1 * 8 * (sizes[1] - sizes[0]), peaks
 
 
 def test_sweep_file_has_normal_permissions_and_no_debris(tmp_path):
