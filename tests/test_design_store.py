@@ -339,3 +339,26 @@ def test_interrupt_inside_a_journal_append_is_delivered_after_it(tmp_path):
     with journal.batch():  # and can be taken again at once
         journal.append_logs([{"op_code": 0, "a": 3}])
     assert [log["a"] for log in journal.read_logs(0)] == [1, 2, 3]
+
+
+def test_store_rows_get_the_numbers_of_their_copies_in_the_study():
+    """Each trial-store row gets the Optuna number of the study's copy with its (worker,
+    generation, index), -1 where the study has none: the sorted-key match equals a
+    lookup row by row, over workers, repeated rows and copies of rows the store lacks."""
+    from tawarp.design.storage import _copy_numbers
+
+    rng = np.random.default_rng(3)
+    n = 5000
+    stored = {
+        "worker": rng.choice(np.array(["island0", "island1", "w/2"], dtype=object), n),
+        "generation": rng.integers(0, 40, n),
+        "index": rng.integers(0, 64, n),
+    }
+    keys = list(zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist()))
+    numbers = {k: 1000 + i for i, k in enumerate(dict.fromkeys(keys[j] for j in rng.integers(0, n, 300)))}
+    numbers.update({("island0", 3, 64): 1, ("island9", 0, 0): 2, (None, -1, -1): 3, ("island1", 41, 0): 4})
+    expected = np.array([numbers.get(k, -1) for k in keys])
+    got = _copy_numbers(stored, numbers)
+    np.testing.assert_array_equal(got, expected)
+    assert (got >= 1000).sum() > 300  # (repeated rows share a copy)
+    np.testing.assert_array_equal(_copy_numbers(stored, {}), np.full(n, -1))

@@ -511,18 +511,39 @@ def _rows(study, store=None, copies: bool = False) -> dict[str, np.ndarray]:
     ts = None if copies else store_of(study, store)
     stored = ts.read() if ts is not None else {}
     if stored:
-        stored["number"] = np.array(
-            [
-                numbers.get(k, -1)
-                for k in zip(stored["worker"], stored["generation"].tolist(), stored["index"].tolist())
-            ],
-            dtype=np.int64,
-        )
+        stored["number"] = _copy_numbers(stored, numbers)
     cols = _concat([stored, own])
     if cols:  # evaluation order: generations by time, members in order
         order = np.lexsort((cols["index"], cols["generation"], cols["worker"].astype(str), cols["time"]))
         cols = {k: v[order] for k, v in cols.items()}
     return cols
+
+
+def _copy_numbers(stored: dict, numbers: dict) -> np.ndarray:
+    """The Optuna number of each trial-store row's copy in the study, -1 where it has
+    none; ``numbers``: ``{(worker, generation, index): number}``. Matched by sorted keys,
+    worker by worker: a store holds millions of rows and a study a few hundred copies, and
+    a lookup per row took a second per 3e6 rows."""
+    out = np.full(len(stored["generation"]), -1, dtype=np.int64)
+    if not numbers:
+        return out
+    width = int(stored["index"].max()) + 1
+    by_worker = {}
+    for (w, g, j), number in numbers.items():
+        if 0 <= j < width:  # (others match no row)
+            by_worker.setdefault(w, []).append((g * width + j, number))
+    for w, pairs in by_worker.items():
+        rows = np.flatnonzero(stored["worker"] == w)
+        if not rows.size:
+            continue
+        keys, nums = np.array(pairs, dtype=np.int64).T
+        order = np.argsort(keys)
+        keys, nums = keys[order], nums[order]
+        row_keys = stored["generation"][rows].astype(np.int64) * width + stored["index"][rows]
+        at = np.minimum(np.searchsorted(keys, row_keys), len(keys) - 1)
+        hit = keys[at] == row_keys
+        out[rows[hit]] = nums[at[hit]]
+    return out
 
 
 def trials_table(study, store=None):
