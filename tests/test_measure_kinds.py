@@ -180,3 +180,36 @@ def test_engine_cache_lets_the_least_recently_used_go(monkeypatch):
     engine(400.0)  # a fourth: b, the least recently used, goes
     assert engine(100.0) is a and engine(300.0) is c
     assert engine(200.0) is not b and len(kind._ENGINES) == 3
+
+
+def test_engine_cache_builds_one_engine_per_key_across_threads(monkeypatch):
+    """Threads asking get_engine for the same engines at once (Dask thread workers) get
+    one engine per key, each built once, and the cache never exceeds ENGINES_KEPT; the
+    engine's construction is slowed so that unguarded threads would each build one."""
+    import threading
+    import time
+    from concurrent.futures import ThreadPoolExecutor
+
+    from tawarp.measure import kind
+
+    built, real = [], kind.Engine
+
+    def slow_engine(*a, **k):
+        time.sleep(0.05)
+        built.append(a[1])
+        return real(*a, **k)
+
+    monkeypatch.setattr(kind, "Engine", slow_engine)
+    monkeypatch.setattr(kind, "ENGINES_KEPT", 4)
+    monkeypatch.setattr(kind, "_ENGINES", {})
+    core, settings = load_core("mesh"), ForwardSettings(device="cpu")
+    start = threading.Barrier(8)
+
+    def ask(i):
+        start.wait()
+        return [kind.get_engine(core, [100.0 * (1 + (i + r) % 4)], ["stack.h"], settings) for r in range(6)]
+
+    with ThreadPoolExecutor(8) as pool:
+        got = [e for es in pool.map(ask, range(8)) for e in es]
+    assert len(built) == 4 and len(kind._ENGINES) == 4
+    assert len({id(e) for e in got}) == 4

@@ -21,6 +21,7 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import math
+import threading
 from dataclasses import dataclass
 from typing import Callable
 
@@ -231,18 +232,21 @@ def fit_cells(
 #: arrays).
 ENGINES_KEPT = 32
 _ENGINES: dict = {}  # in the order of their last use
+_ENGINES_LOCK = threading.RLock()
 
 
 def get_engine(core: Core, freqs, names, settings: ForwardSettings) -> Engine:
     """A cached :class:`Engine` per (core, frequencies, varying names, settings): the
-    package's one cache (estimator, kinds, loop)."""
+    package's one cache (estimator, kinds, loop). Safe to call from several threads (Dask
+    thread workers): one engine per key, built once."""
     key = (core, tuple(np.asarray(freqs, dtype=float).tolist()), tuple(names), repr(settings))
-    eng = _ENGINES.pop(key, None)
-    if eng is None:
-        while len(_ENGINES) >= ENGINES_KEPT:
-            _ENGINES.pop(next(iter(_ENGINES)))
-        eng = Engine(core, freqs, names, settings)
-    _ENGINES[key] = eng
+    with _ENGINES_LOCK:
+        eng = _ENGINES.pop(key, None)
+        if eng is None:
+            while len(_ENGINES) >= ENGINES_KEPT:
+                _ENGINES.pop(next(iter(_ENGINES)))
+            eng = Engine(core, freqs, names, settings)
+        _ENGINES[key] = eng
     return eng
 
 
