@@ -105,7 +105,7 @@ import numpy as np
 
 from tawarp.design.evaluate import Evaluator
 from tawarp.design.islands import search_islands
-from tawarp.design.search import search
+from tawarp.design.search import TIMED, search
 from tawarp.design.space import DesignSpace, DeviceTable
 from tawarp.design.sweep import sweep
 from tawarp.distributed import ClusterEvaluator, fit_on_cluster, local_cluster, worker_addresses
@@ -670,10 +670,7 @@ class Bench:
             "island_walls": [i["wall"] for i in tm["islands"]],
             "island_call_seconds": walls,
             # each island's own split: which part spreads or grows with the islands
-            **{
-                f"island_{part}_seconds": [i.get(part) for i in tm["islands"]]
-                for part in ("sampler", "evaluation", "storage", "trial_store", "trial_store_thread")
-            },
+            **{f"island_{part}_seconds": [i.get(part) for i in tm["islands"]] for part in TIMED},
             "island0_best": tm["islands"][0]["best"],
             "best": res.best[0]["values"] if res.best else None,
         }

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..distributed import submit_all, worker_addresses, worker_settings
 from .objectives import DEFAULT_T_LIMIT, signs
-from .search import FRONT_COPIES, SearchResult, search
+from .search import FRONT_COPIES, TIMED, SearchResult, search
 from .storage import (
     ATTR,
     COPY,
@@ -185,18 +185,7 @@ def search_islands(client, space, objectives=("gradient",), *, storage, islands:
         t_merge = time.perf_counter() - t
     best = best_designs(study, objectives, T_limit, copies=True)
     wall = time.perf_counter() - t0
-    timing = {
-        k: sum(r["timing"][k] for r in runs)
-        for k in (
-            "sampler",
-            "evaluation",
-            "storage",
-            "trial_store",
-            "trial_store_thread",
-            "evaluations",
-            "trials_in_study",
-        )
-    }
+    timing = {k: sum(r["timing"][k] for r in runs) for k in (*TIMED, "evaluations", "trials_in_study")}
     timing.update(
         wall=wall,
         evaluations_per_minute=60.0 * timing["evaluations"] / max(wall, 1e-12),

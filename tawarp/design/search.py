@@ -192,7 +192,7 @@ def search(
     timing = run.timing
     timing["wall"] = time.perf_counter() - t_wall
     timing["evaluations_per_minute"] = 60.0 * timing["evaluations"] / max(timing["wall"], 1e-12)
-    for k in ("sampler", "evaluation", "storage", "trial_store"):
+    for k in TIMED:
         timing[f"{k}_share"] = timing[k] / max(timing["wall"], 1e-12)
     # the best from the study's copies (the improvements of the best; several objectives: the
     # front, spread to FRONT_COPIES per lineage): reading a trial store of millions of rows
@@ -209,6 +209,8 @@ def search(
 FRONT_COPIES = 256
 #: Members joined since the front's last merge that make a merge in any case (:meth:`_Run.kept`).
 MERGE_AT_LEAST = 1 << 14
+#: The timed parts of a search run (:class:`SearchResult`'s ``timing``), in seconds.
+TIMED = ("sampler", "evaluation", "storage", "trial_store", "trial_store_thread")
 #: Rows gathered before the trial store's thread writes them (:meth:`_Run.store_gathered`):
 #: about 30 MB of a typical space's columns, a few HDF5 chunks of each.
 WRITE_ROWS = 1 << 18
@@ -264,15 +266,7 @@ class _Run:
         self.coords = self.tables or DeviceTable(space, self.device)
         self.dists = space.distributions()
         self.sign = signs(objectives)
-        self.timing = dict(
-            sampler=0.0,
-            evaluation=0.0,
-            storage=0.0,
-            trial_store=0.0,
-            trial_store_thread=0.0,
-            evaluations=0,
-            trials_in_study=0,
-        )
+        self.timing = dict.fromkeys(TIMED, 0.0) | dict(evaluations=0, trials_in_study=0)
         self.resumed = 0
         self.writer = None
         # the lineage's feasible front so far (minimized, (objectives, members), in
