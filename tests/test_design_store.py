@@ -283,7 +283,7 @@ def test_rows_written_between_commits_are_invisible_until_the_commit(tmp_path, m
 def test_a_segment_whose_write_failed_is_closed_and_keeps_its_commits(tmp_path, monkeypatch):
     """A full disk during an append: the error names the segment, the generations
     committed before stay readable, and the writer refuses every later append or commit
-    (reopening the segment would truncate it)."""
+    (opened again, the segment would be replaced by an empty one)."""
     import errno
 
     import h5py

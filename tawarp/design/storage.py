@@ -368,7 +368,7 @@ class StoreWriter:
     def _failing(self):
         """A write to the segment: a full disk closes it (the committed generations stay
         readable: SWMR) and is raised as an OSError naming the file; nothing more is
-        written to it (reopened, it would be truncated)."""
+        written to it (opened again, it would be replaced by an empty one)."""
         try:
             yield
         except (OSError, RuntimeError) as e:
@@ -405,7 +405,8 @@ class StoreWriter:
         os.replace(tmp, path)
         # no chunk cache: every write appends whole chunks but the last, so a cache only
         # adds a copy; and the datasets stay open, because closing one writes its chunks
-        # and metadata out: reopened for every append, the writes cost twice as much
+        # and metadata out at every append: together these halved a writer's time
+        # (bench/README.md, "The trial store written as rows gather")
         self._f = h5py.File(path, "a", libver="latest", locking=False, rdcc_nbytes=0)
         self._f.swmr_mode = True
         self._columns = {name: self._f[name] for name in [*cols, "committed"]}
