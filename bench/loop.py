@@ -274,7 +274,7 @@ def main(argv=None) -> int:
         "benchmark": "loop",
         "device": args.device,
         "device_name": wp.get_device(args.device).name if args.device != "cpu" else platform.processor(),
-        "cpu_cores": len(os.sched_getaffinity(0)),
+        "cpu_cores": len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count(),
         "host": platform.node(),
         "load_average": {"before": list(os.getloadavg())},
         # processes that share a GPU run side by side under NVIDIA's MPS daemon, else take turns
