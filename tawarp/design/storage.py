@@ -423,6 +423,8 @@ def _concat(parts: list[dict]) -> dict[str, np.ndarray]:
     parts = [p for p in parts if p and len(p["generation"])]
     if not parts:
         return {}
+    if len(parts) == 1:  # (a store of one segment: its columns, not copies of them)
+        return dict(parts[0])
     keys = list(dict.fromkeys(k for p in parts for k in p))
     out = {}
     for k in keys:
@@ -516,7 +518,8 @@ def _rows(study, store=None, copies: bool = False) -> dict[str, np.ndarray]:
     cols = _concat([stored, own])
     if cols:  # evaluation order: generations by time, members in order
         order = np.lexsort((cols["index"], cols["generation"], cols["worker"].astype(str), cols["time"]))
-        cols = {k: v[order] for k, v in cols.items()}
+        if np.any(order[1:] < order[:-1]):  # (a lone worker's store is in this order already)
+            cols = {k: v[order] for k, v in cols.items()}
     return cols
 
 
