@@ -362,3 +362,38 @@ def test_store_rows_get_the_numbers_of_their_copies_in_the_study():
     np.testing.assert_array_equal(got, expected)
     assert (got >= 1000).sum() > 300  # (repeated rows share a copy)
     np.testing.assert_array_equal(_copy_numbers(stored, {}), np.full(n, -1))
+
+
+def test_rows_found_in_evaluation_order_are_those_the_sort_leaves_in_place():
+    """A study's rows are sorted by time, worker, generation and index unless the check
+    between neighbours finds them in that order: whenever it does, the sort would leave
+    them in place, and it does for a lone worker's store, whose rows come in that order."""
+    from tawarp.design.storage import _in_evaluation_order
+
+    rng = np.random.default_rng(5)
+
+    def table(n, workers, times):
+        return {
+            "time": rng.choice(times, n),
+            "worker": rng.choice(np.array(workers, dtype=object), n),
+            "generation": rng.integers(0, 4, n),
+            "index": rng.integers(0, 8, n),
+        }
+
+    def lexsorted(cols):
+        order = np.lexsort((cols["index"], cols["generation"], cols["worker"].astype(str), cols["time"]))
+        return {k: v[order] for k, v in cols.items()}
+
+    found = 0
+    for trial in range(300):
+        workers = ["island0", "island1", "w"][: 1 + trial % 3]
+        times = np.array([1.0, 2.0, 3.0, np.nan][: 2 + trial % 3])
+        cols = table(int(rng.integers(2, 40)), workers, times)
+        for c in (cols, lexsorted(cols)):
+            if _in_evaluation_order(c):
+                found += 1
+                order = np.lexsort((c["index"], c["generation"], c["worker"].astype(str), c["time"]))
+                np.testing.assert_array_equal(order, np.arange(len(order)))
+        if len(workers) == 1 and not np.isnan(times).any():
+            assert _in_evaluation_order(lexsorted(cols))
+    assert found > 100
