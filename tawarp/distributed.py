@@ -260,8 +260,14 @@ def local_cluster(devices=None, processes: bool = True, cpu_threads: int | None 
         # the worker threads share this process's Warp runtime: started here, once, before
         # them (two threads starting it lazily at once can disturb a module load)
         wp.init()
+        # (a free port for the scheduler's HTTP routes, as the process cluster's: two
+        # clusters on one host asked for 8787 and one of them warned)
         cluster = distributed.LocalCluster(
-            n_workers=len(devices), threads_per_worker=1, processes=False, dashboard_address=None
+            n_workers=len(devices),
+            threads_per_worker=1,
+            processes=False,
+            dashboard_address=":0",
+            scheduler_kwargs=dict(dashboard=False),
         )
         seen = devices
     try:
