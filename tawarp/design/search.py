@@ -56,6 +56,7 @@ from .storage import (
     COPY,
     StudyConflict,
     WorkerClaim,
+    _member_ids,
     add_evaluated,
     best_designs,
     bind_store,
@@ -702,11 +703,6 @@ def _select_rows(copies: list, on: np.ndarray) -> list:
         if m.any():
             out.append((g, index[m], _rows_of(values, m), _rows_of(metrics, m), None if c is None else c[m], F[m]))
     return out
-
-
-def _member_ids(g: int, index: np.ndarray) -> np.ndarray:
-    """Ids of members ``index`` of generation ``g``, unique in a lineage: g 2^32 + index."""
-    return (np.int64(g) << np.int64(32)) + np.asarray(index, dtype=np.int64)
 
 
 def _staircase_dominates(a: np.ndarray, b: np.ndarray, F: np.ndarray) -> np.ndarray:

@@ -539,19 +539,20 @@ def _in_evaluation_order(cols: dict) -> bool:
     return bool(np.all(before))
 
 
+def _member_ids(g, index) -> np.ndarray:
+    """Ids of members ``index`` of generation(s) ``g``, unique in a lineage: g 2^32 + index."""
+    return (np.asarray(g, dtype=np.int64) << np.int64(32)) + np.asarray(index, dtype=np.int64)
+
+
 def _copy_numbers(stored: dict, numbers: dict) -> np.ndarray:
     """The Optuna number of each trial-store row's copy in the study, -1 where it has
     none; ``numbers``: ``{(worker, generation, index): number}``. Matched by sorted keys,
     worker by worker: a store holds millions of rows and a study a few hundred copies, and
     a lookup per row took a second per 3e6 rows."""
     out = np.full(len(stored["generation"]), -1, dtype=np.int64)
-    if not numbers:
-        return out
-    width = int(stored["index"].max()) + 1
     by_worker = {}
     for (w, g, j), number in numbers.items():
-        if 0 <= j < width:  # (others match no row)
-            by_worker.setdefault(w, []).append((g * width + j, number))
+        by_worker.setdefault(w, []).append((_member_ids(g, j), number))
     for w, pairs in by_worker.items():
         rows = np.flatnonzero(stored["worker"] == w)
         if not rows.size:
@@ -559,7 +560,7 @@ def _copy_numbers(stored: dict, numbers: dict) -> np.ndarray:
         keys, nums = np.array(pairs, dtype=np.int64).T
         order = np.argsort(keys)
         keys, nums = keys[order], nums[order]
-        row_keys = stored["generation"][rows].astype(np.int64) * width + stored["index"][rows]
+        row_keys = _member_ids(stored["generation"][rows], stored["index"][rows])
         at = np.minimum(np.searchsorted(keys, row_keys), len(keys) - 1)
         hit = keys[at] == row_keys
         out[rows[hit]] = nums[at[hit]]
