@@ -450,26 +450,23 @@ class _Run:
         (none: a commit alone)."""
         t = time.perf_counter()
         try:
-            self._append_rows(rows, commit)
+            if not rows:
+                self.writer.commit()
+                return
+            params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
+            if self.space.material is not None:
+                params["material"] = self.space.material_index(params["material"])
+            self.writer.append(
+                rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
+                np.concatenate([r[1] for r in rows]),
+                params,
+                {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
+                None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
+                np.concatenate([r[5] for r in rows]),
+                commit=commit,
+            )
         finally:
             self.timing["trial_store_thread"] += time.perf_counter() - t
-
-    def _append_rows(self, rows: list, commit: bool) -> None:
-        if not rows:
-            self.writer.commit()
-            return
-        params = {k: np.concatenate([r[2][k] for r in rows]) for k in rows[0][2]}
-        if self.space.material is not None:
-            params["material"] = self.space.material_index(params["material"])
-        self.writer.append(
-            rows[0][0] if len(rows) == 1 else np.concatenate([np.full(len(r[1]), r[0]) for r in rows]),
-            np.concatenate([r[1] for r in rows]),
-            params,
-            {k: np.concatenate([r[3][k] for r in rows]) for k in rows[0][3]},
-            None if rows[0][4] is None else np.concatenate([r[4] for r in rows]),
-            np.concatenate([r[5] for r in rows]),
-            commit=commit,
-        )
 
     def wait_store(self, in_flight: int = 0) -> None:
         """Wait until at most ``in_flight`` trial-store appends are in flight
