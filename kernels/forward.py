@@ -6,7 +6,9 @@ Launch order for a batch of n parameter sets and m frequencies:
    values and the rows that vary.
 2. :func:`heat_kernel` (n threads) solves the tridiagonal heat model once per set: the
    profile is shared by all m frequencies (measured faster than solving it in every
-   (set, frequency) thread, see bench/forward.py).
+   (set, frequency) thread, see bench/forward.py). On a GPU the iterations of a
+   temperature-dependent set run as launches of their own instead, :func:`heat_rows_kernel`
+   (a thread per heat cell) and :func:`picard_kernel` (a thread per set) in turn.
 3. :func:`cell_counts` (n threads) sizes each set's Magnus cells and grades their grids to
    the heat model's excess (:func:`cell_grid`), and :func:`make_point_kernel` (n C threads,
    C a set's cells) computes the frequency-independent factors of A
@@ -69,9 +71,12 @@ from .acoustics import (
 from .cmath import cabs, cexp
 from .gas import G_GAMMA, G_R, sound_speed_squared
 from .heat import (
+    ROW_VALUES,
+    cell_rows,
     cell_shape,
     contact_at,
     gap_share,
+    picard_step,
     profile_at,
     segment_heat_coeffs,
     segment_nonlinear,
@@ -163,12 +168,82 @@ def heat_kernel(
     tol: wp.float64,
     theta: wp.array2d(dtype=wp.float64),
     scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    pending: wp.array(dtype=wp.int32),
 ):
+    """The heat model of set i (:func:`tawarp.kernels.heat.solve_heat`). With ``pending``
+    of n entries, the sets of the single-field iterations are left to :func:`heat_rows_kernel`
+    and :func:`picard_kernel`, pending[i] = 1 for them and 0 for the others (an empty
+    ``pending``: every set solved here)."""
     i = wp.tid()
     params = sets.params
     flags = sets.flags
     gas = sets.gas
-    solve_heat(params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch)
+    defer = int(0)
+    if pending.shape[0] > 0:
+        defer = 1
+    left = solve_heat(
+        params, flags, gas, i, first, count, heat_cells, fitted, max_iter, tol, theta, scratch, rows, defer
+    )
+    if defer != 0:
+        pending[i] = left
+
+
+@wp.kernel
+def heat_rows_kernel(
+    sets: SetTable,
+    first: int,
+    heat_cells: int,
+    fitted: int,
+    pending: wp.array(dtype=wp.int32),
+    theta: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+):
+    """Thread (i, r): the rows of heat cell r of pending set i (:func:`tawarp.kernels.heat.cell_rows`)
+    at its current iterate theta[i, :], into rows[i, ROW_VALUES r:]: the cells of one iteration
+    side by side, where one thread per set computes them one after the other (a Kirchhoff
+    cell's inversions of U(theta) dominate an iteration)."""
+    i, r = wp.tid()
+    if pending[i] == 0:
+        return
+    a, b, c, d, e, f = cell_rows(
+        sets.params, sets.flags, sets.gas, i, first, heat_cells, fitted, 1, r, theta[i, r], theta[i, r + 1]
+    )
+    k = ROW_VALUES * r
+    rows[i, k] = a
+    rows[i, k + 1] = b
+    rows[i, k + 2] = c
+    rows[i, k + 3] = d
+    rows[i, k + 4] = e
+    rows[i, k + 5] = f
+
+
+@wp.kernel
+def picard_kernel(
+    sets: SetTable,
+    first: int,
+    count: int,
+    heat_cells: int,
+    fitted: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    pending: wp.array(dtype=wp.int32),
+    left: wp.array(dtype=wp.int32),
+):
+    """One iteration of pending set i from the rows :func:`heat_rows_kernel` stored
+    (:func:`tawarp.kernels.heat.picard_step`): the set stops pending when it converged, else
+    it counts itself in left[0] (the host launches at most ``picard_iterations`` of them)."""
+    i = wp.tid()
+    if pending[i] == 0:
+        return
+    if picard_step(
+        sets.params, sets.flags, sets.gas, i, first, count, heat_cells, fitted, tol, theta, scratch, rows, 1
+    ):
+        pending[i] = 0
+    else:
+        wp.atomic_add(left, 0, 1)
 
 
 @wp.func

@@ -733,6 +733,51 @@ def kirchhoff_rows(
 
 
 @wp.func
+def cell_rows(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    cells: int,
+    fitted: int,
+    nonlin: int,
+    r: int,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+):
+    """Rows of heat cell r (nodes r and r + 1, ``cells`` per thermal segment from segment
+    ``first``) in the single-field flux balance, (diag_r, sup, rhs_r) of node r and
+    (sub_next, diag_next, rhs_next) of node r + 1 (:func:`contact_rows`): the linear
+    model's (:func:`linear_rows`), or with ``nonlin`` a Kirchhoff cell's
+    (:func:`kirchhoff_rows`) linearised at the previous iterate's excesses theta_l, theta_r
+    [K] where a temperature-dependent effect is on in its segment (:func:`segment_nonlinear`;
+    a Kirchhoff cell of constant conductivity and h is the linear cell to rounding, at
+    several times its cost, and the acoustic profile of such a segment is the linear
+    cell's, :func:`segment_profile`)."""
+    s = first + r // cells
+    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
+    diag_r = wp.float64(0.0)
+    sup = wp.float64(0.0)
+    rhs_r = wp.float64(0.0)
+    sub_next = wp.float64(0.0)
+    diag_next = wp.float64(0.0)
+    rhs_next = wp.float64(0.0)
+    if nonlin != 0 and segment_nonlinear(params, i, s) != 0:
+        diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
+            params, flags, gas, i, s, d, fitted, Rc, theta_l, theta_r
+        )
+    else:
+        diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
+    return diag_r, sup, rhs_r, sub_next, diag_next, rhs_next
+
+
+#: Values per heat cell in a table of stored rows (:func:`cell_rows`, :func:`heat_sweep`).
+ROW_VALUES = wp.constant(6)
+
+
+@wp.func
 def heat_sweep(
     params: wp.array2d(dtype=wp.float64),
     flags: wp.array2d(dtype=wp.int32),
@@ -745,17 +790,18 @@ def heat_sweep(
     nonlin: int,
     theta: wp.array2d(dtype=wp.float64),
     scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    stored: int,
 ):
     """One Thomas solve of the single-field heat model's nodal theta [K] into theta[i, :],
-    the modified super-diagonal in scratch[i, :n_nodes]: the linear model's rows
-    (:func:`linear_rows`), or with ``nonlin`` the Kirchhoff cells' (:func:`kirchhoff_rows`)
-    linearised at the previous iterate in scratch[i, n_nodes:] in the segments with a
-    temperature-dependent effect on (:func:`segment_nonlinear`; a Kirchhoff cell of constant
-    conductivity and h is the linear cell to rounding, at several times its cost, and the
-    acoustic profile of such a segment is the linear cell's, :func:`segment_profile`). Row r is sub theta_{r-1} +
-    (diag_l + diag_r) theta_r + sup theta_{r+1} = rhs_l + rhs_r, the left cell's terms
-    carried from the previous row (without a contact, linear: a_l theta_{r-1} - (b_l + b_r)
-    theta_r + a_r theta_{r+1} = -(e_l + e_r))."""
+    the modified super-diagonal in scratch[i, :n_nodes], each cell's rows
+    (:func:`cell_rows`, with ``nonlin`` linearised at the previous iterate in
+    scratch[i, n_nodes:]) computed here, or with ``stored`` read from rows[i, :] (
+    :data:`ROW_VALUES` per cell, as :func:`cell_rows` returns them: computed by a thread
+    per cell, the same numbers). Row r is sub theta_{r-1} + (diag_l + diag_r) theta_r +
+    sup theta_{r+1} = rhs_l + rhs_r, the left cell's terms carried from the previous row
+    (without a contact, linear: a_l theta_{r-1} - (b_l + b_r) theta_r + a_r theta_{r+1} =
+    -(e_l + e_r))."""
     n_nodes = count * cells + 1
     sub = wp.float64(0.0)
     diag_l = wp.float64(0.0)
@@ -770,15 +816,28 @@ def heat_sweep(
         diag_next = wp.float64(0.0)
         rhs_next = wp.float64(0.0)
         if r < n_nodes - 1:
-            s = first + r // cells
-            d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-            Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-            if nonlin != 0 and segment_nonlinear(params, i, s) != 0:
-                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = kirchhoff_rows(
-                    params, flags, gas, i, s, d, fitted, Rc, scratch[i, n_nodes + r], scratch[i, n_nodes + r + 1]
-                )
+            if stored != 0:
+                k = ROW_VALUES * r
+                diag_r = rows[i, k]
+                sup = rows[i, k + 1]
+                rhs_r = rows[i, k + 2]
+                sub_next = rows[i, k + 3]
+                diag_next = rows[i, k + 4]
+                rhs_next = rows[i, k + 5]
             else:
-                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = cell_rows(
+                    params,
+                    flags,
+                    gas,
+                    i,
+                    first,
+                    cells,
+                    fitted,
+                    nonlin,
+                    r,
+                    scratch[i, n_nodes + r],
+                    scratch[i, n_nodes + r + 1],
+                )
         # an end's exchanger draws H theta (flux balance in W/m^2, as the rows)
         diag = diag_l + diag_r - end_sink(params, i, first, count, r, n_nodes) - sub * c_prev
         c_prev = sup / diag
@@ -791,6 +850,40 @@ def heat_sweep(
     for rr in range(n_nodes - 1):
         r = n_nodes - 2 - rr
         theta[i, r] = theta[i, r] - scratch[i, r] * theta[i, r + 1]
+
+
+@wp.func
+def picard_step(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    stored: int,
+):
+    """One iteration of :func:`solve_heat_nonlinear` on set i: the current iterate kept in
+    scratch[i, n_nodes:], one :func:`heat_sweep` (``rows``, ``stored`` as there) from it;
+    returns 1 when the largest nodal change is at most ``tol`` times the largest theta."""
+    n_nodes = count * cells + 1
+    for r in range(n_nodes):
+        scratch[i, n_nodes + r] = theta[i, r]
+    heat_sweep(params, flags, gas, i, first, count, cells, fitted, 1, theta, scratch, rows, stored)
+    change = wp.float64(0.0)
+    size = wp.float64(0.0)
+    for r in range(n_nodes):
+        change = wp.max(change, wp.abs(theta[i, r] - scratch[i, n_nodes + r]))
+        size = wp.max(size, wp.abs(theta[i, r]))
+    converged = int(0)
+    if change <= tol * size:
+        converged = 1
+    return converged
 
 
 @wp.func
@@ -807,27 +900,21 @@ def solve_heat_nonlinear(
     tol: wp.float64,
     theta: wp.array2d(dtype=wp.float64),
     scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
 ):
     """Nodal theta [K] of the nonlinear model (Kirchhoff cells, :func:`nonlinear_cell`):
-    iterations that re-solve the tridiagonal flux balance with each cell's (k, sigma) and
-    U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the previous iterate
-    theta_p (Newton for the conduction term, k and sigma lagged), from the start iterate in
-    theta[i, :] (:func:`solve_heat`), until the largest nodal change is below ``tol`` times
-    the largest theta (or ``max_iter``)."""
-    n_nodes = count * cells + 1
+    iterations (:func:`picard_step`) that re-solve the tridiagonal flux balance with each
+    cell's (k, sigma) and U = U(theta_p) + lam(theta_p) (theta - theta_p) linearised at the
+    previous iterate theta_p (Newton for the conduction term, k and sigma lagged), from the
+    start iterate in theta[i, :] (:func:`solve_heat`), until the largest nodal change is
+    below ``tol`` times the largest theta (or ``max_iter``). A thread per set runs them
+    all here; :func:`tawarp.kernels.forward.heat_rows_kernel` and
+    :func:`tawarp.kernels.forward.picard_kernel` run the same iterations with a thread per
+    cell computing its rows."""
     done = int(0)
-    for it in range(max_iter):
+    for _it in range(max_iter):
         if done == 0:
-            for r in range(n_nodes):
-                scratch[i, n_nodes + r] = theta[i, r]
-            heat_sweep(params, flags, gas, i, first, count, cells, fitted, 1, theta, scratch)
-            change = wp.float64(0.0)
-            size = wp.float64(0.0)
-            for r in range(n_nodes):
-                change = wp.max(change, wp.abs(theta[i, r] - scratch[i, n_nodes + r]))
-                size = wp.max(size, wp.abs(theta[i, r]))
-            if change <= tol * size:
-                done = 1
+            done = picard_step(params, flags, gas, i, first, count, cells, fitted, tol, theta, scratch, rows, 0)
 
 
 # --- the wall as a temperature field of its own ---------------------------------------
@@ -1075,6 +1162,8 @@ def solve_heat(
     tol: wp.float64,
     theta: wp.array2d(dtype=wp.float64),
     scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    defer: int,
 ):
     """Nodal temperature excess theta [K] of set i on the thermal segments
     first..first+count-1 (``cells`` per segment), written to theta[i, :]; ``scratch[i, :]``
@@ -1091,10 +1180,16 @@ def solve_heat(
     is not read). Where the wall is a field of its own
     in a segment (:func:`wall_field_on`), :func:`solve_heat_wall`: theta then needs 2 x nodes
     columns (the wall's excess in the second half) and scratch 6 x nodes, else the set's
-    theta is NaN."""
+    theta is NaN.
+
+    With ``defer``, a set of the single-field iterations is left to
+    :func:`tawarp.kernels.forward.heat_rows_kernel` and
+    :func:`tawarp.kernels.forward.picard_kernel` (its start iterate untouched): returns 1
+    for such a set, else 0 (``rows``: those kernels' table, unread here)."""
     n_nodes = count * cells + 1
     nonlin = int(0)
     wall = int(0)
+    deferred = int(0)
     for s in range(first, first + count):
         if segment_nonlinear(params, i, s) != 0:
             nonlin = 1
@@ -1107,9 +1202,15 @@ def solve_heat(
         else:
             solve_heat_wall(params, flags, gas, i, first, count, cells, fitted, nonlin, max_iter, tol, theta, scratch)
     elif nonlin != 0:
-        solve_heat_nonlinear(params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch)
+        if defer != 0:
+            deferred = 1
+        else:
+            solve_heat_nonlinear(
+                params, flags, gas, i, first, count, cells, fitted, max_iter, tol, theta, scratch, rows
+            )
     else:
-        heat_sweep(params, flags, gas, i, first, count, cells, fitted, 0, theta, scratch)
+        heat_sweep(params, flags, gas, i, first, count, cells, fitted, 0, theta, scratch, rows, 0)
+    return deferred
 
 
 @wp.func

@@ -123,7 +123,11 @@ _MEMO = ColumnMemo(MEMO_BYTES)
 _ENGINE_NUMBERS = itertools.count()
 
 
-#: Heated parameter sets whose converged heat-model excess a CPU engine with a
+#: Iterations of the temperature-dependent heat solve launched between reads of how many
+#: sets still iterate (:meth:`Engine._iterate_cells`): a warm-started set takes two or three,
+#: a cold start four to a dozen; a read costs a round trip to the device.
+PICARD_BURST = 4
+#: Heated parameter sets whose converged heat-model excess an engine with a
 #: temperature-dependent effect keeps (:class:`WarmStarts`): a loop's batch of
 #: finite-difference neighbours follows the batch of their points, and its trial points
 #: lie near the fits' current points, computed in the batches before.
@@ -406,7 +410,11 @@ class ForwardSettings:
     measurements in bench/README.md; the tangent cascade's is :data:`TANGENT_MAX_REGISTERS`);
     ``cpu_threads``: on the CPU, Warp runs a kernel serially, so a batch is split into
     this many parts run in parallel threads (Warp's CPU launches release the GIL; None:
-    every core this process may use; results are bit-for-bit those of one thread); ``device``.
+    every core this process may use; results are bit-for-bit those of one thread);
+    ``cell_threads``: the iterations of a temperature-dependent heat solve run as launches
+    with a thread per heat cell (:func:`tawarp.kernels.forward.heat_rows_kernel`; None: on a
+    GPU, where one thread per set iterating over its cells was most of a loop's device time;
+    the same numbers to rounding); ``device``.
     When a temperature-dependent effect (``fields.NONLINEAR_FIELDS``) is on in the core or
     varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
     segment and the heat solve iterates (Kirchhoff cells, kernels/heat.py: at most ``picard_iterations`` solves,
@@ -424,6 +432,7 @@ class ForwardSettings:
     block_dim: int = 256
     max_registers: int | None = 128
     cpu_threads: int | None = None
+    cell_threads: bool | None = None
     device: str | None = None
 
     def cells_per_segment(self, core: Core) -> np.ndarray:
@@ -555,6 +564,12 @@ class Engine:
         if self.nonlinear:
             self.heat_cells = max(self.heat_cells, int(self.settings.nonlinear_heat_cells))
         self.nodes = self.count * self.heat_cells + 1
+        threads = self.settings.cell_threads
+        self.cell_threads = (
+            self.nonlinear
+            and self.count > 0
+            and (wp.get_device(self.device).is_cuda if threads is None else bool(threads))
+        )
         # nodal excesses per set: the gas's, then the wall's where it is a field of its own
         self.theta_columns = self.nodes * (2 if wall_field(core, self.names) else 1)
         dev = self.device
@@ -585,6 +600,9 @@ class Engine:
         self._no_step = wp.zeros((1, 1), dtype=wp.float64, device=dev)
         self._no_tangent = wp.zeros((1, 1, 1, 1), dtype=wp.float64, device=dev)
         self._no_order = wp.zeros(0, dtype=wp.int32, device=dev)
+        # the heat kernel's stand-ins for the tables of the iterations a cell per thread
+        self._no_rows = wp.zeros((1, 1), dtype=wp.float64, device=dev)
+        self._no_pending = wp.zeros(0, dtype=wp.int32, device=dev)
         self._modules_loaded = set()  # strides whose modules a thread of _threaded has loaded
         self._raised_share = INITIAL_RAISED_SHARE  # of the last evaluation's first rerun (RERUN_ROOM)
         self._point_counts: dict = {}  # _fixed_point_counts per number of grid columns
@@ -598,10 +616,11 @@ class Engine:
         self.heat_only = np.array(
             [1 + j for j, k in enumerate(self.names) if inert and k.partition(".")[2] in HEAT_ONLY_FIELDS], dtype=int
         )
-        # on the CPU a temperature-dependent set's heat solve costs about as much as its cascade
+        # a temperature-dependent set's heat solve costs about as much as its cascade on the
+        # CPU, and on a GPU, where one thread iterates it, most of a loop's device time
         # (evaluate_distinct keeps the converged excesses as warm starts)
         self.warm = None
-        if self.nonlinear and self.count and wp.get_device(dev).is_cpu:
+        if self.nonlinear and self.count:
             thermal = {core.segments[k].name for k in core.thermal_indices}
             switch = [n.partition(".") for n in self.names]
             switches = [1 + j for j, (seg, _, f) in enumerate(switch) if seg in thermal and f in NONLINEAR_FIELDS]
@@ -648,6 +667,11 @@ class Engine:
             theta.assign(np.ascontiguousarray(start, dtype=np.float64))
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
+            rows, pending = self._no_rows, self._no_pending
+            if self.cell_threads and n:
+                rows = wp.empty((n, kf.ROW_VALUES * (self.nodes - 1)), dtype=wp.float64, device=self.device)
+                pending = wp.empty(n, dtype=wp.int32, device=self.device)
+            s = self.settings
             wp.launch(
                 kf.heat_kernel,
                 dim=n,
@@ -656,15 +680,62 @@ class Engine:
                     self.first,
                     self.count,
                     self.heat_cells,
-                    int(self.settings.fitted),
-                    int(self.settings.picard_iterations),
-                    float(self.settings.picard_tol),
+                    int(s.fitted),
+                    int(s.picard_iterations),
+                    float(s.picard_tol),
                     theta,
                     scratch,
+                    rows,
+                    pending,
                 ],
                 device=self.device,
             )
+            if pending.shape[0]:
+                self._iterate_cells(params, theta, scratch, rows, pending)
         return params, theta
+
+    def _iterate_cells(self, params: wp.array, theta: wp.array, scratch: wp.array, rows: wp.array, pending: wp.array):
+        """The iterations of the sets the heat kernel left ``pending``, a thread per heat cell
+        (:attr:`cell_threads`): each iteration a launch of the cells' rows and one of the sets'
+        sweeps, at most ``picard_iterations``, :data:`PICARD_BURST` at a time between reads of
+        how many sets still iterate (a set that has stopped returns at once in the launches
+        after)."""
+        n, dev, s = pending.shape[0], self.device, self.settings
+        sets = self._sets(params)
+        left = wp.zeros(1, dtype=wp.int32, device=dev)
+        done, most = 0, int(s.picard_iterations)
+        while done < most:
+            burst = min(PICARD_BURST, most - done)
+            for b in range(burst):
+                if b == burst - 1:
+                    left.zero_()
+                wp.launch(
+                    kf.heat_rows_kernel,
+                    dim=(n, self.nodes - 1),
+                    inputs=[sets, self.first, self.heat_cells, int(s.fitted), pending, theta, rows],
+                    device=dev,
+                )
+                wp.launch(
+                    kf.picard_kernel,
+                    dim=n,
+                    inputs=[
+                        sets,
+                        self.first,
+                        self.count,
+                        self.heat_cells,
+                        int(s.fitted),
+                        float(s.picard_tol),
+                        theta,
+                        scratch,
+                        rows,
+                        pending,
+                        left,
+                    ],
+                    device=dev,
+                )
+            done += burst
+            if not int(left.numpy()[0]):
+                return
 
     def evaluate(
         self, varying, out: wp.array | None = None, start: np.ndarray | None = None
@@ -692,8 +763,8 @@ class Engine:
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
         fields told apart, and on the CPU each set this engine computed before (:data:`MEMO_BYTES`).
-        The kernels compute each set on its own, so sharing changes no bit. On the CPU a set
-        whose heat solve iterates starts it from the converged excess of a set computed
+        The kernels compute each set on its own, so sharing changes no bit. A set whose heat
+        solve iterates starts it from the converged excess of a set computed
         before near it (:attr:`warm`, :class:`WarmStarts`): the same fixed point, to the
         solve's tolerance."""
         key = np.array(varying, dtype=np.float64)

@@ -1,0 +1,79 @@
+"""The temperature-dependent heat solve with a thread per heat cell
+(``ForwardSettings.cell_threads``, a GPU's default: :func:`tawarp.kernels.forward.heat_rows_kernel`
+and :func:`tawarp.kernels.forward.picard_kernel`) against a thread per set iterating over its
+cells (:func:`tawarp.kernels.heat.solve_heat_nonlinear`): the same functions on the same
+numbers, so on the CPU the excesses and T-matrices are the same bit for bit, whatever the
+start, the iteration cap or the mix of sets in the batch (a GPU's compiler may fuse the
+stored rows' products differently: rounding)."""
+
+import numpy as np
+import pytest
+from test_heat_warm_start import CORES, FREQS, batch
+
+from tawarp.model.core import load_core
+from tawarp.model.forward import PICARD_BURST, Engine, ForwardSettings
+
+
+def contact_core():
+    """The ceramic core with a contact resistance between stack and hot exchanger beside the
+    buffer tube's convection: the Kirchhoff cells behind a contact."""
+    return load_core("ceramic").replace(
+        **{"tbt.h_convection": 3.0, "stack.radiative_conductivity": 0.05, "hot_hx.contact_resistance": 2e-4}
+    )
+
+
+ALL = {**CORES, "contact": lambda: (contact_core(), None)}
+
+
+def engines(core, names, **kw):
+    """(a thread per set, a thread per cell) engines of ``core`` varying ``names``."""
+    return tuple(
+        Engine(core, FREQS, names, ForwardSettings(device="cpu", cells=12, cpu_threads=1, cell_threads=t, **kw))
+        for t in (False, True)
+    )
+
+
+def mixed(table):
+    """``table`` and beside it: its sets without heat input, and its first set with every
+    temperature-dependent field it varies off (a set the heat kernel solves at once)."""
+    cold = table.copy()
+    cold[0] = 0.0
+    return np.concatenate([table, cold], axis=1)
+
+
+@pytest.mark.parametrize("name", sorted(ALL))
+def test_a_thread_per_cell_gives_the_excesses_of_a_thread_per_set(name):
+    core, values = ALL[name]()
+    eng, table = batch(core, values)
+    table = mixed(table)
+    per_set, per_cell = engines(core, eng.names)
+    assert per_cell.cell_threads and not per_set.cell_threads
+    a = [x.numpy() for x in per_set.evaluate(table)]
+    b = [x.numpy() for x in per_cell.evaluate(table)]
+    for x, y in zip(a, b):
+        assert np.array_equal(x, y, equal_nan=True)
+    # from a warm start (the point's converged excess) too
+    start = np.repeat(a[2][:1], table.shape[1], axis=0)
+    start[table[0] == 0.0] = 0.0
+    warm = [e.heat(table, start)[1].numpy() for e in (per_set, per_cell)]
+    assert np.array_equal(*warm, equal_nan=True)
+
+
+@pytest.mark.parametrize("most", [1, 2, PICARD_BURST, PICARD_BURST + 1])
+def test_a_thread_per_cell_stops_at_the_iteration_cap_of_a_thread_per_set(most):
+    # a cap below the iterations the sets need stops each set after as many solves in both
+    # (the cap across a burst's end too): the same unconverged excess
+    core, values = ALL["contact"]()
+    eng, table = batch(core, values)
+    per_set, per_cell = engines(core, eng.names, picard_iterations=most)
+    full = Engine(core, FREQS, eng.names, ForwardSettings(device="cpu", cells=12, cpu_threads=1))
+    theta = [e.heat(table)[1].numpy() for e in (per_set, per_cell, full)]
+    assert np.array_equal(theta[0], theta[1])
+    assert not np.allclose(theta[0], theta[2], rtol=1e-9, atol=0.0)
+
+
+def test_a_linear_core_never_takes_a_thread_per_cell():
+    # without a temperature-dependent field the solve is one sweep: nothing to iterate
+    core = load_core("ceramic")
+    eng = Engine(core, FREQS, ["tbt.h"], ForwardSettings(device="cpu", cell_threads=True))
+    assert not eng.nonlinear and not eng.cell_threads
