@@ -184,6 +184,22 @@ def test_rejected_trials_cost_no_jacobian(monkeypatch):
     assert lazy_points < kind.points
 
 
+def test_on_a_gpu_a_trial_and_its_neighbours_share_one_launch(monkeypatch):
+    # where the kind predicts on a GPU (a launch costs its latency whatever its sets),
+    # KindProblems.evaluate predicts each LM trial with its neighbours in one call: one call
+    # per iteration instead of up to two, the same fits bit for bit
+    kind, specs = _exp_case()
+    lazy = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    lazy_calls = kind.calls
+    monkeypatch.setattr(ExpKind, "predicts_on_gpu", lambda self: True)
+    kind.calls = 0
+    gpu = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    for a, b in zip(lazy, gpu):
+        assert a.reason[0] == b.reason[0] and a.iterations[0] == b.iterations[0]
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
+    assert kind.calls == 1 + max(int(r.iterations[0]) for r in gpu) < lazy_calls
+
+
 def test_decrement_stops_within_its_cost_of_the_minimum():
     # levenberg_marquardt's decrement: a fit stops (converged, reason "decrement") where the
     # Gauss-Newton step would lower its cost by less than eps, before the tight gradient

@@ -86,8 +86,11 @@ class KindProblems:
         self.kind = kind
         #: :func:`levenberg_marquardt` passes :meth:`evaluate` the costs the trials must beat,
         #: unless a trial's neighbours share its launch's columns
-        #: (:attr:`MeasurementKind.neighbours_share_columns`: apart they would cost more)
-        self.jacobian_if_below = not kind.neighbours_share_columns
+        #: (:attr:`MeasurementKind.neighbours_share_columns`: apart they would cost more) or
+        #: the kind predicts on a GPU (:meth:`MeasurementKind.predicts_on_gpu`), where a
+        #: launch costs its latency and host work whatever its sets, and a second launch per
+        #: iteration more than the neighbours of the trials it would leave out
+        self.jacobian_if_below = not (kind.neighbours_share_columns or kind.predicts_on_gpu())
         rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
         #: the rows each fit sees
         self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]

@@ -31,7 +31,7 @@ import warp as wp
 from ..kernels import lm as klm
 from ..model.coefficients import rms_error
 from ..model.core import Core
-from ..model.forward import Engine, ForwardSettings
+from ..model.forward import Engine, ForwardSettings, resolve_device
 from ..model.validity import ModelValidityError
 from .files import MeasurementError
 from .table import text_lines
@@ -68,6 +68,12 @@ class MeasurementKind:
     #: the work of the others (the fits on some rows alone pass them,
     #: :class:`tawarp.fit.problems.KindProblems`)
     predicts_rows: bool = False
+    #: the forward model's settings (their ``device`` runs :meth:`predict`'s launches)
+    settings: ForwardSettings | None = None
+
+    def predicts_on_gpu(self) -> bool:
+        """Whether :meth:`predict` launches on a GPU (its settings' device)."""
+        return self.settings is not None and wp.get_device(resolve_device(self.settings.device)).is_cuda
 
     def predict(self, values: dict, n: int, effect=None, rows: list | None = None) -> np.ndarray:
         """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}

@@ -697,42 +697,47 @@ class Engine:
     def _iterate_cells(self, params: wp.array, theta: wp.array, scratch: wp.array, rows: wp.array, pending: wp.array):
         """The iterations of the sets the heat kernel left ``pending``, a thread per heat cell
         (:attr:`cell_threads`): each iteration a launch of the cells' rows and one of the sets'
-        sweeps, at most ``picard_iterations``, :data:`PICARD_BURST` at a time between reads of
+        sweeps (recorded once, replayed: a launch's arguments cost the host more than the
+        replay), at most ``picard_iterations``, :data:`PICARD_BURST` at a time between reads of
         how many sets still iterate (a set that has stopped returns at once in the launches
         after)."""
         n, dev, s = pending.shape[0], self.device, self.settings
         sets = self._sets(params)
         left = wp.zeros(1, dtype=wp.int32, device=dev)
+        cell_rows = wp.launch(
+            kf.heat_rows_kernel,
+            dim=(n, self.nodes - 1),
+            inputs=[sets, self.first, self.heat_cells, int(s.fitted), pending, theta, rows],
+            device=dev,
+            record_cmd=True,
+        )
+        sweep = wp.launch(
+            kf.picard_kernel,
+            dim=n,
+            inputs=[
+                sets,
+                self.first,
+                self.count,
+                self.heat_cells,
+                int(s.fitted),
+                float(s.picard_tol),
+                theta,
+                scratch,
+                rows,
+                pending,
+                left,
+            ],
+            device=dev,
+            record_cmd=True,
+        )
         done, most = 0, int(s.picard_iterations)
         while done < most:
             burst = min(PICARD_BURST, most - done)
             for b in range(burst):
                 if b == burst - 1:
                     left.zero_()
-                wp.launch(
-                    kf.heat_rows_kernel,
-                    dim=(n, self.nodes - 1),
-                    inputs=[sets, self.first, self.heat_cells, int(s.fitted), pending, theta, rows],
-                    device=dev,
-                )
-                wp.launch(
-                    kf.picard_kernel,
-                    dim=n,
-                    inputs=[
-                        sets,
-                        self.first,
-                        self.count,
-                        self.heat_cells,
-                        int(s.fitted),
-                        float(s.picard_tol),
-                        theta,
-                        scratch,
-                        rows,
-                        pending,
-                        left,
-                    ],
-                    device=dev,
-                )
+                cell_rows.launch()
+                sweep.launch()
             done += burst
             if not int(left.numpy()[0]):
                 return
