@@ -92,3 +92,21 @@ def test_a_linear_core_never_takes_a_thread_per_cell():
     core = load_core("ceramic")
     eng = Engine(core, FREQS, ["tbt.h"], ForwardSettings(device="cpu", cell_threads=True))
     assert not eng.nonlinear and not eng.cell_threads
+
+
+@pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device")
+def test_a_captured_heat_solve_iterates_in_the_heat_kernel():
+    # a CUDA graph being captured (a design search's generation) cannot wait on the count of
+    # sets still iterating: under capture the engine leaves the iterations to the heat kernel,
+    # and the graph's replay gives the excesses of a thread per set
+    core, values = ALL["contact"]()
+    eng, table = batch(core, values)
+    per_set, per_cell = engines(core, eng.names, "cuda")
+    expected = per_set.heat(table)[1].numpy()
+    out = per_cell.heat_buffers(table.shape[1])
+    varying = wp.array(table, dtype=wp.float64, device="cuda")
+    with wp.ScopedCapture("cuda") as capture:
+        per_cell.heat(varying, out=out)
+    out[1].zero_()
+    wp.capture_launch(capture.graph)
+    assert same(out[1].numpy(), expected, "cuda")

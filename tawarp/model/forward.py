@@ -668,7 +668,9 @@ class Engine:
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
             rows, pending = self._no_rows, self._no_pending
-            if self.cell_threads and n:
+            # a graph being captured (a design search's generation) cannot wait on a count:
+            # there every set iterates in the heat kernel's thread
+            if self.cell_threads and n and not wp.get_device(self.device).is_capturing:
                 rows = wp.empty((n, kf.ROW_VALUES * (self.nodes - 1)), dtype=wp.float64, device=self.device)
                 pending = wp.empty(n, dtype=wp.int32, device=self.device)
             s = self.settings
