@@ -236,18 +236,20 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
         ],
         cwd=tmp_path,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
     )
     try:
         deadline = time.monotonic() + 240
         while not list(tmp_path.glob(".res.nc.*.tmp")) and time.monotonic() < deadline and child.poll() is None:
             time.sleep(0.05)
+        ended = child.poll()  # (the sweep ended before it was killed: its exit status and messages say why)
         os.kill(child.pid, signal.SIGKILL)
     finally:
         child.kill()
-        child.wait(timeout=60)
+        _, err = child.communicate(timeout=60)
     left = list(tmp_path.glob(".res.nc.*.tmp"))
-    assert len(left) == 1 and f".res.nc.{child.pid}@" in left[0].name
+    assert len(left) == 1 and f".res.nc.{child.pid}@" in left[0].name, (ended, err[-2000:])
     # a temporary of a live writer (this process) is left alone
     live = tmp_path / f".res.nc.{os.getpid()}@{left[0].name.split('@')[1]}"
     live.write_text("")
