@@ -215,10 +215,14 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
     """After SIGKILL (or SIGTERM) of a sweep its ``.res.nc.*.tmp`` file stayed forever."""
     import os
     import signal
+    import tempfile
     import time
 
     from tawarp.io import remove_stale_temporaries
 
+    # the sweep's messages into an unnamed file: unread while it runs, a pipe could fill and
+    # stall it, and a file in tmp_path would be one more entry there
+    messages = tempfile.TemporaryFile("w+")
     child = subprocess.Popen(
         [
             sys.executable,
@@ -236,8 +240,7 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
         ],
         cwd=tmp_path,
         stdout=subprocess.DEVNULL,
-        stderr=subprocess.PIPE,
-        text=True,
+        stderr=messages,
     )
     try:
         deadline = time.monotonic() + 240
@@ -247,7 +250,10 @@ def test_a_killed_runs_temporaries_are_removed_by_the_next_run(tmp_path):
         os.kill(child.pid, signal.SIGKILL)
     finally:
         child.kill()
-        _, err = child.communicate(timeout=60)
+        child.wait(timeout=60)
+    messages.seek(0)
+    err = messages.read()
+    messages.close()
     left = list(tmp_path.glob(".res.nc.*.tmp"))
     assert len(left) == 1 and f".res.nc.{child.pid}@" in left[0].name, (ended, err[-2000:])
     # a temporary of a live writer (this process) is left alone
