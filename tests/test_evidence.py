@@ -19,6 +19,7 @@ from tawarp.loop.evidence import (
     claims,
     inclusion,
     laplace_log_evidence,
+    laplace_log_evidences,
     x_model,
     linearized_evidence,
     log_model_prior,
@@ -180,6 +181,117 @@ def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
     assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
 
 
+class _Effect:
+    def __init__(self, name):
+        self.name, self.params = name, (None,)
+
+
+def _base_fit(A, y, mu, sd):
+    """The MAP fit of the linear model of ``A``'s columns as a FitResult (x = values)."""
+    p = A.shape[1]
+    xb = map_estimate(A, y, mu, sd)
+    return FitResult(
+        names=[f"b{j}" for j in range(p)],
+        values=xb[None],
+        std=np.zeros((1, p)),
+        covariance=np.zeros((1, p, p)),
+        correlation=np.zeros((1, p, p)),
+        condition=np.ones(1),
+        iterations=np.zeros(1, int),
+        converged=np.ones(1, bool),
+        reason=np.array(["xtol"]),
+        cost=np.ones(1),
+        rms_error=np.ones(1),
+        s2=np.ones(1),
+        dof=1,
+        start=np.zeros((1, p)),
+        x=xb[None],
+        residuals=(A @ xb - y)[None],
+        jacobian=A[None],
+    )
+
+
+def _reduced_active_set(C, r0, x0, mu, sd, lo, hi, n_base):
+    """The linearized optimum one model at a time on the reduced system (the free
+    parameters' rows and columns only), the furthest parameter out of its range held on
+    its bound and the rest solved again."""
+    G = C.T @ C + np.diag(sd**-2)
+    b = C.T @ r0 + (x0 - mu) / sd**2
+    free = np.ones(len(x0), dtype=bool)
+    while True:
+        d = np.zeros(len(x0))
+        d[free] = np.linalg.solve(G[np.ix_(free, free)], -b[free])
+        x = x0 + d
+        bad = free & ((x < lo) | (x > hi))
+        bad[:n_base] = False
+        if not bad.any():
+            return np.clip(x, lo, hi)
+        free[int(np.argmax(np.where(bad, np.maximum(lo - x, x - hi), -np.inf)))] = False
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_linearized_evidence_of_many_models_is_each_models_own(seed):
+    # every subset of five one-sided effects (off at their lower bound 0) beside a base of
+    # two columns, the data pulling some effects below "off": the batched solve holds the
+    # same parameters on their bounds as the model-by-model reduced solve, and each model's
+    # ln Z is the Laplace evidence of its own quadratic model at that point
+    import itertools
+
+    rng = np.random.default_rng(seed)
+    A = rng.standard_normal((60, 7))
+    truth = np.concatenate([rng.standard_normal(2), rng.choice([-1.0, 0.0, 1.0], 5) * 0.3])
+    y = A @ truth + 0.3 * rng.standard_normal(60)
+    mu, sd = np.concatenate([rng.standard_normal(2), np.zeros(5)]), np.full(7, 1.0)
+    base_priors = [XPrior(m, s) for m, s in zip(mu[:2], sd[:2])]
+    at = Model((), fit=_base_fit(A[:, :2], y, mu[:2], sd[:2]), priors=base_priors)
+    effects = [_Effect(f"e{j}") for j in range(5)]
+    columns = {e.name: A[:, 2 + j : 3 + j] for j, e in enumerate(effects)}
+    models = [
+        (c, base_priors + [XPrior(0.0, 1.0, 0.0, math.inf)] * len(c))
+        for k in range(4)
+        for c in itertools.combinations(effects, k)
+    ]
+    got = linearized_evidence(at, columns, models)
+    held = 0
+    xb, rb = at.fit.x[0], at.fit.residuals[0]
+    for (c, priors), (logz, x) in zip(models, got):
+        C = np.hstack([A[:, :2]] + [columns[e.name] for e in c])
+        x0 = np.concatenate([xb, np.zeros(len(c))])
+        lo, hi = np.array([p.lo for p in priors]), np.array([p.hi for p in priors])
+        pm, ps = np.array([p.mu for p in priors]), np.array([p.sd for p in priors])
+        want = _reduced_active_set(C, rb, x0, pm, ps, lo, hi, 2)
+        assert np.allclose(x, want, rtol=1e-10, atol=1e-12)
+        held += int(np.sum(want[2:] == 0.0))
+        own = laplace_log_evidence(x_model(priors), rb + C @ (want - x0), C, want)
+        assert logz == pytest.approx(own, rel=1e-12, abs=1e-9)
+    assert held > 0  # some effect was held on its bound
+
+
+@pytest.mark.parametrize("noise_scale", [False, True])
+def test_laplace_log_evidences_of_a_ragged_batch_are_each_models_own(noise_scale):
+    # models of different sizes, rows and parameters on their bounds (lower and upper) in one
+    # call: each ln Z is the one the model gets alone
+    rng = np.random.default_rng(7)
+    models = []
+    for _ in range(60):
+        n, p = int(rng.choice([8, 30])), int(rng.integers(1, 5))
+        J = rng.standard_normal((n, p))
+        mu, sd = rng.standard_normal(p), rng.uniform(0.5, 2.0, p)
+        lo, hi = np.full(p, -math.inf), np.full(p, math.inf)
+        x = mu + sd * rng.standard_normal(p)
+        for j in range(p):
+            where = rng.integers(0, 3)
+            if where == 1:
+                lo[j] = x[j]
+            elif where == 2:
+                hi[j] = x[j]
+        models.append((mu, sd, lo, hi, rng.standard_normal(n), J, x))
+    got = laplace_log_evidences(models, noise_scale)
+    for g, (mu, sd, lo, hi, r, J, x) in zip(got, models):
+        priors = [XPrior(*a) for a in zip(mu, sd, lo, hi)]
+        assert g == pytest.approx(laplace_log_evidence(x_model(priors), r, J, x, noise_scale), rel=1e-12, abs=1e-9)
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_log_sum_exp_is_scipys_bit_for_bit(seed):
     # a noise marginal's terms: spread over tens to thousands, some tied at the largest
@@ -188,6 +300,8 @@ def test_log_sum_exp_is_scipys_bit_for_bit(seed):
     a[rng.integers(0, 401, 3)] = a.max()
     assert log_sum_exp(a) == float(special.logsumexp(a))
     assert log_sum_exp(np.array([2.5])) == 2.5
+    rows = np.stack([a, a[::-1] * 0.5, np.full(401, -3.0)])
+    assert np.array_equal(log_sum_exp(rows), special.logsumexp(rows, axis=1))
 
 
 @pytest.mark.parametrize("lo, hi", [(0.0, math.inf), (-1.0, 2.5), (-math.inf, 0.3)])
@@ -355,11 +469,12 @@ def test_correlated_parameters_on_their_bounds_away_from_the_optimum(seed):
 
 
 def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
-    # one covariance: ProblemModel.covariance_x at noise variance s2 is (J^T J / s2 +
-    # diag(1/sd^2))^-1 in x, from J or from J^T J alike, and the covariance a fit reports
-    # (ProblemModel.covariance, sigma known: s2 = 1) is that one taken to values by the delta
-    # method (v for a log parameter, its step for a linear one)
-    from tawarp.fit.problem_model import ProblemModel
+    # one covariance: the Laplace Gaussian's, s2 times the determined inverse of J^T J + s2
+    # diag(1/sd^2) (for a stack of models at once), is (J^T J / s2 + diag(1/sd^2))^-1 in x,
+    # and the covariance a fit reports (ProblemModel.covariance, sigma known: s2 = 1, from J
+    # or from J^T J alike) is that one taken to values by the delta method (v for a log
+    # parameter, its step for a linear one)
+    from tawarp.fit.problem_model import ProblemModel, determined_inverse
 
     A, y, mu, sd = linear_gaussian(3)
     model = ProblemModel(
@@ -373,12 +488,16 @@ def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
         sd,
     )
     x = map_estimate(A, y, mu, sd)
-    for s2 in (1.0, 2.5):
-        want = np.linalg.inv(A.T @ A / s2 + np.diag(sd**-2))
-        assert np.allclose(model.covariance_x(s2, J=A), want, rtol=1e-10, atol=1e-15)
-        assert np.allclose(model.covariance_x(s2, H=A.T @ A), want, rtol=1e-10, atol=1e-15)
+    s2 = np.array([1.0, 2.5])
+    stacked = s2[:, None, None] * determined_inverse(A.T @ A + s2[:, None, None] * np.diag(sd**-2))[0]
+    for got_s2, want_s2 in zip(stacked, s2):
+        want = np.linalg.inv(A.T @ A / want_s2 + np.diag(sd**-2))
+        assert np.allclose(got_s2, want, rtol=1e-10, atol=1e-15)
+    cost = float(np.sum((A @ x - y) ** 2))
+    from_h = model.covariance(x, cost=cost, dof=len(y) - 3, H=A.T @ A)
     D = np.array([2.0 * math.exp(x[0]), 0.1, 30.0 * math.exp(x[2])])
-    got = model.covariance(x, cost=float(np.sum((A @ x - y) ** 2)), dof=len(y) - 3, J=A)
+    got = model.covariance(x, cost=cost, dof=len(y) - 3, J=A)
     assert np.allclose(
         got.cov, D[:, None] * np.linalg.inv(A.T @ A + np.diag(sd**-2)) * D[None, :], rtol=1e-10, atol=1e-15
     )
+    assert np.allclose(from_h.cov, got.cov, rtol=1e-10, atol=1e-15)

@@ -64,6 +64,32 @@ def noise_variance(cost, dof: int, estimated: bool):
     return cost / dof if estimated else np.ones_like(cost)
 
 
+def determined_inverse(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A^-1 on the determined directions, undetermined) of symmetric positive
+    semi-definite matrices ``A`` (..., p, p), each scaled to unit diagonal first (module doc):
+    the covariance's inverse from the Gauss-Newton matrix, of one fit or of a stack of them
+    (the Laplace evidence of many models at once, :func:`tawarp.loop.evidence.laplace_log_evidences`)."""
+    A = np.asarray(A, dtype=float)
+    norm = np.sqrt(np.abs(np.diagonal(A, axis1=-2, axis2=-1))).copy()
+    norm[norm == 0] = 1.0
+    ev, V = np.linalg.eigh(A / norm[..., :, None] / norm[..., None, :])
+    return _pseudo_inverse(ev, V, norm)
+
+
+def _pseudo_inverse(ev: np.ndarray, V: np.ndarray, norm: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(inverse on the determined directions, undetermined (..., p)) of the matrices with
+    eigenvalues ``ev`` (..., p) and eigenvectors the columns of ``V`` (..., p, p) after their
+    scaling by ``norm`` (..., p): directions at most :data:`RCOND` of the largest eigenvalue
+    (every one where none is positive) are left out, and a parameter with a component above
+    :data:`UNDETERMINED_SHARE` on one of them is undetermined."""
+    top = ev.max(axis=-1, keepdims=True)
+    null = np.where(top > 0, ev <= RCOND * top, True)
+    w = np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))
+    unit_x = (V * w[..., None, :]) @ np.swapaxes(V, -1, -2) / norm[..., :, None] / norm[..., None, :]
+    undetermined = np.any((np.abs(V) > UNDETERMINED_SHARE) & null[..., None, :], axis=-1)
+    return unit_x, undetermined
+
+
 @dataclass
 class Covariance:
     """A fit's uncertainty at its solution (one problem): ``cov`` (p, p) and ``std`` (p,)
@@ -160,57 +186,23 @@ class ProblemModel:
             return np.zeros(self.p)
         return 1.0 / np.asarray(self.prior_sd, dtype=float) ** 2
 
-    def select(self, keep: np.ndarray) -> "ProblemModel":
-        """The model of the parameters where the mask ``keep`` (p,) is True."""
-        keep = np.asarray(keep, dtype=bool)
-        pick = lambda a: None if a is None else np.asarray(a)[..., keep]  # noqa: E731
-        return ProblemModel(
-            [n for n, k in zip(self.names, keep) if k],
-            self.log[keep],
-            pick(self.ref),
-            self.step[keep],
-            self.lower[keep],
-            self.upper[keep],
-            pick(self.prior_mu),
-            pick(self.prior_sd),
-            self.noise_estimated,
-        )
-
     def _inverse(self, s2: float, J: np.ndarray | None, H: np.ndarray | None):
         """(A^-1 on the determined directions, undetermined (p,), A) of ``A = J^T J + s2
         Lambda`` (module doc), from ``J`` (n, p) or ``H`` = J^T J (p, p)."""
         p = self.p
         lam = s2 * self.precision()
-        if J is not None:
-            # A = R^T R with R the Jacobian and the priors' rows
-            R = np.vstack([J, np.diag(np.sqrt(lam))[lam > 0]])
-            A = R.T @ R
-            norm = np.linalg.norm(R, axis=0)
-            norm[norm == 0] = 1.0
-            # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
-            _, sv, Vt = np.linalg.svd(R / norm, full_matrices=R.shape[0] < p)
-            ev = np.concatenate([sv, np.zeros(p - sv.size)]) ** 2
-        else:
+        if H is not None:
             A = np.asarray(H, dtype=float) + np.diag(lam)
-            norm = np.sqrt(np.abs(np.diag(A)))
-            norm[norm == 0] = 1.0
-            ev, V = np.linalg.eigh(A / norm[:, None] / norm[None, :])
-            Vt = V.T
-        null = ev <= RCOND * ev.max() if ev.max() > 0 else np.ones(p, dtype=bool)
-        keep = ~null
-        unit_x = (Vt[keep].T / ev[keep]) @ Vt[keep] / norm[:, None] / norm[None, :]
-        undetermined = np.any(np.abs(Vt[null]) > UNDETERMINED_SHARE, axis=0) if null.any() else np.zeros(p, dtype=bool)
-        return unit_x, undetermined, A
-
-    def covariance_x(self, s2: float = 1.0, J: np.ndarray | None = None, H: np.ndarray | None = None) -> np.ndarray:
-        """The posterior covariance of x (p, p) at noise variance ``s2``, ``C_x = (H / s^2 +
-        Lambda)^-1`` on the determined directions (module doc), from the Jacobian ``J`` (n, p)
-        of the weighted residuals or ``H`` = J^T J: the one of :meth:`covariance` before
-        the delta method, and the Gaussian of the Laplace evidence
-        (:func:`tawarp.loop.evidence.laplace_log_evidence`)."""
-        if self.p == 0:
-            return np.zeros((0, 0))
-        return s2 * self._inverse(s2, J, H)[0]
+            return (*determined_inverse(A), A)
+        # A = R^T R with R the Jacobian and the priors' rows
+        R = np.vstack([J, np.diag(np.sqrt(lam))[lam > 0]])
+        A = R.T @ R
+        norm = np.linalg.norm(R, axis=0)
+        norm[norm == 0] = 1.0
+        # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
+        _, sv, Vt = np.linalg.svd(R / norm, full_matrices=R.shape[0] < p)
+        ev = np.concatenate([sv, np.zeros(p - sv.size)]) ** 2
+        return (*_pseudo_inverse(ev, Vt.T, norm), A)
 
     def covariance(self, x, cost: float, dof: int, J: np.ndarray | None = None, H: np.ndarray | None = None):
         """:class:`Covariance` at the solution x (p,) of one problem (module doc), from the

@@ -210,20 +210,26 @@ class KindProblems:
                 got[i] = np.vstack([got[i], Yn])
         cost, raw = np.empty(n), np.empty(n)
         g, H = np.full((n, P), np.nan), np.full((n, P, P), np.nan)
-        self.last = []
+        self.last = [None] * n
+        # the fits that see the same rows with as many evaluations share their array work
+        alike: dict = {}
         for i, c in enumerate(pid):
-            p = self.p[c]
-            rows = self.rows[c]
+            alike.setdefault((id(self.rows[c]), got[i].shape[0]), []).append(i)
+        for (_, m), members in alike.items():
+            rows, k = self.rows[pid[members[0]]], m - 1
+            Y = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                R = residual(self.kind, got[i], rows)
-                r = R[0]
-                cost[i] = r @ r
-                raw[i] = np.sum(np.abs(got[i][0, rows] - self.kind.y[rows]) ** 2)
-                J = ((R[1:] - r) / step[i, :p, None]).T if len(R) > 1 else None
-                if J is not None:
-                    g[i], H[i] = 0.0, 0.0
-                    g[i, :p], H[i, :p, :p] = J.T @ r, J.T @ J
-            self.last.append((J, got[i][0]))
+                R = residual(self.kind, Y, rows)
+                r = R[:, 0]
+                cost[members] = np.einsum("ij,ij->i", r, r)
+                raw[members] = np.sum(np.abs(Y[:, 0, rows] - self.kind.y[rows]) ** 2, axis=1)
+                J = (R[:, 1:] - r[:, None]) / step[members, :k, None] if k else None  # (fits, p, rows)
+                if k:
+                    g[members], H[members] = 0.0, 0.0
+                    g[members, :k] = np.einsum("ipj,ij->ip", J, r)
+                    H[np.ix_(members, range(k), range(k))] = J @ np.swapaxes(J, 1, 2)
+            for j, i in enumerate(members):
+                self.last[i] = (J[j].T if k else None, got[i][0])
         cost += prior_cost
         g += d * isd
         H += isd[:, :, None] ** 2 * np.eye(P)[None]

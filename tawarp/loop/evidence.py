@@ -49,7 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
-from ..fit.problem_model import ProblemModel
+from ..fit.problem_model import ProblemModel, determined_inverse
 from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
@@ -91,7 +91,8 @@ class XPrior:
 
 def prior_arrays(priors: list[XPrior]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(mu, sd, lo, hi) of ``priors``, each (k,)."""
-    return tuple(np.array([getattr(p, f) for p in priors], dtype=float).reshape(-1) for f in ("mu", "sd", "lo", "hi"))
+    table = np.array([(p.mu, p.sd, p.lo, p.hi) for p in priors], dtype=float).reshape(-1, 4)
+    return tuple(np.ascontiguousarray(table.T))
 
 
 def log_norms(mu, sd, lo, hi) -> np.ndarray:
@@ -126,32 +127,20 @@ def x_model(priors: list[XPrior]) -> ProblemModel:
     return ProblemModel([f"x{j}" for j in range(k)], np.zeros(k, dtype=bool), np.zeros(k), np.ones(k), lo, hi, mu, sd)
 
 
-def inside_mass(model: ProblemModel, x: np.ndarray, JtJ: np.ndarray, s2: float) -> float:
-    """ln of the share of the Laplace Gaussian (mean ``x``, the posterior covariance
-    :meth:`ProblemModel.covariance_x` of ``JtJ`` = J^T J at noise variance ``s2``) that lies
-    in each parameter's range, parameter by parameter: 1/2 for a parameter on its bound (a
-    one-sided effect fitted at "off"), about 1 far inside. Without it a one-sided effect the
-    data barely see would gain ln 2 from its half-normal's normalisation alone."""
-    s = np.sqrt(np.maximum(np.diag(model.covariance_x(s2, H=JtJ)), 1e-300))
-    lo, hi = model.bounds_x()
-    mass = special.ndtr((hi - x) / s) - special.ndtr((lo - x) / s)
-    return float(np.sum(np.log(np.maximum(mass, 1e-300))))
-
-
 #: Rows per block of :func:`r_factor`.
 QR_BLOCK = 256
 
 
 def r_factor(A: np.ndarray) -> np.ndarray:
-    """The triangular factor R of ``A`` = Q R (n, k), n >> k, up to the signs of its rows:
-    the factors of blocks of :data:`QR_BLOCK` rows stacked and factored again (Q is never
-    formed; the same R to rounding, as every step is orthogonal). LAPACK's QR of the whole
-    tall matrix runs threaded and was 10-100x slower on a loaded 2-core machine."""
-    if A.shape[0] <= QR_BLOCK:
+    """The triangular factor R of ``A`` = Q R (..., n, k), n >> k, up to the signs of its
+    rows: the factors of blocks of :data:`QR_BLOCK` rows stacked and factored again (Q is
+    never formed; the same R to rounding, as every step is orthogonal). LAPACK's QR of the
+    whole tall matrix runs threaded and was 10-100x slower on a loaded 2-core machine."""
+    n = A.shape[-2]
+    if n <= QR_BLOCK:
         return np.linalg.qr(A, mode="r")
-    return np.linalg.qr(
-        np.vstack([np.linalg.qr(A[i : i + QR_BLOCK], mode="r") for i in range(0, len(A), QR_BLOCK)]), mode="r"
-    )
+    blocks = [np.linalg.qr(A[..., i : i + QR_BLOCK, :], mode="r") for i in range(0, n, QR_BLOCK)]
+    return np.linalg.qr(np.concatenate(blocks, axis=-2), mode="r")
 
 
 def log_erfcx(w: np.ndarray) -> np.ndarray:
@@ -160,16 +149,18 @@ def log_erfcx(w: np.ndarray) -> np.ndarray:
     return np.where(w >= 0, np.log(special.erfcx(np.maximum(w, 0.0))), w**2 + np.log(special.erfc(np.minimum(w, 0.0))))
 
 
-def log_sum_exp(a: np.ndarray) -> float:
-    """ln sum exp(a) of a finite 1-D ``a``, as :func:`scipy.special.logsumexp` computes it
-    (the largest terms apart: ln(m) + ln1p(s/m) + max, s the others' shifted sum, m how
-    many are largest), the same number without its array-API dispatch, which cost more
-    than the rest of :func:`laplace_log_evidence` on its 401 noise scales."""
-    top = np.max(a)
+def log_sum_exp(a: np.ndarray):
+    """ln sum exp(a) over the last axis of a finite ``a``, as :func:`scipy.special.logsumexp`
+    computes it (the largest terms apart: ln(m) + ln1p(s/m) + max, s the others' shifted sum,
+    m how many are largest), the same number without its array-API dispatch, which cost more
+    than the rest of :func:`laplace_log_evidence` on its 401 noise scales. A float for 1-D
+    ``a``."""
+    top = np.max(a, axis=-1, keepdims=True)
     largest = a == top
-    m = float(np.count_nonzero(largest))
-    s = np.sum(np.exp(np.where(largest, -np.inf, a) - top))
-    return float(np.log1p(s / m if s != 0 else s) + np.log(m) + top)
+    m = np.count_nonzero(largest, axis=-1).astype(float)
+    s = np.sum(np.exp(np.where(largest, -np.inf, a) - top), axis=-1)
+    out = np.log1p(np.where(s != 0, s / m, s)) + np.log(m) + top[..., 0]
+    return float(out) if np.ndim(a) == 1 else out
 
 
 #: A parameter within this of a bound (in its scaled fit variable x, of order 1) is on it.
@@ -188,7 +179,9 @@ def laplace_log_evidence(
     (in units of the noise) and their Jacobian ``J`` in x, of the fit whose problem is
     ``model`` (:class:`ProblemModel`: its Gaussian priors in x, its fit ranges, and its
     posterior covariance as the Laplace Gaussian's), the Gaussian cut to the parameters'
-    ranges (:func:`inside_mass`). A parameter on a bound (:data:`ON_BOUND`) is integrated over
+    ranges (parameter by parameter: 1/2 for a parameter on its bound, a one-sided effect fitted
+    at "off"; about 1 far inside: without it a one-sided effect the data barely see would gain
+    ln 2 from its half-normal's normalisation alone). A parameter on a bound (:data:`ON_BOUND`) is integrated over
     its own side alone, with the others at their optimum for each of its values: the fit's
     gradient need not vanish there, and the Gaussian of the quadratic model, centred where the
     data would take the parameter beyond its bound, would credit the model with a misfit it
@@ -208,15 +201,56 @@ def laplace_log_evidence(
     columns and ``r`` enter: they may be given rotated, ``Q^T J`` and ``Q^T r`` for any Q of
     orthonormal columns whose span holds them (:func:`linearized_evidence`: as many rows as
     columns), with ``n_residuals`` the number of residuals (default ``len(r)``)."""
+    return float(laplace_log_evidences([evidence_problem(model, r, J, x)], noise_scale, [n_residuals or len(r)])[0])
+
+
+def evidence_problem(model: ProblemModel, r: np.ndarray, J: np.ndarray, x: np.ndarray) -> tuple:
+    """The (mu, sd, lo, hi, r, J, x) of :func:`laplace_log_evidences` of a fit whose problem
+    is ``model`` (its priors and fit ranges in x), at ``x`` with residuals ``r`` and their
+    Jacobian ``J``."""
     if model.prior_sd is None or not np.all(np.isfinite(model.prior_sd)):
         raise ValueError(f"laplace_log_evidence: {model.names}: every parameter needs a proper prior")
-    mu, sd = np.asarray(model.prior_mu, dtype=float), np.asarray(model.prior_sd, dtype=float)
     lo, hi = model.bounds_x()
-    x = np.asarray(x, dtype=float)
-    # +1 on a lower bound, -1 on an upper one: the direction into the range
-    side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
-    on, free = side != 0, side == 0
-    k, m = int(free.sum()), int(on.sum())
+    prior = [np.asarray(a, dtype=float) for a in (model.prior_mu, model.prior_sd, lo, hi)]
+    return (*prior, np.asarray(r, dtype=float), np.asarray(J, dtype=float), np.asarray(x, dtype=float))
+
+
+def laplace_log_evidences(models: list[tuple], noise_scale: bool = False, n_residuals=None) -> np.ndarray:
+    """:func:`laplace_log_evidence` of many models at once: ``models`` a list of (mu, sd, lo,
+    hi, r, J, x), each model's priors in x and their ranges (k,), its weighted residuals (n,),
+    their Jacobian (n, k) and its solution (k,); ``n_residuals`` a list (default each
+    ``len(r)``). The models with as many rows, parameters and parameters on a bound share
+    their linear algebra (stacked LAPACK calls): the 600 models of one linearization
+    (:func:`linearized_evidence`) took 0.3 s one by one, most of it numpy's per-call cost."""
+    n_res = [len(m[4]) for m in models] if n_residuals is None else list(n_residuals)
+    out = np.empty(len(models))
+    groups: dict[tuple[int, int, int], list[int]] = {}
+    sides = []
+    for i, (_, _, lo, hi, r, _, x) in enumerate(models):
+        # +1 on a lower bound, -1 on an upper one: the direction into the range
+        side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
+        sides.append(side)
+        groups.setdefault((len(r), len(x), int(np.count_nonzero(side == 0))), []).append(i)
+    for (_, k, kf), members in groups.items():
+        # each model's parameters reordered: the free ones first, then those on a bound
+        side = np.array([sides[i] for i in members]).reshape(len(members), k)
+        order = np.argsort(side != 0, axis=1, kind="stable")
+        mu, sd, lo, hi, x = (
+            np.take_along_axis(np.array([models[i][j] for i in members]).reshape(len(members), k), order, 1)
+            for j in (0, 1, 2, 3, 6)
+        )
+        side = np.take_along_axis(side, order, 1)
+        r = np.array([models[i][4] for i in members])
+        J = np.take_along_axis(np.array([models[i][5] for i in members]), order[:, None, :], 2)
+        out[members] = _laplace_group(mu, sd, lo, hi, r, J, x, side, kf, noise_scale, np.array(n_res)[members])
+    return out
+
+
+def _laplace_group(mu, sd, lo, hi, r, J, x, side, k, noise_scale, n_residuals) -> np.ndarray:
+    """ln Z of :func:`laplace_log_evidences` for M models (leading axis) whose first ``k``
+    parameters are free and the others, ``m``, on a bound (``side``: +1 on a lower one, -1 on
+    an upper one), with as many residuals each."""
+    M, m = x.shape[0], x.shape[1] - k
     # In the prior-whitened variables d = dx/sd, with J_free = Q R and R = U S W^T, each
     # direction i of W is a one-dimensional problem: at noise s the minimum over d_i of
     # (a_i + S_i d_i)^2 / s^2 + (g_i + d_i)^2 is (a_i - S_i g_i)^2 / (s^2 + S_i^2), with
@@ -225,34 +259,48 @@ def laplace_log_evidence(
     # parameter sits at a bound with a large gradient. The triangular factor of
     # [J_free, J_on, r] gives Q^T J_on, Q^T r and, below them, the parts of J_on and r
     # outside J_free's range (whose inner products are all that is needed of them).
-    Jw = J * sd[None, :]
+    Jw = J * sd[:, None, :] * np.where(side == 0, 1.0, side)[:, None, :]
     g0 = (x - mu) / sd
-    Ra = r_factor(np.column_stack([Jw[:, free], Jw[:, on] * side[on], r]))
-    R, B, z = Ra[:k, :k], Ra[:k, k : k + m], Ra[:k, k + m]
-    rest = np.zeros((1, m + 1)) if Ra.shape[0] <= k else Ra[k:, k:]
-    U, S, Wt = np.linalg.svd(R) if k else (np.zeros((0, 0)), np.zeros(0), np.zeros((0, 0)))
-    alpha = U.T @ z - S * (Wt @ g0[free])
-    v = U.T @ B  # (k, m)
-    if noise_scale:
-        u = NOISE_LOG_SCALES
+    gf, go, so = g0[:, :k], g0[:, k:], side[:, k:]
+    Ra = r_factor(np.concatenate([Jw, r[:, :, None]], axis=2))
+    R, B, z = Ra[:, :k, :k], Ra[:, :k, k : k + m], Ra[:, :k, k + m]
+    rest = np.zeros((M, 1, m + 1)) if Ra.shape[1] <= k else Ra[:, k:, k:]
+    if k:
+        U, S, Wt = np.linalg.svd(R)
     else:
-        u = np.zeros(1)
-    s2 = np.exp(2 * u)[:, None]
-    den = s2 + S**2  # (ns, k)
-    phi = float(rest[:, m] @ rest[:, m]) / s2[:, 0] + np.sum(alpha**2 / den, axis=1) + float(np.sum(g0[on] ** 2))
-    terms = -0.5 * phi - (n_residuals or len(r)) * u - 0.5 * np.sum(np.log1p(S**2 / s2), axis=1)
+        U, S, Wt = np.zeros((M, 0, 0)), np.zeros((M, 0)), np.zeros((M, 0, 0))
+    alpha = np.einsum("mji,mj->mi", U, z) - S * np.einsum("mij,mj->mi", Wt, gf)
+    v = np.einsum("mji,mjl->mil", U, B)  # (M, k, m)
+    u = NOISE_LOG_SCALES if noise_scale else np.zeros(1)
+    s2 = np.exp(2 * u)  # (ns,)
+    den = s2[None, :, None] + S[:, None, :] ** 2  # (M, ns, k)
+    rz, Rr = rest[:, :, m], rest[:, :, :m]
+    phi = (
+        np.sum(rz**2, axis=1)[:, None] / s2[None]
+        + np.sum(alpha[:, None, :] ** 2 / den, axis=2)
+        + np.sum(go**2, axis=1)[:, None]
+    )
+    terms = (
+        -0.5 * phi
+        - n_residuals[:, None] * u[None]
+        - 0.5 * np.sum(np.log1p(S[:, None, :] ** 2 / s2[None, :, None]), axis=2)
+    )
     if m:
         # the quadratic model along each parameter j on its bound into its range, t_j >= 0
         # (whitened), the free ones at their optimum: phi(t) = phi(0) + 2 G.t + t^T C t
-        G = (rest[:, :m].T @ rest[:, m])[None] / s2 + (alpha / den) @ v + side[on] * g0[on]  # (ns, m)
+        G = (
+            np.einsum("mij,mi->mj", Rr, rz)[:, None, :] / s2[None, :, None]
+            + np.einsum("msk,mkj->msj", alpha[:, None, :] / den, v)
+            + (so * go)[:, None, :]
+        )  # (M, ns, m)
         C = (
-            (rest[:, :m].T @ rest[:, :m])[None] / s2[:, :, None]
-            + np.einsum("sk,kj,kl->sjl", 1.0 / den, v, v)
-            + np.eye(m)[None]
+            np.einsum("mij,mil->mjl", Rr, Rr)[:, None] / s2[None, :, None, None]
+            + np.einsum("msk,mkj,mkl->msjl", 1.0 / den, v, v)
+            + np.eye(m)
         )
-        Cjj = np.diagonal(C, axis1=1, axis2=2)
+        Cjj = np.diagonal(C, axis1=2, axis2=3)
         # each alone: int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
-        one_sided = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + log_erfcx(G / np.sqrt(2 * Cjj)), axis=1)
+        one_sided = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + log_erfcx(G / np.sqrt(2 * Cjj)), axis=2)
         # an integral over the orthant never exceeds the one over the whole space; the
         # product of the one-dimensional ones can, where parameters on their bounds share
         # a pull into the range (a fit stopped away from its optimum: two correlated
@@ -262,18 +310,31 @@ def laplace_log_evidence(
         whole = (
             0.5 * m * math.log(2 * math.pi)
             - 0.5 * logdet
-            + 0.5 * np.einsum("sj,sj->s", G, np.linalg.solve(C, G[:, :, None])[:, :, 0])
+            + 0.5 * np.einsum("msj,msj->ms", G, np.linalg.solve(C, G[..., None])[..., 0])
         )
         terms = terms + np.minimum(one_sided, whole)
-    norm = float(np.sum(log_norms(mu, sd, lo, hi))) + 0.5 * k * math.log(2 * math.pi) + float(np.sum(np.log(sd)))
-    best = int(np.argmax(terms))
-    # J_free^T J_free in x from R (whitened: R = Q^T J_free diag(sd_free))
-    inside = (
-        inside_mass(model.select(free), x[free], (R.T @ R) / np.outer(sd[free], sd[free]), s2[best, 0]) if k else 0.0
-    )
+    norm = np.sum(log_norms(mu, sd, lo, hi), axis=1) + 0.5 * k * math.log(2 * math.pi) + np.sum(np.log(sd), axis=1)
+    s2_best = s2[np.argmax(terms, axis=1)]
+    inside = _inside_mass(R, sd[:, :k], x[:, :k], lo[:, :k], hi[:, :k], s2_best) if k else np.zeros(M)
     if not noise_scale:
-        return norm + float(terms[0]) + inside
-    return norm + float(log_sum_exp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1])) + inside
+        return norm + terms[:, 0] + inside
+    return norm + log_sum_exp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1]) + inside
+
+
+def _inside_mass(R, sd, x, lo, hi, s2) -> np.ndarray:
+    """ln of the share of each Laplace Gaussian (mean ``x``, the posterior covariance of the
+    free parameters at noise variance ``s2``, from their whitened triangular factor ``R``,
+    :meth:`tawarp.fit.problem_model.ProblemModel.covariance`'s inverse on the determined
+    directions) that lies in each parameter's range [``lo``, ``hi``], parameter by parameter."""
+    # J^T J in x from R (whitened: R = Q^T J_free diag(sd)), plus s^2 times the priors' precision
+    A = (
+        np.swapaxes(R, 1, 2) @ R / sd[:, :, None] / sd[:, None, :]
+        + s2[:, None, None] * np.eye(sd.shape[1]) / sd[:, None, :] ** 2
+    )
+    unit, _ = determined_inverse(A)
+    s = np.sqrt(np.maximum(s2[:, None] * np.diagonal(unit, axis1=1, axis2=2), 1e-300))
+    mass = special.ndtr((hi - x) / s) - special.ndtr((lo - x) / s)
+    return np.sum(np.log(np.maximum(mass, 1e-300)), axis=1)
 
 
 def prior_z(x: np.ndarray, priors: list[XPrior]) -> np.ndarray:
@@ -409,33 +470,61 @@ def linearized_evidence(
         rotated[n] = R[:, k : k + columns[n].shape[1]]
         k += columns[n].shape[1]
     Jb, rb = R[:, :n_base], R[:, n_base]
-    out = []
+    problems = []
     for effects, priors in models:
         # a structure without parameters moves the residuals by its column (effect_columns)
         r0 = rb + sum(rotated[e.name][:, 0] for e in effects if not e.params)
         C = np.hstack([Jb] + [rotated[e.name] for e in effects if e.params])
         x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
-        mu, sd, lo, hi = prior_arrays(priors)
-        isd2 = sd**-2
-        G = C.T @ C + np.diag(isd2)
-        b = C.T @ r0 + isd2 * (x0 - mu)
-        free = np.ones(len(x0), dtype=bool)
-        while True:
-            d = np.zeros(len(x0))
-            d[free] = np.linalg.solve(G[np.ix_(free, free)], -b[free])
-            x = x0 + d
-            bad = free & ((x < lo) | (x > hi))
-            bad[: len(xb)] = False  # the base parameters are inside at the solution
-            if not bad.any():
-                break
-            j = int(np.argmax(np.where(bad, np.maximum(lo - x, x - hi), -np.inf)))
-            free[j] = False
-        x = np.clip(x, lo, hi)
-        d = x - x0
-        # the columns are linear, so the quadratic model at x is this model's own: its Laplace ln Z
-        logz = laplace_log_evidence(x_model(priors), r0 + C @ d, C, x, noise_scale, len(fit.residuals[0]))
-        out.append((logz, x))
-    return out
+        problems.append((*prior_arrays(priors), r0, C, x0))
+    # the models with as many parameters solve their quadratic models together
+    by_size: dict[int, list[int]] = {}
+    for i, (mu, *_) in enumerate(problems):
+        by_size.setdefault(mu.size, []).append(i)
+    xs: list = [None] * len(models)
+    for members in by_size.values():
+        for i, x in zip(members, _quadratic_optima([problems[i] for i in members], n_base)):
+            xs[i] = x
+    # the columns are linear, so the quadratic model at x is each model's own: its Laplace ln Z
+    logz = laplace_log_evidences(
+        [(mu, sd, lo, hi, r0 + C @ (x - x0), C, x) for (mu, sd, lo, hi, r0, C, x0), x in zip(problems, xs)],
+        noise_scale,
+        [len(fit.residuals[0])] * len(models),
+    )
+    return list(zip(logz.tolist(), xs))
+
+
+def _quadratic_optima(problems: list[tuple], n_base: int) -> np.ndarray:
+    """The minima of ``||r0 + C d||^2`` plus the priors over x = x0 + d, for models of as
+    many parameters (``problems``: (mu, sd, lo, hi, r0, C, x0) each), an effect parameter
+    whose optimum leaves its range held on its bound (the furthest out first, then solved
+    again: an active set; the first ``n_base``, the base parameters, are inside at the
+    solution); returns x (M, k) clipped to the ranges."""
+    mu, sd, lo, hi, x0 = (np.array([p[j] for p in problems]) for j in (0, 1, 2, 3, 6))
+    r0 = np.array([p[4] for p in problems])
+    C = np.array([p[5] for p in problems])
+    isd2 = sd**-2
+    k = x0.shape[1]
+    G = np.swapaxes(C, 1, 2) @ C + isd2[:, :, None] * np.eye(k)
+    b = np.einsum("mij,mi->mj", C, r0) + isd2 * (x0 - mu)
+    free = np.ones(x0.shape, dtype=bool)
+    todo = np.arange(len(problems))
+    x = x0.copy()
+    while todo.size:
+        # the parameters held fixed: their rows and columns of G the identity's, d = 0 there
+        f = free[todo]
+        both = f[:, :, None] & f[:, None, :]
+        Gf = np.where(both, G[todo], np.eye(k))
+        d = np.linalg.solve(Gf, np.where(f, -b[todo], 0.0)[:, :, None])[:, :, 0]
+        x[todo] = x0[todo] + d
+        xt = x[todo]
+        bad = f & ((xt < lo[todo]) | (xt > hi[todo]))
+        bad[:, :n_base] = False
+        again = bad.any(axis=1)
+        worst = np.argmax(np.where(bad, np.maximum(lo[todo] - xt, xt - hi[todo]), -np.inf), axis=1)
+        free[todo[again], worst[again]] = False
+        todo = todo[again]
+    return np.clip(x, lo, hi)
 
 
 def posterior(models: list[Model]) -> None:

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fit.problems import param_values
+from ..fit.problems import KindProblems
 from ..measure.kind import MeasurementKind
 from .evidence import Model
 
@@ -84,10 +84,11 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict)
         kind = problem.at_rows(groups, freqs)
         if kind is None:
             return []
-        pred = {
-            m.label: kind.predict(param_values(m.fit.params, m.fit.x, fixed), 1, m.fit.effect)[0]
-            for m in [best] + rivals
-        }
+        # the models' predictions in one launch per structure
+        compared = [best] + rivals
+        batch = KindProblems(kind, [(m.fit.params, m.fit.effect, m.fit.x[0]) for m in compared], fixed)
+        Y = batch.predict([(c, m.fit.x[:1]) for c, m in enumerate(compared)])
+        pred = {m.label: y[0] for m, y in zip(compared, Y)}
         s = sd[kind.coef]
         gains = {
             m.label: float(

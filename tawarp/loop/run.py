@@ -31,7 +31,8 @@ from .evidence import (
     claims,
     effect_columns,
     inclusion,
-    laplace_log_evidence,
+    evidence_problem,
+    laplace_log_evidences,
     linearized_evidence,
     log_model_prior,
     model_priors,
@@ -323,11 +324,14 @@ def fit_models(
         np.array(owner), np.array([len(names) for names, _ in requests]), 2 * problem.y.size, race_reference(known)
     )
     fits = fit_batch(problem, specs, fixed, max_iter=MAX_ITER, xtol=XTOL, priors=priors, drop=race, decrement=DECREMENT)
-    for k, m in enumerate(out):
+    kept = []
+    for k in range(len(out)):
         own = [f for f, o in zip(fits, owner) if o == k]
         # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
-        kept = [f for f in own if f.reason[0] != DROPPED] or own
-        scored = [(_log_evidence(f, noise_scale), f) for f in kept]
+        kept.append([f for f in own if f.reason[0] != DROPPED] or own)
+    scores = iter(_log_evidences([f for fs in kept for f in fs], noise_scale))
+    for m, fs in zip(out, kept):
+        scored = [(next(scores), f) for f in fs]
         m.log_evidence, m.fit = max(scored, key=lambda t: t[0])
     return out
 
@@ -343,10 +347,11 @@ def race_reference(models: list[Model]) -> dict[int, float]:
     return out
 
 
-def _log_evidence(f: FitResult, noise_scale: bool) -> float:
-    """:func:`laplace_log_evidence` of the MAP fit ``f`` on its own problem model (the priors
-    it was fitted under, its covariance)."""
-    return laplace_log_evidence(f.problem_model, f.residuals[0], f.jacobian[0], f.x[0], noise_scale)
+def _log_evidences(fits: list[FitResult], noise_scale: bool) -> list[float]:
+    """:func:`laplace_log_evidence` of each MAP fit of ``fits`` on its own problem model (the
+    priors it was fitted under, its covariance), all in one call."""
+    problems = [evidence_problem(f.problem_model, f.residuals[0], f.jacobian[0], f.x[0]) for f in fits]
+    return laplace_log_evidences(problems, noise_scale).tolist()
 
 
 def _typical_x(e: Effect) -> np.ndarray:
@@ -433,7 +438,10 @@ class Comparison:
             self.problem, at.fit, self.fixed, [e for e in self.library if e.name not in at.effects]
         )
         extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
-        pri = [at.priors + model_priors(self.problem.core, [par for e in ex for par in e.params], ex) for ex in extra]
+        # an effect's priors are its own (:func:`model_priors`): made once per effect
+        added = {e.name: e for ex in extra for e in ex}
+        own = {n: model_priors(self.problem.core, list(e.params), (e,)) for n, e in added.items()}
+        pri = [at.priors + [p for e in ex for p in own[e.name]] for ex in extra]
         lin = linearized_evidence(at, cols, list(zip(extra, pri)), self.noise_scale)
         out = []
         for c, ex, (logz, x) in zip(cand, extra, lin):
@@ -646,7 +654,7 @@ def run_loop(
     base = Model((), priors=base_priors)
     base.fit = fit_base(weighted, base_params, fixed, [_as_pairs(base_priors)])
     estimated = source == NOISE_ESTIMATE
-    base.log_evidence = _log_evidence(base.fit, estimated)
+    (base.log_evidence,) = _log_evidences([base.fit], estimated)
     _finished(bar, "base fit")
     models, counts = compare_models(weighted, base, base_params, fixed, library, max_effects, noise_scale=estimated)
     _finished(bar, "evidence")
