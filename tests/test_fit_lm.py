@@ -232,3 +232,45 @@ def test_dropped_starts_leave_the_others_alone():
     for a, b in zip(alone, raced[:2]):
         assert a.reason[0] == b.reason[0] != "dropped" and a.converged[0] and b.converged[0]
         assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
+
+
+def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
+    # slots with components on their bounds (pulled out of the range: not free; pulled in:
+    # free), pinned padding (zlo = zhi), a step that would leave the range and an H that is
+    # not positive definite: each slot's decrement is g^T H^-1 g on its free components
+    # alone, inf where that H has no Cholesky factor or the step leaves the range
+    from types import SimpleNamespace
+
+    from tawarp.fit.lm import newton_decrement
+
+    rng = np.random.default_rng(3)
+    n, p = 40, 5
+    B = rng.standard_normal((n, p, p))
+    H = B @ np.swapaxes(B, 1, 2) + 0.1 * np.eye(p)
+    H[3] = -H[3]  # not positive definite
+    g = rng.standard_normal((n, p))
+    z = rng.uniform(-1.0, 1.0, (n, p))
+    zlo, zhi = np.full((n, p), -3.0), np.full((n, p), 3.0)
+    zlo[::4, 0] = z[::4, 0]  # on a lower bound
+    zhi[1::4, 1] = z[1::4, 1]  # on an upper bound
+    zlo[:, 4] = zhi[:, 4] = 0.0  # padding
+    z[:, 4] = 0.0
+    zhi[2::7, 2] = z[2::7, 2] + 1e-3  # a step that leaves the range
+    host = lambda a: SimpleNamespace(numpy=lambda: a)  # noqa: E731
+    state = SimpleNamespace(z=host(z), at_z=SimpleNamespace(g=host(g), H=host(H)))
+    got = newton_decrement(state, np.arange(n), zlo, zhi)
+    want = np.full(n, np.inf)
+    for i in range(n):
+        f = (zhi[i] > zlo[i]) & ~((z[i] <= zlo[i]) & (g[i] > 0)) & ~((z[i] >= zhi[i]) & (g[i] < 0))
+        Hf = H[i][np.ix_(f, f)]
+        if np.any(np.linalg.eigvalsh(Hf) <= 0):
+            continue
+        d = np.linalg.solve(Hf, g[i, f])
+        to = z[i, f] - d
+        if np.all((to > zlo[i, f]) & (to < zhi[i, f])):
+            want[i] = g[i, f] @ d
+    assert np.isinf(got[3]) and np.isinf(want[3])
+    assert np.sum(np.isfinite(want)) > n // 2 and np.sum(np.isinf(want)) >= 3
+    assert np.array_equal(np.isfinite(got), np.isfinite(want))
+    finite = np.isfinite(want)
+    assert np.allclose(got[finite], want[finite], rtol=1e-10, atol=0.0)

@@ -240,17 +240,35 @@ def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray,
     where a caller may treat it apart: the loop's evidence integrates it one-sided)."""
     z, g, H = (a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H))
     free = (zhi > zlo) & ~((z <= zlo) & (g > 0)) & ~((z >= zhi) & (g < 0))
+    # every slot at once: the components that are not free get the identity's rows and
+    # columns and no gradient, so they take no step and add nothing to the decrement
+    both = free[:, :, None] & free[:, None, :]
+    Hf = np.where(both, H, np.eye(H.shape[-1]))
+    gf = np.where(free, g, 0.0)[:, :, None]
     out = np.full(len(slots), np.inf)
-    for i, f in enumerate(free):
-        try:
-            c = np.linalg.cholesky(H[i][np.ix_(f, f)])
-        except np.linalg.LinAlgError:
-            continue
-        y = np.linalg.solve(c, g[i, f])
-        to = z[i, f] - np.linalg.solve(c.T, y)
-        if np.all((to > zlo[i, f]) & (to < zhi[i, f])):
-            out[i] = y @ y
+    ok = np.ones(len(slots), dtype=bool)
+    try:
+        c = np.linalg.cholesky(Hf)
+    except np.linalg.LinAlgError:  # some H not positive definite: those slots keep inf
+        ok = np.array([_positive_definite(h) for h in Hf], dtype=bool)
+        if not ok.any():
+            return out
+        c = np.linalg.cholesky(Hf[ok])
+    y = np.linalg.solve(c, gf[ok])
+    step = np.linalg.solve(np.swapaxes(c, 1, 2), y)[:, :, 0]
+    to = z[ok] - step
+    inside = np.all(~free[ok] | ((to > zlo[ok]) & (to < zhi[ok])), axis=1)
+    out[np.flatnonzero(ok)[inside]] = np.sum(y[inside, :, 0] ** 2, axis=1)
     return out
+
+
+def _positive_definite(A: np.ndarray) -> bool:
+    """Whether the symmetric ``A`` has a Cholesky factor (positive definite, no NaN)."""
+    try:
+        np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
+        return False
+    return True
 
 
 def levenberg_marquardt(
