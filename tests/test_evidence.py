@@ -140,47 +140,6 @@ def test_noise_scale_evidence_at_a_bound_with_a_large_gradient(seed):
     assert got == pytest.approx(stacked_noise_scale_evidence(r, J, x, priors), abs=1e-6)
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
-    # the base model holds the first two columns (at its MAP); the "effect" adds the third,
-    # off at 0: the quadratic model is exact for a linear model, so the linearized evidence of
-    # base + effect equals the exact evidence of the three-column model
-    A, y, mu, sd = linear_gaussian(seed)
-    mu[2] = 0.0
-    xb = map_estimate(A[:, :2], y, mu[:2], sd[:2])
-    base_priors = [XPrior(m, s) for m, s in zip(mu[:2], sd[:2])]
-    fit = FitResult(
-        names=["a", "b"],
-        values=xb[None],
-        std=np.zeros((1, 2)),
-        covariance=np.zeros((1, 2, 2)),
-        correlation=np.zeros((1, 2, 2)),
-        condition=np.ones(1),
-        iterations=np.zeros(1, int),
-        converged=np.ones(1, bool),
-        reason=np.array(["xtol"]),
-        cost=np.ones(1),
-        rms_error=np.ones(1),
-        s2=np.ones(1),
-        dof=1,
-        start=np.zeros((1, 2)),
-        x=xb[None],
-        residuals=(A[:, :2] @ xb - y)[None],
-        jacobian=A[None, :, :2],
-    )
-    at = Model((), fit=fit, priors=base_priors)
-
-    class Effect:
-        name, params = "e", (None,)
-
-    ((logz, x),) = linearized_evidence(at, {"e": A[:, 2:]}, [((Effect,), base_priors + [XPrior(0.0, sd[2])])])
-    assert logz == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
-    assert np.allclose(x, map_estimate(A, y, mu, sd), atol=1e-12)
-    # and with no effect it is the base model's own evidence
-    ((logz0, _),) = linearized_evidence(at, {}, [((), base_priors)])
-    assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
-
-
 class _Effect:
     def __init__(self, name):
         self.name, self.params = name, (None,)
@@ -209,6 +168,24 @@ def _base_fit(A, y, mu, sd):
         residuals=(A @ xb - y)[None],
         jacobian=A[None],
     )
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_linearized_evidence_of_added_columns_equals_the_exact_one(seed):
+    # the base model holds the first two columns (at its MAP); the "effect" adds the third,
+    # off at 0: the quadratic model is exact for a linear model, so the linearized evidence of
+    # base + effect equals the exact evidence of the three-column model
+    A, y, mu, sd = linear_gaussian(seed)
+    mu[2] = 0.0
+    base_priors = [XPrior(m, s) for m, s in zip(mu[:2], sd[:2])]
+    at = Model((), fit=_base_fit(A[:, :2], y, mu[:2], sd[:2]), priors=base_priors)
+    effect = _Effect("e")
+    ((logz, x),) = linearized_evidence(at, {"e": A[:, 2:]}, [((effect,), base_priors + [XPrior(0.0, sd[2])])])
+    assert logz == pytest.approx(exact_log_evidence(A, y, mu, sd), abs=1e-9)
+    assert np.allclose(x, map_estimate(A, y, mu, sd), atol=1e-12)
+    # and with no effect it is the base model's own evidence
+    ((logz0, _),) = linearized_evidence(at, {}, [((), base_priors)])
+    assert logz0 == pytest.approx(exact_log_evidence(A[:, :2], y, mu[:2], sd[:2]), abs=1e-9)
 
 
 def _reduced_active_set(C, r0, x0, mu, sd, lo, hi, n_base):
