@@ -37,6 +37,7 @@ import errno
 import json
 import os
 import time
+import warnings
 import weakref
 from pathlib import Path
 from urllib.parse import quote
@@ -255,8 +256,8 @@ class TrialStore:
 
     Why HDF5 (h5py) and not netCDF: HDF5's single-writer/multiple-reader mode (SWMR)
     orders the file's metadata writes so that the file is consistent at every moment;
-    a writer killed at any point leaves every committed generation readable, and readers
-    may read while it writes. A segment is never reopened for writing (HDF5 refuses to
+    a writer killed at any point leaves every committed generation readable (but for a
+    chunk index torn by the kill, :func:`torn_rows`), and readers may read while it writes. A segment is never reopened for writing (HDF5 refuses to
     reopen a file whose SWMR writer died without closing it), so each run of a worker
     starts a segment of its own; the reader unions them. Two workers never write one
     file, and a worker name is held by one live process at a time
@@ -277,26 +278,95 @@ class TrialStore:
     def read(self) -> dict[str, np.ndarray]:
         """Every committed row of this study's segments: ``{column: (n,) array}`` with
         ``worker``, ``generation``, ``index``, ``failed``, ``constraint``, ``time``,
-        ``param:NAME`` (material names as strings) and ``metric:NAME``."""
-        import h5py
-
+        ``param:NAME`` (material names as strings) and ``metric:NAME``. A segment whose
+        writer was killed while it wrote a column's chunk index (:func:`torn_rows`) gives
+        the whole generations before the damage, with a :class:`StoreWarning`."""
         parts = []
         for seg in self.segments():
-            with h5py.File(seg, "r", libver="latest", swmr=True, locking=False) as f:
+            with open_segment(seg) as f:
                 if f.attrs["study"] != self.study_name:
                     continue
                 n = int(f["committed"][0])
-                cols = {k: f[k][:n] for k in _BASE}
-                cols["worker"] = np.full(n, str(f.attrs["worker"]), dtype=object)
-                for k, ds in f["params"].items():
-                    v = ds[:n]
+                columns = {k: f[k] for k in _BASE}
+                columns.update({"param:" + k: ds for k, ds in f["params"].items()})
+                columns.update({"metric:" + k: ds for k, ds in f["metrics"].items()})
+                try:
+                    cols = {k: ds[:n] for k, ds in columns.items()}
+                except OSError:
+                    cols = torn_rows(seg, columns, n)
+                for k, ds in columns.items():
                     if "choices" in ds.attrs:
-                        v = np.array([str(c) for c in ds.attrs["choices"]], dtype=object)[v]
-                    cols["param:" + k] = v
-                for k, ds in f["metrics"].items():
-                    cols["metric:" + k] = ds[:n]
+                        cols[k] = np.array([str(c) for c in ds.attrs["choices"]], dtype=object)[cols[k]]
+                cols["worker"] = np.full(len(cols["generation"]), str(f.attrs["worker"]), dtype=object)
             parts.append(cols)
         return _concat(parts)
+
+
+class StoreWarning(UserWarning):
+    """A trial store segment could not be read whole (:func:`torn_rows`)."""
+
+
+#: Metadata read attempts of a reader of a segment (HDF5's default for a SWMR reader is
+#: 100, each after twice the previous wait, from 1 ns): a reader racing a live writer's
+#: metadata write sees it whole within microseconds, but a block a killed writer left torn
+#: never heals, and the 100th attempt would come after 2^99 ns. 27 attempts wait 0.13 s in all
+#: (a reader beside a live writer that still saw a torn block after them would read the rows
+#: before it, with the warning, and the whole at its next read).
+READ_ATTEMPTS = 27
+
+
+def open_segment(path: Path):
+    """A segment opened for reading beside its writer (SWMR), a torn metadata block
+    (:func:`torn_rows`) raising OSError after :data:`READ_ATTEMPTS` reads. h5py does not
+    wrap ``H5Pset_metadata_read_attempts``: it is called in the HDF5 library h5py loaded
+    (where it is not found, HDF5's default stands)."""
+    import ctypes
+
+    import h5py
+    from h5py import h5f, h5p
+
+    fapl = h5p.create(h5p.FILE_ACCESS)
+    fapl.set_libver_bounds(h5f.LIBVER_LATEST, h5f.LIBVER_LATEST)
+    fapl.set_file_locking(False, True)
+    try:
+        attempts = ctypes.CDLL(h5p.__file__).H5Pset_metadata_read_attempts
+    except (OSError, AttributeError):
+        pass
+    else:
+        attempts.argtypes, attempts.restype = [ctypes.c_int64, ctypes.c_uint], ctypes.c_int
+        attempts(fapl.id, READ_ATTEMPTS)
+    return h5py.File(h5f.open(os.fsencode(path), h5f.ACC_RDONLY | h5f.ACC_SWMR_READ, fapl=fapl))
+
+
+def torn_rows(path: Path, columns: dict, n: int) -> dict[str, np.ndarray]:
+    """The whole generations of the first ``n`` rows of a segment's ``columns`` ({name:
+    dataset}) that every column can still give, with a :class:`StoreWarning` naming the
+    segment and the rows lost. SWMR orders a writer's metadata writes, but a SIGKILL can
+    stop the kernel's copy of one write between two memory pages: a chunk-index block
+    rewritten in place is left half new (its checksum never matches again), and the chunks
+    it indexes, committed ones among them, cannot be found. Each column is read a chunk at a
+    time up to its first unreadable one."""
+    readable = {}
+    for k, ds in columns.items():
+        readable[k] = n
+        for start in range(0, n, ds.chunks[0]):
+            try:
+                ds[start : min(start + ds.chunks[0], n)]
+            except OSError:
+                readable[k] = start
+                break
+    good = min(readable.values())
+    generation = columns["generation"][: min(readable["generation"], good + 1)]
+    if good and (len(generation) == good or generation[good] == generation[good - 1]):
+        # the last generation read continues in the rows lost, or may: only whole ones are kept
+        good = int(np.searchsorted(generation[:good], generation[good - 1]))
+    warnings.warn(
+        f"{path}: {n - good} of its {n} committed rows cannot be read (a chunk index that its writer, "
+        f"killed while writing it, left torn); the {good} rows before them, whole generations, are read",
+        StoreWarning,
+        stacklevel=3,
+    )
+    return {k: ds[:good] for k, ds in columns.items()}
 
 
 _BASE = ("generation", "index", "failed", "constraint", "time")
