@@ -62,7 +62,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-from _results import write_result  # noqa: E402 (bench/ is the script's own folder)
+from _results import run, write_result  # noqa: E402 (bench/ is the script's own folder)
 
 VARS = [
     "material=ceramic,mesh,nicr_foam,rvc_foam",
@@ -553,4 +553,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -65,7 +65,7 @@ from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import load_core
 from tawarp.model import forward
 from tawarp.model.forward import POOL_KEEP, Engine, ForwardSettings, transfer_matrices
-from _results import write_result
+from _results import run, write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 WORKLOADS = {
@@ -341,4 +341,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

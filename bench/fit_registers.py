@@ -10,7 +10,6 @@ one run. Writes JSON; the CPU ignores caps.
 from __future__ import annotations
 
 import argparse
-import sys
 
 import warp as wp
 
@@ -18,7 +17,7 @@ from fit import WORKLOADS, make_data, time_fits
 from tawarp.model import forward
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings
-from _results import write_result
+from _results import run, write_result
 
 
 def timed_fit(core, wl, Y, sd, n, device, jacobian, settings) -> dict:
@@ -74,4 +73,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -38,7 +38,7 @@ from tawarp import reference
 from tawarp.model.core import load_core, paper_cores
 from tawarp.model import forward
 from tawarp.model.forward import Engine, ForwardSettings, transfer_matrices
-from _results import write_result
+from _results import run, write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 ACC_FREQS = np.array([30.0, 90.0, 170.0, 260.0, 380.0, 500.0])
@@ -552,4 +552,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

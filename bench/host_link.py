@@ -19,7 +19,7 @@ import time
 
 import warp as wp
 
-from _results import write_result
+from _results import run, write_result
 
 
 def copies(pairs: dict, device: str, way: str, repeats: int, best: dict) -> None:
@@ -91,4 +91,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import warp as wp
 
-from _results import write_result
+from _results import run, write_result
 
 COUNTED = {"fp64": r" (DFMA|DMUL|DADD)\b", "ldl": r" LDL\b", "stl": r" STL\b", "call": r" CALL\b"}
 
@@ -181,4 +181,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

@@ -30,7 +30,7 @@ import tempfile
 import time
 
 import numpy as np
-from _results import write_result
+from _results import run, write_result
 
 READ_SCRIPT = """
 import sys, time, tracemalloc
@@ -183,4 +183,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -54,7 +54,7 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
-from _results import write_result  # noqa: E402
+from _results import run, write_result  # noqa: E402
 
 from tawarp.distributed import cuda_mps_running  # noqa: E402
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
@@ -301,4 +301,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -113,7 +113,7 @@ from tawarp.fit.estimate import FitWarning
 from tawarp.model.core import load_core
 from tawarp.model.forward import ForwardSettings, resolve_device, transfer_matrices
 from _gpu_clocks import GpuClocks
-from _results import write_result
+from _results import run, write_result
 
 FREQS = np.linspace(30.0, 500.0, 100)
 FIT_NAMES = ["stack.h", "hot_hx.h", "tbt.h"]
@@ -981,4 +981,4 @@ def summarize(result: dict, ks: list) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

@@ -34,7 +34,7 @@ import warp as wp
 from tawarp.model import network_reference as nr
 from tawarp.model.network import load_network
 from tawarp.model.network_batch import NetworkBatch
-from _results import write_result
+from _results import run, write_result
 
 ENGINE = "traveling_wave"
 
@@ -179,4 +179,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

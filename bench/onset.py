@@ -33,7 +33,7 @@ import warp as wp
 from tawarp import reference
 from tawarp.model.onset import onset
 from tawarp.model.resonator import load_engine
-from _results import write_result
+from _results import run, write_result
 
 Q_MAX = 100.0
 
@@ -166,4 +166,4 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    run(main)

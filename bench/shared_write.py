@@ -39,7 +39,7 @@ import time
 import numpy as np
 
 from tawarp.distributed import MADV_POPULATE_WRITE
-from _results import write_result
+from _results import run, write_result
 
 WAYS = ("pwrite", "mapped", "populated", "files", "rewrite", "remap", "kept")
 #: The ways that write a file of each process's own.
@@ -136,4 +136,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)

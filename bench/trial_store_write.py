@@ -33,7 +33,7 @@ import time
 import numpy as np
 
 from tawarp.design.storage import TrialStore
-from _results import write_result
+from _results import run, write_result
 
 WAYS = ("flush", "sync", "sync_at_close")
 
@@ -123,4 +123,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    run(main)
