@@ -808,7 +808,8 @@ class Engine:
             T, _, theta = self._host_threaded(table, parts, start, params=False)
         else:
             out, _, w_theta = self.evaluate_serial(table, start=start)
-            T, theta = out.numpy(), w_theta.numpy()
+            # the excesses come to the host only as warm starts (a GPU's copy of every set's)
+            T, theta = out.numpy(), w_theta.numpy() if self.warm is not None else None
         if self.warm is not None:
             self.warm.put(table, theta)
         return T.view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
