@@ -44,9 +44,9 @@ import contextlib
 import multiprocessing
 import os
 import platform
+import signal
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +156,16 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     return out
 
 
+@contextlib.contextmanager
+def interrupts_ignored():
+    """Ctrl-C ignored inside; processes started here keep ignoring it."""
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _study_worker(job: tuple) -> dict:
     """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each."""
     seeds, device, cache, repeats, cpu_threads = job
@@ -179,9 +189,19 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
         threads = cpu_share(P) if device == "cpu" else None
         jobs = [(seeds, device, str(cache), repeats, threads)] * P
         start = time.perf_counter()
-        # spawned: this process has started CUDA, which a forked child cannot use
-        with ProcessPoolExecutor(P, mp_context=multiprocessing.get_context("spawn")) as pool:
-            runs = list(pool.map(_study_worker, jobs))
+        # spawned: this process has started CUDA, which a forked child cannot use; with
+        # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
+        # and ends them (not a traceback from each)
+        with interrupts_ignored():
+            pool = multiprocessing.get_context("spawn").Pool(P)
+        try:
+            runs = pool.map(_study_worker, jobs)
+            pool.close()
+        except BaseException:
+            pool.terminate()
+            raise
+        finally:
+            pool.join()
         wall = time.perf_counter() - start
         n = sum(len(r["verdicts"]) for r in runs)
         out.append(
