@@ -257,9 +257,10 @@ class TrialStore:
     Why HDF5 (h5py) and not netCDF: HDF5's single-writer/multiple-reader mode (SWMR)
     orders the file's metadata writes so that the file is consistent at every moment;
     a writer killed at any point leaves every committed generation readable (but for a
-    chunk index torn by the kill, :func:`torn_rows`), and readers may read while it writes. A segment is never reopened for writing (HDF5 refuses to
-    reopen a file whose SWMR writer died without closing it), so each run of a worker
-    starts a segment of its own; the reader unions them. Two workers never write one
+    chunk index torn by the kill, :func:`torn_rows`), and readers may read while it
+    writes. A segment is never reopened for writing (HDF5 refuses to reopen a file whose
+    SWMR writer died without closing it), so each run of a worker starts a segment of its
+    own; the reader unions them. Two workers never write one
     file, and a worker name is held by one live process at a time
     (:class:`WorkerClaim`), so no lock is needed."""
 
