@@ -267,6 +267,8 @@ class TrialStore:
     def __init__(self, path, study_name: str):
         self.path = Path(path)
         self.study_name = study_name
+        #: {segment: committed rows it lost} of the last :meth:`read` (:func:`torn_rows`)
+        self.torn: dict[Path, int] = {}
 
     def writer(self, worker: str, first_generation: int, choices: dict, rows_per_chunk: int) -> "StoreWriter":
         """A new segment of ``worker``, starting at ``first_generation``; ``choices``:
@@ -281,8 +283,10 @@ class TrialStore:
         ``worker``, ``generation``, ``index``, ``failed``, ``constraint``, ``time``,
         ``param:NAME`` (material names as strings) and ``metric:NAME``. A segment whose
         writer was killed while it wrote a column's chunk index (:func:`torn_rows`) gives
-        the whole generations before the damage, with a :class:`StoreWarning`."""
+        the whole generations before the damage, with a :class:`StoreWarning`; :attr:`torn`
+        then names it with the committed rows it lost."""
         parts = []
+        self.torn = {}
         for seg in self.segments():
             with open_segment(seg) as f:
                 if f.attrs["study"] != self.study_name:
@@ -295,6 +299,7 @@ class TrialStore:
                     cols = {k: ds[:n] for k, ds in columns.items()}
                 except OSError:
                     cols = torn_rows(seg, columns, n)
+                    self.torn[seg] = n - len(cols["generation"])
                 for k, ds in columns.items():
                     if "choices" in ds.attrs:
                         cols[k] = np.array([str(c) for c in ds.attrs["choices"]], dtype=object)[cols[k]]
@@ -339,6 +344,12 @@ def open_segment(path: Path):
     return h5py.File(h5f.open(os.fsencode(path), h5f.ACC_RDONLY | h5f.ACC_SWMR_READ, fapl=fapl))
 
 
+#: (segment, committed rows, rows read) of the torn segments reported: a resumed search
+#: reads its store several times (the search's start, its table, its plots), and the damage
+#: is told once
+_TORN_REPORTED: set = set()
+
+
 def torn_rows(path: Path, columns: dict, n: int) -> dict[str, np.ndarray]:
     """The whole generations of the first ``n`` rows of a segment's ``columns`` ({name:
     dataset}) that every column can still give, with a :class:`StoreWarning` naming the
@@ -346,7 +357,8 @@ def torn_rows(path: Path, columns: dict, n: int) -> dict[str, np.ndarray]:
     stop the kernel's copy of one write between two memory pages: a chunk-index block
     rewritten in place is left half new (its checksum never matches again), and the chunks
     it indexes, committed ones among them, cannot be found. Each column is read a chunk at a
-    time up to its first unreadable one."""
+    time up to its first unreadable one. The warning comes once per process for a segment in
+    a given state (:data:`_TORN_REPORTED`)."""
     readable = {}
     for k, ds in columns.items():
         readable[k] = n
@@ -361,12 +373,14 @@ def torn_rows(path: Path, columns: dict, n: int) -> dict[str, np.ndarray]:
     if good and (len(generation) == good or generation[good] == generation[good - 1]):
         # the last generation read continues in the rows lost, or may: only whole ones are kept
         good = int(np.searchsorted(generation[:good], generation[good - 1]))
-    warnings.warn(
-        f"{path}: {n - good} of its {n} committed rows cannot be read (a chunk index that its writer, "
-        f"killed while writing it, left torn); the {good} rows before them, whole generations, are read",
-        StoreWarning,
-        stacklevel=3,
-    )
+    if (str(path), n, good) not in _TORN_REPORTED:
+        _TORN_REPORTED.add((str(path), n, good))
+        warnings.warn(
+            f"{path}: {n - good} of its {n} committed rows cannot be read (a chunk index that its writer, "
+            f"killed while writing it, left torn); the {good} rows before them, whole generations, are read",
+            StoreWarning,
+            stacklevel=3,
+        )
     return {k: ds[:good] for k, ds in columns.items()}
 
 
