@@ -56,7 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
 from _results import run, write_result  # noqa: E402
 
-from tawarp.distributed import cuda_mps_running  # noqa: E402
+from tawarp.distributed import BLAS_THREAD_VARIABLES, cores_shared, cuda_mps_running  # noqa: E402
 from tawarp.loop import impedance_loop, run_loop  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
@@ -168,8 +168,9 @@ def interrupts_ignored():
 
 def _study_worker(job: tuple) -> dict:
     """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each."""
-    seeds, device, cache, repeats, cpu_threads = job
+    seeds, device, cache, repeats, processes = job
     wp.config.quiet = True
+    cpu_threads = cpu_share(processes) if device == "cpu" else None
     clock = _clocks()
     verdicts = []
     for _ in range(repeats):
@@ -182,18 +183,20 @@ def _study_worker(job: tuple) -> dict:
 def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> list[dict]:
     """Loop cases per second of a study on this machine: for each count P of ``processes``, P
     processes (each its own Warp context, on the CPU or sharing the GPU) each running the
-    T-matrix cases ``seeds`` ``repeats`` times; on the CPU each process's launches split
-    over its share of the cores."""
+    T-matrix cases ``seeds`` ``repeats`` times, its linear algebra's threads limited to its
+    share of the cores (:func:`tawarp.distributed.cores_shared`); on the CPU its launches
+    split over that share too."""
     out = []
     for P in processes:
         threads = cpu_share(P) if device == "cpu" else None
-        jobs = [(seeds, device, str(cache), repeats, threads)] * P
+        jobs = [(seeds, device, str(cache), repeats, P)] * P
         start = time.perf_counter()
         # spawned: this process has started CUDA, which a forked child cannot use; with
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
         # and ends them (not a traceback from each)
-        with interrupts_ignored():
+        with interrupts_ignored(), cores_shared(P):
             pool = multiprocessing.get_context("spawn").Pool(P)
+            started_with = {k: os.environ.get(k) for k in BLAS_THREAD_VARIABLES}
         try:
             runs = pool.map(_study_worker, jobs)
             pool.close()
@@ -208,6 +211,8 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
             {
                 "processes": P,
                 "cpu_threads_per_process": threads,
+                # the environment that sized each process's linear-algebra threads
+                "blas_threads_environment": started_with,
                 "cases": n,
                 "seconds": wall,
                 "cases_per_second": n / wall,

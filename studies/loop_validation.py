@@ -116,6 +116,7 @@ import hashlib
 import itertools
 import json
 import math
+import multiprocessing
 import os
 import sys
 import time
@@ -127,7 +128,7 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
-from tawarp.distributed import cuda_mps_running
+from tawarp.distributed import cores_shared, cuda_mps_running
 from tawarp.fit.problems import fit_batch
 from tawarp.io import atomic_path, write_json, write_text
 from tawarp.loop import default_base_params, fit_base, library_for, run_loop
@@ -1312,7 +1313,9 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     bar = progress_bar(len(cases), "generating (reference)", not a.quiet, unit="case")
     arrays = {}
-    with ProcessPoolExecutor(a.workers) as pool:
+    # spawned (cores_shared: a forked process would keep this one's linear-algebra threads)
+    spawn = multiprocessing.get_context("spawn")
+    with cores_shared(a.workers), ProcessPoolExecutor(a.workers, mp_context=spawn) as pool:
         for case, arr in zip(cases, pool.map(load_or_generate, cases, [cache] * len(cases))):
             arrays[case.seed] = arr
             bar.update(1)
@@ -1327,7 +1330,7 @@ def main(argv=None) -> int:
     t1 = time.perf_counter()
     # each case's loop is independent: with --loop-workers they run in processes of their own
     # (each its own Warp context, on the CPU or sharing the GPU), on the CPU each with its
-    # share of the cores
+    # share of the cores, their linear algebra's threads too (cores_shared)
     threads = cpu_share(a.loop_workers) if a.device == "cpu" else None
     if a.device != "cpu" and a.loop_workers > 1 and not cuda_mps_running():
         print(
@@ -1335,7 +1338,7 @@ def main(argv=None) -> int:
             "on it (docs/loop.md, Speed: nvidia-cuda-mps-control -d, or --device cpu)",
             file=sys.stderr,
         )
-    with ProcessPoolExecutor(a.loop_workers) as pool:
+    with cores_shared(a.loop_workers), ProcessPoolExecutor(a.loop_workers, mp_context=spawn) as pool:
         loop = functools.partial(run_case, device=a.device, base=a.base, cpu_threads=threads)
         runs = pool.map(loop, cases, [arrays[c.seed] for c in cases])
         for case, rec in zip(cases, runs):

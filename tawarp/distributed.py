@@ -206,6 +206,31 @@ def cuda_mps_running() -> bool:
     return os.path.exists(os.path.join(os.environ.get("CUDA_MPS_PIPE_DIRECTORY", "/tmp/nvidia-mps"), "control"))
 
 
+#: What sizes the thread pools of NumPy's and SciPy's linear algebra (OpenMP, OpenBLAS,
+#: MKL) when a process loads it
+BLAS_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+@contextlib.contextmanager
+def cores_shared(processes: int):
+    """Processes spawned inside start with linear-algebra thread pools of their share of the
+    cores (:func:`cpu_share` of ``processes``), set in the environment they inherit, as
+    Dask's nanny starts its worker processes (one thread each); a variable set already is
+    left as it is. Each pool is sized for the whole host otherwise: a study's 16 loop
+    processes on 16 cores ran 16 pools of 16 threads, and gave 10-12 % fewer cases per
+    second on a GPU under MPS (docs/loop.md, Speed; limiting the pools at run time, through
+    threadpoolctl, gave no measurable gain). A forked process keeps its parent's pools:
+    start the processes with the ``spawn`` method. Yields the share."""
+    share = cpu_share(processes)
+    unset = [k for k in BLAS_THREAD_VARIABLES if k not in os.environ]
+    os.environ.update({k: str(share) for k in unset})
+    try:
+        yield share
+    finally:
+        for k in unset:
+            os.environ.pop(k, None)
+
+
 def near_gpu(pci_bus_id: str | None) -> None:
     """Every thread of this process (and those it starts later) on the CPUs of its GPU's
     NUMA node (:func:`gpu_cpus`), where that is fewer than it may use now: its host work,

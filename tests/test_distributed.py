@@ -783,6 +783,48 @@ def test_a_gpus_cpus_are_those_its_numa_node_lists(tmp_path):
     assert os.sched_getaffinity(0) == before
 
 
+def test_processes_spawned_side_by_side_share_the_cores_among_their_blas_threads(monkeypatch):
+    # each of P processes spawned inside cores_shared(P) starts with cpu_share(P) threads of
+    # linear algebra, as Dask's nanny starts its workers with one; without it each pool has a
+    # thread per core (a study's 16 loop processes ran 16 pools of 16 threads on 16 cores);
+    # a variable the user set stands, and the environment is as it was after
+    import importlib
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    from threadpoolctl import threadpool_info
+
+    from tawarp.distributed import BLAS_THREAD_VARIABLES, cores_shared
+    from tawarp.model.forward import cpu_share
+
+    for k in BLAS_THREAD_VARIABLES:
+        monkeypatch.delenv(k, raising=False)
+    cores = len(os.sched_getaffinity(0))
+
+    def blas_threads():
+        spawn = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(
+            1, mp_context=spawn, initializer=importlib.import_module, initargs=("scipy.linalg",)
+        ) as pool:
+            pools = pool.submit(threadpool_info).result()
+        return {p["num_threads"] for p in pools if p["user_api"] == "blas"}
+
+    alone = blas_threads()  # NumPy's and SciPy's pools as a process starts them
+    if not alone:
+        pytest.skip("NumPy's BLAS has no thread pool that threadpoolctl sees")
+    if cores > 1:
+        assert max(alone) > 1
+    for P in (2, 4 * cores):
+        with cores_shared(P) as share:
+            assert share == cpu_share(P) and blas_threads() == {share}
+        assert not any(k in os.environ for k in BLAS_THREAD_VARIABLES)
+    assert cpu_share(4 * cores) == 1
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "1")
+    with cores_shared(1):
+        assert os.environ["OPENBLAS_NUM_THREADS"] == "1" and os.environ["OMP_NUM_THREADS"] == str(cpu_share(1))
+    assert os.environ["OPENBLAS_NUM_THREADS"] == "1" and "OMP_NUM_THREADS" not in os.environ
+
+
 def test_the_mps_daemon_is_seen_by_its_control_pipe(tmp_path, monkeypatch):
     # NVIDIA's MPS daemon makes the control pipe in its pipe folder (CUDA_MPS_PIPE_DIRECTORY,
     # else /tmp/nvidia-mps): there it runs, and nowhere else
