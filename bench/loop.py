@@ -168,9 +168,8 @@ def interrupts_ignored():
 
 def _study_worker(job: tuple) -> dict:
     """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each."""
-    seeds, device, cache, repeats, processes = job
+    seeds, device, cache, repeats, cpu_threads = job
     wp.config.quiet = True
-    cpu_threads = cpu_share(processes) if device == "cpu" else None
     clock = _clocks()
     verdicts = []
     for _ in range(repeats):
@@ -189,7 +188,7 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
     out = []
     for P in processes:
         threads = cpu_share(P) if device == "cpu" else None
-        jobs = [(seeds, device, str(cache), repeats, P)] * P
+        jobs = [(seeds, device, str(cache), repeats, threads)] * P
         start = time.perf_counter()
         # spawned: this process has started CUDA, which a forked child cannot use; with
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
