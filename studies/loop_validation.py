@@ -118,6 +118,7 @@ import json
 import math
 import multiprocessing
 import os
+import signal
 import sys
 import time
 from collections import Counter
@@ -702,6 +703,16 @@ def expected(case: Case, status: dict) -> dict:
     if all(st == "invisible" for st in status.values()):
         return {"label": label, "effects": [], "verdict": "adequate", "scored": True}
     return {"label": label, "effects": [], "verdict": "explained", "scored": False}
+
+
+def _interrupt_ends_quietly() -> None:
+    """A worker process's Ctrl-C ends it as SystemExit does, its files closed whole and no
+    traceback of its own (the study's process says what was kept)."""
+    signal.signal(signal.SIGINT, _end)
+
+
+def _end(signum, frame):
+    raise SystemExit(130)
 
 
 def run_case(
@@ -1315,7 +1326,10 @@ def main(argv=None) -> int:
     arrays = {}
     # spawned (cores_shared: a forked process would keep this one's linear-algebra threads)
     spawn = multiprocessing.get_context("spawn")
-    with cores_shared(a.workers), ProcessPoolExecutor(a.workers, mp_context=spawn) as pool:
+    with (
+        cores_shared(a.workers),
+        ProcessPoolExecutor(a.workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
+    ):
         for case, arr in zip(cases, pool.map(load_or_generate, cases, [cache] * len(cases))):
             arrays[case.seed] = arr
             bar.update(1)
@@ -1338,7 +1352,10 @@ def main(argv=None) -> int:
             "on it (docs/loop.md, Speed: nvidia-cuda-mps-control -d, or --device cpu)",
             file=sys.stderr,
         )
-    with cores_shared(a.loop_workers), ProcessPoolExecutor(a.loop_workers, mp_context=spawn) as pool:
+    with (
+        cores_shared(a.loop_workers),
+        ProcessPoolExecutor(a.loop_workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
+    ):
         loop = functools.partial(run_case, device=a.device, base=a.base, cpu_threads=threads)
         runs = pool.map(loop, cases, [arrays[c.seed] for c in cases])
         for case, rec in zip(cases, runs):
@@ -1378,4 +1395,13 @@ def report(out: Path, records: list[dict], meta: dict, quiet: bool) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except KeyboardInterrupt:
+        # every file is written whole (tawarp.io.atomic_path), which a traceback would hide
+        print(
+            "loop_validation.py: interrupted; the cases finished are in OUT/loop_validation.json (marked "
+            "partial), the reference data made in OUT/cache, each file whole",
+            file=sys.stderr,
+        )
+        sys.exit(130)
