@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import integrate, special, stats
 
+from tawarp.fit.problem_model import ProblemModel
 from tawarp.fit.result import FitResult
 from tawarp.loop.evidence import (
     CLAIM,
@@ -20,13 +21,21 @@ from tawarp.loop.evidence import (
     inclusion,
     laplace_log_evidence,
     laplace_log_evidences,
-    x_model,
     linearized_evidence,
     log_model_prior,
     log_sum_exp,
     posterior,
+    prior_arrays,
     subsets,
 )
+
+
+def x_model(priors: list[XPrior]) -> ProblemModel:
+    """The problem model of parameters that are their own fit variables (v = x), with
+    ``priors`` (their ranges the fit ranges): a linear model known only in x."""
+    mu, sd, lo, hi = prior_arrays(priors)
+    k = mu.size
+    return ProblemModel([f"x{j}" for j in range(k)], np.zeros(k, dtype=bool), np.zeros(k), np.ones(k), lo, hi, mu, sd)
 
 
 def linear_gaussian(seed, n=40, p=3):
@@ -451,7 +460,7 @@ def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
     # and the covariance a fit reports (ProblemModel.covariance, sigma known: s2 = 1, from J
     # or from J^T J alike) is that one taken to values by the delta method (v for a log
     # parameter, its step for a linear one)
-    from tawarp.fit.problem_model import ProblemModel, determined_inverse
+    from tawarp.fit.problem_model import determined_inverse
 
     A, y, mu, sd = linear_gaussian(3)
     model = ProblemModel(

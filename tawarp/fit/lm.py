@@ -240,11 +240,8 @@ def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray,
     where a caller may treat it apart: the loop's evidence integrates it one-sided)."""
     z, g, H = (a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H))
     free = (zhi > zlo) & ~((z <= zlo) & (g > 0)) & ~((z >= zhi) & (g < 0))
-    # every slot at once: the components that are not free get the identity's rows and
-    # columns and no gradient, so they take no step and add nothing to the decrement
-    both = free[:, :, None] & free[:, None, :]
-    Hf = np.where(both, H, np.eye(H.shape[-1]))
-    gf = np.where(free, g, 0.0)[:, :, None]
+    Hf, gf = held_fixed(H, g, free)  # every slot at once
+    gf = gf[:, :, None]
     out = np.full(len(slots), np.inf)
     ok = np.ones(len(slots), dtype=bool)
     try:
@@ -260,6 +257,15 @@ def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray,
     inside = np.all(~free[ok] | ((to > zlo[ok]) & (to < zhi[ok])), axis=1)
     out[np.flatnonzero(ok)[inside]] = np.sum(y[inside, :, 0] ** 2, axis=1)
     return out
+
+
+def held_fixed(H: np.ndarray, g: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Stacked normal equations ``H d = -g`` (H (n, p, p), g (n, p)) with the components
+    outside the mask ``free`` (n, p) held: their rows and columns of H the identity's and
+    their gradient 0, so each system solves as its free components' own, their step 0 and
+    nothing added to ``g^T H^-1 g``."""
+    both = free[:, :, None] & free[:, None, :]
+    return np.where(both, H, np.eye(H.shape[-1])), np.where(free, g, 0.0)
 
 
 def _positive_definite(A: np.ndarray) -> bool:

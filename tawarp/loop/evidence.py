@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
+from ..fit.lm import held_fixed
 from ..fit.problem_model import ProblemModel, determined_inverse
 from ..fit.problems import FD_STEP, param_values, residual
 from ..fit.result import FitResult
@@ -116,15 +117,6 @@ def model_priors(core, params: list[Param], effects: tuple[Effect, ...]) -> list
     for e in effects:
         declared.update(effect_priors(e, core))
     return [x_prior(core, par, declared.get(par.label)) for par in params]
-
-
-def x_model(priors: list[XPrior]) -> ProblemModel:
-    """The :class:`ProblemModel` of parameters that are their own fit variables (v = x),
-    with ``priors`` (their ranges the fit ranges): a model known only in x, as the
-    linearized one of :func:`linearized_evidence`."""
-    mu, sd, lo, hi = prior_arrays(priors)
-    k = mu.size
-    return ProblemModel([f"x{j}" for j in range(k)], np.zeros(k, dtype=bool), np.zeros(k), np.ones(k), lo, hi, mu, sd)
 
 
 #: Rows per block of :func:`r_factor`.
@@ -512,11 +504,9 @@ def _quadratic_optima(problems: list[tuple], n_base: int) -> np.ndarray:
     todo = np.arange(len(problems))
     x = x0.copy()
     while todo.size:
-        # the parameters held fixed: their rows and columns of G the identity's, d = 0 there
         f = free[todo]
-        both = f[:, :, None] & f[:, None, :]
-        Gf = np.where(both, G[todo], np.eye(k))
-        d = np.linalg.solve(Gf, np.where(f, -b[todo], 0.0)[:, :, None])[:, :, 0]
+        Gf, bf = held_fixed(G[todo], b[todo], f)  # (d = 0 where held)
+        d = np.linalg.solve(Gf, -bf[:, :, None])[:, :, 0]
         x[todo] = x0[todo] + d
         xt = x[todo]
         bad = f & ((xt < lo[todo]) | (xt > hi[todo]))
