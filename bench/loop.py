@@ -57,7 +57,7 @@ import loop_validation as lv  # noqa: E402
 from _results import run, write_result  # noqa: E402
 
 from tawarp.distributed import BLAS_THREAD_VARIABLES, cores_shared, cuda_mps_running  # noqa: E402
-from tawarp.loop import impedance_loop, run_loop  # noqa: E402
+from tawarp.loop import impedance_loop, run_loop, run_loops  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
 from tawarp.model.forward import Engine, ForwardSettings, cpu_share  # noqa: E402
@@ -156,6 +156,32 @@ def tmatrix_cases(seeds, device, cache: Path) -> list[dict]:
     return out
 
 
+def by_family(items: list, kinds: list | None = None) -> list:
+    """``items`` (default the kinds ``kinds`` themselves) ordered so that the kinds of one
+    family (:meth:`tawarp.measure.MeasurementKind.family`), which share their launches in
+    :func:`tawarp.loop.run_loops`, come together, in their first one's place."""
+    kinds = items if kinds is None else kinds
+    first: dict = {}
+    keys = [first.setdefault(k.family(), len(first)) for k in kinds]
+    return [items[i] for i in sorted(range(len(items)), key=lambda i: keys[i])]
+
+
+def together_cases(seeds, device, cache: Path, together: int) -> dict:
+    """The T-matrix cases ``seeds`` in this process, ``together`` loops at a time
+    (:func:`tawarp.loop.run_loops`), from cold: the loops a second of one process, its first
+    launches' compiles or cache loads included."""
+    cases = [tmatrix_case(seed, device, cache) for seed in seeds]
+    order = by_family(list(range(len(cases))), [prob for _, prob in cases])
+    seeds, probs = [seeds[i] for i in order], [cases[i][1] for i in order]
+    clock = _clocks()
+    reps = [rep for k in range(0, len(probs), together) for rep in run_loops(probs[k : k + together])]
+    out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
+    out["cases_per_second"] = len(reps) / out["seconds"]
+    out["decisions"] = {str(seed): decisions(rep) for seed, rep in zip(seeds, reps)}
+    print(f"{len(reps)} cases, {together} together, in this process: {out['seconds']:.1f} s")
+    return out
+
+
 @contextlib.contextmanager
 def interrupts_ignored():
     """Ctrl-C ignored inside; processes started here keep ignoring it."""
@@ -167,28 +193,31 @@ def interrupts_ignored():
 
 
 def _study_worker(job: tuple) -> dict:
-    """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each."""
-    seeds, device, cache, repeats, cpu_threads = job
+    """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each,
+    ``together`` at a time (:func:`tawarp.loop.run_loops`)."""
+    seeds, device, cache, repeats, cpu_threads, together = job
     wp.config.quiet = True
     clock = _clocks()
     verdicts = []
     for _ in range(repeats):
-        for seed in seeds:
-            _, prob = tmatrix_case(seed, device, Path(cache), cpu_threads)
-            verdicts.append(run_loop(prob)["verdict"])
+        probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
+        for k in range(0, len(probs), together):
+            reps = run_loops(probs[k : k + together]) if together > 1 else [run_loop(probs[k])]
+            verdicts += [rep["verdict"] for rep in reps]
     return {**_elapsed(clock), "verdicts": verdicts}
 
 
-def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> list[dict]:
+def study(seeds, device, cache: Path, processes: list[int], repeats: int, together: int = 1) -> list[dict]:
     """Loop cases per second of a study on this machine: for each count P of ``processes``, P
     processes (each its own Warp context, on the CPU or sharing the GPU) each running the
-    T-matrix cases ``seeds`` ``repeats`` times, its linear algebra's threads limited to its
-    share of the cores (:func:`tawarp.distributed.cores_shared`); on the CPU its launches
-    split over that share too."""
+    T-matrix cases ``seeds`` ``repeats`` times, ``together`` loops at a time in one batch
+    (:func:`tawarp.loop.run_loops`), its linear algebra's threads limited to its share of
+    the cores (:func:`tawarp.distributed.cores_shared`); on the CPU its launches split over
+    that share too."""
     out = []
     for P in processes:
         threads = cpu_share(P) if device == "cpu" else None
-        jobs = [(seeds, device, str(cache), repeats, threads)] * P
+        jobs = [(seeds, device, str(cache), repeats, threads, together)] * P
         start = time.perf_counter()
         # spawned: this process has started CUDA, which a forked child cannot use; with
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
@@ -209,6 +238,7 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
         out.append(
             {
                 "processes": P,
+                "loops_together": together,
                 "cpu_threads_per_process": threads,
                 # the environment that sized each process's linear-algebra threads
                 "blas_threads_environment": started_with,
@@ -223,7 +253,10 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int) -> lis
                 "verdicts": runs[0]["verdicts"][: len(seeds)],
             }
         )
-        print(f"study, {P} processes on {device}: {n} cases in {wall:.1f} s, {n / wall:.3f} cases/s")
+        print(
+            f"study, {P} processes on {device}, {together} loops together: {n} cases in {wall:.1f} s, "
+            f"{n / wall:.3f} cases/s"
+        )
     return out
 
 
@@ -254,10 +287,16 @@ def impedance_case(n: int, device: str) -> dict:
     return out
 
 
+def _seed_range(part: str) -> range:
+    """ "A-B" as A..B, "A" as A alone."""
+    a, dash, b = part.partition("-")
+    return range(int(a), int(b) + 1) if dash else range(int(a), int(a) + 1)
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cpu")
-    ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list)")
+    ap.add_argument("--seeds", default="0,1,7,11", help="study seeds of the T-matrix cases (comma list; A-B: A to B)")
     ap.add_argument("--impedance-freqs", type=int, default=2694)
     ap.add_argument("--cases", default="tmatrix,impedance", help="which classes of data (comma list)")
     ap.add_argument(
@@ -271,10 +310,16 @@ def main(argv=None) -> int:
         help="the study's process counts (comma list): each process runs the T-matrix cases --repeats times",
     )
     ap.add_argument("--repeats", type=int, default=1, help="times each study process runs the T-matrix cases")
+    ap.add_argument(
+        "--together",
+        type=int,
+        default=1,
+        help="loops a study process runs together, their fits in one batch (tawarp.loop.run_loops)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
-        seeds = [int(s) for s in args.seeds.split(",")]
+        seeds = [k for part in args.seeds.split(",") for k in _seed_range(part)]
     except ValueError:
         ap.error(f"--seeds: {args.seeds!r}; expected integers, comma separated")
     cases = set(args.cases.split(","))
@@ -288,12 +333,19 @@ def main(argv=None) -> int:
         ap.error(f"--processes: {args.processes!r}; expected positive integers, comma separated")
     if args.repeats < 1:
         ap.error(f"--repeats: {args.repeats}; expected a positive integer")
+    if args.together < 1:
+        ap.error(f"--together: {args.together}; expected a positive integer")
     wp.config.quiet = True
     wp.init()
     cache = Path(args.cache)
     cache.mkdir(parents=True, exist_ok=True)
     # warm-up: compiles the kernels
-    if cases & {"tmatrix", "study"}:
+    together_warm = None
+    if "study" in cases and args.together > 1:
+        # the cases together in this process: their kernels, which the study's processes load
+        # from Warp's cache, and the loops a second of one process
+        together_warm = together_cases(seeds, args.device, cache, args.together)
+    elif cases & {"tmatrix", "study"}:
         # a study's processes load the kernels every case compiles, from Warp's cache
         tmatrix_cases(seeds if "study" in cases else seeds[:1], args.device, cache)
     if "impedance" in cases:
@@ -315,7 +367,9 @@ def main(argv=None) -> int:
     if "impedance" in cases:
         result["impedance"] = impedance_case(args.impedance_freqs, args.device)
     if "study" in cases:
-        result["study"] = study(seeds, args.device, cache, processes, args.repeats)
+        result["study"] = study(seeds, args.device, cache, processes, args.repeats, args.together)
+        if together_warm is not None:
+            result["together_one_process"] = together_warm
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
     prefix = "loop_study" if cases == {"study"} else "loop"

@@ -16,7 +16,15 @@ import numpy as np
 import pytest
 
 from tawarp import reference
-from tawarp.loop import base_names, default_base_params, impedance_loop, noise_sigma, run_loop, write_report
+from tawarp.loop import (
+    base_names,
+    default_base_params,
+    impedance_loop,
+    noise_sigma,
+    run_loop,
+    run_loops,
+    write_report,
+)
 from tawarp.loop.goodness import STRUCTURE_P, smooth_fraction
 from tawarp.measure import (
     TMatrixKind,
@@ -221,6 +229,29 @@ def test_plane_offset_in_reference_data_is_explained(seed):
     assert rep["error_after"] <= 1.3 * rep["noise_floor"] < rep["error_before"]
     dl = rep["parameters_after"]["duct_left.length"]
     assert abs(dl["value"] - 0.033) < 4 * dl["std"]
+
+
+def test_loops_run_together_decide_as_each_alone(monkeypatch):
+    # run_loops: clean data and a plane offset, two core files of one structure, their fits
+    # and predictions in shared batches (tawarp.fit.lockstep); each report decides as its
+    # loop alone, to the fits' stopping rules
+    import tawarp.fit.problems as problems
+
+    truths = ({}, {"duct_left.length": 0.033})
+    alone = [loop_on(truth, SEEDS[1])[1] for truth in truths]
+    sizes = []
+    fit_calls = problems.fit_calls
+    monkeypatch.setattr(problems, "fit_calls", lambda calls, *a: sizes.append(len(calls)) or fit_calls(calls, *a))
+    probs = [
+        TMatrixKind(reference_data(truth, SEEDS[1]), prior(SEEDS[1]), ForwardSettings(device="cpu")) for truth in truths
+    ]
+    together = run_loops(probs)
+    assert max(sizes) == 2  # (the loops' fits shared batches)
+    for a, b in zip(alone, together):
+        for key in ("verdict", "accepted_steps", "best_model"):
+            assert a[key] == b[key], key
+        assert abs(a["error_after"] / b["error_after"] - 1) < 1e-4
+        assert abs(a["inclusion_probabilities"]["plane_offsets"] - b["inclusion_probabilities"]["plane_offsets"]) < 0.01
 
 
 @pytest.mark.parametrize("seed", SEEDS[:2])

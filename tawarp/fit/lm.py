@@ -290,7 +290,7 @@ def levenberg_marquardt(
     progress: bool = False,
     max_sets: int = 1 << 20,
     drop=None,
-    decrement: float = 0.0,
+    decrement: float | np.ndarray = 0.0,
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
@@ -299,7 +299,7 @@ def levenberg_marquardt(
     called after every iteration with the slots still iterating and every slot's cost
     (Q,) at its current z: the slots it marks stop there (reason ``"dropped"``, not
     converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`).
-    ``decrement`` > 0: a problem also stops, converged (reason ``"decrement"``), where the
+    ``decrement`` > 0 (a scalar, or one per slot (Q,)): a problem also stops, converged (reason ``"decrement"``), where the
     Gauss-Newton step from its z would lower the cost by less than this (the Newton
     decrement ``g^T H^-1 g`` on the components free of their bounds, :func:`newton_decrement`):
     a caller that needs the minimum's cost to that much (the loop's evidence) need not iterate
@@ -309,6 +309,7 @@ def levenberg_marquardt(
     Q, p = z0.shape
     if p == 0:
         raise ValueError("levenberg_marquardt: no free parameters")
+    decrement = np.broadcast_to(np.asarray(decrement, dtype=float), (Q,))
     dev = wp.get_device(getattr(prob, "device", "cpu"))
     init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
     secant = bool(getattr(prob, "secant", False))
@@ -363,11 +364,13 @@ def levenberg_marquardt(
                 cut[~finished] = drop(active[~finished], state.at_z.cost.numpy())
                 dropped[active[cut]] = True
                 finished |= cut
-            if decrement > 0 and (~finished).any():
-                rest = active[~finished]
-                near = newton_decrement(state, rest, prob.zlo[pid[rest]], prob.zhi[pid[rest]]) < decrement
+            idx = np.flatnonzero(~finished)
+            idx = idx[decrement[active[idx]] > 0]
+            if idx.size:
+                rest = active[idx]
+                near = newton_decrement(state, rest, prob.zlo[pid[rest]], prob.zhi[pid[rest]]) < decrement[rest]
                 small[rest[near]] = True
-                finished[np.flatnonzero(~finished)[near]] = True
+                finished[idx[near]] = True
             if finished.any():
                 active = active[~finished]
                 bar.update(int(finished.sum()))

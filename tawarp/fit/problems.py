@@ -21,13 +21,18 @@ posterior one, s^2 = 1 with the kind's sigma, else the reduced chi^2) and return
 
 from __future__ import annotations
 
+import functools
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..kernels import lm_step
+from . import lockstep
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
+from ..model.fields import field as field_of
 from .lm import levenberg_marquardt
 from .problem_model import ProblemModel
 from .result import FitResult
@@ -53,9 +58,15 @@ def param_values(params: list[Param], X: np.ndarray, fixed: dict) -> dict:
 
 def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Weighted real residuals (..., 2 len(rows)): re parts, then im parts."""
-    d = (Y - kind.y)[..., rows]
-    w = kind.w[rows]
-    return np.concatenate([d.real * w[:, 0], d.imag * w[:, 1]], axis=-1)
+    return weighted_residual(Y, kind.y, kind.w, rows)
+
+
+def weighted_residual(Y: np.ndarray, y: np.ndarray, w: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """:func:`residual` of model values Y (..., y.size) against data ``y`` (..., y.size) with
+    weights ``w`` (..., y.size, 2), broadcast."""
+    d = (Y - y)[..., rows]
+    w = w[..., rows, :]
+    return np.concatenate([d.real * w[..., 0], d.imag * w[..., 1]], axis=-1)
 
 
 class KindProblems:
@@ -73,6 +84,9 @@ class KindProblems:
     asked for, each in one :meth:`MeasurementKind.predict` call per structure: fits whose
     effects change no structure share one launch (the union of their parameters, each
     fit's others at their start values), a structural effect has its own.
+
+    :meth:`merged` batches the fits of several kinds (:class:`FitCall`), each on its own
+    data: the kinds of one family (:class:`Families`) share their launches too.
     """
 
     def __init__(
@@ -83,37 +97,70 @@ class KindProblems:
         rows: np.ndarray | None = None,
         priors: list | None = None,
     ):
-        self.kind = kind
+        self._setup([(kind, specs, fixed, rows, priors)], None)
+
+    @classmethod
+    def merged(cls, calls: list["FitCall"], families: "Families | None" = None) -> "KindProblems":
+        """The fits of every call of ``calls`` as one batch, the calls' fits in their order;
+        ``families``: the kinds that predict together (default: each kind alone)."""
+        out = cls.__new__(cls)
+        out._setup([(c.kind, c.specs, c.fixed, c.rows, c.priors) for c in calls], families)
+        return out
+
+    def _setup(self, parts: list[tuple], families: "Families | None"):
+        """``parts`` = [(kind, specs, fixed, rows, priors), ...]: the fits of each kind."""
+        self.kind = parts[0][0]
         #: :func:`levenberg_marquardt` passes :meth:`evaluate` the costs the trials must beat,
         #: unless a trial's neighbours share its launch's columns
         #: (:attr:`MeasurementKind.neighbours_share_columns`: apart they would cost more) or
         #: the kind predicts on a GPU (:meth:`MeasurementKind.predicts_on_gpu`), where a
         #: launch costs its latency and host work whatever its sets, and a second launch per
         #: iteration more than the neighbours of the trials it would leave out
-        self.jacobian_if_below = not (kind.neighbours_share_columns or kind.predicts_on_gpu())
-        rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
-        #: the rows each fit sees
-        self.rows = [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
+        self.jacobian_if_below = not (self.kind.neighbours_share_columns or self.kind.predicts_on_gpu())
+        families = families or Families([kind for kind, *_ in parts])
+        self.kinds, self.specs, self.rows, self.part = [], [], [], []
+        all_priors: list = []
+        for j, (kind, specs, _, rows, priors) in enumerate(parts):
+            rows = np.arange(kind.y.size) if rows is None else np.asarray(rows)
+            self.kinds += [kind] * len(specs)
+            self.part += [j] * len(specs)
+            #: the rows each fit sees
+            self.rows += [rows if len(sp) < 4 or sp[3] is None else np.asarray(sp[3]) for sp in specs]
+            self.specs += [tuple(sp[:3]) for sp in specs]
+            priors = list(priors or [])
+            all_priors += [priors[c] if c < len(priors) else None for c in range(len(specs))]
         #: per fit, the rows its predictions need where the kind leaves out the others'
         #: work (:attr:`MeasurementKind.predicts_rows`) and the fit sees some rows alone
-        self.needed = [r if kind.predicts_rows and np.unique(r).size < kind.y.size else None for r in self.rows]
-        self.specs = [tuple(sp[:3]) for sp in specs]
-        fixed = dict(fixed or {})
+        self.needed = [
+            r if k.predicts_rows and np.unique(r).size < k.y.size else None for k, r in zip(self.kinds, self.rows)
+        ]
+        #: the kinds' families: their sets share launches (:func:`predict_sets`)
+        self.families = families
+        #: per fit, the fits that share its data and rows (their residuals are formed together)
+        seen: dict = {}
+        self.alike_key = [
+            seen.setdefault((id(k), r.tobytes()) if len(parts) > 1 else id(r), len(seen))
+            for k, r in zip(self.kinds, self.rows)
+        ]
         self.groups: dict = {}
+        #: per fit, its group's key: (its part, its structural effect or None)
+        self.group_of = []
         for c, (_, effect, _) in enumerate(self.specs):
-            self.groups.setdefault(effect.name if effect is not None and effect.transform else None, []).append(c)
-        self.base_vals = {}
+            key = (self.part[c], effect.name if effect is not None and effect.transform else None)
+            self.groups.setdefault(key, []).append(c)
+            self.group_of.append(key)
+        #: per group: the values every set takes where its fit does not set them
+        self.base_vals: dict = {}
         for key, members in self.groups.items():
-            v = dict(fixed)
+            v = dict(parts[key[0]][2] or {})
             for c in members:
                 for par in self.specs[c][0]:
                     par.assign(par.start, v)
             self.base_vals[key] = v
-        priors = list(priors or [])
         #: each fit's problem model: scaling, fit range, priors, noise (s^2 = 1 with sigma)
         self.models = [
-            ProblemModel.from_params(params, priors[c] if c < len(priors) else None, not kind.has_sigma)
-            for c, (params, _, _) in enumerate(self.specs)
+            ProblemModel.from_params(params, pri, not kind.has_sigma)
+            for (params, _, _), pri, kind in zip(self.specs, all_priors, self.kinds)
         ]
         #: free parameters per fit; z is padded to the largest
         self.p = np.array([m.p for m in self.models], dtype=int)
@@ -145,12 +192,20 @@ class KindProblems:
         return np.full(P, lm_step.CHANGE_ABSOLUTE, dtype=np.int32), np.ones_like(self.zlo), np.zeros_like(self.zlo)
 
     def predict(self, requests: list) -> list:
-        """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure."""
-        out = [None] * len(requests)
-        for key, members in self.groups.items():
-            todo = [i for i, (c, _) in enumerate(requests) if c in members]
-            if not todo:
-                continue
+        """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure
+        and family of kinds (:func:`predict_sets`)."""
+        jobs, assemble = self.prediction(requests)
+        return assemble(predict_sets(jobs, self.families))
+
+    def prediction(self, requests: list) -> tuple[list["Sets"], Callable[[list], list]]:
+        """:meth:`predict` in two halves: the sets to predict (a caller may predict them
+        with others', :func:`predict_sets`), and the function that takes their model values
+        to ``requests``' results."""
+        by_group: dict = {}
+        for i, (c, _) in enumerate(requests):
+            by_group.setdefault(self.group_of[c], []).append(i)
+        jobs = []
+        for key, todo in by_group.items():
             # every set at the structure's base values, each fit's block then at its own
             sizes = [requests[i][1].shape[0] for i in todo]
             total = sum(sizes)
@@ -164,18 +219,22 @@ class KindProblems:
                 for k, v in own.items():
                     values[k][k0 : k0 + n] = v
                 k0 += n
-            effect = self.specs[requests[todo[0]][0]][1] if key is not None else None
+            c0 = requests[todo[0]][0]
             needed = [self.needed[requests[i][0]] for i in todo]
-            if any(r is not None for r in needed):
-                rows = [r for n, r in zip(sizes, needed) for _ in range(n)]
-                Y = self.kind.predict(values, total, effect, rows=rows)
-            else:
-                Y = self.kind.predict(values, total, effect)
-            k0 = 0
-            for i, n in zip(todo, sizes):
-                out[i] = Y[k0 : k0 + n]
-                k0 += n
-        return out
+            rows = [r for n, r in zip(sizes, needed) for _ in range(n)] if any(r is not None for r in needed) else None
+            jobs.append(Sets(self.kinds[c0], values, total, self.specs[c0][1] if key[1] is not None else None, rows))
+
+        def assemble(got: list) -> list:
+            out = [None] * len(requests)
+            for todo, Y in zip(by_group.values(), got):
+                k0 = 0
+                for i in todo:
+                    n = requests[i][1].shape[0]
+                    out[i] = Y[k0 : k0 + n]
+                    k0 += n
+            return out
+
+        return jobs, assemble
 
     def evaluate(self, pid, z, max_sets: int = 0, below=None):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
@@ -203,7 +262,9 @@ class KindProblems:
         else:
             got = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
             with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
-                point_cost = [r @ r for r in (residual(self.kind, got[i], self.rows[c])[0] for i, c in enumerate(pid))]
+                point_cost = [
+                    r @ r for r in (residual(self.kinds[c], got[i], self.rows[c])[0] for i, c in enumerate(pid))
+                ]
             point_cost = np.array(point_cost) + prior_cost
             taken = [i for i in range(n) if point_cost[i] < below[i]]
             for i, Yn in zip(taken, self.predict([(pid[i], neighbours(i)) for i in taken])):
@@ -214,15 +275,16 @@ class KindProblems:
         # the fits that see the same rows with as many evaluations share their array work
         alike: dict = {}
         for i, c in enumerate(pid):
-            alike.setdefault((id(self.rows[c]), got[i].shape[0]), []).append(i)
+            alike.setdefault((self.alike_key[c], got[i].shape[0]), []).append(i)
         for (_, m), members in alike.items():
             rows, k = self.rows[pid[members[0]]], m - 1
             Y = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
+            y, w = self._data([pid[i] for i in members])
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                R = residual(self.kind, Y, rows)
+                R = weighted_residual(Y, y, w, rows)
                 r = R[:, 0]
                 cost[members] = np.einsum("ij,ij->i", r, r)
-                raw[members] = np.sum(np.abs(Y[:, 0, rows] - self.kind.y[rows]) ** 2, axis=1)
+                raw[members] = np.sum(np.abs(Y[:, 0, rows] - (y if y.ndim == 1 else y[:, 0])[..., rows]) ** 2, axis=1)
                 J = (R[:, 1:] - r[:, None]) / step[members, :k, None] if k else None  # (fits, p, rows)
                 if k:
                     g[members], H[members] = 0.0, 0.0
@@ -239,6 +301,14 @@ class KindProblems:
             if c not in self.best or cost[i] < self.best[c][0]:
                 self.best[c] = (cost[i], z[i].copy(), *self.last[i])
         return cost, raw, g, H
+
+    def _data(self, fits: list) -> tuple[np.ndarray, np.ndarray]:
+        """(y, w) of the kind of ``fits``, or stacked (fits, 1, rows) where they are of
+        several kinds (:meth:`merged`)."""
+        kinds = [self.kinds[c] for c in fits]
+        if all(k is kinds[0] for k in kinds):
+            return kinds[0].y, kinds[0].w
+        return np.stack([k.y for k in kinds])[:, None], np.stack([k.w for k in kinds])[:, None]
 
     def at_solutions(self, z: np.ndarray) -> list:
         """(J, model values) of every fit at its solution z (K, P): the evaluation there
@@ -313,6 +383,27 @@ def kind_result(
     )
 
 
+@dataclass
+class FitCall:
+    """The arguments of one :func:`fit_batch` call (its specs with x0 filled in)."""
+
+    kind: MeasurementKind
+    specs: list
+    fixed: dict | None = None
+    rows: np.ndarray | None = None
+    max_iter: int = 100
+    xtol: float = XTOL
+    gtol: float = GTOL
+    priors: list | None = None
+    drop: Callable | None = None
+    decrement: float = 0.0
+
+    def iteration(self) -> tuple:
+        """What the LM's iteration takes from the call: calls alike in it share one LM (the
+        decrement is each fit's own)."""
+        return self.max_iter, self.xtol, self.gtol
+
+
 def fit_batch(
     kind: MeasurementKind,
     specs: list,
@@ -334,26 +425,58 @@ def fit_batch(
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
     then the maximum a posteriori (the result's cost and residuals stay the data's).
     ``drop`` and ``decrement``: :func:`levenberg_marquardt`'s, the fits by their index in
-    ``specs``."""
-    t0 = time.perf_counter()
+    ``specs``. Inside :func:`tawarp.fit.lockstep.run_together` the call waits for the other
+    threads' and runs in one batch with theirs (:func:`fit_calls`)."""
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
-    lm = KindProblems(kind, specs, fixed, rows, priors)
+    call = FitCall(kind, specs, fixed, rows, max_iter, xtol, gtol, priors, drop, decrement)
+    together = lockstep.current()
+    if together is not None:
+        return together.fit(call)
+    return fit_calls([call])[0]
+
+
+def fit_calls(calls: list[FitCall], families: "Families | None" = None) -> list[list[FitResult]]:
+    """The fits of every call of ``calls`` (:func:`fit_batch`'s results per call), those
+    alike in their iteration (:meth:`FitCall.iteration`) in one LM on one batch
+    (:meth:`KindProblems.merged`; ``families``: the kinds that share launches)."""
+    out: list = [None] * len(calls)
+    alike: dict = {}
+    for i, call in enumerate(calls):
+        alike.setdefault(call.iteration(), []).append(i)
+    for idx in alike.values():
+        for i, fits in zip(idx, _fit_together([calls[i] for i in idx], families)):
+            out[i] = fits
+    return out
+
+
+def _fit_together(calls: list[FitCall], families: "Families | None") -> list[list[FitResult]]:
+    t0 = time.perf_counter()
+    lm = KindProblems.merged(calls, families)
     K = len(lm.specs)
     if K == 0:
-        return []
+        return [[] for _ in calls]
+    first = np.cumsum([0] + [len(c.specs) for c in calls])
     pid = np.arange(K)
     if lm.zlo.shape[1]:
+        call = calls[0]
         st = levenberg_marquardt(
-            lm, pid, lm.start(), xtol=xtol, gtol=gtol, max_iter=max_iter, drop=drop, decrement=decrement
+            lm,
+            pid,
+            lm.start(),
+            xtol=call.xtol,
+            gtol=call.gtol,
+            max_iter=call.max_iter,
+            drop=_drops(calls, first),
+            decrement=np.repeat([c.decrement for c in calls], np.diff(first)),
         )
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
     at = lm.at_solutions(z)
     dt = time.perf_counter() - t0
-    return [
+    fits = [
         kind_result(
-            kind,
+            lm.kinds[c],
             params,
             lm.models[c],
             z[c, : lm.p[c]],
@@ -368,6 +491,170 @@ def fit_batch(
         )
         for c, (params, effect, _) in enumerate(lm.specs)
     ]
+    return [fits[a:b] for a, b in zip(first[:-1], first[1:])]
+
+
+def _drops(calls: list[FitCall], first: np.ndarray):
+    """The calls' ``drop`` tests as one of the batch of all their fits (``first``: each
+    call's first fit in it), each asked about its own fits by their index in its call."""
+    own = [(call.drop, a, b) for call, a, b in zip(calls, first[:-1], first[1:]) if call.drop is not None]
+    if not own:
+        return None
+    if len(calls) == 1:
+        return own[0][0]
+
+    def drop(slots: np.ndarray, cost: np.ndarray) -> np.ndarray:
+        out = np.zeros(slots.size, dtype=bool)
+        for test, a, b in own:
+            mine = (slots >= a) & (slots < b)
+            if mine.any():
+                out[mine] = test(slots[mine] - a, cost[a:b])
+        return out
+
+    return drop
+
+
+@dataclass
+class Sets:
+    """``n`` parameter sets of ``kind`` to predict: ``values`` {name: (n,)} (the others at
+    the kind's core values), in the structure of ``effect`` (None: the core's); ``rows``:
+    None, or per set the rows it needs (:meth:`MeasurementKind.predict`)."""
+
+    kind: MeasurementKind
+    values: dict
+    n: int
+    effect: Effect | None = None
+    rows: list | None = None
+
+
+def predict_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.ndarray]:
+    """Each job's model values (n, rows): inside :func:`tawarp.fit.lockstep.run_together`
+    with the other threads' jobs, else at once (:func:`run_sets`)."""
+    together = lockstep.current()
+    if together is not None and not together.running:
+        return together.predict(jobs)
+    return run_sets(jobs, families or (together.families if together else None))
+
+
+def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.ndarray]:
+    """Each job's model values (n, rows), the jobs of one family (:class:`Families`) and
+    structure in one :meth:`MeasurementKind.predict` call: each job's sets with its own
+    core's values of the fields in which the family's cores differ, and of any name another
+    job sets (or that field's neutral value, an effect off); a job lacking a name with
+    neither predicts alone."""
+    families = families or Families([j.kind for j in jobs])
+    groups: dict = {}
+    for i, j in enumerate(jobs):
+        structure = j.effect.name if j.effect is not None and j.effect.transform else None
+        groups.setdefault((families.of(j.kind), structure), []).append(i)
+    out: list = [None] * len(jobs)
+    for (fam, _), idx in groups.items():
+        merged = [i for i in idx if len(idx) > 1 or jobs[i].kind is not fam.kind]
+        names = set(fam.differ).union(*(jobs[i].values for i in merged))
+        fill = {i: _absent(jobs[i], names) for i in merged}
+        alone = [i for i in idx if i not in fill or fill[i] is None]
+        merged = [i for i in merged if fill[i] is not None]
+        for i in alone:
+            j = jobs[i]
+            out[i] = _predict(j.kind, j.values, j.n, j.effect, j.rows)
+        if not merged:
+            continue
+        total = sum(jobs[i].n for i in merged)
+        values = {k: np.empty(total) for k in names}
+        k0 = 0
+        for i in merged:
+            j = jobs[i]
+            for k in names:
+                values[k][k0 : k0 + j.n] = j.values[k] if k in j.values else fill[i][k]
+            k0 += j.n
+        rows = None
+        if any(jobs[i].rows is not None for i in merged):
+            rows = [r for i in merged for r in (jobs[i].rows or [None] * jobs[i].n)]
+        Y = _predict(fam.kind, values, total, jobs[merged[0]].effect, rows)
+        k0 = 0
+        for i in merged:
+            out[i] = Y[k0 : k0 + jobs[i].n]
+            k0 += jobs[i].n
+    return out
+
+
+def _predict(kind: MeasurementKind, values: dict, n: int, effect, rows) -> np.ndarray:
+    return kind.predict(values, n, effect) if rows is None else kind.predict(values, n, effect, rows=rows)
+
+
+def _absent(job: Sets, names: set) -> dict | None:
+    """{name: the value ``job``'s sets take} of ``names`` it does not set: its core's, or
+    the field's neutral value; None where a name has neither."""
+    out = {}
+    core_names = _parameter_names(job.kind.core)
+    for k in names:
+        if k in job.values:
+            continue
+        if k in core_names:
+            out[k] = job.kind.core.get(k)
+            continue
+        try:
+            neutral = field_of(k).neutral
+        except KeyError:
+            neutral = None
+        if neutral is None:
+            return None
+        out[k] = neutral
+    return out
+
+
+@functools.lru_cache(maxsize=256)
+def _parameter_names(core) -> frozenset:
+    return frozenset(core.parameter_names())
+
+
+class Families:
+    """Kinds that predict in one launch (:meth:`MeasurementKind.family`: one structure, the
+    same rows), each set with the core values in which its kind's core differs from the
+    family's first kind's. A kind joins its family when first asked for (a loop's
+    noise-weighted copy of its kind too); a kind without a family predicts alone."""
+
+    def __init__(self, kinds: list = ()):
+        self._of: dict = {}  # id(kind) -> its family (whose members keep the kind, and its id, alive)
+        self._by_key: dict = {}
+        for k in kinds:
+            self.of(k)
+
+    def of(self, kind) -> "_Family":
+        """``kind``'s family."""
+        fam = self._of.get(id(kind))
+        if fam is None:
+            key = kind.family()
+            fam = _Family(kind) if key is None else self._by_key.setdefault(key, _Family(kind))
+            fam.join(kind)
+            self._of[id(kind)] = fam
+        return fam
+
+
+@dataclass(eq=False)
+class _Family:
+    """A family's predicting kind (:meth:`MeasurementKind.for_family` of its first), its
+    members and the core fields in which they differ."""
+
+    lead: MeasurementKind
+    members: list = field(default_factory=list)
+    differ: list = field(default_factory=list)
+
+    def __post_init__(self):
+        self.kind = self.lead
+
+    def join(self, kind) -> None:
+        self.members.append(kind)
+        if kind is self.lead:
+            return
+        names = self.lead.core.parameter_names()
+        lead = [self.lead.core.get(n) for n in names]
+        self.differ += [
+            n
+            for n, a, b in zip(names, lead, (kind.core.get(n) for n in names))
+            if a != b and a == a and n not in self.differ  # (a field unset, NaN, is unset in every member)
+        ]
+        self.kind = self.lead.for_family(self.members)
 
 
 def fit_one(

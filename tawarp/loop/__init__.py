@@ -39,6 +39,7 @@ from .run import (
     impedance_loop,
     library_for,
     run_loop,
+    run_loops,
 )
 
 __all__ = [
@@ -56,5 +57,6 @@ __all__ = [
     "impedance_loop",
     "library_for",
     "run_loop",
+    "run_loops",
     "residual_structure",
 ]

@@ -51,7 +51,7 @@ from scipy import special
 
 from ..fit.lm import held_fixed
 from ..fit.problem_model import ProblemModel, determined_inverse
-from ..fit.problems import FD_STEP, param_values, residual
+from ..fit.problems import FD_STEP, Sets, param_values, predict_sets, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param
@@ -403,14 +403,16 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
     groups = [(base.effect, fields) for fields in launches or [[]]]
     if base.effect is None:
         groups += [(e, [e]) for e in library if e.transform is not None]
+    # every launch's sets, predicted in one request (:func:`tawarp.fit.problems.predict_sets`)
+    jobs, steps = [], []
     for structure, effects in groups:
         extra = [par for e in effects for par in e.params]
         if not extra:
             if structure is not None:
                 # a structure without parameters of its own (another pore shape): its one
                 # column is the residual change of the swap at the base solution
-                Y = problem.predict(param_values(base.params, base.x[:1], fixed), 1, structure)
-                out[structure.name] = (residual(problem, Y, rows)[0] - base.residuals[0])[:, None]
+                jobs.append(Sets(problem, param_values(base.params, base.x[:1], fixed), 1, structure))
+                steps.append(None)
             continue
         allp = base.params + extra
         p0 = len(base.params)
@@ -419,7 +421,13 @@ def effect_columns(problem: MeasurementKind, base: FitResult, fixed: dict, libra
         hi = np.array([par.bounds_x()[1] for par in extra])
         h[h > hi] *= -1
         X = np.vstack([x[None], x[None] + np.pad(np.diag(h), ((0, 0), (p0, 0)))])
-        Y = problem.predict(param_values(allp, X, fixed), X.shape[0], structure)
+        jobs.append(Sets(problem, param_values(allp, X, fixed), X.shape[0], structure))
+        steps.append((effects, h))
+    for job, step, Y in zip(jobs, steps, predict_sets(jobs)):
+        if step is None:
+            out[job.effect.name] = (residual(problem, Y, rows)[0] - base.residuals[0])[:, None]
+            continue
+        effects, h = step
         R = residual(problem, Y, rows)
         cols = ((R[1:] - R[0]) / h[:, None]).T
         k = 0

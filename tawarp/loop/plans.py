@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fit.problems import KindProblems
+from ..fit.problems import KindProblems, predict_sets
 from ..measure.kind import MeasurementKind
 from .evidence import Model
 
@@ -79,16 +79,20 @@ def next_measurement(problem: MeasurementKind, models: list[Model], fixed: dict)
     if not rivals:
         return []
     sd = _noise(problem)
-    plans = []
+    plans, jobs, parts = [], [], []
+    compared = [best] + rivals
     for text, groups, freqs in candidate_plans(problem):
         kind = problem.at_rows(groups, freqs)
         if kind is None:
             return []
-        # the models' predictions in one launch per structure
-        compared = [best] + rivals
         batch = KindProblems(kind, [(m.fit.params, m.fit.effect, m.fit.x[0]) for m in compared], fixed)
-        Y = batch.predict([(c, m.fit.x[:1]) for c, m in enumerate(compared)])
-        pred = {m.label: y[0] for m, y in zip(compared, Y)}
+        sets, assemble = batch.prediction([(c, m.fit.x[:1]) for c, m in enumerate(compared)])
+        parts.append((text, groups, freqs, kind, len(jobs), len(jobs) + len(sets), assemble))
+        jobs += sets
+    # every plan's predictions of the models in one request (one launch per plan and structure)
+    got = predict_sets(jobs)
+    for text, groups, freqs, kind, a, b, assemble in parts:
+        pred = {m.label: y[0] for m, y in zip(compared, assemble(got[a:b]))}
         s = sd[kind.coef]
         gains = {
             m.label: float(

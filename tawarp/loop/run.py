@@ -6,12 +6,14 @@ checks, prior tension, the verdict, the next measurement and the drift of h."""
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..fit.lm import DROPPED
+from ..fit.lockstep import run_together
 from ..fit.problems import fit_batch, fit_one
 from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
@@ -721,6 +723,21 @@ def run_loop(
     _finished(bar, "drift")
     bar.close()
     return report
+
+
+def run_loops(problems: list[MeasurementKind], **kw) -> list[LoopReport]:
+    """:func:`run_loop` of each of ``problems`` (its other arguments ``kw``), all their fits
+    in one batch at each stage (:func:`tawarp.fit.lockstep.run_together`; the kinds of one
+    family, :meth:`MeasurementKind.family`, in one launch): on a GPU host many loops a second
+    from one process, where each loop alone is bound by its host work per launch. Each
+    report is the one :func:`run_loop` gives, to the fits' stopping rules (a batch's shared
+    launches hold the union of its fits' parameters, as one loop's do)."""
+    got = run_together([functools.partial(run_loop, p, **kw) for p in problems], list(problems))
+    for i, g in enumerate(got):
+        if isinstance(g, Exception):
+            g.add_note(f"in the loop of problem {i} ({g.__class__.__name__} raised there)")
+            raise g
+    return got
 
 
 def _finished(bar, stage: str) -> None:

@@ -75,6 +75,18 @@ class MeasurementKind:
         """Whether :meth:`predict` launches on a GPU (its settings' device)."""
         return self.settings is not None and wp.get_device(resolve_device(self.settings.device)).is_cuda
 
+    def family(self) -> tuple | None:
+        """A key shared by the kinds whose parameter sets one :meth:`predict` call of any of
+        them computes, each at its own core's values passed per set (the same structure,
+        rows and settings; :class:`tawarp.fit.problems.Families`); None: this kind predicts
+        alone (the default)."""
+        return None
+
+    def for_family(self, members: list) -> "MeasurementKind":
+        """The kind that predicts for every kind of ``members``, a family of this one
+        (:meth:`family`): this kind itself, where the family's settings are its own."""
+        return self
+
     def predict(self, values: dict, n: int, effect=None, rows: list | None = None) -> np.ndarray:
         """Model values (n, rows) complex for ``n`` parameter sets ``values`` {name: (n,)}
         (missing names take the core's values); ``effect`` an

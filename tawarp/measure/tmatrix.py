@@ -8,6 +8,7 @@ T-matrices for every (parameter set, heat input). Files: :func:`read_tmatrix_csv
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import functools
 
@@ -25,7 +26,7 @@ from ..model.effects import (
     stack_and_heater,
     tmatrix_library,
 )
-from ..model.forward import ForwardSettings
+from ..model.forward import ForwardSettings, base_table, structure_flags
 from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
 from .kind import MeasurementKind, get_engine, smooth_settings
@@ -88,6 +89,35 @@ class TMatrixKind(MeasurementKind):
             self.has_sigma = True
         else:
             self.w = self.unit_weights()
+
+    def family(self) -> tuple:
+        """The core's structure (segments, pore models, gas, which fields are set), the
+        duct's impedance, the rows' heat inputs and frequencies and the settings: the kinds
+        that share these differ only in values that a launch takes per set."""
+        return (
+            type(self),
+            tuple(s.name for s in self.core.segments),
+            structure_flags(self.core).tobytes(),
+            np.isfinite(base_table(self.core)).tobytes(),
+            self.core.gas.name,
+            self.Zc,
+            self.Qs.tobytes(),
+            self.freqs.tobytes(),
+            self._qi.tobytes(),
+            self._fi.tobytes(),
+            repr(dataclasses.replace(self.settings, cells=None)),
+        )
+
+    def for_family(self, members: list) -> "TMatrixKind":
+        """This kind with each thermal segment's fixed cells the most of ``members``' (each
+        sized them for its own core, :func:`smooth_settings`): every member's predictions at
+        least as fine as its own settings make them."""
+        cells = [m.settings.cells for m in members]
+        if all(c == cells[0] for c in cells):
+            return self
+        out = copy.copy(self)
+        out.settings = dataclasses.replace(self.settings, cells={k: max(c[k] for c in cells) for k in cells[0]})
+        return out
 
     @classmethod
     def from_file(cls, path, core=None, settings=None) -> "TMatrixKind":
