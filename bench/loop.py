@@ -32,9 +32,15 @@ different code can be checked to decide the same.
   the warm-up compiled the kernels (:func:`study`): how a study that runs many cases is
   best spread over a host's cores and its GPU; ``cases_per_second`` over the wall time,
   ``cases_per_second_after_start`` over the slowest process's own time (its start left out).
+  With ``--together N`` each process runs its cases N at a time as loops together
+  (:func:`tawarp.loop.run_loops`, ordered so that the kinds of one family come together),
+  and the bench first runs them so in its own process from cold (``together_one_process``:
+  the kernels the processes load, and one process's loops a second).
 
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
+    python bench/loop.py --device cuda --cases study --processes 16 --together 64 \
+        --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
 """
 
 from __future__ import annotations

@@ -725,14 +725,25 @@ def run_loop(
     return report
 
 
-def run_loops(problems: list[MeasurementKind], **kw) -> list[LoopReport]:
-    """:func:`run_loop` of each of ``problems`` (its other arguments ``kw``), all their fits
-    in one batch at each stage (:func:`tawarp.fit.lockstep.run_together`; the kinds of one
-    family, :meth:`MeasurementKind.family`, in one launch): on a GPU host many loops a second
-    from one process, where each loop alone is bound by its host work per launch. Each
-    report is the one :func:`run_loop` gives, to the fits' stopping rules (a batch's shared
-    launches hold the union of its fits' parameters, as one loop's do)."""
-    got = run_together([functools.partial(run_loop, p, **kw) for p in problems], list(problems))
+def run_loops(problems: list[MeasurementKind], progress: bool = False, **kw) -> list[LoopReport]:
+    """:func:`run_loop` of each of ``problems`` (its other arguments ``kw``), their fits and
+    predictions in one batch at each step (:func:`tawarp.fit.lockstep.run_together`; the
+    kinds of one family, :meth:`MeasurementKind.family`, in one launch per structure, at
+    the finest of their fixed cells): fewer launches and less host work a loop where a GPU
+    host's loops are bound by their host work. Each report decides as :func:`run_loop`
+    alone, to the fits' stopping rules (a batch's shared launches hold the union of its
+    fits' parameters, as one loop's do). ``progress``: a bar over the loops finished (on a
+    terminal only). A loop that raised raises here, once every loop has ended."""
+    bar = progress_bar(len(problems), "closing the loops", progress, unit="loop")
+
+    def one(problem):
+        try:
+            return run_loop(problem, **kw)
+        finally:
+            bar.update(1)
+
+    got = run_together([functools.partial(one, p) for p in problems], list(problems))
+    bar.close()
     for i, g in enumerate(got):
         if isinstance(g, Exception):
             g.add_note(f"in the loop of problem {i} ({g.__class__.__name__} raised there)")
