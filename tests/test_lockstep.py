@@ -10,7 +10,7 @@ import pytest
 from test_fit_lm import ExpKind, linear_case
 
 from tawarp.fit.lockstep import Together, run_together
-from tawarp.fit.problems import Families, Sets, fit_batch, run_sets
+from tawarp.fit.problems import Families, Sets, _absent, fit_batch, run_sets
 from tawarp.loop import default_base_params
 from tawarp.measure import TMatrixKind
 from tawarp.measure.files import TMatrixData
@@ -128,3 +128,18 @@ def test_a_family_predicts_with_the_finest_cells_of_its_members():
     assert fam.kind.settings.cells == {"stack": 9, "hot_hx": 17, "tbt": 13}
     assert a.settings.cells == {"stack": 7, "hot_hx": 17, "tbt": 13}  # the member's own unchanged
     assert dataclasses.replace(fam.kind.settings, cells=None) == dataclasses.replace(a.settings, cells=None)
+
+
+def test_a_name_other_jobs_set_takes_the_core_value_or_the_effect_off():
+    # a job's sets take, for a name only another job of its launch sets, their own core's
+    # value, or an effect's neutral value (off); with neither (a frame field, which has no
+    # "off" value) the job cannot share the launch
+    a = mesh_kind(1)
+    job = Sets(a, {"stack.porosity": np.full(2, 0.7)}, 2)
+    fill = _absent(job, {"stack.porosity", "stack.pore_radius", "calibration.gain", "stack.porosity_gradient"})
+    assert fill == {
+        "stack.pore_radius": a.core.get("stack.pore_radius"),
+        "calibration.gain": 1.0,
+        "stack.porosity_gradient": 0.0,
+    }
+    assert _absent(job, {"stack.frame_wave_speed"}) is None
