@@ -3,6 +3,7 @@
     python studies/loop_validation.py --cases 14 --device cpu --out studies/out/loop_validation
     python studies/loop_validation.py --cases 70 --seed0 70 --append --workers 16 --loop-workers 16 --out DIR   # in chunks
     nvidia-cuda-mps-control -d; python studies/loop_validation.py --cases 70 --device cuda --loop-workers 16 --out DIR
+    python studies/loop_validation.py --cases 112 --device cuda --loop-workers 16 --together 7 --out DIR
     python studies/loop_validation.py --suite lab --cases 48 --loop-workers 16 --out studies/out/loop_validation_lab
     python studies/loop_validation.py --suite lab --split heldout --cases 48 --loop-workers 16 --out DIR   # rules frozen
 
@@ -103,7 +104,9 @@ description, so a changed case is regenerated). The loops then run on ``--device
 ``--loop-workers`` processes, on the CPU each with its share of the cores; processes that
 share a GPU take turns on it unless NVIDIA's MPS daemon runs (docs/loop.md, Speed: on one
 H100 host 16 processes ran 1.62 cases/s on the GPU under MPS, 0.24 without it, 0.62 on the
-CPU's 16 cores). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
+CPU's 16 cores); with ``--together N`` each process runs N loops at a time, the cases of one
+core file together, their fits and launches batched (:func:`tawarp.fit.lockstep.run_together`;
+a loop alone on a GPU host is bound by its host work). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
 summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/residual_ratio.png``,
 ``OUT/calibration.png``.
 """
@@ -130,6 +133,7 @@ import numpy as np
 
 from tawarp import reference
 from tawarp.distributed import cores_shared, cuda_mps_running
+from tawarp.fit.lockstep import run_together
 from tawarp.fit.problems import fit_batch
 from tawarp.io import atomic_path, write_json, write_text
 from tawarp.loop import default_base_params, fit_base, library_for, run_loop
@@ -768,6 +772,19 @@ def run_case(
     return score(rec)
 
 
+def run_cases(cases: list[Case], arrays: list[dict], **kw) -> list[dict]:
+    """:func:`run_case` of each of ``cases`` (its options ``kw``), their loops run together:
+    every fit and prediction of theirs batched with the others'
+    (:func:`tawarp.fit.lockstep.run_together`; each loop decides as alone, to the fits'
+    stopping rules)."""
+    got = run_together([functools.partial(run_case, c, arr, **kw) for c, arr in zip(cases, arrays)])
+    for case, g in zip(cases, got):
+        if isinstance(g, Exception):
+            g.add_note(f"in the case of seed {case.seed}")
+            raise g
+    return got
+
+
 def noise_floor(arrays: dict, Zc: float) -> float:
     """The noise floor of the case's data, whether or not the file carries sigma (the
     definition of MeasurementKind.noise_floor: docs/formats.md error of data off by the noise):
@@ -1283,6 +1300,13 @@ def main(argv=None) -> int:
     ap.add_argument("--out", default="studies/out/loop_validation", help="output folder (cache in OUT/cache)")
     ap.add_argument("--loop-workers", type=int, default=1, help="processes running the loops")
     ap.add_argument(
+        "--together",
+        type=int,
+        default=1,
+        help="loops a loop process runs together, their fits and launches batched (tawarp.loop.run_loops): "
+        "on a GPU host, where a loop alone is bound by its host work",
+    )
+    ap.add_argument(
         "--workers",
         type=int,
         default=max(1, min(4, (os.cpu_count() or 1))),
@@ -1310,6 +1334,8 @@ def main(argv=None) -> int:
     for option, value in (("--workers", a.workers), ("--loop-workers", a.loop_workers)):
         if value < 1:
             ap.error(f"{option}: {value}; expected a positive number of processes")
+    if a.together < 1:
+        ap.error(f"--together: {a.together}; expected a positive number of loops")
     out = Path(a.out)
     if a.rescore:
         old = json.loads((out / "loop_validation.json").read_text())
@@ -1356,12 +1382,16 @@ def main(argv=None) -> int:
         cores_shared(a.loop_workers),
         ProcessPoolExecutor(a.loop_workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
     ):
-        loop = functools.partial(run_case, device=a.device, base=a.base, cpu_threads=threads)
-        runs = pool.map(loop, cases, [arrays[c.seed] for c in cases])
-        for case, rec in zip(cases, runs):
-            records.append(rec)
-            bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
-            bar.update(1)
+        loop = functools.partial(run_cases, device=a.device, base=a.base, cpu_threads=threads)
+        # the cases of one core file together: their launches are shared (one family of kinds)
+        ordered = sorted(cases, key=lambda c: c.core_material) if a.together > 1 else cases
+        groups = [ordered[k : k + a.together] for k in range(0, len(ordered), a.together)]
+        runs = pool.map(loop, groups, [[arrays[c.seed] for c in g] for g in groups])
+        for group, recs in zip(groups, runs):
+            for case, rec in zip(group, recs):
+                records.append(rec)
+                bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
+                bar.update(1)
             # the cases so far, so that an interrupted run keeps them
             write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
     bar.close()
@@ -1375,6 +1405,7 @@ def main(argv=None) -> int:
         "base": a.base,
         "workers": a.workers,
         "loop_workers": a.loop_workers,
+        "together": a.together,
         "generation_s": t_gen,
         "loop_s": t_loop,
         "cases_per_s": len(cases) / t_loop,

@@ -539,12 +539,28 @@ def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
 
 
-@pytest.mark.parametrize("option", ["--workers", "--loop-workers"])
-def test_a_study_without_processes_is_refused_before_any_work(option, tmp_path, capsys):
-    # no process pool of zero or fewer processes, nor a share of the cores for none: the
-    # option named, exit 2 (argparse's), and nothing generated or written
+@pytest.mark.parametrize(
+    "option, what", [("--workers", "processes"), ("--loop-workers", "processes"), ("--together", "loops")]
+)
+def test_a_study_without_processes_is_refused_before_any_work(option, what, tmp_path, capsys):
+    # no process pool of zero or fewer processes, nor a share of the cores for none, nor a
+    # group of no loops: the option named, exit 2 (argparse's), and nothing generated or written
     with pytest.raises(SystemExit) as stop:
         lv.main([option, "0", "--cases", "1", "--out", str(tmp_path / "out")])
     assert stop.value.code == 2
-    assert f"{option}: 0; expected a positive number of processes" in capsys.readouterr().err
+    assert f"{option}: 0; expected a positive number of {what}" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_cases_run_together_are_scored_as_alone(tmp_path):
+    # --together: a plane offset and a clean case of the mesh core, their loops' fits and
+    # launches batched (two core files of one structure), each scored as its loop alone
+    cases = [
+        lv.make_case(SEEDS[0], category=c, material="mesh", n_freqs=N_FREQS) for c in ("effect:plane_offsets", "clean")
+    ]
+    arrays = [lv.load_or_generate(c, tmp_path) for c in cases]
+    alone = [lv.run_case(c, a, "cpu", base="loop", cells=CELLS) for c, a in zip(cases, arrays)]
+    together = lv.run_cases(cases, arrays, device="cpu", base="loop", cells=CELLS)
+    for a, b in zip(alone, together):
+        assert lv.outcome_label(a) == lv.outcome_label(b) and a["right"] == b["right"]
+        assert abs(a["ratio_after"] / b["ratio_after"] - 1) < 1e-4

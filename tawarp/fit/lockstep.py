@@ -32,7 +32,10 @@ class Together:
     """Turns among the threads of :func:`run_together` and the fit calls they wait on."""
 
     def __init__(self, families=None):
-        self.families = families
+        from .problems import Families
+
+        #: the kinds the threads fit, by family (each joins when first met)
+        self.families = families if families is not None else Families()
         self._cond = threading.Condition()
         self._turn: int | None = None
         self._ready: deque[int] = deque()
@@ -147,11 +150,12 @@ class Together:
         return out
 
 
-def run_together(functions: list[Callable[[], object]], kinds: list | None = None) -> list:
-    """[f() for f in functions], their :func:`tawarp.fit.problems.fit_batch` calls batched
-    (module doc); ``kinds``: the measurement kinds they fit, whose families share launches
-    (:class:`tawarp.fit.problems.Families`; default: each kind alone). A function that
-    raised gives its exception in its place."""
+def run_together(functions: list[Callable[[], object]], kinds: list = ()) -> list:
+    """[f() for f in functions], their :func:`tawarp.fit.problems.fit_batch` calls and
+    predictions batched (module doc), the kinds of one family sharing launches
+    (:class:`tawarp.fit.problems.Families`; ``kinds``: those the functions fit, each family's
+    first the one whose core the launches take; any other kind joins its family when first
+    met). A function that raised gives its exception in its place."""
     from .problems import Families
 
-    return Together(Families(kinds) if kinds else None).run(functions)
+    return Together(Families(kinds)).run(functions)
