@@ -1,9 +1,9 @@
 """Many callers' fits as one batch: :func:`run_together` runs functions (a loop per data
 set, say) in threads that take turns, and each call of :func:`tawarp.fit.problems.fit_batch`
-they make waits until every other thread waits on one too or has ended; then all the calls
-run as one batch (:func:`tawarp.fit.problems.fit_calls`): one LM over all their fits, and
-one forward launch per structure and family of kinds (:class:`tawarp.fit.problems.Families`)
-for all their parameter sets.
+or :func:`tawarp.fit.problems.predict_sets` they make waits until every other thread waits
+on one too or has ended; then all the calls run as one batch: one LM over all their fits
+(:func:`tawarp.fit.problems.fit_calls`), and one forward launch per structure and family
+of kinds (:class:`tawarp.fit.problems.Families`) for all their parameter sets.
 
 Why threads: a loop (:func:`tawarp.loop.run_loop`) decides what to fit next from what its
 fits gave, and its host work per launch is the same for a batch of one data set's fits as
@@ -29,7 +29,8 @@ def current() -> "Together | None":
 
 
 class Together:
-    """Turns among the threads of :func:`run_together` and the fit calls they wait on."""
+    """Turns among the threads of :func:`run_together` and the fits and predictions they
+    wait on."""
 
     def __init__(self, families=None):
         from .problems import Families
@@ -39,7 +40,7 @@ class Together:
         self._cond = threading.Condition()
         self._turn: int | None = None
         self._ready: deque[int] = deque()
-        self._waiting: dict = {}  # thread -> its FitCall
+        self._waiting: dict = {}  # thread -> its FitCall, or its list of prediction jobs
         self._results: dict = {}  # thread -> its fits, or the exception the batch raised
         #: batches run, and the calls in them (how far the callers kept in step)
         self.batches = 0
