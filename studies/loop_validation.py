@@ -134,7 +134,7 @@ import numpy as np
 from tawarp import reference
 from tawarp.distributed import cores_shared, cuda_mps_running
 from tawarp.fit.lockstep import run_together
-from tawarp.fit.problems import fit_batch
+from tawarp.fit.problems import Families, fit_batch
 from tawarp.io import atomic_path, write_json, write_text
 from tawarp.loop import default_base_params, fit_base, library_for, run_loop
 from tawarp.loop.report import DRIFT_P, drifting
@@ -777,7 +777,7 @@ def run_cases(cases: list[Case], arrays: list[dict], **kw) -> list[dict]:
     every fit and prediction of theirs batched with the others'
     (:func:`tawarp.fit.lockstep.run_together`; each loop decides as alone, to the fits'
     stopping rules)."""
-    got = run_together([functools.partial(run_case, c, arr, **kw) for c, arr in zip(cases, arrays)])
+    got = run_together([functools.partial(run_case, c, arr, **kw) for c, arr in zip(cases, arrays)], Families())
     for case, g in zip(cases, got):
         if isinstance(g, Exception):
             g.add_note(f"in the case of seed {case.seed}")

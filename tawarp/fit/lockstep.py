@@ -1,7 +1,9 @@
 """Many callers' fits as one batch: :func:`run_together` runs functions (a loop per data
 set, say) in threads that take turns, and each call of :func:`tawarp.fit.problems.fit_batch`
-or :func:`tawarp.fit.problems.predict_sets` they make waits until every other thread waits
-on one too or has ended; then all the calls run as one batch: one LM over all their fits
+or :func:`tawarp.fit.problems.predict_sets` they make (:meth:`Together.call`) waits until
+every other thread waits on one too or has ended; then all the calls run as one batch
+(this module knows nothing of fits, only of requests and the functions that batch them):
+one LM over all their fits
 (:func:`tawarp.fit.problems.fit_calls`), and one forward launch per structure and family
 of kinds (:class:`tawarp.fit.problems.Families`) for all their parameter sets.
 
@@ -15,6 +17,7 @@ one thread; they are threads only to keep each caller's own control flow.
 
 from __future__ import annotations
 
+import functools
 import threading
 from collections import deque
 from collections.abc import Callable
@@ -29,39 +32,30 @@ def current() -> "Together | None":
 
 
 class Together:
-    """Turns among the threads of :func:`run_together` and the fits and predictions they
-    wait on."""
+    """Turns among the threads of :func:`run_together` and the requests they wait on.
+    ``state``: what the batches share (:class:`tawarp.fit.problems.Families`, the kinds by
+    family), passed to every batch."""
 
-    def __init__(self, families=None):
-        from .problems import Families
-
-        #: the kinds the threads fit, by family (each joins when first met)
-        self.families = families if families is not None else Families()
+    def __init__(self, state=None):
+        self.state = state
         self._cond = threading.Condition()
         self._turn: int | None = None
         self._ready: deque[int] = deque()
-        self._waiting: dict = {}  # thread -> its FitCall, or its list of prediction jobs
-        self._results: dict = {}  # thread -> its fits, or the exception the batch raised
-        #: batches run, and the calls in them (how far the callers kept in step)
+        self._waiting: dict = {}  # thread -> (its request, the function that runs a batch of such)
+        self._results: dict = {}  # thread -> its result, or the exception its batch raised
+        #: batches run, and the requests in them (how far the callers kept in step)
         self.batches = 0
         self.calls = 0
-        #: a batch is running (its fits' predictions are made at once, not waited for)
+        #: a batch is running (the work it does is done at once, not waited for)
         self.running = False
 
-    def fit(self, call):
-        """``call``'s fits (:class:`tawarp.fit.problems.FitCall`), run in the batch of every
-        thread's next call; from the thread that holds the turn."""
-        return self._wait_for(call)
-
-    def predict(self, jobs: list) -> list:
-        """The model values of ``jobs`` (:class:`tawarp.fit.problems.Sets`), predicted in the
-        batch of every thread's next call (:func:`tawarp.fit.problems.run_sets`)."""
-        return self._wait_for(jobs)
-
-    def _wait_for(self, request):
+    def call(self, request, batch: Callable[[list, object], list]):
+        """``request``'s result, from ``batch(requests, state)`` (results in the requests'
+        order) run once every other thread waits too, on every waiting request of that
+        ``batch``; from the thread that holds the turn."""
         me = _LOCAL.index
         with self._cond:
-            self._waiting[me] = request
+            self._waiting[me] = (request, batch)
             self._hand_on()
             self._wait_turn(me)
         got = self._results.pop(me)
@@ -74,45 +68,26 @@ class Together:
             self._cond.wait()
 
     def _hand_on(self) -> None:
-        """Give the turn to the next ready thread; where none is, run the waiting calls as one
-        batch (in this thread, which holds the turn) and make their threads ready."""
+        """Give the turn to the next ready thread; where none is, run the waiting requests,
+        each batch function's in one call (in this thread, which holds the turn), and make
+        their threads ready."""
         if not self._ready and self._waiting:
-            owners = list(self._waiting)
-            self._run_batch([self._waiting[k] for k in owners], owners)
+            by_batch: dict = {}
+            for owner, (request, batch) in self._waiting.items():
+                by_batch.setdefault(batch, []).append((owner, request))
+            self.running = True
+            try:
+                for batch, waiting in by_batch.items():
+                    owners, requests = zip(*waiting)
+                    self._settle(list(owners), functools.partial(batch, list(requests), self.state))
+            finally:
+                self.running = False
+            self.batches += 1
+            self.calls += len(self._waiting)
+            self._ready.extend(self._waiting)
             self._waiting.clear()
-            self._ready.extend(owners)
         self._turn = self._ready.popleft() if self._ready else None
         self._cond.notify_all()
-
-    def _run_batch(self, requests: list, owners: list) -> None:
-        """The fit calls among ``requests`` in one batch, and the lists of prediction jobs in
-        one (their threads' results set)."""
-        from .problems import FitCall, fit_calls
-
-        self.running = True
-        try:
-            fits = [k for k, r in enumerate(requests) if isinstance(r, FitCall)]
-            jobs = [k for k, r in enumerate(requests) if not isinstance(r, FitCall)]
-            if fits:
-                self._settle([owners[k] for k in fits], lambda: fit_calls([requests[k] for k in fits], self.families))
-            if jobs:
-                self._settle([owners[k] for k in jobs], lambda: self._predict([requests[k] for k in jobs]))
-            self.batches += 1
-            self.calls += len(requests)
-        finally:
-            self.running = False
-
-    def _predict(self, lists: list[list]) -> list[list]:
-        """The model values of each list of prediction jobs, all in one
-        :func:`tawarp.fit.problems.run_sets`."""
-        from .problems import run_sets
-
-        flat = run_sets([j for jobs in lists for j in jobs], self.families)
-        out, k = [], 0
-        for jobs in lists:
-            out.append(flat[k : k + len(jobs)])
-            k += len(jobs)
-        return out
 
     def _settle(self, owners: list, run: Callable[[], list]) -> None:
         """Each owner's result of ``run()``; where it raised, every owner gets the exception."""
@@ -151,12 +126,8 @@ class Together:
         return out
 
 
-def run_together(functions: list[Callable[[], object]], kinds: list = ()) -> list:
-    """[f() for f in functions], their :func:`tawarp.fit.problems.fit_batch` calls and
-    predictions batched (module doc), the kinds of one family sharing launches
-    (:class:`tawarp.fit.problems.Families`; ``kinds``: those the functions fit, each family's
-    first the one whose core the launches take; any other kind joins its family when first
-    met). A function that raised gives its exception in its place."""
-    from .problems import Families
-
-    return Together(Families(kinds)).run(functions)
+def run_together(functions: list[Callable[[], object]], state=None) -> list:
+    """[f() for f in functions], the requests they make of :meth:`Together.call` batched
+    (module doc; ``state``: what the batches share, :class:`tawarp.fit.problems.Families` for
+    the fits and predictions). A function that raised gives its exception in its place."""
+    return Together(state).run(functions)

@@ -431,7 +431,7 @@ def fit_batch(
     call = FitCall(kind, specs, fixed, rows, max_iter, xtol, gtol, priors, drop, decrement)
     together = lockstep.current()
     if together is not None:
-        return together.fit(call)
+        return together.call(call, fit_calls)
     return fit_calls([call])[0]
 
 
@@ -532,8 +532,18 @@ def predict_sets(jobs: list[Sets], families: "Families | None" = None) -> list[n
     with the other threads' jobs, else at once (:func:`run_sets`)."""
     together = lockstep.current()
     if together is not None and not together.running:
-        return together.predict(jobs)
-    return run_sets(jobs, families or (together.families if together else None))
+        return together.call(jobs, _run_set_lists)
+    return run_sets(jobs, families or (together.state if together else None))
+
+
+def _run_set_lists(lists: list[list[Sets]], families: "Families | None") -> list[list[np.ndarray]]:
+    """:func:`run_sets` of several callers' lists of jobs, all in one."""
+    flat = run_sets([j for jobs in lists for j in jobs], families)
+    out, k = [], 0
+    for jobs in lists:
+        out.append(flat[k : k + len(jobs)])
+        k += len(jobs)
+    return out
 
 
 def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.ndarray]:

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..fit.lm import DROPPED
 from ..fit.lockstep import run_together
-from ..fit.problems import fit_batch, fit_one
+from ..fit.problems import Families, fit_batch, fit_one
 from ..fit.result import FitResult
 from ..measure.impedance import ImpedanceKind
 from ..measure.kind import MeasurementKind
@@ -742,7 +742,7 @@ def run_loops(problems: list[MeasurementKind], progress: bool = False, **kw) -> 
         finally:
             bar.update(1)
 
-    got = run_together([functools.partial(one, p) for p in problems], list(problems))
+    got = run_together([functools.partial(one, p) for p in problems], Families(problems))
     bar.close()
     for i, g in enumerate(got):
         if isinstance(g, Exception):
