@@ -58,15 +58,9 @@ def param_values(params: list[Param], X: np.ndarray, fixed: dict) -> dict:
 
 def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Weighted real residuals (..., 2 len(rows)): re parts, then im parts."""
-    return weighted_residual(Y, kind.y, kind.w, rows)
-
-
-def weighted_residual(Y: np.ndarray, y: np.ndarray, w: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    """:func:`residual` of model values Y (..., y.size) against data ``y`` (..., y.size) with
-    weights ``w`` (..., y.size, 2), broadcast."""
-    d = (Y - y)[..., rows]
-    w = w[..., rows, :]
-    return np.concatenate([d.real * w[..., 0], d.imag * w[..., 1]], axis=-1)
+    d = (Y - kind.y)[..., rows]
+    w = kind.w[rows]
+    return np.concatenate([d.real * w[:, 0], d.imag * w[:, 1]], axis=-1)
 
 
 class KindProblems:
@@ -136,7 +130,8 @@ class KindProblems:
         ]
         #: the kinds' families: their sets share launches (:func:`predict_sets`)
         self.families = families
-        #: per fit, the fits that share its data and rows (their residuals are formed together)
+        #: per fit, the fits that share its kind (its data) and rows: their residuals are
+        #: formed together
         seen: dict = {}
         self.alike_key = [
             seen.setdefault((id(k), r.tobytes()) if len(parts) > 1 else id(r), len(seen))
@@ -279,12 +274,12 @@ class KindProblems:
         for (_, m), members in alike.items():
             rows, k = self.rows[pid[members[0]]], m - 1
             Y = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
-            y, w = self._data([pid[i] for i in members])
+            kind = self.kinds[pid[members[0]]]
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                R = weighted_residual(Y, y, w, rows)
+                R = residual(kind, Y, rows)
                 r = R[:, 0]
                 cost[members] = np.einsum("ij,ij->i", r, r)
-                raw[members] = np.sum(np.abs(Y[:, 0, rows] - (y if y.ndim == 1 else y[:, 0])[..., rows]) ** 2, axis=1)
+                raw[members] = np.sum(np.abs(Y[:, 0, rows] - kind.y[rows]) ** 2, axis=1)
                 J = (R[:, 1:] - r[:, None]) / step[members, :k, None] if k else None  # (fits, p, rows)
                 if k:
                     g[members], H[members] = 0.0, 0.0
@@ -301,14 +296,6 @@ class KindProblems:
             if c not in self.best or cost[i] < self.best[c][0]:
                 self.best[c] = (cost[i], z[i].copy(), *self.last[i])
         return cost, raw, g, H
-
-    def _data(self, fits: list) -> tuple[np.ndarray, np.ndarray]:
-        """(y, w) of the kind of ``fits``, or stacked (fits, 1, rows) where they are of
-        several kinds (:meth:`merged`)."""
-        kinds = [self.kinds[c] for c in fits]
-        if all(k is kinds[0] for k in kinds):
-            return kinds[0].y, kinds[0].w
-        return np.stack([k.y for k in kinds])[:, None], np.stack([k.w for k in kinds])[:, None]
 
     def at_solutions(self, z: np.ndarray) -> list:
         """(J, model values) of every fit at its solution z (K, P): the evaluation there
@@ -652,17 +639,20 @@ class _Family:
 
     def __post_init__(self):
         self.kind = self.lead
+        self._lead_values: dict | None = None  # the lead's core values, once a second member joins
 
     def join(self, kind) -> None:
         self.members.append(kind)
         if kind is self.lead:
             return
-        names = self.lead.core.parameter_names()
-        lead = [self.lead.core.get(n) for n in names]
+        if self._lead_values is None:
+            self._lead_values = {n: self.lead.core.get(n) for n in self.lead.core.parameter_names()}
         self.differ += [
             n
-            for n, a, b in zip(names, lead, (kind.core.get(n) for n in names))
-            if a != b and a == a and n not in self.differ  # (a field unset, NaN, is unset in every member)
+            for n, a in self._lead_values.items()
+            if a == a
+            and a != kind.core.get(n)
+            and n not in self.differ  # (a field unset, NaN, is unset in every member)
         ]
         self.kind = self.lead.for_family(self.members)
 
