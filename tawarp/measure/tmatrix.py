@@ -82,6 +82,16 @@ class TMatrixKind(MeasurementKind):
         self._qi = np.searchsorted(self.Qs, data.heat_input)
         self._row_qi = np.repeat(self._qi, 4)  # each row's heat input, an index into Qs
         self._fi = np.searchsorted(self.freqs, data.freq)
+        # per heat input: its rows, and their places in a set's T-matrices (m, 2, 2) flattened
+        # (None: all of them, in order); slices where the rows are one run
+        row_fc = 4 * np.repeat(self._fi, 4) + self.coef
+        self._gather = []
+        for q in range(len(self.Qs)):
+            sel = np.flatnonzero(self._row_qi == q)
+            if sel.size and np.array_equal(sel, np.arange(sel[0], sel[0] + sel.size)):
+                sel = slice(int(sel[0]), int(sel[0]) + sel.size)
+            fc = row_fc[sel]
+            self._gather.append((q, sel, None if np.array_equal(fc, np.arange(4 * len(self.freqs))) else fc))
         if data.sigma is not None:
             scale = np.array([[1.0, 1.0 / self.Zc], [self.Zc, 1.0]])  # sigma of the dimensionless values
             s = np.asarray(data.sigma) * scale[None, :, :, None]
@@ -224,17 +234,25 @@ class TMatrixKind(MeasurementKind):
         # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
         # input of 0 does not read share one column
         needed = self._needed_heat_inputs(rows, n).reshape(-1)
-        if needed.all():
-            T = eng.evaluate_distinct(table)
-        else:
-            T = np.full((n * nq, len(self.freqs), 2, 2), np.nan, dtype=np.complex128)
-            T[needed] = eng.evaluate_distinct(table[:, needed])
-        T = T.reshape(n, nq, len(self.freqs), 2, 2)
-        if frame:
-            T = self._with_elastic_frame(T, values, frame, n)
+        T, column = eng.distinct(table if needed.all() else table[:, needed])
+        # the column of each (set, heat input); one past the last (a row of NaN) where not needed
+        columns = np.full(n * nq, T.shape[0])
+        columns[needed] = column
+        columns = columns.reshape(n, nq)
+        T = np.concatenate([T, np.full((1,) + T.shape[1:], np.nan, dtype=T.dtype)])
         # a diverging trial's T-matrices hold infinities: its cost is inf, which the LM rejects
         with np.errstate(over="ignore", invalid="ignore"):
-            Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+            if frame:
+                T = self._with_elastic_frame(T[columns], values, frame, n)
+                Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+            else:
+                # each set's rows gathered per heat input, then made dimensionless as normalize does
+                flat = T.reshape(T.shape[0], -1)
+                Y = np.empty((n, self.y.size), dtype=np.complex128)
+                for q, sel, fc in self._gather:
+                    Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
+                Y[:, 1::4] /= self.Zc
+                Y[:, 2::4] *= self.Zc
             if gain is not None or phase is not None:
                 g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
                 ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))

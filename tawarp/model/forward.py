@@ -766,8 +766,16 @@ class Engine:
         return self.evaluate_serial(varying, out, start)
 
     def evaluate_distinct(self, varying: np.ndarray) -> np.ndarray:
-        """T-matrices (n, m, 2, 2) complex of a host table ``varying`` (1 + len(names), n),
-        each distinct set computed once and shared by its copies: sets that differ only in
+        """T-matrices (n, m, 2, 2) complex of a host table ``varying`` (1 + len(names), n):
+        :meth:`distinct` ``T[column]``."""
+        T, column = self.distinct(varying)
+        return T[column]
+
+    def distinct(self, varying: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(T, column): the T-matrices (d, m, 2, 2) complex of the d distinct sets of a host
+        table ``varying`` (1 + len(names), n) and which one each set is (n,), so that a
+        caller that reads part of each set's T-matrices gathers it from ``T`` in one pass.
+        Each distinct set is computed once and shared by its copies: sets that differ only in
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
         fields told apart, and on the CPU each set this engine computed before (:data:`MEMO_BYTES`).
@@ -781,8 +789,9 @@ class Engine:
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
         first, column = distinct_columns(key)
         table = np.asarray(varying, dtype=np.float64)[:, first]
+        column = column.reshape(-1)
         if not wp.get_device(self.device).is_cpu:
-            return self._computed(table)[column.reshape(-1)]
+            return self._computed(table), column
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
         ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(key[:, first].T)]
         T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
@@ -795,7 +804,7 @@ class Engine:
         if todo:
             T[todo] = self._computed(table[:, todo])
             _MEMO.put([ids[j] for j in todo], T[todo])
-        return T[column.reshape(-1)]
+        return T, column
 
     def _computed(self, table: np.ndarray) -> np.ndarray:
         """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n);
