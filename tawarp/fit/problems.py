@@ -58,9 +58,17 @@ def param_values(params: list[Param], X: np.ndarray, fixed: dict) -> dict:
 
 def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarray:
     """Weighted real residuals (..., 2 len(rows)): re parts, then im parts."""
-    d = (Y - kind.y)[..., rows]
-    w = kind.w[rows]
-    return np.concatenate([d.real * w[:, 0], d.imag * w[:, 1]], axis=-1)
+    return weighted(Y[..., rows] - kind.y[rows], kind.w[rows])
+
+
+def weighted(d: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Real residuals (..., 2 n) of complex misfits ``d`` (..., n) with weights ``w`` (n, 2)
+    of their re and im parts: re parts, then im parts."""
+    n = d.shape[-1]
+    out = np.empty(d.shape[:-1] + (2 * n,))
+    np.multiply(d.real, w[:, 0], out=out[..., :n])
+    np.multiply(d.imag, w[:, 1], out=out[..., n:])
+    return out
 
 
 class KindProblems:
@@ -130,6 +138,8 @@ class KindProblems:
         ]
         #: the kinds' families: their sets share launches (:func:`predict_sets`)
         self.families = families
+        #: per fit, whether it sees every row once, in order (its misfits need no gather)
+        self.every_row = [np.array_equal(r, np.arange(k.y.size)) for k, r in zip(self.kinds, self.rows)]
         #: per fit, the fits that share its kind (its data) and rows: their residuals are
         #: formed together
         seen: dict = {}
@@ -272,16 +282,20 @@ class KindProblems:
         for i, c in enumerate(pid):
             alike.setdefault((self.alike_key[c], got[i].shape[0]), []).append(i)
         for (_, m), members in alike.items():
-            rows, k = self.rows[pid[members[0]]], m - 1
-            Y = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
-            kind = self.kinds[pid[members[0]]]
+            c0, k = pid[members[0]], m - 1
+            rows = self.rows[c0]
+            kind = self.kinds[c0]
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                R = residual(kind, Y, rows)
+                D = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
+                D -= kind.y  # the misfits, the same numbers as residual()'s
+                R = weighted(D, kind.w) if self.every_row[c0] else weighted(D[..., rows], kind.w[rows])
                 r = R[:, 0]
                 cost[members] = np.einsum("ij,ij->i", r, r)
-                raw[members] = np.sum(np.abs(Y[:, 0, rows] - kind.y[rows]) ** 2, axis=1)
-                J = (R[:, 1:] - r[:, None]) / step[members, :k, None] if k else None  # (fits, p, rows)
-                if k:
+                raw[members] = np.sum(np.abs(D[:, 0, rows]) ** 2, axis=1)
+                J = None
+                if k:  # (fits, p, rows)
+                    J = R[:, 1:] - r[:, None]
+                    J /= step[members, :k, None]
                     g[members], H[members] = 0.0, 0.0
                     g[members, :k] = np.einsum("ipj,ij->ip", J, r)
                     H[np.ix_(members, range(k), range(k))] = J @ np.swapaxes(J, 1, 2)
