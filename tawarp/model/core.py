@@ -12,6 +12,7 @@ W/(m K), heat-exchange coefficients in W/(m^2 K).
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import tomllib
 from dataclasses import dataclass, field
@@ -240,7 +241,13 @@ def segment_parameter_fields(s: Segment) -> tuple[str, ...]:
     """Fields of segment ``s`` that are parameters, in the table's order
     (:data:`tawarp.model.fields.SEGMENT_FIELD_TABLE`): a duct has its length (and ``h``
     and the thermal effects when thermal), a porous segment its geometry too."""
-    return tuple(f.name for f in SEGMENT_FIELD_TABLE if takes(f, s.is_porous, s.thermal, s.imposed))
+    return _parameter_fields(s.is_porous, s.thermal, s.imposed)
+
+
+@functools.lru_cache(maxsize=None)
+def _parameter_fields(porous: bool, thermal: bool, imposed: bool) -> tuple[str, ...]:
+    # a segment's parameters follow from these three alone; an engine asks for each name
+    return tuple(f.name for f in SEGMENT_FIELD_TABLE if takes(f, porous, thermal, imposed))
 
 
 def _split(name: str, source: str) -> tuple[str, str]:
