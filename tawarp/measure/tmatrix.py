@@ -234,16 +234,19 @@ class TMatrixKind(MeasurementKind):
         # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
         # input of 0 does not read share one column
         needed = self._needed_heat_inputs(rows, n).reshape(-1)
+        if not needed.any():
+            return np.full((n, self.y.size), np.nan, dtype=np.complex128)
         T, column = eng.distinct(table if needed.all() else table[:, needed])
-        # the column of each (set, heat input); one past the last (a row of NaN) where not needed
-        columns = np.full(n * nq, T.shape[0])
+        # the column of each (set, heat input); where not needed any (its rows are made NaN)
+        columns = np.zeros(n * nq, dtype=column.dtype)
         columns[needed] = column
         columns = columns.reshape(n, nq)
-        T = np.concatenate([T, np.full((1,) + T.shape[1:], np.nan, dtype=T.dtype)])
+        needed = needed.reshape(n, nq)
         # a diverging trial's T-matrices hold infinities: its cost is inf, which the LM rejects
         with np.errstate(over="ignore", invalid="ignore"):
             if frame:
                 T = self._with_elastic_frame(T[columns], values, frame, n)
+                T[~needed] = np.nan
                 Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
             else:
                 # each set's rows gathered per heat input, then made dimensionless as normalize does
@@ -251,12 +254,14 @@ class TMatrixKind(MeasurementKind):
                 Y = np.empty((n, self.y.size), dtype=np.complex128)
                 for q, sel, fc in self._gather:
                     Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
+                    if not needed[:, q].all():
+                        Y[np.ix_(~needed[:, q], np.arange(self.y.size)[sel])] = np.nan
                 Y[:, 1::4] /= self.Zc
                 Y[:, 2::4] *= self.Zc
             if gain is not None or phase is not None:
                 g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
                 ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
-                Y = Y * (g * np.exp(1j * ph))[:, None]
+                Y *= (g * np.exp(1j * ph))[:, None]
         return Y
 
     def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:
