@@ -1,6 +1,6 @@
 """Where the benchmarks write: one JSON per run, atomically (:func:`tawarp.io.write_json`),
-under ``bench/results/`` unless ``--out`` names another file; and how they run as commands
-(:func:`run`)."""
+under ``bench/results/`` unless ``--out`` names another file, or a folder to write it
+into; and how they run as commands (:func:`run`)."""
 
 from __future__ import annotations
 
@@ -13,8 +13,10 @@ RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def write_result(result: dict, name: str, out: str | None = None) -> Path:
-    """Write ``result`` to ``out`` (default ``bench/results/NAME``) and say where."""
-    path = write_json(Path(out) if out else RESULTS / name, result)
+    """Write ``result`` to ``out`` (default ``bench/results/NAME``; an existing folder:
+    ``out/NAME``) and say where."""
+    path = Path(out) if out else RESULTS / name
+    path = write_json(path / name if path.is_dir() else path, result)
     print(f"wrote {path}")
     return path
 

@@ -237,7 +237,7 @@ class TMatrixKind(MeasurementKind):
         if not needed.any():
             return np.full((n, self.y.size), np.nan, dtype=np.complex128)
         T, column = eng.distinct(table if needed.all() else table[:, needed])
-        # the column of each (set, heat input); where not needed any (its rows are made NaN)
+        # the column of each (set, heat input); where not needed the first (its rows set to NaN below)
         columns = np.zeros(n * nq, dtype=column.dtype)
         columns[needed] = column
         columns = columns.reshape(n, nq)
