@@ -114,6 +114,7 @@ summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import hashlib
 import itertools
@@ -717,6 +718,20 @@ def _interrupt_ends_quietly() -> None:
 
 def _end(signum, frame):
     raise SystemExit(130)
+
+
+class StudyInterrupted(Exception):
+    """Ctrl-C in a phase of the study; the message says what it kept."""
+
+
+@contextlib.contextmanager
+def _kept_on_interrupt(kept):
+    """A Ctrl-C inside becomes :class:`StudyInterrupted` with ``kept()``, what the phase has
+    written (asked when it happens: the phase's records so far)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise StudyInterrupted(kept()) from None
 
 
 def run_case(
@@ -1353,6 +1368,7 @@ def main(argv=None) -> int:
     # spawned (cores_shared: a forked process would keep this one's linear-algebra threads)
     spawn = multiprocessing.get_context("spawn")
     with (
+        _kept_on_interrupt(lambda: f"no loop had run; the reference data made are in {cache}, each file whole"),
         cores_shared(a.workers),
         ProcessPoolExecutor(a.workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
     ):
@@ -1378,7 +1394,18 @@ def main(argv=None) -> int:
             "on it (docs/loop.md, Speed: nvidia-cuda-mps-control -d, or --device cpu)",
             file=sys.stderr,
         )
+
+    def kept() -> str:
+        json_path = out / "loop_validation.json"
+        done = (
+            f"{len(records)} finished case{'s' if len(records) > 1 else ''} in {json_path} (marked partial)"
+            if records
+            else "no case had finished, so no result was written"
+        )
+        return f"{done}; the reference data made are in {cache}, each file whole"
+
     with (
+        _kept_on_interrupt(kept),
         cores_shared(a.loop_workers),
         ProcessPoolExecutor(a.loop_workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
     ):
@@ -1426,13 +1453,12 @@ def report(out: Path, records: list[dict], meta: dict, quiet: bool) -> None:
 
 
 if __name__ == "__main__":
+    # every file is written whole (tawarp.io.atomic_path), which a traceback would hide
     try:
         sys.exit(main())
+    except StudyInterrupted as e:
+        print(f"loop_validation.py: interrupted; {e}", file=sys.stderr)
+        sys.exit(130)
     except KeyboardInterrupt:
-        # every file is written whole (tawarp.io.atomic_path), which a traceback would hide
-        print(
-            "loop_validation.py: interrupted; the cases finished are in OUT/loop_validation.json (marked "
-            "partial), the reference data made in OUT/cache, each file whole",
-            file=sys.stderr,
-        )
+        print("loop_validation.py: interrupted; every file written is whole", file=sys.stderr)
         sys.exit(130)

@@ -564,3 +564,16 @@ def test_cases_run_together_are_scored_as_alone(tmp_path):
     for a, b in zip(alone, together):
         assert lv.outcome_label(a) == lv.outcome_label(b) and a["right"] == b["right"]
         assert abs(a["ratio_after"] / b["ratio_after"] - 1) < 1e-4
+
+
+def test_an_interrupt_says_what_its_phase_kept():
+    """Ctrl-C inside a phase of the study becomes StudyInterrupted with what the phase had
+    written at that moment (asked then, not when the phase began); other errors pass."""
+    records = []
+    with pytest.raises(lv.StudyInterrupted, match="^2 written$"):
+        with lv._kept_on_interrupt(lambda: f"{len(records)} written"):
+            records += [1, 2]
+            raise KeyboardInterrupt
+    with pytest.raises(ValueError):
+        with lv._kept_on_interrupt(lambda: "unused"):
+            raise ValueError("not an interrupt")
