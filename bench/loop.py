@@ -84,7 +84,7 @@ def _elapsed(start: tuple[float, float, float]) -> dict:
 def counting_sets(kind: type):
     """Count the parameter sets every instance of the measurement kind ``kind`` predicts
     while inside, and the columns the forward engines compute for them (:meth:`Engine.evaluate`
-    and, under :meth:`Engine.evaluate_distinct`, :meth:`Engine._computed`: the distinct ones,
+    and, under :meth:`Engine.distinct`, :meth:`Engine._computed`: the distinct ones,
     less those a CPU engine served from its memo): yields a dict whose ``sets`` and
     ``columns`` grow."""
     count, predict = {"sets": 0, "columns": 0}, kind.predict

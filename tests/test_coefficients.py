@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from tawarp.model.coefficients import denormalize, duct_impedance, normalize, rms_error
+from tawarp.model.coefficients import denormalize, duct_impedance, normalize, normalize_entries, rms_error
 from tawarp.model.core import load_core
 
 
@@ -35,3 +35,14 @@ def test_rms_error_definition():
     Y = rng.standard_normal((5, 4)) + 1j * rng.standard_normal((5, 4))
     assert float(rms_error(Y, Y * (1 + 0.01j))) == pytest.approx(0.01, rel=1e-12)
     assert float(rms_error(Y, Y)) == 0.0
+
+
+def test_normalize_entries_in_place_gives_normalizes_numbers():
+    """Raw entries laid out as normalize's result (k matrices' T00, T01, T10, T11 in a row),
+    scaled in place: the same numbers bit for bit."""
+    rng = np.random.default_rng(3)
+    T = rng.normal(size=(5, 7, 2, 2)) + 1j * rng.normal(size=(5, 7, 2, 2))
+    Zc = 413.7
+    entries = T.reshape(5, 28).copy()
+    assert normalize_entries(entries, Zc) is entries
+    assert np.array_equal(entries, normalize(T, Zc).reshape(5, 28))

@@ -369,7 +369,7 @@ def test_plain_cascade_equals_the_general_one():
 
 @pytest.mark.parametrize("name", ["ceramic", "mesh", "nicr_foam", "rvc_foam"])
 def test_heat_only_fields_are_inert_without_heat_input(name):
-    # Engine.evaluate_distinct shares one column between sets at zero heat input that differ
+    # Engine.distinct shares one column between sets at zero heat input that differ
     # only in HEAT_ONLY_FIELDS: with no heat the temperature rise is zero whatever they are, and
     # the kernels read them nowhere else. Every such field of every thermal segment moved
     # (x 1/e .. e, the temperature-dependent effects switched on: the heat solve iterates) must
@@ -398,7 +398,8 @@ def test_heat_only_fields_are_inert_without_heat_input(name):
     assert np.array_equal(T[0], T[1])
     assert relative_error(T[3], T[2]) > 1e-6
     # the shared columns: each set's own T-matrices, bit for bit
-    shared = eng.evaluate_distinct(table[:, [0, 1, 2, 3, 1, 2]])
+    distinct, column = eng.distinct(table[:, [0, 1, 2, 3, 1, 2]])
+    shared = distinct[column]
     assert np.array_equal(shared.reshape(6, -1), T.view(complex).reshape(4, -1)[[0, 1, 2, 3, 1, 2]])
 
 
@@ -476,7 +477,7 @@ def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
         np.testing.assert_array_equal(ours.numpy(), theirs.numpy())
 
 
-def test_evaluate_distinct_serves_the_columns_it_computed_before_bit_for_bit(monkeypatch):
+def test_distinct_serves_the_columns_it_computed_before_bit_for_bit(monkeypatch):
     # a CPU engine keeps the columns it computed (forward.MEMO_BYTES): a later batch that
     # shares some computes only the others, and its T-matrices are those of an engine that
     # computes them all (the kernels compute each set on its own)
@@ -487,16 +488,17 @@ def test_evaluate_distinct_serves_the_columns_it_computed_before_bit_for_bit(mon
     settings = ForwardSettings(device="cpu", cells=8)
     eng = Engine(core, FREQS, names, settings)
     first = np.array([[0.0, 40.0, 40.0], [0.8, 0.8, 0.85], [150.0, 150.0, 150.0]])
-    eng.evaluate_distinct(first)
+    eng.distinct(first)
     computed = []
     compute = Engine._computed
     monkeypatch.setattr(
         Engine, "_computed", lambda self, table: computed.append(table.shape[1]) or compute(self, table)
     )
     later = np.column_stack([first[:, [2, 0]], [40.0, 0.9, 150.0]])
-    T = eng.evaluate_distinct(later)
+    T, column = eng.distinct(later)
     assert computed == [1]
-    np.testing.assert_array_equal(T, Engine(core, FREQS, names, settings).evaluate_distinct(later))
+    alone, alone_column = Engine(core, FREQS, names, settings).distinct(later)
+    np.testing.assert_array_equal(T[column], alone[alone_column])
 
 
 def test_distinct_columns_are_numpys_unique_columns():

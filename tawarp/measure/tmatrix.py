@@ -15,7 +15,7 @@ import functools
 import numpy as np
 
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
-from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize
+from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, normalize_entries
 from ..model.core import Core, load_core
 from ..model.effects import (
     CALIBRATION_GAIN,
@@ -249,15 +249,14 @@ class TMatrixKind(MeasurementKind):
                 T[~needed] = np.nan
                 Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
             else:
-                # each set's rows gathered per heat input, then made dimensionless as normalize does
+                # each set's rows gathered per heat input, then made dimensionless
                 flat = T.reshape(T.shape[0], -1)
                 Y = np.empty((n, self.y.size), dtype=np.complex128)
                 for q, sel, fc in self._gather:
                     Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
                     if not needed[:, q].all():
                         Y[np.ix_(~needed[:, q], np.arange(self.y.size)[sel])] = np.nan
-                Y[:, 1::4] /= self.Zc
-                Y[:, 2::4] *= self.Zc
+                normalize_entries(Y, self.Zc)
             if gain is not None or phase is not None:
                 g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
                 ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))

@@ -32,6 +32,14 @@ def normalize(T: np.ndarray, Zc: float | np.ndarray) -> np.ndarray:
     return np.stack([T[..., 0, 0], T[..., 0, 1] / Zc, T[..., 1, 0] * Zc, T[..., 1, 1]], axis=-1)
 
 
+def normalize_entries(Y: np.ndarray, Zc: float) -> np.ndarray:
+    """:func:`normalize` in place on raw T-matrix entries laid out as its result, (..., 4 k)
+    of k matrices' ``T[0, 0], T[0, 1], T[1, 0], T[1, 1]`` (the same numbers); returns ``Y``."""
+    Y[..., 1::4] /= Zc
+    Y[..., 2::4] *= Zc
+    return Y
+
+
 def denormalize(Y: np.ndarray, Zc: float | np.ndarray) -> np.ndarray:
     """Inverse of :func:`normalize`: (..., 4) -> (..., 2, 2)."""
     Y = np.asarray(Y)

@@ -78,7 +78,7 @@ TANGENT_STEP_NONLINEAR = 1e-4
 #: Register cap of the tangent cascade's CUDA threads (None: none; it carries P more
 #: matrices than the plain cascade: measurements in bench/README.md, "fits").
 TANGENT_MAX_REGISTERS = None
-#: Bytes of T-matrices that :meth:`Engine.evaluate_distinct` keeps of a CPU engine's columns,
+#: Bytes of T-matrices that :meth:`Engine.distinct` keeps of a CPU engine's columns,
 #: the least recently asked for given up first: a loop's later batches ask again for parameter
 #: sets an earlier one computed (a fit continued from where it stopped, a start at a relative's
 #: solution; 4 % of the columns of the loop bench's T-matrix cases), and on the CPU a column
@@ -221,7 +221,7 @@ class WarmStarts:
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
 #: temperature rise is zero whatever their values, and with fixed cells a set's T-matrices do
-#: not depend on them (:meth:`Engine.evaluate_distinct`; tests/test_forward.py guards it).
+#: not depend on them (:meth:`Engine.distinct`; tests/test_forward.py guards it).
 HEAT_ONLY_FIELDS = (
     "h",
     "solid_conductivity",
@@ -619,7 +619,7 @@ class Engine:
         )
         # a temperature-dependent set's heat solve costs about as much as its cascade on the
         # CPU, and on a GPU, where one thread iterates it, most of a loop's device time
-        # (evaluate_distinct keeps the converged excesses as warm starts)
+        # (distinct keeps the converged excesses as warm starts)
         self.warm = None
         if self.nonlinear and self.count:
             thermal = {core.segments[k].name for k in core.thermal_indices}
@@ -764,12 +764,6 @@ class Engine:
                 wp.array(theta, dtype=wp.float64, device=self.device),
             )
         return self.evaluate_serial(varying, out, start)
-
-    def evaluate_distinct(self, varying: np.ndarray) -> np.ndarray:
-        """T-matrices (n, m, 2, 2) complex of a host table ``varying`` (1 + len(names), n):
-        :meth:`distinct` ``T[column]``."""
-        T, column = self.distinct(varying)
-        return T[column]
 
     def distinct(self, varying: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(T, column): the T-matrices (d, m, 2, 2) complex of the d distinct sets of a host
