@@ -17,6 +17,7 @@ from tawarp.loop.evidence import (
     NOISE_SCALE_RANGE,
     Model,
     XPrior,
+    any_of,
     claims,
     inclusion,
     laplace_log_evidence,
@@ -344,6 +345,15 @@ def test_inclusion_and_claims():
     ms = _models([((), 0.0), (("a",), -1.0), (("b",), -1.0)])
     assert claims(ms, ["a", "b"]) == ([], [])
     assert CLAIM == 0.95
+
+
+def test_probabilities_summed_over_models_stay_at_most_one():
+    # nine equally probable models all holding "a": their normalized probabilities (1/9 each,
+    # not exact in binary) sum to 1 + 2.2e-16 in float64, which a probability must not report
+    ms = [Model(("a", f"b{k}"), probability=1.0 / 9.0) for k in range(9)]
+    assert sum(m.probability for m in ms) > 1.0
+    assert inclusion(ms, ["a"]) == {"a": 1.0}
+    assert any_of(ms, ["a", "b0"]) == 1.0
 
 
 def test_an_effect_the_data_do_not_see_changes_nothing():

@@ -535,13 +535,15 @@ def posterior(models: list[Model]) -> None:
 
 
 def inclusion(models: list[Model], names: list[str]) -> dict[str, float]:
-    """Posterior inclusion probability of each effect: the mass of the models holding it."""
-    return {n: float(sum(m.probability for m in models if n in m.effects)) for n in names}
+    """Posterior inclusion probability of each effect: the mass of the models holding it (at
+    most 1: a sum of the normalized probabilities can round above it)."""
+    return {n: min(1.0, float(sum(m.probability for m in models if n in m.effects))) for n in names}
 
 
 def any_of(models: list[Model], group) -> float:
-    """Posterior probability that at least one effect of ``group`` is in the model."""
-    return float(sum(m.probability for m in models if set(m.effects) & set(group)))
+    """Posterior probability that at least one effect of ``group`` is in the model (at most 1,
+    as :func:`inclusion`)."""
+    return min(1.0, float(sum(m.probability for m in models if set(m.effects) & set(group))))
 
 
 def claims(
