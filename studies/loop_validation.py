@@ -1043,7 +1043,8 @@ def calibration(records: list[dict]) -> dict:
     bins = []
     edges = CALIBRATION_BINS
     for lo, hi in itertools.pairwise(edges):
-        sel = [(p, t) for p, t in pairs if lo <= p < hi or (hi == edges[-1] and p == hi)]
+        # the last bin closed above: a probability summed from the models' can round past 1
+        sel = [(p, t) for p, t in pairs if lo <= p < hi or (hi == edges[-1] and p >= hi)]
         bins.append(
             {
                 "low": lo,
