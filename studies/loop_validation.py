@@ -1069,10 +1069,16 @@ def _fmt_rate(d: dict) -> str:
 def markdown(summary: dict, records: list[dict], meta: dict) -> str:
     s = summary
     seeds = [r["seed"] for r in records]
+    # an interrupted run's file records its cases alone (meta {"partial": true})
+    run = (
+        f"base `{meta['base']}`, device {meta['device']}; last run `{meta['command']}`"
+        if "command" in meta
+        else "the cases an interrupted run finished"
+    )
     lines = [
         f"Validation of the loop on data made by `tawarp.reference` ({s['n_cases']} cases, seeds "
         f"{min(seeds)}-{max(seeds)}, {s['held_out_cases']} of them held out (seeds >= {HELDOUT_SEED0}), "
-        f"base `{meta['base']}`, device {meta['device']}; last run `{meta['command']}`).",
+        f"{run}).",
         "",
         "| measure | result | target |",
         "| --- | --- | --- |",
@@ -1104,9 +1110,12 @@ def markdown(summary: dict, records: list[dict], meta: dict) -> str:
         f"| ... every wrong-core case, visible or not | {_fmt_rate(s['wrong_core_flagged_all'])} | |",
         f"| median error after / noise floor (visible effects) | {s['ratio_after_visible_median'] or float('nan'):.2f} | <= 1.3 |",
         f"| loop wall time per case (mean / max) | {s['loop_wall_s']['mean']:.1f} / {s['loop_wall_s']['max']:.1f} s | |",
-        f"| cases per second (last run, loop only; its generation {meta['generation_s']:.0f} s, cached) | "
-        f"{meta['cases_per_s']:.3g} | |",
     ]
+    if "cases_per_s" in meta:
+        lines.append(
+            f"| cases per second (last run, loop only; its generation {meta['generation_s']:.0f} s, cached) | "
+            f"{meta['cases_per_s']:.3g} | |"
+        )
     for name, sub in (s.get("by_split") or {}).items():
         lines.append(
             f"| {name} seeds only: right effect(s) strict / outside-lab `explained` / claims at >= 0.95 "

@@ -538,6 +538,10 @@ def test_report_writes_the_confusion_matrix_and_calibration(tmp_path):
     md = (tmp_path / "loop_validation.md").read_text()
     assert "Calibration of the inclusion probabilities" in md and "| 0.95-1 | 1 | 0.99 | 1 | 1.00 |" in md
     assert (tmp_path / "confusion.png").exists() and (tmp_path / "calibration.png").exists()
+    # an interrupted run's file holds its cases and {"partial": true} alone: rescored, it says so
+    lv.report(tmp_path / "partial", recs, {"partial": True}, quiet=True)
+    md = (tmp_path / "partial" / "loop_validation.md").read_text()
+    assert "the cases an interrupted run finished" in md.splitlines()[0] and "cases per second" not in md
 
 
 @pytest.mark.parametrize(
