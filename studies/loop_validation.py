@@ -1362,8 +1362,13 @@ def main(argv=None) -> int:
     if a.together < 1:
         ap.error(f"--together: {a.together}; expected a positive number of loops")
     out = Path(a.out)
+    results = out / "loop_validation.json"
+    try:
+        # read before any work: a file that is not a study's stops the run at once
+        old = read_results(results) if a.rescore or (a.append and results.exists()) else None
+    except ValueError as e:
+        ap.error(f"{'--rescore' if a.rescore else '--append'}: {e}")
     if a.rescore:
-        old = json.loads((out / "loop_validation.json").read_text())
         report(out, [score(r) for r in old["cases"]], old["meta"], a.quiet)
         return 0
     cache = out / "cache"
@@ -1388,9 +1393,7 @@ def main(argv=None) -> int:
     bar.close()
     t_gen = time.perf_counter() - t0
     seeds = {c.seed for c in cases}
-    earlier = []
-    if a.append and (out / "loop_validation.json").exists():
-        earlier = [r for r in json.loads((out / "loop_validation.json").read_text())["cases"] if r["seed"] not in seeds]
+    earlier = [r for r in old["cases"] if r["seed"] not in seeds] if old else []
     records = []
     bar = progress_bar(len(cases), "closing the loop", not a.quiet, unit="case")
     t1 = time.perf_counter()
@@ -1450,6 +1453,20 @@ def main(argv=None) -> int:
     }
     report(out, sorted(earlier + records, key=lambda r: r["seed"]), meta, a.quiet)
     return 0
+
+
+def read_results(path: Path) -> dict:
+    """A study's JSON (its ``meta`` and ``cases``); ValueError naming the file where it is
+    missing or not such a file."""
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"{path}: no such file (a study run with --out {path.parent} writes it)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not readable as a study's JSON ({e})") from None
+    if not (isinstance(data, dict) and isinstance(data.get("meta"), dict) and isinstance(data.get("cases"), list)):
+        raise ValueError(f'{path}: not a study\'s JSON (expected its "meta" and "cases")')
+    return data
 
 
 def report(out: Path, records: list[dict], meta: dict, quiet: bool) -> None:

@@ -557,6 +557,30 @@ def test_a_study_without_processes_is_refused_before_any_work(option, what, tmp_
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    "option, text, message",
+    [
+        ("--rescore", None, "no such file"),
+        ("--rescore", "{", "not readable as a study's JSON"),
+        ("--append", '{"cases": []}', 'not a study\'s JSON (expected its "meta" and "cases")'),
+    ],
+)
+def test_a_results_file_that_is_not_a_studys_stops_before_any_work(option, text, message, tmp_path, capsys):
+    # the option and the file named, exit 2, no reference data made and the file untouched
+    out = tmp_path / "out"
+    if text is not None:
+        out.mkdir()
+        (out / "loop_validation.json").write_text(text)
+    with pytest.raises(SystemExit) as stop:
+        lv.main([option, "--cases", "1", "--out", str(out), "--quiet"])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert f"{option}: {out / 'loop_validation.json'}: {message}" in err
+    assert not (out / "cache").exists()
+    if text is not None:
+        assert (out / "loop_validation.json").read_text() == text
+
+
 def test_cases_run_together_are_scored_as_alone(tmp_path):
     # --together: a plane offset and a clean case of the mesh core, their loops' fits and
     # launches batched (two core files of one structure), each scored as its loop alone
