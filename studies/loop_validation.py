@@ -1409,9 +1409,8 @@ def main(argv=None) -> int:
         )
 
     def kept() -> str:
-        json_path = out / "loop_validation.json"
         done = (
-            f"{len(records)} finished case{'s' if len(records) > 1 else ''} in {json_path} (marked partial)"
+            f"{len(records)} finished case{'s' if len(records) > 1 else ''} in {results} (marked partial)"
             if records
             else "no case had finished, so no result was written"
         )
@@ -1433,7 +1432,7 @@ def main(argv=None) -> int:
                 bar.set_postfix_str(f"{case.category}: {outcome_label(rec)}")
                 bar.update(1)
             # the cases so far, so that an interrupted run keeps them
-            write_json(out / "loop_validation.json", {"meta": {"partial": True}, "cases": earlier + records})
+            write_json(results, {"meta": {"partial": True}, "cases": earlier + records})
     bar.close()
     t_loop = time.perf_counter() - t1
     meta = {
