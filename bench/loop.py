@@ -172,6 +172,14 @@ def by_family(items: list, kinds: list | None = None) -> list:
     return [items[i] for i in sorted(range(len(items)), key=lambda i: keys[i])]
 
 
+def loops_in_groups(probs: list, together: int) -> list:
+    """The loops' reports of ``probs``, ``together`` at a time (:func:`tawarp.loop.run_loops`;
+    one: each alone, :func:`tawarp.loop.run_loop`), in their order."""
+    if together == 1:
+        return [run_loop(prob) for prob in probs]
+    return [rep for k in range(0, len(probs), together) for rep in run_loops(probs[k : k + together])]
+
+
 def together_cases(seeds, device, cache: Path, together: int) -> dict:
     """The T-matrix cases ``seeds`` in this process, ``together`` loops at a time
     (:func:`tawarp.loop.run_loops`), from cold: the loops a second of one process, its first
@@ -180,7 +188,7 @@ def together_cases(seeds, device, cache: Path, together: int) -> dict:
     order = by_family(list(range(len(cases))), [prob for _, prob in cases])
     seeds, probs = [seeds[i] for i in order], [cases[i][1] for i in order]
     clock = _clocks()
-    reps = [rep for k in range(0, len(probs), together) for rep in run_loops(probs[k : k + together])]
+    reps = loops_in_groups(probs, together)
     out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
     out["cases_per_second"] = len(reps) / out["seconds"]
     out["decisions"] = {str(seed): decisions(rep) for seed, rep in zip(seeds, reps)}
@@ -207,9 +215,7 @@ def _study_worker(job: tuple) -> dict:
     verdicts = []
     for _ in range(repeats):
         probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
-        for k in range(0, len(probs), together):
-            reps = run_loops(probs[k : k + together]) if together > 1 else [run_loop(probs[k])]
-            verdicts += [rep["verdict"] for rep in reps]
+        verdicts += [rep["verdict"] for rep in loops_in_groups(probs, together)]
     return {**_elapsed(clock), "verdicts": verdicts}
 
 
