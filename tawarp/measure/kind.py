@@ -245,10 +245,14 @@ def fit_cells(
     return cells.numpy() if any(c.ndim for c in cols) else cells.numpy()[0]
 
 
-#: Engines :func:`get_engine` keeps, the least recently used let go first (a loop's fits
-#: cycle through a few dozen cores, names and settings; each engine holds its kernels'
-#: arrays).
-ENGINES_KEPT = 32
+#: Engines :func:`get_engine` keeps, the least recently used let go first. A loop's fits
+#: cycle through a few dozen cores, names and settings; loops run together
+#: (:func:`tawarp.loop.run_loops`) through more, as each launch's names are the union of its
+#: fits': 16 loops of the validation study's T-matrix cases used 117, and with 32 kept
+#: rebuilt engines and lost their warm starts (:class:`tawarp.model.forward.WarmStarts`) all
+#: along. An engine holds its kernels' small arrays and at most
+#: :data:`tawarp.model.forward.WARM_SETS` kept heat solutions (about 1 MB).
+ENGINES_KEPT = 512
 _ENGINES: dict = {}  # in the order of their last use
 _ENGINES_LOCK = threading.RLock()
 
