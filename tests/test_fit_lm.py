@@ -274,3 +274,34 @@ def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
     assert np.array_equal(np.isfinite(got), np.isfinite(want))
     finite = np.isfinite(want)
     assert np.allclose(got[finite], want[finite], rtol=1e-10, atol=0.0)
+
+
+def test_value_layout_is_param_assign_bit_for_bit():
+    # the vectorized parameter values of a group of fits equal Param.assign's, parameter by
+    # parameter in order, to the bit: log and linear parameters, ties, two parameters
+    # setting one name (the last wins), a parameter with its own expand, and names a fit
+    # leaves at the base value
+    from tawarp.fit.problems import ValueLayout
+
+    def halves(v):
+        return {"a.x": v / 2.0, "c.z": v * 3.0}
+
+    a = Param("a.x", ("a.x", "b.y"), 0.37, log=True)
+    b = Param("b.y", ("b.y",), 1.5, scale=0.01)
+    c = Param("c.z", ("c.z",), 2.0, scale=0.3)
+    e = Param("e.w", ("e.w",), 0.8, log=True, expand=halves)
+    fits = [[a, b], [c], [b, a, c], [a, e], []]
+    base = {"a.x": 0.37, "b.y": 1.5, "c.z": 2.0, "d.u": -4.0, "e.w": 0.8}
+    rng = np.random.default_rng(3)
+    requests = [(c_, rng.normal(0.0, 2.0, (int(rng.integers(1, 6)), len(ps)))) for c_, ps in enumerate(fits)]
+    requests += [(2, rng.normal(0.0, 2.0, (3, 3)))]
+    sizes = [X.shape[0] for _, X in requests]
+    got = ValueLayout(base, list(range(len(fits))), fits).values(requests, sizes)
+    k0 = 0
+    for (c_, X), n in zip(requests, sizes):
+        own = {}
+        for j, par in enumerate(fits[c_]):
+            par.assign(par.value(X[:, j]), own)
+        for name, v in base.items():
+            np.testing.assert_array_equal(got[name][k0 : k0 + n], np.broadcast_to(own.get(name, v), (n,)))
+        k0 += n

@@ -62,12 +62,12 @@ def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarr
 
 
 def weighted(d: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Real residuals (..., 2 n) of complex misfits ``d`` (..., n) with weights ``w`` (n, 2)
-    of their re and im parts: re parts, then im parts."""
+    """Real residuals (..., 2 n) of complex misfits ``d`` (..., n) with weights ``w`` (..., n,
+    2) of their re and im parts (broadcast against ``d``): re parts, then im parts."""
     n = d.shape[-1]
     out = np.empty(d.shape[:-1] + (2 * n,))
-    np.multiply(d.real, w[:, 0], out=out[..., :n])
-    np.multiply(d.imag, w[:, 1], out=out[..., n:])
+    np.multiply(d.real, w[..., 0], out=out[..., :n])
+    np.multiply(d.imag, w[..., 1], out=out[..., n:])
     return out
 
 
@@ -133,20 +133,37 @@ class KindProblems:
             all_priors += [priors[c] if c < len(priors) else None for c in range(len(specs))]
         #: per fit, the rows its predictions need where the kind leaves out the others'
         #: work (:attr:`MeasurementKind.predicts_rows`) and the fit sees some rows alone
-        self.needed = [
-            r if k.predicts_rows and np.unique(r).size < k.y.size else None for k, r in zip(self.kinds, self.rows)
-        ]
+        self.needed, self.every_row = [], []
+        seen: dict = {}  # (kind, rows array) -> (needed, every row): most fits share both
+        for k, r in zip(self.kinds, self.rows):
+            key = (id(k), id(r))
+            if key not in seen:
+                every = r.size == k.y.size and np.array_equal(r, np.arange(k.y.size))
+                seen[key] = (None if every or not k.predicts_rows or np.unique(r).size == k.y.size else r, every)
+            self.needed.append(seen[key][0])
+            #: per fit, whether it sees every row once, in order (its misfits need no gather)
+            self.every_row.append(seen[key][1])
         #: the kinds' families: their sets share launches (:func:`predict_sets`)
         self.families = families
-        #: per fit, whether it sees every row once, in order (its misfits need no gather)
-        self.every_row = [np.array_equal(r, np.arange(k.y.size)) for k, r in zip(self.kinds, self.rows)]
-        #: per fit, the fits that share its kind (its data) and rows: their residuals are
-        #: formed together
-        seen: dict = {}
-        self.alike_key = [
-            seen.setdefault((id(k), r.tobytes()) if len(parts) > 1 else id(r), len(seen))
-            for k, r in zip(self.kinds, self.rows)
-        ]
+        #: per fit, the fits whose residuals are formed together: those that see every row of
+        #: data of one size (several kinds' data stacked, :attr:`data_y`), else those that share
+        #: their kind and rows
+        self.data_y: dict = {}  # data size -> (the kinds' y (kinds, size), their w (kinds, size, 2))
+        self.data_of = np.zeros(len(self.kinds), dtype=np.int64)  # per fit, its kind's row there
+        stacked: dict = {}
+        alike: dict = {}
+        self.alike_key = []
+        for c, (k, r) in enumerate(zip(self.kinds, self.rows)):
+            if self.every_row[c]:
+                kinds = stacked.setdefault(k.y.size, {})
+                self.data_of[c] = kinds.setdefault(id(k), (len(kinds), k))[0]
+                key = ("every row", k.y.size)
+            else:
+                key = (id(k), r.tobytes()) if len(parts) > 1 else id(r)
+            self.alike_key.append(alike.setdefault(key, len(alike)))
+        for size, kinds in stacked.items():
+            ks = [k for _, k in kinds.values()]
+            self.data_y[size] = (np.stack([k.y for k in ks]), np.stack([k.w for k in ks]))
         self.groups: dict = {}
         #: per fit, its group's key: (its part, its structural effect or None)
         self.group_of = []
@@ -156,6 +173,7 @@ class KindProblems:
             self.group_of.append(key)
         #: per group: the values every set takes where its fit does not set them
         self.base_vals: dict = {}
+        self._layouts: dict = {}  # per group, its ValueLayout (_layout)
         for key, members in self.groups.items():
             v = dict(parts[key[0]][2] or {})
             for c in members:
@@ -196,6 +214,14 @@ class KindProblems:
         P = self.zlo.shape[1]
         return np.full(P, lm_step.CHANGE_ABSOLUTE, dtype=np.int32), np.ones_like(self.zlo), np.zeros_like(self.zlo)
 
+    def _layout(self, key) -> "ValueLayout":
+        """The :class:`ValueLayout` of group ``key`` (made once)."""
+        lay = self._layouts.get(key)
+        if lay is None:
+            members = self.groups[key]
+            lay = self._layouts[key] = ValueLayout(self.base_vals[key], members, [self.specs[c][0] for c in members])
+        return lay
+
     def predict(self, requests: list) -> list:
         """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure
         and family of kinds (:func:`predict_sets`)."""
@@ -211,19 +237,9 @@ class KindProblems:
             by_group.setdefault(self.group_of[c], []).append(i)
         jobs = []
         for key, todo in by_group.items():
-            # every set at the structure's base values, each fit's block then at its own
             sizes = [requests[i][1].shape[0] for i in todo]
+            values = self._layout(key).values([requests[i] for i in todo], sizes)
             total = sum(sizes)
-            values = {k: np.full(total, float(v)) for k, v in self.base_vals[key].items()}
-            k0 = 0
-            for i, n in zip(todo, sizes):
-                c, X = requests[i]
-                own: dict = {}
-                for j, par in enumerate(self.specs[c][0]):
-                    par.assign(par.value(X[:, j]), own)
-                for k, v in own.items():
-                    values[k][k0 : k0 + n] = v
-                k0 += n
             c0 = requests[todo[0]][0]
             needed = [self.needed[requests[i][0]] for i in todo]
             rows = [r for n, r in zip(sizes, needed) for _ in range(n)] if any(r is not None for r in needed) else None
@@ -287,11 +303,19 @@ class KindProblems:
             kind = self.kinds[c0]
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
                 D = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
-                D -= kind.y  # the misfits, the same numbers as residual()'s
-                R = weighted(D, kind.w) if self.every_row[c0] else weighted(D[..., rows], kind.w[rows])
+                # the misfits, the same numbers as residual()'s
+                if self.every_row[c0]:
+                    y, w = self.data_y[kind.y.size]
+                    own = self.data_of[pid[members]]
+                    D -= y[own][:, None, :]
+                    R = weighted(D, w[own][:, None])
+                    raw[members] = np.sum(np.abs(D[:, 0]) ** 2, axis=1)
+                else:
+                    D -= kind.y
+                    R = weighted(D[..., rows], kind.w[rows])
+                    raw[members] = np.sum(np.abs(D[:, 0, rows]) ** 2, axis=1)
                 r = R[:, 0]
                 cost[members] = np.einsum("ij,ij->i", r, r)
-                raw[members] = np.sum(np.abs(D[:, 0, rows]) ** 2, axis=1)
                 J = None
                 if k:  # (fits, p, rows)
                     J = R[:, 1:] - r[:, None]
@@ -324,6 +348,67 @@ class KindProblems:
             self.evaluate(stale, z[stale])
             for i, c in enumerate(stale):
                 out[c] = self.last[i]
+        return out
+
+
+class ValueLayout:
+    """How the parameter sets of a group of fits (one structure of one kind) take their
+    model parameter values: ``base`` {name: value} where a set's fit does not set a name,
+    else the value of the fit's parameter that sets it (the last, where several do), its
+    ``start * exp(x)`` or ``start + scale x`` (:meth:`Param.value`), for every set of every
+    fit in a few array operations: with hundreds of fits of a dozen parameters a launch,
+    parameter by parameter in Python (:meth:`Param.assign`) cost the host more than the
+    rest of the launch's bookkeeping. A parameter with its own ``expand`` (a frame's ties)
+    is assigned as :meth:`Param.assign` does, after the others of its fit."""
+
+    def __init__(self, base: dict, fits: list[int], params: list[list[Param]]):
+        self.names = list(base)
+        column = {k: t for t, k in enumerate(self.names)}
+        self.base = np.array([float(v) for v in base.values()])
+        self.local = {c: i for i, c in enumerate(fits)}
+        N, K = len(self.names), len(fits)
+        #: per fit and name: the index of the parameter that sets it (-1: none), its start,
+        #: scale and whether it is a log parameter
+        self.slot = np.full((K, N), -1, dtype=np.int64)
+        self.start, self.scale = np.zeros((K, N)), np.ones((K, N))
+        self.log = np.zeros((K, N), dtype=bool)
+        #: per fit, its parameters with their own expand, in order (index, Param)
+        self.expanding: dict[int, list] = {}
+        for i, ps in enumerate(params):
+            for j, par in enumerate(ps):
+                if par.expand is not None:
+                    self.expanding.setdefault(fits[i], []).append((j, par))
+                    continue
+                a = [column[t] for t in par.targets]
+                self.slot[i, a], self.start[i, a], self.scale[i, a], self.log[i, a] = j, par.start, par.scale, par.log
+
+    def values(self, requests: list, sizes: list[int]) -> dict:
+        """{name: (total,)} of the sets of ``requests`` [(fit c, X (n_c, p_c)), ...] in their
+        order, ``sizes`` their n_c."""
+        total = sum(sizes)
+        P = max((X.shape[1] for _, X in requests), default=0)
+        X = np.zeros((total, max(P, 1)))
+        k0 = 0
+        for (_, x), n in zip(requests, sizes):
+            X[k0 : k0 + n, : x.shape[1]] = x
+            k0 += n
+        fit = np.repeat([self.local[c] for c, _ in requests], sizes)
+        slot = self.slot[fit].T  # (names, total)
+        x = X[np.arange(total)[None, :], np.maximum(slot, 0)]
+        start, scale = self.start[fit].T, self.scale[fit].T
+        with np.errstate(over="ignore", invalid="ignore"):
+            v = np.where(self.log[fit].T, start * np.exp(x), start + scale * x)
+        v = np.where(slot >= 0, v, self.base[:, None])
+        out = dict(zip(self.names, v))
+        if self.expanding:
+            k0 = 0
+            for (c, x), n in zip(requests, sizes):
+                for j, par in self.expanding.get(c, ()):
+                    own: dict = {}
+                    par.assign(par.value(x[:, j]), own)
+                    for k, w in own.items():
+                        out[k][k0 : k0 + n] = w
+                k0 += n
         return out
 
 
