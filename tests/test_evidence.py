@@ -4,12 +4,14 @@ N(y; A mu, I + A S A^T)); the linearized evidence equals it at the optimum; the 
 prior's normalisation equals scipy's truncnorm; the model prior sums to one over the
 models; inclusion and group claims follow from the model probabilities."""
 
+import functools
 import math
 
 import numpy as np
 import pytest
 from scipy import integrate, special, stats
 
+from tawarp.fit.lockstep import Together
 from tawarp.fit.problem_model import ProblemModel
 from tawarp.fit.result import FitResult
 from tawarp.loop.evidence import (
@@ -277,6 +279,32 @@ def test_laplace_log_evidences_of_a_ragged_batch_are_each_models_own(noise_scale
     for g, (mu, sd, lo, hi, r, J, x) in zip(got, models):
         priors = [XPrior(*a) for a in zip(mu, sd, lo, hi)]
         assert g == pytest.approx(laplace_log_evidence(x_model(priors), r, J, x, noise_scale), rel=1e-12, abs=1e-9)
+
+
+def ragged_models(seed: int, count: int) -> list[tuple]:
+    """``count`` random (mu, sd, lo, hi, r, J, x) of 8 or 30 residuals, 1-4 parameters,
+    some on a lower or an upper bound."""
+    rng = np.random.default_rng(seed)
+    models = []
+    for _ in range(count):
+        n, p = int(rng.choice([8, 30])), int(rng.integers(1, 5))
+        mu, sd = rng.standard_normal(p), rng.uniform(0.5, 2.0, p)
+        x = mu + sd * rng.standard_normal(p)
+        side = rng.integers(0, 3, p)
+        lo, hi = np.where(side == 1, x, -math.inf), np.where(side == 2, x, math.inf)
+        models.append((mu, sd, lo, hi, rng.standard_normal(n), rng.standard_normal((n, p)), x))
+    return models
+
+
+def test_evidences_of_loops_run_together_are_stacked_and_each_models_own():
+    # threads of run_together (loops run together) asking for evidences at the same step get
+    # them from one stacked call per noise treatment, each the number its caller gets alone
+    requests = [(ragged_models(seed, 5 + 3 * seed), seed % 2 == 1) for seed in range(6)]
+    together = Together()
+    got = together.run([functools.partial(laplace_log_evidences, m, scale) for m, scale in requests])
+    assert together.batches == 1 and together.calls == len(requests)
+    for g, (models, scale) in zip(got, requests):
+        np.testing.assert_allclose(g, laplace_log_evidences(models, scale), rtol=1e-12, atol=1e-9)
 
 
 @pytest.mark.parametrize("seed", range(4))

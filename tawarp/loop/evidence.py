@@ -49,6 +49,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import special
 
+from ..fit import lockstep
 from ..fit.lm import held_fixed
 from ..fit.problem_model import ProblemModel, determined_inverse
 from ..fit.problems import FD_STEP, Sets, param_values, predict_sets, residual
@@ -214,8 +215,35 @@ def laplace_log_evidences(models: list[tuple], noise_scale: bool = False, n_resi
     ``len(r)``). The models with as many rows, parameters and parameters on a bound share
     their linear algebra (stacked LAPACK calls): the 614 models of a linearization
     (:func:`linearized_evidence`) of the loop bench's clean case took 0.25 s one by one on
-    a 2-core machine, most of it numpy's per-call cost, and 0.05 s stacked."""
+    a 2-core machine, most of it numpy's per-call cost, and 0.05 s stacked. Inside
+    :func:`tawarp.fit.lockstep.run_together` the call waits for the other threads' and
+    stacks their models with its own (loops run together: :func:`tawarp.loop.run_loops`):
+    each model's ln Z is the one it gets alone, to rounding (tests/test_evidence.py)."""
     n_res = [len(m[4]) for m in models] if n_residuals is None else list(n_residuals)
+    together = lockstep.current()
+    if together is not None and not together.running:
+        return together.call((models, bool(noise_scale), n_res), _stacked_evidences)
+    return _log_evidences(models, noise_scale, n_res)
+
+
+def _stacked_evidences(requests: list[tuple], _state=None) -> list[np.ndarray]:
+    """:func:`laplace_log_evidences` of several callers' ``(models, noise_scale,
+    n_residuals)`` requests, those alike in ``noise_scale`` in one call."""
+    out: list = [None] * len(requests)
+    for scale in (False, True):
+        idx = [i for i, req in enumerate(requests) if req[1] == scale]
+        if not idx:
+            continue
+        got = _log_evidences([m for i in idx for m in requests[i][0]], scale, [n for i in idx for n in requests[i][2]])
+        k = 0
+        for i in idx:
+            out[i] = got[k : k + len(requests[i][0])]
+            k += len(requests[i][0])
+    return out
+
+
+def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
+    """:func:`laplace_log_evidences` in this thread, ``n_res`` given."""
     out = np.empty(len(models))
     groups: dict[tuple[int, int, int], list[int]] = {}
     sides = []
