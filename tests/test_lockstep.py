@@ -4,11 +4,13 @@ predict alone; kinds of one family (one core structure, the same rows) share one
 whose predictions are each kind's own."""
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
 from test_fit_lm import ExpKind, linear_case
 
+from tawarp.fit import lockstep
 from tawarp.fit.lockstep import Together, run_together
 from tawarp.fit.problems import Families, Sets, _absent, fit_batch, run_sets
 from tawarp.loop import default_base_params
@@ -53,6 +55,32 @@ def test_callers_run_together_get_the_fits_they_get_alone():
             for x, y in zip(fa, fb):
                 assert np.array_equal(x.x, y.x) and x.reason[0] == y.reason[0]
                 assert np.array_equal(x.jacobian, y.jacobian)
+
+
+def test_an_eager_request_adds_no_round_to_the_others():
+    # a caller that makes a cheap (eager) request before its next fit joins the others' fit
+    # batch as if it had not waited: the eager batch runs first and alone, then one batch of
+    # every caller's normal request
+    log = []
+
+    def batch(requests, _state):
+        log.append(("normal", sorted(requests)))
+        return requests
+
+    def quick(requests, _state):
+        log.append(("eager", sorted(requests)))
+        return requests
+
+    def caller(i: int, first_eager: bool):
+        together = lockstep.current()
+        if first_eager:
+            assert together.call(-i, quick, eager=True) == -i
+        return together.call(i, batch)
+
+    together = Together()
+    got = together.run([functools.partial(caller, i, i % 2 == 0) for i in range(5)])
+    assert got == list(range(5))
+    assert log == [("eager", [-4, -2, 0]), ("normal", [0, 1, 2, 3, 4])]
 
 
 def test_a_caller_that_raises_leaves_the_others_their_fits():

@@ -45,7 +45,8 @@ class Together:
         self._woken: dict[int, threading.Condition] = {}
         self._turn: int | None = None
         self._ready: deque[int] = deque()
-        self._waiting: dict = {}  # thread -> (its request, the function that runs a batch of such)
+        # thread -> (its request, the function that runs a batch of such, whether it is eager)
+        self._waiting: dict = {}
         self._results: dict = {}  # thread -> its result, or the exception its batch raised
         #: batches run, and the requests in them (how far the callers kept in step)
         self.batches = 0
@@ -53,13 +54,17 @@ class Together:
         #: a batch is running (the work it does is done at once, not waited for)
         self.running = False
 
-    def call(self, request, batch: Callable[[list, object], list]):
+    def call(self, request, batch: Callable[[list, object], list], eager: bool = False):
         """``request``'s result, from ``batch(requests, state)`` (results in the requests'
         order) run once every other thread waits too, on every waiting request of that
-        ``batch``; from the thread that holds the turn."""
+        ``batch``; from the thread that holds the turn. ``eager``: the batch is cheap beside
+        the others (host arithmetic, no launch): once every thread waits, the eager batches
+        run first and alone, and their callers go on to their next request before the
+        others run, so that they join the same batches as if they had not waited (the fits
+        of loops that compute their evidence at different steps stay in one batch)."""
         me = _LOCAL.index
         with self._lock:
-            self._waiting[me] = (request, batch)
+            self._waiting[me] = (request, batch, eager)
             self._hand_on()
             self._wait_turn(me)
         got = self._results.pop(me)
@@ -74,10 +79,13 @@ class Together:
     def _hand_on(self) -> None:
         """Give the turn to the next ready thread; where none is, run the waiting requests,
         each batch function's in one call (in this thread, which holds the turn), and make
-        their threads ready."""
+        their threads ready: the eager ones alone where any waits (:meth:`call`)."""
         if not self._ready and self._waiting:
+            eager = [owner for owner, (_, _, first) in self._waiting.items() if first]
+            owners_now = eager or list(self._waiting)
             by_batch: dict = {}
-            for owner, (request, batch) in self._waiting.items():
+            for owner in owners_now:
+                request, batch, _ = self._waiting[owner]
                 by_batch.setdefault(batch, []).append((owner, request))
             self.running = True
             try:
@@ -87,9 +95,10 @@ class Together:
             finally:
                 self.running = False
             self.batches += 1
-            self.calls += len(self._waiting)
-            self._ready.extend(self._waiting)
-            self._waiting.clear()
+            self.calls += len(owners_now)
+            self._ready.extend(owners_now)
+            for owner in owners_now:
+                del self._waiting[owner]
         self._give_turn()
 
     def _give_turn(self) -> None:

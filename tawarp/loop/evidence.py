@@ -222,7 +222,7 @@ def laplace_log_evidences(models: list[tuple], noise_scale: bool = False, n_resi
     n_res = [len(m[4]) for m in models] if n_residuals is None else list(n_residuals)
     together = lockstep.current()
     if together is not None and not together.running:
-        return together.call((models, bool(noise_scale), n_res), _stacked_evidences)
+        return together.call((models, bool(noise_scale), n_res), _stacked_evidences, eager=True)
     return _log_evidences(models, noise_scale, n_res)
 
 
