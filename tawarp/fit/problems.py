@@ -62,12 +62,18 @@ def residual(kind: MeasurementKind, Y: np.ndarray, rows: np.ndarray) -> np.ndarr
 
 
 def weighted(d: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """Real residuals (..., 2 n) of complex misfits ``d`` (..., n) with weights ``w`` (..., n,
-    2) of their re and im parts (broadcast against ``d``): re parts, then im parts."""
+    """Real residuals (..., 2 n) of complex misfits ``d`` (..., n) with weights ``w`` (n, 2)
+    of their re and im parts: re parts, then im parts."""
+    return weighted_parts(d, w[:, 0], w[:, 1])
+
+
+def weighted_parts(d: np.ndarray, w_re: np.ndarray, w_im: np.ndarray) -> np.ndarray:
+    """:func:`weighted` with the weights of the re and im parts apart, each broadcast
+    against ``d`` (..., n)."""
     n = d.shape[-1]
     out = np.empty(d.shape[:-1] + (2 * n,))
-    np.multiply(d.real, w[..., 0], out=out[..., :n])
-    np.multiply(d.imag, w[..., 1], out=out[..., n:])
+    np.multiply(d.real, w_re, out=out[..., :n])
+    np.multiply(d.imag, w_im, out=out[..., n:])
     return out
 
 
@@ -148,7 +154,7 @@ class KindProblems:
         #: per fit, the fits whose residuals are formed together: those that see every row of
         #: data of one size (several kinds' data stacked, :attr:`data_y`), else those that share
         #: their kind and rows
-        self.data_y: dict = {}  # data size -> (the kinds' y (kinds, size), their w (kinds, size, 2))
+        self.data_y: dict = {}  # data size -> (the kinds' y (kinds, size), their w (kinds, 2, size))
         self.data_of = np.zeros(len(self.kinds), dtype=np.int64)  # per fit, its kind's row there
         stacked: dict = {}
         alike: dict = {}
@@ -163,7 +169,7 @@ class KindProblems:
             self.alike_key.append(alike.setdefault(key, len(alike)))
         for size, kinds in stacked.items():
             ks = [k for _, k in kinds.values()]
-            self.data_y[size] = (np.stack([k.y for k in ks]), np.stack([k.w for k in ks]))
+            self.data_y[size] = (np.stack([k.y for k in ks]), np.stack([k.w.T for k in ks]))
         self.groups: dict = {}
         #: per fit, its group's key: (its part, its structural effect or None)
         self.group_of = []
@@ -307,8 +313,10 @@ class KindProblems:
                 if self.every_row[c0]:
                     y, w = self.data_y[kind.y.size]
                     own = self.data_of[pid[members]]
-                    D -= y[own][:, None, :]
-                    R = weighted(D, w[own][:, None])
+                    if np.all(own == own[0]):  # one kind's data: broadcast, not gathered
+                        own = own[0]
+                    D -= y[own][..., None, :]
+                    R = weighted_parts(D, w[own][..., None, 0, :], w[own][..., None, 1, :])
                     raw[members] = np.sum(np.abs(D[:, 0]) ** 2, axis=1)
                 else:
                     D -= kind.y
