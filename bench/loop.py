@@ -35,12 +35,18 @@ different code can be checked to decide the same.
   With ``--together N`` each process runs its cases N at a time as loops together
   (:func:`tawarp.loop.run_loops`, ordered so that the kinds of one family come together),
   and the bench first runs them so in its own process from cold (``together_one_process``:
-  the kernels the processes load, and one process's loops a second).
+  the kernels the processes load, and one process's loops a second);
+* ``together``: the T-matrix cases in this process, ``--together`` at a time, warm (a first
+  round, ``cold``, compiles or loads the kernels; the second, ``warm``, is timed): the host
+  work a case costs when loops run together, without a study's processes sharing the host
+  and the GPU (before and after a change, back to back in one lease).
 
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
     python bench/loop.py --device cuda --cases study --processes 16 --together 64 \
         --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
+    python bench/loop.py --device cuda --cases together --together 32 --seeds 1002-1039 \
+        --cache studies/out/loop_validation_heldout_drift/cache
 """
 
 from __future__ import annotations
@@ -335,8 +341,8 @@ def main(argv=None) -> int:
     except ValueError:
         ap.error(f"--seeds: {args.seeds!r}; expected integers, comma separated")
     cases = set(args.cases.split(","))
-    if not cases or not cases <= {"tmatrix", "impedance", "study"}:
-        ap.error(f"--cases: {args.cases!r}; expected tmatrix, impedance, study or several, comma separated")
+    if not cases or not cases <= {"tmatrix", "impedance", "study", "together"}:
+        ap.error(f"--cases: {args.cases!r}; expected tmatrix, impedance, study, together or several, comma separated")
     try:
         processes = [int(p) for p in args.processes.split(",")]
     except ValueError:
@@ -382,9 +388,16 @@ def main(argv=None) -> int:
         result["study"] = study(seeds, args.device, cache, processes, args.repeats, args.together)
         if together_warm is not None:
             result["together_one_process"] = together_warm
+    if "together" in cases:
+        result["together"] = {
+            "cold": together_warm or together_cases(seeds, args.device, cache, args.together),
+            "warm": together_cases(seeds, args.device, cache, args.together),
+        }
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
-    prefix = "loop_study" if cases == {"study"} else "loop"
+    prefix = {frozenset({"study"}): "loop_study", frozenset({"together"}): "loop_together"}.get(
+        frozenset(cases), "loop"
+    )
     name = f"{prefix}_{tag}_{result['cpu_cores']}core" if args.device == "cpu" else f"{prefix}_{tag}"
     write_result(result, name + ".json", args.out)
     return 0
