@@ -525,3 +525,15 @@ def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
         got.cov, D[:, None] * np.linalg.inv(A.T @ A + np.diag(sd**-2)) * D[None, :], rtol=1e-10, atol=1e-15
     )
     assert np.allclose(from_h.cov, got.cov, rtol=1e-10, atol=1e-15)
+
+
+@pytest.mark.parametrize("noise_scale", [False, True])
+def test_evidences_in_blocks_are_the_stacked_ones(noise_scale, monkeypatch):
+    # laplace_log_evidences stacks at most EVIDENCE_BLOCK models a call: the same ln Z as
+    # one call of every model, to rounding
+    from tawarp.loop import evidence
+
+    models = ragged_models(11, 50)
+    whole = laplace_log_evidences(models, noise_scale)
+    monkeypatch.setattr(evidence, "EVIDENCE_BLOCK", 3)
+    np.testing.assert_allclose(laplace_log_evidences(models, noise_scale), whole, rtol=1e-12, atol=1e-9)

@@ -276,12 +276,17 @@ def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
     assert np.allclose(got[finite], want[finite], rtol=1e-10, atol=0.0)
 
 
-def test_value_layout_is_param_assign_bit_for_bit():
+@pytest.mark.parametrize("block_bytes", [None, 80])
+def test_value_layout_is_param_assign_bit_for_bit(block_bytes, monkeypatch):
     # the vectorized parameter values of a group of fits equal Param.assign's, parameter by
     # parameter in order, to the bit: log and linear parameters, ties, two parameters
     # setting one name (the last wins), a parameter with its own expand, and names a fit
-    # leaves at the base value
+    # leaves at the base value; formed in one block or in blocks of two sets
+    from tawarp.fit import problems
     from tawarp.fit.problems import ValueLayout
+
+    if block_bytes is not None:
+        monkeypatch.setattr(problems, "BLOCK_BYTES", block_bytes)
 
     def halves(v):
         return {"a.x": v / 2.0, "c.z": v * 3.0}
@@ -305,3 +310,19 @@ def test_value_layout_is_param_assign_bit_for_bit():
         for name, v in base.items():
             np.testing.assert_array_equal(got[name][k0 : k0 + n], np.broadcast_to(own.get(name, v), (n,)))
         k0 += n
+
+
+def test_misfits_in_blocks_are_the_whole_batchs(monkeypatch):
+    # KindProblems.evaluate forms a batch's misfits in blocks of at most BLOCK_BYTES: the
+    # same cost, gradient and Gauss-Newton matrix, bit for bit, as in one block
+    from tawarp.fit import problems
+    from tawarp.fit.problems import KindProblems
+
+    kind, specs = _exp_case()
+    specs = specs * 7
+    z = np.random.default_rng(5).normal(0.0, 0.3, (len(specs), 3))
+    whole = KindProblems(kind, specs).evaluate(np.arange(len(specs)), z)
+    monkeypatch.setattr(problems, "BLOCK_BYTES", 3 * 4 * 16 * kind.y.size)  # three fits a block
+    blocks = KindProblems(kind, specs).evaluate(np.arange(len(specs)), z)
+    for a, b in zip(whole, blocks):
+        np.testing.assert_array_equal(a, b)

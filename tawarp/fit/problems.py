@@ -39,6 +39,11 @@ from .result import FitResult
 
 #: Forward-difference step in the scaled variables x.
 FD_STEP = 1e-6
+#: The largest array a batch's misfits and parameter values are formed in at once: loops run
+#: together give a batch thousands of fits, and arrays of all of them stream from memory
+#: where blocks of this size stay in the caches (a study runs a process a core, which share
+#: the memory's bandwidth).
+BLOCK_BYTES = 1 << 22
 #: Stopping rule of the kind fits: an accepted step below XTOL in x, or the gradient
 #: cosine max |g_a| / sqrt(H_aa F) below GTOL. Tight: the loop compares the fits' costs
 #: (F-test, BIC), so they must sit at the minimum; GTOL is about what forward differences
@@ -299,11 +304,16 @@ class KindProblems:
         cost, raw = np.empty(n), np.empty(n)
         g, H = np.full((n, P), np.nan), np.full((n, P, P), np.nan)
         self.last = [None] * n
-        # the fits that see the same rows with as many evaluations share their array work
+        # the fits that see the same rows with as many evaluations share their array work,
+        # in blocks of at most BLOCK_BYTES of misfits (loops run together: thousands of fits)
         alike: dict = {}
         for i, c in enumerate(pid):
             alike.setdefault((self.alike_key[c], got[i].shape[0]), []).append(i)
+        blocks = []
         for (_, m), members in alike.items():
+            size = max(1, BLOCK_BYTES // (16 * m * got[members[0]].shape[-1]))
+            blocks += [(m, members[a : a + size]) for a in range(0, len(members), size)]
+        for m, members in blocks:
             c0, k = pid[members[0]], m - 1
             rows = self.rows[c0]
             kind = self.kinds[c0]
@@ -340,7 +350,9 @@ class KindProblems:
         cost[bad] = np.inf
         for i, c in enumerate(pid):
             if c not in self.best or cost[i] < self.best[c][0]:
-                self.best[c] = (cost[i], z[i].copy(), *self.last[i])
+                # copies: a view would keep its whole block (and launch) alive
+                J, Y = self.last[i]
+                self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
         return cost, raw, g, H
 
     def at_solutions(self, z: np.ndarray) -> list:
@@ -400,13 +412,17 @@ class ValueLayout:
         for (_, x), n in zip(requests, sizes):
             X[k0 : k0 + n, : x.shape[1]] = x
             k0 += n
-        fit = np.repeat([self.local[c] for c, _ in requests], sizes)
-        slot = self.slot[fit].T  # (names, total)
-        x = X[np.arange(total)[None, :], np.maximum(slot, 0)]
-        start, scale = self.start[fit].T, self.scale[fit].T
-        with np.errstate(over="ignore", invalid="ignore"):
-            v = np.where(self.log[fit].T, start * np.exp(x), start + scale * x)
-        v = np.where(slot >= 0, v, self.base[:, None])
+        fits = np.repeat([self.local[c] for c, _ in requests], sizes)
+        v = np.empty((len(self.names), total))
+        step = max(1, BLOCK_BYTES // (8 * max(len(self.names), 1)))  # sets a block
+        for a in range(0, total, step):
+            fit = fits[a : a + step]
+            slot = self.slot[fit].T  # (names, sets)
+            x = X[a + np.arange(fit.size)[None, :], np.maximum(slot, 0)]
+            start, scale = self.start[fit].T, self.scale[fit].T
+            with np.errstate(over="ignore", invalid="ignore"):
+                block = np.where(self.log[fit].T, start * np.exp(x), start + scale * x)
+            v[:, a : a + step] = np.where(slot >= 0, block, self.base[:, None])
         out = dict(zip(self.names, v))
         if self.expanding:
             k0 = 0

@@ -158,6 +158,8 @@ def log_sum_exp(a: np.ndarray):
 
 #: A parameter within this of a bound (in its scaled fit variable x, of order 1) is on it.
 ON_BOUND = 1e-9
+#: Models whose evidence is computed in one stacked call at most (:func:`laplace_log_evidences`).
+EVIDENCE_BLOCK = 64
 
 
 def laplace_log_evidence(
@@ -252,7 +254,14 @@ def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.nd
         side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
         sides.append(side)
         groups.setdefault((len(r), len(x), int(np.count_nonzero(side == 0))), []).append(i)
-    for (_, k, kf), members in groups.items():
+    # in blocks of at most EVIDENCE_BLOCK models (the noise scales' arrays, M x 401 x k, of
+    # thousands of models stacked would stream from memory)
+    blocks = [
+        (k, kf, members[a : a + EVIDENCE_BLOCK])
+        for (_, k, kf), members in groups.items()
+        for a in range(0, len(members), EVIDENCE_BLOCK)
+    ]
+    for k, kf, members in blocks:
         # each model's parameters reordered: the free ones first, then those on a bound
         side = np.array([sides[i] for i in members]).reshape(len(members), k)
         order = np.argsort(side != 0, axis=1, kind="stable")
