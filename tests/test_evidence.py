@@ -527,6 +527,51 @@ def test_the_evidence_gaussian_is_the_fits_posterior_covariance():
     assert np.allclose(from_h.cov, got.cov, rtol=1e-10, atol=1e-15)
 
 
+def test_covariances_of_a_batch_are_each_problems_own():
+    # the loop's fits take their covariances in batches: every problem's must be the one it
+    # gets alone, bit for bit (the reports and evidences of loops run together are then those
+    # of each loop run alone), and the posterior covariance D (J^T J / s^2 + Lambda)^-1 D
+    from tawarp.fit.problem_model import covariances
+
+    rng = np.random.default_rng(7)
+    models, xs, costs, dofs, Js = [], [], [], [], []
+    for i in range(60):
+        p, n = int(rng.integers(0, 6)), int(rng.choice([2, 40]))
+        prior = i % 3 != 0
+        sd = np.where(rng.random(p) < 0.3, np.inf, np.exp(rng.normal(size=p))) if prior else None
+        models.append(
+            ProblemModel(
+                [f"v{j}" for j in range(p)],
+                rng.random(p) < 0.5,
+                np.exp(rng.normal(size=p)),
+                np.exp(rng.normal(size=p)),
+                np.full(p, -np.inf),
+                np.full(p, np.inf),
+                rng.normal(size=p) if prior else None,
+                sd,
+                i % 2 == 0,
+            )
+        )
+        J = rng.normal(size=(n, p)) * np.exp(2 * rng.normal(size=p))
+        if p > 2 and i % 5 == 0:
+            J[:, 1] = 2 * J[:, 0]  # an undetermined direction
+        Js.append(J)
+        xs.append(0.1 * rng.normal(size=p))
+        costs.append(float(40 * rng.random()))
+        dofs.append(max(n - p, 1))
+    batch = covariances(models, xs, costs, dofs, Js)
+    for m, x, cost, dof, J, got in zip(models, xs, costs, dofs, Js, batch):
+        alone = m.covariance(x, cost, dof, J=J)
+        for name in ("cov", "std", "corr", "undetermined"):
+            assert np.array_equal(getattr(got, name), getattr(alone, name), equal_nan=True), name
+        assert (got.cond, got.s2) == (alone.cond, alone.s2)
+        A = J.T @ J / got.s2 + np.diag(m.precision())
+        if m.p and np.linalg.cond(A) < 1e8:
+            D = m.dv_dx(x)
+            want = D[:, None] * np.linalg.inv(A) * D[None, :]
+            assert np.allclose(got.cov, want, rtol=1e-9, atol=1e-12 * np.abs(want).max())
+
+
 @pytest.mark.parametrize("noise_scale", [False, True])
 def test_evidences_in_blocks_are_the_stacked_ones(noise_scale, monkeypatch):
     # laplace_log_evidences stacks at most EVIDENCE_BLOCK models a call: the same ln Z as

@@ -186,44 +186,84 @@ class ProblemModel:
             return np.zeros(self.p)
         return 1.0 / np.asarray(self.prior_sd, dtype=float) ** 2
 
-    def _inverse(self, s2: float, J: np.ndarray | None, H: np.ndarray | None):
-        """(A^-1 on the determined directions, undetermined (p,), A) of ``A = J^T J + s2
-        Lambda`` (module doc), from ``J`` (n, p) or ``H`` = J^T J (p, p)."""
-        p = self.p
-        lam = s2 * self.precision()
-        if H is not None:
-            A = np.asarray(H, dtype=float) + np.diag(lam)
-            return (*determined_inverse(A), A)
-        # A = R^T R with R the Jacobian and the priors' rows
-        R = np.vstack([J, np.diag(np.sqrt(lam))[lam > 0]])
-        A = R.T @ R
-        norm = np.linalg.norm(R, axis=0)
-        norm[norm == 0] = 1.0
-        # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
-        _, sv, Vt = np.linalg.svd(R / norm, full_matrices=R.shape[0] < p)
-        ev = np.concatenate([sv, np.zeros(p - sv.size)]) ** 2
-        return (*_pseudo_inverse(ev, Vt.T, norm), A)
-
     def covariance(self, x, cost: float, dof: int, J: np.ndarray | None = None, H: np.ndarray | None = None):
         """:class:`Covariance` at the solution x (p,) of one problem (module doc), from the
         Jacobian ``J`` (n, p) of its weighted residuals in x (the more accurate: singular
         values of J are resolved to its rounding, eigenvalues of J^T J only to their square's)
         or from ``H`` = J^T J (p, p); ``cost`` the data's weighted sum of squares."""
-        p = self.p
+        if H is None:
+            return covariances([self], [x], [cost], [dof], [J])[0]
         s2 = float(noise_variance(cost, dof, self.noise_estimated))
+        if self.p == 0:
+            return _covariances(np.zeros((1, 0)), np.array([s2]), None, None, None)[0]
+        A = np.asarray(H, dtype=float) + np.diag(s2 * self.precision())
+        unit_x, undetermined = determined_inverse(A)
+        return _covariances(self.dv_dx(x)[None], np.array([s2]), unit_x[None], A[None], undetermined[None])[0]
+
+
+def covariances(models: list[ProblemModel], x: list, cost: list, dof: list, J: list) -> list[Covariance]:
+    """:meth:`ProblemModel.covariance` of many problems from their Jacobians: ``models``, the
+    solutions ``x`` (p_i,), ``cost``, ``dof`` and ``J`` (n_i, p_i) of each (None: no
+    parameter). Problems whose
+    stacked matrix (J over the priors' rows) has one shape are done together in array
+    operations (the loop's batches: hundreds of fits), the same numbers as one at a time:
+    a stack's LAPACK and matrix products are each matrix's own
+    (``tests/test_problem_model.py::test_covariances_of_a_batch_are_each_problems_own``)."""
+    out: list = [None] * len(models)
+    shapes: dict = {}
+    for i, (model, Ji) in enumerate(zip(models, J)):
+        s2 = float(noise_variance(cost[i], dof[i], model.noise_estimated))
+        lam = s2 * model.precision()
+        # A = R^T R with R the Jacobian and the priors' rows
+        R = np.vstack([np.zeros((0, model.p)) if Ji is None else Ji, np.diag(np.sqrt(lam))[lam > 0]])
+        shapes.setdefault(R.shape, []).append((i, s2, R))
+    for (n, p), members in shapes.items():
+        idx = [i for i, _, _ in members]
+        s2 = np.array([s for _, s, _ in members])
+        D = np.array([models[i].dv_dx(x[i]) for i in idx]).reshape(len(idx), p)
         if p == 0:
-            empty = np.zeros((0, 0))
-            return Covariance(empty, np.zeros(0), empty, 1.0, s2, np.zeros(0, dtype=bool))
-        unit_x, undetermined, A = self._inverse(s2, J, H)
-        D = self.dv_dx(x)
-        unit = unit_x * D[:, None] * D[None, :]
-        cov = s2 * unit
-        std = np.sqrt(np.maximum(np.diag(cov), 0.0))
-        std[undetermined] = np.nan  # undetermined: None in JSON, never +-tiny
-        su = np.sqrt(np.maximum(np.diag(unit), 0.0))
-        with np.errstate(divide="ignore", invalid="ignore"):
-            corr = unit / (su[:, None] * su[None, :])
-        corr[np.arange(p), np.arange(p)] = 1.0
-        w = np.linalg.eigvalsh(A)
-        cond = float(w[-1] / w[0]) if w[0] > 0 else math.inf
-        return Covariance(cov, std, corr, cond, s2, undetermined)
+            got = _covariances(D, s2, None, None, None)
+        else:
+            R = np.stack([r for _, _, r in members])
+            A = np.swapaxes(R, -1, -2) @ R
+            norm = np.linalg.norm(R, axis=-2)
+            norm[norm == 0] = 1.0
+            # V (p, p) is all we need: the full U (n, n) of n residuals took 0.2 s a fit at n = 888
+            _, sv, Vt = np.linalg.svd(R / norm[:, None, :], full_matrices=n < p)
+            ev = np.concatenate([sv, np.zeros((len(idx), p - sv.shape[-1]))], axis=-1) ** 2
+            unit_x, undetermined = _pseudo_inverse(ev, np.swapaxes(Vt, -1, -2), norm)
+            got = _covariances(D, s2, unit_x, A, undetermined)
+        for i, c in zip(idx, got):
+            out[i] = c
+    return out
+
+
+def _covariances(D: np.ndarray, s2: np.ndarray, unit_x, A, undetermined) -> list:
+    """[:class:`Covariance`] of problems with dv/dx ``D`` (k, p), noise variance ``s2`` (k,),
+    inverse ``unit_x`` (k, p, p) in x of their matrices ``A`` (k, p, p) and ``undetermined``
+    (k, p) (None where p = 0)."""
+    k, p = D.shape
+    if p == 0:
+        empty = np.zeros((0, 0))
+        return [Covariance(empty, np.zeros(0), empty, 1.0, float(v), np.zeros(0, dtype=bool)) for v in s2]
+    unit = unit_x * D[:, :, None] * D[:, None, :]
+    cov = s2[:, None, None] * unit
+    diagonal = np.arange(p)
+    std = np.sqrt(np.maximum(cov[:, diagonal, diagonal], 0.0))
+    std[undetermined] = np.nan  # undetermined: None in JSON, never +-tiny
+    su = np.sqrt(np.maximum(unit[:, diagonal, diagonal], 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        corr = unit / (su[:, :, None] * su[:, None, :])
+    corr[:, diagonal, diagonal] = 1.0
+    w = np.linalg.eigvalsh(A)
+    return [
+        Covariance(
+            cov[j],
+            std[j],
+            corr[j],
+            float(w[j, -1] / w[j, 0]) if w[j, 0] > 0 else math.inf,
+            float(s2[j]),
+            undetermined[j],
+        )
+        for j in range(k)
+    ]

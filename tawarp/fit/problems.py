@@ -34,7 +34,7 @@ from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
 from ..model.fields import field as field_of
 from .lm import levenberg_marquardt
-from .problem_model import ProblemModel
+from .problem_model import Covariance, ProblemModel, covariances
 from .result import FitResult
 
 #: Forward-difference step in the scaled variables x.
@@ -289,18 +289,26 @@ class KindProblems:
             p = self.p[pid[i]]
             return z[i, None, :p] + np.diag(step[i, :p])
 
+        # each fit's model values (1 + p or 1, rows) in parts: the point's, then its neighbours'
         if below is None:
-            got = self.predict([(c, np.vstack([z[i, None, : self.p[c]], neighbours(i)])) for i, c in enumerate(pid)])
+            parts = [
+                (Y,)
+                for Y in self.predict(
+                    [(c, np.vstack([z[i, None, : self.p[c]], neighbours(i)])) for i, c in enumerate(pid)]
+                )
+            ]
         else:
-            got = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
+            points = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
             with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
                 point_cost = [
-                    r @ r for r in (residual(self.kinds[c], got[i], self.rows[c])[0] for i, c in enumerate(pid))
+                    r @ r for r in (residual(self.kinds[c], points[i], self.rows[c])[0] for i, c in enumerate(pid))
                 ]
             point_cost = np.array(point_cost) + prior_cost
             taken = [i for i in range(n) if point_cost[i] < below[i]]
+            parts = [(Y,) for Y in points]
             for i, Yn in zip(taken, self.predict([(pid[i], neighbours(i)) for i in taken])):
-                got[i] = np.vstack([got[i], Yn])
+                parts[i] = (points[i], Yn)
+        sizes = [sum(part.shape[0] for part in fit) for fit in parts]
         cost, raw = np.empty(n), np.empty(n)
         g, H = np.full((n, P), np.nan), np.full((n, P, P), np.nan)
         self.last = [None] * n
@@ -308,17 +316,22 @@ class KindProblems:
         # in blocks of at most BLOCK_BYTES of misfits (loops run together: thousands of fits)
         alike: dict = {}
         for i, c in enumerate(pid):
-            alike.setdefault((self.alike_key[c], got[i].shape[0]), []).append(i)
+            alike.setdefault((self.alike_key[c], sizes[i]), []).append(i)
         blocks = []
         for (_, m), members in alike.items():
-            size = max(1, BLOCK_BYTES // (16 * m * got[members[0]].shape[-1]))
+            size = max(1, BLOCK_BYTES // (16 * m * parts[members[0]][0].shape[-1]))
             blocks += [(m, members[a : a + size]) for a in range(0, len(members), size)]
         for m, members in blocks:
             c0, k = pid[members[0]], m - 1
             rows = self.rows[c0]
             kind = self.kinds[c0]
+            D = np.empty((len(members), m, parts[members[0]][0].shape[-1]), dtype=np.complex128)
+            for j, i in enumerate(members):  # (fits, 1 + p or 1, y.size)
+                a = 0
+                for part in parts[i]:
+                    D[j, a : a + part.shape[0]] = part
+                    a += part.shape[0]
             with np.errstate(over="ignore", invalid="ignore"):  # a diverging trial: cost inf below
-                D = np.stack([got[i] for i in members])  # (fits, 1 + p or 1, y.size)
                 # the misfits, the same numbers as residual()'s
                 if self.every_row[c0]:
                     y, w = self.data_y[kind.y.size]
@@ -342,7 +355,7 @@ class KindProblems:
                     g[members, :k] = np.einsum("ipj,ij->ip", J, r)
                     H[np.ix_(members, range(k), range(k))] = J @ np.swapaxes(J, 1, 2)
             for j, i in enumerate(members):
-                self.last[i] = (J[j].T if k else None, got[i][0])
+                self.last[i] = (J[j].T if k else None, parts[i][0][0])
         cost += prior_cost
         g += d * isd
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
@@ -448,17 +461,18 @@ def kind_result(
     converged: bool,
     reason: str,
     iterations: int,
+    r: np.ndarray,
+    c: Covariance,
     evaluations: int = 0,
     seconds: float = 0.0,
 ) -> FitResult:
-    """:class:`FitResult` (one problem) of a kind fit at x with Jacobian J (n, p) in x and
-    model values Y; its covariance is ``model``'s (:meth:`ProblemModel.covariance`: the
-    posterior covariance, s^2 = 1 with the kind's sigma, else the reduced chi^2)."""
-    r = residual(kind, Y, rows)
+    """:class:`FitResult` (one problem) of a kind fit at x with Jacobian J (n, p) in x,
+    model values Y, weighted residuals ``r`` there and covariance ``c`` (``model``'s,
+    :func:`tawarp.fit.problem_model.covariances`: the posterior covariance, s^2 = 1 with the
+    kind's sigma, else the reduced chi^2)."""
     cost = float(r @ r)
     n, p = r.size, len(params)
     dof = max(n - p, 1)
-    c = model.covariance(np.asarray(x, dtype=float), cost, dof, J=J)
     values = np.array([float(par.value(x[j])) for j, par in enumerate(params)])
     one = lambda a, dt=float: np.array([a], dtype=dt)  # noqa: E731
     return FitResult(
@@ -584,6 +598,10 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
     at = lm.at_solutions(z)
     dt = time.perf_counter() - t0
+    r = [residual(lm.kinds[c], at[c][1], lm.rows[c]) for c in range(K)]
+    x = [z[c, : lm.p[c]] for c in range(K)]
+    dof = [max(r[c].size - lm.p[c], 1) for c in range(K)]
+    cov = covariances(lm.models, x, [float(rc @ rc) for rc in r], dof, [J for J, _ in at])
     fits = [
         kind_result(
             lm.kinds[c],
@@ -597,6 +615,8 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
             bool(converged[c]),
             str(reason[c]),
             int(its[c]),
+            r[c],
+            cov[c],
             seconds=dt,
         )
         for c, (params, effect, _) in enumerate(lm.specs)

@@ -249,14 +249,14 @@ class TMatrixKind(MeasurementKind):
                 T[~needed] = np.nan
                 Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
             else:
-                # each set's rows gathered per heat input, then made dimensionless
-                flat = T.reshape(T.shape[0], -1)
+                # the distinct columns made dimensionless (each once: T is this call's own),
+                # then each set's rows gathered per heat input
+                flat = normalize_entries(T.reshape(T.shape[0], -1), self.Zc)
                 Y = np.empty((n, self.y.size), dtype=np.complex128)
                 for q, sel, fc in self._gather:
                     Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
                     if not needed[:, q].all():
                         Y[np.ix_(~needed[:, q], np.arange(self.y.size)[sel])] = np.nan
-                normalize_entries(Y, self.Zc)
             if gain is not None or phase is not None:
                 g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
                 ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
