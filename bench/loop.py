@@ -39,14 +39,16 @@ different code can be checked to decide the same.
 * ``together``: the T-matrix cases in this process, ``--together`` at a time, warm (a first
   round, ``cold``, compiles or loads the kernels; the second, ``warm``, is timed): the host
   work a case costs when loops run together, without a study's processes sharing the host
-  and the GPU (before and after a change, back to back in one lease).
+  and the GPU (before and after a change, back to back in one lease); with ``--device-time``
+  the warm round's kernels and copies are timed on the device (``device_time``: what the GPU
+  itself spends a case, by kind and by kernel).
 
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
     python bench/loop.py --device cuda --cases study --processes 16 --together 64 \
         --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
     python bench/loop.py --device cuda --cases together --together 32 --seeds 1002-1039 \
-        --cache studies/out/loop_validation_heldout_drift/cache
+        --cache studies/out/loop_validation_heldout_drift/cache --device-time
 """
 
 from __future__ import annotations
@@ -186,16 +188,52 @@ def loops_in_groups(probs: list, together: int) -> list:
     return [rep for k in range(0, len(probs), together) for rep in run_loops(probs[k : k + together])]
 
 
-def together_cases(seeds, device, cache: Path, together: int) -> dict:
+#: Warp's kinds of CUDA activity (:func:`warp.timing_begin`) by their names in the JSON.
+ACTIVITIES = {
+    "kernels": wp.TIMING_KERNEL,
+    "builtin_kernels": wp.TIMING_KERNEL_BUILTIN,
+    "copies": wp.TIMING_MEMCPY,
+    "memsets": wp.TIMING_MEMSET,
+    "graphs": wp.TIMING_GRAPH,
+}
+
+
+def device_time(activities: list, cases: int, top: int = 12) -> dict:
+    """The device's own time of Warp's timed ``activities`` (:func:`warp.timing_end`) over
+    ``cases`` cases: seconds of each kind, milliseconds a case, and the ``top`` activities
+    by name (kernels by their module's function, copies by direction)."""
+    kinds = {name: [a for a in activities if a.filter == flag] for name, flag in ACTIVITIES.items()}
+    by_name: dict = {}
+    for a in activities:
+        seconds, count = by_name.get(a.name, (0.0, 0))
+        by_name[a.name] = (seconds + a.elapsed / 1e3, count + 1)
+    return {
+        "activities_per_case": len(activities) / cases,
+        "seconds": {name: sum(a.elapsed for a in got) / 1e3 for name, got in kinds.items()},
+        "ms_per_case": {name: sum(a.elapsed for a in got) / cases for name, got in kinds.items()},
+        "by_name": [
+            {"name": name, "seconds": seconds, "count": count}
+            for name, (seconds, count) in sorted(by_name.items(), key=lambda kv: -kv[1][0])[:top]
+        ],
+    }
+
+
+def together_cases(seeds, device, cache: Path, together: int, timed: bool = False) -> dict:
     """The T-matrix cases ``seeds`` in this process, ``together`` loops at a time
     (:func:`tawarp.loop.run_loops`), from cold: the loops a second of one process, its first
-    launches' compiles or cache loads included."""
+    launches' compiles or cache loads included. ``timed``: the device's own time of every
+    kernel and copy too (:func:`device_time`; CUDA events around each, which the wall time
+    then includes)."""
     cases = [tmatrix_case(seed, device, cache) for seed in seeds]
     order = by_family(list(range(len(cases))), [prob for _, prob in cases])
     seeds, probs = [seeds[i] for i in order], [cases[i][1] for i in order]
+    if timed:
+        wp.timing_begin(cuda_filter=wp.TIMING_ALL)
     clock = _clocks()
     reps = loops_in_groups(probs, together)
     out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
+    if timed:
+        out["device_time"] = device_time(wp.timing_end(), len(reps))
     out["cases_per_second"] = len(reps) / out["seconds"]
     out["decisions"] = {str(seed): decisions(rep) for seed, rep in zip(seeds, reps)}
     print(f"{len(reps)} cases, {together} together, in this process: {out['seconds']:.1f} s")
@@ -334,6 +372,11 @@ def main(argv=None) -> int:
         default=1,
         help="loops a study process runs together, their fits in one batch (tawarp.loop.run_loops)",
     )
+    ap.add_argument(
+        "--device-time",
+        action="store_true",
+        help="with --cases together on a GPU: the warm round's kernels and copies timed on the device",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
@@ -353,6 +396,8 @@ def main(argv=None) -> int:
         ap.error(f"--repeats: {args.repeats}; expected a positive integer")
     if args.together < 1:
         ap.error(f"--together: {args.together}; expected a positive integer")
+    if args.device_time and ("together" not in cases or wp.get_device(args.device).is_cpu):
+        ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     wp.config.quiet = True
     wp.init()
     cache = Path(args.cache)
@@ -391,7 +436,7 @@ def main(argv=None) -> int:
     if "together" in cases:
         result["together"] = {
             "cold": together_warm or together_cases(seeds, args.device, cache, args.together),
-            "warm": together_cases(seeds, args.device, cache, args.together),
+            "warm": together_cases(seeds, args.device, cache, args.together, args.device_time),
         }
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")

@@ -24,3 +24,27 @@ def test_a_file_as_out_is_written_under_that_name(tmp_path):
     assert path == tmp_path / "mine.json"
     assert json.loads(path.read_text()) == {"cases": 3}
     assert not (tmp_path / "loop_study_x.json").exists()
+
+
+def test_the_device_time_sums_each_kind_and_ranks_activities_by_their_time(monkeypatch):
+    import warp as wp
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "loop.py"
+    monkeypatch.syspath_prepend(str(path.parent))  # the script imports its folder's modules
+    spec = importlib.util.spec_from_file_location("bench_loop", path)
+    loop = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(loop)
+    timed = [
+        wp.TimingResult("cuda:0", "forward kernel heat", wp.TIMING_KERNEL, 3.0),
+        wp.TimingResult("cuda:0", "memcpy DtoH", wp.TIMING_MEMCPY, 1.5),
+        wp.TimingResult("cuda:0", "forward kernel heat", wp.TIMING_KERNEL, 5.0),
+        wp.TimingResult("cuda:0", "forward kernel transfer", wp.TIMING_KERNEL, 2.0),
+    ]
+    got = loop.device_time(timed, cases=2, top=2)
+    assert got["seconds"]["kernels"] == 0.010 and got["seconds"]["copies"] == 0.0015
+    assert got["ms_per_case"]["kernels"] == 5.0 and got["ms_per_case"]["memsets"] == 0.0
+    assert got["activities_per_case"] == 2.0
+    assert got["by_name"] == [
+        {"name": "forward kernel heat", "seconds": 0.008, "count": 2},
+        {"name": "forward kernel transfer", "seconds": 0.002, "count": 1},
+    ]
