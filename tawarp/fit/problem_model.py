@@ -204,11 +204,10 @@ class ProblemModel:
 def covariances(models: list[ProblemModel], x: list, cost: list, dof: list, J: list) -> list[Covariance]:
     """:meth:`ProblemModel.covariance` of many problems from their Jacobians: ``models``, the
     solutions ``x`` (p_i,), ``cost``, ``dof`` and ``J`` (n_i, p_i) of each (None: no
-    parameter). Problems whose
-    stacked matrix (J over the priors' rows) has one shape are done together in array
-    operations (the loop's batches: hundreds of fits), the same numbers as one at a time:
-    a stack's LAPACK and matrix products are each matrix's own
-    (``tests/test_problem_model.py::test_covariances_of_a_batch_are_each_problems_own``)."""
+    parameter). Problems whose stacked matrix (J over the priors' rows) has one shape are
+    done together in array operations (the loop's batches: hundreds of fits), the same
+    numbers as one at a time: a stack's LAPACK calls and matrix products are each matrix's
+    own (``tests/test_evidence.py::test_covariances_of_a_batch_are_each_problems_own``)."""
     out: list = [None] * len(models)
     shapes: dict = {}
     for i, (model, Ji) in enumerate(zip(models, J)):

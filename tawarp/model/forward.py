@@ -767,9 +767,9 @@ class Engine:
 
     def distinct(self, varying: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(T, column): the T-matrices (d, m, 2, 2) complex of the d distinct sets of a host
-        table ``varying`` (1 + len(names), n) (a new array, the caller's own) and which one
-        each set is (n,), so that a
-        caller that reads part of each set's T-matrices gathers it from ``T`` in one pass.
+        table ``varying`` (1 + len(names), n), a new array (the caller's own), and which one
+        each set is (n,), so that a caller that reads part of each set's T-matrices gathers
+        it from ``T`` in one pass.
         Each distinct set is computed once and shared by its copies: sets that differ only in
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
