@@ -396,12 +396,19 @@ def main(argv=None) -> int:
         ap.error(f"--repeats: {args.repeats}; expected a positive integer")
     if args.together < 1:
         ap.error(f"--together: {args.together}; expected a positive integer")
-    if args.device_time and ("together" not in cases or wp.get_device(args.device).is_cpu):
-        ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     wp.config.quiet = True
     wp.init()
+    try:
+        device = wp.get_device(args.device)
+    except (RuntimeError, ValueError) as e:
+        ap.error(f"--device: {args.device!r}: {e}")
+    if args.device_time and ("together" not in cases or device.is_cpu):
+        ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     cache = Path(args.cache)
-    cache.mkdir(parents=True, exist_ok=True)
+    try:
+        cache.mkdir(parents=True, exist_ok=True)
+    except OSError as e:
+        ap.error(f"--cache: {e}")
     # warm-up: compiles the kernels
     together_warm = None
     if "study" in cases and args.together > 1:
