@@ -447,3 +447,53 @@ def test_rows_found_in_evaluation_order_are_those_the_sort_leaves_in_place():
         if len(workers) == 1 and not np.isnan(times).any():
             assert _in_evaluation_order(lexsorted(cols))
     assert found > 100
+
+
+def test_a_segment_read_the_moment_it_appears_is_still_written(tmp_path, monkeypatch):
+    """Islands run as threads of one process read the store while others write it: a reader
+    that opens a new segment the moment it appears (before its writer's own open, once
+    seen in a distributed islands test) must not stop its writer, since HDF5 refuses a
+    file for writing that its process holds open for reading alone."""
+    import tawarp.design.storage as S
+
+    replace, readers = os.replace, []
+
+    def seen_at_once(src, dst):
+        replace(src, dst)
+        if str(dst).endswith(".h5"):
+            readers.append(S.open_segment(Path(dst)))
+
+    monkeypatch.setattr(S.os, "replace", seen_at_once)
+    w = TrialStore(tmp_path, "s").writer("w", 0, {}, 64)
+    k = np.arange(64)
+    w.append(0, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3)
+    assert len(readers) == 1 and int(readers[0]["committed"][0]) in (0, 64)
+    for f in readers:
+        f.close()
+    w.close()
+    cols = TrialStore(tmp_path, "s").read()
+    np.testing.assert_array_equal(cols["metric:y"], k * 2.0)
+
+
+def test_a_segment_that_cannot_be_renamed_is_not_written_unseen(tmp_path, monkeypatch):
+    """A failed rename of a new segment raises, and the writer is left writing no file that
+    readers cannot see: its next append makes the segment again, and the store reads it."""
+    import errno
+
+    import tawarp.design.storage as S
+
+    replace = os.replace
+
+    def failing(src, dst):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(S.os, "replace", failing)
+    w = TrialStore(tmp_path, "s").writer("w", 0, {}, 64)
+    k = np.arange(64)
+    with pytest.raises(OSError, match="Input/output error"):
+        w.append(0, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3)
+    monkeypatch.setattr(S.os, "replace", replace)
+    assert TrialStore(tmp_path, "s").segments() == []
+    w.append(0, k, {"x": k / 64.0}, {"y": k * 2.0}, None, k == 3)
+    w.close()
+    np.testing.assert_array_equal(TrialStore(tmp_path, "s").read()["metric:y"], k * 2.0)

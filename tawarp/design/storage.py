@@ -470,8 +470,11 @@ class StoreWriter:
             raise OSError(getattr(e, "errno", None) or errno.EIO, self.failure) from None
 
     def _open(self, cols: dict) -> None:
-        """Create the segment under a temporary name, then rename it and open it for SWMR
-        writing: a crash before leaves no half-made segment for readers."""
+        """Create the segment under a temporary name, open it for SWMR writing, then rename
+        it: a crash before leaves no half-made segment for readers, and a reader in this
+        process that opens it the moment it appears shares the writer's open file (HDF5
+        refuses to open for writing a file its process holds open for reading alone;
+        tests/test_design_store.py::test_a_segment_read_the_moment_it_appears_is_still_written)."""
         import h5py
 
         self.store.path.mkdir(parents=True, exist_ok=True)
@@ -487,14 +490,20 @@ class StoreWriter:
                 if name.startswith("params/") and base in self.choices:
                     ds.attrs["choices"] = list(self.choices[base])
             f.create_dataset("committed", data=np.zeros(1, dtype=np.int64))
-        os.replace(tmp, path)
         # no chunk cache: every write appends whole chunks but the last, so a cache only
         # adds a copy; and the datasets stay open, because closing one writes its chunks
         # and metadata out at every append: together these halved a writer's time
         # (bench/README.md, "The trial store written as rows gather")
-        self._f = h5py.File(path, "a", libver="latest", locking=False, rdcc_nbytes=0)
+        self._f = h5py.File(tmp, "a", libver="latest", locking=False, rdcc_nbytes=0)
         self._f.swmr_mode = True
         self._columns = {name: self._f[name] for name in [*cols, "committed"]}
+        try:
+            os.replace(tmp, path)
+        except OSError:  # not left writing to a file no reader sees
+            self._columns = None
+            self._f.close()
+            self._f = None
+            raise
 
     def close(self) -> None:
         if self._f is not None:
