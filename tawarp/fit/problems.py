@@ -28,7 +28,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+import warp as wp
+
 from ..kernels import lm_step
+from ..kernels import misfit as kmisfit
 from . import lockstep
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
@@ -211,6 +214,9 @@ class KindProblems:
         #: per fit, its evaluation of lowest cost so far: (cost, padded z, J, model values); the
         #: LM accepts a trial only where it lowers the cost, so this is the one at its solution
         self.best: dict = {}
+        #: the kinds predict on a GPU: :meth:`evaluate` reduces their model values there
+        self.on_device = all(k.predicts_on_gpu() for k in self.kinds)
+        self._on_device: dict = {}  # per device, :meth:`_device_data`
 
     def start(self) -> np.ndarray:
         """The specs' x0, padded (K, P)."""
@@ -239,10 +245,10 @@ class KindProblems:
         jobs, assemble = self.prediction(requests)
         return assemble(predict_sets(jobs, self.families))
 
-    def prediction(self, requests: list) -> tuple[list["Sets"], Callable[[list], list]]:
+    def prediction(self, requests: list, on_device: bool = False) -> tuple[list["Sets"], Callable[[list], list]]:
         """:meth:`predict` in two halves: the sets to predict (a caller may predict them
         with others', :func:`predict_sets`), and the function that takes their model values
-        to ``requests``' results."""
+        to ``requests``' results (``on_device``: :class:`tawarp.measure.kind.DeviceValues`)."""
         by_group: dict = {}
         for i, (c, _) in enumerate(requests):
             by_group.setdefault(self.group_of[c], []).append(i)
@@ -254,7 +260,8 @@ class KindProblems:
             c0 = requests[todo[0]][0]
             needed = [self.needed[requests[i][0]] for i in todo]
             rows = [r for n, r in zip(sizes, needed) for _ in range(n)] if any(r is not None for r in needed) else None
-            jobs.append(Sets(self.kinds[c0], values, total, self.specs[c0][1] if key[1] is not None else None, rows))
+            effect = self.specs[c0][1] if key[1] is not None else None
+            jobs.append(Sets(self.kinds[c0], values, total, effect, rows, on_device))
 
         def assemble(got: list) -> list:
             out = [None] * len(requests)
@@ -268,7 +275,7 @@ class KindProblems:
 
         return jobs, assemble
 
-    def evaluate(self, pid, z, max_sets: int = 0, below=None):
+    def evaluate(self, pid, z, max_sets: int = 0, below=None, host: bool = False):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
         weighted residuals, raw the unweighted sum |Y - y|^2 over the rows, g = J^T r,
         H = J^T J with the forward-difference J (``max_sets`` is not used: the batches
@@ -285,18 +292,151 @@ class KindProblems:
         d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
         prior_cost = np.sum(d**2, axis=1)
 
+        if self.on_device and below is None and not host:
+            cost, raw, g, H = self._reduced_on_device(pid, z, step)
+            self.last = [None] * n
+        else:
+            cost, raw, g, H = self._reduced_on_host(pid, z, step, below, prior_cost)
+        cost += prior_cost
+        g += d * isd
+        H += isd[:, :, None] ** 2 * np.eye(P)[None]
+        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
+        cost[bad] = np.inf
+        for i, c in enumerate(pid):
+            if c not in self.best or cost[i] < self.best[c][0]:
+                if self.last[i] is None:  # reduced on the device: at_solutions evaluates it again
+                    self.best[c] = (cost[i], z[i].copy())
+                    continue
+                # copies: a view would keep its whole block (and launch) alive
+                J, Y = self.last[i]
+                self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
+        return cost, raw, g, H
+
+    def _with_neighbours(self, pid, z, step) -> list:
+        """The requests of fits ``pid`` at z with their forward-difference neighbours:
+        [(c, X (1 + p_c, p_c)), ...], the point first."""
+        out: list = [None] * len(pid)
+        free = self.p[pid]
+        for p in np.unique(free):
+            at = np.flatnonzero(free == p)
+            X = np.repeat(z[at, None, :p], 1 + p, axis=1)  # (fits, 1 + p, p): the point, then
+            X[:, 1:] += step[at, None, :p] * np.eye(p)  # each neighbour (_neighbours' values)
+            for j, i in enumerate(at):
+                out[i] = (pid[i], X[j])
+        return out
+
+    def _neighbours(self, c: int, z: np.ndarray, step: np.ndarray) -> np.ndarray:
+        """Fit c's forward-difference neighbours (p_c, p_c) of its padded point z."""
+        p = self.p[c]
+        return z[None, :p] + np.diag(step[:p])
+
+    def _reduced_on_device(self, pid, z, step) -> tuple:
+        """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, of fits ``pid``
+        at z with their neighbours, reduced where the launches left the model values
+        (:func:`tawarp.kernels.misfit.normal_equations`, a launch per launch of model
+        values) and copied to the host in one array."""
+        n, P = z.shape
+        if n == 0:
+            return np.empty(0), np.empty(0), np.empty((0, P)), np.empty((0, P, P))
+        jobs, assemble = self.prediction(self._with_neighbours(pid, z, step), on_device=True)
+        got = assemble(predict_sets(jobs, self.families))
+        device = got[0].values.device
+        data_y, data_w, rows, row_start, row_count = self._device_data(device)
+        out = wp.full((n, 2 + P + P * P), np.nan, dtype=wp.float64, device=device)
+        by_launch: dict = {}
+        for i, values in enumerate(got):
+            by_launch.setdefault(id(values.values), []).append(i)
+
+        for slots in by_launch.values():
+            v = got[slots[0]]
+            slots = np.array(slots)
+            fits = pid[slots]
+            # each fit's (first set, p, data, row start, row count, slot): one copy a launch
+            table = [
+                [got[i].start for i in slots],
+                self.p[fits],
+                self._data_index[fits],
+                row_start[fits],
+                row_count[fits],
+                slots,
+            ]
+            wp.launch(
+                kmisfit.normal_equations,
+                dim=(slots.size, P + 1, P + 1),
+                inputs=[
+                    v.values,
+                    v.columns,
+                    v.gain,
+                    v.row_q,
+                    v.row_e,
+                    v.scale,
+                    wp.array(np.stack(table, axis=1).astype(np.int32), device=device),
+                    wp.array(np.ascontiguousarray(step[slots]), device=device),
+                    data_y,
+                    data_w,
+                    rows,
+                    out,
+                ],
+                device=device,
+            )
+        res = out.numpy()
+        # H's padding (columns of fits with fewer parameters) is 0, as the host path leaves it
+        g = res[:, 2 : 2 + P]
+        H = res[:, 2 + P :].reshape(n, P, P)
+        pad = np.arange(P)[None, :] >= self.p[pid][:, None]
+        g[pad] = 0.0
+        H[pad[:, :, None] | pad[:, None, :]] = 0.0
+        # ... and a fit without parameters has none (NaN) in a batch with some, as there
+        none = self.p[pid] == 0
+        g[none], H[none] = np.nan, np.nan
+        return res[:, 0], res[:, 1], g, H
+
+    def _device_data(self, device) -> tuple:
+        """(data y, data w, rows, row start, row count) on ``device``, made once: every
+        kind's y and w (kinds, size, re / im), and the rows each fit sees, one array
+        per distinct rows array (:attr:`_data_index`: each fit's kind there)."""
+        got = self._on_device.get(str(device))
+        if got is not None:
+            return got
+        kinds: dict = {}
+        for k in self.kinds:
+            kinds.setdefault(id(k), (len(kinds), k))
+        size = max(k.y.size for _, k in kinds.values())
+        y, w = np.zeros((len(kinds), size, 2)), np.zeros((len(kinds), size, 2))
+        for j, k in kinds.values():
+            y[j, : k.y.size, 0], y[j, : k.y.size, 1] = k.y.real, k.y.imag
+            w[j, : k.y.size] = k.w
+        self._data_index = np.array([kinds[id(k)][0] for k in self.kinds], dtype=np.int32)
+        at: dict = {}
+        chunks, start, count = [], np.zeros(len(self.rows), dtype=np.int32), np.zeros(len(self.rows), dtype=np.int32)
+        total = 0
+        for c, r in enumerate(self.rows):
+            if id(r) not in at:
+                at[id(r)] = total
+                chunks.append(r)
+                total += r.size
+            start[c], count[c] = at[id(r)], r.size
+        rows = np.concatenate(chunks).astype(np.int32)
+        got = self._on_device[str(device)] = (
+            wp.array(y, device=device),
+            wp.array(w, device=device),
+            wp.array(rows, device=device),
+            start,
+            count,
+        )
+        return got
+
+    def _reduced_on_host(self, pid, z, step, below, prior_cost) -> tuple:
+        """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, from the model
+        values on the host; :attr:`last` each slot's (J, model values)."""
+        n, P = z.shape
+
         def neighbours(i):
-            p = self.p[pid[i]]
-            return z[i, None, :p] + np.diag(step[i, :p])
+            return self._neighbours(pid[i], z[i], step[i])
 
         # each fit's model values (1 + p or 1, rows) in parts: the point's, then its neighbours'
         if below is None:
-            parts = [
-                (Y,)
-                for Y in self.predict(
-                    [(c, np.vstack([z[i, None, : self.p[c]], neighbours(i)])) for i, c in enumerate(pid)]
-                )
-            ]
+            parts = [(Y,) for Y in self.predict(self._with_neighbours(pid, z, step))]
         else:
             points = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
             with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
@@ -356,29 +496,21 @@ class KindProblems:
                     H[np.ix_(members, range(k), range(k))] = J @ np.swapaxes(J, 1, 2)
             for j, i in enumerate(members):
                 self.last[i] = (J[j].T if k else None, parts[i][0][0])
-        cost += prior_cost
-        g += d * isd
-        H += isd[:, :, None] ** 2 * np.eye(P)[None]
-        bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
-        cost[bad] = np.inf
-        for i, c in enumerate(pid):
-            if c not in self.best or cost[i] < self.best[c][0]:
-                # copies: a view would keep its whole block (and launch) alive
-                J, Y = self.last[i]
-                self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
         return cost, raw, g, H
 
     def at_solutions(self, z: np.ndarray) -> list:
         """(J, model values) of every fit at its solution z (K, P): the evaluation there
-        where the LM's iterations made it (:attr:`best`, the same numbers), one more
-        :meth:`evaluate` for the others."""
+        where the LM's iterations made it on the host (:attr:`best`, the same numbers), one
+        more :meth:`evaluate` on the host for the others."""
         out = [
-            self.best[c][2:] if c in self.best and np.array_equal(self.best[c][1], z[c]) else None
+            self.best[c][2:]
+            if c in self.best and len(self.best[c]) > 2 and np.array_equal(self.best[c][1], z[c])
+            else None
             for c in range(len(z))
         ]
         stale = np.array([c for c, v in enumerate(out) if v is None], dtype=int)
         if stale.size:
-            self.evaluate(stale, z[stale])
+            self.evaluate(stale, z[stale], host=True)
             for i, c in enumerate(stale):
                 out[c] = self.last[i]
         return out
@@ -648,13 +780,16 @@ def _drops(calls: list[FitCall], first: np.ndarray):
 class Sets:
     """``n`` parameter sets of ``kind`` to predict: ``values`` {name: (n,)} (the others at
     the kind's core values), in the structure of ``effect`` (None: the core's); ``rows``:
-    None, or per set the rows it needs (:meth:`MeasurementKind.predict`)."""
+    None, or per set the rows it needs (:meth:`MeasurementKind.predict`); ``on_device``: the
+    model values as :class:`tawarp.measure.kind.DeviceValues`."""
 
     kind: MeasurementKind
     values: dict
     n: int
     effect: Effect | None = None
     rows: list | None = None
+    #: the model values left on the device (:meth:`MeasurementKind.predict_on_device`)
+    on_device: bool = False
 
 
 def predict_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.ndarray]:
@@ -686,9 +821,9 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
     groups: dict = {}
     for i, j in enumerate(jobs):
         structure = j.effect.name if j.effect is not None and j.effect.transform else None
-        groups.setdefault((families.of(j.kind), structure), []).append(i)
+        groups.setdefault((families.of(j.kind), structure, j.on_device), []).append(i)
     out: list = [None] * len(jobs)
-    for (fam, _), idx in groups.items():
+    for (fam, _, on_device), idx in groups.items():
         merged = [i for i in idx if len(idx) > 1 or jobs[i].kind is not fam.kind]
         names = set(fam.differ).union(*(jobs[i].values for i in merged))
         fill = {i: _absent(jobs[i], names) for i in merged}
@@ -696,7 +831,7 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
         merged = [i for i in merged if fill[i] is not None]
         for i in alone:
             j = jobs[i]
-            out[i] = _predict(j.kind, j.values, j.n, j.effect, j.rows)
+            out[i] = _predict(j.kind, j.values, j.n, j.effect, j.rows, on_device)
         if not merged:
             continue
         total = sum(jobs[i].n for i in merged)
@@ -710,7 +845,7 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
         rows = None
         if any(jobs[i].rows is not None for i in merged):
             rows = [r for i in merged for r in (jobs[i].rows or [None] * jobs[i].n)]
-        Y = _predict(fam.kind, values, total, jobs[merged[0]].effect, rows)
+        Y = _predict(fam.kind, values, total, jobs[merged[0]].effect, rows, on_device)
         k0 = 0
         for i in merged:
             out[i] = Y[k0 : k0 + jobs[i].n]
@@ -718,7 +853,9 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
     return out
 
 
-def _predict(kind: MeasurementKind, values: dict, n: int, effect, rows) -> np.ndarray:
+def _predict(kind: MeasurementKind, values: dict, n: int, effect, rows, on_device: bool = False):
+    if on_device:
+        return kind.predict_on_device(values, n, effect, rows)
     return kind.predict(values, n, effect) if rows is None else kind.predict(values, n, effect, rows=rows)
 
 

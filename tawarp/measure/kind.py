@@ -37,6 +37,51 @@ from .files import MeasurementError
 from .table import text_lines
 
 
+@dataclass
+class DeviceValues:
+    """Model values (n, rows) of ``n`` parameter sets left on the device where a launch
+    made them, as the table of :mod:`tawarp.kernels.misfit` reads them: ``values``
+    (columns, 2 entries) float64, ``columns`` (sets, row groups) int32 (-1: not computed),
+    ``gain`` (sets, 2) the sets' complex factor (empty: 1), and per row ``row_q``, ``row_e``,
+    ``scale``; the sets ``start : start + n`` of the launch's (a slice of them is the same
+    arrays at an offset, as :func:`tawarp.fit.problems.run_sets` and the fits slice a
+    launch's model values)."""
+
+    values: wp.array
+    columns: wp.array
+    gain: wp.array
+    row_q: wp.array
+    row_e: wp.array
+    scale: wp.array
+    start: int
+    n: int
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.n, self.row_q.shape[0])
+
+    def __getitem__(self, sets: slice) -> "DeviceValues":
+        a, b, stride = sets.indices(self.n)
+        if stride != 1:
+            raise IndexError("DeviceValues: a slice of sets is one run")
+        return dataclasses.replace(self, start=self.start + a, n=max(b - a, 0))
+
+    @classmethod
+    def of_host(cls, Y: np.ndarray, device) -> "DeviceValues":
+        """The model values ``Y`` (n, rows) complex formed on the host, on ``device``."""
+        n, size = Y.shape
+        return cls(
+            wp.array(np.ascontiguousarray(Y).view(np.float64), device=device),
+            wp.array(np.arange(n, dtype=np.int32).reshape(n, 1), device=device),
+            wp.zeros((0, 2), dtype=wp.float64, device=device),
+            wp.array(np.zeros(size, dtype=np.int32), device=device),
+            wp.array(np.arange(size, dtype=np.int32), device=device),
+            wp.array(np.ones(size), device=device),
+            0,
+            n,
+        )
+
+
 class MeasurementKind:
     """Measured observables and their model (see the module doc).
 
@@ -74,6 +119,14 @@ class MeasurementKind:
     def predicts_on_gpu(self) -> bool:
         """Whether :meth:`predict` launches on a GPU (its settings' device)."""
         return self.settings is not None and wp.get_device(resolve_device(self.settings.device)).is_cuda
+
+    def predict_on_device(self, values: dict, n: int, effect=None, rows: list | None = None) -> "DeviceValues":
+        """:meth:`predict`'s model values left on the device of the kind's launches
+        (:class:`DeviceValues`), for fits that reduce them there
+        (:mod:`tawarp.kernels.misfit`); this default forms them on the host and copies them
+        there."""
+        Y = self.predict(values, n, effect) if rows is None else self.predict(values, n, effect, rows=rows)
+        return DeviceValues.of_host(Y, resolve_device(self.settings.device if self.settings else "cpu"))
 
     def family(self) -> tuple | None:
         """A key shared by the kinds whose parameter sets one :meth:`predict` call of any of

@@ -13,6 +13,7 @@ import dataclasses
 import functools
 
 import numpy as np
+import warp as wp
 
 from ..model.biot import FLUID_SLICE, FRAME_POISSON_RATIO, JCAFluid, equivalent_fluid, fluid_transfer_matrix
 from ..model.coefficients import COEFFICIENTS, duct_impedance, normalize, normalize_entries
@@ -26,10 +27,10 @@ from ..model.effects import (
     stack_and_heater,
     tmatrix_library,
 )
-from ..model.forward import ForwardSettings, base_table, structure_flags
+from ..model.forward import ForwardSettings, base_table, resolve_device, structure_flags
 from ..model.gas import GASES
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
-from .kind import MeasurementKind, get_engine, smooth_settings
+from .kind import DeviceValues, MeasurementKind, get_engine, smooth_settings
 
 
 def core_for(data, core: Core | str | None, path) -> Core:
@@ -86,6 +87,7 @@ class TMatrixKind(MeasurementKind):
         # (None: all of them, in order); slices where the rows are one run
         row_fc = 4 * np.repeat(self._fi, 4) + self.coef
         self._gather = []
+        self._row_tables: dict = {}  # per device, the rows' tables of predict_on_device
         for q in range(len(self.Qs)):
             sel = np.flatnonzero(self._row_qi == q)
             if sel.size and np.array_equal(sel, np.arange(sel[0], sel[0] + sel.size)):
@@ -212,6 +214,64 @@ class TMatrixKind(MeasurementKind):
         rows reads are not computed (NaN there): the loop's fits of the Q = 0 rows alone and
         of one heat input each (each column is computed on its own: the others' values are
         the same bit for bit)."""
+        launch = self._launch(values, n, effect, rows, on_device=False)
+        if launch is None:
+            return np.full((n, self.y.size), np.nan, dtype=np.complex128)
+        T, columns, needed, factor, frame, values = launch
+        # a diverging trial's T-matrices hold infinities: its cost is inf, which the LM rejects
+        with np.errstate(over="ignore", invalid="ignore"):
+            if frame:
+                T = self._with_elastic_frame(T[columns], values, frame, n)
+                T[~needed] = np.nan
+                Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
+            else:
+                # the distinct columns made dimensionless (each once: T is this call's own),
+                # then each set's rows gathered per heat input
+                flat = normalize_entries(T.reshape(T.shape[0], -1), self.Zc)
+                Y = np.empty((n, self.y.size), dtype=np.complex128)
+                for q, sel, fc in self._gather:
+                    Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
+                    if not needed[:, q].all():
+                        Y[np.ix_(~needed[:, q], np.arange(self.y.size)[sel])] = np.nan
+            if factor is not None:
+                Y *= factor[:, None]
+        return Y
+
+    def predict_on_device(self, values: dict, n: int, effect=None, rows: list | None = None) -> DeviceValues:
+        """:meth:`predict`'s model values as the launch left them on the device
+        (:class:`tawarp.measure.kind.DeviceValues`: the distinct columns' raw T-matrices, each
+        set's column per heat input, the calibration's gain, the rows' entries and the
+        factors that make them dimensionless): the same numbers, never gathered on the
+        host. An elastic frame's sets (Biot's 2-port, formed on the host) are copied there."""
+        if any(k.endswith((".frame_modulus", ".frame_loss_factor")) for k in values):
+            return super().predict_on_device(values, n, effect, rows)
+        device = resolve_device(self.settings.device)
+        launch = self._launch(values, n, effect, rows, on_device=True)
+        if launch is None:
+            T, columns = wp.zeros((1, 2), dtype=wp.float64, device=device), np.full((n, len(self.Qs)), -1)
+        else:
+            T, columns, needed, _, _, _ = launch
+            T = T.reshape((T.shape[0], T.shape[1] * T.shape[2]))
+            columns = np.where(needed, columns, -1)
+        factor = None if launch is None else launch[3]
+        tables = self._row_tables.get(device)
+        if tables is None:
+            coef_scale = np.array([1.0, 1.0 / self.Zc, self.Zc, 1.0])  # normalize_entries' operations
+            tables = self._row_tables[device] = (
+                wp.zeros((0, 2), dtype=wp.float64, device=device),  # no gain: 1
+                wp.array(self._row_qi.astype(np.int32), device=device),
+                wp.array((4 * np.repeat(self._fi, 4) + self.coef).astype(np.int32), device=device),
+                wp.array(coef_scale[self.coef], device=device),
+            )
+        gain = tables[0] if factor is None else wp.array(np.stack([factor.real, factor.imag], axis=1), device=device)
+        return DeviceValues(T, wp.array(columns.astype(np.int32), device=device), gain, *tables[1:], 0, n)
+
+    def _launch(self, values: dict, n: int, effect, rows: list | None, on_device: bool):
+        """The launch of :meth:`predict`: (T, columns, needed, factor, frame, values): the
+        distinct columns' T-matrices (``on_device``: :meth:`Engine.distinct`'s Warp array),
+        each set's column per heat input (n, heat inputs) and whether it is needed there,
+        the calibration's complex factor (n,) (None: uncalibrated), the elastic frame's
+        fields and the other values; None where no set needs any heat input."""
         values = dict(values)
         gain = values.pop(CALIBRATION_GAIN, None)
         phase = values.pop(CALIBRATION_PHASE, None)
@@ -235,33 +295,18 @@ class TMatrixKind(MeasurementKind):
         # input of 0 does not read share one column
         needed = self._needed_heat_inputs(rows, n).reshape(-1)
         if not needed.any():
-            return np.full((n, self.y.size), np.nan, dtype=np.complex128)
-        T, column = eng.distinct(table if needed.all() else table[:, needed])
-        # the column of each (set, heat input); where not needed the first (its rows set to NaN below)
+            return None
+        T, column = eng.distinct(table if needed.all() else table[:, needed], on_device=on_device)
+        # the column of each (set, heat input); where not needed the first (its rows set to NaN)
         columns = np.zeros(n * nq, dtype=column.dtype)
         columns[needed] = column
-        columns = columns.reshape(n, nq)
-        needed = needed.reshape(n, nq)
-        # a diverging trial's T-matrices hold infinities: its cost is inf, which the LM rejects
-        with np.errstate(over="ignore", invalid="ignore"):
-            if frame:
-                T = self._with_elastic_frame(T[columns], values, frame, n)
-                T[~needed] = np.nan
-                Y = normalize(T[:, self._qi, self._fi], self.Zc).reshape(n, -1)
-            else:
-                # the distinct columns made dimensionless (each once: T is this call's own),
-                # then each set's rows gathered per heat input
-                flat = normalize_entries(T.reshape(T.shape[0], -1), self.Zc)
-                Y = np.empty((n, self.y.size), dtype=np.complex128)
-                for q, sel, fc in self._gather:
-                    Y[:, sel] = flat[columns[:, q]] if fc is None else flat[columns[:, q]][:, fc]
-                    if not needed[:, q].all():
-                        Y[np.ix_(~needed[:, q], np.arange(self.y.size)[sel])] = np.nan
-            if gain is not None or phase is not None:
-                g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
-                ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
-                Y *= (g * np.exp(1j * ph))[:, None]
-        return Y
+        factor = None
+        if gain is not None or phase is not None:
+            g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
+            ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
+            with np.errstate(over="ignore", invalid="ignore"):
+                factor = g * np.exp(1j * ph)
+        return T, columns.reshape(n, nq), needed.reshape(n, nq), factor, frame, values
 
     def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:
         """(n, heat inputs) bool: the heat inputs whose rows each set's ``rows`` (None: all,

@@ -765,11 +765,13 @@ class Engine:
             )
         return self.evaluate_serial(varying, out, start)
 
-    def distinct(self, varying: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def distinct(self, varying: np.ndarray, on_device: bool = False) -> tuple:
         """(T, column): the T-matrices (d, m, 2, 2) complex of the d distinct sets of a host
         table ``varying`` (1 + len(names), n), a new array (the caller's own), and which one
         each set is (n,), so that a caller that reads part of each set's T-matrices gathers
-        it from ``T`` in one pass.
+        it from ``T`` in one pass. ``on_device``: T as the launch left it, a Warp array (d, m,
+        8) float64 on the engine's device (re, im of the four entries), for a caller that
+        reduces them there (:mod:`tawarp.kernels.misfit`).
         Each distinct set is computed once and shared by its copies: sets that differ only in
         fields the model does not read for them count as copies (at zero heat input the
         :data:`HEAT_ONLY_FIELDS`, with fixed cells), as do sets that a caller's host-side
@@ -786,7 +788,7 @@ class Engine:
         table = np.asarray(varying, dtype=np.float64)[:, first]
         column = column.reshape(-1)
         if not wp.get_device(self.device).is_cpu:
-            return self._computed(table), column
+            return self._computed(table, on_device), column
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
         ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(key[:, first].T)]
         T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
@@ -799,12 +801,15 @@ class Engine:
         if todo:
             T[todo] = self._computed(table[:, todo])
             _MEMO.put([ids[j] for j in todo], T[todo])
+        if on_device:
+            return wp.array(T.view(np.float64).reshape(first.size, len(self.freqs), 8), device=self.device), column
         return T, column
 
-    def _computed(self, table: np.ndarray) -> np.ndarray:
-        """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n);
-        with warm starts (:attr:`warm`) the sets' heat solves start from the kept excesses
-        near them, and their converged excesses are kept."""
+    def _computed(self, table: np.ndarray, on_device: bool = False):
+        """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n)
+        (``on_device``: the launch's Warp array (n, m, 8), :meth:`distinct`); with warm
+        starts (:attr:`warm`) the sets' heat solves start from the kept excesses near them,
+        and their converged excesses are kept."""
         table = np.ascontiguousarray(table)
         start = None if self.warm is None else self.warm.starts(table)
         parts = self._cpu_parts(table.shape[1])
@@ -813,9 +818,11 @@ class Engine:
         else:
             out, _, w_theta = self.evaluate_serial(table, start=start)
             # the excesses come to the host only as warm starts (a GPU's copy of every set's)
-            T, theta = out.numpy(), w_theta.numpy() if self.warm is not None else None
+            T, theta = out if on_device else out.numpy(), w_theta.numpy() if self.warm is not None else None
         if self.warm is not None:
             self.warm.put(table, theta)
+        if on_device:  # a GPU's launch: one part
+            return T
         return T.view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
 
     def _cpu_parts(self, n: int) -> int:
