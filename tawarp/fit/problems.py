@@ -333,8 +333,8 @@ class KindProblems:
     def _reduced_on_device(self, pid, z, step) -> tuple:
         """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, of fits ``pid``
         at z with their neighbours, reduced where the launches left the model values
-        (:func:`tawarp.kernels.misfit.normal_equations`, a launch per launch of model
-        values) and copied to the host in one array."""
+        (:mod:`tawarp.kernels.misfit`: the misfits a launch per launch of model values,
+        their sums one for all) and copied to the host in one array."""
         n, P = z.shape
         if n == 0:
             return np.empty(0), np.empty(0), np.empty((0, P)), np.empty((0, P, P))
@@ -342,43 +342,48 @@ class KindProblems:
         got = assemble(predict_sets(jobs, self.families))
         device = got[0].values.device
         data_y, data_w, rows, row_start, row_count = self._device_data(device)
+        # the launches' fits share these arrays, each in its slot
+        n_rows = int(row_count[pid].max())
         out = wp.full((n, 2 + P + P * P), np.nan, dtype=wp.float64, device=device)
+        r = wp.empty((n, P + 1, 2 * n_rows), dtype=wp.float64, device=device)
+        raw = wp.empty((n, n_rows), dtype=wp.float64, device=device)
+        partial = wp.empty((n, P + 1, P + 1, kmisfit.CHUNKS), dtype=wp.float64, device=device)
+        partial_raw = wp.empty((n, kmisfit.CHUNKS), dtype=wp.float64, device=device)
+        # each fit's (first set, p, data, row start, row count, slot) for the kernels
+        first = np.array([v.start for v in got])
+        table = np.stack(
+            [first, self.p[pid], self._data_index[pid], row_start[pid], row_count[pid], np.arange(n)], axis=1
+        )
+        table = table.astype(np.int32)
         by_launch: dict = {}
         for i, values in enumerate(got):
             by_launch.setdefault(id(values.values), []).append(i)
-
         for slots in by_launch.values():
             v = got[slots[0]]
-            slots = np.array(slots)
-            fits = pid[slots]
-            # each fit's (first set, p, data, row start, row count, slot): one copy a launch
-            table = [
-                [got[i].start for i in slots],
-                self.p[fits],
-                self._data_index[fits],
-                row_start[fits],
-                row_count[fits],
-                slots,
-            ]
             wp.launch(
-                kmisfit.normal_equations,
-                dim=(slots.size, P + 1, P + 1),
-                inputs=[
-                    v.values,
-                    v.columns,
-                    v.gain,
-                    v.row_q,
-                    v.row_e,
-                    v.scale,
-                    wp.array(np.stack(table, axis=1).astype(np.int32), device=device),
-                    wp.array(np.ascontiguousarray(step[slots]), device=device),
-                    data_y,
-                    data_w,
-                    rows,
-                    out,
-                ],
+                kmisfit.weighted_misfits,
+                dim=(len(slots), P + 1, int(row_count[pid[slots]].max())),
+                inputs=[v.values, v.columns, v.gain, v.row_q, v.row_e, v.scale]
+                + [wp.array(table[slots], device=device), data_y, data_w, rows],
+                outputs=[r, raw],
                 device=device,
             )
+        # the sums of every launch's fits at once
+        fits = wp.array(table, device=device)
+        wp.launch(
+            kmisfit.partial_products,
+            dim=(n, P + 1, P + 1, kmisfit.CHUNKS),
+            inputs=[fits, wp.array(step, device=device), r, raw],
+            outputs=[partial, partial_raw],
+            device=device,
+        )
+        wp.launch(
+            kmisfit.normal_equations,
+            dim=(n, P + 1, P + 1),
+            inputs=[fits, partial, partial_raw],
+            outputs=[out],
+            device=device,
+        )
         res = out.numpy()
         # H's padding (columns of fits with fewer parameters) is 0, as the host path leaves it
         g = res[:, 2 : 2 + P]
