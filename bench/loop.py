@@ -60,6 +60,7 @@ import os
 import platform
 import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -95,12 +96,22 @@ def counting_sets(kind: type):
     and, under :meth:`Engine.distinct`, :meth:`Engine._computed`: the distinct ones,
     less those a CPU engine served from its memo): yields a dict whose ``sets`` and
     ``columns`` grow."""
-    count, predict = {"sets": 0, "columns": 0}, kind.predict
+    count = {"sets": 0, "columns": 0}
+    predicting = {name: kind.__dict__.get(name) for name in ("predict", "predict_on_device")}
     engine = {name: getattr(Engine, name) for name in ("evaluate", "_computed")}
+    inside = threading.local()  # a prediction on the device formed on the host counts once
 
-    def counted(self, values, n, effect=None, **kw):
-        count["sets"] += n
-        return predict(self, values, n, effect, **kw)
+    def counting(method):
+        def counted(self, values, n, *args, **kw):
+            outer = not getattr(inside, "on", False)
+            count["sets"] += n if outer else 0
+            inside.on = True
+            try:
+                return method(self, values, n, *args, **kw)
+            finally:
+                inside.on = not outer
+
+        return counted
 
     def computing(method):
         def computed(self, varying, *args, **kw):
@@ -109,13 +120,18 @@ def counting_sets(kind: type):
 
         return computed
 
-    kind.predict = counted
+    for name in predicting:
+        setattr(kind, name, counting(getattr(kind, name)))
     for name, method in engine.items():
         setattr(Engine, name, computing(method))
     try:
         yield count
     finally:
-        kind.predict = predict
+        for name, method in predicting.items():
+            if method is None:  # inherited: the class's own attribute goes again
+                delattr(kind, name)
+            else:
+                setattr(kind, name, method)
         for name, method in engine.items():
             setattr(Engine, name, method)
 

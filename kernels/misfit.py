@@ -10,15 +10,17 @@ travel to the host: :func:`weighted_misfits` (a thread per set and row), then
 :func:`partial_products` (a thread per fit, pair of columns of J and chunk of rows) and
 :func:`normal_equations` (the chunks' sums in order: the same sums every run).
 
-Model values are read through a table: row k of set s is ``scale[k]`` times the complex
-entry ``e[k]`` of column ``columns[s, q[k]]`` of ``values`` (columns, entries x 2: re, im),
-times the set's complex ``gain[s]``. For the T-matrix kind the columns are the distinct
+Model values are read through a table (:class:`ModelTable`): row k of set s is
+``scale[k]`` times the complex entry ``e[k]`` of column ``columns[s, q[k]]`` of ``values``
+(columns, entries x 2: re, im), times the set's complex ``gain[s]``. For the T-matrix kind the columns are the distinct
 sets of a launch, q the heat input and e the entry of a row's (frequency, coefficient) in
 the (m, 2, 2) T-matrices, and ``scale`` makes the coefficient dimensionless (1, 1/Zc, Zc,
 1: the operations of :func:`tawarp.model.coefficients.normalize_entries`, whose complex
 division by a real Zc multiplies by 1/Zc); model values already formed on the host are the
-table ``columns[s, 0] = s``, e = k, scale = 1. A model value is thus the host's bit for bit;
-the sums over rows are in another order than NumPy's (rounding apart).
+table ``columns[s, 0] = s``, e = k, scale = 1. A model value is thus the host's operations
+on the same numbers (a complex product may round differently in its last bit, which the
+forward difference's step raises in J); the sums over rows run in another order than
+NumPy's. tests/test_misfit_device.py bounds both.
 """
 
 import warp as wp
@@ -26,29 +28,32 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
 
+@wp.struct
+class ModelTable:
+    """The model values of a launch's sets, as the module doc reads them."""
+
+    values: wp.array2d(dtype=wp.float64)
+    columns: wp.array2d(dtype=wp.int32)
+    gain: wp.array2d(dtype=wp.float64)
+    row_q: wp.array(dtype=wp.int32)
+    row_e: wp.array(dtype=wp.int32)
+    scale: wp.array(dtype=wp.float64)
+
+
 @wp.func
-def model_value(
-    values: wp.array2d(dtype=wp.float64),
-    columns: wp.array2d(dtype=wp.int32),
-    gain: wp.array2d(dtype=wp.float64),
-    row_q: wp.array(dtype=wp.int32),
-    row_e: wp.array(dtype=wp.int32),
-    scale: wp.array(dtype=wp.float64),
-    s: int,
-    k: int,
-):
+def model_value(table: ModelTable, s: int, k: int):
     """Model value (re, im) of row k of set s (the module's table; an empty ``gain``: 1 for
     every set); NaN where the set's column of that row was not computed (column -1)."""
-    col = columns[s, row_q[k]]
+    col = table.columns[s, table.row_q[k]]
     if col < 0:
         return wp.vec2d(wp.float64(wp.nan), wp.float64(wp.nan))
-    e = 2 * row_e[k]
-    re = values[col, e] * scale[k]
-    im = values[col, e + 1] * scale[k]
-    if gain.shape[0] == 0:
+    e = 2 * table.row_e[k]
+    re = table.values[col, e] * table.scale[k]
+    im = table.values[col, e + 1] * table.scale[k]
+    if table.gain.shape[0] == 0:
         return wp.vec2d(re, im)
-    g_re = gain[s, 0]
-    g_im = gain[s, 1]
+    g_re = table.gain[s, 0]
+    g_im = table.gain[s, 1]
     return wp.vec2d(re * g_re - im * g_im, re * g_im + im * g_re)
 
 
@@ -60,12 +65,7 @@ CHUNKS = wp.constant(8)
 
 @wp.kernel
 def weighted_misfits(
-    values: wp.array2d(dtype=wp.float64),
-    columns: wp.array2d(dtype=wp.int32),
-    gain: wp.array2d(dtype=wp.float64),
-    row_q: wp.array(dtype=wp.int32),
-    row_e: wp.array(dtype=wp.int32),
-    scale: wp.array(dtype=wp.float64),
+    table: ModelTable,
     fits: wp.array2d(dtype=wp.int32),
     data_y: wp.array3d(dtype=wp.float64),
     data_w: wp.array3d(dtype=wp.float64),
@@ -73,7 +73,7 @@ def weighted_misfits(
     r: wp.array3d(dtype=wp.float64),
     raw: wp.array2d(dtype=wp.float64),
 ):
-    """Thread (f, j, t): of fit f, described by ``fits[f]`` = (first, p, data, row start,
+    """Thread (f, j, t): of fit f, its sets' model values in ``table``, described by ``fits[f]`` = (first, p, data, row start,
     row count, slot), the weighted misfit of its set first + j (j = 0 the point, j = a its
     neighbour along parameter a - 1) at its t-th row k = rows[row start + t] (repeats count
     again: a bootstrap's weights): r[slot, j, 2 t : 2 t + 2] = w (Y - y) (re, im) with its
@@ -86,7 +86,7 @@ def weighted_misfits(
     d = fits[f, 2]
     o = fits[f, 5]
     k = rows[fits[f, 3] + t]
-    y = model_value(values, columns, gain, row_q, row_e, scale, fits[f, 0] + j, k)
+    y = model_value(table, fits[f, 0] + j, k)
     d_re = y[0] - data_y[d, k, 0]
     d_im = y[1] - data_y[d, k, 1]
     r[o, j, 2 * t] = data_w[d, k, 0] * d_re

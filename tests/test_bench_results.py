@@ -48,3 +48,31 @@ def test_the_device_time_sums_each_kind_and_ranks_activities_by_their_time(monke
         {"name": "forward kernel heat", "seconds": 0.008, "count": 2},
         {"name": "forward kernel transfer", "seconds": 0.002, "count": 1},
     ]
+
+
+def test_sets_are_counted_once_whether_predicted_on_the_host_or_left_on_the_device(monkeypatch):
+    # bench/loop.py's forward_sets: a fit on a GPU asks for its model values on the device
+    # (predict_on_device), which for an elastic frame, or a kind without its own, forms them
+    # with predict: every set counts once, and the kind's methods are its own again after
+    import numpy as np
+    from test_lockstep import mesh_kind
+
+    from tawarp.measure import MeasurementKind, TMatrixKind
+
+    path = Path(__file__).resolve().parents[1] / "bench" / "loop.py"
+    monkeypatch.syspath_prepend(str(path.parent))
+    spec = importlib.util.spec_from_file_location("bench_loop", path)
+    loop = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(loop)
+    kind = mesh_kind(0)
+
+    def values(n):
+        return {"stack.porosity": np.full(n, kind.core.get("stack.porosity"))}
+
+    own = (TMatrixKind.__dict__["predict"], TMatrixKind.__dict__["predict_on_device"])
+    with loop.counting_sets(TMatrixKind) as count:
+        kind.predict(values(3), 3)
+        kind.predict_on_device(values(2), 2)
+        MeasurementKind.predict_on_device(kind, values(4), 4)  # the host's values copied there
+    assert count["sets"] == 3 + 2 + 4 and count["columns"] > 0
+    assert (TMatrixKind.__dict__["predict"], TMatrixKind.__dict__["predict_on_device"]) == own

@@ -363,8 +363,7 @@ class KindProblems:
             wp.launch(
                 kmisfit.weighted_misfits,
                 dim=(len(slots), P + 1, int(row_count[pid[slots]].max())),
-                inputs=[v.values, v.columns, v.gain, v.row_q, v.row_e, v.scale]
-                + [wp.array(table[slots], device=device), data_y, data_w, rows],
+                inputs=[v.table(), wp.array(table[slots], device=device), data_y, data_w, rows],
                 outputs=[r, raw],
                 device=device,
             )

@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from ..kernels import lm as klm
+from ..kernels import misfit as kmisfit
 from ..model.coefficients import rms_error
 from ..model.core import Core
 from ..model.forward import Engine, ForwardSettings, resolve_device
@@ -65,6 +66,13 @@ class DeviceValues:
         if stride != 1:
             raise IndexError("DeviceValues: a slice of sets is one run")
         return dataclasses.replace(self, start=self.start + a, n=max(b - a, 0))
+
+    def table(self) -> kmisfit.ModelTable:
+        """The launch's values as :mod:`tawarp.kernels.misfit` reads them."""
+        t = kmisfit.ModelTable()
+        t.values, t.columns, t.gain = self.values, self.columns, self.gain
+        t.row_q, t.row_e, t.scale = self.row_q, self.row_e, self.scale
+        return t
 
     @classmethod
     def of_host(cls, Y: np.ndarray, device) -> "DeviceValues":
