@@ -254,6 +254,30 @@ def test_loops_run_together_decide_as_each_alone(monkeypatch):
         assert abs(a["inclusion_probabilities"]["plane_offsets"] - b["inclusion_probabilities"]["plane_offsets"]) < 0.01
 
 
+def test_loops_whose_fits_reduce_on_the_device_decide_as_on_the_host(monkeypatch):
+    # where the kinds predict on a GPU, the fits' misfits and normal equations are formed
+    # where the model values are (tawarp.kernels.misfit; here on the CPU, the same kernels)
+    # and a trial's neighbours share its launch: the loops decide as the host's fits do, to
+    # the rounding of the sums and the fits' stopping rules
+    from tawarp.fit.problems import KindProblems
+
+    truths = ({}, {"duct_left.length": 0.033})
+    host = [loop_on(truth, SEEDS[1])[1] for truth in truths]
+    monkeypatch.setattr(TMatrixKind, "predicts_on_gpu", lambda self: True)
+    reduced, on_device = [], KindProblems._reduced_on_device
+    monkeypatch.setattr(KindProblems, "_reduced_on_device", lambda *a: reduced.append(1) or on_device(*a))
+    probs = [
+        TMatrixKind(reference_data(truth, SEEDS[1]), prior(SEEDS[1]), ForwardSettings(device="cpu")) for truth in truths
+    ]
+    device = run_loops(probs)
+    assert len(reduced) > 10  # (the fits' evaluations took the device's path)
+    for a, b in zip(host, device):
+        for key in ("verdict", "accepted_steps", "best_model"):
+            assert a[key] == b[key], key
+        assert abs(a["error_after"] / b["error_after"] - 1) < 1e-4
+        assert abs(a["inclusion_probabilities"]["plane_offsets"] - b["inclusion_probabilities"]["plane_offsets"]) < 0.01
+
+
 @pytest.mark.parametrize("seed", SEEDS[:2])
 def test_buffer_tube_convection_is_named_or_flagged(seed):
     # h growing with the temperature rise in the buffer tube: the base fit can take its size
