@@ -186,10 +186,8 @@ def test_rejected_trials_cost_no_jacobian(monkeypatch):
 
 def test_on_a_gpu_a_trial_and_its_neighbours_share_one_launch(monkeypatch):
     # where the kind predicts on a GPU (a launch costs its latency whatever its sets),
-    # KindProblems.evaluate predicts each LM trial with its neighbours in one call, and
-    # reduces them there (tawarp.kernels.misfit, here on the CPU): one call per iteration
-    # instead of up to two, and one on the host at the solutions for their Jacobians; the
-    # optima to the rounding of the sums
+    # KindProblems.evaluate predicts each LM trial with its neighbours in one call: one call
+    # per iteration instead of up to two, the same fits bit for bit
     kind, specs = _exp_case()
     lazy = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
     lazy_calls = kind.calls
@@ -197,11 +195,29 @@ def test_on_a_gpu_a_trial_and_its_neighbours_share_one_launch(monkeypatch):
     kind.calls = 0
     gpu = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
     for a, b in zip(lazy, gpu):
-        # (not the same stopping rule or iteration: these tolerances are at the rounding)
+        assert a.reason[0] == b.reason[0] and a.iterations[0] == b.iterations[0]
+        assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
+    assert kind.calls == 1 + max(int(r.iterations[0]) for r in gpu) < lazy_calls
+
+
+def test_a_kind_that_reduces_on_a_gpu_gets_the_hosts_optima(monkeypatch):
+    # a kind that says so (MeasurementKind.reduces_on_device) has its fits' misfits and
+    # normal equations formed on the device (tawarp.kernels.misfit, here on the CPU; this
+    # kind's host values copied there by the default predict_on_device): one call per
+    # iteration and one on the host at the solutions for their Jacobians; the optima to the
+    # rounding of the sums (not the same stopping rule or iteration: these tolerances are
+    # at the rounding)
+    kind, specs = _exp_case()
+    host = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    monkeypatch.setattr(ExpKind, "predicts_on_gpu", lambda self: True)
+    monkeypatch.setattr(ExpKind, "reduces_on_device", True)
+    kind.calls = 0
+    gpu = fit_batch(kind, specs, xtol=1e-12, gtol=1e-10)
+    for a, b in zip(host, gpu):
         np.testing.assert_allclose(b.x, a.x, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(b.cost, a.cost, rtol=1e-12)
         np.testing.assert_allclose(b.jacobian, a.jacobian, rtol=1e-6)
-    assert kind.calls == 2 + max(int(r.iterations[0]) for r in gpu) < lazy_calls
+    assert kind.calls == 2 + max(int(r.iterations[0]) for r in gpu)
 
 
 def test_decrement_stops_within_its_cost_of_the_minimum():

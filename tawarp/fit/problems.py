@@ -211,11 +211,13 @@ class KindProblems:
                 self.prior_mu[c, : m.p], self.prior_isd[c, : m.p] = m.prior_mu, 1.0 / m.prior_sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
-        #: per fit, its evaluation of lowest cost so far: (cost, padded z, J, model values); the
-        #: LM accepts a trial only where it lowers the cost, so this is the one at its solution
+        #: per fit, its evaluation of lowest cost so far: (cost, padded z, J, model values), or
+        #: (cost, padded z) where it was reduced on the device; the LM accepts a trial only
+        #: where it lowers the cost, so this is the one at its solution
         self.best: dict = {}
-        #: the kinds predict on a GPU: :meth:`evaluate` reduces their model values there
-        self.on_device = all(k.predicts_on_gpu() for k in self.kinds)
+        #: the kinds predict on a GPU and reduce there (:attr:`MeasurementKind.reduces_on_device`):
+        #: :meth:`evaluate` forms the fits' normal equations where the model values are
+        self.on_device = all(k.reduces_on_device and k.predicts_on_gpu() for k in self.kinds)
         self._on_device: dict = {}  # per device, :meth:`_device_data`
 
     def start(self) -> np.ndarray:
@@ -286,12 +288,18 @@ class KindProblems:
         such a trial whatever its Jacobian, so the steps are the same): the points first,
         in one launch per structure, then the neighbours of those that beat it (the same
         numbers as in one launch where the kind predicts each parameter set alike in any
-        batch, as the forward kernels do: one thread per set)."""
+        batch, as the forward kernels do: one thread per set).
+
+        Where the kinds predict and reduce on a GPU (:attr:`on_device`), without ``below``
+        (a GPU's fits evaluate a trial with its neighbours), the misfits and normal
+        equations are formed where the launches left the model values
+        (:meth:`_reduced_on_device`): only cost, raw, g and H come to the host, and
+        :meth:`at_solutions` evaluates each fit at its solution again for its J and model
+        values. ``host``: the host's path whatever the device (the CPU's numbers)."""
         n, P = z.shape
         step = np.where(z + FD_STEP > self.zhi[pid], -FD_STEP, FD_STEP)
         d, isd = (z - self.prior_mu[pid]) * self.prior_isd[pid], self.prior_isd[pid]
         prior_cost = np.sum(d**2, axis=1)
-
         if self.on_device and below is None and not host:
             cost, raw, g, H = self._reduced_on_device(pid, z, step)
             self.last = [None] * n

@@ -123,6 +123,10 @@ class MeasurementKind:
     predicts_rows: bool = False
     #: the forward model's settings (their ``device`` runs :meth:`predict`'s launches)
     settings: ForwardSettings | None = None
+    #: on a GPU (:meth:`predicts_on_gpu`) the fits reduce the model values where
+    #: :meth:`predict_on_device` leaves them (:class:`tawarp.fit.problems.KindProblems`);
+    #: a kind whose values are formed on the host keeps the host's fits
+    reduces_on_device: bool = False
 
     def predicts_on_gpu(self) -> bool:
         """Whether :meth:`predict` launches on a GPU (its settings' device)."""

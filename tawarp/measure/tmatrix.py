@@ -60,6 +60,7 @@ class TMatrixKind(MeasurementKind):
     coef_names = COEFFICIENTS
     groups_are_heat_inputs = True
     predicts_rows = True
+    reduces_on_device = True
 
     def __init__(self, data: TMatrixData, core: Core, settings: ForwardSettings | None = None):
         heated = sorted({float(q) for q in data.heat_input if q != 0.0})
