@@ -248,13 +248,13 @@ class TMatrixKind(MeasurementKind):
             return super().predict_on_device(values, n, effect, rows)
         device = resolve_device(self.settings.device)
         launch = self._launch(values, n, effect, rows, on_device=True)
+        factor = None
         if launch is None:
             T, columns = wp.zeros((1, 2), dtype=wp.float64, device=device), np.full((n, len(self.Qs)), -1)
         else:
-            T, columns, needed, _, _, _ = launch
+            T, columns, needed, factor, _, _ = launch
             T = T.reshape((T.shape[0], T.shape[1] * T.shape[2]))
             columns = np.where(needed, columns, -1)
-        factor = None if launch is None else launch[3]
         tables = self._row_tables.get(device)
         if tables is None:
             coef_scale = np.array([1.0, 1.0 / self.Zc, self.Zc, 1.0])  # normalize_entries' operations
