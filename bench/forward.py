@@ -14,7 +14,9 @@ same batch, its cost fraction, and the mean cell density it chose; ``work``: wha
 estimate's evaluation computes and asks of the host, counted without timing (a CPU gives the
 GPU's counts). ``threads``: CPU
 forward models/s against ``ForwardSettings.cpu_threads``, with the machine's load average
-(a shared machine's numbers are only as good as its idle cores).
+(a shared machine's numbers are only as good as its idle cores). ``heat``: the heat solve's
+time a set for each kind of set a loop's fits ask for (linear, temperature-dependent, the
+two-field wall, both), the launch's time on a GPU (where a launch lasts its slowest set).
 
 A *forward model* is one (parameter set, frequency) pair: the heat solve of the set
 (shared by its frequencies) and the T-matrix cascade at that frequency. Batches are m =
@@ -284,6 +286,49 @@ def warp_cell_steps(steps: np.ndarray, order: np.ndarray, m: int, s: int, warp: 
     return total
 
 
+#: The heat section's sets: (wall_conductance [W/(m K)], the buffer tube's h_convection
+#: [W/(m^2 K^1.25)]) of each kind of set a loop's fits ask for
+HEAT_SETS = {
+    "linear": (0.0, 0.0),
+    "temperature_dependent": (0.0, 2.0),
+    "wall_field": (0.05, 0.0),
+    "wall_field_and_temperature_dependent": (0.05, 2.0),
+}
+
+
+def heat_sets(device: str, n: int, min_time: float) -> dict:
+    """Seconds of the heat solve (:meth:`Engine.heat`, with the copy of its excesses that
+    waits for it) of n sets of one kind (:data:`HEAT_SETS`) on the mesh core at 40 W, in an
+    engine whose names hold the wall and the convection (the loop's fits: 32 heat cells a
+    thermal segment, the two-field wall's columns), cold starts; the median of repeats."""
+    core = load_core("mesh")
+    thermal = [core.segments[i].name for i in core.thermal_indices]
+    names = [f"{s}.wall_conductance" for s in thermal] + [f"{thermal[0]}.wall_resistance", "tbt.h_convection"]
+    engine = Engine(core, FREQS, names, ForwardSettings(device=device, cells=8, cpu_threads=1))
+    out = {
+        "core": "mesh",
+        "heat_input_W": 40.0,
+        "sets": n,
+        "heat_nodes": engine.nodes,
+        "cell_threads": engine.cell_threads,
+    }
+    for kind, (wall, convection) in HEAT_SETS.items():
+        values = [
+            wall if k.endswith("wall_conductance") else 1e-3 if k.endswith("wall_resistance") else convection
+            for k in names
+        ]
+        table = np.vstack([np.full(n, 40.0)] + [np.full(n, v) for v in values])
+        engine.heat(table)[1].numpy()  # compiles, allocates
+        times, t_end = [], time.perf_counter() + min_time
+        while time.perf_counter() < t_end or len(times) < 3:
+            t0 = time.perf_counter()
+            engine.heat(table)[1].numpy()
+            times.append(time.perf_counter() - t0)
+        out[kind] = {"seconds": float(np.median(times)), "us_per_set": float(np.median(times)) / n * 1e6}
+        print(f"heat, {kind:38s} {out[kind]['us_per_set']:9.2f} us a set ({n} sets)", flush=True)
+    return out
+
+
 def cpu_scaling(threads, n: int, min_time: float) -> dict:
     """CPU forward models/s of one batch against ``cpu_threads`` (bit-identical results):
     per wall second, and per CPU second of this process (``time.process_time``). On a
@@ -443,9 +488,10 @@ def main(argv=None):
     ap.add_argument(
         "--sections",
         default="accuracy,throughput,blocks,peers,estimate",
-        help="comma list of accuracy, throughput, blocks, peers, estimate, work, threads, points",
+        help="comma list of accuracy, throughput, blocks, peers, estimate, work, threads, points, heat",
     )
     ap.add_argument("--threads", type=_numbers(int), default="1,2", help="CPU thread counts of the threads section")
+    ap.add_argument("--heat-sets", type=int, default=256, help="sets of each kind in the heat section")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     wp.init()
@@ -466,7 +512,7 @@ def main(argv=None):
     }
 
     sections = set(args.sections.split(","))
-    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points"}
+    unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points", "heat"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
     n = max(1, sizes[-1] // len(FREQS))
@@ -497,6 +543,8 @@ def main(argv=None):
         print(f"work: {result['work']}", flush=True)
     if "threads" in sections:
         result["cpu_scaling"] = cpu_scaling(args.threads, n, args.min_time)
+    if "heat" in sections:
+        result["heat_sets"] = heat_sets(device, args.heat_sets, args.min_time)
     if "blocks" in sections:
         names, table = random_batch(n, rng)
         varying = wp.array(table, dtype=wp.float64, device=device)
