@@ -515,6 +515,8 @@ def main(argv=None):
     unknown = sections - {"accuracy", "throughput", "blocks", "peers", "estimate", "work", "threads", "points", "heat"}
     if unknown:
         ap.error(f"--sections: unknown {sorted(unknown)}")
+    if args.heat_sets < 1:
+        ap.error(f"--heat-sets: at least 1 set, got {args.heat_sets}")
     n = max(1, sizes[-1] // len(FREQS))
     if "accuracy" in sections:
         t0 = time.perf_counter()
