@@ -12,11 +12,12 @@ travel to the host: :func:`weighted_misfits` (a thread per set and row), then
 
 Model values are read through a table (:class:`ModelTable`): row k of set s is
 ``scale[k]`` times the complex entry ``e[k]`` of column ``columns[s, q[k]]`` of ``values``
-(columns, entries x 2: re, im), times the set's complex ``gain[s]``. For the T-matrix kind the columns are the distinct
-sets of a launch, q the heat input and e the entry of a row's (frequency, coefficient) in
-the (m, 2, 2) T-matrices, and ``scale`` makes the coefficient dimensionless (1, 1/Zc, Zc,
-1: the operations of :func:`tawarp.model.coefficients.normalize_entries`, whose complex
-division by a real Zc multiplies by 1/Zc); model values already formed on the host are the
+(columns, entries x 2: re, im), times the set's complex ``gain[s]``. For the T-matrix kind
+the columns are the distinct sets of a launch, q the heat input and e the entry of a row's
+(frequency, coefficient) in the (m, 2, 2) T-matrices, and ``scale`` makes the
+coefficient dimensionless (1, 1/Zc, Zc, 1: the operations of
+:func:`tawarp.model.coefficients.normalize_entries`, whose complex division by a real Zc
+multiplies by 1/Zc); model values already formed on the host are the
 table ``columns[s, 0] = s``, e = k, scale = 1. A model value is thus the host's operations
 on the same numbers (a complex product may round differently in its last bit, which the
 forward difference's step raises in J); the sums over rows run in another order than
@@ -73,13 +74,13 @@ def weighted_misfits(
     r: wp.array3d(dtype=wp.float64),
     raw: wp.array2d(dtype=wp.float64),
 ):
-    """Thread (f, j, t): of fit f, its sets' model values in ``table``, described by ``fits[f]`` = (first, p, data, row start,
-    row count, slot), the weighted misfit of its set first + j (j = 0 the point, j = a its
-    neighbour along parameter a - 1) at its t-th row k = rows[row start + t] (repeats count
-    again: a bootstrap's weights): r[slot, j, 2 t : 2 t + 2] = w (Y - y) (re, im) with its
-    data's y and w (data_y, data_w [data, k, re / im]); and for the point
-    raw[slot, t] = |Y - y|^2 (the fits of an evaluation's launches share these arrays,
-    each in its slot)."""
+    """Thread (f, j, t): of fit f, its sets' model values in ``table``, described by
+    ``fits[f]`` = (first, p, data, row start, row count, slot), the weighted misfit of its
+    set first + j (j = 0 the point, j = a its neighbour along parameter a - 1) at its t-th
+    row k = rows[row start + t] (repeats count again: a bootstrap's weights):
+    r[slot, j, 2 t : 2 t + 2] = w (Y - y) (re, im) with its data's y and w (data_y,
+    data_w [data, k, re / im]); and for the point raw[slot, t] = |Y - y|^2 (the fits of an
+    evaluation's launches share these arrays, each in its slot)."""
     f, j, t = wp.tid()
     if j > fits[f, 1] or t >= fits[f, 4]:
         return

@@ -320,23 +320,22 @@ class KindProblems:
                 self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
         return cost, raw, g, H
 
-    def _with_neighbours(self, pid, z, step) -> list:
+    def _with_neighbours(self, pid, z, step, point: bool = True) -> list:
         """The requests of fits ``pid`` at z with their forward-difference neighbours:
-        [(c, X (1 + p_c, p_c)), ...], the point first."""
+        [(c, X (1 + p_c, p_c)), ...], the point first (``point`` False: the neighbours
+        alone, (p_c, p_c)); a neighbour is ``z + diag(step)``, the fits of one p at once."""
         out: list = [None] * len(pid)
         free = self.p[pid]
         for p in np.unique(free):
             at = np.flatnonzero(free == p)
-            X = np.repeat(z[at, None, :p], 1 + p, axis=1)  # (fits, 1 + p, p): the point, then
-            X[:, 1:] += step[at, None, :p] * np.eye(p)  # each neighbour (_neighbours' values)
+            X = np.empty((at.size, 1 + p, p))
+            X[:, 0] = z[at, :p]
+            diag = np.zeros((at.size, p, p))
+            diag[:, np.arange(p), np.arange(p)] = step[at, :p]
+            X[:, 1:] = z[at, None, :p] + diag
             for j, i in enumerate(at):
-                out[i] = (pid[i], X[j])
+                out[i] = (pid[i], X[j] if point else X[j, 1:])
         return out
-
-    def _neighbours(self, c: int, z: np.ndarray, step: np.ndarray) -> np.ndarray:
-        """Fit c's forward-difference neighbours (p_c, p_c) of its padded point z."""
-        p = self.p[c]
-        return z[None, :p] + np.diag(step[:p])
 
     def _reduced_on_device(self, pid, z, step) -> tuple:
         """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, of fits ``pid``
@@ -349,7 +348,7 @@ class KindProblems:
         jobs, assemble = self.prediction(self._with_neighbours(pid, z, step), on_device=True)
         got = assemble(predict_sets(jobs, self.families))
         device = got[0].values.device
-        data_y, data_w, rows, row_start, row_count = self._device_data(device)
+        data_y, data_w, rows, data_index, row_start, row_count = self._device_data(device)
         # the launches' fits share these arrays, each in its slot
         n_rows = int(row_count[pid].max())
         out = wp.full((n, 2 + P + P * P), np.nan, dtype=wp.float64, device=device)
@@ -359,9 +358,7 @@ class KindProblems:
         partial_raw = wp.empty((n, kmisfit.CHUNKS), dtype=wp.float64, device=device)
         # each fit's (first set, p, data, row start, row count, slot) for the kernels
         first = np.array([v.start for v in got])
-        table = np.stack(
-            [first, self.p[pid], self._data_index[pid], row_start[pid], row_count[pid], np.arange(n)], axis=1
-        )
+        table = np.stack([first, self.p[pid], data_index[pid], row_start[pid], row_count[pid], np.arange(n)], axis=1)
         table = table.astype(np.int32)
         by_launch: dict = {}
         for i, values in enumerate(got):
@@ -404,9 +401,10 @@ class KindProblems:
         return res[:, 0], res[:, 1], g, H
 
     def _device_data(self, device) -> tuple:
-        """(data y, data w, rows, row start, row count) on ``device``, made once: every
-        kind's y and w (kinds, size, re / im), and the rows each fit sees, one array
-        per distinct rows array (:attr:`_data_index`: each fit's kind there)."""
+        """(data y, data w, rows, data index, row start, row count), made once: on
+        ``device`` every kind's y and w (kinds, size, re / im) and the rows each fit sees,
+        one array per distinct rows array; on the host, per fit, its kind's index there and
+        where its rows start and how many."""
         got = self._on_device.get(str(device))
         if got is not None:
             return got
@@ -418,7 +416,7 @@ class KindProblems:
         for j, k in kinds.values():
             y[j, : k.y.size, 0], y[j, : k.y.size, 1] = k.y.real, k.y.imag
             w[j, : k.y.size] = k.w
-        self._data_index = np.array([kinds[id(k)][0] for k in self.kinds], dtype=np.int32)
+        data_index = np.array([kinds[id(k)][0] for k in self.kinds], dtype=np.int32)
         at: dict = {}
         chunks, start, count = [], np.zeros(len(self.rows), dtype=np.int32), np.zeros(len(self.rows), dtype=np.int32)
         total = 0
@@ -433,6 +431,7 @@ class KindProblems:
             wp.array(y, device=device),
             wp.array(w, device=device),
             wp.array(rows, device=device),
+            data_index,
             start,
             count,
         )
@@ -442,10 +441,6 @@ class KindProblems:
         """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, from the model
         values on the host; :attr:`last` each slot's (J, model values)."""
         n, P = z.shape
-
-        def neighbours(i):
-            return self._neighbours(pid[i], z[i], step[i])
-
         # each fit's model values (1 + p or 1, rows) in parts: the point's, then its neighbours'
         if below is None:
             parts = [(Y,) for Y in self.predict(self._with_neighbours(pid, z, step))]
@@ -458,7 +453,8 @@ class KindProblems:
             point_cost = np.array(point_cost) + prior_cost
             taken = [i for i in range(n) if point_cost[i] < below[i]]
             parts = [(Y,) for Y in points]
-            for i, Yn in zip(taken, self.predict([(pid[i], neighbours(i)) for i in taken])):
+            taken_requests = self._with_neighbours(pid[taken], z[taken], step[taken], point=False)
+            for i, Yn in zip(taken, self.predict(taken_requests)):
                 parts[i] = (points[i], Yn)
         sizes = [sum(part.shape[0] for part in fit) for fit in parts]
         cost, raw = np.empty(n), np.empty(n)
