@@ -503,13 +503,20 @@ def test_distinct_serves_the_columns_it_computed_before_bit_for_bit(monkeypatch)
 
 def test_distinct_columns_are_numpys_unique_columns():
     # a batch's columns: repeats (a set asked for twice), -0.0 beside 0.0 (equal values),
-    # and columns that differ in a late row only; against np.unique along the axis
+    # columns that differ in a late row only, and rows alike in every column (one of 0.0
+    # and -0.0), which the sort skips; against np.unique along the axis
     rng = np.random.default_rng(3)
-    base = rng.integers(0, 3, (5, 40)).astype(float)
+    base = rng.integers(0, 3, (7, 40)).astype(float)
     base[:, 7] = 0.0
     base[:, 8] = -0.0
+    base[1] = 2.5
+    base[4] = np.where(np.arange(40) % 2, 0.0, -0.0)
     key = base[:, rng.integers(0, 40, 120)]
     _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
     got_first, got_column = distinct_columns(key)
     np.testing.assert_array_equal(got_first, first)
     np.testing.assert_array_equal(got_column, column.reshape(-1))
+    # every row alike: one distinct column, the first
+    got_first, got_column = distinct_columns(np.ones((3, 6)))
+    np.testing.assert_array_equal(got_first, [0])
+    np.testing.assert_array_equal(got_column, np.zeros(6))

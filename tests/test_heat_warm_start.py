@@ -9,7 +9,7 @@ import pytest
 from tawarp.model.core import load_core, segment_parameter_fields
 from tawarp.model.effects import graded_parts
 from tawarp.model.fields import NONLINEAR_FIELDS, field
-from tawarp.model.forward import WARM_RADIUS, Engine, ForwardSettings
+from tawarp.model.forward import WARM_RADIUS, Engine, ForwardSettings, WarmStarts
 
 FREQS = np.array([40.0, 130.0, 400.0])
 Q = 40.0
@@ -131,6 +131,63 @@ def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
     start = eng.warm.starts(cases)
     assert np.any(start[0] != 0.0)
     assert not np.any(start[1:])
+
+
+def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance():
+    # WarmStarts.starts against the rule written out set by set: per row over the kept and
+    # the batch's heated sets together, ln v where every value is positive, else v over the
+    # row's largest |v|; the largest |difference| over the rows; the nearest kept set within
+    # WARM_RADIUS. The table has rows alike in every set (which the fast path skips), a
+    # signed row and two heat inputs; zeros where a set is not heated or has no kept set near
+    rng = np.random.default_rng(11)
+    rows, kept, new = 12, 300, 80
+    base = rng.uniform(0.5, 2.0, rows)
+
+    def table(n):
+        t = np.repeat(base[:, None], n, axis=1)
+        t[0] = rng.choice([0.0, 20.0, 40.0], n)
+        t[2:6] *= np.exp(rng.normal(0.0, 0.06, (4, n)))
+        t[6] = rng.normal(0.0, 1e-3, n)
+        return t
+
+    warm = WarmStarts(kept, rows, 5, np.array([1]), True)
+    kept_table, kept_theta = table(kept), rng.normal(size=(kept, 5))
+    warm.put(kept_table, kept_theta)
+    cases = table(new)
+    start = warm.starts(cases)
+    held = kept_table[:, kept_table[0] > 0]
+    held_theta = kept_theta[kept_table[0] > 0]
+    heated = np.flatnonzero(cases[0] > 0)
+    both = np.concatenate([held, cases[:, heated]], axis=1)
+    positive = np.all(both > 0, axis=1)[:, None]
+    u = np.where(positive, np.log(np.abs(both)), both / np.abs(both).max(axis=1)[:, None])
+    expected = np.zeros((new, 5))
+    for k, i in enumerate(heated):
+        distance = np.abs(u[:, : held.shape[1]] - u[:, held.shape[1] + k, None]).max(axis=0)
+        if distance.min() <= WARM_RADIUS:
+            expected[i] = held_theta[np.argmin(distance)]
+    assert np.count_nonzero(expected.any(axis=1)) > new // 4  # the rule starts some sets warm
+    np.testing.assert_array_equal(start, expected)
+
+
+def test_the_kept_sets_are_the_last_limit_put_in_order():
+    # puts of 3, 5, 1 and 9 sets into a store of 7: a set asked for again starts from its own
+    # excess exactly while it is among the last 7 put, and cold after
+    limit, rows = 7, 3
+    values = np.exp(np.arange(18) * 2.5 * WARM_RADIUS)  # 18 sets, none near another
+    assert np.min(np.diff(np.log(values))) > WARM_RADIUS
+    sets = np.vstack([np.full(18, 40.0), values, np.full(18, 0.5)])
+    theta = np.arange(18.0)[:, None] + np.zeros((18, 2))
+    warm = WarmStarts(limit, rows, 2, np.array([2]), False)
+    put = 0
+    for m in (3, 5, 1, 9):
+        warm.put(sets[:, put : put + m], theta[put : put + m])
+        put += m
+        kept = set(range(max(0, put - limit), put))
+        start = warm.starts(sets[:, :put])
+        for i in range(put):
+            want = theta[i] if i in kept else np.zeros(2)
+            np.testing.assert_array_equal(start[i], want, err_msg=f"set {i} after {put} put")
 
 
 def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on():

@@ -146,6 +146,10 @@ def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     column is), from one stable lexicographic sort: ``np.unique`` along an axis sorts the
     columns as records, several times slower on a fit's batch."""
     n = key.shape[1]
+    # a row alike in every column neither orders nor tells columns apart: sorted on the
+    # others alone (most of a fit's varying rows are alike in a batch); NaN rows are kept
+    if n:
+        key = key[~(key.min(axis=1) == key.max(axis=1))]
     order = np.lexsort(key[::-1]) if key.shape[0] else np.arange(n)
     ranked = key[:, order]
     new = np.ones(n, dtype=bool)
@@ -167,9 +171,20 @@ class WarmStarts:
 
     def __init__(self, limit: int, rows: int, columns: int, switches: np.ndarray, always: bool):
         self.limit, self.switches, self.always = limit, switches, always
-        self.table = np.zeros((rows, 0))  # (rows, K) the kept sets' varying values
-        self.theta = np.zeros((0, columns))  # (K, columns) their excesses
+        # the kept sets in a ring written in place, so that a put costs its own sets, not a
+        # copy of every kept excess (up to a few MB): the varying values (rows, capacity)
+        # and the excesses (capacity, columns) of ``count`` sets, the next one written at
+        # ``next``; the capacity grows to ``limit`` as sets come
+        self.table = np.zeros((rows, 0))
+        self.theta = np.zeros((0, columns))
+        self.count = self.next = 0
         self.lock = threading.Lock()
+
+    def _order(self) -> np.ndarray:
+        """The ring's slots of the kept sets, the oldest first."""
+        if self.count < self.table.shape[1]:
+            return np.arange(self.count)
+        return (np.arange(self.count) + self.next) % self.count
 
     def iterating(self, table: np.ndarray) -> np.ndarray:
         """Indices of the sets of ``table`` (rows, n) whose heat solve iterates."""
@@ -182,41 +197,62 @@ class WarmStarts:
         at the same heat input), zeros where there is none or the set does not iterate; None
         where no set has one."""
         heated = self.iterating(table)
-        with self.lock:
-            kept_table, kept_theta = self.table, self.theta
-        if not heated.size or not kept_theta.shape[0]:
-            return None
-        both = np.concatenate([kept_table, table[:, heated]], axis=1)
-        positive = np.all(both > 0.0, axis=1)
-        scale = np.max(np.abs(both), axis=1)
-        u = np.where(
-            positive[:, None],
-            np.log(np.where(positive[:, None], both, 1.0)),
-            both / np.where(scale > 0, scale, 1.0)[:, None],
-        )
-        u = u[np.ptp(u, axis=1) > 0.0].T  # (kept + heated, rows that differ)
-        kept = kept_theta.shape[0]
-        if u.shape[1] == 0:  # every set alike: any kept one is the set itself
-            nearest = np.zeros(heated.size, dtype=int)
-        else:
-            distance, nearest = cKDTree(u[:kept]).query(u[kept:], p=np.inf, distance_upper_bound=WARM_RADIUS)
-            nearest[~np.isfinite(distance)] = kept
-        near = nearest < kept
-        if not near.any():
-            return None
-        start = np.zeros((table.shape[1], kept_theta.shape[1]))
-        start[heated[near]] = kept_theta[nearest[near]]
-        return start
+        with self.lock:  # a put in another thread writes the ring in place
+            if not heated.size or not self.count:
+                return None
+            kept_table = self.table[:, : self.count]
+            new = table[:, heated]
+            # only the rows that differ between the sets are transformed (most of a fit's
+            # varying rows hold one value in every set): a row alike everywhere adds
+            # nothing to a distance
+            differ = np.minimum(kept_table.min(axis=1), new.min(axis=1)) < np.maximum(
+                kept_table.max(axis=1), new.max(axis=1)
+            )
+            order = self._order()
+            both = np.concatenate([kept_table[np.ix_(differ, order)], new[differ]], axis=1)
+            positive = np.all(both > 0.0, axis=1)
+            scale = np.max(np.abs(both), axis=1)
+            u = np.where(
+                positive[:, None],
+                np.log(np.where(positive[:, None], both, 1.0)),
+                both / np.where(scale > 0, scale, 1.0)[:, None],
+            )
+            u = np.ascontiguousarray(u.T)  # (kept + heated, rows that differ)
+            kept = self.count
+            if u.shape[1] == 0:  # every set alike: any kept one is the set itself
+                nearest = np.zeros(heated.size, dtype=int)
+            else:
+                distance, nearest = cKDTree(u[:kept]).query(u[kept:], p=np.inf, distance_upper_bound=WARM_RADIUS)
+                nearest[~np.isfinite(distance)] = kept
+            near = nearest < kept
+            if not near.any():
+                return None
+            start = np.zeros((table.shape[1], self.theta.shape[1]))
+            start[heated[near]] = self.theta[order[nearest[near]]]
+            return start
 
     def put(self, table: np.ndarray, theta: np.ndarray) -> None:
         """Keep the sets of ``table`` (rows, n) that iterate with their converged excesses
         ``theta`` (n, columns), the oldest kept ones given up beyond ``limit``."""
-        heated = self.iterating(table)
-        if not heated.size:
+        heated = self.iterating(table)[-self.limit :]
+        m = heated.size
+        if not m:
             return
         with self.lock:
-            self.table = np.concatenate([self.table, table[:, heated]], axis=1)[:, -self.limit :]
-            self.theta = np.concatenate([self.theta, theta[heated]])[-self.limit :]
+            size = self.table.shape[1]
+            if self.count + m > size and size < self.limit:
+                # grown (the ring has not wrapped yet: its sets are in order)
+                size = min(self.limit, max(2 * size, self.count + m))
+                grown_table = np.zeros((self.table.shape[0], size))
+                grown_theta = np.zeros((size, self.theta.shape[1]))
+                grown_table[:, : self.count] = self.table[:, : self.count]
+                grown_theta[: self.count] = self.theta[: self.count]
+                self.table, self.theta, self.next = grown_table, grown_theta, self.count
+            at = (self.next + np.arange(m)) % size
+            self.table[:, at] = table[:, heated]
+            self.theta[at] = theta[heated]
+            self.next = int(at[-1] + 1) % size
+            self.count = min(self.count + m, size)
 
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
