@@ -547,13 +547,21 @@ class ValueLayout:
         self.log = np.zeros((K, N), dtype=bool)
         #: per fit, its parameters with their own expand, in order (index, Param)
         self.expanding: dict[int, list] = {}
+        # (fit, name) -> (slot, start, scale, log), the last parameter that sets it kept,
+        # then written in one assignment each (a fancy assignment per parameter cost a
+        # batch of hundreds of fits more than the rest of its layout)
+        sets: dict[tuple[int, int], tuple] = {}
         for i, ps in enumerate(params):
             for j, par in enumerate(ps):
                 if par.expand is not None:
                     self.expanding.setdefault(fits[i], []).append((j, par))
                     continue
-                a = [column[t] for t in par.targets]
-                self.slot[i, a], self.start[i, a], self.scale[i, a], self.log[i, a] = j, par.start, par.scale, par.log
+                for t in par.targets:
+                    sets[i, column[t]] = (j, par.start, par.scale, par.log)
+        if sets:
+            at = tuple(np.array(list(sets)).T)
+            slot, start, scale, log = zip(*sets.values())
+            self.slot[at], self.start[at], self.scale[at], self.log[at] = slot, start, scale, log
 
     def values(self, requests: list, sizes: list[int]) -> dict:
         """{name: (total,)} of the sets of ``requests`` [(fit c, X (n_c, p_c)), ...] in their
@@ -869,14 +877,20 @@ def _predict(kind: MeasurementKind, values: dict, n: int, effect, rows, on_devic
 
 def _absent(job: Sets, names: set) -> dict | None:
     """{name: the value ``job``'s sets take} of ``names`` it does not set: its core's, or
-    the field's neutral value; None where a name has neither."""
+    the field's neutral value; None where a name has neither (a dict to read, not to
+    change: shared by the jobs of one core that lack the same names)."""
+    return _absent_values(job.kind.core, frozenset(names.difference(job.values)))
+
+
+@functools.lru_cache(maxsize=1024)
+def _absent_values(core, names: frozenset) -> dict | None:
+    """:func:`_absent` of a core's ``names``: made once for every launch whose jobs of
+    that core lack them (a fit's batch asks for a hundred names, a loop hundreds of times)."""
     out = {}
-    core_names = _parameter_names(job.kind.core)
+    core_names = _parameter_names(core)
     for k in names:
-        if k in job.values:
-            continue
         if k in core_names:
-            out[k] = job.kind.core.get(k)
+            out[k] = core.get(k)
             continue
         try:
             neutral = field_of(k).neutral
