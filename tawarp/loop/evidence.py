@@ -51,7 +51,7 @@ from scipy import special
 
 from ..fit import lockstep
 from ..fit.lm import held_fixed
-from ..fit.problem_model import ProblemModel, determined_inverse
+from ..fit.problem_model import ProblemModel, determined_inverse, r_factor
 from ..fit.problems import FD_STEP, Sets, param_values, predict_sets, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
@@ -118,22 +118,6 @@ def model_priors(core, params: list[Param], effects: tuple[Effect, ...]) -> list
     for e in effects:
         declared.update(effect_priors(e, core))
     return [x_prior(core, par, declared.get(par.label)) for par in params]
-
-
-#: Rows per block of :func:`r_factor`.
-QR_BLOCK = 256
-
-
-def r_factor(A: np.ndarray) -> np.ndarray:
-    """The triangular factor R of ``A`` = Q R (..., n, k), n >> k, up to the signs of its
-    rows: the factors of blocks of :data:`QR_BLOCK` rows stacked and factored again (Q is
-    never formed; the same R to rounding, as every step is orthogonal). LAPACK's QR of the
-    whole tall matrix runs threaded and was 10-100x slower on a loaded 2-core machine."""
-    n = A.shape[-2]
-    if n <= QR_BLOCK:
-        return np.linalg.qr(A, mode="r")
-    blocks = [np.linalg.qr(A[..., i : i + QR_BLOCK, :], mode="r") for i in range(0, n, QR_BLOCK)]
-    return np.linalg.qr(np.concatenate(blocks, axis=-2), mode="r")
 
 
 def log_erfcx(w: np.ndarray) -> np.ndarray:
@@ -247,32 +231,43 @@ def _stacked_evidences(requests: list[tuple], _state=None) -> list[np.ndarray]:
 def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
     """:func:`laplace_log_evidences` in this thread, ``n_res`` given."""
     out = np.empty(len(models))
-    groups: dict[tuple[int, int, int], list[int]] = {}
-    sides = []
-    for i, (_, _, lo, hi, r, _, x) in enumerate(models):
+    n_res = np.asarray(n_res)
+    shapes: dict[tuple[int, int], list[int]] = {}
+    for i, m in enumerate(models):
+        shapes.setdefault((len(m[4]), len(m[6])), []).append(i)
+    for (_, k), idx in shapes.items():
+        # (mu, sd, lo, hi, x) of the models of one shape, (M, 5, k)
+        table = np.array([(m[0], m[1], m[2], m[3], m[6]) for m in (models[i] for i in idx)]).reshape(len(idx), 5, k)
+        x, lo, hi = table[:, 4], table[:, 2], table[:, 3]
         # +1 on a lower bound, -1 on an upper one: the direction into the range
         side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
-        sides.append(side)
-        groups.setdefault((len(r), len(x), int(np.count_nonzero(side == 0))), []).append(i)
-    # in blocks of at most EVIDENCE_BLOCK models (the noise scales' arrays, M x 401 x k, of
-    # thousands of models stacked would stream from memory)
-    blocks = [
-        (k, kf, members[a : a + EVIDENCE_BLOCK])
-        for (_, k, kf), members in groups.items()
-        for a in range(0, len(members), EVIDENCE_BLOCK)
-    ]
-    for k, kf, members in blocks:
-        # each model's parameters reordered: the free ones first, then those on a bound
-        side = np.array([sides[i] for i in members]).reshape(len(members), k)
-        order = np.argsort(side != 0, axis=1, kind="stable")
-        mu, sd, lo, hi, x = (
-            np.take_along_axis(np.array([models[i][j] for i in members]).reshape(len(members), k), order, 1)
-            for j in (0, 1, 2, 3, 6)
-        )
-        side = np.take_along_axis(side, order, 1)
-        r = np.array([models[i][4] for i in members])
-        J = np.take_along_axis(np.array([models[i][5] for i in members]), order[:, None, :], 2)
-        out[members] = _laplace_group(mu, sd, lo, hi, r, J, x, side, kf, noise_scale, np.array(n_res)[members])
+        free = np.count_nonzero(side == 0, axis=1)
+        # in blocks of at most EVIDENCE_BLOCK models of one count of free parameters (the
+        # noise scales' arrays, M x 401 x k, of thousands of models stacked would stream
+        # from memory)
+        for kf in dict.fromkeys(free.tolist()):
+            rows = np.flatnonzero(free == kf)
+            for a in range(0, rows.size, EVIDENCE_BLOCK):
+                block = rows[a : a + EVIDENCE_BLOCK]
+                members = [idx[b] for b in block]
+                # each model's parameters reordered: the free ones first, then those on a bound
+                order = np.argsort(side[block] != 0, axis=1, kind="stable")
+                mu, sd, lo_b, hi_b, x_b = np.take_along_axis(table[block], order[:, None, :], 2).transpose(1, 0, 2)
+                r = np.array([models[i][4] for i in members])
+                J = np.take_along_axis(np.array([models[i][5] for i in members]), order[:, None, :], 2)
+                out[members] = _laplace_group(
+                    mu,
+                    sd,
+                    lo_b,
+                    hi_b,
+                    r,
+                    J,
+                    x_b,
+                    np.take_along_axis(side[block], order, 1),
+                    kf,
+                    noise_scale,
+                    n_res[members],
+                )
     return out
 
 
