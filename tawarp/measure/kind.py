@@ -67,8 +67,9 @@ class DeviceValues:
             raise IndexError("DeviceValues: a slice of sets is one run")
         # built directly: a fit's batch slices a launch's values once per fit and evaluation
         # (dataclasses.replace, which inspects the fields, cost several times more)
-        v = self
-        return DeviceValues(v.values, v.columns, v.gain, v.row_q, v.row_e, v.scale, v.start + a, max(b - a, 0))
+        return DeviceValues(
+            self.values, self.columns, self.gain, self.row_q, self.row_e, self.scale, self.start + a, max(b - a, 0)
+        )
 
     def table(self) -> kmisfit.ModelTable:
         """The launch's values as :mod:`tawarp.kernels.misfit` reads them."""
