@@ -1,15 +1,18 @@
 """Warm starts of the temperature-dependent heat solve (kernels/heat.py, ``solve_heat``;
-:class:`tawarp.model.forward.WarmStarts`): a set whose iterations start from a nearby set's
+:mod:`tawarp.model.warm_starts`): a set whose iterations start from a nearby set's
 converged excess reaches the cold start's fixed point to the solve's own tolerance, and
-neither stops early nor on another solution."""
+neither stops early nor on another solution; the host's store and the device's pick the
+same kept set by the documented rule."""
 
 import numpy as np
 import pytest
+import warp as wp
 
 from tawarp.model.core import load_core, segment_parameter_fields
 from tawarp.model.effects import graded_parts
 from tawarp.model.fields import NONLINEAR_FIELDS, field
-from tawarp.model.forward import WARM_RADIUS, Engine, ForwardSettings, WarmStarts
+from tawarp.model.forward import Engine, ForwardSettings
+from tawarp.model.warm_starts import WARM_RADIUS, DeviceWarmStarts, WarmStarts
 
 FREQS = np.array([40.0, 130.0, 400.0])
 Q = 40.0
@@ -119,6 +122,28 @@ def test_distinct_starts_neighbours_from_their_point():
     assert relative(T[column], cold[cold_column]) < AGREE
 
 
+@pytest.mark.parametrize("name", CORES)
+def test_an_engine_with_its_kept_sets_on_the_device_computes_as_with_them_on_the_host(name):
+    # a GPU's engine keeps its sets in a DeviceWarmStarts: given to a CPU engine (its kernels
+    # on Warp's CPU device), the points' excesses start their neighbours and a second point's
+    # as the host's store starts them, so the T-matrices are the same to the bit
+    core, values = CORES[name]()
+    host, table = batch(core, values)
+    device, _ = batch(core, values)
+    w = host.warm
+    device.warm = DeviceWarmStarts(w.limit, w.rows, w.columns, w.switches, w.always, device="cpu")
+    other = table.copy()
+    other[1:] *= 1.03
+    points = np.concatenate([table[:, :1], other[:, :1]], axis=1)
+    neighbours = np.concatenate([table[:, 1:], other[:, 1:]], axis=1)
+    for eng in (host, device):
+        eng.distinct(points)
+    np.testing.assert_array_equal(starts(device.warm, neighbours), starts(host.warm, neighbours))
+    assert np.any(starts(host.warm, neighbours))
+    (T_host, column_host), (T_device, column_device) = (eng.distinct(neighbours) for eng in (host, device))
+    np.testing.assert_array_equal(T_device[column_device], T_host[column_host])
+
+
 def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
     # a kept set starts only sets at its own heat input within WARM_RADIUS: others, and every
     # set without heat input (its excess is 0 exactly, from a zero start), start cold
@@ -133,7 +158,27 @@ def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
     assert not np.any(start[1:])
 
 
-def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance():
+#: the two stores of kept sets: the host's, and the device's kernels (run here on Warp's CPU device)
+STORES = {"host": WarmStarts, "device": lambda *args: DeviceWarmStarts(*args, device="cpu")}
+
+
+def put(warm, table, theta):
+    """``warm.put`` of host arrays, each store given its kind of array."""
+    on_device = isinstance(warm, DeviceWarmStarts)
+    varying = wp.array(table, dtype=wp.float64, device="cpu") if on_device else None
+    warm.put(table, varying, wp.array(theta, dtype=wp.float64, device="cpu") if on_device else theta)
+
+
+def starts(warm, table):
+    """``warm.starts`` as a host array (n, columns), zeros where it gives None."""
+    got = warm.starts(table, wp.array(table, dtype=wp.float64, device="cpu"))
+    if got is None:
+        return np.zeros((table.shape[1], warm.columns))
+    return got.numpy() if isinstance(got, wp.array) else got
+
+
+@pytest.mark.parametrize("kind", STORES)
+def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance(kind):
     # WarmStarts.starts against the rule written out set by set: per row over the kept and
     # the batch's heated sets together, ln v where every value is positive, else v over the
     # row's largest |v|; the largest |difference| over the rows; the nearest kept set within
@@ -150,11 +195,11 @@ def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance():
         t[6] = rng.normal(0.0, 1e-3, n)
         return t
 
-    warm = WarmStarts(kept, rows, 5, np.array([1]), True)
+    warm = STORES[kind](kept, rows, 5, np.array([1]), True)
     kept_table, kept_theta = table(kept), rng.normal(size=(kept, 5))
-    warm.put(kept_table, kept_theta)
+    put(warm, kept_table, kept_theta)
     cases = table(new)
-    start = warm.starts(cases)
+    start = starts(warm, cases)
     held = kept_table[:, kept_table[0] > 0]
     held_theta = kept_theta[kept_table[0] > 0]
     heated = np.flatnonzero(cases[0] > 0)
@@ -170,7 +215,8 @@ def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance():
     np.testing.assert_array_equal(start, expected)
 
 
-def test_the_kept_sets_are_the_last_limit_put_in_order():
+@pytest.mark.parametrize("kind", STORES)
+def test_the_kept_sets_are_the_last_limit_put_in_order(kind):
     # puts of 3, 5, 1 and 9 sets into a store of 7: a set asked for again starts from its own
     # excess exactly while it is among the last 7 put, and cold after
     limit, rows = 7, 3
@@ -178,16 +224,16 @@ def test_the_kept_sets_are_the_last_limit_put_in_order():
     assert np.min(np.diff(np.log(values))) > WARM_RADIUS
     sets = np.vstack([np.full(18, 40.0), values, np.full(18, 0.5)])
     theta = np.arange(18.0)[:, None] + np.zeros((18, 2))
-    warm = WarmStarts(limit, rows, 2, np.array([2]), False)
-    put = 0
+    warm = STORES[kind](limit, rows, 2, np.array([2]), False)
+    done = 0
     for m in (3, 5, 1, 9):
-        warm.put(sets[:, put : put + m], theta[put : put + m])
-        put += m
-        kept = set(range(max(0, put - limit), put))
-        start = warm.starts(sets[:, :put])
-        for i in range(put):
+        put(warm, sets[:, done : done + m], theta[done : done + m])
+        done += m
+        kept = set(range(max(0, done - limit), done))
+        start = starts(warm, sets[:, :done])
+        for i in range(done):
             want = theta[i] if i in kept else np.zeros(2)
-            np.testing.assert_array_equal(start[i], want, err_msg=f"set {i} after {put} put")
+            np.testing.assert_array_equal(start[i], want, err_msg=f"set {i} after {done} put")
 
 
 def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on():

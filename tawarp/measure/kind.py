@@ -318,9 +318,9 @@ def fit_cells(
 #: cycle through a few dozen cores, names and settings; loops run together
 #: (:func:`tawarp.loop.run_loops`) through more, as each launch's names are the union of its
 #: fits': 16 loops of the validation study's T-matrix cases used 117, and with 32 kept
-#: rebuilt engines and lost their warm starts (:class:`tawarp.model.forward.WarmStarts`) all
+#: rebuilt engines and lost their warm starts (:class:`tawarp.model.warm_starts.WarmStarts`) all
 #: along. An engine holds its kernels' small arrays and at most
-#: :data:`tawarp.model.forward.WARM_SETS` kept heat solutions (about 1 MB).
+#: :data:`tawarp.model.warm_starts.WARM_SETS` kept heat solutions (about 1 MB).
 ENGINES_KEPT = 512
 _ENGINES: dict = {}  # in the order of their last use
 _ENGINES_LOCK = threading.RLock()

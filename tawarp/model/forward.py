@@ -27,12 +27,12 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from scipy.spatial import cKDTree
 
 from .coefficients import duct_impedance, normalize
 from .core import Core, CoreError, check_values, segment_parameter_fields
 from .fields import GLOBAL_FIELD_TABLE, NONLINEAR_FIELDS, SEGMENT_FIELD_TABLE, SEGMENT_FIELDS
 from .gas import GASES
+from .warm_starts import WARM_SETS, DeviceWarmStarts, WarmStarts
 from .validity import (
     MAX_CELLS,
     ModelValidityError,
@@ -127,16 +127,6 @@ _ENGINE_NUMBERS = itertools.count()
 #: sets still iterate (:meth:`Engine._iterate_cells`): a warm-started set takes two or three,
 #: a cold start four to a dozen; a read costs a round trip to the device.
 PICARD_BURST = 4
-#: Heated parameter sets whose converged heat-model excess an engine with a
-#: temperature-dependent effect keeps (:class:`WarmStarts`): a loop's batch of
-#: finite-difference neighbours follows the batch of their points, and its trial points
-#: lie near the fits' current points, computed in the batches before.
-WARM_SETS = 1024
-#: A set starts its heat solve from a kept set's excess when each value of the set is
-#: within this relative distance of the kept set's (|ln(v/v_kept)| for positive values,
-#: the change in units of the largest |v| of the batch and the kept sets otherwise), the
-#: heat input equal; others start cold.
-WARM_RADIUS = 0.1
 
 
 def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,102 +147,6 @@ def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     column = np.empty(n, dtype=np.int64)
     column[order] = np.cumsum(new) - 1
     return order[new], column
-
-
-class WarmStarts:
-    """The converged nodal excesses (``theta_columns`` each) of the last ``limit`` sets whose
-    heat solve iterates, of one engine, as starts for later sets near them (a warm start,
-    :func:`tawarp.kernels.heat.solve_heat`): a finite-difference neighbour that starts from
-    its point's excess takes two or three solves where the cold start takes four to six, to
-    the same fixed point and stopping rule (tests/test_heat_warm_start.py). A set iterates
-    where it is heated and a temperature-dependent field is on: one of the varying table's
-    rows ``switches`` is not 0, or ``always`` (one is on in the core and does not vary).
-    Safe to share between threads (an engine is: :func:`tawarp.measure.kind.get_engine`)."""
-
-    def __init__(self, limit: int, rows: int, columns: int, switches: np.ndarray, always: bool):
-        self.limit, self.switches, self.always = limit, switches, always
-        # the kept sets in a ring written in place, so that a put costs its own sets, not a
-        # copy of every kept excess (up to a few MB): the varying values (rows, capacity)
-        # and the excesses (capacity, columns) of ``count`` sets, the next one written at
-        # ``next``; the capacity grows to ``limit`` as sets come
-        self.table = np.zeros((rows, 0))
-        self.theta = np.zeros((0, columns))
-        self.count = self.next = 0
-        self.lock = threading.Lock()
-
-    def _order(self) -> np.ndarray:
-        """The ring's slots of the kept sets, the oldest first."""
-        if self.count < self.table.shape[1]:
-            return np.arange(self.count)
-        return (np.arange(self.count) + self.next) % self.count
-
-    def iterating(self, table: np.ndarray) -> np.ndarray:
-        """Indices of the sets of ``table`` (rows, n) whose heat solve iterates."""
-        on = np.any(table[self.switches] != 0.0, axis=0) | self.always
-        return np.flatnonzero((table[0] > 0.0) & on)
-
-    def starts(self, table: np.ndarray) -> np.ndarray | None:
-        """Start iterates (n, columns) of the sets ``table`` (rows, n): the excess of the
-        nearest kept set within :data:`WARM_RADIUS` (in the largest of the values' distances,
-        at the same heat input), zeros where there is none or the set does not iterate; None
-        where no set has one."""
-        heated = self.iterating(table)
-        with self.lock:  # a put in another thread writes the ring in place
-            if not heated.size or not self.count:
-                return None
-            kept_table = self.table[:, : self.count]
-            new = table[:, heated]
-            # only the rows that differ between the sets are transformed (most of a fit's
-            # varying rows hold one value in every set): a row alike everywhere adds
-            # nothing to a distance
-            differ = np.minimum(kept_table.min(axis=1), new.min(axis=1)) < np.maximum(
-                kept_table.max(axis=1), new.max(axis=1)
-            )
-            order = self._order()
-            both = np.concatenate([kept_table[np.ix_(differ, order)], new[differ]], axis=1)
-            positive = np.all(both > 0.0, axis=1)
-            scale = np.max(np.abs(both), axis=1)
-            u = np.where(
-                positive[:, None],
-                np.log(np.where(positive[:, None], both, 1.0)),
-                both / np.where(scale > 0, scale, 1.0)[:, None],
-            )
-            u = np.ascontiguousarray(u.T)  # (kept + heated, rows that differ)
-            kept = self.count
-            if u.shape[1] == 0:  # every set alike: any kept one is the set itself
-                nearest = np.zeros(heated.size, dtype=int)
-            else:
-                distance, nearest = cKDTree(u[:kept]).query(u[kept:], p=np.inf, distance_upper_bound=WARM_RADIUS)
-                nearest[~np.isfinite(distance)] = kept
-            near = nearest < kept
-            if not near.any():
-                return None
-            start = np.zeros((table.shape[1], self.theta.shape[1]))
-            start[heated[near]] = self.theta[order[nearest[near]]]
-            return start
-
-    def put(self, table: np.ndarray, theta: np.ndarray) -> None:
-        """Keep the sets of ``table`` (rows, n) that iterate with their converged excesses
-        ``theta`` (n, columns), the oldest kept ones given up beyond ``limit``."""
-        heated = self.iterating(table)[-self.limit :]
-        m = heated.size
-        if not m:
-            return
-        with self.lock:
-            size = self.table.shape[1]
-            if self.count + m > size and size < self.limit:
-                # grown (the ring has not wrapped yet: its sets are in order)
-                size = min(self.limit, max(2 * size, self.count + m))
-                grown_table = np.zeros((self.table.shape[0], size))
-                grown_theta = np.zeros((size, self.theta.shape[1]))
-                grown_table[:, : self.count] = self.table[:, : self.count]
-                grown_theta[: self.count] = self.theta[: self.count]
-                self.table, self.theta, self.next = grown_table, grown_theta, self.count
-            at = (self.next + np.arange(m)) % size
-            self.table[:, at] = table[:, heated]
-            self.theta[at] = theta[heated]
-            self.next = int(at[-1] + 1) % size
-            self.count = min(self.count + m, size)
 
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
@@ -667,7 +561,8 @@ class Engine:
                 for f in NONLINEAR_FIELDS
             )
             rows = 1 + len(self.names)
-            self.warm = WarmStarts(WARM_SETS, rows, self.theta_columns, np.array(switches, dtype=int), always)
+            store = WarmStarts if wp.get_device(dev).is_cpu else functools.partial(DeviceWarmStarts, device=dev)
+            self.warm = store(WARM_SETS, rows, self.theta_columns, np.array(switches, dtype=int), always)
 
     def _sets(self, params: wp.array) -> kf.SetTable:
         """The kernels' :class:`tawarp.kernels.forward.SetTable` of ``params`` (rows, n)."""
@@ -689,9 +584,10 @@ class Engine:
 
     def heat(self, varying, start: np.ndarray | None = None, out: tuple | None = None) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device.
-        ``start`` (n, ``theta_columns``): the iterations' start per set where the heat solve
-        iterates (:func:`tawarp.kernels.heat.solve_heat`; rows of zeros: the cold start, the
-        default; a row of a set without heat input must be zeros). ``out``: the arrays of
+        ``start`` (n, ``theta_columns``, a host array or a Warp array on the device): the
+        iterations' start per set where the heat solve iterates
+        (:func:`tawarp.kernels.heat.solve_heat`; rows of zeros: the cold start, the default;
+        a row of a set without heat input must be zeros). ``out``: the arrays of
         :meth:`heat_buffers` to solve into, else new ones."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
             check_heat_inputs(np.asarray(varying)[0])
@@ -701,7 +597,7 @@ class Engine:
         if start is None:
             theta.zero_()
         else:
-            theta.assign(np.ascontiguousarray(start, dtype=np.float64))
+            theta.assign(start if isinstance(start, wp.array) else np.ascontiguousarray(start, dtype=np.float64))
         wp.launch(kf.expand_parameters, dim=n, inputs=[self.base, varying, self.w_rows, params], device=self.device)
         if self.count:
             rows, pending = self._no_rows, self._no_pending
@@ -847,16 +743,19 @@ class Engine:
         starts (:attr:`warm`) the sets' heat solves start from the kept excesses near them,
         and their converged excesses are kept."""
         table = np.ascontiguousarray(table)
-        start = None if self.warm is None else self.warm.starts(table)
         parts = self._cpu_parts(table.shape[1])
         if parts > 1:  # the threads' host arrays as they are (no device arrays made of them)
+            start = None if self.warm is None else self.warm.starts(table)
             T, _, theta = self._host_threaded(table, parts, start, params=False)
+            varying = None
         else:
-            out, _, w_theta = self.evaluate_serial(table, start=start)
-            # the excesses come to the host only as warm starts (a GPU's copy of every set's)
-            T, theta = out if on_device else out.numpy(), w_theta.numpy() if self.warm is not None else None
+            check_heat_inputs(table[0])
+            varying = wp.array(table, dtype=wp.float64, device=self.device)
+            start = None if self.warm is None else self.warm.starts(table, varying)
+            out, _, theta = self.evaluate_serial(varying, start=start)
+            T = out if on_device else out.numpy()
         if self.warm is not None:
-            self.warm.put(table, theta)
+            self.warm.put(table, varying, theta)
         if on_device:  # a GPU's launch: one part
             return T
         return T.view(np.complex128).reshape(table.shape[1], len(self.freqs), 2, 2)
