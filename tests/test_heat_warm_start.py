@@ -158,26 +158,41 @@ def test_no_warm_start_across_heat_inputs_far_sets_or_unheated_sets():
     assert not np.any(start[1:])
 
 
-#: the two stores of kept sets: the host's, and the device's kernels (run here on Warp's CPU device)
-STORES = {"host": WarmStarts, "device": lambda *args: DeviceWarmStarts(*args, device="cpu")}
+#: the two stores of kept sets: the host's, and the device's kernels on Warp's CPU device
+#: and, where there is one, on a CUDA device
+STORES = {
+    "host": WarmStarts,
+    "device": lambda *args: DeviceWarmStarts(*args, device="cpu"),
+    "cuda": lambda *args: DeviceWarmStarts(*args, device="cuda"),
+}
+KINDS = [
+    "host",
+    "device",
+    pytest.param("cuda", marks=pytest.mark.skipif(not wp.is_cuda_available(), reason="no CUDA device")),
+]
 
 
 def put(warm, table, theta):
     """``warm.put`` of host arrays, each store given its kind of array."""
-    on_device = isinstance(warm, DeviceWarmStarts)
-    varying = wp.array(table, dtype=wp.float64, device="cpu") if on_device else None
-    warm.put(table, varying, wp.array(theta, dtype=wp.float64, device="cpu") if on_device else theta)
+    if isinstance(warm, DeviceWarmStarts):
+        warm.put(
+            table,
+            wp.array(table, dtype=wp.float64, device=warm.device),
+            wp.array(theta, dtype=wp.float64, device=warm.device),
+        )
+    else:
+        warm.put(table, None, theta)
 
 
 def starts(warm, table):
     """``warm.starts`` as a host array (n, columns), zeros where it gives None."""
-    got = warm.starts(table, wp.array(table, dtype=wp.float64, device="cpu"))
+    got = warm.starts(table, wp.array(table, dtype=wp.float64, device=getattr(warm, "device", "cpu")))
     if got is None:
         return np.zeros((table.shape[1], warm.columns))
     return got.numpy() if isinstance(got, wp.array) else got
 
 
-@pytest.mark.parametrize("kind", STORES)
+@pytest.mark.parametrize("kind", KINDS)
 def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance(kind):
     # WarmStarts.starts against the rule written out set by set: per row over the kept and
     # the batch's heated sets together, ln v where every value is positive, else v over the
@@ -215,7 +230,7 @@ def test_a_start_is_the_nearest_kept_excess_by_the_documented_distance(kind):
     np.testing.assert_array_equal(start, expected)
 
 
-@pytest.mark.parametrize("kind", STORES)
+@pytest.mark.parametrize("kind", KINDS)
 def test_the_kept_sets_are_the_last_limit_put_in_order(kind):
     # puts of 3, 5, 1 and 9 sets into a store of 7: a set asked for again starts from its own
     # excess exactly while it is among the last 7 put, and cold after
