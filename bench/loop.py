@@ -35,7 +35,10 @@ different code can be checked to decide the same.
   With ``--together N`` each process runs its cases N at a time as loops together
   (:func:`tawarp.loop.run_loops`, ordered so that the kinds of one family come together),
   and the bench first runs them so in its own process from cold (``together_one_process``:
-  the kernels the processes load, and one process's loops a second);
+  the kernels the processes load, and one process's loops a second). With
+  ``--blocking-waits`` each process's CUDA context waits for the GPU by blocking, not
+  spinning (:func:`tawarp.distributed.wait_by_blocking`), so that more processes than cores
+  share the host;
 * ``together``: the T-matrix cases in this process, ``--together`` at a time, warm (a first
   round, ``cold``, compiles or loads the kernels; the second, ``warm``, is timed): the host
   work a case costs when loops run together, without a study's processes sharing the host
@@ -46,6 +49,8 @@ different code can be checked to decide the same.
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
     python bench/loop.py --device cuda --cases study --processes 16 --together 64 \
+        --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
+    python bench/loop.py --device cuda --cases study --processes 24 --together 64 --blocking-waits \
         --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
     python bench/loop.py --device cuda --cases together --together 32 --seeds 1002-1039 \
         --cache studies/out/loop_validation_heldout_drift/cache --device-time
@@ -71,7 +76,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
 from _results import run, write_result  # noqa: E402
 
-from tawarp.distributed import BLAS_THREAD_VARIABLES, cores_shared, cuda_mps_running  # noqa: E402
+from tawarp.distributed import (  # noqa: E402
+    BLAS_THREAD_VARIABLES,
+    context_waits,
+    cores_shared,
+    cuda_mps_running,
+    wait_by_blocking,
+)
 from tawarp.loop import impedance_loop, run_loop, run_loops  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
 from tawarp.measure.files import ImpedanceData  # noqa: E402
@@ -276,16 +287,26 @@ def _study_worker(job: tuple) -> dict:
     for _ in range(repeats):
         probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
         verdicts += [rep["verdict"] for rep in loops_in_groups(probs, together)]
-    return {**_elapsed(clock), "verdicts": verdicts}
+    waits = None if wp.get_device(device).is_cpu else context_waits(wp.get_device(device).ordinal)
+    return {**_elapsed(clock), "verdicts": verdicts, "cuda_waits": waits}
 
 
-def study(seeds, device, cache: Path, processes: list[int], repeats: int, together: int = 1) -> list[dict]:
+def _blocking_worker() -> None:
+    """A study process's start with ``--blocking-waits``: its CUDA contexts wait by blocking."""
+    if not wait_by_blocking():
+        raise RuntimeError("--blocking-waits: the CUDA driver did not take the flag (no CUDA driver or device?)")
+
+
+def study(
+    seeds, device, cache: Path, processes: list[int], repeats: int, together: int = 1, blocking: bool = False
+) -> list[dict]:
     """Loop cases per second of a study on this machine: for each count P of ``processes``, P
     processes (each its own Warp context, on the CPU or sharing the GPU) each running the
     T-matrix cases ``seeds`` ``repeats`` times, ``together`` loops at a time in one batch
     (:func:`tawarp.loop.run_loops`), its linear algebra's threads limited to its share of
     the cores (:func:`tawarp.distributed.cores_shared`); on the CPU its launches split over
-    that share too."""
+    that share too. ``blocking``: each process's CUDA contexts wait by blocking
+    (:func:`tawarp.distributed.wait_by_blocking`)."""
     out = []
     for P in processes:
         threads = cpu_share(P) if device == "cpu" else None
@@ -295,7 +316,7 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int, togeth
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
         # and ends them (not a traceback from each)
         with interrupts_ignored(), cores_shared(P):
-            pool = multiprocessing.get_context("spawn").Pool(P)
+            pool = multiprocessing.get_context("spawn").Pool(P, initializer=_blocking_worker if blocking else None)
             started_with = {k: os.environ.get(k) for k in BLAS_THREAD_VARIABLES}
         try:
             runs = pool.map(_study_worker, jobs)
@@ -322,6 +343,8 @@ def study(seeds, device, cache: Path, processes: list[int], repeats: int, togeth
                 "cases_per_second_after_start": n / max(r["seconds"] for r in runs),
                 "process_seconds": [r["seconds"] for r in runs],
                 "process_cpu_seconds": [r["cpu_seconds"] for r in runs],
+                # how each process's CUDA context waited for the GPU (None on the CPU)
+                "cuda_waits": sorted({str(r["cuda_waits"]) for r in runs}),
                 "verdicts": runs[0]["verdicts"][: len(seeds)],
             }
         )
@@ -393,6 +416,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="with --cases together on a GPU: the warm round's kernels and copies timed on the device",
     )
+    ap.add_argument(
+        "--blocking-waits",
+        action="store_true",
+        help="with --cases study on a GPU: each process's CUDA context waits by blocking, not spinning",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
@@ -418,6 +446,10 @@ def main(argv=None) -> int:
         device = wp.get_device(args.device)
     except (RuntimeError, ValueError) as e:
         ap.error(f"--device: {args.device!r}: {e}")
+    if args.blocking_waits and ("study" not in cases or device.is_cpu):
+        ap.error(
+            "--blocking-waits: sets how a study's processes wait for a GPU; needs --cases study and a CUDA --device"
+        )
     if args.device_time and ("together" not in cases or device.is_cpu):
         ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     cache = Path(args.cache)
@@ -453,7 +485,7 @@ def main(argv=None) -> int:
     if "impedance" in cases:
         result["impedance"] = impedance_case(args.impedance_freqs, args.device)
     if "study" in cases:
-        result["study"] = study(seeds, args.device, cache, processes, args.repeats, args.together)
+        result["study"] = study(seeds, args.device, cache, processes, args.repeats, args.together, args.blocking_waits)
         if together_warm is not None:
             result["together_one_process"] = together_warm
     if "together" in cases:

@@ -206,6 +206,70 @@ def cuda_mps_running() -> bool:
     return os.path.exists(os.path.join(os.environ.get("CUDA_MPS_PIPE_DIRECTORY", "/tmp/nvidia-mps"), "control"))
 
 
+#: The CUDA driver's flag (cuda.h ``CU_CTX_SCHED_BLOCKING_SYNC``) of a context whose host
+#: threads wait for the device by blocking on a synchronization primitive, and the mask of
+#: its scheduling flags.
+CU_CTX_SCHED_BLOCKING_SYNC = 0x4
+CU_CTX_SCHED_MASK = 0x7
+
+
+@functools.cache
+def _cuda_driver():
+    """The CUDA driver library (ctypes), initialized, with the signatures of the calls that
+    take pointers; None where there is none."""
+    import ctypes
+
+    try:
+        cuda = ctypes.CDLL("nvcuda.dll" if sys.platform == "win32" else "libcuda.so.1")
+    except OSError:
+        return None
+    cuda.cuMemHostRegister_v2.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint)
+    cuda.cuMemHostUnregister.argtypes = (ctypes.c_void_p,)
+    return cuda if cuda.cuInit(0) == 0 else None
+
+
+def wait_by_blocking() -> bool:
+    """Make the primary CUDA context of every device (the one Warp uses) wait for the
+    device by blocking its host thread (``CU_CTX_SCHED_BLOCKING_SYNC``) instead of CUDA's
+    default, which spins on a core while there are fewer contexts than cores. A study runs
+    one process per core or more, each waiting on the shared GPU at every read of its
+    results: spinning, those waits take the cores the other processes' host work needs;
+    blocking, a study can run more processes than cores (docs/loop.md, Speed, "Blocking
+    waits"). Call it in each process before Warp starts CUDA (:func:`warp.init`, or the
+    first use of a CUDA device): a context already active keeps its waits. Returns whether
+    every device's context got the flag (False where there is no CUDA driver or device)."""
+    import ctypes
+
+    cuda = _cuda_driver()
+    count = ctypes.c_int(0)
+    if cuda is None or cuda.cuDeviceGetCount(ctypes.byref(count)) != 0 or count.value == 0:
+        return False
+    for ordinal in range(count.value):
+        device = ctypes.c_int()
+        if cuda.cuDeviceGet(ctypes.byref(device), ordinal) != 0:
+            return False
+        if cuda.cuDevicePrimaryCtxSetFlags_v2(device, CU_CTX_SCHED_BLOCKING_SYNC) != 0:
+            return False
+    return True
+
+
+def context_waits(ordinal: int = 0) -> str | None:
+    """How the primary CUDA context of device ``ordinal`` waits for the device:
+    ``"blocking"``, ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default), None where there
+    is no CUDA driver or no such device."""
+    import ctypes
+
+    cuda = _cuda_driver()
+    device, flags, active = ctypes.c_int(), ctypes.c_uint(), ctypes.c_int()
+    if cuda is None or cuda.cuDeviceGet(ctypes.byref(device), ordinal) != 0:
+        return None
+    if cuda.cuDevicePrimaryCtxGetState(device, ctypes.byref(flags), ctypes.byref(active)) != 0:
+        return None
+    return {0: "auto", 1: "spin", 2: "yield", CU_CTX_SCHED_BLOCKING_SYNC: "blocking"}.get(
+        flags.value & CU_CTX_SCHED_MASK, "auto"
+    )
+
+
 #: What sizes the thread pools of NumPy's and SciPy's linear algebra (OpenMP, OpenBLAS,
 #: MKL) when a process loads it
 BLAS_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -1622,16 +1686,6 @@ def _written_mapping(path: str, size: int) -> mmap.mmap | None:
 
 #: cuMemHostRegister's flag: the memory page-locked for every CUDA context.
 _CU_MEMHOSTREGISTER_PORTABLE = 1
-
-
-def _cuda_driver():
-    """The CUDA driver library with the signatures of the two calls used here."""
-    import ctypes
-
-    lib = ctypes.CDLL("libcuda.so.1")
-    lib.cuMemHostRegister_v2.argtypes = (ctypes.c_void_p, ctypes.c_size_t, ctypes.c_uint)
-    lib.cuMemHostUnregister.argtypes = (ctypes.c_void_p,)
-    return lib
 
 
 def _device_address(path: str, device) -> int | None:

@@ -117,3 +117,32 @@ def test_cuda_temperature_dependent_heat_matches_cpu(fields):
     cpu = transfer_matrices(core, f, q, device="cpu", cells=12).dimensionless()
     gpu = transfer_matrices(core, f, q, device="cuda", cells=12).dimensionless()
     assert np.abs(gpu - cpu).max() / np.abs(cpu).max() < 1e-12
+
+
+def test_blocking_waits_take_effect_before_warp_starts_cuda():
+    # a fresh process that sets blocking waits before Warp starts CUDA computes on the GPU as
+    # the CPU does, and its primary context reports them; one that does not keeps CUDA's own
+    import subprocess
+    import sys
+
+    script = """
+import sys, numpy as np, warp as wp
+from tawarp.distributed import wait_by_blocking, context_waits
+from tawarp.model.core import load_core
+from tawarp.model.forward import transfer_matrices
+blocking = sys.argv[1] == "1"
+assert not blocking or wait_by_blocking()
+wp.config.quiet = True
+core, f = load_core("ceramic"), np.linspace(50.0, 400.0, 5)
+gpu = transfer_matrices(core, f, 40.0, device="cuda").dimensionless()
+cpu = transfer_matrices(core, f, 40.0, device="cpu").dimensionless()
+print(context_waits(wp.get_device("cuda").ordinal), float(np.max(np.abs(gpu - cpu) / np.abs(cpu))))
+"""
+    got = {}
+    for blocking in ("1", "0"):
+        out = subprocess.run([sys.executable, "-c", script, blocking], capture_output=True, text=True, timeout=600)
+        assert out.returncode == 0, out.stderr
+        waits, error = out.stdout.split()[-2:]
+        got[blocking] = waits
+        assert float(error) < 1e-12
+    assert got["1"] == "blocking" and got["0"] != "blocking"
