@@ -287,14 +287,14 @@ def _study_worker(job: tuple) -> dict:
     for _ in range(repeats):
         probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
         verdicts += [rep["verdict"] for rep in loops_in_groups(probs, together)]
-    waits = None if wp.get_device(device).is_cpu else context_waits(wp.get_device(device).ordinal)
-    return {**_elapsed(clock), "verdicts": verdicts, "cuda_waits": waits}
+    return {**_elapsed(clock), "verdicts": verdicts, "cuda_waits": context_waits(device)}
 
 
-def _blocking_worker() -> None:
-    """A study process's start with ``--blocking-waits``: its CUDA contexts wait by blocking."""
-    if not wait_by_blocking():
-        raise RuntimeError("--blocking-waits: the CUDA driver did not take the flag (no CUDA driver or device?)")
+def _blocking_worker(device: str) -> None:
+    """A study process's start with ``--blocking-waits``: its CUDA context waits by blocking."""
+    wp.config.quiet = True
+    if not wait_by_blocking(device):
+        raise RuntimeError(f"--blocking-waits: the CUDA driver did not take the flag on {device}")
 
 
 def study(
@@ -316,7 +316,9 @@ def study(
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
         # and ends them (not a traceback from each)
         with interrupts_ignored(), cores_shared(P):
-            pool = multiprocessing.get_context("spawn").Pool(P, initializer=_blocking_worker if blocking else None)
+            pool = multiprocessing.get_context("spawn").Pool(
+                P, initializer=_blocking_worker if blocking else None, initargs=(device,) if blocking else ()
+            )
             started_with = {k: os.environ.get(k) for k in BLAS_THREAD_VARIABLES}
         try:
             runs = pool.map(_study_worker, jobs)

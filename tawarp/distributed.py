@@ -228,43 +228,49 @@ def _cuda_driver():
     return cuda if cuda.cuInit(0) == 0 else None
 
 
-def wait_by_blocking() -> bool:
-    """Make the primary CUDA context of every device (the one Warp uses) wait for the
-    device by blocking its host thread (``CU_CTX_SCHED_BLOCKING_SYNC``) instead of CUDA's
-    default, which spins on a core while there are fewer contexts than cores. A study runs
-    one process per core or more, each waiting on the shared GPU at every read of its
-    results: spinning, those waits take the cores the other processes' host work needs;
-    blocking, a study can run more processes than cores (docs/loop.md, Speed, "Blocking
-    waits"). Call it in each process before Warp starts CUDA (:func:`warp.init`, or the
-    first use of a CUDA device): a context already active keeps its waits. Returns whether
-    every device's context got the flag (False where there is no CUDA driver or device)."""
+def wait_by_blocking(device="cuda") -> bool:
+    """Make the CUDA context Warp uses on ``device`` wait for the device by blocking its host
+    thread (``CU_CTX_SCHED_BLOCKING_SYNC``) instead of CUDA's default, which spins on a core
+    while there are fewer contexts than cores. A study runs one process per core or more,
+    each waiting on the shared GPU at every read of its results: spinning, those waits take
+    the cores the other processes' host work needs (docs/loop.md, Speed, "Blocking waits").
+    The flag is set on the context itself (``cuCtxSetFlags``, CUDA 12.1 and later) after
+    Warp has started it: Warp sets the primary context's flags as it starts a device, which
+    would undo a flag set before. Returns whether the context waits by blocking now (False
+    on the CPU, without a CUDA driver or where the driver has no ``cuCtxSetFlags``)."""
     import ctypes
 
+    import warp as wp
+
+    device = wp.get_device(device)
     cuda = _cuda_driver()
-    count = ctypes.c_int(0)
-    if cuda is None or cuda.cuDeviceGetCount(ctypes.byref(count)) != 0 or count.value == 0:
+    if not device.is_cuda or cuda is None or not hasattr(cuda, "cuCtxSetFlags"):
         return False
-    for ordinal in range(count.value):
-        device = ctypes.c_int()
-        if cuda.cuDeviceGet(ctypes.byref(device), ordinal) != 0:
+    flags = ctypes.c_uint()
+    with device.context_guard:
+        if cuda.cuCtxGetFlags(ctypes.byref(flags)) != 0:
             return False
-        if cuda.cuDevicePrimaryCtxSetFlags_v2(device, CU_CTX_SCHED_BLOCKING_SYNC) != 0:
+        if cuda.cuCtxSetFlags((flags.value & ~CU_CTX_SCHED_MASK) | CU_CTX_SCHED_BLOCKING_SYNC) != 0:
             return False
-    return True
+    return context_waits(device) == "blocking"
 
 
-def context_waits(ordinal: int = 0) -> str | None:
-    """How the primary CUDA context of device ``ordinal`` waits for the device:
-    ``"blocking"``, ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default), None where there
-    is no CUDA driver or no such device."""
+def context_waits(device="cuda") -> str | None:
+    """How the CUDA context Warp uses on ``device`` waits for the device: ``"blocking"``,
+    ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default); None on the CPU or without a
+    CUDA driver."""
     import ctypes
 
+    import warp as wp
+
+    device = wp.get_device(device)
     cuda = _cuda_driver()
-    device, flags, active = ctypes.c_int(), ctypes.c_uint(), ctypes.c_int()
-    if cuda is None or cuda.cuDeviceGet(ctypes.byref(device), ordinal) != 0:
+    if not device.is_cuda or cuda is None:
         return None
-    if cuda.cuDevicePrimaryCtxGetState(device, ctypes.byref(flags), ctypes.byref(active)) != 0:
-        return None
+    flags = ctypes.c_uint()
+    with device.context_guard:
+        if cuda.cuCtxGetFlags(ctypes.byref(flags)) != 0:
+            return None
     return {0: "auto", 1: "spin", 2: "yield", CU_CTX_SCHED_BLOCKING_SYNC: "blocking"}.get(
         flags.value & CU_CTX_SCHED_MASK, "auto"
     )

@@ -839,54 +839,59 @@ def test_the_mps_daemon_is_seen_by_its_control_pipe(tmp_path, monkeypatch):
 
 
 class _FakeDriver:
-    """The CUDA driver's calls that :func:`wait_by_blocking` and :func:`context_waits` make,
-    on ``devices`` devices whose primary contexts hold ``flags``; ``refuse``: the ordinals
-    whose cuDevicePrimaryCtxSetFlags_v2 fails (as a driver refuses an unknown flag)."""
+    """The CUDA driver's calls on the current context that :func:`wait_by_blocking` and
+    :func:`context_waits` make, on a context that holds ``flags``; ``refuse``: its
+    cuCtxSetFlags fails (as a driver refuses a flag)."""
 
-    def __init__(self, devices: int, refuse=()):
-        self.flags, self.refuse = [0] * devices, set(refuse)
+    def __init__(self, flags: int, refuse: bool = False):
+        self.flags, self.refuse = flags, refuse
 
-    def cuDeviceGetCount(self, count):
-        count._obj.value = len(self.flags)
+    def cuCtxGetFlags(self, flags):
+        flags._obj.value = self.flags
         return 0
 
-    def cuDeviceGet(self, device, ordinal):
-        if ordinal >= len(self.flags):
-            return 101  # CUDA_ERROR_INVALID_DEVICE
-        device._obj.value = ordinal
-        return 0
-
-    def cuDevicePrimaryCtxSetFlags_v2(self, device, flags):
-        if device.value in self.refuse:
+    def cuCtxSetFlags(self, flags):
+        if self.refuse:
             return 1
-        self.flags[device.value] = flags
-        return 0
-
-    def cuDevicePrimaryCtxGetState(self, device, flags, active):
-        flags._obj.value, active._obj.value = self.flags[device.value], 0
+        self.flags = flags
         return 0
 
 
-def test_blocking_waits_set_every_devices_primary_context(monkeypatch):
-    # CU_CTX_SCHED_BLOCKING_SYNC (cuda.h: 0x4) on the primary context of each device, read
-    # back by its scheduling bits; a refused device, no device or no driver: False
+class _OlderDriver:
+    """A driver before CUDA 12.1: no cuCtxSetFlags."""
+
+    def cuCtxGetFlags(self, flags):
+        flags._obj.value = 0
+        return 0
+
+
+def test_blocking_waits_set_the_scheduling_bits_of_warps_context(monkeypatch):
+    # CU_CTX_SCHED_BLOCKING_SYNC (cuda.h: 0x4) in the scheduling bits of the context Warp
+    # started, its other flags (Warp's CU_CTX_MAP_HOST, 0x8) kept; a refused flag, a driver
+    # without cuCtxSetFlags, no driver or the CPU: False
+    import contextlib
+    import types
+
+    import warp as wp
+
     import tawarp.distributed as dist
 
-    driver = _FakeDriver(3)
+    gpu = types.SimpleNamespace(is_cuda=True, context_guard=contextlib.nullcontext())
+    monkeypatch.setattr(wp, "get_device", lambda device=None: gpu)
+    driver = _FakeDriver(0x8)
     monkeypatch.setattr(dist, "_cuda_driver", lambda: driver)
-    assert [dist.context_waits(k) for k in range(3)] == ["auto"] * 3
-    assert dist.wait_by_blocking()
-    assert driver.flags == [0x4] * 3
-    assert [dist.context_waits(k) for k in range(3)] == ["blocking"] * 3
-    assert dist.context_waits(3) is None
-    driver.flags[1] = 0x1
-    assert dist.context_waits(1) == "spin"
-    monkeypatch.setattr(dist, "_cuda_driver", lambda: _FakeDriver(2, refuse={1}))
-    assert not dist.wait_by_blocking()
-    monkeypatch.setattr(dist, "_cuda_driver", lambda: _FakeDriver(0))
-    assert not dist.wait_by_blocking()
-    monkeypatch.setattr(dist, "_cuda_driver", lambda: None)
-    assert not dist.wait_by_blocking() and dist.context_waits() is None
+    assert dist.context_waits("cuda") == "auto"
+    assert dist.wait_by_blocking("cuda")
+    assert driver.flags == 0x8 | 0x4
+    assert dist.context_waits("cuda") == "blocking"
+    driver.flags = 0x8 | 0x1
+    assert dist.context_waits("cuda") == "spin"
+    for other in (_FakeDriver(0x8, refuse=True), _OlderDriver(), None):
+        monkeypatch.setattr(dist, "_cuda_driver", lambda other=other: other)
+        assert not dist.wait_by_blocking("cuda")
+    monkeypatch.setattr(dist, "_cuda_driver", lambda: driver)
+    monkeypatch.setattr(wp, "get_device", lambda device=None: types.SimpleNamespace(is_cuda=False))
+    assert not dist.wait_by_blocking("cpu") and dist.context_waits("cpu") is None
 
 
 def test_fit_parts_in_shared_memory_join_as_the_arrays_would(tmp_path):

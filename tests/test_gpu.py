@@ -119,30 +119,28 @@ def test_cuda_temperature_dependent_heat_matches_cpu(fields):
     assert np.abs(gpu - cpu).max() / np.abs(cpu).max() < 1e-12
 
 
-def test_blocking_waits_take_effect_before_warp_starts_cuda():
-    # a fresh process that sets blocking waits before Warp starts CUDA computes on the GPU as
-    # the CPU does, and its primary context reports them; one that does not keeps CUDA's own
+def test_blocking_waits_are_set_on_warps_context_and_change_no_number():
+    # in a fresh process (the flag stays with its context): Warp's context starts with CUDA's
+    # own waits; wait_by_blocking makes it block, and the GPU then computes as the CPU does
     import subprocess
     import sys
 
     script = """
-import sys, numpy as np, warp as wp
+import numpy as np, warp as wp
 from tawarp.distributed import wait_by_blocking, context_waits
 from tawarp.model.core import load_core
 from tawarp.model.forward import transfer_matrices
-blocking = sys.argv[1] == "1"
-assert not blocking or wait_by_blocking()
 wp.config.quiet = True
+wp.init()
+before = context_waits("cuda")
+assert wait_by_blocking("cuda")
 core, f = load_core("ceramic"), np.linspace(50.0, 400.0, 5)
 gpu = transfer_matrices(core, f, 40.0, device="cuda").dimensionless()
 cpu = transfer_matrices(core, f, 40.0, device="cpu").dimensionless()
-print(context_waits(wp.get_device("cuda").ordinal), float(np.max(np.abs(gpu - cpu) / np.abs(cpu))))
+print(before, context_waits("cuda"), float(np.max(np.abs(gpu - cpu) / np.abs(cpu))))
 """
-    got = {}
-    for blocking in ("1", "0"):
-        out = subprocess.run([sys.executable, "-c", script, blocking], capture_output=True, text=True, timeout=600)
-        assert out.returncode == 0, out.stderr
-        waits, error = out.stdout.split()[-2:]
-        got[blocking] = waits
-        assert float(error) < 1e-12
-    assert got["1"] == "blocking" and got["0"] != "blocking"
+    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr
+    before, after, error = out.stdout.split()[-3:]
+    assert before != "blocking" and after == "blocking"
+    assert float(error) < 1e-12
