@@ -106,7 +106,10 @@ share a GPU take turns on it unless NVIDIA's MPS daemon runs (docs/loop.md, Spee
 H100 host 16 processes ran 1.62 cases/s on the GPU under MPS, 0.24 without it, 0.62 on the
 CPU's 16 cores); with ``--together N`` each process runs N loops at a time, the cases of one
 core file together, their fits and launches batched (:func:`tawarp.fit.lockstep.run_together`;
-a loop alone on a GPU host is bound by its host work). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
+a loop alone on a GPU host is bound by its host work); with ``--blocking-waits`` each loop
+process's CUDA context waits for the GPU by blocking, not spinning, so that more processes
+than cores can share the host (:func:`tawarp.distributed.wait_by_blocking`; docs/loop.md,
+Speed, "Blocking waits"). Outputs, written atomically: ``OUT/loop_validation.json`` (every case and the
 summary), ``OUT/loop_validation.md`` (the tables), ``OUT/confusion.png``, ``OUT/residual_ratio.png``,
 ``OUT/calibration.png``.
 """
@@ -133,7 +136,7 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
-from tawarp.distributed import cores_shared, cuda_mps_running
+from tawarp.distributed import cores_shared, cuda_mps_running, wait_by_blocking
 from tawarp.fit.lockstep import run_together
 from tawarp.fit.problems import Families, fit_batch
 from tawarp.io import atomic_path, write_json, write_text
@@ -718,6 +721,14 @@ def _interrupt_ends_quietly() -> None:
 
 def _end(signum, frame):
     raise SystemExit(130)
+
+
+def _loop_worker_start(device: str | None) -> None:
+    """A loop process's start: :func:`_interrupt_ends_quietly`, and where ``device`` is
+    given (``--blocking-waits``) its CUDA context there waits by blocking."""
+    _interrupt_ends_quietly()
+    if device is not None and not wait_by_blocking(device):
+        raise RuntimeError(f"--blocking-waits: the CUDA driver did not take the flag on {device}")
 
 
 class StudyInterrupted(Exception):
@@ -1332,6 +1343,12 @@ def main(argv=None) -> int:
         "on a GPU host, where a loop alone is bound by its host work",
     )
     ap.add_argument(
+        "--blocking-waits",
+        action="store_true",
+        help="on a GPU: each loop process's CUDA context waits by blocking, not spinning, so that more "
+        "processes than cores share the host",
+    )
+    ap.add_argument(
         "--workers",
         type=int,
         default=max(1, min(4, (os.cpu_count() or 1))),
@@ -1361,6 +1378,8 @@ def main(argv=None) -> int:
             ap.error(f"{option}: {value}; expected a positive number of processes")
     if a.together < 1:
         ap.error(f"--together: {a.together}; expected a positive number of loops")
+    if a.blocking_waits and not a.device.startswith("cuda"):
+        ap.error(f"--blocking-waits: sets how loop processes wait for a GPU; --device is {a.device!r}")
     out = Path(a.out)
     results = out / "loop_validation.json"
     try:
@@ -1419,7 +1438,12 @@ def main(argv=None) -> int:
     with (
         _kept_on_interrupt(kept),
         cores_shared(a.loop_workers),
-        ProcessPoolExecutor(a.loop_workers, mp_context=spawn, initializer=_interrupt_ends_quietly) as pool,
+        ProcessPoolExecutor(
+            a.loop_workers,
+            mp_context=spawn,
+            initializer=_loop_worker_start,
+            initargs=(a.device if a.blocking_waits else None,),
+        ) as pool,
     ):
         loop = functools.partial(run_cases, device=a.device, base=a.base, cpu_threads=threads)
         # the cases of one core file together: their launches are shared (one family of kinds)

@@ -557,6 +557,16 @@ def test_a_study_without_processes_is_refused_before_any_work(option, what, tmp_
     assert not (tmp_path / "out").exists()
 
 
+def test_blocking_waits_without_a_gpu_are_refused_before_any_work(tmp_path, capsys):
+    # blocking waits set how a loop process's CUDA context waits: on the CPU the option is
+    # refused by name, exit 2, nothing generated or written
+    with pytest.raises(SystemExit) as stop:
+        lv.main(["--blocking-waits", "--cases", "1", "--out", str(tmp_path / "out")])
+    assert stop.value.code == 2
+    assert "--blocking-waits: sets how loop processes wait for a GPU; --device is 'cpu'" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(
     "option, text, message",
     [
