@@ -228,37 +228,10 @@ def _cuda_driver():
     return cuda if cuda.cuInit(0) == 0 else None
 
 
-def wait_by_blocking(device="cuda") -> bool:
-    """Make the CUDA context Warp uses on ``device`` wait for the device by blocking its host
-    thread (``CU_CTX_SCHED_BLOCKING_SYNC``) instead of CUDA's default, which spins on a core
-    while there are fewer contexts than cores. A study runs one process per core or more,
-    each waiting on the shared GPU at every read of its results: spinning, those waits take
-    the cores the other processes' host work needs (docs/loop.md, Speed, "Blocking waits").
-    The flag is set on the context itself (``cuCtxSetFlags``, CUDA 12.1 and later) after
-    Warp has started it: Warp sets the primary context's flags as it starts a device, which
-    would undo a flag set before. Returns whether the context waits by blocking now (False
-    on the CPU, without a CUDA driver or where the driver has no ``cuCtxSetFlags``)."""
-    import ctypes
-
-    import warp as wp
-
-    device = wp.get_device(device)
-    cuda = _cuda_driver()
-    if not device.is_cuda or cuda is None or not hasattr(cuda, "cuCtxSetFlags"):
-        return False
-    flags = ctypes.c_uint()
-    with device.context_guard:
-        if cuda.cuCtxGetFlags(ctypes.byref(flags)) != 0:
-            return False
-        if cuda.cuCtxSetFlags((flags.value & ~CU_CTX_SCHED_MASK) | CU_CTX_SCHED_BLOCKING_SYNC) != 0:
-            return False
-    return context_waits(device) == "blocking"
-
-
-def context_waits(device="cuda") -> str | None:
-    """How the CUDA context Warp uses on ``device`` waits for the device: ``"blocking"``,
-    ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default); None on the CPU or without a
-    CUDA driver."""
+def _context_flags(device) -> tuple | None:
+    """(the CUDA driver, Warp's device ``device``, the flags of Warp's context there), read
+    with that context current; None on the CPU, without a CUDA driver or where the driver
+    will not say."""
     import ctypes
 
     import warp as wp
@@ -271,8 +244,38 @@ def context_waits(device="cuda") -> str | None:
     with device.context_guard:
         if cuda.cuCtxGetFlags(ctypes.byref(flags)) != 0:
             return None
+    return cuda, device, flags.value
+
+
+def wait_by_blocking(device="cuda") -> bool:
+    """Make the CUDA context Warp uses on ``device`` wait for the device by blocking its host
+    thread (``CU_CTX_SCHED_BLOCKING_SYNC``) instead of CUDA's default, which spins on a core
+    while there are fewer contexts than cores. A study runs one process per core or more,
+    each waiting on the shared GPU at every read of its results: spinning, those waits take
+    the cores the other processes' host work needs (docs/loop.md, Speed, "Blocking waits").
+    The flag is set on the context itself (``cuCtxSetFlags``, CUDA 12.1 and later) after
+    Warp has started it: Warp sets the primary context's flags as it starts a device, which
+    would undo a flag set before. Returns whether the context waits by blocking now (False
+    on the CPU, without a CUDA driver or where the driver has no ``cuCtxSetFlags``)."""
+    got = _context_flags(device)
+    if got is None or not hasattr(got[0], "cuCtxSetFlags"):
+        return False
+    cuda, device, flags = got
+    with device.context_guard:
+        if cuda.cuCtxSetFlags((flags & ~CU_CTX_SCHED_MASK) | CU_CTX_SCHED_BLOCKING_SYNC) != 0:
+            return False
+    return context_waits(device) == "blocking"
+
+
+def context_waits(device="cuda") -> str | None:
+    """How the CUDA context Warp uses on ``device`` waits for the device: ``"blocking"``,
+    ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default); None on the CPU or without a
+    CUDA driver."""
+    got = _context_flags(device)
+    if got is None:
+        return None
     return {0: "auto", 1: "spin", 2: "yield", CU_CTX_SCHED_BLOCKING_SYNC: "blocking"}.get(
-        flags.value & CU_CTX_SCHED_MASK, "auto"
+        got[2] & CU_CTX_SCHED_MASK, "auto"
     )
 
 

@@ -582,6 +582,12 @@ class Engine:
         scratch = wp.empty((n, width), dtype=wp.float64, device=self.device) if self.count else None
         return params, theta, scratch
 
+    def device_table(self, varying) -> wp.array:
+        """A host table ``varying`` (1 + len(names), n) on the engine's device, its heat
+        inputs checked (:func:`tawarp.model.validity.check_heat_inputs`)."""
+        check_heat_inputs(np.asarray(varying)[0])
+        return wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
+
     def heat(self, varying, start: np.ndarray | None = None, out: tuple | None = None) -> tuple[wp.array, wp.array]:
         """Expand the parameter table and solve the heat model: (params, theta) on the device.
         ``start`` (n, ``theta_columns``, a host array or a Warp array on the device): the
@@ -590,8 +596,7 @@ class Engine:
         a row of a set without heat input must be zeros). ``out``: the arrays of
         :meth:`heat_buffers` to solve into, else new ones."""
         if not isinstance(varying, wp.array):  # (a device table's values were checked where they were made)
-            check_heat_inputs(np.asarray(varying)[0])
-            varying = wp.array(np.ascontiguousarray(varying, dtype=np.float64), dtype=wp.float64, device=self.device)
+            varying = self.device_table(varying)
         n = varying.shape[1]
         params, theta, scratch = self.heat_buffers(n) if out is None else out
         if start is None:
@@ -749,8 +754,7 @@ class Engine:
             T, _, theta = self._host_threaded(table, parts, start, params=False)
             varying = None
         else:
-            check_heat_inputs(table[0])
-            varying = wp.array(table, dtype=wp.float64, device=self.device)
+            varying = self.device_table(table)
             start = None if self.warm is None else self.warm.starts(table, varying)
             out, _, theta = self.evaluate_serial(varying, start=start)
             T = out if on_device else out.numpy()
