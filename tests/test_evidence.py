@@ -12,13 +12,16 @@ import pytest
 from scipy import integrate, special, stats
 
 from tawarp.fit.lockstep import Together
-from tawarp.fit.problem_model import ProblemModel
+from tawarp.fit.problem_model import ProblemModel, determined_inverse
 from tawarp.fit.result import FitResult
 from tawarp.loop.evidence import (
     CLAIM,
+    NOISE_LOG_SCALES,
     NOISE_SCALE_RANGE,
+    ON_BOUND,
     Model,
     XPrior,
+    _logdet_and_quadratic,
     any_of,
     claims,
     inclusion,
@@ -582,3 +585,96 @@ def test_evidences_in_blocks_are_the_stacked_ones(noise_scale, monkeypatch):
     whole = laplace_log_evidences(models, noise_scale)
     monkeypatch.setattr(evidence, "EVIDENCE_BLOCK", 3)
     np.testing.assert_allclose(laplace_log_evidences(models, noise_scale), whole, rtol=1e-12, atol=1e-9)
+
+
+def dense_log_evidence(mu, sd, lo, hi, r, J, x, noise_scale):
+    """ln Z of :func:`laplace_log_evidence` written out for one model the plain way: at each
+    noise scale the quadratic model's Hessian and gradient in the prior-whitened variables
+    (those on a bound turned into their range), the minimum over the free parameters by a
+    solve, the parameters on a bound by the Schur complement, ln det and C^-1 G by LAPACK,
+    the inside mass by determined_inverse. Returns (ln Z, whether the cap (the whole space's
+    integral) is below the product of the one-sided ones at some noise scale)."""
+    side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
+    f, b = side == 0, side != 0
+    c = np.where(f, 1.0, side)
+    Jw, g = J * sd * c, (x - mu) / sd
+    k, m = int(f.sum()), int(b.sum())
+    u = NOISE_LOG_SCALES if noise_scale else np.zeros(1)
+    terms, capped = [], False
+    for ui in u:
+        s2 = math.exp(2 * ui)
+        H = Jw.T @ Jw / s2 + np.eye(k + m)
+        grad = Jw.T @ r / s2 + c * g
+        Hff, Hfb = H[np.ix_(f, f)], H[np.ix_(f, b)]
+        sol = np.linalg.solve(Hff, grad[f])
+        phi = r @ r / s2 + g @ g - grad[f] @ sol
+        term = -0.5 * phi - len(r) * ui - 0.5 * np.linalg.slogdet(Hff)[1]
+        if m:
+            C = H[np.ix_(b, b)] - Hfb.T @ np.linalg.solve(Hff, Hfb)
+            G = grad[b] - Hfb.T @ sol
+            Cjj = np.diag(C)
+            one = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + np.log(special.erfcx(G / np.sqrt(2 * Cjj))))
+            whole = 0.5 * m * math.log(2 * math.pi) - 0.5 * np.linalg.slogdet(C)[1] + 0.5 * G @ np.linalg.solve(C, G)
+            capped |= whole < one
+            term += min(one, whole)
+        terms.append(term)
+    norm = (
+        sum(XPrior(*a).log_norm() for a in zip(mu, sd, lo, hi)) + 0.5 * k * math.log(2 * math.pi) + np.sum(np.log(sd))
+    )
+    s2 = math.exp(2 * u[int(np.argmax(terms))])
+    A = (Jw[:, f].T @ Jw[:, f] + s2 * np.eye(k)) / np.outer(sd[f], sd[f])
+    s = np.sqrt(s2 * np.diag(determined_inverse(A)[0]))
+    inside = np.sum(np.log(special.ndtr((hi[f] - x[f]) / s) - special.ndtr((lo[f] - x[f]) / s)))
+    if not noise_scale:
+        return norm + terms[0] + inside, capped
+    return norm + special.logsumexp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1]) + inside, capped
+
+
+@pytest.mark.parametrize("noise_scale", [False, True])
+def test_stacked_evidence_is_the_plain_dense_one(noise_scale):
+    # the stacked evidence (QR and SVD of whitened columns, ln det and C^-1 G of the
+    # parameters on their bounds unrolled over their count) against the plain dense
+    # formula, for models with 1, 2 and 3 parameters on a bound (lower or upper), some with
+    # those on their bounds nearly collinear and pulled into their range so that the whole
+    # space's integral caps the one-sided ones: the same to 1e-12 relative (seen: 7e-14)
+    rng = np.random.default_rng(21)
+    models, capped = [], 0
+    for i in range(36):
+        m, k, n = 1 + i % 3, int(rng.integers(2, 5)), 30
+        A = rng.standard_normal((n, k + m))
+        if i % 2 and m > 1:
+            A[:, k + 1 :] = A[:, [k]] + 0.05 * rng.standard_normal((n, m - 1))
+        mu, sd = rng.standard_normal(k + m), rng.uniform(0.3, 2.0, k + m)
+        x = mu + sd * rng.standard_normal(k + m)
+        up = rng.random(m) < 0.5
+        lo = np.concatenate([np.full(k, -math.inf), np.where(up, -math.inf, x[k:])])
+        hi = np.concatenate([np.full(k, math.inf), np.where(up, x[k:], math.inf)])
+        pull = (3.0 if i % 2 else rng.normal(0, 3)) * np.where(up, -1.0, 1.0)
+        r = rng.standard_normal(n) * rng.uniform(0.5, 3.0) - A[:, k:] @ pull
+        models.append((mu, sd, lo, hi, r, A, x))
+    got = laplace_log_evidences(models, noise_scale)
+    for g, model in zip(got, models):
+        want, cap = dense_log_evidence(*model, noise_scale)
+        capped += cap
+        assert g == pytest.approx(want, rel=1e-12, abs=1e-9)
+    assert capped >= 6
+
+
+@pytest.mark.parametrize("m", [1, 2, 3, 4, 5])
+def test_unrolled_logdet_and_quadratic_are_lapacks(m):
+    # ln det C and G^T C^-1 G of C = P + I (P positive semi-definite, eigenvalues from 0 to
+    # 1e6, as the parameters on their bounds make it) from the unrolled LDL^T: LAPACK's
+    # slogdet and solve to rounding amplified by C's condition, 10 eps cond(C) (absolute for
+    # ln det, relative for the quadratic form; seen: at most 2.5 eps cond(C))
+    rng = np.random.default_rng(m)
+    V = rng.standard_normal((50, m, m))
+    P = np.swapaxes(V, 1, 2) * 10.0 ** rng.uniform(-3, 6, (50, 1, m)) @ V
+    C = P + np.eye(m)
+    G = rng.standard_normal((50, m)) * 10.0 ** rng.uniform(-2, 3, (50, 1))
+    pairs = [(j, l) for j in range(m) for l in range(j, m)]
+    entries = np.stack([C[:, j, l] for j, l in pairs], axis=1)
+    logdet, quad = _logdet_and_quadratic(entries[:, :, None], G[:, :, None], pairs)
+    tol = 10 * np.finfo(float).eps * np.linalg.cond(C)
+    want = np.einsum("mj,mj->m", G, np.linalg.solve(C, G[..., None])[..., 0])
+    assert np.all(np.abs(logdet[:, 0] - np.linalg.slogdet(C)[1]) <= tol)
+    assert np.all(np.abs(quad[:, 0] - want) <= tol * want)

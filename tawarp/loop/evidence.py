@@ -51,7 +51,7 @@ from scipy import special
 
 from ..fit import lockstep
 from ..fit.lm import held_fixed
-from ..fit.problem_model import ProblemModel, determined_inverse, r_factor
+from ..fit.problem_model import RCOND, ProblemModel, determined_inverse, r_factor
 from ..fit.problems import FD_STEP, Sets, param_values, predict_sets, residual
 from ..fit.result import FitResult
 from ..measure.kind import MeasurementKind
@@ -142,7 +142,8 @@ def log_sum_exp(a: np.ndarray):
 
 #: A parameter within this of a bound (in its scaled fit variable x, of order 1) is on it.
 ON_BOUND = 1e-9
-#: Models whose evidence is computed in one stacked call at most (:func:`laplace_log_evidences`).
+#: Models whose evidence with the noise scale marginalized is computed in one stacked call at
+#: most (:func:`laplace_log_evidences`).
 EVIDENCE_BLOCK = 64
 
 
@@ -229,52 +230,101 @@ def _stacked_evidences(requests: list[tuple], _state=None) -> list[np.ndarray]:
 
 
 def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
-    """:func:`laplace_log_evidences` in this thread, ``n_res`` given."""
+    """:func:`laplace_log_evidences` in this thread, ``n_res`` given.
+
+    In the prior-whitened variables t_j = c_j dx_j / sd_j, c_j = 1 for a free parameter and
+    its direction into the range for one on a bound, -2 ln posterior's quadratic model is
+    the squared norm of [J diag(sd c), r; diag(c), g] [t; 1], g = (x - mu) / sd (the priors
+    as K more rows). Only the inner products of its columns enter ln Z: each model is taken
+    to the triangular factor of that matrix (of [J diag(sd c), r] alone with ``noise_scale``,
+    where the priors weigh differently at each noise scale), its columns ordered free
+    parameters first, then those on a bound, then r; the models of one shape (rows,
+    parameters) in one stacked QR."""
     out = np.empty(len(models))
     n_res = np.asarray(n_res)
     shapes: dict[tuple[int, int], list[int]] = {}
     for i, m in enumerate(models):
         shapes.setdefault((len(m[4]), len(m[6])), []).append(i)
-    for (_, k), idx in shapes.items():
-        # (mu, sd, lo, hi, x) of the models of one shape, (M, 5, k)
-        table = np.array([(m[0], m[1], m[2], m[3], m[6]) for m in (models[i] for i in idx)]).reshape(len(idx), 5, k)
+    for (n, K), idx in shapes.items():
+        M = len(idx)
+        # (mu, sd, lo, hi, x) of the models of one shape, (M, 5, K)
+        table = np.array([(m[0], m[1], m[2], m[3], m[6]) for m in (models[i] for i in idx)]).reshape(M, 5, K)
         x, lo, hi = table[:, 4], table[:, 2], table[:, 3]
         # +1 on a lower bound, -1 on an upper one: the direction into the range
         side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
+        # each model's parameters reordered: the free ones first, then those on a bound
+        order = np.argsort(side != 0, axis=1, kind="stable")
+        mu, sd, lo, hi, x = np.take_along_axis(table, order[:, None, :], 2).transpose(1, 0, 2)
+        c = np.take_along_axis(np.where(side == 0, 1.0, side), order, 1)
         free = np.count_nonzero(side == 0, axis=1)
-        # in blocks of at most EVIDENCE_BLOCK models of one count of free parameters (the
-        # noise scales' arrays, M x 401 x k, of thousands of models stacked would stream
-        # from memory)
+        # the matrices transposed, (M, K + 1, rows), each column contiguous: numpy's QR copies
+        # them column by column for LAPACK, and the scaling by sd c runs along the columns
+        # instead of along many rows of K + 1 (fill, scaling and QR of 888 rows took 30 %
+        # less); filled model by model (a gather of every Jacobian's columns, take_along_axis,
+        # cost twice the copy, and most models need no reordering)
+        At = np.empty((M, K + 1, n if noise_scale else n + K))
+        moved = np.any(order != np.arange(K), axis=1)
+        for j, i in enumerate(idx):
+            At[j, :K, :n] = models[i][5].T[order[j]] if moved[j] else models[i][5].T
+        At[:, K, :n] = [models[i][4] for i in idx]
+        At[:, :K, :n] *= (sd * c)[:, :, None]
+        if not noise_scale:
+            At[:, :K, n:] = c[:, :, None] * np.eye(K)
+            At[:, K, n:] = (x - mu) / sd
+        Ra = r_factor(np.swapaxes(At, 1, 2))
+        norm = np.sum(log_norms(mu, sd, lo, hi), axis=1) + np.sum(np.log(sd), axis=1)
         for kf in dict.fromkeys(free.tolist()):
             rows = np.flatnonzero(free == kf)
+            if not noise_scale:
+                out[[idx[j] for j in rows]] = _known_noise_group(
+                    Ra[rows], sd[rows], lo[rows], hi[rows], x[rows], norm[rows], kf
+                )
+                continue
+            # in blocks of at most EVIDENCE_BLOCK models (the noise scales' arrays, M x 401
+            # x k, of thousands of models stacked would stream from memory)
             for a in range(0, rows.size, EVIDENCE_BLOCK):
-                block = rows[a : a + EVIDENCE_BLOCK]
-                members = [idx[b] for b in block]
-                # each model's parameters reordered: the free ones first, then those on a bound
-                order = np.argsort(side[block] != 0, axis=1, kind="stable")
-                mu, sd, lo_b, hi_b, x_b = np.take_along_axis(table[block], order[:, None, :], 2).transpose(1, 0, 2)
-                r = np.array([models[i][4] for i in members])
-                J = np.take_along_axis(np.array([models[i][5] for i in members]), order[:, None, :], 2)
-                out[members] = _laplace_group(
-                    mu,
-                    sd,
-                    lo_b,
-                    hi_b,
-                    r,
-                    J,
-                    x_b,
-                    np.take_along_axis(side[block], order, 1),
-                    kf,
-                    noise_scale,
-                    n_res[members],
+                b = rows[a : a + EVIDENCE_BLOCK]
+                members = [idx[j] for j in b]
+                out[members] = _noise_scale_group(
+                    Ra[b], sd[b], lo[b], hi[b], x[b], mu[b], c[b], norm[b], kf, n_res[members]
                 )
     return out
 
 
-def _laplace_group(mu, sd, lo, hi, r, J, x, side, k, noise_scale, n_residuals) -> np.ndarray:
-    """ln Z of :func:`laplace_log_evidences` for M models (leading axis) whose first ``k``
-    parameters are free and the others, ``m``, on a bound (``side``: +1 on a lower one, -1 on
-    an upper one), with as many residuals each."""
+def _known_noise_group(Ra, sd, lo, hi, x, norm, k) -> np.ndarray:
+    """ln Z of :func:`laplace_log_evidences` (noise known, s = 1) for M models (leading
+    axis) whose first ``k`` parameters are free and the others, ``m``, on a bound: ``Ra``
+    the triangular factor of [J diag(sd c), r; diag(c), g] (:func:`_log_evidences`), ``norm``
+    the priors' ln normalisation plus sum ln sd.
+
+    The factor's blocks are [F, ., .; 0, T, w; 0, 0, rho] (free, on a bound, r). With those
+    on a bound at t = 0, the minimum over the free ones is phi = |w|^2 + rho^2, and F^T F =
+    J_f^T J_f + I (whitened) is their posterior precision: ln det = 2 sum ln |F_ii|. Along
+    the parameters on their bounds, the free ones at their optimum, phi(t) = |T t + w|^2 +
+    rho^2: C = T^T T, G = T^T w, ln det C = 2 sum ln |T_jj| and G^T C^-1 G = |w|^2. All by
+    orthogonal steps (no cancellation where a parameter sits at a bound with a large
+    gradient) and no decomposition per model besides the QR."""
+    M, K = x.shape
+    F, T, w, rho = Ra[:, :k, :k], Ra[:, k:K, k:K], Ra[:, k:K, K], Ra[:, K, K]
+    w2 = np.sum(w**2, axis=1)
+    terms = -0.5 * (w2 + rho**2) - np.sum(np.log(np.abs(np.diagonal(F, axis1=1, axis2=2))), axis=1)
+    if K > k:
+        logdet = 2 * np.sum(np.log(np.abs(np.diagonal(T, axis1=1, axis2=2))), axis=1)
+        terms = terms + _orthant(np.einsum("mij,mi->mj", T, w), np.sum(T**2, axis=1), logdet, w2)
+    if not k:
+        return norm + terms
+    # the free parameters' covariance (whitened) is F^-1 F^-T: its diagonal, row norms of F^-1
+    var = sd[:, :k] ** 2 * np.sum(np.linalg.inv(F) ** 2, axis=2)
+    inside = _inside_mass(var, F, np.zeros(M), np.ones(M), sd[:, :k], x[:, :k], lo[:, :k], hi[:, :k])
+    return norm + 0.5 * k * math.log(2 * math.pi) + terms + inside
+
+
+def _noise_scale_group(Ra, sd, lo, hi, x, mu, c, norm, k, n_residuals) -> np.ndarray:
+    """ln Z of :func:`laplace_log_evidences` with the noise scale marginalized for M models
+    (leading axis) whose first ``k`` parameters are free and the others, ``m``, on a bound
+    (``c``: their directions into the range), with as many residuals each: ``Ra`` the
+    triangular factor of [J diag(sd c), r] (:func:`_log_evidences`), ``norm`` the priors'
+    ln normalisation plus sum ln sd."""
     M, m = x.shape[0], x.shape[1] - k
     # In the prior-whitened variables d = dx/sd, with J_free = Q R and R = U S W^T, each
     # direction i of W is a one-dimensional problem: at noise s the minimum over d_i of
@@ -284,10 +334,8 @@ def _laplace_group(mu, sd, lo, hi, r, J, x, side, k, noise_scale, n_residuals) -
     # parameter sits at a bound with a large gradient. The triangular factor of
     # [J_free, J_on, r] gives Q^T J_on, Q^T r and, below them, the parts of J_on and r
     # outside J_free's range (whose inner products are all that is needed of them).
-    Jw = J * sd[:, None, :] * np.where(side == 0, 1.0, side)[:, None, :]
     g0 = (x - mu) / sd
-    gf, go, so = g0[:, :k], g0[:, k:], side[:, k:]
-    Ra = r_factor(np.concatenate([Jw, r[:, :, None]], axis=2))
+    gf, go, so = g0[:, :k], g0[:, k:], c[:, k:]
     R, B, z = Ra[:, :k, :k], Ra[:, :k, k : k + m], Ra[:, :k, k + m]
     rest = np.zeros((M, 1, m + 1)) if Ra.shape[1] <= k else Ra[:, k:, k:]
     if k:
@@ -296,68 +344,109 @@ def _laplace_group(mu, sd, lo, hi, r, J, x, side, k, noise_scale, n_residuals) -
         U, S, Wt = np.zeros((M, 0, 0)), np.zeros((M, 0)), np.zeros((M, 0, 0))
     alpha = np.einsum("mji,mj->mi", U, z) - S * np.einsum("mij,mj->mi", Wt, gf)
     v = np.einsum("mji,mjl->mil", U, B)  # (M, k, m)
-    u = NOISE_LOG_SCALES if noise_scale else np.zeros(1)
+    u = NOISE_LOG_SCALES
     s2 = np.exp(2 * u)  # (ns,)
-    den = s2[None, :, None] + S[:, None, :] ** 2  # (M, ns, k)
     rz, Rr = rest[:, :, m], rest[:, :, :m]
-    phi = (
-        np.sum(rz**2, axis=1)[:, None] / s2[None]
-        + np.sum(alpha[:, None, :] ** 2 / den, axis=2)
-        + np.sum(go**2, axis=1)[:, None]
-    )
-    terms = (
-        -0.5 * phi
-        - n_residuals[:, None] * u[None]
-        - 0.5 * np.sum(np.log1p(S[:, None, :] ** 2 / s2[None, :, None]), axis=2)
-    )
+    # Every sum over the free directions of a term over s^2 + S_i^2 (phi's alpha_i^2, and for
+    # the parameters on a bound G's alpha_i v_ij and C's v_ij v_il, below) is one product with
+    # the (M, k, ns) array of their inverses; its (M, ., ns) layout keeps each quantity's
+    # noise scales contiguous for the elementwise work that follows.
+    pairs = [(j, l) for j in range(m) for l in range(j, m)]
+    j1, l1 = [j for j, _ in pairs], [l for _, l in pairs]
+    cols = np.concatenate([alpha[:, :, None] ** 2, alpha[:, :, None] * v, v[:, :, j1] * v[:, :, l1]], axis=2)
+    S2 = S[:, :, None] ** 2
+    Y = np.swapaxes(cols, 1, 2) @ (1.0 / (S2 + s2))  # (M, 1 + m + len(pairs), ns)
+    phi = np.sum(rz**2, axis=1)[:, None] / s2 + Y[:, 0] + np.sum(go**2, axis=1)[:, None]
+    terms = -0.5 * phi - n_residuals[:, None] * u - 0.5 * np.sum(np.log1p(S2 / s2), axis=1)
     if m:
         # the quadratic model along each parameter j on its bound into its range, t_j >= 0
-        # (whitened), the free ones at their optimum: phi(t) = phi(0) + 2 G.t + t^T C t
-        G = (
-            np.einsum("mij,mi->mj", Rr, rz)[:, None, :] / s2[None, :, None]
-            + np.einsum("msk,mkj->msj", alpha[:, None, :] / den, v)
-            + (so * go)[:, None, :]
-        )  # (M, ns, m)
+        # (whitened), the free ones at their optimum: phi(t) = phi(0) + 2 G.t + t^T C t,
+        # C = Rr^T Rr / s^2 + sum_i v_i v_i^T / (s^2 + S_i^2) + I (its upper triangle's
+        # entries, ``pairs``)
+        G = np.einsum("mij,mi->mj", Rr, rz)[:, :, None] / s2 + Y[:, 1 : 1 + m] + (so * go)[:, :, None]  # (M, m, ns)
         C = (
-            np.einsum("mij,mil->mjl", Rr, Rr)[:, None] / s2[None, :, None, None]
-            + np.einsum("msk,mkj,mkl->msjl", 1.0 / den, v, v)
-            + np.eye(m)
-        )
-        Cjj = np.diagonal(C, axis1=2, axis2=3)
-        # each alone: int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
-        one_sided = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + log_erfcx(G / np.sqrt(2 * Cjj)), axis=2)
-        # an integral over the orthant never exceeds the one over the whole space; the
-        # product of the one-dimensional ones can, where parameters on their bounds share
-        # a pull into the range (a fit stopped away from its optimum: two correlated
-        # columns each credited with the whole of one misfit). At an optimum (every G >= 0)
-        # the product is below 2^-m times the whole (Hadamard: det C <= prod C_jj)
-        _, logdet = np.linalg.slogdet(C)
-        whole = (
-            0.5 * m * math.log(2 * math.pi)
-            - 0.5 * logdet
-            + 0.5 * np.einsum("msj,msj->ms", G, np.linalg.solve(C, G[..., None])[..., 0])
-        )
-        terms = terms + np.minimum(one_sided, whole)
-    norm = np.sum(log_norms(mu, sd, lo, hi), axis=1) + 0.5 * k * math.log(2 * math.pi) + np.sum(np.log(sd), axis=1)
+            np.einsum("mij,mij->mj", Rr[:, :, j1], Rr[:, :, l1])[:, :, None] / s2
+            + Y[:, 1 + m :]
+            + np.equal(j1, l1)[:, None]
+        )  # (M, len(pairs), ns)
+        logdet, quad = _logdet_and_quadratic(C, G, pairs)
+        terms = terms + _orthant(G, C[:, [pairs.index((j, j)) for j in range(m)]], logdet, quad)
     s2_best = s2[np.argmax(terms, axis=1)]
-    inside = _inside_mass(R, sd[:, :k], x[:, :k], lo[:, :k], hi[:, :k], s2_best) if k else np.zeros(M)
-    if not noise_scale:
-        return norm + terms[:, 0] + inside
+    if k:
+        # the free parameters' covariance (whitened) at s2: s2 W diag(1 / (S^2 + s2)) W^T
+        var = s2_best[:, None] * sd[:, :k] ** 2 * np.einsum("mij,mi->mj", Wt**2, 1.0 / (S**2 + s2_best[:, None]))
+        inside = _inside_mass(var, R, s2_best, s2_best, sd[:, :k], x[:, :k], lo[:, :k], hi[:, :k])
+    else:
+        inside = np.zeros(M)
+    norm = norm + 0.5 * k * math.log(2 * math.pi)
     return norm + log_sum_exp(terms) + math.log(u[1] - u[0]) - math.log(2 * u[-1]) + inside
 
 
-def _inside_mass(R, sd, x, lo, hi, s2) -> np.ndarray:
-    """ln of the share of each Laplace Gaussian (mean ``x``, the posterior covariance of the
-    free parameters at noise variance ``s2``, from their whitened triangular factor ``R``,
-    :meth:`tawarp.fit.problem_model.ProblemModel.covariance`'s inverse on the determined
-    directions) that lies in each parameter's range [``lo``, ``hi``], parameter by parameter."""
-    # J^T J in x from R (whitened: R = Q^T J_free diag(sd)), plus s^2 times the priors' precision
-    A = (
-        np.swapaxes(R, 1, 2) @ R / sd[:, :, None] / sd[:, None, :]
-        + s2[:, None, None] * np.eye(sd.shape[1]) / sd[:, None, :] ** 2
-    )
-    unit, _ = determined_inverse(A)
-    s = np.sqrt(np.maximum(s2[:, None] * np.diagonal(unit, axis1=1, axis2=2), 1e-300))
+def _orthant(G, Cjj, logdet, quad) -> np.ndarray:
+    """ln of the integral of exp(-(2 G.t + t^T C t) / 2) over the parameters on their bounds,
+    t >= 0 (whitened, into their ranges), as the module doc has it: the product of the
+    one-dimensional integrals (from ``G`` (M, m, ...) and C's diagonal ``Cjj``), capped by
+    the integral over the whole space (from ln det C and G^T C^-1 G, ``logdet`` and
+    ``quad``)."""
+    m = G.shape[1]
+    # each alone: int_0^inf exp(-G t - C t^2 / 2) dt = sqrt(pi / (2 C)) erfcx(G / sqrt(2 C))
+    one_sided = np.sum(0.5 * np.log(math.pi / (2 * Cjj)) + log_erfcx(G / np.sqrt(2 * Cjj)), axis=1)
+    # an integral over the orthant never exceeds the one over the whole space; the
+    # product of the one-dimensional ones can, where parameters on their bounds share
+    # a pull into the range (a fit stopped away from its optimum: two correlated
+    # columns each credited with the whole of one misfit). At an optimum (every G >= 0)
+    # the product is below 2^-m times the whole (Hadamard: det C <= prod C_jj)
+    whole = 0.5 * m * math.log(2 * math.pi) - 0.5 * logdet + 0.5 * quad
+    return np.minimum(one_sided, whole)
+
+
+def _logdet_and_quadratic(C, G, pairs) -> tuple[np.ndarray, np.ndarray]:
+    """(ln det C, G^T C^-1 G) of symmetric positive definite m x m matrices C given by their
+    upper triangles' entries (``C[:, p]`` the entry ``pairs[p]``, each an array over the
+    models and noise scales), ``G[:, j]`` likewise, from C = L D L^T (L unit lower
+    triangular): ln det C = sum ln D_j, G^T C^-1 G = sum y_j^2 / D_j with L y = G. The
+    factorization is unrolled over the few m (at most a handful of parameters on a bound) so
+    that every step is one array operation over all models and noise scales: numpy's stacked
+    slogdet and solve make a LAPACK call per m x m matrix, M x 401 of them. The C of
+    :func:`_noise_scale_group` is at least the identity, so its pivots are at least 1: no
+    pivoting is needed, and the result is LU's (LAPACK's) to rounding."""
+    m = G.shape[1]
+    at = {p: i for i, p in enumerate(pairs)}
+    L = [[None] * m for _ in range(m)]  # L[j][l], l < j
+    d, y = [], []
+    for j in range(m):
+        w = []  # w_l = L_jl D_l
+        for l in range(j):
+            w.append(C[:, at[(l, j)]] - sum(w[i] * L[l][i] for i in range(l)))
+            L[j][l] = w[l] / d[l]
+        d.append(C[:, at[(j, j)]] - sum(w[l] * L[j][l] for l in range(j)))
+        y.append(G[:, j] - sum(L[j][l] * y[l] for l in range(j)))
+    logdet = sum(np.log(dj) for dj in d)
+    quad = sum(yj**2 / dj for yj, dj in zip(y, d))
+    return logdet, quad
+
+
+def _inside_mass(var, R, shift, s2, sd, x, lo, hi) -> np.ndarray:
+    """ln of the share of each Laplace Gaussian (mean ``x``, the free parameters' posterior
+    covariance at noise variance ``s2``, with diagonal ``var`` (M, k) in x) that lies in each
+    parameter's range [``lo``, ``hi``], parameter by parameter.
+
+    That covariance is :meth:`tawarp.fit.problem_model.ProblemModel.covariance`'s: s^2
+    times :func:`tawarp.fit.problem_model.determined_inverse` of A = D^-1 P D^-1, D =
+    diag(sd), P = R^T R + ``shift`` I the whitened precision times s^2 (at least s^2 I).
+    ``var``, from the callers' factors, is s^2 D P^-1 D's, which is that wherever
+    determined_inverse keeps every direction: A scaled to unit diagonal has its eigenvalues
+    at least s^2 / max_j P_jj and at most k, so where that bound is above 2 k RCOND none is
+    left out; below it (a nearly degenerate pair of strongly determined parameters) the
+    model takes determined_inverse itself."""
+    P_jj = np.einsum("mij,mij->mj", R, R) + shift[:, None]
+    cut = s2 <= 2 * sd.shape[1] * RCOND * np.max(P_jj, axis=1)
+    if cut.any():
+        Rc, sdc = R[cut], sd[cut]
+        P = np.swapaxes(Rc, 1, 2) @ Rc + shift[cut, None, None] * np.eye(sd.shape[1])
+        unit, _ = determined_inverse(P / sdc[:, :, None] / sdc[:, None, :])
+        var[cut] = s2[cut, None] * np.diagonal(unit, axis1=1, axis2=2)
+    s = np.sqrt(np.maximum(var, 1e-300))
     mass = special.ndtr((hi - x) / s) - special.ndtr((lo - x) / s)
     return np.sum(np.log(np.maximum(mass, 1e-300)), axis=1)
 
