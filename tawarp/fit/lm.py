@@ -296,8 +296,8 @@ def levenberg_marquardt(
     (Q, p). Converged problems drop out of later launches (active-set compaction).
     ``prob``: any :class:`LMProblems`; a :class:`SecantProblems` with ``secant`` set runs
     the secant iteration (module doc). ``drop``: None, or ``drop(slots, cost) -> bool``
-    called after every iteration with the slots still iterating and every slot's cost
-    (Q,) at its current z: the slots it marks stop there (reason ``"dropped"``, not
+    called after every iteration with the slots still iterating (in increasing order) and
+    every slot's cost (Q,) at its current z: the slots it marks stop there (reason ``"dropped"``, not
     converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`).
     ``decrement`` > 0 (a scalar, or one per slot (Q,)): a problem also stops, converged (reason ``"decrement"``), where the
     Gauss-Newton step from its z would lower the cost by less than this (the Newton

@@ -782,11 +782,13 @@ def _drops(calls: list[FitCall], first: np.ndarray):
         return own[0][0]
 
     def drop(slots: np.ndarray, cost: np.ndarray) -> np.ndarray:
+        # the LM's slots come in increasing order: each call's are one run of them
         out = np.zeros(slots.size, dtype=bool)
-        for test, a, b in own:
-            mine = (slots >= a) & (slots < b)
-            if mine.any():
-                out[mine] = test(slots[mine] - a, cost[a:b])
+        lo = np.searchsorted(slots, [a for _, a, _ in own])
+        hi = np.searchsorted(slots, [b for _, _, b in own])
+        for (test, a, b), i, j in zip(own, lo.tolist(), hi.tolist()):
+            if j > i:
+                out[i:j] = test(slots[i:j] - a, cost[a:b])
         return out
 
     return drop

@@ -273,7 +273,10 @@ def start_race(owner: np.ndarray, sizes: np.ndarray, n_residuals: int, reference
             return np.zeros(slots.size, dtype=bool)
         best = np.full(sizes.size, np.inf)
         np.minimum.at(best, owner, cost)
-        leader = np.array([min(best[sizes == k].min(), reference.get(k, np.inf)) for k in sizes])
+        # each model's leader: the lowest cost of its size, in this batch or before it
+        lead = np.array([reference.get(k, np.inf) for k in range(sizes.max(initial=0) + 1)])
+        np.minimum.at(lead, sizes, best)
+        leader = lead[sizes]
         top = min(best.min(), min(reference.values(), default=np.inf))
         m = owner[slots]
         gap = cost[slots] - best[m]

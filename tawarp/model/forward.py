@@ -68,6 +68,8 @@ MAX_DENSITY_FACTOR = 64.0
 #: device part idle, so blocks are made large.
 POINT_BUFFER_BYTES = 1 << 28
 POINT_BUFFER_BYTES_GPU = 1 << 32
+#: Points of a GPU launch below which its block is not sized from the free memory.
+POINT_BUFFER_ASK_BYTES = 1 << 26
 #: Step of the central differences of the Gauss points' coefficients that seed the tangent
 #: cascade (:meth:`Engine.evaluate_tangents`), in scaled parameters: truncation ~ step^2,
 #: rounding ~ 1e-16/step, both ~1e-10 relative at 1e-5 (tests/test_tangents.py). When the
@@ -942,7 +944,7 @@ class Engine:
         columns = len(self.core.segments) * (2 if refined.shape[1] else 1)
         cells, grids, most = self._cell_counts(params, theta, density, columns, most)
         # the host's share of the launches before a read-back, while the device counts cells
-        budget, sets = self._point_buffer_bytes(), self._sets(params)
+        sets = self._sets(params)
         counts = None
         if self.settings.cells is not None:
             n_points, n_slots = self._fixed_point_counts(columns)
@@ -951,6 +953,7 @@ class Engine:
         else:
             counts = self._checked_counts(params, cells, most.numpy())
             n_points, n_slots = int(counts[0]), int(counts[1])
+        budget = self._point_buffer_bytes(n * n_points * POINT_BYTES)
         block = stride * max(1, min(n, budget // (n_points * POINT_BYTES)) // stride)
         points = wp.empty((block, n_points), dtype=PointCoefficients, device=self.device)
         spans = wp.empty((block, n_points), dtype=wp.float64, device=self.device)
@@ -1081,11 +1084,17 @@ class Engine:
             self._refuse_cells(params, cells.numpy())
         return counts.astype(np.int64)
 
-    def _point_buffer_bytes(self) -> int:
-        """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`)."""
+    def _point_buffer_bytes(self, need: int) -> int:
+        """Bytes a cascade launch's points may take (:data:`POINT_BUFFER_BYTES`), for a
+        launch whose points would take ``need`` bytes in one block. A GPU's free memory is
+        asked only for a launch above :data:`POINT_BUFFER_ASK_BYTES`: the driver's answer
+        cost a study's processes about 1 % of their host time, and below that size a quarter
+        of the free memory of any GPU that runs the kernels holds the block."""
         device = wp.get_device(self.device)
         if device.is_cpu:
             return POINT_BUFFER_BYTES
+        if need <= POINT_BUFFER_ASK_BYTES:
+            return POINT_BUFFER_ASK_BYTES
         return int(min(POINT_BUFFER_BYTES_GPU, device.free_memory // 4))
 
     def _estimated_cascade(
