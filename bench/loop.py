@@ -44,7 +44,10 @@ different code can be checked to decide the same.
   work a case costs when loops run together, without a study's processes sharing the host
   and the GPU (before and after a change, back to back in one lease); with ``--device-time``
   the warm round's kernels and copies are timed on the device (``device_time``: what the GPU
-  itself spends a case, by kind and by kernel).
+  itself spends a case, by kind and by kernel); with ``--host-time`` the warm round's host
+  CPU time by function (``host_time``: each timed function's thread CPU time less that of the
+  timed functions it calls, ``bench/_host_time.py``), and with ``--blocking-waits`` this
+  process waits for the GPU by blocking, so that its waits take no CPU time.
 
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
@@ -54,6 +57,8 @@ different code can be checked to decide the same.
         --seeds 1002-1103 --cache studies/out/loop_validation_heldout_drift/cache
     python bench/loop.py --device cuda --cases together --together 32 --seeds 1002-1039 \
         --cache studies/out/loop_validation_heldout_drift/cache --device-time
+    python bench/loop.py --device cuda --cases together --together 64 --seeds 1002-1103 \
+        --cache studies/out/loop_validation_heldout_drift/cache --host-time --blocking-waits
 """
 
 from __future__ import annotations
@@ -74,6 +79,7 @@ import warp as wp
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
+from _host_time import summary, thread_times  # noqa: E402
 from _results import run, write_result  # noqa: E402
 
 from tawarp.distributed import (  # noqa: E402
@@ -245,22 +251,26 @@ def device_time(activities: list, cases: int, top: int = 12) -> dict:
     }
 
 
-def together_cases(seeds, device, cache: Path, together: int, timed: bool = False) -> dict:
+def together_cases(seeds, device, cache: Path, together: int, timed: bool = False, host_time: bool = False) -> dict:
     """The T-matrix cases ``seeds`` in this process, ``together`` loops at a time
     (:func:`tawarp.loop.run_loops`), from cold: the loops a second of one process, its first
     launches' compiles or cache loads included. ``timed``: the device's own time of every
     kernel and copy too (:func:`device_time`; CUDA events around each, which the wall time
-    then includes)."""
+    then includes). ``host_time``: the host's CPU time by function (``bench/_host_time.py``;
+    a wrapper's few microseconds a call, which the CPU times then include)."""
     cases = [tmatrix_case(seed, device, cache) for seed in seeds]
     order = by_family(list(range(len(cases))), [prob for _, prob in cases])
     seeds, probs = [seeds[i] for i in order], [cases[i][1] for i in order]
     if timed:
         wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    clock = _clocks()
-    reps = loops_in_groups(probs, together)
-    out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
+    with thread_times() if host_time else contextlib.nullcontext() as totals:
+        clock = _clocks()
+        reps = loops_in_groups(probs, together)
+        out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
     if timed:
         out["device_time"] = device_time(wp.timing_end(), len(reps))
+    if host_time:
+        out["host_time"] = summary(totals, len(reps), out["cpu_seconds"])
     out["cases_per_second"] = len(reps) / out["seconds"]
     out["decisions"] = {str(seed): decisions(rep) for seed, rep in zip(seeds, reps)}
     print(f"{len(reps)} cases, {together} together, in this process: {out['seconds']:.1f} s")
@@ -419,9 +429,14 @@ def main(argv=None) -> int:
         help="with --cases together on a GPU: the warm round's kernels and copies timed on the device",
     )
     ap.add_argument(
+        "--host-time",
+        action="store_true",
+        help="with --cases together: the warm round's host CPU time by function (bench/_host_time.py)",
+    )
+    ap.add_argument(
         "--blocking-waits",
         action="store_true",
-        help="with --cases study on a GPU: each process's CUDA context waits by blocking, not spinning",
+        help="with --cases study or together on a GPU: each process's CUDA context waits by blocking, not spinning",
     )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -448,10 +463,13 @@ def main(argv=None) -> int:
         device = wp.get_device(args.device)
     except (RuntimeError, ValueError) as e:
         ap.error(f"--device: {args.device!r}: {e}")
-    if args.blocking_waits and ("study" not in cases or device.is_cpu):
+    if args.blocking_waits and (not cases & {"study", "together"} or device.is_cpu):
         ap.error(
-            "--blocking-waits: sets how a study's processes wait for a GPU; needs --cases study and a CUDA --device"
+            "--blocking-waits: sets how the loops' processes wait for a GPU; needs --cases study or together "
+            "and a CUDA --device"
         )
+    if args.host_time and "together" not in cases:
+        ap.error("--host-time: times the warm round of loops together; needs --cases together")
     if args.device_time and ("together" not in cases or device.is_cpu):
         ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     cache = Path(args.cache)
@@ -491,9 +509,12 @@ def main(argv=None) -> int:
         if together_warm is not None:
             result["together_one_process"] = together_warm
     if "together" in cases:
+        if args.blocking_waits:
+            _blocking_worker(args.device)
+            result["cuda_waits"] = context_waits(args.device)
         result["together"] = {
             "cold": together_warm or together_cases(seeds, args.device, cache, args.together),
-            "warm": together_cases(seeds, args.device, cache, args.together, args.device_time),
+            "warm": together_cases(seeds, args.device, cache, args.together, args.device_time, args.host_time),
         }
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")
