@@ -225,35 +225,60 @@ def covariances(models: list[ProblemModel], x: list, cost: list, dof: list, J: l
     numbers as one at a time: a stack's LAPACK calls and matrix products are each matrix's
     own (``tests/test_evidence.py::test_covariances_of_a_batch_are_each_problems_own``)."""
     out: list = [None] * len(models)
-    shapes: dict = {}
+    groups: dict = {}
     for i, (model, Ji) in enumerate(zip(models, J)):
-        s2 = float(noise_variance(cost[i], dof[i], model.noise_estimated))
-        lam = s2 * model.precision()
-        # A = R^T R with R the Jacobian and the priors' rows
-        R = np.vstack([np.zeros((0, model.p)) if Ji is None else Ji, np.diag(np.sqrt(lam))[lam > 0]])
-        shapes.setdefault(R.shape, []).append((i, s2, R))
-    for (n, p), members in shapes.items():
-        idx = [i for i, _, _ in members]
-        s2 = np.array([s for _, s, _ in members])
-        D = np.array([models[i].dv_dx(x[i]) for i in idx]).reshape(len(idx), p)
-        if p == 0:
-            got = _covariances(D, s2, None, None, None)
-        else:
-            R = np.stack([r for _, _, r in members])
-            A = np.swapaxes(R, -1, -2) @ R
-            norm = np.linalg.norm(R, axis=-2)
-            norm[norm == 0] = 1.0
-            # V (p, p) is all we need, and the same singular values and V come from the
-            # triangular factor of a tall R (n > p rows: the residuals and the priors'):
-            # LAPACK's SVD of the whole stack took about twice as long at n = 888
-            Rn = R / norm[:, None, :]
-            _, sv, Vt = np.linalg.svd(r_factor(Rn) if n > p else Rn, full_matrices=n < p)
-            ev = np.concatenate([sv, np.zeros((len(idx), p - sv.shape[-1]))], axis=-1) ** 2
-            unit_x, undetermined = _pseudo_inverse(ev, np.swapaxes(Vt, -1, -2), norm)
-            got = _covariances(D, s2, unit_x, A, undetermined)
-        for i, c in zip(idx, got):
-            out[i] = c
+        groups.setdefault((model.p, 0 if Ji is None else len(Ji)), []).append(i)
+    for (p, m), idx in groups.items():
+        estimated = np.array([models[i].noise_estimated for i in idx], dtype=bool)
+        s2 = np.ones(len(idx))
+        if estimated.any():
+            s2[estimated] = noise_variance(
+                np.array([cost[i] for i in idx])[estimated], np.array([dof[i] for i in idx])[estimated], True
+            )
+        lam = s2[:, None] * np.array([models[i].precision() for i in idx]).reshape(len(idx), p)
+        # a prior's row only where lam > 0 (none at s^2 = 0, exact data)
+        rows = m + np.count_nonzero(lam > 0, axis=-1)
+        for n in np.unique(rows):
+            sub = np.flatnonzero(rows == n)
+            members = [idx[j] for j in sub]
+            got = _stacked_covariances(
+                [models[i] for i in members], [x[i] for i in members], [J[i] for i in members], s2[sub], lam[sub]
+            )
+            for i, c in zip(members, got):
+                out[i] = c
     return out
+
+
+def _stacked_covariances(models: list, x: list, J: list, s2: np.ndarray, lam: np.ndarray) -> list:
+    """:func:`covariances` of problems with one shape of the stacked matrix R: Jacobians
+    ``J`` of as many rows each (or all None), noise variances ``s2`` (k,) and ``lam`` (k, p),
+    s^2 times the priors' precision, with as many positive entries in every row."""
+    k, p = lam.shape
+    D = np.array([model.dv_dx(xi) for model, xi in zip(models, x)]).reshape(k, p)
+    if p == 0:
+        return _covariances(D, s2, None, None, None)
+    # R (J over diag(sqrt(lam)) without its zero rows) written into one stack: a vstack
+    # per problem and their np.stack cost two copies and several calls a problem
+    m = 0 if J[0] is None else len(J[0])
+    member, column = np.nonzero(lam > 0)
+    n = m + len(member) // k
+    R = np.zeros((k, n, p))
+    if m:
+        for j, Jj in enumerate(J):
+            R[j, :m] = Jj
+    R[member, m + np.cumsum(lam > 0, axis=-1)[member, column] - 1, column] = np.sqrt(lam[member, column])
+    A = np.swapaxes(R, -1, -2) @ R
+    # np.linalg.norm's sum of squares over the strided row axis took three times as long
+    norm = np.sqrt(np.einsum("kij,kij->kj", R, R))
+    norm[norm == 0] = 1.0
+    R /= norm[:, None, :]
+    # V (p, p) is all we need, and the same singular values and V come from the
+    # triangular factor of a tall R (n > p rows: the residuals and the priors'):
+    # LAPACK's SVD of the whole stack took about twice as long at n = 888
+    _, sv, Vt = np.linalg.svd(r_factor(R) if n > p else R, full_matrices=n < p)
+    ev = np.concatenate([sv, np.zeros((k, p - sv.shape[-1]))], axis=-1) ** 2
+    unit_x, undetermined = _pseudo_inverse(ev, np.swapaxes(Vt, -1, -2), norm)
+    return _covariances(D, s2, unit_x, A, undetermined)
 
 
 def _covariances(D: np.ndarray, s2: np.ndarray, unit_x, A, undetermined) -> list:
