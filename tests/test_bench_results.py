@@ -1,16 +1,30 @@
-"""Where a benchmark writes its JSON (bench/_results.py)."""
+"""The benchmarks' helpers: where a benchmark writes its JSON (bench/_results.py), what
+bench/loop.py counts and times, the host's CPU time by function (bench/_host_time.py)."""
 
 import importlib.util
 import json
+import time
 from pathlib import Path
 
+import numpy as np
+import pytest
 
-def _results():
-    path = Path(__file__).resolve().parents[1] / "bench" / "_results.py"
-    spec = importlib.util.spec_from_file_location("bench_results", path)
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+
+
+def _bench(name: str, monkeypatch=None):
+    """The module of ``bench/<name>.py`` (``monkeypatch``: its folder on the path while
+    the test runs, for a script that imports its folder's modules)."""
+    if monkeypatch is not None:
+        monkeypatch.syspath_prepend(str(BENCH))
+    spec = importlib.util.spec_from_file_location(f"bench_{name.strip('_')}", BENCH / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
+
+
+def _results():
+    return _bench("_results")
 
 
 def test_an_existing_folder_as_out_takes_the_benchmarks_own_file_name(tmp_path):
@@ -29,11 +43,7 @@ def test_a_file_as_out_is_written_under_that_name(tmp_path):
 def test_the_device_time_sums_each_kind_and_ranks_activities_by_their_time(monkeypatch):
     import warp as wp
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "loop.py"
-    monkeypatch.syspath_prepend(str(path.parent))  # the script imports its folder's modules
-    spec = importlib.util.spec_from_file_location("bench_loop", path)
-    loop = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(loop)
+    loop = _bench("loop", monkeypatch)
     timed = [
         wp.TimingResult("cuda:0", "forward kernel heat", wp.TIMING_KERNEL, 3.0),
         wp.TimingResult("cuda:0", "memcpy DtoH", wp.TIMING_MEMCPY, 1.5),
@@ -54,16 +64,11 @@ def test_sets_are_counted_once_whether_predicted_on_the_host_or_left_on_the_devi
     # bench/loop.py's forward_sets: a fit on a GPU asks for its model values on the device
     # (predict_on_device), which for an elastic frame, or a kind without its own, forms them
     # with predict: every set counts once, and the kind's methods are its own again after
-    import numpy as np
     from test_lockstep import mesh_kind
 
     from tawarp.measure import MeasurementKind, TMatrixKind
 
-    path = Path(__file__).resolve().parents[1] / "bench" / "loop.py"
-    monkeypatch.syspath_prepend(str(path.parent))
-    spec = importlib.util.spec_from_file_location("bench_loop", path)
-    loop = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(loop)
+    loop = _bench("loop", monkeypatch)
     kind = mesh_kind(0)
 
     def values(n):
@@ -76,3 +81,62 @@ def test_sets_are_counted_once_whether_predicted_on_the_host_or_left_on_the_devi
         MeasurementKind.predict_on_device(kind, values(4), 4)  # the host's values copied there
     assert count["sets"] == 3 + 2 + 4 and count["columns"] > 0
     assert (TMatrixKind.__dict__["predict"], TMatrixKind.__dict__["predict_on_device"]) == own
+
+
+def test_every_timed_function_is_wrapped_inside_and_put_back_after():
+    """A function, a method, and a function another module imported by name (the fits'
+    covariances, called from tawarp.fit.problems): wrapped everywhere, then the originals."""
+    import tawarp.fit.problem_model as pm
+    import tawarp.fit.problems as problems
+    import tawarp.model.forward as fw
+
+    ht = _bench("_host_time")
+    before = (fw.distinct_columns, fw.Engine.heat, pm.covariances, problems.covariances)
+    with ht.thread_times():
+        inside = (fw.distinct_columns, fw.Engine.heat, pm.covariances, problems.covariances)
+        assert all(a is not b for a, b in zip(inside, before))
+        assert problems.covariances is pm.covariances
+    assert (fw.distinct_columns, fw.Engine.heat, pm.covariances, problems.covariances) == before
+
+
+def test_a_callers_time_excludes_the_timed_functions_it_calls(monkeypatch):
+    """A timed function that spends 60 ms of CPU of its own around a timed callee that
+    spends 40 ms: 60 ms exclusive (within 15 ms: the clock's and the machine's jitter)."""
+    import tawarp.model.forward as fw
+
+    def busy(seconds):
+        end = time.thread_time() + seconds
+        while time.thread_time() < end:
+            pass
+
+    def inner(key):
+        busy(0.04)
+        return np.arange(key.shape[1]), np.arange(key.shape[1])
+
+    ht = _bench("_host_time")
+    monkeypatch.setattr(fw, "distinct_columns", inner)
+    monkeypatch.setattr(ht, "TIMED", {"tawarp.model.forward": ["distinct_columns", "Engine.distinct"]})
+
+    def outer(self, varying, on_device=False):
+        busy(0.03)
+        fw.distinct_columns(varying)
+        busy(0.03)
+
+    monkeypatch.setattr(fw.Engine, "distinct", outer)
+    with ht.thread_times() as totals:
+        fw.Engine.distinct(None, np.zeros((2, 3)))
+    got = ht.summary(totals, 2, 0.1)
+    by = {f["function"]: f for f in got["functions"]}
+    assert by["Engine.distinct"]["seconds"] == pytest.approx(0.06, abs=0.015)
+    assert by["Engine.distinct"]["inclusive_seconds"] == pytest.approx(0.10, abs=0.015)
+    assert by["distinct_columns"]["seconds"] == pytest.approx(0.04, abs=0.015)
+    assert by["distinct_columns"]["calls"] == 1
+    assert got["untimed_seconds"] == pytest.approx(0.1 - got["timed_seconds"])
+
+
+def test_a_name_no_longer_in_the_code_is_refused(monkeypatch):
+    ht = _bench("_host_time")
+    monkeypatch.setattr(ht, "TIMED", {"tawarp.model.forward": ["no_such_function"]})
+    with pytest.raises(AttributeError, match="no_such_function"):
+        with ht.thread_times():
+            pass
