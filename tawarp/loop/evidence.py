@@ -587,50 +587,50 @@ def linearized_evidence(
     names = list(dict.fromkeys(e.name for effects, _ in models for e in effects))
     R = r_factor(np.hstack([fit.jacobian[0], fit.residuals[0][:, None]] + [columns[n] for n in names]))
     n_base = len(xb)
-    rotated, k = {}, n_base + 1
+    first, k = {}, n_base + 1
     for n in names:
-        rotated[n] = R[:, k : k + columns[n].shape[1]]
+        first[n] = k
         k += columns[n].shape[1]
-    Jb, rb = R[:, :n_base], R[:, n_base]
-    problems = []
-    for effects, priors in models:
-        # a structure without parameters moves the residuals by its column (effect_columns)
-        r0 = rb + sum(rotated[e.name][:, 0] for e in effects if not e.params)
-        C = np.hstack([Jb] + [rotated[e.name] for e in effects if e.params])
-        x0 = np.concatenate([xb] + [np.zeros(len(e.params)) for e in effects])
-        problems.append((*prior_arrays(priors), r0, C, x0))
-    # the models with as many parameters solve their quadratic models together
+    rb = R[:, n_base]
+    # each model's columns of R, the base's then its effects', and the structures without
+    # parameters, which move the residuals by their column instead (effect_columns)
+    picks = [list(range(n_base)) + [first[e.name] + j for e in fx for j in range(len(e.params))] for fx, _ in models]
+    moves = [[first[e.name] for e in fx if not e.params] for fx, _ in models]
+    # the models with as many parameters solve their quadratic models together, their
+    # columns gathered from R at once
     by_size: dict[int, list[int]] = {}
-    for i, (mu, *_) in enumerate(problems):
-        by_size.setdefault(mu.size, []).append(i)
-    xs: list = [None] * len(models)
-    for members in by_size.values():
-        for i, x in zip(members, _quadratic_optima([problems[i] for i in members], n_base)):
-            xs[i] = x
-    # the columns are linear, so the quadratic model at x is each model's own: its Laplace ln Z
-    logz = laplace_log_evidences(
-        [(mu, sd, lo, hi, r0 + C @ (x - x0), C, x) for (mu, sd, lo, hi, r0, C, x0), x in zip(problems, xs)],
-        noise_scale,
-        [len(fit.residuals[0])] * len(models),
-    )
-    return list(zip(logz.tolist(), xs))
+    for i, pick in enumerate(picks):
+        by_size.setdefault(len(pick), []).append(i)
+    problems: list = [None] * len(models)
+    for size, members in by_size.items():
+        C = np.ascontiguousarray(np.moveaxis(R[:, np.array([picks[i] for i in members])], 0, 1))
+        r0 = np.repeat(rb[None], len(members), axis=0)
+        for j, i in enumerate(members):
+            for col in moves[i]:
+                r0[j] = r0[j] + R[:, col]
+        mu, sd, lo, hi = np.stack([prior_arrays(models[i][1]) for i in members], axis=1)
+        x0 = np.zeros((len(members), size))
+        x0[:, :n_base] = xb
+        x = _quadratic_optima(mu, sd, lo, hi, r0, C, x0, n_base)
+        for j, i in enumerate(members):
+            # the columns are linear, so the quadratic model at x is each model's own
+            problems[i] = (mu[j], sd[j], lo[j], hi[j], r0[j] + C[j] @ (x[j] - x0[j]), C[j], x[j])
+    logz = laplace_log_evidences(problems, noise_scale, [len(fit.residuals[0])] * len(models))
+    return [(z, p[6]) for z, p in zip(logz.tolist(), problems)]
 
 
-def _quadratic_optima(problems: list[tuple], n_base: int) -> np.ndarray:
-    """The minima of ``||r0 + C d||^2`` plus the priors over x = x0 + d, for models of as
-    many parameters (``problems``: (mu, sd, lo, hi, r0, C, x0) each), an effect parameter
-    whose optimum leaves its range held on its bound (the furthest out first, then solved
-    again: an active set; the first ``n_base``, the base parameters, are inside at the
-    solution); returns x (M, k) clipped to the ranges."""
-    mu, sd, lo, hi, x0 = (np.array([p[j] for p in problems]) for j in (0, 1, 2, 3, 6))
-    r0 = np.array([p[4] for p in problems])
-    C = np.array([p[5] for p in problems])
+def _quadratic_optima(mu, sd, lo, hi, r0, C, x0, n_base: int) -> np.ndarray:
+    """The minima of ``||r0 + C d||^2`` plus the priors over x = x0 + d, for M models of as
+    many parameters k (``mu``, ``sd``, ``lo``, ``hi``, ``x0`` (M, k), ``r0`` (M, n), ``C``
+    (M, n, k)), an effect parameter whose optimum leaves its range held on its bound (the
+    furthest out first, then solved again: an active set; the first ``n_base``, the base
+    parameters, are inside at the solution); returns x (M, k) clipped to the ranges."""
     isd2 = sd**-2
     k = x0.shape[1]
     G = np.swapaxes(C, 1, 2) @ C + isd2[:, :, None] * np.eye(k)
     b = np.einsum("mij,mi->mj", C, r0) + isd2 * (x0 - mu)
     free = np.ones(x0.shape, dtype=bool)
-    todo = np.arange(len(problems))
+    todo = np.arange(len(x0))
     x = x0.copy()
     while todo.size:
         f = free[todo]

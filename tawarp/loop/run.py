@@ -448,10 +448,11 @@ class Comparison:
         own = {n: model_priors(self.problem.core, list(e.params), (e,)) for n, e in added.items()}
         pri = [at.priors + [p for e in ex for p in own[e.name]] for ex in extra]
         lin = linearized_evidence(at, cols, list(zip(extra, pri)), self.noise_scale)
+        own_effects = [self.effect(n) for n in at.effects]
         out = []
         for c, ex, (logz, x) in zip(cand, extra, lin):
             # x holds at's parameters, then the extra effects': taken to the model's own order
-            parts = _effect_parts(x, self.n_base, [self.effect(n) for n in at.effects] + list(ex))
+            parts = _effect_parts(x, self.n_base, own_effects + list(ex))
             names = tuple(e.name for e in c)
             out.append(
                 Candidate(
