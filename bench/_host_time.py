@@ -5,7 +5,9 @@ Each function of :data:`TIMED` is wrapped to add up its thread's CPU time
 its exclusive time, with the untimed code it runs (NumPy, Warp's launches and copies) in it.
 A thread waiting for the GPU by blocking, or for its turn among loops run together
 (:mod:`tawarp.fit.lockstep`), spends no CPU, so the times add up to the process's CPU time
-on the loop's threads. ``cProfile`` is no guide here: it charges every Python call a few
+on the loop's threads. Python's cyclic garbage collector has a line of its own
+(:data:`GARBAGE_COLLECTION`), taken out of the function it interrupted. ``cProfile`` is no
+guide here: it charges every Python call a few
 microseconds of its own, and so weighs code of many small calls (Warp's launches and arrays,
 the fits' bookkeeping) several times heavier than it is.
 """
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import gc
 import importlib
 import pkgutil
 import threading
@@ -32,6 +35,7 @@ TIMED = {
         "drift",
         "compare_models",
         "converge_window",
+        "Comparison.linearize",
     ],
     "tawarp.loop.nesting": ["share_optima", "missing_subsets"],
     "tawarp.loop.goodness": ["smooth_fraction"],
@@ -44,6 +48,7 @@ TIMED = {
         "_known_noise_group",
         "_noise_scale_group",
     ],
+    "tawarp.fit.lockstep": ["Together._settle"],
     "tawarp.fit.lm": ["levenberg_marquardt", "newton_decrement"],
     "tawarp.fit.problem_model": ["covariances"],
     "tawarp.fit.problems": [
@@ -104,17 +109,46 @@ def _timed(label: str, f, totals: dict, local: threading.local):
     return timed
 
 
+#: The label of Python's cyclic garbage collector's time in :func:`thread_times`.
+GARBAGE_COLLECTION = "(garbage collection)"
+
+
+def _collections(totals: dict, local: threading.local):
+    """A :data:`gc.callbacks` entry that adds each collection's thread time to
+    :data:`GARBAGE_COLLECTION` and takes it out of the timed function it interrupted: a
+    full collection of a large batch's objects takes tens of milliseconds, and fell on
+    whichever function allocated at that moment."""
+
+    def collection(phase: str, info: dict) -> None:
+        if phase == "start":
+            local.collecting = time.thread_time()
+            return
+        took = time.thread_time() - local.__dict__.pop("collecting", time.thread_time())
+        got = totals.setdefault(GARBAGE_COLLECTION, [0.0, 0.0, 0])
+        got[0] += took
+        got[1] += took
+        got[2] += 1
+        stack = local.__dict__.get("stack")
+        if stack:
+            stack[-1] += took
+
+    return collection
+
+
 @contextlib.contextmanager
 def thread_times():
     """While inside, every function of :data:`TIMED` adds up its time: yields {label:
-    [exclusive s, inclusive s, calls]}. A module-level function is replaced wherever a
-    module of the package holds it (``from ... import`` copies included); all are put back
-    on leaving. A name that is no longer there is an error: the list follows the code."""
+    [exclusive s, inclusive s, calls]}, the garbage collector's under
+    :data:`GARBAGE_COLLECTION`. A module-level function is replaced wherever a module of the
+    package holds it (``from ... import`` copies included); all are put back on leaving. A
+    name that is no longer there is an error: the list follows the code."""
     found = pkgutil.walk_packages(tawarp.__path__, "tawarp.")
     modules = [importlib.import_module(m.name) for m in found if not m.name.endswith("__main__")]
     totals: dict = {}
     local = threading.local()
     undo: list = []
+    collection = _collections(totals, local)
+    gc.callbacks.append(collection)
     try:
         for module_name, names in TIMED.items():
             module = importlib.import_module(module_name)
@@ -133,6 +167,7 @@ def thread_times():
                     setattr(holder, attr, wrapped)
         yield totals
     finally:
+        gc.callbacks.remove(collection)
         for holder, attr, f in reversed(undo):
             setattr(holder, attr, f)
 

@@ -140,3 +140,32 @@ def test_a_name_no_longer_in_the_code_is_refused(monkeypatch):
     with pytest.raises(AttributeError, match="no_such_function"):
         with ht.thread_times():
             pass
+
+
+def test_a_garbage_collection_is_its_own_line_not_the_interrupted_functions(monkeypatch):
+    """A timed function that collects 200 000 cyclic objects: the collection's time is
+    the collector's line and not the function's (its exclusive time is its inclusive time
+    less the collection's, to the microsecond)."""
+    import gc
+
+    import tawarp.model.forward as fw
+
+    ht = _bench("_host_time")
+    monkeypatch.setattr(ht, "TIMED", {"tawarp.model.forward": ["distinct_columns"]})
+
+    def collecting(key):
+        cycles = [[] for _ in range(200_000)]
+        for c in cycles:
+            c.append(c)
+        del cycles
+        gc.collect()
+        return np.arange(key.shape[1]), np.arange(key.shape[1])
+
+    monkeypatch.setattr(fw, "distinct_columns", collecting)
+    with ht.thread_times() as totals:
+        fw.distinct_columns(np.zeros((2, 3)))
+    by = {f["function"]: f for f in ht.summary(totals, 1, 1.0)["functions"]}
+    collected = by[ht.GARBAGE_COLLECTION]
+    assert collected["calls"] >= 1 and collected["seconds"] > 0
+    own = by["distinct_columns"]
+    assert own["seconds"] == pytest.approx(own["inclusive_seconds"] - collected["seconds"], abs=1e-6)
