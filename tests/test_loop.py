@@ -234,19 +234,32 @@ def test_plane_offset_in_reference_data_is_explained(seed):
 def test_loops_run_together_decide_as_each_alone(monkeypatch):
     # run_loops: clean data and a plane offset, two core files of one structure, their fits
     # and predictions in shared batches (tawarp.fit.lockstep); each report decides as its
-    # loop alone, to the fits' stopping rules
+    # loop alone, to the fits' stopping rules. The garbage collector runs less often inside
+    # (the objects from before frozen out of its scans) and is as it was after.
+    import gc
+
     import tawarp.fit.problems as problems
+    from tawarp.loop.run import LOOPS_GC_THRESHOLD
 
     truths = ({}, {"duct_left.length": 0.033})
     alone = [loop_on(truth, SEEDS[1])[1] for truth in truths]
-    sizes = []
+    sizes, collector = [], []
     fit_calls = problems.fit_calls
-    monkeypatch.setattr(problems, "fit_calls", lambda calls, *a: sizes.append(len(calls)) or fit_calls(calls, *a))
+
+    def counted(calls, *a):
+        sizes.append(len(calls))
+        collector.append((gc.get_threshold()[0], gc.get_freeze_count()))
+        return fit_calls(calls, *a)
+
+    monkeypatch.setattr(problems, "fit_calls", counted)
     probs = [
         TMatrixKind(reference_data(truth, SEEDS[1]), prior(SEEDS[1]), ForwardSettings(device="cpu")) for truth in truths
     ]
+    before = (gc.get_threshold(), gc.get_freeze_count())
     together = run_loops(probs)
     assert max(sizes) == 2  # (the loops' fits shared batches)
+    assert all(threshold == LOOPS_GC_THRESHOLD and frozen > 1000 for threshold, frozen in collector)
+    assert (gc.get_threshold(), gc.get_freeze_count()) == before
     for a, b in zip(alone, together):
         for key in ("verdict", "accepted_steps", "best_model"):
             assert a[key] == b[key], key
