@@ -87,7 +87,7 @@ from tawarp.distributed import (  # noqa: E402
     context_waits,
     cores_shared,
     cuda_mps_running,
-    wait_by_blocking,
+    require_blocking_waits,
 )
 from tawarp.loop import impedance_loop, run_loop, run_loops  # noqa: E402
 from tawarp.measure import ImpedanceKind, TMatrixKind, load_atalla_panneton  # noqa: E402
@@ -301,10 +301,9 @@ def _study_worker(job: tuple) -> dict:
 
 
 def _blocking_worker(device: str) -> None:
-    """A study process's start with ``--blocking-waits``: its CUDA context waits by blocking."""
+    """A loop process's start with ``--blocking-waits``: its CUDA context waits by blocking."""
     wp.config.quiet = True
-    if not wait_by_blocking(device):
-        raise RuntimeError(f"--blocking-waits: the CUDA driver did not take the flag on {device}")
+    require_blocking_waits(device)
 
 
 def study(

@@ -136,7 +136,7 @@ from pathlib import Path
 import numpy as np
 
 from tawarp import reference
-from tawarp.distributed import cores_shared, cuda_mps_running, wait_by_blocking
+from tawarp.distributed import cores_shared, cuda_mps_running, require_blocking_waits
 from tawarp.fit.lockstep import run_together
 from tawarp.fit.problems import Families, fit_batch
 from tawarp.io import atomic_path, write_json, write_text
@@ -727,8 +727,8 @@ def _loop_worker_start(device: str | None) -> None:
     """A loop process's start: :func:`_interrupt_ends_quietly`, and where ``device`` is
     given (``--blocking-waits``) its CUDA context there waits by blocking."""
     _interrupt_ends_quietly()
-    if device is not None and not wait_by_blocking(device):
-        raise RuntimeError(f"--blocking-waits: the CUDA driver did not take the flag on {device}")
+    if device is not None:
+        require_blocking_waits(device)
 
 
 class StudyInterrupted(Exception):

@@ -267,6 +267,14 @@ def wait_by_blocking(device="cuda") -> bool:
     return context_waits(device) == "blocking"
 
 
+def require_blocking_waits(device="cuda") -> None:
+    """:func:`wait_by_blocking`, or a :class:`RuntimeError` naming ``device`` where its
+    context still does not wait by blocking: a study asked for blocking waits
+    (``--blocking-waits``) is not run with spinning ones."""
+    if not wait_by_blocking(device):
+        raise RuntimeError(f"--blocking-waits: the CUDA driver did not take the flag on {device}")
+
+
 def context_waits(device="cuda") -> str | None:
     """How the CUDA context Warp uses on ``device`` waits for the device: ``"blocking"``,
     ``"spin"``, ``"yield"`` or ``"auto"`` (CUDA's default); None on the CPU or without a

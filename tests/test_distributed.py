@@ -886,9 +886,13 @@ def test_blocking_waits_set_the_scheduling_bits_of_warps_context(monkeypatch):
     assert dist.context_waits("cuda") == "blocking"
     driver.flags = 0x8 | 0x1
     assert dist.context_waits("cuda") == "spin"
+    dist.require_blocking_waits("cuda")  # (taken: no error)
     for other in (_FakeDriver(0x8, refuse=True), _OlderDriver(), None):
         monkeypatch.setattr(dist, "_cuda_driver", lambda other=other: other)
         assert not dist.wait_by_blocking("cuda")
+        # a study that asked for blocking waits is not run with spinning ones
+        with pytest.raises(RuntimeError, match="--blocking-waits: .* on cuda"):
+            dist.require_blocking_waits("cuda")
     monkeypatch.setattr(dist, "_cuda_driver", lambda: driver)
     monkeypatch.setattr(wp, "get_device", lambda device=None: types.SimpleNamespace(is_cuda=False))
     assert not dist.wait_by_blocking("cpu") and dist.context_waits("cpu") is None
