@@ -88,6 +88,14 @@ TIMED = {
 }
 
 
+def _add(totals: dict, label: str, exclusive: float, inclusive: float) -> None:
+    """One call of ``label`` into ``totals`` ({label: [exclusive s, inclusive s, calls]})."""
+    got = totals.setdefault(label, [0.0, 0.0, 0])
+    got[0] += exclusive
+    got[1] += inclusive
+    got[2] += 1
+
+
 def _timed(label: str, f, totals: dict, local: threading.local):
     @functools.wraps(f)
     def timed(*args, **kw):
@@ -99,10 +107,7 @@ def _timed(label: str, f, totals: dict, local: threading.local):
         finally:
             took = time.thread_time() - start
             inner = stack.pop()
-            got = totals.setdefault(label, [0.0, 0.0, 0])
-            got[0] += took - inner
-            got[1] += took
-            got[2] += 1
+            _add(totals, label, took - inner, took)
             if stack:
                 stack[-1] += took
 
@@ -124,10 +129,7 @@ def _collections(totals: dict, local: threading.local):
             local.collecting = time.thread_time()
             return
         took = time.thread_time() - local.__dict__.pop("collecting", time.thread_time())
-        got = totals.setdefault(GARBAGE_COLLECTION, [0.0, 0.0, 0])
-        got[0] += took
-        got[1] += took
-        got[2] += 1
+        _add(totals, GARBAGE_COLLECTION, took, took)
         stack = local.__dict__.get("stack")
         if stack:
             stack[-1] += took
