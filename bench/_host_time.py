@@ -59,7 +59,7 @@ TIMED = {
         "KindProblems._reduced_on_host",
         "KindProblems.prediction",
         "KindProblems.at_solutions",
-        "ValueLayout.values",
+        "ValueLayout.table",
         "kind_result",
         "run_sets",
         "residual",

@@ -321,7 +321,15 @@ def test_value_layout_is_param_assign_bit_for_bit(block_bytes, monkeypatch):
     requests = [(c_, rng.normal(0.0, 2.0, (int(rng.integers(1, 6)), len(ps)))) for c_, ps in enumerate(fits)]
     requests += [(2, rng.normal(0.0, 2.0, (3, 3)))]
     sizes = [X.shape[0] for _, X in requests]
-    got = ValueLayout(base, list(range(len(fits))), fits).values(requests, sizes)
+    # the sets' x as the rows of one array, each fit's in its first p columns
+    X_all = np.zeros((sum(sizes), 3))
+    k0 = 0
+    for (_, X), n in zip(requests, sizes):
+        X_all[k0 : k0 + n, : X.shape[1]] = X
+        k0 += n
+    set_fits = np.repeat([c_ for c_, _ in requests], sizes)
+    got = ValueLayout(base, list(range(len(fits))), fits).table(set_fits, X_all)
+    assert list(got) == list(base) and len(got) == len(base) and "d.u" in got and "q" not in got
     k0 = 0
     for (c_, X), n in zip(requests, sizes):
         own = {}

@@ -36,6 +36,7 @@ from . import lockstep
 from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
 from ..model.fields import field as field_of
+from ..model.value_table import ValueTable, row_of, rows_in
 from .lm import levenberg_marquardt
 from .problem_model import Covariance, ProblemModel, covariances
 from .result import FitResult
@@ -247,35 +248,66 @@ class KindProblems:
         jobs, assemble = self.prediction(requests)
         return assemble(predict_sets(jobs, self.families))
 
+    def _predict_arrays(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray) -> list:
+        """:meth:`predict` of the requests of :meth:`_jobs`."""
+        jobs, assemble = self._prediction(fits, sizes, X)
+        return assemble(predict_sets(jobs, self.families))
+
     def prediction(self, requests: list, on_device: bool = False) -> tuple[list["Sets"], Callable[[list], list]]:
         """:meth:`predict` in two halves: the sets to predict (a caller may predict them
         with others', :func:`predict_sets`), and the function that takes their model values
         to ``requests``' results (``on_device``: :class:`tawarp.measure.kind.DeviceValues`)."""
-        by_group: dict = {}
-        for i, (c, _) in enumerate(requests):
-            by_group.setdefault(self.group_of[c], []).append(i)
-        jobs = []
-        for key, todo in by_group.items():
-            sizes = [requests[i][1].shape[0] for i in todo]
-            values = self._layout(key).values([requests[i] for i in todo], sizes)
-            total = sum(sizes)
-            c0 = requests[todo[0]][0]
-            needed = [self.needed[requests[i][0]] for i in todo]
-            rows = [r for n, r in zip(sizes, needed) for _ in range(n)] if any(r is not None for r in needed) else None
-            effect = self.specs[c0][1] if key[1] is not None else None
-            jobs.append(Sets(self.kinds[c0], values, total, effect, rows, on_device))
+        sizes = np.array([X.shape[0] for _, X in requests], dtype=np.int64)
+        X = np.zeros((int(sizes.sum()), max([1] + [X.shape[1] for _, X in requests])))
+        k0 = 0
+        for (_, x), n in zip(requests, sizes.tolist()):
+            X[k0 : k0 + n, : x.shape[1]] = x
+            k0 += n
+        return self._prediction(np.array([c for c, _ in requests], dtype=np.int64), sizes, X, on_device)
+
+    def _prediction(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool = False) -> tuple:
+        """:meth:`prediction` of the requests of :meth:`_jobs`."""
+        jobs, members, at = self._jobs(fits, sizes, X, on_device)
 
         def assemble(got: list) -> list:
-            out = [None] * len(requests)
-            for todo, Y in zip(by_group.values(), got):
-                k0 = 0
-                for i in todo:
-                    n = requests[i][1].shape[0]
-                    out[i] = Y[k0 : k0 + n]
-                    k0 += n
+            out = [None] * fits.size
+            for todo, Y in zip(members, got):
+                for i in todo.tolist():
+                    out[i] = Y[at[i] : at[i] + sizes[i]]
             return out
 
         return jobs, assemble
+
+    def _jobs(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool) -> tuple:
+        """(jobs, members, at) of the requests of fits ``fits`` (r,), ``sizes`` (r,) sets
+        each, their sets' x the rows of ``X`` (sizes.sum(), P) in order (zeros past a fit's
+        p): one :class:`Sets` per group (:attr:`group_of`), in the order of the groups'
+        first requests, each with its requests' sets in their order; ``members`` per job
+        its requests (indices into ``fits``), ``at`` (r,) where each request's sets start
+        in its job's."""
+        first = np.concatenate([[0], np.cumsum(sizes)])
+        by_group: dict = {}
+        for i, c in enumerate(fits.tolist()):
+            by_group.setdefault(self.group_of[c], []).append(i)
+        jobs, members = [], []
+        at = np.empty(fits.size, dtype=np.int64)
+        for key, todo in by_group.items():
+            todo = np.array(todo, dtype=np.int64)
+            n = sizes[todo]
+            at[todo] = np.cumsum(n) - n
+            # each set's row of X: its request's first set plus its place in the request
+            rows_of = np.repeat(first[todo] - at[todo], n) + np.arange(int(n.sum()))
+            set_fits = np.repeat(fits[todo], n)
+            c0 = int(fits[todo[0]])
+            needed = [self.needed[c] for c in fits[todo].tolist()]
+            rows = None
+            if any(r is not None for r in needed):
+                rows = [r for k, r in zip(n.tolist(), needed) for _ in range(k)]
+            effect = self.specs[c0][1] if key[1] is not None else None
+            table = self._layout(key).table(set_fits, X[rows_of])
+            jobs.append(Sets(self.kinds[c0], table, int(n.sum()), effect, rows, on_device))
+            members.append(todo)
+        return jobs, members, at
 
     def evaluate(self, pid, z, max_sets: int = 0, below=None, host: bool = False):
         """(cost, raw, g, H) of fits ``pid`` at padded z (n, P): cost = r^T r of the
@@ -320,22 +352,18 @@ class KindProblems:
                 self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
         return cost, raw, g, H
 
-    def _with_neighbours(self, pid, z, step, point: bool = True) -> list:
-        """The requests of fits ``pid`` at z with their forward-difference neighbours:
-        [(c, X (1 + p_c, p_c)), ...], the point first (``point`` False: the neighbours
-        alone, (p_c, p_c)); a neighbour is ``z + diag(step)``, the fits of one p at once."""
-        out: list = [None] * len(pid)
-        free = self.p[pid]
-        for p in np.unique(free):
-            at = np.flatnonzero(free == p)
-            X = np.empty((at.size, 1 + p, p))
-            X[:, 0] = z[at, :p]
-            diag = np.zeros((at.size, p, p))
-            diag[:, np.arange(p), np.arange(p)] = step[at, :p]
-            X[:, 1:] = z[at, None, :p] + diag
-            for j, i in enumerate(at):
-                out[i] = (pid[i], X[j] if point else X[j, 1:])
-        return out
+    def _with_neighbours(self, pid, z, step, point: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """(sizes, X): the sets of fits ``pid`` at z with their forward-difference
+        neighbours ``z + step_a e_a``, as :meth:`_jobs` takes them: each fit's point first
+        (``point`` False: the neighbours alone), ``sizes`` (len(pid),) 1 + p_c (p_c)."""
+        sizes = self.p[pid] + (1 if point else 0)
+        slot = np.repeat(np.arange(len(pid)), sizes)
+        # each set's place in its fit's: 0 the point, a + 1 the neighbour along a
+        place = np.arange(slot.size) - np.repeat(np.cumsum(sizes) - sizes, sizes) + (0 if point else 1)
+        X = z[slot]
+        nb = np.flatnonzero(place)
+        X[nb, place[nb] - 1] += step[slot[nb], place[nb] - 1]
+        return sizes, X
 
     def _reduced_on_device(self, pid, z, step) -> tuple:
         """(cost, raw, g, H) of :meth:`evaluate` without the priors' terms, of fits ``pid``
@@ -345,26 +373,29 @@ class KindProblems:
         n, P = z.shape
         if n == 0:
             return np.empty(0), np.empty(0), np.empty((0, P)), np.empty((0, P, P))
-        jobs, assemble = self.prediction(self._with_neighbours(pid, z, step), on_device=True)
-        got = assemble(predict_sets(jobs, self.families))
-        device = got[0].values.device
+        sizes, X = self._with_neighbours(pid, z, step)
+        jobs, members, at = self._jobs(pid, sizes, X, on_device=True)
+        launched = predict_sets(jobs, self.families)
+        device = launched[0].values.device
         data_y, data_w, rows, data_index, row_start, row_count = self._device_data(device)
         # the launches' fits share these arrays, each in its slot
         n_rows = int(row_count[pid].max())
-        out = wp.full((n, 2 + P + P * P), np.nan, dtype=wp.float64, device=device)
+        # zeros: the kernels leave g's and H's padding (past a fit's p) as the host path does
+        out = wp.zeros((n, 2 + P + P * P), dtype=wp.float64, device=device)
         r = wp.empty((n, P + 1, 2 * n_rows), dtype=wp.float64, device=device)
         raw = wp.empty((n, n_rows), dtype=wp.float64, device=device)
         partial = wp.empty((n, P + 1, P + 1, kmisfit.CHUNKS), dtype=wp.float64, device=device)
         partial_raw = wp.empty((n, kmisfit.CHUNKS), dtype=wp.float64, device=device)
         # each fit's (first set, p, data, row start, row count, slot) for the kernels
-        first = np.array([v.start for v in got])
+        first = np.empty(n, dtype=np.int64)
+        by_launch: dict = {}
+        for todo, values in zip(members, launched):
+            first[todo] = values.start + at[todo]
+            by_launch.setdefault(id(values.values), (values, []))[1].append(todo)
         table = np.stack([first, self.p[pid], data_index[pid], row_start[pid], row_count[pid], np.arange(n)], axis=1)
         table = table.astype(np.int32)
-        by_launch: dict = {}
-        for i, values in enumerate(got):
-            by_launch.setdefault(id(values.values), []).append(i)
-        for slots in by_launch.values():
-            v = got[slots[0]]
+        for v, parts in by_launch.values():
+            slots = np.sort(np.concatenate(parts))
             wp.launch(
                 kmisfit.weighted_misfits,
                 dim=(len(slots), P + 1, int(row_count[pid[slots]].max())),
@@ -389,13 +420,9 @@ class KindProblems:
             device=device,
         )
         res = out.numpy()
-        # H's padding (columns of fits with fewer parameters) is 0, as the host path leaves it
         g = res[:, 2 : 2 + P]
         H = res[:, 2 + P :].reshape(n, P, P)
-        pad = np.arange(P)[None, :] >= self.p[pid][:, None]
-        g[pad] = 0.0
-        H[pad[:, :, None] | pad[:, None, :]] = 0.0
-        # ... and a fit without parameters has none (NaN) in a batch with some, as there
+        # a fit without parameters has none (NaN) in a batch with some, as there
         none = self.p[pid] == 0
         g[none], H[none] = np.nan, np.nan
         return res[:, 0], res[:, 1], g, H
@@ -443,9 +470,9 @@ class KindProblems:
         n, P = z.shape
         # each fit's model values (1 + p or 1, rows) in parts: the point's, then its neighbours'
         if below is None:
-            parts = [(Y,) for Y in self.predict(self._with_neighbours(pid, z, step))]
+            parts = [(Y,) for Y in self._predict_arrays(pid, *self._with_neighbours(pid, z, step))]
         else:
-            points = self.predict([(c, z[i, None, : self.p[c]]) for i, c in enumerate(pid)])
+            points = self._predict_arrays(pid, np.ones(n, dtype=np.int64), z)
             with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
                 point_cost = [
                     r @ r for r in (residual(self.kinds[c], points[i], self.rows[c])[0] for i, c in enumerate(pid))
@@ -453,8 +480,8 @@ class KindProblems:
             point_cost = np.array(point_cost) + prior_cost
             taken = [i for i in range(n) if point_cost[i] < below[i]]
             parts = [(Y,) for Y in points]
-            taken_requests = self._with_neighbours(pid[taken], z[taken], step[taken], point=False)
-            for i, Yn in zip(taken, self.predict(taken_requests)):
+            neighbours = self._with_neighbours(pid[taken], z[taken], step[taken], point=False)
+            for i, Yn in zip(taken, self._predict_arrays(pid[taken], *neighbours)):
                 parts[i] = (points[i], Yn)
         sizes = [sum(part.shape[0] for part in fit) for fit in parts]
         cost, raw = np.empty(n), np.empty(n)
@@ -535,10 +562,11 @@ class ValueLayout:
     is assigned as :meth:`Param.assign` does, after the others of its fit."""
 
     def __init__(self, base: dict, fits: list[int], params: list[list[Param]]):
-        self.names = list(base)
+        self.names = tuple(base)
         column = {k: t for t, k in enumerate(self.names)}
         self.base = np.array([float(v) for v in base.values()])
         self.local = {c: i for i, c in enumerate(fits)}
+        self._local: np.ndarray | None = None  # local as an array (local_of)
         N, K = len(self.names), len(fits)
         #: per fit and name: the index of the parameter that sets it (-1: none), its start,
         #: scale and whether it is a log parameter
@@ -563,38 +591,37 @@ class ValueLayout:
             slot, start, scale, log = zip(*sets.values())
             self.slot[at], self.start[at], self.scale[at], self.log[at] = slot, start, scale, log
 
-    def values(self, requests: list, sizes: list[int]) -> dict:
-        """{name: (total,)} of the sets of ``requests`` [(fit c, X (n_c, p_c)), ...] in their
-        order, ``sizes`` their n_c."""
-        total = sum(sizes)
-        P = max((X.shape[1] for _, X in requests), default=0)
-        X = np.zeros((total, max(P, 1)))
-        k0 = 0
-        for (_, x), n in zip(requests, sizes):
-            X[k0 : k0 + n, : x.shape[1]] = x
-            k0 += n
-        fits = np.repeat([self.local[c] for c, _ in requests], sizes)
+    def table(self, fits: np.ndarray, X: np.ndarray) -> "ValueTable":
+        """{name: (sets,)} of sets of the fits ``fits`` (sets,) at the x of the rows of
+        ``X`` (sets, P) (a fit's x in its first p columns)."""
+        total = fits.size
+        local = self.local_of(fits)
         v = np.empty((len(self.names), total))
         step = max(1, BLOCK_BYTES // (8 * max(len(self.names), 1)))  # sets a block
         for a in range(0, total, step):
-            fit = fits[a : a + step]
+            fit = local[a : a + step]
             slot = self.slot[fit].T  # (names, sets)
             x = X[a + np.arange(fit.size)[None, :], np.maximum(slot, 0)]
             start, scale = self.start[fit].T, self.scale[fit].T
             with np.errstate(over="ignore", invalid="ignore"):
                 block = np.where(self.log[fit].T, start * np.exp(x), start + scale * x)
             v[:, a : a + step] = np.where(slot >= 0, block, self.base[:, None])
-        out = dict(zip(self.names, v))
-        if self.expanding:
-            k0 = 0
-            for (c, x), n in zip(requests, sizes):
-                for j, par in self.expanding.get(c, ()):
-                    own: dict = {}
-                    par.assign(par.value(x[:, j]), own)
-                    for k, w in own.items():
-                        out[k][k0 : k0 + n] = w
-                k0 += n
+        out = ValueTable(self.names, v)
+        for c in np.unique(fits).tolist() if self.expanding else ():
+            sets = np.flatnonzero(fits == c)
+            for j, par in self.expanding.get(c, ()):
+                own: dict = {}
+                par.assign(par.value(X[sets, j]), own)
+                for k, w in own.items():
+                    out[k][sets] = w
         return out
+
+    def local_of(self, fits: np.ndarray) -> np.ndarray:
+        """Each of ``fits``' row in this layout's tables."""
+        if self._local is None:
+            self._local = np.full(max(self.local) + 1, -1, dtype=np.int64)
+            self._local[list(self.local)] = list(self.local.values())
+        return self._local[fits]
 
 
 def kind_result(
@@ -853,13 +880,24 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
         if not merged:
             continue
         total = sum(jobs[i].n for i in merged)
-        values = {k: np.empty(total) for k in names}
+        names = tuple(sorted(names))
+        values = np.empty((len(names), total))
         k0 = 0
         for i in merged:
             j = jobs[i]
-            for k in names:
-                values[k][k0 : k0 + j.n] = j.values[k] if k in j.values else fill[i][k]
+            own = j.values
+            if isinstance(own, ValueTable):
+                values[rows_in(names, own.names), k0 : k0 + j.n] = own.array
+            else:
+                row = row_of(names)
+                for k, v in own.items():
+                    values[row[k], k0 : k0 + j.n] = v
+            if fill[i]:
+                values[rows_in(names, tuple(fill[i])), k0 : k0 + j.n] = np.fromiter(
+                    fill[i].values(), dtype=float, count=len(fill[i])
+                )[:, None]
             k0 += j.n
+        values = ValueTable(names, values)
         rows = None
         if any(jobs[i].rows is not None for i in merged):
             rows = [r for i in merged for r in (jobs[i].rows or [None] * jobs[i].n)]
