@@ -29,6 +29,7 @@ from ..model.effects import (
 )
 from ..model.forward import ForwardSettings, base_table, resolve_device, structure_flags
 from ..model.gas import GASES
+from ..model.value_table import ValueTable
 from .files import MeasurementError, TMatrixData, read_tmatrix_csv
 from .kind import DeviceValues, MeasurementKind, get_engine, smooth_settings
 
@@ -50,6 +51,23 @@ def structure_of(transform, core: Core) -> Core:
     checks) costs more than a launch's host work."""
     return transform(core)
 
+
+
+#: The suffixes of an elastic frame's fields: its sets' T-matrices are formed on the host.
+FRAME_FIELDS = (".frame_modulus", ".frame_loss_factor")
+
+
+@functools.lru_cache(maxsize=256)
+def _table_plan(names: tuple[str, ...]) -> tuple | None:
+    """(the engine's names, their rows, the calibration gain's row, its phase's row) of a
+    :class:`ValueTable` of ``names`` (None: not there), the rows of the values a launch's
+    engine takes, sorted by name as :meth:`TMatrixKind._launch` asks for them; None where
+    an elastic frame or a porosity gradient reshapes the sets (their own path)."""
+    if any(k.endswith(FRAME_FIELDS + (".porosity_gradient",)) for k in names):
+        return None
+    row = {k: r for r, k in enumerate(names)}
+    engine = tuple(sorted(k for k in names if k not in (CALIBRATION_GAIN, CALIBRATION_PHASE)))
+    return engine, np.array([row[k] for k in engine], dtype=np.intp), row.get(CALIBRATION_GAIN), row.get(CALIBRATION_PHASE)
 
 class TMatrixKind(MeasurementKind):
     """Core T-matrix data ``data`` (:class:`TMatrixData`) of ``core``; ``settings`` of the
@@ -244,7 +262,8 @@ class TMatrixKind(MeasurementKind):
         set's column per heat input, the calibration's gain, the rows' entries and the
         factors that make them dimensionless): the same numbers, never gathered on the
         host. An elastic frame's sets (Biot's 2-port, formed on the host) are copied there."""
-        if any(k.endswith((".frame_modulus", ".frame_loss_factor")) for k in values):
+        plain = isinstance(values, ValueTable) and _table_plan(values.names) is not None
+        if not plain and any(k.endswith(FRAME_FIELDS) for k in values):
             return super().predict_on_device(values, n, effect, rows)
         device = resolve_device(self.settings.device)
         launch = self._launch(values, n, effect, rows, on_device=True)
@@ -273,41 +292,43 @@ class TMatrixKind(MeasurementKind):
         each set's column per heat input (n, heat inputs) and whether it is needed there,
         the calibration's complex factor (n,) (None: uncalibrated), the elastic frame's
         fields and the other values; None where no set needs any heat input."""
-        values = dict(values)
-        gain = values.pop(CALIBRATION_GAIN, None)
-        phase = values.pop(CALIBRATION_PHASE, None)
-        frame = {k: values.pop(k) for k in list(values) if k.endswith((".frame_modulus", ".frame_loss_factor"))}
         core = structure_of(effect.transform, self.core) if effect is not None and effect.transform else self.core
-        whole = core
-        core, values = graded_parts(whole, values, n)
         settings = self.settings
-        if isinstance(settings.cells, dict) and len(core.segments) != len(whole.segments):
-            settings = dataclasses.replace(settings, cells=graded_cells(settings.cells, core))
-        names = tuple(sorted(values))
+        plan = _table_plan(values.names) if isinstance(values, ValueTable) else None
+        if plan is not None:  # a batch's table: the engine's rows gathered in one step
+            names, order, gain_row, phase_row = plan
+            per_set = values.array[order]
+            gain = None if gain_row is None else values.array[gain_row]
+            phase = None if phase_row is None else values.array[phase_row]
+            frame: dict = {}
+        else:
+            values = dict(values)
+            gain = values.pop(CALIBRATION_GAIN, None)
+            phase = values.pop(CALIBRATION_PHASE, None)
+            frame = {k: values.pop(k) for k in list(values) if k.endswith(FRAME_FIELDS)}
+            whole = core
+            core, values = graded_parts(whole, values, n)
+            if isinstance(settings.cells, dict) and len(core.segments) != len(whole.segments):
+                settings = dataclasses.replace(settings, cells=graded_cells(settings.cells, core))
+            names = tuple(sorted(values))
+            per_set = np.empty((len(names), n))
+            for j, k in enumerate(names):
+                per_set[j] = values[k]
         eng = get_engine(core, self.freqs, list(names), settings)
-        nq = len(self.Qs)
-        per_set = np.empty((len(names), n))
-        for j, k in enumerate(names):
-            per_set[j] = values[k]
-        table = np.empty((1 + len(names), n * nq))
-        table[0] = np.tile(self.Qs, n)
-        table[1:] = np.repeat(per_set, nq, axis=1)
         # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
         # input of 0 does not read share one column
-        needed = self._needed_heat_inputs(rows, n).reshape(-1)
+        needed = self._needed_heat_inputs(rows, n)
         if not needed.any():
             return None
-        T, column = eng.distinct(table if needed.all() else table[:, needed], on_device=on_device)
         # the column of each (set, heat input); where not needed the first (its rows set to NaN)
-        columns = np.zeros(n * nq, dtype=column.dtype)
-        columns[needed] = column
+        T, columns = eng.distinct_sets(per_set, self.Qs, needed, on_device=on_device)
         factor = None
         if gain is not None or phase is not None:
             g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
             ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
             with np.errstate(over="ignore", invalid="ignore"):
                 factor = g * np.exp(1j * ph)
-        return T, columns.reshape(n, nq), needed.reshape(n, nq), factor, frame, values
+        return T, columns, needed, factor, frame, values
 
     def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:
         """(n, heat inputs) bool: the heat inputs whose rows each set's ``rows`` (None: all,
