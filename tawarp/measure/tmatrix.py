@@ -52,7 +52,6 @@ def structure_of(transform, core: Core) -> Core:
     return transform(core)
 
 
-
 #: The suffixes of an elastic frame's fields: its sets' T-matrices are formed on the host.
 FRAME_FIELDS = (".frame_modulus", ".frame_loss_factor")
 
@@ -67,7 +66,13 @@ def _table_plan(names: tuple[str, ...]) -> tuple | None:
         return None
     row = {k: r for r, k in enumerate(names)}
     engine = tuple(sorted(k for k in names if k not in (CALIBRATION_GAIN, CALIBRATION_PHASE)))
-    return engine, np.array([row[k] for k in engine], dtype=np.intp), row.get(CALIBRATION_GAIN), row.get(CALIBRATION_PHASE)
+    return (
+        engine,
+        np.array([row[k] for k in engine], dtype=np.intp),
+        row.get(CALIBRATION_GAIN),
+        row.get(CALIBRATION_PHASE),
+    )
+
 
 class TMatrixKind(MeasurementKind):
     """Core T-matrix data ``data`` (:class:`TMatrixData`) of ``core``; ``settings`` of the

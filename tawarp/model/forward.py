@@ -151,7 +151,6 @@ def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order[new], column
 
 
-
 def distinct_set_columns(
     per_set: np.ndarray, heat_inputs: np.ndarray, needed: np.ndarray, heat_only: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -179,6 +178,7 @@ def distinct_set_columns(
         first.append(np.stack([sets[f], np.full(f.size, j)], axis=1))
         d += f.size
     return (np.concatenate(first) if first else np.empty((0, 2), dtype=np.int64)), column
+
 
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
 #: temperature rise is zero whatever their values, and with fixed cells a set's T-matrices do
