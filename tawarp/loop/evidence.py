@@ -207,30 +207,38 @@ def laplace_log_evidences(models: list[tuple], noise_scale: bool = False, n_resi
     stacks their models with its own (loops run together: :func:`tawarp.loop.run_loops`):
     each model's ln Z is the one it gets alone, to rounding (tests/test_evidence.py)."""
     n_res = [len(m[4]) for m in models] if n_residuals is None else list(n_residuals)
+    return _block_evidences([tuple(np.asarray(a, dtype=float)[None] for a in m) for m in models], noise_scale, n_res)
+
+
+def _block_evidences(blocks: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
+    """:func:`laplace_log_evidences` of models given stacked: ``blocks`` a list of (mu, sd,
+    lo, hi, r, J, x) with a leading axis over the block's models (each of one shape: (M, k),
+    (M, n), (M, n, k)), ``n_res`` one entry per model, in the blocks' order. Inside
+    :func:`tawarp.fit.lockstep.run_together` the other threads' requests join the call."""
     together = lockstep.current()
     if together is not None and not together.running:
-        return together.call((models, bool(noise_scale), n_res), _stacked_evidences, eager=True)
-    return _log_evidences(models, noise_scale, n_res)
+        return together.call((blocks, bool(noise_scale), n_res), _stacked_evidences, eager=True)
+    return _log_evidences(blocks, noise_scale, n_res)
 
 
 def _stacked_evidences(requests: list[tuple], _state=None) -> list[np.ndarray]:
-    """:func:`laplace_log_evidences` of several callers' ``(models, noise_scale,
-    n_residuals)`` requests, those alike in ``noise_scale`` in one call."""
+    """:func:`_block_evidences` of several callers' ``(blocks, noise_scale, n_residuals)``
+    requests, those alike in ``noise_scale`` in one call."""
     out: list = [None] * len(requests)
     for scale in (False, True):
         idx = [i for i, req in enumerate(requests) if req[1] == scale]
         if not idx:
             continue
-        got = _log_evidences([m for i in idx for m in requests[i][0]], scale, [n for i in idx for n in requests[i][2]])
+        got = _log_evidences([b for i in idx for b in requests[i][0]], scale, [n for i in idx for n in requests[i][2]])
         k = 0
         for i in idx:
-            out[i] = got[k : k + len(requests[i][0])]
-            k += len(requests[i][0])
+            out[i] = got[k : k + len(requests[i][2])]
+            k += len(requests[i][2])
     return out
 
 
-def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
-    """:func:`laplace_log_evidences` in this thread, ``n_res`` given.
+def _log_evidences(blocks: list[tuple], noise_scale: bool, n_res: list) -> np.ndarray:
+    """:func:`_block_evidences` in this thread.
 
     In the prior-whitened variables t_j = c_j dx_j / sd_j, c_j = 1 for a free parameter and
     its direction into the range for one on a bound, -2 ln posterior's quadratic model is
@@ -240,15 +248,19 @@ def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.nd
     where the priors weigh differently at each noise scale), its columns ordered free
     parameters first, then those on a bound, then r; the models of one shape (rows,
     parameters) in one stacked QR."""
-    out = np.empty(len(models))
+    out = np.empty(len(n_res))
     n_res = np.asarray(n_res)
-    shapes: dict[tuple[int, int], list[int]] = {}
-    for i, m in enumerate(models):
-        shapes.setdefault((len(m[4]), len(m[6])), []).append(i)
-    for (n, K), idx in shapes.items():
+    # the blocks of each shape (rows, parameters), with the index of each block's first model
+    shapes: dict[tuple[int, int], list[tuple[int, tuple]]] = {}
+    start = 0
+    for b in blocks:
+        shapes.setdefault((b[4].shape[1], b[6].shape[1]), []).append((start, b))
+        start += len(b[6])
+    for (n, K), group in shapes.items():
+        idx = np.concatenate([np.arange(i, i + len(b[6])) for i, b in group])
         M = len(idx)
         # (mu, sd, lo, hi, x) of the models of one shape, (M, 5, K)
-        table = np.array([(m[0], m[1], m[2], m[3], m[6]) for m in (models[i] for i in idx)]).reshape(M, 5, K)
+        table = np.stack([np.concatenate([b[j] for _, b in group]) for j in (0, 1, 2, 3, 6)], axis=1)
         x, lo, hi = table[:, 4], table[:, 2], table[:, 3]
         # +1 on a lower bound, -1 on an upper one: the direction into the range
         side = np.where(x <= lo + ON_BOUND, 1.0, np.where(x >= hi - ON_BOUND, -1.0, 0.0))
@@ -260,13 +272,14 @@ def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.nd
         # the matrices transposed, (M, K + 1, rows), each column contiguous: numpy's QR copies
         # them column by column for LAPACK, and the scaling by sd c runs along the columns
         # instead of along many rows of K + 1 (fill, scaling and QR of 888 rows took 30 %
-        # less); filled model by model (a gather of every Jacobian's columns, take_along_axis,
-        # cost twice the copy, and most models need no reordering)
+        # less); the blocks copied in, then the columns of the models with parameters on a
+        # bound reordered
         At = np.empty((M, K + 1, n if noise_scale else n + K))
+        np.concatenate([np.swapaxes(b[5], 1, 2) for _, b in group], out=At[:, :K, :n])
         moved = np.any(order != np.arange(K), axis=1)
-        for j, i in enumerate(idx):
-            At[j, :K, :n] = models[i][5].T[order[j]] if moved[j] else models[i][5].T
-        At[:, K, :n] = [models[i][4] for i in idx]
+        if moved.any():
+            At[moved, :K, :n] = At[np.flatnonzero(moved)[:, None], order[moved], :n]
+        np.concatenate([b[4] for _, b in group], out=At[:, K, :n])
         At[:, :K, :n] *= (sd * c)[:, :, None]
         if not noise_scale:
             At[:, :K, n:] = c[:, :, None] * np.eye(K)
@@ -276,15 +289,13 @@ def _log_evidences(models: list[tuple], noise_scale: bool, n_res: list) -> np.nd
         for kf in dict.fromkeys(free.tolist()):
             rows = np.flatnonzero(free == kf)
             if not noise_scale:
-                out[[idx[j] for j in rows]] = _known_noise_group(
-                    Ra[rows], sd[rows], lo[rows], hi[rows], x[rows], norm[rows], kf
-                )
+                out[idx[rows]] = _known_noise_group(Ra[rows], sd[rows], lo[rows], hi[rows], x[rows], norm[rows], kf)
                 continue
             # in blocks of at most EVIDENCE_BLOCK models (the noise scales' arrays, M x 401
             # x k, of thousands of models stacked would stream from memory)
             for a in range(0, rows.size, EVIDENCE_BLOCK):
                 b = rows[a : a + EVIDENCE_BLOCK]
-                members = [idx[j] for j in b]
+                members = idx[b]
                 out[members] = _noise_scale_group(
                     Ra[b], sd[b], lo[b], hi[b], x[b], mu[b], c[b], norm[b], kf, n_res[members]
                 )
@@ -584,39 +595,57 @@ def linearized_evidence(
     # The base columns, every effect's and the residual rotated once onto their span (Q^T of
     # their thin QR, Q never formed): the models' evidence takes only inner products of them,
     # each model's algebra then on as many rows as there are columns instead of residuals.
-    names = list(dict.fromkeys(e.name for effects, _ in models for e in effects))
+    names = list(dict.fromkeys([e.name for effects, _ in models for e in effects]))
     R = r_factor(np.hstack([fit.jacobian[0], fit.residuals[0][:, None]] + [columns[n] for n in names]))
     n_base = len(xb)
-    first, k = {}, n_base + 1
+    # each effect's columns of R
+    span, k = {}, n_base + 1
     for n in names:
-        first[n] = k
+        span[n] = list(range(k, k + columns[n].shape[1]))
         k += columns[n].shape[1]
     rb = R[:, n_base]
     # each model's columns of R, the base's then its effects', and the structures without
     # parameters, which move the residuals by their column instead (effect_columns)
-    picks = [list(range(n_base)) + [first[e.name] + j for e in fx for j in range(len(e.params))] for fx, _ in models]
-    moves = [[first[e.name] for e in fx if not e.params] for fx, _ in models]
+    base = list(range(n_base))
+    picks = [base + [j for e in fx if e.params for j in span[e.name]] for fx, _ in models]
+    moves = [[span[e.name][0] for e in fx if not e.params] for fx, _ in models]
     # the models with as many parameters solve their quadratic models together, their
     # columns gathered from R at once
     by_size: dict[int, list[int]] = {}
     for i, pick in enumerate(picks):
         by_size.setdefault(len(pick), []).append(i)
-    problems: list = [None] * len(models)
+    blocks, order = [], []
     for size, members in by_size.items():
         C = np.ascontiguousarray(np.moveaxis(R[:, np.array([picks[i] for i in members])], 0, 1))
         r0 = np.repeat(rb[None], len(members), axis=0)
         for j, i in enumerate(members):
             for col in moves[i]:
                 r0[j] = r0[j] + R[:, col]
-        mu, sd, lo, hi = np.stack([prior_arrays(models[i][1]) for i in members], axis=1)
+        mu, sd, lo, hi = _prior_table([models[i][1] for i in members])
         x0 = np.zeros((len(members), size))
         x0[:, :n_base] = xb
         x = _quadratic_optima(mu, sd, lo, hi, r0, C, x0, n_base)
-        for j, i in enumerate(members):
-            # the columns are linear, so the quadratic model at x is each model's own
-            problems[i] = (mu[j], sd[j], lo[j], hi[j], r0[j] + C[j] @ (x[j] - x0[j]), C[j], x[j])
-    logz = laplace_log_evidences(problems, noise_scale, [len(fit.residuals[0])] * len(models))
-    return [(z, p[6]) for z, p in zip(logz.tolist(), problems)]
+        # the columns are linear, so the quadratic model at x is each model's own
+        blocks.append((mu, sd, lo, hi, r0 + (C @ (x - x0)[:, :, None])[:, :, 0], C, x))
+        order += members
+    logz = _block_evidences(blocks, noise_scale, [len(fit.residuals[0])] * len(models))
+    out: list = [None] * len(models)
+    for i, z, xi in zip(order, logz.tolist(), (row for b in blocks for row in b[6])):
+        out[i] = (z, xi)
+    return out
+
+
+def _prior_table(priors: list[list[XPrior]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(mu, sd, lo, hi), each (M, k), of the priors of M models of k parameters. The models
+    of a linearization share their XPrior objects (the anchor's, each effect's): each
+    distinct object is read once, the objects told apart by id (they are all alive in
+    ``priors`` meanwhile, so no two share one); a row per model from :func:`prior_arrays`
+    took five times as long."""
+    ids = np.array([list(map(id, p)) for p in priors], dtype=np.int64)
+    _, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    k = ids.shape[1]
+    table = np.array(prior_arrays([priors[f // k][f % k] for f in first.tolist()]))
+    return tuple(table[:, inverse.reshape(ids.shape)])
 
 
 def _quadratic_optima(mu, sd, lo, hi, r0, C, x0, n_base: int) -> np.ndarray:
@@ -634,14 +663,16 @@ def _quadratic_optima(mu, sd, lo, hi, r0, C, x0, n_base: int) -> np.ndarray:
     x = x0.copy()
     while todo.size:
         f = free[todo]
-        Gf, bf = held_fixed(G[todo], b[todo], f)  # (d = 0 where held)
-        d = np.linalg.solve(Gf, -bf[:, :, None])[:, :, 0]
-        x[todo] = x0[todo] + d
-        xt = x[todo]
-        bad = f & ((xt < lo[todo]) | (xt > hi[todo]))
+        # (d = 0 where held; none is in the first pass, which takes every model, and one at
+        # least in every model of a later one)
+        Gf, bf = (G, b) if f.all() else held_fixed(G[todo], b[todo], f)
+        xt = x0[todo] + np.linalg.solve(Gf, -bf[:, :, None])[:, :, 0]
+        x[todo] = xt
+        lot, hit = lo[todo], hi[todo]
+        bad = f & ((xt < lot) | (xt > hit))
         bad[:, :n_base] = False
         again = bad.any(axis=1)
-        worst = np.argmax(np.where(bad, np.maximum(lo[todo] - xt, xt - hi[todo]), -np.inf), axis=1)
+        worst = np.argmax(np.where(bad, np.maximum(lot - xt, xt - hit), -np.inf), axis=1)
         free[todo[again], worst[again]] = False
         todo = todo[again]
     return np.clip(x, lo, hi)

@@ -10,7 +10,8 @@ import copy
 import functools
 import gc
 import math
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from .evidence import (
     log_model_prior,
     model_priors,
     posterior,
+    prior_arrays,
     subsets,
     visible,
 )
@@ -304,6 +306,7 @@ def fit_models(
     sizes: dict[int, int],
     noise_scale: bool = False,
     known: list[Model] = (),
+    priors_of: Callable[[tuple[str, ...]], list[XPrior]] | None = None,
 ) -> list[Model]:
     """MAP fits of the models ``requests`` = [(effect names, [start x, ...]), ...] in one
     lockstep batch (every start of every model, racing: :data:`RACE_AFTER`, against the
@@ -311,7 +314,8 @@ def fit_models(
     start with the highest Laplace ln Z is kept (the posterior objective would pick the same optimum, but with an
     estimated noise the data's weight depends on that estimate), and its model prior set from the
     number of models of each size ``sizes`` (``noise_scale``: the noise is an estimate,
-    :func:`laplace_log_evidence`)."""
+    :func:`laplace_log_evidence`). ``priors_of``: the priors of a model's parameters by its
+    effect names (default :func:`model_priors`; :meth:`Comparison.priors_of` keeps them)."""
     by_name = {e.name: e for e in library}
     specs, priors, owner = [], [], []
     out = []
@@ -319,9 +323,9 @@ def fit_models(
         effects = tuple(by_name[n] for n in names)
         params = list(base_params) + [par for e in effects for par in e.params]
         structure = next((e for e in effects if e.transform is not None), None)
-        pri = model_priors(problem.core, params, effects)
-        lo = np.array([par.bounds_x()[0] for par in params])
-        hi = np.array([par.bounds_x()[1] for par in params])
+        pri = priors_of(names) if priors_of is not None else model_priors(problem.core, params, effects)
+        # a prior's range is its parameter's fit range (x_prior)
+        _, _, lo, hi = prior_arrays(pri)
         out.append(Model(names, priors=pri, log_model_prior=log_model_prior(sizes, len(names))))
         for x0 in starts:
             specs.append((params, structure, np.clip(x0, lo, hi)))
@@ -417,10 +421,23 @@ class Comparison:
     library: list[Effect]
     sizes: dict[int, int]
     noise_scale: bool
+    #: {effect names: the priors of that model's parameters} (:meth:`priors_of`)
+    priors: dict[tuple[str, ...], list[XPrior]] = field(default_factory=dict)
 
     @property
     def n_base(self) -> int:
         return len(self.base_params)
+
+    def priors_of(self, names: tuple[str, ...]) -> list[XPrior]:
+        """:func:`model_priors` of the model of the effects ``names`` (the base parameters,
+        then each effect's), made once per model: they depend on the core, the base
+        parameters and those effects alone, all fixed within a comparison, and a model is
+        scored and refitted in several rounds."""
+        if names not in self.priors:
+            effects = tuple(self.effect(n) for n in names)
+            params = self.base_params + [par for e in effects for par in e.params]
+            self.priors[names] = model_priors(self.problem.core, params, effects)
+        return self.priors[names]
 
     def effect(self, name: str) -> Effect:
         return next(e for e in self.library if e.name == name)
@@ -444,25 +461,24 @@ class Comparison:
         cols = cols or effect_columns(
             self.problem, at.fit, self.fixed, [e for e in self.library if e.name not in at.effects]
         )
-        extra = [tuple(e for e in c if e.name not in at.effects) for c in cand]
-        # an effect's priors are its own (:func:`model_priors`): made once per effect
-        added = {e.name: e for ex in extra for e in ex}
-        own = {n: model_priors(self.problem.core, list(e.params), (e,)) for n, e in added.items()}
+        extra = [tuple([e for e in c if e.name not in at.effects]) for c in cand]
+        # an effect's priors are its own (:func:`model_priors`): those of its one-effect model
+        # past the base parameters
+        added = {e.name for ex in extra for e in ex}
+        own = {n: self.priors_of((n,))[self.n_base :] for n in added}
         pri = [at.priors + [p for e in ex for p in own[e.name]] for ex in extra]
         lin = linearized_evidence(at, cols, list(zip(extra, pri)), self.noise_scale)
         own_effects = [self.effect(n) for n in at.effects]
+        log_prior = {k: log_model_prior(self.sizes, k) for k in self.sizes}
         out = []
         for c, ex, (logz, x) in zip(cand, extra, lin):
-            # x holds at's parameters, then the extra effects': taken to the model's own order
-            parts = _effect_parts(x, self.n_base, own_effects + list(ex))
-            names = tuple(e.name for e in c)
-            out.append(
-                Candidate(
-                    names,
-                    logz + log_model_prior(self.sizes, len(names)),
-                    np.concatenate([x[: self.n_base]] + [parts[n] for n in names]),
-                )
-            )
+            names = tuple([e.name for e in c])
+            if own_effects:
+                # x holds at's parameters, then the extra effects': taken to the model's own
+                # order (at the base, with no effects of its own, that is x's)
+                parts = _effect_parts(x, self.n_base, own_effects + list(ex))
+                x = np.concatenate([x[: self.n_base]] + [parts[n] for n in names])
+            out.append(Candidate(names, logz + log_prior[len(names)], x))
         return out
 
     def request(self, at: Model, names: tuple[str, ...], x_lin: np.ndarray | None) -> tuple:
@@ -472,7 +488,15 @@ class Comparison:
     def refit(self, requests: list, known: list[Model] = ()) -> list[Model]:
         """:func:`fit_models` of ``requests``, racing against the models ``known``."""
         return fit_models(
-            self.problem, self.base_params, self.fixed, self.library, requests, self.sizes, self.noise_scale, known
+            self.problem,
+            self.base_params,
+            self.fixed,
+            self.library,
+            requests,
+            self.sizes,
+            self.noise_scale,
+            known,
+            self.priors_of,
         )
 
 
