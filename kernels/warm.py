@@ -17,41 +17,86 @@ import warp as wp
 wp.set_module_options({"enable_backward": False})  # nothing here is differentiated: no adjoint code
 
 
+#: Parts a search's kept sets (and the rows' spread its sets) are split into, a thread
+#: each: a thread that walked every kept set alone took about a millisecond a launch on a
+#: GPU, most of it idle; each part keeps its own best, and the parts are taken in order.
+PARTS = wp.constant(64)
+
+
+@wp.func
+def part_range(total: int, part: int):
+    """The [start, end) of ``part``'s share of ``total`` items (PARTS parts, in order)."""
+    size = (total + PARTS - 1) // PARTS
+    start = wp.min(part * size, total)
+    return start, wp.min(start + size, total)
+
+
 @wp.kernel
-def row_spread(
+def row_spread_parts(
     kept: wp.array2d(dtype=wp.float64),
     count: int,
     table: wp.array2d(dtype=wp.float64),
     heated: wp.array(dtype=wp.int32),
-    differ: wp.array(dtype=wp.int32),
-    positive: wp.array(dtype=wp.int32),
-    scale: wp.array(dtype=wp.float64),
+    lo: wp.array2d(dtype=wp.float64),
+    hi: wp.array2d(dtype=wp.float64),
+    big: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
 ):
-    """Per row r of the kept and new sets together: whether its values differ (none NaN),
-    are all positive, and their largest |v| (1 where it is 0)."""
-    r = wp.tid()
-    lo = wp.float64(wp.inf)
-    hi = wp.float64(-wp.inf)
-    big = wp.float64(0.0)
-    pos = int(1)
-    nan = int(0)
-    for a in range(count + heated.shape[0]):
+    """Thread (r, p): over part p of the kept and new sets together, row r's smallest and
+    largest value, largest |v| and flags (1: a NaN, 2: a value not > 0)."""
+    r, p = wp.tid()
+    a0, a1 = part_range(count + heated.shape[0], p)
+    low = wp.float64(wp.inf)
+    high = wp.float64(-wp.inf)
+    most = wp.float64(0.0)
+    f = int(0)
+    for a in range(a0, a1):
         v = wp.float64(0.0)
         if a < count:
             v = kept[a, r]
         else:
             v = table[r, heated[a - count]]
         if wp.isnan(v):
-            nan = 1
-        lo = wp.min(lo, v)
-        hi = wp.max(hi, v)
-        big = wp.max(big, wp.abs(v))
+            f = f | 1
+        low = wp.min(low, v)
+        high = wp.max(high, v)
+        most = wp.max(most, wp.abs(v))
         if not (v > wp.float64(0.0)):
-            pos = 0
-    differ[r] = int(nan == 0 and lo < hi)
-    positive[r] = pos
-    if big > wp.float64(0.0):
-        scale[r] = big
+            f = f | 2
+    lo[r, p] = low
+    hi[r, p] = high
+    big[r, p] = most
+    flags[r, p] = f
+
+
+@wp.kernel
+def row_spread(
+    lo: wp.array2d(dtype=wp.float64),
+    hi: wp.array2d(dtype=wp.float64),
+    big: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    differ: wp.array(dtype=wp.int32),
+    positive: wp.array(dtype=wp.int32),
+    scale: wp.array(dtype=wp.float64),
+):
+    """Per row r of the kept and new sets together, from its parts (:func:`row_spread_parts`):
+    whether its values differ (none NaN), are all positive, and their largest |v| (1 where
+    it is 0). Minima, maxima and flags are exact in any order: the values of one walk over
+    every set (where a row holds a NaN its scale is not read)."""
+    r = wp.tid()
+    low = wp.float64(wp.inf)
+    high = wp.float64(-wp.inf)
+    most = wp.float64(0.0)
+    f = int(0)
+    for p in range(PARTS):
+        low = wp.min(low, lo[r, p])
+        high = wp.max(high, hi[r, p])
+        most = wp.max(most, big[r, p])
+        f = f | flags[r, p]
+    differ[r] = int((f & 1) == 0 and low < high)
+    positive[r] = int((f & 2) == 0)
+    if most > wp.float64(0.0):
+        scale[r] = most
     else:
         scale[r] = wp.float64(1.0)
 
@@ -102,9 +147,40 @@ def scaled_values(
 
 
 @wp.kernel
-def nearest_start(
+def nearest_parts(
     u: wp.array2d(dtype=wp.float64),
     n_rows: wp.array(dtype=wp.int32),
+    count: int,
+    oldest: int,
+    best: wp.array2d(dtype=wp.float64),
+    at: wp.array2d(dtype=wp.int32),
+):
+    """Thread (j, p): among part p of the kept sets by age (oldest first), the nearest to
+    new set j in the largest |difference| of u and its age (the oldest of equally near
+    ones; -1 in an empty part)."""
+    j, p = wp.tid()
+    me = count + j
+    a0, a1 = part_range(count, p)
+    near = wp.float64(wp.inf)
+    age = int(-1)
+    for a in range(a0, a1):
+        i = (oldest + a) % count
+        d = wp.float64(0.0)
+        for q in range(n_rows[0]):
+            d = wp.max(d, wp.abs(u[me, q] - u[i, q]))
+            if d >= near:
+                break
+        if d < near:
+            near = d
+            age = a
+    best[j, p] = near
+    at[j, p] = age
+
+
+@wp.kernel
+def nearest_start(
+    best: wp.array2d(dtype=wp.float64),
+    at: wp.array2d(dtype=wp.int32),
     count: int,
     oldest: int,
     radius: wp.float64,
@@ -113,23 +189,17 @@ def nearest_start(
     start: wp.array2d(dtype=wp.float64),
 ):
     """Row heated[j] of ``start`` (zeros before): the excess of the kept set nearest new set
-    j in the largest |difference| of u, where it is within ``radius`` (the oldest of
-    equally near ones)."""
+    j (its parts' nearest, :func:`nearest_parts`, taken in age order: the oldest of equally
+    near ones), where it is within ``radius``."""
     j = wp.tid()
-    me = count + j
-    best = wp.float64(wp.inf)
-    slot = int(-1)
-    for a in range(count):
-        i = (oldest + a) % count
-        d = wp.float64(0.0)
-        for q in range(n_rows[0]):
-            d = wp.max(d, wp.abs(u[me, q] - u[i, q]))
-            if d >= best:
-                break
-        if d < best:
-            best = d
-            slot = i
-    if slot >= 0 and best <= radius:
+    near = wp.float64(wp.inf)
+    age = int(-1)
+    for p in range(PARTS):
+        if best[j, p] < near:
+            near = best[j, p]
+            age = at[j, p]
+    if age >= 0 and near <= radius:
+        slot = (oldest + age) % count
         for c in range(start.shape[1]):
             start[heated[j], c] = kept_theta[slot, c]
 

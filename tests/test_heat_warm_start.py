@@ -251,6 +251,23 @@ def test_the_kept_sets_are_the_last_limit_put_in_order(kind):
             np.testing.assert_array_equal(start[i], want, err_msg=f"set {i} after {done} put")
 
 
+@pytest.mark.parametrize("kind", KINDS[1:])
+def test_of_equally_near_kept_sets_the_oldest_starts_a_set(kind):
+    # the device's rule (the host's k-d tree takes any of equals): 40 sets put four times
+    # over (each copy its own excess) into a ring of 150, which has then wrapped: every set
+    # has three or four equal copies kept, far apart in age (the search's parts hold
+    # different copies), and its start is the excess of the oldest copy still kept
+    rows, distinct, limit = 3, 40, 150
+    values = np.exp(np.arange(distinct) * 2.5 * WARM_RADIUS)  # none near another
+    sets = np.vstack([np.full(distinct, 40.0), values, np.full(distinct, 0.5)])
+    warm = STORES[kind](limit, rows, 2, np.array([1]), False)
+    for copy in range(4):
+        put(warm, sets, np.full((distinct, 2), float(copy)) + np.arange(distinct)[:, None])
+    # puts 0..159 into a ring of 150: the first ten sets' first copies are gone
+    oldest = np.where(np.arange(distinct) < 4 * distinct - limit, 1.0, 0.0)
+    np.testing.assert_array_equal(starts(warm, sets), (oldest + np.arange(distinct))[:, None] + np.zeros((1, 2)))
+
+
 def test_the_sets_that_iterate_are_those_with_a_temperature_dependent_field_on():
     # every field of the ceramic core's stack moved off its core value, one per set (the
     # first set the core's own): the heat solve iterates (one solve is not its converged

@@ -172,15 +172,19 @@ class DeviceWarmStarts(_KeptSets):
                 return None
             dev, count, rows = self.device, self.count, self.rows
             on_device = wp.array(heated.astype(np.int32), dtype=wp.int32, device=dev)
+            # the search's steps a thread per part of the sets (kernels/warm.py, PARTS)
+            lo, hi, big = (wp.empty((rows, kw.PARTS), dtype=wp.float64, device=dev) for _ in range(3))
+            flags = wp.empty((rows, kw.PARTS), dtype=wp.int32, device=dev)
+            wp.launch(
+                kw.row_spread_parts,
+                dim=(rows, kw.PARTS),
+                inputs=[self.kept, count, varying, on_device, lo, hi, big, flags],
+                device=dev,
+            )
             differ = wp.empty(rows, dtype=wp.int32, device=dev)
             positive = wp.empty(rows, dtype=wp.int32, device=dev)
             scale = wp.empty(rows, dtype=wp.float64, device=dev)
-            wp.launch(
-                kw.row_spread,
-                dim=rows,
-                inputs=[self.kept, count, varying, on_device, differ, positive, scale],
-                device=dev,
-            )
+            wp.launch(kw.row_spread, dim=rows, inputs=[lo, hi, big, flags, differ, positive, scale], device=dev)
             which = wp.empty(rows, dtype=wp.int32, device=dev)
             n_rows = wp.empty(1, dtype=wp.int32, device=dev)
             wp.launch(kw.differing_rows, dim=1, inputs=[differ, which, n_rows], device=dev)
@@ -191,11 +195,17 @@ class DeviceWarmStarts(_KeptSets):
                 inputs=[self.kept, count, varying, on_device, which, n_rows, positive, scale, u],
                 device=dev,
             )
+            oldest = self._oldest()
+            best = wp.empty((heated.size, kw.PARTS), dtype=wp.float64, device=dev)
+            at = wp.empty((heated.size, kw.PARTS), dtype=wp.int32, device=dev)
+            wp.launch(
+                kw.nearest_parts, dim=(heated.size, kw.PARTS), inputs=[u, n_rows, count, oldest, best, at], device=dev
+            )
             start = wp.zeros((table.shape[1], self.columns), dtype=wp.float64, device=dev)
             wp.launch(
                 kw.nearest_start,
                 dim=heated.size,
-                inputs=[u, n_rows, count, self._oldest(), WARM_RADIUS, on_device, self.kept_theta, start],
+                inputs=[best, at, count, oldest, WARM_RADIUS, on_device, self.kept_theta, start],
                 device=dev,
             )
             return start
