@@ -166,14 +166,21 @@ def distinct_set_columns(
     column = np.zeros((n, q), dtype=np.int64)
     first = []
     d = 0
+    # a row alike in every set tells no sets apart at any heat input (NaN rows are kept)
+    rows = np.flatnonzero(~(per_set.min(axis=1) == per_set.max(axis=1))) if n else np.arange(per_set.shape[0])
+    varying = per_set[rows]
+    cold_rows = np.flatnonzero(~np.isin(rows, heat_only))  # those a heat input of 0 reads
+    told: list = []  # (sets needed, heat-only rows dropped, (f, c)): heat inputs alike share it
     for j in range(q):
         sets = np.flatnonzero(needed[:, j])
         if not sets.size:
             continue
-        key = per_set[:, sets]
-        if heat_inputs[j] == 0.0 and heat_only.size:
-            key = np.delete(key, heat_only, axis=0)
-        f, c = distinct_columns(key)
+        drop = bool(heat_inputs[j] == 0.0 and cold_rows.size < rows.size)
+        f, c = next((fc for s, dr, fc in told if dr == drop and np.array_equal(s, sets)), (None, None))
+        if f is None:
+            key = varying if sets.size == n else varying[:, sets]
+            f, c = distinct_columns(key[cold_rows] if drop else key)
+            told.append((sets, drop, (f, c)))
         column[sets, j] = d + c
         first.append(np.stack([sets[f], np.full(f.size, j)], axis=1))
         d += f.size
