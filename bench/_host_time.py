@@ -68,10 +68,7 @@ TIMED = {
     "tawarp.model.effects": ["graded_parts"],
     "tawarp.model.forward": [
         "distinct_columns",
-        "distinct_set_columns",
         "Engine.distinct",
-        "Engine.distinct_sets",
-        "Engine._distinct",
         "Engine._computed",
         "Engine.device_table",
         "Engine.heat",

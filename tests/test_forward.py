@@ -9,13 +9,7 @@ import pytest
 from tawarp import reference
 from tawarp.model.coefficients import duct_impedance, normalize
 from tawarp.model.core import Core, CoreError, core_from_dict, load_core
-from tawarp.model.forward import (
-    cpu_share,
-    distinct_columns,
-    distinct_set_columns,
-    steady_temperature,
-    transfer_matrices,
-)
+from tawarp.model.forward import cpu_share, distinct_columns, steady_temperature, transfer_matrices
 
 FREQS = np.array([30.0, 120.0, 260.0, 500.0])
 HEAT = {
@@ -407,10 +401,6 @@ def test_heat_only_fields_are_inert_without_heat_input(name):
     distinct, column = eng.distinct(table[:, [0, 1, 2, 3, 1, 2]])
     shared = distinct[column]
     assert np.array_equal(shared.reshape(6, -1), T.view(complex).reshape(4, -1)[[0, 1, 2, 3, 1, 2]])
-    # ... and so from the sets' values and heat inputs (distinct_sets), set by set
-    by_set, by_set_column = eng.distinct_sets(np.column_stack([base, moved]), np.array([0.0, Q]), np.ones((2, 2), bool))
-    assert len(by_set) == 3
-    assert np.array_equal(by_set[by_set_column].reshape(4, -1), T.view(complex).reshape(4, -1)[[0, 2, 1, 3]])
 
 
 def test_gauss_profile_is_the_heat_models_profile_bit_for_bit():
@@ -530,30 +520,3 @@ def test_distinct_columns_are_numpys_unique_columns():
     got_first, got_column = distinct_columns(np.ones((3, 6)))
     np.testing.assert_array_equal(got_first, [0])
     np.testing.assert_array_equal(got_column, np.zeros(6))
-
-
-@pytest.mark.parametrize("trial", range(6))
-def test_distinct_set_columns_are_those_of_the_whole_table(trial):
-    # the table a T-matrix launch would form (each set at each heat input it needs, set by
-    # set, the heat-only rows zeroed where the heat input is 0) told apart as a whole and
-    # heat input by heat input: the same first columns and the same column of every
-    # (set, heat input), with repeated sets, sets that differ in heat-only rows alone, -0.0
-    # beside 0.0 and sets that need some heat inputs only
-    rng = np.random.default_rng(trial)
-    n, rows = 60, 6
-    per_set = rng.integers(0, 3, (rows, 25)).astype(float)[:, rng.integers(0, 25, n)]
-    per_set[2] = np.where(rng.random(n) < 0.5, 0.0, -0.0)
-    heat_only = np.array([1, 4]) if trial % 2 else np.array([], dtype=int)
-    heat_inputs = np.array([0.0, 20.0, 40.0])
-    needed = rng.random((n, 3)) < (1.0 if trial < 2 else 0.7)
-    table = np.vstack([np.tile(heat_inputs, n), np.repeat(per_set, 3, axis=1)])[:, needed.reshape(-1)]
-    key = table.copy()
-    cold = np.flatnonzero(key[0] == 0.0)
-    key[np.ix_(1 + heat_only, cold)] = 0.0
-    first, column = distinct_columns(key)
-    got_first, got_column = distinct_set_columns(per_set, heat_inputs, needed, heat_only)
-    # each distinct column's (set, heat input) is the whole table's first column of it
-    sets, inputs = np.divmod(np.flatnonzero(needed.reshape(-1))[first], 3)
-    np.testing.assert_array_equal(got_first, np.stack([sets, inputs], axis=1))
-    np.testing.assert_array_equal(got_column[needed], column)
-    assert not got_column[~needed].any()

@@ -320,20 +320,26 @@ class TMatrixKind(MeasurementKind):
             for j, k in enumerate(names):
                 per_set[j] = values[k]
         eng = get_engine(core, self.freqs, list(names), settings)
+        nq = len(self.Qs)
+        table = np.empty((1 + len(names), n * nq))
+        table[0] = np.tile(self.Qs, n)
+        table[1:] = np.repeat(per_set, nq, axis=1)
         # sets that differ in host-side fields alone (the gain, the frame) or in what a heat
         # input of 0 does not read share one column
-        needed = self._needed_heat_inputs(rows, n)
+        needed = self._needed_heat_inputs(rows, n).reshape(-1)
         if not needed.any():
             return None
+        T, column = eng.distinct(table if needed.all() else table[:, needed], on_device=on_device)
         # the column of each (set, heat input); where not needed the first (its rows set to NaN)
-        T, columns = eng.distinct_sets(per_set, self.Qs, needed, on_device=on_device)
+        columns = np.zeros(n * nq, dtype=column.dtype)
+        columns[needed] = column
         factor = None
         if gain is not None or phase is not None:
             g = np.broadcast_to(np.asarray(1.0 if gain is None else gain, dtype=float), (n,))
             ph = np.broadcast_to(np.asarray(0.0 if phase is None else phase, dtype=float), (n,))
             with np.errstate(over="ignore", invalid="ignore"):
                 factor = g * np.exp(1j * ph)
-        return T, columns, needed, factor, frame, values
+        return T, columns.reshape(n, nq), needed.reshape(n, nq), factor, frame, values
 
     def _needed_heat_inputs(self, rows: list | None, n: int) -> np.ndarray:
         """(n, heat inputs) bool: the heat inputs whose rows each set's ``rows`` (None: all,

@@ -151,42 +151,6 @@ def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order[new], column
 
 
-def distinct_set_columns(
-    per_set: np.ndarray, heat_inputs: np.ndarray, needed: np.ndarray, heat_only: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`distinct_columns` of the table of every set of ``per_set`` (rows, n) at each
-    of the ``heat_inputs`` (q,) (ascending, distinct) it ``needed`` (n, q), its columns set
-    by set, with the rows ``heat_only`` of ``per_set`` zeroed where the heat input is 0,
-    without forming that table (q times the sets' values): ``first`` (d, 2) each distinct
-    column's (set, heat input index), ``column`` (n, q) which one each (set, heat input) is
-    (0 where not needed). The heat input is the table's first row, so it leads the order:
-    each heat input's sets are told apart alone, in the same order and with the same first
-    copies (tests/test_forward.py)."""
-    n, q = needed.shape
-    column = np.zeros((n, q), dtype=np.int64)
-    first = []
-    d = 0
-    # a row alike in every set tells no sets apart at any heat input (NaN rows are kept)
-    rows = np.flatnonzero(~(per_set.min(axis=1) == per_set.max(axis=1))) if n else np.arange(per_set.shape[0])
-    varying = per_set[rows]
-    cold_rows = np.flatnonzero(~np.isin(rows, heat_only))  # those a heat input of 0 reads
-    told: list = []  # (sets needed, heat-only rows dropped, (f, c)): heat inputs alike share it
-    for j in range(q):
-        sets = np.flatnonzero(needed[:, j])
-        if not sets.size:
-            continue
-        drop = bool(heat_inputs[j] == 0.0 and cold_rows.size < rows.size)
-        f, c = next((fc for s, dr, fc in told if dr == drop and np.array_equal(s, sets)), (None, None))
-        if f is None:
-            key = varying if sets.size == n else varying[:, sets]
-            f, c = distinct_columns(key[cold_rows] if drop else key)
-            told.append((sets, drop, (f, c)))
-        column[sets, j] = d + c
-        first.append(np.stack([sets[f], np.full(f.size, j)], axis=1))
-        d += f.size
-    return (np.concatenate(first) if first else np.empty((0, 2), dtype=np.int64)), column
-
-
 #: Segment fields that only the heat solve reads (kernels/heat.py): without heat input the
 #: temperature rise is zero whatever their values, and with fixed cells a set's T-matrices do
 #: not depend on them (:meth:`Engine.distinct`; tests/test_forward.py guards it).
@@ -755,40 +719,18 @@ class Engine:
         solve iterates starts it from the converged excess of a set computed
         before near it (:attr:`warm`, :class:`WarmStarts`): the same fixed point, to the
         solve's tolerance."""
-        key = self._key(varying)
-        first, column = distinct_columns(key)
-        return self._distinct(np.asarray(varying, dtype=np.float64)[:, first], on_device), column.reshape(-1)
-
-    def distinct_sets(
-        self, per_set: np.ndarray, heat_inputs: np.ndarray, needed: np.ndarray, on_device: bool = False
-    ) -> tuple:
-        """:meth:`distinct` of the table of every set of ``per_set`` (len(names), n) at each
-        of the ``heat_inputs`` (q,) (ascending, distinct) it ``needed`` (n, q), its columns
-        set by set, without forming that table (:func:`distinct_set_columns`): (T, column),
-        ``column`` (n, q) (0 where not needed). The same T-matrices in the same order."""
-        first, column = distinct_set_columns(per_set, heat_inputs, needed, self.heat_only - 1)
-        table = np.empty((1 + per_set.shape[0], first.shape[0]))
-        table[0] = heat_inputs[first[:, 1]]
-        table[1:] = per_set[:, first[:, 0]]
-        return self._distinct(table, on_device), column
-
-    def _key(self, table: np.ndarray) -> np.ndarray:
-        """A copy of the host table ``table`` (1 + len(names), n) with the rows a set without
-        heat input does not read zeroed in such sets (:attr:`heat_only`): equal keys, equal sets."""
-        key = np.array(table, dtype=np.float64)
+        key = np.array(varying, dtype=np.float64)
         cold = key[0] == 0.0
         if self.heat_only.size and cold.any():
             key[np.ix_(self.heat_only, np.flatnonzero(cold))] = 0.0
-        return key
-
-    def _distinct(self, table: np.ndarray, on_device: bool) -> np.ndarray | wp.array:
-        """The T-matrices of :meth:`distinct` of the distinct sets ``table``."""
+        first, column = distinct_columns(key)
+        table = np.asarray(varying, dtype=np.float64)[:, first]
+        column = column.reshape(-1)
         if not wp.get_device(self.device).is_cpu:
-            return self._computed(table, on_device)
+            return self._computed(table, on_device), column
         # on the CPU, the columns this engine computed before from the memo (MEMO_BYTES)
-        d = table.shape[1]
-        ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(self._key(table).T)]
-        T = np.empty((d, len(self.freqs), 2, 2), dtype=np.complex128)
+        ids = [(self.number, set_key.tobytes()) for set_key in np.ascontiguousarray(key[:, first].T)]
+        T = np.empty((first.size, len(self.freqs), 2, 2), dtype=np.complex128)
         todo = []
         for j, known in enumerate(_MEMO.get(ids)):
             if known is None:
@@ -799,8 +741,8 @@ class Engine:
             T[todo] = self._computed(table[:, todo])
             _MEMO.put([ids[j] for j in todo], T[todo])
         if on_device:
-            return wp.array(T.view(np.float64).reshape(d, len(self.freqs), 8), device=self.device)
-        return T
+            return wp.array(T.view(np.float64).reshape(first.size, len(self.freqs), 8), device=self.device), column
+        return T, column
 
     def _computed(self, table: np.ndarray, on_device: bool = False):
         """T-matrices (n, m, 2, 2) complex of the host table ``table`` (1 + len(names), n)
