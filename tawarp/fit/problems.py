@@ -245,8 +245,7 @@ class KindProblems:
     def predict(self, requests: list) -> list:
         """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure
         and family of kinds (:func:`predict_sets`)."""
-        jobs, assemble = self.prediction(requests)
-        return assemble(predict_sets(jobs, self.families))
+        return self._predict_arrays(*_stacked(requests))
 
     def _predict_arrays(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray) -> list:
         """:meth:`predict` of the requests of :meth:`_jobs`."""
@@ -257,13 +256,7 @@ class KindProblems:
         """:meth:`predict` in two halves: the sets to predict (a caller may predict them
         with others', :func:`predict_sets`), and the function that takes their model values
         to ``requests``' results (``on_device``: :class:`tawarp.measure.kind.DeviceValues`)."""
-        sizes = np.array([X.shape[0] for _, X in requests], dtype=np.int64)
-        X = np.zeros((int(sizes.sum()), max([1] + [X.shape[1] for _, X in requests])))
-        k0 = 0
-        for (_, x), n in zip(requests, sizes.tolist()):
-            X[k0 : k0 + n, : x.shape[1]] = x
-            k0 += n
-        return self._prediction(np.array([c for c, _ in requests], dtype=np.int64), sizes, X, on_device)
+        return self._prediction(*_stacked(requests), on_device)
 
     def _prediction(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool = False) -> tuple:
         """:meth:`prediction` of the requests of :meth:`_jobs`."""
@@ -551,6 +544,18 @@ class KindProblems:
         return out
 
 
+def _stacked(requests: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(fits, sizes, X) of requests [(c, X (n_c, p_c)), ...] as :meth:`KindProblems._jobs`
+    takes them: each request's x rows in one array, zeros past its p_c."""
+    sizes = np.array([X.shape[0] for _, X in requests], dtype=np.int64)
+    X = np.zeros((int(sizes.sum()), max([1] + [X.shape[1] for _, X in requests])))
+    k0 = 0
+    for (_, x), n in zip(requests, sizes.tolist()):
+        X[k0 : k0 + n, : x.shape[1]] = x
+        k0 += n
+    return np.array([c for c, _ in requests], dtype=np.int64), sizes, X
+
+
 class ValueLayout:
     """How the parameter sets of a group of fits (one structure of one kind) take their
     model parameter values: ``base`` {name: value} where a set's fit does not set a name,
@@ -565,8 +570,9 @@ class ValueLayout:
         self.names = tuple(base)
         column = {k: t for t, k in enumerate(self.names)}
         self.base = np.array([float(v) for v in base.values()])
-        self.local = {c: i for i, c in enumerate(fits)}
-        self._local: np.ndarray | None = None  # local as an array (local_of)
+        #: each fit's row in this layout's tables, indexed by the fit (-1: not of the group)
+        self.local = np.full(max(fits, default=-1) + 1, -1, dtype=np.int64)
+        self.local[fits] = np.arange(len(fits))
         N, K = len(self.names), len(fits)
         #: per fit and name: the index of the parameter that sets it (-1: none), its start,
         #: scale and whether it is a log parameter
@@ -595,7 +601,7 @@ class ValueLayout:
         """{name: (sets,)} of sets of the fits ``fits`` (sets,) at the x of the rows of
         ``X`` (sets, P) (a fit's x in its first p columns)."""
         total = fits.size
-        local = self.local_of(fits)
+        local = self.local[fits]
         v = np.empty((len(self.names), total))
         step = max(1, BLOCK_BYTES // (8 * max(len(self.names), 1)))  # sets a block
         for a in range(0, total, step):
@@ -615,13 +621,6 @@ class ValueLayout:
                 for k, w in own.items():
                     out[k][sets] = w
         return out
-
-    def local_of(self, fits: np.ndarray) -> np.ndarray:
-        """Each of ``fits``' row in this layout's tables."""
-        if self._local is None:
-            self._local = np.full(max(self.local) + 1, -1, dtype=np.int64)
-            self._local[list(self.local)] = list(self.local.values())
-        return self._local[fits]
 
 
 def kind_result(
@@ -882,6 +881,7 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
         total = sum(jobs[i].n for i in merged)
         names = tuple(sorted(names))
         values = np.empty((len(names), total))
+        row = row_of(names)
         k0 = 0
         for i in merged:
             j = jobs[i]
@@ -889,7 +889,6 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
             if isinstance(own, ValueTable):
                 values[rows_in(names, own.names), k0 : k0 + j.n] = own.array
             else:
-                row = row_of(names)
                 for k, v in own.items():
                     values[row[k], k0 : k0 + j.n] = v
             if fill[i]:
