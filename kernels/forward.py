@@ -82,8 +82,11 @@ from .heat import (
     segment_nonlinear,
     segment_profile,
     solve_heat,
+    store_wall_rows,
     temperature_at,
+    wall_cell_rows,
     wall_field_on,
+    wall_step,
 )
 from .layout import (
     BYPASS_GAP,
@@ -172,9 +175,10 @@ def heat_kernel(
     pending: wp.array(dtype=wp.int32),
 ):
     """The heat model of set i (:func:`tawarp.kernels.heat.solve_heat`). With ``pending``
-    of n entries, the sets of the single-field iterations are left to :func:`heat_rows_kernel`
-    and :func:`picard_kernel`, pending[i] = 1 for them and 0 for the others (an empty
-    ``pending``: every set solved here)."""
+    of n entries, the sets that iterate are left to :func:`heat_rows_kernel` and
+    :func:`picard_kernel`, pending[i] = 1 for those of the single-field iterations, 2 for
+    those of the two-field iterations and 0 for the others (an empty ``pending``: every set
+    solved here)."""
     i = wp.tid()
     params = sets.params
     flags = sets.flags
@@ -199,16 +203,25 @@ def heat_rows_kernel(
     theta: wp.array2d(dtype=wp.float64),
     rows: wp.array2d(dtype=wp.float64),
 ):
-    """Thread (i, r): the rows of heat cell r of pending set i (:func:`tawarp.kernels.heat.cell_rows`)
-    at its current iterate theta[i, :], into rows[i, ROW_VALUES r:]: the cells of one iteration
-    side by side, where one thread per set computes them one after the other (a Kirchhoff
-    cell's inversions of U(theta) dominate an iteration)."""
+    """Thread (i, r): the rows of heat cell r of pending set i at its current iterate
+    theta[i, :], into rows[i, :] (:func:`tawarp.kernels.heat.cell_rows` at ROW_VALUES r, or
+    for the two fields :func:`tawarp.kernels.heat.wall_cell_rows` at WALL_ROW_VALUES r): the
+    cells of one iteration side by side, where one thread per set computes them one after
+    the other (a Kirchhoff cell's inversions of U(theta) dominate an iteration)."""
     i, r = wp.tid()
-    if pending[i] == 0:
+    p = pending[i]
+    if p == 0:
         return
-    a, b, c, d, e, f = cell_rows(
-        sets.params, sets.flags, sets.gas, i, first, heat_cells, fitted, 1, r, theta[i, r], theta[i, r + 1]
-    )
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
+    if p == 2:
+        A, B, C, D, E, F, tied = wall_cell_rows(
+            params, flags, gas, i, first, heat_cells, fitted, r, theta[i, r], theta[i, r + 1]
+        )
+        store_wall_rows(rows, i, r, A, B, C, D, E, F, tied)
+        return
+    a, b, c, d, e, f = cell_rows(params, flags, gas, i, first, heat_cells, fitted, 1, r, theta[i, r], theta[i, r + 1])
     k = ROW_VALUES * r
     rows[i, k] = a
     rows[i, k + 1] = b
@@ -233,14 +246,22 @@ def picard_kernel(
     left: wp.array(dtype=wp.int32),
 ):
     """One iteration of pending set i from the rows :func:`heat_rows_kernel` stored
-    (:func:`tawarp.kernels.heat.picard_step`): the set stops pending when it converged, else
+    (:func:`tawarp.kernels.heat.picard_step`, for the two fields
+    :func:`tawarp.kernels.heat.wall_step`): the set stops pending when it converged, else
     it counts itself in left[0] (the host launches at most ``picard_iterations`` of them)."""
     i = wp.tid()
-    if pending[i] == 0:
+    p = pending[i]
+    if p == 0:
         return
-    if picard_step(
-        sets.params, sets.flags, sets.gas, i, first, count, heat_cells, fitted, tol, theta, scratch, rows, 1
-    ):
+    params = sets.params
+    flags = sets.flags
+    gas = sets.gas
+    converged = int(0)
+    if p == 2:
+        converged = wall_step(params, flags, gas, i, first, count, heat_cells, fitted, 1, tol, theta, scratch, rows, 1)
+    else:
+        converged = picard_step(params, flags, gas, i, first, count, heat_cells, fitted, tol, theta, scratch, rows, 1)
+    if converged != 0:
         pending[i] = 0
     else:
         wp.atomic_add(left, 0, 1)

@@ -1034,6 +1034,212 @@ def gas_block(x: wp.float64):
     return wp.mat22d(x, wp.float64(0.0), wp.float64(0.0), wp.float64(0.0))
 
 
+#: Values per heat cell in a table of stored two-field rows (:func:`wall_cell_rows`,
+#: :func:`wall_sweep`): four 2x2 blocks, two 2-vectors and the cell's tie.
+WALL_ROW_VALUES = wp.constant(21)
+
+
+@wp.func
+def wall_cell_rows(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    cells: int,
+    fitted: int,
+    r: int,
+    theta_l: wp.float64,
+    theta_r: wp.float64,
+):
+    """Block rows of heat cell r (``cells`` per thermal segment from segment ``first``) in
+    the two-field flux balance, linearised at the previous iterate's gas excesses theta_l,
+    theta_r [K] of its nodes: (diag_r, sup, rhs_r, sub_next, diag_next, rhs_next) as
+    :func:`contact_blocks` returns them, and ``tied`` = 1 where the cell's wall is at the
+    gas temperature (the single-field cell, :func:`cell_rows`, in the blocks' gas/solid
+    entries)."""
+    zero = wp.float64(0.0)
+    s = first + r // cells
+    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
+    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
+    seg_nonlin = segment_nonlinear(params, i, s)
+    if wall_field_on(params, i, s) != 0:
+        P, M, k, sigma = wall_modes(params, flags, gas, i, s, wp.float64(0.5) * (theta_l + theta_r), seg_nonlin)
+        A, B, e = wall_cell_blocks(P, k, sigma, d, fitted)
+        diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_blocks(A, B, e, Rc)
+        return diag_r, sup, rhs_r, sub_next, diag_next, rhs_next, int(0)
+    x0 = zero
+    x1 = zero
+    x2 = zero
+    x3 = zero
+    x4 = zero
+    x5 = zero
+    if seg_nonlin != 0:
+        x0, x1, x2, x3, x4, x5 = kirchhoff_rows(params, flags, gas, i, s, d, fitted, Rc, theta_l, theta_r)
+    else:
+        x0, x1, x2, x3, x4, x5 = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
+    return gas_block(x0), gas_block(x1), wp.vec2d(x2, zero), gas_block(x3), gas_block(x4), wp.vec2d(x5, zero), int(1)
+
+
+@wp.func
+def store_wall_rows(
+    rows: wp.array2d(dtype=wp.float64),
+    i: int,
+    r: int,
+    diag_r: wp.mat22d,
+    sup: wp.mat22d,
+    rhs_r: wp.vec2d,
+    sub_next: wp.mat22d,
+    diag_next: wp.mat22d,
+    rhs_next: wp.vec2d,
+    tied: int,
+):
+    """Cell r's :func:`wall_cell_rows` into rows[i, WALL_ROW_VALUES r:]."""
+    k = WALL_ROW_VALUES * r
+    for j in range(4):
+        rows[i, k + j] = diag_r[j // 2, j % 2]
+        rows[i, k + 4 + j] = sup[j // 2, j % 2]
+        rows[i, k + 10 + j] = sub_next[j // 2, j % 2]
+        rows[i, k + 14 + j] = diag_next[j // 2, j % 2]
+    rows[i, k + 8] = rhs_r[0]
+    rows[i, k + 9] = rhs_r[1]
+    rows[i, k + 18] = rhs_next[0]
+    rows[i, k + 19] = rhs_next[1]
+    rows[i, k + 20] = wp.float64(tied)
+
+
+@wp.func
+def stored_block(rows: wp.array2d(dtype=wp.float64), i: int, k: int):
+    """The 2x2 block stored row-major at rows[i, k:k + 4]."""
+    return wp.mat22d(rows[i, k], rows[i, k + 1], rows[i, k + 2], rows[i, k + 3])
+
+
+@wp.func
+def stored_wall_rows(rows: wp.array2d(dtype=wp.float64), i: int, r: int):
+    """Cell r's :func:`wall_cell_rows` as :func:`store_wall_rows` left them."""
+    k = WALL_ROW_VALUES * r
+    return (
+        stored_block(rows, i, k),
+        stored_block(rows, i, k + 4),
+        wp.vec2d(rows[i, k + 8], rows[i, k + 9]),
+        stored_block(rows, i, k + 10),
+        stored_block(rows, i, k + 14),
+        wp.vec2d(rows[i, k + 18], rows[i, k + 19]),
+        int(rows[i, k + 20]),
+    )
+
+
+@wp.func
+def wall_sweep(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    stored: int,
+):
+    """One block Thomas solve of the two fields' nodal (theta, theta_w) [K] into theta[i, :2 n]
+    (n nodes), the modified super-diagonal blocks in scratch[i, :4 n], each cell's rows
+    (:func:`wall_cell_rows` at the previous iterate in scratch[i, 4 n:5 n]) computed here, or
+    with ``stored`` read from rows[i, :] (:func:`store_wall_rows`: computed by a thread per
+    cell, the same numbers). Row r: Sub Y_{r-1} + Diag Y_r + Sup Y_{r+1} = Rhs, the left
+    cell's terms carried from the previous row."""
+    n = count * cells + 1
+    zero = wp.float64(0.0)
+    sub = wp.mat22d()
+    diag_l = wp.mat22d()
+    rhs_l = wp.vec2d()
+    c_prev = wp.mat22d()
+    d_prev = wp.vec2d()
+    tied_l = int(0)
+    for r in range(n):
+        diag_r = wp.mat22d()
+        sup = wp.mat22d()
+        rhs_r = wp.vec2d()
+        sub_next = wp.mat22d()
+        diag_next = wp.mat22d()
+        rhs_next = wp.vec2d()
+        tied_r = int(0)
+        if r < n - 1:
+            if stored != 0:
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next, tied_r = stored_wall_rows(rows, i, r)
+            else:
+                diag_r, sup, rhs_r, sub_next, diag_next, rhs_next, tied_r = wall_cell_rows(
+                    params, flags, gas, i, first, cells, fitted, r, scratch[i, 4 * n + r], scratch[i, 4 * n + r + 1]
+                )
+        sb = sub
+        dg = diag_l + diag_r - gas_block(end_sink(params, i, first, count, r, n))
+        sp = sup
+        rh = rhs_l + rhs_r
+        if tied_l + tied_r != 0:
+            # the wall at the gas temperature here: one balance of both fields (the
+            # wall's row added to the gas's) and theta_w = theta
+            sb = wp.mat22d(sb[0, 0] + sb[1, 0], sb[0, 1] + sb[1, 1], zero, zero)
+            sp = wp.mat22d(sp[0, 0] + sp[1, 0], sp[0, 1] + sp[1, 1], zero, zero)
+            dg = wp.mat22d(dg[0, 0] + dg[1, 0], dg[0, 1] + dg[1, 1], wp.float64(-1.0), wp.float64(1.0))
+            rh = wp.vec2d(rh[0] + rh[1], zero)
+        inv = wp.inverse(dg - sb @ c_prev)
+        c_prev = inv @ sp
+        d_prev = inv @ (rh - sb @ d_prev)
+        for j in range(4):
+            scratch[i, 4 * r + j] = c_prev[j // 2, j % 2]
+        theta[i, r] = d_prev[0]
+        theta[i, n + r] = d_prev[1]
+        sub = sub_next
+        diag_l = diag_next
+        rhs_l = rhs_next
+        tied_l = tied_r
+    for rr in range(n - 1):
+        r = n - 2 - rr
+        c = stored_block(scratch, i, 4 * r)
+        y = wp.vec2d(theta[i, r], theta[i, n + r]) - c @ wp.vec2d(theta[i, r + 1], theta[i, n + r + 1])
+        theta[i, r] = y[0]
+        theta[i, n + r] = y[1]
+
+
+@wp.func
+def wall_step(
+    params: wp.array2d(dtype=wp.float64),
+    flags: wp.array2d(dtype=wp.int32),
+    gas: wp.array(dtype=wp.float64),
+    i: int,
+    first: int,
+    count: int,
+    cells: int,
+    fitted: int,
+    nonlin: int,
+    tol: wp.float64,
+    theta: wp.array2d(dtype=wp.float64),
+    scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
+    stored: int,
+):
+    """One solve of :func:`solve_heat_wall` on set i: the current iterate of both fields kept
+    in scratch[i, 4 n:6 n], one :func:`wall_sweep` (``rows``, ``stored`` as there) from it;
+    returns 1 for a linear set, else when the largest nodal change of both fields is at most
+    ``tol`` times their largest excess."""
+    n = count * cells + 1
+    for r in range(2 * n):
+        scratch[i, 4 * n + r] = theta[i, r]
+    wall_sweep(params, flags, gas, i, first, count, cells, fitted, theta, scratch, rows, stored)
+    converged = int(1)
+    if nonlin != 0:
+        change = wp.float64(0.0)
+        size = wp.float64(0.0)
+        for r in range(2 * n):
+            change = wp.max(change, wp.abs(theta[i, r] - scratch[i, 4 * n + r]))
+            size = wp.max(size, wp.abs(theta[i, r]))
+        if change > tol * size:
+            converged = 0
+    return converged
+
+
 @wp.func
 def solve_heat_wall(
     params: wp.array2d(dtype=wp.float64),
@@ -1049,103 +1255,23 @@ def solve_heat_wall(
     tol: wp.float64,
     theta: wp.array2d(dtype=wp.float64),
     scratch: wp.array2d(dtype=wp.float64),
+    rows: wp.array2d(dtype=wp.float64),
 ):
     """Nodal theta [K] (columns 0..nodes-1) and theta_w [K] (columns nodes..2 nodes-1) of a
     set whose wall is a field of its own in some segment (the comment block above): block
-    Thomas on the two fields; ``scratch`` (6 x nodes columns) holds the modified
-    super-diagonal blocks and the previous iterate. One solve for a linear set; with a
-    temperature-dependent effect (``nonlin``), iterations as :func:`solve_heat_nonlinear`'s
-    from the start iterate in theta[i, :2 nodes] on both fields (Kirchhoff cells where the
-    wall is at the gas temperature, the two-field cells' coefficients at their mean gas
-    temperature)."""
-    n = count * cells + 1
-    zero = wp.float64(0.0)
+    Thomas on the two fields (:func:`wall_step`); ``scratch`` (6 x nodes columns) holds the
+    modified super-diagonal blocks and the previous iterate. One solve for a linear set;
+    with a temperature-dependent effect (``nonlin``), iterations as
+    :func:`solve_heat_nonlinear`'s from the start iterate in theta[i, :2 nodes] on both
+    fields (Kirchhoff cells where the wall is at the gas temperature, the two-field cells'
+    coefficients at their mean gas temperature). A thread per set runs them all here;
+    :func:`tawarp.kernels.forward.heat_rows_kernel` and
+    :func:`tawarp.kernels.forward.picard_kernel` run the same iterations with a thread per
+    cell computing its rows (``rows``, unread here)."""
     done = int(0)
-    for it in range(max_iter):
+    for _it in range(max_iter):
         if done == 0:
-            for r in range(2 * n):
-                scratch[i, 4 * n + r] = theta[i, r]
-            # row r: Sub Y_{r-1} + Diag Y_r + Sup Y_{r+1} = Rhs, the left cell's terms carried
-            sub = wp.mat22d()
-            diag_l = wp.mat22d()
-            rhs_l = wp.vec2d()
-            c_prev = wp.mat22d()
-            d_prev = wp.vec2d()
-            tied_l = int(0)
-            for r in range(n):
-                diag_r = wp.mat22d()
-                sup = wp.mat22d()
-                rhs_r = wp.vec2d()
-                sub_next = wp.mat22d()
-                diag_next = wp.mat22d()
-                rhs_next = wp.vec2d()
-                tied_r = int(0)
-                if r < n - 1:
-                    s = first + r // cells
-                    d = seg_value(params, i, s, LENGTH) / wp.float64(cells)
-                    Rc = contact_at(params, i, s, (s - first) * cells, r % cells)
-                    tl = scratch[i, 4 * n + r]
-                    tr = scratch[i, 4 * n + r + 1]
-                    seg_nonlin = segment_nonlinear(params, i, s)
-                    if wall_field_on(params, i, s) != 0:
-                        P, M, k, sigma = wall_modes(params, flags, gas, i, s, wp.float64(0.5) * (tl + tr), seg_nonlin)
-                        A, B, e = wall_cell_blocks(P, k, sigma, d, fitted)
-                        diag_r, sup, rhs_r, sub_next, diag_next, rhs_next = contact_blocks(A, B, e, Rc)
-                    else:
-                        tied_r = 1
-                        x0 = zero
-                        x1 = zero
-                        x2 = zero
-                        x3 = zero
-                        x4 = zero
-                        x5 = zero
-                        if seg_nonlin != 0:
-                            x0, x1, x2, x3, x4, x5 = kirchhoff_rows(params, flags, gas, i, s, d, fitted, Rc, tl, tr)
-                        else:
-                            x0, x1, x2, x3, x4, x5 = linear_rows(params, flags, gas, i, s, d, fitted, Rc)
-                        diag_r = gas_block(x0)
-                        sup = gas_block(x1)
-                        rhs_r = wp.vec2d(x2, zero)
-                        sub_next = gas_block(x3)
-                        diag_next = gas_block(x4)
-                        rhs_next = wp.vec2d(x5, zero)
-                sb = sub
-                dg = diag_l + diag_r - gas_block(end_sink(params, i, first, count, r, n))
-                sp = sup
-                rh = rhs_l + rhs_r
-                if tied_l + tied_r != 0:
-                    # the wall at the gas temperature here: one balance of both fields (the
-                    # wall's row added to the gas's) and theta_w = theta
-                    sb = wp.mat22d(sb[0, 0] + sb[1, 0], sb[0, 1] + sb[1, 1], zero, zero)
-                    sp = wp.mat22d(sp[0, 0] + sp[1, 0], sp[0, 1] + sp[1, 1], zero, zero)
-                    dg = wp.mat22d(dg[0, 0] + dg[1, 0], dg[0, 1] + dg[1, 1], wp.float64(-1.0), wp.float64(1.0))
-                    rh = wp.vec2d(rh[0] + rh[1], zero)
-                inv = wp.inverse(dg - sb @ c_prev)
-                c_prev = inv @ sp
-                d_prev = inv @ (rh - sb @ d_prev)
-                for j in range(4):
-                    scratch[i, 4 * r + j] = c_prev[j // 2, j % 2]
-                theta[i, r] = d_prev[0]
-                theta[i, n + r] = d_prev[1]
-                sub = sub_next
-                diag_l = diag_next
-                rhs_l = rhs_next
-                tied_l = tied_r
-            for rr in range(n - 1):
-                r = n - 2 - rr
-                c = wp.mat22d(scratch[i, 4 * r], scratch[i, 4 * r + 1], scratch[i, 4 * r + 2], scratch[i, 4 * r + 3])
-                y = wp.vec2d(theta[i, r], theta[i, n + r]) - c @ wp.vec2d(theta[i, r + 1], theta[i, n + r + 1])
-                theta[i, r] = y[0]
-                theta[i, n + r] = y[1]
-            done = 1
-            if nonlin != 0:
-                change = zero
-                size = zero
-                for r in range(2 * n):
-                    change = wp.max(change, wp.abs(theta[i, r] - scratch[i, 4 * n + r]))
-                    size = wp.max(size, wp.abs(theta[i, r]))
-                if change > tol * size:
-                    done = 0
+            done = wall_step(params, flags, gas, i, first, count, cells, fitted, nonlin, tol, theta, scratch, rows, 0)
 
 
 @wp.func
@@ -1182,10 +1308,12 @@ def solve_heat(
     columns (the wall's excess in the second half) and scratch 6 x nodes, else the set's
     theta is NaN.
 
-    With ``defer``, a set of the single-field iterations is left to
+    With ``defer``, a set that iterates is left to
     :func:`tawarp.kernels.forward.heat_rows_kernel` and
     :func:`tawarp.kernels.forward.picard_kernel` (its start iterate untouched): returns 1
-    for such a set, else 0 (``rows``: those kernels' table, unread here)."""
+    for a set of the single-field iterations, 2 for one of the two-field iterations where
+    ``rows`` (those kernels' table, unread here) has :data:`WALL_ROW_VALUES` columns a
+    cell, else 0."""
     n_nodes = count * cells + 1
     nonlin = int(0)
     wall = int(0)
@@ -1199,8 +1327,12 @@ def solve_heat(
         if theta.shape[1] < 2 * n_nodes or scratch.shape[1] < 6 * n_nodes:
             for r in range(theta.shape[1]):
                 theta[i, r] = wp.float64(wp.nan)
+        elif nonlin != 0 and defer != 0 and rows.shape[1] >= WALL_ROW_VALUES * (n_nodes - 1):
+            deferred = 2
         else:
-            solve_heat_wall(params, flags, gas, i, first, count, cells, fitted, nonlin, max_iter, tol, theta, scratch)
+            solve_heat_wall(
+                params, flags, gas, i, first, count, cells, fitted, nonlin, max_iter, tol, theta, scratch, rows
+            )
     elif nonlin != 0:
         if defer != 0:
             deferred = 1

@@ -1,7 +1,8 @@
 """The temperature-dependent heat solve with a thread per heat cell
 (``ForwardSettings.cell_threads``, a GPU's default: :func:`tawarp.kernels.forward.heat_rows_kernel`
 and :func:`tawarp.kernels.forward.picard_kernel`) against a thread per set iterating over its
-cells (:func:`tawarp.kernels.heat.solve_heat_nonlinear`): the same functions on the same
+cells (:func:`tawarp.kernels.heat.solve_heat_nonlinear`, for the wall as a field of its own
+:func:`tawarp.kernels.heat.solve_heat_wall`): the same functions on the same
 numbers, so on the CPU the excesses and T-matrices are the same bit for bit, whatever the
 start, the iteration cap or the mix of sets in the batch (a GPU's compiler may fuse the
 stored rows' products differently: rounding)."""
@@ -74,11 +75,12 @@ def test_a_thread_per_cell_gives_the_excesses_of_a_thread_per_set(name, device):
     assert same(*warm, device)
 
 
+@pytest.mark.parametrize("name", ["contact", "wall"])
 @pytest.mark.parametrize("most", [1, 2, PICARD_BURST, PICARD_BURST + 1])
-def test_a_thread_per_cell_stops_at_the_iteration_cap_of_a_thread_per_set(most):
+def test_a_thread_per_cell_stops_at_the_iteration_cap_of_a_thread_per_set(most, name):
     # a cap below the iterations the sets need stops each set after as many solves in both
     # (the cap across a burst's end too): the same unconverged excess
-    core, values = ALL["contact"]()
+    core, values = ALL[name]()
     eng, table = batch(core, values)
     per_set, per_cell = engines(core, eng.names, picard_iterations=most)
     full = Engine(core, FREQS, eng.names, ForwardSettings(device="cpu", cells=12, cpu_threads=1))

@@ -47,6 +47,7 @@ from .validity import (
 from ..progress import progress_bar
 from ..kernels import batch as kbatch
 from ..kernels import forward as kf
+from ..kernels import heat as kheat
 from ..kernels import layout
 from ..kernels.acoustics import PointCoefficients
 from ..kernels.pore_table import circular_table
@@ -347,7 +348,8 @@ class ForwardSettings:
     with a thread per heat cell (:func:`tawarp.kernels.forward.heat_rows_kernel`; None: on a
     GPU, where one thread per set iterating over its cells was most of a loop's device time;
     the same numbers to rounding; the cells' rows take 48 bytes a cell, 4.6 kB a set of 97
-    heat nodes, 0.3 GB at the default ``chunk``); ``device``.
+    heat nodes, 0.3 GB at the default ``chunk``, and 168 bytes a cell where the wall may be a
+    field of its own, 1.1 GB at the default ``chunk``); ``device``.
     When a temperature-dependent effect (``fields.NONLINEAR_FIELDS``) is on in the core or
     varies in the batch, the heat grid has at least ``nonlinear_heat_cells`` cells per
     segment and the heat solve iterates (Kirchhoff cells, kernels/heat.py: at most ``picard_iterations`` solves,
@@ -505,6 +507,9 @@ class Engine:
         )
         # nodal excesses per set: the gas's, then the wall's where it is a field of its own
         self.theta_columns = self.nodes * (2 if wall_field(core, self.names) else 1)
+        # the stored rows of a heat cell where the heat solve iterates a thread per cell: the
+        # two fields' blocks where the wall may be a field of its own
+        self.row_values = int(kheat.WALL_ROW_VALUES if self.theta_columns > self.nodes else kf.ROW_VALUES)
         dev = self.device
         self.base = wp.array(base_table(core), dtype=wp.float64, device=dev)
         self.flags = wp.array(structure_flags(core), dtype=wp.int32, device=dev)
@@ -611,7 +616,7 @@ class Engine:
             # a graph being captured (a design search's generation) cannot wait on a count:
             # there every set iterates in the heat kernel's thread
             if self.cell_threads and n and not wp.get_device(self.device).is_capturing:
-                rows = wp.empty((n, kf.ROW_VALUES * (self.nodes - 1)), dtype=wp.float64, device=self.device)
+                rows = wp.empty((n, self.row_values * (self.nodes - 1)), dtype=wp.float64, device=self.device)
                 pending = wp.empty(n, dtype=wp.int32, device=self.device)
             s = self.settings
             wp.launch(
