@@ -501,6 +501,16 @@ def test_distinct_serves_the_columns_it_computed_before_bit_for_bit(monkeypatch)
     np.testing.assert_array_equal(T[column], alone[alone_column])
 
 
+def same_partition(first, column, key):
+    """``distinct_columns``' (first, column) of ``key`` against ``np.unique`` along the axis:
+    the same groups of equal columns, each named by its first column, in any order."""
+    _, want_first, want_column = np.unique(key, axis=1, return_index=True, return_inverse=True)
+    want_column = want_column.reshape(-1)
+    assert first.size == want_first.size
+    # a column's group is named by the same first column both ways
+    np.testing.assert_array_equal(first[column], want_first[want_column])
+
+
 def test_distinct_columns_are_numpys_unique_columns():
     # a batch's columns: repeats (a set asked for twice), -0.0 beside 0.0 (equal values),
     # columns that differ in a late row only, and rows alike in every column (one of 0.0
@@ -512,10 +522,33 @@ def test_distinct_columns_are_numpys_unique_columns():
     base[1] = 2.5
     base[4] = np.where(np.arange(40) % 2, 0.0, -0.0)
     key = base[:, rng.integers(0, 40, 120)]
-    _, first, column = np.unique(key, axis=1, return_index=True, return_inverse=True)
-    got_first, got_column = distinct_columns(key)
-    np.testing.assert_array_equal(got_first, first)
-    np.testing.assert_array_equal(got_column, column.reshape(-1))
+    first, column = distinct_columns(key)
+    same_partition(first, column, key)
+    # the heat inputs (the first row) in order
+    assert np.all(np.diff(key[0, first]) >= 0.0)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_distinct_columns_keep_apart_what_differs_by_a_step(seed):
+    # forward-difference neighbours (one value 1e-6 relative up) of points whose values
+    # span many decades (a temperature of 293 K beside a pore radius of 4e-5 m and a
+    # conductance that moves by 1e-9 of itself), each asked for several times: no two sets
+    # that differ merged, no copies left apart
+    rng = np.random.default_rng(seed)
+    point = np.array([40.0, 293.15, 1.01325e5, 3.8e-5, 0.69, 1.09, 120.0, 2e-4])
+    points = point[:, None] * (1.0 + 1e-9 * rng.integers(0, 3, (point.size, 6)))
+    # a row that spans two decades: a step of 1e-6 of its least value is 1e-8 of its range
+    points[4] = np.geomspace(0.01, 1.0, 6)
+    sets = [points]
+    for j in range(1, point.size):
+        step = points.copy()
+        step[j] *= 1.0 + 1e-6
+        sets.append(step)
+    table = np.concatenate(sets, axis=1)
+    key = table[:, rng.integers(0, table.shape[1], 4 * table.shape[1])]
+    first, column = distinct_columns(key)
+    same_partition(first, column, key)
+
     # every row alike: one distinct column, the first
     got_first, got_column = distinct_columns(np.ones((3, 6)))
     np.testing.assert_array_equal(got_first, [0])
