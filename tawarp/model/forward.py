@@ -140,8 +140,9 @@ def distinct_columns(key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     they lie side by side and a comparison of neighbours in full tells them apart: one sort
     of two keys, where a lexicographic sort of every row (``np.unique(key, axis=1)``, or
     ``np.lexsort``) takes one pass a row. Two columns that differ can project alike only
-    by rounding (each row is taken from its least value, scaled to its range); they are then kept apart, at
-    worst a copy computed twice, never two columns merged. A column with NaN is distinct."""
+    by rounding (each row is taken from its least value, scaled to its range); they are
+    then kept apart, at worst a copy computed twice, never two columns merged. A column
+    with NaN is distinct."""
     n = key.shape[1]
     lead = key[0] if key.shape[0] else np.zeros(n)
     if n:
