@@ -301,7 +301,8 @@ def test_value_layout_is_param_assign_bit_for_bit(block_bytes, monkeypatch):
     # the vectorized parameter values of a group of fits equal Param.assign's, parameter by
     # parameter in order, to the bit: log and linear parameters, ties, two parameters
     # setting one name (the last wins), a parameter with its own expand, and names a fit
-    # leaves at the base value; formed in one block or in blocks of two sets
+    # leaves at its own base value (each fit's core differs); formed in one block or in
+    # blocks of two sets
     from tawarp.fit import problems
     from tawarp.fit.problems import ValueLayout
 
@@ -328,14 +329,21 @@ def test_value_layout_is_param_assign_bit_for_bit(block_bytes, monkeypatch):
         X_all[k0 : k0 + n, : X.shape[1]] = X
         k0 += n
     set_fits = np.repeat([c_ for c_, _ in requests], sizes)
-    got = ValueLayout(base, list(range(len(fits))), fits).table(set_fits, X_all)
+    # each fit's own base: its core's value of a name differs from the others'
+    rows = np.array([list(base.values())] * len(fits)) + np.arange(len(fits))[:, None]
+    got = ValueLayout(tuple(base), rows, list(range(len(fits))), fits).table(set_fits, X_all)
     assert list(got) == list(base) and len(got) == len(base) and "d.u" in got and "q" not in got
+    # the names the fits set alone, in another order: those rows of the whole table
+    names = ("e.w", "c.z", "a.x", "b.y")
+    part = ValueLayout(tuple(base), rows, list(range(len(fits))), fits).table(set_fits, X_all, names)
+    assert tuple(part) == names
+    np.testing.assert_array_equal(part.array, got.array[[4, 2, 0, 1]])
     k0 = 0
     for (c_, X), n in zip(requests, sizes):
         own = {}
         for j, par in enumerate(fits[c_]):
             par.assign(par.value(X[:, j]), own)
-        for name, v in base.items():
+        for name, v in zip(base, rows[c_]):
             np.testing.assert_array_equal(got[name][k0 : k0 + n], np.broadcast_to(own.get(name, v), (n,)))
         k0 += n
 

@@ -12,7 +12,7 @@ from test_fit_lm import ExpKind, linear_case
 
 from tawarp.fit import lockstep
 from tawarp.fit.lockstep import Together, run_together
-from tawarp.fit.problems import Families, Sets, _absent, fit_batch, run_sets
+from tawarp.fit.problems import Families, FitCall, KindProblems, Sets, _absent, fit_batch, run_sets
 from tawarp.loop import default_base_params
 from tawarp.measure import TMatrixKind
 from tawarp.measure.files import TMatrixData
@@ -171,3 +171,43 @@ def test_a_name_other_jobs_set_takes_the_core_value_or_the_effect_off():
         "stack.porosity_gradient": 0.0,
     }
     assert _absent(job, {"stack.frame_wave_speed"}) is None
+
+
+def test_fits_of_one_family_take_one_table_per_structure(family):
+    # the fits of several calls whose kinds share a family form one parameter table per
+    # structure (not one per call), each set at its own call's fixed values and its own
+    # core's values elsewhere: the model values each call's fits get alone
+    a, b = family
+    lib = {e.name: e for e in tmatrix_library(a.core)}
+    base = default_base_params(a)
+
+    def specs(seed):
+        rng = np.random.default_rng(seed)
+        out = []
+        for name in (None, "plane_offsets", "porosity_gradient"):
+            effect = lib.get(name)
+            params = base + (list(effect.params) if effect else [])
+            out.append((params, effect, rng.uniform(-0.2, 0.2, len(params))))
+        return out
+
+    fixed_a = {"hot_hx.porosity": 0.55}
+    calls = [FitCall(a, specs(1), fixed_a), FitCall(b, specs(2))]
+    merged = KindProblems.merged(calls, Families([a, b]))
+    assert len(merged.groups) == 2  # the core's structure and the porosity gradient's
+    rng = np.random.default_rng(3)
+    requests = [(c, rng.uniform(-0.3, 0.3, (2, merged.p[c]))) for c in range(len(merged.specs))]
+    got = merged.predict(requests)
+    alone = [KindProblems(call.kind, call.specs, call.fixed) for call in calls]
+    for c, (_, X) in enumerate(requests):
+        own = alone[c // 3].predict([(c % 3, X)])[0]
+        assert np.max(np.abs(got[c] - own)) <= 1e-12 * np.max(np.abs(own))
+
+    # the names a launch carries choose its engine: a launch of the first call's fits alone
+    # carries that call's names, as its own batch does, not the other call's too
+    def names(lm, fits):
+        X = np.zeros((len(fits), lm.zlo.shape[1]))
+        return {frozenset(job.values) for job in lm._jobs(np.array(fits), np.ones(len(fits), dtype=int), X, False)[0]}
+
+    assert names(merged, [0, 1, 2]) == names(alone[0], [0, 1, 2])
+    (first,), (second,), (both,) = names(merged, [0]), names(merged, [3]), names(merged, [0, 3])
+    assert both == first | second and "hot_hx.porosity" in first and "hot_hx.porosity" not in second

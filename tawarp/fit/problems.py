@@ -103,7 +103,8 @@ class KindProblems:
     fit's others at their start values), a structural effect has its own.
 
     :meth:`merged` batches the fits of several kinds (:class:`FitCall`), each on its own
-    data: the kinds of one family (:class:`Families`) share their launches too.
+    data: the kinds of one family (:class:`Families`) share their launches too, each
+    structure's sets in one parameter table (:meth:`_group`).
     """
 
     def __init__(
@@ -179,22 +180,7 @@ class KindProblems:
         for size, kinds in stacked.items():
             ks = [k for _, k in kinds.values()]
             self.data_y[size] = (np.stack([k.y for k in ks]), np.stack([k.w.T for k in ks]))
-        self.groups: dict = {}
-        #: per fit, its group's key: (its part, its structural effect or None)
-        self.group_of = []
-        for c, (_, effect, _) in enumerate(self.specs):
-            key = (self.part[c], effect.name if effect is not None and effect.transform else None)
-            self.groups.setdefault(key, []).append(c)
-            self.group_of.append(key)
-        #: per group: the values every set takes where its fit does not set them
-        self.base_vals: dict = {}
-        self._layouts: dict = {}  # per group, its ValueLayout (_layout)
-        for key, members in self.groups.items():
-            v = dict(parts[key[0]][2] or {})
-            for c in members:
-                for par in self.specs[c][0]:
-                    par.assign(par.start, v)
-            self.base_vals[key] = v
+        self._group(parts, families)
         #: each fit's problem model: scaling, fit range, priors, noise (s^2 = 1 with sigma)
         self.models = [
             ProblemModel.from_params(params, pri, not kind.has_sigma)
@@ -212,14 +198,65 @@ class KindProblems:
                 self.prior_mu[c, : m.p], self.prior_isd[c, : m.p] = m.prior_mu, 1.0 / m.prior_sd
         #: per slot of the last :meth:`evaluate`: (J (2 len(rows), p_c) in x, model values (y.size,))
         self.last: list = []
-        #: per fit, its evaluation of lowest cost so far: (cost, padded z, J, model values), or
-        #: (cost, padded z) where it was reduced on the device; the LM accepts a trial only
-        #: where it lowers the cost, so this is the one at its solution
+        #: per fit, its evaluation of lowest cost so far on the host: (cost, padded z, J, model
+        #: values); the LM accepts a trial only where it lowers the cost, so this is the one at
+        #: its solution (fits reduced on the device keep none: :meth:`at_solutions` evaluates them)
         self.best: dict = {}
         #: the kinds predict on a GPU and reduce there (:attr:`MeasurementKind.reduces_on_device`):
         #: :meth:`evaluate` forms the fits' normal equations where the model values are
         self.on_device = all(k.reduces_on_device and k.predicts_on_gpu() for k in self.kinds)
         self._on_device: dict = {}  # per device, :meth:`_device_data`
+
+    def _group(self, parts: list[tuple], families: "Families"):
+        """The fits' launch groups: the fits of one family of kinds (:class:`Families`) and
+        one structure predict as one :class:`Sets` (loops run together: one table for all
+        their cores, where one a loop cost the host a table's overhead each). A set's values
+        where its fit does not set them: its part's (its call's ``fixed`` and the start
+        values of the parameters of the part's fits of that structure), else its kind's core
+        value or the field's neutral value (:func:`_absent`). A part with a name that has
+        neither keeps a group of its own, as :func:`run_sets` predicts it alone."""
+        own: dict = {}  # (part, structure) -> {name: value}
+        of_fit = []
+        for c, (params, effect, _) in enumerate(self.specs):
+            key = (self.part[c], effect.name if effect is not None and effect.transform else None)
+            v = own.get(key)
+            if v is None:
+                v = own[key] = dict(parts[key[0]][2] or {})
+            for par in params:
+                par.assign(par.start, v)
+            of_fit.append(key)
+        by_family: dict = {}
+        for key in own:
+            fam = families.of(parts[key[0]][0])
+            by_family.setdefault((id(fam), key[1]), (fam, []))[1].append(key)
+        launch_of: dict = {}  # (part, structure) -> its launch group's key
+        #: per launch group: its names and the values of each (part, structure) in it
+        self._bases: dict = {}
+        for (fam_id, structure), (fam, keys) in by_family.items():
+            names = tuple(dict.fromkeys([n for k in keys for n in own[k]] + list(fam.differ)))
+            rows = {}
+            for k in keys:
+                missing = frozenset(names).difference(own[k])
+                core = getattr(parts[k[0]][0], "core", None)
+                rest = {} if not missing else None if core is None else _absent_values(core, missing)
+                if rest is None:  # a name this part's core cannot fill: a launch of its own
+                    launch_of[k] = k
+                    self._bases[k] = (tuple(own[k]), {k: np.array(list(own[k].values()), dtype=float)})
+                    continue
+                rows[k] = np.array([own[k][n] if n in own[k] else rest[n] for n in names], dtype=float)
+                launch_of[k] = (fam_id, structure)
+            if rows:
+                self._bases[(fam_id, structure)] = (names, rows)
+        #: per (part, structure): its own names, and its kind's family
+        self._own = {k: (frozenset(v), families.of(parts[k[0]][0])) for k, v in own.items()}
+        self.groups: dict = {}
+        #: per fit, its launch group's key
+        self.group_of = []
+        for c, key in enumerate(of_fit):
+            self.groups.setdefault(launch_of[key], []).append(c)
+            self.group_of.append(launch_of[key])
+        self._part_of = of_fit
+        self._layouts: dict = {}  # per group, its ValueLayout (_layout)
 
     def start(self) -> np.ndarray:
         """The specs' x0, padded (K, P)."""
@@ -239,8 +276,25 @@ class KindProblems:
         lay = self._layouts.get(key)
         if lay is None:
             members = self.groups[key]
-            lay = self._layouts[key] = ValueLayout(self.base_vals[key], members, [self.specs[c][0] for c in members])
+            names, rows = self._bases[key]
+            base = np.stack([rows[self._part_of[c]] for c in members]) if members else np.zeros((0, len(names)))
+            lay = self._layouts[key] = ValueLayout(names, base, members, [self.specs[c][0] for c in members])
         return lay
+
+    def _launch_names(self, names: tuple[str, ...], fits: np.ndarray) -> tuple[str, ...]:
+        """The names of a group's table (``names``) that a launch of the requests of
+        ``fits`` carries: those of the parts (calls) asked for, and the fields their
+        family's cores differ in where several parts share it or their kind is not the
+        family's (as :func:`run_sets` merges jobs): the names a launch carries choose its
+        engine (:func:`tawarp.measure.kind.get_engine`, whose heat solve iterates only
+        where a temperature-dependent field is among them), so a launch carries the same
+        names whichever other parts' fits share its table."""
+        here = {self._part_of[c] for c in fits.tolist()}
+        want = set().union(*(self._own[k][0] for k in here))
+        fam = self._own[next(iter(here))][1]
+        if len(here) > 1 or self.kinds[int(fits[0])] is not fam.kind:
+            want.update(fam.differ)
+        return tuple(n for n in names if n in want)
 
     def predict(self, requests: list) -> list:
         """[(c, X (n, p_c)), ...] -> [model values (n, rows)], one launch per structure
@@ -297,7 +351,8 @@ class KindProblems:
             if any(r is not None for r in needed):
                 rows = [r for k, r in zip(n.tolist(), needed) for _ in range(k)]
             effect = self.specs[c0][1] if key[1] is not None else None
-            table = self._layout(key).table(set_fits, X[rows_of])
+            layout = self._layout(key)
+            table = layout.table(set_fits, X[rows_of], self._launch_names(layout.names, fits[todo]))
             jobs.append(Sets(self.kinds[c0], table, int(n.sum()), effect, rows, on_device))
             members.append(todo)
         return jobs, members, at
@@ -327,7 +382,7 @@ class KindProblems:
         prior_cost = np.sum(d**2, axis=1)
         if self.on_device and below is None and not host:
             cost, raw, g, H = self._reduced_on_device(pid, z, step)
-            self.last = [None] * n
+            self.last = []  # no J or model values on the host: nothing for best
         else:
             cost, raw, g, H = self._reduced_on_host(pid, z, step, below, prior_cost)
         cost += prior_cost
@@ -335,11 +390,8 @@ class KindProblems:
         H += isd[:, :, None] ** 2 * np.eye(P)[None]
         bad = ~(np.isfinite(cost) & np.all(np.isfinite(g), axis=1) & np.all(np.isfinite(H), axis=(1, 2)))
         cost[bad] = np.inf
-        for i, c in enumerate(pid):
+        for i, c in enumerate(pid if self.last else ()):
             if c not in self.best or cost[i] < self.best[c][0]:
-                if self.last[i] is None:  # reduced on the device: at_solutions evaluates it again
-                    self.best[c] = (cost[i], z[i].copy())
-                    continue
                 # copies: a view would keep its whole block (and launch) alive
                 J, Y = self.last[i]
                 self.best[c] = (cost[i], z[i].copy(), None if J is None else J.copy(), Y.copy())
@@ -531,9 +583,7 @@ class KindProblems:
         where the LM's iterations made it on the host (:attr:`best`, the same numbers), one
         more :meth:`evaluate` on the host for the others."""
         out = [
-            self.best[c][2:]
-            if c in self.best and len(self.best[c]) > 2 and np.array_equal(self.best[c][1], z[c])
-            else None
+            self.best[c][2:] if c in self.best and np.array_equal(self.best[c][1], z[c]) else None
             for c in range(len(z))
         ]
         stale = np.array([c for c, v in enumerate(out) if v is None], dtype=int)
@@ -557,19 +607,21 @@ def _stacked(requests: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 
 class ValueLayout:
-    """How the parameter sets of a group of fits (one structure of one kind) take their
-    model parameter values: ``base`` {name: value} where a set's fit does not set a name,
-    else the value of the fit's parameter that sets it (the last, where several do), its
-    ``start * exp(x)`` or ``start + scale x`` (:meth:`Param.value`), for every set of every
-    fit in a few array operations: with hundreds of fits of a dozen parameters a launch,
-    parameter by parameter in Python (:meth:`Param.assign`) cost the host more than the
-    rest of the launch's bookkeeping. A parameter with its own ``expand`` (a frame's ties)
-    is assigned as :meth:`Param.assign` does, after the others of its fit."""
+    """How the parameter sets of a group of fits (one structure of one family of kinds) take
+    their model parameter values: each fit's row of ``base`` (fits, names) where it does
+    not set a name, else the value of the fit's parameter that sets it (the last, where
+    several do), its ``start * exp(x)`` or ``start + scale x`` (:meth:`Param.value`), for
+    every set of every fit in a few array operations: with hundreds of fits of a dozen
+    parameters a launch, parameter by parameter in Python (:meth:`Param.assign`) cost the
+    host more than the rest of the launch's bookkeeping. A parameter with its own
+    ``expand`` (a frame's ties) is assigned as :meth:`Param.assign` does, after the others
+    of its fit."""
 
-    def __init__(self, base: dict, fits: list[int], params: list[list[Param]]):
-        self.names = tuple(base)
+    def __init__(self, names: tuple[str, ...], base: np.ndarray, fits: list[int], params: list[list[Param]]):
+        self.names = tuple(names)
         column = {k: t for t, k in enumerate(self.names)}
-        self.base = np.array([float(v) for v in base.values()])
+        #: per fit (in the order of ``fits``), the values of the names it does not set
+        self.base = np.asarray(base, dtype=float)
         #: each fit's row in this layout's tables, indexed by the fit (-1: not of the group)
         self.local = np.full(max(fits, default=-1) + 1, -1, dtype=np.int64)
         self.local[fits] = np.arange(len(fits))
@@ -597,22 +649,26 @@ class ValueLayout:
             slot, start, scale, log = zip(*sets.values())
             self.slot[at], self.start[at], self.scale[at], self.log[at] = slot, start, scale, log
 
-    def table(self, fits: np.ndarray, X: np.ndarray) -> "ValueTable":
+    def table(self, fits: np.ndarray, X: np.ndarray, names: tuple[str, ...] | None = None) -> "ValueTable":
         """{name: (sets,)} of sets of the fits ``fits`` (sets,) at the x of the rows of
-        ``X`` (sets, P) (a fit's x in its first p columns)."""
+        ``X`` (sets, P) (a fit's x in its first p columns); ``names``: those of this
+        layout's names alone (default all), each a name the fits' parameters may set."""
+        names = self.names if names is None else names
+        # each fit's rows, then the names' columns of them (a 2-D gather cost more)
+        cols = slice(None) if names == self.names else rows_in(self.names, names)
         total = fits.size
         local = self.local[fits]
-        v = np.empty((len(self.names), total))
-        step = max(1, BLOCK_BYTES // (8 * max(len(self.names), 1)))  # sets a block
+        v = np.empty((len(names), total))
+        step = max(1, BLOCK_BYTES // (8 * max(len(names), 1)))  # sets a block
         for a in range(0, total, step):
             fit = local[a : a + step]
-            slot = self.slot[fit].T  # (names, sets)
+            slot = self.slot[fit][:, cols].T  # (names, sets)
             x = X[a + np.arange(fit.size)[None, :], np.maximum(slot, 0)]
-            start, scale = self.start[fit].T, self.scale[fit].T
+            start, scale = self.start[fit][:, cols].T, self.scale[fit][:, cols].T
             with np.errstate(over="ignore", invalid="ignore"):
-                block = np.where(self.log[fit].T, start * np.exp(x), start + scale * x)
-            v[:, a : a + step] = np.where(slot >= 0, block, self.base[:, None])
-        out = ValueTable(self.names, v)
+                block = np.where(self.log[fit][:, cols].T, start * np.exp(x), start + scale * x)
+            v[:, a : a + step] = np.where(slot >= 0, block, self.base[fit][:, cols].T)
+        out = ValueTable(names, v)
         for c in np.unique(fits).tolist() if self.expanding else ():
             sets = np.flatnonzero(fits == c)
             for j, par in self.expanding.get(c, ()):
@@ -868,6 +924,12 @@ def run_sets(jobs: list[Sets], families: "Families | None" = None) -> list[np.nd
         groups.setdefault((families.of(j.kind), structure, j.on_device), []).append(i)
     out: list = [None] * len(jobs)
     for (fam, _, on_device), idx in groups.items():
+        if len(idx) == 1 and set(fam.differ).issubset(jobs[idx[0]].values):
+            # a job that holds each set's value of every field its family's cores differ in
+            # (a batch's family-wide table, KindProblems): the family's kind predicts it as it is
+            j = jobs[idx[0]]
+            out[idx[0]] = _predict(fam.kind, j.values, j.n, j.effect, j.rows, on_device)
+            continue
         merged = [i for i in idx if len(idx) > 1 or jobs[i].kind is not fam.kind]
         names = set(fam.differ).union(*(jobs[i].values for i in merged))
         fill = {i: _absent(jobs[i], names) for i in merged}
