@@ -247,8 +247,11 @@ class KindProblems:
                 launch_of[k] = (fam_id, structure)
             if rows:
                 self._bases[(fam_id, structure)] = (names, rows)
-        #: per (part, structure): its own names, and its kind's family
-        self._own = {k: (frozenset(v), families.of(parts[k[0]][0])) for k, v in own.items()}
+        #: per (part, structure), in order: its own names, and its kind's family
+        self._own = [(frozenset(v), families.of(parts[k[0]][0])) for k, v in own.items()]
+        place = {k: i for i, k in enumerate(own)}
+        #: per fit, its (part, structure)'s place in _own
+        self._own_of = np.array([place[k] for k in of_fit], dtype=np.int64)
         self.groups: dict = {}
         #: per fit, its launch group's key
         self.group_of = []
@@ -289,9 +292,9 @@ class KindProblems:
         engine (:func:`tawarp.measure.kind.get_engine`, whose heat solve iterates only
         where a temperature-dependent field is among them), so a launch carries the same
         names whichever other parts' fits share its table."""
-        here = {self._part_of[c] for c in fits.tolist()}
+        here = np.unique(self._own_of[fits]).tolist()
         want = set().union(*(self._own[k][0] for k in here))
-        fam = self._own[next(iter(here))][1]
+        fam = self._own[here[0]][1]
         if len(here) > 1 or self.kinds[int(fits[0])] is not fam.kind:
             want.update(fam.differ)
         return tuple(n for n in names if n in want)
