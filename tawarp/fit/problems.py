@@ -225,12 +225,17 @@ class KindProblems:
             for par in params:
                 par.assign(par.start, v)
             of_fit.append(key)
+        place = {k: i for i, k in enumerate(own)}  # (part, structure) -> its place in _own
+        #: per (part, structure), in order: its own names, and its kind's family
+        self._own = [(frozenset(v), families.of(parts[k[0]][0])) for k, v in own.items()]
+        #: per fit, its (part, structure)'s place in _own
+        self._own_of = np.array([place[k] for k in of_fit], dtype=np.int64)
         by_family: dict = {}
-        for key in own:
-            fam = families.of(parts[key[0]][0])
-            by_family.setdefault((id(fam), key[1]), (fam, []))[1].append(key)
+        for k, i in place.items():
+            fam = self._own[i][1]
+            by_family.setdefault((id(fam), k[1]), (fam, []))[1].append(k)
         launch_of: dict = {}  # (part, structure) -> its launch group's key
-        #: per launch group: its names and the values of each (part, structure) in it
+        #: per launch group: its names and the values of each (part, structure) in it, by its place
         self._bases: dict = {}
         for (fam_id, structure), (fam, keys) in by_family.items():
             names = tuple(dict.fromkeys([n for k in keys for n in own[k]] + list(fam.differ)))
@@ -241,24 +246,18 @@ class KindProblems:
                 rest = {} if not missing else None if core is None else _absent_values(core, missing)
                 if rest is None:  # a name this part's core cannot fill: a launch of its own
                     launch_of[k] = k
-                    self._bases[k] = (tuple(own[k]), {k: np.array(list(own[k].values()), dtype=float)})
+                    self._bases[k] = (tuple(own[k]), {place[k]: np.array(list(own[k].values()), dtype=float)})
                     continue
-                rows[k] = np.array([own[k][n] if n in own[k] else rest[n] for n in names], dtype=float)
+                rows[place[k]] = np.array([own[k][n] if n in own[k] else rest[n] for n in names], dtype=float)
                 launch_of[k] = (fam_id, structure)
             if rows:
                 self._bases[(fam_id, structure)] = (names, rows)
-        #: per (part, structure), in order: its own names, and its kind's family
-        self._own = [(frozenset(v), families.of(parts[k[0]][0])) for k, v in own.items()]
-        place = {k: i for i, k in enumerate(own)}
-        #: per fit, its (part, structure)'s place in _own
-        self._own_of = np.array([place[k] for k in of_fit], dtype=np.int64)
         self.groups: dict = {}
         #: per fit, its launch group's key
         self.group_of = []
         for c, key in enumerate(of_fit):
             self.groups.setdefault(launch_of[key], []).append(c)
             self.group_of.append(launch_of[key])
-        self._part_of = of_fit
         self._layouts: dict = {}  # per group, its ValueLayout (_layout)
 
     def start(self) -> np.ndarray:
@@ -280,7 +279,7 @@ class KindProblems:
         if lay is None:
             members = self.groups[key]
             names, rows = self._bases[key]
-            base = np.stack([rows[self._part_of[c]] for c in members]) if members else np.zeros((0, len(names)))
+            base = np.stack([rows[i] for i in self._own_of[members].tolist()]) if members else np.zeros((0, len(names)))
             lay = self._layouts[key] = ValueLayout(names, base, members, [self.specs[c][0] for c in members])
         return lay
 
