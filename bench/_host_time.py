@@ -49,7 +49,7 @@ TIMED = {
         "_noise_scale_group",
     ],
     "tawarp.fit.lockstep": ["Together._settle"],
-    "tawarp.fit.lm": ["levenberg_marquardt", "newton_decrement"],
+    "tawarp.fit.lm": ["levenberg_marquardt", "stop_tests"],
     "tawarp.fit.problem_model": ["covariances"],
     "tawarp.fit.problems": [
         "_fit_together",

@@ -254,6 +254,137 @@ def test_dropped_starts_leave_the_others_alone():
         assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
 
 
+def _bowls(rng, n, p):
+    """n quadratic bowls F = (z - m)^T A (z - m) + c: each point's Gauss-Newton model is
+    exact, so the minimum it predicts is the bowl's own m."""
+    B = rng.standard_normal((n, p, p))
+    return B @ np.swapaxes(B, 1, 2) + 0.5 * np.eye(p)
+
+
+def _at(A, m, z, c=0.0):
+    """z, g, H and cost at z of the bowl (A, m) whose minimum costs c."""
+    d = z - m
+    return z, A @ d, A, float(d @ A @ d) + c
+
+
+def test_starts_meet_where_their_models_predict_one_minimum():
+    # stop_tests on exact quadratic bowls, where each start's Gauss-Newton model is its
+    # bowl: a start meets its problem's lead (the lowest cost of the open slots) where the
+    # predicted minima lie within merge sd in the lead's metric, at costs within MEET_COST,
+    # and the lead's model predicts the start's cost. Each slot below fails one of these or
+    # passes them all; the lead, a start without a problem (label -1) and one whose H is
+    # not positive definite never stop. The decrements it returns beside are
+    # newton_decrement's.
+    from types import SimpleNamespace
+
+    from tawarp.fit.lm import MEET_COST, newton_decrement, stop_tests
+
+    rng = np.random.default_rng(5)
+    p = 3
+    A = _bowls(rng, 6, p)
+    m = rng.uniform(-1.0, 1.0, p)
+    u = rng.standard_normal(p)
+
+    def sd(Ak, s):  # a step of s sd along u in the metric of Ak
+        return s * u / np.sqrt(u @ Ak @ u)
+
+    half = m + sd(A[1], 0.5)
+    rows = [
+        _at(A[0], m, m + 0.01),  # 0: problem 0's lead
+        _at(A[0], m, m + sd(A[0], 40.0)),  # 1: its bowl, 40 sd away: meets
+        _at(A[1], m, m - 0.01),  # 2: problem 1's lead
+        _at(A[1], half, half + 0.01),  # 3: a minimum 0.5 sd off: meets at merge 10, not 0.4
+        _at(A[2], m, m + 0.02),  # 4: problem 2's lead
+        _at(A[2], m, m + 0.3, c=2.0 * MEET_COST),  # 5: one place, another cost: stays
+        _at(A[3], m, m),  # 6: problem 3's lead
+        _at(4.0 * A[3], m, m + sd(A[3], 2.0)),  # 7: one minimum, a steeper cost: stays
+        _at(A[4], m, m + 0.05),  # 8: no problem
+        _at(A[4], m, m + 0.02),  # 9: problem 4's lowest, dropped: not open
+        _at(A[4], m, m + 0.03),  # 10: problem 4's lead then
+        _at(A[4], m, m + 0.5),  # 11: meets 10
+        _at(A[5], m, m + 0.04),  # 12: problem 5's lead
+        _at(-A[5], m, m + 0.6),  # 13: H not positive definite
+    ]
+    z, g, H, cost = (np.array(a) for a in zip(*rows))
+    cost[13] = cost[12] + 1.0
+    starts_of = np.array([0, 0, 1, 1, 2, 2, 3, 3, -1, 4, 4, 4, 5, 5])
+    open_ = np.ones(z.shape[0], dtype=bool)
+    open_[9] = False
+    lo, hi = np.full(z.shape, -np.inf), np.full(z.shape, np.inf)
+    slots = np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 10, 11, 12, 13])
+    Q = z.shape[0]
+    dec, got = stop_tests(z, g, H, lo, hi, cost, slots, starts_of, np.full(Q, 10.0), open_)
+    assert dict(zip(slots.tolist(), got.tolist())) == {
+        0: False, 1: True, 2: False, 3: True, 4: False, 5: False, 6: False, 7: False,
+        8: False, 10: False, 11: True, 12: False, 13: False,
+    }  # fmt: skip
+    host = lambda a: SimpleNamespace(numpy=lambda: a)  # noqa: E731
+    state = SimpleNamespace(z=host(z), at_z=SimpleNamespace(g=host(g), H=host(H)))
+    want = newton_decrement(state, slots, lo[slots], hi[slots])
+    assert np.isinf(want[slots == 13][0]) and np.array_equal(np.isinf(dec), np.isinf(want))
+    assert np.allclose(dec[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-12, atol=0.0)
+    _, none = stop_tests(z, g, H, lo, hi, cost, slots, starts_of, np.zeros(Q), open_)
+    assert not none.any()
+    _, tight = stop_tests(z, g, H, lo, hi, cost, slots, starts_of, np.full(Q, 0.4), open_)
+    assert tight.tolist() == [s in (1, 11) for s in slots.tolist()]
+
+
+class TwoWells:
+    """LMProblems of r = [(z^2 - 4) / 0.1, 0.1 (z - 1)]: minima near z = +2 and z = -2, the
+    one at +2 lower; its posterior sd is about 0.025, so the wells lie ~160 sd apart."""
+
+    zlo, zhi = np.full((1, 1), -10.0), np.full((1, 1), 10.0)
+
+    def change_rule(self):
+        return np.zeros(1, dtype=np.int32), np.ones((1, 1)), np.zeros((1, 1))
+
+    def evaluate(self, pid, z, max_sets=0):
+        z = np.asarray(z)[:, 0]
+        r = np.stack([(z**2 - 4.0) / 0.1, 0.1 * (z - 1.0)], axis=1)
+        J = np.stack([2.0 * z / 0.1, np.full_like(z, 0.1)], axis=1)
+        cost = np.sum(r**2, 1)
+        return cost, cost, np.sum(r * J, 1)[:, None], np.sum(J * J, 1)[:, None, None]
+
+
+def test_starts_that_meet_end_in_their_leads_minimum_and_wells_stay_apart():
+    # levenberg_marquardt's merge on one problem started four times: of the three starts in
+    # the well at +2 two meet the third (reason "merged", not converged), which ends as it
+    # would alone, to the bit, at the well's minimum; the start in the other well runs to
+    # its own minimum; the merged starts take fewer iterations than they would alone
+    prob = TwoWells()
+    z0 = np.array([[1.0], [3.0], [1.5], [-1.0]])
+    kw = dict(xtol=1e-14, gtol=1e-12, max_iter=100)
+    alone = levenberg_marquardt(prob, np.zeros(4, dtype=int), z0, **kw)
+    met = levenberg_marquardt(prob, np.zeros(4, dtype=int), z0, starts_of=np.zeros(4, dtype=int), merge=10.0, **kw)
+    assert np.allclose(alone.z[:3, 0], 2.0, atol=0.01) and np.isclose(alone.z[3, 0], -2.0, atol=0.01)
+    kept = [i for i in range(3) if met.reason[i] != "merged"]
+    assert len(kept) == 1
+    lead = kept[0]
+    assert met.reason[lead] == alone.reason[lead] and met.converged[lead]
+    assert np.array_equal(met.z[lead], alone.z[lead]) and met.cost[lead] == alone.cost[lead]
+    assert met.cost[lead] <= alone.cost[:3].min() * (1 + 1e-12)
+    others = [i for i in range(3) if i != lead]
+    assert all(met.reason[i] == "merged" and not met.converged[i] for i in others)
+    assert sum(met.iterations[others]) < sum(alone.iterations[others])
+    assert met.reason[3] != "merged" and np.array_equal(met.z[3], alone.z[3])
+
+
+def test_each_calls_starts_keep_their_own_labels():
+    # fits of several calls in one LM: a call's start labels follow those of the calls
+    # before it, so starts of different calls never meet; a call without labels has none
+    from tawarp.fit.problems import FitCall, _starts
+
+    calls = [
+        FitCall(None, [0] * 3, starts=np.array([0, 0, 1]), merge=10.0),
+        FitCall(None, [0] * 2),
+        FitCall(None, [0] * 2, starts=np.array([0, 0]), merge=5.0),
+    ]
+    got = _starts(calls)
+    assert got["starts_of"].tolist() == [0, 0, 1, -1, -1, 2, 2]
+    assert got["merge"].tolist() == [10.0, 10.0, 10.0, 0.0, 0.0, 5.0, 5.0]
+    assert _starts(calls[1:2]) == {}
+
+
 def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
     # slots with components on their bounds (pulled out of the range: not free; pulled in:
     # free), pinned padding (zlo = zhi), a step that would leave the range and an H that is

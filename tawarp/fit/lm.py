@@ -31,6 +31,11 @@ slot has stopped, those that stopped on a secant Jacobian get the
 fresh one at their solution, whose ``J^T J`` the returned ``H`` is (the covariance's);
 those that stopped on ``xtol`` stop only if the step from it is below ``xtol`` and
 :data:`SECANT_CONFIRM` standard deviations (the ``confirm`` kernel), else they iterate on.
+
+*Starts that meet* (``starts_of`` and ``merge``): where several slots are starts of one
+problem, a start stops once its Gauss-Newton model and that of a lower start predict one
+minimum (:func:`stop_tests`, which also gives the Newton decrements from the same Cholesky
+factors): a multistart fit pays for each of its minima once, not once a start.
 """
 
 from __future__ import annotations
@@ -59,6 +64,18 @@ REASONS = ("", "xtol", "gtol", "bound", "stalled", "max_iterations", "invalid")
 DROPPED = "dropped"
 #: reason of a problem that :func:`levenberg_marquardt`'s ``decrement`` test stopped
 DECREMENT = "decrement"
+#: reason of a start that :func:`levenberg_marquardt`'s ``merge`` test stopped: it met a
+#: better start of its problem
+MERGED = "merged"
+#: Two starts meet (:func:`stop_tests`) only where their Gauss-Newton models predict
+#: minima whose costs differ by less than this (half a unit of log-likelihood), and the
+#: lead's model predicts the other start's cost to this or MEET_QUADRATIC of its quadratic
+#: term (the cost is quadratic between them). Far from a minimum two models can agree in
+#: place and still lead into two optima: on an outside effect's misfit (chi^2 five times
+#: the residuals) two starts whose predicted minima lay within 10 sd ended 1000 apart in
+#: chi^2, and the test of place alone lost the model's better ln Z.
+MEET_COST = 1.0
+MEET_QUADRATIC = 0.1
 
 
 @dataclass
@@ -231,32 +248,118 @@ def _trial(active: np.ndarray, p: int, device, sums: bool = False) -> lm_step.Tr
     return rec
 
 
-def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:
-    """``g^T H^-1 g`` of ``slots`` of ``state`` (bounds ``zlo``, ``zhi`` (n, p) each), the
-    decrease of the cost ``F`` that the Gauss-Newton step from their z predicts (F(z + d) =
-    F + 2 g.d + d.H.d), on the components free of their bounds (the kernels' ``is_free``; a
-    component pinned by ``zlo = zhi`` takes no part); inf where that H is not positive
-    definite or the step would reach a bound (the iteration would put that component on it,
-    where a caller may treat it apart: the loop's evidence integrates it one-sided)."""
-    z, g, H = (a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H))
+@dataclass
+class NewtonSteps:
+    """The Gauss-Newton steps of stacked slots (:func:`newton_steps`): ``ok`` (n,) where H,
+    held on the components free of their bounds, is positive definite; of those slots,
+    ``step`` (m, p) = ``H^-1 g`` (the iteration goes to ``z - step``), ``y`` (m, p) with
+    ``y.y = g^T H^-1 g``, and ``inside`` (m,) where ``z - step`` stays inside the bounds;
+    ``H`` (n, p, p) the held normal equations' matrix."""
+
+    ok: np.ndarray
+    step: np.ndarray
+    y: np.ndarray
+    inside: np.ndarray
+    H: np.ndarray
+
+    def decrement(self) -> np.ndarray:
+        """``g^T H^-1 g`` (n,), the decrease of the cost that the step predicts; inf where H
+        is not positive definite or the step would reach a bound."""
+        out = np.full(self.ok.size, np.inf)
+        out[np.flatnonzero(self.ok)[self.inside]] = np.sum(self.y[self.inside] ** 2, axis=1)
+        return out
+
+
+def newton_steps(z: np.ndarray, g: np.ndarray, H: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> NewtonSteps:
+    """:class:`NewtonSteps` of slots at ``z`` (n, p) with ``g``, ``H`` and bounds ``zlo``,
+    ``zhi`` (n, p) each, on the components free of their bounds (the kernels' ``is_free``: a
+    component pinned by ``zlo = zhi``, or on a bound with the gradient pushing out, takes no
+    part)."""
     free = (zhi > zlo) & ~((z <= zlo) & (g > 0)) & ~((z >= zhi) & (g < 0))
     Hf, gf = held_fixed(H, g, free)  # every slot at once
-    gf = gf[:, :, None]
-    out = np.full(len(slots), np.inf)
-    ok = np.ones(len(slots), dtype=bool)
+    ok = np.ones(len(z), dtype=bool)
     try:
         c = np.linalg.cholesky(Hf)
-    except np.linalg.LinAlgError:  # some H not positive definite: those slots keep inf
+    except np.linalg.LinAlgError:  # some H not positive definite: no step there
         ok = np.array([_positive_definite(h) for h in Hf], dtype=bool)
-        if not ok.any():
-            return out
-        c = np.linalg.cholesky(Hf[ok])
-    y = np.linalg.solve(c, gf[ok])
+        c = np.linalg.cholesky(Hf[ok]) if ok.any() else np.zeros((0,) + Hf.shape[1:])
+    y = np.linalg.solve(c, gf[ok][:, :, None])
     step = np.linalg.solve(np.swapaxes(c, 1, 2), y)[:, :, 0]
     to = z[ok] - step
     inside = np.all(~free[ok] | ((to > zlo[ok]) & (to < zhi[ok])), axis=1)
-    out[np.flatnonzero(ok)[inside]] = np.sum(y[inside, :, 0] ** 2, axis=1)
-    return out
+    return NewtonSteps(ok, step, y[:, :, 0], inside, Hf)
+
+
+def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:
+    """``g^T H^-1 g`` of ``slots`` of ``state`` (bounds ``zlo``, ``zhi`` (n, p) each), the
+    decrease of the cost ``F`` that the Gauss-Newton step from their z predicts (F(z + d) =
+    F + 2 g.d + d.H.d), on the components free of their bounds (:func:`newton_steps`); inf
+    where that H is not positive definite or the step would reach a bound (the iteration
+    would put that component on it, where a caller may treat it apart: the loop's evidence
+    integrates it one-sided)."""
+    return newton_steps(*(a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H)), zlo, zhi).decrement()
+
+
+def stop_tests(
+    z: np.ndarray,
+    g: np.ndarray,
+    H: np.ndarray,
+    zlo: np.ndarray,
+    zhi: np.ndarray,
+    cost: np.ndarray,
+    slots: np.ndarray,
+    starts_of: np.ndarray,
+    merge: np.ndarray,
+    open_: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The iteration's two stop tests of the iterating ``slots`` (n,), from one Cholesky
+    factor a slot (:func:`newton_steps`), every slot's arrays (Q, ...) given: ``z``, ``g``,
+    ``H``, bounds ``zlo``, ``zhi``, ``cost``, ``starts_of`` (its problem; < 0: none),
+    ``merge`` and ``open_``. Returns their Newton decrements (:func:`newton_decrement`) and
+    which of them have met a better start of their problem.
+
+    Each problem's lowest-cost start among the ``open_`` slots is its lead. Another start
+    meets it where the two Gauss-Newton models, ``F(z + d) = F + 2 g.d + d.H.d``, predict
+    one minimum: their minima (each projected onto the bounds) lie within ``merge``
+    standard deviations of each other in the lead's posterior (``sqrt(d^T H d)``, H the
+    lead's ``J^T J``) at costs within :data:`MEET_COST` of each other, and the lead's
+    model predicts the start's own cost to :data:`MEET_COST` or :data:`MEET_QUADRATIC` of
+    its quadratic term, whichever is larger (the cost is quadratic between them). Both then
+    descend into one minimum, and the lead, already lower, finds it. Where either H is not
+    positive definite nothing meets."""
+    lead = np.full(slots.size, -1)
+    mine = np.flatnonzero(open_ & (starts_of >= 0))
+    if mine.size:
+        order = mine[np.lexsort((mine, cost[mine], starts_of[mine]))]
+        leads = order[np.r_[True, starts_of[order][1:] != starts_of[order][:-1]]]
+        lead_of = np.full(int(starts_of.max()) + 1, -1)
+        lead_of[starts_of[leads]] = leads
+        ask = (starts_of[slots] >= 0) & (merge[slots] > 0)
+        lead[ask] = lead_of[starts_of[slots[ask]]]
+        lead[(lead == slots) | (cost[slots] < cost[np.maximum(lead, 0)])] = -1
+    both, at = np.unique(np.concatenate([slots, lead[lead >= 0]]), return_inverse=True)
+    z, g, cost, zlo, zhi = z[both], g[both], cost[both], zlo[both], zhi[both]
+    st = newton_steps(z, g, H[both], zlo, zhi)
+    met = np.zeros(slots.size, dtype=bool)
+    i = np.flatnonzero(lead >= 0)
+    if i.size:
+        aim = np.full(z.shape, np.nan)  # NaN where H has no Cholesky factor: never meets
+        aim[st.ok] = np.clip(z[st.ok] - st.step, zlo[st.ok], zhi[st.ok])
+        floor = _quadratic(cost, g, st.H, aim - z)
+        s, l = at[i], at[slots.size :]
+        d, e = aim[s] - aim[l], z[s] - z[l]
+        eHe = np.einsum("ni,nij,nj->n", e, st.H[l], e)
+        met[i] = (
+            (np.einsum("ni,nij,nj->n", d, st.H[l], d) < merge[slots[i]] ** 2)
+            & (np.abs(floor[s] - floor[l]) < MEET_COST)
+            & (np.abs(cost[s] - _quadratic(cost[l], g[l], st.H[l], e)) <= np.maximum(MEET_COST, MEET_QUADRATIC * eHe))
+        )
+    return st.decrement()[at[: slots.size]], met
+
+
+def _quadratic(cost: np.ndarray, g: np.ndarray, H: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton model's cost ``F + 2 g.d + d.H.d`` at steps ``d`` (n, p)."""
+    return cost + 2.0 * np.einsum("ni,ni->n", g, d) + np.einsum("ni,nij,nj->n", d, H, d)
 
 
 def held_fixed(H: np.ndarray, g: np.ndarray, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -291,6 +394,8 @@ def levenberg_marquardt(
     max_sets: int = 1 << 20,
     drop=None,
     decrement: float | np.ndarray = 0.0,
+    starts_of: np.ndarray | None = None,
+    merge: float | np.ndarray = 0.0,
 ) -> LMState:
     """Run batched LM on problems with data index ``pid`` (Q,) from scaled starts ``z0``
     (Q, p). Converged problems drop out of later launches (active-set compaction).
@@ -303,13 +408,19 @@ def levenberg_marquardt(
     Gauss-Newton step from its z would lower the cost by less than this (the Newton
     decrement ``g^T H^-1 g`` on the components free of their bounds, :func:`newton_decrement`):
     a caller that needs the minimum's cost to that much (the loop's evidence) need not iterate
-    on to ``gtol``, whose cosine test can take many more steps each worth far less."""
+    on to ``gtol``, whose cosine test can take many more steps each worth far less.
+    ``starts_of`` (Q,) and ``merge`` > 0 (a scalar or one per slot): slots of one
+    ``starts_of`` label (>= 0) are starts of one problem, and a start stops (reason
+    ``"merged"``, not converged) where it comes within ``merge`` posterior standard
+    deviations of a start of its problem at a lower cost (:func:`stop_tests`): starts that
+    meet descend into one minimum, which one of them finds."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
     if p == 0:
         raise ValueError("levenberg_marquardt: no free parameters")
     decrement = np.broadcast_to(np.asarray(decrement, dtype=float), (Q,))
+    merge = np.broadcast_to(np.asarray(merge, dtype=float), (Q,))
     dev = wp.get_device(getattr(prob, "device", "cpu"))
     init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
     secant = bool(getattr(prob, "secant", False))
@@ -325,6 +436,7 @@ def levenberg_marquardt(
     wp.launch(init, dim=Q, device=dev, inputs=[setup, state, done])
     active = np.flatnonzero(done.numpy() == 0)
     dropped = np.zeros(Q, dtype=bool)
+    met = np.zeros(Q, dtype=bool)
     small = np.zeros(Q, dtype=bool)
     bar = progress_bar(Q, "fits", progress, unit="fit")
     bar.update(Q - active.size)
@@ -364,13 +476,23 @@ def levenberg_marquardt(
                 cut[~finished] = drop(active[~finished], state.at_z.cost.numpy())
                 dropped[active[cut]] = True
                 finished |= cut
-            idx = np.flatnonzero(~finished)
-            idx = idx[decrement[active[idx]] > 0]
-            if idx.size:
-                rest = active[idx]
-                near = newton_decrement(state, rest, prob.zlo[pid[rest]], prob.zhi[pid[rest]]) < decrement[rest]
-                small[rest[near]] = True
-                finished[idx[near]] = True
+            rest = np.flatnonzero(~finished)
+            if rest.size and (starts_of is not None or np.any(decrement[active[rest]] > 0)):
+                slots = active[rest]
+                dec, meets = stop_tests(
+                    *(a.numpy() for a in (state.z, state.at_z.g, state.at_z.H)),
+                    prob.zlo[pid],
+                    prob.zhi[pid],
+                    state.at_z.cost.numpy(),
+                    slots,
+                    np.full(Q, -1) if starts_of is None else starts_of,
+                    merge,
+                    ~(dropped | met),
+                )
+                near = ~meets & (dec < decrement[slots])
+                met[slots[meets]] = True
+                small[slots[near]] = True
+                finished[rest[meets | near]] = True
             if finished.any():
                 active = active[~finished]
                 bar.update(int(finished.sum()))
@@ -398,6 +520,7 @@ def levenberg_marquardt(
     bar.close()
     reason = np.array(REASONS, dtype=object)[state.reason.numpy()]
     reason[dropped] = DROPPED
+    reason[met] = MERGED
     reason[small] = DECREMENT
     return LMState(
         state.z.numpy(),
@@ -407,5 +530,5 @@ def levenberg_marquardt(
         state.at_z.H.numpy(),
         state.iterations.numpy().astype(int),
         reason,
-        ((state.converged.numpy() != 0) | small) & ~dropped,
+        ((state.converged.numpy() != 0) | small) & ~(dropped | met),
     )

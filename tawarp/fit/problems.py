@@ -753,6 +753,8 @@ class FitCall:
     priors: list | None = None
     drop: Callable | None = None
     decrement: float = 0.0
+    starts: np.ndarray | None = None
+    merge: float = 0.0
 
     def iteration(self) -> tuple:
         """What the LM's iteration takes from the call: calls alike in it share one LM (the
@@ -771,6 +773,8 @@ def fit_batch(
     priors: list | None = None,
     drop=None,
     decrement: float = 0.0,
+    starts: np.ndarray | None = None,
+    merge: float = 0.0,
 ) -> list[FitResult]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
@@ -780,11 +784,12 @@ def fit_batch(
     (:meth:`KindProblems.at_solutions`). ``priors``: per
     spec None or (mu, sd) (p,) each, a Gaussian prior in the scaled variables x: the fit is
     then the maximum a posteriori (the result's cost and residuals stay the data's).
-    ``drop`` and ``decrement``: :func:`levenberg_marquardt`'s, the fits by their index in
-    ``specs``. Inside :func:`tawarp.fit.lockstep.run_together` the call waits for the other
+    ``drop``, ``decrement`` and ``merge``: :func:`levenberg_marquardt`'s, the fits by their
+    index in ``specs``; ``starts`` (one label a spec): specs of one label are starts of one
+    fit, and ``merge`` stops a start that meets a better one. Inside :func:`tawarp.fit.lockstep.run_together` the call waits for the other
     threads' and runs in one batch with theirs (:func:`fit_calls`)."""
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
-    call = FitCall(kind, specs, fixed, rows, max_iter, xtol, gtol, priors, drop, decrement)
+    call = FitCall(kind, specs, fixed, rows, max_iter, xtol, gtol, priors, drop, decrement, starts, merge)
     together = lockstep.current()
     if together is not None:
         return together.call(call, fit_calls)
@@ -824,6 +829,7 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
             max_iter=call.max_iter,
             drop=_drops(calls, first),
             decrement=np.repeat([c.decrement for c in calls], np.diff(first)),
+            **_starts(calls),
         )
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
@@ -854,6 +860,20 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
         for c, (params, effect, _) in enumerate(lm.specs)
     ]
     return [fits[a:b] for a, b in zip(first[:-1], first[1:])]
+
+
+def _starts(calls: list[FitCall]) -> dict:
+    """:func:`levenberg_marquardt`'s ``starts_of`` and ``merge`` for the batch of the calls'
+    fits: each call's labels after those of the calls before it (-1 where a call has none)."""
+    if all(c.starts is None for c in calls):
+        return {}
+    labels, merge, base = [], [], 0
+    for c in calls:
+        own = np.full(len(c.specs), -1) if c.starts is None else base + np.asarray(c.starts, dtype=int)
+        base = max(base, int(own.max(initial=-1)) + 1)
+        labels.append(own)
+        merge.append(np.full(len(c.specs), c.merge))
+    return {"starts_of": np.concatenate(labels), "merge": np.concatenate(merge)}
 
 
 def _drops(calls: list[FitCall], first: np.ndarray):
