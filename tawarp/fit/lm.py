@@ -411,9 +411,10 @@ def levenberg_marquardt(
     on to ``gtol``, whose cosine test can take many more steps each worth far less.
     ``starts_of`` (Q,) and ``merge`` > 0 (a scalar or one per slot): slots of one
     ``starts_of`` label (>= 0) are starts of one problem, and a start stops (reason
-    ``"merged"``, not converged) where it comes within ``merge`` posterior standard
-    deviations of a start of its problem at a lower cost (:func:`stop_tests`): starts that
-    meet descend into one minimum, which one of them finds."""
+    ``"merged"``, not converged) where its Gauss-Newton model and that of a start of its
+    problem at a lower cost predict one minimum, within ``merge`` posterior standard
+    deviations and in cost (:func:`stop_tests`): starts that meet descend into one
+    minimum, which one of them finds."""
     if damping not in ("nielsen", "paper"):
         raise ValueError(f"damping = {damping!r}; expected 'nielsen' or 'paper'")
     Q, p = z0.shape
@@ -421,12 +422,15 @@ def levenberg_marquardt(
         raise ValueError("levenberg_marquardt: no free parameters")
     decrement = np.broadcast_to(np.asarray(decrement, dtype=float), (Q,))
     merge = np.broadcast_to(np.asarray(merge, dtype=float), (Q,))
+    starts_of = np.full(Q, -1) if starts_of is None else np.asarray(starts_of)
+    meeting = bool(np.any((starts_of >= 0) & (merge > 0)))
     dev = wp.get_device(getattr(prob, "device", "cpu"))
     init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
     secant = bool(getattr(prob, "secant", False))
     pid = np.asarray(pid)
     setup = _setup(prob, pid, dev, damping, tau, xtol, gtol, max_iter)
-    z = np.clip(np.array(z0, dtype=float), prob.zlo[pid], prob.zhi[pid])
+    zlo, zhi = prob.zlo[pid], prob.zhi[pid]
+    z = np.clip(np.array(z0, dtype=float), zlo, zhi)
     if secant:
         store = prob.secant_store(Q)
         state = _iterate(z, prob.evaluate_start(pid, z, store, max_sets), dev)
@@ -477,15 +481,15 @@ def levenberg_marquardt(
                 dropped[active[cut]] = True
                 finished |= cut
             rest = np.flatnonzero(~finished)
-            if rest.size and (starts_of is not None or np.any(decrement[active[rest]] > 0)):
+            if rest.size and (meeting or np.any(decrement[active[rest]] > 0)):
                 slots = active[rest]
                 dec, meets = stop_tests(
                     *(a.numpy() for a in (state.z, state.at_z.g, state.at_z.H)),
-                    prob.zlo[pid],
-                    prob.zhi[pid],
+                    zlo,
+                    zhi,
                     state.at_z.cost.numpy(),
                     slots,
-                    np.full(Q, -1) if starts_of is None else starts_of,
+                    starts_of,
                     merge,
                     ~(dropped | met),
                 )

@@ -786,8 +786,9 @@ def fit_batch(
     then the maximum a posteriori (the result's cost and residuals stay the data's).
     ``drop``, ``decrement`` and ``merge``: :func:`levenberg_marquardt`'s, the fits by their
     index in ``specs``; ``starts`` (one label a spec): specs of one label are starts of one
-    fit, and ``merge`` stops a start that meets a better one. Inside :func:`tawarp.fit.lockstep.run_together` the call waits for the other
-    threads' and runs in one batch with theirs (:func:`fit_calls`)."""
+    fit, and ``merge`` stops a start that meets a better one. Inside
+    :func:`tawarp.fit.lockstep.run_together` the call waits for the other threads' and runs
+    in one batch with theirs (:func:`fit_calls`)."""
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
     call = FitCall(kind, specs, fixed, rows, max_iter, xtol, gtol, priors, drop, decrement, starts, merge)
     together = lockstep.current()
