@@ -273,11 +273,9 @@ def test_starts_meet_where_their_models_predict_one_minimum():
     # predicted minima lie within merge sd in the lead's metric, at costs within MEET_COST,
     # and the lead's model predicts the start's cost. Each slot below fails one of these or
     # passes them all; the lead, a start without a problem (label -1) and one whose H is
-    # not positive definite never stop. The decrements it returns beside are
-    # newton_decrement's.
-    from types import SimpleNamespace
-
-    from tawarp.fit.lm import MEET_COST, newton_decrement, stop_tests
+    # not positive definite never stop. The decrements it returns beside are each slot's
+    # g^T H^-1 g (no bounds here), inf where H is not positive definite.
+    from tawarp.fit.lm import MEET_COST, stop_tests
 
     rng = np.random.default_rng(5)
     p = 3
@@ -318,11 +316,9 @@ def test_starts_meet_where_their_models_predict_one_minimum():
         0: False, 1: True, 2: False, 3: True, 4: False, 5: False, 6: False, 7: False,
         8: False, 10: False, 11: True, 12: False, 13: False,
     }  # fmt: skip
-    host = lambda a: SimpleNamespace(numpy=lambda: a)  # noqa: E731
-    state = SimpleNamespace(z=host(z), at_z=SimpleNamespace(g=host(g), H=host(H)))
-    want = newton_decrement(state, slots, lo[slots], hi[slots])
-    assert np.isinf(want[slots == 13][0]) and np.array_equal(np.isinf(dec), np.isinf(want))
-    assert np.allclose(dec[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-12, atol=0.0)
+    want = np.array([np.inf if i == 13 else g[i] @ np.linalg.solve(H[i], g[i]) for i in slots])
+    assert np.array_equal(np.isinf(dec), np.isinf(want))
+    assert np.allclose(dec[np.isfinite(want)], want[np.isfinite(want)], rtol=1e-10, atol=1e-14)
     _, none = stop_tests(z, g, H, lo, hi, cost, slots, starts_of, np.zeros(Q), open_)
     assert not none.any()
     _, tight = stop_tests(z, g, H, lo, hi, cost, slots, starts_of, np.full(Q, 0.4), open_)
@@ -390,9 +386,7 @@ def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
     # free), pinned padding (zlo = zhi), a step that would leave the range and an H that is
     # not positive definite: each slot's decrement is g^T H^-1 g on its free components
     # alone, inf where that H has no Cholesky factor or the step leaves the range
-    from types import SimpleNamespace
-
-    from tawarp.fit.lm import newton_decrement
+    from tawarp.fit.lm import newton_steps
 
     rng = np.random.default_rng(3)
     n, p = 40, 5
@@ -407,9 +401,7 @@ def test_newton_decrement_of_a_batch_is_each_slots_reduced_one():
     zlo[:, 4] = zhi[:, 4] = 0.0  # padding
     z[:, 4] = 0.0
     zhi[2::7, 2] = z[2::7, 2] + 1e-3  # a step that leaves the range
-    host = lambda a: SimpleNamespace(numpy=lambda: a)  # noqa: E731
-    state = SimpleNamespace(z=host(z), at_z=SimpleNamespace(g=host(g), H=host(H)))
-    got = newton_decrement(state, np.arange(n), zlo, zhi)
+    got = newton_steps(z, g, H, zlo, zhi).decrement()
     want = np.full(n, np.inf)
     for i in range(n):
         f = (zhi[i] > zlo[i]) & ~((z[i] <= zlo[i]) & (g[i] > 0)) & ~((z[i] >= zhi[i]) & (g[i] < 0))

@@ -263,8 +263,11 @@ class NewtonSteps:
     H: np.ndarray
 
     def decrement(self) -> np.ndarray:
-        """``g^T H^-1 g`` (n,), the decrease of the cost that the step predicts; inf where H
-        is not positive definite or the step would reach a bound."""
+        """The Newton decrements ``g^T H^-1 g`` (n,): the decrease of the cost ``F`` that the
+        Gauss-Newton step predicts (F(z + d) = F + 2 g.d + d.H.d), on the components free of
+        their bounds; inf where that H is not positive definite or the step would reach a
+        bound (the iteration would put that component on it, where a caller may treat it
+        apart: the loop's evidence integrates it one-sided)."""
         out = np.full(self.ok.size, np.inf)
         out[np.flatnonzero(self.ok)[self.inside]] = np.sum(self.y[self.inside] ** 2, axis=1)
         return out
@@ -290,16 +293,6 @@ def newton_steps(z: np.ndarray, g: np.ndarray, H: np.ndarray, zlo: np.ndarray, z
     return NewtonSteps(ok, step, y[:, :, 0], inside, Hf)
 
 
-def newton_decrement(state: lm_step.Iterate, slots: np.ndarray, zlo: np.ndarray, zhi: np.ndarray) -> np.ndarray:
-    """``g^T H^-1 g`` of ``slots`` of ``state`` (bounds ``zlo``, ``zhi`` (n, p) each), the
-    decrease of the cost ``F`` that the Gauss-Newton step from their z predicts (F(z + d) =
-    F + 2 g.d + d.H.d), on the components free of their bounds (:func:`newton_steps`); inf
-    where that H is not positive definite or the step would reach a bound (the iteration
-    would put that component on it, where a caller may treat it apart: the loop's evidence
-    integrates it one-sided)."""
-    return newton_steps(*(a.numpy()[slots] for a in (state.z, state.at_z.g, state.at_z.H)), zlo, zhi).decrement()
-
-
 def stop_tests(
     z: np.ndarray,
     g: np.ndarray,
@@ -315,7 +308,7 @@ def stop_tests(
     """The iteration's two stop tests of the iterating ``slots`` (n,), from one Cholesky
     factor a slot (:func:`newton_steps`), every slot's arrays (Q, ...) given: ``z``, ``g``,
     ``H``, bounds ``zlo``, ``zhi``, ``cost``, ``starts_of`` (its problem; < 0: none),
-    ``merge`` and ``open_``. Returns their Newton decrements (:func:`newton_decrement`) and
+    ``merge`` and ``open_``. Returns their Newton decrements (:meth:`NewtonSteps.decrement`) and
     which of them have met a better start of their problem.
 
     Each problem's lowest-cost start among the ``open_`` slots is its lead. Another start
@@ -406,7 +399,7 @@ def levenberg_marquardt(
     converged), a race between starts of one problem (:func:`tawarp.loop.run.fit_models`).
     ``decrement`` > 0 (a scalar, or one per slot (Q,)): a problem also stops, converged (reason ``"decrement"``), where the
     Gauss-Newton step from its z would lower the cost by less than this (the Newton
-    decrement ``g^T H^-1 g`` on the components free of their bounds, :func:`newton_decrement`):
+    decrement ``g^T H^-1 g`` on the components free of their bounds, :meth:`NewtonSteps.decrement`):
     a caller that needs the minimum's cost to that much (the loop's evidence) need not iterate
     on to ``gtol``, whose cosine test can take many more steps each worth far less.
     ``starts_of`` (Q,) and ``merge`` > 0 (a scalar or one per slot): slots of one

@@ -62,7 +62,7 @@ MAX_ITER = 40
 XTOL = 1e-8
 #: The models' fits (:func:`fit_models`) stop where the Gauss-Newton step would lower their
 #: posterior cost (chi^2 plus the priors' squares) by less than this
-#: (:func:`tawarp.fit.lm.newton_decrement`), at most 0.01 posterior sd from the minimum: the
+#: (:meth:`tawarp.fit.lm.NewtonSteps.decrement`), at most 0.01 posterior sd from the minimum: the
 #: gradient-cosine test alone (GTOL) went on for 5-20 % of the loop bench's fit iterations
 #: below that. There no model's ln Z moved by more than 0.007 and no model or inclusion
 #: probability by more than 4e-4; at 1e-3 (0.03 sd) the Laplace terms' change over that
