@@ -416,7 +416,7 @@ def levenberg_marquardt(
     decrement = np.broadcast_to(np.asarray(decrement, dtype=float), (Q,))
     merge = np.broadcast_to(np.asarray(merge, dtype=float), (Q,))
     starts_of = np.full(Q, -1) if starts_of is None else np.asarray(starts_of)
-    meeting = bool(np.any((starts_of >= 0) & (merge > 0)))
+    tested = (decrement > 0) | ((starts_of >= 0) & (merge > 0))  # the slots stop_tests asks about
     dev = wp.get_device(getattr(prob, "device", "cpu"))
     init, propose, update, confirm, accelerate = lm_step.step_kernels(p)
     secant = bool(getattr(prob, "secant", False))
@@ -474,7 +474,8 @@ def levenberg_marquardt(
                 dropped[active[cut]] = True
                 finished |= cut
             rest = np.flatnonzero(~finished)
-            if rest.size and (meeting or np.any(decrement[active[rest]] > 0)):
+            rest = rest[tested[active[rest]]]
+            if rest.size:
                 slots = active[rest]
                 dec, meets = stop_tests(
                     *(a.numpy() for a in (state.z, state.at_z.g, state.at_z.H)),
