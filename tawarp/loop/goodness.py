@@ -4,6 +4,8 @@ that is not noise lives."""
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from scipy import stats
 
@@ -41,19 +43,17 @@ def smooth_fraction(problem: MeasurementKind, wr: np.ndarray) -> dict:
     frequencies, so white noise still leaves k / N on average)."""
     smooth = total = 0.0
     k = 0
-    for c in range(len(problem.coef_names)):
-        for g in np.unique(problem.group):
-            m = (problem.coef == c) & (problem.group == g)
-            if not m.any():
-                continue
-            f = problem.freq[m]
-            t = (f - f.min()) / max(np.ptp(f), 1e-30) * 2 - 1
-            V = np.polynomial.legendre.legvander(t, min(3, m.sum() - 1))
-            for part in range(2):
-                coef, *_ = np.linalg.lstsq(V, wr[m, part], rcond=None)
-                smooth += float(((V @ coef) ** 2).sum())
-                total += float((wr[m, part] ** 2).sum())
-                k += V.shape[1]
+    labels = (
+        np.asarray(problem.coef, dtype=np.int64),
+        np.asarray(problem.group, float),
+        np.asarray(problem.freq, float),
+    )
+    for rows, basis, columns in _cubic_bases(len(problem.coef_names), *(a.tobytes() for a in labels)):
+        # the least-squares cubic's part of each series is its projection onto the basis
+        r = wr[rows]
+        smooth += float(((basis.T @ r) ** 2).sum())
+        total += float((r**2).sum())
+        k += 2 * columns
     N = wr.size
     F = (smooth / k) / max((total - smooth) / max(N - k, 1), 1e-300) if total > 0 else 0.0
     return {
@@ -62,6 +62,29 @@ def smooth_fraction(problem: MeasurementKind, wr: np.ndarray) -> dict:
         "F": F,
         "p_value": float(stats.f.sf(F, k, max(N - k, 1))),
     }
+
+
+@functools.lru_cache(maxsize=64)
+def _cubic_bases(coefficients: int, coef: bytes, group: bytes, freq: bytes) -> tuple:
+    """Per (coefficient, group) of the rows labelled ``coef`` (int64), ``group`` and
+    ``freq`` (float64, as bytes: a problem's labels, the same for every residual of it):
+    (its rows, an orthonormal basis of the Legendre polynomials up to the cubic in its
+    frequency scaled to [-1, 1], their number). The basis spans what ``np.linalg.lstsq``
+    fits: the left singular vectors above its cutoff (``rcond=None``)."""
+    coef, group, freq = np.frombuffer(coef, dtype=np.int64), np.frombuffer(group), np.frombuffer(freq)
+    out = []
+    for c in range(coefficients):
+        for g in np.unique(group):
+            rows = np.flatnonzero((coef == c) & (group == g))
+            if not rows.size:
+                continue
+            f = freq[rows]
+            t = (f - f.min()) / max(np.ptp(f), 1e-30) * 2 - 1
+            V = np.polynomial.legendre.legvander(t, min(3, rows.size - 1))
+            U, sv, _ = np.linalg.svd(V, full_matrices=False)
+            keep = sv > np.finfo(float).eps * max(V.shape) * sv[0]
+            out.append((rows, U[:, keep], V.shape[1]))
+    return tuple(out)
 
 
 def noise_sigma(problem: MeasurementKind, residual: np.ndarray) -> np.ndarray:
