@@ -254,6 +254,52 @@ def test_dropped_starts_leave_the_others_alone():
         assert np.array_equal(a.x, b.x) and np.array_equal(a.jacobian, b.jacobian)
 
 
+def test_superseded_starts_come_back_as_none():
+    # starts of one fit (fit_batch's starts): three starts of the full model from near the
+    # optimum meet, a fourth start (another label) is dropped alone, a fit without a label
+    # is dropped too. The starts that stopped dropped or merged beside a start of their fit
+    # that did neither come back as None; the others as they would alone, to the bit
+    kind, specs = _exp_case()
+    params = specs[0][0]
+    near = [(params, None, np.array(x)) for x in ([0.25, -0.15, 0.45], [0.3, -0.25, 0.55], [0.35, -0.2, 0.5])]
+    batch = near + [specs[2], specs[1]]
+
+    def drop(slots, cost):
+        return slots >= 3
+
+    got = fit_batch(kind, batch, xtol=1e-12, gtol=1e-10, drop=drop, starts=np.array([0, 0, 0, 1, -1]), merge=10.0)
+    reasons = [None if f is None else f.reason[0] for f in got]
+    # precondition: two of the three near starts met the third
+    assert sum(f is None for f in got[:3]) == 2, reasons
+    lead = next(i for i in range(3) if got[i] is not None)
+    assert got[lead].reason[0] not in ("merged", "dropped")
+    # a fit whose every start stopped keeps them all; a start without a label is kept
+    assert got[3] is not None and got[3].reason[0] == "dropped"
+    assert got[4] is not None and got[4].reason[0] == "dropped"
+    alone = fit_batch(kind, [batch[lead]], xtol=1e-12, gtol=1e-10)[0]
+    assert np.array_equal(alone.x, got[lead].x) and np.array_equal(alone.jacobian, got[lead].jacobian)
+    assert np.array_equal(alone.covariance, got[lead].covariance)
+
+
+def test_which_starts_are_superseded():
+    # per call's labels: a start that stopped dropped or merged is superseded only where
+    # another start of its fit did neither; unlabelled fits never are
+    from tawarp.fit.problems import FitCall, _superseded
+
+    calls = [
+        FitCall(None, [0] * 5, starts=np.array([0, 0, 0, 1, 1]), merge=10.0),
+        FitCall(None, [0] * 1),
+        FitCall(None, [0] * 2, starts=np.array([0, 0]), merge=10.0),
+    ]
+    reason = ["gtol", "merged", "dropped", "dropped", "merged", "dropped", "merged", "decrement"]
+    got = _superseded(calls, np.array(reason, dtype=object))
+    assert got.tolist() == [False, True, True, False, False, False, True, False]
+    assert not _superseded(calls[1:2], np.array(["dropped"], dtype=object)).any()
+    # a call with labels and no fits beside one without labels
+    empty = [FitCall(None, [], starts=np.array([], dtype=int), merge=10.0), calls[1]]
+    assert not _superseded(empty, np.array(["dropped"], dtype=object)).any()
+
+
 def _bowls(rng, n, p):
     """n quadratic bowls F = (z - m)^T A (z - m) + c: each point's Gauss-Newton model is
     exact, so the minimum it predicts is the bowl's own m."""

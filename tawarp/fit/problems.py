@@ -37,7 +37,7 @@ from ..measure.kind import MeasurementKind
 from ..model.effects import Effect, Param, base_params
 from ..model.fields import field as field_of
 from ..model.value_table import ValueTable, row_of, rows_in
-from .lm import levenberg_marquardt
+from .lm import DROPPED, MERGED, levenberg_marquardt
 from .problem_model import Covariance, ProblemModel, covariances
 from .result import FitResult
 
@@ -580,19 +580,21 @@ class KindProblems:
                 self.last[i] = (J[j].T if k else None, parts[i][0][0])
         return cost, raw, g, H
 
-    def at_solutions(self, z: np.ndarray) -> list:
-        """(J, model values) of every fit at its solution z (K, P): the evaluation there
-        where the LM's iterations made it on the host (:attr:`best`, the same numbers), one
-        more :meth:`evaluate` on the host for the others."""
+    def at_solutions(self, z: np.ndarray, fits: np.ndarray | None = None) -> list:
+        """(J, model values) of fits ``fits`` (default every one) at their solutions, z (K, P)
+        every fit's: the evaluation there where the LM's iterations made it on the host
+        (:attr:`best`, the same numbers), one more :meth:`evaluate` on the host for the
+        others."""
+        fits = np.arange(len(z)) if fits is None else np.asarray(fits, dtype=int)
         out = [
             self.best[c][2:] if c in self.best and np.array_equal(self.best[c][1], z[c]) else None
-            for c in range(len(z))
+            for c in fits.tolist()
         ]
-        stale = np.array([c for c, v in enumerate(out) if v is None], dtype=int)
+        stale = np.array([i for i, v in enumerate(out) if v is None], dtype=int)
         if stale.size:
-            self.evaluate(stale, z[stale], host=True)
-            for i, c in enumerate(stale):
-                out[c] = self.last[i]
+            self.evaluate(fits[stale], z[fits[stale]], host=True)
+            for j, i in enumerate(stale.tolist()):
+                out[i] = self.last[j]
         return out
 
 
@@ -775,7 +777,7 @@ def fit_batch(
     decrement: float = 0.0,
     starts: np.ndarray | None = None,
     merge: float = 0.0,
-) -> list[FitResult]:
+) -> list[FitResult | None]:
     """Several fits of ``kind`` in lockstep, ``specs`` = [(params, effect, x0), ...] (x0
     None: every parameter at its start; an optional fourth item: that fit's own rows), the
     others at ``fixed`` {name: value} or the core's values, on ``rows`` (default all): :func:`levenberg_marquardt` (Nielsen's
@@ -786,7 +788,9 @@ def fit_batch(
     then the maximum a posteriori (the result's cost and residuals stay the data's).
     ``drop``, ``decrement`` and ``merge``: :func:`levenberg_marquardt`'s, the fits by their
     index in ``specs``; ``starts`` (one label a spec): specs of one label are starts of one
-    fit, and ``merge`` stops a start that meets a better one. Inside
+    fit, and ``merge`` stops a start that meets a better one; a start that stopped as
+    dropped or merged while another start of its fit did neither is superseded by it, and
+    its result is None (no Jacobian, model values or covariance made for it). Inside
     :func:`tawarp.fit.lockstep.run_together` the call waits for the other threads' and runs
     in one batch with theirs (:func:`fit_calls`)."""
     specs = [(list(sp[0]), sp[1], np.zeros(len(sp[0])) if sp[2] is None else sp[2], *sp[3:]) for sp in specs]
@@ -797,7 +801,7 @@ def fit_batch(
     return fit_calls([call])[0]
 
 
-def fit_calls(calls: list[FitCall], families: "Families | None" = None) -> list[list[FitResult]]:
+def fit_calls(calls: list[FitCall], families: "Families | None" = None) -> list[list[FitResult | None]]:
     """The fits of every call of ``calls`` (:func:`fit_batch`'s results per call), those
     alike in their iteration (:meth:`FitCall.iteration`) in one LM on one batch
     (:meth:`KindProblems.merged`; ``families``: the kinds that share launches)."""
@@ -811,7 +815,7 @@ def fit_calls(calls: list[FitCall], families: "Families | None" = None) -> list[
     return out
 
 
-def _fit_together(calls: list[FitCall], families: "Families | None") -> list[list[FitResult]]:
+def _fit_together(calls: list[FitCall], families: "Families | None") -> list[list[FitResult | None]]:
     t0 = time.perf_counter()
     lm = KindProblems.merged(calls, families)
     K = len(lm.specs)
@@ -835,32 +839,48 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
-    at = lm.at_solutions(z)
+    keep = np.flatnonzero(~_superseded(calls, reason))
+    at = lm.at_solutions(z, keep)
     dt = time.perf_counter() - t0
-    r = [residual(lm.kinds[c], at[c][1], lm.rows[c]) for c in range(K)]
-    x = [z[c, : lm.p[c]] for c in range(K)]
-    dof = [max(r[c].size - lm.p[c], 1) for c in range(K)]
-    cov = covariances(lm.models, x, [float(rc @ rc) for rc in r], dof, [J for J, _ in at])
-    fits = [
-        kind_result(
+    r = [residual(lm.kinds[c], Y, lm.rows[c]) for c, (_, Y) in zip(keep.tolist(), at)]
+    x = [z[c, : lm.p[c]] for c in keep.tolist()]
+    dof = [max(rc.size - lm.p[c], 1) for c, rc in zip(keep.tolist(), r)]
+    cov = covariances([lm.models[c] for c in keep.tolist()], x, [float(rc @ rc) for rc in r], dof, [J for J, _ in at])
+    fits: list = [None] * K
+    for i, c in enumerate(keep.tolist()):
+        params, effect, _ = lm.specs[c]
+        fits[c] = kind_result(
             lm.kinds[c],
             params,
             lm.models[c],
-            z[c, : lm.p[c]],
-            at[c][0],
-            at[c][1],
+            x[i],
+            at[i][0],
+            at[i][1],
             lm.rows[c],
             effect,
             bool(converged[c]),
             str(reason[c]),
             int(its[c]),
-            r[c],
-            cov[c],
+            r[i],
+            cov[i],
             seconds=dt,
         )
-        for c, (params, effect, _) in enumerate(lm.specs)
-    ]
     return [fits[a:b] for a, b in zip(first[:-1], first[1:])]
+
+
+def _superseded(calls: list[FitCall], reason) -> np.ndarray:
+    """Per fit of the batch of ``calls``: a start of a fit (:class:`FitCall`'s ``starts``)
+    that stopped as dropped or merged while another start of that fit did neither, whose
+    result that one supersedes (:func:`fit_batch`)."""
+    labels = _starts(calls).get("starts_of")
+    if labels is None:
+        return np.zeros(len(reason), dtype=bool)
+    stopped = np.array([str(r) in (DROPPED, MERGED) for r in reason], dtype=bool) & (labels >= 0)
+    survives = np.zeros(int(labels.max(initial=-1)) + 1, dtype=bool)
+    survives[labels[(labels >= 0) & ~stopped]] = True
+    out = np.zeros(len(reason), dtype=bool)
+    out[stopped] = survives[labels[stopped]]
+    return out
 
 
 def _starts(calls: list[FitCall]) -> dict:

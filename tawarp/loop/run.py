@@ -356,7 +356,8 @@ def fit_models(
     )
     kept = []
     for k in range(len(out)):
-        own = [f for f, o in zip(fits, owner) if o == k]
+        # (a start that another start of its model supersedes comes back as None)
+        own = [f for f, o in zip(fits, owner) if o == k and f is not None]
         # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
         kept.append([f for f in own if f.reason[0] not in (DROPPED, MERGED)] or own)
     scores = iter(_log_evidences([f for fs in kept for f in fs], noise_scale))
