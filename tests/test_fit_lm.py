@@ -284,7 +284,7 @@ def test_superseded_starts_come_back_as_none():
 def test_which_starts_are_superseded():
     # per call's labels: a start that stopped dropped or merged is superseded only where
     # another start of its fit did neither; unlabelled fits never are
-    from tawarp.fit.problems import FitCall, _superseded
+    from tawarp.fit.problems import FitCall, _starts, _superseded
 
     calls = [
         FitCall(None, [0] * 5, starts=np.array([0, 0, 0, 1, 1]), merge=10.0),
@@ -292,12 +292,12 @@ def test_which_starts_are_superseded():
         FitCall(None, [0] * 2, starts=np.array([0, 0]), merge=10.0),
     ]
     reason = ["gtol", "merged", "dropped", "dropped", "merged", "dropped", "merged", "decrement"]
-    got = _superseded(calls, np.array(reason, dtype=object))
+    got = _superseded(_starts(calls)["starts_of"], np.array(reason, dtype=object))
     assert got.tolist() == [False, True, True, False, False, False, True, False]
-    assert not _superseded(calls[1:2], np.array(["dropped"], dtype=object)).any()
+    assert _starts(calls[1:2]) == {} and not _superseded(None, np.array(["dropped"], dtype=object)).any()
     # a call with labels and no fits beside one without labels
     empty = [FitCall(None, [], starts=np.array([], dtype=int), merge=10.0), calls[1]]
-    assert not _superseded(empty, np.array(["dropped"], dtype=object)).any()
+    assert not _superseded(_starts(empty)["starts_of"], np.array(["dropped"], dtype=object)).any()
 
 
 def _bowls(rng, n, p):

@@ -823,6 +823,7 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
         return [[] for _ in calls]
     first = np.cumsum([0] + [len(c.specs) for c in calls])
     pid = np.arange(K)
+    starts = _starts(calls)
     if lm.zlo.shape[1]:
         call = calls[0]
         st = levenberg_marquardt(
@@ -834,12 +835,12 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
             max_iter=call.max_iter,
             drop=_drops(calls, first),
             decrement=np.repeat([c.decrement for c in calls], np.diff(first)),
-            **_starts(calls),
+            **starts,
         )
         z, converged, its, reason = st.z, st.converged, st.iterations, st.reason
     else:  # nothing free: the model at the fixed values
         z, converged, its, reason = lm.start(), np.ones(K, dtype=bool), np.zeros(K, dtype=int), ["gtol"] * K
-    keep = np.flatnonzero(~_superseded(calls, reason))
+    keep = np.flatnonzero(~_superseded(starts.get("starts_of"), reason))
     at = lm.at_solutions(z, keep)
     dt = time.perf_counter() - t0
     r = [residual(lm.kinds[c], Y, lm.rows[c]) for c, (_, Y) in zip(keep.tolist(), at)]
@@ -868,11 +869,11 @@ def _fit_together(calls: list[FitCall], families: "Families | None") -> list[lis
     return [fits[a:b] for a, b in zip(first[:-1], first[1:])]
 
 
-def _superseded(calls: list[FitCall], reason) -> np.ndarray:
-    """Per fit of the batch of ``calls``: a start of a fit (:class:`FitCall`'s ``starts``)
-    that stopped as dropped or merged while another start of that fit did neither, whose
-    result that one supersedes (:func:`fit_batch`)."""
-    labels = _starts(calls).get("starts_of")
+def _superseded(labels: np.ndarray | None, reason) -> np.ndarray:
+    """Per fit of a batch whose start labels are ``labels`` (:func:`_starts`; None: no
+    labels) and stop reasons ``reason``: a start of a fit that stopped as dropped or merged
+    while another start of that fit did neither, whose result that one supersedes
+    (:func:`fit_batch`)."""
     if labels is None:
         return np.zeros(len(reason), dtype=bool)
     stopped = np.array([str(r) in (DROPPED, MERGED) for r in reason], dtype=bool) & (labels >= 0)
