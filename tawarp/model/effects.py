@@ -632,19 +632,25 @@ def graded_parts(core: Core, values: dict, n: int, parts: int = GRADED_PARTS) ->
             return porosity(t) * k_gas + (1.0 - porosity(t)) * lam_s
 
         # part ends t_j (x/L): the conductivity in geometric steps from one end to the other
-        # (where it is small the profile turns within a short length: the parts are short)
+        # (where it is small the profile turns within a short length: the parts are short);
+        # every part's values at once, (parts + 1 or parts, n): a part at a time cost a launch
+        # of a graded fit more host work than its table
         log_ratio = np.log(lam(1.0) / lam(0.0))
         small = np.abs(log_ratio) < 1e-9
         safe = np.where(small, 1.0, log_ratio)
-        ends = [np.where(small, j / parts, np.expm1(safe * j / parts) / np.expm1(safe)) for j in range(parts + 1)]
+        j = np.arange(parts + 1)[:, None]
+        ends = np.where(small, j / parts, np.expm1(safe * j / parts) / np.expm1(safe))
+        phis = porosity(0.5 * (ends[:-1] + ends[1:]))
+        at_ends = lam(ends)
+        lams = _log_mean(at_ends[:-1], at_ends[1:])
+        lam_s_parts = (lams - phis * k_gas) / (1.0 - phis)
+        lengths = length * (ends[1:] - ends[:-1])
         for j in range(parts):
             name = f"{seg.name}_part{j + 1}"
             first = j == 0
-            phi_j = porosity(0.5 * (ends[j] + ends[j + 1]))
-            lam_j = _log_mean(lam(ends[j]), lam(ends[j + 1]))
-            values[f"{name}.porosity"] = phi_j
-            values[f"{name}.solid_conductivity"] = (lam_j - phi_j * k_gas) / (1.0 - phi_j)
-            values[f"{name}.length"] = length * (ends[j + 1] - ends[j])
+            values[f"{name}.porosity"] = phis[j]
+            values[f"{name}.solid_conductivity"] = lam_s_parts[j]
+            values[f"{name}.length"] = lengths[j]
             for fld, v in own.items():
                 values[f"{name}.{fld}"] = v if (first or fld != "contact_resistance") else 0.0 * np.asarray(v)
     if not split:
