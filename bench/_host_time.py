@@ -60,6 +60,7 @@ TIMED = {
         "KindProblems.prediction",
         "KindProblems.at_solutions",
         "ValueLayout.table",
+        "ValueLayout.neighbour_table",
         "kind_result",
         "run_sets",
         "residual",

@@ -100,6 +100,33 @@ def test_normal_equations_on_the_device_are_the_hosts(seed, device):
         assert np.all(got[3][c, :, p:] == H[c, :, p:])
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_trials_neighbours_take_their_points_values(seed):
+    # the launch's tables of fits at z with their forward-difference neighbours, made from
+    # the points' values and the names each parameter sets (ValueLayout.neighbour_table),
+    # against every set's values computed in full: equal to the bit, for fits with a field,
+    # a structural and a host-side effect, some rows alone and repeated rows, at random
+    # points, some components at their upper bound (a step towards the interior)
+    from tawarp.fit.problems import FD_STEP
+
+    kind = mesh_kind(seed)
+    specs = _specs(kind, seed)
+    lm = KindProblems(kind, specs)
+    rng = np.random.default_rng(seed)
+    z = _padded(specs) + rng.uniform(-0.3, 0.3, _padded(specs).shape)
+    z = np.clip(z, lm.zlo, lm.zhi)
+    z[:, 0] = np.where(np.isfinite(lm.zhi[:, 0]), lm.zhi[:, 0], z[:, 0])
+    pid = np.arange(len(specs))
+    step = np.where(z + FD_STEP > lm.zhi[pid], -FD_STEP, FD_STEP)
+    sizes, X = lm._with_neighbours(pid, z, step)
+    full, _, _ = lm._jobs(pid, sizes, X, False)
+    got, _, _ = lm._jobs(pid, sizes, X, False, (z, step))
+    assert len(got) == len(full) >= 2 and np.any(step < 0)
+    for a, b in zip(full, got):
+        assert a.values.names == b.values.names
+        assert np.array_equal(a.values.array, b.values.array, equal_nan=True)
+
+
 def _data_of(kind, truth_values, noise, seed):
     """The kind with its data the model's at ``truth_values`` plus relative noise."""
     Y = kind.predict({k: np.array([v]) for k, v in truth_values.items()}, 1)[0]

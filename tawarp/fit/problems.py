@@ -303,9 +303,9 @@ class KindProblems:
         and family of kinds (:func:`predict_sets`)."""
         return self._predict_arrays(*_stacked(requests))
 
-    def _predict_arrays(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray) -> list:
+    def _predict_arrays(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, neighbours=None) -> list:
         """:meth:`predict` of the requests of :meth:`_jobs`."""
-        jobs, assemble = self._prediction(fits, sizes, X)
+        jobs, assemble = self._prediction(fits, sizes, X, neighbours=neighbours)
         return assemble(predict_sets(jobs, self.families))
 
     def prediction(self, requests: list, on_device: bool = False) -> tuple[list["Sets"], Callable[[list], list]]:
@@ -314,9 +314,11 @@ class KindProblems:
         to ``requests``' results (``on_device``: :class:`tawarp.measure.kind.DeviceValues`)."""
         return self._prediction(*_stacked(requests), on_device)
 
-    def _prediction(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool = False) -> tuple:
+    def _prediction(
+        self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool = False, neighbours=None
+    ) -> tuple:
         """:meth:`prediction` of the requests of :meth:`_jobs`."""
-        jobs, members, at = self._jobs(fits, sizes, X, on_device)
+        jobs, members, at = self._jobs(fits, sizes, X, on_device, neighbours)
 
         def assemble(got: list) -> list:
             out = [None] * fits.size
@@ -327,13 +329,15 @@ class KindProblems:
 
         return jobs, assemble
 
-    def _jobs(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool) -> tuple:
+    def _jobs(self, fits: np.ndarray, sizes: np.ndarray, X: np.ndarray, on_device: bool, neighbours=None) -> tuple:
         """(jobs, members, at) of the requests of fits ``fits`` (r,), ``sizes`` (r,) sets
         each, their sets' x the rows of ``X`` (sizes.sum(), P) in order (zeros past a fit's
         p): one :class:`Sets` per group (:attr:`group_of`), in the order of the groups'
         first requests, each with its requests' sets in their order; ``members`` per job
         its requests (indices into ``fits``), ``at`` (r,) where each request's sets start
-        in its job's."""
+        in its job's. ``neighbours``: (z, step) where X is :meth:`_with_neighbours`' of them,
+        each fit's point and its neighbours (a group's values then from its points',
+        :meth:`ValueLayout.neighbour_table`)."""
         first = np.concatenate([[0], np.cumsum(sizes)])
         by_group: dict = {}
         for i, c in enumerate(fits.tolist()):
@@ -354,7 +358,12 @@ class KindProblems:
                 rows = [r for k, r in zip(n.tolist(), needed) for _ in range(k)]
             effect = self.specs[c0][1] if key[1] is not None else None
             layout = self._layout(key)
-            table = layout.table(set_fits, X[rows_of], self._launch_names(layout.names, fits[todo]))
+            names = self._launch_names(layout.names, fits[todo])
+            if neighbours is not None and not layout.expanding:
+                z, step = neighbours
+                table = layout.neighbour_table(fits[todo], z[todo], step[todo], self.p[fits[todo]], names)
+            else:
+                table = layout.table(set_fits, X[rows_of], names)
             jobs.append(Sets(self.kinds[c0], table, int(n.sum()), effect, rows, on_device))
             members.append(todo)
         return jobs, members, at
@@ -421,7 +430,7 @@ class KindProblems:
         if n == 0:
             return np.empty(0), np.empty(0), np.empty((0, P)), np.empty((0, P, P))
         sizes, X = self._with_neighbours(pid, z, step)
-        jobs, members, at = self._jobs(pid, sizes, X, on_device=True)
+        jobs, members, at = self._jobs(pid, sizes, X, on_device=True, neighbours=(z, step))
         launched = predict_sets(jobs, self.families)
         device = launched[0].values.device
         data_y, data_w, rows, data_index, row_start, row_count = self._device_data(device)
@@ -517,7 +526,8 @@ class KindProblems:
         n, P = z.shape
         # each fit's model values (1 + p or 1, rows) in parts: the point's, then its neighbours'
         if below is None:
-            parts = [(Y,) for Y in self._predict_arrays(pid, *self._with_neighbours(pid, z, step))]
+            sets = self._with_neighbours(pid, z, step)
+            parts = [(Y,) for Y in self._predict_arrays(pid, *sets, (z, step))]
         else:
             points = self._predict_arrays(pid, np.ones(n, dtype=np.int64), z)
             with np.errstate(over="ignore", invalid="ignore"):  # the same sums as the cost below
@@ -681,6 +691,28 @@ class ValueLayout:
                 for k, w in own.items():
                     out[k][sets] = w
         return out
+
+    def neighbour_table(self, fits: np.ndarray, z: np.ndarray, step: np.ndarray, p: np.ndarray, names=None):
+        """:meth:`table` of the sets of :meth:`KindProblems._with_neighbours`: per fit of
+        ``fits`` (n,) at ``z`` (n, P) with steps ``step`` (n, P) and ``p`` (n,) parameters,
+        its point, then its neighbours ``z + step_a e_a``. A neighbour takes its point's
+        values but for the names its parameter a sets, so only the points' table and those
+        names are computed: a batch of 500 fits' 4100 sets 0.37 ms against 1.45 in full
+        (the loop's refits on a GPU are batches of thousands of fits)."""
+        names = self.names if names is None else names
+        cols = slice(None) if names == self.names else rows_in(self.names, names)
+        first = np.cumsum(p + 1) - (p + 1)  # each fit's point's set
+        out = self.table(fits, z, names).array[:, np.repeat(np.arange(fits.size), p + 1)]
+        local = self.local[fits]
+        slot = self.slot[local][:, cols]  # (fits, names)
+        i, t = np.nonzero(slot >= 0)
+        a = slot[i, t]
+        x = z[i, a] + step[i, a]  # the neighbour's x along a, as _with_neighbours forms it
+        start, scale = self.start[local][:, cols][i, t], self.scale[local][:, cols][i, t]
+        with np.errstate(over="ignore", invalid="ignore"):
+            value = np.where(self.log[local][:, cols][i, t], start * np.exp(x), start + scale * x)
+        out[t, first[i] + 1 + a] = value
+        return ValueTable(names, out)
 
 
 def kind_result(
