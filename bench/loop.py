@@ -38,7 +38,9 @@ different code can be checked to decide the same.
   the kernels the processes load, and one process's loops a second). With
   ``--blocking-waits`` each process's CUDA context waits for the GPU by blocking, not
   spinning (:func:`tawarp.distributed.wait_by_blocking`), so that more processes than cores
-  share the host;
+  share the host; with ``--read-waits`` each process's reads of GPU arrays and uploads are
+  timed by the wall clock, by call site, with its context switches (``read_waits``,
+  ``bench/_read_waits.py``: the waits that blocking takes off the CPU time);
 * ``together``: the T-matrix cases in this process, ``--together`` at a time, warm (a first
   round, ``cold``, compiles or loads the kernels; the second, ``warm``, is timed): the host
   work a case costs when loops run together, without a study's processes sharing the host
@@ -46,8 +48,9 @@ different code can be checked to decide the same.
   the warm round's kernels and copies are timed on the device (``device_time``: what the GPU
   itself spends a case, by kind and by kernel); with ``--host-time`` the warm round's host
   CPU time by function (``host_time``: each timed function's thread CPU time less that of the
-  timed functions it calls, ``bench/_host_time.py``), and with ``--blocking-waits`` this
-  process waits for the GPU by blocking, so that its waits take no CPU time.
+  timed functions it calls, ``bench/_host_time.py``), with ``--read-waits`` its reads' and
+  uploads' wall time, and with ``--blocking-waits`` this process waits for the GPU by
+  blocking, so that its waits take no CPU time.
 
     python bench/loop.py --device cuda --cases study --processes 1,4,16
     python bench/loop.py --device cpu --cases study --processes 16
@@ -80,6 +83,8 @@ import warp as wp
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "studies"))
 import loop_validation as lv  # noqa: E402
 from _host_time import summary, thread_times  # noqa: E402
+from _read_waits import read_waits  # noqa: E402
+from _read_waits import summary as read_waits_summary  # noqa: E402
 from _results import run, write_result  # noqa: E402
 
 from tawarp.distributed import (  # noqa: E402
@@ -251,22 +256,31 @@ def device_time(activities: list, cases: int, top: int = 12) -> dict:
     }
 
 
-def together_cases(seeds, device, cache: Path, together: int, timed: bool = False, host_time: bool = False) -> dict:
+def together_cases(
+    seeds, device, cache: Path, together: int, timed: bool = False, host_time: bool = False, waits: bool = False
+) -> dict:
     """The T-matrix cases ``seeds`` in this process, ``together`` loops at a time
     (:func:`tawarp.loop.run_loops`), from cold: the loops a second of one process, its first
     launches' compiles or cache loads included. ``timed``: the device's own time of every
     kernel and copy too (:func:`device_time`; CUDA events around each, which the wall time
     then includes). ``host_time``: the host's CPU time by function (``bench/_host_time.py``;
-    a wrapper's few microseconds a call, which the CPU times then include)."""
+    a wrapper's few microseconds a call, which the CPU times then include). ``waits``: the
+    wall time of the reads of GPU arrays and the uploads, by call site
+    (``bench/_read_waits.py``)."""
     cases = [tmatrix_case(seed, device, cache) for seed in seeds]
     order = by_family(list(range(len(cases))), [prob for _, prob in cases])
     seeds, probs = [seeds[i] for i in order], [cases[i][1] for i in order]
     if timed:
         wp.timing_begin(cuda_filter=wp.TIMING_ALL)
-    with thread_times() if host_time else contextlib.nullcontext() as totals:
+    with (
+        thread_times() if host_time else contextlib.nullcontext() as totals,
+        read_waits() if waits else contextlib.nullcontext() as reads,
+    ):
         clock = _clocks()
         reps = loops_in_groups(probs, together)
         out = {"cases": len(reps), "loops_together": together, **_elapsed(clock)}
+    if waits:
+        out["read_waits"] = read_waits_summary(reads, len(reps))
     if timed:
         out["device_time"] = device_time(wp.timing_end(), len(reps))
     if host_time:
@@ -289,15 +303,20 @@ def interrupts_ignored():
 
 def _study_worker(job: tuple) -> dict:
     """One process of :func:`study`: the T-matrix cases ``seeds``, ``repeats`` times each,
-    ``together`` at a time (:func:`tawarp.loop.run_loops`)."""
-    seeds, device, cache, repeats, cpu_threads, together = job
+    ``together`` at a time (:func:`tawarp.loop.run_loops`); ``waits``: its reads' wall time
+    (``bench/_read_waits.py``)."""
+    seeds, device, cache, repeats, cpu_threads, together, waits = job
     wp.config.quiet = True
-    clock = _clocks()
     verdicts = []
-    for _ in range(repeats):
-        probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
-        verdicts += [rep["verdict"] for rep in loops_in_groups(probs, together)]
-    return {**_elapsed(clock), "verdicts": verdicts, "cuda_waits": context_waits(device)}
+    with read_waits() if waits else contextlib.nullcontext() as reads:
+        clock = _clocks()
+        for _ in range(repeats):
+            probs = by_family([tmatrix_case(seed, device, Path(cache), cpu_threads)[1] for seed in seeds])
+            verdicts += [rep["verdict"] for rep in loops_in_groups(probs, together)]
+        out = {**_elapsed(clock), "verdicts": verdicts, "cuda_waits": context_waits(device)}
+    if waits:
+        out["read_waits"] = read_waits_summary(reads, len(verdicts))
+    return out
 
 
 def _blocking_worker(device: str) -> None:
@@ -307,7 +326,14 @@ def _blocking_worker(device: str) -> None:
 
 
 def study(
-    seeds, device, cache: Path, processes: list[int], repeats: int, together: int = 1, blocking: bool = False
+    seeds,
+    device,
+    cache: Path,
+    processes: list[int],
+    repeats: int,
+    together: int = 1,
+    blocking: bool = False,
+    waits: bool = False,
 ) -> list[dict]:
     """Loop cases per second of a study on this machine: for each count P of ``processes``, P
     processes (each its own Warp context, on the CPU or sharing the GPU) each running the
@@ -315,11 +341,12 @@ def study(
     (:func:`tawarp.loop.run_loops`), its linear algebra's threads limited to its share of
     the cores (:func:`tawarp.distributed.cores_shared`); on the CPU its launches split over
     that share too. ``blocking``: each process's CUDA contexts wait by blocking
-    (:func:`tawarp.distributed.wait_by_blocking`)."""
+    (:func:`tawarp.distributed.wait_by_blocking`). ``waits``: each process's reads of GPU
+    arrays and uploads timed (``bench/_read_waits.py``)."""
     out = []
     for P in processes:
         threads = cpu_share(P) if device == "cpu" else None
-        jobs = [(seeds, device, str(cache), repeats, threads, together)] * P
+        jobs = [(seeds, device, str(cache), repeats, threads, together, waits)] * P
         start = time.perf_counter()
         # spawned: this process has started CUDA, which a forked child cannot use; with
         # Ctrl-C ignored, which they inherit, so that an interrupt stops the study here once
@@ -359,6 +386,8 @@ def study(
                 "verdicts": runs[0]["verdicts"][: len(seeds)],
             }
         )
+        if waits:
+            out[-1]["read_waits"] = [r["read_waits"] for r in runs]
         print(
             f"study, {P} processes on {device}, {together} loops together: {n} cases in {wall:.1f} s, "
             f"{n / wall:.3f} cases/s"
@@ -437,6 +466,12 @@ def main(argv=None) -> int:
         action="store_true",
         help="with --cases study or together on a GPU: each process's CUDA context waits by blocking, not spinning",
     )
+    ap.add_argument(
+        "--read-waits",
+        action="store_true",
+        help="with --cases study or together on a GPU: each process's reads of GPU arrays and uploads timed "
+        "by the wall clock, by call site, and its context switches (bench/_read_waits.py)",
+    )
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     try:
@@ -469,6 +504,8 @@ def main(argv=None) -> int:
         )
     if args.host_time and "together" not in cases:
         ap.error("--host-time: times the warm round of loops together; needs --cases together")
+    if args.read_waits and (not cases & {"study", "together"} or device.is_cpu):
+        ap.error("--read-waits: times the waits for a GPU; needs --cases study or together and a CUDA --device")
     if args.device_time and ("together" not in cases or device.is_cpu):
         ap.error("--device-time: times a GPU's work; needs --cases together and a CUDA --device")
     cache = Path(args.cache)
@@ -504,7 +541,9 @@ def main(argv=None) -> int:
     if "impedance" in cases:
         result["impedance"] = impedance_case(args.impedance_freqs, args.device)
     if "study" in cases:
-        result["study"] = study(seeds, args.device, cache, processes, args.repeats, args.together, args.blocking_waits)
+        result["study"] = study(
+            seeds, args.device, cache, processes, args.repeats, args.together, args.blocking_waits, args.read_waits
+        )
         if together_warm is not None:
             result["together_one_process"] = together_warm
     if "together" in cases:
@@ -513,7 +552,9 @@ def main(argv=None) -> int:
             result["cuda_waits"] = context_waits(args.device)
         result["together"] = {
             "cold": together_warm or together_cases(seeds, args.device, cache, args.together),
-            "warm": together_cases(seeds, args.device, cache, args.together, args.device_time, args.host_time),
+            "warm": together_cases(
+                seeds, args.device, cache, args.together, args.device_time, args.host_time, args.read_waits
+            ),
         }
     result["load_average"]["after"] = list(os.getloadavg())
     tag = "cpu" if args.device == "cpu" else wp.get_device(args.device).name.lower().replace(" ", "_")

@@ -1,5 +1,6 @@
 """The benchmarks' helpers: where a benchmark writes its JSON (bench/_results.py), what
-bench/loop.py counts and times, the host's CPU time by function (bench/_host_time.py)."""
+bench/loop.py counts and times, the host's CPU time by function (bench/_host_time.py), the
+wall time of reads and uploads (bench/_read_waits.py)."""
 
 import importlib.util
 import json
@@ -169,3 +170,37 @@ def test_a_garbage_collection_is_its_own_line_not_the_interrupted_functions(monk
     assert collected["calls"] >= 1 and collected["seconds"] > 0
     own = by["distinct_columns"]
     assert own["seconds"] == pytest.approx(own["inclusive_seconds"] - collected["seconds"], abs=1e-6)
+
+
+def test_reads_and_uploads_are_timed_by_call_site_and_the_arrays_restored():
+    # bench/_read_waits.py on Warp's CPU device (on_cuda_only off: a CPU array's read waits
+    # for nothing, but it is timed the same way): three reads at one line, two more at two others,
+    # one upload from a NumPy array and none from a Warp array's own copy; the wrappers go
+    # on leaving, and the summary adds the sites up
+    import warp as wp
+
+    rw = _bench("_read_waits")
+    read, make = wp.array.numpy, wp.array.__init__
+    a = wp.array(np.arange(4.0), device="cpu")
+    with rw.read_waits(on_cuda_only=False) as totals:
+        for _ in range(3):
+            a.numpy()
+        b = wp.zeros(3, dtype=wp.float64, device="cpu")
+        b.numpy()
+        b.numpy()
+        wp.array(np.ones(3), device="cpu")
+    assert wp.array.numpy is read and wp.array.__init__ is make
+    sites = totals["sites"]
+    reads = sorted(n for k, (n, _) in sites.items() if k.startswith("read test_bench_results.py:"))
+    uploads = [n for k, (n, _) in sites.items() if k.startswith("upload test_bench_results.py:")]
+    assert reads == [1, 1, 3], sites
+    assert uploads == [1], sites
+    assert all(s >= 0.0 for _, s in sites.values())
+    got = rw.summary(totals, cases=2, top=1)
+    assert got["calls"] == sum(n for n, _ in sites.values()) and len(got["by_site"]) == 1
+    assert got["ms_per_case"] == 1e3 * got["seconds"] / 2
+    assert got["voluntary_switches"] >= 0 and got["involuntary_switches"] >= 0
+    # on_cuda_only (the default): a CPU array's reads are not timed
+    with rw.read_waits() as totals:
+        a.numpy()
+    assert totals["sites"] == {}
