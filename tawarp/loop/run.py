@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..fit.lm import DROPPED, MERGED
 from ..fit.lockstep import run_together
 from ..fit.problems import Families, fit_batch, fit_one
 from ..fit.result import FitResult
@@ -354,12 +353,10 @@ def fit_models(
         starts=np.array(owner),
         merge=MERGE,
     )
-    kept = []
-    for k in range(len(out)):
-        # (a start that another start of its model supersedes comes back as None)
-        own = [f for f, o in zip(fits, owner) if o == k and f is not None]
-        # a model out of reach (RACE_OUT) has only dropped starts: its best as it stopped
-        kept.append([f for f in own if f.reason[0] not in (DROPPED, MERGED)] or own)
+    # fit_batch returns None for a start that stopped dropped or merged beside a start of its
+    # model that did neither; a model out of reach (RACE_OUT) has only dropped starts, all
+    # returned: its best as it stopped
+    kept = [[f for f, o in zip(fits, owner) if o == k and f is not None] for k in range(len(out))]
     scores = iter(_log_evidences([f for fs in kept for f in fs], noise_scale))
     for m, fs in zip(out, kept):
         scored = [(next(scores), f) for f in fs]
